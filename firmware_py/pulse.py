@@ -1,0 +1,552 @@
+"""Magnetometer sample ring and pulse-window extraction.
+
+A pulsed-DC source is only ever seen by the magnetometer as "earth field (plus
+whatever else is static) + coil field while the coil is on". The firmware knows
+exactly when it asked the coil driver to start and stop a pulse, so it extracts
+one pulse amplitude per axis from the samples around that window:
+
+Timeline of one window (integer microseconds, ``start``/``end`` = pulse edges)::
+
+    before baseline          guard  settle                guard  fall        after baseline
+    [start-baseline_us, start-guard_us]  [start+settle_us, end-guard_us]  [end+fall_us, end+fall_us+baseline_us]
+    |<---- quiet ---->|      |      |<---- flat top ---->|      |<- decay ->|<---- quiet ---->|
+
+In-pulse samples
+    A sample is *used* only if it lies in the settled window
+    ``start + settle_us <= t <= end - guard_us`` AND it is not the first or the
+    last of the samples lying inside ``[start, end]``. Schepers & Veltink
+    (seeds/000_e46ec0e8bf7ea271.txt, sec. 3.1) average "all samples except the
+    first and the last of each pulse ... because they may have occurred in the
+    rising or falling edge". The settle time additionally covers the L/R
+    current rise and the eddy currents that "die out at an exponential rate
+    after the pulse reaches its steady state value", so sampling farther from
+    the leading edge sees less of them (thesis seeds/002_cd7f1fdb7fc67471.txt,
+    sec. 5.5 and sec. 7.2). The guard before ``end`` and before ``start``
+    absorbs the timing uncertainty between the driver's and the sensor's clocks.
+
+Baseline (earth field)
+    "Between the magnetic pulses, only the earth magnetic field is measured
+    which can be subtracted from the measured pulses" (thesis sec. 5.2); the
+    pulse magnitude is obtained "by evaluating the values of the earth magnetic
+    field just before and after the pulse", and movement within a cycle makes
+    that DC component vary (thesis sec. 5.4, Fig. 5.6). A rotating sensor sees
+    a changing earth field, so the baseline is fitted *linearly in time* (least
+    squares, per axis, over the quiet samples on both sides) and evaluated at
+    the mean time of the used in-pulse samples. Because the model is linear,
+    subtracting it at each used sample time and averaging is identical to
+    subtracting it once at the mean in-pulse time ``t_m``. If only one side has
+    samples the baseline is that side's mean (constant) and ``PULSE_TOO_FEW``
+    is raised whenever a side holds fewer than ``min_baseline_samples``.
+
+Amplitude and variance (per axis)
+    ``amp = mean(used in-pulse samples) - baseline(t_m)``.
+    ``var = sigma^2 / n_pulse + sigma^2 * (1/n_b + (t_m - t_bar)^2 / Sxx)``:
+    the first term is the variance of a sample mean, sigma_m = sigma/sqrt(n)
+    (Schepers & Veltink sec. 3.1, Fig. 5); the second is the textbook variance
+    of a least-squares line predicted at ``t_m`` (``t_bar`` and ``Sxx`` are
+    the mean and the centred sum of squares of the baseline sample times;
+    for a constant baseline the factor is ``1/n_b``). ``sigma`` is the
+    configured per-sample noise std ``sigma_t`` (about 0.5e-7 T for the
+    thesis's flipped magnetoresistive sensor, sec. 5.2.1). The pulse and
+    baseline samples are disjoint, hence independent, so the variances add.
+    An empirical per-axis estimate (sample variance of the used in-pulse
+    samples about the fitted baseline slope, divided by n_pulse) is kept for
+    diagnostics, see ``last_empirical_var``.
+
+Flags (bit field; the estimate is still written whenever it can be computed)
+    ``PULSE_SATURATED``   a used sample (pulse or baseline) was saturated.
+    ``PULSE_BASELINE_DRIFT`` ``|mean(before) - mean(after)|`` exceeds
+        ``drift_limit_t + drift_nsigma * sigma * sqrt(1/n_before + 1/n_after)``
+        on any axis, i.e. more than the limit beyond what noise explains: the
+        earth field moved a lot during the window (thesis sec. 5.4, Fig. 5.6),
+        so the linear model is suspect.
+    ``PULSE_FLIP``        the set/reset flip state is not constant over the
+        span ``[start - baseline_us, end + fall_us + baseline_us]``: flipping
+        "can introduce oscillations during pulsing" and should be synchronised
+        with actuation (thesis sec. 5.5 and sec. 7.2).
+    ``PULSE_INCOMPLETE``  the span is not bracketed by a sample before its
+        start and a sample after its end (not yet ``ready()``, or already
+        overwritten in the ring), or consecutive samples across the span are
+        further apart than ``max_gap_us`` (when 0: 1.5 times the smallest
+        spacing seen in the span), i.e. samples are missing.
+    ``PULSE_TOO_FEW``     fewer than ``min_pulse_samples`` used in-pulse
+        samples or fewer than ``min_baseline_samples`` on a side.
+    If no in-pulse sample or no baseline sample exists at all, ``amp_out`` is
+    set to 0, ``var_out`` to +inf and ``PULSE_TOO_FEW`` is set.
+
+Firmware rules: every array is allocated in ``__init__``; ``push`` and
+``extract`` only read and write those buffers (through memoryviews, with plain
+Python float arithmetic, since a window holds at most a few hundred samples)
+and create no numpy arrays. Time is an integer count of microseconds. Bad data
+never raises: ``push`` rejects (and counts) samples that are non-finite, not
+later than the previous one or not integer-timed; ``extract`` reports flags.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+
+import numpy as np
+
+# quality flags (bit field, int)
+PULSE_OK = 0
+PULSE_TOO_FEW = 1         # fewer than min_pulse_samples usable in-pulse samples, or fewer than min_baseline per side
+PULSE_SATURATED = 2       # any used sample saturated
+PULSE_BASELINE_DRIFT = 4  # before/after baseline differ by more than drift_limit_t (beyond what noise explains)
+PULSE_FLIP = 8            # a set/reset flip occurred inside the window (sample flip-state changed)
+PULSE_INCOMPLETE = 16     # the window cannot be closed yet / samples missing (gap in the stream)
+
+# per-sample flag bits stored in SampleRing.flags
+SAMPLE_SATURATED = 1
+SAMPLE_FLIP = 2
+
+#: ``SampleRing.latest_t_us`` / ``oldest_t_us`` of an empty ring.
+NO_TIME_US = -(1 << 63)
+_INT64_MAX = (1 << 63) - 1
+_INF = math.inf
+
+
+class SampleRing:
+    """Fixed-capacity ring of magnetometer samples.
+
+    Storage (allocated once): ``t_us`` int64 (capacity,), ``b`` float64
+    (capacity, 3) tesla, ``flags`` uint8 (capacity,) with bit0 = saturated,
+    bit1 = flip (set/reset) state. Timestamps are strictly increasing; a full
+    ring overwrites its oldest sample. Logical index 0 is the oldest sample.
+    """
+
+    __slots__ = ("capacity", "t_us", "b", "flags", "_tv", "_bv", "_fv",
+                 "_head", "_count", "_latest", "rejected")
+
+    def __init__(self, capacity: int):
+        capacity = operator.index(capacity)
+        if capacity < 2:
+            raise ValueError("SampleRing capacity must be >= 2")
+        self.capacity = capacity
+        self.t_us = np.zeros(capacity, dtype=np.int64)
+        self.b = np.zeros((capacity, 3), dtype=np.float64)
+        self.flags = np.zeros(capacity, dtype=np.uint8)
+        # memoryviews read and write single elements as Python int/float,
+        # without creating numpy scalars or arrays
+        self._tv = memoryview(self.t_us)
+        self._bv = memoryview(self.b.reshape(-1))
+        self._fv = memoryview(self.flags)
+        self._head = 0          # physical slot of the next write
+        self._count = 0
+        self._latest = NO_TIME_US
+        self.rejected = 0       # samples refused by push (bad data)
+
+    def push(self, t_us: int, bx: float, by: float, bz: float,
+             saturated: bool, flip: int) -> None:
+        """Append one sample, overwriting the oldest when full.
+
+        Samples that are not strictly later than the previous one, have a
+        non-integer or out-of-range time, or a non-finite field are dropped
+        and counted in ``rejected`` (a dropped sample shows up as a gap).
+        """
+        try:
+            t = operator.index(t_us)
+            x = float(bx)
+            y = float(by)
+            z = float(bz)
+            fl = ((SAMPLE_SATURATED if saturated else 0)
+                  | (SAMPLE_FLIP if operator.index(flip) & 1 else 0))
+        except (TypeError, ValueError, OverflowError):
+            self.rejected += 1
+            return
+        if (t <= self._latest or t > _INT64_MAX
+                or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z))):
+            self.rejected += 1
+            return
+        p = self._head
+        self._tv[p] = t
+        j = 3 * p
+        bv = self._bv
+        bv[j] = x
+        bv[j + 1] = y
+        bv[j + 2] = z
+        self._fv[p] = fl
+        p += 1
+        self._head = 0 if p == self.capacity else p
+        if self._count < self.capacity:
+            self._count += 1
+        self._latest = t
+
+    def __len__(self) -> int:
+        return self._count
+
+    @property
+    def latest_t_us(self) -> int:
+        """Time of the newest sample, ``NO_TIME_US`` when empty."""
+        return self._latest
+
+    @property
+    def oldest_t_us(self) -> int:
+        """Time of the oldest retained sample, ``NO_TIME_US`` when empty."""
+        if self._count == 0:
+            return NO_TIME_US
+        return self._tv[self.slot(0)]
+
+    def slot(self, i: int) -> int:
+        """Physical slot of logical index ``i`` (0 = oldest)."""
+        p = self._head - self._count + i
+        cap = self.capacity
+        while p < 0:
+            p += cap
+        while p >= cap:
+            p -= cap
+        return p
+
+    def index_at_or_after(self, t_us: int) -> int:
+        """Logical index of the first sample with time >= ``t_us`` (``len`` if none)."""
+        lo = 0
+        hi = self._count
+        tv = self._tv
+        base = self._head - self._count
+        cap = self.capacity
+        while lo < hi:
+            mid = (lo + hi) >> 1
+            p = base + mid
+            if p < 0:
+                p += cap
+            elif p >= cap:
+                p -= cap
+            if tv[p] < t_us:
+                lo = mid + 1
+            else:
+                hi = mid
+        return lo
+
+
+class PulseExtractor:
+    """Extract pulse amplitudes from a :class:`SampleRing` (see module docstring).
+
+    All times are integer microseconds; ``settle_us``, ``fall_us``,
+    ``baseline_us`` and ``guard_us`` are measured from the commanded pulse
+    edges. ``sigma_t`` is the per-sample noise std (tesla, all axes).
+    ``max_samples`` sizes the buffer of used in-pulse timestamps kept for
+    :meth:`last_used_times`. ``max_gap_us`` (0 = automatic) and
+    ``drift_nsigma`` tune the ``PULSE_INCOMPLETE`` gap test and the
+    ``PULSE_BASELINE_DRIFT`` noise allowance.
+    """
+
+    def __init__(self, ring: SampleRing, *, settle_us: int, fall_us: int, baseline_us: int,
+                 guard_us: int, min_pulse_samples: int = 3, min_baseline_samples: int = 2,
+                 drift_limit_t: float = 2e-6, sigma_t: float = 5e-8, max_samples: int = 256,
+                 max_gap_us: int = 0, drift_nsigma: float = 3.0):
+        self._ring = ring
+        self._settle_us = operator.index(settle_us)
+        self._fall_us = operator.index(fall_us)
+        self._baseline_us = operator.index(baseline_us)
+        self._guard_us = operator.index(guard_us)
+        self._min_pulse = operator.index(min_pulse_samples)
+        self._min_base = operator.index(min_baseline_samples)
+        self._max_gap_us = operator.index(max_gap_us)
+        max_samples = operator.index(max_samples)
+        if min(self._settle_us, self._fall_us, self._baseline_us, self._guard_us,
+               self._max_gap_us) < 0:
+            raise ValueError("settle/fall/baseline/guard/max_gap times must be >= 0")
+        if self._min_pulse < 1 or self._min_base < 1 or max_samples < 1:
+            raise ValueError("min_pulse_samples, min_baseline_samples, max_samples must be >= 1")
+        self._drift_limit = float(drift_limit_t)
+        self._sigma = float(sigma_t)
+        self._drift_nsigma = float(drift_nsigma)
+        if not (self._sigma > 0.0 and math.isfinite(self._sigma)
+                and self._drift_limit >= 0.0 and self._drift_nsigma >= 0.0):
+            raise ValueError("sigma_t must be > 0, drift_limit_t and drift_nsigma >= 0")
+        self.max_samples = max_samples
+        # scratch, allocated once
+        self._used_t = np.zeros(max_samples, dtype=np.int64)
+        self._used_tv = memoryview(self._used_t)
+        self._emp_var = np.full(3, np.inf)
+        self._emp_vv = memoryview(self._emp_var)
+        self._n_used = 0        # used in-pulse samples of the last extract
+        self._n_rec = 0         # of which timestamps recorded (<= max_samples)
+
+    # ------------------------------------------------------------------ timing
+    def span(self, start_us: int, end_us: int) -> tuple[int, int]:
+        """First and last time of the samples a window reads."""
+        return (start_us - self._baseline_us,
+                end_us + self._fall_us + self._baseline_us)
+
+    def ready(self, start_us: int, end_us: int) -> bool:
+        """True once a sample later than ``end + fall + baseline`` has arrived."""
+        return self._ring.latest_t_us > end_us + self._fall_us + self._baseline_us
+
+    # --------------------------------------------------------- introspection
+    def last_used_times(self, out) -> int:
+        """Write the times of the in-pulse samples used by the last extract
+        into ``out`` (int64 array); return how many were written
+        (``min(n_pulse, max_samples, len(out))``)."""
+        n = self._n_rec
+        if n > len(out):
+            n = len(out)
+        uv = self._used_tv
+        for k in range(n):
+            out[k] = uv[k]
+        return n
+
+    def last_empirical_var(self, out) -> int:
+        """Write the empirical variance of the last in-pulse mean per axis,
+        ``s^2 / n_pulse``, into ``out`` (3,); return ``n_pulse``. ``s^2`` is
+        the unbiased sample variance of the used samples after removing the
+        fitted baseline slope (+inf when fewer than 2 samples). It is the
+        measured counterpart of ``sigma^2 / n_pulse`` (Schepers & Veltink
+        sec. 3.1, Fig. 5); it carries no baseline term and grows when the
+        coil field seen by the sensor changes during the pulse (motion)."""
+        ev = self._emp_vv
+        out[0] = ev[0]
+        out[1] = ev[1]
+        out[2] = ev[2]
+        return self._n_used
+
+    # ------------------------------------------------------------ extraction
+    def _fail(self, flags: int, amp_out, var_out, n_pulse: int, n_base: int):
+        amp_out[0] = 0.0
+        amp_out[1] = 0.0
+        amp_out[2] = 0.0
+        var_out[0] = _INF
+        var_out[1] = _INF
+        var_out[2] = _INF
+        return flags | PULSE_TOO_FEW, n_pulse, n_base
+
+    def extract(self, start_us: int, end_us: int, amp_out, var_out) -> tuple[int, int, int]:
+        """Estimate the pulse amplitude for the window ``[start_us, end_us]``.
+
+        Writes ``amp_out`` (3,) tesla and ``var_out`` (3,) tesla^2; returns
+        ``(flags, n_pulse, n_base)``. Never raises on bad data.
+        """
+        ev = self._emp_vv
+        ev[0] = _INF
+        ev[1] = _INF
+        ev[2] = _INF
+        self._n_used = 0
+        self._n_rec = 0
+        try:
+            start = operator.index(start_us)
+            end = operator.index(end_us)
+        except TypeError:
+            return self._fail(PULSE_INCOMPLETE, amp_out, var_out, 0, 0)
+
+        ring = self._ring
+        n = ring._count
+        if n == 0:
+            return self._fail(PULSE_INCOMPLETE, amp_out, var_out, 0, 0)
+
+        lo = start - self._baseline_us            # span start
+        hi = end + self._fall_us + self._baseline_us  # span end
+        pre_hi = start - self._guard_us           # before-baseline: [lo, pre_hi]
+        post_lo = end + self._fall_us             # after-baseline: [post_lo, hi]
+        use_lo = start + self._settle_us          # settled window: [use_lo, use_hi]
+        use_hi = end - self._guard_us
+
+        i_lo = ring.index_at_or_after(lo)
+        i_hi = ring.index_at_or_after(hi + 1)     # first sample after the span
+        p_first = ring.index_at_or_after(start)   # first sample inside [start, end]
+        p_last = ring.index_at_or_after(end + 1) - 1  # last sample inside [start, end]
+
+        flags = PULSE_OK
+        if i_lo == 0 or i_hi >= n:                # span not bracketed on both sides
+            flags |= PULSE_INCOMPLETE
+
+        cap = ring.capacity
+        tv = ring._tv
+        bv = ring._bv
+        fv = ring._fv
+        uv = self._used_tv
+        max_rec = self.max_samples
+        base = ring._head - n                     # physical slot of logical 0 (mod cap)
+
+        # gap tracking over consecutive samples, bracketing samples included
+        if i_lo > 0:
+            p = base + i_lo - 1
+            p = p + cap if p < 0 else (p - cap if p >= cap else p)
+            prev_t = tv[p]
+            have_prev = True
+        else:
+            prev_t = 0
+            have_prev = False
+        min_dt = 0
+        max_dt = 0
+        n_dt = 0
+
+        flip0 = -1
+        flip_changed = False
+        sat = False
+        # field values are accumulated relative to the first span sample
+        rx = ry = rz = 0.0
+        have_ref = False
+        # before side
+        n_a = 0
+        ax = ay = az = 0.0
+        # after side
+        n_c = 0
+        cx = cy = cz = 0.0
+        # both sides, regression sums (times relative to start, microseconds)
+        st = stt = 0.0
+        stx = sty = stz = 0.0
+        # pulse: running means, centred sums of squares (q) and time
+        # co-moments (k) per axis (Welford), for the mean and the empirical
+        # variance of the residuals about the fitted baseline slope
+        n_p = 0
+        mt = qt = 0.0
+        mx = my = mz = 0.0
+        qx = qy = qz = 0.0
+        kx = ky = kz = 0.0
+
+        p = base + i_lo
+        p = p + cap if p < 0 else (p - cap if p >= cap else p)
+        for i in range(i_lo, i_hi):
+            t = tv[p]
+            if have_prev:
+                dt = t - prev_t
+                if n_dt == 0 or dt < min_dt:
+                    min_dt = dt
+                if dt > max_dt:
+                    max_dt = dt
+                n_dt += 1
+            prev_t = t
+            have_prev = True
+            f = fv[p]
+            fb = f & SAMPLE_FLIP
+            if flip0 < 0:
+                flip0 = fb
+            elif fb != flip0:
+                flip_changed = True
+            j = 3 * p
+            if not have_ref:
+                rx = bv[j]
+                ry = bv[j + 1]
+                rz = bv[j + 2]
+                have_ref = True
+            if t <= pre_hi:
+                x = bv[j] - rx
+                y = bv[j + 1] - ry
+                z = bv[j + 2] - rz
+                tr = float(t - start)
+                n_a += 1
+                ax += x
+                ay += y
+                az += z
+                st += tr
+                stt += tr * tr
+                stx += tr * x
+                sty += tr * y
+                stz += tr * z
+                if f & SAMPLE_SATURATED:
+                    sat = True
+            elif use_lo <= t <= use_hi and p_first < i < p_last:
+                x = bv[j] - rx
+                y = bv[j + 1] - ry
+                z = bv[j + 2] - rz
+                if n_p < max_rec:
+                    uv[n_p] = t
+                n_p += 1
+                tr = float(t - start)
+                d_t = tr - mt
+                mt += d_t / n_p
+                qt += d_t * (tr - mt)
+                d = x - mx
+                mx += d / n_p
+                qx += d * (x - mx)
+                kx += d_t * (x - mx)
+                d = y - my
+                my += d / n_p
+                qy += d * (y - my)
+                ky += d_t * (y - my)
+                d = z - mz
+                mz += d / n_p
+                qz += d * (z - mz)
+                kz += d_t * (z - mz)
+                if f & SAMPLE_SATURATED:
+                    sat = True
+            elif t >= post_lo:
+                x = bv[j] - rx
+                y = bv[j + 1] - ry
+                z = bv[j + 2] - rz
+                tr = float(t - start)
+                n_c += 1
+                cx += x
+                cy += y
+                cz += z
+                st += tr
+                stt += tr * tr
+                stx += tr * x
+                sty += tr * y
+                stz += tr * z
+                if f & SAMPLE_SATURATED:
+                    sat = True
+            p += 1
+            if p == cap:
+                p = 0
+        if i_hi < n and have_prev:                # interval to the bracketing sample after
+            dt = tv[p] - prev_t
+            if n_dt == 0 or dt < min_dt:
+                min_dt = dt
+            if dt > max_dt:
+                max_dt = dt
+            n_dt += 1
+
+        self._n_used = n_p
+        self._n_rec = n_p if n_p < max_rec else max_rec
+        if flip_changed:
+            flags |= PULSE_FLIP
+        if sat:
+            flags |= PULSE_SATURATED
+        if n_dt > 0:
+            if self._max_gap_us > 0:
+                if max_dt > self._max_gap_us:
+                    flags |= PULSE_INCOMPLETE
+            elif n_dt > 1 and 2 * max_dt > 3 * min_dt:
+                flags |= PULSE_INCOMPLETE
+        n_b = n_a + n_c
+        if n_p < self._min_pulse or n_a < self._min_base or n_c < self._min_base:
+            flags |= PULSE_TOO_FEW
+        if n_p == 0 or n_b == 0:
+            return self._fail(flags, amp_out, var_out, n_p, n_b)
+
+        s2 = self._sigma * self._sigma
+        tm = mt                                   # mean time of the used samples
+        inv_nb = 1.0 / n_b
+        bx = (ax + cx) * inv_nb
+        by = (ay + cy) * inv_nb
+        bz = (az + cz) * inv_nb
+        fac = inv_nb
+        gx = gy = gz = 0.0                        # baseline slopes, T/us
+        if n_a > 0 and n_c > 0:
+            tbar = st * inv_nb
+            sxx = stt - st * tbar
+            if sxx > 0.0:
+                dtm = tm - tbar
+                gx = (stx - tbar * (ax + cx)) / sxx
+                gy = (sty - tbar * (ay + cy)) / sxx
+                gz = (stz - tbar * (az + cz)) / sxx
+                bx += gx * dtm
+                by += gy * dtm
+                bz += gz * dtm
+                fac = inv_nb + dtm * dtm / sxx
+            # drift between the sides, beyond the limit plus what noise explains
+            lim = (self._drift_limit
+                   + self._drift_nsigma * self._sigma * math.sqrt(1.0 / n_a + 1.0 / n_c))
+            inv_a = 1.0 / n_a
+            inv_c = 1.0 / n_c
+            if (abs(ax * inv_a - cx * inv_c) > lim or abs(ay * inv_a - cy * inv_c) > lim
+                    or abs(az * inv_a - cz * inv_c) > lim):
+                flags |= PULSE_BASELINE_DRIFT
+
+        amp_out[0] = mx - bx
+        amp_out[1] = my - by
+        amp_out[2] = mz - bz
+        v = s2 / n_p + s2 * fac
+        var_out[0] = v
+        var_out[1] = v
+        var_out[2] = v
+        if n_p >= 2:
+            # sum of squared residuals about the baseline slope:
+            # sum((x - mx) - g (t - mt))^2 = qx - 2 g kx + g^2 qt
+            k = 1.0 / ((n_p - 1) * n_p)
+            ev[0] = max(qx - 2.0 * gx * kx + gx * gx * qt, 0.0) * k
+            ev[1] = max(qy - 2.0 * gy * ky + gy * gy * qt, 0.0) * k
+            ev[2] = max(qz - 2.0 * gz * kz + gz * gz * qt, 0.0) * k
+        return flags, n_p, n_b

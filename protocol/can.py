@@ -1,0 +1,650 @@
+"""The coiltrack protocol on CAN (python-can): identifiers, ISO-TP style
+segmentation, a reassembler, and ``CanLink``, an adapter that lets the
+firmware and the emulator run unchanged over a CAN bus.
+
+Identifiers (standard 11-bit)
+-----------------------------
+::
+
+    bit  10 9 8 | 7 6 5 | 4 3 2 1 0
+         class  | index | sender node id (0..31)
+
+``class`` is the schema's ``priority`` (0 most urgent) and ``index`` the
+rank of the message among the messages of its class, ordered by message id
+(so a message added later with a higher id never renumbers the others). The
+upper six bits are the function code, as in CANopen (whose SYNC is 0x080
+and whose node id fills the low bits); the identifier is unique per
+(message, sender node), so two nodes never contend with the same id, and
+since a lower identifier wins arbitration TIME_SYNC (class 0) beats
+everything, then COIL_PULSE_CMD (class 1), coil status, magnetometer flips
+and fault events (class 2), samples (3), poses (4), configuration and sync
+replies (5), heartbeats and diagnostics (6). Class 7 is unused. Node ids on
+CAN are 5 bits: firmware 1, coil driver 2, sensors 16..31.
+
+PDU (what is segmented)
+-----------------------
+Each message travels as one PDU::
+
+    seq u8 | payload (schema size) | crc u16 LE | [signature, 13 bytes]
+
+``crc`` is the serial frame's CRC: CRC-16/CCITT-FALSE over the five header
+bytes the serial link would carry (``len, flags, seq, src, msg_id``, with
+``src`` and ``msg_id`` taken from the CAN identifier) and the payload, then
+the message's CRC extra byte. The CAN CRC guards each frame; this CRC guards
+the reassembled PDU and, through the CRC extra, catches a peer built from
+another schema on CAN exactly as on serial. A PDU 13 bytes longer than the
+unsigned length is signed (serial header flag bit0); the signature is the
+serial one, so a signed command verifies identically on both links.
+
+Segmentation (ISO 15765-2 framing)
+----------------------------------
+Classic CAN (8 data bytes), frames not padded (DLC = bytes used)::
+
+    single frame       0x0L | L PDU bytes                     (L <= 7)
+    first frame        0x1H LL | first 6 PDU bytes            (length HLL, 12 bits)
+    consecutive frame  0x2N | next 7 PDU bytes                (N = 1, 2, .. 15, 0, 1, ..)
+
+MAG_SAMPLE (19-byte PDU) takes 3 classic frames: FF 8 bytes, CF 8, CF 7.
+With ``fd=True`` frames are CAN FD (64 bytes, padded with 0xCC to a valid FD
+length): single frame ``0x00 L`` (escape) for PDUs up to 62 bytes, first
+frame with 62 and consecutive frames with 63 PDU bytes. The receiver accepts
+either on any bus.
+
+The bus is a broadcast bus with many receivers, so there is no flow control:
+the sender sends FF and all CFs back to back (block size 0, STmin 0), and
+receivers must keep up (ISO-TP's flow control is point to point). A receiver
+keeps one reassembly per identifier, i.e. per (message, sender), so messages
+from different senders and different messages of one sender may interleave.
+A CF with the wrong sequence nibble, a CF without FF, a CF more than
+``timeout_s`` after the previous frame of its message, a new FF or SF while a
+reassembly is open: the partial message is dropped and counted, and the next
+SF/FF starts afresh. An exact repeat of the previous CF, or of the previous
+complete PDU on the same identifier, is a duplicate and is dropped.
+
+CanLink
+-------
+``CanLink(bus, node_id)`` presents the firmware's byte Port (``read() ->
+bytes``, ``write(bytes)``): ``write`` takes serial COBS frames, decodes them
+with :class:`protocol.framing.FrameDecoder` and sends each message as CAN
+frames with the identifier of (message, frame's ``src``); ``read`` drains the
+bus without blocking (``bus.recv(timeout=0)``), reassembles, and returns each
+good message re-encoded as a serial frame with the sender's ``seq`` and
+``src`` (and its signature). Bad CAN traffic is counted in
+``link.reassembler`` and never reaches the byte stream, so firmware and
+emulator run unchanged.
+"""
+from __future__ import annotations
+
+import itertools
+import time
+
+import can
+
+from .codec import STRUCTS
+from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolError,
+                     UnknownMessageError)
+from .framing import (CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
+                      build_frame, cobs_encode, parse_frame)
+from .schema import BY_ID, MAX_PAYLOAD, MESSAGES
+
+# --- identifiers ----------------------------------------------------------
+CLASS_SHIFT = 8
+INDEX_SHIFT = 5
+NODE_BITS = 5
+NODE_MASK = (1 << NODE_BITS) - 1
+MAX_CAN_NODE = NODE_MASK
+#: mask that keeps the function code (class and index) of an identifier
+FUNCTION_MASK = 0x7FF & ~NODE_MASK
+
+
+def _assign_indices() -> dict[int, int]:
+    idx: dict[int, int] = {}
+    for prio in range(8):
+        members = sorted(m.id for m in MESSAGES if m.priority == prio)
+        if len(members) > 8:
+            raise AssertionError(f"CAN class {prio} has {len(members)} messages; at most 8 fit")
+        for k, mid in enumerate(members):
+            idx[mid] = k
+    for m in MESSAGES:
+        if not 0 <= m.priority <= 7:
+            raise AssertionError(f"{m.name}: priority {m.priority} outside 0..7")
+    return idx
+
+
+#: message id -> index within its class
+CAN_INDEX: dict[int, int] = _assign_indices()
+#: message id -> identifier with node bits zero
+BASE_ID: dict[int, int] = {m.id: (m.priority << CLASS_SHIFT) | (CAN_INDEX[m.id] << INDEX_SHIFT)
+                           for m in MESSAGES}
+_MSG_BY_BASE: dict[int, int] = {b: mid for mid, b in BASE_ID.items()}
+
+
+def can_id(msg_id: int, node: int) -> int:
+    """11-bit identifier of message ``msg_id`` sent by ``node``."""
+    if msg_id not in BASE_ID:
+        raise UnknownMessageError(f"unknown message id {msg_id:#04x}")
+    if not 0 <= node <= MAX_CAN_NODE:
+        raise EncodeError(f"node id {node} does not fit the {NODE_BITS}-bit CAN node field (0..{MAX_CAN_NODE})")
+    return BASE_ID[msg_id] | node
+
+
+def parse_id(arbitration_id: int) -> tuple[int, int]:
+    """``(msg_id, sender node)`` of an identifier; raises UnknownMessageError."""
+    mid = _MSG_BY_BASE.get(arbitration_id & FUNCTION_MASK)
+    if mid is None or arbitration_id > 0x7FF:
+        raise UnknownMessageError(f"CAN id {arbitration_id:#05x} is not a coiltrack identifier")
+    return mid, arbitration_id & NODE_MASK
+
+
+# --- PDU ------------------------------------------------------------------
+PDU_OVERHEAD = 1 + CRC_LEN           # seq + crc
+MAX_PDU = PDU_OVERHEAD + MAX_PAYLOAD + SIG_LEN
+
+
+def pdu_length(msg_id: int, signed: bool = False) -> int:
+    return PDU_OVERHEAD + STRUCTS[msg_id].size + (SIG_LEN if signed else 0)
+
+
+def pdu_from_raw(raw) -> tuple[int, int, bytes]:
+    """``(msg_id, src, pdu)`` from an unencoded serial frame (validated)."""
+    parse_frame(raw)
+    return raw[4], raw[3], bytes([raw[2]]) + bytes(raw[HEADER_LEN:])
+
+
+def build_pdu(msg, seq: int = 0, src: int = 0, signature: bytes = b"") -> bytes:
+    """The PDU of ``msg`` as sent by ``src`` (signature: 13 bytes or empty)."""
+    flags = FLAG_SIGNED if signature else 0
+    raw = build_frame(msg, seq, src, flags, signature)
+    return bytes([seq & 0xFF]) + raw[HEADER_LEN:]
+
+
+def raw_from_pdu(msg_id: int, src: int, pdu) -> bytes:
+    """The serial frame (unencoded) equivalent to a CAN PDU; checks lengths only."""
+    d = BY_ID.get(msg_id)
+    if d is None:
+        raise UnknownMessageError(f"unknown message id {msg_id:#04x}")
+    n = len(pdu)
+    if n == PDU_OVERHEAD + d.size:
+        flags = 0
+    elif n == PDU_OVERHEAD + d.size + SIG_LEN:
+        flags = FLAG_SIGNED
+    else:
+        raise LengthError(f"{d.name}: PDU of {n} bytes, expected {PDU_OVERHEAD + d.size} "
+                          f"(or {PDU_OVERHEAD + d.size + SIG_LEN} signed)")
+    return bytes([d.size, flags, pdu[0], src, msg_id]) + bytes(pdu[1:])
+
+
+def decode_pdu(msg_id: int, src: int, pdu, hdr: DecodedFrame | None = None):
+    """Decode one reassembled PDU; raises ProtocolError subclasses only."""
+    return parse_frame(raw_from_pdu(msg_id, src, pdu), hdr)
+
+
+# --- segmentation ---------------------------------------------------------
+FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
+PAD = 0xCC
+
+
+def fd_length(n: int) -> int:
+    for L in FD_LENGTHS:
+        if L >= n:
+            return L
+    raise EncodeError(f"{n} bytes do not fit one CAN FD frame")
+
+
+def segment(pdu: bytes, fd: bool = False) -> list[bytes]:
+    """Frame data bytes for one PDU (ISO 15765-2 framing, no flow control)."""
+    n = len(pdu)
+    if n == 0 or n > 4095:
+        raise EncodeError(f"PDU of {n} bytes cannot be segmented")
+    if n <= 7:
+        return [bytes([n]) + pdu]
+    if fd:
+        if n <= 62:
+            data = bytes([0x00, n]) + pdu
+            return [data + bytes([PAD]) * (fd_length(len(data)) - len(data))]
+        first, cf = 62, 63
+    else:
+        first, cf = 6, 7
+    out = [bytes([0x10 | (n >> 8), n & 0xFF]) + pdu[:first]]
+    sn = 1
+    for i in range(first, n, cf):
+        data = bytes([0x20 | sn]) + pdu[i:i + cf]
+        if fd and len(data) > 8:
+            data += bytes([PAD]) * (fd_length(len(data)) - len(data))
+        out.append(data)
+        sn = (sn + 1) & 0x0F
+    return out
+
+
+def frame_data_lengths(msg_id: int, signed: bool = False, fd: bool = False) -> list[int]:
+    """Data bytes of each CAN frame one message takes (for bus load)."""
+    return [len(d) for d in segment(bytes(pdu_length(msg_id, signed)), fd)]
+
+
+class CanCodec:
+    """Message <-> CAN frames.
+
+    ``encode(msg, seq, src)`` returns the list of :class:`can.Message` frames
+    of one message; ``frames_from_raw(raw)`` does the same for an unencoded
+    serial frame (keeping its seq, src and signature). ``reassembler()`` gives
+    a :class:`CanReassembler` for the other direction; :meth:`decode_frames`
+    decodes the frames of exactly one message and raises ProtocolError
+    subclasses (the explicit, strict decoder).
+    """
+
+    def __init__(self, fd: bool = False, brs: bool = True):
+        self.fd = fd
+        self.brs = brs
+
+    def _messages(self, arb: int, pdu: bytes, timestamp: float = 0.0) -> list[can.Message]:
+        return [can.Message(arbitration_id=arb, is_extended_id=False, data=d, is_fd=self.fd,
+                            bitrate_switch=self.fd and self.brs, timestamp=timestamp)
+                for d in segment(pdu, self.fd)]
+
+    def encode(self, msg, seq: int = 0, src: int = 0, signature: bytes = b"",
+               timestamp: float = 0.0) -> list[can.Message]:
+        return self._messages(can_id(msg.ID, src), build_pdu(msg, seq, src, signature), timestamp)
+
+    def frames_from_raw(self, raw, timestamp: float = 0.0) -> list[can.Message]:
+        msg_id, src, pdu = pdu_from_raw(raw)
+        return self._messages(can_id(msg_id, src), pdu, timestamp)
+
+    def reassembler(self, **kwargs) -> "CanReassembler":
+        return CanReassembler(**kwargs)
+
+    @staticmethod
+    def decode_frames(frames, hdr: DecodedFrame | None = None):
+        """Strictly decode the frames of one message (all on one identifier)."""
+        r = CanReassembler(timeout_s=None, strict=True)
+        out = []
+        for f in frames:
+            out += r.feed_with_headers(f)
+        if len(out) != 1 or r.open_reassemblies():
+            raise FramingError(f"{len(frames)} frames gave {len(out)} messages"
+                               + (" and an incomplete one" if r.open_reassemblies() else ""))
+        h, msg = out[0]
+        if hdr is not None:
+            for k in DecodedFrame.__slots__:
+                setattr(hdr, k, getattr(h, k))
+        return msg
+
+
+class _Partial:
+    __slots__ = ("total", "first", "buf", "next_sn", "last_sn", "last_data", "t_last")
+
+    def __init__(self, total: int, first: bytes, t: float):
+        self.total = total
+        self.first = first
+        self.buf = bytearray(first[2:])
+        self.next_sn = 1
+        self.last_sn = 0
+        self.last_data = b""
+        self.t_last = t
+
+
+def _copy_header(h: DecodedFrame) -> DecodedFrame:
+    c = DecodedFrame()
+    c.seq, c.src, c.flags, c.msg_id, c.signature, c.signed_part = (
+        h.seq, h.src, h.flags, h.msg_id, h.signature, h.signed_part)
+    return c
+
+
+class CanReassembler:
+    """Per-identifier (i.e. per sender and message) reassembly.
+
+    ``feed(frame) -> list of messages`` never raises: every bad or unexpected
+    frame is counted by kind and skipped. Time comes from ``frame.timestamp``
+    (or the ``now`` argument); a reassembly idle for more than ``timeout_s``
+    is dropped and counted when the next frame of its identifier arrives or
+    when :meth:`expire` is called. ``verifier(header, msg) -> bool`` works as
+    in :class:`protocol.framing.FrameDecoder` (signing).
+    """
+
+    COUNTERS = ("frames_in", "messages_ok", "frames_bad", "framing_errors", "crc_errors", "length_errors",
+                "unknown_ids", "out_of_order", "unexpected_cf", "timeouts", "aborted", "duplicates",
+                "rejected", "seq_gaps", "ignored")
+
+    def __init__(self, timeout_s: float | None = 0.5, verifier=None, on_frame=None, strict: bool = False):
+        self.timeout_s = timeout_s
+        self.verifier = verifier
+        self.on_frame = on_frame
+        self._strict = strict
+        self._partials: dict[int, _Partial] = {}
+        self._last_pdu: dict[int, bytes] = {}
+        self._last_seq: dict[int, int] = {}
+        self.header = DecodedFrame()
+        self.frames_in = 0
+        self.messages_ok = 0
+        self.framing_errors = 0
+        self.crc_errors = 0
+        self.length_errors = 0
+        self.unknown_ids = 0
+        self.out_of_order = 0
+        self.unexpected_cf = 0
+        self.timeouts = 0
+        self.aborted = 0
+        self.duplicates = 0
+        self.rejected = 0
+        self.seq_gaps = 0
+        self.ignored = 0
+        #: bad frames or PDUs attributed to a message name
+        self.bad_by_message: dict[str, int] = {}
+        self.last_error: ProtocolError | None = None
+
+    @property
+    def frames_bad(self) -> int:
+        """Frames or PDUs lost to errors (duplicates and ignored frames excluded)."""
+        return (self.framing_errors + self.crc_errors + self.length_errors + self.unknown_ids
+                + self.out_of_order + self.unexpected_cf + self.timeouts + self.aborted + self.rejected)
+
+    def counters(self) -> dict:
+        return {k: getattr(self, k) for k in self.COUNTERS}
+
+    def open_reassemblies(self) -> int:
+        return len(self._partials)
+
+    def expire(self, now: float) -> int:
+        """Drop reassemblies idle for longer than ``timeout_s``; returns how many."""
+        if self.timeout_s is None:
+            return 0
+        stale = [k for k, p in self._partials.items() if now - p.t_last > self.timeout_s]
+        for k in stale:
+            del self._partials[k]
+            self._bad(k, "timeouts")
+        return len(stale)
+
+    def _bad(self, arb: int, kind: str, exc: ProtocolError | None = None) -> None:
+        setattr(self, kind, getattr(self, kind) + 1)
+        mid = _MSG_BY_BASE.get(arb & FUNCTION_MASK)
+        if mid is not None:
+            name = BY_ID[mid].name
+            self.bad_by_message[name] = self.bad_by_message.get(name, 0) + 1
+        if exc is not None:
+            self.last_error = exc
+        if self._strict:
+            raise exc if exc is not None else FramingError(f"CAN id {arb:#05x}: {kind.replace('_', ' ')}")
+
+    def feed(self, frame, now: float | None = None) -> list:
+        return [m for _, m in self.feed_with_headers(frame, now)]
+
+    def feed_with_headers(self, frame, now: float | None = None) -> list:
+        """Like :meth:`feed`, returning ``(header, msg)`` pairs (header copies)."""
+        self.frames_in += 1
+        if frame.is_error_frame or frame.is_remote_frame or frame.is_extended_id:
+            self.ignored += 1
+            return []
+        arb = frame.arbitration_id
+        try:
+            msg_id, src = parse_id(arb)
+        except UnknownMessageError as exc:
+            self._bad(arb, "unknown_ids", exc)
+            return []
+        t = frame.timestamp if now is None else now
+        data = bytes(frame.data or b"")
+        if not data:
+            self._bad(arb, "framing_errors", FramingError(f"CAN id {arb:#05x}: empty frame"))
+            return []
+        pci = data[0] >> 4
+        part = self._partials.get(arb)
+        if part is not None and self.timeout_s is not None and t - part.t_last > self.timeout_s:
+            del self._partials[arb]
+            part = None
+            self._bad(arb, "timeouts")
+        if pci == 0:                                   # single frame
+            L = data[0] & 0x0F
+            start = 1
+            if L == 0:                                  # CAN FD escape: length in byte 1
+                if len(data) < 2:
+                    self._bad(arb, "framing_errors", FramingError("FD single frame without length"))
+                    return []
+                L, start = data[1], 2
+            if L == 0 or start + L > len(data):
+                self._bad(arb, "framing_errors", FramingError(f"single frame length {L} in {len(data)} bytes"))
+                return []
+            if part is not None:
+                del self._partials[arb]
+                self._bad(arb, "aborted")
+            return self._complete(arb, msg_id, src, data[start:start + L])
+        if pci == 1:                                   # first frame
+            if len(data) < 3:
+                self._bad(arb, "framing_errors", FramingError("first frame too short"))
+                return []
+            total = ((data[0] & 0x0F) << 8) | data[1]
+            if total <= len(data) - 2 or total > MAX_PDU:
+                self._bad(arb, "framing_errors", FramingError(f"first frame announces {total} bytes"))
+                return []
+            if part is not None:
+                if part.next_sn == 1 and data == part.first:
+                    self.duplicates += 1           # the same first frame twice
+                    return []
+                self._bad(arb, "aborted")
+            self._partials[arb] = _Partial(total, data, t)
+            return []
+        if pci == 2:                                   # consecutive frame
+            if part is None:
+                self._bad(arb, "unexpected_cf", FramingError(f"CAN id {arb:#05x}: consecutive frame without first frame"))
+                return []
+            sn = data[0] & 0x0F
+            if sn == part.last_sn and data == part.last_data:
+                self.duplicates += 1
+                return []
+            if sn != part.next_sn or len(data) < 2:
+                del self._partials[arb]
+                self._bad(arb, "out_of_order", FramingError(f"CAN id {arb:#05x}: sequence nibble {sn}, expected {part.next_sn}"))
+                return []
+            need = part.total - len(part.buf)
+            part.buf += data[1:1 + need]
+            part.last_sn, part.last_data, part.t_last = sn, data, t
+            part.next_sn = (sn + 1) & 0x0F
+            if len(part.buf) < part.total:
+                return []
+            del self._partials[arb]
+            return self._complete(arb, msg_id, src, bytes(part.buf))
+        if pci == 3:                                   # flow control: not used on a broadcast bus
+            self.ignored += 1
+            return []
+        self._bad(arb, "framing_errors", FramingError(f"CAN id {arb:#05x}: unknown PCI {data[0]:#04x}"))
+        return []
+
+    def _complete(self, arb: int, msg_id: int, src: int, pdu: bytes) -> list:
+        if self._last_pdu.get(arb) == pdu:
+            self.duplicates += 1
+            return []
+        hdr = self.header
+        try:
+            msg = decode_pdu(msg_id, src, pdu, hdr)
+        except CrcError as exc:
+            self._bad(arb, "crc_errors", exc)
+            return []
+        except LengthError as exc:
+            self._bad(arb, "length_errors", exc)
+            return []
+        except ProtocolError as exc:
+            self._bad(arb, "framing_errors", exc)
+            return []
+        if self.verifier is not None and not self.verifier(hdr, msg):
+            self._bad(arb, "rejected", getattr(self.verifier, "last_error", None))
+            return []
+        self._last_pdu[arb] = pdu
+        last = self._last_seq.get(src)
+        if last is not None and hdr.seq != ((last + 1) & 0xFF):
+            self.seq_gaps += 1
+        self._last_seq[src] = hdr.seq
+        self.messages_ok += 1
+        if self.on_frame is not None:
+            self.on_frame(hdr, msg)
+        return [(_copy_header(hdr), msg)]
+
+
+# --- the Port adapter -----------------------------------------------------
+class CanLink:
+    """Byte-stream Port over a python-can bus (see the module docstring).
+
+    ``node_id`` is this station's node id: it is used as the CAN sender for
+    frames written with ``src`` 0, and frames arriving from any id this link
+    has sent as (``node_id`` and every ``src`` written) are ignored, so an
+    adapter that echoes our own frames does not loop them back.
+    """
+
+    def __init__(self, bus, node_id: int, *, fd: bool = False, brs: bool = True,
+                 send_timeout: float | None = 0.1, timeout_s: float = 0.5,
+                 max_frames_per_read: int = 4096, verifier=None):
+        if not 0 <= node_id <= MAX_CAN_NODE:
+            raise ValueError(f"node id {node_id} does not fit the CAN node field (0..{MAX_CAN_NODE})")
+        self.bus = bus
+        self.node_id = node_id
+        self.codec = CanCodec(fd=fd, brs=brs)
+        self.reassembler = CanReassembler(timeout_s=timeout_s, verifier=verifier)
+        self.send_timeout = send_timeout
+        self.max_frames_per_read = max_frames_per_read
+        self.local_ids = {node_id}
+        self._tx_decoder = FrameDecoder(on_frame=self._send_message)
+        self.frames_tx = 0
+        self.messages_tx = 0
+        self.frames_rx = 0
+        self.tx_errors = 0
+        self.rx_errors = 0
+        self.echoes = 0
+        self.bytes_tx = 0
+
+    # Port interface -------------------------------------------------------
+    def write(self, data: bytes) -> None:
+        self.bytes_tx += len(data)
+        self._tx_decoder.feed(data)
+
+    def read(self) -> bytes:
+        out = bytearray()
+        for _ in range(self.max_frames_per_read):
+            try:
+                frame = self.bus.recv(timeout=0)
+            except (can.CanError, OSError, ValueError):
+                self.rx_errors += 1
+                break
+            if frame is None:
+                if self._adapter_pending():
+                    continue
+                break
+            self.frames_rx += 1
+            if not (frame.is_extended_id or frame.is_error_frame) and (frame.arbitration_id & NODE_MASK) in self.local_ids \
+                    and (frame.arbitration_id & FUNCTION_MASK) in _MSG_BY_BASE:
+                self.echoes += 1
+                continue
+            for hdr, msg in self.reassembler.feed_with_headers(frame):
+                raw = build_frame(msg, hdr.seq, hdr.src, hdr.flags, hdr.signature)
+                out += cobs_encode(raw)
+                out.append(0)
+        return bytes(out)
+
+    def close(self) -> None:
+        try:
+            self.bus.shutdown()
+        except (can.CanError, OSError):
+            pass
+
+    # ---------------------------------------------------------------------
+    def _adapter_pending(self) -> bool:
+        """slcan: python-can returns None for a non-frame line (an adapter's
+        reply) even when frames follow; keep reading while bytes wait."""
+        port = getattr(self.bus, "serialPortOrig", None)
+        if port is None:
+            return False
+        try:
+            return port.in_waiting > 0
+        except (OSError, ValueError):
+            return False
+
+    @property
+    def tx_bad(self) -> int:
+        """Serial frames handed to ``write`` that did not decode (not sent)."""
+        return self._tx_decoder.frames_bad
+
+    def counters(self) -> dict:
+        d = {"frames_tx": self.frames_tx, "messages_tx": self.messages_tx, "frames_rx": self.frames_rx,
+             "tx_errors": self.tx_errors, "rx_errors": self.rx_errors, "tx_bad": self.tx_bad,
+             "echoes": self.echoes}
+        d.update({"rx_" + k: v for k, v in self.reassembler.counters().items()})
+        return d
+
+    def send_message(self, msg, seq: int = 0, src: int | None = None, signature: bytes = b"") -> int:
+        """Send one message directly (no serial framing); returns frames sent."""
+        src = self.node_id if src is None else src
+        self.local_ids.add(src)
+        return self._send_frames(self.codec.encode(msg, seq, src, signature))
+
+    def _send_message(self, hdr, msg) -> None:
+        src = hdr.src
+        if src == 0 and not hdr.flags & FLAG_SIGNED:
+            src = self.node_id
+        try:
+            frames = self.codec.encode(msg, hdr.seq, src, hdr.signature)
+        except ProtocolError:
+            self.tx_errors += 1
+            return
+        self.local_ids.add(src)
+        self._send_frames(frames)
+
+    def _send_frames(self, frames) -> int:
+        for f in frames:
+            try:
+                self.bus.send(f, timeout=self.send_timeout)
+            except (can.CanError, OSError, ValueError):
+                self.tx_errors += 1
+                return 0
+            self.frames_tx += 1
+        self.messages_tx += 1
+        return len(frames)
+
+
+# --- buses ----------------------------------------------------------------
+_channel_counter = itertools.count(1)
+
+
+def unique_channel(prefix: str = "coiltrack") -> str:
+    """A virtual channel name not used before in this process."""
+    return f"{prefix}-{time.monotonic_ns()}-{next(_channel_counter)}"
+
+
+def open_bus(interface: str, channel: str, bitrate: int = 500_000, fd: bool = False,
+             data_bitrate: int = 2_000_000, **kwargs):
+    """Open a python-can bus the way the coiltrack tools do.
+
+    - ``virtual``: in-process bus (``channel`` is any name; buses with the
+      same name in one process hear each other, not themselves);
+    - ``slcan``: a serial slcan adapter, or a pseudo-terminal of
+      :class:`protocol.slcan.SlcanBridge`; opened without python-can's
+      2 s settling sleep and with a non-blocking serial read (``timeout=0``),
+      so ``recv(timeout=0)`` never stalls a firmware tick;
+    - anything else (``socketcan`` on a board, ...) is passed to ``can.Bus``.
+
+    Network interfaces (``udp_multicast``) are refused: this project never
+    puts a bus on a network address.
+    """
+    if interface in ("udp_multicast",):
+        raise ValueError(f"interface '{interface}' uses the network; use virtual or slcan")
+    if interface == "virtual":
+        kwargs.setdefault("receive_own_messages", False)
+        return can.Bus(interface="virtual", channel=channel, **kwargs)
+    if interface == "slcan":
+        kwargs.setdefault("sleep_after_open", 0)
+        kwargs.setdefault("timeout", 0)
+        bus = can.Bus(interface="slcan", channel=channel, bitrate=bitrate, **kwargs)
+        if fd:
+            bus.set_bitrate(bitrate, data_bitrate)
+        return bus
+    if fd:
+        kwargs.setdefault("fd", True)
+        kwargs.setdefault("data_bitrate", data_bitrate)
+    return can.Bus(interface=interface, channel=channel, bitrate=bitrate, **kwargs)
+
+
+def virtual_bus_pair(channel: str | None = None):
+    """Two ends of one in-process virtual bus (a fresh channel by default)."""
+    channel = channel or unique_channel()
+    return (open_bus("virtual", channel), open_bus("virtual", channel))
+
+
+def virtual_link_pair(node_a: int, node_b: int, channel: str | None = None, **kwargs):
+    """Two :class:`CanLink` on one virtual bus (e.g. firmware and emulator)."""
+    a, b = virtual_bus_pair(channel)
+    return CanLink(a, node_a, **kwargs), CanLink(b, node_b, **kwargs)
+

@@ -1,0 +1,256 @@
+"""The one schema table of the coiltrack protocol.
+
+Every message on every link (serial, CAN) is listed here once: id, name,
+fields (name, wire type, unit, scale) and a one-line description. Codecs,
+the per-message CRC extra byte, the schema hash reported in heartbeats,
+golden byte vectors, round-trip tests and the DBC export are all derived
+from this table; nothing else defines the wire format.
+
+Field values on the wire are the *raw* values (integers or IEEE floats, little
+endian). ``physical = raw * scale`` in ``unit`` (cantools convention). Times are
+integer microseconds.
+"""
+from __future__ import annotations
+
+import hashlib
+import struct
+from dataclasses import dataclass, field as dc_field
+
+PROTOCOL_VERSION = 1
+
+#: wire types: struct format character and size in bytes
+TYPES = {
+    "u8": "B", "i8": "b", "u16": "H", "i16": "h", "u32": "I", "i32": "i",
+    "u64": "Q", "i64": "q", "f32": "f", "f64": "d",
+}
+
+# --- node roles and well-known node ids ------------------------------------
+ROLE_FIRMWARE = 0
+ROLE_COIL_DRIVER = 1
+ROLE_SENSOR = 2      # magnetometer (+ optional IMU beside it)
+ROLE_MONITOR = 3     # a passive tool (conformance tester, logger)
+
+NODE_FIRMWARE = 1
+NODE_COIL_DRIVER = 2
+NODE_SENSOR_BASE = 16   # sensor node k has id NODE_SENSOR_BASE + k
+NODE_BROADCAST = 0
+
+# --- node states (heartbeat) -------------------------------------------------
+STATE_BOOT, STATE_READY, STATE_RUNNING, STATE_FAULT = 0, 1, 2, 3
+
+# --- magnetometer sample scaling --------------------------------------------
+#: tesla per LSB of MAG_SAMPLE counts: 16-bit signed, +/-163.84 uT full scale
+MAG_LSB_T = 5e-9
+#: m/s^2 per LSB of IMU accelerometer counts (+/-32.8 m/s^2)
+ACC_LSB = 1e-3
+#: rad/s per LSB of IMU gyroscope counts (+/-16.4 rad/s)
+GYR_LSB = 5e-4
+#: amperes per LSB of coil currents (signed milliamperes)
+CURRENT_LSB_A = 1e-3
+
+# --- coil fault bits (COIL_STATUS.faults) -----------------------------------
+COIL_FAULT_OVER_CURRENT = 1
+COIL_FAULT_OPEN_CIRCUIT = 2
+COIL_FAULT_OVER_TEMPERATURE = 4
+COIL_FAULT_DUTY_LIMIT = 8
+COIL_FAULT_REFUSED = 16       # command refused (limits, late, bad signature)
+COIL_FAULT_LATE = 32          # command arrived after its start time
+COIL_FAULT_CURRENT_SAG = 64   # measured current below target (supply sag)
+
+# --- pose status bits (POSE.status) -----------------------------------------
+POSE_VALID = 1          # a solution exists
+POSE_FUSED = 2          # from the inertial fusion filter (else magnetic only)
+POSE_DEGRADED = 4       # pulse quality flags were set on an input window
+POSE_INCONSISTENT = 8   # chi-square gate or NIS monitor rejected/flagged it
+POSE_STALE = 16         # no magnetic update for longer than the configured age
+POSE_SATURATED = 32     # magnetometer saturation in a used window
+POSE_DISTORTED = 64     # field distortion (metal) suspected
+POSE_COIL_FAULT = 128   # the coil driver reported a fault in this cycle
+
+# --- fault / event codes (FAULT_EVENT.code) ---------------------------------
+EVT_FRAME_BAD = 1
+EVT_SEQ_GAP = 2
+EVT_NODE_LOST = 3
+EVT_NODE_BACK = 4
+EVT_COIL_FAULT = 5
+EVT_SATURATION = 6
+EVT_CLOCK_STEP = 7
+EVT_DISTORTION = 8
+EVT_SCHEMA_MISMATCH = 9
+EVT_AUTH_FAIL = 10
+EVT_DEADLINE_MISS = 11
+EVT_PULSE_WINDOW = 12
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    type: str
+    unit: str = ""
+    scale: float = 1.0
+    doc: str = ""
+
+    @property
+    def fmt(self) -> str:
+        return TYPES[self.type]
+
+    @property
+    def size(self) -> int:
+        return struct.calcsize("<" + self.fmt)
+
+
+@dataclass(frozen=True)
+class MessageDef:
+    id: int
+    name: str
+    fields: tuple[Field, ...]
+    doc: str = ""
+    #: message class, used for CAN priority (lower = more urgent)
+    priority: int = 4
+    #: commands that move current or change configuration may be signed
+    signable: bool = False
+    extra: dict = dc_field(default_factory=dict, compare=False)
+
+    @property
+    def fmt(self) -> str:
+        return "<" + "".join(f.fmt for f in self.fields)
+
+    @property
+    def size(self) -> int:
+        return struct.calcsize(self.fmt)
+
+    @property
+    def field_names(self) -> tuple[str, ...]:
+        return tuple(f.name for f in self.fields)
+
+    def canonical(self) -> str:
+        """Text the CRC extra byte and schema hash are computed from."""
+        return self.name + " " + " ".join(f"{f.type} {f.name}" for f in self.fields) + " "
+
+    @property
+    def crc_extra(self) -> int:
+        """One byte folded from the definition, mixed into every frame's CRC
+        (MAVLink's CRC_EXTRA): a peer with a different definition of this
+        message fails the CRC instead of misreading the payload."""
+        d = hashlib.sha256(self.canonical().encode()).digest()
+        return d[0] ^ d[1]
+
+
+F = Field
+MESSAGES: tuple[MessageDef, ...] = (
+    MessageDef(0x01, "HEARTBEAT", (
+        F("node", "u8", doc="sender node id"),
+        F("role", "u8", doc="ROLE_*"),
+        F("state", "u8", doc="STATE_*"),
+        F("proto_version", "u8"),
+        F("schema_hash", "u32", doc="schema_hash() of the sender's table"),
+        F("uptime_us", "u64", "us"),
+        F("errors", "u16", doc="bad frames counted since boot (saturating)"),
+    ), "Every node, once a second: identity, state and the schema it speaks.", priority=6),
+    MessageDef(0x02, "TIME_SYNC", (
+        F("master_time_us", "u64", "us", doc="master (firmware) clock at transmission"),
+        F("sync_seq", "u16"),
+    ), "Master clock broadcast; nodes estimate offset and drift from it.", priority=0),
+    MessageDef(0x03, "TIME_SYNC_REPLY", (
+        F("node", "u8"),
+        F("sync_seq", "u16"),
+        F("node_time_us", "u64", "us", doc="node clock when the TIME_SYNC arrived"),
+        F("offset_us", "i32", "us", doc="node estimate of node - master"),
+        F("drift_ppb", "i32", "ppb", doc="node estimate of its drift"),
+    ), "A node's answer to TIME_SYNC: its clock and its correction.", priority=5),
+    MessageDef(0x10, "COIL_PULSE_CMD", (
+        F("coil", "u8", doc="coil index on the driver"),
+        F("pulse_id", "u16", doc="wraps; echoed in COIL_STATUS"),
+        F("current_ma", "i16", "A", CURRENT_LSB_A, "target current, sign gives polarity"),
+        F("start_us", "u64", "us", doc="start time on the master clock"),
+        F("duration_us", "u32", "us"),
+    ), "Schedule one DC pulse ahead of time.", priority=1, signable=True),
+    MessageDef(0x11, "COIL_STATUS", (
+        F("coil", "u8"),
+        F("pulse_id", "u16"),
+        F("current_ma", "i16", "A", CURRENT_LSB_A, "measured steady-state current"),
+        F("start_us", "u64", "us", doc="actual start on the master clock"),
+        F("end_us", "u64", "us", doc="actual end on the master clock"),
+        F("faults", "u8", doc="COIL_FAULT_* bits"),
+    ), "What the driver did with a pulse command.", priority=2),
+    MessageDef(0x20, "MAG_SAMPLE", (
+        F("node", "u8"),
+        F("t_us", "u64", "us", doc="sample time (node clock, sync-corrected)"),
+        F("x", "i16", "T", MAG_LSB_T),
+        F("y", "i16", "T", MAG_LSB_T),
+        F("z", "i16", "T", MAG_LSB_T),
+        F("flip", "u8", doc="bit0 set/reset state, bit1 saturated"),
+    ), "One magnetometer sample in the sensor frame.", priority=3),
+    MessageDef(0x21, "IMU_SAMPLE", (
+        F("node", "u8"),
+        F("t_us", "u64", "us"),
+        F("ax", "i16", "m/s^2", ACC_LSB),
+        F("ay", "i16", "m/s^2", ACC_LSB),
+        F("az", "i16", "m/s^2", ACC_LSB),
+        F("gx", "i16", "rad/s", GYR_LSB),
+        F("gy", "i16", "rad/s", GYR_LSB),
+        F("gz", "i16", "rad/s", GYR_LSB),
+    ), "Accelerometer (specific force) and gyroscope in the sensor frame.", priority=3),
+    MessageDef(0x22, "MAG_FLIP_CMD", (
+        F("node", "u8"),
+        F("at_us", "u64", "us", doc="when to flip (master clock)"),
+        F("state", "u8", doc="0 reset, 1 set"),
+    ), "Schedule a magnetometer set/reset so it falls outside pulses.", priority=2),
+    MessageDef(0x30, "POSE", (
+        F("node", "u8", doc="sensor node the pose belongs to"),
+        F("t_us", "u64", "us"),
+        F("px", "f32", "m"), F("py", "f32", "m"), F("pz", "f32", "m"),
+        F("qw", "f32"), F("qx", "f32"), F("qy", "f32"), F("qz", "f32"),
+        F("var_px", "f32", "m^2"), F("var_py", "f32", "m^2"), F("var_pz", "f32", "m^2"),
+        F("var_rx", "f32", "rad^2"), F("var_ry", "f32", "rad^2"), F("var_rz", "f32", "rad^2"),
+        F("status", "u16", doc="POSE_* bits"),
+    ), "Sensor pose in the source frame; quaternion maps sensor to source.", priority=4),
+    MessageDef(0x31, "PULSE_WINDOW", (
+        F("node", "u8", doc="sensor node"),
+        F("coil", "u8"),
+        F("pulse_id", "u16"),
+        F("first_us", "u64", "us", doc="time of the first in-pulse sample used"),
+        F("last_us", "u64", "us", doc="time of the last in-pulse sample used"),
+        F("n_used", "u8"),
+        F("n_base", "u8", doc="baseline samples used"),
+        F("flags", "u8", doc="pulse quality flags (firmware_py.pulse)"),
+    ), "Which samples the firmware used for one pulse amplitude (for HIL checks).", priority=6),
+    MessageDef(0x40, "CONFIG_GET", (
+        F("node", "u8", doc="target node"),
+        F("key", "u16"),
+    ), "Read one configuration value.", priority=5),
+    MessageDef(0x41, "CONFIG_SET", (
+        F("node", "u8", doc="target node"),
+        F("key", "u16"),
+        F("value", "f64"),
+    ), "Write one configuration value.", priority=5, signable=True),
+    MessageDef(0x42, "CONFIG_ACK", (
+        F("node", "u8", doc="answering node"),
+        F("key", "u16"),
+        F("value", "f64"),
+        F("result", "u8", doc="0 ok, 1 unknown key, 2 out of range, 3 read-only, 4 auth"),
+    ), "Answer to CONFIG_GET / CONFIG_SET.", priority=5),
+    MessageDef(0x50, "FAULT_EVENT", (
+        F("node", "u8"),
+        F("t_us", "u64", "us"),
+        F("code", "u16", doc="EVT_*"),
+        F("detail", "u32"),
+    ), "Something went wrong or changed; counted and reported, never fatal.", priority=2),
+)
+del F
+
+BY_ID: dict[int, MessageDef] = {m.id: m for m in MESSAGES}
+BY_NAME: dict[str, MessageDef] = {m.name: m for m in MESSAGES}
+assert len(BY_ID) == len(MESSAGES) and len(BY_NAME) == len(MESSAGES)
+MAX_PAYLOAD = max(m.size for m in MESSAGES)
+
+
+def schema_hash() -> int:
+    """32-bit hash of the whole table (version included), reported in every
+    HEARTBEAT; a peer reporting another hash is refused."""
+    text = f"coiltrack v{PROTOCOL_VERSION}\n" + "\n".join(
+        f"{m.id:#04x} {m.canonical()}" for m in MESSAGES)
+    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little")
+
+
+SCHEMA_HASH = schema_hash()

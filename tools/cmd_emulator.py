@@ -1,0 +1,50 @@
+"""Run the emulated nodes and world alone on the wall clock, on a serial port
+or on a new pseudo-terminal that a firmware (or a real board) connects to."""
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+HELP = "run the emulated coil driver and sensor nodes on a serial link (wall clock)"
+
+
+def add_arguments(p) -> None:
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--port", help="serial device or pyserial URL to talk on")
+    g.add_argument("--create-pty", action="store_true", help="create a pseudo-terminal and print its path")
+    p.add_argument("--baudrate", type=int, default=1_000_000)
+    p.add_argument("--scenario", default="roetenberg-bench")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--epoch-ns", type=int, default=None, help="CLOCK_MONOTONIC epoch shared with the firmware")
+    p.add_argument("--faults", default="")
+    p.add_argument("--json", metavar="PATH", help="write the report as JSON")
+
+
+def run(args) -> int:
+    from firmware_py.port import SerialPort  # a plain pyserial wrapper
+    from hil.clock import WallClock
+    from hil.faults import LinkFaults
+
+    from . import report, scenarios
+    from .links import FdLink, make_raw_pty
+    from .realtime import emulator_loop
+    from .runner import BenchSetup
+
+    sc = scenarios.get(args.scenario)
+    duration = args.duration if args.duration is not None else sc.duration_s
+    if args.create_pty:
+        master, slave, name = make_raw_pty()
+        print(name, flush=True)
+        link = FdLink(master)
+    else:
+        link = SerialPort(args.port, args.baudrate)
+    bench = BenchSetup(sc, args.seed, duration, link, LinkFaults.parse(args.faults))
+    clock = WallClock(args.epoch_ns)
+    emulator_loop(bench.emulator, bench.link, clock, int(duration * 1e6))
+    rep = report.build(bench, {}, duration, transport="serial", cfg=sc.firmware_config())
+    print(report.format_table(rep))
+    if args.json:
+        report.write_json(rep, args.json)
+    return 0
