@@ -11,6 +11,9 @@ from firmware_py.rotation import matrix_from_quat
 from hil.crlb import crlb_position_rms
 from protocol.schema import POSE_VALID
 
+#: distance bands of the per-range breakdown, cm
+RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
+
 #: eddy/settle margin the bench uses as ground truth for the flat part of a pulse
 FLAT_TAUS = 5.0
 
@@ -66,6 +69,15 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     rms = lambda a: float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")  # noqa: E731
     emu_bad = bench.emulator.decoder.frames_bad
     dist = [float(np.linalg.norm(rp["true_p"])) for rp in rec.poses]
+    vdist = np.array([float(np.linalg.norm(rp["true_p"])) for rp in rec.poses
+                      if rp["msg"].status & POSE_VALID])
+    by_range = {}
+    for lo, hi in RANGE_BANDS_CM:
+        sel = (vdist >= lo / 100) & (vdist < hi / 100)
+        if np.any(sel):
+            by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(rms(pe[sel]) * 1e3, 2),
+                                        "crlb_position_rms_mm": round(rms(cb[sel]) * 1e3, 2),
+                                        "orientation_rms_deg": round(math.degrees(rms(ae[sel])), 2)}
     rep = {
         "scenario": bench.scenario.name,
         "seed": bench.seed,
@@ -78,6 +90,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "orientation_rms_deg": round(math.degrees(rms(ae)), 3),
         "crlb_position_rms_mm": round(rms(cb) * 1e3, 3),
         "pose_rate_hz": round(pe.size / duration_s, 3),
+        "by_range": by_range,
         "distance_range_cm": [round(min(dist) * 100, 1), round(max(dist) * 100, 1)] if dist else None,
         "frames_rx": fw_status.get("rx_frames_ok", 0),
         "frames_bad": fw_status.get("rx_frames_bad", 0) + emu_bad,
@@ -112,6 +125,9 @@ def format_table(rep: dict) -> str:
     if "paper" in rep:
         p = rep["paper"]
         rows.append(("paper", f'{p.get("position_rms_mm")} mm, {p.get("orientation_rms_deg")} deg ({p.get("source")})'))
+    for band, b in rep.get("by_range", {}).items():
+        rows.append((f"  at {band}", f'{b["position_rms_mm"]:.1f} mm (CRLB {b["crlb_position_rms_mm"]:.1f}), '
+                                     f'{b["orientation_rms_deg"]:.1f} deg, {b["poses"]} poses'))
     w = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{w}}  {v}" for k, v in rows)
 
