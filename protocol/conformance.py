@@ -1,0 +1,654 @@
+"""Conformance suite: checks a node someone else built against the protocol.
+
+The tester plays the master (the firmware, node 1 by default) on a byte
+Port: a :class:`protocol.serial_link.SerialLink` for serial, a
+:class:`protocol.can.CanLink` for CAN, so the same rules run on both links.
+It discovers nodes by their HEARTBEAT, then runs the rules that apply to
+each node's role and reports pass / fail / skip per rule and per message.
+
+Rules (``RULES`` lists them with their text):
+
+link and every node
+    ``heartbeat`` a HEARTBEAT within 1.5 s; ``heartbeat_version`` matching
+    protocol version and schema hash (:func:`protocol.check_peer`);
+    ``heartbeat_period`` no gap over 1.5 s between heartbeats;
+    ``src_matches_node`` frames' src equals the HEARTBEAT's node;
+    ``frames_valid`` every frame it sends decodes (COBS, length, CRC with CRC
+    extra; on CAN also the ISO-TP segmentation); ``sequence`` sequence
+    numbers increase by one per sender; ``survives_garbage`` after random
+    bytes, corrupted, truncated and over-long frames it still answers.
+coil driver (role 1)
+    ``pulse_status`` a pulse scheduled ``lead`` ahead is answered, after the
+    pulse, by COIL_STATUS with the same pulse id, no fault, edges within
+    ``edge_tolerance_us`` of the command and a current of the commanded sign
+    and 50..120 % of its size; ``refuse_over_current`` and ``refuse_too_long``
+    are answered with the REFUSED bit. With a key: ``signed_accepted``,
+    ``unsigned_rejected``, ``forged_rejected``, ``replay_rejected``.
+sensor (role 2)
+    ``mag_stream`` MAG_SAMPLE at the expected rate (from its time stamps and
+    from arrival times, within ``rate_tolerance``); ``mag_timestamps``
+    strictly increasing ``t_us``.
+optional (skipped when the node does not answer)
+    ``config_get`` CONFIG_ACK to CONFIG_GET; ``time_sync`` TIME_SYNC_REPLY
+    to TIME_SYNC (run last: a node may step its clock).
+
+Master time: a node that has not received TIME_SYNC takes its uptime as
+master time, so the tester schedules pulses on the node's clock estimated
+from its latest HEARTBEAT ``uptime_us`` (plus the time since it arrived).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from .codec import MSG
+from .errors import ProtocolError, SchemaMismatchError
+from .framing import FrameDecoder, FrameEncoder, cobs_decode, cobs_encode, build_frame
+from .peer import check_peer, role_name
+from .schema import (BY_ID, COIL_FAULT_REFUSED, CURRENT_LSB_A, NODE_FIRMWARE, ROLE_COIL_DRIVER,
+                     ROLE_SENSOR)
+from .signing import Signer
+
+PASS, FAIL, SKIP = "PASS", "FAIL", "SKIP"
+
+RULES = {
+    "heartbeat": "node sends HEARTBEAT within the heartbeat timeout (1.5 s)",
+    "heartbeat_version": "HEARTBEAT protocol version and schema hash match (check_peer)",
+    "heartbeat_period": "no gap longer than the heartbeat timeout between heartbeats",
+    "src_matches_node": "frame src equals HEARTBEAT.node",
+    "frames_valid": "every frame the node sends decodes with a valid CRC",
+    "sequence": "sequence numbers increase by one per sender",
+    "pulse_status": "scheduled pulse answered by COIL_STATUS after the pulse, plausible edges and current",
+    "refuse_over_current": "over-current pulse command answered with COIL_STATUS REFUSED",
+    "refuse_too_long": "too-long pulse command answered with COIL_STATUS REFUSED",
+    "signed_accepted": "a correctly signed pulse command is executed",
+    "unsigned_rejected": "an unsigned pulse command is not executed",
+    "forged_rejected": "a pulse command signed with another key is not executed",
+    "replay_rejected": "a replayed or not-newer signed command is not executed",
+    "mag_stream": "MAG_SAMPLE streamed at the expected rate",
+    "mag_timestamps": "MAG_SAMPLE t_us strictly increasing",
+    "survives_garbage": "node still answers after garbage and corrupted frames",
+    "config_get": "CONFIG_GET answered with CONFIG_ACK (optional)",
+    "time_sync": "TIME_SYNC answered with TIME_SYNC_REPLY (optional)",
+}
+
+
+@dataclass
+class ConformOptions:
+    src: int = NODE_FIRMWARE
+    node: int | None = None              # test only this node id
+    heartbeat_timeout_s: float = 1.5
+    observe_s: float = 1.2               # stream observation window
+    lead_ms: float = 100.0               # pulses scheduled this far ahead
+    pulse_ms: float = 20.0
+    pulse_current_ma: int = 500
+    over_current_ma: int = 30_000
+    too_long_us: int = 10_000_000
+    answer_timeout_s: float = 1.0        # extra time allowed for an answer after the pulse
+    silence_s: float = 0.25              # wait after a pulse's end before calling it "not executed"
+    edge_tolerance_us: int = 2_000
+    mag_rate_hz: float | None = 120.0    # None or 0: only self-consistency
+    rate_tolerance: float = 0.10
+    key: bytes | None = None
+    link_id: int = 0
+    seed: int = 1
+    optional_wait_s: float = 0.3
+    max_log: int = 200_000
+
+
+@dataclass
+class RuleResult:
+    rule: str
+    status: str
+    detail: str = ""
+    node: int | None = None
+
+
+@dataclass
+class ConformReport:
+    transport: str
+    nodes: dict = field(default_factory=dict)        # node id -> role name
+    messages: dict = field(default_factory=dict)     # name -> stats
+    rules: list = field(default_factory=list)
+    counters: dict = field(default_factory=dict)
+    duration_s: float = 0.0
+
+    @property
+    def passed(self) -> int:
+        return sum(r.status == PASS for r in self.rules)
+
+    @property
+    def failed(self) -> int:
+        return sum(r.status == FAIL for r in self.rules)
+
+    @property
+    def skipped(self) -> int:
+        return sum(r.status == SKIP for r in self.rules)
+
+    @property
+    def ok(self) -> bool:
+        return self.failed == 0 and any(r.status == PASS for r in self.rules)
+
+    def result(self, rule: str, node: int | None = None) -> RuleResult | None:
+        for r in self.rules:
+            if r.rule == rule and (node is None or r.node == node):
+                return r
+        return None
+
+    def to_dict(self) -> dict:
+        return {"transport": self.transport, "nodes": {str(k): v for k, v in self.nodes.items()},
+                "messages": self.messages, "rules": [asdict(r) for r in self.rules],
+                "counters": self.counters, "duration_s": round(self.duration_s, 3),
+                "passed": self.passed, "failed": self.failed, "skipped": self.skipped, "ok": self.ok}
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    def format(self) -> str:
+        out = [f"coiltrack conform over {self.transport}: "
+               + (", ".join(f"node {k} ({v})" for k, v in sorted(self.nodes.items())) or "no node found")]
+        out.append("")
+        out.append("messages received")
+        out.append(f"  {'message':16s} {'from':12s} {'count':>6s} {'rate Hz':>8s} {'bad':>4s}  result")
+        for name, st in self.messages.items():
+            frm = ",".join(str(s) for s in st["from"]) or "-"
+            out.append(f"  {name:16s} {frm:12s} {st['count']:6d} {st['rate_hz']:8.2f} {st['bad']:4d}  "
+                       f"{PASS if st['bad'] == 0 else FAIL}")
+        out.append("")
+        out.append("rules")
+        for r in self.rules:
+            who = "link" if r.node is None else f"node {r.node}"
+            out.append(f"  {r.status:4s}  {who:8s} {r.rule:20s} {r.detail}")
+        out.append("")
+        out.append(f"{self.passed} passed, {self.failed} failed, {self.skipped} skipped "
+                   f"in {self.duration_s:.1f} s: {'CONFORMS' if self.ok else 'DOES NOT CONFORM'}")
+        return "\n".join(out)
+
+
+class _Decoder(FrameDecoder):
+    """FrameDecoder that attributes bad frames to a message when it can."""
+
+    def __init__(self, on_frame):
+        super().__init__(on_frame=on_frame)
+        self.bad_by_message: dict[str, int] = {}
+
+    def _decode(self, enc):
+        before = self.frames_bad
+        msg = super()._decode(enc)
+        if msg is None and self.frames_bad > before:
+            name = "?"
+            try:
+                raw = cobs_decode(bytes(enc))
+                if len(raw) > 4 and raw[4] in BY_ID:
+                    name = BY_ID[raw[4]].name
+            except ProtocolError:
+                pass
+            self.bad_by_message[name] = self.bad_by_message.get(name, 0) + 1
+        return msg
+
+
+@dataclass
+class _Rx:
+    t: float          # local monotonic seconds
+    src: int
+    seq: int
+    flags: int
+    msg: object
+
+
+class Conformance:
+    """Run the suite on ``link`` (a byte Port). ``transport`` is for display."""
+
+    def __init__(self, link, options: ConformOptions | None = None, transport: str = "link",
+                 clock=time.monotonic, sleep=time.sleep):
+        self.link = link
+        self.o = options or ConformOptions()
+        self.transport = transport
+        self.clock = clock
+        self.sleep = sleep
+        self.rng = np.random.default_rng(self.o.seed)
+        self.decoder = _Decoder(self._on_frame)
+        self.encoder = FrameEncoder(self.o.src)
+        self.signer = Signer(self.o.key, self.o.link_id) if self.o.key else None
+        self.log: list[_Rx] = []
+        self.heartbeats: dict[int, list[_Rx]] = {}
+        self.clock_offset_us: dict[int, int] = {}
+        self.dropped_log = 0
+        self.rules: list[RuleResult] = []
+        self.t0 = self.clock()
+        self.next_pulse_id = int(self.rng.integers(0x4000, 0xC000))
+
+    # ------------------------------------------------------------ plumbing
+    def _on_frame(self, hdr, msg) -> None:
+        rx = _Rx(self.clock(), hdr.src, hdr.seq, hdr.flags, msg)
+        if len(self.log) < self.o.max_log:
+            self.log.append(rx)
+        else:
+            self.dropped_log += 1
+        if msg.NAME == "HEARTBEAT":
+            self.heartbeats.setdefault(msg.node, []).append(rx)
+            self.clock_offset_us[msg.node] = msg.uptime_us - int(rx.t * 1e6)
+
+    def pump(self) -> None:
+        flush = getattr(self.link, "flush", None)
+        if flush is not None:
+            flush()
+        data = self.link.read()
+        if data:
+            self.decoder.feed(data)
+
+    def wait_for(self, pred, timeout_s: float, start_index: int = 0):
+        """Poll the link until a received message satisfies ``pred`` (bounded)."""
+        deadline = self.clock() + timeout_s
+        i = start_index
+        while True:
+            self.pump()
+            while i < len(self.log):
+                if pred(self.log[i]):
+                    return self.log[i]
+                i += 1
+            if self.clock() >= deadline:
+                return None
+            self.sleep(0.001)
+
+    def run_for(self, seconds: float) -> None:
+        deadline = self.clock() + seconds
+        while self.clock() < deadline:
+            self.pump()
+            self.sleep(0.001)
+
+    def add(self, rule: str, status: str, detail: str = "", node: int | None = None) -> RuleResult:
+        r = RuleResult(rule, status, detail, node)
+        self.rules.append(r)
+        return r
+
+    def send_frame(self, frame: bytes) -> None:
+        self.link.write(frame)
+
+    def send(self, msg, signed: bool | None = None, key: bytes | None = None, timestamp: int | None = None) -> bytes:
+        """Frame and send ``msg``; signable messages are signed when a key is
+        set (``signed=False`` forces unsigned; ``key`` signs with another key)."""
+        if signed is None:
+            signed = self.signer is not None and msg.DEF.signable
+        if signed:
+            if self.signer is None:
+                raise ValueError("signing needs a key")
+            if key is None:
+                frame = self.signer.encode_signed(msg, self.encoder.seq, self.o.src, timestamp)
+            else:   # a forger: another key, but a fresh timestamp
+                ts = self.signer.next_timestamp(timestamp)
+                frame = Signer(key, self.o.link_id).encode_signed(msg, self.encoder.seq, self.o.src, ts)
+            self.encoder.seq = (self.encoder.seq + 1) & 0xFF
+        else:
+            frame = self.encoder.encode(msg)
+        self.send_frame(frame)
+        return frame
+
+    def node_now_us(self, node: int) -> int:
+        return int(self.clock() * 1e6) + self.clock_offset_us.get(node, 0)
+
+    def _pulse_id(self) -> int:
+        pid = self.next_pulse_id
+        self.next_pulse_id = (pid + 1) & 0xFFFF
+        return pid
+
+    def _status_for(self, node: int, pid: int):
+        return lambda rx: rx.src == node and rx.msg.NAME == "COIL_STATUS" and rx.msg.pulse_id == pid
+
+    # --------------------------------------------------------------- run
+    def run(self) -> ConformReport:
+        o = self.o
+        self.t0 = self.clock()
+        first = self.wait_for(lambda rx: rx.msg.NAME == "HEARTBEAT" and (o.node is None or rx.msg.node == o.node),
+                              o.heartbeat_timeout_s)
+        if first is None:
+            self.add("heartbeat", FAIL, f"no HEARTBEAT within {o.heartbeat_timeout_s:g} s", o.node)
+            return self._report()
+        self.add("heartbeat", PASS, f"first HEARTBEAT after {first.t - self.t0:.2f} s", None)
+        self.run_for(o.observe_s)
+        nodes = {n: hb[0].msg.role for n, hb in self.heartbeats.items() if o.node is None or n == o.node}
+        for n in sorted(nodes):
+            self._check_version(n)
+        for n in sorted(nodes):
+            if nodes[n] == ROLE_COIL_DRIVER:
+                self._driver_rules(n)
+            elif nodes[n] == ROLE_SENSOR:
+                self._sensor_rules(n)
+        self._garbage_rules(nodes)
+        for n in sorted(nodes):
+            self._config_rule(n)
+        for n in sorted(nodes):
+            self._time_sync_rule(n)
+        self._link_rules(nodes)
+        return self._report()
+
+    # --------------------------------------------------------- node rules
+    def _check_version(self, n: int) -> None:
+        hb = self.heartbeats[n][-1].msg
+        try:
+            check_peer(hb)
+        except SchemaMismatchError as exc:
+            self.add("heartbeat_version", FAIL, str(exc), n)
+            return
+        self.add("heartbeat_version", PASS, f"v{hb.proto_version} schema {hb.schema_hash:#010x}", n)
+
+    def _pulse(self, n: int, current_ma: int | None = None, duration_us: int | None = None,
+               signed=None, key=None, timestamp=None, lead_us: int | None = None):
+        o = self.o
+        pid = self._pulse_id()
+        lead = int(o.lead_ms * 1000) if lead_us is None else lead_us
+        start = self.node_now_us(n) + lead
+        dur = int(o.pulse_ms * 1000) if duration_us is None else duration_us
+        cur = o.pulse_current_ma if current_ma is None else current_ma
+        cmd = MSG["COIL_PULSE_CMD"](0, pid, cur, start, dur)
+        mark = len(self.log)
+        frame = self.send(cmd, signed=signed, key=key, timestamp=timestamp)
+        return cmd, mark, frame
+
+    def _await_status(self, n: int, cmd, mark: int, executed_expected: bool):
+        o = self.o
+        pulse_s = max(0.0, (cmd.start_us + min(cmd.duration_us, 1_000_000) - self.node_now_us(n)) * 1e-6)
+        timeout = pulse_s + (o.answer_timeout_s if executed_expected else o.silence_s)
+        return self.wait_for(self._status_for(n, cmd.pulse_id), timeout, mark)
+
+    def _judge_pulse(self, n: int, cmd, rx) -> tuple[str, str]:
+        o = self.o
+        if rx is None:
+            hint = "" if self.signer else " (if the node requires signed commands, pass a key)"
+            return FAIL, f"no COIL_STATUS for pulse {cmd.pulse_id}{hint}"
+        st = rx.msg
+        if st.faults:
+            return FAIL, f"COIL_STATUS faults {st.faults:#04x} for a valid command"
+        problems = []
+        if abs(st.start_us - cmd.start_us) > o.edge_tolerance_us:
+            problems.append(f"start {st.start_us - cmd.start_us:+d} us off")
+        if abs((st.end_us - st.start_us) - cmd.duration_us) > o.edge_tolerance_us:
+            problems.append(f"duration {st.end_us - st.start_us} us for {cmd.duration_us} us")
+        end_local = (st.end_us - self.clock_offset_us.get(n, 0)) * 1e-6
+        if rx.t < end_local - o.edge_tolerance_us * 1e-6 - 0.005:
+            problems.append(f"status arrived {end_local - rx.t:.3f} s before the pulse ended")
+        want = cmd.current_ma
+        if want and not (st.current_ma * want > 0 and 0.5 <= st.current_ma / want <= 1.2):
+            problems.append(f"current {st.current_ma * CURRENT_LSB_A:.3f} A for {want * CURRENT_LSB_A:.3f} A")
+        if problems:
+            return FAIL, "; ".join(problems)
+        return PASS, (f"pulse {cmd.pulse_id}: {st.current_ma * CURRENT_LSB_A:.3f} A, "
+                      f"{st.end_us - st.start_us} us, status {rx.t - end_local:+.3f} s after the end")
+
+    def _driver_rules(self, n: int) -> None:
+        o = self.o
+        cmd, mark, _ = self._pulse(n)
+        rx = self._await_status(n, cmd, mark, True)
+        self.add("pulse_status", *self._judge_pulse(n, cmd, rx), node=n)
+        for rule, kw, what in (("refuse_over_current", {"current_ma": o.over_current_ma},
+                                f"{o.over_current_ma * CURRENT_LSB_A:g} A"),
+                               ("refuse_too_long", {"duration_us": o.too_long_us},
+                                f"{o.too_long_us / 1e6:g} s")):
+            cmd, mark, _ = self._pulse(n, **kw)
+            rx = self.wait_for(self._status_for(n, cmd.pulse_id), o.answer_timeout_s, mark)
+            if rx is None:
+                self.add(rule, FAIL, f"no COIL_STATUS for a {what} command", n)
+            elif rx.msg.faults & COIL_FAULT_REFUSED:
+                self.add(rule, PASS, f"{what} refused, faults {rx.msg.faults:#04x}", n)
+            else:
+                self.add(rule, FAIL, f"{what} command not refused (faults {rx.msg.faults:#04x})", n)
+        if self.signer is None:
+            for rule in ("signed_accepted", "unsigned_rejected", "forged_rejected", "replay_rejected"):
+                self.add(rule, SKIP, "no key given", n)
+            return
+        self._signing_rules(n)
+
+    def _not_executed(self, n: int, cmd, mark: int):
+        """None if no (non-refused) COIL_STATUS for cmd arrived, else that status."""
+        rx = self._await_status(n, cmd, mark, False)
+        if rx is not None and rx.msg.faults & COIL_FAULT_REFUSED:
+            return None
+        return rx
+
+    def _signing_rules(self, n: int) -> None:
+        # a correctly signed command runs
+        cmd, mark, good_frame = self._pulse(n)
+        rx = self._await_status(n, cmd, mark, True)
+        st, detail = self._judge_pulse(n, cmd, rx)
+        self.add("signed_accepted", st, detail, n)
+        # unsigned
+        cmd, mark, _ = self._pulse(n, signed=False)
+        rx = self._not_executed(n, cmd, mark)
+        self.add("unsigned_rejected", PASS if rx is None else FAIL,
+                 "unsigned command ignored" if rx is None else "node executed an unsigned COIL_PULSE_CMD", n)
+        # forged: another key
+        wrong = bytes(b ^ 0x5A for b in self.o.key)
+        cmd, mark, _ = self._pulse(n, signed=True, key=wrong)
+        rx = self._not_executed(n, cmd, mark)
+        self.add("forged_rejected", PASS if rx is None else FAIL,
+                 "forged signature ignored" if rx is None else "node executed a command signed with another key", n)
+        # replay: the same signed frame twice, and a new command with an old timestamp
+        cmd, mark, frame = self._pulse(n, lead_us=int(self.o.lead_ms * 3000))
+        self.send_frame(frame)
+        old_ts = self.signer.last_timestamp
+        first = self._await_status(n, cmd, mark, True)
+        problems = []
+        if first is None or first.msg.faults:
+            problems.append("the original signed command was not executed")
+        else:
+            later = [rx for rx in self.log[mark:] if self._status_for(n, cmd.pulse_id)(rx)
+                     and not rx.msg.faults & COIL_FAULT_REFUSED]
+            if len(later) > 1:
+                problems.append("a replayed frame was executed again")
+        cmd2, mark2, _ = self._pulse(n, signed=True, timestamp=old_ts)
+        if self._not_executed(n, cmd2, mark2) is not None:
+            problems.append("a command with a not-newer timestamp was executed")
+        self.add("replay_rejected", FAIL if problems else PASS,
+                 "; ".join(problems) if problems else "replayed frame and stale timestamp ignored", n)
+
+    def _sensor_rules(self, n: int) -> None:
+        o = self.o
+        mags = [rx for rx in self.log if rx.src == n and rx.msg.NAME == "MAG_SAMPLE"]
+        if len(mags) < 3:
+            self.add("mag_stream", FAIL, f"{len(mags)} MAG_SAMPLE in {o.observe_s:g} s", n)
+            self.add("mag_timestamps", SKIP, "too few samples", n)
+            return
+        ts = np.array([rx.msg.t_us for rx in mags], dtype=np.int64)
+        d = np.diff(ts)
+        if np.all(d > 0):
+            self.add("mag_timestamps", PASS, f"{len(ts)} samples, strictly increasing", n)
+        else:
+            k = int(np.argmax(d <= 0))
+            self.add("mag_timestamps", FAIL, f"t_us goes from {ts[k]} to {ts[k + 1]}", n)
+        stamp_rate = 1e6 / float(np.median(d)) if np.median(d) > 0 else 0.0
+        span = mags[-1].t - mags[0].t
+        arrival_rate = (len(mags) - 1) / span if span > 0 else 0.0
+        problems = []
+        tol = o.rate_tolerance
+        if o.mag_rate_hz:
+            if abs(stamp_rate / o.mag_rate_hz - 1) > tol:
+                problems.append(f"time stamps say {stamp_rate:.1f} Hz, expected {o.mag_rate_hz:g} Hz")
+            if abs(arrival_rate / o.mag_rate_hz - 1) > max(tol, 0.15):
+                problems.append(f"arrival rate {arrival_rate:.1f} Hz, expected {o.mag_rate_hz:g} Hz")
+        elif stamp_rate <= 0 or abs(arrival_rate / stamp_rate - 1) > max(tol, 0.15):
+            problems.append(f"arrival rate {arrival_rate:.1f} Hz disagrees with time stamps {stamp_rate:.1f} Hz")
+        self.add("mag_stream", FAIL if problems else PASS,
+                 "; ".join(problems) if problems else
+                 f"{stamp_rate:.1f} Hz by time stamps, {arrival_rate:.1f} Hz arriving", n)
+
+    # ------------------------------------------------------------ garbage
+    def _garbage_serial(self) -> bytes:
+        rng = self.rng
+        good = encode_frame_seq(MSG["TIME_SYNC"](123_456, 0xFFFF), 0, self.o.src)
+        parts = [bytes(rng.integers(0, 256, 300, dtype=np.uint8)) + b"\x00"]
+        flipped = bytearray(good)
+        i = int(rng.integers(0, len(flipped) - 1))
+        flipped[i] ^= 0x10
+        if b"\x00" in flipped[:-1]:
+            flipped[i] ^= 0x30
+        parts.append(bytes(flipped))
+        parts.append(good[: len(good) // 2] + b"\x00")
+        parts.append(bytes(rng.integers(1, 256, 3000, dtype=np.uint8)) + b"\x00")   # longer than any frame
+        raw = bytearray(build_frame(MSG["TIME_SYNC"](0, 0), 0, self.o.src))
+        raw[0] += 1                                                                    # wrong length byte
+        parts.append(cobs_encode(bytes(raw)) + b"\x00")
+        raw = bytearray(build_frame(MSG["TIME_SYNC"](0, 0), 0, self.o.src))
+        raw[4] = 0xEE                                                                  # unknown id
+        parts.append(cobs_encode(bytes(raw)) + b"\x00")
+        return b"".join(parts)
+
+    def _garbage_can(self) -> int:
+        import can
+
+        from .can import BASE_ID, CanCodec, can_id
+
+        bus = self.link.bus
+        rng = self.rng
+        src = self.o.src & 0x1F
+        tsid = can_id(MSG["TIME_SYNC"].ID, src)
+        pcid = can_id(MSG["COIL_PULSE_CMD"].ID, src)
+        good = CanCodec().encode(MSG["TIME_SYNC"](0, 0xFFFE), 0, src)
+        frames = [
+            can.Message(arbitration_id=tsid, is_extended_id=False, data=b"\x21\x01\x02"),     # CF without FF
+            can.Message(arbitration_id=tsid, is_extended_id=False, data=good[0].data),          # FF ...
+            can.Message(arbitration_id=tsid, is_extended_id=False, data=b"\x25" + bytes(7)),    # ... wrong SN
+            can.Message(arbitration_id=pcid, is_extended_id=False, data=b"\x1F\xFF" + bytes(6)),  # 4095 bytes
+            can.Message(arbitration_id=tsid, is_extended_id=False, data=b"\x71\x02"),           # unknown PCI
+            can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"\x01\x02"),           # foreign id
+            can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, data=b"\x02\x03"),        # extended id
+            can.Message(arbitration_id=tsid, is_extended_id=False, is_remote_frame=True, dlc=2),
+            can.Message(arbitration_id=tsid, is_extended_id=False, data=b""),
+        ]
+        bad_crc = [bytearray(f.data) for f in good]
+        bad_crc[-1][-1] ^= 0x01
+        frames += [can.Message(arbitration_id=tsid, is_extended_id=False, data=bytes(d)) for d in bad_crc]
+        for _ in range(20):
+            arb = (int(rng.choice(list(BASE_ID.values()))) | src) if rng.random() < 0.8 else int(rng.integers(0, 0x800))
+            frames.append(can.Message(arbitration_id=arb, is_extended_id=False,
+                                      data=bytes(rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8))))
+        sent = 0
+        for f in frames:
+            try:
+                bus.send(f, timeout=0.1)
+                sent += 1
+            except (can.CanError, OSError, ValueError):
+                pass
+        return sent
+
+    def _garbage_rules(self, nodes: dict) -> None:
+        if not nodes:
+            return
+        if hasattr(self.link, "bus") and hasattr(self.link, "codec"):
+            what = f"{self._garbage_can()} bad CAN frames"
+        else:
+            g = self._garbage_serial()
+            self.send_frame(g)
+            what = f"{len(g)} bytes of garbage and bad frames"
+        self.run_for(0.05)
+        for n in sorted(nodes):
+            role = nodes[n]
+            if role == ROLE_COIL_DRIVER:
+                cmd, mark, _ = self._pulse(n)
+                rx = self._await_status(n, cmd, mark, True)
+                ok = rx is not None and not rx.msg.faults
+                self.add("survives_garbage", PASS if ok else FAIL,
+                         f"after {what}: pulse " + ("answered" if ok else "not answered"), n)
+            else:
+                name = "MAG_SAMPLE" if role == ROLE_SENSOR else "HEARTBEAT"
+                mark = len(self.log)
+                timeout = 0.5 if role == ROLE_SENSOR else self.o.heartbeat_timeout_s
+                rx = self.wait_for(lambda r: r.src == n and r.msg.NAME == name, timeout, mark)
+                self.add("survives_garbage", PASS if rx else FAIL,
+                         f"after {what}: {name} " + ("still arriving" if rx else "stopped"), n)
+
+    # ----------------------------------------------------------- optional
+    def _config_rule(self, n: int) -> None:
+        mark = len(self.log)
+        self.send(MSG["CONFIG_GET"](n, 0))
+        rx = self.wait_for(lambda r: r.src == n and r.msg.NAME == "CONFIG_ACK", self.o.optional_wait_s, mark)
+        if rx is None:
+            self.add("config_get", SKIP, "no CONFIG_ACK (configuration is optional)", n)
+        else:
+            self.add("config_get", PASS, f"CONFIG_ACK key {rx.msg.key} result {rx.msg.result}", n)
+
+    def _time_sync_rule(self, n: int) -> None:
+        mark = len(self.log)
+        seq = int(self.rng.integers(0, 0xFFFF))
+        self.send(MSG["TIME_SYNC"](int(self.clock() * 1e6), seq))
+        rx = self.wait_for(lambda r: r.src == n and r.msg.NAME == "TIME_SYNC_REPLY" and r.msg.sync_seq == seq,
+                           self.o.optional_wait_s, mark)
+        if rx is None:
+            self.add("time_sync", SKIP, "no TIME_SYNC_REPLY (optional)", n)
+        else:
+            self.add("time_sync", PASS, f"offset {rx.msg.offset_us} us, drift {rx.msg.drift_ppb} ppb", n)
+
+    # --------------------------------------------------------- link rules
+    def _link_rules(self, nodes: dict) -> None:
+        o = self.o
+        end = self.clock()
+        for n in sorted(nodes):
+            hbs = self.heartbeats[n]
+            times = [hbs[0].t] + [h.t for h in hbs[1:]] + [end]
+            gaps = np.diff(times)
+            if end - hbs[0].t < o.heartbeat_timeout_s:
+                self.add("heartbeat_period", SKIP, "session too short", n)
+            elif gaps.max() > o.heartbeat_timeout_s:
+                self.add("heartbeat_period", FAIL, f"{gaps.max():.2f} s without HEARTBEAT", n)
+            else:
+                self.add("heartbeat_period", PASS, f"{len(hbs)} heartbeats, longest gap {gaps.max():.2f} s", n)
+            wrong = [rx for rx in self.log if rx.msg.NAME == "HEARTBEAT" and rx.msg.node == n and rx.src != n]
+            self.add("src_matches_node", FAIL if wrong else PASS,
+                     f"HEARTBEAT of node {n} sent with src {wrong[0].src}" if wrong else "src == node", n)
+        d = self.decoder
+        can_bad = 0
+        re = getattr(self.link, "reassembler", None)
+        if re is not None:
+            can_bad = re.frames_bad
+        bad = d.frames_bad + can_bad
+        detail = f"{d.frames_ok} frames, {bad} bad"
+        if bad:
+            kinds = {k: v for k, v in d.counters().items() if k.endswith(("errors", "ids", "overflows")) and v}
+            if re is not None:
+                kinds.update({"can_" + k: v for k, v in re.counters().items()
+                              if v and k not in ("frames_in", "messages_ok", "frames_bad", "duplicates",
+                                                 "ignored", "seq_gaps")})
+            detail += " " + json.dumps(kinds)
+        self.add("frames_valid", FAIL if bad else PASS, detail)
+        self.add("sequence", FAIL if d.seq_gaps else PASS,
+                 f"{d.seq_gaps} gaps in per-sender sequence numbers" if d.seq_gaps else "no gaps")
+
+    def _report(self) -> ConformReport:
+        rep = ConformReport(self.transport)
+        rep.duration_s = self.clock() - self.t0
+        for n, hb in sorted(self.heartbeats.items()):
+            if self.o.node is None or n == self.o.node:
+                rep.nodes[n] = role_name(hb[-1].msg.role)
+        span = max(rep.duration_s, 1e-9)
+        names: dict[str, dict] = {}
+        for rx in self.log:
+            st = names.setdefault(rx.msg.NAME, {"count": 0, "from": set(), "bad": 0, "rate_hz": 0.0})
+            st["count"] += 1
+            st["from"].add(rx.src)
+        bad = dict(self.decoder.bad_by_message)
+        re = getattr(self.link, "reassembler", None)
+        if re is not None:
+            for k, v in re.bad_by_message.items():
+                bad[k] = bad.get(k, 0) + v
+        for name, v in bad.items():
+            names.setdefault(name, {"count": 0, "from": set(), "bad": 0, "rate_hz": 0.0})["bad"] += v
+        for name, st in names.items():
+            st["from"] = sorted(st["from"])
+            st["rate_hz"] = round(st["count"] / span, 2)
+        rep.messages = dict(sorted(names.items()))
+        rep.rules = self.rules
+        rep.counters = {"decoder": self.decoder.counters()}
+        if re is not None:
+            rep.counters["can"] = re.counters()
+        return rep
+
+
+def encode_frame_seq(msg, seq: int, src: int) -> bytes:
+    return cobs_encode(build_frame(msg, seq, src)) + b"\x00"
+
+
+def run_conformance(link, options: ConformOptions | None = None, transport: str = "link") -> ConformReport:
+    """Run the whole suite on ``link``; returns the report."""
+    return Conformance(link, options, transport).run()
