@@ -788,3 +788,72 @@ def orthogonal_source(radius, turns, center=(0.0, 0.0, 0.0)):
     list of Coil, length 3
     """
     return [Coil(center, ax, radius, turns) for ax in np.eye(3)]
+
+
+# ---------------------------------------------------------------------------
+# one point, Python floats (allocation-free kernels for the firmware's solver)
+# ---------------------------------------------------------------------------
+def loop_point(x, y, z, radius, scale, jac=True):
+    """Exact loop field (and gradient) at one coil-frame point, Python floats.
+
+    The kernel of ``loop_field`` / ``loop_jacobian`` (Schepers & Veltink eqs
+    6-7 in the AGM form of ``_loop_core``) for a single point, without any
+    array: the firmware's pose solver (``firmware_py.solver``) calls it in its
+    steady-state loop, where no numpy array may be allocated.
+
+    Parameters
+    ----------
+    x, y, z : float
+        Point in the coil frame, m.
+    radius : float
+        Loop radius ``a``, m.
+    scale : float
+        ``mu0 N I / (2 pi a)``, T.
+    jac : bool
+
+    Returns
+    -------
+    tuple of float
+        ``(bx, by, bz)`` in T, followed when ``jac`` by the six distinct
+        gradient entries ``(jxx, jyy, jzz, jxy, jxz, jyz)`` in T/m
+        (the gradient is symmetric and traceless).
+    """
+    inv_a = 1.0 / radius
+    xn = x * inv_a
+    yn = y * inv_a
+    zn = z * inv_a
+    u = xn * xn + yn * yn
+    if not jac:
+        F, G = _loop_core(u, zn, False, math.sqrt, max, _unconverged_scalar)
+        Fc = scale * F
+        return xn * Fc, yn * Fc, scale * G
+    F, G, Fz, H = _loop_core(u, zn, True, math.sqrt, max, _unconverged_scalar)
+    Fc = scale * F
+    g = scale * inv_a
+    F2, H2, Fz2 = F * g, H * g, Fz * g
+    return (xn * Fc, yn * Fc, scale * G,
+            F2 + xn * xn * H2, F2 + yn * yn * H2, -2.0 * F2 - u * H2,
+            xn * yn * H2, xn * Fz2, yn * Fz2)
+
+
+def dipole_point(px, py, pz, mx, my, mz, jac=True):
+    """Dipole field (and gradient) at one point relative to the dipole, Python
+    floats; the single-point kernel of ``dipole_field`` / ``dipole_jacobian``
+    (Schepers & Veltink eq 8 and the general form of eq 10). Returns the same
+    tuple layout as :func:`loop_point`."""
+    r2 = px * px + py * py + pz * pz
+    inv_r2 = 1.0 / r2
+    c = _MU0_4PI * inv_r2 / math.sqrt(r2)
+    mp = mx * px + my * py + mz * pz
+    k = 3.0 * mp * inv_r2
+    b = (c * (k * px - mx), c * (k * py - my), c * (k * pz - mz))
+    if not jac:
+        return b
+    c5 = 3.0 * c * inv_r2
+    f = 5.0 * mp * inv_r2
+    return b + (c5 * (2.0 * mx * px + mp - f * px * px),
+                c5 * (2.0 * my * py + mp - f * py * py),
+                c5 * (2.0 * mz * pz + mp - f * pz * pz),
+                c5 * (mx * py + my * px - f * px * py),
+                c5 * (mx * pz + mz * px - f * px * pz),
+                c5 * (my * pz + mz * py - f * py * pz))

@@ -31,6 +31,7 @@ from .port import Port
 from .pulse import PULSE_SATURATED, PULSE_TOO_FEW, PulseExtractor, SampleRing
 from .rotation import quat_from_matrix
 from .solve import solve_pose
+from .supervisor import Supervisor
 
 HeartbeatMsg = MSG["HEARTBEAT"]
 PulseCmdMsg = MSG["COIL_PULSE_CMD"]
@@ -102,6 +103,8 @@ class Firmware:
         self.peer_hashes: dict[int, int] = {}
         self.tx_errors = 0
         self.last_tick_us: int | None = None
+        # time sync, node health, flip scheduling (firmware_py.supervisor)
+        self.supervisor = Supervisor(self)
 
     # ------------------------------------------------------------------ tick
     def tick(self, now_us: int) -> None:
@@ -112,6 +115,7 @@ class Firmware:
         self._receive()
         self._actuate(now_us)
         self._close_windows(now_us)
+        self.supervisor.step(now_us, self._send, self._event)
         if now_us >= self.next_heartbeat_us:
             self._send(HeartbeatMsg(self.cfg.node_id, ROLE_FIRMWARE, STATE_RUNNING, PROTOCOL_VERSION,
                                     SCHEMA_HASH, now_us - self.boot_us, min(self.decoder.frames_bad, 0xFFFF)))
@@ -124,6 +128,7 @@ class Firmware:
             return
         for msg in self.decoder.feed(data):
             mid = msg.ID
+            self.supervisor.on_message(msg, self.last_tick_us)
             if mid == 0x20:  # MAG_SAMPLE
                 tr = self.tracks.get(msg.node)
                 if tr is not None:
@@ -231,6 +236,9 @@ class Firmware:
         # pose time: middle of the burst
         t_pose = int((int(self.pulse_start[0]) + int(self.pulse_end[-1])) // 2)
         usable = not (flags & _UNUSABLE) and not np.any(self.coil_faults & 0x03)
+        status |= self.supervisor.pose_status(tr.node)
+        if self.supervisor.veto:   # coil status missing/fatal or a node clock stepped in the burst
+            usable = False
         cov = None
         if usable:
             currents = np.where(self.measured_current != 0.0, self.measured_current, self.nominal_current)
@@ -276,4 +284,5 @@ class Firmware:
             "tx_errors": self.tx_errors,
         }
         d.update({"rx_" + k: v for k, v in self.decoder.counters().items()})
+        d.update(self.supervisor.counters())
         return d

@@ -13,17 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def _skew(w):
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _expm_so3(w):
-    th = float(np.linalg.norm(w))
-    K = _skew(w)
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * (K @ K)
+from .motion import rotvec_to_matrix
 
 
 def amplitudes(world, p, R, currents) -> np.ndarray:
@@ -45,7 +35,7 @@ def fisher(world, p, R, currents, sigma, h_pos: float = 1e-5, h_rot: float = 1e-
     for k in range(3):
         w = np.zeros(3)
         w[k] = h_rot
-        Rp, Rm = R @ _expm_so3(w), R @ _expm_so3(-w)
+        Rp, Rm = R @ rotvec_to_matrix(w), R @ rotvec_to_matrix(-w)
         J[:, 3 + k] = ((amplitudes(world, p, Rp, currents) - amplitudes(world, p, Rm, currents))
                        / (2 * h_rot)).ravel()
     Jw = J / sig[:, None]

@@ -1,15 +1,49 @@
-"""Link faults: dropped, corrupted, truncated and duplicated frames.
+"""Fault switches of the bench.
 
-``FaultyLink`` wraps the emulator's end of a link. Every ``write`` from the
-emulator is one frame; each frame independently suffers a fault with the
-configured probability (seeded). Frames from the firmware pass untouched
-unless ``both_ways`` is set.
+Two kinds:
+
+* **Link faults** (:class:`LinkFaults`, applied by :class:`FaultyLink` on the
+  emulator's end of the link): every frame independently is dropped,
+  corrupted (one bit flipped), truncated, duplicated, delayed (held back and
+  delivered later, so out of order) or preceded by garbage bytes, each with
+  its probability (seeded). Frames from the firmware are mangled too when
+  ``both_ways`` is set (the incoming byte stream is split at the 0x00
+  delimiters so each frame is mangled on its own).
+* **Timed node and world faults** (:class:`TimedFault`, collected with the
+  link faults in :class:`BenchFaults`): switched on (and optionally off) at
+  true times: clock drift and clock steps of a node, magnetometer
+  saturation (a magnet on the sensor board), coil open circuit, coil short
+  (over-current trip), supply sag (battery), metal brought near the sensor,
+  a node that disappears and comes back (reboots).
+
+One text form for the command line (``coiltrack bench --faults``), comma
+separated, keys may repeat::
+
+    drop=P corrupt=P truncate=P duplicate=P garbage=P delay=P    per-frame probabilities
+    delay_ms=MS                    how long a delayed frame is held (default 20 ms)
+    both_ways=1                    also mangle frames from the firmware
+    drift=[NODE:]PPM               oscillator drift (default: sensor +PPM and driver -PPM)
+    clock_step=[NODE:]STEP@T       the node's time-stamp counter jumps by STEP (e.g. 5ms, -3ms)
+    sat=WHEN                       magnet on the sensor board: the magnetometer saturates
+    open_circuit=COIL@WHEN         coil winding open
+    short=COIL@WHEN                coil shorted: the driver trips on over-current
+    sag=FACTOR@WHEN                supply voltage drops to FACTOR x nominal (battery)
+    metal=WHEN                     steel part carried next to the sensor (metal_d=M, metal_r=M)
+    node_off=NODE@WHEN             node silent, then reboots (its clock restarts, it must re-sync)
+
+``NODE`` is ``sensor`` (default) or ``driver``; ``WHEN`` is ``T`` (from T on)
+or ``T1-T2`` or ``T+D``; times take a unit ``s``, ``ms`` or ``us`` (bare
+numbers are seconds). Example:
+``--faults drop=0.01,clock_step=5ms@20s,open_circuit=1@20s-30s,metal=30s,node_off=sensor@40s-43s``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+import re
+from dataclasses import dataclass, field, fields
 
 import numpy as np
+
+_LINK_PROBS = ("drop", "corrupt", "truncate", "duplicate", "garbage", "delay")
 
 
 @dataclass
@@ -19,48 +53,68 @@ class LinkFaults:
     truncate: float = 0.0    # probability a frame is cut short (its delimiter kept)
     duplicate: float = 0.0   # probability a frame is sent twice
     garbage: float = 0.0     # probability random bytes are inserted before a frame
+    delay: float = 0.0       # probability a frame is held back by delay_us (arrives out of order)
+    delay_us: int = 20_000
     both_ways: bool = False
 
     def active(self) -> bool:
-        return any(getattr(self, f.name) for f in fields(self) if f.name != "both_ways")
+        return any(getattr(self, k) for k in _LINK_PROBS)
+
+    def set(self, key: str, val: str) -> None:
+        if key == "both_ways":
+            self.both_ways = val.strip().lower() in ("1", "true", "yes", "")
+            return
+        if key == "delay_ms":
+            self.delay_us = int(round(float(val) * 1000))
+            return
+        try:
+            p = float(val)
+        except ValueError:
+            raise ValueError(f"link fault '{key}': '{val}' is not a number") from None
+        if not 0.0 <= p <= 1.0:
+            raise ValueError(f"link fault '{key}': probability {p} outside [0, 1]")
+        setattr(self, key, p)
 
     @classmethod
     def parse(cls, spec: str) -> "LinkFaults":
-        """``"corrupt=0.01,drop=0.005"`` -> LinkFaults."""
+        """``"corrupt=0.01,drop=0.005"`` -> LinkFaults (link keys only)."""
         lf = cls()
         if not spec:
             return lf
-        names = {f.name for f in fields(cls)}
+        names = set(_LINK_PROBS) | {"both_ways", "delay_ms"}
         for part in spec.split(","):
             key, _, val = part.partition("=")
             key = key.strip()
             if key not in names:
                 raise ValueError(f"unknown link fault '{key}' (known: {', '.join(sorted(names))})")
-            if key == "both_ways":
-                lf.both_ways = val.strip().lower() in ("1", "true", "yes", "")
-                continue
-            try:
-                p = float(val)
-            except ValueError:
-                raise ValueError(f"link fault '{key}': '{val}' is not a number") from None
-            if not 0.0 <= p <= 1.0:
-                raise ValueError(f"link fault '{key}': probability {p} outside [0, 1]")
-            setattr(lf, key, p)
+            lf.set(key, val)
         return lf
 
 
 class FaultyLink:
+    """Wraps the emulator's end of a link and mangles frames (see the module docstring).
+
+    ``service(now_us)`` (called by the emulator every step) releases delayed
+    frames whose time has come; without it delayed frames go out on the next
+    write.
+    """
+
     def __init__(self, link, faults: LinkFaults, seed: int = 0):
         self.link = link
         self.faults = faults
         self.rng = np.random.default_rng(seed)
-        self.counts = {"dropped": 0, "corrupted": 0, "truncated": 0, "duplicated": 0, "garbage": 0}
+        self.counts = {"dropped": 0, "corrupted": 0, "truncated": 0, "duplicated": 0, "garbage": 0,
+                       "delayed": 0}
+        self.now_us = 0
+        self._held_out: list[tuple[int, bytes]] = []
+        self._held_in: list[tuple[int, bytes]] = []
+        self._rx_partial = bytearray()
 
-    def _mangle(self, data: bytes) -> bytes:
+    def _mangle(self, data: bytes, held: list) -> bytes:
         f, rng = self.faults, self.rng
         out = b""
         if f.garbage and rng.random() < f.garbage:
-            out += bytes(rng.integers(0, 256, int(rng.integers(1, 40)), dtype=np.uint8))
+            out += bytes(rng.integers(1, 256, int(rng.integers(1, 40)), dtype=np.uint8))
             self.counts["garbage"] += 1
         if f.drop and rng.random() < f.drop:
             self.counts["dropped"] += 1
@@ -75,17 +129,209 @@ class FaultyLink:
             cut = int(rng.integers(1, len(data) - 1))
             data = data[:cut] + data[-1:]
             self.counts["truncated"] += 1
+        if f.delay and rng.random() < f.delay:
+            held.append((self.now_us + f.delay_us, data))
+            self.counts["delayed"] += 1
+            return out
         out += data
         if f.duplicate and rng.random() < f.duplicate:
             out += data
             self.counts["duplicated"] += 1
         return out
 
+    @staticmethod
+    def _due(held: list, now_us: int) -> bytes:
+        out = b""
+        keep = []
+        for t, d in held:
+            if t <= now_us:
+                out += d
+            else:
+                keep.append((t, d))
+        held[:] = keep
+        return out
+
+    def service(self, now_us: int) -> None:
+        self.now_us = int(now_us)
+        due = self._due(self._held_out, self.now_us)
+        if due:
+            self.link.write(due)
+
     def write(self, data: bytes) -> None:
-        self.link.write(self._mangle(data))
+        out = self._mangle(data, self._held_out)
+        if out:
+            self.link.write(out)
 
     def read(self) -> bytes:
         data = self.link.read()
-        if data and self.faults.both_ways:
-            return self._mangle(data)
-        return data
+        if not self.faults.both_ways:
+            return data
+        out = bytearray(self._due(self._held_in, self.now_us))
+        if data:
+            buf = self._rx_partial + data
+            start = 0
+            while True:
+                z = buf.find(b"\x00", start)
+                if z < 0:
+                    break
+                out += self._mangle(bytes(buf[start:z + 1]), self._held_in)
+                start = z + 1
+            self._rx_partial = bytearray(buf[start:])
+        return bytes(out)
+
+    def flush(self) -> None:
+        fl = getattr(self.link, "flush", None)
+        if fl is not None:
+            fl()
+
+
+# ---------------------------------------------------------------------------
+# Timed node and world faults
+# ---------------------------------------------------------------------------
+
+_UNITS = {"s": 1_000_000, "ms": 1_000, "us": 1}
+_TIMED = ("clock_step", "sat", "open_circuit", "short", "sag", "metal", "node_off")
+_NODES = ("sensor", "driver")
+
+
+def parse_time_us(text: str) -> int:
+    """``"20s"``, ``"1500ms"``, ``"250us"``, ``"-5ms"`` or a bare number of seconds -> microseconds."""
+    m = re.fullmatch(r"\s*([+-]?[0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*(s|ms|us)?\s*", text)
+    if not m:
+        raise ValueError(f"'{text}' is not a time (use e.g. 20s, 1500ms, 250us)")
+    return int(round(float(m.group(1)) * _UNITS[m.group(2) or "s"]))
+
+
+def parse_when(text: str) -> tuple[int, int | None]:
+    """``"20s"`` -> (20e6, None); ``"20s-25s"`` / ``"20s+5s"`` -> (20e6, 25e6)."""
+    m = re.fullmatch(r"\s*([^+-]+?)\s*([+-])\s*(.+)", text)
+    if m:
+        t0 = parse_time_us(m.group(1))
+        t1 = parse_time_us(m.group(3))
+        t1 = t0 + t1 if m.group(2) == "+" else t1
+        if t1 <= t0:
+            raise ValueError(f"'{text}': the end must come after the start")
+        return t0, t1
+    return parse_time_us(text), None
+
+
+@dataclass
+class TimedFault:
+    """One switch: ``kind`` on ``target`` (node name or coil index) with ``value`` on ``[t_on, t_off)``."""
+    kind: str
+    t_on_us: int
+    t_off_us: int | None = None
+    target: str | int | None = None
+    value: float | None = None
+
+    def active(self, t_us: int) -> bool:
+        return t_us >= self.t_on_us and (self.t_off_us is None or t_us < self.t_off_us)
+
+    def describe(self) -> str:
+        when = f"{self.t_on_us / 1e6:g}s" + ("" if self.t_off_us is None else f"-{self.t_off_us / 1e6:g}s")
+        tgt = "" if self.target is None else f"{self.target}:"
+        val = "" if self.value is None else f"{self.value:g}"
+        return f"{self.kind}={tgt}{val}@{when}"
+
+
+@dataclass
+class BenchFaults:
+    """Every fault switch of one run: link faults plus timed node/world faults."""
+    link: LinkFaults = field(default_factory=LinkFaults)
+    timed: list[TimedFault] = field(default_factory=list)
+    drift_ppm: dict = field(default_factory=dict)     # node name -> ppm (overrides the scenario's)
+    metal_distance_m: float = 0.06
+    metal_radius_m: float = 0.02
+
+    def active(self) -> bool:
+        return self.link.active() or bool(self.timed) or bool(self.drift_ppm)
+
+    def of(self, kind: str, target=None) -> list[TimedFault]:
+        return [f for f in self.timed if f.kind == kind and (target is None or f.target == target)]
+
+    def at(self, kind: str, t_us: int, target=None) -> TimedFault | None:
+        """The fault of ``kind`` (on ``target``) active at true time ``t_us``, if any."""
+        for f in self.timed:
+            if f.kind == kind and (target is None or f.target == target) and f.active(t_us):
+                return f
+        return None
+
+    def describe(self) -> list[str]:
+        out = [f"{k}={getattr(self.link, k):g}" for k in _LINK_PROBS if getattr(self.link, k)]
+        if self.link.delay:
+            out.append(f"delay_ms={self.link.delay_us / 1000:g}")
+        if self.link.both_ways:
+            out.append("both_ways=1")
+        out += [f"drift={n}:{v:g}" for n, v in self.drift_ppm.items()]
+        out += [f.describe() for f in self.timed]
+        return out
+
+    @classmethod
+    def parse(cls, spec: str) -> "BenchFaults":
+        bf = cls()
+        if not spec:
+            return bf
+        link_keys = set(_LINK_PROBS) | {"both_ways", "delay_ms"}
+        known = sorted(link_keys | set(_TIMED) | {"drift", "metal_d", "metal_r"})
+        for part in spec.split(","):
+            if not part.strip():
+                continue
+            key, _, val = part.partition("=")
+            key, val = key.strip(), val.strip()
+            if key in link_keys:
+                bf.link.set(key, val)
+                continue
+            if key not in known:
+                raise ValueError(f"unknown fault '{key}' (known: {', '.join(known)})")
+            try:
+                bf._parse_one(key, val)
+            except ValueError as exc:
+                raise ValueError(f"fault '{key}={val}': {exc}") from None
+        return bf
+
+    def _parse_one(self, key: str, val: str) -> None:
+        if key == "metal_d":
+            self.metal_distance_m = float(val)
+            return
+        if key == "metal_r":
+            self.metal_radius_m = float(val)
+            return
+        if key == "drift":
+            node, _, ppm = val.rpartition(":")
+            ppm = float(ppm)
+            if abs(ppm) > 1000:
+                raise ValueError("drift beyond 1000 ppm")
+            if node:
+                self.drift_ppm[_node(node)] = ppm
+            else:
+                self.drift_ppm.update({"sensor": ppm, "driver": -ppm})
+            return
+        head, at, when = val.partition("@")
+        if not at:
+            head, when = "", val
+        t0, t1 = parse_when(when)
+        if key == "clock_step":
+            node, _, step = head.rpartition(":")
+            self.timed.append(TimedFault(key, t0, None, _node(node or "sensor"), parse_time_us(step)))
+        elif key in ("sat", "metal"):
+            if head:
+                raise ValueError("takes only a time, e.g. 20s or 20s-30s")
+            self.timed.append(TimedFault(key, t0, t1, "sensor"))
+        elif key in ("open_circuit", "short"):
+            self.timed.append(TimedFault(key, t0, t1, int(head)))
+        elif key == "sag":
+            f = float(head)
+            if not 0.0 < f <= 1.0:
+                raise ValueError("sag factor must be in (0, 1]")
+            self.timed.append(TimedFault(key, t0, t1, "driver", f))
+        elif key == "node_off":
+            if t1 is None:
+                raise ValueError("node_off needs an interval, e.g. sensor@20s-23s")
+            self.timed.append(TimedFault(key, t0, t1, _node(head or "sensor")))
+
+
+def _node(name: str) -> str:
+    name = name.strip().lower()
+    if name not in _NODES:
+        raise ValueError(f"unknown node '{name}' (use {' or '.join(_NODES)})")
+    return name

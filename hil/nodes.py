@@ -1,43 +1,145 @@
-"""Emulated nodes: the coil driver and the sensor node, plus the recorder
-that plays the host and keeps ground truth for the report.
+"""Emulated nodes: the coil driver and the sensor node (magnetometer with an
+IMU beside it), plus the recorder that plays the host and keeps ground truth
+for the report.
 
 Each node speaks only protocol messages; the emulator (``hil.emulator``)
-routes decoded messages to them and frames what they send.
+routes decoded messages to :meth:`Node.handle` and calls :meth:`Node.tick`
+every step. Each node has its own clock (:class:`hil.clock.NodeClock`:
+offset, drift, steps) and learns the master (firmware) time from the
+``TIME_SYNC`` broadcasts (:class:`hil.clock.NodeSync`); it answers each with
+``TIME_SYNC_REPLY``. Times passed to the nodes (``now_us``) are *true* time;
+times on the wire are the node's estimate of master time. A sensor streams
+samples only once it is synchronised (its heartbeat says ``STATE_READY``
+until then, ``STATE_RUNNING`` after).
+
+Ground truth kept for the report and the HIL tests: every pulse the driver
+executed with its true edges (``CoilDriverNode.executed``), every sample
+with its true time and its time stamp (``SensorNode.stamps``/``true_times``),
+every set/reset flip (``SensorNode.flip_log``).
 """
 from __future__ import annotations
 
+import bisect
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
-from protocol.schema import (COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE, COIL_FAULT_OPEN_CIRCUIT,
-                             COIL_FAULT_OVER_CURRENT, COIL_FAULT_REFUSED, CURRENT_LSB_A,
-                             MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STATE_RUNNING)
+from protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
+                             COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_REFUSED,
+                             CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STATE_READY,
+                             STATE_RUNNING)
 
-from .clock import NodeClock
+from .clock import NodeClock, NodeSync
 
 Heartbeat = MSG["HEARTBEAT"]
 CoilStatus = MSG["COIL_STATUS"]
 MagSample = MSG["MAG_SAMPLE"]
+ImuSample = MSG["IMU_SAMPLE"]
+TimeSyncReply = MSG["TIME_SYNC_REPLY"]
+
+HEARTBEAT_US = 1_000_000
+_I32 = (1 << 31) - 1
+
+
+def _i32(v: int) -> int:
+    return max(-_I32 - 1, min(_I32, int(v)))
+
+
+def _i16(v: float) -> int:
+    return max(-32768, min(32767, int(round(v))))
 
 
 class Node:
+    """Common node behaviour: clock, time sync, heartbeat, power (off windows and reboot).
+
+    Subclasses implement :meth:`on_message` and :meth:`step`.
+    """
     node_id = 0
     role = 0
 
-    def __init__(self):
-        self.next_heartbeat_us = 0
-        self.boot_us = 0
+    def __init__(self, clock: NodeClock | None = None, faults=None, seed: int = 0):
+        self.clock = clock or NodeClock()
+        self.sync = NodeSync()
+        self.faults = faults
+        self.online = True
+        self.off_windows: list[tuple[int, int]] = []
+        self.boot_true_us = 0
+        self.next_heartbeat_local: int | None = None
+        self.reboots = 0
+        self.sync_rx = 0
+        self._power_rng = np.random.default_rng(seed + 7919)
+
+    # --- time
+    def master(self, true_us: int) -> int:
+        """This node's estimate of master time at true time ``true_us``."""
+        return self.sync.to_master(self.clock.local(true_us))
+
+    def true_of_master(self, master_us: int, after_us: int) -> int:
+        """True time at which this node's timer for master time ``master_us`` fires."""
+        return self.clock.true(self.sync.to_local(master_us), after_us)
+
+    # --- power
+    def add_off_window(self, t0_us: int, t1_us: int) -> None:
+        self.off_windows.append((int(t0_us), int(t1_us)))
+
+    def _update_power(self, now_us: int) -> None:
+        off = any(t0 <= now_us < t1 for t0, t1 in self.off_windows)
+        if self.online and off:
+            self.online = False
+            self.on_power_off(now_us)
+        elif not self.online and not off:
+            self.online = True
+            self.reboots += 1
+            self.clock.reboot(now_us, int(self._power_rng.integers(1_000, 50_000)))
+            self.sync.reset()
+            self.boot_true_us = now_us
+            self.next_heartbeat_local = None
+            self.on_power_on(now_us)
+
+    def on_power_off(self, now_us: int) -> None:
+        pass
+
+    def on_power_on(self, now_us: int) -> None:
+        pass
+
+    # --- messages
+    def handle(self, msg, now_us: int, send) -> None:
+        if not self.online:
+            return
+        if msg.NAME == "TIME_SYNC":
+            loc = self.clock.local(now_us)
+            self.sync.update(loc, msg.master_time_us)
+            self.sync_rx += 1
+            send(self, TimeSyncReply(self.node_id, msg.sync_seq, max(0, loc), _i32(self.sync.offset_us),
+                                     _i32(self.sync.drift_ppb)))
+            return
+        self.on_message(msg, now_us, send)
 
     def on_message(self, msg, now_us: int, send) -> None:
         pass
 
+    def tick(self, now_us: int, send) -> None:
+        self._update_power(now_us)
+        if not self.online:
+            return
+        loc = self.clock.local(now_us)
+        nh = self.next_heartbeat_local
+        if nh is None or loc >= nh or nh - loc > 2 * HEARTBEAT_US:
+            state = STATE_RUNNING if self.sync.synced else STATE_READY
+            uptime = max(0, loc - self.clock.local(self.boot_true_us))
+            send(self, Heartbeat(self.node_id, self.role, state, PROTOCOL_VERSION, SCHEMA_HASH, uptime, 0))
+            self.next_heartbeat_local = loc + HEARTBEAT_US
+        self.step(now_us, send)
+
     def step(self, now_us: int, send) -> None:
-        if now_us >= self.next_heartbeat_us:
-            send(self, Heartbeat(self.node_id, self.role, STATE_RUNNING, PROTOCOL_VERSION,
-                                 SCHEMA_HASH, now_us - self.boot_us, 0))
-            self.next_heartbeat_us = now_us + 1_000_000
+        pass
+
+
+# ---------------------------------------------------------------------------
+# Coil driver
+# ---------------------------------------------------------------------------
 
 
 @dataclass
@@ -47,32 +149,67 @@ class DriverLimits:
     max_pulse_us: int = 200_000
     max_duty: float = 0.5          # fraction of time a coil may be on, over duty_window_us
     duty_window_us: int = 1_200_000
-    min_lead_us: int = 200         # a command must arrive at least this early
+    min_lead_us: int = 200         # a command must arrive at least this early (master time)
+    sag_fraction: float = 0.9      # measured below this fraction of the target: COIL_FAULT_CURRENT_SAG
+    open_fraction: float = 0.2     # measured below this fraction: COIL_FAULT_OPEN_CIRCUIT
+    trip_us: int = 200             # over-current trip time of the short-circuit protection
+    short_resistance_factor: float = 0.05
 
 
 class CoilDriverNode(Node):
     """Executes scheduled pulse commands on the world's coil currents.
 
-    After each pulse it reports the measured steady-state current and the
-    actual edges (on the master clock) in COIL_STATUS. It refuses commands
-    that break its limits or arrive late, and reports the refusal.
+    A ``COIL_PULSE_CMD`` gives the start on the master clock; the driver fires
+    when its own synchronised clock reaches it (so the true edges carry the
+    driver's sync error). The current follows L/R towards the target, limited
+    by the supply (``V/R``, with sag). After each pulse the driver reports the
+    current it measured near the end and the edges (its estimate of master
+    time) in ``COIL_STATUS``, with fault bits: open circuit (measured ~0),
+    over-current (short: tripped after ``trip_us``), current sag (measured
+    below ``sag_fraction`` of the target). It refuses commands that break its
+    limits, arrive late, duplicate a pulse id, or come before it is
+    synchronised, and reports the refusal. Pulses are committed to the world
+    ``commit_horizon_us`` before they start.
     """
     role = ROLE_COIL_DRIVER
 
     def __init__(self, node_id: int, world, limits: DriverLimits | None = None, seed: int = 0,
-                 current_noise_a: float = 1e-3):
-        super().__init__()
+                 current_noise_a: float = 1e-3, clock: NodeClock | None = None, faults=None,
+                 commit_horizon_us: int = 2_000):
+        super().__init__(clock, faults, seed)
         self.node_id = node_id
         self.world = world
         self.limits = limits or DriverLimits()
         self.rng = np.random.default_rng(seed)
         self.current_noise_a = current_noise_a
-        self.pending: list[tuple[int, int, int, int, float]] = []   # (end_us, coil, pulse_id, start_us, amps)
-        self.history: list[tuple[int, int, int]] = [[] for _ in world.coils]  # per coil (start, end)
-        self.open_circuit = [False] * len(world.coils)
-        self.sag = 1.0                  # supply sag factor on the achieved current
-        self.executed: list[dict] = []  # ground truth of every pulse
+        self.commit_horizon_us = commit_horizon_us
+        n = len(world.coils)
+        self.queue: list[dict] = []         # accepted, not yet committed (sorted by true start)
+        self.active: list[dict] = []        # committed, waiting for the end edge
+        self.history: list[list[tuple[int, int]]] = [[] for _ in range(n)]  # per coil (master start, end)
+        self.recent: list[list[int]] = [[] for _ in range(n)]               # recent pulse ids per coil
+        self.open_circuit = [False] * n     # static switches (tests); timed ones come from faults
+        self.sag = 1.0
+        self.executed: list[dict] = []      # ground truth of every pulse that ran
+        self.refusals: list[dict] = []
         self.refused = 0
+        self.duplicates = 0
+        self.cmd_leads_us: list[int] = []   # master lead of every accepted command at arrival
+
+    # --- fault state at a true time
+    def _open(self, c: int, t: int) -> bool:
+        return self.open_circuit[c] or (self.faults is not None and self.faults.at("open_circuit", t, c) is not None)
+
+    def _short(self, c: int, t: int) -> bool:
+        return self.faults is not None and self.faults.at("short", t, c) is not None
+
+    def supply_v(self, t: int) -> float:
+        f = self.sag
+        if self.faults is not None:
+            s = self.faults.at("sag", t)
+            if s is not None:
+                f *= s.value
+        return self.world.supply_v * f
 
     def _duty(self, coil: int, start: int, dur: int) -> float:
         w0 = start + dur - self.limits.duty_window_us
@@ -80,103 +217,419 @@ class CoilDriverNode(Node):
         return on / self.limits.duty_window_us
 
     def on_message(self, msg, now_us: int, send) -> None:
-        if msg.ID != MSG["COIL_PULSE_CMD"].ID:
+        if msg.NAME != "COIL_PULSE_CMD":
             return
         c, amps = msg.coil, msg.current_ma * CURRENT_LSB_A
+        if c < len(self.recent) and msg.pulse_id in self.recent[c]:
+            self.duplicates += 1            # a duplicated frame: already handled
+            return
+        lead = msg.start_us - self.master(now_us)
         fault = 0
         if c >= len(self.world.coils):
+            fault = COIL_FAULT_REFUSED
+        elif not self.sync.synced:
             fault = COIL_FAULT_REFUSED
         elif abs(amps) > self.limits.max_current_a + 1e-9:
             fault = COIL_FAULT_REFUSED | COIL_FAULT_OVER_CURRENT
         elif msg.duration_us > self.limits.max_pulse_us or msg.duration_us <= 0:
             fault = COIL_FAULT_REFUSED
-        elif msg.start_us < now_us + self.limits.min_lead_us:
+        elif lead < self.limits.min_lead_us:
             fault = COIL_FAULT_REFUSED | COIL_FAULT_LATE
         elif self._duty(c, msg.start_us, msg.duration_us) > self.limits.max_duty:
             fault = COIL_FAULT_REFUSED | COIL_FAULT_DUTY_LIMIT
+        if c < len(self.recent):
+            self.recent[c].append(msg.pulse_id)
+            if len(self.recent[c]) > 32:
+                del self.recent[c][:16]
         if fault:
             self.refused += 1
+            self.refusals.append({"coil": c, "pulse_id": msg.pulse_id, "faults": fault, "rx_true_us": now_us,
+                                  "lead_us": lead})
             send(self, CoilStatus(min(c, 255), msg.pulse_id, 0, msg.start_us, msg.start_us, fault))
             return
-        achieved = 0.0 if self.open_circuit[c] else amps * self.sag
-        self.world.currents[c].schedule(msg.start_us, msg.duration_us, achieved)
+        self.cmd_leads_us.append(lead)
+        t0 = self.true_of_master(msg.start_us, now_us)
+        t1 = self.true_of_master(msg.start_us + msg.duration_us, t0)
+        rec = {"coil": c, "pulse_id": msg.pulse_id, "master_start_us": msg.start_us,
+               "master_end_us": msg.start_us + msg.duration_us, "target_a": amps,
+               "start_us": t0, "end_us": t1, "rx_true_us": now_us, "lead_us": lead, "faults": 0}
         self.history[c].append((msg.start_us, msg.start_us + msg.duration_us))
         if len(self.history[c]) > 64:
             del self.history[c][:32]
-        self.pending.append((msg.start_us + msg.duration_us, c, msg.pulse_id, msg.start_us, achieved))
-        self.pending.sort()
+        bisect.insort(self.queue, rec, key=lambda r: r["start_us"])
+
+    def _commit(self, rec: dict) -> None:
+        c, t0, t1 = rec["coil"], rec["start_us"], rec["end_us"]
+        coil = self.world.coils[c]
+        v = self.supply_v(t0)
+        target = rec["target_a"]
+        if self._open(c, t0):
+            achieved = 0.0
+        elif self._short(c, t0):
+            r_short = coil.resistance * self.limits.short_resistance_factor
+            achieved = math.copysign(v / r_short, target)
+            t1 = t0 + self.limits.trip_us
+            rec["faults"] |= COIL_FAULT_OVER_CURRENT
+            rec["end_us"] = t1
+        else:
+            achieved = math.copysign(min(abs(target), v / coil.resistance), target)
+        rec["current_a"] = achieved
+        rec["tau_us"] = self.world.currents[c].tau_us
+        self.world.currents[c].schedule(t0, t1 - t0, achieved)
+        self.active.append(rec)
+
+    def on_power_off(self, now_us: int) -> None:
+        # outputs off: cut a running pulse, forget what was queued
+        for rec in self.active:
+            if rec["start_us"] <= now_us < rec["end_us"]:
+                self.world.currents[rec["coil"]].schedule(now_us, 1, 0.0)
+                rec["end_us"] = now_us
+                rec["aborted"] = True
+                self.executed.append(rec)
+        self.active.clear()
+        self.queue.clear()
+
+    def on_power_on(self, now_us: int) -> None:
+        for r in self.recent:
+            r.clear()
 
     def step(self, now_us: int, send) -> None:
-        super().step(now_us, send)
-        while self.pending and self.pending[0][0] <= now_us:
-            end, c, pid, start, amps = self.pending.pop(0)
-            measured = self.world.currents[c].current_at(end - 1) + self.rng.normal(0.0, self.current_noise_a)
-            faults = COIL_FAULT_OPEN_CIRCUIT if self.open_circuit[c] else 0
-            send(self, CoilStatus(c, pid, int(round(measured / CURRENT_LSB_A)), start, end, faults))
-            tau_us = self.world.currents[c].tau_us
-            self.executed.append({"coil": c, "pulse_id": pid, "start_us": start, "end_us": end,
-                                  "current_a": amps, "tau_us": tau_us})
+        while self.queue and self.queue[0]["start_us"] <= now_us + self.commit_horizon_us:
+            self._commit(self.queue.pop(0))
+        if not self.active:
+            return
+        done = [r for r in self.active if r["end_us"] <= now_us]
+        if not done:
+            return
+        self.active = [r for r in self.active if r["end_us"] > now_us]
+        for rec in done:
+            c = rec["coil"]
+            measured = float(self.world.currents[c].current_at(rec["end_us"] - 1)) \
+                + float(self.rng.normal(0.0, self.current_noise_a))
+            target = abs(rec["target_a"])
+            faults = rec["faults"]
+            if not faults & COIL_FAULT_OVER_CURRENT and target > 0.0:
+                if abs(measured) < self.limits.open_fraction * target:
+                    faults |= COIL_FAULT_OPEN_CIRCUIT
+                elif abs(measured) < self.limits.sag_fraction * target:
+                    faults |= COIL_FAULT_CURRENT_SAG
+            rec["faults"] = faults
+            rec["measured_a"] = measured
+            ma = _i16(measured / CURRENT_LSB_A)
+            rec["reported_start_us"] = self.master(rec["start_us"])
+            rec["reported_end_us"] = self.master(rec["end_us"])
+            send(self, CoilStatus(c, rec["pulse_id"], ma, rec["reported_start_us"], rec["reported_end_us"], faults))
+            self.executed.append(rec)
+
+
+# ---------------------------------------------------------------------------
+# Sensor node: magnetometer + IMU
+# ---------------------------------------------------------------------------
+
+
+@dataclass
+class MagSpec:
+    """Magnetometer of a sensor node.
+
+    ``noise_t`` is the rms white noise per sample and axis; the equivalent
+    noise density is ``noise_t / sqrt(rate_hz / 2)`` (bandwidth = Nyquist).
+    Output: 16-bit counts of ``MAG_LSB_T`` (5 nT), clipped at ``range_t``
+    (the sample's saturation bit is set when any axis exceeds it).
+
+    Set/reset flipping (thesis ``002`` sec 5.5, 7.2): a magnetoresistive
+    sensor's output is ``s B + o`` with the flip state ``s = +-1``; the
+    flipping electronics estimate the offset ``o`` from a set/reset pair taken
+    ``flip_delta_us`` apart around each flip, which leaves (a) a residual
+    offset ``s o_res`` (rms ``offset_t`` per axis) whose sign follows the flip
+    state, and (b) an error ``-(B(t_f + d) - B(t_f - d)) / 2`` that persists
+    until the next flip when the field changes during the flip: nothing in
+    a still field, a large artefact on a pulse edge. The sensor flips by
+    itself every ``flip_every`` samples (0: never) unless a ``MAG_FLIP_CMD``
+    arrived within ``command_hold_us``; commanded flips happen at the
+    commanded master time.
+    """
+    rate_hz: float = 120.0
+    noise_t: float = 0.5e-7
+    range_t: float = 32767 * MAG_LSB_T
+    offset_t: float = 0.3e-6
+    flip_every: int = 8
+    flip_delta_us: int = 500
+    command_hold_us: int = 3_000_000
+
+    @property
+    def noise_density(self) -> float:
+        """T / sqrt(Hz)."""
+        return self.noise_t / math.sqrt(self.rate_hz / 2.0)
+
+    @classmethod
+    def thesis(cls, **kw) -> "MagSpec":
+        """120 Hz, 0.05 uT rms (thesis sec 5.2.1: flipped magnetoresistive sensor)."""
+        return cls(**kw)
+
+    @classmethod
+    def fast(cls, rate_hz: float = 1000.0, **kw) -> "MagSpec":
+        """A fast profile at the thesis sensor's noise density (``noise_t`` grows with sqrt(rate))."""
+        nd = cls().noise_density
+        kw.setdefault("flip_every", 64)
+        return cls(rate_hz=rate_hz, noise_t=nd * math.sqrt(rate_hz / 2.0), **kw)
+
+
+@dataclass
+class ImuSpec:
+    """Accelerometer and gyroscope beside the magnetometer (MEMS, MTx-class defaults).
+
+    Accelerometer: specific force in the sensor frame ``R^T (a - g)``,
+    ``g = (0, 0, -gravity)`` in the world (source) frame, plus bias and white
+    noise. Gyroscope: angular velocity in the sensor frame plus bias and white
+    noise. Biases start at a seeded value (``*_bias_sigma`` per axis) and
+    random-walk (``*_bias_rw`` per sqrt(s)). Noise densities per sqrt(Hz);
+    per-sample rms = density * sqrt(rate/2). Output quantised to the
+    protocol's ``ACC_LSB`` / ``GYR_LSB`` and clipped to 16 bits.
+    """
+    rate_hz: float = 100.0
+    acc_noise_density: float = 2.0e-3       # m/s^2/sqrt(Hz)
+    acc_bias_sigma: float = 0.02            # m/s^2
+    acc_bias_rw: float = 2.0e-4             # m/s^2/sqrt(s)
+    gyro_noise_density: float = 8.7e-4      # rad/s/sqrt(Hz) (0.05 deg/s/sqrt(Hz))
+    gyro_bias_sigma: float = 8.7e-3         # rad/s (0.5 deg/s)
+    gyro_bias_rw: float = 1.7e-4            # rad/s/sqrt(s)
+    gravity: float = 9.81
+
+    @property
+    def acc_sigma(self) -> float:
+        return self.acc_noise_density * math.sqrt(self.rate_hz / 2.0)
+
+    @property
+    def gyro_sigma(self) -> float:
+        return self.gyro_noise_density * math.sqrt(self.rate_hz / 2.0)
 
 
 class SensorNode(Node):
-    """A 3-axis magnetometer (optionally an IMU beside it) with its own clock.
+    """A 3-axis magnetometer (and optionally an IMU beside it) with its own clock.
 
-    Samples the true field at the node's sample instants, adds white noise
-    (``noise_t`` rms per axis), quantises to 16 bits of ``MAG_LSB_T`` and
-    clips at the range (reporting saturation).
+    Sample instants follow the node's oscillator (period ``1/rate`` of local
+    time); each sample is stamped with the node's estimate of master time.
+    See :class:`MagSpec` and :class:`ImuSpec` for the sensor models. The
+    magnetometer sees the world's total field at the sample instant, in the
+    sensor frame at that instant (so a rotating sensor sees the earth field
+    turn during a pulse).
     """
     role = ROLE_SENSOR
+    _CHUNK = 64
 
-    def __init__(self, node_id: int, world, rate_hz: float = 120.0, noise_t: float = 0.5e-7,
-                 range_t: float = 32767 * MAG_LSB_T, seed: int = 0, clock: NodeClock | None = None):
-        super().__init__()
+    def __init__(self, node_id: int, world, mag: MagSpec | None = None, imu: ImuSpec | None = None,
+                 seed: int = 0, clock: NodeClock | None = None, faults=None, *, rate_hz: float | None = None,
+                 noise_t: float | None = None, range_t: float | None = None):
+        super().__init__(clock, faults, seed)
+        mag = mag or MagSpec()
+        if rate_hz is not None:
+            mag.rate_hz = rate_hz
+        if noise_t is not None:
+            mag.noise_t = noise_t
+        if range_t is not None:
+            mag.range_t = range_t
+        mag.range_t = min(mag.range_t, 32767 * MAG_LSB_T)
+        self.mag, self.imu = mag, imu
         self.node_id = node_id
         self.world = world
-        self.period_us = int(round(1e6 / rate_hz))
-        self.noise_t = noise_t
-        self.range_t = min(range_t, 32767 * MAG_LSB_T)
         self.rng = np.random.default_rng(seed)
-        self.clock = clock or NodeClock()
-        # first sample at a seeded phase within one period
-        self.next_sample_us = int(self.rng.integers(0, self.period_us))
-        self.flip = 1
+        self.imu_rng = np.random.default_rng(seed + 104729)
+        self.offset = self.rng.normal(0.0, mag.offset_t, 3)
+        self.flip_state = 1
+        self.flip_err = np.zeros(3)
+        self.cmd_until_us = -1
+        self.pending_flips: list[tuple[int, int]] = []
+        # ground truth
+        self.stamps: list[int] = []
+        self.true_times: list[int] = []
+        self._by_stamp: dict[int, int] = {}
+        self.flip_log: list[dict] = []
+        self.flip_cmds = 0
         self.samples = 0
         self.saturations = 0
+        self.imu_samples = 0
+        self._schedule_mag(0)
+        if imu is not None:
+            self.acc_bias = self.imu_rng.normal(0.0, imu.acc_bias_sigma, 3)
+            self.gyro_bias = self.imu_rng.normal(0.0, imu.gyro_bias_sigma, 3)
+            self._schedule_imu(0)
 
+    # backwards-compatible attribute names
+    @property
+    def period_us(self) -> int:
+        return int(round(1e6 / self.mag.rate_hz))
+
+    @property
+    def noise_t(self) -> float:
+        return self.mag.noise_t
+
+    @property
+    def range_t(self) -> float:
+        return self.mag.range_t
+
+    @property
+    def flip(self) -> int:
+        return self.flip_state
+
+    # --- schedules (true time, from the node oscillator)
+    def _schedule_mag(self, t0: int) -> None:
+        self._mag_period = 1e6 / self.mag.rate_hz / self.clock.rate
+        self._mag_base = t0 + float(self.rng.uniform(0.0, self._mag_period))
+        self._mag_k = 0
+        self._mag_cached_to = -1
+
+    def _mag_t(self, k: int) -> int:
+        return int(round(self._mag_base + k * self._mag_period))
+
+    def _schedule_imu(self, t0: int) -> None:
+        self._imu_period = 1e6 / self.imu.rate_hz / self.clock.rate
+        self._imu_base = t0 + float(self.imu_rng.uniform(0.0, self._imu_period))
+        self._imu_k = 0
+        self._imu_cache: dict[int, tuple] = {}
+
+    def _imu_t(self, k: int) -> int:
+        return int(round(self._imu_base + k * self._imu_period))
+
+    def on_power_on(self, now_us: int) -> None:
+        self._schedule_mag(now_us)
+        self.flip_err[:] = 0.0
+        self.pending_flips.clear()
+        self.cmd_until_us = -1
+        if self.imu is not None:
+            self._schedule_imu(now_us)
+
+    # --- flips
+    def on_message(self, msg, now_us: int, send) -> None:
+        if msg.NAME != "MAG_FLIP_CMD" or msg.node != self.node_id:
+            return
+        self.flip_cmds += 1
+        t = max(self.true_of_master(msg.at_us, now_us), now_us)
+        bisect.insort(self.pending_flips, (t, 1 if msg.state else -1))
+        self.cmd_until_us = now_us + self.mag.command_hold_us
+
+    def _flip(self, tf: int, state: int, commanded: bool) -> None:
+        if state == self.flip_state:
+            return
+        d = self.mag.flip_delta_us
+        dB = self.world.field_sensor_frame(tf + d) - self.world.field_sensor_frame(tf - d)
+        self.flip_err = -0.5 * dB
+        self.flip_state = state
+        self.flip_log.append({"true_us": tf, "state": state, "commanded": commanded,
+                              "artefact_t": float(np.linalg.norm(self.flip_err))})
+
+    # --- sampling
     def step(self, now_us: int, send) -> None:
-        super().step(now_us, send)
-        while self.next_sample_us <= now_us:
-            t = self.next_sample_us
-            self.next_sample_us += self.period_us
-            B = self.world.field_sensor_frame(t) + self.rng.normal(0.0, self.noise_t, 3)
-            sat = bool(np.any(np.abs(B) > self.range_t))
-            if sat:
-                self.saturations += 1
-            counts = np.clip(np.round(B / MAG_LSB_T), -32768, 32767).astype(int)
-            self.samples += 1
-            send(self, MagSample(self.node_id, self.clock.local(t), int(counts[0]), int(counts[1]),
-                                 int(counts[2]), (self.flip & 1) | (2 if sat else 0)))
+        if not self.sync.synced:
+            # not streaming until synchronised: let the schedules run past
+            while self._mag_t(self._mag_k) <= now_us:
+                self._mag_k += 1
+            if self.imu is not None:
+                while self._imu_t(self._imu_k) <= now_us:
+                    self._imu_k += 1
+            return
+        while self._mag_t(self._mag_k) <= now_us:
+            k = self._mag_k
+            if k > self._mag_cached_to:
+                self.world.precompute([self._mag_t(j) for j in range(k, k + self._CHUNK)])
+                self._mag_cached_to = k + self._CHUNK - 1
+            self._mag_sample(self._mag_t(k), k, send)
+            self._mag_k += 1
+        if self.imu is not None:
+            while self._imu_t(self._imu_k) <= now_us:
+                self._imu_sample(self._imu_t(self._imu_k), self._imu_k, send)
+                self._imu_k += 1
+
+    def _mag_sample(self, t: int, k: int, send) -> None:
+        m = self.mag
+        while self.pending_flips and self.pending_flips[0][0] <= t:
+            tf, st = self.pending_flips.pop(0)
+            self._flip(tf, st, True)
+        if m.flip_every and k % m.flip_every == 0 and t >= self.cmd_until_us:
+            self._flip(t - 2 * m.flip_delta_us, -self.flip_state, False)
+        B = (self.world.field_sensor_frame(t) + self.flip_state * self.offset + self.flip_err
+             + self.rng.normal(0.0, m.noise_t, 3))
+        sat = bool(np.any(np.abs(B) > m.range_t))
+        if sat:
+            self.saturations += 1
+        lim = m.range_t / MAG_LSB_T
+        counts = np.clip(np.round(B / MAG_LSB_T), -lim, lim)
+        stamp = self.master(t)
+        self.samples += 1
+        self.stamps.append(stamp)
+        self.true_times.append(t)
+        self._by_stamp.setdefault(stamp, t)
+        send(self, MagSample(self.node_id, stamp, int(counts[0]), int(counts[1]), int(counts[2]),
+                             (1 if self.flip_state > 0 else 0) | (2 if sat else 0)))
+
+    def _imu_sample(self, t: int, k: int, send) -> None:
+        imu = self.imu
+        kin = self._imu_cache.pop(t, None)
+        if kin is None:
+            ts = [self._imu_t(j) for j in range(k, k + self._CHUNK)]
+            K = self.world.trajectory.kinematics(np.asarray(ts, dtype=np.int64))
+            self._imu_cache = {tj: (K.acceleration[i], K.R[i], K.angular_velocity[i]) for i, tj in enumerate(ts)}
+            kin = self._imu_cache.pop(t)
+        a, R, w = kin
+        dt = self._imu_period * 1e-6
+        self.acc_bias += self.imu_rng.normal(0.0, imu.acc_bias_rw * math.sqrt(dt), 3)
+        self.gyro_bias += self.imu_rng.normal(0.0, imu.gyro_bias_rw * math.sqrt(dt), 3)
+        f = R.T @ (a - np.array([0.0, 0.0, -imu.gravity])) + self.acc_bias \
+            + self.imu_rng.normal(0.0, imu.acc_sigma, 3)
+        g = w + self.gyro_bias + self.imu_rng.normal(0.0, imu.gyro_sigma, 3)
+        self.imu_samples += 1
+        send(self, ImuSample(self.node_id, self.master(t), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
+                             _i16(f[2] / ACC_LSB), _i16(g[0] / GYR_LSB), _i16(g[1] / GYR_LSB),
+                             _i16(g[2] / GYR_LSB)))
+
+    # --- ground truth look-ups
+    def true_time_of(self, stamp_us: int) -> int | None:
+        """True time of the sample stamped ``stamp_us`` (the first one sent with that stamp: the
+        firmware's sample ring refuses a later sample whose stamp is not newer)."""
+        return self._by_stamp.get(int(stamp_us))
+
+
+# ---------------------------------------------------------------------------
+# Recorder (the host)
+# ---------------------------------------------------------------------------
 
 
 class Recorder:
-    """Plays the host: keeps every POSE, PULSE_WINDOW and FAULT_EVENT with
-    the true sensor pose at its time stamp, for the report."""
+    """Plays the host: keeps every POSE (with the true pose at its time stamp and the
+    PULSE_WINDOWs of its cycle), PULSE_WINDOW, FAULT_EVENT, HEARTBEAT and TIME_SYNC.
 
-    def __init__(self, world):
+    ``master_to_true`` maps a master-clock time to true time (identity when the
+    firmware's clock is the bench's time base, as in both runners here).
+    """
+
+    def __init__(self, world, master_to_true=None):
         self.world = world
+        self.master_to_true = master_to_true or (lambda t: int(t))
         self.poses: list[dict] = []
         self.windows: list = []
         self.events: list = []
         self.heartbeats: list = []
+        self.time_syncs: list = []
+        self.flip_cmds: list = []
+        self.pulse_cmds: list = []
+        self._open_windows: dict[int, list] = {}
 
     def on_message(self, msg, now_us: int) -> None:
         name = msg.NAME
         if name == "POSE":
-            p, R = self.world.pose(msg.t_us)
-            self.poses.append({"msg": msg, "rx_us": now_us, "true_p": np.array(p), "true_R": np.array(R)})
+            p, R = self.world.trajectory.pose(self.master_to_true(msg.t_us))
+            wins = self._open_windows.pop(msg.node, [])
+            self.poses.append({"msg": msg, "rx_us": now_us, "true_p": np.array(p), "true_R": np.array(R),
+                               "windows": wins})
         elif name == "PULSE_WINDOW":
             self.windows.append((now_us, msg))
+            self._open_windows.setdefault(msg.node, []).append(msg)
         elif name == "FAULT_EVENT":
             self.events.append((now_us, msg))
         elif name == "HEARTBEAT":
             self.heartbeats.append((now_us, msg))
+        elif name == "TIME_SYNC":
+            self.time_syncs.append((now_us, msg))
+        elif name == "MAG_FLIP_CMD":
+            self.flip_cmds.append((now_us, msg))
+        elif name == "COIL_PULSE_CMD":
+            self.pulse_cmds.append((now_us, msg))

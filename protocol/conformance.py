@@ -28,13 +28,17 @@ sensor (role 2)
     ``mag_stream`` MAG_SAMPLE at the expected rate (from its time stamps and
     from arrival times, within ``rate_tolerance``); ``mag_timestamps``
     strictly increasing ``t_us``.
+time
+    ``time_sync`` every node answers the tester's TIME_SYNC with
+    TIME_SYNC_REPLY (same ``sync_seq``).
 optional (skipped when the node does not answer)
-    ``config_get`` CONFIG_ACK to CONFIG_GET; ``time_sync`` TIME_SYNC_REPLY
-    to TIME_SYNC (run last: a node may step its clock).
+    ``config_get`` CONFIG_ACK to CONFIG_GET.
 
-Master time: a node that has not received TIME_SYNC takes its uptime as
-master time, so the tester schedules pulses on the node's clock estimated
-from its latest HEARTBEAT ``uptime_us`` (plus the time since it arrived).
+Master time: the tester is the master. It broadcasts TIME_SYNC from the
+start and every ``sync_period_s`` with its own clock (``master_us()``), so
+nodes stamp samples and edges on it and it schedules pulses on it, exactly
+as the firmware does. (A node streams and accepts pulses only once it is
+synchronised.)
 """
 from __future__ import annotations
 
@@ -53,6 +57,8 @@ from .schema import (BY_ID, COIL_FAULT_REFUSED, CURRENT_LSB_A, NODE_FIRMWARE, RO
 from .signing import Signer
 
 PASS, FAIL, SKIP = "PASS", "FAIL", "SKIP"
+#: master time of the tester's start (any value; nodes only follow it)
+MASTER_EPOCH_US = 1_000_000
 
 RULES = {
     "heartbeat": "node sends HEARTBEAT within the heartbeat timeout (1.5 s)",
@@ -72,7 +78,7 @@ RULES = {
     "mag_timestamps": "MAG_SAMPLE t_us strictly increasing",
     "survives_garbage": "node still answers after garbage and corrupted frames",
     "config_get": "CONFIG_GET answered with CONFIG_ACK (optional)",
-    "time_sync": "TIME_SYNC answered with TIME_SYNC_REPLY (optional)",
+    "time_sync": "TIME_SYNC answered with TIME_SYNC_REPLY",
 }
 
 
@@ -82,6 +88,7 @@ class ConformOptions:
     node: int | None = None              # test only this node id
     heartbeat_timeout_s: float = 1.5
     observe_s: float = 1.2               # stream observation window
+    discover_s: float | None = None      # listen this long for nodes (default: heartbeat_timeout_s)
     lead_ms: float = 100.0               # pulses scheduled this far ahead
     pulse_ms: float = 20.0
     pulse_current_ma: int = 500
@@ -95,7 +102,8 @@ class ConformOptions:
     key: bytes | None = None
     link_id: int = 0
     seed: int = 1
-    optional_wait_s: float = 0.3
+    optional_wait_s: float = 0.25
+    sync_period_s: float = 0.25          # TIME_SYNC broadcast period (the tester is the master)
     max_log: int = 200_000
 
 
@@ -215,7 +223,9 @@ class Conformance:
         self.signer = Signer(self.o.key, self.o.link_id) if self.o.key else None
         self.log: list[_Rx] = []
         self.heartbeats: dict[int, list[_Rx]] = {}
-        self.clock_offset_us: dict[int, int] = {}
+        self.sync_seq = int(self.rng.integers(0, 0x8000))
+        self.syncs_sent: set[int] = set()
+        self.next_sync = None
         self.dropped_log = 0
         self.rules: list[RuleResult] = []
         self.t0 = self.clock()
@@ -230,9 +240,26 @@ class Conformance:
             self.dropped_log += 1
         if msg.NAME == "HEARTBEAT":
             self.heartbeats.setdefault(msg.node, []).append(rx)
-            self.clock_offset_us[msg.node] = msg.uptime_us - int(rx.t * 1e6)
+
+    def master_us(self, t: float | None = None) -> int:
+        """Master time (us) of local time ``t`` (default: now)."""
+        t = self.clock() if t is None else t
+        return MASTER_EPOCH_US + int(round((t - self.t0) * 1e6))
+
+    def local_of_master(self, master_us: int) -> float:
+        return self.t0 + (master_us - MASTER_EPOCH_US) * 1e-6
+
+    def _sync(self) -> None:
+        now = self.clock()
+        if self.next_sync is not None and now < self.next_sync:
+            return
+        self.next_sync = now + self.o.sync_period_s
+        self.sync_seq = (self.sync_seq + 1) & 0xFFFF
+        self.syncs_sent.add(self.sync_seq)
+        self.send(MSG["TIME_SYNC"](self.master_us(now), self.sync_seq))
 
     def pump(self) -> None:
+        self._sync()
         flush = getattr(self.link, "flush", None)
         if flush is not None:
             flush()
@@ -287,9 +314,6 @@ class Conformance:
         self.send_frame(frame)
         return frame
 
-    def node_now_us(self, node: int) -> int:
-        return int(self.clock() * 1e6) + self.clock_offset_us.get(node, 0)
-
     def _pulse_id(self) -> int:
         pid = self.next_pulse_id
         self.next_pulse_id = (pid + 1) & 0xFFFF
@@ -308,7 +332,10 @@ class Conformance:
             self.add("heartbeat", FAIL, f"no HEARTBEAT within {o.heartbeat_timeout_s:g} s", o.node)
             return self._report()
         self.add("heartbeat", PASS, f"first HEARTBEAT after {first.t - self.t0:.2f} s", None)
-        self.run_for(o.observe_s)
+        # every node heartbeats within heartbeat_timeout_s: listen that long to find them all
+        discover = o.heartbeat_timeout_s if o.discover_s is None else o.discover_s
+        listen = o.observe_s if o.node is not None else max(o.observe_s, self.t0 + discover - self.clock())
+        self.run_for(listen)
         nodes = {n: hb[0].msg.role for n, hb in self.heartbeats.items() if o.node is None or n == o.node}
         for n in sorted(nodes):
             self._check_version(n)
@@ -318,11 +345,11 @@ class Conformance:
             elif nodes[n] == ROLE_SENSOR:
                 self._sensor_rules(n)
         self._garbage_rules(nodes)
-        for n in sorted(nodes):
-            self._config_rule(n)
-        for n in sorted(nodes):
-            self._time_sync_rule(n)
+        self._optional_rules(nodes)
         self._link_rules(nodes)
+        for n in sorted(set(self.heartbeats) - set(nodes)):
+            if o.node is None:
+                self.add("discovered", SKIP, "first heard after discovery: rules not run (use --node)", n)
         return self._report()
 
     # --------------------------------------------------------- node rules
@@ -340,7 +367,7 @@ class Conformance:
         o = self.o
         pid = self._pulse_id()
         lead = int(o.lead_ms * 1000) if lead_us is None else lead_us
-        start = self.node_now_us(n) + lead
+        start = self.master_us() + lead
         dur = int(o.pulse_ms * 1000) if duration_us is None else duration_us
         cur = o.pulse_current_ma if current_ma is None else current_ma
         cmd = MSG["COIL_PULSE_CMD"](0, pid, cur, start, dur)
@@ -350,7 +377,7 @@ class Conformance:
 
     def _await_status(self, n: int, cmd, mark: int, executed_expected: bool):
         o = self.o
-        pulse_s = max(0.0, (cmd.start_us + min(cmd.duration_us, 1_000_000) - self.node_now_us(n)) * 1e-6)
+        pulse_s = max(0.0, (cmd.start_us + min(cmd.duration_us, 1_000_000) - self.master_us()) * 1e-6)
         timeout = pulse_s + (o.answer_timeout_s if executed_expected else o.silence_s)
         return self.wait_for(self._status_for(n, cmd.pulse_id), timeout, mark)
 
@@ -367,7 +394,7 @@ class Conformance:
             problems.append(f"start {st.start_us - cmd.start_us:+d} us off")
         if abs((st.end_us - st.start_us) - cmd.duration_us) > o.edge_tolerance_us:
             problems.append(f"duration {st.end_us - st.start_us} us for {cmd.duration_us} us")
-        end_local = (st.end_us - self.clock_offset_us.get(n, 0)) * 1e-6
+        end_local = self.local_of_master(st.end_us)
         if rx.t < end_local - o.edge_tolerance_us * 1e-6 - 0.005:
             problems.append(f"status arrived {end_local - rx.t:.3f} s before the pulse ended")
         want = cmd.current_ma
@@ -446,7 +473,10 @@ class Conformance:
 
     def _sensor_rules(self, n: int) -> None:
         o = self.o
-        mags = [rx for rx in self.log if rx.src == n and rx.msg.NAME == "MAG_SAMPLE"]
+        # samples after the node synchronised (before, its stamps may be on its own clock)
+        synced_at = next((r.t for r in self.log if r.src == n and r.msg.NAME == "TIME_SYNC_REPLY"), None)
+        mags = [rx for rx in self.log if rx.src == n and rx.msg.NAME == "MAG_SAMPLE"
+                and (synced_at is None or rx.t > synced_at)]
         if len(mags) < 3:
             self.add("mag_stream", FAIL, f"{len(mags)} MAG_SAMPLE in {o.observe_s:g} s", n)
             self.add("mag_timestamps", SKIP, "too few samples", n)
@@ -560,29 +590,40 @@ class Conformance:
                          f"after {what}: {name} " + ("still arriving" if rx else "stopped"), n)
 
     # ----------------------------------------------------------- optional
-    def _config_rule(self, n: int) -> None:
+    def _optional_rules(self, nodes: dict) -> None:
+        """CONFIG_GET to every node, one wait for all the answers."""
+        if not nodes:
+            return
         mark = len(self.log)
-        self.send(MSG["CONFIG_GET"](n, 0))
-        rx = self.wait_for(lambda r: r.src == n and r.msg.NAME == "CONFIG_ACK", self.o.optional_wait_s, mark)
-        if rx is None:
-            self.add("config_get", SKIP, "no CONFIG_ACK (configuration is optional)", n)
-        else:
-            self.add("config_get", PASS, f"CONFIG_ACK key {rx.msg.key} result {rx.msg.result}", n)
+        for n in sorted(nodes):
+            self.send(MSG["CONFIG_GET"](n, 0))
+        self.wait_for(lambda r: False, self.o.optional_wait_s, mark)
+        for n in sorted(nodes):
+            rx = next((r for r in self.log[mark:] if r.src == n and r.msg.NAME == "CONFIG_ACK"), None)
+            if rx is None:
+                self.add("config_get", SKIP, "no CONFIG_ACK (configuration is optional)", n)
+            else:
+                self.add("config_get", PASS, f"CONFIG_ACK key {rx.msg.key} result {rx.msg.result}", n)
 
     def _time_sync_rule(self, n: int) -> None:
-        mark = len(self.log)
-        seq = int(self.rng.integers(0, 0xFFFF))
-        self.send(MSG["TIME_SYNC"](int(self.clock() * 1e6), seq))
-        rx = self.wait_for(lambda r: r.src == n and r.msg.NAME == "TIME_SYNC_REPLY" and r.msg.sync_seq == seq,
-                           self.o.optional_wait_s, mark)
-        if rx is None:
-            self.add("time_sync", SKIP, "no TIME_SYNC_REPLY (optional)", n)
-        else:
-            self.add("time_sync", PASS, f"offset {rx.msg.offset_us} us, drift {rx.msg.drift_ppb} ppb", n)
+        replies = [r for r in self.log if r.src == n and r.msg.NAME == "TIME_SYNC_REPLY"]
+        ours = [r for r in replies if r.msg.sync_seq in self.syncs_sent]
+        if not ours:
+            self.add("time_sync", FAIL, f"no TIME_SYNC_REPLY to {len(self.syncs_sent)} TIME_SYNC"
+                     + (f" ({len(replies)} replies with unknown sync_seq)" if replies else ""), n)
+            return
+        last = ours[-1].msg
+        states = [h.msg.state for h in self.heartbeats.get(n, [])]
+        self.add("time_sync", PASS, f"{len(ours)} replies to {len(self.syncs_sent)} TIME_SYNC; last offset "
+                 f"{last.offset_us} us, drift {last.drift_ppb} ppb; heartbeat states {sorted(set(states))}", n)
 
     # --------------------------------------------------------- link rules
     def _link_rules(self, nodes: dict) -> None:
         o = self.o
+        if nodes:   # observe long enough to judge the heartbeat period of every node
+            need = max(self.heartbeats[n][0].t for n in nodes) + o.heartbeat_timeout_s + 0.05 - self.clock()
+            if need > 0:
+                self.run_for(need)
         end = self.clock()
         for n in sorted(nodes):
             hbs = self.heartbeats[n]
@@ -594,6 +635,7 @@ class Conformance:
                 self.add("heartbeat_period", FAIL, f"{gaps.max():.2f} s without HEARTBEAT", n)
             else:
                 self.add("heartbeat_period", PASS, f"{len(hbs)} heartbeats, longest gap {gaps.max():.2f} s", n)
+            self._time_sync_rule(n)
             wrong = [rx for rx in self.log if rx.msg.NAME == "HEARTBEAT" and rx.msg.node == n and rx.src != n]
             self.add("src_matches_node", FAIL if wrong else PASS,
                      f"HEARTBEAT of node {n} sent with src {wrong[0].src}" if wrong else "src == node", n)

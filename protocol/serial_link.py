@@ -65,7 +65,10 @@ class SerialLink(_Bounded):
                  tx_capacity: int = 65536, verifier=None):
         import serial  # pyserial
 
-        self._s = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=0)
+        # non-blocking writes; pyserial's loop:// emulates a line that never
+        # accepts a zero-timeout write, and never blocks anyway
+        wt = None if url.startswith("loop://") else 0
+        self._s = serial.serial_for_url(url, baudrate=baudrate, timeout=0, write_timeout=wt)
         self.url = url
         self.max_read = max_read
         self._init_tx(tx_capacity)

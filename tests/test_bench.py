@@ -28,9 +28,10 @@ def test_same_seed_same_report():
     sc = scenarios.get("roetenberg-bench")
     a = run_inproc(sc, seed=5, duration_s=6.0)
     b = run_inproc(sc, seed=5, duration_s=6.0)
-    for k in ("wall_s", "speedup"):
-        a.pop(k), b.pop(k)
-    assert a == b
+    # figures measured on the wall clock (execution time, jitter) differ run to run
+    wall = lambda r: {k: v for k, v in r.items()  # noqa: E731
+                      if not (k.startswith("tick_") or k in ("wall_s", "speedup", "deadline_misses"))}
+    assert wall(a) == wall(b)
     c = run_inproc(sc, seed=6, duration_s=6.0)
     assert c["position_rms_mm"] != a["position_rms_mm"]
 

@@ -1,5 +1,12 @@
 """Run the firmware alone on the wall clock against a serial port (a real
-board's UART, a pseudo-terminal, or ``loop://``)."""
+board's UART, a pseudo-terminal, or ``loop://``).
+
+The firmware is the time master: it broadcasts ``TIME_SYNC`` and the nodes
+(emulated by ``coiltrack emulator`` or real boards) synchronise to it, so the
+two sides need no shared epoch. ``--epoch-ns`` only lines up the firmware's
+clock with an emulator's ground truth when both run on this machine
+(``coiltrack bench --transport pty`` does that).
+"""
 from __future__ import annotations
 
 import json
@@ -16,6 +23,9 @@ def add_arguments(p) -> None:
     p.add_argument("--duration", type=float, default=0.0, help="seconds to run (0: until interrupted)")
     p.add_argument("--epoch-ns", type=int, default=None, help="CLOCK_MONOTONIC epoch shared with the emulator")
     p.add_argument("--stats-json", help="write tick timing and counters here on exit")
+    p.add_argument("--realtime", action="store_true",
+                   help="best-effort real-time set-up: SCHED_FIFO if permitted, cyclic GC frozen and disabled")
+    p.add_argument("--cpu", type=int, default=None, help="pin the loop to this CPU")
 
 
 def run(args) -> int:
@@ -24,7 +34,7 @@ def run(args) -> int:
     from firmware_py.port import SerialPort
     from hil.clock import WallClock
 
-    from .realtime import firmware_loop
+    from .realtime import _realtime_setup, firmware_loop
     from .scenarios import get
 
     try:
@@ -32,8 +42,13 @@ def run(args) -> int:
     except (ConfigError, OSError) as exc:
         print(f"coiltrack firmware: {exc}", file=sys.stderr)
         return 2
-    port = SerialPort(args.port, args.baudrate)
+    try:
+        port = SerialPort(args.port, args.baudrate)
+    except Exception as exc:  # pyserial raises SerialException (an OSError) or ValueError
+        print(f"coiltrack firmware: cannot open {args.port}: {exc}", file=sys.stderr)
+        return 2
     fw = Firmware(cfg, port)
+    rt = _realtime_setup(args.cpu) if (args.realtime or args.cpu is not None) else {}
     clock = WallClock(args.epoch_ns)
     duration_us = int(args.duration * 1e6) if args.duration > 0 else 2**62
     try:
@@ -42,7 +57,10 @@ def run(args) -> int:
         timing = {}
     finally:
         port.close()
+    timing.update({"rt_" + k: v for k, v in rt.items()})
     if args.stats_json:
         with open(args.stats_json, "w") as fh:
             json.dump({"status": fw.status(), "timing": timing}, fh, indent=2)
+    else:
+        print(json.dumps({"status": fw.status(), "timing": timing}, indent=2))
     return 0

@@ -1,9 +1,32 @@
 """Wall-clock loops: the firmware at a fixed tick and the emulator beside it,
-as two processes joined by a pseudo-terminal."""
+as two processes joined by a pseudo-terminal (``coiltrack bench --transport
+pty``), or each alone against a real board (``coiltrack firmware``,
+``coiltrack emulator``).
+
+Both loops take the clock and the sleep function as arguments, so the tests
+drive them with a simulated clock (no wall-clock sleeps in tests).
+
+Timing figures (all in microseconds):
+
+* tick period jitter: ``|start_k - start_(k-1) - tick|`` over consecutive
+  ticks (median, p99, max);
+* lateness: ``start_k - scheduled_k``;
+* execution time of ``fw.tick``;
+* deadline misses: ticks that started a whole period late or ran longer than
+  a period, plus every tick slot skipped because the loop fell behind.
+
+In-process runs use the simulated clock, where the tick period is exact by
+construction; there :func:`inproc_timing` measures the wall time of each
+``fw.tick`` and replays it on an ideal real-time schedule (a tick starts at
+its slot or when the previous one ends, whichever is later), giving the same
+figures a dedicated core would show for the firmware alone.
+"""
 from __future__ import annotations
 
+import gc
 import json
 import os
+import select
 import subprocess
 import sys
 import tempfile
@@ -18,31 +41,105 @@ from .links import FdLink, make_raw_pty
 from .runner import BenchSetup, Progress
 
 
-def firmware_loop(fw, clock: WallClock, duration_us: int, tick_us: int) -> dict:
-    """Run ``fw.tick`` every ``tick_us`` of wall time; measure period jitter,
-    tick execution time and deadline misses (a tick that starts a whole
-    period late or runs longer than a period). Buffers are sized up front."""
+def _stats(starts: np.ndarray, exec_us: np.ndarray, late: np.ndarray, tick_us: int, misses: int) -> dict:
+    periods = np.diff(starts)
+    jitter = np.abs(periods - tick_us) if periods.size else np.zeros(1)
+    n = int(starts.size)
+    return {
+        "ticks": n,
+        "tick_us": tick_us,
+        "tick_period_us_median": float(np.median(periods)) if periods.size else None,
+        "tick_jitter_us_median": float(np.median(jitter)),
+        "tick_jitter_us_p99": float(np.percentile(jitter, 99)),
+        "tick_jitter_us_max": float(np.max(jitter)),
+        "tick_late_us_p99": float(np.percentile(late, 99)) if n else None,
+        "tick_late_us_max": float(np.max(late)) if n else None,
+        "tick_exec_us_median": float(np.median(exec_us)) if n else None,
+        "tick_exec_us_p99": float(np.percentile(exec_us, 99)) if n else None,
+        "tick_exec_us_max": float(np.max(exec_us)) if n else None,
+        "deadline_misses": int(misses),
+    }
+
+
+def inproc_timing(exec_ns: np.ndarray, tick_us: int) -> dict:
+    """Replay measured tick execution times on an ideal real-time schedule (see module docstring)."""
+    ex = np.asarray(exec_ns, dtype=np.int64) // 1000
+    n = ex.size
+    starts = np.zeros(n, dtype=np.int64)
+    late = np.zeros(n, dtype=np.int64)
+    misses = 0
+    end_prev = 0
+    for k in range(n):
+        slot = k * tick_us
+        s = slot if end_prev <= slot else end_prev
+        starts[k] = s
+        late[k] = s - slot
+        end_prev = s + int(ex[k])
+        if end_prev > slot + tick_us:
+            misses += 1
+    out = _stats(starts, ex, late, tick_us, misses)
+    out["timing_source"] = "inproc: wall time of each fw.tick against the tick period (simulated clock)"
+    return out
+
+
+def _realtime_setup(cpu: int | None) -> dict:
+    """Best effort: pin to one CPU, ask for SCHED_FIFO, freeze and disable the cyclic GC."""
+    info = {}
+    if cpu is not None and hasattr(os, "sched_setaffinity"):
+        try:
+            os.sched_setaffinity(0, {cpu})
+            info["cpu"] = cpu
+        except OSError:
+            pass
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+        info["sched"] = "fifo"
+    except (AttributeError, OSError, PermissionError):
+        info["sched"] = "other"
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    info["gc"] = "disabled"
+    return info
+
+
+def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us: int = 200,
+                  max_records: int = 600_000) -> dict:
+    """Run ``fw.tick`` every ``tick_us`` of ``clock`` until ``duration_us``.
+
+    Sleeps until ``spin_us`` before each slot, then polls the clock (the
+    sleep's wake-up latency does not become jitter). Measures period jitter,
+    lateness, execution time and deadline misses (a tick that starts a whole
+    period late or runs longer than a period, and every slot skipped because
+    the loop fell behind). Buffers are sized up front.
+    """
+    if sleep is None:
+        sleep = getattr(clock, "sleep", time.sleep)
     n_max = duration_us // tick_us + 2
-    starts = np.zeros(n_max, dtype=np.int64)
-    exec_us = np.zeros(n_max, dtype=np.int64)
+    cap = int(min(n_max, max_records))      # statistics over the last ``max_records`` ticks
+    starts = np.zeros(cap, dtype=np.int64)
+    exec_us = np.zeros(cap, dtype=np.int64)
+    late = np.zeros(cap, dtype=np.int64)
     n = 0
     misses = 0
     next_tick = max(0, clock.now())
-    next_tick -= next_tick % tick_us
-    while n < n_max:
+    next_tick += (-next_tick) % tick_us
+    while True:
         now = clock.now()
         if now >= duration_us:
             break
         if now < next_tick:
             rem = next_tick - now
-            if rem > 150:
-                time.sleep((rem - 100) * 1e-6)
+            if rem > spin_us:
+                sleep((rem - spin_us) * 1e-6)
             continue
         t0 = now
         fw.tick(t0)
         t1 = clock.now()
-        starts[n] = t0
-        exec_us[n] = t1 - t0
+        i = n % cap
+        starts[i] = t0
+        exec_us[i] = t1 - t0
+        late[i] = t0 - next_tick
         n += 1
         if t0 - next_tick >= tick_us or t1 - t0 >= tick_us:
             misses += 1
@@ -51,22 +148,40 @@ def firmware_loop(fw, clock: WallClock, duration_us: int, tick_us: int) -> dict:
             skipped = (t1 - next_tick) // tick_us
             misses += int(skipped)
             next_tick += skipped * tick_us
-    periods = np.diff(starts[:n])
-    jitter = np.abs(periods - tick_us) if periods.size else np.zeros(1)
-    return {
-        "ticks": int(n),
-        "tick_us": tick_us,
-        "tick_period_us_median": float(np.median(periods)) if periods.size else None,
-        "tick_jitter_us_median": float(np.median(jitter)),
-        "tick_jitter_us_p99": float(np.percentile(jitter, 99)),
-        "tick_jitter_us_max": float(np.max(jitter)),
-        "tick_exec_us_median": float(np.median(exec_us[:n])) if n else None,
-        "tick_exec_us_p99": float(np.percentile(exec_us[:n], 99)) if n else None,
-        "deadline_misses": int(misses),
-    }
+    if n > cap:
+        r = -(n % cap)
+        starts, exec_us, late = np.roll(starts, r), np.roll(exec_us, r), np.roll(late, r)
+    m = min(n, cap)
+    out = _stats(starts[:m], exec_us[:m], late[:m], tick_us, misses)
+    out["ticks"] = n
+    out["timing_source"] = "wall clock: tick start times and execution times"
+    return out
 
 
-def emulator_loop(emulator, link, clock: WallClock, duration_us: int, progress=None, step_us: int = 500) -> None:
+def _fd_of(link):
+    while link is not None:
+        fd = getattr(link, "fd", None)
+        if fd is not None:
+            return fd
+        link = getattr(link, "link", None)
+    return None
+
+
+def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_us: int = 250, wait=None) -> None:
+    """Step the emulator on ``clock`` until ``duration_us``.
+
+    Waits at most ``step_us`` between steps and wakes at once when bytes
+    arrive on a file-descriptor link (``select``), so a node stamps a
+    ``TIME_SYNC`` close to its arrival. ``wait(timeout_s)`` replaces the wait
+    (tests pass a simulated one).
+    """
+    fd = _fd_of(link)
+    if wait is None:
+        if fd is not None:
+            def wait(timeout_s, _fd=fd):
+                select.select([_fd], [], [], timeout_s)
+        else:
+            wait = getattr(clock, "sleep", time.sleep)
     while True:
         now = clock.now()
         if now > duration_us:
@@ -77,21 +192,31 @@ def emulator_loop(emulator, link, clock: WallClock, duration_us: int, progress=N
                 link.flush()
             if progress is not None:
                 progress.update(now * 1e-6, len(emulator.recorder.poses))
-        time.sleep(step_us * 1e-6)
+        wait(step_us * 1e-6)
 
 
 def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool = False) -> dict:
     """Firmware in a child process (``coiltrack firmware``) on the slave side of
     a raw pseudo-terminal; emulator here on the master side; both on
-    CLOCK_MONOTONIC from a shared epoch."""
+    CLOCK_MONOTONIC from a shared epoch (the nodes still keep their own
+    drifting clocks and synchronise to the firmware's broadcasts). On a
+    machine with two or more CPUs the firmware is pinned to the last one and
+    the emulator to the first."""
     master, slave, slave_name = make_raw_pty()
     epoch_ns = time.monotonic_ns() + 1_500_000_000      # give the child time to start
     duration_us = int(duration_s * 1e6)
     stats_fd, stats_path = tempfile.mkstemp(suffix=".json", prefix="coiltrack-fw-")
     os.close(stats_fd)
+    ncpu = os.cpu_count() or 1
     cmd = [sys.executable, "-m", "tools.cli", "firmware", "--port", slave_name,
            "--scenario", scenario.name, "--epoch-ns", str(epoch_ns),
-           "--duration", str(duration_s + 0.5), "--stats-json", stats_path]
+           "--duration", str(duration_s + 0.5), "--stats-json", stats_path, "--realtime"]
+    if ncpu >= 2:
+        cmd += ["--cpu", str(ncpu - 1)]
+        try:
+            os.sched_setaffinity(0, set(range(ncpu - 1)))
+        except (AttributeError, OSError):
+            pass
     child = subprocess.Popen(cmd)
     link = FdLink(master)
     bench = BenchSetup(scenario, seed, duration_s, link, faults)

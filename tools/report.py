@@ -14,8 +14,6 @@ from protocol.schema import POSE_VALID
 #: distance bands of the per-range breakdown, cm
 RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
 
-#: eddy/settle margin the bench uses as ground truth for the flat part of a pulse
-FLAT_TAUS = 5.0
 
 
 def _rot_angle(Ra, Rb) -> float:
@@ -23,25 +21,20 @@ def _rot_angle(Ra, Rb) -> float:
     return math.acos(max(-1.0, min(1.0, c)))
 
 
-def window_violations(windows, executed, eddy_settle_us: int = 0) -> int:
+def window_violations(bench) -> int:
     """Count windows that used a sample outside the flat part of the true pulse.
 
-    The flat part of a pulse starts ``FLAT_TAUS`` L/R time constants (plus the
-    eddy settle time of the world) after the true start edge and ends at the
-    true end edge. Times are compared on the master clock.
+    Compared on TRUE time (``hil.bench.window_truth``): the true instants of
+    the first and last used samples (the bench knows which sample carried
+    which time stamp, whatever the node's clock drift and sync error) against
+    the true edges the driver produced; the flat part starts when the L/R
+    current and the eddy fields of every conductor in the world have settled
+    to 1e-3 of the pulse's field (``World.flat_start_us``) and ends at the
+    true end edge.
     """
-    by_id = {(e["coil"], e["pulse_id"]): e for e in executed}
-    bad = 0
-    for _, w in windows:
-        if w.n_used == 0:
-            continue
-        e = by_id.get((w.coil, w.pulse_id))
-        if e is None:
-            continue
-        flat0 = e["start_us"] + FLAT_TAUS * e["tau_us"] + eddy_settle_us
-        if w.first_us < flat0 or w.last_us > e["end_us"]:
-            bad += 1
-    return bad
+    from hil.bench import window_truth
+
+    return sum(1 for r in window_truth(bench) if r.get("violation"))
 
 
 #: battery of the thesis source: four AA cells (thesis sec 5.2.2), 6 V x 2.4 Ah
@@ -109,6 +102,9 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
             by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(rms(pe[sel]) * 1e3, 2),
                                         "crlb_position_rms_mm": round(rms(cb[sel]) * 1e3, 2),
                                         "orientation_rms_deg": round(math.degrees(rms(ae[sel])), 2)}
+    from hil.bench import bench_metrics, fault_summary
+
+    truth = bench_metrics(bench, cfg.fall_us, cfg.baseline_us)
     rep = {
         "scenario": bench.scenario.name,
         "seed": bench.seed,
@@ -125,12 +121,14 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "distance_range_cm": [round(min(dist) * 100, 1), round(max(dist) * 100, 1)] if dist else None,
         "frames_rx": fw_status.get("rx_frames_ok", 0),
         "frames_bad": fw_status.get("rx_frames_bad", 0) + emu_bad,
-        "pulse_window_violations": window_violations(rec.windows, bench.driver.executed),
+        "pulse_window_violations": truth.pop("pulse_window_violations"),
         "windows_flagged": fw_status.get("windows_flagged", 0),
         "coil_pulses": len(bench.driver.executed),
         "mag_samples": bench.sensor.samples,
     }
     rep.update(energy(bench.driver.executed, world, duration_s))
+    rep.update(truth)
+    rep["faults"] = fault_summary(bench, fw_status)
     if hasattr(bench.link, "counts"):
         rep["link_faults"] = dict(bench.link.counts)
     ref = bench.scenario.reference
@@ -153,9 +151,15 @@ def format_table(rep: dict) -> str:
     ]
     if rep.get("distance_range_cm"):
         rows.insert(4, ("distance range", f'{rep["distance_range_cm"][0]}-{rep["distance_range_cm"][1]} cm'))
-    for k in ("tick_jitter_us_p99", "deadline_misses", "latency_ms_p99"):
-        if k in rep:
+    for k in ("tick_jitter_us_median", "tick_jitter_us_p99", "tick_jitter_us_max", "deadline_misses",
+              "latency_ms_p50", "latency_ms_p99", "pulse_window_min_margin_us"):
+        if rep.get(k) is not None:
             rows.append((k, rep[k]))
+    fl = rep.get("faults")
+    if fl and (fl["injected"].get("switches") or fl["reported"].get("events")):
+        rows.append(("faults injected", ", ".join(fl["injected"]["switches"]) or "-"))
+        ev = fl["reported"]["events"]
+        rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
     if "paper" in rep:
         p = rep["paper"]
         rows.append(("paper", f'{p.get("position_rms_mm")} mm, {p.get("orientation_rms_deg")} deg ({p.get("source")})'))

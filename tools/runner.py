@@ -11,10 +11,9 @@ import time
 import numpy as np
 
 from firmware_py.firmware import Firmware
-from hil.emulator import Emulator
-from hil.faults import FaultyLink, LinkFaults
-from hil.nodes import CoilDriverNode, Recorder, SensorNode
-from protocol.schema import NODE_COIL_DRIVER, NODE_SENSOR_BASE
+from hil.bench import assemble
+from hil.faults import BenchFaults, LinkFaults
+from hil.nodes import ImuSpec, MagSpec
 
 from . import report as report_mod
 from .links import inproc_pair
@@ -22,22 +21,35 @@ from .scenarios import Scenario
 
 
 class BenchSetup:
-    """World, nodes and recorder of a scenario for one seed."""
+    """World, nodes and recorder of a scenario for one seed (built by ``hil.bench.assemble``).
 
-    def __init__(self, scenario: Scenario, seed: int, duration_s: float, link, faults: LinkFaults | None = None):
+    ``faults``: a :class:`hil.faults.BenchFaults` (link, node and world fault
+    switches) or a bare :class:`hil.faults.LinkFaults`.
+    """
+
+    def __init__(self, scenario: Scenario, seed: int, duration_s: float, link,
+                 faults: BenchFaults | LinkFaults | None = None):
         ss = np.random.SeedSequence(seed)
-        s_world, s_driver, s_sensor, s_faults = (int(s.generate_state(1)[0]) for s in ss.spawn(4))
+        s_world, s_driver, s_sensor, s_faults, s_clocks = (int(s.generate_state(1)[0]) for s in ss.spawn(5))
         self.scenario = scenario
         self.seed = seed
         self.duration_s = duration_s
         self.world = scenario.build_world(s_world, duration_s)
-        self.faults = faults or LinkFaults()
-        self.link = FaultyLink(link, self.faults, seed=s_faults) if self.faults.active() else link
-        self.driver = CoilDriverNode(NODE_COIL_DRIVER, self.world, seed=s_driver)
-        self.sensor = SensorNode(NODE_SENSOR_BASE, self.world, rate_hz=scenario.sensor.rate_hz,
-                                 noise_t=scenario.sensor.noise_t, seed=s_sensor)
-        self.recorder = Recorder(self.world)
-        self.emulator = Emulator(self.world, self.link, self.driver, [self.sensor], self.recorder)
+        spec = scenario.sensor
+        mag = MagSpec(rate_hz=spec.rate_hz, noise_t=spec.noise_t, flip_every=getattr(spec, "flip_every", 8))
+        imu_rate = getattr(spec, "imu_rate_hz", 0.0)
+        imu = ImuSpec(rate_hz=imu_rate) if imu_rate else None
+        self.bench = assemble(self.world, link, mag=mag, imu=imu, faults=faults, seed_driver=s_driver,
+                              seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
+                              clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
+                              sensor_ids=tuple(scenario.firmware_config().sensor_ids))
+        self.faults = self.bench.faults
+        self.link = self.bench.link
+        self.driver = self.bench.driver
+        self.sensors = self.bench.sensors
+        self.sensor = self.sensors[0]
+        self.recorder = self.bench.recorder
+        self.emulator = self.bench.emulator
 
 
 class Progress:
@@ -74,10 +86,18 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     end_us = int(duration_s * 1e6)
     prog = Progress(progress, duration_s, scenario.name)
     wall0 = time.perf_counter()
+    # tick execution times: inproc runs on the simulated clock, so timing is measured as the
+    # wall time each fw.tick takes against the tick period (tools.realtime.inproc_timing)
+    exec_ns = np.zeros(end_us // tick + 2, dtype=np.int64)
+    clk = time.perf_counter_ns
+    k = 0
     t = 0
     while t <= end_us:
         bench.emulator.step(t)
+        a = clk()
         fw.tick(t)
+        exec_ns[k] = clk() - a
+        k += 1
         if (t // tick) % 1000 == 0:
             prog.update(t * 1e-6, fw.poses)
         t += tick
@@ -85,6 +105,9 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     prog.done()
     wall = time.perf_counter() - wall0
     rep = report_mod.build(bench, fw.status(), duration_s, transport=transport, cfg=cfg)
+    from .realtime import inproc_timing
+
+    rep.update(inproc_timing(exec_ns[:k], tick))
     rep["wall_s"] = round(wall, 2)
     rep["speedup"] = round(duration_s / wall, 1) if wall > 0 else None
     return rep

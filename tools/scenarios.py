@@ -19,6 +19,9 @@ from hil.world import World
 class SensorSpec:
     rate_hz: float = 120.0
     noise_t: float = 0.5e-7
+    imu_rate_hz: float = 0.0          # IMU beside the magnetometer (0: none)
+    flip_every: int = 8               # autonomous set/reset every N samples until the firmware commands flips
+    clock_drift_ppm: float = 50.0     # node clocks drift uniformly within +-this (seeded)
 
 
 @dataclass(frozen=True)

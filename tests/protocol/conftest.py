@@ -1,10 +1,9 @@
 """Fixtures for the protocol tests: the emulator's real nodes (hil.nodes,
-hil.emulator) on a small analytic world, run on the wall clock in a thread
-on any byte link (pty master, CanLink), so the conformance suite can talk to
-them exactly as it would to a board."""
+hil.emulator, hil.world) run on the wall clock in a thread on any byte link
+(pty master, CanLink), so the conformance suite talks to them exactly as it
+would to a board."""
 from __future__ import annotations
 
-import math
 import threading
 import time
 
@@ -16,45 +15,12 @@ from hil.nodes import CoilDriverNode, DriverLimits, Recorder, SensorNode
 from protocol.schema import NODE_COIL_DRIVER, NODE_SENSOR_BASE
 
 
-class StubCurrent:
-    """First-order (L/R) coil current: rises and falls with time constant tau."""
+def make_world():
+    """The thesis source and a sensor at rest 25 cm away (hil's own physics)."""
+    from hil import motion, physics
+    from hil.world import World
 
-    def __init__(self, tau_us: float = 500.0):
-        self.tau_us = tau_us
-        self.pulses: list[tuple[int, int, float]] = []
-
-    def schedule(self, start_us: int, duration_us: int, amps: float) -> None:
-        self.pulses.append((start_us, duration_us, amps))
-        del self.pulses[:-32]
-
-    def current_at(self, t_us: int) -> float:
-        i = 0.0
-        for s, d, a in self.pulses:
-            if t_us < s:
-                continue
-            on = min(t_us, s + d) - s
-            v = a * (1.0 - math.exp(-on / self.tau_us))
-            if t_us > s + d:
-                v *= math.exp(-(t_us - s - d) / self.tau_us)
-            i += v
-        return i
-
-
-class StubWorld:
-    """Three coils, a constant earth field and fixed unit fields."""
-
-    def __init__(self):
-        self.coils = [0, 1, 2]
-        self.currents = [StubCurrent() for _ in self.coils]
-        self.earth = np.array([18e-6, 2e-6, -45e-6])
-        self.unit = np.array([[4e-6, 1e-6, 0.5e-6], [1e-6, 3e-6, 0.2e-6], [0.3e-6, 0.1e-6, 5e-6]])
-
-    def pose(self, t_us):
-        return np.zeros(3), np.eye(3)
-
-    def field_sensor_frame(self, t_us: int) -> np.ndarray:
-        I = np.array([c.current_at(t_us) for c in self.currents])
-        return self.earth + I @ self.unit
+    return World(physics.thesis_source(), motion.StaticPose(np.array([0.25, 0.05, -0.04]), np.eye(3)))
 
 
 class EmulatorThread:
@@ -62,7 +28,7 @@ class EmulatorThread:
 
     def __init__(self, link, verifier=None, limits: DriverLimits | None = None, rate_hz: float = 120.0,
                  step_s: float = 0.0005, seed: int = 3):
-        self.world = StubWorld()
+        self.world = make_world()
         self.link = link
         self.driver = CoilDriverNode(NODE_COIL_DRIVER, self.world, limits=limits, seed=seed)
         self.sensor = SensorNode(NODE_SENSOR_BASE, self.world, rate_hz=rate_hz, seed=seed + 1)
@@ -98,8 +64,10 @@ class EmulatorThread:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
+            self._thread = None
         if self.error is not None:
-            raise self.error
+            err, self.error = self.error, None
+            raise err
 
     def __enter__(self):
         return self.start()
@@ -120,3 +88,46 @@ def emulator_factory():
     yield make
     for e in started:
         e.stop()
+
+
+class PipeEnd:
+    """One end of an in-memory full-duplex byte pipe (simulated clock tests)."""
+
+    def __init__(self, rx: bytearray, tx: bytearray):
+        self._rx, self._tx = rx, tx
+
+    def read(self) -> bytes:
+        data = bytes(self._rx)
+        self._rx.clear()
+        return data
+
+    def write(self, data: bytes) -> None:
+        self._tx += data
+
+
+def pipe_pair() -> tuple[PipeEnd, PipeEnd]:
+    a, b = bytearray(), bytearray()
+    return PipeEnd(b, a), PipeEnd(a, b)
+
+
+#: fast settings for conformance runs in tests (a full run takes 1-2 s)
+FAST = dict(observe_s=0.4, discover_s=0.4, lead_ms=50.0, pulse_ms=10.0, silence_s=0.12, optional_wait_s=0.1,
+            answer_timeout_s=0.3)
+
+
+@pytest.fixture
+def pipes():
+    """``pipes()`` -> two connected in-memory byte Ports."""
+    return pipe_pair
+
+
+@pytest.fixture
+def world_factory():
+    """``world_factory()`` -> a fresh hil World (thesis source, static sensor)."""
+    return make_world
+
+
+@pytest.fixture
+def fast():
+    """Fast ConformOptions keyword arguments for tests."""
+    return dict(FAST)

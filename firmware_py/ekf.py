@@ -1,0 +1,179 @@
+"""The one shape of every estimator update, and the covariance prediction.
+
+Every measurement update in the firmware goes through
+:meth:`KalmanUpdate.update`, in this order (thesis ``002_cd7f1fdb7fc67471.txt``
+eqs 2.16-2.18 and Fig. 4.3; Joseph form after Bucy & Joseph):
+
+1. innovation ``y = z - H dx-`` (``dx- = 0`` in a complementary filter with
+   feedback, so the caller passes ``y = z``);
+2. innovation variance ``S = H P H^T + R``;
+3. chi-square gate: the normalised innovation squared ``NIS = y^T S^-1 y``
+   is compared with the ``gate_probability`` quantile of a chi-square with
+   ``m`` degrees of freedom (table below, no scipy on a board); a rejected
+   measurement leaves ``P`` untouched;
+4. gain ``K = P H^T S^-1`` (eq 2.17);
+5. correction ``dx = K y`` (eq 2.16);
+6. Joseph-form covariance ``P = (I - K H) P (I - K H)^T + K R K^T``, then
+   symmetrised; it stays positive semi-definite whatever the rounding;
+7. health flags are returned, never raised.
+
+``predict_covariance`` is ``P = A P A^T + Q`` (eq 2.18, 6.5).
+
+All buffers are allocated by the constructors; the calls allocate no numpy
+array (no Python scalars in ufuncs, no overlapping ``out=``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .linalg import chol_inverse, flat
+
+# health flags (bit field)
+EKF_OK = 0
+EKF_GATED = 1          # NIS beyond the gate: measurement rejected
+EKF_NOT_PD = 2         # innovation covariance not positive definite: rejected
+EKF_NONFINITE = 4      # non-finite innovation or correction: rejected
+
+#: chi-square quantiles, degrees of freedom 1..12 (scipy.stats.chi2.ppf)
+CHI2_QUANTILES = {
+    0.99: (6.6349, 9.2103, 11.3449, 13.2767, 15.0863, 16.8119, 18.4753, 20.0902, 21.666,
+           23.2093, 24.725, 26.217),
+    0.999: (10.8276, 13.8155, 16.2662, 18.4668, 20.515, 22.4577, 24.3219, 26.1245, 27.8772,
+            29.5883, 31.2641, 32.9095),
+    0.9999: (15.1367, 18.4207, 21.1075, 23.5127, 25.7448, 27.8563, 29.8775, 31.8276, 33.7199,
+             35.564, 37.367, 39.1344),
+}
+
+
+def chi2_gate(dof: int, probability: float) -> float:
+    """Gate threshold on the NIS; ``probability`` 1.0 (or above) disables the gate."""
+    if probability >= 1.0:
+        return math.inf
+    try:
+        return CHI2_QUANTILES[probability][dof - 1]
+    except (KeyError, IndexError):
+        raise ValueError(f"no chi-square quantile for p={probability}, dof={dof}; "
+                         f"choose one of {sorted(CHI2_QUANTILES)}") from None
+
+
+class KalmanUpdate:
+    """Workspace of an ``m``-dimensional update of an ``n``-state filter.
+
+    ``H`` (m, n), ``R`` (m, m) and ``y`` (m,) are public buffers the caller
+    fills; :meth:`update` then corrects ``P`` (n, n) in place and writes the
+    error-state correction into ``dx`` (n,). After a call, ``nis``, ``S``
+    and ``K`` describe the update.
+    """
+
+    def __init__(self, n: int, m: int, gate_probability: float = 0.999):
+        self.n = n
+        self.m = m
+        self.gate = chi2_gate(m, gate_probability)
+        self.H = np.zeros((m, n))
+        self.R = np.zeros((m, m))
+        self.y = np.zeros(m)
+        self.dx = np.zeros(n)
+        self.S = np.zeros((m, m))
+        self.Sinv = np.zeros((m, m))
+        self.K = np.zeros((n, m))
+        self._PHt = np.zeros((n, m))
+        self._KH = np.zeros((n, n))
+        self._IKH = np.zeros((n, n))
+        self._T = np.zeros((n, n))
+        self._KR = np.zeros((n, m))
+        self._KRK = np.zeros((n, n))
+        self._L = np.zeros((m, m))
+        self._eye = np.eye(n)
+        self._half = np.full((), 0.5)
+        self._Ht = self.H.T
+        self._IKHt = self._IKH.T
+        self._Kt = self.K.T
+        self._Tt = self._T.T
+        self._s = flat(self.S)
+        self._si = flat(self.Sinv)
+        self._l = flat(self._L)
+        self._yv = memoryview(self.y)
+        self._dxv = memoryview(self.dx)
+        self.nis = 0.0
+        self.count = 0
+        self.rejected = 0
+
+    def update(self, P: np.ndarray) -> int:
+        """One update of ``P`` with the current ``H``, ``R``, ``y``; returns the
+        health flags (``EKF_OK`` when applied). ``dx`` is zeroed when rejected."""
+        m = self.m
+        np.matmul(P, self._Ht, out=self._PHt)
+        np.matmul(self.H, self._PHt, out=self.S)
+        np.add(self.S, self.R, out=self.S)
+        s = self._s
+        # symmetrise S (rounding) before the factorisation
+        for i in range(m):
+            for j in range(i + 1, m):
+                v = 0.5 * (s[i * m + j] + s[j * m + i])
+                s[i * m + j] = v
+                s[j * m + i] = v
+        if not chol_inverse(s, m, self._si, self._l):
+            self.dx.fill(0.0)
+            self.rejected += 1
+            self.nis = math.inf
+            return EKF_NOT_PD
+        si = self._si
+        yv = self._yv
+        nis = 0.0
+        for i in range(m):
+            acc = 0.0
+            for j in range(m):
+                acc += si[i * m + j] * yv[j]
+            nis += yv[i] * acc
+        self.nis = nis
+        if not math.isfinite(nis):
+            self.dx.fill(0.0)
+            self.rejected += 1
+            return EKF_NONFINITE
+        if nis > self.gate:
+            self.dx.fill(0.0)
+            self.rejected += 1
+            return EKF_GATED
+        np.matmul(self._PHt, self.Sinv, out=self.K)
+        np.matmul(self.K, self.y, out=self.dx)
+        # Joseph form: P = (I - K H) P (I - K H)^T + K R K^T
+        np.matmul(self.K, self.H, out=self._KH)
+        np.subtract(self._eye, self._KH, out=self._IKH)
+        np.matmul(self._IKH, P, out=self._T)
+        np.matmul(self._T, self._IKHt, out=P)
+        np.matmul(self.K, self.R, out=self._KR)
+        np.matmul(self._KR, self._Kt, out=self._KRK)
+        np.add(P, self._KRK, out=P)
+        symmetrize(P, self._T, self._Tt, self._half)
+        self.count += 1
+        return EKF_OK
+
+
+def symmetrize(P: np.ndarray, tmp: np.ndarray, tmp_t: np.ndarray, half: np.ndarray) -> None:
+    """``P = (P + P^T) / 2`` through ``tmp`` (``tmp_t`` is ``tmp.T``, made once)."""
+    np.copyto(tmp, P)
+    np.add(tmp, tmp_t, out=P)
+    np.multiply(P, half, out=P)
+
+
+class CovariancePredict:
+    """Workspace for ``P = A P A^T + Q`` with ``A`` (n, n) and a diagonal or
+    full ``Q`` (thesis eq 2.18 / 6.5, Fig. 4.3)."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.A = np.eye(n)
+        self.Q = np.zeros((n, n))
+        self._At = self.A.T
+        self._T = np.zeros((n, n))
+        self._T2 = np.zeros((n, n))
+        self._T2t = self._T2.T
+        self._half = np.full((), 0.5)
+
+    def predict(self, P: np.ndarray) -> None:
+        np.matmul(self.A, P, out=self._T)
+        np.matmul(self._T, self._At, out=P)
+        np.add(P, self.Q, out=P)
+        symmetrize(P, self._T2, self._T2t, self._half)

@@ -1,0 +1,780 @@
+"""Magnetic-inertial fusion: the complementary error filter of thesis ch. 6.
+
+Roetenberg thesis (``002_cd7f1fdb7fc67471.txt``) sec 6.2: inertial dead
+reckoning (strapdown, eqs 6.1-6.4) runs at the IMU rate; when a magnetic
+6-DOF solution arrives, the differences between the inertial and the
+magnetic position and orientation are fed to a Kalman filter on the errors
+(eqs 6.5-6.6), whose estimates correct the inertial state (Fig. 6.3).
+
+State (``layout.FUSION_LAYOUT``, eq 6.9; ``FUSION_XI_LAYOUT`` adds ``XI``,
+eq 6.19): errors of position, velocity, orientation, accelerometer and
+gyroscope, magnetic position and magnetic orientation. Conventions:
+``true = estimate + error``; orientation errors are rotation vectors in the
+global frame, ``Theta_true = exp([ori]x) Theta`` (the thesis defines them
+with the opposite sign); accelerometer and gyroscope errors live in the
+sensor frame, where the sensors' offsets do.
+
+Frames. ``G`` is the global frame (z up, x magnetic north, as the ch. 2
+filter). The magnetic frame ``M`` is the source; ``Phi = R_GM`` is the
+source orientation, from the source's own orientation filter (sec 6.2.3) or
+fixed. The filter tracks the sensor relative to the source in ``G``:
+``p = Phi q_M`` (eq 6.7), and integrates the net acceleration
+``a_net = a_sensor - a_source`` (eq 6.8), which with specific forces
+``f`` reads ``a_net = Theta f_sensor - Phi f_source`` (gravity cancels; for a
+fixed level source without IMU ``Phi f_source = (0, 0, g)``).
+
+Nominal propagation per IMU sample (step ``T``; biases removed; the
+specific force taken at mid-step, ``f + T/2 w x f``)::
+
+    p <- p + T v + T^2/2 a_net          v <- v + T a_net
+    Theta <- Theta exp([w T]x)          b_a, b_g <- exp(-beta T) b   (eqs 6.13-6.14)
+
+Error propagation (eqs 6.10-6.17, ``A`` of eq 6.17 in this convention)::
+
+    p_e' = p_e + T v_e                                   (6.10)
+    v_e' = v_e + T (-[f_G x] ori_e - Theta acc_e)         (6.11)
+    ori_e' = ori_e - T Theta gyr_e                        (6.12)
+    acc_e' = exp(-beta_a T) acc_e,  gyr_e' = exp(-beta_w T) gyr_e   (6.13-6.14)
+    qm_e' = 0,  psi_e' = 0  (and xi_e' = 0)               (6.15-6.16)
+
+``Q`` is diagonal (sec 6.2.4). The white magnetic error states get, at each
+magnetic update, the covariance the solver computed for that very solution
+(``solver.PoseSolver.covariance`` turned into the global frame), so the
+filter weights every update by the geometry it was measured in (the thesis
+notes in sec 6.5 that this "can also improve the accuracy").
+
+Measurement models (sec 6.2.5), selectable:
+
+1. eq 6.18: ``z = [Phi q - p ; log(Psi Theta^T)]`` with
+   ``C = [I 0 0 0 0 I 0 ; 0 0 I 0 0 0 I]``;
+2. eq 6.20: the orientation of the ch. 2 filter ``Xi`` instead of the
+   magnetic one;
+3. eq 6.21 (the thesis' choice): position, and both orientations; stacking
+   ``log(Psi Theta^T)`` and ``log(Xi Theta^T)`` with their own noise gives
+   exactly the variance-weighted sum of the two orientations the thesis
+   describes. Between magnetic updates only the gyroscopes track the
+   orientation.
+
+Delayed measurement. A magnetic solution refers to an instant ``t_ref`` in
+the middle of the X-Y-Z burst; it is available only after the last pulse's
+trailing baseline, about 170 ms later. The filter keeps a snapshot of its
+state at ``t_ref`` (taken when the IMU stream crosses it, splitting that IMU
+step), the IMU samples since, and replays them after the update: the update
+is applied exactly at ``t_ref`` (rewind and replay; thesis sec 6.2.3 notes
+the magnetic and inertial estimates are compared at the end of an inertial
+tracking period).
+
+Motion within the burst (thesis sec 6.5). ``pose_at`` interpolates the
+inertial pose history at any recent instant, so the firmware can bring the
+three pulses, measured 100 ms apart, to ``t_ref`` before solving
+(``Firmware._compensate``).
+
+All buffers are created in ``__init__``; a step allocates no numpy array.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .ekf import EKF_OK, CovariancePredict, KalmanUpdate
+from .layout import ACC, GYR, ORI, POS, PSI, QM, VEL, XI, fusion_layout
+from .linalg import exp_rotvec, rotvec_from_matrix
+
+# fusion health flags (bit field, beside the ekf flags)
+FUS_NOT_INITIALISED = 64
+FUS_NO_SNAPSHOT = 128       # the IMU stream has not reached t_ref (or it left the ring)
+FUS_REINITIALISED = 256     # too many consecutive rejections: restarted from the magnetic pose
+FUS_INITIALISED = 512       # this update initialised the filter
+
+#: rows of the IMU ring: specific force (3), rate (3), source specific force in G (3), Phi (9)
+_IMU_W = 18
+#: rows of the pose history: p_M (3), R_MS (9)
+_HIST_W = 12
+#: rows of the output ring: p_M (3), q (4), var (6), status (1)
+_OUT_W = 14
+
+
+class FusionParams:
+    """Parameters of the ch. 6 filter (SI units; per-sample noise figures)."""
+
+    def __init__(self, measurement_model=3, acc_noise=0.015, gyro_noise=0.006,
+                 source_acc_noise=0.0, acc_bias_sigma=0.03, gyro_bias_sigma=0.01,
+                 acc_bias_tau_s=300.0, gyro_bias_tau_s=300.0, velocity0_sigma=0.3,
+                 gate_probability=0.9999, reinit_after=3, xi_var_scale=1.0, mag_var_scale=1.0,
+                 qm_sigma=0.01, psi_sigma=0.05, meas_sigma=1e-5, max_gap_us=100_000,
+                 stale_us=2_000_000):
+        if measurement_model not in (1, 2, 3):
+            raise ValueError("measurement_model must be 1, 2 or 3")
+        self.measurement_model = int(measurement_model)
+        self.acc_noise = float(acc_noise)
+        self.gyro_noise = float(gyro_noise)
+        self.source_acc_noise = float(source_acc_noise)
+        self.acc_bias_sigma = float(acc_bias_sigma)
+        self.gyro_bias_sigma = float(gyro_bias_sigma)
+        self.acc_bias_tau_s = float(acc_bias_tau_s)
+        self.gyro_bias_tau_s = float(gyro_bias_tau_s)
+        self.velocity0_sigma = float(velocity0_sigma)
+        self.gate_probability = float(gate_probability)
+        self.reinit_after = int(reinit_after)
+        self.xi_var_scale = float(xi_var_scale)
+        self.mag_var_scale = float(mag_var_scale)
+        self.qm_sigma = float(qm_sigma)
+        self.psi_sigma = float(psi_sigma)
+        self.meas_sigma = float(meas_sigma)
+        self.max_gap_us = int(max_gap_us)
+        self.stale_us = int(stale_us)
+
+
+class FusionFilter:
+    """The thesis ch. 6 complementary error filter (see module docstring).
+
+    Parameters
+    ----------
+    params : FusionParams
+    xi_filter : orientation.OrientationFilter, optional
+        The sensor's ch. 2 filter (its ``R``, covariance and gyroscope
+        offset), needed by measurement models 2 and 3 and used to initialise.
+    imu_capacity, history_capacity, output_capacity : int
+        Ring sizes (IMU samples kept for replay, pose history for motion
+        compensation, poses waiting to be sent).
+    """
+
+    def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
+                 history_capacity: int = 128, output_capacity: int = 16):
+        self.prm = params
+        self.layout = fusion_layout(params.measurement_model)
+        n = self.layout.n
+        self.n = n
+        self.model = params.measurement_model
+        if self.model != 1 and xi_filter is None:
+            raise ValueError("measurement models 2 and 3 need the orientation filter Xi")
+        self.xi = xi_filter
+        # nominal state
+        self.p = np.zeros(3)
+        self.v = np.zeros(3)
+        self.Th = np.eye(3)
+        self.ba = np.zeros(3)
+        self.bg = np.zeros(3)
+        self.t_us = 0
+        self.P = np.zeros((n, n))
+        self._pv = memoryview(self.p)
+        self._vv = memoryview(self.v)
+        self._Thv = memoryview(self.Th)
+        self._bav = memoryview(self.ba)
+        self._bgv = memoryview(self.bg)
+        self._Pv = memoryview(self.P)
+        self.pred = CovariancePredict(n)
+        self._Av = memoryview(self.pred.A)
+        self._Qv = memoryview(self.pred.Q)
+        for s in (QM, PSI) + ((XI,) if n > 21 else ()):
+            for i in range(s.start, s.stop):
+                self._Av[i, i] = 0.0
+        m = 9 if self.model == 3 else 6
+        self.m = m
+        self.upd = KalmanUpdate(n, m, params.gate_probability)
+        self._Hv = memoryview(self.upd.H)
+        self._Rmv = memoryview(self.upd.R)
+        self._yv = self.upd._yv
+        # the measurement matrix C is constant (eqs 6.18, 6.20, 6.21)
+        for i in range(3):
+            self._Hv[i, POS.start + i] = 1.0
+            self._Hv[i, QM.start + i] = 1.0
+            self._Hv[3 + i, ORI.start + i] = 1.0
+            self._Hv[3 + i, (PSI if self.model != 2 else XI).start + i] = 1.0
+            if self.model == 3:
+                self._Hv[6 + i, ORI.start + i] = 1.0
+                self._Hv[6 + i, XI.start + i] = 1.0
+        r = params.meas_sigma ** 2
+        for i in range(m):
+            self._Rmv[i, i] = r
+        # scratch
+        self._E = np.zeros((3, 3))
+        self._Ev = memoryview(self._E)
+        self._T = np.zeros((3, 3))
+        # snapshot at t_ref
+        self._sp = np.zeros(3)
+        self._sv = np.zeros(3)
+        self._sTh = np.zeros((3, 3))
+        self._sba = np.zeros(3)
+        self._sbg = np.zeros(3)
+        self._sP = np.zeros((n, n))
+        self._sPhi = np.eye(3)
+        self._sXi = np.eye(3)
+        self._sXiP = np.zeros((3, 3))
+        self._sXiB = np.zeros(3)
+        self._sPhiv = memoryview(self._sPhi)
+        self._sXiv = memoryview(self._sXi)
+        self._sXiPv = memoryview(self._sXiP)
+        self.snap_t = 0
+        self.snap_pending = False
+        self.snap_valid = False
+        self.snap_initialized = False
+        self.snap_xi = False
+        # IMU ring
+        self.imu_t = np.zeros(imu_capacity, dtype=np.int64)
+        self.imu_d = np.zeros((imu_capacity, _IMU_W))
+        self._itv = memoryview(self.imu_t)
+        self._idv = memoryview(self.imu_d)
+        self._icap = imu_capacity
+        self._ihead = 0
+        self._icount = 0
+        # pose history (M frame)
+        self.hist_t = np.zeros(history_capacity, dtype=np.int64)
+        self.hist_d = np.zeros((history_capacity, _HIST_W))
+        self._htv = memoryview(self.hist_t)
+        self._hdv = memoryview(self.hist_d)
+        self._hcap = history_capacity
+        self._hhead = 0
+        self._hcount = 0
+        # output ring
+        self.out_t = np.zeros(output_capacity, dtype=np.int64)
+        self.out_d = np.zeros((output_capacity, _OUT_W))
+        self._otv = memoryview(self.out_t)
+        self._odv = memoryview(self.out_d)
+        self._ocap = output_capacity
+        self._ohead = 0
+        self._ocount = 0
+        self.out_dropped = 0
+        # bookkeeping
+        self.initialized = False
+        self.replaying = False
+        self.rejects_in_row = 0
+        self.last_update_t = 0
+        self.last_flags = 0
+        self.last_nis = 0.0
+        self.updates = 0
+        self.rejected = 0
+        self.reinits = 0
+        self.steps = 0
+        self.recorder = None       # optional offline hook (smoother); None on the board
+
+    # ------------------------------------------------------------ inputs
+    def schedule_snapshot(self, t_ref_us: int) -> None:
+        """Keep the state at ``t_ref_us`` (the instant the next magnetic
+        solution will refer to)."""
+        self.snap_t = int(t_ref_us)
+        self.snap_pending = True
+        self.snap_valid = False
+
+    def push_imu(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> bool:
+        """One sensor IMU sample (specific force m/s^2, rate rad/s, sensor
+        frame) with the source's specific force in ``G`` (``r*``) and the
+        source orientation ``Phi`` (3x3, memoryview or array). Returns True
+        when a fused pose was produced (put in the output ring)."""
+        # ring entry (kept for replay)
+        k = self._ihead
+        self._itv[k] = t_us
+        d = self._idv
+        d[k, 0], d[k, 1], d[k, 2] = fx, fy, fz
+        d[k, 3], d[k, 4], d[k, 5] = wx, wy, wz
+        d[k, 6], d[k, 7], d[k, 8] = rx, ry, rz
+        for i in range(3):
+            for j in range(3):
+                d[k, 9 + 3 * i + j] = Phi[i, j]
+        self._ihead = k + 1 if k + 1 < self._icap else 0
+        if self._icount < self._icap:
+            self._icount += 1
+        if not self.initialized:
+            if self.snap_pending and t_us >= self.snap_t:
+                self._snapshot_aux(k)
+            return False
+        if t_us <= self.t_us:
+            return False
+        if t_us - self.t_us > self.prm.max_gap_us:
+            # the stream broke off: the inertial state is not worth keeping
+            self.initialized = False
+            self.snap_valid = False
+            return False
+        self._advance(k)
+        self._output(t_us)
+        return True
+
+    def _advance(self, k: int) -> None:
+        """Propagate to ring entry ``k``'s time, splitting the step at a pending snapshot."""
+        t = self._itv[k]
+        if self.snap_pending and self.t_us < self.snap_t <= t:
+            ts = self.snap_t
+            if ts > self.t_us:
+                self._step(k, (ts - self.t_us) * 1e-6)
+                self.t_us = ts
+                self._history(k)
+            self._snapshot(k)
+            if t > ts:
+                self._step(k, (t - ts) * 1e-6)
+        else:
+            self._step(k, (t - self.t_us) * 1e-6)
+        self.t_us = t
+        self._history(k)
+
+    # ------------------------------------------------------------ model
+    def _step(self, k: int, dt: float) -> None:
+        d = self._idv
+        ba = self._bav
+        bg = self._bgv
+        fx, fy, fz = d[k, 0] - ba[0], d[k, 1] - ba[1], d[k, 2] - ba[2]
+        wx, wy, wz = d[k, 3] - bg[0], d[k, 4] - bg[1], d[k, 5] - bg[2]
+        h = 0.5 * dt
+        fx, fy, fz = (fx + h * (wy * fz - wz * fy), fy + h * (wz * fx - wx * fz), fz + h * (wx * fy - wy * fx))
+        Th = self._Thv
+        t00, t01, t02 = Th[0, 0], Th[0, 1], Th[0, 2]
+        t10, t11, t12 = Th[1, 0], Th[1, 1], Th[1, 2]
+        t20, t21, t22 = Th[2, 0], Th[2, 1], Th[2, 2]
+        gx = t00 * fx + t01 * fy + t02 * fz
+        gy = t10 * fx + t11 * fy + t12 * fz
+        gz = t20 * fx + t21 * fy + t22 * fz
+        ax, ay, az = gx - d[k, 6], gy - d[k, 7], gz - d[k, 8]
+        p = self._pv
+        v = self._vv
+        hh = 0.5 * dt * dt
+        p[0] += v[0] * dt + ax * hh
+        p[1] += v[1] * dt + ay * hh
+        p[2] += v[2] * dt + az * hh
+        v[0] += ax * dt
+        v[1] += ay * dt
+        v[2] += az * dt
+        exp_rotvec(wx * dt, wy * dt, wz * dt, self._Ev)
+        np.matmul(self.Th, self._E, out=self._T)
+        np.copyto(self.Th, self._T)
+        prm = self.prm
+        ka = math.exp(-dt / prm.acc_bias_tau_s) if prm.acc_bias_tau_s > 0.0 else 1.0
+        kg = math.exp(-dt / prm.gyro_bias_tau_s) if prm.gyro_bias_tau_s > 0.0 else 1.0
+        for i in range(3):
+            ba[i] *= ka
+            bg[i] *= kg
+        # transition matrix blocks (eq 6.17)
+        A = self._Av
+        p0, v0, o0, a0, g0 = POS.start, VEL.start, ORI.start, ACC.start, GYR.start
+        # VEL-ORI: -T [f_G x]
+        A[v0, o0 + 1] = dt * gz
+        A[v0, o0 + 2] = -dt * gy
+        A[v0 + 1, o0] = -dt * gz
+        A[v0 + 1, o0 + 2] = dt * gx
+        A[v0 + 2, o0] = dt * gy
+        A[v0 + 2, o0 + 1] = -dt * gx
+        A[v0, a0], A[v0, a0 + 1], A[v0, a0 + 2] = -dt * t00, -dt * t01, -dt * t02
+        A[v0 + 1, a0], A[v0 + 1, a0 + 1], A[v0 + 1, a0 + 2] = -dt * t10, -dt * t11, -dt * t12
+        A[v0 + 2, a0], A[v0 + 2, a0 + 1], A[v0 + 2, a0 + 2] = -dt * t20, -dt * t21, -dt * t22
+        A[o0, g0], A[o0, g0 + 1], A[o0, g0 + 2] = -dt * t00, -dt * t01, -dt * t02
+        A[o0 + 1, g0], A[o0 + 1, g0 + 1], A[o0 + 1, g0 + 2] = -dt * t10, -dt * t11, -dt * t12
+        A[o0 + 2, g0], A[o0 + 2, g0 + 1], A[o0 + 2, g0 + 2] = -dt * t20, -dt * t21, -dt * t22
+        Q = self._Qv
+        qv = (prm.acc_noise ** 2 + prm.source_acc_noise ** 2) * dt * dt
+        qo = (prm.gyro_noise * dt) ** 2
+        qa = prm.acc_bias_sigma ** 2 * (1.0 - ka * ka)
+        qg = prm.gyro_bias_sigma ** 2 * (1.0 - kg * kg)
+        qq = prm.qm_sigma ** 2
+        qs = prm.psi_sigma ** 2
+        for i in range(3):
+            A[p0 + i, v0 + i] = dt
+            A[a0 + i, a0 + i] = ka
+            A[g0 + i, g0 + i] = kg
+            Q[v0 + i, v0 + i] = qv
+            Q[o0 + i, o0 + i] = qo
+            Q[a0 + i, a0 + i] = qa
+            Q[g0 + i, g0 + i] = qg
+            Q[QM.start + i, QM.start + i] = qq
+            Q[PSI.start + i, PSI.start + i] = qs
+            if self.n > 21:
+                Q[XI.start + i, XI.start + i] = qs
+        self.pred.predict(self.P)
+        self.steps += 1
+        if self.recorder is not None:
+            self.recorder.on_step(self, k, dt)
+
+    def _history(self, k: int) -> None:
+        """Append the current pose in the source frame: ``p_M = Phi^T p``,
+        ``R_MS = Phi^T Theta`` (Phi of IMU ring entry ``k``)."""
+        d = self._idv
+        h = self._hhead
+        self._htv[h] = self.t_us
+        hd = self._hdv
+        p = self._pv
+        Th = self._Thv
+        for i in range(3):
+            f0, f1, f2 = d[k, 9 + i], d[k, 12 + i], d[k, 15 + i]     # column i of Phi
+            hd[h, i] = f0 * p[0] + f1 * p[1] + f2 * p[2]
+            for j in range(3):
+                hd[h, 3 + 3 * i + j] = f0 * Th[0, j] + f1 * Th[1, j] + f2 * Th[2, j]
+        self._hhead = h + 1 if h + 1 < self._hcap else 0
+        if self._hcount < self._hcap:
+            self._hcount += 1
+
+    def _output(self, t_us: int) -> None:
+        """Queue the fused pose (source frame) with its variances: position
+        ``diag(Phi^T P_pp Phi)``, orientation in the sensor frame
+        ``diag(R^T P_oo R)`` with ``R = Theta`` (as the POSE message defines)."""
+        if self._ocount == self._ocap:
+            self.out_dropped += 1
+            return
+        slot = self._ohead + self._ocount
+        if slot >= self._ocap:
+            slot -= self._ocap
+        self._ocount += 1
+        self._otv[slot] = t_us
+        od = self._odv
+        h = self._hhead - 1 if self._hhead > 0 else self._hcap - 1
+        hd = self._hdv
+        od[slot, 0], od[slot, 1], od[slot, 2] = hd[h, 0], hd[h, 1], hd[h, 2]
+        _quat_into(hd, h, od, slot)
+        k = self._ihead - 1 if self._ihead > 0 else self._icap - 1
+        d = self._idv
+        P = self._Pv
+        Th = self._Thv
+        p0 = POS.start
+        o0 = ORI.start
+        for c in range(3):
+            # column c of Phi and of Theta
+            f = (d[k, 9 + c], d[k, 12 + c], d[k, 15 + c])
+            vp = 0.0
+            vo = 0.0
+            for i in range(3):
+                fi = f[i]
+                ti = Th[i, c]
+                for j in range(3):
+                    vp += fi * P[p0 + i, p0 + j] * f[j]
+                    vo += ti * P[o0 + i, o0 + j] * Th[j, c]
+            od[slot, 7 + c] = vp
+            od[slot, 10 + c] = vo
+        status = 0
+        if t_us - self.last_update_t > self.prm.stale_us:
+            status |= 1
+        if self.last_flags & ~FUS_INITIALISED:
+            status |= 2
+        od[slot, 13] = status
+
+    def pop_output(self):
+        """Index of the oldest queued pose in ``out_t`` / ``out_d`` (or -1);
+        call :meth:`release_output` when sent."""
+        if self._ocount == 0:
+            return -1
+        return self._ohead
+
+    def release_output(self) -> None:
+        if self._ocount:
+            self._ohead = self._ohead + 1 if self._ohead + 1 < self._ocap else 0
+            self._ocount -= 1
+
+    # ------------------------------------------------------------ snapshot
+    def _snapshot_aux(self, k: int) -> None:
+        """Source orientation and Xi at t_ref (all that initialisation needs)."""
+        d = self._idv
+        S = self._sPhiv
+        for i in range(3):
+            for j in range(3):
+                S[i, j] = d[k, 9 + 3 * i + j]
+        if self.xi is not None and self.xi.initialized:
+            np.copyto(self._sXi, self.xi.R)
+            self.xi.theta_covariance_global(self._sXiPv)
+            np.copyto(self._sXiB, self.xi.bias)
+            self.snap_xi = True
+        else:
+            self.snap_xi = False
+        self.snap_pending = False
+        self.snap_valid = True
+        self.snap_initialized = self.initialized
+
+    def _snapshot(self, k: int) -> None:
+        np.copyto(self._sp, self.p)
+        np.copyto(self._sv, self.v)
+        np.copyto(self._sTh, self.Th)
+        np.copyto(self._sba, self.ba)
+        np.copyto(self._sbg, self.bg)
+        np.copyto(self._sP, self.P)
+        self._snapshot_aux(k)
+
+    def _restore(self) -> None:
+        np.copyto(self.p, self._sp)
+        np.copyto(self.v, self._sv)
+        np.copyto(self.Th, self._sTh)
+        np.copyto(self.ba, self._sba)
+        np.copyto(self.bg, self._sbg)
+        np.copyto(self.P, self._sP)
+        self.t_us = self.snap_t
+
+    def _replay(self) -> None:
+        """Re-run the IMU samples after ``t_us`` (the restored instant)."""
+        t0 = self.t_us
+        # drop history after t0
+        while self._hcount and self._htv[self._hhead - 1 if self._hhead > 0 else self._hcap - 1] > t0:
+            self._hhead = self._hhead - 1 if self._hhead > 0 else self._hcap - 1
+            self._hcount -= 1
+        if self.recorder is not None:
+            self.recorder.on_rewind(self, t0)
+        n = self._icount
+        start = self._ihead - n
+        if start < 0:
+            start += self._icap
+        self.replaying = True
+        for i in range(n):
+            k = start + i
+            if k >= self._icap:
+                k -= self._icap
+            if self._itv[k] > self.t_us:
+                self._advance(k)
+        self.replaying = False
+
+    def _ring_covers(self, t_us: int) -> bool:
+        if self._icount == 0:
+            return False
+        start = self._ihead - self._icount
+        if start < 0:
+            start += self._icap
+        return self._itv[start] <= t_us
+
+    # ------------------------------------------------------------ update
+    def magnetic_update(self, t_ref_us: int, q, R_ms, C) -> int:
+        """Fuse one magnetic solution referring to ``t_ref_us``: position
+        ``q`` (3, source frame), orientation ``R_ms`` (3x3, sensor to source)
+        and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``).
+        Initialises the filter when needed. Returns health flags (ekf flags,
+        ``FUS_*``); never raises."""
+        if not (self.snap_valid and self.snap_t == t_ref_us and self._ring_covers(t_ref_us)):
+            self.last_flags = FUS_NO_SNAPSHOT
+            return FUS_NO_SNAPSHOT
+        self.snap_valid = False
+        if not (self.initialized and self.snap_initialized):
+            if self.model != 1 and not self.snap_xi:
+                self.last_flags = FUS_NOT_INITIALISED
+                return FUS_NOT_INITIALISED
+            self._initialize(t_ref_us, q, R_ms, C)
+            self._replay()
+            self.last_flags = FUS_INITIALISED
+            self.last_update_t = t_ref_us
+            return FUS_INITIALISED
+        self._restore()
+        self._measurement(q, R_ms, C)
+        flags = self.upd.update(self.P)
+        self.last_nis = self.upd.nis
+        if flags == EKF_OK:
+            self._correct(self.upd._dxv)
+            self.rejects_in_row = 0
+            self.updates += 1
+            self.last_update_t = t_ref_us
+            if self.recorder is not None:
+                self.recorder.on_update(self, self.upd.dx)
+        else:
+            self.rejected += 1
+            self.rejects_in_row += 1
+            if self.rejects_in_row >= self.prm.reinit_after and (self.model == 1 or self.snap_xi):
+                self._initialize(t_ref_us, q, R_ms, C)
+                self.reinits += 1
+                self.rejects_in_row = 0
+                flags |= FUS_REINITIALISED
+                self.last_update_t = t_ref_us
+        self._replay()
+        self.last_flags = flags
+        return flags
+
+    def _measurement(self, q, R_ms, C) -> None:
+        """Innovation (eqs 6.18-6.21) and the white blocks of ``P``."""
+        y = self._yv
+        Phi = self._sPhiv
+        p = self._pv
+        Th = self._Thv
+        P = self._Pv
+        s = self.prm.mag_var_scale
+        # position: Phi q - p
+        for i in range(3):
+            y[i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2] - p[i]
+        # Psi = Phi R_ms
+        psi = self._E
+        np.matmul(self._sPhi, R_ms, out=psi)
+        Psi = self._Ev
+        # white-state covariances: Phi C_pp Phi^T, Psi C_tt Psi^T, Phi C_pt Psi^T
+        q0, s0 = QM.start, PSI.start
+        for i in range(3):
+            for j in range(3):
+                cpp = cpt = ctt = 0.0
+                for a in range(3):
+                    fa = Phi[i, a]
+                    pa = Psi[i, a]
+                    for b in range(3):
+                        cpp += fa * C[a, b] * Phi[j, b]
+                        cpt += fa * C[a, 3 + b] * Psi[j, b]
+                        ctt += pa * C[3 + a, 3 + b] * Psi[j, b]
+                P[q0 + i, q0 + j] = cpp * s
+                P[q0 + i, s0 + j] = cpt * s
+                P[s0 + j, q0 + i] = cpt * s
+                P[s0 + i, s0 + j] = ctt * s
+        row = 3
+        if self.model != 2:
+            _log_diff(Psi, Th, y, row)
+            row = 6
+        if self.model != 1:
+            _log_diff(self._sXiv, Th, y, row)
+            x0 = XI.start
+            xs = self.prm.xi_var_scale
+            XP = self._sXiPv
+            for i in range(3):
+                for j in range(3):
+                    P[x0 + i, x0 + j] = XP[i, j] * xs
+        if self.model == 2:
+            # the magnetic orientation is not used: keep its white block inert
+            for i in range(3):
+                for j in range(3):
+                    P[s0 + i, s0 + j] = (self.prm.psi_sigma ** 2) if i == j else 0.0
+                    P[q0 + i, s0 + j] = 0.0
+                    P[s0 + j, q0 + i] = 0.0
+
+    def _correct(self, dx) -> None:
+        p = self._pv
+        v = self._vv
+        ba = self._bav
+        bg = self._bgv
+        for i in range(3):
+            p[i] += dx[POS.start + i]
+            v[i] += dx[VEL.start + i]
+            ba[i] += dx[ACC.start + i]
+            bg[i] += dx[GYR.start + i]
+        o = ORI.start
+        exp_rotvec(dx[o], dx[o + 1], dx[o + 2], self._Ev)
+        np.matmul(self._E, self.Th, out=self._T)
+        np.copyto(self.Th, self._T)
+
+    def _initialize(self, t_ref_us: int, q, R_ms, C) -> None:
+        """State at ``t_ref``: position from the magnetic solution, velocity
+        zero, orientation from Xi (models 2, 3) or the magnetic one (model 1),
+        gyroscope offset from the ch. 2 filter."""
+        prm = self.prm
+        Phi = self._sPhiv
+        p = self._pv
+        for i in range(3):
+            p[i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2]
+        self.v.fill(0.0)
+        self.ba.fill(0.0)
+        self.P.fill(0.0)
+        P = self._Pv
+        use_xi = self.model != 1 and self.snap_xi
+        if use_xi:
+            np.copyto(self.Th, self._sXi)
+            np.copyto(self.bg, self._sXiB)
+        else:
+            np.matmul(self._sPhi, R_ms, out=self.Th)
+            self.bg.fill(0.0)
+        Th = self._Thv
+        p0, o0 = POS.start, ORI.start
+        for i in range(3):
+            for j in range(3):
+                cpp = 0.0
+                coo = 0.0
+                for a in range(3):
+                    for b in range(3):
+                        cpp += Phi[i, a] * C[a, b] * Phi[j, b]
+                        coo += Th[i, a] * C[3 + a, 3 + b] * Th[j, b]
+                P[p0 + i, p0 + j] = cpp
+                if use_xi:
+                    P[o0 + i, o0 + j] = self._sXiPv[i, j]
+                else:
+                    P[o0 + i, o0 + j] = coo
+        for i in range(3):
+            P[VEL.start + i, VEL.start + i] = prm.velocity0_sigma ** 2
+            P[ACC.start + i, ACC.start + i] = prm.acc_bias_sigma ** 2
+            P[GYR.start + i, GYR.start + i] = prm.gyro_bias_sigma ** 2
+            P[QM.start + i, QM.start + i] = prm.qm_sigma ** 2
+            P[PSI.start + i, PSI.start + i] = prm.psi_sigma ** 2
+            if self.n > 21:
+                P[XI.start + i, XI.start + i] = prm.psi_sigma ** 2
+        self.t_us = t_ref_us
+        self.initialized = True
+        self.rejects_in_row = 0
+        self._hcount = 0
+        self._hhead = 0
+        if self.recorder is not None:
+            self.recorder.on_init(self)
+
+    # ------------------------------------------------------------ queries
+    def pose_at(self, t_us: int, out_p, out_R) -> bool:
+        """Inertial pose in the source frame at ``t_us`` (linear
+        interpolation of the history; ``out_R`` is not re-orthonormalised,
+        which is second order in the step rotation). False when ``t_us`` is
+        outside the history."""
+        n = self._hcount
+        if n < 2:
+            return False
+        cap = self._hcap
+        start = self._hhead - n
+        if start < 0:
+            start += cap
+        ht = self._htv
+        if ht[start] > t_us:
+            return False
+        prev = start
+        for i in range(1, n):
+            k = start + i
+            if k >= cap:
+                k -= cap
+            tk = ht[k]
+            if tk >= t_us:
+                t0 = ht[prev]
+                a = (t_us - t0) / (tk - t0) if tk > t0 else 1.0
+                hd = self._hdv
+                b = 1.0 - a
+                for c in range(3):
+                    out_p[c] = b * hd[prev, c] + a * hd[k, c]
+                for i2 in range(3):
+                    for j in range(3):
+                        out_R[i2, j] = b * hd[prev, 3 + 3 * i2 + j] + a * hd[k, 3 + 3 * i2 + j]
+                return True
+            prev = k
+        return False
+
+    def nees(self, p_true_g, R_true_g, v_true_g=None) -> float:
+        """Normalised estimation error squared of position, orientation (and
+        velocity) against a truth in the global frame (tests; allocates)."""
+        e = []
+        idx = []
+        e.extend(np.asarray(p_true_g) - self.p)
+        idx.extend(range(POS.start, POS.stop))
+        if v_true_g is not None:
+            e.extend(np.asarray(v_true_g) - self.v)
+            idx.extend(range(VEL.start, VEL.stop))
+        M = np.asarray(R_true_g) @ self.Th.T
+        e.extend(rotvec_from_matrix(*M.reshape(9)))
+        idx.extend(range(ORI.start, ORI.stop))
+        e = np.array(e)
+        Ps = self.P[np.ix_(idx, idx)]
+        return float(e @ np.linalg.solve(Ps, e))
+
+
+def _log_diff(Z, Th, y, row) -> None:
+    """``y[row:row+3] = log(Z Theta^T)`` (rotation vector, global frame)."""
+    r00 = Z[0, 0] * Th[0, 0] + Z[0, 1] * Th[0, 1] + Z[0, 2] * Th[0, 2]
+    r01 = Z[0, 0] * Th[1, 0] + Z[0, 1] * Th[1, 1] + Z[0, 2] * Th[1, 2]
+    r02 = Z[0, 0] * Th[2, 0] + Z[0, 1] * Th[2, 1] + Z[0, 2] * Th[2, 2]
+    r10 = Z[1, 0] * Th[0, 0] + Z[1, 1] * Th[0, 1] + Z[1, 2] * Th[0, 2]
+    r11 = Z[1, 0] * Th[1, 0] + Z[1, 1] * Th[1, 1] + Z[1, 2] * Th[1, 2]
+    r12 = Z[1, 0] * Th[2, 0] + Z[1, 1] * Th[2, 1] + Z[1, 2] * Th[2, 2]
+    r20 = Z[2, 0] * Th[0, 0] + Z[2, 1] * Th[0, 1] + Z[2, 2] * Th[0, 2]
+    r21 = Z[2, 0] * Th[1, 0] + Z[2, 1] * Th[1, 1] + Z[2, 2] * Th[1, 2]
+    r22 = Z[2, 0] * Th[2, 0] + Z[2, 1] * Th[2, 1] + Z[2, 2] * Th[2, 2]
+    x, yy, z = rotvec_from_matrix(r00, r01, r02, r10, r11, r12, r20, r21, r22)
+    y[row] = x
+    y[row + 1] = yy
+    y[row + 2] = z
+
+
+def _quat_into(hd, h, od, slot) -> None:
+    """Unit quaternion (w, x, y, z), w >= 0, of the rotation in history row
+    ``h`` (columns 3..11) into output columns 3..6 (Shepperd's method, as
+    ``rotation.quat_from_matrix`` but on Python floats)."""
+    r00, r01, r02 = hd[h, 3], hd[h, 4], hd[h, 5]
+    r10, r11, r12 = hd[h, 6], hd[h, 7], hd[h, 8]
+    r20, r21, r22 = hd[h, 9], hd[h, 10], hd[h, 11]
+    t = r00 + r11 + r22
+    if t > 0.0:
+        s = math.sqrt(t + 1.0) * 2.0
+        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
+    elif r00 > r11 and r00 > r22:
+        s = math.sqrt(1.0 + r00 - r11 - r22) * 2.0
+        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
+    elif r11 > r22:
+        s = math.sqrt(1.0 + r11 - r00 - r22) * 2.0
+        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
+    else:
+        s = math.sqrt(1.0 + r22 - r00 - r11) * 2.0
+        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    od[slot, 3], od[slot, 4], od[slot, 5], od[slot, 6] = w / n, x / n, y / n, z / n

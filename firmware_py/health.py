@@ -1,0 +1,317 @@
+"""Node and measurement health: what the firmware watches besides the poses.
+
+Per node (the coil driver and every sensor of the configuration):
+
+* **Liveness.** Any frame from a node counts as a sign of life. A sensor
+  silent for ``sensor_timeout_us`` or a driver silent for
+  ``driver_timeout_us`` (or missing the ``COIL_STATUS`` of
+  ``missing_status_cycles`` bursts in a row) is lost (``EVT_NODE_LOST``);
+  its next frame brings it back (``EVT_NODE_BACK``, and the time sync is
+  kicked so a rebooted node re-synchronises at once).
+* **Time stamps** (sensors). Samples come at a steady rate, so consecutive
+  stamps differ by a whole number of sample periods (missing samples make
+  multiples). A stamp from the future (beyond ``stamp_future_tol_us`` of the
+  master clock), a stamp not after the previous one, or an interval further
+  than ``stamp_interval_tol_us`` from a whole number of periods is a clock
+  step: the stamps from there on are suspect until the node has answered a
+  time sync broadcast and its stamps run regularly again. A step the node's
+  sync replies show (``TimeSyncMaster.on_reply``) marks the time between the
+  two replies suspect. Each step is reported once (``EVT_CLOCK_STEP``, detail
+  = node, bit 8 from the samples, bit 9 from the replies). A step that is
+  within the tolerance of a whole number of sample periods is only seen in
+  the replies. A cycle whose window span overlaps a suspect interval gives
+  a pose the firmware cannot vouch for.
+* **Saturation.** A sample with the saturated bit raises ``EVT_SATURATION``
+  (at most once per ``saturation_quiet_us``); the pulse extractor flags the
+  windows (``POSE_SATURATED``).
+* **Magnetic distortion** (metal near the sensor). Between pulses a sensor
+  sees the earth field alone, whose magnitude does not depend on the
+  sensor's position or orientation in an undisturbed field (thesis ``002``
+  ch. 2 detects disturbance from the field magnitude and dip). The first
+  ``distortion_learn_samples`` quiet samples give the reference magnitude;
+  afterwards an exponential average of the quiet magnitudes
+  (``distortion_avg_samples``) further than ``distortion_threshold_t`` from
+  it sets the distortion flag (``EVT_DISTORTION``, ``POSE_DISTORTED``; cleared
+  below half the threshold, event detail bit 31). A non-magnetic conductor
+  (eddy currents only) does not change the quiet field and is not seen here.
+* **Coil status.** Every pulse of a burst must be answered by a
+  ``COIL_STATUS``; a missing or refused one, an open circuit or an
+  over-current makes the burst's pose one the firmware cannot vouch for
+  (``POSE_COIL_FAULT``).
+
+Fixed-size state allocated in ``__init__``; per-sample work is plain Python
+arithmetic on preallocated lists (no numpy allocation).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from protocol.schema import (COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_REFUSED,
+                             EVT_CLOCK_STEP, EVT_DISTORTION, EVT_NODE_BACK, EVT_NODE_LOST, EVT_SATURATION)
+
+#: COIL_STATUS faults after which the burst's amplitudes cannot be trusted
+COIL_FAULT_FATAL = COIL_FAULT_OPEN_CIRCUIT | COIL_FAULT_OVER_CURRENT | COIL_FAULT_REFUSED
+
+_SUSPECT = 4          # suspect intervals remembered per node
+_EVENTS = 32          # pending events
+_NONE = -(1 << 62)
+_OPEN = 1 << 62
+
+
+@dataclass(frozen=True)
+class HealthConfig:
+    sensor_timeout_us: int = 250_000
+    driver_timeout_us: int = 2_500_000
+    missing_status_cycles: int = 2
+    stamp_future_tol_us: int = 3_000
+    stamp_interval_tol_us: int = 400
+    saturation_quiet_us: int = 1_000_000
+    distortion_threshold_t: float = 2.0e-6
+    distortion_learn_samples: int = 120
+    distortion_avg_samples: int = 30
+    quiet_margin_us: int = 5_000
+
+
+class Health:
+    def __init__(self, sensor_ids, driver_id: int, mag_rate_hz: float, hcfg: HealthConfig | None = None,
+                 boot_us: int = 0):
+        self.hcfg = hcfg = hcfg or HealthConfig()
+        self.sensor_ids = tuple(int(s) for s in sensor_ids)
+        self.driver_id = int(driver_id)
+        ids = self.sensor_ids + (self.driver_id,)
+        n = len(ids)
+        self.ids = ids
+        self._slot = {nid: i for i, nid in enumerate(ids)}
+        self.driver_slot = n - 1
+        self.timeout_us = [hcfg.sensor_timeout_us] * (n - 1) + [hcfg.driver_timeout_us]
+        self.last_heard = [boot_us] * n
+        self.lost = [False] * n
+        self.lost_events = 0
+        self.back_events = 0
+        # time stamps (sensors)
+        self.period_us = 1e6 / mag_rate_hz
+        self.last_stamp = [_NONE] * n
+        self.susp_t0 = [[_NONE] * _SUSPECT for _ in range(n)]
+        self.susp_t1 = [[_NONE] * _SUSPECT for _ in range(n)]
+        self.susp_k = [0] * n                  # next slot to write
+        self.suspect_open = [False] * n
+        self.suspect_reply_seen = [False] * n
+        self.clock_steps = 0
+        # saturation
+        self.last_sat_us = [_NONE] * n
+        self.saturated_samples = 0
+        self.saturation_events = 0
+        # distortion
+        self.ref_sum = [0.0] * n
+        self.ref_n = [0] * n
+        self.ref_mag = [0.0] * n
+        self.avg_mag = [0.0] * n
+        self.distorted = [False] * n
+        self.distortion_events = 0
+        self._alpha = 1.0 / max(1, hcfg.distortion_avg_samples)
+        # coil status of the current burst
+        self.n_coils = 0
+        self.status_seen: list[bool] = []
+        self.status_faults: list[int] = []
+        self.missing_status = 0
+        self.missing_cycles = 0
+        # pending events (code, detail), a fixed ring
+        self._ev_code = [0] * _EVENTS
+        self._ev_detail = [0] * _EVENTS
+        self._ev_n = 0
+        self.events_dropped = 0
+        self.kick_sync = False
+
+    def set_coils(self, n_coils: int) -> None:
+        self.n_coils = n_coils
+        self.status_seen = [False] * n_coils
+        self.status_faults = [0] * n_coils
+
+    # ------------------------------------------------------------ events
+    def _event(self, code: int, detail: int) -> None:
+        if self._ev_n >= _EVENTS:
+            self.events_dropped += 1
+            return
+        self._ev_code[self._ev_n] = code
+        self._ev_detail[self._ev_n] = detail
+        self._ev_n += 1
+
+    def flush_events(self, emit) -> None:
+        for i in range(self._ev_n):
+            emit(self._ev_code[i], self._ev_detail[i])
+        self._ev_n = 0
+
+    # ------------------------------------------------------------ liveness
+    def heard(self, node: int, now_us: int) -> None:
+        i = self._slot.get(node, -1)
+        if i < 0:
+            return
+        self.last_heard[i] = now_us
+        if self.lost[i]:
+            self.lost[i] = False
+            self.back_events += 1
+            self._event(EVT_NODE_BACK, node)
+            self.kick_sync = True
+            self.last_stamp[i] = _NONE
+
+    def step(self, now_us: int) -> None:
+        for i in range(len(self.ids)):
+            if not self.lost[i] and now_us - self.last_heard[i] > self.timeout_us[i]:
+                self._set_lost(i)
+
+    def _set_lost(self, i: int) -> None:
+        self.lost[i] = True
+        self.lost_events += 1
+        self._event(EVT_NODE_LOST, self.ids[i])
+
+    def any_lost(self) -> bool:
+        for v in self.lost:
+            if v:
+                return True
+        return False
+
+    # ------------------------------------------------------------ samples
+    def on_mag(self, node: int, stamp: int, bx: float, by: float, bz: float, saturated: bool,
+               now_us: int, quiet: bool) -> None:
+        i = self._slot.get(node, -1)
+        if i < 0 or i == self.driver_slot:
+            return
+        hc = self.hcfg
+        # --- time stamp sanity
+        prev = self.last_stamp[i]
+        bad = stamp > now_us + hc.stamp_future_tol_us
+        if not bad and prev != _NONE:
+            dt = stamp - prev
+            if dt <= 0:
+                bad = True
+            else:
+                P = self.period_us
+                k = math.floor(dt / P + 0.5)
+                if k < 1:
+                    k = 1
+                if k <= 64 and abs(dt - k * P) > hc.stamp_interval_tol_us:
+                    bad = True
+        if bad:
+            if not self.suspect_open[i]:
+                self._open_suspect(i, prev if prev != _NONE else stamp, 1 << 8)
+        elif self.suspect_open[i] and self.suspect_reply_seen[i]:
+            self._close_suspect(i, stamp)
+        if not bad or stamp > prev:
+            self.last_stamp[i] = stamp
+        # --- saturation
+        if saturated:
+            self.saturated_samples += 1
+            if now_us - self.last_sat_us[i] > hc.saturation_quiet_us:
+                self.saturation_events += 1
+                self._event(EVT_SATURATION, node)
+            self.last_sat_us[i] = now_us
+            return
+        # --- distortion (quiet samples only)
+        if not quiet or bad:
+            return
+        m = math.sqrt(bx * bx + by * by + bz * bz)
+        if self.ref_n[i] < hc.distortion_learn_samples:
+            self.ref_sum[i] += m
+            self.ref_n[i] += 1
+            if self.ref_n[i] == hc.distortion_learn_samples:
+                self.ref_mag[i] = self.ref_sum[i] / self.ref_n[i]
+                self.avg_mag[i] = self.ref_mag[i]
+            return
+        a = self.avg_mag[i] + self._alpha * (m - self.avg_mag[i])
+        self.avg_mag[i] = a
+        dev = abs(a - self.ref_mag[i])
+        thr = hc.distortion_threshold_t
+        if not self.distorted[i] and dev > thr:
+            self.distorted[i] = True
+            self.distortion_events += 1
+            self._event(EVT_DISTORTION, node | (min(int(dev * 1e8), 0xFFFF) << 8))
+        elif self.distorted[i] and dev < 0.5 * thr:
+            self.distorted[i] = False
+            self._event(EVT_DISTORTION, node | (1 << 31))
+
+    # ------------------------------------------------------------ clock steps
+    def _open_suspect(self, i: int, t0: int, how: int) -> None:
+        k = self.susp_k[i]
+        self.susp_t0[i][k] = t0
+        self.susp_t1[i][k] = _OPEN
+        self.suspect_open[i] = True
+        self.suspect_reply_seen[i] = False
+        self.clock_steps += 1
+        self._event(EVT_CLOCK_STEP, self.ids[i] | how)
+
+    def _close_suspect(self, i: int, t1: int) -> None:
+        k = self.susp_k[i]
+        self.susp_t1[i][k] = t1
+        self.susp_k[i] = (k + 1) % _SUSPECT
+        self.suspect_open[i] = False
+
+    def on_sync_reply(self, node: int, stepped: bool, prev_reply_us: int, now_us: int) -> None:
+        i = self._slot.get(node, -1)
+        if i < 0:
+            return
+        if self.suspect_open[i]:
+            self.suspect_reply_seen[i] = True
+            if i == self.driver_slot:
+                self._close_suspect(i, now_us)
+            return
+        if stepped:
+            k = self.susp_k[i]
+            self.susp_t0[i][k] = prev_reply_us
+            self.susp_t1[i][k] = now_us
+            self.susp_k[i] = (k + 1) % _SUSPECT
+            self.clock_steps += 1
+            self._event(EVT_CLOCK_STEP, node | (1 << 9))
+
+    def suspect(self, node: int, t0: int, t1: int) -> bool:
+        """True when ``node``'s clock was suspect anywhere in master time ``[t0, t1]``."""
+        i = self._slot.get(node, -1)
+        if i < 0:
+            return False
+        if self.suspect_open[i]:
+            return True
+        a, b = self.susp_t0[i], self.susp_t1[i]
+        for k in range(_SUSPECT):
+            if a[k] != _NONE and a[k] <= t1 and b[k] >= t0:
+                return True
+        return False
+
+    # ------------------------------------------------------------ coil status
+    def new_burst(self) -> bool:
+        """Start bookkeeping a new burst; return True when no pulse of the previous burst was
+        answered at all (the driver is silent)."""
+        seen = self.status_seen
+        answered = 0
+        for j in range(self.n_coils):
+            if seen[j]:
+                answered += 1
+            seen[j] = False
+            self.status_faults[j] = 0
+        return self.n_coils > 0 and answered == 0
+
+    def on_coil_status(self, j: int, faults: int) -> None:
+        if 0 <= j < self.n_coils:
+            self.status_seen[j] = True
+            self.status_faults[j] = faults
+
+    def burst_status(self) -> tuple[bool, bool]:
+        """``(all answered, any fatal fault)`` for the current burst."""
+        ok = True
+        fatal = False
+        for j in range(self.n_coils):
+            if not self.status_seen[j]:
+                ok = False
+            if self.status_faults[j] & COIL_FAULT_FATAL:
+                fatal = True
+        return ok, fatal
+
+    def note_missing_status(self, missing: bool) -> None:
+        """Book whether the previous burst went wholly unanswered."""
+        if missing:
+            self.missing_status += 1
+            self.missing_cycles += 1
+            d = self.driver_slot
+            if self.missing_cycles >= self.hcfg.missing_status_cycles and not self.lost[d]:
+                self._set_lost(d)
+        else:
+            self.missing_cycles = 0

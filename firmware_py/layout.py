@@ -1,0 +1,131 @@
+"""State-layout tables: one row per named slice of a state vector.
+
+Every estimator in the firmware has one table ``(name, index, size, unit,
+meaning)`` (PX4 EKF2 style). Code indexes the state and the covariance by
+name, ``P[POS, POS]``, never by number, and the table is the only place the
+numbers live. The slices are plain Python ``slice`` objects, so
+``P[POS, VEL]`` is a numpy view (no copy, no array data allocated).
+
+Tables
+------
+``ORIENTATION_LAYOUT`` (9 states)
+    The complementary orientation filter of the thesis ch. 2
+    (``002_cd7f1fdb7fc67471.txt`` eq 2.15): orientation error, gyroscope
+    offset error, magnetic disturbance error.
+``FUSION_LAYOUT`` (21 states) and ``FUSION_XI_LAYOUT`` (24 states)
+    The magnetic-inertial complementary filter of the thesis ch. 6
+    (eq 6.9: position, velocity, orientation, accelerometer and gyroscope
+    errors, magnetic position and orientation errors; eq 6.19 adds the
+    error of the inertial-magnetic orientation ``Xi`` of ch. 2, used by the
+    measurement models 2 and 3, eqs 6.20-6.21). ``XI`` comes last, so the
+    first 21 indices are the same in both tables.
+
+Error conventions (``true = estimate (+) error``) are stated per filter in
+``firmware_py.orientation`` and ``firmware_py.fusion``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class StateSlot:
+    name: str
+    index: int
+    size: int
+    unit: str
+    meaning: str
+
+    @property
+    def sl(self) -> slice:
+        return slice(self.index, self.index + self.size)
+
+
+class StateLayout:
+    """A table of named, contiguous state slices.
+
+    ``layout.POS`` is the slice of the row named ``POS``; ``layout.n`` the
+    state dimension; ``layout.rows`` the table itself.
+    """
+
+    def __init__(self, name: str, rows: tuple[tuple[str, int, str, str], ...]):
+        self.name = name
+        slots = []
+        i = 0
+        for rname, size, unit, meaning in rows:
+            slots.append(StateSlot(rname, i, size, unit, meaning))
+            i += size
+        self.rows: tuple[StateSlot, ...] = tuple(slots)
+        self.n = i
+        for s in slots:
+            setattr(self, s.name, s.sl)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def slot(self, name: str) -> StateSlot:
+        for s in self.rows:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    def names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.rows)
+
+    def table(self) -> str:
+        """The layout as a text table (for docs and ``coiltrack perf``)."""
+        lines = [f"{self.name}: {self.n} states", "  name  index  size  unit     meaning"]
+        for s in self.rows:
+            lines.append(f"  {s.name:<5} {s.index:>5}  {s.size:>4}  {s.unit:<8} {s.meaning}")
+        return "\n".join(lines)
+
+
+#: thesis ch. 2, eq 2.15: x = [theta_e, b_e, d_e]
+ORIENTATION_LAYOUT = StateLayout("orientation (thesis eq 2.15)", (
+    ("THETA", 3, "rad", "orientation error, sensor frame (R_true = R exp([theta]x))"),
+    ("BIAS", 3, "rad/s", "gyroscope offset error, sensor frame (eq 2.3)"),
+    ("DIST", 3, "1", "magnetic disturbance error, sensor frame, in units of |earth field| (eq 2.7)"),
+))
+
+_FUSION_ROWS = (
+    ("POS", 3, "m", "position error, global frame (eq 6.10)"),
+    ("VEL", 3, "m/s", "velocity error, global frame (eq 6.11)"),
+    ("ORI", 3, "rad", "orientation error, global frame (Theta_true = exp([ori]x) Theta) (eq 6.12)"),
+    ("ACC", 3, "m/s^2", "accelerometer error, sensor frame, first-order Markov (eq 6.13)"),
+    ("GYR", 3, "rad/s", "gyroscope error, sensor frame, first-order Markov (eq 6.14)"),
+    ("QM", 3, "m", "magnetic position error, global frame, white (eq 6.15)"),
+    ("PSI", 3, "rad", "magnetic orientation error, global frame, white (eq 6.16)"),
+)
+
+#: thesis ch. 6, eq 6.9: the 21-state complementary error filter
+FUSION_LAYOUT = StateLayout("fusion (thesis eq 6.9)", _FUSION_ROWS)
+
+#: thesis ch. 6, eq 6.19: eq 6.9 plus the error of the ch. 2 orientation Xi
+FUSION_XI_LAYOUT = StateLayout("fusion with Xi (thesis eq 6.19)", _FUSION_ROWS + (
+    ("XI", 3, "rad", "error of the inertial-magnetic orientation Xi (ch. 2), global frame, white"),
+))
+
+# module-level names, so filter code reads P[POS, POS]
+THETA = ORIENTATION_LAYOUT.THETA
+BIAS = ORIENTATION_LAYOUT.BIAS
+DIST = ORIENTATION_LAYOUT.DIST
+
+POS = FUSION_XI_LAYOUT.POS
+VEL = FUSION_XI_LAYOUT.VEL
+ORI = FUSION_XI_LAYOUT.ORI
+ACC = FUSION_XI_LAYOUT.ACC
+GYR = FUSION_XI_LAYOUT.GYR
+QM = FUSION_XI_LAYOUT.QM
+PSI = FUSION_XI_LAYOUT.PSI
+XI = FUSION_XI_LAYOUT.XI
+#: the inertial navigation part (propagated states)
+INS = slice(POS.start, GYR.stop)
+
+assert FUSION_LAYOUT.n == 21 and FUSION_XI_LAYOUT.n == 24
+assert all(getattr(FUSION_LAYOUT, s.name) == getattr(FUSION_XI_LAYOUT, s.name) for s in FUSION_LAYOUT.rows)
+
+
+def fusion_layout(measurement_model: int) -> StateLayout:
+    """The table for a measurement model (thesis sec 6.2.5): model 1 (eq 6.18)
+    uses the 21 states of eq 6.9; models 2 and 3 (eqs 6.20, 6.21) add ``XI``."""
+    return FUSION_LAYOUT if measurement_model == 1 else FUSION_XI_LAYOUT

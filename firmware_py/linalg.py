@@ -1,0 +1,295 @@
+"""Small dense linear algebra without allocation (the shape a C port takes).
+
+The estimators solve systems of at most a dozen unknowns. numpy's
+``linalg`` allocates its results and workspaces on every call, so the
+firmware's steady-state tick uses these routines instead: they read and
+write preallocated float64 buffers through flat memoryviews (``flat(a)``,
+row-major, element ``(i, j)`` of an ``n x n`` matrix at ``i * n + j``) and
+compute with Python floats. Nothing here creates a numpy array.
+
+* ``cholesky`` / ``chol_solve`` / ``chol_inverse``: symmetric positive
+  definite systems (Kalman innovation covariances, Levenberg-Marquardt
+  normal equations).
+* ``jacobi_eigh``: symmetric eigen-decomposition by cyclic Jacobi rotations
+  (Kuipers' eigenvector, the robust inverse of an information matrix, the
+  quaternion of the nearest rotation).
+* ``nearest_rotation``: the proper rotation closest to a 3x3 matrix in the
+  Frobenius norm, as the largest eigenvector of Horn's 4x4 quaternion matrix
+  (the orthogonal Procrustes / polar factor, what an SVD with det +1 gives).
+* ``rotvec_from_matrix``: the rotation vector (matrix logarithm) of a rotation.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+_sqrt = math.sqrt
+
+
+def flat(a: np.ndarray) -> memoryview:
+    """A 1-D float64 memoryview over a C-contiguous array (made once, at start-up)."""
+    if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous):
+        raise ValueError("flat() needs a C-contiguous float64 array")
+    return memoryview(a.reshape(-1))
+
+
+def cholesky(a, n: int, L) -> bool:
+    """Lower Cholesky factor of the symmetric ``n x n`` matrix ``a`` into ``L``
+    (upper triangle of ``L`` zeroed). Returns False (``L`` undefined) when a
+    pivot is not positive or not finite, i.e. ``a`` is not positive definite."""
+    for j in range(n):
+        jn = j * n
+        s = a[jn + j]
+        for k in range(j):
+            v = L[jn + k]
+            s -= v * v
+        if not s > 0.0 or s == math.inf:
+            return False
+        d = _sqrt(s)
+        L[jn + j] = d
+        inv = 1.0 / d
+        for i in range(j + 1, n):
+            inn = i * n
+            s = a[inn + j]
+            for k in range(j):
+                s -= L[inn + k] * L[jn + k]
+            L[inn + j] = s * inv
+        for i in range(j + 1, n):
+            L[jn + i] = 0.0
+    return True
+
+
+def chol_solve(L, n: int, b, x) -> None:
+    """Solve ``L L^T x = b`` (``b`` and ``x`` may be the same buffer)."""
+    for i in range(n):
+        s = b[i]
+        inn = i * n
+        for k in range(i):
+            s -= L[inn + k] * x[k]
+        x[i] = s / L[inn + i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= L[k * n + i] * x[k]
+        x[i] = s / L[i * n + i]
+
+
+def chol_inverse(a, n: int, out, L) -> bool:
+    """``out = a^-1`` for a symmetric positive definite ``a`` (``L`` scratch,
+    ``n * n``). ``out`` must not alias ``a`` or ``L``. Returns False, leaving
+    ``out`` undefined, when ``a`` is not positive definite."""
+    if not cholesky(a, n, L):
+        return False
+    # L^-1 (lower triangular) in place of L
+    for j in range(n):
+        jn = j * n
+        L[jn + j] = 1.0 / L[jn + j]
+        for i in range(j + 1, n):
+            inn = i * n
+            s = 0.0
+            for k in range(j, i):
+                s -= L[inn + k] * L[k * n + j]
+            L[inn + j] = s / L[inn + i]
+    # a^-1 = L^-T L^-1
+    for i in range(n):
+        for j in range(i, n):
+            s = 0.0
+            for k in range(j, n):
+                kn = k * n
+                s += L[kn + i] * L[kn + j]
+            out[i * n + j] = s
+            out[j * n + i] = s
+    return True
+
+
+def jacobi_eigh(a, n: int, w, v, sweeps: int = 60) -> None:
+    """Eigen-decomposition of a symmetric ``n x n`` matrix by cyclic Jacobi
+    rotations (Golub & Van Loan, sec. 8.5). ``a`` is overwritten; eigenvalues
+    go to ``w`` (ascending), unit eigenvectors to the columns of ``v``
+    (``v[i * n + k]`` is component ``i`` of eigenvector ``k``). Stops when the
+    off-diagonal mass is below 1e-30 of the total (or after ``sweeps``)."""
+    for i in range(n):
+        for j in range(n):
+            v[i * n + j] = 1.0 if i == j else 0.0
+    for _ in range(sweeps):
+        off = 0.0
+        tot = 0.0
+        for p in range(n):
+            pn = p * n
+            tot += a[pn + p] * a[pn + p]
+            for q in range(p + 1, n):
+                x = a[pn + q]
+                off += x * x
+        tot += 2.0 * off
+        if off <= 1e-30 * tot or off == 0.0:
+            break
+        for p in range(n - 1):
+            pn = p * n
+            for q in range(p + 1, n):
+                apq = a[pn + q]
+                if apq == 0.0:
+                    continue
+                qn = q * n
+                app = a[pn + p]
+                aqq = a[qn + q]
+                theta = (aqq - app) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + _sqrt(theta * theta + 1.0))
+                c = 1.0 / _sqrt(t * t + 1.0)
+                s = t * c
+                a[pn + p] = app - t * apq
+                a[qn + q] = aqq + t * apq
+                a[pn + q] = 0.0
+                a[qn + p] = 0.0
+                for r in range(n):
+                    if r != p and r != q:
+                        rn = r * n
+                        arp = a[rn + p]
+                        arq = a[rn + q]
+                        nrp = c * arp - s * arq
+                        nrq = s * arp + c * arq
+                        a[rn + p] = nrp
+                        a[pn + r] = nrp
+                        a[rn + q] = nrq
+                        a[qn + r] = nrq
+                    rn = r * n
+                    vrp = v[rn + p]
+                    vrq = v[rn + q]
+                    v[rn + p] = c * vrp - s * vrq
+                    v[rn + q] = s * vrp + c * vrq
+    for i in range(n):
+        w[i] = a[i * n + i]
+    # selection sort, ascending, columns of v follow
+    for i in range(n - 1):
+        k = i
+        for j in range(i + 1, n):
+            if w[j] < w[k]:
+                k = j
+        if k != i:
+            t = w[i]
+            w[i] = w[k]
+            w[k] = t
+            for r in range(n):
+                rn = r * n
+                t = v[rn + i]
+                v[rn + i] = v[rn + k]
+                v[rn + k] = t
+
+
+class Rot3:
+    """Scratch for ``nearest_rotation`` (a 4x4 matrix, its eigenvectors and
+    eigenvalues), allocated once."""
+
+    def __init__(self):
+        self._k = np.zeros(16)
+        self._v = np.zeros(16)
+        self._w = np.zeros(4)
+        self.k = flat(self._k)
+        self.v = flat(self._v)
+        self.w = flat(self._w)
+
+
+def nearest_rotation(m, out, work: Rot3) -> None:
+    """Proper rotation maximising ``trace(R^T M)`` (closest in the Frobenius
+    norm) into ``out`` (3x3, indexable as ``out[i, j]``); ``m`` is a flat
+    sequence of 9 (row-major).
+
+    Horn (1987) / Bar-Itzhack (2000): with ``R = R(q)`` (unit quaternion
+    ``q = (w, x, y, z)``), ``trace(R^T M) = q^T K q`` with the symmetric
+    4x4 ``K`` below, so the optimum is the eigenvector of the largest
+    eigenvalue of ``K``. The result equals the SVD projection
+    ``U diag(1, 1, det(U V^T)) V^T``.
+    """
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = (m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
+    k = work.k
+    k[0] = m00 + m11 + m22
+    k[1] = k[4] = m21 - m12
+    k[2] = k[8] = m02 - m20
+    k[3] = k[12] = m10 - m01
+    k[5] = m00 - m11 - m22
+    k[6] = k[9] = m01 + m10
+    k[7] = k[13] = m02 + m20
+    k[10] = -m00 + m11 - m22
+    k[11] = k[14] = m12 + m21
+    k[15] = -m00 - m11 + m22
+    jacobi_eigh(k, 4, work.w, work.v)
+    v = work.v
+    qw, qx, qy, qz = v[3], v[7], v[11], v[15]
+    nrm = _sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    qw /= nrm
+    qx /= nrm
+    qy /= nrm
+    qz /= nrm
+    out[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
+    out[0, 1] = 2.0 * (qx * qy - qw * qz)
+    out[0, 2] = 2.0 * (qx * qz + qw * qy)
+    out[1, 0] = 2.0 * (qx * qy + qw * qz)
+    out[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
+    out[1, 2] = 2.0 * (qy * qz - qw * qx)
+    out[2, 0] = 2.0 * (qx * qz - qw * qy)
+    out[2, 1] = 2.0 * (qy * qz + qw * qx)
+    out[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
+
+
+def rotvec_from_matrix(r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """Rotation vector ``w`` with ``exp([w]x) = R`` (|w| <= pi), from the nine
+    elements of a rotation matrix (row-major). Accurate for small angles
+    (series) and near pi (from the symmetric part)."""
+    c = 0.5 * (r00 + r11 + r22 - 1.0)
+    if c > 1.0:
+        c = 1.0
+    elif c < -1.0:
+        c = -1.0
+    vx = 0.5 * (r21 - r12)
+    vy = 0.5 * (r02 - r20)
+    vz = 0.5 * (r10 - r01)
+    s = _sqrt(vx * vx + vy * vy + vz * vz)       # sin(angle)
+    if c > 0.0:
+        angle = math.atan2(s, c)
+        f = 1.0 + angle * angle / 6.0 if s < 1e-8 else angle / s
+        return vx * f, vy * f, vz * f
+    # angle in [pi/2, pi]: axis from the symmetric part R + R^T = 2 c I + 2 (1 - c) a a^T
+    angle = math.atan2(s, c)
+    d = 1.0 - c
+    ax = _sqrt(max((r00 - c) / d, 0.0))
+    ay = _sqrt(max((r11 - c) / d, 0.0))
+    az = _sqrt(max((r22 - c) / d, 0.0))
+    # signs: take the largest component positive, others from the off-diagonals
+    if ax >= ay and ax >= az:
+        ay = math.copysign(ay, r01 + r10)
+        az = math.copysign(az, r02 + r20)
+        if vx < 0.0:
+            ax, ay, az = -ax, -ay, -az
+    elif ay >= az:
+        ax = math.copysign(ax, r01 + r10)
+        az = math.copysign(az, r12 + r21)
+        if vy < 0.0:
+            ax, ay, az = -ax, -ay, -az
+    else:
+        ax = math.copysign(ax, r02 + r20)
+        ay = math.copysign(ay, r12 + r21)
+        if vz < 0.0:
+            ax, ay, az = -ax, -ay, -az
+    nrm = _sqrt(ax * ax + ay * ay + az * az)
+    return ax * angle / nrm, ay * angle / nrm, az * angle / nrm
+
+
+def exp_rotvec(wx: float, wy: float, wz: float, out) -> None:
+    """``out = exp([w]x)`` (Rodrigues) into a 3x3 buffer indexable ``out[i, j]``."""
+    t2 = wx * wx + wy * wy + wz * wz
+    if t2 < 1e-12:
+        a = 1.0 - t2 / 6.0
+        b = 0.5 - t2 / 24.0
+    else:
+        t = _sqrt(t2)
+        a = math.sin(t) / t
+        b = (1.0 - math.cos(t)) / t2
+    out[0, 0] = 1.0 - b * (wy * wy + wz * wz)
+    out[1, 1] = 1.0 - b * (wx * wx + wz * wz)
+    out[2, 2] = 1.0 - b * (wx * wx + wy * wy)
+    out[0, 1] = b * wx * wy - a * wz
+    out[1, 0] = b * wx * wy + a * wz
+    out[0, 2] = b * wx * wz + a * wy
+    out[2, 0] = b * wx * wz - a * wy
+    out[1, 2] = b * wy * wz - a * wx
+    out[2, 1] = b * wy * wz + a * wx

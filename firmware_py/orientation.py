@@ -1,0 +1,383 @@
+"""Orientation filter: gyroscope, accelerometer and magnetometer (thesis ch. 2).
+
+Roetenberg thesis (``002_cd7f1fdb7fc67471.txt``) ch. 2: a complementary
+Kalman filter that integrates the gyroscope (strapdown, eq 2.27) and
+estimates the orientation error, the gyroscope offset error and the magnetic
+disturbance error (state eq 2.15, table ``layout.ORIENTATION_LAYOUT``) from
+two measurements: the inclination seen by the accelerometer against the one
+predicted by the gyroscope (eqs 2.20, 2.23, 2.29), and the earth magnetic
+field seen by the magnetometer against the one predicted by the gyroscope
+(eqs 2.21, 2.24, 2.30). The estimated errors are fed back into the
+orientation, offset and disturbance after every update (Fig. 2.2), so the
+a-priori error estimate is zero at every step.
+
+Frames and conventions
+    ``R`` (attribute ``R``) maps sensor-frame vectors to the global frame
+    ``G`` (z up, x along the horizontal component of the earth field, thesis
+    eq 2.1: the rows of ``R`` are the global axes in the sensor frame).
+    Errors are ``true = estimate + error`` with the orientation error
+    ``theta`` in the sensor frame, ``R_true = R exp([theta]x)`` (the thesis
+    defines it with the opposite sign, eq 2.25; the Kalman gain is the same).
+    Gravity is ``-g e_z``; the accelerometer measures ``y_A = a - g``
+    (eq 2.4), i.e. ``g Z`` at rest with ``Z = R^T e_z`` the "inclination".
+    The magnetometer is used normalised by the earth-field magnitude
+    learned at initialisation (eq 2.8: ``|m| = 1`` undisturbed).
+
+Model (per IMU sample, step ``T``)
+    * gyroscope ``y_G = w + b + v_G`` (eq 2.2), offset random walk (eq 2.3);
+    * strapdown ``R <- R exp([(y_G - b) T]x)`` (first order: eq 2.27);
+    * acceleration ``a_t = c_a a_{t-1} + w_a`` (eq 2.5), predicted in the
+      sensor frame as ``c_a a+``, with ``a+ = y_A - g Z+`` after each update;
+    * disturbance ``d_t = c_d d_{t-1} + w_d`` (eq 2.7), its driving noise
+      raised when the field norm or dip angle change (eq 2.12).
+
+Error propagation (eq 2.28 and its offset / disturbance rows)::
+
+    theta_t = Gamma theta_{t-1} - T b_{t-1}      Gamma = exp(-[w T]x)
+    b_t     = b_{t-1}
+    d_t     = c_d d_{t-1}
+
+``P = A P A^T + Q`` with ``Q = diag(T^2 Q_vG, Q_wb, Q_wd)``. Eq 2.34 is this
+with the cross-covariances of orientation and offset dropped (``A = 0``
+bookkeeping of the thesis); the full form is kept here because it is what
+makes the offset observable from the inclination and heading updates.
+
+Measurements (eqs 2.31-2.33, in this sign convention)::
+
+    z_incl = Z_A - Z_G = [Z x] theta + v_incl         Z_A = (y_A - a-)/|y_A - a-|
+    z_mag  = H_M - H_G = [H x] theta + d + v_mag      H_M = y_M/|m| - d-
+
+with ``Z_G = R^T e_z`` and ``H_G = R^T h_G``; the noise variances are
+eq 2.35 without the gyroscope term (which enters through ``Q``):
+``(c_a^2 Q_a + Q_wa + Q_vA) / g^2`` and ``Q_vM / |m|^2``. The
+``-a x theta / g`` term of the first row of eq 2.32 is dropped: the
+acceleration is predicted in the sensor frame (eq 2.5) and does not depend on
+the current orientation error; it is below 1 % of ``Z`` for human motion.
+
+Both updates go through ``ekf.KalmanUpdate`` (innovation, variance, gate,
+gain, Joseph form, health flags). Nothing here allocates after
+``__init__``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .ekf import EKF_OK, CovariancePredict, KalmanUpdate
+from .layout import BIAS, DIST, ORIENTATION_LAYOUT, THETA
+from .linalg import exp_rotvec, flat, rotvec_from_matrix
+
+N = ORIENTATION_LAYOUT.n
+
+# orientation-filter health flags (bit field, beside the ekf flags)
+ORI_NOT_INITIALISED = 64
+ORI_FREEFALL = 128          # accelerometer norm far from g: inclination update skipped
+
+
+class OrientationParams:
+    """Noise and model parameters of the ch. 2 filter (SI units, per sample
+    unless stated). Built from the firmware configuration."""
+
+    def __init__(self, gyro_noise=0.006, gyro_bias_rw=1.7e-4, gyro_bias_sigma=0.01,
+                 acc_noise=0.015, acc_motion_sigma=0.05, acc_corr_time_s=0.1,
+                 mag_noise=1e-3, dist_corr=0.99, dist_sigma=2e-4, dist_norm_gain=1.0,
+                 dist_dip_gain=1.0, gravity=9.81, gate_probability=0.9999, theta0_sigma=0.05,
+                 freefall_tolerance=0.3):
+        self.gyro_noise = float(gyro_noise)            # rad/s rms per sample (Q_vG)
+        self.gyro_bias_rw = float(gyro_bias_rw)        # rad/s/sqrt(s) (Q_wb)
+        self.gyro_bias_sigma = float(gyro_bias_sigma)  # rad/s, initial offset uncertainty
+        self.acc_noise = float(acc_noise)              # m/s^2 rms per sample (Q_vA)
+        self.acc_motion_sigma = float(acc_motion_sigma)  # m/s^2, driving noise of eq 2.5 (Q_wa)
+        self.acc_corr_time_s = float(acc_corr_time_s)  # c_a = exp(-T / tau_a)
+        self.mag_noise = float(mag_noise)              # rms per sample, in units of |earth field| (Q_vM)
+        self.dist_corr = float(dist_corr)              # c_d, per sample (eq 2.7)
+        self.dist_sigma = float(dist_sigma)            # floor of sigma_d (eq 2.12)
+        self.dist_norm_gain = float(dist_norm_gain)    # sigma_m of eq 2.12
+        self.dist_dip_gain = float(dist_dip_gain)      # sigma_phi of eq 2.12 (per rad)
+        self.gravity = float(gravity)
+        self.gate_probability = float(gate_probability)
+        self.theta0_sigma = float(theta0_sigma)        # rad, initial orientation uncertainty
+        self.freefall_tolerance = float(freefall_tolerance)  # relative |y_A| deviation from g
+
+
+class OrientationFilter:
+    """Complementary orientation Kalman filter of thesis ch. 2 (see module)."""
+
+    def __init__(self, params: OrientationParams):
+        self.prm = params
+        self.P = np.zeros((N, N))
+        self.pred = CovariancePredict(N)
+        self.upd_acc = KalmanUpdate(N, 3, params.gate_probability)
+        self.upd_mag = KalmanUpdate(N, 3, params.gate_probability)
+        # nominal state
+        self.R = np.eye(3)
+        self.bias = np.zeros(3)          # gyroscope offset, rad/s, sensor frame
+        self.dist = np.zeros(3)          # magnetic disturbance, normalised, sensor frame
+        self.acc = np.zeros(3)           # acceleration a+ (eq 2.5), sensor frame
+        self._Rv = memoryview(self.R)
+        self._bv = memoryview(self.bias)
+        self._dv = memoryview(self.dist)
+        self._av = memoryview(self.acc)
+        self._E = np.zeros((3, 3))       # exp() scratch
+        self._Ev = memoryview(self._E)
+        self._T = np.zeros((3, 3))
+        self._Av = memoryview(self.pred.A)
+        self._Qv = memoryview(self.pred.Q)
+        self.h_g = np.zeros(3)           # earth field direction, global frame
+        self.m_ref = 1.0                 # |earth field|, T
+        self.initialized = False
+        self.t_us = 0
+        self.steps = 0
+        self._qwd = params.dist_sigma ** 2
+        self._last_norm = 1.0
+        self._last_dip = 0.0
+        self.last_acc_flags = 0
+        self.last_mag_flags = 0
+        self._Pv = memoryview(self.P)
+        self._ca = 0.0
+        self._Hacc = memoryview(self.upd_acc.H)
+        self._Hmag = memoryview(self.upd_mag.H)
+        self._Racc = memoryview(self.upd_acc.R)
+        self._Rmag = memoryview(self.upd_mag.R)
+        self._Tv = memoryview(self._T)
+        for i in range(3):
+            self._Hmag[i, DIST.start + i] = 1.0
+
+    # ------------------------------------------------------------ init
+    def initialize(self, t_us: int, ax, ay, az, mx, my, mz) -> bool:
+        """TRIAD from one accelerometer and one magnetometer sample (sensor
+        frame): ``Z`` (up) from the specific force, ``Y = Z x m`` (west),
+        ``X = Y x Z`` (magnetic north, horizontal); eq 2.1 puts them in the
+        rows of ``R``. The field magnitude and dip learned here define
+        ``|m| = 1`` and ``h_G`` (eqs 2.8-2.10)."""
+        an = math.sqrt(ax * ax + ay * ay + az * az)
+        mn = math.sqrt(mx * mx + my * my + mz * mz)
+        if not (an > 0.0 and mn > 0.0 and math.isfinite(an) and math.isfinite(mn)):
+            return False
+        zx, zy, zz = ax / an, ay / an, az / an
+        yx, yy, yz = zy * mz - zz * my, zz * mx - zx * mz, zx * my - zy * mx
+        yn = math.sqrt(yx * yx + yy * yy + yz * yz)
+        if not yn > 1e-6 * mn:
+            return False                       # field along gravity: no heading
+        yx, yy, yz = yx / yn, yy / yn, yz / yn
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+        R = self._Rv
+        R[0, 0], R[0, 1], R[0, 2] = xx, xy, xz
+        R[1, 0], R[1, 1], R[1, 2] = yx, yy, yz
+        R[2, 0], R[2, 1], R[2, 2] = zx, zy, zz
+        # field in the global frame: (north, 0, up) components
+        hn = (xx * mx + xy * my + xz * mz) / mn
+        hu = (zx * mx + zy * my + zz * mz) / mn
+        self.h_g[0] = hn
+        self.h_g[1] = 0.0
+        self.h_g[2] = hu
+        self.m_ref = mn
+        self._last_norm = 1.0
+        self._last_dip = math.atan2(hu, abs(hn))
+        self.bias.fill(0.0)
+        self.dist.fill(0.0)
+        self.acc.fill(0.0)
+        p = self.prm
+        self.P.fill(0.0)
+        Pv = self._Pv
+        for i in range(3):
+            Pv[THETA.start + i, THETA.start + i] = p.theta0_sigma ** 2
+            Pv[BIAS.start + i, BIAS.start + i] = p.gyro_bias_sigma ** 2
+            Pv[DIST.start + i, DIST.start + i] = p.dist_sigma ** 2
+        self.t_us = t_us
+        self.initialized = True
+        return True
+
+    def set_bias(self, bx, by, bz) -> None:
+        self.bias[0] = bx
+        self.bias[1] = by
+        self.bias[2] = bz
+
+    # --------------------------------------------------------- predict
+    def predict(self, t_us: int, wx, wy, wz) -> None:
+        """Strapdown step to ``t_us`` with the gyroscope sample (rad/s, sensor frame)."""
+        dt = (t_us - self.t_us) * 1e-6
+        self.t_us = t_us
+        if not dt > 0.0:
+            return
+        p = self.prm
+        b = self._bv
+        ox = (wx - b[0]) * dt
+        oy = (wy - b[1]) * dt
+        oz = (wz - b[2]) * dt
+        exp_rotvec(ox, oy, oz, self._Ev)
+        np.matmul(self.R, self._E, out=self._T)
+        np.copyto(self.R, self._T)
+        self.steps += 1
+        if self.steps & 63 == 0:
+            self._orthonormalize()
+        cd = p.dist_corr
+        d = self._dv
+        d[0] *= cd
+        d[1] *= cd
+        d[2] *= cd
+        ca = math.exp(-dt / p.acc_corr_time_s) if p.acc_corr_time_s > 0.0 else 0.0
+        a = self._av
+        a[0] *= ca
+        a[1] *= ca
+        a[2] *= ca
+        self._ca = ca
+        # A: Gamma = exp(-[w T]x) = exp([w T]x)^T, -T I, c_d I
+        A = self._Av
+        E = self._Ev
+        t0 = THETA.start
+        for i in range(3):
+            for j in range(3):
+                A[t0 + i, t0 + j] = E[j, i]
+            A[t0 + i, BIAS.start + i] = -dt
+            A[DIST.start + i, DIST.start + i] = cd
+        Q = self._Qv
+        qt = (p.gyro_noise * dt) ** 2
+        qb = p.gyro_bias_rw * p.gyro_bias_rw * dt
+        for i in range(3):
+            Q[t0 + i, t0 + i] = qt
+            Q[BIAS.start + i, BIAS.start + i] = qb
+            Q[DIST.start + i, DIST.start + i] = self._qwd
+        self.pred.predict(self.P)
+
+    def _orthonormalize(self) -> None:
+        """``R <- R (3 I - R^T R) / 2`` (one Newton step of the polar factor)."""
+        R = self._Rv
+        Tv = self._Tv
+        for i in range(3):
+            for j in range(3):
+                rtr = R[0, i] * R[0, j] + R[1, i] * R[1, j] + R[2, i] * R[2, j]
+                Tv[i, j] = (1.5 if i == j else 0.0) - 0.5 * rtr
+        np.matmul(self.R, self._T, out=self._E)
+        np.copyto(self.R, self._E)
+
+    # --------------------------------------------------------- updates
+    def _apply(self, dx) -> None:
+        exp_rotvec(dx[THETA.start], dx[THETA.start + 1], dx[THETA.start + 2], self._Ev)
+        np.matmul(self.R, self._E, out=self._T)
+        np.copyto(self.R, self._T)
+        b = self._bv
+        d = self._dv
+        for i in range(3):
+            b[i] += dx[BIAS.start + i]
+            d[i] += dx[DIST.start + i]
+
+    def update_acc(self, ax, ay, az) -> int:
+        """Inclination update (eqs 2.20, 2.23) with an accelerometer sample
+        (m/s^2, sensor frame). Returns ekf health flags (``ORI_FREEFALL`` when
+        ``|y_A|`` is far from ``g``: no inclination information)."""
+        p = self.prm
+        a = self._av
+        g = p.gravity
+        vx, vy, vz = ax - a[0], ay - a[1], az - a[2]
+        vn = math.sqrt(vx * vx + vy * vy + vz * vz)
+        if not (abs(vn - g) <= p.freefall_tolerance * g):
+            self.last_acc_flags = ORI_FREEFALL
+            self._post_acc(ax, ay, az)
+            return ORI_FREEFALL
+        R = self._Rv
+        zx, zy, zz = R[2, 0], R[2, 1], R[2, 2]
+        u = self.upd_acc
+        y = u._yv
+        y[0] = vx / vn - zx
+        y[1] = vy / vn - zy
+        y[2] = vz / vn - zz
+        _skew_block(self._Hacc, 0, THETA.start, zx, zy, zz)
+        ca = self._ca
+        q = p.acc_noise ** 2 + p.acc_motion_sigma ** 2
+        r = (ca * ca * q + q) / (g * g)
+        Rm = self._Racc
+        for i in range(3):
+            Rm[i, i] = r
+        flags = u.update(self.P)
+        if flags == EKF_OK:
+            self._apply(u._dxv)
+        self._post_acc(ax, ay, az)
+        self.last_acc_flags = flags
+        return flags
+
+    def _post_acc(self, ax, ay, az) -> None:
+        R = self._Rv
+        g = self.prm.gravity
+        a = self._av
+        a[0] = ax - g * R[2, 0]
+        a[1] = ay - g * R[2, 1]
+        a[2] = az - g * R[2, 2]
+
+    def update_mag(self, mx, my, mz) -> int:
+        """Compass update (eqs 2.21, 2.24) with a magnetometer sample (T,
+        sensor frame) taken outside any coil pulse. Also adapts the
+        disturbance driving noise from the change of norm and dip (eq 2.12)."""
+        p = self.prm
+        inv = 1.0 / self.m_ref
+        nx, ny, nz = mx * inv, my * inv, mz * inv
+        R = self._Rv
+        # eq 2.8-2.12: norm and dip of the measured field
+        gx = R[0, 0] * nx + R[0, 1] * ny + R[0, 2] * nz
+        gy = R[1, 0] * nx + R[1, 1] * ny + R[1, 2] * nz
+        gz = R[2, 0] * nx + R[2, 1] * ny + R[2, 2] * nz
+        norm = math.sqrt(gx * gx + gy * gy + gz * gz)
+        dip = math.atan2(gz, math.sqrt(gx * gx + gy * gy))
+        sd = p.dist_sigma + p.dist_norm_gain * abs(norm - self._last_norm) + p.dist_dip_gain * abs(dip - self._last_dip)
+        self._qwd = sd * sd
+        self._last_norm = norm
+        self._last_dip = dip
+        d = self._dv
+        hg = self.h_g
+        h0, h2 = hg[0], hg[2]
+        # H_G = R^T h_G
+        hx = R[0, 0] * h0 + R[2, 0] * h2
+        hy = R[0, 1] * h0 + R[2, 1] * h2
+        hz = R[0, 2] * h0 + R[2, 2] * h2
+        u = self.upd_mag
+        y = u._yv
+        y[0] = nx - d[0] - hx
+        y[1] = ny - d[1] - hy
+        y[2] = nz - d[2] - hz
+        _skew_block(self._Hmag, 0, THETA.start, hx, hy, hz)
+        r = p.mag_noise ** 2
+        Rm = self._Rmag
+        for i in range(3):
+            Rm[i, i] = r
+        flags = u.update(self.P)
+        if flags == EKF_OK:
+            self._apply(u._dxv)
+        self.last_mag_flags = flags
+        return flags
+
+    # ----------------------------------------------------------- output
+    def theta_covariance_global(self, out) -> None:
+        """Covariance of the orientation error expressed in the global frame,
+        ``R P[THETA, THETA] R^T`` (``R_true = exp([R theta]x) R``), into ``out`` (3x3)."""
+        R = self._Rv
+        P = self._Pv
+        t0 = THETA.start
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for k in range(3):
+                    rik = R[i, k]
+                    for m in range(3):
+                        acc += rik * P[t0 + k, t0 + m] * R[j, m]
+                out[i, j] = acc
+
+    def inclination_error(self, R_true) -> float:
+        """Angle between the estimated and a true orientation (rad), for tests."""
+        R = self.R
+        M = R_true.T @ R
+        x, y, z = rotvec_from_matrix(*M.reshape(9))
+        return math.sqrt(x * x + y * y + z * z)
+
+
+def _skew_block(H, row, col, x, y, z) -> None:
+    """Write ``[v]x`` into ``H[row:row+3, col:col+3]`` (memoryview)."""
+    H[row, col] = 0.0
+    H[row, col + 1] = -z
+    H[row, col + 2] = y
+    H[row + 1, col] = z
+    H[row + 1, col + 1] = 0.0
+    H[row + 1, col + 2] = -x
+    H[row + 2, col] = -y
+    H[row + 2, col + 1] = x
+    H[row + 2, col + 2] = 0.0

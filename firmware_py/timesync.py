@@ -1,0 +1,122 @@
+"""Time synchronisation, master side: ``TIME_SYNC`` broadcasts and the
+bookkeeping of the nodes' ``TIME_SYNC_REPLY`` answers.
+
+The firmware's clock is the master clock. It broadcasts ``TIME_SYNC``
+(master time at transmission, plus a configured constant link latency, and a
+sequence number) every ``period_us`` and on request: the supervisor asks for
+one right before and one right after each burst of pulses, so a clock step
+of any node during a burst shows in the replies before the burst's pose is
+computed. Each node fits offset and drift of its own clock to the broadcasts
+(thesis ``002`` ch. 7: synchronisation over the bus) and answers with its
+counter at reception and its current estimate of offset (node - master) and
+drift.
+
+From consecutive replies of a node the master predicts the next offset
+(``offset + drift * dt``); a reply further than ``step_threshold_us`` from the
+prediction means the node's clock stepped (or the node rebooted):
+:meth:`on_reply` returns True and the supervisor reports ``EVT_CLOCK_STEP``.
+The round-trip time of each answered broadcast is kept (``rtt_us``,
+``rtt_min_us``) as a measure of the link latency.
+
+Fixed-size state, allocated in ``__init__``; no numpy in the per-tick path.
+"""
+from __future__ import annotations
+
+from protocol import MSG
+
+TimeSyncMsg = MSG["TIME_SYNC"]
+
+_HISTORY = 16        # broadcasts remembered for round-trip times
+_REQUESTS = 4        # pending requested broadcast times
+
+
+class TimeSyncMaster:
+    def __init__(self, node_ids, period_us: int = 250_000, latency_us: int = 0,
+                 step_threshold_us: int = 1500):
+        self.period_us = int(period_us)
+        self.latency_us = int(latency_us)
+        self.step_threshold_us = int(step_threshold_us)
+        self.next_us = 0
+        self.seq = 0
+        self._sent_seq = [-1] * _HISTORY
+        self._sent_t = [0] * _HISTORY
+        self._req = [-1] * _REQUESTS           # requested broadcast times (-1: free)
+        self.node_ids = tuple(int(n) for n in node_ids)
+        n = len(self.node_ids)
+        self._slot = {nid: i for i, nid in enumerate(self.node_ids)}
+        self.have = [False] * n
+        self.last_reply_us = [0] * n           # master time the last reply arrived
+        self.offset_us = [0] * n               # node's reported offset (node - master)
+        self.drift_ppb = [0] * n
+        self.rtt_us = [0] * n
+        self.rtt_min_us = [0] * n
+        self.replies = [0] * n
+        self.steps = [0] * n
+        self.sent = 0
+
+    def slot(self, node: int) -> int:
+        return self._slot.get(node, -1)
+
+    def kick(self) -> None:
+        """Broadcast at the next tick (a node came back)."""
+        self.next_us = 0
+
+    def request(self, at_us: int) -> None:
+        """Broadcast at (or right after) master time ``at_us`` besides the periodic ones."""
+        r = self._req
+        for i in range(_REQUESTS):
+            if r[i] < 0:
+                r[i] = at_us
+                return
+        # full: replace the latest request with the earlier of the two
+        j = 0
+        for i in range(1, _REQUESTS):
+            if r[i] > r[j]:
+                j = i
+        if at_us < r[j]:
+            r[j] = at_us
+
+    def step(self, now_us: int, send) -> bool:
+        """Send a broadcast when one is due; return True when it did."""
+        due = now_us >= self.next_us
+        r = self._req
+        for i in range(_REQUESTS):
+            if 0 <= r[i] <= now_us:
+                due = True
+                r[i] = -1
+        if not due:
+            return False
+        seq = self.seq
+        k = seq % _HISTORY
+        self._sent_seq[k] = seq
+        self._sent_t[k] = now_us
+        send(TimeSyncMsg(now_us + self.latency_us, seq))
+        self.seq = (seq + 1) & 0xFFFF
+        self.sent += 1
+        self.next_us = now_us + self.period_us
+        return True
+
+    def on_reply(self, msg, now_us: int) -> bool:
+        """Book a TIME_SYNC_REPLY; return True when it shows a clock step of that node."""
+        i = self._slot.get(msg.node, -1)
+        if i < 0:
+            return False
+        k = msg.sync_seq % _HISTORY
+        if self._sent_seq[k] == msg.sync_seq:
+            rtt = now_us - self._sent_t[k]
+            self.rtt_us[i] = rtt
+            if self.rtt_min_us[i] == 0 or rtt < self.rtt_min_us[i]:
+                self.rtt_min_us[i] = rtt
+        stepped = False
+        if self.have[i]:
+            dt = now_us - self.last_reply_us[i]
+            pred = self.offset_us[i] + self.drift_ppb[i] * dt // 1_000_000_000
+            if abs(msg.offset_us - pred) > self.step_threshold_us:
+                stepped = True
+                self.steps[i] += 1
+        self.have[i] = True
+        self.last_reply_us[i] = now_us
+        self.offset_us[i] = msg.offset_us
+        self.drift_ppb[i] = msg.drift_ppb
+        self.replies[i] += 1
+        return stepped

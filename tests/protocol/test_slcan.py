@@ -1,0 +1,152 @@
+"""CAN between processes without a kernel CAN module: python-can's own
+``slcan`` interface on pseudo-terminals joined by the slcan adapter
+emulator (protocol.slcan)."""
+import subprocess
+import sys
+import textwrap
+import time
+
+from protocol import MSG, FrameDecoder, encode_frame
+from protocol.can import CanCodec, CanLink, CanReassembler, open_bus
+from protocol.examples import EXAMPLES
+from protocol.schema import NODE_FIRMWARE
+from protocol.slcan import SlcanBridge, frame_line_ok
+
+
+def drain(link, decoder, want, timeout=2.0):
+    got = []
+    deadline = time.monotonic() + timeout
+    while len(got) < want and time.monotonic() < deadline:
+        got += decoder.feed(link.read())
+        time.sleep(0.001)
+    return got
+
+
+def test_frame_line_validation():
+    assert frame_line_ok(b"t1238DEADBEEF00112233")
+    assert frame_line_ok(b"t1230")
+    assert frame_line_ok(b"T1234567820AB0")
+    assert frame_line_ok(b"r1238")
+    assert frame_line_ok(b"d123A" + b"00" * 16)
+    assert not frame_line_ok(b"t1239" + b"00" * 9)
+    assert not frame_line_ok(b"t12380011")
+    assert not frame_line_ok(b"t12G100")
+    assert not frame_line_ok(b"O")
+
+
+def test_slcan_back_to_back_in_process():
+    with SlcanBridge(2) as br:
+        a = open_bus("slcan", br.paths[0], 500_000)
+        b = open_bus("slcan", br.paths[1], 500_000)
+        try:
+            assert br.wait_open()
+            la, lb = CanLink(a, NODE_FIRMWARE), CanLink(b, 30)
+            frames = [(ex.msg, ex.seq, ex.src) for ex in EXAMPLES.values() if ex.src != 30]
+            for msg, seq, src in frames:
+                la.write(encode_frame(msg, seq, src))
+            got = drain(lb, FrameDecoder(), len(frames))
+            assert got == [m for m, _, _ in frames]
+            assert lb.reassembler.frames_bad == 0
+            # and back
+            lb.write(encode_frame(MSG["TIME_SYNC"](5, 6), 0, 30))
+            assert drain(la, FrameDecoder(), 1) == [MSG["TIME_SYNC"](5, 6)]
+        finally:
+            a.shutdown()
+            b.shutdown()
+        assert br.bad_lines == 0
+
+
+def test_slcan_fd_frames_and_bitrate_mismatch():
+    with SlcanBridge(3) as br:
+        a = open_bus("slcan", br.paths[0], 500_000, fd=True)
+        b = open_bus("slcan", br.paths[1], 500_000)
+        c = open_bus("slcan", br.paths[2], 250_000)        # wrong bit rate: hears nothing
+        try:
+            assert br.wait_open()
+            pose = EXAMPLES["POSE"]
+            for f in CanCodec(fd=True).encode(pose.msg, 1, NODE_FIRMWARE):
+                a.send(f)
+            r = CanReassembler()
+            got = []
+            deadline = time.monotonic() + 2
+            while not got and time.monotonic() < deadline:
+                f = b.recv(timeout=0)
+                if f is None:
+                    time.sleep(0.001)
+                    continue
+                assert f.is_fd
+                got += r.feed(f)
+            assert got == [pose.msg]
+            assert c.recv(timeout=0) is None
+            assert br.frames_dropped >= 2
+        finally:
+            for bus in (a, b, c):
+                bus.shutdown()
+
+
+CHILD = textwrap.dedent("""
+    import sys, time
+    from protocol import MSG, FrameDecoder, encode_frame
+    from protocol.can import CanLink, open_bus
+    bus = open_bus("slcan", sys.argv[1], 500000)
+    link = CanLink(bus, 2)
+    dec = FrameDecoder()
+    seq = 0
+    replies = 0
+    deadline = time.monotonic() + 10
+    next_hb = 0.0
+    while replies < 3 and time.monotonic() < deadline:
+        now = time.monotonic()
+        if now >= next_hb:                      # until the parent answers, say hello
+            link.write(encode_frame(MSG["HEARTBEAT"](2, 1, 2, 1, 0, 0, 0), seq, 2)); seq += 1
+            next_hb = now + 0.05
+        for m in dec.feed(link.read()):
+            if m.NAME == "TIME_SYNC":
+                link.write(encode_frame(MSG["TIME_SYNC_REPLY"](2, m.sync_seq, 7, -1, 0), seq, 2)); seq += 1
+                link.write(encode_frame(MSG["MAG_SAMPLE"](16, m.master_time_us, 1, 2, 3, 1), seq, 2)); seq += 1
+                replies += 1
+        time.sleep(0.001)
+    bus.shutdown()
+    print("child done", replies, dec.frames_bad, flush=True)
+    sys.exit(0 if replies == 3 and dec.frames_bad == 0 else 1)
+""")
+
+
+def test_slcan_between_processes():
+    """Bridge in one process, a bus end in another, this test in a third."""
+    bridge = subprocess.Popen([sys.executable, "-m", "protocol.slcan", "--ends", "2"],
+                              stdout=subprocess.PIPE, text=True)
+    child = None
+    try:
+        paths = [bridge.stdout.readline().strip(), bridge.stdout.readline().strip()]
+        assert all(p.startswith("/dev/") for p in paths), paths
+        bus = open_bus("slcan", paths[0], 500_000)
+        try:
+            link = CanLink(bus, NODE_FIRMWARE)
+            child = subprocess.Popen([sys.executable, "-c", CHILD, paths[1]], stdout=subprocess.PIPE, text=True)
+            dec = FrameDecoder()
+            got = []
+            deadline = time.monotonic() + 10
+            while not any(m.NAME == "HEARTBEAT" for m in got) and time.monotonic() < deadline:
+                got += dec.feed(link.read())
+                time.sleep(0.001)
+            assert any(m.NAME == "HEARTBEAT" for m in got), "child never heard"
+            for k in range(3):
+                link.write(encode_frame(MSG["TIME_SYNC"](1000 + k, 40 + k), k, NODE_FIRMWARE))
+            replies, mags = [], []
+            while len(mags) < 3 and time.monotonic() < deadline:
+                for m in dec.feed(link.read()):
+                    (replies if m.NAME == "TIME_SYNC_REPLY" else mags if m.NAME == "MAG_SAMPLE" else []).append(m)
+                time.sleep(0.001)
+            assert [m.sync_seq for m in replies] == [40, 41, 42]
+            assert [m.t_us for m in mags] == [1000, 1001, 1002]
+            assert child.wait(timeout=10) == 0, child.stdout.read()
+            assert dec.frames_bad == 0 and link.reassembler.frames_bad == 0
+        finally:
+            bus.shutdown()
+    finally:
+        if child is not None and child.poll() is None:
+            child.kill()
+            child.wait()
+        bridge.terminate()
+        assert bridge.wait(timeout=5) == 0

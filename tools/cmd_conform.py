@@ -1,0 +1,75 @@
+"""Run the protocol conformance suite against a node (or a set of nodes) on
+a serial port or a CAN bus, and print pass/fail per message and per rule.
+The tester plays the master (node 1); it finds nodes by their HEARTBEAT and
+runs the rules of each node's role (see protocol/conformance.py and
+docs/protocol.md). Exit status 0 when everything applicable passes."""
+from __future__ import annotations
+
+import sys
+
+HELP = "conformance suite against a node on a serial port or CAN bus"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--transport", choices=("serial", "can"), default="serial")
+    p.add_argument("--port", help="serial: device, pty path or pyserial URL")
+    p.add_argument("--baudrate", type=int, default=1_000_000)
+    p.add_argument("--interface", default="slcan", help="can: python-can interface (slcan, virtual, socketcan)")
+    p.add_argument("--channel", help="can: channel (slcan: serial device or pty path; virtual: a name)")
+    p.add_argument("--bitrate", type=int, default=500_000)
+    p.add_argument("--fd", action="store_true", help="can: send CAN FD frames")
+    p.add_argument("--key", help="signing key (64 hex digits, or a passphrase hashed with SHA-256): "
+                                 "sign commands and check that unsigned, forged and replayed ones are refused")
+    p.add_argument("--link-id", type=int, default=0, help="signing link id (default 0)")
+    p.add_argument("--src", type=int, default=1, help="the tester's node id (default 1, the firmware's)")
+    p.add_argument("--node", type=int, help="test only this node id")
+    p.add_argument("--mag-rate", type=float, default=120.0, help="expected MAG_SAMPLE rate, Hz (0: any steady rate)")
+    p.add_argument("--observe", type=float, default=1.2, help="seconds of stream observation (default 1.2)")
+    p.add_argument("--discover", type=float, default=None,
+                   help="seconds to listen for nodes (default: the 1.5 s heartbeat timeout)")
+    p.add_argument("--lead-ms", type=float, default=100.0, help="pulses are scheduled this far ahead")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", metavar="PATH", help="also write the report as JSON")
+
+
+def open_link(args):
+    """The tester's Port and a description of it."""
+    if args.transport == "serial":
+        if not args.port:
+            raise SystemExit("coiltrack conform: --port is required with --transport serial")
+        from protocol.serial_link import SerialLink
+
+        return SerialLink(args.port, args.baudrate), f"serial {args.port}"
+    if not args.channel:
+        raise SystemExit("coiltrack conform: --channel is required with --transport can")
+    from protocol.can import CanLink, open_bus
+
+    bus = open_bus(args.interface, args.channel, args.bitrate, fd=args.fd)
+    return CanLink(bus, args.src, fd=args.fd), f"CAN {args.interface} {args.channel}"
+
+
+def run(args) -> int:
+    from protocol.conformance import ConformOptions, run_conformance
+    from protocol.signing import key_from_text
+
+    opts = ConformOptions(src=args.src, node=args.node, observe_s=args.observe, discover_s=args.discover,
+                          lead_ms=args.lead_ms,
+                          mag_rate_hz=args.mag_rate or None, seed=args.seed, link_id=args.link_id,
+                          key=key_from_text(args.key) if args.key else None)
+    try:
+        link, what = open_link(args)
+    except (OSError, ValueError) as exc:
+        print(f"coiltrack conform: cannot open the link: {exc}", file=sys.stderr)
+        return 2
+    except Exception as exc:   # python-can and pyserial initialisation errors
+        print(f"coiltrack conform: cannot open the link: {exc}", file=sys.stderr)
+        return 2
+    try:
+        rep = run_conformance(link, opts, transport=what)
+    finally:
+        link.close()
+    print(rep.format())
+    if args.json:
+        with open(args.json, "w") as fh:
+            fh.write(rep.to_json())
+    return 0 if rep.ok else 1

@@ -1,0 +1,25 @@
+"""Export the CAN messages as a DBC file (cantools). Messages that fit one
+classic frame are described as that frame; the others as their reassembled
+payload (a CAN FD message). All are on the identifier with node bits zero;
+load with ``cantools.database.load_file(path, frame_id_mask=0x7E0)``. See
+docs/protocol.md."""
+from __future__ import annotations
+
+HELP = "export the CAN messages as a DBC file"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("-o", "--output", help="DBC file to write (default: standard output)")
+
+
+def run(args) -> int:
+    from protocol.dbc import dbc_string
+
+    text = dbc_string()
+    if args.output:
+        with open(args.output, "w", newline="\n") as fh:
+            fh.write(text)
+        print(f"DBC written to {args.output}")
+    else:
+        print(text, end="")
+    return 0

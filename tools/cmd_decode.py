@@ -1,0 +1,40 @@
+"""Decode a capture into readable messages, one line each: a raw serial
+capture (COBS frames) or a python-can log (.log, .asc, .blf, .trc, .csv,
+.mf4), with the counters of bad frames at the end."""
+from __future__ import annotations
+
+import json
+import sys
+
+HELP = "decode a raw serial capture or a python-can log into readable messages"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("file", help="capture file")
+    p.add_argument("--format", choices=("auto", "serial", "can"), default="auto",
+                   help="auto (default): python-can log suffixes are CAN, anything else raw serial")
+    p.add_argument("--json", action="store_true", help="one JSON object per message, then the counters")
+
+
+def run(args) -> int:
+    from protocol.capture import decode_file, format_message
+
+    try:
+        res = decode_file(args.file, args.format)
+    except (OSError, ValueError) as exc:
+        print(f"coiltrack decode: {exc}", file=sys.stderr)
+        return 2
+    for it in res.items:
+        if args.json:
+            print(json.dumps({"t": it.t, "src": it.src, "seq": it.seq, "signed": it.signed,
+                              "name": it.msg.NAME, "fields": it.msg._asdict()}))
+        else:
+            print(format_message(it.msg, it.src, it.seq, it.t, it.signed))
+    c = res.counters
+    if args.json:
+        print(json.dumps({"kind": res.kind, "messages": len(res.items), "counters": c}))
+    else:
+        bad = {k: v for k, v in c.items() if v and k not in ("frames_ok", "bytes_in", "frames_in", "messages_ok")}
+        print(f"-- {len(res.items)} messages ({res.kind}); "
+              + (", ".join(f"{k}={v}" for k, v in bad.items()) if bad else "no bad frames"))
+    return 0
