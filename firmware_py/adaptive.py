@@ -67,6 +67,7 @@ __all__ = [
     "POSE_DIM",
     "SingleCoilModel",
     "posterior_pose_variances",
+    "PoseCovUpdate",
     "saturation_current_limit",
     "CoilChooser",
     "ActuationPolicy",
@@ -84,7 +85,8 @@ def chi2_upper(dof: float, z: float) -> float:
 
     Wilson-Hilferty: ``dof (1 - 2/(9 dof) + z sqrt(2/(9 dof)))^3`` with ``z``
     the standard-normal quantile (2.326 for 99 %, 3.09 for 99.9 %). Within
-    1 % of the exact quantile from 3 degrees of freedom up; no scipy on a board.
+    2 % of the exact quantile from 3 degrees of freedom up (1 % from 6);
+    no scipy on a board.
     """
     c = 2.0 / (9.0 * dof)
     return dof * (1.0 - c + z * math.sqrt(c)) ** 3
@@ -185,21 +187,24 @@ def _inv3_sym(a00, a01, a02, a11, a12, a22):
     return c00 * inv, c01 * inv, c02 * inv, c11 * inv, c12 * inv, c22 * inv
 
 
-def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out) -> bool:
+def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out,
+                             current_sigma: float = 0.0) -> bool:
     """Diagonal of the eq-4 posterior pose covariance for one coil and current.
 
     With ``H = I Hu`` (``Hu`` the per-ampere Jacobian (3, 6)), ``A = Hu P6``
     (3, 6) and ``M = Hu P6 Hu^T`` (3, 3) precomputed for the coil,
 
-        S   = I^2 M + R_v,     R_v = var_amp I3 + (rel_model I |hu|)^2 I3
+        S   = I^2 M + R_v,
+        R_v = (var_amp + (rel_model I |hu|)^2 + (current_sigma |hu|)^2) I3
         P+  = P6 - I^2 A^T S^-1 A                       (Schepers eq 4)
 
-    and only ``diag(P+)`` is written to ``out`` (6,). ``hnorm2 = |hu|^2``
+    (``current_sigma``: the std of the coil current, A). Only ``diag(P+)``
+    is written to ``out`` (6,). ``hnorm2 = |hu|^2``
     (T/A)^2. Pure float arithmetic on the 3x3 system; no arrays created.
     Returns False (``out`` = ``diag(P6)``) if ``S`` is not positive definite.
     """
     i2 = current * current
-    r = var_amp + rel_model * rel_model * i2 * hnorm2
+    r = var_amp + (rel_model * rel_model * i2 + current_sigma * current_sigma) * hnorm2
     inv = _inv3_sym(i2 * M[0, 0] + r, i2 * M[0, 1], i2 * M[0, 2],
                     i2 * M[1, 1] + r, i2 * M[1, 2], i2 * M[2, 2] + r)
     if inv is None:
@@ -216,6 +221,54 @@ def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out)
              + a2 * (s02 * a0 + s12 * a1 + s22 * a2))
         out[k] = P6[k, k] - i2 * q
     return True
+
+
+class PoseCovUpdate:
+    """Full eq-4 covariance update of a 6x6 pose covariance, in place.
+
+    ``apply(P6, Hu, current, var_amp, rel_model)`` replaces ``P6`` by
+    ``P6 - P6 H^T (H P6 H^T + R_v)^-1 H P6`` with ``H = current Hu``: the
+    expected effect of a pulse already commanded (the covariance update does
+    not depend on the measured value), so the next decision can be made
+    while that pulse is still in flight. Buffers allocated here.
+    """
+
+    def __init__(self):
+        self._A = np.zeros((3, POSE_DIM))
+        self._M = np.zeros((3, 3))
+        self._G = np.zeros((3, POSE_DIM))
+        self._Si = np.zeros((3, 3))
+        self._T = np.zeros((POSE_DIM, POSE_DIM))
+        self._T2 = np.zeros((POSE_DIM, POSE_DIM))
+        self._c0 = np.zeros(())             # 0-d operand: no temporary for a Python float
+        self._half = np.full((), 0.5)
+
+    def apply(self, P6, Hu, hu, current: float, var_amp: float, rel_model: float,
+              current_sigma: float = 0.0) -> bool:
+        A = self._A
+        c0 = self._c0
+        c0[()] = current
+        np.matmul(Hu, P6, out=A)
+        np.multiply(A, c0, out=A)
+        np.matmul(A, Hu.T, out=self._M)
+        np.multiply(self._M, c0, out=self._M)
+        hn2 = float(hu[0] * hu[0] + hu[1] * hu[1] + hu[2] * hu[2])
+        r = var_amp + (rel_model * rel_model * current * current + current_sigma * current_sigma) * hn2
+        M = self._M
+        inv = _inv3_sym(M[0, 0] + r, M[0, 1], M[0, 2], M[1, 1] + r, M[1, 2], M[2, 2] + r)
+        if inv is None:
+            return False
+        Si = self._Si
+        Si[0, 0], Si[0, 1], Si[0, 2], Si[1, 1], Si[1, 2], Si[2, 2] = inv
+        Si[1, 0], Si[2, 0], Si[2, 1] = inv[1], inv[2], inv[4]
+        np.matmul(Si, A, out=self._G)
+        np.matmul(A.T, self._G, out=self._T)
+        np.subtract(P6, self._T, out=P6)
+        # symmetrise
+        np.copyto(self._T2, P6)
+        np.add(self._T2, self._T2.T, out=P6)
+        np.multiply(P6, self._half, out=P6)
+        return True
 
 
 def saturation_current_limit(hu, quiet, range_t: float, margin: float, gain: float) -> float:
@@ -260,6 +313,8 @@ class CoilChooser:
     rel_model : float
         Relative field-model error added to the measurement covariance
         (``R_v += (rel_model |y|)^2``).
+    current_sigma : float
+        Std of the coil current (A): ``R_v += (current_sigma |hu|)^2``.
 
     After :meth:`choose`:
 
@@ -281,7 +336,8 @@ class CoilChooser:
         whether the target variable is predicted to reach ``sigma_min``.
     """
 
-    def __init__(self, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0):
+    def __init__(self, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
+                 current_sigma: float = 0.0):
         cur = sorted(float(c) for c in currents)
         if not cur or cur[0] <= 0.0:
             raise ValueError("candidate currents must be positive")
@@ -292,7 +348,10 @@ class CoilChooser:
         if np.any(self.sigma_min <= 0.0) or np.any(self.sigma_min > self.sigma_max):
             raise ValueError("need 0 < sigma_min <= sigma_max")
         self.weight = 1.0 / (self.sigma_max * self.sigma_max)
+        self._smax0 = self.sigma_max.copy()
+        self._smin0 = self.sigma_min.copy()
         self.rel_model = float(rel_model)
+        self.current_sigma = float(current_sigma)
         self._A = np.zeros((self.n, 3, POSE_DIM))
         self._M = np.zeros((self.n, 3, 3))
         self._At = np.zeros((3, POSE_DIM))
@@ -305,6 +364,17 @@ class CoilChooser:
         self.current = 0.0
         self.target = 0
         self.reached = False
+
+    def set_scale(self, pos: float, ori: float) -> None:
+        """Scale the position and orientation thresholds (range-dependent
+        accuracy, see ``ActuationPolicy.set_scale``)."""
+        for k in range(3):
+            self.sigma_max[k] = self._smax0[k] * pos
+            self.sigma_min[k] = self._smin0[k] * pos
+            self.sigma_max[3 + k] = self._smax0[3 + k] * ori
+            self.sigma_min[3 + k] = self._smin0[3 + k] * ori
+        for k in range(POSE_DIM):
+            self.weight[k] = 1.0 / (self.sigma_max[k] * self.sigma_max[k])
 
     def _ref_index(self, limit: float) -> int:
         """Index of the largest candidate current <= limit, or -1."""
@@ -326,8 +396,9 @@ class CoilChooser:
             Pose covariance predicted for the time of the measurement.
         model : SingleCoilModel
             Evaluated at the predicted pose.
-        var_amp : float
-            Variance of one pulse-amplitude component, T^2.
+        var_amp : float or ndarray (n_coils,)
+            Variance of one pulse-amplitude component, T^2 (per coil: e.g.
+            inflated where a coil's pulses proved inconsistent).
         i_limit : ndarray (n_coils,)
             Largest current each coil may carry now (A).
 
@@ -347,7 +418,9 @@ class CoilChooser:
         best_c = -1
         best_red = -math.inf
         var = self._var
+        scalar = isinstance(var_amp, float)
         for c in range(self.n):
+            va = var_amp if scalar else float(var_amp[c])
             A = self._A[c]
             np.matmul(model.H[c], P6, out=A)
             np.matmul(A, model.H[c].T, out=self._M[c])
@@ -360,7 +433,8 @@ class CoilChooser:
                 continue
             i = float(self.currents[k])
             self.i_ref[c] = i
-            posterior_pose_variances(P6, A, self._M[c], self._hn2[c], i, var_amp, self.rel_model, var)
+            posterior_pose_variances(P6, A, self._M[c], self._hn2[c], i, va, self.rel_model, var,
+                                     self.current_sigma)
             j1 = 0.0
             for kk in range(POSE_DIM):
                 j1 += var[kk] * w[kk]
@@ -383,15 +457,19 @@ class CoilChooser:
         A = self._A[best_c]
         M = self._M[best_c]
         hn2 = self._hn2[best_c]
+        if not scalar:
+            var_amp = float(var_amp[best_c])
         for j in range(kmax + 1):
             i = float(self.currents[j])
-            posterior_pose_variances(P6, A, M, hn2, i, var_amp, self.rel_model, self.var_after)
+            posterior_pose_variances(P6, A, M, hn2, i, var_amp, self.rel_model, self.var_after,
+                                     self.current_sigma)
             if self.var_after[t] <= goal:
                 self.current = i
                 self.reached = True
                 return best_c
         self.current = float(self.currents[kmax])
-        posterior_pose_variances(P6, A, M, hn2, self.current, var_amp, self.rel_model, self.var_after)
+        posterior_pose_variances(P6, A, M, hn2, self.current, var_amp, self.rel_model, self.var_after,
+                                     self.current_sigma)
         return best_c
 
 
@@ -407,8 +485,18 @@ class ActuationPolicy:
     def __init__(self, sigma_max, max_interval_us: int):
         self.sigma_max = np.array(sigma_max, dtype=float).reshape(POSE_DIM)
         self.var_max = self.sigma_max * self.sigma_max
+        self._var0 = self.var_max.copy()
         self.max_interval_us = int(max_interval_us)
         self.reason = 0   # 0 none, 1 uncertainty, 2 interval
+
+    def set_scale(self, pos: float, ori: float) -> None:
+        """Multiply the position and orientation bounds by ``pos`` and
+        ``ori`` (e.g. ``(r / r_ref)^k``: an accuracy specified relative to
+        the range, as tracker accuracies usually are; a pulse carries
+        ``r^-8`` less position information per joule at range ``r``)."""
+        for k in range(3):
+            self.var_max[k] = self._var0[k] * pos * pos
+            self.var_max[3 + k] = self._var0[3 + k] * ori * ori
 
     def worst(self, P6) -> float:
         """``max_k sqrt(P_kk) / sigma_max_k`` (1 = at the bound)."""
@@ -442,13 +530,20 @@ class NisMonitor:
     exceeds ``gate`` (chi-square quantile, default 3 dof at 99.9 %: 16.27).
     The filter is *inconsistent* when the mean of the last ``window`` NIS
     values exceeds the upper ``z`` quantile of ``chi2(dof n) / n`` (at least
-    ``min_count`` values). While inconsistent, ``r_scale`` (>= 1) is the
-    factor the measurement covariance is multiplied by: the observed excess
-    ``mean / dof`` (covariance matching), capped at ``max_scale``.
+    ``min_count`` values) and is at least ``min_excess`` times its
+    expectation ``dof`` (a disturbance worth flagging, not a cluster of
+    chi-square tails from a brief model mismatch); it stays so until the
+    mean is back within the chi-square bound (hysteresis: with the
+    covariance inflated the filter follows the biased pulses, the NIS
+    drops, and leaving at the entry level would switch the inflation off
+    while the disturbance is still there). While inconsistent, ``r_scale``
+    (>= 1) is the factor the measurement covariance is multiplied by: the
+    observed excess ``mean / dof`` (covariance matching), capped at
+    ``max_scale``.
     """
 
     def __init__(self, window: int = 8, dof: int = 3, gate: float = 16.27, z: float = 2.326,
-                 min_count: int = 4, max_scale: float = 1e4):
+                 min_count: int = 4, max_scale: float = 1e4, min_excess: float = 1.0):
         if window < 1 or min_count < 1 or min_count > window:
             raise ValueError("need 1 <= min_count <= window")
         self.window = int(window)
@@ -457,6 +552,7 @@ class NisMonitor:
         self.z = float(z)
         self.min_count = int(min_count)
         self.max_scale = float(max_scale)
+        self.min_mean = float(min_excess) * self.dof
         self._buf = np.zeros(self.window)
         self._bound = np.array([chi2_upper(self.dof * n, self.z) / n if n else math.inf
                                 for n in range(self.window + 1)])
@@ -489,10 +585,11 @@ class NisMonitor:
             self.count += 1
         s = 0.0
         for k in range(self.count):
-            s += self._buf[k]
+            s += float(self._buf[k])
         self.mean = s / self.count
         self.total += 1
-        self.inconsistent = self.count >= self.min_count and self.mean > self._bound[self.count]
+        beyond = self.count >= self.min_count and self.mean > float(self._bound[self.count])
+        self.inconsistent = bool(beyond and (self.inconsistent or self.mean > self.min_mean))
         if self.inconsistent:
             self.flagged += 1
             self.r_scale = min(max(self.mean / self.dof, 1.0), self.max_scale)

@@ -70,6 +70,74 @@ class FirmwareConfig:
     # --- limits
     max_current_a: float = 2.0
     stale_us: int = 2_000_000
+    coil_max_duty: float = 0.5             # the driver's on-time limit per coil ...
+    coil_duty_window_us: int = 1_200_000   # ... over this window
+    # --- actuation (firmware_py.adaptive_mode; Schepers & Veltink 2010 sec. 2.1)
+    actuation: str = "fixed"               # "fixed" X/Y/Z cycle | "adaptive" single-coil pulses on demand
+    single_coil_fusion: bool = False       # fixed cycle: each pulse updates the single-coil EKF (as adaptive)
+    sigma_max_pos_m: float = 0.004         # pulse when a position std would exceed this
+    sigma_min_pos_m: float = 0.003         # current chosen so the triggering std falls to this
+    sigma_max_ori_deg: float = 0.5
+    sigma_min_ori_deg: float = 0.4
+    sigma_range_ref_m: float = 0.0         # > 0: the sigma bounds hold at this range and scale as
+    sigma_range_exp_pos: float = 1.0       #   (r / sigma_range_ref_m)^exp (position, orientation)
+    sigma_range_exp_ori: float = 1.0
+    adaptive_currents_a: tuple[float, ...] = ()   # candidate currents; () = geometric ladder
+    adaptive_min_current_a: float = 0.05
+    adaptive_max_current_a: float = 1.5
+    adaptive_current_levels: int = 16
+    adaptive_pulse_us: int = 0             # 0: pulse_us
+    adaptive_lead_us: int = 10_000         # a single pulse is commanded this long before it starts
+    adaptive_max_interval_us: int = 1_000_000
+    adaptive_pos_noise: float = 0.0        # extra position process noise, m/sqrt(s)
+    field_model_rel_sigma: float = 1e-3    # relative field-model error in the measurement covariance
+    current_tolerance_a: float = 1e-3      # coil current regulation error (std), A
+    mag_range_t: float = 163.835e-6        # magnetometer range (16 bit x 5 nT)
+    saturation_margin: float = 0.9
+    earth_field_max_t: float = 65e-6       # bound on any axis when no quiet sample is known
+    nis_window: int = 8
+    nis_gate_probability: float = 0.999
+    reacquire_after: int = 6               # gated single-coil updates in a row before re-acquisition
+    acquire_sigma_m: float = 0.1           # a position std beyond this: track lost, acquire again
+    pose_every: int = 1                    # adaptive mode: a POSE every N IMU samples
+    init_sigma_vel: float = 0.2            # m/s, velocity std when a pose (re)starts the filter
+    init_sigma_ori_deg: float = 10.0       # orientation std added to a burst solution at a (re)start
+    # --- inertial sensor model of the filters (per-sample std at imu_rate_hz; offsets)
+    imu_rate_hz: float = 100.0
+    imu_acc_sigma: float = 0.014           # m/s^2 per sample (MTx-class: 2e-3 m/s^2/sqrt(Hz) x sqrt(50 Hz))
+    imu_gyro_sigma: float = 0.0062         # rad/s per sample (0.05 deg/s/sqrt(Hz) x sqrt(50 Hz))
+    imu_acc_bias_sigma: float = 0.05       # m/s^2, initial offset std
+    imu_gyro_bias_sigma: float = 0.02      # rad/s, initial offset std
+    imu_acc_bias_rw: float = 2e-4          # m/s^2/sqrt(s)
+    imu_gyro_bias_rw: float = 1.7e-4       # rad/s/sqrt(s)
+    imu_timeout_us: int = 100_000
+    gravity_mps2: tuple[float, float, float] = (0.0, 0.0, -9.81)   # gravity in the source frame
+    # --- orientation filter (thesis ch. 2; firmware_py.orientation)
+    acc_motion_sigma: float = 0.05          # m/s^2, motion acceleration taken as noise (w_a of eq 2.5)
+    acc_corr_time_s: float = 0.0            # c_a = exp(-T / tau) of eq 2.5 (0: white)
+    dist_corr: float = 0.99                 # c_d of eq 2.7, per sample
+    dist_sigma: float = 2.0e-5              # floor of sigma_d, eq 2.12 (units of |earth field|)
+    dist_norm_gain: float = 0.5             # sigma_m of eq 2.12
+    dist_dip_gain: float = 0.5              # sigma_phi of eq 2.12 (per rad)
+    mag_learn_samples: int = 120            # compass samples averaged for |m| and the dip (eqs 2.8-2.10)
+    compass_guard_us: int = 5_000           # compass samples this close to a pulse are not used
+    ori_update_every: int = 4               # inclination and compass updates every N IMU samples
+    # --- magnetic-inertial fusion (thesis ch. 6; firmware_py.fusion)
+    fusion: bool = True                     # fuse IMU_SAMPLEs when they arrive (fixed actuation)
+    measurement_model: int = 3              # eq 6.18 (1), eq 6.20 (2), eq 6.21 (3)
+    motion_compensation: bool = True        # bring the X, Y, Z pulses to one instant (sec 6.5)
+    source_imu_id: int = 0                  # node of the source's IMU + magnetometer (0: source fixed)
+    bias_tau_s: float = 3600.0              # correlation time of the IMU offsets (eqs 6.13-6.14), s
+    fusion_gate_probability: float = 0.9999  # chi-square gate of the magnetic and orientation updates
+    fusion_reinit_after: int = 3            # rejected magnetic updates in a row before a restart
+    xi_sigma_floor: float = 0.005           # rad, added to Xi's tilt uncertainty (accelerometer offset / g)
+    xi_heading_sigma_floor: float = 0.035   # rad, added to Xi's heading uncertainty (tilt error / cos(dip))
+    xi_var_scale: float = 1.0
+    mag_var_scale: float = 1.0              # scale of the solver covariance in the fusion update
+    imu_ring_capacity: int = 64             # received IMU samples per node waiting for the tick
+    fusion_replay_capacity: int = 128       # IMU samples kept to replay after a delayed magnetic update
+    fusion_history_capacity: int = 128      # inertial poses kept for motion compensation
+    pose_output_capacity: int = 16          # fused poses waiting to be sent
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -112,7 +180,103 @@ class FirmwareConfig:
         samples_per_cycle = self.cycle_us * 1e-6 * self.mag_rate_hz
         need("ring_capacity", self.ring_capacity >= 2 * samples_per_cycle,
              f"must hold two cycles of samples (>= {int(2 * samples_per_cycle)})")
+        self._validate_actuation(need)
+        self._validate_fusion(need)
         return self
+
+    def _validate_fusion(self, need) -> None:
+        """Keys of the orientation filter and the magnetic-inertial fusion
+        (``firmware_py.orientation``, ``firmware_py.fusion``)."""
+        fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
+        for name in ("acc_motion_sigma", "bias_tau_s", "xi_var_scale", "mag_var_scale"):
+            v = getattr(self, name)
+            need(name, fin(v) and v > 0, f"must be a positive number, got {v!r}")
+        for name in ("acc_corr_time_s", "dist_sigma", "dist_norm_gain", "dist_dip_gain", "xi_sigma_floor",
+                     "xi_heading_sigma_floor"):
+            v = getattr(self, name)
+            need(name, fin(v) and v >= 0, f"must be a non-negative number, got {v!r}")
+        need("dist_corr", fin(self.dist_corr) and 0.0 <= self.dist_corr <= 1.0,
+             f"must be in [0, 1], got {self.dist_corr!r}")
+        for name in ("mag_learn_samples", "ori_update_every", "fusion_reinit_after", "imu_ring_capacity",
+                     "fusion_replay_capacity",
+                     "fusion_history_capacity", "pose_output_capacity"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+                 f"must be a positive integer, got {v!r}")
+        need("compass_guard_us", isinstance(self.compass_guard_us, int) and not isinstance(self.compass_guard_us, bool)
+             and self.compass_guard_us >= 0, f"must be a non-negative integer, got {self.compass_guard_us!r}")
+        for name in ("fusion", "motion_compensation"):
+            need(name, isinstance(getattr(self, name), bool), f"must be true or false, got {getattr(self, name)!r}")
+        need("measurement_model", self.measurement_model in (1, 2, 3) and not isinstance(self.measurement_model, bool),
+             f"must be 1 (eq 6.18), 2 (eq 6.20) or 3 (eq 6.21), got {self.measurement_model!r}")
+        need("fusion_gate_probability", self.fusion_gate_probability in (0.99, 0.999, 0.9999, 1.0),
+             f"must be 0.99, 0.999, 0.9999 or 1.0 (no gate), got {self.fusion_gate_probability!r}")
+        need("source_imu_id", isinstance(self.source_imu_id, int) and not isinstance(self.source_imu_id, bool)
+             and 0 <= self.source_imu_id < 256 and self.source_imu_id not in self.sensor_ids
+             and self.source_imu_id not in (self.node_id, self.coil_driver_id),
+             f"must be 0 (none) or a node id other than the sensors', the driver's and the firmware's, "
+             f"got {self.source_imu_id!r}")
+        g = math.sqrt(sum(v * v for v in self.gravity_mps2)) if len(self.gravity_mps2) == 3 else 0.0
+        need("gravity_mps2", g > 1.0, "must be a 3-vector of the local gravity, |g| > 1 m/s^2")
+        period_us = 1e6 / self.imu_rate_hz
+        need("fusion_replay_capacity", self.fusion_replay_capacity * period_us >= self.cycle_us,
+             f"must hold a cycle of IMU samples (>= {int(math.ceil(self.cycle_us / period_us))})")
+        need("fusion_history_capacity", self.fusion_history_capacity * period_us >= self.cycle_us,
+             f"must hold a cycle of inertial poses (>= {int(math.ceil(self.cycle_us / period_us))})")
+
+    def _validate_actuation(self, need) -> None:
+        """Keys of the adaptive mode and the inertial model (``firmware_py.adaptive_mode``)."""
+        fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
+        need("actuation", self.actuation in ("fixed", "adaptive"),
+             f"must be 'fixed' or 'adaptive', got {self.actuation!r}")
+        need("single_coil_fusion", isinstance(self.single_coil_fusion, bool),
+             f"must be true or false, got {self.single_coil_fusion!r}")
+        for name in ("sigma_max_pos_m", "sigma_min_pos_m", "sigma_max_ori_deg", "sigma_min_ori_deg",
+                     "adaptive_min_current_a", "adaptive_max_current_a", "mag_range_t", "imu_rate_hz",
+                     "imu_acc_sigma", "imu_gyro_sigma", "acquire_sigma_m", "init_sigma_vel"):
+            v = getattr(self, name)
+            need(name, fin(v) and v > 0, f"must be a positive number, got {v!r}")
+        for name in ("sigma_range_ref_m", "sigma_range_exp_pos", "sigma_range_exp_ori",
+                     "adaptive_pos_noise", "field_model_rel_sigma", "current_tolerance_a", "earth_field_max_t",
+                     "init_sigma_ori_deg",
+                     "imu_acc_bias_sigma",
+                     "imu_gyro_bias_sigma", "imu_acc_bias_rw", "imu_gyro_bias_rw"):
+            v = getattr(self, name)
+            need(name, fin(v) and v >= 0, f"must be a non-negative number, got {v!r}")
+        need("sigma_min_pos_m", self.sigma_min_pos_m <= self.sigma_max_pos_m, "must not exceed sigma_max_pos_m")
+        need("sigma_min_ori_deg", self.sigma_min_ori_deg <= self.sigma_max_ori_deg,
+             "must not exceed sigma_max_ori_deg")
+        need("adaptive_max_current_a", self.adaptive_max_current_a <= self.max_current_a,
+             f"must be within max_current_a={self.max_current_a}")
+        need("adaptive_currents_a", all(fin(c) and 0 < c <= self.adaptive_max_current_a
+                                        for c in self.adaptive_currents_a),
+             f"every candidate current must be in (0, adaptive_max_current_a={self.adaptive_max_current_a}]")
+        for name in ("adaptive_current_levels", "adaptive_lead_us", "adaptive_max_interval_us", "nis_window",
+                     "reacquire_after", "pose_every", "imu_timeout_us"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
+                 f"must be a positive integer, got {v!r}")
+        need("adaptive_pulse_us", isinstance(self.adaptive_pulse_us, int) and (
+            self.adaptive_pulse_us == 0 or self.adaptive_pulse_us > self.settle_us + self.guard_us),
+             "must be 0 (use pulse_us) or longer than settle_us + guard_us")
+        if self.actuation == "adaptive":
+            # the settled part of a pulse must hold min_pulse_samples besides the first and last
+            pl = self.adaptive_pulse_us or self.pulse_us
+            n = int((pl - self.settle_us - self.guard_us) * 1e-6 * self.mag_rate_hz) - 1
+            need("adaptive_pulse_us" if self.adaptive_pulse_us else "pulse_us", n >= self.min_pulse_samples,
+                 f"a {pl} us pulse gives about {max(n, 0)} usable samples at {self.mag_rate_hz} Hz, "
+                 f"fewer than min_pulse_samples={self.min_pulse_samples}")
+        need("coil_max_duty", fin(self.coil_max_duty) and 0 < self.coil_max_duty <= 1,
+             f"must be in (0, 1], got {self.coil_max_duty!r}")
+        need("coil_duty_window_us", isinstance(self.coil_duty_window_us, int)
+             and not isinstance(self.coil_duty_window_us, bool) and self.coil_duty_window_us > 0,
+             f"must be a positive integer, got {self.coil_duty_window_us!r}")
+        need("saturation_margin", fin(self.saturation_margin) and 0 < self.saturation_margin <= 1,
+             f"must be in (0, 1], got {self.saturation_margin!r}")
+        need("nis_gate_probability", self.nis_gate_probability in (0.99, 0.999, 0.9999, 1.0),
+             f"must be 0.99, 0.999, 0.9999 or 1.0 (no gate), got {self.nis_gate_probability!r}")
+        need("gravity_mps2", len(self.gravity_mps2) == 3 and all(fin(v) for v in self.gravity_mps2),
+             "must be a finite 3-vector")
 
 
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}
@@ -143,7 +307,10 @@ def config_from_dict(d: dict, base: FirmwareConfig | None = None) -> FirmwareCon
                 if not isinstance(value, list):
                     raise ConfigError(key, f"must be an array, got {value!r}")
                 value = tuple(value)
-            elif isinstance(default, bool) or isinstance(default, int):
+            elif isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise ConfigError(key, f"must be true or false, got {value!r}")
+            elif isinstance(default, int):
                 if not isinstance(value, int) or isinstance(value, bool):
                     raise ConfigError(key, f"must be an integer, got {value!r}")
             elif isinstance(default, float):

@@ -13,8 +13,9 @@ eqs 2.16-2.18 and Fig. 4.3; Joseph form after Bucy & Joseph):
    measurement leaves ``P`` untouched;
 4. gain ``K = P H^T S^-1`` (eq 2.17);
 5. correction ``dx = K y`` (eq 2.16);
-6. Joseph-form covariance ``P = (I - K H) P (I - K H)^T + K R K^T``, then
-   symmetrised; it stays positive semi-definite whatever the rounding;
+6. Joseph-form covariance ``P = (I - K H) P (I - K H)^T + K R K^T``; it
+   stays positive semi-definite whatever the rounding (re-symmetrised every
+   ``SYMMETRIZE_EVERY`` updates against the drift of rounding);
 7. health flags are returned, never raised.
 
 ``predict_covariance`` is ``P = A P A^T + Q`` (eq 2.18, 6.5).
@@ -29,6 +30,9 @@ import math
 import numpy as np
 
 from .linalg import chol_inverse, flat
+
+#: rounding makes P drift from symmetry; it is re-symmetrised every this many calls
+SYMMETRIZE_EVERY = 16
 
 # health flags (bit field)
 EKF_OK = 0
@@ -108,13 +112,8 @@ class KalmanUpdate:
         np.matmul(self.H, self._PHt, out=self.S)
         np.add(self.S, self.R, out=self.S)
         s = self._s
-        # symmetrise S (rounding) before the factorisation
-        for i in range(m):
-            for j in range(i + 1, m):
-                v = 0.5 * (s[i * m + j] + s[j * m + i])
-                s[i * m + j] = v
-                s[j * m + i] = v
-        if not chol_inverse(s, m, self._si, self._l):
+        # (the factorisation reads the lower triangle only)
+        if not (_inv3(s, self._si) if m == 3 else chol_inverse(s, m, self._si, self._l)):
             self.dx.fill(0.0)
             self.rejected += 1
             self.nis = math.inf
@@ -146,9 +145,33 @@ class KalmanUpdate:
         np.matmul(self.K, self.R, out=self._KR)
         np.matmul(self._KR, self._Kt, out=self._KRK)
         np.add(P, self._KRK, out=P)
-        symmetrize(P, self._T, self._Tt, self._half)
         self.count += 1
+        if self.count % SYMMETRIZE_EVERY == 0:
+            symmetrize(P, self._T, self._Tt, self._half)
         return EKF_OK
+
+
+def _inv3(s, out) -> bool:
+    """Inverse of a symmetric positive definite 3x3 (lower triangle of the
+    flat ``s``) into ``out``; False when it is not positive definite."""
+    a, b, c = s[0], s[3], s[6]
+    d, e = s[4], s[7]
+    f = s[8]
+    # cofactors of [[a b c] [b d e] [c e f]]
+    A = d * f - e * e
+    B = c * e - b * f
+    C = b * e - c * d
+    det = a * A + b * B + c * C
+    if not (a > 0.0 and a * d - b * b > 0.0 and det > 0.0) or det == math.inf:
+        return False
+    inv = 1.0 / det
+    out[0] = A * inv
+    out[1] = out[3] = B * inv
+    out[2] = out[6] = C * inv
+    out[4] = (a * f - c * c) * inv
+    out[5] = out[7] = (b * c - a * e) * inv
+    out[8] = (a * d - b * b) * inv
+    return True
 
 
 def symmetrize(P: np.ndarray, tmp: np.ndarray, tmp_t: np.ndarray, half: np.ndarray) -> None:
@@ -172,8 +195,12 @@ class CovariancePredict:
         self._T2t = self._T2.T
         self._half = np.full((), 0.5)
 
+        self.count = 0
+
     def predict(self, P: np.ndarray) -> None:
         np.matmul(self.A, P, out=self._T)
         np.matmul(self._T, self._At, out=P)
         np.add(P, self.Q, out=P)
-        symmetrize(P, self._T2, self._T2t, self._half)
+        self.count += 1
+        if self.count % SYMMETRIZE_EVERY == 0:
+            symmetrize(P, self._T2, self._T2t, self._half)

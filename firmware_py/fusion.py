@@ -100,8 +100,10 @@ class FusionParams:
 
     def __init__(self, measurement_model=3, acc_noise=0.015, gyro_noise=0.006,
                  source_acc_noise=0.0, acc_bias_sigma=0.03, gyro_bias_sigma=0.01,
-                 acc_bias_tau_s=300.0, gyro_bias_tau_s=300.0, velocity0_sigma=0.3,
-                 gate_probability=0.9999, reinit_after=3, xi_var_scale=1.0, mag_var_scale=1.0,
+                 acc_bias_rw=2e-4, gyro_bias_rw=1.7e-4,
+                 acc_bias_tau_s=3600.0, gyro_bias_tau_s=3600.0, velocity0_sigma=0.3,
+                 gate_probability=0.9999, reinit_after=3, xi_var_scale=1.0, xi_sigma_floor=0.005,
+                 xi_heading_sigma_floor=0.035, mag_var_scale=1.0,
                  qm_sigma=0.01, psi_sigma=0.05, meas_sigma=1e-5, max_gap_us=100_000,
                  stale_us=2_000_000):
         if measurement_model not in (1, 2, 3):
@@ -110,14 +112,23 @@ class FusionParams:
         self.acc_noise = float(acc_noise)
         self.gyro_noise = float(gyro_noise)
         self.source_acc_noise = float(source_acc_noise)
-        self.acc_bias_sigma = float(acc_bias_sigma)
+        self.acc_bias_sigma = float(acc_bias_sigma)      # initial offset uncertainty
         self.gyro_bias_sigma = float(gyro_bias_sigma)
+        self.acc_bias_rw = float(acc_bias_rw)            # m/s^2/sqrt(s), driving noise of eq 6.13
+        self.gyro_bias_rw = float(gyro_bias_rw)          # rad/s/sqrt(s), driving noise of eq 6.14
         self.acc_bias_tau_s = float(acc_bias_tau_s)
         self.gyro_bias_tau_s = float(gyro_bias_tau_s)
         self.velocity0_sigma = float(velocity0_sigma)
         self.gate_probability = float(gate_probability)
         self.reinit_after = int(reinit_after)
         self.xi_var_scale = float(xi_var_scale)
+        # Xi's error is not white: the accelerometer offset tilts it (offset / g)
+        # and, through the dip, turns its heading (the accelerometer fixes the
+        # rotation about the field, mostly vertical: heading error ~ tilt / cos(dip));
+        # and the source's Phi has the same errors. Floors (rad) on the tilt axes
+        # and on the heading axis of G cover them.
+        self.xi_sigma_floor = float(xi_sigma_floor)
+        self.xi_heading_sigma_floor = float(xi_heading_sigma_floor)
         self.mag_var_scale = float(mag_var_scale)
         self.qm_sigma = float(qm_sigma)
         self.psi_sigma = float(psi_sigma)
@@ -188,6 +199,10 @@ class FusionFilter:
         r = params.meas_sigma ** 2
         for i in range(m):
             self._Rmv[i, i] = r
+        self._dt_last = -1.0
+        self._ka = self._kg = 1.0
+        #: the source is fixed (Phi = I): history and output skip the frame change
+        self.source_fixed = False
         # scratch
         self._E = np.zeros((3, 3))
         self._Ev = memoryview(self._E)
@@ -240,6 +255,7 @@ class FusionFilter:
         self.initialized = False
         self.replaying = False
         self.rejects_in_row = 0
+        self.accepted_in_row = 0
         self.last_update_t = 0
         self.last_flags = 0
         self.last_nis = 0.0
@@ -269,9 +285,10 @@ class FusionFilter:
         d[k, 0], d[k, 1], d[k, 2] = fx, fy, fz
         d[k, 3], d[k, 4], d[k, 5] = wx, wy, wz
         d[k, 6], d[k, 7], d[k, 8] = rx, ry, rz
-        for i in range(3):
-            for j in range(3):
-                d[k, 9 + 3 * i + j] = Phi[i, j]
+        if not self.source_fixed:          # a fixed source keeps Phi = I (columns unused)
+            for i in range(3):
+                for j in range(3):
+                    d[k, 9 + 3 * i + j] = Phi[i, j]
         self._ihead = k + 1 if k + 1 < self._icap else 0
         if self._icount < self._icap:
             self._icount += 1
@@ -296,52 +313,101 @@ class FusionFilter:
         if self.snap_pending and self.t_us < self.snap_t <= t:
             ts = self.snap_t
             if ts > self.t_us:
-                self._step(k, (ts - self.t_us) * 1e-6)
+                self._step(k, self.t_us, ts)
                 self.t_us = ts
                 self._history(k)
             self._snapshot(k)
             if t > ts:
-                self._step(k, (t - ts) * 1e-6)
+                self._step(k, ts, t)
         else:
-            self._step(k, (t - self.t_us) * 1e-6)
+            self._step(k, self.t_us, t)
         self.t_us = t
         self._history(k)
 
     # ------------------------------------------------------------ model
-    def _step(self, k: int, dt: float) -> None:
+    def _step(self, k: int, t0: int, t1: int) -> None:
+        """Strapdown and covariance step over ``[t0, t1]`` with the IMU
+        samples of ring entries ``k - 1`` and ``k`` (trapezoidal in the rate
+        and in the global-frame specific force: the samples are instantaneous
+        values; inputs at ``t0`` / ``t1`` interpolated linearly between the
+        two entries)."""
+        dt = (t1 - t0) * 1e-6
         d = self._idv
+        tv = self._itv
+        tk = tv[k]
+        kp = k - 1 if k > 0 else self._icap - 1
+        tp = tv[kp]
+        # interpolation weights of entry k at t0 and t1 (1: entry k alone)
+        if self._icount > 1 and tp < tk:
+            span = 1.0 / (tk - tp)
+            a0 = (t0 - tp) * span
+            a1 = (t1 - tp) * span
+            if a0 < 0.0:
+                a0 = 0.0
+        else:
+            kp = k
+            a0 = a1 = 1.0
+        b0 = 1.0 - a0
+        b1 = 1.0 - a1
         ba = self._bav
         bg = self._bgv
-        fx, fy, fz = d[k, 0] - ba[0], d[k, 1] - ba[1], d[k, 2] - ba[2]
-        wx, wy, wz = d[k, 3] - bg[0], d[k, 4] - bg[1], d[k, 5] - bg[2]
-        h = 0.5 * dt
-        fx, fy, fz = (fx + h * (wy * fz - wz * fy), fy + h * (wz * fx - wx * fz), fz + h * (wx * fy - wy * fx))
+        xa, xb, xc = ba[0], ba[1], ba[2]
+        p0, p1, p2, p3, p4, p5, p6, p7, p8 = (d[kp, 0], d[kp, 1], d[kp, 2], d[kp, 3], d[kp, 4], d[kp, 5],
+                                              d[kp, 6], d[kp, 7], d[kp, 8])
+        q0, q1, q2, q3, q4, q5, q6, q7, q8 = (d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5],
+                                              d[k, 6], d[k, 7], d[k, 8])
+        f0x = b0 * p0 + a0 * q0 - xa
+        f0y = b0 * p1 + a0 * q1 - xb
+        f0z = b0 * p2 + a0 * q2 - xc
+        f1x = b1 * p0 + a1 * q0 - xa
+        f1y = b1 * p1 + a1 * q1 - xb
+        f1z = b1 * p2 + a1 * q2 - xc
+        am = 0.5 * (a0 + a1)
+        bm = 1.0 - am
+        wx = bm * p3 + am * q3 - bg[0]
+        wy = bm * p4 + am * q4 - bg[1]
+        wz = bm * p5 + am * q5 - bg[2]
+        r0x, r0y, r0z = b0 * p6 + a0 * q6, b0 * p7 + a0 * q7, b0 * p8 + a0 * q8
+        r1x, r1y, r1z = b1 * p6 + a1 * q6, b1 * p7 + a1 * q7, b1 * p8 + a1 * q8
         Th = self._Thv
-        t00, t01, t02 = Th[0, 0], Th[0, 1], Th[0, 2]
-        t10, t11, t12 = Th[1, 0], Th[1, 1], Th[1, 2]
-        t20, t21, t22 = Th[2, 0], Th[2, 1], Th[2, 2]
-        gx = t00 * fx + t01 * fy + t02 * fz
-        gy = t10 * fx + t11 * fy + t12 * fz
-        gz = t20 * fx + t21 * fy + t22 * fz
-        ax, ay, az = gx - d[k, 6], gy - d[k, 7], gz - d[k, 8]
-        p = self._pv
-        v = self._vv
-        hh = 0.5 * dt * dt
-        p[0] += v[0] * dt + ax * hh
-        p[1] += v[1] * dt + ay * hh
-        p[2] += v[2] * dt + az * hh
-        v[0] += ax * dt
-        v[1] += ay * dt
-        v[2] += az * dt
+        # specific force at t0 in G with the attitude at t0
+        g0x = Th[0, 0] * f0x + Th[0, 1] * f0y + Th[0, 2] * f0z
+        g0y = Th[1, 0] * f0x + Th[1, 1] * f0y + Th[1, 2] * f0z
+        g0z = Th[2, 0] * f0x + Th[2, 1] * f0y + Th[2, 2] * f0z
         exp_rotvec(wx * dt, wy * dt, wz * dt, self._Ev)
         np.matmul(self.Th, self._E, out=self._T)
         np.copyto(self.Th, self._T)
+        t00, t01, t02 = Th[0, 0], Th[0, 1], Th[0, 2]
+        t10, t11, t12 = Th[1, 0], Th[1, 1], Th[1, 2]
+        t20, t21, t22 = Th[2, 0], Th[2, 1], Th[2, 2]
+        g1x = t00 * f1x + t01 * f1y + t02 * f1z
+        g1y = t10 * f1x + t11 * f1y + t12 * f1z
+        g1z = t20 * f1x + t21 * f1y + t22 * f1z
+        a0x, a0y, a0z = g0x - r0x, g0y - r0y, g0z - r0z
+        a1x, a1y, a1z = g1x - r1x, g1y - r1y, g1z - r1z
+        p = self._pv
+        v = self._vv
+        c0 = dt * dt / 3.0
+        c1 = dt * dt / 6.0
+        p[0] += v[0] * dt + c0 * a0x + c1 * a1x
+        p[1] += v[1] * dt + c0 * a0y + c1 * a1y
+        p[2] += v[2] * dt + c0 * a0z + c1 * a1z
+        h = 0.5 * dt
+        v[0] += h * (a0x + a1x)
+        v[1] += h * (a0y + a1y)
+        v[2] += h * (a0z + a1z)
+        gx, gy, gz = 0.5 * (g0x + g1x), 0.5 * (g0y + g1y), 0.5 * (g0z + g1z)
         prm = self.prm
-        ka = math.exp(-dt / prm.acc_bias_tau_s) if prm.acc_bias_tau_s > 0.0 else 1.0
-        kg = math.exp(-dt / prm.gyro_bias_tau_s) if prm.gyro_bias_tau_s > 0.0 else 1.0
-        for i in range(3):
-            ba[i] *= ka
-            bg[i] *= kg
+        if dt != self._dt_last:
+            self._set_dt(dt)
+        ka = self._ka
+        kg = self._kg
+        ba[0] *= ka
+        ba[1] *= ka
+        ba[2] *= ka
+        bg[0] *= kg
+        bg[1] *= kg
+        bg[2] *= kg
         # transition matrix blocks (eq 6.17)
         A = self._Av
         p0, v0, o0, a0, g0 = POS.start, VEL.start, ORI.start, ACC.start, GYR.start
@@ -358,11 +424,28 @@ class FusionFilter:
         A[o0, g0], A[o0, g0 + 1], A[o0, g0 + 2] = -dt * t00, -dt * t01, -dt * t02
         A[o0 + 1, g0], A[o0 + 1, g0 + 1], A[o0 + 1, g0 + 2] = -dt * t10, -dt * t11, -dt * t12
         A[o0 + 2, g0], A[o0 + 2, g0 + 1], A[o0 + 2, g0 + 2] = -dt * t20, -dt * t21, -dt * t22
+        self.pred.predict(self.P)
+        self.steps += 1
+        if self.recorder is not None:
+            self.recorder.on_step(self, k, t1)
+
+    def _set_dt(self, dt: float) -> None:
+        """The parts of ``A`` and ``Q`` that depend on the step alone
+        (eqs 6.10, 6.13-6.14; the white magnetic states), rewritten only when
+        the step changes."""
+        prm = self.prm
+        self._dt_last = dt
+        ka = math.exp(-dt / prm.acc_bias_tau_s) if prm.acc_bias_tau_s > 0.0 else 1.0
+        kg = math.exp(-dt / prm.gyro_bias_tau_s) if prm.gyro_bias_tau_s > 0.0 else 1.0
+        self._ka = ka
+        self._kg = kg
+        A = self._Av
         Q = self._Qv
+        p0, v0, o0, a0, g0 = POS.start, VEL.start, ORI.start, ACC.start, GYR.start
         qv = (prm.acc_noise ** 2 + prm.source_acc_noise ** 2) * dt * dt
         qo = (prm.gyro_noise * dt) ** 2
-        qa = prm.acc_bias_sigma ** 2 * (1.0 - ka * ka)
-        qg = prm.gyro_bias_sigma ** 2 * (1.0 - kg * kg)
+        qa = prm.acc_bias_rw * prm.acc_bias_rw * dt
+        qg = prm.gyro_bias_rw * prm.gyro_bias_rw * dt
         qq = prm.qm_sigma ** 2
         qs = prm.psi_sigma ** 2
         for i in range(3):
@@ -377,10 +460,6 @@ class FusionFilter:
             Q[PSI.start + i, PSI.start + i] = qs
             if self.n > 21:
                 Q[XI.start + i, XI.start + i] = qs
-        self.pred.predict(self.P)
-        self.steps += 1
-        if self.recorder is not None:
-            self.recorder.on_step(self, k, dt)
 
     def _history(self, k: int) -> None:
         """Append the current pose in the source frame: ``p_M = Phi^T p``,
@@ -391,11 +470,17 @@ class FusionFilter:
         hd = self._hdv
         p = self._pv
         Th = self._Thv
-        for i in range(3):
-            f0, f1, f2 = d[k, 9 + i], d[k, 12 + i], d[k, 15 + i]     # column i of Phi
-            hd[h, i] = f0 * p[0] + f1 * p[1] + f2 * p[2]
-            for j in range(3):
-                hd[h, 3 + 3 * i + j] = f0 * Th[0, j] + f1 * Th[1, j] + f2 * Th[2, j]
+        if self.source_fixed:
+            hd[h, 0], hd[h, 1], hd[h, 2] = p[0], p[1], p[2]
+            hd[h, 3], hd[h, 4], hd[h, 5] = Th[0, 0], Th[0, 1], Th[0, 2]
+            hd[h, 6], hd[h, 7], hd[h, 8] = Th[1, 0], Th[1, 1], Th[1, 2]
+            hd[h, 9], hd[h, 10], hd[h, 11] = Th[2, 0], Th[2, 1], Th[2, 2]
+        else:
+            for i in range(3):
+                f0, f1, f2 = d[k, 9 + i], d[k, 12 + i], d[k, 15 + i]     # column i of Phi
+                hd[h, i] = f0 * p[0] + f1 * p[1] + f2 * p[2]
+                for j in range(3):
+                    hd[h, 3 + 3 * i + j] = f0 * Th[0, j] + f1 * Th[1, j] + f2 * Th[2, j]
         self._hhead = h + 1 if h + 1 < self._hcap else 0
         if self._hcount < self._hcap:
             self._hcount += 1
@@ -423,19 +508,22 @@ class FusionFilter:
         Th = self._Thv
         p0 = POS.start
         o0 = ORI.start
+        # orientation: diag(Theta^T P_oo Theta) = sum_i Theta[i, c] (P_oo Theta)[i, c]
+        o00, o01, o02 = P[o0, o0], P[o0, o0 + 1], P[o0, o0 + 2]
+        o11, o12, o22 = P[o0 + 1, o0 + 1], P[o0 + 1, o0 + 2], P[o0 + 2, o0 + 2]
         for c in range(3):
-            # column c of Phi and of Theta
-            f = (d[k, 9 + c], d[k, 12 + c], d[k, 15 + c])
-            vp = 0.0
-            vo = 0.0
-            for i in range(3):
-                fi = f[i]
-                ti = Th[i, c]
-                for j in range(3):
-                    vp += fi * P[p0 + i, p0 + j] * f[j]
-                    vo += ti * P[o0 + i, o0 + j] * Th[j, c]
-            od[slot, 7 + c] = vp
-            od[slot, 10 + c] = vo
+            x, y, z = Th[0, c], Th[1, c], Th[2, c]
+            od[slot, 10 + c] = (x * (o00 * x + o01 * y + o02 * z) + y * (o01 * x + o11 * y + o12 * z)
+                                + z * (o02 * x + o12 * y + o22 * z))
+        if self.source_fixed:
+            od[slot, 7], od[slot, 8], od[slot, 9] = P[p0, p0], P[p0 + 1, p0 + 1], P[p0 + 2, p0 + 2]
+        else:
+            q00, q01, q02 = P[p0, p0], P[p0, p0 + 1], P[p0, p0 + 2]
+            q11, q12, q22 = P[p0 + 1, p0 + 1], P[p0 + 1, p0 + 2], P[p0 + 2, p0 + 2]
+            for c in range(3):
+                x, y, z = d[k, 9 + c], d[k, 12 + c], d[k, 15 + c]      # column c of Phi
+                od[slot, 7 + c] = (x * (q00 * x + q01 * y + q02 * z) + y * (q01 * x + q11 * y + q12 * z)
+                                   + z * (q02 * x + q12 * y + q22 * z))
         status = 0
         if t_us - self.last_update_t > self.prm.stale_us:
             status |= 1
@@ -462,7 +550,7 @@ class FusionFilter:
         S = self._sPhiv
         for i in range(3):
             for j in range(3):
-                S[i, j] = d[k, 9 + 3 * i + j]
+                S[i, j] = (1.0 if i == j else 0.0) if self.source_fixed else d[k, 9 + 3 * i + j]
         if self.xi is not None and self.xi.initialized:
             np.copyto(self._sXi, self.xi.R)
             self.xi.theta_covariance_global(self._sXiPv)
@@ -491,6 +579,8 @@ class FusionFilter:
         np.copyto(self.bg, self._sbg)
         np.copyto(self.P, self._sP)
         self.t_us = self.snap_t
+        if self.recorder is not None:
+            self.recorder.on_rewind(self, self.snap_t)
 
     def _replay(self) -> None:
         """Re-run the IMU samples after ``t_us`` (the restored instant)."""
@@ -523,12 +613,14 @@ class FusionFilter:
         return self._itv[start] <= t_us
 
     # ------------------------------------------------------------ update
-    def magnetic_update(self, t_ref_us: int, q, R_ms, C) -> int:
+    def magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
         """Fuse one magnetic solution referring to ``t_ref_us``: position
         ``q`` (3, source frame), orientation ``R_ms`` (3x3, sensor to source)
         and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``).
         Initialises the filter when needed. Returns health flags (ekf flags,
-        ``FUS_*``); never raises."""
+        ``FUS_*``); never raises. With ``final=False`` a rejected solution
+        leaves the snapshot in place (and counts nothing), so the caller can
+        offer another solution of the same burst."""
         if not (self.snap_valid and self.snap_t == t_ref_us and self._ring_covers(t_ref_us)):
             self.last_flags = FUS_NO_SNAPSHOT
             return FUS_NO_SNAPSHOT
@@ -544,18 +636,27 @@ class FusionFilter:
             return FUS_INITIALISED
         self._restore()
         self._measurement(q, R_ms, C)
+        if self.recorder is not None:
+            self.recorder.on_prior(self)
         flags = self.upd.update(self.P)
         self.last_nis = self.upd.nis
         if flags == EKF_OK:
             self._correct(self.upd._dxv)
             self.rejects_in_row = 0
+            self.accepted_in_row += 1
             self.updates += 1
             self.last_update_t = t_ref_us
             if self.recorder is not None:
                 self.recorder.on_update(self, self.upd.dx)
+        elif not final:
+            self.snap_valid = True
+            self._replay()
+            self.last_flags = flags
+            return flags
         else:
             self.rejected += 1
             self.rejects_in_row += 1
+            self.accepted_in_row = 0
             if self.rejects_in_row >= self.prm.reinit_after and (self.model == 1 or self.snap_xi):
                 self._initialize(t_ref_us, q, R_ms, C)
                 self.reinits += 1
@@ -605,10 +706,13 @@ class FusionFilter:
             _log_diff(self._sXiv, Th, y, row)
             x0 = XI.start
             xs = self.prm.xi_var_scale
+            fl = self.prm.xi_sigma_floor ** 2
+            fh = self.prm.xi_heading_sigma_floor ** 2
             XP = self._sXiPv
             for i in range(3):
                 for j in range(3):
                     P[x0 + i, x0 + j] = XP[i, j] * xs
+                P[x0 + i, x0 + i] += fh if i == 2 else fl
         if self.model == 2:
             # the magnetic orientation is not used: keep its white block inert
             for i in range(3):
@@ -678,6 +782,7 @@ class FusionFilter:
         self.t_us = t_ref_us
         self.initialized = True
         self.rejects_in_row = 0
+        self.accepted_in_row = 0
         self._hcount = 0
         self._hhead = 0
         if self.recorder is not None:
@@ -718,6 +823,16 @@ class FusionFilter:
                 return True
             prev = k
         return False
+
+    def velocity_sigma(self) -> float:
+        """rms velocity uncertainty per axis, m/s."""
+        P = self._Pv
+        v0 = VEL.start
+        return math.sqrt(max(P[v0, v0] + P[v0 + 1, v0 + 1] + P[v0 + 2, v0 + 2], 0.0) / 3.0)
+
+    def speed_squared(self) -> float:
+        v = self._vv
+        return v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
 
     def nees(self, p_true_g, R_true_g, v_true_g=None) -> float:
         """Normalised estimation error squared of position, orientation (and

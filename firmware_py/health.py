@@ -11,12 +11,15 @@ Per node (the coil driver and every sensor of the configuration):
 * **Time stamps** (sensors). Samples come at a steady rate, so consecutive
   stamps differ by a whole number of sample periods (missing samples make
   multiples). A stamp from the future (beyond ``stamp_future_tol_us`` of the
-  master clock), a stamp not after the previous one, or an interval further
-  than ``stamp_interval_tol_us`` from a whole number of periods is a clock
-  step: the stamps from there on are suspect until the node has answered a
-  time sync broadcast and its stamps run regularly again. A step the node's
-  sync replies show (``TimeSyncMaster.on_reply``) marks the time between the
-  two replies suspect. Each step is reported once (``EVT_CLOCK_STEP``, detail
+  master clock) or an interval further than ``stamp_interval_tol_us`` from a
+  whole number of periods is a clock step (a stamp not after the previous
+  one is a duplicated or delayed frame and is skipped; a clock that stepped
+  back is seen when its stamps pass the last one, off the grid): the stamps from there on are suspect until the node's sync replies
+  show it has re-anchored its clock and its stamps run regularly again (or,
+  for a false alarm, until three replies came without a step). A step the
+  node's sync replies show (``TimeSyncMaster.on_reply``) marks the time from
+  two replies back suspect (a node takes a step only when two broadcasts
+  agree). Each step is reported once (``EVT_CLOCK_STEP``, detail
   = node, bit 8 from the samples, bit 9 from the replies). A step that is
   within the tolerance of a whole number of sample periods is only seen in
   the replies. A cycle whose window span overlaps a suspect interval gives
@@ -28,12 +31,18 @@ Per node (the coil driver and every sensor of the configuration):
   sees the earth field alone, whose magnitude does not depend on the
   sensor's position or orientation in an undisturbed field (thesis ``002``
   ch. 2 detects disturbance from the field magnitude and dip). The first
-  ``distortion_learn_samples`` quiet samples give the reference magnitude;
+  ``distortion_learn_samples`` quiet samples of each set/reset state give
+  that state's reference magnitude (the residual offset changes sign with the
+  state);
   afterwards an exponential average of the quiet magnitudes
   (``distortion_avg_samples``) further than ``distortion_threshold_t`` from
   it sets the distortion flag (``EVT_DISTORTION``, ``POSE_DISTORTED``; cleared
   below half the threshold, event detail bit 31). A non-magnetic conductor
-  (eddy currents only) does not change the quiet field and is not seen here.
+  (eddy currents only) does not change the quiet field and is not seen here;
+  nor is a magnetic part in the directions where its induced field is
+  nearly orthogonal to the earth field (the magnitude changes by
+  ``(a/d)^3 |B| (3 cos^2 - 1)`` for a sphere of radius ``a`` at distance
+  ``d``, zero near 55 deg from the field).
 * **Coil status.** Every pulse of a burst must be answered by a
   ``COIL_STATUS``; a missing or refused one, an open circuit or an
   over-current makes the burst's pose one the firmware cannot vouch for
@@ -67,9 +76,9 @@ class HealthConfig:
     stamp_future_tol_us: int = 3_000
     stamp_interval_tol_us: int = 400
     saturation_quiet_us: int = 1_000_000
-    distortion_threshold_t: float = 2.0e-6
-    distortion_learn_samples: int = 120
-    distortion_avg_samples: int = 30
+    distortion_threshold_t: float = 1.5e-6
+    distortion_learn_samples: int = 60      # per set/reset state
+    distortion_avg_samples: int = 4
     quiet_margin_us: int = 5_000
 
 
@@ -89,6 +98,7 @@ class Health:
         self.lost = [False] * n
         self.lost_events = 0
         self.back_events = 0
+        self._back = ()
         # time stamps (sensors)
         self.period_us = 1e6 / mag_rate_hz
         self.last_stamp = [_NONE] * n
@@ -97,17 +107,19 @@ class Health:
         self.susp_k = [0] * n                  # next slot to write
         self.suspect_open = [False] * n
         self.suspect_reply_seen = [False] * n
+        self.suspect_quiet_replies = [0] * n
         self.clock_steps = 0
         # saturation
         self.last_sat_us = [_NONE] * n
         self.saturated_samples = 0
         self.saturation_events = 0
         # distortion
-        self.ref_sum = [0.0] * n
-        self.ref_n = [0] * n
-        self.ref_mag = [0.0] * n
-        self.avg_mag = [0.0] * n
+        self.ref_sum = [0.0] * (2 * n)
+        self.ref_n = [0] * (2 * n)
+        self.ref_mag = [0.0] * (2 * n)
+        self.avg_mag = [0.0] * (2 * n)
         self.distorted = [False] * n
+        self.dist_state = [False] * (2 * n)
         self.distortion_events = 0
         self._alpha = 1.0 / max(1, hcfg.distortion_avg_samples)
         # coil status of the current burst
@@ -116,6 +128,7 @@ class Health:
         self.status_faults: list[int] = []
         self.missing_status = 0
         self.missing_cycles = 0
+        self._skip_missing = False
         # pending events (code, detail), a fixed ring
         self._ev_code = [0] * _EVENTS
         self._ev_detail = [0] * _EVENTS
@@ -153,7 +166,18 @@ class Health:
             self.back_events += 1
             self._event(EVT_NODE_BACK, node)
             self.kick_sync = True
+            self._back = self._back + (node,)
             self.last_stamp[i] = _NONE
+            if i == self.driver_slot:
+                self.missing_cycles = 0
+                self._skip_missing = True
+
+    def back_nodes(self):
+        """Nodes that came back since the last call (for the time sync to forget them)."""
+        out = self._back
+        if out:
+            self._back = ()
+        return out
 
     def step(self, now_us: int) -> None:
         for i in range(len(self.ids)):
@@ -173,7 +197,7 @@ class Health:
 
     # ------------------------------------------------------------ samples
     def on_mag(self, node: int, stamp: int, bx: float, by: float, bz: float, saturated: bool,
-               now_us: int, quiet: bool) -> None:
+               now_us: int, quiet: bool, flip: int = 0) -> None:
         i = self._slot.get(node, -1)
         if i < 0 or i == self.driver_slot:
             return
@@ -184,14 +208,15 @@ class Health:
         if not bad and prev != _NONE:
             dt = stamp - prev
             if dt <= 0:
+                # a duplicated or delayed frame (out of order): skipped. A clock that stepped
+                # back shows once its stamps pass the last one, off the sample grid.
+                return
+            P = self.period_us
+            k = math.floor(dt / P + 0.5)
+            if k < 1:
+                k = 1
+            if k <= 64 and abs(dt - k * P) > hc.stamp_interval_tol_us:
                 bad = True
-            else:
-                P = self.period_us
-                k = math.floor(dt / P + 0.5)
-                if k < 1:
-                    k = 1
-                if k <= 64 and abs(dt - k * P) > hc.stamp_interval_tol_us:
-                    bad = True
         if bad:
             if not self.suspect_open[i]:
                 self._open_suspect(i, prev if prev != _NONE else stamp, 1 << 8)
@@ -211,22 +236,28 @@ class Health:
         if not quiet or bad:
             return
         m = math.sqrt(bx * bx + by * by + bz * bz)
-        if self.ref_n[i] < hc.distortion_learn_samples:
-            self.ref_sum[i] += m
-            self.ref_n[i] += 1
-            if self.ref_n[i] == hc.distortion_learn_samples:
-                self.ref_mag[i] = self.ref_sum[i] / self.ref_n[i]
-                self.avg_mag[i] = self.ref_mag[i]
+        s = 2 * i + (flip & 1)              # one reference per set/reset state (offset sign)
+        if self.ref_n[s] < hc.distortion_learn_samples:
+            self.ref_sum[s] += m
+            self.ref_n[s] += 1
+            if self.ref_n[s] == hc.distortion_learn_samples:
+                self.ref_mag[s] = self.ref_sum[s] / self.ref_n[s]
+                self.avg_mag[s] = self.ref_mag[s]
             return
-        a = self.avg_mag[i] + self._alpha * (m - self.avg_mag[i])
-        self.avg_mag[i] = a
-        dev = abs(a - self.ref_mag[i])
+        a = self.avg_mag[s] + self._alpha * (m - self.avg_mag[s])
+        self.avg_mag[s] = a
+        dev = abs(a - self.ref_mag[s])
         thr = hc.distortion_threshold_t
-        if not self.distorted[i] and dev > thr:
+        if dev > thr:
+            self.dist_state[s] = True
+        elif dev < 0.5 * thr:
+            self.dist_state[s] = False
+        now_dist = self.dist_state[2 * i] or self.dist_state[2 * i + 1]
+        if now_dist and not self.distorted[i]:
             self.distorted[i] = True
             self.distortion_events += 1
             self._event(EVT_DISTORTION, node | (min(int(dev * 1e8), 0xFFFF) << 8))
-        elif self.distorted[i] and dev < 0.5 * thr:
+        elif self.distorted[i] and not now_dist:
             self.distorted[i] = False
             self._event(EVT_DISTORTION, node | (1 << 31))
 
@@ -237,6 +268,7 @@ class Health:
         self.susp_t1[i][k] = _OPEN
         self.suspect_open[i] = True
         self.suspect_reply_seen[i] = False
+        self.suspect_quiet_replies[i] = 0
         self.clock_steps += 1
         self._event(EVT_CLOCK_STEP, self.ids[i] | how)
 
@@ -251,9 +283,15 @@ class Health:
         if i < 0:
             return
         if self.suspect_open[i]:
-            self.suspect_reply_seen[i] = True
-            if i == self.driver_slot:
-                self._close_suspect(i, now_us)
+            if stepped:
+                # the node has re-anchored its clock: the next regular stamp closes the interval
+                self.suspect_reply_seen[i] = True
+                if i == self.driver_slot:
+                    self._close_suspect(i, now_us)
+            else:
+                self.suspect_quiet_replies[i] += 1
+                if self.suspect_quiet_replies[i] >= 3:      # no step after all (or one absorbed)
+                    self._close_suspect(i, now_us)
             return
         if stepped:
             k = self.susp_k[i]
@@ -307,6 +345,9 @@ class Health:
 
     def note_missing_status(self, missing: bool) -> None:
         """Book whether the previous burst went wholly unanswered."""
+        if self._skip_missing:          # that burst was commanded while the driver was away
+            self._skip_missing = False
+            return
         if missing:
             self.missing_status += 1
             self.missing_cycles += 1

@@ -40,7 +40,10 @@ Error propagation (eq 2.28 and its offset / disturbance rows)::
 ``P = A P A^T + Q`` with ``Q = diag(T^2 Q_vG, Q_wb, Q_wd)``. Eq 2.34 is this
 with the cross-covariances of orientation and offset dropped (``A = 0``
 bookkeeping of the thesis); the full form is kept here because it is what
-makes the offset observable from the inclination and heading updates.
+makes the offset observable from the inclination and heading updates. The
+nominal state is integrated at every sample; the covariance is carried over
+all samples since the previous update in one step (:meth:`propagate`), so
+updates can run at a fraction of the IMU rate (``ori_update_every``).
 
 Measurements (eqs 2.31-2.33, in this sign convention)::
 
@@ -73,6 +76,7 @@ N = ORIENTATION_LAYOUT.n
 # orientation-filter health flags (bit field, beside the ekf flags)
 ORI_NOT_INITIALISED = 64
 ORI_FREEFALL = 128          # accelerometer norm far from g: inclination update skipped
+ORI_LEARNING = 256          # compass sample used to learn |m| and the dip, not as a compass
 
 
 class OrientationParams:
@@ -80,10 +84,10 @@ class OrientationParams:
     unless stated). Built from the firmware configuration."""
 
     def __init__(self, gyro_noise=0.006, gyro_bias_rw=1.7e-4, gyro_bias_sigma=0.01,
-                 acc_noise=0.015, acc_motion_sigma=0.05, acc_corr_time_s=0.1,
-                 mag_noise=1e-3, dist_corr=0.99, dist_sigma=2e-4, dist_norm_gain=1.0,
-                 dist_dip_gain=1.0, gravity=9.81, gate_probability=0.9999, theta0_sigma=0.05,
-                 freefall_tolerance=0.3):
+                 acc_noise=0.015, acc_motion_sigma=0.05, acc_corr_time_s=0.0,
+                 mag_noise=1e-3, dist_corr=0.99, dist_sigma=2e-5, dist_norm_gain=0.5,
+                 dist_dip_gain=0.5, dist_smoothing=0.05, gravity=9.81, gate_probability=0.9999,
+                 theta0_sigma=0.05, freefall_tolerance=0.3, mag_learn_samples=120):
         self.gyro_noise = float(gyro_noise)            # rad/s rms per sample (Q_vG)
         self.gyro_bias_rw = float(gyro_bias_rw)        # rad/s/sqrt(s) (Q_wb)
         self.gyro_bias_sigma = float(gyro_bias_sigma)  # rad/s, initial offset uncertainty
@@ -95,10 +99,12 @@ class OrientationParams:
         self.dist_sigma = float(dist_sigma)            # floor of sigma_d (eq 2.12)
         self.dist_norm_gain = float(dist_norm_gain)    # sigma_m of eq 2.12
         self.dist_dip_gain = float(dist_dip_gain)      # sigma_phi of eq 2.12 (per rad)
+        self.dist_smoothing = float(dist_smoothing)    # low-pass weight of norm and dip before eq 2.12
         self.gravity = float(gravity)
         self.gate_probability = float(gate_probability)
         self.theta0_sigma = float(theta0_sigma)        # rad, initial orientation uncertainty
         self.freefall_tolerance = float(freefall_tolerance)  # relative |y_A| deviation from g
+        self.mag_learn_samples = int(mag_learn_samples)    # compass samples averaged for |m| and dip
 
 
 class OrientationFilter:
@@ -122,6 +128,13 @@ class OrientationFilter:
         self._E = np.zeros((3, 3))       # exp() scratch
         self._Ev = memoryview(self._E)
         self._T = np.zeros((3, 3))
+        self._O = np.zeros((3, 3))       # orthonormalisation scratch
+        self._Rc = np.eye(3)             # orientation when the covariance was last propagated
+        self._Rcv = memoryview(self._Rc)
+        self._dt_acc = 0.0
+        self._dt2_acc = 0.0
+        self._cd_acc = 1.0
+        self._qd_acc = 0.0
         self._Av = memoryview(self.pred.A)
         self._Qv = memoryview(self.pred.Q)
         self.h_g = np.zeros(3)           # earth field direction, global frame
@@ -136,6 +149,10 @@ class OrientationFilter:
         self.last_mag_flags = 0
         self._Pv = memoryview(self.P)
         self._ca = 0.0
+        self._learn = 0
+        self._sum_h = 0.0
+        self._sum_v = 0.0
+        self._sum_n = 0.0
         self._Hacc = memoryview(self.upd_acc.H)
         self._Hmag = memoryview(self.upd_mag.H)
         self._Racc = memoryview(self.upd_acc.R)
@@ -173,6 +190,13 @@ class OrientationFilter:
         self.h_g[1] = 0.0
         self.h_g[2] = hu
         self.m_ref = mn
+        # |m| and the dip are averaged over the next compass samples (in the
+        # global frame, tilt kept by the inclination updates) before the
+        # compass is used: one sample's noise (or a set/reset offset not yet
+        # estimated) would tilt the reference. The first half of the window
+        # only lets the inclination settle and is not averaged.
+        self._learn = 2 * self.prm.mag_learn_samples
+        self._sum_h = self._sum_v = self._sum_n = 0.0
         self._last_norm = 1.0
         self._last_dip = math.atan2(hu, abs(hn))
         self.bias.fill(0.0)
@@ -186,6 +210,9 @@ class OrientationFilter:
             Pv[BIAS.start + i, BIAS.start + i] = p.gyro_bias_sigma ** 2
             Pv[DIST.start + i, DIST.start + i] = p.dist_sigma ** 2
         self.t_us = t_us
+        np.copyto(self._Rc, self.R)
+        self._dt_acc = self._dt2_acc = self._qd_acc = 0.0
+        self._cd_acc = 1.0
         self.initialized = True
         return True
 
@@ -196,17 +223,17 @@ class OrientationFilter:
 
     # --------------------------------------------------------- predict
     def predict(self, t_us: int, wx, wy, wz) -> None:
-        """Strapdown step to ``t_us`` with the gyroscope sample (rad/s, sensor frame)."""
+        """Strapdown step to ``t_us`` with the gyroscope sample (rad/s, sensor
+        frame): the nominal orientation, offset and disturbance now; the
+        covariance when the next update needs it (:meth:`propagate`), over all
+        the steps since the previous one at once."""
         dt = (t_us - self.t_us) * 1e-6
         self.t_us = t_us
         if not dt > 0.0:
             return
         p = self.prm
         b = self._bv
-        ox = (wx - b[0]) * dt
-        oy = (wy - b[1]) * dt
-        oz = (wz - b[2]) * dt
-        exp_rotvec(ox, oy, oz, self._Ev)
+        exp_rotvec((wx - b[0]) * dt, (wy - b[1]) * dt, (wz - b[2]) * dt, self._Ev)
         np.matmul(self.R, self._E, out=self._T)
         np.copyto(self.R, self._T)
         self.steps += 1
@@ -217,29 +244,56 @@ class OrientationFilter:
         d[0] *= cd
         d[1] *= cd
         d[2] *= cd
+        # eq 2.5: a- = c_a a+ (c_a = 0: the acceleration is white, a- = 0)
         ca = math.exp(-dt / p.acc_corr_time_s) if p.acc_corr_time_s > 0.0 else 0.0
         a = self._av
         a[0] *= ca
         a[1] *= ca
         a[2] *= ca
         self._ca = ca
-        # A: Gamma = exp(-[w T]x) = exp([w T]x)^T, -T I, c_d I
+        self._dt_acc += dt
+        self._dt2_acc += dt * dt
+        self._cd_acc *= cd
+        self._qd_acc = self._qd_acc * cd * cd + self._qwd
+
+    def propagate(self) -> None:
+        """Covariance over the steps since the last call (eq 2.28 and the
+        offset / disturbance rows, composed):
+
+        ``theta_N = Gamma theta_0 - T_N (I + Gamma) / 2 b``, ``Gamma = R_N^T R_0``
+        (the sensor-frame error turned with the sensor; trapezoidal mean of
+        the turn over the interval for the offset term), ``d_N = c_d^N d_0``;
+        ``Q`` the sums of the per-step noises (``sum (sigma_G T)^2``,
+        ``sigma_wb^2 T_N``, ``sum c_d^2k Q_wd``)."""
+        if self._dt_acc <= 0.0:
+            return
+        p = self.prm
+        R = self._Rv
+        Rc = self._Rcv
         A = self._Av
-        E = self._Ev
         t0 = THETA.start
+        b0 = BIAS.start
+        h = -0.5 * self._dt_acc
         for i in range(3):
             for j in range(3):
-                A[t0 + i, t0 + j] = E[j, i]
-            A[t0 + i, BIAS.start + i] = -dt
-            A[DIST.start + i, DIST.start + i] = cd
+                g = R[0, i] * Rc[0, j] + R[1, i] * Rc[1, j] + R[2, i] * Rc[2, j]
+                A[t0 + i, t0 + j] = g
+                A[t0 + i, b0 + j] = h * g + (h if i == j else 0.0)
+            A[DIST.start + i, DIST.start + i] = self._cd_acc
         Q = self._Qv
-        qt = (p.gyro_noise * dt) ** 2
-        qb = p.gyro_bias_rw * p.gyro_bias_rw * dt
+        qt = p.gyro_noise * p.gyro_noise * self._dt2_acc
+        qb = p.gyro_bias_rw * p.gyro_bias_rw * self._dt_acc
+        qd = self._qd_acc
         for i in range(3):
             Q[t0 + i, t0 + i] = qt
-            Q[BIAS.start + i, BIAS.start + i] = qb
-            Q[DIST.start + i, DIST.start + i] = self._qwd
+            Q[b0 + i, b0 + i] = qb
+            Q[DIST.start + i, DIST.start + i] = qd
         self.pred.predict(self.P)
+        np.copyto(self._Rc, self.R)
+        self._dt_acc = 0.0
+        self._dt2_acc = 0.0
+        self._cd_acc = 1.0
+        self._qd_acc = 0.0
 
     def _orthonormalize(self) -> None:
         """``R <- R (3 I - R^T R) / 2`` (one Newton step of the polar factor)."""
@@ -249,14 +303,15 @@ class OrientationFilter:
             for j in range(3):
                 rtr = R[0, i] * R[0, j] + R[1, i] * R[1, j] + R[2, i] * R[2, j]
                 Tv[i, j] = (1.5 if i == j else 0.0) - 0.5 * rtr
-        np.matmul(self.R, self._T, out=self._E)
-        np.copyto(self.R, self._E)
+        np.matmul(self.R, self._T, out=self._O)
+        np.copyto(self.R, self._O)
 
     # --------------------------------------------------------- updates
     def _apply(self, dx) -> None:
         exp_rotvec(dx[THETA.start], dx[THETA.start + 1], dx[THETA.start + 2], self._Ev)
         np.matmul(self.R, self._E, out=self._T)
         np.copyto(self.R, self._T)
+        np.copyto(self._Rc, self.R)      # the error is reset at the corrected orientation
         b = self._bv
         d = self._dv
         for i in range(3):
@@ -276,6 +331,7 @@ class OrientationFilter:
             self.last_acc_flags = ORI_FREEFALL
             self._post_acc(ax, ay, az)
             return ORI_FREEFALL
+        self.propagate()
         R = self._Rv
         zx, zy, zz = R[2, 0], R[2, 1], R[2, 2]
         u = self.upd_acc
@@ -283,10 +339,13 @@ class OrientationFilter:
         y[0] = vx / vn - zx
         y[1] = vy / vn - zy
         y[2] = vz / vn - zz
-        _skew_block(self._Hacc, 0, THETA.start, zx, zy, zz)
+        # the predicted acceleration c_a a+ carries c_a times the previous
+        # orientation error (a+ = y_A - g Z+), so only (1 - c_a) of the
+        # orientation error shows in the inclination difference; its noise is
+        # the accelerometer noise of both samples and the driving noise w_a
         ca = self._ca
-        q = p.acc_noise ** 2 + p.acc_motion_sigma ** 2
-        r = (ca * ca * q + q) / (g * g)
+        _skew_block(self._Hacc, 0, THETA.start, (1.0 - ca) * zx, (1.0 - ca) * zy, (1.0 - ca) * zz)
+        r = ((1.0 + ca * ca) * p.acc_noise ** 2 + p.acc_motion_sigma ** 2) / (g * g)
         Rm = self._Racc
         for i in range(3):
             Rm[i, i] = r
@@ -310,16 +369,43 @@ class OrientationFilter:
         sensor frame) taken outside any coil pulse. Also adapts the
         disturbance driving noise from the change of norm and dip (eq 2.12)."""
         p = self.prm
+        R = self._Rv
+        if self._learn > self.prm.mag_learn_samples:
+            self._learn -= 1
+            self.last_mag_flags = ORI_LEARNING
+            return ORI_LEARNING
+        if self._learn > 0:
+            gx = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz
+            gy = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz
+            gz = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz
+            self._sum_h += math.sqrt(gx * gx + gy * gy)
+            self._sum_v += gz
+            self._sum_n += math.sqrt(mx * mx + my * my + mz * mz)
+            self._learn -= 1
+            if self._learn == 0:
+                k = self.prm.mag_learn_samples
+                hh, hv, mn = self._sum_h / k, self._sum_v / k, self._sum_n / k
+                hn = math.sqrt(hh * hh + hv * hv)
+                self.h_g[0] = hh / hn
+                self.h_g[2] = hv / hn
+                self.m_ref = mn
+                self._last_dip = math.atan2(self.h_g[2], self.h_g[0])
+            self.last_mag_flags = ORI_LEARNING
+            return ORI_LEARNING
+        self.propagate()
         inv = 1.0 / self.m_ref
         nx, ny, nz = mx * inv, my * inv, mz * inv
-        R = self._Rv
         # eq 2.8-2.12: norm and dip of the measured field
         gx = R[0, 0] * nx + R[0, 1] * ny + R[0, 2] * nz
         gy = R[1, 0] * nx + R[1, 1] * ny + R[1, 2] * nz
         gz = R[2, 0] * nx + R[2, 1] * ny + R[2, 2] * nz
-        norm = math.sqrt(gx * gx + gy * gy + gz * gz)
-        dip = math.atan2(gz, math.sqrt(gx * gx + gy * gy))
-        sd = p.dist_sigma + p.dist_norm_gain * abs(norm - self._last_norm) + p.dist_dip_gain * abs(dip - self._last_dip)
+        # the sample-to-sample change is mostly sensor noise: eq 2.12 is applied
+        # to low-passed norm and dip, so only a lasting change raises sigma_d
+        al = p.dist_smoothing
+        norm = (1.0 - al) * self._last_norm + al * math.sqrt(gx * gx + gy * gy + gz * gz)
+        dip = (1.0 - al) * self._last_dip + al * math.atan2(gz, math.sqrt(gx * gx + gy * gy))
+        sd = (p.dist_sigma + p.dist_norm_gain * abs(norm - self._last_norm)
+              + p.dist_dip_gain * abs(dip - self._last_dip))
         self._qwd = sd * sd
         self._last_norm = norm
         self._last_dip = dip
@@ -350,6 +436,7 @@ class OrientationFilter:
     def theta_covariance_global(self, out) -> None:
         """Covariance of the orientation error expressed in the global frame,
         ``R P[THETA, THETA] R^T`` (``R_true = exp([R theta]x) R``), into ``out`` (3x3)."""
+        self.propagate()
         R = self._Rv
         P = self._Pv
         t0 = THETA.start

@@ -8,11 +8,12 @@ three calls: ``on_message(msg, now)`` for every decoded frame,
 ``step(now, send, emit_event)`` once per tick, and ``pose_status(node)``
 when a pose is made (it returns extra ``POSE_*`` bits and sets ``veto``
 when the firmware cannot vouch for the pose: a coil status missing or fatal,
-or a node clock that stepped during the burst). It reads the firmware's
+a node clock that stepped during the burst, or a saturated sample in a
+window). It reads the firmware's
 pulse schedule (``pulse_start``, ``pulse_end``, ``pulse_id``,
 ``pending_cycle``) without changing it.
 
-Per burst: a ``TIME_SYNC`` right when the commands leave and one right after
+Per burst: a ``TIME_SYNC`` right when the commands leave and three right after
 the last pulse ends (plus the periodic ones), and one ``MAG_FLIP_CMD`` per
 sensor for the quiet gap after the burst.
 """
@@ -23,6 +24,7 @@ from dataclasses import dataclass, field
 from protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DEGRADED, POSE_DISTORTED, POSE_INCONSISTENT
 
 from .flipsched import FlipScheduler
+from .pulse import PULSE_SATURATED
 from .health import Health, HealthConfig
 from .timesync import TimeSyncMaster
 
@@ -76,7 +78,7 @@ class Supervisor:
             h.heard(node, now_us)
             self.flips.observe(node, msg.flip)
             h.on_mag(node, msg.t_us, msg.x * MAG_LSB_T, msg.y * MAG_LSB_T, msg.z * MAG_LSB_T,
-                     bool(msg.flip & 2), now_us, self._quiet(msg.t_us))
+                     bool(msg.flip & 2), now_us, self._quiet(msg.t_us), msg.flip & 1)
         elif mid == _ID_IMU:
             h.heard(msg.node, now_us)
         elif mid == _ID_COIL_STATUS:
@@ -88,8 +90,10 @@ class Supervisor:
             node = msg.node
             h.heard(node, now_us)
             ts = self.timesync
+            for back in h.back_nodes():
+                ts.forget(back)             # it came back (rebooted): its replies re-acquire
             i = ts.slot(node)
-            prev = ts.last_reply_us[i] if i >= 0 else now_us
+            prev = ts.first_suspect_us(i, now_us)           # before the candidates of a forward step
             stepped = ts.on_reply(msg, now_us)
             h.on_sync_reply(node, stepped, prev, now_us)
         elif mid == _ID_HEARTBEAT:
@@ -118,8 +122,14 @@ class Supervisor:
                     last_end = self._pe[j]
             cfg = fw.cfg
             if self.scfg.sync_around_burst:
+                # one as the commands leave, three 2 ms apart right after the last pulse: a node
+                # takes a forward clock step only when three broadcasts agree (a stall of the
+                # link delays frames 2 ms apart by amounts 2 ms apart, so it cannot fake one),
+                # so a step during the burst shows in the replies before the burst's pose
                 self.timesync.request(now_us)
                 self.timesync.request(last_end + 1_000)
+                self.timesync.request(last_end + 3_000)
+                self.timesync.request(last_end + 5_000)
             if self.scfg.flips:
                 quiet_from = last_end + cfg.fall_us + cfg.baseline_us + cfg.guard_us
                 quiet_to = pc + cfg.cycle_us - cfg.baseline_us - cfg.guard_us
@@ -127,6 +137,8 @@ class Supervisor:
         if self.health.kick_sync:
             self.health.kick_sync = False
             self.timesync.kick()
+            for node in self.health.back_nodes():
+                self.timesync.forget(node)          # it re-acquires: its first replies are no step
         self.timesync.step(now_us, send)
         self.health.step(now_us)
         self.health.flush_events(emit_event)
@@ -158,6 +170,11 @@ class Supervisor:
         i = h._slot.get(node, -1)
         if i >= 0 and h.distorted[i]:
             bits |= POSE_DISTORTED
+        tr = self.fw.tracks.get(node)
+        if tr is not None:
+            for j in range(self.n):
+                if int(tr.flags[j]) & PULSE_SATURATED:   # clipped samples: the amplitude is meaningless
+                    veto = True
         self.veto = veto
         if veto:
             self.poses_vetoed += 1

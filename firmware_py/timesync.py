@@ -13,8 +13,9 @@ drift.
 
 From consecutive replies of a node the master predicts the next offset
 (``offset + drift * dt``); a reply further than ``step_threshold_us`` from the
-prediction means the node's clock stepped (or the node rebooted):
-:meth:`on_reply` returns True and the supervisor reports ``EVT_CLOCK_STEP``.
+prediction means the node's clock stepped: :meth:`on_reply` returns True and
+the supervisor reports ``EVT_CLOCK_STEP``. The first replies of a node, and
+of a node that came back (rebooted), are its acquisition and are not judged.
 The round-trip time of each answered broadcast is kept (``rtt_us``,
 ``rtt_min_us``) as a measure of the link latency.
 
@@ -27,7 +28,9 @@ from protocol import MSG
 TimeSyncMsg = MSG["TIME_SYNC"]
 
 _HISTORY = 16        # broadcasts remembered for round-trip times
-_REQUESTS = 4        # pending requested broadcast times
+_REQUESTS = 6        # pending requested broadcast times
+_REPLIES = 5         # reply arrival times remembered per node
+_ACQUIRE = 4         # replies of a (re)acquiring node not judged for steps
 
 
 class TimeSyncMaster:
@@ -46,6 +49,9 @@ class TimeSyncMaster:
         self._slot = {nid: i for i, nid in enumerate(self.node_ids)}
         self.have = [False] * n
         self.last_reply_us = [0] * n           # master time the last reply arrived
+        self._hist = [[0] * _REPLIES for _ in range(n)]    # arrival times of the last replies
+        self._hk = [0] * n
+        self.acquired = [0] * n                # replies since (re)acquisition
         self.offset_us = [0] * n               # node's reported offset (node - master)
         self.drift_ppb = [0] * n
         self.rtt_us = [0] * n
@@ -56,6 +62,20 @@ class TimeSyncMaster:
 
     def slot(self, node: int) -> int:
         return self._slot.get(node, -1)
+
+    def forget(self, node: int) -> None:
+        """The node restarted: its next replies re-acquire (no step is judged on them)."""
+        i = self._slot.get(node, -1)
+        if i >= 0:
+            self.have[i] = False
+            self.acquired[i] = 0
+
+    def first_suspect_us(self, i: int, now_us: int) -> int:
+        """Arrival of the reply ``_REPLIES - 1`` replies back: a forward step a node confirms
+        with three broadcasts happened before the first of them."""
+        if i < 0:
+            return now_us
+        return self._hist[i][self._hk[i]] or now_us
 
     def kick(self) -> None:
         """Broadcast at the next tick (a node came back)."""
@@ -108,14 +128,18 @@ class TimeSyncMaster:
             if self.rtt_min_us[i] == 0 or rtt < self.rtt_min_us[i]:
                 self.rtt_min_us[i] = rtt
         stepped = False
-        if self.have[i]:
+        if self.have[i] and self.acquired[i] >= _ACQUIRE:
             dt = now_us - self.last_reply_us[i]
             pred = self.offset_us[i] + self.drift_ppb[i] * dt // 1_000_000_000
             if abs(msg.offset_us - pred) > self.step_threshold_us:
                 stepped = True
                 self.steps[i] += 1
         self.have[i] = True
+        self.acquired[i] += 1
         self.last_reply_us[i] = now_us
+        k = self._hk[i]
+        self._hist[i][k] = now_us
+        self._hk[i] = (k + 1) % _REPLIES
         self.offset_us[i] = msg.offset_us
         self.drift_ppb[i] = msg.drift_ppb
         self.replies[i] += 1

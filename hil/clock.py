@@ -129,13 +129,20 @@ class NodeSync:
 
     Each broadcast gives a point ``(local_rx, master)``: the node's counter
     when the frame arrived and the master time written in it. The node fits
-    ``master - local = c0 + c1 (local - local_last)`` by least squares over
-    the last ``window`` points (``c0`` is minus the offset at the newest
-    point, ``c1`` minus the relative drift), so the estimate averages the
-    reception jitter and follows a drifting oscillator. A point further than
-    ``step_threshold_us`` from the prediction is a clock step (of the node
-    or the master): the history is dropped and the line restarts at that
-    point, keeping the drift. The transmission latency of the broadcast is
+    ``master - local = c0 + c1 (local - local_last)`` over the last
+    ``window`` points (``c0`` is minus the offset at the newest point, ``c1``
+    minus the relative drift): the slope by least squares, the line shifted to
+    the least delayed point (frames are late, never early), so reception
+    jitter neither tilts nor lifts it much and a drifting oscillator is
+    followed. A broadcast can be
+    late but never early: a point earlier than predicted by more than
+    ``step_threshold_us`` is a clock step taken at once, a later one is a late
+    frame unless ``confirm`` consecutive points agree on it (then a step); the
+    history is dropped and the line restarts, keeping the drift (see
+    :meth:`update`). Stale points (not newer than the last) are ignored. The drift is fitted only once the points span
+    ``min_span_us`` (before that the previous drift, initially zero, is kept
+    and only the offset is fitted), so reception jitter over a short span
+    cannot produce a wild drift. The transmission latency of the broadcast is
     common to every node of the bus and so cancels between a coil driver and
     a sensor (both see the master late by the same amount).
 
@@ -143,9 +150,14 @@ class NodeSync:
     the local time unchanged.
     """
 
-    def __init__(self, window: int = 16, step_threshold_us: int = 1500):
+    def __init__(self, window: int = 32, step_threshold_us: int = 1500, min_span_us: int = 1_000_000,
+                 max_drift: float = 1e-3, acquire: int = 4, confirm: int = 3):
         self.window = int(window)
         self.step_threshold_us = int(step_threshold_us)
+        self.acquire = int(acquire)
+        self.confirm = int(confirm)
+        self.min_span_us = int(min_span_us)
+        self.max_drift = float(max_drift)
         self._pts: deque[tuple[int, int]] = deque(maxlen=self.window)
         self.c0 = 0.0          # master - local at local_ref
         self.c1 = 0.0          # d(master - local)/d(local)
@@ -153,51 +165,102 @@ class NodeSync:
         self.synced = False
         self.updates = 0
         self.steps = 0
+        self.rejected = 0
         self.last_residual_us = 0
+        self._cands: list[tuple[int, int, int]] = []
 
     def reset(self) -> None:
         self._pts.clear()
+        self._cands.clear()
         self.c0 = self.c1 = 0.0
         self.local_ref = 0
         self.synced = False
 
     def update(self, local_rx_us: int, master_us: int) -> bool:
-        """Add one sync point; return True when it was a step (history dropped)."""
+        """Add one sync point; return True when it established a clock step (history dropped).
+
+        A broadcast can arrive late, never early. With ``r`` the point's residual
+        (predicted master time at its arrival minus its master time):
+
+        * a stale point (master time not newer than the last) is ignored;
+        * during acquisition (fewer than ``acquire`` points) the line follows the
+          lower envelope: a late point (``r > threshold``) is ignored, an early one
+          (``r < -threshold``: the anchor was late) restarts the line; no step;
+        * ``r < -threshold`` later: the node's clock stepped back (or the master's
+          forward): the line restarts there at once, a step;
+        * ``r > threshold``: a late frame or a forward step; it is held, and a step
+          is taken only when ``confirm`` consecutive points agree within the
+          threshold (one stall delays frames sent 2 ms apart by amounts 2 ms
+          apart, so it cannot fake this); otherwise they are dropped.
+        """
         local_rx_us, master_us = int(local_rx_us), int(master_us)
-        stepped = False
+        thr = self.step_threshold_us
         if self.synced:
-            resid = master_us - self.to_master(local_rx_us)
-            self.last_residual_us = resid
-            if abs(resid) > self.step_threshold_us:
+            if self._pts and master_us <= self._pts[-1][1]:
+                self.rejected += 1
+                return False
+            r = self.to_master(local_rx_us) - master_us
+            self.last_residual_us = -r
+            if len(self._pts) < self.acquire:
+                if r > thr:
+                    self.rejected += 1
+                    return False
+                if r < -thr:
+                    self._pts.clear()
+            elif r < -thr:
                 self._pts.clear()
+                self._cands.clear()
+                self._pts.append((local_rx_us, master_us))
                 self.steps += 1
-                stepped = True
+                self.updates += 1
+                self._fit()
+                return True
+            elif r > thr:
+                self._cands.append((local_rx_us, master_us, r))
+                rs = [c[2] for c in self._cands]
+                if max(rs) - min(rs) > thr:
+                    self._cands[:] = self._cands[-1:]
+                elif len(self._cands) >= self.confirm:
+                    self._pts.clear()
+                    for l, m, _ in self._cands:
+                        self._pts.append((l, m))
+                    self._cands.clear()
+                    self.steps += 1
+                    self.updates += 1
+                    self._fit()
+                    return True
+                self.rejected += 1
+                return False
+        self._cands.clear()
         self._pts.append((local_rx_us, master_us))
         self.updates += 1
         self._fit()
         self.synced = True
-        return stepped
+        return False
 
     def _fit(self) -> None:
         pts = self._pts
         lref = pts[-1][0]
         n = len(pts)
-        if n == 1:
-            self.local_ref, self.c0 = lref, float(pts[0][1] - pts[0][0])
-            return
         xs = [float(l - lref) for l, _ in pts]
         ys = [float(m - l) for l, m in pts]
         xm = sum(xs) / n
         ym = sum(ys) / n
         sxx = sum((x - xm) ** 2 for x in xs)
-        if sxx <= 0.0:
-            self.local_ref, self.c0 = lref, ym
-            return
-        c1 = sum((x - xm) * (y - ym) for x, y in zip(xs, ys)) / sxx
-        if n == 2 and abs(c1) > 1e-3:       # two close points: too noisy to trust, keep the old drift
-            c1 = self.c1
+        span = xs[-1] - xs[0]
+        c1 = self.c1
+        if n >= 3 and span >= self.min_span_us and sxx > 0.0:
+            fit = sum((x - xm) * (y - ym) for x, y in zip(xs, ys)) / sxx
+            if abs(fit) <= self.max_drift:
+                c1 = fit
+        # with a short span the drift is kept and only the offset is fitted
+        c0 = ym - c1 * xm                   # least-squares value at x = 0 (local_ref)
+        # frames are late, never early: y = master - local is largest for the least delayed
+        # frame; put the line through it (the lower envelope of the delay, as NTP's clock
+        # filter), so frames that were a little late do not bias the offset
+        c0 += max(y - (c0 + c1 * x) for x, y in zip(xs, ys))
         self.c1 = c1
-        self.c0 = ym - c1 * xm              # value at x = 0 (local_ref)
+        self.c0 = c0
         self.local_ref = lref
 
     def to_master(self, local_us: int) -> int:

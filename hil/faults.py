@@ -28,6 +28,7 @@ separated, keys may repeat::
     open_circuit=COIL@WHEN         coil winding open
     short=COIL@WHEN                coil shorted: the driver trips on over-current
     sag=FACTOR@WHEN                supply voltage drops to FACTOR x nominal (battery)
+    overheat=COIL@WHEN             the winding is hot (150 C) while it lasts: over-temperature refusals
     metal=WHEN                     steel part carried next to the sensor (metal_d=M, metal_r=M)
     node_off=NODE@WHEN             node silent, then reboots (its clock restarts, it must re-sync)
 
@@ -190,7 +191,7 @@ class FaultyLink:
 # ---------------------------------------------------------------------------
 
 _UNITS = {"s": 1_000_000, "ms": 1_000, "us": 1}
-_TIMED = ("clock_step", "sat", "open_circuit", "short", "sag", "metal", "node_off")
+_TIMED = ("clock_step", "sat", "open_circuit", "short", "sag", "overheat", "metal", "node_off")
 _NODES = ("sensor", "driver")
 
 
@@ -319,6 +320,8 @@ class BenchFaults:
             self.timed.append(TimedFault(key, t0, t1, "sensor"))
         elif key in ("open_circuit", "short"):
             self.timed.append(TimedFault(key, t0, t1, int(head)))
+        elif key == "overheat":
+            self.timed.append(TimedFault(key, t0, t1, int(head), 150.0))
         elif key == "sag":
             f = float(head)
             if not 0.0 < f <= 1.0:

@@ -27,7 +27,8 @@ import numpy as np
 
 from protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
 from protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
-                             COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_REFUSED,
+                             COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
+                             COIL_FAULT_REFUSED,
                              CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STATE_READY,
                              STATE_RUNNING)
 
@@ -69,6 +70,7 @@ class Node:
         self.next_heartbeat_local: int | None = None
         self.reboots = 0
         self.sync_rx = 0
+        self.synced_since_us = 0
         self._power_rng = np.random.default_rng(seed + 7919)
 
     # --- time
@@ -110,6 +112,8 @@ class Node:
             return
         if msg.NAME == "TIME_SYNC":
             loc = self.clock.local(now_us)
+            if not self.sync.synced:
+                self.synced_since_us = now_us
             self.sync.update(loc, msg.master_time_us)
             self.sync_rx += 1
             send(self, TimeSyncReply(self.node_id, msg.sync_seq, max(0, loc), _i32(self.sync.offset_us),
@@ -154,6 +158,10 @@ class DriverLimits:
     open_fraction: float = 0.2     # measured below this fraction: COIL_FAULT_OPEN_CIRCUIT
     trip_us: int = 200             # over-current trip time of the short-circuit protection
     short_resistance_factor: float = 0.05
+    max_temp_c: float = 90.0       # winding temperature above which pulses are refused
+    ambient_c: float = 25.0
+    thermal_r_k_per_w: float = 20.0    # winding to ambient
+    thermal_tau_s: float = 120.0       # winding thermal time constant (C_th = tau / R_th)
 
 
 class CoilDriverNode(Node):
@@ -166,7 +174,9 @@ class CoilDriverNode(Node):
     current it measured near the end and the edges (its estimate of master
     time) in ``COIL_STATUS``, with fault bits: open circuit (measured ~0),
     over-current (short: tripped after ``trip_us``), current sag (measured
-    below ``sag_fraction`` of the target). It refuses commands that break its
+    below ``sag_fraction`` of the target). A first-order thermal model of
+    each winding (I^2 R heating, ``thermal_r_k_per_w``, ``thermal_tau_s``)
+    makes it refuse pulses (over-temperature) above ``max_temp_c``. It refuses commands that break its
     limits, arrive late, duplicate a pulse id, or come before it is
     synchronised, and reports the refusal. Pulses are committed to the world
     ``commit_horizon_us`` before they start.
@@ -195,6 +205,9 @@ class CoilDriverNode(Node):
         self.refused = 0
         self.duplicates = 0
         self.cmd_leads_us: list[int] = []   # master lead of every accepted command at arrival
+        # winding temperatures (first-order thermal model, advanced pulse by pulse)
+        self.temp_c = [self.limits.ambient_c] * n
+        self._temp_t = [0] * n
 
     # --- fault state at a true time
     def _open(self, c: int, t: int) -> bool:
@@ -210,6 +223,28 @@ class CoilDriverNode(Node):
             if s is not None:
                 f *= s.value
         return self.world.supply_v * f
+
+    def temperature(self, c: int, t_us: int) -> float:
+        """Winding temperature of coil ``c`` at true time ``t_us`` (no pulse since the last one);
+        an ``overheat`` fault holds it at the fault's temperature while it lasts (a hot spot:
+        blocked cooling, a heat source nearby)."""
+        lim = self.limits
+        f = self.faults.at("overheat", t_us, c) if self.faults is not None else None
+        if f is not None:
+            return float(f.value)
+        amb = lim.ambient_c
+        dt = max(0, t_us - self._temp_t[c]) * 1e-6
+        return amb + (self.temp_c[c] - amb) * math.exp(-dt / lim.thermal_tau_s)
+
+    def _heat(self, c: int, t0: int, t1: int, amps: float) -> None:
+        """Advance the thermal model over a pulse of ``amps`` through coil ``c`` (I^2 R heating)."""
+        lim = self.limits
+        T = self.temperature(c, t0)
+        amb = lim.ambient_c
+        p = amps * amps * self.world.coils[c].resistance
+        T_inf = amb + p * lim.thermal_r_k_per_w
+        self.temp_c[c] = T_inf + (T - T_inf) * math.exp(-(t1 - t0) * 1e-6 / lim.thermal_tau_s)
+        self._temp_t[c] = t1
 
     def _duty(self, coil: int, start: int, dur: int) -> float:
         w0 = start + dur - self.limits.duty_window_us
@@ -263,6 +298,14 @@ class CoilDriverNode(Node):
         coil = self.world.coils[c]
         v = self.supply_v(t0)
         target = rec["target_a"]
+        if self.temperature(c, t0) > self.limits.max_temp_c:
+            # over-temperature protection: the pulse is not driven, the refusal reported
+            rec["faults"] = COIL_FAULT_REFUSED | COIL_FAULT_OVER_TEMPERATURE
+            rec["current_a"] = 0.0
+            rec["tau_us"] = self.world.currents[c].tau_us
+            rec["refused_hot"] = True
+            self.active.append(rec)
+            return
         if self._open(c, t0):
             achieved = 0.0
         elif self._short(c, t0):
@@ -276,6 +319,7 @@ class CoilDriverNode(Node):
         rec["current_a"] = achieved
         rec["tau_us"] = self.world.currents[c].tau_us
         self.world.currents[c].schedule(t0, t1 - t0, achieved)
+        self._heat(c, t0, t1, achieved)
         self.active.append(rec)
 
     def on_power_off(self, now_us: int) -> None:
@@ -308,6 +352,12 @@ class CoilDriverNode(Node):
                 + float(self.rng.normal(0.0, self.current_noise_a))
             target = abs(rec["target_a"])
             faults = rec["faults"]
+            if rec.get("refused_hot"):
+                self.refused += 1
+                self.refusals.append({"coil": c, "pulse_id": rec["pulse_id"], "faults": faults,
+                                      "rx_true_us": rec["rx_true_us"], "lead_us": rec["lead_us"]})
+                send(self, CoilStatus(c, rec["pulse_id"], 0, rec["master_start_us"], rec["master_start_us"], faults))
+                continue
             if not faults & COIL_FAULT_OVER_CURRENT and target > 0.0:
                 if abs(measured) < self.limits.open_fraction * target:
                     faults |= COIL_FAULT_OPEN_CIRCUIT
@@ -415,7 +465,7 @@ class SensorNode(Node):
     turn during a pulse).
     """
     role = ROLE_SENSOR
-    _CHUNK = 64
+    _CHUNK = 32
 
     def __init__(self, node_id: int, world, mag: MagSpec | None = None, imu: ImuSpec | None = None,
                  seed: int = 0, clock: NodeClock | None = None, faults=None, *, rate_hz: float | None = None,
@@ -527,6 +577,11 @@ class SensorNode(Node):
                 while self._imu_t(self._imu_k) <= now_us:
                     self._imu_k += 1
             return
+        while self._mag_t(self._mag_k) < self.synced_since_us:   # taken before the node had time
+            self._mag_k += 1
+        if self.imu is not None:
+            while self._imu_t(self._imu_k) < self.synced_since_us:
+                self._imu_k += 1
         while self._mag_t(self._mag_k) <= now_us:
             k = self._mag_k
             if k > self._mag_cached_to:
@@ -553,7 +608,7 @@ class SensorNode(Node):
             self.saturations += 1
         lim = m.range_t / MAG_LSB_T
         counts = np.clip(np.round(B / MAG_LSB_T), -lim, lim)
-        stamp = self.master(t)
+        stamp = max(0, self.master(t))
         self.samples += 1
         self.stamps.append(stamp)
         self.true_times.append(t)
@@ -577,7 +632,7 @@ class SensorNode(Node):
             + self.imu_rng.normal(0.0, imu.acc_sigma, 3)
         g = w + self.gyro_bias + self.imu_rng.normal(0.0, imu.gyro_sigma, 3)
         self.imu_samples += 1
-        send(self, ImuSample(self.node_id, self.master(t), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
+        send(self, ImuSample(self.node_id, max(0, self.master(t)), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
                              _i16(f[2] / ACC_LSB), _i16(g[0] / GYR_LSB), _i16(g[1] / GYR_LSB),
                              _i16(g[2] / GYR_LSB)))
 
@@ -597,13 +652,22 @@ class Recorder:
     """Plays the host: keeps every POSE (with the true pose at its time stamp and the
     PULSE_WINDOWs of its cycle), PULSE_WINDOW, FAULT_EVENT, HEARTBEAT and TIME_SYNC.
 
-    ``master_to_true`` maps a master-clock time to true time (identity when the
-    firmware's clock is the bench's time base, as in both runners here).
+    ``master_to_true`` maps a master-clock time to true time: None for the
+    identity (the firmware's clock is the bench's time base, as in both
+    runners here), ``"sync"`` to learn it from the ``TIME_SYNC`` broadcasts the
+    emulator sees (a firmware or a board with a clock of its own: the
+    recorder fits them like a node with a perfect clock, ``hil.clock.NodeSync``),
+    or a callable.
     """
 
     def __init__(self, world, master_to_true=None):
         self.world = world
-        self.master_to_true = master_to_true or (lambda t: int(t))
+        self.sync = None
+        if master_to_true == "sync":
+            self.sync = NodeSync()
+            self.master_to_true = lambda t: self.sync.to_local(int(t))
+        else:
+            self.master_to_true = master_to_true or (lambda t: int(t))
         self.poses: list[dict] = []
         self.windows: list = []
         self.events: list = []
@@ -629,6 +693,8 @@ class Recorder:
             self.heartbeats.append((now_us, msg))
         elif name == "TIME_SYNC":
             self.time_syncs.append((now_us, msg))
+            if self.sync is not None:
+                self.sync.update(now_us, msg.master_time_us)
         elif name == "MAG_FLIP_CMD":
             self.flip_cmds.append((now_us, msg))
         elif name == "COIL_PULSE_CMD":

@@ -36,6 +36,7 @@ no object-object interaction, no back-action on the coil current).
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from dataclasses import field as dc_field
@@ -582,8 +583,18 @@ class CoilCurrent:
         s = np.where(active, (t - st[kk]) * 1e-6, 0.0)
         return t, active, kk, s, (i0[kk], inf[kk], tau[kk])
 
+    def _seg_scalar(self, t_us: int) -> int:
+        """Index of the segment holding scalar time ``t_us`` (-1 before the first)."""
+        return bisect.bisect_right(self._seg_t, t_us) - 1
+
     def current_at(self, t_us):
         """Coil current (A) at integer microsecond time(s)."""
+        if isinstance(t_us, (int, np.integer)):          # scalar fast path (plain floats)
+            k = self._seg_scalar(int(t_us))
+            if k < 0:
+                return 0.0
+            inf, i0 = self._seg_inf[k], self._seg_i0[k]
+            return inf + (i0 - inf) * math.exp(-(int(t_us) - self._seg_t[k]) * 1e-6 / self._seg_tau[k])
         t, active, kk, s, seg = self._locate(t_us)
         if seg is None:
             return np.zeros(t.shape) if t.ndim else 0.0
@@ -610,6 +621,8 @@ class CoilCurrent:
         ``tau_s`` scalar, or a 1-D array of time constants giving a leading axis
         (``(n_tau,) + shape(t_us)``).
         """
+        if isinstance(t_us, (int, np.integer)) and isinstance(tau_s, (float, int)):
+            return self._highpass_scalar(int(t_us), float(tau_s))
         taus = np.asarray(tau_s, dtype=float)
         if np.any(taus <= 0.0):
             raise ValueError("tau must be positive")
@@ -626,6 +639,23 @@ class CoilCurrent:
         val = y0 * np.exp(-s / tt) + tt * (inf - i0) * _decay_diff(np.broadcast_to(s, shape), np.broadcast_to(tau_c, shape), tt)
         val = np.where(active, val, 0.0)
         return val if shape else float(val)
+
+    def _highpass_scalar(self, t_us: int, tau: float) -> float:
+        """:meth:`highpass_at` for one time and one time constant, in plain floats."""
+        if tau <= 0.0:
+            raise ValueError("tau must be positive")
+        k = self._seg_scalar(t_us)
+        if k < 0:
+            return 0.0
+        y0 = float(self._hp_starts(tau)[k])
+        s = (t_us - self._seg_t[k]) * 1e-6
+        i0, inf, tc = self._seg_i0[k], self._seg_inf[k], self._seg_tau[k]
+        d = abs(tc - tau)
+        if d < 1e-12 * tau:
+            dd = math.exp(-s / tau) * s / (tau * tau)
+        else:
+            dd = -math.exp(-s / max(tc, tau)) * math.expm1(-s * d / (tc * tau)) / d
+        return y0 * math.exp(-s / tau) + tau * (inf - i0) * dd
 
     def _hp_starts(self, tau: float) -> np.ndarray:
         """High-pass state at every segment start, extended incrementally as pulses are appended."""

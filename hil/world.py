@@ -54,14 +54,17 @@ class EddyObject(_Timed):
         self.conductor = conductor
         self.t_on_us, self.t_off_us = t_on_us, t_off_us
 
+    def _moments(self, world) -> np.ndarray:
+        if getattr(self, "_m", None) is None:
+            self._m = np.stack([self.conductor.moment_per_amp(coil) for coil in world.source])
+        return self._m
+
     def field_at(self, world: "World", t_us: int, p, R) -> np.ndarray:
         c = self.conductor
-        B = np.zeros(3)
-        for coil, cur in zip(world.source, world.currents):
-            y = cur.highpass_at(t_us, c.tau_s)
-            if y != 0.0:
-                B += y * physics.dipole_field(p[None, :], c.position, c.moment_per_amp(coil))[0]
-        return B
+        y = np.array([cur.highpass_at(t_us, c.tau_s) for cur in world.currents])
+        if not np.any(np.abs(y) > 1e-15):
+            return np.zeros(3)
+        return physics.dipole_field(p[None, :], c.position, y @ self._moments(world))[0]
 
     def eddy_error(self, world: "World", k: int, grid, p, R) -> np.ndarray:
         """|eddy field of coil k's current history| at ``p`` over ``grid`` (T per A of coil field scale)."""

@@ -50,7 +50,7 @@ import numpy as np
 
 from .codec import MSG
 from .errors import ProtocolError, SchemaMismatchError
-from .framing import FrameDecoder, FrameEncoder, cobs_decode, cobs_encode, build_frame
+from .framing import FrameDecoder, FrameEncoder, build_frame, cobs_decode, cobs_encode, encode_frame
 from .peer import check_peer, role_name
 from .schema import (BY_ID, COIL_FAULT_REFUSED, CURRENT_LSB_A, NODE_FIRMWARE, ROLE_COIL_DRIVER,
                      ROLE_SENSOR)
@@ -78,6 +78,7 @@ RULES = {
     "mag_timestamps": "MAG_SAMPLE t_us strictly increasing",
     "survives_garbage": "node still answers after garbage and corrupted frames",
     "config_get": "CONFIG_GET answered with CONFIG_ACK (optional)",
+    "discovered": "a node first heard after discovery (its rules were not run)",
     "time_sync": "TIME_SYNC answered with TIME_SYNC_REPLY",
 }
 
@@ -103,7 +104,7 @@ class ConformOptions:
     link_id: int = 0
     seed: int = 1
     optional_wait_s: float = 0.25
-    sync_period_s: float = 0.25          # TIME_SYNC broadcast period (the tester is the master)
+    sync_period_s: float = 0.5           # TIME_SYNC broadcast period (the tester is the master)
     max_log: int = 200_000
 
 
@@ -493,13 +494,14 @@ class Conformance:
         arrival_rate = (len(mags) - 1) / span if span > 0 else 0.0
         problems = []
         tol = o.rate_tolerance
-        if o.mag_rate_hz:
-            if abs(stamp_rate / o.mag_rate_hz - 1) > tol:
-                problems.append(f"time stamps say {stamp_rate:.1f} Hz, expected {o.mag_rate_hz:g} Hz")
-            if abs(arrival_rate / o.mag_rate_hz - 1) > max(tol, 0.15):
-                problems.append(f"arrival rate {arrival_rate:.1f} Hz, expected {o.mag_rate_hz:g} Hz")
-        elif stamp_rate <= 0 or abs(arrival_rate / stamp_rate - 1) > max(tol, 0.15):
-            problems.append(f"arrival rate {arrival_rate:.1f} Hz disagrees with time stamps {stamp_rate:.1f} Hz")
+        rate = o.mag_rate_hz or stamp_rate
+        if o.mag_rate_hz and abs(stamp_rate / o.mag_rate_hz - 1) > tol:
+            problems.append(f"time stamps say {stamp_rate:.1f} Hz, expected {o.mag_rate_hz:g} Hz")
+        # samples arrive in bursts (link and scheduling): allow 50 ms of slack on the arrival span
+        expect_span = (len(mags) - 1) / rate if rate > 0 else 0.0
+        if rate <= 0 or abs(span - expect_span) > tol * expect_span + 0.05:
+            problems.append(f"{len(mags)} samples arrived over {span:.3f} s: {arrival_rate:.1f} Hz, "
+                            f"expected {rate:.1f} Hz")
         self.add("mag_stream", FAIL if problems else PASS,
                  "; ".join(problems) if problems else
                  f"{stamp_rate:.1f} Hz by time stamps, {arrival_rate:.1f} Hz arriving", n)
@@ -507,7 +509,7 @@ class Conformance:
     # ------------------------------------------------------------ garbage
     def _garbage_serial(self) -> bytes:
         rng = self.rng
-        good = encode_frame_seq(MSG["TIME_SYNC"](123_456, 0xFFFF), 0, self.o.src)
+        good = encode_frame(MSG["TIME_SYNC"](123_456, 0xFFFF), 0, self.o.src)
         parts = [bytes(rng.integers(0, 256, 300, dtype=np.uint8)) + b"\x00"]
         flipped = bytearray(good)
         i = int(rng.integers(0, len(flipped) - 1))
@@ -685,10 +687,6 @@ class Conformance:
         if re is not None:
             rep.counters["can"] = re.counters()
         return rep
-
-
-def encode_frame_seq(msg, seq: int, src: int) -> bytes:
-    return cobs_encode(build_frame(msg, seq, src)) + b"\x00"
 
 
 def run_conformance(link, options: ConformOptions | None = None, transport: str = "link") -> ConformReport:

@@ -46,3 +46,29 @@ def test_load_toml_syntax_error(tmp_path):
     p.write_text("pulse_us = = 3\n")
     with pytest.raises(ConfigError):
         load_config(p)
+
+
+@pytest.mark.parametrize("d, key", [
+    ({"fusion": 1}, "fusion"),
+    ({"measurement_model": 4}, "measurement_model"),
+    ({"fusion_gate_probability": 0.5}, "fusion_gate_probability"),
+    ({"source_imu_id": 16}, "source_imu_id"),
+    ({"fusion_replay_capacity": 10}, "fusion_replay_capacity"),
+    ({"acc_motion_sigma": -1.0}, "acc_motion_sigma"),
+    ({"dist_corr": 1.5}, "dist_corr"),
+    ({"ori_update_every": 0}, "ori_update_every"),
+    ({"gravity_mps2": [0.0, 0.0, 0.0]}, "gravity_mps2"),
+    ({"xi_heading_sigma_floor": -0.1}, "xi_heading_sigma_floor"),
+])
+def test_bad_fusion_values_name_the_key(d, key):
+    with pytest.raises(ConfigError) as ei:
+        config_from_dict(d)
+    assert ei.value.key == key
+
+
+def test_load_toml_with_fusion_keys(tmp_path):
+    p = tmp_path / "f.toml"
+    p.write_text('imu_rate_hz = 120.0\nmeasurement_model = 1\nmotion_compensation = false\n'
+                 'source_imu_id = 8\nori_update_every = 2\n')
+    cfg = load_config(p)
+    assert cfg.measurement_model == 1 and cfg.motion_compensation is False and cfg.source_imu_id == 8

@@ -77,20 +77,30 @@ def _setup():
     d_calloc = _PCALLOC(dh.allocator.calloc)
     d_realloc = _PREALLOC(dh.allocator.realloc)
     counts = [0, 0]          # calls, bytes
+    stacks = []              # where allocations happened, when a counter asks for it
+    record = [False]
+
+    def _note():
+        if record[0]:
+            import traceback
+            stacks.append(traceback.extract_stack(limit=12)[:-2])
 
     def _m(ctx, size):
         counts[0] += 1
         counts[1] += size
+        _note()
         return d_malloc(ctx, size)
 
     def _c(ctx, nelem, elsize):
         counts[0] += 1
         counts[1] += nelem * elsize
+        _note()
         return d_calloc(ctx, nelem, elsize)
 
     def _r(ctx, ptr, size):
         counts[0] += 1
         counts[1] += size
+        _note()
         return d_realloc(ctx, ptr, size)
 
     cbs = (_MALLOC(_m), _CALLOC(_c), _REALLOC(_r))
@@ -110,7 +120,7 @@ def _setup():
     for obj in (*cbs, capsule):                      # immortal: see the docstring
         api.Py_IncRef(ctypes.py_object(obj))
     _state.update(set_handler=set_handler, capsule=capsule, counts=counts, cbs=cbs,
-                  keep=(d_malloc, d_calloc, d_realloc))
+                  keep=(d_malloc, d_calloc, d_realloc), stacks=stacks, record=record)
     return _state
 
 
@@ -127,14 +137,19 @@ class NumpyAllocationCounter:
     """Context manager counting numpy array-data allocations made inside it.
 
     ``count`` and ``bytes`` accumulate over every ``with`` block until
-    :meth:`reset`. Blocks may not nest.
+    :meth:`reset`. Blocks may not nest. With ``record_stacks`` the Python
+    stack of every allocation is kept in ``stacks`` (for diagnostics).
     """
 
-    def __init__(self):
+    def __init__(self, record_stacks: bool = False):
         st = _setup()
         self._set = st["set_handler"]
         self._cap = st["capsule"]
         self._counts = st["counts"]
+        self._record = st["record"]
+        self._stacks = st["stacks"]
+        self.record_stacks = record_stacks
+        self.stacks: list = []
         self._prev = None
         self.count = 0
         self.bytes = 0
@@ -144,16 +159,24 @@ class NumpyAllocationCounter:
     def reset(self) -> None:
         self.count = 0
         self.bytes = 0
+        self.stacks = []
 
     def __enter__(self):
         self._c0 = self._counts[0]
         self._b0 = self._counts[1]
+        if self.record_stacks:
+            self._stacks.clear()
+            self._record[0] = True
         self._prev = self._set(self._cap)
         return self
 
     def __exit__(self, *exc):
         self._set(self._prev)
         self._prev = None
+        if self.record_stacks:
+            self._record[0] = False
+            self.stacks.extend(self._stacks)
+            self._stacks.clear()
         self.count += self._counts[0] - self._c0
         self.bytes += self._counts[1] - self._b0
         return False
@@ -165,16 +188,28 @@ class NumpyAllocationCounter:
 NUMPY_DOMAIN = tracemalloc.DomainFilter(True, np.lib.tracemalloc_domain)
 
 
+_DOMAIN = np.lib.tracemalloc_domain
+
+
 def numpy_traces() -> int:
     """Number of live numpy-domain blocks tracemalloc knows of (must be tracing)."""
-    return len(tracemalloc.take_snapshot().filter_traces([NUMPY_DOMAIN]).traces)
+    get = getattr(tracemalloc, "_get_traces", None)
+    if get is None:                          # pragma: no cover - other Python implementations
+        return len(tracemalloc.take_snapshot().filter_traces([NUMPY_DOMAIN]).traces)
+    n = 0
+    for tr in get():
+        if tr[0] == _DOMAIN:
+            n += 1
+    return n
 
 
 def numpy_blocks_alive_during(fn) -> int:
     """Largest number of numpy-domain blocks allocated while ``fn`` runs and
     found alive before any bytecode instruction of ``fn`` or of what it calls
     (``sys.settrace`` with opcode events; a temporary array sits at least on
-    the value stack until the next instruction). Slow: a snapshot per opcode."""
+    the value stack until the next instruction). Slow: the live traces are
+    counted at every opcode (tracemalloc is restarted for the call, so only
+    what the call allocates is traced)."""
     was_tracing = tracemalloc.is_tracing()
     if not was_tracing:
         tracemalloc.start()

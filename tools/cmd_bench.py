@@ -10,16 +10,26 @@ def add_arguments(p) -> None:
     p.add_argument("--scenario", default="roetenberg-bench", help="scenario name (default roetenberg-bench)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
-    p.add_argument("--transport", choices=("inproc", "pty"), default="inproc",
-                   help="inproc: one process, simulated clock (default); pty: firmware and emulator "
-                        "as two processes over a pseudo-terminal, wall clock")
-    p.add_argument("--faults", default="", help="link faults, e.g. corrupt=0.01,drop=0.005,truncate=0.005")
+    p.add_argument("--transport", choices=("inproc", "can", "pty", "slcan"), default="inproc",
+                   help="inproc: one process, simulated clock, byte pipe (default); can: one process, "
+                        "simulated clock, python-can virtual bus; pty: firmware and emulator as two "
+                        "processes over a pseudo-terminal serial link, wall clock; slcan: two processes "
+                        "on a CAN bus through slcan adapters on pseudo-terminals, wall clock")
+    p.add_argument("--faults", default="",
+                   help="fault switches, comma separated (see hil/faults.py): link drop=P, corrupt=P, "
+                        "truncate=P, duplicate=P, garbage=P, delay=P [delay_ms=MS], both_ways=1; nodes and "
+                        "world drift=[NODE:]PPM, clock_step=[NODE:]STEP@T, sat=WHEN, open_circuit=COIL@WHEN, "
+                        "short=COIL@WHEN, sag=FACTOR@WHEN, overheat=COIL@WHEN, metal=WHEN, node_off=NODE@T1-T2 (NODE sensor|driver; "
+                        "WHEN T or T1-T2; times 20s, 1500ms). E.g. drop=0.01,clock_step=5ms@8s,metal=12s")
     p.add_argument("--json", metavar="PATH", help="write the report as JSON")
+    p.add_argument("--log", metavar="PATH", help="write what the firmware received, tick by tick (JSON lines; "
+                                                 "for `coiltrack perf --log` and `coiltrack smooth`; in-process "
+                                                 "transports only)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
 
 
 def run(args) -> int:
-    from hil.faults import LinkFaults
+    from hil.faults import BenchFaults
 
     from . import report, scenarios
 
@@ -29,21 +39,33 @@ def run(args) -> int:
         print("coiltrack bench: --duration must be > 0", file=sys.stderr)
         return 2
     try:
-        faults = LinkFaults.parse(args.faults)
+        faults = BenchFaults.parse(args.faults)
     except ValueError as exc:
         print(f"coiltrack bench: --faults: {exc}", file=sys.stderr)
         return 2
-    if args.transport == "inproc":
+    if args.transport in ("inproc", "can"):
         from .runner import run_inproc
 
-        rep = run_inproc(sc, args.seed, duration, faults=faults, progress=not args.quiet)
+        rep = run_inproc(sc, args.seed, duration, faults=faults, progress=not args.quiet,
+                         transport=args.transport, log_path=args.log)
     else:
+        if args.log:
+            print("coiltrack bench: --log needs an in-process transport", file=sys.stderr)
+            return 2
         from .realtime import run_pty
 
-        rep = run_pty(sc, args.seed, duration, faults=faults, progress=not args.quiet)
+        rep = run_pty(sc, args.seed, duration, faults=faults, progress=not args.quiet,
+                      transport=args.transport)
+    if sc.fixed_config is not None:
+        # an actuation-policy scenario: the fixed cycle on the same trajectory and seed (fixed_*)
+        from .runner import add_fixed_comparison
+
+        add_fixed_comparison(rep, sc, args.seed, duration, faults=faults, transport=args.transport)
     print(f"coiltrack bench: {sc.description}")
     print(report.format_table(rep))
     if args.json:
         report.write_json(rep, args.json)
         print(f"report written to {args.json}")
+    if args.log:
+        print(f"frame log written to {args.log}")
     return 0

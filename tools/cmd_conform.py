@@ -28,6 +28,7 @@ def add_arguments(p) -> None:
     p.add_argument("--discover", type=float, default=None,
                    help="seconds to listen for nodes (default: the 1.5 s heartbeat timeout)")
     p.add_argument("--lead-ms", type=float, default=100.0, help="pulses are scheduled this far ahead")
+    p.add_argument("--sync-period", type=float, default=0.5, help="TIME_SYNC broadcast period, s (default 0.5)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", metavar="PATH", help="also write the report as JSON")
 
@@ -53,7 +54,7 @@ def run(args) -> int:
     from protocol.signing import key_from_text
 
     opts = ConformOptions(src=args.src, node=args.node, observe_s=args.observe, discover_s=args.discover,
-                          lead_ms=args.lead_ms,
+                          lead_ms=args.lead_ms, sync_period_s=args.sync_period,
                           mag_rate_hz=args.mag_rate or None, seed=args.seed, link_id=args.link_id,
                           key=key_from_text(args.key) if args.key else None)
     try:

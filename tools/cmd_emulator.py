@@ -1,10 +1,15 @@
 """Run the emulated nodes and world alone on the wall clock, on a serial port
-or on a new pseudo-terminal that a firmware (or a real board) connects to."""
+or on a new pseudo-terminal that a firmware (or a real board) connects to.
+
+The nodes keep their own drifting clocks and synchronise to the firmware's
+``TIME_SYNC`` broadcasts, so the firmware needs no shared epoch. Without
+``--epoch-ns`` the recorder learns the firmware's clock from the same
+broadcasts to look up the true pose of each ``POSE`` frame; with it (both on
+this machine) the two clocks are the same.
+"""
 from __future__ import annotations
 
-import os
 import sys
-import time
 
 HELP = "run the emulated coil driver and sensor nodes on a serial link (wall clock)"
 
@@ -16,16 +21,17 @@ def add_arguments(p) -> None:
     p.add_argument("--baudrate", type=int, default=1_000_000)
     p.add_argument("--scenario", default="roetenberg-bench")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--duration", type=float, default=None)
+    p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
     p.add_argument("--epoch-ns", type=int, default=None, help="CLOCK_MONOTONIC epoch shared with the firmware")
-    p.add_argument("--faults", default="")
+    p.add_argument("--faults", default="", help="fault switches, as for 'coiltrack bench --faults'")
     p.add_argument("--json", metavar="PATH", help="write the report as JSON")
 
 
 def run(args) -> int:
     from firmware_py.port import SerialPort  # a plain pyserial wrapper
     from hil.clock import WallClock
-    from hil.faults import LinkFaults
+    from hil.faults import BenchFaults
+    from hil.nodes import Recorder
 
     from . import report, scenarios
     from .links import FdLink, make_raw_pty
@@ -34,15 +40,31 @@ def run(args) -> int:
 
     sc = scenarios.get(args.scenario)
     duration = args.duration if args.duration is not None else sc.duration_s
+    try:
+        faults = BenchFaults.parse(args.faults)
+    except ValueError as exc:
+        print(f"coiltrack emulator: --faults: {exc}", file=sys.stderr)
+        return 2
     if args.create_pty:
         master, slave, name = make_raw_pty()
         print(name, flush=True)
         link = FdLink(master)
     else:
-        link = SerialPort(args.port, args.baudrate)
-    bench = BenchSetup(sc, args.seed, duration, link, LinkFaults.parse(args.faults))
+        try:
+            link = SerialPort(args.port, args.baudrate)
+        except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError
+            print(f"coiltrack emulator: cannot open {args.port}: {exc}", file=sys.stderr)
+            return 2
+    bench = BenchSetup(sc, args.seed, duration, link, faults)
+    if args.epoch_ns is None:
+        # the firmware's clock is its own: learn it from its TIME_SYNC broadcasts
+        rec = Recorder(bench.world, master_to_true="sync")
+        bench.recorder = bench.emulator.recorder = bench.bench.recorder = rec
     clock = WallClock(args.epoch_ns)
-    emulator_loop(bench.emulator, bench.link, clock, int(duration * 1e6))
+    try:
+        emulator_loop(bench.emulator, bench.link, clock, int(duration * 1e6))
+    except KeyboardInterrupt:
+        pass
     rep = report.build(bench, {}, duration, transport="serial", cfg=sc.firmware_config())
     print(report.format_table(rep))
     if args.json:

@@ -28,6 +28,34 @@ def add_arguments(p) -> None:
     p.add_argument("--cpu", type=int, default=None, help="pin the loop to this CPU")
 
 
+class _LinkGuard:
+    """Wraps the port so that a link that goes away (a pty whose other side closed, a USB
+    adapter unplugged: EIO) costs frames, not the firmware loop. Errors are counted."""
+
+    def __init__(self, port):
+        self.port = port
+        self.errors = 0
+
+    def read(self) -> bytes:
+        try:
+            return self.port.read()
+        except (OSError, ValueError):      # pyserial's SerialException is an OSError
+            self.errors += 1
+            return b""
+
+    def write(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+        except (OSError, ValueError):
+            self.errors += 1
+
+    def close(self) -> None:
+        try:
+            self.port.close()
+        except OSError:
+            pass
+
+
 def run(args) -> int:
     from firmware_py.config import ConfigError, load_config
     from firmware_py.firmware import Firmware
@@ -47,6 +75,7 @@ def run(args) -> int:
     except Exception as exc:  # pyserial raises SerialException (an OSError) or ValueError
         print(f"coiltrack firmware: cannot open {args.port}: {exc}", file=sys.stderr)
         return 2
+    port = _LinkGuard(port)
     fw = Firmware(cfg, port)
     rt = _realtime_setup(args.cpu) if (args.realtime or args.cpu is not None) else {}
     clock = WallClock(args.epoch_ns)
@@ -58,6 +87,7 @@ def run(args) -> int:
     finally:
         port.close()
     timing.update({"rt_" + k: v for k, v in rt.items()})
+    timing["link_errors"] = port.errors
     if args.stats_json:
         with open(args.stats_json, "w") as fh:
             json.dump({"status": fw.status(), "timing": timing}, fh, indent=2)

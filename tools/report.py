@@ -9,7 +9,7 @@ import numpy as np
 
 from firmware_py.rotation import matrix_from_quat
 from hil.crlb import crlb_position_rms
-from protocol.schema import POSE_VALID
+from protocol.schema import POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_VALID
 
 #: distance bands of the per-range breakdown, cm
 RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
@@ -79,10 +79,17 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     sigma_amp = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
     currents = np.array([c.current for c in cfg.coils])
     invalid = 0
+    fused = []          # (distance, position error, angle error) of the fused poses (IMU rate)
     for rp in rec.poses:
         m = rp["msg"]
         if not m.status & POSE_VALID:
             invalid += 1
+            continue
+        if m.status & POSE_FUSED:
+            pf = np.array([m.px, m.py, m.pz])
+            Rf = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
+            fused.append((float(np.linalg.norm(rp["true_p"])), float(np.linalg.norm(pf - rp["true_p"])),
+                          _rot_angle(Rf, rp["true_R"])))
             continue
         p = np.array([m.px, m.py, m.pz])
         R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
@@ -94,7 +101,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     emu_bad = bench.emulator.decoder.frames_bad
     dist = [float(np.linalg.norm(rp["true_p"])) for rp in rec.poses]
     vdist = np.array([float(np.linalg.norm(rp["true_p"])) for rp in rec.poses
-                      if rp["msg"].status & POSE_VALID])
+                      if rp["msg"].status & POSE_VALID and not rp["msg"].status & POSE_FUSED])
     by_range = {}
     for lo, hi in RANGE_BANDS_CM:
         sel = (vdist >= lo / 100) & (vdist < hi / 100)
@@ -131,10 +138,49 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     rep["faults"] = fault_summary(bench, fw_status)
     if hasattr(bench.link, "counts"):
         rep["link_faults"] = dict(bench.link.counts)
+    if fused:
+        _fused_keys(rep, np.array(fused), duration_s, fw_status, rms)
+    # consistency flags of the valid poses (NIS monitor, health), and the adaptive mode's counters
+    rep["poses_distorted"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
+                                 and rp["msg"].status & POSE_DISTORTED)
+    rep["poses_inconsistent"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
+                                    and rp["msg"].status & POSE_INCONSISTENT)
+    if "adaptive_pulses" in fw_status:
+        rep["adaptive"] = {k[len("adaptive_"):]: v for k, v in fw_status.items() if k.startswith("adaptive_")}
     ref = bench.scenario.reference
     if ref:
         rep["paper"] = ref
     return rep
+
+
+def _fused_keys(rep: dict, fz: np.ndarray, duration_s: float, fw_status: dict, rms) -> None:
+    """With fused poses (``POSE_FUSED``, the thesis ch. 6 filter at the IMU
+    rate) the headline keys describe them and the magnetic-only solutions of the
+    same run move to ``magnetic_*``."""
+    for k in ("poses", "position_rms_mm", "position_p95_mm", "orientation_rms_deg", "pose_rate_hz"):
+        rep["magnetic_" + k] = rep[k]
+    rep["magnetic_by_range"] = rep.pop("by_range")
+    fd, fe, fa = fz[:, 0], fz[:, 1], fz[:, 2]
+    rep["poses"] = int(fe.size)
+    rep["position_rms_mm"] = round(rms(fe) * 1e3, 3)
+    rep["position_p95_mm"] = round(float(np.percentile(fe, 95)) * 1e3, 3)
+    rep["orientation_rms_deg"] = round(math.degrees(rms(fa)), 3)
+    rep["pose_rate_hz"] = round(fe.size / duration_s, 3)
+    mag = rep["magnetic_position_rms_mm"]
+    rep["fused_to_magnetic_position"] = round(rep["position_rms_mm"] / mag, 3) if mag else None
+    by_range = {}
+    for lo, hi in RANGE_BANDS_CM:
+        sel = (fd >= lo / 100) & (fd < hi / 100)
+        if np.any(sel):
+            mb = rep["magnetic_by_range"].get(f"{lo}-{hi}cm", {})
+            by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(rms(fe[sel]) * 1e3, 2),
+                                        "orientation_rms_deg": round(math.degrees(rms(fa[sel])), 2),
+                                        "magnetic_position_rms_mm": mb.get("position_rms_mm"),
+                                        "magnetic_orientation_rms_deg": mb.get("orientation_rms_deg"),
+                                        "crlb_position_rms_mm": mb.get("crlb_position_rms_mm")}
+    rep["by_range"] = by_range
+    rep["fusion"] = {k: v for k, v in fw_status.items()
+                     if k.startswith(("fusion_", "fused_", "imu_", "compass_", "source_imu"))}
 
 
 def format_table(rep: dict) -> str:
@@ -144,11 +190,30 @@ def format_table(rep: dict) -> str:
         ("poses", f'{rep["poses"]} valid, {rep["poses_invalid"]} invalid ({rep["pose_rate_hz"]:.2f} Hz)'),
         ("position RMS", f'{rep["position_rms_mm"]:.2f} mm  (CRLB {rep["crlb_position_rms_mm"]:.2f} mm)'),
         ("orientation RMS", f'{rep["orientation_rms_deg"]:.2f} deg'),
+    ]
+    if "magnetic_position_rms_mm" in rep:
+        rows[5] = ("position RMS (fused)", f'{rep["position_rms_mm"]:.2f} mm  ({rep["fused_to_magnetic_position"]} '
+                                           f'of magnetic only)')
+        rows[6] = ("orientation RMS (fused)", f'{rep["orientation_rms_deg"]:.2f} deg')
+        rows += [("magnetic only", f'{rep["magnetic_position_rms_mm"]:.2f} mm (CRLB {rep["crlb_position_rms_mm"]:.2f}'
+                                   f' mm), {rep["magnetic_orientation_rms_deg"]:.2f} deg, '
+                                   f'{rep["magnetic_poses"]} poses')]
+    rows += [
         ("frames rx / bad", f'{rep["frames_rx"]} / {rep["frames_bad"]}'),
         ("pulse window violations", rep["pulse_window_violations"]),
         ("coil energy", f'{rep["coil_energy_j"]:.2f} J in {rep["pulses_per_s"]:.2f} pulses/s; '
                         f'battery {rep["projected_runtime_h"]} h (4 AA)'),
     ]
+    if "fixed_position_rms_mm" in rep:
+        rows += [("fixed X/Y/Z cycle", f'{rep["fixed_position_rms_mm"]:.2f} mm, '
+                                       f'{rep["fixed_orientation_rms_deg"]:.2f} deg, '
+                                       f'{rep["fixed_coil_energy_j"]:.2f} J in {rep["fixed_pulses_per_s"]:.2f} '
+                                       f'pulses/s; battery '
+                                       f'{rep["fixed_projected_runtime_h"]} h (same trajectory and seed)'),
+                 ("this run / fixed", f'position RMS x{rep["position_rms_ratio"]}, orientation RMS '
+                                      f'x{rep["orientation_rms_ratio"]}, coil energy x{rep["energy_ratio"]}')]
+    if rep.get("poses_distorted") or rep.get("poses_inconsistent"):
+        rows.append(("poses flagged", f'{rep["poses_distorted"]} distorted, {rep["poses_inconsistent"]} inconsistent'))
     if rep.get("distance_range_cm"):
         rows.insert(4, ("distance range", f'{rep["distance_range_cm"][0]}-{rep["distance_range_cm"][1]} cm'))
     for k in ("tick_jitter_us_median", "tick_jitter_us_p99", "tick_jitter_us_max", "deadline_misses",
@@ -164,6 +229,11 @@ def format_table(rep: dict) -> str:
         p = rep["paper"]
         rows.append(("paper", f'{p.get("position_rms_mm")} mm, {p.get("orientation_rms_deg")} deg ({p.get("source")})'))
     for band, b in rep.get("by_range", {}).items():
+        if "magnetic_position_rms_mm" in b:
+            rows.append((f"  at {band}", f'{b["position_rms_mm"]:.1f} mm, {b["orientation_rms_deg"]:.1f} deg fused; '
+                                         f'{b["magnetic_position_rms_mm"]} mm (CRLB {b["crlb_position_rms_mm"]}), '
+                                         f'{b["magnetic_orientation_rms_deg"]} deg magnetic'))
+            continue
         rows.append((f"  at {band}", f'{b["position_rms_mm"]:.1f} mm (CRLB {b["crlb_position_rms_mm"]:.1f}), '
                                      f'{b["orientation_rms_deg"]:.1f} deg, {b["poses"]} poses'))
     w = max(len(k) for k, _ in rows)

@@ -43,6 +43,21 @@ class BenchSetup:
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
                               sensor_ids=tuple(scenario.firmware_config().sensor_ids))
+        src_id = getattr(spec, "source_imu_id", 0)
+        if src_id:
+            # an IMU + magnetometer module on the source (thesis sec 6.2.3), a node of its own
+            from hil.bench import random_clock
+            from hil.imu import SourceImuNode
+            from protocol import FrameEncoder
+
+            rng = np.random.default_rng(s_clocks + 1)
+            node = SourceImuNode(src_id, self.world, imu=ImuSpec(rate_hz=imu_rate or 120.0),
+                                 mag=MagSpec(rate_hz=spec.rate_hz, noise_t=spec.noise_t),
+                                 seed=s_sensor + 4099, clock=random_clock(rng, getattr(spec, "clock_drift_ppm", 50.0)))
+            emu = self.bench.emulator
+            emu.nodes.append(node)
+            emu.encoders[src_id] = FrameEncoder(src_id)
+            self.source_imu = node
         self.faults = self.bench.faults
         self.link = self.bench.link
         self.driver = self.bench.driver
@@ -75,12 +90,36 @@ class Progress:
             sys.stderr.flush()
 
 
+def sim_link_pair(transport: str):
+    """(firmware end, emulator end) of a link for the simulated clock."""
+    if transport == "inproc":
+        return inproc_pair()
+    if transport == "can":
+        from protocol.can import virtual_link_pair
+        from protocol.schema import NODE_COIL_DRIVER, NODE_FIRMWARE
+
+        return virtual_link_pair(NODE_FIRMWARE, NODE_COIL_DRIVER)
+    raise ValueError(f"transport '{transport}' does not run on the simulated clock")
+
+
 def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFaults | None = None,
-               progress: bool = False, cfg=None, transport: str = "inproc") -> dict:
-    """Run firmware and emulator in one process on the simulated clock."""
-    fw_end, emu_end = inproc_pair()
+               progress: bool = False, cfg=None, transport: str = "inproc", log_path=None) -> dict:
+    """Run firmware and emulator in one process on the simulated clock.
+    ``log_path``: also write what the firmware received (``tools.framelog``).
+
+    ``transport``: ``inproc`` joins them with an in-memory byte pipe; ``can``
+    with python-can's in-process ``virtual`` bus, every message segmented
+    into CAN frames and reassembled (``protocol.can.CanLink``). Both give the
+    same frames at the same simulated instants, so the same report.
+    """
+    fw_end, emu_end = sim_link_pair(transport)
     bench = BenchSetup(scenario, seed, duration_s, emu_end, faults)
     cfg = cfg or scenario.firmware_config()
+    rec_port = None
+    if log_path is not None:
+        from .framelog import RecordingPort
+
+        fw_end = rec_port = RecordingPort(fw_end)
     fw = Firmware(cfg, fw_end)
     tick = cfg.tick_us
     end_us = int(duration_s * 1e6)
@@ -94,6 +133,8 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     t = 0
     while t <= end_us:
         bench.emulator.step(t)
+        if rec_port is not None:
+            rec_port.now_us = t
         a = clk()
         fw.tick(t)
         exec_ns[k] = clk() - a
@@ -102,6 +143,8 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
             prog.update(t * 1e-6, fw.poses)
         t += tick
     bench.emulator.step(t)  # deliver the last frames to the recorder
+    fw_end.close()
+    emu_end.close()
     prog.done()
     wall = time.perf_counter() - wall0
     rep = report_mod.build(bench, fw.status(), duration_s, transport=transport, cfg=cfg)
@@ -110,4 +153,35 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     rep.update(inproc_timing(exec_ns[:k], tick))
     rep["wall_s"] = round(wall, 2)
     rep["speedup"] = round(duration_s / wall, 1) if wall > 0 else None
+    if rec_port is not None:
+        from .framelog import config_to_dict, write_log
+
+        write_log(log_path, {"scenario": scenario.name, "seed": seed, "duration_s": duration_s, "tick_us": tick,
+                             "config": config_to_dict(cfg)}, rec_port.reads)
+        rep["log"] = str(log_path)
+    return rep
+
+
+#: report keys copied from the fixed-cycle reference run as ``fixed_<key>``
+FIXED_KEYS = ("position_rms_mm", "position_p95_mm", "orientation_rms_deg", "poses", "pulses_per_s",
+              "coil_charge_c", "coil_energy_j", "supply_energy_j", "projected_runtime_h")
+
+
+def add_fixed_comparison(rep: dict, scenario: Scenario, seed: int, duration_s: float, faults=None,
+                         transport: str = "inproc") -> dict:
+    """For a scenario with a ``fixed_config`` (an actuation-policy scenario such as
+    ``schepers-adaptive``): run that fixed X, Y, Z cycle on the same trajectory and
+    seed (simulated clock) and add its figures to ``rep`` as ``fixed_*``, with the
+    ratios ``position_rms_ratio``, ``orientation_rms_ratio`` and ``energy_ratio``
+    (this run over the fixed one)."""
+    if scenario.fixed_config is None:
+        return rep
+    ref = run_inproc(scenario, seed, duration_s, faults=faults, cfg=scenario.fixed_config(),
+                     transport=transport if transport in ("inproc", "can") else "inproc")
+    for k in FIXED_KEYS:
+        rep["fixed_" + k] = ref.get(k)
+    ratio = lambda a, b: round(a / b, 3) if a is not None and b else None  # noqa: E731
+    rep["position_rms_ratio"] = ratio(rep.get("position_rms_mm"), ref.get("position_rms_mm"))
+    rep["orientation_rms_ratio"] = ratio(rep.get("orientation_rms_deg"), ref.get("orientation_rms_deg"))
+    rep["energy_ratio"] = ratio(rep.get("coil_energy_j"), ref.get("coil_energy_j"))
     return rep

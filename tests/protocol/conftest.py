@@ -112,7 +112,7 @@ def pipe_pair() -> tuple[PipeEnd, PipeEnd]:
 
 #: fast settings for conformance runs in tests (a full run takes 1-2 s)
 FAST = dict(observe_s=0.4, discover_s=0.4, lead_ms=50.0, pulse_ms=10.0, silence_s=0.12, optional_wait_s=0.1,
-            answer_timeout_s=0.3)
+            answer_timeout_s=0.3, sync_period_s=1.0)
 
 
 @pytest.fixture

@@ -1,0 +1,925 @@
+"""The adaptive actuation mode of the firmware (``actuation = "adaptive"``).
+
+Schepers & Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``) sec. 2.1 and
+Fig. 1, as a mode of the firmware tick:
+
+* between pulses the IMU carries each sensor's state: every ``IMU_SAMPLE``
+  propagates that sensor's error-state EKF (``firmware_py.schepers_ekf``)
+  and a ``POSE`` goes out at the IMU rate (every ``pose_every`` samples);
+* when: once per tick, when a pulse could start (``adaptive_lead_us`` ahead,
+  after the quiet gap the previous window needs), the pose covariance is
+  predicted for the instant that pulse would be measured, including the
+  effect of a pulse still in flight (eq 4 does not need its value); if a
+  position or orientation standard deviation would reach its ``sigma_max``
+  (or no update was made for ``adaptive_max_interval_us``) a pulse is due
+  (``adaptive.ActuationPolicy``);
+* which and how strong: the coil whose eq-4 update reduces the normalised
+  uncertainty most, at the smallest candidate current that brings the
+  triggering variable to its ``sigma_min``, within the driver limit and the
+  magnetometer range (``adaptive.CoilChooser``,
+  ``adaptive.saturation_current_limit`` with the latest quiet field);
+* one ``COIL_PULSE_CMD`` is sent, scheduled ahead on the master clock and
+  kept within the driver's duty limit; the EKF clones the pose at the
+  pulse's mid time; when the pulse window closes (``firmware_py.pulse``) its
+  amplitude updates every sensor's EKF through the clone, with the
+  commanded current (the driver regulates it; its 1 mA readback replaces it
+  only when the driver reports a sag) and the current tolerance and the
+  field-model error in the measurement covariance;
+* consistency: the NIS of every update is gated (chi-square) and monitored
+  over a window (``adaptive.NisMonitor``); a ferromagnetic object that makes
+  the updates inconsistent (Schepers sec. 3.3) is reported
+  (``EVT_DISTORTION``, ``POSE_DISTORTED``) and, until the window is
+  consistent again, the measurement covariance is inflated by the observed
+  excess and the gate steps aside, so the filter neither diverges on the
+  biased pulses nor drifts on the IMU alone with every pulse rejected;
+* acquisition: a sensor without a pose (boot, lost track, IMU gap) gets a
+  full burst of every coil at its nominal current once its IMU streams. The
+  amplitudes are brought to the burst's mid instant with the gyroscope,
+  solved (the firmware's ``solver.PoseSolver``: Kuipers start, exact-model
+  least squares), and the solution starts the EKF (the orientation carried
+  to the present by the gyroscope integration); the burst's pulses are then
+  applied again as single-coil updates at their own instants
+  (``SchepersEKF.back_clone``), so the motion during the burst, which near
+  the source biases the solution badly, is absorbed. Without an IMU the mode
+  keeps acquiring once a cycle and reports magnetic-only poses;
+* set/reset flips: about every 2 s no new pulse is decided until the
+  windows in flight are closed, then the sensors are told to flip in the
+  gap (``supervisor.flips``), which also keeps them from flipping on their
+  own inside a window.
+
+All arrays are allocated here, at start-up; the per-tick paths, the
+acquisition included, write into them and create no numpy array
+(``tests/adaptive/test_bench_adaptive.py`` counts).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from protocol import MSG
+from protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT,
+                             COIL_FAULT_REFUSED, CURRENT_LSB_A, EVT_DISTORTION, GYR_LSB, POSE_COIL_FAULT,
+                             POSE_DEGRADED, POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
+                             POSE_STALE, POSE_VALID)
+
+from .adaptive import (POSE_DIM, ActuationPolicy, CoilChooser, NisMonitor, PoseCovUpdate, SingleCoilModel,
+                       current_ladder, saturation_current_limit)
+from .ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
+from .linalg import exp_rotvec
+from .pulse import PULSE_FLIP, PULSE_SATURATED, PULSE_TOO_FEW
+from .schepers_ekf import ORI, POS, SchepersEKF
+from .solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE
+
+PulseCmdMsg = MSG["COIL_PULSE_CMD"]
+PoseMsg = MSG["POSE"]
+WindowMsg = MSG["PULSE_WINDOW"]
+
+#: window flags after which an amplitude is not used
+_UNUSABLE = PULSE_TOO_FEW | PULSE_SATURATED | PULSE_FLIP
+_SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
+_F32_MAX = 3.0e38
+#: coil faults after which a pulse is not used
+_FATAL = COIL_FAULT_OPEN_CIRCUIT | COIL_FAULT_OVER_CURRENT | COIL_FAULT_REFUSED
+#: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
+_EVT_NIS = 1 << 8
+_EVT_CLEAR = 1 << 31
+#: the NIS monitor listens once the position std is below this fraction of the range (the
+#: measurement covariance carries the linearisation term, schepers_ekf._LIN_K)
+_LINEAR_FRACTION = 0.1
+#: the NIS verdict is forgotten when the monitor has heard no update for this long
+_NIS_FORGET_US = 2_000_000
+#: the windowed NIS test alarms beyond the 99.9 % quantile (a few hundred updates a minute)
+_ALARM_Z = 3.09
+#: ... and only for a mean NIS at least this many times its expectation
+_ALARM_EXCESS = 3.0
+#: after this long without IMU samples a sensor is acquired (and tracked) magnetically only
+_NO_IMU_US = 1_000_000
+#: pulses per coil remembered for the duty-cycle check
+_DUTY_HIST = 32
+#: a set/reset flip is commanded at least this often when the sensors are idle
+_FLIP_EVERY_US = 2_000_000
+
+
+def _quat(R):
+    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix as Python
+    floats (Shepperd's method, as ``rotation.quat_from_matrix``, no arrays)."""
+    r00, r01, r02 = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
+    r10, r11, r12 = float(R[1, 0]), float(R[1, 1]), float(R[1, 2])
+    r20, r21, r22 = float(R[2, 0]), float(R[2, 1]), float(R[2, 2])
+    t = r00 + r11 + r22
+    if t > 0.0:
+        s = math.sqrt(t + 1.0) * 2.0
+        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
+    elif r00 > r11 and r00 > r22:
+        s = math.sqrt(1.0 + r00 - r11 - r22) * 2.0
+        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
+    elif r11 > r22:
+        s = math.sqrt(1.0 + r11 - r00 - r22) * 2.0
+        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
+    else:
+        s = math.sqrt(1.0 + r22 - r00 - r11) * 2.0
+        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / n, x / n, y / n, z / n
+
+
+class _Pulse:
+    """One commanded pulse whose window is not closed yet."""
+
+    __slots__ = ("active", "coil", "pid", "start", "end", "current", "measured", "faults", "status",
+                 "clone", "acq")
+
+    def __init__(self):
+        self.active = False
+        self.coil = 0
+        self.pid = 0
+        self.start = 0
+        self.end = 0
+        self.current = 0.0
+        self.measured = 0.0
+        self.faults = 0
+        self.status = False
+        self.clone = -1
+        self.acq = False
+
+
+class _Sensor:
+    """Per-sensor state of the adaptive mode (one EKF per sensor and IMU)."""
+
+    def __init__(self, track, cfg, n_coils: int, ekf: SchepersEKF, monitor: NisMonitor):
+        self.track = track
+        self.node = track.node
+        self.ekf = ekf
+        self.monitor = monitor
+        self.mon_t = 0                             # when the monitor last heard an update
+        self.P6 = np.zeros((POSE_DIM, POSE_DIM))
+        self.pp = np.zeros(3)
+        self.quiet = np.zeros(3)
+        self.have_quiet = False
+        self.acc = np.zeros(3)
+        self.gyr = np.zeros(3)
+        self.q = np.zeros(4)
+        self.var6 = np.zeros(POSE_DIM)
+        self.i_lim = np.zeros(n_coils)
+        self.S = np.zeros((3, n_coils))          # acquisition burst amplitudes
+        self.Svar = np.zeros((3, n_coils))
+        self.Sflags = np.zeros(n_coils, dtype=np.int64)
+        self.acq_R = np.zeros((n_coils, 3, 3))   # gyro-integrated orientation at each burst pulse
+        self.Ssig = np.zeros((3, n_coils))
+        self.Sraw = np.zeros((3, n_coils))       # the burst as measured, each pulse in its own frame
+        self.acq_G = np.zeros((n_coils, 3, 3))   # R_now^T R(t_j) from the gyroscope
+        self.col = np.zeros(3)
+        self.Rnow = np.eye(3)
+        self.acq_have = np.zeros(n_coils, dtype=bool)
+        self.dR = np.eye(3)
+        self.R3 = np.eye(3)
+        self.last_update_us = 0
+        self.last_imu_us: int | None = None
+        self.imu_samples = 0
+        self.gated_in_row = 0
+        self.bits = 0                  # sticky POSE_* bits of the last magnetic update
+        self.hemisphere = np.array(cfg.hemisphere, dtype=float)
+        self.position = np.zeros(3)
+        self.have_pose = False
+        self.distorted = False
+        self.updates = 0
+        self.gated = 0
+
+
+class AdaptiveMode:
+    """The ``actuation = "adaptive"`` mode, driven by ``Firmware.tick``.
+
+    Hooks (called by ``firmware_py.firmware.Firmware``): :meth:`on_imu`
+    for every ``IMU_SAMPLE``, :meth:`on_coil_status` for every
+    ``COIL_STATUS``, :meth:`step` once per tick instead of the fixed cycle,
+    :meth:`counters` for the status.
+    """
+
+    def __init__(self, fw, schedule: str = "adaptive"):
+        cfg = fw.cfg
+        self.fw = fw
+        self.cfg = cfg
+        if schedule not in ("adaptive", "fixed"):
+            raise ValueError("schedule must be 'adaptive' or 'fixed'")
+        #: "adaptive" (Schepers) or "fixed": the X, Y, Z cycle at the nominal currents
+        #: (``cycle_us``, ``spacing_us``, ``pulse_us``), each pulse a single-coil update
+        self.schedule = schedule
+        n = len(fw.coils)
+        self.n = n
+        self.model = SingleCoilModel(fw.coils, cfg.field_model)       # updates
+        self.pmodel = SingleCoilModel(fw.coils, cfg.field_model)      # decisions
+        d2r = math.pi / 180.0
+        smax = (cfg.sigma_max_pos_m,) * 3 + (cfg.sigma_max_ori_deg * d2r,) * 3
+        smin = (cfg.sigma_min_pos_m,) * 3 + (cfg.sigma_min_ori_deg * d2r,) * 3
+        currents = cfg.adaptive_currents_a or current_ladder(
+            min(cfg.adaptive_min_current_a, cfg.adaptive_max_current_a), cfg.adaptive_max_current_a,
+            cfg.adaptive_current_levels)
+        self.chooser = CoilChooser(n, currents, smax, smin, cfg.field_model_rel_sigma, cfg.current_tolerance_a)
+        self.policy = ActuationPolicy(smax, cfg.adaptive_max_interval_us)
+        self.pending_update = PoseCovUpdate()
+        self.pulse_us = cfg.adaptive_pulse_us or cfg.pulse_us
+        self.lead_us = cfg.adaptive_lead_us
+        # expected amplitude variance of one pulse (firmware_py.pulse: sigma^2 (1/n + 1/n_b))
+        per = 1e6 / cfg.mag_rate_hz
+        n_used = max(1, int((self.pulse_us - cfg.settle_us - cfg.guard_us) / per) - 1)
+        n_base = max(2, 2 * int(cfg.baseline_us / per))
+        self.var_amp = cfg.mag_sigma_t ** 2 * (1.0 / n_used + 1.0 / n_base)
+        # mid time of the used samples, from the start edge
+        self.mid_us = (cfg.settle_us + self.pulse_us - cfg.guard_us) // 2
+        self.gap_us = cfg.fall_us + cfg.baseline_us + cfg.guard_us
+        self.nominal = np.array([c.current for c in cfg.coils])
+        self._cur = np.zeros(n)
+        self._lim = np.zeros(n)
+        self._zero3 = np.zeros(3)
+        # recent pulses per coil (start, end), to stay within the driver's duty limit
+        self._hist = np.zeros((n, _DUTY_HIST, 2), dtype=np.int64)
+        self._hist_k = [0] * n
+        self.t_ref = 0
+        self.acq_t = np.zeros(n, dtype=np.int64)        # mid times of the burst's pulses
+        self.gravity = np.array(cfg.gravity_mps2, dtype=float)
+        gate_p = cfg.nis_gate_probability
+        self.sensors: dict[int, _Sensor] = {}
+        for sid, tr in fw.tracks.items():
+            # per-sample noise at imu_rate_hz -> density the filter integrates (Q = d^2 dt)
+            root = math.sqrt(cfg.imu_rate_hz)
+            ekf = SchepersEKF(n_clones=2, gravity=self.gravity, acc_noise=cfg.imu_acc_sigma / root,
+                              gyr_noise=cfg.imu_gyro_sigma / root, acc_bias_rw=cfg.imu_acc_bias_rw,
+                              gyr_bias_rw=cfg.imu_gyro_bias_rw, pos_noise=cfg.adaptive_pos_noise,
+                              gate_probability=gate_p)
+            mon = NisMonitor(window=cfg.nis_window, dof=3, gate=chi2_gate(3, gate_p), z=_ALARM_Z,
+                             min_count=min(cfg.nis_window, 3), min_excess=_ALARM_EXCESS)
+            self.sensors[sid] = _Sensor(tr, cfg, n, ekf, mon)
+        self._sens = tuple(self.sensors.values())
+        self.slots = tuple(_Pulse() for _ in range(max(2, n)))
+        self._order = [0] * len(self.slots)
+        self.next_free_us = cfg.first_cycle_us - self.lead_us
+        self.next_acq_us = cfg.first_cycle_us - cfg.lead_us
+        self.acq_active = False
+        self._decided_stamp = -1
+        self._decided_us = 0
+        self.fixed_start = cfg.first_cycle_us
+        self.fixed_coil = 0
+        self.last_flip_cmd_us = -(1 << 62)
+        self.last_pulse_end = 0
+        # counters
+        self.pulses = 0
+        self.acquisitions = 0
+        self.updates = 0
+        self.gated = 0
+        self.unusable = 0
+        self.distortion_events = 0
+        self.reacquired = 0
+        self.energy_j = 0.0
+        self.no_current = 0
+
+    # ------------------------------------------------------------ inputs
+    def on_imu(self, msg, now_us: int) -> None:
+        s = self.sensors.get(msg.node)
+        if s is None:
+            return
+        t = msg.t_us
+        ekf = s.ekf
+        if s.last_imu_us is not None:
+            gap = t - s.last_imu_us
+            if gap <= 0:
+                return
+            if gap > self.cfg.imu_timeout_us:
+                # a hole in the stream: the state cannot be carried across it
+                ekf.restart_inputs()
+                if ekf.initialized:
+                    self._lose(s)
+        s.last_imu_us = t
+        a, g = s.acc, s.gyr
+        a[0] = msg.ax * ACC_LSB
+        a[1] = msg.ay * ACC_LSB
+        a[2] = msg.az * ACC_LSB
+        g[0] = msg.gx * GYR_LSB
+        g[1] = msg.gy * GYR_LSB
+        g[2] = msg.gz * GYR_LSB
+        ekf.propagate(t, a, g)
+        s.imu_samples += 1
+        if self.acq_active:
+            self._note_acq_orientation(s, t)
+        if ekf.initialized and s.imu_samples % self.cfg.pose_every == 0:
+            self._emit_fused(s, t, now_us)
+
+    def _note_acq_orientation(self, s: _Sensor, t: int) -> None:
+        """Gyro-integrated orientation at the mid time of each burst pulse
+        (``R(t_j) = R(t) exp(-[w (t - t_j)]x)``), to bring the burst's
+        amplitudes to one instant before solving."""
+        ekf = s.ekf
+        w = ekf.w
+        for j in range(self.n):
+            if not s.acq_have[j] and t >= self.acq_t[j]:
+                h = -(t - int(self.acq_t[j])) * 1e-6
+                exp_rotvec(float(w[0]) * h, float(w[1]) * h, float(w[2]) * h, s.dR)
+                np.matmul(ekf.R, s.dR, out=s.acq_R[j])
+                s.acq_have[j] = True
+
+    def on_coil_status(self, msg) -> None:
+        for sl in self.slots:
+            if sl.active and sl.coil == msg.coil and sl.pid == msg.pulse_id:
+                sl.measured = msg.current_ma * CURRENT_LSB_A
+                sl.faults = msg.faults
+                sl.status = True
+                if msg.end_us > msg.start_us:
+                    sl.start = msg.start_us
+                    sl.end = msg.end_us
+                return      # (the firmware reports the fault event)
+
+    # ------------------------------------------------------------ tick
+    def step(self, now_us: int) -> None:
+        self._close(now_us)
+        self._decide(now_us)
+        self._flip(now_us)
+
+    def _flip(self, now_us: int) -> None:
+        """Set/reset flips outside every pulse window (thesis sec 5.5, 7.2).
+
+        Pulses are decided just in time, so there is no planned quiet gap as
+        in the fixed cycle: every ``_FLIP_EVERY_US`` no new pulse is decided
+        until those in flight are closed, then the sensors are told to flip
+        a few milliseconds ahead and the next pulse may not start before that
+        flip's trailing baseline has passed. The command also keeps the
+        sensors from flipping on their own (which could land in a window)."""
+        sup = getattr(self.fw, "supervisor", None)
+        if sup is None or now_us - self.last_flip_cmd_us < _FLIP_EVERY_US or self._n_active():
+            return
+        cfg = self.cfg
+        fl = sup.flips
+        t0 = now_us + 1_000
+        if self.schedule == "fixed" and not self.acq_active:
+            nxt = self.fixed_start + self.fixed_coil * cfg.spacing_us
+            if nxt - cfg.baseline_us - 2 * cfg.guard_us < t0 + fl.min_gap_us:
+                return
+        fl.plan(now_us, t0, t0 + fl.min_gap_us, self.fw._send)
+        at = fl.last_at_us
+        self.next_free_us = max(self.next_free_us, at + cfg.baseline_us + cfg.guard_us + cfg.guard_us)
+        self.last_flip_cmd_us = now_us
+
+    # ------------------------------------------------------------ windows
+    def _close(self, now_us: int) -> None:
+        cfg = self.cfg
+        # oldest first, so the updates are applied in time order
+        m = 0
+        for i, sl in enumerate(self.slots):
+            if sl.active and not (sl.acq and sl.clone == -2):
+                self._order[m] = i
+                m += 1
+        for a in range(1, m):
+            j = a
+            while j > 0 and self.slots[self._order[j - 1]].start > self.slots[self._order[j]].start:
+                self._order[j - 1], self._order[j] = self._order[j], self._order[j - 1]
+                j -= 1
+        for k in range(m):
+            sl = self.slots[self._order[k]]
+            timed_out = now_us > sl.end + cfg.fall_us + cfg.baseline_us + cfg.cycle_us // 2
+            if not timed_out:
+                ready = True
+                for s in self._sens:
+                    if not s.track.extractor.ready(sl.start, sl.end):
+                        ready = False
+                        break
+                if not ready:
+                    continue
+            self._close_one(sl, now_us)
+            if not sl.acq:
+                sl.active = False
+        if self.acq_active:
+            for sl in self.slots:
+                if sl.active and sl.acq and sl.clone != -2:
+                    return
+            self._finish_acquisition(now_us)
+
+    def _close_one(self, sl: _Pulse, now_us: int) -> None:
+        cfg = self.cfg
+        fw = self.fw
+        # the driver regulates the commanded current; its measurement (1 mA steps, noisy)
+        # replaces it only when the driver reports that it could not (supply sag)
+        current = sl.current
+        sag = bool(sl.faults & COIL_FAULT_CURRENT_SAG) and sl.measured != 0.0
+        if sag:
+            current = sl.measured
+        fatal = bool(sl.faults & _FATAL) or (sl.status and sl.measured == 0.0)
+        health = getattr(getattr(fw, "supervisor", None), "health", None)
+        for s in self._sens:
+            tr = s.track
+            flags, n_used, n_base = tr.extractor.extract(sl.start, sl.end, tr.amp, tr.amp_var)
+            if flags:
+                fw.windows_flagged += 1
+            first = last = 0
+            if n_used:
+                mm = tr.extractor.last_used_times(tr.used_times)
+                if mm:
+                    first, last = int(tr.used_times[0]), int(tr.used_times[mm - 1])
+            fw._send(WindowMsg(tr.node, sl.coil, sl.pid, first, last, min(n_used, 255), min(n_base, 255),
+                               flags & 0xFF))
+            suspect = False
+            if health is not None:
+                t0 = sl.start - cfg.baseline_us - cfg.guard_us
+                t1 = sl.end + cfg.fall_us + cfg.baseline_us
+                suspect = health.suspect(tr.node, t0, t1) or health.suspect(cfg.coil_driver_id, t0, t1)
+            if sl.acq:
+                j = sl.coil
+                s.S[:, j] = tr.amp
+                s.Svar[:, j] = tr.amp_var
+                s.Sflags[j] = flags | (PULSE_TOO_FEW if (fatal or suspect) else 0)
+                self._cur[j] = current
+                continue
+            bits = 0
+            if flags & PULSE_SATURATED:
+                bits |= POSE_SATURATED
+            if flags:
+                bits |= POSE_DEGRADED
+            if sl.faults or sag:
+                bits |= POSE_COIL_FAULT
+            if (flags & _UNUSABLE) or fatal or suspect or not s.ekf.initialized:
+                self.unusable += 1
+                s.bits = bits | (s.bits & POSE_DISTORTED)
+                continue
+            self._update(s, sl, current, bits, now_us)
+        if sl.acq:
+            sl.clone = -2
+        else:
+            for s in self._sens:
+                if sl.clone >= 0:
+                    s.ekf.release_clone(sl.clone)
+
+    def _update(self, s: _Sensor, sl: _Pulse, current: float, bits: int, now_us: int) -> None:
+        cfg = self.cfg
+        ekf = s.ekf
+        # one NIS monitor per sensor: inflating the pulses of single coils instead proved
+        # unstable (once the state is biased, the consistent-looking coil is the disturbed one)
+        mon = s.monitor
+        tr = s.track
+        # the NIS tests the model only where the linearisation holds: the prior position
+        # std small against the range
+        P = ekf.P
+        b = POS.start
+        sp2 = max(float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]))
+        k = sl.clone
+        pc = ekf.clone_p[k] if k >= 0 else ekf.p
+        r2 = float(pc[0] * pc[0] + pc[1] * pc[1] + pc[2] * pc[2])
+        linear = sp2 < _LINEAR_FRACTION * _LINEAR_FRACTION * r2
+        # relative errors of the predicted field: the model, and the current
+        rc = cfg.current_tolerance_a / max(abs(current), 1e-6)
+        rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+        # once the monitor has judged the pulses inconsistent, the inflated covariance is the
+        # protection: gating them as well would reject them all and leave the state to the IMU
+        flags = ekf.update_single_coil(sl.clone, tr.amp, tr.amp_var, sl.coil, current, self.model,
+                                       rel, mon.r_scale, gate=not mon.inconsistent)
+        if flags & (EKF_NOT_PD | EKF_NONFINITE):
+            self.unusable += 1
+            return
+        was = s.distorted
+        if linear:
+            mon.add(ekf.nis_nominal)
+            s.mon_t = now_us
+        if flags & EKF_GATED:
+            s.gated += 1
+            self.gated += 1
+            mon.gated += 1
+            if not (mon.inconsistent or s.distorted):
+                # rejections a flagged disturbance explains are no sign of a lost track:
+                # an acquisition now would only start from a distorted solution
+                s.gated_in_row += 1
+            bits |= POSE_INCONSISTENT
+        else:
+            s.gated_in_row = 0
+            s.updates += 1
+            self.updates += 1
+            s.last_update_us = now_us
+        health = getattr(getattr(self.fw, "supervisor", None), "health", None)
+        hdist = False
+        if health is not None:
+            i = health._slot.get(s.node, -1)
+            hdist = i >= 0 and bool(health.distorted[i])
+        self._forget(s, now_us)
+        dist = mon.inconsistent
+        if dist:
+            bits |= POSE_DISTORTED | POSE_INCONSISTENT
+        elif hdist:
+            bits |= POSE_DISTORTED
+        s.bits = bits
+        if dist != was:
+            self.distortion_events += 1 if dist else 0
+            self.fw._event(EVT_DISTORTION, (s.node | _EVT_NIS) | (0 if dist else _EVT_CLEAR))
+        s.distorted = dist
+        # lost: updates rejected again and again, or an uncertainty beyond any use
+        P = ekf.P
+        big = cfg.acquire_sigma_m * cfg.acquire_sigma_m
+        if (s.gated_in_row >= cfg.reacquire_after
+                or P[POS.start, POS.start] > big or P[POS.start + 1, POS.start + 1] > big
+                or P[POS.start + 2, POS.start + 2] > big):
+            self.reacquired += 1
+            self._lose(s)
+
+    def _forget(self, s: _Sensor, now_us: int) -> None:
+        """Forget a verdict that no update has tested for a while."""
+        if s.monitor.count and now_us - s.mon_t > _NIS_FORGET_US:
+            s.monitor.reset()
+
+    def _lose(self, s: _Sensor) -> None:
+        s.ekf.reset()
+        s.monitor.reset()
+        s.gated_in_row = 0
+        self.next_acq_us = min(self.next_acq_us, self.fw.last_tick_us or 0)
+
+    # ------------------------------------------------------------ decisions
+    def _free_slot(self) -> int:
+        for i, sl in enumerate(self.slots):
+            if not sl.active:
+                return i
+        return -1
+
+    def _n_active(self) -> int:
+        k = 0
+        for sl in self.slots:
+            if sl.active:
+                k += 1
+        return k
+
+    def _decide(self, now_us: int) -> None:
+        cfg = self.cfg
+        if self.acq_active:
+            return
+        need_acq = False
+        for s in self._sens:
+            if not s.ekf.initialized:
+                need_acq = True
+        if need_acq:
+            if self._n_active() == 0 and now_us >= self.next_acq_us and self._imu_ready(now_us):
+                self._start_acquisition(now_us)
+            return
+        # lost: an uncertainty beyond any use, or no usable pulse for a long time
+        big = cfg.acquire_sigma_m * cfg.acquire_sigma_m
+        for s in self._sens:
+            P = s.ekf.P
+            b = POS.start
+            if (P[b, b] > big or P[b + 1, b + 1] > big or P[b + 2, b + 2] > big
+                    or now_us - s.last_update_us > 4 * cfg.adaptive_max_interval_us):
+                self.reacquired += 1
+                self._lose(s)
+                return
+        if self._n_active() >= 2:
+            return
+        if self.schedule == "adaptive" and now_us - self.last_flip_cmd_us >= _FLIP_EVERY_US:
+            return      # a flip is due: let the pulses in flight close first (see _flip)
+        if self.schedule == "fixed":
+            self._decide_fixed(now_us)
+            return
+        start = max(now_us + self.lead_us, self.next_free_us)
+        if start - now_us > self.lead_us + cfg.tick_us:
+            return
+        # the prediction changes only when an IMU sample (or an update) has moved a filter
+        stamp = 0
+        for s in self._sens:
+            stamp += s.imu_samples + s.updates + s.gated
+        if stamp == self._decided_stamp and now_us - self._decided_us < 20_000:
+            return
+        self._decided_stamp = stamp
+        self._decided_us = now_us
+        t_m = start + self.mid_us
+        # predicted covariance at the measurement time, with the pulses in flight
+        worst = -1.0
+        ws = None
+        due = False
+        for s in self._sens:
+            ekf = s.ekf
+            ekf.predict_pose(t_m - (ekf.t_us if ekf.t_us is not None else now_us), s.P6, s.pp)
+            if cfg.sigma_range_ref_m > 0.0:
+                r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
+                x = max(r, 1e-3) / cfg.sigma_range_ref_m
+                self.policy.set_scale(x ** cfg.sigma_range_exp_pos, x ** cfg.sigma_range_exp_ori)
+            for sl in self.slots:
+                if sl.active and not sl.acq:
+                    self.pmodel.evaluate(s.pp, ekf.R)
+                    self.pending_update.apply(s.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
+                                              self.var_amp * s.monitor.r_scale,
+                                              cfg.field_model_rel_sigma, cfg.current_tolerance_a)
+            if self.policy.due(s.P6, now_us, s.last_update_us):
+                due = True
+            u = self.policy.worst(s.P6)
+            if u > worst:
+                worst = u
+                ws = s
+        if not due or ws is None:
+            return
+        # current limits: driver, and every sensor's magnetometer range
+        lim = self._lim
+        lim.fill(cfg.adaptive_max_current_a)
+        for s in self._sens:
+            self._refresh_quiet(s)
+            self.pmodel.evaluate(s.pp, s.ekf.R)
+            # the field grows as r^-3: allow for the sensor being 3 sigma closer
+            r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
+            sp = math.sqrt(max(float(s.P6[0, 0] + s.P6[1, 1] + s.P6[2, 2]), 0.0))
+            gain = (r / max(r - 3.0 * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
+            for c in range(self.n):
+                if s.have_quiet:
+                    i = saturation_current_limit(self.pmodel.h[c], s.quiet, cfg.mag_range_t,
+                                                 cfg.saturation_margin, gain)
+                else:       # no quiet sample yet: assume the largest earth field on every axis
+                    i = saturation_current_limit(self.pmodel.h[c], self._zero3,
+                                                 cfg.mag_range_t - cfg.earth_field_max_t / cfg.saturation_margin,
+                                                 cfg.saturation_margin, gain)
+                if i < lim[c]:
+                    lim[c] = i
+        for c in range(self.n):
+            if not self._duty_ok(c, start, self.pulse_us):
+                lim[c] = 0.0
+        self.pmodel.evaluate(ws.pp, ws.ekf.R)
+        if cfg.sigma_range_ref_m > 0.0:
+            r = math.sqrt(float(ws.pp[0] * ws.pp[0] + ws.pp[1] * ws.pp[1] + ws.pp[2] * ws.pp[2]))
+            x = max(r, 1e-3) / cfg.sigma_range_ref_m
+            self.policy.set_scale(x ** cfg.sigma_range_exp_pos, x ** cfg.sigma_range_exp_ori)
+            self.chooser.set_scale(x ** cfg.sigma_range_exp_pos, x ** cfg.sigma_range_exp_ori)
+        # the expected amplitude variance, inflated while the pulses prove inconsistent
+        self._forget(ws, now_us)
+        coil = self.chooser.choose(ws.P6, self.pmodel, self.var_amp * ws.monitor.r_scale, lim)
+        if coil < 0:
+            self.no_current += 1
+            return
+        self._command(coil, self.chooser.current, start, self.pulse_us, False, now_us)
+
+    def _decide_fixed(self, now_us: int) -> None:
+        """The fixed X, Y, Z cycle, each pulse commanded ``adaptive_lead_us``
+        before its start and used as a single-coil update."""
+        cfg = self.cfg
+        start = self.fixed_start + self.fixed_coil * cfg.spacing_us
+        if now_us < start - self.lead_us:
+            return
+        if start >= now_us + cfg.tick_us:
+            j = self.fixed_coil
+            self._command(j, float(self.nominal[j]), start, cfg.pulse_us, False, now_us)
+        self.fixed_coil += 1
+        if self.fixed_coil == self.n:
+            self.fixed_coil = 0
+            self.fixed_start += cfg.cycle_us
+            # a cycle that could not be scheduled in time is skipped
+            while self.fixed_start - self.lead_us < now_us:
+                self.fixed_start += cfg.cycle_us
+
+    def _duty_ok(self, c: int, start: int, length: int) -> bool:
+        """Whether coil ``c`` may carry a pulse ``[start, start + length)``
+        within ``coil_max_duty`` over any ``coil_duty_window_us`` (the limit
+        the driver enforces; a refused pulse is a wasted decision)."""
+        cfg = self.cfg
+        end = start + length
+        w0 = end - cfg.coil_duty_window_us
+        on = length
+        h = self._hist[c]
+        for k in range(_DUTY_HIST):
+            s0 = int(h[k, 0])
+            e0 = int(h[k, 1])
+            if e0 > w0 and e0 > s0:
+                on += min(e0, end) - max(s0, w0)
+        return on <= 0.95 * cfg.coil_max_duty * cfg.coil_duty_window_us
+
+    def _refresh_quiet(self, s: _Sensor) -> None:
+        """The newest magnetometer sample, if no pulse was on when it was taken."""
+        ring = s.track.ring
+        nn = len(ring)
+        if nn == 0:
+            return
+        t = ring.latest_t_us
+        cfg = self.cfg
+        for sl in self.slots:
+            if sl.active and sl.start - cfg.guard_us <= t <= sl.end + cfg.fall_us + cfg.guard_us:
+                return
+        if self.last_pulse_end and self.last_pulse_end - self.pulse_us - cfg.guard_us <= t <= \
+                self.last_pulse_end + cfg.fall_us + cfg.guard_us:
+            return
+        p = ring.slot(nn - 1)
+        s.quiet[0] = ring.b[p, 0]
+        s.quiet[1] = ring.b[p, 1]
+        s.quiet[2] = ring.b[p, 2]
+        s.have_quiet = True
+
+    def _command(self, coil: int, current: float, start: int, length: int, acq: bool, now_us: int) -> int:
+        fw = self.fw
+        cfg = self.cfg
+        i = self._free_slot()
+        if i < 0:
+            return -1
+        sl = self.slots[i]
+        pid = fw.next_pulse_id
+        fw.next_pulse_id = (pid + 1) & 0xFFFF
+        sl.active = True
+        sl.coil = coil
+        sl.pid = pid
+        sl.start = start
+        sl.end = start + length
+        sl.measured = 0.0
+        sl.faults = 0
+        sl.status = False
+        sl.acq = acq
+        sl.clone = -1
+        if not acq:
+            # a clone slot of the EKFs: the one no pulse in flight uses
+            used0 = used1 = False
+            for o in self.slots:
+                if o is not sl and o.active and not o.acq:
+                    used0 |= o.clone == 0
+                    used1 |= o.clone == 1
+            sl.clone = 0 if not used0 else (1 if not used1 else -1)
+            if sl.clone >= 0:
+                for s in self._sens:
+                    s.ekf.schedule_clone(sl.clone, start + self.mid_us)
+        # the firmware's per-coil schedule, read by the supervisor and COIL_STATUS routing
+        fw.pulse_start[coil] = start
+        fw.pulse_end[coil] = start + length
+        fw.pulse_id[coil] = pid
+        fw.measured_current[coil] = 0.0
+        fw.coil_faults[coil] = 0
+        ma = max(-32768, min(32767, int(round(current / CURRENT_LSB_A))))
+        sl.current = ma * CURRENT_LSB_A          # what the driver is told to regulate to
+        fw._send(PulseCmdMsg(coil, pid, ma, start, length))
+        self.next_free_us = start + length + self.gap_us
+        self.last_pulse_end = start + length
+        k = self._hist_k[coil]
+        self._hist[coil, k, 0] = start
+        self._hist[coil, k, 1] = start + length
+        self._hist_k[coil] = (k + 1) % _DUTY_HIST
+        self.pulses += 1
+        self.energy_j += current * current * cfg.coils[coil].resistance * length * 1e-6
+        return i
+
+    # ------------------------------------------------------------ acquisition
+    def _imu_ready(self, now_us: int) -> bool:
+        """Acquire when every sensor's IMU is streaming (the burst is brought to one
+        instant with the gyroscope, and the filter starts from it); a sensor that
+        has sent no IMU sample for ``_NO_IMU_US`` gets magnetic-only acquisitions."""
+        for s in self._sens:
+            live = s.last_imu_us is not None and now_us - s.last_imu_us <= self.cfg.imu_timeout_us
+            if not live and now_us - (self.fw.boot_us or 0) < _NO_IMU_US:
+                return False
+        return True
+
+    def _start_acquisition(self, now_us: int) -> None:
+        cfg = self.cfg
+        start0 = max(now_us + cfg.lead_us, self.next_free_us)
+        mid = (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2
+        for s in self._sens:
+            s.Sflags.fill(0)
+            s.acq_have.fill(False)
+        for j in range(self.n):
+            self._command(j, float(self.nominal[j]), start0 + j * cfg.spacing_us, cfg.pulse_us, True, now_us)
+            self.acq_t[j] = start0 + j * cfg.spacing_us + mid
+        t_ref = (start0 + (self.n - 1) * cfg.spacing_us + start0 + cfg.pulse_us) // 2
+        self.t_ref = t_ref
+        for s in self._sens:
+            s.ekf.schedule_clone(0, t_ref)
+        sup = getattr(self.fw, "supervisor", None)
+        if sup is not None:
+            last_end = start0 + (self.n - 1) * cfg.spacing_us + cfg.pulse_us
+            sup.flips.plan(now_us, last_end + self.gap_us, last_end + self.gap_us + cfg.cycle_us // 4,
+                           self.fw._send)
+            self.last_flip_cmd_us = now_us
+        self.acq_active = True
+        self.acquisitions += 1
+
+    def _finish_acquisition(self, now_us: int) -> None:
+        cfg = self.cfg
+        fw = self.fw
+        for sl in self.slots:
+            if sl.acq:
+                sl.active = False
+                sl.acq = False
+                sl.clone = -1
+        self.acq_active = False
+        self.next_acq_us = now_us + cfg.cycle_us // 2
+        lag_sig = cfg.init_sigma_vel
+        for s in self._sens:
+            ekf = s.ekf
+            status = 0
+            flags = 0
+            for j in range(self.n):
+                flags |= int(s.Sflags[j])
+            if flags & PULSE_SATURATED:
+                status |= POSE_SATURATED
+            if flags:
+                status |= POSE_DEGRADED
+            imu = ekf.t_us is not None and bool(ekf.clone_taken[0]) and ekf.t_us >= self.t_ref
+            have = True
+            for j in range(self.n):
+                have = have and bool(s.acq_have[j])
+            np.copyto(s.Sraw, s.S)
+            if imu and have:
+                # the sensor turned during the burst: bring every amplitude to the
+                # sensor frame at t_ref, S_ref[:, j] = R_ref^T R_j S[:, j]
+                for j in range(self.n):
+                    np.matmul(ekf.clone_R[0].T, s.acq_R[j], out=s.R3)
+                    np.copyto(s.col, s.S[:, j])
+                    np.matmul(s.R3, s.col, out=s.S[:, j])
+            solved = False
+            sv = fw.solver               # the firmware's allocation-free PoseSolver
+            if not (flags & PULSE_TOO_FEW):
+                floor = (0.1 * cfg.mag_sigma_t) ** 2
+                for i in range(3):
+                    for j in range(self.n):
+                        v = float(s.Svar[i, j])
+                        s.Ssig[i, j] = math.sqrt(v if v > floor else floor)
+                hemi = s.position if s.have_pose else s.hemisphere
+                solved = not (sv.solve(s.S, self._cur, s.Ssig, hemi) & _SOLVE_FAILED)
+            if not solved:
+                ekf.release_clone(0)
+                continue
+            p, R, cov = sv.position, sv.rotation, sv.covariance
+            s.position[:] = p
+            s.have_pose = True
+            status |= POSE_VALID
+            qw, qx, qy, qz = _quat(R)
+            fw._send(PoseMsg(s.node, self.t_ref, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
+                             min(float(cov[0, 0]), _F32_MAX), min(float(cov[1, 1]), _F32_MAX),
+                             min(float(cov[2, 2]), _F32_MAX), min(float(cov[3, 3]), _F32_MAX),
+                             min(float(cov[4, 4]), _F32_MAX), min(float(cov[5, 5]), _F32_MAX), status))
+            fw.poses += 1
+            if not (imu and have):
+                ekf.release_clone(0)
+                continue    # no IMU over the burst: stay magnetic-only, acquire again
+            # carry the orientation from t_ref to the present with the gyroscope integration
+            np.matmul(R, ekf.clone_R[0].T, out=s.R3)
+            np.matmul(s.R3, ekf.R, out=s.Rnow)
+            lag = (ekf.t_us - self.t_ref) * 1e-6
+            half = (cfg.pulse_us + (self.n - 1) * cfg.spacing_us) * 0.5e-6
+            # the solution is blurred by the motion during the burst (position) and carried
+            # by an uncalibrated gyroscope (orientation): widen its covariance accordingly
+            P6 = s.P6
+            np.copyto(P6, cov)
+            extra = (lag_sig * (lag + half)) ** 2
+            gb = cfg.imu_gyro_bias_sigma * (lag + half)
+            for i in range(3):
+                P6[i, i] += extra
+                P6[3 + i, 3 + i] += gb * gb + cfg.init_sigma_ori_deg ** 2 * (math.pi / 180.0) ** 2
+            ekf.release_clone(0)
+            for j in range(self.n):
+                np.matmul(ekf.R.T, s.acq_R[j], out=s.acq_G[j])     # before R is replaced
+            ekf.initialize(p, s.Rnow, P6, ekf.t_us, cfg.init_sigma_vel, cfg.imu_acc_bias_sigma,
+                           cfg.imu_gyro_bias_sigma)
+            self._refine(s)
+            s.monitor.reset()
+            s.last_update_us = now_us
+            s.bits = status & (POSE_DEGRADED | POSE_SATURATED)
+
+    def _refine(self, s: _Sensor) -> None:
+        """Use the burst's pulses once more, as single-coil updates at their own instants.
+
+        The burst solution assumes the sensor still for the whole burst; near the source a
+        centimetre of motion between the pulses changes the fields by tens of percent and
+        the solver fits a compromise pose with a tiny covariance. Applied one by one through
+        clones predicted backwards from the new state (``SchepersEKF.back_clone``: the
+        gyroscope's rotation increments, the velocity and the offsets in the transition),
+        the nine amplitudes correct the position, orientation and velocity together."""
+        cfg = self.cfg
+        ekf = s.ekf
+        for j in range(self.n):
+            if s.Sflags[j] & _UNUSABLE:
+                continue
+            dt = (ekf.t_us - int(self.acq_t[j])) * 1e-6
+            ekf.back_clone(1, dt, s.acq_G[j])
+            c = float(self._cur[j])
+            rc = cfg.current_tolerance_a / max(abs(c), 1e-6)
+            rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+            col = s.col
+            for i in range(3):
+                col[i] = float(s.Svar[i, j])
+            ekf.update_single_coil(1, s.Sraw[:, j], col, j, c, self.model, rel, 1.0, gate=False)
+            ekf.release_clone(1)
+
+    # ------------------------------------------------------------ output
+    def _emit_fused(self, s: _Sensor, t_us: int, now_us: int) -> None:
+        fw = self.fw
+        ekf = s.ekf
+        status = POSE_VALID | POSE_FUSED | s.bits
+        if s.distorted:
+            status |= POSE_DISTORTED
+        if now_us - s.last_update_us > self.cfg.stale_us:
+            status |= POSE_STALE
+        qw, qx, qy, qz = _quat(ekf.R)
+        P = ekf.P
+        p = ekf.p
+        o = ORI.start
+        b = POS.start
+        fw._send(PoseMsg(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
+                         float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
+                         float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status))
+        fw.poses += 1
+
+    def counters(self) -> dict:
+        mons = [s.monitor for s in self._sens]
+        return {
+            "adaptive_pulses": self.pulses,
+            "adaptive_acquisitions": self.acquisitions,
+            "adaptive_updates": self.updates,
+            "adaptive_gated": self.gated,
+            "adaptive_unusable": self.unusable,
+            "adaptive_reacquired": self.reacquired,
+            "adaptive_distortion_events": self.distortion_events,
+            "adaptive_distorted_updates": sum(m.flagged for m in mons),
+            "adaptive_no_current": self.no_current,
+            "adaptive_energy_j": round(self.energy_j, 4),
+        }

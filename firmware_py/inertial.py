@@ -1,0 +1,468 @@
+"""The inertial side of the firmware: IMU sample rings, the orientation filters
+of the sensors and of the source, the fusion filter of each sensor, and the
+motion compensation within a burst.
+
+Glue between ``firmware.Firmware`` (which owns the pulse schedule, the
+magnetometer rings and the pose solver) and the estimators
+(``orientation.OrientationFilter``, thesis ch. 2; ``fusion.FusionFilter``,
+thesis ch. 6). Per sensor node (:class:`SensorInertial`), at each IMU sample:
+
+1. the ch. 2 filter ``Xi``: gyroscope strapdown, inclination update from the
+   accelerometer, compass update from the newest magnetometer sample that is
+   not inside a coil pulse (``PulseGate``; thesis ch. 2 needs the earth field
+   alone) and corrected for the set/reset offset (``FlipOffset``);
+2. the fusion filter's inertial step with the sensor's specific force and
+   rate, and the source's specific force and orientation (eq 6.8):
+   :class:`SourceInertial` (the source's own IMU and magnetometer through a
+   second ch. 2 filter) or, for a fixed source, ``-gravity_mps2`` and the
+   identity.
+
+After a burst (``SensorInertial.fuse``): the three pulse amplitudes are
+brought to the burst's reference instant with the inertial pose history
+(thesis sec 6.5: the relative motion during the X, Y, Z burst is the main
+error source), the pose is solved again from the compensated signals, and the
+solution with its covariance updates the fusion filter at that instant.
+
+All buffers are allocated in the constructors; the per-sample and per-burst
+paths allocate no numpy array.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from protocol.schema import ACC_LSB, GYR_LSB
+
+from .ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
+from .fusion import FusionFilter, FusionParams
+from .orientation import OrientationFilter, OrientationParams
+from .pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
+from .solver import SOLVE_NONFINITE, SOLVE_NO_START, SOLVE_BAD_INPUT
+
+#: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
+_COMP_MAX_VEL_SIGMA = 0.05
+
+
+def orientation_params(cfg) -> OrientationParams:
+    """Thesis ch. 2 filter parameters from a ``FirmwareConfig``."""
+    g = math.sqrt(sum(v * v for v in cfg.gravity_mps2))
+    return OrientationParams(
+        gyro_noise=cfg.imu_gyro_sigma, gyro_bias_rw=cfg.imu_gyro_bias_rw,
+        gyro_bias_sigma=cfg.imu_gyro_bias_sigma, acc_noise=cfg.imu_acc_sigma,
+        acc_motion_sigma=cfg.acc_motion_sigma, acc_corr_time_s=cfg.acc_corr_time_s,
+        mag_noise=cfg.mag_sigma_t / 49e-6, dist_corr=cfg.dist_corr, dist_sigma=cfg.dist_sigma,
+        dist_norm_gain=cfg.dist_norm_gain, dist_dip_gain=cfg.dist_dip_gain, gravity=g,
+        gate_probability=cfg.fusion_gate_probability, mag_learn_samples=cfg.mag_learn_samples)
+
+
+def fusion_params(cfg, source_imu: bool) -> FusionParams:
+    """Thesis ch. 6 filter parameters from a ``FirmwareConfig``."""
+    return FusionParams(
+        measurement_model=cfg.measurement_model, acc_noise=cfg.imu_acc_sigma, gyro_noise=cfg.imu_gyro_sigma,
+        source_acc_noise=cfg.imu_acc_sigma if source_imu else 0.0,
+        acc_bias_sigma=cfg.imu_acc_bias_sigma, gyro_bias_sigma=cfg.imu_gyro_bias_sigma,
+        acc_bias_rw=cfg.imu_acc_bias_rw, gyro_bias_rw=cfg.imu_gyro_bias_rw,
+        acc_bias_tau_s=cfg.bias_tau_s, gyro_bias_tau_s=cfg.bias_tau_s,
+        velocity0_sigma=cfg.init_sigma_vel, gate_probability=cfg.fusion_gate_probability,
+        reinit_after=cfg.fusion_reinit_after, xi_var_scale=cfg.xi_var_scale, xi_sigma_floor=cfg.xi_sigma_floor,
+        xi_heading_sigma_floor=cfg.xi_heading_sigma_floor,
+        mag_var_scale=cfg.mag_var_scale, max_gap_us=max(cfg.imu_timeout_us, int(3e6 / cfg.imu_rate_hz)),
+        stale_us=cfg.stale_us)
+
+
+class ImuRing:
+    """Fixed-capacity ring of received IMU samples (time, specific force
+    m/s^2, rate rad/s; sensor frame), drained by the tick. A full ring drops
+    its oldest sample (counted)."""
+
+    def __init__(self, capacity: int):
+        self.cap = int(capacity)
+        self.t = np.zeros(self.cap, dtype=np.int64)
+        self.d = np.zeros((self.cap, 6))
+        self._tv = memoryview(self.t)
+        self._dv = memoryview(self.d)
+        self.head = 0
+        self.count = 0
+        self.dropped = 0
+        self.received = 0
+        self.last_t = -(1 << 62)
+
+    def push(self, msg) -> None:
+        t = msg.t_us
+        if t <= self.last_t:          # not newer than the previous sample: refused
+            self.dropped += 1
+            return
+        self.last_t = t
+        if self.count == self.cap:
+            self.head = self.head + 1 if self.head + 1 < self.cap else 0
+            self.count -= 1
+            self.dropped += 1
+        k = self.head + self.count
+        if k >= self.cap:
+            k -= self.cap
+        self._tv[k] = t
+        d = self._dv
+        d[k, 0] = msg.ax * ACC_LSB
+        d[k, 1] = msg.ay * ACC_LSB
+        d[k, 2] = msg.az * ACC_LSB
+        d[k, 3] = msg.gx * GYR_LSB
+        d[k, 4] = msg.gy * GYR_LSB
+        d[k, 5] = msg.gz * GYR_LSB
+        self.count += 1
+        self.received += 1
+
+    def pop(self) -> int:
+        """Slot of the oldest sample (then released), or -1."""
+        if self.count == 0:
+            return -1
+        k = self.head
+        self.head = k + 1 if k + 1 < self.cap else 0
+        self.count -= 1
+        return k
+
+
+class PulseGate:
+    """Is a magnetometer sample free of coil field? Outside every pulse of the
+    current schedule by ``guard_us`` before its start and ``fall_us + guard_us``
+    after its end."""
+
+    def __init__(self, pulse_start, pulse_end, fall_us: int, guard_us: int):
+        self._ps = memoryview(pulse_start)
+        self._pe = memoryview(pulse_end)
+        self.n = len(pulse_start)
+        self.before = int(guard_us)
+        self.after = int(fall_us) + int(guard_us)
+
+    def quiet(self, t_us: int) -> bool:
+        ps, pe = self._ps, self._pe
+        for j in range(self.n):
+            if ps[j] - self.before <= t_us <= pe[j] + self.after:
+                return False
+        return True
+
+
+class FlipOffset:
+    """Residual set/reset offset of a flipped magnetoresistive sensor.
+
+    A flipped sensor reads ``s B + o`` with the flip state ``s``; the flip
+    electronics remove most of ``o`` and leave ``s o_r`` (thesis sec 5.5 and
+    7.2 on flipping). Pulse extraction removes it with the baseline; the
+    compass does not, so ``o_r`` is estimated across each flip: the jump
+    between the last sample before and the first after a flip, less the
+    rotation the gyroscope saw between them, is ``2 s o_r``. A running mean
+    of these jumps gives ``o_r``; compass samples are corrected by ``-s o_r``.
+    """
+
+    def __init__(self, gain: float = 0.2):
+        self.o = [0.0, 0.0, 0.0]
+        self.gain = float(gain)
+        self.prev_state = -1
+        self.prev = [0.0, 0.0, 0.0]
+        self.prev_t = 0
+        self.n = 0
+
+    def observe(self, t_us: int, state: int, mx, my, mz, rate, max_dt_us: int) -> None:
+        """Feed every quiet compass sample (T) with its flip state (0/1) and
+        the current bias-free rate (rad/s, 3 floats)."""
+        if state == self.prev_state:          # no flip: just remember the sample
+            p = self.prev
+            p[0], p[1], p[2] = mx, my, mz
+            self.prev_t = t_us
+            return
+        if self.prev_state >= 0 and 0 < t_us - self.prev_t <= max_dt_us:
+            dt = (t_us - self.prev_t) * 1e-6
+            wx, wy, wz = rate[0] * dt, rate[1] * dt, rate[2] * dt
+            px, py, pz = self.prev
+            # field seen from the rotated frame: p - w x p (first order)
+            ex = px - (wy * pz - wz * py)
+            ey = py - (wz * px - wx * pz)
+            ez = pz - (wx * py - wy * px)
+            s = 1.0 if state else -1.0
+            k = 1.0 / (self.n + 1) if self.n < 1.0 / self.gain else self.gain
+            o = self.o
+            o[0] += k * (0.5 * s * (mx - ex) - o[0])
+            o[1] += k * (0.5 * s * (my - ey) - o[1])
+            o[2] += k * (0.5 * s * (mz - ez) - o[2])
+            self.n += 1
+        self.prev_state = state
+        self.prev[0], self.prev[1], self.prev[2] = mx, my, mz
+        self.prev_t = t_us
+
+
+def _compass_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, gate: PulseGate):
+    """Newest magnetometer sample of ``ring`` newer than ``after_t``, within
+    ``max_age_us`` of ``t_imu``, not saturated and outside the pulses; returns
+    its slot or -1."""
+    if ring._count == 0:
+        return -1
+    slot = ring._head - 1
+    if slot < 0:
+        slot += ring.capacity
+    t = ring._tv[slot]
+    if t <= after_t or abs(t - t_imu) > max_age_us:
+        return -1
+    if ring._fv[slot] & SAMPLE_SATURATED or not gate.quiet(t):
+        return -1
+    return slot
+
+
+class _Ori:
+    """A ch. 2 filter fed from an IMU ring and a magnetometer ring."""
+
+    def __init__(self, cfg, gate: PulseGate):
+        self.f = OrientationFilter(orientation_params(cfg))
+        self.gate = gate
+        self.flip = FlipOffset()
+        self.compass_t = -(1 << 62)
+        self.max_age_us = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz)
+        self.compass_used = 0
+        self.every = cfg.ori_update_every
+        self.n = 0
+
+    def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        f = self.f
+        slot = _compass_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
+        if slot >= 0:
+            self.compass_t = mag._tv[slot]
+            b = mag._bv
+            j = 3 * slot
+            st = 1 if mag._fv[slot] & SAMPLE_FLIP else 0
+            mx, my, mz = b[j], b[j + 1], b[j + 2]
+            bb = f._bv
+            self.flip.observe(self.compass_t, st, mx, my, mz, (wx - bb[0], wy - bb[1], wz - bb[2]),
+                              self.max_age_us)
+            s = 1.0 if st else -1.0
+            o = self.flip.o
+            mx -= s * o[0]
+            my -= s * o[1]
+            mz -= s * o[2]
+        if not f.initialized:
+            if slot >= 0:
+                f.initialize(t, ax, ay, az, mx, my, mz)
+            return
+        f.predict(t, wx, wy, wz)
+        self.n += 1
+        if self.n >= self.every:
+            self.n = 0
+            f.update_acc(ax, ay, az)
+            if slot >= 0:
+                f.update_mag(mx, my, mz)
+                self.compass_used += 1
+        elif slot >= 0 and f._learn > 0:
+            f.update_mag(mx, my, mz)          # learning |m| and the dip: every sample counts
+
+
+class SourceInertial:
+    """The source's IMU and magnetometer (thesis sec 6.2.3): its orientation
+    ``Phi`` (a ch. 2 filter; identity until initialised) and its specific force
+    in the global frame ``Phi f_source`` (eq 6.8)."""
+
+    def __init__(self, node: int, cfg, gate: PulseGate):
+        self.node = node
+        self.imu = ImuRing(cfg.imu_ring_capacity)
+        self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
+        self.ori = _Ori(cfg, gate)
+        self.phi = np.eye(3)
+        self.fref = np.zeros(3)
+        self._phiv = memoryview(self.phi)
+        self._fv = memoryview(self.fref)
+        g = [-v for v in cfg.gravity_mps2]
+        self._fv[0], self._fv[1], self._fv[2] = g[0], g[1], g[2]
+        self.samples = 0
+
+    def process(self) -> None:
+        ring = self.imu
+        d = ring._dv
+        while True:
+            k = ring.pop()
+            if k < 0:
+                return
+            t = ring._tv[k]
+            ax, ay, az, wx, wy, wz = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
+            self.ori.step(t, ax, ay, az, wx, wy, wz, self.mag)
+            self.samples += 1
+            f = self.ori.f
+            if f.initialized:
+                np.copyto(self.phi, f.R)
+                P = self._phiv
+                fv = self._fv
+                for i in range(3):
+                    fv[i] = P[i, 0] * ax + P[i, 1] * ay + P[i, 2] * az
+
+
+class SensorInertial:
+    """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
+    compensation buffers of one sensor node."""
+
+    def __init__(self, node: int, cfg, gate: PulseGate, fixed_phi, fixed_fref, source: SourceInertial | None):
+        self.node = node
+        self.cfg = cfg
+        n = len(cfg.coils)
+        self.imu = ImuRing(cfg.imu_ring_capacity)
+        self.ori = _Ori(cfg, gate)
+        self.fusion = FusionFilter(fusion_params(cfg, source is not None), self.ori.f,
+                                   imu_capacity=cfg.fusion_replay_capacity,
+                                   history_capacity=cfg.fusion_history_capacity,
+                                   output_capacity=cfg.pose_output_capacity)
+        self.fusion.source_fixed = source is None
+        self.source = source
+        self._phi = fixed_phi if source is None else source.phi
+        self._phiv = memoryview(self._phi)
+        self._fref = fixed_fref if source is None else source.fref
+        self._frv = memoryview(self._fref)
+        # one burst: reference instant, compensated signals
+        self.t_ref = 0
+        self.pending = False
+        self.S_comp = np.zeros((3, n))
+        self._h_ref = np.zeros((3, n))
+        self._h_j = np.zeros((3, n))
+        self._p_ref = np.zeros(3)
+        self._R_ref = np.zeros((3, 3))
+        self._p_j = np.zeros(3)
+        self._R_j = np.zeros((3, 3))
+        self._pr = memoryview(self._p_ref)
+        self._Rr = memoryview(self._R_ref)
+        self._pj = memoryview(self._p_j)
+        self._Rj = memoryview(self._R_j)
+        self._Scv = memoryview(self.S_comp)
+        self._hrv = memoryview(self._h_ref)
+        self._hjv = memoryview(self._h_j)
+        self.mag_position = np.zeros(3)
+        self.mag_rotation = np.eye(3)
+        self.mag_cov = np.zeros((6, 6))
+        self.comp_position = np.zeros(3)   # the motion-compensated solution of the burst
+        self.comp_rotation = np.eye(3)
+        self.comp_cov = np.zeros((6, 6))
+        self.comp_ok = False
+        self.stage = 0
+        self.pending_tick = -1
+        self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
+        self._Cfv = memoryview(self._Cf)
+        # rms time of the pulses about the burst's middle (n equally spaced pulses)
+        self.burst_rms_s = cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0)
+        self.w_last = [0.0, 0.0, 0.0]      # latest rate, offset removed (rad/s)
+        self.compensated = 0
+        self.comp_rejected = 0
+        self.fused = 0
+        self.samples = 0
+        self.last_fuse_flags = 0
+
+    # ------------------------------------------------------------ per sample
+    def process(self, mag: SampleRing) -> None:
+        """Drain the IMU ring through Xi and the fusion filter."""
+        ring = self.imu
+        d = ring._dv
+        fus = self.fusion
+        phi = self._phiv
+        fr = self._frv
+        while True:
+            k = ring.pop()
+            if k < 0:
+                return
+            t = ring._tv[k]
+            ax, ay, az, wx, wy, wz = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
+            self.ori.step(t, ax, ay, az, wx, wy, wz, mag)
+            fus.push_imu(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
+            self.samples += 1
+            b = self.ori.f._bv
+            wl = self.w_last
+            wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
+
+    def schedule(self, t_ref: int) -> None:
+        """A burst was commanded; its pose will refer to ``t_ref``."""
+        self.t_ref = int(t_ref)
+        self.fusion.schedule_snapshot(self.t_ref)
+
+    # ------------------------------------------------------------ per burst
+    def compensate(self, solver, S, currents, pulse_t) -> bool:
+        """Bring the pulses to ``t_ref``: ``S_c[:, j] = S[:, j] + h_j(x_ref) - h_j(x_j)``
+        with the inertial poses ``x_j`` at pulse ``j``'s mean sample time
+        (``pulse_t[j]``, memoryview of int) and
+        ``x_ref`` at ``t_ref`` (thesis sec 6.5). False (``S_comp = S``) when
+        the inertial history does not cover the burst."""
+        np.copyto(self.S_comp, S)
+        fus = self.fusion
+        # the inertial motion is used once the filter knows its velocity better
+        # than the motion it is to remove
+        if not fus.initialized or fus.velocity_sigma() > _COMP_MAX_VEL_SIGMA \
+                or not fus.pose_at(self.t_ref, self._pr, self._Rr):
+            return False
+        solver.predict_signals(self._p_ref, self._R_ref, currents, self._h_ref)
+        n = self.S_comp.shape[1]
+        Sc = self._Scv
+        hr = self._hrv
+        hj = self._hjv
+        for j in range(n):
+            if not fus.pose_at(pulse_t[j], self._pj, self._Rj):
+                np.copyto(self.S_comp, S)
+                return False
+            solver.predict_signals(self._p_j, self._R_j, currents, self._h_j)
+            for i in range(3):
+                Sc[i, j] = Sc[i, j] + hr[i, j] - hj[i, j]
+        self.compensated += 1
+        return True
+
+    def fuse(self, solver, S, currents, sigma, pulse_t) -> int:
+        """Fuse the burst whose magnetic-only solution is in ``mag_*``, in two
+        calls (two ticks, so that no tick carries two solves and a replay):
+
+        1. with motion compensation, bring the pulses to ``t_ref`` and solve
+           again (started from the magnetic-only solution); returns -1;
+        2. update the fusion filter at ``t_ref`` with the compensated solution
+           and its covariance; if the update is rejected (the inertial motion
+           was wrong), with the magnetic-only one instead. Returns the fusion
+           flags.
+
+        The solver's covariance assumes the sensor still during the burst. The
+        motion left in the signals is added to it: without compensation the
+        motion itself (``|v| t_rms`` and ``|w| t_rms`` per axis, ``t_rms`` the
+        rms pulse time about the middle of the burst); with compensation the
+        error of the inertial motion (velocity uncertainty times ``t_rms``)."""
+        if self.stage == 0:
+            self.stage = 1
+            self.comp_ok = False
+            if self.cfg.motion_compensation and self.compensate(solver, S, currents, pulse_t):
+                st = solver.solve(self.S_comp, currents, sigma, x0_position=self.mag_position,
+                                  x0_rotation=self.mag_rotation)
+                if not st & (SOLVE_NONFINITE | SOLVE_NO_START | SOLVE_BAD_INPUT):
+                    np.copyto(self.comp_position, solver.position)
+                    np.copyto(self.comp_rotation, solver.rotation)
+                    np.copyto(self.comp_cov, solver.covariance)
+                    self.comp_ok = True
+            return -1
+        self.stage = 0
+        self.pending = False
+        fus = self.fusion
+        if self.comp_ok:
+            self._motion_cov(self.comp_cov, True)
+            flags = fus.magnetic_update(self.t_ref, self.comp_position, self.comp_rotation, self._Cf, final=False)
+            if not flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
+                self.last_fuse_flags = flags
+                self.fused += 1
+                return flags
+            # the inertial motion was wrong: offer the burst as measured
+            self.comp_rejected += 1
+        self._motion_cov(self.mag_cov, False)
+        flags = fus.magnetic_update(self.t_ref, self.mag_position, self.mag_rotation, self._Cf)
+        self.last_fuse_flags = flags
+        self.fused += 1
+        return flags
+
+    def _motion_cov(self, C, compensated: bool) -> None:
+        """``_Cf = C`` plus the motion left in the burst (see :meth:`fuse`)."""
+        fus = self.fusion
+        np.copyto(self._Cf, C)
+        tr2 = self.burst_rms_s * self.burst_rms_s
+        Cf = self._Cfv
+        if compensated:
+            sv = fus.velocity_sigma()
+            ap = sv * sv * tr2
+            ao = 0.0
+        else:
+            wl = self.w_last
+            ao = (wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2]) * tr2
+            ap = fus.speed_squared() * tr2 if fus.initialized else 0.0
+        for i in range(3):
+            Cf[i, i] += ap
+            Cf[3 + i, 3 + i] += ao

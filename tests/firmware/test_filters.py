@@ -1,0 +1,423 @@
+"""The estimators against independent references (filterpy, batch least
+squares) and for consistency (NEES within chi-square bounds), on seeded
+synthetic data."""
+import math
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter, rts_smoother
+from scipy.stats import chi2
+
+from firmware_py.ekf import EKF_GATED, EKF_NOT_PD, EKF_OK, CovariancePredict, KalmanUpdate, chi2_gate
+from firmware_py.fusion import FusionFilter, FusionParams
+from firmware_py.layout import ACC, FUSION_LAYOUT, FUSION_XI_LAYOUT, GYR, ORI, POS, VEL, fusion_layout
+from firmware_py.orientation import OrientationFilter, OrientationParams
+from firmware_py.smoother import FusionRecorder, rts, smooth
+from hil.motion import HandMovedBench, matrix_to_rotvec, rotvec_to_matrix
+
+G = np.array([0.0, 0.0, -9.81])
+EARTH = np.array([20e-6, 0.0, -45e-6])
+ACC_S, GYR_S = 0.0155, 0.0067          # per-sample noise at 120 Hz (MTx-class, hil.nodes.ImuSpec)
+RATE = 120.0
+
+
+# ------------------------------------------------------------------ layout, one update shape
+def test_layout_tables_name_every_slice():
+    assert FUSION_LAYOUT.n == 21 and FUSION_XI_LAYOUT.n == 24
+    assert fusion_layout(1) is FUSION_LAYOUT and fusion_layout(3) is FUSION_XI_LAYOUT
+    names = FUSION_XI_LAYOUT.names()
+    assert names == ("POS", "VEL", "ORI", "ACC", "GYR", "QM", "PSI", "XI")
+    assert POS == slice(0, 3) and GYR == slice(12, 15)
+    assert "eq 6.10" in FUSION_LAYOUT.table()
+
+
+def test_kalman_update_matches_filterpy_joseph_and_gates():
+    rng = np.random.default_rng(0)
+    for n, m in ((9, 3), (24, 9), (21, 6)):
+        P = rng.normal(size=(n, n))
+        P = P @ P.T * 1e-3 + 1e-4 * np.eye(n)
+        u = KalmanUpdate(n, m, 1.0)
+        u.H[:] = rng.normal(size=(m, n))
+        u.R[:] = np.diag(rng.uniform(1e-3, 3e-3, m))
+        z = rng.normal(size=m) * 0.05
+        u.y[:] = z
+        mine = P.copy()
+        assert u.update(mine) == EKF_OK
+        kf = KalmanFilter(dim_x=n, dim_z=m)
+        kf.x = np.zeros(n)
+        kf.P = P.copy()
+        kf.update(z, R=u.R.copy(), H=u.H.copy())          # filterpy: Joseph form
+        np.testing.assert_allclose(mine, kf.P, rtol=1e-10, atol=1e-15)
+        np.testing.assert_allclose(u.dx, kf.x, rtol=1e-10, atol=1e-15)
+        S = u.H @ P @ u.H.T + u.R
+        assert u.nis == pytest.approx(z @ np.linalg.solve(S, z), rel=1e-10)
+    # the gate rejects and leaves P alone; a non-PD innovation covariance is reported
+    g = KalmanUpdate(3, 3, 0.99)
+    assert g.gate == pytest.approx(chi2.ppf(0.99, 3), rel=1e-4)
+    P = np.eye(3)
+    g.H[:] = np.eye(3)
+    g.R[:] = np.eye(3)
+    g.y[:] = [10.0, 0.0, 0.0]
+    assert g.update(P) == EKF_GATED and np.array_equal(P, np.eye(3)) and not g.dx.any()
+    g.R[:] = -5 * np.eye(3)
+    g.y[:] = 0.0
+    assert g.update(P) == EKF_NOT_PD
+    assert chi2_gate(9, 1.0) == math.inf
+
+
+def test_covariance_predict_matches_filterpy():
+    rng = np.random.default_rng(1)
+    cp = CovariancePredict(15)
+    cp.A[:] = np.eye(15) + 0.01 * rng.normal(size=(15, 15))
+    cp.Q[:] = np.diag(rng.uniform(1e-6, 1e-5, 15))
+    P = np.eye(15) * 1e-3
+    kf = KalmanFilter(dim_x=15, dim_z=1)
+    kf.P = P.copy()
+    for _ in range(40):
+        cp.predict(P)
+        kf.predict(F=cp.A, Q=cp.Q)
+    np.testing.assert_allclose(P, kf.P, rtol=1e-9)
+
+
+# ------------------------------------------------------------------ synthetic IMU
+def _imu(traj, T, seed, bias=True):
+    rng = np.random.default_rng(seed)
+    t_us = (np.arange(int(T * RATE)) * (1e6 / RATE)).astype(np.int64) + 1000
+    K = traj.kinematics(t_us)
+    ba = rng.normal(0, 0.02, 3) if bias else np.zeros(3)
+    bg = rng.normal(0, 8.7e-3, 3) if bias else np.zeros(3)
+    f = np.einsum("nji,nj->ni", K.R, K.acceleration - G) + ba + rng.normal(0, ACC_S, (t_us.size, 3))
+    w = K.angular_velocity + bg + rng.normal(0, GYR_S, (t_us.size, 3))
+    m = np.einsum("nji,j->ni", K.R, EARTH) + rng.normal(0, 0.5e-7, (t_us.size, 3))
+    return t_us, K, f, w, m, rng
+
+
+def _orientation_params():
+    return OrientationParams(gyro_noise=GYR_S, acc_noise=ACC_S, mag_noise=0.5e-7 / 49e-6, gyro_bias_sigma=0.02,
+                             mag_learn_samples=60)
+
+
+TRAJ = HandMovedBench(seed=1, duration_s=60, v_max=0.12, w_max_deg=30.0)
+
+
+def test_orientation_filter_matches_filterpy_covariance_recursion():
+    """The same predict/update sequence through filterpy (F, Q, H, R and the
+    innovation of every step) gives the same covariance and corrections."""
+    t_us, K, f, w, m, _ = _imu(TRAJ, 6.0, 4)
+    of = OrientationFilter(_orientation_params())
+    of.initialize(int(t_us[0]), *f[0], *m[0])
+    kf = KalmanFilter(dim_x=9, dim_z=3)
+    kf.P = of.P.copy()
+    checked = 0
+    for i in range(1, t_us.size):
+        of.predict(int(t_us[i]), *w[i])
+        of.propagate()
+        kf.predict(F=of.pred.A.copy(), Q=of.pred.Q.copy())
+        np.testing.assert_allclose(of.P, kf.P, rtol=1e-7, atol=1e-16)
+        for upd, call, arg in ((of.upd_acc, of.update_acc, f[i]), (of.upd_mag, of.update_mag, m[i])):
+            if call(*arg) == EKF_OK:
+                kf.x = np.zeros(9)
+                kf.update(upd.y.copy(), R=upd.R.copy(), H=upd.H.copy())
+                np.testing.assert_allclose(upd.dx, kf.x, rtol=1e-7, atol=1e-13)
+                np.testing.assert_allclose(of.P, kf.P, rtol=1e-7, atol=1e-16)
+                checked += 1
+    assert checked > 700
+
+
+def test_orientation_filter_is_consistent_and_accurate():
+    """No sensor offsets, so the error is white-noise driven: the NEES of the
+    orientation error (3 dof) averaged over the run is within its 99.9 %
+    chi-square band, and the error is a few hundredths of a degree."""
+    t_us, K, f, w, m, _ = _imu(TRAJ, 30.0, 3, bias=False)
+    of = OrientationFilter(_orientation_params())
+    nees, err = [], []
+    for i in range(t_us.size):
+        t = int(t_us[i])
+        if not of.initialized:
+            of.initialize(t, *f[i], *m[i])
+            continue
+        of.predict(t, *w[i])
+        of.update_acc(*f[i])
+        of.update_mag(*m[i])
+        if i > 600 and i % 12 == 0:
+            e = np.array(matrix_to_rotvec(K.R[i] @ of.R.T))      # global frame, true = exp(e) est
+            Pg = np.zeros((3, 3))
+            of.theta_covariance_global(Pg)
+            nees.append(e @ np.linalg.solve(Pg, e))
+            err.append(np.linalg.norm(e))
+    n = len(nees)
+    lo, hi = chi2.ppf([0.0005, 0.9995], 3 * n) / n
+    # consecutive samples are correlated (12 IMU samples apart): widen the band 3x
+    assert lo / 3 < np.mean(nees) < hi * 3
+    assert math.degrees(np.sqrt(np.mean(np.square(err)))) < 0.2
+
+
+def test_orientation_filter_estimates_gyro_offset_and_survives_disturbance():
+    """Offsets are estimated; a magnet brought near (a constant extra field
+    in the global frame for 3 s) is absorbed by the disturbance state (eq 2.12)
+    instead of turning the heading."""
+    t_us, K, f, w, m, rng = _imu(TRAJ, 20.0, 5)
+    disturbed = (t_us > 8e6) & (t_us < 11e6)
+    m = m.copy()
+    m[disturbed] += np.einsum("nji,j->ni", K.R[disturbed], np.array([6e-6, -4e-6, 3e-6]))
+    of = OrientationFilter(_orientation_params())
+    heading = []
+    for i in range(t_us.size):
+        t = int(t_us[i])
+        if not of.initialized:
+            of.initialize(t, *f[i], *m[i])
+            continue
+        of.predict(t, *w[i])
+        of.update_acc(*f[i])
+        of.update_mag(*m[i])
+        if t > 4e6:
+            heading.append(abs(matrix_to_rotvec(K.R[i] @ of.R.T)[2]))
+    assert math.degrees(max(heading)) < 3.0
+    assert math.degrees(float(np.sqrt(np.mean(np.square(heading))))) < 1.0
+
+
+# ------------------------------------------------------------------ fusion
+def _fusion_run(model, T, seed, *, nees=False, recorder=None, mirror=None, bias=True, source=None):
+    """Synthetic run of the ch. 6 filter: IMU at 120 Hz, magnetic solutions
+    every 600 ms at the burst middle, delivered 170 ms later, drawn from a
+    covariance like the solver's (position 2 mm + 1 %, orientation 0.6 deg)."""
+    from firmware_py.solve import crlb
+    from firmware_py.field import orthogonal_source
+
+    coils, cur = orthogonal_source(0.055, 50), np.full(3, 1.5)
+    t_us, K, f, w, m, rng = _imu(TRAJ, T, seed, bias=bias)
+    of = OrientationFilter(_orientation_params())
+    ff = FusionFilter(FusionParams(measurement_model=model, acc_noise=ACC_S, gyro_noise=GYR_S,
+                                   gyro_bias_sigma=0.02), of if model != 1 else None)
+    ff.source_fixed = source is None
+    ff.recorder = recorder
+    phi = np.eye(3)
+    fr = np.array([0.0, 0.0, 9.81])
+    next_ref = 330_000
+    ff.schedule_snapshot(next_ref)
+    pending = []
+    out = {"nees": [], "err": [], "mag": []}
+    for i in range(t_us.size):
+        t = int(t_us[i])
+        if not of.initialized:
+            of.initialize(t, *f[i], *m[i])
+        else:
+            of.predict(t, *w[i])
+            of.update_acc(*f[i])
+            of.update_mag(*m[i])
+        if source is not None:
+            phi, fr = source(t)
+        ff.push_imu(t, *f[i], *w[i], *fr, phi)
+        if mirror is not None:
+            mirror(ff, "step")
+        while ff.pop_output() >= 0:
+            ff.release_output()
+        if t >= next_ref and not pending:
+            k = TRAJ.kinematics(next_ref)
+            C = crlb(k.position, k.R, coils, cur, 2.5e-8)
+            d = rng.multivariate_normal(np.zeros(6), C)
+            pending.append((next_ref, k.position - d[:3], k.R @ rotvec_to_matrix(-d[3:]), C, t + 170_000))
+            out["mag"].append(np.linalg.norm(d[:3]))
+            next_ref += 600_000
+        if pending and t >= pending[0][4]:
+            ref, q, R, C, _ = pending.pop()
+            fl = ff.magnetic_update(ref, q, R, C)
+            assert fl in (0, 512)
+            ff.schedule_snapshot(next_ref)
+        if ff.initialized and t > 8e6:
+            out["err"].append(np.linalg.norm(ff.p - K.position[i]))
+            if nees and i % 30 == 0:
+                out["nees"].append(ff.nees(K.position[i], K.R[i], K.velocity[i]))
+    out["filter"] = ff
+    return out
+
+
+@pytest.mark.parametrize("model", [1, 3])
+def test_fusion_is_consistent_nees_within_chi_square(model):
+    """Normalised estimation error squared of position, velocity and
+    orientation (9 dof), averaged over the run (after convergence), inside
+    the 99.9 % chi-square band (widened for the correlation of nearby samples);
+    the fused position beats the magnetic solutions it was given."""
+    r = _fusion_run(model, 40.0, 11, nees=True, bias=False)
+    nees = np.array(r["nees"])
+    n = nees.size
+    lo, hi = chi2.ppf([0.0005, 0.9995], 9 * n) / n
+    assert lo / 2 < nees.mean() < hi * 2, nees.mean()
+    assert np.sqrt(np.mean(np.square(r["err"]))) < np.sqrt(np.mean(np.square(r["mag"])))
+
+
+def test_fusion_covariance_matches_filterpy():
+    """Every predict (A, Q) and magnetic update (H, R, innovation, with the
+    white blocks the filter sets) replayed through filterpy gives the same
+    covariance; the rewind/replay of the delayed update is the same
+    recursion applied in time order."""
+    from firmware_py.fusion import FusionFilter as FF
+
+    log = []
+
+    class Mirror:
+        def on_init(self, fus):
+            log.append(("init", fus.t_us, fus.P.copy()))
+
+        def on_step(self, fus, k, t1):
+            log.append(("step", t1, fus.pred.A.copy(), fus.pred.Q.copy(), fus.P.copy()))
+
+        def on_rewind(self, fus, t0):
+            while log and log[-1][0] != "init" and log[-1][1] > t0:
+                log.pop()
+
+        def on_prior(self, fus):
+            log.append(("prior", fus.t_us, fus.P.copy()))
+
+        def on_update(self, fus, dx):
+            log.append(("update", fus.t_us, fus.upd.H.copy(), fus.upd.R.copy(), fus.upd.y.copy(),
+                        np.array(dx), fus.P.copy()))
+
+    assert FF  # noqa
+    _fusion_run(3, 8.0, 5, recorder=Mirror())
+    kf = None
+    steps = updates = 0
+    for entry in log:
+        if entry[0] == "init":
+            kf = KalmanFilter(dim_x=24, dim_z=9)
+            kf.P = entry[2].copy()
+        elif entry[0] == "step":
+            kf.predict(F=entry[2], Q=entry[3])
+            np.testing.assert_allclose(kf.P, entry[4], rtol=1e-8, atol=1e-18)
+            steps += 1
+        elif entry[0] == "prior":
+            kf.P = entry[2].copy()           # the white blocks set for this measurement
+        elif entry[0] == "update":
+            kf.x = np.zeros(24)
+            kf.update(entry[4], R=entry[3], H=entry[2])
+            np.testing.assert_allclose(kf.x, entry[5], rtol=1e-8, atol=1e-12)
+            np.testing.assert_allclose(kf.P, entry[6], rtol=1e-8, atol=1e-18)
+            updates += 1
+    assert steps > 800 and updates >= 10
+
+
+def test_fusion_models_and_delayed_update_and_reported_pose():
+    for model in (1, 2, 3):
+        r = _fusion_run(model, 16.0, 2)
+        ff = r["filter"]
+        assert ff.updates >= 20 and ff.rejected == 0
+        assert np.sqrt(np.mean(np.square(r["err"]))) < 0.02
+    # the delayed update lands at t_ref: after replay the filter is at the newest sample
+    assert ff.t_us == ff.imu_t[(ff._ihead - 1) % ff._icap]
+
+
+def test_moving_source_net_acceleration_eq_6_8():
+    """Source and sensor both accelerate (a common sway); with the source's
+    specific force and orientation (eq 6.8, a_net = a_sensor - a_source) the
+    filter tracks the relative motion; ignoring the source drifts."""
+    amp, fq = 0.15, 0.5                       # m, Hz: the source sways along x
+
+    def source_accel(t):
+        s = t * 1e-6
+        return np.array([-amp * (2 * math.pi * fq) ** 2 * math.sin(2 * math.pi * fq * s), 0.0, 0.0])
+
+    def src(t):
+        return np.eye(3), source_accel(t) - G          # Phi = I, specific force in G
+
+    t_us, K, f, w, m, rng = _imu(TRAJ, 20.0, 6)
+    # the sensor's IMU sees its own global motion: relative motion plus the source's
+    f_glob = f + np.einsum("nji,nj->ni", K.R, np.array([source_accel(int(t)) for t in t_us]))
+    results = {}
+    for name, source in (("with source", src), ("fixed", None)):
+        global _imu_override
+        of = OrientationFilter(_orientation_params())
+        ff = FusionFilter(FusionParams(measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S))
+        ff.source_fixed = source is None
+        from firmware_py.solve import crlb
+        from firmware_py.field import orthogonal_source
+        coils, cur = orthogonal_source(0.055, 50), np.full(3, 1.5)
+        next_ref = 330_000
+        ff.schedule_snapshot(next_ref)
+        pending, err = [], []
+        for i in range(t_us.size):
+            t = int(t_us[i])
+            phi, fr = source(t) if source else (np.eye(3), -G)
+            ff.push_imu(t, *f_glob[i], *w[i], *fr, phi)
+            while ff.pop_output() >= 0:
+                ff.release_output()
+            if t >= next_ref and not pending:
+                k = TRAJ.kinematics(next_ref)
+                C = crlb(k.position, k.R, coils, cur, 2.5e-8)
+                d = rng.multivariate_normal(np.zeros(6), C)
+                pending.append((next_ref, k.position - d[:3], k.R @ rotvec_to_matrix(-d[3:]), C, t + 170_000))
+                next_ref += 600_000
+            if pending and t >= pending[0][4]:
+                ref, q, R, C, _ = pending.pop()
+                ff.magnetic_update(ref, q, R, C)
+                ff.schedule_snapshot(next_ref)
+            if ff.initialized and t > 6e6:
+                err.append(np.linalg.norm(ff.p - K.position[i]))
+        results[name] = float(np.sqrt(np.mean(np.square(err))))
+    assert results["with source"] < 0.03
+    assert results["fixed"] > 2 * results["with source"]
+
+
+# ------------------------------------------------------------------ smoothing
+def test_rts_matches_filterpy_and_batch_least_squares():
+    """Linear constant-velocity model: the RTS smoother (eqs 4.16-4.17) equals
+    filterpy's rts_smoother and the batch weighted least-squares solution."""
+    rng = np.random.default_rng(3)
+    dt, N, q, r = 0.1, 40, 0.05, 0.2
+    A = np.array([[1.0, dt], [0.0, 1.0]])
+    Q = q * np.array([[dt ** 3 / 3, dt ** 2 / 2], [dt ** 2 / 2, dt]])
+    H = np.array([[1.0, 0.0]])
+    x0, P0 = np.zeros(2), np.diag([1.0, 1.0])
+    truth = np.zeros((N, 2))
+    xt = np.array([0.3, 1.0])
+    zs = []
+    for i in range(N):
+        if i:
+            xt = A @ xt + rng.multivariate_normal(np.zeros(2), Q)
+        truth[i] = xt
+        zs.append(xt[0] + rng.normal(0, math.sqrt(r)))
+    kf = KalmanFilter(dim_x=2, dim_z=1)
+    kf.x, kf.P, kf.F, kf.Q, kf.H, kf.R = x0.copy(), P0.copy(), A, Q, H, np.array([[r]])
+    xp, Pp, xm, Pm, As = [], [], [], [], []
+    for i, z in enumerate(zs):
+        if i:
+            kf.predict()
+        xm.append(kf.x.copy())
+        Pm.append(kf.P.copy())
+        kf.update(z)
+        xp.append(kf.x.copy())
+        Pp.append(kf.P.copy())
+        As.append(A)
+    xs, Ps = rts(np.array(xp), np.array(Pp), np.array(Pm), np.array(As))
+    fx, fP, _, _ = rts_smoother(np.array(xp), np.array(Pp), [A] * N, [Q] * N)
+    np.testing.assert_allclose(xs, fx, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(Ps, fP, rtol=1e-9, atol=1e-12)
+    # batch least squares over the whole trajectory (prior, dynamics, measurements)
+    n = 2 * N
+    rows, rhs, wts = [], [], []
+    def add(row, val, cov):
+        Li = np.linalg.cholesky(np.linalg.inv(np.atleast_2d(cov)))
+        rows.append(Li.T @ row)
+        rhs.append(Li.T @ np.atleast_1d(val))
+    J = np.zeros((2, n)); J[:, 0:2] = np.eye(2); add(J, x0, P0)
+    for i in range(1, N):
+        J = np.zeros((2, n)); J[:, 2 * i:2 * i + 2] = np.eye(2); J[:, 2 * i - 2:2 * i] = -A
+        add(J, np.zeros(2), Q)
+    for i, z in enumerate(zs):
+        J = np.zeros((1, n)); J[0, 2 * i] = 1.0; add(J, np.array([z]), r)
+    Jm = np.vstack(rows)
+    b = np.concatenate(rhs)
+    x_ls = np.linalg.lstsq(Jm, b, rcond=None)[0].reshape(N, 2)
+    np.testing.assert_allclose(xs, x_ls, rtol=1e-8, atol=1e-10)
+
+
+def test_error_state_smoother_improves_the_fusion_filter():
+    rec = FusionRecorder()
+    r = _fusion_run(3, 20.0, 9, recorder=rec)
+    segs = smooth(rec)
+    assert len(segs) == 1
+    s = segs[0]
+    K = TRAJ.kinematics(s["t"])
+    fwd = np.sqrt(np.mean(np.sum((s["p_forward"] - K.position) ** 2, axis=1)))
+    smo = np.sqrt(np.mean(np.sum((s["p"] - K.position) ** 2, axis=1)))
+    assert smo < 0.7 * fwd
+    assert r["filter"].updates > 25

@@ -1,0 +1,48 @@
+"""Shared helpers of the HIL tests: run a scenario's bench with the firmware
+on the simulated clock (no wall-clock sleeps), optionally with fault
+switches, a changed firmware configuration, or a hook on the firmware."""
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import pytest
+
+from firmware_py.firmware import Firmware
+from hil.faults import BenchFaults
+from tools import report as report_mod
+from tools import scenarios
+from tools.links import inproc_pair
+from tools.runner import BenchSetup
+
+
+def run_bench(scenario="static", seed=1, duration_s=10.0, faults="", cfg=None, setup=None, scenario_obj=None):
+    """Run firmware and emulator in one process; return bench, firmware, config and the report.
+
+    ``cfg``: dict of FirmwareConfig overrides; ``setup(fw, bench)``: called before the run
+    (e.g. to wrap the firmware's send or change its supervisor).
+    """
+    sc = scenario_obj or scenarios.get(scenario)
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, seed, duration_s, emu_end, BenchFaults.parse(faults) if isinstance(faults, str) else faults)
+    config = sc.firmware_config()
+    if cfg:
+        config = dataclasses.replace(config, **cfg)
+    fw = Firmware(config, fw_end)
+    if setup is not None:
+        setup(fw, bench)
+    tick = config.tick_us
+    end = int(duration_s * 1e6)
+    t = 0
+    while t <= end:
+        bench.emulator.step(t)
+        fw.tick(t)
+        t += tick
+    bench.emulator.step(t)
+    rep = report_mod.build(bench, fw.status(), duration_s, transport="inproc", cfg=config)
+    return SimpleNamespace(bench=bench, fw=fw, cfg=config, rep=rep, scenario=sc)
+
+
+@pytest.fixture(scope="session")
+def bench_runner():
+    return run_bench

@@ -1,0 +1,327 @@
+"""Time the firmware tick on recorded inputs, count its allocations, size its state.
+
+The inputs are the frames a firmware received during a bench run (a log from
+``coiltrack bench --log PATH``, or a run of ``--scenario`` recorded in
+memory). They are replayed into a fresh firmware on a virtual clock
+(``tools.framelog``): the same tick sees the same bytes, so the timing is of
+the firmware alone. Reported, after a warm-up:
+
+* the tick time (median, p99, max) overall, over the ticks that processed an
+  IMU sample (the "fused tick") and per phase (receive, windows, solve,
+  predict, update, transmit; ``Firmware.PHASES``); Python's garbage
+  collector is frozen after start-up (``gc.freeze``), as a board has none;
+* numpy array allocations per tick (``tools.alloc.NumpyAllocationCounter``,
+  a second replay);
+* the firmware state in bytes: the data of every numpy array and byte buffer
+  the firmware owns, as a board's RAM budget would count it (Python object
+  headers excluded);
+* one step of the fusion filter (strapdown + covariance prediction) and one
+  magnetic update against the same steps written with filterpy
+  (``KalmanFilter.predict`` / ``update`` with the filter's own ``A``, ``Q``,
+  ``H``, ``R``).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+import numpy as np
+
+HELP = "time the firmware tick on recorded inputs (per phase, allocations, state bytes, filterpy comparison)"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--log", metavar="PATH", help="frame log from `coiltrack bench --log` (default: record a run)")
+    p.add_argument("--scenario", default="roetenberg-fusion", help="scenario to record when no --log is given")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--duration", type=float, default=30.0, help="seconds to record (default 30)")
+    p.add_argument("--warmup", type=float, default=5.0, help="seconds excluded from the statistics (default 5)")
+    p.add_argument("--json", metavar="PATH", help="write the figures as JSON")
+
+
+# ---------------------------------------------------------------------------
+def state_bytes(fw) -> tuple[int, dict]:
+    """Bytes of array data and byte buffers reachable from the firmware
+    (objects of ``firmware_py`` and ``protocol``; shared buffers counted once),
+    total and per top-level attribute."""
+    seen: set[int] = set()
+
+    def walk(obj, depth: int) -> int:
+        if depth > 12:
+            return 0
+        oid = id(obj)
+        if oid in seen:
+            return 0
+        seen.add(oid)
+        if isinstance(obj, np.ndarray):
+            base = obj
+            while base.base is not None and isinstance(base.base, np.ndarray):
+                base = base.base
+            if id(base) in seen and base is not obj:
+                return 0
+            seen.add(id(base))
+            return int(base.nbytes)
+        if isinstance(obj, (bytearray, bytes)):
+            return len(obj)
+        if isinstance(obj, dict):
+            return sum(walk(v, depth + 1) for v in obj.values())
+        if isinstance(obj, (list, tuple, set)):
+            return sum(walk(v, depth + 1) for v in obj)
+        mod = getattr(type(obj), "__module__", "") or ""
+        if not mod.startswith(("firmware_py", "protocol")):
+            return 0
+        total = 0
+        d = getattr(obj, "__dict__", None)
+        if d:
+            total += sum(walk(v, depth + 1) for v in d.values())
+        for cls in type(obj).__mro__:
+            for name in getattr(cls, "__slots__", ()):
+                if hasattr(obj, name):
+                    total += walk(getattr(obj, name), depth + 1)
+        return total
+
+    seen.add(id(fw.port))
+    parts = {}
+    for name, v in vars(fw).items():
+        if name in ("port", "cfg", "prof"):
+            continue
+        b = walk(v, 1)
+        if b:
+            parts[name] = b
+    return sum(parts.values()), dict(sorted(parts.items(), key=lambda kv: -kv[1]))
+
+
+def _stats(a_ns) -> dict:
+    a = np.asarray(a_ns, dtype=float) / 1e3
+    if a.size == 0:
+        return {"median": None, "p99": None, "max": None, "n": 0}
+    return {"median": round(float(np.median(a)), 2), "p99": round(float(np.percentile(a, 99)), 2),
+            "max": round(float(a.max()), 2), "n": int(a.size)}
+
+
+def _record(scenario: str, seed: int, duration: float):
+    from firmware_py.firmware import Firmware
+
+    from . import scenarios
+    from .framelog import RecordingPort, config_to_dict
+    from .links import inproc_pair
+    from .runner import BenchSetup
+
+    sc = scenarios.get(scenario)
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, seed, duration, emu_end)
+    cfg = sc.firmware_config()
+    port = RecordingPort(fw_end)
+    fw = Firmware(cfg, port)
+    t = 0
+    while t <= duration * 1e6:
+        bench.emulator.step(t)
+        port.now_us = t
+        fw.tick(t)
+        t += cfg.tick_us
+    header = {"scenario": scenario, "seed": seed, "duration_s": duration, "tick_us": cfg.tick_us,
+              "config": config_to_dict(cfg)}
+    return header, port.reads
+
+
+def _filter_steps(fw) -> dict:
+    """Median time of one fusion step and one magnetic update, ours and filterpy's."""
+    out = {}
+    tr = next((tr for tr in fw.tracks.values() if tr.inertial is not None and tr.inertial.fusion.initialized), None)
+    if tr is None:
+        return out
+    fus = tr.inertial.fusion
+    k = fus._ihead - 1 if fus._ihead > 0 else fus._icap - 1
+    t1 = int(fus._itv[k])
+    t0 = t1 - int(1e6 / fw.cfg.imu_rate_hz)
+    saved = (fus.p.copy(), fus.v.copy(), fus.Th.copy(), fus.ba.copy(), fus.bg.copy(), fus.P.copy())
+    n = 2000
+    ts = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        a = time.perf_counter_ns()
+        fus._step(k, t0, t1)
+        ts[i] = time.perf_counter_ns() - a
+    out["fused_step_us"] = round(float(np.median(ts)) / 1e3, 2)
+    A, Q = fus.pred.A.copy(), fus.pred.Q.copy()
+    upd = fus.upd
+    P0 = saved[5]
+    tu = np.zeros(200, dtype=np.int64)
+    for i in range(200):
+        np.copyto(fus.P, P0)
+        upd.y[:] = 0.0
+        a = time.perf_counter_ns()
+        upd.update(fus.P)
+        tu[i] = time.perf_counter_ns() - a
+    out["fused_update_us"] = round(float(np.median(tu)) / 1e3, 2)
+    np.copyto(fus.p, saved[0])
+    np.copyto(fus.v, saved[1])
+    np.copyto(fus.Th, saved[2])
+    np.copyto(fus.ba, saved[3])
+    np.copyto(fus.bg, saved[4])
+    np.copyto(fus.P, saved[5])
+    try:
+        from filterpy.kalman import KalmanFilter
+    except ImportError:          # pragma: no cover - dev dependency
+        return out
+    kf = KalmanFilter(dim_x=fus.n, dim_z=fus.m)
+    kf.F = A
+    kf.Q = Q
+    kf.P = P0.copy()
+    kf.H = upd.H.copy()
+    kf.R = upd.R.copy()
+    tp = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        a = time.perf_counter_ns()
+        kf.predict()
+        tp[i] = time.perf_counter_ns() - a
+    out["filterpy_step_us"] = round(float(np.median(tp)) / 1e3, 2)
+    z = np.zeros(fus.m)
+    tq = np.zeros(200, dtype=np.int64)
+    for i in range(200):
+        kf.P = P0.copy()
+        a = time.perf_counter_ns()
+        kf.update(z)
+        tq[i] = time.perf_counter_ns() - a
+    out["filterpy_update_us"] = round(float(np.median(tq)) / 1e3, 2)
+    out["filter_states"] = fus.n
+    out["update_dim"] = fus.m
+    return out
+
+
+def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
+    from firmware_py.firmware import PHASES, Firmware
+
+    from .alloc import NumpyAllocationCounter, available
+    from .framelog import replay
+
+    warm = int(warmup_s * 1e6)
+    tick_ns, phase_ns, imu_ticks = [], [[] for _ in PHASES], []
+    prof = np.zeros(len(PHASES), dtype=np.int64)
+    clk = time.perf_counter_ns
+    state = {}
+
+    def factory(cfg, port):
+        fw = Firmware(cfg, port)
+        fw.prof = prof
+        real_tick = fw.tick
+
+        def timed(t):
+            n0 = sum(tr.inertial.samples for tr in fw.tracks.values() if tr.inertial is not None)
+            a = clk()
+            real_tick(t)
+            dt = clk() - a
+            if t >= warm:
+                tick_ns.append(dt)
+                for i in range(len(PHASES)):
+                    phase_ns[i].append(int(prof[i]))
+                n1 = sum(tr.inertial.samples for tr in fw.tracks.values() if tr.inertial is not None)
+                if n1 > n0:
+                    imu_ticks.append(dt)
+        fw.tick = timed
+        state["fw"] = fw
+        return fw
+
+    # a board has no garbage collector: start-up objects are moved out of the
+    # collector's generations, so its pauses do not show as firmware time
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    try:
+        replay(factory, header, reads)
+    finally:
+        gc.unfreeze()
+    fw = state["fw"]
+    ph = np.array(phase_ns)
+    rep = {"scenario": header.get("scenario"), "seed": header.get("seed"), "duration_s": header["duration_s"],
+           "warmup_s": warmup_s, "ticks": len(tick_ns), "tick_us": int(header["tick_us"])}
+    st = _stats(tick_ns)
+    rep.update({"tick_us_median": st["median"], "tick_us_p99": st["p99"], "tick_us_max": st["max"]})
+    si = _stats(imu_ticks)
+    rep.update({"fused_tick_us_median": si["median"], "fused_tick_us_p99": si["p99"], "fused_ticks": si["n"]})
+    rep["phases_us"] = {}
+    for i, name in enumerate(PHASES):
+        rep["phases_us"][name] = _stats(ph[i])
+        active = ph[i][ph[i] > 2000]          # ticks where the phase did work (> 2 us)
+        rep["phases_us"][name]["active_median"] = round(float(np.median(active)) / 1e3, 2) if active.size else None
+        rep["phases_us"][name]["active_ticks"] = int(active.size)
+    rep["deadline_misses"] = int(sum(1 for d in tick_ns if d >= rep["tick_us"] * 1000))
+    total, parts = state_bytes(fw)
+    rep["state_bytes"] = total
+    rep["state_bytes_by_part"] = parts
+    rep["status"] = {k: v for k, v in fw.status().items() if k in ("cycles", "poses", "fused_poses", "fusion_updates")}
+    # allocations: a second replay with the counting allocator around every tick
+    if available():
+        counter = NumpyAllocationCounter()
+        counts = []
+
+        def factory2(cfg, port):
+            fw2 = Firmware(cfg, port)
+            real_tick = fw2.tick
+
+            def counted(t):
+                before = counter.count
+                with counter:
+                    real_tick(t)
+                if t >= warm:
+                    counts.append(counter.count - before)
+            fw2.tick = counted
+            return fw2
+
+        replay(factory2, header, reads)
+        c = np.asarray(counts)
+        rep["allocs_per_tick"] = round(float(c.mean()), 6) if c.size else None
+        rep["allocs_max_tick"] = int(c.max()) if c.size else None
+        rep["ticks_with_allocs"] = int((c > 0).sum())
+    else:                          # pragma: no cover
+        rep["allocs_per_tick"] = None
+    rep.update(_filter_steps(fw))
+    return rep
+
+
+def format_table(rep: dict) -> str:
+    lines = [f"  ticks measured        {rep['ticks']} (after {rep['warmup_s']} s warm-up, {rep['tick_us']} us tick)",
+             f"  tick                  median {rep['tick_us_median']} us, p99 {rep['tick_us_p99']} us, "
+             f"max {rep['tick_us_max']} us",
+             f"  fused tick (IMU)      median {rep['fused_tick_us_median']} us, p99 {rep['fused_tick_us_p99']} us "
+             f"({rep['fused_ticks']} ticks)"]
+    for name, s in rep["phases_us"].items():
+        lines.append(f"  {name:<21} median {s['median']} us, p99 {s['p99']} us, max {s['max']} us; "
+                     f"when active: median {s['active_median']} us over {s['active_ticks']} ticks")
+    lines.append(f"  deadline misses       {rep['deadline_misses']}")
+    lines.append(f"  allocations           {rep.get('allocs_per_tick')} numpy arrays per tick "
+                 f"(max {rep.get('allocs_max_tick')} in a tick, {rep.get('ticks_with_allocs')} ticks with any)")
+    lines.append(f"  firmware state        {rep['state_bytes']} bytes "
+                 f"({', '.join(f'{k} {v}' for k, v in list(rep['state_bytes_by_part'].items())[:6])}, ...)")
+    if "fused_step_us" in rep:
+        lines.append(f"  fusion step           {rep['fused_step_us']} us (strapdown + {rep['filter_states']}-state "
+                     f"covariance); filterpy predict {rep.get('filterpy_step_us')} us")
+        lines.append(f"  magnetic update       {rep['fused_update_us']} us ({rep['update_dim']}-dim, Joseph); "
+                     f"filterpy update {rep.get('filterpy_update_us')} us")
+    return "\n".join(lines)
+
+
+def run(args) -> int:
+    from .framelog import read_log
+
+    if args.log:
+        try:
+            header, reads = read_log(args.log)
+        except (OSError, ValueError) as exc:
+            print(f"coiltrack perf: {exc}", file=sys.stderr)
+            return 2
+    else:
+        if args.duration <= args.warmup:
+            print("coiltrack perf: --duration must exceed --warmup", file=sys.stderr)
+            return 2
+        header, reads = _record(args.scenario, args.seed, args.duration)
+    rep = measure(header, reads, args.warmup)
+    print(f"coiltrack perf: {rep['scenario']} seed {rep['seed']}, {rep['duration_s']} s replayed on a virtual clock")
+    print(format_table(rep))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(rep, fh, indent=2)
+            fh.write("\n")
+        print(f"figures written to {args.json}")
+    return 0
