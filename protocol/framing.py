@@ -42,29 +42,25 @@ def frame_crc(data, msg_id: int) -> int:
 
 
 def cobs_encode(data) -> bytes:
-    """Consistent Overhead Byte Stuffing; the result contains no 0x00."""
-    out = bytearray([0])
-    code_idx = 0
-    code = 1
-    for b in data:
-        if b == 0:
-            out[code_idx] = code
-            code_idx = len(out)
-            out.append(0)
-            code = 1
-        else:
-            out.append(b)
-            code += 1
-            if code == 0xFF:
-                out[code_idx] = code
-                code_idx = len(out)
-                out.append(0)
-                code = 1
-    out[code_idx] = code
+    """Consistent Overhead Byte Stuffing; the result contains no 0x00.
+
+    Works block by block on ``bytes.split`` (no per-byte Python loop): each
+    run of non-zero bytes becomes ``len+1`` followed by the run, runs of 254
+    bytes or more are cut into ``0xFF`` blocks that imply no zero.
+    """
+    out = bytearray()
+    for block in bytes(data).split(b"\x00"):
+        while len(block) >= 254:
+            out.append(0xFF)
+            out += block[:254]
+            block = block[254:]
+        out.append(len(block) + 1)
+        out += block
     return bytes(out)
 
 
 def cobs_decode(data) -> bytes:
+    """Inverse of :func:`cobs_encode`; raises :class:`FramingError` on bad input."""
     out = bytearray()
     i = 0
     n = len(data)
