@@ -14,16 +14,18 @@ Per node (the coil driver and every sensor of the configuration):
   master clock) or an interval further than ``stamp_interval_tol_us`` from a
   whole number of periods is a clock step (a stamp not after the previous
   one is a duplicated or delayed frame and is skipped; a clock that stepped
-  back is seen when its stamps pass the last one, off the grid): the stamps from there on are suspect until the node's sync replies
-  show it has re-anchored its clock and its stamps run regularly again (or,
-  for a false alarm, until three replies came without a step). A step the
-  node's sync replies show (``TimeSyncMaster.on_reply``) marks the time from
-  two replies back suspect (a node takes a step only when two broadcasts
-  agree). Each step is reported once (``EVT_CLOCK_STEP``, detail
-  = node, bit 8 from the samples, bit 9 from the replies). A step that is
-  within the tolerance of a whole number of sample periods is only seen in
-  the replies. A cycle whose window span overlaps a suspect interval gives
-  a pose the firmware cannot vouch for.
+  back is seen when its stamps pass the last one, off the grid). The stamps
+  from there on are suspect until the node's sync replies show it has
+  re-anchored its clock and its stamps run regularly again (or, for a false
+  alarm, until six replies came without a step); an anomaly within 2 s of
+  that is the same step resolving (no new event). A step the node's sync
+  replies show (``TimeSyncMaster.on_reply``) marks the time since five
+  replies back suspect (a node takes a forward step only when three
+  broadcasts agree). Each step is reported once (``EVT_CLOCK_STEP``, detail =
+  node, bit 8 from the samples, bit 9 from the replies). A step within the
+  tolerance of a whole number of sample periods is only seen in the replies.
+  A cycle whose window span overlaps a suspect interval gives a pose the
+  firmware cannot vouch for.
 * **Saturation.** A sample with the saturated bit raises ``EVT_SATURATION``
   (at most once per ``saturation_quiet_us``); the pulse extractor flags the
   windows (``POSE_SATURATED``).
@@ -66,6 +68,7 @@ _SUSPECT = 4          # suspect intervals remembered per node
 _EVENTS = 32          # pending events
 _NONE = -(1 << 62)
 _OPEN = 1 << 62
+_SAME_STEP_US = 2_000_000   # an anomaly this soon after a suspect interval closed is the same step
 
 
 @dataclass(frozen=True)
@@ -263,12 +266,19 @@ class Health:
 
     # ------------------------------------------------------------ clock steps
     def _open_suspect(self, i: int, t0: int, how: int) -> None:
-        k = self.susp_k[i]
-        self.susp_t0[i][k] = t0
-        self.susp_t1[i][k] = _OPEN
+        kp = (self.susp_k[i] - 1) % _SUSPECT
+        t1p = self.susp_t1[i][kp]
         self.suspect_open[i] = True
         self.suspect_reply_seen[i] = False
         self.suspect_quiet_replies[i] = 0
+        if t1p != _NONE and t1p != _OPEN and t0 - t1p < _SAME_STEP_US:
+            # the same step resolving (the stamps jumping back when the node re-anchors): reopen
+            self.susp_k[i] = kp
+            self.susp_t1[i][kp] = _OPEN
+            return
+        k = self.susp_k[i]
+        self.susp_t0[i][k] = t0
+        self.susp_t1[i][k] = _OPEN
         self.clock_steps += 1
         self._event(EVT_CLOCK_STEP, self.ids[i] | how)
 
@@ -290,7 +300,7 @@ class Health:
                     self._close_suspect(i, now_us)
             else:
                 self.suspect_quiet_replies[i] += 1
-                if self.suspect_quiet_replies[i] >= 3:      # no step after all (or one absorbed)
+                if self.suspect_quiet_replies[i] >= 6:      # no step after all (or one absorbed)
                     self._close_suspect(i, now_us)
             return
         if stepped:

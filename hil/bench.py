@@ -225,9 +225,9 @@ def fault_summary(bench, fw_status: dict | None = None) -> dict:
     s = bench.sensor
     if s.saturations:
         inj["samples_saturated"] = s.saturations
-    steps = [n.clock._step_t for n in (drv, *bench.sensors) if n.clock._step_t]
+    steps = bench.faults.of("clock_step")
     if steps:
-        inj["clock_steps"] = sum(len(x) for x in steps)
+        inj["clock_steps"] = len(steps)
     reboots = {("driver" if n is drv else f"sensor{n.node_id}"): n.reboots for n in (drv, *bench.sensors) if n.reboots}
     if reboots:
         inj["reboots"] = reboots

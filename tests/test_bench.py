@@ -75,3 +75,10 @@ def test_can_transport_gives_the_same_report_as_inproc():
                       if not (k.startswith("tick_") or k in ("wall_s", "speedup", "deadline_misses", "transport"))}
     assert same(a) == same(b)
     assert a["poses"] >= 7
+
+
+def test_firmware_command_refuses_missing_link(capsys):
+    assert cli_main(["firmware", "--transport", "can", "--duration", "1"]) == 2
+    assert "--channel" in capsys.readouterr().err
+    assert cli_main(["firmware", "--duration", "1"]) == 2
+    assert "--port" in capsys.readouterr().err

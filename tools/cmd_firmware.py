@@ -16,7 +16,12 @@ HELP = "run the firmware loop on a serial port (wall clock)"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--port", required=True, help="serial device, pty path or pyserial URL")
+    p.add_argument("--transport", choices=("serial", "can"), default="serial",
+                   help="serial: COBS frames on --port; can: the same messages on a python-can bus")
+    p.add_argument("--port", help="serial device, pty path or pyserial URL (--transport serial)")
+    p.add_argument("--interface", default="slcan", help="python-can interface (--transport can): slcan, socketcan, virtual")
+    p.add_argument("--channel", help="python-can channel (--transport can): slcan device or pty, can0, ...")
+    p.add_argument("--bitrate", type=int, default=500_000, help="CAN bit rate (--transport can)")
     p.add_argument("--baudrate", type=int, default=1_000_000)
     p.add_argument("--config", help="TOML configuration file (default: the scenario's)")
     p.add_argument("--scenario", default="roetenberg-bench", help="take the configuration of this scenario")
@@ -70,10 +75,20 @@ def run(args) -> int:
     except (ConfigError, OSError) as exc:
         print(f"coiltrack firmware: {exc}", file=sys.stderr)
         return 2
+    where = args.port if args.transport == "serial" else f"{args.interface}:{args.channel}"
+    if (args.port if args.transport == "serial" else args.channel) is None:
+        print(f"coiltrack firmware: --transport {args.transport} needs "
+              f"{'--port' if args.transport == 'serial' else '--channel'}", file=sys.stderr)
+        return 2
     try:
-        port = SerialPort(args.port, args.baudrate)
-    except Exception as exc:  # pyserial raises SerialException (an OSError) or ValueError
-        print(f"coiltrack firmware: cannot open {args.port}: {exc}", file=sys.stderr)
+        if args.transport == "serial":
+            port = SerialPort(args.port, args.baudrate)
+        else:
+            from protocol.can import CanLink, open_bus
+
+            port = CanLink(open_bus(args.interface, args.channel, args.bitrate), cfg.node_id)
+    except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError; python-can: CanError
+        print(f"coiltrack firmware: cannot open {where}: {exc}", file=sys.stderr)
         return 2
     port = _LinkGuard(port)
     fw = Firmware(cfg, port)

@@ -214,14 +214,29 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     CLOCK_MONOTONIC from a shared epoch (the nodes still keep their own
     drifting clocks and synchronise to the firmware's broadcasts). On a
     machine with two or more CPUs the firmware is pinned to the last one and
-    the emulator to the first."""
-    master, slave, slave_name = make_raw_pty()
+    the emulator to the first. ``transport="slcan"`` puts the two on a CAN
+    bus instead: python-can's slcan interface on each side of a bridge of
+    pseudo-terminals."""
+    bridge = None
+    if transport == "slcan":
+        # a CAN bus between the two processes: an slcan adapter on each side of a
+        # bridge of pseudo-terminals (protocol.slcan); same messages, CAN frames
+        from protocol.can import CanLink, open_bus
+        from protocol.schema import NODE_COIL_DRIVER
+        from protocol.slcan import SlcanBridge
+
+        bridge = SlcanBridge(2).start()
+        master = slave = None
+        link_args = ["--transport", "can", "--interface", "slcan", "--channel", bridge.paths[1]]
+    else:
+        master, slave, slave_name = make_raw_pty()
+        link_args = ["--port", slave_name]
     epoch_ns = time.monotonic_ns() + 1_500_000_000      # give the child time to start
     duration_us = int(duration_s * 1e6)
     stats_fd, stats_path = tempfile.mkstemp(suffix=".json", prefix="coiltrack-fw-")
     os.close(stats_fd)
     ncpu = os.cpu_count() or 1
-    cmd = [sys.executable, "-m", "tools.cli", "firmware", "--port", slave_name,
+    cmd = [sys.executable, "-m", "tools.cli", "firmware", *link_args,
            "--scenario", scenario.name, "--epoch-ns", str(epoch_ns),
            "--duration", str(duration_s + 0.5), "--stats-json", stats_path, "--realtime"]
     if ncpu >= 2:
@@ -231,10 +246,10 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         except (AttributeError, OSError):
             pass
     child = subprocess.Popen(cmd)
-    link = FdLink(master)
+    link = FdLink(master) if bridge is None else CanLink(open_bus("slcan", bridge.paths[0]), NODE_COIL_DRIVER)
     bench = BenchSetup(scenario, seed, duration_s, link, faults)
     clock = WallClock(epoch_ns)
-    prog = Progress(progress, duration_s, scenario.name + " (pty)")
+    prog = Progress(progress, duration_s, f"{scenario.name} ({transport})")
     try:
         emulator_loop(bench.emulator, bench.link, clock, duration_us + 300_000, prog)
     finally:
@@ -244,8 +259,12 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         except subprocess.TimeoutExpired:
             child.kill()
             child.wait()
-        os.close(master)
-        os.close(slave)
+        if bridge is None:
+            os.close(master)
+            os.close(slave)
+        else:
+            link.close()
+            bridge.stop()
     try:
         with open(stats_path) as fh:
             fw_stats = json.load(fh)
@@ -255,7 +274,7 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         if os.path.exists(stats_path):
             os.unlink(stats_path)
     cfg = scenario.firmware_config()
-    rep = report_mod.build(bench, fw_stats.get("status", {}), duration_s, transport="pty", cfg=cfg)
+    rep = report_mod.build(bench, fw_stats.get("status", {}), duration_s, transport=transport, cfg=cfg)
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
     rep["firmware_exit_code"] = child.returncode
     return rep

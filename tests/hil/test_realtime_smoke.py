@@ -25,3 +25,12 @@ def test_pty_bench_smoke():
         assert rep.get(k) is not None, k
     assert rep["ticks"] >= 1900
     assert rep["faults"]["reported"]["firmware"]["sync_replies"] > 0
+
+
+def test_slcan_bench_smoke():
+    """Firmware and emulator as two processes on a CAN bus: python-can's slcan
+    interface on both sides of a pseudo-terminal bridge."""
+    rep = run_pty(scenarios.get("static"), seed=1, duration_s=3.0, transport="slcan")
+    assert rep["transport"] == "slcan" and rep["firmware_exit_code"] == 0
+    assert rep["poses"] >= 2
+    assert rep["frames_bad"] == 0 and rep["pulse_window_violations"] == 0
