@@ -68,6 +68,7 @@ from .adaptive import (POSE_DIM, ActuationPolicy, CoilChooser, NisMonitor, PoseC
 from .ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from .linalg import exp_rotvec
 from .pulse import PULSE_FLIP, PULSE_SATURATED, PULSE_TOO_FEW
+from .rotation import quat_tuple as _quat
 from .schepers_ekf import ORI, POS, SchepersEKF
 from .solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE
 
@@ -99,31 +100,6 @@ _NO_IMU_US = 1_000_000
 _DUTY_HIST = 32
 #: a set/reset flip is commanded at least this often when the sensors are idle
 _FLIP_EVERY_US = 2_000_000
-
-
-def _quat(R):
-    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix as Python
-    floats (Shepperd's method, as ``rotation.quat_from_matrix``, no arrays)."""
-    r00, r01, r02 = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
-    r10, r11, r12 = float(R[1, 0]), float(R[1, 1]), float(R[1, 2])
-    r20, r21, r22 = float(R[2, 0]), float(R[2, 1]), float(R[2, 2])
-    t = r00 + r11 + r22
-    if t > 0.0:
-        s = math.sqrt(t + 1.0) * 2.0
-        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
-    elif r00 > r11 and r00 > r22:
-        s = math.sqrt(1.0 + r00 - r11 - r22) * 2.0
-        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
-    elif r11 > r22:
-        s = math.sqrt(1.0 + r11 - r00 - r22) * 2.0
-        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
-    else:
-        s = math.sqrt(1.0 + r22 - r00 - r11) * 2.0
-        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    return w / n, x / n, y / n, z / n
 
 
 class _Pulse:

@@ -44,6 +44,7 @@ from .adaptive_mode import AdaptiveMode
 from .config import FirmwareConfig
 from .field import Coil
 from .port import Port
+from .rotation import quat_tuple as _quat
 from .inertial import PulseGate, SensorInertial, SourceInertial
 from .pulse import PULSE_SATURATED, PULSE_TOO_FEW, PulseExtractor, SampleRing
 from .solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, PoseSolver
@@ -61,31 +62,6 @@ _F32_MAX = 3.0e38
 
 # tick phases timed when ``Firmware.prof`` is set (``coiltrack perf``)
 PHASES = ("receive", "windows", "solve", "predict", "update", "transmit")
-
-
-def _quat(R):
-    """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix, as Python
-    floats (Shepperd's method, as ``rotation.quat_from_matrix``, without arrays)."""
-    r00, r01, r02 = float(R[0, 0]), float(R[0, 1]), float(R[0, 2])
-    r10, r11, r12 = float(R[1, 0]), float(R[1, 1]), float(R[1, 2])
-    r20, r21, r22 = float(R[2, 0]), float(R[2, 1]), float(R[2, 2])
-    t = r00 + r11 + r22
-    if t > 0.0:
-        s = math.sqrt(t + 1.0) * 2.0
-        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
-    elif r00 > r11 and r00 > r22:
-        s = math.sqrt(1.0 + r00 - r11 - r22) * 2.0
-        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
-    elif r11 > r22:
-        s = math.sqrt(1.0 + r11 - r00 - r22) * 2.0
-        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
-    else:
-        s = math.sqrt(1.0 + r22 - r00 - r11) * 2.0
-        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    nrm = math.sqrt(w * w + x * x + y * y + z * z)
-    return w / nrm, x / nrm, y / nrm, z / nrm
 
 
 class _SensorTrack:

@@ -80,6 +80,7 @@ import numpy as np
 from .ekf import EKF_OK, CovariancePredict, KalmanUpdate
 from .layout import ACC, GYR, ORI, POS, PSI, QM, VEL, XI, fusion_layout
 from .linalg import exp_rotvec, rotvec_from_matrix
+from .rotation import quat_from_elements
 
 # fusion health flags (bit field, beside the ekf flags)
 FUS_NOT_INITIALISED = 64
@@ -871,25 +872,7 @@ def _log_diff(Z, Th, y, row) -> None:
 
 def _quat_into(hd, h, od, slot) -> None:
     """Unit quaternion (w, x, y, z), w >= 0, of the rotation in history row
-    ``h`` (columns 3..11) into output columns 3..6 (Shepperd's method, as
-    ``rotation.quat_from_matrix`` but on Python floats)."""
-    r00, r01, r02 = hd[h, 3], hd[h, 4], hd[h, 5]
-    r10, r11, r12 = hd[h, 6], hd[h, 7], hd[h, 8]
-    r20, r21, r22 = hd[h, 9], hd[h, 10], hd[h, 11]
-    t = r00 + r11 + r22
-    if t > 0.0:
-        s = math.sqrt(t + 1.0) * 2.0
-        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
-    elif r00 > r11 and r00 > r22:
-        s = math.sqrt(1.0 + r00 - r11 - r22) * 2.0
-        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
-    elif r11 > r22:
-        s = math.sqrt(1.0 + r11 - r00 - r22) * 2.0
-        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
-    else:
-        s = math.sqrt(1.0 + r22 - r00 - r11) * 2.0
-        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
-    if w < 0.0:
-        w, x, y, z = -w, -x, -y, -z
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    od[slot, 3], od[slot, 4], od[slot, 5], od[slot, 6] = w / n, x / n, y / n, z / n
+    ``h`` (columns 3..11) into output columns 3..6."""
+    w, x, y, z = quat_from_elements(hd[h, 3], hd[h, 4], hd[h, 5], hd[h, 6], hd[h, 7], hd[h, 8],
+                                    hd[h, 9], hd[h, 10], hd[h, 11])
+    od[slot, 3], od[slot, 4], od[slot, 5], od[slot, 6] = w, x, y, z

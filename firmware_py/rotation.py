@@ -45,6 +45,36 @@ def quat_from_matrix(R, out=None):
     return q
 
 
+def quat_from_elements(r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """Unit quaternion (w, x, y, z), ``w >= 0``, of the rotation matrix with
+    these elements, as Python floats (Shepperd's method, as
+    :func:`quat_from_matrix`, with no array allocated)."""
+    t = r00 + r11 + r22
+    if t > 0.0:
+        s = math.sqrt(t + 1.0) * 2.0
+        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
+    elif r00 > r11 and r00 > r22:
+        s = math.sqrt(1.0 + r00 - r11 - r22) * 2.0
+        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
+    elif r11 > r22:
+        s = math.sqrt(1.0 + r11 - r00 - r22) * 2.0
+        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
+    else:
+        s = math.sqrt(1.0 + r22 - r00 - r11) * 2.0
+        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / n, x / n, y / n, z / n
+
+
+def quat_tuple(R):
+    """:func:`quat_from_elements` of a (3, 3) array."""
+    return quat_from_elements(float(R[0, 0]), float(R[0, 1]), float(R[0, 2]),
+                              float(R[1, 0]), float(R[1, 1]), float(R[1, 2]),
+                              float(R[2, 0]), float(R[2, 1]), float(R[2, 2]))
+
+
 def matrix_from_quat(q, out=None):
     """Rotation matrix of a unit quaternion (w, x, y, z)."""
     R = np.empty((3, 3)) if out is None else out
