@@ -96,8 +96,11 @@ def _sphere_error(world: "World", k: int, grid, centre, radius: float, sphere: p
     return np.abs(h) * float(np.linalg.norm(e))
 
 
-class FerroObject(_Timed):
-    def __init__(self, sphere: physics.FerroSphere, t_on_us=None, t_off_us=None):
+class _SphereObject(_Timed):
+    """A sphere fixed in the source frame, switched on between ``t_on_us`` and
+    ``t_off_us``; the coils' field at its centre per ampere is computed once."""
+
+    def __init__(self, sphere, t_on_us=None, t_off_us=None):
         self.sphere = sphere
         self.t_on_us, self.t_off_us = t_on_us, t_off_us
         self._u = None
@@ -107,6 +110,8 @@ class FerroObject(_Timed):
             self._u = world.source.unit_fields(self.sphere.position[None, :])[:, 0, :]
         return self._u
 
+
+class FerroObject(_SphereObject):
     def field_at(self, world: "World", t_us: int, p, R) -> np.ndarray:
         B0 = world.coil_currents(t_us) @ self._unit(world) + world.earth
         return self.sphere.field(p[None, :], B0)[0]
@@ -116,17 +121,7 @@ class FerroObject(_Timed):
         return self.sphere.field(p[None, :], self._unit(world)[k])[0]
 
 
-class ConductingSphereObject(_Timed):
-    def __init__(self, sphere: physics.ConductingSphere, t_on_us=None, t_off_us=None):
-        self.sphere = sphere
-        self.t_on_us, self.t_off_us = t_on_us, t_off_us
-        self._u = None
-
-    def _unit(self, world):
-        if self._u is None:
-            self._u = world.source.unit_fields(self.sphere.position[None, :])[:, 0, :]
-        return self._u
-
+class ConductingSphereObject(_SphereObject):
     def field_at(self, world: "World", t_us: int, p, R) -> np.ndarray:
         m = _sphere_moment(world, self.sphere.position, self.sphere.radius, self.sphere, t_us, self._unit(world))
         return self.sphere.field(p[None, :], m)[0]

@@ -12,11 +12,12 @@ are stated where they are used.
 from __future__ import annotations
 
 import math
-import sys
 import tracemalloc
 
 import numpy as np
 import pytest
+
+from tools.alloc import numpy_blocks_alive_during
 
 from firmware_py.pulse import (
     NO_TIME_US,
@@ -533,42 +534,6 @@ def numpy_blocks_retained(fn, calls):
         if not was_tracing:
             tracemalloc.stop()
 
-
-def numpy_blocks_alive_during(fn):
-    """Largest number of numpy-domain blocks, allocated while fn runs, found
-    alive before any bytecode instruction of fn or of anything it calls.
-    Snapshots only show live blocks, so a snapshot diff misses a temporary
-    array that is freed again before fn returns; checking before every
-    instruction catches any array a Python-level operation creates (it sits at
-    least on the value stack until the next instruction)."""
-    was_tracing = tracemalloc.is_tracing()
-    if not was_tracing:
-        tracemalloc.start()
-    base = _numpy_traces()
-    peak = 0
-
-    def local(frame, event, arg):
-        nonlocal peak
-        c = _numpy_traces() - base
-        if c > peak:
-            peak = c
-        return local
-
-    def on_call(frame, event, arg):
-        frame.f_trace_opcodes = True
-        return local(frame, event, arg)
-
-    old = sys.gettrace()
-    sys.settrace(on_call)
-    try:
-        fn()
-    finally:
-        sys.settrace(old)
-        c = _numpy_traces() - base
-        peak = max(peak, c)
-        if not was_tracing:
-            tracemalloc.stop()
-    return peak
 
 
 class _SteadyState:
