@@ -62,6 +62,7 @@ import math
 import numpy as np
 
 from .field import CoilSet
+from .linalg import skew_into as _skew_into
 
 __all__ = [
     "POSE_DIM",
@@ -102,19 +103,6 @@ def current_ladder(i_min: float, i_max: float, levels: int) -> tuple[float, ...]
         return (float(i_max),)
     r = (i_max / i_min) ** (1.0 / (levels - 1))
     return tuple(round(i_min * r ** k, 4) for k in range(levels - 1)) + (float(i_max),)
-
-
-def _skew_into(v, out) -> None:
-    """``out = [v]x`` for a 3-vector ``v`` (out (3, 3), may be a view)."""
-    out[0, 0] = 0.0
-    out[1, 1] = 0.0
-    out[2, 2] = 0.0
-    out[0, 1] = -v[2]
-    out[0, 2] = v[1]
-    out[1, 0] = v[2]
-    out[1, 2] = -v[0]
-    out[2, 0] = -v[1]
-    out[2, 1] = v[0]
 
 
 class SingleCoilModel:

@@ -24,6 +24,8 @@ import math
 
 import numpy as np
 
+from .rotation import matrix_from_quat
+
 _sqrt = math.sqrt
 
 
@@ -220,15 +222,7 @@ def nearest_rotation(m, out, work: Rot3) -> None:
     qx /= nrm
     qy /= nrm
     qz /= nrm
-    out[0, 0] = 1.0 - 2.0 * (qy * qy + qz * qz)
-    out[0, 1] = 2.0 * (qx * qy - qw * qz)
-    out[0, 2] = 2.0 * (qx * qz + qw * qy)
-    out[1, 0] = 2.0 * (qx * qy + qw * qz)
-    out[1, 1] = 1.0 - 2.0 * (qx * qx + qz * qz)
-    out[1, 2] = 2.0 * (qy * qz - qw * qx)
-    out[2, 0] = 2.0 * (qx * qz - qw * qy)
-    out[2, 1] = 2.0 * (qy * qz + qw * qx)
-    out[2, 2] = 1.0 - 2.0 * (qx * qx + qy * qy)
+    matrix_from_quat((qw, qx, qy, qz), out)
 
 
 def rotvec_from_matrix(r00, r01, r02, r10, r11, r12, r20, r21, r22):
@@ -272,6 +266,19 @@ def rotvec_from_matrix(r00, r01, r02, r10, r11, r12, r20, r21, r22):
             ax, ay, az = -ax, -ay, -az
     nrm = _sqrt(ax * ax + ay * ay + az * az)
     return ax * angle / nrm, ay * angle / nrm, az * angle / nrm
+
+
+def skew_into(v, out) -> None:
+    """``out = [v]x`` for a 3-vector ``v`` (``out`` (3, 3), may be a view)."""
+    out[0, 0] = 0.0
+    out[1, 1] = 0.0
+    out[2, 2] = 0.0
+    out[0, 1] = -v[2]
+    out[0, 2] = v[1]
+    out[1, 0] = v[2]
+    out[1, 2] = -v[0]
+    out[2, 0] = -v[1]
+    out[2, 1] = v[0]
 
 
 def exp_rotvec(wx: float, wy: float, wz: float, out) -> None:

@@ -26,6 +26,8 @@ import math
 import numpy as np
 
 from .field import MU0, CoilSet
+from .linalg import exp_rotvec
+from .linalg import skew_into as _skew_into
 
 __all__ = [
     "kuipers",
@@ -73,25 +75,7 @@ def so3_exp(w, out=None):
     ndarray, shape (3, 3)
     """
     R = np.empty((3, 3)) if out is None else out
-    wx, wy, wz = float(w[0]), float(w[1]), float(w[2])
-    t2 = wx * wx + wy * wy + wz * wz
-    if t2 < 1e-12:
-        # series to O(t^4): error < 1e-25
-        a = 1.0 - t2 / 6.0
-        b = 0.5 - t2 / 24.0
-    else:
-        t = math.sqrt(t2)
-        a = math.sin(t) / t
-        b = (1.0 - math.cos(t)) / t2
-    R[0, 0] = 1.0 - b * (wy * wy + wz * wz)
-    R[1, 1] = 1.0 - b * (wx * wx + wz * wz)
-    R[2, 2] = 1.0 - b * (wx * wx + wy * wy)
-    R[0, 1] = b * wx * wy - a * wz
-    R[1, 0] = b * wx * wy + a * wz
-    R[0, 2] = b * wx * wz + a * wy
-    R[2, 0] = b * wx * wz - a * wy
-    R[1, 2] = b * wy * wz - a * wx
-    R[2, 1] = b * wy * wz + a * wx
+    exp_rotvec(float(w[0]), float(w[1]), float(w[2]), R)
     return R
 
 
@@ -188,19 +172,6 @@ def kuipers(S, moment, hemisphere=(1.0, 0.0, 0.0)):
 # ---------------------------------------------------------------------------
 def _as_coilset(coils):
     return coils if isinstance(coils, CoilSet) else CoilSet(coils)
-
-
-def _skew_into(v, out):
-    """Write ``[v]x`` into ``out`` (3, 3)."""
-    out[0, 0] = 0.0
-    out[1, 1] = 0.0
-    out[2, 2] = 0.0
-    out[0, 1] = -v[2]
-    out[0, 2] = v[1]
-    out[1, 0] = v[2]
-    out[1, 2] = -v[0]
-    out[2, 0] = -v[1]
-    out[2, 1] = v[0]
 
 
 def measurement_model_and_jacobian(position, rotation, coils, currents, model="exact",

@@ -55,6 +55,18 @@ _GRID_CANDIDATES = 3
 _INV_ITERS = 15
 
 
+def _damped(a, m, n: int, lam: float) -> None:
+    """``m = a + lam * diag(a)`` for an n x n row-major ``a`` (Marquardt's
+    scaling; a non-positive diagonal element is damped by ``lam``)."""
+    for i in range(n * n):
+        m[i] = a[i]
+    for i in range(0, n * n, n + 1):
+        da = a[i]
+        if da <= 0.0:
+            da = 1.0
+        m[i] += lam * da
+
+
 class PoseSolver:
     """Preallocated Kuipers + Levenberg-Marquardt pose solver.
 
@@ -488,13 +500,7 @@ class PoseSolver:
         g = self._g6v
         d = self._d6v
         for _ in range(_INV_ITERS):
-            for i in range(9):
-                m[i] = a[i]
-            for i in range(3):
-                da = a[4 * i]
-                if da <= 0.0:
-                    da = 1.0
-                m[4 * i] += lam * da
+            _damped(a, m, 3, lam)
             if not cholesky(m, 3, L):
                 break
             d[0], d[1], d[2] = g[0], g[1], g[2]
@@ -702,13 +708,7 @@ class PoseSolver:
         it = 0
         for it in range(1, self.iters + 1):
             self._normal_equations(cur_k)
-            for i in range(36):
-                m[i] = a[i]
-            for i in range(6):
-                da = a[7 * i]
-                if da <= 0.0:
-                    da = 1.0
-                m[7 * i] += lam * da
+            _damped(a, m, 6, lam)
             if not cholesky(m, 6, L):
                 lam *= 10.0
                 if lam > 1e12:
