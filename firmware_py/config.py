@@ -10,7 +10,7 @@ import math
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 
-from protocol.schema import NODE_COIL_DRIVER, NODE_FIRMWARE, NODE_SENSOR_BASE
+from coiltrack.protocol.schema import NODE_COIL_DRIVER, NODE_FIRMWARE, NODE_SENSOR_BASE
 
 
 class ConfigError(ValueError):
@@ -72,7 +72,7 @@ class FirmwareConfig:
     stale_us: int = 2_000_000
     coil_max_duty: float = 0.5             # the driver's on-time limit per coil ...
     coil_duty_window_us: int = 1_200_000   # ... over this window
-    # --- actuation (firmware_py.adaptive_mode; Schepers & Veltink 2010 sec. 2.1)
+    # --- actuation (coiltrack.firmware.track.single_coil_tracker; Schepers & Veltink 2010 sec. 2.1)
     actuation: str = "fixed"               # "fixed" X/Y/Z cycle | "adaptive" single-coil pulses on demand
     single_coil_fusion: bool = False       # fixed cycle: each pulse updates the single-coil EKF (as adaptive)
     sigma_max_pos_m: float = 0.004         # pulse when a position std would exceed this
@@ -112,7 +112,7 @@ class FirmwareConfig:
     imu_gyro_bias_rw: float = 1.7e-4       # rad/s/sqrt(s)
     imu_timeout_us: int = 100_000
     gravity_mps2: tuple[float, float, float] = (0.0, 0.0, -9.81)   # gravity in the source frame
-    # --- orientation filter (thesis ch. 2; firmware_py.orientation)
+    # --- orientation filter (thesis ch. 2; coiltrack.firmware.estimate.orientation)
     acc_motion_sigma: float = 0.05          # m/s^2, motion acceleration taken as noise (w_a of eq 2.5)
     acc_corr_time_s: float = 0.0            # c_a = exp(-T / tau) of eq 2.5 (0: white)
     dist_corr: float = 0.99                 # c_d of eq 2.7, per sample
@@ -122,7 +122,7 @@ class FirmwareConfig:
     mag_learn_samples: int = 120            # compass samples averaged for |m| and the dip (eqs 2.8-2.10)
     compass_guard_us: int = 5_000           # compass samples this close to a pulse are not used
     ori_update_every: int = 4               # inclination and compass updates every N IMU samples
-    # --- magnetic-inertial fusion (thesis ch. 6; firmware_py.fusion)
+    # --- magnetic-inertial fusion (thesis ch. 6; coiltrack.firmware.estimate.magnetic_inertial)
     fusion: bool = True                     # fuse IMU_SAMPLEs when they arrive (fixed actuation)
     measurement_model: int = 3              # eq 6.18 (1), eq 6.20 (2), eq 6.21 (3)
     motion_compensation: bool = True        # bring the X, Y, Z pulses to one instant (sec 6.5)
@@ -186,7 +186,7 @@ class FirmwareConfig:
 
     def _validate_fusion(self, need) -> None:
         """Keys of the orientation filter and the magnetic-inertial fusion
-        (``firmware_py.orientation``, ``firmware_py.fusion``)."""
+        (``coiltrack.firmware.estimate.orientation``, ``coiltrack.firmware.estimate.magnetic_inertial``)."""
         fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
         for name in ("acc_motion_sigma", "bias_tau_s", "xi_var_scale", "mag_var_scale"):
             v = getattr(self, name)
@@ -225,7 +225,7 @@ class FirmwareConfig:
              f"must hold a cycle of inertial poses (>= {int(math.ceil(self.cycle_us / period_us))})")
 
     def _validate_actuation(self, need) -> None:
-        """Keys of the adaptive mode and the inertial model (``firmware_py.adaptive_mode``)."""
+        """Keys of the adaptive mode and the inertial model (``coiltrack.firmware.track.single_coil_tracker``)."""
         fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
         need("actuation", self.actuation in ("fixed", "adaptive"),
              f"must be 'fixed' or 'adaptive', got {self.actuation!r}")

@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from .rotation import matrix_from_quat
+from coiltrack.firmware.rotation import matrix_from_quat
 
 _sqrt = math.sqrt
 

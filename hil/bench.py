@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol import schema
-from protocol.schema import NODE_COIL_DRIVER, NODE_SENSOR_BASE, POSE_VALID
+from coiltrack.protocol import schema
+from coiltrack.protocol.schema import NODE_COIL_DRIVER, NODE_SENSOR_BASE, POSE_VALID
 
 from .clock import NodeClock
 from .emulator import Emulator

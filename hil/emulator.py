@@ -11,7 +11,7 @@ never sees the firmware, only its frames.
 """
 from __future__ import annotations
 
-from protocol import FrameDecoder, FrameEncoder
+from coiltrack.protocol import FrameDecoder, FrameEncoder
 
 _ROUTE_ALL = ("TIME_SYNC",)
 _TO_DRIVER = ("COIL_PULSE_CMD",)

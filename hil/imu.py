@@ -24,8 +24,8 @@ import math
 
 import numpy as np
 
-from protocol import MSG
-from protocol.schema import ACC_LSB, GYR_LSB, MAG_LSB_T, ROLE_SENSOR
+from coiltrack.protocol import MSG
+from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, MAG_LSB_T, ROLE_SENSOR
 
 from .nodes import ImuSpec, MagSpec, Node, _i16
 

@@ -25,8 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
-from protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
+from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
+from coiltrack.protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
                              COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
                              COIL_FAULT_REFUSED,
                              CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STATE_READY,

@@ -45,7 +45,7 @@ from typing import Iterable, Sequence
 import magpylib
 import numpy as np
 
-from hil.motion import matrix_to_rotvec, rotvec_to_matrix
+from coiltrack.hil.motion import matrix_to_rotvec, rotvec_to_matrix
 
 __all__ = [
     "MU0",

@@ -213,7 +213,7 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("last_us", "u64", "us", doc="time of the last in-pulse sample used"),
         F("n_used", "u8"),
         F("n_base", "u8", doc="baseline samples used"),
-        F("flags", "u8", doc="pulse quality flags (firmware_py.pulse)"),
+        F("flags", "u8", doc="pulse quality flags (coiltrack.firmware.measure.pulse)"),
     ), "Which samples the firmware used for one pulse amplitude (for HIL checks).", priority=6),
     MessageDef(0x40, "CONFIG_GET", (
         F("node", "u8", doc="target node"),

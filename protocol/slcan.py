@@ -14,15 +14,15 @@ sent: python-can does not need them.
 
 In one process::
 
-    from protocol.slcan import SlcanBridge
-    from protocol.can import open_bus, CanLink
+    from coiltrack.protocol.slcan import SlcanBridge
+    from coiltrack.protocol.can import open_bus, CanLink
     with SlcanBridge(2) as bridge:
         a = open_bus("slcan", bridge.paths[0], 500_000)
         b = open_bus("slcan", bridge.paths[1], 500_000)   # or in another process
         ...
         a.shutdown(); b.shutdown()
 
-As its own process: ``python -m protocol.slcan [--ends N] [--exit-on-eof]``
+As its own process: ``python -m coiltrack.protocol.slcan [--ends N] [--exit-on-eof]``
 prints one pty path per line, then relays until SIGTERM/SIGINT (or, with
 ``--exit-on-eof``, until its stdin closes).
 """
@@ -282,7 +282,7 @@ def main(argv=None) -> int:
     import signal
     import sys
 
-    ap = argparse.ArgumentParser(prog="python -m protocol.slcan",
+    ap = argparse.ArgumentParser(prog="python -m coiltrack.protocol.slcan",
                                  description="slcan adapter emulator: one CAN bus over pseudo-terminals")
     ap.add_argument("--ends", type=int, default=2, help="number of bus ends (ptys), default 2")
     ap.add_argument("--exit-on-eof", action="store_true",

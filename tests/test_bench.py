@@ -4,10 +4,10 @@ import json
 
 import pytest
 
-from hil.faults import LinkFaults
-from tools import scenarios
-from tools.cli import main as cli_main
-from tools.runner import run_inproc
+from coiltrack.hil.faults import LinkFaults
+from coiltrack.tools import scenarios
+from coiltrack.tools.cli import main as cli_main
+from coiltrack.tools.runner import run_inproc
 
 
 @pytest.fixture(scope="module")

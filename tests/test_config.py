@@ -1,7 +1,7 @@
 """Configuration: defaults are valid, bad values are refused naming the key."""
 import pytest
 
-from firmware_py.config import ConfigError, FirmwareConfig, config_from_dict, load_config
+from coiltrack.firmware.config import ConfigError, FirmwareConfig, config_from_dict, load_config
 
 
 def test_default_is_valid_and_thesis_timing():

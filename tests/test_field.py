@@ -1,4 +1,4 @@
-"""Tests of firmware_py.field against independent references.
+"""Tests of coiltrack.firmware.model.field against independent references.
 
 References: scipy.special elliptic integrals, magpylib (its own loop and
 dipole implementations), a 60-digit ``decimal`` evaluation of the Smythe
@@ -21,7 +21,7 @@ import scipy.constants
 import scipy.special as sp
 from scipy.spatial.transform import Rotation
 
-from firmware_py.field import (
+from coiltrack.firmware.model.field import (
     MU0,
     Coil,
     CoilSet,

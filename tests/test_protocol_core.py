@@ -5,10 +5,10 @@ import struct
 import numpy as np
 import pytest
 
-import protocol
-from protocol import MSG, FrameDecoder, ProtocolError, decode_frame, encode_frame
-from protocol.framing import HEADER_LEN, build_frame, cobs_decode, cobs_encode, crc16, parse_frame
-from protocol.schema import MESSAGES, TYPES
+from coiltrack import protocol
+from coiltrack.protocol import MSG, FrameDecoder, ProtocolError, decode_frame, encode_frame
+from coiltrack.protocol.framing import HEADER_LEN, build_frame, cobs_decode, cobs_encode, crc16, parse_frame
+from coiltrack.protocol.schema import MESSAGES, TYPES
 
 
 def sample_values(mdef, rng):

@@ -1,4 +1,4 @@
-"""Tests for firmware_py.pulse: sample ring and pulse-window extraction.
+"""Tests for coiltrack.firmware.measure.pulse: sample ring and pulse-window extraction.
 
 Synthetic streams follow the setups of the papers: 120 Hz magnetometer
 sampling and 60 ms pulses (thesis seeds/002_cd7f1fdb7fc67471.txt, sec. 5.3 and
@@ -17,9 +17,9 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from tools.alloc import numpy_blocks_alive_during
+from coiltrack.tools.alloc import numpy_blocks_alive_during
 
-from firmware_py.pulse import (
+from coiltrack.firmware.measure.pulse import (
     NO_TIME_US,
     PULSE_BASELINE_DRIFT,
     PULSE_FLIP,

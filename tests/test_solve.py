@@ -1,4 +1,4 @@
-"""Tests of firmware_py.solve: Kuipers closed form, least-squares pose,
+"""Tests of coiltrack.firmware.pose.reference: Kuipers closed form, least-squares pose,
 measurement Jacobian and Cramer-Rao bound.  All random inputs are seeded."""
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from firmware_py.field import MU0, Coil, CoilSet, orthogonal_source
-from firmware_py.solve import (
+from coiltrack.firmware.model.field import MU0, Coil, CoilSet, orthogonal_source
+from coiltrack.firmware.pose.reference import (
     MAX_VARIANCE,
     crlb,
     crlb_position_rms,

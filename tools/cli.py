@@ -19,7 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in subcommands():
-        mod = importlib.import_module(f"tools.cmd_{name}")
+        mod = importlib.import_module(f"coiltrack.tools.cmd_{name}")
         name = getattr(mod, "NAME", name)
         p = sub.add_parser(name, help=mod.HELP, description=mod.__doc__)
         mod.add_arguments(p)

@@ -29,7 +29,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from hil.faults import BenchFaults
+    from coiltrack.hil.faults import BenchFaults
 
     from . import report, scenarios
 

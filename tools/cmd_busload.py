@@ -26,7 +26,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from protocol.busload import Traffic, bus_load, format_report
+    from coiltrack.protocol.busload import Traffic, bus_load, format_report
 
     if not 0 <= args.nodes <= 16:
         print("coiltrack busload: --nodes must be 0..16 (sensor node ids 16..31)")

@@ -38,20 +38,20 @@ def open_link(args):
     if args.transport == "serial":
         if not args.port:
             raise SystemExit("coiltrack conform: --port is required with --transport serial")
-        from protocol.serial_link import SerialLink
+        from coiltrack.protocol.serial_link import SerialLink
 
         return SerialLink(args.port, args.baudrate), f"serial {args.port}"
     if not args.channel:
         raise SystemExit("coiltrack conform: --channel is required with --transport can")
-    from protocol.can import CanLink, open_bus
+    from coiltrack.protocol.can import CanLink, open_bus
 
     bus = open_bus(args.interface, args.channel, args.bitrate, fd=args.fd)
     return CanLink(bus, args.src, fd=args.fd), f"CAN {args.interface} {args.channel}"
 
 
 def run(args) -> int:
-    from protocol.conformance import ConformOptions, run_conformance
-    from protocol.signing import key_from_text
+    from coiltrack.protocol.conformance import ConformOptions, run_conformance
+    from coiltrack.protocol.signing import key_from_text
 
     opts = ConformOptions(src=args.src, node=args.node, observe_s=args.observe, discover_s=args.discover,
                           lead_ms=args.lead_ms, sync_period_s=args.sync_period,

@@ -13,7 +13,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from protocol.dbc import dbc_string
+    from coiltrack.protocol.dbc import dbc_string
 
     text = dbc_string()
     if args.output:

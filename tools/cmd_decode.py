@@ -17,7 +17,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from protocol.capture import decode_file, format_message
+    from coiltrack.protocol.capture import decode_file, format_message
 
     try:
         res = decode_file(args.file, args.format)

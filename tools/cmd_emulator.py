@@ -28,10 +28,10 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from firmware_py.port import SerialPort  # a plain pyserial wrapper
-    from hil.clock import WallClock
-    from hil.faults import BenchFaults
-    from hil.nodes import Recorder
+    from coiltrack.firmware.port import SerialPort  # a plain pyserial wrapper
+    from coiltrack.hil.clock import WallClock
+    from coiltrack.hil.faults import BenchFaults
+    from coiltrack.hil.nodes import Recorder
 
     from . import report, scenarios
     from .links import FdLink, make_raw_pty

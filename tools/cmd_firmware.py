@@ -62,10 +62,10 @@ class _LinkGuard:
 
 
 def run(args) -> int:
-    from firmware_py.config import ConfigError, load_config
-    from firmware_py.firmware import Firmware
-    from firmware_py.port import SerialPort
-    from hil.clock import WallClock
+    from coiltrack.firmware.config import ConfigError, load_config
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.firmware.port import SerialPort
+    from coiltrack.hil.clock import WallClock
 
     from .realtime import _realtime_setup, firmware_loop
     from .scenarios import get
@@ -84,7 +84,7 @@ def run(args) -> int:
         if args.transport == "serial":
             port = SerialPort(args.port, args.baudrate)
         else:
-            from protocol.can import CanLink, open_bus
+            from coiltrack.protocol.can import CanLink, open_bus
 
             port = CanLink(open_bus(args.interface, args.channel, args.bitrate), cfg.node_id)
     except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError; python-can: CanError

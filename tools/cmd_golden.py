@@ -15,7 +15,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from protocol.golden import GOLDEN_DIR, check_golden, golden_files, write_golden
+    from coiltrack.protocol.golden import GOLDEN_DIR, check_golden, golden_files, write_golden
 
     d = args.dir or GOLDEN_DIR
     if args.write:

@@ -69,7 +69,7 @@ def state_bytes(fw) -> tuple[int, dict]:
         if isinstance(obj, (list, tuple, set)):
             return sum(walk(v, depth + 1) for v in obj)
         mod = getattr(type(obj), "__module__", "") or ""
-        if not mod.startswith(("firmware_py", "protocol")):
+        if not mod.startswith(("coiltrack.firmware", "coiltrack.protocol")):
             return 0
         total = 0
         d = getattr(obj, "__dict__", None)
@@ -101,7 +101,7 @@ def _stats(a_ns) -> dict:
 
 
 def _record(scenario: str, seed: int, duration: float):
-    from firmware_py.firmware import Firmware
+    from coiltrack.firmware.loop import Firmware
 
     from . import scenarios
     from .framelog import RecordingPort, config_to_dict
@@ -190,7 +190,7 @@ def _filter_steps(fw) -> dict:
 
 
 def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
-    from firmware_py.firmware import PHASES, Firmware
+    from coiltrack.firmware.loop import PHASES, Firmware
 
     from .alloc import NumpyAllocationCounter, available
     from .framelog import replay

@@ -15,9 +15,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from protocol.can import BASE_ID, frame_data_lengths
-    from protocol.docgen import markdown_table
-    from protocol.schema import MESSAGES, PROTOCOL_VERSION, SCHEMA_HASH
+    from coiltrack.protocol.can import BASE_ID, frame_data_lengths
+    from coiltrack.protocol.docgen import markdown_table
+    from coiltrack.protocol.schema import MESSAGES, PROTOCOL_VERSION, SCHEMA_HASH
 
     if args.markdown:
         print(markdown_table(), end="")

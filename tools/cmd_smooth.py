@@ -2,8 +2,8 @@
 
 Reads a frame log (``coiltrack bench --log PATH``), replays it into a fresh
 firmware on its virtual clock with a recorder on each sensor's fusion filter
-(``firmware_py.smoother.FusionRecorder``), runs the Rauch-Tung-Striebel
-backward sweep (``firmware_py.smoother``) and, when the log names a scenario,
+(``coiltrack.firmware.estimate.smoother.FusionRecorder``), runs the Rauch-Tung-Striebel
+backward sweep (``coiltrack.firmware.estimate.smoother``) and, when the log names a scenario,
 compares the forward and the smoothed poses with the scenario's ground truth
 (rebuilt from the log's seed). ``--out`` writes the smoothed poses as JSON
 lines (source frame: time, position, quaternion, position and orientation
@@ -46,8 +46,8 @@ def _angle(Ra, Rb) -> float:
 
 def smooth_log(header: dict, reads) -> dict:
     """Replay, smooth, evaluate. Returns the summary and the smoothed segments per node."""
-    from firmware_py.firmware import Firmware
-    from firmware_py.smoother import FusionRecorder, smooth
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.firmware.estimate.smoother import FusionRecorder, smooth
 
     from .framelog import replay
 
@@ -112,7 +112,7 @@ def smooth_log(header: dict, reads) -> dict:
 
 
 def write_poses(path, segments) -> None:
-    from firmware_py.firmware import _quat
+    from coiltrack.firmware.loop import _quat
 
     with open(path, "w") as fh:
         for node, segs in segments.items():

@@ -18,8 +18,8 @@ import base64
 import dataclasses
 import json
 
-from firmware_py.config import FirmwareConfig, config_from_dict
-from firmware_py.port import Port
+from coiltrack.firmware.config import FirmwareConfig, config_from_dict
+from coiltrack.firmware.port import Port
 
 FORMAT = "coiltrack-frames/1"
 

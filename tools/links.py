@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-from firmware_py.port import Port
+from coiltrack.firmware.port import Port
 
 
 class InprocEnd(Port):

@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from hil.clock import WallClock
+from coiltrack.hil.clock import WallClock
 
 from . import report as report_mod
 from .links import FdLink, make_raw_pty
@@ -221,9 +221,9 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     if transport == "slcan":
         # a CAN bus between the two processes: an slcan adapter on each side of a
         # bridge of pseudo-terminals (protocol.slcan); same messages, CAN frames
-        from protocol.can import CanLink, open_bus
-        from protocol.schema import NODE_COIL_DRIVER
-        from protocol.slcan import SlcanBridge
+        from coiltrack.protocol.can import CanLink, open_bus
+        from coiltrack.protocol.schema import NODE_COIL_DRIVER
+        from coiltrack.protocol.slcan import SlcanBridge
 
         bridge = SlcanBridge(2).start()
         master = slave = None
@@ -236,7 +236,7 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     stats_fd, stats_path = tempfile.mkstemp(suffix=".json", prefix="coiltrack-fw-")
     os.close(stats_fd)
     ncpu = os.cpu_count() or 1
-    cmd = [sys.executable, "-m", "tools.cli", "firmware", *link_args,
+    cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args,
            "--scenario", scenario.name, "--epoch-ns", str(epoch_ns),
            "--duration", str(duration_s + 0.5), "--stats-json", stats_path, "--realtime"]
     if ncpu >= 2:

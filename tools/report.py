@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
-from firmware_py.rotation import matrix_from_quat
-from hil.crlb import crlb_position_rms
-from protocol.schema import POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_VALID
+from coiltrack.firmware.rotation import matrix_from_quat
+from coiltrack.hil.crlb import crlb_position_rms
+from coiltrack.protocol.schema import POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_VALID
 
 #: distance bands of the per-range breakdown, cm
 RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
@@ -32,7 +32,7 @@ def window_violations(bench) -> int:
     to 1e-3 of the pulse's field (``World.flat_start_us``) and ends at the
     true end edge.
     """
-    from hil.bench import window_truth
+    from coiltrack.hil.bench import window_truth
 
     return sum(1 for r in window_truth(bench) if r.get("violation"))
 
@@ -109,7 +109,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
             by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(rms(pe[sel]) * 1e3, 2),
                                         "crlb_position_rms_mm": round(rms(cb[sel]) * 1e3, 2),
                                         "orientation_rms_deg": round(math.degrees(rms(ae[sel])), 2)}
-    from hil.bench import bench_metrics, fault_summary
+    from coiltrack.hil.bench import bench_metrics, fault_summary
 
     truth = bench_metrics(bench, cfg.fall_us, cfg.baseline_us)
     rep = {

@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from firmware_py.firmware import Firmware
-from hil.bench import assemble
-from hil.faults import BenchFaults, LinkFaults
-from hil.nodes import ImuSpec, MagSpec
+from coiltrack.firmware.loop import Firmware
+from coiltrack.hil.bench import assemble
+from coiltrack.hil.faults import BenchFaults, LinkFaults
+from coiltrack.hil.nodes import ImuSpec, MagSpec
 
 from . import report as report_mod
 from .links import inproc_pair
@@ -46,9 +46,9 @@ class BenchSetup:
         src_id = getattr(spec, "source_imu_id", 0)
         if src_id:
             # an IMU + magnetometer module on the source (thesis sec 6.2.3), a node of its own
-            from hil.bench import random_clock
-            from hil.imu import SourceImuNode
-            from protocol import FrameEncoder
+            from coiltrack.hil.bench import random_clock
+            from coiltrack.hil.imu import SourceImuNode
+            from coiltrack.protocol import FrameEncoder
 
             rng = np.random.default_rng(s_clocks + 1)
             node = SourceImuNode(src_id, self.world, imu=ImuSpec(rate_hz=imu_rate or 120.0),
@@ -95,8 +95,8 @@ def sim_link_pair(transport: str):
     if transport == "inproc":
         return inproc_pair()
     if transport == "can":
-        from protocol.can import virtual_link_pair
-        from protocol.schema import NODE_COIL_DRIVER, NODE_FIRMWARE
+        from coiltrack.protocol.can import virtual_link_pair
+        from coiltrack.protocol.schema import NODE_COIL_DRIVER, NODE_FIRMWARE
 
         return virtual_link_pair(NODE_FIRMWARE, NODE_COIL_DRIVER)
     raise ValueError(f"transport '{transport}' does not run on the simulated clock")

@@ -10,9 +10,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
-from firmware_py.config import FirmwareConfig
-from hil import motion, physics
-from hil.world import World
+from coiltrack.firmware.config import FirmwareConfig
+from coiltrack.hil import motion, physics
+from coiltrack.hil.world import World
 
 
 @dataclass(frozen=True)
@@ -85,7 +85,7 @@ register(Scenario(
 def _hil_fast_world(seed: int, duration_s: float) -> World:
     import numpy as np
 
-    from hil.world import EddyObject, FerroObject
+    from coiltrack.hil.world import EddyObject, FerroObject
 
     # an aluminium plate behind the source (lumped eddy conductor, tau 2 ms) and a small steel
     # part beside the working volume (induced dipole): what a real bench has and the firmware
@@ -123,14 +123,14 @@ def _fusion_config(source_imu: bool = False, **kw):
         # the thesis MTx modules: 120 Hz IMU beside the magnetometer (sec 6.3). On the bench the
         # source lies level on the table: the firmware is told so (gravity_mps2 in the source
         # frame) unless it is to use the IMU module on the source (eq 6.8)
-        from hil.imu import NODE_SOURCE_IMU
+        from coiltrack.hil.imu import NODE_SOURCE_IMU
 
         return FirmwareConfig(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU if source_imu else 0, **kw)
     return make
 
 
 def _fusion_sensor(source_imu: bool = False) -> SensorSpec:
-    from hil.imu import NODE_SOURCE_IMU
+    from coiltrack.hil.imu import NODE_SOURCE_IMU
 
     return SensorSpec(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU if source_imu else 0)
 
@@ -206,7 +206,7 @@ _SCHEPERS_REFERENCE = {"source": "Schepers & Veltink 2010 sec. 4 (adaptive filte
 
 
 def _schepers_coils(current: float = 0.91):
-    from firmware_py.config import CoilConfig
+    from coiltrack.firmware.config import CoilConfig
 
     return tuple(CoilConfig(axis=a, current=current) for a in ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
 
@@ -229,7 +229,7 @@ def schepers_fixed_config(**kw) -> FirmwareConfig:
 
 
 def schepers_adaptive_config(**kw) -> FirmwareConfig:
-    """Adaptive single-coil actuation (``firmware_py.adaptive_mode``) with
+    """Adaptive single-coil actuation (``coiltrack.firmware.track.single_coil_tracker``) with
     the same coils, sensor and filter as :func:`schepers_fixed_config`."""
     base = dict(actuation="adaptive", single_coil_fusion=False, adaptive_pulse_us=60_000,
                 adaptive_max_current_a=0.91, sigma_max_pos_m=0.002, sigma_min_pos_m=0.0018,
@@ -280,7 +280,7 @@ def _skewed_world(seed: int, duration_s: float) -> World:
 
 def _skewed_config(actuation: str = "adaptive"):
     def make(**kw) -> FirmwareConfig:
-        from firmware_py.config import CoilConfig
+        from coiltrack.firmware.config import CoilConfig
 
         coils = tuple(CoilConfig(center=c, axis=a, radius=r, turns=n, current=0.91) for c, a, r, n in SKEWED_COILS)
         base = dict(coils=coils)
@@ -306,7 +306,7 @@ register(Scenario(
 def _ferro_world(seed: int, duration_s: float) -> World:
     import numpy as np
 
-    from hil.world import FerroObject
+    from coiltrack.hil.world import FerroObject
 
     # Schepers sec. 2.4 / 3.3: an iron cylinder of radius and height 5 cm brought between the
     # source and the sensor (here the sphere of the same volume, radius 4.5 cm, mu_r 200), during

@@ -9,14 +9,14 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.config import ConfigError, config_from_dict
-from firmware_py.firmware import Firmware
-from firmware_py.rotation import matrix_from_quat
-from protocol.schema import EVT_DISTORTION, POSE_DISTORTED, POSE_FUSED, POSE_VALID
-from tools import scenarios
-from tools.alloc import NumpyAllocationCounter, available
-from tools.links import inproc_pair
-from tools.runner import BenchSetup, add_fixed_comparison, run_inproc
+from coiltrack.firmware.config import ConfigError, config_from_dict
+from coiltrack.firmware.loop import Firmware
+from coiltrack.firmware.rotation import matrix_from_quat
+from coiltrack.protocol.schema import EVT_DISTORTION, POSE_DISTORTED, POSE_FUSED, POSE_VALID
+from coiltrack.tools import scenarios
+from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.runner import BenchSetup, add_fixed_comparison, run_inproc
 
 
 def _run(name, seed, duration_s, cfg=None, count_alloc_after_us=None):

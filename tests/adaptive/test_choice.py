@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.adaptive import (ActuationPolicy, CoilChooser, NisMonitor, SingleCoilModel, chi2_upper,
+from coiltrack.firmware.actuate.coil_choice import (ActuationPolicy, CoilChooser, NisMonitor, SingleCoilModel, chi2_upper,
                                   current_ladder, posterior_pose_variances, saturation_current_limit)
-from firmware_py.field import Coil
-from firmware_py.solve import so3_exp
-from hil import physics
+from coiltrack.firmware.model.field import Coil
+from coiltrack.firmware.pose.reference import so3_exp
+from coiltrack.hil import physics
 
 
 def orthogonal():
@@ -237,7 +237,7 @@ def test_current_ladder():
 
 
 def test_pose_cov_update_is_eq4():
-    from firmware_py.adaptive import PoseCovUpdate
+    from coiltrack.firmware.actuate.coil_choice import PoseCovUpdate
 
     rng = np.random.default_rng(11)
     model = SingleCoilModel(skewed())

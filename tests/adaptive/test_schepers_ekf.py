@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.adaptive import SingleCoilModel
-from firmware_py.field import Coil
-from firmware_py.schepers_ekf import CORE, ORI, POS, SchepersEKF
-from hil import motion, physics
+from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
+from coiltrack.firmware.model.field import Coil
+from coiltrack.firmware.estimate.single_coil import CORE, ORI, POS, SchepersEKF
+from coiltrack.hil import motion, physics
 
 G = np.array([0.0, 0.0, -9.81])
 

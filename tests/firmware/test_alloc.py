@@ -30,12 +30,12 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from firmware_py.firmware import Firmware
-from tools import scenarios
-from tools.alloc import NUMPY_DOMAIN, NumpyAllocationCounter, available, numpy_blocks_alive_during
-from tools.framelog import RecordingPort, ReplayPort, config_to_dict, log_config
-from tools.links import inproc_pair
-from tools.runner import BenchSetup
+from coiltrack.firmware.loop import Firmware
+from coiltrack.tools import scenarios
+from coiltrack.tools.alloc import NUMPY_DOMAIN, NumpyAllocationCounter, available, numpy_blocks_alive_during
+from coiltrack.tools.framelog import RecordingPort, ReplayPort, config_to_dict, log_config
+from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.runner import BenchSetup
 
 WARMUP_US = 5_000_000
 TICKS = 100_000

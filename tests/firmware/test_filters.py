@@ -8,12 +8,12 @@ import pytest
 from filterpy.kalman import KalmanFilter, rts_smoother
 from scipy.stats import chi2
 
-from firmware_py.ekf import EKF_GATED, EKF_NOT_PD, EKF_OK, CovariancePredict, KalmanUpdate, chi2_gate
-from firmware_py.fusion import FusionFilter, FusionParams
-from firmware_py.layout import ACC, FUSION_LAYOUT, FUSION_XI_LAYOUT, GYR, ORI, POS, VEL, fusion_layout
-from firmware_py.orientation import OrientationFilter, OrientationParams
-from firmware_py.smoother import FusionRecorder, rts, smooth
-from hil.motion import HandMovedBench, matrix_to_rotvec, rotvec_to_matrix
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NOT_PD, EKF_OK, CovariancePredict, KalmanUpdate, chi2_gate
+from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter, FusionParams
+from coiltrack.firmware.estimate.layout import ACC, FUSION_LAYOUT, FUSION_XI_LAYOUT, GYR, ORI, POS, VEL, fusion_layout
+from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
+from coiltrack.firmware.estimate.smoother import FusionRecorder, rts, smooth
+from coiltrack.hil.motion import HandMovedBench, matrix_to_rotvec, rotvec_to_matrix
 
 G = np.array([0.0, 0.0, -9.81])
 EARTH = np.array([20e-6, 0.0, -45e-6])
@@ -181,8 +181,8 @@ def _fusion_run(model, T, seed, *, nees=False, recorder=None, mirror=None, bias=
     """Synthetic run of the ch. 6 filter: IMU at 120 Hz, magnetic solutions
     every 600 ms at the burst middle, delivered 170 ms later, drawn from a
     covariance like the solver's (position 2 mm + 1 %, orientation 0.6 deg)."""
-    from firmware_py.solve import crlb
-    from firmware_py.field import orthogonal_source
+    from coiltrack.firmware.pose.reference import crlb
+    from coiltrack.firmware.model.field import orthogonal_source
 
     coils, cur = orthogonal_source(0.055, 50), np.full(3, 1.5)
     t_us, K, f, w, m, rng = _imu(TRAJ, T, seed, bias=bias)
@@ -251,7 +251,7 @@ def test_fusion_covariance_matches_filterpy():
     white blocks the filter sets) replayed through filterpy gives the same
     covariance; the rewind/replay of the delayed update is the same
     recursion applied in time order."""
-    from firmware_py.fusion import FusionFilter as FF
+    from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter as FF
 
     log = []
 
@@ -328,8 +328,8 @@ def test_moving_source_net_acceleration_eq_6_8():
         of = OrientationFilter(_orientation_params())
         ff = FusionFilter(FusionParams(measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S))
         ff.source_fixed = source is None
-        from firmware_py.solve import crlb
-        from firmware_py.field import orthogonal_source
+        from coiltrack.firmware.pose.reference import crlb
+        from coiltrack.firmware.model.field import orthogonal_source
         coils, cur = orthogonal_source(0.055, 50), np.full(3, 1.5)
         next_ref = 330_000
         ff.schedule_snapshot(next_ref)

@@ -5,10 +5,10 @@ import json
 
 import pytest
 
-from tools import scenarios
-from tools.cli import main as cli_main
-from tools.framelog import read_log, replay
-from tools.runner import run_inproc
+from coiltrack.tools import scenarios
+from coiltrack.tools.cli import main as cli_main
+from coiltrack.tools.framelog import read_log, replay
+from coiltrack.tools.runner import run_inproc
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +38,7 @@ def test_log_replays_to_the_same_firmware_outputs(fusion_run):
     rep, log = fusion_run
     header, reads = read_log(log)
     assert header["scenario"] == "roetenberg-fusion" and header["config"]["measurement_model"] == 3
-    from firmware_py.firmware import Firmware
+    from coiltrack.firmware.loop import Firmware
 
     fw = replay(Firmware, header, reads)
     st = fw.status()

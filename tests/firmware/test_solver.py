@@ -5,12 +5,12 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.field import Coil, orthogonal_source
-from firmware_py.linalg import (Rot3, chol_inverse, chol_solve, cholesky, exp_rotvec, flat, jacobi_eigh,
+from coiltrack.firmware.model.field import Coil, orthogonal_source
+from coiltrack.firmware.linalg import (Rot3, chol_inverse, chol_solve, cholesky, exp_rotvec, flat, jacobi_eigh,
                                 nearest_rotation, rotvec_from_matrix)
-from firmware_py.solve import kuipers, measurement_model, solve_pose
-from firmware_py.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_OK, PoseSolver
-from tools.alloc import NumpyAllocationCounter
+from coiltrack.firmware.pose.reference import kuipers, measurement_model, solve_pose
+from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_OK, PoseSolver
+from coiltrack.tools.alloc import NumpyAllocationCounter
 
 COILS = orthogonal_source(0.055, 50)
 CUR = np.array([1.5, 1.49, 1.51])

@@ -8,12 +8,12 @@ from types import SimpleNamespace
 
 import pytest
 
-from firmware_py.firmware import Firmware
-from hil.faults import BenchFaults
-from tools import report as report_mod
-from tools import scenarios
-from tools.links import inproc_pair
-from tools.runner import BenchSetup
+from coiltrack.firmware.loop import Firmware
+from coiltrack.hil.faults import BenchFaults
+from coiltrack.tools import report as report_mod
+from coiltrack.tools import scenarios
+from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.runner import BenchSetup
 
 
 def run_bench(scenario="static", seed=1, duration_s=10.0, faults="", cfg=None, setup=None, scenario_obj=None):

@@ -23,11 +23,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from firmware_py.config import FirmwareConfig
-from hil import motion
-from hil import physics as ph
-from hil.world import FerroObject, World
-from tools.scenarios import Scenario, SensorSpec
+from coiltrack.firmware.config import FirmwareConfig
+from coiltrack.hil import motion
+from coiltrack.hil import physics as ph
+from coiltrack.hil.world import FerroObject, World
+from coiltrack.tools.scenarios import Scenario, SensorSpec
 
 CYCLE_US, FIRST_US, SWITCH_US = 600_000, 200_000, 380_000
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hil.clock import NodeClock, NodeSync, SimClock
+from coiltrack.hil.clock import NodeClock, NodeSync, SimClock
 
 
 def test_node_clock_drift_and_offset():

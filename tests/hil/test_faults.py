@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from firmware_py.rotation import matrix_from_quat
-from protocol.schema import (EVT_CLOCK_STEP, EVT_COIL_FAULT, EVT_DISTORTION, EVT_NODE_BACK, EVT_NODE_LOST,
+from coiltrack.firmware.rotation import matrix_from_quat
+from coiltrack.protocol.schema import (EVT_CLOCK_STEP, EVT_COIL_FAULT, EVT_DISTORTION, EVT_NODE_BACK, EVT_NODE_LOST,
                              EVT_SATURATION, NODE_COIL_DRIVER, NODE_SENSOR_BASE, POSE_COIL_FAULT, POSE_DEGRADED,
                              POSE_DISTORTED, POSE_INCONSISTENT, POSE_SATURATED, POSE_STALE, POSE_VALID)
 

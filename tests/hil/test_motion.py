@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from hil import motion as mo
+from coiltrack.hil import motion as mo
 
 
 def all_trajectories():

@@ -10,19 +10,19 @@ import math
 import numpy as np
 import pytest
 
-from hil import motion
-from hil import physics as ph
-from hil.bench import assemble
-from hil.clock import NodeClock
-from hil.faults import BenchFaults, FaultyLink, LinkFaults, parse_time_us, parse_when
-from hil.nodes import ImuSpec, MagSpec
-from hil.world import HardIron, World
-from protocol import MSG, FrameDecoder, FrameEncoder
-from protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
+from coiltrack.hil import motion
+from coiltrack.hil import physics as ph
+from coiltrack.hil.bench import assemble
+from coiltrack.hil.clock import NodeClock
+from coiltrack.hil.faults import BenchFaults, FaultyLink, LinkFaults, parse_time_us, parse_when
+from coiltrack.hil.nodes import ImuSpec, MagSpec
+from coiltrack.hil.world import HardIron, World
+from coiltrack.protocol import MSG, FrameDecoder, FrameEncoder
+from coiltrack.protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
                              COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
                              COIL_FAULT_REFUSED, GYR_LSB,
                              MAG_LSB_T, STATE_READY, STATE_RUNNING)
-from tools.links import inproc_pair
+from coiltrack.tools.links import inproc_pair
 
 P0 = np.array([0.22, 0.06, -0.05])
 R0 = motion.rotvec_to_matrix([0.3, -0.2, 0.5])

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import integrate, special
 
-from hil import physics as ph
+from coiltrack.hil import physics as ph
 
 MU0 = 4e-7 * np.pi  # textbook value; magpylib's CODATA value differs by 5e-10 relative
 

@@ -9,8 +9,8 @@ import os
 
 import pytest
 
-from tools import scenarios
-from tools.realtime import run_pty
+from coiltrack.tools import scenarios
+from coiltrack.tools.realtime import run_pty
 
 
 @pytest.mark.slow

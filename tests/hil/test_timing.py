@@ -18,10 +18,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hil.bench import flips_inside_windows, window_truth
-from hil.clock import SimClock
-from firmware_py.pulse import PULSE_FLIP
-from tools.realtime import emulator_loop, firmware_loop, inproc_timing
+from coiltrack.hil.bench import flips_inside_windows, window_truth
+from coiltrack.hil.clock import SimClock
+from coiltrack.firmware.measure.pulse import PULSE_FLIP
+from coiltrack.tools.realtime import emulator_loop, firmware_loop, inproc_timing
 
 
 @pytest.fixture(scope="module")

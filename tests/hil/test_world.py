@@ -9,9 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from hil import motion
-from hil import physics as ph
-from hil import world as W
+from coiltrack.hil import motion
+from coiltrack.hil import physics as ph
+from coiltrack.hil import world as W
 
 
 def _world(traj=None, objects=()):

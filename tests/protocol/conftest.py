@@ -10,15 +10,15 @@ import time
 import numpy as np
 import pytest
 
-from hil.emulator import Emulator
-from hil.nodes import CoilDriverNode, DriverLimits, Recorder, SensorNode
-from protocol.schema import NODE_COIL_DRIVER, NODE_SENSOR_BASE
+from coiltrack.hil.emulator import Emulator
+from coiltrack.hil.nodes import CoilDriverNode, DriverLimits, Recorder, SensorNode
+from coiltrack.protocol.schema import NODE_COIL_DRIVER, NODE_SENSOR_BASE
 
 
 def make_world():
     """The thesis source and a sensor at rest 25 cm away (hil's own physics)."""
-    from hil import motion, physics
-    from hil.world import World
+    from coiltrack.hil import motion, physics
+    from coiltrack.hil.world import World
 
     return World(physics.thesis_source(), motion.StaticPose(np.array([0.25, 0.05, -0.04]), np.eye(3)))
 

@@ -4,13 +4,13 @@ the CanLink Port adapter."""
 import can
 import pytest
 
-from protocol import FrameDecoder, ProtocolError, encode_frame
-from protocol.can import (BASE_ID, CAN_INDEX, FUNCTION_MASK, MAX_CAN_NODE, CanCodec, CanLink, CanReassembler,
+from coiltrack.protocol import FrameDecoder, ProtocolError, encode_frame
+from coiltrack.protocol.can import (BASE_ID, CAN_INDEX, FUNCTION_MASK, MAX_CAN_NODE, CanCodec, CanLink, CanReassembler,
                           build_pdu, can_id, decode_pdu, frame_data_lengths, open_bus, parse_id, segment,
                           virtual_bus_pair, virtual_link_pair)
-from protocol.errors import CrcError, EncodeError, LengthError, UnknownMessageError
-from protocol.examples import EXAMPLES
-from protocol.schema import BY_NAME, MESSAGES, NODE_COIL_DRIVER, NODE_FIRMWARE, NODE_SENSOR_BASE
+from coiltrack.protocol.errors import CrcError, EncodeError, LengthError, UnknownMessageError
+from coiltrack.protocol.examples import EXAMPLES
+from coiltrack.protocol.schema import BY_NAME, MESSAGES, NODE_COIL_DRIVER, NODE_FIRMWARE, NODE_SENSOR_BASE
 
 
 def frames_of(name, fd=False, src=None, seq=None):

@@ -6,13 +6,13 @@ import os
 
 import pytest
 
-from hil.nodes import DriverLimits
-from protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder, SignatureVerifier
-from protocol.can import CanLink, open_bus, unique_channel, virtual_link_pair
-from protocol.conformance import FAIL, PASS, SKIP, ConformOptions, run_conformance
-from protocol.serial_link import FdPort, SerialLink, open_pty
-from protocol.slcan import SlcanBridge
-from tools.cli import main
+from coiltrack.hil.nodes import DriverLimits
+from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder, SignatureVerifier
+from coiltrack.protocol.can import CanLink, open_bus, unique_channel, virtual_link_pair
+from coiltrack.protocol.conformance import FAIL, PASS, SKIP, ConformOptions, run_conformance
+from coiltrack.protocol.serial_link import FdPort, SerialLink, open_pty
+from coiltrack.protocol.slcan import SlcanBridge
+from coiltrack.tools.cli import main
 
 KEY = bytes(range(32))
 CORE = ("heartbeat", "frames_valid", "sequence")
@@ -181,7 +181,7 @@ def test_conform_against_emulator_process():
     import subprocess
     import sys
 
-    emu = subprocess.Popen([sys.executable, "-m", "tools.cli", "emulator", "--create-pty", "--scenario", "static",
+    emu = subprocess.Popen([sys.executable, "-m", "coiltrack.tools.cli", "emulator", "--create-pty", "--scenario", "static",
                             "--duration", "20"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         path = emu.stdout.readline().strip()

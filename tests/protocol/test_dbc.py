@@ -4,12 +4,12 @@ same physical values as the schema."""
 import cantools
 import pytest
 
-from protocol.can import PDU_OVERHEAD, CanReassembler, build_pdu
-from protocol.codec import physical
-from protocol.dbc import payload_from_pdu
-from protocol.examples import EXAMPLES
-from protocol.golden import GOLDEN_DIR, read_can_log
-from tools.cli import main
+from coiltrack.protocol.can import PDU_OVERHEAD, CanReassembler, build_pdu
+from coiltrack.protocol.codec import physical
+from coiltrack.protocol.dbc import payload_from_pdu
+from coiltrack.protocol.examples import EXAMPLES
+from coiltrack.protocol.golden import GOLDEN_DIR, read_can_log
+from coiltrack.tools.cli import main
 
 
 @pytest.fixture(scope="module")

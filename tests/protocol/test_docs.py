@@ -1,8 +1,8 @@
 """docs/protocol.md carries the current generated message table."""
 from pathlib import Path
 
-from protocol.docgen import BEGIN, END, extract_generated, markdown_table
-from tools.cli import main
+from coiltrack.protocol.docgen import BEGIN, END, extract_generated, markdown_table
+from coiltrack.tools.cli import main
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 

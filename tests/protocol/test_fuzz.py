@@ -9,10 +9,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from protocol import MSG, FrameDecoder, ProtocolError, decode_frame, encode_frame
-from protocol.can import CanCodec, CanReassembler, decode_pdu, BASE_ID
-from protocol.examples import EXAMPLES
-from protocol.schema import MESSAGES, TYPES
+from coiltrack.protocol import MSG, FrameDecoder, ProtocolError, decode_frame, encode_frame
+from coiltrack.protocol.can import CanCodec, CanReassembler, decode_pdu, BASE_ID
+from coiltrack.protocol.examples import EXAMPLES
+from coiltrack.protocol.schema import MESSAGES, TYPES
 
 SETTINGS = settings(derandomize=True, database=None, max_examples=150, deadline=None,
                     suppress_health_check=[HealthCheck.too_slow])

@@ -2,10 +2,10 @@
 byte; each decodes back to its example on its link."""
 import pytest
 
-from protocol import FrameDecoder, SignatureVerifier, decode_frame
-from protocol.can import CanReassembler
-from protocol.examples import EXAMPLES, SIGNING_KEY
-from protocol.golden import GOLDEN_DIR, check_golden, format_can_log, golden_files, read_can_log, write_golden
+from coiltrack.protocol import FrameDecoder, SignatureVerifier, decode_frame
+from coiltrack.protocol.can import CanReassembler
+from coiltrack.protocol.examples import EXAMPLES, SIGNING_KEY
+from coiltrack.protocol.golden import GOLDEN_DIR, check_golden, format_can_log, golden_files, read_can_log, write_golden
 
 
 def test_golden_files_are_current():

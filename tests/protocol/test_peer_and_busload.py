@@ -3,9 +3,9 @@ import json
 
 import pytest
 
-from protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, SchemaMismatchError, check_peer
-from protocol.busload import Traffic, bus_load, classic_frame_bits, message_bits
-from tools.cli import main
+from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, SchemaMismatchError, check_peer
+from coiltrack.protocol.busload import Traffic, bus_load, classic_frame_bits, message_bits
+from coiltrack.tools.cli import main
 
 Hb = MSG["HEARTBEAT"]
 

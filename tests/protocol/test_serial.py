@@ -3,9 +3,9 @@ buffers."""
 import os
 import time
 
-from protocol import MSG, FrameDecoder, encode_frame
-from protocol.examples import EXAMPLES
-from protocol.serial_link import FdPort, SerialLink, open_pty
+from coiltrack.protocol import MSG, FrameDecoder, encode_frame
+from coiltrack.protocol.examples import EXAMPLES
+from coiltrack.protocol.serial_link import FdPort, SerialLink, open_pty
 
 
 def test_loop_url_round_trip():

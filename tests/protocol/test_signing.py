@@ -4,11 +4,11 @@ a coil driver in the emulator that requires signatures; signed frames over
 CAN."""
 import pytest
 
-from protocol import MSG, FrameDecoder, SignatureError, SignatureVerifier, SignedFrameEncoder, Signer, encode_frame
-from protocol.can import virtual_link_pair
-from protocol.examples import EXAMPLES, SIGNING_KEY, SIGNING_LINK_ID, SIGNING_TIMESTAMP
-from protocol.framing import FLAG_SIGNED, SIG_LEN, cobs_decode, parse_frame, DecodedFrame
-from protocol.signing import compute_mac, key_from_text, parse_signature
+from coiltrack.protocol import MSG, FrameDecoder, SignatureError, SignatureVerifier, SignedFrameEncoder, Signer, encode_frame
+from coiltrack.protocol.can import virtual_link_pair
+from coiltrack.protocol.examples import EXAMPLES, SIGNING_KEY, SIGNING_LINK_ID, SIGNING_TIMESTAMP
+from coiltrack.protocol.framing import FLAG_SIGNED, SIG_LEN, cobs_decode, parse_frame, DecodedFrame
+from coiltrack.protocol.signing import compute_mac, key_from_text, parse_signature
 
 KEY = bytes(range(100, 132))
 Cmd = MSG["COIL_PULSE_CMD"]
@@ -34,7 +34,7 @@ def test_golden_signed_vector_verifies():
     ex = EXAMPLES["COIL_PULSE_CMD"]
     v = SignatureVerifier(SIGNING_KEY)
     d = FrameDecoder(verifier=v)
-    from protocol.golden import golden_files
+    from coiltrack.protocol.golden import golden_files
     data = golden_files()["serial/COIL_PULSE_CMD.signed.bin"]
     assert d.feed(data) == [ex.msg]
     link, ts, _ = parse_signature(d.header.signature)
@@ -54,7 +54,7 @@ def test_verifier_rejects_and_counts_each_kind():
     assert d.feed(Signer(b"wrong key", 1).encode_signed(cmd(4), 3, 1, timestamp=2000)) == []  # forged
     raw = bytearray(cobs_decode(s.encode_signed(cmd(5), 4, 1, timestamp=3000)[:-1]))
     raw[-7] ^= 1                                                            # altered MAC
-    from protocol.framing import cobs_encode
+    from coiltrack.protocol.framing import cobs_encode
     assert d.feed(cobs_encode(bytes(raw)) + b"\x00") == []
     raw = bytearray(cobs_decode(s.encode_signed(cmd(6), 5, 1, timestamp=4000)[:-1]))
     raw[-12] ^= 1                                                           # altered timestamp
@@ -103,8 +103,8 @@ def test_key_from_text():
 def test_emulated_coil_driver_requiring_signatures(pipes, world_factory):
     """hil's coil driver behind an Emulator with a verifier: unsigned, forged
     and replayed pulse commands are rejected (and counted); a signed one runs."""
-    from hil.emulator import Emulator
-    from hil.nodes import CoilDriverNode, Recorder, SensorNode
+    from coiltrack.hil.emulator import Emulator
+    from coiltrack.hil.nodes import CoilDriverNode, Recorder, SensorNode
 
     world = world_factory()
     host, emu_end = pipes()

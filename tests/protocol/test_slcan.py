@@ -6,11 +6,11 @@ import sys
 import textwrap
 import time
 
-from protocol import MSG, FrameDecoder, encode_frame
-from protocol.can import CanCodec, CanLink, CanReassembler, open_bus
-from protocol.examples import EXAMPLES
-from protocol.schema import NODE_FIRMWARE
-from protocol.slcan import SlcanBridge, frame_line_ok
+from coiltrack.protocol import MSG, FrameDecoder, encode_frame
+from coiltrack.protocol.can import CanCodec, CanLink, CanReassembler, open_bus
+from coiltrack.protocol.examples import EXAMPLES
+from coiltrack.protocol.schema import NODE_FIRMWARE
+from coiltrack.protocol.slcan import SlcanBridge, frame_line_ok
 
 
 def drain(link, decoder, want, timeout=2.0):
@@ -86,8 +86,8 @@ def test_slcan_fd_frames_and_bitrate_mismatch():
 
 CHILD = textwrap.dedent("""
     import sys, time
-    from protocol import MSG, FrameDecoder, encode_frame
-    from protocol.can import CanLink, open_bus
+    from coiltrack.protocol import MSG, FrameDecoder, encode_frame
+    from coiltrack.protocol.can import CanLink, open_bus
     bus = open_bus("slcan", sys.argv[1], 500000)
     link = CanLink(bus, 2)
     dec = FrameDecoder()
@@ -114,7 +114,7 @@ CHILD = textwrap.dedent("""
 
 def test_slcan_between_processes():
     """Bridge in one process, a bus end in another, this test in a third."""
-    bridge = subprocess.Popen([sys.executable, "-m", "protocol.slcan", "--ends", "2"],
+    bridge = subprocess.Popen([sys.executable, "-m", "coiltrack.protocol.slcan", "--ends", "2"],
                               stdout=subprocess.PIPE, text=True)
     child = None
     try:

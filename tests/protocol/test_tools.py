@@ -3,11 +3,11 @@ their subject)."""
 import can
 import pytest
 
-from protocol import encode_frame
-from protocol.can import CanCodec
-from protocol.examples import EXAMPLES
-from protocol.golden import GOLDEN_DIR
-from tools.cli import main
+from coiltrack.protocol import encode_frame
+from coiltrack.protocol.can import CanCodec
+from coiltrack.protocol.examples import EXAMPLES
+from coiltrack.protocol.golden import GOLDEN_DIR
+from coiltrack.tools.cli import main
 
 
 def test_decode_serial_capture_with_bad_frames(tmp_path, capsys):

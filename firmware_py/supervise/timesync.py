@@ -23,7 +23,7 @@ Fixed-size state, allocated in ``__init__``; no numpy in the per-tick path.
 """
 from __future__ import annotations
 
-from protocol import MSG
+from coiltrack.protocol import MSG
 
 TimeSyncMsg = MSG["TIME_SYNC"]
 

@@ -77,10 +77,10 @@ import math
 
 import numpy as np
 
-from .ekf import EKF_OK, CovariancePredict, KalmanUpdate
-from .layout import ACC, GYR, ORI, POS, PSI, QM, VEL, XI, fusion_layout
-from .linalg import exp_rotvec, rotvec_from_matrix
-from .rotation import quat_from_elements
+from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
+from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, PSI, QM, VEL, XI, fusion_layout
+from coiltrack.firmware.linalg import exp_rotvec, rotvec_from_matrix
+from coiltrack.firmware.rotation import quat_from_elements
 
 # fusion health flags (bit field, beside the ekf flags)
 FUS_NOT_INITIALISED = 64

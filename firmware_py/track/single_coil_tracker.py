@@ -4,7 +4,7 @@ Schepers & Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``) sec. 2.1 and
 Fig. 1, as a mode of the firmware tick:
 
 * between pulses the IMU carries each sensor's state: every ``IMU_SAMPLE``
-  propagates that sensor's error-state EKF (``firmware_py.schepers_ekf``)
+  propagates that sensor's error-state EKF (``coiltrack.firmware.estimate.single_coil``)
   and a ``POSE`` goes out at the IMU rate (every ``pose_every`` samples);
 * when: once per tick, when a pulse could start (``adaptive_lead_us`` ahead,
   after the quiet gap the previous window needs), the pose covariance is
@@ -20,7 +20,7 @@ Fig. 1, as a mode of the firmware tick:
   ``adaptive.saturation_current_limit`` with the latest quiet field);
 * one ``COIL_PULSE_CMD`` is sent, scheduled ahead on the master clock and
   kept within the driver's duty limit; the EKF clones the pose at the
-  pulse's mid time; when the pulse window closes (``firmware_py.pulse``) its
+  pulse's mid time; when the pulse window closes (``coiltrack.firmware.measure.pulse``) its
   amplitude updates every sensor's EKF through the clone, with the
   commanded current (the driver regulates it; its 1 mA readback replaces it
   only when the driver reports a sag) and the current tolerance and the
@@ -57,20 +57,20 @@ import math
 
 import numpy as np
 
-from protocol import MSG
-from protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT,
+from coiltrack.protocol import MSG
+from coiltrack.protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT,
                              COIL_FAULT_REFUSED, CURRENT_LSB_A, EVT_DISTORTION, GYR_LSB, POSE_COIL_FAULT,
                              POSE_DEGRADED, POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
                              POSE_STALE, POSE_VALID)
 
-from .adaptive import (POSE_DIM, ActuationPolicy, CoilChooser, NisMonitor, PoseCovUpdate, SingleCoilModel,
+from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, NisMonitor, PoseCovUpdate, SingleCoilModel,
                        current_ladder, saturation_current_limit)
-from .ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
-from .linalg import exp_rotvec
-from .pulse import PULSE_FLIP, PULSE_SATURATED, PULSE_TOO_FEW
-from .rotation import quat_tuple as _quat
-from .schepers_ekf import ORI, POS, SchepersEKF
-from .solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
+from coiltrack.firmware.linalg import exp_rotvec
+from coiltrack.firmware.measure.pulse import PULSE_FLIP, PULSE_SATURATED, PULSE_TOO_FEW
+from coiltrack.firmware.rotation import quat_tuple as _quat
+from coiltrack.firmware.estimate.single_coil import ORI, POS, SchepersEKF
+from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE
 
 PulseCmdMsg = MSG["COIL_PULSE_CMD"]
 PoseMsg = MSG["POSE"]
@@ -168,7 +168,7 @@ class _Sensor:
 class AdaptiveMode:
     """The ``actuation = "adaptive"`` mode, driven by ``Firmware.tick``.
 
-    Hooks (called by ``firmware_py.firmware.Firmware``): :meth:`on_imu`
+    Hooks (called by ``coiltrack.firmware.loop.Firmware``): :meth:`on_imu`
     for every ``IMU_SAMPLE``, :meth:`on_coil_status` for every
     ``COIL_STATUS``, :meth:`step` once per tick instead of the fixed cycle,
     :meth:`counters` for the status.
@@ -198,7 +198,7 @@ class AdaptiveMode:
         self.pending_update = PoseCovUpdate()
         self.pulse_us = cfg.adaptive_pulse_us or cfg.pulse_us
         self.lead_us = cfg.adaptive_lead_us
-        # expected amplitude variance of one pulse (firmware_py.pulse: sigma^2 (1/n + 1/n_b))
+        # expected amplitude variance of one pulse (coiltrack.firmware.measure.pulse: sigma^2 (1/n + 1/n_b))
         per = 1e6 / cfg.mag_rate_hz
         n_used = max(1, int((self.pulse_us - cfg.settle_us - cfg.guard_us) / per) - 1)
         n_base = max(2, 2 * int(cfg.baseline_us / per))

@@ -58,7 +58,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from protocol.schema import (COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_REFUSED,
+from coiltrack.protocol.schema import (COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_REFUSED,
                              EVT_CLOCK_STEP, EVT_DISTORTION, EVT_NODE_BACK, EVT_NODE_LOST, EVT_SATURATION)
 
 #: COIL_STATUS faults after which the burst's amplitudes cannot be trusted

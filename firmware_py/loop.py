@@ -7,20 +7,20 @@ Each tick, in order (no blocking call, no sleep):
 2. actuate: when the next cycle is ``lead_us`` away, send its X, Y, Z pulse
    commands (scheduled ahead on the master clock);
 3. pulse windows: close each pulse window whose trailing baseline is
-   complete (``firmware_py.pulse``);
+   complete (``coiltrack.firmware.measure.pulse``);
 4. solve: once all coils of a cycle are in, solve the 6-DOF pose (Kuipers
-   acquisition, exact-model least squares; ``firmware_py.solver.PoseSolver``,
+   acquisition, exact-model least squares; ``coiltrack.firmware.pose.solver.PoseSolver``,
    allocation-free) and send it as the magnetic-only POSE;
 5. predict: each received IMU sample goes through the sensor's orientation
    filter (thesis ch. 2) and the inertial step of its fusion filter (ch. 6),
-   which queues a fused POSE at the IMU rate (``firmware_py.inertial``);
+   which queues a fused POSE at the IMU rate (``coiltrack.firmware.track.burst_fusion``);
 6. update: after a burst, bring the pulses to one instant with the inertial
    motion, solve again and update the fusion filter at that instant;
 7. transmit: fused poses, heartbeat (window reports and magnetic poses leave
    as they are made).
 
 With ``actuation = "adaptive"`` steps 2-6 are the adaptive mode's
-(``firmware_py.adaptive_mode``, Schepers & Veltink 2010): single-coil pulses
+(``coiltrack.firmware.track.single_coil_tracker``, Schepers & Veltink 2010): single-coil pulses
 on demand, each window an update of the sensor's single-coil EKF, which the
 IMU samples propagate and which sends the fused POSEs.
 
@@ -35,20 +35,20 @@ import time
 
 import numpy as np
 
-from protocol import MSG, FrameDecoder, FrameEncoder, SCHEMA_HASH, PROTOCOL_VERSION
-from protocol.schema import (CURRENT_LSB_A, EVT_COIL_FAULT, EVT_SCHEMA_MISMATCH, MAG_LSB_T,
+from coiltrack.protocol import MSG, FrameDecoder, FrameEncoder, SCHEMA_HASH, PROTOCOL_VERSION
+from coiltrack.protocol.schema import (CURRENT_LSB_A, EVT_COIL_FAULT, EVT_SCHEMA_MISMATCH, MAG_LSB_T,
                              POSE_COIL_FAULT, POSE_DEGRADED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
                              POSE_STALE, POSE_VALID, ROLE_FIRMWARE, STATE_RUNNING)
 
-from .adaptive_mode import AdaptiveMode
-from .config import FirmwareConfig
-from .field import Coil
-from .port import Port
-from .rotation import quat_tuple as _quat
-from .inertial import PulseGate, SensorInertial, SourceInertial
-from .pulse import PULSE_SATURATED, PULSE_TOO_FEW, PulseExtractor, SampleRing
-from .solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, PoseSolver
-from .supervisor import Supervisor
+from coiltrack.firmware.track.single_coil_tracker import AdaptiveMode
+from coiltrack.firmware.config import FirmwareConfig
+from coiltrack.firmware.model.field import Coil
+from coiltrack.firmware.port import Port
+from coiltrack.firmware.rotation import quat_tuple as _quat
+from coiltrack.firmware.track.burst_fusion import PulseGate, SensorInertial, SourceInertial
+from coiltrack.firmware.measure.pulse import PULSE_SATURATED, PULSE_TOO_FEW, PulseExtractor, SampleRing
+from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, PoseSolver
+from coiltrack.firmware.supervise.supervisor import Supervisor
 
 HeartbeatMsg = MSG["HEARTBEAT"]
 PulseCmdMsg = MSG["COIL_PULSE_CMD"]
@@ -132,9 +132,9 @@ class Firmware:
         self.peer_hashes: dict[int, int] = {}
         self.tx_errors = 0
         self.last_tick_us: int | None = None
-        # time sync, node health, flip scheduling (firmware_py.supervisor)
+        # time sync, node health, flip scheduling (coiltrack.firmware.supervise.supervisor)
         self.supervisor = Supervisor(self)
-        # pose solver, inertial filters (firmware_py.solver, firmware_py.inertial)
+        # pose solver, inertial filters (coiltrack.firmware.pose.solver, coiltrack.firmware.track.burst_fusion)
         self.solver = PoseSolver(self.coils, cfg.field_model)
         self.currents = np.zeros(n)
         self._curv = memoryview(self.currents)
@@ -155,7 +155,7 @@ class Firmware:
         #: per-phase durations of the last tick (ns, ``PHASES`` order) when set to an int64 array
         self.prof = None
         # actuation = "adaptive": single-coil pulses on demand and the single-coil EKF
-        # (firmware_py.adaptive_mode) instead of the fixed cycle and the ch. 6 fusion;
+        # (coiltrack.firmware.track.single_coil_tracker) instead of the fixed cycle and the ch. 6 fusion;
         # single_coil_fusion: the fixed X, Y, Z cycle, each pulse an update of that EKF
         self.adaptive = (AdaptiveMode(self) if cfg.actuation == "adaptive"
                          else AdaptiveMode(self, "fixed") if cfg.single_coil_fusion else None)

@@ -19,18 +19,18 @@ write into them and create no numpy arrays):
     (eq 8), and its Jacobian with respect to the pose error
     ``(dp, dtheta)``: ``H_c = [R^T dB_c/dp, [h_c]x]`` (eqs 9-11). The
     orientation error is the sensor-frame rotation vector with
-    ``R_true = R_est exp([dtheta]x)`` (``firmware_py.solve``), so eq 11 reads
+    ``R_true = R_est exp([dtheta]x)`` (``coiltrack.firmware.pose.reference``), so eq 11 reads
     ``+[h]x``; Schepers' eq 2 defines the error with the opposite sign
     (``R_est = R_true (I + [dtheta]x)``), which flips both the error and the
     sign of eq 11 and leaves eq 4 unchanged. Each coil is a pose plus radius
-    and turns (``firmware_py.field.Coil``), so coils that are not orthogonal
+    and turns (``coiltrack.firmware.model.field.Coil``), so coils that are not orthogonal
     or do not share an origin use the same code.
 :func:`posterior_pose_variances`
     Diagonal of the a-posteriori pose covariance of eq 4,
     ``P+ = P- - P- H^T (H P- H^T + R_v)^-1 H P-``, for one coil at one
     current; the measurement covariance ``R_v`` is the pulse-amplitude
     variance (``sigma_v^2 / n`` plus the baseline term, Schepers sec. 3.1
-    and ``firmware_py.pulse``) plus a relative field-model error.
+    and ``coiltrack.firmware.measure.pulse``) plus a relative field-model error.
 :class:`CoilChooser`
     "Which": the coil whose update reduces the normalised uncertainty
     ``J(P) = sum_k P_kk / sigma_max_k^2`` over the six pose variables the
@@ -61,8 +61,8 @@ import math
 
 import numpy as np
 
-from .field import CoilSet
-from .linalg import skew_into as _skew_into
+from coiltrack.firmware.model.field import CoilSet
+from coiltrack.firmware.linalg import skew_into as _skew_into
 
 __all__ = [
     "POSE_DIM",
@@ -115,7 +115,7 @@ class SingleCoilModel:
       ``model="dipole"``);
     * ``H[c]`` (3, 6): ``[R^T J_c(p), [h_c]x]`` per ampere, the Jacobian wrt
       ``(dp, dtheta)`` (eqs 9-11; ``J_c = dB_c/dp`` in the source frame,
-      analytic for both models, see ``firmware_py.field``);
+      analytic for both models, see ``coiltrack.firmware.model.field``);
     * ``B[c]``, ``J[c]``: the source-frame field and gradient per ampere.
 
     The field is linear in the current, so the model for current ``I`` is
@@ -123,7 +123,7 @@ class SingleCoilModel:
 
     Parameters
     ----------
-    coils : sequence of ``firmware_py.field.Coil`` or a ``CoilSet``
+    coils : sequence of ``coiltrack.firmware.model.field.Coil`` or a ``CoilSet``
         Any geometry: each coil has its own centre, axis, radius and turns.
     model : {"exact", "dipole"}
     """

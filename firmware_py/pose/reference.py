@@ -25,9 +25,9 @@ import math
 
 import numpy as np
 
-from .field import MU0, CoilSet
-from .linalg import exp_rotvec
-from .linalg import skew_into as _skew_into
+from coiltrack.firmware.model.field import MU0, CoilSet
+from coiltrack.firmware.linalg import exp_rotvec
+from coiltrack.firmware.linalg import skew_into as _skew_into
 
 __all__ = [
     "kuipers",

@@ -2,7 +2,7 @@
 
 :class:`PoseSolver` is built once from the source coils and then solves one
 signal matrix per call without creating any numpy array: it follows
-``firmware_py.solve.solve_pose`` step for step (that functional API stays the
+``coiltrack.firmware.pose.reference.solve_pose`` step for step (that functional API stays the
 reference this class is tested against, ``tests/firmware/test_solver.py``):
 
 1. start (``solve._initial_pose``): Kuipers' closed form (thesis
@@ -22,8 +22,8 @@ reference this class is tested against, ``tests/firmware/test_solver.py``):
    taken when the plain Cholesky inverse would not already satisfy it).
 
 Fields come from ``field.loop_point`` / ``field.dipole_point`` on Python
-floats; the small systems use ``firmware_py.linalg``. Conventions are those of
-``firmware_py.solve``: ``S[:, j] = R^T B_j(p)`` in the sensor frame,
+floats; the small systems use ``coiltrack.firmware.linalg``. Conventions are those of
+``coiltrack.firmware.pose.reference``: ``S[:, j] = R^T B_j(p)`` in the sensor frame,
 ``R_true = R exp([dtheta]x)``, parameter order ``(p, dtheta)``.
 
 Bad input never raises: :meth:`PoseSolver.solve` returns status flags.
@@ -34,9 +34,9 @@ import math
 
 import numpy as np
 
-from .field import MU0, dipole_point, loop_point
-from .linalg import Rot3, chol_inverse, chol_solve, cholesky, flat, jacobi_eigh, nearest_rotation
-from .solve import MAX_VARIANCE, _fibonacci_directions, so3_exp
+from coiltrack.firmware.model.field import MU0, dipole_point, loop_point
+from coiltrack.firmware.linalg import Rot3, chol_inverse, chol_solve, cholesky, flat, jacobi_eigh, nearest_rotation
+from coiltrack.firmware.pose.reference import MAX_VARIANCE, _fibonacci_directions, so3_exp
 
 # status flags (bit field)
 SOLVE_OK = 0

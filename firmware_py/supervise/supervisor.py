@@ -1,9 +1,9 @@
 """The firmware's supervisor: time sync, node health, flip scheduling and the
 pose status bits that come from them.
 
-It joins :class:`firmware_py.timesync.TimeSyncMaster`,
-:class:`firmware_py.health.Health` and
-:class:`firmware_py.flipsched.FlipScheduler` to the firmware's tick with
+It joins :class:`coiltrack.firmware.supervise.timesync.TimeSyncMaster`,
+:class:`coiltrack.firmware.supervise.health.Health` and
+:class:`coiltrack.firmware.supervise.flips.FlipScheduler` to the firmware's tick with
 three calls: ``on_message(msg, now)`` for every decoded frame,
 ``step(now, send, emit_event)`` once per tick, and ``pose_status(node)``
 when a pose is made (it returns extra ``POSE_*`` bits and sets ``veto``
@@ -21,12 +21,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DEGRADED, POSE_DISTORTED, POSE_INCONSISTENT
+from coiltrack.protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DEGRADED, POSE_DISTORTED, POSE_INCONSISTENT
 
-from .flipsched import FlipScheduler
-from .pulse import PULSE_SATURATED
-from .health import Health, HealthConfig
-from .timesync import TimeSyncMaster
+from coiltrack.firmware.supervise.flips import FlipScheduler
+from coiltrack.firmware.measure.pulse import PULSE_SATURATED
+from coiltrack.firmware.supervise.health import Health, HealthConfig
+from coiltrack.firmware.supervise.timesync import TimeSyncMaster
 
 _ID_HEARTBEAT = 0x01
 _ID_SYNC_REPLY = 0x03

@@ -10,7 +10,7 @@ the thesis' complementary filter (``seeds/002_cd7f1fdb7fc67471.txt`` ch. 6,
 eqs 6.10-6.17), written for a sensor-frame orientation error, with the
 accelerometer and gyroscope offsets as random walks.
 
-State layout (``SCHEPERS_LAYOUT``, a ``firmware_py.layout.StateLayout``;
+State layout (``SCHEPERS_LAYOUT``, a ``coiltrack.firmware.estimate.layout.StateLayout``;
 code indexes ``P`` by these names only)::
 
     POS  0  3  m      sensor position error, source frame
@@ -23,7 +23,7 @@ code indexes ``P`` by these names only)::
     C1P, C1O 21, 24   clone 1
 
 Error convention: ``x_true = x_est + dx`` for vectors and
-``R_true = R_est exp([ori]x)`` (as ``firmware_py.solve``), so the orientation
+``R_true = R_est exp([ori]x)`` (as ``coiltrack.firmware.pose.reference``), so the orientation
 block of the measurement Jacobian is ``+[h]x`` (Schepers eq 11 carries the
 opposite sign because eq 2 defines the error the other way round) and the
 correction is ``dx = K (y - h)``.
@@ -53,7 +53,7 @@ propagate with an identity transition, so their cross-covariance with the
 live state carries the correlation), evaluates ``h`` and ``H`` at the cloned
 nominal pose, and corrects the whole state when the amplitude is in.
 
-Every update goes through the shared ``firmware_py.ekf.KalmanUpdate``
+Every update goes through the shared ``coiltrack.firmware.estimate.ekf.KalmanUpdate``
 (innovation, innovation covariance, chi-square gate, gain, Joseph form,
 health flags). All arrays are allocated in ``__init__``.
 """
@@ -63,10 +63,10 @@ import math
 
 import numpy as np
 
-from .adaptive import SingleCoilModel
-from .ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
-from .layout import StateLayout
-from .linalg import exp_rotvec
+from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
+from coiltrack.firmware.estimate.layout import StateLayout
+from coiltrack.firmware.linalg import exp_rotvec
 
 __all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
 

@@ -21,7 +21,7 @@ Tables
     first 21 indices are the same in both tables.
 
 Error conventions (``true = estimate (+) error``) are stated per filter in
-``firmware_py.orientation`` and ``firmware_py.fusion``.
+``coiltrack.firmware.estimate.orientation`` and ``coiltrack.firmware.estimate.magnetic_inertial``.
 """
 from __future__ import annotations
 

@@ -43,7 +43,7 @@ import math
 
 import numpy as np
 
-from .layout import ACC, GYR, INS, ORI, POS, VEL
+from coiltrack.firmware.estimate.layout import ACC, GYR, INS, ORI, POS, VEL
 
 _NI = INS.stop - INS.start
 

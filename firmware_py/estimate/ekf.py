@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from .linalg import chol_inverse, flat
+from coiltrack.firmware.linalg import chol_inverse, flat
 
 #: rounding makes P drift from symmetry; it is re-symmetrised every this many calls
 SYMMETRIZE_EVERY = 16

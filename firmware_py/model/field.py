@@ -798,7 +798,7 @@ def loop_point(x, y, z, radius, scale, jac=True):
 
     The kernel of ``loop_field`` / ``loop_jacobian`` (Schepers & Veltink eqs
     6-7 in the AGM form of ``_loop_core``) for a single point, without any
-    array: the firmware's pose solver (``firmware_py.solver``) calls it in its
+    array: the firmware's pose solver (``coiltrack.firmware.pose.solver``) calls it in its
     steady-state loop, where no numpy array may be allocated.
 
     Parameters

@@ -14,7 +14,7 @@ The current state of each sensor is read from its samples (flip bit).
 """
 from __future__ import annotations
 
-from protocol import MSG
+from coiltrack.protocol import MSG
 
 FlipMsg = MSG["MAG_FLIP_CMD"]
 

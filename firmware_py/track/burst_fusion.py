@@ -32,13 +32,13 @@ import math
 
 import numpy as np
 
-from protocol.schema import ACC_LSB, GYR_LSB
+from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
 
-from .ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
-from .fusion import FusionFilter, FusionParams
-from .orientation import OrientationFilter, OrientationParams
-from .pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
-from .solver import SOLVE_NONFINITE, SOLVE_NO_START, SOLVE_BAD_INPUT
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
+from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter, FusionParams
+from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
+from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
+from coiltrack.firmware.pose.solver import SOLVE_NONFINITE, SOLVE_NO_START, SOLVE_BAD_INPUT
 
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05

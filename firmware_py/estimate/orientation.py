@@ -67,9 +67,9 @@ import math
 
 import numpy as np
 
-from .ekf import EKF_OK, CovariancePredict, KalmanUpdate
-from .layout import BIAS, DIST, ORIENTATION_LAYOUT, THETA
-from .linalg import exp_rotvec, flat, rotvec_from_matrix
+from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
+from coiltrack.firmware.estimate.layout import BIAS, DIST, ORIENTATION_LAYOUT, THETA
+from coiltrack.firmware.linalg import exp_rotvec, flat, rotvec_from_matrix
 
 N = ORIENTATION_LAYOUT.n
 
