@@ -7,8 +7,8 @@ memory). They are replayed into a fresh firmware on a virtual clock
 the firmware alone. Reported, after a warm-up:
 
 * the tick time (median, p99, max) overall, over the ticks that processed an
-  IMU sample (the "fused tick") and per phase (receive, windows, solve,
-  predict, update, transmit; ``Firmware.PHASES``); Python's garbage
+  IMU sample (the "fused tick") and per stage (receive, actuate, measure,
+  track, supervise, transmit; ``loop.PHASES``); Python's garbage
   collector is frozen after start-up (``gc.freeze``), as a board has none;
 * numpy array allocations per tick (``tools.alloc.NumpyAllocationCounter``,
   a second replay);
@@ -128,10 +128,10 @@ def _record(scenario: str, seed: int, duration: float):
 def _filter_steps(fw) -> dict:
     """Median time of one fusion step and one magnetic update, ours and filterpy's."""
     out = {}
-    tr = next((tr for tr in fw.tracks.values() if tr.inertial is not None and tr.inertial.fusion.initialized), None)
-    if tr is None:
+    ins = getattr(fw.tracker, "inertial", {})
+    fus = next((i.fusion for i in ins.values() if i.fusion.initialized), None)
+    if fus is None:
         return out
-    fus = tr.inertial.fusion
     k = fus._ihead - 1 if fus._ihead > 0 else fus._icap - 1
     t1 = int(fus._itv[k])
     t0 = t1 - int(1e6 / fw.cfg.imu_rate_hz)
@@ -203,20 +203,19 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
 
     def factory(cfg, port):
         fw = Firmware(cfg, port)
-        fw.prof = prof
-        real_tick = fw.tick
+        real_tick = fw.tick_timed
+        rx = fw.receiver
 
         def timed(t):
-            n0 = sum(tr.inertial.samples for tr in fw.tracks.values() if tr.inertial is not None)
+            n0 = rx.imu_received
             a = clk()
-            real_tick(t)
+            real_tick(t, prof)
             dt = clk() - a
             if t >= warm:
                 tick_ns.append(dt)
                 for i in range(len(PHASES)):
                     phase_ns[i].append(int(prof[i]))
-                n1 = sum(tr.inertial.samples for tr in fw.tracks.values() if tr.inertial is not None)
-                if n1 > n0:
+                if rx.imu_received > n0:
                     imu_ticks.append(dt)
         fw.tick = timed
         state["fw"] = fw

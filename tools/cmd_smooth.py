@@ -55,11 +55,10 @@ def smooth_log(header: dict, reads) -> dict:
 
     def factory(cfg, port):
         fw = Firmware(cfg, port)
-        for tr in fw.tracks.values():
-            if tr.inertial is not None:
-                rec = FusionRecorder()
-                tr.inertial.fusion.recorder = rec
-                recorders[tr.node] = rec
+        for node, ins in getattr(fw.tracker, "inertial", {}).items():
+            rec = FusionRecorder()
+            ins.fusion.recorder = rec
+            recorders[node] = rec
         return fw
 
     replay(factory, header, reads)

@@ -96,6 +96,8 @@ PULSE_SATURATED = 2       # any used sample saturated
 PULSE_BASELINE_DRIFT = 4  # before/after baseline differ by more than drift_limit_t (beyond what noise explains)
 PULSE_FLIP = 8            # a set/reset flip occurred inside the window (sample flip-state changed)
 PULSE_INCOMPLETE = 16     # the window cannot be closed yet / samples missing (gap in the stream)
+#: window flags after which an amplitude is not used by any tracker
+PULSE_UNUSABLE = PULSE_TOO_FEW | PULSE_SATURATED | PULSE_FLIP
 
 # per-sample flag bits stored in SampleRing.flags
 SAMPLE_SATURATED = 1

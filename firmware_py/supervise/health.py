@@ -311,6 +311,11 @@ class Health:
             self.clock_steps += 1
             self._event(EVT_CLOCK_STEP, node | (1 << 9))
 
+    def is_distorted(self, node: int) -> bool:
+        """Whether ``node``'s quiet field currently looks distorted (metal)."""
+        i = self._slot.get(node, -1)
+        return i >= 0 and bool(self.distorted[i])
+
     def suspect(self, node: int, t0: int, t1: int) -> bool:
         """True when ``node``'s clock was suspect anywhere in master time ``[t0, t1]``."""
         i = self._slot.get(node, -1)

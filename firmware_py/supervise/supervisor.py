@@ -5,13 +5,13 @@ It joins :class:`coiltrack.firmware.supervise.timesync.TimeSyncMaster`,
 :class:`coiltrack.firmware.supervise.health.Health` and
 :class:`coiltrack.firmware.supervise.flips.FlipScheduler` to the firmware's tick with
 three calls: ``on_message(msg, now)`` for every decoded frame,
-``step(now, send, emit_event)`` once per tick, and ``pose_status(node)``
+``step(now)`` once per tick, and ``pose_status(node, window_flags)``
 when a pose is made (it returns extra ``POSE_*`` bits and sets ``veto``
 when the firmware cannot vouch for the pose: a coil status missing or fatal,
 a node clock that stepped during the burst, or a saturated sample in a
-window). It reads the firmware's
-pulse schedule (``pulse_start``, ``pulse_end``, ``pulse_id``,
-``pending_cycle``) without changing it.
+window). It reads the pulse schedule
+(:class:`coiltrack.firmware.actuate.schedule.PulseSchedule`) without changing
+it, and sends through the transmitter.
 
 Per burst: a ``TIME_SYNC`` right when the commands leave and three right after
 the last pulse ends (plus the periodic ones), and one ``MAG_FLIP_CMD`` per
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from coiltrack.protocol import MSG
 from coiltrack.protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DEGRADED, POSE_DISTORTED, POSE_INCONSISTENT
 
 from coiltrack.firmware.supervise.flips import FlipScheduler
@@ -28,11 +29,11 @@ from coiltrack.firmware.measure.pulse import PULSE_SATURATED
 from coiltrack.firmware.supervise.health import Health, HealthConfig
 from coiltrack.firmware.supervise.timesync import TimeSyncMaster
 
-_ID_HEARTBEAT = 0x01
-_ID_SYNC_REPLY = 0x03
-_ID_COIL_STATUS = 0x11
-_ID_MAG = 0x20
-_ID_IMU = 0x21
+_ID_HEARTBEAT = MSG["HEARTBEAT"].ID
+_ID_SYNC_REPLY = MSG["TIME_SYNC_REPLY"].ID
+_ID_COIL_STATUS = MSG["COIL_STATUS"].ID
+_ID_MAG = MSG["MAG_SAMPLE"].ID
+_ID_IMU = MSG["IMU_SAMPLE"].ID
 
 
 @dataclass(frozen=True)
@@ -47,10 +48,11 @@ class SupervisorConfig:
 
 
 class Supervisor:
-    def __init__(self, fw, scfg: SupervisorConfig | None = None):
-        self.fw = fw
+    def __init__(self, cfg, schedule, tx, scfg: SupervisorConfig | None = None):
+        self.cfg = cfg
+        self.schedule = schedule
+        self.tx = tx
         self.scfg = scfg = scfg or SupervisorConfig()
-        cfg = fw.cfg
         self.n = len(cfg.coils)
         self.sensor_ids = tuple(cfg.sensor_ids)
         self.driver_id = cfg.coil_driver_id
@@ -59,9 +61,9 @@ class Supervisor:
         self.health = Health(self.sensor_ids, self.driver_id, cfg.mag_rate_hz, scfg.health)
         self.health.set_coils(self.n)
         self.flips = FlipScheduler(self.sensor_ids, scfg.flip_min_gap_us)
-        self._ps = memoryview(fw.pulse_start)
-        self._pe = memoryview(fw.pulse_end)
-        self._pid = memoryview(fw.pulse_id)
+        self._ps = memoryview(schedule.start)
+        self._pe = memoryview(schedule.end)
+        self._pid = memoryview(schedule.pulse_id)
         self._burst = None
         self._first_burst = True
         self._margin = scfg.health.quiet_margin_us
@@ -107,20 +109,17 @@ class Supervisor:
         return True
 
     # ------------------------------------------------------------ tick
-    def step(self, now_us: int, send, emit_event) -> None:
-        fw = self.fw
-        pc = fw.pending_cycle
+    def step(self, now_us: int) -> None:
+        send = self.tx.send
+        pc = self.schedule.burst_start
         if pc is not None and pc != self._burst:
             self._burst = pc
             missing = self.health.new_burst()
             if not self._first_burst:
                 self.health.note_missing_status(missing)
             self._first_burst = False
-            last_end = 0
-            for j in range(self.n):
-                if self._pe[j] > last_end:
-                    last_end = self._pe[j]
-            cfg = fw.cfg
+            last_end = self.schedule.burst_end
+            cfg = self.cfg
             if self.scfg.sync_around_burst:
                 # one as the commands leave, three 2 ms apart right after the last pulse: a node
                 # takes a forward clock step only when three broadcasts agree (a stall of the
@@ -141,12 +140,13 @@ class Supervisor:
                 self.timesync.forget(node)          # it re-acquires: its first replies are no step
         self.timesync.step(now_us, send)
         self.health.step(now_us)
-        self.health.flush_events(emit_event)
+        self.health.flush_events(self.tx.event)
 
     # ------------------------------------------------------------ poses
-    def pose_status(self, node: int) -> int:
-        """Extra POSE_* bits for the pose of ``node`` from the current burst; sets ``veto``."""
-        cfg = self.fw.cfg
+    def pose_status(self, node: int, window_flags: int) -> int:
+        """Extra POSE_* bits for the pose of ``node`` from the current burst
+        (``window_flags``: its windows' flags, or-ed); sets ``veto``."""
+        cfg = self.cfg
         h = self.health
         bits = 0
         veto = False
@@ -167,14 +167,10 @@ class Supervisor:
         if h.suspect(node, t0, t1) or h.suspect(self.driver_id, t0, t1):
             bits |= POSE_INCONSISTENT | POSE_DEGRADED
             veto = True
-        i = h._slot.get(node, -1)
-        if i >= 0 and h.distorted[i]:
+        if h.is_distorted(node):
             bits |= POSE_DISTORTED
-        tr = self.fw.tracks.get(node)
-        if tr is not None:
-            for j in range(self.n):
-                if int(tr.flags[j]) & PULSE_SATURATED:   # clipped samples: the amplitude is meaningless
-                    veto = True
+        if window_flags & PULSE_SATURATED:   # clipped samples: the amplitude is meaningless
+            veto = True
         self.veto = veto
         if veto:
             self.poses_vetoed += 1

@@ -32,13 +32,15 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
+from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, POSE_FUSED, POSE_INCONSISTENT, POSE_STALE, POSE_VALID
 
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter, FusionParams
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
+from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_NONFINITE, SOLVE_NO_START, SOLVE_BAD_INPUT
+from coiltrack.firmware.track.magnetic import MagneticTracker
 
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05
@@ -69,57 +71,6 @@ def fusion_params(cfg, source_imu: bool) -> FusionParams:
         xi_heading_sigma_floor=cfg.xi_heading_sigma_floor,
         mag_var_scale=cfg.mag_var_scale, max_gap_us=max(cfg.imu_timeout_us, int(3e6 / cfg.imu_rate_hz)),
         stale_us=cfg.stale_us)
-
-
-class ImuRing:
-    """Fixed-capacity ring of received IMU samples (time, specific force
-    m/s^2, rate rad/s; sensor frame), drained by the tick. A full ring drops
-    its oldest sample (counted)."""
-
-    def __init__(self, capacity: int):
-        self.cap = int(capacity)
-        self.t = np.zeros(self.cap, dtype=np.int64)
-        self.d = np.zeros((self.cap, 6))
-        self._tv = memoryview(self.t)
-        self._dv = memoryview(self.d)
-        self.head = 0
-        self.count = 0
-        self.dropped = 0
-        self.received = 0
-        self.last_t = -(1 << 62)
-
-    def push(self, msg) -> None:
-        t = msg.t_us
-        if t <= self.last_t:          # not newer than the previous sample: refused
-            self.dropped += 1
-            return
-        self.last_t = t
-        if self.count == self.cap:
-            self.head = self.head + 1 if self.head + 1 < self.cap else 0
-            self.count -= 1
-            self.dropped += 1
-        k = self.head + self.count
-        if k >= self.cap:
-            k -= self.cap
-        self._tv[k] = t
-        d = self._dv
-        d[k, 0] = msg.ax * ACC_LSB
-        d[k, 1] = msg.ay * ACC_LSB
-        d[k, 2] = msg.az * ACC_LSB
-        d[k, 3] = msg.gx * GYR_LSB
-        d[k, 4] = msg.gy * GYR_LSB
-        d[k, 5] = msg.gz * GYR_LSB
-        self.count += 1
-        self.received += 1
-
-    def pop(self) -> int:
-        """Slot of the oldest sample (then released), or -1."""
-        if self.count == 0:
-            return -1
-        k = self.head
-        self.head = k + 1 if k + 1 < self.cap else 0
-        self.count -= 1
-        return k
 
 
 class PulseGate:
@@ -466,3 +417,108 @@ class SensorInertial:
         for i in range(3):
             Cf[i, i] += ap
             Cf[3 + i, 3 + i] += ao
+
+
+class BurstFusionTracker(MagneticTracker):
+    """Magnetic-only poses of each burst, fused with the inertial data
+    (thesis ch. 6): the IMU samples drive each sensor's fusion filter and
+    leave as fused POSEs at the IMU rate; after a burst's magnetic solve, the
+    delayed update of the fusion filter at the burst's middle follows in the
+    next ticks (``SensorInertial.fuse``), never in the tick of a solve."""
+
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx)
+        gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
+        self._fixed_phi = np.eye(3)                                   # a fixed source: Phi = I
+        self._fixed_fref = np.array([-v for v in cfg.gravity_mps2])  # its specific force, source frame
+        self.source = SourceInertial(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
+        self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
+                         for ch in self.channels}
+        self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
+        self._solved_this_tick = False
+
+    # ------------------------------------------------------------ inputs
+    def on_imu(self, msg, now_us: int) -> None:
+        ins = self.inertial.get(msg.node)
+        if ins is not None:
+            ins.imu.push(msg)
+        elif self.source is not None and msg.node == self.source.node:
+            self.source.imu.push(msg)
+
+    def on_mag(self, msg, lsb: float) -> None:
+        """A MAG_SAMPLE of a node that is not a tracked sensor: the source's module."""
+        if self.source is not None and msg.node == self.source.node:
+            self.source.mag.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
+
+    def on_burst(self, t_ref: int) -> None:
+        for ins in self.inertial.values():
+            ins.schedule(t_ref)
+
+    # ------------------------------------------------------------ tick
+    def step(self, now_us: int) -> None:
+        """Predict (drain the IMU rings: the source's first, its orientation and
+        specific force feed eq 6.8), solve, fuse, and send the fused poses."""
+        if self.source is not None:
+            self.source.process()
+        for ch, ins in self._pairs:
+            ins.process(ch.ring)
+        busy = self._next >= 0 or self.burst.complete
+        super().step(now_us)
+        if not busy:
+            self._fuse_step()
+        self._send_fused()
+
+    def on_solution(self, ch, solved: bool) -> None:
+        ins = self.inertial[ch.node]
+        if solved:
+            sv = self.solver
+            np.copyto(ins.mag_position, sv.position)
+            np.copyto(ins.mag_rotation, sv.rotation)
+            np.copyto(ins.mag_cov, sv.covariance)
+            ins.pending = True
+            ins.stage = 0
+        else:
+            ins.pending = False
+
+    def _fuse_step(self) -> None:
+        """One step of one sensor's delayed magnetic update per tick."""
+        for ch, ins in self._pairs:
+            if ins.pending:
+                ins.fuse(self.solver, ch.S, self.currents, ch.sigma, ch.pmv)
+                return
+
+    def _send_fused(self) -> None:
+        """Send the fused poses queued by the fusion filters (IMU rate)."""
+        tx = self.tx
+        for ch, ins in self._pairs:
+            fus = ins.fusion
+            d = fus._odv
+            while True:
+                k = fus.pop_output()
+                if k < 0:
+                    break
+                st = int(d[k, 13])
+                status = POSE_VALID | POSE_FUSED
+                if st & 1:
+                    status |= POSE_STALE
+                if st & 2:
+                    status |= POSE_INCONSISTENT
+                tx.pose(ch.node, fus._otv[k], d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5], d[k, 6],
+                        d[k, 7], d[k, 8], d[k, 9], d[k, 10], d[k, 11], d[k, 12], status)
+                fus.release_output()
+
+    def counters(self) -> dict:
+        ins = tuple(self.inertial.values())
+        d = super().counters()
+        d.update({
+            "imu_samples": sum(i.samples for i in ins),
+            "fusion_updates": sum(i.fusion.updates for i in ins),
+            "fusion_rejected": sum(i.fusion.rejected for i in ins),
+            "fusion_reinits": sum(i.fusion.reinits for i in ins),
+            "fusion_compensated": sum(i.compensated for i in ins),
+            "fusion_output_dropped": sum(i.fusion.out_dropped for i in ins),
+            "compass_updates": sum(i.ori.compass_used for i in ins),
+        })
+        if self.source is not None:
+            d["source_imu_samples"] = self.source.samples
+        return d

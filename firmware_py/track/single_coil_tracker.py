@@ -1,7 +1,10 @@
-"""The adaptive actuation mode of the firmware (``actuation = "adaptive"``).
+"""The single-coil tracker and its actuation (``actuation = "adaptive"``, or
+the fixed cycle with ``single_coil_fusion``).
 
 Schepers & Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``) sec. 2.1 and
-Fig. 1, as a mode of the firmware tick:
+Fig. 1, as stages of the firmware tick (:meth:`SingleCoilTracker.actuate`,
+:meth:`SingleCoilTracker.measure`; the IMU samples arrive through
+:meth:`SingleCoilTracker.on_imu`):
 
 * between pulses the IMU carries each sensor's state: every ``IMU_SAMPLE``
   propagates that sensor's error-state EKF (``coiltrack.firmware.estimate.single_coil``)
@@ -57,31 +60,22 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol import MSG
-from coiltrack.protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT,
-                             COIL_FAULT_REFUSED, CURRENT_LSB_A, EVT_DISTORTION, GYR_LSB, POSE_COIL_FAULT,
-                             POSE_DEGRADED, POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
-                             POSE_STALE, POSE_VALID)
+from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EVT_DISTORTION,
+                                       POSE_DEGRADED, POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
+                                       POSE_STALE, POSE_VALID)
 
 from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, NisMonitor, PoseCovUpdate, SingleCoilModel,
                        current_ladder, saturation_current_limit)
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from coiltrack.firmware.linalg import exp_rotvec
-from coiltrack.firmware.measure.pulse import PULSE_FLIP, PULSE_SATURATED, PULSE_TOO_FEW
+from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
+from coiltrack.firmware.measure.imu import ImuRing
+from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.rotation import quat_tuple as _quat
 from coiltrack.firmware.estimate.single_coil import ORI, POS, SchepersEKF
-from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE
-
-PulseCmdMsg = MSG["COIL_PULSE_CMD"]
-PoseMsg = MSG["POSE"]
-WindowMsg = MSG["PULSE_WINDOW"]
-
-#: window flags after which an amplitude is not used
-_UNUSABLE = PULSE_TOO_FEW | PULSE_SATURATED | PULSE_FLIP
-_SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
-_F32_MAX = 3.0e38
-#: coil faults after which a pulse is not used
-_FATAL = COIL_FAULT_OPEN_CIRCUIT | COIL_FAULT_OVER_CURRENT | COIL_FAULT_REFUSED
+from coiltrack.firmware.pose.solver import PoseSolver
+from coiltrack.firmware.track.magnetic import SOLVE_FAILED as _SOLVE_FAILED
+from coiltrack.firmware.track.status import COIL_FATAL as _FATAL, input_status
 #: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
 _EVT_NIS = 1 << 8
 _EVT_CLEAR = 1 << 31
@@ -125,9 +119,9 @@ class _Pulse:
 class _Sensor:
     """Per-sensor state of the adaptive mode (one EKF per sensor and IMU)."""
 
-    def __init__(self, track, cfg, n_coils: int, ekf: SchepersEKF, monitor: NisMonitor):
-        self.track = track
-        self.node = track.node
+    def __init__(self, channel, cfg, n_coils: int, ekf: SchepersEKF, monitor: NisMonitor):
+        self.track = channel
+        self.node = channel.node
         self.ekf = ekf
         self.monitor = monitor
         self.mon_t = 0                             # when the monitor last heard an update
@@ -137,6 +131,7 @@ class _Sensor:
         self.have_quiet = False
         self.acc = np.zeros(3)
         self.gyr = np.zeros(3)
+        self.imu = ImuRing(cfg.imu_ring_capacity)
         self.q = np.zeros(4)
         self.var6 = np.zeros(POSE_DIM)
         self.i_lim = np.zeros(n_coils)
@@ -165,28 +160,34 @@ class _Sensor:
         self.gated = 0
 
 
-class AdaptiveMode:
-    """The ``actuation = "adaptive"`` mode, driven by ``Firmware.tick``.
+class SingleCoilTracker:
+    """One single-coil EKF per sensor, and the pulses that feed it.
 
-    Hooks (called by ``coiltrack.firmware.loop.Firmware``): :meth:`on_imu`
-    for every ``IMU_SAMPLE``, :meth:`on_coil_status` for every
-    ``COIL_STATUS``, :meth:`step` once per tick instead of the fixed cycle,
-    :meth:`counters` for the status.
+    Stages (composed by ``coiltrack.firmware.loop.Firmware``):
+    :meth:`actuate` (decide the next pulse, or the fixed cycle's; flips),
+    :meth:`measure` (close the windows, each an EKF update); inputs
+    :meth:`on_imu` for every ``IMU_SAMPLE`` (propagation, fused POSEs),
+    :meth:`on_coil_status`; :meth:`counters` for the status.
     """
 
-    def __init__(self, fw, schedule: str = "adaptive"):
-        cfg = fw.cfg
-        self.fw = fw
+    def __init__(self, cfg, coils, channels, pulses, closer, supervisor, tx, schedule: str = "adaptive"):
         self.cfg = cfg
+        self.pulses_sched = pulses
+        self.closer = closer
+        self.supervisor = supervisor
+        self.tx = tx
+        self.solver = PoseSolver(coils, cfg.field_model)
+        self.now_us = 0
+        self.boot_us: int | None = None
         if schedule not in ("adaptive", "fixed"):
             raise ValueError("schedule must be 'adaptive' or 'fixed'")
         #: "adaptive" (Schepers) or "fixed": the X, Y, Z cycle at the nominal currents
         #: (``cycle_us``, ``spacing_us``, ``pulse_us``), each pulse a single-coil update
         self.schedule = schedule
-        n = len(fw.coils)
+        n = len(coils)
         self.n = n
-        self.model = SingleCoilModel(fw.coils, cfg.field_model)       # updates
-        self.pmodel = SingleCoilModel(fw.coils, cfg.field_model)      # decisions
+        self.model = SingleCoilModel(coils, cfg.field_model)       # updates
+        self.pmodel = SingleCoilModel(coils, cfg.field_model)      # decisions
         d2r = math.pi / 180.0
         smax = (cfg.sigma_max_pos_m,) * 3 + (cfg.sigma_max_ori_deg * d2r,) * 3
         smin = (cfg.sigma_min_pos_m,) * 3 + (cfg.sigma_min_ori_deg * d2r,) * 3
@@ -218,7 +219,8 @@ class AdaptiveMode:
         self.gravity = np.array(cfg.gravity_mps2, dtype=float)
         gate_p = cfg.nis_gate_probability
         self.sensors: dict[int, _Sensor] = {}
-        for sid, tr in fw.tracks.items():
+        for tr in channels:
+            sid = tr.node
             # per-sample noise at imu_rate_hz -> density the filter integrates (Q = d^2 dt)
             root = math.sqrt(cfg.imu_rate_hz)
             ekf = SchepersEKF(n_clones=2, gravity=self.gravity, acc_noise=cfg.imu_acc_sigma / root,
@@ -236,8 +238,7 @@ class AdaptiveMode:
         self.acq_active = False
         self._decided_stamp = -1
         self._decided_us = 0
-        self.fixed_start = cfg.first_cycle_us
-        self.fixed_coil = 0
+        self.cycle = FixedCycle(n, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us, self.lead_us)
         self.last_flip_cmd_us = -(1 << 62)
         self.last_pulse_end = 0
         # counters
@@ -248,15 +249,32 @@ class AdaptiveMode:
         self.unusable = 0
         self.distortion_events = 0
         self.reacquired = 0
-        self.energy_j = 0.0
         self.no_current = 0
 
     # ------------------------------------------------------------ inputs
+    def on_mag(self, msg, lsb: float) -> None:
+        """Samples of nodes that are not tracked sensors are not used."""
+
     def on_imu(self, msg, now_us: int) -> None:
+        """Queue an IMU sample; the track stage propagates it."""
         s = self.sensors.get(msg.node)
-        if s is None:
-            return
-        t = msg.t_us
+        if s is not None:
+            s.imu.push(msg)
+
+    def track(self, now_us: int) -> None:
+        """Propagate each sensor's EKF through its queued IMU samples."""
+        for s in self._sens:
+            ring = s.imu
+            d = ring._dv
+            while True:
+                k = ring.pop()
+                if k < 0:
+                    break
+                a, g = s.acc, s.gyr
+                a[0], a[1], a[2], g[0], g[1], g[2] = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
+                self._propagate(s, ring._tv[k], now_us)
+
+    def _propagate(self, s: _Sensor, t: int, now_us: int) -> None:
         ekf = s.ekf
         if s.last_imu_us is not None:
             gap = t - s.last_imu_us
@@ -268,14 +286,7 @@ class AdaptiveMode:
                 if ekf.initialized:
                     self._lose(s)
         s.last_imu_us = t
-        a, g = s.acc, s.gyr
-        a[0] = msg.ax * ACC_LSB
-        a[1] = msg.ay * ACC_LSB
-        a[2] = msg.az * ACC_LSB
-        g[0] = msg.gx * GYR_LSB
-        g[1] = msg.gy * GYR_LSB
-        g[2] = msg.gz * GYR_LSB
-        ekf.propagate(t, a, g)
+        ekf.propagate(t, s.acc, s.gyr)
         s.imu_samples += 1
         if self.acq_active:
             self._note_acq_orientation(s, t)
@@ -306,11 +317,18 @@ class AdaptiveMode:
                     sl.end = msg.end_us
                 return      # (the firmware reports the fault event)
 
-    # ------------------------------------------------------------ tick
-    def step(self, now_us: int) -> None:
-        self._close(now_us)
+    # ------------------------------------------------------------ stages
+    def actuate(self, now_us: int) -> None:
+        """Decide the next pulse (or the fixed cycle's), and the flips."""
+        if self.boot_us is None:
+            self.boot_us = now_us
+        self.now_us = now_us
         self._decide(now_us)
         self._flip(now_us)
+
+    def measure(self, now_us: int) -> None:
+        """Close the windows whose samples are in: each an EKF update."""
+        self._close(now_us)
 
     def _flip(self, now_us: int) -> None:
         """Set/reset flips outside every pulse window (thesis sec 5.5, 7.2).
@@ -321,17 +339,16 @@ class AdaptiveMode:
         a few milliseconds ahead and the next pulse may not start before that
         flip's trailing baseline has passed. The command also keeps the
         sensors from flipping on their own (which could land in a window)."""
-        sup = getattr(self.fw, "supervisor", None)
-        if sup is None or now_us - self.last_flip_cmd_us < _FLIP_EVERY_US or self._n_active():
+        if now_us - self.last_flip_cmd_us < _FLIP_EVERY_US or self._n_active():
             return
         cfg = self.cfg
-        fl = sup.flips
+        fl = self.supervisor.flips
         t0 = now_us + 1_000
         if self.schedule == "fixed" and not self.acq_active:
-            nxt = self.fixed_start + self.fixed_coil * cfg.spacing_us
+            nxt = self.cycle.start_us()
             if nxt - cfg.baseline_us - 2 * cfg.guard_us < t0 + fl.min_gap_us:
                 return
-        fl.plan(now_us, t0, t0 + fl.min_gap_us, self.fw._send)
+        fl.plan(now_us, t0, t0 + fl.min_gap_us, self.tx.send)
         at = fl.last_at_us
         self.next_free_us = max(self.next_free_us, at + cfg.baseline_us + cfg.guard_us + cfg.guard_us)
         self.last_flip_cmd_us = now_us
@@ -352,15 +369,8 @@ class AdaptiveMode:
                 j -= 1
         for k in range(m):
             sl = self.slots[self._order[k]]
-            timed_out = now_us > sl.end + cfg.fall_us + cfg.baseline_us + cfg.cycle_us // 2
-            if not timed_out:
-                ready = True
-                for s in self._sens:
-                    if not s.track.extractor.ready(sl.start, sl.end):
-                        ready = False
-                        break
-                if not ready:
-                    continue
+            if not self.closer.ready(sl.start, sl.end, now_us):
+                continue
             self._close_one(sl, now_us)
             if not sl.acq:
                 sl.active = False
@@ -372,7 +382,6 @@ class AdaptiveMode:
 
     def _close_one(self, sl: _Pulse, now_us: int) -> None:
         cfg = self.cfg
-        fw = self.fw
         # the driver regulates the commanded current; its measurement (1 mA steps, noisy)
         # replaces it only when the driver reports that it could not (supply sag)
         current = sl.current
@@ -380,24 +389,13 @@ class AdaptiveMode:
         if sag:
             current = sl.measured
         fatal = bool(sl.faults & _FATAL) or (sl.status and sl.measured == 0.0)
-        health = getattr(getattr(fw, "supervisor", None), "health", None)
+        health = self.supervisor.health
         for s in self._sens:
             tr = s.track
-            flags, n_used, n_base = tr.extractor.extract(sl.start, sl.end, tr.amp, tr.amp_var)
-            if flags:
-                fw.windows_flagged += 1
-            first = last = 0
-            if n_used:
-                mm = tr.extractor.last_used_times(tr.used_times)
-                if mm:
-                    first, last = int(tr.used_times[0]), int(tr.used_times[mm - 1])
-            fw._send(WindowMsg(tr.node, sl.coil, sl.pid, first, last, min(n_used, 255), min(n_base, 255),
-                               flags & 0xFF))
-            suspect = False
-            if health is not None:
-                t0 = sl.start - cfg.baseline_us - cfg.guard_us
-                t1 = sl.end + cfg.fall_us + cfg.baseline_us
-                suspect = health.suspect(tr.node, t0, t1) or health.suspect(cfg.coil_driver_id, t0, t1)
+            flags = self.closer.close_one(tr, sl.coil, sl.pid, sl.start, sl.end)
+            t0 = sl.start - cfg.baseline_us - cfg.guard_us
+            t1 = sl.end + cfg.fall_us + cfg.baseline_us
+            suspect = health.suspect(tr.node, t0, t1) or health.suspect(cfg.coil_driver_id, t0, t1)
             if sl.acq:
                 j = sl.coil
                 s.S[:, j] = tr.amp
@@ -405,13 +403,7 @@ class AdaptiveMode:
                 s.Sflags[j] = flags | (PULSE_TOO_FEW if (fatal or suspect) else 0)
                 self._cur[j] = current
                 continue
-            bits = 0
-            if flags & PULSE_SATURATED:
-                bits |= POSE_SATURATED
-            if flags:
-                bits |= POSE_DEGRADED
-            if sl.faults or sag:
-                bits |= POSE_COIL_FAULT
+            bits = input_status(flags, sl.faults | (COIL_FAULT_CURRENT_SAG if sag else 0))
             if (flags & _UNUSABLE) or fatal or suspect or not s.ekf.initialized:
                 self.unusable += 1
                 s.bits = bits | (s.bits & POSE_DISTORTED)
@@ -468,11 +460,7 @@ class AdaptiveMode:
             s.updates += 1
             self.updates += 1
             s.last_update_us = now_us
-        health = getattr(getattr(self.fw, "supervisor", None), "health", None)
-        hdist = False
-        if health is not None:
-            i = health._slot.get(s.node, -1)
-            hdist = i >= 0 and bool(health.distorted[i])
+        hdist = self.supervisor.health.is_distorted(s.node)
         self._forget(s, now_us)
         dist = mon.inconsistent
         if dist:
@@ -482,7 +470,7 @@ class AdaptiveMode:
         s.bits = bits
         if dist != was:
             self.distortion_events += 1 if dist else 0
-            self.fw._event(EVT_DISTORTION, (s.node | _EVT_NIS) | (0 if dist else _EVT_CLEAR))
+            self.tx.event(EVT_DISTORTION, (s.node | _EVT_NIS) | (0 if dist else _EVT_CLEAR))
         s.distorted = dist
         # lost: updates rejected again and again, or an uncertainty beyond any use
         P = ekf.P
@@ -502,7 +490,7 @@ class AdaptiveMode:
         s.ekf.reset()
         s.monitor.reset()
         s.gated_in_row = 0
-        self.next_acq_us = min(self.next_acq_us, self.fw.last_tick_us or 0)
+        self.next_acq_us = min(self.next_acq_us, self.now_us)
 
     # ------------------------------------------------------------ decisions
     def _free_slot(self) -> int:
@@ -624,20 +612,14 @@ class AdaptiveMode:
     def _decide_fixed(self, now_us: int) -> None:
         """The fixed X, Y, Z cycle, each pulse commanded ``adaptive_lead_us``
         before its start and used as a single-coil update."""
-        cfg = self.cfg
-        start = self.fixed_start + self.fixed_coil * cfg.spacing_us
-        if now_us < start - self.lead_us:
+        cyc = self.cycle
+        if not cyc.due(now_us):
             return
-        if start >= now_us + cfg.tick_us:
-            j = self.fixed_coil
-            self._command(j, float(self.nominal[j]), start, cfg.pulse_us, False, now_us)
-        self.fixed_coil += 1
-        if self.fixed_coil == self.n:
-            self.fixed_coil = 0
-            self.fixed_start += cfg.cycle_us
-            # a cycle that could not be scheduled in time is skipped
-            while self.fixed_start - self.lead_us < now_us:
-                self.fixed_start += cfg.cycle_us
+        start = cyc.start_us()
+        if start >= now_us + self.cfg.tick_us:
+            j = cyc.coil
+            self._command(j, float(self.nominal[j]), start, cyc.pulse_us, False, now_us)
+        cyc.advance(now_us)      # a cycle that could not be scheduled in time is skipped
 
     def _duty_ok(self, c: int, start: int, length: int) -> bool:
         """Whether coil ``c`` may carry a pulse ``[start, start + length)``
@@ -676,14 +658,11 @@ class AdaptiveMode:
         s.have_quiet = True
 
     def _command(self, coil: int, current: float, start: int, length: int, acq: bool, now_us: int) -> int:
-        fw = self.fw
-        cfg = self.cfg
         i = self._free_slot()
         if i < 0:
             return -1
         sl = self.slots[i]
-        pid = fw.next_pulse_id
-        fw.next_pulse_id = (pid + 1) & 0xFFFF
+        pid, sl.current = self.pulses_sched.command(coil, current, start, length)   # as the driver regulates it
         sl.active = True
         sl.coil = coil
         sl.pid = pid
@@ -705,15 +684,6 @@ class AdaptiveMode:
             if sl.clone >= 0:
                 for s in self._sens:
                     s.ekf.schedule_clone(sl.clone, start + self.mid_us)
-        # the firmware's per-coil schedule, read by the supervisor and COIL_STATUS routing
-        fw.pulse_start[coil] = start
-        fw.pulse_end[coil] = start + length
-        fw.pulse_id[coil] = pid
-        fw.measured_current[coil] = 0.0
-        fw.coil_faults[coil] = 0
-        ma = max(-32768, min(32767, int(round(current / CURRENT_LSB_A))))
-        sl.current = ma * CURRENT_LSB_A          # what the driver is told to regulate to
-        fw._send(PulseCmdMsg(coil, pid, ma, start, length))
         self.next_free_us = start + length + self.gap_us
         self.last_pulse_end = start + length
         k = self._hist_k[coil]
@@ -721,7 +691,6 @@ class AdaptiveMode:
         self._hist[coil, k, 1] = start + length
         self._hist_k[coil] = (k + 1) % _DUTY_HIST
         self.pulses += 1
-        self.energy_j += current * current * cfg.coils[coil].resistance * length * 1e-6
         return i
 
     # ------------------------------------------------------------ acquisition
@@ -731,7 +700,7 @@ class AdaptiveMode:
         has sent no IMU sample for ``_NO_IMU_US`` gets magnetic-only acquisitions."""
         for s in self._sens:
             live = s.last_imu_us is not None and now_us - s.last_imu_us <= self.cfg.imu_timeout_us
-            if not live and now_us - (self.fw.boot_us or 0) < _NO_IMU_US:
+            if not live and now_us - (self.boot_us or 0) < _NO_IMU_US:
                 return False
         return True
 
@@ -749,18 +718,15 @@ class AdaptiveMode:
         self.t_ref = t_ref
         for s in self._sens:
             s.ekf.schedule_clone(0, t_ref)
-        sup = getattr(self.fw, "supervisor", None)
-        if sup is not None:
-            last_end = start0 + (self.n - 1) * cfg.spacing_us + cfg.pulse_us
-            sup.flips.plan(now_us, last_end + self.gap_us, last_end + self.gap_us + cfg.cycle_us // 4,
-                           self.fw._send)
-            self.last_flip_cmd_us = now_us
+        last_end = start0 + (self.n - 1) * cfg.spacing_us + cfg.pulse_us
+        self.supervisor.flips.plan(now_us, last_end + self.gap_us, last_end + self.gap_us + cfg.cycle_us // 4,
+                                   self.tx.send)
+        self.last_flip_cmd_us = now_us
         self.acq_active = True
         self.acquisitions += 1
 
     def _finish_acquisition(self, now_us: int) -> None:
         cfg = self.cfg
-        fw = self.fw
         for sl in self.slots:
             if sl.acq:
                 sl.active = False
@@ -771,14 +737,10 @@ class AdaptiveMode:
         lag_sig = cfg.init_sigma_vel
         for s in self._sens:
             ekf = s.ekf
-            status = 0
             flags = 0
             for j in range(self.n):
                 flags |= int(s.Sflags[j])
-            if flags & PULSE_SATURATED:
-                status |= POSE_SATURATED
-            if flags:
-                status |= POSE_DEGRADED
+            status = input_status(flags, 0)
             imu = ekf.t_us is not None and bool(ekf.clone_taken[0]) and ekf.t_us >= self.t_ref
             have = True
             for j in range(self.n):
@@ -792,7 +754,7 @@ class AdaptiveMode:
                     np.copyto(s.col, s.S[:, j])
                     np.matmul(s.R3, s.col, out=s.S[:, j])
             solved = False
-            sv = fw.solver               # the firmware's allocation-free PoseSolver
+            sv = self.solver             # the allocation-free PoseSolver
             if not (flags & PULSE_TOO_FEW):
                 floor = (0.1 * cfg.mag_sigma_t) ** 2
                 for i in range(3):
@@ -808,12 +770,7 @@ class AdaptiveMode:
             s.position[:] = p
             s.have_pose = True
             status |= POSE_VALID
-            qw, qx, qy, qz = _quat(R)
-            fw._send(PoseMsg(s.node, self.t_ref, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
-                             min(float(cov[0, 0]), _F32_MAX), min(float(cov[1, 1]), _F32_MAX),
-                             min(float(cov[2, 2]), _F32_MAX), min(float(cov[3, 3]), _F32_MAX),
-                             min(float(cov[4, 4]), _F32_MAX), min(float(cov[5, 5]), _F32_MAX), status))
-            fw.poses += 1
+            self.tx.pose_cov6(s.node, self.t_ref, p, _quat(R), cov, status)
             if not (imu and have):
                 ekf.release_clone(0)
                 continue    # no IMU over the burst: stay magnetic-only, acquire again
@@ -868,7 +825,6 @@ class AdaptiveMode:
 
     # ------------------------------------------------------------ output
     def _emit_fused(self, s: _Sensor, t_us: int, now_us: int) -> None:
-        fw = self.fw
         ekf = s.ekf
         status = POSE_VALID | POSE_FUSED | s.bits
         if s.distorted:
@@ -880,10 +836,9 @@ class AdaptiveMode:
         p = ekf.p
         o = ORI.start
         b = POS.start
-        fw._send(PoseMsg(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
-                         float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
-                         float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status))
-        fw.poses += 1
+        self.tx.pose(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
+                     float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
+                     float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status)
 
     def counters(self) -> dict:
         mons = [s.monitor for s in self._sens]
@@ -897,5 +852,5 @@ class AdaptiveMode:
             "adaptive_distortion_events": self.distortion_events,
             "adaptive_distorted_updates": sum(m.flagged for m in mons),
             "adaptive_no_current": self.no_current,
-            "adaptive_energy_j": round(self.energy_j, 4),
+            "adaptive_energy_j": round(self.pulses_sched.energy_j, 4),
         }

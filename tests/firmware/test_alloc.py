@@ -125,14 +125,14 @@ def test_opcode_level_check_over_a_cycle_with_solve_and_fusion(live_run):
         fw.tick(t)
         t += 1000
     cycles0 = fw.cycles
-    fused0 = fw.tracks[16].inertial.fused
+    fused0 = fw.tracker.inertial[16].fused
     peak = 0
     ticks = 0
     closing = False
-    while fw.tracks[16].inertial.fused == fused0:
+    while fw.tracker.inertial[16].fused == fused0:
         port.now_us = t
         tt = t
-        closing = closing or (fw.pending_cycle is not None and fw.cycle_start_us + 285_000 <= tt)
+        closing = closing or (fw.schedule.burst_start is not None and fw.schedule.burst_start + 285_000 <= tt)
         if closing:
             peak = max(peak, numpy_blocks_alive_during(lambda: fw.tick(tt)))
             ticks += 1
@@ -141,7 +141,7 @@ def test_opcode_level_check_over_a_cycle_with_solve_and_fusion(live_run):
         t += 1000
     # the checked ticks closed the burst and solved it, solved it again from the
     # compensated signals, and fused it at its middle with the replay
-    assert fw.cycles == cycles0 + 1 and fw.tracks[16].inertial.compensated >= 1
+    assert fw.cycles == cycles0 + 1 and fw.tracker.inertial[16].compensated >= 1
     assert ticks >= 10
     assert peak == 0
 
@@ -154,18 +154,18 @@ def test_the_checks_catch_one_temporary_array(live_run):
         fw.tick(t)
         t += 1000
     kept = []
-    real_transmit = fw._transmit
+    real_transmit = fw.stages[-1]
 
-    def transmit_with_temporary():
-        real_transmit()
+    def transmit_with_temporary(now_us):
+        real_transmit(now_us)
         np.empty(3)                      # created and dropped at once
 
-    def transmit_with_kept_array():
-        real_transmit()
+    def transmit_with_kept_array(now_us):
+        real_transmit(now_us)
         kept.append(np.empty(3))
 
     counter = NumpyAllocationCounter()
-    fw._transmit = transmit_with_temporary
+    fw.stages = fw.stages[:-1] + (transmit_with_temporary,)
     for _ in range(50):
         port.now_us = t
         with counter:
@@ -175,7 +175,7 @@ def test_the_checks_catch_one_temporary_array(live_run):
     tt = t
     assert numpy_blocks_alive_during(lambda: fw.tick(tt)) == 1
     t += 1000
-    fw._transmit = transmit_with_kept_array
+    fw.stages = fw.stages[:-1] + (transmit_with_kept_array,)
     tracemalloc.start()
     try:
         for _ in range(50):

@@ -65,15 +65,16 @@ def _z_scores(run_bench, noise_t, cycles=60):
     captured = []
 
     def capture(fw, bench):
-        orig = fw._send
+        orig = fw.tx.send
+        channels = {ch.node: ch for ch in fw.channels}
 
         def send(msg):
             if msg.NAME == "PULSE_WINDOW":
-                tr = fw.tracks[msg.node]
+                tr = channels[msg.node]
                 captured.append((msg, tr.S[:, msg.coil].copy(), tr.var[:, msg.coil].copy()))
             orig(msg)
 
-        fw._send = send
+        fw.tx.send = send
 
     sc = _scenario(noise_t)
     run = run_bench(scenario_obj=sc, seed=2, duration_s=0.2 + 0.6 * cycles, setup=capture)

@@ -81,8 +81,10 @@ def test_link_faults_dropped_corrupted_delayed_duplicated(bench_runner):
     assert st["rx_frames_bad"] > 0 and st["rx_seq_gaps"] > 0
     # delayed and duplicated samples are not mistaken for clock steps
     assert events(run, EVT_CLOCK_STEP) == []
-    # missing samples (gaps) mark windows incomplete: those poses say DEGRADED, and are still fine
-    check_survived_and_vouched(run, recovered_after_us=0, min_valid_after=12, allow=POSE_DEGRADED)
+    # missing samples (gaps) mark windows incomplete: those poses say DEGRADED, and are still fine.
+    # At these rates a burst loses one of its six command/status frames (or its POSE) with
+    # probability ~0.4, so 23 bursts give ~14 +- 2.3 good poses: at least 10 (2 sigma below)
+    check_survived_and_vouched(run, recovered_after_us=0, min_valid_after=10, allow=POSE_DEGRADED)
     for rp in run.bench.recorder.poses:
         if rp["msg"].status & POSE_VALID:
             assert _pose_error(rp)[0] < 8e-3

@@ -1,0 +1,127 @@
+"""The measurement stage of pulsed DC: sensor channels and the one window closer.
+
+A :class:`SensorChannel` is one magnetometer node: its sample ring, its pulse
+extractor (:mod:`coiltrack.firmware.measure.pulse`) and the amplitude matrix of
+the current burst (``S[:, j]``: coil ``j``'s amplitude in the sensor frame,
+``var`` its variances, ``flags`` the window flags, ``pulse_mid`` the mean time
+of the samples used).
+
+:class:`WindowCloser` closes one commanded pulse's window for every channel
+(:meth:`WindowCloser.close`): it extracts the amplitude, reports the window
+(``PULSE_WINDOW``) and counts flagged windows. Every excitation policy closes
+its windows through it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from coiltrack.protocol import MSG
+
+from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
+
+_WINDOW = MSG["PULSE_WINDOW"]
+
+
+def window_samples(cfg) -> int:
+    """The most samples one window can hold (extractor scratch size)."""
+    return max(64, int(2 * (cfg.pulse_us + 2 * cfg.baseline_us) * 1e-6 * cfg.mag_rate_hz) + 8)
+
+
+class SensorChannel:
+    """One magnetometer node: ring, extractor and the burst's amplitudes."""
+
+    def __init__(self, node: int, cfg):
+        n = len(cfg.coils)
+        self.node = node
+        self.ring = SampleRing(cfg.ring_capacity)
+        self.extractor = PulseExtractor(
+            self.ring, settle_us=cfg.settle_us, fall_us=cfg.fall_us, baseline_us=cfg.baseline_us,
+            guard_us=cfg.guard_us, min_pulse_samples=cfg.min_pulse_samples,
+            min_baseline_samples=cfg.min_baseline_samples, drift_limit_t=cfg.drift_limit_t,
+            sigma_t=cfg.mag_sigma_t, max_samples=window_samples(cfg))
+        self.S = np.zeros((3, n))          # amplitudes, sensor frame, column per coil (T)
+        self.var = np.zeros((3, n))        # their variances (T^2)
+        self.sigma = np.zeros((3, n))      # their standard deviations, floored, for the solver (T)
+        self.flags = np.zeros(n, dtype=np.int64)
+        self.done = np.zeros(n, dtype=bool)
+        self.pulse_mid = np.zeros(n, dtype=np.int64)   # mean time of each window's used samples
+        self.amp = np.zeros(3)             # the last closed window
+        self.amp_var = np.zeros(3)
+        self.used_times = np.zeros(self.extractor.max_samples, dtype=np.int64)
+        self.samples = 0
+        self._varv = memoryview(self.var)
+        self._sigv = memoryview(self.sigma)
+        self._flv = memoryview(self.flags)
+        self.pmv = memoryview(self.pulse_mid)
+        self._sigma_floor2 = (0.1 * cfg.mag_sigma_t) ** 2
+
+    def push(self, msg, lsb: float) -> None:
+        """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
+        self.ring.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
+        self.samples += 1
+
+    def new_burst(self) -> None:
+        self.done.fill(False)
+        self.flags.fill(0)
+
+    def burst_flags(self) -> int:
+        f = 0
+        fl = self._flv
+        for j in range(len(fl)):
+            f |= fl[j]
+        return f
+
+    def fill_sigma(self) -> None:
+        """``sigma = sqrt(max(var, floor))``: the solver's weights (a window
+        that found no noise is not trusted beyond a tenth of the sensor's)."""
+        var, sig, floor = self._varv, self._sigv, self._sigma_floor2
+        n = self.S.shape[1]
+        for i in range(3):
+            for j in range(n):
+                v = var[i, j]
+                sig[i, j] = math.sqrt(v if v > floor else floor)
+
+
+class WindowCloser:
+    """Closes a pulse's window on every channel and reports it."""
+
+    def __init__(self, channels, fall_us: int, baseline_us: int, timeout_us: int, tx):
+        self.channels = tuple(channels)
+        self.fall_us = fall_us
+        self.baseline_us = baseline_us
+        self.timeout_us = timeout_us       # a window is closed this long after its end, complete or not
+        self.tx = tx
+        self.flagged = 0
+
+    def ready(self, start: int, end: int, now_us: int) -> bool:
+        """Every channel has the samples after the window, or it timed out."""
+        if now_us > end + self.fall_us + self.baseline_us + self.timeout_us:
+            return True
+        for ch in self.channels:
+            if not ch.extractor.ready(start, end):
+                return False
+        return True
+
+    def close_one(self, ch: SensorChannel, coil: int, pulse_id: int, start: int, end: int) -> int:
+        """Extract coil ``coil``'s amplitude on channel ``ch`` into ``ch.amp``,
+        ``ch.amp_var`` and column ``coil`` of the burst; send its PULSE_WINDOW;
+        return the window flags."""
+        ex = ch.extractor
+        flags, n_used, n_base = ex.extract(start, end, ch.amp, ch.amp_var)
+        ch.S[:, coil] = ch.amp
+        ch.var[:, coil] = ch.amp_var
+        ch.flags[coil] = flags
+        ch.done[coil] = True
+        if flags:
+            self.flagged += 1
+        first = last = 0
+        if n_used:
+            m = ex.last_used_times(ch.used_times)
+            if m:
+                first, last = int(ch.used_times[0]), int(ch.used_times[m - 1])
+        ch.pulse_mid[coil] = (first + last) // 2 if last else (start + end) // 2
+        self.tx.send(_WINDOW(ch.node, coil, pulse_id, first, last, min(n_used, 255), min(n_base, 255),
+                             flags & 0xFF))
+        return flags

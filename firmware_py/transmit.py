@@ -1,0 +1,82 @@
+"""The transmit stage: every frame the firmware sends leaves through here.
+
+:class:`Transmitter` owns the frame encoder and the Port's write side. It
+builds the one ``POSE`` message shape (:meth:`Transmitter.pose`, with the
+covariance diagonal clamped to the f32 range of the wire format), the
+``FAULT_EVENT`` reports and the periodic ``HEARTBEAT``, and counts what it
+sent. A full or broken link never stops the loop: a failed write is counted
+in ``tx_errors``.
+"""
+from __future__ import annotations
+
+from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder
+from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID, ROLE_FIRMWARE, STATE_RUNNING
+
+from coiltrack.firmware.port import Port
+
+_HEARTBEAT = MSG["HEARTBEAT"]
+_POSE = MSG["POSE"]
+_FAULT = MSG["FAULT_EVENT"]
+#: the largest finite f32 (POSE covariance fields): larger variances are sent as this
+F32_MAX = 3.0e38
+
+
+def _f32(v: float) -> float:
+    return v if v < F32_MAX else F32_MAX
+
+
+class Transmitter:
+    """Encoder, write side of the Port and the counters of what was sent."""
+
+    def __init__(self, port: Port, node_id: int, heartbeat_us: int):
+        self.port = port
+        self.node_id = node_id
+        self.encoder = FrameEncoder(node_id)
+        self.heartbeat_us = heartbeat_us
+        self.next_heartbeat_us = 0
+        self.boot_us = 0
+        self.now_us = 0
+        self.tx_errors = 0
+        self.poses = 0          # POSEs sent with POSE_VALID
+        self.fused_poses = 0    # ... of which fused (POSE_FUSED)
+        self.rx_bad = None      # callable: frames the receiver dropped (for the heartbeat)
+
+    def send(self, msg) -> None:
+        try:
+            self.port.write(self.encoder.encode(msg))
+        except Exception:  # a full or broken link must not stop the loop
+            self.tx_errors += 1
+
+    def event(self, code: int, detail: int) -> None:
+        self.send(_FAULT(self.node_id, self.now_us, code, detail & 0xFFFFFFFF))
+
+    def pose(self, node: int, t_us: int, px: float, py: float, pz: float, qw: float, qx: float, qy: float,
+             qz: float, v0: float, v1: float, v2: float, v3: float, v4: float, v5: float, status: int) -> None:
+        """Send one POSE: position (m, source frame), orientation quaternion,
+        the variances of position (m^2) and orientation (rad^2), ``POSE_*`` bits."""
+        self.send(_POSE(node, t_us, px, py, pz, qw, qx, qy, qz, _f32(v0), _f32(v1), _f32(v2),
+                        _f32(v3), _f32(v4), _f32(v5), status))
+        if status & POSE_VALID:
+            self.poses += 1
+            if status & POSE_FUSED:
+                self.fused_poses += 1
+
+    def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int) -> None:
+        """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the
+        diagonal of a 6x6 covariance (``cov[i, i]``)."""
+        self.pose(node, t_us, float(p[0]), float(p[1]), float(p[2]), q[0], q[1], q[2], q[3],
+                  float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2]), float(cov[3, 3]),
+                  float(cov[4, 4]), float(cov[5, 5]), status)
+
+    def pose_unknown(self, node: int, t_us: int, p, q, status: int) -> None:
+        """A POSE whose covariance is unknown (every variance at the f32 maximum)."""
+        self.pose(node, t_us, float(p[0]), float(p[1]), float(p[2]), q[0], q[1], q[2], q[3],
+                  F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, status)
+
+    def step(self, now_us: int) -> None:
+        """The periodic HEARTBEAT."""
+        if now_us >= self.next_heartbeat_us:
+            bad = self.rx_bad() if self.rx_bad is not None else 0
+            self.send(_HEARTBEAT(self.node_id, ROLE_FIRMWARE, STATE_RUNNING, PROTOCOL_VERSION, SCHEMA_HASH,
+                                 now_us - self.boot_us, min(bad, 0xFFFF)))
+            self.next_heartbeat_us = now_us + self.heartbeat_us
