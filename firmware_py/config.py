@@ -1,8 +1,13 @@
 """Firmware configuration: source, sensor, timing and limits.
 
 Everything the firmware allocates is sized from one :class:`FirmwareConfig`
-at start-up. A configuration can be read from TOML (:func:`load_config`);
-a bad value is refused with a :class:`ConfigError` that names the key.
+at start-up; it holds the one set of defaults. Its keys are grouped in
+sections (:data:`SECTIONS`: ``link``, ``source``, ``timing``, ``pulse``,
+``limits``, ``budget``, ``adaptive``, ``imu``, ``orientation``, ``fusion``),
+and a configuration file says them in TOML tables of the same names
+(:func:`load_config`, :func:`config_from_dict`; ``examples/firmware.toml``).
+A bad value is refused with a :class:`ConfigError` that names the key as
+``section.key``.
 """
 from __future__ import annotations
 
@@ -14,9 +19,12 @@ from coiltrack.protocol.schema import NODE_COIL_DRIVER, NODE_FIRMWARE, NODE_SENS
 
 
 class ConfigError(ValueError):
-    """A configuration value is missing, of the wrong type or out of range."""
+    """A configuration value is missing, of the wrong type or out of range.
+
+    ``key`` is the qualified name (``timing.pulse_us``, ``source.coils[0].radius``)."""
 
     def __init__(self, key: str, message: str):
+        key = qualified(key)
         super().__init__(f"config key '{key}': {message}")
         self.key = key
 
@@ -67,6 +75,9 @@ class FirmwareConfig:
     mag_sigma_t: float = 0.5e-7            # per-sample noise std, T
     mag_rate_hz: float = 120.0
     ring_capacity: int = 4096
+    # --- work per tick (a slower board lowers them)
+    track_budget_evals: int = 12           # coil field evaluations (field + Jacobian at one point) per tick
+    replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
     # --- limits
     max_current_a: float = 2.0
     stale_us: int = 2_000_000
@@ -150,6 +161,14 @@ class FirmwareConfig:
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
                  f"must be a positive integer, got {v!r}")
+        for name in ("track_budget_evals", "replay_budget_steps"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+                 f"must be a positive integer, got {v!r}")
+        for name in ("node_id", "coil_driver_id"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 255,
+                 f"must be a node id in 1..255 (one byte of the frame header), got {v!r}")
         for name in ("settle_us", "fall_us", "guard_us", "first_cycle_us"):
             v = getattr(self, name)
             need(name, isinstance(v, int) and v >= 0, f"must be a non-negative integer, got {v!r}")
@@ -279,12 +298,80 @@ class FirmwareConfig:
              "must be a finite 3-vector")
 
 
+#: the sections of the configuration and their keys (TOML tables of the same names)
+SECTIONS: dict[str, tuple[str, ...]] = {
+    "link": ("node_id", "coil_driver_id", "sensor_ids", "source_imu_id", "heartbeat_us", "stale_us"),
+    "source": ("coils", "field_model", "hemisphere"),
+    "timing": ("tick_us", "pulse_us", "cycle_us", "spacing_us", "lead_us", "first_cycle_us"),
+    "pulse": ("settle_us", "fall_us", "guard_us", "baseline_us", "min_pulse_samples", "min_baseline_samples",
+              "drift_limit_t", "mag_sigma_t", "mag_rate_hz", "ring_capacity", "mag_range_t", "saturation_margin",
+              "earth_field_max_t"),
+    "limits": ("max_current_a", "coil_max_duty", "coil_duty_window_us", "current_tolerance_a"),
+    "budget": ("track_budget_evals", "replay_budget_steps"),
+    "adaptive": ("actuation", "single_coil_fusion", "sigma_max_pos_m", "sigma_min_pos_m", "sigma_max_ori_deg",
+                 "sigma_min_ori_deg", "sigma_range_ref_m", "sigma_range_exp_pos", "sigma_range_exp_ori",
+                 "adaptive_currents_a", "adaptive_min_current_a", "adaptive_max_current_a",
+                 "adaptive_current_levels", "adaptive_pulse_us", "adaptive_lead_us", "adaptive_max_interval_us",
+                 "adaptive_pos_noise", "field_model_rel_sigma", "nis_window", "nis_gate_probability",
+                 "reacquire_after", "acquire_sigma_m", "pose_every", "init_sigma_vel", "init_sigma_ori_deg"),
+    "imu": ("imu_rate_hz", "imu_acc_sigma", "imu_gyro_sigma", "imu_acc_bias_sigma", "imu_gyro_bias_sigma",
+            "imu_acc_bias_rw", "imu_gyro_bias_rw", "imu_timeout_us", "gravity_mps2", "imu_ring_capacity"),
+    "orientation": ("acc_motion_sigma", "acc_corr_time_s", "dist_corr", "dist_sigma", "dist_norm_gain",
+                    "dist_dip_gain", "mag_learn_samples", "compass_guard_us", "ori_update_every"),
+    "fusion": ("fusion", "measurement_model", "motion_compensation", "bias_tau_s", "fusion_gate_probability",
+               "fusion_reinit_after", "xi_sigma_floor", "xi_heading_sigma_floor", "xi_var_scale", "mag_var_scale",
+               "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity"),
+}
+SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}
 _COIL_KEYS = {f.name for f in fields(CoilConfig)}
+assert set(SECTION_OF) == _SIMPLE | {"coils"}, set(SECTION_OF) ^ (_SIMPLE | {"coils"})
+
+
+def qualified(key: str) -> str:
+    """``pulse_us`` -> ``timing.pulse_us``; ``coils[0].radius`` -> ``source.coils[0].radius``."""
+    head = key.split("[", 1)[0].split(".", 1)[0]
+    sec = SECTION_OF.get(head)
+    return f"{sec}.{key}" if sec and not key.startswith(sec + ".") else key
+
+
+def config_to_dict(cfg: FirmwareConfig) -> dict:
+    """The configuration as TOML-shaped sections (lists for tuples)."""
+    out: dict = {}
+    for sec, keys in SECTIONS.items():
+        d = {}
+        for k in keys:
+            v = getattr(cfg, k)
+            if k == "coils":
+                v = [{f.name: (list(getattr(c, f.name)) if isinstance(getattr(c, f.name), tuple)
+                               else getattr(c, f.name)) for f in fields(CoilConfig)} for c in v]
+            elif isinstance(v, tuple):
+                v = list(v)
+            d[k] = v
+        out[sec] = d
+    return out
 
 
 def config_from_dict(d: dict, base: FirmwareConfig | None = None) -> FirmwareConfig:
-    """Build and validate a config from a (TOML-shaped) dict; unknown keys are refused."""
+    """Build and validate a config from a TOML-shaped dict of sections
+    (``{"timing": {"pulse_us": 40000}, ...}``) over ``base``; unknown
+    sections and keys, and keys outside their section, are refused."""
+    flat = {}
+    for sec, table in d.items():
+        if sec not in SECTIONS:
+            where = SECTION_OF.get(sec)
+            raise ConfigError(sec, f"belongs in section [{where}]" if where else "unknown section")
+        if not isinstance(table, dict):
+            raise ConfigError(sec, "must be a table")
+        for key, value in table.items():
+            if SECTION_OF.get(key) != sec:
+                where = SECTION_OF.get(key)
+                raise ConfigError(f"{sec}.{key}", f"belongs in section [{where}]" if where else "unknown key")
+            flat[key] = value
+    return _from_flat(flat, base)
+
+
+def _from_flat(d: dict, base: FirmwareConfig | None) -> FirmwareConfig:
     base = base or FirmwareConfig()
     kw = {}
     for key, value in d.items():
@@ -326,8 +413,8 @@ def config_from_dict(d: dict, base: FirmwareConfig | None = None) -> FirmwareCon
 
 
 def load_config(path) -> FirmwareConfig:
-    """Read a TOML configuration file (top-level keys as in FirmwareConfig,
-    ``[[coils]]`` tables as in CoilConfig)."""
+    """Read a TOML configuration file: one table per section of
+    :data:`SECTIONS`, ``[[source.coils]]`` tables as in CoilConfig."""
     with open(path, "rb") as fh:
         try:
             d = tomllib.load(fh)

@@ -11,19 +11,19 @@ def test_default_is_valid_and_thesis_timing():
 
 
 @pytest.mark.parametrize("d, key", [
-    ({"pulse_us": -5}, "pulse_us"),
-    ({"pulse_us": 1.5}, "pulse_us"),
-    ({"cycle_us": 100_000}, "cycle_us"),
-    ({"field_model": "magic"}, "field_model"),
-    ({"mag_sigma_t": 0.0}, "mag_sigma_t"),
-    ({"bogus_key": 1}, "bogus_key"),
-    ({"coils": [{"radius": -1.0}]}, "coils[0].radius"),
-    ({"coils": [{"turns": 0}]}, "coils[0].turns"),
-    ({"coils": [{"axis": [0, 0, 0]}]}, "coils[0].axis"),
-    ({"coils": [{"current": 5.0}]}, "coils[0].current"),
-    ({"coils": [{"colour": "red"}]}, "coils[0].colour"),
-    ({"ring_capacity": 10}, "ring_capacity"),
-    ({"sensor_ids": []}, "sensor_ids"),
+    ({"timing": {"pulse_us": -5}}, "timing.pulse_us"),
+    ({"timing": {"pulse_us": 1.5}}, "timing.pulse_us"),
+    ({"timing": {"cycle_us": 100_000}}, "timing.cycle_us"),
+    ({"source": {"field_model": "magic"}}, "source.field_model"),
+    ({"pulse": {"mag_sigma_t": 0.0}}, "pulse.mag_sigma_t"),
+    ({"timing": {"bogus_key": 1}}, "timing.bogus_key"),
+    ({"source": {"coils": [{"radius": -1.0}]}}, "source.coils[0].radius"),
+    ({"source": {"coils": [{"turns": 0}]}}, "source.coils[0].turns"),
+    ({"source": {"coils": [{"axis": [0, 0, 0]}]}}, "source.coils[0].axis"),
+    ({"source": {"coils": [{"current": 5.0}]}}, "source.coils[0].current"),
+    ({"source": {"coils": [{"colour": "red"}]}}, "source.coils[0].colour"),
+    ({"pulse": {"ring_capacity": 10}}, "pulse.ring_capacity"),
+    ({"link": {"sensor_ids": []}}, "link.sensor_ids"),
 ])
 def test_bad_values_name_the_key(d, key):
     with pytest.raises(ConfigError) as ei:
@@ -34,8 +34,9 @@ def test_bad_values_name_the_key(d, key):
 
 def test_load_toml(tmp_path):
     p = tmp_path / "c.toml"
-    p.write_text('pulse_us = 40000\nfield_model = "dipole"\n[[coils]]\naxis = [1.0, 0.0, 0.0]\n'
-                 '[[coils]]\naxis = [0.0, 1.0, 0.0]\ncenter = [0.0, 0.01, 0.0]\n')
+    p.write_text('[timing]\npulse_us = 40000\n[source]\nfield_model = "dipole"\n'
+                 '[[source.coils]]\naxis = [1.0, 0.0, 0.0]\n'
+                 '[[source.coils]]\naxis = [0.0, 1.0, 0.0]\ncenter = [0.0, 0.01, 0.0]\n')
     cfg = load_config(p)
     assert cfg.pulse_us == 40000 and cfg.field_model == "dipole" and len(cfg.coils) == 2
     assert cfg.coils[1].center == (0.0, 0.01, 0.0)
@@ -49,16 +50,16 @@ def test_load_toml_syntax_error(tmp_path):
 
 
 @pytest.mark.parametrize("d, key", [
-    ({"fusion": 1}, "fusion"),
-    ({"measurement_model": 4}, "measurement_model"),
-    ({"fusion_gate_probability": 0.5}, "fusion_gate_probability"),
-    ({"source_imu_id": 16}, "source_imu_id"),
-    ({"fusion_replay_capacity": 10}, "fusion_replay_capacity"),
-    ({"acc_motion_sigma": -1.0}, "acc_motion_sigma"),
-    ({"dist_corr": 1.5}, "dist_corr"),
-    ({"ori_update_every": 0}, "ori_update_every"),
-    ({"gravity_mps2": [0.0, 0.0, 0.0]}, "gravity_mps2"),
-    ({"xi_heading_sigma_floor": -0.1}, "xi_heading_sigma_floor"),
+    ({"fusion": {"fusion": 1}}, "fusion.fusion"),
+    ({"fusion": {"measurement_model": 4}}, "fusion.measurement_model"),
+    ({"fusion": {"fusion_gate_probability": 0.5}}, "fusion.fusion_gate_probability"),
+    ({"link": {"source_imu_id": 16}}, "link.source_imu_id"),
+    ({"fusion": {"fusion_replay_capacity": 10}}, "fusion.fusion_replay_capacity"),
+    ({"orientation": {"acc_motion_sigma": -1.0}}, "orientation.acc_motion_sigma"),
+    ({"orientation": {"dist_corr": 1.5}}, "orientation.dist_corr"),
+    ({"orientation": {"ori_update_every": 0}}, "orientation.ori_update_every"),
+    ({"imu": {"gravity_mps2": [0.0, 0.0, 0.0]}}, "imu.gravity_mps2"),
+    ({"fusion": {"xi_heading_sigma_floor": -0.1}}, "fusion.xi_heading_sigma_floor"),
 ])
 def test_bad_fusion_values_name_the_key(d, key):
     with pytest.raises(ConfigError) as ei:
@@ -68,7 +69,34 @@ def test_bad_fusion_values_name_the_key(d, key):
 
 def test_load_toml_with_fusion_keys(tmp_path):
     p = tmp_path / "f.toml"
-    p.write_text('imu_rate_hz = 120.0\nmeasurement_model = 1\nmotion_compensation = false\n'
-                 'source_imu_id = 8\nori_update_every = 2\n')
+    p.write_text('[imu]\nimu_rate_hz = 120.0\n[fusion]\nmeasurement_model = 1\nmotion_compensation = false\n'
+                 '[link]\nsource_imu_id = 8\n[orientation]\nori_update_every = 2\n')
     cfg = load_config(p)
     assert cfg.measurement_model == 1 and cfg.motion_compensation is False and cfg.source_imu_id == 8
+
+
+@pytest.mark.parametrize("d, key, words", [
+    ({"pulse_us": 40000}, "timing.pulse_us", "belongs in section [timing]"),
+    ({"fusion": {"pulse_us": 40000}}, "fusion.pulse_us", "belongs in section [timing]"),
+    ({"timingg": {}}, "timingg", "unknown section"),
+    ({"link": {"node_id": 300}}, "link.node_id", "1..255"),
+    ({"budget": {"track_budget_evals": 0}}, "budget.track_budget_evals", "positive"),
+])
+def test_keys_live_in_their_section(d, key, words):
+    """A key outside its section, or an unknown section, is refused naming where it belongs."""
+    with pytest.raises(ConfigError) as ei:
+        config_from_dict(d)
+    assert ei.value.key == key and words in str(ei.value)
+
+
+def test_round_trip_through_sections():
+    """config_to_dict then config_from_dict gives back the same configuration, and every
+    key of FirmwareConfig appears in exactly one section."""
+    from dataclasses import fields
+
+    from coiltrack.firmware.config import SECTIONS, config_to_dict
+
+    cfg = FirmwareConfig(pulse_us=40_000, fusion=False, node_id=3)
+    assert config_from_dict(config_to_dict(cfg)) == cfg
+    keys = [k for ks in SECTIONS.values() for k in ks]
+    assert sorted(keys) == sorted(f.name for f in fields(FirmwareConfig))

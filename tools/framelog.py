@@ -15,18 +15,12 @@ firmware ``config`` (``FirmwareConfig`` as a dict), then one object per read,
 from __future__ import annotations
 
 import base64
-import dataclasses
 import json
 
-from coiltrack.firmware.config import FirmwareConfig, config_from_dict
+from coiltrack.firmware.config import FirmwareConfig, config_from_dict, config_to_dict  # noqa: F401
 from coiltrack.firmware.port import Port
 
 FORMAT = "coiltrack-frames/1"
-
-
-def config_to_dict(cfg: FirmwareConfig) -> dict:
-    d = dataclasses.asdict(cfg)
-    return json.loads(json.dumps(d))        # tuples -> lists (TOML/JSON shape)
 
 
 class RecordingPort(Port):

@@ -328,6 +328,9 @@ class SingleCoilTracker:
 
     def measure(self, now_us: int) -> None:
         """Close the windows whose samples are in: each an EKF update."""
+        if self.boot_us is None:
+            self.boot_us = now_us
+        self.now_us = now_us
         self._close(now_us)
 
     def _flip(self, now_us: int) -> None:

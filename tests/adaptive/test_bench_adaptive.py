@@ -147,16 +147,16 @@ def test_without_imu_the_mode_keeps_acquiring_magnetic_poses():
 
 
 @pytest.mark.parametrize("d, key", [
-    ({"actuation": "sometimes"}, "actuation"),
-    ({"sigma_min_pos_m": 0.01}, "sigma_min_pos_m"),
-    ({"sigma_max_ori_deg": -1.0}, "sigma_max_ori_deg"),
-    ({"adaptive_currents_a": [0.1, 5.0]}, "adaptive_currents_a"),
-    ({"adaptive_max_current_a": 3.0}, "adaptive_max_current_a"),
-    ({"actuation": "adaptive", "adaptive_pulse_us": 12_000}, "adaptive_pulse_us"),
-    ({"saturation_margin": 1.5}, "saturation_margin"),
-    ({"nis_gate_probability": 0.95}, "nis_gate_probability"),
-    ({"coil_max_duty": 0.0}, "coil_max_duty"),
-    ({"single_coil_fusion": 1}, "single_coil_fusion"),
+    ({"adaptive": {"actuation": "sometimes"}}, "adaptive.actuation"),
+    ({"adaptive": {"sigma_min_pos_m": 0.01}}, "adaptive.sigma_min_pos_m"),
+    ({"adaptive": {"sigma_max_ori_deg": -1.0}}, "adaptive.sigma_max_ori_deg"),
+    ({"adaptive": {"adaptive_currents_a": [0.1, 5.0]}}, "adaptive.adaptive_currents_a"),
+    ({"adaptive": {"adaptive_max_current_a": 3.0}}, "adaptive.adaptive_max_current_a"),
+    ({"adaptive": {"actuation": "adaptive", "adaptive_pulse_us": 12_000}}, "adaptive.adaptive_pulse_us"),
+    ({"pulse": {"saturation_margin": 1.5}}, "pulse.saturation_margin"),
+    ({"adaptive": {"nis_gate_probability": 0.95}}, "adaptive.nis_gate_probability"),
+    ({"limits": {"coil_max_duty": 0.0}}, "limits.coil_max_duty"),
+    ({"adaptive": {"single_coil_fusion": 1}}, "adaptive.single_coil_fusion"),
 ])
 def test_adaptive_keys_are_validated_by_name(d, key):
     with pytest.raises(ConfigError) as ei:
