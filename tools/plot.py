@@ -73,7 +73,7 @@ def _against_range(ax, table) -> None:
         ax.plot(c / 10, rms, "-o", ms=3, color=_STYLE[kind]["color"], label=f"{kind} RMS")
     c, cb = band_rms(table["range_mm"], table["crlb_mm"])
     if c.size:
-        ax.plot(c / 10, cb, "--", color="tab:red", lw=1.5, label="CRLB")
+        ax.plot(c / 10, cb, "--s", ms=5, color="tab:red", lw=1.5, label="CRLB")
     ax.set_xlabel("range (cm)")
     ax.set_ylabel("position error (mm)")
     ax.set_yscale("log")
@@ -120,7 +120,10 @@ def plot_run(path, table: dict | None = None, rep: dict | None = None, dpi: int 
         _against_time(axes[1, 0], table, "pos_err_mm", "position error (mm)")
         _against_time(axes[1, 1], table, "ori_err_deg", "orientation error (deg)")
         _against_range(axes[1, 2], table)
-    fig.suptitle(_title(rep, table) if table is not None or rep else "", fontsize=10)
+    import textwrap
+
+    title = _title(rep, table) if table is not None or rep else ""
+    fig.suptitle(textwrap.fill(title, 150 if table is not None else 75), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     plt.close(fig)

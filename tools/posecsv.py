@@ -56,7 +56,8 @@ def pose_row(rp: dict) -> dict:
            "kind": "fused" if m.status & POSE_FUSED else "magnetic", "status": m.status,
            "status_bits": "+".join(pose_bit_names(m.status)),
            "pos_err_mm": float(np.linalg.norm(p - rp["true_p"])) * 1e3 if valid else nan,
-           "ori_err_deg": math.degrees(angle_between(matrix_from_quat(q), rp["true_R"])) if valid else nan,
+           "ori_err_deg": math.degrees(angle_between(matrix_from_quat(q / np.linalg.norm(q)), rp["true_R"]))
+           if valid else nan,
            "range_mm": float(np.linalg.norm(rp["true_p"])) * 1e3,
            "crlb_mm": rp["crlb_m"] * 1e3 if "crlb_m" in rp else nan}
     for k, v in zip(("x_mm", "y_mm", "z_mm", "true_x_mm", "true_y_mm", "true_z_mm"), (*p, *rp["true_p"])):
