@@ -14,10 +14,10 @@ time on the sensor clock (the firmware's master clock the nodes are
 synchronised to), in seconds. Poses without ``POSE_VALID`` are not sent
 (counted as ``igtl_invalid_skipped``).
 
-The server is pyigtl's (``OpenIGTLinkServer``, its request handler and
-queue), bound to the address given and without the signal handlers pyigtl
-installs, so the command's own handling of SIGINT and SIGTERM stays in
-charge.
+The server is pyigtl's (``OpenIGTLinkServer`` and its queue), bound to the
+address given and without the signal handlers pyigtl installs, so the
+command's own handling of SIGINT and SIGTERM stays in charge; a client that
+goes away ends its connection quietly and the next one is served.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 import pyigtl
-from pyigtl.comm import OpenIGTLinkBase, TCPRequestHandler
+from pyigtl.comm import OpenIGTLinkBase
 
 from coiltrack.firmware.rotation import matrix_from_quat
 from coiltrack.protocol import FrameDecoder
@@ -61,6 +61,26 @@ def transform_message(msg, sequence: int) -> pyigtl.TransformMessage:
     return out
 
 
+class _Handler(socketserver.BaseRequestHandler):
+    """One client: what it sends is read (and kept by pyigtl), the queued transforms
+    are sent, until the server stops or the client goes away."""
+
+    def handle(self) -> None:
+        srv = self.server
+        srv._connected = True
+        self.request.settimeout(0.01)
+        try:
+            while not srv.communication_thread_stop_requested:
+                while srv._receive_message_from_socket(self.request):
+                    pass
+                while srv._send_queued_message_from_socket(self.request):
+                    pass
+        except OSError:             # broken pipe, reset: the client left
+            pass
+        finally:
+            srv._connected = False
+
+
 class _Server(pyigtl.OpenIGTLinkServer):
     """pyigtl's server on (host, port); port 0 takes a free one (see ``port``)."""
 
@@ -68,7 +88,7 @@ class _Server(pyigtl.OpenIGTLinkServer):
 
     def __init__(self, host: str, port: int):           # noqa: D107 - pyigtl's __init__ is bypassed on purpose
         OpenIGTLinkBase.__init__(self)
-        socketserver.TCPServer.__init__(self, (host, port), TCPRequestHandler)
+        socketserver.TCPServer.__init__(self, (host, port), _Handler)
         self.host, self.port = self.server_address[:2]
         self.start()
 

@@ -95,8 +95,10 @@ class Outputs:
         out = cls(args)
         out._check(can_link)
         if out.igtl_port is not None:
-            from .igtl import IgtlOutput
-
+            try:
+                from .igtl import IgtlOutput
+            except ImportError:
+                raise OutputError("--igtl: needs pyigtl (pip install 'coiltrack[bench]')") from None
             try:
                 out.igtl = IgtlOutput(out.igtl_host, out.igtl_port)
             except OSError as exc:
