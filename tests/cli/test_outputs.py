@@ -176,12 +176,14 @@ def _near(rgb, colour, tol=40) -> int:
 def test_bench_plot_and_plot_command(fused_run, tmp_path):
     """bench --plot and `coiltrack plot` of the pose table draw the full figure
     (15 x 9 in at 80 dpi), with the estimate (blue, orange) and the CRLB (red) in
-    it; `coiltrack plot` of a report alone draws its per-range bands. Catches a
+    it, and so does `coiltrack plot` of the report that names the table; of a
+    report alone it draws the report's per-range bands. Catches a
     blank or empty figure, a series left out."""
     paths, rep = fused_run
-    again = tmp_path / "again.png"
+    again, via_report = tmp_path / "again.png", tmp_path / "via-report.png"
     assert main(["plot", str(paths["csv"]), "-o", str(again)]) == 0
-    for png in (paths["png"], again):
+    assert main(["plot", str(paths["json"]), "-o", str(via_report)]) == 0     # the report names its table
+    for png in (paths["png"], again, via_report):
         rgb, colours = _png(png)
         assert rgb.shape[:2] == (720, 1200)
         assert rgb.var() > 0 and len(colours) > 20
