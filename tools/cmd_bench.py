@@ -26,6 +26,9 @@ def add_arguments(p) -> None:
                                                  "for `coiltrack perf --log` and `coiltrack smooth`; in-process "
                                                  "transports only)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    from .outputs import add_bench_arguments
+
+    add_bench_arguments(p)
 
 
 def run(args) -> int:
@@ -43,11 +46,14 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"coiltrack bench: --faults: {exc}", file=sys.stderr)
         return 2
+    from .outputs import open_or_exit
+
+    outputs = open_or_exit("bench", args, can_link=args.transport in ("can", "slcan"))
     if args.transport in ("inproc", "can"):
         from .runner import run_inproc
 
         rep = run_inproc(sc, args.seed, duration, faults=faults, progress=not args.quiet,
-                         transport=args.transport, log_path=args.log)
+                         transport=args.transport, log_path=args.log, outputs=outputs)
     else:
         if args.log:
             print("coiltrack bench: --log needs an in-process transport", file=sys.stderr)
@@ -55,7 +61,7 @@ def run(args) -> int:
         from .realtime import run_pty
 
         rep = run_pty(sc, args.seed, duration, faults=faults, progress=not args.quiet,
-                      transport=args.transport)
+                      transport=args.transport, outputs=outputs)
     if sc.fixed_config is not None:
         # an actuation-policy scenario: the fixed cycle on the same trajectory and seed (fixed_*)
         from .runner import add_fixed_comparison
@@ -68,4 +74,5 @@ def run(args) -> int:
         print(f"report written to {args.json}")
     if args.log:
         print(f"frame log written to {args.log}")
+    outputs.say_written(rep)
     return 0

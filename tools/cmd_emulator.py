@@ -25,6 +25,9 @@ def add_arguments(p) -> None:
     p.add_argument("--epoch-ns", type=int, default=None, help="CLOCK_MONOTONIC epoch shared with the firmware")
     p.add_argument("--faults", default="", help="fault switches, as for 'coiltrack bench --faults'")
     p.add_argument("--json", metavar="PATH", help="write the report as JSON")
+    from .outputs import add_capture_argument
+
+    add_capture_argument(p)
 
 
 def run(args) -> int:
@@ -45,6 +48,9 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"coiltrack emulator: --faults: {exc}", file=sys.stderr)
         return 2
+    from .outputs import open_or_exit
+
+    outputs = open_or_exit("emulator", args)
     if args.create_pty:
         master, slave, name = make_raw_pty()
         print(name, flush=True)
@@ -55,6 +61,7 @@ def run(args) -> int:
         except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError
             print(f"coiltrack emulator: cannot open {args.port}: {exc}", file=sys.stderr)
             return 2
+    link = outputs.wrap(link, side="emulator", clock_us=WallClock(args.epoch_ns).now)
     bench = BenchSetup(sc, args.seed, duration, link, faults)
     if args.epoch_ns is None:
         # the firmware's clock is its own: learn it from its TIME_SYNC broadcasts
@@ -66,6 +73,7 @@ def run(args) -> int:
     except KeyboardInterrupt:
         pass
     rep = report.build(bench, {}, duration, transport="serial", cfg=sc.firmware_config())
+    outputs.finish(bench, rep)
     print(report.format_table(rep))
     if args.json:
         report.write_json(rep, args.json)

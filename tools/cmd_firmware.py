@@ -31,6 +31,10 @@ def add_arguments(p) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="best-effort real-time set-up: SCHED_FIFO if permitted, cyclic GC frozen and disabled")
     p.add_argument("--cpu", type=int, default=None, help="pin the loop to this CPU")
+    from .outputs import add_capture_argument, add_igtl_arguments
+
+    add_igtl_arguments(p)
+    add_capture_argument(p)
 
 
 class _LinkGuard:
@@ -75,6 +79,9 @@ def run(args) -> int:
     except (ConfigError, OSError) as exc:
         print(f"coiltrack firmware: {exc}", file=sys.stderr)
         return 2
+    from .outputs import open_or_exit
+
+    outputs = open_or_exit("firmware", args, can_link=args.transport == "can")
     where = args.port if args.transport == "serial" else f"{args.interface}:{args.channel}"
     if (args.port if args.transport == "serial" else args.channel) is None:
         print(f"coiltrack firmware: --transport {args.transport} needs "
@@ -90,7 +97,7 @@ def run(args) -> int:
     except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError; python-can: CanError
         print(f"coiltrack firmware: cannot open {where}: {exc}", file=sys.stderr)
         return 2
-    port = _LinkGuard(port)
+    port = _LinkGuard(outputs.wrap(port, clock_us=WallClock(args.epoch_ns).now))
     fw = Firmware(cfg, port)
     rt = _realtime_setup(args.cpu) if (args.realtime or args.cpu is not None) else {}
     clock = WallClock(args.epoch_ns)
@@ -103,6 +110,7 @@ def run(args) -> int:
         port.close()
     timing.update({"rt_" + k: v for k, v in rt.items()})
     timing["link_errors"] = port.errors
+    outputs.finish(None, timing)
     if args.stats_json:
         with open(args.stats_json, "w") as fh:
             json.dump({"status": fw.status(), "timing": timing}, fh, indent=2)

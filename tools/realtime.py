@@ -208,7 +208,7 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
 
 
 def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool = False,
-            transport: str = "pty") -> dict:
+            transport: str = "pty", outputs=None) -> dict:
     """Firmware in a child process (``coiltrack firmware``) on the slave side of
     a raw pseudo-terminal; emulator here on the master side; both on
     CLOCK_MONOTONIC from a shared epoch (the nodes still keep their own
@@ -247,6 +247,8 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
             pass
     child = subprocess.Popen(cmd)
     link = FdLink(master) if bridge is None else CanLink(open_bus("slcan", bridge.paths[0]), NODE_COIL_DRIVER)
+    if outputs is not None:     # tools.outputs: the emulator's end of the link is tapped
+        link = outputs.wrap(link, side="emulator", clock_us=WallClock(epoch_ns).now)
     bench = BenchSetup(scenario, seed, duration_s, link, faults)
     clock = WallClock(epoch_ns)
     prog = Progress(progress, duration_s, f"{scenario.name} ({transport})")
@@ -277,4 +279,6 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     rep = report_mod.build(bench, fw_stats.get("status", {}), duration_s, transport=transport, cfg=cfg)
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
     rep["firmware_exit_code"] = child.returncode
+    if outputs is not None:
+        outputs.finish(bench, rep)
     return rep

@@ -96,6 +96,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         pos_err.append(float(np.linalg.norm(p - rp["true_p"])))
         ang_err.append(_rot_angle(R, rp["true_R"]))
         crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], currents, sigma_amp))
+        rp["crlb_m"] = crlbs[-1]            # per pose, for the pose table (tools.posecsv)
     pe, ae, cb = np.array(pos_err), np.array(ang_err), np.array(crlbs)
     rms = lambda a: float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")  # noqa: E731
     emu_bad = bench.emulator.decoder.frames_bad

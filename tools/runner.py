@@ -103,9 +103,10 @@ def sim_link_pair(transport: str):
 
 
 def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFaults | None = None,
-               progress: bool = False, cfg=None, transport: str = "inproc", log_path=None) -> dict:
+               progress: bool = False, cfg=None, transport: str = "inproc", log_path=None, outputs=None) -> dict:
     """Run firmware and emulator in one process on the simulated clock.
     ``log_path``: also write what the firmware received (``tools.framelog``).
+    ``outputs``: a :class:`tools.outputs.Outputs` (OpenIGTLink, capture, pose table, plot).
 
     ``transport``: ``inproc`` joins them with an in-memory byte pipe; ``can``
     with python-can's in-process ``virtual`` bus, every message segmented
@@ -116,6 +117,8 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     bench = BenchSetup(scenario, seed, duration_s, emu_end, faults)
     cfg = cfg or scenario.firmware_config()
     rec_port = None
+    if outputs is not None:
+        fw_end = outputs.wrap(fw_end)
     if log_path is not None:
         from .framelog import RecordingPort
 
@@ -132,6 +135,8 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     k = 0
     t = 0
     while t <= end_us:
+        if outputs is not None:
+            outputs.tick(t)
         bench.emulator.step(t)
         if rec_port is not None:
             rec_port.now_us = t
@@ -159,6 +164,8 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
         write_log(log_path, {"scenario": scenario.name, "seed": seed, "duration_s": duration_s, "tick_us": tick,
                              "config": config_to_dict(cfg)}, rec_port.reads)
         rep["log"] = str(log_path)
+    if outputs is not None:
+        outputs.finish(bench, rep)
     return rep
 
 

@@ -1,0 +1,55 @@
+"""Draw a bench run as a PNG: from its pose table (``bench --poses``) the
+trajectory true against estimated (xy, xz, yz), error against time and error
+against range with the Cramer-Rao bound; from its report (``bench --json``)
+the same when the report names its pose table (``poses_csv``), else the
+report's per-range bands against their CRLB.
+
+Exit status: 0 written; 2 bad arguments or an unreadable input."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+HELP = "draw a bench run (pose table or report) as a PNG"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("file", help="pose table (.csv, from bench --poses) or report (.json, from bench --json)")
+    p.add_argument("-o", "--out", metavar="PATH", help="PNG to write (default: FILE with the suffix .png)")
+    p.add_argument("--dpi", type=int, default=80, help="resolution (20..300, default 80)")
+
+
+def load(path: str):
+    """(pose table or None, report or None) of a .csv table or a .json report."""
+    from .posecsv import read_csv
+
+    p = Path(path)
+    if p.suffix.lower() != ".json":
+        return read_csv(p), None
+    rep = json.loads(p.read_text())
+    if not isinstance(rep, dict) or "scenario" not in rep:
+        raise ValueError(f"{path}: not a bench report (no 'scenario')")
+    table = rep.get("poses_csv")
+    for cand in ((Path(table), p.parent / Path(table).name) if table else ()):
+        if cand.is_file():
+            return read_csv(cand), rep
+    return None, rep
+
+
+def run(args) -> int:
+    from .outputs import OutputError, check_writable
+    from .plot import plot_run
+
+    out = args.out or str(Path(args.file).with_suffix(".png"))
+    try:
+        if not 20 <= args.dpi <= 300:
+            raise OutputError(f"--dpi: must be 20..300 (got {args.dpi})")
+        check_writable("--out", out)
+        table, rep = load(args.file)
+    except (OSError, ValueError) as exc:      # OutputError and json's errors are ValueErrors
+        print(f"coiltrack plot: {exc}", file=sys.stderr)
+        return 2
+    plot_run(out, table, rep, dpi=args.dpi)
+    print(f"figure written to {out}")
+    return 0
