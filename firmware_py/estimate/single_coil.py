@@ -66,7 +66,7 @@ import numpy as np
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
 from coiltrack.firmware.estimate.layout import StateLayout
-from coiltrack.firmware.linalg import exp_rotvec
+from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
 
 __all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
 
@@ -649,18 +649,8 @@ class SchepersEKF:
 
 def _nis3(S, r) -> float:
     """``r^T S^-1 r`` for a symmetric 3x3 ``S`` (inf if not positive definite)."""
-    a00, a01, a02 = float(S[0, 0]), float(S[0, 1]), float(S[0, 2])
-    a11, a12, a22 = float(S[1, 1]), float(S[1, 2]), float(S[2, 2])
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if not det > 0.0 or not math.isfinite(det):
+    inv = inv3_sym(float(S[0, 0]), float(S[0, 1]), float(S[0, 2]),
+                   float(S[1, 1]), float(S[1, 2]), float(S[2, 2]))
+    if inv is None:
         return math.inf
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    x, y, z = float(r[0]), float(r[1]), float(r[2])
-    q = (x * (c00 * x + c01 * y + c02 * z) + y * (c01 * x + c11 * y + c12 * z)
-         + z * (c02 * x + c12 * y + c22 * z))
-    return q / det
+    return quad3_sym(inv, float(r[0]), float(r[1]), float(r[2]))
