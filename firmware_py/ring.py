@@ -32,6 +32,21 @@ import operator
 import numpy as np
 
 
+def field_slices(fields: tuple[tuple[str, int], ...]) -> dict[str, slice]:
+    """Columns of each named field of a row (in order), e.g. for module constants."""
+    out = {}
+    width = 0
+    for name, size in fields:
+        size = operator.index(size)
+        if size < 1 or not name.isidentifier() or hasattr(Ring, name) or name in out:
+            raise ValueError(f"ring field {name!r}: needs a new identifier and size >= 1")
+        out[name] = slice(width, width + size)
+        width += size
+    if width < 1:
+        raise ValueError("ring fields: at least one column")
+    return out
+
+
 class Ring:
     """Fixed-capacity ring (see module docstring).
 
@@ -47,17 +62,11 @@ class Ring:
         capacity = operator.index(capacity)
         if capacity < 2:
             raise ValueError(f"ring capacity must be >= 2, got {capacity}")
-        names = []
-        width = 0
-        for name, size in fields:
-            size = operator.index(size)
-            if size < 1 or not name.isidentifier() or hasattr(Ring, name) or name in names:
-                raise ValueError(f"ring field {name!r}: needs a new identifier and size >= 1")
-            setattr(self, name, slice(width, width + size))
-            names.append(name)
-            width += size
-        if width < 1:
-            raise ValueError("ring fields: at least one column")
+        cols = field_slices(fields)
+        for name, sl in cols.items():
+            setattr(self, name, sl)
+        names = tuple(cols)
+        width = sl.stop
         self.fields = tuple(names)
         self.capacity = capacity
         self.width = width

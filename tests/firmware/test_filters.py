@@ -256,22 +256,25 @@ def test_fusion_covariance_matches_filterpy():
     log = []
 
     class Mirror:
-        def on_init(self, fus):
-            log.append(("init", fus.t_us, fus.P.copy()))
+        def on_init(self, fus, st):
+            log.append(("init", st.t_us, st.P.copy()))
 
-        def on_step(self, fus, k, t1):
-            log.append(("step", t1, fus.pred.A.copy(), fus.pred.Q.copy(), fus.P.copy()))
+        def on_step(self, fus, st, k, t1):
+            log.append(("step", t1, st.pred.A.copy(), st.pred.Q.copy(), st.P.copy()))
 
         def on_rewind(self, fus, t0):
-            while log and log[-1][0] != "init" and log[-1][1] > t0:
-                log.pop()
+            # the steps after t0 are replayed: forget them (the update at t0 stays)
+            n = len(log)
+            while n and log[n - 1][0] != "init" and (log[n - 1][1] > t0 or log[n - 1][0] != "step"):
+                n -= 1
+            log[n:] = [e for e in log[n:] if e[0] != "step"]
 
-        def on_prior(self, fus):
-            log.append(("prior", fus.t_us, fus.P.copy()))
+        def on_prior(self, fus, st):
+            log.append(("prior", st.t_us, st.P.copy()))
 
-        def on_update(self, fus, dx):
-            log.append(("update", fus.t_us, fus.upd.H.copy(), fus.upd.R.copy(), fus.upd.y.copy(),
-                        np.array(dx), fus.P.copy()))
+        def on_update(self, fus, st, dx):
+            log.append(("update", st.t_us, fus.upd.H.copy(), fus.upd.R.copy(), fus.upd.y.copy(),
+                        np.array(dx), st.P.copy()))
 
     assert FF  # noqa
     _fusion_run(3, 8.0, 5, recorder=Mirror())
@@ -303,7 +306,7 @@ def test_fusion_models_and_delayed_update_and_reported_pose():
         assert ff.updates >= 20 and ff.rejected == 0
         assert np.sqrt(np.mean(np.square(r["err"]))) < 0.02
     # the delayed update lands at t_ref: after replay the filter is at the newest sample
-    assert ff.t_us == ff.imu_t[(ff._ihead - 1) % ff._icap]
+    assert ff.t_us == ff.imu_t[ff.imu.peek(0)] and not ff.replaying
 
 
 def test_moving_source_net_acceleration_eq_6_8():
