@@ -511,6 +511,27 @@ def test_update_split_over_steps_equals_the_uninterrupted_update(budget):
     # the state really changed, by more than the tolerance
     c, = _ready_pair(1)
     assert np.abs(c.ff.p - a.ff.p).max() > 1e-4
+    _check_history(b.ff, c.ff, 930_000)
+
+
+def _check_history(ff, before, t_ref):
+    """The pose history after a delayed update: one entry per instant in time
+    order, unchanged up to t_ref, the corrected trajectory after it (ending at
+    the live pose), as ``pose_at`` reads it."""
+    h, h0 = ff.hist, before.hist
+    ts = [int(h.t[h.slot(i)]) for i in range(len(h))]
+    assert ts == sorted(set(ts)) and ts == [int(h0.t[h0.slot(i)]) for i in range(len(h0))]
+    for i, t in enumerate(ts):
+        row, row0 = h.d[h.slot(i)], h0.d[h0.slot(i)]
+        if t <= t_ref:
+            np.testing.assert_array_equal(row, row0)
+        else:
+            assert np.abs(row - row0).max() > 1e-5
+    newest = h.d[h.peek(0)]
+    np.testing.assert_array_equal(newest[0:3], ff.p)
+    np.testing.assert_array_equal(newest[3:12], ff.Th.reshape(9))
+    p, R = np.zeros(3), np.zeros((3, 3))
+    assert ff.pose_at(ts[-1], p, R) and np.array_equal(p, ff.p)
 
 
 def test_outputs_continue_during_the_replay_and_the_shadow_takes_over():
