@@ -25,6 +25,8 @@ Tables
     ``coiltrack.firmware.estimate.single_coil``): the inertial rows of eq 6.9
     (sensor-frame orientation error) and, per pulse in flight, a clone of
     the position and orientation errors at the pulse's measurement time.
+``fusion_measurement_layout(model)`` (6 or 9 rows)
+    The innovation of the fusion filter's magnetic update, eqs 6.18-6.21.
 ``POSE_LAYOUT`` (6)
     A pose covariance over ``(dp, dtheta)``, as the solver and the
     single-coil EKF report it (``POSE_POS``, ``POSE_ORI``).
@@ -169,6 +171,19 @@ SCHEPERS_CORE = slice(SCHEPERS_LAYOUT.POS.start, SCHEPERS_LAYOUT.GYR.stop)
 
 assert all(getattr(SCHEPERS_LAYOUT, r) == getattr(FUSION_LAYOUT, r) for r in ("POS", "VEL", "ORI", "ACC", "GYR"))
 assert SCHEPERS_CORE == INS
+
+
+def fusion_measurement_layout(measurement_model: int) -> StateLayout:
+    """Rows of the fusion filter's innovation (thesis sec 6.2.5): the position
+    ``Phi q - p`` (``ZP``), ``log(Psi Theta^T)`` of the magnetic orientation
+    (``ZPSI``, models 1 and 3: eqs 6.18, 6.21) and ``log(Xi Theta^T)`` of the
+    ch. 2 orientation (``ZXI``, models 2 and 3: eqs 6.20, 6.21)."""
+    rows = [("ZP", 3, "m", "position: Phi q - p, global frame")]
+    if measurement_model != 2:
+        rows.append(("ZPSI", 3, "rad", "magnetic orientation: log(Psi Theta^T), global frame"))
+    if measurement_model != 1:
+        rows.append(("ZXI", 3, "rad", "inertial-magnetic orientation: log(Xi Theta^T), global frame"))
+    return StateLayout(f"fusion innovation, measurement model {measurement_model}", tuple(rows))
 
 
 def fusion_layout(measurement_model: int) -> StateLayout:

@@ -96,7 +96,7 @@ import numpy as np
 
 from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
 from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, PSI, QM, VEL, XI,
-                                               fusion_layout)
+                                               fusion_layout, fusion_measurement_layout)
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_nav, transition_static
 from coiltrack.firmware.linalg import exp_rotvec, rotvec_from_matrix
 from coiltrack.firmware.ring import Ring, field_slices
@@ -252,21 +252,26 @@ class FusionFilter:
         self.sn = InsState(n, white)        # snapshot at t_ref
         self._auth = self.st                # the state that takes snapshots and is recorded
         self.sd = Strapdown()
-        m = 9 if self.model == 3 else 6
+        zl = fusion_measurement_layout(self.model)
+        self.zlayout = zl
+        m = zl.n
         self.m = m
+        self._zp = zl.ZP.start
+        self._zpsi = zl.ZPSI.start if "ZPSI" in zl.names() else -1
+        self._zxi = zl.ZXI.start if "ZXI" in zl.names() else -1
         self.upd = KalmanUpdate(n, m, params.gate_probability)
         self._Hv = memoryview(self.upd.H)
         self._Rmv = memoryview(self.upd.R)
         self._yv = self.upd._yv
         # the measurement matrix C is constant (eqs 6.18, 6.20, 6.21)
+        H = self._Hv
         for i in range(3):
-            self._Hv[i, POS.start + i] = 1.0
-            self._Hv[i, QM.start + i] = 1.0
-            self._Hv[3 + i, ORI.start + i] = 1.0
-            self._Hv[3 + i, (PSI if self.model != 2 else XI).start + i] = 1.0
-            if self.model == 3:
-                self._Hv[6 + i, ORI.start + i] = 1.0
-                self._Hv[6 + i, XI.start + i] = 1.0
+            H[self._zp + i, POS.start + i] = 1.0
+            H[self._zp + i, QM.start + i] = 1.0
+            for row, white in ((self._zpsi, PSI), (self._zxi, XI)):
+                if row >= 0:
+                    H[row + i, ORI.start + i] = 1.0
+                    H[row + i, white.start + i] = 1.0
         r = params.meas_sigma ** 2
         for i in range(m):
             self._Rmv[i, i] = r
@@ -739,8 +744,9 @@ class FusionFilter:
         P = st._Pv
         s = self.prm.mag_var_scale
         # position: Phi q - p
+        z0 = self._zp
         for i in range(3):
-            y[i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2] - p[i]
+            y[z0 + i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2] - p[i]
         # Psi = Phi R_ms
         psi = self._E
         np.matmul(self._sPhi, R_ms, out=psi)
@@ -762,12 +768,10 @@ class FusionFilter:
                 P[q0 + i, s0 + j] = cpt * s
                 P[s0 + j, q0 + i] = cpt * s
                 P[s0 + i, s0 + j] = ctt * s
-        row = 3
-        if self.model != 2:
-            _log_diff(Psi, Th, y, row)
-            row = 6
-        if self.model != 1:
-            _log_diff(self._sXiv, Th, y, row)
+        if self._zpsi >= 0:
+            _log_diff(Psi, Th, y, self._zpsi)
+        if self._zxi >= 0:
+            _log_diff(self._sXiv, Th, y, self._zxi)
             x0 = XI.start
             xs = self.prm.xi_var_scale
             fl = self.prm.xi_sigma_floor ** 2
@@ -777,7 +781,7 @@ class FusionFilter:
                 for j in range(3):
                     P[x0 + i, x0 + j] = XP[i, j] * xs
                 P[x0 + i, x0 + i] += fh if i == 2 else fl
-        if self.model == 2:
+        if self._zpsi < 0:
             # the magnetic orientation is not used: keep its white block inert
             for i in range(3):
                 for j in range(3):

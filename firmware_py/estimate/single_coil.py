@@ -448,8 +448,8 @@ class SchepersEKF:
 
     def pose_variances(self, out6) -> None:
         for i in range(3):
-            out6[i] = self.P[POS.start + i, POS.start + i]
-            out6[3 + i] = self.P[ORI.start + i, ORI.start + i]
+            out6[POSE_POS.start + i] = self.P[POS.start + i, POS.start + i]
+            out6[POSE_ORI.start + i] = self.P[ORI.start + i, ORI.start + i]
 
     # ------------------------------------------------------------ update
     def update_single_coil(self, k: int, y, var_amp, coil: int, current: float,

@@ -24,8 +24,6 @@ from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter, FusionPa
 from coiltrack.firmware.estimate.single_coil import CORE, SchepersEKF
 
 G = np.array([0.0, 0.0, -9.81])
-RNG = np.random.default_rng(7)
-TH0 = None
 
 
 def _exp(w):
