@@ -450,7 +450,7 @@ class _Feed:
             of.update_acc(*self.f[i])
             of.update_mag(*self.m[i])
         self.i += 1
-        return t, self.ff.push_imu(t, *self.f[i], *self.w[i], 0.0, 0.0, 9.81, np.eye(3))
+        return t, self.ff.push_imu(t, *self.f[i], *self.w[i], 0.0, 0.0, 9.81, _EYE)
 
     def run_to(self, t_end):
         while int(self.t_us[self.i]) <= t_end:
@@ -462,6 +462,9 @@ class _Feed:
         C = np.diag([4e-6, 3e-6, 5e-6, 1e-4, 1.2e-4, 0.8e-4])
         C[0, 4] = C[4, 0] = 2e-6
         return t_ref, k.position + [0.002, -0.001, 0.0015], k.R @ rotvec_to_matrix([0.004, -0.006, 0.003]), C
+
+
+_EYE = np.eye(3)
 
 
 def _ready_pair(n=2, **kw):
@@ -546,23 +549,31 @@ def test_outputs_continue_during_the_replay_and_the_shadow_takes_over():
     a, b, c = _ready_pair(3)
     sol = _Feed.solution(930_000)
     a.ff.magnetic_update(*sol)
-    b.ff.begin_magnetic_update(*sol)
+    counter = NumpyAllocationCounter() if available() else None
+    if counter is not None:
+        with counter:
+            b.ff.begin_magnetic_update(*sol)
+    else:
+        b.ff.begin_magnetic_update(*sol)
     t_snap = 1_130_000
     for fd in (a, b, c):
         fd.ff.schedule_snapshot(t_snap)
         while fd.ff.pop_output() >= 0:
             fd.ff.release_output()
-    counter = NumpyAllocationCounter() if available() else None
     during = after = 0
     while after < 20:
         replaying = b.ff.replaying
         outs = []
         for fd in (a, b, c):
-            t, produced = fd.push()
-            assert produced
             if fd is b and counter is not None:
                 with counter:
+                    t, produced = fd.push()
                     b.ff.step(2)
+            else:
+                t, produced = fd.push()
+                if fd is b:
+                    b.ff.step(2)
+            assert produced
             k = fd.ff.pop_output()
             outs.append((int(fd.ff.out_t[k]), fd.ff.out_d[k].copy()))
             fd.ff.release_output()
@@ -608,3 +619,18 @@ def test_replay_that_loses_its_samples_is_dropped_and_live_goes_on():
     # (the snapshot at 1.12 s was taken by the running replay's shadow)
     assert d.ff.magnetic_update(*_Feed.solution(1_120_000)) == 0
     assert not d.ff.replaying and d.ff.updates == 2
+
+
+def test_rejected_solution_starts_no_replay_and_keeps_the_snapshot():
+    """A gated solution (a 3 m jump) offered with final=False changes
+    nothing and needs no replay; the burst's other solution is then fused."""
+    from coiltrack.firmware.estimate.ekf import EKF_GATED
+
+    b, c = _ready_pair(2)
+    t_ref, q, R, C = _Feed.solution(930_000)
+    assert b.ff.begin_magnetic_update(t_ref, q + [3.0, 0.0, 0.0], R, C, final=False) & EKF_GATED
+    assert not b.ff.replaying and b.ff.snap_valid and b.ff.rejected == 0
+    _assert_same_state(b.ff.st, c.ff.st, 0.0)
+    assert b.ff.begin_magnetic_update(t_ref, q, R, C) == 0 and b.ff.replaying
+    b.ff.finish()
+    assert b.ff.updates == 1 and np.abs(b.ff.p - c.ff.p).max() > 1e-4
