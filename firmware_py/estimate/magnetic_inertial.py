@@ -181,10 +181,12 @@ class InsState:
     """One copy of the inertial state: nominal position ``p``, velocity ``v``,
     orientation ``Th`` (Theta), offsets ``ba``, ``bg`` at ``t_us``, the error
     covariance ``P``, and its propagation workspace (``pred``: ``A``, ``Q`` of
-    eq 6.17, written for the step ``dt_last``). The filter holds three: the
-    live state, the shadow (a replay in progress) and the snapshot at t_ref."""
+    eq 6.17, written for the step ``dt_last``; ``white``: the rows of the white
+    states, zero in ``A``). The filter holds three: the live state, the shadow
+    (a replay in progress) and the snapshot at t_ref, which is only copied
+    (``white=None``: no workspace)."""
 
-    def __init__(self, n: int, white: tuple[slice, ...]):
+    def __init__(self, n: int, white: tuple[slice, ...] | None):
         self.p = np.zeros(3)
         self.v = np.zeros(3)
         self.Th = np.eye(3)
@@ -198,14 +200,17 @@ class InsState:
         self._bav = memoryview(self.ba)
         self._bgv = memoryview(self.bg)
         self._Pv = memoryview(self.P)
+        self.dt_last = -1.0
+        self.ka = self.kg = 1.0
+        if white is None:
+            self.pred = None
+            return
         self.pred = CovariancePredict(n)
         self._Av = memoryview(self.pred.A)
         self._Qv = memoryview(self.pred.Q)
         for s in white:
             for i in range(s.start, s.stop):
                 self._Av[i, i] = 0.0
-        self.dt_last = -1.0
-        self.ka = self.kg = 1.0
 
     def copy_from(self, other: "InsState") -> None:
         """Take ``other``'s nominal state, covariance and time (not its workspace)."""
@@ -249,7 +254,7 @@ class FusionFilter:
         white = (QM, PSI) + ((XI,) if n > 21 else ())
         self.st = InsState(n, white)        # live
         self.sh = InsState(n, white)        # shadow: the replay of a delayed update
-        self.sn = InsState(n, white)        # snapshot at t_ref
+        self.sn = InsState(n, None)         # snapshot at t_ref
         self._auth = self.st                # the state that takes snapshots and is recorded
         self.sd = Strapdown()
         zl = fusion_measurement_layout(self.model)
