@@ -17,6 +17,9 @@ compute with Python floats. Nothing here creates a numpy array.
   Frobenius norm, as the largest eigenvector of Horn's 4x4 quaternion matrix
   (the orthogonal Procrustes / polar factor, what an SVD with det +1 gives).
 * ``rotvec_from_matrix``: the rotation vector (matrix logarithm) of a rotation.
+* ``inv3_sym``: the inverse of a symmetric positive definite 3x3 (adjugate
+  over determinant), the one 3x3 inverse of the firmware (innovation
+  covariances of 3-dof updates, the coil-choice posterior).
 """
 from __future__ import annotations
 
@@ -266,6 +269,32 @@ def rotvec_from_matrix(r00, r01, r02, r10, r11, r12, r20, r21, r22):
             ax, ay, az = -ax, -ay, -az
     nrm = _sqrt(ax * ax + ay * ay + az * az)
     return ax * angle / nrm, ay * angle / nrm, az * angle / nrm
+
+
+def inv3_sym(a00, a01, a02, a11, a12, a22):
+    """Inverse of the symmetric 3x3 ``[[a00 a01 a02] [a01 a11 a12] [a02 a12 a22]]``
+    as its six distinct elements ``(i00, i01, i02, i11, i12, i22)`` (adjugate
+    / determinant), or ``None`` when the matrix is not positive definite
+    (Sylvester: a leading minor not positive, or not finite)."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if not (a00 > 0.0 and c22 > 0.0 and det > 0.0) or det == math.inf:
+        return None
+    inv = 1.0 / det
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    return c00 * inv, c01 * inv, c02 * inv, c11 * inv, c12 * inv, c22 * inv
+
+
+def quad3_sym(s, x: float, y: float, z: float) -> float:
+    """``r^T S r`` for ``r = (x, y, z)`` and a symmetric ``S`` given as the six
+    elements ``inv3_sym`` returns."""
+    s00, s01, s02, s11, s12, s22 = s
+    return (x * (s00 * x + s01 * y + s02 * z) + y * (s01 * x + s11 * y + s12 * z)
+            + z * (s02 * x + s12 * y + s22 * z))
 
 
 def skew_into(v, out) -> None:

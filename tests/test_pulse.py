@@ -27,6 +27,8 @@ from coiltrack.firmware.measure.pulse import (
     PULSE_OK,
     PULSE_SATURATED,
     PULSE_TOO_FEW,
+    SAMPLE_FLIP,
+    SAMPLE_SATURATED,
     PulseExtractor,
     SampleRing,
 )
@@ -169,6 +171,28 @@ def test_ring_rejects_bad_samples_without_raising():
     assert len(r) == 1 and r.latest_t_us == 1000
     r.push(np.int64(2000), np.float64(1.0), 2.0, 3.0, np.bool_(True), np.uint8(1))
     assert len(r) == 2 and r.latest_t_us == 2000 and int(r.flags[r.slot(1)]) == 3
+
+
+def test_sample_ring_is_the_firmware_ring():
+    """SampleRing is a ``coiltrack.firmware.ring.Ring`` with the field ``B``:
+    peek by age and pop reach its samples; a refused sample overwrites no slot
+    (the full ring keeps its oldest)."""
+    from coiltrack.firmware.ring import Ring
+
+    r = SampleRing(3)
+    assert isinstance(r, Ring) and r.B == slice(0, 3) and r.b is r.d and r.t_us is r.t
+    for k in range(1, 4):
+        r.push(10 * k, float(k), -float(k), 0.5, k == 2, 1)
+    before = (r.t.copy(), r.b.copy(), r.flags.copy())
+    r.push(30, 9.0, 9.0, 9.0, False, 0)            # not newer: refused, nothing written
+    r.push(40, float("nan"), 0.0, 0.0, False, 0)
+    assert r.rejected == 2
+    assert all(np.array_equal(x, y) for x, y in zip(before, (r.t, r.b, r.flags)))
+    assert [int(r.t_us[r.peek(a)]) for a in range(3)] == [30, 20, 10] and r.peek(3) == -1
+    assert int(r.flags[r.peek(1)]) == SAMPLE_SATURATED | SAMPLE_FLIP
+    k = r.pop()
+    assert int(r.t_us[k]) == 10 and float(r.b[k, 0]) == 1.0 and len(r) == 2
+    assert r.oldest_t_us == 20 and r.latest_t_us == 30
 
 
 # --------------------------------------------------- statistics of the estimate

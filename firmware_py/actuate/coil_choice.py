@@ -62,6 +62,7 @@ import math
 import numpy as np
 
 from coiltrack.firmware.model.field import CoilSet
+from coiltrack.firmware.linalg import inv3_sym
 from coiltrack.firmware.linalg import skew_into as _skew_into
 
 __all__ = [
@@ -158,23 +159,6 @@ class SingleCoilModel:
             _skew_into(self.h[c], self.H[c, :, 3:])
 
 
-def _inv3_sym(a00, a01, a02, a11, a12, a22):
-    """Inverse of a symmetric 3x3 matrix as six floats (adjugate / det).
-
-    Returns ``None`` for a non-positive or non-finite determinant."""
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if not det > 0.0 or not math.isfinite(det):
-        return None
-    inv = 1.0 / det
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    return c00 * inv, c01 * inv, c02 * inv, c11 * inv, c12 * inv, c22 * inv
-
-
 def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out,
                              current_sigma: float = 0.0) -> bool:
     """Diagonal of the eq-4 posterior pose covariance for one coil and current.
@@ -193,7 +177,7 @@ def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out,
     """
     i2 = current * current
     r = var_amp + (rel_model * rel_model * i2 + current_sigma * current_sigma) * hnorm2
-    inv = _inv3_sym(i2 * M[0, 0] + r, i2 * M[0, 1], i2 * M[0, 2],
+    inv = inv3_sym(i2 * M[0, 0] + r, i2 * M[0, 1], i2 * M[0, 2],
                     i2 * M[1, 1] + r, i2 * M[1, 2], i2 * M[2, 2] + r)
     if inv is None:
         for k in range(POSE_DIM):
@@ -243,7 +227,7 @@ class PoseCovUpdate:
         hn2 = float(hu[0] * hu[0] + hu[1] * hu[1] + hu[2] * hu[2])
         r = var_amp + (rel_model * rel_model * current * current + current_sigma * current_sigma) * hn2
         M = self._M
-        inv = _inv3_sym(M[0, 0] + r, M[0, 1], M[0, 2], M[1, 1] + r, M[1, 2], M[2, 2] + r)
+        inv = inv3_sym(M[0, 0] + r, M[0, 1], M[0, 2], M[1, 1] + r, M[1, 2], M[2, 2] + r)
         if inv is None:
             return False
         Si = self._Si

@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.linalg import chol_inverse, flat
+from coiltrack.firmware.linalg import chol_inverse, flat, inv3_sym
 
 #: rounding makes P drift from symmetry; it is re-symmetrised every this many calls
 SYMMETRIZE_EVERY = 16
@@ -152,25 +152,13 @@ class KalmanUpdate:
 
 
 def _inv3(s, out) -> bool:
-    """Inverse of a symmetric positive definite 3x3 (lower triangle of the
-    flat ``s``) into ``out``; False when it is not positive definite."""
-    a, b, c = s[0], s[3], s[6]
-    d, e = s[4], s[7]
-    f = s[8]
-    # cofactors of [[a b c] [b d e] [c e f]]
-    A = d * f - e * e
-    B = c * e - b * f
-    C = b * e - c * d
-    det = a * A + b * B + c * C
-    if not (a > 0.0 and a * d - b * b > 0.0 and det > 0.0) or det == math.inf:
+    """``linalg.inv3_sym`` of the lower triangle of the flat 3x3 ``s`` into the
+    flat ``out``; False when it is not positive definite."""
+    inv = inv3_sym(s[0], s[3], s[6], s[4], s[7], s[8])
+    if inv is None:
         return False
-    inv = 1.0 / det
-    out[0] = A * inv
-    out[1] = out[3] = B * inv
-    out[2] = out[6] = C * inv
-    out[4] = (a * f - c * c) * inv
-    out[5] = out[7] = (b * c - a * e) * inv
-    out[8] = (a * d - b * b) * inv
+    out[0], out[1], out[2], out[4], out[5], out[8] = inv
+    out[3], out[6], out[7] = inv[1], inv[2], inv[4]
     return True
 
 

@@ -20,6 +20,21 @@ Tables
     measurement models 2 and 3, eqs 6.20-6.21). ``XI`` comes last, so the
     first 21 indices are the same in both tables.
 
+``SCHEPERS_LAYOUT`` and ``schepers_layout(n_clones)`` (15 + 6 per clone)
+    The single-coil EKF (Schepers & Veltink 2010 with the ch. 6 error model,
+    ``coiltrack.firmware.estimate.single_coil``): the inertial rows of eq 6.9
+    (sensor-frame orientation error) and, per pulse in flight, a clone of
+    the position and orientation errors at the pulse's measurement time.
+``fusion_measurement_layout(model)`` (6 or 9 rows)
+    The innovation of the fusion filter's magnetic update, eqs 6.18-6.21.
+``POSE_LAYOUT`` (6)
+    A pose covariance over ``(dp, dtheta)``, as the solver and the
+    single-coil EKF report it (``POSE_POS``, ``POSE_ORI``).
+
+The inertial rows ``POS, VEL, ORI, ACC, GYR`` have the same indices in every
+inertial table (checked below), so ``estimate.strapdown`` writes the error
+transition of both inertial filters with the same names.
+
 Error conventions (``true = estimate (+) error``) are stated per filter in
 ``coiltrack.firmware.estimate.orientation`` and ``coiltrack.firmware.estimate.magnetic_inertial``.
 """
@@ -123,6 +138,52 @@ INS = slice(POS.start, GYR.stop)
 
 assert FUSION_LAYOUT.n == 21 and FUSION_XI_LAYOUT.n == 24
 assert all(getattr(FUSION_LAYOUT, s.name) == getattr(FUSION_XI_LAYOUT, s.name) for s in FUSION_LAYOUT.rows)
+
+
+#: a pose covariance (solver, single-coil EKF): position error, orientation error
+POSE_LAYOUT = StateLayout("pose covariance", (
+    ("POS", 3, "m", "position error"),
+    ("ORI", 3, "rad", "orientation error (rotation vector)"),
+))
+POSE_POS = POSE_LAYOUT.POS
+POSE_ORI = POSE_LAYOUT.ORI
+
+
+def schepers_layout(n_clones: int) -> StateLayout:
+    """The single-coil EKF's table with ``n_clones`` pulses in flight."""
+    rows = [
+        ("POS", 3, "m", "position error, source frame"),
+        ("VEL", 3, "m/s", "velocity error, source frame"),
+        ("ORI", 3, "rad", "orientation error, sensor frame (R_true = R exp([ori]x))"),
+        ("ACC", 3, "m/s^2", "accelerometer offset error, sensor frame, random walk"),
+        ("GYR", 3, "rad/s", "gyroscope offset error, sensor frame, random walk"),
+    ]
+    for k in range(n_clones):
+        rows.append((f"C{k}P", 3, "m", f"clone {k}: POS at the measurement time of pulse slot {k}"))
+        rows.append((f"C{k}O", 3, "rad", f"clone {k}: ORI at the measurement time of pulse slot {k}"))
+    return StateLayout(f"schepers single-coil EKF ({n_clones} clones)", tuple(rows))
+
+
+#: the single-coil EKF's default table (two pulses in flight)
+SCHEPERS_LAYOUT = schepers_layout(2)
+#: its propagated (inertial) part
+SCHEPERS_CORE = slice(SCHEPERS_LAYOUT.POS.start, SCHEPERS_LAYOUT.GYR.stop)
+
+assert all(getattr(SCHEPERS_LAYOUT, r) == getattr(FUSION_LAYOUT, r) for r in ("POS", "VEL", "ORI", "ACC", "GYR"))
+assert SCHEPERS_CORE == INS
+
+
+def fusion_measurement_layout(measurement_model: int) -> StateLayout:
+    """Rows of the fusion filter's innovation (thesis sec 6.2.5): the position
+    ``Phi q - p`` (``ZP``), ``log(Psi Theta^T)`` of the magnetic orientation
+    (``ZPSI``, models 1 and 3: eqs 6.18, 6.21) and ``log(Xi Theta^T)`` of the
+    ch. 2 orientation (``ZXI``, models 2 and 3: eqs 6.20, 6.21)."""
+    rows = [("ZP", 3, "m", "position: Phi q - p, global frame")]
+    if measurement_model != 2:
+        rows.append(("ZPSI", 3, "rad", "magnetic orientation: log(Psi Theta^T), global frame"))
+    if measurement_model != 1:
+        rows.append(("ZXI", 3, "rad", "inertial-magnetic orientation: log(Xi Theta^T), global frame"))
+    return StateLayout(f"fusion innovation, measurement model {measurement_model}", tuple(rows))
 
 
 def fusion_layout(measurement_model: int) -> StateLayout:

@@ -69,6 +69,23 @@ inertial pose history at any recent instant, so the firmware can bring the
 three pulses, measured 100 ms apart, to ``t_ref`` before solving
 (``Firmware._compensate``).
 
+Bounded update (the delayed-horizon idea of PX4's EKF2). The update and its
+replay need not run in one tick: :meth:`begin_magnetic_update` restores the
+snapshot into a second preallocated state (the *shadow*), updates it and
+returns; :meth:`step` then replays at most a given number of IMU steps on the
+shadow per call. Meanwhile :meth:`push_imu` keeps propagating the *live*
+state and queueing fused poses from it, so no output waits for the replay.
+When the shadow has caught up with the newest IMU sample it is copied into
+the live state (and its replayed pose history into the live history), and
+the live state carries the update from then on. While a replay runs, the
+snapshot of the next burst is taken by the shadow (the corrected state) and
+the recorder (smoother) follows the shadow. :meth:`magnetic_update` is
+``begin_magnetic_update`` and ``step`` until done, the same result in one
+call. Cost per :meth:`step` call: at most ``budget + 1`` strapdown and
+covariance steps (:func:`max_replay_steps_per_step`; the last IMU sample of a
+call may be split in two at a snapshot time), plus, on the call that
+finishes, one copy of the state and of the pose history.
+
 All buffers are created in ``__init__``; a step allocates no numpy array.
 """
 from __future__ import annotations
@@ -78,8 +95,11 @@ import math
 import numpy as np
 
 from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
-from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, PSI, QM, VEL, XI, fusion_layout
+from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, PSI, QM, VEL, XI,
+                                               fusion_layout, fusion_measurement_layout)
+from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_nav, transition_static
 from coiltrack.firmware.linalg import exp_rotvec, rotvec_from_matrix
+from coiltrack.firmware.ring import Ring, field_slices
 from coiltrack.firmware.rotation import quat_from_elements
 
 # fusion health flags (bit field, beside the ekf flags)
@@ -87,13 +107,32 @@ FUS_NOT_INITIALISED = 64
 FUS_NO_SNAPSHOT = 128       # the IMU stream has not reached t_ref (or it left the ring)
 FUS_REINITIALISED = 256     # too many consecutive rejections: restarted from the magnetic pose
 FUS_INITIALISED = 512       # this update initialised the filter
+FUS_BUSY = 2048             # begin_magnetic_update refused: the previous replay is still running
+FUS_REPLAY_LOST = 4096      # the IMU ring dropped samples the replay needed: the update is lost
 
-#: rows of the IMU ring: specific force (3), rate (3), source specific force in G (3), Phi (9)
-_IMU_W = 18
-#: rows of the pose history: p_M (3), R_MS (9)
-_HIST_W = 12
-#: rows of the output ring: p_M (3), q (4), var (6), status (1)
-_OUT_W = 14
+#: named rows of an IMU ring entry: specific force, rate (sensor frame), the
+#: source's specific force in G, the source orientation Phi (row-major)
+IMU_FIELDS = (("F", 3), ("W", 3), ("FSRC", 3), ("PHI", 9))
+#: named rows of a pose-history entry: p_M, R_MS (row-major), source frame
+HIST_FIELDS = (("P", 3), ("R", 9))
+#: named rows of an output entry (the POSE message): p_M, quaternion (w, x, y, z),
+#: position variances (source frame), orientation variances (sensor frame), status bits
+OUT_FIELDS = (("P", 3), ("Q", 4), ("VAR_P", 3), ("VAR_O", 3), ("STATUS", 1))
+_I, _H, _O = field_slices(IMU_FIELDS), field_slices(HIST_FIELDS), field_slices(OUT_FIELDS)
+IMU_F, IMU_W, IMU_FSRC, IMU_PHI = _I["F"].start, _I["W"].start, _I["FSRC"].start, _I["PHI"].start
+HIST_P, HIST_R = _H["P"].start, _H["R"].start
+OUT_P, OUT_Q, OUT_VAR_P, OUT_VAR_O, OUT_STATUS = (_O["P"].start, _O["Q"].start, _O["VAR_P"].start,
+                                                  _O["VAR_O"].start, _O["STATUS"].start)
+#: status bits of ``OUT_STATUS``
+OUT_STALE = 1               # no magnetic update for ``stale_us``
+OUT_INCONSISTENT = 2        # the last update was not accepted cleanly
+#: strapdown + covariance steps one replayed IMU sample can cost (split at a snapshot)
+MAX_STEPS_PER_SAMPLE = 2
+
+
+def max_replay_steps_per_step(budget: int) -> int:
+    """Most strapdown and covariance steps one ``FusionFilter.step(budget)`` runs."""
+    return max(int(budget), 1) - 1 + MAX_STEPS_PER_SAMPLE
 
 
 class FusionParams:
@@ -138,6 +177,52 @@ class FusionParams:
         self.stale_us = int(stale_us)
 
 
+class InsState:
+    """One copy of the inertial state: nominal position ``p``, velocity ``v``,
+    orientation ``Th`` (Theta), offsets ``ba``, ``bg`` at ``t_us``, the error
+    covariance ``P``, and its propagation workspace (``pred``: ``A``, ``Q`` of
+    eq 6.17, written for the step ``dt_last``; ``white``: the rows of the white
+    states, zero in ``A``). The filter holds three: the live state, the shadow
+    (a replay in progress) and the snapshot at t_ref, which is only copied
+    (``white=None``: no workspace)."""
+
+    def __init__(self, n: int, white: tuple[slice, ...] | None):
+        self.p = np.zeros(3)
+        self.v = np.zeros(3)
+        self.Th = np.eye(3)
+        self.ba = np.zeros(3)
+        self.bg = np.zeros(3)
+        self.P = np.zeros((n, n))
+        self.t_us = 0
+        self._pv = memoryview(self.p)
+        self._vv = memoryview(self.v)
+        self._Thv = memoryview(self.Th)
+        self._bav = memoryview(self.ba)
+        self._bgv = memoryview(self.bg)
+        self._Pv = memoryview(self.P)
+        self.dt_last = -1.0
+        self.ka = self.kg = 1.0
+        if white is None:
+            self.pred = None
+            return
+        self.pred = CovariancePredict(n)
+        self._Av = memoryview(self.pred.A)
+        self._Qv = memoryview(self.pred.Q)
+        for s in white:
+            for i in range(s.start, s.stop):
+                self._Av[i, i] = 0.0
+
+    def copy_from(self, other: "InsState") -> None:
+        """Take ``other``'s nominal state, covariance and time (not its workspace)."""
+        np.copyto(self.p, other.p)
+        np.copyto(self.v, other.v)
+        np.copyto(self.Th, other.Th)
+        np.copyto(self.ba, other.ba)
+        np.copyto(self.bg, other.bg)
+        np.copyto(self.P, other.P)
+        self.t_us = other.t_us
+
+
 class FusionFilter:
     """The thesis ch. 6 complementary error filter (see module docstring).
 
@@ -150,6 +235,10 @@ class FusionFilter:
     imu_capacity, history_capacity, output_capacity : int
         Ring sizes (IMU samples kept for replay, pose history for motion
         compensation, poses waiting to be sent).
+
+    The nominal state and covariance of the live state are ``p``, ``v``,
+    ``Th``, ``ba``, ``bg``, ``P`` (arrays, fixed for the filter's life),
+    ``t_us``; ``pred`` is its ``CovariancePredict``.
     """
 
     def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
@@ -162,59 +251,42 @@ class FusionFilter:
         if self.model != 1 and xi_filter is None:
             raise ValueError("measurement models 2 and 3 need the orientation filter Xi")
         self.xi = xi_filter
-        # nominal state
-        self.p = np.zeros(3)
-        self.v = np.zeros(3)
-        self.Th = np.eye(3)
-        self.ba = np.zeros(3)
-        self.bg = np.zeros(3)
-        self.t_us = 0
-        self.P = np.zeros((n, n))
-        self._pv = memoryview(self.p)
-        self._vv = memoryview(self.v)
-        self._Thv = memoryview(self.Th)
-        self._bav = memoryview(self.ba)
-        self._bgv = memoryview(self.bg)
-        self._Pv = memoryview(self.P)
-        self.pred = CovariancePredict(n)
-        self._Av = memoryview(self.pred.A)
-        self._Qv = memoryview(self.pred.Q)
-        for s in (QM, PSI) + ((XI,) if n > 21 else ()):
-            for i in range(s.start, s.stop):
-                self._Av[i, i] = 0.0
-        m = 9 if self.model == 3 else 6
+        white = (QM, PSI) + ((XI,) if n > 21 else ())
+        self.st = InsState(n, white)        # live
+        self.sh = InsState(n, white)        # shadow: the replay of a delayed update
+        self.sn = InsState(n, None)         # snapshot at t_ref
+        self._auth = self.st                # the state that takes snapshots and is recorded
+        self.sd = Strapdown()
+        zl = fusion_measurement_layout(self.model)
+        self.zlayout = zl
+        m = zl.n
         self.m = m
+        self._zp = zl.ZP.start
+        self._zpsi = zl.ZPSI.start if "ZPSI" in zl.names() else -1
+        self._zxi = zl.ZXI.start if "ZXI" in zl.names() else -1
         self.upd = KalmanUpdate(n, m, params.gate_probability)
         self._Hv = memoryview(self.upd.H)
         self._Rmv = memoryview(self.upd.R)
         self._yv = self.upd._yv
         # the measurement matrix C is constant (eqs 6.18, 6.20, 6.21)
+        H = self._Hv
         for i in range(3):
-            self._Hv[i, POS.start + i] = 1.0
-            self._Hv[i, QM.start + i] = 1.0
-            self._Hv[3 + i, ORI.start + i] = 1.0
-            self._Hv[3 + i, (PSI if self.model != 2 else XI).start + i] = 1.0
-            if self.model == 3:
-                self._Hv[6 + i, ORI.start + i] = 1.0
-                self._Hv[6 + i, XI.start + i] = 1.0
+            H[self._zp + i, POS.start + i] = 1.0
+            H[self._zp + i, QM.start + i] = 1.0
+            for row, white in ((self._zpsi, PSI), (self._zxi, XI)):
+                if row >= 0:
+                    H[row + i, ORI.start + i] = 1.0
+                    H[row + i, white.start + i] = 1.0
         r = params.meas_sigma ** 2
         for i in range(m):
             self._Rmv[i, i] = r
-        self._dt_last = -1.0
-        self._ka = self._kg = 1.0
         #: the source is fixed (Phi = I): history and output skip the frame change
         self.source_fixed = False
         # scratch
         self._E = np.zeros((3, 3))
         self._Ev = memoryview(self._E)
         self._T = np.zeros((3, 3))
-        # snapshot at t_ref
-        self._sp = np.zeros(3)
-        self._sv = np.zeros(3)
-        self._sTh = np.zeros((3, 3))
-        self._sba = np.zeros(3)
-        self._sbg = np.zeros(3)
-        self._sP = np.zeros((n, n))
+        # snapshot at t_ref: the source orientation and Xi beside the state
         self._sPhi = np.eye(3)
         self._sXi = np.eye(3)
         self._sXiP = np.zeros((3, 3))
@@ -227,34 +299,20 @@ class FusionFilter:
         self.snap_valid = False
         self.snap_initialized = False
         self.snap_xi = False
-        # IMU ring
-        self.imu_t = np.zeros(imu_capacity, dtype=np.int64)
-        self.imu_d = np.zeros((imu_capacity, _IMU_W))
-        self._itv = memoryview(self.imu_t)
-        self._idv = memoryview(self.imu_d)
-        self._icap = imu_capacity
-        self._ihead = 0
-        self._icount = 0
-        # pose history (M frame)
-        self.hist_t = np.zeros(history_capacity, dtype=np.int64)
-        self.hist_d = np.zeros((history_capacity, _HIST_W))
-        self._htv = memoryview(self.hist_t)
-        self._hdv = memoryview(self.hist_d)
-        self._hcap = history_capacity
-        self._hhead = 0
-        self._hcount = 0
-        # output ring
-        self.out_t = np.zeros(output_capacity, dtype=np.int64)
-        self.out_d = np.zeros((output_capacity, _OUT_W))
-        self._otv = memoryview(self.out_t)
-        self._odv = memoryview(self.out_d)
-        self._ocap = output_capacity
-        self._ohead = 0
-        self._ocount = 0
+        # rings: IMU samples (replay), pose history (motion compensation) and its
+        # shadow (the replayed history), fused poses waiting to be sent
+        self.imu = Ring(imu_capacity, IMU_FIELDS)
+        self.hist = Ring(history_capacity, HIST_FIELDS)
+        self._shist = Ring(history_capacity, HIST_FIELDS)
+        self.out = Ring(output_capacity, OUT_FIELDS)
+        self.imu_t, self.imu_d = self.imu.t, self.imu.d
+        self._itv, self._idv, self._icap = self.imu._tv, self.imu._dv, self.imu.capacity
+        self._otv, self._odv = self.out._tv, self.out._dv
         self.out_dropped = 0
         # bookkeeping
         self.initialized = False
-        self.replaying = False
+        self.replaying = False          # a replay runs on the shadow
+        self.last_step_units = 0        # strapdown steps of the last ``step`` call
         self.rejects_in_row = 0
         self.accepted_in_row = 0
         self.last_update_t = 0
@@ -263,8 +321,20 @@ class FusionFilter:
         self.updates = 0
         self.rejected = 0
         self.reinits = 0
+        self.replays_lost = 0
         self.steps = 0
         self.recorder = None       # optional offline hook (smoother); None on the board
+
+    # ------------------------------------------------------------ the live state
+    p = property(lambda self: self.st.p)
+    v = property(lambda self: self.st.v)
+    Th = property(lambda self: self.st.Th)
+    ba = property(lambda self: self.st.ba)
+    bg = property(lambda self: self.st.bg)
+    P = property(lambda self: self.st.P)
+    t_us = property(lambda self: self.st.t_us)
+    pred = property(lambda self: self.st.pred)
+    _ihead = property(lambda self: self.imu._head)
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
@@ -279,59 +349,70 @@ class FusionFilter:
         frame) with the source's specific force in ``G`` (``r*``) and the
         source orientation ``Phi`` (3x3, memoryview or array). Returns True
         when a fused pose was produced (put in the output ring)."""
-        # ring entry (kept for replay)
-        k = self._ihead
-        self._itv[k] = t_us
+        k = self.imu.push(t_us)          # kept for replay
         d = self._idv
-        d[k, 0], d[k, 1], d[k, 2] = fx, fy, fz
-        d[k, 3], d[k, 4], d[k, 5] = wx, wy, wz
-        d[k, 6], d[k, 7], d[k, 8] = rx, ry, rz
+        d[k, IMU_F], d[k, IMU_F + 1], d[k, IMU_F + 2] = fx, fy, fz
+        d[k, IMU_W], d[k, IMU_W + 1], d[k, IMU_W + 2] = wx, wy, wz
+        d[k, IMU_FSRC], d[k, IMU_FSRC + 1], d[k, IMU_FSRC + 2] = rx, ry, rz
         if not self.source_fixed:          # a fixed source keeps Phi = I (columns unused)
             for i in range(3):
                 for j in range(3):
-                    d[k, 9 + 3 * i + j] = Phi[i, j]
-        self._ihead = k + 1 if k + 1 < self._icap else 0
-        if self._icount < self._icap:
-            self._icount += 1
+                    d[k, IMU_PHI + 3 * i + j] = Phi[i, j]
+        st = self.st
         if not self.initialized:
-            if self.snap_pending and t_us >= self.snap_t:
-                self._snapshot_aux(k)
+            if self.snap_pending and t_us >= self.snap_t and not self.replaying:
+                self._snapshot_aux(k, False)
             return False
-        if t_us <= self.t_us:
+        if t_us <= st.t_us:
             return False
-        if t_us - self.t_us > self.prm.max_gap_us:
+        if t_us - st.t_us > self.prm.max_gap_us:
             # the stream broke off: the inertial state is not worth keeping
             self.initialized = False
             self.snap_valid = False
+            self._end_replay()
             return False
-        self._advance(k)
+        self._advance(st, self.hist, k)
         self._output(t_us)
         return True
 
-    def _advance(self, k: int) -> None:
-        """Propagate to ring entry ``k``'s time, splitting the step at a pending snapshot."""
+    def _advance(self, st: InsState, hist: Ring, k: int) -> int:
+        """Propagate ``st`` to IMU slot ``k``'s time, splitting the step at a
+        pending snapshot (taken if ``st`` is the authoritative state); append
+        the poses to ``hist``. Returns the number of steps run (1 or 2)."""
         t = self._itv[k]
-        if self.snap_pending and self.t_us < self.snap_t <= t:
+        t0 = st.t_us
+        if self.snap_pending and t0 < self.snap_t <= t:
             ts = self.snap_t
-            if ts > self.t_us:
-                self._step(k, self.t_us, ts)
-                self.t_us = ts
-                self._history(k)
-            self._snapshot(k)
+            n = 0
+            if ts > t0:
+                self._propagate(st, k, t0, ts)
+                st.t_us = ts
+                self._history(st, hist, k)
+                n = 1
+            if st is self._auth:
+                self._snapshot(st, k)
             if t > ts:
-                self._step(k, ts, t)
+                self._propagate(st, k, ts, t)
+                n += 1
         else:
-            self._step(k, self.t_us, t)
-        self.t_us = t
-        self._history(k)
+            self._propagate(st, k, t0, t)
+            n = 1
+        st.t_us = t
+        self._history(st, hist, k)
+        return n
 
     # ------------------------------------------------------------ model
     def _step(self, k: int, t0: int, t1: int) -> None:
-        """Strapdown and covariance step over ``[t0, t1]`` with the IMU
-        samples of ring entries ``k - 1`` and ``k`` (trapezoidal in the rate
+        """One step of the live state (``tools.cmd_perf`` times it)."""
+        self._propagate(self.st, k, t0, t1)
+
+    def _propagate(self, st: InsState, k: int, t0: int, t1: int) -> None:
+        """Strapdown and covariance step of ``st`` over ``[t0, t1]`` with the IMU
+        samples of ring slots ``k - 1`` and ``k`` (trapezoidal in the rate
         and in the global-frame specific force: the samples are instantaneous
         values; inputs at ``t0`` / ``t1`` interpolated linearly between the
-        two entries)."""
+        two entries). Strapdown and error transition: ``estimate.strapdown``
+        (eqs 6.1-6.4, 6.8, 6.17)."""
         dt = (t1 - t0) * 1e-6
         d = self._idv
         tv = self._itv
@@ -339,7 +420,7 @@ class FusionFilter:
         kp = k - 1 if k > 0 else self._icap - 1
         tp = tv[kp]
         # interpolation weights of entry k at t0 and t1 (1: entry k alone)
-        if self._icount > 1 and tp < tk:
+        if len(self.imu) > 1 and tp < tk:
             span = 1.0 / (tk - tp)
             a0 = (t0 - tp) * span
             a1 = (t1 - tp) * span
@@ -350,99 +431,60 @@ class FusionFilter:
             a0 = a1 = 1.0
         b0 = 1.0 - a0
         b1 = 1.0 - a1
-        ba = self._bav
-        bg = self._bgv
-        xa, xb, xc = ba[0], ba[1], ba[2]
-        p0, p1, p2, p3, p4, p5, p6, p7, p8 = (d[kp, 0], d[kp, 1], d[kp, 2], d[kp, 3], d[kp, 4], d[kp, 5],
-                                              d[kp, 6], d[kp, 7], d[kp, 8])
-        q0, q1, q2, q3, q4, q5, q6, q7, q8 = (d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5],
-                                              d[k, 6], d[k, 7], d[k, 8])
-        f0x = b0 * p0 + a0 * q0 - xa
-        f0y = b0 * p1 + a0 * q1 - xb
-        f0z = b0 * p2 + a0 * q2 - xc
-        f1x = b1 * p0 + a1 * q0 - xa
-        f1y = b1 * p1 + a1 * q1 - xb
-        f1z = b1 * p2 + a1 * q2 - xc
+        ba = st._bav
+        bg = st._bgv
+        F, W, S = IMU_F, IMU_W, IMU_FSRC
+        # inputs at t0 and t1 (offsets removed), the rate at mid-step
+        f0x = b0 * d[kp, F] + a0 * d[k, F] - ba[0]
+        f0y = b0 * d[kp, F + 1] + a0 * d[k, F + 1] - ba[1]
+        f0z = b0 * d[kp, F + 2] + a0 * d[k, F + 2] - ba[2]
+        f1x = b1 * d[kp, F] + a1 * d[k, F] - ba[0]
+        f1y = b1 * d[kp, F + 1] + a1 * d[k, F + 1] - ba[1]
+        f1z = b1 * d[kp, F + 2] + a1 * d[k, F + 2] - ba[2]
         am = 0.5 * (a0 + a1)
         bm = 1.0 - am
-        wx = bm * p3 + am * q3 - bg[0]
-        wy = bm * p4 + am * q4 - bg[1]
-        wz = bm * p5 + am * q5 - bg[2]
-        r0x, r0y, r0z = b0 * p6 + a0 * q6, b0 * p7 + a0 * q7, b0 * p8 + a0 * q8
-        r1x, r1y, r1z = b1 * p6 + a1 * q6, b1 * p7 + a1 * q7, b1 * p8 + a1 * q8
-        Th = self._Thv
-        # specific force at t0 in G with the attitude at t0
-        g0x = Th[0, 0] * f0x + Th[0, 1] * f0y + Th[0, 2] * f0z
-        g0y = Th[1, 0] * f0x + Th[1, 1] * f0y + Th[1, 2] * f0z
-        g0z = Th[2, 0] * f0x + Th[2, 1] * f0y + Th[2, 2] * f0z
-        exp_rotvec(wx * dt, wy * dt, wz * dt, self._Ev)
-        np.matmul(self.Th, self._E, out=self._T)
-        np.copyto(self.Th, self._T)
-        t00, t01, t02 = Th[0, 0], Th[0, 1], Th[0, 2]
-        t10, t11, t12 = Th[1, 0], Th[1, 1], Th[1, 2]
-        t20, t21, t22 = Th[2, 0], Th[2, 1], Th[2, 2]
-        g1x = t00 * f1x + t01 * f1y + t02 * f1z
-        g1y = t10 * f1x + t11 * f1y + t12 * f1z
-        g1z = t20 * f1x + t21 * f1y + t22 * f1z
-        a0x, a0y, a0z = g0x - r0x, g0y - r0y, g0z - r0z
-        a1x, a1y, a1z = g1x - r1x, g1y - r1y, g1z - r1z
-        p = self._pv
-        v = self._vv
-        c0 = dt * dt / 3.0
-        c1 = dt * dt / 6.0
-        p[0] += v[0] * dt + c0 * a0x + c1 * a1x
-        p[1] += v[1] * dt + c0 * a0y + c1 * a1y
-        p[2] += v[2] * dt + c0 * a0z + c1 * a1z
-        h = 0.5 * dt
-        v[0] += h * (a0x + a1x)
-        v[1] += h * (a0y + a1y)
-        v[2] += h * (a0z + a1z)
-        gx, gy, gz = 0.5 * (g0x + g1x), 0.5 * (g0y + g1y), 0.5 * (g0z + g1z)
-        prm = self.prm
-        if dt != self._dt_last:
-            self._set_dt(dt)
-        ka = self._ka
-        kg = self._kg
+        wx = bm * d[kp, W] + am * d[k, W] - bg[0]
+        wy = bm * d[kp, W + 1] + am * d[k, W + 1] - bg[1]
+        wz = bm * d[kp, W + 2] + am * d[k, W + 2] - bg[2]
+        r0x, r0y, r0z = (b0 * d[kp, S] + a0 * d[k, S], b0 * d[kp, S + 1] + a0 * d[k, S + 1],
+                         b0 * d[kp, S + 2] + a0 * d[k, S + 2])
+        r1x, r1y, r1z = (b1 * d[kp, S] + a1 * d[k, S], b1 * d[kp, S + 1] + a1 * d[k, S + 1],
+                         b1 * d[kp, S + 2] + a1 * d[k, S + 2])
+        Th = st._Thv
+        # specific force in G at t0 with the attitude at t0, at t1 with the attitude at t1
+        g0x, g0y, g0z = to_nav(Th, f0x, f0y, f0z)
+        self.sd.rotate(st.Th, wx * dt, wy * dt, wz * dt)
+        g1x, g1y, g1z = to_nav(Th, f1x, f1y, f1z)
+        integrate_pv(st._pv, st._vv, dt, g0x - r0x, g0y - r0y, g0z - r0z, g1x - r1x, g1y - r1y, g1z - r1z)
+        if dt != st.dt_last:
+            self._set_dt(st, dt)
+        ka = st.ka
+        kg = st.kg
         ba[0] *= ka
         ba[1] *= ka
         ba[2] *= ka
         bg[0] *= kg
         bg[1] *= kg
         bg[2] *= kg
-        # transition matrix blocks (eq 6.17)
-        A = self._Av
-        p0, v0, o0, a0, g0 = POS.start, VEL.start, ORI.start, ACC.start, GYR.start
-        # VEL-ORI: -T [f_G x]
-        A[v0, o0 + 1] = dt * gz
-        A[v0, o0 + 2] = -dt * gy
-        A[v0 + 1, o0] = -dt * gz
-        A[v0 + 1, o0 + 2] = dt * gx
-        A[v0 + 2, o0] = dt * gy
-        A[v0 + 2, o0 + 1] = -dt * gx
-        A[v0, a0], A[v0, a0 + 1], A[v0, a0 + 2] = -dt * t00, -dt * t01, -dt * t02
-        A[v0 + 1, a0], A[v0 + 1, a0 + 1], A[v0 + 1, a0 + 2] = -dt * t10, -dt * t11, -dt * t12
-        A[v0 + 2, a0], A[v0 + 2, a0 + 1], A[v0 + 2, a0 + 2] = -dt * t20, -dt * t21, -dt * t22
-        A[o0, g0], A[o0, g0 + 1], A[o0, g0 + 2] = -dt * t00, -dt * t01, -dt * t02
-        A[o0 + 1, g0], A[o0 + 1, g0 + 1], A[o0 + 1, g0 + 2] = -dt * t10, -dt * t11, -dt * t12
-        A[o0 + 2, g0], A[o0 + 2, g0 + 1], A[o0 + 2, g0 + 2] = -dt * t20, -dt * t21, -dt * t22
-        self.pred.predict(self.P)
+        transition_nav(st._Av, dt, Th, 0.5 * (g0x + g1x), 0.5 * (g0y + g1y), 0.5 * (g0z + g1z))
+        st.pred.predict(st.P)
         self.steps += 1
-        if self.recorder is not None:
-            self.recorder.on_step(self, k, t1)
+        if self.recorder is not None and st is self._auth:
+            self.recorder.on_step(self, st, k, t1)
 
-    def _set_dt(self, dt: float) -> None:
+    def _set_dt(self, st: InsState, dt: float) -> None:
         """The parts of ``A`` and ``Q`` that depend on the step alone
         (eqs 6.10, 6.13-6.14; the white magnetic states), rewritten only when
         the step changes."""
         prm = self.prm
-        self._dt_last = dt
+        st.dt_last = dt
         ka = math.exp(-dt / prm.acc_bias_tau_s) if prm.acc_bias_tau_s > 0.0 else 1.0
         kg = math.exp(-dt / prm.gyro_bias_tau_s) if prm.gyro_bias_tau_s > 0.0 else 1.0
-        self._ka = ka
-        self._kg = kg
-        A = self._Av
-        Q = self._Qv
-        p0, v0, o0, a0, g0 = POS.start, VEL.start, ORI.start, ACC.start, GYR.start
+        st.ka = ka
+        st.kg = kg
+        transition_static(st._Av, dt, ka, kg)
+        Q = st._Qv
+        v0, o0, a0, g0 = VEL.start, ORI.start, ACC.start, GYR.start
         qv = (prm.acc_noise ** 2 + prm.source_acc_noise ** 2) * dt * dt
         qo = (prm.gyro_noise * dt) ** 2
         qa = prm.acc_bias_rw * prm.acc_bias_rw * dt
@@ -450,9 +492,6 @@ class FusionFilter:
         qq = prm.qm_sigma ** 2
         qs = prm.psi_sigma ** 2
         for i in range(3):
-            A[p0 + i, v0 + i] = dt
-            A[a0 + i, a0 + i] = ka
-            A[g0 + i, g0 + i] = kg
             Q[v0 + i, v0 + i] = qv
             Q[o0 + i, o0 + i] = qo
             Q[a0 + i, a0 + i] = qa
@@ -462,51 +501,47 @@ class FusionFilter:
             if self.n > 21:
                 Q[XI.start + i, XI.start + i] = qs
 
-    def _history(self, k: int) -> None:
-        """Append the current pose in the source frame: ``p_M = Phi^T p``,
-        ``R_MS = Phi^T Theta`` (Phi of IMU ring entry ``k``)."""
+    def _history(self, st: InsState, hist: Ring, k: int) -> None:
+        """Append ``st``'s pose in the source frame to ``hist``: ``p_M = Phi^T p``,
+        ``R_MS = Phi^T Theta`` (Phi of IMU slot ``k``)."""
         d = self._idv
-        h = self._hhead
-        self._htv[h] = self.t_us
-        hd = self._hdv
-        p = self._pv
-        Th = self._Thv
+        h = hist.push(st.t_us)
+        hd = hist._dv
+        p = st._pv
+        Th = st._Thv
+        P0, R0 = HIST_P, HIST_R
         if self.source_fixed:
-            hd[h, 0], hd[h, 1], hd[h, 2] = p[0], p[1], p[2]
-            hd[h, 3], hd[h, 4], hd[h, 5] = Th[0, 0], Th[0, 1], Th[0, 2]
-            hd[h, 6], hd[h, 7], hd[h, 8] = Th[1, 0], Th[1, 1], Th[1, 2]
-            hd[h, 9], hd[h, 10], hd[h, 11] = Th[2, 0], Th[2, 1], Th[2, 2]
-        else:
+            hd[h, P0], hd[h, P0 + 1], hd[h, P0 + 2] = p[0], p[1], p[2]
             for i in range(3):
-                f0, f1, f2 = d[k, 9 + i], d[k, 12 + i], d[k, 15 + i]     # column i of Phi
-                hd[h, i] = f0 * p[0] + f1 * p[1] + f2 * p[2]
+                hd[h, R0 + 3 * i], hd[h, R0 + 3 * i + 1], hd[h, R0 + 3 * i + 2] = Th[i, 0], Th[i, 1], Th[i, 2]
+        else:
+            F = IMU_PHI
+            for i in range(3):
+                f0, f1, f2 = d[k, F + i], d[k, F + 3 + i], d[k, F + 6 + i]     # column i of Phi
+                hd[h, P0 + i] = f0 * p[0] + f1 * p[1] + f2 * p[2]
                 for j in range(3):
-                    hd[h, 3 + 3 * i + j] = f0 * Th[0, j] + f1 * Th[1, j] + f2 * Th[2, j]
-        self._hhead = h + 1 if h + 1 < self._hcap else 0
-        if self._hcount < self._hcap:
-            self._hcount += 1
+                    hd[h, R0 + 3 * i + j] = f0 * Th[0, j] + f1 * Th[1, j] + f2 * Th[2, j]
 
     def _output(self, t_us: int) -> None:
         """Queue the fused pose (source frame) with its variances: position
         ``diag(Phi^T P_pp Phi)``, orientation in the sensor frame
         ``diag(R^T P_oo R)`` with ``R = Theta`` (as the POSE message defines)."""
-        if self._ocount == self._ocap:
+        out = self.out
+        if out.full:
             self.out_dropped += 1
             return
-        slot = self._ohead + self._ocount
-        if slot >= self._ocap:
-            slot -= self._ocap
-        self._ocount += 1
-        self._otv[slot] = t_us
+        slot = out.push(t_us)
         od = self._odv
-        h = self._hhead - 1 if self._hhead > 0 else self._hcap - 1
-        hd = self._hdv
-        od[slot, 0], od[slot, 1], od[slot, 2] = hd[h, 0], hd[h, 1], hd[h, 2]
+        hist = self.hist
+        h = hist.peek(0)
+        hd = hist._dv
+        od[slot, OUT_P], od[slot, OUT_P + 1], od[slot, OUT_P + 2] = hd[h, HIST_P], hd[h, HIST_P + 1], hd[h, HIST_P + 2]
         _quat_into(hd, h, od, slot)
-        k = self._ihead - 1 if self._ihead > 0 else self._icap - 1
+        k = self.imu.peek(0)
         d = self._idv
-        P = self._Pv
-        Th = self._Thv
+        st = self.st
+        P = st._Pv
+        Th = st._Thv
         p0 = POS.start
         o0 = ORI.start
         # orientation: diag(Theta^T P_oo Theta) = sum_i Theta[i, c] (P_oo Theta)[i, c]
@@ -514,44 +549,51 @@ class FusionFilter:
         o11, o12, o22 = P[o0 + 1, o0 + 1], P[o0 + 1, o0 + 2], P[o0 + 2, o0 + 2]
         for c in range(3):
             x, y, z = Th[0, c], Th[1, c], Th[2, c]
-            od[slot, 10 + c] = (x * (o00 * x + o01 * y + o02 * z) + y * (o01 * x + o11 * y + o12 * z)
-                                + z * (o02 * x + o12 * y + o22 * z))
+            od[slot, OUT_VAR_O + c] = (x * (o00 * x + o01 * y + o02 * z) + y * (o01 * x + o11 * y + o12 * z)
+                                       + z * (o02 * x + o12 * y + o22 * z))
         if self.source_fixed:
-            od[slot, 7], od[slot, 8], od[slot, 9] = P[p0, p0], P[p0 + 1, p0 + 1], P[p0 + 2, p0 + 2]
+            od[slot, OUT_VAR_P], od[slot, OUT_VAR_P + 1], od[slot, OUT_VAR_P + 2] = (
+                P[p0, p0], P[p0 + 1, p0 + 1], P[p0 + 2, p0 + 2])
         else:
             q00, q01, q02 = P[p0, p0], P[p0, p0 + 1], P[p0, p0 + 2]
             q11, q12, q22 = P[p0 + 1, p0 + 1], P[p0 + 1, p0 + 2], P[p0 + 2, p0 + 2]
+            F = IMU_PHI
             for c in range(3):
-                x, y, z = d[k, 9 + c], d[k, 12 + c], d[k, 15 + c]      # column c of Phi
-                od[slot, 7 + c] = (x * (q00 * x + q01 * y + q02 * z) + y * (q01 * x + q11 * y + q12 * z)
-                                   + z * (q02 * x + q12 * y + q22 * z))
+                x, y, z = d[k, F + c], d[k, F + 3 + c], d[k, F + 6 + c]      # column c of Phi
+                od[slot, OUT_VAR_P + c] = (x * (q00 * x + q01 * y + q02 * z) + y * (q01 * x + q11 * y + q12 * z)
+                                           + z * (q02 * x + q12 * y + q22 * z))
         status = 0
         if t_us - self.last_update_t > self.prm.stale_us:
-            status |= 1
+            status |= OUT_STALE
         if self.last_flags & ~FUS_INITIALISED:
-            status |= 2
-        od[slot, 13] = status
+            status |= OUT_INCONSISTENT
+        od[slot, OUT_STATUS] = status
 
-    def pop_output(self):
-        """Index of the oldest queued pose in ``out_t`` / ``out_d`` (or -1);
-        call :meth:`release_output` when sent."""
-        if self._ocount == 0:
-            return -1
-        return self._ohead
+    def pop_output(self) -> int:
+        """Slot of the oldest queued pose in ``out_t`` / ``out_d`` (rows
+        ``OUT_*``), or -1; call :meth:`release_output` when sent."""
+        return self.out.slot(0) if len(self.out) else -1
 
     def release_output(self) -> None:
-        if self._ocount:
-            self._ohead = self._ohead + 1 if self._ohead + 1 < self._ocap else 0
-            self._ocount -= 1
+        self.out.pop()
+
+    @property
+    def out_t(self):
+        return self.out.t
+
+    @property
+    def out_d(self):
+        return self.out.d
 
     # ------------------------------------------------------------ snapshot
-    def _snapshot_aux(self, k: int) -> None:
-        """Source orientation and Xi at t_ref (all that initialisation needs)."""
+    def _snapshot_aux(self, k: int, full: bool) -> None:
+        """Source orientation and Xi at t_ref (all that initialisation needs);
+        ``full``: the inertial state was kept with them."""
         d = self._idv
         S = self._sPhiv
         for i in range(3):
             for j in range(3):
-                S[i, j] = (1.0 if i == j else 0.0) if self.source_fixed else d[k, 9 + 3 * i + j]
+                S[i, j] = (1.0 if i == j else 0.0) if self.source_fixed else d[k, IMU_PHI + 3 * i + j]
         if self.xi is not None and self.xi.initialized:
             np.copyto(self._sXi, self.xi.R)
             self.xi.theta_covariance_global(self._sXiPv)
@@ -561,130 +603,162 @@ class FusionFilter:
             self.snap_xi = False
         self.snap_pending = False
         self.snap_valid = True
-        self.snap_initialized = self.initialized
+        self.snap_initialized = full
 
-    def _snapshot(self, k: int) -> None:
-        np.copyto(self._sp, self.p)
-        np.copyto(self._sv, self.v)
-        np.copyto(self._sTh, self.Th)
-        np.copyto(self._sba, self.ba)
-        np.copyto(self._sbg, self.bg)
-        np.copyto(self._sP, self.P)
-        self._snapshot_aux(k)
-
-    def _restore(self) -> None:
-        np.copyto(self.p, self._sp)
-        np.copyto(self.v, self._sv)
-        np.copyto(self.Th, self._sTh)
-        np.copyto(self.ba, self._sba)
-        np.copyto(self.bg, self._sbg)
-        np.copyto(self.P, self._sP)
-        self.t_us = self.snap_t
-        if self.recorder is not None:
-            self.recorder.on_rewind(self, self.snap_t)
-
-    def _replay(self) -> None:
-        """Re-run the IMU samples after ``t_us`` (the restored instant)."""
-        t0 = self.t_us
-        # drop history after t0
-        while self._hcount and self._htv[self._hhead - 1 if self._hhead > 0 else self._hcap - 1] > t0:
-            self._hhead = self._hhead - 1 if self._hhead > 0 else self._hcap - 1
-            self._hcount -= 1
-        if self.recorder is not None:
-            self.recorder.on_rewind(self, t0)
-        n = self._icount
-        start = self._ihead - n
-        if start < 0:
-            start += self._icap
-        self.replaying = True
-        for i in range(n):
-            k = start + i
-            if k >= self._icap:
-                k -= self._icap
-            if self._itv[k] > self.t_us:
-                self._advance(k)
-        self.replaying = False
+    def _snapshot(self, st: InsState, k: int) -> None:
+        self.sn.copy_from(st)
+        self._snapshot_aux(k, True)
 
     def _ring_covers(self, t_us: int) -> bool:
-        if self._icount == 0:
-            return False
-        start = self._ihead - self._icount
-        if start < 0:
-            start += self._icap
-        return self._itv[start] <= t_us
+        imu = self.imu
+        return len(imu) > 0 and imu._tv[imu.slot(0)] <= t_us
 
     # ------------------------------------------------------------ update
     def magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
+        """:meth:`begin_magnetic_update` and the whole replay in one call (a
+        replay still running is finished first). Returns the health flags."""
+        self.finish()
+        flags = self.begin_magnetic_update(t_ref_us, q, R_ms, C, final)
+        self.finish()
+        return flags
+
+    def finish(self) -> None:
+        """Run the replay in progress (if any) to its end."""
+        while not self.step(2 * self._icap):
+            pass
+
+    def begin_magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
         """Fuse one magnetic solution referring to ``t_ref_us``: position
         ``q`` (3, source frame), orientation ``R_ms`` (3x3, sensor to source)
-        and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``).
-        Initialises the filter when needed. Returns health flags (ekf flags,
-        ``FUS_*``); never raises. With ``final=False`` a rejected solution
-        leaves the snapshot in place (and counts nothing), so the caller can
-        offer another solution of the same burst."""
+        and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``, rows
+        ``layout.POSE_POS``, ``POSE_ORI``). Initialises the filter when
+        needed. The update is applied to the shadow state at ``t_ref``; the
+        replay to the newest IMU sample is left to :meth:`step` (none is
+        needed when the state did not change: a rejected solution). Returns
+        health flags (ekf flags, ``FUS_*``); never raises. With
+        ``final=False`` a rejected solution leaves the snapshot in place (and
+        counts nothing), so the caller can offer another solution of the same
+        burst. ``FUS_BUSY``: the previous replay is still running (nothing
+        done; call again once :meth:`step` has returned True)."""
+        if self.replaying:
+            return FUS_BUSY
         if not (self.snap_valid and self.snap_t == t_ref_us and self._ring_covers(t_ref_us)):
             self.last_flags = FUS_NO_SNAPSHOT
             return FUS_NO_SNAPSHOT
         self.snap_valid = False
+        sh = self.sh
         if not (self.initialized and self.snap_initialized):
             if self.model != 1 and not self.snap_xi:
                 self.last_flags = FUS_NOT_INITIALISED
                 return FUS_NOT_INITIALISED
-            self._initialize(t_ref_us, q, R_ms, C)
-            self._replay()
+            self._initialize(sh, t_ref_us, q, R_ms, C)
             self.last_flags = FUS_INITIALISED
             self.last_update_t = t_ref_us
+            self._start_replay()
             return FUS_INITIALISED
-        self._restore()
-        self._measurement(q, R_ms, C)
+        sh.copy_from(self.sn)
+        self._shist.copy_from(self.hist)
+        self._shist.drop_newer_than(t_ref_us)
+        self._measurement(sh, q, R_ms, C)
         if self.recorder is not None:
-            self.recorder.on_prior(self)
-        flags = self.upd.update(self.P)
+            self.recorder.on_prior(self, sh)
+        flags = self.upd.update(sh.P)
         self.last_nis = self.upd.nis
+        self.last_flags = flags
         if flags == EKF_OK:
-            self._correct(self.upd._dxv)
+            self._correct(sh, self.upd._dxv)
             self.rejects_in_row = 0
             self.accepted_in_row += 1
             self.updates += 1
             self.last_update_t = t_ref_us
             if self.recorder is not None:
-                self.recorder.on_update(self, self.upd.dx)
+                self.recorder.on_update(self, sh, self.upd.dx)
         elif not final:
             self.snap_valid = True
-            self._replay()
-            self.last_flags = flags
             return flags
         else:
             self.rejected += 1
             self.rejects_in_row += 1
             self.accepted_in_row = 0
-            if self.rejects_in_row >= self.prm.reinit_after and (self.model == 1 or self.snap_xi):
-                self._initialize(t_ref_us, q, R_ms, C)
-                self.reinits += 1
-                self.rejects_in_row = 0
-                flags |= FUS_REINITIALISED
-                self.last_update_t = t_ref_us
-        self._replay()
-        self.last_flags = flags
+            if not (self.rejects_in_row >= self.prm.reinit_after and (self.model == 1 or self.snap_xi)):
+                return flags            # the state is unchanged: nothing to replay
+            if self.recorder is not None:
+                self.recorder.on_rewind(self, t_ref_us)
+            self._initialize(sh, t_ref_us, q, R_ms, C)
+            self.reinits += 1
+            self.rejects_in_row = 0
+            flags |= FUS_REINITIALISED
+            self.last_update_t = t_ref_us
+            self.last_flags = flags
+        self._start_replay()
         return flags
 
-    def _measurement(self, q, R_ms, C) -> None:
-        """Innovation (eqs 6.18-6.21) and the white blocks of ``P``."""
+    def _start_replay(self) -> None:
+        self.replaying = True
+        self._auth = self.sh
+        if self.recorder is not None:
+            self.recorder.on_rewind(self, self.sh.t_us)
+
+    def _end_replay(self) -> None:
+        self.replaying = False
+        self._auth = self.st
+
+    def step(self, budget_replay_steps: int) -> bool:
+        """Replay IMU samples on the shadow state, at most
+        ``max_replay_steps_per_step(budget)`` strapdown and covariance steps;
+        when the shadow reaches the newest IMU sample it becomes the live
+        state. Returns True when no replay is left (also when none was
+        running)."""
+        self.last_step_units = 0
+        if not self.replaying:
+            return True
+        sh = self.sh
+        imu = self.imu
+        units = 0
+        while True:
+            i = imu.index_at_or_after(sh.t_us + 1)
+            if i >= len(imu):
+                self._swap()
+                self.last_step_units = units
+                return True
+            if units >= budget_replay_steps:
+                self.last_step_units = units
+                return False
+            if i == 0:
+                # the sample before the next one left the ring: the replay cannot go on
+                self._end_replay()
+                self.replays_lost += 1
+                self.last_flags |= FUS_REPLAY_LOST
+                self.last_step_units = units
+                return True
+            units += self._advance(sh, self._shist, imu.slot(i))
+
+    def _swap(self) -> None:
+        """The shadow has caught up: it becomes the live state."""
+        self.st.copy_from(self.sh)
+        self.hist.copy_from(self._shist)
+        self.initialized = True
+        self._end_replay()
+
+    def _measurement(self, st: InsState, q, R_ms, C) -> None:
+        """Innovation (eqs 6.18-6.21) at ``st`` and the white blocks of its ``P``."""
         y = self._yv
         Phi = self._sPhiv
-        p = self._pv
-        Th = self._Thv
-        P = self._Pv
+        p = st._pv
+        Th = st._Thv
+        P = st._Pv
         s = self.prm.mag_var_scale
         # position: Phi q - p
+        z0 = self._zp
         for i in range(3):
-            y[i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2] - p[i]
+            y[z0 + i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2] - p[i]
         # Psi = Phi R_ms
         psi = self._E
         np.matmul(self._sPhi, R_ms, out=psi)
         Psi = self._Ev
         # white-state covariances: Phi C_pp Phi^T, Psi C_tt Psi^T, Phi C_pt Psi^T
         q0, s0 = QM.start, PSI.start
+        cp, co = POSE_POS.start, POSE_ORI.start
         for i in range(3):
             for j in range(3):
                 cpp = cpt = ctt = 0.0
@@ -692,19 +766,17 @@ class FusionFilter:
                     fa = Phi[i, a]
                     pa = Psi[i, a]
                     for b in range(3):
-                        cpp += fa * C[a, b] * Phi[j, b]
-                        cpt += fa * C[a, 3 + b] * Psi[j, b]
-                        ctt += pa * C[3 + a, 3 + b] * Psi[j, b]
+                        cpp += fa * C[cp + a, cp + b] * Phi[j, b]
+                        cpt += fa * C[cp + a, co + b] * Psi[j, b]
+                        ctt += pa * C[co + a, co + b] * Psi[j, b]
                 P[q0 + i, q0 + j] = cpp * s
                 P[q0 + i, s0 + j] = cpt * s
                 P[s0 + j, q0 + i] = cpt * s
                 P[s0 + i, s0 + j] = ctt * s
-        row = 3
-        if self.model != 2:
-            _log_diff(Psi, Th, y, row)
-            row = 6
-        if self.model != 1:
-            _log_diff(self._sXiv, Th, y, row)
+        if self._zpsi >= 0:
+            _log_diff(Psi, Th, y, self._zpsi)
+        if self._zxi >= 0:
+            _log_diff(self._sXiv, Th, y, self._zxi)
             x0 = XI.start
             xs = self.prm.xi_var_scale
             fl = self.prm.xi_sigma_floor ** 2
@@ -714,7 +786,7 @@ class FusionFilter:
                 for j in range(3):
                     P[x0 + i, x0 + j] = XP[i, j] * xs
                 P[x0 + i, x0 + i] += fh if i == 2 else fl
-        if self.model == 2:
+        if self._zpsi < 0:
             # the magnetic orientation is not used: keep its white block inert
             for i in range(3):
                 for j in range(3):
@@ -722,11 +794,11 @@ class FusionFilter:
                     P[q0 + i, s0 + j] = 0.0
                     P[s0 + j, q0 + i] = 0.0
 
-    def _correct(self, dx) -> None:
-        p = self._pv
-        v = self._vv
-        ba = self._bav
-        bg = self._bgv
+    def _correct(self, st: InsState, dx) -> None:
+        p = st._pv
+        v = st._vv
+        ba = st._bav
+        bg = st._bgv
         for i in range(3):
             p[i] += dx[POS.start + i]
             v[i] += dx[VEL.start + i]
@@ -734,39 +806,40 @@ class FusionFilter:
             bg[i] += dx[GYR.start + i]
         o = ORI.start
         exp_rotvec(dx[o], dx[o + 1], dx[o + 2], self._Ev)
-        np.matmul(self._E, self.Th, out=self._T)
-        np.copyto(self.Th, self._T)
+        np.matmul(self._E, st.Th, out=self._T)
+        np.copyto(st.Th, self._T)
 
-    def _initialize(self, t_ref_us: int, q, R_ms, C) -> None:
-        """State at ``t_ref``: position from the magnetic solution, velocity
+    def _initialize(self, st: InsState, t_ref_us: int, q, R_ms, C) -> None:
+        """``st`` at ``t_ref``: position from the magnetic solution, velocity
         zero, orientation from Xi (models 2, 3) or the magnetic one (model 1),
-        gyroscope offset from the ch. 2 filter."""
+        gyroscope offset from the ch. 2 filter; its pose history starts anew."""
         prm = self.prm
         Phi = self._sPhiv
-        p = self._pv
+        p = st._pv
         for i in range(3):
             p[i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2]
-        self.v.fill(0.0)
-        self.ba.fill(0.0)
-        self.P.fill(0.0)
-        P = self._Pv
+        st.v.fill(0.0)
+        st.ba.fill(0.0)
+        st.P.fill(0.0)
+        P = st._Pv
         use_xi = self.model != 1 and self.snap_xi
         if use_xi:
-            np.copyto(self.Th, self._sXi)
-            np.copyto(self.bg, self._sXiB)
+            np.copyto(st.Th, self._sXi)
+            np.copyto(st.bg, self._sXiB)
         else:
-            np.matmul(self._sPhi, R_ms, out=self.Th)
-            self.bg.fill(0.0)
-        Th = self._Thv
+            np.matmul(self._sPhi, R_ms, out=st.Th)
+            st.bg.fill(0.0)
+        Th = st._Thv
         p0, o0 = POS.start, ORI.start
+        cp, co = POSE_POS.start, POSE_ORI.start
         for i in range(3):
             for j in range(3):
                 cpp = 0.0
                 coo = 0.0
                 for a in range(3):
                     for b in range(3):
-                        cpp += Phi[i, a] * C[a, b] * Phi[j, b]
-                        coo += Th[i, a] * C[3 + a, 3 + b] * Th[j, b]
+                        cpp += Phi[i, a] * C[cp + a, cp + b] * Phi[j, b]
+                        coo += Th[i, a] * C[co + a, co + b] * Th[j, b]
                 P[p0 + i, p0 + j] = cpp
                 if use_xi:
                     P[o0 + i, o0 + j] = self._sXiPv[i, j]
@@ -780,59 +853,54 @@ class FusionFilter:
             P[PSI.start + i, PSI.start + i] = prm.psi_sigma ** 2
             if self.n > 21:
                 P[XI.start + i, XI.start + i] = prm.psi_sigma ** 2
-        self.t_us = t_ref_us
-        self.initialized = True
+        st.t_us = t_ref_us
         self.rejects_in_row = 0
         self.accepted_in_row = 0
-        self._hcount = 0
-        self._hhead = 0
+        self._shist.clear()
         if self.recorder is not None:
-            self.recorder.on_init(self)
+            self.recorder.on_init(self, st)
 
     # ------------------------------------------------------------ queries
     def pose_at(self, t_us: int, out_p, out_R) -> bool:
         """Inertial pose in the source frame at ``t_us`` (linear
-        interpolation of the history; ``out_R`` is not re-orthonormalised,
+        interpolation of the live history; ``out_R`` is not re-orthonormalised,
         which is second order in the step rotation). False when ``t_us`` is
         outside the history."""
-        n = self._hcount
+        hist = self.hist
+        n = len(hist)
         if n < 2:
             return False
-        cap = self._hcap
-        start = self._hhead - n
-        if start < 0:
-            start += cap
-        ht = self._htv
-        if ht[start] > t_us:
+        i = hist.index_at_or_after(t_us)
+        if i >= n:
             return False
-        prev = start
-        for i in range(1, n):
-            k = start + i
-            if k >= cap:
-                k -= cap
-            tk = ht[k]
-            if tk >= t_us:
-                t0 = ht[prev]
-                a = (t_us - t0) / (tk - t0) if tk > t0 else 1.0
-                hd = self._hdv
-                b = 1.0 - a
-                for c in range(3):
-                    out_p[c] = b * hd[prev, c] + a * hd[k, c]
-                for i2 in range(3):
-                    for j in range(3):
-                        out_R[i2, j] = b * hd[prev, 3 + 3 * i2 + j] + a * hd[k, 3 + 3 * i2 + j]
-                return True
-            prev = k
-        return False
+        ht = hist._tv
+        if i == 0:
+            if ht[hist.slot(0)] != t_us:
+                return False
+            i = 1
+        prev = hist.slot(i - 1)
+        k = hist.slot(i)
+        t0 = ht[prev]
+        tk = ht[k]
+        a = (t_us - t0) / (tk - t0) if tk > t0 else 1.0
+        b = 1.0 - a
+        hd = hist._dv
+        for c in range(3):
+            out_p[c] = b * hd[prev, HIST_P + c] + a * hd[k, HIST_P + c]
+        for i2 in range(3):
+            for j in range(3):
+                c = HIST_R + 3 * i2 + j
+                out_R[i2, j] = b * hd[prev, c] + a * hd[k, c]
+        return True
 
     def velocity_sigma(self) -> float:
         """rms velocity uncertainty per axis, m/s."""
-        P = self._Pv
+        P = self.st._Pv
         v0 = VEL.start
         return math.sqrt(max(P[v0, v0] + P[v0 + 1, v0 + 1] + P[v0 + 2, v0 + 2], 0.0) / 3.0)
 
     def speed_squared(self) -> float:
-        v = self._vv
+        v = self.st._vv
         return v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
 
     def nees(self, p_true_g, R_true_g, v_true_g=None) -> float:
@@ -872,7 +940,9 @@ def _log_diff(Z, Th, y, row) -> None:
 
 def _quat_into(hd, h, od, slot) -> None:
     """Unit quaternion (w, x, y, z), w >= 0, of the rotation in history row
-    ``h`` (columns 3..11) into output columns 3..6."""
-    w, x, y, z = quat_from_elements(hd[h, 3], hd[h, 4], hd[h, 5], hd[h, 6], hd[h, 7], hd[h, 8],
-                                    hd[h, 9], hd[h, 10], hd[h, 11])
-    od[slot, 3], od[slot, 4], od[slot, 5], od[slot, 6] = w, x, y, z
+    ``h`` into the output row ``slot``."""
+    r = HIST_R
+    w, x, y, z = quat_from_elements(hd[h, r], hd[h, r + 1], hd[h, r + 2], hd[h, r + 3], hd[h, r + 4],
+                                    hd[h, r + 5], hd[h, r + 6], hd[h, r + 7], hd[h, r + 8])
+    o = OUT_Q
+    od[slot, o], od[slot, o + 1], od[slot, o + 2], od[slot, o + 3] = w, x, y, z

@@ -69,7 +69,8 @@ import numpy as np
 
 from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
 from coiltrack.firmware.estimate.layout import BIAS, DIST, ORIENTATION_LAYOUT, THETA
-from coiltrack.firmware.linalg import exp_rotvec, flat, rotvec_from_matrix
+from coiltrack.firmware.estimate.strapdown import Strapdown
+from coiltrack.firmware.linalg import rotvec_from_matrix
 
 N = ORIENTATION_LAYOUT.n
 
@@ -125,8 +126,7 @@ class OrientationFilter:
         self._bv = memoryview(self.bias)
         self._dv = memoryview(self.dist)
         self._av = memoryview(self.acc)
-        self._E = np.zeros((3, 3))       # exp() scratch
-        self._Ev = memoryview(self._E)
+        self._sd = Strapdown()           # the attitude step (estimate.strapdown)
         self._T = np.zeros((3, 3))
         self._O = np.zeros((3, 3))       # orthonormalisation scratch
         self._Rc = np.eye(3)             # orientation when the covariance was last propagated
@@ -233,9 +233,7 @@ class OrientationFilter:
             return
         p = self.prm
         b = self._bv
-        exp_rotvec((wx - b[0]) * dt, (wy - b[1]) * dt, (wz - b[2]) * dt, self._Ev)
-        np.matmul(self.R, self._E, out=self._T)
-        np.copyto(self.R, self._T)
+        self._sd.rotate(self.R, (wx - b[0]) * dt, (wy - b[1]) * dt, (wz - b[2]) * dt)    # eq 2.27
         self.steps += 1
         if self.steps & 63 == 0:
             self._orthonormalize()
@@ -308,9 +306,7 @@ class OrientationFilter:
 
     # --------------------------------------------------------- updates
     def _apply(self, dx) -> None:
-        exp_rotvec(dx[THETA.start], dx[THETA.start + 1], dx[THETA.start + 2], self._Ev)
-        np.matmul(self.R, self._E, out=self._T)
-        np.copyto(self.R, self._T)
+        self._sd.rotate(self.R, dx[THETA.start], dx[THETA.start + 1], dx[THETA.start + 2])
         np.copyto(self._Rc, self.R)      # the error is reset at the corrected orientation
         b = self._bv
         d = self._dv

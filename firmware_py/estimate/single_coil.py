@@ -65,8 +65,10 @@ import numpy as np
 
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
-from coiltrack.firmware.estimate.layout import StateLayout
-from coiltrack.firmware.linalg import exp_rotvec
+from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, SCHEPERS_CORE as CORE,
+                                               SCHEPERS_LAYOUT, VEL, schepers_layout)
+from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_sensor, transition_static
+from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
 
 __all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
 
@@ -79,27 +81,7 @@ _GRAVITY = (0.0, 0.0, -9.81)
 _LIN_K = 2.0
 
 
-def schepers_layout(n_clones: int) -> StateLayout:
-    rows = [
-        ("POS", 3, "m", "position error, source frame"),
-        ("VEL", 3, "m/s", "velocity error, source frame"),
-        ("ORI", 3, "rad", "orientation error, sensor frame (R_true = R exp([ori]x))"),
-        ("ACC", 3, "m/s^2", "accelerometer offset error, sensor frame, random walk"),
-        ("GYR", 3, "rad/s", "gyroscope offset error, sensor frame, random walk"),
-    ]
-    for k in range(n_clones):
-        rows.append((f"C{k}P", 3, "m", f"clone {k}: POS at the measurement time of pulse slot {k}"))
-        rows.append((f"C{k}O", 3, "rad", f"clone {k}: ORI at the measurement time of pulse slot {k}"))
-    return StateLayout(f"schepers single-coil EKF ({n_clones} clones)", tuple(rows))
-
-
-#: the default table (two pulses in flight)
-SCHEPERS_LAYOUT = schepers_layout(2)
-_L = SCHEPERS_LAYOUT
-POS, VEL, ORI, ACC, GYR = _L.POS, _L.VEL, _L.ORI, _L.ACC, _L.GYR
-#: the propagated (inertial) part
-CORE = slice(POS.start, GYR.stop)
-N_CORE = GYR.stop
+N_CORE = CORE.stop
 
 
 class SchepersEKF:
@@ -171,17 +153,18 @@ class SchepersEKF:
         self._Ft = self.F.T
         self._T = np.zeros((nx, nx))
         self._q = np.zeros(nx)
-        self._a = np.zeros(3)
-        self._tmp3 = np.zeros(3)
         self._dR = np.eye(3)
         self._R2 = np.eye(3)
-        self._fx = np.zeros((3, 3))
-        self._Rfx = np.zeros((3, 3))
+        self._sd = Strapdown()
+        self._pv = memoryview(self.p)
+        self._vv = memoryview(self.v)
+        self._Rv = memoryview(self.R)
+        self._Fv = memoryview(self.F)
+        self._fref = (-float(self.g[0]), -float(self.g[1]), -float(self.g[2]))
         self._steps = 0
         # 0-d operands (a Python float in a ufunc would become a new 0-d array) and a
         # column buffer (copies between columns of P would otherwise be buffered)
         self._k0 = np.zeros(())
-        self._k1 = np.zeros(())
         self._half = np.full((), 0.5)
         self._cols = np.zeros((nx, 3))
         self._rows = np.zeros((3, nx))
@@ -191,6 +174,7 @@ class SchepersEKF:
         # prediction-ahead buffers (core block only)
         self._Fc = np.eye(N_CORE)
         self._Fct = self._Fc.T
+        self._Fcv = memoryview(self._Fc)
         self._Pc = np.zeros((N_CORE, N_CORE))
         self._Pc_diag = self._Pc.reshape(-1)[::N_CORE + 1]
         self._Tc = np.zeros((N_CORE, N_CORE))
@@ -221,10 +205,10 @@ class SchepersEKF:
         self.ba.fill(0.0)
         self.bg.fill(0.0)
         self.P.fill(0.0)
-        self.P[POS, POS] = P6[0:3, 0:3]
-        self.P[POS, ORI] = P6[0:3, 3:6]
-        self.P[ORI, POS] = P6[3:6, 0:3]
-        self.P[ORI, ORI] = P6[3:6, 3:6]
+        self.P[POS, POS] = P6[POSE_POS, POSE_POS]
+        self.P[POS, ORI] = P6[POSE_POS, POSE_ORI]
+        self.P[ORI, POS] = P6[POSE_ORI, POSE_POS]
+        self.P[ORI, ORI] = P6[POSE_ORI, POSE_ORI]
         for s, sig in ((VEL, sigma_vel), (ACC, sigma_acc), (GYR, sigma_gyr)):
             for i in range(s.start, s.stop):
                 self.P[i, i] = sig * sig
@@ -296,25 +280,25 @@ class SchepersEKF:
         T = self._Tb
         T.fill(0.0)
         for i in range(3):
-            T[i, POS.start + i] = 1.0
-            T[i, VEL.start + i] = -dt
+            T[POSE_POS.start + i, POS.start + i] = 1.0
+            T[POSE_POS.start + i, VEL.start + i] = -dt
             for j in range(3):
-                T[3 + i, ORI.start + j] = float(G[j, i])
-                T[3 + i, GYR.start + j] = dt * float(G[j, i])
+                T[POSE_ORI.start + i, ORI.start + j] = float(G[j, i])
+                T[POSE_ORI.start + i, GYR.start + j] = dt * float(G[j, i])
         # the clone's rows and columns: T P, and T P T^T
         P = self.P
         np.matmul(T, P, out=self._TP)
         np.matmul(self._TP, T.T, out=self._TPT)
-        np.copyto(P[cp, :], self._TP[0:3])
-        np.copyto(P[co, :], self._TP[3:6])
-        np.copyto(self._rows, self._TP[0:3])
+        np.copyto(P[cp, :], self._TP[POSE_POS])
+        np.copyto(P[co, :], self._TP[POSE_ORI])
+        np.copyto(self._rows, self._TP[POSE_POS])
         np.copyto(P[:, cp], self._rows.T)
-        np.copyto(self._rows, self._TP[3:6])
+        np.copyto(self._rows, self._TP[POSE_ORI])
         np.copyto(P[:, co], self._rows.T)
-        np.copyto(P[cp, cp], self._TPT[0:3, 0:3])
-        np.copyto(P[cp, co], self._TPT[0:3, 3:6])
-        np.copyto(P[co, cp], self._TPT[3:6, 0:3])
-        np.copyto(P[co, co], self._TPT[3:6, 3:6])
+        np.copyto(P[cp, cp], self._TPT[POSE_POS, POSE_POS])
+        np.copyto(P[cp, co], self._TPT[POSE_POS, POSE_ORI])
+        np.copyto(P[co, cp], self._TPT[POSE_ORI, POSE_POS])
+        np.copyto(P[co, co], self._TPT[POSE_ORI, POSE_ORI])
 
     def release_clone(self, k: int) -> None:
         cp, co = self._cp[k], self._co[k]
@@ -381,56 +365,29 @@ class SchepersEKF:
         average (0.025 m/s^2 at 0.5 rad/s and 100 Hz), a bias the error model
         does not know."""
         R = self.R
-        w = self.w
-        h = 0.5 * dt
-        exp_rotvec(float(w[0]) * h, float(w[1]) * h, float(w[2]) * h, self._dR)
-        np.matmul(R, self._dR, out=self._R2)
-        R[:] = self._R2
-        np.matmul(R, self.f, out=self._a)
-        self._a += self.g
-        p, v, a = self.p, self.v, self._a
-        h2 = 0.5 * dt * dt
-        for i in range(3):
-            ai = float(a[i])
-            p[i] += float(v[i]) * dt + ai * h2
-            v[i] += ai * dt
+        w0, w1, w2 = float(self.w[0]) * 0.5 * dt, float(self.w[1]) * 0.5 * dt, float(self.w[2]) * 0.5 * dt
+        sd = self._sd
+        sd.rotate(R, w0, w1, w2)                       # R_mid
+        ax, ay, az = self._accel()
+        integrate_pv(self._pv, self._vv, dt, ax, ay, az, ax, ay, az)
         if self.initialized:
-            self._build_F(self.F, self._q, dt)
+            self._build_F(self._Fv, self._q, dt)
             np.matmul(self.F, self.P, out=self._T)
             np.matmul(self._T, self._Ft, out=self.P)
             self._P_diag += self._q
-        np.matmul(R, self._dR, out=self._R2)
-        R[:] = self._R2
+        sd.rotate(R, w0, w1, w2)
         self._steps += 1
         if self._steps % 64 == 0:
             self._orthonormalize()
 
     def _build_F(self, F, q, dt: float) -> None:
-        """Error transition over ``dt`` (the core block of ``F``; clone rows
-        keep the identity) and its diagonal process noise ``q``."""
-        R = self.R
-        f = self.f
-        fx = self._fx
-        fx[0, 1] = -f[2]
-        fx[0, 2] = f[1]
-        fx[1, 0] = f[2]
-        fx[1, 2] = -f[0]
-        fx[2, 0] = -f[1]
-        fx[2, 1] = f[0]
-        np.matmul(R, fx, out=self._Rfx)            # R [f]x
-        h2 = 0.5 * dt * dt
-        for i in range(3):
-            F[POS.start + i, VEL.start + i] = dt
-            F[ORI.start + i, GYR.start + i] = -dt
-        k0, k1 = self._k0, self._k1
-        k0[()] = -h2
-        k1[()] = -dt
-        np.multiply(self._Rfx, k0, out=F[POS, ORI])
-        np.multiply(R, k0, out=F[POS, ACC])
-        np.multiply(self._Rfx, k1, out=F[VEL, ORI])
-        np.multiply(R, k1, out=F[VEL, ACC])
-        w = self.w
-        exp_rotvec(-float(w[0]) * dt, -float(w[1]) * dt, -float(w[2]) * dt, F[ORI, ORI])
+        """Error transition over ``dt`` (``strapdown.transition_sensor``: the
+        core block of ``F``, a memoryview; clone rows keep the identity) and
+        its diagonal process noise ``q``."""
+        f, w = self.f, self.w
+        transition_static(F, dt, 1.0, 1.0)
+        transition_sensor(F, dt, self._Rv, float(f[0]), float(f[1]), float(f[2]),
+                          float(w[0]), float(w[1]), float(w[2]), self._sd)
         qa = self.acc_noise * self.acc_noise
         qg = self.gyr_noise * self.gyr_noise
         qp = qa * dt * dt * dt / 3.0 + self.pos_noise * self.pos_noise * dt
@@ -444,6 +401,13 @@ class SchepersEKF:
             q[ORI.start + i] = qo
             q[ACC.start + i] = qba
             q[GYR.start + i] = qbg
+
+    def _accel(self):
+        """``R f - f_ref`` (``f_ref = -g``): the acceleration in the source frame."""
+        f = self.f
+        ax, ay, az = to_nav(self._Rv, float(f[0]), float(f[1]), float(f[2]))
+        r = self._fref
+        return ax - r[0], ay - r[1], az - r[2]
 
     def _orthonormalize(self) -> None:
         """One Newton step of the polar decomposition, ``R (3 I - R^T R) / 2``."""
@@ -468,24 +432,24 @@ class SchepersEKF:
         Pc[:] = self.P[CORE, CORE]
         if dt > 0.0:
             Fc = self._Fc
-            self._build_F(Fc, self._qc, dt)
+            self._build_F(self._Fcv, self._qc, dt)
             for _ in range(n):
                 np.matmul(Fc, Pc, out=self._Tc)
                 np.matmul(self._Tc, self._Fct, out=Pc)
                 self._Pc_diag += self._qc
-        out_P6[0:3, 0:3] = Pc[POS, POS]
-        out_P6[0:3, 3:6] = Pc[POS, ORI]
-        out_P6[3:6, 0:3] = Pc[ORI, POS]
-        out_P6[3:6, 3:6] = Pc[ORI, ORI]
-        np.matmul(self.R, self.f, out=self._a)
-        self._a += self.g
+        out_P6[POSE_POS, POSE_POS] = Pc[POS, POS]
+        out_P6[POSE_POS, POSE_ORI] = Pc[POS, ORI]
+        out_P6[POSE_ORI, POSE_POS] = Pc[ORI, POS]
+        out_P6[POSE_ORI, POSE_ORI] = Pc[ORI, ORI]
+        a = self._accel()
+        p, v = self._pv, self._vv
         for i in range(3):
-            out_p[i] = float(self.p[i]) + (float(self.v[i]) + 0.5 * T * float(self._a[i])) * T
+            out_p[i] = p[i] + (v[i] + 0.5 * T * a[i]) * T
 
     def pose_variances(self, out6) -> None:
         for i in range(3):
-            out6[i] = self.P[POS.start + i, POS.start + i]
-            out6[3 + i] = self.P[ORI.start + i, ORI.start + i]
+            out6[POSE_POS.start + i] = self.P[POS.start + i, POS.start + i]
+            out6[POSE_ORI.start + i] = self.P[ORI.start + i, ORI.start + i]
 
     # ------------------------------------------------------------ update
     def update_single_coil(self, k: int, y, var_amp, coil: int, current: float,
@@ -635,32 +599,18 @@ class SchepersEKF:
         self.ba += dx[ACC]
         self.bg += dx[GYR]
         o = ORI.start
-        exp_rotvec(float(dx[o]), float(dx[o + 1]), float(dx[o + 2]), self._dR)
-        np.matmul(self.R, self._dR, out=self._R2)
-        self.R[:] = self._R2
+        self._sd.rotate(self.R, float(dx[o]), float(dx[o + 1]), float(dx[o + 2]))
         for k in range(self.n_clones):
             if self.clone_taken[k]:
                 self.clone_p[k] += dx[self._cp[k]]
                 c = self._co[k].start
-                exp_rotvec(float(dx[c]), float(dx[c + 1]), float(dx[c + 2]), self._dR)
-                np.matmul(self.clone_R[k], self._dR, out=self._R2)
-                self.clone_R[k] = self._R2
+                self._sd.rotate(self.clone_R[k], float(dx[c]), float(dx[c + 1]), float(dx[c + 2]))
 
 
 def _nis3(S, r) -> float:
     """``r^T S^-1 r`` for a symmetric 3x3 ``S`` (inf if not positive definite)."""
-    a00, a01, a02 = float(S[0, 0]), float(S[0, 1]), float(S[0, 2])
-    a11, a12, a22 = float(S[1, 1]), float(S[1, 2]), float(S[2, 2])
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if not det > 0.0 or not math.isfinite(det):
+    inv = inv3_sym(float(S[0, 0]), float(S[0, 1]), float(S[0, 2]),
+                   float(S[1, 1]), float(S[1, 2]), float(S[2, 2]))
+    if inv is None:
         return math.inf
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    x, y, z = float(r[0]), float(r[1]), float(r[2])
-    q = (x * (c00 * x + c01 * y + c02 * z) + y * (c01 * x + c11 * y + c12 * z)
-         + z * (c02 * x + c12 * y + c22 * z))
-    return q / det
+    return quad3_sym(inv, float(r[0]), float(r[1]), float(r[2]))

@@ -61,32 +61,41 @@ class FusionRecorder:
         self._seg = None
 
     # ------------------------------------------------------------ hooks
-    def on_init(self, fus) -> None:
+    def on_init(self, fus, st) -> None:
         self._seg = {k: [] for k in ("t", "p", "v", "Th", "ba", "bg", "phi", "Pm", "Pp", "A", "dx")}
         self.segments.append(self._seg)
-        self._append(fus, fus.t_us, None)
+        self._append(fus, st, st.t_us, None)
 
-    def _append(self, fus, t, k) -> None:
+    def _append(self, fus, st, t, k) -> None:
         s = self._seg
         s["t"].append(int(t))
-        s["p"].append(fus.p.copy())
-        s["v"].append(fus.v.copy())
-        s["Th"].append(fus.Th.copy())
-        s["ba"].append(fus.ba.copy())
-        s["bg"].append(fus.bg.copy())
+        s["p"].append(st.p.copy())
+        s["v"].append(st.v.copy())
+        s["Th"].append(st.Th.copy())
+        s["ba"].append(st.ba.copy())
+        s["bg"].append(st.bg.copy())
         if k is None or fus.source_fixed:
             s["phi"].append(np.eye(3))
         else:
-            s["phi"].append(fus.imu_d[k, 9:18].reshape(3, 3).copy())
-        P = fus.P[INS, INS].copy()
+            s["phi"].append(fus.imu_d[k, fus.imu.PHI].reshape(3, 3).copy())
+        P = st.P[INS, INS].copy()
         s["Pm"].append(P)
         s["Pp"].append(P.copy())
-        s["A"].append(fus.pred.A[INS, INS].copy())
+        s["A"].append(st.pred.A[INS, INS].copy())
         s["dx"].append(np.zeros(_NI))
 
-    def on_step(self, fus, k, t1) -> None:
+    def on_step(self, fus, st, k, t1) -> None:
+        """``st`` (the filter's live state or the shadow of a replay) stepped to ``t1``."""
         if self._seg is not None:
-            self._append(fus, t1, k)
+            self._append(fus, st, t1, k)
+
+    def _at(self, t) -> int:
+        """Index of the recorded step at time ``t`` (the newest such), or -1."""
+        ts = self._seg["t"]
+        for i in range(len(ts) - 1, -1, -1):
+            if ts[i] == t:
+                return i
+        return -1
 
     def on_rewind(self, fus, t0) -> None:
         """The filter went back to ``t0``: forget the steps after it."""
@@ -99,22 +108,24 @@ class FusionRecorder:
         for key in s:
             del s[key][n:]
 
-    def on_prior(self, fus) -> None:
-        """The prior of the update about to happen at the last step."""
-        if self._seg is not None and self._seg["t"]:
-            self._seg["Pm"][-1] = fus.P[INS, INS].copy()
+    def on_prior(self, fus, st) -> None:
+        """The prior of the update about to happen at ``st.t_us`` (a recorded step)."""
+        i = self._at(st.t_us) if self._seg is not None else -1
+        if i >= 0:
+            self._seg["Pm"][i] = st.P[INS, INS].copy()
 
-    def on_update(self, fus, dx) -> None:
-        s = self._seg
-        if s is None or not s["t"]:
+    def on_update(self, fus, st, dx) -> None:
+        i = self._at(st.t_us) if self._seg is not None else -1
+        if i < 0:
             return
-        s["p"][-1] = fus.p.copy()
-        s["v"][-1] = fus.v.copy()
-        s["Th"][-1] = fus.Th.copy()
-        s["ba"][-1] = fus.ba.copy()
-        s["bg"][-1] = fus.bg.copy()
-        s["Pp"][-1] = fus.P[INS, INS].copy()
-        s["dx"][-1] = np.array(dx[INS])
+        s = self._seg
+        s["p"][i] = st.p.copy()
+        s["v"][i] = st.v.copy()
+        s["Th"][i] = st.Th.copy()
+        s["ba"][i] = st.ba.copy()
+        s["bg"][i] = st.bg.copy()
+        s["Pp"][i] = st.P[INS, INS].copy()
+        s["dx"][i] = np.array(dx[INS])
 
 
 def rts(x_post, P_post, P_prior, A):

@@ -89,6 +89,8 @@ import operator
 
 import numpy as np
 
+from coiltrack.firmware.ring import Ring
+
 # quality flags (bit field, int)
 PULSE_OK = 0
 PULSE_TOO_FEW = 1         # fewer than min_pulse_samples usable in-pulse samples, or fewer than min_baseline per side
@@ -109,33 +111,26 @@ _INT64_MAX = (1 << 63) - 1
 _INF = math.inf
 
 
-class SampleRing:
-    """Fixed-capacity ring of magnetometer samples.
+class SampleRing(Ring):
+    """Fixed-capacity ring of magnetometer samples (a :class:`~coiltrack.firmware.ring.Ring`
+    with one field ``B``).
 
     Storage (allocated once): ``t_us`` int64 (capacity,), ``b`` float64
     (capacity, 3) tesla, ``flags`` uint8 (capacity,) with bit0 = saturated,
     bit1 = flip (set/reset) state. Timestamps are strictly increasing; a full
-    ring overwrites its oldest sample. Logical index 0 is the oldest sample.
+    ring overwrites its oldest sample. Logical index 0 is the oldest sample
+    (``slot``, ``index_at_or_after`` are the ring's).
     """
 
-    __slots__ = ("capacity", "t_us", "b", "flags", "_tv", "_bv", "_fv",
-                 "_head", "_count", "_latest", "rejected")
-
     def __init__(self, capacity: int):
-        capacity = operator.index(capacity)
-        if capacity < 2:
-            raise ValueError("SampleRing capacity must be >= 2")
-        self.capacity = capacity
-        self.t_us = np.zeros(capacity, dtype=np.int64)
-        self.b = np.zeros((capacity, 3), dtype=np.float64)
-        self.flags = np.zeros(capacity, dtype=np.uint8)
+        super().__init__(capacity, (("B", 3),))
+        self.t_us = self.t
+        self.b = self.d
+        self.flags = np.zeros(self.capacity, dtype=np.uint8)
         # memoryviews read and write single elements as Python int/float,
         # without creating numpy scalars or arrays
-        self._tv = memoryview(self.t_us)
         self._bv = memoryview(self.b.reshape(-1))
         self._fv = memoryview(self.flags)
-        self._head = 0          # physical slot of the next write
-        self._count = 0
         self._latest = NO_TIME_US
         self.rejected = 0       # samples refused by push (bad data)
 
@@ -161,22 +156,14 @@ class SampleRing:
                 or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z))):
             self.rejected += 1
             return
-        p = self._head
-        self._tv[p] = t
+        p = Ring.push(self, t)
         j = 3 * p
         bv = self._bv
         bv[j] = x
         bv[j + 1] = y
         bv[j + 2] = z
         self._fv[p] = fl
-        p += 1
-        self._head = 0 if p == self.capacity else p
-        if self._count < self.capacity:
-            self._count += 1
         self._latest = t
-
-    def __len__(self) -> int:
-        return self._count
 
     @property
     def latest_t_us(self) -> int:
@@ -189,36 +176,6 @@ class SampleRing:
         if self._count == 0:
             return NO_TIME_US
         return self._tv[self.slot(0)]
-
-    def slot(self, i: int) -> int:
-        """Physical slot of logical index ``i`` (0 = oldest)."""
-        p = self._head - self._count + i
-        cap = self.capacity
-        while p < 0:
-            p += cap
-        while p >= cap:
-            p -= cap
-        return p
-
-    def index_at_or_after(self, t_us: int) -> int:
-        """Logical index of the first sample with time >= ``t_us`` (``len`` if none)."""
-        lo = 0
-        hi = self._count
-        tv = self._tv
-        base = self._head - self._count
-        cap = self.capacity
-        while lo < hi:
-            mid = (lo + hi) >> 1
-            p = base + mid
-            if p < 0:
-                p += cap
-            elif p >= cap:
-                p -= cap
-            if tv[p] < t_us:
-                lo = mid + 1
-            else:
-                hi = mid
-        return lo
 
 
 class PulseExtractor:

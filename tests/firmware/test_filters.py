@@ -256,22 +256,25 @@ def test_fusion_covariance_matches_filterpy():
     log = []
 
     class Mirror:
-        def on_init(self, fus):
-            log.append(("init", fus.t_us, fus.P.copy()))
+        def on_init(self, fus, st):
+            log.append(("init", st.t_us, st.P.copy()))
 
-        def on_step(self, fus, k, t1):
-            log.append(("step", t1, fus.pred.A.copy(), fus.pred.Q.copy(), fus.P.copy()))
+        def on_step(self, fus, st, k, t1):
+            log.append(("step", t1, st.pred.A.copy(), st.pred.Q.copy(), st.P.copy()))
 
         def on_rewind(self, fus, t0):
-            while log and log[-1][0] != "init" and log[-1][1] > t0:
-                log.pop()
+            # the steps after t0 are replayed: forget them (the update at t0 stays)
+            n = len(log)
+            while n and log[n - 1][0] != "init" and (log[n - 1][1] > t0 or log[n - 1][0] != "step"):
+                n -= 1
+            log[n:] = [e for e in log[n:] if e[0] != "step"]
 
-        def on_prior(self, fus):
-            log.append(("prior", fus.t_us, fus.P.copy()))
+        def on_prior(self, fus, st):
+            log.append(("prior", st.t_us, st.P.copy()))
 
-        def on_update(self, fus, dx):
-            log.append(("update", fus.t_us, fus.upd.H.copy(), fus.upd.R.copy(), fus.upd.y.copy(),
-                        np.array(dx), fus.P.copy()))
+        def on_update(self, fus, st, dx):
+            log.append(("update", st.t_us, fus.upd.H.copy(), fus.upd.R.copy(), fus.upd.y.copy(),
+                        np.array(dx), st.P.copy()))
 
     assert FF  # noqa
     _fusion_run(3, 8.0, 5, recorder=Mirror())
@@ -303,7 +306,7 @@ def test_fusion_models_and_delayed_update_and_reported_pose():
         assert ff.updates >= 20 and ff.rejected == 0
         assert np.sqrt(np.mean(np.square(r["err"]))) < 0.02
     # the delayed update lands at t_ref: after replay the filter is at the newest sample
-    assert ff.t_us == ff.imu_t[(ff._ihead - 1) % ff._icap]
+    assert ff.t_us == ff.imu_t[ff.imu.peek(0)] and not ff.replaying
 
 
 def test_moving_source_net_acceleration_eq_6_8():
@@ -421,3 +424,213 @@ def test_error_state_smoother_improves_the_fusion_filter():
     smo = np.sqrt(np.mean(np.sum((s["p"] - K.position) ** 2, axis=1)))
     assert smo < 0.7 * fwd
     assert r["filter"].updates > 25
+
+
+# ------------------------------------------------------------------ bounded (resumable) update
+class _Feed:
+    """One fusion filter (model 3, with its ch. 2 filter) fed sample by sample
+    from the synthetic IMU of ``_imu``; magnetic solutions are the truth at
+    ``t_ref`` moved by a fixed error (deterministic)."""
+
+    def __init__(self, imu_capacity=128, seed=2):
+        self.t_us, self.K, self.f, self.w, self.m, _ = _imu(TRAJ, 4.0, seed)
+        self.of = OrientationFilter(_orientation_params())
+        self.ff = FusionFilter(FusionParams(measurement_model=3, acc_noise=ACC_S, gyro_noise=GYR_S,
+                                            gyro_bias_sigma=0.02), self.of, imu_capacity=imu_capacity)
+        self.ff.source_fixed = True
+        self.i = 0
+
+    def push(self):
+        i, of = self.i, self.of
+        t = int(self.t_us[i])
+        if not of.initialized:
+            of.initialize(t, *self.f[i], *self.m[i])
+        else:
+            of.predict(t, *self.w[i])
+            of.update_acc(*self.f[i])
+            of.update_mag(*self.m[i])
+        self.i += 1
+        return t, self.ff.push_imu(t, *self.f[i], *self.w[i], 0.0, 0.0, 9.81, _EYE)
+
+    def run_to(self, t_end):
+        while int(self.t_us[self.i]) <= t_end:
+            self.push()
+
+    @staticmethod
+    def solution(t_ref):
+        k = TRAJ.kinematics(t_ref)
+        C = np.diag([4e-6, 3e-6, 5e-6, 1e-4, 1.2e-4, 0.8e-4])
+        C[0, 4] = C[4, 0] = 2e-6
+        return t_ref, k.position + [0.002, -0.001, 0.0015], k.R @ rotvec_to_matrix([0.004, -0.006, 0.003]), C
+
+
+_EYE = np.eye(3)
+
+
+def _ready_pair(n=2, **kw):
+    """``n`` identical filters, initialised by a first solution and with the
+    second one (t_ref 930 ms) arrived: the IMU is 170 ms past t_ref."""
+    feeds = [_Feed(**kw) for _ in range(n)]
+    for fd in feeds:
+        fd.ff.schedule_snapshot(330_000)
+        fd.run_to(500_000)
+        assert fd.ff.magnetic_update(*_Feed.solution(330_000)) == 512
+        fd.ff.schedule_snapshot(930_000)
+        fd.run_to(1_100_000)
+    return feeds
+
+
+def _assert_same_state(a, b, atol):
+    for x, y in ((a.p, b.p), (a.v, b.v), (a.Th, b.Th), (a.ba, b.ba), (a.bg, b.bg), (a.P, b.P)):
+        np.testing.assert_allclose(x, y, rtol=0, atol=atol)
+    assert a.t_us == b.t_us
+
+
+@pytest.mark.parametrize("budget", [1, 3, 50])
+def test_update_split_over_steps_equals_the_uninterrupted_update(budget):
+    """begin + step(budget) until done gives the state, covariance, pose
+    history and snapshot of magnetic_update, to 1e-12; every call stays within
+    max_replay_steps_per_step(budget); the replay covers the 170 ms since t_ref."""
+    from coiltrack.firmware.estimate.magnetic_inertial import FUS_BUSY, max_replay_steps_per_step
+
+    a, b = _ready_pair()
+    sol = _Feed.solution(930_000)
+    fa = a.ff.magnetic_update(*sol)
+    fb = b.ff.begin_magnetic_update(*sol)
+    assert fa == fb == 0 and b.ff.replaying
+    assert b.ff.begin_magnetic_update(*sol) == FUS_BUSY
+    calls, units = 0, 0
+    while not b.ff.step(budget):
+        calls += 1
+        units += b.ff.last_step_units
+        assert 1 <= b.ff.last_step_units <= max_replay_steps_per_step(budget)
+    units += b.ff.last_step_units
+    n_samples = sum(1 for t in a.t_us if 930_000 < t <= 1_100_000)
+    assert units == n_samples and calls + 1 == -(-n_samples // budget)     # the last call swaps
+    assert not b.ff.replaying
+    _assert_same_state(a.ff.st, b.ff.st, 1e-12)
+    np.testing.assert_allclose(b.ff.hist.d, a.ff.hist.d, rtol=0, atol=1e-12)
+    assert np.array_equal(a.ff.hist.t, b.ff.hist.t) and len(a.ff.hist) == len(b.ff.hist)
+    # the state really changed, by more than the tolerance
+    c, = _ready_pair(1)
+    assert np.abs(c.ff.p - a.ff.p).max() > 1e-4
+    _check_history(b.ff, c.ff, 930_000)
+
+
+def _check_history(ff, before, t_ref):
+    """The pose history after a delayed update: one entry per instant in time
+    order, unchanged up to t_ref, the corrected trajectory after it (ending at
+    the live pose), as ``pose_at`` reads it."""
+    h, h0 = ff.hist, before.hist
+    ts = [int(h.t[h.slot(i)]) for i in range(len(h))]
+    assert ts == sorted(set(ts)) and ts == [int(h0.t[h0.slot(i)]) for i in range(len(h0))]
+    for i, t in enumerate(ts):
+        row, row0 = h.d[h.slot(i)], h0.d[h0.slot(i)]
+        if t <= t_ref:
+            np.testing.assert_array_equal(row, row0)
+        else:
+            assert np.abs(row - row0).max() > 1e-5
+    newest = h.d[h.peek(0)]
+    np.testing.assert_array_equal(newest[0:3], ff.p)
+    np.testing.assert_array_equal(newest[3:12], ff.Th.reshape(9))
+    p, R = np.zeros(3), np.zeros((3, 3))
+    assert ff.pose_at(ts[-1], p, R) and np.array_equal(p, ff.p)
+
+
+def test_outputs_continue_during_the_replay_and_the_shadow_takes_over():
+    """While the replay runs (2 steps per tick, one IMU sample per tick), every
+    IMU sample still gives a fused pose at its own time, from the live state
+    (the same as a filter without the update); a snapshot scheduled inside the
+    replay window is taken from the corrected (shadow) state; once caught up,
+    state, snapshot and poses are those of the uninterrupted update (1e-12).
+    Nothing in the ticks allocates a numpy array."""
+    from coiltrack.tools.alloc import NumpyAllocationCounter, available
+
+    a, b, c = _ready_pair(3)
+    sol = _Feed.solution(930_000)
+    a.ff.magnetic_update(*sol)
+    counter = NumpyAllocationCounter() if available() else None
+    if counter is not None:
+        with counter:
+            b.ff.begin_magnetic_update(*sol)
+    else:
+        b.ff.begin_magnetic_update(*sol)
+    t_snap = 1_130_000
+    for fd in (a, b, c):
+        fd.ff.schedule_snapshot(t_snap)
+        while fd.ff.pop_output() >= 0:
+            fd.ff.release_output()
+    during = after = 0
+    while after < 20:
+        replaying = b.ff.replaying
+        outs = []
+        for fd in (a, b, c):
+            if fd is b and counter is not None:
+                with counter:
+                    t, produced = fd.push()
+                    b.ff.step(2)
+            else:
+                t, produced = fd.push()
+                if fd is b:
+                    b.ff.step(2)
+            assert produced
+            k = fd.ff.pop_output()
+            outs.append((int(fd.ff.out_t[k]), fd.ff.out_d[k].copy()))
+            fd.ff.release_output()
+            assert fd.ff.pop_output() == -1         # one pose per sample, not held back
+        (ta, da), (tb, db), (tc, dc) = outs
+        assert ta == tb == tc == t
+        if replaying:
+            during += 1
+            np.testing.assert_array_equal(db, dc)   # the live state, untouched by the replay
+        else:
+            after += 1
+            np.testing.assert_allclose(db, da, rtol=0, atol=1e-12)
+    assert during >= 15
+    assert np.abs(da - dc).max() > 1e-5            # the update shows in the poses after the swap
+    _assert_same_state(a.ff.st, b.ff.st, 1e-12)
+    _assert_same_state(a.ff.sn, b.ff.sn, 1e-12)
+    assert a.ff.sn.t_us == t_snap and b.ff.snap_valid and b.ff.snap_initialized
+    if counter is not None:
+        assert counter.count == 0
+
+
+def test_replay_that_loses_its_samples_is_dropped_and_live_goes_on():
+    """A replay left without steps while the IMU ring (40 samples) wraps past
+    t_ref cannot finish: FUS_REPLAY_LOST, the live state keeps its course;
+    magnetic_update finishes a running replay before its own."""
+    from coiltrack.firmware.estimate.magnetic_inertial import FUS_REPLAY_LOST
+
+    b, c = _ready_pair(2, imu_capacity=40)
+    b.ff.begin_magnetic_update(*_Feed.solution(930_000))
+    for _ in range(40):
+        b.push()
+        c.push()
+        assert not b.ff.step(0)
+    assert b.ff.step(5) and not b.ff.replaying
+    assert b.ff.last_flags & FUS_REPLAY_LOST and b.ff.replays_lost == 1
+    _assert_same_state(b.ff.st, c.ff.st, 0.0)
+    # a replay in progress is finished by the next synchronous update
+    d, = _ready_pair(1)
+    d.ff.begin_magnetic_update(*_Feed.solution(930_000))
+    d.ff.schedule_snapshot(1_120_000)
+    d.run_to(1_130_000)
+    assert d.ff.replaying
+    # (the snapshot at 1.12 s was taken by the running replay's shadow)
+    assert d.ff.magnetic_update(*_Feed.solution(1_120_000)) == 0
+    assert not d.ff.replaying and d.ff.updates == 2
+
+
+def test_rejected_solution_starts_no_replay_and_keeps_the_snapshot():
+    """A gated solution (a 3 m jump) offered with final=False changes
+    nothing and needs no replay; the burst's other solution is then fused."""
+    from coiltrack.firmware.estimate.ekf import EKF_GATED
+
+    b, c = _ready_pair(2)
+    t_ref, q, R, C = _Feed.solution(930_000)
+    assert b.ff.begin_magnetic_update(t_ref, q + [3.0, 0.0, 0.0], R, C, final=False) & EKF_GATED
+    assert not b.ff.replaying and b.ff.snap_valid and b.ff.rejected == 0
+    _assert_same_state(b.ff.st, c.ff.st, 0.0)
+    assert b.ff.begin_magnetic_update(t_ref, q, R, C) == 0 and b.ff.replaying
+    b.ff.finish()
+    assert b.ff.updates == 1 and np.abs(b.ff.p - c.ff.p).max() > 1e-4
