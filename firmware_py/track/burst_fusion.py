@@ -35,7 +35,8 @@ import numpy as np
 from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, POSE_FUSED, POSE_INCONSISTENT, POSE_STALE, POSE_VALID
 
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
-from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter, FusionParams
+from coiltrack.firmware.estimate.magnetic_inertial import (OUT_INCONSISTENT, OUT_P, OUT_Q, OUT_STALE, OUT_STATUS,
+                                                          OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
@@ -354,24 +355,28 @@ class SensorInertial:
         self.compensated += 1
         return True
 
-    def fuse(self, solver, S, currents, sigma, pulse_t) -> int:
-        """Fuse the burst whose magnetic-only solution is in ``mag_*``, in two
-        calls (two ticks, so that no tick carries two solves and a replay):
+    def fuse(self, solver, S, currents, sigma, pulse_t, budget: int) -> bool:
+        """One step of fusing the burst whose magnetic-only solution is in
+        ``mag_*``; returns True when the burst is fused (or dropped). A tick
+        carries at most one of these steps:
 
-        1. with motion compensation, bring the pulses to ``t_ref`` and solve
-           again (started from the magnetic-only solution); returns -1;
-        2. update the fusion filter at ``t_ref`` with the compensated solution
-           and its covariance; if the update is rejected (the inertial motion
-           was wrong), with the magnetic-only one instead. Returns the fusion
-           flags.
+        0. with motion compensation, bring the pulses to ``t_ref`` and solve
+           again (started from the magnetic-only solution);
+        1. update the fusion filter at ``t_ref`` with the compensated solution
+           and its covariance (``FusionFilter.begin_magnetic_update``); if the
+           update is rejected (the inertial motion was wrong), the next step
+           offers the magnetic-only one instead;
+        2. replay the IMU samples since ``t_ref``, ``budget`` of them per
+           step, on the filter's shadow state (the fused outputs go on from
+           the live state meanwhile).
 
         The solver's covariance assumes the sensor still during the burst. The
         motion left in the signals is added to it: without compensation the
         motion itself (``|v| t_rms`` and ``|w| t_rms`` per axis, ``t_rms`` the
         rms pulse time about the middle of the burst); with compensation the
         error of the inertial motion (velocity uncertainty times ``t_rms``)."""
+        fus = self.fusion
         if self.stage == 0:
-            self.stage = 1
             self.comp_ok = False
             if self.cfg.motion_compensation and self.compensate(solver, S, currents, pulse_t):
                 st = solver.solve(self.S_comp, currents, sigma, x0_position=self.mag_position,
@@ -381,24 +386,38 @@ class SensorInertial:
                     np.copyto(self.comp_rotation, solver.rotation)
                     np.copyto(self.comp_cov, solver.covariance)
                     self.comp_ok = True
-            return -1
-        self.stage = 0
-        self.pending = False
-        fus = self.fusion
-        if self.comp_ok:
+            self.stage = 1 if self.comp_ok else 2
+            return False
+        if self.stage == 1:
             self._motion_cov(self.comp_cov, True)
-            flags = fus.magnetic_update(self.t_ref, self.comp_position, self.comp_rotation, self._Cf, final=False)
-            if not flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
-                self.last_fuse_flags = flags
-                self.fused += 1
-                return flags
-            # the inertial motion was wrong: offer the burst as measured
-            self.comp_rejected += 1
-        self._motion_cov(self.mag_cov, False)
-        flags = fus.magnetic_update(self.t_ref, self.mag_position, self.mag_rotation, self._Cf)
+            flags = fus.begin_magnetic_update(self.t_ref, self.comp_position, self.comp_rotation, self._Cf,
+                                              final=False)
+            if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
+                self.comp_rejected += 1        # the inertial motion was wrong: offer the burst as measured
+                self.stage = 2
+                return False
+            return self._updated(flags)
+        if self.stage == 2:
+            self._motion_cov(self.mag_cov, False)
+            return self._updated(fus.begin_magnetic_update(self.t_ref, self.mag_position, self.mag_rotation,
+                                                           self._Cf))
+        if fus.step(budget):
+            self._done()
+            return True
+        return False
+
+    def _updated(self, flags: int) -> bool:
         self.last_fuse_flags = flags
         self.fused += 1
-        return flags
+        if self.fusion.replaying:
+            self.stage = 3
+            return False
+        self._done()
+        return True
+
+    def _done(self) -> None:
+        self.stage = 0
+        self.pending = False
 
     def _motion_cov(self, C, compensated: bool) -> None:
         """``_Cf = C`` plus the motion left in the burst (see :meth:`fuse`)."""
@@ -435,7 +454,7 @@ class BurstFusionTracker(MagneticTracker):
         self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
                          for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
-        self._solved_this_tick = False
+        self.replay_budget = cfg.replay_budget_steps
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -484,7 +503,7 @@ class BurstFusionTracker(MagneticTracker):
         """One step of one sensor's delayed magnetic update per tick."""
         for ch, ins in self._pairs:
             if ins.pending:
-                ins.fuse(self.solver, ch.S, self.currents, ch.sigma, ch.pmv)
+                ins.fuse(self.solver, ch.S, self.currents, ch.sigma, ch.pmv, self.replay_budget)
                 return
 
     def _send_fused(self) -> None:
@@ -497,14 +516,15 @@ class BurstFusionTracker(MagneticTracker):
                 k = fus.pop_output()
                 if k < 0:
                     break
-                st = int(d[k, 13])
+                st = int(d[k, OUT_STATUS])
                 status = POSE_VALID | POSE_FUSED
-                if st & 1:
+                if st & OUT_STALE:
                     status |= POSE_STALE
-                if st & 2:
+                if st & OUT_INCONSISTENT:
                     status |= POSE_INCONSISTENT
-                tx.pose(ch.node, fus._otv[k], d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5], d[k, 6],
-                        d[k, 7], d[k, 8], d[k, 9], d[k, 10], d[k, 11], d[k, 12], status)
+                tx.pose(ch.node, fus._otv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
+                        d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
+                        d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status)
                 fus.release_output()
 
     def counters(self) -> dict:
