@@ -133,6 +133,10 @@ class FirmwareConfig:
     mag_learn_samples: int = 120            # compass samples averaged for |m| and the dip (eqs 2.8-2.10)
     compass_guard_us: int = 5_000           # compass samples this close to a pulse are not used
     ori_update_every: int = 4               # inclination and compass updates every N IMU samples
+    earth_field_t: float = 49e-6            # |earth field| the compass noise is scaled by (T)
+    dist_smoothing: float = 0.05            # low-pass weight of norm and dip before eq 2.12
+    theta0_sigma: float = 0.05              # rad, initial orientation uncertainty of the ch. 2 filter
+    freefall_tolerance: float = 0.3         # relative |y_A| deviation from g beyond which no inclination update
     # --- magnetic-inertial fusion (thesis ch. 6; coiltrack.firmware.estimate.magnetic_inertial)
     fusion: bool = True                     # fuse IMU_SAMPLEs when they arrive (fixed actuation)
     measurement_model: int = 3              # eq 6.18 (1), eq 6.20 (2), eq 6.21 (3)
@@ -145,6 +149,10 @@ class FirmwareConfig:
     xi_heading_sigma_floor: float = 0.035   # rad, added to Xi's heading uncertainty (tilt error / cos(dip))
     xi_var_scale: float = 1.0
     mag_var_scale: float = 1.0              # scale of the solver covariance in the fusion update
+    qm_sigma: float = 0.01                  # rad, initial std of the misalignment Q_M (eq 6.19)
+    psi_sigma: float = 0.05                 # rad, initial std of Psi (eq 6.20)
+    meas_sigma: float = 1e-5                # floor of the magnetic measurement std (m, rad)
+    single_coil_iterations: int = 3         # iterations of the single-coil EKF's iterated update
     imu_ring_capacity: int = 64             # received IMU samples per node waiting for the tick
     fusion_replay_capacity: int = 128       # IMU samples kept to replay after a delayed magnetic update
     fusion_history_capacity: int = 128      # inertial poses kept for motion compensation
@@ -207,10 +215,11 @@ class FirmwareConfig:
         """Keys of the orientation filter and the magnetic-inertial fusion
         (``coiltrack.firmware.estimate.orientation``, ``coiltrack.firmware.estimate.magnetic_inertial``)."""
         fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
-        for name in ("acc_motion_sigma", "bias_tau_s", "xi_var_scale", "mag_var_scale"):
+        for name in ("acc_motion_sigma", "bias_tau_s", "xi_var_scale", "mag_var_scale", "earth_field_t",
+                     "theta0_sigma", "freefall_tolerance", "qm_sigma", "psi_sigma", "meas_sigma"):
             v = getattr(self, name)
             need(name, fin(v) and v > 0, f"must be a positive number, got {v!r}")
-        for name in ("acc_corr_time_s", "dist_sigma", "dist_norm_gain", "dist_dip_gain", "xi_sigma_floor",
+        for name in ("dist_smoothing", "acc_corr_time_s", "dist_sigma", "dist_norm_gain", "dist_dip_gain", "xi_sigma_floor",
                      "xi_heading_sigma_floor"):
             v = getattr(self, name)
             need(name, fin(v) and v >= 0, f"must be a non-negative number, got {v!r}")
@@ -270,7 +279,7 @@ class FirmwareConfig:
         need("adaptive_currents_a", all(fin(c) and 0 < c <= self.adaptive_max_current_a
                                         for c in self.adaptive_currents_a),
              f"every candidate current must be in (0, adaptive_max_current_a={self.adaptive_max_current_a}]")
-        for name in ("adaptive_current_levels", "adaptive_lead_us", "adaptive_max_interval_us", "nis_window",
+        for name in ("single_coil_iterations", "adaptive_current_levels", "adaptive_lead_us", "adaptive_max_interval_us", "nis_window",
                      "reacquire_after", "pose_every", "imu_timeout_us"):
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
@@ -313,14 +322,17 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                  "adaptive_currents_a", "adaptive_min_current_a", "adaptive_max_current_a",
                  "adaptive_current_levels", "adaptive_pulse_us", "adaptive_lead_us", "adaptive_max_interval_us",
                  "adaptive_pos_noise", "field_model_rel_sigma", "nis_window", "nis_gate_probability",
-                 "reacquire_after", "acquire_sigma_m", "pose_every", "init_sigma_vel", "init_sigma_ori_deg"),
+                 "reacquire_after", "acquire_sigma_m", "pose_every", "init_sigma_vel", "init_sigma_ori_deg",
+                 "single_coil_iterations"),
     "imu": ("imu_rate_hz", "imu_acc_sigma", "imu_gyro_sigma", "imu_acc_bias_sigma", "imu_gyro_bias_sigma",
             "imu_acc_bias_rw", "imu_gyro_bias_rw", "imu_timeout_us", "gravity_mps2", "imu_ring_capacity"),
     "orientation": ("acc_motion_sigma", "acc_corr_time_s", "dist_corr", "dist_sigma", "dist_norm_gain",
-                    "dist_dip_gain", "mag_learn_samples", "compass_guard_us", "ori_update_every"),
+                    "dist_dip_gain", "mag_learn_samples", "compass_guard_us", "ori_update_every", "earth_field_t",
+                    "dist_smoothing", "theta0_sigma", "freefall_tolerance"),
     "fusion": ("fusion", "measurement_model", "motion_compensation", "bias_tau_s", "fusion_gate_probability",
                "fusion_reinit_after", "xi_sigma_floor", "xi_heading_sigma_floor", "xi_var_scale", "mag_var_scale",
-               "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity"),
+               "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
+               "psi_sigma", "meas_sigma"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -136,16 +136,35 @@ def max_replay_steps_per_step(budget: int) -> int:
 
 
 class FusionParams:
-    """Parameters of the ch. 6 filter (SI units; per-sample noise figures)."""
+    """Parameters of the ch. 6 filter (SI units; per-sample noise figures).
 
-    def __init__(self, measurement_model=3, acc_noise=0.015, gyro_noise=0.006,
-                 source_acc_noise=0.0, acc_bias_sigma=0.03, gyro_bias_sigma=0.01,
-                 acc_bias_rw=2e-4, gyro_bias_rw=1.7e-4,
-                 acc_bias_tau_s=3600.0, gyro_bias_tau_s=3600.0, velocity0_sigma=0.3,
-                 gate_probability=0.9999, reinit_after=3, xi_var_scale=1.0, xi_sigma_floor=0.005,
-                 xi_heading_sigma_floor=0.035, mag_var_scale=1.0,
-                 qm_sigma=0.01, psi_sigma=0.05, meas_sigma=1e-5, max_gap_us=100_000,
-                 stale_us=2_000_000):
+    They have no defaults of their own: :meth:`from_config` takes them from a
+    ``FirmwareConfig`` (whose defaults are the one set)."""
+
+    @classmethod
+    def from_config(cls, cfg=None, source_imu: bool = False, **overrides) -> "FusionParams":
+        """The parameters of ``cfg`` (default ``FirmwareConfig()``), with ``overrides``."""
+        if cfg is None:
+            from coiltrack.firmware.config import FirmwareConfig
+            cfg = FirmwareConfig()
+        kw = dict(
+            measurement_model=cfg.measurement_model, acc_noise=cfg.imu_acc_sigma, gyro_noise=cfg.imu_gyro_sigma,
+            source_acc_noise=cfg.imu_acc_sigma if source_imu else 0.0,
+            acc_bias_sigma=cfg.imu_acc_bias_sigma, gyro_bias_sigma=cfg.imu_gyro_bias_sigma,
+            acc_bias_rw=cfg.imu_acc_bias_rw, gyro_bias_rw=cfg.imu_gyro_bias_rw,
+            acc_bias_tau_s=cfg.bias_tau_s, gyro_bias_tau_s=cfg.bias_tau_s,
+            velocity0_sigma=cfg.init_sigma_vel, gate_probability=cfg.fusion_gate_probability,
+            reinit_after=cfg.fusion_reinit_after, xi_var_scale=cfg.xi_var_scale, xi_sigma_floor=cfg.xi_sigma_floor,
+            xi_heading_sigma_floor=cfg.xi_heading_sigma_floor, mag_var_scale=cfg.mag_var_scale,
+            qm_sigma=cfg.qm_sigma, psi_sigma=cfg.psi_sigma, meas_sigma=cfg.meas_sigma,
+            max_gap_us=max(cfg.imu_timeout_us, int(3e6 / cfg.imu_rate_hz)), stale_us=cfg.stale_us)
+        kw.update(overrides)
+        return cls(**kw)
+
+    def __init__(self, *, measurement_model, acc_noise, gyro_noise, source_acc_noise, acc_bias_sigma,
+                 gyro_bias_sigma, acc_bias_rw, gyro_bias_rw, acc_bias_tau_s, gyro_bias_tau_s, velocity0_sigma,
+                 gate_probability, reinit_after, xi_var_scale, xi_sigma_floor, xi_heading_sigma_floor,
+                 mag_var_scale, qm_sigma, psi_sigma, meas_sigma, max_gap_us, stale_us):
         if measurement_model not in (1, 2, 3):
             raise ValueError("measurement_model must be 1, 2 or 3")
         self.measurement_model = int(measurement_model)

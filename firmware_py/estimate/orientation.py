@@ -82,13 +82,29 @@ ORI_LEARNING = 256          # compass sample used to learn |m| and the dip, not 
 
 class OrientationParams:
     """Noise and model parameters of the ch. 2 filter (SI units, per sample
-    unless stated). Built from the firmware configuration."""
+    unless stated), with no defaults of their own: :meth:`from_config`."""
 
-    def __init__(self, gyro_noise=0.006, gyro_bias_rw=1.7e-4, gyro_bias_sigma=0.01,
-                 acc_noise=0.015, acc_motion_sigma=0.05, acc_corr_time_s=0.0,
-                 mag_noise=1e-3, dist_corr=0.99, dist_sigma=2e-5, dist_norm_gain=0.5,
-                 dist_dip_gain=0.5, dist_smoothing=0.05, gravity=9.81, gate_probability=0.9999,
-                 theta0_sigma=0.05, freefall_tolerance=0.3, mag_learn_samples=120):
+    @classmethod
+    def from_config(cls, cfg=None, **overrides) -> "OrientationParams":
+        """The parameters of ``cfg`` (default ``FirmwareConfig()``), with ``overrides``."""
+        if cfg is None:
+            from coiltrack.firmware.config import FirmwareConfig
+            cfg = FirmwareConfig()
+        kw = dict(
+            gyro_noise=cfg.imu_gyro_sigma, gyro_bias_rw=cfg.imu_gyro_bias_rw,
+            gyro_bias_sigma=cfg.imu_gyro_bias_sigma, acc_noise=cfg.imu_acc_sigma,
+            acc_motion_sigma=cfg.acc_motion_sigma, acc_corr_time_s=cfg.acc_corr_time_s,
+            mag_noise=cfg.mag_sigma_t / cfg.earth_field_t, dist_corr=cfg.dist_corr, dist_sigma=cfg.dist_sigma,
+            dist_norm_gain=cfg.dist_norm_gain, dist_dip_gain=cfg.dist_dip_gain, dist_smoothing=cfg.dist_smoothing,
+            gravity=math.sqrt(sum(v * v for v in cfg.gravity_mps2)), gate_probability=cfg.fusion_gate_probability,
+            theta0_sigma=cfg.theta0_sigma, freefall_tolerance=cfg.freefall_tolerance,
+            mag_learn_samples=cfg.mag_learn_samples)
+        kw.update(overrides)
+        return cls(**kw)
+
+    def __init__(self, *, gyro_noise, gyro_bias_rw, gyro_bias_sigma, acc_noise, acc_motion_sigma, acc_corr_time_s,
+                 mag_noise, dist_corr, dist_sigma, dist_norm_gain, dist_dip_gain, dist_smoothing, gravity,
+                 gate_probability, theta0_sigma, freefall_tolerance, mag_learn_samples):
         self.gyro_noise = float(gyro_noise)            # rad/s rms per sample (Q_vG)
         self.gyro_bias_rw = float(gyro_bias_rw)        # rad/s/sqrt(s) (Q_wb)
         self.gyro_bias_sigma = float(gyro_bias_sigma)  # rad/s, initial offset uncertainty

@@ -107,9 +107,24 @@ class SchepersEKF:
         Passes of the iterated update (1: plain EKF).
     """
 
-    def __init__(self, n_clones: int = 2, gravity=_GRAVITY, acc_noise: float = 2e-3,
-                 gyr_noise: float = 1e-3, acc_bias_rw: float = 2e-4, gyr_bias_rw: float = 2e-4,
-                 pos_noise: float = 0.0, gate_probability: float = 0.999, iterations: int = 3):
+    @classmethod
+    def from_config(cls, cfg=None, **overrides) -> "SchepersEKF":
+        """The filter of ``cfg`` (default ``FirmwareConfig()``), with ``overrides``:
+        the per-sample IMU noise at ``imu_rate_hz`` becomes the density the
+        filter integrates (``Q = d^2 dt``)."""
+        if cfg is None:
+            from coiltrack.firmware.config import FirmwareConfig
+            cfg = FirmwareConfig()
+        root = math.sqrt(cfg.imu_rate_hz)
+        kw = dict(n_clones=2, gravity=cfg.gravity_mps2, acc_noise=cfg.imu_acc_sigma / root,
+                  gyr_noise=cfg.imu_gyro_sigma / root, acc_bias_rw=cfg.imu_acc_bias_rw,
+                  gyr_bias_rw=cfg.imu_gyro_bias_rw, pos_noise=cfg.adaptive_pos_noise,
+                  gate_probability=cfg.nis_gate_probability, iterations=cfg.single_coil_iterations)
+        kw.update(overrides)
+        return cls(**kw)
+
+    def __init__(self, *, n_clones: int, gravity, acc_noise: float, gyr_noise: float, acc_bias_rw: float,
+                 gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int):
         self.n_clones = int(n_clones)
         self.layout = schepers_layout(self.n_clones)
         nx = self.layout.n

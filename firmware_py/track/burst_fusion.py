@@ -47,33 +47,6 @@ from coiltrack.firmware.track.magnetic import MagneticTracker
 _COMP_MAX_VEL_SIGMA = 0.05
 
 
-def orientation_params(cfg) -> OrientationParams:
-    """Thesis ch. 2 filter parameters from a ``FirmwareConfig``."""
-    g = math.sqrt(sum(v * v for v in cfg.gravity_mps2))
-    return OrientationParams(
-        gyro_noise=cfg.imu_gyro_sigma, gyro_bias_rw=cfg.imu_gyro_bias_rw,
-        gyro_bias_sigma=cfg.imu_gyro_bias_sigma, acc_noise=cfg.imu_acc_sigma,
-        acc_motion_sigma=cfg.acc_motion_sigma, acc_corr_time_s=cfg.acc_corr_time_s,
-        mag_noise=cfg.mag_sigma_t / 49e-6, dist_corr=cfg.dist_corr, dist_sigma=cfg.dist_sigma,
-        dist_norm_gain=cfg.dist_norm_gain, dist_dip_gain=cfg.dist_dip_gain, gravity=g,
-        gate_probability=cfg.fusion_gate_probability, mag_learn_samples=cfg.mag_learn_samples)
-
-
-def fusion_params(cfg, source_imu: bool) -> FusionParams:
-    """Thesis ch. 6 filter parameters from a ``FirmwareConfig``."""
-    return FusionParams(
-        measurement_model=cfg.measurement_model, acc_noise=cfg.imu_acc_sigma, gyro_noise=cfg.imu_gyro_sigma,
-        source_acc_noise=cfg.imu_acc_sigma if source_imu else 0.0,
-        acc_bias_sigma=cfg.imu_acc_bias_sigma, gyro_bias_sigma=cfg.imu_gyro_bias_sigma,
-        acc_bias_rw=cfg.imu_acc_bias_rw, gyro_bias_rw=cfg.imu_gyro_bias_rw,
-        acc_bias_tau_s=cfg.bias_tau_s, gyro_bias_tau_s=cfg.bias_tau_s,
-        velocity0_sigma=cfg.init_sigma_vel, gate_probability=cfg.fusion_gate_probability,
-        reinit_after=cfg.fusion_reinit_after, xi_var_scale=cfg.xi_var_scale, xi_sigma_floor=cfg.xi_sigma_floor,
-        xi_heading_sigma_floor=cfg.xi_heading_sigma_floor,
-        mag_var_scale=cfg.mag_var_scale, max_gap_us=max(cfg.imu_timeout_us, int(3e6 / cfg.imu_rate_hz)),
-        stale_us=cfg.stale_us)
-
-
 class PulseGate:
     """Is a magnetometer sample free of coil field? Outside every pulse of the
     current schedule by ``guard_us`` before its start and ``fall_us + guard_us``
@@ -163,7 +136,7 @@ class _Ori:
     """A ch. 2 filter fed from an IMU ring and a magnetometer ring."""
 
     def __init__(self, cfg, gate: PulseGate):
-        self.f = OrientationFilter(orientation_params(cfg))
+        self.f = OrientationFilter(OrientationParams.from_config(cfg))
         self.gate = gate
         self.flip = FlipOffset()
         self.compass_t = -(1 << 62)
@@ -253,7 +226,7 @@ class SensorInertial:
         n = len(cfg.coils)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self.ori = _Ori(cfg, gate)
-        self.fusion = FusionFilter(fusion_params(cfg, source is not None), self.ori.f,
+        self.fusion = FusionFilter(FusionParams.from_config(cfg, source is not None), self.ori.f,
                                    imu_capacity=cfg.fusion_replay_capacity,
                                    history_capacity=cfg.fusion_history_capacity,
                                    output_capacity=cfg.pose_output_capacity)

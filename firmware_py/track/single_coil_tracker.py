@@ -221,12 +221,7 @@ class SingleCoilTracker:
         self.sensors: dict[int, _Sensor] = {}
         for tr in channels:
             sid = tr.node
-            # per-sample noise at imu_rate_hz -> density the filter integrates (Q = d^2 dt)
-            root = math.sqrt(cfg.imu_rate_hz)
-            ekf = SchepersEKF(n_clones=2, gravity=self.gravity, acc_noise=cfg.imu_acc_sigma / root,
-                              gyr_noise=cfg.imu_gyro_sigma / root, acc_bias_rw=cfg.imu_acc_bias_rw,
-                              gyr_bias_rw=cfg.imu_gyro_bias_rw, pos_noise=cfg.adaptive_pos_noise,
-                              gate_probability=gate_p)
+            ekf = SchepersEKF.from_config(cfg)
             mon = NisMonitor(window=cfg.nis_window, dof=3, gate=chi2_gate(3, gate_p), z=_ALARM_Z,
                              min_count=min(cfg.nis_window, 3), min_excess=_ALARM_EXCESS)
             self.sensors[sid] = _Sensor(tr, cfg, n, ekf, mon)

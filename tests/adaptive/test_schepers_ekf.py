@@ -35,7 +35,7 @@ def _simulate(kind, seed, duration_s=20.0, current=0.91, sigma_t=3e-8):
                                  w_max_deg=30.0)
     acc_d, gyr_d = 2e-3, 8.7e-4
     ba, bg = rng.normal(0, 0.02, 3), rng.normal(0, 5e-3, 3)
-    ekf = SchepersEKF(gravity=G, acc_noise=acc_d, gyr_noise=gyr_d, acc_bias_rw=1e-4, gyr_bias_rw=1e-5)
+    ekf = SchepersEKF.from_config(None, gravity=G, acc_noise=acc_d, gyr_noise=gyr_d, acc_bias_rw=1e-4, gyr_bias_rw=1e-5)
     model = SingleCoilModel(coils)
     k0 = traj.kinematics(0)
     ekf.initialize(k0.position + rng.normal(0, 3e-3, 3), k0.R, np.diag([3e-3 ** 2] * 3 + [0.02 ** 2] * 3),
@@ -93,8 +93,8 @@ def test_clone_makes_a_delayed_update_equal_to_an_update_at_its_time():
     p0 = np.array([0.25, 0.05, 0.02])
     R0 = physics.rotvec_to_matrix(np.array([0.2, -0.1, 0.3]))
     P6 = np.diag([2e-3 ** 2] * 3 + [5e-3 ** 2] * 3)
-    a = SchepersEKF(gravity=G)
-    b = SchepersEKF(gravity=G)
+    a = SchepersEKF.from_config(None, gravity=G)
+    b = SchepersEKF.from_config(None, gravity=G)
     for f in (a, b):
         f.initialize(p0, R0, P6, 0, 0.01, 0.01, 0.001)
     acc = R0.T @ (np.array([0.1, 0.0, 0.05]) - G)
@@ -133,7 +133,7 @@ def test_clone_makes_a_delayed_update_equal_to_an_update_at_its_time():
 def test_gated_update_leaves_the_state_alone():
     coils = _coils("orthogonal")
     model = SingleCoilModel(coils)
-    f = SchepersEKF(gravity=G)
+    f = SchepersEKF.from_config(None, gravity=G)
     f.initialize(np.array([0.3, 0.0, 0.0]), np.eye(3), np.diag([1e-6] * 3 + [1e-5] * 3), 0, 0.01, 0.01, 0.001)
     P = f.P.copy()
     p = f.p.copy()
@@ -148,7 +148,7 @@ def test_gated_update_leaves_the_state_alone():
 def test_propagation_allocates_nothing_in_steady_state():
     import tracemalloc
 
-    f = SchepersEKF(gravity=G)
+    f = SchepersEKF.from_config(None, gravity=G)
     f.initialize(np.array([0.3, 0.0, 0.0]), np.eye(3), np.diag([1e-6] * 3 + [1e-5] * 3), 0, 0.01, 0.01, 0.001)
     model = SingleCoilModel(_coils("skewed"))
     acc = np.array([0.1, 0.2, 9.8])

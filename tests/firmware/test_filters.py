@@ -93,7 +93,7 @@ def _imu(traj, T, seed, bias=True):
 
 
 def _orientation_params():
-    return OrientationParams(gyro_noise=GYR_S, acc_noise=ACC_S, mag_noise=0.5e-7 / 49e-6, gyro_bias_sigma=0.02,
+    return OrientationParams.from_config(None, gyro_noise=GYR_S, acc_noise=ACC_S, mag_noise=0.5e-7 / 49e-6, gyro_bias_sigma=0.02,
                              mag_learn_samples=60)
 
 
@@ -187,7 +187,7 @@ def _fusion_run(model, T, seed, *, nees=False, recorder=None, mirror=None, bias=
     coils, cur = orthogonal_source(0.055, 50), np.full(3, 1.5)
     t_us, K, f, w, m, rng = _imu(TRAJ, T, seed, bias=bias)
     of = OrientationFilter(_orientation_params())
-    ff = FusionFilter(FusionParams(measurement_model=model, acc_noise=ACC_S, gyro_noise=GYR_S,
+    ff = FusionFilter(FusionParams.from_config(None, measurement_model=model, acc_noise=ACC_S, gyro_noise=GYR_S,
                                    gyro_bias_sigma=0.02), of if model != 1 else None)
     ff.source_fixed = source is None
     ff.recorder = recorder
@@ -329,7 +329,7 @@ def test_moving_source_net_acceleration_eq_6_8():
     for name, source in (("with source", src), ("fixed", None)):
         global _imu_override
         of = OrientationFilter(_orientation_params())
-        ff = FusionFilter(FusionParams(measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S))
+        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S))
         ff.source_fixed = source is None
         from coiltrack.firmware.pose.reference import crlb
         from coiltrack.firmware.model.field import orthogonal_source
@@ -435,7 +435,7 @@ class _Feed:
     def __init__(self, imu_capacity=128, seed=2):
         self.t_us, self.K, self.f, self.w, self.m, _ = _imu(TRAJ, 4.0, seed)
         self.of = OrientationFilter(_orientation_params())
-        self.ff = FusionFilter(FusionParams(measurement_model=3, acc_noise=ACC_S, gyro_noise=GYR_S,
+        self.ff = FusionFilter(FusionParams.from_config(None, measurement_model=3, acc_noise=ACC_S, gyro_noise=GYR_S,
                                             gyro_bias_sigma=0.02), self.of, imu_capacity=imu_capacity)
         self.ff.source_fixed = True
         self.i = 0

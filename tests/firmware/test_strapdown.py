@@ -64,7 +64,7 @@ def _fusion_ref(x, s0, s1, dt, ka, kg):
 
 
 def _fusion_filter(x, s0, s1, t0, dt_us):
-    ff = FusionFilter(FusionParams(measurement_model=1, acc_bias_tau_s=2.0, gyro_bias_tau_s=3.0))
+    ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_bias_tau_s=2.0, gyro_bias_tau_s=3.0))
     ff.source_fixed = True
     ff.push_imu(t0, *s0[0], *s0[1], *s0[2], np.eye(3))
     st = ff.st
@@ -138,7 +138,7 @@ def _schepers_ref(x, f, w, dt):
 
 
 def _schepers(x, acc, gyr, dt_us):
-    ekf = SchepersEKF(gravity=G)
+    ekf = SchepersEKF.from_config(None, gravity=G)
     ekf.initialize(x[0], x[2], np.eye(6) * 1e-6, 0, 0.1, 0.01, 0.01)
     ekf.v[:], ekf.ba[:], ekf.bg[:] = x[1], x[3], x[4]
     ekf.propagate(0, acc, gyr)
@@ -201,7 +201,7 @@ def test_navigation_over_a_second_matches_the_closed_form(which):
     fs = [R.T @ (a - G) for R in Rs]
     T = ts[-1] * 1e-6
     if which == "fusion":
-        ff = FusionFilter(FusionParams(measurement_model=1, acc_bias_tau_s=0.0, gyro_bias_tau_s=0.0))
+        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_bias_tau_s=0.0, gyro_bias_tau_s=0.0))
         ff.source_fixed = True
         ff.push_imu(int(ts[0]), *fs[0], *w, *(-G), np.eye(3))
         ff.st.Th[:] = ROT
@@ -212,7 +212,7 @@ def test_navigation_over_a_second_matches_the_closed_form(which):
             ff.push_imu(int(t), *f, *w, *(-G), np.eye(3))
         p, v, R, tol = ff.p, ff.v, ff.Th, 1e-9
     else:
-        ekf = SchepersEKF(gravity=G)
+        ekf = SchepersEKF.from_config(None, gravity=G)
         ekf.initialize(np.zeros(3), ROT, np.eye(6) * 1e-6, 0, 0.1, 0.01, 0.01)
         ekf.v[:] = v0
         for t, f in zip(ts, fs):
