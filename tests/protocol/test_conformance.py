@@ -50,7 +50,6 @@ def test_serial_pty(pty, emulator_factory, fast):
     rep = run_conformance(link, ConformOptions(**fast), transport="serial")
     link.close()
     assert_conforms(rep)
-    assert rep.duration_s < 4
 
 
 def test_virtual_can_with_signing_driver(emulator_factory, fast):
