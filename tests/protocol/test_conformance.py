@@ -9,7 +9,7 @@ import pytest
 from coiltrack.hil.nodes import DriverLimits
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder, SignatureVerifier
 from coiltrack.protocol.can import CanLink, open_bus, unique_channel, virtual_link_pair
-from coiltrack.protocol.conformance import FAIL, PASS, SKIP, ConformOptions, run_conformance
+from coiltrack.protocol.conformance import FAIL, PASS, SKIP, Conformance, ConformOptions, run_conformance
 from coiltrack.protocol.serial_link import FdPort, SerialLink, open_pty
 from coiltrack.protocol.slcan import SlcanBridge
 from coiltrack.tools.cli import main
@@ -52,11 +52,17 @@ def test_serial_pty(pty, emulator_factory, fast):
     assert_conforms(rep)
 
 
-def test_virtual_can_with_signing_driver(emulator_factory, fast):
+def run_lockstep(lockstep, tester, node_side, options, transport, **emulator_kw):
+    """The suite on injected time: tester and emulator nodes in one thread."""
+    ls = lockstep(node_side, **emulator_kw)
+    return Conformance(tester, options, transport, clock=ls.now, sleep=ls.sleep).run()
+
+
+def test_virtual_can_with_signing_driver(lockstep, fast):
     tester, node_side = virtual_link_pair(1, 2)
     verifier = SignatureVerifier(KEY)
-    emulator_factory(node_side, verifier=verifier)
-    rep = run_conformance(tester, ConformOptions(key=KEY, **fast), transport="CAN virtual")
+    rep = run_lockstep(lockstep, tester, node_side, ConformOptions(key=KEY, **fast), "CAN virtual",
+                       verifier=verifier)
     tester.close()
     assert_conforms(rep, signed=True)
     # the identical re-sent frame is already dropped as a duplicate by the CAN
@@ -80,23 +86,21 @@ def test_slcan_over_ptys(emulator_factory, fast):
     assert_conforms(rep)
 
 
-def test_driver_without_limits_fails_refusal_rules(pty, emulator_factory, fast):
-    master, path = pty
-    link = SerialLink(path)
-    emulator_factory(FdPort(master), limits=DriverLimits(max_current_a=100.0, max_pulse_us=60_000_000,
-                                                                  max_duty=1.0, duty_window_us=10**9))
-    rep = run_conformance(link, ConformOptions(node=2, **fast), transport="serial")
-    link.close()
+def test_driver_without_limits_fails_refusal_rules(pipes, lockstep, fast):
+    tester, node_side = pipes()
+    rep = run_lockstep(lockstep, tester, node_side, ConformOptions(node=2, **fast), "in-memory serial",
+                       limits=DriverLimits(max_current_a=100.0, max_pulse_us=60_000_000, max_duty=1.0,
+                                           duty_window_us=10**9))
     assert rep.result("pulse_status", 2).status == PASS
     assert rep.result("refuse_over_current", 2).status == FAIL
     assert rep.result("refuse_too_long", 2).status == FAIL
     assert not rep.ok and 16 not in rep.nodes
 
 
-def test_unsigned_tester_against_signing_driver_explains(emulator_factory, fast):
+def test_unsigned_tester_against_signing_driver_explains(lockstep, fast):
     tester, node_side = virtual_link_pair(1, 2)
-    emulator_factory(node_side, verifier=SignatureVerifier(KEY))
-    rep = run_conformance(tester, ConformOptions(node=2, **fast), transport="CAN virtual")
+    rep = run_lockstep(lockstep, tester, node_side, ConformOptions(node=2, **fast), "CAN virtual",
+                       verifier=SignatureVerifier(KEY))
     tester.close()
     r = rep.result("pulse_status", 2)
     assert r.status == FAIL and "pass a key" in r.detail
@@ -124,8 +128,9 @@ class _BadNode:
         pass
 
 
-def test_bad_node_is_reported():
-    rep = run_conformance(_BadNode(), ConformOptions(observe_s=0.2, optional_wait_s=0.02), transport="fake")
+def test_bad_node_is_reported(sim_clock):
+    rep = Conformance(_BadNode(), ConformOptions(observe_s=0.2, optional_wait_s=0.02), "fake",
+                      clock=sim_clock.now, sleep=sim_clock.sleep).run()
     assert rep.result("heartbeat").status == PASS
     v = rep.result("heartbeat_version", 5)
     assert v.status == FAIL and "schema hash" in v.detail
@@ -137,7 +142,7 @@ def test_bad_node_is_reported():
     assert json.loads(rep.to_json())["failed"] == rep.failed
 
 
-def test_no_node_at_all():
+def test_no_node_at_all(sim_clock):
     class Silent:
         def read(self):
             return b""
@@ -145,7 +150,8 @@ def test_no_node_at_all():
         def write(self, data):
             pass
 
-    rep = run_conformance(Silent(), ConformOptions(heartbeat_timeout_s=0.1))
+    rep = Conformance(Silent(), ConformOptions(heartbeat_timeout_s=0.1), "fake", clock=sim_clock.now,
+                      sleep=sim_clock.sleep).run()
     assert rep.result("heartbeat").status == FAIL and not rep.ok
 
 
