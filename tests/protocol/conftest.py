@@ -168,3 +168,11 @@ def world_factory():
 def fast():
     """Fast ConformOptions keyword arguments for tests."""
     return dict(FAST)
+
+
+@pytest.fixture
+def wall():
+    """FAST for runs against a node on the wall clock (a thread or a process):
+    an answer may take as long as the machine needs (the wait ends when it
+    comes), so a loaded machine makes the run slower, not failed."""
+    return dict(FAST, answer_timeout_s=5.0)

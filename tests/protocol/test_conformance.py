@@ -43,11 +43,11 @@ def pty():
     os.close(slave)
 
 
-def test_serial_pty(pty, emulator_factory, fast):
+def test_serial_pty(pty, emulator_factory, wall):
     master, path = pty
     link = SerialLink(path)                       # open before the node starts: its first heartbeat is heard
     emulator_factory(FdPort(master))
-    rep = run_conformance(link, ConformOptions(**fast), transport="serial")
+    rep = run_conformance(link, ConformOptions(**wall), transport="serial")
     link.close()
     assert_conforms(rep)
 
@@ -72,13 +72,13 @@ def test_virtual_can_with_signing_driver(lockstep, fast):
     assert tester.reassembler.frames_bad == 0
 
 
-def test_slcan_over_ptys(emulator_factory, fast):
+def test_slcan_over_ptys(emulator_factory, wall):
     with SlcanBridge(2) as br:
         node_side = CanLink(open_bus("slcan", br.paths[0]), 2)
         tester = CanLink(open_bus("slcan", br.paths[1]), 1)
         assert br.wait_open()
         emu = emulator_factory(node_side)
-        rep = run_conformance(tester, ConformOptions(**fast), transport="CAN slcan")
+        rep = run_conformance(tester, ConformOptions(**wall), transport="CAN slcan")
         emu.stop()
         tester.close()
         node_side.close()
@@ -193,7 +193,7 @@ def test_conform_against_emulator_process():
         assert path.startswith("/dev/"), emu.stderr.read() if emu.poll() is not None else path
         rep = run_conformance(SerialLink(path), ConformOptions(observe_s=0.4, lead_ms=50.0, pulse_ms=10.0,
                                                                silence_s=0.12, optional_wait_s=0.1,
-                                                               answer_timeout_s=0.5, sync_period_s=1.0),
+                                                               answer_timeout_s=5.0, sync_period_s=1.0),
                                transport="serial")
         assert_conforms(rep)
     finally:
