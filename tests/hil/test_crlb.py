@@ -60,8 +60,8 @@ def fisher(p, R, sigma, h_p=3e-5, h_r=3e-6) -> np.ndarray:
 def test_crlb_matches_an_independent_fisher_computation(p, rv, sigma):
     """Position block, orientation block (turned into the sensor frame, where
     hil.crlb states its rotation vector: ``R_true = R exp([w]x)``) and the
-    position RMS. Tolerance 0.1 % (finite differences; the two field
-    computations agree to 1e-9)."""
+    position RMS. Tolerance 0.1 % of the standard deviations (finite
+    differences; measured agreement 4e-7)."""
     p = np.asarray(p, dtype=float)
     R = Rotation.from_rotvec(rv).as_matrix()
     world = World(coils(), trajectory=None)
