@@ -148,8 +148,8 @@ ORI_NEES_EVERY = 600
 
 def _orientation_run(seed: int, T: float):
     """No sensor offsets: the orientation error is white-noise driven. NEES of the
-    orientation error (3 dof) every ``ORI_NEES_EVERY`` samples after 5 s, and the
-    error angle at every 12th sample."""
+    orientation error (3 dof) every ``ORI_NEES_EVERY`` samples (5 s) from 10 s on,
+    and the error angle at every 12th sample from 5 s on."""
     t_us, K, f, w, m, _ = _imu(TRAJ, T, seed, bias=False)
     of = OrientationFilter(_orientation_params())
     nees, err = [], []

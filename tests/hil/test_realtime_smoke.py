@@ -8,7 +8,8 @@ that arrives late is refused by the coil driver and its pose is marked
 invalid. So nothing here counts ticks, poses or sync round trips. What is
 asserted holds at any speed: the firmware process exits cleanly, the report
 is complete, no frame arrives corrupted, no sample inside a pulse's edge is
-used, and no node answers a TIME_SYNC twice. The loops' behaviour (ticks,
+used, and the firmware counts no more TIME_SYNC replies than its two nodes
+can give. The loops' behaviour (ticks,
 poses, synchronisation, deadline misses) is tested on an injected clock in
 ``test_timing.py`` and on the simulated clock of ``conftest.run_bench``."""
 from __future__ import annotations
