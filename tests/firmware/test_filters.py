@@ -124,11 +124,33 @@ def test_orientation_filter_matches_filterpy_covariance_recursion():
     assert checked > 700
 
 
-def test_orientation_filter_is_consistent_and_accurate():
-    """No sensor offsets, so the error is white-noise driven: the NEES of the
-    orientation error (3 dof) averaged over the run is within its 99.9 %
-    chi-square band, and the error is a few hundredths of a degree."""
-    t_us, K, f, w, m, _ = _imu(TRAJ, 30.0, 3, bias=False)
+def chi2_band(dof: int, n: int, p: float = 0.999) -> tuple[float, float]:
+    """Two-sided ``p`` band of the mean of ``n`` independent chi-square(dof) samples."""
+    lo, hi = chi2.ppf([(1 - p) / 2, (1 + p) / 2], dof * n) / n
+    return float(lo), float(hi)
+
+
+def assert_nees_consistent(per_seed: dict, dof: int) -> None:
+    """Every seed's mean NEES and the pooled mean inside their 99.9 % bands
+    (samples taken far enough apart to be nearly independent)."""
+    for seed, v in per_seed.items():
+        lo, hi = chi2_band(dof, len(v))
+        assert lo < np.mean(v) < hi, f"seed {seed}: mean NEES {np.mean(v):.2f} outside {lo:.2f}-{hi:.2f} (n={len(v)})"
+    pooled = np.concatenate(list(per_seed.values()))
+    lo, hi = chi2_band(dof, pooled.size)
+    assert lo < pooled.mean() < hi, f"pooled mean NEES {pooled.mean():.2f} outside {lo:.2f}-{hi:.2f} (n={pooled.size})"
+
+
+#: NEES samples of the orientation filter 5 s apart: the measured autocorrelation of
+#: its NEES is 0.70 at 1 s, 0.37 at 3 s and 0.14 at 5 s (seeds 3-8)
+ORI_NEES_EVERY = 600
+
+
+def _orientation_run(seed: int, T: float):
+    """No sensor offsets: the orientation error is white-noise driven. NEES of the
+    orientation error (3 dof) every ``ORI_NEES_EVERY`` samples (5 s) from 10 s on,
+    and the error angle at every 12th sample from 5 s on."""
+    t_us, K, f, w, m, _ = _imu(TRAJ, T, seed, bias=False)
     of = OrientationFilter(_orientation_params())
     nees, err = [], []
     for i in range(t_us.size):
@@ -141,15 +163,29 @@ def test_orientation_filter_is_consistent_and_accurate():
         of.update_mag(*m[i])
         if i > 600 and i % 12 == 0:
             e = np.array(matrix_to_rotvec(K.R[i] @ of.R.T))      # global frame, true = exp(e) est
-            Pg = np.zeros((3, 3))
-            of.theta_covariance_global(Pg)
-            nees.append(e @ np.linalg.solve(Pg, e))
             err.append(np.linalg.norm(e))
-    n = len(nees)
-    lo, hi = chi2.ppf([0.0005, 0.9995], 3 * n) / n
-    # consecutive samples are correlated (12 IMU samples apart): widen the band 3x
-    assert lo / 3 < np.mean(nees) < hi * 3
+            if i % ORI_NEES_EVERY == 0:
+                Pg = np.zeros((3, 3))
+                of.theta_covariance_global(Pg)
+                nees.append(e @ np.linalg.solve(Pg, e))
+    return np.array(nees), np.array(err)
+
+
+def test_orientation_filter_is_accurate():
+    """No sensor offsets: the orientation error is a few hundredths of a degree."""
+    _, err = _orientation_run(3, 30.0)
     assert math.degrees(np.sqrt(np.mean(np.square(err)))) < 0.2
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "orientation filter overconfident: mean NEES (3 dof) 5.42 / 6.08 / 5.71 for seeds 3 / 4 / 5 "
+    "over 60 s (each inside 1.08-6.22, n = 10), pooled 5.73 outside the 99.9 % band 1.74-4.69 "
+    "(n = 30); seeds 3-10 pooled 5.84 against 2.18-3.98 (n = 80)"))
+def test_orientation_filter_is_consistent():
+    """NEES of the orientation error (3 dof), samples 5 s apart over 60 s,
+    seeds 3, 4, 5: each seed's mean and the pooled mean inside the 99.9 %
+    chi-square band of their sample counts (no widening)."""
+    assert_nees_consistent({seed: _orientation_run(seed, 60.0)[0] for seed in (3, 4, 5)}, 3)
 
 
 def test_orientation_filter_estimates_gyro_offset_and_survives_disturbance():
@@ -232,18 +268,24 @@ def _fusion_run(model, T, seed, *, nees=False, recorder=None, mirror=None, bias=
     return out
 
 
+#: fusion NEES samples 2 s apart (every 8th of those taken every 0.25 s): the measured
+#: autocorrelation of its NEES is 0.24 at 1 s, 0.10 at 2 s, 0.06 at 3 s (model 1, seeds 11-18)
+FUSION_NEES_THIN = 8
+
+
 @pytest.mark.parametrize("model", [1, 3])
 def test_fusion_is_consistent_nees_within_chi_square(model):
     """Normalised estimation error squared of position, velocity and
-    orientation (9 dof), averaged over the run (after convergence), inside
-    the 99.9 % chi-square band (widened for the correlation of nearby samples);
-    the fused position beats the magnetic solutions it was given."""
-    r = _fusion_run(model, 40.0, 11, nees=True, bias=False)
-    nees = np.array(r["nees"])
-    n = nees.size
-    lo, hi = chi2.ppf([0.0005, 0.9995], 9 * n) / n
-    assert lo / 2 < nees.mean() < hi * 2, nees.mean()
-    assert np.sqrt(np.mean(np.square(r["err"]))) < np.sqrt(np.mean(np.square(r["mag"])))
+    orientation (9 dof) after convergence, samples 2 s apart, seeds 11, 12, 13:
+    each seed's mean and the pooled mean inside the 99.9 % chi-square band of
+    their sample counts (no widening); the fused position beats the magnetic
+    solutions it was given."""
+    per_seed = {}
+    for seed in (11, 12, 13):
+        r = _fusion_run(model, 40.0, seed, nees=True, bias=False)
+        per_seed[seed] = np.array(r["nees"])[::FUSION_NEES_THIN]
+        assert np.sqrt(np.mean(np.square(r["err"]))) < np.sqrt(np.mean(np.square(r["mag"])))
+    assert_nees_consistent(per_seed, 9)
 
 
 def test_fusion_covariance_matches_filterpy():

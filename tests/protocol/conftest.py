@@ -76,6 +76,43 @@ class EmulatorThread:
         self.stop()
 
 
+class Lockstep:
+    """Injected time for a conformance run on an in-process link: the tester's
+    ``sleep`` advances a simulated clock and steps the emulator (not started
+    as a thread) to it, so what happens does not depend on the machine's
+    speed. ``now`` and ``sleep`` are the tester's clock and sleep; without an
+    emulator the clock just advances (a scripted node answers on every read)."""
+
+    def __init__(self, emu: EmulatorThread | None = None, step_s: float = 0.0005):
+        self.emu = emu
+        self.step_s = step_s
+        self.t = 0.0
+
+    def now(self) -> float:
+        return self.t
+
+    def sleep(self, seconds: float) -> None:
+        end = self.t + max(seconds, 0.0)
+        while True:
+            self.t = min(self.t + self.step_s, end)
+            if self.emu is not None:
+                self.emu.emulator.step(int(round(self.t * 1e6)))
+            if self.t >= end:
+                return
+
+
+@pytest.fixture
+def sim_clock():
+    """A :class:`Lockstep` without an emulator: injected time for scripted nodes."""
+    return Lockstep()
+
+
+@pytest.fixture
+def lockstep():
+    """``lockstep(link, **emulator_kw)`` -> a :class:`Lockstep` with the emulator on ``link``."""
+    return lambda link, **kw: Lockstep(EmulatorThread(link, **kw))
+
+
 @pytest.fixture
 def emulator_factory():
     started = []
@@ -131,3 +168,11 @@ def world_factory():
 def fast():
     """Fast ConformOptions keyword arguments for tests."""
     return dict(FAST)
+
+
+@pytest.fixture
+def wall():
+    """FAST for runs against a node on the wall clock (a thread or a process):
+    an answer may take as long as the machine needs (the wait ends when it
+    comes), so a loaded machine makes the run slower, not failed."""
+    return dict(FAST, answer_timeout_s=5.0)
