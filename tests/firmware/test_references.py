@@ -114,7 +114,7 @@ T0_US = 1000
 def _fusion(**kw) -> FusionFilter:
     prm = dict(measurement_model=1, acc_noise=0.0155, gyro_noise=0.0067)
     prm.update(kw)
-    ff = FusionFilter(FusionParams(**prm))
+    ff = FusionFilter(FusionParams.from_config(None, **prm))
     ff.source_fixed = True
     return ff
 
@@ -335,7 +335,7 @@ def test_orientation_filter_F_and_H_match_finite_differences():
     inclination ``R^T e_z`` and compass ``R^T h_G + d``. Tolerances: ``F``
     1e-5 (the trapezoidal offset term is exact to ``T_N^3 |w|^2``, T_N = 25 ms),
     ``H`` 1e-7 (exact Jacobians)."""
-    prm = OrientationParams(mag_learn_samples=1, dist_corr=0.97)
+    prm = OrientationParams.from_config(None, mag_learn_samples=1, dist_corr=0.97)
     of = OrientationFilter(prm)
     R0 = rot([0.3, -0.4, 0.9])
     h_true = np.array([20e-6, 0.0, -45e-6])
