@@ -133,11 +133,14 @@ def test_kuipers_start_matches_reference_closed_form():
     S = measurement_model(p, R, COILS, np.full(3, 1.5), "dipole")
     kp, kR = kuipers(S, m)
     ps = PoseSolver(COILS, "dipole")
+    acq = ps._acq
     ps._cur[:] = 1.5
-    ps._S[:] = S
-    assert ps._kuipers_start(1.0, 0.0, 0.0)
-    np.testing.assert_allclose(ps._p, kp, atol=1e-12)
-    np.testing.assert_allclose(ps._R, kR, atol=1e-10)
+    ps._S[:] = S.T                      # the solver's layout: [coil, component]
+    acq.begin(1.0, 0.0, 0.0, 1e-9)
+    acq.next_unit()                     # the Kuipers unit; the dipole model stops there
+    assert acq.finished and acq.ok and ps.signal.evals == 0
+    np.testing.assert_allclose(acq.p, kp, atol=1e-12)
+    np.testing.assert_allclose(acq.R, kR, atol=1e-10)
 
 
 def test_bad_input_is_reported_not_raised():
