@@ -20,7 +20,8 @@ Each step solves ``(A + lambda diag A) d = g`` (Marquardt's scaling, a
 non-positive diagonal element damped by ``lambda`` itself), accepts it if
 the cost does not grow (``lambda /= 10``, floor 1e-12) and otherwise rejects
 it (``lambda *= 10``). It stops converged on a small step or a relative cost
-decrease below ``cost_tol``, and unconverged when ``lambda`` exceeds
+change below ``cost_tol`` (a decrease accepted or an increase rejected: the
+cost is flat at its rounding level), and unconverged when ``lambda`` exceeds
 ``lam_max``, the step is not finite, or after ``iters`` steps. A matrix that
 is not positive definite raises the damping and counts as a step.
 
@@ -144,8 +145,8 @@ class LevenbergMarquardt:
             self.lam = max(self.lam * 0.1, _LAM_MIN)
             if small or rel < self.cost_tol:
                 self.state = LM_CONVERGED
-        elif small:
-            self.state = LM_CONVERGED
+        elif small or (cost_t - self.cost) < self.cost_tol * max(self.cost, 1e-300):
+            self.state = LM_CONVERGED          # the cost is flat to its rounding level
         else:
             self._raise_damping()
 

@@ -588,7 +588,9 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
                 converged = True
                 break
         else:
-            if small:
+            # rejected: converged if the step is tiny or the cost is flat to
+            # its rounding level (otherwise the damping climbs for nothing)
+            if small or (cost_t - cost) < _COST_TOL * max(cost, 1e-300):
                 converged = True
                 break
             lam *= 10.0

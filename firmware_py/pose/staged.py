@@ -5,7 +5,8 @@ a callable, ``None`` when finished) and an upper bound of that unit's cost
 in field evaluations (``next_cost``). Each unit sets its successor.
 :func:`run_units` runs units while the next one still fits into a budget;
 the first unit of a call always runs, so a unit larger than the budget runs
-alone and the computation always progresses. Because a unit does the same
+alone and the computation always progresses; units that evaluate no field
+(closed forms, the covariance) run whenever they are next. Because a unit does the same
 arithmetic however the units are grouped into calls, the result does not
 depend on the budget.
 """
@@ -33,7 +34,8 @@ def run_units(job: Staged, signal, budget: int) -> int:
     start = signal.evals
     used = 0
     while job.next_unit is not None:
-        if used > 0 and used + job.next_cost > budget:
+        cost = job.next_cost
+        if cost > 0 and used > 0 and used + cost > budget:
             break
         job.next_unit()
         used = signal.evals - start
