@@ -1,12 +1,14 @@
 """Acquisition: a start for the pose fit from one signal matrix, no prior.
 
 Follows ``pose.reference._initial_pose`` (the numpy reference), staged into
-units of at most ``3 n`` field evaluations (``pose.staged``):
+units of at most ``n`` field evaluations (``pose.staged``; the three
+closed-form units evaluate no field and are charged ``n`` for their run
+time):
 
 1. Kuipers' closed form (thesis ``seeds/002_cd7f1fdb7fc67471.txt``
    App. 5.A, eqs 5.9-5.34) applied to ``S M^+`` (``M`` the coil moments,
-   ``M^+ = M^T (M M^T)^-1``): exact for dipoles at a common centre; no
-   field evaluation.
+   ``M^+ = M^T (M M^T)^-1``): exact for dipoles at a common centre; three
+   units (``M^+``, the position, the orientation).
 2. Exact model within ``NEAR_FIELD`` coil radii of the source only: the
    position is refined on the rotation invariant ``U = S^T S = B(p)^T B(p)``
    (thesis eq 5.15 without the dipole assumption) by the shared
@@ -15,7 +17,7 @@ units of at most ``3 n`` field evaluations (``pose.staged``):
 3. If that does not fit its noise level: a grid of ``GRID_DIRECTIONS``
    directions in the hemisphere, each at the radius matching ``tr U``
    (power law ``tr U ~ r^-6``, two steps) and scored by the misfit of ``U``
-   (one unit = one direction = ``3 n`` evaluations); the best
+   (three units of ``n`` evaluations per direction); the best
    ``GRID_CANDIDATES`` are refined as in 2.
 4. The orientation from the position in closed form (orthogonal
    Procrustes, ``R = polar(B(p) S^T)``; ``n`` evaluations).
@@ -68,13 +70,15 @@ class _Kuipers:
         self._mp = memoryview(np.zeros(3 * n))     # M^+ (n, 3)
         self._S3 = memoryview(np.zeros(9))
         self._rot3 = Rot3()
+        self._u = (1.0, 0.0, 0.0)
+        self._k = 1.0
 
     def _moment(self, j):
         mx, my, mz = self.signal.moment_per_amp(j)
         c = self.cur[j]
         return mx * c, my * c, mz * c
 
-    def _pseudo_inverse(self) -> bool:
+    def pseudo_inverse(self) -> bool:
         """``M^+`` into ``_mp``; False if the moments do not span 3-D."""
         n = self.signal.n
         G = self._G
@@ -102,8 +106,17 @@ class _Kuipers:
         return True
 
     def solve(self, hx, hy, hz, p, R) -> bool:
-        if not self._pseudo_inverse():
+        """All three parts: False if the moments do not span 3-D."""
+        if not self.pseudo_inverse():
             return False
+        self.position(hx, hy, hz, p)
+        self.rotation(R)
+        return True
+
+    def position(self, hx, hy, hz, p) -> None:
+        """Position from ``U = (S M^+)^T (S M^+) = k^2 (I + 3 u u^T)``,
+        ``k = sqrt(tr U / 6)`` (thesis eqs 5.15-5.17), on the side of
+        ``(hx, hy, hz)``; after :meth:`pseudo_inverse`."""
         n = self.signal.n
         S, mp, S3, W = self.S, self._mp, self._S3, self._W
         for i in range(3):
@@ -112,7 +125,6 @@ class _Kuipers:
                 for j in range(n):
                     acc += S[3 * j + i] * mp[3 * j + c]
                 S3[3 * i + c] = acc
-        # U = S3^T S3 = k^2 (I + 3 u u^T); k = sqrt(tr U / 6)   (thesis eqs 5.15-5.17)
         tr = 0.0
         for a in range(3):
             for b in range(3):
@@ -128,8 +140,15 @@ class _Kuipers:
         if ux * hx + uy * hy + uz * hz < 0.0:
             ux, uy, uz = -ux, -uy, -uz
         r = (_MU0_4PI / k) ** (1.0 / 3.0)
-        # R = polar(A S3^T / k), A = 1.5 u u^T - I   (thesis eqs 5.30-5.34)
-        u = (ux, uy, uz)
+        self._u = (ux, uy, uz)
+        self._k = k
+        cx, cy, cz = self.cbar
+        p[0], p[1], p[2] = r * ux + cx, r * uy + cy, r * uz + cz
+
+    def rotation(self, R) -> None:
+        """``R = polar(A S3^T / k)``, ``A = 1.5 u u^T - I`` (thesis eqs
+        5.30-5.34); after :meth:`position`."""
+        u, k, S3, W = self._u, self._k, self._S3, self._W
         for i in range(3):
             for c in range(3):
                 acc = 0.0
@@ -137,9 +156,6 @@ class _Kuipers:
                     acc += (1.5 * u[i] * u[l] - (1.0 if i == l else 0.0)) * S3[3 * c + l]
                 W[3 * i + c] = acc / k
         nearest_rotation(W, R, self._rot3)
-        cx, cy, cz = self.cbar
-        p[0], p[1], p[2] = r * ux + cx, r * uy + cy, r * uz + cz
-        return True
 
 
 class Acquisition(Staged):
@@ -177,21 +193,36 @@ class Acquisition(Staged):
         self._tol = 0.0
         self._best_m = math.inf
         self._k = 0
+        self._rad = 0.0
+        self._rstep = 0
+        self._r0 = 0.0
         self._cand = -1
 
     def begin(self, hx: float, hy: float, hz: float, sigma_rms: float) -> None:
         self._h = (hx, hy, hz)
         self._sigma_rms = sigma_rms
         self.ok = False
-        self._then(self._unit_kuipers, 0)
+        self._then(self._unit_moments, self.signal.n)
 
     # ------------------------------------------------------------- units
-    def _unit_kuipers(self) -> None:
-        hx, hy, hz = self._h
-        if not self._kuipers.solve(hx, hy, hz, self._pv, self.R):
+    def _unit_moments(self) -> None:
+        """``M^+`` of the coil moments (closed form, charged ``n``)."""
+        if self._kuipers.pseudo_inverse():
+            self._then(self._unit_kuipers_position, self.signal.n)
+        else:
             self._then(None)
-            return
+
+    def _unit_kuipers_position(self) -> None:
+        """Kuipers' position from ``S M^+`` (closed form, charged ``n``)."""
+        hx, hy, hz = self._h
+        self._kuipers.position(hx, hy, hz, self._pv)
         self.ok = True
+        self._then(self._unit_kuipers_rotation, self.signal.n)
+
+    def _unit_kuipers_rotation(self) -> None:
+        """Kuipers' orientation (closed form, charged ``n``), then the
+        near-field refinement or done."""
+        self._kuipers.rotation(self.R)
         p = self._pv
         cx, cy, cz = self.cbar
         r0 = math.sqrt((p[0] - cx) ** 2 + (p[1] - cy) ** 2 + (p[2] - cz) ** 2)
@@ -224,9 +255,10 @@ class Acquisition(Staged):
 
     def _unit_refine_step(self) -> None:
         if self._lm.iterate() != LM_RUNNING:
-            self._then(self._unit_refined, 0)
+            self._refined()
 
-    def _unit_refined(self) -> None:
+    def _refined(self) -> None:
+        """Keep the better fit; next candidate, grid or orientation."""
         m = math.sqrt(self._lm.cost)
         if self._cand < 0 or m < self._best_m:
             self._best_m = m
@@ -257,23 +289,32 @@ class Acquisition(Staged):
             k += 1
         self._k = k
         if k < GRID_DIRECTIONS:
-            self._then(self._unit_direction, 3 * self.signal.n)
+            self._rad = self._r0
+            self._rstep = 0
+            self._then(self._unit_radius, self.signal.n)
         else:
             self._cand = 0
             self._next_candidate()
 
-    def _unit_direction(self) -> None:
-        k = self._k
-        g = self._grid
-        ux, uy, uz = g[3 * k], g[3 * k + 1], g[3 * k + 2]
+    def _unit_radius(self) -> None:
+        """One power-law step of the radius of direction ``_k`` (``n`` evaluations)."""
+        g, k = self._grid, self._k
         cx, cy, cz = self.cbar
-        rad = self._r0
-        lo, hi = 0.25 * rad, 4.0 * rad
-        for _ in range(2):
-            f = (self._trace_at(cx + ux * rad, cy + uy * rad, cz + uz * rad) / self._tr) ** (1.0 / 6.0)
-            rad = rad * f if math.isfinite(f) else rad
-            rad = min(max(rad, lo), hi) if math.isfinite(rad) else lo
-        px, py, pz = cx + ux * rad, cy + uy * rad, cz + uz * rad
+        rad = self._rad
+        f = (self._trace_at(cx + g[3 * k] * rad, cy + g[3 * k + 1] * rad, cz + g[3 * k + 2] * rad)
+             / self._tr) ** (1.0 / 6.0)
+        rad = rad * f if math.isfinite(f) else rad
+        self._rad = min(max(rad, 0.25 * self._r0), 4.0 * self._r0) if math.isfinite(rad) else 0.25 * self._r0
+        self._rstep += 1
+        if self._rstep == 2:
+            self._then(self._unit_misfit, self.signal.n)
+
+    def _unit_misfit(self) -> None:
+        """Score direction ``_k`` at its radius (``n`` evaluations), go on."""
+        g, k = self._grid, self._k
+        cx, cy, cz = self.cbar
+        rad = self._rad
+        px, py, pz = cx + g[3 * k] * rad, cy + g[3 * k + 1] * rad, cz + g[3 * k + 2] * rad
         mis = self._misfit_at(px, py, pz)
         if math.isfinite(mis):
             self._keep_candidate(mis, px, py, pz)

@@ -6,9 +6,12 @@ started with :meth:`PoseSolver.begin` and advanced with
 :meth:`PoseSolver.step`, each call doing at most a given number of *field
 evaluations* (one coil's field and gradient at one point,
 ``model.signal``), so a 1 kHz loop can spread a solve over ticks with a
-bounded, machine-independent amount of work per tick. :meth:`solve` is
-``begin`` plus ``step`` until done. The result does not depend on how the
-work was split (``pose.staged``).
+bounded, machine-independent amount of work per tick. Every unit of work
+does at most ``n`` evaluations (an LM step, a step of the invariant fit,
+one of the three evaluations of a grid direction, the orientation); the
+closed forms (two Kuipers units, the covariance) evaluate no field and are
+charged ``n`` each. :meth:`solve` is ``begin`` plus ``step`` until done. The
+result does not depend on how the work was split (``pose.staged``).
 
 Stages (``tests/firmware/test_solver.py`` compares them with the reference):
 
@@ -28,8 +31,8 @@ Warm start: with ``x0`` (the tracked pose) only stage 2 runs. If it does
 not converge, if its cost exceeds the chi-square quantile of ``3 n - 6``
 degrees of freedom at ``gate_probability`` (``estimate.ekf.chi2_gate``,
 fixed at construction) or if a ``hemisphere`` was given and the solution
-lies on the other side, the solver falls back to acquisition and fits
-again; the status then carries ``SOLVE_REACQUIRED``.
+lies on the other side (by more than ~6 deg), the solver falls back to
+acquisition and fits again; the status then carries ``SOLVE_REACQUIRED``.
 
 Conventions of ``pose.reference``: ``S[:, j]`` is the field of coil ``j``
 in the sensor frame, ``R_true = R exp([dtheta]x)``, parameter order
@@ -64,6 +67,10 @@ SOLVE_REACQUIRED = 32      # the warm start failed its checks; solved from acqui
 _STEP_TOL = 1e-9
 _COST_TOL = 1e-12
 _UNBOUNDED = 1 << 62
+# a warm solution counts as on the wrong side of the hemisphere plane only
+# beyond this sine of its elevation (~6 deg): near the plane both mirror
+# solutions are close to it and acquisition would pick the same one
+_HEMI_MARGIN = 0.1
 
 
 def _gate(n: int, probability: float) -> float:
@@ -391,13 +398,15 @@ class PoseSolver(Staged):
         if self._lm.state == LM_RUNNING:
             self._then(self._unit_lm_step, self.n)
         else:
-            self._then(self._unit_finish, 0)
+            self._then(self._unit_finish, self.n)
 
     def _unit_lm_step(self) -> None:
         if self._lm.iterate() != LM_RUNNING:
-            self._then(self._unit_finish, 0)
+            self._then(self._unit_finish, self.n)
 
     def _unit_finish(self) -> None:
+        """The warm-start checks, then the results and covariance (no field
+        evaluation; charged ``n`` for its run time)."""
         if self._warm and not self._reacquired and self._warm_start_failed():
             self._reacquired = True
             self._start_acquisition()
@@ -416,8 +425,9 @@ class PoseSolver(Staged):
             return False
         p = self._fit.p
         hx, hy, hz = self._hemi
-        cx, cy, cz = self._cbar
-        return (p[0] - cx) * hx + (p[1] - cy) * hy + (p[2] - cz) * hz < 0.0
+        dx, dy, dz = p[0] - self._cbar[0], p[1] - self._cbar[1], p[2] - self._cbar[2]
+        lim = _HEMI_MARGIN * math.sqrt((dx * dx + dy * dy + dz * dz) * (hx * hx + hy * hy + hz * hz))
+        return dx * hx + dy * hy + dz * hz < -lim
 
     def _publish(self) -> None:
         """Results of the fit: re-orthonormalised rotation, covariance."""
