@@ -72,6 +72,7 @@ class SignalModel:
     model : str
     B : ndarray (n, 3)      source-frame fields of the last point, T
     J : ndarray (n, 3, 3)   source-frame gradients of the last point, T/m
+    Bv, Jv : memoryview     flat views of ``B`` and ``J`` (Python floats)
     evals : int             field evaluations so far (coils x points)
     """
 

@@ -470,7 +470,9 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
     ``A = H^T W H``, ``g = H^T W (S - h)`` and updates
     ``p += delta[:3]``, ``R = R exp([delta[3:]]x)`` (multiplicative, sensor
     frame).  ``lambda`` starts at 1e-6 (nearly Gauss-Newton, since the
-    start is close) and is raised tenfold on a rejected step.
+    start is close) and is raised tenfold on a rejected step.  It stops
+    converged on a step below 1e-9 (relative position, rad) or a relative
+    cost change below 1e-12, whether the step was accepted or rejected.
 
     The start is the Kuipers closed form (``kuipers`` applied to
     ``S M^+``, ``M`` the coil moments; for three equal orthogonal coils this
