@@ -3,7 +3,8 @@
 A fixed-step, allocation-free loop (:mod:`coiltrack.firmware.loop`) built from
 stages with one job each:
 
-- ``model/``     coil fields (exact loop by AGM, dipole) and their Jacobians
+- ``model/``     coil fields (exact loop by AGM, dipole) and their Jacobians;
+                 the one signal model ``h = R^T B(p)``, ``H`` (``model/signal.py``)
 - ``measure/``   sample rings and pulse-window extraction
 - ``pose/``      closed-form start, least-squares pose, Cramer-Rao bound; the
                  numpy reference solver the tests compare against lives apart

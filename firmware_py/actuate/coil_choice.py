@@ -61,9 +61,10 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.field import CoilSet
 from coiltrack.firmware.linalg import inv3_sym
-from coiltrack.firmware.linalg import skew_into as _skew_into
+from coiltrack.firmware.model.signal import SignalModel
 
 __all__ = [
     "POSE_DIM",
@@ -109,7 +110,8 @@ def current_ladder(i_min: float, i_max: float, levels: int) -> tuple[float, ...]
 class SingleCoilModel:
     """Per-ampere measurement model of every source coil at one pose.
 
-    After :meth:`evaluate` ``(p, R)``:
+    A view of ``coiltrack.firmware.model.signal.SignalModel`` at 1 A per
+    coil. After :meth:`evaluate` ``(p, R)``:
 
     * ``h[c]`` (3,): ``R^T B_c(p)`` for 1 A in coil ``c``, sensor frame, T/A
       (Schepers eq 5; ``B_c`` from eqs 6-7 with ``model="exact"``, eq 8 with
@@ -130,33 +132,23 @@ class SingleCoilModel:
     """
 
     def __init__(self, coils, model: str = "exact"):
-        if model not in ("exact", "dipole"):
-            raise ValueError(f"unknown field model {model!r}")
         self.cs = coils if isinstance(coils, CoilSet) else CoilSet(coils)
+        self.signal = SignalModel(self.cs.coils, model)
         n = self.cs.n
         self.n = n
         self.model = model
-        self._ones = np.ones(n)
-        self.B = np.zeros((n, 3))
-        self.J = np.zeros((n, 3, 3))
+        self._ones = memoryview(np.ones(n))
+        self.B = self.signal.B
+        self.J = self.signal.J
         self.h = np.zeros((n, 3))
         self.H = np.zeros((n, 3, POSE_DIM))
-        self._Rt = np.zeros((3, 3))
-        self._RJ = np.zeros((n, 3, 3))
+        self._hv = flat(self.h)
+        self._Hv = flat(self.H)
 
     def evaluate(self, p, R) -> None:
         """Fill ``h``, ``H``, ``B``, ``J`` for position ``p`` (3,) (source
         frame, m) and rotation ``R`` (3, 3) (sensor to source)."""
-        self.cs.fields(p, self._ones, self.model, out_b=self.B, out_j=self.J)
-        # h_c = R^T B_c for every coil: rows of B @ R
-        np.matmul(self.B, R, out=self.h)
-        # position block, eq 9: R^T J_c
-        np.copyto(self._Rt, R.T)
-        np.matmul(self._Rt, self.J, out=self._RJ)
-        self.H[:, :, :3] = self._RJ
-        # orientation block, eq 11: [h_c]x
-        for c in range(self.n):
-            _skew_into(self.h[c], self.H[c, :, 3:])
+        self.signal.measure(float(p[0]), float(p[1]), float(p[2]), R, self._ones, self._hv, self._Hv)
 
 
 def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out,

@@ -28,6 +28,8 @@ import numpy as np
 from coiltrack.firmware.model.field import MU0, CoilSet
 from coiltrack.firmware.linalg import exp_rotvec
 from coiltrack.firmware.linalg import skew_into as _skew_into
+from coiltrack.firmware.pose.acquire import GRID_CANDIDATES, GRID_DIRECTIONS, NEAR_FIELD, fibonacci_directions
+from coiltrack.firmware.pose.covariance import EIG_FLOOR, MAX_VARIANCE
 
 __all__ = [
     "kuipers",
@@ -42,20 +44,19 @@ __all__ = [
 ]
 
 _MU0_4PI = MU0 / (4.0 * math.pi)
-# relative eigenvalue floor of the information matrix: below it a direction
-# is treated as unobservable and gets the variance 1 / (floor * max eig)
-_EIG_FLOOR = 1e-15
-#: largest variance reported for an unobservable direction (m^2 or rad^2)
-MAX_VARIANCE = 1e12
 # LM stopping: relative step (position relative to |p|, rotation in rad)
 # and relative cost decrease
 _STEP_TOL = 1e-9
 _COST_TOL = 1e-12
-# near-field start (exact model): below this many coil radii the Kuipers
-# start is replaced by a search on the rotation invariants
-_NEAR_FIELD = 4.0
-_GRID_DIRECTIONS = 512  # over the sphere, half of them per hemisphere
-_GRID_CANDIDATES = 3
+# The parameters of the algorithm are shared with the runtime solver (one
+# definition): the eigenvalue floor and largest variance of the robust
+# inverse, and the near-field start (exact model: below NEAR_FIELD coil
+# radii the Kuipers start is replaced by a search on the rotation
+# invariants over a grid of directions, half of them per hemisphere).
+_EIG_FLOOR = EIG_FLOOR
+_NEAR_FIELD = NEAR_FIELD
+_GRID_DIRECTIONS = GRID_DIRECTIONS
+_GRID_CANDIDATES = GRID_CANDIDATES
 
 
 # ---------------------------------------------------------------------------
@@ -353,16 +354,7 @@ def _invariant_misfit(Um, B):
     return np.sqrt(np.einsum("kij,kij->k", U, U)) / float(np.trace(Um))
 
 
-def _fibonacci_directions(n):
-    """``n`` nearly uniform unit vectors on the sphere, shape (n, 3)."""
-    i = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * i / n
-    rxy = np.sqrt(1.0 - z * z)
-    phi = i * (math.pi * (3.0 - math.sqrt(5.0)))
-    return np.column_stack([rxy * np.cos(phi), rxy * np.sin(phi), z])
-
-
-_GRID = _fibonacci_directions(_GRID_DIRECTIONS)
+_GRID = fibonacci_directions(_GRID_DIRECTIONS)
 
 
 def _refine_position_invariants(Um, cs, cur, p, model, iters):
@@ -478,7 +470,9 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
     ``A = H^T W H``, ``g = H^T W (S - h)`` and updates
     ``p += delta[:3]``, ``R = R exp([delta[3:]]x)`` (multiplicative, sensor
     frame).  ``lambda`` starts at 1e-6 (nearly Gauss-Newton, since the
-    start is close) and is raised tenfold on a rejected step.
+    start is close) and is raised tenfold on a rejected step.  It stops
+    converged on a step below 1e-9 (relative position, rad) or a relative
+    cost change below 1e-12, whether the step was accepted or rejected.
 
     The start is the Kuipers closed form (``kuipers`` applied to
     ``S M^+``, ``M`` the coil moments; for three equal orthogonal coils this
@@ -596,7 +590,9 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
                 converged = True
                 break
         else:
-            if small:
+            # rejected: converged if the step is tiny or the cost is flat to
+            # its rounding level (otherwise the damping climbs for nothing)
+            if small or (cost_t - cost) < _COST_TOL * max(cost, 1e-300):
                 converged = True
                 break
             lam *= 10.0

@@ -9,7 +9,9 @@ from coiltrack.firmware.model.field import Coil, orthogonal_source
 from coiltrack.firmware.linalg import (Rot3, chol_inverse, chol_solve, cholesky, exp_rotvec, flat, jacobi_eigh,
                                 nearest_rotation, rotvec_from_matrix)
 from coiltrack.firmware.pose.reference import kuipers, measurement_model, solve_pose
-from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_OK, PoseSolver
+from coiltrack.firmware.pose.reference import so3_exp
+from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NOT_CONVERGED, SOLVE_OK,
+                                            SOLVE_REACQUIRED, SOLVE_RUNNING, PoseSolver)
 from coiltrack.tools.alloc import NumpyAllocationCounter
 
 COILS = orthogonal_source(0.055, 50)
@@ -133,11 +135,16 @@ def test_kuipers_start_matches_reference_closed_form():
     S = measurement_model(p, R, COILS, np.full(3, 1.5), "dipole")
     kp, kR = kuipers(S, m)
     ps = PoseSolver(COILS, "dipole")
+    acq = ps._acq
     ps._cur[:] = 1.5
-    ps._S[:] = S
-    assert ps._kuipers_start(1.0, 0.0, 0.0)
-    np.testing.assert_allclose(ps._p, kp, atol=1e-12)
-    np.testing.assert_allclose(ps._R, kR, atol=1e-10)
+    ps._S[:] = S.T                      # the solver's layout: [coil, component]
+    acq.begin(1.0, 0.0, 0.0, 1e-9)
+    acq.next_unit()                     # M^+
+    acq.next_unit()                     # Kuipers position
+    acq.next_unit()                     # Kuipers orientation; the dipole model stops there
+    assert acq.finished and acq.ok and ps.signal.evals == 0
+    np.testing.assert_allclose(acq.p, kp, atol=1e-12)
+    np.testing.assert_allclose(acq.R, kR, atol=1e-10)
 
 
 def test_bad_input_is_reported_not_raised():
@@ -166,3 +173,214 @@ def test_solve_allocates_no_numpy_array():
             ps.solve(S, CUR, sig, x0_position=ps.position, x0_rotation=ps.rotation)
             ps.predict_signals(ps.position, ps.rotation, CUR, out)
     assert counter.count == 0
+
+
+# ------------------------------------------------------- staged solving
+def _cases():
+    """(S, hemisphere, x0) covering every stage: far field (Kuipers + LM),
+    near field (invariant fit, grid search), warm start, warm start that
+    falls back to acquisition."""
+    rng = np.random.default_rng(21)
+    hemi = np.array([1.0, 0.0, 0.0])
+    out = []
+    for r in (0.09, 0.12, 0.3, 0.7):
+        p = r * np.array([0.8, 0.5, -0.33]) / np.linalg.norm([0.8, 0.5, -0.33])
+        R = random_rotation(rng)
+        S = measurement_model(p, R, COILS, CUR) + rng.normal(0.0, 2e-8, (3, 3))
+        out.append((S, hemi, None))
+        out.append((S, None, (p + 0.002, R @ so3_exp([0.01, -0.02, 0.01]))))
+        out.append((S, hemi, (-p, R)))                 # mirror: falls back
+    # near the source where the invariant fit misses: the grid search
+    rng = np.random.default_rng(23)
+    p = 0.1 * np.array([0.9, 0.4, -0.2]) / np.linalg.norm([0.9, 0.4, -0.2])
+    R = random_rotation(rng)
+    out.append((measurement_model(p, R, COILS, CUR) + rng.normal(0.0, 2e-8, (3, 3)), hemi, None))
+    return out
+
+
+def _result(ps):
+    return (ps.status, ps.position.tobytes(), ps.rotation.tobytes(), ps.covariance.tobytes(),
+            ps.cost, ps.iterations, ps.solve_evals)
+
+
+SIG = np.full((3, 3), 2e-8)
+
+
+def _run(ps, S, hemi, x0, budget):
+    x0p, x0R = x0 if x0 is not None else (None, None)
+    st = ps.begin(S, CUR, SIG, hemi, x0p, x0R)
+    steps = []
+    while st == SOLVE_RUNNING:
+        st = ps.step(budget)
+        steps.append(ps.evals_last_step)
+    return st, steps
+
+
+@pytest.mark.parametrize("budget", [1, 3, 7, 9, 20, 50])
+def test_a_resumed_solve_equals_the_uninterrupted_one_bit_for_bit(budget):
+    """Any budget splits the same units differently and nothing else: a
+    unit that kept state in a local variable across steps, or re-evaluated
+    on resumption, changes the bits (or the evaluation count)."""
+    ps = PoseSolver(COILS, "exact")
+    ref = PoseSolver(COILS, "exact")
+    for S, hemi, x0 in _cases():
+        x0p, x0R = x0 if x0 is not None else (None, None)
+        ref.solve(S, CUR, np.full((3, 3), 2e-8), hemi, x0p, x0R)
+        st, steps = _run(ps, S, hemi, x0, budget)
+        assert st == ref.status and _result(ps) == _result(ref)
+        assert sum(steps) == ref.solve_evals
+    assert ref.solve_evals > 1000                # the last case went through the grid search
+
+
+@pytest.mark.parametrize("budget", [1, 2, 3, 5, 9, 12, 30])
+def test_no_step_exceeds_its_budget_and_none_stops_early(budget):
+    """At most ``budget`` evaluations per step, except one unit (n = 3
+    evaluations) alone when the budget is smaller; and a step stops only
+    when the next unit would not fit: each unit is charged n, closed forms
+    included (at most four of those, which evaluate nothing, share a
+    step), so a full step does more than ``budget - 2 - 4 n`` evaluations."""
+    ps = PoseSolver(COILS, "exact")
+    ps.reset_step_stats()
+    n = 3
+    for S, hemi, x0 in _cases():
+        _, steps = _run(ps, S, hemi, x0, budget)
+        assert all(0 <= e <= max(budget, n) for e in steps)
+        assert all(e > budget - 2 - 4 * n for e in steps[:-1])
+        assert ps.max_evals_per_step >= max(steps)
+    assert ps.max_evals_per_step == max(budget - budget % n, n)
+
+
+def test_predict_between_steps_does_not_change_the_solve():
+    ps = PoseSolver(COILS, "exact")
+    ref = PoseSolver(COILS, "exact")
+    out = np.zeros((3, 3))
+    sig = np.full((3, 3), 2e-8)
+    for S, hemi, x0 in _cases()[:6]:
+        x0p, x0R = x0 if x0 is not None else (None, None)
+        ref.solve(S, CUR, sig, hemi, x0p, x0R)
+        st = ps.begin(S, CUR, sig, hemi, x0p, x0R)
+        while st == SOLVE_RUNNING:
+            ps.predict_signals(np.array([0.2, 0.1, 0.0]), np.eye(3), 2.0 * CUR, out)
+            st = ps.step(6)
+        assert _result(ps)[:6] == _result(ref)[:6]
+
+
+def test_begin_and_steps_allocate_no_numpy_array():
+    ps = PoseSolver(COILS, "exact")
+    cases = _cases()
+    for S, hemi, x0 in cases:
+        _run(ps, S, hemi, x0, 8)
+    counter = NumpyAllocationCounter()
+    with counter:
+        for S, hemi, x0 in cases:
+            _run(ps, S, hemi, x0, 8)
+            _run(ps, S, hemi, x0, 1)
+    assert counter.count == 0
+
+
+# ------------------------------------------------------------ warm start
+def test_warm_start_near_the_truth_is_the_cold_solution_in_fewer_evaluations():
+    """From the tracked pose (the solution of the previous frame, the sensor
+    moved by 0.5 mm and 0.2 deg since), the LM alone reaches the cold
+    solution. Near the source (< 4 coil radii) acquisition fits the
+    invariants and may search a grid, and the warm start is cheaper in every
+    case; farther out the Kuipers start is about as close as the tracked pose
+    and the warm start costs at most one LM step (n evaluations) more."""
+    rng = np.random.default_rng(22)
+    ps = PoseSolver(COILS, "exact")
+    sig = np.full((3, 3), 2e-8)
+    hemi = np.array([1.0, 0.0, 0.0])
+    total_cold = total_warm = 0
+    for k in range(16):
+        p, R = random_pose(rng, 0.09, 0.2) if k % 2 else random_pose(rng, 0.25, 0.6)
+        S = measurement_model(p, R, COILS, CUR) + rng.normal(0.0, 2e-8, (3, 3))
+        assert ps.solve(S, CUR, sig, hemi) == SOLVE_OK
+        pc, Rc, cold = ps.position.copy(), ps.rotation.copy(), ps.solve_evals
+        d = rng.normal(size=3)
+        x0p = pc + 5e-4 * d / np.linalg.norm(d)
+        x0R = Rc @ so3_exp(rng.normal(size=3) * 0.002)
+        assert ps.solve(S, CUR, sig, hemi, x0p, x0R) == SOLVE_OK        # no SOLVE_REACQUIRED
+        assert ps.solve_evals < cold if k % 2 else ps.solve_evals <= cold + 3
+        total_cold += cold
+        total_warm += ps.solve_evals
+        assert np.linalg.norm(ps.position - pc) <= 1e-8 * np.linalg.norm(pc)
+        np.testing.assert_allclose(ps.rotation, Rc, atol=1e-8)
+    assert total_warm < 0.6 * total_cold
+
+
+def test_warm_start_on_the_mirror_or_far_away_falls_back_and_finds_the_truth():
+    """The mirror pose (-p, R) fits the signals exactly as well (B(-p) =
+    B(p) for co-centred coils), so only the hemisphere test catches it; a
+    far start (90 deg away, orientation 1.5 rad off) either converges to
+    the truth by itself or ends beyond the gate or unconverged and is
+    reacquired. Every case ends at the cold solution."""
+    rng = np.random.default_rng(23)
+    ps = PoseSolver(COILS, "exact")
+    sig = np.full((3, 3), 2e-8)
+    hemi = np.array([1.0, 0.0, 0.0])
+    far_reacquired = 0
+    for r in (0.1, 0.25, 0.6):
+        p = r * np.array([0.9, 0.4, -0.2]) / np.linalg.norm([0.9, 0.4, -0.2])
+        R = random_rotation(rng)
+        S = measurement_model(p, R, COILS, CUR) + rng.normal(0.0, 2e-8, (3, 3))
+        ps.solve(S, CUR, sig, hemi)
+        pc = ps.position.copy()
+        st = ps.solve(S, CUR, sig, hemi, -p, R)
+        assert st == SOLVE_REACQUIRED
+        assert np.linalg.norm(ps.position - pc) <= 1e-8 * r
+        far = r * np.array([-0.2, 0.9, 0.4]) / np.linalg.norm([-0.2, 0.9, 0.4])
+        st = ps.solve(S, CUR, sig, hemi, far, R @ so3_exp([1.5, 0.0, 0.0]))
+        assert st & ~SOLVE_REACQUIRED == SOLVE_OK
+        far_reacquired += bool(st & SOLVE_REACQUIRED)
+        assert np.linalg.norm(ps.position - pc) <= 1e-8 * r
+        # without a hemisphere the mirror is a valid answer: no fallback
+        assert ps.solve(S, CUR, sig, None, -p, R) == SOLVE_OK
+        np.testing.assert_allclose(ps.position, -pc, atol=1e-6 * r)
+    assert far_reacquired == 2                  # 0.1 m and 0.6 m; at 0.25 m the LM finds it alone
+    # 3 deg beyond the hemisphere plane is within its margin: the warm result stands
+    p = 0.3 * np.array([-0.05, 0.9, 0.4]) / np.linalg.norm([-0.05, 0.9, 0.4])
+    R = random_rotation(rng)
+    S = measurement_model(p, R, COILS, CUR) + rng.normal(0.0, 2e-8, (3, 3))
+    assert ps.solve(S, CUR, sig, hemi, p, R) == SOLVE_OK
+    pw = ps.position.copy()
+    assert ps.solve(S, CUR, sig, None, p, R) == SOLVE_OK
+    np.testing.assert_array_equal(ps.position, pw)
+    assert pw @ hemi < 0.0
+
+
+def test_warm_start_beyond_the_chi_square_gate_is_reacquired():
+    """Signals 30 sigma off the model (a disturbed frame) converge from the
+    truth but fail the chi-square gate (3 dof, p = 0.999: 16.27), so the
+    solver reacquires; a gate of probability 1 accepts the warm result."""
+    rng = np.random.default_rng(24)
+    p, R = np.array([0.3, 0.1, -0.05]), random_rotation(rng)
+    S = measurement_model(p, R, COILS, CUR)
+    S[1, 2] += 30 * 2e-8
+    sig = np.full((3, 3), 2e-8)
+    gated = PoseSolver(COILS, "exact")
+    st = gated.solve(S, CUR, sig, None, p, R)
+    assert st & SOLVE_REACQUIRED and gated.cost > gated.gate
+    assert gated.gate == pytest.approx(16.2662)
+    open_gate = PoseSolver(COILS, "exact", gate_probability=1.0)
+    assert open_gate.solve(S, CUR, sig, None, p, R) == SOLVE_OK
+
+
+def test_begin_rejects_bad_arguments_before_any_work():
+    ps = PoseSolver(COILS, "exact")
+    S = measurement_model(np.array([0.3, 0.0, 0.0]), np.eye(3), COILS, CUR)
+    sig = np.full((3, 3), 1e-8)
+    bad_hemi = np.array([np.nan, 0.0, 0.0])
+    assert ps.begin(S, CUR, sig, bad_hemi) == SOLVE_BAD_INPUT
+    assert ps.begin(S, CUR, sig, x0_position=np.zeros(3)) == SOLVE_BAD_INPUT          # no rotation
+    assert ps.begin(S, CUR, sig, x0_position=np.full(3, np.inf), x0_rotation=np.eye(3)) == SOLVE_BAD_INPUT
+    assert ps.begin(S[:, :2], CUR, sig) == SOLVE_BAD_INPUT
+    assert ps.begin(S, CUR[:2], sig) == SOLVE_BAD_INPUT
+    assert ps.step(100) == SOLVE_BAD_INPUT and ps.evals_last_step == 0
+    assert ps.signal.evals == 0
+    assert ps.begin(S, CUR, sig) == SOLVE_RUNNING
+    while ps.step(4) == SOLVE_RUNNING:
+        pass
+    assert ps.status & ~SOLVE_NOT_CONVERGED == SOLVE_OK
+    out = np.zeros(6)
+    ps.cov_diag(out)
+    np.testing.assert_array_equal(out, np.diag(ps.covariance))
