@@ -59,8 +59,8 @@ def run(args) -> int:
         return 2
     tasks = [sweep.Task(args.scenario, s, plan["duration_s"], point) for point in plan["grid"] for s in plan["seeds"]]
     where = args.scheduler or f"{plan['workers']} workers"
-    print(f"coiltrack sweep: {args.scenario}, {len(plan['seeds'])} seeds x {len(plan['grid'])} grid points = "
-          f"{len(tasks)} runs of {plan['duration_s']:g} s, executor {args.executor} ({where})")
+    print(f"coiltrack sweep: {args.scenario}, {_n(len(plan['seeds']), 'seed')} x {_n(len(plan['grid']), 'grid point')}"
+          f" = {_n(len(tasks), 'run')} of {plan['duration_s']:g} s, executor {args.executor} ({where})")
     bar = sweep.ProgressBar(len(tasks), args.progress or sys.stderr.isatty())
     wall0 = time.perf_counter()
     bar.update(0)
@@ -229,6 +229,10 @@ def plot(runs: list[dict], summary: list[dict], path, scenario: str, name: str =
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _n(count: int, noun: str) -> str:
+    return f"{count} {noun}" + ("" if count == 1 else "s")
 
 
 def _nan(v) -> float:

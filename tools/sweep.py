@@ -169,6 +169,10 @@ def _local(tasks, workers, scheduler):
         index = {pool.submit(run_task, t): i for i, t in enumerate(tasks)}
         for fut in as_completed(index):
             yield index[fut], fut.result()
+    except BaseException:  # interrupted, closed early or a run failed: stop the runs under way now
+        for proc in list((getattr(pool, "_processes", None) or {}).values()):   # no public way before 3.14
+            proc.terminate()
+        raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
@@ -197,8 +201,12 @@ def _dask(tasks, workers, scheduler):
     with dask_client(workers, scheduler) as client:
         futs = client.map(run_task, tasks, pure=False)
         index = {f.key: i for i, f in enumerate(futs)}
-        for fut in dask_completed(futs):
-            yield index[fut.key], fut.result()
+        try:
+            for fut in dask_completed(futs):
+                yield index[fut.key], fut.result()
+        except BaseException:  # interrupted, closed early or a run failed: drop the runs not done
+            client.cancel(futs)
+            raise
 
 
 def _ray(tasks, workers, scheduler):
@@ -319,6 +327,8 @@ def format_summary(summary: list[dict], names=HEADLINE) -> str:
             s = g["figures"][n]
             rows.append((label, n, str(g["runs"]), *(_num(s[c]) for c in ("median", "p90", "worst"))))
             label = ""
+    if len(rows) == 1:
+        return "  (no run finished)"
     w = [max(len(r[i]) for r in rows) for i in range(6)]
     return "\n".join("  " + "  ".join(c.ljust(w[i]) if i < 2 else c.rjust(w[i]) for i, c in enumerate(r))
                      for r in rows)
