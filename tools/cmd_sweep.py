@@ -97,7 +97,7 @@ def _plan(args) -> dict:
     if args.scenario not in scenarios.SCENARIOS:
         raise BadArgument(f"--scenario: unknown '{args.scenario}'; known: {', '.join(sorted(scenarios.SCENARIOS))}")
     try:
-        seeds = sweep.parse_seeds(args.seeds)
+        seeds = sweep.parse_seeds(args.seeds, MAX_RUNS)
     except ValueError as exc:
         raise BadArgument(f"--seeds: {exc}; e.g. 1-100 or 1-4,10") from None
     sets = [_parse_set(sweep, s) for s in args.sets]

@@ -14,6 +14,7 @@ gives, per grid point, the median, p90 and worst of every figure.
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import math
 import multiprocessing
@@ -47,8 +48,9 @@ class SweepError(RuntimeError):
 
 # ---------------------------------------------------------------- parsing the command line
 
-def parse_seeds(text: str) -> list[int]:
-    """``"1-100"``, ``"7"`` or ``"1-4,10,20-22"``: seeds >= 0, each range ascending."""
+def parse_seeds(text: str, max_count: int = 100_000) -> list[int]:
+    """``"1-100"``, ``"7"`` or ``"1-4,10,20-22"``: seeds >= 0, each range ascending, at most
+    ``max_count`` in all."""
     seeds: list[int] = []
     for part in text.split(","):
         lo, sep, hi = part.strip().partition("-")
@@ -57,6 +59,8 @@ def parse_seeds(text: str) -> list[int]:
         a, b = int(lo), int(hi) if sep else int(lo)
         if b < a:
             raise ValueError(f"range '{part}' is descending")
+        if len(seeds) + b - a + 1 > max_count:
+            raise ValueError(f"more than {max_count} seeds")
         seeds.extend(range(a, b + 1))
     if len(set(seeds)) != len(seeds):
         raise ValueError("a seed is listed twice")
@@ -133,7 +137,7 @@ def figures(rep: dict) -> dict:
 
     out = {}
     for k, v in rep.items():
-        if isinstance(v, bool) or not isinstance(v, (int, float)) and v is not None:
+        if isinstance(v, bool) or not (v is None or isinstance(v, (int, float))):
             continue
         if k in _INPUT_KEYS or is_wall_clock(k):
             continue
@@ -146,20 +150,35 @@ def run_task(task: Task) -> dict:
     comparison of an actuation-policy scenario): ``{"seed", "params", "figures"}``."""
     from .runner import add_fixed_comparison, run_inproc
 
-    sc = scenario_with(task.scenario, task.overrides)
-    rep = run_inproc(sc, task.seed, task.duration_s)
-    add_fixed_comparison(rep, sc, task.seed, task.duration_s)
+    try:
+        sc = scenario_with(task.scenario, task.overrides)
+        rep = run_inproc(sc, task.seed, task.duration_s)
+        add_fixed_comparison(rep, sc, task.seed, task.duration_s)
+    except Exception as exc:
+        # sent back as a plain message: an exception whose constructor takes other arguments than
+        # its message (ConfigError) cannot be unpickled, which would break the process pool
+        raise SweepError(f"{type(exc).__name__}: {exc}") from None
     return {"seed": task.seed, "params": dict(task.overrides), "figures": figures(rep)}
 
 
 # ---------------------------------------------------------------- executors
 
 def need_extra(module: str, extra: str, executor: str):
-    """Import an executor's package, or a one-line SystemExit-ready message naming the extra."""
+    """Import an executor's package, or an ImportError whose one-line message names the extra."""
     try:
         return __import__(module)
     except ImportError:
         raise ImportError(f"--executor {executor} needs {module}: pip install 'coiltrack[{extra}]'") from None
+
+
+def _named(task: Task, result):
+    """``result()``, an error raised in the worker named with the task's seed and parameters."""
+    try:
+        return result()
+    except Exception as exc:
+        where = " ".join([f"seed {task.seed}", *(f"{k}={v}" for k, v in task.overrides)])
+        detail = exc if isinstance(exc, SweepError) else f"{type(exc).__name__}: {exc}"
+        raise SweepError(f"run {where} failed: {detail}") from exc
 
 
 def _local(tasks, workers, scheduler):
@@ -168,7 +187,7 @@ def _local(tasks, workers, scheduler):
     try:
         index = {pool.submit(run_task, t): i for i, t in enumerate(tasks)}
         for fut in as_completed(index):
-            yield index[fut], fut.result()
+            yield index[fut], _named(tasks[index[fut]], fut.result)
     except BaseException:  # interrupted, closed early or a run failed: stop the runs under way now
         for proc in list((getattr(pool, "_processes", None) or {}).values()):   # no public way before 3.14
             proc.terminate()
@@ -203,7 +222,7 @@ def _dask(tasks, workers, scheduler):
         index = {f.key: i for i, f in enumerate(futs)}
         try:
             for fut in dask_completed(futs):
-                yield index[fut.key], fut.result()
+                yield index[fut.key], _named(tasks[index[fut.key]], fut.result)
         except BaseException:  # interrupted, closed early or a run failed: drop the runs not done
             client.cancel(futs)
             raise
@@ -219,8 +238,8 @@ def _ray(tasks, workers, scheduler):
         index = {r: i for i, r in enumerate(refs)}
         pending = list(refs)
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
-            yield index[done[0]], ray.get(done[0])
+            (ref,), pending = ray.wait(pending, num_returns=1)
+            yield index[ref], _named(tasks[index[ref]], functools.partial(ray.get, ref))
     finally:
         ray.shutdown()
 
@@ -250,8 +269,10 @@ def run_tasks(tasks: list[Task], executor: str = "local", workers: int | None = 
                 on_result(n)
     except KeyboardInterrupt:
         raise SweepInterrupted(results) from None
-    except Exception as exc:  # raised in a worker, re-raised here by the executor
-        raise SweepError(f"a run failed: {type(exc).__name__}: {exc}") from exc
+    except SweepError:
+        raise
+    except Exception as exc:  # the executor itself failed (a cluster lost, a worker killed)
+        raise SweepError(f"{executor} executor failed: {type(exc).__name__}: {exc}") from exc
     finally:
         runs.close()
     return results

@@ -124,7 +124,7 @@ def test_progress_bar_eta_from_the_injected_clock():
 
 BAD = [
     (["--seeds", "5-1"], "--seeds"), (["--seeds", "a"], "--seeds"), (["--seeds", "-3"], "--seeds"),
-    (["--seeds", "1,1"], "--seeds"), (["--seeds", ""], "--seeds"),
+    (["--seeds", "1,1"], "--seeds"), (["--seeds", ""], "--seeds"), (["--seeds", "1-99999999999"], "--seeds"),
     (["--set", "no_such_key=1,2"], "no_such_key"), (["--set", "fusion.no_such_key=1"], "--set"),
     (["--set", "pulse_us=abc"], "pulse_us"), (["--set", "pulse_us="], "--set"), (["--set", "=3"], "--set"),
     (["--set", "pulse_us=1000000"], "pulse_us"),
@@ -169,6 +169,14 @@ def test_interrupted_sweep_writes_the_runs_done(local_doc, monkeypatch, tmp_path
     assert main([*SWEEP, "--json", str(out)]) == 130
     part = json.loads(out.read_text())
     assert part["interrupted"] is True and part["runs"] == [doc["runs"][1]] and part["summary"][0]["runs"] == 1
+
+
+@pytest.mark.parametrize("executor", ["local", "dask"])
+def test_an_error_in_a_worker_names_its_run(executor, dask_address):
+    bad = [sweep.Task("static", 4, 1.0, (("no_such_key", 1),))]   # refused by config_from_dict in the worker
+    with pytest.raises(sweep.SweepError, match="run seed 4 no_such_key=1 failed: ConfigError"):
+        sweep.run_tasks(bad, executor, workers=1 if executor == "local" else None,
+                        scheduler=dask_address if executor == "dask" else None)
 
 
 def test_failed_run_exits_1(monkeypatch, capsys):
