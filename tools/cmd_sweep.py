@@ -143,7 +143,7 @@ def _workers(args) -> int | None:
     if args.scheduler:
         raise BadArgument("--workers: sizes a cluster this command starts; with --scheduler the cluster is given")
     w = args.workers.strip()
-    if not w.isdigit() or not 1 <= int(w) <= MAX_WORKERS:
+    if not w.isdecimal() or not 1 <= int(w) <= MAX_WORKERS:
         raise BadArgument(f"--workers: '{args.workers}' is not an integer in 1-{MAX_WORKERS}")
     return int(w)
 

@@ -54,7 +54,7 @@ def parse_seeds(text: str, max_count: int = 100_000) -> list[int]:
     seeds: list[int] = []
     for part in text.split(","):
         lo, sep, hi = part.strip().partition("-")
-        if not (lo.isdigit() and (hi.isdigit() if sep else True)):
+        if not (lo.isdecimal() and (hi.isdecimal() if sep else True)):
             raise ValueError(f"'{part}' is not N or A-B with integers >= 0")
         a, b = int(lo), int(hi) if sep else int(lo)
         if b < a:
@@ -68,15 +68,18 @@ def parse_seeds(text: str, max_count: int = 100_000) -> list[int]:
 
 
 def parse_value(text: str):
-    """A configuration value: true/false, an integer, a number, else the string itself."""
+    """A configuration value: true/false, an integer, a finite number, else the string itself."""
     low = text.strip().lower()
     if low in ("true", "false"):
         return low == "true"
     for kind in (int, float):
         try:
-            return kind(text)
+            v = kind(text)
         except ValueError:
-            pass
+            continue
+        if not math.isfinite(v):
+            raise ValueError(f"'{text}' is not a finite number")
+        return v
     return text.strip()
 
 
@@ -87,7 +90,10 @@ def parse_set(text: str) -> tuple[str, list]:
     parts = values.split(",")
     if not sep or not key or any(not p.strip() for p in parts):
         raise ValueError(f"'{text}' is not KEY=V1,V2,... (KEY a config key, e.g. fusion.mag_sigma_t)")
-    return key, [parse_value(p) for p in parts]
+    try:
+        return key, [parse_value(p) for p in parts]
+    except ValueError as exc:
+        raise ValueError(f"{key}: {exc}") from None
 
 
 def grid(sets: list[tuple[str, list]]) -> list[tuple[tuple[str, object], ...]]:

@@ -127,7 +127,7 @@ BAD = [
     (["--seeds", "1,1"], "--seeds"), (["--seeds", ""], "--seeds"), (["--seeds", "1-99999999999"], "--seeds"),
     (["--set", "no_such_key=1,2"], "no_such_key"), (["--set", "fusion.no_such_key=1"], "--set"),
     (["--set", "pulse_us=abc"], "pulse_us"), (["--set", "pulse_us="], "--set"), (["--set", "=3"], "--set"),
-    (["--set", "pulse_us=1000000"], "pulse_us"),
+    (["--set", "pulse_us=1000000"], "pulse_us"), (["--set", "mag_sigma_t=nan"], "mag_sigma_t"),
     (["--set", "pulse_us=40000", "--set", "pulse_us=60000"], "--set"),
     (["--workers", "0"], "--workers"), (["--workers", "x"], "--workers"), (["--workers", "-2"], "--workers"),
     (["--workers", "5000"], "--workers"),
