@@ -2,14 +2,16 @@
 firmware configuration values, on a local process pool, a Dask cluster or Ray; prints the
 median, p90 and worst of each figure per grid point.
 
-Exit status: 0 done; 1 a run failed; 2 bad arguments (nothing run); 130 interrupted (the runs
-done so far are summarised and written, marked "interrupted": true)."""
+Exit status: 0 done; 1 a run failed; 2 bad arguments (nothing run); 130 interrupted by Ctrl-C or
+SIGTERM (the runs done so far are summarised and written, marked "interrupted": true)."""
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -66,7 +68,8 @@ def run(args) -> int:
     bar.update(0)
     status = 0
     try:
-        runs = sweep.run_tasks(tasks, args.executor, plan["workers"], args.scheduler, on_result=bar.update)
+        with _sigterm_interrupts():
+            runs = sweep.run_tasks(tasks, args.executor, plan["workers"], args.scheduler, on_result=bar.update)
     except sweep.SweepInterrupted as exc:
         runs, status = [r for r in exc.partial if r is not None], 130
     except sweep.SweepError as exc:
@@ -84,6 +87,19 @@ def run(args) -> int:
            "runs": runs, "summary": summary}
     _write_outputs(args, doc)
     return status
+
+
+@contextlib.contextmanager
+def _sigterm_interrupts():
+    """SIGTERM stops the sweep as Ctrl-C does (runs under way stopped, the runs done written)."""
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 # ---------------------------------------------------------------- checks before any work

@@ -6,6 +6,8 @@ the Dask LocalCluster (2 worker processes on 127.0.0.1) is started once for the 
 import csv
 import json
 import math
+import os
+import signal
 import sys
 
 import numpy as np
@@ -157,16 +159,28 @@ def test_missing_executor_names_its_extra(executor, module, extra, monkeypatch, 
     assert extra in capsys.readouterr().err
 
 
-def test_interrupted_sweep_writes_the_runs_done(local_doc, monkeypatch, tmp_path):
+def _ctrl_c():
+    raise KeyboardInterrupt
+
+
+def _sigterm():
+    os.kill(os.getpid(), signal.SIGTERM)    # the handler raises in this thread before kill returns
+    pytest.fail("SIGTERM did not stop the sweep")
+
+
+@pytest.mark.parametrize("stop", [_ctrl_c, _sigterm], ids=["ctrl-c", "sigterm"])
+def test_interrupted_sweep_writes_the_runs_done(stop, local_doc, monkeypatch, tmp_path):
     _, doc = local_doc
 
     def stopped(tasks, workers, scheduler):
         yield 1, doc["runs"][1]
-        raise KeyboardInterrupt
+        stop()
 
     monkeypatch.setitem(sweep.EXECUTORS, "local", stopped)
     out = tmp_path / "part.json"
+    before = signal.getsignal(signal.SIGTERM)
     assert main([*SWEEP, "--json", str(out)]) == 130
+    assert signal.getsignal(signal.SIGTERM) is before
     part = json.loads(out.read_text())
     assert part["interrupted"] is True and part["runs"] == [doc["runs"][1]] and part["summary"][0]["runs"] == 1
 
