@@ -16,6 +16,13 @@ RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
 
 
 
+def is_wall_clock(key: str) -> bool:
+    """A report key measured on the wall clock (tick execution, jitter, speed), which differs
+    from run to run of the same seed; every other figure is a function of scenario, seed,
+    duration and configuration."""
+    return key.startswith("tick_") or key in ("wall_s", "speedup", "deadline_misses")
+
+
 def _rot_angle(Ra, Rb) -> float:
     c = (float(np.trace(Ra.T @ Rb)) - 1.0) * 0.5
     return math.acos(max(-1.0, min(1.0, c)))
