@@ -78,6 +78,10 @@ class FirmwareConfig:
     # --- work per tick (a slower board lowers them)
     track_budget_evals: int = 12           # coil field evaluations (field + Jacobian at one point) per tick
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
+    solve_gate_probability: float = 1.0    # a warm-started solve whose cost fails this chi-square
+                                           # probability is solved again from acquisition (1.0: never;
+                                           # a moving sensor's burst fails any tighter gate, and the
+                                           # acquisition then finds the same minimum at twice the work)
     # --- limits
     max_current_a: float = 2.0
     stale_us: int = 2_000_000
@@ -301,6 +305,8 @@ class FirmwareConfig:
              f"must be a positive integer, got {self.coil_duty_window_us!r}")
         need("saturation_margin", fin(self.saturation_margin) and 0 < self.saturation_margin <= 1,
              f"must be in (0, 1], got {self.saturation_margin!r}")
+        need("solve_gate_probability", self.solve_gate_probability in (0.99, 0.999, 0.9999, 1.0),
+             f"must be 0.99, 0.999, 0.9999 or 1.0 (no gate), got {self.solve_gate_probability!r}")
         need("nis_gate_probability", self.nis_gate_probability in (0.99, 0.999, 0.9999, 1.0),
              f"must be 0.99, 0.999, 0.9999 or 1.0 (no gate), got {self.nis_gate_probability!r}")
         need("gravity_mps2", len(self.gravity_mps2) == 3 and all(fin(v) for v in self.gravity_mps2),
@@ -316,7 +322,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
               "drift_limit_t", "mag_sigma_t", "mag_rate_hz", "ring_capacity", "mag_range_t", "saturation_margin",
               "earth_field_max_t"),
     "limits": ("max_current_a", "coil_max_duty", "coil_duty_window_us", "current_tolerance_a"),
-    "budget": ("track_budget_evals", "replay_budget_steps"),
+    "budget": ("track_budget_evals", "replay_budget_steps", "solve_gate_probability"),
     "adaptive": ("actuation", "single_coil_fusion", "sigma_max_pos_m", "sigma_min_pos_m", "sigma_max_ori_deg",
                  "sigma_min_ori_deg", "sigma_range_ref_m", "sigma_range_exp_pos", "sigma_range_exp_ori",
                  "adaptive_currents_a", "adaptive_min_current_a", "adaptive_max_current_a",

@@ -40,11 +40,13 @@ from coiltrack.firmware.estimate.magnetic_inertial import (OUT_INCONSISTENT, OUT
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
-from coiltrack.firmware.pose.solver import SOLVE_NONFINITE, SOLVE_NO_START, SOLVE_BAD_INPUT
+from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING, PoseSolver
 from coiltrack.firmware.track.magnetic import MagneticTracker
 
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05
+#: the steps of fusing one burst (``SensorInertial.fuse``)
+_COMPENSATE, _SOLVE, _UPDATE_COMP, _UPDATE_MAG, _REPLAY = range(5)
 
 
 class PulseGate:
@@ -260,8 +262,7 @@ class SensorInertial:
         self.comp_rotation = np.eye(3)
         self.comp_cov = np.zeros((6, 6))
         self.comp_ok = False
-        self.stage = 0
-        self.pending_tick = -1
+        self.stage = _COMPENSATE
         self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
         self._Cfv = memoryview(self._Cf)
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
@@ -328,19 +329,20 @@ class SensorInertial:
         self.compensated += 1
         return True
 
-    def fuse(self, solver, S, currents, sigma, pulse_t, budget: int) -> bool:
+    def fuse(self, solver, S, currents, sigma, pulse_t, budget: int, replay_budget: int) -> bool:
         """One step of fusing the burst whose magnetic-only solution is in
         ``mag_*``; returns True when the burst is fused (or dropped). A tick
         carries at most one of these steps:
 
         0. with motion compensation, bring the pulses to ``t_ref`` and solve
-           again (started from the magnetic-only solution);
+           again (started from the magnetic-only solution, ``budget`` field
+           evaluations per step);
         1. update the fusion filter at ``t_ref`` with the compensated solution
            and its covariance (``FusionFilter.begin_magnetic_update``); if the
            update is rejected (the inertial motion was wrong), the next step
            offers the magnetic-only one instead;
-        2. replay the IMU samples since ``t_ref``, ``budget`` of them per
-           step, on the filter's shadow state (the fused outputs go on from
+        2. replay the IMU samples since ``t_ref``, ``replay_budget`` of them
+           per step, on the filter's shadow state (the fused outputs go on from
            the live state meanwhile).
 
         The solver's covariance assumes the sensor still during the burst. The
@@ -349,32 +351,40 @@ class SensorInertial:
         rms pulse time about the middle of the burst); with compensation the
         error of the inertial motion (velocity uncertainty times ``t_rms``)."""
         fus = self.fusion
-        if self.stage == 0:
+        stage = self.stage
+        if stage == _COMPENSATE:
             self.comp_ok = False
+            self.stage = _UPDATE_MAG
             if self.cfg.motion_compensation and self.compensate(solver, S, currents, pulse_t):
-                st = solver.solve(self.S_comp, currents, sigma, x0_position=self.mag_position,
-                                  x0_rotation=self.mag_rotation)
-                if not st & (SOLVE_NONFINITE | SOLVE_NO_START | SOLVE_BAD_INPUT):
-                    np.copyto(self.comp_position, solver.position)
-                    np.copyto(self.comp_rotation, solver.rotation)
-                    np.copyto(self.comp_cov, solver.covariance)
-                    self.comp_ok = True
-            self.stage = 1 if self.comp_ok else 2
+                if solver.begin(self.S_comp, currents, sigma, self.mag_position, self.mag_position,
+                                self.mag_rotation) & SOLVE_RUNNING:
+                    self.stage = _SOLVE
             return False
-        if self.stage == 1:
+        if stage == _SOLVE:
+            st = solver.step(budget)
+            if st & SOLVE_RUNNING:
+                return False
+            if not st & (SOLVE_NONFINITE | SOLVE_NO_START | SOLVE_BAD_INPUT):
+                np.copyto(self.comp_position, solver.position)
+                np.copyto(self.comp_rotation, solver.rotation)
+                np.copyto(self.comp_cov, solver.covariance)
+                self.comp_ok = True
+            self.stage = _UPDATE_COMP if self.comp_ok else _UPDATE_MAG
+            return False
+        if stage == _UPDATE_COMP:
             self._motion_cov(self.comp_cov, True)
             flags = fus.begin_magnetic_update(self.t_ref, self.comp_position, self.comp_rotation, self._Cf,
                                               final=False)
             if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
                 self.comp_rejected += 1        # the inertial motion was wrong: offer the burst as measured
-                self.stage = 2
+                self.stage = _UPDATE_MAG
                 return False
             return self._updated(flags)
-        if self.stage == 2:
+        if stage == _UPDATE_MAG:
             self._motion_cov(self.mag_cov, False)
             return self._updated(fus.begin_magnetic_update(self.t_ref, self.mag_position, self.mag_rotation,
                                                            self._Cf))
-        if fus.step(budget):
+        if fus.step(replay_budget):
             self._done()
             return True
         return False
@@ -383,13 +393,13 @@ class SensorInertial:
         self.last_fuse_flags = flags
         self.fused += 1
         if self.fusion.replaying:
-            self.stage = 3
+            self.stage = _REPLAY
             return False
         self._done()
         return True
 
     def _done(self) -> None:
-        self.stage = 0
+        self.stage = _COMPENSATE
         self.pending = False
 
     def _motion_cov(self, C, compensated: bool) -> None:
@@ -428,6 +438,9 @@ class BurstFusionTracker(MagneticTracker):
                          for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         self.replay_budget = cfg.replay_budget_steps
+        # the compensated re-solve starts from the burst's own solution: no consistency gate
+        # (its sigma leaves out the compensation's error) and no fall-back to acquisition
+        self.comp_solver = PoseSolver(coils, cfg.field_model, gate_probability=1.0)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -454,9 +467,9 @@ class BurstFusionTracker(MagneticTracker):
             self.source.process()
         for ch, ins in self._pairs:
             ins.process(ch.ring)
-        busy = self._next >= 0 or self.burst.complete
-        super().step(now_us)
-        if not busy:
+        if self.busy():
+            super().step(now_us)
+        else:
             self._fuse_step()
         self._send_fused()
 
@@ -468,7 +481,7 @@ class BurstFusionTracker(MagneticTracker):
             np.copyto(ins.mag_rotation, sv.rotation)
             np.copyto(ins.mag_cov, sv.covariance)
             ins.pending = True
-            ins.stage = 0
+            ins.stage = _COMPENSATE
         else:
             ins.pending = False
 
@@ -476,7 +489,7 @@ class BurstFusionTracker(MagneticTracker):
         """One step of one sensor's delayed magnetic update per tick."""
         for ch, ins in self._pairs:
             if ins.pending:
-                ins.fuse(self.solver, ch.S, self.currents, ch.sigma, ch.pmv, self.replay_budget)
+                ins.fuse(self.comp_solver, ch.S, self.currents, ch.sigma, ch.pmv, self.budget, self.replay_budget)
                 return
 
     def _send_fused(self) -> None:

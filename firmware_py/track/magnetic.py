@@ -6,8 +6,9 @@ signal matrix is solved by the allocation-free
 :class:`coiltrack.firmware.pose.solver.PoseSolver` (warm-started from the
 tracked pose; Kuipers' closed form and the grid search only to acquire), and
 the pose is sent as a ``POSE`` without ``POSE_FUSED``. One sensor's solve at a
-time, within the tick's work budget; :meth:`MagneticTracker.on_solution` is
-the hook a fusing tracker extends.
+time, resumed tick after tick with at most ``track_budget_evals`` coil field
+evaluations per tick (``PoseSolver.begin`` / ``step``);
+:meth:`MagneticTracker.on_solution` is the hook a fusing tracker extends.
 """
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ import numpy as np
 from coiltrack.protocol.schema import POSE_VALID
 
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
-from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, PoseSolver
+from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING, PoseSolver
 from coiltrack.firmware.rotation import quat_tuple
 from coiltrack.firmware.track.status import COIL_FATAL, input_status
 
@@ -44,13 +45,15 @@ class MagneticTracker:
         self.burst = burst
         self.supervisor = supervisor
         self.tx = tx
-        self.solver = PoseSolver(coils, cfg.field_model)
+        self.solver = PoseSolver(coils, cfg.field_model, gate_probability=cfg.solve_gate_probability)
         self.nominal = np.array([c.current for c in cfg.coils])
         self.currents = np.zeros(len(coils))
         self._curv = memoryview(self.currents)
         self._nomv = memoryview(self.nominal)
         self.poses = {ch.node: TrackedPose(cfg.hemisphere) for ch in self.channels}
-        self._next = -1                  # index of the next channel to solve; -1: idle
+        self._next = -1                  # index of the channel being solved; -1: idle
+        self._status = 0                 # POSE_* bits of that channel's burst
+        self.budget = cfg.track_budget_evals
         self.cycles = 0
 
     # ------------------------------------------------------------ inputs
@@ -68,18 +71,19 @@ class MagneticTracker:
 
     # ------------------------------------------------------------ tick
     def step(self, now_us: int) -> None:
+        """Within ``track_budget_evals`` field evaluations: the next piece of
+        the current sensor's solve, or the start of the next sensor's."""
         if self._next < 0:
             if not self.burst.complete:
                 return
             self._next = 0
             self._prepare_currents()
-        ch = self.channels[self._next]
-        self._solve_and_report(ch)
-        self._next += 1
-        if self._next == len(self.channels):
-            self._next = -1
-            self.cycles += 1
-            self.burst.release()
+            self._begin(self.channels[0])
+            return
+        st = self.solver.step(self.budget)
+        if st & SOLVE_RUNNING:
+            return
+        self._report(self.channels[self._next], not (st & SOLVE_FAILED))
 
     def _prepare_currents(self) -> None:
         """The driver's measured current where it reported one, else the nominal."""
@@ -87,32 +91,53 @@ class MagneticTracker:
         for j in range(len(cur)):
             cur[j] = mc[j] if mc[j] != 0.0 else nom[j]
 
-    def _solve_and_report(self, ch) -> None:
-        """Magnetic-only pose of one sensor from the burst's signal matrix,
-        sent as a POSE without ``POSE_FUSED``; a usable solution goes to
-        :meth:`on_solution`."""
+    def _begin(self, ch) -> None:
+        """Status of the burst on ``ch`` and, if usable, the start of its solve
+        (warm from the tracked pose once there is one)."""
         sched = self.schedule
         flags = ch.burst_flags()
         faults = sched.any_faults()
-        status = input_status(flags, faults) | self.supervisor.pose_status(ch.node, flags)
+        self._status = input_status(flags, faults) | self.supervisor.pose_status(ch.node, flags)
         usable = not (flags & PULSE_UNUSABLE) and not (faults & COIL_FATAL) and not self.supervisor.veto
+        if not usable:
+            self._report(ch, False)
+            return
+        ch.fill_sigma()
+        tp = self.poses[ch.node]
+        if tp.have_pose:
+            st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.position, tp.position, tp.rotation)
+        else:
+            st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.hemisphere)
+        if not st & SOLVE_RUNNING:
+            self._report(ch, False)
+
+    def _report(self, ch, solved: bool) -> None:
+        """Send the burst's magnetic POSE of ``ch`` (without ``POSE_FUSED``),
+        hand a solution to :meth:`on_solution`, move on to the next sensor."""
+        sched = self.schedule
         tp = self.poses[ch.node]
         sv = self.solver
-        solved = False
-        if usable:
-            ch.fill_sigma()
-            hemi = tp.position if tp.have_pose else tp.hemisphere
-            solved = not (sv.solve(ch.S, self.currents, ch.sigma, hemi) & SOLVE_FAILED)
         t_pose = (int(sched.start[0]) + int(sched.end[-1])) // 2      # the middle of the burst
         if solved:
             np.copyto(tp.position, sv.position)
             np.copyto(tp.rotation, sv.rotation)
             tp.have_pose = True
             self.tx.pose_cov6(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), sv.covariance,
-                              status | POSE_VALID)
+                              self._status | POSE_VALID)
         else:
-            self.tx.pose_unknown(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), status)
+            self.tx.pose_unknown(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), self._status)
         self.on_solution(ch, solved)
+        self._next += 1
+        if self._next == len(self.channels):
+            self._next = -1
+            self.cycles += 1
+            self.burst.release()
+        else:
+            self._begin(self.channels[self._next])
+
+    def busy(self) -> bool:
+        """A burst is being solved (or waits to be)."""
+        return self._next >= 0 or self.burst.complete
 
     def on_solution(self, ch, solved: bool) -> None:
         """Hook: the burst of ``ch`` was solved (``self.solver`` holds it) or not."""
