@@ -2,7 +2,6 @@
 same geometry and noise, rates, link counters and pulse-window checks."""
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
@@ -225,6 +224,8 @@ def format_table(rep: dict) -> str:
         rows.append(("faults injected", ", ".join(fl["injected"]["switches"]) or "-"))
         ev = fl["reported"]["events"]
         rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
+    if rep.get("interrupted"):
+        rows.append(("interrupted", f'stopped by {rep.get("stopped_by")}: the figures are of the part that ran'))
     if "paper" in rep:
         p = rep["paper"]
         rows.append(("paper", f'{p.get("position_rms_mm")} mm, {p.get("orientation_rms_deg")} deg ({p.get("source")})'))
@@ -241,6 +242,7 @@ def format_table(rep: dict) -> str:
 
 
 def write_json(rep: dict, path: str) -> None:
-    with open(path, "w") as fh:
-        json.dump(rep, fh, indent=2, default=float)
-        fh.write("\n")
+    """The report as strict JSON (``null`` for a figure that is not a finite number)."""
+    from .jsonout import write
+
+    write(path, rep)
