@@ -21,7 +21,7 @@ MAX_WALL_S = 7 * 86400.0
 
 def _interval(lo, hi, lo_open: bool) -> str:
     left = "(" if lo_open else "["
-    fmt = lambda v: str(v) if isinstance(v, int) else f"{v:g}"  # noqa: E731
+    fmt = lambda v: str(int(v)) if float(v).is_integer() else f"{v:g}"  # noqa: E731
     lo_s = "-inf" if lo is None else fmt(lo)
     hi_s = "inf" if hi is None else fmt(hi)
     return f"{left}{lo_s}, {hi_s}{']' if hi is not None else ')'}"

@@ -51,11 +51,12 @@ def _link(args):
 
 
 def run(args) -> int:
+    import coiltrack.hil.world  # noqa: F401 - the bench extra, checked before a link is opened
     from coiltrack.hil.clock import WallClock
     from coiltrack.hil.nodes import Recorder
 
     from . import report, scenarios
-    from .realtime import emulator_loop
+    from .realtime import elapsed_s, emulator_loop
     from .runner import BenchSetup, parse_faults
     from .stopping import Stopped, mark
 
@@ -87,7 +88,7 @@ def run(args) -> int:
         stopped = exc
     finally:
         link.close()
-    done = duration if stopped is None else round(min(duration, max(clock.now(), 1) * 1e-6), 3)
+    done = duration if stopped is None else elapsed_s(clock, duration)
     rep = report.build(bench, {}, done, transport=kind, cfg=sc.firmware_config())
     if stopped is not None:
         mark(rep, stopped)

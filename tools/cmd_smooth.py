@@ -135,6 +135,8 @@ def write_poses(path, segments) -> None:
 
 
 def run(args) -> int:
+    import coiltrack.hil.world  # noqa: F401 - the truth needs the bench extra: checked before the replay
+
     from .framelog import load
 
     log = load("smooth", args.log)

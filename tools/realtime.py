@@ -287,10 +287,10 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
                "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
                *(["--config", str(config_path)] if config_path else [])]
+        bench = BenchSetup(scenario, seed, duration_s, link, faults, cfg=cfg)
         child = start_child(_pin_cpus(cmd), stdout=subprocess.PIPE)
         wait_s = 0.0                  # stopped or failed: the child goes at once
         try:
-            bench = BenchSetup(scenario, seed, duration_s, link, faults, cfg=cfg)
             stopped = _emulate(bench, clock, duration_s, Progress(progress, duration_s,
                                                                   f"{scenario.name} ({transport})"))
             wait_s = 30.0 if stopped is None else 0.0
@@ -299,13 +299,18 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
             fw_stats = _read_stats(child.stdout)
     finally:
         close()
-    done_s = duration_s if stopped is None else round(min(duration_s, max(clock.now(), 1) * 1e-6), 3)
+    done_s = duration_s if stopped is None else elapsed_s(clock, duration_s)
     rep = report_mod.build(bench, fw_stats.get("status", {}), done_s, transport=transport, cfg=cfg)
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
     rep["firmware_exit_code"] = code
     if stopped is not None:
         raise mark(rep, stopped)
     return rep
+
+
+def elapsed_s(clock, duration_s: float) -> float:
+    """Seconds of a wall-clock run done by now (at least 1 ms, at most ``duration_s``)."""
+    return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
 
 
 def _emulate(bench, clock, duration_s: float, prog) -> Stopped | None:

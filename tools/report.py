@@ -122,7 +122,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "position_p95_mm": round(float(np.percentile(pe, 95)) * 1e3, 3) if pe.size else None,
         "orientation_rms_deg": round(math.degrees(rms(ae)), 3),
         "crlb_position_rms_mm": round(rms(cb) * 1e3, 3),
-        "pose_rate_hz": round(pe.size / duration_s, 3),
+        "pose_rate_hz": round(pe.size / duration_s, 3) if duration_s > 0 else 0.0,
         "by_range": by_range,
         "distance_range_cm": [round(min(dist) * 100, 1), round(max(dist) * 100, 1)] if dist else None,
         "frames_rx": fw_status.get("rx_frames_ok", 0),

@@ -26,8 +26,9 @@ EXIT_BROKEN_PIPE = 141
 _SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-class Stopped(Exception):
-    """The run ended before its duration; ``exit_code`` is the command's exit status."""
+class Stopped(BaseException):
+    """The run ended before its duration; ``exit_code`` is the command's exit status.
+    A BaseException, as KeyboardInterrupt: no ``except Exception`` on the way swallows it."""
 
     def __init__(self, reason: str, exit_code: int):
         super().__init__(reason)
