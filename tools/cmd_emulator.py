@@ -37,17 +37,17 @@ def add_arguments(p) -> None:
 
 
 def _link(args):
-    """The emulator's end of the link (pty, serial port or CAN bus) and its kind."""
+    """The emulator's end of the link (pty, serial port or CAN bus), its kind, and the
+    path of a pty created for it (None otherwise)."""
     from coiltrack.protocol.schema import NODE_COIL_DRIVER
 
     from .links import FdLink, GuardedPort, make_raw_pty, open_link
 
     if args.create_pty:
         master, slave, name = make_raw_pty()
-        print(name, flush=True)
-        return FdLink(master), "serial"
+        return FdLink(master), "serial", name
     link, _ = open_link(args, NODE_COIL_DRIVER)
-    return GuardedPort(link), args.transport
+    return GuardedPort(link), args.transport, None
 
 
 def run(args) -> int:
@@ -71,7 +71,7 @@ def run(args) -> int:
         print(f"coiltrack emulator: --faults: {exc}", file=sys.stderr)
         return 2
     try:
-        link, kind = _link(args)
+        link, kind, pty = _link(args)
     except ValueError as exc:
         print(f"coiltrack emulator: {exc}", file=sys.stderr)
         return 2
@@ -83,6 +83,8 @@ def run(args) -> int:
     clock = WallClock(args.epoch_ns)
     stopped = None
     try:
+        if pty:
+            print(pty, flush=True)          # the firmware's side; printed once the emulator is ready
         emulator_loop(bench.emulator, bench.link, clock, int(duration * 1e6))
     except Stopped as exc:
         stopped = exc
