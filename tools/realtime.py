@@ -35,9 +35,7 @@ import numpy as np
 
 from coiltrack.hil.clock import WallClock
 
-from . import report as report_mod
 from .links import FdLink, make_raw_pty
-from .runner import BenchSetup, Progress
 from .stopping import Stopped, mark, start_child, stop_child
 
 
@@ -278,16 +276,20 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     child is stopped within a second (nothing is left in the temporary directory) and the
     report of what was done, marked ``interrupted``, goes with the exception
     as ``exc.partial``."""
+    # here, not at the top: the firmware's process imports this module and needs no world
+    from . import report as report_mod
+    from .runner import BenchSetup, Progress
+
     cfg = cfg or scenario.firmware_config()
-    epoch_ns = time.monotonic_ns() + 1_500_000_000      # give the child time to start
-    clock = WallClock(epoch_ns)
     link_args, link, close = _two_process_link(transport)
     try:
+        bench = BenchSetup(scenario, seed, duration_s, link, faults, cfg=cfg)
+        epoch_ns = time.monotonic_ns() + 1_500_000_000      # give the child time to start
+        clock = WallClock(epoch_ns)
         # the child's statistics come back on its standard output (a few kB, written at its end)
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
                "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
                *(["--config", str(config_path)] if config_path else [])]
-        bench = BenchSetup(scenario, seed, duration_s, link, faults, cfg=cfg)
         child = start_child(_pin_cpus(cmd), stdout=subprocess.PIPE)
         wait_s = 0.0                  # stopped or failed: the child goes at once
         try:
