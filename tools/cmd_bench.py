@@ -44,8 +44,8 @@ def add_arguments(p) -> None:
 
 
 def _setup(args):
-    """The scenario, duration, firmware configuration and faults of the run; a one-line
-    error and None when one of them is refused."""
+    """The scenario, duration, firmware configuration and faults of the run, or the
+    one-line error (a str) that refuses one of them."""
     from coiltrack.firmware.config import ConfigError
 
     from .runner import parse_faults

@@ -36,7 +36,7 @@ import numpy as np
 from coiltrack.hil.clock import WallClock
 
 from .links import FdLink, make_raw_pty
-from .stopping import Stopped, mark, start_child, stop_child
+from .stopping import Stopped, held_signals, mark, start_child, stop_child
 
 
 def _stats(starts: np.ndarray, exec_us: np.ndarray, late: np.ndarray, tick_us: int, misses: int) -> dict:
@@ -272,10 +272,10 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     pseudo-terminals. ``cfg``: the firmware configuration (default the
     scenario's), read by the child from ``config_path`` over the scenario's.
 
-    The child dies with this process. Stopped early (SIGINT, SIGTERM), the
-    child is stopped within a second (nothing is left in the temporary directory) and the
-    report of what was done, marked ``interrupted``, goes with the exception
-    as ``exc.partial``."""
+    The child dies with this process, and writes no file (its statistics come
+    back on its standard output). Stopped early (SIGINT, SIGTERM), the child
+    is stopped within a second and the report of what was done, marked
+    ``interrupted``, goes with the exception as ``exc.partial``."""
     # here, not at the top: the firmware's process imports this module and needs no world
     from . import report as report_mod
     from .runner import BenchSetup, Progress
@@ -290,15 +290,8 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
                "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
                *(["--config", str(config_path)] if config_path else [])]
-        child = start_child(_pin_cpus(cmd), stdout=subprocess.PIPE)
-        wait_s = 0.0                  # stopped or failed: the child goes at once
-        try:
-            stopped = _emulate(bench, clock, duration_s, Progress(progress, duration_s,
-                                                                  f"{scenario.name} ({transport})"))
-            wait_s = 30.0 if stopped is None else 0.0
-        finally:
-            code = stop_child(child, wait_s=wait_s)
-            fw_stats = _read_stats(child.stdout)
+        stopped, code, fw_stats = _beside_child(_pin_cpus(cmd), bench, clock, duration_s,
+                                                Progress(progress, duration_s, f"{scenario.name} ({transport})"))
     finally:
         close()
     done_s = duration_s if stopped is None else elapsed_s(clock, duration_s)
@@ -315,13 +308,19 @@ def elapsed_s(clock, duration_s: float) -> float:
     return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
 
 
-def _emulate(bench, clock, duration_s: float, prog) -> Stopped | None:
-    """The emulator loop of a two-process run (until 0.3 s after ``duration_s``, so the
-    last frames arrive); the :class:`Stopped` that ended it early, if any."""
+def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog):
+    """Start the firmware process and run the emulator beside it (until 0.3 s after
+    ``duration_s``, so the last frames arrive). Returns the :class:`Stopped` that ended the
+    run early (or None), the child's exit status and its statistics (its standard output)."""
+    child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
     try:
+        with held_signals():
+            child = start_child(cmd, stdout=subprocess.PIPE)
         emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog)
+        wait_s = 30.0
     except Stopped as exc:
-        return exc
+        stopped = exc
     finally:
         prog.done()
-    return None
+        code = stop_child(child, wait_s=wait_s) if child is not None else None
+    return stopped, code, _read_stats(child.stdout) if child is not None else {"status": {}, "timing": {}}

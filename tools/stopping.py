@@ -72,9 +72,22 @@ def on_signals():
             signal.signal(s, h)
 
 
-def _die_with_parent(parent: int, mask):
-    def setup() -> None:
+@contextlib.contextmanager
+def held_signals():
+    """SIGINT and SIGTERM held back inside the block and delivered at its end. Start a
+    child in one (``with held_signals(): child = start_child(cmd)``): a signal during the
+    fork would be lost in the interpreter's after-fork hooks, and after the block the
+    child is known to the caller, which can stop it."""
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
+    try:
+        yield
+    finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
+def _die_with_parent(parent: int):
+    def setup() -> None:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _SIGNALS)
         if sys.platform.startswith("linux"):
             libc = ctypes.CDLL(None, use_errno=True)
             libc.prctl(1, int(signal.SIGTERM), 0, 0, 0)       # PR_SET_PDEATHSIG
@@ -84,15 +97,9 @@ def _die_with_parent(parent: int, mask):
 
 
 def start_child(cmd: list[str], **popen) -> subprocess.Popen:
-    """Start ``cmd``; it receives SIGTERM when this process dies, however it dies.
-
-    SIGINT and SIGTERM are held back while the child is forked: an exception raised in
-    the interpreter's after-fork hooks would be lost, and the signal with it."""
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, _SIGNALS)
-    try:
-        return subprocess.Popen(cmd, preexec_fn=_die_with_parent(os.getpid(), mask), **popen)
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+    """Start ``cmd`` (within :func:`held_signals`); it receives SIGTERM when this process
+    dies, however it dies."""
+    return subprocess.Popen(cmd, preexec_fn=_die_with_parent(os.getpid()), **popen)
 
 
 def stop_child(child: subprocess.Popen, wait_s: float = 0.0, grace_s: float = 0.8) -> int:
