@@ -64,7 +64,7 @@ def run(args) -> int:
     from . import jsonout
     from .links import GuardedPort, open_link
     from .realtime import _realtime_setup, firmware_loop
-    from .stopping import Stopped
+    from .stopping import PeerSilent, Stopped, mark
 
     cfg = _config(args)
     if cfg is None:
@@ -84,8 +84,9 @@ def run(args) -> int:
         timing = firmware_loop(fw, clock, duration_us, cfg.tick_us)
     except Stopped as exc:
         timing, code = exc.partial or {}, exc.exit_code
-        report = {"interrupted": True, "stopped_by": exc.reason}
-        print(f"coiltrack firmware: stopped: {exc.reason}", file=sys.stderr)
+        mark(report, exc)
+        hint = " (--peer-timeout 0 keeps waiting)" if isinstance(exc, PeerSilent) else ""
+        print(f"coiltrack firmware: stopped: {exc.reason}{hint}", file=sys.stderr)
     finally:
         port.close()
     timing.update({"rt_" + k: v for k, v in rt.items()})
