@@ -39,10 +39,29 @@ numbers are seconds). Example:
 """
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+
+def _number(what: str, text: str, lo: float, hi: float) -> float:
+    """``text`` as a finite number in ``[lo, hi]``; ValueError naming ``what`` and the range otherwise."""
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise ValueError(f"{what} must be a number in [{lo:g}, {hi:g}], got '{text.strip()}'")
+    return v
+
+
+def _coil(text: str) -> int:
+    """A coil index (checked against the source by :meth:`BenchFaults.check_coils`)."""
+    if not text.strip().isdigit():
+        raise ValueError(f"the coil must be an index 0, 1, 2, ..., got '{text.strip()}'")
+    return int(text)
+
 
 _LINK_PROBS = ("drop", "corrupt", "truncate", "duplicate", "garbage", "delay")
 
@@ -66,15 +85,9 @@ class LinkFaults:
             self.both_ways = val.strip().lower() in ("1", "true", "yes", "")
             return
         if key == "delay_ms":
-            self.delay_us = int(round(float(val) * 1000))
+            self.delay_us = int(round(_number("link fault 'delay_ms'", val, 0.0, 10_000.0) * 1000))
             return
-        try:
-            p = float(val)
-        except ValueError:
-            raise ValueError(f"link fault '{key}': '{val}' is not a number") from None
-        if not 0.0 <= p <= 1.0:
-            raise ValueError(f"link fault '{key}': probability {p} outside [0, 1]")
-        setattr(self, key, p)
+        setattr(self, key, _number(f"link fault '{key}': the probability", val, 0.0, 1.0))
 
     @classmethod
     def parse(cls, spec: str) -> "LinkFaults":
@@ -193,6 +206,7 @@ class FaultyLink:
 _UNITS = {"s": 1_000_000, "ms": 1_000, "us": 1}
 _TIMED = ("clock_step", "sat", "open_circuit", "short", "sag", "overheat", "metal", "node_off")
 _NODES = ("sensor", "driver")
+_COIL_FAULTS = ("open_circuit", "short", "overheat")
 
 
 def parse_time_us(text: str) -> int:
@@ -267,6 +281,14 @@ class BenchFaults:
         out += [f.describe() for f in self.timed]
         return out
 
+    def check_coils(self, n_coils: int) -> "BenchFaults":
+        """Self, or ValueError for a fault on a coil the source does not have."""
+        for f in self.timed:
+            if f.kind in _COIL_FAULTS and not 0 <= f.target < n_coils:
+                raise ValueError(f"fault '{f.kind}' on coil {f.target}: the source has coils "
+                                 f"0..{n_coils - 1}")
+        return self
+
     @classmethod
     def parse(cls, spec: str) -> "BenchFaults":
         bf = cls()
@@ -292,16 +314,14 @@ class BenchFaults:
 
     def _parse_one(self, key: str, val: str) -> None:
         if key == "metal_d":
-            self.metal_distance_m = float(val)
+            self.metal_distance_m = _number("the distance (m)", val, 1e-3, 10.0)
             return
         if key == "metal_r":
-            self.metal_radius_m = float(val)
+            self.metal_radius_m = _number("the radius (m)", val, 1e-3, 1.0)
             return
         if key == "drift":
             node, _, ppm = val.rpartition(":")
-            ppm = float(ppm)
-            if abs(ppm) > 1000:
-                raise ValueError("drift beyond 1000 ppm")
+            ppm = _number("the drift (ppm)", ppm, -1000.0, 1000.0)
             if node:
                 self.drift_ppm[_node(node)] = ppm
             else:
@@ -319,12 +339,12 @@ class BenchFaults:
                 raise ValueError("takes only a time, e.g. 20s or 20s-30s")
             self.timed.append(TimedFault(key, t0, t1, "sensor"))
         elif key in ("open_circuit", "short"):
-            self.timed.append(TimedFault(key, t0, t1, int(head)))
+            self.timed.append(TimedFault(key, t0, t1, _coil(head)))
         elif key == "overheat":
-            self.timed.append(TimedFault(key, t0, t1, int(head), 150.0))
+            self.timed.append(TimedFault(key, t0, t1, _coil(head), 150.0))
         elif key == "sag":
-            f = float(head)
-            if not 0.0 < f <= 1.0:
+            f = _number("the sag factor", head, 0.0, 1.0)
+            if f == 0.0:
                 raise ValueError("sag factor must be in (0, 1]")
             self.timed.append(TimedFault(key, t0, t1, "driver", f))
         elif key == "node_off":

@@ -87,12 +87,38 @@ def decode_can_frames(frames, timeout_s: float | None = 0.5) -> CaptureResult:
     return res
 
 
+def canutils_frames(path, bad_lines: list):
+    """The frames of a candump ``.log``, read one line at a time by python-can: a line it
+    cannot read is skipped and its number appended to ``bad_lines``."""
+    import io
+
+    import can
+
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for n, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            try:
+                frames = list(can.CanutilsLogReader(io.StringIO(line)))
+            except Exception:        # noqa: BLE001 - python-can raises ValueError, IndexError, ...
+                bad_lines.append(n)
+                continue
+            yield from frames
+
+
 def decode_file(path, kind: str = "auto") -> CaptureResult:
+    """Decode a capture. A candump ``.log`` line that does not parse is skipped and
+    counted (``malformed_lines``, with their numbers in ``malformed_line_numbers``)."""
     p = Path(path)
     if kind == "auto":
         kind = detect_kind(p)
     if kind == "serial":
         return decode_serial_bytes(p.read_bytes())
+    if p.suffix.lower() == ".log":
+        bad: list[int] = []
+        res = decode_can_frames(canutils_frames(p, bad))
+        res.counters.update(malformed_lines=len(bad), malformed_line_numbers=bad)
+        return res
     import can
 
     with can.LogReader(str(p)) as reader:

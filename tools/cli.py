@@ -1,17 +1,47 @@
-"""``coiltrack``: one module per subcommand (``tools/cmd_*.py``)."""
+"""``coiltrack``: one module per subcommand (``tools/cmd_*.py``).
+
+A module gives ``HELP``, ``add_arguments(parser)`` and ``run(args)``, and may
+give ``EXIT`` (its own exit statuses, for the ``--help`` epilog and
+docs/cli.md) and ``epilog()`` (more text after the options).
+"""
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
+import re
 import sys
 from pathlib import Path
+
+from .stopping import EXIT_BROKEN_PIPE, Interrupted, on_signals
+
+#: exit statuses every command shares
+COMMON_EXIT = {
+    0: "done",
+    2: "bad argument, configuration value or input file, refused before any work (or a missing optional "
+       "package: the message names the extra to install)",
+    130: "stopped by SIGINT (Ctrl-C)",
+    143: "stopped by SIGTERM",
+    141: "standard output closed by its reader (e.g. piped into head)",
+}
 
 
 def subcommands() -> list[str]:
     """Every ``tools/cmd_NAME.py`` module is the subcommand ``NAME``."""
     here = str(Path(__file__).parent)
     return sorted(m.name[4:] for m in pkgutil.iter_modules([here]) if m.name.startswith("cmd_"))
+
+
+def exit_codes(mod) -> dict[int, str]:
+    """The exit statuses of a command: the common ones and its own."""
+    return dict(sorted({**COMMON_EXIT, **getattr(mod, "EXIT", {})}.items()))
+
+
+def _epilog(mod) -> str:
+    parts = [mod.epilog()] if hasattr(mod, "epilog") else []
+    parts.append("exit status:\n" + "\n".join(f"  {k:>3}  {v}" for k, v in exit_codes(mod).items()))
+    return "\n\n".join(parts)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -21,18 +51,60 @@ def build_parser() -> argparse.ArgumentParser:
     for name in subcommands():
         mod = importlib.import_module(f"coiltrack.tools.cmd_{name}")
         name = getattr(mod, "NAME", name)
-        p = sub.add_parser(name, help=mod.HELP, description=mod.__doc__)
+        p = sub.add_parser(name, help=mod.HELP, description=mod.__doc__, epilog=_epilog(mod),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+def extra_for(module: str) -> str | None:
+    """The optional extra of coiltrack that installs ``module`` (from the installed metadata)."""
+    from importlib.metadata import PackageNotFoundError, requires
+
+    want = module.split(".")[0].lower().replace("_", "-")
     try:
-        return int(args._run(args) or 0)
-    except KeyboardInterrupt:
-        return 130
+        reqs = requires("coiltrack") or []
+    except PackageNotFoundError:
+        return None
+    for r in reqs:
+        name = re.match(r"[A-Za-z0-9_.-]+", r).group(0).lower().replace("_", "-")
+        extra = re.search(r"extra\s*==\s*['\"]([^'\"]+)['\"]", r)
+        if name == want and extra:
+            return extra.group(1)
+    return None
+
+
+def _missing(command: str, exc: ModuleNotFoundError) -> int:
+    extra = extra_for(exc.name or "")
+    if extra is None and (exc.name or "").startswith("coiltrack"):
+        raise exc                   # one of ours: a bug, not an installation
+    how = f"pip install 'coiltrack[{extra}]'" if extra else f"pip install {exc.name}"
+    print(f"coiltrack {command}: needs the package '{exc.name}', which is not installed: {how}", file=sys.stderr)
+    return 2
+
+
+def _broken_pipe() -> int:
+    # the reader went away: nothing more can be written, and Python must not try at exit
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return EXIT_BROKEN_PIPE
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = next((a for a in argv if not a.startswith("-")), "")
+    with on_signals():
+        try:
+            args = build_parser().parse_args(argv)
+            return int(args._run(args) or 0)
+        except Interrupted as exc:
+            print(f"coiltrack: stopped by {exc.reason}", file=sys.stderr)
+            return exc.exit_code
+        except ModuleNotFoundError as exc:
+            return _missing(command, exc)
+        except BrokenPipeError:
+            return _broken_pipe()
 
 
 if __name__ == "__main__":

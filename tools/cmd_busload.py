@@ -6,31 +6,33 @@ from __future__ import annotations
 
 import json
 
+from . import args as A
+
 HELP = "CAN bus load for N sensor nodes at a bit rate (worst-case stuffing)"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--nodes", type=int, default=8, help="sensor nodes (default 8)")
-    p.add_argument("--bitrate", type=int, default=500_000, help="nominal bit rate, bit/s (default 500000)")
-    p.add_argument("--mag-rate", type=float, default=120.0, help="MAG_SAMPLE rate per node, Hz (default 120)")
-    p.add_argument("--imu-rate", type=float, default=100.0, help="IMU_SAMPLE rate per node, Hz (default 100; 0: no IMU)")
-    p.add_argument("--coils", type=int, default=3)
-    p.add_argument("--cycle-ms", type=float, default=600.0, help="actuation cycle (default 600 ms)")
-    p.add_argument("--sync-rate", type=float, default=1.0, help="TIME_SYNC rate, Hz")
-    p.add_argument("--heartbeat-rate", type=float, default=1.0)
+    p.add_argument("--nodes", type=A.integer(0, 16), default=8, help="sensor nodes, 0..16 (ids 16..31; default 8)")
+    p.add_argument("--bitrate", type=A.bitrate, default=500_000, help="nominal bit rate, bit/s (default 500000)")
+    p.add_argument("--mag-rate", type=A.real(0.0, 100_000.0), default=120.0,
+                   help="MAG_SAMPLE rate per node, Hz (default 120)")
+    p.add_argument("--imu-rate", type=A.real(0.0, 100_000.0), default=100.0,
+                   help="IMU_SAMPLE rate per node, Hz (default 100; 0: no IMU)")
+    p.add_argument("--coils", type=A.integer(1, 16), default=3, help="source coils, 1..16 (default 3)")
+    p.add_argument("--cycle-ms", type=A.real(0.0, 3_600_000.0, lo_open=True), default=600.0,
+                   help="actuation cycle (default 600 ms)")
+    p.add_argument("--sync-rate", type=A.real(0.0, 10_000.0), default=1.0, help="TIME_SYNC rate, Hz (default 1)")
+    p.add_argument("--heartbeat-rate", type=A.real(0.0, 10_000.0), default=1.0, help="HEARTBEAT rate, Hz (default 1)")
     p.add_argument("--signed", action="store_true", help="pulse commands signed (+13 bytes)")
     p.add_argument("--no-pulse-windows", action="store_true", help="firmware does not send PULSE_WINDOW")
     p.add_argument("--fd", action="store_true", help="CAN FD frames (estimate)")
-    p.add_argument("--data-bitrate", type=int, default=2_000_000, help="CAN FD data phase bit rate")
+    p.add_argument("--data-bitrate", type=A.bitrate, default=2_000_000, help="CAN FD data phase bit rate")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
 
 def run(args) -> int:
     from coiltrack.protocol.busload import Traffic, bus_load, format_report
 
-    if not 0 <= args.nodes <= 16:
-        print("coiltrack busload: --nodes must be 0..16 (sensor node ids 16..31)")
-        return 2
     t = Traffic(sensors=args.nodes, coils=args.coils, mag_rate_hz=args.mag_rate, imu_rate_hz=args.imu_rate,
                 cycle_s=args.cycle_ms / 1000.0, heartbeat_hz=args.heartbeat_rate, sync_hz=args.sync_rate,
                 signed_commands=args.signed, pulse_windows=not args.no_pulse_windows)

@@ -7,42 +7,49 @@ from __future__ import annotations
 
 import sys
 
+from . import args as A
+
+EXIT = {1: "a rule that applies to a node failed"}
 HELP = "conformance suite against a node on a serial port or CAN bus"
 
 
 def add_arguments(p) -> None:
     p.add_argument("--transport", choices=("serial", "can"), default="serial")
     p.add_argument("--port", help="serial: device, pty path or pyserial URL")
-    p.add_argument("--baudrate", type=int, default=1_000_000)
+    p.add_argument("--baudrate", type=A.bitrate, default=1_000_000)
     p.add_argument("--interface", default="slcan", help="can: python-can interface (slcan, virtual, socketcan)")
     p.add_argument("--channel", help="can: channel (slcan: serial device or pty path; virtual: a name)")
-    p.add_argument("--bitrate", type=int, default=500_000)
+    p.add_argument("--bitrate", type=A.bitrate, default=500_000)
     p.add_argument("--fd", action="store_true", help="can: send CAN FD frames")
     p.add_argument("--key", help="signing key (64 hex digits, or a passphrase hashed with SHA-256): "
                                  "sign commands and check that unsigned, forged and replayed ones are refused")
-    p.add_argument("--link-id", type=int, default=0, help="signing link id (default 0)")
-    p.add_argument("--src", type=int, default=1, help="the tester's node id (default 1, the firmware's)")
-    p.add_argument("--node", type=int, help="test only this node id")
-    p.add_argument("--mag-rate", type=float, default=120.0, help="expected MAG_SAMPLE rate, Hz (0: any steady rate)")
-    p.add_argument("--observe", type=float, default=1.2, help="seconds of stream observation (default 1.2)")
-    p.add_argument("--discover", type=float, default=None,
+    p.add_argument("--link-id", type=A.integer(0, 255), default=0, help="signing link id, 0..255 (default 0)")
+    p.add_argument("--src", type=A.node_id, default=1, help="the tester's node id (default 1, the firmware's)")
+    p.add_argument("--node", type=A.node_id, help="test only this node id")
+    p.add_argument("--mag-rate", type=A.real(0.0, 100_000.0), default=120.0,
+                   help="expected MAG_SAMPLE rate, Hz (0: any steady rate)")
+    p.add_argument("--observe", type=A.real(0.0, 3600.0, lo_open=True), default=1.2,
+                   help="seconds of stream observation (default 1.2)")
+    p.add_argument("--discover", type=A.real(0.0, 3600.0, lo_open=True), default=None,
                    help="seconds to listen for nodes (default: the 1.5 s heartbeat timeout)")
-    p.add_argument("--lead-ms", type=float, default=100.0, help="pulses are scheduled this far ahead")
-    p.add_argument("--sync-period", type=float, default=0.5, help="TIME_SYNC broadcast period, s (default 0.5)")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--json", metavar="PATH", help="also write the report as JSON")
+    p.add_argument("--lead-ms", type=A.real(0.0, 10_000.0, lo_open=True), default=100.0,
+                   help="pulses are scheduled this far ahead")
+    p.add_argument("--sync-period", type=A.real(0.0, 3600.0, lo_open=True), default=0.5,
+                   help="TIME_SYNC broadcast period, s (default 0.5)")
+    p.add_argument("--seed", type=A.seed, default=1)
+    p.add_argument("--json", type=A.output_path, metavar="PATH", help="also write the report as JSON")
 
 
 def open_link(args):
     """The tester's Port and a description of it."""
     if args.transport == "serial":
         if not args.port:
-            raise SystemExit("coiltrack conform: --port is required with --transport serial")
+            raise ValueError("--port is required with --transport serial")
         from coiltrack.protocol.serial_link import SerialLink
 
         return SerialLink(args.port, args.baudrate), f"serial {args.port}"
     if not args.channel:
-        raise SystemExit("coiltrack conform: --channel is required with --transport can")
+        raise ValueError("--channel is required with --transport can")
     from coiltrack.protocol.can import CanLink, open_bus
 
     bus = open_bus(args.interface, args.channel, args.bitrate, fd=args.fd)
@@ -59,10 +66,7 @@ def run(args) -> int:
                           key=key_from_text(args.key) if args.key else None)
     try:
         link, what = open_link(args)
-    except (OSError, ValueError) as exc:
-        print(f"coiltrack conform: cannot open the link: {exc}", file=sys.stderr)
-        return 2
-    except Exception as exc:   # python-can and pyserial initialisation errors
+    except Exception as exc:   # OSError, ValueError; python-can and pyserial initialisation errors
         print(f"coiltrack conform: cannot open the link: {exc}", file=sys.stderr)
         return 2
     try:
@@ -71,6 +75,9 @@ def run(args) -> int:
         link.close()
     print(rep.format())
     if args.json:
-        with open(args.json, "w") as fh:
-            fh.write(rep.to_json())
+        import json
+
+        from .jsonout import write
+
+        write(args.json, json.loads(rep.to_json()))
     return 0 if rep.ok else 1

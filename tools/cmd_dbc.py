@@ -5,11 +5,13 @@ load with ``cantools.database.load_file(path, frame_id_mask=0x7E0)``. See
 docs/protocol.md."""
 from __future__ import annotations
 
+from . import args as A
+
 HELP = "export the CAN messages as a DBC file"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("-o", "--output", help="DBC file to write (default: standard output)")
+    p.add_argument("-o", "--output", type=A.output_path, help="DBC file to write (default: standard output)")
 
 
 def run(args) -> int:

@@ -3,14 +3,15 @@ capture (COBS frames) or a python-can log (.log, .asc, .blf, .trc, .csv,
 .mf4), with the counters of bad frames at the end."""
 from __future__ import annotations
 
-import json
 import sys
+
+from . import args as A
 
 HELP = "decode a raw serial capture or a python-can log into readable messages"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("file", help="capture file")
+    p.add_argument("file", type=A.input_file, help="capture file")
     p.add_argument("--format", choices=("auto", "serial", "can"), default="auto",
                    help="auto (default): python-can log suffixes are CAN, anything else raw serial")
     p.add_argument("--json", action="store_true", help="one JSON object per message, then the counters")
@@ -19,6 +20,8 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     from coiltrack.protocol.capture import decode_file, format_message
 
+    from .jsonout import dumps
+
     try:
         res = decode_file(args.file, args.format)
     except (OSError, ValueError) as exc:
@@ -26,13 +29,13 @@ def run(args) -> int:
         return 2
     for it in res.items:
         if args.json:
-            print(json.dumps({"t": it.t, "src": it.src, "seq": it.seq, "signed": it.signed,
+            print(dumps({"t": it.t, "src": it.src, "seq": it.seq, "signed": it.signed,
                               "name": it.msg.NAME, "fields": it.msg._asdict()}))
         else:
             print(format_message(it.msg, it.src, it.seq, it.t, it.signed))
     c = res.counters
     if args.json:
-        print(json.dumps({"kind": res.kind, "messages": len(res.items), "counters": c}))
+        print(dumps({"kind": res.kind, "messages": len(res.items), "counters": c}))
     else:
         bad = {k: v for k, v in c.items() if v and k not in ("frames_ok", "bytes_in", "frames_in", "messages_ok")}
         print(f"-- {len(res.items)} messages ({res.kind}); "

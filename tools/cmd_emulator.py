@@ -1,66 +1,86 @@
-"""Run the emulated nodes and world alone on the wall clock, on a serial port
-or on a new pseudo-terminal that a firmware (or a real board) connects to.
+"""Run the emulated nodes and world alone on the wall clock, for a firmware
+(``coiltrack firmware`` or a real board) to talk to: on a serial port, on a
+new pseudo-terminal (``--create-pty``), or on a CAN bus (``--transport can
+--interface socketcan --channel can0``, or slcan on a serial adapter).
 
 The nodes keep their own drifting clocks and synchronise to the firmware's
 ``TIME_SYNC`` broadcasts, so the firmware needs no shared epoch. Without
 ``--epoch-ns`` the recorder learns the firmware's clock from the same
 broadcasts to look up the true pose of each ``POSE`` frame; with it (both on
-this machine) the two clocks are the same.
+this machine) the two clocks are the same. Stopped early (SIGINT,
+SIGTERM), it reports what was done, marked ``interrupted``.
 """
 from __future__ import annotations
 
 import sys
 
-HELP = "run the emulated coil driver and sensor nodes on a serial link (wall clock)"
+from . import args as A
+
+EXIT = {130: "stopped by SIGINT: the report of what was done is printed (and written), marked interrupted",
+        143: "stopped by SIGTERM: likewise"}
+HELP = "run the emulated coil driver and sensor nodes on a serial link or a CAN bus (wall clock)"
 
 
 def add_arguments(p) -> None:
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--port", help="serial device or pyserial URL to talk on")
-    g.add_argument("--create-pty", action="store_true", help="create a pseudo-terminal and print its path")
-    p.add_argument("--baudrate", type=int, default=1_000_000)
-    p.add_argument("--scenario", default="roetenberg-bench")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's)")
-    p.add_argument("--epoch-ns", type=int, default=None, help="CLOCK_MONOTONIC epoch shared with the firmware")
+    from .links import add_link_arguments
+
+    add_link_arguments(p, serial_port_type=A.serial_port)
+    p.add_argument("--create-pty", action="store_true", help="create a pseudo-terminal, print its path and talk on it")
+    p.add_argument("--scenario", type=A.scenario, default="roetenberg-bench",
+                   help="the world and nodes of this scenario (default roetenberg-bench)")
+    p.add_argument("--seed", type=A.seed, default=1, help="0..2^32-1 (default 1)")
+    p.add_argument("--duration", type=A.wall_seconds, default=None,
+                   help=f"seconds, (0, {A.MAX_WALL_S:g}] (default: the scenario's)")
+    p.add_argument("--epoch-ns", type=A.integer(0), default=None, help="CLOCK_MONOTONIC epoch shared with the firmware")
     p.add_argument("--faults", default="", help="fault switches, as for 'coiltrack bench --faults'")
-    p.add_argument("--json", metavar="PATH", help="write the report as JSON")
+    p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the report as JSON")
     from .outputs import add_capture_argument
 
     add_capture_argument(p)
 
 
+def _link(args):
+    """The emulator's end of the link (pty, serial port or CAN bus), its kind, and the
+    path of a pty created for it (None otherwise)."""
+    from coiltrack.protocol.schema import NODE_COIL_DRIVER
+
+    from .links import FdLink, GuardedPort, make_raw_pty, open_link
+
+    if args.create_pty:
+        master, slave, name = make_raw_pty()
+        return FdLink(master), "serial", name
+    link, _ = open_link(args, NODE_COIL_DRIVER)
+    return GuardedPort(link), args.transport, None
+
+
 def run(args) -> int:
-    from coiltrack.firmware.port import SerialPort  # a plain pyserial wrapper
+    import coiltrack.hil.world  # noqa: F401 - the bench extra, checked before a link is opened
     from coiltrack.hil.clock import WallClock
-    from coiltrack.hil.faults import BenchFaults
     from coiltrack.hil.nodes import Recorder
 
     from . import report, scenarios
-    from .links import FdLink, make_raw_pty
-    from .realtime import emulator_loop
-    from .runner import BenchSetup
+    from .realtime import elapsed_s, emulator_loop
+    from .runner import BenchSetup, parse_faults
+    from .stopping import Stopped, mark
 
+    if not args.create_pty and args.transport == "serial" and args.port is None:
+        print("coiltrack emulator: give --port, --create-pty or --transport can --channel", file=sys.stderr)
+        return 2
     sc = scenarios.get(args.scenario)
     duration = args.duration if args.duration is not None else sc.duration_s
     try:
-        faults = BenchFaults.parse(args.faults)
+        faults = parse_faults(args.faults, sc)
     except ValueError as exc:
         print(f"coiltrack emulator: --faults: {exc}", file=sys.stderr)
         return 2
     from .outputs import open_or_exit
 
     outputs = open_or_exit("emulator", args)
-    if args.create_pty:
-        master, slave, name = make_raw_pty()
-        print(name, flush=True)
-        link = FdLink(master)
-    else:
-        try:
-            link = SerialPort(args.port, args.baudrate)
-        except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError
-            print(f"coiltrack emulator: cannot open {args.port}: {exc}", file=sys.stderr)
-            return 2
+    try:
+        link, kind, pty = _link(args)
+    except ValueError as exc:
+        print(f"coiltrack emulator: {exc}", file=sys.stderr)
+        return 2
     link = outputs.wrap(link, side="emulator", clock_us=WallClock(args.epoch_ns).now)
     bench = BenchSetup(sc, args.seed, duration, link, faults)
     if args.epoch_ns is None:
@@ -68,13 +88,21 @@ def run(args) -> int:
         rec = Recorder(bench.world, master_to_true="sync")
         bench.recorder = bench.emulator.recorder = bench.bench.recorder = rec
     clock = WallClock(args.epoch_ns)
+    stopped = None
     try:
+        if pty:
+            print(pty, flush=True)          # the firmware's side; printed once the emulator is ready
         emulator_loop(bench.emulator, bench.link, clock, int(duration * 1e6))
-    except KeyboardInterrupt:
-        pass
-    rep = report.build(bench, {}, duration, transport="serial", cfg=sc.firmware_config())
+    except Stopped as exc:
+        stopped = exc
+    finally:
+        link.close()
+    done = duration if stopped is None else elapsed_s(clock, duration)
+    rep = report.build(bench, {}, done, transport=kind, cfg=sc.firmware_config())
+    if stopped is not None:
+        mark(rep, stopped)
     outputs.finish(bench, rep)
     print(report.format_table(rep))
     if args.json:
         report.write_json(rep, args.json)
-    return 0
+    return 0 if stopped is None else stopped.exit_code

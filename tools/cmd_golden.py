@@ -6,7 +6,12 @@ from __future__ import annotations
 
 import sys
 
+from . import args as A
+
 HELP = "check (default) or --write the golden byte vectors under protocol/golden/"
+
+
+EXIT = {1: "the golden files on disk differ from the regenerated ones"}
 
 
 def add_arguments(p) -> None:

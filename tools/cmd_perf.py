@@ -22,22 +22,27 @@ the firmware alone. Reported, after a warm-up:
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 
 import numpy as np
 
+from . import args as A
+
 HELP = "time the firmware tick on recorded inputs (per phase, allocations, state bytes, filterpy comparison)"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--log", metavar="PATH", help="frame log from `coiltrack bench --log` (default: record a run)")
-    p.add_argument("--scenario", default="roetenberg-fusion", help="scenario to record when no --log is given")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--duration", type=float, default=30.0, help="seconds to record (default 30)")
-    p.add_argument("--warmup", type=float, default=5.0, help="seconds excluded from the statistics (default 5)")
-    p.add_argument("--json", metavar="PATH", help="write the figures as JSON")
+    p.add_argument("--log", type=A.input_file, metavar="PATH",
+                   help="frame log from `coiltrack bench --log` (default: record a run)")
+    p.add_argument("--scenario", type=A.scenario, default="roetenberg-fusion",
+                   help="scenario to record when no --log is given (default roetenberg-fusion)")
+    p.add_argument("--seed", type=A.seed, default=1, help="0..2^32-1 (default 1)")
+    p.add_argument("--duration", type=A.bench_seconds, default=30.0,
+                   help=f"seconds to record, (0, {A.MAX_BENCH_S:g}] (default 30)")
+    p.add_argument("--warmup", type=A.real(0.0, A.MAX_BENCH_S), default=5.0,
+                   help="seconds excluded from the statistics (default 5)")
+    p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the figures as JSON")
 
 
 # ---------------------------------------------------------------------------
@@ -160,9 +165,12 @@ def _filter_steps(fw) -> dict:
     np.copyto(fus.ba, saved[3])
     np.copyto(fus.bg, saved[4])
     np.copyto(fus.P, saved[5])
+    out["filter_states"] = fus.n
+    out["update_dim"] = fus.m
     try:
         from filterpy.kalman import KalmanFilter
-    except ImportError:          # pragma: no cover - dev dependency
+    except ImportError:          # an optional package: the comparison is marked absent
+        out.update(filterpy_step_us=None, filterpy_update_us=None, filterpy="absent (pip install filterpy)")
         return out
     kf = KalmanFilter(dim_x=fus.n, dim_z=fus.m)
     kf.F = A
@@ -184,8 +192,6 @@ def _filter_steps(fw) -> dict:
         kf.update(z)
         tq[i] = time.perf_counter_ns() - a
     out["filterpy_update_us"] = round(float(np.median(tq)) / 1e3, 2)
-    out["filter_states"] = fus.n
-    out["update_dim"] = fus.m
     return out
 
 
@@ -294,22 +300,22 @@ def format_table(rep: dict) -> str:
     lines.append(f"  firmware state        {rep['state_bytes']} bytes "
                  f"({', '.join(f'{k} {v}' for k, v in list(rep['state_bytes_by_part'].items())[:6])}, ...)")
     if "fused_step_us" in rep:
+        ref = rep.get("filterpy")
         lines.append(f"  fusion step           {rep['fused_step_us']} us (strapdown + {rep['filter_states']}-state "
-                     f"covariance); filterpy predict {rep.get('filterpy_step_us')} us")
+                     f"covariance); filterpy predict {ref or str(rep['filterpy_step_us']) + ' us'}")
         lines.append(f"  magnetic update       {rep['fused_update_us']} us ({rep['update_dim']}-dim, Joseph); "
-                     f"filterpy update {rep.get('filterpy_update_us')} us")
+                     f"filterpy update {ref or str(rep['filterpy_update_us']) + ' us'}")
     return "\n".join(lines)
 
 
 def run(args) -> int:
-    from .framelog import read_log
+    from .framelog import load
 
     if args.log:
-        try:
-            header, reads = read_log(args.log)
-        except (OSError, ValueError) as exc:
-            print(f"coiltrack perf: {exc}", file=sys.stderr)
+        log = load("perf", args.log)
+        if log is None:
             return 2
+        header, reads = log
     else:
         if args.duration <= args.warmup:
             print("coiltrack perf: --duration must exceed --warmup", file=sys.stderr)
@@ -319,8 +325,8 @@ def run(args) -> int:
     print(f"coiltrack perf: {rep['scenario']} seed {rep['seed']}, {rep['duration_s']} s replayed on a virtual clock")
     print(format_table(rep))
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(rep, fh, indent=2)
-            fh.write("\n")
+        from .jsonout import write
+
+        write(args.json, rep)
         print(f"figures written to {args.json}")
     return 0

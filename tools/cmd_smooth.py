@@ -11,20 +11,22 @@ standard deviations).
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 
 import numpy as np
 
+from . import args as A
+
 HELP = "RTS-smooth the fusion filter over a recorded run (frame log from `bench --log`)"
 NAME = "smooth"
+EXIT = {1: "the log has no fused run to smooth (no IMU samples)"}
 
 
 def add_arguments(p) -> None:
-    p.add_argument("log", help="frame log written by `coiltrack bench --log PATH`")
-    p.add_argument("--out", metavar="PATH", help="write the smoothed poses (JSON lines)")
-    p.add_argument("--json", metavar="PATH", help="write the summary as JSON")
+    p.add_argument("log", type=A.input_file, help="frame log written by `coiltrack bench --log PATH`")
+    p.add_argument("--out", type=A.output_path, metavar="PATH", help="write the smoothed poses (JSON lines)")
+    p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the summary as JSON")
 
 
 def _truth_world(header):
@@ -113,6 +115,8 @@ def smooth_log(header: dict, reads) -> dict:
 def write_poses(path, segments) -> None:
     from coiltrack.firmware.loop import _quat
 
+    from .jsonout import dumps
+
     with open(path, "w") as fh:
         for node, segs in segments.items():
             for s in segs:
@@ -123,20 +127,21 @@ def write_poses(path, segments) -> None:
                     P = s["P"][i]
                     sp = np.sqrt(np.maximum(np.diag(phi.T @ P[0:3, 0:3] @ phi), 0.0))
                     so = np.sqrt(np.maximum(np.diag(s["Th"][i].T @ P[6:9, 6:9] @ s["Th"][i]), 0.0))
-                    fh.write(json.dumps({"node": node, "t_us": int(s["t"][i]), "p": [round(float(x), 6) for x in p],
+                    fh.write(dumps({"node": node, "t_us": int(s["t"][i]), "p": [round(float(x), 6) for x in p],
                                          "q": [round(float(x), 8) for x in _quat(R)],
                                          "sigma_p": [float(x) for x in sp], "sigma_rot": [float(x) for x in so]})
                              + "\n")
 
 
 def run(args) -> int:
-    from .framelog import read_log
+    import coiltrack.hil.world  # noqa: F401 - the truth needs the bench extra: checked before the replay
 
-    try:
-        header, reads = read_log(args.log)
-    except (OSError, ValueError) as exc:
-        print(f"coiltrack smooth: {exc}", file=sys.stderr)
+    from .framelog import load
+
+    log = load("smooth", args.log)
+    if log is None:
         return 2
+    header, reads = log
     out, segments = smooth_log(header, reads)
     if not segments or not any(segments.values()):
         print("coiltrack smooth: the log has no fused run to smooth (no IMU samples?)", file=sys.stderr)
@@ -156,8 +161,8 @@ def run(args) -> int:
         write_poses(args.out, segments)
         print(f"smoothed poses written to {args.out}")
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=2)
-            fh.write("\n")
+        from .jsonout import write
+
+        write(args.json, out)
         print(f"summary written to {args.json}")
     return 0

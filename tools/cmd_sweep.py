@@ -16,6 +16,9 @@ import sys
 import time
 from pathlib import Path
 
+EXIT = {1: "a run failed: the error names its seed and parameter values",
+        130: "stopped by SIGINT: the runs done are written, marked interrupted",
+        143: "stopped by SIGTERM: likewise"}
 HELP = "Monte Carlo sweep of bench runs over seeds and configuration values"
 
 #: bounds of the arguments

@@ -11,6 +11,10 @@ Format (JSON lines, ``coiltrack-frames/1``): a header object with
 ``format``, ``scenario``, ``seed``, ``duration_s``, ``tick_us`` and the
 firmware ``config`` (``FirmwareConfig`` as a dict), then one object per read,
 ``{"t": tick_us, "rx": base64 bytes}``.
+
+A log cut short (a run killed while writing, a truncated copy) is read up to
+the first line that does not parse: the reads before it are replayed, and
+the header says where the log stopped (``truncated``).
 """
 from __future__ import annotations
 
@@ -74,16 +78,57 @@ def write_log(path, header: dict, reads) -> None:
 
 
 def read_log(path) -> tuple[dict, list[tuple[int, bytes]]]:
+    """The header and the reads of a log (ValueError if line 1 is not a header). Cut
+    short, the reads before the first bad line, and the header with ``duration_s``
+    the time of the last read kept and ``truncated`` (line, reads kept, recorded
+    duration)."""
     with open(path) as fh:
-        header = json.loads(fh.readline())
-        if header.get("format") != FORMAT:
-            raise ValueError(f"{path}: not a {FORMAT} log")
+        try:
+            header = json.loads(fh.readline())
+        except ValueError:
+            header = None
+        if not isinstance(header, dict) or header.get("format") != FORMAT:
+            raise ValueError(f"{path}: line 1 is not a {FORMAT} header")
         reads = []
-        for line in fh:
-            if line.strip():
+        for n, line in enumerate(fh, start=2):
+            if not line.strip():
+                continue
+            try:
                 o = json.loads(line)
-                reads.append((int(o["t"]), base64.b64decode(o["rx"])))
+                reads.append((int(o["t"]), base64.b64decode(o["rx"], validate=True)))
+            except (ValueError, KeyError, TypeError):
+                return _cut(header, reads, n), reads
     return header, reads
+
+
+def _cut(header: dict, reads, line: int) -> dict:
+    return dict(header, duration_s=reads[-1][0] * 1e-6 if reads else 0.0,
+                truncated={"line": line, "reads": len(reads), "recorded_duration_s": header.get("duration_s")})
+
+
+def load(command: str, path):
+    """:func:`read_log` for ``coiltrack COMMAND``: None after a one-line error, or the log,
+    with a line on standard error where it was cut short."""
+    import sys
+
+    try:
+        header, reads = read_log(path)
+    except (OSError, ValueError) as exc:
+        print(f"coiltrack {command}: {exc}", file=sys.stderr)
+        return None
+    note = truncation_note(path, header)
+    if note:
+        print(f"coiltrack {command}: {note}", file=sys.stderr)
+    return header, reads
+
+
+def truncation_note(path, header: dict) -> str | None:
+    """One line saying where a cut log stopped, or None for a whole log."""
+    cut = header.get("truncated")
+    if not cut:
+        return None
+    return (f"{path}: cut short at line {cut['line']} (of a {cut['recorded_duration_s']} s run): "
+            f"using the {cut['reads']} reads before it, {header['duration_s']:.3f} s")
 
 
 def log_config(header: dict) -> FirmwareConfig:

@@ -76,3 +76,82 @@ def make_raw_pty() -> tuple[int, int, str]:
     tty.setraw(slave)
     tty.setraw(master)
     return master, slave, os.ttyname(slave)
+
+
+class GuardedPort(Port):
+    """Wraps a port so that a link that goes away (a pty whose other side closed, a USB
+    adapter unplugged: EIO) costs frames, not the loop; errors are counted. With
+    ``silence_s`` > 0 a read raises :class:`tools.stopping.PeerSilent` once nothing has
+    arrived for that long on ``clock`` (microseconds)."""
+
+    def __init__(self, port, clock=None, silence_s: float = 0.0):
+        self.port = port
+        self.errors = 0
+        self.clock = clock
+        self.silence_us = int(silence_s * 1e6) if clock is not None else 0
+        self.last_rx_us = None
+
+    def read(self) -> bytes:
+        try:
+            data = self.port.read()
+        except (OSError, ValueError):      # pyserial's SerialException is an OSError
+            self.errors += 1
+            data = b""
+        if self.silence_us:
+            self._watch(bool(data))
+        return data
+
+    def _watch(self, received: bool) -> None:
+        now = self.clock.now()
+        if received or self.last_rx_us is None:
+            self.last_rx_us = now
+        elif now - self.last_rx_us > self.silence_us:
+            from .stopping import PeerSilent
+
+            raise PeerSilent(self.silence_us * 1e-6)
+
+    def write(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+        except (OSError, ValueError):
+            self.errors += 1
+
+    def close(self) -> None:
+        try:
+            self.port.close()
+        except OSError:
+            pass
+
+
+def add_link_arguments(p, serial_port_type=str) -> None:
+    """The link options of ``firmware`` and ``emulator``: a serial port or a python-can bus."""
+    from .args import bitrate
+
+    p.add_argument("--transport", choices=("serial", "can"), default="serial",
+                   help="serial: COBS frames on --port; can: the same messages on a python-can bus")
+    p.add_argument("--port", type=serial_port_type, help="serial device, pty path or pyserial URL (--transport serial)")
+    p.add_argument("--baudrate", type=bitrate, default=1_000_000, help="serial baud rate (default 1000000)")
+    p.add_argument("--interface", default="slcan",
+                   help="python-can interface (--transport can): slcan, socketcan, virtual (default slcan)")
+    p.add_argument("--channel", help="python-can channel (--transport can): slcan device or pty, can0, ...")
+    p.add_argument("--bitrate", type=bitrate, default=500_000, help="CAN bit rate (--transport can, default 500000)")
+
+
+def open_link(args, node_id: int):
+    """The port that ``add_link_arguments`` describes, as node ``node_id`` on a CAN bus, and
+    a description of it; ValueError with a one-line reason when it cannot be opened."""
+    if args.transport == "serial":
+        from coiltrack.firmware.port import SerialPort
+
+        what, need, make = args.port, "--port", lambda: SerialPort(args.port, args.baudrate)
+    else:
+        from coiltrack.protocol.can import CanLink, open_bus
+
+        what, need = f"{args.interface}:{args.channel}", "--channel"
+        make = lambda: CanLink(open_bus(args.interface, args.channel, args.bitrate), node_id)  # noqa: E731
+    if (args.port if args.transport == "serial" else args.channel) is None:
+        raise ValueError(f"--transport {args.transport} needs {need}")
+    try:
+        return make(), what
+    except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError; python-can: CanError
+        raise ValueError(f"cannot open {what}: {exc}") from None

@@ -29,21 +29,19 @@ import os
 import select
 import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
 
 from coiltrack.hil.clock import WallClock
 
-from . import report as report_mod
 from .links import FdLink, make_raw_pty
-from .runner import BenchSetup, Progress
+from .stopping import Stopped, held_signals, mark, start_child, stop_child
 
 
 def _stats(starts: np.ndarray, exec_us: np.ndarray, late: np.ndarray, tick_us: int, misses: int) -> dict:
     periods = np.diff(starts)
-    jitter = np.abs(periods - tick_us) if periods.size else np.zeros(1)
+    jitter = np.abs(periods - tick_us) if periods.size else np.full(1, np.nan)
     n = int(starts.size)
     return {
         "ticks": n,
@@ -121,7 +119,9 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     which only moves when slept, pass ``spin_us=0``. Measures period jitter,
     lateness, execution time and deadline misses (a tick that starts a whole
     period late or runs longer than a period, and every slot skipped because
-    the loop fell behind). Buffers are sized up front.
+    the loop fell behind). Buffers are sized up front. Stopped early (a
+    :class:`tools.stopping.Stopped` from a signal or from the port), the
+    statistics of the ticks run so far go with the exception as ``partial``.
     """
     if sleep is None:
         sleep = getattr(clock, "sleep", time.sleep)
@@ -134,30 +134,34 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     misses = 0
     next_tick = max(0, clock.now())
     next_tick += (-next_tick) % tick_us
-    while True:
-        now = clock.now()
-        if now >= duration_us:
-            break
-        if now < next_tick:
-            rem = next_tick - now
-            if rem > spin_us:
-                sleep((rem - spin_us) * 1e-6)
-            continue
-        t0 = now
-        fw.tick(t0)
-        t1 = clock.now()
-        i = n % cap
-        starts[i] = t0
-        exec_us[i] = t1 - t0
-        late[i] = t0 - next_tick
-        n += 1
-        if t0 - next_tick >= tick_us or t1 - t0 >= tick_us:
-            misses += 1
-        next_tick += tick_us
-        if next_tick <= t1 - tick_us:          # fell behind: skip missed slots, count them
-            skipped = (t1 - next_tick) // tick_us
-            misses += int(skipped)
-            next_tick += skipped * tick_us
+    stopped = None
+    try:
+        while True:
+            now = clock.now()
+            if now >= duration_us:
+                break
+            if now < next_tick:
+                rem = next_tick - now
+                if rem > spin_us:
+                    sleep((rem - spin_us) * 1e-6)
+                continue
+            t0 = now
+            fw.tick(t0)
+            t1 = clock.now()
+            i = n % cap
+            starts[i] = t0
+            exec_us[i] = t1 - t0
+            late[i] = t0 - next_tick
+            n += 1
+            if t0 - next_tick >= tick_us or t1 - t0 >= tick_us:
+                misses += 1
+            next_tick += tick_us
+            if next_tick <= t1 - tick_us:          # fell behind: skip missed slots, count them
+                skipped = (t1 - next_tick) // tick_us
+                misses += int(skipped)
+                next_tick += skipped * tick_us
+    except Stopped as exc:
+        stopped = exc
     if n > cap:
         r = -(n % cap)
         starts, exec_us, late = np.roll(starts, r), np.roll(exec_us, r), np.roll(late, r)
@@ -165,6 +169,9 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     out = _stats(starts[:m], exec_us[:m], late[:m], tick_us, misses)
     out["ticks"] = n
     out["timing_source"] = "wall clock: tick start times and execution times"
+    if stopped is not None:
+        stopped.partial = out
+        raise stopped
     return out
 
 
@@ -207,8 +214,54 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
         wait(step_us * 1e-6)
 
 
+def _two_process_link(transport: str):
+    """The link between the two processes: (the firmware's link arguments, the emulator's
+    end, a function that closes everything)."""
+    if transport == "slcan":
+        # a CAN bus between the two processes: an slcan adapter on each side of a bridge of
+        # pseudo-terminals (protocol.slcan); same messages, CAN frames
+        from coiltrack.protocol.can import CanLink, open_bus
+        from coiltrack.protocol.schema import NODE_COIL_DRIVER
+        from coiltrack.protocol.slcan import SlcanBridge
+
+        bridge = SlcanBridge(2).start()
+        link = CanLink(open_bus("slcan", bridge.paths[0]), NODE_COIL_DRIVER)
+
+        def close():
+            link.close()
+            bridge.stop()
+        return ["--transport", "can", "--interface", "slcan", "--channel", bridge.paths[1]], link, close
+    master, slave, slave_name = make_raw_pty()
+
+    def close_pty():
+        os.close(master)
+        os.close(slave)
+    return ["--port", slave_name], FdLink(master), close_pty
+
+
+def _pin_cpus(cmd: list[str]) -> list[str]:
+    """With two or more CPUs: the firmware on the last one, this process on the others."""
+    ncpu = os.cpu_count() or 1
+    if ncpu < 2:
+        return cmd
+    try:
+        os.sched_setaffinity(0, set(range(ncpu - 1)))
+    except (AttributeError, OSError):
+        pass
+    return cmd + ["--cpu", str(ncpu - 1)]
+
+
+def _read_stats(stream) -> dict:
+    """The firmware's statistics (``coiltrack firmware`` prints them as JSON at its end)."""
+    try:
+        with stream:
+            return json.loads(stream.read())
+    except (OSError, ValueError):
+        return {"status": {}, "timing": {}}
+
+
 def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool = False,
-            transport: str = "pty", outputs=None) -> dict:
+            transport: str = "pty", cfg=None, config_path=None, outputs=None) -> dict:
     """Firmware in a child process (``coiltrack firmware``) on the slave side of
     a raw pseudo-terminal; emulator here on the master side; both on
     CLOCK_MONOTONIC from a shared epoch (the nodes still keep their own
@@ -216,69 +269,63 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     machine with two or more CPUs the firmware is pinned to the last one and
     the emulator to the first. ``transport="slcan"`` puts the two on a CAN
     bus instead: python-can's slcan interface on each side of a bridge of
-    pseudo-terminals."""
-    bridge = None
-    if transport == "slcan":
-        # a CAN bus between the two processes: an slcan adapter on each side of a
-        # bridge of pseudo-terminals (protocol.slcan); same messages, CAN frames
-        from coiltrack.protocol.can import CanLink, open_bus
-        from coiltrack.protocol.schema import NODE_COIL_DRIVER
-        from coiltrack.protocol.slcan import SlcanBridge
+    pseudo-terminals. ``cfg``: the firmware configuration (default the
+    scenario's), read by the child from ``config_path`` over the scenario's.
 
-        bridge = SlcanBridge(2).start()
-        master = slave = None
-        link_args = ["--transport", "can", "--interface", "slcan", "--channel", bridge.paths[1]]
-    else:
-        master, slave, slave_name = make_raw_pty()
-        link_args = ["--port", slave_name]
+    The child dies with this process, and writes no file (its statistics come
+    back on its standard output). Stopped early (SIGINT, SIGTERM), the child
+    is stopped within a second and the report of what was done, marked
+    ``interrupted``, goes with the exception as ``exc.partial``. ``outputs``
+    (:mod:`coiltrack.tools.outputs`) taps the emulator's end of the link."""
+    # here, not at the top: the firmware's process imports this module and needs no world
+    from . import report as report_mod
+    from .runner import BenchSetup, Progress
+
+    cfg = cfg or scenario.firmware_config()
+    link_args, link, close = _two_process_link(transport)
     epoch_ns = time.monotonic_ns() + 1_500_000_000      # give the child time to start
-    duration_us = int(duration_s * 1e6)
-    stats_fd, stats_path = tempfile.mkstemp(suffix=".json", prefix="coiltrack-fw-")
-    os.close(stats_fd)
-    ncpu = os.cpu_count() or 1
-    cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args,
-           "--scenario", scenario.name, "--epoch-ns", str(epoch_ns),
-           "--duration", str(duration_s + 0.5), "--stats-json", stats_path, "--realtime"]
-    if ncpu >= 2:
-        cmd += ["--cpu", str(ncpu - 1)]
-        try:
-            os.sched_setaffinity(0, set(range(ncpu - 1)))
-        except (AttributeError, OSError):
-            pass
-    child = subprocess.Popen(cmd)
-    link = FdLink(master) if bridge is None else CanLink(open_bus("slcan", bridge.paths[0]), NODE_COIL_DRIVER)
     if outputs is not None:     # tools.outputs: the emulator's end of the link is tapped
         link = outputs.wrap(link, side="emulator", clock_us=WallClock(epoch_ns).now)
-    bench = BenchSetup(scenario, seed, duration_s, link, faults)
-    clock = WallClock(epoch_ns)
-    prog = Progress(progress, duration_s, f"{scenario.name} ({transport})")
     try:
-        emulator_loop(bench.emulator, bench.link, clock, duration_us + 300_000, prog)
+        bench = BenchSetup(scenario, seed, duration_s, link, faults, cfg=cfg)
+        clock = WallClock(epoch_ns)
+        # the child's statistics come back on its standard output (a few kB, written at its end)
+        cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
+               "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
+               *(["--config", str(config_path)] if config_path else [])]
+        stopped, code, fw_stats = _beside_child(_pin_cpus(cmd), bench, clock, duration_s,
+                                                Progress(progress, duration_s, f"{scenario.name} ({transport})"))
     finally:
-        prog.done()
-        try:
-            child.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
-        if bridge is None:
-            os.close(master)
-            os.close(slave)
-        else:
-            link.close()
-            bridge.stop()
-    try:
-        with open(stats_path) as fh:
-            fw_stats = json.load(fh)
-    except (OSError, ValueError):
-        fw_stats = {"status": {}, "timing": {}}
-    finally:
-        if os.path.exists(stats_path):
-            os.unlink(stats_path)
-    cfg = scenario.firmware_config()
-    rep = report_mod.build(bench, fw_stats.get("status", {}), duration_s, transport=transport, cfg=cfg)
+        close()
+    done_s = duration_s if stopped is None else elapsed_s(clock, duration_s)
+    rep = report_mod.build(bench, fw_stats.get("status", {}), done_s, transport=transport, cfg=cfg)
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
-    rep["firmware_exit_code"] = child.returncode
+    rep["firmware_exit_code"] = code
     if outputs is not None:
         outputs.finish(bench, rep)
+    if stopped is not None:
+        raise mark(rep, stopped)
     return rep
+
+
+def elapsed_s(clock, duration_s: float) -> float:
+    """Seconds of a wall-clock run done by now (at least 1 ms, at most ``duration_s``)."""
+    return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
+
+
+def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog):
+    """Start the firmware process and run the emulator beside it (until 0.3 s after
+    ``duration_s``, so the last frames arrive). Returns the :class:`Stopped` that ended the
+    run early (or None), the child's exit status and its statistics (its standard output)."""
+    child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
+    try:
+        with held_signals():
+            child = start_child(cmd, stdout=subprocess.PIPE)
+        emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog)
+        wait_s = 30.0
+    except Stopped as exc:
+        stopped = exc
+    finally:
+        prog.done()
+        code = stop_child(child, wait_s=wait_s) if child is not None else None
+    return stopped, code, _read_stats(child.stdout) if child is not None else {"status": {}, "timing": {}}

@@ -2,7 +2,6 @@
 same geometry and noise, rates, link counters and pulse-window checks."""
 from __future__ import annotations
 
-import json
 import math
 
 import numpy as np
@@ -131,7 +130,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "position_p95_mm": round(float(np.percentile(pe, 95)) * 1e3, 3) if pe.size else None,
         "orientation_rms_deg": round(math.degrees(rms(ae)), 3),
         "crlb_position_rms_mm": round(rms(cb) * 1e3, 3),
-        "pose_rate_hz": round(pe.size / duration_s, 3),
+        "pose_rate_hz": round(pe.size / duration_s, 3) if duration_s > 0 else 0.0,
         "by_range": by_range,
         "distance_range_cm": [round(min(dist) * 100, 1), round(max(dist) * 100, 1)] if dist else None,
         "frames_rx": fw_status.get("rx_frames_ok", 0),
@@ -233,6 +232,8 @@ def format_table(rep: dict) -> str:
         rows.append(("faults injected", ", ".join(fl["injected"]["switches"]) or "-"))
         ev = fl["reported"]["events"]
         rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
+    if rep.get("interrupted"):
+        rows.append(("interrupted", f'stopped by {rep.get("stopped_by")}: the figures are of the part that ran'))
     if "paper" in rep:
         p = rep["paper"]
         rows.append(("paper", f'{p.get("position_rms_mm")} mm, {p.get("orientation_rms_deg")} deg ({p.get("source")})'))
@@ -249,6 +250,7 @@ def format_table(rep: dict) -> str:
 
 
 def write_json(rep: dict, path: str) -> None:
-    with open(path, "w") as fh:
-        json.dump(rep, fh, indent=2, default=float)
-        fh.write("\n")
+    """The report as strict JSON (``null`` for a figure that is not a finite number)."""
+    from .jsonout import write
+
+    write(path, rep)

@@ -18,17 +18,19 @@ from coiltrack.hil.nodes import ImuSpec, MagSpec
 from . import report as report_mod
 from .links import inproc_pair
 from .scenarios import Scenario
+from .stopping import Stopped, mark
 
 
 class BenchSetup:
     """World, nodes and recorder of a scenario for one seed (built by ``hil.bench.assemble``).
 
     ``faults``: a :class:`hil.faults.BenchFaults` (link, node and world fault
-    switches) or a bare :class:`hil.faults.LinkFaults`.
+    switches) or a bare :class:`hil.faults.LinkFaults`. ``cfg``: the firmware
+    configuration the nodes serve (its sensor ids; default the scenario's).
     """
 
     def __init__(self, scenario: Scenario, seed: int, duration_s: float, link,
-                 faults: BenchFaults | LinkFaults | None = None):
+                 faults: BenchFaults | LinkFaults | None = None, cfg=None):
         ss = np.random.SeedSequence(seed)
         s_world, s_driver, s_sensor, s_faults, s_clocks = (int(s.generate_state(1)[0]) for s in ss.spawn(5))
         self.scenario = scenario
@@ -42,7 +44,7 @@ class BenchSetup:
         self.bench = assemble(self.world, link, mag=mag, imu=imu, faults=faults, seed_driver=s_driver,
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
-                              sensor_ids=tuple(scenario.firmware_config().sensor_ids))
+                              sensor_ids=tuple((cfg or scenario.firmware_config()).sensor_ids))
         src_id = getattr(spec, "source_imu_id", 0)
         if src_id:
             # an IMU + magnetometer module on the source (thesis sec 6.2.3), a node of its own
@@ -90,6 +92,12 @@ class Progress:
             sys.stderr.flush()
 
 
+def parse_faults(spec: str, scenario: Scenario) -> BenchFaults:
+    """``--faults``, parsed and checked against the scenario's source (ValueError otherwise)."""
+    faults = BenchFaults.parse(spec)
+    return faults.check_coils(len(scenario.build_world(0, 1.0).coils))
+
+
 def sim_link_pair(transport: str):
     """(firmware end, emulator end) of a link for the simulated clock."""
     if transport == "inproc":
@@ -112,10 +120,14 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     with python-can's in-process ``virtual`` bus, every message segmented
     into CAN frames and reassembled (``protocol.can.CanLink``). Both give the
     same frames at the same simulated instants, so the same report.
+
+    Stopped early (SIGINT, SIGTERM: :class:`tools.stopping.Stopped`), the
+    report of what was done, marked ``interrupted``, is raised with the
+    exception as ``exc.partial``.
     """
-    fw_end, emu_end = sim_link_pair(transport)
-    bench = BenchSetup(scenario, seed, duration_s, emu_end, faults)
     cfg = cfg or scenario.firmware_config()
+    fw_end, emu_end = sim_link_pair(transport)
+    bench = BenchSetup(scenario, seed, duration_s, emu_end, faults, cfg=cfg)
     rec_port = None
     if outputs is not None:
         fw_end = outputs.wrap(fw_end)
@@ -124,49 +136,60 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
 
         fw_end = rec_port = RecordingPort(fw_end)
     fw = Firmware(cfg, fw_end)
-    tick = cfg.tick_us
-    end_us = int(duration_s * 1e6)
     prog = Progress(progress, duration_s, scenario.name)
     wall0 = time.perf_counter()
-    # tick execution times: inproc runs on the simulated clock, so timing is measured as the
-    # wall time each fw.tick takes against the tick period (tools.realtime.inproc_timing)
-    exec_ns = np.zeros(end_us // tick + 2, dtype=np.int64)
-    clk = time.perf_counter_ns
-    k = 0
-    t = 0
-    while t <= end_us:
-        if outputs is not None:
-            outputs.tick(t)
-        bench.emulator.step(t)
-        if rec_port is not None:
-            rec_port.now_us = t
-        a = clk()
-        fw.tick(t)
-        exec_ns[k] = clk() - a
-        k += 1
-        if (t // tick) % 1000 == 0:
-            prog.update(t * 1e-6, fw.poses)
-        t += tick
-    bench.emulator.step(t)  # deliver the last frames to the recorder
+    t, exec_ns, stopped = _tick_loop(bench, fw, rec_port, int(duration_s * 1e6), cfg.tick_us, prog, outputs)
     fw_end.close()
     emu_end.close()
     prog.done()
     wall = time.perf_counter() - wall0
-    rep = report_mod.build(bench, fw.status(), duration_s, transport=transport, cfg=cfg)
+    done_s = duration_s if stopped is None else max(t, cfg.tick_us) * 1e-6
+    rep = report_mod.build(bench, fw.status(), done_s, transport=transport, cfg=cfg)
     from .realtime import inproc_timing
 
-    rep.update(inproc_timing(exec_ns[:k], tick))
+    rep.update(inproc_timing(exec_ns, cfg.tick_us))
     rep["wall_s"] = round(wall, 2)
-    rep["speedup"] = round(duration_s / wall, 1) if wall > 0 else None
+    rep["speedup"] = round(done_s / wall, 1) if wall > 0 else None
     if rec_port is not None:
         from .framelog import config_to_dict, write_log
 
-        write_log(log_path, {"scenario": scenario.name, "seed": seed, "duration_s": duration_s, "tick_us": tick,
+        write_log(log_path, {"scenario": scenario.name, "seed": seed, "duration_s": done_s, "tick_us": cfg.tick_us,
                              "config": config_to_dict(cfg)}, rec_port.reads)
         rep["log"] = str(log_path)
     if outputs is not None:
         outputs.finish(bench, rep)
+    if stopped is not None:
+        raise mark(rep, stopped)
     return rep
+
+
+def _tick_loop(bench, fw, rec_port, end_us: int, tick: int, prog, outputs=None):
+    """Emulator step and firmware tick on the simulated clock until ``end_us``. Tick
+    execution times are measured as the wall time of each ``fw.tick`` (replayed on a
+    real-time schedule by ``tools.realtime.inproc_timing``). Returns the last tick time,
+    the execution times (ns) and the :class:`Stopped` that ended the run early, if any."""
+    exec_ns = np.zeros(end_us // tick + 2, dtype=np.int64)
+    clk = time.perf_counter_ns
+    k = 0
+    t = 0
+    try:
+        while t <= end_us:
+            if outputs is not None:
+                outputs.tick(t)         # paces the run to the wall clock while serving OpenIGTLink
+            bench.emulator.step(t)
+            if rec_port is not None:
+                rec_port.now_us = t
+            a = clk()
+            fw.tick(t)
+            exec_ns[k] = clk() - a
+            k += 1
+            if (t // tick) % 1000 == 0:
+                prog.update(t * 1e-6, fw.poses)
+            t += tick
+        bench.emulator.step(t)  # deliver the last frames to the recorder
+    except Stopped as exc:
+        return t, exec_ns[:k], exc
+    return t, exec_ns[:k], None
 
 
 #: report keys copied from the fixed-cycle reference run as ``fixed_<key>``

@@ -11,8 +11,15 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from coiltrack.firmware.config import FirmwareConfig
-from coiltrack.hil import motion, physics
-from coiltrack.hil.world import World
+
+
+def _hil():
+    """The world's modules (magpylib underneath), imported when a world is built, so that
+    the scenarios can be listed without the bench extra."""
+    from coiltrack.hil import motion, physics
+    from coiltrack.hil.world import World
+
+    return World, motion, physics
 
 
 @dataclass(frozen=True)
@@ -38,15 +45,19 @@ class Scenario:
     #: a fixed X, Y, Z cycle configuration the report also runs on the same trajectory and seed
     #: (its figures appear as ``fixed_*``), for scenarios about the actuation policy
     fixed_config: Callable[[], FirmwareConfig] | None = None
+    #: one line for ``coiltrack bench --help`` (default: the description)
+    summary: str = ""
 
 
 def _roetenberg_world(seed: int, duration_s: float) -> World:
+    World, motion, physics = _hil()
     # hand motion: peak 12 cm/s and 30 deg/s (the thesis gives the range, 15-80 cm, not the speeds)
     return World(physics.thesis_source(),
                  motion.HandMovedBench(seed=seed, duration_s=duration_s, v_max=0.12, w_max_deg=30.0))
 
 
 def _static_world(seed: int, duration_s: float) -> World:
+    World, motion, physics = _hil()
     import numpy as np
 
     return World(physics.thesis_source(), motion.StaticPose(np.array([0.25, 0.05, -0.04]), np.eye(3)))
@@ -62,6 +73,7 @@ def register(s: Scenario) -> Scenario:
 
 register(Scenario(
     name="roetenberg-bench",
+    summary="hand-moved sensor 15-80 cm from the three-coil source, magnetic only (thesis sec 5.3)",
     description="Thesis sec 5.3 bench test: sensor moved by hand ~15-80 cm around a fixed "
                 "three-coil pulsed-DC source, rotated about all axes; magnetic only.",
     duration_s=60.0,
@@ -75,6 +87,7 @@ register(Scenario(
 
 register(Scenario(
     name="static",
+    summary="sensor at rest 25 cm from the source: a quick sanity run",
     description="Sensor at rest 25 cm from the thesis source: a quick sanity run.",
     duration_s=10.0,
     build_world=_static_world,
@@ -83,6 +96,7 @@ register(Scenario(
 
 
 def _hil_fast_world(seed: int, duration_s: float) -> World:
+    World, motion, physics = _hil()
     import numpy as np
 
     from coiltrack.hil.world import EddyObject, FerroObject
@@ -107,6 +121,7 @@ def _hil_fast_config():
 
 register(Scenario(
     name="hil-fast",
+    summary="1 kHz magnetometer and IMU, eddy plate and steel part, clocks drifting 100 ppm",
     description="HIL timing profile: 1 kHz magnetometer and 1 kHz IMU, an eddy-current plate behind the "
                 "source and a steel part nearby, node clocks drifting up to 100 ppm; hand-moved sensor.",
     duration_s=30.0,
@@ -146,6 +161,7 @@ _FUSION_PARAMETERS = {"coils": "3 orthogonal, 50 turns, r=5.5 cm, 1.5 A", "pulse
 
 register(Scenario(
     name="roetenberg-fusion",
+    summary="roetenberg-bench with IMUs, 21-state magnetic-inertial fusion (thesis sec 6.3)",
     description="Thesis sec 6.3 / Table 6.1 bench test: the roetenberg-bench motion with an MTx-class "
                 "IMU beside the magnetometer and one on the source (120 Hz); 21-state magnetic-inertial "
                 "fusion, measurement model 3 (eq 6.21), pulses brought to one instant (sec 6.5).",
@@ -159,6 +175,7 @@ register(Scenario(
 
 register(Scenario(
     name="roetenberg-fusion-srcimu",
+    summary="roetenberg-fusion with the source's own IMU module (thesis sec 6.2.3)",
     description="roetenberg-fusion with the source's own IMU and magnetometer module (thesis sec 6.2.3): "
                 "source orientation Phi from a ch. 2 filter and a_net = a_sensor - a_source (eq 6.8).",
     duration_s=60.0,
@@ -171,6 +188,7 @@ register(Scenario(
 
 register(Scenario(
     name="roetenberg-fusion-nomc",
+    summary="roetenberg-fusion without motion compensation within the burst (sec 6.5)",
     description="roetenberg-fusion without the motion compensation within the burst: the magnetic "
                 "update assumes the sensor still during the X-Y-Z burst (thesis sec 6.5).",
     duration_s=60.0,
@@ -212,6 +230,7 @@ def _schepers_coils(current: float = 0.91):
 
 
 def _schepers_world(seed: int, duration_s: float) -> World:
+    World, motion, physics = _hil()
     return World(physics.thesis_source(),
                  motion.HandMovedBench(seed=seed, duration_s=duration_s, r_min=0.15, r_max=0.40, v_max=0.12,
                                        w_max_deg=30.0))
@@ -243,6 +262,7 @@ _SCHEPERS_SENSOR = SensorSpec(rate_hz=100.0, noise_t=3e-8, imu_rate_hz=100.0)
 
 register(Scenario(
     name="schepers-adaptive",
+    summary="single-coil pulses on demand against the fixed X/Y/Z cycle (Schepers 2010)",
     description="Schepers & Veltink 2010: single-coil pulses only when the predicted uncertainty would "
                 "exceed its bound, the coil that reduces it most, the current that brings it to sigma_min "
                 "(error-state EKF on the exact loop model, IMU between pulses); the report also runs the "
@@ -268,6 +288,7 @@ SKEWED_COILS = (
 
 
 def _skewed_world(seed: int, duration_s: float) -> World:
+    World, motion, physics = _hil()
     import numpy as np
 
     h = 0.0015   # 3 mm x 3 mm winding section, as the thesis coils
@@ -291,6 +312,7 @@ def _skewed_config(actuation: str = "adaptive"):
 
 register(Scenario(
     name="schepers-skewed",
+    summary="schepers-adaptive on a non-orthogonal source of unequal coils",
     description="schepers-adaptive with a source whose three coils are not orthogonal, do not share a "
                 "centre and differ in radius and turns: the same single-coil model and code.",
     duration_s=60.0,
@@ -304,6 +326,7 @@ register(Scenario(
 
 
 def _ferro_world(seed: int, duration_s: float) -> World:
+    World, motion, physics = _hil()
     import numpy as np
 
     from coiltrack.hil.world import FerroObject
@@ -322,6 +345,7 @@ def _ferro_world(seed: int, duration_s: float) -> World:
 
 register(Scenario(
     name="schepers-ferro",
+    summary="an iron object between source and sensor, flagged by the NIS monitor",
     description="Schepers sec. 3.3: an iron object between the source and the sensor during the middle "
                 "third of the run makes the single-coil updates inconsistent; the NIS monitor flags the "
                 "poses (POSE_DISTORTED, EVT_DISTORTION) and down-weights the pulses instead of diverging.",
@@ -336,7 +360,8 @@ register(Scenario(
 
 
 def get(name: str) -> Scenario:
+    """The scenario ``name`` (KeyError naming the known ones otherwise)."""
     try:
         return SCENARIOS[name]
     except KeyError:
-        raise SystemExit(f"unknown scenario '{name}'; known: {', '.join(sorted(SCENARIOS))}") from None
+        raise KeyError(f"unknown scenario '{name}'; known: {', '.join(sorted(SCENARIOS))}") from None

@@ -1,0 +1,200 @@
+"""SIGINT and SIGTERM stop a run cleanly: its children go, no temporary file is
+left, and the report of what was done is written marked interrupted. The
+subprocess tests wait for conditions (a child exists, bytes arrive), never for
+a fixed time, and bound each wait generously."""
+from __future__ import annotations
+
+import json
+import os
+import select
+import signal
+import subprocess
+import sys
+
+import pytest
+
+from coiltrack.tools import runner
+from coiltrack.tools.cli import main
+from coiltrack.tools.links import GuardedPort
+from coiltrack.tools.realtime import firmware_loop
+from coiltrack.tools.stopping import EXIT_PEER_SILENT, PeerSilent, Stopped
+
+WAIT_S = 20.0
+COILTRACK = [sys.executable, "-m", "coiltrack.tools.cli"]
+
+
+def _poll(cond, timeout_s: float = WAIT_S, step_s: float = 0.05):
+    """Wait until ``cond()`` is truthy (returned) or fail after ``timeout_s``."""
+    import time
+
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        v = cond()
+        if v:
+            return v
+        time.sleep(step_s)
+    pytest.fail("condition not reached")
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as fh:
+            return [int(x) for x in fh.read().split()]
+    except OSError:
+        return []
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(") ")[1][0] == "Z"      # a zombie has finished
+    except OSError:
+        return True
+
+
+class SimClock:
+    def __init__(self):
+        self.t = 0
+
+    def now(self) -> int:
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.t += max(1, int(s * 1e6))
+
+
+class SilentPort:
+    def read(self) -> bytes:
+        return b""
+
+    def write(self, data: bytes) -> None:
+        pass
+
+
+class CountingFirmware:
+    def __init__(self, port):
+        self.port = port
+        self.ticks = 0
+
+    def tick(self, t: int) -> None:
+        self.port.read()
+        self.ticks += 1
+
+
+def test_a_silent_peer_stops_the_firmware_loop_with_its_statistics():
+    clock = SimClock()
+    fw = CountingFirmware(GuardedPort(SilentPort(), clock, silence_s=0.5))
+    with pytest.raises(PeerSilent) as e:
+        firmware_loop(fw, clock, 10_000_000, 1000, spin_us=0)
+    assert e.value.exit_code == EXIT_PEER_SILENT and "0.5 s" in e.value.reason
+    assert 500 <= fw.ticks <= 502 and e.value.partial["ticks"] == fw.ticks
+
+
+def test_bytes_keep_the_peer_alive_and_zero_waits_forever():
+    clock = SimClock()
+
+    class Chatty(SilentPort):
+        def read(self):
+            return b"x" if clock.t % 400_000 < 1000 else b""
+
+    fw = CountingFirmware(GuardedPort(Chatty(), clock, silence_s=0.5))
+    assert firmware_loop(fw, clock, 3_000_000, 1000, spin_us=0)["ticks"] == 3000
+    fw = CountingFirmware(GuardedPort(SilentPort(), clock, silence_s=0.0))
+    clock.t = 0
+    assert firmware_loop(fw, clock, 3_000_000, 1000, spin_us=0)["ticks"] == 3000
+
+
+def test_sigterm_mid_run_writes_the_partial_report_and_log(tmp_path, monkeypatch):
+    """In-process bench: the signal arrives at 2 s of simulated time."""
+    real_update = runner.Progress.update
+
+    def update(self, sim_s, poses, extra=""):
+        if sim_s >= 2.0:
+            os.kill(os.getpid(), signal.SIGTERM)
+        real_update(self, sim_s, poses, extra)
+
+    monkeypatch.setattr(runner.Progress, "update", update)
+    out, log = tmp_path / "r.json", tmp_path / "run.log"
+    assert main(["bench", "--scenario", "static", "--duration", "20", "--quiet", "--json", str(out),
+                 "--log", str(log)]) == 128 + signal.SIGTERM
+    rep = json.loads(out.read_text())
+    assert rep["interrupted"] is True and rep["stopped_by"] == "SIGTERM"
+    assert 2.0 <= rep["duration_s"] <= 2.1 and rep["poses"] >= 2
+    from coiltrack.tools.framelog import read_log
+
+    header, reads = read_log(log)
+    assert header["duration_s"] == rep["duration_s"] and reads
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and PR_SET_PDEATHSIG")
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_a_stopped_pty_bench_leaves_no_process_and_no_file(sig, tmp_path):
+    out = tmp_path / "r.json"
+    env = dict(os.environ, TMPDIR=str(tmp_path))
+    parent = subprocess.Popen(COILTRACK + ["bench", "--transport", "pty", "--scenario", "static",
+                                           "--duration", "60", "--quiet", "--json", str(out)],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        child = _poll(lambda: _children(parent.pid))[0]
+        parent.send_signal(sig)
+        code = parent.wait(timeout=WAIT_S)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+    _poll(lambda: _gone(child))
+    assert not [p for p in os.listdir(tmp_path) if p.startswith("coiltrack-")]
+    if sig == signal.SIGTERM:
+        assert code == 128 + signal.SIGTERM, parent.stderr.read().decode()
+        rep = json.loads(out.read_text())
+        assert rep["interrupted"] is True and rep["stopped_by"] == "SIGTERM"
+        # the child stops with its statistics, or dies of the signal if it came during its start-up
+        assert rep["firmware_exit_code"] in (128 + signal.SIGTERM, -signal.SIGTERM)
+
+
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals")
+def test_sigterm_stops_the_firmware_with_its_statistics(tmp_path):
+    from coiltrack.tools.links import make_raw_pty
+
+    master, slave, name = make_raw_pty()
+    stats = tmp_path / "fw.json"
+    fw = subprocess.Popen(COILTRACK + ["firmware", "--port", name, "--peer-timeout", "0",
+                                       "--stats-json", str(stats)], stderr=subprocess.PIPE)
+    try:
+        # running once its first frames (TIME_SYNC, HEARTBEAT) arrive
+        assert select.select([master], [], [], WAIT_S)[0]
+        fw.send_signal(signal.SIGTERM)
+        assert fw.wait(timeout=WAIT_S) == 128 + signal.SIGTERM
+    finally:
+        if fw.poll() is None:
+            fw.kill()
+        os.close(master)
+        os.close(slave)
+    rep = json.loads(stats.read_text())
+    assert rep["interrupted"] is True and rep["stopped_by"] == "SIGTERM"
+    # the timing statistics of the ticks run (the signal may come within the first one)
+    assert {"ticks", "tick_us", "deadline_misses", "tick_exec_us_max"} <= set(rep["timing"])
+    assert rep["timing"]["tick_us"] == 1000 and "ticks" in rep["status"]
+
+
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals")
+def test_sigint_stops_the_emulator_with_its_report(tmp_path):
+    out = tmp_path / "emu.json"
+    emu = subprocess.Popen(COILTRACK + ["emulator", "--create-pty", "--scenario", "static", "--duration", "60",
+                                        "--json", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert emu.stdout.readline().startswith(b"/dev/")      # the pty's path: the loop starts
+        emu.send_signal(signal.SIGINT)
+        assert emu.wait(timeout=WAIT_S) == 128 + signal.SIGINT
+    finally:
+        if emu.poll() is None:
+            emu.kill()
+    text = out.read_text()
+    rep = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in the report"))
+    assert rep["interrupted"] is True and rep["stopped_by"] == "SIGINT"
+    assert rep["poses"] == 0 and rep["position_rms_mm"] is None     # no firmware: no pose, null RMS
+
+
+def test_stopped_carries_its_exit_code():
+    from coiltrack.tools.stopping import Interrupted
+
+    assert Interrupted(signal.SIGINT).exit_code == 130 and isinstance(Interrupted(2), Stopped)
