@@ -76,7 +76,7 @@ class FirmwareConfig:
     mag_rate_hz: float = 120.0
     ring_capacity: int = 4096
     # --- work per tick (a slower board lowers them)
-    track_budget_evals: int = 12           # coil field evaluations (field + Jacobian at one point) per tick
+    track_budget_evals: int = 9            # coil field evaluations (field + Jacobian at one point) per tick
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
     solve_gate_probability: float = 1.0    # a warm-started solve whose cost fails this chi-square
                                            # probability is solved again from acquisition (1.0: never;

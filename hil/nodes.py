@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
-from coiltrack.protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
+from coiltrack.protocol.schema import (ACC_LSB, POSE_FUSED, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
                              COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
                              COIL_FAULT_REFUSED,
                              CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STATE_READY,
@@ -681,7 +681,8 @@ class Recorder:
         name = msg.NAME
         if name == "POSE":
             p, R = self.world.trajectory.pose(self.master_to_true(msg.t_us))
-            wins = self._open_windows.pop(msg.node, [])
+            # the windows a magnetic pose was made of (fused poses at the IMU rate use none)
+            wins = [] if msg.status & POSE_FUSED else self._open_windows.pop(msg.node, [])
             self.poses.append({"msg": msg, "rx_us": now_us, "true_p": np.array(p), "true_R": np.array(R),
                                "windows": wins})
         elif name == "PULSE_WINDOW":

@@ -97,12 +97,38 @@ def state_bytes(fw) -> tuple[int, dict]:
     return sum(parts.values()), dict(sorted(parts.items(), key=lambda kv: -kv[1]))
 
 
+def instances(fw, cls) -> list:
+    """Every object of type ``cls`` reachable from the firmware's attributes."""
+    seen: set[int] = set()
+    found = []
+
+    def walk(obj, depth: int) -> None:
+        if depth > 12 or id(obj) in seen:
+            return
+        seen.add(id(obj))
+        if isinstance(obj, cls):
+            found.append(obj)
+            return
+        if isinstance(obj, dict):
+            for v in obj.values():
+                walk(v, depth + 1)
+        elif isinstance(obj, (list, tuple)):
+            for v in obj:
+                walk(v, depth + 1)
+        elif (getattr(type(obj), "__module__", "") or "").startswith("coiltrack.firmware"):
+            for v in getattr(obj, "__dict__", {}).values():
+                walk(v, depth + 1)
+
+    walk(fw, 0)
+    return found
+
+
 def _stats(a_ns) -> dict:
     a = np.asarray(a_ns, dtype=float) / 1e3
     if a.size == 0:
         return {"median": None, "p99": None, "max": None, "n": 0}
     return {"median": round(float(np.median(a)), 2), "p99": round(float(np.percentile(a, 99)), 2),
-            "max": round(float(a.max()), 2), "n": int(a.size)}
+            "p999": round(float(np.percentile(a, 99.9)), 2), "max": round(float(a.max()), 2), "n": int(a.size)}
 
 
 def _record(scenario: str, seed: int, duration: float):
@@ -196,7 +222,9 @@ def _filter_steps(fw) -> dict:
 
 
 def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
+    from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter
     from coiltrack.firmware.loop import PHASES, Firmware
+    from coiltrack.firmware.model.signal import SignalModel
 
     from .alloc import NumpyAllocationCounter, available
     from .framelog import replay
@@ -206,18 +234,26 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
     prof = np.zeros(len(PHASES), dtype=np.int64)
     clk = time.perf_counter_ns
     state = {}
+    work = {"evals": 0, "replay": 0}
 
     def factory(cfg, port):
         fw = Firmware(cfg, port)
         real_tick = fw.tick_timed
         rx = fw.receiver
+        models = tuple(instances(fw, SignalModel))     # every field evaluation goes through one of these
+        filters = tuple(instances(fw, FusionFilter))
 
         def timed(t):
             n0 = rx.imu_received
+            e0 = sum(m.evals for m in models)
+            for f in filters:
+                f.last_step_units = 0
             a = clk()
             real_tick(t, prof)
             dt = clk() - a
             if t >= warm:
+                work["evals"] = max(work["evals"], sum(m.evals for m in models) - e0)
+                work["replay"] = max(work["replay"], max((f.last_step_units for f in filters), default=0))
                 tick_ns.append(dt)
                 for i in range(len(PHASES)):
                     phase_ns[i].append(int(prof[i]))
@@ -242,7 +278,12 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
     rep = {"scenario": header.get("scenario"), "seed": header.get("seed"), "duration_s": header["duration_s"],
            "warmup_s": warmup_s, "ticks": len(tick_ns), "tick_us": int(header["tick_us"])}
     st = _stats(tick_ns)
-    rep.update({"tick_us_median": st["median"], "tick_us_p99": st["p99"], "tick_us_max": st["max"]})
+    rep.update({"tick_us_median": st["median"], "tick_us_p99": st["p99"], "tick_us_p999": st["p999"],
+                "tick_us_max": st["max"]})
+    # the largest work done in one tick, in machine-independent units, against the configured budget
+    cfg = fw.cfg
+    rep.update({"max_field_evals_per_tick": work["evals"], "track_budget_evals": cfg.track_budget_evals,
+                "max_replay_steps_per_tick": work["replay"], "replay_budget_steps": cfg.replay_budget_steps})
     si = _stats(imu_ticks)
     rep.update({"fused_tick_us_median": si["median"], "fused_tick_us_p99": si["p99"], "fused_ticks": si["n"]})
     rep["phases_us"] = {}
@@ -288,7 +329,10 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
 def format_table(rep: dict) -> str:
     lines = [f"  ticks measured        {rep['ticks']} (after {rep['warmup_s']} s warm-up, {rep['tick_us']} us tick)",
              f"  tick                  median {rep['tick_us_median']} us, p99 {rep['tick_us_p99']} us, "
-             f"max {rep['tick_us_max']} us",
+             f"p99.9 {rep['tick_us_p999']} us, max {rep['tick_us_max']} us",
+             f"  work in one tick      at most {rep['max_field_evals_per_tick']} field evaluations (budget "
+             f"{rep['track_budget_evals']}), {rep['max_replay_steps_per_tick']} replay steps (budget "
+             f"{rep['replay_budget_steps']})",
              f"  fused tick (IMU)      median {rep['fused_tick_us_median']} us, p99 {rep['fused_tick_us_p99']} us "
              f"({rep['fused_ticks']} ticks)"]
     for name, s in rep["phases_us"].items():

@@ -64,8 +64,13 @@ SOLVE_NONFINITE = 8        # the result is not finite
 SOLVE_RUNNING = 16         # begin/step: the solve is not finished yet
 SOLVE_REACQUIRED = 32      # the warm start failed its checks; solved from acquisition
 
-_STEP_TOL = 1e-9
-_COST_TOL = 1e-12
+# default LM convergence at noise level, not machine precision: a step below 1e-5 of the
+# range (5 um at 50 cm; rad for the orientation) or a relative cost change below 1e-6 is
+# three orders of magnitude below the Cramer-Rao bound anywhere in the working volume, and
+# stops the solve two to three iterations (6-9 field evaluations) earlier than the
+# reference's 1e-9 / 1e-12 (``pose.reference``), which ``step_tol``/``cost_tol`` can match
+STEP_TOL = 1e-5
+COST_TOL = 1e-6
 _UNBOUNDED = 1 << 62
 # a warm solution counts as on the wrong side of the hemisphere plane only
 # beyond this sine of its elevation (~6 deg): near the plane both mirror
@@ -88,9 +93,10 @@ class _PoseFit:
     residual ``(S - h(p, R)) w`` with ``w = 1 / sigma``, current pose
     ``p``, ``R`` and a trial pose aside."""
 
-    def __init__(self, signal, S, w, cur):
+    def __init__(self, signal, S, w, cur, step_tol: float):
         n = signal.n
         self.signal, self.S, self.w, self.cur = signal, S, w, cur
+        self.step_tol = step_tol
         self.p = memoryview(np.zeros(3))
         self.p_t = memoryview(np.zeros(3))
         self.R = np.zeros((3, 3))
@@ -126,8 +132,9 @@ class _PoseFit:
         convergence) or is below the rounding level of the cost."""
         p = self.p
         pn = math.sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2])
-        return (math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) <= _STEP_TOL * max(pn, 1e-3)
-                and math.sqrt(d[3] * d[3] + d[4] * d[4] + d[5] * d[5]) <= _STEP_TOL)
+        tol = self.step_tol
+        return (math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) <= tol * max(pn, 1e-3)
+                and math.sqrt(d[3] * d[3] + d[4] * d[4] + d[5] * d[5]) <= tol)
 
     def _cost(self, px, py, pz, R, a, g) -> float:
         """Weighted cost and normal equations ``a = H^T W H``,
@@ -202,7 +209,8 @@ class PoseSolver(Staged):
     every evaluation of the model.
     """
 
-    def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999):
+    def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999,
+                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL):
         self.signal = SignalModel(coils, model)
         n = self.signal.n
         self.n = n
@@ -234,8 +242,8 @@ class PoseSolver(Staged):
         cbar = centers.mean(axis=0)
         self._cbar = tuple(float(v) for v in cbar)
         reach = float(max(c.radius for c in coils)) + float(np.linalg.norm(centers - cbar, axis=1).max())
-        self._fit = _PoseFit(self.signal, self._Sv, self._wv, self._curv)
-        self._lm = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, _COST_TOL)
+        self._fit = _PoseFit(self.signal, self._Sv, self._wv, self._curv, step_tol)
+        self._lm = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol)
         self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
         self._inv = RobustInverse6()
         self._hemi = (1.0, 0.0, 0.0)

@@ -46,7 +46,7 @@ from coiltrack.firmware.track.magnetic import MagneticTracker
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05
 #: the steps of fusing one burst (``SensorInertial.fuse``)
-_COMPENSATE, _SOLVE, _UPDATE_COMP, _UPDATE_MAG, _REPLAY = range(5)
+_COMPENSATE, _COMPENSATE_PULSES, _SOLVE, _UPDATE_COMP, _UPDATE_MAG, _REPLAY = range(6)
 
 
 class PulseGate:
@@ -262,6 +262,7 @@ class SensorInertial:
         self.comp_rotation = np.eye(3)
         self.comp_cov = np.zeros((6, 6))
         self.comp_ok = False
+        self._comp_j = 0                   # the next pulse to compensate
         self.stage = _COMPENSATE
         self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
         self._Cfv = memoryview(self._Cf)
@@ -301,42 +302,56 @@ class SensorInertial:
         self.fusion.schedule_snapshot(self.t_ref)
 
     # ------------------------------------------------------------ per burst
-    def compensate(self, solver, S, currents, pulse_t) -> bool:
-        """Bring the pulses to ``t_ref``: ``S_c[:, j] = S[:, j] + h_j(x_ref) - h_j(x_j)``
-        with the inertial poses ``x_j`` at pulse ``j``'s mean sample time
-        (``pulse_t[j]``, memoryview of int) and
-        ``x_ref`` at ``t_ref`` (thesis sec 6.5). False (``S_comp = S``) when
-        the inertial history does not cover the burst."""
+    def compensate_begin(self, solver, S, currents) -> bool:
+        """Start bringing the pulses to ``t_ref`` (thesis sec 6.5):
+        ``S_c[:, j] = S[:, j] + h_j(x_ref) - h_j(x_j)`` with the inertial poses
+        ``x_j`` at pulse ``j``'s mean sample time and ``x_ref`` at ``t_ref``.
+        This step predicts ``h(x_ref)``; :meth:`compensate_step` does the
+        pulses. False (``S_comp = S``) when the filter cannot tell the motion:
+        it knows its velocity worse than the motion it is to remove, or its
+        history does not reach ``t_ref``."""
         np.copyto(self.S_comp, S)
         fus = self.fusion
-        # the inertial motion is used once the filter knows its velocity better
-        # than the motion it is to remove
         if not fus.initialized or fus.velocity_sigma() > _COMP_MAX_VEL_SIGMA \
                 or not fus.pose_at(self.t_ref, self._pr, self._Rr):
             return False
         solver.predict_signals(self._p_ref, self._R_ref, currents, self._h_ref)
+        self._comp_j = 0
+        return True
+
+    def compensate_step(self, solver, S, currents, pulse_t, budget: int) -> int:
+        """Correct the next pulses, ``n`` field evaluations each, within
+        ``budget`` (at least one pulse); returns 1 when all are done, 0 while
+        some are left, -1 (``S_comp = S``) when the history misses a pulse's
+        time (``pulse_t[j]``, memoryview of int)."""
         n = self.S_comp.shape[1]
-        Sc = self._Scv
-        hr = self._hrv
-        hj = self._hjv
-        for j in range(n):
+        Sc, hr, hj = self._Scv, self._hrv, self._hjv
+        fus = self.fusion
+        used = 0
+        while self._comp_j < n and (used == 0 or used + n <= budget):
+            j = self._comp_j
             if not fus.pose_at(pulse_t[j], self._pj, self._Rj):
                 np.copyto(self.S_comp, S)
-                return False
+                return -1
             solver.predict_signals(self._p_j, self._R_j, currents, self._h_j)
             for i in range(3):
                 Sc[i, j] = Sc[i, j] + hr[i, j] - hj[i, j]
+            used += n
+            self._comp_j += 1
+        if self._comp_j < n:
+            return 0
         self.compensated += 1
-        return True
+        return 1
 
     def fuse(self, solver, S, currents, sigma, pulse_t, budget: int, replay_budget: int) -> bool:
         """One step of fusing the burst whose magnetic-only solution is in
         ``mag_*``; returns True when the burst is fused (or dropped). A tick
         carries at most one of these steps:
 
-        0. with motion compensation, bring the pulses to ``t_ref`` and solve
-           again (started from the magnetic-only solution, ``budget`` field
-           evaluations per step);
+        0. with motion compensation, bring the pulses to ``t_ref``
+           (:meth:`compensate_begin`, :meth:`compensate_step`) and solve again
+           (started from the magnetic-only solution), ``budget`` field
+           evaluations per step;
         1. update the fusion filter at ``t_ref`` with the compensated solution
            and its covariance (``FusionFilter.begin_magnetic_update``); if the
            update is rejected (the inertial motion was wrong), the next step
@@ -355,10 +370,18 @@ class SensorInertial:
         if stage == _COMPENSATE:
             self.comp_ok = False
             self.stage = _UPDATE_MAG
-            if self.cfg.motion_compensation and self.compensate(solver, S, currents, pulse_t):
-                if solver.begin(self.S_comp, currents, sigma, self.mag_position, self.mag_position,
-                                self.mag_rotation) & SOLVE_RUNNING:
-                    self.stage = _SOLVE
+            if self.cfg.motion_compensation and self.compensate_begin(solver, S, currents):
+                self.stage = _COMPENSATE_PULSES
+            return False
+        if stage == _COMPENSATE_PULSES:
+            done = self.compensate_step(solver, S, currents, pulse_t, budget)
+            if done < 0:
+                self.stage = _UPDATE_MAG
+            elif done and solver.begin(self.S_comp, currents, sigma, self.mag_position, self.mag_position,
+                                       self.mag_rotation) & SOLVE_RUNNING:
+                self.stage = _SOLVE
+            elif done:
+                self.stage = _UPDATE_MAG
             return False
         if stage == _SOLVE:
             st = solver.step(budget)
@@ -472,6 +495,15 @@ class BurstFusionTracker(MagneticTracker):
         else:
             self._fuse_step()
         self._send_fused()
+
+    def warm_start(self, ch, tp) -> bool:
+        """The fusion filter's pose at the burst's middle when it has one (it
+        carries the motion since the last burst), else the last solution."""
+        ins = self.inertial[ch.node]
+        fus = ins.fusion
+        if tp.have_pose and fus.initialized and fus.pose_at(ins.t_ref, tp.warm_p, tp.warm_R):
+            return True
+        return super().warm_start(ch, tp)
 
     def on_solution(self, ch, solved: bool) -> None:
         ins = self.inertial[ch.node]

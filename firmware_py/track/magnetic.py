@@ -33,6 +33,8 @@ class TrackedPose:
         self.rotation = np.eye(3)
         self.have_pose = False
         self.hemisphere = np.array(hemisphere, dtype=float)
+        self.warm_p = np.zeros(3)          # the start of the next solve
+        self.warm_R = np.eye(3)
 
 
 class MagneticTracker:
@@ -54,6 +56,9 @@ class MagneticTracker:
         self._next = -1                  # index of the channel being solved; -1: idle
         self._status = 0                 # POSE_* bits of that channel's burst
         self.budget = cfg.track_budget_evals
+        self._burst_ticks = 0            # ticks since the burst's last window closed
+        self.solve_ticks_max = 0         # the most ticks a burst's solves took after its windows closed
+        self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
 
     # ------------------------------------------------------------ inputs
@@ -76,11 +81,15 @@ class MagneticTracker:
         if self._next < 0:
             if not self.burst.complete:
                 return
+            self._burst_ticks = 0
             self._next = 0
             self._prepare_currents()
             self._begin(self.channels[0])
             return
+        self._burst_ticks += 1
         st = self.solver.step(self.budget)
+        if self.solver.solve_evals > self.solve_evals_max and not st & SOLVE_RUNNING:
+            self.solve_evals_max = self.solver.solve_evals
         if st & SOLVE_RUNNING:
             return
         self._report(self.channels[self._next], not (st & SOLVE_FAILED))
@@ -104,8 +113,8 @@ class MagneticTracker:
             return
         ch.fill_sigma()
         tp = self.poses[ch.node]
-        if tp.have_pose:
-            st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.position, tp.position, tp.rotation)
+        if self.warm_start(ch, tp):
+            st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.position, tp.warm_p, tp.warm_R)
         else:
             st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.hemisphere)
         if not st & SOLVE_RUNNING:
@@ -131,9 +140,20 @@ class MagneticTracker:
         if self._next == len(self.channels):
             self._next = -1
             self.cycles += 1
+            if self._burst_ticks > self.solve_ticks_max:
+                self.solve_ticks_max = self._burst_ticks
             self.burst.release()
         else:
             self._begin(self.channels[self._next])
+
+    def warm_start(self, ch, tp: TrackedPose) -> bool:
+        """Put the solve's start into ``tp.warm_p``, ``tp.warm_R``: the last
+        magnetic solution (False before there is one: acquire)."""
+        if not tp.have_pose:
+            return False
+        np.copyto(tp.warm_p, tp.position)
+        np.copyto(tp.warm_R, tp.rotation)
+        return True
 
     def busy(self) -> bool:
         """A burst is being solved (or waits to be)."""
@@ -143,4 +163,5 @@ class MagneticTracker:
         """Hook: the burst of ``ch`` was solved (``self.solver`` holds it) or not."""
 
     def counters(self) -> dict:
-        return {"cycles": self.cycles}
+        return {"cycles": self.cycles, "solve_ticks_max": self.solve_ticks_max,
+                "solve_evals_max": self.solve_evals_max}
