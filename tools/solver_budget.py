@@ -18,7 +18,7 @@ element: one pulse window of about five samples):
 
 Wall-clock figures depend on this machine and its load; evaluations do not.
 
-    .venv/bin/python scripts/solver_budget.py [--poses 200] [--seed 1]
+    .venv/bin/python -m coiltrack.tools.solver_budget [--poses 200] [--seed 1]
 """
 from __future__ import annotations
 
