@@ -343,37 +343,51 @@ class SensorInertial:
         self.compensated += 1
         return 1
 
-    def fuse(self, solver, S, currents, sigma, pulse_t, budget: int, replay_budget: int) -> bool:
-        """One step of fusing the burst whose magnetic-only solution is in
-        ``mag_*``; returns True when the burst is fused (or dropped). A tick
-        carries at most one of these steps:
+    def fuse(self, solver, S, currents, sigma, pulse_t, budget: int, replay_budget: int, fresh: bool) -> bool:
+        """Fusing the burst whose magnetic-only solution is in ``mag_*``, as far
+        as this tick allows; returns True when the burst is fused (or dropped).
 
         0. with motion compensation, bring the pulses to ``t_ref``
            (:meth:`compensate_begin`, :meth:`compensate_step`) and solve again
-           (started from the magnetic-only solution), ``budget`` field
-           evaluations per step;
+           (started from the magnetic-only solution): these steps follow one
+           another within ``budget`` field evaluations;
         1. update the fusion filter at ``t_ref`` with the compensated solution
            and its covariance (``FusionFilter.begin_magnetic_update``); if the
            update is rejected (the inertial motion was wrong), the next step
            offers the magnetic-only one instead;
         2. replay the IMU samples since ``t_ref``, ``replay_budget`` of them
-           per step, on the filter's shadow state (the fused outputs go on from
+           per tick, on the filter's shadow state (the fused outputs go on from
            the live state meanwhile).
+
+        The update and the replay steps (no field evaluation, but the heaviest
+        matrix work) each take a tick of their own: only a ``fresh`` tick (no
+        other work done in it) and no evaluation spent before them.
 
         The solver's covariance assumes the sensor still during the burst. The
         motion left in the signals is added to it: without compensation the
         motion itself (``|v| t_rms`` and ``|w| t_rms`` per axis, ``t_rms`` the
         rms pulse time about the middle of the burst); with compensation the
         error of the inertial motion (velocity uncertainty times ``t_rms``)."""
-        fus = self.fusion
+        n = self.S_comp.shape[1]
+        e0 = solver.signal.evals
+        while self.stage in (_COMPENSATE, _COMPENSATE_PULSES, _SOLVE):
+            left = budget - (solver.signal.evals - e0)
+            if left < n:
+                return False
+            self._measure_step(solver, S, currents, sigma, pulse_t, left)
+        if not fresh or solver.signal.evals != e0:
+            return False
+        return self._filter_step(replay_budget)
+
+    def _measure_step(self, solver, S, currents, sigma, pulse_t, budget: int) -> None:
+        """One step of the motion-compensated re-solve, within ``budget`` evaluations."""
         stage = self.stage
         if stage == _COMPENSATE:
             self.comp_ok = False
             self.stage = _UPDATE_MAG
             if self.cfg.motion_compensation and self.compensate_begin(solver, S, currents):
                 self.stage = _COMPENSATE_PULSES
-            return False
-        if stage == _COMPENSATE_PULSES:
+        elif stage == _COMPENSATE_PULSES:
             done = self.compensate_step(solver, S, currents, pulse_t, budget)
             if done < 0:
                 self.stage = _UPDATE_MAG
@@ -382,19 +396,21 @@ class SensorInertial:
                 self.stage = _SOLVE
             elif done:
                 self.stage = _UPDATE_MAG
-            return False
-        if stage == _SOLVE:
+        else:
             st = solver.step(budget)
             if st & SOLVE_RUNNING:
-                return False
+                return
             if not st & (SOLVE_NONFINITE | SOLVE_NO_START | SOLVE_BAD_INPUT):
                 np.copyto(self.comp_position, solver.position)
                 np.copyto(self.comp_rotation, solver.rotation)
                 np.copyto(self.comp_cov, solver.covariance)
                 self.comp_ok = True
             self.stage = _UPDATE_COMP if self.comp_ok else _UPDATE_MAG
-            return False
-        if stage == _UPDATE_COMP:
+
+    def _filter_step(self, replay_budget: int) -> bool:
+        """The update of the fusion filter, or a step of its replay."""
+        fus = self.fusion
+        if self.stage == _UPDATE_COMP:
             self._motion_cov(self.comp_cov, True)
             flags = fus.begin_magnetic_update(self.t_ref, self.comp_position, self.comp_rotation, self._Cf,
                                               final=False)
@@ -403,7 +419,7 @@ class SensorInertial:
                 self.stage = _UPDATE_MAG
                 return False
             return self._updated(flags)
-        if stage == _UPDATE_MAG:
+        if self.stage == _UPDATE_MAG:
             self._motion_cov(self.mag_cov, False)
             return self._updated(fus.begin_magnetic_update(self.t_ref, self.mag_position, self.mag_rotation,
                                                            self._Cf))
@@ -490,10 +506,12 @@ class BurstFusionTracker(MagneticTracker):
             self.source.process()
         for ch, ins in self._pairs:
             ins.process(ch.ring)
-        if self.busy():
+        e0 = self.solver.signal.evals
+        fresh = not self.busy()
+        if not fresh:
             super().step(now_us)
-        else:
-            self._fuse_step()
+        if not self.busy():          # what the magnetic solves left of the budget goes to fusing
+            self._fuse_step(self.budget - (self.solver.signal.evals - e0), fresh)
         self._send_fused()
 
     def warm_start(self, ch, tp) -> bool:
@@ -517,11 +535,11 @@ class BurstFusionTracker(MagneticTracker):
         else:
             ins.pending = False
 
-    def _fuse_step(self) -> None:
-        """One step of one sensor's delayed magnetic update per tick."""
+    def _fuse_step(self, budget: int, fresh: bool) -> None:
+        """This tick's part of one sensor's delayed magnetic update."""
         for ch, ins in self._pairs:
             if ins.pending:
-                ins.fuse(self.comp_solver, ch.S, self.currents, ch.sigma, ch.pmv, self.budget, self.replay_budget)
+                ins.fuse(self.comp_solver, ch.S, self.currents, ch.sigma, ch.pmv, budget, self.replay_budget, fresh)
                 return
 
     def _send_fused(self) -> None:
