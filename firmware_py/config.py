@@ -27,6 +27,11 @@ class ConfigError(ValueError):
         key = qualified(key)
         super().__init__(f"config key '{key}': {message}")
         self.key = key
+        self.message = message
+
+    def __reduce__(self):
+        """Picklable, so a worker process can hand it back."""
+        return (ConfigError, (self.key, self.message))
 
 
 @dataclass(frozen=True)

@@ -100,3 +100,13 @@ def test_round_trip_through_sections():
     assert config_from_dict(config_to_dict(cfg)) == cfg
     keys = [k for ks in SECTIONS.values() for k in ks]
     assert sorted(keys) == sorted(f.name for f in fields(FirmwareConfig))
+
+
+def test_config_error_survives_pickling():
+    """A sweep's worker process sends a refused value back to the parent."""
+    import pickle
+
+    with pytest.raises(ConfigError) as ei:
+        config_from_dict({"timing": {"pulse_us": -5}})
+    back = pickle.loads(pickle.dumps(ei.value))
+    assert back.key == "timing.pulse_us" and str(back) == str(ei.value)
