@@ -230,3 +230,18 @@ def test_maximum_encoded_frame_length(doc):
     unsigned, unsigned_enc = (int(x) for x in one(r"Unsigned, the longest is `POSE` at (\d+) bytes, (\d+) encoded", doc).groups())
     assert len(protocol.encode_frame(pose.msg)) - 1 == unsigned_enc == unsigned + 1
     assert int(one(r"The longest PDU is a signed\s+`POSE`: 1 \+ 63 \+ 2 \+ 13 = (\d+) bytes", doc).group(1)) == MAX_PDU
+
+
+# ------------------------------------------------------------------ links
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_every_section_link_resolves(doc):
+    """A renamed section must not leave the checklist or the contents pointing nowhere."""
+    anchors = {_slug(h) for h in re.findall(r"^#{1,4} (.+)$", doc, re.M)}
+    links = set(re.findall(r"\]\(#([^)]+)\)", doc))
+    assert len(links) >= 20
+    assert links <= anchors, sorted(links - anchors)
