@@ -181,3 +181,32 @@ def test_flip_command_rules(doc, world_factory):
     assert {bit for _, bit in _flip_bits(bus, t_past)} == {state}
     bus.run_to(t_past + 3_200_000)                    # 3 s after: it flips on its own again
     assert {bit for _, bit in _flip_bits(bus, t_past + 3_000_000)} == {0, 1}
+
+
+def _num(doc: str, pattern: str) -> float:
+    m = re.search(pattern, doc, re.S)
+    assert m is not None, f"docs/protocol.md no longer says /{pattern}/"
+    return float(m.group(1))
+
+
+def test_timing_and_capability_figures_are_the_defaults(doc):
+    """The limits the spec gives a node are the firmware's and the reference driver's defaults."""
+    from coiltrack.firmware.config import FirmwareConfig
+    from coiltrack.firmware.supervise.health import HealthConfig
+    from coiltrack.firmware.supervise.supervisor import SupervisorConfig
+    from coiltrack.hil.nodes import DriverLimits
+
+    h, s, cfg, lim = HealthConfig(), SupervisorConfig(), FirmwareConfig(), DriverLimits()
+    assert _num(doc, r"is within \*\*(\d+) us\*\* of a whole number of periods") == h.stamp_interval_tol_us
+    assert _num(doc, r"stamp at most \*\*(\d+) us\*\* after the master clock") == h.stamp_future_tol_us
+    assert _num(doc, r"a\s+reply more than (\d+) us from the prediction") == s.sync_step_threshold_us
+    assert _num(doc, r"firmware: every (\d+) ms,\s+`sync_period_us`") * 1000 == s.sync_period_us
+    assert _num(doc, r"a\s+sensor silent for (\d+) ms") * 1000 == h.sensor_timeout_us
+    assert _num(doc, r"the largest configured current: \*\*([\d.]+) A\*\*") == \
+        max(max(c.current for c in cfg.coils), cfg.adaptive_max_current_a)
+    assert _num(doc, r"\| pulse length \| (\d+) ms \(`pulse_us`\)") * 1000 == cfg.pulse_us
+    assert _num(doc, r"\*\*(\d+) ms\*\* minimum lead") * 1000 == min(cfg.lead_us, cfg.adaptive_lead_us)
+    assert _num(doc, r"the largest configured current: \*\*[\d.]+ A\*\* \| ([\d.]+) A \|") == lim.max_current_a
+    assert _num(doc, r"\| \*\*60 ms\*\* \| (\d+) ms \|") * 1000 == lim.max_pulse_us
+    assert _num(doc, r"must not refuse as late a command 10 ms ahead \| (\d+) us \|") == lim.min_lead_us
+    assert _num(doc, r"default \*\*([\d.]+) Hz\*\*; `imu_rate_hz`") == cfg.mag_rate_hz
