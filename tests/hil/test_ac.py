@@ -86,19 +86,22 @@ def test_time_multiplexing_slots():
         ac.ACCoilDriver(SRC, [ac.ACRequest(0, 100.0, 1.0), ac.ACRequest(1, 120.0, 1.0)], slot_s=0.01)
     with pytest.raises(ValueError, match="slot_s"):
         ac.ACCoilDriver(SRC, [ac.ACRequest(0, 100.0, 1.0)], slot_s=1e-3)   # tail e^{-2 S/tau} too large
-    f, S = 200.0, 0.01
+    f, S = 200.0, 0.02
     drv = ac.ACCoilDriver(SRC, [ac.ACRequest(k, f, 1.0) for k in range(3)], slot_s=S, current_noise_a=0.0)
     tau = SRC[0].tau_s
-    t = np.arange(0.0, 0.06, 1e-5)
+    t = np.arange(0.0, 0.12, 1e-5)
     I = drv.current_at(t)
     slot = np.floor(t / S).astype(int) % 3
+    settled = (t % S) > 25 * tau                     # 25 tau after any slot edge
     for k in range(3):
-        settled_off = (slot != k) & ((t - S * np.floor(t / S)) > 25 * tau) & ~((slot == (k + 1) % 3)
-                                                                                & ((t % S) < 25 * tau))
-        assert np.max(np.abs(I[k][settled_off])) < 1e-9
-        inside = (slot == k) & ((t % S) > 25 * tau)
+        assert np.max(np.abs(I[k][(slot != k) & settled])) < 1e-9
+        inside = (slot == k) & settled
         steady = np.real(drv.drives[k].current * np.exp(2j * np.pi * f * t[inside]))
         np.testing.assert_allclose(I[k][inside], steady, atol=1e-9)
+        off = (k + 1) * S                            # free L/R decay after the slot
+        i_off = drv.coil_current(k, off)
+        assert abs(i_off) > 0.1
+        assert drv.coil_current(k, off + tau) == pytest.approx(i_off * np.exp(-1.0), rel=1e-9)
 
 
 def test_measured_current_noise():
