@@ -140,3 +140,15 @@ def test_two_coil_frequency_division_demodulated():
         assert np.max(np.abs(per_amp.real - ref)) < bound
         assert np.max(np.abs(per_amp.imag)) < bound
         assert bound < 0.01 * np.linalg.norm(ref)      # the check is sharp: 1 % of the field
+
+
+def test_field_at_moving_points_and_shape_check():
+    """One point per time gives, at each time, the fixed-point field there (rel 1e-12); a wrong shape is refused."""
+    drv = ac.ACCoilDriver(SRC, [ac.ACRequest(k, 90.0 + 40 * k, 1.5) for k in range(3)])
+    t = np.linspace(0.01, 0.02, 4)
+    pts = np.array([[0.2, 0.0, 0.05], [0.1, 0.25, 0.0], [-0.15, 0.1, 0.2], [0.0, -0.3, -0.1]])
+    B = ac.field_at(SRC, drv, pts, t)
+    for n in range(4):
+        np.testing.assert_allclose(B[n], ac.field_at(SRC, drv, pts[n], t[n:n + 1])[0], rtol=1e-12)
+    with pytest.raises(ValueError, match="points"):
+        ac.field_at(SRC, drv, pts[:3], t)
