@@ -288,13 +288,14 @@ def main(argv=None) -> int:
     ap.add_argument("--exit-on-eof", action="store_true",
                     help="also stop when stdin reaches end of file (run under a parent's pipe)")
     args = ap.parse_args(argv)
+    done = threading.Event()
+    # the handlers before the paths: a parent may stop the bridge as soon as it has read them
+    signal.signal(signal.SIGTERM, lambda *a: done.set())
+    signal.signal(signal.SIGINT, lambda *a: done.set())
     bridge = SlcanBridge(args.ends)
     for p in bridge.paths:
         print(p)
     sys.stdout.flush()
-    done = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *a: done.set())
-    signal.signal(signal.SIGINT, lambda *a: done.set())
 
     def watch_stdin():
         try:

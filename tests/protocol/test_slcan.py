@@ -153,4 +153,4 @@ def test_slcan_between_processes():
             child.kill()
             child.wait()
         bridge.terminate()
-        assert bridge.wait(timeout=5) == 0
+        assert bridge.wait(timeout=IO_TIMEOUT_S) == 0       # a hang guard, not a speed bound
