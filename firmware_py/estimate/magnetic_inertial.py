@@ -109,6 +109,7 @@ FUS_REINITIALISED = 256     # too many consecutive rejections: restarted from th
 FUS_INITIALISED = 512       # this update initialised the filter
 FUS_BUSY = 2048             # begin_magnetic_update refused: the previous replay is still running
 FUS_REPLAY_LOST = 4096      # the IMU ring dropped samples the replay needed: the update is lost
+FUS_PREPARED = 8192         # prepare_magnetic_update: the measurement is ready for apply_magnetic_update
 
 #: named rows of an IMU ring entry: specific force, rate (sensor frame), the
 #: source's specific force in G, the source orientation Phi (row-major)
@@ -331,6 +332,7 @@ class FusionFilter:
         # bookkeeping
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
+        self._pending = None            # a prepared magnetic update: (t_ref, q, R_ms, C, final)
         self.last_step_units = 0        # strapdown steps of the last ``step`` call
         self.rejects_in_row = 0
         self.accepted_in_row = 0
@@ -650,15 +652,28 @@ class FusionFilter:
         """Fuse one magnetic solution referring to ``t_ref_us``: position
         ``q`` (3, source frame), orientation ``R_ms`` (3x3, sensor to source)
         and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``, rows
-        ``layout.POSE_POS``, ``POSE_ORI``). Initialises the filter when
-        needed. The update is applied to the shadow state at ``t_ref``; the
-        replay to the newest IMU sample is left to :meth:`step` (none is
-        needed when the state did not change: a rejected solution). Returns
-        health flags (ekf flags, ``FUS_*``); never raises. With
-        ``final=False`` a rejected solution leaves the snapshot in place (and
-        counts nothing), so the caller can offer another solution of the same
-        burst. ``FUS_BUSY``: the previous replay is still running (nothing
-        done; call again once :meth:`step` has returned True)."""
+        ``layout.POSE_POS``, ``POSE_ORI``). :meth:`prepare_magnetic_update`
+        and :meth:`apply_magnetic_update` in one call (a tick may do them in
+        two). Initialises the filter when needed. The update is applied to the
+        shadow state at ``t_ref``; the replay to the newest IMU sample is left
+        to :meth:`step` (none is needed when the state did not change: a
+        rejected solution). Returns health flags (ekf flags, ``FUS_*``); never
+        raises. With ``final=False`` a rejected solution leaves the snapshot
+        in place (and counts nothing), so the caller can offer another
+        solution of the same burst. ``FUS_BUSY``: the previous replay is still
+        running (nothing done; call again once :meth:`step` has returned True)."""
+        flags = self.prepare_magnetic_update(t_ref_us, q, R_ms, C, final)
+        if flags != FUS_PREPARED:
+            return flags
+        return self.apply_magnetic_update()
+
+    def prepare_magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
+        """The first half of :meth:`begin_magnetic_update`: restore the
+        snapshot at ``t_ref`` into the shadow state and evaluate the
+        measurement model (``q``, ``R_ms``, ``C`` are read now). Returns
+        ``FUS_PREPARED`` (then call :meth:`apply_magnetic_update`), or the
+        final flags when it is already decided (busy, no snapshot,
+        initialisation)."""
         if self.replaying:
             return FUS_BUSY
         if not (self.snap_valid and self.snap_t == t_ref_us and self._ring_covers(t_ref_us)):
@@ -679,6 +694,16 @@ class FusionFilter:
         self._shist.copy_from(self.hist)
         self._shist.drop_newer_than(t_ref_us)
         self._measurement(sh, q, R_ms, C)
+        self._pending = (t_ref_us, q, R_ms, C, final)
+        return FUS_PREPARED
+
+    def apply_magnetic_update(self) -> int:
+        """The second half of :meth:`begin_magnetic_update`: gate, gain and
+        Joseph update of the prepared measurement, the correction of the
+        shadow state and the start of its replay. Returns the health flags."""
+        t_ref_us, q, R_ms, C, final = self._pending
+        self._pending = None
+        sh = self.sh
         if self.recorder is not None:
             self.recorder.on_prior(self, sh)
         flags = self.upd.update(sh.P)

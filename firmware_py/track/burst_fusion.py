@@ -35,7 +35,7 @@ import numpy as np
 from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, POSE_FUSED, POSE_INCONSISTENT, POSE_STALE, POSE_VALID
 
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
-from coiltrack.firmware.estimate.magnetic_inertial import (OUT_INCONSISTENT, OUT_P, OUT_Q, OUT_STALE, OUT_STATUS,
+from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_INCONSISTENT, OUT_P, OUT_Q, OUT_STALE, OUT_STATUS,
                                                           OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
@@ -46,7 +46,7 @@ from coiltrack.firmware.track.magnetic import MagneticTracker
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05
 #: the steps of fusing one burst (``SensorInertial.fuse``)
-_COMPENSATE, _COMPENSATE_PULSES, _SOLVE, _UPDATE_COMP, _UPDATE_MAG, _REPLAY = range(6)
+_COMPENSATE, _COMPENSATE_PULSES, _SOLVE, _UPDATE_COMP, _APPLY_COMP, _UPDATE_MAG, _APPLY_MAG, _REPLAY = range(8)
 
 
 class PulseGate:
@@ -352,9 +352,9 @@ class SensorInertial:
            (started from the magnetic-only solution): these steps follow one
            another within ``budget`` field evaluations;
         1. update the fusion filter at ``t_ref`` with the compensated solution
-           and its covariance (``FusionFilter.begin_magnetic_update``); if the
-           update is rejected (the inertial motion was wrong), the next step
-           offers the magnetic-only one instead;
+           and its covariance, in two ticks (``FusionFilter.prepare_magnetic_update``,
+           ``apply_magnetic_update``); if the update is rejected (the inertial
+           motion was wrong), the magnetic-only one is offered instead;
         2. replay the IMU samples since ``t_ref``, ``replay_budget`` of them
            per tick, on the filter's shadow state (the fused outputs go on from
            the live state meanwhile).
@@ -408,21 +408,27 @@ class SensorInertial:
             self.stage = _UPDATE_COMP if self.comp_ok else _UPDATE_MAG
 
     def _filter_step(self, replay_budget: int) -> bool:
-        """The update of the fusion filter, or a step of its replay."""
+        """One tick of the fusion filter's part: prepare an update (restore the
+        snapshot, evaluate the measurement), apply it (gain, Joseph update),
+        or a step of its replay."""
         fus = self.fusion
-        if self.stage == _UPDATE_COMP:
-            self._motion_cov(self.comp_cov, True)
-            flags = fus.begin_magnetic_update(self.t_ref, self.comp_position, self.comp_rotation, self._Cf,
-                                              final=False)
-            if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
+        stage = self.stage
+        if stage in (_UPDATE_COMP, _UPDATE_MAG):
+            comp = stage == _UPDATE_COMP
+            self._motion_cov(self.comp_cov if comp else self.mag_cov, comp)
+            p, R = (self.comp_position, self.comp_rotation) if comp else (self.mag_position, self.mag_rotation)
+            flags = fus.prepare_magnetic_update(self.t_ref, p, R, self._Cf, final=not comp)
+            if flags == FUS_PREPARED:
+                self.stage = _APPLY_COMP if comp else _APPLY_MAG
+                return False
+            return self._updated(flags)
+        if stage in (_APPLY_COMP, _APPLY_MAG):
+            flags = fus.apply_magnetic_update()
+            if stage == _APPLY_COMP and flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
                 self.comp_rejected += 1        # the inertial motion was wrong: offer the burst as measured
                 self.stage = _UPDATE_MAG
                 return False
             return self._updated(flags)
-        if self.stage == _UPDATE_MAG:
-            self._motion_cov(self.mag_cov, False)
-            return self._updated(fus.begin_magnetic_update(self.t_ref, self.mag_position, self.mag_rotation,
-                                                           self._Cf))
         if fus.step(replay_budget):
             self._done()
             return True

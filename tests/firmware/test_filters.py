@@ -676,3 +676,25 @@ def test_rejected_solution_starts_no_replay_and_keeps_the_snapshot():
     assert b.ff.begin_magnetic_update(t_ref, q, R, C) == 0 and b.ff.replaying
     b.ff.finish()
     assert b.ff.updates == 1 and np.abs(b.ff.p - c.ff.p).max() > 1e-4
+
+
+def test_update_prepared_in_one_tick_and_applied_in_the_next_is_the_same_update():
+    """prepare_magnetic_update, an IMU sample on the live state, then
+    apply_magnetic_update and the replay give the state of begin (both halves
+    at once) with the sample pushed after it, to 1e-12: the live state's
+    progress between the halves does not leak into the shadow's update. A
+    rejected first half (final=False) leaves the snapshot for a second
+    solution, as begin does."""
+    from coiltrack.firmware.estimate.magnetic_inertial import FUS_PREPARED
+
+    a, b = _ready_pair()
+    sol = _Feed.solution(930_000)
+    assert a.ff.begin_magnetic_update(*sol) == 0
+    a.push()
+    assert b.ff.prepare_magnetic_update(*sol) == FUS_PREPARED and not b.ff.replaying
+    b.push()
+    assert b.ff.apply_magnetic_update() == 0 and b.ff.replaying
+    a.ff.finish()
+    b.ff.finish()
+    _assert_same_state(a.ff.st, b.ff.st, 1e-12)
+    np.testing.assert_allclose(b.ff.hist.d, a.ff.hist.d, rtol=0, atol=1e-12)
