@@ -34,3 +34,13 @@ class ImuRing(Ring):
         d[k, 4] = msg.gy * GYR_LSB
         d[k, 5] = msg.gz * GYR_LSB
         self.received += 1
+
+    def pop_sample(self, out) -> int:
+        """Release the oldest sample into ``out[0:6]`` (specific force m/s^2,
+        rate rad/s) and return its time (us), or -1 when the ring is empty."""
+        k = self.pop()
+        if k < 0:
+            return -1
+        d = self._dv
+        out[0], out[1], out[2], out[3], out[4], out[5] = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
+        return self._tv[k]

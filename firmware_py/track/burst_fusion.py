@@ -188,6 +188,7 @@ class SourceInertial:
     def __init__(self, node: int, cfg, gate: PulseGate):
         self.node = node
         self.imu = ImuRing(cfg.imu_ring_capacity)
+        self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
         self.ori = _Ori(cfg, gate)
         self.phi = np.eye(3)
@@ -199,14 +200,12 @@ class SourceInertial:
         self.samples = 0
 
     def process(self) -> None:
-        ring = self.imu
-        d = ring._dv
+        ring, s6 = self.imu, self._s6
         while True:
-            k = ring.pop()
-            if k < 0:
+            t = ring.pop_sample(s6)
+            if t < 0:
                 return
-            t = ring._tv[k]
-            ax, ay, az, wx, wy, wz = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
+            ax, ay, az, wx, wy, wz = s6
             self.ori.step(t, ax, ay, az, wx, wy, wz, self.mag)
             self.samples += 1
             f = self.ori.f
@@ -227,6 +226,7 @@ class SensorInertial:
         self.cfg = cfg
         n = len(cfg.coils)
         self.imu = ImuRing(cfg.imu_ring_capacity)
+        self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.ori = _Ori(cfg, gate)
         self.fusion = FusionFilter(FusionParams.from_config(cfg, source is not None), self.ori.f,
                                    imu_capacity=cfg.fusion_replay_capacity,
@@ -278,17 +278,15 @@ class SensorInertial:
     # ------------------------------------------------------------ per sample
     def process(self, mag: SampleRing) -> None:
         """Drain the IMU ring through Xi and the fusion filter."""
-        ring = self.imu
-        d = ring._dv
+        ring, s6 = self.imu, self._s6
         fus = self.fusion
         phi = self._phiv
         fr = self._frv
         while True:
-            k = ring.pop()
-            if k < 0:
+            t = ring.pop_sample(s6)
+            if t < 0:
                 return
-            t = ring._tv[k]
-            ax, ay, az, wx, wy, wz = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
+            ax, ay, az, wx, wy, wz = s6
             self.ori.step(t, ax, ay, az, wx, wy, wz, mag)
             fus.push_imu(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
             self.samples += 1

@@ -228,6 +228,7 @@ class SingleCoilTracker:
         self._sens = tuple(self.sensors.values())
         self.slots = tuple(_Pulse() for _ in range(max(2, n)))
         self._order = [0] * len(self.slots)
+        self._s6 = [0.0] * 6                 # one popped IMU sample (f, w)
         self.next_free_us = cfg.first_cycle_us - self.lead_us
         self.next_acq_us = cfg.first_cycle_us - cfg.lead_us
         self.acq_active = False
@@ -258,16 +259,15 @@ class SingleCoilTracker:
 
     def track(self, now_us: int) -> None:
         """Propagate each sensor's EKF through its queued IMU samples."""
+        s6 = self._s6
         for s in self._sens:
-            ring = s.imu
-            d = ring._dv
             while True:
-                k = ring.pop()
-                if k < 0:
+                t = s.imu.pop_sample(s6)
+                if t < 0:
                     break
                 a, g = s.acc, s.gyr
-                a[0], a[1], a[2], g[0], g[1], g[2] = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
-                self._propagate(s, ring._tv[k], now_us)
+                a[0], a[1], a[2], g[0], g[1], g[2] = s6
+                self._propagate(s, t, now_us)
 
     def _propagate(self, s: _Sensor, t: int, now_us: int) -> None:
         ekf = s.ekf
