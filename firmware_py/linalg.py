@@ -271,6 +271,17 @@ def rotvec_from_matrix(r00, r01, r02, r10, r11, r12, r20, r21, r22):
     return ax * angle / nrm, ay * angle / nrm, az * angle / nrm
 
 
+def atb3(x, y, rows: int, out) -> None:
+    """``out = X^T Y`` (3x3, row-major) for ``X``, ``Y`` of ``rows`` rows of 3,
+    row-major flat: ``out[3 a + c] = sum_j x[3 j + a] y[3 j + c]``."""
+    for a in range(3):
+        for c in range(3):
+            acc = 0.0
+            for j in range(rows):
+                acc += x[3 * j + a] * y[3 * j + c]
+            out[3 * a + c] = acc
+
+
 def inv3_sym(a00, a01, a02, a11, a12, a22):
     """Inverse of the symmetric 3x3 ``[[a00 a01 a02] [a01 a11 a12] [a02 a12 a22]]``
     as its six distinct elements ``(i00, i01, i02, i11, i12, i22)`` (adjugate

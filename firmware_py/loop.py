@@ -37,6 +37,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
+from coiltrack.protocol import FrameDecoder
+
 from coiltrack.firmware.actuate.burst import BurstActuation
 from coiltrack.firmware.actuate.schedule import PulseSchedule
 from coiltrack.firmware.config import FirmwareConfig
@@ -86,23 +88,21 @@ class Firmware:
         self.cfg = cfg.validate()
         self.port = port
         self.coils = [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.coils]
-        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us)
+        decoder = FrameDecoder()
+        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder)
         self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.coils])
         self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.sensor_ids)
         self.closer = WindowCloser(self.channels, cfg.fall_us, cfg.baseline_us, cfg.cycle_us // 2, self.tx)
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
         self.tracker = self.pipeline.tracker
-        self.receiver = Receiver(port, self.channels, self.schedule, self.tracker, self.supervisor, self.tx)
-        self.tx.rx_bad = self._frames_bad
+        self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
+                                 self.tx)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None
         self.ticks = 0
         self.last_tick_us: int | None = None
-
-    def _frames_bad(self) -> int:
-        return self.receiver.decoder.frames_bad
 
     def _begin(self, now_us: int) -> None:
         if self.boot_us is None:

@@ -6,7 +6,7 @@ the tracker, heartbeats to the schema check. The supervisor sees every
 message first."""
 from __future__ import annotations
 
-from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameDecoder
+from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
 from coiltrack.protocol.schema import EVT_SCHEMA_MISMATCH, MAG_LSB_T
 
 _MAG = MSG["MAG_SAMPLE"].ID
@@ -16,9 +16,9 @@ _HEARTBEAT = MSG["HEARTBEAT"].ID
 
 
 class Receiver:
-    def __init__(self, port, channels, schedule, tracker, supervisor, tx):
+    def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx):
         self.port = port
-        self.decoder = FrameDecoder()
+        self.decoder = decoder
         self.channels = {ch.node: ch for ch in channels}
         self.schedule = schedule
         self.tracker = tracker

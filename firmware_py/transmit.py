@@ -28,7 +28,7 @@ def _f32(v: float) -> float:
 class Transmitter:
     """Encoder, write side of the Port and the counters of what was sent."""
 
-    def __init__(self, port: Port, node_id: int, heartbeat_us: int):
+    def __init__(self, port: Port, node_id: int, heartbeat_us: int, decoder):
         self.port = port
         self.node_id = node_id
         self.encoder = FrameEncoder(node_id)
@@ -39,7 +39,7 @@ class Transmitter:
         self.tx_errors = 0
         self.poses = 0          # POSEs sent with POSE_VALID
         self.fused_poses = 0    # ... of which fused (POSE_FUSED)
-        self.rx_bad = None      # callable: frames the receiver dropped (for the heartbeat)
+        self.decoder = decoder  # the receiver's: the frames it dropped go into the heartbeat
 
     def send(self, msg) -> None:
         try:
@@ -76,7 +76,6 @@ class Transmitter:
     def step(self, now_us: int) -> None:
         """The periodic HEARTBEAT."""
         if now_us >= self.next_heartbeat_us:
-            bad = self.rx_bad() if self.rx_bad is not None else 0
             self.send(_HEARTBEAT(self.node_id, ROLE_FIRMWARE, STATE_RUNNING, PROTOCOL_VERSION, SCHEMA_HASH,
-                                 now_us - self.boot_us, min(bad, 0xFFFF)))
+                                 now_us - self.boot_us, min(self.decoder.frames_bad, 0xFFFF)))
             self.next_heartbeat_us = now_us + self.heartbeat_us

@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.linalg import Rot3, chol_inverse, flat, jacobi_eigh, nearest_rotation
+from coiltrack.firmware.linalg import Rot3, atb3, chol_inverse, flat, jacobi_eigh, nearest_rotation
 from coiltrack.firmware.model.field import MU0
 from coiltrack.firmware.pose.lm import LM_RUNNING, LevenbergMarquardt
 from coiltrack.firmware.pose.staged import Staged
@@ -119,20 +119,9 @@ class _Kuipers:
         ``(hx, hy, hz)``; after :meth:`pseudo_inverse`."""
         n = self.signal.n
         S, mp, S3, W = self.S, self._mp, self._S3, self._W
-        for i in range(3):
-            for c in range(3):
-                acc = 0.0
-                for j in range(n):
-                    acc += S[3 * j + i] * mp[3 * j + c]
-                S3[3 * i + c] = acc
-        tr = 0.0
-        for a in range(3):
-            for b in range(3):
-                acc = 0.0
-                for i in range(3):
-                    acc += S3[3 * i + a] * S3[3 * i + b]
-                W[3 * a + b] = acc
-            tr += W[4 * a]
+        atb3(S, mp, n, S3)
+        atb3(S3, S3, 3, W)
+        tr = W[0] + W[4] + W[8]
         k = max(math.sqrt(max(tr / 6.0, 0.0)), 1e-300)
         jacobi_eigh(W, 3, self._w, self._V)
         v = self._V
@@ -370,14 +359,8 @@ class Acquisition(Staged):
         b, p = self._best, self._pv
         p[0], p[1], p[2] = b[0], b[1], b[2]
         self.signal.fields(b[0], b[1], b[2], self.cur, False)
-        B, S, M = self.signal.Bv, self.S, self._M
-        for a in range(3):
-            for c in range(3):
-                acc = 0.0
-                for j in range(n):
-                    acc += B[3 * j + a] * S[3 * j + c]
-                M[3 * a + c] = acc
-        nearest_rotation(M, self.R, self._rot3)
+        atb3(self.signal.Bv, self.S, n, self._M)
+        nearest_rotation(self._M, self.R, self._rot3)
         self._then(None)
 
     # ------------------------------------------ LM problem (3 parameters)

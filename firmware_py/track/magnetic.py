@@ -52,6 +52,7 @@ class MagneticTracker:
         self.currents = np.zeros(len(coils))
         self._curv = memoryview(self.currents)
         self._nomv = memoryview(self.nominal)
+        self._measv = memoryview(schedule.measured)
         self.poses = {ch.node: TrackedPose(cfg.hemisphere) for ch in self.channels}
         self._next = -1                  # index of the channel being solved; -1: idle
         self._status = 0                 # POSE_* bits of that channel's burst
@@ -96,7 +97,7 @@ class MagneticTracker:
 
     def _prepare_currents(self) -> None:
         """The driver's measured current where it reported one, else the nominal."""
-        cur, mc, nom = self._curv, self.schedule._mv, self._nomv
+        cur, mc, nom = self._curv, self._measv, self._nomv
         for j in range(len(cur)):
             cur[j] = mc[j] if mc[j] != 0.0 else nom[j]
 

@@ -160,7 +160,7 @@ def test_conform_command_serial(pty, emulator_factory, capsys, tmp_path):
     master, path = pty
     emulator_factory(FdPort(master))
     out_json = tmp_path / "conform.json"
-    rc = main(["conform", "--transport", "serial", "--port", path, "--observe", "0.4", "--lead-ms", "50",
+    rc = main(["conform", "--transport", "serial", "--port", path, "--observe", "0.4", "--lead-ms", "200",
                "--sync-period", "1", "--json", str(out_json)])
     text = capsys.readouterr().out
     assert rc == 0, text
@@ -173,7 +173,7 @@ def test_conform_command_virtual_can_with_key(emulator_factory, capsys):
     node_side = CanLink(open_bus("virtual", channel), 2)
     emulator_factory(node_side, verifier=SignatureVerifier(KEY))
     rc = main(["conform", "--transport", "can", "--interface", "virtual", "--channel", channel,
-               "--key", KEY.hex(), "--observe", "0.4", "--lead-ms", "50", "--sync-period", "1"])
+               "--key", KEY.hex(), "--observe", "0.4", "--lead-ms", "200", "--sync-period", "1"])
     text = capsys.readouterr().out
     assert rc == 0, text
     for rule in ("unsigned_rejected", "forged_rejected", "replay_rejected"):
@@ -191,7 +191,7 @@ def test_conform_against_emulator_process():
     try:
         path = emu.stdout.readline().strip()
         assert path.startswith("/dev/"), emu.stderr.read() if emu.poll() is not None else path
-        rep = run_conformance(SerialLink(path), ConformOptions(observe_s=0.4, lead_ms=50.0, pulse_ms=10.0,
+        rep = run_conformance(SerialLink(path), ConformOptions(observe_s=0.4, lead_ms=200.0, pulse_ms=10.0,
                                                                silence_s=0.12, optional_wait_s=0.1,
                                                                answer_timeout_s=5.0, sync_period_s=1.0),
                                transport="serial")
