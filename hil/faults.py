@@ -21,6 +21,8 @@ separated, keys may repeat::
 
     drop=P corrupt=P truncate=P duplicate=P garbage=P delay=P    per-frame probabilities
     delay_ms=MS                    how long a delayed frame is held (default 20 ms)
+    jitter_ms=MS                   every frame, both ways, arrives late by a random latency
+                                   (exponential, mean MS; order kept): a loaded host or a USB adapter
     both_ways=1                    also mangle frames from the firmware
     drift=[NODE:]PPM               oscillator drift (default: sensor +PPM and driver -PPM)
     clock_step=[NODE:]STEP@T       the node's time-stamp counter jumps by STEP (e.g. 5ms, -3ms)
@@ -76,9 +78,10 @@ class LinkFaults:
     delay: float = 0.0       # probability a frame is held back by delay_us (arrives out of order)
     delay_us: int = 20_000
     both_ways: bool = False
+    jitter_us: int = 0       # mean of the exponential latency every frame gets (order kept)
 
     def active(self) -> bool:
-        return any(getattr(self, k) for k in _LINK_PROBS)
+        return bool(self.jitter_us) or any(getattr(self, k) for k in _LINK_PROBS)
 
     def set(self, key: str, val: str) -> None:
         if key == "both_ways":
@@ -86,6 +89,9 @@ class LinkFaults:
             return
         if key == "delay_ms":
             self.delay_us = int(round(_number("link fault 'delay_ms'", val, 0.0, 10_000.0) * 1000))
+            return
+        if key == "jitter_ms":
+            self.jitter_us = int(round(_number("link fault 'jitter_ms'", val, 0.0, 1_000.0) * 1000))
             return
         setattr(self, key, _number(f"link fault '{key}': the probability", val, 0.0, 1.0))
 
@@ -95,7 +101,7 @@ class LinkFaults:
         lf = cls()
         if not spec:
             return lf
-        names = set(_LINK_PROBS) | {"both_ways", "delay_ms"}
+        names = set(_LINK_PROBS) | {"both_ways", "delay_ms", "jitter_ms"}
         for part in spec.split(","):
             key, _, val = part.partition("=")
             key = key.strip()
@@ -123,6 +129,9 @@ class FaultyLink:
         self._held_out: list[tuple[int, bytes]] = []
         self._held_in: list[tuple[int, bytes]] = []
         self._rx_partial = bytearray()
+        self._jit_out = 0                  # release time of the last jittered frame, each way
+        self._jit_in = 0
+        self._jrng = np.random.default_rng(seed + 104729)
 
     def _mangle(self, data: bytes, held: list) -> bytes:
         f, rng = self.faults, self.rng
@@ -165,6 +174,13 @@ class FaultyLink:
         held[:] = keep
         return out
 
+    def _jitter(self, data: bytes, held: list, last: int) -> int:
+        """Hold ``data`` for an exponential latency, after every frame held before it (order kept);
+        returns its release time."""
+        t = max(last, self.now_us + int(self._jrng.exponential(self.faults.jitter_us)))
+        held.append((t, data))
+        return t
+
     def service(self, now_us: int) -> None:
         self.now_us = int(now_us)
         due = self._due(self._held_out, self.now_us)
@@ -173,12 +189,15 @@ class FaultyLink:
 
     def write(self, data: bytes) -> None:
         out = self._mangle(data, self._held_out)
-        if out:
+        if out and self.faults.jitter_us:
+            self._jit_out = self._jitter(out, self._held_out, self._jit_out)
+        elif out:
             self.link.write(out)
 
     def read(self) -> bytes:
         data = self.link.read()
-        if not self.faults.both_ways:
+        f = self.faults
+        if not (f.both_ways or f.jitter_us):
             return data
         out = bytearray(self._due(self._held_in, self.now_us))
         if data:
@@ -188,9 +207,17 @@ class FaultyLink:
                 z = buf.find(b"\x00", start)
                 if z < 0:
                     break
-                out += self._mangle(bytes(buf[start:z + 1]), self._held_in)
+                frame = bytes(buf[start:z + 1])
+                if f.both_ways:
+                    frame = self._mangle(frame, self._held_in)
+                if frame and f.jitter_us:
+                    self._jit_in = self._jitter(frame, self._held_in, self._jit_in)
+                else:
+                    out += frame
                 start = z + 1
             self._rx_partial = bytearray(buf[start:])
+            if f.jitter_us:
+                out += self._due(self._held_in, self.now_us)
         return bytes(out)
 
     def flush(self) -> None:
@@ -294,7 +321,7 @@ class BenchFaults:
         bf = cls()
         if not spec:
             return bf
-        link_keys = set(_LINK_PROBS) | {"both_ways", "delay_ms"}
+        link_keys = set(_LINK_PROBS) | {"both_ways", "delay_ms", "jitter_ms"}
         known = sorted(link_keys | set(_TIMED) | {"drift", "metal_d", "metal_r"})
         for part in spec.split(","):
             if not part.strip():

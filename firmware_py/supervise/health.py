@@ -288,6 +288,13 @@ class Health:
         self.susp_k[i] = (k + 1) % _SUSPECT
         self.suspect_open[i] = False
 
+    def restart_stamps(self, node: int) -> None:
+        """Forget ``node``'s last sample stamp: its time base was just set (sync acquisition), so the
+        next sample is not judged against the grid of the one before."""
+        i = self._slot.get(node, -1)
+        if i >= 0:
+            self.last_stamp[i] = _NONE
+
     def on_sync_reply(self, node: int, stepped: bool, prev_reply_us: int, now_us: int) -> None:
         i = self._slot.get(node, -1)
         if i < 0:

@@ -98,6 +98,8 @@ class Supervisor:
             prev = ts.first_suspect_us(i, now_us)           # before the candidates of a forward step
             stepped = ts.on_reply(msg, now_us)
             h.on_sync_reply(node, stepped, prev, now_us)
+            if ts.acquiring(i):
+                h.restart_stamps(node)      # acquisition steps the node's time base: check anew
         elif mid == _ID_HEARTBEAT:
             h.heard(msg.node, now_us)
 

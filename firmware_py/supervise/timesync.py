@@ -116,6 +116,11 @@ class TimeSyncMaster:
         self.next_us = now_us + self.period_us
         return True
 
+    def acquiring(self, i: int) -> bool:
+        """Whether node slot ``i`` is still (re)acquiring: its first replies, whose clock corrections
+        a node applies as steps (its stamps are not yet on one time base)."""
+        return 0 <= i < len(self.acquired) and self.acquired[i] < _ACQUIRE
+
     def on_reply(self, msg, now_us: int) -> bool:
         """Book a TIME_SYNC_REPLY; return True when it shows a clock step of that node."""
         i = self._slot.get(msg.node, -1)
