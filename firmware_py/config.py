@@ -166,6 +166,10 @@ class FirmwareConfig:
     fusion_replay_capacity: int = 128       # IMU samples kept to replay after a delayed magnetic update
     fusion_history_capacity: int = 128      # inertial poses kept for motion compensation
     pose_output_capacity: int = 16          # fused poses waiting to be sent
+    # [signing]: MAVLink-2-style signatures on the commands that move coil current or change a
+    # node's configuration (the schema's signable messages; coiltrack.protocol.signing)
+    signing_key: str = ""                   # hex (64 digits) or a passphrase (SHA-256); "": unsigned
+    signing_link_id: int = 1                # this sender's signing link (one byte in every signature)
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -218,7 +222,19 @@ class FirmwareConfig:
              f"must hold two cycles of samples (>= {int(2 * samples_per_cycle)})")
         self._validate_actuation(need)
         self._validate_fusion(need)
+        self._validate_signing(need)
         return self
+
+    def _validate_signing(self, need) -> None:
+        need("signing_key", isinstance(self.signing_key, str), f"must be a string, got {self.signing_key!r}")
+        need("signing_link_id", isinstance(self.signing_link_id, int) and not isinstance(self.signing_link_id, bool)
+             and 0 <= self.signing_link_id <= 255, f"must be an integer in 0..255, got {self.signing_link_id!r}")
+
+    def signing_key_bytes(self) -> bytes:
+        """The signing key (empty: commands unsigned); see :func:`coiltrack.protocol.signing.key_from_text`."""
+        from coiltrack.protocol.signing import key_from_text
+
+        return key_from_text(self.signing_key) if self.signing_key else b""
 
     def _validate_fusion(self, need) -> None:
         """Keys of the orientation filter and the magnetic-inertial fusion
@@ -344,6 +360,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "fusion_reinit_after", "xi_sigma_floor", "xi_heading_sigma_floor", "xi_var_scale", "mag_var_scale",
                "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
                "psi_sigma", "meas_sigma"),
+    "signing": ("signing_key", "signing_link_id"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -37,7 +37,8 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from coiltrack.protocol import FrameDecoder
+from coiltrack.protocol import FrameDecoder, Signer
+from coiltrack.protocol.signing import now_timestamp
 
 from coiltrack.firmware.actuate.burst import BurstActuation
 from coiltrack.firmware.actuate.schedule import PulseSchedule
@@ -84,12 +85,18 @@ def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, close
 class Firmware:
     """Fixed-size firmware state built once from a :class:`FirmwareConfig`."""
 
-    def __init__(self, cfg: FirmwareConfig, port: Port):
+    def __init__(self, cfg: FirmwareConfig, port: Port, sign_ts0: int | None = None):
+        """``sign_ts0``: the signing timestamp at boot (10 us units since 2015-01-01; default the
+        wall clock's, read once here) when ``signing_key`` is set."""
         self.cfg = cfg.validate()
         self.port = port
         self.coils = [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.coils]
         decoder = FrameDecoder()
-        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder)
+        key = cfg.signing_key_bytes()
+        signer = Signer(key, cfg.signing_link_id) if key else None
+        if signer is not None and sign_ts0 is None:
+            sign_ts0 = now_timestamp()
+        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder, signer, sign_ts0 or 0)
         self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.coils])
         self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.sensor_ids)
         self.closer = WindowCloser(self.channels, cfg.fall_us, cfg.baseline_us, cfg.cycle_us // 2, self.tx)
@@ -147,4 +154,6 @@ class Firmware:
         d.update(self.supervisor.counters())
         if "imu_samples" in d:
             d["fused_poses"] = self.tx.fused_poses
+        if self.tx.signer is not None:
+            d["tx_signed"] = self.tx.signer.signed
         return d

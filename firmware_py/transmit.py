@@ -6,10 +6,16 @@ covariance diagonal clamped to the f32 range of the wire format), the
 ``FAULT_EVENT`` reports and the periodic ``HEARTBEAT``, and counts what it
 sent. A full or broken link never stops the loop: a failed write is counted
 in ``tx_errors``.
+
+With a signer (``signing_key`` in the configuration) the signable messages
+(``COIL_PULSE_CMD``, ``CONFIG_SET``) leave signed (MAVLink 2 style,
+:mod:`coiltrack.protocol.signing`): the timestamp is the one taken at boot
+(``sign_ts0``, 10 us units since 2015) plus the master clock, so it increases
+strictly within a run and across restarts of the firmware.
 """
 from __future__ import annotations
 
-from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder
+from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder, SignedFrameEncoder, Signer
 from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID, ROLE_FIRMWARE, STATE_RUNNING
 
 from coiltrack.firmware.port import Port
@@ -28,10 +34,13 @@ def _f32(v: float) -> float:
 class Transmitter:
     """Encoder, write side of the Port and the counters of what was sent."""
 
-    def __init__(self, port: Port, node_id: int, heartbeat_us: int, decoder):
+    def __init__(self, port: Port, node_id: int, heartbeat_us: int, decoder, signer: Signer | None = None,
+                 sign_ts0: int = 0):
         self.port = port
         self.node_id = node_id
-        self.encoder = FrameEncoder(node_id)
+        self.signer = signer
+        self.sign_ts0 = int(sign_ts0)
+        self.encoder = SignedFrameEncoder(node_id, signer) if signer is not None else FrameEncoder(node_id)
         self.heartbeat_us = heartbeat_us
         self.next_heartbeat_us = 0
         self.boot_us = 0
@@ -43,7 +52,10 @@ class Transmitter:
 
     def send(self, msg) -> None:
         try:
-            self.port.write(self.encoder.encode(msg))
+            if self.signer is None:
+                self.port.write(self.encoder.encode(msg))
+            else:
+                self.port.write(self.encoder.encode(msg, self.sign_ts0 + self.now_us // 10))
         except Exception:  # a full or broken link must not stop the loop
             self.tx_errors += 1
 

@@ -59,14 +59,18 @@ def random_clock(rng: np.random.Generator, drift_ppm_max: float) -> NodeClock:
 
 def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: BenchFaults | LinkFaults | None = None,
              seed_driver: int = 0, seed_sensor: int = 0, seed_faults: int = 0, seed_clocks: int | None = None,
-             clock_drift_ppm: float = 50.0, sensor_ids=(NODE_SENSOR_BASE,), driver_limits=None) -> Bench:
+             clock_drift_ppm: float = 50.0, sensor_ids=(NODE_SENSOR_BASE,), driver_limits=None,
+             verifier=None) -> Bench:
     """Build the nodes of one run and apply the fault switches.
 
     Node clocks get seeded offsets and drifts (``clock_drift_ppm`` bound;
     ``faults.drift_ppm`` overrides per node); timed faults become clock steps,
     objects in the world (a magnet on the sensor for ``sat``, a carried steel
     part for ``metal``), node off-windows, and switches the driver reads at
-    each pulse (open circuit, short, sag).
+    each pulse (open circuit, short, sag). ``verifier``: checks the signatures
+    of what the firmware sends (a :class:`coiltrack.protocol.SignatureVerifier`
+    that requires signed commands: an unsigned, forged or replayed command is
+    dropped and counted, never executed).
     """
     if faults is None:
         faults = BenchFaults()
@@ -97,7 +101,7 @@ def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: B
     for f in faults.of("node_off"):
         (driver if f.target == "driver" else sensors[0]).add_off_window(f.t_on_us, f.t_off_us)
     recorder = Recorder(world)
-    emulator = Emulator(world, lk, driver, sensors, recorder)
+    emulator = Emulator(world, lk, driver, sensors, recorder, verifier=verifier)
     return Bench(world, lk, driver, sensors, recorder, emulator, faults)
 
 

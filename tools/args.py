@@ -100,6 +100,29 @@ def input_file(text: str) -> str:
     return text
 
 
+#: the environment variable a signing key may come in (a child process gets it so, not on its command line)
+KEY_ENV = "COILTRACK_SIGNING_KEY"
+
+
+def signing_key(text: str) -> str:
+    """A signing key: 64 hex digits, a passphrase (hashed with SHA-256), ``@PATH`` to read either from
+    a file, or ``@env`` to take it from the environment variable :data:`KEY_ENV` (so the key does not
+    show in the process list)."""
+    if text == "@env":
+        text = os.environ.get(KEY_ENV, "")
+        if not text.strip():
+            raise argparse.ArgumentTypeError(f"--key @env: the environment variable {KEY_ENV} is not set")
+    elif text.startswith("@"):
+        try:
+            with open(text[1:], encoding="utf-8") as f:
+                text = f.read().strip()
+        except OSError as exc:
+            raise argparse.ArgumentTypeError(f"cannot read the key file '{text[1:]}': {exc.strerror}") from None
+    if not text.strip():
+        raise argparse.ArgumentTypeError("the signing key is empty")
+    return text.strip()
+
+
 def serial_port(text: str) -> str:
     """A serial device, pseudo-terminal or pyserial URL that reaches another party
     (``loop://`` only echoes back what is written)."""

@@ -41,6 +41,10 @@ def add_arguments(p) -> None:
                    help="write what the firmware received, tick by tick (JSON lines; for `coiltrack perf --log` "
                         "and `coiltrack smooth`; in-process transports only)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--key", type=A.signing_key, metavar="KEY",
+                   help="sign the firmware's commands with KEY (64 hex digits, a passphrase, @FILE or @env for "
+                        "$COILTRACK_SIGNING_KEY); the emulated nodes then require signatures and refuse, and count, "
+                        "unsigned or forged commands")
     from .outputs import add_bench_arguments
 
     add_bench_arguments(p)
@@ -66,6 +70,10 @@ def _setup(args):
         faults = parse_faults(args.faults, sc)
     except ValueError as exc:
         return f"--faults: {exc}"
+    if args.key:
+        import dataclasses
+
+        cfg = dataclasses.replace(cfg or sc.firmware_config(), signing_key=args.key)
     return sc, (args.duration if args.duration is not None else sc.duration_s), cfg, faults
 
 

@@ -45,6 +45,9 @@ def add_arguments(p) -> None:
 
     add_igtl_arguments(p)
     add_capture_argument(p)
+    p.add_argument("--key", type=A.signing_key, metavar="KEY",
+                   help="sign the coil commands and configuration writes with KEY (64 hex digits, a passphrase, "
+                        "@FILE or @env for $COILTRACK_SIGNING_KEY); overrides signing.signing_key of --config")
 
 
 def _config(args):
@@ -55,7 +58,12 @@ def _config(args):
 
     base = get(args.scenario).firmware_config()
     try:
-        return load_over(args.config, base) if args.config else base
+        cfg = load_over(args.config, base) if args.config else base
+        if args.key:
+            import dataclasses
+
+            cfg = dataclasses.replace(cfg, signing_key=args.key)
+        return cfg
     except ConfigError as exc:
         print(f"coiltrack firmware: --config {args.config}: {exc}", file=sys.stderr)
         return None

@@ -221,6 +221,28 @@ def _filter_steps(fw) -> dict:
     return out
 
 
+def signing_cost(n: int = 2000) -> dict:
+    """Median time to encode one COIL_PULSE_CMD frame unsigned and signed (HMAC-SHA256, as the
+    firmware does with ``signing_key``), in us, over ``n`` frames each."""
+    from coiltrack.protocol import MSG, FrameEncoder, SignedFrameEncoder, Signer
+
+    cmd = MSG["COIL_PULSE_CMD"]
+    fields = [f.name for f in cmd.DEF.fields]
+    msg = cmd(**{f: 1 for f in fields}) if fields else cmd()
+    plain, signed = FrameEncoder(1), SignedFrameEncoder(1, Signer(bytes(range(32)), 1))
+    out = {}
+    for name, enc in (("command_encode_us_median", lambda k: plain.encode(msg)),
+                      ("command_sign_us_median", lambda k: signed.encode(msg, 1_000_000 + k))):
+        ts = np.zeros(n, dtype=np.int64)
+        for k in range(n):
+            a = time.perf_counter_ns()
+            enc(k)
+            ts[k] = time.perf_counter_ns() - a
+        out[name] = round(float(np.median(ts)) / 1e3, 2)
+    out["command_sign_overhead_us"] = round(out["command_sign_us_median"] - out["command_encode_us_median"], 2)
+    return out
+
+
 def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
     from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter
     from coiltrack.firmware.loop import PHASES, Firmware
@@ -296,6 +318,7 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
     total, parts = state_bytes(fw)
     rep["state_bytes"] = total
     rep["state_bytes_by_part"] = parts
+    rep.update(signing_cost())
     rep["status"] = {k: v for k, v in fw.status().items() if k in ("cycles", "poses", "fused_poses", "fusion_updates")}
     # allocations: a second replay with the counting allocator around every tick
     if available():

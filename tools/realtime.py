@@ -293,8 +293,15 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
                "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
                *(["--config", str(config_path)] if config_path else [])]
+        env = None
+        if cfg.signing_key:     # the key reaches the child in its environment, not on its command line
+            from .args import KEY_ENV
+
+            env = {**os.environ, KEY_ENV: cfg.signing_key}
+            cmd += ["--key", "@env"]
         stopped, code, fw_stats = _beside_child(_pin_cpus(cmd), bench, clock, duration_s,
-                                                Progress(progress, duration_s, f"{scenario.name} ({transport})"))
+                                                Progress(progress, duration_s, f"{scenario.name} ({transport})"),
+                                                env)
     finally:
         close()
     done_s = duration_s if stopped is None else elapsed_s(clock, duration_s)
@@ -313,14 +320,14 @@ def elapsed_s(clock, duration_s: float) -> float:
     return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
 
 
-def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog):
+def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None):
     """Start the firmware process and run the emulator beside it (until 0.3 s after
     ``duration_s``, so the last frames arrive). Returns the :class:`Stopped` that ended the
     run early (or None), the child's exit status and its statistics (its standard output)."""
     child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
     try:
         with held_signals():
-            child = start_child(cmd, stdout=subprocess.PIPE)
+            child = start_child(cmd, stdout=subprocess.PIPE, env=env)
         emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog)
         wait_s = 30.0
     except Stopped as exc:

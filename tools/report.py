@@ -145,6 +145,9 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     rep["faults"] = fault_summary(bench, fw_status)
     if hasattr(bench.link, "counts"):
         rep["link_faults"] = dict(bench.link.counts)
+    if getattr(bench, "verifier", None) is not None:
+        # what the nodes did with the firmware's signatures (commands accepted, refused by kind)
+        rep["signing"] = {**bench.verifier.counters(), "firmware_signed": fw_status.get("tx_signed", 0)}
     if fused:
         _fused_keys(rep, np.array(fused), duration_s, fw_status, rms)
     # consistency flags of the valid poses (NIS monitor, health), and the adaptive mode's counters
@@ -232,6 +235,10 @@ def format_table(rep: dict) -> str:
         rows.append(("faults injected", ", ".join(fl["injected"]["switches"]) or "-"))
         ev = fl["reported"]["events"]
         rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
+    sg = rep.get("signing")
+    if sg:
+        rows.append(("signed commands", f'{sg["firmware_signed"]} sent, {sg["accepted"]} accepted; refused '
+                                        f'{sg["unsigned"]} unsigned, {sg["forged"]} forged, {sg["replayed"]} replayed'))
     if rep.get("interrupted"):
         rows.append(("interrupted", f'stopped by {rep.get("stopped_by")}: the figures are of the part that ran'))
     if "paper" in rep:

@@ -14,6 +14,7 @@ from coiltrack.firmware.loop import Firmware
 from coiltrack.hil.bench import assemble
 from coiltrack.hil.faults import BenchFaults, LinkFaults
 from coiltrack.hil.nodes import ImuSpec, MagSpec
+from coiltrack.protocol import SignatureVerifier
 
 from . import report as report_mod
 from .links import inproc_pair
@@ -38,13 +39,17 @@ class BenchSetup:
         self.duration_s = duration_s
         self.world = scenario.build_world(s_world, duration_s)
         spec = scenario.sensor
+        key = (cfg or scenario.firmware_config()).signing_key_bytes()
+        # with a key the nodes require signed commands (an unsigned or forged one is dropped, counted)
+        self.verifier = SignatureVerifier(key, require=True) if key else None
         mag = MagSpec(rate_hz=spec.rate_hz, noise_t=spec.noise_t, flip_every=getattr(spec, "flip_every", 8))
         imu_rate = getattr(spec, "imu_rate_hz", 0.0)
         imu = ImuSpec(rate_hz=imu_rate) if imu_rate else None
         self.bench = assemble(self.world, link, mag=mag, imu=imu, faults=faults, seed_driver=s_driver,
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
-                              sensor_ids=tuple((cfg or scenario.firmware_config()).sensor_ids))
+                              sensor_ids=tuple((cfg or scenario.firmware_config()).sensor_ids),
+                              verifier=self.verifier)
         src_id = getattr(spec, "source_imu_id", 0)
         if src_id:
             # an IMU + magnetometer module on the source (thesis sec 6.2.3), a node of its own

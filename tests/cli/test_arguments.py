@@ -31,8 +31,12 @@ def _refused(argv, capsys) -> str:
     (["firmware", "--port", "loop://", "--peer-timeout", "nan"], "--peer-timeout", "[0, 3600]"),
     (["perf", "--warmup", "-1"], "--warmup", "[0, 3600]"),
     (["conform", "--port", "x", "--node", "256"], "--node", "[0, 255]"),
+    (["bench", "--key", " "], "--key", "the signing key is empty"),
+    (["bench", "--key", "@/no/such/key"], "--key", "cannot read the key file"),
+    (["firmware", "--port", "loop://", "--key", "@env"], "--key", "COILTRACK_SIGNING_KEY is not set"),
 ])
-def test_bad_values_are_refused_with_the_argument_and_its_range(argv, arg, accepted, capsys):
+def test_bad_values_are_refused_with_the_argument_and_its_range(argv, arg, accepted, capsys, monkeypatch):
+    monkeypatch.delenv("COILTRACK_SIGNING_KEY", raising=False)
     line = _refused(argv, capsys)
     assert line.startswith(f"coiltrack {argv[0]}: error: argument {arg}")
     assert accepted in line
@@ -100,6 +104,7 @@ def test_bad_fault_values_are_refused(text, capsys):
     ('[timing]\nno_such_key = 1\n', "timing.no_such_key"),
     ('pulse_us = 3\n', "timing.pulse_us"),
     ('[timing]\npulse_us = \n', "<file>"),
+    ('[signing]\nsigning_link_id = 300\n', "signing.signing_link_id"),
 ])
 @pytest.mark.parametrize("command", [["bench", "--scenario", "static"], ["firmware", "--port", "loop://"]])
 def test_config_values_are_refused_naming_the_key(command, toml, key, tmp_path, capsys):
