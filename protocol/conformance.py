@@ -27,7 +27,20 @@ coil driver (role 1)
 sensor (role 2)
     ``mag_stream`` MAG_SAMPLE at the expected rate (from its time stamps and
     from arrival times, within ``rate_tolerance``); ``mag_timestamps``
-    strictly increasing ``t_us``.
+    strictly increasing ``t_us``; ``mag_grid`` every interval between
+    consecutive stamps within ``grid_tolerance_us`` (400 us, the firmware's
+    ``stamp_interval_tol_us``) of a whole number of periods while every other
+    broadcast is written ``late_sync_us`` behind, as a frame that arrived
+    late: a node that steps its correction at each broadcast fails, one that
+    slews passes (the firmware counts a larger jump as a clock step).
+bench mode (``bench=True``: a driver and a sensor sharing a real coil)
+    ``bench_pulse`` ``bench_pulses`` pulses of the firmware's length and
+    current, their starts dithered over one sample period: every sample in
+    the firmware's window (``start + settle_us`` .. ``end - guard_us``) shows
+    the pulse's field, every quiet sample (before the start, after
+    ``end + fall_us``) does not; the rise and fall edges as seen in the
+    samples are bracketed to a fraction of the sample period and reported
+    with their margins to the window.
 time
     ``time_sync`` every node answers the tester's TIME_SYNC with
     TIME_SYNC_REPLY (same ``sync_seq``).
@@ -80,6 +93,10 @@ RULES = {
     "config_get": "CONFIG_GET answered with CONFIG_ACK (optional)",
     "discovered": "a node first heard after discovery (its rules were not run)",
     "time_sync": "TIME_SYNC answered with TIME_SYNC_REPLY",
+    "mag_grid": "MAG_SAMPLE stamps stay on the rate grid (within 400 us) while broadcasts arrive late: "
+                "clock corrections slewed, not stepped",
+    "bench_pulse": "bench mode: a commanded pulse shows in the sensor's samples inside the firmware's window, "
+                   "edges measured against the command",
 }
 
 
@@ -106,6 +123,21 @@ class ConformOptions:
     optional_wait_s: float = 0.25
     sync_period_s: float = 0.5           # TIME_SYNC broadcast period (the tester is the master)
     max_log: int = 200_000
+    # stamp regularity (mag_grid): broadcasts every late_sync_period_s, every other one written
+    # late_sync_us behind (as if it had arrived that late); the firmware's sample-grid tolerance
+    late_sync_us: int = 1_500
+    late_sync_period_s: float = 0.1
+    grid_observe_s: float = 1.2
+    grid_tolerance_us: int = 400
+    # bench mode (--bench): driver and sensor share a real coil; the firmware's pulse and windows
+    bench: bool = False
+    bench_pulses: int = 6
+    bench_pulse_ms: float = 60.0
+    bench_current_ma: int = 1_500
+    bench_coils: int = 3                 # the pulses go round the driver's first coils
+    settle_us: int = 3_000               # the firmware's windows (pulse.settle_us, guard_us, fall_us)
+    guard_us: int = 2_000
+    fall_us: int = 3_000
 
 
 @dataclass
@@ -345,6 +377,8 @@ class Conformance:
                 self._driver_rules(n)
             elif nodes[n] == ROLE_SENSOR:
                 self._sensor_rules(n)
+        if o.bench:
+            self._bench_rules(nodes)
         self._garbage_rules(nodes)
         self._optional_rules(nodes)
         self._link_rules(nodes)
@@ -364,14 +398,14 @@ class Conformance:
         self.add("heartbeat_version", PASS, f"v{hb.proto_version} schema {hb.schema_hash:#010x}", n)
 
     def _pulse(self, n: int, current_ma: int | None = None, duration_us: int | None = None,
-               signed=None, key=None, timestamp=None, lead_us: int | None = None):
+               signed=None, key=None, timestamp=None, lead_us: int | None = None, coil: int = 0):
         o = self.o
         pid = self._pulse_id()
         lead = int(o.lead_ms * 1000) if lead_us is None else lead_us
         start = self.master_us() + lead
         dur = int(o.pulse_ms * 1000) if duration_us is None else duration_us
         cur = o.pulse_current_ma if current_ma is None else current_ma
-        cmd = MSG["COIL_PULSE_CMD"](0, pid, cur, start, dur)
+        cmd = MSG["COIL_PULSE_CMD"](coil, pid, cur, start, dur)
         mark = len(self.log)
         frame = self.send(cmd, signed=signed, key=key, timestamp=timestamp)
         return cmd, mark, frame
@@ -505,6 +539,136 @@ class Conformance:
         self.add("mag_stream", FAIL if problems else PASS,
                  "; ".join(problems) if problems else
                  f"{stamp_rate:.1f} Hz by time stamps, {arrival_rate:.1f} Hz arriving", n)
+        self._grid_rule(n, rate)
+
+    def _late_sync_phase(self, seconds: float, on_time: int = 5) -> int:
+        """Broadcast every ``late_sync_period_s``: ``on_time`` broadcasts on time (a node still
+        acquiring may step its clock), then for ``seconds`` every other one written ``late_sync_us``
+        behind; returns the log index where the late broadcasts began."""
+        o = self.o
+        mark = len(self.log)
+        end = None
+        nxt, k = self.clock(), 0
+        while end is None or self.clock() < end:
+            self.pump()
+            now = self.clock()
+            if now >= nxt:
+                self.sync_seq = (self.sync_seq + 1) & 0xFFFF
+                self.syncs_sent.add(self.sync_seq)
+                late = o.late_sync_us if k >= on_time and (k - on_time) % 2 else 0
+                if k == on_time:
+                    mark, end = len(self.log), now + seconds
+                self.send(MSG["TIME_SYNC"](self.master_us(now) - late, self.sync_seq))
+                nxt, k = now + o.late_sync_period_s, k + 1
+            self.sleep(0.001)
+        return mark
+
+    def _grid_rule(self, n: int, rate_hz: float) -> None:
+        o = self.o
+        mark = self._late_sync_phase(o.grid_observe_s)
+        ts = np.array([rx.msg.t_us for rx in self.log[mark:] if rx.src == n and rx.msg.NAME == "MAG_SAMPLE"],
+                      dtype=np.int64)
+        if len(ts) < 3 or rate_hz <= 0:
+            self.add("mag_grid", FAIL, f"{len(ts)} MAG_SAMPLE while the broadcasts came late", n)
+            return
+        P = 1e6 / rate_hz
+        d = np.diff(ts).astype(float)
+        k = np.maximum(np.floor(d / P + 0.5), 1.0)
+        dev = np.abs(d - k * P)[k <= 64]
+        worst = float(dev.max()) if dev.size else 0.0
+        detail = (f"{len(ts)} samples with every other broadcast {o.late_sync_us} us late: worst interval "
+                  f"{worst:.0f} us off the {P:.1f} us grid (tolerance {o.grid_tolerance_us} us, margin "
+                  f"{o.grid_tolerance_us - worst:.0f} us)")
+        if worst > o.grid_tolerance_us:
+            detail += "; the node steps its clock correction: slew it (docs/protocol.md, 'slew, do not step')"
+        self.add("mag_grid", FAIL if worst > o.grid_tolerance_us else PASS, detail, n)
+
+    # ------------------------------------------------------------ bench mode
+    def _bench_rules(self, nodes: dict) -> None:
+        drivers = [n for n in sorted(nodes) if nodes[n] == ROLE_COIL_DRIVER]
+        sensors = [n for n in sorted(nodes) if nodes[n] == ROLE_SENSOR]
+        if not drivers or not sensors:
+            self.add("bench_pulse", FAIL, "bench mode needs a coil driver and a sensor on the link", None)
+            return
+        for s in sensors:
+            self._bench_pulse_rule(drivers[0], s)
+
+    def _bench_samples(self, s: int, lo: int, hi: int) -> tuple[np.ndarray, np.ndarray]:
+        rx = [r.msg for r in self.log if r.src == s and r.msg.NAME == "MAG_SAMPLE" and lo <= r.msg.t_us <= hi]
+        t = np.array([m.t_us for m in rx], dtype=np.int64)
+        B = np.array([[m.x, m.y, m.z] for m in rx], dtype=float).reshape(-1, 3)
+        flip = np.array([m.flip & 1 for m in rx], dtype=np.int64)
+        return t, B, flip
+
+    def _bench_pulse_rule(self, d: int, s: int) -> None:
+        o = self.o
+        rate = o.mag_rate_hz or 120.0
+        P = 1e6 / rate
+        dur = int(o.bench_pulse_ms * 1000)
+        problems, rise, fall, amps = [], [-1e9, 1e9], [-1e9, 1e9], []
+        for i in range(o.bench_pulses):
+            # the start dithered against the sensor's sample grid by i / bench_pulses of a period,
+            # so that the samples bracket the edges to P / bench_pulses over the pulses
+            grid = [r.msg.t_us for r in self.log[-400:] if r.src == s and r.msg.NAME == "MAG_SAMPLE"]
+            earliest = self.master_us() + int(o.lead_ms * 1000)
+            if grid:
+                k = int(np.ceil((earliest - grid[-1]) / P))
+                start = grid[-1] + int(round((k + i / o.bench_pulses) * P))
+            else:
+                start = earliest
+            self.run_for(0.0)
+            cmd, mark, _ = self._pulse(d, current_ma=o.bench_current_ma, duration_us=dur,
+                                       lead_us=start - self.master_us(), coil=i % o.bench_coils)
+            st = self._await_status(d, cmd, mark, True)
+            self.run_for(0.05)                         # the trailing quiet samples
+            if st is None or st.msg.faults:
+                problems.append(f"pulse {i}: " + ("no COIL_STATUS" if st is None else
+                                                  f"COIL_STATUS faults {st.msg.faults:#04x}"))
+                continue
+            t0, t1 = cmd.start_us, cmd.start_us + dur
+            t, B, flip = self._bench_samples(s, t0 - 35_000, t1 + 38_000)
+            pre = (t >= t0 - 35_000) & (t <= t0 - 2_000)
+            post = t >= t1 + o.fall_us
+            # the set/reset offset changes sign with the flip bit: one quiet baseline per flip state
+            base = np.zeros_like(B)
+            for f in (0, 1):
+                q = (pre | post) & (flip == f)
+                base[flip == f] = B[q].mean(axis=0) if q.any() else np.nan
+            keep = ~np.isnan(base[:, 0])
+            t, B, base, pre, post = t[keep], B[keep], base[keep], pre[keep], post[keep]
+            win = (t >= t0 + o.settle_us) & (t <= t1 - o.guard_us)
+            if pre.sum() < 2 or win.sum() < 2 or post.sum() < 1:
+                problems.append(f"pulse {i}: {int(pre.sum())} quiet and {int(win.sum())} in-window samples")
+                continue
+            dB = np.linalg.norm(B - base, axis=1)
+            A = float(np.median(dB[win]))
+            noise = float(np.std(dB[pre])) + 1.0
+            amps.append(A)
+            if A < 10.0 * noise:
+                problems.append(f"pulse {i}: no field in the window ({A:.0f} LSB against {noise:.0f} LSB of noise)")
+                continue
+            if np.any(np.abs(dB[win] - A) > 0.1 * A):
+                problems.append(f"pulse {i}: the field is not flat over the window (the node applies it late "
+                                f"or early?)")
+            if np.any(dB[post] > 0.05 * A) or np.any(dB[pre] > 0.05 * A):
+                problems.append(f"pulse {i}: field in the quiet samples around the pulse")
+            on = dB > 0.5 * A
+            rel = t - t0
+            # the rise edge lies between the last sample off and the first sample on (relative to the start)
+            first_on = int(np.argmax(on))
+            if on[first_on] and first_on > 0:
+                rise = [max(rise[0], rel[first_on - 1]), min(rise[1], rel[first_on])]
+            last_on = len(on) - 1 - int(np.argmax(on[::-1]))
+            if last_on + 1 < len(on):
+                fall = [max(fall[0], rel[last_on] - dur), min(fall[1], rel[last_on + 1] - dur)]
+        if problems:
+            self.add("bench_pulse", FAIL, "; ".join(problems[:3]), s)
+            return
+        detail = (f"{o.bench_pulses} pulses of {o.bench_current_ma * CURRENT_LSB_A:g} A for {dur} us on node {d}: "
+                  f"field {np.median(amps):.0f} LSB; rise edge at {rise[0]:+.0f}..{rise[1]:+.0f} us of the commanded "
+                  f"start (margin {o.settle_us - rise[1]:.0f} us to the window), fall edge at {fall[0]:+.0f}.."
+                  f"{fall[1]:+.0f} us of the commanded end (margin {fall[0] + o.guard_us:.0f} us)")
+        self.add("bench_pulse", PASS, detail, s)
 
     # ------------------------------------------------------------ garbage
     def _garbage_serial(self) -> bytes:

@@ -36,6 +36,14 @@ def add_arguments(p) -> None:
                    help="pulses are scheduled this far ahead")
     p.add_argument("--sync-period", type=A.real(0.0, 3600.0, lo_open=True), default=0.5,
                    help="TIME_SYNC broadcast period, s (default 0.5)")
+    p.add_argument("--bench", action="store_true",
+                   help="bench mode: the driver and the sensor share a real coil; pulses of the firmware's length "
+                        "and current must show in the sensor's samples inside the firmware's window "
+                        "(rule bench_pulse, with the edges and their margins in microseconds)")
+    p.add_argument("--bench-current-ma", type=A.integer(1, 30_000), default=1500,
+                   help="bench mode: pulse current, mA (default 1500, the firmware's)")
+    p.add_argument("--bench-pulse-ms", type=A.real(5.0, 10_000.0), default=60.0,
+                   help="bench mode: pulse length, ms (default 60, the firmware's)")
     p.add_argument("--seed", type=A.seed, default=1)
     p.add_argument("--json", type=A.output_path, metavar="PATH", help="also write the report as JSON")
 
@@ -63,7 +71,8 @@ def run(args) -> int:
     opts = ConformOptions(src=args.src, node=args.node, observe_s=args.observe, discover_s=args.discover,
                           lead_ms=args.lead_ms, sync_period_s=args.sync_period,
                           mag_rate_hz=args.mag_rate or None, seed=args.seed, link_id=args.link_id,
-                          key=key_from_text(args.key) if args.key else None)
+                          key=key_from_text(args.key) if args.key else None, bench=args.bench,
+                          bench_current_ma=args.bench_current_ma, bench_pulse_ms=args.bench_pulse_ms)
     try:
         link, what = open_link(args)
     except Exception as exc:   # OSError, ValueError; python-can and pyserial initialisation errors

@@ -27,11 +27,11 @@ class EmulatorThread:
     """An Emulator (coil driver + one sensor) stepping on the wall clock."""
 
     def __init__(self, link, verifier=None, limits: DriverLimits | None = None, rate_hz: float = 120.0,
-                 step_s: float = 0.0005, seed: int = 3):
+                 step_s: float = 0.0005, seed: int = 3, sensor_cls=SensorNode):
         self.world = make_world()
         self.link = link
         self.driver = CoilDriverNode(NODE_COIL_DRIVER, self.world, limits=limits, seed=seed)
-        self.sensor = SensorNode(NODE_SENSOR_BASE, self.world, rate_hz=rate_hz, seed=seed + 1)
+        self.sensor = sensor_cls(NODE_SENSOR_BASE, self.world, rate_hz=rate_hz, seed=seed + 1)
         self.recorder = Recorder(self.world)
         self.emulator = Emulator(self.world, link, self.driver, [self.sensor], self.recorder, verifier=verifier)
         self.step_s = step_s
@@ -152,7 +152,7 @@ WALL_LEAD_MS = 200.0
 
 #: fast settings for conformance runs in tests (a full run takes 1-2 s)
 FAST = dict(observe_s=0.4, discover_s=0.4, lead_ms=50.0, pulse_ms=10.0, silence_s=0.12, optional_wait_s=0.1,
-            answer_timeout_s=0.3, sync_period_s=1.0)
+            answer_timeout_s=0.3, sync_period_s=1.0, grid_observe_s=0.6)
 
 
 @pytest.fixture

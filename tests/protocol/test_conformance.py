@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from coiltrack.hil.nodes import DriverLimits
+from coiltrack.hil.nodes import DriverLimits, SensorNode
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder, SignatureVerifier
 from coiltrack.protocol.can import CanLink, open_bus, unique_channel, virtual_link_pair
 from coiltrack.protocol.conformance import FAIL, PASS, SKIP, Conformance, ConformOptions, run_conformance
@@ -199,3 +199,105 @@ def test_conform_against_emulator_process():
     finally:
         emu.kill()
         emu.wait(timeout=5)
+
+
+class _SteppingSync:
+    """A node's time sync that takes each broadcast's offset at once (no envelope, no slewing): what
+    a plausible first implementation does. Same interface as hil.clock.NodeSync."""
+
+    def __init__(self):
+        self.off = 0
+        self.synced = False
+
+    def reset(self):
+        self.synced = False
+
+    def update(self, local_rx_us, master_us):
+        self.off = int(master_us) - int(local_rx_us)
+        self.synced = True
+        return False
+
+    def to_master(self, local_us):
+        return int(local_us) + self.off
+
+    def to_local(self, master_us):
+        return int(master_us) - self.off
+
+    offset_us = property(lambda self: -self.off)
+    drift_ppb = property(lambda self: 0)
+
+
+class _SteppingSensor(SensorNode):
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.sync = _SteppingSync()
+
+
+class _LateWorld:
+    """The world as a sensor sees it that applies the coil field 70 ms late (after a 60 ms pulse has
+    ended): every field is the one of 70 ms before."""
+
+    def __init__(self, world, lag_us=70_000):
+        self.world, self.lag = world, lag_us
+
+    def field_sensor_frame(self, t):
+        return self.world.field_sensor_frame(t - self.lag)
+
+    def precompute(self, ts):
+        return self.world.precompute([t - self.lag for t in ts])
+
+    def __getattr__(self, name):
+        return getattr(self.world, name)
+
+
+class _LateFieldSensor(SensorNode):
+    def __init__(self, node_id, world, **kw):
+        super().__init__(node_id, _LateWorld(world), **kw)
+
+
+BENCH = dict(bench=True, bench_pulses=4)
+
+
+def test_stepping_clock_correction_fails_mag_grid(pipes, lockstep, fast):
+    """A sensor whose clock correction steps at every broadcast passes every other rule (its stamps
+    increase, at the right rate), yet with the firmware its stamps jump off the sample grid whenever a
+    broadcast arrives late: mag_grid fails it, with the interval it was off. The reference node (which
+    slews) passes with its margin. Catches a grid rule that ignores late broadcasts or a tolerance
+    looser than the firmware's 400 us."""
+    tester, node_side = pipes()
+    rep = run_lockstep(lockstep, tester, node_side, ConformOptions(node=16, **fast), "in-memory serial",
+                       sensor_cls=_SteppingSensor)
+    r = rep.result("mag_grid", 16)
+    assert r.status == FAIL and "slew" in r.detail, r.detail
+    assert rep.result("mag_stream", 16).status == PASS and rep.result("mag_timestamps", 16).status == PASS
+    tester, node_side = pipes()
+    rep = run_lockstep(lockstep, tester, node_side, ConformOptions(node=16, **fast), "in-memory serial")
+    r = rep.result("mag_grid", 16)
+    assert r.status == PASS and "margin" in r.detail, r.detail
+
+
+def test_bench_mode_pulse_seen_in_the_window(pipes, lockstep, fast):
+    """Bench mode with the reference driver and sensor on one coil: the pulse is seen in every
+    window sample and nowhere else; the edges are bracketed to a quarter of the 8.3 ms sample period
+    and lie within the coil's L/R rise (2.3 ms) of the command. Catches edges measured against the
+    wrong reference (a pulse-length offset) or a bracket that never narrows."""
+    tester, node_side = pipes()
+    rep = run_lockstep(lockstep, tester, node_side, ConformOptions(**BENCH, **fast), "in-memory serial")
+    r = rep.result("bench_pulse", 16)
+    assert r.status == PASS, r.detail
+    import re
+    rise = [float(v) for v in re.search(r"rise edge at ([+-]\d+)\.\.([+-]\d+) us", r.detail).groups()]
+    fall = [float(v) for v in re.search(r"fall edge at ([+-]\d+)\.\.([+-]\d+) us", r.detail).groups()]
+    assert -8_400 / 4 - 1 <= rise[0] <= rise[1] <= 2_300 + 8_400 / 4 and rise[1] - rise[0] <= 8_400 / 4 + 1
+    assert -8_400 / 4 - 1 <= fall[0] <= fall[1] <= 2_300 + 8_400 / 4 and fall[1] - fall[0] <= 8_400 / 4 + 1
+
+
+def test_bench_mode_fails_a_sensor_that_applies_the_field_late(pipes, lockstep, fast):
+    """A sensor that shows each pulse's field only after the pulse ended passed every rule of the
+    plain suite (the firmware's poses were then a metre off): bench mode fails it."""
+    tester, node_side = pipes()
+    rep = run_lockstep(lockstep, tester, node_side, ConformOptions(**BENCH, **fast), "in-memory serial",
+                       sensor_cls=_LateFieldSensor)
+    assert rep.result("mag_stream", 16).status == PASS
+    r = rep.result("bench_pulse", 16)
+    assert r.status == FAIL and ("no field in the window" in r.detail or "quiet samples" in r.detail), r.detail
