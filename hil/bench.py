@@ -60,7 +60,7 @@ def random_clock(rng: np.random.Generator, drift_ppm_max: float) -> NodeClock:
 def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: BenchFaults | LinkFaults | None = None,
              seed_driver: int = 0, seed_sensor: int = 0, seed_faults: int = 0, seed_clocks: int | None = None,
              clock_drift_ppm: float = 50.0, sensor_ids=(NODE_SENSOR_BASE,), driver_limits=None,
-             verifier=None) -> Bench:
+             verifier=None, sensor_worlds=None) -> Bench:
     """Build the nodes of one run and apply the fault switches.
 
     Node clocks get seeded offsets and drifts (``clock_drift_ppm`` bound;
@@ -70,7 +70,10 @@ def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: B
     each pulse (open circuit, short, sag). ``verifier``: checks the signatures
     of what the firmware sends (a :class:`coiltrack.protocol.SignatureVerifier`
     that requires signed commands: an unsigned, forged or replayed command is
-    dropped and counted, never executed).
+    dropped and counted, never executed). ``sensor_worlds``: per sensor id, the
+    :meth:`hil.world.World.view` that sensor moves in (default: all in ``world``).
+    A sensor's clock and noise are drawn by its node id (``id - 16``-th draw), so a
+    sensor run alone (``sensor_ids=(id,)``) sees what it sees among others.
     """
     if faults is None:
         faults = BenchFaults()
@@ -78,7 +81,9 @@ def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: B
         faults = BenchFaults(link=faults)
     rng = np.random.default_rng(seed_faults if seed_clocks is None else seed_clocks)
     clocks = {"driver": random_clock(rng, clock_drift_ppm)}
-    sensor_clocks = [random_clock(rng, clock_drift_ppm) for _ in sensor_ids]
+    slot = [sid - NODE_SENSOR_BASE if 0 <= sid - NODE_SENSOR_BASE < 256 else i for i, sid in enumerate(sensor_ids)]
+    drawn = [random_clock(rng, clock_drift_ppm) for _ in range(max(slot) + 1)]
+    sensor_clocks = [drawn[j] for j in slot]
     clocks["sensor"] = sensor_clocks[0]
     for name, ppm in faults.drift_ppm.items():
         clocks[name].drift_ppm = float(ppm)
@@ -95,12 +100,15 @@ def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: B
     driver = CoilDriverNode(NODE_COIL_DRIVER, world, limits=driver_limits, seed=seed_driver,
                             clock=clocks["driver"], faults=faults)
     sensors = []
+    worlds = sensor_worlds or {}
     for i, sid in enumerate(sensor_ids):
-        sensors.append(SensorNode(sid, world, mag=MagSpec(**vars(mag)), imu=imu, seed=seed_sensor + 1009 * i,
-                                  clock=sensor_clocks[i], faults=faults))
+        sensors.append(SensorNode(sid, worlds.get(sid, world), mag=MagSpec(**vars(mag)), imu=imu,
+                                  seed=seed_sensor + 1009 * slot[i], clock=sensor_clocks[i], faults=faults))
     for f in faults.of("node_off"):
         (driver if f.target == "driver" else sensors[0]).add_off_window(f.t_on_us, f.t_off_us)
     recorder = Recorder(world)
+    for sid, w in worlds.items():
+        recorder.trajectories[sid] = w.trajectory
     emulator = Emulator(world, lk, driver, sensors, recorder, verifier=verifier)
     return Bench(world, lk, driver, sensors, recorder, emulator, faults)
 

@@ -669,6 +669,7 @@ class Recorder:
         else:
             self.master_to_true = master_to_true or (lambda t: int(t))
         self.poses: list[dict] = []
+        self.trajectories: dict = {}          # per sensor node, when sensors move apart (World.view)
         self.windows: list = []
         self.events: list = []
         self.heartbeats: list = []
@@ -680,7 +681,8 @@ class Recorder:
     def on_message(self, msg, now_us: int) -> None:
         name = msg.NAME
         if name == "POSE":
-            p, R = self.world.trajectory.pose(self.master_to_true(msg.t_us))
+            traj = self.trajectories.get(msg.node, self.world.trajectory)
+            p, R = traj.pose(self.master_to_true(msg.t_us))
             # the windows a magnetic pose was made of (fused poses at the IMU rate use none)
             wins = [] if msg.status & POSE_FUSED else self._open_windows.pop(msg.node, [])
             self.poses.append({"msg": msg, "rx_us": now_us, "true_p": np.array(p), "true_R": np.array(R),

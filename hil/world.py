@@ -29,6 +29,7 @@ object moves little during an eddy time constant).
 """
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -222,6 +223,15 @@ class World:
         self.supply_v = supply_v
         # per-time cache of (p, R, unit fields), filled in vectorised chunks by the sensor nodes
         self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def view(self, trajectory) -> "World":
+        """The same world seen by another sensor moving on ``trajectory``: source, coil currents,
+        earth field and objects are shared (the driver's pulses, metal brought in, appear in every
+        view); only the sensor's motion and the per-time cache are its own."""
+        v = copy.copy(self)
+        v.trajectory = trajectory
+        v._cache = {}
+        return v
 
     # kept for callers of the first version
     @property

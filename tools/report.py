@@ -103,6 +103,13 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         ang_err.append(_rot_angle(R, rp["true_R"]))
         crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], currents, sigma_amp))
         rp["crlb_m"] = crlbs[-1]            # per pose, for the pose table (tools.posecsv)
+    per_node: dict[int, list] = {}
+    for rp in rec.poses:
+        m = rp["msg"]
+        if m.status & POSE_VALID and not m.status & POSE_FUSED:
+            p = np.array([m.px, m.py, m.pz])
+            R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
+            per_node.setdefault(m.node, []).append((float(np.linalg.norm(p - rp["true_p"])), _rot_angle(R, rp["true_R"])))
     pe, ae, cb = np.array(pos_err), np.array(ang_err), np.array(crlbs)
     rms = lambda a: float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")  # noqa: E731
     emu_bad = bench.emulator.decoder.frames_bad
@@ -140,6 +147,14 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "coil_pulses": len(bench.driver.executed),
         "mag_samples": bench.sensor.samples,
     }
+    if len(cfg.sensor_ids) > 1:
+        # every sensor's own figures (magnetic poses), in node order
+        rep["sensors"] = []
+        for node in cfg.sensor_ids:
+            e = np.array(per_node.get(node, []), dtype=float).reshape(-1, 2)
+            rep["sensors"].append({"node": int(node), "poses": int(e.shape[0]),
+                                   "position_rms_mm": round(rms(e[:, 0]) * 1e3, 3),
+                                   "orientation_rms_deg": round(math.degrees(rms(e[:, 1])), 3)})
     rep.update(energy(bench.driver.executed, world, duration_s))
     rep.update(truth)
     rep["faults"] = fault_summary(bench, fw_status)
@@ -235,6 +250,9 @@ def format_table(rep: dict) -> str:
         rows.append(("faults injected", ", ".join(fl["injected"]["switches"]) or "-"))
         ev = fl["reported"]["events"]
         rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
+    for sn in rep.get("sensors", []):
+        rows.append((f"  sensor {sn['node']}", f"{sn['position_rms_mm']:.1f} mm, {sn['orientation_rms_deg']:.2f} deg, "
+                                              f"{sn['poses']} poses"))
     sg = rep.get("signing")
     if sg:
         rows.append(("signed commands", f'{sg["firmware_signed"]} sent, {sg["accepted"]} accepted; refused '

@@ -38,6 +38,8 @@ class BenchSetup:
         self.seed = seed
         self.duration_s = duration_s
         self.world = scenario.build_world(s_world, duration_s)
+        sids = tuple((cfg or scenario.firmware_config()).sensor_ids)
+        views = scenario.sensor_worlds(self.world, s_world, duration_s, sids) if scenario.sensor_worlds else None
         spec = scenario.sensor
         key = (cfg or scenario.firmware_config()).signing_key_bytes()
         # with a key the nodes require signed commands (an unsigned or forged one is dropped, counted)
@@ -48,8 +50,7 @@ class BenchSetup:
         self.bench = assemble(self.world, link, mag=mag, imu=imu, faults=faults, seed_driver=s_driver,
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
-                              sensor_ids=tuple((cfg or scenario.firmware_config()).sensor_ids),
-                              verifier=self.verifier)
+                              sensor_ids=sids, verifier=self.verifier, sensor_worlds=views)
         src_id = getattr(spec, "source_imu_id", 0)
         if src_id:
             # an IMU + magnetometer module on the source (thesis sec 6.2.3), a node of its own

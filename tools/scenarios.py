@@ -47,6 +47,8 @@ class Scenario:
     fixed_config: Callable[[], FirmwareConfig] | None = None
     #: one line for ``coiltrack bench --help`` (default: the description)
     summary: str = ""
+    #: several sensors moving apart: ``(world, seed, duration_s, sensor_ids) -> {id: World.view}``
+    sensor_worlds: Callable | None = None
 
 
 def _roetenberg_world(seed: int, duration_s: float) -> World:
@@ -365,3 +367,7 @@ def get(name: str) -> Scenario:
         return SCENARIOS[name]
     except KeyError:
         raise KeyError(f"unknown scenario '{name}'; known: {', '.join(sorted(SCENARIOS))}") from None
+
+
+# scenario families in modules of their own (each registers on import)
+from . import scenarios_multi  # noqa: E402,F401
