@@ -195,8 +195,10 @@ class NodeSync:
         self.late_scale = float(late_scale)
         self._cands: list[tuple[int, int, int]] = []
         self._stale: list[tuple[int, int]] = []
+        self._seen = 0         # broadcasts since (re)acquisition
 
     def reset(self) -> None:
+        self._seen = 0
         self._pts.clear()
         self._cands.clear()
         self._stale.clear()
@@ -229,6 +231,7 @@ class NodeSync:
         """
         local_rx_us, master_us = int(local_rx_us), int(master_us)
         thr = self.step_threshold_us
+        self._seen += 1
         if self.synced:
             if self._pts and master_us <= self._pts[-1][1]:
                 return self._on_stale(local_rx_us, master_us)
@@ -265,7 +268,9 @@ class NodeSync:
                 self.rejected += 1
                 return False
         self._cands.clear()
-        first = not self.synced or len(self._pts) < self.acquire
+        # acquisition is the first `acquire` broadcasts answered (accepted or not), as the
+        # firmware counts them from the replies: steps are free there, slewed after
+        first = not self.synced or self._seen <= self.acquire
         before = self.to_master(local_rx_us) if not first else 0
         self._pts.append((local_rx_us, master_us))
         self.updates += 1
@@ -290,6 +295,7 @@ class NodeSync:
         return True
 
     def _restart(self, pts) -> None:
+        self._seen = self.acquire + 1
         self._pts.clear()
         self._cands.clear()
         for p in pts:
