@@ -166,6 +166,9 @@ class FirmwareConfig:
     fusion_replay_capacity: int = 128       # IMU samples kept to replay after a delayed magnetic update
     fusion_history_capacity: int = 128      # inertial poses kept for motion compensation
     pose_output_capacity: int = 16          # fused poses waiting to be sent
+    # --- a moving source (body-worn; coiltrack.firmware.track.burst_fusion.SourceInertial)
+    source_acceleration: bool = True        # eq 6.8 with the source's measured acceleration (false: the
+                                            # source taken as unaccelerated, Phi f_source = -g: for comparison)
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -260,6 +263,8 @@ class FirmwareConfig:
              f"must hold a cycle of IMU samples (>= {int(math.ceil(self.cycle_us / period_us))})")
         need("fusion_history_capacity", self.fusion_history_capacity * period_us >= self.cycle_us,
              f"must hold a cycle of inertial poses (>= {int(math.ceil(self.cycle_us / period_us))})")
+        need("source_acceleration", isinstance(self.source_acceleration, bool),
+             f"must be true or false, got {self.source_acceleration!r}")
 
     def _validate_actuation(self, need) -> None:
         """Keys of the adaptive mode and the inertial model (``coiltrack.firmware.track.single_coil_tracker``)."""
@@ -344,6 +349,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "fusion_reinit_after", "xi_sigma_floor", "xi_heading_sigma_floor", "xi_var_scale", "mag_var_scale",
                "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
                "psi_sigma", "meas_sigma"),
+    "body": ("source_acceleration",),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -139,6 +139,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "windows_flagged": fw_status.get("windows_flagged", 0),
         "coil_pulses": len(bench.driver.executed),
         "mag_samples": bench.sensor.samples,
+        "source_moving": bool(getattr(world, "source_moving", False)),
     }
     rep.update(energy(bench.driver.executed, world, duration_s))
     rep.update(truth)
