@@ -14,7 +14,8 @@ Every row has three scenarios on the same motion and seed:
   (``body.source_acceleration = false``): the difference is eq 6.8's;
 * ``...-nooffset``: the source's accelerometer without offset or random walk
   (sec 6.5: "the acceleration of the source is now related to orientation
-  errors of the source Phi"): the difference is what that offset costs.
+  errors of the source Phi"): the difference is what that offset costs;
+* ``...-nomc``: without the motion compensation within the burst (sec 6.5).
 """
 from __future__ import annotations
 
@@ -34,6 +35,15 @@ BODY_ROWS = (
     ("arm-walking", "roetenberg-walking-arm", "Arm, walking", (11.7, 7.4, 7.9, 3.1)),
     ("leg-walking", "roetenberg-walking-leg", "Leg, walking", (15.0, 8.7, 8.6, 3.2)),
 )
+
+#: the ch. 2 filters' motion acceleration (``orientation.acc_motion_sigma``, m/s^2): segment
+#: accelerations on the body are 0.3-2 m/s^2, the bench's 0.05 m/s^2 makes the inclination updates
+#: of both filters (sensor Xi, source Phi) reject the motion and drift
+BODY_ACC_MOTION_SIGMA = 0.5
+#: the error of ``Phi f_source`` in eq 6.8 (``body.source_acc_sigma``, m/s^2 per sample): a source
+#: orientation error of about 1 deg times g, held over a 0.6 s cycle, as white noise at 120 Hz
+#: (0.17 m/s^2 x sqrt(72))
+BODY_SOURCE_ACC_SIGMA = 1.5
 
 #: the sensor's half-space seen from the source (the dipole ambiguity, ``source.hemisphere``):
 #: above the source for the back and arm sites, below it for the thigh
@@ -56,8 +66,10 @@ def _body_config(movement: str, **kw):
         from coiltrack.hil.body import MOVEMENTS
         from coiltrack.hil.imu import NODE_SOURCE_IMU
 
-        return FirmwareConfig(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU,
-                              hemisphere=_HEMISPHERE[MOVEMENTS[movement]], **kw)
+        base = dict(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU, hemisphere=_HEMISPHERE[MOVEMENTS[movement]],
+                    acc_motion_sigma=BODY_ACC_MOTION_SIGMA, source_acc_sigma=BODY_SOURCE_ACC_SIGMA)
+        base.update(kw)
+        return FirmwareConfig(**base)
     return make
 
 
@@ -77,6 +89,7 @@ _VARIANTS = (
     ("", "fused with the source module (eq 6.8)", {}, True),
     ("-noanet", "the source's acceleration left out of eq 6.8", {"source_acceleration": False}, True),
     ("-nooffset", "the source's accelerometer without offset (sec 6.5)", {}, False),
+    ("-nomc", "without the motion compensation within the burst (sec 6.5)", {"motion_compensation": False}, True),
 )
 
 for _movement, _name, _label, _fig in BODY_ROWS:
