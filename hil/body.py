@@ -256,7 +256,9 @@ def movement(name: str, seed: int = 0) -> BodyMotion:
       abduction wobble and humeral rotation of a few degrees.
 
     Walking (``*-walking``): stride frequency 0.9 Hz (cadence 108 steps/min),
-    1.25 m/s forward; pelvis bounce 2.2 cm at 2 f, sway 2 cm at f, rotation
+    1.25 m/s forward; pelvis bounce 2.2 cm peak to peak at 2 f (half the 4-5 cm
+    cited above: a conservative choice, the accelerations scale with it), sway
+    +-2 cm at f, rotation
     +-4 deg and obliquity +-4 deg at f, tilt +-2 deg at 2 f; trunk
     counter-rotation +-6 deg against the pelvis at f; hip flexion 10 +- 20 deg
     (2nd harmonic 3 deg), knee 25 +- 25 deg (2nd harmonic 10 deg); right arm
