@@ -170,6 +170,12 @@ class FirmwareConfig:
     # node's configuration (the schema's signable messages; coiltrack.protocol.signing)
     signing_key: str = ""                   # hex (64 digits) or a passphrase (SHA-256); "": unsigned
     signing_link_id: int = 1                # this sender's signing link (one byte in every signature)
+    # --- a moving source (body-worn; coiltrack.firmware.track.burst_fusion.SourceInertial)
+    source_acceleration: bool = True        # eq 6.8 with the source's measured acceleration (false: the
+                                            # source taken as unaccelerated, Phi f_source = -g: for comparison)
+    source_acc_sigma: float = 0.0           # m/s^2 per IMU sample: the error of Phi f_source in a_net (eq 6.8)
+                                            # as white noise on the velocity; it covers the source orientation's
+                                            # error times g on a moving source (0: the IMU's imu_acc_sigma)
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -276,6 +282,11 @@ class FirmwareConfig:
              f"must hold a cycle of IMU samples (>= {int(math.ceil(self.cycle_us / period_us))})")
         need("fusion_history_capacity", self.fusion_history_capacity * period_us >= self.cycle_us,
              f"must hold a cycle of inertial poses (>= {int(math.ceil(self.cycle_us / period_us))})")
+        need("source_acceleration", isinstance(self.source_acceleration, bool),
+             f"must be true or false, got {self.source_acceleration!r}")
+        need("source_acc_sigma", isinstance(self.source_acc_sigma, (int, float))
+             and not isinstance(self.source_acc_sigma, bool) and math.isfinite(self.source_acc_sigma)
+             and self.source_acc_sigma >= 0, f"must be a non-negative number, got {self.source_acc_sigma!r}")
 
     def _validate_actuation(self, need) -> None:
         """Keys of the adaptive mode and the inertial model (``coiltrack.firmware.track.single_coil_tracker``)."""
@@ -361,6 +372,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
                "psi_sigma", "meas_sigma"),
     "signing": ("signing_key", "signing_link_id"),
+    "body": ("source_acceleration", "source_acc_sigma"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

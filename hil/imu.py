@@ -11,8 +11,13 @@ residual offset ``s o`` of :class:`hil.nodes.MagSpec`). The
 firmware uses them for the source orientation ``Phi`` and the source
 acceleration of ``a_net = a_sensor - a_source`` (eq 6.8).
 
-The bench's source is fixed in the world and level (``hil.world``), so the
-module measures gravity, the earth field and its own noise and offsets; the
+The bench's source is fixed in the world and level (``hil.world``) unless
+the world gives it a trajectory (``World.source_trajectory``, the body-worn
+scenarios, ``hil.body``): fixed, the module measures gravity, the earth field
+and its own noise and offsets; moving, it measures the specific force
+``R_s^T (a - g)`` at its own position on the source and the source's rate
+(``World.source_module_kinematics``) and the earth field turned into the
+source frame (``World.earth_source_frame``); the
 sensor models are those of :class:`hil.nodes.ImuSpec` and
 :class:`hil.nodes.MagSpec` (seeded white noise, seeded offsets with random
 walk, 16-bit quantisation), and the node takes part in time synchronisation
@@ -108,9 +113,16 @@ class SourceImuNode(Node):
         dt = self._imu_period * 1e-6
         self.acc_bias += self.rng.normal(0.0, imu.acc_bias_rw * math.sqrt(dt), 3)
         self.gyro_bias += self.rng.normal(0.0, imu.gyro_bias_rw * math.sqrt(dt), 3)
-        # fixed, level source: specific force -g = (0, 0, +g), no rotation
-        f = np.array([0.0, 0.0, imu.gravity]) + self.acc_bias + self.rng.normal(0.0, imu.acc_sigma, 3)
-        w = self.gyro_bias + self.rng.normal(0.0, imu.gyro_sigma, 3)
+        if self.world.source_moving:
+            # the module moves with the source: specific force R_s^T (a - g), rate in the source frame
+            a, Rs, wb = self.world.source_module_kinematics(self.position, t)
+            f = Rs[0].T @ (a[0] - np.array([0.0, 0.0, -imu.gravity])) + self.acc_bias \
+                + self.rng.normal(0.0, imu.acc_sigma, 3)
+            w = wb[0] + self.gyro_bias + self.rng.normal(0.0, imu.gyro_sigma, 3)
+        else:
+            # fixed, level source: specific force -g = (0, 0, +g), no rotation
+            f = np.array([0.0, 0.0, imu.gravity]) + self.acc_bias + self.rng.normal(0.0, imu.acc_sigma, 3)
+            w = self.gyro_bias + self.rng.normal(0.0, imu.gyro_sigma, 3)
         self.imu_samples += 1
         send(self, ImuSample(self.node_id, self.master(t), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
                              _i16(f[2] / ACC_LSB), _i16(w[0] / GYR_LSB), _i16(w[1] / GYR_LSB),
@@ -124,7 +136,7 @@ class SourceImuNode(Node):
         if m.flip_every and self._mag_k % m.flip_every == 0:
             self.flip_state = -self.flip_state
         I = self.world.coil_currents(t)
-        B = (self.world.earth + I @ self._unit + self.flip_state * self.mag_offset
+        B = (self.world.earth_source_frame(t) + I @ self._unit + self.flip_state * self.mag_offset
              + self.rng.normal(0.0, m.noise_t, 3))
         sat = bool(np.any(np.abs(B) > m.range_t))
         if sat:

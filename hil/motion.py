@@ -27,9 +27,11 @@ keeps ``x > 0.05 m`` except the paper's own runs, which are reproduced as
 published: the helix (:class:`Helix`) and the unbounded
 :meth:`BrownianMotion.gietler` (documented there).
 
-For the body-worn scenarios only the *relative* pose of sensor and source is
-modelled; the source is treated as fixed in the world (the thesis fuses the
-relative acceleration ``a_net = a_sensor - a_source``, thesis sec 6.2.3).
+The trajectories here give only the *relative* pose of sensor and source;
+the body-worn scenarios move the source as well (``hil.body``: a kinematic
+body model whose pelvis carries the source, ``World.source_trajectory``), so
+that the IMUs measure world-frame motion and the fusion needs the relative
+acceleration ``a_net = a_sensor - a_source`` (thesis sec 6.2.3, eq 6.8).
 
 Rotation helpers (no scipy at run time) are at the top of this module:
 rotation vector <-> matrix, quaternions (scalar first, ``[w, x, y, z]``),

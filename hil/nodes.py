@@ -621,7 +621,7 @@ class SensorNode(Node):
         kin = self._imu_cache.pop(t, None)
         if kin is None:
             ts = [self._imu_t(j) for j in range(k, k + self._CHUNK)]
-            K = self.world.trajectory.kinematics(np.asarray(ts, dtype=np.int64))
+            K = self.world.sensor_kinematics(np.asarray(ts, dtype=np.int64))   # world frame
             self._imu_cache = {tj: (K.acceleration[i], K.R[i], K.angular_velocity[i]) for i, tj in enumerate(ts)}
             kin = self._imu_cache.pop(t)
         a, R, w = kin

@@ -3,8 +3,14 @@ conductors and ferromagnetic objects, and the sensor's motion. Fields come
 from magpylib through ``hil.physics``; nothing here borrows the firmware's
 field code.
 
-Frames: the source frame is the world frame (the source is fixed); a
-trajectory gives the sensor pose ``(p, R)`` with ``R`` mapping sensor-frame
+Frames: the source frame is the world frame when the source is fixed (the
+default); a source that moves (``source_trajectory``, a body model, ``hil.body``)
+has its own world pose, and the earth field (world frame) reaches the source
+frame as ``R_s^T B_earth``. The coil fields are computed in the source frame
+from the sensor's relative pose, which is the world-frame field of the moved
+source turned into the source frame (checked against magpylib with the source
+moved and rotated in ``tests/hil/test_body.py``); objects live in the source
+frame. A trajectory gives the sensor pose ``(p, R)`` with ``R`` mapping sensor-frame
 vectors to the source frame. Times are integer microseconds of *true* time
 (the bench's time base; node clocks drift against it, see ``hil.clock``).
 
@@ -212,7 +218,13 @@ class World:
     """
 
     def __init__(self, coils, trajectory, earth_field_t=EARTH_FIELD_T, disturbers=(), supply_v: float = 6.0,
-                 objects=()):
+                 objects=(), source_trajectory=None, sensor_world_trajectory=None):
+        #: the source's pose in the world over time (None: fixed at the origin, level; see
+        #: :meth:`source_kinematics`), and the sensor's world trajectory when it is known
+        #: directly (a body model); else it is composed from the source's and ``trajectory``
+        self.source_trajectory = source_trajectory
+        self.sensor_world_trajectory = sensor_world_trajectory
+        self._src_R: dict[int, np.ndarray] = {}
         self.coils = list(coils)
         self.source = physics.Source(self.coils)
         self.trajectory = trajectory
@@ -257,6 +269,14 @@ class World:
         U = self.source.unit_fields(p)
         for i, ti in enumerate(t.tolist()):
             self._cache[ti] = (p[i], R[i], U[:, i, :])
+        if self.source_trajectory is not None:
+            if len(self._src_R) > 8192:
+                lo = int(t.min()) - 2_000_000
+                for key in [k for k in self._src_R if k < lo]:
+                    del self._src_R[key]
+            _, Rs = self.source_trajectory.pose(t)
+            for i, ti in enumerate(t.tolist()):
+                self._src_R[ti] = Rs[i]
 
     def pose(self, t_us):
         if np.ndim(t_us) == 0:
@@ -285,7 +305,7 @@ class World:
                 p, R = self.trajectory.pose(t_us)
         p = np.asarray(p, dtype=float)
         I = self.coil_currents(t_us)
-        B = self.earth.copy()
+        B = self.earth_source_frame(t_us)
         if np.any(I != 0.0):
             B += I @ (self.unit_fields(p) if U is None else U)
         for obj in self.objects:
@@ -354,3 +374,74 @@ class World:
             elif isinstance(o, MetalObject) and o.sigma > 0.0:
                 taus.append(o.tau1_s * 1e6)
         return max(taus) * math.log(1.0 / tol)
+
+    # ------------------------------------------------------------ a moving source
+    @property
+    def source_moving(self) -> bool:
+        """True when the source follows a trajectory of its own (body-worn scenarios)."""
+        return self.source_trajectory is not None
+
+    def earth_source_frame(self, t_us: int) -> np.ndarray:
+        """The earth field in the source frame at ``t_us`` (T): ``R_s^T B_earth`` with the
+        source's world orientation ``R_s`` (a new array; ``earth`` itself for a fixed source)."""
+        if self.source_trajectory is None:
+            return self.earth.copy()
+        Rs = self._src_R.get(int(t_us))
+        if Rs is None:
+            _, Rs = self.source_trajectory.pose(int(t_us))
+        return Rs.T @ self.earth
+
+    def source_kinematics(self, t_us):
+        """The source's world kinematics ``(p, v, a, R, w_world, al_world)`` at integer
+        microseconds ``t_us`` (arrays of n times: (n, 3), (n, 3, 3)); a fixed source: at the
+        origin, level, at rest. ``R`` maps source-frame vectors to the world."""
+        from .motion import _time_s
+
+        t, _ = _time_s(t_us)
+        n = t.shape[0]
+        if self.source_trajectory is None:
+            z = np.zeros((n, 3))
+            return z, z.copy(), z.copy(), np.tile(np.eye(3), (n, 1, 1)), z.copy(), z.copy()
+        if hasattr(self.source_trajectory, "full"):
+            return self.source_trajectory.full(t)
+        k = self.source_trajectory.kinematics(np.atleast_1d(np.asarray(t_us, dtype=np.int64)))
+        w = np.einsum("nij,nj->ni", k.R, k.angular_velocity)
+        return k.position, k.velocity, k.acceleration, k.R, w, np.zeros((n, 3))
+
+    def sensor_kinematics(self, t_us):
+        """The sensor's kinematics in the world frame (``hil.motion.Kinematics``; what its IMU
+        measures: specific force ``R^T (a - g)``, rate ``w``). A fixed source: the trajectory's
+        own (source frame = world frame). A moving one: the given world trajectory, or
+        ``trajectory`` composed with the source's motion: ``r = R_s q``,
+        ``a = a_s + al x r + w x (w x r) + 2 w x R_s q' + R_s q''``, ``R = R_s R_q``,
+        body rate ``R_q^T R_s^T w + w_q``."""
+        if self.source_trajectory is None:
+            return self.trajectory.kinematics(t_us)
+        if self.sensor_world_trajectory is not None:
+            return self.sensor_world_trajectory.kinematics(t_us)
+        from .motion import Kinematics
+
+        scalar = np.ndim(t_us) == 0
+        tt = np.atleast_1d(np.asarray(t_us, dtype=np.int64))
+        ps, vs, as_, Rs, w, al = self.source_kinematics(tt)
+        k = self.trajectory.kinematics(tt)
+        r = np.einsum("nij,nj->ni", Rs, k.position)
+        rv = np.einsum("nij,nj->ni", Rs, k.velocity)
+        ra = np.einsum("nij,nj->ni", Rs, k.acceleration)
+        p = ps + r
+        v = vs + np.cross(w, r) + rv
+        a = as_ + np.cross(al, r) + np.cross(w, np.cross(w, r)) + 2.0 * np.cross(w, rv) + ra
+        R = Rs @ k.R
+        wb = np.einsum("nji,nj->ni", R, w) + k.angular_velocity
+        if scalar:
+            return Kinematics(p[0], v[0], a[0], R[0], wb[0])
+        return Kinematics(p, v, a, R, wb)
+
+    def source_module_kinematics(self, offset, t_us):
+        """World acceleration (n, 3), source rotation (n, 3, 3) and body rate (n, 3, source
+        frame) of a module fixed on the source at ``offset`` (m, source frame):
+        ``a = a_s + al x (R_s d) + w x (w x R_s d)``."""
+        ps, vs, as_, Rs, w, al = self.source_kinematics(t_us)
+        d = np.einsum("nij,j->ni", Rs, np.asarray(offset, dtype=float).reshape(3))
+        a = as_ + np.cross(al, d) + np.cross(w, np.cross(w, d))
+        return a, Rs, np.einsum("nji,nj->ni", Rs, w)

@@ -146,6 +146,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "windows_flagged": fw_status.get("windows_flagged", 0),
         "coil_pulses": len(bench.driver.executed),
         "mag_samples": bench.sensor.samples,
+        "source_moving": bool(getattr(world, "source_moving", False)),
     }
     if len(cfg.sensor_ids) > 1:
         # every sensor's own figures (magnetic poses), in node order
@@ -223,6 +224,8 @@ def format_table(rep: dict) -> str:
         rows += [("magnetic only", f'{rep["magnetic_position_rms_mm"]:.2f} mm (CRLB {rep["crlb_position_rms_mm"]:.2f}'
                                    f' mm), {rep["magnetic_orientation_rms_deg"]:.2f} deg, '
                                    f'{rep["magnetic_poses"]} poses')]
+    if rep.get("source_moving"):
+        rows.append(("source moving", "true (body-worn: its own IMU and magnetometer module)"))
     rows += [
         ("frames rx / bad", f'{rep["frames_rx"]} / {rep["frames_bad"]}'),
         ("pulse window violations", rep["pulse_window_violations"]),

@@ -59,7 +59,10 @@ class BenchSetup:
             from coiltrack.protocol import FrameEncoder
 
             rng = np.random.default_rng(s_clocks + 1)
-            node = SourceImuNode(src_id, self.world, imu=ImuSpec(rate_hz=imu_rate or 120.0),
+            src_imu = ImuSpec(rate_hz=imu_rate or 120.0)
+            if not getattr(spec, "source_acc_offset", True):
+                src_imu.acc_bias_sigma, src_imu.acc_bias_rw = 0.0, 0.0
+            node = SourceImuNode(src_id, self.world, imu=src_imu,
                                  mag=MagSpec(rate_hz=spec.rate_hz, noise_t=spec.noise_t),
                                  seed=s_sensor + 4099, clock=random_clock(rng, getattr(spec, "clock_drift_ppm", 50.0)))
             emu = self.bench.emulator

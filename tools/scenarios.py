@@ -30,6 +30,7 @@ class SensorSpec:
     flip_every: int = 8               # autonomous set/reset every N samples until the firmware commands flips
     clock_drift_ppm: float = 50.0     # node clocks drift uniformly within +-this (seeded)
     source_imu_id: int = 0            # an IMU + magnetometer module on the source (hil.imu; 0: none)
+    source_acc_offset: bool = True    # the source module's accelerometer has its seeded offset and random walk
 
 
 @dataclass(frozen=True)
@@ -371,3 +372,4 @@ def get(name: str) -> Scenario:
 
 # scenario families in modules of their own (each registers on import)
 from . import scenarios_multi  # noqa: E402,F401
+from . import scenarios_body  # noqa: E402,F401  (body-worn rows of Tables 5.1 / 6.1)

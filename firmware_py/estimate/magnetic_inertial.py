@@ -150,7 +150,7 @@ class FusionParams:
             cfg = FirmwareConfig()
         kw = dict(
             measurement_model=cfg.measurement_model, acc_noise=cfg.imu_acc_sigma, gyro_noise=cfg.imu_gyro_sigma,
-            source_acc_noise=cfg.imu_acc_sigma if source_imu else 0.0,
+            source_acc_noise=(cfg.source_acc_sigma or cfg.imu_acc_sigma) if source_imu else 0.0,
             acc_bias_sigma=cfg.imu_acc_bias_sigma, gyro_bias_sigma=cfg.imu_gyro_bias_sigma,
             acc_bias_rw=cfg.imu_acc_bias_rw, gyro_bias_rw=cfg.imu_gyro_bias_rw,
             acc_bias_tau_s=cfg.bias_tau_s, gyro_bias_tau_s=cfg.bias_tau_s,

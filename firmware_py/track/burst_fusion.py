@@ -476,7 +476,10 @@ class BurstFusionTracker(MagneticTracker):
         gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
         self._fixed_phi = np.eye(3)                                   # a fixed source: Phi = I
         self._fixed_fref = np.array([-v for v in cfg.gravity_mps2])  # its specific force, source frame
-        self.source = SourceInertial(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
+        source_cls = SourceInertial
+        if not cfg.source_acceleration:          # eq 6.8 without a_source (comparison runs)
+            from coiltrack.firmware.track.source_unaccelerated import UnacceleratedSource as source_cls
+        self.source = source_cls(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
         self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
                          for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)

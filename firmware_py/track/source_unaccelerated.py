@@ -1,0 +1,35 @@
+"""The source's module with its orientation only: eq 6.8 without the source's
+acceleration, for comparison.
+
+Thesis ``002_cd7f1fdb7fc67471.txt`` eq 6.8: ``a_net = a_sensor - a_source``.
+:class:`burst_fusion.SourceInertial` gives the fusion filter ``Phi`` and
+``Phi f_source`` from the source's IMU. :class:`UnacceleratedSource` keeps
+``Phi`` from the same ch. 2 filter but hands the fusion ``Phi f_source = -g``
+(``-gravity_mps2``, global frame, m/s^2), i.e. it treats the source as
+unaccelerated: what a tracker that knows the source's orientation but not its
+motion would do. Selected by ``body.source_acceleration = false``; the
+body-worn scenarios' ``-noanet`` runs measure the difference on a moving
+source.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from coiltrack.firmware.track.burst_fusion import SourceInertial
+
+
+class UnacceleratedSource(SourceInertial):
+    """:class:`SourceInertial` whose specific force stays ``-g`` (3,) m/s^2."""
+
+    def process(self) -> None:
+        ring, s6 = self.imu, self._s6
+        while True:
+            t = ring.pop_sample(s6)
+            if t < 0:
+                return
+            ax, ay, az, wx, wy, wz = s6
+            self.ori.step(t, ax, ay, az, wx, wy, wz, self.mag)
+            self.samples += 1
+            f = self.ori.f
+            if f.initialized:
+                np.copyto(self.phi, f.R)
