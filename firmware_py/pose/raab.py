@@ -105,6 +105,8 @@ _SQRT15 = math.sqrt(1.5)
 POLE_COS = 0.2
 #: largest angle step of one update (rad): the signs of large errors are right, not their sizes (Fig. 8)
 MAX_STEP = 0.5
+#: an update whose angle steps are all below this (rad) ends an acquisition (small-angle regime)
+_ACQUIRED_STEP = 0.01
 #: the correction's linear term is used within this fraction of the range (rad) of its evaluation
 _LIN_MAX = 0.1
 #: a result beyond the hemisphere plane by more than this sine of its elevation is mirrored back
@@ -276,6 +278,13 @@ class RaabTracker(Staged):
         Start of an acquisition (m, source frame; ``(psi, theta, phi)`` rad);
         default: the hemisphere direction at the range of the invariant,
         zero orientation angles.
+    hemisphere : (3,)
+        The side the sensor is on while the tracker acquires (from an
+        acquisition until an update's angle steps fall below
+        ``_ACQUIRED_STEP``), whatever hemisphere a warm start passes: a start
+        90 deg off is as far from the truth as from its mirror, so continuity
+        alone cannot choose; afterwards the hemisphere of ``begin``
+        (continuity: the last position) decides.
 
     Results as ``PoseSolver``: ``position`` (3,) m, ``rotation`` (3, 3)
     sensor -> source, ``covariance`` (6, 6) of ``(p, dtheta)``,
@@ -287,7 +296,8 @@ class RaabTracker(Staged):
 
     def __init__(self, coils, model: str = "exact", iters: int = 20, acquire_iters: int = 60,
                  gate_probability: float = 1.0, step_tol: float = 5e-5, refresh: float = 0.02,
-                 correction: bool = True, start_position=None, start_euler=None, max_step: float = MAX_STEP):
+                 correction: bool = True, start_position=None, start_euler=None, max_step: float = MAX_STEP,
+                 hemisphere=(1.0, 0.0, 0.0)):
         self.signal = SignalModel(coils, model)
         n = self.signal.n
         self.n = n
@@ -342,6 +352,8 @@ class RaabTracker(Staged):
         self._x = [0.0] * 6                          # alpha, beta, rho, psi, theta, phi
         self._xm = [0.0] * 6                         # where the correction was evaluated
         self._hemi = (1.0, 0.0, 0.0)
+        self._acq_hemi = tuple(float(v) for v in hemisphere)
+        self._acquiring = False
         self._check_hemi = False
         self._warm = False
         self._reacquired = False
@@ -383,6 +395,7 @@ class RaabTracker(Staged):
         self._mirrored = False
         self.status = SOLVE_RUNNING
         if not self._warm:
+            self._acquiring = True
             self._start_acquisition()
         else:
             self._limit = self.iters
@@ -676,6 +689,8 @@ class RaabTracker(Staged):
             f7[3 + c] = p10 * t0 + p11 * t1 + p12 * t2
             f7[6 + c] = p20 * t0 + p21 * t1 + p22 * t2
         da0, db0, dpsi0, dth0, dphi0 = error_angles(f7, k)
+        if max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0)) < _ACQUIRED_STEP:
+            self._acquiring = False
         m = self.max_step
         da0, db0, dpsi0, dth0, dphi0 = _clip(da0, m), _clip(db0, m), _clip(dpsi0, m), _clip(dth0, m), _clip(dphi0, m)
         rho = (C_RAAB / k) ** (1.0 / 3.0)                       # eq 21
@@ -714,11 +729,11 @@ class RaabTracker(Staged):
     def _unit_finish(self) -> None:
         """Plausibility (hemisphere), the gate, the covariance (charged ``n``)."""
         x = self._x
-        hx, hy, hz = self._hemi
+        hx, hy, hz = self._acq_hemi if self._acquiring else self._hemi
         ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
         ux, uy, uz = cb * ca, cb * sa, -sb
         hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-        if (self._check_hemi or not self._warm) and not self._mirrored \
+        if (self._check_hemi or self._acquiring or not self._warm) and not self._mirrored \
                 and ux * hx + uy * hy + uz * hz < -_HEMI_MARGIN * hn:
             # footnote 3: the same coupling at -u with the same orientation; evaluated there again
             x[0], x[1] = _wrap(x[0] + math.pi), -x[1]
