@@ -47,6 +47,8 @@ class Scenario:
     fixed_config: Callable[[], FirmwareConfig] | None = None
     #: one line for ``coiltrack bench --help`` (default: the description)
     summary: str = ""
+    #: extra report figures, ``(bench, report, cfg) -> dict`` (e.g. ``scenarios_raab.tracking_figures``)
+    report_extra: Callable | None = None
 
 
 def _roetenberg_world(seed: int, duration_s: float) -> World:
@@ -365,3 +367,6 @@ def get(name: str) -> Scenario:
         return SCENARIOS[name]
     except KeyError:
         raise KeyError(f"unknown scenario '{name}'; known: {', '.join(sorted(SCENARIOS))}") from None
+
+
+from coiltrack.tools import scenarios_raab  # noqa: E402,F401  (registers raab-acquire, helix-hemisphere)
