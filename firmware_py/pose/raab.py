@@ -107,6 +107,12 @@ POLE_COS = 0.2
 MAX_STEP = 0.5
 #: an update whose angle steps are all below this (rad) ends an acquisition (small-angle regime)
 _ACQUIRED_STEP = 0.01
+#: the preconditioner K sets only the rate, not the fixed point: it is reused within this x range (rad)
+_K_REUSE = 0.03
+#: without the linear term (the pose left its neighbourhood), evaluate again once the steps are below this
+_EARLY_REFRESH = 0.01
+#: the preconditioner is applied to detected steps below this (rad, x range): the linear regime
+_LIN_STEP = 0.05
 #: the correction's linear term is used within this fraction of the range (rad) of its evaluation
 _LIN_MAX = 0.1
 #: a result beyond the hemisphere plane by more than this sine of its elevation is mirrored back
@@ -336,8 +342,8 @@ class RaabTracker(Staged):
         self._HWn = np.zeros((3 * n, 6))
         self._HWt = self._HWn.T
         self._An = np.zeros((6, 6))
-        self._d = memoryview(np.zeros(3 * n))        # correction h_model - h_raab at the last evaluation
-        self._D = memoryview(np.zeros(18 * n))       # its Jacobian H_model - H_raab, (3 n, 6)
+        self._b = memoryview(np.zeros(3 * n))        # correction B_model - B_raab (source frame), [3 j + i]
+        self._G = memoryview(np.zeros(9 * n))        # its gradient d/dp, [9 j + 3 r + c]
         self._Sc = memoryview(np.zeros(3 * n))       # corrected signals at the estimate
         self._pm = [0.0] * 3                         # point of the last evaluation
         self._Rm = np.eye(3)                         # rotation of the last evaluation
@@ -361,6 +367,16 @@ class RaabTracker(Staged):
         self._mirrored = False
         self._g = [0.0] * 9                          # scratch of an update
         self._t = [0.0] * 9
+        self._v = [0.0] * (3 * n)                    # scratch of the preconditioner
+        self._Fc = [0.0] * 9
+        self._K = [0.0] * 36                         # K = I + G D T, LU factors
+        self._perm = [0] * 6
+        self._e = [0.0] * 6
+        self._y = [0.0] * 6
+        self._lin = False                            # the correction's linear term (and K) in use
+        self._k_ok = False                           # K factored, at _pk, _Rk
+        self._pk = [0.0] * 3
+        self._Rk = np.eye(3)
         self._k = 0.0
         self.solve_evals = 0
         self.evals_last_step = 0
@@ -559,32 +575,30 @@ class RaabTracker(Staged):
 
     def _coupling(self, corrected: bool) -> None:
         """``F = S_c M^+`` (3 x 3) into ``_F`` and ``k = |F|_F / sqrt(3/2)``
-        (= ``C / rho^3``, eq 21). Corrected: ``S_c = S - d - D dx`` with the
-        correction ``d`` and its Jacobian ``D`` of the last evaluation and
-        ``dx = (p - p_m, dtheta)``, ``R = R_m exp([dtheta]x)``; the linear term
-        only within ``_LIN_MAX`` of that point (during acquisition the pose
-        may be far from it). Uncorrected: ``S_c = S``."""
+        (= ``C / rho^3``, eq 21). Corrected: ``S_c[:, j] = S[:, j] - R^T (b_j
+        + G_j (p - p_m))`` with the source-frame correction ``b_j = B_model -
+        B_raab`` of coil ``j`` and its gradient ``G_j`` at the last evaluation
+        ``p_m`` (exact in the orientation; the linear term only within
+        ``_LIN_MAX`` x range of ``p_m``: during acquisition the pose may be far
+        from it). Uncorrected: ``S_c = S``."""
         n, S, Sc, mp, F = self.n, self._Sv, self._Sc, self._mp, self._F
         if corrected:
             px, py, pz = self._point()
-            pm, Rm, R = self._pm, self._Rm, self._R
+            pm, R = self._pm, self._R
             dx, dy, dz = px - pm[0], py - pm[1], pz - pm[2]
-            # dtheta ~ vee of the antisymmetric part of R_m^T R
-            m01 = Rm[0, 0] * R[0, 1] + Rm[1, 0] * R[1, 1] + Rm[2, 0] * R[2, 1]
-            m10 = Rm[0, 1] * R[0, 0] + Rm[1, 1] * R[1, 0] + Rm[2, 1] * R[2, 0]
-            m02 = Rm[0, 0] * R[0, 2] + Rm[1, 0] * R[1, 2] + Rm[2, 0] * R[2, 2]
-            m20 = Rm[0, 2] * R[0, 0] + Rm[1, 2] * R[1, 0] + Rm[2, 2] * R[2, 0]
-            m12 = Rm[0, 1] * R[0, 2] + Rm[1, 1] * R[1, 2] + Rm[2, 1] * R[2, 2]
-            m21 = Rm[0, 2] * R[0, 1] + Rm[1, 2] * R[1, 1] + Rm[2, 2] * R[2, 1]
-            tx, ty, tz = 0.5 * (m21 - m12), 0.5 * (m02 - m20), 0.5 * (m10 - m01)
             rho = self._x[2]
-            if dx * dx + dy * dy + dz * dz > (_LIN_MAX * rho) ** 2 or tx * tx + ty * ty + tz * tz > _LIN_MAX ** 2:
-                dx = dy = dz = tx = ty = tz = 0.0
-            d, D = self._d, self._D
-            for q in range(3 * n):
-                o = 6 * q
-                Sc[q] = S[q] - d[q] - (D[o] * dx + D[o + 1] * dy + D[o + 2] * dz + D[o + 3] * tx
-                                       + D[o + 4] * ty + D[o + 5] * tz)
+            if dx * dx + dy * dy + dz * dz > (_LIN_MAX * rho) ** 2:
+                dx = dy = dz = 0.0
+                self._lin = False
+            b, G = self._b, self._G
+            for j in range(n):
+                o, g = 3 * j, 9 * j
+                vx = b[o] + G[g] * dx + G[g + 1] * dy + G[g + 2] * dz
+                vy = b[o + 1] + G[g + 3] * dx + G[g + 4] * dy + G[g + 5] * dz
+                vz = b[o + 2] + G[g + 6] * dx + G[g + 7] * dy + G[g + 8] * dz
+                Sc[o] = S[o] - (R[0, 0] * vx + R[1, 0] * vy + R[2, 0] * vz)
+                Sc[o + 1] = S[o + 1] - (R[0, 1] * vx + R[1, 1] * vy + R[2, 1] * vz)
+                Sc[o + 2] = S[o + 2] - (R[0, 2] * vx + R[1, 2] * vy + R[2, 2] * vz)
         else:
             for q in range(3 * n):
                 Sc[q] = S[q]
@@ -620,58 +634,53 @@ class RaabTracker(Staged):
     # ------------------------------------------------------------- units
     def _unit_measure(self) -> None:
         """The exact model's signals and Jacobian at the estimate (``n``
-        evaluations, ``model.signal``) and the correction ``d = h_model -
-        h_raab`` with its Jacobian ``D = H_model - H_raab`` (Raab's dipole in
-        closed form, :meth:`_raab_field`: no field evaluation)."""
+        evaluations, ``model.signal``) and the source-frame correction ``b_j =
+        B_model - B_raab`` with its gradient (Raab's dipole in closed form,
+        :meth:`_raab_field`: no field evaluation)."""
         px, py, pz = self._point()
         cur, h, H, R = self._cur, self._h, self._H, self._R
-        self.signal.measure(px, py, pz, R, cur, h, H)
+        sig = self.signal
+        sig.measure(px, py, pz, R, cur, h, H)
         self._xm[:] = self._x
         pm = self._pm
         pm[0], pm[1], pm[2] = px, py, pz
         np.copyto(self._Rm, R)
+        self._lin = False
         if not self.correction:
             self._then(self._unit_update, 1)
             return
         x = self._x
         ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
         ux, uy, uz = cb * ca, cb * sa, -sb
-        d, D = self._d, self._D
+        b, G, Bv, Jv = self._b, self._G, sig.Bv, sig.Jv
         for j in range(self.n):
             (bx, by, bz), (gxx, gyy, gzz, gxy, gxz, gyz) = self._raab_field(j, ux, uy, uz, x[2], True)
-            for i in range(3):
-                o = 3 * j + i
-                r0, r1, r2 = R[0, i], R[1, i], R[2, i]          # row i of R^T
-                d[o] = h[o] - (r0 * bx + r1 * by + r2 * bz)
-                q = 6 * o
-                D[q] = H[q] - (r0 * gxx + r1 * gxy + r2 * gxz)
-                D[q + 1] = H[q + 1] - (r0 * gxy + r1 * gyy + r2 * gyz)
-                D[q + 2] = H[q + 2] - (r0 * gxz + r1 * gyz + r2 * gzz)
-            # orientation columns: [h_model]x - [h_raab]x = [d]x (eq 11 of Schepers, as model.signal)
-            o = 3 * j
-            dx_, dy_, dz_ = d[o], d[o + 1], d[o + 2]
-            q = 18 * j
-            D[q + 3], D[q + 4], D[q + 5] = 0.0, -dz_, dy_
-            D[q + 9], D[q + 10], D[q + 11] = dz_, 0.0, -dx_
-            D[q + 15], D[q + 16], D[q + 17] = -dy_, dx_, 0.0
+            o, g = 3 * j, 9 * j
+            b[o], b[o + 1], b[o + 2] = Bv[o] - bx, Bv[o + 1] - by, Bv[o + 2] - bz
+            G[g], G[g + 1], G[g + 2] = Jv[g] - gxx, Jv[g + 1] - gxy, Jv[g + 2] - gxz
+            G[g + 3], G[g + 4], G[g + 5] = Jv[g + 3] - gxy, Jv[g + 4] - gyy, Jv[g + 5] - gyz
+            G[g + 6], G[g + 7], G[g + 8] = Jv[g + 6] - gxz, Jv[g + 7] - gyz, Jv[g + 8] - gzz
+        self._coupling(True)
+        if not self._k_ok or self._far(self._pk, self._Rk, _K_REUSE):
+            self._precondition()
+            pk = self._pk
+            pk[0], pk[1], pk[2] = px, py, pz
+            np.copyto(self._Rk, R)
+        self._lin = self._k_ok
         self._then(self._unit_update, 1)
 
-    def _unit_update(self) -> None:
-        """One update of eqs 7-31 (no field evaluation, charged 1)."""
+    def _post_sense(self, F):
+        """Eqs 7 and 11: ``F_7 = P R F P^T`` (9, row-major, into the scratch
+        ``_g``) for the coupling ``F`` (9) at the current estimate."""
         x = self._x
-        self._coupling(self.correction)
-        k = self._k
-        if not (k > 0.0 and math.isfinite(k)):
-            self._finish(SOLVE_NONFINITE)
-            return
         ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
         # P = T_beta T_alpha (eq 4), rows
         p00, p01, p02 = cb * ca, cb * sa, -sb
         p10, p11, p12 = -sa, ca, 0.0
         p20, p21, p22 = sb * ca, sb * sa, cb
-        R, F = self._R, self._F
-        # G = R F (source-frame response to a unit source-frame moment)
+        R = self._R
         g, t = self._g, self._t
+        # G = R F (source-frame response to a unit source-frame moment)
         for i in range(3):
             r0, r1, r2 = R[i, 0], R[i, 1], R[i, 2]
             for c in range(3):
@@ -682,30 +691,146 @@ class RaabTracker(Staged):
             t[3 * i] = g0 * p00 + g1 * p01 + g2 * p02
             t[3 * i + 1] = g0 * p10 + g1 * p11 + g2 * p12
             t[3 * i + 2] = g0 * p20 + g1 * p21 + g2 * p22
-        f7 = g
         for c in range(3):
             t0, t1, t2 = t[c], t[3 + c], t[6 + c]
-            f7[c] = p00 * t0 + p01 * t1 + p02 * t2
-            f7[3 + c] = p10 * t0 + p11 * t1 + p12 * t2
-            f7[6 + c] = p20 * t0 + p21 * t1 + p22 * t2
+            g[c] = p00 * t0 + p01 * t1 + p02 * t2
+            g[3 + c] = p10 * t0 + p11 * t1 + p12 * t2
+            g[6 + c] = p20 * t0 + p21 * t1 + p22 * t2
+        return g
+
+    def _precondition(self) -> None:
+        """``K = I + G D T`` at the evaluation point and its LU factors:
+        ``T`` maps Raab's tracking-frame steps ``(d_alpha0, d_beta0, d_rho,
+        d_psi0, d_theta0, d_phi0)`` to ``(dp, dtheta)`` (``dp = rho P^T (0,
+        d_alpha0, -d_beta0) + d_rho u``, ``dtheta = R^T P^T (d_phi0,
+        d_theta0, d_psi0)``), ``D`` is the correction's Jacobian and ``G``
+        the detection (eqs 7, 11, 21-26) of a signal change. With ``S_c = S
+        - d - D dx`` the detected errors are ``e = K d`` to first order, so
+        solving for ``d`` gives the exact model's step (Raab's own detection is
+        ``K = I``, exact for the dipole) and the iteration converges
+        quadratically instead of by the ratio of loop to dipole near the source."""
+        x, R, mp, n = self._x, self._R, self._mp, self.n
+        b, G = self._b, self._G
+        ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
+        P = ((cb * ca, cb * sa, -sb), (-sa, ca, 0.0), (sb * ca, sb * sa, cb))
+        rho, k = x[2], self._k
+        v, Fc, K = self._v, self._Fc, self._K
+        for c in range(6):
+            # column c of T
+            if c == 0:
+                dp, dt = (rho * P[1][0], rho * P[1][1], rho * P[1][2]), (0.0, 0.0, 0.0)
+            elif c == 1:
+                dp, dt = (-rho * P[2][0], -rho * P[2][1], -rho * P[2][2]), (0.0, 0.0, 0.0)
+            elif c == 2:
+                dp, dt = P[0], (0.0, 0.0, 0.0)
+            else:
+                row = P[2] if c == 3 else (P[1] if c == 4 else P[0])     # d_psi0 z, d_theta0 y, d_phi0 x
+                dp = (0.0, 0.0, 0.0)
+                dt = (R[0, 0] * row[0] + R[1, 0] * row[1] + R[2, 0] * row[2],
+                      R[0, 1] * row[0] + R[1, 1] * row[1] + R[2, 1] * row[2],
+                      R[0, 2] * row[0] + R[1, 2] * row[1] + R[2, 2] * row[2])
+            # v = D T_c: the signal change R^T (G_j dp) + [R^T b_j]x dt of each coil (as model.signal's H)
+            for j in range(n):
+                o, g = 3 * j, 9 * j
+                wx = G[g] * dp[0] + G[g + 1] * dp[1] + G[g + 2] * dp[2]
+                wy = G[g + 3] * dp[0] + G[g + 4] * dp[1] + G[g + 5] * dp[2]
+                wz = G[g + 6] * dp[0] + G[g + 7] * dp[1] + G[g + 8] * dp[2]
+                hx = R[0, 0] * b[o] + R[1, 0] * b[o + 1] + R[2, 0] * b[o + 2]
+                hy = R[0, 1] * b[o] + R[1, 1] * b[o + 1] + R[2, 1] * b[o + 2]
+                hz = R[0, 2] * b[o] + R[1, 2] * b[o + 1] + R[2, 2] * b[o + 2]
+                v[o] = R[0, 0] * wx + R[1, 0] * wy + R[2, 0] * wz + (hy * dt[2] - hz * dt[1])
+                v[o + 1] = R[0, 1] * wx + R[1, 1] * wy + R[2, 1] * wz + (hz * dt[0] - hx * dt[2])
+                v[o + 2] = R[0, 2] * wx + R[1, 2] * wy + R[2, 2] * wz + (hx * dt[1] - hy * dt[0])
+            for i in range(3):
+                for cc in range(3):
+                    acc = 0.0
+                    for j in range(n):
+                        acc += v[3 * j + i] * mp[3 * j + cc]
+                    Fc[3 * i + cc] = acc
+            f7 = self._post_sense(Fc)
+            ea, eb, epsi, eth, ephi = error_angles(f7, k)
+            erho = -(rho / 3.0) * (2.0 * f7[0] - f7[4] - f7[8]) / (3.0 * k)
+            col = (ea, eb, erho, epsi, eth, ephi)
+            for r in range(6):
+                K[6 * r + c] = col[r] + (1.0 if r == c else 0.0)
+        self._k_ok = self._lu_factor()
+
+    def _lu_factor(self) -> bool:
+        """LU with partial pivoting of ``_K`` in place (permutation ``_perm``)."""
+        K, perm = self._K, self._perm
+        for i in range(6):
+            perm[i] = i
+        for c in range(6):
+            piv, best = c, abs(K[6 * c + c])
+            for r in range(c + 1, 6):
+                if abs(K[6 * r + c]) > best:
+                    piv, best = r, abs(K[6 * r + c])
+            if not best > 1e-12:
+                return False
+            if piv != c:
+                for j in range(6):
+                    K[6 * c + j], K[6 * piv + j] = K[6 * piv + j], K[6 * c + j]
+                perm[c], perm[piv] = perm[piv], perm[c]
+            d = K[6 * c + c]
+            for r in range(c + 1, 6):
+                f = K[6 * r + c] / d
+                K[6 * r + c] = f
+                for j in range(c + 1, 6):
+                    K[6 * r + j] -= f * K[6 * c + j]
+        return True
+
+    def _lu_solve(self, e) -> None:
+        """``e <- K^-1 e`` with the factors of :meth:`_lu_factor`."""
+        K, perm, y = self._K, self._perm, self._y
+        for i in range(6):
+            acc = e[perm[i]]
+            for j in range(i):
+                acc -= K[6 * i + j] * y[j]
+            y[i] = acc
+        for i in range(5, -1, -1):
+            acc = y[i]
+            for j in range(i + 1, 6):
+                acc -= K[6 * i + j] * e[j]
+            e[i] = acc / K[6 * i + i]
+
+    def _unit_update(self) -> None:
+        """One update of eqs 7-31 (no field evaluation, charged 1)."""
+        x = self._x
+        self._coupling(self.correction)
+        k = self._k
+        if not (k > 0.0 and math.isfinite(k)):
+            self._finish(SOLVE_NONFINITE)
+            return
+        f7 = self._post_sense(self._F)
         da0, db0, dpsi0, dth0, dphi0 = error_angles(f7, k)
+        rho = (C_RAAB / k) ** (1.0 / 3.0)                       # eq 21
+        drho = rho - x[2]
+        if self._lin and max(abs(da0), abs(db0), abs(drho) / x[2], abs(dpsi0), abs(dth0), abs(dphi0)) < _LIN_STEP:
+            # the exact model's sensitivities: solve K d = e (K = I + G D T of the last evaluation)
+            e = self._e
+            e[0], e[1], e[2], e[3], e[4], e[5] = da0, db0, drho, dpsi0, dth0, dphi0
+            self._lu_solve(e)
+            da0, db0, drho, dpsi0, dth0, dphi0 = e[0], e[1], e[2], e[3], e[4], e[5]
+            rho = x[2] + drho
         if max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0)) < _ACQUIRED_STEP:
             self._acquiring = False
         m = self.max_step
         da0, db0, dpsi0, dth0, dphi0 = _clip(da0, m), _clip(db0, m), _clip(dpsi0, m), _clip(dth0, m), _clip(dphi0, m)
-        rho = (C_RAAB / k) ** (1.0 / 3.0)                       # eq 21
-        drho = rho - x[2]
+        drho = _clip(drho, m * x[2])
+        rho = x[2] + drho
         psi, theta, phi = orientation_update(x[0], x[1], x[3], x[4], x[5], dphi0, dth0, dpsi0)
         x[0], x[1] = position_update(x[0], x[1], da0, db0)
         x[2], x[3], x[4], x[5] = rho, psi, theta, phi
         self._sync_rotation()
         self.iterations += 1
         tol = self.step_tol
-        small = (max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0)) <= tol and abs(drho) <= tol * rho)
+        step = max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0), abs(drho) / rho)
+        small = step <= tol
         if not (math.isfinite(rho) and math.isfinite(psi) and math.isfinite(x[0])):
             self._finish(SOLVE_NONFINITE)
-        elif small and self.correction and self._moved() and self.iterations < self._limit:
-            self._then(self._unit_measure, self.n)
+        elif (small or (not self._lin and step < _EARLY_REFRESH)) and self.correction and self._moved() \
+                and self.iterations < self._limit:
+            self._then(self._unit_measure, self.n)          # the correction again, where the pose now is
         elif small:
             self.converged = True
             self._then(self._unit_finish, self.n)
@@ -717,10 +842,13 @@ class RaabTracker(Staged):
 
     def _moved(self) -> bool:
         """The estimate is more than ``refresh`` (x range; rad) from the last evaluation."""
+        return self._far(self._pm, self._Rm, self.refresh)
+
+    def _far(self, pm, Rm, r: float) -> bool:
+        """The estimate is more than ``r`` x range from ``pm`` or ``r`` rad from ``Rm``."""
         px, py, pz = self._point()
-        pm, Rm, R = self._pm, self._Rm, self._R
+        R = self._R
         dx, dy, dz = px - pm[0], py - pm[1], pz - pm[2]
-        r = self.refresh
         c = 0.5 * (Rm[0, 0] * R[0, 0] + Rm[1, 0] * R[1, 0] + Rm[2, 0] * R[2, 0] + Rm[0, 1] * R[0, 1]
                    + Rm[1, 1] * R[1, 1] + Rm[2, 1] * R[2, 1] + Rm[0, 2] * R[0, 2] + Rm[1, 2] * R[1, 2]
                    + Rm[2, 2] * R[2, 2] - 1.0)                   # cos of the rotation angle between them
