@@ -172,7 +172,7 @@ class FirmwareConfig:
     raab_iterations: int = 20               # Raab updates per burst with a tracked pose (1: one per pattern,
                                             #   as the paper); near the source each converges ~0.4x
     raab_acquire_iterations: int = 60       # Raab updates per burst without a pose (Fig. 8 acquisition)
-    raab_step_tol: float = 5e-5             # converged: angle steps below this (rad), range step below this x range
+    raab_step_tol: float = 1e-4             # converged: angle steps below this (rad), range step below this x range
     raab_refresh: float = 0.02              # evaluate the exact-loop correction again beyond this x range (rad)
     raab_correction: bool = True            # correct the dipole model to the exact loops (model.signal)
     raab_start_position: tuple[float, float, float] = (0.0, 0.0, 0.0)   # m; (0, 0, 0): hemisphere at the

@@ -62,23 +62,36 @@ the status carries ``SOLVE_REACQUIRED``.
 coils are finite loops (magpylib), 5.5 cm in radius and as close as 15 cm,
 where the dipole is 10 % off. The measured signals are therefore corrected
 through the one signal model (``model.signal``) before step 1:
-``S_c = S - (h_model(x) - h_raab(x))`` at the pose ``x`` of the last
-evaluation (``h_model`` the exact loops, ``h_raab`` Raab's co-centred dipole
-at the centroid of the coil centres). Its fixed point is the pose whose
-exact-model signals reproduce ``S`` to first order in the error angles. The
-correction is evaluated again (``n`` field evaluations) when an update has
-converged more than ``refresh`` x range from the point of the last
-evaluation; the same evaluation gives the Jacobian of the covariance
-``(H^T W H)^-1`` (``pose.covariance``, the Cramer-Rao bound of the exact
-model; orientation error ``R_true = R exp([dtheta]x)``, parameter order
-``(p, dtheta)`` as ``PoseSolver``). ``correction=False`` leaves it out (the
-residual's effect is measured in ``docs/raab.md``).
+``S_c[:, j] = S[:, j] - R^T (b_j + G_j (p - p_m))`` with ``b_j = B_model,j -
+B_raab,j`` the source-frame difference between the exact loop of coil ``j``
+and Raab's co-centred dipole (at the centroid of the coil centres) at the
+point ``p_m`` of the last evaluation and ``G_j`` its gradient: exact in the
+orientation, linear in the position. The fixed point of the updates is then
+the pose at which Raab's detection of ``S - h_model`` vanishes, the exact
+model's pose to first order. The correction is evaluated again (``n`` field
+evaluations) once the estimate has moved more than ``refresh`` x range (the
+second-order error of the linear term: 2 % keeps it below a tenth of the
+bound at 15 cm) or left the linear term's range. With the correction the
+detection's sensitivities are the dipole's, not the loop's, so near the
+source the updates would converge only by the ratio of the two (~0.4 per
+update at 15 cm); the detected errors are therefore solved through ``K = I +
+G D T`` (:meth:`RaabTracker._precondition`: Raab's detection ``G`` of the
+correction's own Jacobian ``D``), which restores quadratic convergence and
+changes only the rate, not the fixed point, so ``K`` is reused within
+``_K_REUSE`` x range of where it was formed (it does not depend on the
+sensor's orientation: the rotations of ``D``, ``T`` and ``G`` cancel). The same evaluation gives the Jacobian
+of the covariance ``(H^T W H)^-1`` (``pose.covariance``, the Cramer-Rao bound
+of the exact model; orientation error ``R_true = R exp([dtheta]x)``,
+parameter order ``(p, dtheta)`` as ``PoseSolver``). ``correction=False``
+leaves it out (its effect is measured in ``docs/raab.md``).
 
-Work: an update evaluates no field (about 50 flops of 3 x 3 algebra and
-five sines and cosines) and is charged one field evaluation; the evaluation
-of the correction is ``n``; the covariance (no evaluation) is charged ``n``.
-``solve_evals`` counts real evaluations, as ``PoseSolver``. Nothing is
-allocated after construction (Python floats and preallocated buffers).
+Work: an update evaluates no field (about 200 flops of 3 x 3 algebra and
+five sines and cosines) and is charged one field evaluation; an evaluation of
+the correction is ``n`` (plus Raab's dipole and its gradient in closed form,
+not counted); the covariance and ``K`` evaluate no field (the covariance is
+charged ``n``). ``solve_evals`` counts real evaluations, as ``PoseSolver``.
+Nothing is allocated after construction (Python floats and preallocated
+buffers).
 """
 from __future__ import annotations
 
@@ -108,9 +121,9 @@ MAX_STEP = 0.5
 #: an update whose angle steps are all below this (rad) ends an acquisition (small-angle regime)
 _ACQUIRED_STEP = 0.01
 #: the preconditioner K sets only the rate, not the fixed point: it is reused within this x range (rad)
-_K_REUSE = 0.03
+_K_REUSE = 0.15
 #: without the linear term (the pose left its neighbourhood), evaluate again once the steps are below this
-_EARLY_REFRESH = 0.01
+_EARLY_REFRESH = 0.03
 #: the preconditioner is applied to detected steps below this (rad, x range): the linear regime
 _LIN_STEP = 0.05
 #: the correction's linear term is used within this fraction of the range (rad) of its evaluation
@@ -301,7 +314,7 @@ class RaabTracker(Staged):
     """
 
     def __init__(self, coils, model: str = "exact", iters: int = 20, acquire_iters: int = 60,
-                 gate_probability: float = 1.0, step_tol: float = 5e-5, refresh: float = 0.02,
+                 gate_probability: float = 1.0, step_tol: float = 1e-4, refresh: float = 0.02,
                  correction: bool = True, start_position=None, start_euler=None, max_step: float = MAX_STEP,
                  hemisphere=(1.0, 0.0, 0.0)):
         self.signal = SignalModel(coils, model)
@@ -374,9 +387,8 @@ class RaabTracker(Staged):
         self._e = [0.0] * 6
         self._y = [0.0] * 6
         self._lin = False                            # the correction's linear term (and K) in use
-        self._k_ok = False                           # K factored, at _pk, _Rk
-        self._pk = [0.0] * 3
-        self._Rk = np.eye(3)
+        self._k_ok = False                           # K factored, at _pk (K does not depend on R: R G D T
+        self._pk = [0.0] * 3                         #   has the sensor rotation cancelled)
         self._k = 0.0
         self.solve_evals = 0
         self.evals_last_step = 0
@@ -661,11 +673,10 @@ class RaabTracker(Staged):
             G[g + 3], G[g + 4], G[g + 5] = Jv[g + 3] - gxy, Jv[g + 4] - gyy, Jv[g + 5] - gyz
             G[g + 6], G[g + 7], G[g + 8] = Jv[g + 6] - gxz, Jv[g + 7] - gyz, Jv[g + 8] - gzz
         self._coupling(True)
-        if not self._k_ok or self._far(self._pk, self._Rk, _K_REUSE):
+        if not self._k_ok or self._far(self._pk, None, _K_REUSE):
             self._precondition()
             pk = self._pk
             pk[0], pk[1], pk[2] = px, py, pz
-            np.copyto(self._Rk, R)
         self._lin = self._k_ok
         self._then(self._unit_update, 1)
 
@@ -845,10 +856,12 @@ class RaabTracker(Staged):
         return self._far(self._pm, self._Rm, self.refresh)
 
     def _far(self, pm, Rm, r: float) -> bool:
-        """The estimate is more than ``r`` x range from ``pm`` or ``r`` rad from ``Rm``."""
+        """The estimate is more than ``r`` x range from ``pm`` or ``r`` rad from ``Rm`` (unless None)."""
         px, py, pz = self._point()
         R = self._R
         dx, dy, dz = px - pm[0], py - pm[1], pz - pm[2]
+        if Rm is None:
+            return dx * dx + dy * dy + dz * dz > (r * self._x[2]) ** 2
         c = 0.5 * (Rm[0, 0] * R[0, 0] + Rm[1, 0] * R[1, 0] + Rm[2, 0] * R[2, 0] + Rm[0, 1] * R[0, 1]
                    + Rm[1, 1] * R[1, 1] + Rm[2, 1] * R[2, 1] + Rm[0, 2] * R[0, 2] + Rm[1, 2] * R[1, 2]
                    + Rm[2, 2] * R[2, 2] - 1.0)                   # cos of the rotation angle between them
