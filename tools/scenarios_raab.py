@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from coiltrack.firmware.config import FirmwareConfig
-from coiltrack.tools.scenarios import Scenario, SensorSpec, register
+from coiltrack.tools.scenarios import Scenario, register
 
 __all__ = ["tracking_figures", "ACQUIRE_TRUTH_P", "ACQUIRE_START_P"]
 
