@@ -3,7 +3,8 @@
 Everything the firmware allocates is sized from one :class:`FirmwareConfig`
 at start-up; it holds the one set of defaults. Its keys are grouped in
 sections (:data:`SECTIONS`: ``link``, ``source``, ``timing``, ``pulse``,
-``limits``, ``budget``, ``adaptive``, ``imu``, ``orientation``, ``fusion``),
+``limits``, ``budget``, ``adaptive``, ``imu``, ``orientation``, ``fusion``,
+``pose``),
 and a configuration file says them in TOML tables of the same names
 (:func:`load_config`, :func:`config_from_dict`; ``examples/firmware.toml``).
 A bad value is refused with a :class:`ConfigError` that names the key as
@@ -176,6 +177,17 @@ class FirmwareConfig:
     source_acc_sigma: float = 0.0           # m/s^2 per IMU sample: the error of Phi f_source in a_net (eq 6.8)
                                             # as white noise on the velocity; it covers the source orientation's
                                             # error times g on a moving source (0: the IMU's imu_acc_sigma)
+    # --- pose solver of the burst trackers (coiltrack.firmware.pose.factory)
+    pose_solver: str = "lm"                 # "lm": Kuipers + least squares | "raab": Raab's iterative tracker
+    raab_iterations: int = 20               # Raab updates per burst with a tracked pose (1: one per pattern,
+                                            #   as the paper); near the source each converges ~0.4x
+    raab_acquire_iterations: int = 60       # Raab updates per burst without a pose (Fig. 8 acquisition)
+    raab_step_tol: float = 1e-4             # converged: angle steps below this (rad), range step below this x range
+    raab_refresh: float = 0.02              # evaluate the exact-loop correction again beyond this x range (rad)
+    raab_correction: bool = True            # correct the dipole model to the exact loops (model.signal)
+    raab_start_position: tuple[float, float, float] = (0.0, 0.0, 0.0)   # m; (0, 0, 0): hemisphere at the
+                                            #   range of the field invariant
+    raab_start_euler_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # psi, theta, phi of the start, deg
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -229,6 +241,7 @@ class FirmwareConfig:
         self._validate_actuation(need)
         self._validate_fusion(need)
         self._validate_signing(need)
+        self._validate_pose(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -241,6 +254,23 @@ class FirmwareConfig:
         from coiltrack.protocol.signing import key_from_text
 
         return key_from_text(self.signing_key) if self.signing_key else b""
+
+    def _validate_pose(self, need) -> None:
+        """Keys of the pose solver (``coiltrack.firmware.pose.factory``, ``pose.raab``)."""
+        fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
+        need("pose_solver", self.pose_solver in ("lm", "raab"), f"must be 'lm' or 'raab', got {self.pose_solver!r}")
+        for name in ("raab_iterations", "raab_acquire_iterations"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 1000,
+                 f"must be an integer in 1..1000, got {v!r}")
+        for name in ("raab_step_tol", "raab_refresh"):
+            v = getattr(self, name)
+            need(name, fin(v) and 0 < v < 1, f"must be a number in (0, 1), got {v!r}")
+        need("raab_correction", isinstance(self.raab_correction, bool),
+             f"must be true or false, got {self.raab_correction!r}")
+        for name in ("raab_start_position", "raab_start_euler_deg"):
+            v = getattr(self, name)
+            need(name, len(v) == 3 and all(fin(c) for c in v), "must be a finite 3-vector")
 
     def _validate_fusion(self, need) -> None:
         """Keys of the orientation filter and the magnetic-inertial fusion
@@ -373,6 +403,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "psi_sigma", "meas_sigma"),
     "signing": ("signing_key", "signing_link_id"),
     "body": ("source_acceleration", "source_acc_sigma"),
+    "pose": ("pose_solver", "raab_iterations", "raab_acquire_iterations", "raab_step_tol", "raab_refresh",
+             "raab_correction", "raab_start_position", "raab_start_euler_deg"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -43,6 +43,9 @@ def add_arguments(p) -> None:
     p.add_argument("--warmup", type=A.real(0.0, A.MAX_BENCH_S), default=5.0,
                    help="seconds excluded from the statistics (default 5)")
     p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the figures as JSON")
+    p.add_argument("--solver", choices=("lm", "raab", "both"),
+                   help="also replay with this pose solver ([pose] pose_solver) and report its cost per update: "
+                        "field evaluations and time of each burst's solve; 'both': Raab's beside the LM's")
 
 
 # ---------------------------------------------------------------------------
@@ -391,6 +394,12 @@ def run(args) -> int:
     rep = measure(header, reads, args.warmup)
     print(f"coiltrack perf: {rep['scenario']} seed {rep['seed']}, {rep['duration_s']} s replayed on a virtual clock")
     print(format_table(rep))
+    if args.solver:
+        from .perf_solvers import format_solver_costs, solver_costs
+
+        rep["pose_solvers"] = solver_costs(header, reads, ("lm", "raab") if args.solver == "both" else (args.solver,),
+                                           args.warmup)
+        print(format_solver_costs(rep["pose_solvers"]))
     if args.json:
         from .jsonout import write
 

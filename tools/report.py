@@ -176,6 +176,8 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     ref = bench.scenario.reference
     if ref:
         rep["paper"] = ref
+    if getattr(bench.scenario, "report_extra", None) is not None:
+        rep.update(bench.scenario.report_extra(bench, rep, cfg))
     return rep
 
 

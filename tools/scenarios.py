@@ -50,6 +50,8 @@ class Scenario:
     summary: str = ""
     #: several sensors moving apart: ``(world, seed, duration_s, sensor_ids) -> {id: World.view}``
     sensor_worlds: Callable | None = None
+    #: extra report figures, ``(bench, report, cfg) -> dict`` (e.g. ``scenarios_raab.tracking_figures``)
+    report_extra: Callable | None = None
 
 
 def _roetenberg_world(seed: int, duration_s: float) -> World:
@@ -373,3 +375,4 @@ def get(name: str) -> Scenario:
 # scenario families in modules of their own (each registers on import)
 from . import scenarios_multi  # noqa: E402,F401
 from . import scenarios_body  # noqa: E402,F401  (body-worn rows of Tables 5.1 / 6.1)
+from coiltrack.tools import scenarios_raab  # noqa: E402,F401  (registers raab-acquire, helix-hemisphere)

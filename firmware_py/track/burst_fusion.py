@@ -40,7 +40,8 @@ from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_INC
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
-from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING, PoseSolver
+from coiltrack.firmware.pose.factory import make_pose_solver
+from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.track.magnetic import MagneticTracker
 
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
@@ -486,7 +487,7 @@ class BurstFusionTracker(MagneticTracker):
         self.replay_budget = cfg.replay_budget_steps
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
-        self.comp_solver = PoseSolver(coils, cfg.field_model, gate_probability=1.0)
+        self.comp_solver = make_pose_solver(cfg, coils, 1.0)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:

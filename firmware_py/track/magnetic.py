@@ -17,7 +17,8 @@ import numpy as np
 from coiltrack.protocol.schema import POSE_VALID
 
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
-from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING, PoseSolver
+from coiltrack.firmware.pose.factory import make_pose_solver
+from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.rotation import quat_tuple
 from coiltrack.firmware.track.status import COIL_FATAL, input_status
 
@@ -47,7 +48,7 @@ class MagneticTracker:
         self.burst = burst
         self.supervisor = supervisor
         self.tx = tx
-        self.solver = PoseSolver(coils, cfg.field_model, gate_probability=cfg.solve_gate_probability)
+        self.solver = make_pose_solver(cfg, coils, cfg.solve_gate_probability)
         self.nominal = np.array([c.current for c in cfg.coils])
         self.currents = np.zeros(len(coils))
         self._curv = memoryview(self.currents)

@@ -1,0 +1,91 @@
+"""Cost per update of the burst trackers' pose solvers on the same recorded inputs.
+
+For each solver (``[pose] pose_solver``: ``lm``, ``raab``) the recorded frames
+are replayed into a fresh firmware with that solver (the fixed X, Y, Z cycle
+does not depend on the solver, so every solver sees the same signals), and
+each burst's magnetic solve (``tracker.solver``: ``begin`` then ``step``
+until done) is measured: its field evaluations (``solve_evals``, one coil's
+field and gradient at one point, machine-independent) and the wall time of
+its ``begin`` and ``step`` calls. Used by ``coiltrack perf --solver``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+__all__ = ["solver_costs", "format_solver_costs"]
+
+
+def _one(header: dict, reads, solver: str, warm_us: int) -> dict:
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.firmware.pose.solver import SOLVE_RUNNING
+
+    from .framelog import replay
+
+    evals, times, iters = [], [], []
+    clk = time.perf_counter_ns
+    state = {"ns": 0, "t": 0}
+
+    def factory(cfg, port):
+        fw = Firmware(dataclasses.replace(cfg, pose_solver=solver), port)
+        sv = fw.tracker.solver
+        begin, step = sv.begin, sv.step
+
+        def timed_begin(*a, **k):
+            t0 = clk()
+            st = begin(*a, **k)
+            state["ns"] = clk() - t0
+            return st
+
+        def timed_step(budget):
+            t0 = clk()
+            st = step(budget)
+            state["ns"] += clk() - t0
+            if not st & SOLVE_RUNNING and state["t"] >= warm_us:
+                evals.append(sv.solve_evals)
+                times.append(state["ns"])
+                iters.append(sv.iterations)
+            return st
+        sv.begin, sv.step = timed_begin, timed_step
+        return fw
+
+    def on_tick(fw, t):
+        state["t"] = t
+
+    replay(factory, header, reads, on_tick)
+    e, t, it = np.asarray(evals, float), np.asarray(times, float) / 1e3, np.asarray(iters, float)
+    if e.size == 0:
+        return {"updates": 0}
+    return {"updates": int(e.size), "evals_median": float(np.median(e)), "evals_mean": round(float(e.mean()), 2),
+            "evals_max": int(e.max()), "us_median": round(float(np.median(t)), 1),
+            "us_p90": round(float(np.percentile(t, 90)), 1), "iterations_median": float(np.median(it))}
+
+
+def solver_costs(header: dict, reads, solvers, warmup_s: float) -> dict:
+    """``{solver: figures}`` and, with both, the ratios raab / lm."""
+    out = {s: _one(header, reads, s, int(warmup_s * 1e6)) for s in solvers}
+    if "lm" in out and "raab" in out and out["lm"].get("updates") and out["raab"].get("updates"):
+        lm, ra = out["lm"], out["raab"]
+        out["raab_to_lm_evals"] = round(ra["evals_mean"] / lm["evals_mean"], 3)
+        out["raab_to_lm_time"] = round(ra["us_median"] / lm["us_median"], 3)
+    return out
+
+
+def format_solver_costs(d: dict) -> str:
+    lines = []
+    for s in ("lm", "raab"):
+        f = d.get(s)
+        if not f:
+            continue
+        if not f.get("updates"):
+            lines.append(f"  pose solve ({s:<4})     no burst solved after the warm-up")
+            continue
+        lines.append(f"  pose solve ({s:<4})     {f['updates']} updates: field evaluations median {f['evals_median']:g}"
+                     f" (mean {f['evals_mean']}, max {f['evals_max']}), {f['us_median']} us median "
+                     f"(p90 {f['us_p90']}), {f['iterations_median']:g} iterations")
+    if "raab_to_lm_evals" in d:
+        lines.append(f"  raab / lm per update  {d['raab_to_lm_evals']} of the evaluations, {d['raab_to_lm_time']} "
+                     f"of the time (wall clock: machine load shows)")
+    return "\n".join(lines)
