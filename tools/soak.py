@@ -37,19 +37,21 @@ MAX_OVERCONFIDENT_FRACTION = 0.01
 MAX_RECOVERY_S = 3.0
 
 
-def random_schedule(seed: int, duration_s: float, n_coils: int = 3) -> str:
+def random_schedule(seed: int, duration_s: float, n_coils: int = 3, gap_s: tuple[float, float] = GAP_S,
+                    warmup_s: float = WARMUP_S, length_scale: float = 1.0) -> str:
     """A ``--faults`` text: every link fault at ``LINK_RATES``, then every timed
     kind of ``TIMED_KINDS`` in a shuffled order, repeated until the run ends
-    (each fault a random length, ``GAP_S`` apart; none closer than 10 s to the end)."""
+    (each fault a random length times ``length_scale``, ``gap_s`` apart, the
+    first after ``warmup_s``; none closer than 10 s to the end)."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x50AC]))
     parts = [f"{k}={v:g}" for k, v in LINK_RATES.items()]
-    t = WARMUP_S
+    t = warmup_s
     kinds = list(TIMED_KINDS)
     while True:
         order = [kinds[i] for i in rng.permutation(len(kinds))]
         for kind in order:
             span = TIMED_KINDS[kind]
-            length = 0.0 if span is None else float(rng.uniform(*span))
+            length = 0.0 if span is None else float(rng.uniform(*span)) * length_scale
             if t + length + 10.0 > duration_s:
                 return ",".join(parts)
             t0, t1 = round(t, 1), round(t + length, 1)
@@ -64,7 +66,7 @@ def random_schedule(seed: int, duration_s: float, n_coils: int = 3) -> str:
                 parts.append(f"{kind}@{t0:g}s-{t1:g}s")
             else:
                 parts.append(f"{kind}={t0:g}s-{t1:g}s")
-            t = t1 + float(rng.uniform(*GAP_S))
+            t = t1 + float(rng.uniform(*gap_s))
 
 
 def footprint(fw) -> dict:
