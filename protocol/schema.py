@@ -84,7 +84,8 @@ EVT_AUTH_FAIL = 10
 EVT_DEADLINE_MISS = 11
 EVT_PULSE_WINDOW = 12
 EVT_DEAD_RECKONING = 13  # detail: node | 1 << 8 poses no longer valid | 1 << 9 magnetic updates again
-EVT_TRACK_REINIT = 14    # the fused track restarted; detail: node | reason << 8 (1 disagreement, 2 gap, 3 IMU break) | 1 << 12 offsets kept
+# the fused track restarted; detail: node | reason << 8 (1 disagreement, 2 gap, 3 IMU break) | 1 << 12 offsets kept
+EVT_TRACK_REINIT = 14
 
 
 @dataclass(frozen=True)

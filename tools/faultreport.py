@@ -16,6 +16,8 @@
   same run outside every fault window and the ``RECOVERY_HORIZON_S`` after it
   (or ``reference_level_mm`` given by the caller, e.g. a no-fault run of the
   same seed). ``None``: not back within the horizon before the run ended.
+  ``fused_rms_after_faults_mm``: the fused RMS error after the last fault
+  window's end.
 * ``faults_reported``: per fault switch, the firmware's ``FAULT_EVENT`` codes
   received while it was on or within ``REPORT_GRACE_S`` after;
   ``faults_unreported`` lists the switches that raised none of the events they
@@ -105,6 +107,10 @@ def fault_keys(bench, reference_level_mm: float | None = None) -> dict:
         if keep.any():
             level = float(np.sqrt(np.mean(fe_a[keep] ** 2))) * 1e3
     out["no_fault_level_mm"] = None if level is None else round(level, 3)
+    ends = [f.t_off_us for f in timed if f.t_off_us is not None]
+    if ends and fe_a.size:
+        sel = ft_a >= max(ends) * 1e-6
+        out["fused_rms_after_faults_mm"] = round(float(np.sqrt(np.mean(fe_a[sel] ** 2))) * 1e3, 3) if sel.any() else None
     rec_s = {}
     for f in timed:
         rec_s[f.describe()] = recovery_time(ft_a, fe_a, f, level)
