@@ -86,6 +86,17 @@ covariance steps (:func:`max_replay_steps_per_step`; the last IMU sample of a
 call may be split in two at a snapshot time), plus, on the call that
 finishes, one copy of the state and of the pose history.
 
+Recovery (docs/faults.md). The filter restarts from a magnetic solution
+(:meth:`_initialize`) when ``reinit_after`` solutions in a row fail the gate
+(``RECOVER_DISAGREE``), when the last accepted update is older than
+``dead_reckon_limit_us`` (``RECOVER_GAP``: the inertial state alone is not
+vouched for that long) or after the IMU stream broke off (``RECOVER_STREAM``).
+The offsets ``b_a``, ``b_g`` and their covariance block survive a restart
+while credible (:meth:`_keep_biases`, :meth:`_restore_biases`: decayed and
+with the random-walk variance of eqs 6.13-6.14 added for the time between).
+Outputs older than ``dead_reckon_after_us`` since the last accepted update
+carry ``OUT_DEAD_RECKONING``, older than ``dead_reckon_limit_us`` ``OUT_LOST``.
+
 All buffers are created in ``__init__``; a step allocates no numpy array.
 """
 from __future__ import annotations
