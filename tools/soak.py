@@ -122,14 +122,18 @@ def soak_run(scenario, seed: int, duration_s: float, schedule: str | None = None
     every = max(tick, (end_us // MEMORY_SAMPLES) // tick * tick)
     memory = []
     crash = None
+    where = "bench"
     t = 0
     try:
         while t <= end_us:
+            where = "bench"
             bench.emulator.step(t)
+            where = "firmware"
             fw.tick(t)
             if t % every == 0:
                 memory.append({"t_s": t * 1e-6, **footprint(fw)})
             t += tick
+        where = "bench"
         bench.emulator.step(t)
     except Exception as exc:  # a crash is what the soak reports, not what stops it
         crash = f"{type(exc).__name__}: {exc} at t={t * 1e-6:.3f} s ({traceback.format_exc().splitlines()[-3].strip()})"
@@ -138,9 +142,10 @@ def soak_run(scenario, seed: int, duration_s: float, schedule: str | None = None
     done_s = duration_s if crash is None else max(t, tick) * 1e-6
     rep = report_mod.build(bench, fw.status(), done_s, transport="inproc", cfg=cfg)
     rep["schedule"] = schedule
-    rep["crashed"] = crash is not None
+    rep["crashed"] = crash is not None and where == "firmware"       # the firmware's tick raised
+    rep["bench_failed"] = crash is not None and where == "bench"      # the emulated world or nodes raised
     if crash:
-        rep["crash"] = crash
+        rep["crash"] = f"{where}: {crash}"
     rep["memory"] = memory
     rep.update(memory_growth(memory))
     rep["verdict"] = verdict(rep)
@@ -160,7 +165,8 @@ def memory_growth(memory: list[dict]) -> dict:
 
 
 def verdict(rep: dict) -> dict:
-    """The soak's pass conditions, each True or False: no crash, every fault
+    """The soak's pass conditions, each True or False: no crash (and the bench
+    itself ran to the end), every fault
     reported, every fault window recovered from within ``MAX_RECOVERY_S``, at
     most ``MAX_OVERCONFIDENT_FRACTION`` overconfident poses, no memory growth."""
     rec = rep.get("fault_recovery_s", {})
@@ -168,6 +174,7 @@ def verdict(rep: dict) -> dict:
     frac = rep.get("overconfident_fraction")
     return {
         "no_crash": not rep.get("crashed"),
+        "bench_ran_to_the_end": not rep.get("bench_failed"),
         "every_fault_reported": not rep.get("faults_unreported"),
         "recovered_within_limit": not slow,
         "slow_recoveries": slow,
