@@ -22,6 +22,8 @@
   received while it was on or within ``REPORT_GRACE_S`` after;
   ``faults_unreported`` lists the switches that raised none of the events they
   should (``EXPECTED_EVENTS``).
+* ``overconfident_by_fault``: the overconfident poses per fault window (and
+  the ``REPORT_GRACE_S`` after it), and outside every window.
 """
 from __future__ import annotations
 
@@ -76,6 +78,7 @@ def fault_keys(bench, reference_level_mm: float | None = None) -> dict:
     rec = bench.recorder
     n_valid = n_over = n_over_f = n_over_m = 0
     ft, fe = [], []            # true time (s) and position error (m) of the valid fused poses
+    ot = []                    # true time (s) of the overconfident ones
     for rp in rec.poses:
         m = rp["msg"]
         if not m.status & POSE_VALID:
@@ -83,6 +86,7 @@ def fault_keys(bench, reference_level_mm: float | None = None) -> dict:
         n_valid += 1
         if overconfident(m, rp["true_p"]):
             n_over += 1
+            ot.append(rec.master_to_true(m.t_us) * 1e-6)
             if m.status & POSE_FUSED:
                 n_over_f += 1
             else:
@@ -127,6 +131,16 @@ def fault_keys(bench, reference_level_mm: float | None = None) -> dict:
             unrep.append(f.describe())
     out["faults_reported"] = rep
     out["faults_unreported"] = unrep
+    # where the overconfident poses were: in a fault window or the REPORT_GRACE_S after it, or elsewhere
+    ot_a = np.array(ot)
+    by, inside = {}, np.zeros(ot_a.size, bool)
+    for f in timed:
+        t1 = (f.t_off_us if f.t_off_us is not None else f.t_on_us) * 1e-6 + REPORT_GRACE_S
+        sel = (ot_a >= f.t_on_us * 1e-6) & (ot_a < t1)
+        by[f.describe()] = int(sel.sum())
+        inside |= sel
+    by["outside fault windows"] = int((~inside).sum())
+    out["overconfident_by_fault"] = by
     return out
 
 

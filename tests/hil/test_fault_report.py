@@ -70,6 +70,7 @@ def test_short_soak_survives_reports_and_recovers():
     assert rep["fusion"]["imu_orientation_reacquired"] == 1 and rep["fusion"]["fusion_recoveries"] >= 2
     assert rep["fusion"]["fused_poses_lost"] > 0 and rep["poses_invalid"] >= rep["fusion"]["fused_poses_lost"]
     assert rep["state_bytes_constant"] and rep["items_growth"] == 0
+    assert sum(rep["overconfident_by_fault"].values()) == rep["poses_overconfident"]   # windows apart: each once
     ev = rep["faults"]["reported"]["events"]
     assert ev.get("dead_reckoning") and ev.get("track_reinit")
     assert rep["faults"]["reported"]["pose_status"].get("dead_reckoning", 0) > 0
