@@ -188,6 +188,13 @@ class FirmwareConfig:
     raab_start_position: tuple[float, float, float] = (0.0, 0.0, 0.0)   # m; (0, 0, 0): hemisphere at the
                                             #   range of the field invariant
     raab_start_euler_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # psi, theta, phi of the start, deg
+    # --- recovery from faults (coiltrack.firmware.estimate.magnetic_inertial, track.burst_fusion)
+    # a missed burst (cycle 0.6 s + 0.2 s latency) is bridged; past that the pose is inertial only
+    dead_reckon_after_us: int = 1_000_000   # no accepted magnetic update this long: POSE_DEAD_RECKONING
+    # inertial drift of an MTx-class IMU passes the magnetic accuracy within about 2 s (thesis sec 6.4)
+    dead_reckon_limit_us: int = 2_000_000   # ... this long: not valid; the next update restarts the filter
+    recovery_keep_biases: bool = True       # a restart keeps the IMU offsets while they are credible
+    recovery_bias_gate_sigmas: float = 4.0  # credible: every offset within this many prior sigmas of zero
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -242,6 +249,7 @@ class FirmwareConfig:
         self._validate_fusion(need)
         self._validate_signing(need)
         self._validate_pose(need)
+        self._validate_recovery(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -271,6 +279,20 @@ class FirmwareConfig:
         for name in ("raab_start_position", "raab_start_euler_deg"):
             v = getattr(self, name)
             need(name, len(v) == 3 and all(fin(c) for c in v), "must be a finite 3-vector")
+
+    def _validate_recovery(self, need) -> None:
+        """Keys of the ``recovery`` section."""
+        for name in ("dead_reckon_after_us", "dead_reckon_limit_us"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
+                 f"must be a positive integer, got {v!r}")
+        need("dead_reckon_limit_us", self.dead_reckon_limit_us >= self.dead_reckon_after_us,
+             f"must be at least dead_reckon_after_us ({self.dead_reckon_after_us})")
+        need("recovery_keep_biases", isinstance(self.recovery_keep_biases, bool),
+             f"must be true or false, got {self.recovery_keep_biases!r}")
+        v = self.recovery_bias_gate_sigmas
+        need("recovery_bias_gate_sigmas", isinstance(v, (int, float)) and not isinstance(v, bool)
+             and math.isfinite(v) and v > 0, f"must be a positive number, got {v!r}")
 
     def _validate_fusion(self, need) -> None:
         """Keys of the orientation filter and the magnetic-inertial fusion
@@ -405,6 +427,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "body": ("source_acceleration", "source_acc_sigma"),
     "pose": ("pose_solver", "raab_iterations", "raab_acquire_iterations", "raab_step_tol", "raab_refresh",
              "raab_correction", "raab_start_position", "raab_start_euler_deg"),
+    "recovery": ("dead_reckon_after_us", "dead_reckon_limit_us", "recovery_keep_biases", "recovery_bias_gate_sigmas"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -225,7 +225,8 @@ def fault_summary(bench, fw_status: dict | None = None) -> dict:
     coil_faults = {}
     for e in drv.executed:
         for bit, name in ((schema.COIL_FAULT_OPEN_CIRCUIT, "open_circuit"), (schema.COIL_FAULT_OVER_CURRENT,
-                          "over_current"), (schema.COIL_FAULT_CURRENT_SAG, "current_sag")):
+                          "over_current"), (schema.COIL_FAULT_CURRENT_SAG, "current_sag"),
+                          (schema.COIL_FAULT_SUPPLY_LOW, "supply_low")):
             if e.get("faults", 0) & bit:
                 coil_faults[name] = coil_faults.get(name, 0) + 1
     if coil_faults:

@@ -85,8 +85,17 @@ class NodeClock:
         self._step_cum.append(cum)
 
     def reboot(self, true_us: int, start_local_us: int = 0) -> None:
-        """The node restarts at ``true_us``: its counter reads ``start_local_us`` then."""
-        self.add_step(true_us, int(start_local_us) - self.local(true_us))
+        """The node restarts at ``true_us``: its counter reads ``start_local_us`` then.
+        Steps already scheduled for later (a fault schedule adds them at start-up)
+        stay jumps of the restarted counter."""
+        true_us = int(true_us)
+        jump = int(start_local_us) - self.local(true_us)
+        k = bisect.bisect_right(self._step_t, true_us)
+        before = self._step_cum[k - 1] if k > 0 else 0
+        self._step_t.insert(k, true_us)
+        self._step_cum.insert(k, before + jump)
+        for i in range(k + 1, len(self._step_cum)):
+            self._step_cum[i] += jump
 
     def _cum(self, true_us: int) -> int:
         k = bisect.bisect_right(self._step_t, true_us) - 1

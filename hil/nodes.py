@@ -28,7 +28,7 @@ import numpy as np
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
 from coiltrack.protocol.schema import (ACC_LSB, POSE_FUSED, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
                              COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
-                             COIL_FAULT_REFUSED,
+                             COIL_FAULT_REFUSED, COIL_FAULT_SUPPLY_LOW,
                              CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STATE_READY,
                              STATE_RUNNING)
 
@@ -156,6 +156,7 @@ class DriverLimits:
     min_lead_us: int = 200         # a command must arrive at least this early (master time)
     sag_fraction: float = 0.9      # measured below this fraction of the target: COIL_FAULT_CURRENT_SAG
     open_fraction: float = 0.2     # measured below this fraction: COIL_FAULT_OPEN_CIRCUIT
+    supply_low_fraction: float = 0.85  # supply below this fraction of nominal at a pulse: COIL_FAULT_SUPPLY_LOW
     trip_us: int = 200             # over-current trip time of the short-circuit protection
     short_resistance_factor: float = 0.05
     max_temp_c: float = 90.0       # winding temperature above which pulses are refused
@@ -316,6 +317,8 @@ class CoilDriverNode(Node):
             rec["end_us"] = t1
         else:
             achieved = math.copysign(min(abs(target), v / coil.resistance), target)
+        if v < self.limits.supply_low_fraction * self.world.supply_v:
+            rec["faults"] |= COIL_FAULT_SUPPLY_LOW      # the driver's under-voltage warning
         rec["current_a"] = achieved
         rec["tau_us"] = self.world.currents[c].tau_us
         self.world.currents[c].schedule(t0, t1 - t0, achieved)

@@ -56,6 +56,7 @@ COIL_FAULT_DUTY_LIMIT = 8
 COIL_FAULT_REFUSED = 16       # command refused (limits, late, bad signature)
 COIL_FAULT_LATE = 32          # command arrived after its start time
 COIL_FAULT_CURRENT_SAG = 64   # measured current below target (supply sag)
+COIL_FAULT_SUPPLY_LOW = 128   # supply voltage below the driver's warning level (current still regulated)
 
 # --- pose status bits (POSE.status) -----------------------------------------
 POSE_VALID = 1          # a solution exists
@@ -66,6 +67,8 @@ POSE_STALE = 16         # no magnetic update for longer than the configured age
 POSE_SATURATED = 32     # magnetometer saturation in a used window
 POSE_DISTORTED = 64     # field distortion (metal) suspected
 POSE_COIL_FAULT = 128   # the coil driver reported a fault in this cycle
+POSE_DEAD_RECKONING = 256  # fused: no magnetic update for dead_reckon_after_us, inertial only
+POSE_RECOVERED = 512    # fused: restarted from a magnetic solution, no update accepted since
 
 # --- fault / event codes (FAULT_EVENT.code) ---------------------------------
 EVT_FRAME_BAD = 1
@@ -80,6 +83,9 @@ EVT_SCHEMA_MISMATCH = 9
 EVT_AUTH_FAIL = 10
 EVT_DEADLINE_MISS = 11
 EVT_PULSE_WINDOW = 12
+EVT_DEAD_RECKONING = 13  # detail: node | 1 << 8 poses no longer valid | 1 << 9 magnetic updates again
+# the fused track restarted; detail: node | reason << 8 (1 disagreement, 2 gap, 3 IMU break) | 1 << 12 offsets kept
+EVT_TRACK_REINIT = 14
 
 
 @dataclass(frozen=True)

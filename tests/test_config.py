@@ -110,3 +110,18 @@ def test_config_error_survives_pickling():
         config_from_dict({"timing": {"pulse_us": -5}})
     back = pickle.loads(pickle.dumps(ei.value))
     assert back.key == "timing.pulse_us" and str(back) == str(ei.value)
+
+
+@pytest.mark.parametrize("d, key", [
+    ({"recovery": {"dead_reckon_after_us": 0}}, "recovery.dead_reckon_after_us"),
+    ({"recovery": {"dead_reckon_limit_us": 500_000}}, "recovery.dead_reckon_limit_us"),    # below the 1 s default
+    ({"recovery": {"recovery_keep_biases": 1}}, "recovery.recovery_keep_biases"),
+    ({"recovery": {"recovery_bias_gate_sigmas": -4.0}}, "recovery.recovery_bias_gate_sigmas"),
+    ({"fusion": {"dead_reckon_limit_us": 3_000_000}}, "fusion.dead_reckon_limit_us"),      # not its section
+])
+def test_bad_recovery_values_name_the_key(d, key):
+    """Each bad value of the recovery section is refused naming section.key: catches a
+    limit shorter than the dead-reckoning onset (poses invalid before they are flagged)."""
+    with pytest.raises(ConfigError) as ei:
+        config_from_dict(d)
+    assert ei.value.key == key

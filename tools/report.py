@@ -173,6 +173,9 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
                                     and rp["msg"].status & POSE_INCONSISTENT)
     if "adaptive_pulses" in fw_status:
         rep["adaptive"] = {k[len("adaptive_"):]: v for k, v in fw_status.items() if k.startswith("adaptive_")}
+    from .faultreport import fault_keys
+
+    rep.update(fault_keys(bench))
     ref = bench.scenario.reference
     if ref:
         rep["paper"] = ref
@@ -255,6 +258,14 @@ def format_table(rep: dict) -> str:
         rows.append(("faults injected", ", ".join(fl["injected"]["switches"]) or "-"))
         ev = fl["reported"]["events"]
         rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
+        if rep.get("fault_recovery_s"):
+            rows.append(("fault recovery", ", ".join(f"{k} {'-' if v is None else f'{v:g} s'}"
+                                                     for k, v in rep["fault_recovery_s"].items())))
+        if rep.get("faults_unreported"):
+            rows.append(("faults unreported", ", ".join(rep["faults_unreported"])))
+    if rep.get("overconfident_fraction") is not None:
+        rows.append(("overconfident poses", f'{rep["poses_overconfident"]} ({rep["overconfident_fraction"]:.4f} of '
+                                            f'the valid; 99.9 % chi-square, 3 dof)'))
     for sn in rep.get("sensors", []):
         rows.append((f"  sensor {sn['node']}", f"{sn['position_rms_mm']:.1f} mm, {sn['orientation_rms_deg']:.2f} deg, "
                                               f"{sn['poses']} poses"))

@@ -86,6 +86,17 @@ covariance steps (:func:`max_replay_steps_per_step`; the last IMU sample of a
 call may be split in two at a snapshot time), plus, on the call that
 finishes, one copy of the state and of the pose history.
 
+Recovery (docs/faults.md). The filter restarts from a magnetic solution
+(:meth:`_initialize`) when ``reinit_after`` solutions in a row fail the gate
+(``RECOVER_DISAGREE``), when the last accepted update is older than
+``dead_reckon_limit_us`` (``RECOVER_GAP``: the inertial state alone is not
+vouched for that long) or after the IMU stream broke off (``RECOVER_STREAM``).
+The offsets ``b_a``, ``b_g`` and their covariance block survive a restart
+while credible (:meth:`_keep_biases`, :meth:`_restore_biases`: decayed and
+with the random-walk variance of eqs 6.13-6.14 added for the time between).
+Outputs older than ``dead_reckon_after_us`` since the last accepted update
+carry ``OUT_DEAD_RECKONING``, older than ``dead_reckon_limit_us`` ``OUT_LOST``.
+
 All buffers are created in ``__init__``; a step allocates no numpy array.
 """
 from __future__ import annotations
@@ -110,6 +121,12 @@ FUS_INITIALISED = 512       # this update initialised the filter
 FUS_BUSY = 2048             # begin_magnetic_update refused: the previous replay is still running
 FUS_REPLAY_LOST = 4096      # the IMU ring dropped samples the replay needed: the update is lost
 FUS_PREPARED = 8192         # prepare_magnetic_update: the measurement is ready for apply_magnetic_update
+FUS_GAP_REINIT = 16384      # the last update was longer ago than the filter can bridge: restarted
+
+#: why the filter restarted from a magnetic solution (``FusionFilter.recovery_reason``)
+RECOVER_DISAGREE = 1        # ``reinit_after`` rejected updates in a row (innovations beyond the gate)
+RECOVER_GAP = 2             # no accepted update for longer than ``dead_reckon_limit_us``
+RECOVER_STREAM = 3          # the IMU stream broke off (``max_gap_us``)
 
 #: named rows of an IMU ring entry: specific force, rate (sensor frame), the
 #: source's specific force in G, the source orientation Phi (row-major)
@@ -127,6 +144,9 @@ OUT_P, OUT_Q, OUT_VAR_P, OUT_VAR_O, OUT_STATUS = (_O["P"].start, _O["Q"].start, 
 #: status bits of ``OUT_STATUS``
 OUT_STALE = 1               # no magnetic update for ``stale_us``
 OUT_INCONSISTENT = 2        # the last update was not accepted cleanly
+OUT_DEAD_RECKONING = 4      # no accepted magnetic update for ``dead_reckon_after_us``: inertial only
+OUT_LOST = 8                # ... for ``dead_reckon_limit_us``: not a valid pose
+OUT_RECOVERED = 16          # restarted from a magnetic solution, no update accepted since
 #: strapdown + covariance steps one replayed IMU sample can cost (split at a snapshot)
 MAX_STEPS_PER_SAMPLE = 2
 
@@ -158,14 +178,18 @@ class FusionParams:
             reinit_after=cfg.fusion_reinit_after, xi_var_scale=cfg.xi_var_scale, xi_sigma_floor=cfg.xi_sigma_floor,
             xi_heading_sigma_floor=cfg.xi_heading_sigma_floor, mag_var_scale=cfg.mag_var_scale,
             qm_sigma=cfg.qm_sigma, psi_sigma=cfg.psi_sigma, meas_sigma=cfg.meas_sigma,
-            max_gap_us=max(cfg.imu_timeout_us, int(3e6 / cfg.imu_rate_hz)), stale_us=cfg.stale_us)
+            max_gap_us=max(cfg.imu_timeout_us, int(3e6 / cfg.imu_rate_hz)), stale_us=cfg.stale_us,
+            dead_reckon_after_us=cfg.dead_reckon_after_us, dead_reckon_limit_us=cfg.dead_reckon_limit_us,
+            keep_biases=cfg.recovery_keep_biases, bias_gate_sigmas=cfg.recovery_bias_gate_sigmas)
         kw.update(overrides)
         return cls(**kw)
 
     def __init__(self, *, measurement_model, acc_noise, gyro_noise, source_acc_noise, acc_bias_sigma,
                  gyro_bias_sigma, acc_bias_rw, gyro_bias_rw, acc_bias_tau_s, gyro_bias_tau_s, velocity0_sigma,
                  gate_probability, reinit_after, xi_var_scale, xi_sigma_floor, xi_heading_sigma_floor,
-                 mag_var_scale, qm_sigma, psi_sigma, meas_sigma, max_gap_us, stale_us):
+                 mag_var_scale, qm_sigma, psi_sigma, meas_sigma, max_gap_us, stale_us,
+                 dead_reckon_after_us=1_000_000, dead_reckon_limit_us=2_000_000, keep_biases=True,
+                 bias_gate_sigmas=4.0):
         if measurement_model not in (1, 2, 3):
             raise ValueError("measurement_model must be 1, 2 or 3")
         self.measurement_model = int(measurement_model)
@@ -195,6 +219,12 @@ class FusionParams:
         self.meas_sigma = float(meas_sigma)
         self.max_gap_us = int(max_gap_us)
         self.stale_us = int(stale_us)
+        # recovery: how long the inertial state alone is vouched for, and whether the
+        # offsets survive a restart (when within ``bias_gate_sigmas`` of their prior)
+        self.dead_reckon_after_us = int(dead_reckon_after_us)
+        self.dead_reckon_limit_us = int(dead_reckon_limit_us)
+        self.keep_biases = bool(keep_biases)
+        self.bias_gate_sigmas = float(bias_gate_sigmas)
 
 
 class InsState:
@@ -344,6 +374,18 @@ class FusionFilter:
         self.reinits = 0
         self.replays_lost = 0
         self.steps = 0
+        # recovery: offsets kept across a restart (ACC, GYR and their covariance block)
+        self._kb = np.zeros(6)
+        self._kP = np.zeros((6, 6))
+        self._kbv = memoryview(self._kb)
+        self._kPv = memoryview(self._kP)
+        self.kept = False
+        self.kept_t = 0
+        self.ever_initialised = False
+        self.recovering = False         # restarted, no update accepted since (OUT_RECOVERED)
+        self.recovery_reason = 0        # RECOVER_* of the pending or last restart
+        self.recoveries = 0             # restarts after the first initialisation
+        self.biases_kept = 0            # ... of which kept the offsets
         self.recorder = None       # optional offline hook (smoother); None on the board
 
     # ------------------------------------------------------------ the live state
@@ -387,7 +429,9 @@ class FusionFilter:
         if t_us <= st.t_us:
             return False
         if t_us - st.t_us > self.prm.max_gap_us:
-            # the stream broke off: the inertial state is not worth keeping
+            # the stream broke off: the inertial state is not worth keeping (its offsets may be)
+            self._keep_biases(st)
+            self.recovery_reason = RECOVER_STREAM
             self.initialized = False
             self.snap_valid = False
             self._end_replay()
@@ -584,9 +628,16 @@ class FusionFilter:
                 od[slot, OUT_VAR_P + c] = (x * (q00 * x + q01 * y + q02 * z) + y * (q01 * x + q11 * y + q12 * z)
                                            + z * (q02 * x + q12 * y + q22 * z))
         status = 0
-        if t_us - self.last_update_t > self.prm.stale_us:
+        age = t_us - self.last_update_t
+        if age > self.prm.stale_us:
             status |= OUT_STALE
-        if self.last_flags & ~FUS_INITIALISED:
+        if age > self.prm.dead_reckon_after_us:
+            status |= OUT_DEAD_RECKONING
+            if age > self.prm.dead_reckon_limit_us:
+                status |= OUT_LOST
+        if self.recovering:
+            status |= OUT_RECOVERED
+        if self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT):
             status |= OUT_INCONSISTENT
         od[slot, OUT_STATUS] = status
 
@@ -681,15 +732,22 @@ class FusionFilter:
             return FUS_NO_SNAPSHOT
         self.snap_valid = False
         sh = self.sh
-        if not (self.initialized and self.snap_initialized):
+        running = self.initialized and self.snap_initialized
+        gap = running and t_ref_us - self.last_update_t > self.prm.dead_reckon_limit_us
+        if not running or gap:
             if self.model != 1 and not self.snap_xi:
                 self.last_flags = FUS_NOT_INITIALISED
                 return FUS_NOT_INITIALISED
+            flags = FUS_INITIALISED
+            if gap:                     # too long to bridge: restart from the magnetic solution
+                self._keep_biases(self.sn)
+                self.recovery_reason = RECOVER_GAP
+                flags |= FUS_GAP_REINIT
             self._initialize(sh, t_ref_us, q, R_ms, C)
-            self.last_flags = FUS_INITIALISED
+            self.last_flags = flags
             self.last_update_t = t_ref_us
             self._start_replay()
-            return FUS_INITIALISED
+            return flags
         sh.copy_from(self.sn)
         self._shist.copy_from(self.hist)
         self._shist.drop_newer_than(t_ref_us)
@@ -714,6 +772,7 @@ class FusionFilter:
             self.rejects_in_row = 0
             self.accepted_in_row += 1
             self.updates += 1
+            self.recovering = False
             self.last_update_t = t_ref_us
             if self.recorder is not None:
                 self.recorder.on_update(self, sh, self.upd.dx)
@@ -728,6 +787,8 @@ class FusionFilter:
                 return flags            # the state is unchanged: nothing to replay
             if self.recorder is not None:
                 self.recorder.on_rewind(self, t_ref_us)
+            self._keep_biases(sh)       # sh: the prior at t_ref
+            self.recovery_reason = RECOVER_DISAGREE
             self._initialize(sh, t_ref_us, q, R_ms, C)
             self.reinits += 1
             self.rejects_in_row = 0
@@ -897,12 +958,75 @@ class FusionFilter:
             P[PSI.start + i, PSI.start + i] = prm.psi_sigma ** 2
             if self.n > 21:
                 P[XI.start + i, XI.start + i] = prm.psi_sigma ** 2
+        if self.ever_initialised:
+            self.recoveries += 1
+            self.recovering = True
+            if self.kept and self._restore_biases(st, t_ref_us):
+                self.biases_kept += 1
+        self.kept = False
+        self.ever_initialised = True
         st.t_us = t_ref_us
         self.rejects_in_row = 0
         self.accepted_in_row = 0
         self._shist.clear()
         if self.recorder is not None:
             self.recorder.on_init(self, st)
+
+    def _keep_biases(self, st: InsState) -> None:
+        """Remember ``st``'s offsets and their covariance block (rows ``ACC``,
+        ``GYR``) for the next restart, when credible: every offset within
+        ``bias_gate_sigmas`` of its prior (a diverged state has run them off)."""
+        prm = self.prm
+        self.kept = False
+        if not prm.keep_biases:
+            return
+        ga = prm.bias_gate_sigmas * prm.acc_bias_sigma
+        gg = prm.bias_gate_sigmas * prm.gyro_bias_sigma
+        ba, bg = st._bav, st._bgv
+        for i in range(3):
+            if not (abs(ba[i]) <= ga and abs(bg[i]) <= gg):
+                return
+        kb, kP, P = self._kbv, self._kPv, st._Pv
+        a0, g0 = ACC.start, GYR.start
+        for i in range(3):
+            kb[i] = ba[i]
+            kb[3 + i] = bg[i]
+        for i in range(6):
+            ri = a0 + i if i < 3 else g0 + i - 3
+            for j in range(6):
+                kP[i, j] = P[ri, a0 + j if j < 3 else g0 + j - 3]
+        self.kept = True
+        self.kept_t = st.t_us
+
+    def _restore_biases(self, st: InsState, t_us: int) -> bool:
+        """The kept offsets into ``st`` (just initialised at ``t_us``): the
+        nominal values decayed by eqs 6.13-6.14 over the time since they were
+        kept, the variances grown by the random walk (``sigma_rw^2 dt``); not
+        used (False) when a grown variance is no smaller than the prior's."""
+        prm = self.prm
+        dt = max(0, t_us - self.kept_t) * 1e-6
+        qa = prm.acc_bias_rw * prm.acc_bias_rw * dt
+        qg = prm.gyro_bias_rw * prm.gyro_bias_rw * dt
+        kP = self._kPv
+        for i in range(3):
+            if kP[i, i] + qa >= prm.acc_bias_sigma ** 2 or kP[3 + i, 3 + i] + qg >= prm.gyro_bias_sigma ** 2:
+                return False
+        ka = math.exp(-dt / prm.acc_bias_tau_s) if prm.acc_bias_tau_s > 0.0 else 1.0
+        kg = math.exp(-dt / prm.gyro_bias_tau_s) if prm.gyro_bias_tau_s > 0.0 else 1.0
+        kb, P = self._kbv, st._Pv
+        ba, bg = st._bav, st._bgv
+        a0, g0 = ACC.start, GYR.start
+        for i in range(3):
+            ba[i] = ka * kb[i]
+            bg[i] = kg * kb[3 + i]
+        for i in range(6):
+            ri = a0 + i if i < 3 else g0 + i - 3
+            si = ka if i < 3 else kg
+            for j in range(6):
+                sj = ka if j < 3 else kg
+                P[ri, a0 + j if j < 3 else g0 + j - 3] = si * sj * kP[i, j]
+            P[ri, ri] += qa if i < 3 else qg
+        return True
 
     # ------------------------------------------------------------ queries
     def pose_at(self, t_us: int, out_p, out_R) -> bool:

@@ -158,6 +158,7 @@ class OrientationFilter:
         self.initialized = False
         self.t_us = 0
         self.steps = 0
+        self.reacquired = 0              # orientations found again after a break (reacquire)
         self._qwd = params.dist_sigma ** 2
         self._last_norm = 1.0
         self._last_dip = 0.0
@@ -230,6 +231,55 @@ class OrientationFilter:
         self._dt_acc = self._dt2_acc = self._qd_acc = 0.0
         self._cd_acc = 1.0
         self.initialized = True
+        return True
+
+    def reacquire(self, t_us: int, ax, ay, az, mx, my, mz) -> bool:
+        """After a break in the IMU stream (the sensor turned while nothing
+        was integrated): the orientation again by TRIAD from one accelerometer
+        and one magnetometer sample, as :meth:`initialize`, in the frame the
+        filter already has (``h_G``, ``|m|`` learned, eqs 2.8-2.10, kept). The
+        gyroscope offset (eq 2.3) is kept with its variance grown by the random
+        walk over the break (``sigma_wb^2 dt``, at most its initial variance);
+        ``theta`` restarts with ``theta0_sigma``, its cross-covariances zero.
+        Returns False (nothing changed) when the samples give no frame."""
+        an = math.sqrt(ax * ax + ay * ay + az * az)
+        mn = math.sqrt(mx * mx + my * my + mz * mz)
+        if not (an > 0.0 and mn > 0.0 and math.isfinite(an) and math.isfinite(mn)):
+            return False
+        zx, zy, zz = ax / an, ay / an, az / an
+        yx, yy, yz = zy * mz - zz * my, zz * mx - zx * mz, zx * my - zy * mx
+        yn = math.sqrt(yx * yx + yy * yy + yz * yz)
+        if not yn > 1e-6 * mn:
+            return False
+        yx, yy, yz = yx / yn, yy / yn, yz / yn
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+        self.propagate()
+        R = self._Rv
+        R[0, 0], R[0, 1], R[0, 2] = xx, xy, xz
+        R[1, 0], R[1, 1], R[1, 2] = yx, yy, yz
+        R[2, 0], R[2, 1], R[2, 2] = zx, zy, zz
+        p = self.prm
+        dt = max(0, t_us - self.t_us) * 1e-6
+        Pv = self._Pv
+        t0, b0 = THETA.start, BIAS.start
+        grow = p.gyro_bias_rw * p.gyro_bias_rw * dt
+        cap = p.gyro_bias_sigma ** 2
+        for i in range(N):
+            for j in range(3):
+                Pv[t0 + j, i] = 0.0
+                Pv[i, t0 + j] = 0.0
+        for i in range(3):
+            Pv[t0 + i, t0 + i] = p.theta0_sigma ** 2
+            v = Pv[b0 + i, b0 + i] + grow
+            Pv[b0 + i, b0 + i] = v if v < cap else cap
+        self.dist.fill(0.0)
+        self.acc.fill(0.0)
+        self.t_us = t_us
+        np.copyto(self._Rc, self.R)
+        self._dt_acc = self._dt2_acc = self._qd_acc = 0.0
+        self._cd_acc = 1.0
+        self.initialized = True
+        self.reacquired += 1
         return True
 
     def set_bias(self, bx, by, bz) -> None:

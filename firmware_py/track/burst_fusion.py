@@ -32,10 +32,12 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, POSE_FUSED, POSE_INCONSISTENT, POSE_STALE, POSE_VALID
+from coiltrack.protocol.schema import (ACC_LSB, EVT_DEAD_RECKONING, EVT_TRACK_REINIT, GYR_LSB, POSE_DEAD_RECKONING,
+                                       POSE_FUSED, POSE_INCONSISTENT, POSE_RECOVERED, POSE_STALE, POSE_VALID)
 
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
-from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_INCONSISTENT, OUT_P, OUT_Q, OUT_STALE, OUT_STATUS,
+from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
+                                                          OUT_P, OUT_Q, OUT_RECOVERED, OUT_STALE, OUT_STATUS,
                                                           OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
@@ -147,9 +149,14 @@ class _Ori:
         self.compass_used = 0
         self.every = cfg.ori_update_every
         self.n = 0
+        self.gap_us = cfg.imu_timeout_us     # a longer break in the IMU stream: the orientation is lost
+        self.lost = False
 
     def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         f = self.f
+        if f.initialized and t - f.t_us > self.gap_us:
+            f.initialized = False              # what the gyroscopes missed cannot be integrated
+            self.lost = True
         slot = _compass_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
         if slot >= 0:
             self.compass_t = mag._tv[slot]
@@ -167,7 +174,10 @@ class _Ori:
             mz -= s * o[2]
         if not f.initialized:
             if slot >= 0:
-                f.initialize(t, ax, ay, az, mx, my, mz)
+                if self.lost:                  # found again in the same frame, offsets kept
+                    self.lost = not f.reacquire(t, ax, ay, az, mx, my, mz)
+                else:
+                    f.initialize(t, ax, ay, az, mx, my, mz)
             return
         f.predict(t, wx, wy, wz)
         self.n += 1
@@ -275,6 +285,12 @@ class SensorInertial:
         self.fused = 0
         self.samples = 0
         self.last_fuse_flags = 0
+        # recovery bookkeeping (events on changes): 0 tracking, 1 dead reckoning, 2 lost
+        self.dr_state = 0
+        self.recoveries_seen = 0
+        self.kept_seen = 0
+        self.poses_dead_reckoning = 0
+        self.poses_lost = 0
 
     # ------------------------------------------------------------ per sample
     def process(self, mag: SampleRing) -> None:
@@ -556,6 +572,11 @@ class BurstFusionTracker(MagneticTracker):
         for ch, ins in self._pairs:
             fus = ins.fusion
             d = fus._odv
+            if fus.recoveries != ins.recoveries_seen:
+                kept = fus.biases_kept != ins.kept_seen
+                ins.recoveries_seen = fus.recoveries
+                ins.kept_seen = fus.biases_kept
+                tx.event(EVT_TRACK_REINIT, ch.node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
             while True:
                 k = fus.pop_output()
                 if k < 0:
@@ -566,6 +587,23 @@ class BurstFusionTracker(MagneticTracker):
                     status |= POSE_STALE
                 if st & OUT_INCONSISTENT:
                     status |= POSE_INCONSISTENT
+                if st & OUT_RECOVERED:
+                    status |= POSE_RECOVERED
+                dr = 0
+                if st & OUT_DEAD_RECKONING:
+                    status |= POSE_DEAD_RECKONING
+                    ins.poses_dead_reckoning += 1
+                    dr = 1
+                    if st & OUT_LOST:          # past what the filter vouches for: sent, not valid
+                        status &= ~POSE_VALID
+                        ins.poses_lost += 1
+                        dr = 2
+                if dr != ins.dr_state:
+                    if dr > ins.dr_state:
+                        tx.event(EVT_DEAD_RECKONING, ch.node | ((1 << 8) if dr == 2 else 0))
+                    elif dr == 0:
+                        tx.event(EVT_DEAD_RECKONING, ch.node | (1 << 9))
+                    ins.dr_state = dr
                 tx.pose(ch.node, fus._otv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
                         d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
                         d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status)
@@ -579,6 +617,11 @@ class BurstFusionTracker(MagneticTracker):
             "fusion_updates": sum(i.fusion.updates for i in ins),
             "fusion_rejected": sum(i.fusion.rejected for i in ins),
             "fusion_reinits": sum(i.fusion.reinits for i in ins),
+            "fusion_recoveries": sum(i.fusion.recoveries for i in ins),
+            "fusion_biases_kept": sum(i.fusion.biases_kept for i in ins),
+            "fused_poses_dead_reckoning": sum(i.poses_dead_reckoning for i in ins),
+            "fused_poses_lost": sum(i.poses_lost for i in ins),
+            "imu_orientation_reacquired": sum(i.ori.f.reacquired for i in ins),
             "fusion_compensated": sum(i.compensated for i in ins),
             "fusion_output_dropped": sum(i.fusion.out_dropped for i in ins),
             "compass_updates": sum(i.ori.compass_used for i in ins),

@@ -38,6 +38,19 @@ def test_clock_steps_forward_and_back():
         c.add_step(1_500_000, 1)
 
 
+def test_reboot_before_a_scheduled_step_keeps_the_step_a_jump():
+    """A clock step scheduled at 20 s and a reboot at 10 s (a fault schedule with a
+    node outage before a clock step): the counter restarts at 10 s and still jumps
+    by +5 ms at 20 s. Catches the bench refusing the reboot (a soak schedule with
+    both crashed the bench at the reboot)."""
+    c = NodeClock(offset_us=1_000, drift_ppm=0.0)
+    c.add_step(20_000_000, 5_000)
+    c.reboot(10_000_000, start_local_us=2_000)
+    assert c.local(10_000_000) == 2_000
+    assert c.local(19_999_999) == 2_000 + 9_999_999
+    assert c.local(20_000_000) == 2_000 + 10_000_000 + 5_000
+
+
 def test_reboot_restarts_counter():
     c = NodeClock(offset_us=3_000_000, drift_ppm=20.0)
     c.reboot(10_000_000, start_local_us=1_234)

@@ -165,7 +165,7 @@ def test_supply_sag(bench_runner):
     they stay accurate."""
     run = bench_runner("static", seed=3, duration_s=DURATION, faults="sag=0.4@6s-9s")
     ev = events(run, EVT_COIL_FAULT)
-    assert len(ev) >= 12 and all(e.detail & 0xFF == 64 for e in ev)        # CURRENT_SAG
+    assert len(ev) >= 12 and all(e.detail & 0xFF == 64 | 128 for e in ev)  # CURRENT_SAG | SUPPLY_LOW
     during = [rp for rp in run.bench.recorder.poses if 6_000_000 <= rp["msg"].t_us < 9_000_000]
     assert during
     for rp in during:
