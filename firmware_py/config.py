@@ -188,6 +188,9 @@ class FirmwareConfig:
     raab_start_position: tuple[float, float, float] = (0.0, 0.0, 0.0)   # m; (0, 0, 0): hemisphere at the
                                             #   range of the field invariant
     raab_start_euler_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)  # psi, theta, phi of the start, deg
+    # the working volume: a solution or a fused pose farther from the source is not a pose (a diverged
+    # estimate); at 2 m the thesis source's field (18 nT) is below the magnetometer's noise
+    working_range_m: float = 2.0
     # --- recovery from faults (coiltrack.firmware.estimate.magnetic_inertial, track.burst_fusion)
     # a missed burst (cycle 0.6 s + 0.2 s latency) is bridged; past that the pose is inertial only
     dead_reckon_after_us: int = 1_000_000   # no accepted magnetic update this long: POSE_DEAD_RECKONING
@@ -279,6 +282,8 @@ class FirmwareConfig:
         for name in ("raab_start_position", "raab_start_euler_deg"):
             v = getattr(self, name)
             need(name, len(v) == 3 and all(fin(c) for c in v), "must be a finite 3-vector")
+        need("working_range_m", fin(self.working_range_m) and self.working_range_m > 0,
+             f"must be a positive number of metres, got {self.working_range_m!r}")
 
     def _validate_recovery(self, need) -> None:
         """Keys of the ``recovery`` section."""
@@ -426,7 +431,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "signing": ("signing_key", "signing_link_id"),
     "body": ("source_acceleration", "source_acc_sigma"),
     "pose": ("pose_solver", "raab_iterations", "raab_acquire_iterations", "raab_step_tol", "raab_refresh",
-             "raab_correction", "raab_start_position", "raab_start_euler_deg"),
+             "raab_correction", "raab_start_position", "raab_start_euler_deg", "working_range_m"),
     "recovery": ("dead_reckon_after_us", "dead_reckon_limit_us", "recovery_keep_biases", "recovery_bias_gate_sigmas"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}

@@ -44,7 +44,7 @@ from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
 from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
-from coiltrack.firmware.track.magnetic import MagneticTracker
+from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
 
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05
@@ -291,6 +291,7 @@ class SensorInertial:
         self.kept_seen = 0
         self.poses_dead_reckoning = 0
         self.poses_lost = 0
+        self.poses_out_of_range = 0     # fused poses beyond the working volume (sent, not valid)
 
     # ------------------------------------------------------------ per sample
     def process(self, mag: SampleRing) -> None:
@@ -543,7 +544,8 @@ class BurstFusionTracker(MagneticTracker):
         carries the motion since the last burst), else the last solution."""
         ins = self.inertial[ch.node]
         fus = ins.fusion
-        if tp.have_pose and fus.initialized and fus.pose_at(ins.t_ref, tp.warm_p, tp.warm_R):
+        if tp.have_pose and fus.initialized and fus.pose_at(ins.t_ref, tp.warm_p, tp.warm_R) \
+                and in_range(tp.warm_p, self.range_m):
             return True
         return super().warm_start(ch, tp)
 
@@ -604,6 +606,9 @@ class BurstFusionTracker(MagneticTracker):
                     elif dr == 0:
                         tx.event(EVT_DEAD_RECKONING, ch.node | (1 << 9))
                     ins.dr_state = dr
+                if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], self.range_m):
+                    status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
+                    ins.poses_out_of_range += 1
                 tx.pose(ch.node, fus._otv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
                         d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
                         d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status)
@@ -621,6 +626,7 @@ class BurstFusionTracker(MagneticTracker):
             "fusion_biases_kept": sum(i.fusion.biases_kept for i in ins),
             "fused_poses_dead_reckoning": sum(i.poses_dead_reckoning for i in ins),
             "fused_poses_lost": sum(i.poses_lost for i in ins),
+            "fused_poses_out_of_range": sum(i.poses_out_of_range for i in ins),
             "imu_orientation_reacquired": sum(i.ori.f.reacquired for i in ins),
             "fusion_compensated": sum(i.compensated for i in ins),
             "fusion_output_dropped": sum(i.fusion.out_dropped for i in ins),

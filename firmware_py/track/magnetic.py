@@ -12,6 +12,8 @@ evaluations per tick (``PoseSolver.begin`` / ``step``);
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from coiltrack.protocol.schema import POSE_VALID
@@ -23,6 +25,16 @@ from coiltrack.firmware.rotation import quat_tuple
 from coiltrack.firmware.track.status import COIL_FATAL, input_status
 
 SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
+
+
+def in_range3(x: float, y: float, z: float, range_m: float) -> bool:
+    """Whether the point (x, y, z), m, lies within ``range_m`` of the source (False for NaN or inf)."""
+    return math.sqrt(float(x) * x + float(y) * y + float(z) * z) <= range_m
+
+
+def in_range(p, range_m: float) -> bool:
+    """:func:`in_range3` of the point ``p`` (3,)."""
+    return in_range3(p[0], p[1], p[2], range_m)
 
 
 class TrackedPose:
@@ -59,6 +71,8 @@ class MagneticTracker:
         self._status = 0                 # POSE_* bits of that channel's burst
         self.budget = cfg.track_budget_evals
         self._burst_ticks = 0            # ticks since the burst's last window closed
+        self.range_m = cfg.working_range_m
+        self.out_of_range = 0            # solutions beyond the working volume, not sent as poses
         self.solve_ticks_max = 0         # the most ticks a burst's solves took after its windows closed
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
@@ -129,6 +143,11 @@ class MagneticTracker:
         tp = self.poses[ch.node]
         sv = self.solver
         t_pose = (int(sched.start[0]) + int(sched.end[-1])) // 2      # the middle of the burst
+        if solved and not in_range(sv.position, self.range_m):
+            # a diverged start led the solve out of the working volume: no pose; acquire again
+            solved = False
+            tp.have_pose = False
+            self.out_of_range += 1
         if solved:
             np.copyto(tp.position, sv.position)
             np.copyto(tp.rotation, sv.rotation)
@@ -166,4 +185,4 @@ class MagneticTracker:
 
     def counters(self) -> dict:
         return {"cycles": self.cycles, "solve_ticks_max": self.solve_ticks_max,
-                "solve_evals_max": self.solve_evals_max}
+                "solve_evals_max": self.solve_evals_max, "solutions_out_of_range": self.out_of_range}
