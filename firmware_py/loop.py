@@ -66,11 +66,16 @@ class Pipeline:
     measure: Callable[[int], None]
     track: Callable[[int], None]
     tracker: object
+    on_message: Callable | None = None     # messages the receiver does not route (AC_DRIVE_STATUS)
 
 
 def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, closer: WindowCloser,
             supervisor: Supervisor, tx: Transmitter) -> Pipeline:
     """Choose the pipeline once from the configuration."""
+    if cfg.excitation == "ac":
+        from coiltrack.firmware.track.ac import compose_ac
+
+        return Pipeline(*compose_ac(cfg, coils, channels, schedule, supervisor, tx))
     if cfg.actuation == "adaptive" or cfg.single_coil_fusion:
         mode = "adaptive" if cfg.actuation == "adaptive" else "fixed"
         t = SingleCoilTracker(cfg, coils, channels, schedule, closer, supervisor, tx, mode)
@@ -97,7 +102,7 @@ class Firmware:
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
         self.tracker = self.pipeline.tracker
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
-                                 self.tx)
+                                 self.tx, other=self.pipeline.on_message)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None

@@ -84,6 +84,9 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     nb = float(np.median(n_base)) if n_base else 1.0
     sigma_amp = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
     currents = np.array([c.current for c in cfg.coils])
+    amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
+    if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
+        sigma_amp = np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils)))
     invalid = 0
     fused = []          # (distance, position error, angle error) of the fused poses (IMU rate)
     for rp in rec.poses:
@@ -148,6 +151,8 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     if fused:
         _fused_keys(rep, np.array(fused), duration_s, fw_status, rms)
     # consistency flags of the valid poses (NIS monitor, health), and the adaptive mode's counters
+    if "ac_blocks" in fw_status:
+        _ac_keys(rep, fw_status)
     rep["poses_distorted"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
                                  and rp["msg"].status & POSE_DISTORTED)
     rep["poses_inconsistent"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
@@ -188,6 +193,16 @@ def _fused_keys(rep: dict, fz: np.ndarray, duration_s: float, fw_status: dict, r
     rep["by_range"] = by_range
     rep["fusion"] = {k: v for k, v in fw_status.items()
                      if k.startswith(("fusion_", "fused_", "imu_", "compass_", "source_imu"))}
+
+
+def _ac_keys(rep: dict, fw_status: dict) -> None:
+    """AC excitation: ``excitation``, the magnetic pose rate and the demodulator's figures."""
+    rep["excitation"] = "ac"
+    rep.setdefault("magnetic_pose_rate_hz", rep["pose_rate_hz"])
+    rep["ac_quadrature_ratio_mean"] = round(fw_status["ac_quadrature_ratio_mean"], 5)
+    rep["ac_quadrature_ratio_max"] = round(fw_status["ac_quadrature_ratio_max"], 5)
+    rep["ac"] = {k[len("ac_"):]: (round(v, 5) if isinstance(v, float) else v)
+                 for k, v in fw_status.items() if k.startswith("ac_")}
 
 
 def format_table(rep: dict) -> str:

@@ -45,6 +45,9 @@ class BenchSetup:
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
                               sensor_ids=tuple((cfg or scenario.firmware_config()).sensor_ids))
+        install = getattr(spec, "install", None)
+        if install is not None:             # a sensor spec that brings its own nodes (AC excitation)
+            install(self.bench, s_driver, s_sensor)
         src_id = getattr(spec, "source_imu_id", 0)
         if src_id:
             # an IMU + magnetometer module on the source (thesis sec 6.2.3), a node of its own
