@@ -38,10 +38,6 @@ _VALUES = {
                                              start_us=2_000_200_000, duration_us=60_000)),
     "COIL_STATUS": (NODE_COIL_DRIVER, 4, dict(coil=1, pulse_id=513, current_ma=1497, start_us=2_000_200_000,
                                              end_us=2_000_260_000, faults=COIL_FAULT_CURRENT_SAG)),
-    "AC_DRIVE_CMD": (NODE_FIRMWARE, 15, dict(coil=2, plan_id=7, freq_mhz=430_000, amplitude_ua=1_500_000,
-                                            ref_us=2_000_000_000, start_us=2_000_100_000, duration_us=0)),
-    "AC_DRIVE_STATUS": (NODE_COIL_DRIVER, 16, dict(coil=2, plan_id=7, freq_mhz=430_000, amplitude_ua=1_499_871,
-                                                  phase_urad=-2_345, ref_us=2_000_000_000, faults=0)),
     "MAG_SAMPLE": (S, 5, dict(node=S, t_us=2_000_208_333, x=1234, y=-2345, z=3456, flip=1)),
     "IMU_SAMPLE": (S + 1, 6, dict(node=S + 1, t_us=2_000_210_000, ax=120, ay=-340, az=9810,
                                    gx=-12, gy=34, gz=-56)),
@@ -58,6 +54,10 @@ _VALUES = {
     "CONFIG_ACK": (NODE_COIL_DRIVER, 13, dict(node=NODE_COIL_DRIVER, key=0x0102, value=1.75, result=0)),
     "FAULT_EVENT": (NODE_FIRMWARE, 14, dict(node=NODE_FIRMWARE, t_us=2_000_400_000, code=EVT_SEQ_GAP,
                                            detail=0x00100203)),
+    "AC_DRIVE_CMD": (NODE_FIRMWARE, 15, dict(coil=2, plan_id=7, freq_mhz=430_000, amplitude_ua=1_500_000,
+                                            ref_us=2_000_000_000, start_us=2_000_100_000, duration_us=0)),
+    "AC_DRIVE_STATUS": (NODE_COIL_DRIVER, 16, dict(coil=2, plan_id=7, freq_mhz=430_000, amplitude_ua=1_499_871,
+                                                  phase_urad=-2_345, ref_us=2_000_000_000, faults=0)),
 }
 del S
 

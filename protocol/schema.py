@@ -184,27 +184,6 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("end_us", "u64", "us", doc="actual end on the master clock"),
         F("faults", "u8", doc="COIL_FAULT_* bits"),
     ), "What the driver did with a pulse command.", priority=2),
-    MessageDef(0x12, "AC_DRIVE_CMD", (
-        F("coil", "u8", doc="coil index on the driver"),
-        F("plan_id", "u16", doc="wraps; echoed in AC_DRIVE_STATUS"),
-        F("freq_mhz", "u32", "Hz", AC_FREQ_LSB_HZ, "drive frequency"),
-        F("amplitude_ua", "u32", "A", AC_CURRENT_LSB_A, "target current amplitude (peak)"),
-        F("ref_us", "u64", "us", doc="phase reference on the master clock: the current is "
-                                     "amplitude cos(2 pi f (t - ref_us))"),
-        F("start_us", "u64", "us", doc="switch-on time on the master clock"),
-        F("duration_us", "u32", "us", doc="on for this long; 0: until the next plan"),
-    ), "Drive one coil with a sinusoidal current (AC excitation plan, one message per coil).",
-        priority=1, signable=True),
-    MessageDef(0x13, "AC_DRIVE_STATUS", (
-        F("coil", "u8"),
-        F("plan_id", "u16"),
-        F("freq_mhz", "u32", "Hz", AC_FREQ_LSB_HZ, "executed frequency"),
-        F("amplitude_ua", "u32", "A", AC_CURRENT_LSB_A, "measured current amplitude (peak)"),
-        F("phase_urad", "i32", "rad", AC_PHASE_LSB_RAD, "measured current phase against "
-                                                         "cos(2 pi f (t - ref_us)), (-pi, pi]"),
-        F("ref_us", "u64", "us", doc="the plan's phase reference (master clock)"),
-        F("faults", "u8", doc="AC_FAULT_* bits"),
-    ), "What the driver does with an AC plan: executed frequency, measured current phasor.", priority=2),
     MessageDef(0x20, "MAG_SAMPLE", (
         F("node", "u8"),
         F("t_us", "u64", "us", doc="sample time (node clock, sync-corrected)"),
@@ -268,6 +247,27 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("code", "u16", doc="EVT_*"),
         F("detail", "u32"),
     ), "Something went wrong or changed; counted and reported, never fatal.", priority=2),
+    MessageDef(0x60, "AC_DRIVE_CMD", (
+        F("coil", "u8", doc="coil index on the driver"),
+        F("plan_id", "u16", doc="wraps; echoed in AC_DRIVE_STATUS"),
+        F("freq_mhz", "u32", "Hz", AC_FREQ_LSB_HZ, "drive frequency"),
+        F("amplitude_ua", "u32", "A", AC_CURRENT_LSB_A, "target current amplitude (peak)"),
+        F("ref_us", "u64", "us", doc="phase reference on the master clock: the current is "
+                                     "amplitude cos(2 pi f (t - ref_us))"),
+        F("start_us", "u64", "us", doc="switch-on time on the master clock"),
+        F("duration_us", "u32", "us", doc="on for this long; 0: until the next plan"),
+    ), "Drive one coil with a sinusoidal current (AC excitation plan, one message per coil).",
+        priority=1, signable=True),
+    MessageDef(0x61, "AC_DRIVE_STATUS", (
+        F("coil", "u8"),
+        F("plan_id", "u16"),
+        F("freq_mhz", "u32", "Hz", AC_FREQ_LSB_HZ, "executed frequency"),
+        F("amplitude_ua", "u32", "A", AC_CURRENT_LSB_A, "measured current amplitude (peak)"),
+        F("phase_urad", "i32", "rad", AC_PHASE_LSB_RAD, "measured current phase against "
+                                                         "cos(2 pi f (t - ref_us)), (-pi, pi]"),
+        F("ref_us", "u64", "us", doc="the plan's phase reference (master clock)"),
+        F("faults", "u8", doc="AC_FAULT_* bits"),
+    ), "What the driver does with an AC plan: executed frequency, measured current phasor.", priority=2),
 )
 del F
 

@@ -9,7 +9,7 @@ the same interface: each block is a burst whose signal matrix ``S`` (3, n),
 (``PoseSolver.begin(S, currents, sigma, ...)``), so any solver with that
 interface serves AC blocks as it serves pulse windows.
 
-* :class:`ACMagneticTracker`: a magnetic pose per block (100 Hz at the
+* :class:`ACMagneticTracker`: a magnetic pose per block (111 Hz at the
   default 9 ms hop), ``POSE_DISTORTED`` when the block's quadrature exceeds
   ``ac_distortion_ratio`` of its in-phase part.
 * :class:`ACFusionTracker`: the thesis ch. 6 fusion filter
