@@ -83,9 +83,14 @@ register(Scenario(
 ))
 
 
-#: the aluminium plate of ac-vs-dc-metal: a lumped eddy loop behind the source
-PLATE_POSITION = (-0.08, 0.0, 0.0)
-PLATE_COUPLING = 2e-2
+#: the aluminium plate of ac-vs-dc-metal, 8 cm behind the source (the plane x = -0.08 m), as the
+#: lumped eddy loop of its image: a conducting plane answers a dipole with its mirror image
+#: (normal component equal, tangential ones reversed, so that the normal field vanishes on the
+#: plane), here at 16 cm behind the source, a finite plate's fraction PLATE_COUPLING of it, with one
+#: relaxation time (a 3 mm aluminium plate of 20-30 cm: a few ms)
+PLATE_PLANE_X = -0.08
+PLATE_POSITION = (2 * PLATE_PLANE_X, 0.0, 0.0)
+PLATE_COUPLING = 0.3
 PLATE_TAU_S = 2e-3
 
 
@@ -95,7 +100,9 @@ def _metal_world(seed: int, duration_s: float):
 
     from coiltrack.hil.world import EddyObject
 
-    plate = EddyObject(physics.EddyConductor(np.array(PLATE_POSITION), coupling=PLATE_COUPLING, tau_s=PLATE_TAU_S))
+    # EddyConductor's moment is -coupling @ m_c: the image keeps m_x (normal) and reverses m_y, m_z
+    kappa = PLATE_COUPLING * np.diag([-1.0, 1.0, 1.0])
+    plate = EddyObject(physics.EddyConductor(np.array(PLATE_POSITION), coupling=kappa, tau_s=PLATE_TAU_S))
     return World(physics.thesis_source(),
                  motion.HandMovedBench(seed=seed, duration_s=duration_s, r_min=0.15, r_max=0.45, v_max=0.08,
                                        w_max_deg=20.0),
@@ -103,15 +110,18 @@ def _metal_world(seed: int, duration_s: float):
 
 
 def _metal_dc_config() -> FirmwareConfig:
-    # pulsed DC, magnetic only, the same magnetometer; settle covers L/R and the plate's eddy
-    # field (tau 2 ms) to about 1e-3 of the pulse (as hil-fast)
-    return FirmwareConfig(mag_rate_hz=MMC_RATE_HZ, mag_sigma_t=MMC_NOISE_T, settle_us=14_000, fusion=False)
+    # pulsed DC, magnetic only, the same magnetometer; settle and fall cover L/R and the plate's
+    # eddy field (tau 2 ms: e^-7, 1e-3 of it) after each edge; pulses 120 ms apart to keep the
+    # trailing baseline clear of the next pulse
+    return FirmwareConfig(mag_rate_hz=MMC_RATE_HZ, mag_sigma_t=MMC_NOISE_T, settle_us=14_000, fall_us=14_000,
+                          spacing_us=120_000, fusion=False)
 
 
 register(Scenario(
     name="ac-vs-dc-metal",
     summary="an aluminium plate behind the source: AC frequency division against pulsed DC, same run",
-    description="An aluminium plate 8 cm behind the source (lumped eddy loop, coupling 0.02, tau 2 ms); "
+    description="An aluminium plate 8 cm behind the source (its image, a lumped eddy loop of coupling 0.3 and "
+                "tau 2 ms, 16 cm behind); "
                 "the sensor hand-moved 15-45 cm. AC frequency division (magnetic only, this run) and the "
                 "pulsed-DC X, Y, Z cycle (fixed_*) on the same trajectory and seed, the same magnetometer; "
                 "the AC blocks' quadrature is the distortion indicator.",
@@ -120,7 +130,8 @@ register(Scenario(
     firmware_config=lambda: ac_config(fusion=False),
     sensor=ACSensorSpec(),
     parameters={**_AC_PARAMETERS, "imu_rate_hz": 0,
-                "plate": f"lumped eddy loop at {PLATE_POSITION} m, coupling {PLATE_COUPLING}, tau {PLATE_TAU_S} s",
-                "dc": "60 ms pulses, 600 ms cycle, settle 14 ms"},
+                "plate": f"plane x = {PLATE_PLANE_X} m: image eddy loop at {PLATE_POSITION} m, coupling "
+                         f"{PLATE_COUPLING} (normal kept, tangential reversed), tau {PLATE_TAU_S} s",
+                "dc": "60 ms pulses 120 ms apart, 600 ms cycle, settle and fall 14 ms"},
     fixed_config=_metal_dc_config,
 ))
