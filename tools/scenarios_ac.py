@@ -135,3 +135,25 @@ register(Scenario(
                 "dc": "60 ms pulses 120 ms apart, 600 ms cycle, settle and fall 14 ms"},
     fixed_config=_metal_dc_config,
 ))
+
+
+def _clean_world(seed: int, duration_s: float):
+    World, motion, physics = _hil()
+    return World(physics.thesis_source(),
+                 motion.HandMovedBench(seed=seed, duration_s=duration_s, r_min=0.15, r_max=0.45, v_max=0.08,
+                                       w_max_deg=20.0))
+
+
+register(Scenario(
+    name="ac-vs-dc-clean",
+    summary="ac-vs-dc-metal without the plate: what AC and pulsed DC reach on that trajectory",
+    description="The ac-vs-dc-metal trajectory, seed and magnetometer without the aluminium plate: AC frequency "
+                "division (this run) and the pulsed-DC cycle (fixed_*), the reference the plate's effect is "
+                "measured against.",
+    duration_s=60.0,
+    build_world=_clean_world,
+    firmware_config=lambda: ac_config(fusion=False),
+    sensor=ACSensorSpec(),
+    parameters={**_AC_PARAMETERS, "imu_rate_hz": 0, "dc": "60 ms pulses 120 ms apart, 600 ms cycle, settle and fall 14 ms"},
+    fixed_config=_metal_dc_config,
+))

@@ -65,15 +65,21 @@ class ACBlockMeasurement:
         self.quad_max = 0.0
         self.resid_sum = 0.0
         self.started = False
+        self.plan_id = -1
 
     def step(self, now_us: int) -> None:
         act = self.act
         if not act.ready:
             return
-        if not self.started:
+        if not self.started or self.plan_id != act.plan_id:      # the first plan, or a new one
             t0 = act.on_us + self.cfg.ac_settle_us
             for d in self.demods:
                 d.start(t0, act.ref_us, act.amplitude_a, act.phase_rad)
+            for i in range(len(self.pending)):
+                self.pending[i] = -1
+                self._skv[i] = -1
+            self.block_k = -1
+            self.plan_id = act.plan_id
             self.started = True
         for i, ch in enumerate(self.channels):
             self._feed(i, ch)
