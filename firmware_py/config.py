@@ -3,7 +3,7 @@
 Everything the firmware allocates is sized from one :class:`FirmwareConfig`
 at start-up; it holds the one set of defaults. Its keys are grouped in
 sections (:data:`SECTIONS`: ``link``, ``source``, ``timing``, ``pulse``,
-``limits``, ``budget``, ``adaptive``, ``imu``, ``orientation``, ``fusion``),
+``limits``, ``budget``, ``adaptive``, ``imu``, ``orientation``, ``fusion``, ``ac``),
 and a configuration file says them in TOML tables of the same names
 (:func:`load_config`, :func:`config_from_dict`; ``examples/firmware.toml``).
 A bad value is refused with a :class:`ConfigError` that names the key as
@@ -175,6 +175,7 @@ class FirmwareConfig:
     ac_start_us: int = 200_000              # drive switched on this long after boot
     ac_lead_us: int = 100_000               # the plan is sent this long before the switch-on
     ac_settle_us: int = 20_000              # blocks starting earlier than this after switch-on are not used (L/R)
+    ac_status_timeout_us: int = 3_000_000   # no AC_DRIVE_STATUS for this long (driver reports each 1 s): plan again
     ac_min_separation_hz: float = 20.0      # coils, their harmonics and mains kept this far apart (aliased)
     ac_harmonics: int = 3                   # coil harmonics 2..N checked against the other coils
     mains_hz: tuple[float, ...] = (50.0, 60.0)
@@ -244,7 +245,7 @@ class FirmwareConfig:
 
         fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
         need("excitation", self.excitation in ("pulsed", "ac"), f"must be 'pulsed' or 'ac', got {self.excitation!r}")
-        for name in ("ac_window_us", "ac_hop_us", "ac_lead_us"):
+        for name in ("ac_window_us", "ac_hop_us", "ac_lead_us", "ac_status_timeout_us"):
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0, f"must be a positive integer, got {v!r}")
         for name in ("ac_start_us", "ac_settle_us", "mag_integration_us", "ac_harmonics", "mains_harmonics"):
@@ -398,6 +399,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
                "psi_sigma", "meas_sigma"),
     "ac": ("excitation", "ac_freqs_hz", "ac_current_a", "ac_window_us", "ac_hop_us", "ac_start_us", "ac_lead_us", "ac_settle_us",
+           "ac_status_timeout_us",
            "ac_min_separation_hz", "ac_harmonics", "mains_hz", "mains_harmonics", "mag_integration_us",
            "ac_distortion_ratio", "ac_distortion_probability"),
 }

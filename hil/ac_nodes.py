@@ -85,6 +85,14 @@ class ACDriverNode(CoilDriverNode):
                          "ref_true_us": ref_true, "on_true_us": on_true, "rx_true_us": now_us}
         self._rebuild()
 
+    def on_power_off(self, now_us: int) -> None:
+        """Outputs off: the AC drive stops and its plans are forgotten."""
+        super().on_power_off(now_us)
+        self.plans.clear()
+        self.ac_driver = None
+        self.world.ac_driver = None
+        self.next_status_us = None
+
     def _rebuild(self) -> None:
         """One :class:`ACCoilDriver` over the accepted plans (frequency division from the earliest switch-on;
         a coil whose plan starts later joins at its own switch-on through its L/R transient)."""

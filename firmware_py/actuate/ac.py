@@ -9,8 +9,9 @@ with the phase reference ``ref_us`` (master clock): the driver makes the
 current ``A cos(2 pi f (t - ref_us))`` and reports the measured amplitude
 and phase against that reference (``AC_DRIVE_STATUS``). A plan the driver
 refuses (not yet synchronised, a coil it does not have) or does not answer
-within ``ac_lead_us`` after the switch-on is sent again with a new
-``plan_id`` and a later switch-on.
+within ``ac_lead_us`` after the switch-on, or whose driver has been silent
+for ``ac_status_timeout_us`` (it reports about once a second), is sent
+again with a new ``plan_id`` and a later switch-on.
 
 State (allocated once, per coil): ``freq_hz``, ``amplitude_a`` (measured, A
 peak; 0 until reported), ``phase_rad`` (measured, rad), ``faults``
@@ -60,6 +61,9 @@ class ACActuation:
         self.plans_sent = 0
         self.refusals = 0
         self.statuses = 0
+        self.timeouts = 0
+        self.status_timeout_us = int(cfg.ac_status_timeout_us)
+        self.last_status_us = 0
         self._boot = None
 
     def step(self, now_us: int) -> None:
@@ -72,6 +76,9 @@ class ACActuation:
             return
         if not self.ready and now_us > self.on_us + self.lead_us:
             self._send_plan(now_us + self.lead_us)        # not answered or refused: again, later
+        elif self.ready and now_us - self.last_status_us > self.status_timeout_us:
+            self.timeouts += 1                            # the driver went silent (rebooted, off): again
+            self._send_plan(now_us + self.lead_us)
 
     def _send_plan(self, on_us: int) -> None:
         self.plan_id = (self.plan_id + 1) & 0xFFFF
@@ -85,12 +92,13 @@ class ACActuation:
         self.sent_at_us = self.on_us - self.lead_us
         self.plans_sent += 1
 
-    def on_status(self, msg) -> None:
+    def on_status(self, msg, now_us: int = 0) -> None:
         """An ``AC_DRIVE_STATUS`` of the current plan: keep the measured phasor and the faults."""
         c = msg.coil
         if c >= self.n or msg.plan_id != self.plan_id:
             return
         self.statuses += 1
+        self.last_status_us = now_us
         self._fv[c] = msg.faults
         if msg.faults:
             self.tx.event(EVT_COIL_FAULT, (c << 8) | (msg.faults & 0xFF))
@@ -108,7 +116,8 @@ class ACActuation:
         self.ready = ok
 
     def counters(self) -> dict:
-        return {"ac_plans_sent": self.plans_sent, "ac_refusals": self.refusals, "ac_statuses": self.statuses}
+        return {"ac_plans_sent": self.plans_sent, "ac_refusals": self.refusals, "ac_statuses": self.statuses,
+                "ac_status_timeouts": self.timeouts}
 
 
 def wrap_phase(x: float) -> float:

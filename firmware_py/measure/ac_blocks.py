@@ -14,7 +14,10 @@ and its fusing subclass) solve it unchanged: they refer the pose to
 is kept a block past the block's end, so the supervisor treats every sample
 as taken with the coils on (no compass and no earth-field distortion check
 on AC samples). A block that completes while the tracker is still busy is
-counted (``ac_blocks_skipped``) and dropped.
+counted (``ac_blocks_skipped``) and dropped; a block whose in-phase part is
+not significant (``sum S^2 / var`` below the 0.9999 chi-square quantile of
+``3 n`` degrees of freedom: the drive is off) is flagged ``PULSE_TOO_FEW``,
+so the trackers report it without solving (``ac_blocks_no_signal``).
 
 Each block's DC term (the earth field at its middle, sensor frame) goes into
 a small :class:`coiltrack.firmware.measure.pulse.SampleRing` per channel
@@ -28,7 +31,7 @@ import numpy as np
 
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.measure.demod import Demodulator
-from coiltrack.firmware.measure.pulse import SampleRing
+from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, SampleRing
 
 
 class ACBlockMeasurement:
@@ -60,6 +63,8 @@ class ACBlockMeasurement:
         self.blocks_skipped = 0
         self.blocks_bad = 0
         self.blocks_distorted = 0
+        self.blocks_no_signal = 0
+        self.signal_gate = chi2_gate(3 * self.n, 0.9999)
         self.q_gate = chi2_gate(3 * self.n, cfg.ac_distortion_probability)
         self.quad_sum = 0.0
         self.quad_max = 0.0
@@ -93,7 +98,10 @@ class ACBlockMeasurement:
             d.set_currents(self.act.amplitude_a, self.act.phase_rad)
             ok = d.finish(k)
             self._skv[i] = k
-            if ok:
+            if ok and d.signal_chi2() < self.signal_gate:
+                d.block_flags |= PULSE_TOO_FEW           # no coil field in the block (drive off): not solved
+                self.blocks_no_signal += 1
+            elif ok:
                 self.quad_ratio[i] = q = d.quadrature_ratio()
                 self.distorted[i] = q > self.cfg.ac_distortion_ratio and d.quadrature_chi2() > self.q_gate
                 if self.distorted[i]:
@@ -170,6 +178,6 @@ class ACBlockMeasurement:
     def counters(self) -> dict:
         nb = max(self.blocks * len(self.channels), 1)
         return {"ac_blocks": self.blocks, "ac_blocks_skipped": self.blocks_skipped, "ac_blocks_bad": self.blocks_bad,
-                "ac_blocks_distorted": self.blocks_distorted,
+                "ac_blocks_distorted": self.blocks_distorted, "ac_blocks_no_signal": self.blocks_no_signal,
                 "ac_quadrature_ratio_mean": self.quad_sum / nb, "ac_quadrature_ratio_max": self.quad_max,
                 "ac_residual_ratio_mean": self.resid_sum / nb}

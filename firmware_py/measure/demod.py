@@ -281,6 +281,14 @@ class Demodulator:
                 V[ax * n + j] = v_in
         return True
 
+    def signal_chi2(self) -> float:
+        """``sum S^2 / var(S)`` of the last block: chi-square with ``3 n`` degrees of freedom without a drive."""
+        c = 0.0
+        S, V = self._Sv, self._varv
+        for i in range(3 * self.n):
+            c += S[i] * S[i] / V[i]
+        return c
+
     def quadrature_chi2(self) -> float:
         """``sum Q^2 / var(Q)`` of the last block: chi-square with ``3 n`` degrees of freedom without conductors."""
         c = 0.0

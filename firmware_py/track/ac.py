@@ -11,7 +11,8 @@ interface serves AC blocks as it serves pulse windows.
 
 * :class:`ACMagneticTracker`: a magnetic pose per block (111 Hz at the
   default 9 ms hop), ``POSE_DISTORTED`` when the block's quadrature exceeds
-  ``ac_distortion_ratio`` of its in-phase part.
+  ``ac_distortion_ratio`` of its in-phase part and its chi-square quantile
+  at ``ac_distortion_probability``.
 * :class:`ACFusionTracker`: the thesis ch. 6 fusion filter
   (:class:`coiltrack.firmware.track.burst_fusion.BurstFusionTracker`) fed
   with the blocks' solutions, fused poses at the IMU rate. The filter keeps
@@ -149,7 +150,7 @@ def compose_ac(cfg, coils, channels, schedule, supervisor, tx):
 
     def on_message(msg, now_us: int) -> None:
         if msg.ID == AC_STATUS_ID:
-            act.on_status(msg)
+            act.on_status(msg, now_us)
             # the driver answered for this coil (a refusal is the one fatal AC fault; same bit as COIL_FAULT_REFUSED)
             health.heard(cfg.coil_driver_id, now_us)
             if msg.coil < act.n and msg.plan_id == act.plan_id:
