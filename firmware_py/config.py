@@ -4,7 +4,7 @@ Everything the firmware allocates is sized from one :class:`FirmwareConfig`
 at start-up; it holds the one set of defaults. Its keys are grouped in
 sections (:data:`SECTIONS`: ``link``, ``source``, ``timing``, ``pulse``,
 ``limits``, ``budget``, ``adaptive``, ``imu``, ``orientation``, ``fusion``,
-``pose``),
+``signing``, ``body``, ``pose``, ``recovery``, ``ac``),
 and a configuration file says them in TOML tables of the same names
 (:func:`load_config`, :func:`config_from_dict`; ``examples/firmware.toml``).
 A bad value is refused with a :class:`ConfigError` that names the key as
@@ -198,6 +198,23 @@ class FirmwareConfig:
     dead_reckon_limit_us: int = 2_000_000   # ... this long: not valid; the next update restarts the filter
     recovery_keep_biases: bool = True       # a restart keeps the IMU offsets while they are credible
     recovery_bias_gate_sigmas: float = 4.0  # credible: every offset within this many prior sigmas of zero
+    # --- AC excitation (section [ac]; coiltrack.firmware.actuate.ac, coiltrack.firmware.measure.demod)
+    excitation: str = "pulsed"              # "pulsed" DC bursts | "ac" sinusoidal drive, synchronous demodulation
+    ac_freqs_hz: tuple[float, ...] = (215.0, 315.0, 465.0)  # one per coil (frequency division); see ac_plan
+    ac_current_a: float = 0.0               # current amplitude (peak) of every coil; 0: the coil's nominal current
+    ac_window_us: int = 18_000              # demodulation block length (holds >= 1 cycle of every coil)
+    ac_hop_us: int = 9_000                  # a new block every hop: one magnetic pose per hop (111 Hz)
+    ac_start_us: int = 200_000              # drive switched on this long after boot
+    ac_lead_us: int = 100_000               # the plan is sent this long before the switch-on
+    ac_settle_us: int = 20_000              # blocks starting earlier than this after switch-on are not used (L/R)
+    ac_status_timeout_us: int = 3_000_000   # no AC_DRIVE_STATUS for this long (driver reports each 1 s): plan again
+    ac_min_separation_hz: float = 20.0      # coils, their harmonics and mains kept this far apart (aliased)
+    ac_harmonics: int = 3                   # coil harmonics 2..N checked against the other coils
+    mains_hz: tuple[float, ...] = (50.0, 60.0)
+    mains_harmonics: int = 3                # mains harmonics 1..N checked against the coils
+    mag_integration_us: int = 500           # the magnetometer's averaging time (its sinc response); 0: none
+    ac_distortion_ratio: float = 0.02       # POSE_DISTORTED when |quadrature| / |in-phase| exceeds this ...
+    ac_distortion_probability: float = 0.999  # ... and the quadrature's chi-square exceeds this quantile
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -253,6 +270,7 @@ class FirmwareConfig:
         self._validate_signing(need)
         self._validate_pose(need)
         self._validate_recovery(need)
+        self._validate_ac(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -298,6 +316,42 @@ class FirmwareConfig:
         v = self.recovery_bias_gate_sigmas
         need("recovery_bias_gate_sigmas", isinstance(v, (int, float)) and not isinstance(v, bool)
              and math.isfinite(v) and v > 0, f"must be a positive number, got {v!r}")
+
+    def _validate_ac(self, need) -> None:
+        """Keys of the AC excitation; the frequency plan is checked by
+        :func:`coiltrack.firmware.actuate.ac_plan.check_plan`."""
+        from coiltrack.firmware.actuate.ac_plan import check_plan
+
+        fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
+        need("excitation", self.excitation in ("pulsed", "ac"), f"must be 'pulsed' or 'ac', got {self.excitation!r}")
+        for name in ("ac_window_us", "ac_hop_us", "ac_lead_us", "ac_status_timeout_us"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0, f"must be a positive integer, got {v!r}")
+        for name in ("ac_start_us", "ac_settle_us", "mag_integration_us", "ac_harmonics", "mains_harmonics"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and v >= 0,
+                 f"must be a non-negative integer, got {v!r}")
+        need("ac_current_a", fin(self.ac_current_a) and 0.0 <= self.ac_current_a <= self.max_current_a,
+             f"must be in [0, max_current_a={self.max_current_a}], got {self.ac_current_a!r}")
+        need("ac_min_separation_hz", fin(self.ac_min_separation_hz) and self.ac_min_separation_hz > 0,
+             f"must be a positive number, got {self.ac_min_separation_hz!r}")
+        need("ac_distortion_ratio", fin(self.ac_distortion_ratio) and self.ac_distortion_ratio > 0,
+             f"must be a positive number, got {self.ac_distortion_ratio!r}")
+        need("ac_distortion_probability", self.ac_distortion_probability in (0.99, 0.999, 0.9999, 1.0)
+             and (self.ac_distortion_probability == 1.0 or 3 * len(self.coils) <= 12),
+             f"must be 0.99, 0.999, 0.9999 (up to 4 coils) or 1.0 (no test), got {self.ac_distortion_probability!r}")
+        need("mains_hz", all(fin(f) and f > 0 for f in self.mains_hz), "must list positive frequencies (Hz)")
+        need("ac_window_us", self.ac_window_us % self.ac_hop_us == 0, "must be a multiple of ac_hop_us")
+        if self.excitation != "ac":
+            return
+        need("actuation", self.actuation == "fixed" and not self.single_coil_fusion,
+             "AC excitation drives every coil all the time: needs actuation = 'fixed', single_coil_fusion = false")
+        bad = check_plan(self.ac_freqs_hz, len(self.coils), self.mag_rate_hz, self.ac_window_us,
+                         self.ac_min_separation_hz, self.ac_harmonics, self.mains_hz, self.mains_harmonics)
+        if bad is not None:
+            raise ConfigError(*bad)
+        need("ring_capacity", self.ring_capacity >= 4 * self.ac_window_us * 1e-6 * self.mag_rate_hz,
+             f"must hold four demodulation blocks of samples (>= {int(4 * self.ac_window_us * 1e-6 * self.mag_rate_hz)})")
 
     def _validate_fusion(self, need) -> None:
         """Keys of the orientation filter and the magnetic-inertial fusion
@@ -433,6 +487,10 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "pose": ("pose_solver", "raab_iterations", "raab_acquire_iterations", "raab_step_tol", "raab_refresh",
              "raab_correction", "raab_start_position", "raab_start_euler_deg", "working_range_m"),
     "recovery": ("dead_reckon_after_us", "dead_reckon_limit_us", "recovery_keep_biases", "recovery_bias_gate_sigmas"),
+    "ac": ("excitation", "ac_freqs_hz", "ac_current_a", "ac_window_us", "ac_hop_us", "ac_start_us", "ac_lead_us", "ac_settle_us",
+           "ac_status_timeout_us",
+           "ac_min_separation_hz", "ac_harmonics", "mains_hz", "mains_harmonics", "mag_integration_us",
+           "ac_distortion_ratio", "ac_distortion_probability"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -26,7 +26,8 @@ tick runs them top-down, in this order, with no blocking call and no sleep:
    window reports leave as they are made, through the same transmitter).
 
 The pipeline is chosen by :func:`compose` from ``actuation``, ``fusion`` and
-``single_coil_fusion``; the loop itself has no mode flag. Every buffer is
+``single_coil_fusion`` (and ``excitation = "ac"``: :mod:`coiltrack.firmware.track.ac`);
+the loop itself has no mode flag. Every buffer is
 created at start-up; the steady-state tick allocates no numpy array
 (``tests/firmware/test_alloc.py``). Time is an integer count of microseconds
 on the master clock.
@@ -67,11 +68,16 @@ class Pipeline:
     measure: Callable[[int], None]
     track: Callable[[int], None]
     tracker: object
+    on_message: Callable | None = None     # messages the receiver does not route (AC_DRIVE_STATUS)
 
 
 def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, closer: WindowCloser,
             supervisor: Supervisor, tx: Transmitter) -> Pipeline:
     """Choose the pipeline once from the configuration."""
+    if cfg.excitation == "ac":
+        from coiltrack.firmware.track.ac import compose_ac
+
+        return Pipeline(*compose_ac(cfg, coils, channels, schedule, supervisor, tx))
     if cfg.actuation == "adaptive" or cfg.single_coil_fusion:
         mode = "adaptive" if cfg.actuation == "adaptive" else "fixed"
         t = SingleCoilTracker(cfg, coils, channels, schedule, closer, supervisor, tx, mode)
@@ -104,7 +110,7 @@ class Firmware:
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
         self.tracker = self.pipeline.tracker
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
-                                 self.tx)
+                                 self.tx, other=self.pipeline.on_message)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None

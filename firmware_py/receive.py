@@ -16,7 +16,7 @@ _HEARTBEAT = MSG["HEARTBEAT"].ID
 
 
 class Receiver:
-    def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx):
+    def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None):
         self.port = port
         self.decoder = decoder
         self.channels = {ch.node: ch for ch in channels}
@@ -27,6 +27,7 @@ class Receiver:
         self.schema_mismatches = 0
         self.peer_hashes: dict[int, int] = {}
         self.imu_received = 0
+        self.other = other            # the pipeline's handler of the messages routed nowhere else
 
     def step(self, now_us: int) -> None:
         data = self.port.read()
@@ -50,6 +51,8 @@ class Receiver:
                 self.tracker.on_coil_status(msg)
             elif mid == _HEARTBEAT:
                 self._on_heartbeat(msg)
+            elif self.other is not None:
+                self.other(msg, now_us)
 
     def _on_heartbeat(self, msg) -> None:
         self.peer_hashes[msg.node] = msg.schema_hash

@@ -14,7 +14,7 @@ from __future__ import annotations
 from coiltrack.protocol import FrameDecoder, FrameEncoder
 
 _ROUTE_ALL = ("TIME_SYNC",)
-_TO_DRIVER = ("COIL_PULSE_CMD",)
+_TO_DRIVER = ("COIL_PULSE_CMD", "AC_DRIVE_CMD")
 _TO_SENSOR = ("MAG_FLIP_CMD",)
 
 

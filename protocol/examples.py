@@ -54,6 +54,10 @@ _VALUES = {
     "CONFIG_ACK": (NODE_COIL_DRIVER, 13, dict(node=NODE_COIL_DRIVER, key=0x0102, value=1.75, result=0)),
     "FAULT_EVENT": (NODE_FIRMWARE, 14, dict(node=NODE_FIRMWARE, t_us=2_000_400_000, code=EVT_SEQ_GAP,
                                            detail=0x00100203)),
+    "AC_DRIVE_CMD": (NODE_FIRMWARE, 15, dict(coil=2, plan_id=7, freq_mhz=430_000, amplitude_ua=1_500_000,
+                                            ref_us=2_000_000_000, start_us=2_000_100_000, duration_us=0)),
+    "AC_DRIVE_STATUS": (NODE_COIL_DRIVER, 16, dict(coil=2, plan_id=7, freq_mhz=430_000, amplitude_ua=1_499_871,
+                                                  phase_urad=-2_345, ref_us=2_000_000_000, faults=0)),
 }
 del S
 

@@ -47,6 +47,10 @@ ACC_LSB = 1e-3
 GYR_LSB = 5e-4
 #: amperes per LSB of coil currents (signed milliamperes)
 CURRENT_LSB_A = 1e-3
+#: AC drive plan scaling: frequency in mHz, current amplitude in uA, phase in urad
+AC_FREQ_LSB_HZ = 1e-3
+AC_CURRENT_LSB_A = 1e-6
+AC_PHASE_LSB_RAD = 1e-6
 
 # --- coil fault bits (COIL_STATUS.faults) -----------------------------------
 COIL_FAULT_OVER_CURRENT = 1
@@ -57,6 +61,13 @@ COIL_FAULT_REFUSED = 16       # command refused (limits, late, bad signature)
 COIL_FAULT_LATE = 32          # command arrived after its start time
 COIL_FAULT_CURRENT_SAG = 64   # measured current below target (supply sag)
 COIL_FAULT_SUPPLY_LOW = 128   # supply voltage below the driver's warning level (current still regulated)
+
+# --- AC drive fault bits (AC_DRIVE_STATUS.faults) ---------------------------
+AC_FAULT_FREQUENCY = 1        # frequency clipped into the driver's band
+AC_FAULT_VOLTAGE = 2          # amplitude limited by the supply voltage
+AC_FAULT_CURRENT = 4          # amplitude limited by the current limit
+AC_FAULT_POWER = 8            # amplitude limited by the mean power limit
+AC_FAULT_REFUSED = 16         # plan refused (coil, late, not synchronised)
 
 # --- pose status bits (POSE.status) -----------------------------------------
 POSE_VALID = 1          # a solution exists
@@ -242,6 +253,27 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("code", "u16", doc="EVT_*"),
         F("detail", "u32"),
     ), "Something went wrong or changed; counted and reported, never fatal.", priority=2),
+    MessageDef(0x60, "AC_DRIVE_CMD", (
+        F("coil", "u8", doc="coil index on the driver"),
+        F("plan_id", "u16", doc="wraps; echoed in AC_DRIVE_STATUS"),
+        F("freq_mhz", "u32", "Hz", AC_FREQ_LSB_HZ, "drive frequency"),
+        F("amplitude_ua", "u32", "A", AC_CURRENT_LSB_A, "target current amplitude (peak)"),
+        F("ref_us", "u64", "us", doc="phase reference on the master clock: the current is "
+                                     "amplitude cos(2 pi f (t - ref_us))"),
+        F("start_us", "u64", "us", doc="switch-on time on the master clock"),
+        F("duration_us", "u32", "us", doc="on for this long; 0: until the next plan"),
+    ), "Drive one coil with a sinusoidal current (AC excitation plan, one message per coil).",
+        priority=1, signable=True),
+    MessageDef(0x61, "AC_DRIVE_STATUS", (
+        F("coil", "u8"),
+        F("plan_id", "u16"),
+        F("freq_mhz", "u32", "Hz", AC_FREQ_LSB_HZ, "executed frequency"),
+        F("amplitude_ua", "u32", "A", AC_CURRENT_LSB_A, "measured current amplitude (peak)"),
+        F("phase_urad", "i32", "rad", AC_PHASE_LSB_RAD, "measured current phase against "
+                                                         "cos(2 pi f (t - ref_us)), (-pi, pi]"),
+        F("ref_us", "u64", "us", doc="the plan's phase reference (master clock)"),
+        F("faults", "u8", doc="AC_FAULT_* bits"),
+    ), "What the driver does with an AC plan: executed frequency, measured current phasor.", priority=2),
 )
 del F
 

@@ -84,6 +84,9 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     nb = float(np.median(n_base)) if n_base else 1.0
     sigma_amp = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
     currents = np.array([c.current for c in cfg.coils])
+    amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
+    if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
+        sigma_amp = np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils)))
     invalid = 0
     fused = []          # (distance, position error, angle error) of the fused poses (IMU rate)
     for rp in rec.poses:
@@ -167,6 +170,9 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     if fused:
         _fused_keys(rep, np.array(fused), duration_s, fw_status, rms)
     # consistency flags of the valid poses (NIS monitor, health), and the adaptive mode's counters
+    if "ac_blocks" in fw_status:
+        _ac_keys(rep, fw_status)
+        rep.update(_ac_energy(bench, duration_s))
     rep["poses_distorted"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
                                  and rp["msg"].status & POSE_DISTORTED)
     rep["poses_inconsistent"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
@@ -214,6 +220,39 @@ def _fused_keys(rep: dict, fz: np.ndarray, duration_s: float, fw_status: dict, r
                      if k.startswith(("fusion_", "fused_", "imu_", "compass_", "source_imu"))}
 
 
+def _ac_keys(rep: dict, fw_status: dict) -> None:
+    """AC excitation: ``excitation``, the magnetic pose rate and the demodulator's figures."""
+    rep["excitation"] = "ac"
+    rep.setdefault("magnetic_pose_rate_hz", rep["pose_rate_hz"])
+    rep["ac_quadrature_ratio_mean"] = round(fw_status["ac_quadrature_ratio_mean"], 5)
+    rep["ac_quadrature_ratio_max"] = round(fw_status["ac_quadrature_ratio_max"], 5)
+    rep["ac"] = {k[len("ac_"):]: (round(v, 5) if isinstance(v, float) else v)
+                 for k, v in fw_status.items() if k.startswith("ac_")}
+
+
+def _ac_energy(bench, duration_s: float, battery_wh: float = BATTERY_WH) -> dict:
+    """Coil charge and energy of AC drive: ``|I|^2 R / 2`` per coil while on; a linear driver from
+    the supply draws the rectified mean ``(2/pi) |I|``, so the battery delivers ``V (2/pi) |I| t``."""
+    drv = getattr(bench.driver, "ac_driver", None)
+    plans = getattr(bench.driver, "plans", {})
+    if drv is None or not plans:
+        return {}
+    on_s = max(0.0, duration_s - min(p["on_true_us"] for p in plans.values()) * 1e-6)
+    world = bench.world
+    charge = coil_e = 0.0
+    for k, d in enumerate(drv.drives):
+        if d is None:
+            continue
+        i = abs(d.current)
+        charge += 2.0 / math.pi * i * on_s
+        coil_e += 0.5 * i * i * world.coils[k].resistance * on_s
+    supply_e = world.supply_v * charge
+    p_mean = supply_e / duration_s if duration_s > 0 else 0.0
+    return {"pulses_per_s": 0.0, "coil_charge_c": round(charge, 4), "coil_energy_j": round(coil_e, 4),
+            "supply_energy_j": round(supply_e, 4),
+            "projected_runtime_h": round(battery_wh / p_mean, 2) if p_mean > 0 else None}
+
+
 def format_table(rep: dict) -> str:
     rows = [
         ("scenario", rep["scenario"]), ("seed", rep["seed"]), ("transport", rep["transport"]),
@@ -245,6 +284,9 @@ def format_table(rep: dict) -> str:
                                        f'{rep["fixed_projected_runtime_h"]} h (same trajectory and seed)'),
                  ("this run / fixed", f'position RMS x{rep["position_rms_ratio"]}, orientation RMS '
                                       f'x{rep["orientation_rms_ratio"]}, coil energy x{rep["energy_ratio"]}')]
+    if rep.get("excitation") == "ac":
+        rows.append(("AC excitation", f'{rep["magnetic_pose_rate_hz"]:.1f} magnetic poses/s; quadrature / in-phase '
+                                      f'{rep["ac_quadrature_ratio_mean"]:.4f} mean, {rep["ac_quadrature_ratio_max"]:.4f} max'))
     if rep.get("poses_distorted") or rep.get("poses_inconsistent"):
         rows.append(("poses flagged", f'{rep["poses_distorted"]} distorted, {rep["poses_inconsistent"]} inconsistent'))
     if rep.get("distance_range_cm"):

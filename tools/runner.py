@@ -51,6 +51,9 @@ class BenchSetup:
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
                               sensor_ids=sids, verifier=self.verifier, sensor_worlds=views)
+        install = getattr(spec, "install", None)
+        if install is not None:             # a sensor spec that brings its own nodes (AC excitation)
+            install(self.bench, s_driver, s_sensor)
         src_id = getattr(spec, "source_imu_id", 0)
         if src_id:
             # an IMU + magnetometer module on the source (thesis sec 6.2.3), a node of its own
@@ -203,7 +206,7 @@ def _tick_loop(bench, fw, rec_port, end_us: int, tick: int, prog, outputs=None):
 
 #: report keys copied from the fixed-cycle reference run as ``fixed_<key>``
 FIXED_KEYS = ("position_rms_mm", "position_p95_mm", "orientation_rms_deg", "poses", "pulses_per_s",
-              "coil_charge_c", "coil_energy_j", "supply_energy_j", "projected_runtime_h")
+              "coil_charge_c", "coil_energy_j", "supply_energy_j", "projected_runtime_h", "crlb_position_rms_mm")
 
 
 def add_fixed_comparison(rep: dict, scenario: Scenario, seed: int, duration_s: float, faults=None,

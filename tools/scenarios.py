@@ -376,3 +376,4 @@ def get(name: str) -> Scenario:
 from . import scenarios_multi  # noqa: E402,F401
 from . import scenarios_body  # noqa: E402,F401  (body-worn rows of Tables 5.1 / 6.1)
 from coiltrack.tools import scenarios_raab  # noqa: E402,F401  (registers raab-acquire, helix-hemisphere)
+from coiltrack.tools import scenarios_ac  # noqa: E402,F401  (AC excitation: raab-ac, ac-vs-dc-metal)

@@ -55,7 +55,7 @@ def test_id_layout_is_stable():
         "HEARTBEAT": 0x600, "TIME_SYNC": 0x000, "TIME_SYNC_REPLY": 0x500, "COIL_PULSE_CMD": 0x100,
         "COIL_STATUS": 0x200, "MAG_SAMPLE": 0x300, "IMU_SAMPLE": 0x320, "MAG_FLIP_CMD": 0x220,
         "POSE": 0x400, "PULSE_WINDOW": 0x620, "CONFIG_GET": 0x520, "CONFIG_SET": 0x540,
-        "CONFIG_ACK": 0x560, "FAULT_EVENT": 0x240}
+        "CONFIG_ACK": 0x560, "FAULT_EVENT": 0x240, "AC_DRIVE_CMD": 0x120, "AC_DRIVE_STATUS": 0x260}
     assert max(CAN_INDEX.values()) < 8
 
 

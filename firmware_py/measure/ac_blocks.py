@@ -1,0 +1,183 @@
+"""The measurement stage of AC excitation: demodulated blocks handed to the trackers as bursts.
+
+Each sensor channel's new samples go through its
+:class:`coiltrack.firmware.measure.demod.Demodulator` (at most
+``max_samples`` per channel and tick, at most one block solved per channel
+and tick). When every channel has solved block ``k`` and the tracker is free
+(:attr:`complete` False), the block becomes the channels' burst: ``ch.S``
+(in-phase, sensor frame, T, column per coil), ``ch.var``, ``ch.flags``,
+``ch.pulse_mid`` (the block's middle), and the schedule's per-coil edges and
+measured currents (the current amplitude of ``AC_DRIVE_STATUS``), so the
+trackers of pulsed DC (:class:`coiltrack.firmware.track.magnetic.MagneticTracker`
+and its fusing subclass) solve it unchanged: they refer the pose to
+``(start[0] + end[-1]) / 2``, the block's middle. The other coils' ``end``
+is kept a block past the block's end, so the supervisor treats every sample
+as taken with the coils on (no compass and no earth-field distortion check
+on AC samples). A block that completes while the tracker is still busy is
+counted (``ac_blocks_skipped``) and dropped; a block whose in-phase part is
+not significant (``sum S^2 / var`` below the 0.9999 chi-square quantile of
+``3 n`` degrees of freedom: the drive is off) is flagged ``PULSE_TOO_FEW``,
+so the trackers report it without solving (``ac_blocks_no_signal``).
+
+Each block's DC term (the earth field at its middle, sensor frame) goes into
+a small :class:`coiltrack.firmware.measure.pulse.SampleRing` per channel
+(``earth``): the compass of the orientation filter under AC excitation.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from coiltrack.firmware.estimate.ekf import chi2_gate
+from coiltrack.firmware.measure.demod import Demodulator
+from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, SampleRing
+
+
+class ACBlockMeasurement:
+    """The measure stage of AC excitation (``step(now_us)``); ``complete`` / :meth:`release` as a burst."""
+
+    def __init__(self, cfg, channels, schedule, actuation, max_samples: int = 0):
+        self.cfg = cfg
+        self.channels = tuple(channels)
+        self.schedule = schedule
+        self.act = actuation
+        self.n = schedule.n
+        self.demods = tuple(Demodulator(cfg.ac_freqs_hz, cfg.ac_window_us, cfg.ac_hop_us, cfg.mag_sigma_t,
+                                        cfg.mag_integration_us) for _ in self.channels)
+        self.earth = {ch.node: SampleRing(64) for ch in self.channels}
+        self._earth = tuple(self.earth[ch.node] for ch in self.channels)
+        per_tick = cfg.mag_rate_hz * cfg.tick_us * 1e-6
+        self.max_samples = max_samples or max(4, int(math.ceil(4 * per_tick)))
+        self.solved_k = np.full(len(self.channels), -1, dtype=np.int64)
+        self._skv = memoryview(self.solved_k)
+        self._cursor = [-(1 << 62)] * len(self.channels)
+        self.pending = [-1] * len(self.channels)       # a block a channel completed, to solve next tick
+        self.complete = False
+        self.t_ref = 0
+        self.block_k = -1
+        self.distorted = [False] * len(self.channels)
+        self.quad_ratio = [0.0] * len(self.channels)
+        # counters
+        self.blocks = 0
+        self.blocks_skipped = 0
+        self.blocks_bad = 0
+        self.blocks_distorted = 0
+        self.blocks_no_signal = 0
+        self.signal_gate = chi2_gate(3 * self.n, 0.9999)
+        self.q_gate = chi2_gate(3 * self.n, cfg.ac_distortion_probability)
+        self.quad_sum = 0.0
+        self.quad_max = 0.0
+        self.resid_sum = 0.0
+        self.started = False
+        self.plan_id = -1
+
+    def step(self, now_us: int) -> None:
+        act = self.act
+        if not act.ready:
+            return
+        if not self.started or self.plan_id != act.plan_id:      # the first plan, or a new one
+            t0 = act.on_us + self.cfg.ac_settle_us
+            for d in self.demods:
+                d.start(t0, act.ref_us, act.amplitude_a, act.phase_rad)
+            for i in range(len(self.pending)):
+                self.pending[i] = -1
+                self._skv[i] = -1
+            self.block_k = -1
+            self.plan_id = act.plan_id
+            self.started = True
+        for i, ch in enumerate(self.channels):
+            self._feed(i, ch)
+        self._assemble()
+
+    def _feed(self, i: int, ch) -> None:
+        d = self.demods[i]
+        if self.pending[i] >= 0:                      # solve what the previous tick completed
+            k = self.pending[i]
+            self.pending[i] = -1
+            d.set_currents(self.act.amplitude_a, self.act.phase_rad)
+            ok = d.finish(k)
+            self._skv[i] = k
+            if ok and d.signal_chi2() < self.signal_gate:
+                d.block_flags |= PULSE_TOO_FEW           # no coil field in the block (drive off): not solved
+                self.blocks_no_signal += 1
+            elif ok:
+                self.quad_ratio[i] = q = d.quadrature_ratio()
+                self.distorted[i] = q > self.cfg.ac_distortion_ratio and d.quadrature_chi2() > self.q_gate
+                if self.distorted[i]:
+                    self.blocks_distorted += 1
+                e = self._earth[i]
+                dc = d._dcv
+                e.push(d.block_mid(k), dc[0], dc[1], dc[2], False, 0)
+            return
+        ring = ch.ring
+        if len(ring) == 0:
+            return
+        idx = ring.index_at_or_after(self._cursor[i] + 1)
+        tv, bv, fv = ring._tv, ring._bv, ring._fv
+        left = self.max_samples
+        while idx < len(ring) and left > 0:
+            s = ring.slot(idx)
+            t = tv[s]
+            self._cursor[i] = t
+            j = 3 * s
+            k = d.push(t, bv[j], bv[j + 1], bv[j + 2], fv[s])
+            idx += 1
+            left -= 1
+            if k >= 0:
+                self.pending[i] = k
+                return
+
+    def _assemble(self) -> None:
+        """Hand block ``k`` to the tracker when every channel has solved it."""
+        sk = self._skv
+        k = sk[0]
+        if k < 0 or k == self.block_k:
+            return
+        for i in range(1, len(sk)):
+            if sk[i] != k:
+                return
+        if self.complete:
+            self.blocks_skipped += 1
+            self.block_k = k
+            return
+        self.block_k = k
+        d0 = self.demods[0]
+        start = d0.t0 + k * d0.hop_us
+        end = start + d0.window_us
+        sched = self.schedule
+        mid = (start + end) // 2
+        for j in range(self.n):
+            sched.start[j] = start
+            sched.end[j] = end + d0.window_us if j < self.n - 1 else end
+            sched._mv[j] = self.act.amplitude_a[j]
+        bad = False
+        for i, ch in enumerate(self.channels):
+            d = self.demods[i]
+            np.copyto(ch.S, d.S)
+            np.copyto(ch.var, d.var)
+            ch.flags.fill(d.block_flags)
+            ch.done.fill(True)
+            ch.pulse_mid.fill(mid)
+            if d.block_flags:
+                bad = True
+            self.quad_sum += self.quad_ratio[i]
+            if self.quad_ratio[i] > self.quad_max:
+                self.quad_max = self.quad_ratio[i]
+            self.resid_sum += d.residual_ratio
+        self.blocks += 1
+        if bad:
+            self.blocks_bad += 1
+        self.t_ref = mid
+        self.complete = True
+
+    def release(self) -> None:
+        """The tracker is done with the block."""
+        self.complete = False
+
+    def counters(self) -> dict:
+        nb = max(self.blocks * len(self.channels), 1)
+        return {"ac_blocks": self.blocks, "ac_blocks_skipped": self.blocks_skipped, "ac_blocks_bad": self.blocks_bad,
+                "ac_blocks_distorted": self.blocks_distorted, "ac_blocks_no_signal": self.blocks_no_signal,
+                "ac_quadrature_ratio_mean": self.quad_sum / nb, "ac_quadrature_ratio_max": self.quad_max,
+                "ac_residual_ratio_mean": self.resid_sum / nb}

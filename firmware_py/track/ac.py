@@ -1,0 +1,159 @@
+"""Trackers and pipeline of AC excitation.
+
+The AC pipeline (:func:`compose_ac`, chosen by ``excitation = "ac"``):
+actuate :class:`coiltrack.firmware.actuate.ac.ACActuation` (the drive plan),
+measure :class:`coiltrack.firmware.measure.ac_blocks.ACBlockMeasurement`
+(synchronous demodulation into blocks), track the pulsed-DC trackers behind
+the same interface: each block is a burst whose signal matrix ``S`` (3, n),
+``sigma`` (3, n) and currents (n,) go to the pose solver
+(``PoseSolver.begin(S, currents, sigma, ...)``), so any solver with that
+interface serves AC blocks as it serves pulse windows.
+
+* :class:`ACMagneticTracker`: a magnetic pose per block (111 Hz at the
+  default 9 ms hop), ``POSE_DISTORTED`` when the block's quadrature exceeds
+  ``ac_distortion_ratio`` of its in-phase part and its chi-square quantile
+  at ``ac_distortion_probability``.
+* :class:`ACFusionTracker`: the thesis ch. 6 fusion filter
+  (:class:`coiltrack.firmware.track.burst_fusion.BurstFusionTracker`) fed
+  with the blocks' solutions, fused poses at the IMU rate. The filter keeps
+  one snapshot for a delayed update: it is scheduled for the middle of the
+  next block not yet begun, and the blocks solved while an update and its
+  replay run are sent as magnetic poses without updating the filter. The
+  orientation filter's compass is the blocks' DC term (the earth field
+  without the coils' fields); no motion compensation (a block is an average
+  over ``ac_window_us``; the motion left enters the covariance with the rms
+  time ``T_w / sqrt(12)`` of a uniform block).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from coiltrack.protocol.schema import AC_FAULT_REFUSED, COIL_FAULT_REFUSED, POSE_DISTORTED
+
+from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
+from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
+from coiltrack.firmware.track.burst_fusion import BurstFusionTracker
+from coiltrack.firmware.track.magnetic import MagneticTracker
+
+
+class _AlwaysQuiet:
+    """The compass gate of AC excitation: the earth-field ring holds only DC terms."""
+
+    def quiet(self, t_us: int) -> bool:
+        return True
+
+
+class _ACMixin:
+    measure: ACBlockMeasurement
+
+    def _report(self, ch, solved: bool) -> None:
+        i = self.channels.index(ch)
+        if self.measure.distorted[i]:
+            self._status |= POSE_DISTORTED
+        super()._report(ch, solved)
+
+    def counters(self) -> dict:
+        d = super().counters()
+        d.update(self.measure.counters())
+        d.update(self.act.counters())
+        return d
+
+
+class ACMagneticTracker(_ACMixin, MagneticTracker):
+    """A magnetic-only pose per AC block."""
+
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx):
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx)
+        self.measure, self.act = measure, act
+
+
+class ACFusionTracker(_ACMixin, BurstFusionTracker):
+    """AC blocks fused with the IMU (see module docstring)."""
+
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx):
+        cfg = dataclasses.replace(cfg, motion_compensation=False)
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx)
+        self.measure, self.act = measure, act
+        quiet = _AlwaysQuiet()
+        age = cfg.ac_window_us + 3 * cfg.ac_hop_us
+        for ins in self.inertial.values():
+            ins.ori.gate = quiet
+            ins.ori.max_age_us = age
+            ins.burst_rms_s = cfg.ac_window_us * 1e-6 / math.sqrt(12.0)
+        self._fuse_mid = {ch.node: -1 for ch in self.channels}
+        self.blocks_fused = 0
+
+    def _plan_snapshots(self, now_us: int) -> None:
+        """Each sensor without an update under way: its snapshot at the middle of the next block not begun."""
+        m = self.measure
+        if not m.started:
+            return
+        d = m.demods[0]
+        for ch, ins in self._pairs:
+            fm = self._fuse_mid[ch.node]
+            if ins.pending or (fm >= 0 and fm >= m.t_ref):
+                continue
+            k = (now_us + 1000 - d.t0) // d.hop_us + 1
+            if k < 0:
+                k = 0
+            mid = d.block_mid(k)
+            self._fuse_mid[ch.node] = mid
+            ins.schedule(mid)
+
+    def step(self, now_us: int) -> None:
+        self._plan_snapshots(now_us)
+        if self.source is not None:
+            self.source.process()
+        for ch, ins in self._pairs:
+            ins.process(self.measure.earth[ch.node])
+        e0 = self.solver.signal.evals
+        fresh = not self.busy()
+        if not fresh:
+            MagneticTracker.step(self, now_us)
+        if not self.busy():
+            self._fuse_step(self.budget - (self.solver.signal.evals - e0), fresh)
+        self._send_fused()
+
+    def warm_start(self, ch, tp) -> bool:
+        ins = self.inertial[ch.node]
+        fus = ins.fusion
+        if tp.have_pose and fus.initialized and fus.pose_at(self.measure.t_ref, tp.warm_p, tp.warm_R):
+            return True
+        return MagneticTracker.warm_start(self, ch, tp)
+
+    def on_solution(self, ch, solved: bool) -> None:
+        ins = self.inertial[ch.node]
+        if self._fuse_mid[ch.node] == self.measure.t_ref and not ins.pending:
+            self._fuse_mid[ch.node] = -1
+            if solved:
+                self.blocks_fused += 1
+            super().on_solution(ch, solved)
+
+    def counters(self) -> dict:
+        d = super().counters()
+        d["ac_blocks_fused"] = self.blocks_fused
+        return d
+
+
+assert AC_FAULT_REFUSED == COIL_FAULT_REFUSED
+
+
+def compose_ac(cfg, coils, channels, schedule, supervisor, tx):
+    """The AC pipeline's stages: ``(actuate, measure, track, tracker, on_message)``."""
+    act = ACActuation(cfg, tx)
+    measure = ACBlockMeasurement(cfg, channels, schedule, act)
+    kind = ACFusionTracker if cfg.fusion else ACMagneticTracker
+    tracker = kind(cfg, coils, channels, schedule, measure, act, supervisor, tx)
+
+    health = supervisor.health
+
+    def on_message(msg, now_us: int) -> None:
+        if msg.ID == AC_STATUS_ID:
+            act.on_status(msg, now_us)
+            # the driver answered for this coil (a refusal is the one fatal AC fault; same bit as COIL_FAULT_REFUSED)
+            health.heard(cfg.coil_driver_id, now_us)
+            if msg.coil < act.n and msg.plan_id == act.plan_id:
+                health.on_coil_status(msg.coil, msg.faults & AC_FAULT_REFUSED)
+
+    return act.step, measure.step, tracker.step, tracker, on_message
