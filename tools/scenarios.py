@@ -240,7 +240,7 @@ def schepers_fixed_config(**kw) -> FirmwareConfig:
     """The fixed X, Y, Z cycle at Schepers' current and pulse length, each
     pulse a single-coil update of the error-state EKF (``single_coil_fusion``)."""
     # hand motion: peak 12 cm/s, a few cm/s on average, so 5 cm/s is the velocity prior at a (re)start
-    base = dict(coils=_schepers_coils(), pulse_us=100_000, spacing_us=140_000, cycle_us=600_000,
+    base = dict(coils=_schepers_coils(), pulse_us=60_000, spacing_us=140_000, cycle_us=600_000,
                 mag_rate_hz=100.0, mag_sigma_t=3e-8, imu_rate_hz=100.0, actuation="fixed",
                 single_coil_fusion=True, init_sigma_vel=0.05)
     base.update(kw)
@@ -250,10 +250,10 @@ def schepers_fixed_config(**kw) -> FirmwareConfig:
 def schepers_adaptive_config(**kw) -> FirmwareConfig:
     """Adaptive single-coil actuation (``coiltrack.firmware.track.single_coil_tracker``) with
     the same coils, sensor and filter as :func:`schepers_fixed_config`."""
-    base = dict(actuation="adaptive", single_coil_fusion=False, adaptive_pulse_us=60_000,
+    base = dict(actuation="adaptive", single_coil_fusion=False, adaptive_pulse_us=0,
                 adaptive_max_current_a=0.91, sigma_max_pos_m=0.002, sigma_min_pos_m=0.0018,
                 sigma_max_ori_deg=0.3, sigma_min_ori_deg=0.27, sigma_range_ref_m=0.25,
-                sigma_range_exp_pos=1.5, sigma_range_exp_ori=1.0)
+                sigma_range_exp_pos=1.5, sigma_range_exp_ori=1.0, accuracy_target="fixed", bound_on="trace")
     base.update(kw)
     return schepers_fixed_config(**base)
 
