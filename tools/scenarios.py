@@ -365,3 +365,4 @@ def get(name: str) -> Scenario:
         return SCENARIOS[name]
     except KeyError:
         raise KeyError(f"unknown scenario '{name}'; known: {', '.join(sorted(SCENARIOS))}") from None
+from coiltrack.tools import scenarios_adaptive  # noqa: E402,F401  (schepers-fixed-*)
