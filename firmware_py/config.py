@@ -177,12 +177,11 @@ class FirmwareConfig:
     bound_on: str = "axis"                  # "axis": every pose variable within its bound; "trace": the sum
                                             #   of the position (orientation) variances within the sum of
                                             #   their bounds, the RMS error being the root of that trace
-    reference_catchup: float = 2.0          # "fixed": a variance this many times the fixed cycle's present one
-                                            #   is held to that present one until caught up (after a start)
-    reference_warmup_us: int = 2_000_000   # "fixed": for this long after a start the fixed cycle's present
-                                            #   variance is held (the start's large errors are not linear)
-    reference_avg_cycles: float = 0.5       # "fixed": the fixed cycle's variance is averaged over this many
-                                            #   cycles (its saw-tooth within a cycle is not the accuracy)
+    reference_warmup_us: int = 2_000_000   # "fixed": for this long after a start the fixed cycle itself runs
+                                            #   (the start's errors are too large for the linear eq 4), and its
+                                            #   covariance is not yet part of the mean the policy holds
+    reference_avg_s: float = 30.0           # "fixed": the fixed cycle's variance is averaged since the start,
+                                            #   then over this long (the RMS of a run is a mean over the run)
     nis_feedback: bool = True               # bounds tightened by the NIS excess: where the innovations show
                                             #   the covariance understating the errors, pulse sooner
     nis_feedback_updates: int = 30          # updates the NIS excess is averaged over (exponential memory)
@@ -355,7 +354,7 @@ class FirmwareConfig:
              f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("nis_feedback", isinstance(self.nis_feedback, bool), f"must be true or false, got {self.nis_feedback!r}")
-        for name in ("fixed_accuracy_ratio", "reference_avg_cycles", "reference_catchup", "nis_linear_fraction", "nis_alarm_z",
+        for name in ("fixed_accuracy_ratio", "reference_avg_s", "nis_linear_fraction", "nis_alarm_z",
                      "saturation_sigmas"):
             v = getattr(self, name)
             need(name, fin(v) and v > 0, f"must be a positive number, got {v!r}")
@@ -398,7 +397,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
                "psi_sigma", "meas_sigma"),
     "adaptive_policy": ("accuracy_target", "fixed_accuracy_ratio", "adaptive_min_ratio", "bound_on",
-                        "reference_avg_cycles", "reference_catchup", "reference_warmup_us",
+                        "reference_avg_s", "reference_warmup_us",
                         "nis_feedback",
                         "nis_feedback_updates", "nis_feedback_max", "nis_linear_fraction", "nis_forget_us",
                         "nis_alarm_z", "nis_alarm_excess", "nis_max_scale", "no_imu_us", "flip_every_us",

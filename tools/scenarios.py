@@ -253,7 +253,7 @@ def schepers_adaptive_config(**kw) -> FirmwareConfig:
     base = dict(actuation="adaptive", single_coil_fusion=False, adaptive_pulse_us=0,
                 adaptive_max_current_a=0.91, sigma_max_pos_m=0.002, sigma_min_pos_m=0.0018,
                 sigma_max_ori_deg=0.3, sigma_min_ori_deg=0.27, sigma_range_ref_m=0.25,
-                sigma_range_exp_pos=1.5, sigma_range_exp_ori=1.0, accuracy_target="fixed", bound_on="trace")
+                sigma_range_exp_pos=4.0 / 3.0, sigma_range_exp_ori=1.0, accuracy_target="fixed", bound_on="trace")
     base.update(kw)
     return schepers_fixed_config(**base)
 

@@ -48,16 +48,19 @@ __all__ = ["FixedCycleReference", "fixed_cycle_bounds", "nis_bound_factor"]
 N_CORE = CORE.stop
 
 
-def fixed_cycle_bounds(avg6, ratio: float, min_ratio: float, out_max6, out_min6) -> None:
+def fixed_cycle_bounds(avg6, ratio: float, min_ratio: float, out_max6, out_min6, law_pos: float = 1.0,
+                       law_ori: float = 1.0) -> None:
     """Bounds (std, m and rad) that hold a mean variance of ``ratio^2 avg6``.
 
     ``avg6`` (6,): the reference's time-mean pose variances; ``min_ratio``:
-    ``sigma_min / sigma_max``. Writes ``sigma_max = sqrt(2 ratio^2 avg /
+    ``sigma_min / sigma_max``; ``law_pos``, ``law_ori``: the range law at the
+    present range over its own mean, ``r^(2 e) / mean(r^(2 e))`` (1: the same
+    bound at every range). Writes ``sigma_max = sqrt(2 ratio^2 avg law /
     (1 + min_ratio^2))`` into ``out_max6`` and ``min_ratio sigma_max`` into
     ``out_min6`` (see the module docstring for the sawtooth mean)."""
     k = 2.0 * ratio * ratio / (1.0 + min_ratio * min_ratio)
     for i in range(6):
-        v = float(avg6[i])
+        v = float(avg6[i]) * (law_pos if i < 3 else law_ori)
         s = (k * v) ** 0.5 if v > 0.0 else 0.0
         out_max6[i] = s
         out_min6[i] = min_ratio * s
@@ -95,7 +98,8 @@ class FixedCycleReference:
     """
 
     def __init__(self, currents, first_cycle_us: int, cycle_us: int, spacing_us: int, mid_us: int,
-                 var_amp: float, rel_model: float, current_sigma: float, avg_us: float):
+                 var_amp: float, rel_model: float, current_sigma: float, avg_us: float,
+                 exp_pos: float = 0.0, exp_ori: float = 0.0, warmup_us: int = 0):
         self.currents = tuple(float(c) for c in currents)
         self.n = len(self.currents)
         self.first_cycle_us = int(first_cycle_us)
@@ -116,11 +120,27 @@ class FixedCycleReference:
         self._T = np.zeros((n, n))
         self.upd = KalmanUpdate(n, 3, 1.0)
         self.avg = np.zeros(6)
+        #: the running mean of ``r^(2 exp)`` (position, orientation) over the same instants as
+        #: :attr:`avg`: the range law's own mean, which normalises it (``fixed_cycle_bounds``)
+        self.exp = (2.0 * float(exp_pos), 2.0 * float(exp_ori))
+        self.law = np.ones(2)
+        self.elapsed_us = 0.0
+        #: after a start the means follow the present values for this long (us): the start's
+        #: large covariance is not the accuracy of the run
+        self.warmup_us = float(warmup_us)
         self.active = False
         self.t_us = 0
         self.cycle_start = self.first_cycle_us
         self.coil = 0
         self.pulses = 0          # reference pulses taken (counted, never commanded)
+
+    def law_now(self, r: float, g: int) -> float:
+        """``r^(2 e_g) / mean(r^(2 e_g))`` for group ``g`` (0 position, 1 orientation)."""
+        m = float(self.law[g])
+        if not m > 0.0:
+            return 1.0
+        r = r if r > 1e-3 else 1e-3
+        return r ** self.exp[g] / m
 
     def next_mid_us(self) -> int:
         return self.cycle_start + self.coil * self.spacing_us + self.mid_us
@@ -132,6 +152,8 @@ class FixedCycleReference:
             self.avg[k] = self.P[POS.start + k, POS.start + k]
             self.avg[3 + k] = self.P[ORI.start + k, ORI.start + k]
         self.t_us = int(t_us)
+        self.elapsed_us = 0.0
+        self.law[0] = self.law[1] = -1.0          # set at the first interval
         # the cycle in phase with the timetable: the first pulse after t_us
         while self.next_mid_us() <= self.t_us:
             self._advance()
@@ -158,21 +180,30 @@ class FixedCycleReference:
             t_m = self.next_mid_us()
             t1 = t_m if t_m <= t_us else t_us
             if t1 > self.t_us:
-                self._propagate(ekf, (t1 - self.t_us) * 1e-6)
+                self._propagate(ekf, (t1 - self.t_us) * 1e-6, t1 - self.t_us)
                 self.t_us = t1
             if t_m > t_us:
                 break
             self._pulse(ekf, model, self.coil)
             self._advance()
 
-    def _propagate(self, ekf, dt: float) -> None:
+    def _propagate(self, ekf, dt: float, dt_us: int) -> None:
         ekf.core_transition(self._Fv, self.q, dt)
         np.matmul(self.F, self.P, out=self._T)
         np.matmul(self._T, self._Ft, out=self.P)
         self._Pd += self.q
-        a = dt * 1e6 / self.avg_us
+        # the mean since the start until avg_us have passed, then an exponential one over avg_us
+        self.elapsed_us += dt_us
+        e = self.elapsed_us - self.warmup_us
+        a = 1.0 if e <= dt_us else dt_us / (e if e < self.avg_us else self.avg_us)
         if a > 1.0:
             a = 1.0
+        p = ekf.p
+        r = (float(p[0]) * float(p[0]) + float(p[1]) * float(p[1]) + float(p[2]) * float(p[2])) ** 0.5
+        r = r if r > 1e-3 else 1e-3
+        for g in range(2):
+            x = r ** self.exp[g]
+            self.law[g] = x if self.law[g] < 0.0 else self.law[g] + a * (x - self.law[g])
         P = self.P
         avg = self.avg
         for k in range(3):

@@ -229,7 +229,8 @@ class SingleCoilTracker:
                 self.sensors[sid].ref = FixedCycleReference(
                     self.nominal, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us,
                     (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2, var_f, cfg.field_model_rel_sigma,
-                    cfg.current_tolerance_a, cfg.reference_avg_cycles * cfg.cycle_us)
+                    cfg.current_tolerance_a, cfg.reference_avg_s * 1e6, cfg.sigma_range_exp_pos,
+                    cfg.sigma_range_exp_ori, cfg.reference_warmup_us)
         self._sens = tuple(self.sensors.values())
         self.slots = tuple(_Pulse() for _ in range(max(2, n)))
         self._order = [0] * len(self.slots)
@@ -241,6 +242,7 @@ class SingleCoilTracker:
         self._decided_us = 0
         self.cycle = FixedCycle(n, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us, self.lead_us)
         self.last_flip_cmd_us = -(1 << 62)
+        self._warming = False            # the fixed cycle after a start (``reference_warmup_us``)
         self.last_pulse_end = 0
         # counters
         self.pulses = 0
@@ -349,7 +351,7 @@ class SingleCoilTracker:
         cfg = self.cfg
         fl = self.supervisor.flips
         t0 = now_us + 1_000
-        if self.schedule == "fixed" and not self.acq_active:
+        if (self.schedule == "fixed" or self._warming) and not self.acq_active:
             nxt = self.cycle.start_us()
             if nxt - cfg.baseline_us - 2 * cfg.guard_us < t0 + fl.min_gap_us:
                 return
@@ -538,11 +540,17 @@ class SingleCoilTracker:
                 return
         if self._n_active() >= 2:
             return
-        if self.schedule == "adaptive" and now_us - self.last_flip_cmd_us >= cfg.flip_every_us:
-            return      # a flip is due: let the pulses in flight close first (see _flip)
-        if self.schedule == "fixed":
+        # after a start the fixed cycle itself, for reference_warmup_us (accuracy_target "fixed"):
+        # its full-current pulses of every coil, while the errors are too large for eq 4
+        self._warming = False
+        for s in self._sens:
+            if s.ref is not None and s.ref.active and now_us - s.ref_start_us < cfg.reference_warmup_us:
+                self._warming = True
+        if self.schedule == "fixed" or self._warming:
             self._decide_fixed(now_us)
             return
+        if now_us - self.last_flip_cmd_us >= cfg.flip_every_us:
+            return      # a flip is due: let the pulses in flight close first (see _flip)
         start = max(now_us + self.lead_us, self.next_free_us)
         if start - now_us > self.lead_us + cfg.tick_us:
             return
@@ -626,21 +634,10 @@ class SingleCoilTracker:
         cfg = self.cfg
         mx, mn = s.smax6, s.smin6
         if s.ref is not None and s.ref.active:
-            fixed_cycle_bounds(s.ref.avg, cfg.fixed_accuracy_ratio, cfg.adaptive_min_ratio, mx, mn)
-            # behind the fixed cycle (after a start, or where the reference has just measured a lot):
-            # hold its present variance, not its mean, until caught up
-            Pr = s.ref.P
-            # within reference_warmup_us of a start the present variance is held whenever it is the lower
-            catch = 1.0 if self.now_us - s.ref_start_us < cfg.reference_warmup_us else cfg.reference_catchup
-            for g, b in ((0, POS.start), (3, ORI.start)):
-                now = float(Pr[b, b] + Pr[b + 1, b + 1] + Pr[b + 2, b + 2]) * cfg.fixed_accuracy_ratio ** 2
-                live = float(s.P6[g, g] + s.P6[g + 1, g + 1] + s.P6[g + 2, g + 2])
-                held = float(mx[g] * mx[g] + mx[g + 1] * mx[g + 1] + mx[g + 2] * mx[g + 2])
-                if live > catch * now and now < held:
-                    f = math.sqrt(now / held)
-                    for k in range(g, g + 3):
-                        mx[k] = float(mx[k]) * f
-                        mn[k] = float(mn[k]) * f
+            ref = s.ref
+            r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
+            fixed_cycle_bounds(ref.avg, cfg.fixed_accuracy_ratio, cfg.adaptive_min_ratio, mx, mn,
+                               ref.law_now(r, 0), ref.law_now(r, 1))
         else:
             sp = so = 1.0
             if cfg.sigma_range_ref_m > 0.0:

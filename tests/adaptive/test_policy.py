@@ -149,6 +149,7 @@ def test_fixed_cycle_reference_matches_information_form_updates():
     P = P0.copy()
     t = t0
     avg = np.r_[np.diag(P0)[POS], np.diag(P0)[ORI]]
+    elapsed = 0
     for t_imu in range(t0 + 10_000, 2_200_001, 10_000):
         events = [(m, j) for m, j in mids if t < m <= t_imu]
         for m, j in events + [(t_imu, None)]:
@@ -156,7 +157,9 @@ def test_fixed_cycle_reference_matches_information_form_updates():
                 dt = (m - t) * 1e-6
                 F = _FakeFilter.F_of(dt)
                 P = F @ P @ F.T + np.diag(_FakeFilter.q_of(dt))
-                a = min(1.0, (m - t) / 300_000)
+                # the mean since the start, then exponential over 300 ms
+                elapsed += m - t
+                a = 1.0 if elapsed <= m - t else (m - t) / min(elapsed, 300_000)
                 avg += a * (np.r_[np.diag(P)[POS], np.diag(P)[ORI]] - avg)
                 t = m
             if j is not None:
