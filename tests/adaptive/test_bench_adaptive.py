@@ -128,10 +128,25 @@ def test_adaptive_ticks_allocate_no_numpy_array():
     flips and fused poses: no tick creates a numpy array (``tools.alloc``)."""
     if not available():
         pytest.skip("numpy memory handler API not reachable")
-    fw, _, allocating = _run("schepers-adaptive", seed=3, duration_s=8.0, count_alloc_after_us=0)
+    fw, bench, allocating = _run("schepers-adaptive", seed=3, duration_s=8.0, count_alloc_after_us=0)
     s = fw.status()
     assert s["adaptive_acquisitions"] == 1 and s["adaptive_updates"] > 40
     assert allocating == 0
+    # accuracy_target "fixed": for reference_warmup_us after the acquisition burst the fixed
+    # cycle itself runs (X, Y, Z at the nominal current, spacing_us apart), then pulses on demand
+    # at other currents (catches a warm-up that is skipped, or one that never ends)
+    cfg = fw.cfg
+    ex = sorted(bench.driver.executed, key=lambda e: e["start_us"])
+    acq_end = ex[2]["end_us"]
+    warm = [e for e in ex[3:] if e["start_us"] < acq_end + cfg.reference_warmup_us - cfg.cycle_us]
+    assert len(warm) >= 6
+    assert [e["coil"] for e in warm] == [k % 3 for k in range(warm[0]["coil"], warm[0]["coil"] + len(warm))]
+    assert all(abs(e["current_a"] - 0.91) < 2e-3 for e in warm)
+    gaps = (cfg.spacing_us, cfg.cycle_us - 2 * cfg.spacing_us)      # driver clock: within 100 ppm
+    assert all(min(abs(b["start_us"] - a["start_us"] - g) for g in gaps) < 100
+               for a, b in zip(warm, warm[1:]))
+    late = [e for e in ex if e["start_us"] > acq_end + cfg.reference_warmup_us + cfg.cycle_us]
+    assert len({round(e["current_a"], 3) for e in late}) >= 5
 
 
 def test_without_imu_the_mode_keeps_acquiring_magnetic_poses():
