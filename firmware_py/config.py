@@ -180,6 +180,8 @@ class FirmwareConfig:
     reference_warmup_us: int = 2_000_000   # "fixed": for this long after a start the fixed cycle itself runs
                                             #   (the start's errors are too large for the linear eq 4), and its
                                             #   covariance is not yet part of the mean the policy holds
+    reference_catchup: float = 2.0          # "fixed", warm-up: a pulse on demand between the cycle's pulses
+                                            #   when a variance would pass this many times the cycle's own
     reference_avg_s: float = 30.0           # "fixed": the fixed cycle's variance is averaged since the start,
                                             #   then over this long (the RMS of a run is a mean over the run)
     nis_feedback: bool = True               # bounds tightened by the NIS excess: where the innovations show
@@ -354,7 +356,7 @@ class FirmwareConfig:
              f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("nis_feedback", isinstance(self.nis_feedback, bool), f"must be true or false, got {self.nis_feedback!r}")
-        for name in ("fixed_accuracy_ratio", "reference_avg_s", "nis_linear_fraction", "nis_alarm_z",
+        for name in ("fixed_accuracy_ratio", "reference_avg_s", "reference_catchup", "nis_linear_fraction", "nis_alarm_z",
                      "saturation_sigmas"):
             v = getattr(self, name)
             need(name, fin(v) and v > 0, f"must be a positive number, got {v!r}")
@@ -397,7 +399,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
                "psi_sigma", "meas_sigma"),
     "adaptive_policy": ("accuracy_target", "fixed_accuracy_ratio", "adaptive_min_ratio", "bound_on",
-                        "reference_avg_s", "reference_warmup_us",
+                        "reference_avg_s", "reference_warmup_us", "reference_catchup",
                         "nis_feedback",
                         "nis_feedback_updates", "nis_feedback_max", "nis_linear_fraction", "nis_forget_us",
                         "nis_alarm_z", "nis_alarm_excess", "nis_max_scale", "no_imu_us", "flip_every_us",

@@ -546,13 +546,22 @@ class SingleCoilTracker:
         for s in self._sens:
             if s.ref is not None and s.ref.active and now_us - s.ref_start_us < cfg.reference_warmup_us:
                 self._warming = True
-        if self.schedule == "fixed" or self._warming:
+        if self.schedule == "fixed":
             self._decide_fixed(now_us)
             return
-        if now_us - self.last_flip_cmd_us >= cfg.flip_every_us:
+        if self._warming:
+            n0 = self.pulses
+            self._decide_fixed(now_us)
+            if self.pulses != n0 or self._n_active() >= 2:
+                return
+            # between the cycle's pulses, a pulse on demand only where the filter is far behind the
+            # fixed cycle's present covariance (see _bounds), ending before the cycle's next pulse
+        elif now_us - self.last_flip_cmd_us >= cfg.flip_every_us:
             return      # a flip is due: let the pulses in flight close first (see _flip)
         start = max(now_us + self.lead_us, self.next_free_us)
         if start - now_us > self.lead_us + cfg.tick_us:
+            return
+        if self._warming and start + self.pulse_us + self.gap_us + cfg.tick_us > self.cycle.start_us():
             return
         # the prediction changes only when an IMU sample (or an update) has moved a filter
         stamp = 0
@@ -638,6 +647,16 @@ class SingleCoilTracker:
             r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
             fixed_cycle_bounds(ref.avg, cfg.fixed_accuracy_ratio, cfg.adaptive_min_ratio, mx, mn,
                                ref.law_now(r, 0), ref.law_now(r, 1))
+            if self._warming:
+                # the fixed cycle runs; a pulse between its pulses only when the filter's variance
+                # would pass reference_catchup times the fixed cycle's present one
+                Pr = ref.P
+                k2 = cfg.reference_catchup * cfg.fixed_accuracy_ratio ** 2
+                for k, i in ((0, POS.start), (1, POS.start + 1), (2, POS.start + 2),
+                             (3, ORI.start), (4, ORI.start + 1), (5, ORI.start + 2)):
+                    v = float(Pr[i, i]) * k2
+                    mx[k] = math.sqrt(v) if v > 0.0 else 0.0
+                    mn[k] = cfg.adaptive_min_ratio * float(mx[k])
         else:
             sp = so = 1.0
             if cfg.sigma_range_ref_m > 0.0:
