@@ -356,7 +356,8 @@ class FirmwareConfig:
              f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("nis_feedback", isinstance(self.nis_feedback, bool), f"must be true or false, got {self.nis_feedback!r}")
-        for name in ("fixed_accuracy_ratio", "reference_avg_s", "reference_catchup", "nis_linear_fraction", "nis_alarm_z",
+        for name in ("fixed_accuracy_ratio", "reference_avg_s", "reference_catchup", "nis_linear_fraction",
+                     "nis_alarm_z",
                      "saturation_sigmas"):
             v = getattr(self, name)
             need(name, fin(v) and v > 0, f"must be a positive number, got {v!r}")
@@ -366,7 +367,8 @@ class FirmwareConfig:
         for name in ("adaptive_min_ratio", "duty_margin"):
             v = getattr(self, name)
             need(name, fin(v) and 0 < v <= 1, f"must be in (0, 1], got {v!r}")
-        for name in ("reference_warmup_us", "nis_feedback_updates", "nis_forget_us", "no_imu_us", "flip_every_us", "decision_refresh_us"):
+        for name in ("reference_warmup_us", "nis_feedback_updates", "nis_forget_us", "no_imu_us", "flip_every_us",
+                     "decision_refresh_us"):
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
                  f"must be a positive integer, got {v!r}")
