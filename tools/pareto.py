@@ -17,6 +17,7 @@ import argparse
 import json
 import statistics
 import sys
+from pathlib import Path
 
 
 def load(paths) -> list[dict]:
@@ -34,7 +35,7 @@ def load(paths) -> list[dict]:
         for key, runs in groups.items():
             f = [r["figures"] for r in runs]
             med = lambda k: statistics.median(x[k] for x in f if x.get(k) is not None)  # noqa: E731
-            row = {"scenario": d["scenario"], "params": json.loads(key), "seeds": sorted(r["seed"] for r in runs),
+            row = {"series": Path(path).stem, "scenario": d["scenario"], "params": json.loads(key), "seeds": sorted(r["seed"] for r in runs),
                    "position_rms_mm": med("position_rms_mm"), "orientation_rms_deg": med("orientation_rms_deg"),
                    "coil_energy_j": med("coil_energy_j"), "coil_charge_c": med("coil_charge_c"),
                    "pulses_per_s": med("pulses_per_s")}
@@ -64,7 +65,7 @@ def on_front(rows) -> None:
 
 def label(row) -> str:
     p = " ".join(f"{k.split('.')[-1]}={v}" for k, v in row["params"].items())
-    return f"{row['scenario']} {p}".strip()
+    return f"{row['scenario']} {p} ({row['series']})".replace("  ", " ")
 
 
 def markdown(rows) -> str:
@@ -93,8 +94,8 @@ def plot(rows, path: str) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for ax, key, unit in ((axes[0], "position_rms_mm", "mm"), (axes[1], "orientation_rms_deg", "deg")):
-        for scen in sorted({r["scenario"] for r in rows}):
-            pts = sorted((r for r in rows if r["scenario"] == scen), key=lambda r: r["coil_energy_j"])
+        for scen in sorted({r["series"] for r in rows}):         # one line per sweep file
+            pts = sorted((r for r in rows if r["series"] == scen), key=lambda r: r["coil_energy_j"])
             adaptive = "energy_ratio_median" in pts[0]
             ax.plot([r["coil_energy_j"] for r in pts], [r[key] for r in pts], "o-" if adaptive else "s--",
                     label=scen, lw=2 if adaptive else 1)
