@@ -255,3 +255,21 @@ def test_bad_policy_values_are_refused_naming_the_key(key, value):
     with pytest.raises(ConfigError) as e:
         config_from_dict({"adaptive_policy": {key: value}})
     assert e.value.key == f"adaptive_policy.{key}"
+
+
+def test_range_law_is_normalised_by_its_own_mean():
+    """The bound's range law ``r^(2e) / mean(r^(2e))`` (e = 4/3 position, 1 orientation): a
+    sensor spending equal time at 0.2 and 0.4 m gets 2 / (1 + 2^(2e)) of the mean bound at 0.2 m
+    (closed form). Catches the exponent applied to the std instead of the variance, or a law
+    not divided by its mean (the run's mean variance would then not be the fixed cycle's)."""
+    ekf = _FakeFilter(np.array([0.2, 0.0, 0.0]), np.eye(3))
+    model = SingleCoilModel(_coils())
+    ref = FixedCycleReference((0.91,) * 3, 10 ** 9, 600_000, 140_000, 29_000, 1e-16, 0.0, 0.0, 1e12,
+                              4.0 / 3.0, 1.0)
+    ref.start(np.eye(15) * 1e-6, 0)
+    for k in range(1, 201):
+        ekf.p[0] = 0.2 if (k - 1) // 10 % 2 == 0 else 0.4
+        ref.step(ekf, k * 10_000, model)
+    for g, e in ((0, 4.0 / 3.0), (1, 1.0)):
+        assert ref.law_now(0.2, g) == pytest.approx(2.0 / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
+        assert ref.law_now(0.4, g) == pytest.approx(2.0 * 2.0 ** (2 * e) / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
