@@ -4,7 +4,7 @@ Everything the firmware allocates is sized from one :class:`FirmwareConfig`
 at start-up; it holds the one set of defaults. Its keys are grouped in
 sections (:data:`SECTIONS`: ``link``, ``source``, ``timing``, ``pulse``,
 ``limits``, ``budget``, ``adaptive``, ``imu``, ``orientation``, ``fusion``,
-``signing``, ``body``, ``pose``, ``recovery``, ``ac``),
+``signing``, ``body``, ``pose``, ``recovery``, ``ac``, ``adaptive_policy``),
 and a configuration file says them in TOML tables of the same names
 (:func:`load_config`, :func:`config_from_dict`; ``examples/firmware.toml``).
 A bad value is refused with a :class:`ConfigError` that names the key as
@@ -215,6 +215,37 @@ class FirmwareConfig:
     mag_integration_us: int = 500           # the magnetometer's averaging time (its sinc response); 0: none
     ac_distortion_ratio: float = 0.02       # POSE_DISTORTED when |quadrature| / |in-phase| exceeds this ...
     ac_distortion_probability: float = 0.999  # ... and the quadrature's chi-square exceeds this quantile
+    # --- adaptive policy: the accuracy it holds, its feedback and its constants
+    # (coiltrack.firmware.actuate.accuracy, coiltrack.firmware.track.single_coil_tracker)
+    accuracy_target: str = "stated"         # "stated": the sigma_* bounds; "fixed": the accuracy the fixed
+                                            #   X, Y, Z cycle of [timing] (pulse_us, spacing_us, cycle_us, the
+                                            #   coils' nominal currents) would give, predicted beside the filter
+    fixed_accuracy_ratio: float = 1.0       # "fixed": RMS wanted over the fixed cycle's (1: the same accuracy)
+    adaptive_min_ratio: float = 0.9         # "fixed": sigma_min / sigma_max (how far one pulse brings it down)
+    bound_on: str = "axis"                  # "axis": every pose variable within its bound; "trace": the sum
+                                            #   of the position (orientation) variances within the sum of
+                                            #   their bounds, the RMS error being the root of that trace
+    reference_warmup_us: int = 2_000_000   # "fixed": for this long after a start the fixed cycle itself runs
+                                            #   (the start's errors are too large for the linear eq 4), and its
+                                            #   covariance is not yet part of the mean the policy holds
+    reference_catchup: float = 2.0          # "fixed", warm-up: a pulse on demand between the cycle's pulses
+                                            #   when a variance would pass this many times the cycle's own
+    reference_avg_s: float = 30.0           # "fixed": the fixed cycle's variance is averaged since the start,
+                                            #   then over this long (the RMS of a run is a mean over the run)
+    nis_feedback: bool = True               # bounds tightened by the NIS excess: where the innovations show
+                                            #   the covariance understating the errors, pulse sooner
+    nis_feedback_updates: int = 30          # updates the NIS excess is averaged over (exponential memory)
+    nis_feedback_max: float = 4.0           # largest factor the variance bounds are divided by
+    nis_linear_fraction: float = 0.1        # the NIS is tested only while the position std < this x range
+    nis_forget_us: int = 2_000_000          # a verdict no update has tested for this long is forgotten
+    nis_alarm_z: float = 3.09               # windowed NIS test: normal quantile of its bound (3.09: 99.9 %)
+    nis_alarm_excess: float = 3.0           # ... and a mean NIS at least this many times its expectation
+    nis_max_scale: float = 1e4              # largest inflation of the measurement covariance while disturbed
+    no_imu_us: int = 1_000_000              # a sensor without IMU samples this long is acquired magnetically
+    flip_every_us: int = 2_000_000          # set/reset flips commanded at least this often between pulses
+    duty_margin: float = 0.95               # pulses kept below this fraction of the driver's duty limit
+    saturation_sigmas: float = 3.0          # range check: the sensor assumed this many position stds closer
+    decision_refresh_us: int = 20_000       # an unchanged prediction is decided again after this long
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -454,6 +485,30 @@ class FirmwareConfig:
              f"must be 0.99, 0.999, 0.9999 or 1.0 (no gate), got {self.nis_gate_probability!r}")
         need("gravity_mps2", len(self.gravity_mps2) == 3 and all(fin(v) for v in self.gravity_mps2),
              "must be a finite 3-vector")
+        self._validate_policy(need, fin)
+
+    def _validate_policy(self, need, fin) -> None:
+        """Keys of section ``adaptive_policy``."""
+        need("accuracy_target", self.accuracy_target in ("stated", "fixed"),
+             f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
+        need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
+        need("nis_feedback", isinstance(self.nis_feedback, bool), f"must be true or false, got {self.nis_feedback!r}")
+        for name in ("fixed_accuracy_ratio", "reference_avg_s", "reference_catchup", "nis_linear_fraction",
+                     "nis_alarm_z",
+                     "saturation_sigmas"):
+            v = getattr(self, name)
+            need(name, fin(v) and v > 0, f"must be a positive number, got {v!r}")
+        for name in ("nis_feedback_max", "nis_alarm_excess", "nis_max_scale"):
+            v = getattr(self, name)
+            need(name, fin(v) and v >= 1, f"must be a number >= 1, got {v!r}")
+        for name in ("adaptive_min_ratio", "duty_margin"):
+            v = getattr(self, name)
+            need(name, fin(v) and 0 < v <= 1, f"must be in (0, 1], got {v!r}")
+        for name in ("reference_warmup_us", "nis_feedback_updates", "nis_forget_us", "no_imu_us", "flip_every_us",
+                     "decision_refresh_us"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
+                 f"must be a positive integer, got {v!r}")
 
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
@@ -491,6 +546,12 @@ SECTIONS: dict[str, tuple[str, ...]] = {
            "ac_status_timeout_us",
            "ac_min_separation_hz", "ac_harmonics", "mains_hz", "mains_harmonics", "mag_integration_us",
            "ac_distortion_ratio", "ac_distortion_probability"),
+    "adaptive_policy": ("accuracy_target", "fixed_accuracy_ratio", "adaptive_min_ratio", "bound_on",
+                        "reference_avg_s", "reference_warmup_us", "reference_catchup",
+                        "nis_feedback",
+                        "nis_feedback_updates", "nis_feedback_max", "nis_linear_fraction", "nis_forget_us",
+                        "nis_alarm_z", "nis_alarm_excess", "nis_max_scale", "no_imu_us", "flip_every_us",
+                        "duty_margin", "saturation_sigmas", "decision_refresh_us"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

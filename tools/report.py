@@ -65,7 +65,9 @@ def energy(executed, world, duration_s: float, battery_wh: float = BATTERY_WH) -
         coil_e += i * i * r * t
         supply_e += world.supply_v * i * t
     p_mean = supply_e / duration_s if duration_s > 0 else 0.0
+    lengths = sorted(e["end_us"] - e["start_us"] for e in executed)
     return {
+        "pulse_ms": round(lengths[len(lengths) // 2] * 1e-3, 3) if lengths else None,   # median executed pulse
         "pulses_per_s": round(len(executed) / duration_s, 3) if duration_s > 0 else 0.0,
         "coil_charge_c": round(charge, 4),
         "coil_energy_j": round(coil_e, 4),

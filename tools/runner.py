@@ -206,7 +206,8 @@ def _tick_loop(bench, fw, rec_port, end_us: int, tick: int, prog, outputs=None):
 
 #: report keys copied from the fixed-cycle reference run as ``fixed_<key>``
 FIXED_KEYS = ("position_rms_mm", "position_p95_mm", "orientation_rms_deg", "poses", "pulses_per_s",
-              "coil_charge_c", "coil_energy_j", "supply_energy_j", "projected_runtime_h", "crlb_position_rms_mm")
+              "coil_charge_c", "coil_energy_j", "supply_energy_j", "projected_runtime_h", "crlb_position_rms_mm",
+              "pulse_ms")
 
 
 def add_fixed_comparison(rep: dict, scenario: Scenario, seed: int, duration_s: float, faults=None,

@@ -301,7 +301,10 @@ class CoilChooser:
     """
 
     def __init__(self, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
-                 current_sigma: float = 0.0):
+                 current_sigma: float = 0.0, trace: bool = False):
+        #: bounds on the trace of the position and of the orientation block instead of each
+        #: variable (the RMS of a position or orientation error is the root of its trace)
+        self.trace = bool(trace)
         cur = sorted(float(c) for c in currents)
         if not cur or cur[0] <= 0.0:
             raise ValueError("candidate currents must be positive")
@@ -340,6 +343,24 @@ class CoilChooser:
         for k in range(POSE_DIM):
             self.weight[k] = 1.0 / (self.sigma_max[k] * self.sigma_max[k])
 
+    def set_bounds(self, sigma_max6, sigma_min6) -> None:
+        """Set the thresholds (6,) directly (m, rad), e.g. from the fixed
+        cycle's predicted accuracy (``coiltrack.firmware.actuate.accuracy``)."""
+        for k in range(POSE_DIM):
+            smax = float(sigma_max6[k])
+            if not smax > 0.0:
+                smax = 1e-12
+            smin = float(sigma_min6[k])
+            self.sigma_max[k] = smax
+            self.sigma_min[k] = smin if 0.0 < smin <= smax else smax
+            self.weight[k] = 1.0 / (smax * smax)
+        if self.trace:
+            for g in (0, 3):
+                sm = self.sigma_max
+                w = 1.0 / (sm[g] * sm[g] + sm[g + 1] * sm[g + 1] + sm[g + 2] * sm[g + 2])
+                for k in range(g, g + 3):
+                    self.weight[k] = w
+
     def _ref_index(self, limit: float) -> int:
         """Index of the largest candidate current <= limit, or -1."""
         cur = self.currents
@@ -369,13 +390,20 @@ class CoilChooser:
         Returns the chosen coil (also in ``self.coil``), or -1.
         """
         w = self.weight
-        # target: the pose variable furthest beyond (or closest to) its bound
+        # target: the pose variable (trace: the group, 0 or 3) furthest beyond its bound
         best_u = -1.0
-        for k in range(POSE_DIM):
-            u = P6[k, k] * w[k]
-            if u > best_u:
-                best_u = u
-                self.target = k
+        if self.trace:
+            for g in (0, 3):
+                u = (P6[g, g] + P6[g + 1, g + 1] + P6[g + 2, g + 2]) * w[g]
+                if u > best_u:
+                    best_u = u
+                    self.target = g
+        else:
+            for k in range(POSE_DIM):
+                u = P6[k, k] * w[k]
+                if u > best_u:
+                    best_u = u
+                    self.target = k
         j0 = 0.0
         for k in range(POSE_DIM):
             j0 += P6[k, k] * w[k]
@@ -416,7 +444,10 @@ class CoilChooser:
             return -1
         # how strong: smallest current bringing the target variable to sigma_min
         t = self.target
-        goal = self.sigma_min[t] * self.sigma_min[t]
+        t1 = t + 3 if self.trace else t + 1
+        goal = 0.0
+        for k in range(t, t1):
+            goal += self.sigma_min[k] * self.sigma_min[k]
         kmax = self._ref_index(float(i_limit[best_c]))
         A = self._A[best_c]
         M = self._M[best_c]
@@ -427,7 +458,10 @@ class CoilChooser:
             i = float(self.currents[j])
             posterior_pose_variances(P6, A, M, hn2, i, var_amp, self.rel_model, self.var_after,
                                      self.current_sigma)
-            if self.var_after[t] <= goal:
+            va = 0.0
+            for k in range(t, t1):
+                va += self.var_after[k]
+            if va <= goal:
                 self.current = i
                 self.reached = True
                 return best_c
@@ -446,7 +480,10 @@ class ActuationPolicy:
     (regular updates limit the linearisation error, Schepers sec. 4).
     """
 
-    def __init__(self, sigma_max, max_interval_us: int):
+    def __init__(self, sigma_max, max_interval_us: int, trace: bool = False):
+        #: bound the trace of the position and of the orientation block (sum of the three
+        #: variances against the sum of the three bounds) instead of each variable
+        self.trace = bool(trace)
         self.sigma_max = np.array(sigma_max, dtype=float).reshape(POSE_DIM)
         self.var_max = self.sigma_max * self.sigma_max
         self._var0 = self.var_max.copy()
@@ -462,10 +499,22 @@ class ActuationPolicy:
             self.var_max[k] = self._var0[k] * pos * pos
             self.var_max[3 + k] = self._var0[3 + k] * ori * ori
 
+    def set_bounds(self, sigma_max6) -> None:
+        """Set the bounds (6,) directly (m, rad)."""
+        for k in range(POSE_DIM):
+            v = float(sigma_max6[k])
+            self.var_max[k] = v * v if v > 0.0 else 1e-24
+
     def worst(self, P6) -> float:
         """``max_k sqrt(P_kk) / sigma_max_k`` (1 = at the bound)."""
         u = 0.0
         vm = self.var_max
+        if self.trace:
+            for g in (0, 3):
+                x = (P6[g, g] + P6[g + 1, g + 1] + P6[g + 2, g + 2]) / (vm[g] + vm[g + 1] + vm[g + 2])
+                if x > u:
+                    u = x
+            return math.sqrt(u)
         for k in range(POSE_DIM):
             x = P6[k, k] / vm[k]
             if x > u:
@@ -474,10 +523,17 @@ class ActuationPolicy:
 
     def due(self, P6_pred, now_us: int, last_update_us: int) -> bool:
         vm = self.var_max
-        for k in range(POSE_DIM):
-            if not P6_pred[k, k] < vm[k]:     # also catches NaN
-                self.reason = 1
-                return True
+        if self.trace:
+            for g in (0, 3):
+                if not (P6_pred[g, g] + P6_pred[g + 1, g + 1] + P6_pred[g + 2, g + 2]
+                        < vm[g] + vm[g + 1] + vm[g + 2]):
+                    self.reason = 1
+                    return True
+        else:
+            for k in range(POSE_DIM):
+                if not P6_pred[k, k] < vm[k]:     # also catches NaN
+                    self.reason = 1
+                    return True
         if now_us - last_update_us >= self.max_interval_us:
             self.reason = 2
             return True
@@ -503,11 +559,15 @@ class NisMonitor:
     while the disturbance is still there). While inconsistent, ``r_scale``
     (>= 1) is the factor the measurement covariance is multiplied by: the
     observed excess ``mean / dof`` (covariance matching), capped at
-    ``max_scale``.
+    ``max_scale``. ``excess`` (:meth:`add_used`) is the long-run mean of
+    ``NIS / dof`` with the covariance actually used: above 1 the filter's
+    covariance understates its errors, and the policy holds a smaller one
+    (``accuracy.nis_bound_factor``).
     """
 
     def __init__(self, window: int = 8, dof: int = 3, gate: float = 16.27, z: float = 2.326,
-                 min_count: int = 4, max_scale: float = 1e4, min_excess: float = 1.0):
+                 min_count: int = 4, max_scale: float = 1e4, min_excess: float = 1.0,
+                 feedback_updates: int = 30):
         if window < 1 or min_count < 1 or min_count > window:
             raise ValueError("need 1 <= min_count <= window")
         self.window = int(window)
@@ -528,6 +588,11 @@ class NisMonitor:
         self.total = 0
         self.gated = 0
         self.flagged = 0      # updates made while inconsistent
+        #: exponential mean of ``NIS / dof`` over about ``feedback_updates`` updates, with the
+        #: measurement covariance actually used (:meth:`add_used`): 1 for a consistent filter
+        self.excess = 1.0
+        self._alpha = 1.0 / max(1, int(feedback_updates))
+        self.excess_gate = float(gate)
 
     def reset(self) -> None:
         self.count = 0
@@ -535,6 +600,18 @@ class NisMonitor:
         self.mean = float(self.dof)
         self.inconsistent = False
         self.r_scale = 1.0
+        self.excess = 1.0
+
+    def add_used(self, nis_used: float) -> None:
+        """Record the NIS of one update with the covariance the filter used (the
+        inflated one while disturbed), capped at the gate (a rejected pulse
+        counts as the largest accepted one), into :attr:`excess`."""
+        x = nis_used if nis_used < self.excess_gate else self.excess_gate
+        if not x >= 0.0:                      # NaN
+            x = self.excess_gate
+        if x == math.inf:
+            x = 10.0 * self.dof * self.max_scale
+        self.excess += self._alpha * (x / self.dof - self.excess)
 
     def bound(self) -> float:
         n = self.count

@@ -417,6 +417,15 @@ class SchepersEKF:
             q[ACC.start + i] = qba
             q[GYR.start + i] = qbg
 
+    def core_transition(self, F, q, dt: float) -> None:
+        """The error transition of the core block (15, 15) over ``dt`` (s) at the
+        present inputs and state, into ``F`` (a memoryview of a (15, 15) array
+        whose off-model entries stay as ``transition_static`` writes them) and
+        its diagonal process noise into ``q`` (15,): the transition this filter
+        applies to its own covariance (eq 6.17 in this convention), for a
+        covariance carried beside it (``coiltrack.firmware.actuate.accuracy``)."""
+        self._build_F(F, q, dt)
+
     def _accel(self):
         """``R f - f_ref`` (``f_ref = -g``): the acceleration in the source frame."""
         f = self.f

@@ -64,6 +64,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
                                        POSE_DEGRADED, POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
                                        POSE_STALE, POSE_VALID)
 
+from coiltrack.firmware.actuate.accuracy import FixedCycleReference, fixed_cycle_bounds, nis_bound_factor
 from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, NisMonitor, PoseCovUpdate, SingleCoilModel,
                        current_ladder, saturation_current_limit)
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
@@ -72,28 +73,16 @@ from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.rotation import quat_tuple as _quat
-from coiltrack.firmware.estimate.single_coil import ORI, POS, SchepersEKF
+from coiltrack.firmware.estimate.single_coil import CORE, ORI, POS, SchepersEKF
 from coiltrack.firmware.pose.solver import PoseSolver
 from coiltrack.firmware.track.magnetic import SOLVE_FAILED as _SOLVE_FAILED
 from coiltrack.firmware.track.status import COIL_FATAL as _FATAL, input_status
 #: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
 _EVT_NIS = 1 << 8
 _EVT_CLEAR = 1 << 31
-#: the NIS monitor listens once the position std is below this fraction of the range (the
-#: measurement covariance carries the linearisation term, schepers_ekf._LIN_K)
-_LINEAR_FRACTION = 0.1
-#: the NIS verdict is forgotten when the monitor has heard no update for this long
-_NIS_FORGET_US = 2_000_000
-#: the windowed NIS test alarms beyond the 99.9 % quantile (a few hundred updates a minute)
-_ALARM_Z = 3.09
-#: ... and only for a mean NIS at least this many times its expectation
-_ALARM_EXCESS = 3.0
-#: after this long without IMU samples a sensor is acquired (and tracked) magnetically only
-_NO_IMU_US = 1_000_000
-#: pulses per coil remembered for the duty-cycle check
+#: pulses per coil remembered for the duty-cycle check (an array size: at most
+#: ``coil_duty_window_us`` / (pulse + gap) pulses fit in the window, 12 at the defaults)
 _DUTY_HIST = 32
-#: a set/reset flip is commanded at least this often when the sensors are idle
-_FLIP_EVERY_US = 2_000_000
 
 
 class _Pulse:
@@ -158,6 +147,10 @@ class _Sensor:
         self.distorted = False
         self.updates = 0
         self.gated = 0
+        self.ref: FixedCycleReference | None = None     # accuracy_target = "fixed"
+        self.ref_start_us = 0
+        self.smax6 = np.zeros(POSE_DIM)                  # the bounds of the latest decision (m, rad)
+        self.smin6 = np.zeros(POSE_DIM)
 
 
 class SingleCoilTracker:
@@ -188,14 +181,17 @@ class SingleCoilTracker:
         self.n = n
         self.model = SingleCoilModel(coils, cfg.field_model)       # updates
         self.pmodel = SingleCoilModel(coils, cfg.field_model)      # decisions
+        self.rmodel = SingleCoilModel(coils, cfg.field_model)      # the fixed-cycle reference
         d2r = math.pi / 180.0
         smax = (cfg.sigma_max_pos_m,) * 3 + (cfg.sigma_max_ori_deg * d2r,) * 3
         smin = (cfg.sigma_min_pos_m,) * 3 + (cfg.sigma_min_ori_deg * d2r,) * 3
         currents = cfg.adaptive_currents_a or current_ladder(
             min(cfg.adaptive_min_current_a, cfg.adaptive_max_current_a), cfg.adaptive_max_current_a,
             cfg.adaptive_current_levels)
-        self.chooser = CoilChooser(n, currents, smax, smin, cfg.field_model_rel_sigma, cfg.current_tolerance_a)
-        self.policy = ActuationPolicy(smax, cfg.adaptive_max_interval_us)
+        trace = cfg.bound_on == "trace"
+        self.chooser = CoilChooser(n, currents, smax, smin, cfg.field_model_rel_sigma, cfg.current_tolerance_a,
+                                   trace)
+        self.policy = ActuationPolicy(smax, cfg.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()
         self.pulse_us = cfg.adaptive_pulse_us or cfg.pulse_us
         self.lead_us = cfg.adaptive_lead_us
@@ -222,9 +218,19 @@ class SingleCoilTracker:
         for tr in channels:
             sid = tr.node
             ekf = SchepersEKF.from_config(cfg)
-            mon = NisMonitor(window=cfg.nis_window, dof=3, gate=chi2_gate(3, gate_p), z=_ALARM_Z,
-                             min_count=min(cfg.nis_window, 3), min_excess=_ALARM_EXCESS)
+            mon = NisMonitor(window=cfg.nis_window, dof=3, gate=chi2_gate(3, gate_p), z=cfg.nis_alarm_z,
+                             min_count=min(cfg.nis_window, 3), min_excess=cfg.nis_alarm_excess,
+                             max_scale=cfg.nis_max_scale, feedback_updates=cfg.nis_feedback_updates)
             self.sensors[sid] = _Sensor(tr, cfg, n, ekf, mon)
+            if cfg.accuracy_target == "fixed" and schedule == "adaptive":
+                # the fixed cycle of [timing], its pulses' amplitude variance and mid time
+                nf = max(1, int((cfg.pulse_us - cfg.settle_us - cfg.guard_us) / per) - 1)
+                var_f = cfg.mag_sigma_t ** 2 * (1.0 / nf + 1.0 / n_base)
+                self.sensors[sid].ref = FixedCycleReference(
+                    self.nominal, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us,
+                    (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2, var_f, cfg.field_model_rel_sigma,
+                    cfg.current_tolerance_a, cfg.reference_avg_s * 1e6, cfg.sigma_range_exp_pos,
+                    cfg.sigma_range_exp_ori, cfg.reference_warmup_us)
         self._sens = tuple(self.sensors.values())
         self.slots = tuple(_Pulse() for _ in range(max(2, n)))
         self._order = [0] * len(self.slots)
@@ -236,6 +242,7 @@ class SingleCoilTracker:
         self._decided_us = 0
         self.cycle = FixedCycle(n, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us, self.lead_us)
         self.last_flip_cmd_us = -(1 << 62)
+        self._warming = False            # the fixed cycle after a start (``reference_warmup_us``)
         self.last_pulse_end = 0
         # counters
         self.pulses = 0
@@ -282,6 +289,8 @@ class SingleCoilTracker:
                     self._lose(s)
         s.last_imu_us = t
         ekf.propagate(t, s.acc, s.gyr)
+        if s.ref is not None and ekf.initialized:
+            s.ref.step(ekf, t, self.rmodel)
         s.imu_samples += 1
         if self.acq_active:
             self._note_acq_orientation(s, t)
@@ -332,17 +341,17 @@ class SingleCoilTracker:
         """Set/reset flips outside every pulse window (thesis sec 5.5, 7.2).
 
         Pulses are decided just in time, so there is no planned quiet gap as
-        in the fixed cycle: every ``_FLIP_EVERY_US`` no new pulse is decided
+        in the fixed cycle: every ``flip_every_us`` no new pulse is decided
         until those in flight are closed, then the sensors are told to flip
         a few milliseconds ahead and the next pulse may not start before that
         flip's trailing baseline has passed. The command also keeps the
         sensors from flipping on their own (which could land in a window)."""
-        if now_us - self.last_flip_cmd_us < _FLIP_EVERY_US or self._n_active():
+        if now_us - self.last_flip_cmd_us < self.cfg.flip_every_us or self._n_active():
             return
         cfg = self.cfg
         fl = self.supervisor.flips
         t0 = now_us + 1_000
-        if self.schedule == "fixed" and not self.acq_active:
+        if (self.schedule == "fixed" or self._warming) and not self.acq_active:
             nxt = self.cycle.start_us()
             if nxt - cfg.baseline_us - 2 * cfg.guard_us < t0 + fl.min_gap_us:
                 return
@@ -429,7 +438,7 @@ class SingleCoilTracker:
         k = sl.clone
         pc = ekf.clone_p[k] if k >= 0 else ekf.p
         r2 = float(pc[0] * pc[0] + pc[1] * pc[1] + pc[2] * pc[2])
-        linear = sp2 < _LINEAR_FRACTION * _LINEAR_FRACTION * r2
+        linear = sp2 < cfg.nis_linear_fraction * cfg.nis_linear_fraction * r2
         # relative errors of the predicted field: the model, and the current
         rc = cfg.current_tolerance_a / max(abs(current), 1e-6)
         rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
@@ -443,6 +452,7 @@ class SingleCoilTracker:
         was = s.distorted
         if linear:
             mon.add(ekf.nis_nominal)
+            mon.add_used(ekf.nis)
             s.mon_t = now_us
         if flags & EKF_GATED:
             s.gated += 1
@@ -481,10 +491,12 @@ class SingleCoilTracker:
 
     def _forget(self, s: _Sensor, now_us: int) -> None:
         """Forget a verdict that no update has tested for a while."""
-        if s.monitor.count and now_us - s.mon_t > _NIS_FORGET_US:
+        if s.monitor.count and now_us - s.mon_t > self.cfg.nis_forget_us:
             s.monitor.reset()
 
     def _lose(self, s: _Sensor) -> None:
+        if s.ref is not None:
+            s.ref.stop()
         s.ekf.reset()
         s.monitor.reset()
         s.gated_in_row = 0
@@ -528,19 +540,34 @@ class SingleCoilTracker:
                 return
         if self._n_active() >= 2:
             return
-        if self.schedule == "adaptive" and now_us - self.last_flip_cmd_us >= _FLIP_EVERY_US:
-            return      # a flip is due: let the pulses in flight close first (see _flip)
+        # after a start the fixed cycle itself, for reference_warmup_us (accuracy_target "fixed"):
+        # its full-current pulses of every coil, while the errors are too large for eq 4
+        self._warming = False
+        for s in self._sens:
+            if s.ref is not None and s.ref.active and now_us - s.ref_start_us < cfg.reference_warmup_us:
+                self._warming = True
         if self.schedule == "fixed":
             self._decide_fixed(now_us)
             return
+        if self._warming:
+            n0 = self.pulses
+            self._decide_fixed(now_us)
+            if self.pulses != n0 or self._n_active() >= 2:
+                return
+            # between the cycle's pulses, a pulse on demand only where the filter is far behind the
+            # fixed cycle's present covariance (see _bounds), ending before the cycle's next pulse
+        elif now_us - self.last_flip_cmd_us >= cfg.flip_every_us:
+            return      # a flip is due: let the pulses in flight close first (see _flip)
         start = max(now_us + self.lead_us, self.next_free_us)
         if start - now_us > self.lead_us + cfg.tick_us:
+            return
+        if self._warming and start + self.pulse_us + self.gap_us + cfg.tick_us > self.cycle.start_us():
             return
         # the prediction changes only when an IMU sample (or an update) has moved a filter
         stamp = 0
         for s in self._sens:
             stamp += s.imu_samples + s.updates + s.gated
-        if stamp == self._decided_stamp and now_us - self._decided_us < 20_000:
+        if stamp == self._decided_stamp and now_us - self._decided_us < cfg.decision_refresh_us:
             return
         self._decided_stamp = stamp
         self._decided_us = now_us
@@ -552,10 +579,8 @@ class SingleCoilTracker:
         for s in self._sens:
             ekf = s.ekf
             ekf.predict_pose(t_m - (ekf.t_us if ekf.t_us is not None else now_us), s.P6, s.pp)
-            if cfg.sigma_range_ref_m > 0.0:
-                r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
-                x = max(r, 1e-3) / cfg.sigma_range_ref_m
-                self.policy.set_scale(x ** cfg.sigma_range_exp_pos, x ** cfg.sigma_range_exp_ori)
+            self._bounds(s)
+            self.policy.set_bounds(s.smax6)
             for sl in self.slots:
                 if sl.active and not sl.acq:
                     self.pmodel.evaluate(s.pp, ekf.R)
@@ -576,10 +601,10 @@ class SingleCoilTracker:
         for s in self._sens:
             self._refresh_quiet(s)
             self.pmodel.evaluate(s.pp, s.ekf.R)
-            # the field grows as r^-3: allow for the sensor being 3 sigma closer
+            # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
             r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
             sp = math.sqrt(max(float(s.P6[0, 0] + s.P6[1, 1] + s.P6[2, 2]), 0.0))
-            gain = (r / max(r - 3.0 * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
+            gain = (r / max(r - cfg.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
             for c in range(self.n):
                 if s.have_quiet:
                     i = saturation_current_limit(self.pmodel.h[c], s.quiet, cfg.mag_range_t,
@@ -594,11 +619,8 @@ class SingleCoilTracker:
             if not self._duty_ok(c, start, self.pulse_us):
                 lim[c] = 0.0
         self.pmodel.evaluate(ws.pp, ws.ekf.R)
-        if cfg.sigma_range_ref_m > 0.0:
-            r = math.sqrt(float(ws.pp[0] * ws.pp[0] + ws.pp[1] * ws.pp[1] + ws.pp[2] * ws.pp[2]))
-            x = max(r, 1e-3) / cfg.sigma_range_ref_m
-            self.policy.set_scale(x ** cfg.sigma_range_exp_pos, x ** cfg.sigma_range_exp_ori)
-            self.chooser.set_scale(x ** cfg.sigma_range_exp_pos, x ** cfg.sigma_range_exp_ori)
+        self.policy.set_bounds(ws.smax6)
+        self.chooser.set_bounds(ws.smax6, ws.smin6)
         # the expected amplitude variance, inflated while the pulses prove inconsistent
         self._forget(ws, now_us)
         coil = self.chooser.choose(ws.P6, self.pmodel, self.var_amp * ws.monitor.r_scale, lim)
@@ -606,6 +628,54 @@ class SingleCoilTracker:
             self.no_current += 1
             return
         self._command(coil, self.chooser.current, start, self.pulse_us, False, now_us)
+
+    def _bounds(self, s: _Sensor) -> None:
+        """The bounds (``s.smax6``, ``s.smin6``; m, rad) the decision holds for sensor ``s``
+        at its predicted position ``s.pp``.
+
+        ``accuracy_target = "stated"``: ``sigma_max_*`` and ``sigma_min_*``, scaled as
+        ``(r / sigma_range_ref_m)^exp`` when ``sigma_range_ref_m`` > 0 (an accuracy stated
+        relative to the range). ``"fixed"``: from the fixed cycle's predicted mean variance
+        (``accuracy.fixed_cycle_bounds``; the stated bounds until the reference has started).
+        With ``nis_feedback`` the variance bounds are then divided by the NIS excess
+        (``accuracy.nis_bound_factor``): the accuracy is asked of the errors, not of the
+        covariance."""
+        cfg = self.cfg
+        mx, mn = s.smax6, s.smin6
+        if s.ref is not None and s.ref.active:
+            ref = s.ref
+            r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
+            fixed_cycle_bounds(ref.avg, cfg.fixed_accuracy_ratio, cfg.adaptive_min_ratio, mx, mn,
+                               ref.law_now(r, 0), ref.law_now(r, 1))
+            if self._warming:
+                # the fixed cycle runs; a pulse between its pulses only when the filter's variance
+                # would pass reference_catchup times the fixed cycle's present one
+                Pr = ref.P
+                k2 = cfg.reference_catchup * cfg.fixed_accuracy_ratio ** 2
+                for k, i in ((0, POS.start), (1, POS.start + 1), (2, POS.start + 2),
+                             (3, ORI.start), (4, ORI.start + 1), (5, ORI.start + 2)):
+                    v = float(Pr[i, i]) * k2
+                    mx[k] = math.sqrt(v) if v > 0.0 else 0.0
+                    mn[k] = cfg.adaptive_min_ratio * float(mx[k])
+        else:
+            sp = so = 1.0
+            if cfg.sigma_range_ref_m > 0.0:
+                r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
+                x = max(r, 1e-3) / cfg.sigma_range_ref_m
+                sp = x ** cfg.sigma_range_exp_pos
+                so = x ** cfg.sigma_range_exp_ori
+            d2r = math.pi / 180.0
+            for k in range(3):
+                mx[k] = cfg.sigma_max_pos_m * sp
+                mn[k] = cfg.sigma_min_pos_m * sp
+                mx[3 + k] = cfg.sigma_max_ori_deg * d2r * so
+                mn[3 + k] = cfg.sigma_min_ori_deg * d2r * so
+        if cfg.nis_feedback:
+            f = math.sqrt(nis_bound_factor(s.monitor.excess, cfg.nis_feedback_max))
+            if f != 1.0:
+                for k in range(POSE_DIM):
+                    mx[k] = float(mx[k]) / f
+                    mn[k] = float(mn[k]) / f
 
     def _decide_fixed(self, now_us: int) -> None:
         """The fixed X, Y, Z cycle, each pulse commanded ``adaptive_lead_us``
@@ -633,7 +703,7 @@ class SingleCoilTracker:
             e0 = int(h[k, 1])
             if e0 > w0 and e0 > s0:
                 on += min(e0, end) - max(s0, w0)
-        return on <= 0.95 * cfg.coil_max_duty * cfg.coil_duty_window_us
+        return on <= cfg.duty_margin * cfg.coil_max_duty * cfg.coil_duty_window_us
 
     def _refresh_quiet(self, s: _Sensor) -> None:
         """The newest magnetometer sample, if no pulse was on when it was taken."""
@@ -695,10 +765,10 @@ class SingleCoilTracker:
     def _imu_ready(self, now_us: int) -> bool:
         """Acquire when every sensor's IMU is streaming (the burst is brought to one
         instant with the gyroscope, and the filter starts from it); a sensor that
-        has sent no IMU sample for ``_NO_IMU_US`` gets magnetic-only acquisitions."""
+        has sent no IMU sample for ``no_imu_us`` gets magnetic-only acquisitions."""
         for s in self._sens:
             live = s.last_imu_us is not None and now_us - s.last_imu_us <= self.cfg.imu_timeout_us
-            if not live and now_us - (self.boot_us or 0) < _NO_IMU_US:
+            if not live and now_us - (self.boot_us or 0) < self.cfg.no_imu_us:
                 return False
         return True
 
@@ -792,6 +862,9 @@ class SingleCoilTracker:
             ekf.initialize(p, s.Rnow, P6, ekf.t_us, cfg.init_sigma_vel, cfg.imu_acc_bias_sigma,
                            cfg.imu_gyro_bias_sigma)
             self._refine(s)
+            if s.ref is not None:
+                s.ref.start(ekf.P[CORE, CORE], ekf.t_us)
+                s.ref_start_us = now_us
             s.monitor.reset()
             s.last_update_us = now_us
             s.bits = status & (POSE_DEGRADED | POSE_SATURATED)

@@ -1,0 +1,236 @@
+"""The accuracy the adaptive policy holds: the fixed cycle's own, predicted beside the filter.
+
+Schepers & Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``) sec. 2.1 and
+Fig. 1 pulse when the uncertainty reaches a stated ``sigma_x,max``; which
+bound gives the fixed cycle's accuracy depends on the motion and the range,
+so a bound tuned on one trajectory does not hold on the next. With
+``accuracy_target = "fixed"`` the bound is instead *derived*, on every run,
+from the covariance the fixed X, Y, Z cycle of the ``[timing]`` section
+(``pulse_us``, ``spacing_us``, ``cycle_us``, each coil at its nominal
+current) would have along the same estimated trajectory with the same
+filter:
+
+* :class:`FixedCycleReference` keeps that covariance, ``P_ref`` (15, 15) over
+  the inertial error state of ``coiltrack.firmware.estimate.single_coil``
+  (position, velocity, orientation, accelerometer and gyroscope offsets). It
+  is propagated with the live filter's own error transition and process
+  noise at every IMU sample (``SchepersEKF.core_transition``, thesis
+  ``002_cd7f1fdb7fc67471.txt`` eq 6.17), and at the mid instant of every
+  pulse of the virtual fixed cycle it takes the eq-4 covariance update of
+  that coil at its nominal current, linearised at the live estimate (eqs
+  9-11). Eq 4 does not need the measured value, so no pulse is made: the
+  update goes through the one Joseph-form ``KalmanUpdate`` with a zero
+  innovation and no gate.
+* ``avg`` (6,) is the time mean of the reference's pose variances
+  ``P_ref[k, k]`` (m^2, rad^2), an exponential average over
+  ``reference_avg_cycles`` cycles: the RMS error a consistent filter on the
+  fixed cycle would show is the square root of this mean.
+* :func:`fixed_cycle_bounds` turns it into the policy's bounds. Between two
+  adaptive pulses a variance climbs from ``sigma_min^2 = m^2 sigma_max^2``
+  to ``sigma_max^2`` about linearly, so its time mean is ``(1 + m^2) / 2
+  sigma_max^2``; the bound that gives the fixed cycle's mean variance times
+  ``ratio^2`` is ``sigma_max^2 = 2 ratio^2 avg / (1 + m^2)``.
+
+Work: the propagation is two 15x15 products per IMU sample; each reference
+pulse evaluates the coil set once at the estimate (``n_coils`` field
+evaluations, 5 reference pulses a second on the thesis cycle). All arrays
+are allocated in ``__init__``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from coiltrack.firmware.estimate.ekf import KalmanUpdate
+from coiltrack.firmware.estimate.layout import ORI, POS, SCHEPERS_CORE as CORE
+
+__all__ = ["FixedCycleReference", "fixed_cycle_bounds", "nis_bound_factor"]
+
+N_CORE = CORE.stop
+
+
+def fixed_cycle_bounds(avg6, ratio: float, min_ratio: float, out_max6, out_min6, law_pos: float = 1.0,
+                       law_ori: float = 1.0) -> None:
+    """Bounds (std, m and rad) that hold a mean variance of ``ratio^2 avg6``.
+
+    ``avg6`` (6,): the reference's time-mean pose variances; ``min_ratio``:
+    ``sigma_min / sigma_max``; ``law_pos``, ``law_ori``: the range law at the
+    present range over its own mean, ``r^(2 e) / mean(r^(2 e))`` (1: the same
+    bound at every range). Writes ``sigma_max = sqrt(2 ratio^2 avg law /
+    (1 + min_ratio^2))`` into ``out_max6`` and ``min_ratio sigma_max`` into
+    ``out_min6`` (see the module docstring for the sawtooth mean)."""
+    k = 2.0 * ratio * ratio / (1.0 + min_ratio * min_ratio)
+    for i in range(6):
+        v = float(avg6[i]) * (law_pos if i < 3 else law_ori)
+        s = (k * v) ** 0.5 if v > 0.0 else 0.0
+        out_max6[i] = s
+        out_min6[i] = min_ratio * s
+
+
+def nis_bound_factor(excess: float, max_factor: float) -> float:
+    """Factor (>= 1) the variance bounds are divided by for a mean NIS of
+    ``excess`` times its expectation: a filter whose innovations are
+    ``excess`` times larger than its covariance says has errors about that
+    much larger than its covariance, so it must hold a covariance that much
+    smaller to reach the accuracy asked for (capped at ``max_factor``)."""
+    if not excess > 1.0:          # also NaN
+        return 1.0
+    return excess if excess < max_factor else max_factor
+
+
+class FixedCycleReference:
+    """Covariance of the fixed X, Y, Z cycle along the live estimate (one sensor).
+
+    Parameters
+    ----------
+    currents : sequence (n_coils,)
+        Nominal current of each coil (A).
+    first_cycle_us, cycle_us, spacing_us : int
+        The fixed cycle's timetable (``coiltrack.firmware.actuate.fixed_cycle``).
+    mid_us : int
+        Mid time of a pulse's used samples from its start edge.
+    var_amp : float
+        Variance of one amplitude component of one fixed-cycle pulse (T^2).
+    rel_model, current_sigma : float
+        Relative field-model error and current std (A), as in the filter's
+        own measurement covariance.
+    avg_us : float
+        Time constant of the mean variance (us).
+    """
+
+    def __init__(self, currents, first_cycle_us: int, cycle_us: int, spacing_us: int, mid_us: int,
+                 var_amp: float, rel_model: float, current_sigma: float, avg_us: float,
+                 exp_pos: float = 0.0, exp_ori: float = 0.0, warmup_us: int = 0):
+        self.currents = tuple(float(c) for c in currents)
+        self.n = len(self.currents)
+        self.first_cycle_us = int(first_cycle_us)
+        self.cycle_us = int(cycle_us)
+        self.spacing_us = int(spacing_us)
+        self.mid_us = int(mid_us)
+        self.var_amp = float(var_amp)
+        self.rel_model = float(rel_model)
+        self.current_sigma = float(current_sigma)
+        self.avg_us = float(avg_us)
+        n = N_CORE
+        self.P = np.zeros((n, n))
+        self._Pd = self.P.reshape(-1)[::n + 1]
+        self.F = np.eye(n)
+        self._Fv = memoryview(self.F)
+        self._Ft = self.F.T
+        self.q = np.zeros(n)
+        self._T = np.zeros((n, n))
+        self.upd = KalmanUpdate(n, 3, 1.0)
+        self.avg = np.zeros(6)
+        #: the running mean of ``r^(2 exp)`` (position, orientation) over the same instants as
+        #: :attr:`avg`: the range law's own mean, which normalises it (``fixed_cycle_bounds``)
+        self.exp = (2.0 * float(exp_pos), 2.0 * float(exp_ori))
+        self.law = np.ones(2)
+        self.elapsed_us = 0.0
+        #: after a start the means follow the present values for this long (us): the start's
+        #: large covariance is not the accuracy of the run
+        self.warmup_us = float(warmup_us)
+        self.active = False
+        self.t_us = 0
+        self.cycle_start = self.first_cycle_us
+        self.coil = 0
+        self.pulses = 0          # reference pulses taken (counted, never commanded)
+
+    def law_now(self, r: float, g: int) -> float:
+        """``r^(2 e_g) / mean(r^(2 e_g))`` for group ``g`` (0 position, 1 orientation)."""
+        m = float(self.law[g])
+        if not m > 0.0:
+            return 1.0
+        r = r if r > 1e-3 else 1e-3
+        return r ** self.exp[g] / m
+
+    def next_mid_us(self) -> int:
+        return self.cycle_start + self.coil * self.spacing_us + self.mid_us
+
+    def start(self, P_core, t_us: int) -> None:
+        """Start from the live filter's core covariance ``P_core`` (15, 15) at ``t_us``."""
+        self.P[:] = P_core
+        for k in range(3):
+            self.avg[k] = self.P[POS.start + k, POS.start + k]
+            self.avg[3 + k] = self.P[ORI.start + k, ORI.start + k]
+        self.t_us = int(t_us)
+        self.elapsed_us = 0.0
+        self.law[0] = self.law[1] = -1.0          # set at the first interval
+        # the cycle in phase with the timetable: the first pulse after t_us
+        while self.next_mid_us() <= self.t_us:
+            self._advance()
+        self.active = True
+
+    def stop(self) -> None:
+        self.active = False
+
+    def _advance(self) -> None:
+        self.coil += 1
+        if self.coil == self.n:
+            self.coil = 0
+            self.cycle_start += self.cycle_us
+
+    def step(self, ekf, t_us: int, model) -> None:
+        """Carry the reference to ``t_us`` (the live filter's time after an IMU
+        sample): propagate with the filter's transition over the interval,
+        update at every reference pulse whose mid time has passed
+        (``model``: a ``SingleCoilModel``, evaluated at the live estimate)."""
+        if not self.active:
+            return
+        t_us = int(t_us)
+        while True:
+            t_m = self.next_mid_us()
+            t1 = t_m if t_m <= t_us else t_us
+            if t1 > self.t_us:
+                self._propagate(ekf, (t1 - self.t_us) * 1e-6, t1 - self.t_us)
+                self.t_us = t1
+            if t_m > t_us:
+                break
+            self._pulse(ekf, model, self.coil)
+            self._advance()
+
+    def _propagate(self, ekf, dt: float, dt_us: int) -> None:
+        ekf.core_transition(self._Fv, self.q, dt)
+        np.matmul(self.F, self.P, out=self._T)
+        np.matmul(self._T, self._Ft, out=self.P)
+        self._Pd += self.q
+        # the mean since the start until avg_us have passed, then an exponential one over avg_us
+        self.elapsed_us += dt_us
+        e = self.elapsed_us - self.warmup_us
+        a = 1.0 if e <= dt_us else dt_us / (e if e < self.avg_us else self.avg_us)
+        if a > 1.0:
+            a = 1.0
+        p = ekf.p
+        r = (float(p[0]) * float(p[0]) + float(p[1]) * float(p[1]) + float(p[2]) * float(p[2])) ** 0.5
+        r = r if r > 1e-3 else 1e-3
+        for g in range(2):
+            x = r ** self.exp[g]
+            self.law[g] = x if self.law[g] < 0.0 else self.law[g] + a * (x - self.law[g])
+        P = self.P
+        avg = self.avg
+        for k in range(3):
+            i = POS.start + k
+            j = ORI.start + k
+            avg[k] += a * (float(P[i, i]) - float(avg[k]))
+            avg[3 + k] += a * (float(P[j, j]) - float(avg[3 + k]))
+
+    def _pulse(self, ekf, model, coil: int) -> None:
+        """Eq-4 covariance update of ``coil`` at its nominal current (Joseph form)."""
+        model.evaluate(ekf.p, ekf.R)
+        c = self.currents[coil]
+        Hu = model.H[coil]
+        hu = model.h[coil]
+        upd = self.upd
+        H = upd.H
+        H.fill(0.0)
+        for i in range(3):
+            for j in range(3):
+                H[i, POS.start + j] = c * float(Hu[i, j])
+                H[i, ORI.start + j] = c * float(Hu[i, 3 + j])
+        hn2 = float(hu[0] * hu[0] + hu[1] * hu[1] + hu[2] * hu[2])
+        r = self.var_amp + (self.rel_model * self.rel_model * c * c + self.current_sigma * self.current_sigma) * hn2
+        Rm = upd.R
+        Rm.fill(0.0)
+        for i in range(3):
+            Rm[i, i] = r
+        upd.y.fill(0.0)
+        upd.update(self.P)
+        self.pulses += 1
