@@ -166,6 +166,15 @@ class FirmwareConfig:
     fusion_replay_capacity: int = 128       # IMU samples kept to replay after a delayed magnetic update
     fusion_history_capacity: int = 128      # inertial poses kept for motion compensation
     pose_output_capacity: int = 16          # fused poses waiting to be sent
+    # --- Gietler's Brownian-motion tracker (003_93f59c2e1c5b6c59.txt eqs 6-24; estimate/brownian.py)
+    gietler_dt_s: float = 0.1               # s, filter step (sec III-C: delta tau = 0.1 s)
+    gietler_sigma_v: float = 0.01           # m s^-3/2, velocity Wiener intensity of the model (eq 6)
+    gietler_sigma_w: float = 0.1            # rad s^-3/2, Euler-rate Wiener intensity (eq 7)
+    gietler_noise_var: float = 1e-4         # (A/m)^2, measurement noise variance per component (eq 14)
+    gietler_p0: float = 0.1                 # initial covariance P0 = p0 I (eq 17; 0.1 in sec III-C)
+    gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
+    gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
+    gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -218,6 +227,7 @@ class FirmwareConfig:
              f"must hold two cycles of samples (>= {int(2 * samples_per_cycle)})")
         self._validate_actuation(need)
         self._validate_fusion(need)
+        self._validate_gietler(need)
         return self
 
     def _validate_fusion(self, need) -> None:
@@ -317,6 +327,17 @@ class FirmwareConfig:
         need("gravity_mps2", len(self.gravity_mps2) == 3 and all(fin(v) for v in self.gravity_mps2),
              "must be a finite 3-vector")
 
+    def _validate_gietler(self, need) -> None:
+        """Keys of Gietler's Brownian-motion tracker (``coiltrack.firmware.estimate.brownian``)."""
+        for name in ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
+                     "gietler_iter_tol", "gietler_diverge_m"):
+            v = getattr(self, name)
+            need(name, isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0,
+                 f"must be a positive number, got {v!r}")
+        v = self.gietler_iterations
+        need("gietler_iterations", isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
+             f"must be an integer in 1..100 (1: the plain EKF), got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -344,6 +365,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                "fusion_reinit_after", "xi_sigma_floor", "xi_heading_sigma_floor", "xi_var_scale", "mag_var_scale",
                "fusion_replay_capacity", "fusion_history_capacity", "pose_output_capacity", "qm_sigma",
                "psi_sigma", "meas_sigma"),
+    "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
+                "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

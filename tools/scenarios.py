@@ -365,3 +365,4 @@ def get(name: str) -> Scenario:
         return SCENARIOS[name]
     except KeyError:
         raise KeyError(f"unknown scenario '{name}'; known: {', '.join(sorted(SCENARIOS))}") from None
+from . import scenarios_gietler  # noqa: E402,F401  (Gietler et al. 2019: Tables I, IV-VII)
