@@ -175,7 +175,9 @@ def _tables(scenario, runs) -> dict:
                         ref = v
             mse = sum(ok) / len(ok) if ok else None
             rows.append({"noise_var": nv, "mse_m2": mse, "divergences": sum(int(f["diverged" + suffix]) for f in figs),
-                         "runs": len(figs), "paper_mse_m2": ref,
+                         "runs": len(figs), "runs_ended_out_of_range": sum(f["steps"] < round(
+                             SPECS[scenario].duration_s / SPECS[scenario].dt_s) for f in figs),
+                         "paper_mse_m2": ref,
                          "ratio": None if (mse is None or ref is None) else mse / ref,
                          "iterations_per_step": sum(f["iterations" + suffix] for f in figs) / len(figs)
                          / round(SPECS[scenario].duration_s / SPECS[scenario].dt_s),
