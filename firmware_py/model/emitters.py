@@ -161,11 +161,13 @@ class PlatformModel:
             f, jr, A = (self._dipoles if kind == DIPOLE else self._currents)(r, m)
             F += onehot @ f
             if jac:
-                J[:, :, 0:3] -= np.einsum("cs,sij->cij", onehot, jr)
-                do = np.einsum("kij,sj->ksi", self._dR, o)
-                dm = np.einsum("kij,sj->ksi", self._dR, mu)
-                col = np.einsum("sij,ksj->ski", A, dm) - np.einsum("sij,ksj->ski", jr, do)
-                J[:, :, 3:6] += np.einsum("cs,ski->cik", onehot, col)
+                S = len(o)
+                J[:, :, 0:3] -= (onehot @ jr.reshape(S, 9)).reshape(-1, 3, 3)
+                dRt = self._dR.transpose(0, 2, 1)
+                do = np.matmul(o[None], dRt)                        # (3, S, 3): dR_k o_s
+                dm = np.matmul(mu[None], dRt)                       # (3, S, 3): dR_k mu_s
+                col = np.matmul(A[None], dm[..., None]) - np.matmul(jr[None], do[..., None])  # (3, S, 3, 1)
+                J[:, :, 3:6] += (onehot @ col[..., 0].transpose(1, 0, 2).reshape(S, 9)).reshape(-1, 3, 3).transpose(0, 2, 1)
             self.evals += len(o)
         return F, (J if jac else None)
 
