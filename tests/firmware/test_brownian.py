@@ -137,3 +137,25 @@ def test_nees_within_the_999_band():
     dof = 12 * runs
     lo, hi = stats.chi2.ppf(0.0005, dof), stats.chi2.ppf(0.9995, dof)
     assert lo <= total <= hi, (total / runs, lo / runs, hi / runs)
+
+
+def test_moving_receiver_is_tracked_through_the_relative_pose():
+    """Either side may move: with the emitters fixed (pose z_e, R_e) and the receiver moving (z_r,
+    R_r), the receiver's reading R_r^T H(z_r) (magpylib, world frame) equals the model at the
+    relative pose z = R_r^T (z_e - z_r), R = R_r^T R_e (rel 1e-9): catches a model that
+    assumes a receiver aligned with the world or the inverse pose used."""
+    magpy = pytest.importorskip("magpylib")
+    from scipy.spatial.transform import Rotation
+
+    offsets = np.array([[0, 0, 0], [0.05, 0.05, 0.05], [-0.02, 0.03, 0.02]])
+    moments = np.eye(3)[::-1]
+    model = PlatformModel(offsets, moments, [DIPOLE] * 3, [0, 1, 2], 3, ac=False)
+    z_e, R_e = np.array([0.05, 0.02, 0.0]), Rotation.from_euler("ZYX", [0.4, -0.1, 0.2]).as_matrix()
+    z_r, R_r = np.array([0.3, -0.25, 0.2]), Rotation.from_euler("ZYX", [-0.7, 0.3, 0.5]).as_matrix()
+    R_rel = R_r.T @ R_e
+    th_rel = Rotation.from_matrix(R_rel).as_euler("ZYX")[::-1]
+    h = np.zeros(9)
+    model.measure(R_r.T @ (z_e - z_r), th_rel, h)
+    for k in range(3):
+        B = magpy.misc.Dipole(moment=R_e @ moments[k], position=z_e + R_e @ offsets[k]).getB(z_r)
+        assert np.allclose(h[3 * k:3 * k + 3], R_r.T @ B / MU0, rtol=1e-9, atol=1e-12)
