@@ -18,16 +18,16 @@ A = 0.031
 
 
 def wait_moment(omega, a, sigma, mu_r):
-    """m / H0 (A m^2 per A/m) of a sphere in a uniform field, Wait 1951 with scipy's j0, j1:
-    m = 2 pi a^3 H0 (2 mu_r - G) / (mu_r + G)... in the form m = 4 pi a^3 H0 (mu_r (1 + k) - ... ) is
-    avoided: the exterior dipole from matching B_r and H_theta at r = a,
-    m = 2 pi a^3 H0 [2 mu_r j1(x) - (j1(x) + x j1'(x))] / [mu_r j1(x) + (j1(x) + x j1'(x))] (x = k a)."""
+    """m / H0 (A m^2 per A/m) of a sphere in a uniform field (Wait 1951), with scipy's j1:
+    matching B_r and H_theta at r = a to the applied field plus an exterior dipole gives
+    m = 2 pi a^3 H0 (2 mu_r j1(x) - g) / (mu_r j1(x) + g), g = j1(x) + x j1'(x), x = k a,
+    k^2 = -i omega mu_r mu0 sigma; at DC the permeable sphere 4 pi a^3 (mu_r - 1) / (mu_r + 2)."""
     if sigma == 0.0 or omega == 0.0:
         return 4 * math.pi * a ** 3 * (mu_r - 1) / (mu_r + 2)
     x = cmath.sqrt(-1j * omega * mu_r * MU0 * sigma) * a
     j1 = special.spherical_jn(1, x)
     dj = special.spherical_jn(1, x, derivative=True)
-    g = j1 + x * dj                     # d(r j1(kr))/dr * a / ... at r = a
+    g = j1 + x * dj                     # d(x j1(x))/dx
     return 2 * math.pi * a ** 3 * (2 * mu_r * j1 - g) / (mu_r * j1 + g)
 
 
