@@ -34,7 +34,7 @@ def wait_moment(omega, a, sigma, mu_r):
 @pytest.mark.parametrize("sigma, mu_r, f_hz, tol, phase_deg", [
     (59.9e6, 1.0, 450e3, 0.04, 0.1),      # copper: skin depth 97 um, field excluded (mu_eff ~ 0)
     (0.1e6, 100.0, 450e3, 0.01, 0.05),    # the ferromagnetic cube's material at 450 kHz (strong phase)
-    (1000.0, 1.0, 450e3, 0.002, 0.05),    # carbon-like: weak, nearly in quadrature
+    (1000.0, 1.0, 450e3, 0.002, 0.05),    # carbon-like: skin depth 2.4 cm, mostly in quadrature
     (0.1e6, 100.0, 0.0, 0.08, 0.0),       # iron at DC: the permeable sphere
 ])
 def test_lattice_sphere_matches_wait(sigma, mu_r, f_hz, tol, phase_deg):
