@@ -53,11 +53,10 @@ def _setup(args):
 
     from .runner import parse_faults
     from .scenarios import get
+    from .sweep import experiment
     from .userconfig import load_over
 
     sc = get(args.scenario)
-    from .sweep import experiment
-
     if experiment(args.scenario) is not None:
         return (f"--scenario {args.scenario}: a measurement-level experiment, not a bench run; "
                 f"run it with `coiltrack sweep --scenario {args.scenario}`")

@@ -212,18 +212,14 @@ def _write_outputs(args, doc: dict) -> None:
         write_csv(doc["runs"], args.csv)
         print(f"runs written to {args.csv}")
     if args.plot:
-        exp = sweep_experiment(doc["scenario"])
+        from . import sweep
+
+        exp = sweep.experiment(doc["scenario"])
         if exp is not None and exp.plot is not None:
             exp.plot(doc, args.plot)
         else:
             plot(doc["runs"], doc["summary"], args.plot, doc["scenario"])
         print(f"plot written to {args.plot}")
-
-
-def sweep_experiment(name: str):
-    from . import sweep
-
-    return sweep.experiment(name)
 
 
 def write_csv(runs: list[dict], path) -> None:

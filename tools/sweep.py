@@ -10,6 +10,10 @@ by ``numpy.random.SeedSequence(seed)`` and keeps no state between runs).
 Executors (:data:`EXECUTORS`) yield ``(task index, result)`` as runs finish;
 :func:`run_tasks` puts the results back in task order. :func:`summarize`
 gives, per grid point, the median, p90 and worst of every figure.
+
+A scenario may instead be a measurement-level :class:`Experiment` (registered by its
+scenario module, e.g. ``tools/scenarios_gietler.py``): its tasks run the experiment's
+own ``run`` on the same executors, and its ``tables`` add keys to the sweep's document.
 """
 from __future__ import annotations
 
