@@ -246,6 +246,15 @@ class FirmwareConfig:
     duty_margin: float = 0.95               # pulses kept below this fraction of the driver's duty limit
     saturation_sigmas: float = 3.0          # range check: the sensor assumed this many position stds closer
     decision_refresh_us: int = 20_000       # an unchanged prediction is decided again after this long
+    # --- Gietler's Brownian-motion tracker (003_93f59c2e1c5b6c59.txt eqs 6-24; estimate/brownian.py)
+    gietler_dt_s: float = 0.1               # s, filter step (sec III-C: delta tau = 0.1 s)
+    gietler_sigma_v: float = 0.01           # m s^-3/2, velocity Wiener intensity of the model (eq 6)
+    gietler_sigma_w: float = 0.1            # rad s^-3/2, Euler-rate Wiener intensity (eq 7)
+    gietler_noise_var: float = 1e-4         # (A/m)^2, measurement noise variance per component (eq 14)
+    gietler_p0: float = 0.1                 # initial covariance P0 = p0 I (eq 17; 0.1 in sec III-C)
+    gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
+    gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
+    gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -302,6 +311,7 @@ class FirmwareConfig:
         self._validate_pose(need)
         self._validate_recovery(need)
         self._validate_ac(need)
+        self._validate_gietler(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -510,6 +520,17 @@ class FirmwareConfig:
             need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
                  f"must be a positive integer, got {v!r}")
 
+    def _validate_gietler(self, need) -> None:
+        """Keys of Gietler's Brownian-motion tracker (``coiltrack.firmware.estimate.brownian``)."""
+        for name in ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
+                     "gietler_iter_tol", "gietler_diverge_m"):
+            v = getattr(self, name)
+            need(name, isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0,
+                 f"must be a positive number, got {v!r}")
+        v = self.gietler_iterations
+        need("gietler_iterations", isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
+             f"must be an integer in 1..100 (1: the plain EKF), got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -552,6 +573,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "nis_feedback_updates", "nis_feedback_max", "nis_linear_fraction", "nis_forget_us",
                         "nis_alarm_z", "nis_alarm_excess", "nis_max_scale", "no_imu_us", "flip_every_us",
                         "duty_margin", "saturation_sigmas", "decision_refresh_us"),
+    "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
+                "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -57,9 +57,13 @@ def _setup(args):
 
     from .runner import parse_faults
     from .scenarios import get
+    from .sweep import experiment
     from .userconfig import load_over
 
     sc = get(args.scenario)
+    if experiment(args.scenario) is not None:
+        return (f"--scenario {args.scenario}: a measurement-level experiment, not a bench run; "
+                f"run it with `coiltrack sweep --scenario {args.scenario}`")
     if args.log and args.transport not in ("inproc", "can"):
         return "--log needs an in-process transport (inproc or can)"
     try:

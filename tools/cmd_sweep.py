@@ -81,13 +81,17 @@ def run(args) -> int:
         return 1
     bar.close()
     summary = sweep.summarize(runs)
-    print(sweep.format_summary(summary))
+    exp = sweep.experiment(args.scenario)
+    print(sweep.format_summary(summary, exp.headline) if exp else sweep.format_summary(summary))
+    tables = exp.tables(args.scenario, runs) if exp else {}
+    if exp:
+        print(exp.format(tables))
     wall = time.perf_counter() - wall0
     print(f"{len(runs)} runs in {wall:.1f} s wall" + (" (interrupted)" if status else ""))
     doc = {"scenario": args.scenario, "executor": args.executor, "workers": plan["workers"],
            "scheduler": args.scheduler, "seeds": plan["seeds"], "duration_s": plan["duration_s"],
            "grid": [dict(point) for point in plan["grid"]], "interrupted": bool(status), "wall_s": round(wall, 2),
-           "runs": runs, "summary": summary}
+           "runs": runs, "summary": summary, **tables}
     _write_outputs(args, doc)
     return status
 
@@ -208,7 +212,13 @@ def _write_outputs(args, doc: dict) -> None:
         write_csv(doc["runs"], args.csv)
         print(f"runs written to {args.csv}")
     if args.plot:
-        plot(doc["runs"], doc["summary"], args.plot, doc["scenario"])
+        from . import sweep
+
+        exp = sweep.experiment(doc["scenario"])
+        if exp is not None and exp.plot is not None:
+            exp.plot(doc, args.plot)
+        else:
+            plot(doc["runs"], doc["summary"], args.plot, doc["scenario"])
         print(f"plot written to {args.plot}")
 
 

@@ -380,3 +380,4 @@ from . import scenarios_body  # noqa: E402,F401  (body-worn rows of Tables 5.1 /
 from coiltrack.tools import scenarios_raab  # noqa: E402,F401  (registers raab-acquire, helix-hemisphere)
 from coiltrack.tools import scenarios_ac  # noqa: E402,F401  (AC excitation: raab-ac, ac-vs-dc-metal)
 from coiltrack.tools import scenarios_adaptive  # noqa: E402,F401  (schepers-fixed-*)
+from . import scenarios_gietler  # noqa: E402,F401  (Gietler et al. 2019: Tables I, IV-VII)

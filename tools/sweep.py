@@ -10,6 +10,10 @@ by ``numpy.random.SeedSequence(seed)`` and keeps no state between runs).
 Executors (:data:`EXECUTORS`) yield ``(task index, result)`` as runs finish;
 :func:`run_tasks` puts the results back in task order. :func:`summarize`
 gives, per grid point, the median, p90 and worst of every figure.
+
+A scenario may instead be a measurement-level :class:`Experiment` (registered by its
+scenario module, e.g. ``tools/scenarios_gietler.py``): its tasks run the experiment's
+own ``run`` on the same executors, and its ``tables`` add keys to the sweep's document.
 """
 from __future__ import annotations
 
@@ -22,6 +26,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -44,6 +49,39 @@ _INPUT_KEYS = ("seed", "duration_s")
 
 class SweepError(RuntimeError):
     """A run of the sweep failed in its worker."""
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """A scenario whose runs are a measurement-level experiment instead of bench runs
+    (registered by its scenario module with :func:`register_experiment`).
+
+    ``run(scenario, seed, duration_s, overrides) -> figures``; ``check(scenario, overrides)``
+    raises a ConfigError naming a bad key; ``tables(scenario, runs) -> dict`` gives extra keys
+    of the sweep's JSON document, ``format(tables) -> str`` their printed form;
+    ``headline``: the figures of the printed summary; ``plot(doc, path)`` replaces the default plot."""
+    run: Callable
+    check: Callable
+    tables: Callable
+    format: Callable
+    headline: tuple = ()
+    plot: Callable | None = None
+
+
+#: scenario name -> its :class:`Experiment`
+EXPERIMENTS: dict[str, Experiment] = {}
+
+
+def register_experiment(name: str, exp: Experiment) -> Experiment:
+    EXPERIMENTS[name] = exp
+    return exp
+
+
+def experiment(name: str) -> Experiment | None:
+    """The scenario's :class:`Experiment`, or None for a bench scenario."""
+    from . import scenarios  # noqa: F401  (its modules register their experiments)
+
+    return EXPERIMENTS.get(name)
 
 
 # ---------------------------------------------------------------- parsing the command line
@@ -126,6 +164,10 @@ def scenario_with(name: str, overrides=()):
     from . import scenarios
 
     sc = scenarios.get(name)
+    exp = experiment(name)
+    if exp is not None:
+        exp.check(name, tuple(overrides))
+        return sc
     if not overrides:
         return sc
     cfg = config_from_dict(override_dict(overrides), sc.firmware_config())
@@ -161,6 +203,10 @@ def run_task(task: Task) -> dict:
     from .runner import add_fixed_comparison, run_inproc
 
     try:
+        exp = experiment(task.scenario)
+        if exp is not None:
+            return {"seed": task.seed, "params": dict(task.overrides),
+                    "figures": exp.run(task.scenario, task.seed, task.duration_s, task.overrides)}
         sc = scenario_with(task.scenario, task.overrides)
         rep = run_inproc(sc, task.seed, task.duration_s)
         add_fixed_comparison(rep, sc, task.seed, task.duration_s)

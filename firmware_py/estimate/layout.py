@@ -190,3 +190,13 @@ def fusion_layout(measurement_model: int) -> StateLayout:
     """The table for a measurement model (thesis sec 6.2.5): model 1 (eq 6.18)
     uses the 21 states of eq 6.9; models 2 and 3 (eqs 6.20, 6.21) add ``XI``."""
     return FUSION_LAYOUT if measurement_model == 1 else FUSION_XI_LAYOUT
+
+
+#: Gietler et al. 2019 (``003_93f59c2e1c5b6c59.txt``), eq 11: the Brownian-motion state
+#: X = [v, z, omega, theta] of the emitter platform relative to the receiver (eqs 6-12)
+BROWNIAN_LAYOUT = StateLayout("Gietler Brownian motion (eq 11)", (
+    ("VEL", 3, "m/s", "platform velocity v, receiver frame (eq 6)"),
+    ("POS", 3, "m", "platform position z = emitter 1, receiver frame (eq 6)"),
+    ("RATE", 3, "rad/s", "Euler-angle rate omega (eq 7)"),
+    ("THETA", 3, "rad", "Z-Y-X Euler angles theta, R = Rz Ry Rx (eqs 3-4, 7)"),
+))

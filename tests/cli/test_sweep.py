@@ -201,3 +201,16 @@ def test_failed_run_exits_1(monkeypatch, capsys):
     monkeypatch.setitem(sweep.EXECUTORS, "local", broken)
     assert main([*SWEEP]) == 1
     assert "worker lost" in capsys.readouterr().err
+
+
+def test_gietler_experiment_same_on_dask_and_local(dask_address, tmp_path):
+    """A measurement-level experiment (gietler-air, 2 seeds x 2 levels, 2 s) gives the same runs
+    and levels table on the Dask cluster as on the local pool: catches an experiment whose
+    runs depend on process state (a cache, a shared random generator)."""
+    base = ["sweep", "--scenario", "gietler-air", "--seeds", "1-2", "--duration", "2", "--set", "noise.var=1e-2,1e-4"]
+    docs = []
+    for extra in (["--workers", "2"], ["--executor", "dask", "--scheduler", dask_address]):
+        out = tmp_path / f"{len(docs)}.json"
+        assert main([*base, *extra, "--json", str(out)]) == 0
+        docs.append(json.loads(out.read_text()))
+    assert docs[0]["runs"] == docs[1]["runs"] and docs[0]["levels"] == docs[1]["levels"]
