@@ -106,7 +106,7 @@ from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.covariance import RobustInverse6
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
                                             SOLVE_OK, SOLVE_REACQUIRED, SOLVE_RUNNING)
-from coiltrack.firmware.pose.staged import Staged, run_units
+from coiltrack.firmware.pose.staged import StagedSolve
 
 __all__ = ["RaabTracker", "error_angles", "position_update", "orientation_update", "angles_from_pose",
            "POLE_COS", "MAX_STEP"]
@@ -268,7 +268,7 @@ def _gate(n: int, probability: float) -> float:
     return chi2_gate(dof, probability)
 
 
-class RaabTracker(Staged):
+class RaabTracker(StagedSolve):
     """Raab's iterative tracker behind the ``PoseSolver`` interface.
 
     Parameters
@@ -429,26 +429,6 @@ class RaabTracker(Staged):
             self._limit = self.iters
         self._then(self._unit_measure, self.n)
         return SOLVE_RUNNING
-
-    def step(self, budget_evals: int) -> int:
-        """At most ``budget_evals`` field evaluations (charges) of the solve;
-        ``SOLVE_RUNNING`` or the final status."""
-        used = run_units(self, self.signal, budget_evals) if self.next_unit is not None else 0
-        self.evals_last_step = used
-        self.solve_evals += used
-        if used > self.max_evals_per_step:
-            self.max_evals_per_step = used
-        return SOLVE_RUNNING if self.next_unit is not None else self.status
-
-    def reset_step_stats(self) -> None:
-        self.evals_last_step = 0
-        self.max_evals_per_step = 0
-
-    def cov_diag(self, out) -> None:
-        """Variances of ``(p, dtheta)`` (m^2, rad^2) into ``out`` (6,)."""
-        cov = self._cov
-        for k in range(6):
-            out[k] = cov[7 * k]
 
     def predict_signals(self, p, R, currents, out) -> None:
         """Model signal matrix ``out[:, j] = R^T B_j(p)`` (3, n) of the signal model."""

@@ -50,7 +50,8 @@ from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.acquire import Acquisition
 from coiltrack.firmware.pose.covariance import RobustInverse6
 from coiltrack.firmware.pose.lm import LM_CONVERGED, LM_RUNNING, LevenbergMarquardt
-from coiltrack.firmware.pose.staged import Staged, run_units
+from coiltrack.firmware.pose.staged import SOLVE_RUNNING as _RUNNING
+from coiltrack.firmware.pose.staged import StagedSolve
 
 __all__ = ["PoseSolver", "SOLVE_OK", "SOLVE_BAD_INPUT", "SOLVE_NO_START", "SOLVE_NOT_CONVERGED",
            "SOLVE_NONFINITE", "SOLVE_RUNNING", "SOLVE_REACQUIRED"]
@@ -61,7 +62,7 @@ SOLVE_BAD_INPUT = 1        # bad S, sigma, currents, hemisphere or x0: nothing s
 SOLVE_NO_START = 2         # coil moments do not span 3-D and no x0: nothing solved
 SOLVE_NOT_CONVERGED = 4    # LM stopped on its iteration or damping limit (result still written)
 SOLVE_NONFINITE = 8        # the result is not finite
-SOLVE_RUNNING = 16         # begin/step: the solve is not finished yet
+SOLVE_RUNNING = _RUNNING    # begin/step: the solve is not finished yet
 SOLVE_REACQUIRED = 32      # the warm start failed its checks; solved from acquisition
 
 # default LM convergence at noise level, not machine precision: a step below 1e-5 of the
@@ -188,7 +189,7 @@ class _PoseFit:
         return cost
 
 
-class PoseSolver(Staged):
+class PoseSolver(StagedSolve):
     """Preallocated, resumable Kuipers + Levenberg-Marquardt pose solver.
 
     Parameters
@@ -294,27 +295,6 @@ class PoseSolver(Staged):
         else:
             self._start_acquisition()
         return SOLVE_RUNNING
-
-    def step(self, budget_evals: int) -> int:
-        """Advance the solve by at most ``budget_evals`` field evaluations
-        (a single unit of work larger than that runs alone); returns
-        ``SOLVE_RUNNING`` or, once finished, the final status."""
-        used = run_units(self, self.signal, budget_evals) if self.next_unit is not None else 0
-        self.evals_last_step = used
-        self.solve_evals += used
-        if used > self.max_evals_per_step:
-            self.max_evals_per_step = used
-        return SOLVE_RUNNING if self.next_unit is not None else self.status
-
-    def reset_step_stats(self) -> None:
-        self.evals_last_step = 0
-        self.max_evals_per_step = 0
-
-    def cov_diag(self, out) -> None:
-        """Variances of ``(p, dtheta)`` (m^2, rad^2) into ``out`` (6,)."""
-        cov = self._cov
-        for k in range(6):
-            out[k] = cov[7 * k]
 
     def predict_signals(self, p, R, currents, out) -> None:
         """Model signal matrix ``out[:, j] = R^T B_j(p)`` (3, n) for the given

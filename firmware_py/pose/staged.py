@@ -13,7 +13,10 @@ the budget.
 """
 from __future__ import annotations
 
-__all__ = ["Staged", "run_units"]
+__all__ = ["Staged", "StagedSolve", "run_units", "SOLVE_RUNNING"]
+
+#: a solves status while its units remain (one of the ``SOLVE_*`` flags of ``pose.solver``)
+SOLVE_RUNNING = 16
 
 
 class Staged:
@@ -42,3 +45,34 @@ def run_units(job: Staged, signal, budget: int) -> int:
         job.next_unit()
         spent += cost
     return signal.evals - start
+
+
+class StagedSolve(Staged):
+    """A pose solve run a budget at a time (the runtime solvers :class:`PoseSolver` and
+    :class:`RaabTracker`): the common ``step`` and its work counters.
+
+    Needs ``signal`` (counting ``evals``), ``status`` (the final ``SOLVE_*`` flags), ``_cov``
+    (the 6x6 covariance, flat) and the counters ``solve_evals``, ``evals_last_step``,
+    ``max_evals_per_step`` set by the solver.
+    """
+
+    def step(self, budget_evals: int) -> int:
+        """Advance the solve by at most ``budget_evals`` field evaluations
+        (a single unit of work larger than that runs alone); returns
+        ``SOLVE_RUNNING`` or, once finished, the final status."""
+        used = run_units(self, self.signal, budget_evals) if self.next_unit is not None else 0
+        self.evals_last_step = used
+        self.solve_evals += used
+        if used > self.max_evals_per_step:
+            self.max_evals_per_step = used
+        return SOLVE_RUNNING if self.next_unit is not None else self.status
+
+    def reset_step_stats(self) -> None:
+        self.evals_last_step = 0
+        self.max_evals_per_step = 0
+
+    def cov_diag(self, out) -> None:
+        """Variances of ``(p, dtheta)`` (m^2, rad^2) into ``out`` (6,)."""
+        cov = self._cov
+        for k in range(6):
+            out[k] = cov[7 * k]
