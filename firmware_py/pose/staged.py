@@ -15,7 +15,7 @@ from __future__ import annotations
 
 __all__ = ["Staged", "StagedSolve", "run_units", "SOLVE_RUNNING"]
 
-#: a solves status while its units remain (one of the ``SOLVE_*`` flags of ``pose.solver``)
+#: a solve's status while its units remain (one of the ``SOLVE_*`` flags of ``pose.solver``)
 SOLVE_RUNNING = 16
 
 
