@@ -222,10 +222,14 @@ class SourceInertial:
             f = self.ori.f
             if f.initialized:
                 np.copyto(self.phi, f.R)
-                P = self._phiv
-                fv = self._fv
-                for i in range(3):
-                    fv[i] = P[i, 0] * ax + P[i, 1] * ay + P[i, 2] * az
+                self._specific_force(ax, ay, az)
+
+    def _specific_force(self, ax: float, ay: float, az: float) -> None:
+        """``Phi f_source`` (eq 6.8, global frame, m/s^2) from the source's accelerometer sample."""
+        P = self._phiv
+        fv = self._fv
+        for i in range(3):
+            fv[i] = P[i, 0] * ax + P[i, 1] * ay + P[i, 2] * az
 
 
 class SensorInertial:

@@ -13,23 +13,11 @@ source.
 """
 from __future__ import annotations
 
-import numpy as np
-
 from coiltrack.firmware.track.burst_fusion import SourceInertial
 
 
 class UnacceleratedSource(SourceInertial):
     """:class:`SourceInertial` whose specific force stays ``-g`` (3,) m/s^2."""
 
-    def process(self) -> None:
-        ring, s6 = self.imu, self._s6
-        while True:
-            t = ring.pop_sample(s6)
-            if t < 0:
-                return
-            ax, ay, az, wx, wy, wz = s6
-            self.ori.step(t, ax, ay, az, wx, wy, wz, self.mag)
-            self.samples += 1
-            f = self.ori.f
-            if f.initialized:
-                np.copyto(self.phi, f.R)
+    def _specific_force(self, ax: float, ay: float, az: float) -> None:
+        """The source taken as unaccelerated: ``Phi f_source`` stays ``-g`` (set at construction)."""
