@@ -124,6 +124,25 @@ class OrientationParams:
         self.mag_learn_samples = int(mag_learn_samples)    # compass samples averaged for |m| and dip
 
 
+def _triad(ax, ay, az, mx, my, mz):
+    """TRIAD (eq 2.1): the rows ``X`` (magnetic north, horizontal), ``Y = Z x m`` (west) and ``Z``
+    (up, from the specific force) of the sensor-to-global rotation, sensor frame, and ``|m|``;
+    ``(xx, xy, xz, yx, yy, yz, zx, zy, zz, |m|)``, or None when the samples give no frame (a zero
+    or non-finite sample, or the field along gravity)."""
+    an = math.sqrt(ax * ax + ay * ay + az * az)
+    mn = math.sqrt(mx * mx + my * my + mz * mz)
+    if not (an > 0.0 and mn > 0.0 and math.isfinite(an) and math.isfinite(mn)):
+        return None
+    zx, zy, zz = ax / an, ay / an, az / an
+    yx, yy, yz = zy * mz - zz * my, zz * mx - zx * mz, zx * my - zy * mx
+    yn = math.sqrt(yx * yx + yy * yy + yz * yz)
+    if not yn > 1e-6 * mn:
+        return None                            # field along gravity: no heading
+    yx, yy, yz = yx / yn, yy / yn, yz / yn
+    xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+    return xx, xy, xz, yx, yy, yz, zx, zy, zz, mn
+
+
 class OrientationFilter:
     """Complementary orientation Kalman filter of thesis ch. 2 (see module)."""
 
@@ -185,21 +204,11 @@ class OrientationFilter:
         ``X = Y x Z`` (magnetic north, horizontal); eq 2.1 puts them in the
         rows of ``R``. The field magnitude and dip learned here define
         ``|m| = 1`` and ``h_G`` (eqs 2.8-2.10)."""
-        an = math.sqrt(ax * ax + ay * ay + az * az)
-        mn = math.sqrt(mx * mx + my * my + mz * mz)
-        if not (an > 0.0 and mn > 0.0 and math.isfinite(an) and math.isfinite(mn)):
+        fr = _triad(ax, ay, az, mx, my, mz)
+        if fr is None:
             return False
-        zx, zy, zz = ax / an, ay / an, az / an
-        yx, yy, yz = zy * mz - zz * my, zz * mx - zx * mz, zx * my - zy * mx
-        yn = math.sqrt(yx * yx + yy * yy + yz * yz)
-        if not yn > 1e-6 * mn:
-            return False                       # field along gravity: no heading
-        yx, yy, yz = yx / yn, yy / yn, yz / yn
-        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
-        R = self._Rv
-        R[0, 0], R[0, 1], R[0, 2] = xx, xy, xz
-        R[1, 0], R[1, 1], R[1, 2] = yx, yy, yz
-        R[2, 0], R[2, 1], R[2, 2] = zx, zy, zz
+        xx, xy, xz, yx, yy, yz, zx, zy, zz, mn = fr
+        self._set_R(fr)
         # field in the global frame: (north, 0, up) components
         hn = (xx * mx + xy * my + xz * mz) / mn
         hu = (zx * mx + zy * my + zz * mz) / mn
@@ -233,6 +242,13 @@ class OrientationFilter:
         self.initialized = True
         return True
 
+    def _set_R(self, fr) -> None:
+        """Write the rows ``X, Y, Z`` of a :func:`_triad` frame into ``R`` (eq 2.1)."""
+        R = self._Rv
+        R[0, 0], R[0, 1], R[0, 2] = fr[0], fr[1], fr[2]
+        R[1, 0], R[1, 1], R[1, 2] = fr[3], fr[4], fr[5]
+        R[2, 0], R[2, 1], R[2, 2] = fr[6], fr[7], fr[8]
+
     def reacquire(self, t_us: int, ax, ay, az, mx, my, mz) -> bool:
         """After a break in the IMU stream (the sensor turned while nothing
         was integrated): the orientation again by TRIAD from one accelerometer
@@ -242,22 +258,11 @@ class OrientationFilter:
         walk over the break (``sigma_wb^2 dt``, at most its initial variance);
         ``theta`` restarts with ``theta0_sigma``, its cross-covariances zero.
         Returns False (nothing changed) when the samples give no frame."""
-        an = math.sqrt(ax * ax + ay * ay + az * az)
-        mn = math.sqrt(mx * mx + my * my + mz * mz)
-        if not (an > 0.0 and mn > 0.0 and math.isfinite(an) and math.isfinite(mn)):
+        fr = _triad(ax, ay, az, mx, my, mz)
+        if fr is None:
             return False
-        zx, zy, zz = ax / an, ay / an, az / an
-        yx, yy, yz = zy * mz - zz * my, zz * mx - zx * mz, zx * my - zy * mx
-        yn = math.sqrt(yx * yx + yy * yy + yz * yz)
-        if not yn > 1e-6 * mn:
-            return False
-        yx, yy, yz = yx / yn, yy / yn, yz / yn
-        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
         self.propagate()
-        R = self._Rv
-        R[0, 0], R[0, 1], R[0, 2] = xx, xy, xz
-        R[1, 0], R[1, 1], R[1, 2] = yx, yy, yz
-        R[2, 0], R[2, 1], R[2, 2] = zx, zy, zz
+        self._set_R(fr)
         p = self.prm
         dt = max(0, t_us - self.t_us) * 1e-6
         Pv = self._Pv
