@@ -214,18 +214,7 @@ class FastSensorNode(SensorNode):
         p, R = self.world.pose(t)
         B = (self.world.field_sensor_frame(t) + R.T @ self._coil_ac_field(t) + self.flip_state * self.offset
              + self.rng.normal(0.0, m.noise_t, 3))
-        sat = bool(np.any(np.abs(B) > m.range_t))
-        if sat:
-            self.saturations += 1
-        lim = m.range_t / MAG_LSB_T
-        counts = np.clip(np.round(B / MAG_LSB_T), -lim, lim)
-        stamp = max(0, self.master(t))
-        self.samples += 1
-        self.stamps.append(stamp)
-        self.true_times.append(t)
-        self._by_stamp.setdefault(stamp, t)
-        send(self, MSG["MAG_SAMPLE"](self.node_id, stamp, int(counts[0]), int(counts[1]), int(counts[2]),
-                                     (1 if self.flip_state > 0 else 0) | (2 if sat else 0)))
+        self._send_mag(t, B, send)
 
 
 def install_ac(bench, profile: FastMagProfile | None = None, seed_driver: int = 0, seed_sensor: int = 0) -> None:

@@ -606,6 +606,12 @@ class SensorNode(Node):
             self._flip(t - 2 * m.flip_delta_us, -self.flip_state, False)
         B = (self.world.field_sensor_frame(t) + self.flip_state * self.offset + self.flip_err
              + self.rng.normal(0.0, m.noise_t, 3))
+        self._send_mag(t, B, send)
+
+    def _send_mag(self, t: int, B, send) -> None:
+        """Quantise the field ``B`` (3,) T measured at true time ``t``, stamp it on the master clock and
+        send it as a MAG_SAMPLE (saturated beyond the range, flip state in the flags)."""
+        m = self.mag
         sat = bool(np.any(np.abs(B) > m.range_t))
         if sat:
             self.saturations += 1
