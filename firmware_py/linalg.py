@@ -322,11 +322,14 @@ def skew_into(v, out) -> None:
 
 
 def exp_rotvec(wx: float, wy: float, wz: float, out) -> None:
-    """``out = exp([w]x)`` (Rodrigues) into a 3x3 buffer indexable ``out[i, j]``."""
+    """``out = exp([w]x)`` (Rodrigues) into a 3x3 buffer indexable ``out[i, j]``.
+    An infinite angle (a diverged step) gives NaN, for the caller's finiteness check, not an exception."""
     t2 = wx * wx + wy * wy + wz * wz
     if t2 < 1e-12:
         a = 1.0 - t2 / 6.0
         b = 0.5 - t2 / 24.0
+    elif t2 == math.inf:
+        a = b = math.nan
     else:
         t = _sqrt(t2)
         a = math.sin(t) / t

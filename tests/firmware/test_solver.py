@@ -80,6 +80,17 @@ def test_nearest_rotation_equals_svd_projection_and_rotvec_roundtrip():
         np.testing.assert_allclose(back, w, atol=1e-9)
 
 
+def test_exp_rotvec_of_a_diverged_step_is_nan_not_an_exception():
+    """A step of infinite angle (a solve run away from a diverged warm start) must give NaN for the
+    solver's finiteness check, not raise 'math domain error' inside the tick (it did, on a body-worn run
+    without eq 6.8)."""
+    R = np.zeros((3, 3))
+    exp_rotvec(1e200, 0.0, 0.0, R)
+    assert np.isnan(R).any()
+    exp_rotvec(0.3, -0.2, 0.1, R)
+    assert np.all(np.isfinite(R))
+
+
 #: the reference's stopping tolerances (the firmware's default stops at noise level)
 TIGHT = dict(step_tol=1e-9, cost_tol=1e-12)
 
