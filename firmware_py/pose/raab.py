@@ -346,7 +346,7 @@ class RaabTracker(StagedSolve):
         self._Sv = memoryview(np.zeros(3 * n))
         self._wn = np.zeros((3 * n, 1))              # 1 / sigma, a column for the covariance
         self._wv = flat(self._wn)
-        self._cur = memoryview(np.zeros(n))
+        self._curv = memoryview(np.zeros(n))
         self._pcur = memoryview(np.zeros(n))
         self._hp = memoryview(np.zeros(3 * n))
         self._h = memoryview(np.zeros(3 * n))
@@ -430,37 +430,7 @@ class RaabTracker(StagedSolve):
         self._then(self._unit_measure, self.n)
         return SOLVE_RUNNING
 
-    def predict_signals(self, p, R, currents, out) -> None:
-        """Model signal matrix ``out[:, j] = R^T B_j(p)`` (3, n) of the signal model."""
-        n = self.n
-        cur = self._pcur
-        for j in range(n):
-            cur[j] = currents[j]
-        hp = self._hp
-        self.signal.predict(p[0], p[1], p[2], R, cur, hp)
-        for j in range(n):
-            out[0, j], out[1, j], out[2, j] = hp[3 * j], hp[3 * j + 1], hp[3 * j + 2]
-
     # ------------------------------------------------------------- input
-    def _load(self, S, currents, sigma) -> bool:
-        n = self.n
-        if getattr(S, "shape", None) != (3, n) or getattr(sigma, "shape", None) != (3, n) or len(currents) != n:
-            return False
-        Sv, wv, cur = self._Sv, self._wv, self._cur
-        for i in range(3):
-            for j in range(n):
-                s, sg = S[i, j], sigma[i, j]
-                if not (math.isfinite(s) and math.isfinite(sg) and sg > 0.0):
-                    return False
-                Sv[3 * j + i] = s
-                wv[3 * j + i] = 1.0 / sg
-        for j in range(n):
-            c = currents[j]
-            if not math.isfinite(c):
-                return False
-            cur[j] = c
-        return True
-
     def _load_hemisphere(self, hemisphere) -> bool:
         self._check_hemi = hemisphere is not None
         if hemisphere is None:
@@ -496,7 +466,7 @@ class RaabTracker(StagedSolve):
     def _moments(self) -> bool:
         """``M`` at the currents and ``M^+ = M^T (M M^T)^-1``; False if the
         moments do not span 3-D."""
-        n, mom, mp, cur = self.n, self._mom, self._mp, self._cur
+        n, mom, mp, cur = self.n, self._mom, self._mp, self._curv
         g00 = g01 = g02 = g11 = g12 = g22 = 0.0
         for j in range(n):
             mx, my, mz = self.signal.moment_per_amp(j)
@@ -630,7 +600,7 @@ class RaabTracker(StagedSolve):
         B_model - B_raab`` with its gradient (Raab's dipole in closed form,
         :meth:`_raab_field`: no field evaluation)."""
         px, py, pz = self._point()
-        cur, h, H, R = self._cur, self._h, self._H, self._R
+        cur, h, H, R = self._curv, self._h, self._H, self._R
         sig = self.signal
         sig.measure(px, py, pz, R, cur, h, H)
         self._xm[:] = self._x

@@ -296,45 +296,7 @@ class PoseSolver(StagedSolve):
             self._start_acquisition()
         return SOLVE_RUNNING
 
-    def predict_signals(self, p, R, currents, out) -> None:
-        """Model signal matrix ``out[:, j] = R^T B_j(p)`` (3, n) for the given
-        currents (used to bring pulses to a common instant, ``fusion``).
-        Safe between the steps of a solve."""
-        n = self.n
-        cur = self._pcur
-        for j in range(n):
-            cur[j] = currents[j]
-        hp = self._hp
-        self.signal.predict(p[0], p[1], p[2], R, cur, hp)
-        for j in range(n):
-            out[0, j], out[1, j], out[2, j] = hp[3 * j], hp[3 * j + 1], hp[3 * j + 2]
-
     # ------------------------------------------------------------- input
-    def _load(self, S, currents, sigma) -> bool:
-        n = self.n
-        if getattr(S, "shape", None) != (3, n) or getattr(sigma, "shape", None) != (3, n):
-            return False
-        if len(currents) != n:
-            return False
-        Sv, wv, cur = self._Sv, self._wv, self._curv
-        ssum = 0.0
-        for i in range(3):
-            for j in range(n):
-                s = S[i, j]
-                sg = sigma[i, j]
-                if not (math.isfinite(s) and math.isfinite(sg) and sg > 0.0):
-                    return False
-                Sv[3 * j + i] = s
-                wv[3 * j + i] = 1.0 / sg
-                ssum += sg * sg
-        for j in range(n):
-            c = currents[j]
-            if not math.isfinite(c):
-                return False
-            cur[j] = c
-        self._sigma_rms = math.sqrt(ssum / (3 * n))
-        return True
-
     def _load_hemisphere(self, hemisphere) -> bool:
         self._check_hemi = hemisphere is not None
         if hemisphere is None:

@@ -13,6 +13,8 @@ the budget.
 """
 from __future__ import annotations
 
+import math
+
 __all__ = ["Staged", "StagedSolve", "run_units", "SOLVE_RUNNING"]
 
 #: a solve's status while its units remain (one of the ``SOLVE_*`` flags of ``pose.solver``)
@@ -51,9 +53,11 @@ class StagedSolve(Staged):
     """A pose solve run a budget at a time (the runtime solvers :class:`PoseSolver` and
     :class:`RaabTracker`): the common ``step`` and its work counters.
 
-    Needs ``signal`` (counting ``evals``), ``status`` (the final ``SOLVE_*`` flags), ``_cov``
-    (the 6x6 covariance, flat) and the counters ``solve_evals``, ``evals_last_step``,
-    ``max_evals_per_step`` set by the solver.
+    Needs ``signal`` (counting ``evals``), ``n`` (coils), ``status`` (the final ``SOLVE_*``
+    flags), ``_cov`` (the 6x6 covariance, flat), the counters ``solve_evals``,
+    ``evals_last_step``, ``max_evals_per_step``, and the preallocated buffers ``_Sv``, ``_wv``
+    (3n, the signals and their weights ``1/sigma`` in the layout ``[3 j + i]``), ``_curv`` (n),
+    ``_pcur`` (n) and ``_hp`` (3n).
     """
 
     def step(self, budget_evals: int) -> int:
@@ -70,6 +74,44 @@ class StagedSolve(Staged):
     def reset_step_stats(self) -> None:
         self.evals_last_step = 0
         self.max_evals_per_step = 0
+
+    def predict_signals(self, p, R, currents, out) -> None:
+        """Model signal matrix ``out[:, j] = R^T B_j(p)`` (3, n) for the given
+        currents (used to bring pulses to a common instant, ``fusion``).
+        Safe between the steps of a solve."""
+        n = self.n
+        cur = self._pcur
+        for j in range(n):
+            cur[j] = currents[j]
+        hp = self._hp
+        self.signal.predict(p[0], p[1], p[2], R, cur, hp)
+        for j in range(n):
+            out[0, j], out[1, j], out[2, j] = hp[3 * j], hp[3 * j + 1], hp[3 * j + 2]
+
+    def _load(self, S, currents, sigma) -> bool:
+        """Copy the signal matrix ``S`` (3, n), T, its standard deviations ``sigma`` (3, n) and the
+        currents (n), A, into the solve's buffers (``_sigma_rms``: the rms of ``sigma``); False if a
+        shape is wrong or a value is not finite (or a ``sigma`` not positive)."""
+        n = self.n
+        if getattr(S, "shape", None) != (3, n) or getattr(sigma, "shape", None) != (3, n) or len(currents) != n:
+            return False
+        Sv, wv, cur = self._Sv, self._wv, self._curv
+        ssum = 0.0
+        for i in range(3):
+            for j in range(n):
+                s, sg = S[i, j], sigma[i, j]
+                if not (math.isfinite(s) and math.isfinite(sg) and sg > 0.0):
+                    return False
+                Sv[3 * j + i] = s
+                wv[3 * j + i] = 1.0 / sg
+                ssum += sg * sg
+        for j in range(n):
+            c = currents[j]
+            if not math.isfinite(c):
+                return False
+            cur[j] = c
+        self._sigma_rms = math.sqrt(ssum / (3 * n))
+        return True
 
     def cov_diag(self, out) -> None:
         """Variances of ``(p, dtheta)`` (m^2, rad^2) into ``out`` (6,)."""
