@@ -108,6 +108,45 @@ def chol_inverse(a, n: int, out, L) -> bool:
     return True
 
 
+def lu_factor(K, n: int, perm) -> bool:
+    """LU with partial pivoting of the ``n x n`` matrix ``K`` (row-major flat) in place, the row
+    permutation into ``perm`` (n); False if a pivot is below 1e-12 (singular)."""
+    for i in range(n):
+        perm[i] = i
+    for c in range(n):
+        piv, best = c, abs(K[n * c + c])
+        for r in range(c + 1, n):
+            if abs(K[n * r + c]) > best:
+                piv, best = r, abs(K[n * r + c])
+        if not best > 1e-12:
+            return False
+        if piv != c:
+            for j in range(n):
+                K[n * c + j], K[n * piv + j] = K[n * piv + j], K[n * c + j]
+            perm[c], perm[piv] = perm[piv], perm[c]
+        d = K[n * c + c]
+        for r in range(c + 1, n):
+            f = K[n * r + c] / d
+            K[n * r + c] = f
+            for j in range(c + 1, n):
+                K[n * r + j] -= f * K[n * c + j]
+    return True
+
+
+def lu_solve(K, n: int, perm, e, y) -> None:
+    """``e <- K^-1 e`` with the factors of :func:`lu_factor`; ``y`` (n) scratch."""
+    for i in range(n):
+        acc = e[perm[i]]
+        for j in range(i):
+            acc -= K[n * i + j] * y[j]
+        y[i] = acc
+    for i in range(n - 1, -1, -1):
+        acc = y[i]
+        for j in range(i + 1, n):
+            acc -= K[n * i + j] * e[j]
+        e[i] = acc / K[n * i + i]
+
+
 def jacobi_eigh(a, n: int, w, v, sweeps: int = 60) -> None:
     """Eigen-decomposition of a symmetric ``n x n`` matrix by cyclic Jacobi
     rotations (Golub & Van Loan, sec. 8.5). ``a`` is overwritten; eigenvalues

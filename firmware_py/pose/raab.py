@@ -100,7 +100,7 @@ import math
 import numpy as np
 
 from coiltrack.firmware.estimate.ekf import chi2_gate
-from coiltrack.firmware.linalg import Rot3, flat, inv3_sym, nearest_rotation
+from coiltrack.firmware.linalg import Rot3, atb3, flat, inv3_sym, lu_factor, lu_solve, nearest_rotation
 from coiltrack.firmware.model.field import MU0
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.covariance import RobustInverse6
@@ -564,14 +564,10 @@ class RaabTracker(StagedSolve):
         else:
             for q in range(3 * n):
                 Sc[q] = S[q]
+        atb3(Sc, mp, n, F)
         ss = 0.0
-        for i in range(3):
-            for c in range(3):
-                acc = 0.0
-                for j in range(n):
-                    acc += Sc[3 * j + i] * mp[3 * j + c]
-                F[3 * i + c] = acc
-                ss += acc * acc
+        for q in range(9):
+            ss += F[q] * F[q]
         self._k = math.sqrt(ss) / _SQRT15
 
     def _raab_field(self, j: int, ux: float, uy: float, uz: float, rho: float, jac: bool):
@@ -702,57 +698,14 @@ class RaabTracker(StagedSolve):
                 v[o] = R[0, 0] * wx + R[1, 0] * wy + R[2, 0] * wz + (hy * dt[2] - hz * dt[1])
                 v[o + 1] = R[0, 1] * wx + R[1, 1] * wy + R[2, 1] * wz + (hz * dt[0] - hx * dt[2])
                 v[o + 2] = R[0, 2] * wx + R[1, 2] * wy + R[2, 2] * wz + (hx * dt[1] - hy * dt[0])
-            for i in range(3):
-                for cc in range(3):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += v[3 * j + i] * mp[3 * j + cc]
-                    Fc[3 * i + cc] = acc
+            atb3(v, mp, n, Fc)
             f7 = self._post_sense(Fc)
             ea, eb, epsi, eth, ephi = error_angles(f7, k)
             erho = -(rho / 3.0) * (2.0 * f7[0] - f7[4] - f7[8]) / (3.0 * k)
             col = (ea, eb, erho, epsi, eth, ephi)
             for r in range(6):
                 K[6 * r + c] = col[r] + (1.0 if r == c else 0.0)
-        self._k_ok = self._lu_factor()
-
-    def _lu_factor(self) -> bool:
-        """LU with partial pivoting of ``_K`` in place (permutation ``_perm``)."""
-        K, perm = self._K, self._perm
-        for i in range(6):
-            perm[i] = i
-        for c in range(6):
-            piv, best = c, abs(K[6 * c + c])
-            for r in range(c + 1, 6):
-                if abs(K[6 * r + c]) > best:
-                    piv, best = r, abs(K[6 * r + c])
-            if not best > 1e-12:
-                return False
-            if piv != c:
-                for j in range(6):
-                    K[6 * c + j], K[6 * piv + j] = K[6 * piv + j], K[6 * c + j]
-                perm[c], perm[piv] = perm[piv], perm[c]
-            d = K[6 * c + c]
-            for r in range(c + 1, 6):
-                f = K[6 * r + c] / d
-                K[6 * r + c] = f
-                for j in range(c + 1, 6):
-                    K[6 * r + j] -= f * K[6 * c + j]
-        return True
-
-    def _lu_solve(self, e) -> None:
-        """``e <- K^-1 e`` with the factors of :meth:`_lu_factor`."""
-        K, perm, y = self._K, self._perm, self._y
-        for i in range(6):
-            acc = e[perm[i]]
-            for j in range(i):
-                acc -= K[6 * i + j] * y[j]
-            y[i] = acc
-        for i in range(5, -1, -1):
-            acc = y[i]
-            for j in range(i + 1, 6):
-                acc -= K[6 * i + j] * e[j]
-            e[i] = acc / K[6 * i + i]
+        self._k_ok = lu_factor(self._K, 6, self._perm)
 
     def _unit_update(self) -> None:
         """One update of eqs 7-31 (no field evaluation, charged 1)."""
@@ -770,7 +723,7 @@ class RaabTracker(StagedSolve):
             # the exact model's sensitivities: solve K d = e (K = I + G D T of the last evaluation)
             e = self._e
             e[0], e[1], e[2], e[3], e[4], e[5] = da0, db0, drho, dpsi0, dth0, dphi0
-            self._lu_solve(e)
+            lu_solve(self._K, 6, self._perm, e, self._y)
             da0, db0, drho, dpsi0, dth0, dphi0 = e[0], e[1], e[2], e[3], e[4], e[5]
             rho = x[2] + drho
         if max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0)) < _ACQUIRED_STEP:

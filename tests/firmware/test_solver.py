@@ -7,7 +7,8 @@ import pytest
 
 from coiltrack.firmware.model.field import Coil, orthogonal_source
 from coiltrack.firmware.linalg import (Rot3, chol_inverse, chol_solve, cholesky, exp_rotvec, flat, jacobi_eigh,
-                                nearest_rotation, rotvec_from_matrix)
+                                       lu_factor, lu_solve,
+                                       nearest_rotation, rotvec_from_matrix)
 from coiltrack.firmware.pose.reference import kuipers, measurement_model, solve_pose
 from coiltrack.firmware.pose.reference import so3_exp
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NOT_CONVERGED, SOLVE_OK,
@@ -78,6 +79,23 @@ def test_nearest_rotation_equals_svd_projection_and_rotvec_roundtrip():
         exp_rotvec(*w, R)
         back = np.array(rotvec_from_matrix(*R.reshape(9)))
         np.testing.assert_allclose(back, w, atol=1e-9)
+
+
+def test_lu_solve_matches_numpy_on_unsymmetric_matrices():
+    """Against numpy.linalg.solve to 1e-10 (relative), including a matrix whose first pivot is zero:
+    catches a missing row swap or a permutation applied to the wrong side; a singular matrix is refused."""
+    rng = np.random.default_rng(5)
+    for k in range(20):
+        A = rng.normal(size=(6, 6))
+        if k == 0:
+            A[0, 0] = 0.0
+        b = rng.normal(size=6)
+        K, perm, e, y = list(A.reshape(36)), [0] * 6, list(b), [0.0] * 6
+        assert lu_factor(K, 6, perm)
+        lu_solve(K, 6, perm, e, y)
+        np.testing.assert_allclose(e, np.linalg.solve(A, b), rtol=1e-10, atol=1e-12)
+    S = np.ones((6, 6))
+    assert not lu_factor(list(S.reshape(36)), 6, [0] * 6)
 
 
 def test_exp_rotvec_of_a_diverged_step_is_nan_not_an_exception():
