@@ -494,6 +494,8 @@ class CoilCurrent:
         self._seg_tau: list[float] = []
         self._arrays = None
         self._hp_cache: dict[float, tuple[int, np.ndarray]] = {}
+        self._pulse_taus: list[float | None] = []      # per pulse: its own L/R (None: tau_rise/tau_fall)
+        self._ripple: tuple[list[int], list[tuple]] = ([], [])   # ripple spans: starts, (end, amp, omega, phase)
         for p in pulses:
             self.add_pulse(*p)
 
@@ -508,32 +510,64 @@ class CoilCurrent:
     def pulses(self) -> list[tuple[int, int, float]]:
         return list(self._pulses)
 
-    def add_pulse(self, start_us: int, duration_us: int, target_a: float) -> None:
+    def add_pulse(self, start_us: int, duration_us: int, target_a: float, tau_s: float | None = None) -> None:
         """Add a pulse (integer microseconds, amperes).
 
         The driver follows the latest command: a pulse that starts before the
         previous one has ended cuts it short at its own start. Pulses may be
         added in any order; appending in time order is O(1), anything else
-        rebuilds the waveform.
+        rebuilds the waveform. ``tau_s``: this pulse's L/R time constant for its
+        rise and its fall (s; a winding whose resistance changed with its
+        temperature), default ``tau_rise`` / ``tau_fall``.
         """
         start_us, duration_us = int(start_us), int(duration_us)
         if duration_us <= 0:
             raise ValueError("duration must be positive")
+        if tau_s is not None and tau_s <= 0.0:
+            raise ValueError("tau must be positive")
         target_a = float(target_a)
         if self.max_current is not None:
             target_a = math.copysign(min(abs(target_a), self.max_current), target_a)
+        taus = self._pulse_taus
         if not self._pulses or start_us >= self._pulses[-1][0] + self._pulses[-1][1]:
-            self._append(start_us, duration_us, target_a)
+            self._append(start_us, duration_us, target_a, tau_s)
             return
-        pulses = sorted(self._pulses + [(start_us, duration_us, target_a)], key=lambda p: p[0])
+        pulses = sorted(zip(self._pulses + [(start_us, duration_us, target_a)], taus + [tau_s]),
+                        key=lambda p: p[0][0])
         self._pulses, self._seg_t, self._seg_i0, self._seg_inf, self._seg_tau = [], [], [], [], []
+        self._pulse_taus = []
         self._hp_cache.clear()
         self._arrays = None
-        for i, (s, d, a) in enumerate(pulses):
+        for i, ((s, d, a), tp) in enumerate(pulses):
             if i + 1 < len(pulses):
-                d = min(d, pulses[i + 1][0] - s)
+                d = min(d, pulses[i + 1][0][0] - s)
             if d > 0:
-                self._append(s, d, a)
+                self._append(s, d, a, tp)
+
+    def add_ripple(self, start_us: int, end_us: int, amplitude_a: float, freq_hz: float, phase_rad: float) -> None:
+        """A ripple ``amplitude sin(2 pi f (t - start) + phase)`` (A) on ``[start_us, end_us)``: the
+        regulator's residual switching ripple on a pulse's flat top (:meth:`ripple_at`). It is
+        kept apart from the regulated waveform of :meth:`current_at`: the pulse edges, the eddy
+        high-pass (:meth:`highpass_at`; a conductor's response to a small kHz ripple is left out)
+        and the flat-part ground truth see the smooth current, the field sees both
+        (:meth:`hil.world.World.coil_currents`). Appended in time order."""
+        rip = self._ripple
+        rip[0].append(int(start_us))
+        rip[1].append((int(end_us), float(amplitude_a), 2.0 * math.pi * float(freq_hz), float(phase_rad)))
+
+    def ripple_at(self, t_us) -> float:
+        """The ripple (A) at integer microsecond time ``t_us`` (scalar); 0 outside every ripple span."""
+        rip = self._ripple
+        if not rip[0]:
+            return 0.0
+        t = int(t_us)
+        k = bisect.bisect_right(rip[0], t) - 1
+        if k < 0:
+            return 0.0
+        end, amp, om, ph = rip[1][k]
+        if t >= end:
+            return 0.0
+        return amp * math.sin(om * (t - rip[0][k]) * 1e-6 + ph)
 
     #: alias used by the coil-driver node
     schedule = add_pulse
@@ -543,19 +577,22 @@ class CoilCurrent:
         """Rise time constant in microseconds."""
         return self.tau_rise * 1e6
 
-    def _append(self, start_us: int, duration_us: int, target_a: float) -> None:
+    def _append(self, start_us: int, duration_us: int, target_a: float, tau_s: float | None = None) -> None:
         i_start = self._value_at_end(start_us)
+        rise = self.tau_rise if tau_s is None else float(tau_s)
+        fall = self.tau_fall if tau_s is None else float(tau_s)
         self._seg_t.append(start_us)
         self._seg_i0.append(i_start)
         self._seg_inf.append(target_a)
-        self._seg_tau.append(self.tau_rise)
+        self._seg_tau.append(rise)
         s_on = duration_us * 1e-6
-        i_end = target_a + (i_start - target_a) * math.exp(-s_on / self.tau_rise)
+        i_end = target_a + (i_start - target_a) * math.exp(-s_on / rise)
         self._seg_t.append(start_us + duration_us)
         self._seg_i0.append(i_end)
         self._seg_inf.append(0.0)
-        self._seg_tau.append(self.tau_fall)
+        self._seg_tau.append(fall)
         self._pulses.append((start_us, duration_us, target_a))
+        self._pulse_taus.append(tau_s)
         self._arrays = None
 
     def _value_at_end(self, t_us: int) -> float:

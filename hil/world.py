@@ -293,7 +293,8 @@ class World:
         return self.trajectory.pose(t_us)
 
     def coil_currents(self, t_us: int) -> np.ndarray:
-        return np.array([c.current_at(t_us) for c in self.currents])
+        """The coils' currents (A) at ``t_us``: the regulated waveform plus the driver's ripple."""
+        return np.array([c.current_at(t_us) + c.ripple_at(t_us) for c in self.currents])
 
     def unit_fields(self, p) -> np.ndarray:
         """(ncoils, 3) field per ampere of each coil at source-frame point p."""
