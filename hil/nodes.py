@@ -400,7 +400,7 @@ class CoilDriverNode(Node):
             r_t = self.resistance(c, t0)
             rec["resistance_ohm"] = r_t
             setpoint = target * (1.0 + float(self._acc_rng.normal(0.0, 1.0)) * acc.pulse_gain_sigma) \
-                + math.copysign(float(self._acc_rng.normal(0.0, 1.0)) * acc.pulse_offset_sigma_a, target)
+                + (1.0 if target >= 0.0 else -1.0) * float(self._acc_rng.normal(0.0, 1.0)) * acc.pulse_offset_sigma_a
             regulated = setpoint / (1.0 + self.gain_error[c])
             achieved = math.copysign(min(abs(regulated), v / r_t), target)
             rec["voltage_limited"] = abs(regulated) > v / r_t
