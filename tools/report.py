@@ -89,6 +89,11 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
     if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
         sigma_amp = np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils)))
+    truth_amp = None    # DC pulses: the bound's currents and sample counts from the bench's ground truth
+    if amp_sigma is None or amp_sigma(cfg) is None:
+        from coiltrack.hil.crlb import TruthAmplitudes
+
+        truth_amp = TruthAmplitudes(bench, bench.scenario.sensor.noise_t, cfg.baseline_us)
     invalid = 0
     fused = []          # (distance, position error, angle error) of the fused poses (IMU rate)
     for rp in rec.poses:
@@ -106,7 +111,8 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
         pos_err.append(float(np.linalg.norm(p - rp["true_p"])))
         ang_err.append(_rot_angle(R, rp["true_R"]))
-        crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], currents, sigma_amp))
+        inp = truth_amp.for_pose(rp, len(world.coils)) if truth_amp is not None else None
+        crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], *(inp or (currents, sigma_amp))))
         rp["crlb_m"] = crlbs[-1]            # per pose, for the pose table (tools.posecsv)
     per_node: dict[int, list] = {}
     for rp in rec.poses:
