@@ -325,6 +325,26 @@ class CoilDriverNode(Node):
         return self.accuracy.resistance(self.world.coils[c].resistance, self.temperature(c, t_us),
                                         self.limits.ambient_c)
 
+    def accuracy_report(self) -> dict:
+        """The regulation and thermal model of this run for the bench report: the parameters, the
+        seeded static gain error of every coil, and what happened (hottest winding, largest
+        resistance, pulses the supply limited, the achieved current's error against the target)."""
+        acc = self.accuracy
+        ran = [e for e in self.executed if "resistance_ohm" in e and e.get("target_a")]
+        rel = [e["current_a"] / e["target_a"] - 1.0 for e in ran]
+        return {
+            "static_gain_error_max": acc.gain_error_max, "pulse_gain_sigma": acc.pulse_gain_sigma,
+            "pulse_offset_sigma_a": acc.pulse_offset_sigma_a,
+            "ripple": {"pwm_hz": acc.pwm_hz, "filter_hz": acc.filter_hz} if acc.ripple else None,
+            "copper_alpha_per_k": acc.alpha_per_k,
+            "static_gain_error": [round(g, 6) for g in self.gain_error],
+            "current_error_rms": round(float(np.sqrt(np.mean(np.square(rel)))), 6) if rel else None,
+            "winding_temp_max_c": round(max([self.limits.ambient_c] + [float(t) for t in self.temp_c]), 3),
+            "resistance_rise_max": round(max([e["resistance_ohm"] / self.world.coils[e["coil"]].resistance - 1.0
+                                              for e in ran] or [0.0]), 6),
+            "pulses_voltage_limited": sum(1 for e in ran if e.get("voltage_limited")),
+        }
+
     def _duty(self, coil: int, start: int, dur: int) -> float:
         w0 = start + dur - self.limits.duty_window_us
         on = dur + sum(min(e, start + dur) - max(s, w0) for s, e in self.history[coil] if e > w0)

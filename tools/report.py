@@ -168,6 +168,8 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
                                    "position_rms_mm": round(rms(e[:, 0]) * 1e3, 3),
                                    "orientation_rms_deg": round(math.degrees(rms(e[:, 1])), 3)})
     rep.update(energy(bench.driver.executed, world, duration_s))
+    if hasattr(bench.driver, "accuracy_report"):
+        rep["coil_driver"] = bench.driver.accuracy_report()
     rep.update(truth)
     rep["faults"] = fault_summary(bench, fw_status)
     if hasattr(bench.link, "counts"):
@@ -284,6 +286,12 @@ def format_table(rep: dict) -> str:
         ("coil energy", f'{rep["coil_energy_j"]:.2f} J in {rep["pulses_per_s"]:.2f} pulses/s; '
                         f'battery {rep["projected_runtime_h"]} h (4 AA)'),
     ]
+    cd = rep.get("coil_driver")
+    if cd and cd.get("current_error_rms") is not None:
+        rows.append(("coil driver", f'current error {cd["current_error_rms"] * 100:.2f} % rms (static gain '
+                                    f'+-{cd["static_gain_error_max"] * 100:.1f} %), winding up to '
+                                    f'{cd["winding_temp_max_c"]:.1f} C (R +{cd["resistance_rise_max"] * 100:.2f} %), '
+                                    f'{cd["pulses_voltage_limited"]} pulses voltage-limited'))
     if "fixed_position_rms_mm" in rep:
         rows += [("fixed X/Y/Z cycle", f'{rep["fixed_position_rms_mm"]:.2f} mm, '
                                        f'{rep["fixed_orientation_rms_deg"]:.2f} deg, '
