@@ -148,10 +148,10 @@ def test_adaptive_ticks_allocate_no_numpy_array():
     slots = [(t, j) for t, j in slots if acq_end + cfg.lead_us < t < acq_end + cfg.reference_warmup_us - cfg.cycle_us]
     assert len(slots) >= 6
     for t, j in slots:       # driver clock: its offset and drift from the master are well under 5 ms
-        assert any(e["coil"] == j and abs(e["start_us"] - t) < 5_000 and abs(e["current_a"] - 0.91) < 2e-3
+        assert any(e["coil"] == j and abs(e["start_us"] - t) < 5_000 and abs(e["target_a"] - 0.91) < 2e-3
                    for e in ex), (t, j)
     late = [e for e in ex if e["start_us"] > acq_end + cfg.reference_warmup_us + cfg.cycle_us]
-    assert len({round(e["current_a"], 3) for e in late}) >= 5
+    assert len({round(e["target_a"], 3) for e in late}) >= 5     # commanded (the achieved carry the regulation error)
 
 
 def test_without_imu_the_mode_keeps_acquiring_magnetic_poses():
