@@ -16,7 +16,8 @@ Model summary (what the firmware does *not* know about):
   :meth:`Source.unit_fields`) and scale by the instantaneous current.
 * :class:`CoilCurrent`: regulated pulses with first-order L/R rise and fall
   (thesis ``002_cd7f1fdb7fc67471.txt`` sec 5.2: pulsed DC, 60 ms pulses;
-  sec 7.2: edges, then steady state).
+  sec 7.2: edges, then steady state), a pulse's own L/R (a heated winding) and
+  the driver's ripple on its flat top (``hil.nodes.DriverAccuracy``).
 * :class:`EddyConductor`: lumped eddy-current dipole, a first-order high-pass
   of the coil moment (thesis sec 5.5 / 7.2, Schepers ``000_e46ec0e8bf7ea271.txt``
   sec 5: eddy currents appear at the edges and "decay at an exponential rate
@@ -26,7 +27,9 @@ Model summary (what the firmware does *not* know about):
 * :class:`FerroSphere`: induced dipole of a linear magnetic sphere (the
   ferromagnetic term of Gietler eq 27 for a sphere, in closed form).
 * :class:`ConductingSphere`: exact transient eddy response of a non-magnetic
-  conducting sphere (mode series), an analytic reference case.
+  conducting sphere (mode series), an analytic reference case; with ``mu_r``
+  the permeable sphere's modes (:func:`permeable_sphere_modes`, Wait 1951: the
+  roots and residues of :func:`hil.conductors.sphere_response`), steel.
 * :data:`EARTH_FIELD_T`, :class:`EarthField`, :func:`sensor_frame`.
 * :class:`MagneticScene`: sums all of the above at sensor points and times.
 
