@@ -112,16 +112,20 @@ class TruthAmplitudes:
         self._flat: dict[int, int] = {}
         ex = sorted((e for e in bench.driver.executed if abs(e.get("current_a", 0.0)) > 0.0),
                     key=lambda e: e["start_us"])
-        self._busy = np.array([[e["start_us"], self._quiet_from(e, ex)] for e in ex], dtype=np.int64).reshape(-1, 2)
+        nxt = [ex[i + 1]["start_us"] if i + 1 < len(ex) else None for i in range(len(ex))]
+        self._busy = np.array([[e["start_us"], self._quiet_from(e, n)] for e, n in zip(ex, nxt)],
+                              dtype=np.int64).reshape(-1, 2)
         self._quiet_end = {id(e): int(q) for e, q in zip(ex, self._busy[:, 1])}
 
-    def _quiet_from(self, e, ex) -> int:
+    def _quiet_from(self, e, next_start_us) -> int:
         """First true time after ``e``'s end edge from which its coil's current and the eddy fields
-        it drives stay below ``tol`` of its steady field (searched up to 200 ms)."""
+        it drives stay below ``tol`` of its steady field (searched up to the next pulse's start, at
+        most 200 ms: a baseline sample after that start is not quiet anyway)."""
         world = self.bench.world
         k, t1 = e["coil"], int(e["end_us"])
         cur = world.currents[k]
-        grid = np.arange(t1, t1 + 200_000, self.step_us, dtype=np.int64)
+        until = t1 + 200_000 if next_start_us is None else min(t1 + 200_000, max(int(next_start_us), t1 + self.step_us))
+        grid = np.arange(t1, until, self.step_us, dtype=np.int64)
         i_ss = abs(float(e["current_a"]))
         err = np.abs(np.asarray(cur.current_at(grid))) / i_ss
         p, R = world.pose(t1)
