@@ -165,6 +165,64 @@ class DriverLimits:
     thermal_tau_s: float = 120.0       # winding thermal time constant (C_th = tau / R_th)
 
 
+#: copper's temperature coefficient of resistance at 20 C (1/K; annealed copper, IEC 60028: 0.00393)
+COPPER_ALPHA_PER_K = 0.00393
+
+
+@dataclass
+class DriverAccuracy:
+    """How far a coil driver's regulated current is from its set point, and the winding's heating.
+
+    A linear current regulator senses the coil current on a shunt with a current-sense
+    amplifier and holds the sensed value at the set point. Its errors (seeded draws):
+
+    * ``gain_error_max``: a static gain error per coil, uniform in +-0.3 %: the sense
+      amplifier's gain error (TI INA240 data sheet, SBOS662: +-0.20 % max) plus a 0.1 %
+      shunt. The driver measures its own current through the same amplifier, so this
+      part is invisible in ``COIL_STATUS``: the reported current holds it, the true one
+      does not (it is a source gain error the firmware cannot see).
+    * ``pulse_gain_sigma`` (0.1 %) and ``pulse_offset_sigma_a`` (1 mA): the set point's
+      error per pulse (reference and DAC noise, the loop's residual: a 12-bit DAC over
+      2 A is 0.5 mA a step); the reported current shows it.
+    * ripple: the residual of a ``pwm_hz`` (20 kHz) bridge through a second-order output
+      filter at ``filter_hz`` (2 kHz): the bridge's peak-to-peak ripple on the coil
+      ``V D (1 - D) / (L f_pwm)`` (duty ``D = I R / V``) attenuated by
+      ``(filter_hz / pwm_hz)^2``, as a sine of half that amplitude at ``pwm_hz`` with a
+      random phase per pulse (0.05 % p-p of 1.5 A for the thesis coil at 6 V).
+    * the winding's resistance rises with its temperature, ``R(T) = R_a (1 + alpha (T - 20))
+      / (1 + alpha (T_a - 20))`` (copper, ``alpha = 0.393 %/K``, ``R_a`` the coil's
+      resistance at the ambient ``T_a``); the winding heats with ``I^2 R(T)`` through the
+      driver's first-order thermal model (:class:`DriverLimits` ``thermal_r_k_per_w``,
+      ``thermal_tau_s``), so a pulse's L/R is ``L / R(T)`` and the regulation holds the
+      current until ``I R(T)`` reaches the supply: beyond, the current is ``V / R(T)``.
+
+    :meth:`ideal` switches all of it off (the current equals its set point, constant R).
+    """
+    gain_error_max: float = 3e-3
+    pulse_gain_sigma: float = 1e-3
+    pulse_offset_sigma_a: float = 1e-3
+    pwm_hz: float = 20_000.0
+    filter_hz: float = 2_000.0
+    ripple: bool = True
+    alpha_per_k: float = COPPER_ALPHA_PER_K
+
+    @classmethod
+    def ideal(cls) -> "DriverAccuracy":
+        return cls(0.0, 0.0, 0.0, ripple=False, alpha_per_k=0.0)
+
+    def resistance(self, r_ambient: float, temp_c: float, ambient_c: float) -> float:
+        """Winding resistance (ohm) at ``temp_c`` of a coil of ``r_ambient`` at ``ambient_c``."""
+        a = self.alpha_per_k
+        return r_ambient * (1.0 + a * (temp_c - 20.0)) / (1.0 + a * (ambient_c - 20.0))
+
+    def ripple_pp_a(self, current_a: float, r_ohm: float, l_h: float, v: float) -> float:
+        """Peak-to-peak ripple (A) of the filtered bridge output at ``current_a``."""
+        if not self.ripple or v <= 0.0 or l_h <= 0.0:
+            return 0.0
+        d = min(1.0, abs(current_a) * r_ohm / v)
+        return v * d * (1.0 - d) / (l_h * self.pwm_hz) * (self.filter_hz / self.pwm_hz) ** 2
+
+
 class CoilDriverNode(Node):
     """Executes scheduled pulse commands on the world's coil currents.
 
@@ -177,7 +235,9 @@ class CoilDriverNode(Node):
     over-current (short: tripped after ``trip_us``), current sag (measured
     below ``sag_fraction`` of the target). A first-order thermal model of
     each winding (I^2 R heating, ``thermal_r_k_per_w``, ``thermal_tau_s``)
-    makes it refuse pulses (over-temperature) above ``max_temp_c``. It refuses commands that break its
+    makes it refuse pulses (over-temperature) above ``max_temp_c``; ``accuracy``
+    (:class:`DriverAccuracy`) sets the regulation error, ripple and the resistance's
+    rise with the winding temperature. It refuses commands that break its
     limits, arrive late, duplicate a pulse id, or come before it is
     synchronised, and reports the refusal. Pulses are committed to the world
     ``commit_horizon_us`` before they start.
@@ -186,12 +246,17 @@ class CoilDriverNode(Node):
 
     def __init__(self, node_id: int, world, limits: DriverLimits | None = None, seed: int = 0,
                  current_noise_a: float = 1e-3, clock: NodeClock | None = None, faults=None,
-                 commit_horizon_us: int = 2_000):
+                 commit_horizon_us: int = 2_000, accuracy: DriverAccuracy | None = None):
         super().__init__(clock, faults, seed)
         self.node_id = node_id
         self.world = world
         self.limits = limits or DriverLimits()
         self.rng = np.random.default_rng(seed)
+        self.accuracy = accuracy or DriverAccuracy()
+        # regulation errors: their own stream, so the report noise draws stay those of the seed
+        self._acc_rng = np.random.default_rng([seed, 0xC0])
+        self.gain_error = [float(self._acc_rng.uniform(-1.0, 1.0)) * self.accuracy.gain_error_max
+                           for _ in world.coils]
         self.current_noise_a = current_noise_a
         self.commit_horizon_us = commit_horizon_us
         n = len(world.coils)
@@ -242,10 +307,43 @@ class CoilDriverNode(Node):
         lim = self.limits
         T = self.temperature(c, t0)
         amb = lim.ambient_c
-        p = amps * amps * self.world.coils[c].resistance
-        T_inf = amb + p * lim.thermal_r_k_per_w
-        self.temp_c[c] = T_inf + (T - T_inf) * math.exp(-(t1 - t0) * 1e-6 / lim.thermal_tau_s)
+        # C T' = I^2 R(T) - (T - T_a)/R_th with R(T) = R_a (1 + k (T - T_a)) (copper, DriverAccuracy):
+        # first order with tau' = tau / (1 - I^2 R_a k R_th) towards T_a + I^2 R_a R_th / (1 - I^2 R_a k R_th)
+        r_a = self.world.coils[c].resistance
+        acc = self.accuracy
+        k = acc.alpha_per_k / (1.0 + acc.alpha_per_k * (amb - 20.0))
+        g = amps * amps * r_a * k * lim.thermal_r_k_per_w
+        if g >= 1.0:                         # thermal runaway: no steady state; heat as fast as at T
+            g = 0.999
+        T_inf = amb + amps * amps * r_a * lim.thermal_r_k_per_w / (1.0 - g)
+        tau = lim.thermal_tau_s / (1.0 - g)
+        self.temp_c[c] = T_inf + (T - T_inf) * math.exp(-(t1 - t0) * 1e-6 / tau)
         self._temp_t[c] = t1
+
+    def resistance(self, c: int, t_us: int) -> float:
+        """Winding resistance (ohm) of coil ``c`` at true time ``t_us`` (its temperature then)."""
+        return self.accuracy.resistance(self.world.coils[c].resistance, self.temperature(c, t_us),
+                                        self.limits.ambient_c)
+
+    def accuracy_report(self) -> dict:
+        """The regulation and thermal model of this run for the bench report: the parameters, the
+        seeded static gain error of every coil, and what happened (hottest winding, largest
+        resistance, pulses the supply limited, the achieved current's error against the target)."""
+        acc = self.accuracy
+        ran = [e for e in self.executed if "resistance_ohm" in e and e.get("target_a")]
+        rel = [e["current_a"] / e["target_a"] - 1.0 for e in ran]
+        return {
+            "static_gain_error_max": acc.gain_error_max, "pulse_gain_sigma": acc.pulse_gain_sigma,
+            "pulse_offset_sigma_a": acc.pulse_offset_sigma_a,
+            "ripple": {"pwm_hz": acc.pwm_hz, "filter_hz": acc.filter_hz} if acc.ripple else None,
+            "copper_alpha_per_k": acc.alpha_per_k,
+            "static_gain_error": [round(g, 6) for g in self.gain_error],
+            "current_error_rms": round(float(np.sqrt(np.mean(np.square(rel)))), 6) if rel else None,
+            "winding_temp_max_c": round(max([self.limits.ambient_c] + [float(t) for t in self.temp_c]), 3),
+            "resistance_rise_max": round(max([e["resistance_ohm"] / self.world.coils[e["coil"]].resistance - 1.0
+                                              for e in ran] or [0.0]), 6),
+            "pulses_voltage_limited": sum(1 for e in ran if e.get("voltage_limited")),
+        }
 
     def _duty(self, coil: int, start: int, dur: int) -> float:
         w0 = start + dur - self.limits.duty_window_us
@@ -316,7 +414,29 @@ class CoilDriverNode(Node):
             rec["faults"] |= COIL_FAULT_OVER_CURRENT
             rec["end_us"] = t1
         else:
-            achieved = math.copysign(min(abs(target), v / coil.resistance), target)
+            # the regulation holds the sensed current (1 + gain error) I at the set point, which
+            # carries this pulse's error; the supply limits the current to V / R(T)
+            acc = self.accuracy
+            r_t = self.resistance(c, t0)
+            rec["resistance_ohm"] = r_t
+            setpoint = target * (1.0 + float(self._acc_rng.normal(0.0, 1.0)) * acc.pulse_gain_sigma) \
+                + (1.0 if target >= 0.0 else -1.0) * float(self._acc_rng.normal(0.0, 1.0)) * acc.pulse_offset_sigma_a
+            regulated = setpoint / (1.0 + self.gain_error[c])
+            achieved = math.copysign(min(abs(regulated), v / r_t), target)
+            rec["voltage_limited"] = abs(regulated) > v / r_t
+            tau_s = float(coil.inductance) / r_t
+            rec["tau_us"] = tau_s * 1e6
+            self.world.currents[c].schedule(t0, t1 - t0, achieved, tau_s)
+            pp = acc.ripple_pp_a(achieved, r_t, float(coil.inductance), v)
+            phase = float(self._acc_rng.uniform(0.0, 2.0 * math.pi))
+            if pp > 0.0 and not rec["voltage_limited"]:
+                self.world.currents[c].add_ripple(t0, t1, 0.5 * pp, acc.pwm_hz, phase)
+            if v < self.limits.supply_low_fraction * self.world.supply_v:
+                rec["faults"] |= COIL_FAULT_SUPPLY_LOW
+            rec["current_a"] = achieved
+            self._heat(c, t0, t1, achieved)
+            self.active.append(rec)
+            return
         if v < self.limits.supply_low_fraction * self.world.supply_v:
             rec["faults"] |= COIL_FAULT_SUPPLY_LOW      # the driver's under-voltage warning
         rec["current_a"] = achieved
@@ -351,7 +471,11 @@ class CoilDriverNode(Node):
         self.active = [r for r in self.active if r["end_us"] > now_us]
         for rec in done:
             c = rec["coil"]
-            measured = float(self.world.currents[c].current_at(rec["end_us"] - 1)) \
+            # through the same sense amplifier as the regulation: the report is (1 + g) I, the static
+            # gain error g hidden in it (the set point's error per pulse and the ripple show)
+            t_m = rec["end_us"] - 1
+            cur = self.world.currents[c]
+            measured = (1.0 + self.gain_error[c]) * (float(cur.current_at(t_m)) + cur.ripple_at(t_m)) \
                 + float(self.rng.normal(0.0, self.current_noise_a))
             target = abs(rec["target_a"])
             faults = rec["faults"]

@@ -139,19 +139,25 @@ class ConductingSphereObject(_SphereObject):
 
 
 class MetalObject(_Timed):
-    """A metal part: a magnetic sphere (induced dipole, :class:`hil.physics.FerroSphere`) whose
-    conductivity adds the eddy transient of :class:`hil.physics.ConductingSphere` at the same
-    centre (a step of the applied field makes a diamagnetic moment that decays with
-    ``tau_1 = mu0 sigma a^2 / pi^2``; the two responses are superposed, a first-order
-    simplification of a magnetic conductor). ``mu_r = 1`` gives a non-magnetic conductor
-    (copper, aluminium), ``sigma = 0`` a non-conducting ferrite.
+    """A metal part: a conducting, permeable sphere. Its moment is the static magnetic sphere's
+    (induced dipole, :class:`hil.physics.FerroSphere`) plus the eddy transient of a permeable
+    conductor at the same centre (:class:`hil.physics.ConductingSphere` with ``mu_r``, the
+    exact modes of :func:`hil.physics.permeable_sphere_modes`): a step of the applied field
+    first meets a diamagnetic moment (the field excluded) that relaxes to the static one through
+    modes of ``tau_n = mu_r mu0 sigma a^2 / x_n^2`` (Wait 1951). Its response at one frequency
+    is :func:`hil.conductors.sphere_response` with the same ``mu_r`` (the AC bench).
+    ``mu_r = 1`` gives a non-magnetic conductor (copper, aluminium; ``tau_1 = mu0 sigma a^2/pi^2``),
+    ``sigma = 0`` a non-conducting ferrite.
 
     ``position`` (world frame, fixed) or ``carried_offset`` (sensor frame: the
     part moves with the sensor, e.g. a tool or a watch held next to it).
-    Defaults: a 2 cm radius steel part (mu_r 200, 6e6 S/m, tau_1 = 0.31 ms).
+    Defaults: a 2 cm radius steel part (mu_r 200, 6e6 S/m, tau_1 = 30.2 ms; 4.6 % short of its
+    static moment 3 ms after a step, 1.9 % at 10 ms, 0.23 % at 58 ms). ``n_modes`` exact modes,
+    the rest lumped into one (within 1e-3 of the static moment from 0.15 ms after a step on
+    for 40 modes).
     """
 
-    def __init__(self, radius: float = 0.02, mu_r: float = 200.0, sigma: float = 6e6, n_modes: int = 6,
+    def __init__(self, radius: float = 0.02, mu_r: float = 200.0, sigma: float = 6e6, n_modes: int = 40,
                  position=None, carried_offset=None, t_on_us=None, t_off_us=None):
         if (position is None) == (carried_offset is None):
             raise ValueError("give position or carried_offset")
@@ -159,7 +165,8 @@ class MetalObject(_Timed):
         self.position = None if position is None else np.asarray(position, dtype=float).reshape(3)
         self.carried_offset = None if carried_offset is None else np.asarray(carried_offset, dtype=float).reshape(3)
         self.t_on_us, self.t_off_us = t_on_us, t_off_us
-        self._cs = physics.ConductingSphere(np.zeros(3), self.radius, max(self.sigma, 1e-30), n_modes=n_modes)
+        self._cs = physics.ConductingSphere(np.zeros(3), self.radius, max(self.sigma, 1e-30), n_modes=n_modes,
+                                            mu_r=self.mu_r)
         self._fixed_u = None
 
     @property
@@ -286,7 +293,8 @@ class World:
         return self.trajectory.pose(t_us)
 
     def coil_currents(self, t_us: int) -> np.ndarray:
-        return np.array([c.current_at(t_us) for c in self.currents])
+        """The coils' currents (A) at ``t_us``: the regulated waveform plus the driver's ripple."""
+        return np.array([c.current_at(t_us) + c.ripple_at(t_us) for c in self.currents])
 
     def unit_fields(self, p) -> np.ndarray:
         """(ncoils, 3) field per ampere of each coil at source-frame point p."""

@@ -89,6 +89,11 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
     if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
         sigma_amp = np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils)))
+    truth_amp = None    # DC pulses: the bound's currents and sample counts from the bench's ground truth
+    if amp_sigma is None or amp_sigma(cfg) is None:
+        from coiltrack.hil.crlb import TruthAmplitudes
+
+        truth_amp = TruthAmplitudes(bench, bench.scenario.sensor.noise_t, cfg.baseline_us)
     invalid = 0
     fused = []          # (distance, position error, angle error) of the fused poses (IMU rate)
     for rp in rec.poses:
@@ -106,7 +111,8 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
         pos_err.append(float(np.linalg.norm(p - rp["true_p"])))
         ang_err.append(_rot_angle(R, rp["true_R"]))
-        crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], currents, sigma_amp))
+        inp = truth_amp.for_pose(rp, len(world.coils)) if truth_amp is not None else None
+        crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], *(inp or (currents, sigma_amp))))
         rp["crlb_m"] = crlbs[-1]            # per pose, for the pose table (tools.posecsv)
     per_node: dict[int, list] = {}
     for rp in rec.poses:
@@ -162,6 +168,8 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
                                    "position_rms_mm": round(rms(e[:, 0]) * 1e3, 3),
                                    "orientation_rms_deg": round(math.degrees(rms(e[:, 1])), 3)})
     rep.update(energy(bench.driver.executed, world, duration_s))
+    if hasattr(bench.driver, "accuracy_report"):
+        rep["coil_driver"] = bench.driver.accuracy_report()
     rep.update(truth)
     rep["faults"] = fault_summary(bench, fw_status)
     if hasattr(bench.link, "counts"):
@@ -278,6 +286,12 @@ def format_table(rep: dict) -> str:
         ("coil energy", f'{rep["coil_energy_j"]:.2f} J in {rep["pulses_per_s"]:.2f} pulses/s; '
                         f'battery {rep["projected_runtime_h"]} h (4 AA)'),
     ]
+    cd = rep.get("coil_driver")
+    if cd and cd.get("current_error_rms") is not None:
+        rows.append(("coil driver", f'current error {cd["current_error_rms"] * 100:.2f} % rms (static gain '
+                                    f'+-{cd["static_gain_error_max"] * 100:.1f} %), winding up to '
+                                    f'{cd["winding_temp_max_c"]:.1f} C (R +{cd["resistance_rise_max"] * 100:.2f} %), '
+                                    f'{cd["pulses_voltage_limited"]} pulses voltage-limited'))
     if "fixed_position_rms_mm" in rep:
         rows += [("fixed X/Y/Z cycle", f'{rep["fixed_position_rms_mm"]:.2f} mm, '
                                        f'{rep["fixed_orientation_rms_deg"]:.2f} deg, '

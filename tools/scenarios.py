@@ -7,6 +7,8 @@ report can be put beside them.
 """
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -276,7 +278,10 @@ register(Scenario(
                 "fixed X, Y, Z cycle with the same filter on the same trajectory and seed (fixed_*).",
     duration_s=60.0,
     build_world=_schepers_world,
-    firmware_config=schepers_adaptive_config,
+    # the field model's relative error covers the coil driver's current accuracy (+-0.3 % sense gain,
+    # hidden from COIL_STATUS; hil.nodes.DriverAccuracy): at the default 1e-3 the adaptive mode
+    # trusts single-coil pulses too much (seed 1: 1.117 x the fixed cycle's position RMS, 1.032 x here)
+    firmware_config=functools.partial(schepers_adaptive_config, field_model_rel_sigma=3e-3),
     sensor=_SCHEPERS_SENSOR,
     reference=_SCHEPERS_REFERENCE,
     parameters=_SCHEPERS_PARAMETERS,

@@ -62,9 +62,10 @@ def test_schepers_adaptive_against_the_fixed_cycle_of_the_same_pulse_length():
     the report carries the energy keys, both pulse lengths and the fixed X, Y, Z cycle with
     the same 60 ms pulses and filter on the same trajectory and seed; holding the fixed cycle's
     own accuracy (``accuracy_target = "fixed"``), the adaptive position RMS is within 10 % of it
-    and the orientation RMS within 20 % (measured: x1.066 and x1.142, the issue asks 10 % for
-    both; README "Adaptive actuation" has seeds 1-10), with at most half its coil energy
-    (measured 0.446). Catches a baseline of another pulse length, an energy formula of the wrong
+    and the orientation RMS within 20 % (measured: x1.032 and x1.105 with the coil driver's
+    regulation error and the scenario's field_model_rel_sigma 3e-3; x1.066 and x1.142 on an
+    ideal driver; the issue asks 10 % for both; README "Adaptive actuation" has seeds 1-10),
+    with at most half its coil energy (measured 0.434). Catches a baseline of another pulse length, an energy formula of the wrong
     pulse length, and a policy that does not hold the accuracy it is asked for."""
     sc = scenarios.get("schepers-adaptive")
     rep = run_inproc(sc, seed=1, duration_s=sc.duration_s)
@@ -148,10 +149,10 @@ def test_adaptive_ticks_allocate_no_numpy_array():
     slots = [(t, j) for t, j in slots if acq_end + cfg.lead_us < t < acq_end + cfg.reference_warmup_us - cfg.cycle_us]
     assert len(slots) >= 6
     for t, j in slots:       # driver clock: its offset and drift from the master are well under 5 ms
-        assert any(e["coil"] == j and abs(e["start_us"] - t) < 5_000 and abs(e["current_a"] - 0.91) < 2e-3
+        assert any(e["coil"] == j and abs(e["start_us"] - t) < 5_000 and abs(e["target_a"] - 0.91) < 2e-3
                    for e in ex), (t, j)
     late = [e for e in ex if e["start_us"] > acq_end + cfg.reference_warmup_us + cfg.cycle_us]
-    assert len({round(e["current_a"], 3) for e in late}) >= 5
+    assert len({round(e["target_a"], 3) for e in late}) >= 5     # commanded (the achieved carry the regulation error)
 
 
 def test_without_imu_the_mode_keeps_acquiring_magnetic_poses():
