@@ -62,7 +62,7 @@ def test_schepers_adaptive_against_the_fixed_cycle_of_the_same_pulse_length():
     the report carries the energy keys, both pulse lengths and the fixed X, Y, Z cycle with
     the same 60 ms pulses and filter on the same trajectory and seed; holding the fixed cycle's
     own accuracy (``accuracy_target = "fixed"``), the adaptive position RMS is within 10 % of it
-    and the orientation RMS within 20 % (measured: x1.032 and x1.105 with the coil driver's
+    and the orientation RMS within 20 % (measured: x1.030 and x1.103 with the coil driver's
     regulation error and the scenario's field_model_rel_sigma 3e-3; x1.066 and x1.142 on an
     ideal driver; the issue asks 10 % for both; README "Adaptive actuation" has seeds 1-10),
     with at most half its coil energy (measured 0.434). Catches a baseline of another pulse length, an energy formula of the wrong
