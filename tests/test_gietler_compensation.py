@@ -11,7 +11,7 @@ from coiltrack.tools import gietler as G
 from coiltrack.tools.scenarios_gietler import _split
 
 
-@pytest.mark.parametrize("scenario, factor", [("gietler-ferro-dc", 0.2), ("gietler-copper", 0.5)])
+@pytest.mark.parametrize("scenario, factor", [("gietler-ferro-dc", 0.2), ("gietler-copper", 0.5), ("gietler-ferro", 0.2)])
 def test_compensation_cuts_the_error(scenario, factor):
     """Three seeds, 8 s, sigma^2 = 1e-4, a coarse bench lattice (5^3 cells) so the test is fast:
     the iterated EKF with the extended model has at most ``factor`` times the MSE of the same

@@ -8,7 +8,10 @@ Other ``--set`` keys are firmware configuration keys (e.g. ``gietler.gietler_ite
 The sweep's JSON then has ``levels`` (iterated EKF, extended model), ``levels_ekf``
 (plain EKF), and with an object ``levels_base`` and ``levels_ekf_base`` (base model
 ``H0``): per level ``noise_var``, ``mse_m2`` (mean over the runs that did not
-diverge), ``divergences``, ``runs``, ``paper_mse_m2`` and ``ratio`` (ours / paper).
+diverge), ``divergences``, ``divergences_at_range_edge`` (of those, the ones where the true
+platform was within ``EDGE_SIGMA`` of the filter's radial standard deviations of the 2 m
+boundary: a consistent estimate crossing a line the truth has nearly reached, not a filter
+running off), ``runs``, ``paper_mse_m2`` and ``ratio`` (ours / paper).
 """
 from __future__ import annotations
 
@@ -21,10 +24,24 @@ from .scenarios import Scenario, register
 from .gietler import VARIANTS, GietlerSpec
 
 LEVELS = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5)
+#: a divergence "at the range edge": the true platform was within this many of the filter's radial
+#: standard deviations of the 2 m boundary when the estimate crossed it (tools.gietler._edge_sigma)
+EDGE_SIGMA = 3.0
 _GOOD_START = dict(v0=(0.001, 0.001, 0.001), z0=(0.0, 0.0, 0.2), omega0=(0.0, 0.0, 0.0), theta0=(0.0, 0.0, 0.0))
 #: the cube of sec IV-C: 5 cm edge, centred at (0, 0, 0.15) m when emitter 1 is at (0, 0, 0.2) m,
 #: fixed to the emitters: (0, 0, -0.05) m in the platform frame
 _CUBE = dict(cube_center=(0.0, 0.0, -0.05), cube_edge=0.05, freq_hz=450e3)
+#: S/m: the conductivity whose eddy currents, with mu_r = 100, give the paper's FEM response of the
+#: ferromagnetic cube at 450 kHz (Table III, emitter 1). The stated material (0.1 MS/m) has a
+#: 0.24 mm skin and, by Wait's exact sphere, answers almost in quadrature (the eddy currents cancel
+#: most of the magnetisation); the paper's FEM finds a mostly in-phase, paramagnetic response
+#: lagging 10-20 deg. The one-parameter fit of the bench's lattice (8^3 cells, Wait's equivalent
+#: permeability at conductivity s) to Table III's emitter-1 phasors (in our sign of H~, see
+#: docs/gietler.md) gives s = 5.2 kS/m, rounded to 5 kS/m: a skin depth of 1.06 mm, as an FEM
+#: mesh of about 1 mm at the surface would resolve it. Amplitude of x and y 1.16-1.18 times the
+#: paper's, phase within 1.1 deg (tests/hil/test_gietler.py); z is 0.36 times the paper's (a
+#: pattern no uniform body at this geometry reproduces, as for copper's Table II).
+PAPER_FEM_FERRO_SIGMA = 5.0e3
 
 
 def _start(d):
@@ -35,7 +52,10 @@ SPECS: dict[str, GietlerSpec] = {
     "gietler-air": GietlerSpec(),
     "gietler-conductive": GietlerSpec(**_GOOD_START, x0_filter=_start(_GOOD_START), **_CUBE, sigma=1000.0),
     "gietler-copper": GietlerSpec(**_GOOD_START, x0_filter=_start(_GOOD_START), **_CUBE, sigma=59.9e6),
-    "gietler-ferro": GietlerSpec(**_GOOD_START, x0_filter=_start(_GOOD_START), **_CUBE, sigma=0.1e6, mu_r=100.0),
+    "gietler-ferro": GietlerSpec(**_GOOD_START, x0_filter=_start(_GOOD_START), **_CUBE, sigma=0.1e6, mu_r=100.0,
+                                 eddy_sigma=PAPER_FEM_FERRO_SIGMA),
+    "gietler-ferro-exact": GietlerSpec(**_GOOD_START, x0_filter=_start(_GOOD_START), **_CUBE, sigma=0.1e6,
+                                       mu_r=100.0),
     "gietler-ferro-dc": GietlerSpec(**_GOOD_START, x0_filter=_start(_GOOD_START),
                                     **{**_CUBE, "freq_hz": 0.0}, sigma=0.1e6, mu_r=100.0),
     # sec IV-C last experiment: the paper's listed X_0 is the filter's start; the truth is eq 33
@@ -53,6 +73,8 @@ PAPER = {
                        "base": (0.1296, 0.1318, 0.0911, 0.0773, 0.0641)},
     "gietler-ferro": {"source": "Table VI (base model: diverges, not tabulated)",
                       "extended": (0.0980, 0.0353, 0.0066, 0.0054, 0.0014), "base": None},
+    "gietler-ferro-exact": {"source": "Table VI (material's exact response; base model: diverges, not tabulated)",
+                            "extended": (0.0980, 0.0353, 0.0066, 0.0054, 0.0014), "base": None},
     "gietler-ferro-dc": {"source": "none (DC counterpart of Table VI)", "extended": None, "base": None},
     "gietler-helix": {"source": "Table VII (printed identical to Table IV)",
                       "extended": (0.1214, 0.0526, 0.0091, 0.0042, 0.0009),
@@ -66,8 +88,14 @@ _DESCRIPTIONS = {
                            "Gietler sec IV-C, Table IV: 5 cm cube of 1000 S/m fixed to the emitters, 450 kHz."),
     "gietler-copper": ("Table V: copper cube (59.9 MS/m) fixed to the emitters, 450 kHz",
                        "Gietler sec IV-C, Table V: 5 cm copper cube fixed to the emitters, 450 kHz."),
-    "gietler-ferro": ("Table VI: ferromagnetic cube (0.1 MS/m, mu_r 100) fixed to the emitters, 450 kHz",
-                      "Gietler sec IV-C, Table VI: 5 cm cube of 0.1 MS/m and mu 100 mu0 on the emitters, 450 kHz."),
+    "gietler-ferro": ("Table VI: ferromagnetic cube (0.1 MS/m, mu_r 100) fixed to the emitters, 450 kHz, "
+                      "answering as in the paper's FEM (Table III)",
+                      "Gietler sec IV-C, Table VI: 5 cm cube of 0.1 MS/m and mu 100 mu0 on the emitters, 450 kHz; "
+                      "the bench's eddy currents those of a 1 mm skin (5 kS/m), which reproduce the paper's "
+                      "Table III response."),
+    "gietler-ferro-exact": ("Table VI material with its exact response: 0.24 mm skin, almost in quadrature",
+                            "The ferromagnetic cube of Table VI answering as Wait's exact sphere of 0.1 MS/m and "
+                            "mu_r 100 at 450 kHz (skin depth 0.24 mm)."),
     "gietler-ferro-dc": ("DC counterpart of Table VI: the mu_r 100 cube with DC emitters",
                          "The ferromagnetic cube of Table VI with DC emitters (no eddy currents)."),
     "gietler-helix": ("Table VII: helix flight (eq 33, 80 s) with the copper cube",
@@ -96,6 +124,7 @@ def _parameters(spec: GietlerSpec) -> dict:
     if spec.cube_center is not None:
         d.update(cube=f"{spec.cube_edge * 100:g} cm edge at {spec.cube_center} m (platform frame)",
                  sigma_s_per_m=spec.sigma, mu_r=spec.mu_r, freq_hz=spec.freq_hz,
+                 **({"bench_eddy_sigma_s_per_m": spec.eddy_sigma} if spec.eddy_sigma is not None else {}),
                  bench_cells=spec.lattice_n ** 3, firmware_subvolumes=79)
     return d
 
@@ -174,7 +203,9 @@ def _tables(scenario, runs) -> dict:
                     if math.isclose(lv, nv, rel_tol=1e-9):
                         ref = v
             mse = sum(ok) / len(ok) if ok else None
+            edge = [f.get("edge_sigma" + suffix) for f in figs if f["diverged" + suffix]]
             rows.append({"noise_var": nv, "mse_m2": mse, "divergences": sum(int(f["diverged" + suffix]) for f in figs),
+                         "divergences_at_range_edge": sum(e is not None and e <= EDGE_SIGMA for e in edge),
                          "runs": len(figs), "runs_ended_out_of_range": sum(f["steps"] < round(
                              SPECS[scenario].duration_s / SPECS[scenario].dt_s) for f in figs),
                          "paper_mse_m2": ref,
@@ -195,13 +226,15 @@ _LABELS = {"levels": "iterated EKF", "levels_ekf": "EKF", "levels_base": "iterat
 def _format(tables) -> str:
     lines = [f"  Gietler et al. 2019, {tables['paper']['source']}: MSE (m^2) per noise level, ours against the paper"]
     lines.append("  " + "  ".join(["filter / model".ljust(30), "noise_var", "mse_m2".rjust(10), "paper".rjust(8),
-                                   "ratio".rjust(6), "div".rjust(4), "runs".rjust(5), "it/step".rjust(7)]))
+                                   "ratio".rjust(6), "div".rjust(4), "edge".rjust(4), "runs".rjust(5),
+                                   "it/step".rjust(7)]))
     for key, label in _LABELS.items():
         for row in tables.get(key, ()):
             f = lambda v, fmt: "-" if v is None else format(v, fmt)  # noqa: E731
             lines.append("  " + "  ".join([label.ljust(30), f"{row['noise_var']:<9.0e}", f(row["mse_m2"], ".5f").rjust(10),
                                            f(row["paper_mse_m2"], ".4f").rjust(8), f(row["ratio"], ".3f").rjust(6),
-                                           str(row["divergences"]).rjust(4), str(row["runs"]).rjust(5),
+                                           str(row["divergences"]).rjust(4),
+                                           str(row.get("divergences_at_range_edge", 0)).rjust(4), str(row["runs"]).rjust(5),
                                            f(row["iterations_per_step"], ".2f").rjust(7)]))
             label = ""
     return "\n".join(lines)

@@ -36,13 +36,14 @@ def wait_moment(omega, a, sigma, mu_r):
     (0.1e6, 100.0, 450e3, 0.01, 0.05),    # the ferromagnetic cube's material at 450 kHz (strong phase)
     (1000.0, 1.0, 450e3, 0.002, 0.05),    # carbon-like: skin depth 2.4 cm, mostly in quadrature
     (0.1e6, 100.0, 0.0, 0.08, 0.0),       # iron at DC: the permeable sphere
+    (5.0e3, 100.0, 450e3, 0.03, 1.5),     # the paper's FEM iron (gietler-ferro): 1 mm skin, mostly in phase
 ])
 def test_lattice_sphere_matches_wait(sigma, mu_r, f_hz, tol, phase_deg):
     """The bench's lattice solver (8 cells across, 280 cells) with its equivalent permeability
     gives the analytic sphere's moment in amplitude and phase: |m / m_ref| - 1 within ``tol``
     (the staircase lattice's error, measured +2.6 %, -0.5 %, -0.06 %, +6.2 % at 8 cells and
-    +3.0 %, -0.5 %, -0.07 %, +6.9 % at 10) and the phase within ``phase_deg`` (measured
-    0.05, 0.006, 0.024, 0 deg). Catches a wrong sign of the interaction tensor, a wrong
+    +3.0 %, -0.5 %, -0.07 %, +6.9 % at 10; +1.7 % for the 5 kS/m iron at 8) and the phase within
+    ``phase_deg`` (measured 0.05, 0.006, 0.024, 0, -1.14 deg). Catches a wrong sign of the interaction tensor, a wrong
     self-term, a conjugated phase convention or a wrong mu_eff mapping."""
     cells, v = hg.sphere_cells(A, 8)
     mu = hg.mu_effective(f_hz, sigma, mu_r, A)
@@ -82,3 +83,31 @@ def test_measurement_noise_has_the_stated_variance():
     n = V.size
     s = float(np.sum(V ** 2) / 1e-3)
     assert stats.chi2.ppf(0.0005, n) <= s <= stats.chi2.ppf(0.9995, n)
+
+
+#: Gietler Table III, emitter 1, FEM solution (mA/m): the ferromagnetic cube (0.1 MS/m, mu 100 mu0)
+PAPER_TABLE3_EMITTER1 = np.array([-248.620 + 91.751j, -245.780 + 88.301j, 379.540 - 71.226j]) * 1e-3
+
+
+def test_paper_fem_iron_reproduces_table3():
+    """The bench's iron of ``gietler-ferro`` (mu_r 100, eddy currents of a 1 mm skin, 5 kS/m) at the
+    geometry of the paper's Table III (emitter 1 of 0.01 A m^2 at (0, 0, 0.2) m, the cube centred at
+    (0, 0, 0.15) m, observation at (0.05, 0.05, 0.2) m; 8^3 cells) against the paper's FEM phasors,
+    taken with the opposite sign (the paper's H~ has the opposite sign of ours, as its copper
+    Table II shows against a perfect conductor's image): x and y within 25 % in amplitude (measured
+    1.16, 1.18 times) and 2.5 deg in phase (measured -0.6, -1.1 deg), z within 6 deg in phase
+    (measured -3.8; its amplitude, 0.36 times, is not reproduced by any uniform body here). Catches
+    the material's 0.1 MS/m (almost in quadrature, 70-80 deg off), a conjugated phase (a lead instead
+    of the 10-20 deg lag) or a diamagnetic response."""
+    from coiltrack.tools.scenarios_gietler import PAPER_FEM_FERRO_SIGMA
+
+    cells, v = hg.cube_cells((0.0, 0.0, -0.05), 0.05, 8)
+    a = 0.05 * (3.0 / (4.0 * math.pi)) ** (1.0 / 3.0)
+    mu = hg.mu_effective(450e3, PAPER_FEM_FERRO_SIGMA, 100.0, a)
+    applied = hg.dipole_h(cells, np.zeros(3), np.array([0.0, 0.0, 0.01]))[None]
+    p = hg.lattice_solve(cells, v, mu, applied)[0]
+    got = hg.dipole_h(np.array([[0.05, 0.05, 0.0]]), cells, p).sum(axis=0)
+    ratio = got / -PAPER_TABLE3_EMITTER1
+    assert np.all(np.abs(np.abs(ratio[:2]) - 1.0) < 0.25), ratio
+    assert np.all(np.abs(np.degrees(np.angle(ratio[:2]))) < 2.5), ratio
+    assert abs(math.degrees(cmath.phase(ratio[2]))) < 6.0, ratio
