@@ -255,6 +255,11 @@ class FirmwareConfig:
     gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
     gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
     gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
+    # --- a sensor and source moving on the body (thesis sec 5.3, 6.3; docs/bodyworn.md)
+    # the earth field turns in a turning sensor's frame during a pulse window (49 uT against a 0.4 uT
+    # pulse at 45 cm); the linear baseline removes only its linear part: turn the window's samples with
+    # the node's gyroscope first (coiltrack.firmware.measure.gyro_baseline). Needs the node's IMU_SAMPLEs.
+    baseline_gyro: bool = False
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -312,6 +317,7 @@ class FirmwareConfig:
         self._validate_recovery(need)
         self._validate_ac(need)
         self._validate_gietler(need)
+        self._validate_body_motion(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -531,6 +537,10 @@ class FirmwareConfig:
         need("gietler_iterations", isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
              f"must be an integer in 1..100 (1: the plain EKF), got {v!r}")
 
+    def _validate_body_motion(self, need) -> None:
+        """Keys of the body-worn motion handling (section ``body_motion``)."""
+        need("baseline_gyro", isinstance(self.baseline_gyro, bool), f"must be true or false, got {self.baseline_gyro!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -575,6 +585,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "duty_margin", "saturation_sigmas", "decision_refresh_us"),
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
+    "body_motion": ("baseline_gyro",),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -67,7 +67,8 @@ def _body_config(movement: str, **kw):
         from coiltrack.hil.imu import NODE_SOURCE_IMU
 
         base = dict(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU, hemisphere=_HEMISPHERE[MOVEMENTS[movement]],
-                    acc_motion_sigma=BODY_ACC_MOTION_SIGMA, source_acc_sigma=BODY_SOURCE_ACC_SIGMA)
+                    acc_motion_sigma=BODY_ACC_MOTION_SIGMA, source_acc_sigma=BODY_SOURCE_ACC_SIGMA,
+                    baseline_gyro=True)
         base.update(kw)
         return FirmwareConfig(**base)
     return make
