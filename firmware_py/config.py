@@ -260,6 +260,15 @@ class FirmwareConfig:
     # pulse at 45 cm); the linear baseline removes only its linear part: turn the window's samples with
     # the node's gyroscope first (coiltrack.firmware.measure.gyro_baseline). Needs the node's IMU_SAMPLEs.
     baseline_gyro: bool = False
+    # one motion variance (orientation.acc_motion_sigma) cannot suit a still sensor and a walking trunk
+    # (1-3 m/s^2 at 0.9-1.8 Hz): the ch. 2 filters' inclination variance grows by
+    # acc_adapt_gain x <|y_A - g Z|^2>, averaged over acc_adapt_tau_s (estimate.orientation); 0: off
+    acc_adapt_gain: float = 0.0
+    acc_adapt_tau_s: float = 1.0
+    # the compass (eqs 2.21, 2.24) also corrects the inclination through the dip it learned at the start
+    # (eqs 2.8-2.10); learned while the body moves, a wrong dip holds a tilt error (walking trunk: 9 deg):
+    # true restricts the compass to the heading, the inclination left to the accelerometer
+    compass_heading_only: bool = False
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -540,6 +549,12 @@ class FirmwareConfig:
     def _validate_body_motion(self, need) -> None:
         """Keys of the body-worn motion handling (section ``body_motion``)."""
         need("baseline_gyro", isinstance(self.baseline_gyro, bool), f"must be true or false, got {self.baseline_gyro!r}")
+        need("compass_heading_only", isinstance(self.compass_heading_only, bool),
+             f"must be true or false, got {self.compass_heading_only!r}")
+        for name in ("acc_adapt_gain", "acc_adapt_tau_s"):
+            v = getattr(self, name)
+            need(name, isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0,
+                 f"must be a finite number >= 0, got {v!r}")
 
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
@@ -585,7 +600,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "duty_margin", "saturation_sigmas", "decision_refresh_us"),
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
-    "body_motion": ("baseline_gyro",),
+    "body_motion": ("baseline_gyro", "acc_adapt_gain", "acc_adapt_tau_s", "compass_heading_only"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}
