@@ -16,6 +16,11 @@ Every row has three scenarios on the same motion and seed:
   (sec 6.5: "the acceleration of the source is now related to orientation
   errors of the source Phi"): the difference is what that offset costs;
 * ``...-nomc``: without the motion compensation within the burst (sec 6.5).
+
+Every body scenario turns each pulse window's samples with the sensor's
+gyroscope before the baseline fit (``body_motion.baseline_gyro``) and raises
+the ch. 2 filters' inclination variance with the measured motion
+(``body_motion.acc_adapt_gain``); see ``docs/bodyworn.md``.
 """
 from __future__ import annotations
 
