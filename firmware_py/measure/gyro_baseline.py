@@ -84,14 +84,19 @@ class GyroBaselineExtractor(PulseExtractor):
 
     ``gyro`` is the node's :class:`GyroRing`; ``span_capacity`` bounds the
     samples one window reads (its bracketing samples included): a window
-    with more is flagged ``PULSE_INCOMPLETE`` as an unbracketed one.
+    with more is flagged ``PULSE_INCOMPLETE`` as an unbracketed one. A
+    window whose span the rates do not reach to within ``gyro_gap_us`` at
+    either end (the IMU stream stopped or not yet started) is extracted by
+    the base extractor (counted in ``plain_windows``).
     Keyword arguments are the base extractor's.
     """
 
-    def __init__(self, ring: SampleRing, gyro: GyroRing, span_capacity: int, **kw):
+    def __init__(self, ring: SampleRing, gyro: GyroRing, span_capacity: int, gyro_gap_us: int = 50_000, **kw):
         super().__init__(ring, **kw)
         self._src = ring
         self._gyro = gyro
+        self._gap = operator.index(gyro_gap_us)
+        self.plain_windows = 0         # windows the gyroscope did not cover: extracted as by the base
         self._turned = SampleRing(operator.index(span_capacity) + 2)
         self.turned_windows = 0        # windows whose samples were turned with gyroscope rates
         self.max_angle_rad = 0.0       # largest rotation over a window seen so far (diagnostic)
@@ -184,6 +189,12 @@ class GyroBaselineExtractor(PulseExtractor):
         else:
             t_m = (start + self._settle_us + end - self._guard_us) // 2
         g = self._gyro
+        gt = g._tv
+        if (gt[g.slot(0)] > src._tv[src.slot(a)] + self._gap
+                or gt[g.slot(g._count - 1)] < src._tv[src.slot(b)] - self._gap):
+            self.plain_windows += 1               # the rates do not cover the window: the linear baseline
+            self._ring = src
+            return PulseExtractor.extract(self, start, end, amp_out, var_out)
         self._cur = g.index_at_or_after(src._tv[src.slot(a)])
         if self._cur > 0:
             self._cur -= 1

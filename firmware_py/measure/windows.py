@@ -55,7 +55,8 @@ class SensorChannel:
                   sigma_t=cfg.mag_sigma_t, max_samples=window_samples(cfg))
         if cfg.baseline_gyro:
             self.gyro = GyroRing(gyro_samples(cfg))
-            self.extractor = GyroBaselineExtractor(self.ring, self.gyro, window_samples(cfg), **kw)
+            self.extractor = GyroBaselineExtractor(self.ring, self.gyro, window_samples(cfg),
+                                                   gyro_gap_us=int(3e6 / cfg.imu_rate_hz), **kw)
         else:
             self.gyro = None
             self.extractor = PulseExtractor(self.ring, **kw)

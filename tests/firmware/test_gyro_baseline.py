@@ -128,6 +128,23 @@ def test_no_gyro_samples_falls_back_to_the_linear_baseline():
     np.testing.assert_array_equal(a0, a1)
 
 
+def test_gyro_stream_that_stopped_falls_back_to_the_linear_baseline():
+    """Rates that end 0.5 s before the window (the IMU stream stopped): the
+    window is the plain one, counted (catches the last rate held over the
+    window and turning the samples by a rotation nobody measured)."""
+    ring, _, _ = _window(0.7)
+    gyro = GyroRing(64)
+    for k in range(20):
+        gyro.push_rate(START - 700_000 + 10_000 * k, 0.0, 0.0, 3.0)
+    a0 = np.zeros(3); v0 = np.zeros(3)
+    a1 = np.zeros(3); v1 = np.zeros(3)
+    r0 = PulseExtractor(ring, **KW).extract(START, END, a0, v0)
+    ex = GyroBaselineExtractor(ring, gyro, 64, gyro_gap_us=30_000, **KW)
+    r1 = ex.extract(START, END, a1, v1)
+    assert r0 == r1 and ex.plain_windows == 1 and ex.turned_windows == 0
+    np.testing.assert_array_equal(a0, a1)
+
+
 @pytest.mark.skipif(not available(), reason="numpy memory handler API not reachable")
 def test_extract_allocates_no_array():
     """The turned extraction runs on preallocated rings (catches a numpy
