@@ -261,8 +261,8 @@ class FirmwareConfig:
     # the node's gyroscope first (coiltrack.firmware.measure.gyro_baseline). Needs the node's IMU_SAMPLEs.
     baseline_gyro: bool = False
     # one motion variance (orientation.acc_motion_sigma) cannot suit a still sensor and a walking trunk
-    # (1-3 m/s^2 at 0.9-1.8 Hz): the ch. 2 filters' inclination variance grows by
-    # acc_adapt_gain x <|y_A - g Z|^2>, averaged over acc_adapt_tau_s (estimate.orientation); 0: off
+    # (1-3 m/s^2 at 0.9-1.8 Hz): the ch. 2 filters' inclination variance grows by acc_adapt_gain x the
+    # variance of y_A - g Z about its running mean over acc_adapt_tau_s (estimate.orientation); 0: off
     acc_adapt_gain: float = 0.0
     acc_adapt_tau_s: float = 1.0
     # the compass (eqs 2.21, 2.24) also corrects the inclination through the dip it learned at the start
@@ -551,10 +551,12 @@ class FirmwareConfig:
         need("baseline_gyro", isinstance(self.baseline_gyro, bool), f"must be true or false, got {self.baseline_gyro!r}")
         need("compass_heading_only", isinstance(self.compass_heading_only, bool),
              f"must be true or false, got {self.compass_heading_only!r}")
-        for name in ("acc_adapt_gain", "acc_adapt_tau_s"):
-            v = getattr(self, name)
-            need(name, isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0,
-                 f"must be a finite number >= 0, got {v!r}")
+        v = self.acc_adapt_gain
+        need("acc_adapt_gain", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0,
+             f"must be a finite number >= 0 (0: off), got {v!r}")
+        v = self.acc_adapt_tau_s
+        need("acc_adapt_tau_s", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0,
+             f"must be a positive number of seconds, got {v!r}")
 
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
