@@ -153,7 +153,7 @@ class GyroBaselineExtractor(PulseExtractor):
     # ------------------------------------------------------------ extraction
     def extract(self, start_us: int, end_us: int, amp_out, var_out) -> tuple[int, int, int]:
         """As the base extractor's, on the turned samples; ``amp_out`` in the
-        sensor frame at the middle of the settled window."""
+        sensor frame at ``t_m``, the middle of the used in-pulse samples."""
         src = self._src
         out = self._turned
         out.clear()
