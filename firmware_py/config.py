@@ -255,6 +255,20 @@ class FirmwareConfig:
     gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
     gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
     gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
+    # --- a sensor and source moving on the body (thesis sec 5.3, 6.3; docs/bodyworn.md)
+    # the earth field turns in a turning sensor's frame during a pulse window (49 uT against a 0.4 uT
+    # pulse at 45 cm); the linear baseline removes only its linear part: turn the window's samples with
+    # the node's gyroscope first (coiltrack.firmware.measure.gyro_baseline). Needs the node's IMU_SAMPLEs.
+    baseline_gyro: bool = False
+    # one motion variance (orientation.acc_motion_sigma) cannot suit a still sensor and a walking trunk
+    # (1-3 m/s^2 at 0.9-1.8 Hz): the ch. 2 filters' inclination variance grows by acc_adapt_gain x the
+    # variance of y_A - g Z about its running mean over acc_adapt_tau_s (estimate.orientation); 0: off
+    acc_adapt_gain: float = 0.0
+    acc_adapt_tau_s: float = 1.0
+    # the compass (eqs 2.21, 2.24) also corrects the inclination through the dip it learned at the start
+    # (eqs 2.8-2.10); learned while the body moves, a wrong dip holds a tilt error (walking trunk: 9 deg):
+    # true restricts the compass to the heading, the inclination left to the accelerometer
+    compass_heading_only: bool = False
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -312,6 +326,7 @@ class FirmwareConfig:
         self._validate_recovery(need)
         self._validate_ac(need)
         self._validate_gietler(need)
+        self._validate_body_motion(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -531,6 +546,18 @@ class FirmwareConfig:
         need("gietler_iterations", isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
              f"must be an integer in 1..100 (1: the plain EKF), got {v!r}")
 
+    def _validate_body_motion(self, need) -> None:
+        """Keys of the body-worn motion handling (section ``body_motion``)."""
+        need("baseline_gyro", isinstance(self.baseline_gyro, bool), f"must be true or false, got {self.baseline_gyro!r}")
+        need("compass_heading_only", isinstance(self.compass_heading_only, bool),
+             f"must be true or false, got {self.compass_heading_only!r}")
+        v = self.acc_adapt_gain
+        need("acc_adapt_gain", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v >= 0,
+             f"must be a finite number >= 0 (0: off), got {v!r}")
+        v = self.acc_adapt_tau_s
+        need("acc_adapt_tau_s", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0,
+             f"must be a positive number of seconds, got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -575,6 +602,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "duty_margin", "saturation_sigmas", "decision_refresh_us"),
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
+    "body_motion": ("baseline_gyro", "acc_adapt_gain", "acc_adapt_tau_s", "compass_heading_only"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

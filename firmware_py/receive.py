@@ -45,6 +45,9 @@ class Receiver:
                     self.tracker.on_mag(msg, MAG_LSB_T)
             elif mid == _IMU:
                 self.imu_received += 1
+                ch = self.channels.get(msg.node)
+                if ch is not None:
+                    ch.push_imu(msg)
                 self.tracker.on_imu(msg, now_us)
             elif mid == _COIL_STATUS:
                 self.schedule.on_status(msg)

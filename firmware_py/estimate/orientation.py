@@ -52,7 +52,20 @@ Measurements (eqs 2.31-2.33, in this sign convention)::
 
 with ``Z_G = R^T e_z`` and ``H_G = R^T h_G``; the noise variances are
 eq 2.35 without the gyroscope term (which enters through ``Q``):
-``(c_a^2 Q_a + Q_wa + Q_vA) / g^2`` and ``Q_vM / |m|^2``. The
+``(c_a^2 Q_a + Q_wa + Q_vA) / g^2`` and ``Q_vM / |m|^2``.
+
+Adaptive motion variance (``body_motion.acc_adapt_gain`` ``k``, default 0:
+off). One ``Q_wa`` cannot suit a still sensor and a walking trunk (1-3
+m/s^2 at 0.9-1.8 Hz, read as 6-17 deg of tilt). As eq 2.12 raises the
+disturbance's driving noise with the measured change of the field, the
+motion term here is raised with the measured motion:
+``Q_wa + k var(y_A - g Z-)``, the variance about the running mean over
+``acc_adapt_tau_s`` (first-order averages at the update rate; a tilt error
+``g theta`` is slow and goes into the mean, so it does not weight down the
+very updates that remove it). At rest the variance is the accelerometer
+noise and the filter is the thesis's; under body motion the
+inclination is weighted down in proportion to the acceleration that would
+be read as tilt, and the gyroscope carries the orientation through it. The
 ``-a x theta / g`` term of the first row of eq 2.32 is dropped: the
 acceleration is predicted in the sensor frame (eq 2.5) and does not depend on
 the current orientation error; it is below 1 % of ``Z`` for human motion.
@@ -98,13 +111,15 @@ class OrientationParams:
             dist_norm_gain=cfg.dist_norm_gain, dist_dip_gain=cfg.dist_dip_gain, dist_smoothing=cfg.dist_smoothing,
             gravity=math.sqrt(sum(v * v for v in cfg.gravity_mps2)), gate_probability=cfg.fusion_gate_probability,
             theta0_sigma=cfg.theta0_sigma, freefall_tolerance=cfg.freefall_tolerance,
-            mag_learn_samples=cfg.mag_learn_samples)
+            mag_learn_samples=cfg.mag_learn_samples, acc_adapt_gain=cfg.acc_adapt_gain,
+            acc_adapt_tau_s=cfg.acc_adapt_tau_s, compass_heading_only=cfg.compass_heading_only)
         kw.update(overrides)
         return cls(**kw)
 
     def __init__(self, *, gyro_noise, gyro_bias_rw, gyro_bias_sigma, acc_noise, acc_motion_sigma, acc_corr_time_s,
                  mag_noise, dist_corr, dist_sigma, dist_norm_gain, dist_dip_gain, dist_smoothing, gravity,
-                 gate_probability, theta0_sigma, freefall_tolerance, mag_learn_samples):
+                 gate_probability, theta0_sigma, freefall_tolerance, mag_learn_samples, acc_adapt_gain=0.0,
+                 acc_adapt_tau_s=1.0, compass_heading_only=False):
         self.gyro_noise = float(gyro_noise)            # rad/s rms per sample (Q_vG)
         self.gyro_bias_rw = float(gyro_bias_rw)        # rad/s/sqrt(s) (Q_wb)
         self.gyro_bias_sigma = float(gyro_bias_sigma)  # rad/s, initial offset uncertainty
@@ -122,6 +137,9 @@ class OrientationParams:
         self.theta0_sigma = float(theta0_sigma)        # rad, initial orientation uncertainty
         self.freefall_tolerance = float(freefall_tolerance)  # relative |y_A| deviation from g
         self.mag_learn_samples = int(mag_learn_samples)    # compass samples averaged for |m| and dip
+        self.acc_adapt_gain = float(acc_adapt_gain)    # k of the motion variance k <|y_A - g Z|^2> (0: off)
+        self.acc_adapt_tau_s = float(acc_adapt_tau_s)  # s, averaging time of <|y_A - g Z|^2>
+        self.compass_heading_only = bool(compass_heading_only)  # the compass corrects the heading only
 
 
 def _triad(ax, ay, az, mx, my, mz):
@@ -183,6 +201,11 @@ class OrientationFilter:
         self._last_dip = 0.0
         self.last_acc_flags = 0
         self.last_mag_flags = 0
+        self.acc_motion_ms = 0.0         # variance of y_A - g Z-, m^2/s^4 (the adaptive motion variance)
+        self._acc_mean = [0.0, 0.0, 0.0]  # running mean of y_A - g Z- (a tilt error shows here, not above)
+        self._acc_sq = 0.0                # running mean of |y_A - g Z-|^2
+        self._acc_started = False
+        self._dt_upd = 0.0               # time since the last inclination update, s
         self._Pv = memoryview(self.P)
         self._ca = 0.0
         self._learn = 0
@@ -228,6 +251,11 @@ class OrientationFilter:
         self.bias.fill(0.0)
         self.dist.fill(0.0)
         self.acc.fill(0.0)
+        self.acc_motion_ms = 0.0
+        self._acc_mean[0] = self._acc_mean[1] = self._acc_mean[2] = 0.0
+        self._acc_sq = 0.0
+        self._acc_started = False
+        self._dt_upd = 0.0
         p = self.prm
         self.P.fill(0.0)
         Pv = self._Pv
@@ -321,6 +349,7 @@ class OrientationFilter:
         a[2] *= ca
         self._ca = ca
         self._dt_acc += dt
+        self._dt_upd += dt
         self._dt2_acc += dt * dt
         self._cd_acc *= cd
         self._qd_acc = self._qd_acc * cd * cd + self._qwd
@@ -392,6 +421,24 @@ class OrientationFilter:
         p = self.prm
         a = self._av
         g = p.gravity
+        if p.acc_adapt_gain > 0.0:
+            # the motion the accelerometer sees besides gravity, |y_A - g Z-|^2, averaged over
+            # acc_adapt_tau_s: the variance of the inclination's motion term follows the motion level
+            R = self._Rv
+            ex, ey, ez = ax - g * R[2, 0], ay - g * R[2, 1], az - g * R[2, 2]
+            k = self._dt_upd / p.acc_adapt_tau_s if p.acc_adapt_tau_s > 0.0 else 1.0
+            k = k if k < 1.0 else 1.0
+            if not self._acc_started:         # the first sample is the mean: no variance yet
+                k = 1.0
+                self._acc_started = True
+            m = self._acc_mean
+            m[0] += k * (ex - m[0])
+            m[1] += k * (ey - m[1])
+            m[2] += k * (ez - m[2])
+            self._acc_sq += k * (ex * ex + ey * ey + ez * ez - self._acc_sq)
+            v = self._acc_sq - (m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+            self.acc_motion_ms = v if v > 0.0 else 0.0
+        self._dt_upd = 0.0
         vx, vy, vz = ax - a[0], ay - a[1], az - a[2]
         vn = math.sqrt(vx * vx + vy * vy + vz * vz)
         if not (abs(vn - g) <= p.freefall_tolerance * g):
@@ -412,7 +459,8 @@ class OrientationFilter:
         # the accelerometer noise of both samples and the driving noise w_a
         ca = self._ca
         _skew_block(self._Hacc, 0, THETA.start, (1.0 - ca) * zx, (1.0 - ca) * zy, (1.0 - ca) * zz)
-        r = ((1.0 + ca * ca) * p.acc_noise ** 2 + p.acc_motion_sigma ** 2) / (g * g)
+        r = ((1.0 + ca * ca) * p.acc_noise ** 2 + p.acc_motion_sigma ** 2
+             + p.acc_adapt_gain * self.acc_motion_ms) / (g * g)
         Rm = self._Racc
         for i in range(3):
             Rm[i, i] = r
@@ -489,15 +537,55 @@ class OrientationFilter:
         y[1] = ny - d[1] - hy
         y[2] = nz - d[2] - hz
         _skew_block(self._Hmag, 0, THETA.start, hx, hy, hz)
+        if p.compass_heading_only:
+            Hm = self._Hmag
+            for i in range(3):
+                for j in range(3):
+                    Hm[i, DIST.start + j] = 1.0 if i == j else 0.0
         r = p.mag_noise ** 2
         Rm = self._Rmag
         for i in range(3):
             Rm[i, i] = r
+        if p.compass_heading_only:
+            self._heading_rows(R[2, 0], R[2, 1], R[2, 2], hx, hy, hz)
         flags = u.update(self.P)
         if flags == EKF_OK:
             self._apply(u._dxv)
         self.last_mag_flags = flags
         return flags
+
+    def _heading_rows(self, zx, zy, zz, hx, hy, hz) -> None:
+        """The compass measurement in the basis ``e1 = Z x H_G / |.|`` (the
+        way a turn about the vertical moves ``H_G``), ``e2 = Z``, ``e3 = e1 x
+        e2`` (sensor frame): rows, innovation and Jacobian turned by ``E``;
+        ``e2`` and ``e3`` get unit variance (the field's whole magnitude, no
+        information), so the compass corrects the heading and leaves the
+        inclination to the accelerometer (``body_motion.compass_heading_only``)."""
+        ax, ay, az = zy * hz - zz * hy, zz * hx - zx * hz, zx * hy - zy * hx
+        an = math.sqrt(ax * ax + ay * ay + az * az)
+        if not an > 1e-6:
+            return                           # field along the vertical: the full update
+        ax, ay, az = ax / an, ay / an, az / an
+        cx, cy, cz = ay * zz - az * zy, az * zx - ax * zz, ax * zy - ay * zx
+        u = self.upd_mag
+        y = u._yv
+        H = self._Hmag
+        t0, d0 = THETA.start, DIST.start
+        y0, y1, y2 = y[0], y[1], y[2]
+        y[0] = ax * y0 + ay * y1 + az * y2
+        y[1] = zx * y0 + zy * y1 + zz * y2
+        y[2] = cx * y0 + cy * y1 + cz * y2
+        for c in range(3):
+            h0, h1, h2 = H[0, t0 + c], H[1, t0 + c], H[2, t0 + c]
+            H[0, t0 + c] = ax * h0 + ay * h1 + az * h2
+            H[1, t0 + c] = zx * h0 + zy * h1 + zz * h2
+            H[2, t0 + c] = cx * h0 + cy * h1 + cz * h2
+        H[0, d0], H[0, d0 + 1], H[0, d0 + 2] = ax, ay, az
+        H[1, d0], H[1, d0 + 1], H[1, d0 + 2] = zx, zy, zz
+        H[2, d0], H[2, d0 + 1], H[2, d0 + 2] = cx, cy, cz
+        Rm = self._Rmag
+        Rm[1, 1] = 1.0
+        Rm[2, 2] = 1.0
 
     # ----------------------------------------------------------- output
     def theta_covariance_global(self, out) -> None:

@@ -19,6 +19,7 @@ import numpy as np
 
 from coiltrack.protocol import MSG
 
+from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
 from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
 
 _WINDOW = MSG["PULSE_WINDOW"]
@@ -29,18 +30,36 @@ def window_samples(cfg) -> int:
     return max(64, int(2 * (cfg.pulse_us + 2 * cfg.baseline_us) * 1e-6 * cfg.mag_rate_hz) + 8)
 
 
+def gyro_samples(cfg) -> int:
+    """Gyroscope samples a node keeps for its windows: two windows' spans and
+    the closer's timeout (half a cycle) at the IMU rate."""
+    span_us = cfg.pulse_us + cfg.fall_us + 2 * cfg.baseline_us + cfg.cycle_us // 2
+    return max(16, int(2 * span_us * 1e-6 * cfg.imu_rate_hz) + 8)
+
+
 class SensorChannel:
-    """One magnetometer node: ring, extractor and the burst's amplitudes."""
+    """One magnetometer node: ring, extractor and the burst's amplitudes.
+
+    With ``body_motion.baseline_gyro`` the node's gyroscope rates are kept
+    (``gyro``, fed by :meth:`push_imu`) and the extractor turns each window's
+    samples with them (:mod:`coiltrack.firmware.measure.gyro_baseline`);
+    otherwise ``gyro`` is None and the IMU samples are not kept here."""
 
     def __init__(self, node: int, cfg):
         n = len(cfg.coils)
         self.node = node
         self.ring = SampleRing(cfg.ring_capacity)
-        self.extractor = PulseExtractor(
-            self.ring, settle_us=cfg.settle_us, fall_us=cfg.fall_us, baseline_us=cfg.baseline_us,
-            guard_us=cfg.guard_us, min_pulse_samples=cfg.min_pulse_samples,
-            min_baseline_samples=cfg.min_baseline_samples, drift_limit_t=cfg.drift_limit_t,
-            sigma_t=cfg.mag_sigma_t, max_samples=window_samples(cfg))
+        kw = dict(settle_us=cfg.settle_us, fall_us=cfg.fall_us, baseline_us=cfg.baseline_us,
+                  guard_us=cfg.guard_us, min_pulse_samples=cfg.min_pulse_samples,
+                  min_baseline_samples=cfg.min_baseline_samples, drift_limit_t=cfg.drift_limit_t,
+                  sigma_t=cfg.mag_sigma_t, max_samples=window_samples(cfg))
+        if cfg.baseline_gyro:
+            self.gyro = GyroRing(gyro_samples(cfg))
+            self.extractor = GyroBaselineExtractor(self.ring, self.gyro, window_samples(cfg),
+                                                   gyro_gap_us=int(3e6 / cfg.imu_rate_hz), **kw)
+        else:
+            self.gyro = None
+            self.extractor = PulseExtractor(self.ring, **kw)
         self.S = np.zeros((3, n))          # amplitudes, sensor frame, column per coil (T)
         self.var = np.zeros((3, n))        # their variances (T^2)
         self.sigma = np.zeros((3, n))      # their standard deviations, floored, for the solver (T)
@@ -61,6 +80,11 @@ class SensorChannel:
         """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
         self.ring.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
         self.samples += 1
+
+    def push_imu(self, msg) -> None:
+        """An ``IMU_SAMPLE`` of this node: its rates for the extractor (kept only with a gyro ring)."""
+        if self.gyro is not None:
+            self.gyro.push(msg)
 
     def new_burst(self) -> None:
         self.done.fill(False)

@@ -1,0 +1,44 @@
+"""The body-worn tick allocates nothing either: the gyroscope-turned pulse
+windows (``measure.gyro_baseline``) and the adaptive inclination variance
+(``estimate.orientation``) on ``roetenberg-flexion-back`` (moving source,
+its own IMU module, fused). After a 3.5 s warm-up (filters initialised, the
+first bursts fused) every tick of the next 1.5 s (two and a half magnetic
+cycles: windows closed, turned, solved and fused) must count 0 numpy
+allocations (``tools.alloc.NumpyAllocationCounter``, as ``test_alloc``).
+Catches a temporary array in the turned extraction, the gyro ring or the
+motion variance."""
+import pytest
+
+from coiltrack.firmware.loop import Firmware
+from coiltrack.tools import scenarios
+from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.runner import BenchSetup
+
+pytestmark = pytest.mark.skipif(not available(), reason="numpy memory handler API not reachable")
+
+
+def test_body_ticks_allocate_no_numpy_array():
+    sc = scenarios.get("roetenberg-flexion-back")
+    cfg = sc.firmware_config()
+    assert cfg.baseline_gyro and cfg.acc_adapt_gain > 0
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, 1, 5.2, emu_end)
+    fw = Firmware(cfg, fw_end)
+    counter = NumpyAllocationCounter()
+    bad = 0
+    t = 0
+    while t < 5_000_000:
+        bench.emulator.step(t)
+        if t >= 3_500_000:
+            before = counter.count
+            with counter:
+                fw.tick(t)
+            bad += counter.count != before
+        else:
+            fw.tick(t)
+        t += cfg.tick_us
+    turned = sum(ch.extractor.turned_windows for ch in fw.channels)
+    assert turned >= 20, turned
+    assert fw.status().get("fused_poses", 0) > 100
+    assert bad == 0, f"{bad} ticks allocated numpy arrays"
