@@ -255,6 +255,12 @@ class FirmwareConfig:
     gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
     gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
     gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
+    # --- calibration file (coiltrack.firmware.calibration; written by `coiltrack calibrate`)
+    calibration_file: str = ""              # path of the calibration TOML read at start-up; "": none
+    calibration_source: bool = True         # apply its [source] rows (coil moments, offsets) to the signal model
+    calibration_sensors: bool = True        # apply its [sensor.N] models (magnetometer ellipsoid, IMU) on input
+    calibration_max_gain_error: float = 0.2  # refuse a coil gain beyond 1 +- this (a file for another source)
+    calibration_max_tilt_deg: float = 10.0  # refuse a coil moment this far from its configured axis
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -312,6 +318,7 @@ class FirmwareConfig:
         self._validate_recovery(need)
         self._validate_ac(need)
         self._validate_gietler(need)
+        self._validate_calibration(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -531,6 +538,19 @@ class FirmwareConfig:
         need("gietler_iterations", isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
              f"must be an integer in 1..100 (1: the plain EKF), got {v!r}")
 
+    def _validate_calibration(self, need) -> None:
+        """Keys of section ``calibration`` (the file itself is checked when it is read)."""
+        need("calibration_file", isinstance(self.calibration_file, str),
+             f"must be a path (string), got {self.calibration_file!r}")
+        for name in ("calibration_source", "calibration_sensors"):
+            need(name, isinstance(getattr(self, name), bool), f"must be true or false, got {getattr(self, name)!r}")
+        v = self.calibration_max_gain_error
+        need("calibration_max_gain_error", isinstance(v, (int, float)) and not isinstance(v, bool)
+             and 0 < v < 1, f"must be a number in (0, 1), got {v!r}")
+        v = self.calibration_max_tilt_deg
+        need("calibration_max_tilt_deg", isinstance(v, (int, float)) and not isinstance(v, bool)
+             and 0 < v <= 90, f"must be a number of degrees in (0, 90], got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -575,6 +595,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "duty_margin", "saturation_sigmas", "decision_refresh_us"),
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
+    "calibration": ("calibration_file", "calibration_source", "calibration_sensors", "calibration_max_gain_error",
+                    "calibration_max_tilt_deg"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}
