@@ -96,6 +96,10 @@ def _run(args, sc, duration, cfg, faults, outputs) -> dict:
     try:
         # an actuation-policy scenario: the fixed cycle on the same trajectory and seed (fixed_*)
         add_fixed_comparison(rep, sc, args.seed, duration, faults=faults, transport=args.transport)
+        # an imperfect-bench scenario: uncalibrated and perfect runs on the same trajectory and seed
+        from .scenarios_imperfect import add_imperfect_comparison
+
+        add_imperfect_comparison(rep, sc, args.seed, duration, cfg=cfg, faults=faults, transport=args.transport)
     except Stopped as exc:
         raise mark(rep, exc) from None
     return rep
