@@ -350,7 +350,7 @@ class Calibration:
             except ImportError:
                 raise CalibrationError("distortion", "this firmware has no distortion map model") from None
             try:
-                dist = DistortionMap.from_table(dt)
+                dist = DistortionMap.from_table(dt, n_coils)
             except ConfigError:
                 raise
             except (ValueError, TypeError, KeyError) as exc:

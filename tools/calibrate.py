@@ -169,21 +169,34 @@ def _sym(v):
     return np.array([[v[0], v[3], v[4]], [v[3], v[1], v[5]], [v[4], v[5], v[2]]])
 
 
-def _ellipsoid(X: np.ndarray, radius: float, sigma: np.ndarray):
-    """``|Minv (x - c)| = radius`` with ``Minv`` symmetric: returns M (= inv Minv),
-    c, their sigmas (M's by first-order propagation), residual rms."""
+def _ellipsoid(X: np.ndarray, radius: float, sigma: np.ndarray, temp=None, range_t: float = 0.0):
+    """``|Minv (x_lin - c)| = radius`` with ``Minv`` symmetric: returns M (= inv Minv),
+    c, their sigmas (M's by first-order propagation), residual rms. With ``temp``
+    (N,) degC about :data:`T_REF_C` and ``range_t`` > 0 the reading is taken as the
+    magnetometer's ``x = N(x_lin) + tc * temp``, ``N(v) = v (1 - k3 (v / range)^2)``,
+    and ``tc``, ``k3`` (3 each) are fitted beside (the bench's temperature offset
+    and non-linearity, which would otherwise bend the ellipsoid)."""
     c0 = X.mean(axis=0)
-    x0 = np.concatenate([[1, 1, 1, 0, 0, 0], c0 / radius])
+    extra = temp is not None and range_t > 0
+    x0 = np.concatenate([[1, 1, 1, 0, 0, 0], c0 / radius, np.zeros(6) if extra else []])
+
+    def lin(x):
+        if not extra:
+            return X
+        tc = x[9:12] * 1e-9
+        k3 = x[12:15] * 1e-2
+        y = X - temp[:, None] * tc
+        return y * (1.0 + k3 * (y / range_t) ** 2)          # N^-1 to first order in k3
 
     def resid(x):
         Mi = _sym(x[:6])
-        return (np.linalg.norm((X / radius - x[6:]) @ Mi.T, axis=1) - 1.0) * radius / sigma
+        return (np.linalg.norm((lin(x) / radius - x[6:9]) @ Mi.T, axis=1) - 1.0) * radius / sigma
 
     res = least_squares(resid, x0, method="lm", xtol=1e-14, ftol=1e-14)
     cov, s2 = _cov(res)
     Mi = _sym(res.x[:6])
     M = np.linalg.inv(Mi)
-    c = res.x[6:] * radius
+    c = res.x[6:9] * radius
     # sigmas of M's elements by finite differences of inv(Minv) along the parameter covariance
     Jm = np.zeros((9, 6))
     for i in range(6):
@@ -191,7 +204,7 @@ def _ellipsoid(X: np.ndarray, radius: float, sigma: np.ndarray):
         dx[i] = 1e-7
         Jm[:, i] = (np.linalg.inv(_sym(res.x[:6] + dx)) - M).reshape(9) / 1e-7
     Ms = np.sqrt(np.maximum(np.diag(Jm @ cov[:6, :6] @ Jm.T), 0.0)).reshape(3, 3)
-    cs = np.sqrt(np.diag(cov[6:, 6:])) * radius
+    cs = np.sqrt(np.diag(cov[6:9, 6:9])) * radius
     rms = math.sqrt(float(np.mean((res.fun * sigma) ** 2)))
     return M, c, Ms, cs, rms
 
@@ -237,21 +250,29 @@ def fit_free(rec: dict, cfg: FirmwareConfig | None = None) -> dict:
     s_acc = float(meta.get("acc_sigma", 0.01)) / np.sqrt(nn)
     s_gyr = float(meta.get("gyro_sigma", 0.005)) / np.sqrt(nn)
     # magnetometer and accelerometer ellipsoids on the still means
-    Ms, hm, Mss, hms, rms_m = _ellipsoid(mm, Emag, s_mag)
+    tm = None
+    if "temperature_c" in rec:
+        temp = np.asarray(rec["temperature_c"], float)
+        tm = np.array([temp[a:b].mean() for a, b in segs]) - T_REF_C
+    range_t = float(cfg.mag_range_t) if cfg is not None else 32767 * 5e-9
+    Ms, hm, Mss, hms, rms_m = _ellipsoid(mm, Emag, s_mag, tm, range_t)
     A, ba, As, bas, rms_a = _ellipsoid(am, g0, s_acc)
     Ai, Mi = np.linalg.inv(A), np.linalg.inv(Ms)
     fi = (am - ba) @ Ai.T                                    # corrected specific force, IMU frame
     bm = (mm - hm) @ Mi.T                                    # corrected field, magnetometer frame
-    # gyro bias and g-sensitivity: w_still = b_g + Gg f_i (G ~ I at rest: w_meas = b_g + Gg f_i)
-    X = np.hstack([np.ones((len(segs), 1)), fi])             # (n, 4)
+    # gyro bias and g-sensitivity: at rest w_meas = b_g(t) + Gg f_i; the bias drifts (random
+    # walk, instability), taken as linear in time over the recording (the bias written is its mean)
+    tc = np.array([t[a:b].mean() for a, b in segs])
+    tc -= tc.mean()
+    X = np.hstack([np.ones((len(segs), 1)), tc[:, None], fi])   # (n, 5)
     coef, *_ = np.linalg.lstsq(X / s_gyr[:, None], wm / s_gyr[:, None], rcond=None)
     r = wm - X @ coef
-    dof = max(len(segs) - 4, 1)
+    dof = max(len(segs) - X.shape[1], 1)
     XtXi = np.linalg.inv((X / s_gyr[:, None]).T @ (X / s_gyr[:, None]))
     s2g = np.array([float(np.sum((r[:, i] / s_gyr) ** 2)) / dof for i in range(3)])
-    cs = np.sqrt(np.outer(np.diag(XtXi), s2g))               # (4, 3)
-    bg, Gg = coef[0], coef[1:].T
-    bgs, Ggs = cs[0], cs[1:].T
+    cs = np.sqrt(np.outer(np.diag(XtXi), s2g))               # (5, 3)
+    bg, Gg = coef[0], coef[2:].T
+    bgs, Ggs = cs[0], cs[2:].T
     # rotations between consecutive still periods: integrated gyro vs TRIAD of (gravity, field)
     pairs = []
     for i in range(len(segs) - 1):

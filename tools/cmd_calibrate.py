@@ -61,16 +61,50 @@ def _load_input(path, method):
     return rec
 
 
+_MAG = ("mag_soft", "mag_soft_sigma", "mag_hard_t", "mag_hard_t_sigma")
+
+
+def _merge_sensor(new: dict, old: dict, new_grid: bool, old_grid: bool) -> dict:
+    """One node's keys, ``new`` over ``old``; except that a grid's magnetometer
+    (``mag_soft`` with its rotation, fixed by the known orientations) wins over
+    a free fit's (symmetric: the rotation ``U`` is not observable from the
+    magnitude), and the free fit's ``mag_to_imu_rotvec``, which refers to the
+    frame ``U`` rotates, is carried into the grid's: ``R_mi = U^T R_mi_free``
+    with ``U`` the rotation of the polar factorisation of
+    ``mag_soft_free^-1 mag_soft_grid``."""
+    import numpy as np
+    from scipy.linalg import polar
+    from scipy.spatial.transform import Rotation
+
+    out = dict(old)
+    out.update(new)
+    grid, free = (new, old) if new_grid and not old_grid else (old, new) if old_grid and not new_grid else (None, None)
+    if grid is None or "mag_soft" not in grid or "mag_soft" not in free:
+        return out
+    for k in _MAG:
+        if k in grid:
+            out[k] = grid[k]
+    if "mag_to_imu_rotvec" in free:
+        U = polar(np.linalg.solve(np.array(free["mag_soft"]), np.array(grid["mag_soft"])), side="right")[0]
+        R = U.T @ Rotation.from_rotvec(free["mag_to_imu_rotvec"]).as_matrix()
+        out["mag_to_imu_rotvec"] = Rotation.from_matrix(R).as_rotvec().tolist()
+    return out
+
+
 def merge_tables(new: dict, old: dict) -> dict:
-    """``new`` over ``old``, sensor node by node and key by key; the ``[meta]``
+    """``new`` over ``old``, sensor node by node and key by key (a grid's
+    magnetometer over a free fit's: :func:`_merge_sensor`); the ``[meta]``
     of both kept (the old one as ``meta.merged``)."""
     out = {k: v for k, v in old.items() if k not in ("meta", "sensor")}
     for k, v in new.items():
         if k not in ("meta", "sensor"):
             out[k] = v
+    new_grid = new.get("meta", {}).get("method") == "grid"
+    old_grid = old.get("meta", {}).get("method") == "grid" or \
+        old.get("meta", {}).get("merged", {}).get("method") == "grid"
     sensors = {n: dict(t) for n, t in old.get("sensor", {}).items()}
     for n, t in new.get("sensor", {}).items():
-        sensors.setdefault(n, {}).update(t)
+        sensors[n] = _merge_sensor(t, sensors.get(n, {}), new_grid, old_grid)
     if sensors:
         out["sensor"] = sensors
     meta = dict(new.get("meta", {}))
