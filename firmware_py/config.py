@@ -261,6 +261,10 @@ class FirmwareConfig:
     calibration_sensors: bool = True        # apply its [sensor.N] models (magnetometer ellipsoid, IMU) on input
     calibration_max_gain_error: float = 0.2  # refuse a coil gain beyond 1 +- this (a file for another source)
     calibration_max_tilt_deg: float = 10.0  # refuse a coil moment this far from its configured axis
+    # --- static distortion and pose quality (firmware_py.model.distortion, firmware_py.track.quality)
+    distortion_apply: bool = True           # apply the calibration file's [distortion] map in the signal model
+    quality_scale: float = 8.0              # quality = 255 s / (s + x): the summed consistency x at 128
+    quality_quiet_sigma_t: float = 2e-6     # T: tolerance of the quiet field's |B| against earth_field_t (0: unused)
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -319,6 +323,7 @@ class FirmwareConfig:
         self._validate_ac(need)
         self._validate_gietler(need)
         self._validate_calibration(need)
+        self._validate_quality(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -551,6 +556,17 @@ class FirmwareConfig:
         need("calibration_max_tilt_deg", isinstance(v, (int, float)) and not isinstance(v, bool)
              and 0 < v <= 90, f"must be a number of degrees in (0, 90], got {v!r}")
 
+    def _validate_quality(self, need) -> None:
+        """Keys of sections ``distortion`` and ``quality``."""
+        need("distortion_apply", isinstance(self.distortion_apply, bool),
+             f"must be true or false, got {self.distortion_apply!r}")
+        v = self.quality_scale
+        need("quality_scale", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1e6,
+             f"must be a positive number, got {v!r}")
+        v = self.quality_quiet_sigma_t
+        need("quality_quiet_sigma_t", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1e-3,
+             f"must be a field in T, 0 <= sigma < 1e-3 (0: no quiet-field term), got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -597,6 +613,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
     "calibration": ("calibration_file", "calibration_source", "calibration_sensors", "calibration_max_gain_error",
                     "calibration_max_tilt_deg"),
+    "distortion": ("distortion_apply",),
+    "quality": ("quality_scale", "quality_quiet_sigma_t"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

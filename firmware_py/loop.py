@@ -121,6 +121,10 @@ class Firmware:
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
         self.tracker = self.pipeline.tracker
+        if calibration is not None and getattr(calibration, "distortion", None) is not None and cfg.distortion_apply:
+            from coiltrack.firmware.model.distortion import install
+
+            install(self.tracker, calibration.distortion)      # the room's map in the pose solver's signal model
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
                                  self.tx, other=self.pipeline.on_message, calibration=sensor_cal)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,

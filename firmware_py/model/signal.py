@@ -27,6 +27,12 @@ Calibration (Raab ``seeds/004_86267342cd7488ce.txt``, "Source and Sensor
     sensor's imperfections are removed from its samples on input
     (``coiltrack.firmware.receive``), never here.
 
+Static distortion (``coiltrack.firmware.model.distortion``)
+    With a room map (:meth:`SignalModel.set_distortion`, from the calibration
+    file's ``[distortion]`` table) every evaluation adds ``I_j D_j(p)`` to
+    ``B_j`` and ``I_j dD_j/dp`` to ``J_j`` (source frame), so the signals
+    and the Jacobian below include it consistently.
+
 Measurement (Schepers eq 5; thesis ``seeds/002_cd7f1fdb7fc67471.txt``
 App. 5.A, eq 5.9 with the signal matrix ``S = R^T B``)
     ``h_j = R^T B_j(p)`` (T), the field of coil ``j`` in the sensor frame;
@@ -109,6 +115,15 @@ class SignalModel:
         self.Bv = flat(self.B)
         self.Jv = flat(self.J)
         self.evals = 0
+        #: the room's static distortion (``model.distortion.DistortionMap``) or None
+        self.distortion = None
+
+    def set_distortion(self, dmap) -> None:
+        """Add ``dmap``'s residual field ``I_j D_j(p)`` (and its gradient) to every evaluation
+        (start-up; ``None`` removes it). ``model.distortion``."""
+        if dmap is not None and dmap.n != self.n:
+            raise ValueError(f"distortion map for {dmap.n} coils, the source has {self.n}")
+        self.distortion = dmap
 
     def reset_evals(self) -> None:
         self.evals = 0
@@ -130,6 +145,8 @@ class SignalModel:
         else:
             for j in range(self.n):
                 self._dipole(j, px, py, pz, cur[j], jac)
+        if self.distortion is not None:
+            self.distortion.add(px, py, pz, cur, jac, self.Bv, self.Jv)
 
     def _loop(self, j, px, py, pz, current, jac):
         cx, cy, cz = self._c[j]
