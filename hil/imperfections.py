@@ -353,7 +353,8 @@ class Imperfections:
                         {"what": p + "imu.bias_instability", "gyro_rad_s": u.gyro_instability_rad_s,
                          "accel_m_s2": u.accel_instability_m_s2, "tau_s": u.instability_tau_s,
                          "value": "Gauss-Markov"},
-                        {"what": p + "mag_to_imu_deg", "value": round(float(np.linalg.norm(u.mag_to_imu_rotvec)) / DEG, 4),
+                        {"what": p + "mag_to_imu_deg",
+                         "value": round(float(np.linalg.norm(u.mag_to_imu_rotvec)) / DEG, 4),
                          "rotvec_rad": _r(u.mag_to_imu_rotvec)}]
         return out
 
@@ -389,8 +390,10 @@ class Imperfections:
             for k, v in t.items():
                 sec[k] = np.asarray(v, dtype=float).tolist()
                 sec[k + "_sigma"] = z(v)
-            if m is not None:      # beyond the contract's keys: what a calibration may leave uncorrected
-                sec["mag_tempco_t_per_k"] = m.tempco_t_per_k.tolist()
-                sec["mag_nonlin_k3"] = m.nonlin_k3.tolist()
             table["sensor"][str(sid)] = sec
+            if m is not None:      # beyond the file's keys: what the calibration model leaves uncorrected
+                table["meta"].setdefault("unmodelled", {})[str(sid)] = {
+                    "mag_tempco_t_per_k": m.tempco_t_per_k.tolist(), "mag_nonlin_k3": m.nonlin_k3.tolist(),
+                    "gyro_instability_rad_s": u.gyro_instability_rad_s if u is not None else 0.0,
+                    "accel_instability_m_s2": u.accel_instability_m_s2 if u is not None else 0.0}
         return table

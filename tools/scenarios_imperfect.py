@@ -13,9 +13,13 @@ the perfect bench (``perfect_*``: the same motion, sensor noise and clocks, no i
 Without a calibration file the first two are the same run and the uncalibrated figures are the
 run's own.
 
-The motion: the roetenberg-bench hand motion (peak 12 cm/s, 30 deg/s) over 15-40 cm (Schepers'
-table area), where the perfect bench's error is a few mm: over roetenberg-bench's 15-80 cm the
-noise at the far end (CRB 88 mm) would hide a few-mm calibration bias.
+The motion. ``imperfect-fusion``: the roetenberg-bench hand motion (peak 12 cm/s, 30 deg/s) over
+15-40 cm (Schepers' table area), where the perfect bench's fused error is about 1 cm and 0.3 deg;
+over roetenberg-bench's 15-80 cm the noise at the far end (CRB 88 mm) would hide the imperfections.
+``imperfect-bench`` (magnetic only) moves the sensor slowly (peak 2 cm/s, 4 deg/s) over 15-25 cm:
+a magnetic-only pose is made of three pulses 100 ms apart, so at the hand motion's 12 cm/s and
+30 deg/s the motion within the burst (some mm, some deg) would hide the calibration's few mm and
+degrees; slow motion close to the source is where a calibration matters to a magnetic-only user.
 """
 from __future__ import annotations
 
@@ -28,8 +32,10 @@ from coiltrack.tools.scenarios import Scenario, SensorSpec, _fusion_config, _hil
 #: the imperfection seed of the emulated hardware (one unit: source, sensor board and IMU)
 BENCH_UNIT = 1
 
-#: the hand motion of both scenarios (roetenberg-bench's speeds, 15-40 cm)
+#: the hand motion of imperfect-fusion (roetenberg-bench's speeds, 15-40 cm)
 MOTION = dict(r_min=0.15, r_max=0.40, v_max=0.12, w_max_deg=30.0)
+#: the slow motion of imperfect-bench (magnetic only: motion within the burst kept below the imperfections)
+SLOW_MOTION = dict(r_min=0.15, r_max=0.25, v_max=0.02, w_max_deg=4.0)
 
 
 def bench_imperfections(unit: int = BENCH_UNIT, spec=None, sensor_ids=(16,)):
@@ -40,17 +46,32 @@ def bench_imperfections(unit: int = BENCH_UNIT, spec=None, sensor_ids=(16,)):
     return Imperfections.draw(unit, physics.thesis_source().coils, sensor_ids=sensor_ids, spec=spec)
 
 
-def imperfect_world_builder(imperfect: bool = True, unit: int = BENCH_UNIT, spec=None):
+def write_truth_calibration(path, unit: int = BENCH_UNIT, spec=None, sensors: bool = True) -> dict:
+    """Write the true imperfections of hardware ``unit`` as a calibration file (TOML, the
+    firmware's ``calibration.dumps_toml``; sigmas zero, ``meta.method = "truth"``): the best a
+    calibration can do, for checking the calibrated path end to end. ``sensors=False``: the
+    ``[source]`` rows only. Returns the table."""
+    from coiltrack.firmware.calibration import dumps_toml
+
+    tab = bench_imperfections(unit, spec).as_calibration_table()
+    if not sensors:
+        tab.pop("sensor")
+    with open(path, "w") as fh:
+        fh.write(dumps_toml(tab))
+    return tab
+
+
+def imperfect_world_builder(imperfect: bool = True, unit: int = BENCH_UNIT, spec=None, motion=None):
     """``build_world(seed, duration_s)`` of the scenarios: the thesis source (its coils as built
     when ``imperfect``) and the hand motion :data:`MOTION` drawn from ``seed``; the world keeps
     its :class:`hil.imperfections.Imperfections` as ``world.imperfections`` (None: perfect)."""
     def build(seed: int, duration_s: float):
-        World, motion, physics = _hil()
+        World, motion_mod, physics = _hil()
 
         nominal = physics.thesis_source().coils
         imp = bench_imperfections(unit, spec) if imperfect else None
         coils = imp.apply_source(nominal) if imp is not None else nominal
-        world = World(coils, motion.HandMovedBench(seed=seed, duration_s=duration_s, **MOTION))
+        world = World(coils, motion_mod.HandMovedBench(seed=seed, duration_s=duration_s, **(motion or MOTION)))
         world.imperfections = imp
         return world
     return build
@@ -121,30 +142,32 @@ def cfg_perfect(cfg):
 _PARAMETERS = {"coils": "thesis source as built: tilts <= 2 deg, gains 1 + N(0, 2 %), centres N(0, 1 mm)",
                "magnetometer": "soft iron I + N(0, 2 %) diag + N(0, 1 %) cross, hard iron N(0, 3 uT), "
                                "offset N(0, 10 nT/K) over a warm-up, cubic non-linearity <= 0.5 % at range",
-               "motion": "hand-moved, 15-40 cm, peak 12 cm/s and 30 deg/s",
                "bench_unit": BENCH_UNIT}
 
 
-def _register(name: str, summary: str, description: str, config, sensor: SensorSpec, params: dict) -> None:
+def _register(name: str, summary: str, description: str, config, sensor: SensorSpec, params: dict,
+              motion: dict) -> None:
     sc = register(Scenario(name=name, summary=summary, description=description, duration_s=60.0,
-                           build_world=imperfect_world_builder(True), firmware_config=config,
+                           build_world=imperfect_world_builder(True, motion=motion), firmware_config=config,
                            sensor=ImperfectSensorSpec(**dataclasses.asdict(sensor)),
                            parameters={**_PARAMETERS, **params}, report_extra=imperfection_figures))
-    PERFECT[name] = dataclasses.replace(sc, name=name + "(perfect)", build_world=imperfect_world_builder(False),
-                                        sensor=sensor, report_extra=None)
+    PERFECT[name] = dataclasses.replace(sc, name=name + "(perfect)", sensor=sensor, report_extra=None,
+                                        build_world=imperfect_world_builder(False, motion=motion))
 
 
 _register("imperfect-bench",
-          "roetenberg-bench's motion (15-40 cm) on an imperfect source and magnetometer, calibrated or not",
-          "The roetenberg-bench hand motion (15-40 cm) with the source coils, the magnetometer and its board "
-          "as built (hil.imperfections, unit BENCH_UNIT), magnetic only; the report adds the same run "
-          "without calibration (uncalibrated_*) and on the perfect bench (perfect_*).",
-          FirmwareConfig, SensorSpec(), {})
+          "slow hand motion at 15-25 cm on an imperfect source and magnetometer, calibrated or not",
+          "A slow hand motion (15-25 cm, peak 2 cm/s and 4 deg/s) with the source coils, the magnetometer "
+          "and its board as built (hil.imperfections, unit BENCH_UNIT), magnetic only; the report adds the "
+          "same run without calibration (uncalibrated_*) and on the perfect bench (perfect_*).",
+          FirmwareConfig, SensorSpec(), {"motion": "hand-moved, 15-25 cm, peak 2 cm/s and 4 deg/s"}, SLOW_MOTION)
 _register("imperfect-fusion",
-          "imperfect-bench with IMUs (scale, misalignment, g-sensitivity, bias instability, mag-to-IMU)",
-          "imperfect-bench with an MTx-class IMU beside the magnetometer (120 Hz) whose accelerometer and "
+          "hand motion at 15-40 cm on the imperfect bench with an imperfect IMU, fused, calibrated or not",
+          "The roetenberg-fusion hand motion (15-40 cm, peak 12 cm/s and 30 deg/s) on imperfect-bench's "
+          "hardware, with an MTx-class IMU beside the magnetometer (120 Hz) whose accelerometer and "
           "gyroscope have scale and misalignment errors, g-sensitivity and bias instability, mounted "
           "misaligned to the magnetometer; 21-state magnetic-inertial fusion (roetenberg-fusion's filter).",
           _fusion_config(), SensorSpec(imu_rate_hz=120.0),
           {"imu": "scale N(0, 1 %), cross-axis N(0, 0.5 %), g-sensitivity N(0, 0.1 deg/s/g), Gauss-Markov bias "
-                  "instability 0.01 deg/s / 2e-3 m/s^2 (100 s), mag-to-IMU N(0, 0.5 deg) per axis"})
+                  "instability 0.01 deg/s / 2e-3 m/s^2 (100 s), mag-to-IMU N(0, 0.5 deg) per axis",
+           "motion": "hand-moved, 15-40 cm, peak 12 cm/s and 30 deg/s"}, MOTION)

@@ -211,7 +211,8 @@ def test_calibration_table_reproduces_the_built_coils():
         g = float(np.linalg.norm(mom[k]))
         rot, _ = Rotation.align_vectors([mom[k] / g], [[0.0, 0.0, 1.0]])
         col = magpylib.Collection(*[magpylib.current.Circle(current=float(wi * g), diameter=2 * float(ri),
-                                                             position=(0, 0, float(zi))) for ri, zi, wi in zip(r, z, w)])
+                                                             position=(0, 0, float(zi)))
+                                    for ri, zi, wi in zip(r, z, w)])
         col.rotate(rot, anchor=(0, 0, 0))
         col.move(c.center + off[k])
         ref = np.asarray(col.getB(pts))
