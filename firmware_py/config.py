@@ -263,7 +263,7 @@ class FirmwareConfig:
     calibration_max_tilt_deg: float = 10.0  # refuse a coil moment this far from its configured axis
     # --- static distortion and pose quality (firmware_py.model.distortion, firmware_py.track.quality)
     distortion_apply: bool = True           # apply the calibration file's [distortion] map in the signal model
-    quality_scale: float = 8.0              # quality = 255 s / (s + x): the summed consistency x at 128
+    quality_error_scale_m: float = 0.01     # m: the estimated position error at which the quality is 128
     quality_quiet_sigma_t: float = 2e-6     # T: tolerance of the quiet field's |B| against earth_field_t (0: unused)
 
     def validate(self) -> "FirmwareConfig":
@@ -560,9 +560,9 @@ class FirmwareConfig:
         """Keys of sections ``distortion`` and ``quality``."""
         need("distortion_apply", isinstance(self.distortion_apply, bool),
              f"must be true or false, got {self.distortion_apply!r}")
-        v = self.quality_scale
-        need("quality_scale", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1e6,
-             f"must be a positive number, got {v!r}")
+        v = self.quality_error_scale_m
+        need("quality_error_scale_m", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= 10.0,
+             f"must be a distance in m, 0 < d <= 10, got {v!r}")
         v = self.quality_quiet_sigma_t
         need("quality_quiet_sigma_t", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1e-3,
              f"must be a field in T, 0 <= sigma < 1e-3 (0: no quiet-field term), got {v!r}")
@@ -614,7 +614,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "calibration": ("calibration_file", "calibration_source", "calibration_sensors", "calibration_max_gain_error",
                     "calibration_max_tilt_deg"),
     "distortion": ("distortion_apply",),
-    "quality": ("quality_scale", "quality_quiet_sigma_t"),
+    "quality": ("quality_error_scale_m", "quality_quiet_sigma_t"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}
