@@ -14,10 +14,11 @@ Two recordings, both through the same imperfect sensor models as the bench's nod
   ``still_s`` at each (gravity and the earth field constant), turned smoothly in ``move_s`` between
   them; no coil is driven. The true rotation and rates are stored for tests only.
 
-Both record the residual offset of the magnetometer's set/reset electronics as a constant
-(``N(0, offset_t)`` per axis: the samples are taken at one flip state, so it cancels in
-``b_on - b_off`` and appears in ``b_off``); sample means carry white noise ``noise_t / sqrt(n)``;
-quantisation (5 nT, dithered by 50 nT noise) is left out of the means.
+The set/reset residual offset of the magnetometer (``hil.nodes.MagSpec.offset_t``, its sign
+following the flip state) is left out: a calibration run averages both flip states, as the
+firmware's flip handling does on the bench, so it cancels and is not part of the hard iron. Sample
+means carry white noise ``noise_t / sqrt(n)``; quantisation (5 nT, dithered by 50 nT noise) is left
+out of the means.
 
 File: :func:`save_recording` writes one ``.npz`` (``numpy.savez``, no pickles), keys as in the
 functions' docstrings plus ``kind`` ("grid" | "free") and ``meta_json`` (a JSON object: unit, seed,
@@ -76,7 +77,6 @@ def record_grid(unit: int = 1, seed: int = 0, n_xy: int = 7, x_range=(0.15, 0.35
     S, K = P.shape[0], len(source)
     I = np.asarray(currents_a, dtype=float).reshape(K)
     U = source.unit_fields(P)                                  # (K, S, 3) T/A, source frame
-    offset = rng.normal(0.0, mag.offset_t, 3)
     b_on = np.empty((S, K, 3))
     b_off = np.empty((S, 3))
     temp = np.empty(S)
@@ -85,9 +85,9 @@ def record_grid(unit: int = 1, seed: int = 0, n_xy: int = 7, x_range=(0.15, 0.35
         t_us = int(round(s * station_s * 1e6))
         Re = Rs[s].T @ EARTH_FIELD_T
         meas = (lambda B: mi.measure(B, t_us)) if mi is not None else (lambda B: B)
-        b_off[s] = meas(Re) + offset + rng.normal(0.0, s_off, 3)
+        b_off[s] = meas(Re) + rng.normal(0.0, s_off, 3)
         for k in range(K):
-            b_on[s, k] = meas(Re + I[k] * (Rs[s].T @ U[k, s])) + offset + rng.normal(0.0, s_on, 3)
+            b_on[s, k] = meas(Re + I[k] * (Rs[s].T @ U[k, s])) + rng.normal(0.0, s_on, 3)
         temp[s] = float(mi.temperature.at(t_us * 1e-6)) if mi is not None else 25.0
     meta = {"unit": int(unit), "seed": int(seed), "node": int(node), "earth_field_t": EARTH_FIELD_T.tolist(),
             "rate_hz": mag.rate_hz, "noise_t": mag.noise_t, "n_xy": n_xy, "z_levels": list(z_levels),
@@ -151,7 +151,6 @@ def record_free(unit: int = 1, seed: int = 0, n_random: int = 12, still_s: float
     g = np.array([0.0, 0.0, -imu.gravity])
     f_mag = np.einsum("nji,j->ni", R, -g)                     # R^T (a - g), a = 0
     B = np.einsum("nji,j->ni", R, EARTH_FIELD_T)
-    offset = rng.normal(0.0, mag.offset_t, 3)
     acc_b = rng.normal(0.0, imu.acc_bias_sigma, 3)
     gyr_b = rng.normal(0.0, imu.gyro_bias_sigma, 3)
     acc_b0, gyr_b0 = acc_b.copy(), gyr_b.copy()
@@ -161,8 +160,7 @@ def record_free(unit: int = 1, seed: int = 0, n_random: int = 12, still_s: float
     temp = np.empty(N)
     for n in range(N):
         t_us = int(round(t_s[n] * 1e6))
-        mag_out[n] = (si.mag.measure(B[n], t_us) if si.mag is not None else B[n]) + offset \
-            + rng.normal(0.0, mag.noise_t, 3)
+        mag_out[n] = (si.mag.measure(B[n], t_us) if si.mag is not None else B[n]) + rng.normal(0.0, mag.noise_t, 3)
         f, ww = (si.imu.measure(f_mag[n], w[n], dt) if si.imu is not None else (f_mag[n], w[n]))
         acc_b += rng.normal(0.0, imu.acc_bias_rw * math.sqrt(dt), 3)
         gyr_b += rng.normal(0.0, imu.gyro_bias_rw * math.sqrt(dt), 3)
