@@ -41,6 +41,10 @@ def add_arguments(p) -> None:
                    help="TOML firmware configuration (the nominal source the moments refer to)")
     p.add_argument("--merge", type=A.input_file, metavar="FILE",
                    help="an earlier calibration file whose other tables are kept")
+    p.add_argument("--write-biases", action="store_true",
+                   help="--method free: write the accelerometer and gyroscope biases into the sensor table "
+                        "(default: reported in [meta] only; a MEMS turn-on bias changes at every power-up and the "
+                        "fusion filter estimates it, so another session's bias is no correction)")
     p.add_argument("--out", type=A.output_path, metavar="FILE", required=True, help="the calibration file to write")
 
 
@@ -152,6 +156,12 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"coiltrack calibrate: {exc}", file=sys.stderr)
         return 2
+    if args.method == "free" and not args.write_biases:
+        for sec in tables.get("sensor", {}).values():
+            for k in ("accel_bias_m_s2", "gyro_bias_rad_s"):
+                for kk in (k, k + "_sigma"):
+                    if kk in sec:
+                        tables["meta"]["recording_" + kk] = sec.pop(kk)
     tables["meta"]["date"] = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     if old is not None:
         tables = merge_tables(tables, old)
