@@ -614,7 +614,10 @@ class SensorNode(Node):
         """The field (3,) T the magnetometer reads at true time ``t`` before its flip offset and
         noise: the world's field in the sensor frame, through the imperfect magnetometer model
         (``hil.imperfections.MagImperfection.measure``) when the node has one."""
-        B = self.world.field_sensor_frame(t)
+        return self._through_model(self.world.field_sensor_frame(t), t)
+
+    def _through_model(self, B, t: int):
+        """``B`` (3,) T, sensor frame, through the node's magnetometer imperfections (if any)."""
         imp = self.imperfect
         if imp is not None and imp.mag is not None:
             B = imp.mag.measure(B, t)
