@@ -21,9 +21,6 @@ from coiltrack.tools.cli import main
 from coiltrack.tools.cmd_calibrate import merge_tables
 
 UNIT = 1
-#: the bench's set/reset residual offset (hil.nodes.MagSpec.offset_t): it sits in every coil-off
-#: mean of a recording, so a constant offset fitted from them is hard iron + this (per axis, 1 sigma)
-OFFSET_T = 0.3e-6
 
 
 def _truth():
@@ -58,10 +55,10 @@ def test_grid_recovers_the_source_within_its_sigma(grid):
     """Coil moments (direction x gain) and winding offsets of the 7 x 7 x 3 jig
     (441 stations) against the bench's drawn truth: every parameter within 3 sigma,
     and the normalised errors' RMS within [0.3, 2] (sigmas neither too small nor
-    absurdly large). A wrong sign of the offset, a gain not fitted or the soft
-    iron's scale traded against the gains (without the earth-field reference)
-    puts errors at tens of sigma; a covariance not scaled by the residual
-    variance, or scaled twice, moves the RMS out of the band."""
+    absurdly large). A wrong sign of the offset (~1 mm against sigmas of 0.01 mm),
+    a gain not fitted (2 % against 2e-4) or the soft iron's scale traded against
+    the gains puts errors at tens of sigma or more; sigmas 3x too large move the
+    RMS below the band."""
     _, tab = grid
     t, ratio = _truth()
     s = tab["source"]
@@ -75,18 +72,18 @@ def test_grid_recovers_the_source_within_its_sigma(grid):
 
 
 def test_grid_recovers_the_magnetometer_soft_and_hard_iron(grid):
-    """mag_soft (scale and cross-axis, 9 elements) within 3 sigma of the truth;
-    mag_hard_t within 3 sigma plus 3 x the set/reset residual offset the coil-off
-    means also hold (see OFFSET_T). A transposed soft-iron matrix (cross-axis
-    1 %) is off by ~20 sigma."""
+    """mag_soft (scale and cross-axis, 9 elements) and mag_hard_t (fixed by the
+    earth field in the coil-off means at known orientations) within 3 sigma of
+    the truth. A transposed soft-iron matrix is off by ~900 sigma on this unit
+    (its cross-axis terms differ by 0.9 %); without the temperature offset and
+    the non-linearity in the model the soft-iron errors reached 5 sigma."""
     rec, tab = grid
     t, _ = _truth()
     node = str(rec["node"])
     s, st = tab["sensor"][node], t["sensor"][node]
-    z = _z(s["mag_soft"], s["mag_soft_sigma"], st["mag_soft"])
+    z = np.concatenate([_z(s["mag_soft"], s["mag_soft_sigma"], st["mag_soft"]).ravel(),
+                        _z(s["mag_hard_t"], s["mag_hard_t_sigma"], st["mag_hard_t"])])
     assert np.all(np.abs(z) < 3.0), z.round(2)
-    err = np.abs(np.array(s["mag_hard_t"]) - st["mag_hard_t"])
-    assert np.all(err < 3 * np.array(s["mag_hard_t_sigma"]) + 3 * OFFSET_T), err
 
 
 def test_free_recovers_the_observable_sensor_parameters(free):
