@@ -137,10 +137,12 @@ def record_free(unit: int = 1, seed: int = 0, n_random: int = 12, still_s: float
         still += [True] * n_still
         if i + 1 < len(rots):
             v = matrix_to_rotvec(Ra.T @ rots[i + 1])
+            # the turn lasts (n_move + 1) sample intervals, from the last still sample to the next one
+            T_move = (n_move + 1) * dt
             for j in range(n_move):
                 tau = (j + 1) / (n_move + 1)
                 sm = 3 * tau**2 - 2 * tau**3
-                ds = 6 * tau * (1 - tau) / move_s
+                ds = 6 * tau * (1 - tau) / T_move
                 Rl.append(Ra @ rotvec_to_matrix(sm * v))
                 wl.append(ds * v)
                 still.append(False)

@@ -11,7 +11,7 @@ import math
 import magpylib
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import integrate, stats
 from scipy.spatial.transform import Rotation
 
 from coiltrack.hil import calibrun
@@ -334,3 +334,19 @@ def test_fast_magnetometer_node_reads_through_the_model():
     ref = imp.sensors[16].mag.measure(R.T @ world.field_source_frame(t), t)
     got = np.array([out[0].x, out[0].y, out[0].z]) * MAG_LSB_T
     np.testing.assert_allclose(got, ref, atol=MAG_LSB_T)
+
+
+def test_free_recording_rates_integrate_to_its_rotations():
+    """The body rate of the free recording integrates (trapezoid over each turn, still samples at
+    both ends) to the rotation between the still orientations: relative 1e-4 (the trapezoid's
+    O(dt^2) on a smoothstep turn). Catches a rate on another time scale than the poses (a turn of
+    n samples timed as n instead of n + 1 intervals: 1/n = 0.6 % too much rotation, which a
+    calibration would read as a gyroscope scale error)."""
+    rec = calibrun.record_free(unit=1, seed=0, n_random=2, still_s=0.5, move_s=1.5)
+    st, w, R = rec["still"], rec["truth_w_mag"], rec["truth_R"]
+    dt = 1.0 / rec["rate_hz"]
+    edges = np.flatnonzero(np.diff(st.astype(int)))         # last still, last moving sample
+    for a, b in zip(edges[0::2], edges[1::2] + 1):
+        ang = float(np.linalg.norm(integrate.trapezoid(w[a:b + 1], dx=dt, axis=0)))
+        ref = float(np.linalg.norm(Rotation.from_matrix(R[a].T @ R[b]).as_rotvec()))
+        assert abs(ang - ref) < 1e-4 * ref
