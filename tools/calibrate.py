@@ -341,6 +341,20 @@ def fit_free(rec: dict, cfg: FirmwareConfig | None = None) -> dict:
             "sensor": {str(node): sec}}
 
 
-#: ``coiltrack calibrate --method NAME``: fit(recording, cfg) -> tables (``survey`` is added by
-#: the distortion survey's module)
+def _record_grid(unit: int, seed: int, grid: int) -> dict:
+    from coiltrack.hil import calibrun
+
+    return calibrun.record_grid(unit=unit, seed=seed, n_xy=grid)
+
+
+def _record_free(unit: int, seed: int, grid: int) -> dict:
+    from coiltrack.hil import calibrun
+
+    return calibrun.record_free(unit=unit, seed=seed)
+
+
+#: ``coiltrack calibrate --method NAME``: ``fit(recording, cfg) -> tables``, and for ``--record``
+#: ``record(unit, seed, grid) -> recording`` on the emulated bench (a further method, e.g. the
+#: distortion survey, registers itself in both)
 METHODS = {"grid": fit_grid, "free": fit_free}
+RECORDERS = {"grid": _record_grid, "free": _record_free}

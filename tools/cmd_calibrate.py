@@ -147,10 +147,9 @@ def run(args) -> int:
             print(f"coiltrack calibrate: {rec}", file=sys.stderr)
             return 2
     else:
-        from coiltrack.hil import calibrun
+        from .calibrate import RECORDERS
 
-        rec = (calibrun.record_grid(unit=args.unit, seed=args.seed, n_xy=args.grid) if args.method == "grid"
-               else calibrun.record_free(unit=args.unit, seed=args.seed))
+        rec = RECORDERS[args.method](args.unit, args.seed, args.grid)
     try:
         tables = METHODS[args.method](rec, cfg)
     except ValueError as exc:
