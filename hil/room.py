@@ -93,39 +93,51 @@ def solve_polarisation(centres, dims, mu_r: float, B0) -> np.ndarray:
 
 
 class SteelTable:
-    """A horizontal steel sheet (the table top) in the source frame: top face at height
-    ``top_z_m``, centred at ``(centre_xy_m)``, ``size_m`` (x, y) and ``thickness_m``, relative
-    permeability ``mu_r``, cut into ``cells`` (nx, ny). Defaults: a 1.6 m x 1.2 m x 5 mm sheet
-    62 cm below the source centre, under the whole roetenberg-bench volume (whose lowest point is
-    at z = -0.566 m, ``hil.motion.HandMovedBench``), 40 x 30 cells of 4 cm.
+    """A flat steel sheet (the table top) in the source frame, its thin dimension along the source
+    axis ``up_axis`` (0: x, 1: y, 2: z): the top face at ``top_m`` on that axis, the sheet
+    centred at ``centre_m`` on the other two (in axis order), ``size_m`` along them,
+    ``thickness_m`` thick, relative permeability ``mu_r``, cut into ``cells`` cuboids.
+
+    Defaults: the source stands on the table with its +x axis up (the firmware's hemisphere, the
+    side the roetenberg-bench sensor stays on: ``x >= 0.061 m``, ``hil.motion.HandMovedBench``),
+    its centre 25 cm above a 1.6 m (y) x 1.2 m (z) x 5 mm sheet, 40 x 30 cells of 4 cm.
 
     A :mod:`hil.world` object: ``field_at`` (coils and earth), ``coil_unit_field`` (steady
     response per ampere of coil k: what a pulse amplitude sees); always active unless
     ``t_on_us`` / ``t_off_us`` are given.
     """
 
-    def __init__(self, top_z_m: float = -0.62, centre_xy_m=(0.40, 0.0), size_m=(1.6, 1.2),
+    def __init__(self, top_m: float = -0.25, centre_m=(0.0, 0.0), size_m=(1.6, 1.2), up_axis: int = 0,
                  thickness_m: float = 0.005, mu_r: float = 200.0, cells=(40, 30), seed: int | None = None,
                  t_on_us=None, t_off_us=None):
-        cx, cy = float(centre_xy_m[0]), float(centre_xy_m[1])
-        z = float(top_z_m)
+        if up_axis not in (0, 1, 2):
+            raise ValueError("up_axis must be 0, 1 or 2")
+        a, b = (int(i) for i in (0, 1, 2) if i != up_axis)
+        ca, cb = float(centre_m[0]), float(centre_m[1])
+        top = float(top_m)
         if seed is not None:
             rng = np.random.default_rng([int(seed), 0x7AB1E])
-            cx += rng.uniform(-0.03, 0.03)
-            cy += rng.uniform(-0.03, 0.03)
-            z -= rng.uniform(0.0, 0.02)
-        self.centre = np.array([cx, cy, z - 0.5 * thickness_m])
-        self.top_z_m = z
+            ca += rng.uniform(-0.03, 0.03)
+            cb += rng.uniform(-0.03, 0.03)
+            top -= rng.uniform(0.0, 0.02)
+        self.up_axis = up_axis
+        self.top_m = top
         self.size_m = (float(size_m[0]), float(size_m[1]))
         self.thickness_m = float(thickness_m)
         self.mu_r = float(mu_r)
-        nx, ny = int(cells[0]), int(cells[1])
-        dx, dy = self.size_m[0] / nx, self.size_m[1] / ny
-        xs = cx - 0.5 * self.size_m[0] + dx * (np.arange(nx) + 0.5)
-        ys = cy - 0.5 * self.size_m[1] + dy * (np.arange(ny) + 0.5)
-        X, Y = np.meshgrid(xs, ys, indexing="ij")
-        self.cell_centres = np.stack([X.ravel(), Y.ravel(), np.full(X.size, self.centre[2])], axis=1)
-        self.cell_dims = np.tile([dx, dy, self.thickness_m], (X.size, 1))
+        self.centre = np.zeros(3)
+        self.centre[up_axis], self.centre[a], self.centre[b] = top - 0.5 * thickness_m, ca, cb
+        na, nb = int(cells[0]), int(cells[1])
+        da, db = self.size_m[0] / na, self.size_m[1] / nb
+        ua = ca - 0.5 * self.size_m[0] + da * (np.arange(na) + 0.5)
+        ub = cb - 0.5 * self.size_m[1] + db * (np.arange(nb) + 0.5)
+        A, B = np.meshgrid(ua, ub, indexing="ij")
+        C = np.zeros((A.size, 3))
+        C[:, a], C[:, b], C[:, up_axis] = A.ravel(), B.ravel(), self.centre[up_axis]
+        self.cell_centres = C
+        dims = np.zeros(3)
+        dims[a], dims[b], dims[up_axis] = da, db, self.thickness_m
+        self.cell_dims = np.tile(dims, (A.size, 1))
         self.t_on_us, self.t_off_us = t_on_us, t_off_us
         self._J = None          # (ncoils + 1, ncells, 3): per ampere of each coil, then the earth field
 
@@ -134,8 +146,8 @@ class SteelTable:
                 and (self.t_off_us is None or t_us < self.t_off_us))
 
     def describe(self) -> dict:
-        return {"kind": "steel_table", "top_z_m": round(self.top_z_m, 4),
-                "centre_xy_m": [round(float(v), 4) for v in self.centre[:2]], "size_m": list(self.size_m),
+        return {"kind": "steel_table", "up_axis": "xyz"[self.up_axis], "top_m": round(self.top_m, 4),
+                "centre_m": [round(float(v), 4) for v in self.centre], "size_m": list(self.size_m),
                 "thickness_m": self.thickness_m, "mu_r": self.mu_r, "cells": int(self.cell_centres.shape[0])}
 
     def solve(self, world) -> np.ndarray:

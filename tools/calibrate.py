@@ -358,3 +358,6 @@ def _record_free(unit: int, seed: int, grid: int) -> dict:
 #: distortion survey, registers itself in both)
 METHODS = {"grid": fit_grid, "free": fit_free}
 RECORDERS = {"grid": _record_grid, "free": _record_free}
+from .survey import register as _register_survey  # noqa: E402  (the distortion survey: --method survey)
+
+_register_survey(METHODS, RECORDERS)

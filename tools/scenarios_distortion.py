@@ -38,18 +38,24 @@ def _trajectory(seed: int, duration_s: float):
     return motion.HandMovedBench(seed=seed, duration_s=duration_s, v_max=0.12, w_max_deg=30.0)
 
 
+#: the earth field in the source frame of a source standing with +x up (T): 45 uT down, 20 uT
+#: horizontal (the default world's field, turned with the source)
+EARTH_X_UP_T = (-45e-6, 0.0, 20e-6)
+
+
 def steel_table_world(seed: int, duration_s: float):
     """The roetenberg-bench world over the seeded steel table."""
     World, _, physics = _hil()
     from coiltrack.hil.room import SteelTable
 
-    return World(physics.thesis_source(), _trajectory(seed, duration_s), objects=[SteelTable(seed=seed)])
+    return World(physics.thesis_source(), _trajectory(seed, duration_s), earth_field_t=EARTH_X_UP_T,
+                 objects=[SteelTable(seed=seed)])
 
 
 def clean_world(seed: int, duration_s: float):
     """The same trajectory and source without the table."""
     World, _, physics = _hil()
-    return World(physics.thesis_source(), _trajectory(seed, duration_s))
+    return World(physics.thesis_source(), _trajectory(seed, duration_s), earth_field_t=EARTH_X_UP_T)
 
 
 def distortion_figures(bench, rep: dict, cfg) -> dict:
