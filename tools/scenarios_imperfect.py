@@ -16,7 +16,8 @@ run's own.
 The motion. ``imperfect-fusion``: the roetenberg-bench hand motion (peak 12 cm/s, 30 deg/s) over
 15-40 cm (Schepers' table area), where the perfect bench's fused error is about 1 cm and 0.3 deg;
 over roetenberg-bench's 15-80 cm the noise at the far end (CRB 88 mm) would hide the imperfections.
-``imperfect-bench`` (magnetic only) moves the sensor slowly (peak 2 cm/s, 4 deg/s) over 15-25 cm:
+``imperfect-bench`` (magnetic only) moves the sensor slowly (peak 2 cm/s, 4 deg/s) over 15-25 cm,
+within 30 deg azimuth and 25 deg elevation of +x, turned up to 0.6 rad about each axis:
 a magnetic-only pose is made of three pulses 100 ms apart, so at the hand motion's 12 cm/s and
 30 deg/s the motion within the burst (some mm, some deg) would hide the calibration's few mm and
 degrees; slow motion close to the source is where a calibration matters to a magnetic-only user.
@@ -35,7 +36,8 @@ BENCH_UNIT = 1
 #: the hand motion of imperfect-fusion (roetenberg-bench's speeds, 15-40 cm)
 MOTION = dict(r_min=0.15, r_max=0.40, v_max=0.12, w_max_deg=30.0)
 #: the slow motion of imperfect-bench (magnetic only: motion within the burst kept below the imperfections)
-SLOW_MOTION = dict(r_min=0.15, r_max=0.25, v_max=0.02, w_max_deg=4.0)
+SLOW_MOTION = dict(r_min=0.15, r_max=0.25, v_max=0.02, w_max_deg=4.0, az_max_deg=30.0, el_max_deg=25.0,
+                   rot_amplitude=0.6)
 
 
 def bench_imperfections(unit: int = BENCH_UNIT, spec=None, sensor_ids=(16,)):
@@ -157,10 +159,12 @@ def _register(name: str, summary: str, description: str, config, sensor: SensorS
 
 _register("imperfect-bench",
           "slow hand motion at 15-25 cm on an imperfect source and magnetometer, calibrated or not",
-          "A slow hand motion (15-25 cm, peak 2 cm/s and 4 deg/s) with the source coils, the magnetometer "
-          "and its board as built (hil.imperfections, unit BENCH_UNIT), magnetic only; the report adds the "
-          "same run without calibration (uncalibrated_*) and on the perfect bench (perfect_*).",
-          FirmwareConfig, SensorSpec(), {"motion": "hand-moved, 15-25 cm, peak 2 cm/s and 4 deg/s"}, SLOW_MOTION)
+          "A slow hand motion (15-25 cm, peak 2 cm/s and 4 deg/s, turns up to 0.6 rad) with the source coils, "
+          "the magnetometer and its board as built (hil.imperfections, unit BENCH_UNIT), magnetic only; the "
+          "report adds the same run without calibration (uncalibrated_*) and on the perfect bench (perfect_*).",
+          FirmwareConfig, SensorSpec(),
+          {"motion": "hand-moved, 15-25 cm, az +-30 deg, el +-25 deg, turns +-0.6 rad, peak 2 cm/s and 4 deg/s"},
+          SLOW_MOTION)
 _register("imperfect-fusion",
           "hand motion at 15-40 cm on the imperfect bench with an imperfect IMU, fused, calibrated or not",
           "The roetenberg-fusion hand motion (15-40 cm, peak 12 cm/s and 30 deg/s) on imperfect-bench's "
