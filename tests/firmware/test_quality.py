@@ -1,5 +1,6 @@
 """The POSE quality figure (firmware_py.track.quality) and its place on the wire."""
 import numpy as np
+import pytest
 
 from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
@@ -64,3 +65,17 @@ def test_rank_corr_key_is_positive_when_quality_falls_with_error():
 
     assert quality_keys(poses([250, 200, 150, 90, 10]))["quality_error_rank_corr"] == 1.0
     assert quality_keys(poses([10, 90, 150, 200, 250]))["quality_error_rank_corr"] == -1.0
+
+
+def test_quality_ranks_the_error_on_a_short_run():
+    """roetenberg-bench, run seed 9, 10 s (16 magnetic poses from 26 to 78 cm): the quality on the
+    wire orders the true position error with ``quality_error_rank_corr`` >= 0.6 (the issue's bar;
+    0.868 measured). Catches a quality that ignores the covariance (it would follow only the
+    residual, which is at its noise level here: rank correlation near 0) or is constant (None)."""
+    pytest.importorskip("magpylib")
+    from coiltrack.tools.runner import run_inproc
+    from coiltrack.tools.scenarios import SCENARIOS
+
+    rep = run_inproc(SCENARIOS["roetenberg-bench"], 9, 10.0)
+    assert rep["poses"] >= 10
+    assert rep["quality_error_rank_corr"] >= 0.6
