@@ -370,20 +370,29 @@ def correction_report(bench, rep: dict, cfg) -> dict:
 
     sc = bench.scenario
     seed, duration = bench.seed, rep["duration_s"]
-    table, summary = survey_table(bench.world, cfg, sc.sensor.noise_t, seed=seed)
-    out = {"uncorrected_position_rms_mm": rep.get("position_rms_mm"),
-           "uncorrected_orientation_rms_deg": rep.get("orientation_rms_deg"),
-           "survey": {k: v for k, v in summary.items() if k != "coils"}}
-    with tempfile.TemporaryDirectory() as d:
-        path = os.path.join(d, "survey.toml")
-        write_calibration(path, table, summary)
-        plain = dataclasses.replace(sc, report_extra=None)
-        cor, cor_poses = _run(plain, seed, duration, dataclasses.replace(cfg, calibration_file=path))
-    clean, clean_poses = _run(CLEAN, seed, duration, cfg)
+    plain = dataclasses.replace(sc, report_extra=None)
+    bare = dataclasses.replace(cfg, calibration_file="")
+    user_file = getattr(cfg, "calibration_file", "")
+    if user_file:
+        # this run already applied a calibration file (bench --calibration): it is the corrected run
+        cor, cor_poses = rep, poses_of(bench)
+        unc, unc_poses = _run(plain, seed, duration, bare)
+        out = {"survey": {"file": user_file}}
+    else:
+        table, summary = survey_table(bench.world, cfg, sc.sensor.noise_t, seed=seed)
+        unc, unc_poses = rep, poses_of(bench)
+        out = {"survey": {k: v for k, v in summary.items() if k != "coils"}}
+        with tempfile.TemporaryDirectory() as d:
+            path = os.path.join(d, "survey.toml")
+            write_calibration(path, table, summary)
+            cor, cor_poses = _run(plain, seed, duration, dataclasses.replace(cfg, calibration_file=path))
+    clean, clean_poses = _run(CLEAN, seed, duration, bare)
+    out["uncorrected_position_rms_mm"] = unc.get("position_rms_mm")
+    out["uncorrected_orientation_rms_deg"] = unc.get("orientation_rms_deg")
+    out["uncorrected_quality_error_rank_corr"] = unc.get("quality_error_rank_corr")
     for k in COPIED:
         out["corrected_" + k] = cor.get(k)
         out["clean_" + k] = clean.get(k)
-    unc_poses = poses_of(bench)
     out["table_error_uncorrected_mm"], n_u = table_error_mm(unc_poses, clean_poses)
     out["table_error_corrected_mm"], n_c = table_error_mm(cor_poses, clean_poses)
     out["table_error_poses"] = min(n_u, n_c)
