@@ -269,6 +269,16 @@ class FirmwareConfig:
     # (eqs 2.8-2.10); learned while the body moves, a wrong dip holds a tilt error (walking trunk: 9 deg):
     # true restricts the compass to the heading, the inclination left to the accelerometer
     compass_heading_only: bool = False
+    # --- calibration file (coiltrack.firmware.calibration; written by `coiltrack calibrate`)
+    calibration_file: str = ""              # path of the calibration TOML read at start-up; "": none
+    calibration_source: bool = True         # apply its [source] rows (coil moments, offsets) to the signal model
+    calibration_sensors: bool = True        # apply its [sensor.N] models (magnetometer ellipsoid, IMU) on input
+    calibration_max_gain_error: float = 0.2  # refuse a coil gain beyond 1 +- this (a file for another source)
+    calibration_max_tilt_deg: float = 10.0  # refuse a coil moment this far from its configured axis
+    # --- static distortion and pose quality (firmware_py.model.distortion, firmware_py.track.quality)
+    distortion_apply: bool = True           # apply the calibration file's [distortion] map in the signal model
+    quality_error_scale_m: float = 0.01     # m: the estimated position error at which the quality is 128
+    quality_quiet_sigma_t: float = 2e-6     # T: tolerance of the quiet field's |B| against earth_field_t (0: unused)
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -327,6 +337,8 @@ class FirmwareConfig:
         self._validate_ac(need)
         self._validate_gietler(need)
         self._validate_body_motion(need)
+        self._validate_calibration(need)
+        self._validate_quality(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -558,6 +570,30 @@ class FirmwareConfig:
         need("acc_adapt_tau_s", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0,
              f"must be a positive number of seconds, got {v!r}")
 
+    def _validate_calibration(self, need) -> None:
+        """Keys of section ``calibration`` (the file itself is checked when it is read)."""
+        need("calibration_file", isinstance(self.calibration_file, str),
+             f"must be a path (string), got {self.calibration_file!r}")
+        for name in ("calibration_source", "calibration_sensors"):
+            need(name, isinstance(getattr(self, name), bool), f"must be true or false, got {getattr(self, name)!r}")
+        v = self.calibration_max_gain_error
+        need("calibration_max_gain_error", isinstance(v, (int, float)) and not isinstance(v, bool)
+             and 0 < v < 1, f"must be a number in (0, 1), got {v!r}")
+        v = self.calibration_max_tilt_deg
+        need("calibration_max_tilt_deg", isinstance(v, (int, float)) and not isinstance(v, bool)
+             and 0 < v <= 90, f"must be a number of degrees in (0, 90], got {v!r}")
+
+    def _validate_quality(self, need) -> None:
+        """Keys of sections ``distortion`` and ``quality``."""
+        need("distortion_apply", isinstance(self.distortion_apply, bool),
+             f"must be true or false, got {self.distortion_apply!r}")
+        v = self.quality_error_scale_m
+        need("quality_error_scale_m", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v <= 10.0,
+             f"must be a distance in m, 0 < d <= 10, got {v!r}")
+        v = self.quality_quiet_sigma_t
+        need("quality_quiet_sigma_t", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1e-3,
+             f"must be a field in T, 0 <= sigma < 1e-3 (0: no quiet-field term), got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -603,6 +639,10 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
     "body_motion": ("baseline_gyro", "acc_adapt_gain", "acc_adapt_tau_s", "compass_heading_only"),
+    "calibration": ("calibration_file", "calibration_source", "calibration_sensors", "calibration_max_gain_error",
+                    "calibration_max_tilt_deg"),
+    "distortion": ("distortion_apply",),
+    "quality": ("quality_error_scale_m", "quality_quiet_sigma_t"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

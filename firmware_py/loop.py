@@ -91,12 +91,24 @@ def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, close
 class Firmware:
     """Fixed-size firmware state built once from a :class:`FirmwareConfig`."""
 
-    def __init__(self, cfg: FirmwareConfig, port: Port, sign_ts0: int | None = None):
+    def __init__(self, cfg: FirmwareConfig, port: Port, sign_ts0: int | None = None, calibration=None):
         """``sign_ts0``: the signing timestamp at boot (10 us units since 2015-01-01; default the
-        wall clock's, read once here) when ``signing_key`` is set."""
+        wall clock's, read once here) when ``signing_key`` is set. ``calibration``: a
+        :class:`coiltrack.firmware.calibration.Calibration` (default: the file ``calibration_file``
+        of the configuration, read here, or none)."""
         self.cfg = cfg.validate()
         self.port = port
+        if calibration is None and cfg.calibration_file:
+            from coiltrack.firmware.calibration import load_calibration
+
+            calibration = load_calibration(cfg.calibration_file, cfg)
+        self.calibration = calibration
         self.coils = [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.coils]
+        if calibration is not None and calibration.source is not None and cfg.calibration_source:
+            from coiltrack.firmware.calibration import calibrated_coils
+
+            self.coils = calibrated_coils(self.coils, calibration.source)
+        sensor_cal = calibration.sensors if calibration is not None and cfg.calibration_sensors else None
         decoder = FrameDecoder()
         key = cfg.signing_key_bytes()
         signer = Signer(key, cfg.signing_link_id) if key else None
@@ -109,8 +121,12 @@ class Firmware:
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
         self.tracker = self.pipeline.tracker
+        if calibration is not None and getattr(calibration, "distortion", None) is not None and cfg.distortion_apply:
+            from coiltrack.firmware.model.distortion import install
+
+            install(self.tracker, calibration.distortion)      # the room's map in the pose solver's signal model
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
-                                 self.tx, other=self.pipeline.on_message)
+                                 self.tx, other=self.pipeline.on_message, calibration=sensor_cal)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None

@@ -63,27 +63,29 @@ class Transmitter:
         self.send(_FAULT(self.node_id, self.now_us, code, detail & 0xFFFFFFFF))
 
     def pose(self, node: int, t_us: int, px: float, py: float, pz: float, qw: float, qx: float, qy: float,
-             qz: float, v0: float, v1: float, v2: float, v3: float, v4: float, v5: float, status: int) -> None:
+             qz: float, v0: float, v1: float, v2: float, v3: float, v4: float, v5: float, status: int,
+             quality: int = 255) -> None:
         """Send one POSE: position (m, source frame), orientation quaternion,
-        the variances of position (m^2) and orientation (rad^2), ``POSE_*`` bits."""
+        the variances of position (m^2) and orientation (rad^2), ``POSE_*`` bits and the
+        quality 0-255 (``track.quality``; 255 when the tracker does not grade its poses)."""
         self.send(_POSE(node, t_us, px, py, pz, qw, qx, qy, qz, _f32(v0), _f32(v1), _f32(v2),
-                        _f32(v3), _f32(v4), _f32(v5), status))
+                        _f32(v3), _f32(v4), _f32(v5), status, quality))
         if status & POSE_VALID:
             self.poses += 1
             if status & POSE_FUSED:
                 self.fused_poses += 1
 
-    def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int) -> None:
+    def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the
         diagonal of a 6x6 covariance (``cov[i, i]``)."""
         self.pose(node, t_us, float(p[0]), float(p[1]), float(p[2]), q[0], q[1], q[2], q[3],
                   float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2]), float(cov[3, 3]),
-                  float(cov[4, 4]), float(cov[5, 5]), status)
+                  float(cov[4, 4]), float(cov[5, 5]), status, quality)
 
     def pose_unknown(self, node: int, t_us: int, p, q, status: int) -> None:
-        """A POSE whose covariance is unknown (every variance at the f32 maximum)."""
+        """A POSE whose covariance is unknown (every variance at the f32 maximum, quality 0)."""
         self.pose(node, t_us, float(p[0]), float(p[1]), float(p[2]), q[0], q[1], q[2], q[3],
-                  F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, status)
+                  F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, status, 0)
 
     def step(self, now_us: int) -> None:
         """The periodic HEARTBEAT."""

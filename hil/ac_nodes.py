@@ -212,8 +212,8 @@ class FastSensorNode(SensorNode):
     def _mag_sample(self, t: int, k: int, send) -> None:
         m = self.mag
         p, R = self.world.pose(t)
-        B = (self.world.field_sensor_frame(t) + R.T @ self._coil_ac_field(t) + self.flip_state * self.offset
-             + self.rng.normal(0.0, m.noise_t, 3))
+        B = (self._through_model(self.world.field_sensor_frame(t) + R.T @ self._coil_ac_field(t), t)
+             + self.flip_state * self.offset + self.rng.normal(0.0, m.noise_t, 3))
         self._send_mag(t, B, send)
 
 

@@ -625,6 +625,8 @@ class SensorNode(Node):
         self.samples = 0
         self.saturations = 0
         self.imu_samples = 0
+        #: the node's imperfections (``hil.imperfections.SensorImperfection``; None: a perfect sensor)
+        self.imperfect = None
         self._schedule_mag(0)
         if imu is not None:
             self.acc_bias = self.imu_rng.normal(0.0, imu.acc_bias_sigma, 3)
@@ -688,7 +690,7 @@ class SensorNode(Node):
         if state == self.flip_state:
             return
         d = self.mag.flip_delta_us
-        dB = self.world.field_sensor_frame(tf + d) - self.world.field_sensor_frame(tf - d)
+        dB = self._sensed(tf + d) - self._sensed(tf - d)
         self.flip_err = -0.5 * dB
         self.flip_state = state
         self.flip_log.append({"true_us": tf, "state": state, "commanded": commanded,
@@ -728,9 +730,22 @@ class SensorNode(Node):
             self._flip(tf, st, True)
         if m.flip_every and k % m.flip_every == 0 and t >= self.cmd_until_us:
             self._flip(t - 2 * m.flip_delta_us, -self.flip_state, False)
-        B = (self.world.field_sensor_frame(t) + self.flip_state * self.offset + self.flip_err
+        B = (self._sensed(t) + self.flip_state * self.offset + self.flip_err
              + self.rng.normal(0.0, m.noise_t, 3))
         self._send_mag(t, B, send)
+
+    def _sensed(self, t: int):
+        """The field (3,) T the magnetometer reads at true time ``t`` before its flip offset and
+        noise: the world's field in the sensor frame, through the imperfect magnetometer model
+        (``hil.imperfections.MagImperfection.measure``) when the node has one."""
+        return self._through_model(self.world.field_sensor_frame(t), t)
+
+    def _through_model(self, B, t: int):
+        """``B`` (3,) T, sensor frame, through the node's magnetometer imperfections (if any)."""
+        imp = self.imperfect
+        if imp is not None and imp.mag is not None:
+            B = imp.mag.measure(B, t)
+        return B
 
     def _send_mag(self, t: int, B, send) -> None:
         """Quantise the field ``B`` (3,) T measured at true time ``t``, stamp it on the master clock and
@@ -761,8 +776,11 @@ class SensorNode(Node):
         dt = self._imu_period * 1e-6
         self.acc_bias += self.imu_rng.normal(0.0, imu.acc_bias_rw * math.sqrt(dt), 3)
         self.gyro_bias += self.imu_rng.normal(0.0, imu.gyro_bias_rw * math.sqrt(dt), 3)
-        f = R.T @ (a - np.array([0.0, 0.0, -imu.gravity])) + self.acc_bias \
-            + self.imu_rng.normal(0.0, imu.acc_sigma, 3)
+        f = R.T @ (a - np.array([0.0, 0.0, -imu.gravity]))
+        if self.imperfect is not None and self.imperfect.imu is not None:
+            # scale, misalignment, g-sensitivity, bias instability, IMU-to-magnetometer alignment
+            f, w = self.imperfect.imu.measure(f, w, dt)
+        f = f + self.acc_bias + self.imu_rng.normal(0.0, imu.acc_sigma, 3)
         g = w + self.gyro_bias + self.imu_rng.normal(0.0, imu.gyro_sigma, 3)
         self.imu_samples += 1
         send(self, ImuSample(self.node_id, max(0, self.master(t)), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),

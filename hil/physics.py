@@ -208,6 +208,9 @@ class SourceCoil:
     grid: tuple[int, int] | None = None
     quadrature: str = "turns"
     name: str = ""
+    #: effective turns x area relative to the nominal winding (a gain error, Raab ``004``
+    #: source imperfections): scales every filament's current; the inductance is kept
+    gain: float = 1.0
 
     def __post_init__(self) -> None:
         self.center = np.asarray(self.center, dtype=float).reshape(3)
@@ -253,6 +256,8 @@ class SourceCoil:
         self._fil_r = rr.ravel()
         self._fil_z = zz.ravel()
         self._fil_w = self.turns * np.outer(r_w, z_w).ravel()
+        if self.gain != 1.0:
+            self._fil_w = self._fil_w * float(self.gain)
         self._collection = None
         self._source = None
 

@@ -46,7 +46,7 @@ _VALUES = {
                                     qw=0.5, qx=0.5, qy=-0.5, qz=0.5,
                                     var_px=2.0 ** -20, var_py=2.0 ** -19, var_pz=2.0 ** -18,
                                     var_rx=2.0 ** -12, var_ry=2.0 ** -11, var_rz=2.0 ** -10,
-                                    status=POSE_VALID | POSE_FUSED)),
+                                    status=POSE_VALID | POSE_FUSED, quality=201)),
     "PULSE_WINDOW": (NODE_FIRMWARE, 10, dict(node=S, coil=1, pulse_id=513, first_us=2_000_208_333,
                                             last_us=2_000_250_000, n_used=6, n_base=14, flags=0)),
     "CONFIG_GET": (NODE_FIRMWARE, 11, dict(node=NODE_COIL_DRIVER, key=0x0102)),

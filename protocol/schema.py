@@ -221,6 +221,7 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("var_px", "f32", "m^2"), F("var_py", "f32", "m^2"), F("var_pz", "f32", "m^2"),
         F("var_rx", "f32", "rad^2"), F("var_ry", "f32", "rad^2"), F("var_rz", "f32", "rad^2"),
         F("status", "u16", doc="POSE_* bits"),
+        F("quality", "u8", doc="0-255, 255 best: the fit residual, NIS and quiet field (docs/protocol.md)"),
     ), "Sensor pose in the source frame; quaternion maps sensor to source.", priority=4),
     MessageDef(0x31, "PULSE_WINDOW", (
         F("node", "u8", doc="sensor node"),

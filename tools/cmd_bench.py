@@ -36,6 +36,8 @@ def add_arguments(p) -> None:
                         "world drift=[NODE:]PPM, clock_step=[NODE:]STEP@T, sat=WHEN, open_circuit=COIL@WHEN, "
                         "short=COIL@WHEN, sag=FACTOR@WHEN, overheat=COIL@WHEN, metal=WHEN, node_off=NODE@T1-T2 (NODE sensor|driver; "
                         "WHEN T or T1-T2; times 20s, 1500ms). E.g. drop=0.01,clock_step=5ms@8s,metal=12s")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration file (TOML, from `coiltrack calibrate`) the firmware applies")
     p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the report as JSON")
     p.add_argument("--log", type=A.output_path, metavar="PATH",
                    help="write what the firmware received, tick by tick (JSON lines; for `coiltrack perf --log` "
@@ -78,6 +80,12 @@ def _setup(args):
         import dataclasses
 
         cfg = dataclasses.replace(cfg or sc.firmware_config(), signing_key=args.key)
+    if args.calibration:
+        from .calibfile import with_calibration
+
+        cfg = with_calibration(args.calibration, cfg or sc.firmware_config())
+        if isinstance(cfg, str):
+            return cfg
     return sc, (args.duration if args.duration is not None else sc.duration_s), cfg, faults
 
 
@@ -96,6 +104,10 @@ def _run(args, sc, duration, cfg, faults, outputs) -> dict:
     try:
         # an actuation-policy scenario: the fixed cycle on the same trajectory and seed (fixed_*)
         add_fixed_comparison(rep, sc, args.seed, duration, faults=faults, transport=args.transport)
+        # an imperfect-bench scenario: uncalibrated and perfect runs on the same trajectory and seed
+        from .scenarios_imperfect import add_imperfect_comparison
+
+        add_imperfect_comparison(rep, sc, args.seed, duration, cfg=cfg, faults=faults, transport=args.transport)
     except Stopped as exc:
         raise mark(rep, exc) from None
     return rep

@@ -36,6 +36,8 @@ def add_arguments(p) -> None:
                    help=f"seconds to run, 0..{A.MAX_WALL_S:g} (default 0: until stopped)")
     p.add_argument("--peer-timeout", type=A.real(0.0, 3600.0), default=10.0, metavar="S",
                    help="stop when nothing has arrived for S seconds (default 10; 0: keep waiting)")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration file (TOML, from `coiltrack calibrate`) applied at start-up")
     p.add_argument("--epoch-ns", type=A.integer(0), default=None, help="CLOCK_MONOTONIC epoch shared with the emulator")
     p.add_argument("--stats-json", type=A.output_path, metavar="PATH", help="write tick timing and counters here on exit")
     p.add_argument("--realtime", action="store_true",
@@ -81,6 +83,13 @@ def run(args) -> int:
     cfg = _config(args)
     if cfg is None:
         return 2
+    if args.calibration:
+        from .calibfile import with_calibration
+
+        cfg = with_calibration(args.calibration, cfg)
+        if isinstance(cfg, str):
+            print(f"coiltrack firmware: {cfg}", file=sys.stderr)
+            return 2
     try:
         link, _ = open_link(args, cfg.node_id)
     except ValueError as exc:

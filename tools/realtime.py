@@ -292,7 +292,8 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         # the child's statistics come back on its standard output (a few kB, written at its end)
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
                "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
-               *(["--config", str(config_path)] if config_path else [])]
+               *(["--config", str(config_path)] if config_path else []),
+               *(["--calibration", cfg.calibration_file] if cfg.calibration_file else [])]
         env = None
         if cfg.signing_key:     # the key reaches the child in its environment, not on its command line
             from .args import KEY_ENV

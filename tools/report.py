@@ -187,6 +187,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
                                  and rp["msg"].status & POSE_DISTORTED)
     rep["poses_inconsistent"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
                                     and rp["msg"].status & POSE_INCONSISTENT)
+    rep.update(quality_keys(rec.poses))
     if "adaptive_pulses" in fw_status:
         rep["adaptive"] = {k[len("adaptive_"):]: v for k, v in fw_status.items() if k.startswith("adaptive_")}
     from .faultreport import fault_keys
@@ -198,6 +199,29 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     if getattr(bench.scenario, "report_extra", None) is not None:
         rep.update(bench.scenario.report_extra(bench, rep, cfg))
     return rep
+
+
+def quality_keys(poses) -> dict:
+    """``quality_error_rank_corr``: minus Spearman's rank correlation (``scipy.stats.spearmanr``)
+    of POSE.quality with the true position error over the valid magnetic poses, so that a quality
+    falling as the error grows (the intent) is POSITIVE (1: the error's order exactly reversed;
+    None: fewer than 3 poses, a constant quality or error, or scipy missing); ``quality_mean``."""
+    q, e = [], []
+    for rp in poses:
+        m = rp["msg"]
+        if m.status & POSE_VALID and not m.status & POSE_FUSED and hasattr(m, "quality"):
+            q.append(float(m.quality))
+            e.append(float(np.linalg.norm(np.array([m.px, m.py, m.pz]) - rp["true_p"])))
+    out = {"quality_error_rank_corr": None, "quality_mean": round(float(np.mean(q)), 1) if q else None}
+    if len(q) < 3 or np.ptp(q) == 0 or np.ptp(e) == 0:
+        return out
+    try:
+        from scipy.stats import spearmanr
+    except ImportError:
+        return out
+    rho = float(spearmanr(q, e).statistic)
+    out["quality_error_rank_corr"] = round(-rho, 3) if math.isfinite(rho) else None
+    return out
 
 
 def _fused_keys(rep: dict, fz: np.ndarray, duration_s: float, fw_status: dict, rms) -> None:
@@ -300,6 +324,15 @@ def format_table(rep: dict) -> str:
                                        f'{rep["fixed_projected_runtime_h"]} h (same trajectory and seed)'),
                  ("this run / fixed", f'position RMS x{rep["position_rms_ratio"]}, orientation RMS '
                                       f'x{rep["orientation_rms_ratio"]}, coil energy x{rep["energy_ratio"]}')]
+    if "perfect_position_rms_mm" in rep:
+        # an imperfect-bench scenario: the same trajectory and seed uncalibrated and on the perfect bench
+        rows += [("calibration", rep.get("calibration") or "none"),
+                 ("uncalibrated", f'{rep["uncalibrated_position_rms_mm"]:.2f} mm, '
+                                  f'{rep["uncalibrated_orientation_rms_deg"]:.2f} deg (x{rep["uncalibrated_over_calibrated_position"]}'
+                                  f', x{rep["uncalibrated_over_calibrated_orientation"]} of this run)'),
+                 ("perfect bench", f'{rep["perfect_position_rms_mm"]:.2f} mm, {rep["perfect_orientation_rms_deg"]:.2f} deg '
+                                   f'(this run x{rep["calibrated_over_perfect_position"]}, '
+                                   f'x{rep["calibrated_over_perfect_orientation"]} of it)')]
     if rep.get("excitation") == "ac":
         rows.append(("AC excitation", f'{rep["magnetic_pose_rate_hz"]:.1f} magnetic poses/s; quadrature / in-phase '
                                       f'{rep["ac_quadrature_ratio_mean"]:.4f} mean, {rep["ac_quadrature_ratio_max"]:.4f} max'))

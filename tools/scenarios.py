@@ -387,3 +387,5 @@ from coiltrack.tools import scenarios_raab  # noqa: E402,F401  (registers raab-a
 from coiltrack.tools import scenarios_ac  # noqa: E402,F401  (AC excitation: raab-ac, ac-vs-dc-metal)
 from coiltrack.tools import scenarios_adaptive  # noqa: E402,F401  (schepers-fixed-*)
 from . import scenarios_gietler  # noqa: E402,F401  (Gietler et al. 2019: Tables I, IV-VII)
+from . import scenarios_imperfect  # noqa: E402,F401  (imperfect-bench, imperfect-fusion)
+from . import scenarios_distortion  # noqa: E402,F401  (steel-table: static metal, the distortion survey)

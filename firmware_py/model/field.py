@@ -558,6 +558,11 @@ class Coil:
         Loop radius, m.
     turns : int
         Number of turns.
+    gain : float, optional
+        Calibrated moment relative to the nominal ``N pi a^2`` (default 1;
+        Raab's source imperfection matrix, ``004`` sec. "Source and Sensor
+        Imperfections", row by row: see ``coiltrack.firmware.calibration``).
+        It scales the field, the gradient and the moment.
 
     Attributes
     ----------
@@ -568,15 +573,16 @@ class Coil:
         orthonormal completion ``(e1, e2, axis)`` of the axis.
     radius : float
     turns : int
+    gain : float
 
     Orthogonal, tilted and offset sources all use the same code: a field is
     computed in the coil frame and rotated, ``B_src = R B_coil(R^T (p - c))``,
     ``J_src = R J_coil R^T``.
     """
 
-    __slots__ = ("center", "axis", "rotation", "radius", "turns", "_area")
+    __slots__ = ("center", "axis", "rotation", "radius", "turns", "gain", "_area")
 
-    def __init__(self, center, axis, radius, turns):
+    def __init__(self, center, axis, radius, turns, gain=1.0):
         self.center = np.array(center, dtype=float).reshape(3)
         ax = np.array(axis, dtype=float).reshape(3)
         nrm = float(np.linalg.norm(ax))
@@ -588,18 +594,22 @@ class Coil:
         self.rotation = _complete_basis(self.axis)
         self.radius = float(radius)
         self.turns = int(turns)
-        self._area = math.pi * self.radius * self.radius
+        if not (math.isfinite(gain) and gain > 0.0):
+            raise ValueError("coil gain must be a positive number")
+        self.gain = float(gain)
+        self._area = math.pi * self.radius * self.radius * self.gain    # effective area (gain included)
 
     def __repr__(self):
+        g = "" if self.gain == 1.0 else f", gain={self.gain}"
         return (f"Coil(center={self.center.tolist()}, axis={self.axis.tolist()}, "
-                f"radius={self.radius}, turns={self.turns})")
+                f"radius={self.radius}, turns={self.turns}{g})")
 
     def moment_magnitude(self, current):
-        """``N I pi a^2`` in A m^2 (signed with the current)."""
+        """``gain N I pi a^2`` in A m^2 (signed with the current)."""
         return self.turns * current * self._area
 
     def moment(self, current, out=None):
-        """Dipole moment vector ``N I pi a^2 axis``, shape (3,), A m^2."""
+        """Dipole moment vector ``gain N I pi a^2 axis``, shape (3,), A m^2."""
         res = _out_buffer(out, (3,))
         np.multiply(self.axis, self.turns * current * self._area, out=res)
         return res
@@ -628,7 +638,7 @@ class Coil:
         d = p - self.center
         if model == "exact":
             pc = d @ self.rotation  # rows: R^T (p - c)
-            scale = MU0 * self.turns * current / (2.0 * math.pi * self.radius)
+            scale = MU0 * self.turns * self.gain * current / (2.0 * math.pi * self.radius)
             _loop_eval(pc, self.radius, scale, r2, None)
             r2[...] = r2 @ self.rotation.T
         elif model == "dipole":
@@ -661,7 +671,7 @@ class Coil:
         d = p - self.center
         if model == "exact":
             pc = d @ self.rotation
-            scale = MU0 * self.turns * current / (2.0 * math.pi * self.radius)
+            scale = MU0 * self.turns * self.gain * current / (2.0 * math.pi * self.radius)
             _loop_eval(pc, self.radius, scale, None, r3)
             R = self.rotation
             r3[...] = R @ r3 @ R.T
@@ -705,9 +715,10 @@ class CoilSet:
         self.rotations = np.array([c.rotation for c in self.coils])
         self.radii = np.array([c.radius for c in self.coils])
         self.turns = np.array([float(c.turns) for c in self.coils])
-        # field scale per ampere, mu0 N / (2 pi a), and moment per ampere
-        self._scale_per_amp = MU0 * self.turns / (2.0 * math.pi * self.radii)
-        self._moment_per_amp = self.turns * math.pi * self.radii ** 2
+        self.gains = np.array([float(c.gain) for c in self.coils])
+        # field scale per ampere, gain mu0 N / (2 pi a), and moment per ampere
+        self._scale_per_amp = MU0 * self.turns * self.gains / (2.0 * math.pi * self.radii)
+        self._moment_per_amp = self.turns * self.gains * math.pi * self.radii ** 2
         self._rot_t = np.ascontiguousarray(np.swapaxes(self.rotations, 1, 2))
         self._d = np.empty((n, 3))
         self._pc = np.empty((n, 3))

@@ -15,6 +15,24 @@ Source and sensor
     point dipole of moment ``N_j I_j pi a_j^2`` (eq 8 and the general form
     of eq 10, ``field.dipole_point``). Both are linear in ``I_j``.
 
+Calibration (Raab ``seeds/004_86267342cd7488ce.txt``, "Source and Sensor
+    Imperfections": the source matrix, one row per coil)
+    A calibrated coil (``coiltrack.firmware.calibration.calibrated_coils``)
+    carries its measured moment ``m_j = g_j u_j`` (direction ``u_j``, gain
+    ``g_j`` relative to nominal) and winding centre ``c_j + o_j``: ``R_j``
+    is built on ``u_j``, the centre moved by ``o_j`` and the field scale
+    multiplied by ``g_j``, so the one product ``R_j B_coil(R_j^T (p - c_j))``
+    above already applies the source matrix and the offset, and ``J_j``
+    follows from the same rotation (the Jacobian stays consistent). The
+    sensor's imperfections are removed from its samples on input
+    (``coiltrack.firmware.receive``), never here.
+
+Static distortion (``coiltrack.firmware.model.distortion``)
+    With a room map (:meth:`SignalModel.set_distortion`, from the calibration
+    file's ``[distortion]`` table) every evaluation adds ``I_j D_j(p)`` to
+    ``B_j`` and ``I_j dD_j/dp`` to ``J_j`` (source frame), so the signals
+    and the Jacobian below include it consistently.
+
 Measurement (Schepers eq 5; thesis ``seeds/002_cd7f1fdb7fc67471.txt``
 App. 5.A, eq 5.9 with the signal matrix ``S = R^T B``)
     ``h_j = R^T B_j(p)`` (T), the field of coil ``j`` in the sensor frame;
@@ -89,13 +107,23 @@ class SignalModel:
         self._rot = [tuple(float(v) for v in c.rotation.reshape(9)) for c in coils]
         self._ax = [tuple(float(v) for v in c.axis) for c in coils]
         self._rad = [float(c.radius) for c in coils]
-        self._spa = [MU0 * c.turns / (2.0 * math.pi * c.radius) for c in coils]   # eq 6 scale per A, T
-        self._mpa = [c.turns * math.pi * c.radius * c.radius for c in coils]      # moment per A, A m^2
+        # calibrated gain (Coil.gain, 1 when uncalibrated: coiltrack.firmware.calibration)
+        self._spa = [c.gain * MU0 * c.turns / (2.0 * math.pi * c.radius) for c in coils]   # eq 6 scale per A, T
+        self._mpa = [c.gain * c.turns * math.pi * c.radius * c.radius for c in coils]      # moment per A, A m^2
         self.B = np.zeros((n, 3))
         self.J = np.zeros((n, 3, 3))
         self.Bv = flat(self.B)
         self.Jv = flat(self.J)
         self.evals = 0
+        #: the room's static distortion (``model.distortion.DistortionMap``) or None
+        self.distortion = None
+
+    def set_distortion(self, dmap) -> None:
+        """Add ``dmap``'s residual field ``I_j D_j(p)`` (and its gradient) to every evaluation
+        (start-up; ``None`` removes it). ``model.distortion``."""
+        if dmap is not None and dmap.n != self.n:
+            raise ValueError(f"distortion map for {dmap.n} coils, the source has {self.n}")
+        self.distortion = dmap
 
     def reset_evals(self) -> None:
         self.evals = 0
@@ -117,6 +145,8 @@ class SignalModel:
         else:
             for j in range(self.n):
                 self._dipole(j, px, py, pz, cur[j], jac)
+        if self.distortion is not None:
+            self.distortion.add(px, py, pz, cur, jac, self.Bv, self.Jv)
 
     def _loop(self, j, px, py, pz, current, jac):
         cx, cy, cz = self._c[j]

@@ -615,7 +615,8 @@ class BurstFusionTracker(MagneticTracker):
                     ins.poses_out_of_range += 1
                 tx.pose(ch.node, fus._otv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
                         d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
-                        d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status)
+                        d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status,
+                        self.quality.last[ch.node])     # the quality of the last magnetic solution
                 fus.release_output()
 
     def counters(self) -> dict:

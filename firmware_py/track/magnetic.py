@@ -23,6 +23,7 @@ from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.rotation import quat_tuple
 from coiltrack.firmware.track.status import COIL_FATAL, input_status
+from coiltrack.firmware.track.quality import PoseQuality
 
 SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
 
@@ -76,6 +77,7 @@ class MagneticTracker:
         self.solve_ticks_max = 0         # the most ticks a burst's solves took after its windows closed
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
+        self.quality = PoseQuality(cfg, len(coils), self.channels)    # POSE.quality (track.quality)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -152,8 +154,10 @@ class MagneticTracker:
             np.copyto(tp.position, sv.position)
             np.copyto(tp.rotation, sv.rotation)
             tp.have_pose = True
+            cov = sv.covariance
+            q = self.quality.grade(ch.node, getattr(sv, "cost", 0.0), cov[0, 0] + cov[1, 1] + cov[2, 2])
             self.tx.pose_cov6(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), sv.covariance,
-                              self._status | POSE_VALID)
+                              self._status | POSE_VALID, q)
         else:
             self.tx.pose_unknown(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), self._status)
         self.on_solution(ch, solved)

@@ -59,7 +59,7 @@ def test_transmit_queue_is_bounded_and_drops_whole_frames():
     master, slave, path = open_pty()
     try:
         port = FdPort(master, tx_capacity=4096)
-        frame = encode_frame(MSG["POSE"](*([0] * 2 + [0.0] * 13 + [0])))
+        frame = encode_frame(MSG["POSE"](*([0] * 2 + [0.0] * 13 + [0, 0])))
         for _ in range(5000):             # nobody reads the slave: the pty fills, then the queue
             port.write(frame)
         assert port.tx_pending <= 4096

@@ -229,7 +229,8 @@ def test_maximum_encoded_frame_length(doc):
     assert dec.overflows == 1
     unsigned, unsigned_enc = (int(x) for x in one(r"Unsigned, the longest is `POSE` at (\d+) bytes, (\d+) encoded", doc).groups())
     assert len(protocol.encode_frame(pose.msg)) - 1 == unsigned_enc == unsigned + 1
-    assert int(one(r"The longest PDU is a signed\s+`POSE`: 1 \+ 63 \+ 2 \+ 13 = (\d+) bytes", doc).group(1)) == MAX_PDU
+    pdu = one(r"The longest PDU is a signed\s+`POSE`: 1 \+ (\d+) \+ 2 \+ 13 = (\d+) bytes", doc)
+    assert int(pdu.group(1)) == BY_NAME["POSE"].size and int(pdu.group(2)) == MAX_PDU
 
 
 # ------------------------------------------------------------------ links
