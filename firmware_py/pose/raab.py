@@ -128,7 +128,7 @@ _K_MIN = 0.02
 #: without the linear term (the pose left its neighbourhood), evaluate again once the steps are below this
 _EARLY_REFRESH = 0.03
 #: the preconditioner is applied to detected steps below this (rad, x range): the linear regime
-_LIN_STEP = 0.05
+_LIN_STEP = 0.15
 #: the correction's linear term is used within this fraction of the range (rad) of its evaluation
 _LIN_MAX = 0.1
 #: a result beyond the hemisphere plane by more than this sine of its elevation is mirrored back
@@ -441,6 +441,7 @@ class RaabTracker(StagedSolve):
         self._y = [0.0] * 6
         self._lin = False                            # the correction's linear term (and K) in use
         self._last_step = math.inf                   # the previous update's step (its rate)
+        self._done_at_refresh = False                # the update before this evaluation had converged
         self._k_id = False                           # K taken as I (the correction's gradient below _K_MIN)
         self._k_ok = False                           # K factored, at _pk (K does not depend on R: R G D T
         self._pk = [0.0] * 3                         #   has the sensor rotation cancelled)
@@ -477,6 +478,7 @@ class RaabTracker(StagedSolve):
         self.converged = False
         self._mirrored = False
         self._last_step = math.inf
+        self._done_at_refresh = False
         self.status = SOLVE_RUNNING
         if not self._warm:
             self._acquiring = True
@@ -681,6 +683,8 @@ class RaabTracker(StagedSolve):
         sig = self.signal
         sig.fields(px, py, pz, self._one, True)
         pm = self._pm
+        ddx, ddy, ddz = px - pm[0], py - pm[1], pz - pm[2]
+        shift_ok = self._cache_ok and self._lin and self.correction
         pm[0], pm[1], pm[2] = px, py, pz
         self._lin = False
         self._cache_ok = True
@@ -701,12 +705,20 @@ class RaabTracker(StagedSolve):
         x = self._x
         ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
         ux, uy, uz = cb * ca, cb * sa, -sb
-        mpa = self._mpa
-        rel = 0.0
+        mpa, w, cur = self._mpa, self._wv, self._curv
+        rel = shift = 0.0
         for j in range(self.n):
             (bx, by, bz), (gxx, gyy, gzz, gxy, gxz, gyz) = self._raab_field(mpa, j, ux, uy, uz, x[2], True)
             o, g = 3 * j, 9 * j
-            b[o], b[o + 1], b[o + 2] = Bv[o] - bx, Bv[o + 1] - by, Bv[o + 2] - bz
+            nx, ny, nz = Bv[o] - bx, Bv[o + 1] - by, Bv[o + 2] - bz
+            if shift_ok:
+                # the new correction against the last one's linear term here, in the noise of coil j's signals
+                ex = nx - (b[o] + G[g] * ddx + G[g + 1] * ddy + G[g + 2] * ddz)
+                ey = ny - (b[o + 1] + G[g + 3] * ddx + G[g + 4] * ddy + G[g + 5] * ddz)
+                ez = nz - (b[o + 2] + G[g + 6] * ddx + G[g + 7] * ddy + G[g + 8] * ddz)
+                wm = max(w[o], w[o + 1], w[o + 2]) * cur[j]
+                shift += (ex * ex + ey * ey + ez * ez) * wm * wm
+            b[o], b[o + 1], b[o + 2] = nx, ny, nz
             G[g], G[g + 1], G[g + 2] = Jv[g] - gxx, Jv[g + 1] - gxy, Jv[g + 2] - gxz
             G[g + 3], G[g + 4], G[g + 5] = Jv[g + 3] - gxy, Jv[g + 4] - gyy, Jv[g + 5] - gyz
             G[g + 6], G[g + 7], G[g + 8] = Jv[g + 6] - gxz, Jv[g + 7] - gyz, Jv[g + 8] - gzz
@@ -726,6 +738,12 @@ class RaabTracker(StagedSolve):
             pk = self._pk
             pk[0], pk[1], pk[2] = px, py, pz
         self._lin = self._k_ok
+        if self._done_at_refresh and shift_ok and shift <= self.step_sigma * self.step_sigma:
+            # converged, and the fresh correction moves the signals by less than step_sigma of their noise
+            # (the estimate then by less than step_sigma standard deviations): no update for it
+            self.converged = True
+            self._then(self._unit_finish, self.n)
+            return
         self._then(self._unit_update, 1)
 
     def _post_sense(self, F):
@@ -874,6 +892,7 @@ class RaabTracker(StagedSolve):
         elif (small or step < 0.5 * self.refresh or (not self._lin and step < _EARLY_REFRESH)) and self.correction \
                 and self._moved() and self.iterations < self._limit:
             # moved past the refresh and what remains of the steps (about the last one) is within half of it
+            self._done_at_refresh = small and not self._acquiring
             self._then(self._unit_measure, self.n)          # the correction again, where the pose now is
         elif small:
             self.converged = True
@@ -916,6 +935,7 @@ class RaabTracker(StagedSolve):
             self._mirrored = True
             self._limit = self.iterations + 2
             self._sync_rotation()
+            self._done_at_refresh = False
             self._then(self._unit_measure, self.n)
             return
         cost = 0.0
@@ -925,6 +945,7 @@ class RaabTracker(StagedSolve):
                 self._reacquired = True
                 self._start_acquisition()
                 self.iterations = 0
+                self._done_at_refresh = False
                 self._then(self._unit_measure, self.n)
                 return
         self.cost = cost
