@@ -255,6 +255,11 @@ class FirmwareConfig:
     gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
     gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
     gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
+    # --- [raab_cost] Raab's tracker at noise level (coiltrack.firmware.pose.raab; docs/raab.md, Work)
+    raab_step_sigma: float = 0.05           # a linearly converging update also stops when its position and
+                                            #   orientation steps are below this fraction of the smallest
+                                            #   standard deviations of the last covariance (what remains is about
+                                            #   one step: <= 0.05 sigma adds < 0.3 % to the variance); 0: off
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -312,6 +317,7 @@ class FirmwareConfig:
         self._validate_recovery(need)
         self._validate_ac(need)
         self._validate_gietler(need)
+        self._validate_raab_cost(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -531,6 +537,12 @@ class FirmwareConfig:
         need("gietler_iterations", isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100,
              f"must be an integer in 1..100 (1: the plain EKF), got {v!r}")
 
+    def _validate_raab_cost(self, need) -> None:
+        """Keys of Raab's tracker's work (``coiltrack.firmware.pose.raab``)."""
+        v = self.raab_step_sigma
+        need("raab_step_sigma", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+             and 0 <= v < 1, f"must be a number in [0, 1) (0: no noise-level stop), got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -575,6 +587,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "duty_margin", "saturation_sigmas", "decision_refresh_us"),
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
+    "raab_cost": ("raab_step_sigma",),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}
