@@ -123,7 +123,7 @@ _ACQUIRED_STEP = 0.01
 #: the preconditioner K sets only the rate, not the fixed point: it is reused within this x range (rad)
 _K_REUSE = 0.15
 #: K is taken as I (not formed) where the correction's gradient is below this fraction of the dipole's
-#: (beyond ~40 cm for the thesis source): K - I is of that order, the rate of the updates without it
+#: (beyond ~55 cm for the thesis source): K - I is of that order, the rate of the updates without it
 _K_MIN = 0.02
 #: without the linear term (the pose left its neighbourhood), evaluate again once the steps are below this
 _EARLY_REFRESH = 0.03
@@ -141,6 +141,11 @@ STEP_SIGMA = 0.05
 #: the noise-level stop applies while a step is more than this fraction of the one before (linear rate;
 #: with quadratic convergence the next step is below step_tol anyway)
 _LINEAR_RATE = 0.1
+#: the covariance formed at one evaluation is carried to later estimates while its error, ~15 rel d / rho,
+#: stays below this fraction of sqrt(C_ii C_kk) (then formed again at the newest evaluation) ...
+_COV_TOL = 0.02
+#: ... and at most this x range
+_CARRY_MAX = 0.1
 #: the cached covariance is scaled, not formed again, while every coil's weight x current stays within
 #: this fraction of the common scale (the variances then err by at most twice this)
 _Q_TOL = 0.005
@@ -405,7 +410,9 @@ class RaabTracker(StagedSolve):
         self._HWt = self._HWn.T
         self._An = np.zeros((6, 6))
         self._Cs = memoryview(np.zeros(36))          # covariance at p_m, source-frame orientation error
-        self._cs_ok = False                          # _Cs formed at _pm (isotropic weights _qm)
+        self._cs_ok = False                          # _Cs formed at _pc (isotropic weights _qm)
+        self._pc = [0.0] * 3                         # where _Cs was formed (an evaluation point)
+        self._rel = 1.0                              # the correction's gradient / the dipole's at the evaluation
         self._cache_ok = False                       # _b, _G, _Kn hold an evaluation at _pm
         self._sig_p = 0.0                            # smallest position / orientation std of the last
         self._sig_o = 0.0                            #   published covariance (m, rad): the noise-level stop
@@ -535,12 +542,11 @@ class RaabTracker(StagedSolve):
     def _moments(self) -> bool:
         """``M`` at the currents and ``M^+ = M^T (M M^T)^-1``; False if the
         moments do not span 3-D."""
-        n, mom, mp, cur = self.n, self._mom, self._mp, self._curv
+        n, mom, mp, cur, mpa = self.n, self._mom, self._mp, self._curv, self._mpa
         g00 = g01 = g02 = g11 = g12 = g22 = 0.0
         for j in range(n):
-            mx, my, mz = self.signal.moment_per_amp(j)
             c = cur[j]
-            mx, my, mz = mx * c, my * c, mz * c
+            mx, my, mz = mpa[3 * j] * c, mpa[3 * j + 1] * c, mpa[3 * j + 2] * c
             mom[3 * j], mom[3 * j + 1], mom[3 * j + 2] = mx, my, mz
             g00 += mx * mx
             g01 += mx * my
@@ -688,7 +694,7 @@ class RaabTracker(StagedSolve):
         pm[0], pm[1], pm[2] = px, py, pz
         self._lin = False
         self._cache_ok = True
-        self._cs_ok = False
+        self._rel = 1.0                              # (no correction: the covariance formed at each evaluation)
         self._last_step = math.inf
         b, G, Bv, Jv, K = self._b, self._G, sig.Bv, sig.Jv, self._Ks
         for j in range(self.n):
@@ -728,6 +734,7 @@ class RaabTracker(StagedSolve):
             jj = gxx * gxx + gyy * gyy + gzz * gzz + 2.0 * (gxy * gxy + gxz * gxz + gyz * gyz)
             if gg > rel * rel * jj:
                 rel = math.sqrt(gg / jj)
+        self._rel = rel
         self._coupling(True)
         if rel < _K_MIN:
             self._k_id = True                       # K = I + O(rel): Raab's own detection (no LU)
@@ -982,9 +989,9 @@ class RaabTracker(StagedSolve):
         (the Jacobian of ``model.signal`` with ``R`` taken out: ``H_j = R^T
         K_j``), ``q_j = I_j / sigma_j`` when the three axes of coil ``j`` have
         one ``sigma_j``; then ``R`` cancels from ``H_j^T H_j``. Its robust
-        inverse ``C_s`` (``pose.covariance``) is formed once per evaluation
+        inverse ``C_s`` (``pose.covariance``) is formed at an evaluation
         (:meth:`_cov_form`) and carried to each estimate in closed form
-        (:meth:`_cov_carry`). While the ``q_j`` stay proportional to those of
+        (:meth:`_cov_carry`) while that is accurate (:meth:`_carry_too_far`). While the ``q_j`` stay proportional to those of
         ``C_s`` (within ``_Q_TOL``) only the common scale changes:
         ``C = C_s q_m^2 / q^2``. Weights that differ between the axes of a
         coil: the sensor-frame information at the current ``R`` is formed
@@ -1002,6 +1009,8 @@ class RaabTracker(StagedSolve):
             self._published_sigmas()
             return
         scale = 1.0
+        if self._cs_ok and self._carry_too_far():
+            self._cs_ok = False
         if self._cs_ok:
             num = den = 0.0
             for j in range(n):
@@ -1022,6 +1031,19 @@ class RaabTracker(StagedSolve):
         self._cov_carry(scale)
         self._published_sigmas()
 
+    def _carry_too_far(self) -> bool:
+        """The carry from ``p_c`` would err by more than ``_COV_TOL`` (of
+        sqrt(C_ii C_kk)) and a newer evaluation exists: its error, measured
+        against magpylib's bound, is about ``15 rel d / rho`` for a carry ``d``
+        (``rel``: the correction's gradient over the dipole's, 0.3 at 15 cm,
+        0.036 at 40 cm, 0.012 at 70 cm), and the dipole carry's own ``1e-3``
+        up to ``_CARRY_MAX`` x range."""
+        pc, pm = self._pc, self._pm
+        if pc[0] == pm[0] and pc[1] == pm[1] and pc[2] == pm[2]:
+            return False
+        lim = min(_CARRY_MAX, _COV_TOL / (15.0 * self._rel)) if self._rel > 0.0 else _CARRY_MAX
+        return self._far(pc, None, lim)
+
     def _cov_form(self, iso: bool) -> None:
         """The information at ``p_m`` and its robust inverse (the one 6x6 work):
         ``iso``: source-frame form into ``_Cs`` with ``q_j = I_j / sigma_j``
@@ -1037,6 +1059,8 @@ class RaabTracker(StagedSolve):
             np.multiply(self._Kn, self._qn, out=self._HWn)
             np.matmul(self._HWt, self._HWn, out=self._An)
             self._inv.into(self._A36, self._Cs)
+            pc, pm = self._pc, self._pm
+            pc[0], pc[1], pc[2] = pm[0], pm[1], pm[2]
             self._cs_ok = True
             return
         R, K, H = self._R, self._Ks, self._H
@@ -1062,9 +1086,9 @@ class RaabTracker(StagedSolve):
         ``u_m`` to ``u``, ``t = rho / rho_m`` and ``M = Q^T R``:
         ``C_pp = t^8 Q C_pp,s Q^T``, ``C_ptheta = t^7 Q C_ptheta,s M``,
         ``C_thetatheta = t^6 M^T C_thetatheta,s M``. The exact loops and unequal
-        currents depart from the symmetry by second order over a carry of at
-        most ``refresh`` x range (test: within 1 % of the bound)."""
-        c, pm, x, R = self._cbar, self._pm, self._x, self._R
+        currents depart from the symmetry: the carry errs by about ``15 rel
+        d / rho`` (:meth:`_carry_too_far`; test against magpylib's bound)."""
+        c, pm, x, R = self._cbar, self._pc, self._x, self._R
         mx, my, mz = pm[0] - c[0], pm[1] - c[1], pm[2] - c[2]
         rm = math.sqrt(mx * mx + my * my + mz * mz)
         mx, my, mz = mx / rm, my / rm, mz / rm
