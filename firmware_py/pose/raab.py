@@ -747,7 +747,9 @@ class RaabTracker(StagedSolve):
         sig.fields(px, py, pz, self._one, True)
         pm = self._pm
         ddx, ddy, ddz = px - pm[0], py - pm[1], pz - pm[2]
-        shift_ok = self._cache_ok and self._lin and self.correction
+        shift_ok = self._cache_ok and self.correction
+        if not self._lin:
+            ddx = ddy = ddz = 0.0                    # the updates used the correction without its linear term
         pm[0], pm[1], pm[2] = px, py, pz
         self._lin = False
         self._cache_ok = True
@@ -953,8 +955,8 @@ class RaabTracker(StagedSolve):
         self._last_step = step
         if not (math.isfinite(rho) and math.isfinite(psi) and math.isfinite(x[0])):
             self._finish(SOLVE_NONFINITE)
-        elif (small or step < 0.5 * self.refresh or (not self._lin and step < _EARLY_REFRESH)) and self.correction \
-                and self._moved() and self.iterations < self._limit:
+        elif (small or step < 0.5 * self.refresh or (not self._lin and step < _EARLY_REFRESH and self._rel >= _K_MIN)) \
+                and self.correction and self._moved() and self.iterations < self._limit:
             # moved past the refresh and what remains of the steps (about the last one) is within half of it
             self._done_at_refresh = small and not self._acquiring
             self._then(self._unit_measure, self.n)          # the correction again, where the pose now is
