@@ -409,6 +409,11 @@ class RaabTracker(StagedSolve):
         90 deg off is as far from the truth as from its mirror, so continuity
         alone cannot choose; afterwards the hemisphere of ``begin``
         (continuity: the last position) decides.
+    step_sigma : float
+        A linearly converging update also stops when its position and
+        orientation steps are below this fraction of the smallest standard
+        deviations of the last covariance (``[raab_cost] raab_step_sigma``;
+        0: only ``step_tol``).
 
     Results as ``PoseSolver``: ``position`` (3,) m, ``rotation`` (3, 3)
     sensor -> source, ``covariance`` (6, 6) of ``(p, dtheta)``,
