@@ -279,6 +279,11 @@ class FirmwareConfig:
     distortion_apply: bool = True           # apply the calibration file's [distortion] map in the signal model
     quality_error_scale_m: float = 0.01     # m: the estimated position error at which the quality is 128
     quality_quiet_sigma_t: float = 2e-6     # T: tolerance of the quiet field's |B| against earth_field_t (0: unused)
+    # --- [raab_cost] Raab's tracker at noise level (coiltrack.firmware.pose.raab; docs/raab.md, Work)
+    raab_step_sigma: float = 0.05           # a linearly converging update also stops when its position and
+                                            #   orientation steps are below this fraction of the smallest
+                                            #   standard deviations of the last covariance (what remains is about
+                                            #   one step: <= 0.05 sigma adds < 0.3 % to the variance); 0: off
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -339,6 +344,7 @@ class FirmwareConfig:
         self._validate_body_motion(need)
         self._validate_calibration(need)
         self._validate_quality(need)
+        self._validate_raab_cost(need)
         return self
 
     def _validate_signing(self, need) -> None:
@@ -594,6 +600,12 @@ class FirmwareConfig:
         need("quality_quiet_sigma_t", isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v < 1e-3,
              f"must be a field in T, 0 <= sigma < 1e-3 (0: no quiet-field term), got {v!r}")
 
+    def _validate_raab_cost(self, need) -> None:
+        """Keys of Raab's tracker's work (``coiltrack.firmware.pose.raab``)."""
+        v = self.raab_step_sigma
+        need("raab_step_sigma", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+             and 0 <= v < 1, f"must be a number in [0, 1) (0: no noise-level stop), got {v!r}")
+
 
 #: the sections of the configuration and their keys (TOML tables of the same names)
 SECTIONS: dict[str, tuple[str, ...]] = {
@@ -643,6 +655,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                     "calibration_max_tilt_deg"),
     "distortion": ("distortion_apply",),
     "quality": ("quality_error_scale_m", "quality_quiet_sigma_t"),
+    "raab_cost": ("raab_step_sigma",),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

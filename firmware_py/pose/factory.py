@@ -28,7 +28,7 @@ def make_pose_solver(cfg, coils, gate_probability: float):
                            step_tol=cfg.raab_step_tol, refresh=cfg.raab_refresh, correction=cfg.raab_correction,
                            start_position=start if any(v != 0.0 for v in start) else None,
                            start_euler=tuple(math.radians(v) for v in cfg.raab_start_euler_deg),
-                           hemisphere=cfg.hemisphere)
+                           hemisphere=cfg.hemisphere, step_sigma=cfg.raab_step_sigma)
     from coiltrack.firmware.pose.solver import PoseSolver
 
     return PoseSolver(coils, cfg.field_model, gate_probability=gate_probability)

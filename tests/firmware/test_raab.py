@@ -269,9 +269,10 @@ def test_position_rms_within_1p3_crb_after_acquisition():
     |e|^2 / tr(CRB) is within the 99.9 % band of an efficient estimator
     (chi-square of 900 degrees of freedom over 900: 0.85-1.16) and the
     position RMS at most 1.3 times the CRB RMS; the reported covariance's
-    trace is within 2 % of the CRB's. Catches an inefficient detection
+    trace is within 2 % of the CRB's at the estimate. Catches an inefficient detection
     (eqs 22-26 not the least-squares combinations), a wrong covariance and
-    a bias of the exact-loop correction."""
+    a bias of the exact-loop correction, and a covariance left at the point
+    of the last evaluation instead of carried to the estimate."""
     rng = np.random.default_rng(7)
     sigma = 0.5e-7 / math.sqrt(5.0)
     sig = np.full((3, 3), sigma)
@@ -290,7 +291,10 @@ def test_position_rms_within_1p3_crb_after_acquisition():
             z.append(e @ np.linalg.solve(C, e) / 3.0)
             e2.append(e @ e)
             c2.append(np.trace(C))
-        assert abs(np.trace(tr.covariance[:3, :3]) / np.trace(C) - 1.0) < 0.02
+        # the reported covariance is the bound at the estimate (the CRB's trace goes as rho^8: at the
+        # truth it differs by ~8 |e_radial| / rho, up to 5 % here)
+        Cx = _crlb_position(x, Rx, sigma)
+        assert abs(np.trace(tr.covariance[:3, :3]) / np.trace(Cx) - 1.0) < 0.02
     # (note: each estimate is from its own measurement; the warm start only sets the linearisation)
     assert 0.85 < np.mean(z) < 1.16
     assert math.sqrt(np.mean(e2) / np.mean(c2)) <= 1.3
@@ -312,13 +316,14 @@ def test_budget_split_bad_input_and_no_allocation():
     x0 = p + 0.004
     tr.solve(S, CUR, sig, HEMI, x0, R)
     ref = (tr.position.copy(), tr.rotation.copy(), tr.covariance.copy(), tr.solve_evals)
-    tr.begin(S, CUR, sig, HEMI, x0, R)
+    split = RaabTracker(COILS, "exact")              # the same state as tr before its solve (the cache empty)
+    split.begin(S, CUR, sig, HEMI, x0, R)
     steps = 0
-    while tr.step(1) & 16:
+    while split.step(1) & 16:
         steps += 1
-        assert tr.evals_last_step <= 3
-    assert np.array_equal(tr.position, ref[0]) and np.array_equal(tr.covariance, ref[2])
-    assert tr.solve_evals == ref[3] and steps > 3
+        assert split.evals_last_step <= 3
+    assert np.array_equal(split.position, ref[0]) and np.array_equal(split.covariance, ref[2])
+    assert split.solve_evals == ref[3] and steps > 3
     bad = S.copy()
     bad[1, 1] = np.nan
     assert tr.solve(bad, CUR, sig, HEMI) == SOLVE_BAD_INPUT
