@@ -255,6 +255,9 @@ class FirmwareConfig:
     gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
     gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
     gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
+    # --- compact IMU on the wire (protocol v2 IMU_DELTA; firmware_py/receive.py)
+    imu_delta_rate_hz: float = 10.0         # nominal IMU_DELTA pairs per second per node: the interval of a
+                                            # pair whose predecessor was lost (the bus budget: 16 sensors at 10 Hz)
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -312,6 +315,9 @@ class FirmwareConfig:
         self._validate_recovery(need)
         self._validate_ac(need)
         self._validate_gietler(need)
+        need("imu_delta_rate_hz", isinstance(self.imu_delta_rate_hz, (int, float))
+             and not isinstance(self.imu_delta_rate_hz, bool) and 0.0 < self.imu_delta_rate_hz <= 10_000.0,
+             f"must be a rate in (0, 10000] Hz, got {self.imu_delta_rate_hz!r}")
         return self
 
     def _validate_signing(self, need) -> None:
@@ -575,6 +581,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "duty_margin", "saturation_sigmas", "decision_refresh_us"),
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
+    "imu_delta": ("imu_delta_rate_hz",),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

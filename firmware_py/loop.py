@@ -110,7 +110,8 @@ class Firmware:
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
         self.tracker = self.pipeline.tracker
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
-                                 self.tx, other=self.pipeline.on_message)
+                                 self.tx, other=self.pipeline.on_message,
+                                 imu_interval_us=1e6 / cfg.imu_delta_rate_hz, imu_step_us=1e6 / cfg.imu_rate_hz)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None

@@ -3,20 +3,81 @@ counted by the decoder and skipped) and route each message by its schema id:
 magnetometer samples into the sensor channels' rings, IMU samples and the
 source module's samples to the tracker, coil status to the pulse schedule and
 the tracker, heartbeats to the schema check. The supervisor sees every
-message first."""
+message first.
+
+The compact samples of protocol v2 become the full ones here, once, for
+every link (serial, CAN, in-process), so everything downstream has one
+input shape:
+
+* ``MAG_PACKED`` -> a MAG_SAMPLE record: ``t_us`` restored from the stamp's
+  14 bits against the tick's clock (:func:`coiltrack.protocol.schema.unwrap_stamp`:
+  the one time in ``(now + 16.4 ms - 131.072 ms, now + 16.4 ms]``), ``flip``
+  bit 0 the set/reset state, bit 1 saturated;
+* an ``IMU_DELTA`` pair (delta angle, then delta velocity, one stamp) ->
+  ``n = round(T imu_rate_hz)`` IMU_SAMPLE records, each the interval's mean
+  rate ``dtheta / T`` and mean specific force ``dv / T`` (in count units of
+  GYR_LSB / ACC_LSB, as floats, so nothing is re-quantised), at the middles
+  of ``n`` equal steps of the interval ``(t_end - T, t_end]``. ``T`` is the
+  time since the node's previous pair when that is within half a nominal
+  interval of it, else the nominal ``1 / imu_delta_rate_hz`` (the first pair,
+  or one after a lost frame). The one strapdown and the filters keep their
+  rate ``imu_rate_hz`` and their per-sample noise: ``n`` equal samples carry
+  the interval's rotation and velocity change exactly, and the integrated
+  noise over the interval, ``sigma T / sqrt(n)``, is what ``n`` independent
+  samples of noise ``sigma`` give. What the interval's mean loses is the
+  motion within it (100 ms at 10 Hz).
+
+The records are allocated once (one of each) and reused: every consumer
+copies the values it keeps.
+"""
 from __future__ import annotations
 
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
-from coiltrack.protocol.schema import EVT_SCHEMA_MISMATCH, MAG_LSB_T
+from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, DVEL_LSB_MPS, EVT_SCHEMA_MISMATCH, GYR_LSB,
+                                       MAG_LSB_T, STAMP_DVEL, STAMP_FLIP, STAMP_MASK, STAMP_SATURATED,
+                                       unwrap_stamp)
 
 _MAG = MSG["MAG_SAMPLE"].ID
 _IMU = MSG["IMU_SAMPLE"].ID
+_MAG_PACKED = MSG["MAG_PACKED"].ID
+_IMU_DELTA = MSG["IMU_DELTA"].ID
 _COIL_STATUS = MSG["COIL_STATUS"].ID
 _HEARTBEAT = MSG["HEARTBEAT"].ID
 
 
+class MagRecord:
+    """A MAG_SAMPLE's fields (``node``, ``t_us`` us, ``x, y, z`` counts of MAG_LSB_T, ``flip``)."""
+    __slots__ = ("node", "t_us", "x", "y", "z", "flip")
+    ID = _MAG
+
+    def __init__(self):
+        self.node = self.t_us = self.x = self.y = self.z = self.flip = 0
+
+
+class ImuRecord:
+    """An IMU_SAMPLE's fields (``node``, ``t_us`` us, ``ax..az`` in ACC_LSB, ``gx..gz`` in GYR_LSB;
+    floats when made from an IMU_DELTA pair)."""
+    __slots__ = ("node", "t_us", "ax", "ay", "az", "gx", "gy", "gz")
+    ID = _IMU
+
+    def __init__(self):
+        self.node = self.t_us = 0
+        self.ax = self.ay = self.az = self.gx = self.gy = self.gz = 0.0
+
+
+class _DeltaState:
+    """One node's pending delta angle and the end of its previous interval."""
+    __slots__ = ("stamp", "x", "y", "z", "pending", "last_end")
+
+    def __init__(self):
+        self.stamp = self.x = self.y = self.z = 0
+        self.pending = False
+        self.last_end = None
+
+
 class Receiver:
-    def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None):
+    def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None,
+                 imu_interval_us: float = 1e5, imu_step_us: float = 1e4):
         self.port = port
         self.decoder = decoder
         self.channels = {ch.node: ch for ch in channels}
@@ -28,6 +89,16 @@ class Receiver:
         self.peer_hashes: dict[int, int] = {}
         self.imu_received = 0
         self.other = other            # the pipeline's handler of the messages routed nowhere else
+        self.imu_interval_us = float(imu_interval_us)   # nominal IMU_DELTA interval (1 / imu_delta_rate_hz)
+        self.imu_step_us = float(imu_step_us)           # the filters' IMU step (1 / imu_rate_hz)
+        self._mag = MagRecord()
+        self._imu = ImuRecord()
+        self._deltas: dict[int, _DeltaState] = {}
+        self._t0 = 0
+        self._step = 0.0
+        self.packed_mag = 0
+        self.imu_deltas = 0
+        self.imu_delta_unpaired = 0
 
     def step(self, now_us: int) -> None:
         data = self.port.read()
@@ -35,8 +106,16 @@ class Receiver:
             return
         sup = self.supervisor
         for msg in self.decoder.feed(data):
-            sup.on_message(msg, now_us)
             mid = msg.ID
+            if mid == _MAG_PACKED:
+                msg = self._unpack_mag(msg, now_us)
+                mid = _MAG
+            elif mid == _IMU_DELTA:
+                n = self._delta(msg, now_us)
+                if n:
+                    self._push_steps(n, now_us)
+                continue
+            sup.on_message(msg, now_us)
             if mid == _MAG:
                 ch = self.channels.get(msg.node)
                 if ch is not None:
@@ -54,6 +133,61 @@ class Receiver:
             elif self.other is not None:
                 self.other(msg, now_us)
 
+    def _unpack_mag(self, msg, now_us: int) -> MagRecord:
+        r = self._mag
+        s = msg.stamp
+        r.node, r.x, r.y, r.z = msg.node, msg.x, msg.y, msg.z
+        r.t_us = unwrap_stamp(s & STAMP_MASK, now_us)
+        r.flip = (1 if s & STAMP_FLIP else 0) | (2 if s & STAMP_SATURATED else 0)
+        self.packed_mag += 1
+        return r
+
+    def _push_steps(self, n: int, now_us: int) -> None:
+        """The ``n`` steps of a completed interval, through the supervisor to the tracker."""
+        r = self._imu
+        t0, step = self._t0, self._step
+        sup = self.supervisor
+        for i in range(n):
+            r.t_us = t0 + int(round((i + 0.5) * step))
+            sup.on_message(r, now_us)
+            self.imu_received += 1
+            self.tracker.on_imu(r, now_us)
+
+    def _delta(self, msg, now_us: int) -> int:
+        """The number of IMU steps of a completed pair (the record holds their values), else 0
+        (the delta angle waits for its delta velocity; a delta velocity without its angle is
+        counted and dropped)."""
+        st = self._deltas.get(msg.node)
+        if st is None:
+            st = self._deltas[msg.node] = _DeltaState()
+        s = msg.stamp
+        if not s & STAMP_DVEL:
+            if st.pending:
+                self.imu_delta_unpaired += 1
+            st.stamp, st.x, st.y, st.z, st.pending = s & STAMP_MASK, msg.x, msg.y, msg.z, True
+            return 0
+        if not st.pending or st.stamp != s & STAMP_MASK:
+            self.imu_delta_unpaired += 1
+            st.pending = False
+            return 0
+        st.pending = False
+        t_end = unwrap_stamp(st.stamp, now_us)
+        T = self.imu_interval_us
+        if st.last_end is not None and 0.5 * T <= t_end - st.last_end <= 1.5 * T:
+            T = float(t_end - st.last_end)
+        st.last_end = t_end
+        r = self._imu
+        r.node = msg.node
+        n = max(1, int(round(T / self.imu_step_us)))
+        self._t0 = t_end - int(round(T))
+        self._step = T / n
+        ka = DANG_LSB_RAD / (T * 1e-6 * GYR_LSB)       # delta-angle counts -> rate counts
+        kv = DVEL_LSB_MPS / (T * 1e-6 * ACC_LSB)       # delta-velocity counts -> specific-force counts
+        r.gx, r.gy, r.gz = st.x * ka, st.y * ka, st.z * ka
+        r.ax, r.ay, r.az = msg.x * kv, msg.y * kv, msg.z * kv
+        self.imu_deltas += 1
+        return n
+
     def _on_heartbeat(self, msg) -> None:
         self.peer_hashes[msg.node] = msg.schema_hash
         if msg.schema_hash != SCHEMA_HASH or msg.proto_version != PROTOCOL_VERSION:
@@ -61,6 +195,7 @@ class Receiver:
             self.tx.event(EVT_SCHEMA_MISMATCH, msg.node)
 
     def counters(self) -> dict:
-        d = {"schema_mismatches": self.schema_mismatches}
+        d = {"schema_mismatches": self.schema_mismatches, "rx_mag_packed": self.packed_mag,
+             "rx_imu_deltas": self.imu_deltas, "rx_imu_delta_unpaired": self.imu_delta_unpaired}
         d.update({"rx_" + k: v for k, v in self.decoder.counters().items()})
         return d

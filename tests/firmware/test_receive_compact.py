@@ -1,0 +1,120 @@
+"""The receive stage turns protocol v2's compact samples into the full ones:
+MAG_PACKED's 14-bit stamp restored against the tick's clock, an IMU_DELTA pair
+into the interval's mean rate and specific force at its middle. References are
+the integers the test builds (no firmware code computes them)."""
+import numpy as np
+import pytest
+
+from coiltrack.firmware.receive import Receiver
+from coiltrack.protocol import MSG, FrameDecoder, encode_frame
+from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, DVEL_LSB_MPS, GYR_LSB, STAMP_DVEL, STAMP_FLIP,
+                                       STAMP_LEAD_US, STAMP_SATURATED, STAMP_WRAP_US, pack_stamp, unwrap_stamp)
+
+
+class _Port:
+    def __init__(self):
+        self.data = b""
+
+    def read(self):
+        d, self.data = self.data, b""
+        return d
+
+
+class _Sink:
+    """Records what the receive stage hands on (values copied: the records are reused)."""
+
+    def __init__(self):
+        self.mag, self.imu, self.sup = [], [], []
+
+    def on_message(self, msg, now):
+        self.sup.append((msg.ID, msg.node, msg.t_us))
+
+    def on_imu(self, msg, now):
+        self.imu.append((msg.node, msg.t_us, msg.ax, msg.ay, msg.az, msg.gx, msg.gy, msg.gz))
+
+    def on_mag(self, msg, lsb):
+        self.mag.append((msg.node, msg.t_us, msg.x, msg.y, msg.z, msg.flip))
+
+
+def _receiver(interval_us=100_000, step_us=100_000):
+    port, sink = _Port(), _Sink()
+    r = Receiver(port, FrameDecoder(), [], None, sink, sink, None, imu_interval_us=interval_us,
+                 imu_step_us=step_us)
+    return r, port, sink
+
+
+def test_unwrap_restores_the_time_over_the_whole_window():
+    """Every time in (now + lead - 131072 us, now + lead] comes back to the 8 us it was rounded
+    to, across wraps of the 14 bits (a receiver window off by one wrap is 131 ms wrong)."""
+    rng = np.random.default_rng(5)
+    for _ in range(2000):
+        now = int(rng.integers(200_000, 10 ** 12))
+        t = now + STAMP_LEAD_US - int(rng.integers(0, STAMP_WRAP_US - 8))
+        t8 = (t + 4) // 8 * 8
+        if t8 > now + STAMP_LEAD_US:
+            continue
+        assert unwrap_stamp(pack_stamp(t), now) == t8
+
+
+def test_mag_packed_becomes_a_mag_sample_with_its_time_and_bits():
+    """The stamp's bit 15 is the set state and bit 14 saturation: a swapped mapping would give
+    flip 2 / 1. The time is restored 30 ms after the sample and across a wrap boundary."""
+    r, port, sink = _receiver()
+    t = 5 * STAMP_WRAP_US - 3000                         # 3 ms before a wrap of the 14 bits
+    port.data = encode_frame(MSG["MAG_PACKED"](17, 100, -200, 300, pack_stamp(t) | STAMP_FLIP), 0, 17) + \
+        encode_frame(MSG["MAG_PACKED"](17, 1, 2, 3, pack_stamp(t + 8336) | STAMP_SATURATED), 1, 17)
+    r.step(t + 8336 + 30_000)
+    assert sink.mag == [(17, (t + 4) // 8 * 8, 100, -200, 300, 1), (17, (t + 8336 + 4) // 8 * 8, 1, 2, 3, 2)]
+    assert sink.sup[0] == (MSG["MAG_SAMPLE"].ID, 17, (t + 4) // 8 * 8)
+
+
+def test_imu_delta_pair_becomes_the_interval_mean_at_its_middle():
+    """Counts: dtheta = (400, -80, 12) x 5e-5 rad and dv = (1000, 0, 9810) x 1e-4 m/s over T.
+    Rate = dtheta / T and specific force = dv / T in GYR_LSB / ACC_LSB counts, stamped T/2 before
+    the interval's end (one step per interval here); T is the measured 100 ms between pairs, else
+    the nominal one (here 90 ms nominal, so a receiver using the nominal for the second pair is
+    11 % off)."""
+    r, port, sink = _receiver(interval_us=90_000, step_us=200_000)
+    e1, e2 = 2_000_000, 2_100_000
+    dang, dvel = (400, -80, 12), (1000, 0, 9810)
+    for end, seq in ((e1, 0), (e2, 2)):
+        port.data += encode_frame(MSG["IMU_DELTA"](20, *dang, pack_stamp(end)), seq, 20)
+        port.data += encode_frame(MSG["IMU_DELTA"](20, *dvel, pack_stamp(end) | STAMP_DVEL), seq + 1, 20)
+    r.step(e2 + 2000)
+    assert len(sink.imu) == 2
+    for (node, t, ax, ay, az, gx, gy, gz), end, T in zip(sink.imu, (e1, e2), (0.09, 0.1)):
+        assert node == 20 and t == end - round(T * 5e5)
+        np.testing.assert_allclose([gx, gy, gz], np.array(dang) * DANG_LSB_RAD / T / GYR_LSB, rtol=1e-12)
+        np.testing.assert_allclose([ax, ay, az], np.array(dvel) * DVEL_LSB_MPS / T / ACC_LSB, rtol=1e-12)
+
+
+def test_imu_delta_pair_is_given_back_in_the_filters_steps():
+    """At imu_rate_hz = 120 a 100 ms pair becomes 12 equal samples at the middles of 12 equal steps
+    of (t_end - T, t_end]: their rotation sums to the delta angle (a receiver that stamped them
+    at the interval's end, or emitted one sample, shifts the motion by 50 ms or starves the
+    strapdown of steps)."""
+    r, port, sink = _receiver(interval_us=100_000, step_us=1e6 / 120)
+    e1, e2 = 3_000_000, 3_100_000
+    for end, seq in ((e1, 0), (e2, 2)):
+        port.data += encode_frame(MSG["IMU_DELTA"](21, 600, 0, -300, pack_stamp(end)), seq, 21)
+        port.data += encode_frame(MSG["IMU_DELTA"](21, 0, 0, 981, pack_stamp(end) | STAMP_DVEL), seq + 1, 21)
+    r.step(e2 + 1000)
+    second = sink.imu[12:]
+    assert len(sink.imu) == 24 and len(second) == 12
+    step = 0.1 / 12
+    assert [t for _, t, *_ in second] == [e1 + round((i + 0.5) * step * 1e6) for i in range(12)]
+    dtheta = sum(np.array([gx, gy, gz]) * GYR_LSB * step for *_, gx, gy, gz in second)
+    np.testing.assert_allclose(dtheta, np.array([600, 0, -300]) * DANG_LSB_RAD, rtol=1e-12, atol=1e-15)
+    dv = sum(np.array([ax, ay, az]) * ACC_LSB * step for _, _, ax, ay, az, *_ in second)
+    np.testing.assert_allclose(dv, np.array([0, 0, 981]) * DVEL_LSB_MPS, rtol=1e-12, atol=1e-15)
+
+
+def test_unpaired_deltas_are_counted_and_dropped():
+    """A delta velocity whose angle was lost (or carries another stamp) is not used: mixing two
+    intervals would turn into a wrong rate."""
+    r, port, sink = _receiver()
+    port.data = encode_frame(MSG["IMU_DELTA"](20, 1, 2, 3, pack_stamp(1_000_000)), 0, 20) + \
+        encode_frame(MSG["IMU_DELTA"](20, 1, 2, 3, pack_stamp(1_100_000) | STAMP_DVEL), 1, 20) + \
+        encode_frame(MSG["IMU_DELTA"](20, 1, 2, 3, pack_stamp(1_200_000) | STAMP_DVEL), 2, 20)
+    r.step(1_201_000)
+    assert sink.imu == [] and r.imu_delta_unpaired == 2
