@@ -40,7 +40,8 @@ receiver tells the forms apart by the identifier alone: an 11-bit
 identifier of a message that fits the frame it arrived in (classic: 8 bytes;
 FD: 64) is a single frame; a 29-bit identifier, or a message too long for
 the frame, is ISO-TP. On receipt the link gives the message the next number
-of its own per-sender counter as its serial ``seq``.
+after the last seq it saw from that sender as its serial ``seq`` (exact for
+a sender that numbers all its messages, as the serial link does).
 
 PDU (what is segmented)
 -----------------------
@@ -395,7 +396,6 @@ class CanReassembler:
         self._partials: dict[int, _Partial] = {}
         self._last_pdu: dict[int, bytes] = {}
         self._last_seq: dict[int, int] = {}
-        self._direct_seq: dict[int, int] = {}
         self.header = DecodedFrame()
         self.frames_in = 0
         self.messages_ok = 0
@@ -549,8 +549,8 @@ class CanReassembler:
             return []
         payload = (bytes([src]) if d.sender_field else b"") + data[:n]
         msg = CLASS_BY_ID[msg_id]._make(STRUCTS[msg_id].unpack(payload))
-        seq = (self._direct_seq.get(src, -1) + 1) & 0xFF
-        self._direct_seq[src] = seq
+        seq = (self._last_seq.get(src, -1) + 1) & 0xFF      # the sender's previous seq + 1
+        self._last_seq[src] = seq
         hdr = self.header
         hdr.seq, hdr.src, hdr.flags, hdr.msg_id, hdr.signature, hdr.signed_part = seq, src, 0, msg_id, b"", b""
         if self.verifier is not None and not self.verifier(hdr, msg):

@@ -20,10 +20,10 @@ def frames_of(name, fd=False, src=None, seq=None):
     return CanCodec(fd=fd).encode(ex.msg, ex.seq if seq is None else seq, ex.src if src is None else src)
 
 
-def wire_seq(ex, fd, received=0):
-    """The serial seq a receiver gives a message: the sender's for a segmented PDU, the
-    receiver's own per-sender count for a single frame (which carries no seq)."""
-    return received if is_direct(ex.msg.ID, fd) else ex.seq
+def wire_seq(ex, fd, previous=-1):
+    """The serial seq a receiver gives a message: the sender's for a segmented PDU, the sender's
+    previous seq + 1 for a single frame (which carries no seq; -1: none heard yet)."""
+    return (previous + 1) & 0xFF if is_direct(ex.msg.ID, fd) else ex.seq
 
 
 # ------------------------------------------------------------ identifiers
@@ -81,6 +81,20 @@ def test_signed_messages_travel_on_29_bit_ids_with_the_11_bit_priority():
     r = CanReassembler()
     out = [p for f in fr for p in r.feed_with_headers(f)]
     assert len(out) == 1 and out[0][1] == ex.msg and out[0][0].signature == sig and out[0][0].seq == ex.seq
+
+
+def test_single_frames_continue_the_senders_numbering():
+    """Segmented seq 7, then two single frames, then segmented seq 10 from one sender: the single
+    frames become 8 and 9 and no gap is counted (a receiver counting single frames on their own
+    from 0 reports gaps on every sender that mixes both forms, as conform's sequence rule saw)."""
+    r = CanReassembler()
+    hb, mag = EXAMPLES["HEARTBEAT"].msg, EXAMPLES["MAG_PACKED"].msg
+    c = CanCodec()
+    out = []
+    for m, q in ((hb, 7), (mag, 8), (mag._replace(stamp=mag.stamp + 1), 9), (hb._replace(errors=4), 10)):
+        for f in c.encode(m, q, 16):
+            out += r.feed_with_headers(f)
+    assert [h.seq for h, _ in out] == [7, 8, 9, 10] and r.seq_gaps == 0
 
 
 def test_single_frames_carry_the_payload_without_the_sender_byte():
@@ -276,11 +290,10 @@ def test_canlink_presents_the_serial_port_interface():
         sent = [ex for ex in EXAMPLES.values() if ex.src != NODE_FIRMWARE]
         counts = {}
 
-        def seq_of(ex):                           # single frames are numbered by the receiver per sender
-            if not is_direct(ex.msg.ID, False):
-                return ex.seq
-            counts[ex.src] = counts.get(ex.src, -1) + 1
-            return counts[ex.src]
+        def seq_of(ex):                           # a single frame: the sender's previous seq + 1
+            sq = ex.seq if not is_direct(ex.msg.ID, False) else (counts.get(ex.src, -1) + 1) & 0xFF
+            counts[ex.src] = sq
+            return sq
         want = [(ex.src, seq_of(ex), ex.msg) for ex in sent]
         got = []
         d = FrameDecoder(on_frame=lambda h, m: got.append((h.src, h.seq, m)))
