@@ -121,20 +121,32 @@ class FlipOffset:
 
 
 def _compass_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, gate: PulseGate):
-    """Newest magnetometer sample of ``ring`` newer than ``after_t``, within
-    ``max_age_us`` of ``t_imu``, not saturated and outside the pulses; returns
-    its slot or -1."""
-    if ring._count == 0:
+    """The magnetometer sample of ``ring`` nearest ``t_imu`` if it is newer
+    than ``after_t``, within ``max_age_us`` of ``t_imu``, not saturated and
+    outside the pulses; returns its slot or -1. The search goes back from the
+    newest sample (at most the ring's count; in a live stream the newest is
+    the nearest): IMU samples given back from an IMU_DELTA pair reach the
+    filter up to one interval after the magnetometer samples of their time."""
+    slot = ring._head
+    tv = ring._tv
+    best = -1
+    for _ in range(ring._count):
+        slot -= 1
+        if slot < 0:
+            slot += ring.capacity
+        if tv[slot] <= t_imu:
+            if best < 0 or t_imu - tv[slot] < tv[best] - t_imu:
+                best = slot
+            break
+        best = slot
+    if best < 0:
         return -1
-    slot = ring._head - 1
-    if slot < 0:
-        slot += ring.capacity
-    t = ring._tv[slot]
+    t = tv[best]
     if t <= after_t or abs(t - t_imu) > max_age_us:
         return -1
-    if ring._fv[slot] & SAMPLE_SATURATED or not gate.quiet(t):
+    if ring._fv[best] & SAMPLE_SATURATED or not gate.quiet(t):
         return -1
-    return slot
+    return best
 
 
 class _Ori:

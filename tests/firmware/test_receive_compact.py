@@ -118,3 +118,30 @@ def test_unpaired_deltas_are_counted_and_dropped():
         encode_frame(MSG["IMU_DELTA"](20, 1, 2, 3, pack_stamp(1_200_000) | STAMP_DVEL), 2, 20)
     r.step(1_201_000)
     assert sink.imu == [] and r.imu_delta_unpaired == 2
+
+
+class _Quiet:
+    def quiet(self, t):
+        return True
+
+
+def test_compass_sample_is_the_one_nearest_the_imu_time():
+    """IMU steps given back from a pair reach the orientation filter up to 100 ms after the
+    magnetometer samples of their time: the compass sample is the one nearest the step's time
+    (rule stated in the test: argmin |t - t_imu| over the ring), not the newest (which is up to
+    100 ms away and was refused, so the source module lost its compass and its heading drifted
+    10 deg), and not one far ahead of the step."""
+    from coiltrack.firmware.measure.pulse import SampleRing
+    from coiltrack.firmware.track.burst_fusion import _compass_sample
+
+    ring = SampleRing(32)
+    times = [1_000_000 + round(k * 1e6 / 120) for k in range(20)]
+    for t in times:
+        ring.push(t, 1e-5, 0.0, 4e-5, False, 0)
+    max_age = int(2e6 / 120) * 2
+    for t_imu in (1_010_000, 1_051_234, 1_100_000, 1_150_000):
+        slot = _compass_sample(ring, 0, t_imu, max_age, _Quiet())
+        want = min(times, key=lambda t: abs(t - t_imu))
+        assert slot >= 0 and ring._tv[slot] == want, t_imu
+    assert _compass_sample(ring, times[-1], 1_150_000, max_age, _Quiet()) == -1     # nothing newer than after_t
+    assert _compass_sample(ring, 0, 900_000, max_age, _Quiet()) == -1              # nearest too far away
