@@ -256,8 +256,8 @@ class FirmwareConfig:
     gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
     gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
     # --- compact IMU on the wire (protocol v2 IMU_DELTA; firmware_py/receive.py)
-    imu_delta_rate_hz: float = 10.0         # nominal IMU_DELTA pairs per second per node: the interval of a
-                                            # pair whose predecessor was lost (the bus budget: 16 sensors at 10 Hz)
+    imu_delta_rate_hz: float = 10.0         # nominal IMU_DELTA pairs per second per node (the bus budget: 16
+                                            # sensors at 10 Hz); a pair 3.5 intervals after the last only anchors
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""

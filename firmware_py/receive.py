@@ -13,19 +13,21 @@ input shape:
   14 bits against the tick's clock (:func:`coiltrack.protocol.schema.unwrap_stamp`:
   the one time in ``(now + 16.4 ms - 131.072 ms, now + 16.4 ms]``), ``flip``
   bit 0 the set/reset state, bit 1 saturated;
-* an ``IMU_DELTA`` pair (delta angle, then delta velocity, one stamp) ->
-  ``n = round(T imu_rate_hz)`` IMU_SAMPLE records, each the interval's mean
-  rate ``dtheta / T`` and mean specific force ``dv / T`` (in count units of
-  GYR_LSB / ACC_LSB, as floats, so nothing is re-quantised), at the middles
-  of ``n`` equal steps of the interval ``(t_end - T, t_end]``. ``T`` is the
-  time since the node's previous pair when that is within half a nominal
-  interval of it, else the nominal ``1 / imu_delta_rate_hz`` (the first pair,
-  or one after a lost frame). The one strapdown and the filters keep their
-  rate ``imu_rate_hz`` and their per-sample noise: ``n`` equal samples carry
-  the interval's rotation and velocity change exactly, and the integrated
-  noise over the interval, ``sigma T / sqrt(n)``, is what ``n`` independent
-  samples of noise ``sigma`` give. What the interval's mean loses is the
-  motion within it (100 ms at 10 Hz).
+* an ``IMU_DELTA`` pair (delta angle, then delta velocity, one stamp; each
+  the node's running sum wrapped to 16 bits) -> its difference from the
+  node's previous pair, ``dtheta`` and ``dv`` over ``T``, the time between
+  the two stamps, as ``n = round(T imu_rate_hz)`` IMU_SAMPLE records, each
+  the mean rate ``dtheta / T`` and mean specific force ``dv / T`` (in count
+  units of GYR_LSB / ACC_LSB, as floats, so nothing is re-quantised), at the
+  middles of ``n`` equal steps of ``(t_end - T, t_end]``. A lost pair makes
+  ``T`` two intervals and costs only the motion within them; the first pair
+  of a node, and one more than ``3.5 / imu_delta_rate_hz`` after its
+  predecessor, only anchor the sums. The one strapdown and the filters keep
+  their rate ``imu_rate_hz`` and their per-sample noise: ``n`` equal samples
+  carry the interval's rotation and velocity change exactly, and the
+  integrated noise over the interval, ``sigma T / sqrt(n)``, is what ``n``
+  independent samples of noise ``sigma`` give. What the interval's mean
+  loses is the motion within it (100 ms at 10 Hz).
 
 The records are allocated once (one of each) and reused: every consumer
 copies the values it keeps.
@@ -66,13 +68,19 @@ class ImuRecord:
 
 
 class _DeltaState:
-    """One node's pending delta angle and the end of its previous interval."""
-    __slots__ = ("stamp", "x", "y", "z", "pending", "last_end")
+    """One node's pending delta-angle sums, its previous pair's sums and stamp time."""
+    __slots__ = ("stamp", "x", "y", "z", "pending", "last_end", "ax", "ay", "az", "vx", "vy", "vz")
 
     def __init__(self):
         self.stamp = self.x = self.y = self.z = 0
         self.pending = False
         self.last_end = None
+        self.ax = self.ay = self.az = self.vx = self.vy = self.vz = 0
+
+
+def _d16(a: int, b: int) -> int:
+    """``a - b`` of two wrapped 16-bit sums."""
+    return ((a - b + 32768) & 0xFFFF) - 32768
 
 
 class Receiver:
@@ -99,6 +107,7 @@ class Receiver:
         self.packed_mag = 0
         self.imu_deltas = 0
         self.imu_delta_unpaired = 0
+        self.imu_delta_anchors = 0
 
     def step(self, now_us: int) -> None:
         data = self.port.read()
@@ -172,10 +181,15 @@ class Receiver:
             return 0
         st.pending = False
         t_end = unwrap_stamp(st.stamp, now_us)
-        T = self.imu_interval_us
-        if st.last_end is not None and 0.5 * T <= t_end - st.last_end <= 1.5 * T:
-            T = float(t_end - st.last_end)
+        last = st.last_end
+        dax, day, daz = _d16(st.x, st.ax), _d16(st.y, st.ay), _d16(st.z, st.az)
+        dvx, dvy, dvz = _d16(msg.x, st.vx), _d16(msg.y, st.vy), _d16(msg.z, st.vz)
         st.last_end = t_end
+        st.ax, st.ay, st.az, st.vx, st.vy, st.vz = st.x, st.y, st.z, msg.x, msg.y, msg.z
+        if last is None or not 0 < t_end - last <= 3.5 * self.imu_interval_us:
+            self.imu_delta_anchors += 1
+            return 0
+        T = float(t_end - last)
         r = self._imu
         r.node = msg.node
         n = max(1, int(round(T / self.imu_step_us)))
@@ -183,8 +197,8 @@ class Receiver:
         self._step = T / n
         ka = DANG_LSB_RAD / (T * 1e-6 * GYR_LSB)       # delta-angle counts -> rate counts
         kv = DVEL_LSB_MPS / (T * 1e-6 * ACC_LSB)       # delta-velocity counts -> specific-force counts
-        r.gx, r.gy, r.gz = st.x * ka, st.y * ka, st.z * ka
-        r.ax, r.ay, r.az = msg.x * kv, msg.y * kv, msg.z * kv
+        r.gx, r.gy, r.gz = dax * ka, day * ka, daz * ka
+        r.ax, r.ay, r.az = dvx * kv, dvy * kv, dvz * kv
         self.imu_deltas += 1
         return n
 
@@ -196,6 +210,7 @@ class Receiver:
 
     def counters(self) -> dict:
         d = {"schema_mismatches": self.schema_mismatches, "rx_mag_packed": self.packed_mag,
-             "rx_imu_deltas": self.imu_deltas, "rx_imu_delta_unpaired": self.imu_delta_unpaired}
+             "rx_imu_deltas": self.imu_deltas, "rx_imu_delta_unpaired": self.imu_delta_unpaired,
+             "rx_imu_delta_anchors": self.imu_delta_anchors}
         d.update({"rx_" + k: v for k, v in self.decoder.counters().items()})
         return d

@@ -13,10 +13,13 @@ frame whose rate and specific force a receiver takes as the interval's mean.
 Each sample stands for ``[t - dt/2, t + dt/2]``; the pair is stamped with the
 interval's end on the master clock.
 
-Quantisation to ``DANG_LSB_RAD`` / ``DVEL_LSB_MPS`` carries the remainder
-into the next frame, so the sum of the sent deltas differs from the sum of
-the integrated ones by less than one LSB at any time: quantisation adds no
-drift.
+What goes on the wire is the node's **running sum** of the intervals'
+deltas, quantised to ``DANG_LSB_RAD`` / ``DVEL_LSB_MPS`` and wrapped to 16
+bits; the receiver takes the difference of consecutive frames. So the
+quantisation remainder is carried into the next frame by construction (the
+sent sums never differ from the true ones by more than half an LSB: no
+drift), and a lost frame costs nothing but time resolution: the next
+difference covers both intervals.
 """
 from __future__ import annotations
 
@@ -35,19 +38,19 @@ class DeltaIntegrator:
             raise ValueError("a delta interval holds at least one sample")
         self.n = int(n)
         self.dt = float(dt_s)
-        self.rem_a = np.zeros(3)
-        self.rem_v = np.zeros(3)
+        self.sum_a = np.zeros(3)    # running sums of the intervals' deltas, in LSB
+        self.sum_v = np.zeros(3)
         self.reset()
 
     def reset(self) -> None:
-        """Start a fresh interval (after a gap in the samples); remainders are kept."""
+        """Start a fresh interval (after a gap in the samples); the running sums are kept."""
         self.C = np.eye(3)          # body at the current instant -> body at the interval's start
         self.dv = np.zeros(3)       # integrated specific force in the start frame
         self.k = 0
 
     def add(self, w, f):
-        """One sample; returns ``(dang_counts, dvel_counts)`` (int arrays, 3) when the
-        interval is complete, else None."""
+        """One sample; returns ``(dang_sum, dvel_sum)`` (int arrays, 3: the running sums in
+        counts, wrapped to i16) when the interval is complete, else None."""
         dth = np.asarray(w, dtype=float) * self.dt
         half = Rotation.from_rotvec(0.5 * dth).as_matrix()
         self.dv += (self.C @ half) @ (np.asarray(f, dtype=float) * self.dt)
@@ -57,14 +60,12 @@ class DeltaIntegrator:
             return None
         theta = Rotation.from_matrix(self.C).as_rotvec()
         dv_mid = Rotation.from_rotvec(0.5 * theta).as_matrix().T @ self.dv
-        a = self._quantise(theta, DANG_LSB_RAD, "rem_a")
-        v = self._quantise(dv_mid, DVEL_LSB_MPS, "rem_v")
+        self.sum_a += theta / DANG_LSB_RAD
+        self.sum_v += dv_mid / DVEL_LSB_MPS
         self.reset()
-        return a, v
+        return wrap16(self.sum_a), wrap16(self.sum_v)
 
-    def _quantise(self, x, lsb: float, rem: str):
-        want = x + getattr(self, rem)
-        q = np.clip(np.round(want / lsb), -32767, 32767)
-        r = want - q * lsb
-        setattr(self, rem, np.clip(r, -lsb, lsb))     # a clipped frame does not carry its excess on
-        return q.astype(int)
+
+def wrap16(x) -> np.ndarray:
+    """Counts rounded and wrapped to a signed 16-bit value."""
+    return ((np.round(np.asarray(x)).astype(np.int64) + 32768) % 65536 - 32768).astype(int)

@@ -68,45 +68,54 @@ def test_mag_packed_becomes_a_mag_sample_with_its_time_and_bits():
     assert sink.sup[0] == (MSG["MAG_SAMPLE"].ID, 17, (t + 4) // 8 * 8)
 
 
+def _pair(node, sums_a, sums_v, end, seq):
+    return (encode_frame(MSG["IMU_DELTA"](node, *sums_a, pack_stamp(end)), seq, node)
+            + encode_frame(MSG["IMU_DELTA"](node, *sums_v, pack_stamp(end) | STAMP_DVEL), seq + 1, node))
+
+
 def test_imu_delta_pair_becomes_the_interval_mean_at_its_middle():
-    """Counts: dtheta = (400, -80, 12) x 5e-5 rad and dv = (1000, 0, 9810) x 1e-4 m/s over T.
-    Rate = dtheta / T and specific force = dv / T in GYR_LSB / ACC_LSB counts, stamped T/2 before
-    the interval's end (one step per interval here); T is the measured 100 ms between pairs, else
-    the nominal one (here 90 ms nominal, so a receiver using the nominal for the second pair is
-    11 % off)."""
+    """The frames carry running sums: the first pair anchors them, the next gives the differences
+    dtheta = (400, -80, 12) x 5e-5 rad and dv = (1000, 0, 9810) x 1e-4 m/s over T = 100 ms (the
+    time between the stamps). Rate = dtheta / T and specific force = dv / T in GYR_LSB / ACC_LSB
+    counts, stamped T/2 before the interval's end (one step per interval here). The sums wrap:
+    32700 + 400 is -32436. A receiver that took the frame's values as the deltas, or did not
+    unwrap, is off by the whole sum."""
     r, port, sink = _receiver(interval_us=90_000, step_us=200_000)
     e1, e2 = 2_000_000, 2_100_000
-    dang, dvel = (400, -80, 12), (1000, 0, 9810)
-    for end, seq in ((e1, 0), (e2, 2)):
-        port.data += encode_frame(MSG["IMU_DELTA"](20, *dang, pack_stamp(end)), seq, 20)
-        port.data += encode_frame(MSG["IMU_DELTA"](20, *dvel, pack_stamp(end) | STAMP_DVEL), seq + 1, 20)
+    a0, v0 = (32700, 5, -7), (-100, 30000, 1)
+    a1 = tuple((x + d + 32768) % 65536 - 32768 for x, d in zip(a0, (400, -80, 12)))
+    v1 = tuple((x + d + 32768) % 65536 - 32768 for x, d in zip(v0, (1000, 0, 9810)))
+    port.data = _pair(20, a0, v0, e1, 0) + _pair(20, a1, v1, e2, 2)
     r.step(e2 + 2000)
-    assert len(sink.imu) == 2
-    for (node, t, ax, ay, az, gx, gy, gz), end, T in zip(sink.imu, (e1, e2), (0.09, 0.1)):
-        assert node == 20 and t == end - round(T * 5e5)
-        np.testing.assert_allclose([gx, gy, gz], np.array(dang) * DANG_LSB_RAD / T / GYR_LSB, rtol=1e-12)
-        np.testing.assert_allclose([ax, ay, az], np.array(dvel) * DVEL_LSB_MPS / T / ACC_LSB, rtol=1e-12)
+    assert len(sink.imu) == 1 and r.imu_delta_anchors == 1
+    node, t, ax, ay, az, gx, gy, gz = sink.imu[0]
+    T = 0.1
+    assert node == 20 and t == e2 - round(T * 5e5)
+    np.testing.assert_allclose([gx, gy, gz], np.array([400, -80, 12]) * DANG_LSB_RAD / T / GYR_LSB, rtol=1e-12)
+    np.testing.assert_allclose([ax, ay, az], np.array([1000, 0, 9810]) * DVEL_LSB_MPS / T / ACC_LSB, rtol=1e-12)
 
 
 def test_imu_delta_pair_is_given_back_in_the_filters_steps():
     """At imu_rate_hz = 120 a 100 ms pair becomes 12 equal samples at the middles of 12 equal steps
     of (t_end - T, t_end]: their rotation sums to the delta angle (a receiver that stamped them
     at the interval's end, or emitted one sample, shifts the motion by 50 ms or starves the
-    strapdown of steps)."""
+    strapdown of steps). A lost pair: the next one covers 200 ms in 24 steps, nothing lost."""
     r, port, sink = _receiver(interval_us=100_000, step_us=1e6 / 120)
-    e1, e2 = 3_000_000, 3_100_000
-    for end, seq in ((e1, 0), (e2, 2)):
-        port.data += encode_frame(MSG["IMU_DELTA"](21, 600, 0, -300, pack_stamp(end)), seq, 21)
-        port.data += encode_frame(MSG["IMU_DELTA"](21, 0, 0, 981, pack_stamp(end) | STAMP_DVEL), seq + 1, 21)
-    r.step(e2 + 1000)
-    second = sink.imu[12:]
-    assert len(sink.imu) == 24 and len(second) == 12
+    e1, e2, e4 = 3_000_000, 3_100_000, 3_300_000
+    for data, end in ((_pair(21, (0, 0, 0), (0, 0, 0), e1, 0), e1), (_pair(21, (600, 0, -300), (0, 0, 981), e2, 2), e2),
+                      (_pair(21, (1800, 0, -900), (0, 0, 2943), e4, 6), e4)):
+        port.data = data
+        r.step(end + 1000)                       # each pair 1 ms after its end (stamps restore within 114 ms)
+    first, second = sink.imu[:12], sink.imu[12:]
+    assert len(first) == 12 and len(second) == 24
     step = 0.1 / 12
-    assert [t for _, t, *_ in second] == [e1 + round((i + 0.5) * step * 1e6) for i in range(12)]
-    dtheta = sum(np.array([gx, gy, gz]) * GYR_LSB * step for *_, gx, gy, gz in second)
-    np.testing.assert_allclose(dtheta, np.array([600, 0, -300]) * DANG_LSB_RAD, rtol=1e-12, atol=1e-15)
-    dv = sum(np.array([ax, ay, az]) * ACC_LSB * step for _, _, ax, ay, az, *_ in second)
-    np.testing.assert_allclose(dv, np.array([0, 0, 981]) * DVEL_LSB_MPS, rtol=1e-12, atol=1e-15)
+    assert [t for _, t, *_ in first] == [e1 + round((i + 0.5) * step * 1e6) for i in range(12)]
+    assert [t for _, t, *_ in second] == [e2 + round((i + 0.5) * step * 1e6) for i in range(24)]
+    for part, da, dv in ((first, (600, 0, -300), (0, 0, 981)), (second, (1200, 0, -600), (0, 0, 1962))):
+        dtheta = sum(np.array([gx, gy, gz]) * GYR_LSB * step for *_, gx, gy, gz in part)
+        np.testing.assert_allclose(dtheta, np.array(da) * DANG_LSB_RAD, rtol=1e-12, atol=1e-15)
+        dvel = sum(np.array([ax, ay, az]) * ACC_LSB * step for _, _, ax, ay, az, *_ in part)
+        np.testing.assert_allclose(dvel, np.array(dv) * DVEL_LSB_MPS, rtol=1e-12, atol=1e-15)
 
 
 def test_unpaired_deltas_are_counted_and_dropped():

@@ -54,24 +54,43 @@ def test_coning_motion_matches_a_fine_grid_rotation():
     assert np.linalg.norm(got - exact) < 2 * DANG_LSB_RAD
 
 
-def test_quantisation_remainder_is_carried():
-    """Over 200 frames the sent counts sum to the integrated deltas within one LSB: a node that
-    rounded each frame on its own would drift by ~sqrt(200) x 0.29 LSB (seeded random rates)."""
+def test_running_sums_carry_the_remainder_and_survive_a_lost_frame():
+    """The frames carry running sums (wrapped to 16 bits): over 200 frames their differences add
+    up to the integrated deltas within half an LSB (a node that rounded each frame's delta on
+    its own would drift by ~sqrt(200) x 0.29 LSB), and the difference across a lost frame is
+    the two intervals' sum (a per-frame delta would lose that interval). Seeded random rates."""
     rng = np.random.default_rng(3)
     integ = DeltaIntegrator(3, 0.01)
-    sa = np.zeros(3)
-    sv = np.zeros(3)
     exact_a = np.zeros(3)
     exact_v = np.zeros(3)
+    sums = []
     for _ in range(200):
         ws = [rng.normal(0, 1e-3, 3) for _ in range(3)]        # tiny rates: the delta is its own log
         fs = [rng.normal(0, 1e-2, 3) for _ in range(3)]
         for w, f in zip(ws, fs):
             out = integ.add(w, f)
-        a, v = out
-        sa += a
-        sv += v
+        sums.append(out)
         exact_a += sum(ws) * 0.01
         exact_v += sum(fs) * 0.01
-    assert np.max(np.abs(sa * DANG_LSB_RAD - exact_a)) <= DANG_LSB_RAD
-    assert np.max(np.abs(sv * DVEL_LSB_MPS - exact_v)) <= DVEL_LSB_MPS * 1.01
+    d16 = lambda a, b: (a - b + 32768) % 65536 - 32768
+    da = sum(d16(sums[k][0], sums[k - 1][0]) for k in range(1, 200)) + sums[0][0]
+    dv = sum(d16(sums[k][1], sums[k - 1][1]) for k in range(1, 200)) + sums[0][1]
+    assert np.max(np.abs(da * DANG_LSB_RAD - exact_a)) <= 0.5 * DANG_LSB_RAD + 1e-12
+    assert np.max(np.abs(dv * DVEL_LSB_MPS - exact_v)) <= 0.5 * DVEL_LSB_MPS + 1e-9
+    # frame 100 lost: frame 101 minus frame 99 is both intervals
+    two = d16(sums[101][0], sums[99][0])
+    assert np.array_equal(two, d16(sums[101][0], sums[100][0]) + d16(sums[100][0], sums[99][0]))
+
+
+def test_sums_wrap_at_16_bits():
+    """A steady 10 rad/s about z for 1 s in 0.1 s frames: the sum passes +32767 counts (1.638 rad)
+    and wraps; each difference of consecutive wrapped sums is still the frame's 1 rad (20000
+    counts). Catches a sum clipped at the i16 limit."""
+    integ = DeltaIntegrator(10, 0.01)
+    prev = np.zeros(3, dtype=int)
+    for _ in range(10):
+        for _ in range(10):
+            out = integ.add([0.0, 0.0, 10.0], [0.0, 0.0, 0.0])
+        d = (out[0] - prev + 32768) % 65536 - 32768
+        assert d[2] == 20000
+        prev = out[0]
