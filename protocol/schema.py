@@ -254,15 +254,16 @@ MESSAGES: tuple[MessageDef, ...] = (
        "(8 us units, wraps every 131 ms, restored by the receiver).", priority=3, sender_field=True),
     MessageDef(0x24, "IMU_DELTA", (
         F("node", "u8", doc="sender node id (on CAN: the identifier's node bits)"),
-        F("x", "i16", doc="delta angle (DANG_LSB_RAD rad) or delta velocity (DVEL_LSB_MPS m/s)"),
+        F("x", "i16", doc="running sum of delta angle (DANG_LSB_RAD rad) or delta velocity (DVEL_LSB_MPS m/s), "
+                          "wrapped to 16 bits"),
         F("y", "i16"),
         F("z", "i16"),
         F("stamp", "u16", doc="bits 0..13 end of the interval / 8 us mod 2^14 (master clock), bit 15 "
                               "0 delta angle, 1 delta velocity",
           bits=(("t_8us", 0, 14, STAMP_LSB_US, "us"), ("dvel", 15, 1, 1, ""))),
-    ), "Delta angle (coning-corrected) or delta velocity (in the body frame at the interval's middle) "
-       "integrated on the node since its previous IMU_DELTA of the same kind, the quantisation remainder "
-       "carried into the next frame; the pair with one stamp is one IMU interval.", priority=3,
+    ), "Running sums of the per-interval delta angle (coning-free) or delta velocity (body frame at the "
+       "interval's middle) integrated on the node; the receiver differences consecutive pairs (one stamp: "
+       "one interval), so the quantisation remainder is carried and a lost pair loses no motion.", priority=3,
         sender_field=True),
     MessageDef(0x30, "POSE", (
         F("node", "u8", doc="sensor node the pose belongs to"),
