@@ -284,6 +284,9 @@ class FirmwareConfig:
                                             #   orientation steps are below this fraction of the smallest
                                             #   standard deviations of the last covariance (what remains is about
                                             #   one step: <= 0.05 sigma adds < 0.3 % to the variance); 0: off
+    # --- compact IMU on the wire (protocol v2 IMU_DELTA; firmware_py/receive.py)
+    imu_delta_rate_hz: float = 10.0         # nominal IMU_DELTA pairs per second per node (the bus budget: 16
+                                            # sensors at 10 Hz); a pair 3.5 intervals after the last only anchors
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -345,6 +348,9 @@ class FirmwareConfig:
         self._validate_calibration(need)
         self._validate_quality(need)
         self._validate_raab_cost(need)
+        need("imu_delta_rate_hz", isinstance(self.imu_delta_rate_hz, (int, float))
+             and not isinstance(self.imu_delta_rate_hz, bool) and 0.0 < self.imu_delta_rate_hz <= 10_000.0,
+             f"must be a rate in (0, 10000] Hz, got {self.imu_delta_rate_hz!r}")
         return self
 
     def _validate_signing(self, need) -> None:
@@ -656,6 +662,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "distortion": ("distortion_apply",),
     "quality": ("quality_error_scale_m", "quality_quiet_sigma_t"),
     "raab_cost": ("raab_step_sigma",),
+    "imu_delta": ("imu_delta_rate_hz",),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

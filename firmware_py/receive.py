@@ -5,20 +5,52 @@ source module's samples to the tracker, coil status to the pulse schedule and
 the tracker, heartbeats to the schema check. The supervisor sees every
 message first.
 
+The compact samples of protocol v2 become the full ones here, once, for
+every link (serial, CAN, in-process), so everything downstream has one
+input shape:
+
+* ``MAG_PACKED`` -> a MAG_SAMPLE record: ``t_us`` restored from the stamp's
+  14 bits against the tick's clock (:func:`coiltrack.protocol.schema.unwrap_stamp`:
+  the one time in ``(now + 16.4 ms - 131.072 ms, now + 16.4 ms]``), ``flip``
+  bit 0 the set/reset state, bit 1 saturated;
+* an ``IMU_DELTA`` pair (delta angle, then delta velocity, one stamp; each
+  the node's running sum wrapped to 16 bits) -> its difference from the
+  node's previous pair, ``dtheta`` and ``dv`` over ``T``, the time between
+  the two stamps, as ``n = round(T imu_rate_hz)`` IMU_SAMPLE records, each
+  the mean rate ``dtheta / T`` and mean specific force ``dv / T`` (in count
+  units of GYR_LSB / ACC_LSB, as floats, so nothing is re-quantised), at the
+  middles of ``n`` equal steps of ``(t_end - T, t_end]``. A lost pair makes
+  ``T`` two intervals and costs only the motion within them; the first pair
+  of a node, and one more than ``3.5 / imu_delta_rate_hz`` after its
+  predecessor, only anchor the sums. The one strapdown and the filters keep
+  their rate ``imu_rate_hz`` and their per-sample noise: ``n`` equal samples
+  carry the interval's rotation and velocity change exactly, and the
+  integrated noise over the interval, ``sigma T / sqrt(n)``, is what ``n``
+  independent samples of noise ``sigma`` give. What the interval's mean
+  loses is the motion within it (100 ms at 10 Hz).
+
 Calibration: a node with a :class:`coiltrack.firmware.calibration.SensorCalibration`
 has its magnetometer ellipsoid and its IMU model inverted here, the one place
 every sample enters (before the rings, the pulse windows and the one
 strapdown): the stages downstream receive a preallocated view of the message
 whose readings are the corrected ones, in the message's own units (counts).
 The supervisor sees the raw message (saturation is a property of the
-reading)."""
+reading).
+
+The records are allocated once (one of each) and reused: every consumer
+copies the values it keeps.
+"""
 from __future__ import annotations
 
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
-from coiltrack.protocol.schema import ACC_LSB, EVT_SCHEMA_MISMATCH, GYR_LSB, MAG_LSB_T
+from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, DVEL_LSB_MPS, EVT_SCHEMA_MISMATCH, GYR_LSB,
+                                       MAG_LSB_T, STAMP_DVEL, STAMP_FLIP, STAMP_MASK, STAMP_SATURATED,
+                                       unwrap_stamp)
 
 _MAG = MSG["MAG_SAMPLE"].ID
 _IMU = MSG["IMU_SAMPLE"].ID
+_MAG_PACKED = MSG["MAG_PACKED"].ID
+_IMU_DELTA = MSG["IMU_DELTA"].ID
 _COIL_STATUS = MSG["COIL_STATUS"].ID
 _HEARTBEAT = MSG["HEARTBEAT"].ID
 _INV_MAG = 1.0 / MAG_LSB_T
@@ -43,8 +75,45 @@ class _ImuView:
         self.ax = self.ay = self.az = self.gx = self.gy = self.gz = 0.0
 
 
+class MagRecord:
+    """A MAG_SAMPLE's fields (``node``, ``t_us`` us, ``x, y, z`` counts of MAG_LSB_T, ``flip``)."""
+    __slots__ = ("node", "t_us", "x", "y", "z", "flip")
+    ID = _MAG
+
+    def __init__(self):
+        self.node = self.t_us = self.x = self.y = self.z = self.flip = 0
+
+
+class ImuRecord:
+    """An IMU_SAMPLE's fields (``node``, ``t_us`` us, ``ax..az`` in ACC_LSB, ``gx..gz`` in GYR_LSB;
+    floats when made from an IMU_DELTA pair)."""
+    __slots__ = ("node", "t_us", "ax", "ay", "az", "gx", "gy", "gz")
+    ID = _IMU
+
+    def __init__(self):
+        self.node = self.t_us = 0
+        self.ax = self.ay = self.az = self.gx = self.gy = self.gz = 0.0
+
+
+class _DeltaState:
+    """One node's pending delta-angle sums, its previous pair's sums and stamp time."""
+    __slots__ = ("stamp", "x", "y", "z", "pending", "last_end", "ax", "ay", "az", "vx", "vy", "vz")
+
+    def __init__(self):
+        self.stamp = self.x = self.y = self.z = 0
+        self.pending = False
+        self.last_end = None
+        self.ax = self.ay = self.az = self.vx = self.vy = self.vz = 0
+
+
+def _d16(a: int, b: int) -> int:
+    """``a - b`` of two wrapped 16-bit sums."""
+    return ((a - b + 32768) & 0xFFFF) - 32768
+
+
 class Receiver:
-    def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None, calibration=None):
+    def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None,
+                 imu_interval_us: float = 1e5, imu_step_us: float = 1e4, calibration=None):
         self.port = port
         self.decoder = decoder
         self.channels = {ch.node: ch for ch in channels}
@@ -62,6 +131,17 @@ class Receiver:
         self.imu_cal = {n: c for n, c in cal.items() if c.has_imu}
         self._magv = _MagView()
         self._imuv = _ImuView()
+        self.imu_interval_us = float(imu_interval_us)   # nominal IMU_DELTA interval (1 / imu_delta_rate_hz)
+        self.imu_step_us = float(imu_step_us)           # the filters' IMU step (1 / imu_rate_hz)
+        self._mag = MagRecord()
+        self._imu = ImuRecord()
+        self._deltas: dict[int, _DeltaState] = {}
+        self._t0 = 0
+        self._step = 0.0
+        self.packed_mag = 0
+        self.imu_deltas = 0
+        self.imu_delta_unpaired = 0
+        self.imu_delta_anchors = 0
 
     def step(self, now_us: int) -> None:
         data = self.port.read()
@@ -69,8 +149,16 @@ class Receiver:
             return
         sup = self.supervisor
         for msg in self.decoder.feed(data):
-            sup.on_message(msg, now_us)
             mid = msg.ID
+            if mid == _MAG_PACKED:
+                msg = self._unpack_mag(msg, now_us)
+                mid = _MAG
+            elif mid == _IMU_DELTA:
+                n = self._delta(msg, now_us)
+                if n:
+                    self._push_steps(n, now_us)
+                continue
+            sup.on_message(msg, now_us)
             if mid == _MAG:
                 c = self.mag_cal.get(msg.node) if self.mag_cal else None
                 if c is not None:
@@ -81,14 +169,7 @@ class Receiver:
                 else:
                     self.tracker.on_mag(msg, MAG_LSB_T)
             elif mid == _IMU:
-                self.imu_received += 1
-                c = self.imu_cal.get(msg.node) if self.imu_cal else None
-                if c is not None:
-                    msg = self._correct_imu(msg, c)
-                ch = self.channels.get(msg.node)
-                if ch is not None:
-                    ch.push_imu(msg)
-                self.tracker.on_imu(msg, now_us)
+                self._on_imu(msg, now_us)
             elif mid == _COIL_STATUS:
                 self.schedule.on_status(msg)
                 self.tracker.on_coil_status(msg)
@@ -96,6 +177,77 @@ class Receiver:
                 self._on_heartbeat(msg)
             elif self.other is not None:
                 self.other(msg, now_us)
+
+    def _unpack_mag(self, msg, now_us: int) -> MagRecord:
+        r = self._mag
+        s = msg.stamp
+        r.node, r.x, r.y, r.z = msg.node, msg.x, msg.y, msg.z
+        r.t_us = unwrap_stamp(s & STAMP_MASK, now_us)
+        r.flip = (1 if s & STAMP_FLIP else 0) | (2 if s & STAMP_SATURATED else 0)
+        self.packed_mag += 1
+        return r
+
+    def _push_steps(self, n: int, now_us: int) -> None:
+        """The ``n`` steps of a completed interval, through the supervisor to the tracker."""
+        r = self._imu
+        t0, step = self._t0, self._step
+        sup = self.supervisor
+        for i in range(n):
+            r.t_us = t0 + int(round((i + 0.5) * step))
+            sup.on_message(r, now_us)
+            self._on_imu(r, now_us)
+
+    def _on_imu(self, msg, now_us: int) -> None:
+        """One IMU sample (received, or a step of a delta pair): calibrated, to the sensor's
+        channel (its gyroscope turns the pulse windows) and to the tracker."""
+        self.imu_received += 1
+        c = self.imu_cal.get(msg.node) if self.imu_cal else None
+        if c is not None:
+            msg = self._correct_imu(msg, c)
+        ch = self.channels.get(msg.node)
+        if ch is not None:
+            ch.push_imu(msg)
+        self.tracker.on_imu(msg, now_us)
+
+    def _delta(self, msg, now_us: int) -> int:
+        """The number of IMU steps of a completed pair (the record holds their values), else 0
+        (the delta angle waits for its delta velocity; a delta velocity without its angle is
+        counted and dropped)."""
+        st = self._deltas.get(msg.node)
+        if st is None:
+            st = self._deltas[msg.node] = _DeltaState()
+        s = msg.stamp
+        if not s & STAMP_DVEL:
+            if st.pending:
+                self.imu_delta_unpaired += 1
+            st.stamp, st.x, st.y, st.z, st.pending = s & STAMP_MASK, msg.x, msg.y, msg.z, True
+            return 0
+        if not st.pending or st.stamp != s & STAMP_MASK:
+            self.imu_delta_unpaired += 1
+            st.pending = False
+            return 0
+        st.pending = False
+        t_end = unwrap_stamp(st.stamp, now_us)
+        last = st.last_end
+        dax, day, daz = _d16(st.x, st.ax), _d16(st.y, st.ay), _d16(st.z, st.az)
+        dvx, dvy, dvz = _d16(msg.x, st.vx), _d16(msg.y, st.vy), _d16(msg.z, st.vz)
+        st.last_end = t_end
+        st.ax, st.ay, st.az, st.vx, st.vy, st.vz = st.x, st.y, st.z, msg.x, msg.y, msg.z
+        if last is None or not 0 < t_end - last <= 3.5 * self.imu_interval_us:
+            self.imu_delta_anchors += 1
+            return 0
+        T = float(t_end - last)
+        r = self._imu
+        r.node = msg.node
+        n = max(1, int(round(T / self.imu_step_us)))
+        self._t0 = t_end - int(round(T))
+        self._step = T / n
+        ka = DANG_LSB_RAD / (T * 1e-6 * GYR_LSB)       # delta-angle counts -> rate counts
+        kv = DVEL_LSB_MPS / (T * 1e-6 * ACC_LSB)       # delta-velocity counts -> specific-force counts
+        r.gx, r.gy, r.gz = dax * ka, day * ka, daz * ka
+        r.ax, r.ay, r.az = dvx * kv, dvy * kv, dvz * kv
+        self.imu_deltas += 1
+        return n
 
     def _correct_mag(self, msg, c):
         """The sample with its ellipsoid inverted (calibration ``mag_soft``, ``mag_hard_t``)."""
@@ -122,6 +274,8 @@ class Receiver:
             self.tx.event(EVT_SCHEMA_MISMATCH, msg.node)
 
     def counters(self) -> dict:
-        d = {"schema_mismatches": self.schema_mismatches}
+        d = {"schema_mismatches": self.schema_mismatches, "rx_mag_packed": self.packed_mag,
+             "rx_imu_deltas": self.imu_deltas, "rx_imu_delta_unpaired": self.imu_delta_unpaired,
+             "rx_imu_delta_anchors": self.imu_delta_anchors}
         d.update({"rx_" + k: v for k, v in self.decoder.counters().items()})
         return d

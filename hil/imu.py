@@ -2,8 +2,9 @@
 ``002_cd7f1fdb7fc67471.txt`` sec 5.3 and 6.2.3: "One MTx sensor module was
 attached to the assembly of the three coils to measure its orientation").
 
-:class:`SourceImuNode` streams ``IMU_SAMPLE`` (specific force and angular
-rate of the source, sensor frame = source frame) and ``MAG_SAMPLE`` (the
+:class:`SourceImuNode` streams ``IMU_SAMPLE`` (or ``IMU_DELTA`` pairs when
+``ImuSpec.delta_rate_hz`` is set; specific force and angular
+rate of the source, sensor frame = source frame) and ``MAG_PACKED`` (the
 field at the module: earth field plus the coils' field, which saturates the
 magnetometer during every pulse, a few centimetres from the windings; the
 magnetometer is flipped every ``MagSpec.flip_every`` samples and keeps the
@@ -30,12 +31,15 @@ import math
 import numpy as np
 
 from coiltrack.protocol import MSG
-from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, MAG_LSB_T, ROLE_SENSOR
+from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, MAG_LSB_T, ROLE_SENSOR, STAMP_FLIP, STAMP_LSB_US, \
+    STAMP_SATURATED, pack_stamp
 
-from .nodes import ImuSpec, MagSpec, Node, _i16
+from .imu_delta import DeltaIntegrator
+from .nodes import ImuSpec, MagSpec, Node, _i16, send_delta
 
 ImuSample = MSG["IMU_SAMPLE"]
 MagSample = MSG["MAG_SAMPLE"]
+MagPacked = MSG["MAG_PACKED"]
 
 #: default node id of the source module (below the sensor range 16.., above driver 2)
 NODE_SOURCE_IMU = 8
@@ -73,6 +77,9 @@ class SourceImuNode(Node):
         self.flip_state = 1
         self._unit = None                 # coil fields per ampere at the module
         self._schedule(0)
+        self.delta = (DeltaIntegrator(max(1, int(round(self.imu.rate_hz / self.imu.delta_rate_hz))),
+                                      self._imu_period * 1e-6) if self.imu.delta_rate_hz else None)
+        self.imu_deltas = 0
         self.imu_samples = 0
         self.mag_samples = 0
         self.saturations = 0
@@ -124,6 +131,9 @@ class SourceImuNode(Node):
             f = np.array([0.0, 0.0, imu.gravity]) + self.acc_bias + self.rng.normal(0.0, imu.acc_sigma, 3)
             w = self.gyro_bias + self.rng.normal(0.0, imu.gyro_sigma, 3)
         self.imu_samples += 1
+        if self.delta is not None:
+            send_delta(self, self.delta, self._imu_k, t, w, f, send)
+            return
         send(self, ImuSample(self.node_id, self.master(t), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
                              _i16(f[2] / ACC_LSB), _i16(w[0] / GYR_LSB), _i16(w[1] / GYR_LSB),
                              _i16(w[2] / GYR_LSB)))
@@ -144,5 +154,7 @@ class SourceImuNode(Node):
         lim = m.range_t / MAG_LSB_T
         counts = np.clip(np.round(B / MAG_LSB_T), -lim, lim)
         self.mag_samples += 1
-        send(self, MagSample(self.node_id, self.master(t), int(counts[0]), int(counts[1]), int(counts[2]),
-                             (1 if self.flip_state > 0 else 0) | (2 if sat else 0)))
+        stamp = max(0, self.master(t) + STAMP_LSB_US // 2) // STAMP_LSB_US * STAMP_LSB_US
+        send(self, MagPacked(self.node_id, int(counts[0]), int(counts[1]), int(counts[2]),
+                             pack_stamp(stamp) | (STAMP_FLIP if self.flip_state > 0 else 0)
+                             | (STAMP_SATURATED if sat else 0)))

@@ -29,15 +29,18 @@ from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
 from coiltrack.protocol.schema import (ACC_LSB, POSE_FUSED, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
                              COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
                              COIL_FAULT_REFUSED, COIL_FAULT_SUPPLY_LOW,
-                             CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STATE_READY,
-                             STATE_RUNNING)
+                             CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STAMP_DVEL,
+                             STAMP_FLIP, STAMP_LSB_US, STAMP_SATURATED, STATE_READY, STATE_RUNNING, pack_stamp)
 
 from .clock import NodeClock, NodeSync
+from .imu_delta import DeltaIntegrator
 
 Heartbeat = MSG["HEARTBEAT"]
 CoilStatus = MSG["COIL_STATUS"]
 MagSample = MSG["MAG_SAMPLE"]
 ImuSample = MSG["IMU_SAMPLE"]
+MagPacked = MSG["MAG_PACKED"]
+ImuDelta = MSG["IMU_DELTA"]
 TimeSyncReply = MSG["TIME_SYNC_REPLY"]
 
 HEARTBEAT_US = 1_000_000
@@ -50,6 +53,23 @@ def _i32(v: int) -> int:
 
 def _i16(v: float) -> int:
     return max(-32768, min(32767, int(round(v))))
+
+
+def send_delta(node, integ: DeltaIntegrator, k: int, t: int, w, f, send) -> None:
+    """Add IMU sample ``k`` (true time ``t``, rate ``w`` rad/s, specific force ``f`` m/s^2) to
+    the node's delta interval; a complete interval goes out as an IMU_DELTA pair stamped with
+    the interval's end on the master clock. A gap in the samples starts a fresh interval."""
+    if getattr(integ, "last_k", None) is not None and k != integ.last_k + 1:
+        integ.reset()
+    integ.last_k = k
+    out = integ.add(w, f)
+    if out is None:
+        return
+    a, v = out
+    st = pack_stamp(max(0, node.master(t + int(round(integ.dt * 5e5)))))
+    send(node, ImuDelta(node.node_id, int(a[0]), int(a[1]), int(a[2]), st))
+    send(node, ImuDelta(node.node_id, int(v[0]), int(v[1]), int(v[2]), st | STAMP_DVEL))
+    node.imu_deltas += 1
 
 
 class Node:
@@ -564,6 +584,8 @@ class ImuSpec:
     protocol's ``ACC_LSB`` / ``GYR_LSB`` and clipped to 16 bits.
     """
     rate_hz: float = 100.0
+    #: IMU_DELTA pairs per second (0: IMU_SAMPLE at ``rate_hz``); ``rate_hz`` a multiple of it
+    delta_rate_hz: float = 0.0
     acc_noise_density: float = 2.0e-3       # m/s^2/sqrt(Hz)
     acc_bias_sigma: float = 0.02            # m/s^2
     acc_bias_rw: float = 2.0e-4             # m/s^2/sqrt(s)
@@ -628,10 +650,15 @@ class SensorNode(Node):
         #: the node's imperfections (``hil.imperfections.SensorImperfection``; None: a perfect sensor)
         self.imperfect = None
         self._schedule_mag(0)
+        self.delta = None
+        self.imu_deltas = 0
         if imu is not None:
             self.acc_bias = self.imu_rng.normal(0.0, imu.acc_bias_sigma, 3)
             self.gyro_bias = self.imu_rng.normal(0.0, imu.gyro_bias_sigma, 3)
             self._schedule_imu(0)
+            if imu.delta_rate_hz:
+                self.delta = DeltaIntegrator(max(1, int(round(imu.rate_hz / imu.delta_rate_hz))),
+                                             self._imu_period * 1e-6)
 
     # backwards-compatible attribute names
     @property
@@ -749,20 +776,22 @@ class SensorNode(Node):
 
     def _send_mag(self, t: int, B, send) -> None:
         """Quantise the field ``B`` (3,) T measured at true time ``t``, stamp it on the master clock and
-        send it as a MAG_SAMPLE (saturated beyond the range, flip state in the flags)."""
+        send it as a MAG_PACKED (saturated beyond the range, flip state in the stamp bits)."""
         m = self.mag
         sat = bool(np.any(np.abs(B) > m.range_t))
         if sat:
             self.saturations += 1
         lim = m.range_t / MAG_LSB_T
         counts = np.clip(np.round(B / MAG_LSB_T), -lim, lim)
-        stamp = max(0, self.master(t))
+        # MAG_PACKED: the master time rounded to the stamp's 8 us; the receiver restores it
+        stamp = max(0, self.master(t) + STAMP_LSB_US // 2) // STAMP_LSB_US * STAMP_LSB_US
         self.samples += 1
         self.stamps.append(stamp)
         self.true_times.append(t)
         self._by_stamp.setdefault(stamp, t)
-        send(self, MagSample(self.node_id, stamp, int(counts[0]), int(counts[1]), int(counts[2]),
-                             (1 if self.flip_state > 0 else 0) | (2 if sat else 0)))
+        send(self, MagPacked(self.node_id, int(counts[0]), int(counts[1]), int(counts[2]),
+                             pack_stamp(stamp) | (STAMP_FLIP if self.flip_state > 0 else 0)
+                             | (STAMP_SATURATED if sat else 0)))
 
     def _imu_sample(self, t: int, k: int, send) -> None:
         imu = self.imu
@@ -783,6 +812,9 @@ class SensorNode(Node):
         f = f + self.acc_bias + self.imu_rng.normal(0.0, imu.acc_sigma, 3)
         g = w + self.gyro_bias + self.imu_rng.normal(0.0, imu.gyro_sigma, 3)
         self.imu_samples += 1
+        if self.delta is not None:
+            send_delta(self, self.delta, k, t, g, f, send)
+            return
         send(self, ImuSample(self.node_id, max(0, self.master(t)), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
                              _i16(f[2] / ACC_LSB), _i16(g[0] / GYR_LSB), _i16(g[1] / GYR_LSB),
                              _i16(g[2] / GYR_LSB)))

@@ -16,20 +16,26 @@ bits) at the nominal rate; ESI, DLC and data with worst-case dynamic
 stuffing, the stuff count and the CRC (17 or 21 bits) with their fixed stuff
 bits at the data rate.
 
-The traffic model: every sensor node sends MAG_SAMPLE at the magnetometer
-rate, IMU_SAMPLE at the IMU rate, a HEARTBEAT and a TIME_SYNC_REPLY per sync;
-the coil driver a HEARTBEAT, a TIME_SYNC_REPLY and one COIL_STATUS per pulse;
-the firmware TIME_SYNC, one COIL_PULSE_CMD per pulse (optionally signed),
-one MAG_FLIP_CMD per sensor per cycle, one PULSE_WINDOW per sensor and coil
-and one POSE per sensor per cycle, and its HEARTBEAT.
+The traffic model (protocol v2, the sensor bus): every sensor node sends
+MAG_PACKED at the magnetometer rate (one 8-byte frame), its IMU as IMU_DELTA
+pairs (delta angle and delta velocity, one 8-byte frame each) at the delta
+rate, a HEARTBEAT and a TIME_SYNC_REPLY per sync; the coil driver a
+HEARTBEAT, a TIME_SYNC_REPLY and one COIL_STATUS per pulse; the firmware
+TIME_SYNC, one COIL_PULSE_CMD per pulse (optionally signed), one
+MAG_FLIP_CMD per sensor per cycle and its HEARTBEAT. POSE and PULSE_WINDOW
+are firmware outputs for the host: they travel on the host link (serial, or
+a CAN FD host bus), not on the sensor bus, unless ``host_outputs`` puts them
+there (one POSE per sensor per cycle, one PULSE_WINDOW per sensor and coil).
+``compact=False`` gives the v1 sample traffic (MAG_SAMPLE, IMU_SAMPLE at the
+IMU rate) for comparison.
 """
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 
-from .can import PDU_OVERHEAD, frame_data_lengths, pdu_length
+from .can import PDU_OVERHEAD, direct_size, frame_data_lengths, is_direct, pdu_length
 from .framing import SIG_LEN
-from .schema import BY_NAME
+from .schema import BY_NAME, MAX_NODE_ID, NODE_SENSOR_BASE
 
 
 def classic_frame_bits(n: int, extended: bool = False) -> int:
@@ -56,21 +62,32 @@ class Traffic:
     coils: int = 3
     mag_rate_hz: float = 120.0
     imu_rate_hz: float = 100.0
+    #: IMU_DELTA pairs per second per node (compact traffic; 0: no IMU)
+    imu_delta_rate_hz: float = 10.0
     cycle_s: float = 0.6
     heartbeat_hz: float = 1.0
     sync_hz: float = 1.0
     signed_commands: bool = False
     flips_per_cycle: float = 1.0
     pulse_windows: bool = True
+    #: POSE and PULSE_WINDOW on the sensor bus (else on the host link)
+    host_outputs: bool = False
+    #: v2 sample messages (MAG_PACKED, IMU_DELTA); False: MAG_SAMPLE and IMU_SAMPLE
+    compact: bool = True
 
 
 def traffic_rows(t: Traffic) -> list[tuple[str, str, int, float, bool]]:
     """``(message, sender, number of senders, rate per sender Hz, signed)``."""
     cyc = 1.0 / t.cycle_s
     pulses = t.coils * cyc
-    rows = [
-        ("MAG_SAMPLE", "sensor", t.sensors, t.mag_rate_hz, False),
-        ("IMU_SAMPLE", "sensor", t.sensors, t.imu_rate_hz, False),
+    if t.compact:
+        imu_rate = t.imu_delta_rate_hz if t.imu_rate_hz > 0 else 0.0
+        rows = [("MAG_PACKED", "sensor", t.sensors, t.mag_rate_hz, False),
+                ("IMU_DELTA", "sensor", t.sensors, 2.0 * imu_rate, False)]
+    else:
+        rows = [("MAG_SAMPLE", "sensor", t.sensors, t.mag_rate_hz, False),
+                ("IMU_SAMPLE", "sensor", t.sensors, t.imu_rate_hz, False)]
+    rows += [
         ("HEARTBEAT", "sensor", t.sensors, t.heartbeat_hz, False),
         ("TIME_SYNC_REPLY", "sensor", t.sensors, t.sync_hz, False),
         ("COIL_STATUS", "coil driver", 1, pulses, False),
@@ -79,10 +96,11 @@ def traffic_rows(t: Traffic) -> list[tuple[str, str, int, float, bool]]:
         ("TIME_SYNC", "firmware", 1, t.sync_hz, False),
         ("COIL_PULSE_CMD", "firmware", 1, pulses, t.signed_commands),
         ("MAG_FLIP_CMD", "firmware", 1, t.flips_per_cycle * t.sensors * cyc, False),
-        ("POSE", "firmware", 1, t.sensors * cyc, False),
         ("HEARTBEAT", "firmware", 1, t.heartbeat_hz, False),
     ]
-    if t.pulse_windows:
+    if t.host_outputs:
+        rows.append(("POSE", "firmware", 1, t.sensors * cyc, False))
+    if t.host_outputs and t.pulse_windows:
         rows.append(("PULSE_WINDOW", "firmware", 1, t.sensors * t.coils * cyc, False))
     return [r for r in rows if r[2] > 0 and r[3] > 0]
 
@@ -106,14 +124,15 @@ def bus_load(t: Traffic, bitrate: int = 500_000, fd: bool = False, data_bitrate:
         bps = bits * rate * n
         total += bps
         rows.append({"message": name, "sender": sender, "senders": n, "rate_hz": round(rate, 4),
-                     "pdu_bytes": pdu_length(BY_NAME[name].id, signed), "signed": signed,
+                     "pdu_bytes": (direct_size(BY_NAME[name].id) if not signed and is_direct(BY_NAME[name].id, fd)
+                                   else pdu_length(BY_NAME[name].id, signed)), "signed": signed,
                      "frames_per_msg": len(sizes), "frame_bytes": sizes,
                      "bits_per_msg": round(bits, 1), "bits_per_s": round(bps, 1),
                      "load_pct": round(100.0 * bps / bitrate, 3)})
     load = total / bitrate
     # how many sensor nodes fit (load <= 100 %) with everything else unchanged
     fit = 0
-    for k in range(0, 32 - 16 + 1):
+    for k in range(0, MAX_NODE_ID - NODE_SENSOR_BASE + 2):
         tk = Traffic(**{**asdict(t), "sensors": k})
         if sum(message_bits(nm, sg, fd, bitrate, data_bitrate)[1] * r * nn
                for nm, _, nn, r, sg in traffic_rows(tk)) <= bitrate:
@@ -150,4 +169,6 @@ def format_report(rep: dict) -> str:
     verdict = "fits" if rep["fits"] else "OVERLOADED"
     lines.append(f"{verdict}: {rep['load_pct']:.1f} % of the bus; at most {rep['max_sensor_nodes']} sensor "
                  f"nodes fit at this bit rate with the same traffic per node")
+    if not tr.get("host_outputs", True):
+        lines.append("POSE and PULSE_WINDOW travel on the host link (serial or a CAN FD host bus), not on this bus")
     return "\n".join(lines)

@@ -6,8 +6,8 @@ Identifiers (standard 11-bit)
 -----------------------------
 ::
 
-    bit  10 9 8 | 7 6 5 | 4 3 2 1 0
-         class  | index | sender node id (0..31)
+    bit  10 9 8 | 7 6 | 5 4 3 2 1 0
+         class  | index | sender node id (0..63)
 
 ``class`` is the schema's ``priority`` (0 most urgent) and ``index`` the
 rank of the message among the messages of its class, ordered by message id
@@ -19,7 +19,29 @@ since a lower identifier wins arbitration TIME_SYNC (class 0) beats
 everything, then COIL_PULSE_CMD (class 1), coil status, magnetometer flips
 and fault events (class 2), samples (3), poses (4), configuration and sync
 replies (5), heartbeats and diagnostics (6). Class 7 is unused. Node ids on
-CAN are 5 bits: firmware 1, coil driver 2, sensors 16..31.
+CAN are 6 bits (protocol v2; v1 had 3 index and 5 node bits): firmware 1,
+coil driver 2, sensors 16..63. A class holds at most 4 messages.
+
+A signed message travels segmented on the 29-bit identifier ``id11 << 18``
+(the 11-bit identifier in the base-id bits, extension bits zero), so its
+priority among the messages is that of its 11-bit identifier.
+
+Single frames (protocol v2)
+---------------------------
+A message whose payload fits one frame, unsigned, travels as that frame
+alone: the data bytes are the schema payload (little endian), without the
+first field ``node`` when the schema marks it as the sender
+(``sender_field``: the identifier carries it), with no PCI, seq or PDU CRC
+(the CAN CRC guards the frame, the HEARTBEAT schema hash the definition).
+It fits a classic frame when that payload is at most 8 bytes (MAG_PACKED,
+IMU_DELTA, CONFIG_GET) and a CAN FD frame when it is at most 64 bytes
+(every message of the schema; padded with 0xCC to a valid FD length). A
+receiver tells the forms apart by the identifier alone: an 11-bit
+identifier of a message that fits the frame it arrived in (classic: 8 bytes;
+FD: 64) is a single frame; a 29-bit identifier, or a message too long for
+the frame, is ISO-TP. On receipt the link gives the message the next number
+after the last seq it saw from that sender as its serial ``seq`` (exact for
+a sender that numbers all its messages, as the serial link does).
 
 PDU (what is segmented)
 -----------------------
@@ -44,7 +66,8 @@ Classic CAN (8 data bytes), frames not padded (DLC = bytes used)::
     first frame        0x1H LL | first 6 PDU bytes            (length HLL, 12 bits)
     consecutive frame  0x2N | next 7 PDU bytes                (N = 1, 2, .. 15, 0, 1, ..)
 
-MAG_SAMPLE (19-byte PDU) takes 3 classic frames: FF 8 bytes, CF 8, CF 7.
+MAG_SAMPLE (19-byte PDU) takes 3 classic frames: FF 8 bytes, CF 8, CF 7 (MAG_PACKED: one 8-byte
+single frame).
 With ``fd=True`` frames are CAN FD (64 bytes, padded with 0xCC to a valid FD
 length): single frame ``0x00 L`` (escape) for PDUs up to 62 bytes, first
 frame with 62 and consecutive frames with 63 PDU bytes. The receiver accepts
@@ -76,11 +99,12 @@ emulator run unchanged.
 from __future__ import annotations
 
 import itertools
+import struct
 import time
 
 import can
 
-from .codec import STRUCTS
+from .codec import CLASS_BY_ID, STRUCTS
 from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolError,
                      UnknownMessageError)
 from .framing import (CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
@@ -89,8 +113,11 @@ from .schema import BY_ID, MAX_PAYLOAD, MESSAGES
 
 # --- identifiers ----------------------------------------------------------
 CLASS_SHIFT = 8
-INDEX_SHIFT = 5
-NODE_BITS = 5
+INDEX_SHIFT = 6
+NODE_BITS = 6
+INDEX_MAX = 1 << (CLASS_SHIFT - INDEX_SHIFT)
+#: shift of the 11-bit identifier inside the 29-bit one of a signed (segmented) message
+EXT_SHIFT = 18
 NODE_MASK = (1 << NODE_BITS) - 1
 MAX_CAN_NODE = NODE_MASK
 #: mask that keeps the function code (class and index) of an identifier
@@ -101,8 +128,8 @@ def _assign_indices() -> dict[int, int]:
     idx: dict[int, int] = {}
     for prio in range(8):
         members = sorted(m.id for m in MESSAGES if m.priority == prio)
-        if len(members) > 8:
-            raise AssertionError(f"CAN class {prio} has {len(members)} messages; at most 8 fit")
+        if len(members) > INDEX_MAX:
+            raise AssertionError(f"CAN class {prio} has {len(members)} messages; at most {INDEX_MAX} fit")
         for k, mid in enumerate(members):
             idx[mid] = k
     for m in MESSAGES:
@@ -134,6 +161,29 @@ def parse_id(arbitration_id: int) -> tuple[int, int]:
     if mid is None or arbitration_id > 0x7FF:
         raise UnknownMessageError(f"CAN id {arbitration_id:#05x} is not a coiltrack identifier")
     return mid, arbitration_id & NODE_MASK
+
+
+def ext_id(std_id: int) -> int:
+    """The 29-bit identifier of a signed (segmented) message with 11-bit identifier ``std_id``."""
+    return std_id << EXT_SHIFT
+
+
+def std_of_ext(arbitration_id: int) -> int | None:
+    """The 11-bit identifier inside a coiltrack 29-bit one, None for a foreign identifier."""
+    if arbitration_id & ((1 << EXT_SHIFT) - 1) or arbitration_id >> EXT_SHIFT > 0x7FF:
+        return None
+    return arbitration_id >> EXT_SHIFT
+
+
+def direct_size(msg_id: int) -> int:
+    """Data bytes of the single-frame form of a message (payload less a sender ``node``)."""
+    d = BY_ID[msg_id]
+    return d.size - (1 if d.sender_field else 0)
+
+
+def is_direct(msg_id: int, fd: bool) -> bool:
+    """True when the unsigned message travels as one frame (classic: <= 8 bytes, FD: <= 64)."""
+    return direct_size(msg_id) <= (64 if fd else 8)
 
 
 # --- PDU ------------------------------------------------------------------
@@ -218,7 +268,19 @@ def segment(pdu: bytes, fd: bool = False) -> list[bytes]:
 
 def frame_data_lengths(msg_id: int, signed: bool = False, fd: bool = False) -> list[int]:
     """Data bytes of each CAN frame one message takes (for bus load)."""
+    if not signed and is_direct(msg_id, fd):
+        n = direct_size(msg_id)
+        return [fd_length(n) if fd else n]
     return [len(d) for d in segment(bytes(pdu_length(msg_id, signed)), fd)]
+
+
+def direct_data(msg_id: int, payload: bytes, fd: bool) -> bytes:
+    """The data bytes of a single frame from a schema payload."""
+    d = BY_ID[msg_id]
+    data = bytes(payload[1:]) if d.sender_field else bytes(payload)
+    if fd and len(data) > 8:
+        data += bytes([PAD]) * (fd_length(len(data)) - len(data))
+    return data
 
 
 class CanCodec:
@@ -236,18 +298,40 @@ class CanCodec:
         self.fd = fd
         self.brs = brs
 
-    def _messages(self, arb: int, pdu: bytes, timestamp: float = 0.0) -> list[can.Message]:
-        return [can.Message(arbitration_id=arb, is_extended_id=False, data=d, is_fd=self.fd,
+    def _messages(self, arb: int, pdu: bytes, timestamp: float = 0.0, signed: bool = False) -> list[can.Message]:
+        if signed:
+            arb = ext_id(arb)
+        return [can.Message(arbitration_id=arb, is_extended_id=signed, data=d, is_fd=self.fd,
                             bitrate_switch=self.fd and self.brs, timestamp=timestamp)
                 for d in segment(pdu, self.fd)]
 
+    def _direct(self, arb: int, msg_id: int, payload: bytes, timestamp: float) -> list[can.Message]:
+        return [can.Message(arbitration_id=arb, is_extended_id=False, data=direct_data(msg_id, payload, self.fd),
+                            is_fd=self.fd, bitrate_switch=self.fd and self.brs, timestamp=timestamp)]
+
     def encode(self, msg, seq: int = 0, src: int = 0, signature: bytes = b"",
                timestamp: float = 0.0) -> list[can.Message]:
-        return self._messages(can_id(msg.ID, src), build_pdu(msg, seq, src, signature), timestamp)
+        if not signature and is_direct(msg.ID, self.fd):
+            if msg.DEF.sender_field:
+                src = msg.node
+            st = STRUCTS[msg.ID]
+            try:
+                payload = st.pack(*msg)
+            except struct.error as exc:
+                raise EncodeError(f"{msg.NAME}: {exc}") from None
+            return self._direct(can_id(msg.ID, src), msg.ID, payload, timestamp)
+        return self._messages(can_id(msg.ID, src), build_pdu(msg, seq, src, signature), timestamp,
+                              bool(signature))
 
     def frames_from_raw(self, raw, timestamp: float = 0.0) -> list[can.Message]:
         msg_id, src, pdu = pdu_from_raw(raw)
-        return self._messages(can_id(msg_id, src), pdu, timestamp)
+        d = BY_ID[msg_id]
+        signed = bool(raw[1] & FLAG_SIGNED)
+        if not signed and is_direct(msg_id, self.fd):
+            if d.sender_field:
+                src = raw[HEADER_LEN]
+            return self._direct(can_id(msg_id, src), msg_id, bytes(raw[HEADER_LEN:HEADER_LEN + d.size]), timestamp)
+        return self._messages(can_id(msg_id, src), pdu, timestamp, signed)
 
     def reassembler(self, **kwargs) -> "CanReassembler":
         return CanReassembler(**kwargs)
@@ -302,7 +386,7 @@ class CanReassembler:
 
     COUNTERS = ("frames_in", "messages_ok", "frames_bad", "framing_errors", "crc_errors", "length_errors",
                 "unknown_ids", "out_of_order", "unexpected_cf", "timeouts", "aborted", "duplicates",
-                "rejected", "seq_gaps", "ignored")
+                "rejected", "seq_gaps", "ignored", "single_frames")
 
     def __init__(self, timeout_s: float | None = 0.5, verifier=None, on_frame=None, strict: bool = False):
         self.timeout_s = timeout_s
@@ -327,6 +411,7 @@ class CanReassembler:
         self.rejected = 0
         self.seq_gaps = 0
         self.ignored = 0
+        self.single_frames = 0
         #: bad frames or PDUs attributed to a message name
         self.bad_by_message: dict[str, int] = {}
         self.last_error: ProtocolError | None = None
@@ -370,10 +455,16 @@ class CanReassembler:
     def feed_with_headers(self, frame, now: float | None = None) -> list:
         """Like :meth:`feed`, returning ``(header, msg)`` pairs (header copies)."""
         self.frames_in += 1
-        if frame.is_error_frame or frame.is_remote_frame or frame.is_extended_id:
+        if frame.is_error_frame or frame.is_remote_frame:
             self.ignored += 1
             return []
         arb = frame.arbitration_id
+        if frame.is_extended_id:
+            std = std_of_ext(arb)
+            if std is None or (std & FUNCTION_MASK) not in _MSG_BY_BASE:
+                self.ignored += 1
+                return []
+            arb = std
         try:
             msg_id, src = parse_id(arb)
         except UnknownMessageError as exc:
@@ -381,6 +472,8 @@ class CanReassembler:
             return []
         t = frame.timestamp if now is None else now
         data = bytes(frame.data or b"")
+        if not frame.is_extended_id and is_direct(msg_id, bool(frame.is_fd)):
+            return self._single(arb, msg_id, src, data)
         if not data:
             self._bad(arb, "framing_errors", FramingError(f"CAN id {arb:#05x}: empty frame"))
             return []
@@ -445,6 +538,29 @@ class CanReassembler:
             return []
         self._bad(arb, "framing_errors", FramingError(f"CAN id {arb:#05x}: unknown PCI {data[0]:#04x}"))
         return []
+
+    def _single(self, arb: int, msg_id: int, src: int, data: bytes) -> list:
+        """A single-frame message (no PCI, seq or PDU CRC): its length is checked, nothing else."""
+        d = BY_ID[msg_id]
+        n = direct_size(msg_id)
+        if len(data) < n or len(data) > (fd_length(n) if n > 8 else n):
+            self._bad(arb, "length_errors", LengthError(f"{d.name}: single frame of {len(data)} bytes, "
+                                                        f"schema says {n}"))
+            return []
+        payload = (bytes([src]) if d.sender_field else b"") + data[:n]
+        msg = CLASS_BY_ID[msg_id]._make(STRUCTS[msg_id].unpack(payload))
+        seq = (self._last_seq.get(src, -1) + 1) & 0xFF      # the sender's previous seq + 1
+        self._last_seq[src] = seq
+        hdr = self.header
+        hdr.seq, hdr.src, hdr.flags, hdr.msg_id, hdr.signature, hdr.signed_part = seq, src, 0, msg_id, b"", b""
+        if self.verifier is not None and not self.verifier(hdr, msg):
+            self._bad(arb, "rejected", getattr(self.verifier, "last_error", None))
+            return []
+        self.single_frames += 1
+        self.messages_ok += 1
+        if self.on_frame is not None:
+            self.on_frame(hdr, msg)
+        return [(_copy_header(hdr), msg)]
 
     def _complete(self, arb: int, msg_id: int, src: int, pdu: bytes) -> list:
         if self._last_pdu.get(arb) == pdu:
@@ -525,8 +641,11 @@ class CanLink:
                     continue
                 break
             self.frames_rx += 1
-            if not (frame.is_extended_id or frame.is_error_frame) and (frame.arbitration_id & NODE_MASK) in self.local_ids \
-                    and (frame.arbitration_id & FUNCTION_MASK) in _MSG_BY_BASE:
+            arb = frame.arbitration_id
+            if frame.is_extended_id:
+                arb = std_of_ext(arb)
+            if arb is not None and not frame.is_error_frame and (arb & NODE_MASK) in self.local_ids \
+                    and (arb & FUNCTION_MASK) in _MSG_BY_BASE:
                 self.echoes += 1
                 continue
             for hdr, msg in self.reassembler.feed_with_headers(frame):
@@ -568,7 +687,7 @@ class CanLink:
     def send_message(self, msg, seq: int = 0, src: int | None = None, signature: bytes = b"") -> int:
         """Send one message directly (no serial framing); returns frames sent."""
         src = self.node_id if src is None else src
-        self.local_ids.add(src)
+        self.local_ids.add(msg.node if msg.DEF.sender_field and not signature else src)
         return self._send_frames(self.codec.encode(msg, seq, src, signature))
 
     def _send_message(self, hdr, msg) -> None:
@@ -580,7 +699,7 @@ class CanLink:
         except ProtocolError:
             self.tx_errors += 1
             return
-        self.local_ids.add(src)
+        self.local_ids.add(msg.node if msg.DEF.sender_field else src)
         self._send_frames(frames)
 
     def _send_frames(self, frames) -> int:

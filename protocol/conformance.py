@@ -25,7 +25,8 @@ coil driver (role 1)
     are answered with the REFUSED bit. With a key: ``signed_accepted``,
     ``unsigned_rejected``, ``forged_rejected``, ``replay_rejected``.
 sensor (role 2)
-    ``mag_stream`` MAG_SAMPLE at the expected rate (from its time stamps and
+    ``mag_stream`` MAG_SAMPLE (or protocol v2's MAG_PACKED, its time restored
+    on arrival) at the expected rate (from its time stamps and
     from arrival times, within ``rate_tolerance``); ``mag_timestamps``
     strictly increasing ``t_us``; ``mag_grid`` every interval between
     consecutive stamps within ``grid_tolerance_us`` (400 us, the firmware's
@@ -65,7 +66,8 @@ from .codec import MSG
 from .errors import ProtocolError, SchemaMismatchError
 from .framing import FrameDecoder, FrameEncoder, build_frame, cobs_decode, cobs_encode, encode_frame
 from .peer import check_peer, role_name
-from .schema import (BY_ID, COIL_FAULT_REFUSED, CURRENT_LSB_A, NODE_FIRMWARE, ROLE_COIL_DRIVER,
+from .schema import (BY_ID, COIL_FAULT_REFUSED, CURRENT_LSB_A, NODE_FIRMWARE, ROLE_COIL_DRIVER, STAMP_FLIP,
+                     STAMP_MASK, STAMP_SATURATED, unwrap_stamp,
                      ROLE_SENSOR)
 from .signing import Signer
 
@@ -266,7 +268,14 @@ class Conformance:
 
     # ------------------------------------------------------------ plumbing
     def _on_frame(self, hdr, msg) -> None:
-        rx = _Rx(self.clock(), hdr.src, hdr.seq, hdr.flags, msg)
+        t = self.clock()
+        if msg.NAME == "MAG_PACKED":
+            # protocol v2's one-frame sample: its time restored against the master clock at arrival,
+            # then judged by the same rules as a MAG_SAMPLE
+            st = msg.stamp
+            msg = MSG["MAG_SAMPLE"](msg.node, unwrap_stamp(st & STAMP_MASK, self.master_us(t)), msg.x, msg.y, msg.z,
+                                    (1 if st & STAMP_FLIP else 0) | (2 if st & STAMP_SATURATED else 0))
+        rx = _Rx(t, hdr.src, hdr.seq, hdr.flags, msg)
         if len(self.log) < self.o.max_log:
             self.log.append(rx)
         else:

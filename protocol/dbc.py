@@ -1,36 +1,37 @@
 """DBC export of the CAN side of the schema (cantools writes the file).
 
-What the DBC describes
-----------------------
-A DBC message is one frame layout on one identifier. The coiltrack
-identifiers carry the sender node in their low 5 bits and most messages
-span several ISO-TP frames, so the export contains:
+What the DBC describes (protocol v2)
+------------------------------------
+A DBC message is one frame layout on one identifier. Every coiltrack message
+has a single-frame form (``protocol.can``, "Single frames"): the schema
+payload without the sender's ``node`` byte where the identifier carries it.
+The export describes each message in that form, so it decodes frames
+straight off the bus:
 
-- a message that fits **one classic frame** (an ISO-TP single frame, PDU
-  <= 7 bytes; today CONFIG_GET) as that frame: signals are the single-frame
-  PCI byte, the seq byte, the schema fields and the PDU CRC. It decodes the
-  frame as it is on the bus.
-- every other message's **reassembled payload** as a CAN FD message (the
-  schema payload is up to 63 bytes): ``length`` = payload size, signals =
-  the schema fields (little endian, scale and unit from the schema). Decode
-  the bytes after the seq byte of the reassembled PDU, ``pdu[1:1 + size]``,
-  with it. Real FD frames do not carry this layout (they carry the ISO-TP
-  PCI and the PDU).
+- MAG_PACKED, IMU_DELTA and CONFIG_GET (<= 8 bytes) as classic frames: on a
+  classic bus and on CAN FD (the samples, 120 Hz and 10 Hz per sensor);
+- every other message as a CAN FD frame of its padded length (HEARTBEAT,
+  TIME_SYNC, COIL_PULSE_CMD, COIL_STATUS, POSE, ...): straight off a CAN FD
+  bus. On a classic bus these are segmented (ISO-TP, 11-bit identifiers) and
+  the DBC decodes the reassembled payload after :func:`dbc_data` (drop the
+  sender byte, pad);
+- signed commands (29-bit identifiers, segmented) are not in the DBC.
+
+The compact stamps carry sub-fields as signals of their own: ``t_8us``
+(14 bits, 8 us units; the master time modulo 131.072 ms), ``saturated`` and
+``flip`` (MAG_PACKED), ``dvel`` (IMU_DELTA: 0 delta angle, 1 delta velocity).
 
 Every message is on the identifier with node bits zero
-(``protocol.can.BASE_ID``), which no node sends on, so a tool matching
-identifiers exactly never misreads a segment. Load the file with
-``cantools.database.load_file(path, frame_id_mask=0x7E0)`` and
+(``protocol.can.BASE_ID``), which no node sends on. Load the file with
+``cantools.database.load_file(path, frame_id_mask=0x7C0)`` and
 ``db.get_message_by_frame_id(bus_id).decode(data)`` finds the message
 whatever the sender (``frame_id_mask`` is a loading option, not part of the
-file; ``decode_message`` does not apply it), where
-``data`` is the frame for single-frame messages and the reassembled payload
-for the others. The DBC nodes are FIRMWARE (node 1), COIL_DRIVER (2) and
-SENSOR (16..31).
+file); the sender is ``bus_id & 0x3F``. The DBC nodes are FIRMWARE (node 1),
+COIL_DRIVER (2) and SENSOR (16..63).
 """
 from __future__ import annotations
 
-from .can import BASE_ID, PDU_OVERHEAD, fd_length
+from .can import BASE_ID, FUNCTION_MASK, direct_data, direct_size, fd_length
 from .schema import MESSAGES, PROTOCOL_VERSION, SCHEMA_HASH
 
 _FLOAT = {"f32", "f64"}
@@ -46,17 +47,6 @@ def _signal(name, start_byte, f=None, bits=None, signed=False, scale=1.0, unit="
                   unit=unit or None, comment=comment)
 
 
-def _field_signals(mdef, offset: int) -> list:
-    sigs = []
-    pos = offset
-    for f in mdef.fields:
-        bits = f.size * 8
-        sigs.append(_signal(f.name, pos, bits=bits, signed=f.type[0] == "i", scale=f.scale,
-                            unit=f.unit, comment=f.doc or None, is_float=f.type in _FLOAT))
-        pos += f.size
-    return sigs
-
-
 _HEADER = """VERSION "{version}"
 
 NS_ :
@@ -67,11 +57,40 @@ BU_: FIRMWARE COIL_DRIVER SENSOR
 
 CM_ BU_ FIRMWARE "node id 1";
 CM_ BU_ COIL_DRIVER "node id 2";
-CM_ BU_ SENSOR "node ids 16..31";
+CM_ BU_ SENSOR "node ids 16..63";
 BA_DEF_  "BusType" STRING ;
 BA_DEF_DEF_  "BusType" "CAN FD";
 BA_ "BusType" "CAN FD";
 """
+
+
+def _subfield_signals(f, pos: int) -> list:
+    return [_bit_signal(name, pos * 8 + b0, n, scale, unit, f"{f.name} bits {b0}..{b0 + n - 1}")
+            for name, b0, n, scale, unit in f.bits]
+
+
+def _bit_signal(name, start_bit, bits, scale, unit, comment):
+    from cantools.database.can import Signal
+    from cantools.database.conversion import BaseConversion
+
+    return Signal(name=name, start=start_bit, length=bits, byte_order="little_endian", is_signed=False,
+                  conversion=BaseConversion.factory(scale=scale, offset=0, is_float=False),
+                  unit=unit or None, comment=comment)
+
+
+def _single_frame_signals(mdef) -> list:
+    sigs = []
+    pos = 0
+    for i, f in enumerate(mdef.fields):
+        if i == 0 and mdef.sender_field:
+            continue                                   # the identifier's node bits
+        if f.bits:
+            sigs += _subfield_signals(f, pos)
+        else:
+            sigs.append(_signal(f.name, pos, bits=f.size * 8, signed=f.type[0] == "i", scale=f.scale,
+                                unit=f.unit, comment=f.doc or None, is_float=f.type in _FLOAT))
+        pos += f.size
+    return sigs
 
 
 def build_database():
@@ -84,23 +103,16 @@ def build_database():
         database_format="dbc")
     for m in MESSAGES:
         base = BASE_ID[m.id]
-        pdu = PDU_OVERHEAD + m.size
-        if pdu <= 7:
-            sigs = [_signal("ISOTP_PCI", 0, bits=8, comment="single frame: 0x0L, L = PDU length"),
-                    _signal("SEQ", 1, bits=8, comment="sender sequence number")]
-            sigs += _field_signals(m, 2)
-            sigs.append(_signal("CRC", 2 + m.size, bits=16,
-                                comment="CRC-16/CCITT-FALSE of the serial header and payload, then the CRC extra"))
-            comment = (f"{m.doc} Schema id {m.id:#04x}, class {m.priority}. One classic ISO-TP single frame "
-                       f"({1 + pdu} bytes) as on the bus; the message from node n uses id {base:#05x} | n.")
-            db.messages.append(Message(frame_id=base, name=m.name, length=1 + pdu, signals=sigs,
-                                       comment=comment, strict=True))
-        else:
-            comment = (f"{m.doc} Schema id {m.id:#04x}, class {m.priority}. Reassembled payload "
-                       f"(PDU bytes 1..{m.size}); on the bus the message from node n uses id {base:#05x} | n, "
-                       f"segmented ISO-TP style (docs/protocol.md).")
-            db.messages.append(Message(frame_id=base, name=m.name, length=m.size, is_fd=m.size > 8,
-                                       signals=_field_signals(m, 0), comment=comment, strict=True))
+        n = direct_size(m.id)
+        classic = n <= 8
+        where = ("one classic frame (classic and CAN FD bus)" if classic else
+                 f"one CAN FD frame ({fd_length(n)} bytes, padded 0xCC); segmented on a classic bus")
+        comment = (f"{m.doc} Schema id {m.id:#04x}, class {m.priority}. Single-frame form: {where}; the "
+                   f"message from node n uses id {base:#05x} | n"
+                   + (" (n is the sender, the payload's node field)." if m.sender_field else "."))
+        db.messages.append(Message(frame_id=base, name=m.name, length=n if classic else fd_length(n),
+                                   is_fd=not classic, signals=_single_frame_signals(m), comment=comment,
+                                   strict=True))
     db.refresh()
     return db
 
@@ -109,11 +121,7 @@ def dbc_string() -> str:
     return build_database().as_dbc_string()
 
 
-def payload_from_pdu(pdu: bytes, size: int) -> bytes:
-    """The bytes a ``NAME`` DBC message decodes: the payload of a PDU."""
-    return bytes(pdu[1:1 + size])
-
-
-def padded(payload: bytes) -> bytes:
-    """A payload padded with zeros to the next CAN FD length."""
-    return payload + bytes(fd_length(len(payload)) - len(payload))
+def dbc_data(msg_id: int, payload: bytes) -> bytes:
+    """The bytes the DBC message ``msg_id`` decodes, from a schema payload (e.g. the
+    payload of a reassembled classic PDU, ``pdu[1:1 + size]``): the single-frame data."""
+    return direct_data(msg_id, payload, fd=True)

@@ -17,6 +17,7 @@ _CONSTANT_GROUPS = (
     ("Well-known node ids", "NODE_"),
     ("Coil fault bits (COIL_STATUS.faults)", "COIL_FAULT_"),
     ("Pose status bits (POSE.status)", "POSE_"),
+    ("Compact stamps (MAG_PACKED.stamp, IMU_DELTA.stamp)", "STAMP_"),
     ("Fault / event codes (FAULT_EVENT.code)", "EVT_"),
 )
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from .codec import MSG
 from .schema import (COIL_FAULT_CURRENT_SAG, EVT_SEQ_GAP, MESSAGES, NODE_COIL_DRIVER, NODE_FIRMWARE,
                      NODE_SENSOR_BASE, POSE_FUSED, POSE_VALID, PROTOCOL_VERSION, ROLE_SENSOR,
-                     SCHEMA_HASH, STATE_RUNNING)
+                     SCHEMA_HASH, STAMP_FLIP, STATE_RUNNING, pack_stamp)
 
 
 @dataclass(frozen=True)
@@ -41,6 +41,10 @@ _VALUES = {
     "MAG_SAMPLE": (S, 5, dict(node=S, t_us=2_000_208_333, x=1234, y=-2345, z=3456, flip=1)),
     "IMU_SAMPLE": (S + 1, 6, dict(node=S + 1, t_us=2_000_210_000, ax=120, ay=-340, az=9810,
                                    gx=-12, gy=34, gz=-56)),
+    # 2_000_208_333 us -> stamp bits (2_000_208_333 + 4) // 8 mod 2**14 = 0x1EA2, set state (bit 15)
+    "MAG_PACKED": (S, 17, dict(node=S, x=1234, y=-2345, z=3456, stamp=pack_stamp(2_000_208_333) | STAMP_FLIP)),
+    # node 40: a sensor id beyond v1's 5-bit node field; delta angle (bit 15 clear)
+    "IMU_DELTA": (S + 24, 18, dict(node=S + 24, x=-420, y=1337, z=12, stamp=pack_stamp(2_000_250_000))),
     "MAG_FLIP_CMD": (NODE_FIRMWARE, 8, dict(node=S, at_us=2_000_700_000, state=1)),
     "POSE": (NODE_FIRMWARE, 9, dict(node=S, t_us=2_000_330_000, px=0.25, py=-0.125, pz=0.0625,
                                     qw=0.5, qx=0.5, qy=-0.5, qz=0.5,

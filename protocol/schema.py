@@ -16,7 +16,7 @@ import hashlib
 import struct
 from dataclasses import dataclass, field as dc_field
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 
 #: wire types: struct format character and size in bytes
 TYPES = {
@@ -33,6 +33,8 @@ ROLE_MONITOR = 3     # a passive tool (conformance tester, logger)
 NODE_FIRMWARE = 1
 NODE_COIL_DRIVER = 2
 NODE_SENSOR_BASE = 16   # sensor node k has id NODE_SENSOR_BASE + k
+#: the highest node id the CAN identifier carries (6 node bits); sensors 16..63
+MAX_NODE_ID = 63
 NODE_BROADCAST = 0
 
 # --- node states (heartbeat) -------------------------------------------------
@@ -45,6 +47,25 @@ MAG_LSB_T = 5e-9
 ACC_LSB = 1e-3
 #: rad/s per LSB of IMU gyroscope counts (+/-16.4 rad/s)
 GYR_LSB = 5e-4
+#: compact sample time stamps (MAG_PACKED, IMU_DELTA ``stamp``): bits 0..13 are the sample
+#: time on the master clock in STAMP_LSB_US units modulo 2**STAMP_BITS (131.072 ms); the
+#: receiver restores the full time from its own clock (:func:`unwrap_stamp`)
+STAMP_LSB_US = 8
+STAMP_BITS = 14
+STAMP_MASK = (1 << STAMP_BITS) - 1
+STAMP_WRAP_US = STAMP_LSB_US << STAMP_BITS
+#: a stamp may lie up to this far ahead of the receiver's clock (node clock ahead, receiver's
+#: tick late); it may be up to STAMP_WRAP_US - STAMP_LEAD_US behind
+STAMP_LEAD_US = 16_384
+#: MAG_PACKED.stamp bit 14: the sample saturated; bit 15: set/reset state (1 set)
+STAMP_SATURATED = 1 << 14
+STAMP_FLIP = 1 << 15
+#: IMU_DELTA.stamp bit 15: 0 delta angle, 1 delta velocity (bit 14 is 0)
+STAMP_DVEL = 1 << 15
+#: rad per LSB of IMU_DELTA delta angle (+/-1.638 rad per frame: 16.4 rad/s at 10 Hz)
+DANG_LSB_RAD = 5e-5
+#: m/s per LSB of IMU_DELTA delta velocity (+/-3.277 m/s per frame: 32.8 m/s^2 at 10 Hz)
+DVEL_LSB_MPS = 1e-4
 #: amperes per LSB of coil currents (signed milliamperes)
 CURRENT_LSB_A = 1e-3
 #: AC drive plan scaling: frequency in mHz, current amplitude in uA, phase in urad
@@ -106,6 +127,8 @@ class Field:
     unit: str = ""
     scale: float = 1.0
     doc: str = ""
+    #: bit fields of an integer field for the DBC: ``(name, first bit, bits, scale, unit)``
+    bits: tuple = ()
 
     @property
     def fmt(self) -> str:
@@ -126,6 +149,9 @@ class MessageDef:
     priority: int = 4
     #: commands that move current or change configuration may be signed
     signable: bool = False
+    #: the first field ``node`` is the sender's node id: a CAN single frame leaves it out
+    #: (the identifier carries it)
+    sender_field: bool = False
     extra: dict = dc_field(default_factory=dict, compare=False)
 
     @property
@@ -163,7 +189,8 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("schema_hash", "u32", doc="schema_hash() of the sender's table"),
         F("uptime_us", "u64", "us"),
         F("errors", "u16", doc="bad frames counted since boot (saturating)"),
-    ), "Every node, once a second: identity, state and the schema it speaks.", priority=6),
+    ), "Every node, once a second: identity, state and the schema it speaks.", priority=6,
+        sender_field=True),
     MessageDef(0x02, "TIME_SYNC", (
         F("master_time_us", "u64", "us", doc="master (firmware) clock at transmission"),
         F("sync_seq", "u16"),
@@ -174,7 +201,7 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("node_time_us", "u64", "us", doc="node clock when the TIME_SYNC arrived"),
         F("offset_us", "i32", "us", doc="node estimate of node - master"),
         F("drift_ppb", "i32", "ppb", doc="node estimate of its drift"),
-    ), "A node's answer to TIME_SYNC: its clock and its correction.", priority=5),
+    ), "A node's answer to TIME_SYNC: its clock and its correction.", priority=5, sender_field=True),
     MessageDef(0x10, "COIL_PULSE_CMD", (
         F("coil", "u8", doc="coil index on the driver"),
         F("pulse_id", "u16", doc="wraps; echoed in COIL_STATUS"),
@@ -197,7 +224,8 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("y", "i16", "T", MAG_LSB_T),
         F("z", "i16", "T", MAG_LSB_T),
         F("flip", "u8", doc="bit0 set/reset state, bit1 saturated"),
-    ), "One magnetometer sample in the sensor frame.", priority=3),
+    ), "One magnetometer sample in the sensor frame (full time stamp; links without a bus budget).",
+        priority=3, sender_field=True),
     MessageDef(0x21, "IMU_SAMPLE", (
         F("node", "u8"),
         F("t_us", "u64", "us"),
@@ -207,12 +235,36 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("gx", "i16", "rad/s", GYR_LSB),
         F("gy", "i16", "rad/s", GYR_LSB),
         F("gz", "i16", "rad/s", GYR_LSB),
-    ), "Accelerometer (specific force) and gyroscope in the sensor frame.", priority=3),
+    ), "Accelerometer (specific force) and gyroscope in the sensor frame (full time stamp).", priority=3,
+        sender_field=True),
     MessageDef(0x22, "MAG_FLIP_CMD", (
         F("node", "u8"),
         F("at_us", "u64", "us", doc="when to flip (master clock)"),
         F("state", "u8", doc="0 reset, 1 set"),
     ), "Schedule a magnetometer set/reset so it falls outside pulses.", priority=2),
+    MessageDef(0x23, "MAG_PACKED", (
+        F("node", "u8", doc="sender node id (on CAN: the identifier's node bits)"),
+        F("x", "i16", "T", MAG_LSB_T),
+        F("y", "i16", "T", MAG_LSB_T),
+        F("z", "i16", "T", MAG_LSB_T),
+        F("stamp", "u16", doc="bits 0..13 sample time / 8 us mod 2^14 (master clock), bit 14 saturated, "
+                              "bit 15 set/reset state",
+          bits=(("t_8us", 0, 14, STAMP_LSB_US, "us"), ("saturated", 14, 1, 1, ""), ("flip", 15, 1, 1, ""))),
+    ), "One magnetometer sample in one classic CAN frame: the time as 14 bits of the master clock "
+       "(8 us units, wraps every 131 ms, restored by the receiver).", priority=3, sender_field=True),
+    MessageDef(0x24, "IMU_DELTA", (
+        F("node", "u8", doc="sender node id (on CAN: the identifier's node bits)"),
+        F("x", "i16", doc="running sum of delta angle (DANG_LSB_RAD rad) or delta velocity (DVEL_LSB_MPS m/s), "
+                          "wrapped to 16 bits"),
+        F("y", "i16"),
+        F("z", "i16"),
+        F("stamp", "u16", doc="bits 0..13 end of the interval / 8 us mod 2^14 (master clock), bit 15 "
+                              "0 delta angle, 1 delta velocity",
+          bits=(("t_8us", 0, 14, STAMP_LSB_US, "us"), ("dvel", 15, 1, 1, ""))),
+    ), "Running sums of the per-interval delta angle (coning-free) or delta velocity (body frame at the "
+       "interval's middle) integrated on the node; the receiver differences consecutive pairs (one stamp: "
+       "one interval), so the quantisation remainder is carried and a lost pair loses no motion.", priority=3,
+        sender_field=True),
     MessageDef(0x30, "POSE", (
         F("node", "u8", doc="sensor node the pose belongs to"),
         F("t_us", "u64", "us"),
@@ -247,7 +299,7 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("key", "u16"),
         F("value", "f64"),
         F("result", "u8", doc="0 ok, 1 unknown key, 2 out of range, 3 read-only, 4 auth"),
-    ), "Answer to CONFIG_GET / CONFIG_SET.", priority=5),
+    ), "Answer to CONFIG_GET / CONFIG_SET.", priority=5, sender_field=True),
     MessageDef(0x50, "FAULT_EVENT", (
         F("node", "u8"),
         F("t_us", "u64", "us"),
@@ -293,3 +345,15 @@ def schema_hash() -> int:
 
 
 SCHEMA_HASH = schema_hash()
+
+
+def pack_stamp(t_us: int) -> int:
+    """The 14 time bits of a compact stamp for master time ``t_us`` (rounded to 8 us)."""
+    return ((int(t_us) + STAMP_LSB_US // 2) // STAMP_LSB_US) & STAMP_MASK
+
+
+def unwrap_stamp(stamp: int, now_us: int, lead_us: int = STAMP_LEAD_US) -> int:
+    """The master time (us, a multiple of 8) of a compact stamp (its low 14 bits) received
+    at ``now_us``: the one time in ``(now + lead - 131072 us, now + lead]`` with those bits."""
+    r = (int(now_us) + lead_us) // STAMP_LSB_US
+    return (r - ((r - stamp) & STAMP_MASK)) * STAMP_LSB_US

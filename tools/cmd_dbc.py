@@ -1,7 +1,7 @@
 """Export the CAN messages as a DBC file (cantools). Messages that fit one
 classic frame are described as that frame; the others as their reassembled
 payload (a CAN FD message). All are on the identifier with node bits zero;
-load with ``cantools.database.load_file(path, frame_id_mask=0x7E0)``. See
+load with ``cantools.database.load_file(path, frame_id_mask=0x7C0)``. See
 docs/protocol.md."""
 from __future__ import annotations
 

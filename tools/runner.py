@@ -46,7 +46,8 @@ class BenchSetup:
         self.verifier = SignatureVerifier(key, require=True) if key else None
         mag = MagSpec(rate_hz=spec.rate_hz, noise_t=spec.noise_t, flip_every=getattr(spec, "flip_every", 8))
         imu_rate = getattr(spec, "imu_rate_hz", 0.0)
-        imu = ImuSpec(rate_hz=imu_rate) if imu_rate else None
+        delta_rate = getattr(spec, "imu_delta_rate_hz", 0.0)
+        imu = ImuSpec(rate_hz=imu_rate, delta_rate_hz=delta_rate) if imu_rate else None
         self.bench = assemble(self.world, link, mag=mag, imu=imu, faults=faults, seed_driver=s_driver,
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
@@ -62,7 +63,7 @@ class BenchSetup:
             from coiltrack.protocol import FrameEncoder
 
             rng = np.random.default_rng(s_clocks + 1)
-            src_imu = ImuSpec(rate_hz=imu_rate or 120.0)
+            src_imu = ImuSpec(rate_hz=imu_rate or 120.0, delta_rate_hz=delta_rate)
             if not getattr(spec, "source_acc_offset", True):
                 src_imu.acc_bias_sigma, src_imu.acc_bias_rw = 0.0, 0.0
             node = SourceImuNode(src_id, self.world, imu=src_imu,

@@ -33,6 +33,7 @@ class SensorSpec:
     clock_drift_ppm: float = 50.0     # node clocks drift uniformly within +-this (seeded)
     source_imu_id: int = 0            # an IMU + magnetometer module on the source (hil.imu; 0: none)
     source_acc_offset: bool = True    # the source module's accelerometer has its seeded offset and random walk
+    imu_delta_rate_hz: float = 0.0    # the IMU sent as IMU_DELTA pairs at this rate (0: IMU_SAMPLE at imu_rate_hz)
 
 
 @dataclass(frozen=True)
@@ -147,14 +148,22 @@ def _fusion_config(source_imu: bool = False, **kw):
         # frame) unless it is to use the IMU module on the source (eq 6.8)
         from coiltrack.hil.imu import NODE_SOURCE_IMU
 
-        return FirmwareConfig(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU if source_imu else 0, **kw)
+        # The nodes sample at 120 Hz and send IMU_DELTA pairs at 10 Hz (protocol v2, the bus budget
+        # of 16 sensors); the receive stage gives the filters the 120 Hz steps back
+        return FirmwareConfig(imu_rate_hz=120.0, imu_delta_rate_hz=FUSION_DELTA_HZ,
+                              source_imu_id=NODE_SOURCE_IMU if source_imu else 0, **kw)
     return make
+
+
+#: IMU_DELTA pairs per second of the fusion scenarios' nodes (their IMUs sample at 120 Hz)
+FUSION_DELTA_HZ = 10.0
 
 
 def _fusion_sensor(source_imu: bool = False) -> SensorSpec:
     from coiltrack.hil.imu import NODE_SOURCE_IMU
 
-    return SensorSpec(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU if source_imu else 0)
+    return SensorSpec(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU if source_imu else 0,
+                      imu_delta_rate_hz=FUSION_DELTA_HZ)
 
 
 _FUSION_REFERENCE = {"source": "Roetenberg 2006, Table 6.1, bench test (fusion); Table 5.1, bench test (magnetic)",

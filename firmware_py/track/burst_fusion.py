@@ -121,20 +121,32 @@ class FlipOffset:
 
 
 def _compass_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, gate: PulseGate):
-    """Newest magnetometer sample of ``ring`` newer than ``after_t``, within
-    ``max_age_us`` of ``t_imu``, not saturated and outside the pulses; returns
-    its slot or -1."""
-    if ring._count == 0:
+    """The magnetometer sample of ``ring`` nearest ``t_imu`` if it is newer
+    than ``after_t``, within ``max_age_us`` of ``t_imu``, not saturated and
+    outside the pulses; returns its slot or -1. The search goes back from the
+    newest sample (at most the ring's count; in a live stream the newest is
+    the nearest): IMU samples given back from an IMU_DELTA pair reach the
+    filter up to one interval after the magnetometer samples of their time."""
+    slot = ring._head
+    tv = ring._tv
+    best = -1
+    for _ in range(ring._count):
+        slot -= 1
+        if slot < 0:
+            slot += ring.capacity
+        if tv[slot] <= t_imu:
+            if best < 0 or t_imu - tv[slot] < tv[best] - t_imu:
+                best = slot
+            break
+        best = slot
+    if best < 0:
         return -1
-    slot = ring._head - 1
-    if slot < 0:
-        slot += ring.capacity
-    t = ring._tv[slot]
+    t = tv[best]
     if t <= after_t or abs(t - t_imu) > max_age_us:
         return -1
-    if ring._fv[slot] & SAMPLE_SATURATED or not gate.quiet(t):
+    if ring._fv[best] & SAMPLE_SATURATED or not gate.quiet(t):
         return -1
-    return slot
+    return best
 
 
 class _Ori:
@@ -210,9 +222,13 @@ class SourceInertial:
         self._fv[0], self._fv[1], self._fv[2] = g[0], g[1], g[2]
         self.samples = 0
 
-    def process(self) -> None:
+    def process(self, until_us: int | None = None) -> None:
+        """Drain the IMU ring (up to the samples at ``until_us`` when given)."""
         ring, s6 = self.imu, self._s6
+        tv = ring._tv
         while True:
+            if until_us is not None and (len(ring) == 0 or tv[ring.slot(0)] > until_us):
+                return
             t = ring.pop_sample(s6)
             if t < 0:
                 return
@@ -298,13 +314,24 @@ class SensorInertial:
         self.poses_out_of_range = 0     # fused poses beyond the working volume (sent, not valid)
 
     # ------------------------------------------------------------ per sample
-    def process(self, mag: SampleRing) -> None:
-        """Drain the IMU ring through Xi and the fusion filter."""
+    def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0) -> None:
+        """Drain the IMU ring through Xi and the fusion filter. With the source's IMU (eq 6.8)
+        a sample waits (at most ``wait_us``) until the source's samples reach its time, and
+        the source is brought to that time first, so ``Phi f_source`` is the one of the same
+        instant: IMU steps given back from IMU_DELTA pairs arrive in bursts, the source's and
+        the sensor's an interval apart."""
         ring, s6 = self.imu, self._s6
         fus = self.fusion
         phi = self._phiv
         fr = self._frv
+        src = self.source
+        tv = ring._tv
         while True:
+            if src is not None and len(ring):
+                t_next = tv[ring.slot(0)]
+                if src.imu.last_t < t_next and now_us - t_next < wait_us:
+                    return
+                src.process(t_next)
             t = ring.pop_sample(s6)
             if t < 0:
                 return
@@ -505,6 +532,8 @@ class BurstFusionTracker(MagneticTracker):
         self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
                          for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
+        # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
+        self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
         self.replay_budget = cfg.replay_budget_steps
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
@@ -531,10 +560,18 @@ class BurstFusionTracker(MagneticTracker):
     def step(self, now_us: int) -> None:
         """Predict (drain the IMU rings: the source's first, its orientation and
         specific force feed eq 6.8), solve, fuse, and send the fused poses."""
-        if self.source is not None:
-            self.source.process()
+        src = self.source
         for ch, ins in self._pairs:
-            ins.process(ch.ring)
+            ins.process(ch.ring, now_us, self.source_wait_us)
+        if src is not None:
+            # what no sensor sample waits for: at most the wait behind the clock
+            until = now_us - self.source_wait_us
+            for _, ins in self._pairs:
+                if len(ins.imu):
+                    t = ins.imu._tv[ins.imu.slot(0)]
+                    if t < until:
+                        until = t
+            src.process(until)
         e0 = self.solver.signal.evals
         fresh = not self.busy()
         if not fresh:

@@ -25,7 +25,7 @@ def _refused(argv, capsys) -> str:
     (["emulator", "--create-pty", "--duration", "0"], "--duration", "(0, 604800]"),
     (["emulator", "--port", "loop://"], "--port", "loop://"),
     (["busload", "--bitrate", "0"], "--bitrate", "[1, 100000000]"),
-    (["busload", "--nodes", "17"], "--nodes", "[0, 16]"),
+    (["busload", "--nodes", "49"], "--nodes", "[0, 48]"),
     (["busload", "--cycle-ms", "0"], "--cycle-ms", "(0, 3600000]"),
     (["firmware", "--port", "loop://", "--duration", "-5"], "--duration", "[0, 604800]"),
     (["firmware", "--port", "loop://", "--peer-timeout", "nan"], "--peer-timeout", "[0, 3600]"),

@@ -6,8 +6,10 @@ import pytest
 
 from coiltrack.protocol import FrameDecoder, ProtocolError, encode_frame
 from coiltrack.protocol.can import (BASE_ID, CAN_INDEX, FUNCTION_MASK, MAX_CAN_NODE, CanCodec, CanLink, CanReassembler,
-                          build_pdu, can_id, decode_pdu, frame_data_lengths, open_bus, parse_id, segment,
+                          build_pdu, can_id, decode_pdu, direct_size, ext_id, frame_data_lengths, is_direct,
+                          open_bus, parse_id, segment,
                           virtual_bus_pair, virtual_link_pair)
+from coiltrack.protocol.codec import STRUCTS
 from coiltrack.protocol.errors import CrcError, EncodeError, LengthError, UnknownMessageError
 from coiltrack.protocol.examples import EXAMPLES
 from coiltrack.protocol.schema import BY_NAME, MESSAGES, NODE_COIL_DRIVER, NODE_FIRMWARE, NODE_SENSOR_BASE
@@ -16,6 +18,12 @@ from coiltrack.protocol.schema import BY_NAME, MESSAGES, NODE_COIL_DRIVER, NODE_
 def frames_of(name, fd=False, src=None, seq=None):
     ex = EXAMPLES[name]
     return CanCodec(fd=fd).encode(ex.msg, ex.seq if seq is None else seq, ex.src if src is None else src)
+
+
+def wire_seq(ex, fd, previous=-1):
+    """The serial seq a receiver gives a message: the sender's for a segmented PDU, the sender's
+    previous seq + 1 for a single frame (which carries no seq; -1: none heard yet)."""
+    return (previous + 1) & 0xFF if is_direct(ex.msg.ID, fd) else ex.seq
 
 
 # ------------------------------------------------------------ identifiers
@@ -53,15 +61,59 @@ def test_id_layout_is_stable():
     vectors pin them too)."""
     assert {m.name: BASE_ID[m.id] for m in MESSAGES} == {
         "HEARTBEAT": 0x600, "TIME_SYNC": 0x000, "TIME_SYNC_REPLY": 0x500, "COIL_PULSE_CMD": 0x100,
-        "COIL_STATUS": 0x200, "MAG_SAMPLE": 0x300, "IMU_SAMPLE": 0x320, "MAG_FLIP_CMD": 0x220,
-        "POSE": 0x400, "PULSE_WINDOW": 0x620, "CONFIG_GET": 0x520, "CONFIG_SET": 0x540,
-        "CONFIG_ACK": 0x560, "FAULT_EVENT": 0x240, "AC_DRIVE_CMD": 0x120, "AC_DRIVE_STATUS": 0x260}
-    assert max(CAN_INDEX.values()) < 8
+        "COIL_STATUS": 0x200, "MAG_SAMPLE": 0x300, "IMU_SAMPLE": 0x340, "MAG_FLIP_CMD": 0x240,
+        "MAG_PACKED": 0x380, "IMU_DELTA": 0x3C0,
+        "POSE": 0x400, "PULSE_WINDOW": 0x640, "CONFIG_GET": 0x540, "CONFIG_SET": 0x580,
+        "CONFIG_ACK": 0x5C0, "FAULT_EVENT": 0x280, "AC_DRIVE_CMD": 0x140, "AC_DRIVE_STATUS": 0x2C0}
+    assert max(CAN_INDEX.values()) < 4
+    assert MAX_CAN_NODE == 63
+
+
+def test_signed_messages_travel_on_29_bit_ids_with_the_11_bit_priority():
+    """A signed command is segmented on ``id11 << 18``: its arbitration rank among the
+    11-bit messages is that of its 11-bit id (an id with the base in the low bits would
+    outrank TIME_SYNC), and the reassembler takes it back (a dropped IDE case loses it)."""
+    ex = EXAMPLES["COIL_PULSE_CMD"]
+    sig = bytes(range(13))
+    fr = CanCodec().encode(ex.msg, ex.seq, ex.src, signature=sig)
+    assert all(f.is_extended_id and f.arbitration_id == ext_id(can_id(ex.msg.ID, ex.src)) for f in fr)
+    assert fr[0].arbitration_id >> 18 == can_id(ex.msg.ID, ex.src)
+    r = CanReassembler()
+    out = [p for f in fr for p in r.feed_with_headers(f)]
+    assert len(out) == 1 and out[0][1] == ex.msg and out[0][0].signature == sig and out[0][0].seq == ex.seq
+
+
+def test_single_frames_continue_the_senders_numbering():
+    """Segmented seq 7, then two single frames, then segmented seq 10 from one sender: the single
+    frames become 8 and 9 and no gap is counted (a receiver counting single frames on their own
+    from 0 reports gaps on every sender that mixes both forms, as conform's sequence rule saw)."""
+    r = CanReassembler()
+    hb, mag = EXAMPLES["HEARTBEAT"].msg, EXAMPLES["MAG_PACKED"].msg
+    c = CanCodec()
+    out = []
+    for m, q in ((hb, 7), (mag, 8), (mag._replace(stamp=mag.stamp + 1), 9), (hb._replace(errors=4), 10)):
+        for f in c.encode(m, q, 16):
+            out += r.feed_with_headers(f)
+    assert [h.seq for h, _ in out] == [7, 8, 9, 10] and r.seq_gaps == 0
+
+
+def test_single_frames_carry_the_payload_without_the_sender_byte():
+    """MAG_PACKED and IMU_DELTA travel as one classic 8-byte frame whose bytes are the
+    payload after ``node`` (a codec that kept the node byte, a PCI or a CRC would make
+    9..11 bytes); every message is one CAN FD frame."""
+    for name in ("MAG_PACKED", "IMU_DELTA"):
+        ex = EXAMPLES[name]
+        fr = frames_of(name)
+        assert len(fr) == 1 and len(fr[0].data) == 8 == direct_size(ex.msg.ID)
+        assert bytes(fr[0].data) == STRUCTS[ex.msg.ID].pack(*ex.msg)[1:]
+        assert fr[0].arbitration_id == can_id(ex.msg.ID, ex.msg.node)
+    for m in MESSAGES:
+        assert len(frame_data_lengths(m.id, fd=True)) == 1, m.name
 
 
 def test_bad_ids_and_nodes():
     with pytest.raises(EncodeError):
-        can_id(0x20, 32)
+        can_id(0x20, 64)
     with pytest.raises(UnknownMessageError):
         can_id(0xEE, 1)
     for bad in (0x7E0, 0x0E0, 0x800, 0x1FFFFFFF):
@@ -71,6 +123,7 @@ def test_bad_ids_and_nodes():
 
 # ------------------------------------------------------------ segmentation
 def test_mag_sample_fits_three_classic_frames():
+    """v1's MAG_SAMPLE (full time stamp) still segments into three frames."""
     mid = BY_NAME["MAG_SAMPLE"].id
     assert BY_NAME["MAG_SAMPLE"].size == 16
     assert frame_data_lengths(mid) == [8, 8, 7]
@@ -96,7 +149,8 @@ def test_round_trip_every_message(name, fd):
         out += r.feed_with_headers(f)
     assert len(out) == 1
     hdr, msg = out[0]
-    assert msg == ex.msg and hdr.src == ex.src and hdr.seq == ex.seq
+    src = ex.msg.node if is_direct(ex.msg.ID, fd) and ex.msg.DEF.sender_field else ex.src
+    assert msg == ex.msg and hdr.src == src and hdr.seq == wire_seq(ex, fd)
     assert r.frames_bad == 0
 
 
@@ -233,12 +287,20 @@ def test_canlink_presents_the_serial_port_interface():
         emu.write(out[:37])
         emu.write(out[37:])                       # split frames are fine
         data = fw.read()
-        want = [(ex.src, ex.seq, ex.msg) for ex in EXAMPLES.values() if ex.src != NODE_FIRMWARE]
+        sent = [ex for ex in EXAMPLES.values() if ex.src != NODE_FIRMWARE]
+        counts = {}
+
+        def seq_of(ex):                           # a single frame: the sender's previous seq + 1
+            sq = ex.seq if not is_direct(ex.msg.ID, False) else (counts.get(ex.src, -1) + 1) & 0xFF
+            counts[ex.src] = sq
+            return sq
+        want = [(ex.src, seq_of(ex), ex.msg) for ex in sent]
         got = []
         d = FrameDecoder(on_frame=lambda h, m: got.append((h.src, h.seq, m)))
         d.feed(data)
         assert got == want
-        assert data == out                        # byte for byte the same serial frames
+        # byte for byte the same serial frames, with the receiver's seq for single frames
+        assert data == b"".join(encode_frame(m, q, s) for s, q, m in want)
         # the other way
         cmd = EXAMPLES["COIL_PULSE_CMD"]
         fw.write(encode_frame(cmd.msg, 5, NODE_FIRMWARE))
@@ -271,9 +333,9 @@ def test_canlink_rejects_node_ids_that_do_not_fit():
     a, b = virtual_bus_pair()
     try:
         with pytest.raises(ValueError):
-            CanLink(a, 40)
+            CanLink(a, 64)
         link = CanLink(a, 1)
-        link.write(encode_frame(EXAMPLES["MAG_SAMPLE"].msg, 0, 200))     # src 200 has no CAN id
+        link.write(encode_frame(EXAMPLES["TIME_SYNC"].msg, 0, 200))      # src 200 has no CAN id
         assert link.tx_errors == 1 and b.recv(timeout=0) is None
     finally:
         a.shutdown()

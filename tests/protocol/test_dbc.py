@@ -1,26 +1,49 @@
-"""The DBC export: cantools loads it and decodes the golden CAN frames of
-single-frame messages, and the reassembled payloads of the others, to the
-same physical values as the schema."""
+"""The DBC export: cantools loads it and decodes the golden CAN frames straight
+off the bus (every single frame: the classic samples, every CAN FD frame) and
+the reassembled payloads of classic segmented messages, to the same physical
+values as the schema."""
 import cantools
 import pytest
 
-from coiltrack.protocol.can import PDU_OVERHEAD, CanReassembler, build_pdu
+from coiltrack.protocol.can import CanReassembler, build_pdu, is_direct
 from coiltrack.protocol.codec import physical
-from coiltrack.protocol.dbc import payload_from_pdu
+from coiltrack.protocol.dbc import dbc_data
 from coiltrack.protocol.examples import EXAMPLES
 from coiltrack.protocol.golden import GOLDEN_DIR, read_can_log
+from coiltrack.protocol.schema import STAMP_FLIP, STAMP_LSB_US, STAMP_MASK, STAMP_SATURATED
 from coiltrack.tools.cli import main
+
+#: the frequent messages of issue 11: they must decode straight off the bus
+FREQUENT = ("MAG_PACKED", "IMU_DELTA", "COIL_PULSE_CMD", "COIL_STATUS", "HEARTBEAT", "TIME_SYNC")
 
 
 @pytest.fixture(scope="module")
 def db(tmp_path_factory):
     path = tmp_path_factory.mktemp("dbc") / "coiltrack.dbc"
     assert main(["dbc", "-o", str(path)]) == 0
-    return cantools.database.load_file(str(path), frame_id_mask=0x7E0)
+    return cantools.database.load_file(str(path), frame_id_mask=0x7C0)
 
 
 def expected(msg):
-    return {f.name: physical(msg, f.name) for f in msg.DEF.fields}
+    """Physical values per DBC signal, computed from the schema (the sender byte is the id's)."""
+    out = {}
+    for i, f in enumerate(msg.DEF.fields):
+        if i == 0 and msg.DEF.sender_field:
+            continue
+        raw = getattr(msg, f.name)
+        if f.bits:
+            for name, b0, n, scale, _ in f.bits:
+                out[name] = ((raw >> b0) & ((1 << n) - 1)) * scale
+        else:
+            out[f.name] = physical(msg, f.name)
+    return out
+
+
+def check(values, msg):
+    want = expected(msg)
+    assert set(values) == set(want)
+    for k, v in want.items():
+        assert values[k] == pytest.approx(v, rel=1e-12, abs=0), k
 
 
 def test_every_message_is_in_the_dbc(db):
@@ -28,24 +51,56 @@ def test_every_message_is_in_the_dbc(db):
 
 
 @pytest.mark.parametrize("name", list(EXAMPLES))
-def test_dbc_decodes_golden_frames(db, name):
+def test_dbc_decodes_fd_frames_straight_off_the_bus(db, name):
+    """Every message is one CAN FD frame; ``get_message_by_frame_id(id).decode(data)`` on it
+    gives the schema values (a DBC that kept the v1 ISO-TP or reassembled-payload layout,
+    or kept the sender byte, decodes garbage or raises)."""
+    ex = EXAMPLES[name]
+    frames = read_can_log(GOLDEN_DIR / "can" / f"{name}.fd.log")
+    assert len(frames) == 1
+    f = frames[0]
+    dm = db.get_message_by_frame_id(f.arbitration_id)      # any sender, thanks to the mask
+    assert dm.name == name
+    check(dm.decode(bytes(f.data)), ex.msg)
+    if ex.msg.DEF.sender_field:
+        assert f.arbitration_id & 0x3F == ex.msg.node
+
+
+@pytest.mark.parametrize("name", list(EXAMPLES))
+def test_dbc_decodes_classic_frames(db, name):
+    """Classic bus: a single frame decodes as it is; a segmented message's reassembled payload
+    decodes after ``dbc_data``."""
     ex = EXAMPLES[name]
     frames = read_can_log(GOLDEN_DIR / "can" / f"{name}.log")
-    dm = db.get_message_by_frame_id(frames[0].arbitration_id)     # any sender, thanks to the mask
+    dm = db.get_message_by_frame_id(frames[0].arbitration_id)
     assert dm.name == name
-    if PDU_OVERHEAD + ex.msg.DEF.size <= 7:
-        assert len(frames) == 1                                      # single frame: decode it as it is
+    if is_direct(ex.msg.ID, False):
+        assert len(frames) == 1 and len(frames[0].data) <= 8 and not dm.is_fd
         values = dm.decode(bytes(frames[0].data))
-        assert values["SEQ"] == ex.seq
-        assert values["ISOTP_PCI"] == PDU_OVERHEAD + ex.msg.DEF.size
     else:
-        assert dm.is_fd
         r = CanReassembler()
         pdus = []
         r.on_frame = lambda h, m: pdus.append(build_pdu(m, h.seq, h.src))
         for f in frames:
             r.feed(f)
         assert len(pdus) == 1
-        values = dm.decode(payload_from_pdu(pdus[0], ex.msg.DEF.size))
-    for k, v in expected(ex.msg).items():
-        assert values[k] == pytest.approx(v, rel=1e-12, abs=0), k
+        values = dm.decode(dbc_data(ex.msg.ID, pdus[0][1:1 + ex.msg.DEF.size]))
+    check(values, ex.msg)
+
+
+def test_frequent_messages_decode_straight_off_the_bus(db):
+    """The issue's list: samples off a classic bus, all of them off a CAN FD bus, and the
+    stamp's sub-fields as signals of their own (a mask or start bit off by one mixes the
+    flip bit into the time)."""
+    for name in FREQUENT:
+        f = read_can_log(GOLDEN_DIR / "can" / f"{name}.fd.log")
+        assert len(f) == 1
+    for name in ("MAG_PACKED", "IMU_DELTA"):
+        f = read_can_log(GOLDEN_DIR / "can" / f"{name}.log")
+        assert len(f) == 1 and len(f[0].data) == 8
+    ex = EXAMPLES["MAG_PACKED"]
+    f = read_can_log(GOLDEN_DIR / "can" / "MAG_PACKED.log")[0]
+    v = db.get_message_by_frame_id(f.arbitration_id).decode(bytes(f.data))
+    assert v["flip"] == bool(ex.msg.stamp & STAMP_FLIP) == 1
+    assert v["saturated"] == bool(ex.msg.stamp & STAMP_SATURATED) == 0
+    assert v["t_8us"] == (ex.msg.stamp & STAMP_MASK) * STAMP_LSB_US == (2_000_208_336 % 131_072)

@@ -10,7 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from coiltrack.protocol import MSG, FrameDecoder, ProtocolError, decode_frame, encode_frame
-from coiltrack.protocol.can import CanCodec, CanReassembler, decode_pdu, BASE_ID
+from coiltrack.protocol.can import MAX_CAN_NODE, CanCodec, CanReassembler, decode_pdu, BASE_ID, is_direct, parse_id
 from coiltrack.protocol.examples import EXAMPLES
 from coiltrack.protocol.schema import MESSAGES, TYPES
 
@@ -149,13 +149,26 @@ def can_ops(draw):
     return draw(st.lists(st.tuples(st.integers(0, 5), st.integers(0, 10_000), st.integers(0, 255)), max_size=25))
 
 
+def _single(f) -> bool:
+    """A single-frame message (no PDU CRC of its own: bit errors inside it are the CAN CRC's)."""
+    try:
+        return not f.is_extended_id and is_direct(parse_id(f.arbitration_id)[0], bool(f.is_fd))
+    except ProtocolError:
+        return False
+
+
 def apply_can_ops(frames, ops):
+    """Drop, duplicate, swap, flip a bit, insert a random frame, truncate. A bit flip or a
+    random frame on a single frame's identifier would pass the CAN CRC only on a broken bus,
+    so those two go to segmented traffic (whose PDU CRC must catch them)."""
     frames = list(frames)
     for op, pos, val in ops:
         if not frames:
             break
         k = pos % len(frames)
         f = frames[k]
+        if op == 3 and _single(f):
+            continue
         if op == 0:                                          # drop
             del frames[k]
         elif op == 1:                                        # duplicate
@@ -168,9 +181,9 @@ def apply_can_ops(frames, ops):
             frames[k] = can.Message(arbitration_id=f.arbitration_id, is_extended_id=False, data=bytes(data),
                                     is_fd=f.is_fd)
         elif op == 4:                                        # random frame on a coiltrack id
-            ids = sorted(BASE_ID.values())
+            ids = sorted(b for m, b in BASE_ID.items() if not is_direct(m, False))
             data = bytes((val * (i + 7)) & 0xFF for i in range(val % 9))
-            frames.insert(k, can.Message(arbitration_id=ids[val % len(ids)] | (val % 32),
+            frames.insert(k, can.Message(arbitration_id=ids[val % len(ids)] | (val % 64),
                                          is_extended_id=False, data=data))
         elif op == 5 and len(f.data) > 1:                    # truncated frame
             frames[k] = can.Message(arbitration_id=f.arbitration_id, is_extended_id=False,
@@ -187,11 +200,17 @@ def test_can_reassembly_property(items, ops, fd):
     sent = []
     frames = []
     used: dict[tuple, set] = {}
+    first: dict[tuple, object] = {}
     for msg, seq, src in items:
+        if msg.DEF.sender_field and is_direct(msg.ID, fd):
+            if msg.node > MAX_CAN_NODE:
+                continue        # a single frame's sender is its node field: it must fit the identifier
+            src = msg.node
         key = (msg.ID, src)
         if seq in used.get(key, ()):
             continue            # the same seq twice on one identifier may be a repeat: keep items distinct
         used.setdefault(key, set()).add(seq)
+        first.setdefault(key, msg)
         sent.append(msg)
         frames += can_frames(msg, seq, src, fd)
     r = CanReassembler()
@@ -204,7 +223,7 @@ def test_can_reassembly_property(items, ops, fd):
     fresh = []
     for (mid, src), seqs in used.items():
         seq = min(set(range(256)) - seqs)
-        msg = next(m for m, _, s in items if m.ID == mid and s == src)
+        msg = first[(mid, src)]
         fresh.append(msg)
         for f in can_frames(msg, seq, src, fd):
             out += r.feed(f)

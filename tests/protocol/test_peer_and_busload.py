@@ -36,21 +36,43 @@ def test_worst_case_stuffing_formula():
 
 
 def test_bus_load_eight_nodes_at_500k():
-    rep = bus_load(Traffic(sensors=8), 500_000)
+    """v1 traffic: MAG_SAMPLE's 19-byte PDU takes 3 frames (395 bits worst case), 4 nodes fit."""
+    rep = bus_load(Traffic(sensors=8, compact=False, host_outputs=True), 500_000)
     mag = next(r for r in rep["rows"] if r["message"] == "MAG_SAMPLE")
     assert mag["frames_per_msg"] == 3
     assert mag["bits_per_s"] == pytest.approx(8 * 120 * 395)
     assert rep["total_bits_per_s"] == pytest.approx(sum(r["bits_per_s"] for r in rep["rows"]), rel=1e-9)
     assert not rep["fits"] and rep["max_sensor_nodes"] == 4
-    assert bus_load(Traffic(sensors=8), 500_000, fd=True)["fits"]
+    assert bus_load(Traffic(sensors=8, compact=False, host_outputs=True), 500_000, fd=True)["fits"]
+
+
+def test_bus_budget_sixteen_classic_thirty_two_fd():
+    """Issue 11's budget, worst-case stuffing: 16 sensors on 500 kbit/s classic and 32 on CAN FD
+    500 k / 2 M at most 70 %. MAG_PACKED is one 8-byte frame, 135 bits (Davis et al. 2007: 34 + 64
+    + 13 + floor(97 / 4) = 135); the IMU is 2 x 10 frames per second; a codec that segmented the
+    samples, or a model that counted POSE on the sensor bus, fails the bound."""
+    rep = bus_load(Traffic(sensors=16), 500_000)
+    mag = next(r for r in rep["rows"] if r["message"] == "MAG_PACKED")
+    imu = next(r for r in rep["rows"] if r["message"] == "IMU_DELTA")
+    assert mag["frame_bytes"] == [8] and mag["bits_per_msg"] == 135.0
+    assert mag["bits_per_s"] == pytest.approx(16 * 120 * 135) and imu["bits_per_s"] == pytest.approx(16 * 20 * 135)
+    assert "POSE" not in {r["message"] for r in rep["rows"]}
+    assert rep["load_pct"] <= 70.0
+    assert bus_load(Traffic(sensors=32), 500_000, fd=True, data_bitrate=2_000_000)["load_pct"] <= 70.0
+    assert bus_load(Traffic(sensors=32), 500_000)["load_pct"] > 100.0     # 32 need FD
 
 
 def test_busload_command(capsys):
     assert main(["busload", "--nodes", "8", "--bitrate", "500000", "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     assert rep["bitrate"] == 500_000 and rep["traffic"]["sensors"] == 8
-    assert {r["message"] for r in rep["rows"]} >= {"MAG_SAMPLE", "IMU_SAMPLE", "HEARTBEAT", "COIL_PULSE_CMD",
-                                                    "COIL_STATUS", "TIME_SYNC", "POSE"}
+    assert {r["message"] for r in rep["rows"]} >= {"MAG_PACKED", "IMU_DELTA", "HEARTBEAT", "COIL_PULSE_CMD",
+                                                    "COIL_STATUS", "TIME_SYNC"}
     assert main(["busload", "--nodes", "2", "--imu-rate", "0"]) == 0
     out = capsys.readouterr().out
-    assert "MAG_SAMPLE" in out and "IMU_SAMPLE" not in out and "fits" in out
+    assert "MAG_PACKED" in out and "IMU_DELTA" not in out and "fits" in out
+    assert main(["busload", "--nodes", "32", "--fd", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["load_pct"] <= 70.0
+    assert main(["busload", "--nodes", "2", "--v1", "--host-outputs"]) == 0
+    out = capsys.readouterr().out
+    assert "MAG_SAMPLE" in out and "POSE" in out

@@ -13,6 +13,7 @@ from coiltrack.hil.clock import NodeClock
 from coiltrack.hil.faults import BenchFaults, TimedFault
 from coiltrack.hil.nodes import CoilDriverNode, SensorNode
 from coiltrack.protocol import MSG
+from coiltrack.protocol.schema import STAMP_FLIP, STAMP_LSB_US, STAMP_MASK
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 Cmd, Sync, Flip = MSG["COIL_PULSE_CMD"], MSG["TIME_SYNC"], MSG["MAG_FLIP_CMD"]
@@ -152,13 +153,24 @@ def _sensor(world):
 
 
 def _flip_bits(bus, after_us=-1):
-    return [(m.t_us, m.flip & 1) for m in bus.named("MAG_SAMPLE") if m.t_us > after_us]
+    """(time, set/reset bit) of the node's samples: MAG_PACKED, its 14-bit stamp restored against the
+    bus's clock at the end of the run (the doc's rule; the samples are less than 114 ms old only
+    for the last ones, so the times are restored from the full stamps the node's ground truth keeps)."""
+    node = bus.node
+    packed = bus.named("MAG_PACKED")
+    stamps = node.stamps[-len(packed):] if packed else []
+    out = []
+    for t, m in zip(stamps, packed):
+        assert (t // STAMP_LSB_US) & STAMP_MASK == m.stamp & STAMP_MASK
+        if t > after_us:
+            out.append((t, 1 if m.stamp & STAMP_FLIP else 0))
+    return out
 
 
 def test_flip_command_rules(doc, world_factory):
     """The first sample at or after at_us shows the new bit; a past at_us means now; target 0 is
     ignored; no flip of its own within 3 s of a command."""
-    for phrase in ("the first `MAG_SAMPLE` taken\n  at or after `at_us` shows the new `flip` bit",
+    for phrase in ("the first `MAG_SAMPLE` (`MAG_PACKED`) taken\n  at or after `at_us` shows the new `flip` bit",
                    "an `at_us` in the past", "target 0 is not a broadcast",
                    "**but never within 3 s of the last `MAG_FLIP_CMD` it received**"):
         assert phrase in doc, phrase
