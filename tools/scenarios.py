@@ -148,22 +148,23 @@ def _fusion_config(source_imu: bool = False, **kw):
         # frame) unless it is to use the IMU module on the source (eq 6.8)
         from coiltrack.hil.imu import NODE_SOURCE_IMU
 
-        # The nodes sample at 120 Hz and send IMU_DELTA pairs at 10 Hz (protocol v2, the bus budget
-        # of 16 sensors); the receive stage gives the filters the 120 Hz steps back
+        # (with IMU_DELTA pairs the receive stage gives the filters the 120 Hz steps back)
         return FirmwareConfig(imu_rate_hz=120.0, imu_delta_rate_hz=FUSION_DELTA_HZ,
                               source_imu_id=NODE_SOURCE_IMU if source_imu else 0, **kw)
     return make
 
 
-#: IMU_DELTA pairs per second of the fusion scenarios' nodes (their IMUs sample at 120 Hz)
+#: IMU_DELTA pairs per second on the bus budget of 16 sensors (protocol v2); their IMUs sample at 120 Hz
 FUSION_DELTA_HZ = 10.0
 
 
-def _fusion_sensor(source_imu: bool = False) -> SensorSpec:
+def _fusion_sensor(source_imu: bool = False, delta_hz: float = 0.0) -> SensorSpec:
+    """The fusion scenarios' sensor: IMU_SAMPLEs at 120 Hz (one sensor needs no bus budget), or
+    IMU_DELTA pairs at ``delta_hz`` (``roetenberg-fusion-delta``: the 16-sensor budget's rate)."""
     from coiltrack.hil.imu import NODE_SOURCE_IMU
 
     return SensorSpec(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU if source_imu else 0,
-                      imu_delta_rate_hz=FUSION_DELTA_HZ)
+                      imu_delta_rate_hz=delta_hz)
 
 
 _FUSION_REFERENCE = {"source": "Roetenberg 2006, Table 6.1, bench test (fusion); Table 5.1, bench test (magnetic)",
@@ -200,6 +201,20 @@ register(Scenario(
     sensor=_fusion_sensor(source_imu=True),
     reference=_FUSION_REFERENCE,
     parameters=_FUSION_PARAMETERS,
+))
+
+register(Scenario(
+    name="roetenberg-fusion-delta",
+    summary="roetenberg-fusion with the IMUs as IMU_DELTA pairs at 10 Hz (the 16-sensor bus budget)",
+    description="roetenberg-fusion with every IMU sent as coning-free delta-angle and delta-velocity "
+                "pairs at 10 Hz (protocol v2 IMU_DELTA, the rate that fits 16 sensors on one classic "
+                "500 kbit/s bus), given back to the filters as 120 Hz steps: what the bus budget costs.",
+    duration_s=60.0,
+    build_world=_roetenberg_world,
+    firmware_config=_fusion_config(),
+    sensor=_fusion_sensor(delta_hz=FUSION_DELTA_HZ),
+    reference=_FUSION_REFERENCE,
+    parameters={**_FUSION_PARAMETERS, "imu_delta_rate_hz": FUSION_DELTA_HZ},
 ))
 
 register(Scenario(
