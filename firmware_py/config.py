@@ -287,6 +287,10 @@ class FirmwareConfig:
     # --- compact IMU on the wire (protocol v2 IMU_DELTA; firmware_py/receive.py)
     imu_delta_rate_hz: float = 10.0         # nominal IMU_DELTA pairs per second per node (the bus budget: 16
                                             # sensors at 10 Hz); a pair 3.5 intervals after the last only anchors
+    # a pair gives its twelve 120 Hz steps back at once: the fusion pipeline runs at most this many
+    # IMU steps per sensor in one tick (the rest wait, 1 ms each), so a pair's arrival does not
+    # make one tick twelve strapdown and covariance steps long; >= 2 keeps up with 1 kHz IMUs
+    imu_steps_per_tick: int = 2
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -351,6 +355,9 @@ class FirmwareConfig:
         need("imu_delta_rate_hz", isinstance(self.imu_delta_rate_hz, (int, float))
              and not isinstance(self.imu_delta_rate_hz, bool) and 0.0 < self.imu_delta_rate_hz <= 10_000.0,
              f"must be a rate in (0, 10000] Hz, got {self.imu_delta_rate_hz!r}")
+        v = self.imu_steps_per_tick
+        need("imu_steps_per_tick", isinstance(v, int) and not isinstance(v, bool) and 2 <= v <= 1000,
+             f"must be an integer in 2..1000 (IMU steps per sensor per tick), got {v!r}")
         return self
 
     def _validate_signing(self, need) -> None:
@@ -662,7 +669,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "distortion": ("distortion_apply",),
     "quality": ("quality_error_scale_m", "quality_quiet_sigma_t"),
     "raab_cost": ("raab_step_sigma",),
-    "imu_delta": ("imu_delta_rate_hz",),
+    "imu_delta": ("imu_delta_rate_hz", "imu_steps_per_tick"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

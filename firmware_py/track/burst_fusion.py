@@ -314,19 +314,21 @@ class SensorInertial:
         self.poses_out_of_range = 0     # fused poses beyond the working volume (sent, not valid)
 
     # ------------------------------------------------------------ per sample
-    def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0) -> None:
-        """Drain the IMU ring through Xi and the fusion filter. With the source's IMU (eq 6.8)
-        a sample waits (at most ``wait_us``) until the source's samples reach its time, and
-        the source is brought to that time first, so ``Phi f_source`` is the one of the same
-        instant: IMU steps given back from IMU_DELTA pairs arrive in bursts, the source's and
-        the sensor's an interval apart."""
+    def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
+        """Drain the IMU ring through Xi and the fusion filter, at most ``max_steps`` samples
+        (the rest wait for the next tick: IMU steps given back from an IMU_DELTA pair arrive
+        twelve at once). With the source's IMU (eq 6.8) a sample waits (at most ``wait_us``)
+        until the source's samples reach its time, and the source is brought to that time
+        first, so ``Phi f_source`` is the one of the same instant: the source's steps and the
+        sensor's arrive an interval apart."""
         ring, s6 = self.imu, self._s6
         fus = self.fusion
         phi = self._phiv
         fr = self._frv
         src = self.source
         tv = ring._tv
-        while True:
+        while max_steps > 0:
+            max_steps -= 1
             if src is not None and len(ring):
                 t_next = tv[ring.slot(0)]
                 if src.imu.last_t < t_next and now_us - t_next < wait_us:
@@ -534,6 +536,7 @@ class BurstFusionTracker(MagneticTracker):
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
         self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
+        self.imu_steps = cfg.imu_steps_per_tick
         self.replay_budget = cfg.replay_budget_steps
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
@@ -562,7 +565,7 @@ class BurstFusionTracker(MagneticTracker):
         specific force feed eq 6.8), solve, fuse, and send the fused poses."""
         src = self.source
         for ch, ins in self._pairs:
-            ins.process(ch.ring, now_us, self.source_wait_us)
+            ins.process(ch.ring, now_us, self.source_wait_us, self.imu_steps)
         if src is not None:
             # what no sensor sample waits for: at most the wait behind the clock
             until = now_us - self.source_wait_us
