@@ -76,6 +76,7 @@ from coiltrack.firmware.rotation import quat_tuple as _quat
 from coiltrack.firmware.estimate.single_coil import CORE, ORI, POS, SchepersEKF
 from coiltrack.firmware.pose.solver import PoseSolver
 from coiltrack.firmware.track.magnetic import SOLVE_FAILED as _SOLVE_FAILED
+from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.status import COIL_FATAL as _FATAL, input_status
 #: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
 _EVT_NIS = 1 << 8
@@ -232,6 +233,12 @@ class SingleCoilTracker:
                     cfg.current_tolerance_a, cfg.reference_avg_s * 1e6, cfg.sigma_range_exp_pos,
                     cfg.sigma_range_exp_ori, cfg.reference_warmup_us)
         self._sens = tuple(self.sensors.values())
+        # POSE.quality (track.quality): a single pulse leaves no residual freedom, so the
+        # consistency is the update's NIS per dimension and the quiet field's, kept per sensor
+        # and applied to the filter's position covariance at each fused pose
+        self.quality = PoseQuality(cfg, 0, channels)
+        self.q_scale = float(cfg.quality_error_scale_m)
+        self.q_x = {sid: 0.0 for sid in self.sensors}
         self.slots = tuple(_Pulse() for _ in range(max(2, n)))
         self._order = [0] * len(self.slots)
         self._s6 = [0.0] * 6                 # one popped IMU sample (f, w)
@@ -449,6 +456,7 @@ class SingleCoilTracker:
         if flags & (EKF_NOT_PD | EKF_NONFINITE):
             self.unusable += 1
             return
+        self.q_x[s.node] = self.quality.consistency(s.node, 0.0, ekf.nis / 3.0)
         was = s.distorted
         if linear:
             mon.add(ekf.nis_nominal)
@@ -907,9 +915,11 @@ class SingleCoilTracker:
         p = ekf.p
         o = ORI.start
         b = POS.start
+        vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
         self.tx.pose(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
                      float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
-                     float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status)
+                     float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
+                     quality_from(vp, self.q_x[s.node], self.q_scale))
 
     def counters(self) -> dict:
         mons = [s.monitor for s in self._sens]
