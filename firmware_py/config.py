@@ -84,6 +84,8 @@ class FirmwareConfig:
     # --- work per tick (a slower board lowers them)
     track_budget_evals: int = 9            # coil field evaluations (field + Jacobian at one point) per tick
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
+    windows_budget: int = 4                # pulse windows closed per tick: with many sensors a pulse's
+                                           # windows are all ready in the same tick (16 sensors: 1.2 ms)
     solve_gate_probability: float = 1.0    # a warm-started solve whose cost fails this chi-square
                                            # probability is solved again from acquisition (1.0: never;
                                            # a moving sensor's burst fails any tighter gate, and the
@@ -303,7 +305,7 @@ class FirmwareConfig:
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v > 0,
                  f"must be a positive integer, got {v!r}")
-        for name in ("track_budget_evals", "replay_budget_steps"):
+        for name in ("track_budget_evals", "replay_budget_steps", "windows_budget"):
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v >= 1,
                  f"must be a positive integer, got {v!r}")
@@ -629,7 +631,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
               "drift_limit_t", "mag_sigma_t", "mag_rate_hz", "ring_capacity", "mag_range_t", "saturation_margin",
               "earth_field_max_t"),
     "limits": ("max_current_a", "coil_max_duty", "coil_duty_window_us", "current_tolerance_a"),
-    "budget": ("track_budget_evals", "replay_budget_steps", "solve_gate_probability"),
+    "budget": ("track_budget_evals", "replay_budget_steps", "solve_gate_probability", "windows_budget"),
     "adaptive": ("actuation", "single_coil_fusion", "sigma_max_pos_m", "sigma_min_pos_m", "sigma_max_ori_deg",
                  "sigma_min_ori_deg", "sigma_range_ref_m", "sigma_range_exp_pos", "sigma_range_exp_ori",
                  "adaptive_currents_a", "adaptive_min_current_a", "adaptive_max_current_a",

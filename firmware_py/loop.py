@@ -82,7 +82,7 @@ def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, close
         mode = "adaptive" if cfg.actuation == "adaptive" else "fixed"
         t = SingleCoilTracker(cfg, coils, channels, schedule, closer, supervisor, tx, mode)
         return Pipeline(t.actuate, t.measure, t.track, t)
-    burst = BurstMeasurement(channels, schedule, closer)
+    burst = BurstMeasurement(channels, schedule, closer, cfg.windows_budget)
     kind = BurstFusionTracker if cfg.fusion else MagneticTracker
     t = kind(cfg, coils, channels, schedule, burst, supervisor, tx)
     return Pipeline(BurstActuation(cfg, schedule, channels, t).step, burst.step, t.step, t)

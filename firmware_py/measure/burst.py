@@ -9,11 +9,16 @@ from __future__ import annotations
 
 
 class BurstMeasurement:
-    def __init__(self, channels, schedule, closer):
+    """``budget``: windows closed per tick at most (``[budget] windows_budget``); the rest of a
+    pulse's windows close in the next ticks, so sixteen sensors' windows of one pulse do not
+    make one tick sixteen extractions long."""
+
+    def __init__(self, channels, schedule, closer, budget: int = 1 << 30):
         self.channels = tuple(channels)
         self.schedule = schedule
         self.closer = closer
         self.n = schedule.n
+        self.budget = int(budget)
         self.complete = False
 
     def step(self, now_us: int) -> None:
@@ -22,6 +27,7 @@ class BurstMeasurement:
             return
         closer = self.closer
         all_done = True
+        left = self.budget
         for j in range(self.n):
             start, end = int(sched.start[j]), int(sched.end[j])
             open_ = False
@@ -37,7 +43,11 @@ class BurstMeasurement:
             pid = int(sched.pulse_id[j])
             for ch in self.channels:
                 if not ch.done[j]:
+                    if left == 0:
+                        self.complete = False
+                        return
                     closer.close_one(ch, j, pid, start, end)
+                    left -= 1
         self.complete = all_done
 
     def release(self) -> None:
