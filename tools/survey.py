@@ -97,10 +97,12 @@ def _design(p, qs):
     return np.concatenate([_dipole_basis(p, q).reshape(-1, 3) for q in qs], axis=1)   # (3m, 3K)
 
 
-def _project(p, r, qs):
-    A = _design(p, qs)
-    mu, *_ = np.linalg.lstsq(A, r, rcond=None)
-    return mu, r - A @ mu
+def _project(p, r, qs, w3):
+    """Least-squares moments of dipoles at ``qs`` for the residual ``r`` (3m,), rows scaled by ``w3``
+    (3m,): (moments (3K,), weighted remainder (3m,))."""
+    A = _design(p, qs) * w3[:, None]
+    mu, *_ = np.linalg.lstsq(A, r * w3, rcond=None)
+    return mu, r * w3 - A @ mu
 
 
 def _fit_coil(p, r, K: int, starts, w=None):
@@ -108,16 +110,13 @@ def _fit_coil(p, r, K: int, starts, w=None):
     (m,) weights of the points (default 1)."""
     from scipy.optimize import least_squares
 
-    if w is not None:
-        return _fit_coil_weighted(p, r, K, starts, np.repeat(np.asarray(w, float), 3))
-
+    w3 = np.ones(r.size) if w is None else np.repeat(np.asarray(w, float), 3)
     qs: list[np.ndarray] = []
     for _ in range(K):
         best = None
         for q0 in starts:
-            fun = lambda q: _project(p, r, qs + [q])[1]  # noqa: E731
             try:
-                sol = least_squares(fun, q0, method="lm", max_nfev=200)
+                sol = least_squares(lambda q: _project(p, r, qs + [q], w3)[1], q0, method="lm", max_nfev=200)
             except (ValueError, np.linalg.LinAlgError):
                 continue
             c = float(np.sum(sol.fun ** 2))
@@ -126,50 +125,7 @@ def _fit_coil(p, r, K: int, starts, w=None):
         if best is None:
             break
         qs.append(best[1])
-    mu, _ = _project(p, r, qs)
-    x0 = np.concatenate([np.concatenate([q, mu[3 * k:3 * k + 3]]) for k, q in enumerate(qs)])
-
-    def full(x):
-        xs = x.reshape(-1, 6)
-        return r - _design(p, list(xs[:, :3])) @ xs[:, 3:].reshape(-1)
-
-    sol = least_squares(full, x0, method="lm", max_nfev=400)
-    x = sol.x.reshape(-1, 6)
-    res = sol.fun
-    dof = max(res.size - x.size, 1)
-    s = math.sqrt(float(res @ res) / dof)
-    try:
-        cov = np.linalg.inv(sol.jac.T @ sol.jac) * s * s
-        sig = np.sqrt(np.abs(np.diag(cov))).reshape(-1, 6)
-    except np.linalg.LinAlgError:
-        sig = np.full_like(x, np.inf)
-    return x[:, :3], x[:, 3:], sig[:, :3], sig[:, 3:], res
-
-
-def _fit_coil_weighted(p, r, K, starts, w3):
-    """:func:`_fit_coil` with the rows of the residual and the design scaled by ``w3`` (3m,)."""
-    from scipy.optimize import least_squares
-
-    def proj(qs):
-        A = _design(p, qs) * w3[:, None]
-        mu, *_ = np.linalg.lstsq(A, r * w3, rcond=None)
-        return mu, r * w3 - A @ mu
-
-    qs: list[np.ndarray] = []
-    for _ in range(K):
-        best = None
-        for q0 in starts:
-            try:
-                sol = least_squares(lambda q: proj(qs + [q])[1], q0, method="lm", max_nfev=200)
-            except (ValueError, np.linalg.LinAlgError):
-                continue
-            c = float(np.sum(sol.fun ** 2))
-            if np.all(np.isfinite(sol.x)) and (best is None or c < best[0]):
-                best = (c, sol.x)
-        if best is None:
-            break
-        qs.append(best[1])
-    mu, _ = proj(qs)
+    mu, _ = _project(p, r, qs, w3)
     x0 = np.concatenate([np.concatenate([q, mu[3 * k:3 * k + 3]]) for k, q in enumerate(qs)])
 
     def full(x):
