@@ -34,6 +34,9 @@ def add_arguments(p) -> None:
                    help="seconds to listen for nodes (default: the 1.5 s heartbeat timeout)")
     p.add_argument("--lead-ms", type=A.real(0.0, 10_000.0, lo_open=True), default=100.0,
                    help="pulses are scheduled this far ahead")
+    p.add_argument("--answer-timeout", type=A.real(0.0, 3600.0, lo_open=True), default=1.0,
+                   help="seconds an answer may take after its pulse (default 1.0; a node on a loaded "
+                        "machine or behind a slow link needs more)")
     p.add_argument("--sync-period", type=A.real(0.0, 3600.0, lo_open=True), default=0.5,
                    help="TIME_SYNC broadcast period, s (default 0.5)")
     p.add_argument("--bench", action="store_true",
@@ -69,7 +72,7 @@ def run(args) -> int:
     from coiltrack.protocol.signing import key_from_text
 
     opts = ConformOptions(src=args.src, node=args.node, observe_s=args.observe, discover_s=args.discover,
-                          lead_ms=args.lead_ms, sync_period_s=args.sync_period,
+                          lead_ms=args.lead_ms, answer_timeout_s=args.answer_timeout, sync_period_s=args.sync_period,
                           mag_rate_hz=args.mag_rate or None, seed=args.seed, link_id=args.link_id,
                           key=key_from_text(args.key) if args.key else None, bench=args.bench,
                           bench_current_ma=args.bench_current_ma, bench_pulse_ms=args.bench_pulse_ms)

@@ -160,7 +160,7 @@ def test_conform_command_serial(pty, emulator_factory, capsys, tmp_path):
     master, path = pty
     emulator_factory(FdPort(master))
     out_json = tmp_path / "conform.json"
-    rc = main(["conform", "--transport", "serial", "--port", path, "--observe", "0.4", "--lead-ms", "200",
+    rc = main(["conform", "--transport", "serial", "--port", path, "--observe", "0.4", "--lead-ms", "200", "--answer-timeout", "5",
                "--sync-period", "1", "--json", str(out_json)])
     text = capsys.readouterr().out
     assert rc == 0, text
@@ -173,7 +173,7 @@ def test_conform_command_virtual_can_with_key(emulator_factory, capsys):
     node_side = CanLink(open_bus("virtual", channel), 2)
     emulator_factory(node_side, verifier=SignatureVerifier(KEY))
     rc = main(["conform", "--transport", "can", "--interface", "virtual", "--channel", channel,
-               "--key", KEY.hex(), "--observe", "0.4", "--lead-ms", "200", "--sync-period", "1"])
+               "--key", KEY.hex(), "--observe", "0.4", "--lead-ms", "200", "--answer-timeout", "5", "--sync-period", "1"])
     text = capsys.readouterr().out
     assert rc == 0, text
     for rule in ("unsigned_rejected", "forged_rejected", "replay_rejected"):
