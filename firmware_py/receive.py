@@ -58,25 +58,9 @@ _INV_ACC = 1.0 / ACC_LSB
 _INV_GYR = 1.0 / GYR_LSB
 
 
-class _MagView:
-    """A MAG_SAMPLE with corrected readings (counts), reused for every sample."""
-    __slots__ = ("ID", "node", "t_us", "x", "y", "z", "flip")
-
-    def __init__(self):
-        self.ID, self.node, self.t_us, self.x, self.y, self.z, self.flip = _MAG, 0, 0, 0.0, 0.0, 0.0, 0
-
-
-class _ImuView:
-    """An IMU_SAMPLE with corrected readings (counts), reused for every sample."""
-    __slots__ = ("ID", "node", "t_us", "ax", "ay", "az", "gx", "gy", "gz")
-
-    def __init__(self):
-        self.ID, self.node, self.t_us = _IMU, 0, 0
-        self.ax = self.ay = self.az = self.gx = self.gy = self.gz = 0.0
-
-
 class MagRecord:
-    """A MAG_SAMPLE's fields (``node``, ``t_us`` us, ``x, y, z`` counts of MAG_LSB_T, ``flip``)."""
+    """A MAG_SAMPLE's fields (``node``, ``t_us`` us, ``x, y, z`` counts of MAG_LSB_T, ``flip``): a
+    restored MAG_PACKED, or a sample with its calibration applied (counts as floats)."""
     __slots__ = ("node", "t_us", "x", "y", "z", "flip")
     ID = _MAG
 
@@ -129,8 +113,8 @@ class Receiver:
         # node -> SensorCalibration, for the nodes whose magnetometer / IMU is calibrated
         self.mag_cal = {n: c for n, c in cal.items() if c.has_mag}
         self.imu_cal = {n: c for n, c in cal.items() if c.has_imu}
-        self._magv = _MagView()
-        self._imuv = _ImuView()
+        self._magv = MagRecord()              # a sample with its calibration applied
+        self._imuv = ImuRecord()
         self.imu_interval_us = float(imu_interval_us)   # nominal IMU_DELTA interval (1 / imu_delta_rate_hz)
         self.imu_step_us = float(imu_step_us)           # the filters' IMU step (1 / imu_rate_hz)
         self._mag = MagRecord()
