@@ -74,11 +74,18 @@ def _filter(spec, cfg, model, iterations):
 
 
 def scored_steps(spec, truth) -> int:
-    """The last scored step of a run: the step before the true platform first leaves the
-    ``2 m`` sphere (``gietler_diverge_m``) or comes within ``min_range_m`` of the receiver
-    (as ``tools.gietler.run_filter``; the cube's centre is not checked here)."""
+    """The last scored step of a run, as ``tools.gietler.run_filter`` ends it: the step before
+    the true platform first leaves the 2 m sphere or comes within ``min_range_m`` of the
+    receiver with emitter 1 or the cube's centre."""
     r = np.linalg.norm(truth["z"][1:], axis=1)
-    out = np.flatnonzero((r > 2.0) | (r < spec.min_range_m))
+    near = r < spec.min_range_m
+    if spec.cube_center is not None:
+        from coiltrack.hil.motion import euler_zyx_to_matrix
+
+        c = truth["z"][1:] + np.einsum("nij,j->ni", euler_zyx_to_matrix(truth["theta"][1:]),
+                                       np.asarray(spec.cube_center))
+        near |= np.linalg.norm(c, axis=1) < spec.min_range_m
+    out = np.flatnonzero((r > 2.0) | near)
     return int(out[0]) if out.size else len(r)
 
 
