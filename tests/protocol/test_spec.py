@@ -16,7 +16,7 @@ from coiltrack.protocol import FrameDecoder, SignatureVerifier, Signer
 from coiltrack.protocol.can import MAX_PDU, CanCodec
 from coiltrack.protocol.examples import EXAMPLES, SIGNING_KEY, example_context
 from coiltrack.protocol.framing import MAX_ENCODED, DecodedFrame, cobs_decode, cobs_encode, frame_crc, parse_frame
-from coiltrack.protocol.schema import BY_NAME, MESSAGES, PROTOCOL_VERSION
+from coiltrack.protocol.schema import BUS_FORMS, BY_NAME, MESSAGES, PROTOCOL_VERSION
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 SPACE_MARK = "\u2423"     # the document shows a line's final space as this
@@ -87,6 +87,13 @@ def test_doc_tables_cover_the_schema(doc):
     tables = doc_tables(doc)
     assert {n: (i, [tuple(x) for x in f]) for n, (i, f) in tables.items()} == {
         m.name: (m.id, [(f.type, f.name) for f in m.fields]) for m in MESSAGES}
+
+
+def test_doc_bus_form_tables_cover_the_bus_forms(doc):
+    """Every bus form is in the document's tables, field by field (else the hash below would pass
+    on a document missing one, and an implementer would build another layout)."""
+    assert doc_bus_forms(doc) == [(b.name, [(f.name, str(f.first_bit), f"{'i' if f.signed else 'u'}{f.bits}")
+                                            for f in b.fields]) for b in BUS_FORMS]
 
 
 def test_schema_hash_worked_example_follows_the_algorithm(doc):
