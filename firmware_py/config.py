@@ -293,6 +293,14 @@ class FirmwareConfig:
     # IMU steps per sensor in one tick (the rest wait, 1 ms each), so a pair's arrival does not
     # make one tick twelve strapdown and covariance steps long; >= 2 keeps up with 1 kHz IMUs
     imu_steps_per_tick: int = 2
+    # --- receive budget (firmware_py/receive.py): at most this many frames decoded and routed in one
+    # tick, the rest left queued for the next ticks (counted); sixteen sensors' samples of one instant
+    # are spread over two ticks instead of one 16-frame tick; one sensor's traffic (<= 3 frames a tick)
+    # never reaches it; 0: no bound
+    rx_frames_per_tick: int = 8
+    # bytes the receive queue holds at most (a board's RX buffer); beyond it the queue is dropped and
+    # counted (the decoder resynchronises at the next delimiter)
+    rx_queue_bytes: int = 16384
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -360,6 +368,12 @@ class FirmwareConfig:
         v = self.imu_steps_per_tick
         need("imu_steps_per_tick", isinstance(v, int) and not isinstance(v, bool) and 2 <= v <= 1000,
              f"must be an integer in 2..1000 (IMU steps per sensor per tick), got {v!r}")
+        v = self.rx_frames_per_tick
+        need("rx_frames_per_tick", isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 100_000,
+             f"must be an integer in 0..100000 (0: no bound), got {v!r}")
+        v = self.rx_queue_bytes
+        need("rx_queue_bytes", isinstance(v, int) and not isinstance(v, bool) and 1024 <= v <= 1 << 24,
+             f"must be an integer in 1024..16777216 bytes, got {v!r}")
         return self
 
     def _validate_signing(self, need) -> None:
@@ -672,6 +686,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "quality": ("quality_error_scale_m", "quality_quiet_sigma_t"),
     "raab_cost": ("raab_step_sigma",),
     "imu_delta": ("imu_delta_rate_hz", "imu_steps_per_tick"),
+    "receive": ("rx_frames_per_tick", "rx_queue_bytes"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

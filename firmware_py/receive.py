@@ -39,6 +39,15 @@ reading).
 
 The records are allocated once (one of each) and reused: every consumer
 copies the values it keeps.
+
+Budget: at most ``frames_per_tick`` frames (``[receive] rx_frames_per_tick``)
+are decoded and routed in one tick; the bytes of the others stay in the
+receive queue (one bytearray, at most ``queue_bytes``) for the next ticks,
+in order, counted in ``rx_deferred``. Sixteen sensors' MAG_PACKED of one
+instant (16 frames) thus take two ticks of 8 instead of one of 16; a
+sample's time is its stamp, so a tick's delay moves no sample. A queue
+that would exceed ``queue_bytes`` is dropped (``rx_queue_overflows``) and
+the decoder resynchronises at the next 0x00.
 """
 from __future__ import annotations
 
@@ -97,7 +106,8 @@ def _d16(a: int, b: int) -> int:
 
 class Receiver:
     def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None,
-                 imu_interval_us: float = 1e5, imu_step_us: float = 1e4, calibration=None):
+                 imu_interval_us: float = 1e5, imu_step_us: float = 1e4, calibration=None,
+                 frames_per_tick: int = 0, queue_bytes: int = 16384):
         self.port = port
         self.decoder = decoder
         self.channels = {ch.node: ch for ch in channels}
@@ -126,9 +136,57 @@ class Receiver:
         self.imu_deltas = 0
         self.imu_delta_unpaired = 0
         self.imu_delta_anchors = 0
+        self.frames_per_tick = int(frames_per_tick)
+        self.queue_bytes = int(queue_bytes)
+        self._queue = bytearray()
+        self.deferred = 0               # frames left queued at the end of a tick, summed over ticks
+        self.queue_overflows = 0
+
+    def _take(self) -> bytes:
+        """The bytes of at most ``frames_per_tick`` frames: from the queue, then the port."""
+        data = self.port.read()
+        k = self.frames_per_tick
+        q = self._queue
+        if not k:
+            return data
+        if not q:
+            if not data:
+                return b""
+            # the common case: no backlog and at most k frames arrived
+            end = -1
+            for _ in range(k):
+                end = data.find(b"\x00", end + 1)
+                if end < 0:
+                    return data
+            if end == len(data) - 1:
+                return data
+            q += data[end + 1:]
+            self._count_left(q)
+            return data[:end + 1]
+        if data:
+            q += data
+            if len(q) > self.queue_bytes:
+                self.queue_overflows += 1
+                q.clear()
+                return b""
+        end = -1
+        for _ in range(k):
+            e = q.find(b"\x00", end + 1)
+            if e < 0:
+                break
+            end = e
+        if end < 0:
+            return b""
+        out = bytes(q[:end + 1])
+        del q[:end + 1]
+        self._count_left(q)
+        return out
+
+    def _count_left(self, q) -> None:
+        self.deferred += q.count(b"\x00")
 
     def step(self, now_us: int) -> None:
-        data = self.port.read()
+        data = self._take()
         if not data:
             return
         sup = self.supervisor
@@ -260,6 +318,7 @@ class Receiver:
     def counters(self) -> dict:
         d = {"schema_mismatches": self.schema_mismatches, "rx_mag_packed": self.packed_mag,
              "rx_imu_deltas": self.imu_deltas, "rx_imu_delta_unpaired": self.imu_delta_unpaired,
-             "rx_imu_delta_anchors": self.imu_delta_anchors}
+             "rx_imu_delta_anchors": self.imu_delta_anchors, "rx_deferred": self.deferred,
+             "rx_queue_overflows": self.queue_overflows}
         d.update({"rx_" + k: v for k, v in self.decoder.counters().items()})
         return d

@@ -91,5 +91,5 @@ class Transmitter:
         """The periodic HEARTBEAT."""
         if now_us >= self.next_heartbeat_us:
             self.send(_HEARTBEAT(self.node_id, ROLE_FIRMWARE, STATE_RUNNING, PROTOCOL_VERSION, SCHEMA_HASH,
-                                 now_us - self.boot_us, min(self.decoder.frames_bad, 0xFFFF)))
+                                 min(self.decoder.frames_bad, 0xFFFF)))
             self.next_heartbeat_us = now_us + self.heartbeat_us

@@ -152,8 +152,7 @@ class Node:
         nh = self.next_heartbeat_local
         if nh is None or loc >= nh or nh - loc > 2 * HEARTBEAT_US:
             state = STATE_RUNNING if self.sync.synced else STATE_READY
-            uptime = max(0, loc - self.clock.local(self.boot_true_us))
-            send(self, Heartbeat(self.node_id, self.role, state, PROTOCOL_VERSION, SCHEMA_HASH, uptime, 0))
+            send(self, Heartbeat(self.node_id, self.role, state, PROTOCOL_VERSION, SCHEMA_HASH, 0))
             self.next_heartbeat_local = loc + HEARTBEAT_US
         self.step(now_us, send)
 

@@ -16,7 +16,8 @@ bits) at the nominal rate; ESI, DLC and data with worst-case dynamic
 stuffing, the stuff count and the CRC (17 or 21 bits) with their fixed stuff
 bits at the data rate.
 
-The traffic model (protocol v2, the sensor bus): every sensor node sends
+The traffic model (protocol v3, the sensor bus; HEARTBEAT, TIME_SYNC,
+COIL_PULSE_CMD and COIL_STATUS in their 8-byte bus forms): every sensor node sends
 MAG_PACKED at the magnetometer rate (one 8-byte frame), its IMU as IMU_DELTA
 pairs (delta angle and delta velocity, one 8-byte frame each) at the delta
 rate, a HEARTBEAT and a TIME_SYNC_REPLY per sync; the coil driver a

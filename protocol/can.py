@@ -104,6 +104,8 @@ import time
 
 import can
 
+from . import busform
+from .busform import BUS_FORM_IDS, BUS_FORM_SIZE, BusContext
 from .codec import CLASS_BY_ID, STRUCTS
 from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolError,
                      UnknownMessageError)
@@ -176,13 +178,17 @@ def std_of_ext(arbitration_id: int) -> int | None:
 
 
 def direct_size(msg_id: int) -> int:
-    """Data bytes of the single-frame form of a message (payload less a sender ``node``)."""
+    """Data bytes of the single-frame form of a message (payload less a sender ``node``; 8 for a
+    message with a bus form, ``protocol.busform``)."""
+    if msg_id in BUS_FORM_IDS:
+        return BUS_FORM_SIZE
     d = BY_ID[msg_id]
     return d.size - (1 if d.sender_field else 0)
 
 
 def is_direct(msg_id: int, fd: bool) -> bool:
-    """True when the unsigned message travels as one frame (classic: <= 8 bytes, FD: <= 64)."""
+    """True when the unsigned message travels as one frame (classic: <= 8 bytes, FD: <= 64; a
+    message with a bus form: its 8-byte frame on either bus)."""
     return direct_size(msg_id) <= (64 if fd else 8)
 
 
@@ -274,9 +280,15 @@ def frame_data_lengths(msg_id: int, signed: bool = False, fd: bool = False) -> l
     return [len(d) for d in segment(bytes(pdu_length(msg_id, signed)), fd)]
 
 
-def direct_data(msg_id: int, payload: bytes, fd: bool) -> bytes:
-    """The data bytes of a single frame from a schema payload."""
+def direct_data(msg_id: int, payload: bytes, fd: bool, context: BusContext | None = None) -> bytes:
+    """The data bytes of a single frame from a schema payload (a bus form: against ``context``;
+    raises EncodeError when the bus form cannot carry it)."""
     d = BY_ID[msg_id]
+    if msg_id in BUS_FORM_IDS:
+        data = busform.encode(CLASS_BY_ID[msg_id]._make(STRUCTS[msg_id].unpack(payload)), context)
+        if data is None:
+            raise EncodeError(f"{d.name}: the bus form cannot carry this message (see protocol.busform)")
+        return data
     data = bytes(payload[1:]) if d.sender_field else bytes(payload)
     if fd and len(data) > 8:
         data += bytes([PAD]) * (fd_length(len(data)) - len(data))
@@ -294,9 +306,13 @@ class CanCodec:
     subclasses (the explicit, strict decoder).
     """
 
-    def __init__(self, fd: bool = False, brs: bool = True):
+    def __init__(self, fd: bool = False, brs: bool = True, context: BusContext | None = None):
         self.fd = fd
         self.brs = brs
+        #: what this station has heard (TIME_SYNC, commands), shared with its reassembler
+        self.context = BusContext() if context is None else context
+        #: bus-form messages the form could not carry, sent as the full payload on the 29-bit id
+        self.fallbacks = 0
 
     def _messages(self, arb: int, pdu: bytes, timestamp: float = 0.0, signed: bool = False) -> list[can.Message]:
         if signed:
@@ -311,6 +327,8 @@ class CanCodec:
 
     def encode(self, msg, seq: int = 0, src: int = 0, signature: bytes = b"",
                timestamp: float = 0.0) -> list[can.Message]:
+        if msg.ID in BUS_FORM_IDS:
+            return self._bus_form(msg, seq, src, signature, timestamp)
         if not signature and is_direct(msg.ID, self.fd):
             if msg.DEF.sender_field:
                 src = msg.node
@@ -323,10 +341,30 @@ class CanCodec:
         return self._messages(can_id(msg.ID, src), build_pdu(msg, seq, src, signature), timestamp,
                               bool(signature))
 
+    def _bus_form(self, msg, seq: int, src: int, signature: bytes, timestamp: float) -> list[can.Message]:
+        """A message with a bus form: its 8-byte frame when the form carries it exactly, else
+        (and when signed) the full PDU segmented on the 29-bit identifier."""
+        if msg.DEF.sender_field and not signature:
+            src = msg.node
+        arb = can_id(msg.ID, src)
+        ctx = self.context
+        data = None if signature else busform.encode(msg, ctx)
+        ctx.note(msg)
+        if data is not None:
+            return [can.Message(arbitration_id=arb, is_extended_id=False, data=data, is_fd=self.fd,
+                                bitrate_switch=self.fd and self.brs, timestamp=timestamp)]
+        if not signature:
+            self.fallbacks += 1
+        return self._messages(arb, build_pdu(msg, seq, src, signature), timestamp, True)
+
     def frames_from_raw(self, raw, timestamp: float = 0.0) -> list[can.Message]:
         msg_id, src, pdu = pdu_from_raw(raw)
         d = BY_ID[msg_id]
         signed = bool(raw[1] & FLAG_SIGNED)
+        if msg_id in BUS_FORM_IDS:
+            hdr = DecodedFrame()
+            msg = parse_frame(raw, hdr)
+            return self._bus_form(msg, hdr.seq, src, hdr.signature, timestamp)
         if not signed and is_direct(msg_id, self.fd):
             if d.sender_field:
                 src = raw[HEADER_LEN]
@@ -334,12 +372,14 @@ class CanCodec:
         return self._messages(can_id(msg_id, src), pdu, timestamp, signed)
 
     def reassembler(self, **kwargs) -> "CanReassembler":
+        kwargs.setdefault("context", self.context)
         return CanReassembler(**kwargs)
 
     @staticmethod
-    def decode_frames(frames, hdr: DecodedFrame | None = None):
-        """Strictly decode the frames of one message (all on one identifier)."""
-        r = CanReassembler(timeout_s=None, strict=True)
+    def decode_frames(frames, hdr: DecodedFrame | None = None, context: BusContext | None = None):
+        """Strictly decode the frames of one message (all on one identifier); a bus form of a
+        command or status is restored against ``context`` (what the station heard before)."""
+        r = CanReassembler(timeout_s=None, strict=True, context=context)
         out = []
         for f in frames:
             out += r.feed_with_headers(f)
@@ -386,9 +426,12 @@ class CanReassembler:
 
     COUNTERS = ("frames_in", "messages_ok", "frames_bad", "framing_errors", "crc_errors", "length_errors",
                 "unknown_ids", "out_of_order", "unexpected_cf", "timeouts", "aborted", "duplicates",
-                "rejected", "seq_gaps", "ignored", "single_frames")
+                "rejected", "seq_gaps", "ignored", "single_frames", "unresolved")
 
-    def __init__(self, timeout_s: float | None = 0.5, verifier=None, on_frame=None, strict: bool = False):
+    def __init__(self, timeout_s: float | None = 0.5, verifier=None, on_frame=None, strict: bool = False,
+                 context: BusContext | None = None):
+        #: what this station has heard (TIME_SYNC, commands): the bus forms are restored against it
+        self.context = BusContext() if context is None else context
         self.timeout_s = timeout_s
         self.verifier = verifier
         self.on_frame = on_frame
@@ -412,6 +455,8 @@ class CanReassembler:
         self.seq_gaps = 0
         self.ignored = 0
         self.single_frames = 0
+        #: bus forms that could not be restored (no TIME_SYNC heard yet, a status's command not heard)
+        self.unresolved = 0
         #: bad frames or PDUs attributed to a message name
         self.bad_by_message: dict[str, int] = {}
         self.last_error: ProtocolError | None = None
@@ -420,7 +465,8 @@ class CanReassembler:
     def frames_bad(self) -> int:
         """Frames or PDUs lost to errors (duplicates and ignored frames excluded)."""
         return (self.framing_errors + self.crc_errors + self.length_errors + self.unknown_ids
-                + self.out_of_order + self.unexpected_cf + self.timeouts + self.aborted + self.rejected)
+                + self.out_of_order + self.unexpected_cf + self.timeouts + self.aborted + self.rejected
+                + self.unresolved)
 
     def counters(self) -> dict:
         return {k: getattr(self, k) for k in self.COUNTERS}
@@ -547,8 +593,16 @@ class CanReassembler:
             self._bad(arb, "length_errors", LengthError(f"{d.name}: single frame of {len(data)} bytes, "
                                                         f"schema says {n}"))
             return []
-        payload = (bytes([src]) if d.sender_field else b"") + data[:n]
-        msg = CLASS_BY_ID[msg_id]._make(STRUCTS[msg_id].unpack(payload))
+        if msg_id in BUS_FORM_IDS:
+            msg = busform.decode(msg_id, src, data, self.context)
+            if msg is None:
+                self._bad(arb, "unresolved", FramingError(
+                    f"{d.name}: bus form not restorable (no TIME_SYNC heard, or the status's command not heard)"))
+                return []
+            self.context.note(msg)
+        else:
+            payload = (bytes([src]) if d.sender_field else b"") + data[:n]
+            msg = CLASS_BY_ID[msg_id]._make(STRUCTS[msg_id].unpack(payload))
         seq = (self._last_seq.get(src, -1) + 1) & 0xFF      # the sender's previous seq + 1
         self._last_seq[src] = seq
         hdr = self.header
@@ -582,6 +636,8 @@ class CanReassembler:
             self._bad(arb, "rejected", getattr(self.verifier, "last_error", None))
             return []
         self._last_pdu[arb] = pdu
+        if msg_id in BUS_FORM_IDS:
+            self.context.note(msg)
         last = self._last_seq.get(src)
         if last is not None and hdr.seq != ((last + 1) & 0xFF):
             self.seq_gaps += 1
@@ -610,7 +666,7 @@ class CanLink:
         self.bus = bus
         self.node_id = node_id
         self.codec = CanCodec(fd=fd, brs=brs)
-        self.reassembler = CanReassembler(timeout_s=timeout_s, verifier=verifier)
+        self.reassembler = CanReassembler(timeout_s=timeout_s, verifier=verifier, context=self.codec.context)
         self.send_timeout = send_timeout
         self.max_frames_per_read = max_frames_per_read
         self.local_ids = {node_id}
@@ -680,7 +736,7 @@ class CanLink:
     def counters(self) -> dict:
         d = {"frames_tx": self.frames_tx, "messages_tx": self.messages_tx, "frames_rx": self.frames_rx,
              "tx_errors": self.tx_errors, "rx_errors": self.rx_errors, "tx_bad": self.tx_bad,
-             "echoes": self.echoes}
+             "echoes": self.echoes, "tx_bus_form_fallbacks": self.codec.fallbacks}
         d.update({"rx_" + k: v for k, v in self.reassembler.counters().items()})
         return d
 

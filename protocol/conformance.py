@@ -66,8 +66,8 @@ from .codec import MSG
 from .errors import ProtocolError, SchemaMismatchError
 from .framing import FrameDecoder, FrameEncoder, build_frame, cobs_decode, cobs_encode, encode_frame
 from .peer import check_peer, role_name
-from .schema import (BY_ID, COIL_FAULT_REFUSED, CURRENT_LSB_A, NODE_FIRMWARE, ROLE_COIL_DRIVER, STAMP_FLIP,
-                     STAMP_MASK, STAMP_SATURATED, unwrap_stamp,
+from .schema import (BUS_START_LSB_US, BY_ID, COIL_FAULT_REFUSED, CURRENT_LSB_A, NODE_FIRMWARE, PULSE_ID_MASK,
+                     ROLE_COIL_DRIVER, STAMP_FLIP, STAMP_MASK, STAMP_SATURATED, unwrap_stamp,
                      ROLE_SENSOR)
 from .signing import Signer
 
@@ -264,7 +264,7 @@ class Conformance:
         self.dropped_log = 0
         self.rules: list[RuleResult] = []
         self.t0 = self.clock()
-        self.next_pulse_id = int(self.rng.integers(0x4000, 0xC000))
+        self.next_pulse_id = int(self.rng.integers(0x400, 0xC00))     # 12 bits: the bus form's pulse_id
 
     # ------------------------------------------------------------ plumbing
     def _on_frame(self, hdr, msg) -> None:
@@ -358,7 +358,7 @@ class Conformance:
 
     def _pulse_id(self) -> int:
         pid = self.next_pulse_id
-        self.next_pulse_id = (pid + 1) & 0xFFFF
+        self.next_pulse_id = (pid + 1) & PULSE_ID_MASK
         return pid
 
     def _status_for(self, node: int, pid: int):
@@ -411,7 +411,7 @@ class Conformance:
         o = self.o
         pid = self._pulse_id()
         lead = int(o.lead_ms * 1000) if lead_us is None else lead_us
-        start = self.master_us() + lead
+        start = (self.master_us() + lead) // BUS_START_LSB_US * BUS_START_LSB_US   # on the bus form's 8 us grid
         dur = int(o.pulse_ms * 1000) if duration_us is None else duration_us
         cur = o.pulse_current_ma if current_ma is None else current_ma
         cmd = MSG["COIL_PULSE_CMD"](coil, pid, cur, start, dur)
@@ -703,32 +703,39 @@ class Conformance:
     def _garbage_can(self) -> int:
         import can
 
-        from .can import BASE_ID, CanCodec, can_id
+        from .can import _MSG_BY_BASE, BASE_ID, FUNCTION_MASK, build_pdu, can_id, direct_size, ext_id, segment
 
         bus = self.link.bus
         rng = self.rng
         src = self.o.src & 0x1F
         tsid = can_id(MSG["TIME_SYNC"].ID, src)
-        pcid = can_id(MSG["COIL_PULSE_CMD"].ID, src)
-        good = CanCodec().encode(MSG["TIME_SYNC"](0, 0xFFFE), 0, src)
+        # ISO-TP garbage on the 29-bit identifiers (protocol v3: an 8-byte frame on an 11-bit TIME_SYNC or
+        # COIL_PULSE_CMD identifier is that message's bus form, never a segment)
+        tsx, pcx = ext_id(tsid), ext_id(can_id(MSG["COIL_PULSE_CMD"].ID, src))
+        good = segment(build_pdu(MSG["TIME_SYNC"](0, 0xFFFE), 0, src))
         frames = [
-            can.Message(arbitration_id=tsid, is_extended_id=False, data=b"\x21\x01\x02"),     # CF without FF
-            can.Message(arbitration_id=tsid, is_extended_id=False, data=good[0].data),          # FF ...
-            can.Message(arbitration_id=tsid, is_extended_id=False, data=b"\x25" + bytes(7)),    # ... wrong SN
-            can.Message(arbitration_id=pcid, is_extended_id=False, data=b"\x1F\xFF" + bytes(6)),  # 4095 bytes
-            can.Message(arbitration_id=tsid, is_extended_id=False, data=b"\x71\x02"),           # unknown PCI
+            can.Message(arbitration_id=tsx, is_extended_id=True, data=b"\x21\x01\x02"),     # CF without FF
+            can.Message(arbitration_id=tsx, is_extended_id=True, data=good[0]),                # FF ...
+            can.Message(arbitration_id=tsx, is_extended_id=True, data=b"\x25" + bytes(7)),    # ... wrong SN
+            can.Message(arbitration_id=pcx, is_extended_id=True, data=b"\x1F\xFF" + bytes(6)),  # 4095 bytes
+            can.Message(arbitration_id=tsx, is_extended_id=True, data=b"\x71\x02"),           # unknown PCI
             can.Message(arbitration_id=0x7FF, is_extended_id=False, data=b"\x01\x02"),           # foreign id
             can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, data=b"\x02\x03"),        # extended id
             can.Message(arbitration_id=tsid, is_extended_id=False, is_remote_frame=True, dlc=2),
             can.Message(arbitration_id=tsid, is_extended_id=False, data=b""),
+            can.Message(arbitration_id=tsid, is_extended_id=False, data=bytes(7)),          # bus form one byte short
         ]
-        bad_crc = [bytearray(f.data) for f in good]
+        bad_crc = [bytearray(d) for d in good]
         bad_crc[-1][-1] ^= 0x01
-        frames += [can.Message(arbitration_id=tsid, is_extended_id=False, data=bytes(d)) for d in bad_crc]
+        frames += [can.Message(arbitration_id=tsx, is_extended_id=True, data=bytes(d)) for d in bad_crc]
         for _ in range(20):
             arb = (int(rng.choice(list(BASE_ID.values()))) | src) if rng.random() < 0.8 else int(rng.integers(0, 0x800))
+            n = int(rng.integers(1, 9))
+            mid = _MSG_BY_BASE.get(arb & FUNCTION_MASK)
+            if mid is not None and n == direct_size(mid):
+                n -= 1                     # a wrong length: never a well-formed single frame or bus form
             frames.append(can.Message(arbitration_id=arb, is_extended_id=False,
-                                      data=bytes(rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8))))
+                                      data=bytes(rng.integers(0, 256, n, dtype=np.uint8))))
         sent = 0
         for f in frames:
             try:

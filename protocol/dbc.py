@@ -1,21 +1,29 @@
 """DBC export of the CAN side of the schema (cantools writes the file).
 
-What the DBC describes (protocol v2)
+What the DBC describes (protocol v3)
 ------------------------------------
 A DBC message is one frame layout on one identifier. Every coiltrack message
 has a single-frame form (``protocol.can``, "Single frames"): the schema
-payload without the sender's ``node`` byte where the identifier carries it.
-The export describes each message in that form, so it decodes frames
-straight off the bus:
+payload without the sender's ``node`` byte where the identifier carries it,
+or, for the frequent messages longer than 8 bytes, their bus form
+(``protocol.busform``). The export describes each message in that form, so it
+decodes frames straight off the bus:
 
-- MAG_PACKED, IMU_DELTA and CONFIG_GET (<= 8 bytes) as classic frames: on a
-  classic bus and on CAN FD (the samples, 120 Hz and 10 Hz per sensor);
-- every other message as a CAN FD frame of its padded length (HEARTBEAT,
-  TIME_SYNC, COIL_PULSE_CMD, COIL_STATUS, POSE, ...): straight off a CAN FD
-  bus. On a classic bus these are segmented (ISO-TP, 11-bit identifiers) and
-  the DBC decodes the reassembled payload after :func:`dbc_data` (drop the
-  sender byte, pad);
-- signed commands (29-bit identifiers, segmented) are not in the DBC.
+- MAG_PACKED, IMU_DELTA and CONFIG_GET (<= 8 bytes) and the bus forms of
+  HEARTBEAT, TIME_SYNC, COIL_PULSE_CMD and COIL_STATUS as classic 8-byte
+  frames: on a classic bus and on CAN FD (every frequent message);
+- every other message as a CAN FD frame of its padded length (POSE,
+  TIME_SYNC_REPLY, MAG_FLIP_CMD, ...): straight off a CAN FD bus. On a
+  classic bus these are segmented (ISO-TP, 11-bit identifiers) and the DBC
+  decodes the reassembled payload after :func:`dbc_data` (drop the sender
+  byte, pad);
+- signed commands and the full form of a bus-form message its form cannot
+  carry (29-bit identifiers, segmented) are not in the DBC.
+
+A bus form's signals are its fields: ``start_8us`` of COIL_PULSE_CMD is the
+start modulo 2.097152 s (restore it against the latest TIME_SYNC), and
+``start_late_us`` / ``end_late_us`` of COIL_STATUS are the edges less the
+commanded ones.
 
 The compact stamps carry sub-fields as signals of their own: ``t_8us``
 (14 bits, 8 us units; the master time modulo 131.072 ms), ``saturated`` and
@@ -31,6 +39,7 @@ COIL_DRIVER (2) and SENSOR (16..63).
 """
 from __future__ import annotations
 
+from .busform import BUS_FORM_IDS
 from .can import BASE_ID, FUNCTION_MASK, direct_data, direct_size, fd_length
 from .schema import MESSAGES, PROTOCOL_VERSION, SCHEMA_HASH
 
@@ -78,7 +87,18 @@ def _bit_signal(name, start_bit, bits, scale, unit, comment):
                   unit=unit or None, comment=comment)
 
 
+def _bus_form_signals(form) -> list:
+    from cantools.database.can import Signal
+    from cantools.database.conversion import BaseConversion
+
+    return [Signal(name=f.name, start=f.first_bit, length=f.bits, byte_order="little_endian", is_signed=f.signed,
+                   conversion=BaseConversion.factory(scale=f.scale, offset=0, is_float=False),
+                   unit=f.unit or None, comment=f.doc or None) for f in form.fields]
+
+
 def _single_frame_signals(mdef) -> list:
+    if mdef.id in BUS_FORM_IDS:
+        return _bus_form_signals(BUS_FORM_IDS[mdef.id])
     sigs = []
     pos = 0
     for i, f in enumerate(mdef.fields):
@@ -105,7 +125,9 @@ def build_database():
         base = BASE_ID[m.id]
         n = direct_size(m.id)
         classic = n <= 8
-        where = ("one classic frame (classic and CAN FD bus)" if classic else
+        where = (f"its bus form, one classic frame (classic and CAN FD bus): {BUS_FORM_IDS[m.id].doc}"
+                 if m.id in BUS_FORM_IDS else
+                 "one classic frame (classic and CAN FD bus)" if classic else
                  f"one CAN FD frame ({fd_length(n)} bytes, padded 0xCC); segmented on a classic bus")
         comment = (f"{m.doc} Schema id {m.id:#04x}, class {m.priority}. Single-frame form: {where}; the "
                    f"message from node n uses id {base:#05x} | n"
@@ -121,7 +143,8 @@ def dbc_string() -> str:
     return build_database().as_dbc_string()
 
 
-def dbc_data(msg_id: int, payload: bytes) -> bytes:
+def dbc_data(msg_id: int, payload: bytes, context=None) -> bytes:
     """The bytes the DBC message ``msg_id`` decodes, from a schema payload (e.g. the
-    payload of a reassembled classic PDU, ``pdu[1:1 + size]``): the single-frame data."""
-    return direct_data(msg_id, payload, fd=True)
+    payload of a reassembled classic PDU, ``pdu[1:1 + size]``): the single-frame data
+    (a bus form against ``context``, a :class:`protocol.busform.BusContext`)."""
+    return direct_data(msg_id, payload, fd=True, context=context)

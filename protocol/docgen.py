@@ -6,7 +6,7 @@ from __future__ import annotations
 from . import schema
 from .can import BASE_ID, PDU_OVERHEAD, frame_data_lengths
 from .framing import CRC_LEN, HEADER_LEN, SIG_LEN
-from .schema import MESSAGES, PROTOCOL_VERSION, SCHEMA_HASH
+from .schema import BUS_FORMS, MESSAGES, PROTOCOL_VERSION, SCHEMA_HASH
 
 BEGIN = "<!-- BEGIN GENERATED: coiltrack schema --markdown -->"
 END = "<!-- END GENERATED -->"
@@ -18,6 +18,8 @@ _CONSTANT_GROUPS = (
     ("Coil fault bits (COIL_STATUS.faults)", "COIL_FAULT_"),
     ("Pose status bits (POSE.status)", "POSE_"),
     ("Compact stamps (MAG_PACKED.stamp, IMU_DELTA.stamp)", "STAMP_"),
+    ("Bus forms (COIL_PULSE_CMD, COIL_STATUS on CAN)", "BUS_"),
+    ("Pulse ids", "PULSE_ID_"),
     ("Fault / event codes (FAULT_EVENT.code)", "EVT_"),
 )
 
@@ -56,6 +58,14 @@ def markdown_table() -> str:
         for f in m.fields:
             out.append(f"| {off} | {f.name} | {f.type} | {f.unit} | {_scale(f)} | {f.doc} |")
             off += f.size
+    for b in BUS_FORMS:
+        out += ["", f"#### Bus form of {b.name}", "",
+                f"One classic 8-byte frame on {b.name}'s identifier: {b.doc}. Bits of the 8 data bytes read as "
+                "one little-endian 64-bit integer.", "",
+                "| first bit | field | type | unit | scale | notes |", "|---:|---|---|---|---|---|"]
+        for f in b.fields:
+            scale = "" if f.scale == 1.0 else f"{f.scale:g}"
+            out.append(f"| {f.first_bit} | {f.name} | {'i' if f.signed else 'u'}{f.bits} | {f.unit} | {scale} | {f.doc} |")
     out += ["", "#### Constants", ""]
     for title, prefix in _CONSTANT_GROUPS:
         names = [n for n in vars(schema) if n.startswith(prefix) and isinstance(getattr(schema, n), int)]

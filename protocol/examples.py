@@ -30,14 +30,16 @@ class Example:
 S = NODE_SENSOR_BASE
 _VALUES = {
     "HEARTBEAT": (S, 7, dict(node=S, role=ROLE_SENSOR, state=STATE_RUNNING, proto_version=PROTOCOL_VERSION,
-                             schema_hash=SCHEMA_HASH, uptime_us=123_456_789, errors=3)),
-    "TIME_SYNC": (NODE_FIRMWARE, 1, dict(master_time_us=1_000_000_250, sync_seq=42)),
+                             schema_hash=SCHEMA_HASH, errors=3)),
+    # the TIME_SYNC heard before the command and the status below: their bus forms restore against it
+    "TIME_SYNC": (NODE_FIRMWARE, 1, dict(master_time_us=2_000_150_250, sync_seq=42)),
     "TIME_SYNC_REPLY": (NODE_COIL_DRIVER, 2, dict(node=NODE_COIL_DRIVER, sync_seq=42,
                                                   node_time_us=1_000_000_377, offset_us=-127, drift_ppb=-2500)),
     "COIL_PULSE_CMD": (NODE_FIRMWARE, 3, dict(coil=1, pulse_id=513, current_ma=1500,
                                              start_us=2_000_200_000, duration_us=60_000)),
-    "COIL_STATUS": (NODE_COIL_DRIVER, 4, dict(coil=1, pulse_id=513, current_ma=1497, start_us=2_000_200_000,
-                                             end_us=2_000_260_000, faults=COIL_FAULT_CURRENT_SAG)),
+    # edges 13 us late and 12 us early against the command: the bus form's start_late_us, end_late_us
+    "COIL_STATUS": (NODE_COIL_DRIVER, 4, dict(coil=1, pulse_id=513, current_ma=1497, start_us=2_000_200_013,
+                                             end_us=2_000_259_988, faults=COIL_FAULT_CURRENT_SAG)),
     "MAG_SAMPLE": (S, 5, dict(node=S, t_us=2_000_208_333, x=1234, y=-2345, z=3456, flip=1)),
     "IMU_SAMPLE": (S + 1, 6, dict(node=S + 1, t_us=2_000_210_000, ax=120, ay=-340, az=9810,
                                    gx=-12, gy=34, gz=-56)),
@@ -80,3 +82,15 @@ SIGNING_TIMESTAMP = 0x00_01_23_45_67_89
 
 def example(name: str) -> Example:
     return EXAMPLES[name]
+
+
+def example_context():
+    """A :class:`protocol.busform.BusContext` that has heard the TIME_SYNC and COIL_PULSE_CMD
+    examples: what a station on the examples' bus knows when the command and the status arrive
+    (their bus forms are relative to it)."""
+    from .busform import BusContext
+
+    ctx = BusContext()
+    ctx.note(EXAMPLES["TIME_SYNC"].msg)
+    ctx.note(EXAMPLES["COIL_PULSE_CMD"].msg)
+    return ctx

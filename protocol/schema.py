@@ -16,7 +16,7 @@ import hashlib
 import struct
 from dataclasses import dataclass, field as dc_field
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 
 #: wire types: struct format character and size in bytes
 TYPES = {
@@ -72,6 +72,24 @@ CURRENT_LSB_A = 1e-3
 AC_FREQ_LSB_HZ = 1e-3
 AC_CURRENT_LSB_A = 1e-6
 AC_PHASE_LSB_RAD = 1e-6
+
+# --- bus forms (protocol v3): the frequent messages in one 8-byte CAN frame ------------------
+#: COIL_PULSE_CMD / COIL_STATUS ``pulse_id`` travels on the bus as 12 bits: ids wrap at 4096
+PULSE_ID_BITS = 12
+PULSE_ID_MASK = (1 << PULSE_ID_BITS) - 1
+#: COIL_PULSE_CMD ``start_us`` on the bus: bits ``start_us / 8 mod 2**18`` (2.097 s); the receiver
+#: restores the one time in ``[ref - BUS_START_BEHIND_US, ref - BUS_START_BEHIND_US + BUS_START_WRAP_US)``
+#: where ``ref`` is the master time of the latest TIME_SYNC on the bus
+BUS_START_LSB_US = 8
+BUS_START_BITS = 18
+BUS_START_WRAP_US = BUS_START_LSB_US << BUS_START_BITS
+BUS_START_BEHIND_US = BUS_START_WRAP_US // 4
+#: COIL_PULSE_CMD ``duration_us`` on the bus: 14 bits of 16 us (at most 262.128 ms)
+BUS_DURATION_LSB_US = 16
+BUS_DURATION_BITS = 14
+#: COIL_STATUS edges on the bus: actual minus commanded (same pulse_id), signed 12-bit microseconds
+BUS_EDGE_BITS = 12
+BUS_EDGE_MAX_US = (1 << (BUS_EDGE_BITS - 1)) - 1
 
 # --- coil fault bits (COIL_STATUS.faults) -----------------------------------
 COIL_FAULT_OVER_CURRENT = 1
@@ -187,7 +205,6 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("state", "u8", doc="STATE_*"),
         F("proto_version", "u8"),
         F("schema_hash", "u32", doc="schema_hash() of the sender's table"),
-        F("uptime_us", "u64", "us"),
         F("errors", "u16", doc="bad frames counted since boot (saturating)"),
     ), "Every node, once a second: identity, state and the schema it speaks.", priority=6,
         sender_field=True),
@@ -204,7 +221,7 @@ MESSAGES: tuple[MessageDef, ...] = (
     ), "A node's answer to TIME_SYNC: its clock and its correction.", priority=5, sender_field=True),
     MessageDef(0x10, "COIL_PULSE_CMD", (
         F("coil", "u8", doc="coil index on the driver"),
-        F("pulse_id", "u16", doc="wraps; echoed in COIL_STATUS"),
+        F("pulse_id", "u16", doc="wraps at 4096 (PULSE_ID_MASK); echoed in COIL_STATUS"),
         F("current_ma", "i16", "A", CURRENT_LSB_A, "target current, sign gives polarity"),
         F("start_us", "u64", "us", doc="start time on the master clock"),
         F("duration_us", "u32", "us"),
@@ -330,18 +347,85 @@ MESSAGES: tuple[MessageDef, ...] = (
 )
 del F
 
+
+
+@dataclass(frozen=True)
+class BusField:
+    """One field of a bus form: bits ``first_bit .. first_bit + bits - 1`` of the 8 data bytes read
+    as one little-endian 64-bit integer (DBC ``@1``); ``physical = raw * scale`` in ``unit``."""
+    name: str
+    first_bit: int
+    bits: int
+    signed: bool = False
+    scale: float = 1.0
+    unit: str = ""
+    doc: str = ""
+
+
+@dataclass(frozen=True)
+class BusForm:
+    """The CAN form of a frequent message whose schema payload exceeds 8 bytes (protocol v3): one
+    classic 8-byte frame on the message's identifier (``protocol.busform`` maps it to and from the
+    schema message; ``docs/protocol.md``, "Bus forms")."""
+    name: str
+    fields: tuple[BusField, ...]
+    doc: str = ""
+
+    def canonical(self) -> str:
+        return "bus " + self.name + " " + " ".join(
+            f"{f.name} {f.first_bit} {'i' if f.signed else 'u'}{f.bits}" for f in self.fields) + " "
+
+
+B = BusField
+BUS_FORMS: tuple[BusForm, ...] = (
+    BusForm("HEARTBEAT", (
+        B("role", 0, 4, doc="ROLE_*"),
+        B("state", 4, 4, doc="STATE_*"),
+        B("proto_version", 8, 8),
+        B("errors", 16, 16, doc="bad frames counted since boot (saturating)"),
+        B("schema_hash", 32, 32),
+    ), "role and state as 4-bit fields; the sender is the identifier's node"),
+    BusForm("TIME_SYNC", (
+        B("master_time_us", 0, 48, unit="us", doc="master clock at transmission (48 bits: 8.9 years)"),
+        B("sync_seq", 48, 16),
+    ), "the master time in 48 bits"),
+    BusForm("COIL_PULSE_CMD", (
+        B("coil", 0, 4),
+        B("pulse_id", 4, 12, doc="pulse_id (below 4096)"),
+        B("current_ma", 16, 16, True, CURRENT_LSB_A, "A", "target current, sign gives polarity"),
+        B("start_8us", 32, BUS_START_BITS, False, BUS_START_LSB_US, "us",
+          "start_us / 8 mod 2^18 (master clock, wraps every 2.097 s; restored against the latest TIME_SYNC)"),
+        B("duration_us", 50, BUS_DURATION_BITS, False, BUS_DURATION_LSB_US, "us", "duration in 16 us units"),
+    ), "the start as 18 bits of 8 us restored against the latest TIME_SYNC, the duration in 16 us units"),
+    BusForm("COIL_STATUS", (
+        B("coil", 0, 4),
+        B("pulse_id", 4, 12),
+        B("current_ma", 16, 16, True, CURRENT_LSB_A, "A", "measured steady-state current"),
+        B("faults", 32, 8, doc="COIL_FAULT_* bits"),
+        B("start_late_us", 40, BUS_EDGE_BITS, True, 1.0, "us", "actual start minus commanded start"),
+        B("end_late_us", 52, BUS_EDGE_BITS, True, 1.0, "us", "actual end minus commanded start + duration"),
+    ), "the edges as signed offsets from the command of the same pulse_id"),
+)
+del B
+BUS_FORM_BY_NAME: dict[str, BusForm] = {b.name: b for b in BUS_FORMS}
+
 BY_ID: dict[int, MessageDef] = {m.id: m for m in MESSAGES}
 BY_NAME: dict[str, MessageDef] = {m.name: m for m in MESSAGES}
 assert len(BY_ID) == len(MESSAGES) and len(BY_NAME) == len(MESSAGES)
 MAX_PAYLOAD = max(m.size for m in MESSAGES)
 
 
+def schema_text() -> str:
+    """The text the schema hash is computed from: the version line, one line per message
+    (id and canonical text) and, from protocol v3, one line per bus form."""
+    return f"coiltrack v{PROTOCOL_VERSION}\n" + "\n".join(
+        [f"{m.id:#04x} {m.canonical()}" for m in MESSAGES] + [b.canonical() for b in BUS_FORMS])
+
+
 def schema_hash() -> int:
-    """32-bit hash of the whole table (version included), reported in every
+    """32-bit hash of the whole table (version and bus forms included), reported in every
     HEARTBEAT; a peer reporting another hash is refused."""
-    text = f"coiltrack v{PROTOCOL_VERSION}\n" + "\n".join(
-        f"{m.id:#04x} {m.canonical()}" for m in MESSAGES)
-    return int.from_bytes(hashlib.sha256(text.encode()).digest()[:4], "little")
+    return int.from_bytes(hashlib.sha256(schema_text().encode()).digest()[:4], "little")
 
 
 SCHEMA_HASH = schema_hash()

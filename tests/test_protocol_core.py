@@ -130,7 +130,7 @@ def test_decode_errors_are_protocol_errors():
 def test_schema_hash_stable_and_in_heartbeat():
     assert protocol.SCHEMA_HASH == protocol.schema_hash()
     assert 0 <= protocol.SCHEMA_HASH < 2**32
-    hb = MSG["HEARTBEAT"](1, 0, 2, protocol.PROTOCOL_VERSION, protocol.SCHEMA_HASH, 5, 0)
+    hb = MSG["HEARTBEAT"](1, 0, 2, protocol.PROTOCOL_VERSION, protocol.SCHEMA_HASH, 0)
     assert decode_frame(encode_frame(hb)).schema_hash == protocol.SCHEMA_HASH
 
 

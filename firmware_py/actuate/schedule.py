@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from coiltrack.protocol import MSG
-from coiltrack.protocol.schema import CURRENT_LSB_A, EVT_COIL_FAULT
+from coiltrack.protocol.schema import BUS_START_LSB_US, CURRENT_LSB_A, EVT_COIL_FAULT, PULSE_ID_MASK
 
 _PULSE_CMD = MSG["COIL_PULSE_CMD"]
 
@@ -56,9 +56,14 @@ class PulseSchedule:
 
     def command(self, coil: int, current_a: float, start_us: int, length_us: int) -> tuple[int, float]:
         """Send one ``COIL_PULSE_CMD``; returns ``(pulse_id, current)`` with
-        the current as the driver is told to regulate it (1 mA steps)."""
+        the current as the driver is told to regulate it (1 mA steps).
+
+        The command is the one the CAN bus form carries exactly (``docs/protocol.md``, "Bus forms"):
+        ``pulse_id`` numbered modulo 4096, ``start_us`` rounded up to the form's 8 us grid (a
+        start on the 1 ms tick is on it already)."""
+        start_us = -(-int(start_us) // BUS_START_LSB_US) * BUS_START_LSB_US
         pid = self.next_id
-        self.next_id = (pid + 1) & 0xFFFF
+        self.next_id = (pid + 1) & PULSE_ID_MASK      # 12 bits: the bus form's pulse_id
         self.start[coil] = start_us
         self.end[coil] = start_us + length_us
         self.pulse_id[coil] = pid

@@ -11,13 +11,14 @@ from coiltrack.protocol.can import (BASE_ID, CAN_INDEX, FUNCTION_MASK, MAX_CAN_N
                           virtual_bus_pair, virtual_link_pair)
 from coiltrack.protocol.codec import STRUCTS
 from coiltrack.protocol.errors import CrcError, EncodeError, LengthError, UnknownMessageError
-from coiltrack.protocol.examples import EXAMPLES
+from coiltrack.protocol.examples import EXAMPLES, example_context
 from coiltrack.protocol.schema import BY_NAME, MESSAGES, NODE_COIL_DRIVER, NODE_FIRMWARE, NODE_SENSOR_BASE
 
 
 def frames_of(name, fd=False, src=None, seq=None):
     ex = EXAMPLES[name]
-    return CanCodec(fd=fd).encode(ex.msg, ex.seq if seq is None else seq, ex.src if src is None else src)
+    return CanCodec(fd=fd, context=example_context()).encode(ex.msg, ex.seq if seq is None else seq,
+                                                             ex.src if src is None else src)
 
 
 def wire_seq(ex, fd, previous=-1):
@@ -88,10 +89,10 @@ def test_single_frames_continue_the_senders_numbering():
     frames become 8 and 9 and no gap is counted (a receiver counting single frames on their own
     from 0 reports gaps on every sender that mixes both forms, as conform's sequence rule saw)."""
     r = CanReassembler()
-    hb, mag = EXAMPLES["HEARTBEAT"].msg, EXAMPLES["MAG_PACKED"].msg
+    hb, mag = EXAMPLES["TIME_SYNC_REPLY"].msg._replace(node=16), EXAMPLES["MAG_PACKED"].msg
     c = CanCodec()
     out = []
-    for m, q in ((hb, 7), (mag, 8), (mag._replace(stamp=mag.stamp + 1), 9), (hb._replace(errors=4), 10)):
+    for m, q in ((hb, 7), (mag, 8), (mag._replace(stamp=mag.stamp + 1), 9), (hb._replace(sync_seq=43), 10)):
         for f in c.encode(m, q, 16):
             out += r.feed_with_headers(f)
     assert [h.seq for h, _ in out] == [7, 8, 9, 10] and r.seq_gaps == 0
@@ -142,8 +143,8 @@ def test_round_trip_every_message(name, fd):
         assert all(f.is_fd and len(f.data) in (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64) for f in fr)
     else:
         assert all(len(f.data) <= 8 for f in fr)
-    assert CanCodec.decode_frames(fr) == ex.msg
-    r = CanReassembler()
+    assert CanCodec.decode_frames(fr, context=example_context()) == ex.msg
+    r = CanReassembler(context=example_context())
     out = []
     for f in fr:
         out += r.feed_with_headers(f)
@@ -163,10 +164,12 @@ def test_segment_sequence_nibble_wraps():
 
 def test_crc_extra_catches_schema_mismatch_on_can():
     """The PDU CRC mixes the CRC extra, so a sender whose table differs fails
-    on CAN as on serial: relabel TIME_SYNC frames as MAG_FLIP_CMD (same size)."""
-    fr = frames_of("TIME_SYNC", src=NODE_FIRMWARE)
-    wrong_id = can_id(BY_NAME["MAG_FLIP_CMD"].id, NODE_FIRMWARE)
-    relabelled = [can.Message(arbitration_id=wrong_id, is_extended_id=False, data=f.data) for f in fr]
+    on CAN as on serial: relabel TIME_SYNC's segmented full form (the 29-bit fallback of its bus
+    form) as MAG_FLIP_CMD (same size)."""
+    ex = EXAMPLES["TIME_SYNC"]
+    fr = segment(build_pdu(ex.msg, ex.seq, NODE_FIRMWARE))
+    wrong_id = ext_id(can_id(BY_NAME["MAG_FLIP_CMD"].id, NODE_FIRMWARE))
+    relabelled = [can.Message(arbitration_id=wrong_id, is_extended_id=True, data=d) for d in fr]
     r = CanReassembler()
     for f in relabelled:
         assert r.feed(f) == []
@@ -195,11 +198,11 @@ def test_interleaved_senders_and_messages():
     interleave on a real bus; each identifier reassembles on its own."""
     a = frames_of("MAG_SAMPLE", src=16, seq=1)
     b = frames_of("MAG_SAMPLE", src=17, seq=1)
-    c = frames_of("HEARTBEAT", src=16, seq=2)
+    c = CanCodec().encode(EXAMPLES["TIME_SYNC_REPLY"].msg._replace(node=16), 2, 16)
     order = [a[0], b[0], c[0], a[1], c[1], b[1], c[2], a[2], b[2], c[3]]
     r = CanReassembler()
     got = [(h.src, m.NAME) for f in order for h, m in r.feed_with_headers(f)]
-    assert sorted(got) == [(16, "HEARTBEAT"), (16, "MAG_SAMPLE"), (17, "MAG_SAMPLE")]
+    assert sorted(got) == [(16, "MAG_SAMPLE"), (16, "TIME_SYNC_REPLY"), (17, "MAG_SAMPLE")]
     assert r.frames_bad == 0 and r.seq_gaps == 0
 
 
@@ -281,6 +284,11 @@ def test_virtual_bus_fd_back_to_back():
 def test_canlink_presents_the_serial_port_interface():
     fw, emu = virtual_link_pair(NODE_FIRMWARE, NODE_COIL_DRIVER)
     try:
+        # the firmware's TIME_SYNC and command first: the command's and the status's bus forms are
+        # relative to them
+        fw.write(encode_frame(EXAMPLES["TIME_SYNC"].msg, 1, NODE_FIRMWARE)
+                 + encode_frame(EXAMPLES["COIL_PULSE_CMD"].msg, 3, NODE_FIRMWARE))
+        assert FrameDecoder().feed(emu.read()) == [EXAMPLES["TIME_SYNC"].msg, EXAMPLES["COIL_PULSE_CMD"].msg]
         # emulator side writes serial frames from several nodes
         out = b"".join(encode_frame(ex.msg, ex.seq, ex.src) for ex in EXAMPLES.values()
                        if ex.src != NODE_FIRMWARE)
@@ -319,7 +327,7 @@ def test_canlink_ignores_echo_of_its_own_frames():
     try:
         link = CanLink(bus, NODE_FIRMWARE)
         link.write(encode_frame(EXAMPLES["TIME_SYNC"].msg, 0, NODE_FIRMWARE))
-        assert link.read() == b"" and link.echoes == 2
+        assert link.read() == b"" and link.echoes == 1          # the bus form: one frame
     finally:
         bus.shutdown()
 

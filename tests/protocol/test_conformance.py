@@ -116,7 +116,7 @@ class _BadNode:
 
     def read(self) -> bytes:
         self.n += 1
-        hb = MSG["HEARTBEAT"](5, 3, 2, PROTOCOL_VERSION, SCHEMA_HASH ^ 0xFF, self.n * 1000, 0)
+        hb = MSG["HEARTBEAT"](5, 3, 2, PROTOCOL_VERSION, SCHEMA_HASH ^ 0xFF, 0)
         out = self.enc.encode(hb)
         if self.n % 50 == 0:
             self.enc.seq += 3

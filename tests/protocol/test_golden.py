@@ -4,7 +4,7 @@ import pytest
 
 from coiltrack.protocol import FrameDecoder, SignatureVerifier, decode_frame
 from coiltrack.protocol.can import CanReassembler, is_direct
-from coiltrack.protocol.examples import EXAMPLES, SIGNING_KEY
+from coiltrack.protocol.examples import EXAMPLES, SIGNING_KEY, example_context
 from coiltrack.protocol.golden import GOLDEN_DIR, check_golden, format_can_log, golden_files, read_can_log, write_golden
 
 
@@ -49,7 +49,7 @@ def test_can_vector_reads_with_python_can_and_reassembles(name, variant):
     frames = read_can_log(path)
     assert frames and all(f.is_fd == bool(variant) for f in frames)
     assert format_can_log(frames).encode() == path.read_bytes()        # python-can reads what we wrote
-    r = CanReassembler()
+    r = CanReassembler(context=example_context())   # the bus forms of command and status: against the examples
     out = [p for f in frames for p in r.feed_with_headers(f)]
     assert [m for _, m in out] == [ex.msg]
     # a single frame carries no seq: the receiver numbers it (0: the first from that sender)

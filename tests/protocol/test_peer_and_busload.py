@@ -11,17 +11,17 @@ Hb = MSG["HEARTBEAT"]
 
 
 def test_check_peer_admits_same_schema():
-    hb = Hb(16, 2, 2, PROTOCOL_VERSION, SCHEMA_HASH, 5, 0)
+    hb = Hb(16, 2, 2, PROTOCOL_VERSION, SCHEMA_HASH, 0)
     assert check_peer(hb) is hb
 
 
 def test_check_peer_refuses_other_schema_clearly():
     with pytest.raises(SchemaMismatchError) as e:
-        check_peer(Hb(16, 2, 2, PROTOCOL_VERSION, SCHEMA_HASH ^ 1, 5, 0))
+        check_peer(Hb(16, 2, 2, PROTOCOL_VERSION, SCHEMA_HASH ^ 1, 0))
     text = str(e.value)
     assert "node 16 (sensor)" in text and f"{SCHEMA_HASH ^ 1:#010x}" in text and f"{SCHEMA_HASH:#010x}" in text
     with pytest.raises(SchemaMismatchError, match="protocol version 9"):
-        check_peer(Hb(2, 1, 2, 9, SCHEMA_HASH, 5, 0))
+        check_peer(Hb(2, 1, 2, 9, SCHEMA_HASH, 0))
     with pytest.raises(TypeError):
         check_peer(MSG["TIME_SYNC"](1, 2))
 

@@ -103,7 +103,7 @@ CHILD = textwrap.dedent("""
     while replies < 3 and time.monotonic() < deadline:
         now = time.monotonic()
         if now >= next_hb:                      # until the parent answers, say hello
-            link.write(encode_frame(MSG["HEARTBEAT"](2, 1, 2, 1, 0, 0, 0), seq, 2)); seq += 1
+            link.write(encode_frame(MSG["HEARTBEAT"](2, 1, 2, 1, 0, 0), seq, 2)); seq += 1
             next_hb = now + 0.05
         for m in dec.feed(link.read()):
             if m.NAME == "TIME_SYNC":

@@ -14,9 +14,9 @@ import pytest
 from coiltrack import protocol
 from coiltrack.protocol import FrameDecoder, SignatureVerifier, Signer
 from coiltrack.protocol.can import MAX_PDU, CanCodec
-from coiltrack.protocol.examples import EXAMPLES, SIGNING_KEY
+from coiltrack.protocol.examples import EXAMPLES, SIGNING_KEY, example_context
 from coiltrack.protocol.framing import MAX_ENCODED, DecodedFrame, cobs_decode, cobs_encode, frame_crc, parse_frame
-from coiltrack.protocol.schema import BY_NAME, MESSAGES, PROTOCOL_VERSION
+from coiltrack.protocol.schema import BUS_FORMS, BY_NAME, MESSAGES, PROTOCOL_VERSION
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "protocol.md"
 SPACE_MARK = "\u2423"     # the document shows a line's final space as this
@@ -52,12 +52,22 @@ def canonical(name: str, fields) -> str:
     return name + " " + "".join(f"{t} {f} " for t, f in fields)
 
 
+def doc_bus_forms(text: str) -> list[tuple[str, list[tuple[str, str, str]]]]:
+    """[(message, [(field, first bit, type), ...]), ...] from the document's bus form tables, in order."""
+    out = []
+    for m in re.finditer(r"^#### Bus form of (\w+)\n(.*?)(?=^####|\Z)", text, re.S | re.M):
+        out.append((m.group(1), re.findall(r"^\| (\d+) \| (\w+) \| ([ui]\d+) \|", m.group(2), re.M)))
+    return [(n, [(f, b, t) for b, f, t in rows]) for n, rows in out]
+
+
 def doc_schema_text(text: str) -> str:
     """The schema-hash input built as the document's algorithm says, from its tables."""
     version = int(one(r"Protocol version (\d+), schema hash", text).group(1))
     lines = [f"coiltrack v{version}"]
     for name, (mid, fields) in sorted(doc_tables(text).items(), key=lambda kv: kv[1][0]):
         lines.append(f"0x{mid:02x} {canonical(name, fields)}")
+    for name, fields in doc_bus_forms(text):
+        lines.append(f"bus {name} " + "".join(f"{f} {b} {t} " for f, b, t in fields))
     return "\n".join(lines)
 
 
@@ -77,6 +87,13 @@ def test_doc_tables_cover_the_schema(doc):
     tables = doc_tables(doc)
     assert {n: (i, [tuple(x) for x in f]) for n, (i, f) in tables.items()} == {
         m.name: (m.id, [(f.type, f.name) for f in m.fields]) for m in MESSAGES}
+
+
+def test_doc_bus_form_tables_cover_the_bus_forms(doc):
+    """Every bus form is in the document's tables, field by field (else the hash below would pass
+    on a document missing one, and an implementer would build another layout)."""
+    assert doc_bus_forms(doc) == [(b.name, [(f.name, str(f.first_bit), f"{'i' if f.signed else 'u'}{f.bits}")
+                                            for f in b.fields]) for b in BUS_FORMS]
 
 
 def test_schema_hash_worked_example_follows_the_algorithm(doc):
@@ -178,7 +195,9 @@ def decode_example(kind: str, lines, hdr: DecodedFrame):
             assert data.endswith(b"\x00") and data.count(0) == 1, "one COBS frame with its delimiter"
             data = cobs_decode(data[:-1])
         return parse_frame(data, hdr)
-    return CanCodec.decode_frames(_can_frames(lines, kind == "can fd frames"), hdr)
+    # a station that heard the TIME_SYNC and the command the document shows first (the bus forms
+    # of COIL_PULSE_CMD and COIL_STATUS are relative to them)
+    return CanCodec.decode_frames(_can_frames(lines, kind == "can fd frames"), hdr, context=example_context())
 
 
 def _value(text: str):
