@@ -84,6 +84,8 @@ def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, close
         return Pipeline(t.actuate, t.measure, t.track, t)
     burst = BurstMeasurement(channels, schedule, closer, cfg.windows_budget)
     kind = BurstFusionTracker if cfg.fusion else MagneticTracker
+    if cfg.tight_fusion:              # each pulse window a measurement at its own time ([tight])
+        from coiltrack.firmware.track.tight_fusion import TightFusionTracker as kind
     t = kind(cfg, coils, channels, schedule, burst, supervisor, tx)
     return Pipeline(BurstActuation(cfg, schedule, channels, t).step, burst.step, t.step, t)
 
