@@ -145,6 +145,9 @@ class RelativeInertialEKF(SchepersEKF):
         self._Ehv = memoryview(self._Eh)
         self._Ev = memoryview(self._E)
         self._R3 = np.zeros((3, 3))
+        self._R1 = np.zeros((3, 3))
+        self._R1v = memoryview(self._R1)
+        self._Eht = self._Eh.T
         self._rows6 = np.zeros((6, _NC))
         self._r6 = np.zeros((3, _NC))
         self.steps_relative = 0
@@ -244,7 +247,9 @@ class RelativeInertialEKF(SchepersEKF):
             for i in range(3):
                 F[r0 + i, r0 + i] = 1.0
         transition_static(F, dt, 1.0, 1.0)
-        transition_sensor(F, dt, self._Rv, float(f[0]), float(f[1]), float(f[2]),
+        # the specific force's error enters in the first frame: R_1 = exp([w_s dt/2]x) R_mid
+        np.matmul(self._Eht, self.R, out=self._R1)
+        transition_sensor(F, dt, self._R1v, float(f[0]), float(f[1]), float(f[2]),
                           float(w[0]), float(w[1]), float(w[2]), self._sd)
         sa, sg = _SACC.start, _SGYR.start
         h2 = 0.5 * dt * dt
