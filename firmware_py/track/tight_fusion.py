@@ -116,6 +116,9 @@ class _TightSensor:
         self.pending = np.zeros(n, dtype=bool)      # clone scheduled, window not yet used
         self.col = np.zeros(3)
         self.P6 = np.zeros((6, 6))
+        self.G = np.zeros((n, 3, 3))                # at a start: R_now^T R(t_j) of each pulse
+        self.dt = np.zeros(n)                       # ... and the time since it (s)
+        self.have = [False] * n
         self.Rnow = np.eye(3)
         self.R3 = np.eye(3)
         self.last_imu_us: int | None = None
@@ -274,7 +277,7 @@ class TightFusionTracker(MagneticTracker):
         big = cfg.tight_lost_sigma_m * cfg.tight_lost_sigma_m
         b = POS.start
         wide = P[b, b] > big or P[b + 1, b + 1] > big or P[b + 2, b + 2] > big
-        if s.gated_in_row >= cfg.reacquire_after or (wide and s.since_start >= 2 * self.n):
+        if s.gated_in_row >= cfg.reacquire_after or (wide and s.since_start >= 5 * self.n):
             self._lose(s)
 
     def _lose(self, s: _TightSensor) -> None:
@@ -302,19 +305,41 @@ class TightFusionTracker(MagneticTracker):
         half = self.half_burst_us * 1e-6
         P6 = s.P6
         np.copyto(P6, sv.covariance)
-        extra = (cfg.init_sigma_vel * (lag + half)) ** 2
+        extra = (cfg.tight_init_sigma_vel * (lag + half)) ** 2
         ori = (cfg.imu_gyro_bias_sigma * (lag + half)) ** 2
         for i in range(3):
             P6[i, i] += extra
             P6[3 + i, 3 + i] += ori
-        # the clones were taken without covariance: this burst's windows are not used
+        # the gyroscopes' rotation since each pulse (R_now^T R(t_j)), before R is replaced
+        have = s.have
         for j in range(self.n):
+            have[j] = bool(ekf.clone_taken[j])
+            if have[j]:
+                np.matmul(ekf.R.T, ekf.clone_R[j], out=s.G[j])
+                s.dt[j] = (ekf.t_us - int(ekf.clone_t[j])) * 1e-6
             ekf.release_clone(j)
             s.pending[j] = False
-        ekf.initialize(sv.position, s.Rnow, P6, ekf.t_us, cfg.init_sigma_vel, cfg.imu_acc_bias_sigma,
+        ekf.initialize(sv.position, s.Rnow, P6, ekf.t_us, cfg.tight_init_sigma_vel, cfg.imu_acc_bias_sigma,
                        cfg.imu_gyro_bias_sigma)
         s.starts += 1
         s.since_start = 0
+        # the burst's windows once more, each at its own instant, through clones predicted back
+        # from the new state (SchepersEKF.back_clone): the motion within the burst, which the
+        # solution averages, corrects position, orientation and velocity together
+        ch = s.ch
+        for j in range(self.n):
+            if not have[j] or ch.flags[j] & PULSE_UNUSABLE:
+                continue
+            ekf.back_clone(j, float(s.dt[j]), s.G[j])
+            col = s.col
+            for i in range(3):
+                col[i] = float(ch.var[i, j])
+            c = float(self.currents[j])
+            rc = cfg.current_tolerance_a / max(abs(c), 1e-6)
+            rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+            ekf.update_single_coil(j, ch.S[:, j], col, j, c, self.model, rel, 1.0, gate=False)
+            ekf.release_clone(j)
+            self.evals += self.n
         s.last_update_us = self.now_us
 
     # ------------------------------------------------------------ output
