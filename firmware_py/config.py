@@ -315,6 +315,9 @@ class FirmwareConfig:
     # the track twice in the first 4 s; on the trunk 1.0 makes the start 3x worse: 53.9 against 19.0 mm
     # fused on roetenberg-flexion-back, 20 s, seed 1)
     tight_init_sigma_vel: float = 0.2
+    # m: a fused pose is sent VALID only while the filter's largest position std is at most this (after
+    # a start the filter converges over a few cycles: its first seconds' poses are sent, not valid); 0: off
+    tight_valid_sigma_m: float = 0.0
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -397,6 +400,8 @@ class FirmwareConfig:
         need("tight_acc_noise", fin(v) and 0 <= v <= 100, f"must be a density in [0, 100] m/s^2/sqrt(Hz), got {v!r}")
         v = self.tight_init_sigma_vel
         need("tight_init_sigma_vel", fin(v) and 0 < v <= 100, f"must be a speed in (0, 100] m/s, got {v!r}")
+        v = self.tight_valid_sigma_m
+        need("tight_valid_sigma_m", fin(v) and 0 <= v <= 10, f"must be a distance in [0, 10] m (0: off), got {v!r}")
         v = self.tight_lost_sigma_m
         need("tight_lost_sigma_m", fin(v) and 0 < v <= 10, f"must be a distance in (0, 10] m, got {v!r}")
         need("tight_fusion", not self.tight_fusion or (self.actuation == "fixed" and self.excitation == "pulsed"
@@ -714,7 +719,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "raab_cost": ("raab_step_sigma",),
     "imu_delta": ("imu_delta_rate_hz", "imu_steps_per_tick"),
     "tight": ("tight_fusion", "tight_source_imu_position_m", "tight_acc_noise", "tight_source_bias_states",
-              "tight_lost_sigma_m", "tight_init_sigma_vel"),
+              "tight_lost_sigma_m", "tight_init_sigma_vel", "tight_valid_sigma_m"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -60,6 +60,10 @@ BODY_SOURCE_ACC_SIGMA = 1.5
 #: on roetenberg-walking-back, 20 s, seed 1, the sensor's tilt error 8.9 -> 2.4 deg rms)
 BODY_ACC_ADAPT_GAIN = 1.0
 
+#: the tight tracker's fused poses are valid while its position std is at most this (``tight.tight_valid_sigma_m``,
+#: m): between cycles it reaches 25-30 mm on the trunk once converged; above it only the first seconds after a start
+BODY_VALID_SIGMA_M = 0.05
+
 #: the sensor's half-space seen from the source (the dipole ambiguity, ``source.hemisphere``):
 #: above the source for the back and arm sites, below it for the thigh
 _HEMISPHERE = {"trunk": (0.0, 0.0, 1.0), "upper_arm": (0.0, 0.0, 1.0), "thigh": (0.0, 0.0, -1.0)}
@@ -89,7 +93,7 @@ def _body_config(movement: str, **kw):
         base = dict(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU, hemisphere=_HEMISPHERE[MOVEMENTS[movement]],
                     acc_motion_sigma=BODY_ACC_MOTION_SIGMA, source_acc_sigma=BODY_SOURCE_ACC_SIGMA,
                     baseline_gyro=True, acc_adapt_gain=BODY_ACC_ADAPT_GAIN,
-                    tight_init_sigma_vel=_START_SIGMA_VEL.get(movement, 0.2))
+                    tight_init_sigma_vel=_START_SIGMA_VEL.get(movement, 0.2), tight_valid_sigma_m=BODY_VALID_SIGMA_M)
         base.update(kw)
         return FirmwareConfig(**base)
     return make

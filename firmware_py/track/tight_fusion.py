@@ -132,6 +132,7 @@ class _TightSensor:
         self.since_start = 0                      # window updates since the last start
         self.lost = 0
         self.out_of_range = 0
+        self.unconverged = 0                        # fused poses sent not valid: position std too large
         self.nis_sum = 0.0
         self.nis_n = 0
         self.q_x = 0.0
@@ -358,6 +359,12 @@ class TightFusionTracker(MagneticTracker):
         P = ekf.P
         b, o = POS.start, ORI.start
         vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
+        lim = self.cfg.tight_valid_sigma_m
+        if lim > 0.0 and status & POSE_VALID:
+            l2 = lim * lim
+            if P[b, b] > l2 or P[b + 1, b + 1] > l2 or P[b + 2, b + 2] > l2:
+                status &= ~POSE_VALID            # not converged: sent, not valid
+                s.unconverged += 1
         self.tx.pose(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
                      float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
                      float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
@@ -378,6 +385,7 @@ class TightFusionTracker(MagneticTracker):
             "fusion_window_evals": self.evals,
             "fusion_nis_mean": round(sum(s.nis_sum for s in ss) / nn, 3) if nn else None,
             "fused_poses_out_of_range": sum(s.out_of_range for s in ss),
+            "fused_poses_unconverged": sum(s.unconverged for s in ss),
         })
         if self.source is not None:
             d["source_imu_samples"] = self.source.samples
