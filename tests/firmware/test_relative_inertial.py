@@ -116,7 +116,8 @@ def test_error_transition_matches_finite_differences():
     """Each column of the step's error transition ``F`` (POS, VEL, ORI, ACC, GYR, SACC,
     SGYR) against the nominal step of a perturbed state, central differences: rows POS,
     VEL, ORI agree to 2e-3 of the column's norm plus ``dt^2 |f|`` (the second-order terms
-    the first-order transition leaves out; 6e-4 here, a tenth of the smallest source block). Catches a wrong sign or frame in a source block (-[r]x, -[v]x, R^T) or a
+    the first-order transition leaves out; 6e-4 here, a tenth of the smallest source block).
+    Catches a wrong sign or frame in a source block (-[r]x, -[v]x, R^T) or a
     missing frame change on the POS and VEL rows."""
     dt = 1 / 120
 
