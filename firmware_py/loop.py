@@ -26,7 +26,8 @@ tick runs them top-down, in this order, with no blocking call and no sleep:
    window reports leave as they are made, through the same transmitter).
 
 The pipeline is chosen by :func:`compose` from ``actuation``, ``fusion`` and
-``single_coil_fusion`` (and ``excitation = "ac"``: :mod:`coiltrack.firmware.track.ac`);
+``single_coil_fusion`` (and ``excitation = "ac"``: :mod:`coiltrack.firmware.track.ac`;
+``tight_fusion``: :mod:`coiltrack.firmware.track.tight_fusion`);
 the loop itself has no mode flag. Every buffer is
 created at start-up; the steady-state tick allocates no numpy array
 (``tests/firmware/test_alloc.py``). Time is an integer count of microseconds

@@ -25,6 +25,11 @@ Tables
     ``coiltrack.firmware.estimate.single_coil``): the inertial rows of eq 6.9
     (sensor-frame orientation error) and, per pulse in flight, a clone of
     the position and orientation errors at the pulse's measurement time.
+``relative_layout(n_clones)`` (21 + 6 per clone; ``RELATIVE_LAYOUT``: 3 clones)
+    The tightly coupled tracker's relative inertial EKF
+    (``coiltrack.firmware.estimate.relative_inertial``): the single-coil
+    EKF's inertial rows in the moving source's frame, the source IMU's
+    offsets, a clone per pulse of the burst.
 ``fusion_measurement_layout(model)`` (6 or 9 rows)
     The innovation of the fusion filter's magnetic update, eqs 6.18-6.21.
 ``POSE_LAYOUT`` (6)

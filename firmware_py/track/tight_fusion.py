@@ -33,7 +33,8 @@ Here, as a tracker would on the board:
 Work per tick: the IMU steps (a 39-state covariance step each), at most one
 window update (one evaluation of every coil's field and Jacobian, counted
 in the solver's field evaluations' units: ``n`` per update) or the burst
-solver's step. All arrays are allocated here; nothing in the steady-state
+solver's step; at a start (once, and after a lost track) the starting
+burst's ``n`` windows in the tick of its solution. All arrays are allocated here; nothing in the steady-state
 tick allocates.
 """
 from __future__ import annotations
