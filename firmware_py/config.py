@@ -301,6 +301,31 @@ class FirmwareConfig:
     # bytes the receive queue holds at most (a board's RX buffer); beyond it the queue is dropped and
     # counted (the decoder resynchronises at the next delimiter)
     rx_queue_bytes: int = 16384
+    # --- [tight] the tightly coupled tracker (coiltrack.firmware.track.tight_fusion; docs/bodyworn.md)
+    # each pulse window's amplitude updates a relative inertial filter at its own instant instead of one
+    # burst solution per cycle (the sensor moves during the 260 ms burst; thesis sec 6.5)
+    tight_fusion: bool = False
+    # the source module's position on the source (source frame, m): its accelerometer measures there
+    # (the bench's SourceImuNode: 6 cm below the coil centre)
+    tight_source_imu_position_m: tuple[float, float, float] = (0.0, 0.0, -0.06)
+    # m/s^2/sqrt(Hz): acceleration noise beyond the accelerometers' own (an unmodelled vibration, the
+    # module position's error under the source's angular acceleration); 0: the IMUs' densities only (on
+    # roetenberg-flexion-back, 20 s, seed 1: 0.05 gives 23.8 mm fused, 0 gives 20.0 mm, NIS mean 3.1 of 3)
+    tight_acc_noise: float = 0.0
+    # the source IMU's accelerometer and gyroscope offsets as filter states (false: taken as zero)
+    tight_source_bias_states: bool = True
+    # a position std beyond this (m, after five cycles of windows since the start): track lost, started
+    # again from the next burst solution (the filter starts from one burst, orientation a few degrees off:
+    # on a walking trunk its position std passes 0.1 m before it has converged)
+    tight_lost_sigma_m: float = 0.3
+    # m/s, velocity std when a burst solution starts the filter (its velocity taken as zero): the speed
+    # of the tracked segment relative to the source (the thigh in walking: up to 1 m/s, where 0.2 loses
+    # the track twice in the first 4 s; on the trunk 1.0 makes the start 3x worse: 53.9 against 19.0 mm
+    # fused on roetenberg-flexion-back, 20 s, seed 1)
+    tight_init_sigma_vel: float = 0.2
+    # m: a fused pose is sent VALID only while the filter's largest position std is at most this (after
+    # a start the filter converges over a few cycles: its first seconds' poses are sent, not valid); 0: off
+    tight_valid_sigma_m: float = 0.0
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -374,7 +399,28 @@ class FirmwareConfig:
         v = self.rx_queue_bytes
         need("rx_queue_bytes", isinstance(v, int) and not isinstance(v, bool) and 1024 <= v <= 1 << 24,
              f"must be an integer in 1024..16777216 bytes, got {v!r}")
+        self._validate_tight(need)
         return self
+
+    def _validate_tight(self, need) -> None:
+        """Keys of the tightly coupled tracker (section ``tight``)."""
+        fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
+        for name in ("tight_fusion", "tight_source_bias_states"):
+            need(name, isinstance(getattr(self, name), bool), f"must be true or false, got {getattr(self, name)!r}")
+        v = self.tight_source_imu_position_m
+        need("tight_source_imu_position_m", len(v) == 3 and all(fin(c) and abs(c) <= 1.0 for c in v),
+             f"must be a finite 3-vector within 1 m of the coil centre, got {v!r}")
+        v = self.tight_acc_noise
+        need("tight_acc_noise", fin(v) and 0 <= v <= 100, f"must be a density in [0, 100] m/s^2/sqrt(Hz), got {v!r}")
+        v = self.tight_init_sigma_vel
+        need("tight_init_sigma_vel", fin(v) and 0 < v <= 100, f"must be a speed in (0, 100] m/s, got {v!r}")
+        v = self.tight_valid_sigma_m
+        need("tight_valid_sigma_m", fin(v) and 0 <= v <= 10, f"must be a distance in [0, 10] m (0: off), got {v!r}")
+        v = self.tight_lost_sigma_m
+        need("tight_lost_sigma_m", fin(v) and 0 < v <= 10, f"must be a distance in (0, 10] m, got {v!r}")
+        need("tight_fusion", not self.tight_fusion or (self.actuation == "fixed" and self.excitation == "pulsed"
+                                                       and not self.single_coil_fusion),
+             "needs the fixed pulsed cycle (actuation = 'fixed', excitation = 'pulsed', single_coil_fusion = false)")
 
     def _validate_signing(self, need) -> None:
         need("signing_key", isinstance(self.signing_key, str), f"must be a string, got {self.signing_key!r}")
@@ -687,6 +733,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "raab_cost": ("raab_step_sigma",),
     "imu_delta": ("imu_delta_rate_hz", "imu_steps_per_tick"),
     "receive": ("rx_frames_per_tick", "rx_queue_bytes"),
+    "tight": ("tight_fusion", "tight_source_imu_position_m", "tight_acc_noise", "tight_source_bias_states",
+              "tight_lost_sigma_m", "tight_init_sigma_vel", "tight_valid_sigma_m"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -26,7 +26,8 @@ tick runs them top-down, in this order, with no blocking call and no sleep:
    window reports leave as they are made, through the same transmitter).
 
 The pipeline is chosen by :func:`compose` from ``actuation``, ``fusion`` and
-``single_coil_fusion`` (and ``excitation = "ac"``: :mod:`coiltrack.firmware.track.ac`);
+``single_coil_fusion`` (and ``excitation = "ac"``: :mod:`coiltrack.firmware.track.ac`;
+``tight_fusion``: :mod:`coiltrack.firmware.track.tight_fusion`);
 the loop itself has no mode flag. Every buffer is
 created at start-up; the steady-state tick allocates no numpy array
 (``tests/firmware/test_alloc.py``). Time is an integer count of microseconds
@@ -84,6 +85,8 @@ def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, close
         return Pipeline(t.actuate, t.measure, t.track, t)
     burst = BurstMeasurement(channels, schedule, closer, cfg.windows_budget)
     kind = BurstFusionTracker if cfg.fusion else MagneticTracker
+    if cfg.tight_fusion:              # each pulse window a measurement at its own time ([tight])
+        from coiltrack.firmware.track.tight_fusion import TightFusionTracker as kind
     t = kind(cfg, coils, channels, schedule, burst, supervisor, tx)
     return Pipeline(BurstActuation(cfg, schedule, channels, t).step, burst.step, t.step, t)
 

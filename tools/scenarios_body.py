@@ -5,17 +5,22 @@ upper arm or the upper leg; the source's own IMU and magnetometer module
 gives its orientation ``Phi`` (a ch. 2 filter) and its acceleration for
 ``a_net = a_sensor - a_source`` (eq 6.8).
 
-Every row has three scenarios on the same motion and seed:
+Every row has five scenarios on the same motion and seed:
 
-* ``roetenberg-<movement>-<segment>``: fused with the source module (eq 6.8);
-  the report carries the magnetic-only figures of the same run
-  (``magnetic_*``) and ``source_moving: true``;
-* ``...-noanet``: the same, the source's acceleration left out of eq 6.8
-  (``body.source_acceleration = false``): the difference is eq 6.8's;
-* ``...-nooffset``: the source's accelerometer without offset or random walk
-  (sec 6.5: "the acceleration of the source is now related to orientation
-  errors of the source Phi"): the difference is what that offset costs;
-* ``...-nomc``: without the motion compensation within the burst (sec 6.5).
+* ``roetenberg-<movement>-<segment>``: the tightly coupled tracker
+  (``tight.tight_fusion``: every pulse window a measurement at its own time,
+  eq 6.8 in the source frame, the source IMU's offsets as states); the
+  report carries the magnetic-only figures of the same run (``magnetic_*``)
+  and ``source_moving: true``;
+* ``...-loose``: the loosely coupled ch. 6 filter (one burst solution per
+  cycle, eq 6.8 with ``Phi`` from the source module's ch. 2 filter);
+* ``...-noanet``: the loose one with the source's acceleration left out of
+  eq 6.8 (``body.source_acceleration = false``): the difference is eq 6.8's;
+* ``...-nooffset``: the tight one with the source's accelerometer without
+  offset or random walk (sec 6.5: "the acceleration of the source is now
+  related to orientation errors of the source Phi"): what that offset costs;
+* ``...-nomc``: the loose one without the motion compensation within the
+  burst (sec 6.5).
 
 Every body scenario turns each pulse window's samples with the sensor's
 gyroscope before the baseline fit (``body_motion.baseline_gyro``) and raises
@@ -55,9 +60,18 @@ BODY_SOURCE_ACC_SIGMA = 1.5
 #: on roetenberg-walking-back, 20 s, seed 1, the sensor's tilt error 8.9 -> 2.4 deg rms)
 BODY_ACC_ADAPT_GAIN = 1.0
 
+#: the tight tracker's fused poses are valid while its position std is at most this (``tight.tight_valid_sigma_m``,
+#: m): between cycles it reaches 25-30 mm on the trunk once converged; above it only the first seconds after a start
+BODY_VALID_SIGMA_M = 0.05
+
 #: the sensor's half-space seen from the source (the dipole ambiguity, ``source.hemisphere``):
 #: above the source for the back and arm sites, below it for the thigh
 _HEMISPHERE = {"trunk": (0.0, 0.0, 1.0), "upper_arm": (0.0, 0.0, 1.0), "thigh": (0.0, 0.0, -1.0)}
+#: the tight tracker's velocity std at a start (``tight.tight_init_sigma_vel``, m/s): the segment's speed
+#: relative to the source, 1 m/s for the swinging arm and thigh in walking (with 0.2 m/s both lose the
+#: track again and again in the first seconds: arm walking, 20 s, seed 1, 9 restarts, 624 mm fused;
+#: with 1.0: none, 70.6 mm), 0.2 m/s otherwise (1.0 makes a trunk's start 3x worse)
+_START_SIGMA_VEL = {"arm-walking": 1.0, "leg-walking": 1.0}
 
 
 def _body_world(movement: str):
@@ -78,7 +92,8 @@ def _body_config(movement: str, **kw):
 
         base = dict(imu_rate_hz=120.0, source_imu_id=NODE_SOURCE_IMU, hemisphere=_HEMISPHERE[MOVEMENTS[movement]],
                     acc_motion_sigma=BODY_ACC_MOTION_SIGMA, source_acc_sigma=BODY_SOURCE_ACC_SIGMA,
-                    baseline_gyro=True, acc_adapt_gain=BODY_ACC_ADAPT_GAIN)
+                    baseline_gyro=True, acc_adapt_gain=BODY_ACC_ADAPT_GAIN,
+                    tight_init_sigma_vel=_START_SIGMA_VEL.get(movement, 0.2), tight_valid_sigma_m=BODY_VALID_SIGMA_M)
         base.update(kw)
         return FirmwareConfig(**base)
     return make
@@ -96,11 +111,18 @@ _PARAMETERS = {"coils": "3 orthogonal, 50 turns, r=5.5 cm, 1.5 A", "pulse_ms": 6
                "source": "on the lower back, moving with the body (hil.body), its own IMU and magnetometer module",
                "measurement_model": "eq 6.21 (position, magnetic and inertial-magnetic orientation)"}
 
+#: the tightly coupled tracker (``[tight]``, ``firmware_py/track/tight_fusion.py``): every pulse window
+#: a measurement at its own time in the relative inertial filter (eq 6.8 in the source frame)
+_TIGHT = {"tight_fusion": True}
+
 _VARIANTS = (
-    ("", "fused with the source module (eq 6.8)", {}, True),
-    ("-noanet", "the source's acceleration left out of eq 6.8", {"source_acceleration": False}, True),
-    ("-nooffset", "the source's accelerometer without offset (sec 6.5)", {}, False),
-    ("-nomc", "without the motion compensation within the burst (sec 6.5)", {"motion_compensation": False}, True),
+    ("", "tightly coupled: each pulse window a measurement at its own time, eq 6.8 in the source frame",
+     _TIGHT, True),
+    ("-loose", "loosely coupled: one burst solution per cycle into the ch. 6 filter (eq 6.8)", {}, True),
+    ("-noanet", "loosely coupled, the source's acceleration left out of eq 6.8", {"source_acceleration": False}, True),
+    ("-nooffset", "tightly coupled, the source's accelerometer without offset (sec 6.5)", _TIGHT, False),
+    ("-nomc", "loosely coupled, without the motion compensation within the burst (sec 6.5)",
+     {"motion_compensation": False}, True),
 )
 
 for _movement, _name, _label, _fig in BODY_ROWS:

@@ -25,6 +25,11 @@ Tables
     ``coiltrack.firmware.estimate.single_coil``): the inertial rows of eq 6.9
     (sensor-frame orientation error) and, per pulse in flight, a clone of
     the position and orientation errors at the pulse's measurement time.
+``relative_layout(n_clones)`` (21 + 6 per clone; ``RELATIVE_LAYOUT``: 3 clones)
+    The tightly coupled tracker's relative inertial EKF
+    (``coiltrack.firmware.estimate.relative_inertial``): the single-coil
+    EKF's inertial rows in the moving source's frame, the source IMU's
+    offsets, a clone per pulse of the burst.
 ``fusion_measurement_layout(model)`` (6 or 9 rows)
     The innovation of the fusion filter's magnetic update, eqs 6.18-6.21.
 ``POSE_LAYOUT`` (6)
@@ -200,3 +205,29 @@ BROWNIAN_LAYOUT = StateLayout("Gietler Brownian motion (eq 11)", (
     ("RATE", 3, "rad/s", "Euler-angle rate omega (eq 7)"),
     ("THETA", 3, "rad", "Z-Y-X Euler angles theta, R = Rz Ry Rx (eqs 3-4, 7)"),
 ))
+
+
+def relative_layout(n_clones: int) -> StateLayout:
+    """The tightly coupled tracker's table (``coiltrack.firmware.estimate.relative_inertial``):
+    the sensor's pose and velocity relative to a moving source, in the source frame, the
+    offsets of both IMUs, and per pulse in flight a clone of the pose at its measurement time.
+    ``POS`` .. ``GYR`` have the indices of every inertial table (checked below)."""
+    rows = [
+        ("POS", 3, "m", "position error, source frame (sensor relative to the coil centre)"),
+        ("VEL", 3, "m/s", "error of the relative world velocity Phi^T d(p_s - p_m)/dt, source frame"),
+        ("ORI", 3, "rad", "orientation error, sensor frame (R_true = R exp([ori]x), R = Phi^T Theta)"),
+        ("ACC", 3, "m/s^2", "sensor accelerometer offset error, sensor frame, random walk"),
+        ("GYR", 3, "rad/s", "sensor gyroscope offset error, sensor frame, random walk"),
+        ("SACC", 3, "m/s^2", "source accelerometer offset error, source frame, random walk (sec 6.5)"),
+        ("SGYR", 3, "rad/s", "source gyroscope offset error, source frame, random walk"),
+    ]
+    for k in range(n_clones):
+        rows.append((f"C{k}P", 3, "m", f"clone {k}: POS at the measurement time of pulse {k}"))
+        rows.append((f"C{k}O", 3, "rad", f"clone {k}: ORI at the measurement time of pulse {k}"))
+    return StateLayout(f"relative inertial tracker ({n_clones} clones)", tuple(rows))
+
+
+#: the tightly coupled tracker's table for the three-coil burst (one clone per pulse)
+RELATIVE_LAYOUT = relative_layout(3)
+
+assert all(getattr(RELATIVE_LAYOUT, r) == getattr(FUSION_LAYOUT, r) for r in ("POS", "VEL", "ORI", "ACC", "GYR"))

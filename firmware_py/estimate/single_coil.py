@@ -123,10 +123,15 @@ class SchepersEKF:
         kw.update(overrides)
         return cls(**kw)
 
+    @staticmethod
+    def _make_layout(n_clones: int):
+        """The state table (a subclass with more states gives its own)."""
+        return schepers_layout(n_clones)
+
     def __init__(self, *, n_clones: int, gravity, acc_noise: float, gyr_noise: float, acc_bias_rw: float,
                  gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int):
         self.n_clones = int(n_clones)
-        self.layout = schepers_layout(self.n_clones)
+        self.layout = self._make_layout(self.n_clones)
         nx = self.layout.n
         self.nx = nx
         self._cp = tuple(getattr(self.layout, f"C{k}P") for k in range(self.n_clones))

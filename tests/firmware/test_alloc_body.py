@@ -18,8 +18,10 @@ from coiltrack.tools.runner import BenchSetup
 pytestmark = pytest.mark.skipif(not available(), reason="numpy memory handler API not reachable")
 
 
-def test_body_ticks_allocate_no_numpy_array():
-    sc = scenarios.get("roetenberg-flexion-back")
+@pytest.mark.parametrize("name", ["roetenberg-flexion-back", "roetenberg-flexion-back-loose"])
+def test_body_ticks_allocate_no_numpy_array(name):
+    """(The tightly coupled tracker, and the loosely coupled one.)"""
+    sc = scenarios.get(name)
     cfg = sc.firmware_config()
     assert cfg.baseline_gyro and cfg.acc_adapt_gain > 0
     fw_end, emu_end = inproc_pair()

@@ -173,13 +173,15 @@ def test_body_scenarios_are_registered_with_their_thesis_rows():
 
     assert len(BODY_ROWS) == 8
     for movement, name, _, fig in BODY_ROWS:
-        for suffix in ("", "-noanet", "-nooffset", "-nomc"):
+        for suffix in ("", "-loose", "-noanet", "-nooffset", "-nomc"):
             sc = scenarios.get(name + suffix)
             assert sc.reference["magnetic_position_rms_mm"] == fig[0]
             assert sc.reference["position_rms_mm"] == fig[2]
             assert sc.sensor.source_imu_id == sc.firmware_config().source_imu_id != 0
         assert scenarios.get(name + "-noanet").firmware_config().source_acceleration is False
         assert scenarios.get(name + "-nooffset").sensor.source_acc_offset is False
+        assert scenarios.get(name).firmware_config().tight_fusion is True
+        assert scenarios.get(name + "-loose").firmware_config().tight_fusion is False
     w = scenarios.get("roetenberg-walking-leg").build_world(1, 2.0)
     assert w.source_moving
 

@@ -1,0 +1,393 @@
+"""The tightly coupled tracker (``[tight] tight_fusion = true``): each pulse window is a
+measurement at its own instant.
+
+The burst fusion (:mod:`coiltrack.firmware.track.burst_fusion`, thesis
+``002_cd7f1fdb7fc67471.txt`` ch. 6) solves each X, Y, Z burst for one pose,
+assuming the sensor still over the 260 ms of its three pulses, and feeds that
+pose to the fusion filter once a cycle. On the body the sensor moves a few
+centimetres within a burst (the thigh at 1 m/s: 26 cm), so that pose's error
+is large and correlated from burst to burst, which no filter averages away
+(sec 6.5 names the relative motion within the burst the main error source).
+Here, as a tracker would on the board:
+
+* both IMUs drive a relative inertial EKF per sensor
+  (:class:`coiltrack.firmware.estimate.relative_inertial.RelativeInertialEKF`):
+  the sensor's pose relative to the source in the source frame, where
+  eq 6.8 reads ``R f_sensor - f_source`` and gravity cancels, so neither
+  ``Phi`` nor ``Theta`` has to be known in the global frame; the source
+  IMU's offsets are filter states (sec 6.5); a fixed source (no source IMU)
+  is ``f_source = -g``;
+* when a cycle is commanded (:meth:`on_burst`) the EKF clones its pose at
+  each pulse's measurement time; when that pulse's window closes its
+  amplitude ``y = I R^T B_k(p) + v`` corrects the EKF through the clone
+  (the one signal model, the one Kalman update: ``SchepersEKF.update_single_coil``),
+  at most one window per tick, in a tick of its own (the burst's solve
+  waits a tick);
+* the burst is still solved as by :class:`MagneticTracker` (magnetic POSEs
+  without ``POSE_FUSED``, from their own warm start, so the magnetic-only
+  figures of the same run are those of the magnetic tracker); the first
+  solution starts the EKF (and a new one after the EKF lost track);
+* fused POSEs (``POSE_FUSED``) at the IMU rate (every ``pose_every`` sensor
+  samples), at most ``imu_steps_per_tick`` IMU steps per sensor per tick.
+
+Work per tick: the IMU steps (a 39-state covariance step each), at most one
+window update (one evaluation of every coil's field and Jacobian, counted
+in the solver's field evaluations' units: ``n`` per update) or the burst
+solver's step; at a start (once, and after a lost track) the starting
+burst's ``n`` windows in the tick of its solution. All arrays are allocated here; nothing in the steady-state
+tick allocates.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from coiltrack.protocol.schema import POSE_FUSED, POSE_INCONSISTENT, POSE_STALE, POSE_VALID
+
+from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
+from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.firmware.estimate.relative_inertial import RelativeInertialEKF
+from coiltrack.firmware.measure.imu import ImuRing
+from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
+from coiltrack.firmware.rotation import quat_tuple
+from coiltrack.firmware.track.magnetic import MagneticTracker, in_range3
+from coiltrack.firmware.track.quality import quality_from
+from coiltrack.firmware.track.status import COIL_FATAL
+
+
+class _SourceSamples:
+    """The source IMU's samples, read at a sensor sample's time (linear between the two
+    samples around it; the newest held when none is newer)."""
+
+    def __init__(self, capacity: int, gravity):
+        self.ring = ImuRing(capacity)
+        self.t0 = -(1 << 62)                 # the last popped sample
+        self.s0 = [0.0] * 6
+        self.have = False
+        self.out = [0.0] * 6                 # the source at the asked time: f (m/s^2), w (rad/s)
+        self.fo = [0.0, 0.0, 0.0]
+        self.wo = [0.0, 0.0, 0.0]
+        g = [-float(v) for v in gravity]
+        self.fo[0], self.fo[1], self.fo[2] = g[0], g[1], g[2]
+        self.samples = 0
+
+    def ready(self, t: int) -> bool:
+        """A sample at or after ``t`` is in."""
+        return self.ring.last_t >= t
+
+    def at(self, t: int) -> None:
+        """``fo``, ``wo`` at ``t`` (us)."""
+        ring, s0 = self.ring, self.s0
+        tv = ring._tv
+        while len(ring) and tv[ring.slot(0)] <= t:
+            self.t0 = ring.pop_sample(s0)
+            self.have = True
+            self.samples += 1
+        if not self.have:
+            return
+        fo, wo = self.fo, self.wo
+        if len(ring):
+            k = ring.slot(0)
+            t1 = tv[k]
+            d = ring._dv
+            a = (t - self.t0) / (t1 - self.t0) if t1 > self.t0 else 0.0
+            b = 1.0 - a
+            fo[0], fo[1], fo[2] = b * s0[0] + a * d[k, 0], b * s0[1] + a * d[k, 1], b * s0[2] + a * d[k, 2]
+            wo[0], wo[1], wo[2] = b * s0[3] + a * d[k, 3], b * s0[4] + a * d[k, 4], b * s0[5] + a * d[k, 5]
+        else:
+            fo[0], fo[1], fo[2] = s0[0], s0[1], s0[2]
+            wo[0], wo[1], wo[2] = s0[3], s0[4], s0[5]
+
+
+class _TightSensor:
+    """One sensor's IMU ring, relative EKF and window bookkeeping."""
+
+    def __init__(self, ch, cfg, n: int, source_imu: bool):
+        self.ch = ch
+        self.node = ch.node
+        self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu)
+        self.imu = ImuRing(cfg.imu_ring_capacity)
+        self.s6 = [0.0] * 6
+        self.acc = np.zeros(3)
+        self.gyr = np.zeros(3)
+        self.sacc = np.zeros(3)
+        self.sgyr = np.zeros(3)
+        self.pending = np.zeros(n, dtype=bool)      # clone scheduled, window not yet used
+        self.col = np.zeros(3)
+        self.P6 = np.zeros((6, 6))
+        self.G = np.zeros((n, 3, 3))                # at a start: R_now^T R(t_j) of each pulse
+        self.dt = np.zeros(n)                       # ... and the time since it (s)
+        self.have = [False] * n
+        self.Rnow = np.eye(3)
+        self.R3 = np.eye(3)
+        self.last_imu_us: int | None = None
+        self.last_update_us = 0
+        self.samples = 0
+        self.updates = 0
+        self.gated = 0
+        self.gated_in_row = 0
+        self.unusable = 0
+        self.starts = 0
+        self.since_start = 0                      # window updates since the last start
+        self.lost = 0
+        self.out_of_range = 0
+        self.unconverged = 0                        # fused poses sent not valid: position std too large
+        self.nis_sum = 0.0
+        self.nis_n = 0
+        self.q_x = 0.0
+
+
+class TightFusionTracker(MagneticTracker):
+    """Magnetic-only poses of each burst, and the tightly coupled fused poses (module docstring)."""
+
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx)
+        n = len(coils)
+        self.n = n
+        self.source = _SourceSamples(cfg.imu_ring_capacity, cfg.gravity_mps2) if cfg.source_imu_id else None
+        self.source_node = cfg.source_imu_id
+        self.sensors = {ch.node: _TightSensor(ch, cfg, n, self.source is not None) for ch in self.channels}
+        self._sens = tuple(self.sensors.values())
+        self.model = SingleCoilModel(coils, cfg.field_model)
+        # mid time of a pulse's used samples from its start edge (as the extractor uses them)
+        self.mid_us = (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2
+        # ... and as the last windows had it (their samples' mean time from the start edge)
+        self._mid = [self.mid_us] * n
+        self.half_burst_us = ((n - 1) * cfg.spacing_us + cfg.pulse_us) // 2
+        self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
+        self.imu_steps = cfg.imu_steps_per_tick
+        self.evals = 0                       # field evaluations of the window updates (n per update)
+        self.fused_poses = 0
+        self.now_us = 0
+
+    # ------------------------------------------------------------ inputs
+    def on_imu(self, msg, now_us: int) -> None:
+        s = self.sensors.get(msg.node)
+        if s is not None:
+            s.imu.push(msg)
+        elif self.source is not None and msg.node == self.source_node:
+            self.source.ring.push(msg)
+
+    def on_burst(self, t_ref: int) -> None:
+        """Clone each sensor's pose at every pulse's measurement time."""
+        t0 = int(t_ref) - self.half_burst_us
+        sp = self.cfg.spacing_us
+        mid = self._mid
+        for s in self._sens:
+            for j in range(self.n):
+                s.ekf.release_clone(j)
+                s.ekf.schedule_clone(j, t0 + j * sp + mid[j])
+                s.pending[j] = True
+
+    # ------------------------------------------------------------ tick
+    def step(self, now_us: int) -> None:
+        """Propagate, use at most one closed window (then the solve waits a tick), solve, send."""
+        self.now_us = now_us
+        for s in self._sens:
+            self._propagate(s, now_us)
+        if self._update_one(now_us):
+            return
+        super().step(now_us)
+
+    def _propagate(self, s: _TightSensor, now_us: int) -> None:
+        ring, s6 = s.imu, s.s6
+        src = self.source
+        tv = ring._tv
+        ekf = s.ekf
+        cfg = self.cfg
+        for _ in range(self.imu_steps):
+            if not len(ring):
+                return
+            t = tv[ring.slot(0)]
+            if src is not None and not src.ready(t) and now_us - t < self.source_wait_us:
+                return                       # the source's sample of this time is not in yet
+            ring.pop_sample(s6)
+            a, g = s.acc, s.gyr
+            a[0], a[1], a[2], g[0], g[1], g[2] = s6
+            if src is not None:
+                src.at(t)
+                sa, sg = s.sacc, s.sgyr
+                sa[0], sa[1], sa[2] = src.fo
+                sg[0], sg[1], sg[2] = src.wo
+            else:
+                np.negative(ekf.g, out=s.sacc)
+            if s.last_imu_us is not None and t - s.last_imu_us > cfg.imu_timeout_us:
+                ekf.restart_inputs()         # a hole in the stream: the state cannot be carried across it
+                if ekf.initialized:
+                    self._lose(s)
+            s.last_imu_us = t
+            ekf.propagate_relative(t, s.acc, s.gyr, s.sacc, s.sgyr)
+            s.samples += 1
+            if ekf.initialized and s.samples % cfg.pose_every == 0:
+                self._emit(s, t, now_us)
+
+    def _update_one(self, now_us: int) -> bool:
+        """The oldest closed, unused window of one sensor as an EKF update; True if one was used."""
+        for s in self._sens:
+            ch = s.ch
+            for j in range(self.n):
+                if s.pending[j] and ch.done[j]:
+                    s.pending[j] = False
+                    if s.ekf.initialized:
+                        self._window(s, j, now_us)
+                        s.ekf.release_clone(j)
+                    else:                    # kept: the burst's solution starts the EKF from it
+                        s.unusable += 1
+                    return True
+        return False
+
+    def _window(self, s: _TightSensor, j: int, now_us: int) -> None:
+        ekf = s.ekf
+        ch = s.ch
+        cfg = self.cfg
+        if ch.flags[j] & PULSE_UNUSABLE or self.schedule.any_faults() & COIL_FATAL \
+                or self.supervisor.veto:
+            s.unusable += 1
+            return
+        mc = self.schedule.measured[j]
+        current = float(mc) if mc != 0.0 else float(self.nominal[j])
+        rc = cfg.current_tolerance_a / max(abs(current), 1e-6)
+        rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+        col = s.col
+        for i in range(3):
+            col[i] = float(ch.var[i, j])
+        if not ekf.clone_taken[j]:
+            s.unusable += 1                 # the IMU stream never reached the pulse's time
+            return
+        m = int(ch.pulse_mid[j]) - int(self.schedule.start[j])
+        if 0 < m < cfg.pulse_us:
+            self._mid[j] = m
+        flags = ekf.update_single_coil(j, ch.S[:, j], col, j, current, self.model, rel, 1.0, gate=True)
+        self.evals += self.n
+        if flags & (EKF_NOT_PD | EKF_NONFINITE):
+            s.unusable += 1
+            return
+        s.since_start += 1
+        if flags & EKF_GATED:
+            s.gated += 1
+            s.gated_in_row += 1
+        else:
+            s.gated_in_row = 0
+            s.updates += 1
+            s.last_update_us = now_us
+            s.nis_sum += ekf.nis
+            s.nis_n += 1
+            s.q_x = ekf.nis / 3.0
+        P = ekf.P
+        big = cfg.tight_lost_sigma_m * cfg.tight_lost_sigma_m
+        b = POS.start
+        wide = P[b, b] > big or P[b + 1, b + 1] > big or P[b + 2, b + 2] > big
+        if s.gated_in_row >= cfg.reacquire_after or (wide and s.since_start >= 5 * self.n):
+            self._lose(s)
+
+    def _lose(self, s: _TightSensor) -> None:
+        s.ekf.reset()
+        s.gated_in_row = 0
+        s.lost += 1
+
+    # ------------------------------------------------------------ start
+    def on_solution(self, ch, solved: bool) -> None:
+        """The first burst solution (or the first after a lost track) starts the EKF: the pose at
+        the burst's middle carried to the present by the gyroscopes (the EKF's own relative
+        orientation since the middle pulse's clone), widened by the motion since."""
+        s = self.sensors[ch.node]
+        ekf = s.ekf
+        if not solved or ekf.initialized or ekf.t_us is None:
+            return
+        m = self.n // 2
+        if not ekf.clone_taken[m]:
+            return
+        cfg = self.cfg
+        sv = self.solver
+        np.matmul(sv.rotation, ekf.clone_R[m].T, out=s.R3)
+        np.matmul(s.R3, ekf.R, out=s.Rnow)
+        lag = (ekf.t_us - int(ekf.clone_t[m])) * 1e-6
+        half = self.half_burst_us * 1e-6
+        P6 = s.P6
+        np.copyto(P6, sv.covariance)
+        extra = (cfg.tight_init_sigma_vel * (lag + half)) ** 2
+        ori = (cfg.imu_gyro_bias_sigma * (lag + half)) ** 2
+        for i in range(3):
+            P6[i, i] += extra
+            P6[3 + i, 3 + i] += ori
+        # the gyroscopes' rotation since each pulse (R_now^T R(t_j)), before R is replaced
+        have = s.have
+        for j in range(self.n):
+            have[j] = bool(ekf.clone_taken[j])
+            if have[j]:
+                np.matmul(ekf.R.T, ekf.clone_R[j], out=s.G[j])
+                s.dt[j] = (ekf.t_us - int(ekf.clone_t[j])) * 1e-6
+            ekf.release_clone(j)
+            s.pending[j] = False
+        ekf.initialize(sv.position, s.Rnow, P6, ekf.t_us, cfg.tight_init_sigma_vel, cfg.imu_acc_bias_sigma,
+                       cfg.imu_gyro_bias_sigma)
+        s.starts += 1
+        s.since_start = 0
+        # the burst's windows once more, each at its own instant, through clones predicted back
+        # from the new state (SchepersEKF.back_clone): the motion within the burst, which the
+        # solution averages, corrects position, orientation and velocity together
+        ch = s.ch
+        for j in range(self.n):
+            if not have[j] or ch.flags[j] & PULSE_UNUSABLE:
+                continue
+            ekf.back_clone(j, float(s.dt[j]), s.G[j])
+            col = s.col
+            for i in range(3):
+                col[i] = float(ch.var[i, j])
+            c = float(self.currents[j])
+            rc = cfg.current_tolerance_a / max(abs(c), 1e-6)
+            rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+            ekf.update_single_coil(j, ch.S[:, j], col, j, c, self.model, rel, 1.0, gate=False)
+            ekf.release_clone(j)
+            self.evals += self.n
+        s.last_update_us = self.now_us
+
+    # ------------------------------------------------------------ output
+    def _emit(self, s: _TightSensor, t_us: int, now_us: int) -> None:
+        ekf = s.ekf
+        p = ekf.p
+        status = POSE_VALID | POSE_FUSED
+        if now_us - s.last_update_us > self.cfg.stale_us:
+            status |= POSE_STALE
+        if s.gated_in_row:
+            status |= POSE_INCONSISTENT
+        if not in_range3(p[0], p[1], p[2], self.range_m):
+            status &= ~POSE_VALID
+            s.out_of_range += 1
+        qw, qx, qy, qz = quat_tuple(ekf.R)
+        P = ekf.P
+        b, o = POS.start, ORI.start
+        vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
+        lim = self.cfg.tight_valid_sigma_m
+        if lim > 0.0 and status & POSE_VALID:
+            l2 = lim * lim
+            if P[b, b] > l2 or P[b + 1, b + 1] > l2 or P[b + 2, b + 2] > l2:
+                status &= ~POSE_VALID            # not converged: sent, not valid
+                s.unconverged += 1
+        self.tx.pose(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
+                     float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
+                     float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
+                     quality_from(vp, s.q_x, self.cfg.quality_error_scale_m))
+        self.fused_poses += 1
+
+    def counters(self) -> dict:
+        d = super().counters()
+        ss = self._sens
+        nn = sum(s.nis_n for s in ss)
+        d.update({
+            "imu_samples": sum(s.samples for s in ss),
+            "fusion_updates": sum(s.updates for s in ss),
+            "fusion_rejected": sum(s.gated for s in ss),
+            "fusion_unusable_windows": sum(s.unusable for s in ss),
+            "fusion_starts": sum(s.starts for s in ss),
+            "fusion_lost": sum(s.lost for s in ss),
+            "fusion_window_evals": self.evals,
+            "fusion_nis_mean": round(sum(s.nis_sum for s in ss) / nn, 3) if nn else None,
+            "fused_poses_out_of_range": sum(s.out_of_range for s in ss),
+            "fused_poses_unconverged": sum(s.unconverged for s in ss),
+        })
+        if self.source is not None:
+            d["source_imu_samples"] = self.source.samples
+        return d
