@@ -62,3 +62,39 @@ def test_kalman_update_6dof_uses_it():
     assert u.update(np.zeros((6, 6))) == EKF_OK
     np.testing.assert_allclose(u.Sinv, np.linalg.inv(S), rtol=1e-12)
     assert u.nis == pytest.approx(u.y @ np.linalg.solve(S, u.y), rel=1e-12)
+
+
+@pytest.mark.parametrize("n", [3, 6])
+def test_damped_solve_matches_the_loops_to_the_bit(n):
+    """The Levenberg-Marquardt system ``(A + lam diag A) d = g`` solved by the
+    straight-line ``damped_spd_solve`` against ``pose.lm.damped``,
+    ``cholesky`` and ``chol_solve`` (bit for bit: a solve that differed would
+    move every pose figure), and against ``numpy.linalg.solve`` (relative
+    1e-9). A non-positive diagonal element is damped by ``lam`` alone (a
+    dropped branch would divide by a zero pivot)."""
+    from coiltrack.firmware.linalg import chol_solve, cholesky, damped_spd_solve
+    from coiltrack.firmware.pose.lm import damped
+
+    rng = np.random.default_rng(40 + n)
+    solve = damped_spd_solve(n)
+    for trial in range(30):
+        J = rng.normal(size=(n + 3, n))
+        A = J.T @ J
+        if trial % 5 == 0:
+            A[n - 1, :] = A[:, n - 1] = 0.0        # a parameter the data do not see
+        lam = 10.0 ** rng.uniform(-8, 2)
+        b = rng.normal(size=n)
+        x = np.zeros(n)
+        assert solve(flat(A), memoryview(b), memoryview(x), lam)
+        m, L, ref = np.zeros(n * n), np.zeros(n * n), np.zeros(n)
+        damped(flat(A), memoryview(m), n, lam)
+        assert cholesky(memoryview(m), n, memoryview(L))
+        chol_solve(memoryview(L), n, memoryview(b), memoryview(ref))
+        assert np.array_equal(x, ref)
+        np.testing.assert_allclose(x, np.linalg.solve(m.reshape(n, n), b), rtol=1e-9)
+    A = -np.eye(n)
+    A[0, 0] = 1.0
+    A[1, 1] = np.nan
+    x = np.full(n, 7.0)
+    assert not solve(flat(A), memoryview(np.ones(n)), memoryview(x), 0.5)
+    assert np.all(x == 7.0)
