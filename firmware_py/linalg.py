@@ -108,6 +108,97 @@ def chol_inverse(a, n: int, out, L) -> bool:
     return True
 
 
+
+def _cholesky_lines(n: int, damped: bool) -> list:
+    """Straight-line :func:`cholesky` of the lower triangle of the flat ``a``
+    into locals ``l{i}_{j}`` (and ``r{j} = 1 / l{j}_{j}``); ``damped``: the
+    diagonal read as :func:`coiltrack.firmware.pose.lm.damped` makes it
+    (``d + lam * d``, ``d + lam`` when ``d <= 0``)."""
+    ln = []
+    for i in range(n):
+        for j in range(i + 1):
+            ln.append(f"    a{i}_{j} = a[{i * n + j}]")
+        if damped:
+            ln.append(f"    a{i}_{i} += lam * (1.0 if a{i}_{i} <= 0.0 else a{i}_{i})")
+    for j in range(n):
+        ln.append(f"    s = a{j}_{j}" + "".join(f" - l{j}_{k} * l{j}_{k}" for k in range(j)))
+        ln.append("    if not s > 0.0 or s == INF:")
+        ln.append("        return False")
+        ln.append(f"    l{j}_{j} = sqrt(s)")
+        ln.append(f"    r{j} = 1.0 / l{j}_{j}")
+        for i in range(j + 1, n):
+            ln.append(f"    l{i}_{j} = (a{i}_{j}" + "".join(f" - l{i}_{k} * l{j}_{k}" for k in range(j)) + f") * r{j}")
+    return ln
+
+
+def _spd_inverse_source(n: int) -> str:
+    """Straight-line source of :func:`chol_inverse` for one size ``n`` (what a C
+    compiler makes of its loops once ``n`` is a constant; PX4's EKF2 fuses
+    with generated straight-line code the same way): the lower triangle read
+    into locals, the Cholesky factor, its inverse and ``L^-T L^-1`` in the same
+    order of operations as the loops, so the result is the same to the bit."""
+    ln = [f"def spd_inverse_{n}(a, out):"] + _cholesky_lines(n, False)
+    for j in range(n):                     # L^-1 (chol_inverse, first loop): m_ij
+        ln.append(f"    m{j}_{j} = r{j}")
+        for i in range(j + 1, n):
+            terms = "".join(f" - l{i}_{k} * m{k}_{j}" for k in range(j, i))
+            ln.append(f"    m{i}_{j} = (-{terms[3:]}) / l{i}_{i}")
+    for i in range(n):                     # L^-T L^-1 (chol_inverse, second loop)
+        for j in range(i, n):
+            ln.append("    s = " + " + ".join(f"m{k}_{i} * m{k}_{j}" for k in range(j, n)))
+            ln.append(f"    out[{i * n + j}] = s")
+            if i != j:
+                ln.append(f"    out[{j * n + i}] = s")
+    ln.append("    return True")
+    return "\n".join(ln) + "\n"
+
+
+def _damped_solve_source(n: int) -> str:
+    """Straight-line source of ``damped``, :func:`cholesky` and
+    :func:`chol_solve` for one size ``n``, in the loops' order of operations."""
+    ln = [f"def damped_spd_solve_{n}(a, b, x, lam):"] + _cholesky_lines(n, True)
+    for i in range(n):                     # L y = b
+        ln.append(f"    y{i} = (b[{i}]" + "".join(f" - l{i}_{k} * y{k}" for k in range(i)) + f") / l{i}_{i}")
+    for i in range(n - 1, -1, -1):         # L^T x = y
+        ln.append(f"    x{i} = (y{i}" + "".join(f" - l{k}_{i} * x{k}" for k in range(i + 1, n)) + f") / l{i}_{i}")
+        ln.append(f"    x[{i}] = x{i}")
+    ln.append("    return True")
+    return "\n".join(ln) + "\n"
+
+
+_GENERATED: dict = {}
+
+
+def _generated(kind: str, n: int, source):
+    f = _GENERATED.get((kind, n))
+    if f is None:
+        if not 1 <= n <= 16:
+            raise ValueError(f"{kind}: size {n} outside 1..16")
+        env = {"sqrt": _sqrt, "INF": math.inf}
+        exec(compile(source(n), f"<{kind}_{n}>", "exec"), env)
+        f = _GENERATED[(kind, n)] = env[f"{kind}_{n}"]
+    return f
+
+
+def spd_inverse(n: int):
+    """The function ``inv(a, out) -> bool`` that does :func:`chol_inverse` for
+    size ``n`` without its loops (flat ``a`` and ``out`` of ``n * n``, lower
+    triangle of ``a`` read; ``out`` may not alias ``a``; False, ``out``
+    undefined, when ``a`` is not positive definite). Made once per size at
+    start-up: about five times faster than the loops at ``n = 9`` (no index
+    arithmetic, no buffer reads of intermediate values); same result to the bit."""
+    return _generated("spd_inverse", n, _spd_inverse_source)
+
+
+def damped_spd_solve(n: int):
+    """The function ``solve(a, b, x, lam) -> bool``: ``x = (a + lam diag(a))^-1 b``
+    (a diagonal element ``<= 0`` damped by ``lam`` alone; the Levenberg-Marquardt
+    system of ``pose.lm``) by Cholesky, the straight-line form of ``damped``,
+    :func:`cholesky` and :func:`chol_solve` for size ``n`` (flat ``a`` read in
+    its lower triangle, ``b`` and ``x`` of ``n``; same result to the bit). False,
+    ``x`` untouched, when the damped matrix is not positive definite."""
+    return _generated("damped_spd_solve", n, _damped_solve_source)
+
 def lu_factor(K, n: int, perm) -> bool:
     """LU with partial pivoting of the ``n x n`` matrix ``K`` (row-major flat) in place, the row
     permutation into ``perm`` (n); False if a pivot is below 1e-12 (singular)."""

@@ -10,6 +10,10 @@ the firmware alone. Reported, after a warm-up:
   IMU sample (the "fused tick") and per stage (receive, actuate, measure,
   track, supervise, transmit; ``loop.PHASES``); Python's garbage
   collector is frozen after start-up (``gc.freeze``), as a board has none;
+* the tick's CPU time (``time.thread_time_ns``: the time the replaying
+  thread ran, so a preemption by another process on a shared machine does
+  not count; keys ``tick_cpu_us_*``, ``cpu_deadline_misses``) beside the
+  wall-clock figures, which include it;
 * numpy array allocations per tick (``tools.alloc.NumpyAllocationCounter``,
   a second replay);
 * the firmware state in bytes: the data of every numpy array and byte buffer
@@ -255,9 +259,10 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
     from .framelog import replay
 
     warm = int(warmup_s * 1e6)
-    tick_ns, phase_ns, imu_ticks = [], [[] for _ in PHASES], []
+    tick_ns, phase_ns, imu_ticks, cpu_ns = [], [[] for _ in PHASES], [], []
     prof = np.zeros(len(PHASES), dtype=np.int64)
     clk = time.perf_counter_ns
+    cpu = time.thread_time_ns
     state = {}
     work = {"evals": 0, "replay": 0}
 
@@ -273,10 +278,13 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
             e0 = sum(m.evals for m in models)
             for f in filters:
                 f.last_step_units = 0
+            c = cpu()
             a = clk()
             real_tick(t, prof)
             dt = clk() - a
+            dc = cpu() - c
             if t >= warm:
+                cpu_ns.append(dc)
                 work["evals"] = max(work["evals"], sum(m.evals for m in models) - e0)
                 work["replay"] = max(work["replay"], max((f.last_step_units for f in filters), default=0))
                 tick_ns.append(dt)
@@ -305,6 +313,10 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
     st = _stats(tick_ns)
     rep.update({"tick_us_median": st["median"], "tick_us_p99": st["p99"], "tick_us_p999": st["p999"],
                 "tick_us_max": st["max"]})
+    sc = _stats(cpu_ns)
+    rep.update({"tick_cpu_us_median": sc["median"], "tick_cpu_us_p99": sc["p99"], "tick_cpu_us_p999": sc["p999"],
+                "tick_cpu_us_max": sc["max"],
+                "cpu_deadline_misses": int(sum(1 for d in cpu_ns if d >= rep["tick_us"] * 1000))})
     # the largest work done in one tick, in machine-independent units, against the configured budget
     cfg = fw.cfg
     rep.update({"max_field_evals_per_tick": work["evals"], "track_budget_evals": cfg.track_budget_evals,
@@ -356,6 +368,9 @@ def format_table(rep: dict) -> str:
     lines = [f"  ticks measured        {rep['ticks']} (after {rep['warmup_s']} s warm-up, {rep['tick_us']} us tick)",
              f"  tick                  median {rep['tick_us_median']} us, p99 {rep['tick_us_p99']} us, "
              f"p99.9 {rep['tick_us_p999']} us, max {rep['tick_us_max']} us",
+             f"  tick CPU time         median {rep['tick_cpu_us_median']} us, p99 {rep['tick_cpu_us_p99']} us, "
+             f"p99.9 {rep['tick_cpu_us_p999']} us, max {rep['tick_cpu_us_max']} us, "
+             f"{rep['cpu_deadline_misses']} ticks >= {rep['tick_us']} us (preemption excluded)",
              f"  work in one tick      at most {rep['max_field_evals_per_tick']} field evaluations (budget "
              f"{rep['track_budget_evals']}), {rep['max_replay_steps_per_tick']} replay steps (budget "
              f"{rep['replay_budget_steps']})",

@@ -327,6 +327,13 @@ class CoilChooser:
         self.reduction = np.zeros(self.n)
         self.i_ref = np.zeros(self.n)
         self.var_after = np.zeros(POSE_DIM)
+        # memoryviews of the same buffers: their elements read as Python floats, whose
+        # arithmetic costs a fifth of numpy scalars' (the same IEEE operations, the same bits)
+        self._Av = tuple(memoryview(self._A[c]) for c in range(self.n))
+        self._Mv = tuple(memoryview(self._M[c]) for c in range(self.n))
+        self._wv = memoryview(self.weight)
+        self._varv = memoryview(self._var)
+        self._vav = memoryview(self.var_after)
         self.coil = -1
         self.current = 0.0
         self.target = 0
@@ -389,7 +396,8 @@ class CoilChooser:
 
         Returns the chosen coil (also in ``self.coil``), or -1.
         """
-        w = self.weight
+        w = self._wv
+        P6a, P6 = P6, memoryview(P6)
         # target: the pose variable (trace: the group, 0 or 3) furthest beyond its bound
         best_u = -1.0
         if self.trace:
@@ -409,12 +417,12 @@ class CoilChooser:
             j0 += P6[k, k] * w[k]
         best_c = -1
         best_red = -math.inf
-        var = self._var
+        var = self._varv
         scalar = isinstance(var_amp, float)
         for c in range(self.n):
             va = var_amp if scalar else float(var_amp[c])
             A = self._A[c]
-            np.matmul(model.H[c], P6, out=A)
+            np.matmul(model.H[c], P6a, out=A)
             np.matmul(A, model.H[c].T, out=self._M[c])
             hc = model.h[c]
             self._hn2[c] = float(hc[0] * hc[0] + hc[1] * hc[1] + hc[2] * hc[2])
@@ -425,7 +433,7 @@ class CoilChooser:
                 continue
             i = float(self.currents[k])
             self.i_ref[c] = i
-            posterior_pose_variances(P6, A, self._M[c], self._hn2[c], i, va, self.rel_model, var,
+            posterior_pose_variances(P6, self._Av[c], self._Mv[c], float(self._hn2[c]), i, va, self.rel_model, var,
                                      self.current_sigma)
             j1 = 0.0
             for kk in range(POSE_DIM):
@@ -449,24 +457,24 @@ class CoilChooser:
         for k in range(t, t1):
             goal += self.sigma_min[k] * self.sigma_min[k]
         kmax = self._ref_index(float(i_limit[best_c]))
-        A = self._A[best_c]
-        M = self._M[best_c]
-        hn2 = self._hn2[best_c]
+        A = self._Av[best_c]
+        M = self._Mv[best_c]
+        hn2 = float(self._hn2[best_c])
         if not scalar:
             var_amp = float(var_amp[best_c])
         for j in range(kmax + 1):
             i = float(self.currents[j])
-            posterior_pose_variances(P6, A, M, hn2, i, var_amp, self.rel_model, self.var_after,
+            posterior_pose_variances(P6, A, M, hn2, i, var_amp, self.rel_model, self._vav,
                                      self.current_sigma)
             va = 0.0
             for k in range(t, t1):
-                va += self.var_after[k]
+                va += self._vav[k]
             if va <= goal:
                 self.current = i
                 self.reached = True
                 return best_c
         self.current = float(self.currents[kmax])
-        posterior_pose_variances(P6, A, M, hn2, self.current, var_amp, self.rel_model, self.var_after,
+        posterior_pose_variances(P6, A, M, hn2, self.current, var_amp, self.rel_model, self._vav,
                                      self.current_sigma)
         return best_c
 

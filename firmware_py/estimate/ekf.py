@@ -15,7 +15,13 @@ eqs 2.16-2.18 and Fig. 4.3; Joseph form after Bucy & Joseph):
 5. correction ``dx = K y`` (eq 2.16);
 6. Joseph-form covariance ``P = (I - K H) P (I - K H)^T + K R K^T``; it
    stays positive semi-definite whatever the rounding (re-symmetrised every
-   ``SYMMETRIZE_EVERY`` updates against the drift of rounding);
+   ``SYMMETRIZE_EVERY`` updates against the drift of rounding). ``I - K H``
+   is applied as two rank-``m`` corrections, ``T = P - K (H P)`` and
+   ``T - (T H^T) K^T`` (``H P = (P H^T)^T`` of step 2): the same factors, with
+   products of inner size ``m`` instead of ``n``. (Multiplying the Joseph form
+   out to ``P - K H P - P H^T K^T + K S K^T`` is the same algebra but not the
+   same arithmetic: it cancels the measured states' prior to rounding and
+   loses a precise measurement's posterior, ``tests/firmware/test_references.py``);
 7. health flags are returned, never raised.
 
 ``predict_covariance`` is ``P = A P A^T + Q`` (eq 2.18, 6.5).
@@ -29,7 +35,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.linalg import chol_inverse, flat, inv3_sym
+from coiltrack.firmware.linalg import flat, inv3_sym, spd_inverse
 
 #: rounding makes P drift from symmetry; it is re-symmetrised every this many calls
 SYMMETRIZE_EVERY = 16
@@ -83,22 +89,21 @@ class KalmanUpdate:
         self.Sinv = np.zeros((m, m))
         self.K = np.zeros((n, m))
         self._PHt = np.zeros((n, m))
-        self._KH = np.zeros((n, n))
-        self._IKH = np.zeros((n, n))
-        self._T = np.zeros((n, n))
+        self._T = np.zeros((n, n))       # (I - K H) P
+        self._TH = np.zeros((n, m))      # T H^T
+        self._X = np.zeros((n, n))
         self._KR = np.zeros((n, m))
-        self._KRK = np.zeros((n, n))
-        self._L = np.zeros((m, m))
-        self._eye = np.eye(n)
+        self._w = np.zeros(m)            # S^-1 y
         self._half = np.full((), 0.5)
         self._Ht = self.H.T
-        self._IKHt = self._IKH.T
+        self._HP = self._PHt.T           # H P (P symmetric)
         self._Kt = self.K.T
         self._Tt = self._T.T
         self._s = flat(self.S)
         self._si = flat(self.Sinv)
-        self._l = flat(self._L)
+        self._inv = spd_inverse(m)       # straight-line inverse for this m (linalg)
         self._yv = memoryview(self.y)
+        self._wv = memoryview(self._w)
         self._dxv = memoryview(self.dx)
         self.nis = 0.0
         self.count = 0
@@ -113,19 +118,17 @@ class KalmanUpdate:
         np.add(self.S, self.R, out=self.S)
         s = self._s
         # (the factorisation reads the lower triangle only)
-        if not (_inv3(s, self._si) if m == 3 else chol_inverse(s, m, self._si, self._l)):
+        if not (_inv3(s, self._si) if m == 3 else self._inv(s, self._si)):
             self.dx.fill(0.0)
             self.rejected += 1
             self.nis = math.inf
             return EKF_NOT_PD
-        si = self._si
+        np.matmul(self.Sinv, self.y, out=self._w)
         yv = self._yv
+        wv = self._wv
         nis = 0.0
         for i in range(m):
-            acc = 0.0
-            for j in range(m):
-                acc += si[i * m + j] * yv[j]
-            nis += yv[i] * acc
+            nis += yv[i] * wv[i]
         self.nis = nis
         if not math.isfinite(nis):
             self.dx.fill(0.0)
@@ -138,13 +141,15 @@ class KalmanUpdate:
         np.matmul(self._PHt, self.Sinv, out=self.K)
         np.matmul(self.K, self.y, out=self.dx)
         # Joseph form: P = (I - K H) P (I - K H)^T + K R K^T
-        np.matmul(self.K, self.H, out=self._KH)
-        np.subtract(self._eye, self._KH, out=self._IKH)
-        np.matmul(self._IKH, P, out=self._T)
-        np.matmul(self._T, self._IKHt, out=P)
+        T, X = self._T, self._X
+        np.matmul(self.K, self._HP, out=T)
+        np.subtract(P, T, out=T)                 # T = (I - K H) P
+        np.matmul(T, self._Ht, out=self._TH)
+        np.matmul(self._TH, self._Kt, out=X)
+        np.subtract(T, X, out=P)                 # P = T (I - K H)^T
         np.matmul(self.K, self.R, out=self._KR)
-        np.matmul(self._KR, self._Kt, out=self._KRK)
-        np.add(P, self._KRK, out=P)
+        np.matmul(self._KR, self._Kt, out=X)
+        np.add(P, X, out=P)
         self.count += 1
         if self.count % SYMMETRIZE_EVERY == 0:
             symmetrize(P, self._T, self._Tt, self._half)

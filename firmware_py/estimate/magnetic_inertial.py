@@ -499,22 +499,25 @@ class FusionFilter:
         ba = st._bav
         bg = st._bgv
         F, W, S = IMU_F, IMU_W, IMU_FSRC
+        # the two entries, each element read once
+        pfx, pfy, pfz, pwx, pwy, pwz = d[kp, F], d[kp, F + 1], d[kp, F + 2], d[kp, W], d[kp, W + 1], d[kp, W + 2]
+        kfx, kfy, kfz, kwx, kwy, kwz = d[k, F], d[k, F + 1], d[k, F + 2], d[k, W], d[k, W + 1], d[k, W + 2]
+        psx, psy, psz, ksx, ksy, ksz = d[kp, S], d[kp, S + 1], d[kp, S + 2], d[k, S], d[k, S + 1], d[k, S + 2]
+        bax, bay, baz = ba[0], ba[1], ba[2]
         # inputs at t0 and t1 (offsets removed), the rate at mid-step
-        f0x = b0 * d[kp, F] + a0 * d[k, F] - ba[0]
-        f0y = b0 * d[kp, F + 1] + a0 * d[k, F + 1] - ba[1]
-        f0z = b0 * d[kp, F + 2] + a0 * d[k, F + 2] - ba[2]
-        f1x = b1 * d[kp, F] + a1 * d[k, F] - ba[0]
-        f1y = b1 * d[kp, F + 1] + a1 * d[k, F + 1] - ba[1]
-        f1z = b1 * d[kp, F + 2] + a1 * d[k, F + 2] - ba[2]
+        f0x = b0 * pfx + a0 * kfx - bax
+        f0y = b0 * pfy + a0 * kfy - bay
+        f0z = b0 * pfz + a0 * kfz - baz
+        f1x = b1 * pfx + a1 * kfx - bax
+        f1y = b1 * pfy + a1 * kfy - bay
+        f1z = b1 * pfz + a1 * kfz - baz
         am = 0.5 * (a0 + a1)
         bm = 1.0 - am
-        wx = bm * d[kp, W] + am * d[k, W] - bg[0]
-        wy = bm * d[kp, W + 1] + am * d[k, W + 1] - bg[1]
-        wz = bm * d[kp, W + 2] + am * d[k, W + 2] - bg[2]
-        r0x, r0y, r0z = (b0 * d[kp, S] + a0 * d[k, S], b0 * d[kp, S + 1] + a0 * d[k, S + 1],
-                         b0 * d[kp, S + 2] + a0 * d[k, S + 2])
-        r1x, r1y, r1z = (b1 * d[kp, S] + a1 * d[k, S], b1 * d[kp, S + 1] + a1 * d[k, S + 1],
-                         b1 * d[kp, S + 2] + a1 * d[k, S + 2])
+        wx = bm * pwx + am * kwx - bg[0]
+        wy = bm * pwy + am * kwy - bg[1]
+        wz = bm * pwz + am * kwz - bg[2]
+        r0x, r0y, r0z = b0 * psx + a0 * ksx, b0 * psy + a0 * ksy, b0 * psz + a0 * ksz
+        r1x, r1y, r1z = b1 * psx + a1 * ksx, b1 * psy + a1 * ksy, b1 * psz + a1 * ksz
         Th = st._Thv
         # specific force in G at t0 with the attitude at t0, at t1 with the attitude at t1
         g0x, g0y, g0z = to_nav(Th, f0x, f0y, f0z)

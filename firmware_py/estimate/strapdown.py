@@ -115,8 +115,12 @@ def transition_nav(A, dt: float, R, gx: float, gy: float, gz: float) -> None:
     A[_V + 1, _O + 2] = dt * gx
     A[_V + 2, _O] = dt * gy
     A[_V + 2, _O + 1] = -dt * gx
-    _put(A, _V, _A, -dt, R)
-    _put(A, _O, _G, -dt, R)
+    # VEL-ACC and ORI-GYR: the same -dt R, computed once
+    m = -dt
+    for i in range(3):
+        a0, a1, a2 = m * R[i, 0], m * R[i, 1], m * R[i, 2]
+        A[_V + i, _A], A[_V + i, _A + 1], A[_V + i, _A + 2] = a0, a1, a2
+        A[_O + i, _G], A[_O + i, _G + 1], A[_O + i, _G + 2] = a0, a1, a2
 
 
 def transition_sensor(A, dt: float, R, fx: float, fy: float, fz: float,

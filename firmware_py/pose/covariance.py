@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.linalg import chol_inverse, jacobi_eigh
+from coiltrack.firmware.linalg import jacobi_eigh, spd_inverse
 
 __all__ = ["MAX_VARIANCE", "RobustInverse6"]
 
@@ -31,7 +31,7 @@ class RobustInverse6:
 
     def __init__(self):
         self._m = memoryview(np.zeros(36))
-        self._L = memoryview(np.zeros(36))
+        self._inv = spd_inverse(6)       # chol_inverse, straight-line (same bits)
         self._w = memoryview(np.zeros(6))
         self._V = memoryview(np.zeros(36))
 
@@ -44,7 +44,7 @@ class RobustInverse6:
                 return
         tr = a[0] + a[7] + a[14] + a[21] + a[28] + a[35]
         floor_hi = max(EIG_FLOOR * max(tr, 0.0), 1.0 / MAX_VARIANCE)
-        if chol_inverse(a, 6, cov, self._L):
+        if self._inv(a, cov):
             tri = cov[0] + cov[7] + cov[14] + cov[21] + cov[28] + cov[35]
             if tri > 0.0 and 1.0 / tri >= floor_hi:
                 return

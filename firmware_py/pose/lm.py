@@ -36,7 +36,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.linalg import chol_solve, cholesky
+from coiltrack.firmware.linalg import damped_spd_solve
 
 __all__ = ["LevenbergMarquardt", "LM_RUNNING", "LM_CONVERGED", "LM_STOPPED", "damped"]
 
@@ -86,8 +86,7 @@ class LevenbergMarquardt:
         self.cost_tol = cost_tol
         self._A = [memoryview(np.zeros(k * k)), memoryview(np.zeros(k * k))]
         self._g = [memoryview(np.zeros(k)), memoryview(np.zeros(k))]
-        self._m = memoryview(np.zeros(k * k))
-        self._L = memoryview(np.zeros(k * k))
+        self._solve = damped_spd_solve(k)
         self.d = memoryview(np.zeros(k))
         self._cur = 0
         self.problem = None
@@ -116,10 +115,9 @@ class LevenbergMarquardt:
     def iterate(self) -> int:
         """One damped step (at most one trial evaluation); returns ``state``."""
         self.it += 1
-        k = self.k
         c = self._cur
-        damped(self._A[c], self._m, k, self.lam)
-        if cholesky(self._m, k, self._L):
+        # damped, cholesky and chol_solve in one straight-line call (linalg)
+        if self._solve(self._A[c], self._g[c], self.d, self.lam):
             self._step(c)
         else:
             self._raise_damping()
@@ -129,7 +127,6 @@ class LevenbergMarquardt:
 
     def _step(self, c: int) -> None:
         d = self.d
-        chol_solve(self._L, self.k, self._g[c], d)
         for i in range(self.k):
             if not math.isfinite(d[i]):
                 self.state = LM_STOPPED

@@ -142,10 +142,11 @@ class _PoseFit:
         ``g = H^T W (S - h)`` at (p, R)."""
         h, H, S, w = self._h, self._H, self.S, self.w
         self.signal.measure(px, py, pz, R, self.cur, h, H)
-        for i in range(36):
-            a[i] = 0.0
-        for i in range(6):
-            g[i] = 0.0
+        # the 21 distinct elements of the upper triangle of a and g accumulated
+        # in locals (the same sums in the same order as into the buffers)
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        a00 = a01 = a02 = a03 = a04 = a05 = a11 = a12 = a13 = a14 = a15 = 0.0
+        a22 = a23 = a24 = a25 = a33 = a34 = a35 = a44 = a45 = a55 = 0.0
         cost = 0.0
         for q in range(3 * self.signal.n):
             wq = w[q]
@@ -155,37 +156,41 @@ class _PoseFit:
             rr = e * w2
             o = 6 * q
             h0, h1, h2, h3, h4, h5 = H[o], H[o + 1], H[o + 2], H[o + 3], H[o + 4], H[o + 5]
-            g[0] += h0 * rr
-            g[1] += h1 * rr
-            g[2] += h2 * rr
-            g[3] += h3 * rr
-            g[4] += h4 * rr
-            g[5] += h5 * rr
-            a0, a1, a2, a3, a4 = h0 * w2, h1 * w2, h2 * w2, h3 * w2, h4 * w2
-            a[0] += a0 * h0
-            a[1] += a0 * h1
-            a[2] += a0 * h2
-            a[3] += a0 * h3
-            a[4] += a0 * h4
-            a[5] += a0 * h5
-            a[7] += a1 * h1
-            a[8] += a1 * h2
-            a[9] += a1 * h3
-            a[10] += a1 * h4
-            a[11] += a1 * h5
-            a[14] += a2 * h2
-            a[15] += a2 * h3
-            a[16] += a2 * h4
-            a[17] += a2 * h5
-            a[21] += a3 * h3
-            a[22] += a3 * h4
-            a[23] += a3 * h5
-            a[28] += a4 * h4
-            a[29] += a4 * h5
-            a[35] += h5 * h5 * w2
-        for i in range(6):
-            for j in range(i):
-                a[i * 6 + j] = a[j * 6 + i]
+            g0 += h0 * rr
+            g1 += h1 * rr
+            g2 += h2 * rr
+            g3 += h3 * rr
+            g4 += h4 * rr
+            g5 += h5 * rr
+            b0, b1, b2, b3, b4 = h0 * w2, h1 * w2, h2 * w2, h3 * w2, h4 * w2
+            a00 += b0 * h0
+            a01 += b0 * h1
+            a02 += b0 * h2
+            a03 += b0 * h3
+            a04 += b0 * h4
+            a05 += b0 * h5
+            a11 += b1 * h1
+            a12 += b1 * h2
+            a13 += b1 * h3
+            a14 += b1 * h4
+            a15 += b1 * h5
+            a22 += b2 * h2
+            a23 += b2 * h3
+            a24 += b2 * h4
+            a25 += b2 * h5
+            a33 += b3 * h3
+            a34 += b3 * h4
+            a35 += b3 * h5
+            a44 += b4 * h4
+            a45 += b4 * h5
+            a55 += h5 * h5 * w2
+        g[0], g[1], g[2], g[3], g[4], g[5] = g0, g1, g2, g3, g4, g5
+        a[0], a[1], a[2], a[3], a[4], a[5] = a00, a01, a02, a03, a04, a05
+        a[6], a[7], a[8], a[9], a[10], a[11] = a01, a11, a12, a13, a14, a15
+        a[12], a[13], a[14], a[15], a[16], a[17] = a02, a12, a22, a23, a24, a25
+        a[18], a[19], a[20], a[21], a[22], a[23] = a03, a13, a23, a33, a34, a35
+        a[24], a[25], a[26], a[27], a[28], a[29] = a04, a14, a24, a34, a44, a45
+        a[30], a[31], a[32], a[33], a[34], a[35] = a05, a15, a25, a35, a45, a55
         return cost
 
 

@@ -538,6 +538,8 @@ class BurstFusionTracker(MagneticTracker):
         self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
         self.imu_steps = cfg.imu_steps_per_tick
         self.replay_budget = cfg.replay_budget_steps
+        self.deferred = 0               # ticks whose fusion step waited behind IMU samples
+        self._deferring = False
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = make_pose_solver(cfg, coils, 1.0)
@@ -564,8 +566,12 @@ class BurstFusionTracker(MagneticTracker):
         """Predict (drain the IMU rings: the source's first, its orientation and
         specific force feed eq 6.8), solve, fuse, and send the fused poses."""
         src = self.source
+        n0 = 0
+        n1 = 0
         for ch, ins in self._pairs:
+            n0 += ins.samples
             ins.process(ch.ring, now_us, self.source_wait_us, self.imu_steps)
+            n1 += ins.samples
         if src is not None:
             # what no sensor sample waits for: at most the wait behind the clock
             until = now_us - self.source_wait_us
@@ -575,6 +581,16 @@ class BurstFusionTracker(MagneticTracker):
                     if t < until:
                         until = t
             src.process(until)
+        # bounded tick: a tick that propagated IMU samples (the fused tick) leaves the fusion
+        # step (the update or a replay step) to the next one, at most one tick in a row (so it
+        # always progresses). (Putting off the solve steps too changes the fused figures for the
+        # same seed, roetenberg-fusion seed 1: 38.83 against 38.80 mm; this leaves them as they were.)
+        if n1 != n0 and not self._deferring and not self.busy() and self._fusing():
+            self._deferring = True
+            self.deferred += 1
+            self._send_fused()
+            return
+        self._deferring = False
         e0 = self.solver.signal.evals
         fresh = not self.busy()
         if not fresh:
@@ -582,6 +598,13 @@ class BurstFusionTracker(MagneticTracker):
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
             self._fuse_step(self.budget - (self.solver.signal.evals - e0), fresh)
         self._send_fused()
+
+    def _fusing(self) -> bool:
+        """A sensor's delayed magnetic update (re-solve, update or replay) is in progress."""
+        for _, ins in self._pairs:
+            if ins.pending:
+                return True
+        return False
 
     def warm_start(self, ch, tp) -> bool:
         """The fusion filter's pose at the burst's middle when it has one (it

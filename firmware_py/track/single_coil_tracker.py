@@ -15,7 +15,9 @@ Fig. 1, as stages of the firmware tick (:meth:`SingleCoilTracker.actuate`,
   effect of a pulse still in flight (eq 4 does not need its value); if a
   position or orientation standard deviation would reach its ``sigma_max``
   (or no update was made for ``adaptive_max_interval_us``) a pulse is due
-  (``adaptive.ActuationPolicy``);
+  (``adaptive.ActuationPolicy``); a tick that has run an EKF update leaves
+  the decision to the next tick, for the same start (bounded tick: the two
+  heaviest pieces of work of the mode never share one);
 * which and how strong: the coil whose eq-4 update reduces the normalised
   uncertainty most, at the smallest candidate current that brings the
   triggering variable to its ``sigma_min``, within the driver limit and the
@@ -210,6 +212,7 @@ class SingleCoilTracker:
         self._zero3 = np.zeros(3)
         # recent pulses per coil (start, end), to stay within the driver's duty limit
         self._hist = np.zeros((n, _DUTY_HIST, 2), dtype=np.int64)
+        self._histv = memoryview(self._hist)     # elements read as Python ints
         self._hist_k = [0] * n
         self.t_ref = 0
         self.acq_t = np.zeros(n, dtype=np.int64)        # mid times of the burst's pulses
@@ -247,6 +250,9 @@ class SingleCoilTracker:
         self.acq_active = False
         self._decided_stamp = -1
         self._decided_us = 0
+        self._updated_us = -1            # the tick of the last EKF update (the decision then waits)
+        self._held_start = -1            # the start a decision put off to the next tick keeps
+        self._pm_for = None              # the sensor pmodel was last evaluated for, in this decision
         self.cycle = FixedCycle(n, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us, self.lead_us)
         self.last_flip_cmd_us = -(1 << 62)
         self._warming = False            # the fixed cycle after a start (``reference_warmup_us``)
@@ -431,6 +437,7 @@ class SingleCoilTracker:
                     s.ekf.release_clone(sl.clone)
 
     def _update(self, s: _Sensor, sl: _Pulse, current: float, bits: int, now_us: int) -> None:
+        self._updated_us = now_us
         cfg = self.cfg
         ekf = s.ekf
         # one NIS monitor per sensor: inflating the pulses of single coils instead proved
@@ -526,6 +533,8 @@ class SingleCoilTracker:
 
     def _decide(self, now_us: int) -> None:
         cfg = self.cfg
+        held = self._held_start
+        self._held_start = -1
         if self.acq_active:
             return
         need_acq = False
@@ -567,6 +576,8 @@ class SingleCoilTracker:
         elif now_us - self.last_flip_cmd_us >= cfg.flip_every_us:
             return      # a flip is due: let the pulses in flight close first (see _flip)
         start = max(now_us + self.lead_us, self.next_free_us)
+        if held >= 0:           # put off from the last tick: the start it had (lead less one tick)
+            start = max(held, self.next_free_us, now_us + cfg.tick_us)
         if start - now_us > self.lead_us + cfg.tick_us:
             return
         if self._warming and start + self.pulse_us + self.gap_us + cfg.tick_us > self.cycle.start_us():
@@ -577,10 +588,17 @@ class SingleCoilTracker:
             stamp += s.imu_samples + s.updates + s.gated
         if stamp == self._decided_stamp and now_us - self._decided_us < cfg.decision_refresh_us:
             return
+        if self._updated_us == now_us and held < 0 and start - now_us > 2 * cfg.tick_us:
+            # bounded tick: this tick has run an EKF update (the heaviest matrix work of the mode);
+            # the decision (a prediction per sensor and pulse in flight, the coil choice) runs in
+            # the next one, for the same start
+            self._held_start = start
+            return
         self._decided_stamp = stamp
         self._decided_us = now_us
         t_m = start + self.mid_us
         # predicted covariance at the measurement time, with the pulses in flight
+        self._pm_for = None
         worst = -1.0
         ws = None
         due = False
@@ -591,7 +609,7 @@ class SingleCoilTracker:
             self.policy.set_bounds(s.smax6)
             for sl in self.slots:
                 if sl.active and not sl.acq:
-                    self.pmodel.evaluate(s.pp, ekf.R)
+                    self._model_at(s)
                     self.pending_update.apply(s.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
                                               self.var_amp * s.monitor.r_scale,
                                               cfg.field_model_rel_sigma, cfg.current_tolerance_a)
@@ -608,7 +626,7 @@ class SingleCoilTracker:
         lim.fill(cfg.adaptive_max_current_a)
         for s in self._sens:
             self._refresh_quiet(s)
-            self.pmodel.evaluate(s.pp, s.ekf.R)
+            self._model_at(s)
             # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
             r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
             sp = math.sqrt(max(float(s.P6[0, 0] + s.P6[1, 1] + s.P6[2, 2]), 0.0))
@@ -626,7 +644,7 @@ class SingleCoilTracker:
         for c in range(self.n):
             if not self._duty_ok(c, start, self.pulse_us):
                 lim[c] = 0.0
-        self.pmodel.evaluate(ws.pp, ws.ekf.R)
+        self._model_at(ws)
         self.policy.set_bounds(ws.smax6)
         self.chooser.set_bounds(ws.smax6, ws.smin6)
         # the expected amplitude variance, inflated while the pulses prove inconsistent
@@ -636,6 +654,15 @@ class SingleCoilTracker:
             self.no_current += 1
             return
         self._command(coil, self.chooser.current, start, self.pulse_us, False, now_us)
+
+    def _model_at(self, s: _Sensor) -> None:
+        """``pmodel`` at sensor ``s``'s predicted pose (``s.pp``, ``s.ekf.R``), evaluated
+        once per decision and sensor: the model keeps the last evaluation, and nothing
+        in a decision moves the pose it is evaluated at (3 coil field evaluations saved
+        per pulse in flight and per decision)."""
+        if self._pm_for is not s:
+            self.pmodel.evaluate(s.pp, s.ekf.R)
+            self._pm_for = s
 
     def _bounds(self, s: _Sensor) -> None:
         """The bounds (``s.smax6``, ``s.smin6``; m, rad) the decision holds for sensor ``s``
@@ -705,10 +732,10 @@ class SingleCoilTracker:
         end = start + length
         w0 = end - cfg.coil_duty_window_us
         on = length
-        h = self._hist[c]
+        h = self._histv
         for k in range(_DUTY_HIST):
-            s0 = int(h[k, 0])
-            e0 = int(h[k, 1])
+            s0 = h[c, k, 0]
+            e0 = h[c, k, 1]
             if e0 > w0 and e0 > s0:
                 on += min(e0, end) - max(s0, w0)
         return on <= cfg.duty_margin * cfg.coil_max_duty * cfg.coil_duty_window_us

@@ -51,7 +51,8 @@ def test_perf_command_reports_the_figures(fusion_run, tmp_path, capsys):
     out = tmp_path / "perf.json"
     assert cli_main(["perf", "--log", str(log), "--json", str(out)]) == 0
     r = json.loads(out.read_text())
-    for key in ("tick_us_median", "tick_us_p99", "tick_us_max", "allocs_per_tick", "state_bytes",
+    for key in ("tick_us_median", "tick_us_p99", "tick_us_p999", "tick_us_max", "tick_cpu_us_max", "allocs_per_tick",
+                "state_bytes", "max_field_evals_per_tick",
                 "filterpy_step_us", "fused_step_us", "fused_tick_us_median", "phases_us"):
         assert key in r
     assert set(r["phases_us"]) == {"receive", "measure", "track", "actuate", "supervise", "transmit"}
