@@ -43,6 +43,9 @@ def add_arguments(p) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="best-effort real-time set-up: SCHED_FIFO if permitted, cyclic GC frozen and disabled")
     p.add_argument("--cpu", type=A.cpu, default=None, help="pin the loop to this CPU")
+    p.add_argument("--rt-priority", type=A.integer(1, 99), default=None, metavar="P",
+                   help="SCHED_FIFO priority with --realtime, 1..99 (default 30: above the two-process "
+                        "bench's emulator at 20, below the kernel's threaded interrupts at 50)")
     from .outputs import add_capture_argument, add_igtl_arguments
 
     add_igtl_arguments(p)
@@ -101,11 +104,14 @@ def run(args) -> int:
     clock = WallClock(args.epoch_ns)
     port = GuardedPort(outputs.wrap(link, clock_us=clock.now), clock, args.peer_timeout)
     fw = Firmware(cfg, port)
-    rt = _realtime_setup(args.cpu) if (args.realtime or args.cpu is not None) else {}
+    rt = {}
+    if args.realtime or args.cpu is not None:
+        rt = _realtime_setup(args.cpu, **({"priority": args.rt_priority} if args.rt_priority else {}))
     duration_us = int(args.duration * 1e6) if args.duration > 0 else 2**62
     code, report = 0, {}
     try:
-        timing = firmware_loop(fw, clock, duration_us, cfg.tick_us)
+        # a link that coalesces writes (a pty: FdLink) sends a tick's frames together after it
+        timing = firmware_loop(fw, clock, duration_us, cfg.tick_us, after_tick=getattr(link, "flush", None))
     except Stopped as exc:
         timing, code = exc.partial or {}, exc.exit_code
         mark(report, exc)

@@ -89,8 +89,29 @@ def inproc_timing(exec_ns: np.ndarray, tick_us: int) -> dict:
     return out
 
 
-def _realtime_setup(cpu: int | None) -> dict:
-    """Best effort: pin to one CPU, ask for SCHED_FIFO, freeze and disable the cyclic GC."""
+#: SCHED_FIFO priorities of the two-process bench: the firmware above the emulator (on one CPU a
+#: firmware tick preempts an emulator step), both below the kernel's threaded interrupts (50)
+FIRMWARE_RT_PRIORITY = 30
+EMULATOR_RT_PRIORITY = 20
+_MCL_CURRENT, _MCL_FUTURE = 1, 2
+
+
+def _lock_memory() -> bool:
+    """``mlockall(MCL_CURRENT | MCL_FUTURE)``: every page of the process resident from now on, so
+    no tick waits on a page the kernel reclaimed (a memory-pressure or page-out daemon) and
+    faults back in. Best effort: False when not permitted."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _realtime_setup(cpu: int | None, priority: int = FIRMWARE_RT_PRIORITY, lock_memory: bool = True) -> dict:
+    """Best effort: pin to one CPU, ask for SCHED_FIFO at ``priority``, lock the process's memory,
+    freeze and disable the cyclic GC."""
     info = {}
     if cpu is not None and hasattr(os, "sched_setaffinity"):
         try:
@@ -99,19 +120,61 @@ def _realtime_setup(cpu: int | None) -> dict:
         except OSError:
             pass
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         info["sched"] = "fifo"
+        info["priority"] = priority
     except (AttributeError, OSError, PermissionError):
         info["sched"] = "other"
     gc.collect()
     gc.freeze()
     gc.disable()
     info["gc"] = "disabled"
+    if lock_memory:
+        info["mlock"] = _lock_memory()
     return info
 
 
+class EmulatorRealtime:
+    """Around the wall-clock emulator loop of the two-process bench (best effort): SCHED_FIFO at
+    ``EMULATOR_RT_PRIORITY`` (below the firmware's), so a due sample leaves and a ``POSE`` is
+    stamped when it arrives rather than when the CPU's other work yields, and the cyclic GC
+    frozen and off (a run of bounded length; no collection pause in a step). Restored on exit,
+    so the report and any in-process comparison runs after it are ordinary work."""
+
+    def __init__(self, priority: int = EMULATOR_RT_PRIORITY, threads=()):
+        self.priority = priority
+        self.threads = tuple(threads)       # native ids of helper threads that serve the link
+        self.info: dict = {}
+
+    def __enter__(self) -> "EmulatorRealtime":
+        self._gc = gc.isenabled()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self._saved = []
+        for tid in (0, *self.threads):
+            try:
+                pol, par = os.sched_getscheduler(tid), os.sched_getparam(tid)
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(self.priority))
+                self._saved.append((tid, pol, par))
+            except (AttributeError, OSError, PermissionError):
+                pass
+        self.info = {"emulator_sched": "fifo" if self._saved else "other"}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for tid, pol, par in self._saved:
+            try:
+                os.sched_setscheduler(tid, pol, par)
+            except OSError:
+                pass
+        gc.unfreeze()
+        if self._gc:
+            gc.enable()
+
+
 def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us: int = 200,
-                  max_records: int = 600_000) -> dict:
+                  max_records: int = 600_000, after_tick=None) -> dict:
     """Run ``fw.tick`` every ``tick_us`` of ``clock`` until ``duration_us``.
 
     Sleeps until ``spin_us`` before each slot, then polls the clock (the
@@ -122,6 +185,8 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     the loop fell behind). Buffers are sized up front. Stopped early (a
     :class:`tools.stopping.Stopped` from a signal or from the port), the
     statistics of the ticks run so far go with the exception as ``partial``.
+    ``after_tick()``, when given, runs after each tick, inside its measured
+    execution time (a link's ``flush``: the tick's frames leave in one write).
     """
     if sleep is None:
         sleep = getattr(clock, "sleep", time.sleep)
@@ -147,6 +212,8 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
                 continue
             t0 = now
             fw.tick(t0)
+            if after_tick is not None:
+                after_tick()
             t1 = clock.now()
             i = n % cap
             starts[i] = t0
@@ -184,13 +251,64 @@ def _fd_of(link):
     return None
 
 
-def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_us: int = 250, wait=None) -> None:
+#: how far ahead of true time the wall-clock emulator keeps its nodes' physics (us); under the
+#: 2 s that ``hil.world.World.precompute`` keeps behind its newest instants, so nothing computed
+#: ahead is dropped before it is used
+AHEAD_US = 1_500_000
+#: sample instants computed in one piece between steps (a piece costs the trajectory's fixed
+#: evaluation, ~0.5-1.5 ms, plus ~50 us an instant)
+PREFETCH_PIECE = 8
+#: a piece is computed only when the next sample is due at least this far away (us)
+PREFETCH_GUARD_US = 3_000
+
+
+class EmulatorTiming:
+    """What the wall-clock emulator loop measured (us): each step's duration, and how late
+    each step that took a sample started after that sample's instant (the sample leaves the
+    emulator that late; the pose latency counts it). ``cap`` steps at most (the last ones)."""
+
+    def __init__(self, cap: int = 1 << 20):
+        self.step_us = np.zeros(cap, dtype=np.int64)
+        self.late_us = np.zeros(cap, dtype=np.int64)
+        self.steps = 0
+        self.samples = 0
+        self.prefetched = 0
+        self.pieces = 0
+
+    def add_step(self, dt_us: int) -> None:
+        self.step_us[self.steps % self.step_us.size] = dt_us
+        self.steps += 1
+
+    def add_late(self, late_us: int) -> None:
+        self.late_us[self.samples % self.late_us.size] = late_us
+        self.samples += 1
+
+    def report(self) -> dict:
+        st = self.step_us[:min(self.steps, self.step_us.size)]
+        la = self.late_us[:min(self.samples, self.late_us.size)]
+        pct = lambda a, q: float(np.percentile(a, q)) if a.size else None  # noqa: E731
+        return {"emulator_step_us_p99": pct(st, 99), "emulator_step_us_max": pct(st, 100),
+                "emulator_sample_late_us_p50": pct(la, 50), "emulator_sample_late_us_p99": pct(la, 99),
+                "emulator_sample_late_us_max": pct(la, 100),
+                "emulator_prefetched_instants": self.prefetched, "emulator_prefetch_pieces": self.pieces}
+
+
+def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_us: int = 250, wait=None,
+                  timing: EmulatorTiming | None = None, ahead_us: int = AHEAD_US) -> None:
     """Step the emulator on ``clock`` until ``duration_us``.
 
-    Waits at most ``step_us`` between steps and wakes at once when bytes
-    arrive on a file-descriptor link (``select``), so a node stamps a
-    ``TIME_SYNC`` close to its arrival. ``wait(timeout_s)`` replaces the wait
-    (tests pass a simulated one).
+    Waits until the next sample is due (``emulator.next_due_us()``, when the
+    emulator tells), at most ``step_us``, and wakes at once when bytes arrive
+    on a file-descriptor link (``select``), so a node stamps a ``TIME_SYNC``
+    close to its arrival and the recorder a ``POSE``. Frames written in a step
+    go out together at its end (``link.flush``). The nodes' physics is
+    computed ahead of the sampling path (``emulator.prefetch``): the first
+    ``ahead_us`` before the run starts (``clock.now() < 0``), then a piece of
+    ``PREFETCH_PIECE`` instants between steps, while the next sample is more
+    than ``PREFETCH_GUARD_US`` away, keeping ``ahead_us`` in hand (0: none).
+    ``wait(timeout_s)`` replaces the wait (tests pass a simulated one);
+    ``timing`` (:class:`EmulatorTiming`) collects step durations and sample
+    lateness.
     """
     fd = _fd_of(link)
     if wait is None:
@@ -199,24 +317,51 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
                 select.select([_fd], [], [], timeout_s)
         else:
             wait = getattr(clock, "sleep", time.sleep)
+    flush = getattr(link, "flush", None)
+    next_due = getattr(emulator, "next_due_us", None)
+    prefetch = getattr(emulator, "prefetch", None) if ahead_us > 0 else None
+    if prefetch is not None:
+        # before the start: the first ahead_us of every node, in pieces (the clock runs meanwhile)
+        n = 1
+        while n and clock.now() < 0:
+            n = prefetch(ahead_us, 256)
+            if timing is not None:
+                timing.prefetched += n
     while True:
         now = clock.now()
         if now > duration_us:
             break
+        timeout_us = step_us
         if now >= 0:
+            due = next_due() if next_due is not None else None
             emulator.step(now)
-            if hasattr(link, "flush"):
-                link.flush()
+            if flush is not None:
+                flush()
             if progress is not None:
                 progress.update(now * 1e-6, len(emulator.recorder.poses))
-            if clock.now() - now > step_us:
-                continue        # a long step (physics): read the link again at once
-        wait(step_us * 1e-6)
+            t1 = clock.now()
+            if timing is not None:
+                timing.add_step(t1 - now)
+                if due is not None and due <= now:
+                    timing.add_late(now - due)
+            if t1 - now > step_us:
+                continue        # a long step: read the link again at once
+            nxt = next_due() if next_due is not None else None
+            if prefetch is not None and (nxt is None or nxt - t1 > PREFETCH_GUARD_US):
+                n = prefetch(t1 + ahead_us, PREFETCH_PIECE, PREFETCH_PIECE)
+                if n and timing is not None:
+                    timing.prefetched += n
+                    timing.pieces += 1
+                if n:
+                    continue    # the piece took time: read the link again at once
+            if nxt is not None:
+                timeout_us = min(step_us, max(0, nxt - clock.now()))
+        wait(timeout_us * 1e-6)
 
 
 def _two_process_link(transport: str):
     """The link between the two processes: (the firmware's link arguments, the emulator's
-    end, a function that closes everything)."""
+    end, a function that closes everything, native ids of threads that serve the link)."""
     if transport == "slcan":
         # a CAN bus between the two processes: an slcan adapter on each side of a bridge of
         # pseudo-terminals (protocol.slcan); same messages, CAN frames
@@ -226,17 +371,21 @@ def _two_process_link(transport: str):
 
         bridge = SlcanBridge(2).start()
         link = CanLink(open_bus("slcan", bridge.paths[0]), NODE_COIL_DRIVER)
+        thread = getattr(bridge, "_thread", None)
+        # the bridge's relay thread moves every frame both ways: it runs at the emulator's priority
+        threads = (thread.native_id,) if getattr(thread, "native_id", None) else ()
 
         def close():
             link.close()
             bridge.stop()
-        return ["--transport", "can", "--interface", "slcan", "--channel", bridge.paths[1]], link, close
+        return ["--transport", "can", "--interface", "slcan", "--channel", bridge.paths[1]], link, close, threads
     master, slave, slave_name = make_raw_pty()
 
     def close_pty():
         os.close(master)
         os.close(slave)
-    return ["--port", slave_name], FdLink(master), close_pty
+    # the emulator's frames of one step leave in one write (emulator_loop flushes after each step)
+    return ["--port", slave_name], FdLink(master, coalesce=True), close_pty, ()
 
 
 def _pin_cpus(cmd: list[str]) -> list[str]:
@@ -282,7 +431,7 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     from .runner import BenchSetup, Progress
 
     cfg = cfg or scenario.firmware_config()
-    link_args, link, close = _two_process_link(transport)
+    link_args, link, close, threads = _two_process_link(transport)
     epoch_ns = time.monotonic_ns() + 1_500_000_000      # give the child time to start
     if outputs is not None:     # tools.outputs: the emulator's end of the link is tapped
         link = outputs.wrap(link, side="emulator", clock_us=WallClock(epoch_ns).now)
@@ -300,14 +449,16 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
 
             env = {**os.environ, KEY_ENV: cfg.signing_key}
             cmd += ["--key", "@env"]
+        emu_timing = EmulatorTiming()
         stopped, code, fw_stats = _beside_child(_pin_cpus(cmd), bench, clock, duration_s,
                                                 Progress(progress, duration_s, f"{scenario.name} ({transport})"),
-                                                env)
+                                                env, emu_timing, threads)
     finally:
         close()
     done_s = duration_s if stopped is None else elapsed_s(clock, duration_s)
     rep = report_mod.build(bench, fw_stats.get("status", {}), done_s, transport=transport, cfg=cfg)
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
+    rep.update(emu_timing.report())
     rep["firmware_exit_code"] = code
     if outputs is not None:
         outputs.finish(bench, rep)
@@ -321,15 +472,18 @@ def elapsed_s(clock, duration_s: float) -> float:
     return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
 
 
-def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None):
+def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None, timing=None, threads=()):
     """Start the firmware process and run the emulator beside it (until 0.3 s after
-    ``duration_s``, so the last frames arrive). Returns the :class:`Stopped` that ended the
-    run early (or None), the child's exit status and its statistics (its standard output)."""
+    ``duration_s``, so the last frames arrive), the emulator's loop at SCHED_FIFO below the
+    firmware (:class:`EmulatorRealtime`; ``threads``: helper threads of the link raised with
+    it). Returns the :class:`Stopped` that ended the run early (or None), the child's exit
+    status and its statistics (its standard output). ``timing``: an :class:`EmulatorTiming`."""
     child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
     try:
         with held_signals():
             child = start_child(cmd, stdout=subprocess.PIPE, env=env)
-        emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog)
+        with EmulatorRealtime(threads=threads):
+            emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog, timing=timing)
         wait_s = 30.0
     except Stopped as exc:
         stopped = exc
