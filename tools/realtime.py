@@ -89,6 +89,10 @@ def inproc_timing(exec_ns: np.ndarray, tick_us: int) -> dict:
     return out
 
 
+#: time the firmware process is given to start (imports, set-up, memory locked) before the shared
+#: epoch: one that starts late finds the nodes unsynchronised and its first commands refused
+#: (1.5 s was too short on a loaded 2-CPU machine: imports alone took 1.4 s there)
+CHILD_START_NS = 3_000_000_000
 #: SCHED_FIFO priorities of the two-process bench: the firmware above the emulator (on one CPU a
 #: firmware tick preempts an emulator step), both below the kernel's threaded interrupts (50)
 FIRMWARE_RT_PRIORITY = 30
@@ -389,15 +393,32 @@ def _two_process_link(transport: str):
 
 
 def _pin_cpus(cmd: list[str]) -> list[str]:
-    """With two or more CPUs: the firmware on the last one, this process on the others."""
+    """With two or more CPUs: the firmware on the last one (``--cpu``), this process on the
+    others (:func:`_start_pinned` sets both)."""
     ncpu = os.cpu_count() or 1
     if ncpu < 2:
         return cmd
-    try:
-        os.sched_setaffinity(0, set(range(ncpu - 1)))
-    except (AttributeError, OSError):
-        pass
     return cmd + ["--cpu", str(ncpu - 1)]
+
+
+def _start_pinned(cmd: list[str], **kw):
+    """Start the child of ``cmd`` on the CPU its ``--cpu`` names, from its first instruction (its
+    imports and set-up do not queue behind this process's work), then move this process to
+    the other CPUs. Best effort where affinity cannot be set."""
+    cpu = int(cmd[cmd.index("--cpu") + 1]) if "--cpu" in cmd else None
+    if cpu is None or not hasattr(os, "sched_setaffinity"):
+        return start_child(cmd, **kw)
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except OSError:
+        return start_child(cmd, **kw)
+    try:
+        return start_child(cmd, **kw)
+    finally:
+        try:
+            os.sched_setaffinity(0, set(range(os.cpu_count() or 1)) - {cpu})
+        except OSError:
+            pass
 
 
 def _read_stats(stream) -> dict:
@@ -432,7 +453,7 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
 
     cfg = cfg or scenario.firmware_config()
     link_args, link, close, threads = _two_process_link(transport)
-    epoch_ns = time.monotonic_ns() + 1_500_000_000      # give the child time to start
+    epoch_ns = time.monotonic_ns() + CHILD_START_NS     # give the child time to start
     if outputs is not None:     # tools.outputs: the emulator's end of the link is tapped
         link = outputs.wrap(link, side="emulator", clock_us=WallClock(epoch_ns).now)
     try:
@@ -481,7 +502,7 @@ def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=Non
     child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
     try:
         with held_signals():
-            child = start_child(cmd, stdout=subprocess.PIPE, env=env)
+            child = _start_pinned(cmd, stdout=subprocess.PIPE, env=env)
         with EmulatorRealtime(threads=threads):
             emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog, timing=timing)
         wait_s = 30.0
