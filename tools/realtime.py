@@ -278,14 +278,18 @@ class EmulatorTiming:
         self.samples = 0
         self.prefetched = 0
         self.pieces = 0
+        self.worst_late_us = -1
+        self.worst_late_at_us = None        # true time of the step that sent a sample latest
 
     def add_step(self, dt_us: int) -> None:
         self.step_us[self.steps % self.step_us.size] = dt_us
         self.steps += 1
 
-    def add_late(self, late_us: int) -> None:
+    def add_late(self, late_us: int, at_us: int | None = None) -> None:
         self.late_us[self.samples % self.late_us.size] = late_us
         self.samples += 1
+        if late_us > self.worst_late_us:
+            self.worst_late_us, self.worst_late_at_us = late_us, at_us
 
     def report(self) -> dict:
         st = self.step_us[:min(self.steps, self.step_us.size)]
@@ -294,6 +298,8 @@ class EmulatorTiming:
         return {"emulator_step_us_p99": pct(st, 99), "emulator_step_us_max": pct(st, 100),
                 "emulator_sample_late_us_p50": pct(la, 50), "emulator_sample_late_us_p99": pct(la, 99),
                 "emulator_sample_late_us_max": pct(la, 100),
+                "emulator_sample_late_max_at_s": (round(self.worst_late_at_us * 1e-6, 3)
+                                                  if self.worst_late_at_us is not None else None),
                 "emulator_prefetched_instants": self.prefetched, "emulator_prefetch_pieces": self.pieces}
 
 
@@ -347,7 +353,7 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
             if timing is not None:
                 timing.add_step(t1 - now)
                 if due is not None and due <= now:
-                    timing.add_late(now - due)
+                    timing.add_late(now - due, now)
             if t1 - now > step_us:
                 continue        # a long step: read the link again at once
             nxt = next_due() if next_due is not None else None
