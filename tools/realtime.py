@@ -518,3 +518,34 @@ def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=Non
         prog.done()
         code = stop_child(child, wait_s=wait_s) if child is not None else None
     return stopped, code, _read_stats(child.stdout) if child is not None else {"status": {}, "timing": {}}
+
+
+class _NullFirmware:
+    """A firmware whose tick does nothing (the platform's floor)."""
+
+    def tick(self, now_us: int) -> None:
+        pass
+
+
+def floor_main(argv=None) -> int:
+    """``python -m coiltrack.tools.realtime --cpu 1 --seconds 60``: the firmware loop with a tick
+    that does nothing, at the firmware's CPU, priority and set-up; prints its timing (JSON). Its
+    deadline misses are the ones the machine alone causes, the floor of the two-process bench's."""
+    import argparse
+
+    from . import args as A
+
+    p = argparse.ArgumentParser(prog="python -m coiltrack.tools.realtime", description=floor_main.__doc__)
+    p.add_argument("--cpu", type=A.cpu, default=(os.cpu_count() or 1) - 1, help="CPU (default the last)")
+    p.add_argument("--seconds", type=A.real(0.001, 3600.0), default=60.0, help="how long (default 60)")
+    p.add_argument("--rt-priority", type=A.integer(1, 99), default=FIRMWARE_RT_PRIORITY, metavar="P")
+    a = p.parse_args(argv)
+    rt = _realtime_setup(a.cpu, a.rt_priority)
+    out = firmware_loop(_NullFirmware(), WallClock(), int(a.seconds * 1e6), 1000)
+    out.update({"rt_" + k: v for k, v in rt.items()})
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(floor_main())
