@@ -54,6 +54,7 @@ class FdLink(Port):
         self.owns_fd = owns_fd
         self._pending = bytearray()
         self.bytes_tx = 0
+        self.bytes_dropped = 0
         self.writes = 0
 
     def read(self) -> bytes:
@@ -74,7 +75,13 @@ class FdLink(Port):
         except OSError:   # peer closed
             return b""
 
+    #: bytes queued at most while the peer does not read; beyond, new writes are dropped (counted)
+    MAX_PENDING = 1 << 20
+
     def write(self, data: bytes) -> None:
+        if len(self._pending) + len(data) > self.MAX_PENDING:
+            self.bytes_dropped += len(data)
+            return
         self._pending += data
         if not self.coalesce:
             self.flush()

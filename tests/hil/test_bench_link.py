@@ -215,3 +215,18 @@ def test_emulator_realtime_is_undone_on_exit():
         assert rt.info["emulator_sched"] in ("fifo", "other")
     assert os.sched_getscheduler(0) == pol and os.sched_getparam(0).sched_priority == par
     assert gc.isenabled() == was
+
+
+def test_a_link_whose_peer_does_not_read_drops_and_counts_instead_of_growing():
+    """Nobody reads the slave: writes beyond ``MAX_PENDING`` queued bytes are dropped and counted
+    (a link that queues without bound grows the firmware's memory for as long as the peer is gone)."""
+    master, slave, name = make_raw_pty()
+    try:
+        link = FdLink(master, coalesce=True)
+        link.MAX_PENDING = 4096
+        for _ in range(10):
+            link.write(b"\x00" * 1000)
+        assert len(link._pending) <= 4096 and link.bytes_dropped == 6000
+    finally:
+        os.close(master)
+        os.close(slave)
