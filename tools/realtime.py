@@ -279,6 +279,7 @@ class EmulatorTiming:
         self.prefetched = 0
         self.pieces = 0
         self.worst_late_us = -1
+        self.sched = None                   # the emulator loop's scheduling policy (EmulatorRealtime)
         self.worst_late_at_us = None        # true time of the step that sent a sample latest
 
     def add_step(self, dt_us: int) -> None:
@@ -300,7 +301,8 @@ class EmulatorTiming:
                 "emulator_sample_late_us_max": pct(la, 100),
                 "emulator_sample_late_max_at_s": (round(self.worst_late_at_us * 1e-6, 3)
                                                   if self.worst_late_at_us is not None else None),
-                "emulator_prefetched_instants": self.prefetched, "emulator_prefetch_pieces": self.pieces}
+                "emulator_prefetched_instants": self.prefetched, "emulator_prefetch_pieces": self.pieces,
+                "emulator_sched": self.sched}
 
 
 def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_us: int = 250, wait=None,
@@ -509,7 +511,9 @@ def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=Non
     try:
         with held_signals():
             child = _start_pinned(cmd, stdout=subprocess.PIPE, env=env)
-        with EmulatorRealtime(threads=threads):
+        with EmulatorRealtime(threads=threads) as ert:
+            if timing is not None:
+                timing.sched = ert.info.get("emulator_sched")
             emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog, timing=timing)
         wait_s = 30.0
     except Stopped as exc:
