@@ -138,6 +138,45 @@ def _realtime_setup(cpu: int | None, priority: int = FIRMWARE_RT_PRIORITY, lock_
     return info
 
 
+_SPIN = ("import os, sys\n"
+         "try:\n"
+         "    os.sched_setaffinity(0, {int(sys.argv[1])})\n"
+         "    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\n"
+         "except (AttributeError, OSError):\n"
+         "    sys.exit(0)\n"          # never spin at an ordinary priority
+         "while True:\n"
+         "    pass\n")
+
+
+class KeepAwake:
+    """A SCHED_IDLE busy loop on each of ``cpus`` while the block runs (best effort), so those
+    CPUs never go idle between ticks. On a virtual machine an idle CPU halts and the host
+    deschedules it; the timer that ends a tick's sleep then waits for the host to run the CPU
+    again: a firmware loop whose tick does nothing missed 951 deadlines in 20 s on an otherwise
+    idle 2-CPU machine, 13 with this (``python -m coiltrack.tools.realtime``). A SCHED_IDLE task
+    runs only when nothing else wants the CPU, so it takes time from no one in this machine; it
+    keeps the host's CPU busy for the run. The loops die with this process."""
+
+    def __init__(self, cpus):
+        self.cpus = sorted(set(int(c) for c in cpus))
+        self.children: list = []
+
+    def __enter__(self) -> "KeepAwake":
+        if not hasattr(os, "SCHED_IDLE"):
+            return self
+        with held_signals():
+            for c in self.cpus:
+                self.children.append(start_child([sys.executable, "-S", "-c", _SPIN, str(c)],
+                                                  stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                                  stderr=subprocess.DEVNULL))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for child in self.children:
+            stop_child(child, grace_s=0.5)
+        self.children = []
+
+
 class EmulatorRealtime:
     """Around the wall-clock emulator loop of the two-process bench (best effort): SCHED_FIFO at
     ``EMULATOR_RT_PRIORITY`` (below the firmware's), so a due sample leaves and a ``POSE`` is
@@ -501,17 +540,20 @@ def elapsed_s(clock, duration_s: float) -> float:
     return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
 
 
-def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None, timing=None, threads=()):
+def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None, timing=None, threads=(),
+                  keep_awake: bool = True):
     """Start the firmware process and run the emulator beside it (until 0.3 s after
     ``duration_s``, so the last frames arrive), the emulator's loop at SCHED_FIFO below the
     firmware (:class:`EmulatorRealtime`; ``threads``: helper threads of the link raised with
     it). Returns the :class:`Stopped` that ended the run early (or None), the child's exit
-    status and its statistics (its standard output). ``timing``: an :class:`EmulatorTiming`."""
+    status and its statistics (its standard output). ``timing``: an :class:`EmulatorTiming`;
+    ``keep_awake``: this process's CPUs kept from idling meanwhile (:class:`KeepAwake`)."""
     child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
     try:
         with held_signals():
             child = _start_pinned(cmd, stdout=subprocess.PIPE, env=env)
-        with EmulatorRealtime(threads=threads) as ert:
+        emu_cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+        with KeepAwake(emu_cpus if keep_awake else ()), EmulatorRealtime(threads=threads) as ert:
             if timing is not None:
                 timing.sched = ert.info.get("emulator_sched")
             emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog, timing=timing)
@@ -543,9 +585,11 @@ def floor_main(argv=None) -> int:
     p.add_argument("--cpu", type=A.cpu, default=(os.cpu_count() or 1) - 1, help="CPU (default the last)")
     p.add_argument("--seconds", type=A.real(0.001, 3600.0), default=60.0, help="how long (default 60)")
     p.add_argument("--rt-priority", type=A.integer(1, 99), default=FIRMWARE_RT_PRIORITY, metavar="P")
+    p.add_argument("--no-keep-awake", action="store_true", help="let the CPU idle between ticks (see KeepAwake)")
     a = p.parse_args(argv)
-    rt = _realtime_setup(a.cpu, a.rt_priority)
-    out = firmware_loop(_NullFirmware(), WallClock(), int(a.seconds * 1e6), 1000)
+    with KeepAwake(() if a.no_keep_awake else (a.cpu,)):
+        rt = _realtime_setup(a.cpu, a.rt_priority)
+        out = firmware_loop(_NullFirmware(), WallClock(), int(a.seconds * 1e6), 1000)
     out.update({"rt_" + k: v for k, v in rt.items()})
     print(json.dumps(out, indent=2))
     return 0
