@@ -6,6 +6,11 @@ pty``), or each alone against a real board (``coiltrack firmware``,
 Both loops take the clock and the sleep function as arguments, so the tests
 drive them with a simulated clock (no wall-clock sleeps in tests).
 
+In the two-process bench the firmware runs at SCHED_FIFO above the
+emulator's loop, each on its own CPU kept from idling (:class:`KeepAwake`),
+the emulator's physics computed ahead between steps; where the misses and
+the latency come from is in ``docs/bench-realtime.md``.
+
 Timing figures (all in microseconds):
 
 * tick period jitter: ``|start_k - start_(k-1) - tick|`` over consecutive
