@@ -58,3 +58,22 @@ class Emulator:
                 self.recorder.on_message(msg, now_us)
         for n in self.nodes:
             n.tick(now_us, self._send)
+
+    # --- wall-clock loops: physics ahead of the sampling path
+    def next_due_us(self) -> int | None:
+        """True time (us) of the next sample any node takes (None: no node says)."""
+        due = [f() for f in (getattr(n, "next_due_us", None) for n in self.nodes) if f is not None]
+        return min(due) if due else None
+
+    def prefetch(self, until_us: int, max_n: int, min_n: int = 1) -> int:
+        """Let each node that can (``SensorNode.prefetch``) compute the physics of its samples up
+        to true time ``until_us`` ahead, at most ``max_n`` sample instants in all (a node with
+        fewer than ``min_n`` missing waits); returns how many were computed (0: every node is
+        ahead). A wall-clock loop calls it between steps, so a due sample reads its physics from
+        a cache instead of computing a chunk of it while it is late."""
+        n = 0
+        for node in self.nodes:
+            f = getattr(node, "prefetch", None)
+            if f is not None and node.online and n < max_n:
+                n += f(until_us, max_n - n, min(min_n, max_n - n))
+        return n

@@ -682,6 +682,7 @@ class SensorNode(Node):
         self._mag_base = t0 + float(self.rng.uniform(0.0, self._mag_period))
         self._mag_k = 0
         self._mag_cached_to = -1
+        self._flip_pref_to = -(1 << 62)      # the last commanded flip whose reads prefetch() computed
 
     def _mag_t(self, k: int) -> int:
         return int(round(self._mag_base + k * self._mag_period))
@@ -691,6 +692,7 @@ class SensorNode(Node):
         self._imu_base = t0 + float(self.imu_rng.uniform(0.0, self._imu_period))
         self._imu_k = 0
         self._imu_cache: dict[int, tuple] = {}
+        self._imu_pref_k = 0                # the next IMU instant prefetch() computes
 
     def _imu_t(self, k: int) -> int:
         return int(round(self._imu_base + k * self._imu_period))
@@ -749,6 +751,69 @@ class SensorNode(Node):
                 self._imu_sample(self._imu_t(self._imu_k), self._imu_k, send)
                 self._imu_k += 1
 
+    # --- physics ahead of the sampling path (wall-clock loops)
+    def next_due_us(self) -> int:
+        """True time (us) of this node's next magnetometer or IMU sample."""
+        t = self._mag_t(self._mag_k)
+        if self.imu is not None:
+            t = min(t, self._imu_t(self._imu_k))
+        return t
+
+    def prefetch(self, until_us: int, max_n: int, min_n: int = 1) -> int:
+        """Compute ahead, off the sampling path, what this node's coming samples up to true time
+        ``until_us`` will read from the world: the pose and every coil's unit field at each
+        magnetometer instant (:meth:`hil.world.World.precompute`), at the field reads of the
+        set/reset flips due by then (``t -+ flip_delta_us``), and the kinematics at each IMU
+        instant. At most ``max_n`` sample instants in one call, and none while fewer than
+        ``min_n`` are missing (a loop that tops up in pieces of ``min_n = max_n`` pays the
+        call's fixed cost once a piece); a commanded flip's reads are computed at the first call
+        after the command. Returns how many sample instants were computed (0: ahead up to
+        ``until_us``). A due sample then finds its physics in the caches instead of computing a
+        chunk of it while it is late: same functions, evaluated earlier. The wall-clock emulator
+        loop calls it between steps (``tools.realtime.emulator_loop``)."""
+        n = self._prefetch_mag(until_us, max_n, min_n)
+        if self.imu is not None and n < max_n:
+            n += self._prefetch_imu(until_us, max_n - n, min_n)
+        return n
+
+    def _prefetch_mag(self, until_us: int, max_n: int, min_n: int) -> int:
+        m, d = self.mag, self.mag.flip_delta_us
+        times = []
+        for tf, _ in self.pending_flips:          # commanded flips: known well ahead of time
+            if tf > self._flip_pref_to:
+                times += [tf - d, tf + d]
+                self._flip_pref_to = tf
+        k = max(self._mag_cached_to + 1, self._mag_k)
+        n = 0
+        if self._mag_t(k + min_n - 1) <= until_us:
+            while n < max_n and self._mag_t(k) <= until_us:
+                t = self._mag_t(k)
+                times.append(t)
+                if m.flip_every and k % m.flip_every == 0:      # an autonomous flip reads t - 3d, t - d
+                    times += [t - 3 * d, t - d]
+                k += 1
+                n += 1
+        if times:
+            self.world.precompute(times)
+        if n:
+            self._mag_cached_to = k - 1
+        return n
+
+    def _prefetch_imu(self, until_us: int, max_n: int, min_n: int) -> int:
+        k = max(self._imu_pref_k, self._imu_k)
+        ts = []
+        if self._imu_t(k + min_n - 1) > until_us:
+            return 0
+        while len(ts) < max_n and self._imu_t(k) <= until_us:
+            if self._imu_t(k) not in self._imu_cache:
+                ts.append(self._imu_t(k))
+            k += 1
+        self._imu_pref_k = k
+        if ts:
+            K = self.world.sensor_kinematics(np.asarray(ts, dtype=np.int64))
+            self._imu_cache.update({tj: (K.acceleration[i], K.R[i], K.angular_velocity[i]) for i, tj in enumerate(ts)})
+        return len(ts)
+
     def _mag_sample(self, t: int, k: int, send) -> None:
         m = self.mag
         while self.pending_flips and self.pending_flips[0][0] <= t:
@@ -798,7 +863,7 @@ class SensorNode(Node):
         if kin is None:
             ts = [self._imu_t(j) for j in range(k, k + self._CHUNK)]
             K = self.world.sensor_kinematics(np.asarray(ts, dtype=np.int64))   # world frame
-            self._imu_cache = {tj: (K.acceleration[i], K.R[i], K.angular_velocity[i]) for i, tj in enumerate(ts)}
+            self._imu_cache.update({tj: (K.acceleration[i], K.R[i], K.angular_velocity[i]) for i, tj in enumerate(ts)})
             kin = self._imu_cache.pop(t)
         a, R, w = kin
         dt = self._imu_period * 1e-6

@@ -43,6 +43,12 @@ def add_arguments(p) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="best-effort real-time set-up: SCHED_FIFO if permitted, cyclic GC frozen and disabled")
     p.add_argument("--cpu", type=A.cpu, default=None, help="pin the loop to this CPU")
+    p.add_argument("--no-keep-awake", action="store_true",
+                   help="with --realtime --cpu: let that CPU idle between ticks (default: a SCHED_IDLE busy loop "
+                        "keeps it awake, as a virtual machine's halted CPU wakes late)")
+    p.add_argument("--rt-priority", type=A.integer(1, 99), default=None, metavar="P",
+                   help="SCHED_FIFO priority with --realtime, 1..99 (default 30: above the two-process "
+                        "bench's emulator at 20, below the kernel's threaded interrupts at 50)")
     from .outputs import add_capture_argument, add_igtl_arguments
 
     add_igtl_arguments(p)
@@ -77,7 +83,7 @@ def run(args) -> int:
 
     from . import jsonout
     from .links import GuardedPort, open_link
-    from .realtime import _realtime_setup, firmware_loop
+    from .realtime import KeepAwake, _realtime_setup, firmware_loop
     from .stopping import PeerSilent, Stopped, mark
 
     cfg = _config(args)
@@ -101,11 +107,17 @@ def run(args) -> int:
     clock = WallClock(args.epoch_ns)
     port = GuardedPort(outputs.wrap(link, clock_us=clock.now), clock, args.peer_timeout)
     fw = Firmware(cfg, port)
-    rt = _realtime_setup(args.cpu) if (args.realtime or args.cpu is not None) else {}
+    rt = {}
+    awake = KeepAwake((args.cpu,) if args.realtime and args.cpu is not None and not args.no_keep_awake else ())
+    awake.__enter__()                   # before SCHED_FIFO: the busy loop does not inherit it
+    if args.realtime or args.cpu is not None:
+        rt = _realtime_setup(args.cpu, **({"priority": args.rt_priority} if args.rt_priority else {}))
+    rt["keep_awake"] = bool(awake.children)
     duration_us = int(args.duration * 1e6) if args.duration > 0 else 2**62
     code, report = 0, {}
     try:
-        timing = firmware_loop(fw, clock, duration_us, cfg.tick_us)
+        # a link that coalesces writes (a pty: FdLink) sends a tick's frames together after it
+        timing = firmware_loop(fw, clock, duration_us, cfg.tick_us, after_tick=getattr(link, "flush", None))
     except Stopped as exc:
         timing, code = exc.partial or {}, exc.exit_code
         mark(report, exc)
@@ -113,6 +125,7 @@ def run(args) -> int:
         print(f"coiltrack firmware: stopped: {exc.reason}{hint}", file=sys.stderr)
     finally:
         port.close()
+        awake.__exit__(None, None, None)
     timing.update({"rt_" + k: v for k, v in rt.items()})
     timing["link_errors"] = port.errors
     outputs.finish(None, timing)

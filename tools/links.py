@@ -6,7 +6,10 @@ master side of a pseudo-terminal).
 """
 from __future__ import annotations
 
+import fcntl
 import os
+import struct
+import termios
 
 from coiltrack.firmware.port import Port
 
@@ -35,25 +38,53 @@ def inproc_pair() -> tuple[InprocEnd, InprocEnd]:
 
 
 class FdLink(Port):
-    """Non-blocking read/write on a file descriptor (pty master)."""
+    """Non-blocking read/write on a file descriptor (a pty's master or slave side).
 
-    def __init__(self, fd: int):
+    ``read()`` drains what has arrived (one system call, up to 64 KiB). With
+    ``coalesce`` a ``write()`` only queues, and :meth:`flush` sends what a
+    step or a tick queued in one write (one wake-up of the reader instead of
+    one a frame); the loop that owns the link calls it (``emulator_loop``
+    after each step, ``firmware_loop`` after each tick). Without it every
+    write is sent at once. ``owns_fd``: :meth:`close` closes the descriptor."""
+
+    def __init__(self, fd: int, coalesce: bool = False, owns_fd: bool = False):
         os.set_blocking(fd, False)
         self.fd = fd
+        self.coalesce = coalesce
+        self.owns_fd = owns_fd
         self._pending = bytearray()
         self.bytes_tx = 0
+        self.bytes_dropped = 0
+        self.writes = 0
 
     def read(self) -> bytes:
+        # Only what the line discipline already holds: a read() of an empty tty waits for the
+        # kernel's pending buffer-flush work (tty_buffer_flush_work), a kworker of ordinary
+        # priority, even on a non-blocking descriptor; FIONREAD does not wait (as pyserial's
+        # in_waiting). Bytes still in the flip buffer come with a later read.
         try:
-            return os.read(self.fd, 65536)
+            n = struct.unpack("i", fcntl.ioctl(self.fd, termios.FIONREAD, b"\0\0\0\0"))[0]
+        except OSError:   # not a tty (a pipe, a socket): read what is there
+            n = 65536
+        if n <= 0:
+            return b""
+        try:
+            return os.read(self.fd, max(n, 1))
         except (BlockingIOError, InterruptedError):
             return b""
         except OSError:   # peer closed
             return b""
 
+    #: bytes queued at most while the peer does not read; beyond, new writes are dropped (counted)
+    MAX_PENDING = 1 << 20
+
     def write(self, data: bytes) -> None:
+        if len(self._pending) + len(data) > self.MAX_PENDING:
+            self.bytes_dropped += len(data)
+            return
         self._pending += data
-        self.flush()
+        if not self.coalesce:
+            self.flush()
 
     def flush(self) -> None:
         while self._pending:
@@ -65,7 +96,33 @@ class FdLink(Port):
                 self._pending.clear()
                 return
             self.bytes_tx += n
+            self.writes += 1
             del self._pending[:n]
+
+    def close(self) -> None:
+        if self.owns_fd and self.fd >= 0:
+            fd, self.fd = self.fd, -1
+            os.close(fd)
+
+
+def is_pty_path(path) -> bool:
+    """Whether ``path`` names a Unix98 pseudo-terminal's slave side (``/dev/pts/N``)."""
+    return isinstance(path, str) and path.startswith("/dev/pts/") and path[9:].isdigit()
+
+
+def open_pty_slave(path: str) -> FdLink:
+    """The slave side of a pseudo-terminal opened raw and non-blocking, as a coalescing
+    :class:`FdLink` (a pty has no baud rate: pyserial's per-read ``in_waiting`` and
+    ``select`` calls buy nothing there)."""
+    import tty
+
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        tty.setraw(fd)
+    except OSError:
+        os.close(fd)
+        raise
+    return FdLink(fd, coalesce=True, owns_fd=True)
 
 
 def make_raw_pty() -> tuple[int, int, str]:
@@ -116,6 +173,15 @@ class GuardedPort(Port):
         except (OSError, ValueError):
             self.errors += 1
 
+    def flush(self) -> None:
+        """Send what a coalescing port queued (nothing to do for one that is not)."""
+        flush = getattr(self.port, "flush", None)
+        if flush is not None:
+            try:
+                flush()
+            except (OSError, ValueError):
+                self.errors += 1
+
     def close(self) -> None:
         try:
             self.port.close()
@@ -140,7 +206,9 @@ def add_link_arguments(p, serial_port_type=str) -> None:
 def open_link(args, node_id: int):
     """The port that ``add_link_arguments`` describes, as node ``node_id`` on a CAN bus, and
     a description of it; ValueError with a one-line reason when it cannot be opened."""
-    if args.transport == "serial":
+    if args.transport == "serial" and is_pty_path(args.port):
+        what, need, make = args.port, "--port", lambda: open_pty_slave(args.port)
+    elif args.transport == "serial":
         from coiltrack.firmware.port import SerialPort
 
         what, need, make = args.port, "--port", lambda: SerialPort(args.port, args.baudrate)
