@@ -41,7 +41,9 @@ identifier of a message that fits the frame it arrived in (classic: 8 bytes;
 FD: 64) is a single frame; a 29-bit identifier, or a message too long for
 the frame, is ISO-TP. On receipt the link gives the message the next number
 after the last seq it saw from that sender as its serial ``seq`` (exact for
-a sender that numbers all its messages, as the serial link does).
+a sender that numbers all its messages, as the serial link does, and whose
+frames the receiver heard from the first); a gap in a sender's seq is counted
+only between two of its PDUs (``seq_gaps``).
 
 PDU (what is segmented)
 -----------------------
