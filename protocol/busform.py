@@ -1,5 +1,5 @@
-"""Bus forms (protocol v3): HEARTBEAT, TIME_SYNC, COIL_PULSE_CMD and COIL_STATUS
-in one classic 8-byte frame each, mapped to and from the schema messages.
+"""Bus forms (protocol v3, v4): HEARTBEAT, TIME_SYNC, COIL_PULSE_CMD, COIL_STATUS and
+(v4) TIME_SYNC_REPLY in one classic 8-byte frame each, mapped to and from the schema messages.
 
 The layouts are the schema's ``BUS_FORMS`` table (bit fields of the 8 data
 bytes read as one little-endian 64-bit integer, DBC ``@1``). Two of them carry
@@ -15,7 +15,18 @@ times relative to what every listener on the bus has heard (a
 - ``COIL_STATUS.start_us`` / ``end_us`` as signed microsecond offsets (12 bits,
   +-2047 us) from the start and the end of the command with the same
   ``pulse_id`` (and coil) on the bus: a driver's edges lie within its clock's
-  sync error (tens of us) of the commanded ones.
+  sync error (tens of us) of the commanded ones;
+- ``TIME_SYNC_REPLY.sync_seq`` as its low 6 bits: the one sequence number at
+  or below the latest TIME_SYNC heard with those bits (64 broadcasts back,
+  6.4 s at the firmware's 10 Hz); ``node_time_us`` as its lateness, signed
+  14-bit microseconds, against ``master_time_us`` of that TIME_SYNC (the
+  station keeps the last 64 broadcasts) plus ``offset_us``: a node stamps
+  its counter when the broadcast arrives and its offset is fitted to the
+  lower envelope of those arrivals, so the lateness is the frame's delay
+  above that envelope (the link's jitter) plus a correction still being
+  slewed; ``offset_us`` in 26 bits (+-33.5 s) and ``drift_ppb`` in 18 bits
+  (+-131 ppm) as they are. A reply to a broadcast the station did not hear
+  cannot be restored.
 
 A message is sent in its bus form only when the form carries it exactly
 (:func:`encode`: every field in range, ``start_us`` a multiple of 8 in the
@@ -34,9 +45,11 @@ from __future__ import annotations
 
 from .codec import MSG
 from .schema import (BUS_DURATION_BITS, BUS_DURATION_LSB_US, BUS_EDGE_MAX_US, BUS_FORM_BY_NAME, BUS_FORMS,
+                     BUS_REPLY_DRIFT_BITS, BUS_REPLY_LATE_BITS, BUS_REPLY_OFFSET_BITS, BUS_REPLY_SEQ_BITS,
                      BUS_START_BEHIND_US, BUS_START_BITS, BUS_START_LSB_US, PULSE_ID_MASK)
 
-_HB, _TS, _CMD, _ST = (MSG[n] for n in ("HEARTBEAT", "TIME_SYNC", "COIL_PULSE_CMD", "COIL_STATUS"))
+_HB, _TS, _CMD, _ST, _RP = (MSG[n] for n in ("HEARTBEAT", "TIME_SYNC", "COIL_PULSE_CMD", "COIL_STATUS",
+                                             "TIME_SYNC_REPLY"))
 #: message id -> bus form
 BUS_FORM_IDS: dict[int, object] = {MSG[b.name].ID: b for b in BUS_FORMS}
 BUS_FORM_SIZE = 8
@@ -45,6 +58,13 @@ _DUR_MAX = (1 << BUS_DURATION_BITS) - 1
 _M48 = (1 << 48) - 1
 #: commands remembered for the statuses (pulse ids within this many of the latest are known)
 COMMANDS_KEPT = 64
+#: TIME_SYNC broadcasts remembered for the replies (by sync_seq mod 64)
+SYNCS_KEPT = 1 << BUS_REPLY_SEQ_BITS
+_SEQ_MASK = SYNCS_KEPT - 1
+_LATE_SHIFT = BUS_REPLY_SEQ_BITS
+_OFF_SHIFT = _LATE_SHIFT + BUS_REPLY_LATE_BITS
+_DRIFT_SHIFT = _OFF_SHIFT + BUS_REPLY_OFFSET_BITS
+assert _DRIFT_SHIFT + BUS_REPLY_DRIFT_BITS == 64
 
 
 class BusContext:
@@ -53,10 +73,15 @@ class BusContext:
     duration_us)``, at most :data:`COMMANDS_KEPT`). One per station, shared by its sending and
     receiving side; allocation-free once ``COMMANDS_KEPT`` commands are kept."""
 
-    __slots__ = ("ref_us", "commands", "_order", "_next")
+    __slots__ = ("ref_us", "ref_seq", "sync_seq", "sync_us", "commands", "_order", "_next")
 
     def __init__(self):
         self.ref_us: int | None = None
+        #: sync_seq of the latest TIME_SYNC (None before the first) and the last SYNCS_KEPT
+        #: broadcasts by ``sync_seq mod 64``: their sequence numbers (-1: none) and master times
+        self.ref_seq: int | None = None
+        self.sync_seq = [-1] * SYNCS_KEPT
+        self.sync_us = [0] * SYNCS_KEPT
         self.commands: dict[int, tuple[int, int, int]] = {}
         self._order = [-1] * COMMANDS_KEPT
         self._next = 0
@@ -66,6 +91,10 @@ class BusContext:
         mid = msg.ID
         if mid == _TS.ID:
             self.ref_us = msg.master_time_us
+            seq = msg.sync_seq & 0xFFFF
+            self.ref_seq = seq
+            self.sync_seq[seq & _SEQ_MASK] = seq
+            self.sync_us[seq & _SEQ_MASK] = msg.master_time_us
         elif mid == _CMD.ID:
             key = msg.pulse_id & PULSE_ID_MASK
             old = self._order[self._next]
@@ -122,9 +151,38 @@ def encode(msg, ctx: BusContext | None) -> bytes | None:
             return None
         v = (msg.coil | msg.pulse_id << 4 | (msg.current_ma & 0xFFFF) << 16 | msg.faults << 32
              | (ds & 0xFFF) << 40 | (de & 0xFFF) << 52)
+    elif mid == _RP.ID:
+        base = None if ctx is None else sync_base(msg.sync_seq & _SEQ_MASK, ctx)
+        if base is None or base[0] != msg.sync_seq:
+            return None
+        late = msg.node_time_us - (base[1] + msg.offset_us)
+        if not (_fits_signed(late, BUS_REPLY_LATE_BITS) and _fits_signed(msg.offset_us, BUS_REPLY_OFFSET_BITS)
+                and _fits_signed(msg.drift_ppb, BUS_REPLY_DRIFT_BITS)):
+            return None
+        v = (msg.sync_seq & _SEQ_MASK | (late & ((1 << BUS_REPLY_LATE_BITS) - 1)) << _LATE_SHIFT
+             | (msg.offset_us & ((1 << BUS_REPLY_OFFSET_BITS) - 1)) << _OFF_SHIFT
+             | (msg.drift_ppb & ((1 << BUS_REPLY_DRIFT_BITS) - 1)) << _DRIFT_SHIFT)
     else:
         return None
     return v.to_bytes(8, "little")
+
+
+def restore_seq(bits: int, latest: int) -> int:
+    """TIME_SYNC_REPLY's ``sync_seq`` from its 6 bits: the one sequence number (16 bits, wrapping)
+    with those bits in ``[latest - 63, latest]``, ``latest`` the sync_seq of the latest TIME_SYNC heard."""
+    return (latest - ((latest - bits) & _SEQ_MASK)) & 0xFFFF
+
+
+def sync_base(bits: int, ctx: BusContext):
+    """``(sync_seq, master_time_us)`` of the TIME_SYNC a reply's 6 sequence bits refer to, or None
+    when the station has not heard it (none heard yet, or not among the last 64)."""
+    if ctx.ref_seq is None:
+        return None
+    seq = restore_seq(bits, ctx.ref_seq)
+    k = seq & _SEQ_MASK
+    if ctx.sync_seq[k] != seq:
+        return None
+    return seq, ctx.sync_us[k]
 
 
 def restore_start(bits: int, ref_us: int) -> int:
@@ -136,12 +194,23 @@ def restore_start(bits: int, ref_us: int) -> int:
 
 def decode(msg_id: int, src: int, data, ctx: BusContext | None):
     """The schema message of a bus form's 8 data bytes from sender ``src``, or None when ``ctx``
-    lacks what it is relative to (no TIME_SYNC heard, the status's command not heard)."""
+    lacks what it is relative to (no TIME_SYNC heard, the status's command not heard, a reply's
+    TIME_SYNC not heard)."""
     v = int.from_bytes(data, "little")
     if msg_id == _TS.ID:
         return _TS(v & _M48, v >> 48)
     if msg_id == _HB.ID:
         return _HB(src, v & 0xF, (v >> 4) & 0xF, (v >> 8) & 0xFF, v >> 32, (v >> 16) & 0xFFFF)
+    if msg_id == _RP.ID:
+        base = None if ctx is None else sync_base(v & _SEQ_MASK, ctx)
+        if base is None:
+            return None
+        late = _signed((v >> _LATE_SHIFT) & ((1 << BUS_REPLY_LATE_BITS) - 1), BUS_REPLY_LATE_BITS)
+        off = _signed((v >> _OFF_SHIFT) & ((1 << BUS_REPLY_OFFSET_BITS) - 1), BUS_REPLY_OFFSET_BITS)
+        t = base[1] + off + late
+        if not 0 <= t < 1 << 64:
+            return None
+        return _RP(src, base[0], t, off, _signed(v >> _DRIFT_SHIFT, BUS_REPLY_DRIFT_BITS))
     coil, pid, cur = v & 0xF, (v >> 4) & 0xFFF, _signed((v >> 16) & 0xFFFF, 16)
     if msg_id == _CMD.ID:
         if ctx is None or ctx.ref_us is None:

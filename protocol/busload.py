@@ -16,8 +16,8 @@ bits) at the nominal rate; ESI, DLC and data with worst-case dynamic
 stuffing, the stuff count and the CRC (17 or 21 bits) with their fixed stuff
 bits at the data rate.
 
-The traffic model (protocol v3, the sensor bus; HEARTBEAT, TIME_SYNC,
-COIL_PULSE_CMD and COIL_STATUS in their 8-byte bus forms): every sensor node sends
+The traffic model (protocol v4, the sensor bus; HEARTBEAT, TIME_SYNC,
+TIME_SYNC_REPLY, COIL_PULSE_CMD and COIL_STATUS in their 8-byte bus forms): every sensor node sends
 MAG_PACKED at the magnetometer rate (one 8-byte frame), its IMU as IMU_DELTA
 pairs (delta angle and delta velocity, one 8-byte frame each) at the delta
 rate, a HEARTBEAT and a TIME_SYNC_REPLY per sync; the coil driver a
@@ -29,6 +29,10 @@ a CAN FD host bus), not on the sensor bus, unless ``host_outputs`` puts them
 there (one POSE per sensor per cycle, one PULSE_WINDOW per sensor and coil).
 ``compact=False`` gives the v1 sample traffic (MAG_SAMPLE, IMU_SAMPLE at the
 IMU rate) for comparison.
+
+The TIME_SYNC rate is the firmware's (:func:`sync_broadcasts_per_cycle`): a
+periodic broadcast whose timer restarts at every broadcast, plus the ones it
+requests around each burst; every node answers each broadcast.
 """
 from __future__ import annotations
 
@@ -57,6 +61,29 @@ def fd_frame_time(n: int, bitrate: int, data_bitrate: int, brs: bool = True) -> 
     return nominal / bitrate + data / data_bitrate
 
 
+def sync_broadcasts_per_cycle(cycle_us: int, period_us: int, requests_us=(), cycles: int = 16) -> float:
+    """TIME_SYNC broadcasts per actuation cycle of a master that broadcasts ``period_us`` after
+    its previous broadcast (the timer restarts at each one, requested or periodic) and at each
+    requested instant ``requests_us`` (offsets within the cycle, us; a periodic broadcast due at
+    a requested instant is that one): the mean over cycles 2..``cycles`` of ``cycles`` simulated
+    from a broadcast at 0 (the master's boot). Integer microseconds."""
+    if cycle_us <= 0 or period_us <= 0 or cycles < 2:
+        raise ValueError("cycle_us and period_us must be positive, cycles at least 2")
+    req = sorted(int(r) for r in requests_us if 0 <= r < cycle_us)
+    last = -period_us
+    count = 0
+    for c in range(cycles):
+        t0 = c * cycle_us
+        for r in [t0 + r for r in req] + [t0 + cycle_us]:
+            while last + period_us < r:         # periodic broadcasts due before the next request
+                last += period_us
+                count += c > 0
+            if r < t0 + cycle_us:
+                last = r
+                count += c > 0
+    return count / (cycles - 1)
+
+
 @dataclass
 class Traffic:
     sensors: int = 8
@@ -67,7 +94,9 @@ class Traffic:
     imu_delta_rate_hz: float = 10.0
     cycle_s: float = 0.6
     heartbeat_hz: float = 1.0
-    sync_hz: float = 1.0
+    #: TIME_SYNC broadcasts per second (each answered by every node); the firmware's: 10 per s
+    #: (``tools/cmd_busload.py`` derives it from the firmware's defaults)
+    sync_hz: float = 10.0
     signed_commands: bool = False
     flips_per_cycle: float = 1.0
     pulse_windows: bool = True

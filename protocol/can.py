@@ -41,7 +41,9 @@ identifier of a message that fits the frame it arrived in (classic: 8 bytes;
 FD: 64) is a single frame; a 29-bit identifier, or a message too long for
 the frame, is ISO-TP. On receipt the link gives the message the next number
 after the last seq it saw from that sender as its serial ``seq`` (exact for
-a sender that numbers all its messages, as the serial link does).
+a sender that numbers all its messages, as the serial link does, and whose
+frames the receiver heard from the first); a gap in a sender's seq is counted
+only between two of its PDUs (``seq_gaps``).
 
 PDU (what is segmented)
 -----------------------
@@ -439,6 +441,8 @@ class CanReassembler:
         self._partials: dict[int, _Partial] = {}
         self._last_pdu: dict[int, bytes] = {}
         self._last_seq: dict[int, int] = {}
+        #: whether the sender's last seq was numbered by this receiver (a single frame carries none)
+        self._synth_seq: dict[int, bool] = {}
         self.header = DecodedFrame()
         self.frames_in = 0
         self.messages_ok = 0
@@ -605,6 +609,7 @@ class CanReassembler:
             msg = CLASS_BY_ID[msg_id]._make(STRUCTS[msg_id].unpack(payload))
         seq = (self._last_seq.get(src, -1) + 1) & 0xFF      # the sender's previous seq + 1
         self._last_seq[src] = seq
+        self._synth_seq[src] = True         # numbered here: the next PDU's seq is not judged against it
         hdr = self.header
         hdr.seq, hdr.src, hdr.flags, hdr.msg_id, hdr.signature, hdr.signed_part = seq, src, 0, msg_id, b"", b""
         if self.verifier is not None and not self.verifier(hdr, msg):
@@ -639,9 +644,10 @@ class CanReassembler:
         if msg_id in BUS_FORM_IDS:
             self.context.note(msg)
         last = self._last_seq.get(src)
-        if last is not None and hdr.seq != ((last + 1) & 0xFF):
+        if last is not None and hdr.seq != ((last + 1) & 0xFF) and not self._synth_seq.get(src, False):
             self.seq_gaps += 1
         self._last_seq[src] = hdr.seq
+        self._synth_seq[src] = False
         self.messages_ok += 1
         if self.on_frame is not None:
             self.on_frame(hdr, msg)

@@ -1,6 +1,6 @@
 """DBC export of the CAN side of the schema (cantools writes the file).
 
-What the DBC describes (protocol v3)
+What the DBC describes (protocol v4)
 ------------------------------------
 A DBC message is one frame layout on one identifier. Every coiltrack message
 has a single-frame form (``protocol.can``, "Single frames"): the schema
@@ -10,10 +10,11 @@ or, for the frequent messages longer than 8 bytes, their bus form
 decodes frames straight off the bus:
 
 - MAG_PACKED, IMU_DELTA and CONFIG_GET (<= 8 bytes) and the bus forms of
-  HEARTBEAT, TIME_SYNC, COIL_PULSE_CMD and COIL_STATUS as classic 8-byte
-  frames: on a classic bus and on CAN FD (every frequent message);
+  HEARTBEAT, TIME_SYNC, COIL_PULSE_CMD, COIL_STATUS and (v4) TIME_SYNC_REPLY
+  as classic 8-byte frames: on a classic bus and on CAN FD (every frequent
+  message);
 - every other message as a CAN FD frame of its padded length (POSE,
-  TIME_SYNC_REPLY, MAG_FLIP_CMD, ...): straight off a CAN FD bus. On a
+  MAG_FLIP_CMD, ...): straight off a CAN FD bus. On a
   classic bus these are segmented (ISO-TP, 11-bit identifiers) and the DBC
   decodes the reassembled payload after :func:`dbc_data` (drop the sender
   byte, pad);
@@ -23,7 +24,9 @@ decodes frames straight off the bus:
 A bus form's signals are its fields: ``start_8us`` of COIL_PULSE_CMD is the
 start modulo 2.097152 s (restore it against the latest TIME_SYNC), and
 ``start_late_us`` / ``end_late_us`` of COIL_STATUS are the edges less the
-commanded ones.
+commanded ones; ``sync_seq_lo`` of TIME_SYNC_REPLY is ``sync_seq mod 64`` and
+``node_time_late_us`` is ``node_time_us`` less the echoed TIME_SYNC's master time
+and ``offset_us``.
 
 The compact stamps carry sub-fields as signals of their own: ``t_8us``
 (14 bits, 8 us units; the master time modulo 131.072 ms), ``saturated`` and

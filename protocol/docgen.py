@@ -18,7 +18,7 @@ _CONSTANT_GROUPS = (
     ("Coil fault bits (COIL_STATUS.faults)", "COIL_FAULT_"),
     ("Pose status bits (POSE.status)", "POSE_"),
     ("Compact stamps (MAG_PACKED.stamp, IMU_DELTA.stamp)", "STAMP_"),
-    ("Bus forms (COIL_PULSE_CMD, COIL_STATUS on CAN)", "BUS_"),
+    ("Bus forms (COIL_PULSE_CMD, COIL_STATUS, TIME_SYNC_REPLY on CAN)", "BUS_"),
     ("Pulse ids", "PULSE_ID_"),
     ("Fault / event codes (FAULT_EVENT.code)", "EVT_"),
 )

@@ -33,8 +33,9 @@ _VALUES = {
                              schema_hash=SCHEMA_HASH, errors=3)),
     # the TIME_SYNC heard before the command and the status below: their bus forms restore against it
     "TIME_SYNC": (NODE_FIRMWARE, 1, dict(master_time_us=2_000_150_250, sync_seq=42)),
+    # the driver heard that TIME_SYNC 377 us late against its delay envelope (bus form: node_time_late_us)
     "TIME_SYNC_REPLY": (NODE_COIL_DRIVER, 2, dict(node=NODE_COIL_DRIVER, sync_seq=42,
-                                                  node_time_us=1_000_000_377, offset_us=-127, drift_ppb=-2500)),
+                                                  node_time_us=2_000_150_500, offset_us=-127, drift_ppb=-2500)),
     "COIL_PULSE_CMD": (NODE_FIRMWARE, 3, dict(coil=1, pulse_id=513, current_ma=1500,
                                              start_us=2_000_200_000, duration_us=60_000)),
     # edges 13 us late and 12 us early against the command: the bus form's start_late_us, end_late_us

@@ -16,7 +16,7 @@ import hashlib
 import struct
 from dataclasses import dataclass, field as dc_field
 
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 #: wire types: struct format character and size in bytes
 TYPES = {
@@ -90,6 +90,17 @@ BUS_DURATION_BITS = 14
 #: COIL_STATUS edges on the bus: actual minus commanded (same pulse_id), signed 12-bit microseconds
 BUS_EDGE_BITS = 12
 BUS_EDGE_MAX_US = (1 << (BUS_EDGE_BITS - 1)) - 1
+#: TIME_SYNC_REPLY on the bus (protocol v4): ``sync_seq`` as its low 6 bits, restored as the one
+#: sequence number at or below the latest TIME_SYNC heard (64 broadcasts: 6 s at the firmware's
+#: 10 Hz; the firmware matches replies to its last 16 broadcasts)
+BUS_REPLY_SEQ_BITS = 6
+#: ``node_time_us - (master_time_us of the echoed TIME_SYNC + offset_us)``: the broadcast's
+#: lateness above the node's delay envelope, signed 14-bit microseconds (+-8.191 ms)
+BUS_REPLY_LATE_BITS = 14
+#: ``offset_us`` signed 26 bits (+-33.554431 s: node and master counters started within half a minute)
+BUS_REPLY_OFFSET_BITS = 26
+#: ``drift_ppb`` signed 18 bits (+-131.071 ppm: a crystal's +-100 ppm over temperature and age)
+BUS_REPLY_DRIFT_BITS = 18
 
 # --- coil fault bits (COIL_STATUS.faults) -----------------------------------
 COIL_FAULT_OVER_CURRENT = 1
@@ -405,6 +416,17 @@ BUS_FORMS: tuple[BusForm, ...] = (
         B("start_late_us", 40, BUS_EDGE_BITS, True, 1.0, "us", "actual start minus commanded start"),
         B("end_late_us", 52, BUS_EDGE_BITS, True, 1.0, "us", "actual end minus commanded start + duration"),
     ), "the edges as signed offsets from the command of the same pulse_id"),
+    BusForm("TIME_SYNC_REPLY", (
+        B("sync_seq_lo", 0, BUS_REPLY_SEQ_BITS, doc="sync_seq mod 64 (restored: the latest TIME_SYNC heard "
+                                                   "with these bits, at or below the latest)"),
+        B("node_time_late_us", BUS_REPLY_SEQ_BITS, BUS_REPLY_LATE_BITS, True, 1.0, "us",
+          "node_time_us minus (master_time_us of the echoed TIME_SYNC + offset_us)"),
+        B("offset_us", BUS_REPLY_SEQ_BITS + BUS_REPLY_LATE_BITS, BUS_REPLY_OFFSET_BITS, True, 1.0, "us",
+          "node estimate of node - master"),
+        B("drift_ppb", 64 - BUS_REPLY_DRIFT_BITS, BUS_REPLY_DRIFT_BITS, True, 1.0, "ppb",
+          "node estimate of its drift"),
+    ), "sync_seq as 6 bits restored against the latest TIME_SYNC, node_time_us as its lateness against "
+       "the echoed TIME_SYNC's master time plus offset_us (protocol v4)"),
 )
 del B
 BUS_FORM_BY_NAME: dict[str, BusForm] = {b.name: b for b in BUS_FORMS}

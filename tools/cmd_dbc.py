@@ -1,6 +1,6 @@
 """Export the CAN messages as a DBC file (cantools). Messages that fit one
-classic frame, and the bus forms of HEARTBEAT, TIME_SYNC, COIL_PULSE_CMD and
-COIL_STATUS (protocol v3), are described as that frame; the others as their
+classic frame, and the bus forms of HEARTBEAT, TIME_SYNC, COIL_PULSE_CMD,
+COIL_STATUS (protocol v3) and TIME_SYNC_REPLY (v4), are described as that frame; the others as their
 single CAN FD frame (on a classic bus: the reassembled payload). All are on the identifier with node bits zero;
 load with ``cantools.database.load_file(path, frame_id_mask=0x7C0)``. See
 docs/protocol.md."""

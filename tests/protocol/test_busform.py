@@ -1,5 +1,5 @@
-"""Protocol v3 bus forms: the frequent messages longer than 8 bytes (HEARTBEAT, TIME_SYNC,
-COIL_PULSE_CMD, COIL_STATUS) in one classic frame, decoded straight off the bus by cantools
+"""Protocol v3/v4 bus forms: the frequent messages longer than 8 bytes (HEARTBEAT, TIME_SYNC,
+COIL_PULSE_CMD, COIL_STATUS, TIME_SYNC_REPLY) in one classic frame, decoded straight off the bus by cantools
 with the exported DBC, restored by the receiver exactly, refused at a wrong length, and sent
 in full (29-bit identifier, segmented) whenever the form cannot carry a message exactly."""
 from __future__ import annotations
@@ -17,17 +17,19 @@ from coiltrack.protocol.golden import GOLDEN_DIR, read_can_log
 from coiltrack.protocol.schema import BUS_FORMS, NODE_COIL_DRIVER, NODE_FIRMWARE
 from coiltrack.tools.cli import main
 
-BUS = ("HEARTBEAT", "TIME_SYNC", "COIL_PULSE_CMD", "COIL_STATUS")
+BUS = ("HEARTBEAT", "TIME_SYNC", "COIL_PULSE_CMD", "COIL_STATUS", "TIME_SYNC_REPLY")
 CMD = EXAMPLES["COIL_PULSE_CMD"].msg
 #: the golden field values by hand, as cantools must give them (physical units of the DBC)
 WANT = {
-    "HEARTBEAT": dict(role=2, state=2, proto_version=3, errors=3, schema_hash=EXAMPLES["HEARTBEAT"].msg.schema_hash),
+    "HEARTBEAT": dict(role=2, state=2, proto_version=4, errors=3, schema_hash=EXAMPLES["HEARTBEAT"].msg.schema_hash),
     "TIME_SYNC": dict(master_time_us=2_000_150_250, sync_seq=42),
     # start modulo 8 us * 2^18 = 2097152 us; duration in us (16 us units times 16)
     "COIL_PULSE_CMD": dict(coil=1, pulse_id=513, current_ma=1.5, start_8us=2_000_200_000 % 2_097_152,
                            duration_us=60_000),
     # the status's edges less the command's: 13 us late, 12 us early
     "COIL_STATUS": dict(coil=1, pulse_id=513, current_ma=1.497, faults=64, start_late_us=13, end_late_us=-12),
+    # sync_seq 42 mod 64; node time less (TIME_SYNC master time 2000150250 + offset -127): 377 us late
+    "TIME_SYNC_REPLY": dict(sync_seq_lo=42, node_time_late_us=377, offset_us=-127, drift_ppb=-2500),
 }
 
 

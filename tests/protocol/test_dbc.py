@@ -14,9 +14,10 @@ from coiltrack.protocol.schema import STAMP_FLIP, STAMP_LSB_US, STAMP_MASK, STAM
 from coiltrack.tools.cli import main
 
 #: the frequent messages of issue 11: they must decode straight off the bus
-FREQUENT = ("MAG_PACKED", "IMU_DELTA", "COIL_PULSE_CMD", "COIL_STATUS", "HEARTBEAT", "TIME_SYNC")
-#: the frequent messages longer than 8 bytes: their bus forms (protocol v3)
-BUS_FORMS = ("COIL_PULSE_CMD", "COIL_STATUS", "HEARTBEAT", "TIME_SYNC")
+FREQUENT = ("MAG_PACKED", "IMU_DELTA", "COIL_PULSE_CMD", "COIL_STATUS", "HEARTBEAT", "TIME_SYNC",
+            "TIME_SYNC_REPLY")
+#: the frequent messages longer than 8 bytes: their bus forms (protocol v3; the reply's v4)
+BUS_FORMS = ("COIL_PULSE_CMD", "COIL_STATUS", "HEARTBEAT", "TIME_SYNC", "TIME_SYNC_REPLY")
 
 
 @pytest.fixture(scope="module")
@@ -39,6 +40,10 @@ def expected_bus_form(msg):
     if msg.NAME == "COIL_PULSE_CMD":
         return dict(coil=msg.coil, pulse_id=msg.pulse_id, current_ma=msg.current_ma * 1e-3,
                     start_8us=msg.start_us % (8 << 18), duration_us=msg.duration_us)
+    if msg.NAME == "TIME_SYNC_REPLY":
+        ts = EXAMPLES["TIME_SYNC"].msg        # the echoed broadcast (same sync_seq)
+        return dict(sync_seq_lo=msg.sync_seq % 64, node_time_late_us=msg.node_time_us - ts.master_time_us - msg.offset_us,
+                    offset_us=msg.offset_us, drift_ppb=msg.drift_ppb)
     assert msg.NAME == "COIL_STATUS"
     return dict(coil=msg.coil, pulse_id=msg.pulse_id, current_ma=msg.current_ma * 1e-3, faults=msg.faults,
                 start_late_us=msg.start_us - cmd.start_us, end_late_us=msg.end_us - cmd.start_us - cmd.duration_us)
