@@ -43,18 +43,14 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
 
-#: the broadcasts ``Supervisor.step`` requests after the last pulse of a burst ends (us after it)
-BURST_SYNCS_AFTER_US = (1_000, 3_000, 5_000)
-
-
 def firmware_sync_hz(cycle_us: int | None = None, coils: int | None = None) -> float:
     """TIME_SYNC broadcasts per second of the firmware with its default configuration (the cycle
     and the number of coils may be changed): ``sync_period_us`` after the previous broadcast, and
     with ``sync_around_burst`` one as the commands leave (``lead_us`` before the cycle) and
-    :data:`BURST_SYNCS_AFTER_US` after the last pulse ends (``(coils - 1) * spacing_us + pulse_us``
+    ``supervisor.BURST_SYNCS_AFTER_US`` after the last pulse ends (``(coils - 1) * spacing_us + pulse_us``
     into the cycle)."""
     from coiltrack.firmware.config import FirmwareConfig
-    from coiltrack.firmware.supervise.supervisor import SupervisorConfig
+    from coiltrack.firmware.supervise.supervisor import BURST_SYNCS_AFTER_US, SupervisorConfig
     from coiltrack.protocol.busload import sync_broadcasts_per_cycle
 
     fc, sc = FirmwareConfig(), SupervisorConfig()

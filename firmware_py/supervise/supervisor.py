@@ -35,6 +35,10 @@ _ID_COIL_STATUS = MSG["COIL_STATUS"].ID
 _ID_MAG = MSG["MAG_SAMPLE"].ID
 _ID_IMU = MSG["IMU_SAMPLE"].ID
 
+#: with ``sync_around_burst``: broadcasts this long (us) after the last pulse of a burst ends, besides
+#: one as the commands leave (``tools/cmd_busload.py`` models the bus load from the same table)
+BURST_SYNCS_AFTER_US = (1_000, 3_000, 5_000)
+
 
 @dataclass(frozen=True)
 class SupervisorConfig:
@@ -128,9 +132,8 @@ class Supervisor:
                 # link delays frames 2 ms apart by amounts 2 ms apart, so it cannot fake one),
                 # so a step during the burst shows in the replies before the burst's pose
                 self.timesync.request(now_us)
-                self.timesync.request(last_end + 1_000)
-                self.timesync.request(last_end + 3_000)
-                self.timesync.request(last_end + 5_000)
+                for d in BURST_SYNCS_AFTER_US:
+                    self.timesync.request(last_end + d)
             if self.scfg.flips:
                 quiet_from = last_end + cfg.fall_us + cfg.baseline_us + cfg.guard_us
                 quiet_to = pc + cfg.cycle_us - cfg.baseline_us - cfg.guard_us
