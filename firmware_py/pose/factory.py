@@ -18,7 +18,8 @@ POSE_SOLVERS = ("lm", "raab")
 
 def make_pose_solver(cfg, coils, gate_probability: float):
     """The solver ``cfg.pose_solver`` for ``coils`` (``field.Coil``), with the
-    signal model ``cfg.field_model`` and a warm start's chi-square gate."""
+    signal model ``cfg.field_model``, a warm start's chi-square gate and the LM's
+    stopping tolerances ``cfg.lm_step_tol``, ``cfg.lm_cost_tol``."""
     if cfg.pose_solver == "raab":
         from coiltrack.firmware.pose.raab import RaabTracker
 
@@ -31,4 +32,5 @@ def make_pose_solver(cfg, coils, gate_probability: float):
                            hemisphere=cfg.hemisphere, step_sigma=cfg.raab_step_sigma)
     from coiltrack.firmware.pose.solver import PoseSolver
 
-    return PoseSolver(coils, cfg.field_model, gate_probability=gate_probability)
+    return PoseSolver(coils, cfg.field_model, gate_probability=gate_probability,
+                      step_tol=cfg.lm_step_tol, cost_tol=cfg.lm_cost_tol)
