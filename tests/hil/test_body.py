@@ -212,14 +212,15 @@ class _ShakenSource(motion.Trajectory):
         return p, v, a, np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
 
 
-def _carried_scenario():
+def _carried_scenario(duration_s: float = 4.0):
+    """Source and sensor carried together: the sensor fixed 25 cm from the shaken source."""
     import dataclasses
 
     from coiltrack.tools import scenarios
 
     base = scenarios.get("roetenberg-fusion-srcimu")
     pose = motion.StaticPose([0.25, 0.05, -0.04], motion.rotvec_to_matrix([0.2, -0.1, 0.3]))
-    return dataclasses.replace(base, name="carried", duration_s=4.0,
+    return dataclasses.replace(base, name="carried", duration_s=duration_s,
                                build_world=lambda seed, d: World(ph.thesis_source(), pose,
                                                                  source_trajectory=_ShakenSource()))
 

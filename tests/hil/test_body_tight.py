@@ -1,38 +1,6 @@
 """The tightly coupled tracker (``[tight]``, ``firmware_py/track/tight_fusion.py``) on the bench
 with a moving source: eq 6.8 in the source frame, each pulse window a measurement at its time."""
-import dataclasses
-import math
-
-import numpy as np
-
-from coiltrack.hil import motion
-from coiltrack.hil import physics as ph
-from coiltrack.hil.world import World
-
-
-class _ShakenSource(motion.Trajectory):
-    """Source carried level, shaken along x: ``A sin(w t)`` (1.5 cm at 1.2 Hz: 0.85 m/s^2 peak,
-    about the pelvis' acceleration in walking)."""
-
-    A, w = 0.015, 2.0 * math.pi * 1.2
-
-    def _eval(self, t):
-        n = t.shape[0]
-        z = np.zeros(n)
-        p = np.stack([self.A * np.sin(self.w * t), z, z], axis=-1)
-        v = np.stack([self.A * self.w * np.cos(self.w * t), z, z], axis=-1)
-        a = np.stack([-self.A * self.w ** 2 * np.sin(self.w * t), z, z], axis=-1)
-        return p, v, a, np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3))
-
-
-def _carried():
-    from coiltrack.tools import scenarios
-
-    base = scenarios.get("roetenberg-fusion-srcimu")
-    pose = motion.StaticPose([0.25, 0.05, -0.04], motion.rotvec_to_matrix([0.2, -0.1, 0.3]))
-    return dataclasses.replace(base, name="carried", duration_s=6.0,
-                               build_world=lambda seed, d: World(ph.thesis_source(), pose,
-                                                                 source_trajectory=_ShakenSource()))
+from .test_body import _carried_scenario
 
 
 def _drop_source_acceleration(fw, bench):
@@ -55,7 +23,7 @@ def test_tight_tracker_with_a_shaken_source_and_without_its_acceleration(bench_r
     from eq 6.8 it is at least 10x larger (measured 326 mm). Catches the source's specific force
     dropped, taken with the wrong sign or in the wrong frame, and a tracker that does not follow a
     moving source."""
-    sc = _carried()
+    sc = _carried_scenario(6.0)
     cfg = {"acc_motion_sigma": 0.5, "tight_fusion": True}
     a = bench_runner(scenario_obj=sc, duration_s=6.0, cfg=cfg).rep
     b = bench_runner(scenario_obj=sc, duration_s=6.0, cfg=cfg, setup=_drop_source_acceleration).rep
