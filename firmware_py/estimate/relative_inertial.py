@@ -62,7 +62,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, VEL, relative_layout
+from coiltrack.firmware.estimate.layout import ORI, POS, VEL, relative_layout
 from coiltrack.firmware.estimate.single_coil import SchepersEKF
 from coiltrack.firmware.estimate.strapdown import integrate_pv, transition_sensor, transition_static
 from coiltrack.firmware.linalg import exp_rotvec
@@ -134,6 +134,7 @@ class RelativeInertialEKF(SchepersEKF):
         self._ws_prev = np.zeros(3)
         self._src_have_prev = False
         self._fsv = memoryview(self.fs)
+        self._fref = self._fsv        # SchepersEKF._accel: R f - f_ref, here the source's specific force
         self._wsv = memoryview(self.ws)
         self._fspv = memoryview(self._fs_prev)
         self._wspv = memoryview(self._ws_prev)
@@ -148,9 +149,7 @@ class RelativeInertialEKF(SchepersEKF):
         self._R1 = np.zeros((3, 3))
         self._R1v = memoryview(self._R1)
         self._Eht = self._Eh.T
-        self._rows6 = np.zeros((6, _NC))
         self._r6 = np.zeros((3, _NC))
-        self.steps_relative = 0
 
     # ------------------------------------------------------------ set-up
     def initialize(self, p, R, P6, t_us: int, sigma_vel: float, sigma_acc: float, sigma_gyr: float) -> None:
@@ -191,8 +190,8 @@ class RelativeInertialEKF(SchepersEKF):
         """Nominal relative step over ``dt`` (s, module docstring) and the covariance."""
         R = self.R
         h = 0.5 * dt
-        f, w = self.f, self.w
-        ws, fs, d = self._wsv, self._fsv, self._dv
+        w = self.w
+        ws, d = self._wsv, self._dv
         wx, wy, wz = float(w[0]) * h, float(w[1]) * h, float(w[2]) * h
         sx, sy, sz = ws[0], ws[1], ws[2]
         sd = self._sd
@@ -200,12 +199,8 @@ class RelativeInertialEKF(SchepersEKF):
         exp_rotvec(-sx * dt, -sy * dt, -sz * dt, self._Ev)
         sd.rotate(R, wx, wy, wz)
         self._left(R, self._Eh)                           # R_mid
-        fx, fy, fz = float(f[0]), float(f[1]), float(f[2])
-        Rv = self._Rv
         # a = R_mid f - f_source (mid frame), brought to the first frame: Eh^T a
-        mx = Rv[0, 0] * fx + Rv[0, 1] * fy + Rv[0, 2] * fz - fs[0]
-        my = Rv[1, 0] * fx + Rv[1, 1] * fy + Rv[1, 2] * fz - fs[1]
-        mz = Rv[2, 0] * fx + Rv[2, 1] * fy + Rv[2, 2] * fz - fs[2]
+        mx, my, mz = self._accel()
         Eh = self._Ehv
         ax = Eh[0, 0] * mx + Eh[1, 0] * my + Eh[2, 0] * mz
         ay = Eh[0, 1] * mx + Eh[1, 1] * my + Eh[2, 1] * mz
@@ -229,7 +224,6 @@ class RelativeInertialEKF(SchepersEKF):
         sd.rotate(R, wx, wy, wz)
         self._left(R, self._Eh)
         self._steps += 1
-        self.steps_relative += 1
         if self._steps % 64 == 0:
             self._orthonormalize()
 
@@ -278,32 +272,14 @@ class RelativeInertialEKF(SchepersEKF):
               + self.extra_acc_noise * self.extra_acc_noise)
         gs2 = self.src_gyr_noise * self.src_gyr_noise
         qa += gs2 * (vx * vx + vy * vy + vz * vz)
-        qp = qa * dt * dt * dt / 3.0 + (self.pos_noise * self.pos_noise + gs2 * (rx * rx + ry * ry + rz * rz)) * dt
-        qv = qa * dt
-        qo = (self.gyr_noise * self.gyr_noise + gs2) * dt
         q = self._q
-        qba = self.acc_bias_rw * self.acc_bias_rw * dt
-        qbg = self.gyr_bias_rw * self.gyr_bias_rw * dt
+        self._fill_q(q, dt, qa, self.pos_noise * self.pos_noise + gs2 * (rx * rx + ry * ry + rz * rz),
+                     self.gyr_noise * self.gyr_noise + gs2)
         qsa = self.src_acc_bias_rw * self.src_acc_bias_rw * dt
         qsg = self.src_gyr_bias_rw * self.src_gyr_bias_rw * dt
         for i in range(3):
-            q[POS.start + i] = qp
-            q[VEL.start + i] = qv
-            q[ORI.start + i] = qo
-            q[ACC.start + i] = qba
-            q[GYR.start + i] = qbg
             q[sa + i] = qsa
             q[sg + i] = qsg
-
-    def _accel(self):
-        """``R f - f_source`` (source frame, m/s^2; without the transport term)."""
-        f = self.f
-        R = self._Rv
-        fx, fy, fz = float(f[0]), float(f[1]), float(f[2])
-        fs = self._fsv
-        return (R[0, 0] * fx + R[0, 1] * fy + R[0, 2] * fz - fs[0],
-                R[1, 0] * fx + R[1, 1] * fy + R[1, 2] * fz - fs[1],
-                R[2, 0] * fx + R[2, 1] * fy + R[2, 2] * fz - fs[2])
 
     def _inject(self, dx) -> None:
         """:meth:`SchepersEKF._inject` and the source offsets."""

@@ -408,9 +408,14 @@ class SchepersEKF:
         transition_static(F, dt, 1.0, 1.0)
         transition_sensor(F, dt, self._Rv, float(f[0]), float(f[1]), float(f[2]),
                           float(w[0]), float(w[1]), float(w[2]), self._sd)
-        qa = self.acc_noise * self.acc_noise
-        qg = self.gyr_noise * self.gyr_noise
-        qp = qa * dt * dt * dt / 3.0 + self.pos_noise * self.pos_noise * dt
+        self._fill_q(q, dt, self.acc_noise * self.acc_noise, self.pos_noise * self.pos_noise,
+                     self.gyr_noise * self.gyr_noise)
+
+    def _fill_q(self, q, dt: float, qa: float, qpos: float, qg: float) -> None:
+        """The core block's diagonal process noise over ``dt`` (s) into ``q``: acceleration noise
+        ``qa`` ((m/s^2)^2 s) into velocity and position, position noise ``qpos`` (m^2/s), rate
+        noise ``qg`` (rad^2/s), the offsets' random walks."""
+        qp = qa * dt * dt * dt / 3.0 + qpos * dt
         qv = qa * dt
         qo = qg * dt
         qba = self.acc_bias_rw * self.acc_bias_rw * dt
