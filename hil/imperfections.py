@@ -46,7 +46,7 @@ has the dipole ``coil_moment[k] * |m_nominal|`` (``coil_moment[k] = gain_k * tru
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -170,11 +170,8 @@ class SourceImperfection:
         out = []
         for k, c in enumerate(coils):
             mis = matrix_to_rotvec(rotvec_to_matrix(self.tilt_rotvec[k]) @ rotvec_to_matrix(c.misalignment))
-            out.append(SourceCoil(center=c.center + self.offset_m[k], axis=c.axis, radius=c.radius, turns=c.turns,
-                                  inner_radius=c.inner_radius, outer_radius=c.outer_radius, length=c.length,
-                                  misalignment=mis, resistance=c.resistance, inductance=c.inductance,
-                                  grid=c.grid, quadrature=c.quadrature, name=c.name,
-                                  gain=float(c.gain * self.gain[k])))
+            out.append(replace(c, center=c.center + self.offset_m[k], misalignment=mis,
+                               gain=float(c.gain * self.gain[k])))
         return out
 
 

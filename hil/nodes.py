@@ -424,6 +424,7 @@ class CoilDriverNode(Node):
             rec["refused_hot"] = True
             self.active.append(rec)
             return
+        tau_s = None                    # open or shorted: the world's own L/R
         if self._open(c, t0):
             achieved = 0.0
         elif self._short(c, t0):
@@ -445,22 +446,16 @@ class CoilDriverNode(Node):
             rec["voltage_limited"] = abs(regulated) > v / r_t
             tau_s = float(coil.inductance) / r_t
             rec["tau_us"] = tau_s * 1e6
-            self.world.currents[c].schedule(t0, t1 - t0, achieved, tau_s)
             pp = acc.ripple_pp_a(achieved, r_t, float(coil.inductance), v)
             phase = float(self._acc_rng.uniform(0.0, 2.0 * math.pi))
             if pp > 0.0 and not rec["voltage_limited"]:
+                # kept apart from the pulses (CoilCurrent.add_ripple): the order does not matter
                 self.world.currents[c].add_ripple(t0, t1, 0.5 * pp, acc.pwm_hz, phase)
-            if v < self.limits.supply_low_fraction * self.world.supply_v:
-                rec["faults"] |= COIL_FAULT_SUPPLY_LOW
-            rec["current_a"] = achieved
-            self._heat(c, t0, t1, achieved)
-            self.active.append(rec)
-            return
         if v < self.limits.supply_low_fraction * self.world.supply_v:
             rec["faults"] |= COIL_FAULT_SUPPLY_LOW      # the driver's under-voltage warning
         rec["current_a"] = achieved
-        rec["tau_us"] = self.world.currents[c].tau_us
-        self.world.currents[c].schedule(t0, t1 - t0, achieved)
+        rec.setdefault("tau_us", self.world.currents[c].tau_us)
+        self.world.currents[c].schedule(t0, t1 - t0, achieved, tau_s)
         self._heat(c, t0, t1, achieved)
         self.active.append(rec)
 

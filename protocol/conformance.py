@@ -703,11 +703,12 @@ class Conformance:
     def _garbage_can(self) -> int:
         import can
 
-        from .can import _MSG_BY_BASE, BASE_ID, FUNCTION_MASK, build_pdu, can_id, direct_size, ext_id, segment
+        from .can import (_MSG_BY_BASE, BASE_ID, FUNCTION_MASK, NODE_MASK, build_pdu, can_id, direct_size, ext_id,
+                          segment)
 
         bus = self.link.bus
         rng = self.rng
-        src = self.o.src & 0x1F
+        src = self.o.src & NODE_MASK
         tsid = can_id(MSG["TIME_SYNC"].ID, src)
         # ISO-TP garbage on the 29-bit identifiers (protocol v3: an 8-byte frame on an 11-bit TIME_SYNC or
         # COIL_PULSE_CMD identifier is that message's bus form, never a segment)

@@ -61,14 +61,6 @@ CYCLE_S = 0.6
 POS, ROT = slice(0, 3), slice(3, 6)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(n, 3) -> (n, 3, 3) cross-product matrices."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
-
-
 def pulse_information(source, currents: np.ndarray, p: np.ndarray, R: np.ndarray, h: float = 1e-5) -> np.ndarray:
     """Fisher information of one pulse of each coil at each pose, noise 1.
 
@@ -76,6 +68,8 @@ def pulse_information(source, currents: np.ndarray, p: np.ndarray, R: np.ndarray
     sensor -> source. Returns (n, K, 6, 6) on (position m, rotation rad),
     with ``dB/dp`` by central differences of step ``h`` m.
     """
+    from coiltrack.hil.motion import skew
+
     n = len(p)
     B0 = source.unit_fields(p) * currents[:, None, None]                  # (K, n, 3)
     G = np.empty((len(currents), n, 3, 3))
@@ -85,7 +79,7 @@ def pulse_information(source, currents: np.ndarray, p: np.ndarray, R: np.ndarray
         G[..., i] = (source.unit_fields(p + d) - source.unit_fields(p - d)) * currents[:, None, None] / (2 * h)
     Rt = np.transpose(R, (0, 2, 1))
     hs = np.einsum("nij,knj->kni", Rt, B0)                                 # sensor-frame field
-    H = np.concatenate([np.einsum("nij,knjl->knil", Rt, G), _skew(hs)], axis=-1)   # (K, n, 3, 6)
+    H = np.concatenate([np.einsum("nij,knjl->knil", Rt, G), skew(hs)], axis=-1)   # (K, n, 3, 6)
     return np.transpose(np.einsum("knji,knjl->knil", H, H), (1, 0, 2, 3))
 
 

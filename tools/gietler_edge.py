@@ -35,29 +35,7 @@ import math
 
 import numpy as np
 
-
-def _positive_float(name):
-    def parse(s):
-        try:
-            v = float(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a positive number, got {s!r}") from None
-        if not (math.isfinite(v) and v > 0.0):
-            raise argparse.ArgumentTypeError(f"{name} must be a positive number, got {s!r}")
-        return v
-    return parse
-
-
-def _int_in(name, lo, hi):
-    def parse(s):
-        try:
-            v = int(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer in {lo}..{hi}, got {s!r}") from None
-        if not lo <= v <= hi:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer in {lo}..{hi}, got {s!r}")
-        return v
-    return parse
+from coiltrack.tools import args as A
 
 
 def _filter(spec, cfg, model, iterations):
@@ -150,12 +128,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m coiltrack.tools.gietler_edge", description=__doc__.split("\n")[0])
     p.add_argument("--scenario", default="gietler-air", choices=sorted(k for k, s in SPECS.items()
                                                                        if s.trajectory == "brownian"))
-    p.add_argument("--seed", type=_int_in("--seed", 0, 2 ** 31 - 1), default=98)
-    p.add_argument("--noise-var", type=_positive_float("--noise-var"), default=1e-4,
+    p.add_argument("--seed", type=A.integer(0, 2 ** 31 - 1), default=98)
+    p.add_argument("--noise-var", type=A.real(0.0, lo_open=True), default=1e-4,
                    help="sigma^2, (A/m)^2 (default 1e-4)")
-    p.add_argument("--streams", type=_int_in("--streams", 0, 10000), default=100,
+    p.add_argument("--streams", type=A.integer(0, 10000), default=100,
                    help="independent noise streams on the seed's trajectory (default 100; 0: the seed's run only)")
-    p.add_argument("--check-iterations", type=_int_in("--check-iterations", 1, 100), default=30,
+    p.add_argument("--check-iterations", type=A.integer(1, 100), default=30,
                    help="iterate budget of the convergence check (default 30)")
     a = p.parse_args(argv)
 

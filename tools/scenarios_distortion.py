@@ -24,16 +24,9 @@ from __future__ import annotations
 import dataclasses
 
 from coiltrack.firmware.config import FirmwareConfig
-from coiltrack.tools.scenarios import Scenario, register
+from coiltrack.tools.scenarios import Scenario, _hil, register
 
 __all__ = ["steel_table_world", "clean_world", "distortion_figures", "STEEL_TABLE"]
-
-
-def _hil():
-    from coiltrack.hil import motion, physics
-    from coiltrack.hil.world import World
-
-    return World, motion, physics
 
 
 def _trajectory(seed: int, duration_s: float):

@@ -219,7 +219,6 @@ def record_survey(seed: int = 1, scenario: str = "steel-table", bursts: int = 50
     """A survey recording of the room of ``scenario`` (its world for run seed ``seed``): the jig
     poses, the amplitudes and their sigma, in the layout of ``hil.calibrun`` recordings
     (``kind = "survey"``; ``hil.calibrun.save_recording`` writes it as ``.npz``)."""
-    from coiltrack.tools.runner import BenchSetup  # noqa: F401  (the same world seeding as a run)
     from coiltrack.tools.scenarios import SCENARIOS
 
     sc = SCENARIOS[scenario]

@@ -8,14 +8,7 @@ from coiltrack.firmware.receive import Receiver
 from coiltrack.protocol import MSG, FrameDecoder, encode_frame
 from coiltrack.protocol.schema import pack_stamp
 
-
-class _Port:
-    def __init__(self):
-        self.data = b""
-
-    def read(self):
-        d, self.data = self.data, b""
-        return d
+from .test_receive_compact import _Port
 
 
 class _Sink:
