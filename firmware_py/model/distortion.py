@@ -177,14 +177,21 @@ class DistortionMap:
         return bx, by, bz
 
 
+#: the tracker attributes that hold pose solvers: the burst solve and the fused pipeline's
+#: motion-compensated re-solve (``track.burst_fusion``), which must fit the same model
+_SOLVERS = ("solver", "comp_solver")
+
+
 def install(tracker, dmap: DistortionMap) -> int:
-    """Put ``dmap`` into the signal model of ``tracker``'s pose solver (start-up); returns how many
-    signal models took it (0: the pipeline has none that the map applies to)."""
-    solver = getattr(tracker, "solver", None)
-    signal = getattr(solver, "signal", None)
-    if signal is None or not hasattr(signal, "set_distortion"):
-        return 0
-    if signal.n != dmap.n:
-        raise ValueError(f"distortion.coils: the map has {dmap.n} coils, the source {signal.n}")
-    signal.set_distortion(dmap)
-    return 1
+    """Put ``dmap`` into the signal model of each of ``tracker``'s pose solvers (start-up);
+    returns how many signal models took it (0: the pipeline has none that the map applies to)."""
+    taken = 0
+    for name in _SOLVERS:
+        signal = getattr(getattr(tracker, name, None), "signal", None)
+        if signal is None or not hasattr(signal, "set_distortion"):
+            continue
+        if signal.n != dmap.n:
+            raise ValueError(f"distortion.coils: the map has {dmap.n} coils, the source {signal.n}")
+        signal.set_distortion(dmap)
+        taken += 1
+    return taken

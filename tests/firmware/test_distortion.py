@@ -113,3 +113,19 @@ def test_map_evaluation_allocates_no_array():
     tracemalloc.stop()
     grown = sum(st.size_diff for st in s1.compare_to(s0, "filename") if "numpy" in str(st.traceback))
     assert grown <= 0
+
+
+def test_the_map_reaches_every_pose_solver_of_the_fused_pipeline():
+    """The fused pipeline solves each burst twice (the plain solve and the motion-compensated
+    re-solve of ``track.burst_fusion``): catches the map put into the first only, so that the
+    re-solve fits the room-free model."""
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.firmware.model.distortion import install
+    from coiltrack.tools import scenarios
+    from coiltrack.tools.links import inproc_pair
+
+    fw_end, _ = inproc_pair()
+    tracker = Firmware(scenarios.get("roetenberg-fusion").firmware_config(), fw_end).tracker
+    dm = _map()
+    assert install(tracker, dm) == 2
+    assert tracker.solver.signal.distortion is dm and tracker.comp_solver.signal.distortion is dm
