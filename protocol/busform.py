@@ -46,7 +46,7 @@ from __future__ import annotations
 from .codec import MSG
 from .schema import (BUS_DURATION_BITS, BUS_DURATION_LSB_US, BUS_EDGE_MAX_US, BUS_FORM_BY_NAME, BUS_FORMS,
                      BUS_REPLY_DRIFT_BITS, BUS_REPLY_LATE_BITS, BUS_REPLY_OFFSET_BITS, BUS_REPLY_SEQ_BITS,
-                     BUS_START_BEHIND_US, BUS_START_BITS, BUS_START_LSB_US, PULSE_ID_MASK)
+                     BUS_START_BEHIND_US, BUS_START_BITS, BUS_START_LSB_US, PULSE_ID_MASK, restore_low_bits)
 
 _HB, _TS, _CMD, _ST, _RP = (MSG[n] for n in ("HEARTBEAT", "TIME_SYNC", "COIL_PULSE_CMD", "COIL_STATUS",
                                              "TIME_SYNC_REPLY"))
@@ -54,17 +54,50 @@ _HB, _TS, _CMD, _ST, _RP = (MSG[n] for n in ("HEARTBEAT", "TIME_SYNC", "COIL_PUL
 BUS_FORM_IDS: dict[int, object] = {MSG[b.name].ID: b for b in BUS_FORMS}
 BUS_FORM_SIZE = 8
 _START_MASK = (1 << BUS_START_BITS) - 1
-_DUR_MAX = (1 << BUS_DURATION_BITS) - 1
-_M48 = (1 << 48) - 1
 #: commands remembered for the statuses (pulse ids within this many of the latest are known)
 COMMANDS_KEPT = 64
 #: TIME_SYNC broadcasts remembered for the replies (by sync_seq mod 64)
 SYNCS_KEPT = 1 << BUS_REPLY_SEQ_BITS
 _SEQ_MASK = SYNCS_KEPT - 1
-_LATE_SHIFT = BUS_REPLY_SEQ_BITS
-_OFF_SHIFT = _LATE_SHIFT + BUS_REPLY_LATE_BITS
-_DRIFT_SHIFT = _OFF_SHIFT + BUS_REPLY_OFFSET_BITS
-assert _DRIFT_SHIFT + BUS_REPLY_DRIFT_BITS == 64
+
+
+class _Layout:
+    """A bus form's bit layout compiled once from its ``BUS_FORMS`` row: :meth:`pack` puts the raw
+    field values (in the row's order; signed fields as Python ints of either sign) into the
+    64-bit word, or gives None when one does not fit its field; :meth:`unpack` takes them out,
+    sign-extended. The one place the layouts' shifts and masks are computed."""
+
+    __slots__ = ("fields",)
+
+    def __init__(self, form):
+        #: (first bit, mask, signed, bits) per field, in the table's order
+        self.fields = tuple((f.first_bit, (1 << f.bits) - 1, f.signed, f.bits) for f in form.fields)
+        assert max(f.first_bit + f.bits for f in form.fields) <= 64
+
+    def pack(self, *raw: int) -> int | None:
+        v = 0
+        for x, (shift, mask, signed, bits) in zip(raw, self.fields):
+            if signed:
+                h = 1 << (bits - 1)
+                if not -h <= x < h:
+                    return None
+            elif not 0 <= x <= mask:
+                return None
+            v |= (x & mask) << shift
+        return v
+
+    def unpack(self, v: int) -> tuple[int, ...]:
+        out = []
+        for shift, mask, signed, bits in self.fields:
+            x = (v >> shift) & mask
+            if signed and x >> (bits - 1):
+                x -= 1 << bits
+            out.append(x)
+        return tuple(out)
+
+
+_L_HB, _L_TS, _L_CMD, _L_ST, _L_RP = (_Layout(BUS_FORM_BY_NAME[n]) for n in (
+    "HEARTBEAT", "TIME_SYNC", "COIL_PULSE_CMD", "COIL_STATUS", "TIME_SYNC_REPLY"))
 
 
 class BusContext:
@@ -105,72 +138,40 @@ class BusContext:
             self.commands[key] = (msg.coil, msg.start_us, msg.duration_us)
 
 
-def _signed(v: int, bits: int) -> int:
-    return v - (1 << bits) if v >> (bits - 1) else v
-
-
-def _fits(v: int, bits: int) -> bool:
-    return 0 <= v < (1 << bits)
-
-
-def _fits_signed(v: int, bits: int) -> bool:
-    h = 1 << (bits - 1)
-    return -h <= v < h
-
-
 def encode(msg, ctx: BusContext | None) -> bytes | None:
     """The 8 data bytes of ``msg``'s bus form, or None when the form cannot carry it exactly."""
     mid = msg.ID
+    v = None
     if mid == _TS.ID:
-        t, seq = msg.master_time_us, msg.sync_seq
-        if not (0 <= t <= _M48 and _fits(seq, 16)):
-            return None
-        v = t | seq << 48
+        v = _L_TS.pack(msg.master_time_us, msg.sync_seq)
     elif mid == _HB.ID:
-        if not (_fits(msg.role, 4) and _fits(msg.state, 4) and _fits(msg.proto_version, 8)
-                and _fits(msg.errors, 16) and _fits(msg.schema_hash, 32)):
-            return None
-        v = msg.role | msg.state << 4 | msg.proto_version << 8 | msg.errors << 16 | msg.schema_hash << 32
+        v = _L_HB.pack(msg.role, msg.state, msg.proto_version, msg.errors, msg.schema_hash)
     elif mid == _CMD.ID:
         ref = None if ctx is None else ctx.ref_us
         s, d = msg.start_us, msg.duration_us
-        if (ref is None or not _fits(msg.coil, 4) or not _fits(msg.pulse_id, 12)
-                or not _fits_signed(msg.current_ma, 16) or s % BUS_START_LSB_US or d % BUS_DURATION_LSB_US
-                or not 0 <= d // BUS_DURATION_LSB_US <= _DUR_MAX or restore_start(s // BUS_START_LSB_US, ref) != s):
-            return None
-        v = (msg.coil | msg.pulse_id << 4 | (msg.current_ma & 0xFFFF) << 16
-             | ((s // BUS_START_LSB_US) & _START_MASK) << 32 | (d // BUS_DURATION_LSB_US) << 50)
+        if (ref is not None and s % BUS_START_LSB_US == 0 and d % BUS_DURATION_LSB_US == 0
+                and restore_start((s // BUS_START_LSB_US) & _START_MASK, ref) == s):
+            v = _L_CMD.pack(msg.coil, msg.pulse_id, msg.current_ma, (s // BUS_START_LSB_US) & _START_MASK,
+                            d // BUS_DURATION_LSB_US)
     elif mid == _ST.ID:
         cmd = None if ctx is None else ctx.commands.get(msg.pulse_id & PULSE_ID_MASK)
-        if cmd is None or cmd[0] != msg.coil or not _fits(msg.pulse_id, 12):
-            return None
-        ds = msg.start_us - cmd[1]
-        de = msg.end_us - (cmd[1] + cmd[2])
-        if not (_fits(msg.coil, 4) and _fits_signed(msg.current_ma, 16) and _fits(msg.faults, 8)
-                and -BUS_EDGE_MAX_US <= ds <= BUS_EDGE_MAX_US and -BUS_EDGE_MAX_US <= de <= BUS_EDGE_MAX_US):
-            return None
-        v = (msg.coil | msg.pulse_id << 4 | (msg.current_ma & 0xFFFF) << 16 | msg.faults << 32
-             | (ds & 0xFFF) << 40 | (de & 0xFFF) << 52)
+        if cmd is not None and cmd[0] == msg.coil:
+            ds = msg.start_us - cmd[1]
+            de = msg.end_us - (cmd[1] + cmd[2])
+            if -BUS_EDGE_MAX_US <= ds <= BUS_EDGE_MAX_US and -BUS_EDGE_MAX_US <= de <= BUS_EDGE_MAX_US:
+                v = _L_ST.pack(msg.coil, msg.pulse_id, msg.current_ma, msg.faults, ds, de)
     elif mid == _RP.ID:
         base = None if ctx is None else sync_base(msg.sync_seq & _SEQ_MASK, ctx)
-        if base is None or base[0] != msg.sync_seq:
-            return None
-        late = msg.node_time_us - (base[1] + msg.offset_us)
-        if not (_fits_signed(late, BUS_REPLY_LATE_BITS) and _fits_signed(msg.offset_us, BUS_REPLY_OFFSET_BITS)
-                and _fits_signed(msg.drift_ppb, BUS_REPLY_DRIFT_BITS)):
-            return None
-        v = (msg.sync_seq & _SEQ_MASK | (late & ((1 << BUS_REPLY_LATE_BITS) - 1)) << _LATE_SHIFT
-             | (msg.offset_us & ((1 << BUS_REPLY_OFFSET_BITS) - 1)) << _OFF_SHIFT
-             | (msg.drift_ppb & ((1 << BUS_REPLY_DRIFT_BITS) - 1)) << _DRIFT_SHIFT)
-    else:
-        return None
-    return v.to_bytes(8, "little")
+        if base is not None and base[0] == msg.sync_seq:
+            late = msg.node_time_us - (base[1] + msg.offset_us)
+            v = _L_RP.pack(msg.sync_seq & _SEQ_MASK, late, msg.offset_us, msg.drift_ppb)
+    return None if v is None else v.to_bytes(8, "little")
 
 
 def restore_seq(bits: int, latest: int) -> int:
     """TIME_SYNC_REPLY's ``sync_seq`` from its 6 bits: the one sequence number (16 bits, wrapping)
     with those bits in ``[latest - 63, latest]``, ``latest`` the sync_seq of the latest TIME_SYNC heard."""
-    return (latest - ((latest - bits) & _SEQ_MASK)) & 0xFFFF
+    return restore_low_bits(bits, latest - _SEQ_MASK, BUS_REPLY_SEQ_BITS) & 0xFFFF
 
 
 def sync_base(bits: int, ctx: BusContext):
@@ -189,7 +190,7 @@ def restore_start(bits: int, ref_us: int) -> int:
     """The master time (us) of COIL_PULSE_CMD's 18 start bits (``start_us / 8 mod 2**18``): the one
     time with those bits in ``[ref - BUS_START_BEHIND_US, ref - BUS_START_BEHIND_US + 2.097152 s)``."""
     lo = (ref_us - BUS_START_BEHIND_US) // BUS_START_LSB_US      # the window's first unit
-    return (lo + ((bits - lo) & _START_MASK)) * BUS_START_LSB_US
+    return restore_low_bits(bits, lo, BUS_START_BITS) * BUS_START_LSB_US
 
 
 def decode(msg_id: int, src: int, data, ctx: BusContext | None):
@@ -198,32 +199,30 @@ def decode(msg_id: int, src: int, data, ctx: BusContext | None):
     TIME_SYNC not heard)."""
     v = int.from_bytes(data, "little")
     if msg_id == _TS.ID:
-        return _TS(v & _M48, v >> 48)
+        return _TS(*_L_TS.unpack(v))
     if msg_id == _HB.ID:
-        return _HB(src, v & 0xF, (v >> 4) & 0xF, (v >> 8) & 0xFF, v >> 32, (v >> 16) & 0xFFFF)
+        role, state, version, errors, schema_hash = _L_HB.unpack(v)
+        return _HB(src, role, state, version, schema_hash, errors)
     if msg_id == _RP.ID:
-        base = None if ctx is None else sync_base(v & _SEQ_MASK, ctx)
+        seq_lo, late, off, drift = _L_RP.unpack(v)
+        base = None if ctx is None else sync_base(seq_lo, ctx)
         if base is None:
             return None
-        late = _signed((v >> _LATE_SHIFT) & ((1 << BUS_REPLY_LATE_BITS) - 1), BUS_REPLY_LATE_BITS)
-        off = _signed((v >> _OFF_SHIFT) & ((1 << BUS_REPLY_OFFSET_BITS) - 1), BUS_REPLY_OFFSET_BITS)
         t = base[1] + off + late
         if not 0 <= t < 1 << 64:
             return None
-        return _RP(src, base[0], t, off, _signed(v >> _DRIFT_SHIFT, BUS_REPLY_DRIFT_BITS))
-    coil, pid, cur = v & 0xF, (v >> 4) & 0xFFF, _signed((v >> 16) & 0xFFFF, 16)
+        return _RP(src, base[0], t, off, drift)
     if msg_id == _CMD.ID:
         if ctx is None or ctx.ref_us is None:
             return None
-        return _CMD(coil, pid, cur, restore_start((v >> 32) & _START_MASK, ctx.ref_us),
-                    (v >> 50) * BUS_DURATION_LSB_US)
+        coil, pid, cur, start_8us, dur_16us = _L_CMD.unpack(v)
+        return _CMD(coil, pid, cur, restore_start(start_8us, ctx.ref_us), dur_16us * BUS_DURATION_LSB_US)
     if msg_id == _ST.ID:
+        coil, pid, cur, faults, ds, de = _L_ST.unpack(v)
         cmd = None if ctx is None else ctx.commands.get(pid)
         if cmd is None or cmd[0] != coil:
             return None
-        start, end = cmd[1], cmd[1] + cmd[2]
-        return _ST(coil, pid, cur, start + _signed((v >> 40) & 0xFFF, 12), end + _signed(v >> 52, 12),
-                   (v >> 32) & 0xFF)
+        return _ST(coil, pid, cur, cmd[1] + ds, cmd[1] + cmd[2] + de, faults)
     raise KeyError(msg_id)
 
 

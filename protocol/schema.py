@@ -453,6 +453,13 @@ def schema_hash() -> int:
 SCHEMA_HASH = schema_hash()
 
 
+def restore_low_bits(bits: int, lo: int, nbits: int) -> int:
+    """The one integer in ``[lo, lo + 2**nbits)`` whose low ``nbits`` bits are ``bits``: how every
+    narrowed counter on the bus (a start, a sequence number, a sample stamp) is restored against
+    a reference window."""
+    return lo + ((bits - lo) & ((1 << nbits) - 1))
+
+
 def pack_stamp(t_us: int) -> int:
     """The 14 time bits of a compact stamp for master time ``t_us`` (rounded to 8 us)."""
     return ((int(t_us) + STAMP_LSB_US // 2) // STAMP_LSB_US) & STAMP_MASK
@@ -462,4 +469,4 @@ def unwrap_stamp(stamp: int, now_us: int, lead_us: int = STAMP_LEAD_US) -> int:
     """The master time (us, a multiple of 8) of a compact stamp (its low 14 bits) received
     at ``now_us``: the one time in ``(now + lead - 131072 us, now + lead]`` with those bits."""
     r = (int(now_us) + lead_us) // STAMP_LSB_US
-    return (r - ((r - stamp) & STAMP_MASK)) * STAMP_LSB_US
+    return restore_low_bits(stamp, r - STAMP_MASK, STAMP_BITS) * STAMP_LSB_US
