@@ -122,7 +122,7 @@ from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.linalg import Rot3, flat, inv3_sym, lu_factor, lu_solve, nearest_rotation
 from coiltrack.firmware.model.field import MU0
 from coiltrack.firmware.model.signal import SignalModel
-from coiltrack.firmware.pose.covariance import EIG_FLOOR, MAX_VARIANCE, RobustInverse6
+from coiltrack.firmware.pose.covariance import RobustInverse6
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
                                             SOLVE_OK, SOLVE_REACQUIRED, SOLVE_RUNNING)
 from coiltrack.firmware.pose.staged import StagedSolve
@@ -197,44 +197,6 @@ def _block(c, r: int, k: int):
     """The 3x3 block at row ``r``, column ``k`` of a 6x6 (36, row-major) as a 9-tuple."""
     o = 6 * r + k
     return (c[o], c[o + 1], c[o + 2], c[o + 6], c[o + 7], c[o + 8], c[o + 12], c[o + 13], c[o + 14])
-
-
-def _sym9(s):
-    """The six elements of ``inv3_sym`` as a row-major 9-tuple."""
-    s00, s01, s02, s11, s12, s22 = s
-    return (s00, s01, s02, s01, s11, s12, s02, s12, s22)
-
-
-def inv6_blocks(a, out) -> bool:
-    """``out = a^-1`` for a symmetric positive definite 6x6 ``a`` (36,
-    row-major) by its 3x3 blocks ``[[P, B], [B^T, T]]``: ``T^-1`` and the
-    Schur complement ``P - B T^-1 B^T`` inverted by ``inv3_sym``,
-    ``C_pp = (P - B T^-1 B^T)^-1``, ``C_pt = -C_pp B T^-1``, ``C_tt = T^-1 -
-    T^-1 B^T C_pt``: about 200 products, no loop over a 6x6. False (``out``
-    undefined) when a block is not positive definite."""
-    ti = inv3_sym(a[21], a[22], a[23], a[28], a[29], a[35])
-    if ti is None:
-        return False
-    Ti = _sym9(ti)
-    B = _block(a, 0, 3)
-    Bt = (B[0], B[3], B[6], B[1], B[4], B[7], B[2], B[5], B[8])
-    BTi = _mul3(B, Ti)
-    sc = _mul3(BTi, Bt)
-    pi = inv3_sym(a[0] - sc[0], a[1] - sc[1], a[2] - sc[2], a[7] - sc[4], a[8] - sc[5], a[14] - sc[8])
-    if pi is None:
-        return False
-    Cpp = _sym9(pi)
-    Cpt = _mul3(Cpp, BTi)
-    TiBt = (BTi[0], BTi[3], BTi[6], BTi[1], BTi[4], BTi[7], BTi[2], BTi[5], BTi[8])   # T^-1 B^T = (B T^-1)^T
-    D = _mul3(TiBt, Cpt)
-    for i in range(3):
-        for k in range(3):
-            out[6 * i + k] = Cpp[3 * i + k]
-            v = -Cpt[3 * i + k]
-            out[6 * i + 3 + k] = v
-            out[6 * (3 + k) + i] = v
-            out[6 * (3 + i) + 3 + k] = Ti[3 * i + k] + D[3 * i + k]
-    return True
 
 
 def _clip(x: float, m: float) -> float:
@@ -1140,17 +1102,9 @@ class RaabTracker(StagedSolve):
         self._inverse(self._cov)
 
     def _inverse(self, out) -> None:
-        """``out = A^-1`` of the information ``_An``: by blocks
-        (:func:`inv6_blocks`) when that is the plain inverse the robust one
-        would return (finite, positive definite, ``1 / tr(A^-1)`` above its
-        eigenvalue floor), else ``pose.covariance.RobustInverse6``."""
-        a = self._A36
-        if inv6_blocks(a, out):
-            tr = a[0] + a[7] + a[14] + a[21] + a[28] + a[35]
-            tri = out[0] + out[7] + out[14] + out[21] + out[28] + out[35]
-            if tri > 0.0 and math.isfinite(tri) and 1.0 / tri >= max(EIG_FLOOR * tr, 1.0 / MAX_VARIANCE):
-                return
-        self._inv.into(a, out)
+        """``out = A^-1`` of the information ``_An`` (``pose.covariance.RobustInverse6``, the
+        runtime solver's inverse)."""
+        self._inv.into(self._A36, out)
 
     def _cov_carry(self, scale: float) -> None:
         """``C_s`` (at ``p_m``, source-frame orientation) carried to the

@@ -287,23 +287,3 @@ def test_cached_and_carried_paths_allocate_no_numpy_array():
         for S, sg in inputs:
             tr.solve(S, CUR, sg, HEMI, tr.position, tr.rotation)
     assert counter.count == 0
-
-
-def test_block_inverse_against_numpy_and_its_fallback():
-    """``inv6_blocks`` (the covariance's 6x6 inverse by 3x3 blocks) equals
-    numpy's inverse to 1e-12 relative on information matrices with position
-    and orientation scales 1e3 apart, and refuses a matrix whose orientation
-    block is singular (the robust inverse then floors it). Catches a
-    transposed off-diagonal block or a wrong Schur complement."""
-    from coiltrack.firmware.pose.raab import inv6_blocks
-
-    rng = np.random.default_rng(28)
-    out = memoryview(np.zeros(36))
-    for _ in range(20):
-        J = rng.normal(size=(9, 6)) * np.array([1e3, 1e3, 1e3, 1.0, 1.0, 1.0])
-        A = J.T @ J
-        assert inv6_blocks(memoryview(A.ravel().copy()), out)
-        ref = np.linalg.inv(A)
-        assert np.abs(np.array(out).reshape(6, 6) - ref).max() < 1e-12 * np.abs(ref).max()
-    A[3:, 3:] = 0.0
-    assert not inv6_blocks(memoryview(A.ravel().copy()), out)
