@@ -92,7 +92,8 @@ CanLink
 bytes``, ``write(bytes)``): ``write`` takes serial COBS frames, decodes them
 with :class:`protocol.framing.FrameDecoder` and sends each message as CAN
 frames with the identifier of (message, frame's ``src``); ``read`` drains the
-bus without blocking (``bus.recv(timeout=0)``), reassembles, and returns each
+bus without blocking (``bus.recv(timeout=0)``; over slcan only the frames the
+adapter held when the read began), reassembles, and returns each
 good message re-encoded as a serial frame with the sender's ``seq`` and
 ``src`` (and its signature). Bad CAN traffic is counted in
 ``link.reassembler`` and never reaches the byte stream, so firmware and
