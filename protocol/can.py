@@ -92,7 +92,8 @@ CanLink
 bytes``, ``write(bytes)``): ``write`` takes serial COBS frames, decodes them
 with :class:`protocol.framing.FrameDecoder` and sends each message as CAN
 frames with the identifier of (message, frame's ``src``); ``read`` drains the
-bus without blocking (``bus.recv(timeout=0)``), reassembles, and returns each
+bus without blocking (``bus.recv(timeout=0)``; over slcan only the frames the
+adapter held when the read began), reassembles, and returns each
 good message re-encoded as a serial frame with the sender's ``seq`` and
 ``src`` (and its signature). Bad CAN traffic is counted in
 ``link.reassembler`` and never reaches the byte stream, so firmware and
@@ -113,6 +114,7 @@ from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolE
                      UnknownMessageError)
 from .framing import (CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
                       build_frame, cobs_encode, parse_frame)
+from .slcan import line_length as slcan_line_length
 from .schema import BY_ID, MAX_PAYLOAD, MESSAGES
 
 # --- identifiers ----------------------------------------------------------
@@ -692,16 +694,26 @@ class CanLink:
 
     def read(self) -> bytes:
         out = bytearray()
+        # an slcan adapter: only the bytes it held when the read began (see _adapter_held)
+        left = self._adapter_held()
         for _ in range(self.max_frames_per_read):
+            if left is not None and left <= 0:
+                break
             try:
                 frame = self.bus.recv(timeout=0)
             except (can.CanError, OSError, ValueError):
                 self.rx_errors += 1
                 break
             if frame is None:
+                if left is not None and getattr(self.bus, "_buffer", None):
+                    break               # the rest of a line still to arrive: the next read's
                 if self._adapter_pending():
+                    if left is not None:
+                        left -= 1       # a line that is no frame (an adapter's reply): 1 byte at least
                     continue
                 break
+            if left is not None:
+                left -= slcan_line_length(frame.is_extended_id, frame.is_remote_frame, len(frame.data))
             self.frames_rx += 1
             arb = frame.arbitration_id
             if frame.is_extended_id:
@@ -723,6 +735,22 @@ class CanLink:
             pass
 
     # ---------------------------------------------------------------------
+    def _adapter_held(self) -> int | None:
+        """slcan: the bytes of frame lines the adapter holds now (the serial port's input and
+        python-can's partial line), None for another bus. ``read`` returns the frames of those
+        bytes only, as a CAN controller's receive FIFO read at the tick would: python-can reads
+        an slcan adapter a byte at a time, each read of a pty may wait for the tty's flush work
+        (one firmware read took 6.8 ms), and frames keep arriving meanwhile. The firmware judges
+        every frame of a read against the tick's clock, taken before the read; a sample taken
+        during that read would be from its future (docs/protocol.md, sample time stamps)."""
+        port = getattr(self.bus, "serialPortOrig", None)
+        if port is None:
+            return None
+        try:
+            return port.in_waiting + len(getattr(self.bus, "_buffer", b""))
+        except (OSError, ValueError):
+            return None
+
     def _adapter_pending(self) -> bool:
         """slcan: python-can returns None for a non-frame line (an adapter's
         reply) even when frames follow; keep reading while bytes wait."""

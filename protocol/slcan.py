@@ -68,6 +68,12 @@ def frame_line_ok(line: bytes) -> bool:
     return len(data) == 2 * n and bool(_HEX.match(data))
 
 
+def line_length(extended: bool, remote: bool, n_data: int) -> int:
+    """Bytes of the slcan line of a frame, its ``\\r`` included: the kind, the identifier (3 or 8
+    hex digits), the DLC digit and two hex digits a data byte (none for a remote frame)."""
+    return 1 + (8 if extended else 3) + 1 + (0 if remote else 2 * n_data) + 1
+
+
 def make_raw_pty() -> tuple[int, int, str]:
     """A pseudo-terminal pair in raw mode: ``(master_fd, slave_fd, slave_path)``."""
     import tty

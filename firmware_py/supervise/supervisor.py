@@ -99,10 +99,13 @@ class Supervisor:
             for back in h.back_nodes():
                 ts.forget(back)             # it came back (rebooted): its replies re-acquire
             i = ts.slot(node)
+            # asked before the reply is booked: does it answer one of the node's first four
+            # broadcasts? The node applies all four as steps, the fourth included
+            acquiring = ts.acquiring(i)
             prev = ts.first_suspect_us(i, now_us)           # before the candidates of a forward step
             stepped = ts.on_reply(msg, now_us)
             h.on_sync_reply(node, stepped, prev, now_us)
-            if ts.acquiring(i):
+            if acquiring:
                 h.restart_stamps(node)      # acquisition steps the node's time base: check anew
         elif mid == _ID_HEARTBEAT:
             h.heard(msg.node, now_us)

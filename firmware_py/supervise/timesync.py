@@ -117,8 +117,10 @@ class TimeSyncMaster:
         return True
 
     def acquiring(self, i: int) -> bool:
-        """Whether node slot ``i`` is still (re)acquiring: its first replies, whose clock corrections
-        a node applies as steps (its stamps are not yet on one time base)."""
+        """Whether node slot ``i`` is still (re)acquiring: fewer than ``_ACQUIRE`` replies booked
+        since (re)acquisition. Asked before :meth:`on_reply` books a reply, it says whether that
+        reply answers one of the node's first ``_ACQUIRE`` broadcasts, whose clock corrections the
+        node applies as steps (its stamps are not yet on one time base)."""
         return 0 <= i < len(self.acquired) and self.acquired[i] < _ACQUIRE
 
     def on_reply(self, msg, now_us: int) -> bool:

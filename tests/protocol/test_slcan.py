@@ -158,3 +158,46 @@ def test_slcan_between_processes():
             child.wait()
         bridge.terminate()
         assert bridge.wait(timeout=IO_TIMEOUT_S) == 0       # a hang guard, not a speed bound
+
+
+def test_slcan_read_returns_the_frames_that_had_arrived_when_it_began():
+    """python-can's slcan reads its adapter a byte at a time (each read of a pty may wait for the
+    tty's flush work: one firmware read took 6.8 ms), and frames keep arriving meanwhile. The
+    firmware judges every frame of a read against the tick's clock, taken before the read: a
+    sample taken during a long read was seen 3.2 ms in the future (more than the 3 ms
+    ``stamp_future_tol_us``) and reported as a clock step. So a read returns what the adapter
+    held when it began, as a CAN controller's receive FIFO read at the tick would; what arrives
+    during it is the next read's. The arrivals during the read are injected into python-can's
+    own loopback port (no wall clock, no bridge thread)."""
+    bus = open_bus("slcan", "loop://")
+    try:
+        bus.flush()                     # the adapter commands looped back at open
+        port = bus.serialPortOrig
+        codec = CanCodec()
+        sensor = 16
+        early = [MSG["MAG_PACKED"](sensor, 10 * k, 0, 0, k) for k in range(3)]
+        late = [MSG["MAG_PACKED"](sensor, 10 * k, 0, 0, 100 + k) for k in range(3)]
+        for m in early:
+            for f in codec.encode(m, 0, sensor):
+                bus.send(f)
+        read = port.read
+        arrivals = list(late)
+
+        def slow_read(n=1):
+            if arrivals:                # the adapter hears frames while the reader is still busy
+                for f in codec.encode(arrivals.pop(0), 0, sensor):
+                    bus.send(f)
+            return read(n)
+
+        port.read = slow_read
+        link = CanLink(bus, NODE_FIRMWARE)
+        dec = FrameDecoder()
+        first = dec.feed(link.read())
+        assert [m.stamp for m in first] == [0, 1, 2]
+        assert arrivals == []           # the late frames did arrive during that read
+        port.read = read
+        second = dec.feed(link.read())
+        assert [m.stamp for m in second] == [100, 101, 102]
+        assert dec.feed(link.read()) == []
+    finally:
+        bus.shutdown()
