@@ -36,7 +36,8 @@ Here, as a tracker would on the board:
   (:meth:`RelativeInertialEKF.update_quiet_field`); not used while the health
   monitor finds either field distorted, or when their magnitudes differ by
   more than ``5 tight_quiet_sigma_t`` (metal near one of them), or beyond
-  the chi-square gate; at most one per sensor per tick;
+  the chi-square gate, or while the orientation std of an axis is above
+  ``QUIET_MAX_ORI_SIGMA`` (after a start); at most one per sensor per tick;
 * fused POSEs (``POSE_FUSED``) at the IMU rate (every ``pose_every`` sensor
   samples), at most ``imu_steps_per_tick`` IMU steps per sensor per tick.
 
