@@ -327,6 +327,13 @@ class FirmwareConfig:
     # m: a fused pose is sent VALID only while the filter's largest position std is at most this (after
     # a start the filter converges over a few cycles: its first seconds' poses are sent, not valid); 0: off
     tight_valid_sigma_m: float = 0.0
+    # IMU steps between quiet-field updates (the sensor's field between pulses against the source
+    # module's, b = R^T e: the relative orientation at the magnetometer's rate; needs source_imu_id);
+    # 0: none
+    tight_quiet_every: int = 4
+    # T: std per axis of the quiet-field pair's difference b - R^T e (both magnetometers' noise and
+    # set/reset residuals left after FlipOffset, the sample times' mismatch)
+    tight_quiet_sigma_t: float = 0.1e-6
     # --- [lm] when the pose solver's Levenberg-Marquardt stops (coiltrack.firmware.pose.solver): a step
     # below lm_step_tol of the range (rad for the orientation), or a relative cost change below lm_cost_tol.
     # The defaults are the solver's own (STEP_TOL 1e-5, COST_TOL 1e-6). On roetenberg-bench (seed 1, 60 s)
@@ -428,6 +435,11 @@ class FirmwareConfig:
         need("tight_init_sigma_vel", fin(v) and 0 < v <= 100, f"must be a speed in (0, 100] m/s, got {v!r}")
         v = self.tight_valid_sigma_m
         need("tight_valid_sigma_m", fin(v) and 0 <= v <= 10, f"must be a distance in [0, 10] m (0: off), got {v!r}")
+        v = self.tight_quiet_every
+        need("tight_quiet_every", isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 100_000,
+             f"must be a number of IMU steps in [0, 100000] (0: no quiet-field update), got {v!r}")
+        v = self.tight_quiet_sigma_t
+        need("tight_quiet_sigma_t", fin(v) and 0 < v < 1e-3, f"must be a field in T, 0 < sigma < 1e-3, got {v!r}")
         v = self.tight_lost_sigma_m
         need("tight_lost_sigma_m", fin(v) and 0 < v <= 10, f"must be a distance in (0, 10] m, got {v!r}")
         need("tight_fusion", not self.tight_fusion or (self.actuation == "fixed" and self.excitation == "pulsed"
@@ -746,7 +758,8 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "imu_delta": ("imu_delta_rate_hz", "imu_steps_per_tick"),
     "receive": ("rx_frames_per_tick", "rx_queue_bytes"),
     "tight": ("tight_fusion", "tight_source_imu_position_m", "tight_acc_noise", "tight_source_bias_states",
-              "tight_lost_sigma_m", "tight_init_sigma_vel", "tight_valid_sigma_m"),
+              "tight_lost_sigma_m", "tight_init_sigma_vel", "tight_valid_sigma_m", "tight_quiet_every",
+              "tight_quiet_sigma_t"),
     "lm": ("lm_step_tol", "lm_cost_tol"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}

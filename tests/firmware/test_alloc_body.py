@@ -3,10 +3,11 @@ windows (``measure.gyro_baseline``) and the adaptive inclination variance
 (``estimate.orientation``) on ``roetenberg-flexion-back`` (moving source,
 its own IMU module, fused). After a 3.5 s warm-up (filters initialised, the
 first bursts fused) every tick of the next 1.5 s (two and a half magnetic
-cycles: windows closed, turned, solved and fused) must count 0 numpy
+cycles: windows closed, turned, solved and fused; for the tight tracker also
+its quiet-field updates, at least 20 of them) must count 0 numpy
 allocations (``tools.alloc.NumpyAllocationCounter``, as ``test_alloc``).
-Catches a temporary array in the turned extraction, the gyro ring or the
-motion variance."""
+Catches a temporary array in the turned extraction, the gyro ring, the
+motion variance or the quiet-field update."""
 import pytest
 
 from coiltrack.firmware.loop import Firmware
@@ -30,9 +31,12 @@ def test_body_ticks_allocate_no_numpy_array(name):
     counter = NumpyAllocationCounter()
     bad = 0
     t = 0
+    quiet0 = None
     while t < 5_000_000:
         bench.emulator.step(t)
         if t >= 3_500_000:
+            if quiet0 is None:
+                quiet0 = fw.status().get("fusion_quiet_updates", 0)
             before = counter.count
             with counter:
                 fw.tick(t)
@@ -43,4 +47,6 @@ def test_body_ticks_allocate_no_numpy_array(name):
     turned = sum(ch.extractor.turned_windows for ch in fw.channels)
     assert turned >= 20, turned
     assert fw.status().get("fused_poses", 0) > 100
+    if cfg.tight_fusion:
+        assert fw.status()["fusion_quiet_updates"] - quiet0 >= 20
     assert bad == 0, f"{bad} ticks allocated numpy arrays"
