@@ -170,6 +170,32 @@ class SampleRing(Ring):
         """Time of the newest sample, ``NO_TIME_US`` when empty."""
         return self._latest
 
+    def nearest_slot(self, t_us: int) -> int:
+        """The slot of the sample nearest ``t_us``, or -1 when empty. The search goes back from
+        the newest sample (at most the ring's count; in a live stream the newest is the nearest)
+        to the first at or before ``t_us`` and compares it with the one after."""
+        slot = self._head
+        tv = self._tv
+        best = -1
+        for _ in range(self._count):
+            slot -= 1
+            if slot < 0:
+                slot += self.capacity
+            if tv[slot] <= t_us:
+                if best < 0 or t_us - tv[slot] < tv[best] - t_us:
+                    best = slot
+                break
+            best = slot
+        return best
+
+    def time_at(self, slot: int) -> int:
+        """The time stamp (us) of the sample in ``slot``."""
+        return self._tv[slot]
+
+    def saturated_at(self, slot: int) -> bool:
+        """Whether the sample in ``slot`` was saturated."""
+        return bool(self._fv[slot] & SAMPLE_SATURATED)
+
     @property
     def oldest_t_us(self) -> int:
         """Time of the oldest retained sample, ``NO_TIME_US`` when empty."""

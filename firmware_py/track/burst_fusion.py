@@ -41,7 +41,7 @@ from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEA
                                                           OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
-from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SAMPLE_SATURATED, SampleRing
+from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SampleRing
 from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
@@ -120,31 +120,18 @@ class FlipOffset:
         self.prev_t = t_us
 
 
-def _compass_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, gate: PulseGate):
-    """The magnetometer sample of ``ring`` nearest ``t_imu`` if it is newer
-    than ``after_t``, within ``max_age_us`` of ``t_imu``, not saturated and
-    outside the pulses; returns its slot or -1. The search goes back from the
-    newest sample (at most the ring's count; in a live stream the newest is
-    the nearest): IMU samples given back from an IMU_DELTA pair reach the
+def quiet_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, gate: PulseGate):
+    """The magnetometer sample of ``ring`` nearest ``t_imu`` (:meth:`SampleRing.nearest_slot`) if
+    it is newer than ``after_t``, within ``max_age_us`` of ``t_imu``, not saturated and outside
+    the pulses; returns its slot or -1. IMU samples given back from an IMU_DELTA pair reach the
     filter up to one interval after the magnetometer samples of their time."""
-    slot = ring._head
-    tv = ring._tv
-    best = -1
-    for _ in range(ring._count):
-        slot -= 1
-        if slot < 0:
-            slot += ring.capacity
-        if tv[slot] <= t_imu:
-            if best < 0 or t_imu - tv[slot] < tv[best] - t_imu:
-                best = slot
-            break
-        best = slot
+    best = ring.nearest_slot(t_imu)
     if best < 0:
         return -1
-    t = tv[best]
+    t = ring.time_at(best)
     if t <= after_t or abs(t - t_imu) > max_age_us:
         return -1
-    if ring._fv[best] & SAMPLE_SATURATED or not gate.quiet(t):
+    if ring.saturated_at(best) or not gate.quiet(t):
         return -1
     return best
 
@@ -169,7 +156,7 @@ class _Ori:
         if f.initialized and t - f.t_us > self.gap_us:
             f.initialized = False              # what the gyroscopes missed cannot be integrated
             self.lost = True
-        slot = _compass_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
+        slot = quiet_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
         if slot >= 0:
             self.compass_t = mag._tv[slot]
             b = mag._bv

@@ -64,7 +64,7 @@ from coiltrack.firmware.estimate.relative_inertial import RelativeInertialEKF
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE, SAMPLE_FLIP, SampleRing
 from coiltrack.firmware.rotation import quat_tuple
-from coiltrack.firmware.track.burst_fusion import FlipOffset, PulseGate, _compass_sample
+from coiltrack.firmware.track.burst_fusion import FlipOffset, PulseGate, quiet_sample
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range3
 from coiltrack.firmware.track.quality import quality_from
 from coiltrack.firmware.track.status import COIL_FATAL
@@ -279,7 +279,7 @@ class TightFusionTracker(MagneticTracker):
         age = self.mag_age_us
         # the source module's residual (fed once per sample, whichever sensor reaches it first)
         src = self.src_mag
-        k = _compass_sample(src, self.src_mag_t, t, age, gate)
+        k = quiet_sample(src, self.src_mag_t, t, age, gate)
         if k >= 0:
             self.src_mag_t = src._tv[k]
             j = 3 * k
@@ -287,7 +287,7 @@ class TightFusionTracker(MagneticTracker):
             self.src_flip.observe(self.src_mag_t, 1 if src._fv[k] & SAMPLE_FLIP else 0, bv[j], bv[j + 1],
                                   bv[j + 2], ekf.ws, age)
         ring = s.ch.ring
-        k = _compass_sample(ring, s.mag_t, t, age, gate)
+        k = quiet_sample(ring, s.mag_t, t, age, gate)
         if k < 0:
             return
         ts = ring._tv[k]
@@ -318,7 +318,7 @@ class TightFusionTracker(MagneticTracker):
         src = self.src_mag
         ring = s.ch.ring
         ts = ring._tv[k]
-        ks = _compass_sample(src, -(1 << 62), ts, self.mag_age_us, self.gate)
+        ks = quiet_sample(src, -(1 << 62), ts, self.mag_age_us, self.gate)
         if ks < 0:
             return False
         hl = self.supervisor.health

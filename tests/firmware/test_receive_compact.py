@@ -141,7 +141,7 @@ def test_compass_sample_is_the_one_nearest_the_imu_time():
     100 ms away and was refused, so the source module lost its compass and its heading drifted
     10 deg), and not one far ahead of the step."""
     from coiltrack.firmware.measure.pulse import SampleRing
-    from coiltrack.firmware.track.burst_fusion import _compass_sample
+    from coiltrack.firmware.track.burst_fusion import quiet_sample
 
     ring = SampleRing(32)
     times = [1_000_000 + round(k * 1e6 / 120) for k in range(20)]
@@ -149,8 +149,8 @@ def test_compass_sample_is_the_one_nearest_the_imu_time():
         ring.push(t, 1e-5, 0.0, 4e-5, False, 0)
     max_age = int(2e6 / 120) * 2
     for t_imu in (1_010_000, 1_051_234, 1_100_000, 1_150_000):
-        slot = _compass_sample(ring, 0, t_imu, max_age, _Quiet())
+        slot = quiet_sample(ring, 0, t_imu, max_age, _Quiet())
         want = min(times, key=lambda t: abs(t - t_imu))
         assert slot >= 0 and ring._tv[slot] == want, t_imu
-    assert _compass_sample(ring, times[-1], 1_150_000, max_age, _Quiet()) == -1     # nothing newer than after_t
-    assert _compass_sample(ring, 0, 900_000, max_age, _Quiet()) == -1              # nearest too far away
+    assert quiet_sample(ring, times[-1], 1_150_000, max_age, _Quiet()) == -1     # nothing newer than after_t
+    assert quiet_sample(ring, 0, 900_000, max_age, _Quiet()) == -1              # nearest too far away
