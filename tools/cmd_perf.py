@@ -14,6 +14,10 @@ the firmware alone. Reported, after a warm-up:
   thread ran, so a preemption by another process on a shared machine does
   not count; keys ``tick_cpu_us_*``, ``cpu_deadline_misses``) beside the
   wall-clock figures, which include it;
+* the interpreter's garbage collections inside the measured ticks and the longest one's CPU
+  time (``gc_collections_in_ticks``, ``gc_us_max``), which the tick times include; with
+  ``--worst N`` the N ticks of the most CPU time, each with its stage times, field evaluations,
+  collections and the tracker's sensor and pose-solver unit before it;
 * numpy array allocations per tick (``tools.alloc.NumpyAllocationCounter``,
   a second replay);
 * the firmware state in bytes: the data of every numpy array and byte buffer
@@ -286,10 +290,15 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
     # --worst: every tick's CPU time, stages, evaluations, garbage collections and tracker position
     per_tick = []
     gcs = [0]
+    gc_ns = []                       # CPU time of each collection the measured ticks ran
+    gc_t0 = [0]
 
     def on_gc(phase, info):
         if phase == "start":
             gcs[0] += 1
+            gc_t0[0] = cpu()
+        elif state.get("in_tick"):
+            gc_ns.append(cpu() - gc_t0[0])
 
     def factory(cfg, port):
         fw = Firmware(cfg, port)
@@ -305,11 +314,13 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
                 f.last_step_units = 0
             at = _tracker_at(fw) if worst else None
             g0 = gcs[0]
+            state["in_tick"] = t >= warm
             c = cpu()
             a = clk()
             real_tick(t, prof)
             dt = clk() - a
             dc = cpu() - c
+            state["in_tick"] = False
             if t >= warm:
                 cpu_ns.append(dc)
                 ev = sum(m.evals for m in models) - e0
@@ -362,6 +373,10 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
         rep["phases_us"][name]["active_median"] = round(float(np.median(active)) / 1e3, 2) if active.size else None
         rep["phases_us"][name]["active_ticks"] = int(active.size)
     rep["deadline_misses"] = int(sum(1 for d in tick_ns if d >= rep["tick_us"] * 1000))
+    # the interpreter's garbage collections that ran inside measured ticks (a board has none):
+    # they count in the tick times above; here they are told apart from the firmware's work
+    rep["gc_collections_in_ticks"] = len(gc_ns)
+    rep["gc_us_max"] = round(max(gc_ns) / 1e3, 2) if gc_ns else 0.0
     if worst:
         per_tick.sort(key=lambda r: -r[0])
         rep["worst_ticks"] = [{"t_us": r[1], "cpu_us": round(r[0] / 1e3, 2), "wall_us": round(r[2] / 1e3, 2),
@@ -418,6 +433,8 @@ def format_table(rep: dict) -> str:
         lines.append(f"  {name:<21} median {s['median']} us, p99 {s['p99']} us, max {s['max']} us; "
                      f"when active: median {s['active_median']} us over {s['active_ticks']} ticks")
     lines.append(f"  deadline misses       {rep['deadline_misses']}")
+    lines.append(f"  garbage collections   {rep['gc_collections_in_ticks']} inside measured ticks "
+                 f"(the longest {rep['gc_us_max']} us CPU time; counted in the tick times)")
     lines.append(f"  allocations           {rep.get('allocs_per_tick')} numpy arrays per tick "
                  f"(max {rep.get('allocs_max_tick')} in a tick, {rep.get('ticks_with_allocs')} ticks with any)")
     lines.append(f"  firmware state        {rep['state_bytes']} bytes "
