@@ -13,7 +13,10 @@ to the next (the finished sensor's POSE, the next one's burst status, warm start
 closed-form units, against the same budget: a tick whose solve steps leave less than
 that puts the next sensor's start off to the following tick, so with sixteen sensors a
 tick never carries a full budget of solve steps and a hand-over (or sixteen hand-overs
-of unusable bursts) on top;
+of unusable bursts) on top. The first sensor's start, in the tick the burst completes,
+is charged the same and the solve steps on in that tick with what is left (before, that
+tick did the start alone and the solve's heaviest tick came one tick later, where an
+IMU sample, at the same phase of every burst cycle, usually arrives too);
 :meth:`MagneticTracker.on_solution` is the hook a fusing tracker extends.
 """
 from __future__ import annotations
@@ -104,18 +107,17 @@ class MagneticTracker:
     def step(self, now_us: int) -> None:
         """Within ``track_budget_evals`` field evaluations: the next piece of
         the current sensor's solve, or the start of the next sensor's."""
+        self._units = 0
         if self._next < 0:
             if not self.burst.complete:
                 return
             self._burst_ticks = 0
             self._next = 0
             self._prepare_currents()
-            self._units = self.solver.n
-            self._begin(self.channels[0])
-            return
-        self._burst_ticks += 1
-        self._units = 0
-        if self._handover:               # the hand-over the last tick's budget had no room for
+            self._handover = True        # the first sensor's start: charged as a hand-over
+        else:
+            self._burst_ticks += 1
+        if self._handover:               # (or the hand-over the last tick's budget had no room for)
             self._handover = False
             self._units = self.solver.n
             self._begin(self.channels[self._next])
