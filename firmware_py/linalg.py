@@ -174,7 +174,7 @@ def _generated(kind: str, n: int, source):
     if f is None:
         if not 1 <= n <= 16:
             raise ValueError(f"{kind}: size {n} outside 1..16")
-        env = {"sqrt": _sqrt, "INF": math.inf}
+        env = {"sqrt": _sqrt, "INF": math.inf, "_sort_eigen": _sort_eigen}
         exec(compile(source(n), f"<{kind}_{n}>", "exec"), env)
         f = _GENERATED[(kind, n)] = env[f"{kind}_{n}"]
     return f
@@ -243,7 +243,93 @@ def jacobi_eigh(a, n: int, w, v, sweeps: int = 60) -> None:
     rotations (Golub & Van Loan, sec. 8.5). ``a`` is overwritten; eigenvalues
     go to ``w`` (ascending), unit eigenvectors to the columns of ``v``
     (``v[i * n + k]`` is component ``i`` of eigenvector ``k``). Stops when the
-    off-diagonal mass is below 1e-30 of the total (or after ``sweeps``)."""
+    off-diagonal mass is below 1e-30 of the total (or after ``sweeps``).
+
+    Runs the straight-line form of :func:`jacobi_eigh_loops` for ``n`` (made once per
+    size, :func:`_jacobi_source`): the same operations in the same order, the same
+    result to the bit, three to four times faster."""
+    _generated("jacobi_eigh", n, _jacobi_source)(a, w, v, sweeps)
+
+
+def _jacobi_source(n: int) -> str:
+    """Straight-line source of :func:`jacobi_eigh_loops` for one size ``n``: the matrix
+    and the eigenvectors in locals ``a{i}_{j}``, ``v{i}_{j}`` (every element, as the loops
+    read and write both triangles), each sweep's test and rotations written out in the
+    loops' order (a rotation of a zero element skipped as there), the results stored
+    back and sorted by the loops' selection sort."""
+    ln = [f"def jacobi_eigh_{n}(a, w, v, sweeps):"]
+    for i in range(n):
+        ln.append("    " + "; ".join(f"a{i}_{j} = a[{i * n + j}]" for j in range(n)))
+        ln.append("    " + "; ".join(f"v{i}_{j} = {'1.0' if i == j else '0.0'}" for j in range(n)))
+    ln.append("    for _ in range(sweeps):")
+    ln.append("        off = 0.0")
+    ln.append("        tot = 0.0")
+    for p in range(n):
+        ln.append(f"        tot += a{p}_{p} * a{p}_{p}")
+        for q in range(p + 1, n):
+            ln.append(f"        off += a{p}_{q} * a{p}_{q}")
+    ln.append("        tot += 2.0 * off")
+    ln.append("        if off <= 1e-30 * tot or off == 0.0:")
+    ln.append("            break")
+    for p in range(n - 1):
+        for q in range(p + 1, n):
+            ln.append(f"        apq = a{p}_{q}")
+            ln.append("        if apq != 0.0:")
+            ln.append(f"            app = a{p}_{p}")
+            ln.append(f"            aqq = a{q}_{q}")
+            ln.append("            theta = (aqq - app) / (2.0 * apq)")
+            ln.append("            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + sqrt(theta * theta + 1.0))")
+            ln.append("            c = 1.0 / sqrt(t * t + 1.0)")
+            ln.append("            s = t * c")
+            ln.append(f"            a{p}_{p} = app - t * apq")
+            ln.append(f"            a{q}_{q} = aqq + t * apq")
+            ln.append(f"            a{p}_{q} = 0.0")
+            ln.append(f"            a{q}_{p} = 0.0")
+            for r in range(n):
+                if r != p and r != q:
+                    ln.append(f"            arp = a{r}_{p}")
+                    ln.append(f"            arq = a{r}_{q}")
+                    ln.append("            nrp = c * arp - s * arq")
+                    ln.append("            nrq = s * arp + c * arq")
+                    ln.append(f"            a{r}_{p} = nrp")
+                    ln.append(f"            a{p}_{r} = nrp")
+                    ln.append(f"            a{r}_{q} = nrq")
+                    ln.append(f"            a{q}_{r} = nrq")
+                ln.append(f"            vrp = v{r}_{p}")
+                ln.append(f"            vrq = v{r}_{q}")
+                ln.append(f"            v{r}_{p} = c * vrp - s * vrq")
+                ln.append(f"            v{r}_{q} = s * vrp + c * vrq")
+    for i in range(n):
+        ln.append("    " + "; ".join(f"a[{i * n + j}] = a{i}_{j}" for j in range(n)))
+        ln.append("    " + "; ".join(f"v[{i * n + j}] = v{i}_{j}" for j in range(n)))
+    ln.append(f"    _sort_eigen(a, {n}, w, v)")
+    return "\n".join(ln) + "\n"
+
+
+def _sort_eigen(a, n: int, w, v) -> None:
+    """The diagonal of ``a`` into ``w``, ascending, the columns of ``v`` following
+    (selection sort)."""
+    for i in range(n):
+        w[i] = a[i * n + i]
+    for i in range(n - 1):
+        k = i
+        for j in range(i + 1, n):
+            if w[j] < w[k]:
+                k = j
+        if k != i:
+            t = w[i]
+            w[i] = w[k]
+            w[k] = t
+            for r in range(n):
+                rn = r * n
+                t = v[rn + i]
+                v[rn + i] = v[rn + k]
+                v[rn + k] = t
+
+
+def jacobi_eigh_loops(a, n: int, w, v, sweeps: int = 60) -> None:
+    """:func:`jacobi_eigh` by its loops (the definition the straight-line code is
+    written from and tested against)."""
     for i in range(n):
         for j in range(n):
             v[i * n + j] = 1.0 if i == j else 0.0
@@ -292,23 +378,7 @@ def jacobi_eigh(a, n: int, w, v, sweeps: int = 60) -> None:
                     vrq = v[rn + q]
                     v[rn + p] = c * vrp - s * vrq
                     v[rn + q] = s * vrp + c * vrq
-    for i in range(n):
-        w[i] = a[i * n + i]
-    # selection sort, ascending, columns of v follow
-    for i in range(n - 1):
-        k = i
-        for j in range(i + 1, n):
-            if w[j] < w[k]:
-                k = j
-        if k != i:
-            t = w[i]
-            w[i] = w[k]
-            w[k] = t
-            for r in range(n):
-                rn = r * n
-                t = v[rn + i]
-                v[rn + i] = v[rn + k]
-                v[rn + k] = t
+    _sort_eigen(a, n, w, v)
 
 
 class Rot3:

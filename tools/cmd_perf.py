@@ -14,6 +14,10 @@ the firmware alone. Reported, after a warm-up:
   thread ran, so a preemption by another process on a shared machine does
   not count; keys ``tick_cpu_us_*``, ``cpu_deadline_misses``) beside the
   wall-clock figures, which include it;
+* the interpreter's garbage collections inside the measured ticks and the longest one's CPU
+  time (``gc_collections_in_ticks``, ``gc_us_max``), which the tick times include; with
+  ``--worst N`` the N ticks of the most CPU time, each with its stage times, field evaluations,
+  collections and the tracker's sensor and pose-solver unit before it;
 * numpy array allocations per tick (``tools.alloc.NumpyAllocationCounter``,
   a second replay);
 * the firmware state in bytes: the data of every numpy array and byte buffer
@@ -47,6 +51,9 @@ def add_arguments(p) -> None:
     p.add_argument("--warmup", type=A.real(0.0, A.MAX_BENCH_S), default=5.0,
                    help="seconds excluded from the statistics (default 5)")
     p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the figures as JSON")
+    p.add_argument("--worst", type=A.integer(0, 1000), default=0, metavar="N",
+                   help="also list the N ticks of the most CPU time: stage times, field evaluations, the "
+                        "tracker's sensor and garbage collections in each (default 0: none)")
     p.add_argument("--solver", choices=("lm", "raab", "both"),
                    help="also replay with this pose solver ([pose] pose_solver) and report its cost per update: "
                         "field evaluations and time of each burst's solve; 'both': Raab's beside the LM's")
@@ -250,7 +257,22 @@ def signing_cost(n: int = 2000) -> dict:
     return out
 
 
-def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
+def _tracker_at(fw) -> str:
+    """Which piece of the tracker's work a tick is at: the index of the sensor being solved
+    (``sensor k/n``) and the pose solver's next unit, where the tracker has them."""
+    tr = fw.tracker
+    parts = []
+    k = getattr(tr, "_next", None)
+    chans = getattr(tr, "channels", ())
+    if isinstance(k, int) and k >= 0 and chans:
+        parts.append(f"sensor {k}/{len(chans)} (node {chans[k].node})")
+    unit = getattr(getattr(tr, "solver", None), "next_unit", None)
+    if unit is not None:
+        parts.append(getattr(unit, "__name__", str(unit)).lstrip("_"))
+    return ", ".join(parts) or "-"
+
+
+def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
     from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter
     from coiltrack.firmware.loop import PHASES, Firmware
     from coiltrack.firmware.model.signal import SignalModel
@@ -265,6 +287,18 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
     cpu = time.thread_time_ns
     state = {}
     work = {"evals": 0, "replay": 0}
+    # --worst: every tick's CPU time, stages, evaluations, garbage collections and tracker position
+    per_tick = []
+    gcs = [0]
+    gc_ns = []                       # CPU time of each collection the measured ticks ran
+    gc_t0 = [0]
+
+    def on_gc(phase, info):
+        if phase == "start":
+            gcs[0] += 1
+            gc_t0[0] = cpu()
+        elif state.get("in_tick"):
+            gc_ns.append(cpu() - gc_t0[0])
 
     def factory(cfg, port):
         fw = Firmware(cfg, port)
@@ -278,14 +312,21 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
             e0 = sum(m.evals for m in models)
             for f in filters:
                 f.last_step_units = 0
+            at = _tracker_at(fw) if worst else None
+            g0 = gcs[0]
+            state["in_tick"] = t >= warm
             c = cpu()
             a = clk()
             real_tick(t, prof)
             dt = clk() - a
             dc = cpu() - c
+            state["in_tick"] = False
             if t >= warm:
                 cpu_ns.append(dc)
-                work["evals"] = max(work["evals"], sum(m.evals for m in models) - e0)
+                ev = sum(m.evals for m in models) - e0
+                work["evals"] = max(work["evals"], ev)
+                if worst:
+                    per_tick.append((dc, t, dt, tuple(int(x) for x in prof), ev, gcs[0] - g0, at))
                 work["replay"] = max(work["replay"], max((f.last_step_units for f in filters), default=0))
                 tick_ns.append(dt)
                 for i in range(len(PHASES)):
@@ -302,9 +343,11 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
 
     gc.collect()
     gc.freeze()
+    gc.callbacks.append(on_gc)
     try:
         replay(factory, header, reads)
     finally:
+        gc.callbacks.remove(on_gc)
         gc.unfreeze()
     fw = state["fw"]
     ph = np.array(phase_ns)
@@ -330,6 +373,16 @@ def measure(header: dict, reads, warmup_s: float = 5.0) -> dict:
         rep["phases_us"][name]["active_median"] = round(float(np.median(active)) / 1e3, 2) if active.size else None
         rep["phases_us"][name]["active_ticks"] = int(active.size)
     rep["deadline_misses"] = int(sum(1 for d in tick_ns if d >= rep["tick_us"] * 1000))
+    # the interpreter's garbage collections that ran inside measured ticks (a board has none):
+    # they count in the tick times above; here they are told apart from the firmware's work
+    rep["gc_collections_in_ticks"] = len(gc_ns)
+    rep["gc_us_max"] = round(max(gc_ns) / 1e3, 2) if gc_ns else 0.0
+    if worst:
+        per_tick.sort(key=lambda r: -r[0])
+        rep["worst_ticks"] = [{"t_us": r[1], "cpu_us": round(r[0] / 1e3, 2), "wall_us": round(r[2] / 1e3, 2),
+                               "phases_us": {name: round(r[3][i] / 1e3, 2) for i, name in enumerate(PHASES)},
+                               "field_evals": r[4], "gc_collections": r[5], "tracker_at": r[6]}
+                              for r in per_tick[:worst]]
     total, parts = state_bytes(fw)
     rep["state_bytes"] = total
     rep["state_bytes_by_part"] = parts
@@ -380,10 +433,20 @@ def format_table(rep: dict) -> str:
         lines.append(f"  {name:<21} median {s['median']} us, p99 {s['p99']} us, max {s['max']} us; "
                      f"when active: median {s['active_median']} us over {s['active_ticks']} ticks")
     lines.append(f"  deadline misses       {rep['deadline_misses']}")
+    lines.append(f"  garbage collections   {rep['gc_collections_in_ticks']} inside measured ticks "
+                 f"(the longest {rep['gc_us_max']} us CPU time; counted in the tick times)")
     lines.append(f"  allocations           {rep.get('allocs_per_tick')} numpy arrays per tick "
                  f"(max {rep.get('allocs_max_tick')} in a tick, {rep.get('ticks_with_allocs')} ticks with any)")
     lines.append(f"  firmware state        {rep['state_bytes']} bytes "
                  f"({', '.join(f'{k} {v}' for k, v in list(rep['state_bytes_by_part'].items())[:6])}, ...)")
+    if rep.get("worst_ticks"):
+        lines.append(f"  the {len(rep['worst_ticks'])} ticks of the most CPU time (t, CPU, wall, costliest stage, "
+                     "field evaluations, garbage collections, tracker before the tick):")
+        for w in rep["worst_ticks"]:
+            top = max(w["phases_us"].items(), key=lambda kv: kv[1])
+            lines.append(f"    t {w['t_us'] / 1e6:9.3f} s  cpu {w['cpu_us']:8.1f} us  wall {w['wall_us']:8.1f} us  "
+                         f"{top[0]} {top[1]:.1f} us  evals {w['field_evals']}  gc {w['gc_collections']}  "
+                         f"{w['tracker_at']}")
     if "fused_step_us" in rep:
         ref = rep.get("filterpy")
         lines.append(f"  fusion step           {rep['fused_step_us']} us (strapdown + {rep['filter_states']}-state "
@@ -406,7 +469,7 @@ def run(args) -> int:
             print("coiltrack perf: --duration must exceed --warmup", file=sys.stderr)
             return 2
         header, reads = _record(args.scenario, args.seed, args.duration)
-    rep = measure(header, reads, args.warmup)
+    rep = measure(header, reads, args.warmup, args.worst)
     print(f"coiltrack perf: {rep['scenario']} seed {rep['seed']}, {rep['duration_s']} s replayed on a virtual clock")
     print(format_table(rep))
     if args.solver:

@@ -258,6 +258,8 @@ class InsState:
         self.pred = CovariancePredict(n)
         self._Av = memoryview(self.pred.A)
         self._Qv = memoryview(self.pred.Q)
+        self._Qf = memoryview(self.pred.Q.reshape(-1))     # flat: element (i, j) at i n + j
+        self.q_white_set = False                           # the step-free part of Q written
         for s in white:
             for i in range(s.start, s.stop):
                 self._Av[i, i] = 0.0
@@ -294,9 +296,16 @@ class FusionFilter:
     def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
                  history_capacity: int = 128, output_capacity: int = 16):
         self.prm = params
+        prm = params
+        # the step's constants of _set_dt, as it computes them (the same values to the bit)
+        self._dtk = (prm.acc_bias_tau_s, prm.gyro_bias_tau_s, prm.acc_noise ** 2 + prm.source_acc_noise ** 2,
+                     prm.gyro_noise, prm.acc_bias_rw * prm.acc_bias_rw, prm.gyro_bias_rw * prm.gyro_bias_rw,
+                     prm.qm_sigma ** 2, prm.psi_sigma ** 2)
         self.layout = fusion_layout(params.measurement_model)
         n = self.layout.n
         self.n = n
+        # flat indices of the diagonals of Q that _set_dt rewrites with the step
+        self._q_diag = tuple(tuple((b.start + i) * (n + 1) for i in range(3)) for b in (VEL, ORI, ACC, GYR))
         self.model = params.measurement_model
         if self.model != 1 and xi_filter is None:
             raise ValueError("measurement models 2 and 3 need the orientation filter Xi")
@@ -542,32 +551,33 @@ class FusionFilter:
 
     def _set_dt(self, st: InsState, dt: float) -> None:
         """The parts of ``A`` and ``Q`` that depend on the step alone
-        (eqs 6.10, 6.13-6.14; the white magnetic states), rewritten only when
-        the step changes."""
-        prm = self.prm
+        (eqs 6.10, 6.13-6.14), rewritten only when the step changes; the white
+        magnetic states' noise (no step in it) once per state."""
+        k = self._dtk
         st.dt_last = dt
-        ka = math.exp(-dt / prm.acc_bias_tau_s) if prm.acc_bias_tau_s > 0.0 else 1.0
-        kg = math.exp(-dt / prm.gyro_bias_tau_s) if prm.gyro_bias_tau_s > 0.0 else 1.0
+        ka = math.exp(-dt / k[0]) if k[0] > 0.0 else 1.0
+        kg = math.exp(-dt / k[1]) if k[1] > 0.0 else 1.0
         st.ka = ka
         st.kg = kg
         transition_static(st._Av, dt, ka, kg)
-        Q = st._Qv
-        v0, o0, a0, g0 = VEL.start, ORI.start, ACC.start, GYR.start
-        qv = (prm.acc_noise ** 2 + prm.source_acc_noise ** 2) * dt * dt
-        qo = (prm.gyro_noise * dt) ** 2
-        qa = prm.acc_bias_rw * prm.acc_bias_rw * dt
-        qg = prm.gyro_bias_rw * prm.gyro_bias_rw * dt
-        qq = prm.qm_sigma ** 2
-        qs = prm.psi_sigma ** 2
-        for i in range(3):
-            Q[v0 + i, v0 + i] = qv
-            Q[o0 + i, o0 + i] = qo
-            Q[a0 + i, a0 + i] = qa
-            Q[g0 + i, g0 + i] = qg
-            Q[QM.start + i, QM.start + i] = qq
-            Q[PSI.start + i, PSI.start + i] = qs
-            if self.n > 21:
-                Q[XI.start + i, XI.start + i] = qs
+        Q = st._Qf
+        qv = k[2] * dt * dt
+        qo = (k[3] * dt) ** 2
+        qa = k[4] * dt
+        qg = k[5] * dt
+        v, o, a, g = self._q_diag
+        Q[v[0]] = Q[v[1]] = Q[v[2]] = qv
+        Q[o[0]] = Q[o[1]] = Q[o[2]] = qo
+        Q[a[0]] = Q[a[1]] = Q[a[2]] = qa
+        Q[g[0]] = Q[g[1]] = Q[g[2]] = qg
+        if not st.q_white_set:
+            st.q_white_set = True
+            qq, qs = k[6], k[7]
+            for i in range(3):
+                Q[(QM.start + i) * (self.n + 1)] = qq
+                Q[(PSI.start + i) * (self.n + 1)] = qs
+                if self.n > 21:
+                    Q[(XI.start + i) * (self.n + 1)] = qs
 
     def _history(self, st: InsState, hist: Ring, k: int) -> None:
         """Append ``st``'s pose in the source frame to ``hist``: ``p_M = Phi^T p``,

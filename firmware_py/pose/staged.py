@@ -5,8 +5,8 @@ a callable, ``None`` when finished) and that unit's charge (``next_cost``):
 an upper bound of its field evaluations, or, for a unit that evaluates no
 field but takes comparable time (a closed form, the covariance), a fixed
 charge in the same unit. Each unit sets its successor. :func:`run_units`
-runs units while the next one's charge still fits into a budget; the first
-unit of a call always runs, so a unit larger than the budget runs alone and
+runs units while the next one's charge still fits into a budget (what they were
+charged is left in the job's ``units_last``); the first unit of a call always runs, so a unit larger than the budget runs alone and
 the computation always progresses. Because a unit does the same arithmetic
 however the units are grouped into calls, the result does not depend on
 the budget.
@@ -24,6 +24,7 @@ SOLVE_RUNNING = 16
 class Staged:
     next_unit = None
     next_cost = 0
+    units_last = 0          # the charges of the units the last run_units ran
 
     def _then(self, unit, cost: int = 0) -> None:
         self.next_unit = unit
@@ -46,6 +47,7 @@ def run_units(job: Staged, signal, budget: int) -> int:
             break
         job.next_unit()
         spent += cost
+    job.units_last = spent
     return signal.evals - start
 
 
@@ -64,7 +66,10 @@ class StagedSolve(Staged):
         """Advance the solve by at most ``budget_evals`` field evaluations
         (a single unit of work larger than that runs alone); returns
         ``SOLVE_RUNNING`` or, once finished, the final status."""
-        used = run_units(self, self.signal, budget_evals) if self.next_unit is not None else 0
+        if self.next_unit is not None:
+            used = run_units(self, self.signal, budget_evals)
+        else:
+            used = self.units_last = 0
         self.evals_last_step = used
         self.solve_evals += used
         if used > self.max_evals_per_step:

@@ -7,7 +7,16 @@ signal matrix is solved by the allocation-free
 tracked pose; Kuipers' closed form and the grid search only to acquire), and
 the pose is sent as a ``POSE`` without ``POSE_FUSED``. One sensor's solve at a
 time, resumed tick after tick with at most ``track_budget_evals`` coil field
-evaluations per tick (``PoseSolver.begin`` / ``step``);
+evaluations per tick (``PoseSolver.begin`` / ``step``). Handing over from one sensor
+to the next (the finished sensor's POSE, the next one's burst status, warm start and
+``begin``: about one LM step's time) is charged ``n`` evaluations like the solver's
+closed-form units, against the same budget: a tick whose solve steps leave less than
+that puts the next sensor's start off to the following tick, so with sixteen sensors a
+tick never carries a full budget of solve steps and a hand-over (or sixteen hand-overs
+of unusable bursts) on top. The first sensor's start, in the tick the burst completes,
+is charged the same and the solve steps on in that tick with what is left (before, that
+tick did the start alone and the solve's heaviest tick came one tick later, where an
+IMU sample, at the same phase of every burst cycle, usually arrives too);
 :meth:`MagneticTracker.on_solution` is the hook a fusing tracker extends.
 """
 from __future__ import annotations
@@ -69,6 +78,8 @@ class MagneticTracker:
         self._measv = memoryview(schedule.measured)
         self.poses = {ch.node: TrackedPose(cfg.hemisphere) for ch in self.channels}
         self._next = -1                  # index of the channel being solved; -1: idle
+        self._handover = False           # the start of channel _next waits for the next tick
+        self._units = 0                  # work charged in this tick (field evaluations)
         self._status = 0                 # POSE_* bits of that channel's burst
         self.budget = cfg.track_budget_evals
         self._burst_ticks = 0            # ticks since the burst's last window closed
@@ -96,16 +107,24 @@ class MagneticTracker:
     def step(self, now_us: int) -> None:
         """Within ``track_budget_evals`` field evaluations: the next piece of
         the current sensor's solve, or the start of the next sensor's."""
+        self._units = 0
         if self._next < 0:
             if not self.burst.complete:
                 return
             self._burst_ticks = 0
             self._next = 0
             self._prepare_currents()
-            self._begin(self.channels[0])
-            return
-        self._burst_ticks += 1
-        st = self.solver.step(self.budget)
+            self._handover = True        # the first sensor's start: charged as a hand-over
+        else:
+            self._burst_ticks += 1
+        if self._handover:               # (or the hand-over the last tick's budget had no room for)
+            self._handover = False
+            self._units = self.solver.n
+            self._begin(self.channels[self._next])
+            if self._next < 0 or self._handover or self._units >= self.budget:
+                return
+        st = self.solver.step(self.budget - self._units)
+        self._units += self.solver.units_last
         if self.solver.solve_evals > self.solve_evals_max and not st & SOLVE_RUNNING:
             self.solve_evals_max = self.solver.solve_evals
         if st & SOLVE_RUNNING:
@@ -168,7 +187,10 @@ class MagneticTracker:
             if self._burst_ticks > self.solve_ticks_max:
                 self.solve_ticks_max = self._burst_ticks
             self.burst.release()
+        elif self._units + self.solver.n > self.budget:
+            self._handover = True            # no room left in this tick's budget
         else:
+            self._units += self.solver.n
             self._begin(self.channels[self._next])
 
     def warm_start(self, ch, tp: TrackedPose) -> bool:

@@ -221,3 +221,29 @@ def test_navigation_over_a_second_matches_the_closed_form(which):
     np.testing.assert_allclose(p, v0 * T + a * T * T / 2, rtol=0, atol=tol)
     np.testing.assert_allclose(v, v0 + a * T, rtol=0, atol=tol * 4)
     np.testing.assert_allclose(R, Rs[-1], rtol=0, atol=1e-9)
+
+
+def test_fusion_process_noise_is_written_for_each_step():
+    """``Q`` of the live state after steps of 8333 us and then 8334 us (what an IMU's timestamps
+    alternate between): the diagonal of velocity ``(s_a^2 + s_as^2) dt^2``, orientation
+    ``(s_g dt)^2``, offsets ``rw^2 dt``, the white magnetic states ``qm_sigma^2`` and
+    ``psi_sigma^2``, every other element zero, each written for the step just taken. Catches a
+    diagonal index off by one (an element beside the diagonal), the white states left at zero
+    and a step's noise kept from the step before."""
+    from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, PSI, QM, VEL
+
+    x, s0, s1 = _samples()
+    ff = _fusion_filter(x, s0, s1, 1_000_000, 8333)
+    prm = ff.prm
+    for dt_us in (8333, 8334):
+        if dt_us == 8334:
+            ff.push_imu(1_000_000 + 8333 + 8334, *s0[0], *s0[1], *s0[2], np.eye(3))
+        dt = dt_us * 1e-6
+        want = np.zeros((ff.n, ff.n))
+        for blk, q in ((VEL, (prm.acc_noise ** 2 + prm.source_acc_noise ** 2) * dt * dt),
+                       (ORI, (prm.gyro_noise * dt) ** 2), (ACC, prm.acc_bias_rw ** 2 * dt),
+                       (GYR, prm.gyro_bias_rw ** 2 * dt), (QM, prm.qm_sigma ** 2), (PSI, prm.psi_sigma ** 2)):
+            for i in range(blk.start, blk.stop):
+                want[i, i] = q
+        np.testing.assert_allclose(ff.st.pred.Q, want, rtol=1e-12, atol=0)
+        assert ff.st.dt_last == dt

@@ -116,3 +116,56 @@ def test_adaptive_decision_after_an_update_waits_one_tick_for_the_same_start():
     assert len(commanded) >= 1                          # (2 here: most decisions find no pulse due)
     for t, held, start, lead, tick in commanded:
         assert start == held and start - t >= lead - tick
+
+
+def test_sixteen_sensors_hand_over_within_the_track_budget():
+    """``multi16`` (16 sensors, one solver), 4 s: the track stage's work in every tick, in
+    field evaluations, is at most ``track_budget_evals``: the charges of the solver's units
+    that ran (``pose.staged``: a unit's field evaluations, ``n`` for a closed form) plus ``n``
+    for each sensor started (its burst status, warm start and ``begin``, after the last
+    sensor's POSE: about one LM step's time). Before, a tick whose solve steps used the whole
+    budget (two LM steps and the closing covariance) also handed over to the next sensor
+    (9 + 3 = 12), and unusable bursts were all handed over in one tick. The sixteen solves of
+    every burst still finish (each sensor gets its POSEs). Catches the hand-over not charged,
+    its budget check inverted (a sensor never started: no POSEs of it) and a hand-over put off
+    and then forgotten (the burst never released: no further cycles)."""
+    state = {"worst": 0, "ticks_over": 0, "t_worst": None, "units": 0}
+    per_node = {}
+
+    def on_tick(fw, t, before):
+        tr = fw.tracker
+        sv = tr.solver
+        if "n" not in state:
+            state["n"] = sv.n
+            orig_begin, orig_then = tr._begin, sv._then
+
+            def begin(ch):
+                state["units"] += sv.n
+                per_node[ch.node] = per_node.get(ch.node, 0) + 1
+                return orig_begin(ch)
+
+            def then(unit, cost=0):
+                if unit is None:
+                    return orig_then(None, cost)
+
+                def charged():
+                    state["units"] += cost
+                    return unit()
+                return orig_then(charged, cost)
+            tr._begin, sv._then = begin, then
+        if before:
+            state["units"] = 0
+            return
+        if t >= WARMUP_US and state["units"] > state["worst"]:
+            state["worst"], state["t_worst"] = state["units"], t
+        if t >= WARMUP_US and state["units"] > fw.cfg.track_budget_evals:
+            state["ticks_over"] += 1
+
+    fw = _run("multi16", 1, 4_000_000, on_tick)
+    budget = fw.cfg.track_budget_evals
+    assert state["ticks_over"] == 0, (state["ticks_over"], state["worst"], state["t_worst"], budget)
+    assert state["worst"] == budget                 # the budget is used, not left idle
+    assert sorted(per_node) == list(range(16, 32))
+    assert min(per_node.values()) >= 5              # every sensor solved in every burst
+    st = fw.status()
+    assert st["cycles"] >= 5 and st["solve_ticks_max"] <= 70
