@@ -192,6 +192,15 @@ class SampleRing(Ring):
         """The time stamp (us) of the sample in ``slot``."""
         return self._tv[slot]
 
+    def field_at(self, slot: int) -> tuple[float, float, float]:
+        """The field (T, sensor axes) of the sample in ``slot``."""
+        bv, j = self._bv, 3 * slot
+        return bv[j], bv[j + 1], bv[j + 2]
+
+    def flip_at(self, slot: int) -> bool:
+        """The set/reset (flip) state of the sample in ``slot``."""
+        return bool(self._fv[slot] & SAMPLE_FLIP)
+
     def saturated_at(self, slot: int) -> bool:
         """Whether the sample in ``slot`` was saturated."""
         return bool(self._fv[slot] & SAMPLE_SATURATED)

@@ -119,6 +119,19 @@ class _SourceSamples:
             wo[0], wo[1], wo[2] = s0[3], s0[4], s0[5]
 
 
+def _turned_field(ring, k: int, offset, w, t: int, out) -> None:
+    """``out`` (3,) = the field of ``ring``'s sample in slot ``k`` with its set/reset residual
+    ``offset`` (3,) removed and turned to time ``t`` (us) with its frame's rate ``w`` (3,) rad/s:
+    the field is fixed in the world, so seen from a frame turning at ``w`` it turns at ``-w``."""
+    bx, by, bz = ring.field_at(k)
+    sg = 1.0 if ring.flip_at(k) else -1.0
+    bx, by, bz = bx - sg * offset[0], by - sg * offset[1], bz - sg * offset[2]
+    d = (t - ring.time_at(k)) * 1e-6
+    out[0] = bx - d * (w[1] * bz - w[2] * by)
+    out[1] = by - d * (w[2] * bx - w[0] * bz)
+    out[2] = bz - d * (w[0] * by - w[1] * bx)
+
+
 class _TightSensor:
     """One sensor's IMU ring, relative EKF and window bookkeeping."""
 
@@ -290,7 +303,7 @@ class TightFusionTracker(MagneticTracker):
         k = quiet_sample(ring, s.mag_t, t, age, gate)
         if k < 0:
             return
-        ts = ring._tv[k]
+        ts = ring.time_at(k)
         s.mag_t = ts
         j = 3 * k
         bv = ring._bv
@@ -317,7 +330,7 @@ class TightFusionTracker(MagneticTracker):
         ekf = s.ekf
         src = self.src_mag
         ring = s.ch.ring
-        ts = ring._tv[k]
+        ts = ring.time_at(k)
         ks = quiet_sample(src, -(1 << 62), ts, self.mag_age_us, self.gate)
         if ks < 0:
             return False
@@ -327,28 +340,9 @@ class TightFusionTracker(MagneticTracker):
             return True
         # residuals removed, both turned to t with their rates (the field is fixed in the world:
         # seen from a frame turning at w it turns at -w)
-        w, ws = ekf.w, ekf.ws
-        bv = ring._bv
-        j = 3 * k
-        sg = 1.0 if ring._fv[k] & SAMPLE_FLIP else -1.0
-        o = s.flip.o
-        bx, by, bz = bv[j] - sg * o[0], bv[j + 1] - sg * o[1], bv[j + 2] - sg * o[2]
-        d = (t - ts) * 1e-6
-        b = s.b
-        b[0] = bx - d * (w[1] * bz - w[2] * by)
-        b[1] = by - d * (w[2] * bx - w[0] * bz)
-        b[2] = bz - d * (w[0] * by - w[1] * bx)
-        te = src._tv[ks]
-        sg = 1.0 if src._fv[ks] & SAMPLE_FLIP else -1.0
-        o = self.src_flip.o
-        bv = src._bv
-        j = 3 * ks
-        ex, ey, ez = bv[j] - sg * o[0], bv[j + 1] - sg * o[1], bv[j + 2] - sg * o[2]
-        d = (t - te) * 1e-6
-        e = s.e
-        e[0] = ex - d * (ws[1] * ez - ws[2] * ey)
-        e[1] = ey - d * (ws[2] * ex - ws[0] * ez)
-        e[2] = ez - d * (ws[0] * ey - ws[1] * ex)
+        _turned_field(ring, k, s.flip.o, ekf.w, t, s.b)
+        _turned_field(src, ks, self.src_flip.o, ekf.ws, t, s.e)
+        b, e = s.b, s.e
         nb = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
         ne = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
         if abs(nb - ne) > self.quiet_tol:
