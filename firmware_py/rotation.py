@@ -91,7 +91,12 @@ def matrix_from_quat(q, out=None):
     return R
 
 
+def rotation_angle(R) -> float:
+    """The angle (rad) of the rotation matrix ``R`` (3, 3): ``acos((tr R - 1) / 2)``, clamped."""
+    c = (float(R[0, 0]) + float(R[1, 1]) + float(R[2, 2]) - 1.0) * 0.5
+    return math.acos(max(-1.0, min(1.0, c)))
+
+
 def angle_between(Ra, Rb) -> float:
     """Smallest rotation angle (rad) taking frame ``Ra`` onto ``Rb``."""
-    c = (float(np.trace(Ra.T @ Rb)) - 1.0) * 0.5
-    return math.acos(max(-1.0, min(1.0, c)))
+    return rotation_angle(Ra.T @ Rb)

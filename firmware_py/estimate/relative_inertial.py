@@ -167,8 +167,6 @@ class RelativeInertialEKF(SchepersEKF):
         self.quiet_pred = np.zeros(3)       # the last quiet-field update's h = R^T e (T)
         self._qpv = memoryview(self.quiet_pred)
         self.quiet_nis = 0.0
-        self.quiet_updates = 0
-        self.quiet_rejected = 0
 
     # ------------------------------------------------------------ set-up
     def initialize(self, p, R, P6, t_us: int, sigma_vel: float, sigma_acc: float, sigma_gyr: float) -> None:
@@ -335,11 +333,8 @@ class RelativeInertialEKF(SchepersEKF):
         f = upd.update(self.P)
         upd.gate = keep
         self.quiet_nis = upd.nis
-        if f & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
-            self.quiet_rejected += 1
-            return f
-        self._inject(upd.dx)
-        self.quiet_updates += 1
+        if not f & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
+            self._inject(upd.dx)
         return f
 
     def _inject(self, dx) -> None:

@@ -62,8 +62,8 @@ from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.firmware.estimate.relative_inertial import RelativeInertialEKF
 from coiltrack.firmware.measure.imu import ImuRing
-from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE, SAMPLE_FLIP, SampleRing
-from coiltrack.firmware.rotation import quat_tuple
+from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE, SampleRing
+from coiltrack.firmware.rotation import quat_tuple, rotation_angle
 from coiltrack.firmware.track.burst_fusion import FlipOffset, PulseGate, quiet_sample
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range3
 from coiltrack.firmware.track.quality import quality_from
@@ -294,20 +294,17 @@ class TightFusionTracker(MagneticTracker):
         src = self.src_mag
         k = quiet_sample(src, self.src_mag_t, t, age, gate)
         if k >= 0:
-            self.src_mag_t = src._tv[k]
-            j = 3 * k
-            bv = src._bv
-            self.src_flip.observe(self.src_mag_t, 1 if src._fv[k] & SAMPLE_FLIP else 0, bv[j], bv[j + 1],
-                                  bv[j + 2], ekf.ws, age)
+            self.src_mag_t = src.time_at(k)
+            bx, by, bz = src.field_at(k)
+            self.src_flip.observe(self.src_mag_t, 1 if src.flip_at(k) else 0, bx, by, bz, ekf.ws, age)
         ring = s.ch.ring
         k = quiet_sample(ring, s.mag_t, t, age, gate)
         if k < 0:
             return
         ts = ring.time_at(k)
         s.mag_t = ts
-        j = 3 * k
-        bv = ring._bv
-        s.flip.observe(ts, 1 if ring._fv[k] & SAMPLE_FLIP else 0, bv[j], bv[j + 1], bv[j + 2], ekf.w, age)
+        bx, by, bz = ring.field_at(k)
+        s.flip.observe(ts, 1 if ring.flip_at(k) else 0, bx, by, bz, ekf.w, age)
         s.quiet_due += 1
         if s.quiet_due < self.quiet_every or not ekf.initialized or s.quiet_tick == self.ticks:
             return
@@ -455,8 +452,7 @@ class TightFusionTracker(MagneticTracker):
                     a = j
         if 0 <= a < z:
             np.matmul(ekf.clone_R[a].T, ekf.clone_R[z], out=s.R3)
-            c = 0.5 * (float(s.R3[0, 0]) + float(s.R3[1, 1]) + float(s.R3[2, 2]) - 1.0)
-            th = math.acos(max(-1.0, min(1.0, c)))
+            th = rotation_angle(s.R3)
             ori += 0.25 * th * th
         for i in range(3):
             P6[i, i] += extra
