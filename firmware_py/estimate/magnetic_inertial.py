@@ -236,7 +236,7 @@ class InsState:
     (a replay in progress) and the snapshot at t_ref, which is only copied
     (``white=None``: no workspace)."""
 
-    def __init__(self, n: int, white: tuple[slice, ...] | None):
+    def __init__(self, n: int, white: tuple[slice, ...] | None, white_q: tuple[float, ...] = ()):
         self.p = np.zeros(3)
         self.v = np.zeros(3)
         self.Th = np.eye(3)
@@ -257,12 +257,13 @@ class InsState:
             return
         self.pred = CovariancePredict(n)
         self._Av = memoryview(self.pred.A)
-        self._Qv = memoryview(self.pred.Q)
         self._Qf = memoryview(self.pred.Q.reshape(-1))     # flat: element (i, j) at i n + j
-        self.q_white_set = False                           # the step-free part of Q written
-        for s in white:
+        # the white states: no transition, their noise (``white_q``, one variance per block) has no
+        # step in it, so it is written once here
+        for s, q in zip(white, white_q, strict=True):
             for i in range(s.start, s.stop):
                 self._Av[i, i] = 0.0
+                self.pred.Q[i, i] = q
 
     def copy_from(self, other: "InsState") -> None:
         """Take ``other``'s nominal state, covariance and time (not its workspace)."""
@@ -299,8 +300,7 @@ class FusionFilter:
         prm = params
         # the step's constants of _set_dt, as it computes them (the same values to the bit)
         self._dtk = (prm.acc_bias_tau_s, prm.gyro_bias_tau_s, prm.acc_noise ** 2 + prm.source_acc_noise ** 2,
-                     prm.gyro_noise, prm.acc_bias_rw * prm.acc_bias_rw, prm.gyro_bias_rw * prm.gyro_bias_rw,
-                     prm.qm_sigma ** 2, prm.psi_sigma ** 2)
+                     prm.gyro_noise, prm.acc_bias_rw * prm.acc_bias_rw, prm.gyro_bias_rw * prm.gyro_bias_rw)
         self.layout = fusion_layout(params.measurement_model)
         n = self.layout.n
         self.n = n
@@ -311,8 +311,9 @@ class FusionFilter:
             raise ValueError("measurement models 2 and 3 need the orientation filter Xi")
         self.xi = xi_filter
         white = (QM, PSI) + ((XI,) if n > 21 else ())
-        self.st = InsState(n, white)        # live
-        self.sh = InsState(n, white)        # shadow: the replay of a delayed update
+        white_q = (prm.qm_sigma ** 2, prm.psi_sigma ** 2) + ((prm.psi_sigma ** 2,) if n > 21 else ())
+        self.st = InsState(n, white, white_q)        # live
+        self.sh = InsState(n, white, white_q)        # shadow: the replay of a delayed update
         self.sn = InsState(n, None)         # snapshot at t_ref
         self._auth = self.st                # the state that takes snapshots and is recorded
         self.sd = Strapdown()
@@ -551,8 +552,8 @@ class FusionFilter:
 
     def _set_dt(self, st: InsState, dt: float) -> None:
         """The parts of ``A`` and ``Q`` that depend on the step alone
-        (eqs 6.10, 6.13-6.14), rewritten only when the step changes; the white
-        magnetic states' noise (no step in it) once per state."""
+        (eqs 6.10, 6.13-6.14), rewritten only when the step changes (the white
+        magnetic states' noise has no step in it: :class:`InsState` writes it)."""
         k = self._dtk
         st.dt_last = dt
         ka = math.exp(-dt / k[0]) if k[0] > 0.0 else 1.0
@@ -570,14 +571,6 @@ class FusionFilter:
         Q[o[0]] = Q[o[1]] = Q[o[2]] = qo
         Q[a[0]] = Q[a[1]] = Q[a[2]] = qa
         Q[g[0]] = Q[g[1]] = Q[g[2]] = qg
-        if not st.q_white_set:
-            st.q_white_set = True
-            qq, qs = k[6], k[7]
-            for i in range(3):
-                Q[(QM.start + i) * (self.n + 1)] = qq
-                Q[(PSI.start + i) * (self.n + 1)] = qs
-                if self.n > 21:
-                    Q[(XI.start + i) * (self.n + 1)] = qs
 
     def _history(self, st: InsState, hist: Ring, k: int) -> None:
         """Append ``st``'s pose in the source frame to ``hist``: ``p_M = Phi^T p``,
