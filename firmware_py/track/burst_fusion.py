@@ -41,7 +41,7 @@ from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEA
                                                           OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
-from coiltrack.firmware.measure.pulse import SAMPLE_FLIP, SampleRing
+from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
@@ -158,11 +158,9 @@ class _Ori:
             self.lost = True
         slot = quiet_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
         if slot >= 0:
-            self.compass_t = mag._tv[slot]
-            b = mag._bv
-            j = 3 * slot
-            st = 1 if mag._fv[slot] & SAMPLE_FLIP else 0
-            mx, my, mz = b[j], b[j + 1], b[j + 2]
+            self.compass_t = mag.time_at(slot)
+            st = 1 if mag.flip_at(slot) else 0
+            mx, my, mz = mag.field_at(slot)
             bb = f._bv
             self.flip.observe(self.compass_t, st, mx, my, mz, (wx - bb[0], wy - bb[1], wz - bb[2]),
                               self.max_age_us)
