@@ -381,6 +381,22 @@ def jacobi_eigh_loops(a, n: int, w, v, sweeps: int = 60) -> None:
     _sort_eigen(a, n, w, v)
 
 
+#: largest element of ``M^T M - I`` that :func:`nearest_rotation` takes as a rotation already
+ORTHONORMAL_TOL = 1e-12
+
+
+def _is_rotation(m00, m01, m02, m10, m11, m12, m20, m21, m22) -> bool:
+    """``M^T M = I`` to ``ORTHONORMAL_TOL`` per element and ``det M > 0`` (False for NaN)."""
+    tol = ORTHONORMAL_TOL
+    if not (abs(m00 * m00 + m10 * m10 + m20 * m20 - 1.0) < tol and abs(m01 * m01 + m11 * m11 + m21 * m21 - 1.0) < tol
+            and abs(m02 * m02 + m12 * m12 + m22 * m22 - 1.0) < tol):
+        return False
+    if not (abs(m00 * m01 + m10 * m11 + m20 * m21) < tol and abs(m00 * m02 + m10 * m12 + m20 * m22) < tol
+            and abs(m01 * m02 + m11 * m12 + m21 * m22) < tol):
+        return False
+    return m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20) + m02 * (m10 * m21 - m11 * m20) > 0.0
+
+
 class Rot3:
     """Scratch for ``nearest_rotation`` (a 4x4 matrix, its eigenvectors and
     eigenvalues), allocated once."""
@@ -404,8 +420,19 @@ def nearest_rotation(m, out, work: Rot3) -> None:
     4x4 ``K`` below, so the optimum is the eigenvector of the largest
     eigenvalue of ``K``. The result equals the SVD projection
     ``U diag(1, 1, det(U V^T)) V^T``.
+
+    A proper rotation already (``|M^T M - I|`` below ``ORTHONORMAL_TOL`` in
+    every element, ``det M > 0``: a warm start or an LM iterate, whose
+    rounding drift is ~1e-15) is copied as it is: its projection differs
+    from it by less than the tolerance, and the eigen-decomposition is the
+    costliest part of starting and finishing a pose solve.
     """
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = (m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8])
+    if _is_rotation(m00, m01, m02, m10, m11, m12, m20, m21, m22):
+        out[0, 0], out[0, 1], out[0, 2] = m00, m01, m02
+        out[1, 0], out[1, 1], out[1, 2] = m10, m11, m12
+        out[2, 0], out[2, 1], out[2, 2] = m20, m21, m22
+        return
     k = work.k
     k[0] = m00 + m11 + m22
     k[1] = k[4] = m21 - m12

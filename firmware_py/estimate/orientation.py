@@ -191,6 +191,7 @@ class OrientationFilter:
         self._Av = memoryview(self.pred.A)
         self._Qv = memoryview(self.pred.Q)
         self.h_g = np.zeros(3)           # earth field direction, global frame
+        self._hgv = memoryview(self.h_g)
         self.m_ref = 1.0                 # |earth field|, T
         self.initialized = False
         self.t_us = 0
@@ -525,7 +526,7 @@ class OrientationFilter:
         self._last_norm = norm
         self._last_dip = dip
         d = self._dv
-        hg = self.h_g
+        hg = self._hgv
         h0, h2 = hg[0], hg[2]
         # H_G = R^T h_G
         hx = R[0, 0] * h0 + R[2, 0] * h2

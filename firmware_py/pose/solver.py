@@ -105,6 +105,7 @@ class _PoseFit:
         self._Rm = memoryview(self.R)
         self._Rtm = memoryview(self.R_t)
         self._dR = np.zeros((3, 3))
+        self._dRm = memoryview(self._dR)
         self._h = memoryview(np.zeros(3 * n))
         self._H = memoryview(np.zeros(18 * n))
 
@@ -119,7 +120,7 @@ class _PoseFit:
     def trial(self, d, A, g) -> float:
         p, pt = self.p, self.p_t
         pt[0], pt[1], pt[2] = p[0] + d[0], p[1] + d[1], p[2] + d[2]
-        exp_rotvec(d[3], d[4], d[5], self._dR)
+        exp_rotvec(d[3], d[4], d[5], self._dRm)
         np.matmul(self.R, self._dR, out=self.R_t)
         return self._cost(pt[0], pt[1], pt[2], self._Rtm, A, g)
 

@@ -349,7 +349,7 @@ class SensorInertial:
         if not fus.initialized or fus.velocity_sigma() > _COMP_MAX_VEL_SIGMA \
                 or not fus.pose_at(self.t_ref, self._pr, self._Rr):
             return False
-        solver.predict_signals(self._p_ref, self._R_ref, currents, self._h_ref)
+        solver.predict_signals(self._pr, self._Rr, currents, self._h_ref)
         self._comp_j = 0
         return True
 
@@ -367,7 +367,7 @@ class SensorInertial:
             if not fus.pose_at(pulse_t[j], self._pj, self._Rj):
                 np.copyto(self.S_comp, S)
                 return -1
-            solver.predict_signals(self._p_j, self._R_j, currents, self._h_j)
+            solver.predict_signals(self._pj, self._Rj, currents, self._h_j)
             for i in range(3):
                 Sc[i, j] = Sc[i, j] + hr[i, j] - hj[i, j]
             used += n

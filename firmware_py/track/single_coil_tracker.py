@@ -119,6 +119,7 @@ class _Sensor:
         self.mon_t = 0                             # when the monitor last heard an update
         self.P6 = np.zeros((POSE_DIM, POSE_DIM))
         self.pp = np.zeros(3)
+        self.Rd = np.eye(3)                        # the orientation a decision was made at
         self.quiet = np.zeros(3)
         self.have_quiet = False
         self.acc = np.zeros(3)
@@ -252,6 +253,10 @@ class SingleCoilTracker:
         self._decided_us = 0
         self._updated_us = -1            # the tick of the last EKF update (the decision then waits)
         self._held_start = -1            # the start a decision put off to the next tick keeps
+        self._dec_phase = 0              # the decision's next part (0: none in progress; see _decide_predict)
+        self._dec_start = 0
+        self._dec_ws = None
+        self._dec_var = 0.0
         self._pm_for = None              # the sensor pmodel was last evaluated for, in this decision
         self.cycle = FixedCycle(n, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us, self.lead_us)
         self.last_flip_cmd_us = -(1 << 62)
@@ -359,7 +364,7 @@ class SingleCoilTracker:
         a few milliseconds ahead and the next pulse may not start before that
         flip's trailing baseline has passed. The command also keeps the
         sensors from flipping on their own (which could land in a window)."""
-        if now_us - self.last_flip_cmd_us < self.cfg.flip_every_us or self._n_active():
+        if now_us - self.last_flip_cmd_us < self.cfg.flip_every_us or self._n_active() or self._dec_phase:
             return
         cfg = self.cfg
         fl = self.supervisor.flips
@@ -532,6 +537,12 @@ class SingleCoilTracker:
         return k
 
     def _decide(self, now_us: int) -> None:
+        if self._dec_phase:                 # the decision's next part
+            if self._dec_phase == 1:
+                self._decide_limits()
+            else:
+                self._decide_choose()
+            return
         cfg = self.cfg
         held = self._held_start
         self._held_start = -1
@@ -596,14 +607,27 @@ class SingleCoilTracker:
             return
         self._decided_stamp = stamp
         self._decided_us = now_us
+        self._decide_predict(start)
+
+    # A decision runs in three ticks (bounded tick): the prediction at the measurement time
+    # (``_decide_predict``), the current limits (``_decide_limits``) and the coil choice with its
+    # command (``_decide_choose``). The first reads everything the others use of the filters
+    # (covariance, orientation, quiet sample, NIS verdict) in its own tick, so the decision is the
+    # one a single tick would make; its command leaves two ticks later, for the same start
+    # (``adaptive_lead_us`` ahead). No flip and no other decision runs in between.
+    def _decide_predict(self, start: int) -> None:
+        """Predicted covariance at the measurement time, with the pulses in flight; which sensor
+        is worst off, and whether a pulse is due."""
+        cfg = self.cfg
+        now_us = self.now_us
         t_m = start + self.mid_us
-        # predicted covariance at the measurement time, with the pulses in flight
         self._pm_for = None
         worst = -1.0
         ws = None
         due = False
         for s in self._sens:
             ekf = s.ekf
+            np.copyto(s.Rd, ekf.R)
             ekf.predict_pose(t_m - (ekf.t_us if ekf.t_us is not None else now_us), s.P6, s.pp)
             self._bounds(s)
             self.policy.set_bounds(s.smax6)
@@ -621,11 +645,21 @@ class SingleCoilTracker:
                 ws = s
         if not due or ws is None:
             return
-        # current limits: driver, and every sensor's magnetometer range
+        for s in self._sens:
+            self._refresh_quiet(s)
+        # the expected amplitude variance, inflated while the pulses prove inconsistent
+        self._forget(ws, now_us)
+        self._dec_var = self.var_amp * ws.monitor.r_scale
+        self._dec_ws = ws
+        self._dec_start = start
+        self._dec_phase = 1
+
+    def _decide_limits(self) -> None:
+        """Current limits: the driver's, every sensor's magnetometer range, the coils' duty."""
+        cfg = self.cfg
         lim = self._lim
         lim.fill(cfg.adaptive_max_current_a)
         for s in self._sens:
-            self._refresh_quiet(s)
             self._model_at(s)
             # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
             r = math.sqrt(float(s.pp[0] * s.pp[0] + s.pp[1] * s.pp[1] + s.pp[2] * s.pp[2]))
@@ -642,26 +676,31 @@ class SingleCoilTracker:
                 if i < lim[c]:
                     lim[c] = i
         for c in range(self.n):
-            if not self._duty_ok(c, start, self.pulse_us):
+            if not self._duty_ok(c, self._dec_start, self.pulse_us):
                 lim[c] = 0.0
+        ws = self._dec_ws
         self._model_at(ws)
         self.policy.set_bounds(ws.smax6)
         self.chooser.set_bounds(ws.smax6, ws.smin6)
-        # the expected amplitude variance, inflated while the pulses prove inconsistent
-        self._forget(ws, now_us)
-        coil = self.chooser.choose(ws.P6, self.pmodel, self.var_amp * ws.monitor.r_scale, lim)
+        self._dec_phase = 2
+
+    def _decide_choose(self) -> None:
+        """The coil and current of the pulse (``actuate.coil_choice``), and its command."""
+        self._dec_phase = 0
+        ws = self._dec_ws
+        coil = self.chooser.choose(ws.P6, self.pmodel, self._dec_var, self._lim)
         if coil < 0:
             self.no_current += 1
             return
-        self._command(coil, self.chooser.current, start, self.pulse_us, False, now_us)
+        self._command(coil, self.chooser.current, self._dec_start, self.pulse_us, False, self.now_us)
 
     def _model_at(self, s: _Sensor) -> None:
-        """``pmodel`` at sensor ``s``'s predicted pose (``s.pp``, ``s.ekf.R``), evaluated
-        once per decision and sensor: the model keeps the last evaluation, and nothing
+        """``pmodel`` at sensor ``s``'s predicted pose (``s.pp``, and ``s.Rd``: the filter's
+        orientation in the decision's first tick), evaluated once per decision and sensor: the model keeps the last evaluation, and nothing
         in a decision moves the pose it is evaluated at (3 coil field evaluations saved
         per pulse in flight and per decision)."""
         if self._pm_for is not s:
-            self.pmodel.evaluate(s.pp, s.ekf.R)
+            self.pmodel.evaluate(s.pp, s.Rd)
             self._pm_for = s
 
     def _bounds(self, s: _Sensor) -> None:

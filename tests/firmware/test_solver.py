@@ -81,6 +81,31 @@ def test_nearest_rotation_equals_svd_projection_and_rotvec_roundtrip():
         np.testing.assert_allclose(back, w, atol=1e-9)
 
 
+def test_nearest_rotation_fast_path_only_for_proper_rotations():
+    """A rotation (to rounding) is copied; one off by 1e-9, a reflection, a NaN matrix and the
+    identity's negative go through the projection (against the SVD's to 1e-12). Catches a
+    tolerance so loose that a drifted matrix is returned unprojected, or a missing det check."""
+    rng = np.random.default_rng(4)
+    work = Rot3()
+    out = np.zeros((3, 3))
+    R = random_rotation(rng)
+    nearest_rotation(R.reshape(9), out, work)
+    assert np.array_equal(out, R)
+    M = R + 1e-9 * rng.normal(size=(3, 3))
+    U, _, Vt = np.linalg.svd(M)
+    nearest_rotation(M.reshape(9), out, work)
+    np.testing.assert_allclose(out, U @ Vt, atol=1e-12)
+    assert not np.array_equal(out, M)
+    for M in (R @ np.diag([1.0, 1.0, -1.0]), -np.eye(3)):      # reflections: a proper rotation comes out
+        nearest_rotation(M.reshape(9), out, work)
+        np.testing.assert_allclose(out.T @ out, np.eye(3), atol=1e-12)
+        assert np.linalg.det(out) > 0.0
+    M = R.copy()
+    M[1, 2] = np.nan
+    nearest_rotation(M.reshape(9), out, work)          # the projection's path: NaN stays visible
+    assert not np.isfinite(out).all()
+
+
 def test_lu_solve_matches_numpy_on_unsymmetric_matrices():
     """Against numpy.linalg.solve to 1e-10 (relative), including a matrix whose first pivot is zero:
     catches a missing row swap or a permutation applied to the wrong side; a singular matrix is refused."""

@@ -3,12 +3,14 @@
 * Fused tracker (``track.burst_fusion``): a tick that propagates IMU samples (the fused tick:
   orientation filter, strapdown, covariance prediction, a POSE) leaves the fusion step (the
   update, a replay step) to the next tick, at most one tick in a row.
-* Adaptive single-coil mode (``track.single_coil_tracker``): a tick that has run an EKF update
-  leaves the pulse decision (a covariance prediction per sensor and pulse in flight, the coil
-  choice) to the next tick, which commands the pulse for the start the first tick found.
+* Adaptive single-coil mode (``track.single_coil_tracker``): a pulse decision runs in three
+  ticks (the covariance prediction per sensor and pulse in flight, the current limits, the coil
+  choice), none beside an EKF update, and commands the pulse for the start its first tick found.
 
 Both are checked tick by tick on short bench runs (seeded, virtual clock).
 """
+import dataclasses
+
 from coiltrack.firmware.loop import Firmware
 from coiltrack.tools import scenarios
 from coiltrack.tools.links import inproc_pair
@@ -17,11 +19,11 @@ from coiltrack.tools.runner import BenchSetup
 WARMUP_US = 2_000_000
 
 
-def _run(name: str, seed: int, run_us: int, on_tick):
+def _run(name: str, seed: int, run_us: int, on_tick, **overrides):
     sc = scenarios.get(name)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, seed, run_us * 1e-6 + 1.0, emu_end)
-    cfg = sc.firmware_config()
+    cfg = dataclasses.replace(sc.firmware_config(), **overrides)
     fw = Firmware(cfg, fw_end)
     t = 0
     while t < run_us:
@@ -68,54 +70,93 @@ def test_fused_ticks_leave_the_fusion_steps_to_the_next_tick():
     assert st["fusion_updates"] >= 5 and st["fused_poses"] > 400
 
 
-def test_adaptive_decision_after_an_update_waits_one_tick_for_the_same_start():
-    """``schepers-adaptive``, 6 s: no tick runs both an EKF update and the coil choice, and a
-    pulse decided in the tick after an update is commanded for the start found in the update
-    tick (at least ``adaptive_lead_us`` less one tick ahead). Catches the deferral dropped
-    (update and decision in one tick), a held start lost (the pulse moved a tick later, or
-    commanded with no lead) and a decision put off forever (no pulses)."""
-    from coiltrack.firmware.actuate.coil_choice import CoilChooser
+def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
+    """``schepers-adaptive``, 6 s: a pulse decision's three parts (prediction, current limits,
+    coil choice with the command) run in three different ticks, none of them in a tick that ran
+    an EKF update (the first is put off from one; the others have not met one); the pulse is commanded for the start the decision found in its first tick,
+    at least ``adaptive_lead_us`` less four ticks ahead (a start held from an update tick, two
+    more parts). The model
+    of the limits and the choice is evaluated at the orientation the filter had in the first
+    tick, not the one it has when they run (the filter is turned by 1 mrad after each first
+    part, as an IMU step between the parts would turn it). Catches two parts stacked in one tick, the first part run
+    beside an update, a start recomputed at the command (the pulse moved later) and the
+    orientation read afresh in a later part."""
+    import numpy as np
+
+    from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
     from coiltrack.firmware.estimate.single_coil import SchepersEKF
+    from coiltrack.firmware.track.single_coil_tracker import SingleCoilTracker
 
-    calls = {"choose": 0, "update": 0}
-    real_choose, real_update = CoilChooser.choose, SchepersEKF.update_single_coil
+    calls = {"predict": 0, "limits": 0, "choose": 0, "update": 0}
+    real = {n: getattr(SingleCoilTracker, "_decide_" + n) for n in ("predict", "limits", "choose")}
+    real_update, real_eval = SchepersEKF.update_single_coil, SingleCoilModel.evaluate
+    seen = {"R": None, "mismatch": 0, "checked": 0, "phase": 0}
 
-    def choose(self, *a, **k):
-        calls["choose"] += 1
-        return real_choose(self, *a, **k)
+    def counted(name):
+        def f(self, *a, **k):
+            calls[name] += 1
+            if name == "predict":
+                out = real[name](self, *a, **k)
+                if self._dec_phase:
+                    seen["R"] = [s.ekf.R.copy() for s in self._sens]
+                return out
+            seen["phase"] = name
+            out = real[name](self, *a, **k)
+            seen["phase"] = 0
+            return out
+        return f
 
     def update(self, *a, **k):
         calls["update"] += 1
         return real_update(self, *a, **k)
 
-    both = []
+    def evaluate(self, p, R):
+        if seen["phase"] and seen["R"] is not None:
+            seen["checked"] += 1
+            if not any(np.array_equal(np.asarray(R), r) for r in seen["R"]):
+                seen["mismatch"] += 1
+        return real_eval(self, p, R)
+
+    stacked, beside, late = [], [], []
     state = {}
-    commanded = []
+    c, sn = np.cos(1e-3), np.sin(1e-3)
+    turn = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
 
     def on_tick(fw, t, before):
         tr = fw.tracker
         if before:
             state.update(calls)
-            state["held"] = tr._held_start
             state["pulses"] = tr.pulses
             return
-        c, u = calls["choose"] - state["choose"], calls["update"] - state["update"]
-        if c and u:
-            both.append(t)
-        if state["held"] >= 0 and tr.pulses > state["pulses"]:
-            commanded.append((t, state["held"], tr.next_free_us - tr.pulse_us - tr.gap_us,
-                              tr.lead_us, fw.cfg.tick_us))
+        d = {n: calls[n] - state[n] for n in calls}
+        if d["predict"] and tr._dec_phase:
+            state["start"] = tr._dec_start
+            for s in tr._sens:           # the filter moves before the next part, as an IMU step would
+                np.matmul(s.ekf.R, turn, out=s.ekf.R)
+        parts = d["limits"] + d["choose"] + (1 if d["predict"] and (tr._dec_phase or d["choose"]) else 0)
+        if parts > 1:
+            stacked.append(t)
+        if d["update"] and (d["predict"] or d["limits"] or d["choose"]):
+            beside.append(t)
+        if d["choose"] and tr.pulses > state["pulses"]:
+            start = tr.next_free_us - tr.pulse_us - tr.gap_us
+            if start != state.get("start") or start - t < tr.lead_us - 4 * fw.cfg.tick_us:
+                late.append((t, start, state.get("start")))
 
-    CoilChooser.choose, SchepersEKF.update_single_coil = choose, update
+    for n in real:
+        setattr(SingleCoilTracker, "_decide_" + n, counted(n))
+    SchepersEKF.update_single_coil, SingleCoilModel.evaluate = update, evaluate
     try:
         fw = _run("schepers-adaptive", 3, 6_000_000, on_tick)
     finally:
-        CoilChooser.choose, SchepersEKF.update_single_coil = real_choose, real_update
-    assert not both, f"update and coil choice in the same tick at {both[:5]}"
-    assert calls["update"] > 30 and fw.tracker.pulses > 30
-    assert len(commanded) >= 1                          # (2 here: most decisions find no pulse due)
-    for t, held, start, lead, tick in commanded:
-        assert start == held and start - t >= lead - tick
+        for n, f in real.items():
+            setattr(SingleCoilTracker, "_decide_" + n, f)
+        SchepersEKF.update_single_coil, SingleCoilModel.evaluate = real_update, real_eval
+    assert not stacked, f"two decision parts in one tick at {stacked[:5]}"
+    assert not beside, f"a decision part beside an EKF update at {beside[:5]}"
+    assert not late, f"pulse not commanded for its first tick's start: {late[:5]}"
+    assert calls["update"] > 30 and fw.tracker.pulses > 30 and calls["choose"] > 10
+    assert seen["checked"] >= 3 and seen["mismatch"] == 0
 
 
 def test_sixteen_sensors_hand_over_within_the_track_budget():
