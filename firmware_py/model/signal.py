@@ -76,6 +76,21 @@ __all__ = ["SignalModel", "FIELD_MODELS"]
 FIELD_MODELS = ("exact", "dipole")
 
 
+def _signed_permutation(r9):
+    """``(i0, s0, i1, s1, i2, s2)`` when the row-major 3x3 ``r9`` has one entry of +-1 in each
+    column ``k`` (in row ``i_k``, sign ``s_k``) and zeros elsewhere; else None."""
+    out = []
+    rows = set()
+    for k in range(3):
+        col = (r9[k], r9[3 + k], r9[6 + k])
+        nz = [i for i in range(3) if col[i] != 0.0]
+        if len(nz) != 1 or abs(col[nz[0]]) != 1.0:
+            return None
+        rows.add(nz[0])
+        out += [nz[0], col[nz[0]]]
+    return tuple(out) if len(rows) == 3 else None
+
+
 class SignalModel:
     """Fields, signals and pose Jacobians of a set of coils.
 
@@ -117,6 +132,13 @@ class SignalModel:
         self.evals = 0
         #: the room's static distortion (``model.distortion.DistortionMap``) or None
         self.distortion = None
+        # each coil's kernel, chosen once: a loop whose frame is a signed permutation of the
+        # source frame's axes (coils along x, y, z) skips the two frame rotations' zero terms
+        self._axes = [_signed_permutation(r) for r in self._rot]
+        if self._exact:
+            self._kernel = [self._loop if a is None else self._loop_axes for a in self._axes]
+        else:
+            self._kernel = [self._dipole] * n
 
     def set_distortion(self, dmap) -> None:
         """Add ``dmap``'s residual field ``I_j D_j(p)`` (and its gradient) to every evaluation
@@ -139,12 +161,9 @@ class SignalModel:
         """``B_j(p)`` (and ``J_j(p)`` if ``jac``) of every coil into ``B`` /
         ``J`` for the currents ``cur`` (n floats, A); ``n`` evaluations."""
         self.evals += self.n
-        if self._exact:
-            for j in range(self.n):
-                self._loop(j, px, py, pz, cur[j], jac)
-        else:
-            for j in range(self.n):
-                self._dipole(j, px, py, pz, cur[j], jac)
+        kernel = self._kernel
+        for j in range(self.n):
+            kernel[j](j, px, py, pz, cur[j], jac)
         if self.distortion is not None:
             self.distortion.add(px, py, pz, cur, jac, self.Bv, self.Jv)
 
@@ -187,6 +206,32 @@ class SignalModel:
         Jv[o + 6] = t20 * r00 + t21 * r01 + t22 * r02
         Jv[o + 7] = t20 * r10 + t21 * r11 + t22 * r12
         Jv[o + 8] = t20 * r20 + t21 * r21 + t22 * r22
+
+    def _loop_axes(self, j, px, py, pz, current, jac):
+        """:meth:`_loop` for a coil whose ``R_j`` is a signed permutation: column ``k`` of
+        ``R_j`` is ``s_k`` times the source axis ``i_k``, so ``(R_j^T d)_k = s_k d_{i_k}``,
+        ``B_{i_k} = s_k b_k`` and ``J_{i_k, i_m} = s_k s_m Jc_{k m}``: the products of the general
+        path without its terms that are zero (the same values, bit for bit, for finite input)."""
+        cx, cy, cz = self._c[j]
+        d = (px - cx, py - cy, pz - cz)
+        i0, s0, i1, s1, i2, s2 = self._axes[j]
+        t = loop_point(s0 * d[i0], s1 * d[i1], s2 * d[i2], self._rad[j], self._spa[j] * current, jac)
+        Bv = self.Bv
+        o = 3 * j
+        Bv[o + i0] = s0 * t[0]
+        Bv[o + i1] = s1 * t[1]
+        Bv[o + i2] = s2 * t[2]
+        if not jac:
+            return
+        Jv = self.Jv
+        o = 9 * j
+        r0, r1, r2 = o + 3 * i0, o + 3 * i1, o + 3 * i2
+        Jv[r0 + i0] = t[3]
+        Jv[r1 + i1] = t[4]
+        Jv[r2 + i2] = t[5]
+        Jv[r0 + i1] = Jv[r1 + i0] = s0 * s1 * t[6]
+        Jv[r0 + i2] = Jv[r2 + i0] = s0 * s2 * t[7]
+        Jv[r1 + i2] = Jv[r2 + i1] = s1 * s2 * t[8]
 
     def _dipole(self, j, px, py, pz, current, jac):
         cx, cy, cz = self._c[j]
