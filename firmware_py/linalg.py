@@ -39,6 +39,15 @@ def flat(a: np.ndarray) -> memoryview:
     return memoryview(a.reshape(-1))
 
 
+def float_view(a):
+    """A C-ordered float64 array as a memoryview, whose elements read as Python floats (the
+    same values, without a numpy scalar per element: the arithmetic on them is several times
+    faster); anything else as it is."""
+    if isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous:
+        return memoryview(a)
+    return a
+
+
 def cholesky(a, n: int, L) -> bool:
     """Lower Cholesky factor of the symmetric ``n x n`` matrix ``a`` into ``L``
     (upper triangle of ``L`` zeroed). Returns False (``L`` undefined) when a

@@ -45,7 +45,7 @@ import math
 import numpy as np
 
 from coiltrack.firmware.estimate.ekf import chi2_gate
-from coiltrack.firmware.linalg import Rot3, exp_rotvec, flat, nearest_rotation
+from coiltrack.firmware.linalg import Rot3, exp_rotvec, flat, float_view, nearest_rotation
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.acquire import Acquisition
 from coiltrack.firmware.pose.covariance import RobustInverse6
@@ -318,6 +318,7 @@ class PoseSolver(StagedSolve):
             return False
         if x0_position is None:
             return True
+        x0_position, x0_rotation = float_view(x0_position), float_view(x0_rotation)
         m9 = self._m9
         for i in range(3):
             for j in range(3):

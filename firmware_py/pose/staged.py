@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import math
 
+from coiltrack.firmware.linalg import float_view
+
 __all__ = ["Staged", "StagedSolve", "run_units", "SOLVE_RUNNING"]
 
 #: a solve's status while its units remain (one of the ``SOLVE_*`` flags of ``pose.solver``)
@@ -100,6 +102,7 @@ class StagedSolve(Staged):
         n = self.n
         if getattr(S, "shape", None) != (3, n) or getattr(sigma, "shape", None) != (3, n) or len(currents) != n:
             return False
+        S, sigma = float_view(S), float_view(sigma)
         Sv, wv, cur = self._Sv, self._wv, self._curv
         ssum = 0.0
         for i in range(3):
