@@ -21,7 +21,7 @@ physical slot (the row of ``t`` and ``d``); the operations return slots:
   contents: the shadow copies of a delayed-measurement filter).
 
 Times pushed must increase (the search relies on it). Single elements are
-read and written through the memoryviews ``_tv`` and ``_dv`` (Python ints
+read and written through the memoryviews ``tv`` and ``dv`` (Python ints
 and floats, no numpy scalars); nothing here creates an array after
 ``__init__``.
 """
@@ -72,8 +72,8 @@ class Ring:
         self.width = width
         self.t = np.zeros(capacity, dtype=np.int64)
         self.d = np.zeros((capacity, width))
-        self._tv = memoryview(self.t)
-        self._dv = memoryview(self.d)
+        self.tv = memoryview(self.t)
+        self.dv = memoryview(self.d)
         self._head = 0          # slot of the next push
         self._count = 0
 
@@ -90,7 +90,7 @@ class Ring:
         """Append an entry at time ``t_us`` (its row is the caller's to fill);
         a full ring overwrites its oldest entry. Returns the slot."""
         p = self._head
-        self._tv[p] = t_us
+        self.tv[p] = t_us
         n = p + 1
         self._head = 0 if n == self.capacity else n
         if self._count < self.capacity:
@@ -114,6 +114,11 @@ class Ring:
         p = self._head - 1 - age
         return p + self.capacity if p < 0 else p
 
+    def last_pushed_slot(self) -> int:
+        """Slot the latest :meth:`push` wrote (its row stays readable until overwritten, also
+        after a :meth:`pop`); meaningful once anything was pushed."""
+        return self._head - 1 if self._head > 0 else self.capacity - 1
+
     # ------------------------------------------------------------ by index, by time
     def slot(self, i: int) -> int:
         """Slot of logical index ``i`` (0: the oldest; ``0 <= i < len``)."""
@@ -129,7 +134,7 @@ class Ring:
         """Logical index of the first entry with time >= ``t_us`` (``len`` if none)."""
         lo = 0
         hi = self._count
-        tv = self._tv
+        tv = self.tv
         base = self._head - self._count
         cap = self.capacity
         while lo < hi:

@@ -177,7 +177,7 @@ def _filter_steps(fw) -> dict:
     fus = next((i.fusion for i in ins.values() if i.fusion.initialized), None)
     if fus is None:
         return out
-    k = fus._ihead - 1 if fus._ihead > 0 else fus._icap - 1
+    k = fus.imu.last_pushed_slot()
     t1 = int(fus._itv[k])
     t0 = t1 - int(1e6 / fw.cfg.imu_rate_hz)
     saved = (fus.p.copy(), fus.v.copy(), fus.Th.copy(), fus.ba.copy(), fus.bg.copy(), fus.P.copy())

@@ -366,8 +366,8 @@ class FusionFilter:
         self._shist = Ring(history_capacity, HIST_FIELDS)
         self.out = Ring(output_capacity, OUT_FIELDS)
         self.imu_t, self.imu_d = self.imu.t, self.imu.d
-        self._itv, self._idv, self._icap = self.imu._tv, self.imu._dv, self.imu.capacity
-        self._otv, self._odv = self.out._tv, self.out._dv
+        self._itv, self._idv, self._icap = self.imu.tv, self.imu.dv, self.imu.capacity
+        self._otv, self._odv = self.out.tv, self.out.dv
         self.out_dropped = 0
         # bookkeeping
         self.initialized = False
@@ -407,7 +407,6 @@ class FusionFilter:
     P = property(lambda self: self.st.P)
     t_us = property(lambda self: self.st.t_us)
     pred = property(lambda self: self.st.pred)
-    _ihead = property(lambda self: self.imu._head)
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
@@ -577,7 +576,7 @@ class FusionFilter:
         ``R_MS = Phi^T Theta`` (Phi of IMU slot ``k``)."""
         d = self._idv
         h = hist.push(st.t_us)
-        hd = hist._dv
+        hd = hist.dv
         p = st._pv
         Th = st._Thv
         P0, R0 = HIST_P, HIST_R
@@ -605,7 +604,7 @@ class FusionFilter:
         od = self._odv
         hist = self.hist
         h = hist.peek(0)
-        hd = hist._dv
+        hd = hist.dv
         od[slot, OUT_P], od[slot, OUT_P + 1], od[slot, OUT_P + 2] = hd[h, HIST_P], hd[h, HIST_P + 1], hd[h, HIST_P + 2]
         _quat_into(hd, h, od, slot)
         k = self.imu.peek(0)
@@ -689,7 +688,7 @@ class FusionFilter:
 
     def _ring_covers(self, t_us: int) -> bool:
         imu = self.imu
-        return len(imu) > 0 and imu._tv[imu.slot(0)] <= t_us
+        return len(imu) > 0 and imu.tv[imu.slot(0)] <= t_us
 
     # ------------------------------------------------------------ update
     def magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
@@ -1047,7 +1046,7 @@ class FusionFilter:
         i = hist.index_at_or_after(t_us)
         if i >= n:
             return False
-        ht = hist._tv
+        ht = hist.tv
         if i == 0:
             if ht[hist.slot(0)] != t_us:
                 return False
@@ -1058,7 +1057,7 @@ class FusionFilter:
         tk = ht[k]
         a = (t_us - t0) / (tk - t0) if tk > t0 else 1.0
         b = 1.0 - a
-        hd = hist._dv
+        hd = hist.dv
         for c in range(3):
             out_p[c] = b * hd[prev, HIST_P + c] + a * hd[k, HIST_P + c]
         for i2 in range(3):

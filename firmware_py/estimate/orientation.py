@@ -176,7 +176,7 @@ class OrientationFilter:
         self.dist = np.zeros(3)          # magnetic disturbance, normalised, sensor frame
         self.acc = np.zeros(3)           # acceleration a+ (eq 2.5), sensor frame
         self._Rv = memoryview(self.R)
-        self._bv = memoryview(self.bias)
+        self.bias_v = memoryview(self.bias)   # the gyroscope bias as Python floats (the tracker reads it)
         self._dv = memoryview(self.dist)
         self._av = memoryview(self.acc)
         self._sd = Strapdown()           # the attitude step (estimate.strapdown)
@@ -332,7 +332,7 @@ class OrientationFilter:
         if not dt > 0.0:
             return
         p = self.prm
-        b = self._bv
+        b = self.bias_v
         self._sd.rotate(self.R, (wx - b[0]) * dt, (wy - b[1]) * dt, (wz - b[2]) * dt)    # eq 2.27
         self.steps += 1
         if self.steps & 63 == 0:
@@ -409,7 +409,7 @@ class OrientationFilter:
     def _apply(self, dx) -> None:
         self._sd.rotate(self.R, dx[THETA.start], dx[THETA.start + 1], dx[THETA.start + 2])
         np.copyto(self._Rc, self.R)      # the error is reset at the corrected orientation
-        b = self._bv
+        b = self.bias_v
         d = self._dv
         for i in range(3):
             b[i] += dx[BIAS.start + i]

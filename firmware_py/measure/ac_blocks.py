@@ -114,7 +114,7 @@ class ACBlockMeasurement:
         if len(ring) == 0:
             return
         idx = ring.index_at_or_after(self._cursor[i] + 1)
-        tv, bv, fv = ring._tv, ring._bv, ring._fv
+        tv, bv, fv = ring.tv, ring.bv, ring.fv
         left = self.max_samples
         while idx < len(ring) and left > 0:
             s = ring.slot(idx)

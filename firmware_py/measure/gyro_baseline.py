@@ -67,7 +67,7 @@ class GyroRing(Ring):
             self.rejected += 1
             return
         k = Ring.push(self, t_us)
-        d = self._dv
+        d = self.dv
         d[k, 0] = wx
         d[k, 1] = wy
         d[k, 2] = wz
@@ -107,11 +107,11 @@ class GyroBaselineExtractor(PulseExtractor):
         """Interpolated gyroscope rate at ``t`` (us, non-decreasing between
         calls within a window); held beyond the ends, zero without samples."""
         g = self._gyro
-        n = g._count
+        n = len(g)
         if n == 0:
             return 0.0, 0.0, 0.0
-        tv = g._tv
-        dv = g._dv
+        tv = g.tv
+        dv = g.dv
         i = self._cur
         while i < n and tv[g.slot(i)] < t:
             i += 1
@@ -164,8 +164,8 @@ class GyroBaselineExtractor(PulseExtractor):
         except TypeError:
             self._ring = src
             return PulseExtractor.extract(self, start_us, end_us, amp_out, var_out)
-        n = src._count
-        if n == 0 or self._gyro._count == 0:
+        n = len(src)
+        if n == 0 or len(self._gyro) == 0:
             self._ring = src
             return PulseExtractor.extract(self, start, end, amp_out, var_out)
         lo, hi = self.span(start, end)
@@ -185,22 +185,22 @@ class GyroBaselineExtractor(PulseExtractor):
         if u1 >= p_last:
             u1 = p_last - 1
         if 0 <= u0 <= u1 < n:
-            t_m = (src._tv[src.slot(u0)] + src._tv[src.slot(u1)]) // 2
+            t_m = (src.tv[src.slot(u0)] + src.tv[src.slot(u1)]) // 2
         else:
             t_m = (start + self._settle_us + end - self._guard_us) // 2
         g = self._gyro
-        gt = g._tv
-        if (gt[g.slot(0)] > src._tv[src.slot(a)] + self._gap
-                or gt[g.slot(g._count - 1)] < src._tv[src.slot(b)] - self._gap):
+        gt = g.tv
+        if (gt[g.slot(0)] > src.tv[src.slot(a)] + self._gap
+                or gt[g.slot(len(g) - 1)] < src.tv[src.slot(b)] - self._gap):
             self.plain_windows += 1               # the rates do not cover the window: the linear baseline
             self._ring = src
             return PulseExtractor.extract(self, start, end, amp_out, var_out)
-        self._cur = g.index_at_or_after(src._tv[src.slot(a)])
+        self._cur = g.index_at_or_after(src.tv[src.slot(a)])
         if self._cur > 0:
             self._cur -= 1
-        tv = src._tv
-        bv = src._bv
-        fv = src._fv
+        tv = src.tv
+        bv = src.bv
+        fv = src.fv
         q = (1.0, 0.0, 0.0, 0.0)
         q_m = q
         t_prev = tv[src.slot(a)]

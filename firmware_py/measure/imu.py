@@ -26,7 +26,7 @@ class ImuRing(Ring):
         if self.full:
             self.dropped += 1
         k = Ring.push(self, t)
-        d = self._dv
+        d = self.dv
         d[k, 0] = msg.ax * ACC_LSB
         d[k, 1] = msg.ay * ACC_LSB
         d[k, 2] = msg.az * ACC_LSB
@@ -41,6 +41,6 @@ class ImuRing(Ring):
         k = self.pop()
         if k < 0:
             return -1
-        d = self._dv
+        d = self.dv
         out[0], out[1], out[2], out[3], out[4], out[5] = d[k, 0], d[k, 1], d[k, 2], d[k, 3], d[k, 4], d[k, 5]
-        return self._tv[k]
+        return self.tv[k]

@@ -129,8 +129,8 @@ class SampleRing(Ring):
         self.flags = np.zeros(self.capacity, dtype=np.uint8)
         # memoryviews read and write single elements as Python int/float,
         # without creating numpy scalars or arrays
-        self._bv = memoryview(self.b.reshape(-1))
-        self._fv = memoryview(self.flags)
+        self.bv = memoryview(self.b.reshape(-1))
+        self.fv = memoryview(self.flags)
         self._latest = NO_TIME_US
         self.rejected = 0       # samples refused by push (bad data)
 
@@ -158,11 +158,11 @@ class SampleRing(Ring):
             return
         p = Ring.push(self, t)
         j = 3 * p
-        bv = self._bv
+        bv = self.bv
         bv[j] = x
         bv[j + 1] = y
         bv[j + 2] = z
-        self._fv[p] = fl
+        self.fv[p] = fl
         self._latest = t
 
     @property
@@ -175,7 +175,7 @@ class SampleRing(Ring):
         the newest sample (at most the ring's count; in a live stream the newest is the nearest)
         to the first at or before ``t_us`` and compares it with the one after."""
         slot = self._head
-        tv = self._tv
+        tv = self.tv
         best = -1
         for _ in range(self._count):
             slot -= 1
@@ -190,27 +190,27 @@ class SampleRing(Ring):
 
     def time_at(self, slot: int) -> int:
         """The time stamp (us) of the sample in ``slot``."""
-        return self._tv[slot]
+        return self.tv[slot]
 
     def field_at(self, slot: int) -> tuple[float, float, float]:
         """The field (T, sensor axes) of the sample in ``slot``."""
-        bv, j = self._bv, 3 * slot
+        bv, j = self.bv, 3 * slot
         return bv[j], bv[j + 1], bv[j + 2]
 
     def flip_at(self, slot: int) -> bool:
         """The set/reset (flip) state of the sample in ``slot``."""
-        return bool(self._fv[slot] & SAMPLE_FLIP)
+        return bool(self.fv[slot] & SAMPLE_FLIP)
 
     def saturated_at(self, slot: int) -> bool:
         """Whether the sample in ``slot`` was saturated."""
-        return bool(self._fv[slot] & SAMPLE_SATURATED)
+        return bool(self.fv[slot] & SAMPLE_SATURATED)
 
     @property
     def oldest_t_us(self) -> int:
         """Time of the oldest retained sample, ``NO_TIME_US`` when empty."""
         if self._count == 0:
             return NO_TIME_US
-        return self._tv[self.slot(0)]
+        return self.tv[self.slot(0)]
 
 
 class PulseExtractor:
@@ -324,7 +324,7 @@ class PulseExtractor:
             return self._fail(PULSE_INCOMPLETE, amp_out, var_out, 0, 0)
 
         ring = self._ring
-        n = ring._count
+        n = len(ring)
         if n == 0:
             return self._fail(PULSE_INCOMPLETE, amp_out, var_out, 0, 0)
 
@@ -345,12 +345,12 @@ class PulseExtractor:
             flags |= PULSE_INCOMPLETE
 
         cap = ring.capacity
-        tv = ring._tv
-        bv = ring._bv
-        fv = ring._fv
+        tv = ring.tv
+        bv = ring.bv
+        fv = ring.fv
         uv = self._used_tv
         max_rec = self.max_samples
-        base = ring._head - n                     # physical slot of logical 0 (mod cap)
+        base = ring.slot(0)                   # physical slot of logical 0 (mod cap)
 
         # gap tracking over consecutive samples, bracketing samples included
         if i_lo > 0:

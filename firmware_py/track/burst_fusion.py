@@ -161,7 +161,7 @@ class _Ori:
             self.compass_t = mag.time_at(slot)
             st = 1 if mag.flip_at(slot) else 0
             mx, my, mz = mag.field_at(slot)
-            bb = f._bv
+            bb = f.bias_v
             self.flip.observe(self.compass_t, st, mx, my, mz, (wx - bb[0], wy - bb[1], wz - bb[2]),
                               self.max_age_us)
             s = 1.0 if st else -1.0
@@ -210,7 +210,7 @@ class SourceInertial:
     def process(self, until_us: int | None = None) -> None:
         """Drain the IMU ring (up to the samples at ``until_us`` when given)."""
         ring, s6 = self.imu, self._s6
-        tv = ring._tv
+        tv = ring.tv
         while True:
             if until_us is not None and (len(ring) == 0 or tv[ring.slot(0)] > until_us):
                 return
@@ -311,7 +311,7 @@ class SensorInertial:
         phi = self._phiv
         fr = self._frv
         src = self.source
-        tv = ring._tv
+        tv = ring.tv
         while max_steps > 0:
             max_steps -= 1
             if src is not None and len(ring):
@@ -326,7 +326,7 @@ class SensorInertial:
             self.ori.step(t, ax, ay, az, wx, wy, wz, mag)
             fus.push_imu(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
             self.samples += 1
-            b = self.ori.f._bv
+            b = self.ori.f.bias_v
             wl = self.w_last
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
 
@@ -562,7 +562,7 @@ class BurstFusionTracker(MagneticTracker):
             until = now_us - self.source_wait_us
             for _, ins in self._pairs:
                 if len(ins.imu):
-                    t = ins.imu._tv[ins.imu.slot(0)]
+                    t = ins.imu.tv[ins.imu.slot(0)]
                     if t < until:
                         until = t
             src.process(until)

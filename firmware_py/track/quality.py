@@ -53,7 +53,7 @@ class PoseQuality:
         self.earth = float(cfg.earth_field_t)
         self.quiet_sigma = float(cfg.quality_quiet_sigma_t)
         self.dof = 3 * int(n_coils) - 6
-        self._rings = {ch.node: (ch.ring, ch.ring._bv) for ch in channels
+        self._rings = {ch.node: (ch.ring, ch.ring.bv) for ch in channels
                        if hasattr(ch, "ring")}
         self.last = {ch.node: 0 for ch in channels}     # the last quality per node (0 before any)
 

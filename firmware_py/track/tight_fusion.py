@@ -98,7 +98,7 @@ class _SourceSamples:
     def at(self, t: int) -> None:
         """``fo``, ``wo`` at ``t`` (us)."""
         ring, s0 = self.ring, self.s0
-        tv = ring._tv
+        tv = ring.tv
         while len(ring) and tv[ring.slot(0)] <= t:
             self.t0 = ring.pop_sample(s0)
             self.have = True
@@ -109,7 +109,7 @@ class _SourceSamples:
         if len(ring):
             k = ring.slot(0)
             t1 = tv[k]
-            d = ring._dv
+            d = ring.dv
             a = (t - self.t0) / (t1 - self.t0) if t1 > self.t0 else 0.0
             b = 1.0 - a
             fo[0], fo[1], fo[2] = b * s0[0] + a * d[k, 0], b * s0[1] + a * d[k, 1], b * s0[2] + a * d[k, 2]
@@ -253,7 +253,7 @@ class TightFusionTracker(MagneticTracker):
     def _propagate(self, s: _TightSensor, now_us: int) -> None:
         ring, s6 = s.imu, s.s6
         src = self.source
-        tv = ring._tv
+        tv = ring.tv
         ekf = s.ekf
         cfg = self.cfg
         for _ in range(self.imu_steps):

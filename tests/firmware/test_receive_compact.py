@@ -151,6 +151,6 @@ def test_compass_sample_is_the_one_nearest_the_imu_time():
     for t_imu in (1_010_000, 1_051_234, 1_100_000, 1_150_000):
         slot = quiet_sample(ring, 0, t_imu, max_age, _Quiet())
         want = min(times, key=lambda t: abs(t - t_imu))
-        assert slot >= 0 and ring._tv[slot] == want, t_imu
+        assert slot >= 0 and ring.tv[slot] == want, t_imu
     assert quiet_sample(ring, times[-1], 1_150_000, max_age, _Quiet()) == -1     # nothing newer than after_t
     assert quiet_sample(ring, 0, 900_000, max_age, _Quiet()) == -1              # nearest too far away

@@ -87,7 +87,7 @@ def test_copy_from_and_clear():
 @pytest.mark.skipif(not available(), reason="numpy memory handler API not reachable")
 def test_operations_allocate_no_array():
     r = Ring(16, (("F", 3), ("W", 3)))
-    dv = r._dv
+    dv = r.dv
     counter = NumpyAllocationCounter()
     with counter:
         for t in range(100):
