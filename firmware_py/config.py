@@ -341,6 +341,10 @@ class FirmwareConfig:
     # median), gives 93.77 mm against 93.92 and pose latency p99 5.0 ms against 7.0 (README, Tick budget)
     lm_step_tol: float = STEP_TOL
     lm_cost_tol: float = COST_TOL
+    # also stopped when an accepted step is shorter than this many standard deviations of the solution
+    # (its length in the metric of the normal equations, sqrt(d^T A d): unlike lm_cost_tol, the same
+    # whatever the size of the cost); 0 (the default): not used
+    lm_step_sigma: float = 0.0
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -419,6 +423,9 @@ class FirmwareConfig:
             v = getattr(self, name)
             need(name, isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 < v < 1,
                  f"must be a number in (0, 1), got {v!r}")
+        v = self.lm_step_sigma
+        need("lm_step_sigma", isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 <= v <= 1,
+             f"must be a number in [0, 1] (standard deviations; 0: not used), got {v!r}")
         return self
 
     def _validate_tight(self, need) -> None:
@@ -760,7 +767,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
     "tight": ("tight_fusion", "tight_source_imu_position_m", "tight_acc_noise", "tight_source_bias_states",
               "tight_lost_sigma_m", "tight_init_sigma_vel", "tight_valid_sigma_m", "tight_quiet_every",
               "tight_quiet_sigma_t"),
-    "lm": ("lm_step_tol", "lm_cost_tol"),
+    "lm": ("lm_step_tol", "lm_cost_tol", "lm_step_sigma"),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

@@ -19,7 +19,7 @@ POSE_SOLVERS = ("lm", "raab")
 def make_pose_solver(cfg, coils, gate_probability: float):
     """The solver ``cfg.pose_solver`` for ``coils`` (``field.Coil``), with the
     signal model ``cfg.field_model``, a warm start's chi-square gate and the LM's
-    stopping tolerances ``cfg.lm_step_tol``, ``cfg.lm_cost_tol``."""
+    stopping tolerances ``cfg.lm_step_tol``, ``cfg.lm_cost_tol``, ``cfg.lm_step_sigma``."""
     if cfg.pose_solver == "raab":
         from coiltrack.firmware.pose.raab import RaabTracker
 
@@ -33,4 +33,4 @@ def make_pose_solver(cfg, coils, gate_probability: float):
     from coiltrack.firmware.pose.solver import PoseSolver
 
     return PoseSolver(coils, cfg.field_model, gate_probability=gate_probability,
-                      step_tol=cfg.lm_step_tol, cost_tol=cfg.lm_cost_tol)
+                      step_tol=cfg.lm_step_tol, cost_tol=cfg.lm_cost_tol, step_sigma=cfg.lm_step_sigma)

@@ -73,17 +73,25 @@ class LevenbergMarquardt:
     cost_tol : float
         Converged when an accepted step lowers the cost by less than this
         fraction (0 disables).
+    step_sigma : float
+        Converged when an accepted step's length in the metric of ``A`` is
+        below this (0 disables): ``sqrt(d^T A d)``, which for a weighted fit
+        (``A = J^T W J``, ``A^-1`` the covariance of the parameters) is the
+        step in standard deviations of the estimate, whatever the units and
+        the size of the cost. From ``(A + lambda D) d = g``:
+        ``d^T A d = d^T g - lambda d^T D d`` (``D`` the damped diagonal).
 
     After a run: ``state`` (``LM_*``), ``cost``, ``it`` (steps taken) and
     :attr:`A` / :attr:`g`, the normal equations at the solution.
     """
 
-    def __init__(self, k: int, lam0: float, lam_max: float, iters: int, cost_tol: float):
+    def __init__(self, k: int, lam0: float, lam_max: float, iters: int, cost_tol: float, step_sigma: float = 0.0):
         self.k = k
         self.lam0 = lam0
         self.lam_max = lam_max
         self.iters = iters
         self.cost_tol = cost_tol
+        self.step_sigma2 = step_sigma * step_sigma
         self._A = [memoryview(np.zeros(k * k)), memoryview(np.zeros(k * k))]
         self._g = [memoryview(np.zeros(k)), memoryview(np.zeros(k))]
         self._solve = damped_spd_solve(k)
@@ -133,7 +141,7 @@ class LevenbergMarquardt:
                 return
         problem = self.problem
         cost_t = problem.trial(d, self._A[1 - c], self._g[1 - c])
-        small = problem.small(d)
+        small = problem.small(d) or (self.step_sigma2 > 0.0 and self._metric2(c) < self.step_sigma2)
         if math.isfinite(cost_t) and cost_t <= self.cost:
             problem.accept()
             self._cur = 1 - c
@@ -146,6 +154,17 @@ class LevenbergMarquardt:
             self.state = LM_CONVERGED          # the cost is flat to its rounding level
         else:
             self._raise_damping()
+
+    def _metric2(self, c: int) -> float:
+        """``d^T A d`` of the step just solved, from ``d^T g - lambda d^T D d`` (see ``step_sigma``)."""
+        d, g, a, k, lam = self.d, self._g[c], self._A[c], self.k, self.lam
+        dg = dd = 0.0
+        for i in range(k):
+            di = d[i]
+            dg += di * g[i]
+            da = a[i * (k + 1)]
+            dd += (da if da > 0.0 else 1.0) * di * di
+        return dg - lam * dd
 
     def _raise_damping(self) -> None:
         self.lam *= 10.0

@@ -217,7 +217,7 @@ class PoseSolver(StagedSolve):
     """
 
     def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999,
-                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL):
+                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0):
         self.signal = SignalModel(coils, model)
         n = self.signal.n
         self.n = n
@@ -250,7 +250,7 @@ class PoseSolver(StagedSolve):
         self._cbar = tuple(float(v) for v in cbar)
         reach = float(max(c.radius for c in coils)) + float(np.linalg.norm(centers - cbar, axis=1).max())
         self._fit = _PoseFit(self.signal, self._Sv, self._wv, self._curv, step_tol)
-        self._lm = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol)
+        self._lm = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
         self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
         self._inv = RobustInverse6()
         self._hemi = (1.0, 0.0, 0.0)
