@@ -578,8 +578,8 @@ class BurstFusionTracker(MagneticTracker):
         self._deferring = False
         e0 = self.solver.signal.evals
         fresh = not self.busy()
-        if not fresh:
-            super().step(now_us)
+        if not fresh or (self.ahead_us and not self._fusing()):
+            super().step(now_us)         # (a tick with nothing to fuse may solve ahead)
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
             self._fuse_step(self.budget - (self.solver.signal.evals - e0), fresh)
         self._send_fused()
@@ -590,6 +590,10 @@ class BurstFusionTracker(MagneticTracker):
             if ins.pending:
                 return True
         return False
+
+    def _ahead_wanted(self, ch) -> bool:
+        """A sensor whose fusion filter runs starts from the filter's pose, not from a burst solved ahead."""
+        return not self.inertial[ch.node].fusion.initialized
 
     def warm_start(self, ch, tp) -> bool:
         """The fusion filter's pose at the burst's middle when it has one (it

@@ -60,6 +60,30 @@ class TrackedPose:
         self.warm_R = np.eye(3)
 
 
+class _Ahead:
+    """One sensor's burst solved ahead (``[budget] solve_ahead_us``): its provisional signal
+    matrix and sigmas, and the solution (``ok``) for the burst that started at ``burst``."""
+
+    def __init__(self, n: int):
+        self.S = np.zeros((3, n))
+        self.sigma = np.zeros((3, n))
+        self.amp = np.zeros(3)
+        self.var = np.zeros(3)
+        self.position = np.zeros(3)
+        self.rotation = np.eye(3)
+        self.burst = None
+        self.ok = False
+        self.sigv = memoryview(self.sigma)
+
+
+def _closed_before(done, j: int) -> bool:
+    """Every window of ``done`` (a channel's closed flags) before coil ``j`` is closed."""
+    for c in range(j):
+        if not done[c]:
+            return False
+    return True
+
+
 class MagneticTracker:
     """Solves each burst for every sensor and reports the magnetic poses."""
 
@@ -89,6 +113,12 @@ class MagneticTracker:
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
         self.quality = PoseQuality(cfg, len(coils), self.channels)    # POSE.quality (track.quality)
+        # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no solve to do
+        self.ahead_us = cfg.solve_ahead_us
+        self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
+        self._ahead_k = -1               # the channel solved ahead now; -1: none
+        self.ahead_solves = 0            # bursts solved ahead
+        self.ahead_starts = 0            # final solves started from a burst solved ahead
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -110,7 +140,10 @@ class MagneticTracker:
         self._units = 0
         if self._next < 0:
             if not self.burst.complete:
+                if self.ahead_us:
+                    self._solve_ahead(now_us)
                 return
+            self._ahead_k = -1           # an unfinished solve ahead gives way to the burst's own
             self._burst_ticks = 0
             self._next = 0
             self._prepare_currents()
@@ -130,6 +163,71 @@ class MagneticTracker:
         if st & SOLVE_RUNNING:
             return
         self._report(self.channels[self._next], not (st & SOLVE_FAILED))
+
+    # ------------------------------------------------------------ solving ahead
+    def _solve_ahead(self, now_us: int) -> None:
+        """Within the budget, in a tick with no burst to solve: the open burst of a sensor whose
+        windows are closed but the last coil's, whose trailing baseline has been in for
+        ``solve_ahead_us``, solved on that window as far as its samples are in (the extractor's
+        amplitude from the samples so far), warm from the sensor's last solution. The burst's
+        own solve then starts from this pose (:meth:`warm_start`), a small fraction of its
+        standard deviation from its minimum instead of a cycle away: a few LM steps, and the
+        pose leaves sooner after its last sample."""
+        sched = self.schedule
+        if sched.burst_start is None or sched.commanded < sched.n:
+            return
+        if self._ahead_k >= 0:
+            st = self.solver.step(self.budget)
+            if st & SOLVE_RUNNING:
+                return
+            ah = self._ahead[self._ahead_k]
+            ah.ok = not st & SOLVE_FAILED
+            if ah.ok:
+                np.copyto(ah.position, self.solver.position)
+                np.copyto(ah.rotation, self.solver.rotation)
+                self.ahead_solves += 1
+            self._ahead_k = -1
+            return
+        j = sched.n - 1
+        start, end = int(sched.start[j]), int(sched.end[j])
+        if now_us < end + self.cfg.fall_us + self.ahead_us:
+            return
+        for k, ch in enumerate(self.channels):
+            ah = self._ahead[k]
+            if ah.burst == sched.burst_start:
+                continue
+            tp = self.poses[ch.node]
+            if not tp.have_pose or ch.done[j] or not _closed_before(ch.done, j) or not self._ahead_wanted(ch):
+                continue
+            ah.burst = sched.burst_start
+            ah.ok = False
+            self._begin_ahead(k, ch, tp, start, end)
+            return
+
+    def _begin_ahead(self, k: int, ch, tp: TrackedPose, start: int, end: int) -> None:
+        ah = self._ahead[k]
+        j = ah.S.shape[1] - 1
+        _, n_used, n_base = ch.extractor.extract(start, end, ah.amp, ah.var)
+        if n_used == 0 or n_base == 0:
+            return
+        np.copyto(ah.S, ch.S)
+        np.copyto(ah.sigma, ch.var)
+        for i in range(3):
+            ah.S[i, j] = ah.amp[i]
+            ah.sigma[i, j] = ah.var[i]
+        floor = ch.sigma_floor2
+        sig = ah.sigv
+        for i in range(3):
+            for c in range(j + 1):
+                v = sig[i, c]
+                sig[i, c] = math.sqrt(v if v > floor else floor)
+        self._prepare_currents()
+        if self.solver.begin(ah.S, self.currents, ah.sigma, tp.position, tp.position, tp.rotation) & SOLVE_RUNNING:
+            self._ahead_k = k
+
+    def _ahead_wanted(self, ch) -> bool:
+        """Hook: whether the final solve of ``ch`` would start from a burst solved ahead."""
+        return True
 
     def _prepare_currents(self) -> None:
         """The driver's measured current where it reported one, else the nominal."""
@@ -198,6 +296,12 @@ class MagneticTracker:
         magnetic solution (False before there is one: acquire)."""
         if not tp.have_pose:
             return False
+        ah = self._ahead[self.channels.index(ch)] if self.ahead_us else None
+        if ah is not None and ah.ok and ah.burst == self.schedule.burst_start:
+            np.copyto(tp.warm_p, ah.position)     # the burst solved ahead (_solve_ahead)
+            np.copyto(tp.warm_R, ah.rotation)
+            self.ahead_starts += 1
+            return True
         np.copyto(tp.warm_p, tp.position)
         np.copyto(tp.warm_R, tp.rotation)
         return True
@@ -210,5 +314,8 @@ class MagneticTracker:
         """Hook: the burst of ``ch`` was solved (``self.solver`` holds it) or not."""
 
     def counters(self) -> dict:
-        return {"cycles": self.cycles, "solve_ticks_max": self.solve_ticks_max,
-                "solve_evals_max": self.solve_evals_max, "solutions_out_of_range": self.out_of_range}
+        d = {"cycles": self.cycles, "solve_ticks_max": self.solve_ticks_max,
+             "solve_evals_max": self.solve_evals_max, "solutions_out_of_range": self.out_of_range}
+        if self.ahead_us:
+            d.update({"ahead_solves": self.ahead_solves, "ahead_starts": self.ahead_starts})
+        return d
