@@ -74,7 +74,7 @@ class SensorChannel:
         self._sigv = memoryview(self.sigma)
         self._flv = memoryview(self.flags)
         self.pmv = memoryview(self.pulse_mid)
-        self.sigma_floor2 = (0.1 * cfg.mag_sigma_t) ** 2
+        self._sigma_floor2 = (0.1 * cfg.mag_sigma_t) ** 2
 
     def push(self, msg, lsb: float) -> None:
         """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
@@ -100,7 +100,12 @@ class SensorChannel:
     def fill_sigma(self) -> None:
         """``sigma = sqrt(max(var, floor))``: the solver's weights (a window
         that found no noise is not trusted beyond a tenth of the sensor's)."""
-        var, sig, floor = self._varv, self._sigv, self.sigma_floor2
+        self.sigma_from(self._varv, self._sigv)
+
+    def sigma_from(self, var, sig) -> None:
+        """``sig = sqrt(max(var, floor))`` for variances ``var`` (3, n) of this channel's
+        windows (2-D memoryviews; ``sig`` may be ``var`` itself)."""
+        floor = self._sigma_floor2
         n = self.S.shape[1]
         for i in range(3):
             for j in range(n):

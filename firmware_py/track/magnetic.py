@@ -215,12 +215,7 @@ class MagneticTracker:
         for i in range(3):
             ah.S[i, j] = ah.amp[i]
             ah.sigma[i, j] = ah.var[i]
-        floor = ch.sigma_floor2
-        sig = ah.sigv
-        for i in range(3):
-            for c in range(j + 1):
-                v = sig[i, c]
-                sig[i, c] = math.sqrt(v if v > floor else floor)
+        ch.sigma_from(ah.sigv, ah.sigv)
         self._prepare_currents()
         if self.solver.begin(ah.S, self.currents, ah.sigma, tp.position, tp.position, tp.rotation) & SOLVE_RUNNING:
             self._ahead_k = k
@@ -296,8 +291,8 @@ class MagneticTracker:
         magnetic solution (False before there is one: acquire)."""
         if not tp.have_pose:
             return False
-        ah = self._ahead[self.channels.index(ch)] if self.ahead_us else None
-        if ah is not None and ah.ok and ah.burst == self.schedule.burst_start:
+        ah = self._ahead[self.channels.index(ch)]
+        if ah.ok and ah.burst == self.schedule.burst_start:
             np.copyto(tp.warm_p, ah.position)     # the burst solved ahead (_solve_ahead)
             np.copyto(tp.warm_R, ah.rotation)
             self.ahead_starts += 1
