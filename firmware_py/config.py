@@ -87,9 +87,9 @@ class FirmwareConfig:
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
     windows_budget: int = 4                # pulse windows closed per tick: with many sensors a pulse's
                                            # windows are all ready in the same tick (16 sensors: 1.2 ms)
-    solve_ahead_us: int = 0                # > 0: once the last pulse's trailing baseline has been in this
-                                           # long, idle ticks solve the burst on that window as far as its
-                                           # samples are in; the burst's solve then starts from it (0: off;
+    solve_ahead: bool = True               # idle ticks solve a burst once its last window's samples are
+                                           # expected in; the burst uses that solution when its inputs are
+                                           # the same bit for bit, else solves as before (pulsed excitation;
                                            # track.magnetic.MagneticTracker)
     solve_gate_probability: float = 1.0    # a warm-started solve whose cost fails this chi-square
                                            # probability is solved again from acquisition (1.0: never;
@@ -365,11 +365,7 @@ class FirmwareConfig:
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v >= 1,
                  f"must be a positive integer, got {v!r}")
-        v = self.solve_ahead_us
-        need("solve_ahead_us", isinstance(v, int) and not isinstance(v, bool) and 0 <= v < self.baseline_us,
-             f"must be an integer in 0..baseline_us - 1 ({self.baseline_us - 1}) us (0: off), got {v!r}")
-        need("solve_ahead_us", v == 0 or self.excitation == "pulsed",
-             "needs pulsed excitation (an AC block has no trailing baseline to solve ahead of)")
+        need("solve_ahead", isinstance(self.solve_ahead, bool), f"must be true or false, got {self.solve_ahead!r}")
         for name in ("node_id", "coil_driver_id"):
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 255,
@@ -732,7 +728,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
               "earth_field_max_t"),
     "limits": ("max_current_a", "coil_max_duty", "coil_duty_window_us", "current_tolerance_a"),
     "budget": ("track_budget_evals", "replay_budget_steps", "solve_gate_probability", "windows_budget",
-               "solve_ahead_us"),
+               "solve_ahead"),
     "adaptive": ("actuation", "single_coil_fusion", "sigma_max_pos_m", "sigma_min_pos_m", "sigma_max_ori_deg",
                  "sigma_min_ori_deg", "sigma_range_ref_m", "sigma_range_exp_pos", "sigma_range_exp_ori",
                  "adaptive_currents_a", "adaptive_min_current_a", "adaptive_max_current_a",

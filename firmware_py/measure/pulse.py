@@ -268,6 +268,19 @@ class PulseExtractor:
         """True once a sample later than ``end + fall + baseline`` has arrived."""
         return self._ring.latest_t_us > end_us + self._fall_us + self._baseline_us
 
+    def expect_complete(self, start_us: int, end_us: int) -> bool:
+        """Whether every sample the window reads is expected in: the next sample, one interval
+        (the newest between two samples) after the newest, falls after ``end + fall + baseline``.
+        A prediction for a caller that works ahead (``track.magnetic`` solving ahead): a late
+        or skipped sample can prove it wrong, so what was computed from it must be checked
+        against the window's amplitude once :meth:`ready`."""
+        ring = self._ring
+        slot = ring.peek(1)
+        if slot < 0:
+            return False
+        t = ring.latest_t_us
+        return 2 * t - ring.tv[slot] > end_us + self._fall_us + self._baseline_us
+
     # --------------------------------------------------------- introspection
     def last_used_times(self, out) -> int:
         """Write the times of the in-pulse samples used by the last extract

@@ -216,6 +216,8 @@ class PoseSolver(StagedSolve):
     every evaluation of the model.
     """
 
+    memoryless = True      # begin resets every part (the LM, the acquisition, the warm-start checks)
+
     def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999,
                  step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0):
         self.signal = SignalModel(coils, model)

@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from coiltrack.firmware.linalg import float_view
 
-__all__ = ["Staged", "StagedSolve", "run_units", "SOLVE_RUNNING"]
+__all__ = ["Staged", "StagedSolve", "SolveResult", "run_units", "SOLVE_RUNNING"]
 
 #: a solve's status while its units remain (one of the ``SOLVE_*`` flags of ``pose.solver``)
 SOLVE_RUNNING = 16
@@ -37,6 +39,14 @@ class Staged:
         return self.next_unit is None
 
 
+def _copy_result(src, dst) -> None:
+    np.copyto(dst.position, src.position)
+    np.copyto(dst.rotation, src.rotation)
+    np.copyto(dst.covariance, src.covariance)
+    dst.iterations, dst.cost, dst.converged = src.iterations, src.cost, src.converged
+    dst.status, dst.solve_evals = src.status, src.solve_evals
+
+
 def run_units(job: Staged, signal, budget: int) -> int:
     """Run ``job``'s units while the next one's charge fits in ``budget``;
     returns the field evaluations done (counted by ``signal.evals``), at
@@ -51,6 +61,22 @@ def run_units(job: Staged, signal, budget: int) -> int:
         spent += cost
     job.units_last = spent
     return signal.evals - start
+
+
+class SolveResult:
+    """A finished solve's results kept aside (allocated once): ``position`` (3,) m, ``rotation``
+    (3, 3), ``covariance`` (6, 6), ``iterations``, ``cost``, ``converged``, ``status`` (the
+    ``SOLVE_*`` flags) and ``solve_evals`` (:meth:`StagedSolve.save`, :meth:`StagedSolve.load`)."""
+
+    def __init__(self):
+        self.position = np.zeros(3)
+        self.rotation = np.eye(3)
+        self.covariance = np.zeros((6, 6))
+        self.iterations = 0
+        self.cost = 0.0
+        self.converged = False
+        self.status = 0
+        self.solve_evals = 0
 
 
 class StagedSolve(Staged):
@@ -77,6 +103,19 @@ class StagedSolve(Staged):
         if used > self.max_evals_per_step:
             self.max_evals_per_step = used
         return SOLVE_RUNNING if self.next_unit is not None else self.status
+
+    #: a solve's result depends on nothing but the arguments of its ``begin`` (no state is kept
+    #: from one solve to the next), so a solve run early on the same arguments is the same solve
+    memoryless = False
+
+    def save(self, out: SolveResult) -> None:
+        """Copy the finished solve's results into ``out`` (without allocating)."""
+        _copy_result(self, out)
+
+    def load(self, res: SolveResult) -> None:
+        """Make ``res`` (a :meth:`save` of a finished solve) the solver's results."""
+        self._then(None)
+        _copy_result(res, self)
 
     def reset_step_stats(self) -> None:
         self.evals_last_step = 0

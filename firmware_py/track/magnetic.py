@@ -30,6 +30,7 @@ from coiltrack.protocol.schema import POSE_VALID
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
 from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
+from coiltrack.firmware.pose.staged import SolveResult
 from coiltrack.firmware.rotation import quat_tuple
 from coiltrack.firmware.track.status import COIL_FATAL, input_status
 from coiltrack.firmware.track.quality import PoseQuality
@@ -61,19 +62,34 @@ class TrackedPose:
 
 
 class _Ahead:
-    """One sensor's burst solved ahead (``[budget] solve_ahead_us``): its provisional signal
-    matrix and sigmas, and the solution (``ok``) for the burst that started at ``burst``."""
+    """One sensor's burst solved ahead (``[budget] solve_ahead``): the inputs its solve began
+    with (signal matrix, sigmas, currents, hemisphere and warm start, copied) for the burst
+    that started at ``burst``, and, once finished (``done``), its results."""
 
     def __init__(self, n: int):
         self.S = np.zeros((3, n))
         self.sigma = np.zeros((3, n))
+        self.currents = np.zeros(n)
+        self.hemisphere = np.zeros(3)
+        self.warm_p = np.zeros(3)
+        self.warm_R = np.eye(3)
         self.amp = np.zeros(3)
         self.var = np.zeros(3)
-        self.position = np.zeros(3)
-        self.rotation = np.eye(3)
+        self.result = SolveResult()
         self.burst = None
-        self.ok = False
+        self.done = False
         self.sigv = memoryview(self.sigma)
+        self.curv = memoryview(self.currents)
+        self._views = tuple(memoryview(a) for a in (self.S, self.sigma, self.currents, self.hemisphere,
+                                                     self.warm_p, self.warm_R))
+
+    def same(self, views) -> bool:
+        """Whether the burst's inputs ``views`` (memoryviews of S, sigma, currents, hemisphere,
+        warm_p, warm_R) equal those this solve began with, element by element."""
+        for a, b in zip(self._views, views):
+            if a != b:
+                return False
+        return True
 
 
 def _closed_before(done, j: int) -> bool:
@@ -113,12 +129,16 @@ class MagneticTracker:
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
         self.quality = PoseQuality(cfg, len(coils), self.channels)    # POSE.quality (track.quality)
-        # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no solve to do
-        self.ahead_us = cfg.solve_ahead_us
+        # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
+        self.ahead = cfg.solve_ahead and cfg.excitation == "pulsed" and self.solver.memoryless
         self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
-        self._ahead_k = -1               # the channel solved ahead now; -1: none
+        self._inputs = tuple(tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.position,
+                                                           tp.warm_p, tp.warm_R))
+                             for ch, tp in ((ch, self.poses[ch.node]) for ch in self.channels))
+        self._ahead_k = -1               # the channel whose burst the solver is solving ahead; -1: none
         self.ahead_solves = 0            # bursts solved ahead
-        self.ahead_starts = 0            # final solves started from a burst solved ahead
+        self.ahead_used = 0              # of which the burst's solve (the same inputs)
+        self.ahead_missed = 0            # of which not (a sample or a current came in late)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -140,13 +160,12 @@ class MagneticTracker:
         self._units = 0
         if self._next < 0:
             if not self.burst.complete:
-                if self.ahead_us:
-                    self._solve_ahead(now_us)
+                if self.ahead:
+                    self._solve_ahead()
                 return
-            self._ahead_k = -1           # an unfinished solve ahead gives way to the burst's own
             self._burst_ticks = 0
             self._next = 0
-            self._prepare_currents()
+            self._prepare_currents(self._curv)
             self._handover = True        # the first sensor's start: charged as a hand-over
         else:
             self._burst_ticks += 1
@@ -156,77 +175,111 @@ class MagneticTracker:
             self._begin(self.channels[self._next])
             if self._next < 0 or self._handover or self._units >= self.budget:
                 return
-        st = self.solver.step(self.budget - self._units)
-        self._units += self.solver.units_last
-        if self.solver.solve_evals > self.solve_evals_max and not st & SOLVE_RUNNING:
-            self.solve_evals_max = self.solver.solve_evals
+        st = self._step_solver()
         if st & SOLVE_RUNNING:
             return
+        if self.solver.solve_evals > self.solve_evals_max:
+            self.solve_evals_max = self.solver.solve_evals
         self._report(self.channels[self._next], not (st & SOLVE_FAILED))
 
+    def _step_solver(self) -> int:
+        """The solve's steps with what is left of the tick's budget; its status."""
+        st = self.solver.step(self.budget - self._units)
+        self._units += self.solver.units_last
+        return st
+
     # ------------------------------------------------------------ solving ahead
-    def _solve_ahead(self, now_us: int) -> None:
+    def _solve_ahead(self) -> None:
         """Within the budget, in a tick with no burst to solve: the open burst of a sensor whose
-        windows are closed but the last coil's, whose trailing baseline has been in for
-        ``solve_ahead_us``, solved on that window as far as its samples are in (the extractor's
-        amplitude from the samples so far), warm from the sensor's last solution. The burst's
-        own solve then starts from this pose (:meth:`warm_start`), a small fraction of its
-        standard deviation from its minimum instead of a cycle away: a few LM steps, and the
-        pose leaves sooner after its last sample."""
+        windows are closed but the last coil's, and whose last window has every sample it reads
+        in (the next sample is expected after it: ``PulseExtractor.expect_complete``), solved
+        on the inputs its own solve will have, from the start that solve will take
+        (:meth:`warm_start`). At 120 Hz that is one sample interval (8.3 ms) before the window
+        is ready and the burst completes, time for the whole warm solve. The burst's solve
+        then uses it if its inputs are the same element by element (:meth:`_use_ahead`), so
+        every pose is the one solved in turn, and it leaves in the tick the burst completes."""
         sched = self.schedule
-        if sched.burst_start is None or sched.commanded < sched.n:
-            return
         if self._ahead_k >= 0:
-            st = self.solver.step(self.budget)
-            if st & SOLVE_RUNNING:
-                return
-            ah = self._ahead[self._ahead_k]
-            ah.ok = not st & SOLVE_FAILED
-            if ah.ok:
-                np.copyto(ah.position, self.solver.position)
-                np.copyto(ah.rotation, self.solver.rotation)
-                self.ahead_solves += 1
-            self._ahead_k = -1
+            st = self._step_solver()
+            if not st & SOLVE_RUNNING:
+                ah = self._ahead[self._ahead_k]
+                self.solver.save(ah.result)
+                ah.done = True
+                self._ahead_k = -1
+            return
+        if sched.burst_start is None or sched.commanded < sched.n:
             return
         j = sched.n - 1
         start, end = int(sched.start[j]), int(sched.end[j])
-        if now_us < end + self.cfg.fall_us + self.ahead_us:
-            return
         for k, ch in enumerate(self.channels):
             ah = self._ahead[k]
-            if ah.burst == sched.burst_start:
+            if ah.burst == sched.burst_start or ch.done[j] or not _closed_before(ch.done, j):
                 continue
-            tp = self.poses[ch.node]
-            if not tp.have_pose or ch.done[j] or not _closed_before(ch.done, j) or not self._ahead_wanted(ch):
+            if not ch.extractor.expect_complete(start, end):
                 continue
             ah.burst = sched.burst_start
-            ah.ok = False
-            self._begin_ahead(k, ch, tp, start, end)
+            ah.done = False
+            tp = self.poses[ch.node]
+            if self._ahead_wanted(ch) and self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
+                self._units = self.solver.n          # the start, charged as a hand-over
+                self._solve_ahead()
             return
 
-    def _begin_ahead(self, k: int, ch, tp: TrackedPose, start: int, end: int) -> None:
+    def _begin_ahead(self, k: int, ch, tp: TrackedPose, start: int, end: int) -> bool:
+        """Begin the solve of ``ch``'s burst on its last window extracted now; False if none."""
         ah = self._ahead[k]
         j = ah.S.shape[1] - 1
         _, n_used, n_base = ch.extractor.extract(start, end, ah.amp, ah.var)
         if n_used == 0 or n_base == 0:
-            return
+            return False
         np.copyto(ah.S, ch.S)
         np.copyto(ah.sigma, ch.var)
         for i in range(3):
             ah.S[i, j] = ah.amp[i]
             ah.sigma[i, j] = ah.var[i]
         ch.sigma_from(ah.sigv, ah.sigv)
-        self._prepare_currents()
-        if self.solver.begin(ah.S, self.currents, ah.sigma, tp.position, tp.position, tp.rotation) & SOLVE_RUNNING:
-            self._ahead_k = k
+        self._prepare_currents(ah.curv)
+        np.copyto(ah.hemisphere, tp.position)
+        np.copyto(ah.warm_p, tp.warm_p)
+        np.copyto(ah.warm_R, tp.warm_R)
+        if not self.solver.begin(ah.S, ah.currents, ah.sigma, ah.hemisphere, ah.warm_p, ah.warm_R) & SOLVE_RUNNING:
+            return False
+        self._ahead_k = k
+        self.ahead_solves += 1
+        return True
+
+    def _use_ahead(self, ch) -> bool:
+        """In the burst's own turn (:meth:`_begin`, sigmas and warm start in place): whether
+        its solve is the one begun ahead on the same inputs, still running (it goes on as this
+        burst's) or finished (its pose is reported now). Otherwise a solve ahead still running
+        gives way (False: solve as usual)."""
+        k = self._next
+        ah = self._ahead[k]
+        running = self._ahead_k
+        self._ahead_k = -1
+        if ah.burst != self.schedule.burst_start or not (ah.done or running == k):
+            return False
+        ah.burst = None
+        if not ah.same(self._inputs[k]):
+            self.ahead_missed += 1
+            return False
+        self.ahead_used += 1
+        if running == k:
+            return True
+        self.solver.load(ah.result)
+        if ah.result.solve_evals > self.solve_evals_max:
+            self.solve_evals_max = ah.result.solve_evals
+        self._report(ch, not (ah.result.status & SOLVE_FAILED))
+        return True
 
     def _ahead_wanted(self, ch) -> bool:
         """Hook: whether the final solve of ``ch`` would start from a burst solved ahead."""
         return True
 
-    def _prepare_currents(self) -> None:
-        """The driver's measured current where it reported one, else the nominal."""
-        cur, mc, nom = self._curv, self._measv, self._nomv
+    def _prepare_currents(self, cur) -> None:
+        """Into ``cur`` (memoryview (n,)): the driver's measured current where it reported one,
+        else the nominal."""
+        mc, nom = self._measv, self._nomv
         for j in range(len(cur)):
             cur[j] = mc[j] if mc[j] != 0.0 else nom[j]
 
@@ -243,7 +296,11 @@ class MagneticTracker:
             return
         ch.fill_sigma()
         tp = self.poses[ch.node]
-        if self.warm_start(ch, tp):
+        warm = self.warm_start(ch, tp)
+        if warm and self.ahead and self._use_ahead(ch):
+            return
+        self._ahead_k = -1                   # a solve ahead still running gives way
+        if warm:
             st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.position, tp.warm_p, tp.warm_R)
         else:
             st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.hemisphere)
@@ -291,12 +348,6 @@ class MagneticTracker:
         magnetic solution (False before there is one: acquire)."""
         if not tp.have_pose:
             return False
-        ah = self._ahead[self.channels.index(ch)]
-        if ah.ok and ah.burst == self.schedule.burst_start:
-            np.copyto(tp.warm_p, ah.position)     # the burst solved ahead (_solve_ahead)
-            np.copyto(tp.warm_R, ah.rotation)
-            self.ahead_starts += 1
-            return True
         np.copyto(tp.warm_p, tp.position)
         np.copyto(tp.warm_R, tp.rotation)
         return True
@@ -311,6 +362,7 @@ class MagneticTracker:
     def counters(self) -> dict:
         d = {"cycles": self.cycles, "solve_ticks_max": self.solve_ticks_max,
              "solve_evals_max": self.solve_evals_max, "solutions_out_of_range": self.out_of_range}
-        if self.ahead_us:
-            d.update({"ahead_solves": self.ahead_solves, "ahead_starts": self.ahead_starts})
+        if self.ahead:
+            d.update({"ahead_solves": self.ahead_solves, "ahead_used": self.ahead_used,
+                      "ahead_missed": self.ahead_missed})
         return d
