@@ -136,6 +136,7 @@ class MagneticTracker:
                                                            tp.warm_p, tp.warm_R))
                              for ch, tp in ((ch, self.poses[ch.node]) for ch in self.channels))
         self._ahead_k = -1               # the channel whose burst the solver is solving ahead; -1: none
+        self._ahead_seen = None          # the burst every channel has had its turn to be solved ahead for
         self.ahead_solves = 0            # bursts solved ahead
         self.ahead_used = 0              # of which the burst's solve (the same inputs)
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
@@ -207,23 +208,31 @@ class MagneticTracker:
                 ah.done = True
                 self._ahead_k = -1
             return
-        if sched.burst_start is None or sched.commanded < sched.n:
+        burst = sched.burst_start
+        if burst is None or burst == self._ahead_seen or sched.commanded < sched.n:
             return
         j = sched.n - 1
         start, end = int(sched.start[j]), int(sched.end[j])
+        seen = True
         for k, ch in enumerate(self.channels):
             ah = self._ahead[k]
-            if ah.burst == sched.burst_start or ch.done[j] or not _closed_before(ch.done, j):
+            if ah.burst == burst:
                 continue
-            if not ch.extractor.expect_complete(start, end):
+            if not self._ahead_wanted(ch):
+                ah.burst, ah.done = burst, False
                 continue
-            ah.burst = sched.burst_start
+            seen = False
+            if ch.done[j] or not _closed_before(ch.done, j) or not ch.extractor.expect_complete(start, end):
+                continue
+            ah.burst = burst
             ah.done = False
             tp = self.poses[ch.node]
-            if self._ahead_wanted(ch) and self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
+            if self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
                 self._units = self.solver.n          # the start, charged as a hand-over
                 self._solve_ahead()
             return
+        if seen:
+            self._ahead_seen = burst
 
     def _begin_ahead(self, k: int, ch, tp: TrackedPose, start: int, end: int) -> bool:
         """Begin the solve of ``ch``'s burst on its last window extracted now; False if none."""
