@@ -125,7 +125,7 @@ from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.covariance import RobustInverse6
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
                                             SOLVE_OK, SOLVE_REACQUIRED, SOLVE_RUNNING)
-from coiltrack.firmware.pose.staged import StagedSolve
+from coiltrack.firmware.pose.staged import StagedSolve, init_results
 
 __all__ = ["RaabTracker", "error_angles", "position_update", "orientation_update", "angles_from_pose",
            "POLE_COS", "MAX_STEP"]
@@ -405,15 +405,8 @@ class RaabTracker(StagedSolve):
         self._start_e = (0.0, 0.0, 0.0) if start_euler is None else tuple(float(v) for v in start_euler)
         centers = np.array([c.center for c in coils], dtype=float)
         self._cbar = tuple(float(v) for v in centers.mean(axis=0))
-        # results
-        self.position = np.zeros(3)
-        self.rotation = np.eye(3)
-        self.covariance = np.zeros((6, 6))
+        init_results(self)              # position, rotation, covariance, iterations, cost, status
         self._cov = flat(self.covariance)
-        self.iterations = 0
-        self.cost = 0.0
-        self.converged = False
-        self.status = SOLVE_OK
         self.angles = memoryview(np.zeros(6))
         # inputs, signal layout [3 j + i]
         self._Sv = memoryview(np.zeros(3 * n))

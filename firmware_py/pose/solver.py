@@ -51,7 +51,7 @@ from coiltrack.firmware.pose.acquire import Acquisition
 from coiltrack.firmware.pose.covariance import RobustInverse6
 from coiltrack.firmware.pose.lm import LM_CONVERGED, LM_RUNNING, LevenbergMarquardt
 from coiltrack.firmware.pose.staged import SOLVE_RUNNING as _RUNNING
-from coiltrack.firmware.pose.staged import StagedSolve
+from coiltrack.firmware.pose.staged import StagedSolve, init_results
 
 __all__ = ["PoseSolver", "SOLVE_OK", "SOLVE_BAD_INPUT", "SOLVE_NO_START", "SOLVE_NOT_CONVERGED",
            "SOLVE_NONFINITE", "SOLVE_RUNNING", "SOLVE_REACQUIRED"]
@@ -227,14 +227,7 @@ class PoseSolver(StagedSolve):
         self.exact = model == "exact"
         self.iters = int(iters)
         self.gate = _gate(n, gate_probability)
-        # results
-        self.position = np.zeros(3)
-        self.rotation = np.eye(3)
-        self.covariance = np.zeros((6, 6))
-        self.iterations = 0
-        self.cost = 0.0
-        self.converged = False
-        self.status = SOLVE_OK
+        init_results(self)              # position, rotation, covariance, iterations, cost, status
         self._cov = flat(self.covariance)
         # per-solve inputs in the signal layout [3 j + i]
         self._S = np.zeros((n, 3))

@@ -19,7 +19,7 @@ import numpy as np
 
 from coiltrack.firmware.linalg import float_view
 
-__all__ = ["Staged", "StagedSolve", "SolveResult", "run_units", "SOLVE_RUNNING"]
+__all__ = ["Staged", "StagedSolve", "SolveResult", "init_results", "run_units", "SOLVE_RUNNING"]
 
 #: a solve's status while its units remain (one of the ``SOLVE_*`` flags of ``pose.solver``)
 SOLVE_RUNNING = 16
@@ -69,14 +69,19 @@ class SolveResult:
     ``SOLVE_*`` flags) and ``solve_evals`` (:meth:`StagedSolve.save`, :meth:`StagedSolve.load`)."""
 
     def __init__(self):
-        self.position = np.zeros(3)
-        self.rotation = np.eye(3)
-        self.covariance = np.zeros((6, 6))
-        self.iterations = 0
-        self.cost = 0.0
-        self.converged = False
-        self.status = 0
-        self.solve_evals = 0
+        init_results(self)
+
+
+def init_results(obj) -> None:
+    """Give ``obj`` (a :class:`SolveResult` or a solver) the results of a solve, zero."""
+    obj.position = np.zeros(3)
+    obj.rotation = np.eye(3)
+    obj.covariance = np.zeros((6, 6))
+    obj.iterations = 0
+    obj.cost = 0.0
+    obj.converged = False
+    obj.status = 0
+    obj.solve_evals = 0
 
 
 class StagedSolve(Staged):
