@@ -578,7 +578,7 @@ class BurstFusionTracker(MagneticTracker):
         self._deferring = False
         e0 = self.solver.signal.evals
         fresh = not self.busy()
-        if not fresh or (self.ahead and not self._fusing()):
+        if not fresh or (self.ahead and self._ahead_pending() and not self._fusing()):
             super().step(now_us)         # (a tick with nothing to fuse may solve ahead)
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
             self._fuse_step(self.budget - (self.solver.signal.evals - e0), fresh)

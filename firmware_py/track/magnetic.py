@@ -234,6 +234,11 @@ class MagneticTracker:
         if seen:
             self._ahead_seen = burst
 
+    def _ahead_pending(self) -> bool:
+        """A solve ahead runs, or sensors of the open burst have not had their turn yet."""
+        b = self.schedule.burst_start
+        return self._ahead_k >= 0 or (b is not None and b != self._ahead_seen)
+
     def _begin_ahead(self, k: int, ch, tp: TrackedPose, start: int, end: int) -> bool:
         """Begin the solve of ``ch``'s burst on its last window extracted now; False if none."""
         ah = self._ahead[k]
