@@ -279,6 +279,7 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
 
     from .alloc import NumpyAllocationCounter, available
     from .framelog import replay
+    from .work_classes import TickWork, summarise
 
     warm = int(warmup_s * 1e6)
     tick_ns, phase_ns, imu_ticks, cpu_ns = [], [[] for _ in PHASES], [], []
@@ -287,6 +288,7 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
     cpu = time.thread_time_ns
     state = {}
     work = {"evals": 0, "replay": 0}
+    kinds = []                       # each measured tick's work class (tools.work_classes)
     # --worst: every tick's CPU time, stages, evaluations, garbage collections and tracker position
     per_tick = []
     gcs = [0]
@@ -306,12 +308,12 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
         rx = fw.receiver
         models = tuple(instances(fw, SignalModel))     # every field evaluation goes through one of these
         filters = tuple(instances(fw, FusionFilter))
+        tw = TickWork(fw, instances)
 
         def timed(t):
             n0 = rx.imu_received
             e0 = sum(m.evals for m in models)
-            for f in filters:
-                f.last_step_units = 0
+            tw.begin()
             at = _tracker_at(fw) if worst else None
             g0 = gcs[0]
             state["in_tick"] = t >= warm
@@ -321,8 +323,10 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
             dt = clk() - a
             dc = cpu() - c
             state["in_tick"] = False
+            kind = tw.end()
             if t >= warm:
                 cpu_ns.append(dc)
+                kinds.append(kind)
                 ev = sum(m.evals for m in models) - e0
                 work["evals"] = max(work["evals"], ev)
                 if worst:
@@ -373,6 +377,9 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
         rep["phases_us"][name]["active_median"] = round(float(np.median(active)) / 1e3, 2) if active.size else None
         rep["phases_us"][name]["active_ticks"] = int(active.size)
     rep["deadline_misses"] = int(sum(1 for d in tick_ns if d >= rep["tick_us"] * 1000))
+    wc = summarise(cpu_ns, kinds)
+    rep["work_classes"] = wc["classes"]
+    rep["p999_work_classes"] = wc["p999_classes"]
     # the interpreter's garbage collections that ran inside measured ticks (a board has none):
     # they count in the tick times above; here they are told apart from the firmware's work
     rep["gc_collections_in_ticks"] = len(gc_ns)
@@ -433,6 +440,13 @@ def format_table(rep: dict) -> str:
         lines.append(f"  {name:<21} median {s['median']} us, p99 {s['p99']} us, max {s['max']} us; "
                      f"when active: median {s['active_median']} us over {s['active_ticks']} ticks")
     lines.append(f"  deadline misses       {rep['deadline_misses']}")
+    if rep.get("work_classes"):
+        lines.append("  work classes          what a tick did (tools.work_classes), CPU time; costliest maximum first:")
+        for name, w in list(rep["work_classes"].items())[:8]:
+            lines.append(f"    {name:<32} {w['ticks']:6d} ticks  median {w['cpu_us_median']:7.1f}  "
+                         f"p99 {w['cpu_us_p99']:7.1f}  max {w['cpu_us_max']:7.1f} us")
+        top = ", ".join(f"{k} {v}" for k, v in rep["p999_work_classes"].items())
+        lines.append(f"    at or above the p99.9: {top}")
     lines.append(f"  garbage collections   {rep['gc_collections_in_ticks']} inside measured ticks "
                  f"(the longest {rep['gc_us_max']} us CPU time; counted in the tick times)")
     lines.append(f"  allocations           {rep.get('allocs_per_tick')} numpy arrays per tick "

@@ -369,6 +369,7 @@ class FusionFilter:
         self._itv, self._idv, self._icap = self.imu.tv, self.imu.dv, self.imu.capacity
         self._otv, self._odv = self.out.tv, self.out.dv
         self.out_dropped = 0
+        self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         # bookkeeping
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
@@ -758,6 +759,7 @@ class FusionFilter:
         self._shist.drop_newer_than(t_ref_us)
         self._measurement(sh, q, R_ms, C)
         self._pending = (t_ref_us, q, R_ms, C, final)
+        self.prepared += 1
         return FUS_PREPARED
 
     def apply_magnetic_update(self) -> int:

@@ -123,6 +123,7 @@ class WindowCloser:
         self.timeout_us = timeout_us       # a window is closed this long after its end, complete or not
         self.tx = tx
         self.flagged = 0
+        self.closed = 0                    # windows closed (extracted)
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
         """Every channel has the samples after the window, or it timed out."""
@@ -143,6 +144,7 @@ class WindowCloser:
         ch.var[:, coil] = ch.amp_var
         ch.flags[coil] = flags
         ch.done[coil] = True
+        self.closed += 1
         if flags:
             self.flagged += 1
         first = last = 0
