@@ -87,6 +87,13 @@ class FirmwareConfig:
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
     windows_budget: int = 4                # pulse windows closed per tick: with many sensors a pulse's
                                            # windows are all ready in the same tick (16 sensors: 1.2 ms)
+    # the tick's other work charged against track_budget_evals, in field evaluations (0: not charged,
+    # the solve takes the whole budget): a pulse window closed in the tick and an IMU sample the fused
+    # tracker processed in it (track.magnetic, track.burst_fusion). A board whose worst tick must stay
+    # under a bound sets them from `coiltrack perf`'s work classes; the solve then waits for ticks with
+    # room, and its pose leaves later
+    window_evals: int = 0
+    imu_sample_evals: int = 0
     solve_ahead: bool = True               # idle ticks solve a burst once its last window's samples are
                                            # expected in; the burst uses that solution when its inputs are
                                            # the same bit for bit, else solves as before (pulsed excitation;
@@ -365,6 +372,10 @@ class FirmwareConfig:
             v = getattr(self, name)
             need(name, isinstance(v, int) and not isinstance(v, bool) and v >= 1,
                  f"must be a positive integer, got {v!r}")
+        for name in ("window_evals", "imu_sample_evals"):
+            v = getattr(self, name)
+            need(name, isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= 1_000_000,
+                 f"must be an integer in 0..1000000 (field evaluations), got {v!r}")
         need("solve_ahead", isinstance(self.solve_ahead, bool), f"must be true or false, got {self.solve_ahead!r}")
         for name in ("node_id", "coil_driver_id"):
             v = getattr(self, name)
@@ -728,7 +739,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
               "earth_field_max_t"),
     "limits": ("max_current_a", "coil_max_duty", "coil_duty_window_us", "current_tolerance_a"),
     "budget": ("track_budget_evals", "replay_budget_steps", "solve_gate_probability", "windows_budget",
-               "solve_ahead"),
+               "solve_ahead", "window_evals", "imu_sample_evals"),
     "adaptive": ("actuation", "single_coil_fusion", "sigma_max_pos_m", "sigma_min_pos_m", "sigma_max_ori_deg",
                  "sigma_min_ori_deg", "sigma_range_ref_m", "sigma_range_exp_pos", "sigma_range_exp_ori",
                  "adaptive_currents_a", "adaptive_min_current_a", "adaptive_max_current_a",

@@ -20,8 +20,10 @@ class BurstMeasurement:
         self.n = schedule.n
         self.budget = int(budget)
         self.complete = False
+        self.closed_last = 0             # windows closed by the last step (the tracker charges them)
 
     def step(self, now_us: int) -> None:
+        self.closed_last = 0
         sched = self.schedule
         if sched.burst_start is None or self.complete or sched.commanded < self.n:
             return
@@ -48,6 +50,7 @@ class BurstMeasurement:
                         return
                     closer.close_one(ch, j, pid, start, end)
                     left -= 1
+                    self.closed_last += 1
         self.complete = all_done
 
     def release(self) -> None:

@@ -53,6 +53,10 @@ class _ACMixin:
             self._status |= POSE_DISTORTED
         super()._report(ch, solved)
 
+    def _window_charges(self) -> int:
+        """AC blocks close no pulse windows."""
+        return 0
+
     def counters(self) -> dict:
         d = super().counters()
         d.update(self.measure.counters())
@@ -105,14 +109,18 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         self._plan_snapshots(now_us)
         if self.source is not None:
             self.source.process()
+        n = 0
         for ch, ins in self._pairs:
+            n -= ins.samples
             ins.process(self.measure.earth[ch.node])
+            n += ins.samples
+        self._imu_last = n
         e0 = self.solver.signal.evals
         fresh = not self.busy()
         if not fresh:
             MagneticTracker.step(self, now_us)
         if not self.busy():
-            self._fuse_step(self.budget - (self.solver.signal.evals - e0), fresh)
+            self._fuse_step(self.budget - self._tick_charges() - (self.solver.signal.evals - e0), fresh)
         self._send_fused()
 
     def warm_start(self, ch, tp) -> bool:

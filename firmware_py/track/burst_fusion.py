@@ -524,6 +524,8 @@ class BurstFusionTracker(MagneticTracker):
         self.imu_steps = cfg.imu_steps_per_tick
         self.replay_budget = cfg.replay_budget_steps
         self.deferred = 0               # ticks whose fusion step waited behind IMU samples
+        self.imu_sample_evals = cfg.imu_sample_evals
+        self._imu_last = 0              # IMU samples processed in this tick (charged: _tick_charges)
         self._deferring = False
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
@@ -566,6 +568,7 @@ class BurstFusionTracker(MagneticTracker):
                     if t < until:
                         until = t
             src.process(until)
+        self._imu_last = n1 - n0
         # bounded tick: a tick that propagated IMU samples (the fused tick) leaves the fusion
         # step (the update or a replay step) to the next one, at most one tick in a row (so it
         # always progresses). (Putting off the solve steps too changes the fused figures for the
@@ -581,8 +584,12 @@ class BurstFusionTracker(MagneticTracker):
         if not fresh or (self.ahead and self._ahead_pending() and not self._fusing()):
             super().step(now_us)         # (a tick with nothing to fuse may solve ahead)
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
-            self._fuse_step(self.budget - (self.solver.signal.evals - e0), fresh)
+            self._fuse_step(self.budget - self._tick_charges() - (self.solver.signal.evals - e0), fresh)
         self._send_fused()
+
+    def _tick_charges(self) -> int:
+        """The windows closed and ``imu_sample_evals`` per IMU sample processed in this tick."""
+        return super()._tick_charges() + self.imu_sample_evals * self._imu_last
 
     def _fusing(self) -> bool:
         """A sensor's delayed magnetic update (re-solve, update or replay) is in progress."""

@@ -18,6 +18,13 @@ is charged the same and the solve steps on in that tick with what is left (befor
 tick did the start alone and the solve's heaviest tick came one tick later, where an
 IMU sample, at the same phase of every burst cycle, usually arrives too);
 :meth:`MagneticTracker.on_solution` is the hook a fusing tracker extends.
+
+The tick's other work can be charged against the same budget (``[budget] window_evals``
+per pulse window the measurement stage closed in the tick, ``imu_sample_evals`` per IMU
+sample a fusing tracker processed in it; 0 by default: not charged, and the rule above that
+a unit always runs holds). Once anything is charged, a unit or hand-over that does not fit
+in what is left waits for the next tick, so a tick's field evaluations and charges together
+never exceed ``track_budget_evals``.
 """
 from __future__ import annotations
 
@@ -120,6 +127,8 @@ class MagneticTracker:
         self._next = -1                  # index of the channel being solved; -1: idle
         self._handover = False           # the start of channel _next waits for the next tick
         self._units = 0                  # work charged in this tick (field evaluations)
+        self._charged = 0                # of which the tick's other work (window_evals, imu_sample_evals)
+        self.window_evals = cfg.window_evals
         self._status = 0                 # POSE_* bits of that channel's burst
         self.budget = cfg.track_budget_evals
         self._burst_ticks = 0            # ticks since the burst's last window closed
@@ -158,7 +167,7 @@ class MagneticTracker:
     def step(self, now_us: int) -> None:
         """Within ``track_budget_evals`` field evaluations: the next piece of
         the current sensor's solve, or the start of the next sensor's."""
-        self._units = 0
+        self._units = self._charged = self._tick_charges()
         if self._next < 0:
             if not self.burst.complete:
                 if self.ahead:
@@ -171,8 +180,10 @@ class MagneticTracker:
         else:
             self._burst_ticks += 1
         if self._handover:               # (or the hand-over the last tick's budget had no room for)
+            if self._charged and self._units + self.solver.n > self.budget:
+                return                   # no room beside the tick's other work
             self._handover = False
-            self._units = self.solver.n
+            self._units += self.solver.n
             self._begin(self.channels[self._next])
             if self._next < 0 or self._handover or self._units >= self.budget:
                 return
@@ -183,9 +194,20 @@ class MagneticTracker:
             self.solve_evals_max = self.solver.solve_evals
         self._report(self.channels[self._next], not (st & SOLVE_FAILED))
 
+    def _tick_charges(self) -> int:
+        """The tick's other work, in field evaluations."""
+        return self._window_charges()
+
+    def _window_charges(self) -> int:
+        """``window_evals`` per pulse window the measurement stage closed in this tick."""
+        return self.window_evals * self.burst.closed_last
+
     def _step_solver(self) -> int:
         """The solve's steps with what is left of the tick's budget; its status."""
-        st = self.solver.step(self.budget - self._units)
+        left = self.budget - self._units
+        if self._charged and self.solver.next_unit is not None and self.solver.next_cost > left:
+            return SOLVE_RUNNING         # the next unit does not fit beside the tick's other work
+        st = self.solver.step(left)
         self._units += self.solver.units_last
         return st
 
@@ -211,6 +233,8 @@ class MagneticTracker:
         burst = sched.burst_start
         if burst is None or burst == self._ahead_seen or sched.commanded < sched.n:
             return
+        if self._charged and self._units + self.solver.n > self.budget:
+            return                       # no room to begin beside the tick's other work
         j = sched.n - 1
         start, end = int(sched.start[j]), int(sched.end[j])
         seen = True
@@ -228,7 +252,7 @@ class MagneticTracker:
             ah.done = False
             tp = self.poses[ch.node]
             if self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
-                self._units = self.solver.n          # the start, charged as a hand-over
+                self._units += self.solver.n         # the start, charged as a hand-over
                 self._solve_ahead()
             return
         if seen:
