@@ -235,6 +235,30 @@ def _filter_steps(fw) -> dict:
     return out
 
 
+def field_eval_ns(fw, n: int = 3000) -> float:
+    """Median time of one field evaluation (``SignalModel.measure`` of the tracker's coils at a
+    point 0.3 m out, divided by the coils), ns: the budget's unit in this machine's time now."""
+    from coiltrack.firmware.model.signal import SignalModel
+
+    models = instances(fw, SignalModel)
+    if not models:
+        return float("nan")
+    m = models[0]
+    R = memoryview(np.eye(3))
+    cur = [1.0] * m.n
+    h = memoryview(np.zeros(3 * m.n))
+    H = memoryview(np.zeros(18 * m.n))
+    ts = np.zeros(n, dtype=np.int64)
+    clk = time.perf_counter_ns
+    e0 = m.evals
+    for i in range(n):
+        a = clk()
+        m.measure(0.3, 0.1, 0.05, R, cur, h, H)
+        ts[i] = clk() - a
+    m.evals = e0                     # not the firmware's work
+    return float(np.median(ts)) / m.n
+
+
 def signing_cost(n: int = 2000) -> dict:
     """Median time to encode one COIL_PULSE_CMD frame unsigned and signed (HMAC-SHA256, as the
     firmware does with ``signing_key``), in us, over ``n`` frames each."""
@@ -309,6 +333,7 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
         models = tuple(instances(fw, SignalModel))     # every field evaluation goes through one of these
         filters = tuple(instances(fw, FusionFilter))
         tw = TickWork(fw, instances)
+        state["eval_ns_before"] = field_eval_ns(fw)
 
         def timed(t):
             n0 = rx.imu_received
@@ -394,6 +419,12 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
     rep["state_bytes"] = total
     rep["state_bytes_by_part"] = parts
     rep.update(signing_cost())
+    # the tick's times in the budget's unit: how many field evaluations' time the worst ticks
+    # take on this machine now (its speed measured before and after the replay)
+    ev = 0.5 * (state["eval_ns_before"] + field_eval_ns(fw)) / 1e3
+    rep["field_eval_us"] = round(ev, 3)
+    rep["tick_p999_in_field_evals"] = round(sc["p999"] / ev, 1) if sc["p999"] is not None else None
+    rep["tick_max_in_field_evals"] = round(sc["max"] / ev, 1) if sc["max"] is not None else None
     rep["status"] = {k: v for k, v in fw.status().items() if k in ("cycles", "poses", "fused_poses", "fusion_updates")}
     # allocations: a second replay with the counting allocator around every tick
     if available():
@@ -435,7 +466,9 @@ def format_table(rep: dict) -> str:
              f"{rep['track_budget_evals']}), {rep['max_replay_steps_per_tick']} replay steps (budget "
              f"{rep['replay_budget_steps']})",
              f"  fused tick (IMU)      median {rep['fused_tick_us_median']} us, p99 {rep['fused_tick_us_p99']} us "
-             f"({rep['fused_ticks']} ticks)"]
+             f"({rep['fused_ticks']} ticks)",
+             f"  in the budget's unit  one field evaluation {rep.get('field_eval_us')} us now: the CPU p99.9 is "
+             f"{rep.get('tick_p999_in_field_evals')} evaluations' time, the max {rep.get('tick_max_in_field_evals')}"]
     for name, s in rep["phases_us"].items():
         lines.append(f"  {name:<21} median {s['median']} us, p99 {s['p99']} us, max {s['max']} us; "
                      f"when active: median {s['active_median']} us over {s['active_ticks']} ticks")

@@ -42,3 +42,18 @@ def test_classes_partition_the_ticks_and_follow_the_filters_rates():
     for w in wc.values():
         assert w["cpu_us_median"] <= w["cpu_us_p99"] <= w["cpu_us_max"]
     assert "work classes" in format_table(rep)
+
+
+def test_the_worst_ticks_in_field_evaluations_time():
+    """The p99.9 and the maximum of the tick's CPU time divided by one field evaluation's
+    time measured in the same run (the budget's unit in this machine's time): the ratios are
+    those of the reported CPU figures, and the costliest tick is worth at least the
+    evaluations it did. Catches the ratio taken of the wall-clock or the median figures."""
+    header, reads = _record("roetenberg-bench", 1, 4.0)
+    rep = measure(header, reads, 2.0)
+    ev = rep["field_eval_us"]
+    assert ev > 0
+    assert abs(rep["tick_p999_in_field_evals"] - rep["tick_cpu_us_p999"] / ev) <= 0.2
+    assert abs(rep["tick_max_in_field_evals"] - rep["tick_cpu_us_max"] / ev) <= 0.2
+    assert rep["tick_max_in_field_evals"] >= rep["max_field_evals_per_tick"]
+    assert "in the budget's unit" in format_table(rep)
