@@ -117,10 +117,11 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         self._imu_last = n
         e0 = self.solver.signal.evals
         fresh = not self.busy()
+        charges = self._charges()
         if not fresh:
             MagneticTracker.step(self, now_us)
         if not self.busy():
-            self._fuse_step(self.budget - self._tick_charges() - (self.solver.signal.evals - e0), fresh)
+            self._fuse_step(self.budget - charges - (self.solver.signal.evals - e0), fresh, charges)
         self._send_fused()
 
     def warm_start(self, ch, tp) -> bool:

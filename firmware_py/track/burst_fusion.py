@@ -278,6 +278,7 @@ class SensorInertial:
         self.comp_rotation = np.eye(3)
         self.comp_cov = np.zeros((6, 6))
         self.comp_ok = False
+        self.waiting = False               # the last fuse found no room for the re-solve
         self._comp_j = 0                   # the next pulse to compensate
         self.stage = _COMPENSATE
         self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
@@ -404,9 +405,11 @@ class SensorInertial:
         error of the inertial motion (velocity uncertainty times ``t_rms``)."""
         n = self.S_comp.shape[1]
         e0 = solver.signal.evals
+        self.waiting = False
         while self.stage in (_COMPENSATE, _COMPENSATE_PULSES, _SOLVE):
             left = budget - (solver.signal.evals - e0)
             if left < n:
+                self.waiting = solver.signal.evals == e0     # no room at all in this tick
                 return False
             self._measure_step(solver, S, currents, sigma, pulse_t, left)
         if not fresh or solver.signal.evals != e0:
@@ -581,10 +584,11 @@ class BurstFusionTracker(MagneticTracker):
         self._deferring = False
         e0 = self.solver.signal.evals
         fresh = not self.busy()
+        charges = self._charges()
         if not fresh or (self.ahead and self._ahead_pending() and not self._fusing()):
             super().step(now_us)         # (a tick with nothing to fuse may solve ahead)
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
-            self._fuse_step(self.budget - self._tick_charges() - (self.solver.signal.evals - e0), fresh)
+            self._fuse_step(self.budget - charges - (self.solver.signal.evals - e0), fresh, charges)
         self._send_fused()
 
     def _tick_charges(self) -> int:
@@ -624,11 +628,14 @@ class BurstFusionTracker(MagneticTracker):
         else:
             ins.pending = False
 
-    def _fuse_step(self, budget: int, fresh: bool) -> None:
-        """This tick's part of one sensor's delayed magnetic update."""
+    def _fuse_step(self, budget: int, fresh: bool, charges: int = 0) -> None:
+        """This tick's part of one sensor's delayed magnetic update (``charges``: what of the
+        budget the tick's other work took; a re-solve that found no room waits one tick only)."""
+        self._waited = False
         for ch, ins in self._pairs:
             if ins.pending:
                 ins.fuse(self.comp_solver, ch.S, self.currents, ch.sigma, ch.pmv, budget, self.replay_budget, fresh)
+                self._waited = bool(charges) and ins.waiting
                 return
 
     def _send_fused(self) -> None:

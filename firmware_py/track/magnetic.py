@@ -23,8 +23,9 @@ The tick's other work can be charged against the same budget (``[budget] window_
 per pulse window the measurement stage closed in the tick, ``imu_sample_evals`` per IMU
 sample a fusing tracker processed in it; 0 by default: not charged, and the rule above that
 a unit always runs holds). Once anything is charged, a unit or hand-over that does not fit
-in what is left waits for the next tick, so a tick's field evaluations and charges together
-never exceed ``track_budget_evals``.
+in what is left waits for the next tick, at most one tick in a row: a tick's field
+evaluations and charges together never exceed ``track_budget_evals``, but in the tick after
+one that waited (which is charged nothing).
 """
 from __future__ import annotations
 
@@ -128,6 +129,7 @@ class MagneticTracker:
         self._handover = False           # the start of channel _next waits for the next tick
         self._units = 0                  # work charged in this tick (field evaluations)
         self._charged = 0                # of which the tick's other work (window_evals, imu_sample_evals)
+        self._waited = False             # the last tick's charges left the solve no room
         self.window_evals = cfg.window_evals
         self._status = 0                 # POSE_* bits of that channel's burst
         self.budget = cfg.track_budget_evals
@@ -167,7 +169,8 @@ class MagneticTracker:
     def step(self, now_us: int) -> None:
         """Within ``track_budget_evals`` field evaluations: the next piece of
         the current sensor's solve, or the start of the next sensor's."""
-        self._units = self._charged = self._tick_charges()
+        self._units = self._charged = self._charges()
+        self._waited = False
         if self._next < 0:
             if not self.burst.complete:
                 if self.ahead:
@@ -181,6 +184,7 @@ class MagneticTracker:
             self._burst_ticks += 1
         if self._handover:               # (or the hand-over the last tick's budget had no room for)
             if self._charged and self._units + self.solver.n > self.budget:
+                self._waited = True
                 return                   # no room beside the tick's other work
             self._handover = False
             self._units += self.solver.n
@@ -194,6 +198,12 @@ class MagneticTracker:
             self.solve_evals_max = self.solver.solve_evals
         self._report(self.channels[self._next], not (st & SOLVE_FAILED))
 
+    def _charges(self) -> int:
+        """This tick's charges: none in a tick after one whose charges left the solve no room, so
+        the solve waits at most one tick in a row (with an IMU sample in every tick it would
+        never run; that tick's work may then exceed the budget by one unit)."""
+        return 0 if self._waited else self._tick_charges()
+
     def _tick_charges(self) -> int:
         """The tick's other work, in field evaluations."""
         return self._window_charges()
@@ -206,6 +216,7 @@ class MagneticTracker:
         """The solve's steps with what is left of the tick's budget; its status."""
         left = self.budget - self._units
         if self._charged and self.solver.next_unit is not None and self.solver.next_cost > left:
+            self._waited = True
             return SOLVE_RUNNING         # the next unit does not fit beside the tick's other work
         st = self.solver.step(left)
         self._units += self.solver.units_last

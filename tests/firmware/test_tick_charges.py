@@ -47,22 +47,30 @@ def _run(name: str, seconds: float, **keys):
         now[0] = t
         e0 = sum(m.evals for m in models)
         fw.tick(t)
-        ticks.append((tr.burst.closed_last, getattr(tr, "_imu_last", 0), sum(m.evals for m in models) - e0))
+        ticks.append((getattr(tr.burst, "closed_last", 0), getattr(tr, "_imu_last", 0), sum(m.evals for m in models) - e0))
         t += cfg.tick_us
     return cfg, np.array(ticks), solutions
 
 
+def _waived(ticks):
+    """Ticks after a charged tick without field evaluations: where the solve may have waited,
+    so these are charged nothing (it waits at most one tick in a row)."""
+    charged = (ticks[:, 0] + ticks[:, 1]) > 0
+    return np.r_[False, charged[:-1] & (ticks[:-1, 2] == 0)]
+
+
 def test_a_full_charge_leaves_no_solve_work_in_ticks_with_windows_or_imu_samples():
     """``roetenberg-fusion``, 20 s, both charges at the whole budget (9): no tick that closed a
-    window or processed an IMU sample evaluates a field, while the bursts are still solved (as
-    many magnetic solutions as in the run without charges, within one burst; without charges
-    some 40 such ticks solve). Catches a charge computed but not subtracted, a hand-over that
+    window or processed an IMU sample evaluates a field, unless it follows a charged tick
+    without any (the solve waits at most one tick), while the bursts are still solved (as many
+    magnetic solutions as in the run without charges, within one burst; without charges some
+    40 such ticks solve). Catches a charge computed but not subtracted, a hand-over that
     ignores it, and the first unit of a solve under way run over the budget as it is without
     charges (19 IMU ticks with solve steps in this run)."""
     cfg, ticks, sols = _run("roetenberg-fusion", 20.0, window_evals=9, imu_sample_evals=9)
     busy = (ticks[:, 0] > 0) | (ticks[:, 1] > 0)
     assert busy.sum() > 2400                      # the IMU at 120 Hz and the windows of every burst
-    assert ticks[busy, 2].max() == 0
+    assert ticks[busy & ~_waived(ticks), 2].max() == 0
     assert ticks[:, 2].max() <= cfg.track_budget_evals
     _, free_ticks, free = _run("roetenberg-fusion", 20.0)
     free_busy = (free_ticks[:, 0] > 0) | (free_ticks[:, 1] > 0)
@@ -72,19 +80,32 @@ def test_a_full_charge_leaves_no_solve_work_in_ticks_with_windows_or_imu_samples
 
 def test_a_partial_charge_and_the_evaluations_add_up_to_the_budget():
     """``roetenberg-fusion``, 20 s, 7 evaluations per window and per IMU sample: in every tick
-    the charges and the field evaluations together are at most ``track_budget_evals`` (9): a
-    3-evaluation unit does not fit beside a charge of 7, so no charged tick solves. With 2, one
-    unit fits beside a charge and some charged ticks do solve. Catches the rule of the
-    uncharged budget (the first unit always runs) kept once something is charged (7 + 3 = 10),
-    and a charge that blocks the whole tick whatever its size."""
+    but those after a wait (charged nothing) the charges and the field evaluations together
+    are at most ``track_budget_evals`` (9): a 3-evaluation unit does not fit beside a charge of
+    7. With 2, one unit fits beside a charge and some charged ticks do solve. Catches the rule
+    of the uncharged budget (the first unit always runs) kept once something is charged
+    (7 + 3 = 10), and a charge that blocks the whole tick whatever its size."""
     cfg, ticks, _ = _run("roetenberg-fusion", 20.0, window_evals=7, imu_sample_evals=7)
     work = 7 * ticks[:, 0] + 7 * ticks[:, 1] + ticks[:, 2]
-    assert work[ticks[:, 2] > 0].max() <= cfg.track_budget_evals
+    assert work[(ticks[:, 2] > 0) & ~_waived(ticks)].max() <= cfg.track_budget_evals
+    assert ticks[:, 2].max() <= cfg.track_budget_evals
     cfg, ticks, _ = _run("roetenberg-fusion", 6.0, window_evals=2, imu_sample_evals=2)
     work = 2 * ticks[:, 0] + 2 * ticks[:, 1] + ticks[:, 2]
     charged = (ticks[:, 0] + ticks[:, 1]) > 0
-    assert work.max() <= cfg.track_budget_evals
+    assert work[~_waived(ticks)].max() <= cfg.track_budget_evals
     assert (charged & (ticks[:, 2] > 0)).any()
+
+
+def test_an_imu_sample_in_every_tick_does_not_starve_the_solve():
+    """``raab-ac`` (AC excitation, the IMU at 1 kHz: every tick processes a sample), 1 s, an IMU
+    sample charged the whole budget: the solve waits one tick, then runs charged nothing, so
+    the blocks are still solved (at least 40 % as many solutions as without charges, 77 against
+    85 here; without the one-tick rule, none at all)."""
+    _, ticks, charged = _run("raab-ac", 1.0, imu_sample_evals=9)
+    assert (ticks[:, 1] > 0).mean() > 0.95
+    _, _, free = _run("raab-ac", 1.0)
+    assert len(free) >= 60
+    assert len(charged) >= 0.4 * len(free)
 
 
 def test_charged_windows_delay_the_magnetic_poses_without_changing_them():
