@@ -83,7 +83,7 @@ def run(args) -> int:
 
     from . import jsonout
     from .links import GuardedPort, open_link
-    from .realtime import KeepAwake, _realtime_setup, firmware_loop
+    from .realtime import KeepAwake, _realtime_setup, firmware_loop, no_ticks
     from .stopping import PeerSilent, Stopped, mark
 
     cfg = _config(args)
@@ -109,17 +109,18 @@ def run(args) -> int:
     fw = Firmware(cfg, port)
     rt = {}
     awake = KeepAwake((args.cpu,) if args.realtime and args.cpu is not None and not args.no_keep_awake else ())
-    awake.__enter__()                   # before SCHED_FIFO: the busy loop does not inherit it
-    if args.realtime or args.cpu is not None:
-        rt = _realtime_setup(args.cpu, **({"priority": args.rt_priority} if args.rt_priority else {}))
-    rt["keep_awake"] = bool(awake.children)
     duration_us = int(args.duration * 1e6) if args.duration > 0 else 2**62
     code, report = 0, {}
-    try:
+    try:                                # a signal during the set-up is reported as one in the loop
+        awake.__enter__()               # before SCHED_FIFO: the busy loop does not inherit it
+        if args.realtime or args.cpu is not None:
+            rt.update(_realtime_setup(args.cpu, **({"priority": args.rt_priority} if args.rt_priority else {})))
+        rt["keep_awake"] = bool(awake.children)
         # a link that coalesces writes (a pty: FdLink) sends a tick's frames together after it
         timing = firmware_loop(fw, clock, duration_us, cfg.tick_us, after_tick=getattr(link, "flush", None))
     except Stopped as exc:
-        timing, code = exc.partial or {}, exc.exit_code
+        # a signal before the loop's first statement has no partial: zero ticks, still the keys
+        timing, code = exc.partial or no_ticks(cfg.tick_us), exc.exit_code
         mark(report, exc)
         hint = " (--peer-timeout 0 keeps waiting)" if isinstance(exc, PeerSilent) else ""
         print(f"coiltrack firmware: stopped: {exc.reason}{hint}", file=sys.stderr)

@@ -64,6 +64,14 @@ def _stats(starts: np.ndarray, exec_us: np.ndarray, late: np.ndarray, tick_us: i
     }
 
 
+def no_ticks(tick_us: int) -> dict:
+    """The statistics of a loop stopped before its first tick (a signal during its set-up)."""
+    empty = np.zeros(0, dtype=np.int64)
+    out = _stats(empty, empty, empty, tick_us, 0)
+    out["timing_source"] = "wall clock: stopped before the first tick"
+    return out
+
+
 def inproc_timing(exec_ns: np.ndarray, tick_us: int) -> dict:
     """Replay measured tick execution times on the schedule of :func:`firmware_loop` (a tick
     starts at its slot or when the previous one ends; a tick that overruns a period, or starts
@@ -249,10 +257,10 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     late = np.zeros(cap, dtype=np.int64)
     n = 0
     misses = 0
-    next_tick = max(0, clock.now())
-    next_tick += (-next_tick) % tick_us
     stopped = None
     try:
+        next_tick = max(0, clock.now())
+        next_tick += (-next_tick) % tick_us
         while True:
             now = clock.now()
             if now >= duration_us:

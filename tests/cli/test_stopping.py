@@ -90,6 +90,23 @@ def test_a_silent_peer_stops_the_firmware_loop_with_its_statistics():
     assert 500 <= fw.ticks <= 502 and e.value.partial["ticks"] == fw.ticks
 
 
+def test_a_signal_before_the_first_tick_still_carries_the_statistics():
+    """A signal that lands while the loop reads its first clock value (the loop's set-up, before
+    any tick) must still hand over the timing keys, with zero ticks: the command's report of a
+    run stopped at once has the same shape as that of a long one."""
+    from coiltrack.tools.stopping import Interrupted
+
+    class StoppedClock(SimClock):
+        def now(self):
+            raise Interrupted(signal.SIGTERM)
+
+    with pytest.raises(Interrupted) as e:
+        firmware_loop(CountingFirmware(SilentPort()), StoppedClock(), 10_000, 1000, spin_us=0)
+    part = e.value.partial
+    assert part["ticks"] == 0 and part["tick_us"] == 1000 and part["deadline_misses"] == 0
+    assert part["tick_exec_us_max"] is None
+
+
 def test_bytes_keep_the_peer_alive_and_zero_waits_forever():
     clock = SimClock()
 
