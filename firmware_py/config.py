@@ -880,8 +880,12 @@ def load_config(path) -> FirmwareConfig:
     """Read a TOML configuration file: one table per section of
     :data:`SECTIONS`, ``[[source.coils]]`` tables as in CoilConfig."""
     with open(path, "rb") as fh:
-        try:
-            d = tomllib.load(fh)
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError("<file>", f"not valid TOML: {exc}") from None
+        data = fh.read()
+    try:
+        d = tomllib.loads(data.decode("utf-8-sig"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError("<file>", f"{path} is not UTF-8 text (byte {data[exc.start]:#04x} at offset "
+                                    f"{exc.start}): save it as UTF-8") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("<file>", f"not valid TOML: {exc}") from None
     return config_from_dict(d)

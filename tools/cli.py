@@ -14,6 +14,7 @@ import re
 import sys
 from pathlib import Path
 
+from .infile import InputFileError
 from .stopping import EXIT_BROKEN_PIPE, Interrupted, on_signals
 
 #: exit statuses every command shares
@@ -101,6 +102,9 @@ def main(argv=None) -> int:
         except Interrupted as exc:
             print(f"coiltrack: stopped by {exc.reason}", file=sys.stderr)
             return exc.exit_code
+        except InputFileError as exc:       # a damaged input file: one line naming it, no traceback
+            print(f"coiltrack {command}: {exc}", file=sys.stderr)
+            return 2
         except ModuleNotFoundError as exc:
             return _missing(command, exc)
         except BrokenPipeError:

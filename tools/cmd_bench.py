@@ -68,8 +68,12 @@ def _setup(args):
                 f"run it with `coiltrack sweep --scenario {args.scenario}`")
     if args.log and args.transport not in ("inproc", "can"):
         return "--log needs an in-process transport (inproc or can)"
+    from .infile import InputFileError
+
     try:
         cfg = load_over(args.config, sc.firmware_config()) if args.config else None
+    except InputFileError as exc:
+        return f"--config {exc}"
     except ConfigError as exc:
         return f"--config {args.config}: {exc}"
     try:

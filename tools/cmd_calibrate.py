@@ -119,26 +119,32 @@ def merge_tables(new: dict, old: dict) -> dict:
 
 
 def run(args) -> int:
-    import tomllib
-
     from coiltrack.firmware.calibration import Calibration, CalibrationError, dumps_toml
     from coiltrack.firmware.config import ConfigError, FirmwareConfig
 
     from .calibrate import METHODS
+    from .infile import InputFileError
     from .userconfig import load_over
 
     try:
         cfg = load_over(args.config, FirmwareConfig()) if args.config else FirmwareConfig()
+    except InputFileError as exc:
+        print(f"coiltrack calibrate: --config {exc}", file=sys.stderr)
+        return 2
     except ConfigError as exc:
         print(f"coiltrack calibrate: --config {args.config}: {exc}", file=sys.stderr)
         return 2
     old = None
     if args.merge:
+        from .calibfile import read_table
+
         try:
-            with open(args.merge, "rb") as fh:
-                old = tomllib.load(fh)
+            old = read_table(args.merge)
             Calibration.from_table(old, len(cfg.coils))
-        except (tomllib.TOMLDecodeError, CalibrationError) as exc:
+        except InputFileError as exc:
+            print(f"coiltrack calibrate: --merge {exc}", file=sys.stderr)
+            return 2
+        except CalibrationError as exc:
             print(f"coiltrack calibrate: --merge {args.merge}: {exc}", file=sys.stderr)
             return 2
     if args.input:

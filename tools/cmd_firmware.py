@@ -61,6 +61,7 @@ def add_arguments(p) -> None:
 def _config(args):
     from coiltrack.firmware.config import ConfigError
 
+    from .infile import InputFileError
     from .scenarios import get
     from .userconfig import load_over
 
@@ -72,6 +73,9 @@ def _config(args):
 
             cfg = dataclasses.replace(cfg, signing_key=args.key)
         return cfg
+    except InputFileError as exc:
+        print(f"coiltrack firmware: --config {exc}", file=sys.stderr)
+        return None
     except ConfigError as exc:
         print(f"coiltrack firmware: --config {args.config}: {exc}", file=sys.stderr)
         return None

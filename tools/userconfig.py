@@ -8,8 +8,6 @@ that the checks themselves trip over (a string where a number belongs).
 """
 from __future__ import annotations
 
-import tomllib
-
 from coiltrack.firmware.config import ConfigError, FirmwareConfig, config_from_dict
 
 
@@ -52,12 +50,10 @@ def merge(d: dict, base: FirmwareConfig) -> FirmwareConfig:
 
 
 def load_over(path, base: FirmwareConfig) -> FirmwareConfig:
-    """The TOML file ``path`` over ``base``."""
-    try:
-        with open(path, "rb") as fh:
-            d = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError("<file>", f"{path} is not valid TOML: {exc}") from None
-    except OSError as exc:
-        raise ConfigError("<file>", f"cannot read {path}: {exc.strerror}") from None
-    return merge(d, base)
+    """The TOML file ``path`` over ``base``. A file that cannot be used as such (unreadable,
+    not UTF-8, empty, not TOML, a key given twice, a ``nan`` or ``inf``) is an
+    :class:`~coiltrack.tools.infile.InputFileError` naming the file and its line or key (a file
+    of comments alone puts nothing over ``base``); a bad value a :class:`ConfigError`."""
+    from .infile import load_toml
+
+    return merge(load_toml(path, "configuration"), base)
