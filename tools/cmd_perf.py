@@ -140,7 +140,7 @@ def instances(fw, cls) -> list:
 def _stats(a_ns) -> dict:
     a = np.asarray(a_ns, dtype=float) / 1e3
     if a.size == 0:
-        return {"median": None, "p99": None, "max": None, "n": 0}
+        return {"median": None, "p99": None, "p999": None, "max": None, "n": 0}
     return {"median": round(float(np.median(a)), 2), "p99": round(float(np.percentile(a, 99)), 2),
             "p999": round(float(np.percentile(a, 99.9)), 2), "max": round(float(a.max()), 2), "n": int(a.size)}
 
@@ -511,6 +511,11 @@ def run(args) -> int:
         if log is None:
             return 2
         header, reads = log
+        if header["duration_s"] <= args.warmup:
+            cut = " (what is left of it before the damage)" if header.get("truncated") else ""
+            print(f"coiltrack perf: --log {args.log}: {header['duration_s']:.3f} s of reads{cut}, not more than "
+                  f"the --warmup {args.warmup:g} s: no tick to measure (give a shorter --warmup)", file=sys.stderr)
+            return 2
     else:
         if args.duration <= args.warmup:
             print("coiltrack perf: --duration must exceed --warmup", file=sys.stderr)

@@ -77,57 +77,124 @@ def write_log(path, header: dict, reads) -> None:
             fh.write(json.dumps({"t": t, "rx": base64.b64encode(data).decode()}) + "\n")
 
 
+def _check_header(header, path) -> None:
+    """The header's values, of the right types (an InputFileError naming the key)."""
+    from .infile import InputFileError
+
+    if not isinstance(header, dict) or header.get("format") != FORMAT:
+        raise InputFileError(path, f"not a {FORMAT} header", line=1)
+    tick = header.get("tick_us")
+    if isinstance(tick, bool) or not isinstance(tick, int) or not 1 <= tick <= 10_000_000:
+        raise InputFileError(path, f"must be a whole number of microseconds in [1, 10000000], got {tick!r}",
+                             key="tick_us")
+    dur = header.get("duration_s")
+    if isinstance(dur, bool) or not isinstance(dur, (int, float)) or not 0 <= dur <= 7 * 86400:
+        raise InputFileError(path, f"must be a number of seconds in [0, 604800], got {dur!r}", key="duration_s")
+    if not isinstance(header.get("config"), dict):
+        raise InputFileError(path, f"must be an object of configuration sections, got {header.get('config')!r}",
+                             key="config")
+    from coiltrack.firmware.config import ConfigError
+
+    try:
+        log_config(header)
+    except ConfigError as exc:
+        raise InputFileError(path, exc.message, key=f"config.{exc.key}") from None
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise InputFileError(path, f"not a firmware configuration ({type(exc).__name__}: {exc})",
+                             key="config") from None
+
+
+def _read(o, prev_t: int, tick: int) -> tuple[int, bytes] | str:
+    """One read of the log, or what is wrong with it (a str)."""
+    import binascii
+
+    if not isinstance(o, dict) or set(o) != {"t", "rx"}:
+        return 'not a read {"t": ..., "rx": ...}'
+    t, rx = o["t"], o["rx"]
+    if isinstance(t, bool) or not isinstance(t, int) or t < prev_t or t % tick:
+        return f"t {t!r} is not a tick time (a multiple of {tick} us, not before the read above)"
+    if not isinstance(rx, str) or not rx:
+        return f"rx {rx!r} is not base64 bytes"
+    try:
+        return t, base64.b64decode(rx, validate=True)
+    except (binascii.Error, ValueError):
+        return "rx is not base64"
+
+
 def read_log(path) -> tuple[dict, list[tuple[int, bytes]]]:
-    """The header and the reads of a log (ValueError if line 1 is not a header). Cut
-    short, the reads before the first bad line, and the header with ``duration_s``
-    the time of the last read kept and ``truncated`` (line, reads kept, recorded
-    duration)."""
-    with open(path) as fh:
+    """The header and the reads of a log, read strictly (``tools.infile``). Line 1 must be a
+    header of the right types (else an :class:`~coiltrack.tools.infile.InputFileError`,
+    a ValueError, naming the file and the line or key). A log damaged further on (cut short,
+    a line that is not UTF-8 or not JSON, a read of the wrong shape or out of order) is
+    used up to the damage: the reads before it, and the header with ``duration_s`` the
+    time of the last read kept and ``truncated`` (line, reads kept, recorded duration,
+    what is wrong there)."""
+    from .infile import InputFileError, loads_json, read_bytes, text_lines
+
+    data = read_bytes(path)
+    if not data.strip():
+        raise InputFileError(path, "is empty: no frame log in it")
+    lines, damage = text_lines(data, path)
+    if not lines:
+        raise InputFileError(path, f"not a {FORMAT} header ({damage[1]})", line=1)
+    try:
+        header = loads_json(lines[0][1], path, line=1)
+    except InputFileError as exc:
+        raise InputFileError(path, f"not a {FORMAT} header ({exc.message})", line=1) from None
+    _check_header(header, path)
+    if header["duration_s"] * 1e6 > 2**62:
+        raise InputFileError(path, "out of range", key="duration_s")
+    reads: list[tuple[int, bytes]] = []
+    tick = header["tick_us"]
+    for n, line in lines[1:]:
+        if not line.strip():
+            continue
         try:
-            header = json.loads(fh.readline())
-        except ValueError:
-            header = None
-        if not isinstance(header, dict) or header.get("format") != FORMAT:
-            raise ValueError(f"{path}: line 1 is not a {FORMAT} header")
-        reads = []
-        for n, line in enumerate(fh, start=2):
-            if not line.strip():
-                continue
-            try:
-                o = json.loads(line)
-                reads.append((int(o["t"]), base64.b64decode(o["rx"], validate=True)))
-            except (ValueError, KeyError, TypeError):
-                return _cut(header, reads, n), reads
+            o = loads_json(line, path, line=n)
+        except InputFileError as exc:
+            damage = (n, exc.message)
+            break
+        r = _read(o, reads[-1][0] if reads else 0, tick)
+        if isinstance(r, str):
+            damage = (n, r)
+            break
+        reads.append(r)
+    if damage:
+        return _cut(header, reads, *damage), reads
     return header, reads
 
 
-def _cut(header: dict, reads, line: int) -> dict:
+def _cut(header: dict, reads, line: int, why: str = "") -> dict:
     return dict(header, duration_s=reads[-1][0] * 1e-6 if reads else 0.0,
-                truncated={"line": line, "reads": len(reads), "recorded_duration_s": header.get("duration_s")})
+                truncated={"line": line, "reads": len(reads), "recorded_duration_s": header.get("duration_s"),
+                           "why": why})
 
 
 def load(command: str, path):
     """:func:`read_log` for ``coiltrack COMMAND``: None after a one-line error, or the log,
-    with a line on standard error where it was cut short."""
+    with a warning line on standard error where it was cut short."""
     import sys
+
+    from .infile import warn
 
     try:
         header, reads = read_log(path)
     except (OSError, ValueError) as exc:
         print(f"coiltrack {command}: {exc}", file=sys.stderr)
         return None
-    note = truncation_note(path, header)
-    if note:
-        print(f"coiltrack {command}: {note}", file=sys.stderr)
+    if header.get("truncated"):
+        warn(command, path, truncation_note(None, header))
     return header, reads
 
 
 def truncation_note(path, header: dict) -> str | None:
-    """One line saying where a cut log stopped, or None for a whole log."""
+    """One line saying where a cut log stopped (``path`` first when given), or None for a whole log."""
     cut = header.get("truncated")
     if not cut:
         return None
-    return (f"{path}: cut short at line {cut['line']} (of a {cut['recorded_duration_s']} s run): "
+    why = f" ({cut['why']})" if cut.get("why") and not cut["why"].startswith("cut short") else ""
+    return ((f"{path}: " if path is not None else "") +
+            f"cut short at line {cut['line']}{why} (of a {cut['recorded_duration_s']} s run): "
             f"using the {cut['reads']} reads before it, {header['duration_s']:.3f} s")
 
 

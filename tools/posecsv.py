@@ -94,14 +94,85 @@ def write_csv(table: dict, path) -> int:
     return n
 
 
-def read_csv(path) -> dict[str, np.ndarray]:
-    """Read a table written by :func:`write_csv`; raises ValueError naming a missing column."""
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
-    if not rows:
-        return {c: np.array([], dtype=object if c in TEXT else float) for c in COLUMNS}
-    missing = [c for c in COLUMNS if c not in rows[0]]
+#: columns that hold a finite number in every row: the clock, the node, the status and the truth
+FINITE = ("t_us", "t_s", "sensor", "status", "true_x_mm", "true_y_mm", "true_z_mm",
+          "true_qw", "true_qx", "true_qy", "true_qz", "range_mm")
+#: columns of whole numbers
+INTEGER = ("t_us", "sensor", "status")
+#: the values of ``kind``
+KINDS = ("magnetic", "fused")
+
+
+def _row(cells: list[str], header: list[str]) -> dict | str:
+    """One row of values, or what is wrong with it (a str)."""
+    if len(cells) != len(header):
+        return f"{len(cells)} cells, the header has {len(header)}"
+    row = dict(zip(header, cells))
+    out = {}
+    for c in COLUMNS:
+        v = row[c]
+        if c == "kind":
+            if v not in KINDS:
+                return f"column kind: '{v}' is neither {' nor '.join(KINDS)}"
+            out[c] = v
+            continue
+        if c in TEXT:
+            out[c] = v
+            continue
+        if v == "" and c not in FINITE:
+            out[c] = math.nan
+            continue
+        try:
+            x = float(v)
+        except ValueError:
+            return f"column {c}: '{v}' is not a number"
+        if c in FINITE and not math.isfinite(x):
+            return f"column {c}: must be a finite number, got '{v}'"
+        if math.isinf(x) and not c.startswith("var_"):
+            return f"column {c}: must not be infinite, got '{v}'"
+        if c in INTEGER and not x.is_integer():
+            return f"column {c}: must be a whole number, got '{v}'"
+        out[c] = x
+    return out
+
+
+def read_csv(path, on_damage=None) -> dict[str, np.ndarray]:
+    """Read a table written by :func:`write_csv`, strictly (``tools.infile``).
+
+    Refused with an :class:`~coiltrack.tools.infile.InputFileError` naming the file (and the
+    line): unreadable, not UTF-8, empty, a header without a column of :data:`COLUMNS` or with
+    one twice, no pose row. A damaged row (cut short, a cell missing, a value not a number,
+    not finite where it must be, an unknown kind) ends the table: with ``on_damage(message)``
+    the rows before it are returned and the message says where it stops; without, the
+    damage is refused too."""
+    from .infile import InputFileError, read_bytes, text_lines
+
+    data = read_bytes(path)
+    lines, damage = text_lines(data, path)
+    if not data.strip():
+        raise InputFileError(path, "is empty: no pose table in it")
+    if not lines:
+        raise InputFileError(path, damage[1], line=damage[0])
+    header = next(csv.reader([lines[0][1]]))
+    missing = [c for c in COLUMNS if c not in header]
     if missing:
-        raise ValueError(f"{path}: not a pose table (no column {missing[0]})")
-    return {c: np.array([r[c] if c in TEXT else float(r[c]) for r in rows], dtype=object if c in TEXT else float)
-            for c in COLUMNS}
+        raise InputFileError(path, f"not a pose table (no column {missing[0]})", line=1)
+    twice = [c for c in header if header.count(c) > 1]
+    if twice:
+        raise InputFileError(path, f"column {twice[0]} given twice", line=1)
+    rows = []
+    for n, text in lines[1:]:
+        if not text.strip():
+            continue
+        r = _row(next(csv.reader([text])), header)
+        if isinstance(r, str):
+            damage = (n, r)
+            break
+        rows.append(r)
+    if damage and (on_damage is None or not rows):
+        raise InputFileError(path, damage[1] + ("" if rows else " (no pose row before it)"), line=damage[0])
+    if not rows:
+        raise InputFileError(path, "no pose row (a header alone)")
+    if damage:
+        on_damage(f"line {damage[0]}: {damage[1]}: using the {len(rows)} rows before it")
+    return {c: np.array([r[c] for r in rows], dtype=object if c in TEXT else float) for c in COLUMNS}

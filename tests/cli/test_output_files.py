@@ -68,7 +68,8 @@ def test_a_cut_frame_log_is_read_up_to_the_cut(fusion_log, tmp_path):
     path, line = _cut(fusion_log, tmp_path, 0.6)
     h2, r2 = read_log(path)
     assert r2 == reads[:len(r2)] and 0.5 * len(reads) < len(r2) < 0.7 * len(reads)
-    assert h2["truncated"] == {"line": line, "reads": len(r2), "recorded_duration_s": header["duration_s"]}
+    assert h2["truncated"] == {"line": line, "reads": len(r2), "recorded_duration_s": header["duration_s"],
+                               "why": "cut short (no newline at its end)"}
     assert h2["duration_s"] == r2[-1][0] * 1e-6
 
 
@@ -86,7 +87,7 @@ def test_a_log_whose_header_is_cut_is_refused_naming_line_1(fusion_log, tmp_path
     path = tmp_path / "h.log"
     path.write_bytes(fusion_log.read_bytes()[:40])
     assert main(["perf", "--log", str(path)]) == 2
-    assert "line 1 is not a coiltrack-frames/1 header" in capsys.readouterr().err
+    assert f"{path}: line 1: not a coiltrack-frames/1 header" in capsys.readouterr().err
 
 
 def test_perf_without_filterpy_marks_the_comparison_absent(fusion_log, monkeypatch, capsys, tmp_path):
