@@ -2,19 +2,20 @@
 firmware configuration values, on a local process pool, a Dask cluster or Ray; prints the
 median, p90 and worst of each figure per grid point.
 
-Exit status: 0 done; 1 a run failed; 2 bad arguments (nothing run); 130 interrupted by Ctrl-C or
-SIGTERM (the runs done so far are summarised and written, marked "interrupted": true)."""
+Exit status: 0 done; 1 a run failed; 2 bad arguments (nothing run); 130 interrupted by Ctrl-C
+(SIGINT), 143 by SIGTERM (the runs done so far are summarised and written, marked
+"interrupted": true)."""
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import math
 import os
-import signal
 import sys
 import time
 from pathlib import Path
+
+from .stopping import held_signals, on_signals
 
 EXIT = {1: "a run failed: the error names its seed and parameter values",
         130: "stopped by SIGINT: the runs done are written, marked interrupted",
@@ -71,15 +72,27 @@ def run(args) -> int:
     bar.update(0)
     status = 0
     try:
-        with _sigterm_interrupts():
+        with on_signals():
             runs = sweep.run_tasks(tasks, args.executor, plan["workers"], args.scheduler, on_result=bar.update)
     except sweep.SweepInterrupted as exc:
-        runs, status = [r for r in exc.partial if r is not None], 130
+        runs, status = [r for r in exc.partial if r is not None], exc.exit_code
+        bar.close()
+        print(f"coiltrack sweep: stopped by {exc.reason} after {_n(len(runs), 'finished run')} of {len(tasks)}; "
+              "writing them", file=sys.stderr)
     except sweep.SweepError as exc:
         bar.close()
         print(f"coiltrack sweep: {exc}", file=sys.stderr)
         return 1
     bar.close()
+    with held_signals():    # a second signal waits for the finished runs to be written
+        _finish(args, plan, runs, status, wall0)
+    return status
+
+
+def _finish(args, plan: dict, runs: list[dict], status: int, wall0: float) -> None:
+    """The summary printed, the JSON, CSV and plot written, of the runs done."""
+    from . import sweep
+
     summary = sweep.summarize(runs)
     exp = sweep.experiment(args.scenario)
     print(sweep.format_summary(summary, exp.headline) if exp else sweep.format_summary(summary))
@@ -93,20 +106,6 @@ def run(args) -> int:
            "grid": [dict(point) for point in plan["grid"]], "interrupted": bool(status), "wall_s": round(wall, 2),
            "runs": runs, "summary": summary, **tables}
     _write_outputs(args, doc)
-    return status
-
-
-@contextlib.contextmanager
-def _sigterm_interrupts():
-    """SIGTERM stops the sweep as Ctrl-C does (runs under way stopped, the runs done written)."""
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, stop)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 # ---------------------------------------------------------------- checks before any work

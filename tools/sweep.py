@@ -30,6 +30,8 @@ from typing import Callable
 
 import numpy as np
 
+from .stopping import Stopped
+
 #: figures where a larger value is the better one (their worst is the minimum, their p90 the
 #: 10th percentile); for every other figure (errors, energy, counts of faults) worst is the maximum
 HIGHER_IS_BETTER = frozenset({
@@ -237,9 +239,18 @@ def _named(task: Task, result):
         raise SweepError(f"run {where} failed: {detail}") from exc
 
 
+def _worker_ignores_sigint() -> None:
+    """A worker leaves Ctrl-C (SIGINT to the terminal's whole process group) to the sweep,
+    which keeps the finished runs and stops the workers itself (SIGTERM)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _local(tasks, workers, scheduler):
     # spawned (not forked) workers: nothing inherited from this process's state or threads
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_ignores_sigint)
     try:
         index = {pool.submit(run_task, t): i for i, t in enumerate(tasks)}
         for fut in as_completed(index):
@@ -304,12 +315,15 @@ EXECUTORS = {"local": _local, "dask": _dask, "ray": _ray}
 
 
 class SweepInterrupted(KeyboardInterrupt):
-    """Raised by :func:`run_tasks` on KeyboardInterrupt; ``partial``: the results so far
-    (None for the runs not done)."""
+    """Raised by :func:`run_tasks` on KeyboardInterrupt or a signal (``tools.stopping``);
+    ``partial``: the results so far (None for the runs not done); ``exit_code``: 130 for
+    SIGINT (Ctrl-C), 143 for SIGTERM; ``reason``: the signal's name."""
 
-    def __init__(self, partial: list[dict | None]):
+    def __init__(self, partial: list[dict | None], exit_code: int = 130, reason: str = "SIGINT"):
         super().__init__("interrupted")
         self.partial = partial
+        self.exit_code = exit_code
+        self.reason = reason
 
 
 def run_tasks(tasks: list[Task], executor: str = "local", workers: int | None = None,
@@ -325,6 +339,8 @@ def run_tasks(tasks: list[Task], executor: str = "local", workers: int | None = 
                 on_result(n)
     except KeyboardInterrupt:
         raise SweepInterrupted(results) from None
+    except Stopped as exc:       # SIGINT or SIGTERM turned into Interrupted by the command line
+        raise SweepInterrupted(results, exc.exit_code, exc.reason) from None
     except SweepError:
         raise
     except Exception as exc:  # the executor itself failed (a cluster lost, a worker killed)

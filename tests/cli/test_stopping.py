@@ -215,3 +215,51 @@ def test_stopped_carries_its_exit_code():
     from coiltrack.tools.stopping import Interrupted
 
     assert Interrupted(signal.SIGINT).exit_code == 130 and isinstance(Interrupted(2), Stopped)
+
+
+def _read_until(stream, pattern: bytes, timeout_s: float = 4 * WAIT_S) -> bytes:
+    """Bytes of ``stream`` (a pipe) up to and with the first ``pattern`` match (a regex); fails
+    after ``timeout_s`` or at the end of the stream. A hang guard, not a timing."""
+    import re
+    import time
+
+    fd, got = stream.fileno(), b""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if select.select([fd], [], [], 0.5)[0]:
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                break
+            got += chunk
+            if re.search(pattern, got):
+                return got
+    pytest.fail(f"no {pattern!r} in {got[-500:]!r}")
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_sweep_writes_its_finished_runs(sig, tmp_path):
+    """A real sweep (one worker process) stopped by Ctrl-C or SIGTERM once its progress bar
+    shows two finished runs: it exits 130 (SIGINT) or 143 (SIGTERM) and its JSON and CSV hold
+    the runs finished, at least the two seen and fewer than all."""
+    import csv
+
+    out, table = tmp_path / "sw.json", tmp_path / "sw.csv"
+    seeds = 40
+    proc = subprocess.Popen(COILTRACK + ["sweep", "--scenario", "static", "--seeds", f"1-{seeds}", "--duration", "0.5",
+                                         "--workers", "1", "--progress", "--json", str(out), "--csv", str(table)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    try:
+        _read_until(proc.stderr, rb"\] ([2-9]|\d\d+)/%d runs" % seeds)
+        proc.send_signal(sig)
+        stdout, stderr = proc.communicate(timeout=4 * WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + sig, stderr.decode()
+    assert b"Traceback" not in stderr
+    doc = json.loads(out.read_text())
+    assert doc["interrupted"] is True and 2 <= len(doc["runs"]) < seeds
+    assert doc["summary"][0]["runs"] == len(doc["runs"])
+    rows = list(csv.DictReader(table.open()))
+    assert sorted(int(r["seed"]) for r in rows) == sorted(r["seed"] for r in doc["runs"])
+    assert f"{len(doc['runs'])} runs in".encode() in stdout

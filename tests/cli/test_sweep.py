@@ -163,13 +163,22 @@ def _ctrl_c():
     raise KeyboardInterrupt
 
 
-def _sigterm():
-    os.kill(os.getpid(), signal.SIGTERM)    # the handler raises in this thread before kill returns
-    pytest.fail("SIGTERM did not stop the sweep")
+def _signal(sig):
+    def send():
+        os.kill(os.getpid(), sig)    # the handler raises in this thread before kill returns
+        pytest.fail(f"{signal.Signals(sig).name} did not stop the sweep")
+    return send
 
 
-@pytest.mark.parametrize("stop", [_ctrl_c, _sigterm], ids=["ctrl-c", "sigterm"])
-def test_interrupted_sweep_writes_the_runs_done(stop, local_doc, monkeypatch, tmp_path):
+STOPS = [(_ctrl_c, 130), (_signal(signal.SIGINT), 130), (_signal(signal.SIGTERM), 143)]
+
+
+@pytest.mark.parametrize("stop,code", STOPS, ids=["KeyboardInterrupt", "SIGINT", "SIGTERM"])
+def test_interrupted_sweep_writes_the_runs_done(stop, code, local_doc, monkeypatch, tmp_path, capsys):
+    """Stopped after one finished run, by Ctrl-C as Python raises it, by SIGINT as the command
+    line turns it into ``Interrupted`` (the runs were lost before), or by SIGTERM: the run
+    done is summarised and written to the JSON and the CSV, and the exit status is the
+    exit-status table's (130 SIGINT, 143 SIGTERM)."""
     _, doc = local_doc
 
     def stopped(tasks, workers, scheduler):
@@ -177,12 +186,17 @@ def test_interrupted_sweep_writes_the_runs_done(stop, local_doc, monkeypatch, tm
         stop()
 
     monkeypatch.setitem(sweep.EXECUTORS, "local", stopped)
-    out = tmp_path / "part.json"
-    before = signal.getsignal(signal.SIGTERM)
-    assert main([*SWEEP, "--json", str(out)]) == 130
-    assert signal.getsignal(signal.SIGTERM) is before
+    out, table = tmp_path / "part.json", tmp_path / "part.csv"
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    assert main([*SWEEP, "--json", str(out), "--csv", str(table)]) == code
+    assert {s: signal.getsignal(s) for s in before} == before
     part = json.loads(out.read_text())
     assert part["interrupted"] is True and part["runs"] == [doc["runs"][1]] and part["summary"][0]["runs"] == 1
+    rows = list(csv.DictReader(table.open()))
+    assert [(int(r["seed"]), int(r["pulse_us"])) for r in rows] == [(2, 40000)]
+    assert float(rows[0]["position_rms_mm"]) == doc["runs"][1]["figures"]["position_rms_mm"]
+    captured = capsys.readouterr()
+    assert "1 runs in" in captured.out and "stopped by" in captured.err and "1 finished run of 6" in captured.err
 
 
 @pytest.mark.parametrize("executor", ["local", "dask"])
