@@ -16,7 +16,8 @@ from . import args as A
 HELP = "long bench runs under a seeded random schedule of every fault switch"
 EXIT = {1: "a soak condition failed (a crash, a fault unreported or not recovered from within 3 s, more than "
            "1 % overconfident poses, or memory growth): the table names it",
-        130: "stopped by SIGINT (Ctrl-C)", 143: "stopped by SIGTERM"}
+        130: "stopped by SIGINT (Ctrl-C): the seeds run, the one under way to where it stopped, are printed and "
+             "written, marked interrupted", 143: "stopped by SIGTERM: likewise"}
 #: most seeds one call runs
 MAX_SEEDS = 64
 
@@ -75,7 +76,7 @@ def format_rows(rows: list[dict]) -> str:
 
 def run(args) -> int:
     from .scenarios import get
-    from .soak import passed, random_schedule
+    from .soak import random_schedule
     from .sweep import parse_seeds
 
     try:
@@ -89,15 +90,76 @@ def run(args) -> int:
             print(f"seed {s}: {random_schedule(s, args.duration, len(sc.firmware_config().coils))}")
         return 0
     jobs = [(args.scenario, s, args.duration) for s in seeds]
-    if args.workers > 1 and len(jobs) > 1:
+    stopped = None
+    try:
+        reps = _run_jobs(jobs, args.workers)
+    except _SoakStopped as exc:
+        reps, stopped = exc.reps, exc.stopped
+        print(f"coiltrack soak: stopped by {stopped.reason} with {len(exc.reps)} of {len(jobs)} seeds run "
+              "(the one under way to where it stopped); writing them", file=sys.stderr)
+    from .stopping import held_signals
+
+    with held_signals():        # a second signal waits for the report to be written
+        code = _finish(args, seeds, reps, stopped)
+    return code
+
+
+class _SoakStopped(Exception):
+    """The seeds' reports done when a signal stopped the soak (a seed under way: its
+    report to where it stopped, marked ``interrupted``), and the signal."""
+
+    def __init__(self, reps, stopped):
+        super().__init__(stopped.reason)
+        self.reps, self.stopped = reps, stopped
+
+
+def _ignore_sigint() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _run_jobs(jobs, workers: int) -> list[dict]:
+    """Every seed's report in order; a SIGINT or SIGTERM (``Stopped``) becomes
+    :class:`_SoakStopped` with the reports finished."""
+    from .stopping import Stopped
+
+    reps = []
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(min(args.workers, len(jobs))) as ex:
-            reps = list(ex.map(_one, jobs))
-    else:
-        reps = [_one(j) for j in jobs]
+        ex = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_ignore_sigint)
+        futs = [ex.submit(_one, j) for j in jobs]
+        try:
+            for f in futs:
+                reps.append(f.result())
+        except Stopped as exc:
+            done = [f.result() for f in futs[len(reps):] if f.done() and not f.cancelled() and not f.exception()]
+            for proc in list((getattr(ex, "_processes", None) or {}).values()):
+                proc.terminate()
+            raise _SoakStopped(sorted(reps + done, key=lambda r: r["seed"]), exc) from None
+        finally:
+            ex.shutdown(wait=True, cancel_futures=True)
+        return reps
+    for j in jobs:
+        try:
+            reps.append(_one(j))
+        except Stopped as exc:
+            if exc.partial is not None:
+                reps.append(exc.partial)
+            raise _SoakStopped(reps, exc) from None
+    return reps
+
+
+def _finish(args, seeds, reps: list[dict], stopped) -> int:
+    """The table printed and the JSON written of the seeds run; the exit status."""
+    from .soak import passed
+
     rows = [summary_row(r) for r in reps]
-    print(f"coiltrack soak: {args.scenario}, {args.duration:g} s per seed, seeds {', '.join(map(str, seeds))}")
+    print(f"coiltrack soak: {args.scenario}, {args.duration:g} s per seed, seeds {', '.join(map(str, seeds))}"
+          + (f" (stopped by {stopped.reason}: {len(reps)} seeds reported)" if stopped else ""))
     print(format_rows(rows))
     bad = []
     for r in reps:
@@ -109,8 +171,12 @@ def run(args) -> int:
     for b in bad:
         print(f"  FAILED {b}")
     if args.json:
+        doc = {"scenario": args.scenario, "duration_s": args.duration, "seeds": seeds, "summary": rows, "runs": reps}
+        if stopped is not None:
+            doc.update(interrupted=True, stopped_by=stopped.reason)
         with open(args.json, "w") as fh:
-            json.dump({"scenario": args.scenario, "duration_s": args.duration, "seeds": seeds, "summary": rows,
-                       "runs": reps}, fh, indent=1, default=str)
+            json.dump(doc, fh, indent=1, default=str)
         print(f"report written to {args.json}")
+    if stopped is not None:
+        return stopped.exit_code
     return 1 if bad else 0

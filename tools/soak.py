@@ -17,6 +17,8 @@ import traceback
 
 import numpy as np
 
+from .stopping import Stopped, mark
+
 #: link fault rates for the whole run (per frame)
 LINK_RATES = {"drop": 0.01, "corrupt": 0.01, "duplicate": 0.005, "truncate": 0.002, "garbage": 0.002,
               "delay": 0.005}
@@ -122,6 +124,7 @@ def soak_run(scenario, seed: int, duration_s: float, schedule: str | None = None
     every = max(tick, (end_us // MEMORY_SAMPLES) // tick * tick)
     memory = []
     crash = None
+    stopped = None
     where = "bench"
     t = 0
     try:
@@ -137,9 +140,11 @@ def soak_run(scenario, seed: int, duration_s: float, schedule: str | None = None
         bench.emulator.step(t)
     except Exception as exc:  # a crash is what the soak reports, not what stops it
         crash = f"{type(exc).__name__}: {exc} at t={t * 1e-6:.3f} s ({traceback.format_exc().splitlines()[-3].strip()})"
+    except Stopped as exc:    # SIGINT, SIGTERM: the report of the time run, handed to the caller
+        stopped = exc
     fw_end.close()
     emu_end.close()
-    done_s = duration_s if crash is None else max(t, tick) * 1e-6
+    done_s = duration_s if crash is None and stopped is None else max(t, tick) * 1e-6
     rep = report_mod.build(bench, fw.status(), done_s, transport="inproc", cfg=cfg)
     rep["schedule"] = schedule
     rep["crashed"] = crash is not None and where == "firmware"       # the firmware's tick raised
@@ -149,6 +154,8 @@ def soak_run(scenario, seed: int, duration_s: float, schedule: str | None = None
     rep["memory"] = memory
     rep.update(memory_growth(memory))
     rep["verdict"] = verdict(rep)
+    if stopped is not None:
+        raise mark(rep, stopped)
     return rep
 
 

@@ -263,3 +263,30 @@ def test_a_stopped_sweep_writes_its_finished_runs(sig, tmp_path):
     rows = list(csv.DictReader(table.open()))
     assert sorted(int(r["seed"]) for r in rows) == sorted(r["seed"] for r in doc["runs"])
     assert f"{len(doc['runs'])} runs in".encode() in stdout
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_soak_writes_the_seeds_it_ran(sig, tmp_path, monkeypatch, capsys):
+    """Three soak seeds of 2 s each, stopped in the middle of the second (its 12th memory sample
+    of 24): the first seed's report whole, the second's to where it stopped, marked
+    interrupted, in the JSON; exit 130 or 143."""
+    from coiltrack.tools import soak
+
+    real, calls = soak.footprint, []
+
+    def footprint(fw):
+        calls.append(1)
+        if len(calls) == soak.MEMORY_SAMPLES + 1 + 12:     # the first seed takes 25 samples (t = 0 .. end)
+            os.kill(os.getpid(), sig)
+        return real(fw)
+
+    monkeypatch.setattr(soak, "footprint", footprint)
+    out = tmp_path / "soak.json"
+    assert main(["soak", "--scenario", "static", "--seeds", "1-3", "--duration", "2", "--json", str(out)]) == 128 + sig
+    doc = json.loads(out.read_text())
+    assert doc["interrupted"] is True and doc["stopped_by"] == signal.Signals(sig).name
+    first, second = doc["runs"]
+    assert first["seed"] == 1 and first["duration_s"] == 2.0 and "interrupted" not in first
+    assert second["seed"] == 2 and second["interrupted"] is True and 0.5 < second["duration_s"] < 2.0
+    assert [r["seed"] for r in doc["summary"]] == [1, 2]
+    assert "stopped by" in capsys.readouterr().err
