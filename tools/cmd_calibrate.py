@@ -22,6 +22,9 @@ import sys
 from . import args as A
 
 HELP = "estimate a calibration file from a calibration run (grid of known poses, free motion)"
+EXIT = {130: "stopped by SIGINT: no calibration written; a recording made by --record is kept (in --recording, "
+             "else OUT.recording.npz) for --input",
+        143: "stopped by SIGTERM: likewise"}
 
 
 def add_arguments(p) -> None:
@@ -46,6 +49,10 @@ def add_arguments(p) -> None:
                         "(default: reported in [meta] only; a MEMS turn-on bias changes at every power-up and the "
                         "fusion filter estimates it, so another session's bias is no correction)")
     p.add_argument("--out", type=A.output_path, metavar="FILE", required=True, help="the calibration file to write")
+    p.add_argument("--recording", type=A.output_path, metavar="FILE",
+                   help="--record: also write the recording (.npz, read back by --input) as soon as it is recorded. "
+                        "A calibration stopped (SIGINT, SIGTERM) while fitting writes it anyway, here or, without "
+                        "this option, to the --out file with the suffix .recording.npz")
 
 
 def _load_input(path, method):
@@ -118,12 +125,50 @@ def merge_tables(new: dict, old: dict) -> dict:
     return out
 
 
+def recording_path(args) -> str:
+    """Where a recording is kept: ``--recording``, else beside ``--out`` (suffix ``.recording.npz``)."""
+    from pathlib import Path
+
+    return args.recording or str(Path(args.out).with_suffix(".recording.npz"))
+
+
+def _save_recording(rec: dict, path) -> None:
+    from coiltrack.hil.calibrun import save_recording
+
+    save_recording(rec, path)
+    print(f"coiltrack calibrate: recording written to {path}")
+
+
+def _stopped_fitting(args, rec: dict, exc) -> int:
+    """SIGINT or SIGTERM during the fit: no calibration file, but a recording made here is
+    kept (written now if ``--recording`` has not already), to fit later with ``--input``."""
+    from .stopping import held_signals
+
+    if args.record:
+        path = recording_path(args)
+        with held_signals():       # a second signal waits for the recording to be written
+            if not args.recording:
+                try:
+                    _save_recording(rec, path)
+                except (OSError, TypeError, ValueError) as err:
+                    print(f"coiltrack calibrate: stopped by {exc.reason}; the recording could not be kept in "
+                          f"{path}: {err}", file=sys.stderr)
+                    return exc.exit_code
+        print(f"coiltrack calibrate: stopped by {exc.reason} while fitting: no calibration written; the recording "
+              f"is kept in {path} (fit it with --input {path})", file=sys.stderr)
+    else:
+        print(f"coiltrack calibrate: stopped by {exc.reason} while fitting {args.input}: no calibration written",
+              file=sys.stderr)
+    return exc.exit_code
+
+
 def run(args) -> int:
     from coiltrack.firmware.calibration import Calibration, CalibrationError, dumps_toml
     from coiltrack.firmware.config import ConfigError, FirmwareConfig
 
     from .calibrate import METHODS
     from .infile import InputFileError
+    from .stopping import Stopped
     from .userconfig import load_over
 
     try:
@@ -156,11 +201,15 @@ def run(args) -> int:
         from .calibrate import RECORDERS
 
         rec = RECORDERS[args.method](args.unit, args.seed, args.grid)
+        if args.recording:
+            _save_recording(rec, args.recording)
     try:
         tables = METHODS[args.method](rec, cfg)
     except ValueError as exc:
         print(f"coiltrack calibrate: {exc}", file=sys.stderr)
         return 2
+    except Stopped as exc:
+        return _stopped_fitting(args, rec, exc)
     if args.method == "free" and not args.write_biases:
         for sec in tables.get("sensor", {}).values():
             for k in ("accel_bias_m_s2", "gyro_bias_rad_s"):

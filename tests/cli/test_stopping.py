@@ -290,3 +290,58 @@ def test_a_stopped_soak_writes_the_seeds_it_ran(sig, tmp_path, monkeypatch, caps
     assert second["seed"] == 2 and second["interrupted"] is True and 0.5 < second["duration_s"] < 2.0
     assert [r["seed"] for r in doc["summary"]] == [1, 2]
     assert "stopped by" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_calibration_stopped_while_fitting_keeps_its_recording(sig, tmp_path, monkeypatch, capsys):
+    """``calibrate --record`` stopped by a signal during the fit (the long part): exit 130 or
+    143, no calibration file, and the recording kept beside it, equal to the one recorded."""
+    import numpy as np
+
+    from coiltrack.hil.calibrun import load_recording
+    from coiltrack.tools import calibrate
+
+    real = calibrate.RECORDERS["grid"]
+    recorded = {}
+
+    def fit(rec, cfg):
+        os.kill(os.getpid(), sig)              # the handler raises in this thread before kill returns
+        pytest.fail("the signal did not stop the fit")
+
+    def record(unit, seed, grid):
+        recorded.update(real(unit, seed, grid))
+        return recorded
+
+    monkeypatch.setitem(calibrate.METHODS, "grid", fit)
+    monkeypatch.setitem(calibrate.RECORDERS, "grid", record)
+    out = tmp_path / "cal.toml"
+    assert main(["calibrate", "--method", "grid", "--record", "--grid", "2", "--out", str(out)]) == 128 + sig
+    assert not out.exists()
+    kept = load_recording(tmp_path / "cal.recording.npz")
+    assert kept["kind"] == "grid" and kept["meta"] == recorded["meta"]
+    for k in ("p_true", "R_true", "b_on", "b_off"):
+        np.testing.assert_array_equal(kept[k], recorded[k])
+    assert f"--input {tmp_path / 'cal.recording.npz'}" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_stopped_bench_writes_its_pose_table(sig, tmp_path, monkeypatch):
+    """A bench stopped at 1 s of simulated time writes the poses it had (read back strictly)
+    and its report, and exits 130 or 143."""
+    from coiltrack.tools.posecsv import read_csv
+
+    real_update = runner.Progress.update
+
+    def update(self, sim_s, poses, extra=""):
+        if sim_s >= 1.0:
+            os.kill(os.getpid(), sig)
+        real_update(self, sim_s, poses, extra)
+
+    monkeypatch.setattr(runner.Progress, "update", update)
+    out, poses = tmp_path / "r.json", tmp_path / "poses.csv"
+    assert main(["bench", "--scenario", "static", "--duration", "20", "--quiet", "--json", str(out),
+                 "--poses", str(poses)]) == 128 + sig
+    rep = json.loads(out.read_text())
+    assert rep["interrupted"] is True and rep["stopped_by"] == signal.Signals(sig).name
+    table = read_csv(poses)
+    assert len(table["t_us"]) == rep["poses"] >= 1 and table["t_s"].max() <= rep["duration_s"]
