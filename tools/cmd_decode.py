@@ -1,6 +1,9 @@
 """Decode a capture into readable messages, one line each: a raw serial
 capture (COBS frames) or a python-can log (.log, .asc, .blf, .trc, .csv,
-.mf4), with the counters of bad frames at the end."""
+.mf4, .db), with the counters of bad frames at the end. A capture damaged
+further on (cut short, a line not UTF-8, a log python-can stops reading) is
+decoded up to the damage, with a warning line saying where it stops; an
+empty one, or one with nothing readable, is refused (exit status 2)."""
 from __future__ import annotations
 
 import sys
@@ -24,9 +27,16 @@ def run(args) -> int:
 
     try:
         res = decode_file(args.file, args.format)
-    except (OSError, ValueError) as exc:
+    except OSError as exc:
+        print(f"coiltrack decode: {args.file}: cannot read it: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:           # CaptureFileError: empty, or nothing readable
         print(f"coiltrack decode: {exc}", file=sys.stderr)
         return 2
+    if res.damage:
+        from .infile import warn
+
+        warn("decode", args.file, f"{res.damage}: decoded what is before it")
     for it in res.items:
         if args.json:
             print(dumps({"t": it.t, "src": it.src, "seq": it.seq, "signed": it.signed,
