@@ -113,7 +113,7 @@ def _good_text(data: bytes) -> tuple[str, str | None]:
     out = []
     for n, b in enumerate(lines, 1):
         if n == len(lines):
-            return "".join(out), (f"line {n}: cut short (no newline at its end)" if b.strip() else None)
+            return "".join(out), (f"line {n}: cut short (no newline at its end)" if b else None)
         try:
             out.append(b.decode("utf-8") + "\n")
         except UnicodeDecodeError as exc:

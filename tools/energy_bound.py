@@ -142,14 +142,20 @@ def exponent(rms_hi, rms_lo, energy_hi: float, energy_lo: float) -> np.ndarray:
 
 
 def _sweep_figures(path: str) -> dict:
-    with open(path) as f:
-        d = json.load(f)
+    from .sweepfile import read_json
+
+    d = read_json(path)
     out = {}
     for r in d["runs"]:
         if r["params"] and r["params"].get("timing.cycle_us", 600000) != 600000:
             continue
         g = r["figures"]
-        out[int(r["seed"])] = (g["position_rms_mm"], g["orientation_rms_deg"], g["coil_energy_j"])
+        try:
+            out[int(r["seed"])] = (g["position_rms_mm"], g["orientation_rms_deg"], g["coil_energy_j"])
+        except KeyError as exc:
+            from .infile import InputFileError
+
+            raise InputFileError(path, "missing", key=f"figures.{exc.args[0]}") from None
     return out
 
 
@@ -193,7 +199,7 @@ def main(argv=None) -> int:
     if a.a_pos is None or a.a_rot is None:
         try:
             hi, lo = _sweep_figures(f"{a.sweeps}/fixed-910.json"), _sweep_figures(f"{a.sweeps}/fixed-450.json")
-        except OSError as e:
+        except (OSError, ValueError) as e:
             print(f"energy_bound: --sweeps: {e}", file=sys.stderr)
             return 2
     rows = []

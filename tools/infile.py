@@ -141,6 +141,9 @@ def loads_toml(text: str, path) -> dict:
         m = re.search(r"\(at line (\d+), column (\d+)\)$", str(exc))
         msg = str(exc)[:m.start()].strip() if m else str(exc)
         line = int(m.group(1)) if m else None
+        if not m and str(exc).endswith("(at end of document)"):
+            msg = str(exc)[:-len("(at end of document)")].strip() + " at the end of the file (cut short?)"
+            line = text.count("\n") + 1
         if "overwrite" in msg:
             msg += " (a key or table given twice)"
         raise InputFileError(path, f"not valid TOML: {msg}" + (f" (column {m.group(2)})" if m else ""),

@@ -23,9 +23,10 @@ from pathlib import Path
 def load(paths) -> list[dict]:
     """One row per grid point of every sweep file."""
     rows = []
+    from .sweepfile import read_json
+
     for path in paths:
-        with open(path) as fh:
-            d = json.load(fh)
+        d = read_json(path)          # strictly: a damaged file is refused naming it and the key
         groups: dict[str, list[dict]] = {}
         for r in d["runs"]:
             if r is None or not r.get("figures"):
