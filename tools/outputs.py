@@ -125,6 +125,13 @@ class Outputs:
                 import matplotlib  # noqa: F401
             except ImportError:
                 raise OutputError("--plot: needs matplotlib (pip install 'coiltrack[bench]')") from None
+            from .plot import written_path
+
+            try:
+                written = written_path(self.plot_path)
+            except ValueError as exc:
+                raise OutputError(f"--plot: {exc}") from None
+            check_writable("--plot", written)
 
     @property
     def paced(self) -> bool:
@@ -191,8 +198,7 @@ class Outputs:
             if self.plot_path:
                 from .plot import plot_run
 
-                plot_run(self.plot_path, table, rep)
-                rep["plot"] = self.plot_path
+                rep["plot"] = plot_run(self.plot_path, table, rep)     # the name written (.png added)
         self.close()
         if self.capture_path:
             rep["capture"] = {"path": self.capture_path, "kind": self.capture_kind}
