@@ -110,7 +110,8 @@ def run(args) -> int:
         if pty:
             print(pty, flush=True)          # the firmware's side; printed once the emulator is ready
         print(f"coiltrack emulator: the nodes of scenario {sc.name} are up on {_where(args, kind, pty)}; waiting for "
-              f"a firmware or tester there (its TIME_SYNC and commands) for {duration:g} s", file=sys.stderr, flush=True)
+              f"a firmware or tester there (its TIME_SYNC and commands) for {duration:g} s",
+              file=sys.stderr, flush=True)
         emulator_loop(bench.emulator, bench.link, clock, int(duration * 1e6))
     except Stopped as exc:
         stopped = exc

@@ -67,7 +67,8 @@ def device_name(node: int, magnetic: bool = False) -> str:
     return f"Sensor{node}{'Mag' if magnetic else ''}ToSource"
 
 
-def transform_message(msg, sequence: int, name: str | None = None, unix_s: float | None = None) -> pyigtl.TransformMessage:
+def transform_message(msg, sequence: int, name: str | None = None,
+                      unix_s: float | None = None) -> pyigtl.TransformMessage:
     """The TRANSFORM message of one POSE message on device ``name`` (default: the
     node's track), time stamp ``unix_s`` (default: the master clock's seconds)."""
     T = np.eye(4)

@@ -214,7 +214,9 @@ class Outputs:
         if "capture" in rep:
             print(f"capture ({rep['capture']['kind']}) written to {rep['capture']['path']}")
         if "igtl_sent" in rep:
-            print(f"OpenIGTLink: {rep['igtl_sent']} transforms sent on {rep['igtl_address']}")
+            per = ", ".join(f"{n} {k}" for n, k in rep.get("igtl_devices", {}).items())
+            print(f"OpenIGTLink: {rep['igtl_sent']} transforms sent on {rep['igtl_address']}"
+                  + (f" ({per})" if per else ""))
 
     def close(self) -> None:
         """Stop the server and finish the capture file (idempotent)."""

@@ -186,7 +186,8 @@ def _pose_table(path: Path) -> None:
     rows = []
     for k, (kind, err) in enumerate((("magnetic", 3.0), ("fused", 1.0), ("magnetic", 4.0))):
         r = {c: "0" for c in COLUMNS}
-        r.update(t_us=str(100_000 * k), t_s=str(0.1 * k), sensor="16", kind=kind, status="3" if kind == "fused" else "1",
+        r.update(t_us=str(100_000 * k), t_s=str(0.1 * k), sensor="16", kind=kind,
+                 status="3" if kind == "fused" else "1",
                  status_bits="valid", qw="1", true_qw="1", pos_err_mm=str(err), ori_err_deg="0.5",
                  range_mm=str(300 + k), crlb_mm="2", x_mm=str(300 + k))
         rows.append(r)
