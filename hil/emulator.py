@@ -33,6 +33,11 @@ class Emulator:
         self.frames_tx = 0
         self.frames_rx = 0
 
+    def counters(self) -> dict:
+        """What the emulator's link carried: frames received (decoded), frames it could not
+        decode (bad CRC, framing, refused signature), frames sent by its nodes."""
+        return {"frames_rx": self.frames_rx, "frames_bad": self.decoder.frames_bad, "frames_tx": self.frames_tx}
+
     def _send(self, node, msg) -> None:
         self.link.write(self.encoders[node.node_id].encode(msg))
         self.frames_tx += 1

@@ -45,8 +45,20 @@ def _epilog(mod) -> str:
     return "\n\n".join(parts)
 
 
+def version() -> str:
+    """The installed distribution's version (``importlib.metadata``)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("coiltrack")
+    except PackageNotFoundError:
+        return "unknown (not installed: pip install -e .)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="coiltrack", description="Magnetic 6-DOF tracker: firmware, protocol and emulated bench.")
+    parser.add_argument("--version", action="version", version=f"coiltrack {version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in subcommands():

@@ -76,6 +76,9 @@ def run(args) -> int:
                           mag_rate_hz=args.mag_rate or None, seed=args.seed, link_id=args.link_id,
                           key=key_from_text(args.key) if args.key else None, bench=args.bench,
                           bench_current_ma=args.bench_current_ma, bench_pulse_ms=args.bench_pulse_ms)
+    from .links import warn_virtual_bus
+
+    warn_virtual_bus(args, "conform")
     try:
         link, what = open_link(args)
     except Exception as exc:   # OSError, ValueError; python-can and pyserial initialisation errors

@@ -53,6 +53,15 @@ def _link(args):
     return GuardedPort(link), args.transport, None
 
 
+def _where(args, kind: str, pty: str | None) -> str:
+    """Where the emulator talks, for its waiting line."""
+    if pty:
+        return f"pty {pty}"
+    if kind == "can":
+        return f"CAN bus {args.interface}:{args.channel}"
+    return f"serial port {args.port}"
+
+
 def run(args) -> int:
     import coiltrack.hil.world  # noqa: F401 - the bench extra, checked before a link is opened
     from coiltrack.hil.clock import WallClock
@@ -66,6 +75,14 @@ def run(args) -> int:
     if not args.create_pty and args.transport == "serial" and args.port is None:
         print("coiltrack emulator: give --port, --create-pty or --transport can --channel", file=sys.stderr)
         return 2
+    if args.create_pty and args.transport != "serial":
+        print(f"coiltrack emulator: --create-pty makes a serial link (COBS frames on a pseudo-terminal) and "
+              f"cannot carry --transport {args.transport}; on CAN give the bus: --interface slcan --channel "
+              f"DEVICE, --interface socketcan --channel can0", file=sys.stderr)
+        return 2
+    from .links import warn_virtual_bus
+
+    warn_virtual_bus(args, "emulator")
     sc = scenarios.get(args.scenario)
     duration = args.duration if args.duration is not None else sc.duration_s
     try:
@@ -92,6 +109,9 @@ def run(args) -> int:
     try:
         if pty:
             print(pty, flush=True)          # the firmware's side; printed once the emulator is ready
+        print(f"coiltrack emulator: the nodes of scenario {sc.name} are up on {_where(args, kind, pty)}; waiting for "
+              f"a firmware or tester there (its TIME_SYNC and commands) for {duration:g} s",
+              file=sys.stderr, flush=True)
         emulator_loop(bench.emulator, bench.link, clock, int(duration * 1e6))
     except Stopped as exc:
         stopped = exc
@@ -99,6 +119,7 @@ def run(args) -> int:
         link.close()
     done = duration if stopped is None else elapsed_s(clock, duration)
     rep = report.build(bench, {}, done, transport=kind, cfg=sc.firmware_config())
+    rep.update(bench.emulator.counters())   # what the emulator itself received (no firmware status here)
     if stopped is not None:
         mark(rep, stopped)
     outputs.finish(bench, rep)

@@ -100,6 +100,9 @@ def run(args) -> int:
         if isinstance(cfg, str):
             print(f"coiltrack firmware: {cfg}", file=sys.stderr)
             return 2
+    from .links import warn_virtual_bus
+
+    warn_virtual_bus(args, "firmware")
     try:
         link, _ = open_link(args, cfg.node_id)
     except ValueError as exc:

@@ -71,17 +71,21 @@ def load(path: str):
 
 def run(args) -> int:
     from .outputs import OutputError, check_writable
-    from .plot import plot_run
+    from .plot import plot_run, written_path
 
     out = args.out or str(Path(args.file).with_suffix(".png"))
     try:
         if not 20 <= args.dpi <= 300:
             raise OutputError(f"--dpi: must be 20..300 (got {args.dpi})")
+        try:
+            out = written_path(out)
+        except ValueError as exc:
+            raise OutputError(f"--out: {exc}") from None
         check_writable("--out", out)
         table, rep = load(args.file)
     except (OSError, ValueError) as exc:      # OutputError and json's errors are ValueErrors
         print(f"coiltrack plot: {exc}", file=sys.stderr)
         return 2
-    plot_run(out, table, rep, dpi=args.dpi)
+    out = plot_run(out, table, rep, dpi=args.dpi, source=Path(args.file).name)
     print(f"figure written to {out}")
     return 0

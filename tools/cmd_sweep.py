@@ -34,7 +34,7 @@ def add_arguments(p) -> None:
     p.add_argument("--scenario", required=True, help="scenario name (as for `coiltrack bench`)")
     p.add_argument("--seeds", default="1-10", help="seeds: A-B, N or a comma list of both, e.g. 1-100 (default 1-10)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=V1,V2,...",
-                   help="firmware configuration key (section.key, e.g. fusion.mag_sigma_t, or a plain key) and "
+                   help="firmware configuration key (section.key, e.g. pulse.mag_sigma_t, or a plain key) and "
                         "its values; repeatable: the runs are the cartesian product of every --set times the seeds")
     p.add_argument("--duration", default=None, help=f"seconds per run, 0 < S <= {MAX_DURATION_S:g} "
                                                     "(default: the scenario's)")
@@ -95,7 +95,7 @@ def _finish(args, plan: dict, runs: list[dict], status: int, wall0: float) -> No
 
     summary = sweep.summarize(runs)
     exp = sweep.experiment(args.scenario)
-    print(sweep.format_summary(summary, exp.headline) if exp else sweep.format_summary(summary))
+    print(sweep.format_summary(summary, shown_figures(summary, exp.headline if exp else sweep.HEADLINE)))
     tables = exp.tables(args.scenario, runs) if exp else {}
     if exp:
         print(exp.format(tables))
@@ -106,6 +106,18 @@ def _finish(args, plan: dict, runs: list[dict], status: int, wall0: float) -> No
            "grid": [dict(point) for point in plan["grid"]], "interrupted": bool(status), "wall_s": round(wall, 2),
            "runs": runs, "summary": summary, **tables}
     _write_outputs(args, doc)
+
+
+def shown_figures(summary: list[dict], headline) -> tuple:
+    """The figures of the printed summary: the headline ones, then every other figure
+    whose median differs between grid points (what the swept keys moved; JSON and CSV
+    have every figure anyway)."""
+    medians: dict[str, set] = {}
+    for g in summary:
+        for name, s in g["figures"].items():
+            medians.setdefault(name, set()).add(s["median"])
+    moved = tuple(n for n, m in medians.items() if n not in headline and len(summary) > 1 and len(m) > 1)
+    return tuple(headline) + moved
 
 
 # ---------------------------------------------------------------- checks before any work

@@ -1,18 +1,45 @@
 """``--igtl PORT``: every valid pose as an OpenIGTLink TRANSFORM message, for
 3D Slicer (OpenIGTLinkIF), PLUS or any OpenIGTLink client.
 
-One device per sensor node, ``Sensor<node>ToSource`` (node 16:
-``Sensor16ToSource``): the 4x4 transform from the sensor frame to the
-source frame, rotation from the POSE quaternion, translation in
-millimetres. Header version 2, with metadata (strings, as the standard
-has them): ``Status`` (POSE_* bits, decimal), ``StatusBits`` (their names),
-``Kind`` (``fused`` or ``magnetic``), ``CovarianceDiagonal`` (var_px var_py
-var_pz in m^2, var_rx var_ry var_rz in rad^2), ``Sequence`` (the sensor's
-pose count from 0), ``TimestampUs`` and, as PLUS writes it,
-``<device>TransformStatus`` = ``OK``. The message time stamp is the pose's
-time on the sensor clock (the firmware's master clock the nodes are
-synchronised to), in seconds. Poses without ``POSE_VALID`` are not sent
-(counted as ``igtl_invalid_skipped``).
+Devices (one per track, so a client never sees two estimators interleaved
+on one transform; names in PLUS's ``<From>To<To>`` form):
+
+* ``Sensor<node>ToSource`` (node 16: ``Sensor16ToSource``), the node's
+  track: its fused poses (``POSE_FUSED``, the magnetic-inertial filter);
+  on a node that has sent no fused pose yet (no IMU, or before its filter
+  has started) its magnetic poses. Once a fused pose has gone out, the
+  magnetic ones stay off this device. This is the transform to follow in
+  Slicer or to name in a PLUS configuration.
+* ``Sensor<node>MagToSource`` (``Sensor16MagToSource``): every
+  magnetic-only pose of the node (the solve of each pulse cycle), for a
+  comparison or a recording of the raw magnetic track.
+
+OpenIGTLink device names are at most 20 bytes; the longest here, node 255's
+``Sensor255MagToSource``, is 20.
+
+Each is the 4x4 transform from the sensor frame to the source frame,
+rotation from the POSE quaternion, translation in millimetres. Header
+version 2, with metadata (strings, as the standard has them): ``Status``
+(POSE_* bits, decimal), ``StatusBits`` (their names), ``Kind`` (``fused``
+or ``magnetic``), ``CovarianceDiagonal`` (var_px var_py var_pz in m^2,
+var_rx var_ry var_rz in rad^2), ``Sequence`` (the count of that device's
+messages from 0), ``TimestampUs`` (the pose's time on the master clock,
+microseconds since the run started) and, as PLUS writes it,
+``<device>TransformStatus`` = ``OK``.
+
+Time stamps: the header's time stamp is Unix time (seconds since 1970, UTC,
+as the OpenIGTLink standard and PLUS's ``UseReceivedTimestamps`` read it):
+the pose's time on the firmware's master clock (the clock the nodes are
+synchronised to) plus the one offset from that clock to the host's wall
+clock, taken once when the run starts (:meth:`IgtlOutput.anchor`), so the
+stamps keep the master clock's spacing and are never shifted by a later
+change of the wall clock. On each device the stamps strictly increase: a
+pose not newer than the last one sent on its device is not sent (counted as
+``igtl_stale_dropped``). Sending it re-stamped would date an old pose as a
+new one; sent with its own stamp, PLUS drops it anyway (its time-stamped
+buffer refuses an item not newer than the last) and Slicer would show it
+after a newer one. Poses without ``POSE_VALID`` are not sent (counted as
+``igtl_invalid_skipped``).
 
 The server is pyigtl's (``OpenIGTLinkServer`` and its queue), bound to the
 address given and without the signal handlers pyigtl installs, so the
@@ -35,17 +62,21 @@ from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID
 from .posecsv import pose_bit_names
 
 
-def device_name(node: int) -> str:
-    return f"Sensor{node}ToSource"
+def device_name(node: int, magnetic: bool = False) -> str:
+    """``Sensor<node>ToSource`` (the node's track) or ``Sensor<node>MagToSource``."""
+    return f"Sensor{node}{'Mag' if magnetic else ''}ToSource"
 
 
-def transform_message(msg, sequence: int) -> pyigtl.TransformMessage:
-    """The TRANSFORM message of one POSE message."""
+def transform_message(msg, sequence: int, name: str | None = None,
+                      unix_s: float | None = None) -> pyigtl.TransformMessage:
+    """The TRANSFORM message of one POSE message on device ``name`` (default: the
+    node's track), time stamp ``unix_s`` (default: the master clock's seconds)."""
     T = np.eye(4)
     T[:3, :3] = matrix_from_quat(np.array([msg.qw, msg.qx, msg.qy, msg.qz]))
     T[:3, 3] = np.array([msg.px, msg.py, msg.pz]) * 1e3
-    name = device_name(msg.node)
-    out = pyigtl.TransformMessage(T, timestamp=msg.t_us * 1e-6, device_name=name)
+    name = name or device_name(msg.node)
+    stamp = msg.t_us * 1e-6 if unix_s is None else unix_s
+    out = pyigtl.TransformMessage(T, timestamp=stamp, device_name=name)
     out.header_version = 2
     out.message_id = sequence & 0xFFFFFFFF
     cov = (msg.var_px, msg.var_py, msg.var_pz, msg.var_rx, msg.var_ry, msg.var_rz)
@@ -93,17 +124,67 @@ class _Server(pyigtl.OpenIGTLinkServer):
         self.start()
 
 
+class PoseRouter:
+    """Which device each POSE goes out on, with which Unix time stamp, or none (the
+    rules of the module docstring). No socket: :class:`IgtlOutput` sends what
+    :meth:`route` returns. ``wall_clock()``: Unix seconds now (injected in tests)."""
+
+    def __init__(self, wall_clock=time.time):
+        self.wall_clock = wall_clock
+        self.unix0: float | None = None       # Unix time of master-clock 0
+        self.fused_seen: set[int] = set()
+        self.last_us: dict[str, int] = {}     # the last time stamp sent on each device
+        self.sequence: dict[str, int] = {}
+        self.invalid_skipped = 0
+        self.stale_dropped = 0
+
+    def anchor(self, master_us: int, unix_s: float | None = None) -> None:
+        """Map the master clock to Unix time, once: ``master_us`` on the master clock is
+        ``unix_s`` (default: the wall clock now). Later calls change nothing."""
+        if self.unix0 is None:
+            self.unix0 = (self.wall_clock() if unix_s is None else unix_s) - master_us * 1e-6
+
+    def unix_time(self, t_us: int) -> float:
+        """Unix seconds of master-clock time ``t_us`` (anchored at the first call if not yet)."""
+        self.anchor(t_us)
+        return self.unix0 + t_us * 1e-6
+
+    def route(self, msg) -> list[tuple[str, int, float]]:
+        """(device, sequence, Unix time stamp) for each message ``msg`` (a POSE) goes out as."""
+        if not msg.status & POSE_VALID:
+            self.invalid_skipped += 1
+            return []
+        if msg.status & POSE_FUSED:
+            self.fused_seen.add(msg.node)
+            names = [device_name(msg.node)]
+        else:
+            names = [device_name(msg.node, magnetic=True)]
+            if msg.node not in self.fused_seen:
+                names.append(device_name(msg.node))
+        out = []
+        for name in names:
+            if msg.t_us <= self.last_us.get(name, -1):
+                self.stale_dropped += 1
+                continue
+            self.last_us[name] = msg.t_us
+            k = self.sequence.get(name, 0)
+            self.sequence[name] = k + 1
+            out.append((name, k, self.unix_time(msg.t_us)))
+        return out
+
+
 class IgtlOutput:
     """``feed(bytes)`` is a sink for :class:`tools.linktap.TapPort`: it decodes the
-    frames and queues a TRANSFORM for every valid POSE."""
+    frames and queues a TRANSFORM for every valid POSE, on the devices
+    :class:`PoseRouter` gives it."""
 
-    def __init__(self, host: str, port: int):
+    def __init__(self, host: str, port: int, wall_clock=time.time):
         self.server = _Server(host, port)
+        self.router = PoseRouter(wall_clock)
+        self.anchor = self.router.anchor
         self.decoder = FrameDecoder(on_frame=self._on_frame)
         self.feed = self.decoder.feed
-        self.sequence: dict[int, int] = {}
         self.sent = 0
-        self.invalid_skipped = 0
         self.stopped = False
 
     @property
@@ -113,13 +194,9 @@ class IgtlOutput:
     def _on_frame(self, hdr, msg) -> None:
         if msg.NAME != "POSE":
             return
-        if not msg.status & POSE_VALID:
-            self.invalid_skipped += 1
-            return
-        k = self.sequence.get(msg.node, 0)
-        self.sequence[msg.node] = k + 1
-        self.server.send_message(transform_message(msg, k), wait=False)
-        self.sent += 1
+        for name, k, unix_s in self.router.route(msg):
+            self.server.send_message(transform_message(msg, k, name, unix_s), wait=False)
+            self.sent += 1
 
     def wait_for_client(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for a client to connect; True if one did."""
@@ -139,5 +216,8 @@ class IgtlOutput:
         self.server.stop()
 
     def counters(self) -> dict:
+        r = self.router
         return {"igtl_address": self.address, "igtl_sent": self.sent,
-                "igtl_invalid_skipped": self.invalid_skipped}
+                "igtl_devices": {name: r.sequence[name] for name in sorted(r.sequence)},
+                "igtl_clock_origin_unix_s": r.unix0,
+                "igtl_invalid_skipped": r.invalid_skipped, "igtl_stale_dropped": r.stale_dropped}

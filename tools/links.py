@@ -223,3 +223,18 @@ def open_link(args, node_id: int):
         return make(), what
     except Exception as exc:  # pyserial: SerialException (an OSError) or ValueError; python-can: CanError
         raise ValueError(f"cannot open {what}: {exc}") from None
+
+
+def warn_virtual_bus(args, command: str, stream=None) -> bool:
+    """python-can's ``virtual`` interface joins only the buses of one process: a command that
+    meets its peer in another process (``firmware``, ``emulator``, ``conform``) would wait for
+    it forever. Say so on stderr (one line); True if it was said. (In one process, e.g. the
+    tests or ``bench --transport can``, virtual buses on one channel do meet.)"""
+    import sys
+
+    if getattr(args, "transport", None) != "can" or getattr(args, "interface", None) != "virtual":
+        return False
+    print(f"coiltrack {command}: warning: --interface virtual reaches only buses in this same process; a "
+          f"firmware, emulator or tester started as another process never hears it (between processes use "
+          f"socketcan, e.g. a vcan0, or slcan on a serial device or pty)", file=stream or sys.stderr, flush=True)
+    return True

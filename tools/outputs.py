@@ -21,8 +21,9 @@ class OutputError(ValueError):
 
 def add_igtl_arguments(p) -> None:
     p.add_argument("--igtl", type=int, metavar="PORT", default=None,
-                   help="serve every valid pose as an OpenIGTLink TRANSFORM (device Sensor<node>ToSource, "
-                        "millimetres) on this TCP port (0..65535; 0 takes a free one), for 3D Slicer or PLUS")
+                   help="serve every valid pose as an OpenIGTLink TRANSFORM, millimetres, Unix time stamps, on this "
+                        "TCP port (0..65535; 0 takes a free one), for 3D Slicer or PLUS: device Sensor<node>ToSource "
+                        "the node's track (fused when it fuses), Sensor<node>MagToSource its magnetic poses")
     p.add_argument("--igtl-host", default="127.0.0.1", help="address the OpenIGTLink server binds (default 127.0.0.1)")
     p.add_argument("--igtl-wait", type=float, default=0.0, metavar="S",
                    help="wait up to S seconds (0..3600) for an OpenIGTLink client before starting")
@@ -124,6 +125,13 @@ class Outputs:
                 import matplotlib  # noqa: F401
             except ImportError:
                 raise OutputError("--plot: needs matplotlib (pip install 'coiltrack[bench]')") from None
+            from .plot import written_path
+
+            try:
+                written = written_path(self.plot_path)
+            except ValueError as exc:
+                raise OutputError(f"--plot: {exc}") from None
+            check_writable("--plot", written)
 
     @property
     def paced(self) -> bool:
@@ -135,6 +143,7 @@ class Outputs:
         capture. ``clock_us()`` stamps CAN frames (default: the time of :meth:`tick`)."""
         from .linktap import TapPort
 
+        wall_clock = clock_us is not None
         clock_us = clock_us or (lambda: self.now_us)
         rx, tx = [], []
         if self.capture_path and hasattr(link, "bus"):
@@ -150,6 +159,8 @@ class Outputs:
         if self.igtl is not None:
             # POSE frames leave the firmware's port and arrive on the emulator's link
             (tx if side == "firmware" else rx).append(self.igtl.feed)
+            if wall_clock:      # the master clock runs on the wall clock: map it to Unix time now
+                self.igtl.anchor(clock_us())
         return TapPort(link, rx, tx) if rx or tx else link
 
     def start(self, log=print) -> None:
@@ -168,6 +179,7 @@ class Outputs:
         now = time.perf_counter()
         if self._wall0 is None:
             self._wall0 = now - t_us * 1e-6
+            self.igtl.anchor(t_us)      # the simulated master clock follows the wall clock from here
         ahead = self._wall0 + t_us * 1e-6 - now
         if ahead > 0.002:
             time.sleep(ahead)
@@ -186,8 +198,7 @@ class Outputs:
             if self.plot_path:
                 from .plot import plot_run
 
-                plot_run(self.plot_path, table, rep)
-                rep["plot"] = self.plot_path
+                rep["plot"] = plot_run(self.plot_path, table, rep)     # the name written (.png added)
         self.close()
         if self.capture_path:
             rep["capture"] = {"path": self.capture_path, "kind": self.capture_kind}
@@ -203,7 +214,9 @@ class Outputs:
         if "capture" in rep:
             print(f"capture ({rep['capture']['kind']}) written to {rep['capture']['path']}")
         if "igtl_sent" in rep:
-            print(f"OpenIGTLink: {rep['igtl_sent']} transforms sent on {rep['igtl_address']}")
+            per = ", ".join(f"{n} {k}" for n, k in rep.get("igtl_devices", {}).items())
+            print(f"OpenIGTLink: {rep['igtl_sent']} transforms sent on {rep['igtl_address']}"
+                  + (f" ({per})" if per else ""))
 
     def close(self) -> None:
         """Stop the server and finish the capture file (idempotent)."""

@@ -99,17 +99,54 @@ def _report_bands(ax, rep: dict) -> None:
     ax.legend(loc="best", fontsize=8)
 
 
-def _title(rep: dict | None, table) -> str:
-    if rep is None:
-        return f"{len(table['t_us'])} poses"
-    return (f"{rep.get('scenario')} seed {rep.get('seed')} ({rep.get('transport')}): position RMS "
-            f"{rep.get('position_rms_mm')} mm, orientation RMS {rep.get('orientation_rms_deg')} deg, "
-            f"CRLB {rep.get('crlb_position_rms_mm')} mm")
+def written_path(path) -> str:
+    """The file :func:`plot_run` writes for ``path``: ``path`` itself when its suffix names a
+    format matplotlib writes (``.png``, ``.svg``, ``.pdf``, ...), ``path`` + ``.png`` when it has
+    no suffix (as matplotlib's ``savefig`` does); ValueError for another suffix."""
+    from pathlib import Path
+
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if not suffix:
+        return f"{path}.png"
+    if suffix not in FigureCanvasBase.get_supported_filetypes():
+        raise ValueError(f"'{path}': matplotlib writes no .{suffix} file; give a .png path (or .svg, .pdf)")
+    return str(path)
 
 
-def plot_run(path, table: dict | None = None, rep: dict | None = None, dpi: int = 80) -> None:
-    """Write the figure of a run to ``path`` (PNG): the full figure from a pose table,
-    the per-range panel from a report alone."""
+def _counts(table) -> str:
+    """Poses of the table by kind, with the RMS position error of each kind."""
+    n = len(table["t_us"])
+    parts = []
+    for kind, sel in _kinds(table):
+        rms = float(np.sqrt(np.mean(table["pos_err_mm"][sel] ** 2)))
+        parts.append(f"{int(sel.sum())} {kind} ({rms:.2f} mm RMS)")
+    valid = int(np.isfinite(table["pos_err_mm"]).sum())
+    if valid < n:
+        parts.append(f"{n - valid} without an error")
+    return f"{n} poses" + (": " + ", ".join(parts) if parts else "")
+
+
+def _title(rep: dict | None, table, source: str | None = None) -> str:
+    """The figure's title: the file drawn, the run (scenario, seed, transport) when a
+    report names it, the pose counts of the table and the report's headline figures."""
+    head = [source] if source else []
+    if rep is not None:
+        head.append(f"{rep.get('scenario')} seed {rep.get('seed')} ({rep.get('transport')})")
+    parts = [_counts(table)] if table is not None else []
+    if rep is not None:
+        parts.append(f"position RMS {rep.get('position_rms_mm')} mm, orientation RMS "
+                     f"{rep.get('orientation_rms_deg')} deg, CRLB {rep.get('crlb_position_rms_mm')} mm")
+    return ", ".join(head) + (": " if head and parts else "") + "; ".join(parts)
+
+
+def plot_run(path, table: dict | None = None, rep: dict | None = None, dpi: int = 80,
+             source: str | None = None) -> str:
+    """Write the figure of a run (the full figure from a pose table, the per-range panel
+    from a report alone), titled with ``source`` (the file drawn) when given; returns the
+    name of the file written (:func:`written_path`)."""
+    path = written_path(path)
     plt = _pyplot()
     if table is None:
         fig, ax = plt.subplots(figsize=(7, 5))
@@ -122,8 +159,9 @@ def plot_run(path, table: dict | None = None, rep: dict | None = None, dpi: int 
         _against_range(axes[1, 2], table)
     import textwrap
 
-    title = _title(rep, table) if table is not None or rep else ""
+    title = _title(rep, table, source) if table is not None or rep or source else ""
     fig.suptitle(textwrap.fill(title, 150 if table is not None else 75), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
+    return path

@@ -307,8 +307,8 @@ def format_table(rep: dict) -> str:
     rows += [
         ("frames rx / bad", f'{rep["frames_rx"]} / {rep["frames_bad"]}'),
         ("pulse window violations", rep["pulse_window_violations"]),
-        ("coil energy", f'{rep["coil_energy_j"]:.2f} J in {rep["pulses_per_s"]:.2f} pulses/s; '
-                        f'battery {rep["projected_runtime_h"]} h (4 AA)'),
+        ("coil energy", f'{rep["coil_energy_j"]:.2f} J in {rep["pulses_per_s"]:.2f} pulses/s'
+                        + (f'; battery {rep["projected_runtime_h"]} h (4 AA)' if rep["projected_runtime_h"] else '')),
     ]
     cd = rep.get("coil_driver")
     if cd and cd.get("current_error_rms") is not None:
@@ -377,6 +377,8 @@ def format_table(rep: dict) -> str:
             continue
         rows.append((f"  at {band}", f'{b["position_rms_mm"]:.1f} mm (CRLB {b["crlb_position_rms_mm"]:.1f}), '
                                      f'{b["orientation_rms_deg"]:.1f} deg, {b["poses"]} poses'))
+    if not rep["poses"] and "magnetic_position_rms_mm" not in rep:    # no pose: no error to show
+        rows = [r for r in rows if r[0] not in ("position RMS", "orientation RMS")]
     w = max(len(k) for k, _ in rows)
     return "\n".join(f"  {k:<{w}}  {v}" for k, v in rows)
 

@@ -41,25 +41,27 @@ def _quat_matrix(w, x, y, z) -> np.ndarray:
 
 
 def _collect(client, proc, expected: int, timeout_s: float = 60.0) -> list:
-    """Every message the client hands over until the bench has ended and ``expected``
-    have arrived (or the time-out: then the assertions say what is missing)."""
-    got = []
+    """Every message the client received (``igtl_client``: all of them, in arrival order)
+    once the bench has ended and ``expected`` have arrived (or the time-out: then the
+    assertions say what is missing)."""
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        got += client.get_latest_messages()
-        if proc.poll() is not None and len(got) >= expected:
+        if proc.poll() is not None and len(client.received) >= expected:
             break
         time.sleep(0.005)
-    return got
+    return list(client.received)
 
 
-def test_igtl_client_receives_the_bench_poses(tmp_path):
-    """pyigtl's client on loopback gets one TRANSFORM per valid pose, device
-    Sensor16ToSource, header version 2, translation in mm equal to the pose
-    table's to 0.01 mm, the same rotation, sensor-clock time stamp and metadata.
-    Catches metres sent as millimetres, a transposed rotation, a wrong device
-    name or clock, dropped poses, metadata out of step with the pose."""
-    import pyigtl
+def test_igtl_client_receives_the_bench_poses(tmp_path, igtl_client):
+    """pyigtl's client on loopback gets one TRANSFORM per valid pose on each of the
+    node's devices (a magnetic-only run: Sensor16ToSource, the node's track, and
+    Sensor16MagToSource carry the same poses), header version 2, translation
+    in mm equal to the pose table's to 0.01 mm, the same rotation, Unix time stamps
+    (the master clock plus one offset, the report's, taken within the run) and
+    metadata. Catches metres sent as millimetres, a transposed rotation, a wrong
+    device name, a time stamp on the run's clock (1970), dropped poses, metadata out
+    of step with the pose."""
+    import os
 
     port = _free_port()
     table = tmp_path / "poses.csv"
@@ -67,25 +69,30 @@ def test_igtl_client_receives_the_bench_poses(tmp_path):
     cmd = [sys.executable, "-m", "coiltrack.tools.cli", "bench", "--scenario", "static", "--duration", "3",
            "--quiet", "--igtl", str(port), "--igtl-wait", "60", "--poses", str(table), "--json", str(rep_path)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    client = pyigtl.OpenIGTLinkClient("127.0.0.1", port)
+    client = igtl_client(port)
     try:
-        # the static scenario gives a pose every 0.6 s: the client sees each one
-        got = _collect(client, proc, expected=5)
+        # the static scenario gives a pose every 0.6 s: the client sees each one, twice
+        got = _collect(client, proc, expected=10)
         out, err = proc.communicate(timeout=60)
     finally:
-        client.stop()
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, err
     rows = [r for r in _rows(table) if int(r["status"]) & POSE_VALID]
     rep = json.loads(rep_path.read_text())
-    assert len(rows) == rep["poses"] >= 4 and rep["igtl_sent"] == len(rows)
-    assert len(got) == len(rows)
+    assert len(rows) == rep["poses"] >= 4 and rep["igtl_sent"] == 2 * len(rows)
+    assert rep["igtl_devices"] == {"Sensor16MagToSource": len(rows), "Sensor16ToSource": len(rows)}
+    assert len(got) == 2 * len(rows) and rep["igtl_stale_dropped"] == 0
+    # Unix time: master-clock 0 is when the paced run started, before the pose table was written
+    origin = rep["igtl_clock_origin_unix_s"]
+    assert 0 < os.stat(table).st_mtime - origin - 3.0 < 60.0
     by_t = {int(r["t_us"]): (k, r) for k, r in enumerate(rows)}
     for m in got:
-        assert m.message_type == "TRANSFORM" and m.device_name == "Sensor16ToSource" and m.header_version == 2
+        assert m.message_type == "TRANSFORM" and m.header_version == 2
+        assert m.device_name in ("Sensor16ToSource", "Sensor16MagToSource")
+        assert m.metadata["Kind"] == "magnetic" and m.metadata[m.device_name + "TransformStatus"] == "OK"
         t_us = int(m.metadata["TimestampUs"])
-        assert abs(m.timestamp - t_us * 1e-6) < 1e-6
+        assert abs(m.timestamp - (origin + t_us * 1e-6)) < 1e-6
         k, r = by_t[t_us]
         est = np.array([float(r["x_mm"]), float(r["y_mm"]), float(r["z_mm"])])
         assert np.max(np.abs(m.matrix[:3, 3] - est)) < 0.01
