@@ -6,7 +6,9 @@ counting what must not happen.
 own ``run``), and never raises for what the run does: an exception anywhere in the bench or the
 firmware becomes the run's ``exception`` (type and message), ``where`` (the innermost frame of
 the traceback, file:line in function) and ``side`` (``bench``: the emulated world and nodes,
-``firmware``, ``tools`` or ``other``: the innermost frame's package). A run that finished gives
+``firmware``, ``tools`` or ``other``: the innermost frame's package) and ``origin`` (the innermost
+frame of the bench or the firmware, when the exception was raised further in: the emulator's
+node whose message the codec refused). A run that finished gives
 its ``poses``, ``poses_invalid`` and, with a fault, ``faults_unreported`` (the fault switches that
 raised none of the FAULT_EVENTs they should, ``tools.faultreport``).
 
@@ -62,16 +64,21 @@ def _side(filename: str) -> str:
     return "other"
 
 
-def _where(tb) -> tuple[str, str]:
-    """(innermost frame of the project as ``file:line in function``, its side)."""
+def _frame(f) -> str:
+    return f"{'/'.join(Path(f.filename).parts[-2:])}:{f.lineno} in {f.name}"
+
+
+def _where(tb) -> tuple[str, str, str | None]:
+    """(innermost frame of the project as ``file:line in function``, its side, and the innermost
+    frame of the bench or the firmware when that is another: the code whose call raised)."""
     frames = traceback.extract_tb(tb)
     ours = [f for f in frames if _side(f.filename) != "other"] or frames
     if not ours:
-        return "?", "other"
+        return "?", "other", None
     f = ours[-1]
-    parts = Path(f.filename).parts
-    short = "/".join(parts[-2:])
-    return f"{short}:{f.lineno} in {f.name}", _side(f.filename)
+    inner = [g for g in ours if _side(g.filename) in ("bench", "firmware")]
+    origin = _frame(inner[-1]) if inner and inner[-1] is not f else None
+    return _frame(f), _side(f.filename), origin
 
 
 def check_run(scenario: str, seed: int, duration_s: float, faults: str = "none") -> dict:
@@ -79,8 +86,8 @@ def check_run(scenario: str, seed: int, duration_s: float, faults: str = "none")
     import time
 
     out: dict = {"scenario": scenario, "seed": int(seed), "duration_s": float(duration_s), "faults": None,
-                 "exception": None, "where": None, "side": None, "poses": None, "poses_invalid": None,
-                 "faults_unreported": [], "wall_s": None}
+                 "exception": None, "where": None, "side": None, "origin": None, "poses": None,
+                 "poses_invalid": None, "faults_unreported": [], "wall_s": None}
     t0 = time.perf_counter()
     try:
         from . import scenarios, sweep
@@ -108,7 +115,7 @@ def check_run(scenario: str, seed: int, duration_s: float, faults: str = "none")
                 out[k] = v if v is None or (isinstance(v, (int, float)) and math.isfinite(v)) else None
     except Exception as exc:  # what the sweep counts, not what stops it
         out["exception"] = f"{type(exc).__name__}: {exc}".splitlines()[0][:300]
-        out["where"], out["side"] = _where(exc.__traceback__)
+        out["where"], out["side"], out["origin"] = _where(exc.__traceback__)
         out["traceback"] = traceback.format_exc()[-4000:]
     out["wall_s"] = round(time.perf_counter() - t0, 2)
     return out

@@ -79,7 +79,8 @@ def format_summary(s: dict, runs: list[dict]) -> str:
         lines.append(f"  {n:4d} x {k}")
     for r in runs:
         if r["exception"]:
-            lines.append(f"  EXCEPTION {r['scenario']} seed {r['seed']}: {r['exception']} ({r['side']}: {r['where']})")
+            via = f", from {r['origin']}" if r.get("origin") else ""
+            lines.append(f"  EXCEPTION {r['scenario']} seed {r['seed']}: {r['exception']} ({r['side']}: {r['where']}{via})")
     for r in runs:
         if r["faults_unreported"]:
             lines.append(f"  UNREPORTED {r['scenario']} seed {r['seed']}: {', '.join(r['faults_unreported'])}")
