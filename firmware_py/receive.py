@@ -29,6 +29,18 @@ input shape:
   independent samples of noise ``sigma`` give. What the interval's mean
   loses is the motion within it (100 ms at 10 Hz).
 
+Saturation: an IMU sample with an axis at the clip code
+(``IMU_CLIP_COUNTS``: the sensor saturated, the value is its full scale, not
+the motion) and an ``IMU_DELTA`` pair with the saturated stamp bit on either
+frame are not measurements: they go to the supervisor (the node was heard)
+but not to the channels or the tracker, and are counted (``imu_saturated``:
+samples, the steps of a pair included; ``imu_saturated_pairs``). The pair's
+sums still advance the node's anchor, so the next pair's difference covers
+its own interval only. Downstream the sample is missing: the strapdown
+bridges a short gap between its neighbours' values and restarts from the
+magnetic solution past ``imu_timeout_us`` (``estimate.magnetic_inertial``:
+the IMU stream broke off).
+
 Calibration: a node with a :class:`coiltrack.firmware.calibration.SensorCalibration`
 has its magnetometer ellipsoid and its IMU model inverted here, the one place
 every sample enters (before the rings, the pulse windows and the one
@@ -53,7 +65,7 @@ from __future__ import annotations
 
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
 from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, DVEL_LSB_MPS, EVT_SCHEMA_MISMATCH, GYR_LSB,
-                                       MAG_LSB_T, STAMP_DVEL, STAMP_FLIP, STAMP_MASK, STAMP_SATURATED,
+                                       IMU_CLIP_COUNTS, MAG_LSB_T, STAMP_DVEL, STAMP_FLIP, STAMP_MASK, STAMP_SATURATED,
                                        unwrap_stamp)
 
 _MAG = MSG["MAG_SAMPLE"].ID
@@ -90,13 +102,21 @@ class ImuRecord:
 
 class _DeltaState:
     """One node's pending delta-angle sums, its previous pair's sums and stamp time."""
-    __slots__ = ("stamp", "x", "y", "z", "pending", "last_end", "ax", "ay", "az", "vx", "vy", "vz")
+    __slots__ = ("stamp", "x", "y", "z", "pending", "sat", "last_end", "ax", "ay", "az", "vx", "vy", "vz")
 
     def __init__(self):
         self.stamp = self.x = self.y = self.z = 0
         self.pending = False
+        self.sat = False
         self.last_end = None
         self.ax = self.ay = self.az = self.vx = self.vy = self.vz = 0
+
+
+def _clipped(msg) -> bool:
+    """An IMU_SAMPLE with an axis at the clip code (``IMU_CLIP_COUNTS`` or beyond: -32768)."""
+    c = IMU_CLIP_COUNTS
+    return (msg.ax >= c or msg.ax <= -c or msg.ay >= c or msg.ay <= -c or msg.az >= c or msg.az <= -c
+            or msg.gx >= c or msg.gx <= -c or msg.gy >= c or msg.gy <= -c or msg.gz >= c or msg.gz <= -c)
 
 
 def _d16(a: int, b: int) -> int:
@@ -136,6 +156,8 @@ class Receiver:
         self.imu_deltas = 0
         self.imu_delta_unpaired = 0
         self.imu_delta_anchors = 0
+        self.imu_saturated = 0          # IMU samples not used: an axis clipped (steps of a pair included)
+        self.imu_saturated_pairs = 0    # IMU_DELTA pairs with the saturated bit
         self.frames_per_tick = int(frames_per_tick)
         self.queue_bytes = int(queue_bytes)
         self._queue = bytearray()
@@ -211,7 +233,10 @@ class Receiver:
                 else:
                     self.tracker.on_mag(msg, MAG_LSB_T)
             elif mid == _IMU:
-                self._on_imu(msg, now_us)
+                if _clipped(msg):
+                    self.imu_saturated += 1     # the sensor's full scale, not the motion: not used
+                else:
+                    self._on_imu(msg, now_us)
             elif mid == _COIL_STATUS:
                 self.schedule.on_status(msg)
                 self.tracker.on_coil_status(msg)
@@ -263,6 +288,7 @@ class Receiver:
             if st.pending:
                 self.imu_delta_unpaired += 1
             st.stamp, st.x, st.y, st.z, st.pending = s & STAMP_MASK, msg.x, msg.y, msg.z, True
+            st.sat = bool(s & STAMP_SATURATED)
             return 0
         if not st.pending or st.stamp != s & STAMP_MASK:
             self.imu_delta_unpaired += 1
@@ -279,9 +305,15 @@ class Receiver:
             self.imu_delta_anchors += 1
             return 0
         T = float(t_end - last)
+        n = max(1, int(round(T / self.imu_step_us)))
+        if st.sat or s & STAMP_SATURATED:
+            # a sample of the interval clipped: the pair's means are not the motion (the sums
+            # above still anchor the next pair)
+            self.imu_saturated_pairs += 1
+            self.imu_saturated += n
+            return 0
         r = self._imu
         r.node = msg.node
-        n = max(1, int(round(T / self.imu_step_us)))
         self._t0 = t_end - int(round(T))
         self._step = T / n
         ka = DANG_LSB_RAD / (T * 1e-6 * GYR_LSB)       # delta-angle counts -> rate counts
@@ -319,6 +351,7 @@ class Receiver:
         d = {"schema_mismatches": self.schema_mismatches, "rx_mag_packed": self.packed_mag,
              "rx_imu_deltas": self.imu_deltas, "rx_imu_delta_unpaired": self.imu_delta_unpaired,
              "rx_imu_delta_anchors": self.imu_delta_anchors, "rx_deferred": self.deferred,
+             "imu_saturated": self.imu_saturated, "imu_saturated_pairs": self.imu_saturated_pairs,
              "rx_queue_overflows": self.queue_overflows}
         d.update({"rx_" + k: v for k, v in self.decoder.counters().items()})
         return d

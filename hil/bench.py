@@ -238,6 +238,11 @@ def fault_summary(bench, fw_status: dict | None = None) -> dict:
     s = bench.sensor
     if s.saturations:
         inj["samples_saturated"] = s.saturations
+    # IMU samples clipped at the parts' full scale (the sensors' and the source module's)
+    imu_nodes = [*getattr(bench, "sensors", ()), *([bench.source_imu] if getattr(bench, "source_imu", None) else [])]
+    imu_sat = sum(getattr(n, "imu_saturated", 0) for n in imu_nodes)
+    if imu_sat:
+        inj["imu_samples_saturated"] = imu_sat
     steps = bench.faults.of("clock_step")
     if steps:
         inj["clock_steps"] = len(steps)

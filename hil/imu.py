@@ -21,7 +21,9 @@ and its own noise and offsets; moving, it measures the specific force
 source frame (``World.earth_source_frame``); the
 sensor models are those of :class:`hil.nodes.ImuSpec` and
 :class:`hil.nodes.MagSpec` (seeded white noise, seeded offsets with random
-walk, 16-bit quantisation), and the node takes part in time synchronisation
+walk, 16-bit quantisation, clipping at the parts' full scales: a clipped
+IMU axis goes out as +-``IMU_CLIP_COUNTS``, a clipped field with the
+saturated stamp bit), and the node takes part in time synchronisation
 like every other node (:class:`hil.nodes.Node`).
 """
 from __future__ import annotations
@@ -31,11 +33,11 @@ import math
 import numpy as np
 
 from coiltrack.protocol import MSG
-from coiltrack.protocol.schema import ACC_LSB, GYR_LSB, MAG_LSB_T, ROLE_SENSOR, STAMP_FLIP, STAMP_LSB_US, \
+from coiltrack.protocol.schema import MAG_LSB_T, ROLE_SENSOR, STAMP_FLIP, STAMP_LSB_US, \
     STAMP_SATURATED, pack_stamp
 
 from .imu_delta import DeltaIntegrator
-from .nodes import ImuSpec, MagSpec, Node, _i16, send_delta
+from .nodes import ImuSpec, MagSpec, Node, send_imu
 
 ImuSample = MSG["IMU_SAMPLE"]
 MagSample = MSG["MAG_SAMPLE"]
@@ -83,6 +85,7 @@ class SourceImuNode(Node):
         self.imu_samples = 0
         self.mag_samples = 0
         self.saturations = 0
+        self.imu_saturated = 0            # IMU samples with an axis clipped at its full scale
 
     def _schedule(self, t0: int) -> None:
         self._imu_period = 1e6 / self.imu.rate_hz / self.clock.rate
@@ -108,6 +111,11 @@ class SourceImuNode(Node):
             while self._mag_t(self._mag_k) <= now_us:
                 self._mag_k += 1
             return
+        # samples taken before the node had the master's time are not sent (as SensorNode.step)
+        while self._imu_t(self._imu_k) < self.synced_since_us:
+            self._imu_k += 1
+        while self._mag_t(self._mag_k) < self.synced_since_us:
+            self._mag_k += 1
         while self._imu_t(self._imu_k) <= now_us:
             self._imu_sample(self._imu_t(self._imu_k), send)
             self._imu_k += 1
@@ -131,12 +139,7 @@ class SourceImuNode(Node):
             f = np.array([0.0, 0.0, imu.gravity]) + self.acc_bias + self.rng.normal(0.0, imu.acc_sigma, 3)
             w = self.gyro_bias + self.rng.normal(0.0, imu.gyro_sigma, 3)
         self.imu_samples += 1
-        if self.delta is not None:
-            send_delta(self, self.delta, self._imu_k, t, w, f, send)
-            return
-        send(self, ImuSample(self.node_id, self.master(t), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
-                             _i16(f[2] / ACC_LSB), _i16(w[0] / GYR_LSB), _i16(w[1] / GYR_LSB),
-                             _i16(w[2] / GYR_LSB)))
+        send_imu(self, imu, self._imu_k, t, f, w, send)
 
     def _mag_sample(self, t: int, send) -> None:
         m = self.mag

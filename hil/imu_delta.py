@@ -20,6 +20,14 @@ quantisation remainder is carried into the next frame by construction (the
 sent sums never differ from the true ones by more than half an LSB: no
 drift), and a lost frame costs nothing but time resolution: the next
 difference covers both intervals.
+
+Saturation: the samples come in as the parts output them (clipped at their
+full scale, ``hil.nodes.ImuSpec.clip``) with a flag per sensor; an interval
+with a clipped gyroscope sample has ``sat_a`` set, one with a clipped
+accelerometer sample ``sat_v`` (the node sets the stamp's saturated bit of
+that frame). An interval's delta beyond what one frame's difference carries
+(+-``FRAME_MAX`` counts: 1.638 rad, 3.277 m/s) is clipped to it and flagged
+likewise, so the receiver's difference never wraps into a wrong sign.
 """
 from __future__ import annotations
 
@@ -27,6 +35,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from coiltrack.protocol.schema import DANG_LSB_RAD, DVEL_LSB_MPS
+
+#: counts one interval's delta may add to a running sum: the receiver's difference of two wrapped
+#: 16-bit sums carries -32768..32767, and the sums are rounded (half a count each side)
+FRAME_MAX = 32766
 
 
 class DeltaIntegrator:
@@ -40,6 +52,7 @@ class DeltaIntegrator:
         self.dt = float(dt_s)
         self.sum_a = np.zeros(3)    # running sums of the intervals' deltas, in LSB
         self.sum_v = np.zeros(3)
+        self.sat_a = self.sat_v = False   # the last complete interval's saturation flags
         self.reset()
 
     def reset(self) -> None:
@@ -47,10 +60,14 @@ class DeltaIntegrator:
         self.C = np.eye(3)          # body at the current instant -> body at the interval's start
         self.dv = np.zeros(3)       # integrated specific force in the start frame
         self.k = 0
+        self._sat_w = self._sat_f = False
 
-    def add(self, w, f):
-        """One sample; returns ``(dang_sum, dvel_sum)`` (int arrays, 3: the running sums in
-        counts, wrapped to i16) when the interval is complete, else None."""
+    def add(self, w, f, sat_w: bool = False, sat_f: bool = False):
+        """One sample (``sat_w`` / ``sat_f``: the gyroscope / accelerometer clipped in it);
+        returns ``(dang_sum, dvel_sum)`` (int arrays, 3: the running sums in counts, wrapped to
+        i16) when the interval is complete (its flags in ``sat_a``, ``sat_v``), else None."""
+        self._sat_w |= bool(sat_w)
+        self._sat_f |= bool(sat_f)
         dth = np.asarray(w, dtype=float) * self.dt
         half = Rotation.from_rotvec(0.5 * dth).as_matrix()
         self.dv += (self.C @ half) @ (np.asarray(f, dtype=float) * self.dt)
@@ -60,8 +77,11 @@ class DeltaIntegrator:
             return None
         theta = Rotation.from_matrix(self.C).as_rotvec()
         dv_mid = Rotation.from_rotvec(0.5 * theta).as_matrix().T @ self.dv
-        self.sum_a += theta / DANG_LSB_RAD
-        self.sum_v += dv_mid / DVEL_LSB_MPS
+        da, dv = theta / DANG_LSB_RAD, dv_mid / DVEL_LSB_MPS
+        over_a, over_v = bool(np.any(np.abs(da) > FRAME_MAX)), bool(np.any(np.abs(dv) > FRAME_MAX))
+        self.sum_a += np.clip(da, -FRAME_MAX, FRAME_MAX)
+        self.sum_v += np.clip(dv, -FRAME_MAX, FRAME_MAX)
+        self.sat_a, self.sat_v = self._sat_w or over_a, self._sat_f or over_v
         self.reset()
         return wrap16(self.sum_a), wrap16(self.sum_v)
 

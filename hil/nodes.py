@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
-from coiltrack.protocol.schema import (ACC_LSB, POSE_FUSED, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
+from coiltrack.protocol.schema import (ACC_LSB, IMU_CLIP_COUNTS, POSE_FUSED, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
                              COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
                              COIL_FAULT_REFUSED, COIL_FAULT_SUPPLY_LOW,
                              CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STAMP_DVEL,
@@ -55,21 +55,48 @@ def _i16(v: float) -> int:
     return max(-32768, min(32767, int(round(v))))
 
 
-def send_delta(node, integ: DeltaIntegrator, k: int, t: int, w, f, send) -> None:
-    """Add IMU sample ``k`` (true time ``t``, rate ``w`` rad/s, specific force ``f`` m/s^2) to
-    the node's delta interval; a complete interval goes out as an IMU_DELTA pair stamped with
-    the interval's end on the master clock. A gap in the samples starts a fresh interval."""
+def send_delta(node, integ: DeltaIntegrator, k: int, t: int, w, f, send, sat_w: bool = False,
+               sat_f: bool = False) -> None:
+    """Add IMU sample ``k`` (true time ``t``, rate ``w`` rad/s, specific force ``f`` m/s^2, as
+    the parts output them: clipped, ``sat_w`` / ``sat_f`` when they clipped) to the node's delta
+    interval; a complete interval goes out as an IMU_DELTA pair stamped with the interval's end
+    on the master clock, each frame with the saturated bit when its sensor clipped in the
+    interval (or the interval's delta was beyond a frame's range). A gap in the samples starts
+    a fresh interval."""
     if getattr(integ, "last_k", None) is not None and k != integ.last_k + 1:
         integ.reset()
     integ.last_k = k
-    out = integ.add(w, f)
+    out = integ.add(w, f, sat_w, sat_f)
     if out is None:
         return
     a, v = out
     st = pack_stamp(max(0, node.master(t + int(round(integ.dt * 5e5)))))
-    send(node, ImuDelta(node.node_id, int(a[0]), int(a[1]), int(a[2]), st))
-    send(node, ImuDelta(node.node_id, int(v[0]), int(v[1]), int(v[2]), st | STAMP_DVEL))
+    send(node, ImuDelta(node.node_id, int(a[0]), int(a[1]), int(a[2]),
+                        st | (STAMP_SATURATED if integ.sat_a else 0)))
+    send(node, ImuDelta(node.node_id, int(v[0]), int(v[1]), int(v[2]),
+                        st | STAMP_DVEL | (STAMP_SATURATED if integ.sat_v else 0)))
     node.imu_deltas += 1
+
+
+def send_imu(node, imu: ImuSpec, k: int, t: int, f, w, send) -> None:
+    """IMU sample ``k`` of ``node`` (true time ``t``; specific force ``f`` m/s^2 and rate ``w``
+    rad/s as the parts see them) through the parts' full scales (:meth:`ImuSpec.clip`; a
+    saturated sample is counted in ``node.imu_saturated``) to the wire: into the node's delta
+    interval, or as an IMU_SAMPLE stamped on the master clock (a sample the node cannot stamp,
+    its master time before the master's zero, is not sent)."""
+    if node.delta is not None:
+        f, w, sat_f, sat_w = imu.clip(f, w)
+        if sat_f or sat_w:
+            node.imu_saturated += 1
+        send_delta(node, node.delta, k, t, w, f, send, sat_w, sat_f)
+        return
+    tm = node.master(t)
+    counts, sat_f, sat_w = imu.sample_counts(f, w)
+    if sat_f or sat_w:
+        node.imu_saturated += 1
+    if tm < 0:
+        return
+    send(node, ImuSample(node.node_id, tm, *counts))
 
 
 class Node:
@@ -575,7 +602,17 @@ class ImuSpec:
     noise. Biases start at a seeded value (``*_bias_sigma`` per axis) and
     random-walk (``*_bias_rw`` per sqrt(s)). Noise densities per sqrt(Hz);
     per-sample rms = density * sqrt(rate/2). Output quantised to the
-    protocol's ``ACC_LSB`` / ``GYR_LSB`` and clipped to 16 bits.
+    protocol's ``ACC_LSB`` / ``GYR_LSB``.
+
+    Saturation: each axis clips at the part's full scale, ``acc_range``
+    (m/s^2) and ``gyro_range`` (rad/s), or at the IMU_SAMPLE field's range
+    where that is smaller (+-32767 counts: 32.767 m/s^2, 16.38 rad/s), see
+    :meth:`acc_full_scale`. The defaults are the Xsens MTx data sheet's full
+    scales (the module of thesis ``002`` sec 5.3, its ref [118]: acceleration
+    +-50 m/s^2, rate of turn +-1200 deg/s), so with them the field clips
+    first. A clipped axis goes out as +-``IMU_CLIP_COUNTS`` (the code a
+    saturated MEMS output sticks at), and a delta interval with a clipped
+    sample carries the saturated stamp bit (:func:`send_delta`).
     """
     rate_hz: float = 100.0
     #: IMU_DELTA pairs per second (0: IMU_SAMPLE at ``rate_hz``); ``rate_hz`` a multiple of it
@@ -587,6 +624,48 @@ class ImuSpec:
     gyro_bias_sigma: float = 8.7e-3         # rad/s (0.5 deg/s)
     gyro_bias_rw: float = 1.7e-4            # rad/s/sqrt(s)
     gravity: float = 9.81
+    acc_range: float = 50.0                 # m/s^2, full scale (MTx data sheet: +-50 m/s^2)
+    gyro_range: float = math.radians(1200.0)  # rad/s, full scale (MTx data sheet: +-1200 deg/s)
+
+    @property
+    def acc_full_scale(self) -> float:
+        """m/s^2 at which an accelerometer axis clips: the part's range or the field's, the smaller."""
+        return min(float(self.acc_range), IMU_CLIP_COUNTS * ACC_LSB)
+
+    @property
+    def gyro_full_scale(self) -> float:
+        """rad/s at which a gyroscope axis clips: the part's range or the field's, the smaller."""
+        return min(float(self.gyro_range), IMU_CLIP_COUNTS * GYR_LSB)
+
+    def clip(self, f, w):
+        """What the parts output for specific force ``f`` (3,) m/s^2 and rate ``w`` (3,) rad/s:
+        ``(f, w, acc_saturated, gyro_saturated)``, each axis clipped at its full scale (an axis
+        at or beyond it is saturated)."""
+        fa, ga = self.acc_full_scale, self.gyro_full_scale
+        f = np.asarray(f, dtype=float)
+        w = np.asarray(w, dtype=float)
+        sat_f = bool(np.any(~(np.abs(f) < fa)))        # NaN counts as saturated too
+        sat_w = bool(np.any(~(np.abs(w) < ga)))
+        if sat_f:
+            f = np.clip(np.nan_to_num(f, nan=0.0), -fa, fa)
+        if sat_w:
+            w = np.clip(np.nan_to_num(w, nan=0.0), -ga, ga)
+        return f, w, sat_f, sat_w
+
+    def sample_counts(self, f, w) -> tuple[list[int], bool, bool]:
+        """The six IMU_SAMPLE counts (ax, ay, az, gx, gy, gz) of ``f``, ``w`` and the two
+        saturation flags: a clipped axis is +-``IMU_CLIP_COUNTS``, the others rounded and kept
+        inside it."""
+        f, w, sat_f, sat_w = self.clip(f, w)
+        fa, ga = self.acc_full_scale, self.gyro_full_scale
+        out = []
+        for v, lsb, fs in ((f, ACC_LSB, fa), (w, GYR_LSB, ga)):
+            for x in v:
+                if abs(x) >= fs:
+                    out.append(IMU_CLIP_COUNTS if x > 0 else -IMU_CLIP_COUNTS)
+                else:
+                    out.append(max(1 - IMU_CLIP_COUNTS, min(IMU_CLIP_COUNTS - 1, int(round(x / lsb)))))
+        return out, sat_f, sat_w
 
     @property
     def acc_sigma(self) -> float:
@@ -641,6 +720,7 @@ class SensorNode(Node):
         self.samples = 0
         self.saturations = 0
         self.imu_samples = 0
+        self.imu_saturated = 0            # IMU samples with an axis clipped at its full scale
         #: the node's imperfections (``hil.imperfections.SensorImperfection``; None: a perfect sensor)
         self.imperfect = None
         self._schedule_mag(0)
@@ -871,12 +951,7 @@ class SensorNode(Node):
         f = f + self.acc_bias + self.imu_rng.normal(0.0, imu.acc_sigma, 3)
         g = w + self.gyro_bias + self.imu_rng.normal(0.0, imu.gyro_sigma, 3)
         self.imu_samples += 1
-        if self.delta is not None:
-            send_delta(self, self.delta, k, t, g, f, send)
-            return
-        send(self, ImuSample(self.node_id, max(0, self.master(t)), _i16(f[0] / ACC_LSB), _i16(f[1] / ACC_LSB),
-                             _i16(f[2] / ACC_LSB), _i16(g[0] / GYR_LSB), _i16(g[1] / GYR_LSB),
-                             _i16(g[2] / GYR_LSB)))
+        send_imu(self, imu, k, t, f, g, send)
 
     # --- ground truth look-ups
     def true_time_of(self, stamp_us: int) -> int | None:

@@ -47,6 +47,10 @@ MAG_LSB_T = 5e-9
 ACC_LSB = 1e-3
 #: rad/s per LSB of IMU gyroscope counts (+/-16.4 rad/s)
 GYR_LSB = 5e-4
+#: an IMU_SAMPLE axis at +-32767 counts (or -32768) is clipped: the sensor saturated (at its own
+#: range or the field's), and the value is not a measurement (a MEMS part's output sticks at its
+#: full-scale code when it saturates; PX4's drivers count a sample at that code as clipping)
+IMU_CLIP_COUNTS = 32767
 #: compact sample time stamps (MAG_PACKED, IMU_DELTA ``stamp``): bits 0..13 are the sample
 #: time on the master clock in STAMP_LSB_US units modulo 2**STAMP_BITS (131.072 ms); the
 #: receiver restores the full time from its own clock (:func:`unwrap_stamp`)
@@ -60,7 +64,9 @@ STAMP_LEAD_US = 16_384
 #: MAG_PACKED.stamp bit 14: the sample saturated; bit 15: set/reset state (1 set)
 STAMP_SATURATED = 1 << 14
 STAMP_FLIP = 1 << 15
-#: IMU_DELTA.stamp bit 15: 0 delta angle, 1 delta velocity (bit 14 is 0)
+#: IMU_DELTA.stamp bit 15: 0 delta angle, 1 delta velocity; bit 14 (STAMP_SATURATED): a sample of the
+#: interval clipped (the gyroscope in the delta-angle frame, the accelerometer in the delta-velocity
+#: frame) or the interval's delta was beyond a frame's range: the pair is not a measurement
 STAMP_DVEL = 1 << 15
 #: rad per LSB of IMU_DELTA delta angle (+/-1.638 rad per frame: 16.4 rad/s at 10 Hz)
 DANG_LSB_RAD = 5e-5
@@ -263,7 +269,8 @@ MESSAGES: tuple[MessageDef, ...] = (
         F("gx", "i16", "rad/s", GYR_LSB),
         F("gy", "i16", "rad/s", GYR_LSB),
         F("gz", "i16", "rad/s", GYR_LSB),
-    ), "Accelerometer (specific force) and gyroscope in the sensor frame (full time stamp).", priority=3,
+    ), "Accelerometer (specific force) and gyroscope in the sensor frame (full time stamp); an axis "
+       "at +-32767 counts is clipped (IMU_CLIP_COUNTS: the sensor saturated).", priority=3,
         sender_field=True),
     MessageDef(0x22, "MAG_FLIP_CMD", (
         F("node", "u8"),
@@ -286,9 +293,9 @@ MESSAGES: tuple[MessageDef, ...] = (
                           "wrapped to 16 bits"),
         F("y", "i16"),
         F("z", "i16"),
-        F("stamp", "u16", doc="bits 0..13 end of the interval / 8 us mod 2^14 (master clock), bit 15 "
-                              "0 delta angle, 1 delta velocity",
-          bits=(("t_8us", 0, 14, STAMP_LSB_US, "us"), ("dvel", 15, 1, 1, ""))),
+        F("stamp", "u16", doc="bits 0..13 end of the interval / 8 us mod 2^14 (master clock), bit 14 "
+                              "saturated (a sample of the interval clipped), bit 15 0 delta angle, 1 delta velocity",
+          bits=(("t_8us", 0, 14, STAMP_LSB_US, "us"), ("saturated", 14, 1, 1, ""), ("dvel", 15, 1, 1, ""))),
     ), "Running sums of the per-interval delta angle (coning-free) or delta velocity (body frame at the "
        "interval's middle) integrated on the node; the receiver differences consecutive pairs (one stamp: "
        "one interval), so the quantisation remainder is carried and a lost pair loses no motion.", priority=3,
