@@ -496,10 +496,13 @@ class SensorInertial:
 
     def _motion_cov(self, C, compensated: bool) -> None:
         """``_Cf = C`` plus the motion left in the burst (see :meth:`fuse`)."""
+        self.motion_cov(C, compensated, self._Cf, self.mag_position)
+
+    def motion_cov(self, C, compensated: bool, out, p) -> None:
+        """``out = C`` plus the motion left in a burst solved at ``p`` (see :meth:`fuse`)."""
         fus = self.fusion
-        np.copyto(self._Cf, C)
+        np.copyto(out, C)
         tr2 = self.burst_rms_s * self.burst_rms_s
-        Cf = self._Cfv
         if compensated:
             sv = fus.velocity_sigma()
             ap = sv * sv * tr2
@@ -508,11 +511,10 @@ class SensorInertial:
             wl = self.w_last
             ao = (wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2]) * tr2
             ap = fus.speed_squared() * tr2 if fus.initialized else 0.0
-            p = self.mag_position
             ap += (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) * ao
         for i in range(3):
-            Cf[i, i] += ap
-            Cf[3 + i, 3 + i] += ao
+            out[i, i] += ap
+            out[3 + i, 3 + i] += ao
 
 
 class BurstFusionTracker(MagneticTracker):
@@ -545,6 +547,7 @@ class BurstFusionTracker(MagneticTracker):
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = make_pose_solver(cfg, coils, 1.0)
+        self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -627,6 +630,13 @@ class BurstFusionTracker(MagneticTracker):
                 and in_range(tp.warm_p, self.range_m):
             return True
         return super().warm_start(ch, tp)
+
+    def reported_covariance(self, ch, cov):
+        """The magnetic-only POSE's covariance: the solver's plus the motion within the burst
+        the IMU saw (:meth:`SensorInertial.fuse`), so a sensor turning near the source is not
+        sent with the noise's 0.2 mm."""
+        self.inertial[ch.node].motion_cov(cov, False, self._rep_cov, self.solver.position)
+        return self._rep_cov
 
     def on_solution(self, ch, solved: bool) -> None:
         ins = self.inertial[ch.node]
