@@ -374,8 +374,8 @@ class MagneticTracker:
             tp.have_pose = True
             cov = sv.covariance
             q = self.quality.grade(ch.node, getattr(sv, "cost", 0.0), cov[0, 0] + cov[1, 1] + cov[2, 2])
-            self.tx.pose_cov6(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), sv.covariance,
-                              self._status | POSE_VALID, q)
+            self.tx.pose_cov6(ch.node, t_pose, tp.position, quat_tuple(tp.rotation),
+                              self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
         else:
             self.tx.pose_unknown(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), self._status)
         self.on_solution(ch, solved)
@@ -404,6 +404,11 @@ class MagneticTracker:
     def busy(self) -> bool:
         """A burst is being solved (or waits to be)."""
         return self._next >= 0 or self.burst.complete
+
+    def reported_covariance(self, ch, cov):
+        """Hook: the covariance the magnetic-only POSE of ``ch`` is sent with (the solver's
+        ``cov``; a tracker that sees the motion within the burst adds it)."""
+        return cov
 
     def on_solution(self, ch, solved: bool) -> None:
         """Hook: the burst of ``ch`` was solved (``self.solver`` holds it) or not."""
