@@ -293,6 +293,92 @@ static PyTypeObject SignalType = {
     .tp_methods = Signal_methods,
 };
 
+/* ------------------------------------------------------------- CovPredict */
+typedef struct {
+    PyObject_HEAD
+    int n;
+    Py_buffer a_view, q_view, t_view;
+    int bound;
+} CovPredictObject;
+
+static void CovPredict_dealloc(CovPredictObject *self)
+{
+    if (self->bound) {
+        PyBuffer_Release(&self->a_view);
+        PyBuffer_Release(&self->q_view);
+        PyBuffer_Release(&self->t_view);
+    }
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int CovPredict_init(CovPredictObject *self, PyObject *args, PyObject *kw)
+{
+    PyObject *A, *Q, *T;
+    int n;
+    Py_ssize_t nn;
+    static char *kwlist[] = {"n", "A", "Q", "T", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOO", kwlist, &n, &A, &Q, &T))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "CovPredict: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 256) {
+        PyErr_Format(PyExc_ValueError, "CovPredict: n must be in 1..256, got %d", n);
+        return -1;
+    }
+    nn = (Py_ssize_t)n * n;
+    if (get_doubles(A, nn, 0, &self->a_view, "A") < 0)
+        return -1;
+    if (get_doubles(Q, nn, 0, &self->q_view, "Q") < 0) {
+        PyBuffer_Release(&self->a_view);
+        return -1;
+    }
+    if (get_doubles(T, nn, 1, &self->t_view, "T") < 0) {
+        PyBuffer_Release(&self->a_view);
+        PyBuffer_Release(&self->q_view);
+        return -1;
+    }
+    self->n = n;
+    self->bound = 1;
+    return 0;
+}
+
+/* predict(P): P <- A P A^T + Q in place */
+static PyObject *CovPredict_predict(CovPredictObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "CovPredict: not bound");
+        return NULL;
+    }
+    if (check_nargs("predict", nargs, 1) < 0)
+        return NULL;
+    if (get_doubles(args[0], (Py_ssize_t)self->n * self->n, 1, &pv, "P") < 0)
+        return NULL;
+    ct_covariance_predict(self->n, (const double *)self->a_view.buf, (double *)pv.buf,
+                          (const double *)self->q_view.buf, (double *)self->t_view.buf);
+    PyBuffer_Release(&pv);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef CovPredict_methods[] = {
+    {"predict", (PyCFunction)(void (*)(void))CovPredict_predict, METH_FASTCALL,
+     "predict(P): P <- A P A^T + Q with the bound A and Q"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject CovPredictType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.CovPredict",
+    .tp_basicsize = sizeof(CovPredictObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "CovPredict(n, A, Q, T): the covariance prediction bound to caller-owned A, Q and scratch T",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)CovPredict_init,
+    .tp_dealloc = (destructor)CovPredict_dealloc,
+    .tp_methods = CovPredict_methods,
+};
+
 /* ------------------------------------------------------- module functions */
 static PyObject *point_tuple(const double *t, int jac)
 {
@@ -360,7 +446,7 @@ static struct PyModuleDef core_module = {
 PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
-    if (PyType_Ready(&SignalType) < 0)
+    if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
     if (m == NULL)
@@ -368,6 +454,12 @@ PyMODINIT_FUNC PyInit__core(void)
     Py_INCREF(&SignalType);
     if (PyModule_AddObject(m, "Signal", (PyObject *)&SignalType) < 0) {
         Py_DECREF(&SignalType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&CovPredictType);
+    if (PyModule_AddObject(m, "CovPredict", (PyObject *)&CovPredictType) < 0) {
+        Py_DECREF(&CovPredictType);
         Py_DECREF(m);
         return NULL;
     }

@@ -54,6 +54,11 @@ void ct_signal_project(int n, const double *R, const double *B, double *h);
 void ct_signal_project_jac(int n, const double *R, const double *B, const double *J, double *h,
                            double *H);
 
+/* ------------------------------------------------------------------- ekf
+ * coiltrack.firmware.estimate.ekf.CovariancePredict.predict: P <- A P A^T + Q (n x n, row-major),
+ * A's zero entries skipped; T is n x n scratch. */
+void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T);
+
 #ifdef __cplusplus
 }
 #endif
