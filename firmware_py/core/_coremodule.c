@@ -379,6 +379,131 @@ static PyTypeObject CovPredictType = {
     .tp_methods = CovPredict_methods,
 };
 
+/* ---------------------------------------------------------------- InsStep */
+#define INS_NBUF 9
+typedef struct {
+    PyObject_HEAD
+    struct ct_ins s;
+    double E[9];
+    Py_buffer views[INS_NBUF];
+    int bound;
+} InsStepObject;
+
+static void InsStep_dealloc(InsStepObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < INS_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int InsStep_init(InsStepObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", NULL};
+    static const char *names[INS_NBUF] = {"p", "v", "Th", "ba", "bg", "A", "P", "Q", "T"};
+    PyObject *o[INS_NBUF];
+    double *ptr[INS_NBUF];
+    int n, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOO", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8]))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "InsStep: already bound");
+        return -1;
+    }
+    if (n < CT_GYR + 3 || n > 256) {
+        PyErr_Format(PyExc_ValueError, "InsStep: n must be in %d..256, got %d", CT_GYR + 3, n);
+        return -1;
+    }
+    for (i = 0; i < INS_NBUF; ++i) {
+        Py_ssize_t len = i == 2 ? 9 : (i < 5 ? 3 : (Py_ssize_t)n * n);
+        if (get_doubles(o[i], len, i != 7, &self->views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    self->s.n = n;
+    self->s.p = ptr[0];
+    self->s.v = ptr[1];
+    self->s.Th = ptr[2];
+    self->s.ba = ptr[3];
+    self->s.bg = ptr[4];
+    self->s.A = ptr[5];
+    self->s.P = ptr[6];
+    self->s.Q = ptr[7];
+    self->s.T = ptr[8];
+    self->s.E = self->E;
+    self->bound = 1;
+    return 0;
+}
+
+/* propagate(dt, f0x, f0y, f0z, f1x, f1y, f1z, wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z, ka, kg) */
+static PyObject *InsStep_propagate(InsStepObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double dt, in[15], ka, kg;
+    int i;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "InsStep: not bound");
+        return NULL;
+    }
+    if (check_nargs("propagate", nargs, 18) < 0 || get_double(args[0], &dt) < 0)
+        return NULL;
+    for (i = 0; i < 15; ++i)
+        if (get_double(args[1 + i], &in[i]) < 0)
+            return NULL;
+    if (get_double(args[16], &ka) < 0 || get_double(args[17], &kg) < 0)
+        return NULL;
+    ct_ins_propagate(&self->s, dt, in, ka, kg);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef InsStep_methods[] = {
+    {"propagate", (PyCFunction)(void (*)(void))InsStep_propagate, METH_FASTCALL,
+     "propagate(dt, f0 (3), f1 (3), w (3), r0 (3), r1 (3), ka, kg): one strapdown and covariance step"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject InsStepType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.InsStep",
+    .tp_basicsize = sizeof(InsStepObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "InsStep(n, p, v, Th, ba, bg, A, P, Q, T): FusionFilter._propagate bound to one state's buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)InsStep_init,
+    .tp_dealloc = (destructor)InsStep_dealloc,
+    .tp_methods = InsStep_methods,
+};
+
+/* exp_rotvec(wx, wy, wz) -> 9-tuple, as linalg.exp_rotvec (for tests) */
+static PyObject *core_exp_rotvec(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    double w[3], out[9];
+    PyObject *r;
+    int k;
+    (void)mod;
+    if (check_nargs("exp_rotvec", nargs, 3) < 0)
+        return NULL;
+    for (k = 0; k < 3; ++k)
+        if (get_double(args[k], &w[k]) < 0)
+            return NULL;
+    ct_exp_rotvec(w[0], w[1], w[2], out);
+    r = PyTuple_New(9);
+    if (r == NULL)
+        return NULL;
+    for (k = 0; k < 9; ++k) {
+        PyObject *f = PyFloat_FromDouble(out[k]);
+        if (f == NULL) {
+            Py_DECREF(r);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(r, k, f);
+    }
+    return r;
+}
+
 /* ------------------------------------------------------- module functions */
 static PyObject *point_tuple(const double *t, int jac)
 {
@@ -434,6 +559,8 @@ static PyObject *core_dipole_point(PyObject *mod, PyObject *const *args, Py_ssiz
 static PyMethodDef core_methods[] = {
     {"loop_point", (PyCFunction)(void (*)(void))core_loop_point, METH_FASTCALL,
      "loop_point(x, y, z, radius, scale, jac): as coiltrack.firmware.model.field.loop_point"},
+    {"exp_rotvec", (PyCFunction)(void (*)(void))core_exp_rotvec, METH_FASTCALL,
+     "exp_rotvec(wx, wy, wz): exp([w]x) row-major, as coiltrack.firmware.linalg.exp_rotvec"},
     {"dipole_point", (PyCFunction)(void (*)(void))core_dipole_point, METH_FASTCALL,
      "dipole_point(px, py, pz, mx, my, mz, jac): as coiltrack.firmware.model.field.dipole_point"},
     {NULL, NULL, 0, NULL}};
@@ -446,7 +573,7 @@ static struct PyModuleDef core_module = {
 PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
-    if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0)
+    if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
     if (m == NULL)
@@ -460,6 +587,18 @@ PyMODINIT_FUNC PyInit__core(void)
     Py_INCREF(&CovPredictType);
     if (PyModule_AddObject(m, "CovPredict", (PyObject *)&CovPredictType) < 0) {
         Py_DECREF(&CovPredictType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&InsStepType);
+    if (PyModule_AddObject(m, "InsStep", (PyObject *)&InsStepType) < 0) {
+        Py_DECREF(&InsStepType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
+        PyModule_AddIntConstant(m, "ORI", CT_ORI) < 0 || PyModule_AddIntConstant(m, "ACC", CT_ACC) < 0 ||
+        PyModule_AddIntConstant(m, "GYR", CT_GYR) < 0) {
         Py_DECREF(m);
         return NULL;
     }

@@ -202,6 +202,11 @@ class CovariancePredict:
 
     def _predict_compiled(self, P: np.ndarray) -> None:
         self._ck.predict(P)
+        self.after_predict(P)
+
+    def after_predict(self, P: np.ndarray) -> None:
+        """The bookkeeping after a compiled prediction of ``P`` (its count, and the periodic
+        symmetrisation as :meth:`predict` does it)."""
         self.count += 1
         if self.count % SYMMETRIZE_EVERY == 0:
             symmetrize(P, self._T2, self._T2t, self._half)

@@ -59,6 +59,27 @@ void ct_signal_project_jac(int n, const double *R, const double *B, const double
  * A's zero entries skipped; T is n x n scratch. */
 void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T);
 
+/* ------------------------------------------------------------- strapdown
+ * coiltrack.firmware.estimate.strapdown, linalg.exp_rotvec and FusionFilter._propagate.
+ * The inertial rows of every inertial layout (estimate.layout: POS, VEL, ORI, ACC, GYR). */
+enum { CT_POS = 0, CT_VEL = 3, CT_ORI = 6, CT_ACC = 9, CT_GYR = 12 };
+
+void ct_exp_rotvec(double wx, double wy, double wz, double *out);
+void ct_strapdown_rotate(double *R, double ux, double uy, double uz, double *E);
+void ct_to_nav(const double *R, double x, double y, double z, double *out);
+void ct_integrate_pv(double *p, double *v, double dt, const double *a0, const double *a1);
+void ct_transition_nav(double *A, int n, double dt, const double *R, double gx, double gy, double gz);
+
+/* one inertial state's caller-owned buffers (magnetic_inertial.InsState) */
+struct ct_ins {
+    int n;                          /* state dimension */
+    double *p, *v, *Th, *ba, *bg;   /* 3, 3, 3x3, 3, 3 */
+    double *A, *P, *T;              /* n x n: transition, covariance, scratch */
+    const double *Q;                /* n x n */
+    double *E;                      /* 9: scratch */
+};
+void ct_ins_propagate(struct ct_ins *s, double dt, const double *in, double ka, double kg);
+
 #ifdef __cplusplus
 }
 #endif
