@@ -356,6 +356,9 @@ class FirmwareConfig:
     # (its length in the metric of the normal equations, sqrt(d^T A d): unlike lm_cost_tol, the same
     # whatever the size of the cost); 0 (the default): not used
     lm_step_sigma: float = 0.0
+    # --- [core] the numeric core (coiltrack.firmware.core): "compiled" (the C99 kernels; the Python
+    # core, said once, where the extension is not built) or "python" (the reference)
+    impl: str = "compiled"
 
     def validate(self) -> "FirmwareConfig":
         """Return self, or raise ConfigError naming the first bad key."""
@@ -422,6 +425,7 @@ class FirmwareConfig:
         self._validate_calibration(need)
         self._validate_quality(need)
         self._validate_raab_cost(need)
+        need("impl", self.impl in ("compiled", "python"), f"must be 'compiled' or 'python', got {self.impl!r}")
         need("imu_delta_rate_hz", isinstance(self.imu_delta_rate_hz, (int, float))
              and not isinstance(self.imu_delta_rate_hz, bool) and 0.0 < self.imu_delta_rate_hz <= 10_000.0,
              f"must be a rate in (0, 10000] Hz, got {self.imu_delta_rate_hz!r}")
@@ -785,6 +789,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
               "tight_lost_sigma_m", "tight_init_sigma_vel", "tight_valid_sigma_m", "tight_quiet_every",
               "tight_quiet_sigma_t"),
     "lm": ("lm_step_tol", "lm_cost_tol", "lm_step_sigma"),
+    "core": ("impl",),
 }
 SECTION_OF = {k: sec for sec, keys in SECTIONS.items() for k in keys}
 _SIMPLE = {f.name for f in fields(FirmwareConfig)} - {"coils"}

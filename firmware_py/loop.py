@@ -45,6 +45,7 @@ from coiltrack.protocol.signing import now_timestamp
 from coiltrack.firmware.actuate.burst import BurstActuation
 from coiltrack.firmware.actuate.schedule import PulseSchedule
 from coiltrack.firmware.config import FirmwareConfig
+from coiltrack.firmware.core import select as select_core
 from coiltrack.firmware.measure.burst import BurstMeasurement
 from coiltrack.firmware.measure.windows import SensorChannel, WindowCloser
 from coiltrack.firmware.model.field import Coil
@@ -122,6 +123,8 @@ class Firmware:
         self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.sensor_ids)
         self.closer = WindowCloser(self.channels, cfg.fall_us, cfg.baseline_us, cfg.cycle_us // 2, self.tx)
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
+        # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
+        self.core = select_core(cfg.impl)
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
         self.tracker = self.pipeline.tracker
         if calibration is not None and getattr(calibration, "distortion", None) is not None and cfg.distortion_apply:
@@ -174,7 +177,7 @@ class Firmware:
 
     def status(self) -> dict:
         d = {"ticks": self.ticks, "poses": self.tx.poses, "windows_flagged": self.closer.flagged,
-             "tx_errors": self.tx.tx_errors}
+             "tx_errors": self.tx.tx_errors, "core": self.core}
         d.update(self.tracker.counters())
         d.setdefault("cycles", 0)
         d.update(self.receiver.counters())

@@ -43,6 +43,9 @@ def add_arguments(p) -> None:
                    help="write what the firmware received, tick by tick (JSON lines; for `coiltrack perf --log` "
                         "and `coiltrack smooth`; in-process transports only)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--core", choices=("compiled", "python"), default=None,
+                   help="the firmware's numeric core ([core] impl; default the configuration's: compiled "
+                        "where the extension is built)")
     p.add_argument("--key", type=A.signing_key, metavar="KEY",
                    help="sign the firmware's commands with KEY (64 hex digits, a passphrase, @FILE or @env for "
                         "$COILTRACK_SIGNING_KEY); the emulated nodes then require signatures and refuse, and count, "
@@ -84,6 +87,10 @@ def _setup(args):
         import dataclasses
 
         cfg = dataclasses.replace(cfg or sc.firmware_config(), signing_key=args.key)
+    if args.core:
+        import dataclasses
+
+        cfg = dataclasses.replace(cfg or sc.firmware_config(), impl=args.core)
     if args.calibration:
         from .calibfile import with_calibration
 

@@ -30,6 +30,9 @@ def add_arguments(p) -> None:
     add_link_arguments(p)
     p.add_argument("--config", type=A.input_file, metavar="FILE",
                    help="TOML firmware configuration, over the scenario's (see examples/firmware.toml)")
+    p.add_argument("--core", choices=("compiled", "python"), default=None,
+                   help="the firmware's numeric core ([core] impl; default the configuration's: compiled "
+                        "where the extension is built)")
     p.add_argument("--scenario", type=A.scenario, default="roetenberg-bench",
                    help="take the configuration of this scenario (default roetenberg-bench)")
     p.add_argument("--duration", type=A.real(0.0, A.MAX_WALL_S), default=0.0,
@@ -72,6 +75,10 @@ def _config(args):
             import dataclasses
 
             cfg = dataclasses.replace(cfg, signing_key=args.key)
+        if args.core:
+            import dataclasses
+
+            cfg = dataclasses.replace(cfg, impl=args.core)
         return cfg
     except InputFileError as exc:
         print(f"coiltrack firmware: --config {exc}", file=sys.stderr)

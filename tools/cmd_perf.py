@@ -51,6 +51,9 @@ def add_arguments(p) -> None:
     p.add_argument("--warmup", type=A.real(0.0, A.MAX_BENCH_S), default=5.0,
                    help="seconds excluded from the statistics (default 5)")
     p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the figures as JSON")
+    p.add_argument("--core", choices=("compiled", "python"), default=None,
+                   help="the firmware's numeric core ([core] impl; default the configuration's: compiled "
+                        "where the extension is built)")
     p.add_argument("--worst", type=A.integer(0, 1000), default=0, metavar="N",
                    help="also list the N ticks of the most CPU time: stage times, field evaluations, the "
                         "tracker's sensor and garbage collections in each (default 0: none)")
@@ -145,7 +148,16 @@ def _stats(a_ns) -> dict:
             "p999": round(float(np.percentile(a, 99.9)), 2), "max": round(float(a.max()), 2), "n": int(a.size)}
 
 
-def _record(scenario: str, seed: int, duration: float):
+def _with_core(cfg, core):
+    """``cfg`` with ``[core] impl = core`` (``--core``), or ``cfg`` itself when ``core`` is None."""
+    if core is None:
+        return cfg
+    import dataclasses
+
+    return dataclasses.replace(cfg, impl=core)
+
+
+def _record(scenario: str, seed: int, duration: float, core=None):
     from coiltrack.firmware.loop import Firmware
 
     from . import scenarios
@@ -156,7 +168,7 @@ def _record(scenario: str, seed: int, duration: float):
     sc = scenarios.get(scenario)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, seed, duration, emu_end)
-    cfg = sc.firmware_config()
+    cfg = _with_core(sc.firmware_config(), core)
     port = RecordingPort(fw_end)
     fw = Firmware(cfg, port)
     t = 0
@@ -296,7 +308,7 @@ def _tracker_at(fw) -> str:
     return ", ".join(parts) or "-"
 
 
-def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
+def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=None) -> dict:
     from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter
     from coiltrack.firmware.loop import PHASES, Firmware
     from coiltrack.firmware.model.signal import SignalModel
@@ -327,7 +339,7 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
             gc_ns.append(cpu() - gc_t0[0])
 
     def factory(cfg, port):
-        fw = Firmware(cfg, port)
+        fw = Firmware(_with_core(cfg, core), port)
         real_tick = fw.tick_timed
         rx = fw.receiver
         models = tuple(instances(fw, SignalModel))     # every field evaluation goes through one of these
@@ -381,7 +393,7 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
     fw = state["fw"]
     ph = np.array(phase_ns)
     rep = {"scenario": header.get("scenario"), "seed": header.get("seed"), "duration_s": header["duration_s"],
-           "warmup_s": warmup_s, "ticks": len(tick_ns), "tick_us": int(header["tick_us"])}
+           "warmup_s": warmup_s, "ticks": len(tick_ns), "tick_us": int(header["tick_us"]), "core": fw.core}
     st = _stats(tick_ns)
     rep.update({"tick_us_median": st["median"], "tick_us_p99": st["p99"], "tick_us_p999": st["p999"],
                 "tick_us_max": st["max"]})
@@ -432,7 +444,7 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0) -> dict:
         counts = []
 
         def factory2(cfg, port):
-            fw2 = Firmware(cfg, port)
+            fw2 = Firmware(_with_core(cfg, core), port)
             real_tick = fw2.tick
 
             def counted(t):
@@ -520,8 +532,8 @@ def run(args) -> int:
         if args.duration <= args.warmup:
             print("coiltrack perf: --duration must exceed --warmup", file=sys.stderr)
             return 2
-        header, reads = _record(args.scenario, args.seed, args.duration)
-    rep = measure(header, reads, args.warmup, args.worst)
+        header, reads = _record(args.scenario, args.seed, args.duration, args.core)
+    rep = measure(header, reads, args.warmup, args.worst, args.core)
     print(f"coiltrack perf: {rep['scenario']} seed {rep['seed']}, {rep['duration_s']} s replayed on a virtual clock")
     print(format_table(rep))
     if args.solver:

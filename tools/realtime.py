@@ -527,7 +527,8 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
                "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
                *(["--config", str(config_path)] if config_path else []),
-               *(["--calibration", cfg.calibration_file] if cfg.calibration_file else [])]
+               *(["--calibration", cfg.calibration_file] if cfg.calibration_file else []),
+               "--core", cfg.impl]
         env = None
         if cfg.signing_key:     # the key reaches the child in its environment, not on its command line
             from .args import KEY_ENV

@@ -76,6 +76,13 @@ def energy(executed, world, duration_s: float, battery_wh: float = BATTERY_WH) -
     }
 
 
+def _core_of(cfg) -> str:
+    """The numeric core a firmware of ``cfg`` runs in this install (``coiltrack.firmware.core``)."""
+    from coiltrack.firmware.core import resolve
+
+    return resolve(getattr(cfg, "impl", "compiled"))
+
+
 def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dict:
     rec = bench.recorder
     world = bench.world
@@ -141,6 +148,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "scenario": bench.scenario.name,
         "seed": bench.seed,
         "transport": transport,
+        "core": fw_status.get("core") or _core_of(cfg),     # the numeric core that ran ([core] impl)
         "duration_s": duration_s,
         "poses": int(pe.size),
         "poses_invalid": invalid,

@@ -35,6 +35,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware import core as _core_choice
 from coiltrack.firmware.linalg import flat, inv3_sym, spd_inverse
 
 #: rounding makes P drift from symmetry; it is re-symmetrised every this many calls
@@ -189,6 +190,26 @@ class CovariancePredict:
         self._half = np.full((), 0.5)
 
         self.count = 0
+        #: the numeric core of :meth:`predict`, bound once here (``coiltrack.firmware.core``)
+        self.core = "python"
+        ext = _core_choice.extension()
+        if ext is not None:
+            # core/src/ekf.c: the same product with A's structural zeros skipped (equal to the
+            # BLAS products below to rounding); A, Q and the scratch are bound once
+            self._ck = ext.CovPredict(n, self.A, self.Q, self._T)
+            self.predict = self._predict_compiled
+            self.core = "compiled"
+
+    def _predict_compiled(self, P: np.ndarray) -> None:
+        self._ck.predict(P)
+        self.after_predict(P)
+
+    def after_predict(self, P: np.ndarray) -> None:
+        """The bookkeeping after a compiled prediction of ``P`` (its count, and the periodic
+        symmetrisation as :meth:`predict` does it)."""
+        self.count += 1
+        if self.count % SYMMETRIZE_EVERY == 0:
+            symmetrize(P, self._T2, self._T2t, self._half)
 
     def predict(self, P: np.ndarray) -> None:
         np.matmul(self.A, P, out=self._T)

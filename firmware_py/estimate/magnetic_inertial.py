@@ -105,6 +105,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware import core as _core_choice
 from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
 from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, PSI, QM, VEL, XI,
                                                fusion_layout, fusion_measurement_layout)
@@ -252,12 +253,21 @@ class InsState:
         self._Pv = memoryview(self.P)
         self.dt_last = -1.0
         self.ka = self.kg = 1.0
+        #: the compiled strapdown and covariance step bound to this state's buffers, or None
+        #: (``coiltrack.firmware.core``; ``FusionFilter._step_compiled``)
+        self.ck = None
         if white is None:
             self.pred = None
             return
         self.pred = CovariancePredict(n)
         self._Av = memoryview(self.pred.A)
         self._Qf = memoryview(self.pred.Q.reshape(-1))     # flat: element (i, j) at i n + j
+        ext = _core_choice.extension()
+        if ext is not None and self.pred.core == "compiled":
+            assert (POS.start, VEL.start, ORI.start, ACC.start, GYR.start) == (ext.POS, ext.VEL, ext.ORI,
+                                                                             ext.ACC, ext.GYR)
+            self.ck = ext.InsStep(n, self.p, self.v, self.Th, self.ba, self.bg, self.pred.A, self.P,
+                                  self.pred.Q, self.pred._T)
         # the white states: no transition, their noise (``white_q``, one variance per block) has no
         # step in it, so it is written once here
         for s, q in zip(white, white_q, strict=True):
@@ -317,6 +327,8 @@ class FusionFilter:
         self.sn = InsState(n, None)         # snapshot at t_ref
         self._auth = self.st                # the state that takes snapshots and is recorded
         self.sd = Strapdown()
+        # the numeric body of each IMU step, chosen once (coiltrack.firmware.core)
+        self._ins_step = self._step_compiled if self.st.ck is not None else self._step_python
         zl = fusion_measurement_layout(self.model)
         self.zlayout = zl
         m = zl.n
@@ -528,6 +540,15 @@ class FusionFilter:
         wz = bm * pwz + am * kwz - bg[2]
         r0x, r0y, r0z = b0 * psx + a0 * ksx, b0 * psy + a0 * ksy, b0 * psz + a0 * ksz
         r1x, r1y, r1z = b1 * psx + a1 * ksx, b1 * psy + a1 * ksy, b1 * psz + a1 * ksz
+        self._ins_step(st, k, t1, dt, f0x, f0y, f0z, f1x, f1y, f1z, wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z)
+
+    def _step_python(self, st: InsState, k: int, t1: int, dt: float, f0x, f0y, f0z, f1x, f1y, f1z,
+                     wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z) -> None:
+        """The numeric body of :meth:`_propagate` (the reference of ``core/src/strapdown.c``
+        ``ct_ins_propagate``): attitude, position and velocity, offset decay, eq 6.17's blocks
+        and the covariance prediction."""
+        ba = st._bav
+        bg = st._bgv
         Th = st._Thv
         # specific force in G at t0 with the attitude at t0, at t1 with the attitude at t1
         g0x, g0y, g0z = to_nav(Th, f0x, f0y, f0z)
@@ -546,6 +567,20 @@ class FusionFilter:
         bg[2] *= kg
         transition_nav(st._Av, dt, Th, 0.5 * (g0x + g1x), 0.5 * (g0y + g1y), 0.5 * (g0z + g1z))
         st.pred.predict(st.P)
+        self.steps += 1
+        if self.recorder is not None and st is self._auth:
+            self.recorder.on_step(self, st, k, t1)
+
+    def _step_compiled(self, st: InsState, k: int, t1: int, dt: float, f0x, f0y, f0z, f1x, f1y, f1z,
+                       wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z) -> None:
+        """:meth:`_step_python` on the compiled core (``InsState.ck``, bound at start-up): the
+        step's static blocks written first (they depend on ``dt`` alone, not on the step's
+        results), then one call does the rest."""
+        if dt != st.dt_last:
+            self._set_dt(st, dt)
+        st.ck.propagate(dt, f0x, f0y, f0z, f1x, f1y, f1z, wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z,
+                        st.ka, st.kg)
+        st.pred.after_predict(st.P)
         self.steps += 1
         if self.recorder is not None and st is self._auth:
             self.recorder.on_step(self, st, k, t1)

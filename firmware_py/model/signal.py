@@ -68,6 +68,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware import core as _core_choice
 from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.field import MU0, dipole_point, loop_point
 
@@ -139,6 +140,63 @@ class SignalModel:
             self._kernel = [self._loop if a is None else self._loop_axes for a in self._axes]
         else:
             self._kernel = [self._dipole] * n
+        #: the numeric core this model runs, bound once here (``coiltrack.firmware.core``)
+        self.core = "python"
+        ext = _core_choice.extension()
+        if ext is not None and n <= ext.MAX_COILS:
+            self._bind_compiled(ext)
+
+    def _bind_compiled(self, ext) -> None:
+        """Run :meth:`fields`, :meth:`predict` and :meth:`measure` on the compiled kernels
+        (``core/src/signal.c``, the same operations in the same order as the methods below):
+        the coils' geometry is packed once into ``_geom`` and the kernel bound to it and to
+        ``B`` and ``J``; the methods are replaced on this instance, so no call tests the choice."""
+        st = ext.COIL_STRIDE
+        g = np.zeros((self.n, st))
+        for j in range(self.n):
+            row = g[j]
+            if not self._exact:
+                row[0] = ext.KIND_DIPOLE
+            else:
+                row[0] = ext.KIND_LOOP if self._axes[j] is None else ext.KIND_LOOP_AXES
+            row[1:4] = self._c[j]
+            row[4:13] = self._rot[j]
+            row[13:16] = self._ax[j]
+            row[16] = self._rad[j]
+            row[17] = self._spa[j]
+            row[18] = self._mpa[j]
+            if self._axes[j] is not None:
+                row[19:25] = self._axes[j]
+        self._geom = g
+        self._ck = ext.Signal(g, self.n, self.B, self.J)
+        self.fields = self._fields_compiled
+        self.predict = self._predict_compiled
+        self.measure = self._measure_compiled
+        self.core = "compiled"
+
+    def _fields_compiled(self, px: float, py: float, pz: float, cur, jac: bool) -> None:
+        self.evals += self.n
+        self._ck.fields(px, py, pz, cur, jac)
+        if self.distortion is not None:
+            self.distortion.add(px, py, pz, cur, jac, self.Bv, self.Jv)
+
+    def _predict_compiled(self, px: float, py: float, pz: float, R, cur, h) -> None:
+        self.evals += self.n
+        if self.distortion is None:
+            self._ck.predict(px, py, pz, R, cur, h)
+            return
+        self._ck.fields(px, py, pz, cur, False)
+        self.distortion.add(px, py, pz, cur, False, self.Bv, self.Jv)
+        self._ck.project(R, h)
+
+    def _measure_compiled(self, px: float, py: float, pz: float, R, cur, h, H) -> None:
+        self.evals += self.n
+        if self.distortion is None:
+            self._ck.measure(px, py, pz, R, cur, h, H)
+            return
+        self._ck.fields(px, py, pz, cur, True)
+        self.distortion.add(px, py, pz, cur, True, self.Bv, self.Jv)
+        self._ck.project_jac(R, h, H)
 
     def set_distortion(self, dmap) -> None:
         """Add ``dmap``'s residual field ``I_j D_j(p)`` (and its gradient) to every evaluation

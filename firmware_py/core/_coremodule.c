@@ -1,0 +1,614 @@
+/*
+ * coiltrack.firmware._core: the thin CPython glue of the compiled core.
+ *
+ * Objects bind the caller's numpy arrays once (start-up) through the buffer
+ * protocol and keep their pointers; the per-call methods use METH_FASTCALL,
+ * read their float arguments in place and write into caller-owned buffers,
+ * so a call creates no Python object (it returns None).  No numpy header is
+ * needed to build it.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+#define CT_MAX_COILS 64
+
+/* ------------------------------------------------------------------ buffers */
+static int is_double_format(const Py_buffer *v)
+{
+    const char *f = v->format;
+    if (v->itemsize != (Py_ssize_t)sizeof(double) || f == NULL)
+        return 0;
+    if (f[0] == '@' || f[0] == '=' || f[0] == '<')
+        f++;
+    return f[0] == 'd' && f[1] == '\0';
+}
+
+/* a C-contiguous float64 buffer of at least n doubles, or -1 with TypeError naming `what` */
+static int get_doubles(PyObject *obj, Py_ssize_t n, int writable, Py_buffer *view, const char *what)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous float64 buffer", what,
+                     writable ? "writable " : "");
+        return -1;
+    }
+    if (!is_double_format(view) || view->len < n * (Py_ssize_t)sizeof(double)) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs float64 items, at least %zd of them", what, n);
+        return -1;
+    }
+    return 0;
+}
+
+/* a 3x3 rotation (array, 2-D or flat memoryview, any strides) into r[9], row-major */
+static int get_matrix3(PyObject *obj, double *r)
+{
+    Py_buffer v;
+    int i, k;
+    if (PyObject_GetBuffer(obj, &v, PyBUF_RECORDS_RO) < 0) {
+        PyErr_SetString(PyExc_TypeError, "R: needs a float64 buffer of shape (3, 3) or (9,)");
+        return -1;
+    }
+    if (!is_double_format(&v) || !((v.ndim == 2 && v.shape[0] == 3 && v.shape[1] == 3) ||
+                                   (v.ndim == 1 && v.shape[0] == 9))) {
+        PyBuffer_Release(&v);
+        PyErr_SetString(PyExc_TypeError, "R: needs a float64 buffer of shape (3, 3) or (9,)");
+        return -1;
+    }
+    if (v.ndim == 2) {
+        for (i = 0; i < 3; ++i)
+            for (k = 0; k < 3; ++k)
+                memcpy(&r[3 * i + k], (const char *)v.buf + i * v.strides[0] + k * v.strides[1],
+                       sizeof(double));
+    } else {
+        for (i = 0; i < 9; ++i)
+            memcpy(&r[i], (const char *)v.buf + i * v.strides[0], sizeof(double));
+    }
+    PyBuffer_Release(&v);
+    return 0;
+}
+
+/* n currents from a float64 buffer or a tuple / list of numbers into c[n] */
+static int get_currents(PyObject *obj, int n, double *c)
+{
+    Py_ssize_t i;
+    if (PyTuple_Check(obj) || PyList_Check(obj)) {
+        if (PySequence_Fast_GET_SIZE(obj) < n) {
+            PyErr_Format(PyExc_ValueError, "cur: needs %d currents", n);
+            return -1;
+        }
+        for (i = 0; i < n; ++i) {
+            c[i] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(obj, i));
+            if (c[i] == -1.0 && PyErr_Occurred())
+                return -1;
+        }
+        return 0;
+    } else {
+        Py_buffer v;
+        if (get_doubles(obj, n, 0, &v, "cur") < 0)
+            return -1;
+        memcpy(c, v.buf, (size_t)n * sizeof(double));
+        PyBuffer_Release(&v);
+        return 0;
+    }
+}
+
+static int get_double(PyObject *o, double *x)
+{
+    *x = PyFloat_AsDouble(o);
+    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int check_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (nargs != want) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
+        return -1;
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------------ Signal */
+typedef struct {
+    PyObject_HEAD
+    int n;
+    Py_buffer geom_view, b_view, j_view;
+    int bound;
+    const double *geom;
+    double *B, *J;
+} SignalObject;
+
+static void Signal_dealloc(SignalObject *self)
+{
+    if (self->bound) {
+        PyBuffer_Release(&self->geom_view);
+        PyBuffer_Release(&self->b_view);
+        PyBuffer_Release(&self->j_view);
+    }
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int Signal_init(SignalObject *self, PyObject *args, PyObject *kw)
+{
+    PyObject *geom, *B, *J;
+    int n;
+    static char *kwlist[] = {"geom", "n", "B", "J", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OiOO", kwlist, &geom, &n, &B, &J))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "Signal: already bound");
+        return -1;
+    }
+    if (n < 1 || n > CT_MAX_COILS) {
+        PyErr_Format(PyExc_ValueError, "Signal: n must be in 1..%d, got %d", CT_MAX_COILS, n);
+        return -1;
+    }
+    if (get_doubles(geom, (Py_ssize_t)n * CT_COIL_STRIDE, 0, &self->geom_view, "geom") < 0)
+        return -1;
+    if (get_doubles(B, (Py_ssize_t)n * 3, 1, &self->b_view, "B") < 0) {
+        PyBuffer_Release(&self->geom_view);
+        return -1;
+    }
+    if (get_doubles(J, (Py_ssize_t)n * 9, 1, &self->j_view, "J") < 0) {
+        PyBuffer_Release(&self->geom_view);
+        PyBuffer_Release(&self->b_view);
+        return -1;
+    }
+    self->n = n;
+    self->geom = (const double *)self->geom_view.buf;
+    self->B = (double *)self->b_view.buf;
+    self->J = (double *)self->j_view.buf;
+    self->bound = 1;
+    return 0;
+}
+
+static int Signal_ready(SignalObject *self)
+{
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "Signal: not bound");
+        return -1;
+    }
+    return 0;
+}
+
+/* fields(px, py, pz, cur, jac) */
+static PyObject *Signal_fields(SignalObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double px, py, pz, cur[CT_MAX_COILS];
+    int jac;
+    if (Signal_ready(self) < 0 || check_nargs("fields", nargs, 5) < 0)
+        return NULL;
+    if (get_double(args[0], &px) < 0 || get_double(args[1], &py) < 0 || get_double(args[2], &pz) < 0)
+        return NULL;
+    if (get_currents(args[3], self->n, cur) < 0)
+        return NULL;
+    jac = PyObject_IsTrue(args[4]);
+    if (jac < 0)
+        return NULL;
+    ct_signal_fields(self->geom, self->n, px, py, pz, cur, jac, self->B, self->J);
+    Py_RETURN_NONE;
+}
+
+/* project(R, h): h = R^T B after fields (B possibly corrected by the caller) */
+static PyObject *Signal_project(SignalObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double R[9];
+    Py_buffer hv;
+    if (Signal_ready(self) < 0 || check_nargs("project", nargs, 2) < 0)
+        return NULL;
+    if (get_matrix3(args[0], R) < 0 || get_doubles(args[1], 3 * self->n, 1, &hv, "h") < 0)
+        return NULL;
+    ct_signal_project(self->n, R, self->B, (double *)hv.buf);
+    PyBuffer_Release(&hv);
+    Py_RETURN_NONE;
+}
+
+/* project_jac(R, h, H) */
+static PyObject *Signal_project_jac(SignalObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double R[9];
+    Py_buffer hv, Hv;
+    if (Signal_ready(self) < 0 || check_nargs("project_jac", nargs, 3) < 0)
+        return NULL;
+    if (get_matrix3(args[0], R) < 0 || get_doubles(args[1], 3 * self->n, 1, &hv, "h") < 0)
+        return NULL;
+    if (get_doubles(args[2], 18 * self->n, 1, &Hv, "H") < 0) {
+        PyBuffer_Release(&hv);
+        return NULL;
+    }
+    ct_signal_project_jac(self->n, R, self->B, self->J, (double *)hv.buf, (double *)Hv.buf);
+    PyBuffer_Release(&hv);
+    PyBuffer_Release(&Hv);
+    Py_RETURN_NONE;
+}
+
+/* predict(px, py, pz, R, cur, h): fields without the gradient, then h = R^T B */
+static PyObject *Signal_predict(SignalObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double px, py, pz, R[9], cur[CT_MAX_COILS];
+    Py_buffer hv;
+    if (Signal_ready(self) < 0 || check_nargs("predict", nargs, 6) < 0)
+        return NULL;
+    if (get_double(args[0], &px) < 0 || get_double(args[1], &py) < 0 || get_double(args[2], &pz) < 0)
+        return NULL;
+    if (get_matrix3(args[3], R) < 0 || get_currents(args[4], self->n, cur) < 0)
+        return NULL;
+    if (get_doubles(args[5], 3 * self->n, 1, &hv, "h") < 0)
+        return NULL;
+    ct_signal_fields(self->geom, self->n, px, py, pz, cur, 0, self->B, self->J);
+    ct_signal_project(self->n, R, self->B, (double *)hv.buf);
+    PyBuffer_Release(&hv);
+    Py_RETURN_NONE;
+}
+
+/* measure(px, py, pz, R, cur, h, H): fields and gradients, then h and H */
+static PyObject *Signal_measure(SignalObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double px, py, pz, R[9], cur[CT_MAX_COILS];
+    Py_buffer hv, Hv;
+    if (Signal_ready(self) < 0 || check_nargs("measure", nargs, 7) < 0)
+        return NULL;
+    if (get_double(args[0], &px) < 0 || get_double(args[1], &py) < 0 || get_double(args[2], &pz) < 0)
+        return NULL;
+    if (get_matrix3(args[3], R) < 0 || get_currents(args[4], self->n, cur) < 0)
+        return NULL;
+    if (get_doubles(args[5], 3 * self->n, 1, &hv, "h") < 0)
+        return NULL;
+    if (get_doubles(args[6], 18 * self->n, 1, &Hv, "H") < 0) {
+        PyBuffer_Release(&hv);
+        return NULL;
+    }
+    ct_signal_fields(self->geom, self->n, px, py, pz, cur, 1, self->B, self->J);
+    ct_signal_project_jac(self->n, R, self->B, self->J, (double *)hv.buf, (double *)Hv.buf);
+    PyBuffer_Release(&hv);
+    PyBuffer_Release(&Hv);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Signal_methods[] = {
+    {"fields", (PyCFunction)(void (*)(void))Signal_fields, METH_FASTCALL,
+     "fields(px, py, pz, cur, jac): every coil's B (and J) into the bound buffers"},
+    {"predict", (PyCFunction)(void (*)(void))Signal_predict, METH_FASTCALL,
+     "predict(px, py, pz, R, cur, h): signals h = R^T B_j"},
+    {"measure", (PyCFunction)(void (*)(void))Signal_measure, METH_FASTCALL,
+     "measure(px, py, pz, R, cur, h, H): signals and the pose Jacobian"},
+    {"project", (PyCFunction)(void (*)(void))Signal_project, METH_FASTCALL,
+     "project(R, h): h = R^T B from the bound B"},
+    {"project_jac", (PyCFunction)(void (*)(void))Signal_project_jac, METH_FASTCALL,
+     "project_jac(R, h, H): h and H from the bound B and J"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SignalType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.Signal",
+    .tp_basicsize = sizeof(SignalObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Signal(geom, n, B, J): the signal model's kernels bound to caller-owned buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Signal_init,
+    .tp_dealloc = (destructor)Signal_dealloc,
+    .tp_methods = Signal_methods,
+};
+
+/* ------------------------------------------------------------- CovPredict */
+typedef struct {
+    PyObject_HEAD
+    int n;
+    Py_buffer a_view, q_view, t_view;
+    int bound;
+} CovPredictObject;
+
+static void CovPredict_dealloc(CovPredictObject *self)
+{
+    if (self->bound) {
+        PyBuffer_Release(&self->a_view);
+        PyBuffer_Release(&self->q_view);
+        PyBuffer_Release(&self->t_view);
+    }
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int CovPredict_init(CovPredictObject *self, PyObject *args, PyObject *kw)
+{
+    PyObject *A, *Q, *T;
+    int n;
+    Py_ssize_t nn;
+    static char *kwlist[] = {"n", "A", "Q", "T", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOO", kwlist, &n, &A, &Q, &T))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "CovPredict: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 256) {
+        PyErr_Format(PyExc_ValueError, "CovPredict: n must be in 1..256, got %d", n);
+        return -1;
+    }
+    nn = (Py_ssize_t)n * n;
+    if (get_doubles(A, nn, 0, &self->a_view, "A") < 0)
+        return -1;
+    if (get_doubles(Q, nn, 0, &self->q_view, "Q") < 0) {
+        PyBuffer_Release(&self->a_view);
+        return -1;
+    }
+    if (get_doubles(T, nn, 1, &self->t_view, "T") < 0) {
+        PyBuffer_Release(&self->a_view);
+        PyBuffer_Release(&self->q_view);
+        return -1;
+    }
+    self->n = n;
+    self->bound = 1;
+    return 0;
+}
+
+/* predict(P): P <- A P A^T + Q in place */
+static PyObject *CovPredict_predict(CovPredictObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "CovPredict: not bound");
+        return NULL;
+    }
+    if (check_nargs("predict", nargs, 1) < 0)
+        return NULL;
+    if (get_doubles(args[0], (Py_ssize_t)self->n * self->n, 1, &pv, "P") < 0)
+        return NULL;
+    ct_covariance_predict(self->n, (const double *)self->a_view.buf, (double *)pv.buf,
+                          (const double *)self->q_view.buf, (double *)self->t_view.buf);
+    PyBuffer_Release(&pv);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef CovPredict_methods[] = {
+    {"predict", (PyCFunction)(void (*)(void))CovPredict_predict, METH_FASTCALL,
+     "predict(P): P <- A P A^T + Q with the bound A and Q"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject CovPredictType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.CovPredict",
+    .tp_basicsize = sizeof(CovPredictObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "CovPredict(n, A, Q, T): the covariance prediction bound to caller-owned A, Q and scratch T",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)CovPredict_init,
+    .tp_dealloc = (destructor)CovPredict_dealloc,
+    .tp_methods = CovPredict_methods,
+};
+
+/* ---------------------------------------------------------------- InsStep */
+#define INS_NBUF 9
+typedef struct {
+    PyObject_HEAD
+    struct ct_ins s;
+    double E[9];
+    Py_buffer views[INS_NBUF];
+    int bound;
+} InsStepObject;
+
+static void InsStep_dealloc(InsStepObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < INS_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int InsStep_init(InsStepObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", NULL};
+    static const char *names[INS_NBUF] = {"p", "v", "Th", "ba", "bg", "A", "P", "Q", "T"};
+    PyObject *o[INS_NBUF];
+    double *ptr[INS_NBUF];
+    int n, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOO", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8]))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "InsStep: already bound");
+        return -1;
+    }
+    if (n < CT_GYR + 3 || n > 256) {
+        PyErr_Format(PyExc_ValueError, "InsStep: n must be in %d..256, got %d", CT_GYR + 3, n);
+        return -1;
+    }
+    for (i = 0; i < INS_NBUF; ++i) {
+        Py_ssize_t len = i == 2 ? 9 : (i < 5 ? 3 : (Py_ssize_t)n * n);
+        if (get_doubles(o[i], len, i != 7, &self->views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    self->s.n = n;
+    self->s.p = ptr[0];
+    self->s.v = ptr[1];
+    self->s.Th = ptr[2];
+    self->s.ba = ptr[3];
+    self->s.bg = ptr[4];
+    self->s.A = ptr[5];
+    self->s.P = ptr[6];
+    self->s.Q = ptr[7];
+    self->s.T = ptr[8];
+    self->s.E = self->E;
+    self->bound = 1;
+    return 0;
+}
+
+/* propagate(dt, f0x, f0y, f0z, f1x, f1y, f1z, wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z, ka, kg) */
+static PyObject *InsStep_propagate(InsStepObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double dt, in[15], ka, kg;
+    int i;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "InsStep: not bound");
+        return NULL;
+    }
+    if (check_nargs("propagate", nargs, 18) < 0 || get_double(args[0], &dt) < 0)
+        return NULL;
+    for (i = 0; i < 15; ++i)
+        if (get_double(args[1 + i], &in[i]) < 0)
+            return NULL;
+    if (get_double(args[16], &ka) < 0 || get_double(args[17], &kg) < 0)
+        return NULL;
+    ct_ins_propagate(&self->s, dt, in, ka, kg);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef InsStep_methods[] = {
+    {"propagate", (PyCFunction)(void (*)(void))InsStep_propagate, METH_FASTCALL,
+     "propagate(dt, f0 (3), f1 (3), w (3), r0 (3), r1 (3), ka, kg): one strapdown and covariance step"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject InsStepType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.InsStep",
+    .tp_basicsize = sizeof(InsStepObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "InsStep(n, p, v, Th, ba, bg, A, P, Q, T): FusionFilter._propagate bound to one state's buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)InsStep_init,
+    .tp_dealloc = (destructor)InsStep_dealloc,
+    .tp_methods = InsStep_methods,
+};
+
+/* exp_rotvec(wx, wy, wz) -> 9-tuple, as linalg.exp_rotvec (for tests) */
+static PyObject *core_exp_rotvec(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    double w[3], out[9];
+    PyObject *r;
+    int k;
+    (void)mod;
+    if (check_nargs("exp_rotvec", nargs, 3) < 0)
+        return NULL;
+    for (k = 0; k < 3; ++k)
+        if (get_double(args[k], &w[k]) < 0)
+            return NULL;
+    ct_exp_rotvec(w[0], w[1], w[2], out);
+    r = PyTuple_New(9);
+    if (r == NULL)
+        return NULL;
+    for (k = 0; k < 9; ++k) {
+        PyObject *f = PyFloat_FromDouble(out[k]);
+        if (f == NULL) {
+            Py_DECREF(r);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(r, k, f);
+    }
+    return r;
+}
+
+/* ------------------------------------------------------- module functions */
+static PyObject *point_tuple(const double *t, int jac)
+{
+    int k, m = jac ? 9 : 3;
+    PyObject *r = PyTuple_New(m);
+    if (r == NULL)
+        return NULL;
+    for (k = 0; k < m; ++k) {
+        PyObject *f = PyFloat_FromDouble(t[k]);
+        if (f == NULL) {
+            Py_DECREF(r);
+            return NULL;
+        }
+        PyTuple_SET_ITEM(r, k, f);
+    }
+    return r;
+}
+
+/* loop_point(x, y, z, radius, scale, jac) -> tuple, as field.loop_point (for tests and tools) */
+static PyObject *core_loop_point(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[5], t[9];
+    int k, jac;
+    (void)mod;
+    if (check_nargs("loop_point", nargs, 6) < 0)
+        return NULL;
+    for (k = 0; k < 5; ++k)
+        if (get_double(args[k], &v[k]) < 0)
+            return NULL;
+    if ((jac = PyObject_IsTrue(args[5])) < 0)
+        return NULL;
+    ct_loop_point(v[0], v[1], v[2], v[3], v[4], jac, t);
+    return point_tuple(t, jac);
+}
+
+/* dipole_point(px, py, pz, mx, my, mz, jac) -> tuple, as field.dipole_point */
+static PyObject *core_dipole_point(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[6], t[9];
+    int k, jac;
+    (void)mod;
+    if (check_nargs("dipole_point", nargs, 7) < 0)
+        return NULL;
+    for (k = 0; k < 6; ++k)
+        if (get_double(args[k], &v[k]) < 0)
+            return NULL;
+    if ((jac = PyObject_IsTrue(args[6])) < 0)
+        return NULL;
+    ct_dipole_point(v[0], v[1], v[2], v[3], v[4], v[5], jac, t);
+    return point_tuple(t, jac);
+}
+
+static PyMethodDef core_methods[] = {
+    {"loop_point", (PyCFunction)(void (*)(void))core_loop_point, METH_FASTCALL,
+     "loop_point(x, y, z, radius, scale, jac): as coiltrack.firmware.model.field.loop_point"},
+    {"exp_rotvec", (PyCFunction)(void (*)(void))core_exp_rotvec, METH_FASTCALL,
+     "exp_rotvec(wx, wy, wz): exp([w]x) row-major, as coiltrack.firmware.linalg.exp_rotvec"},
+    {"dipole_point", (PyCFunction)(void (*)(void))core_dipole_point, METH_FASTCALL,
+     "dipole_point(px, py, pz, mx, my, mz, jac): as coiltrack.firmware.model.field.dipole_point"},
+    {NULL, NULL, 0, NULL}};
+
+static struct PyModuleDef core_module = {
+    PyModuleDef_HEAD_INIT, "_core",
+    "The compiled core of the coiltrack firmware (C99 kernels; the Python modules are the reference).",
+    -1, core_methods, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__core(void)
+{
+    PyObject *m;
+    if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0)
+        return NULL;
+    m = PyModule_Create(&core_module);
+    if (m == NULL)
+        return NULL;
+    Py_INCREF(&SignalType);
+    if (PyModule_AddObject(m, "Signal", (PyObject *)&SignalType) < 0) {
+        Py_DECREF(&SignalType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&CovPredictType);
+    if (PyModule_AddObject(m, "CovPredict", (PyObject *)&CovPredictType) < 0) {
+        Py_DECREF(&CovPredictType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&InsStepType);
+    if (PyModule_AddObject(m, "InsStep", (PyObject *)&InsStepType) < 0) {
+        Py_DECREF(&InsStepType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
+        PyModule_AddIntConstant(m, "ORI", CT_ORI) < 0 || PyModule_AddIntConstant(m, "ACC", CT_ACC) < 0 ||
+        PyModule_AddIntConstant(m, "GYR", CT_GYR) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (PyModule_AddIntConstant(m, "COIL_STRIDE", CT_COIL_STRIDE) < 0 ||
+        PyModule_AddIntConstant(m, "KIND_LOOP", CT_KIND_LOOP) < 0 ||
+        PyModule_AddIntConstant(m, "KIND_LOOP_AXES", CT_KIND_LOOP_AXES) < 0 ||
+        PyModule_AddIntConstant(m, "KIND_DIPOLE", CT_KIND_DIPOLE) < 0 ||
+        PyModule_AddIntConstant(m, "MAX_COILS", CT_MAX_COILS) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

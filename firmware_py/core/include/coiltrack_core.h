@@ -1,0 +1,87 @@
+/*
+ * coiltrack compiled core: the firmware's numeric kernels in C99.
+ *
+ * Written as firmware: no allocation, no global mutable state, only <math.h>,
+ * <string.h> and <stdint.h>; every state and scratch lives in caller-owned
+ * buffers.  The Python modules named beside each function are the reference
+ * and the specification: the C follows them function by function, with the
+ * same names (prefixed ct_) and the same floating-point operations in the
+ * same order, so that with -ffp-contract=off the results are bit-identical.
+ *
+ * Matrices are row-major, C-contiguous doubles, as numpy lays them out.
+ */
+#ifndef COILTRACK_CORE_H
+#define COILTRACK_CORE_H
+
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* ------------------------------------------------------------------ field
+ * coiltrack.firmware.model.field: loop_point, dipole_point.
+ * out[0..2] = (bx, by, bz); with jac, out[3..8] = (jxx, jyy, jzz, jxy, jxz, jyz).
+ */
+void ct_loop_point(double x, double y, double z, double radius, double scale, int jac, double *out);
+void ct_dipole_point(double px, double py, double pz, double mx, double my, double mz, int jac,
+                     double *out);
+
+/* ----------------------------------------------------------------- signal
+ * coiltrack.firmware.model.signal.SignalModel.  The coil geometry is packed
+ * once (start-up) into CT_COIL_STRIDE doubles per coil, in this order:
+ */
+enum {
+    CT_COIL_KIND = 0,     /* CT_KIND_LOOP, CT_KIND_LOOP_AXES or CT_KIND_DIPOLE */
+    CT_COIL_CENTER = 1,   /* 3: centre, m (source frame) */
+    CT_COIL_ROT = 4,      /* 9: rotation coil -> source frame, row-major */
+    CT_COIL_AXIS = 13,    /* 3: unit axis */
+    CT_COIL_RADIUS = 16,  /* loop radius, m */
+    CT_COIL_SPA = 17,     /* mu0 N gain / (2 pi a), T per A */
+    CT_COIL_MPA = 18,     /* N gain pi a^2, A m^2 per A */
+    CT_COIL_PERM = 19,    /* 6: (i0, s0, i1, s1, i2, s2) of a signed-permutation rotation */
+    CT_COIL_STRIDE = 25
+};
+enum { CT_KIND_LOOP = 0, CT_KIND_LOOP_AXES = 1, CT_KIND_DIPOLE = 2 };
+
+/* B (n, 3) and, with jac, J (n, 3, 3): every coil's source-frame field and gradient at p
+ * for the currents cur (n), A.  SignalModel.fields without the distortion map. */
+void ct_signal_fields(const double *geom, int n, double px, double py, double pz, const double *cur,
+                      int jac, double *B, double *J);
+/* h (3n) = R^T B_j (SignalModel.predict's projection; R sensor -> source, row-major 3x3). */
+void ct_signal_project(int n, const double *R, const double *B, double *h);
+/* h (3n) and H (3n x 6) from B, J (SignalModel.measure's projection, Schepers eqs 9-11). */
+void ct_signal_project_jac(int n, const double *R, const double *B, const double *J, double *h,
+                           double *H);
+
+/* ------------------------------------------------------------------- ekf
+ * coiltrack.firmware.estimate.ekf.CovariancePredict.predict: P <- A P A^T + Q (n x n, row-major),
+ * A's zero entries skipped; T is n x n scratch. */
+void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T);
+
+/* ------------------------------------------------------------- strapdown
+ * coiltrack.firmware.estimate.strapdown, linalg.exp_rotvec and FusionFilter._propagate.
+ * The inertial rows of every inertial layout (estimate.layout: POS, VEL, ORI, ACC, GYR). */
+enum { CT_POS = 0, CT_VEL = 3, CT_ORI = 6, CT_ACC = 9, CT_GYR = 12 };
+
+void ct_exp_rotvec(double wx, double wy, double wz, double *out);
+void ct_strapdown_rotate(double *R, double ux, double uy, double uz, double *E);
+void ct_to_nav(const double *R, double x, double y, double z, double *out);
+void ct_integrate_pv(double *p, double *v, double dt, const double *a0, const double *a1);
+void ct_transition_nav(double *A, int n, double dt, const double *R, double gx, double gy, double gz);
+
+/* one inertial state's caller-owned buffers (magnetic_inertial.InsState) */
+struct ct_ins {
+    int n;                          /* state dimension */
+    double *p, *v, *Th, *ba, *bg;   /* 3, 3, 3x3, 3, 3 */
+    double *A, *P, *T;              /* n x n: transition, covariance, scratch */
+    const double *Q;                /* n x n */
+    double *E;                      /* 9: scratch */
+};
+void ct_ins_propagate(struct ct_ins *s, double dt, const double *in, double ka, double kg);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* COILTRACK_CORE_H */

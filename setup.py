@@ -1,0 +1,21 @@
+"""Build of the optional compiled core (``coiltrack.firmware._core``); everything else is in
+pyproject.toml.  A machine without a C compiler installs the pure-Python package: the
+extension is optional and the firmware then runs its Python core (``[core] impl``)."""
+from setuptools import Extension, setup
+
+CORE = "firmware_py/core"
+
+setup(
+    ext_modules=[
+        Extension(
+            "coiltrack.firmware._core",
+            sources=[f"{CORE}/_coremodule.c", *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown"))],
+            include_dirs=[f"{CORE}/include"],
+            depends=[f"{CORE}/include/coiltrack_core.h"],
+            # no fused multiply-adds: the results must not depend on the compiler's choice
+            # (it fuses by default on aarch64 and with -march=native); C99 as on the board
+            extra_compile_args=["-O2", "-ffp-contract=off", "-std=c99"],
+            optional=True,
+        )
+    ],
+)
