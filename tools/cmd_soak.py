@@ -113,15 +113,55 @@ class _SoakStopped(Exception):
         self.reps, self.stopped = reps, stopped
 
 
-def _ignore_sigint() -> None:
+#: a worker stopped by its parent runs no further seed
+_worker_stopped = False
+
+
+def _note_stop(signum, frame) -> None:
+    global _worker_stopped
+    _worker_stopped = True
+
+
+def _worker_setup() -> None:
+    """A worker leaves Ctrl-C to the parent; SIGTERM from the parent between seeds marks the
+    worker stopped (it runs no further seed), during one stops it (:func:`_one_stoppable`)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _note_stop)
+
+
+def _one_stoppable(job):
+    """:func:`_one` in a worker: SIGTERM from the parent stops the seed, whose report to
+    where it stopped (marked interrupted) is returned; None once stopped."""
+    import signal
+
+    from .stopping import Interrupted, Stopped
+
+    def stop(signum, frame):
+        _note_stop(signum, frame)
+        signal.signal(signal.SIGTERM, _note_stop)
+        raise Interrupted(signum)
+
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        if _worker_stopped:           # checked after the handler is in place: no signal falls between
+            return None
+        return _one(job)
+    except Stopped as exc:
+        return exc.partial
+    finally:
+        signal.signal(signal.SIGTERM, _note_stop)
+
+
+#: longest wait for a stopped worker's report (a hang guard)
+STOP_WAIT_S = 120.0
 
 
 def _run_jobs(jobs, workers: int) -> list[dict]:
     """Every seed's report in order; a SIGINT or SIGTERM (``Stopped``) becomes
-    :class:`_SoakStopped` with the reports finished."""
+    :class:`_SoakStopped` with the reports finished and those of the seeds under way to
+    where they stopped."""
     from .stopping import Stopped
 
     reps = []
@@ -130,16 +170,32 @@ def _run_jobs(jobs, workers: int) -> list[dict]:
         from concurrent.futures import ProcessPoolExecutor
 
         ex = ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=_ignore_sigint)
-        futs = [ex.submit(_one, j) for j in jobs]
+                                 initializer=_worker_setup)
+        futs = [ex.submit(_one_stoppable, j) for j in jobs]
         try:
             for f in futs:
                 reps.append(f.result())
         except Stopped as exc:
-            done = [f.result() for f in futs[len(reps):] if f.done() and not f.cancelled() and not f.exception()]
-            for proc in list((getattr(ex, "_processes", None) or {}).values()):
-                proc.terminate()
-            raise _SoakStopped(sorted(reps + done, key=lambda r: r["seed"]), exc) from None
+            from .stopping import held_signals
+
+            with held_signals():        # a second signal waits for the workers' reports
+                for f in futs:
+                    f.cancel()
+                for proc in list((getattr(ex, "_processes", None) or {}).values()):
+                    proc.terminate()    # SIGTERM: the seed under way stops with its report
+                for f in futs[len(reps):]:
+                    if f.cancelled():
+                        continue
+                    try:
+                        r = f.result(timeout=STOP_WAIT_S)
+                    except Exception:    # noqa: BLE001 - a worker lost: its seed is not reported
+                        continue
+                    if r is not None:
+                        reps.append(r)
+                for proc in list((getattr(ex, "_processes", None) or {}).values()):
+                    if proc.is_alive():
+                        proc.kill()     # a worker that did not answer: the pool must not wait for it
+            raise _SoakStopped(sorted(reps, key=lambda r: r["seed"]), exc) from None
         finally:
             ex.shutdown(wait=True, cancel_futures=True)
         return reps

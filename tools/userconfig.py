@@ -56,4 +56,14 @@ def load_over(path, base: FirmwareConfig) -> FirmwareConfig:
     of comments alone puts nothing over ``base``); a bad value a :class:`ConfigError`."""
     from .infile import load_toml
 
-    return merge(load_toml(path, "configuration"), base)
+    cfg = merge(load_toml(path, "configuration"), base)
+    cal = getattr(cfg, "calibration_file", "")
+    if cal and cal != getattr(base, "calibration_file", ""):
+        from .calibfile import read_table
+        from .infile import InputFileError
+
+        try:
+            read_table(cal)      # the calibration file it names, read as strictly, before any work
+        except InputFileError as exc:
+            raise InputFileError(path, str(exc), key="calibration.calibration_file") from None
+    return cfg

@@ -103,7 +103,7 @@ def test_bad_fault_values_are_refused(text, capsys):
     ('[timing]\npulse_us = "x"\n', "timing.pulse_us"),
     ('[timing]\nno_such_key = 1\n', "timing.no_such_key"),
     ('pulse_us = 3\n', "timing.pulse_us"),
-    ('[timing]\npulse_us = \n', "<file>"),
+    ('[timing]\npulse_us = \n', "line 2: not valid TOML"),     # the file's line, not a key
     ('[signing]\nsigning_link_id = 300\n', "signing.signing_link_id"),
 ])
 @pytest.mark.parametrize("command", [["bench", "--scenario", "static"], ["firmware", "--port", "loop://"]])
@@ -112,4 +112,5 @@ def test_config_values_are_refused_naming_the_key(command, toml, key, tmp_path, 
     path.write_text(toml)
     assert main(command + ["--config", str(path)]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and f"config key '{key}'" in err
+    named = f"--config {path}: {key}" if key.startswith("line") else f"config key '{key}'"
+    assert len(err.splitlines()) == 1 and named in err, err

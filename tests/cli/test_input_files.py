@@ -514,3 +514,12 @@ def test_a_truncated_sweep_csv_gives_a_prefix_of_its_runs_and_its_json_the_clean
 def test_load_json_names_a_missing_file(tmp_path):
     with pytest.raises(InputFileError, match="cannot read it"):
         load_json(tmp_path / "none.json")
+
+
+def test_a_config_naming_a_damaged_calibration_file_is_refused_naming_both(tmp_path, capsys):
+    cal = tmp_path / "cal.toml"
+    cal.write_bytes(("# 20 \u00b0C\n" + CALIBRATION).encode("latin-1"))
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[calibration]\ncalibration_file = "{cal}"\n')
+    _refused(["bench", "--scenario", "static", "--duration", "0.1", "--config", str(cfg)], capsys,
+             f"--config {cfg}: key 'calibration.calibration_file': {cal}: line 1")

@@ -345,3 +345,30 @@ def test_a_stopped_bench_writes_its_pose_table(sig, tmp_path, monkeypatch):
     assert rep["interrupted"] is True and rep["stopped_by"] == signal.Signals(sig).name
     table = read_csv(poses)
     assert len(table["t_us"]) == rep["poses"] >= 1 and table["t_s"].max() <= rep["duration_s"]
+
+
+def test_a_parallel_soak_stopped_reports_its_seeds_under_way_and_leaves_no_worker(tmp_path):
+    """``soak --workers 2`` of three 10-minute seeds, SIGINT once both workers exist: exit 130,
+    the JSON written (marked interrupted) with the reports of the seeds under way, each to
+    where it stopped, and no worker left behind (the parent does not wait for a seed's end)."""
+    out = tmp_path / "soak.json"
+    proc = subprocess.Popen(COILTRACK + ["soak", "--scenario", "static", "--seeds", "1-3", "--duration", "600",
+                                         "--workers", "2", "--json", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        # the resource tracker and the two workers; then the seeds' first ticks (their state appears in /proc)
+        kids = _poll(lambda: (lambda k: k if len(k) >= 3 else None)(_children(proc.pid)), timeout_s=4 * WAIT_S)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=4 * WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr.decode()
+    assert b"Traceback" not in stderr
+    for k in kids:
+        _poll(lambda: _gone(k))
+    doc = json.loads(out.read_text())
+    assert doc["interrupted"] is True and doc["stopped_by"] == "SIGINT"
+    for r in doc["runs"]:                                 # a seed stopped mid-way: its report to where it stopped
+        assert r["interrupted"] is True and 0 < r["duration_s"] < 600 and r["seed"] in (1, 2, 3)
+    assert [r["seed"] for r in doc["summary"]] == [r["seed"] for r in doc["runs"]]
