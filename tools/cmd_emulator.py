@@ -25,7 +25,8 @@ def add_arguments(p) -> None:
     from .links import add_link_arguments
 
     add_link_arguments(p, serial_port_type=A.serial_port)
-    p.add_argument("--create-pty", action="store_true", help="create a pseudo-terminal, print its path and talk on it")
+    p.add_argument("--create-pty", action="store_true",
+                   help="create a pseudo-terminal, print its path and talk on it (serial frames; not with --transport can)")
     p.add_argument("--scenario", type=A.scenario, default="roetenberg-bench",
                    help="the world and nodes of this scenario (default roetenberg-bench)")
     p.add_argument("--seed", type=A.seed, default=1, help="0..2^32-1 (default 1)")
