@@ -263,7 +263,7 @@ def fault_summary(bench, fw_status: dict | None = None) -> dict:
                 bits[name] = bits.get(name, 0) + 1
     rep = {"events": events, "pose_status": bits}
     if fw_status:
-        rep["firmware"] = {k: v for k, v in fw_status.items() if k.startswith(("sup_", "sync_")) and v}
+        rep["firmware"] = {k: v for k, v in fw_status.items() if k.startswith(("sup_", "sync_", "imu_saturated")) and v}
     return {"injected": inj, "reported": rep}
 
 

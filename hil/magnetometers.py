@@ -109,7 +109,8 @@ class FastMagProfile:
         B = self.filtered(field, t_s) + rng.normal(0.0, self.noise_rms_t, (np.size(t_s), 3))
         full = self.range_t / self.lsb_t
         steps = np.round(B / self.lsb_t)
-        saturated = np.any(np.abs(steps) > full, axis=1)
+        # the 18-bit output spans -full .. full - 1 around the null: a step outside it is clipped
+        saturated = np.any((steps > full - 1) | (steps < -full), axis=1)
         counts = np.clip(steps, -full, full - 1) + self.null_counts
         return counts.astype(np.int64), saturated
 

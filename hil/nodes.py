@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
-from coiltrack.protocol.schema import (ACC_LSB, IMU_CLIP_COUNTS, POSE_FUSED, COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
+from coiltrack.protocol.schema import (ACC_LSB, IMU_CLIP_COUNTS, POSE_FUSED,
+                             COIL_FAULT_CURRENT_SAG, COIL_FAULT_DUTY_LIMIT, COIL_FAULT_LATE,
                              COIL_FAULT_OPEN_CIRCUIT, COIL_FAULT_OVER_CURRENT, COIL_FAULT_OVER_TEMPERATURE,
                              COIL_FAULT_REFUSED, COIL_FAULT_SUPPLY_LOW,
                              CURRENT_LSB_A, GYR_LSB, MAG_LSB_T, ROLE_COIL_DRIVER, ROLE_SENSOR, STAMP_DVEL,

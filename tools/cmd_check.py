@@ -80,7 +80,8 @@ def format_summary(s: dict, runs: list[dict]) -> str:
     for r in runs:
         if r["exception"]:
             via = f", from {r['origin']}" if r.get("origin") else ""
-            lines.append(f"  EXCEPTION {r['scenario']} seed {r['seed']}: {r['exception']} ({r['side']}: {r['where']}{via})")
+            lines.append(f"  EXCEPTION {r['scenario']} seed {r['seed']}: {r['exception']} "
+                         f"({r['side']}: {r['where']}{via})")
     for r in runs:
         if r["faults_unreported"]:
             lines.append(f"  UNREPORTED {r['scenario']} seed {r['seed']}: {', '.join(r['faults_unreported'])}")

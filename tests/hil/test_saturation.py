@@ -257,3 +257,21 @@ def test_the_receiver_uses_a_sample_within_range_and_skips_a_clipped_pair():
     for t, ax, ay, az, gx, gy, gz in tracker.imu:
         assert 200_000 < t < 300_000
         assert gz == pytest.approx(0.2 / 0.1 / GYR_LSB) and az == pytest.approx(981 * 1e-4 / 0.1 / ACC_LSB)
+
+
+def test_fast_magnetometer_flags_every_clipped_sample():
+    """MMC5983MA (+-8 G, 18 bits around 131072): a field far above the range (+-20 G) reads the
+    end codes 262143 and 0 and is flagged; a field at exactly +8 G is clipped to the top code
+    (one count below the null-symmetric full scale) and is flagged too; 7 G is not."""
+    from coiltrack.hil.magnetometers import FastMagProfile
+
+    m = FastMagProfile.mmc5983ma()
+    quiet = FastMagProfile(m.name, m.rate_hz, m.integration_s, m.bandwidth_hz, 0.0, m.lsb_t, m.range_t, m.null_counts)
+    t = quiet.sample_times(4)
+    for b, code, sat in ((20e-4, 262143, True), (-20e-4, 0, True), (8e-4, 262143, True), (7e-4, None, False)):
+        counts, flags = quiet.sample(lambda s: np.tile([b, 0.0, 0.0], (s.size, 1)), t, np.random.default_rng(1))
+        assert bool(flags.all()) is sat and not (flags.any() and not sat)
+        if code is not None:
+            assert (counts[:, 0] == code).all()
+        else:
+            assert (counts[:, 0] == 131072 + round(7e-4 / m.lsb_t)).all()
