@@ -379,6 +379,118 @@ static PyTypeObject CovPredictType = {
     .tp_methods = CovPredict_methods,
 };
 
+/* ---------------------------------------------------------------- KUpdate */
+#define KU_NBUF 16
+typedef struct {
+    PyObject_HEAD
+    struct ct_kalman u;
+    double *nis;
+    Py_buffer views[KU_NBUF];
+    int bound;
+} KUpdateObject;
+
+static void KUpdate_dealloc(KUpdateObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < KU_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int KUpdate_init(KUpdateObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "m", "H", "R", "y", "dx", "S", "Sinv", "K", "PHt", "T", "TH", "X", "KR",
+                             "w", "L", "M", "nis", NULL};
+    static const char *names[KU_NBUF] = {"H", "R", "y", "dx", "S", "Sinv", "K", "PHt", "T", "TH", "X",
+                                         "KR", "w", "L", "M", "nis"};
+    PyObject *o[KU_NBUF];
+    double *ptr[KU_NBUF];
+    int n, m, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiOOOOOOOOOOOOOOOO", kwlist, &n, &m, &o[0], &o[1], &o[2],
+                                     &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11],
+                                     &o[12], &o[13], &o[14], &o[15]))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "KUpdate: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 256 || m < 1 || m > 64) {
+        PyErr_Format(PyExc_ValueError, "KUpdate: n in 1..256 and m in 1..64, got %d, %d", n, m);
+        return -1;
+    }
+    for (i = 0; i < KU_NBUF; ++i) {
+        Py_ssize_t nn = (Py_ssize_t)n * n, nm = (Py_ssize_t)n * m, mm = (Py_ssize_t)m * m;
+        /* H R y dx S Sinv K PHt T TH X KR w L M nis */
+        static const int kind[KU_NBUF] = {1, 2, 3, 4, 2, 2, 1, 1, 0, 1, 0, 1, 3, 2, 2, 5};
+        Py_ssize_t len = kind[i] == 0 ? nn : kind[i] == 1 ? nm : kind[i] == 2 ? mm : kind[i] == 3 ? m
+                         : kind[i] == 4 ? n : 1;
+        if (get_doubles(o[i], len, i >= 3, &self->views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    self->u.n = n;
+    self->u.m = m;
+    self->u.H = ptr[0];
+    self->u.R = ptr[1];
+    self->u.y = ptr[2];
+    self->u.dx = ptr[3];
+    self->u.S = ptr[4];
+    self->u.Sinv = ptr[5];
+    self->u.K = ptr[6];
+    self->u.PHt = ptr[7];
+    self->u.T = ptr[8];
+    self->u.TH = ptr[9];
+    self->u.X = ptr[10];
+    self->u.KR = ptr[11];
+    self->u.w = ptr[12];
+    self->u.L = ptr[13];
+    self->u.M = ptr[14];
+    self->nis = ptr[15];
+    self->bound = 1;
+    return 0;
+}
+
+/* update(P, gate) -> flags (a small int: no object is created) */
+static PyObject *KUpdate_update(KUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    double gate;
+    int flags;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "KUpdate: not bound");
+        return NULL;
+    }
+    if (check_nargs("update", nargs, 2) < 0 || get_double(args[1], &gate) < 0)
+        return NULL;
+    if (get_doubles(args[0], (Py_ssize_t)self->u.n * self->u.n, 1, &pv, "P") < 0)
+        return NULL;
+    flags = ct_kalman_update(&self->u, (double *)pv.buf, gate, self->nis);
+    PyBuffer_Release(&pv);
+    return PyLong_FromLong(flags);
+}
+
+static PyMethodDef KUpdate_methods[] = {
+    {"update", (PyCFunction)(void (*)(void))KUpdate_update, METH_FASTCALL,
+     "update(P, gate) -> flags: one Kalman update of P with the bound H, R, y"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject KUpdateType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.KUpdate",
+    .tp_basicsize = sizeof(KUpdateObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "KUpdate(n, m, H, R, y, dx, S, Sinv, K, PHt, T, TH, X, KR, w, L, M, nis): KalmanUpdate.update "
+              "bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)KUpdate_init,
+    .tp_dealloc = (destructor)KUpdate_dealloc,
+    .tp_methods = KUpdate_methods,
+};
+
 /* ---------------------------------------------------------------- InsStep */
 #define INS_NBUF 9
 typedef struct {
@@ -573,7 +685,8 @@ static struct PyModuleDef core_module = {
 PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
-    if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0)
+    if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0 ||
+        PyType_Ready(&KUpdateType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
     if (m == NULL)
@@ -587,6 +700,12 @@ PyMODINIT_FUNC PyInit__core(void)
     Py_INCREF(&CovPredictType);
     if (PyModule_AddObject(m, "CovPredict", (PyObject *)&CovPredictType) < 0) {
         Py_DECREF(&CovPredictType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&KUpdateType);
+    if (PyModule_AddObject(m, "KUpdate", (PyObject *)&KUpdateType) < 0) {
+        Py_DECREF(&KUpdateType);
         Py_DECREF(m);
         return NULL;
     }

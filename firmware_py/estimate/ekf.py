@@ -109,6 +109,31 @@ class KalmanUpdate:
         self.nis = 0.0
         self.count = 0
         self.rejected = 0
+        #: the numeric core of :meth:`update`, bound once here (``coiltrack.firmware.core``)
+        self.core = "python"
+        ext = _core_choice.extension()
+        if ext is not None:
+            # core/src/ekf.c ct_kalman_update: the same steps with H's structural zeros skipped
+            # (equal to the BLAS products below to rounding; S's inverse is the same code)
+            self._L = np.zeros((m, m))
+            self._M = np.zeros((m, m))
+            self._nis = np.zeros(1)
+            self._nisv = memoryview(self._nis)
+            self._ck = ext.KUpdate(n, m, self.H, self.R, self.y, self.dx, self.S, self.Sinv, self.K, self._PHt,
+                                   self._T, self._TH, self._X, self._KR, self._w, self._L, self._M, self._nis)
+            self.update = self._update_compiled
+            self.core = "compiled"
+
+    def _update_compiled(self, P: np.ndarray) -> int:
+        flags = self._ck.update(P, self.gate)
+        self.nis = self._nisv[0]
+        if flags != EKF_OK:
+            self.rejected += 1
+            return flags
+        self.count += 1
+        if self.count % SYMMETRIZE_EVERY == 0:
+            symmetrize(P, self._T, self._Tt, self._half)
+        return EKF_OK
 
     def update(self, P: np.ndarray) -> int:
         """One update of ``P`` with the current ``H``, ``R``, ``y``; returns the

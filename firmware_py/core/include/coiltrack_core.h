@@ -59,6 +59,19 @@ void ct_signal_project_jac(int n, const double *R, const double *B, const double
  * A's zero entries skipped; T is n x n scratch. */
 void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T);
 
+/* KalmanUpdate.update (estimate.ekf): the one update shape of every filter.  The caller owns
+ * every buffer (row-major): H (m x n), R (m x m), y (m), dx (n), S, Sinv (m x m), K (n x m), and
+ * the scratch PHt, TH, KR (n x m), T, X (n x n), w (m), L, M (m x m). */
+enum { CT_EKF_OK = 0, CT_EKF_GATED = 1, CT_EKF_NOT_PD = 2, CT_EKF_NONFINITE = 4 };
+struct ct_kalman {
+    int n, m;
+    const double *H, *R, *y;
+    double *dx, *S, *Sinv, *K, *PHt, *T, *TH, *X, *KR, *w, *L, *M;
+};
+int ct_inv3(const double *s, double *out);
+int ct_spd_inverse(int n, const double *a, double *out, double *L, double *M);
+int ct_kalman_update(const struct ct_kalman *u, double *P, double gate, double *nis_out);
+
 /* ------------------------------------------------------------- strapdown
  * coiltrack.firmware.estimate.strapdown, linalg.exp_rotvec and FusionFilter._propagate.
  * The inertial rows of every inertial layout (estimate.layout: POS, VEL, ORI, ACC, GYR). */
