@@ -41,7 +41,7 @@ docs: $(DOCS_STAMP)
 	@echo "== generating the reference pages into docs/reference/"
 	$(PY) -m coiltrack.tools.docsgen docs/reference
 	@echo "== building the site into site/"
-	$(VENV)/bin/mkdocs build --strict --site-dir site
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 clean:
 	rm -rf $(VENV) build *.egg-info site

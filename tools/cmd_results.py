@@ -20,6 +20,8 @@ HELP = "run scenarios and write the results pages (and, with --publish, the READ
 
 PUBLISH_DIR = Path("docs") / "results"
 README = Path("README.md")
+#: the files whose headline table --publish renders (between the markers of docsgen.results)
+TABLE_FILES = (README, Path("docs") / "index.md")
 
 
 def _scenarios(text: str) -> list[str]:
@@ -104,8 +106,11 @@ def run(args) -> int:
     for path in R.write(out, data):
         print(f"wrote {path}")
     if args.publish:
-        README.write_text(R.update_readme(README.read_text(), R.headline_table(data)))
-        print(f"wrote the headline table of {README}")
+        table = R.headline_table(data)
+        for path in TABLE_FILES:
+            if path.is_file() and R.readme_block(path.read_text()) is not None:
+                path.write_text(R.update_readme(path.read_text(), table))
+                print(f"wrote the headline table of {path}")
     failed = [r["scenario"] for r in data["runs"] if "error" in r]
     if failed:
         print(f"coiltrack results: failed: {', '.join(failed)}", file=sys.stderr)
