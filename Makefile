@@ -3,7 +3,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: bench test install clean
+.PHONY: bench test install docs clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (set PYTHON=...)"; exit 1; }
@@ -27,5 +27,21 @@ test: $(STAMP)
 	@echo "== running the test suite"
 	$(PY) -m pytest
 
+# the documentation site: MkDocs with the Material theme (extra `docs`), built strict (a broken
+# internal link or a page missing from the nav fails it) into site/. The reference pages
+# (commands, scenarios, configuration keys) are generated from the code first, into docs/reference/.
+DOCS_STAMP := $(VENV)/.docs-installed
+
+$(DOCS_STAMP): $(STAMP)
+	@echo "== installing the docs extra (mkdocs, mkdocs-material)"
+	$(PY) -m pip install --quiet --progress-bar off -e '.[bench,dev,sweep,docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	@echo "== generating the reference pages into docs/reference/"
+	$(PY) -m coiltrack.tools.docsgen docs/reference
+	@echo "== building the site into site/"
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info site

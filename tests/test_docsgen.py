@@ -1,0 +1,122 @@
+"""The documentation's generated parts: the reference pages hold every command, option,
+scenario and configuration key of the code, and the committed results pages and the README's
+headline table are what docs/results/results.json renders to."""
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import fields
+from pathlib import Path
+
+import pytest
+
+from coiltrack.firmware import config as C
+from coiltrack.tools.cli import build_parser
+from coiltrack.tools.docsgen import reference as ref
+from coiltrack.tools.docsgen import results as R
+from coiltrack.tools.scenarios import SCENARIOS
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _subparsers():
+    return next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def test_commands_page_has_every_command_and_option():
+    page = ref.commands_page()
+    for name, p in _subparsers().items():
+        assert f"\n## coiltrack {name}\n" in page, name
+        section = page.split(f"\n## coiltrack {name}\n")[1].split("\n## coiltrack ")[0]
+        for a in p._actions:
+            for opt in a.option_strings:
+                if opt not in ("-h", "--help"):
+                    assert opt in section, f"{name} {opt}"
+        assert "exit status:" in section
+
+
+def test_scenarios_page_has_every_scenario_with_its_overrides():
+    page = ref.scenarios_page()
+    for name in SCENARIOS:
+        assert f"\n## {name}\n" in page and f"coiltrack bench --scenario {name} --seed 1" in page
+    # a scenario known to change the defaults shows the key it sets (adaptive actuation)
+    section = page.split("\n## schepers-adaptive\n")[1].split("\n## ")[0]
+    assert "adaptive.actuation = adaptive" in section
+
+
+def test_configuration_page_has_every_key_with_default_and_range():
+    page = ref.configuration_page()
+    default = C.FirmwareConfig()
+    for sec, keys in C.SECTIONS.items():
+        section = page.split(f"\n## {sec}\n")[1].split("\n## ")[0]
+        for k in keys:
+            assert f"| `{k}` |" in section, f"{sec}.{k}"
+    for f in fields(C.CoilConfig):
+        assert f"| `{f.name}` |" in page
+    row = next(line for line in page.splitlines() if line.startswith("| `pulse_us` |"))
+    assert "| 60000 | us |" in row and "must be a positive integer" in row
+    # a range written in a loop of validate() reaches every key of the loop
+    row = next(line for line in page.splitlines() if line.startswith("| `imu_sample_evals` |"))
+    assert "0..1000000" in row
+    assert default.pulse_us == 60000
+
+
+def test_field_comments_read_the_trailing_and_continued_comments():
+    meaning = ref.field_comments(C.FirmwareConfig)
+    assert meaning["spacing_us"] == "pulse j starts at cycle start + j * spacing"
+    assert meaning["windows_budget"].startswith("pulse windows closed per tick")
+    assert "16 sensors: 1.2 ms" in meaning["windows_budget"]      # the continuation line
+    assert meaning["working_range_m"].startswith("the working volume")   # the block above
+
+
+def test_unit_of_reads_the_suffix():
+    assert [ref.unit_of(k) for k in ("pulse_us", "mag_sigma_t", "max_current_a", "working_range_m", "fusion")] \
+        == ["us", "T", "A", "m", ""]
+
+
+def test_pages_are_deterministic():
+    for make in ref.PAGES.values():
+        assert make() == make()
+
+
+def test_committed_results_render_to_the_committed_pages():
+    data = json.loads((ROOT / "docs" / "results" / "results.json").read_text())
+    assert data["format"] == R.FORMAT
+    assert (ROOT / "docs" / "results" / "index.md").read_text() == R.render_page(data), (
+        "docs/results/index.md is out of date: run `coiltrack results --publish --render`")
+    table = R.headline_table(data)
+    for name in ("README.md", "docs/index.md"):
+        assert R.readme_block((ROOT / name).read_text()) == table, (
+            f"{name}'s headline table is out of date: run `coiltrack results --publish --render`")
+    assert all(f"`{n}`" in table for n in R.HEADLINE)
+
+
+def test_headline_table_rows_come_from_the_data():
+    data = {"runs": [{"scenario": "roetenberg-bench", "seed": 1, "duration_s": 60.0,
+                      "command": "coiltrack bench --scenario roetenberg-bench --seed 1",
+                      "report": {"position_rms_mm": 12.345, "orientation_rms_deg": 1.5,
+                                 "crlb_position_rms_mm": 10.0, "coil_energy_j": 3.0,
+                                 "paper": {"source": "T", "position_rms_mm": 7.6}}}]}
+    rows = R.headline_table(data).splitlines()
+    assert len(rows) == 3
+    assert rows[2].startswith("| `roetenberg-bench` | 12.3 mm | 1.50 deg | 10.0 mm | 3.0 J | 7.6 mm (T) |")
+
+
+def test_update_readme_replaces_only_the_block():
+    text = f"a\n{R.BEGIN}\nold\n{R.END}\nb\n"
+    assert R.update_readme(text, "new\n") == f"a\n{R.BEGIN}\nnew\n{R.END}\nb\n"
+    with pytest.raises(ValueError):
+        R.update_readme("no block", "x")
+
+
+def test_results_command_refuses_bad_arguments(tmp_path, capsys, monkeypatch):
+    from coiltrack.tools.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["results", "--scenarios", "no-such-scenario"])
+    assert e.value.code == 2 and "no-such-scenario" in capsys.readouterr().err
+    monkeypatch.chdir(tmp_path)                       # no README.md with its block here
+    assert main(["results", "--publish", "--render"]) == 2
+    assert "--publish" in capsys.readouterr().err
+    (tmp_path / "f").write_text("")
+    assert main(["results", "--out", "f", "--scenarios", "static"]) == 2
