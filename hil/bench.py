@@ -1,7 +1,7 @@
 """Assemble a bench (world, nodes with their clocks, faults, recorder,
 emulator) and compute its ground-truth checks.
 
-``assemble`` is what ``tools.runner.BenchSetup`` uses for both runners
+``assemble`` is what ``tools.bench.runner.BenchSetup`` uses for both runners
 (in-process simulated clock, two-process wall clock). The checks compare
 what the firmware reported (``PULSE_WINDOW``, ``POSE``, ``FAULT_EVENT``
 frames) with what really happened (true pulse edges, true sample times),

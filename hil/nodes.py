@@ -846,7 +846,7 @@ class SensorNode(Node):
         after the command. Returns how many sample instants were computed (0: ahead up to
         ``until_us``). A due sample then finds its physics in the caches instead of computing a
         chunk of it while it is late: same functions, evaluated earlier. The wall-clock emulator
-        loop calls it between steps (``tools.realtime.emulator_loop``)."""
+        loop calls it between steps (``tools.bench.realtime.emulator_loop``)."""
         n = self._prefetch_mag(until_us, max_n, min_n)
         if self.imu is not None and n < max_n:
             n += self._prefetch_imu(until_us, max_n - n, min_n)

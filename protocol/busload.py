@@ -95,7 +95,7 @@ class Traffic:
     cycle_s: float = 0.6
     heartbeat_hz: float = 1.0
     #: TIME_SYNC broadcasts per second (each answered by every node); the firmware's: 10 per s
-    #: (``tools/cmd_busload.py`` derives it from the firmware's defaults)
+    #: (``tools/commands/busload.py`` derives it from the firmware's defaults)
     sync_hz: float = 10.0
     signed_commands: bool = False
     flips_per_cycle: float = 1.0

@@ -6,9 +6,9 @@ import pytest
 
 from coiltrack.hil.faults import LinkFaults
 from coiltrack.tools import scenarios
-from coiltrack.tools.report import is_wall_clock
+from coiltrack.tools.outputs.report import is_wall_clock
 from coiltrack.tools.cli import main as cli_main
-from coiltrack.tools.runner import run_inproc
+from coiltrack.tools.bench.runner import run_inproc
 
 
 @pytest.fixture(scope="module")

@@ -16,9 +16,9 @@ from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.hil import calibrun
 from coiltrack.hil.imperfections import Imperfections
 from coiltrack.hil.physics import thesis_source
-from coiltrack.tools.calibrate import fit_free, fit_grid
+from coiltrack.tools.calibration.fits import fit_free, fit_grid
 from coiltrack.tools.cli import main
-from coiltrack.tools.cmd_calibrate import merge_tables
+from coiltrack.tools.commands.calibrate import merge_tables
 
 UNIT = 1
 

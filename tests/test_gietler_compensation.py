@@ -7,8 +7,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from coiltrack.tools import gietler as G
-from coiltrack.tools.scenarios_gietler import _split
+from coiltrack.tools.bench import gietler as G
+from coiltrack.tools.scenarios.gietler import _split
 
 
 @pytest.mark.parametrize("scenario, factor", [("gietler-ferro-dc", 0.2), ("gietler-copper", 0.5), ("gietler-ferro", 0.2)])

@@ -4,7 +4,7 @@ What the divergence is: the true platform of seed 98 reaches 1.99 m; there the f
 emitter (0.01-0.02 A/m) is at the noise, the filter's radial standard deviation is 0.05-0.17 m,
 and a consistent estimate crosses the 2 m line (the paper's divergence rule) a step before the
 truth does. The filter is not running off and its covariance has not collapsed: these tests pin
-both facts (``_edge_sigma`` in ``tools/gietler.py`` measures the first), with the emulated fields of ``hil.gietler`` (not the firmware's model) as the truth.
+both facts (``_edge_sigma`` in ``tools/bench/gietler.py`` measures the first), with the emulated fields of ``hil.gietler`` (not the firmware's model) as the truth.
 """
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from scipy import stats
 from coiltrack.firmware.estimate.brownian import BrownianEKF
 from coiltrack.firmware.estimate.layout import BROWNIAN_LAYOUT as L
 from coiltrack.hil import gietler as hg
-from coiltrack.tools import gietler as G
-from coiltrack.tools.scenarios_gietler import EDGE_SIGMA, SPECS, _split
+from coiltrack.tools.bench import gietler as G
+from coiltrack.tools.scenarios.gietler import EDGE_SIGMA, SPECS, _split
 
 
 def test_seed_98_crosses_the_boundary_the_truth_has_nearly_reached():

@@ -17,7 +17,7 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from coiltrack.tools.alloc import numpy_blocks_alive_during
+from coiltrack.tools.bench.alloc import numpy_blocks_alive_during
 
 from coiltrack.firmware.measure.pulse import (
     NO_TIME_US,

@@ -1,11 +1,11 @@
-"""The distortion survey's fit (tools.survey) on a constructed room."""
+"""The distortion survey's fit (tools.calibration.survey) on a constructed room."""
 import numpy as np
 import pytest
 
 pytest.importorskip("scipy")
 
 from coiltrack.firmware.config import FirmwareConfig  # noqa: E402
-from coiltrack.tools import survey  # noqa: E402
+from coiltrack.tools.calibration import survey  # noqa: E402
 
 MU0_4PI = 1e-7
 

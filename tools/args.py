@@ -130,20 +130,3 @@ def serial_port(text: str) -> str:
         raise argparse.ArgumentTypeError("'loop://' echoes this side's own frames back: give a device, "
                                          "a pty path or another pyserial URL")
     return text
-
-
-def scenario(text: str) -> str:
-    """A registered scenario name."""
-    from .scenarios import SCENARIOS
-
-    if text not in SCENARIOS:
-        raise argparse.ArgumentTypeError(f"unknown scenario '{text}' (known: {', '.join(sorted(SCENARIOS))})")
-    return text
-
-
-def scenario_list() -> str:
-    """One line per scenario, for a ``--help`` epilog."""
-    from .scenarios import SCENARIOS
-
-    w = max(len(n) for n in SCENARIOS)
-    return "scenarios:\n" + "\n".join(f"  {n:<{w}}  {s.summary or s.description}" for n, s in sorted(SCENARIOS.items()))

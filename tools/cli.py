@@ -1,20 +1,17 @@
-"""``coiltrack``: one module per subcommand (``tools/cmd_*.py``).
-
-A module gives ``HELP``, ``add_arguments(parser)`` and ``run(args)``, and may
-give ``EXIT`` (its own exit statuses, for the ``--help`` epilog and
-docs/cli.md) and ``epilog()`` (more text after the options).
+"""``coiltrack``: one module per command, listed in ``tools/commands/__init__.py``
+(:data:`coiltrack.tools.commands.COMMANDS`; what a command module gives is there).
 """
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
-import pkgutil
 import re
 import sys
-from pathlib import Path
+from importlib.metadata import PackageNotFoundError, requires
+from importlib.metadata import version as dist_version
 
-from .infile import InputFileError
+from . import commands
+from .inputs.infile import InputFileError
 from .stopping import EXIT_BROKEN_PIPE, Interrupted, on_signals
 
 #: exit statuses every command shares
@@ -29,9 +26,8 @@ COMMON_EXIT = {
 
 
 def subcommands() -> list[str]:
-    """Every ``tools/cmd_NAME.py`` module is the subcommand ``NAME``."""
-    here = str(Path(__file__).parent)
-    return sorted(m.name[4:] for m in pkgutil.iter_modules([here]) if m.name.startswith("cmd_"))
+    """The command modules of the registry (:data:`coiltrack.tools.commands.COMMANDS`)."""
+    return list(commands.COMMANDS)
 
 
 def exit_codes(mod) -> dict[int, str]:
@@ -47,9 +43,6 @@ def _epilog(mod) -> str:
 
 def version() -> str:
     """The installed distribution's version (``importlib.metadata``)."""
-    from importlib.metadata import PackageNotFoundError
-    from importlib.metadata import version as dist_version
-
     try:
         return dist_version("coiltrack")
     except PackageNotFoundError:
@@ -61,10 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"coiltrack {version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
-    for name in subcommands():
-        mod = importlib.import_module(f"coiltrack.tools.cmd_{name}")
-        name = getattr(mod, "NAME", name)
-        p = sub.add_parser(name, help=mod.HELP, description=mod.__doc__, epilog=_epilog(mod),
+    for module in commands.COMMANDS:
+        mod = commands.load(module)
+        p = sub.add_parser(commands.name_of(mod), help=mod.HELP, description=mod.__doc__, epilog=_epilog(mod),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
@@ -73,8 +65,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def extra_for(module: str) -> str | None:
     """The optional extra of coiltrack that installs ``module`` (from the installed metadata)."""
-    from importlib.metadata import PackageNotFoundError, requires
-
     want = module.split(".")[0].lower().replace("_", "-")
     try:
         reqs = requires("coiltrack") or []

@@ -490,7 +490,7 @@ class FusionFilter:
 
     # ------------------------------------------------------------ model
     def _step(self, k: int, t0: int, t1: int) -> None:
-        """One step of the live state (``tools.cmd_perf`` times it)."""
+        """One step of the live state (``tools.commands.perf`` times it)."""
         self._propagate(self.st, k, t0, t1)
 
     def _propagate(self, st: InsState, k: int, t0: int, t1: int) -> None:

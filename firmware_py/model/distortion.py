@@ -16,7 +16,7 @@ Model: per coil, ``K_j`` equivalent dipoles at fixed source-frame positions ``q_
 moments ``mu_jk`` per ampere of the coil (A m^2 / A), ``D_j(p) = sum_k B_dip(p - q_jk; mu_jk)``
 (Schepers eq 8, ``field.dipole_point``: a magnetisable body's response seen from outside it, the
 image-source picture of a coil above a permeable sheet). ``coiltrack calibrate --method survey``
-(``coiltrack.tools.survey``) fits the positions and moments to the residual field of a survey of
+(``coiltrack.tools.calibration.survey``) fits the positions and moments to the residual field of a survey of
 the working volume and writes them as the ``[distortion]`` table of the calibration file:
 
 .. code-block:: toml

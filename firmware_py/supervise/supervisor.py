@@ -36,7 +36,7 @@ _ID_MAG = MSG["MAG_SAMPLE"].ID
 _ID_IMU = MSG["IMU_SAMPLE"].ID
 
 #: with ``sync_around_burst``: broadcasts this long (us) after the last pulse of a burst ends, besides
-#: one as the commands leave (``tools/cmd_busload.py`` models the bus load from the same table)
+#: one as the commands leave (``tools/commands/busload.py`` models the bus load from the same table)
 BURST_SYNCS_AFTER_US = (1_000, 3_000, 5_000)
 
 

@@ -45,6 +45,7 @@ from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
+from coiltrack.firmware.track.source_unaccelerated import Unaccelerated
 
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05
@@ -231,6 +232,10 @@ class SourceInertial:
         fv = self._fv
         for i in range(3):
             fv[i] = P[i, 0] * ax + P[i, 1] * ay + P[i, 2] * az
+
+
+class UnacceleratedSource(Unaccelerated, SourceInertial):
+    """:class:`SourceInertial` taken as unaccelerated (``track.source_unaccelerated``)."""
 
 
 class SensorInertial:
@@ -529,9 +534,8 @@ class BurstFusionTracker(MagneticTracker):
         gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
         self._fixed_phi = np.eye(3)                                   # a fixed source: Phi = I
         self._fixed_fref = np.array([-v for v in cfg.gravity_mps2])  # its specific force, source frame
-        source_cls = SourceInertial
-        if not cfg.source_acceleration:          # eq 6.8 without a_source (comparison runs)
-            from coiltrack.firmware.track.source_unaccelerated import UnacceleratedSource as source_cls
+        # eq 6.8 without a_source in the comparison runs
+        source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
         self.source = source_cls(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
         self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
                          for ch in self.channels}

@@ -4,7 +4,7 @@ import pytest
 from coiltrack.firmware.actuate.ac import ACActuation
 from coiltrack.protocol import MSG
 from coiltrack.protocol.schema import AC_FAULT_REFUSED
-from coiltrack.tools.scenarios_ac import ac_config
+from coiltrack.tools.scenarios.ac import ac_config
 
 Status = MSG["AC_DRIVE_STATUS"]
 

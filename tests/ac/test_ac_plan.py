@@ -9,7 +9,7 @@ import pytest
 
 from coiltrack.firmware.config import ConfigError, FirmwareConfig, config_from_dict
 from coiltrack.firmware.actuate.ac_plan import check_plan, fold
-from coiltrack.tools.scenarios_ac import ac_config
+from coiltrack.tools.scenarios.ac import ac_config
 
 
 def _ac(**kw):

@@ -3,8 +3,8 @@ from coiltrack.firmware.loop import Firmware
 from coiltrack.hil.faults import BenchFaults
 from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID
 from coiltrack.tools import scenarios
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 
 def test_driver_power_cut_replans_and_poses_resume():

@@ -4,7 +4,7 @@
 a magnetic solve per block, delayed fusion updates with replay, fused poses
 at 1 kHz) against the emulated bench: after a 1 s warm-up (plan sent, driver
 answered, fusion filter initialised) 1,500 ticks inside
-``tools.alloc.NumpyAllocationCounter`` (numpy's array-data allocator replaced
+``tools.bench.alloc.NumpyAllocationCounter`` (numpy's array-data allocator replaced
 by a counting one, see ``tests/firmware/test_alloc.py``) must count 0, and
 those ticks must have demodulated, solved and fused blocks. Catches a
 temporary array in the demodulator, the block hand-over, the AC trackers or
@@ -13,9 +13,9 @@ import pytest
 
 from coiltrack.firmware.loop import Firmware
 from coiltrack.tools import scenarios
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 WARMUP_US = 1_000_000
 TICKS = 1_500

@@ -14,9 +14,9 @@ from coiltrack.firmware.loop import Firmware
 from coiltrack.firmware.rotation import matrix_from_quat
 from coiltrack.protocol.schema import EVT_DISTORTION, POSE_DISTORTED, POSE_FUSED, POSE_VALID
 from coiltrack.tools import scenarios
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup, add_fixed_comparison, run_inproc
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup, add_fixed_comparison, run_inproc
 
 
 def _run(name, seed, duration_s, cfg=None, count_alloc_after_us=None):
@@ -142,7 +142,7 @@ def test_ferromagnetic_object_is_flagged_and_the_filter_does_not_diverge():
 
 def test_adaptive_ticks_allocate_no_numpy_array():
     """Acquisition, IMU propagation at 100 Hz, decisions, single-coil updates,
-    flips and fused poses: no tick creates a numpy array (``tools.alloc``)."""
+    flips and fused poses: no tick creates a numpy array (``tools.bench.alloc``)."""
     if not available():
         pytest.skip("numpy memory handler API not reachable")
     fw, bench, allocating = _run("schepers-adaptive", seed=3, duration_s=8.0, count_alloc_after_us=0)

@@ -1,8 +1,8 @@
-"""The least-energy bound of ``tools/energy_bound.py`` against closed forms."""
+"""The least-energy bound of ``tools/analyses/energy_bound.py`` against closed forms."""
 import numpy as np
 import pytest
 
-from coiltrack.tools import energy_bound as eb
+from coiltrack.tools.analyses import energy_bound as eb
 
 
 class _AxialDipole:

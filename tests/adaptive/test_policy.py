@@ -19,8 +19,9 @@ from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.firmware.loop import Firmware
 from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.pose.reference import so3_exp
-from coiltrack.tools import report, scenarios
-from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.outputs import report
+from coiltrack.tools import scenarios
+from coiltrack.tools.bench.links import inproc_pair
 
 
 def _coils():

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from coiltrack.tools import scenarios
-from coiltrack.tools.runner import run_inproc
+from coiltrack.tools.bench.runner import run_inproc
 
 
 @pytest.fixture(scope="session")

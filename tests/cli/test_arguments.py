@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from coiltrack.tools import runner
+from coiltrack.tools.bench import runner
 from coiltrack.tools.cli import main
 
 

@@ -8,7 +8,7 @@ import signal
 
 import pytest
 
-from coiltrack.tools import check
+from coiltrack.tools.bench import check
 from coiltrack.tools.cli import main
 from coiltrack.tools.stopping import Interrupted
 
@@ -33,7 +33,7 @@ def test_a_slice_of_the_sweep_runs_to_the_end(tmp_path, capsys):
 def _fake_runs(monkeypatch, fail=(), stop_at=None):
     """check_run on a stub bench: ``fail`` (scenario, seed) raise inside hil/, ``stop_at`` is
     interrupted by SIGINT."""
-    from coiltrack.tools import runner
+    from coiltrack.tools.bench import runner
 
     def run_inproc(sc, seed, duration_s, faults=None):
         if (sc.name, seed) == stop_at:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from coiltrack.tools import scenarios
+from coiltrack.tools import commands, scenarios
 from coiltrack.tools.cli import build_parser, exit_codes, main, subcommands
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -37,8 +37,8 @@ def test_bench_help_lists_every_scenario_on_one_line(capsys):
 
 @pytest.mark.parametrize("command", subcommands())
 def test_every_command_documents_its_exit_codes(command, capsys):
-    mod = importlib.import_module(f"coiltrack.tools.cmd_{command}")
-    name = getattr(mod, "NAME", command)
+    mod = commands.load(command)
+    name = commands.name_of(mod)
     text = _help(name, capsys).split("exit status:\n")[1]
     doc = (ROOT / "docs" / "cli.md").read_text()
     section = doc.split(f"## coiltrack {name}\n")[1].split("\n## ")[0]
@@ -49,8 +49,20 @@ def test_every_command_documents_its_exit_codes(command, capsys):
 
 def test_every_command_is_in_the_parser():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
-    assert sorted(sub.choices) == sorted(getattr(importlib.import_module(f"coiltrack.tools.cmd_{c}"), "NAME", c)
-                                         for c in subcommands())
+    assert sorted(sub.choices) == sorted(commands.name_of(commands.load(c)) for c in subcommands())
+
+
+def test_the_registry_lists_every_command_module_and_nothing_else():
+    """A command is found by the registry (``commands.COMMANDS``), not by its file name: a
+    module of the package left out of it (or a name in it with no module) is caught here."""
+    here = ROOT / "tools" / "commands"
+    modules = sorted(p.stem for p in here.glob("*.py") if p.stem != "__init__")
+    assert sorted(commands.COMMANDS) == modules
+    for m in modules:
+        mod = commands.load(m)
+        assert callable(mod.run) and callable(mod.add_arguments) and mod.HELP, m
+    with pytest.raises(KeyError, match="not a command module"):
+        commands.load("cli")
 
 
 def test_without_the_bench_extra_the_commands_name_it(tmp_path):
@@ -74,7 +86,7 @@ def test_without_the_bench_extra_the_commands_name_it(tmp_path):
 
 def test_the_example_configuration_runs_a_bench(tmp_path, capsys):
     from coiltrack.firmware.config import FirmwareConfig
-    from coiltrack.tools.userconfig import load_over
+    from coiltrack.tools.inputs.userconfig import load_over
 
     cfg = load_over(EXAMPLE, FirmwareConfig())
     assert cfg == FirmwareConfig()            # the example spells out the thesis bench
@@ -86,7 +98,7 @@ def test_the_example_configuration_runs_a_bench(tmp_path, capsys):
 
 
 def test_a_config_file_goes_over_the_scenarios_configuration(tmp_path):
-    from coiltrack.tools.userconfig import load_over
+    from coiltrack.tools.inputs.userconfig import load_over
 
     path = tmp_path / "c.toml"
     path.write_text("[timing]\nlead_us = 40000\n[pulse]\nmag_sigma_t = 1e-7\n")

@@ -1,10 +1,10 @@
-"""``python -m coiltrack.tools.gietler_edge``: bad arguments refused before any run, and the
+"""``python -m coiltrack.tools.analyses.gietler_edge``: bad arguments refused before any run, and the
 seed-98 crossing of Table I reported with the truth's and the estimate's range."""
 from __future__ import annotations
 
 import pytest
 
-from coiltrack.tools.gietler_edge import main
+from coiltrack.tools.analyses.gietler_edge import main
 
 
 @pytest.mark.parametrize("argv, word", [

@@ -1,4 +1,4 @@
-"""OpenIGTLink as 3D Slicer and PLUS expect it (``tools.igtl``): one device per
+"""OpenIGTLink as 3D Slicer and PLUS expect it (``tools.outputs.igtl``): one device per
 track, Unix time stamps, never a step back in time on a device.
 
 The router's rules run on hand-made POSE messages with an injected wall
@@ -23,7 +23,7 @@ from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID
 
 pytest.importorskip("pyigtl")
 
-from coiltrack.tools.igtl import PoseRouter, device_name, transform_message  # noqa: E402
+from coiltrack.tools.outputs.igtl import PoseRouter, device_name, transform_message  # noqa: E402
 
 MAG = POSE_VALID
 FUSED = POSE_VALID | POSE_FUSED

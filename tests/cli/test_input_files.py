@@ -1,4 +1,4 @@
-"""Every file the tools read is parsed defensively (``tools/infile.py`` and its readers).
+"""Every file the tools read is parsed defensively (``tools/inputs/infile.py`` and its readers).
 
 Example tests: each damaged-file case (a configuration or calibration file saved as
 latin-1 or UTF-16, an empty one, a key twice, a ``nan``, a value of the wrong type; a pose
@@ -22,7 +22,7 @@ from hypothesis import strategies as st
 
 from coiltrack.firmware.config import ConfigError, FirmwareConfig
 from coiltrack.tools.cli import main
-from coiltrack.tools.infile import InputFileError, decode_utf8, load_json, load_toml, loads_json, text_lines
+from coiltrack.tools.inputs.infile import InputFileError, decode_utf8, load_json, load_toml, loads_json, text_lines
 
 PROPERTY = settings(derandomize=True, max_examples=60, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -124,7 +124,7 @@ def test_any_bytes_are_text_toml_json_or_the_one_error(data):
 
 
 def load_toml_bytes(data: bytes):
-    from coiltrack.tools.infile import loads_toml
+    from coiltrack.tools.inputs.infile import loads_toml
 
     return loads_toml(decode_utf8(data, "f"), "f")
 
@@ -145,7 +145,7 @@ def test_bench_refuses_a_file_not_in_utf8(option, encoding, tmp_path, capsys):
 
 
 def test_calibrate_merge_refuses_latin1_before_any_work(tmp_path, capsys, monkeypatch):
-    from coiltrack.tools import calibrate
+    from coiltrack.tools.calibration import fits as calibrate
 
     monkeypatch.setitem(calibrate.RECORDERS, "grid", lambda *a: pytest.fail("work started"))
     p = tmp_path / "old.toml"
@@ -165,7 +165,7 @@ def test_calibrate_merge_refuses_latin1_before_any_work(tmp_path, capsys, monkey
 ])
 def test_bench_config_damage_is_refused_naming_the_file_and_the_line_or_key(text, named, tmp_path, capsys,
                                                                               monkeypatch):
-    from coiltrack.tools import cmd_bench
+    from coiltrack.tools.commands import bench as cmd_bench
 
     monkeypatch.setattr(cmd_bench, "_run", lambda *a: pytest.fail("work started") if named else {"stop": 1})
     p = tmp_path / "c.toml"
@@ -173,7 +173,7 @@ def test_bench_config_damage_is_refused_naming_the_file_and_the_line_or_key(text
     argv = ["bench", "--scenario", "static", "--duration", "0.1", "--config", str(p)]
     if named is None:
         from coiltrack.tools.scenarios import get
-        from coiltrack.tools.userconfig import load_over
+        from coiltrack.tools.inputs.userconfig import load_over
 
         assert load_over(p, get("static").firmware_config()).pulse_us == 50000
         return
@@ -191,7 +191,7 @@ def test_an_empty_calibration_file_is_refused_not_taken_as_none(tmp_path, capsys
 @PROPERTY
 @given(data=st.data())
 def test_truncated_or_mangled_config_is_a_config_or_the_clean_error(data, tmp_path_factory):
-    from coiltrack.tools.userconfig import load_over
+    from coiltrack.tools.inputs.userconfig import load_over
 
     good = (open_example("firmware.toml")).encode()
     cut = data.draw(st.integers(0, len(good)))
@@ -216,7 +216,7 @@ def open_example(name: str) -> str:
 @PROPERTY
 @given(cut=st.integers(0, len(CALIBRATION.encode())))
 def test_every_truncation_of_a_calibration_file_is_a_calibration_or_a_one_line_refusal(cut, tmp_path_factory):
-    from coiltrack.tools.calibfile import with_calibration
+    from coiltrack.tools.inputs.calibfile import with_calibration
 
     p = tmp_path_factory.mktemp("cal") / "cal.toml"
     p.write_bytes(CALIBRATION.encode()[:cut])
@@ -247,7 +247,7 @@ def test_plot_uses_a_pose_table_cut_mid_line_up_to_the_cut(run_files, tmp_path, 
     (lambda d: d.decode().encode("utf-16"), "UTF-16"),
 ])
 def test_plot_refuses_a_pose_table_with_nothing_usable(edit, named, run_files, tmp_path, capsys, monkeypatch):
-    from coiltrack.tools import plot
+    from coiltrack.tools.outputs import plot
 
     monkeypatch.setattr(plot, "plot_run", lambda *a, **k: pytest.fail("drawn"))
     p = tmp_path / "p.csv"
@@ -259,7 +259,7 @@ def test_plot_refuses_a_pose_table_with_nothing_usable(edit, named, run_files, t
                                               ("sensor", "x", "not a number"), ("kind", "both", "kind"),
                                               ("status", "1.5", "whole number"), ("pos_err_mm", "-inf", "infinite")])
 def test_a_bad_value_ends_the_pose_table_at_its_row(column, value, why, run_files, tmp_path):
-    from coiltrack.tools.posecsv import COLUMNS, read_csv
+    from coiltrack.tools.outputs.posecsv import COLUMNS, read_csv
 
     lines = (run_files / "poses.csv").read_text().splitlines(keepends=True)
     cells = lines[3].rstrip("\r\n").split(",")
@@ -277,7 +277,7 @@ def test_a_bad_value_ends_the_pose_table_at_its_row(column, value, why, run_file
 @PROPERTY
 @given(data=st.data())
 def test_a_truncated_pose_table_gives_a_prefix_of_its_rows(data, run_files, tmp_path_factory):
-    from coiltrack.tools.posecsv import read_csv
+    from coiltrack.tools.outputs.posecsv import read_csv
 
     good = (run_files / "poses.csv").read_bytes()
     whole = read_csv(run_files / "poses.csv")
@@ -298,7 +298,7 @@ def test_a_truncated_pose_table_gives_a_prefix_of_its_rows(data, run_files, tmp_
 @PROPERTY
 @given(blob=st.binary(max_size=400))
 def test_arbitrary_bytes_as_a_pose_table_are_a_table_or_the_clean_error(blob, tmp_path_factory):
-    from coiltrack.tools.posecsv import COLUMNS, read_csv
+    from coiltrack.tools.outputs.posecsv import COLUMNS, read_csv
 
     p = tmp_path_factory.mktemp("pa") / "p.csv"
     p.write_bytes(",".join(COLUMNS).encode() + b"\r\n" + blob)
@@ -360,7 +360,7 @@ def test_a_frame_log_header_with_nan_or_a_key_twice_is_refused(run_files, tmp_pa
                                      (b'{"t": 0, "rx": "AA=="}', "not before the read above"),
                                      (b"\xb0\n", "not UTF-8"), (b'{"t": NaN, "rx": "AA=="}', "NaN")])
 def test_a_bad_read_ends_a_frame_log_with_the_reason(bad, why, run_files, tmp_path):
-    from coiltrack.tools.framelog import read_log
+    from coiltrack.tools.bench.framelog import read_log
 
     lines = (run_files / "frames.log").read_bytes().splitlines(keepends=True)
     p = tmp_path / "f.log"
@@ -373,7 +373,7 @@ def test_a_bad_read_ends_a_frame_log_with_the_reason(bad, why, run_files, tmp_pa
 @PROPERTY
 @given(data=st.data())
 def test_a_truncated_or_flipped_frame_log_gives_a_prefix_of_its_reads(data, run_files, tmp_path_factory):
-    from coiltrack.tools.framelog import read_log
+    from coiltrack.tools.bench.framelog import read_log
 
     good = (run_files / "frames.log").read_bytes()
     _, whole = read_log(run_files / "frames.log")
@@ -458,7 +458,7 @@ RUNS = [{"seed": s, "params": {"pulse_us": p}, "figures": {"position_rms_mm": 1.
 
 @pytest.fixture
 def sweep_files(tmp_path):
-    from coiltrack.tools.cmd_sweep import write_csv
+    from coiltrack.tools.commands.sweep import write_csv
 
     doc = {"scenario": "static", "interrupted": False, "runs": RUNS, "summary": []}
     (tmp_path / "s.json").write_text(json.dumps(doc))
@@ -467,7 +467,7 @@ def sweep_files(tmp_path):
 
 
 def test_sweep_files_read_back_as_written(sweep_files):
-    from coiltrack.tools.sweepfile import read_csv, read_json
+    from coiltrack.tools.inputs.sweepfile import read_csv, read_json
 
     assert read_json(sweep_files / "s.json")["runs"] == RUNS
     assert read_csv(sweep_files / "s.csv") == RUNS
@@ -479,7 +479,7 @@ def test_sweep_files_read_back_as_written(sweep_files):
     (lambda d: d["runs"][0]["figures"].update(poses="ten"), "runs[0].figures.poses"),
 ])
 def test_a_sweep_json_of_the_wrong_shape_is_refused_naming_the_key(edit, key, sweep_files, capsys):
-    from coiltrack.tools import pareto
+    from coiltrack.tools.analyses import pareto
 
     p = sweep_files / "s.json"
     d = json.loads(p.read_text())
@@ -493,8 +493,8 @@ def test_a_sweep_json_of_the_wrong_shape_is_refused_naming_the_key(edit, key, sw
 @PROPERTY
 @given(data=st.data())
 def test_a_truncated_sweep_csv_gives_a_prefix_of_its_runs_and_its_json_the_clean_error(data, tmp_path_factory):
-    from coiltrack.tools.cmd_sweep import write_csv
-    from coiltrack.tools.sweepfile import read_csv, read_json
+    from coiltrack.tools.commands.sweep import write_csv
+    from coiltrack.tools.inputs.sweepfile import read_csv, read_json
 
     d = tmp_path_factory.mktemp("sw")
     write_csv(RUNS, d / "s.csv")

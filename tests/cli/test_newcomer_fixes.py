@@ -48,7 +48,7 @@ def _sweep_help(capsys) -> str:
 def test_sweep_help_example_key_is_accepted(capsys):
     """The key the `--set` help gives as its example is one the sweep accepts (it named
     fusion.mag_sigma_t, which is in [pulse], and was refused)."""
-    from coiltrack.tools import cmd_sweep
+    from coiltrack.tools.commands import sweep as cmd_sweep
 
     key = re.search(r"e\.g\.\s+([a-z_]+\.[a-z_]+)", " ".join(_sweep_help(capsys).split())).group(1)
     args = build_parser().parse_args(["sweep", "--scenario", "static", "--seeds", "1", "--set",
@@ -77,7 +77,7 @@ def test_sweep_table_shows_the_figures_the_swept_key_moved(capsys):
 def test_shown_figures_adds_only_what_differs():
     """`shown_figures`: the headline, then the non-headline figures whose medians differ
     between grid points; with one grid point nothing is added."""
-    from coiltrack.tools.cmd_sweep import shown_figures
+    from coiltrack.tools.commands.sweep import shown_figures
 
     def point(v, q):
         return {"params": {"pulse.mag_sigma_t": v}, "runs": 1,
@@ -106,7 +106,7 @@ def test_virtual_interface_is_said_to_be_one_process_only(capsys):
     interfaces say nothing."""
     from types import SimpleNamespace
 
-    from coiltrack.tools.links import warn_virtual_bus
+    from coiltrack.tools.bench.links import warn_virtual_bus
 
     rc = main(["emulator", "--transport", "can", "--interface", "virtual", "--channel", "virtual-warn-test",
                "--scenario", "static", "--duration", "0.2"])
@@ -144,7 +144,7 @@ def test_emulator_report_counts_what_it_received(tmp_path, capsys, monkeypatch):
     broken CRC): its report counts 3 received and 1 bad, and its table shows no figure
     it cannot know (no pose: no position RMS; no pulse: no battery). It said
     `frames rx / bad 0 / 1`, `position RMS nan mm`, `battery None h`."""
-    from coiltrack.tools import links
+    from coiltrack.tools.bench import links
 
     master, slave = os.openpty()
     tty.setraw(slave)
@@ -181,7 +181,7 @@ def test_emulator_report_counts_what_it_received(tmp_path, capsys, monkeypatch):
 
 def _pose_table(path: Path) -> None:
     """A three-pose table (two magnetic, one fused) in the pose-table columns."""
-    from coiltrack.tools.posecsv import COLUMNS
+    from coiltrack.tools.outputs.posecsv import COLUMNS
 
     rows = []
     for k, (kind, err) in enumerate((("magnetic", 3.0), ("fused", 1.0), ("magnetic", 4.0))):
@@ -223,7 +223,7 @@ def test_plot_title_names_the_file_and_counts(tmp_path, monkeypatch):
     kind with their RMS error (it was "3 poses"); with a report, also the scenario."""
     from matplotlib.figure import Figure
 
-    from coiltrack.tools.plot import _title
+    from coiltrack.tools.outputs.plot import _title
 
     titles = []
     real = Figure.suptitle
@@ -233,7 +233,7 @@ def test_plot_title_names_the_file_and_counts(tmp_path, monkeypatch):
     assert main(["plot", str(table), "-o", str(tmp_path / "f.png")]) == 0
     title = " ".join(titles[0].split())
     assert title.startswith("run.csv: 3 poses: 2 magnetic (3.54 mm RMS), 1 fused (1.00 mm RMS)"), title
-    from coiltrack.tools.posecsv import read_csv
+    from coiltrack.tools.outputs.posecsv import read_csv
 
     t = _title({"scenario": "static", "seed": 1, "transport": "inproc", "position_rms_mm": 3.5},
                read_csv(table), "run.csv")

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from coiltrack.protocol.golden import GOLDEN_DIR
-from coiltrack.tools import jsonout
+from coiltrack.tools.outputs import jsonout
 from coiltrack.tools.cli import main
 
 
@@ -62,7 +62,7 @@ def _cut(log, tmp_path, fraction: float):
 
 
 def test_a_cut_frame_log_is_read_up_to_the_cut(fusion_log, tmp_path):
-    from coiltrack.tools.framelog import read_log
+    from coiltrack.tools.bench.framelog import read_log
 
     header, reads = read_log(fusion_log)
     path, line = _cut(fusion_log, tmp_path, 0.6)

@@ -1,7 +1,7 @@
-"""``coiltrack perf --solver both`` (``tools/perf_solvers.py``): the cost ratios of
+"""``coiltrack perf --solver both`` (``tools/analyses/perf_solvers.py``): the cost ratios of
 Raab's tracker to the least squares on the same recorded inputs."""
-from coiltrack.tools.cmd_perf import _record
-from coiltrack.tools.perf_solvers import format_solver_costs, solver_costs
+from coiltrack.tools.commands.perf import _record
+from coiltrack.tools.analyses.perf_solvers import format_solver_costs, solver_costs
 
 
 def test_ratios_are_reported_and_raab_does_a_third_of_the_evaluations():

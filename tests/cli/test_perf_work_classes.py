@@ -1,8 +1,8 @@
-"""``coiltrack perf``'s work classes (``tools/work_classes.py``): each tick named by the work
+"""``coiltrack perf``'s work classes (``tools/bench/work_classes.py``): each tick named by the work
 the firmware's own counters say it did."""
-from coiltrack.tools.cmd_perf import _record, format_table, measure
+from coiltrack.tools.commands.perf import _record, format_table, measure
 from coiltrack.tools.scenarios import get
-from coiltrack.tools.work_classes import COMPONENTS, label
+from coiltrack.tools.bench.work_classes import COMPONENTS, label
 
 
 def test_label_names_the_pieces_in_order():

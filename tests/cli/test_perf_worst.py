@@ -1,7 +1,7 @@
-"""``coiltrack perf --worst N`` (``tools/cmd_perf.py``): the ticks of the most CPU time, each
+"""``coiltrack perf --worst N`` (``tools/commands/perf.py``): the ticks of the most CPU time, each
 with what it did, and the garbage collections told apart from the firmware's work."""
 from coiltrack.firmware.loop import PHASES
-from coiltrack.tools.cmd_perf import _record, format_table, measure
+from coiltrack.tools.commands.perf import _record, format_table, measure
 
 
 def test_worst_ticks_are_the_costliest_with_their_work():

@@ -13,10 +13,10 @@ import sys
 
 import pytest
 
-from coiltrack.tools import runner
+from coiltrack.tools.bench import runner
 from coiltrack.tools.cli import main
-from coiltrack.tools.links import GuardedPort
-from coiltrack.tools.realtime import firmware_loop
+from coiltrack.tools.bench.links import GuardedPort
+from coiltrack.tools.bench.realtime import firmware_loop
 from coiltrack.tools.stopping import EXIT_PEER_SILENT, PeerSilent, Stopped
 
 WAIT_S = 20.0
@@ -137,7 +137,7 @@ def test_sigterm_mid_run_writes_the_partial_report_and_log(tmp_path, monkeypatch
     rep = json.loads(out.read_text())
     assert rep["interrupted"] is True and rep["stopped_by"] == "SIGTERM"
     assert 2.0 <= rep["duration_s"] <= 2.1 and rep["poses"] >= 2
-    from coiltrack.tools.framelog import read_log
+    from coiltrack.tools.bench.framelog import read_log
 
     header, reads = read_log(log)
     assert header["duration_s"] == rep["duration_s"] and reads
@@ -170,7 +170,7 @@ def test_a_stopped_pty_bench_leaves_no_process_and_no_file(sig, tmp_path):
 
 @pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs pseudo-terminals")
 def test_sigterm_stops_the_firmware_with_its_statistics(tmp_path):
-    from coiltrack.tools.links import make_raw_pty
+    from coiltrack.tools.bench.links import make_raw_pty
 
     master, slave, name = make_raw_pty()
     stats = tmp_path / "fw.json"
@@ -270,7 +270,7 @@ def test_a_stopped_soak_writes_the_seeds_it_ran(sig, tmp_path, monkeypatch, caps
     """Three soak seeds of 2 s each, stopped in the middle of the second (its 12th memory sample
     of 24): the first seed's report whole, the second's to where it stopped, marked
     interrupted, in the JSON; exit 130 or 143."""
-    from coiltrack.tools import soak
+    from coiltrack.tools.bench import soak
 
     real, calls = soak.footprint, []
 
@@ -299,7 +299,7 @@ def test_a_calibration_stopped_while_fitting_keeps_its_recording(sig, tmp_path, 
     import numpy as np
 
     from coiltrack.hil.calibrun import load_recording
-    from coiltrack.tools import calibrate
+    from coiltrack.tools.calibration import fits as calibrate
 
     real = calibrate.RECORDERS["grid"]
     recorded = {}
@@ -328,7 +328,7 @@ def test_a_calibration_stopped_while_fitting_keeps_its_recording(sig, tmp_path, 
 def test_a_stopped_bench_writes_its_pose_table(sig, tmp_path, monkeypatch):
     """A bench stopped at 1 s of simulated time writes the poses it had (read back strictly)
     and its report, and exits 130 or 143."""
-    from coiltrack.tools.posecsv import read_csv
+    from coiltrack.tools.outputs.posecsv import read_csv
 
     real_update = runner.Progress.update
 

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from coiltrack.tools import sweep
+from coiltrack.tools.bench import sweep
 from coiltrack.tools.cli import main
 
 SWEEP = ["sweep", "--scenario", "static", "--seeds", "1-3", "--duration", "2.5", "--set", "pulse_us=40000,60000"]

@@ -5,7 +5,7 @@ magnetic bursts every 600 ms, solves, motion compensation, delayed fusion
 updates with replay, fused poses at the IMU rate):
 
 1. 100,000 ticks (100 s) live against the emulated bench, each tick inside
-   ``tools.alloc.NumpyAllocationCounter``: numpy's own array-data allocator
+   ``tools.bench.alloc.NumpyAllocationCounter``: numpy's own array-data allocator
    is replaced by one that counts every malloc/calloc/realloc, so a single
    temporary 3-vector in a tick counts 1. After a 5 s warm-up every tick must
    count 0.
@@ -32,10 +32,10 @@ import pytest
 
 from coiltrack.firmware.loop import Firmware
 from coiltrack.tools import scenarios
-from coiltrack.tools.alloc import NUMPY_DOMAIN, NumpyAllocationCounter, available, numpy_blocks_alive_during
-from coiltrack.tools.framelog import RecordingPort, ReplayPort, config_to_dict, log_config
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.alloc import NUMPY_DOMAIN, NumpyAllocationCounter, available, numpy_blocks_alive_during
+from coiltrack.tools.bench.framelog import RecordingPort, ReplayPort, config_to_dict, log_config
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 WARMUP_US = 5_000_000
 TICKS = 100_000

@@ -5,16 +5,16 @@ its own IMU module, fused). After a 3.5 s warm-up (filters initialised, the
 first bursts fused) every tick of the next 1.5 s (two and a half magnetic
 cycles: windows closed, turned, solved and fused; for the tight tracker also
 its quiet-field updates, at least 20 of them) must count 0 numpy
-allocations (``tools.alloc.NumpyAllocationCounter``, as ``test_alloc``).
+allocations (``tools.bench.alloc.NumpyAllocationCounter``, as ``test_alloc``).
 Catches a temporary array in the turned extraction, the gyro ring, the
 motion variance or the quiet-field update."""
 import pytest
 
 from coiltrack.firmware.loop import Firmware
 from coiltrack.tools import scenarios
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 pytestmark = pytest.mark.skipif(not available(), reason="numpy memory handler API not reachable")
 

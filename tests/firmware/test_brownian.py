@@ -114,8 +114,8 @@ def test_nees_within_the_999_band():
     at a draw from N(X0, P0), P0 = 1e-4 I), summed, within the two-sided 99.9 % band of a
     chi-square with 40 x 12 dof: catches a Q too small or too large (eq 10), a wrong R, a
     covariance not updated (Joseph) or an update applied twice."""
-    from coiltrack.tools import gietler as G
-    from coiltrack.tools.scenarios_gietler import SPECS, _split
+    from coiltrack.tools.bench import gietler as G
+    from coiltrack.tools.scenarios.gietler import SPECS, _split
 
     spec, cfg = _split("gietler-conductive", (("noise.var", 1e-4),))
     spec = G.GietlerSpec(**{**spec.__dict__, "cube_center": None, "duration_s": 10.0})

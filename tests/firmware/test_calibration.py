@@ -16,7 +16,7 @@ from coiltrack.firmware.config import FirmwareConfig, config_from_dict
 from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.field import orthogonal_source
 from coiltrack.firmware.model.signal import SignalModel
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
 RADIUS, TURNS = 0.055, 50
 
@@ -224,7 +224,7 @@ def test_config_section_refuses_bad_keys():
 @pytest.mark.skipif(not available(), reason="numpy memory handler API not reachable")
 def test_applying_the_calibration_allocates_no_array():
     """The receive stage's corrections and the calibrated signal model, in the
-    counting allocator of tools.alloc: a temporary array in either counts >= 1."""
+    counting allocator of tools.bench.alloc: a temporary array in either counts >= 1."""
     from coiltrack.firmware.receive import Receiver
 
     rng = np.random.default_rng(19)
@@ -256,14 +256,14 @@ def test_a_calibrated_fused_firmware_tick_allocates_no_array(tmp_path):
     """A calibrated firmware (source rows, magnetometer ellipsoid, IMU model) on the
     fused bench (roetenberg-fusion, IMU at 120 Hz, bursts every 600 ms): after a
     5 s warm-up, 2.5 s of ticks (four bursts: solves, fusion updates, replays)
-    count no numpy allocation (tools.alloc's counting allocator): a correction
+    count no numpy allocation (tools.bench.alloc's counting allocator): a correction
     that built a temporary vector per sample counts hundreds."""
     import dataclasses
 
     from coiltrack.firmware.loop import Firmware
     from coiltrack.tools import scenarios
-    from coiltrack.tools.links import inproc_pair
-    from coiltrack.tools.runner import BenchSetup
+    from coiltrack.tools.bench.links import inproc_pair
+    from coiltrack.tools.bench.runner import BenchSetup
 
     sc = scenarios.get("roetenberg-fusion")
     cfg = sc.firmware_config()

@@ -122,7 +122,7 @@ def test_the_map_reaches_every_pose_solver_of_the_fused_pipeline():
     from coiltrack.firmware.loop import Firmware
     from coiltrack.firmware.model.distortion import install
     from coiltrack.tools import scenarios
-    from coiltrack.tools.links import inproc_pair
+    from coiltrack.tools.bench.links import inproc_pair
 
     fw_end, _ = inproc_pair()
     tracker = Firmware(scenarios.get("roetenberg-fusion").firmware_config(), fw_end).tracker

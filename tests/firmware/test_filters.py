@@ -586,7 +586,7 @@ def test_outputs_continue_during_the_replay_and_the_shadow_takes_over():
     replay window is taken from the corrected (shadow) state; once caught up,
     state, snapshot and poses are those of the uninterrupted update (1e-12).
     Nothing in the ticks allocates a numpy array."""
-    from coiltrack.tools.alloc import NumpyAllocationCounter, available
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
     a, b, c = _ready_pair(3)
     sol = _Feed.solution(930_000)

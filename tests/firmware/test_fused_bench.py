@@ -7,8 +7,8 @@ import pytest
 
 from coiltrack.tools import scenarios
 from coiltrack.tools.cli import main as cli_main
-from coiltrack.tools.framelog import read_log, replay
-from coiltrack.tools.runner import run_inproc
+from coiltrack.tools.bench.framelog import read_log, replay
+from coiltrack.tools.bench.runner import run_inproc
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
 from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
 KW = dict(settle_us=3000, fall_us=3000, baseline_us=35000, guard_us=2000, sigma_t=5e-8, max_samples=64)
 START, END = 1_000_000, 1_060_000

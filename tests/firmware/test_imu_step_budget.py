@@ -7,9 +7,9 @@ pipeline runs at most ``imu_steps_per_tick`` of them per sensor per tick; the re
 """
 from coiltrack.firmware.loop import Firmware
 from coiltrack.tools import scenarios
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 WARMUP_US = 2_000_000
 RUN_US = 5_000_000

@@ -57,7 +57,7 @@ def test_rank_corr_key_is_positive_when_quality_falls_with_error():
     +1, rising gives -1 (catches the sign convention of the report key)."""
     from types import SimpleNamespace
 
-    from coiltrack.tools.report import quality_keys
+    from coiltrack.tools.outputs.report import quality_keys
 
     def poses(qs):
         return [{"msg": SimpleNamespace(status=1, quality=q, px=0.01 * i, py=0.0, pz=0.0),
@@ -73,7 +73,7 @@ def test_quality_ranks_the_error_on_a_short_run():
     0.868 measured). Catches a quality that ignores the covariance (it would follow only the
     residual, which is at its noise level here: rank correlation near 0) or is constant (None)."""
     pytest.importorskip("magpylib")
-    from coiltrack.tools.runner import run_inproc
+    from coiltrack.tools.bench.runner import run_inproc
     from coiltrack.tools.scenarios import SCENARIOS
 
     rep = run_inproc(SCENARIOS["roetenberg-bench"], 9, 10.0)

@@ -306,7 +306,7 @@ def test_budget_split_bad_input_and_no_allocation():
     allocates no numpy array. Catches state kept between units by accident,
     a raise on NaN, and an array created per update."""
     from coiltrack.firmware.model.field import Coil
-    from coiltrack.tools.alloc import NumpyAllocationCounter
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter
 
     rng = np.random.default_rng(8)
     tr = RaabTracker(COILS, "exact")

@@ -263,9 +263,9 @@ def test_noise_level_stop_saves_updates_at_low_signal_and_keeps_the_estimate():
 def test_cached_and_carried_paths_allocate_no_numpy_array():
     """Warm solves that hit the cache, refresh it, form the information again
     (a weight change) and carry the covariance allocate no numpy array data
-    (``tools.alloc.NumpyAllocationCounter``). Catches a temporary array in
+    (``tools.bench.alloc.NumpyAllocationCounter``). Catches a temporary array in
     any of the new paths."""
-    from coiltrack.tools.alloc import NumpyAllocationCounter, available
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
     if not available():
         pytest.skip("numpy memory handler API not reachable")

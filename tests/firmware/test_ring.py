@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from coiltrack.firmware.ring import Ring, field_slices
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
 
 def _contents(r):

@@ -8,7 +8,7 @@ from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.field import Coil, orthogonal_source
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.reference import measurement_model
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
 SKEWED = [Coil([0.01, 0, 0], [1, 0.2, 0], 0.05, 40), Coil([0, 0.012, 0], [0, 1, 0.3], 0.06, 50),
           Coil([0, 0, 0.01], [0.1, 0, 1], 0.055, 45), Coil([-0.01, 0, 0], [1, 1, 1], 0.04, 30)]

@@ -17,9 +17,9 @@ from coiltrack.firmware.loop import Firmware
 from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
 from coiltrack.firmware.track import magnetic
 from coiltrack.tools import scenarios
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 
 def _run(ahead: bool, seconds: float = 10.0, counter=None, patch=None):

@@ -13,7 +13,7 @@ from coiltrack.firmware.pose.reference import kuipers, measurement_model, solve_
 from coiltrack.firmware.pose.reference import so3_exp
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NOT_CONVERGED, SOLVE_OK,
                                             SOLVE_REACQUIRED, SOLVE_RUNNING, PoseSolver)
-from coiltrack.tools.alloc import NumpyAllocationCounter
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter
 
 COILS = orthogonal_source(0.055, 50)
 CUR = np.array([1.5, 1.49, 1.51])

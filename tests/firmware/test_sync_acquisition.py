@@ -19,7 +19,7 @@ from coiltrack.hil.clock import NodeClock, NodeSync
 from coiltrack.protocol import MSG
 from coiltrack.protocol.schema import EVT_CLOCK_STEP, NODE_SENSOR_BASE
 from coiltrack.tools import scenarios
-from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.bench.links import inproc_pair
 
 SENSOR = NODE_SENSOR_BASE
 #: the broadcasts of the measured run's first 0.5 s (master us): periodic, then the three after a burst

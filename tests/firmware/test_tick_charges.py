@@ -15,9 +15,9 @@ from coiltrack.firmware.config import ConfigError, FirmwareConfig
 from coiltrack.firmware.loop import Firmware
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.tools import scenarios
-from coiltrack.tools.cmd_perf import instances
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.commands.perf import instances
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 
 def _run(name: str, seconds: float, **keys):

@@ -13,8 +13,8 @@ import dataclasses
 
 from coiltrack.firmware.loop import Firmware
 from coiltrack.tools import scenarios
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 WARMUP_US = 2_000_000
 

@@ -10,10 +10,10 @@ import pytest
 
 from coiltrack.firmware.loop import Firmware
 from coiltrack.hil.faults import BenchFaults
-from coiltrack.tools import report as report_mod
+from coiltrack.tools.outputs import report as report_mod
 from coiltrack.tools import scenarios
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 
 def run_bench(scenario="static", seed=1, duration_s=10.0, faults="", cfg=None, setup=None, scenario_obj=None):

@@ -27,7 +27,7 @@ from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.hil import motion
 from coiltrack.hil import physics as ph
 from coiltrack.hil.world import FerroObject, World
-from coiltrack.tools.scenarios import Scenario, SensorSpec
+from coiltrack.tools.scenarios.base import Scenario, SensorSpec
 
 CYCLE_US, FIRST_US, SWITCH_US = 600_000, 200_000, 380_000
 

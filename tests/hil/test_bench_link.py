@@ -21,15 +21,15 @@ import pytest
 
 from coiltrack.firmware.loop import Firmware
 from coiltrack.hil.clock import SimClock
-from coiltrack.tools.links import FdLink, inproc_pair, is_pty_path, make_raw_pty, open_pty_slave
-from coiltrack.tools.realtime import (AHEAD_US, PREFETCH_GUARD_US, PREFETCH_PIECE, EmulatorRealtime,
+from coiltrack.tools.bench.links import FdLink, inproc_pair, is_pty_path, make_raw_pty, open_pty_slave
+from coiltrack.tools.bench.realtime import (AHEAD_US, PREFETCH_GUARD_US, PREFETCH_PIECE, EmulatorRealtime,
                                       EmulatorTiming, emulator_loop, firmware_loop)
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.runner import BenchSetup
 from coiltrack.tools.scenarios import get
 
 
 def _run_inproc(prefetch: bool, duration_us: int = 2_500_000):
-    """Firmware and emulator on the simulated clock (as ``tools.runner``), returning every byte
+    """Firmware and emulator on the simulated clock (as ``tools.bench.runner``), returning every byte
     the emulator sent, the sensor node, and how many physics evaluations its sampling path did."""
     sc = get("roetenberg-bench")
     cfg = sc.firmware_config()

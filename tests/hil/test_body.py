@@ -169,7 +169,7 @@ def test_body_scenarios_are_registered_with_their_thesis_rows():
     """Every body row of Tables 5.1 / 6.1 has its scenario and variants, a moving source and the
     thesis' figures. Catches a row missing from the README's list or a swapped figure."""
     from coiltrack.tools import scenarios
-    from coiltrack.tools.scenarios_body import BODY_ROWS
+    from coiltrack.tools.scenarios.body import BODY_ROWS
 
     assert len(BODY_ROWS) == 8
     for movement, name, _, fig in BODY_ROWS:

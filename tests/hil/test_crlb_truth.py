@@ -8,7 +8,7 @@ import pytest
 from scipy import stats
 
 from coiltrack.hil.crlb import amplitude_variance_factor
-from coiltrack.tools import report as report_mod
+from coiltrack.tools.outputs import report as report_mod
 
 
 def test_amplitude_variance_factor_against_monte_carlo():

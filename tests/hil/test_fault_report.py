@@ -1,4 +1,4 @@
-"""The fault keys of the bench report (``tools.faultreport``) against
+"""The fault keys of the bench report (``tools.outputs.faultreport``) against
 independent references (scipy's chi-square quantile, hand-made error
 series), and a short soak: a bench run under a dense seeded schedule of
 faults, survived, reported, recovered from, with honest covariances and
@@ -10,7 +10,7 @@ import pytest
 from scipy.stats import chi2
 
 from coiltrack.hil.faults import TimedFault
-from coiltrack.tools import faultreport as fr
+from coiltrack.tools.outputs import faultreport as fr
 
 
 def _pose(err, var):
@@ -60,7 +60,7 @@ def test_short_soak_survives_reports_and_recovers():
     outage, gap poses sent as plain valid poses, an event missing, or a
     buffer that grows."""
     from coiltrack.tools.scenarios import get
-    from coiltrack.tools.soak import LINK_RATES, passed, soak_run
+    from coiltrack.tools.bench.soak import LINK_RATES, passed, soak_run
 
     link = ",".join(f"{k}={v:g}" for k, v in LINK_RATES.items())
     sched = f"{link},node_off=sensor@6s-8s,sat=12s-16s,open_circuit=1@20s-23s"

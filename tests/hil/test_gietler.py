@@ -99,7 +99,7 @@ def test_paper_fem_iron_reproduces_table3():
     (measured -3.8; its amplitude, 0.36 times, is not reproduced by any uniform body here). Catches
     the material's 0.1 MS/m (almost in quadrature, 70-80 deg off), a conjugated phase (a lead instead
     of the 10-20 deg lag) or a diamagnetic response."""
-    from coiltrack.tools.scenarios_gietler import PAPER_FEM_FERRO_SIGMA
+    from coiltrack.tools.scenarios.gietler import PAPER_FEM_FERRO_SIGMA
 
     cells, v = hg.cube_cells((0.0, 0.0, -0.05), 0.05, 8)
     a = 0.05 * (3.0 / (4.0 * math.pi)) ** (1.0 / 3.0)

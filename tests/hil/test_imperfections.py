@@ -276,7 +276,7 @@ def test_perfect_twin_is_the_nominal_bench():
     to ``thesis_source``) on the same trajectory, without imperfections; a coil of gain 1 is the
     coil without the argument, bit for bit. Catches imperfections leaking into the perfect run
     (its figures would move) or a trajectory drawn from another seed."""
-    from coiltrack.tools import scenarios_imperfect as si
+    from coiltrack.tools.scenarios import imperfect as si
     from coiltrack.tools.scenarios import get
 
     imp_world = get("imperfect-bench").build_world(5, 10.0)
@@ -300,8 +300,8 @@ def test_scenario_reports_the_contract_keys(name):
     uncalibrated and perfect figures of the same seed (without a calibration file the uncalibrated
     run is the run itself). Catches a key missing or the perfect run not being perfect (its
     listing would not be empty)."""
-    from coiltrack.tools import scenarios_imperfect as si
-    from coiltrack.tools.runner import run_inproc
+    from coiltrack.tools.scenarios import imperfect as si
+    from coiltrack.tools.bench.runner import run_inproc
     from coiltrack.tools.scenarios import get
 
     sc = get(name)

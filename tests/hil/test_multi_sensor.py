@@ -8,10 +8,10 @@ from __future__ import annotations
 import dataclasses
 
 from coiltrack.firmware.loop import Firmware
-from coiltrack.tools import report as report_mod
+from coiltrack.tools.outputs import report as report_mod
 from coiltrack.tools import scenarios
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 DURATION = 5.0
 

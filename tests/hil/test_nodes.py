@@ -23,7 +23,7 @@ from coiltrack.protocol.schema import (ACC_LSB, COIL_FAULT_CURRENT_SAG, COIL_FAU
                              COIL_FAULT_REFUSED, COIL_FAULT_SUPPLY_LOW, GYR_LSB,
                              MAG_LSB_T, STAMP_FLIP, STAMP_MASK, STAMP_SATURATED, STATE_READY, STATE_RUNNING,
                              unwrap_stamp)
-from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.bench.links import inproc_pair
 
 P0 = np.array([0.22, 0.06, -0.05])
 R0 = motion.rotvec_to_matrix([0.3, -0.2, 0.5])

@@ -11,9 +11,9 @@ from coiltrack.firmware.loop import Firmware
 from coiltrack.firmware.pose.raab import RaabTracker
 from coiltrack.firmware.pose.solver import PoseSolver
 from coiltrack.tools import scenarios
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup, run_inproc
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup, run_inproc
 
 
 def test_pose_solver_key_selects_and_bad_values_are_refused():
@@ -63,7 +63,7 @@ def test_helix_hemisphere_crosses_the_plane_without_a_flip():
 def test_steady_tick_with_raab_allocates_nothing():
     """roetenberg-fusion with Raab's tracker for the burst solve and the
     motion-compensated re-solve: after a 5 s warm-up, 15 s of ticks allocate
-    no numpy array (the counting allocator of tools.alloc around every tick).
+    no numpy array (the counting allocator of tools.bench.alloc around every tick).
     Catches an array created per update or per correction."""
     sc = scenarios.get("roetenberg-fusion")
     fw_end, emu_end = inproc_pair()

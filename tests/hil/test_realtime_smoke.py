@@ -19,7 +19,7 @@ import os
 import pytest
 
 from coiltrack.tools import scenarios
-from coiltrack.tools.realtime import run_pty
+from coiltrack.tools.bench.realtime import run_pty
 
 REPORT_KEYS = ("poses", "poses_invalid", "frames_rx", "frames_bad", "pulse_window_violations", "ticks",
                "tick_jitter_us_median", "tick_jitter_us_p99", "tick_jitter_us_max", "deadline_misses",

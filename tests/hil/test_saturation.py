@@ -26,7 +26,7 @@ from coiltrack.hil.world import HardIron, World
 from coiltrack.protocol import MSG, FrameDecoder, FrameEncoder
 from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, GYR_LSB, IMU_CLIP_COUNTS, MAG_LSB_T, STAMP_DVEL,
                                        STAMP_SATURATED)
-from coiltrack.tools.links import inproc_pair
+from coiltrack.tools.bench.links import inproc_pair
 
 OMEGA = 60.0          # rad/s
 RADIUS = 0.05         # m

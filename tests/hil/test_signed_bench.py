@@ -11,10 +11,10 @@ from coiltrack.firmware.loop import Firmware
 from coiltrack.protocol import FrameDecoder, SignatureVerifier
 from coiltrack.protocol.framing import FLAG_SIGNED
 from coiltrack.protocol.signing import key_from_text, parse_signature
-from coiltrack.tools import report as report_mod
+from coiltrack.tools.outputs import report as report_mod
 from coiltrack.tools import scenarios
-from coiltrack.tools.links import inproc_pair
-from coiltrack.tools.runner import BenchSetup
+from coiltrack.tools.bench.links import inproc_pair
+from coiltrack.tools.bench.runner import BenchSetup
 
 DURATION = 4.0
 KEY = "a bench passphrase"

@@ -22,7 +22,7 @@ from coiltrack.hil.bench import flips_inside_windows, window_truth
 from coiltrack.hil.clock import SimClock
 from coiltrack.firmware.measure.pulse import PULSE_FLIP
 from coiltrack.protocol.schema import STAMP_LSB_US
-from coiltrack.tools.realtime import emulator_loop, firmware_loop, inproc_timing
+from coiltrack.tools.bench.realtime import emulator_loop, firmware_loop, inproc_timing
 
 
 @pytest.fixture(scope="module")

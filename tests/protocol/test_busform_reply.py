@@ -146,8 +146,8 @@ def test_busload_sync_rate_matches_a_counted_firmware_run():
     forgot the per-burst broadcasts, or a node whose reply did not fit the form, fails)."""
     from coiltrack.firmware.loop import Firmware
     from coiltrack.protocol.can import open_bus, unique_channel, virtual_link_pair
-    from coiltrack.tools.cmd_busload import firmware_sync_hz
-    from coiltrack.tools.runner import BenchSetup
+    from coiltrack.tools.commands.busload import firmware_sync_hz
+    from coiltrack.tools.bench.runner import BenchSetup
     from coiltrack.tools.scenarios import SCENARIOS
 
     sc = SCENARIOS["roetenberg-bench"]

@@ -144,7 +144,8 @@ def _value(v) -> str:
 
 def scenarios_page() -> str:
     from coiltrack.firmware.config import FirmwareConfig, config_to_dict
-    from coiltrack.tools.scenarios import SCENARIOS, SensorSpec
+    from coiltrack.tools.scenarios import SCENARIOS
+    from coiltrack.tools.scenarios.base import SensorSpec
 
     default = config_to_dict(FirmwareConfig())
     spec_default = SensorSpec()

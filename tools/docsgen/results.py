@@ -3,7 +3,7 @@
 ``coiltrack results`` runs scenarios on the in-process bench (simulated clock, as
 ``coiltrack bench --transport inproc``; an actuation-policy scenario with its fixed-cycle
 comparison), keeps every figure of each report that depends on the run alone (not the
-wall-clock timing: :func:`coiltrack.tools.report.is_wall_clock`) and writes
+wall-clock timing: :func:`coiltrack.tools.outputs.report.is_wall_clock`) and writes
 
 * ``results.json``: the runs (scenario, seed, duration, the command that reproduces each,
   its figures, per-range bands and the paper's figures);
@@ -34,7 +34,7 @@ FORMAT = "coiltrack-results/1"
 
 def command(scenario: str, seed: int, duration_s: float, default_s: float, experiment: bool = False) -> str:
     """The command that gives a run's figures: ``coiltrack bench``, or for a measurement-level
-    experiment (Gietler's scenarios, :func:`coiltrack.tools.sweep.experiment`) ``coiltrack sweep``
+    experiment (Gietler's scenarios, :func:`coiltrack.tools.bench.sweep.experiment`) ``coiltrack sweep``
     of that one seed."""
     dur = "" if duration_s == default_s else f" --duration {duration_s:g}"
     if experiment:
@@ -55,10 +55,10 @@ def _clean(v):
 
 def run_one(job: tuple[str, int, float]) -> dict:
     """One scenario run (a worker process): the report without its wall-clock keys."""
-    from coiltrack.tools.report import is_wall_clock
-    from coiltrack.tools.runner import add_fixed_comparison, run_inproc
+    from coiltrack.tools.outputs.report import is_wall_clock
+    from coiltrack.tools.bench.runner import add_fixed_comparison, run_inproc
     from coiltrack.tools.scenarios import SCENARIOS
-    from coiltrack.tools.sweep import experiment
+    from coiltrack.tools.bench.sweep import experiment
 
     name, seed, duration_s = job
     sc = SCENARIOS[name]

@@ -10,7 +10,7 @@ import pytest
 from coiltrack.firmware import core
 from coiltrack.firmware.estimate.ekf import SYMMETRIZE_EVERY, CovariancePredict
 from coiltrack.firmware.estimate.strapdown import Strapdown, transition_nav, transition_sensor, transition_static
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
 pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 

@@ -7,7 +7,7 @@ import subprocess
 
 import pytest
 
-from coiltrack.tools import cmd_core_size
+from coiltrack.tools.commands import core_size as cmd_core_size
 from coiltrack.tools.cli import main
 
 CORE = cmd_core_size.core_dir()

@@ -14,7 +14,7 @@ import pytest
 from coiltrack.firmware import core
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, EKF_OK, KalmanUpdate
 from coiltrack.firmware.linalg import spd_inverse
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
 pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 

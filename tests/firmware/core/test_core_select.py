@@ -45,8 +45,8 @@ def test_firmware_binds_the_chosen_core_at_composition(impl, monkeypatch):
         pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
     from coiltrack.firmware.loop import Firmware
     from coiltrack.firmware.model.signal import SignalModel
-    from coiltrack.tools.cmd_perf import instances
-    from coiltrack.tools.links import inproc_pair
+    from coiltrack.tools.commands.perf import instances
+    from coiltrack.tools.bench.links import inproc_pair
 
     monkeypatch.setitem(core._state, "selected", core._state["selected"])
     fw = Firmware(dataclasses.replace(FirmwareConfig(), impl=impl), inproc_pair()[0])
@@ -66,8 +66,8 @@ def test_bench_reports_are_the_same_with_either_core(monkeypatch):
     closed loop is), and each report says its core."""
     pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
     from coiltrack.tools import scenarios
-    from coiltrack.tools.report import is_wall_clock
-    from coiltrack.tools.runner import run_inproc
+    from coiltrack.tools.outputs.report import is_wall_clock
+    from coiltrack.tools.bench.runner import run_inproc
 
     monkeypatch.setitem(core._state, "selected", core._state["selected"])
     sc = scenarios.get("roetenberg-fusion")

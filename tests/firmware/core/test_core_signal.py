@@ -17,7 +17,7 @@ from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.distortion import DistortionMap
 from coiltrack.firmware.model.field import Coil, dipole_point, loop_point, orthogonal_source
 from coiltrack.firmware.model.signal import SignalModel
-from coiltrack.tools.alloc import NumpyAllocationCounter, available
+from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
 
 _core = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 

@@ -1,0 +1,144 @@
+"""The recovery table of docs/faults.md on many seeds, with the undisturbed run beside it.
+
+``python -m coiltrack.tools.analyses.recovery_table --dir D --seeds 1-10`` runs, one at a time,
+``coiltrack bench --scenario roetenberg-fusion --duration 120`` for each seed without a
+fault and with each of the four faults of the table (sensor and driver off 40-45 s,
+saturation 40-45 s, open coil 1 at 40-50 s), keeping each run's report and pose table in
+``D`` (a run whose report is there already is not run again), and prints per run:
+
+* ``rec``: the bench's ``fault_recovery_s`` (twice the run's own no-fault level);
+* ``rec_ref``: the same search against the undisturbed run of the same seed: the first
+  instant whose next second of valid fused poses has an RMS error within twice
+  ``max(level, the undisturbed run's RMS over the same second)``;
+* ``undisturbed``: ``fault_recovery_s`` the undisturbed run itself would get for a fault
+  ending at the same instant, with the same level: what the measure asks of the tracker
+  that had no fault at all;
+* fused RMS and its ratio to the undisturbed run, the overconfident fraction (fused and
+  magnetic-only poses), and the overconfident poses in the fault window and the 3 s after.
+
+Not a bench command: a measurement for the note (``--no-run`` tabulates what is in ``D``).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+#: the four faults of the recovery table (docs/faults.md, README "Faults and recovery"): name, switch, end (s)
+FAULTS = (("sensor", "node_off=sensor@40s-45s", 45.0), ("driver", "node_off=driver@40s-45s", 45.0),
+          ("sat", "sat=40s-45s", 45.0), ("open", "open_circuit=1@40s-50s", 50.0))
+
+
+def _seeds(text: str) -> list[int]:
+    out = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out.extend(range(int(a), int(b or a) + 1))
+    return out
+
+
+def fused_errors(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """True times (s) and position errors (m) of the valid fused poses of a pose table."""
+    t, e = [], []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            if r["kind"] == "fused" and "valid" in r["status_bits"].split("+"):
+                t.append(float(r["t_s"]))
+                e.append(float(r["pos_err_mm"]) * 1e-3)
+    return np.array(t), np.array(e)
+
+
+def recovery_against(ft, fe, rt, re, t_end: float, level_mm: float, step=0.1, window=1.0, horizon=30.0):
+    """Seconds from ``t_end`` until the RMS of ``fe`` over the next ``window`` is within twice
+    ``max(level, RMS of the undisturbed run's errors re over the same window)``; None if never."""
+    k = 0
+    while k * step <= horizon:
+        t = t_end + k * step
+        s = (ft >= t) & (ft < t + window)
+        r = (rt >= t) & (rt < t + window)
+        if s.sum() >= 2 and r.sum() >= 2:
+            ref = max(level_mm * 1e-3, math.sqrt(float(np.mean(re[r] ** 2))))
+            if math.sqrt(float(np.mean(fe[s] ** 2))) <= 2.0 * ref:
+                return round(k * step, 2)
+        if len(ft) and t > ft[-1]:
+            return None
+        k += 1
+    return None
+
+
+def run(cmd: list[str], out: str, seed: int, name: str, switch: str | None) -> None:
+    js = os.path.join(out, f"s{seed}_{name}.json")
+    if os.path.exists(js):
+        return
+    args = cmd + ["bench", "--scenario", "roetenberg-fusion", "--seed", str(seed), "--duration", "120", "--quiet",
+                  "--json", js, "--poses", os.path.join(out, f"s{seed}_{name}.csv")]
+    if switch:
+        args += ["--faults", switch]
+    subprocess.run(args, check=True, stdout=subprocess.DEVNULL)
+
+
+def table(out: str, seeds: list[int]) -> list[dict]:
+    from coiltrack.hil.faults import TimedFault
+    from coiltrack.tools.outputs.faultreport import recovery_time
+
+    rows = []
+    for seed in seeds:
+        base = os.path.join(out, f"s{seed}_none")
+        if not os.path.exists(base + ".json"):
+            continue
+        j0 = json.load(open(base + ".json"))
+        rt, re = fused_errors(base + ".csv")
+        rows.append({"seed": seed, "fault": "none", "rms_mm": j0["position_rms_mm"], "rms_ratio": 1.0,
+                     "overconfident": j0["overconfident_fraction"], "over_fused": j0["overconfidence"]["fused"],
+                     "over_mag": j0["overconfidence"]["magnetic"]})
+        for name, _, t_end in FAULTS:
+            p = os.path.join(out, f"s{seed}_{name}")
+            if not os.path.exists(p + ".json"):
+                continue
+            j = json.load(open(p + ".json"))
+            ft, fe = fused_errors(p + ".csv")
+            lvl = j["no_fault_level_mm"]
+            virtual = TimedFault("sat", int((t_end - 5.0) * 1e6), int(t_end * 1e6))
+            by = j["overconfident_by_fault"]
+            rows.append({"seed": seed, "fault": name, "rec": next(iter(j["fault_recovery_s"].values())),
+                         "rec_ref": recovery_against(ft, fe, rt, re, t_end, lvl),
+                         "undisturbed": recovery_time(rt, re, virtual, lvl), "level_mm": lvl,
+                         "rms_mm": j["position_rms_mm"], "rms_ratio": round(j["position_rms_mm"] / j0["position_rms_mm"], 3),
+                         "overconfident": j["overconfident_fraction"], "over_fused": j["overconfidence"]["fused"],
+                         "over_mag": j["overconfidence"]["magnetic"],
+                         "over_in_window": sum(v for k, v in by.items() if k != "outside fault windows")})
+    return rows
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--dir", required=True)
+    ap.add_argument("--seeds", default="1-10")
+    ap.add_argument("--no-run", action="store_true", help="tabulate the runs in --dir, run nothing")
+    ap.add_argument("--cmd", default="coiltrack", help="the command that runs `bench` (default coiltrack)")
+    a = ap.parse_args(argv)
+    seeds = _seeds(a.seeds)
+    os.makedirs(a.dir, exist_ok=True)
+    if not a.no_run:
+        cmd = a.cmd.split()
+        for seed in seeds:
+            run(cmd, a.dir, seed, "none", None)
+            for name, switch, _ in FAULTS:
+                run(cmd, a.dir, seed, name, switch)
+    cols = ("seed", "fault", "rec", "rec_ref", "undisturbed", "level_mm", "rms_mm", "rms_ratio", "overconfident",
+            "over_fused", "over_mag", "over_in_window")
+    w = csv.writer(sys.stdout, delimiter="\t")
+    w.writerow(cols)
+    for r in table(a.dir, seeds):
+        w.writerow(["-" if r.get(c) is None else r.get(c) for c in cols])
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

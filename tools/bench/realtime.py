@@ -1,0 +1,560 @@
+"""Wall-clock loops: the firmware at a fixed tick and the emulator beside it,
+as two processes joined by a pseudo-terminal (``coiltrack bench --transport
+pty``), or each alone against a real board (``coiltrack firmware``,
+``coiltrack emulator``).
+
+Both loops take the clock and the sleep function as arguments, so the tests
+drive them with a simulated clock (no wall-clock sleeps in tests).
+
+In the two-process bench the firmware runs at SCHED_FIFO above the
+emulator's loop, each on its own CPU kept from idling (:class:`KeepAwake`),
+the emulator's physics computed ahead between steps; where the misses and
+the latency come from is in ``docs/bench-realtime.md``.
+
+Timing figures (all in microseconds):
+
+* tick period jitter: ``|start_k - start_(k-1) - tick|`` over consecutive
+  ticks (median, p99, max);
+* lateness: ``start_k - scheduled_k``;
+* execution time of ``fw.tick``;
+* deadline misses: ticks that started a whole period late or ran longer than
+  a period, plus every tick slot skipped because the loop fell behind.
+
+In-process runs use the simulated clock, where the tick period is exact by
+construction; there :func:`inproc_timing` measures the wall time of each
+``fw.tick`` and replays it on an ideal real-time schedule (a tick starts at
+its slot or when the previous one ends, whichever is later), giving the same
+figures a dedicated core would show for the firmware alone.
+"""
+from __future__ import annotations
+
+import gc
+import json
+import os
+import select
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from coiltrack.hil.clock import WallClock
+
+from .links import FdLink, make_raw_pty
+from .timing import _stats, inproc_timing, no_ticks  # noqa: F401  (inproc_timing: for the callers of realtime)
+from ..stopping import Stopped, held_signals, mark, start_child, stop_child
+
+
+#: time the firmware process is given to start (imports, set-up, memory locked) before the shared
+#: epoch: one that starts late finds the nodes unsynchronised and its first commands refused
+#: (1.5 s was too short on a loaded 2-CPU machine: imports alone took 1.4 s there)
+CHILD_START_NS = 3_000_000_000
+#: SCHED_FIFO priorities of the two-process bench: the firmware above the emulator (on one CPU a
+#: firmware tick preempts an emulator step), both below the kernel's threaded interrupts (50)
+FIRMWARE_RT_PRIORITY = 30
+EMULATOR_RT_PRIORITY = 20
+_MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
+
+
+def _lock_memory() -> bool:
+    """``mlockall(MCL_CURRENT | MCL_FUTURE | MCL_ONFAULT)``: every page the process has touched stays
+    resident from now on, so no tick waits on a page the kernel reclaimed (a memory-pressure or
+    page-out daemon) and faults back in; ``MCL_ONFAULT`` (Linux 4.4) locks pages as they are
+    touched instead of faulting in every mapped library at once (about 280 MB without it). Best
+    effort: False when not permitted."""
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE | _MCL_ONFAULT) == 0:
+            return True
+        return libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _realtime_setup(cpu: int | None, priority: int = FIRMWARE_RT_PRIORITY, lock_memory: bool = True) -> dict:
+    """Best effort: pin to one CPU, ask for SCHED_FIFO at ``priority``, lock the process's memory,
+    freeze and disable the cyclic GC."""
+    info = {}
+    if cpu is not None and hasattr(os, "sched_setaffinity"):
+        try:
+            os.sched_setaffinity(0, {cpu})
+            info["cpu"] = cpu
+        except OSError:
+            pass
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        info["sched"] = "fifo"
+        info["priority"] = priority
+    except (AttributeError, OSError, PermissionError):
+        info["sched"] = "other"
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    info["gc"] = "disabled"
+    if lock_memory:
+        info["mlock"] = _lock_memory()
+    return info
+
+
+_SPIN = ("import os, sys\n"
+         "try:\n"
+         "    os.sched_setaffinity(0, {int(sys.argv[1])})\n"
+         "    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\n"
+         "except (AttributeError, OSError):\n"
+         "    sys.exit(0)\n"          # never spin at an ordinary priority
+         "while True:\n"
+         "    pass\n")
+
+
+class KeepAwake:
+    """A SCHED_IDLE busy loop on each of ``cpus`` while the block runs (best effort), so those
+    CPUs never go idle between ticks. On a virtual machine an idle CPU halts and the host
+    deschedules it; the timer that ends a tick's sleep then waits for the host to run the CPU
+    again: a firmware loop whose tick does nothing missed 951 deadlines in 20 s on an otherwise
+    idle 2-CPU machine, 13 with this (``python -m coiltrack.tools.bench.realtime``). A SCHED_IDLE task
+    runs only when nothing else wants the CPU, so it takes time from no one in this machine; it
+    keeps the host's CPU busy for the run. The loops die with this process."""
+
+    def __init__(self, cpus):
+        self.cpus = sorted(set(int(c) for c in cpus))
+        self.children: list = []
+
+    def __enter__(self) -> "KeepAwake":
+        if not hasattr(os, "SCHED_IDLE"):
+            return self
+        with held_signals():
+            for c in self.cpus:
+                self.children.append(start_child([sys.executable, "-S", "-c", _SPIN, str(c)],
+                                                  stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                                  stderr=subprocess.DEVNULL))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for child in self.children:
+            stop_child(child, grace_s=0.5)
+        self.children = []
+
+
+class EmulatorRealtime:
+    """Around the wall-clock emulator loop of the two-process bench (best effort): SCHED_FIFO at
+    ``EMULATOR_RT_PRIORITY`` (below the firmware's), so a due sample leaves and a ``POSE`` is
+    stamped when it arrives rather than when the CPU's other work yields, and the cyclic GC
+    frozen and off (a run of bounded length; no collection pause in a step). Restored on exit,
+    so the report and any in-process comparison runs after it are ordinary work."""
+
+    def __init__(self, priority: int = EMULATOR_RT_PRIORITY, threads=()):
+        self.priority = priority
+        self.threads = tuple(threads)       # native ids of helper threads that serve the link
+        self.info: dict = {}
+
+    def __enter__(self) -> "EmulatorRealtime":
+        self._gc = gc.isenabled()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self._saved = []
+        for tid in (0, *self.threads):
+            try:
+                pol, par = os.sched_getscheduler(tid), os.sched_getparam(tid)
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(self.priority))
+                self._saved.append((tid, pol, par))
+            except (AttributeError, OSError, PermissionError):
+                pass
+        self.info = {"emulator_sched": "fifo" if self._saved else "other"}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for tid, pol, par in self._saved:
+            try:
+                os.sched_setscheduler(tid, pol, par)
+            except OSError:
+                pass
+        gc.unfreeze()
+        if self._gc:
+            gc.enable()
+
+
+def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us: int = 200,
+                  max_records: int = 600_000, after_tick=None) -> dict:
+    """Run ``fw.tick`` every ``tick_us`` of ``clock`` until ``duration_us``.
+
+    Sleeps until ``spin_us`` before each slot, then polls the clock (the
+    sleep's wake-up latency does not become jitter); with a simulated clock,
+    which only moves when slept, pass ``spin_us=0``. Measures period jitter,
+    lateness, execution time and deadline misses (a tick that starts a whole
+    period late or runs longer than a period, and every slot skipped because
+    the loop fell behind). Buffers are sized up front. Stopped early (a
+    :class:`tools.stopping.Stopped` from a signal or from the port), the
+    statistics of the ticks run so far go with the exception as ``partial``.
+    ``after_tick()``, when given, runs after each tick, inside its measured
+    execution time (a link's ``flush``: the tick's frames leave in one write).
+    """
+    if sleep is None:
+        sleep = getattr(clock, "sleep", time.sleep)
+    n_max = duration_us // tick_us + 2
+    cap = int(min(n_max, max_records))      # statistics over the last ``max_records`` ticks
+    starts = np.zeros(cap, dtype=np.int64)
+    exec_us = np.zeros(cap, dtype=np.int64)
+    late = np.zeros(cap, dtype=np.int64)
+    n = 0
+    misses = 0
+    stopped = None
+    try:
+        next_tick = max(0, clock.now())
+        next_tick += (-next_tick) % tick_us
+        while True:
+            now = clock.now()
+            if now >= duration_us:
+                break
+            if now < next_tick:
+                rem = next_tick - now
+                if rem > spin_us:
+                    sleep((rem - spin_us) * 1e-6)
+                continue
+            t0 = now
+            fw.tick(t0)
+            if after_tick is not None:
+                after_tick()
+            t1 = clock.now()
+            i = n % cap
+            starts[i] = t0
+            exec_us[i] = t1 - t0
+            late[i] = t0 - next_tick
+            n += 1
+            if t0 - next_tick >= tick_us or t1 - t0 >= tick_us:
+                misses += 1
+            next_tick += tick_us
+            if next_tick <= t1 - tick_us:          # fell behind: skip missed slots, count them
+                skipped = (t1 - next_tick) // tick_us
+                misses += int(skipped)
+                next_tick += skipped * tick_us
+    except Stopped as exc:
+        stopped = exc
+    if n > cap:
+        r = -(n % cap)
+        starts, exec_us, late = np.roll(starts, r), np.roll(exec_us, r), np.roll(late, r)
+    m = min(n, cap)
+    out = _stats(starts[:m], exec_us[:m], late[:m], tick_us, misses)
+    out["ticks"] = n
+    out["timing_source"] = "wall clock: tick start times and execution times"
+    if stopped is not None:
+        stopped.partial = out
+        raise stopped
+    return out
+
+
+def _fd_of(link):
+    while link is not None:
+        fd = getattr(link, "fd", None)
+        if fd is not None:
+            return fd
+        link = getattr(link, "link", None)
+    return None
+
+
+#: how far ahead of true time the wall-clock emulator keeps its nodes' physics (us); under the
+#: 2 s that ``hil.world.World.precompute`` keeps behind its newest instants, so nothing computed
+#: ahead is dropped before it is used
+AHEAD_US = 1_500_000
+#: sample instants computed in one piece between steps (a piece costs the trajectory's fixed
+#: evaluation, ~0.5-1.5 ms, plus ~50 us an instant)
+PREFETCH_PIECE = 8
+#: a piece is computed only when the next sample is due at least this far away (us)
+PREFETCH_GUARD_US = 3_000
+
+
+class EmulatorTiming:
+    """What the wall-clock emulator loop measured (us): each step's duration, and how late
+    each step that took a sample started after that sample's instant (the sample leaves the
+    emulator that late; the pose latency counts it). ``cap`` steps at most (the last ones)."""
+
+    def __init__(self, cap: int = 1 << 20):
+        self.step_us = np.zeros(cap, dtype=np.int64)
+        self.late_us = np.zeros(cap, dtype=np.int64)
+        self.steps = 0
+        self.samples = 0
+        self.prefetched = 0
+        self.pieces = 0
+        self.worst_late_us = -1
+        self.sched = None                   # the emulator loop's scheduling policy (EmulatorRealtime)
+        self.worst_late_at_us = None        # true time of the step that sent a sample latest
+
+    def add_step(self, dt_us: int) -> None:
+        self.step_us[self.steps % self.step_us.size] = dt_us
+        self.steps += 1
+
+    def add_late(self, late_us: int, at_us: int | None = None) -> None:
+        self.late_us[self.samples % self.late_us.size] = late_us
+        self.samples += 1
+        if late_us > self.worst_late_us:
+            self.worst_late_us, self.worst_late_at_us = late_us, at_us
+
+    def report(self) -> dict:
+        st = self.step_us[:min(self.steps, self.step_us.size)]
+        la = self.late_us[:min(self.samples, self.late_us.size)]
+        pct = lambda a, q: float(np.percentile(a, q)) if a.size else None  # noqa: E731
+        return {"emulator_step_us_p99": pct(st, 99), "emulator_step_us_max": pct(st, 100),
+                "emulator_sample_late_us_p50": pct(la, 50), "emulator_sample_late_us_p99": pct(la, 99),
+                "emulator_sample_late_us_max": pct(la, 100),
+                "emulator_sample_late_max_at_s": (round(self.worst_late_at_us * 1e-6, 3)
+                                                  if self.worst_late_at_us is not None else None),
+                "emulator_prefetched_instants": self.prefetched, "emulator_prefetch_pieces": self.pieces,
+                "emulator_sched": self.sched}
+
+
+def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_us: int = 250, wait=None,
+                  timing: EmulatorTiming | None = None, ahead_us: int = AHEAD_US) -> None:
+    """Step the emulator on ``clock`` until ``duration_us``.
+
+    Waits until the next sample is due (``emulator.next_due_us()``, when the
+    emulator tells), at most ``step_us``, and wakes at once when bytes arrive
+    on a file-descriptor link (``select``), so a node stamps a ``TIME_SYNC``
+    close to its arrival and the recorder a ``POSE``. Frames written in a step
+    go out together at its end (``link.flush``). The nodes' physics is
+    computed ahead of the sampling path (``emulator.prefetch``): the first
+    ``ahead_us`` before the run starts (``clock.now() < 0``), then a piece of
+    ``PREFETCH_PIECE`` instants between steps, while the next sample is more
+    than ``PREFETCH_GUARD_US`` away, keeping ``ahead_us`` in hand (0: none).
+    ``wait(timeout_s)`` replaces the wait (tests pass a simulated one);
+    ``timing`` (:class:`EmulatorTiming`) collects step durations and sample
+    lateness.
+    """
+    fd = _fd_of(link)
+    if wait is None:
+        if fd is not None:
+            def wait(timeout_s, _fd=fd):
+                select.select([_fd], [], [], timeout_s)
+        else:
+            wait = getattr(clock, "sleep", time.sleep)
+    flush = getattr(link, "flush", None)
+    next_due = getattr(emulator, "next_due_us", None)
+    prefetch = getattr(emulator, "prefetch", None) if ahead_us > 0 else None
+    if prefetch is not None:
+        # before the start: the first ahead_us of every node, in pieces (the clock runs meanwhile)
+        n = 1
+        while n and clock.now() < 0:
+            n = prefetch(ahead_us, 256)
+            if timing is not None:
+                timing.prefetched += n
+    while True:
+        now = clock.now()
+        if now > duration_us:
+            break
+        timeout_us = step_us
+        if now >= 0:
+            due = next_due() if next_due is not None else None
+            emulator.step(now)
+            if flush is not None:
+                flush()
+            if progress is not None:
+                progress.update(now * 1e-6, len(emulator.recorder.poses))
+            t1 = clock.now()
+            if timing is not None:
+                timing.add_step(t1 - now)
+                if due is not None and due <= now:
+                    timing.add_late(now - due, now)
+            if t1 - now > step_us:
+                continue        # a long step: read the link again at once
+            nxt = next_due() if next_due is not None else None
+            if prefetch is not None and (nxt is None or nxt - t1 > PREFETCH_GUARD_US):
+                n = prefetch(t1 + ahead_us, PREFETCH_PIECE, PREFETCH_PIECE)
+                if n and timing is not None:
+                    timing.prefetched += n
+                    timing.pieces += 1
+                if n:
+                    continue    # the piece took time: read the link again at once
+            if nxt is not None:
+                timeout_us = min(step_us, max(0, nxt - clock.now()))
+        wait(timeout_us * 1e-6)
+
+
+def _two_process_link(transport: str):
+    """The link between the two processes: (the firmware's link arguments, the emulator's
+    end, a function that closes everything, native ids of threads that serve the link)."""
+    if transport == "slcan":
+        # a CAN bus between the two processes: an slcan adapter on each side of a bridge of
+        # pseudo-terminals (protocol.slcan); same messages, CAN frames
+        from coiltrack.protocol.can import CanLink, open_bus
+        from coiltrack.protocol.schema import NODE_COIL_DRIVER
+        from coiltrack.protocol.slcan import SlcanBridge
+
+        bridge = SlcanBridge(2).start()
+        link = CanLink(open_bus("slcan", bridge.paths[0]), NODE_COIL_DRIVER)
+        thread = getattr(bridge, "_thread", None)
+        # the bridge's relay thread moves every frame both ways: it runs at the emulator's priority
+        threads = (thread.native_id,) if getattr(thread, "native_id", None) else ()
+
+        def close():
+            link.close()
+            bridge.stop()
+        return ["--transport", "can", "--interface", "slcan", "--channel", bridge.paths[1]], link, close, threads
+    master, slave, slave_name = make_raw_pty()
+
+    def close_pty():
+        os.close(master)
+        os.close(slave)
+    # the emulator's frames of one step leave in one write (emulator_loop flushes after each step)
+    return ["--port", slave_name], FdLink(master, coalesce=True), close_pty, ()
+
+
+def _pin_cpus(cmd: list[str]) -> list[str]:
+    """With two or more CPUs: the firmware on the last one (``--cpu``), this process on the
+    others (:func:`_start_pinned` sets both)."""
+    ncpu = os.cpu_count() or 1
+    if ncpu < 2:
+        return cmd
+    return cmd + ["--cpu", str(ncpu - 1)]
+
+
+def _start_pinned(cmd: list[str], **kw):
+    """Start the child of ``cmd`` on the CPU its ``--cpu`` names, from its first instruction (its
+    imports and set-up do not queue behind this process's work), then move this process to
+    the other CPUs. Best effort where affinity cannot be set."""
+    cpu = int(cmd[cmd.index("--cpu") + 1]) if "--cpu" in cmd else None
+    if cpu is None or not hasattr(os, "sched_setaffinity"):
+        return start_child(cmd, **kw)
+    try:
+        os.sched_setaffinity(0, {cpu})
+    except OSError:
+        return start_child(cmd, **kw)
+    try:
+        return start_child(cmd, **kw)
+    finally:
+        try:
+            os.sched_setaffinity(0, set(range(os.cpu_count() or 1)) - {cpu})
+        except OSError:
+            pass
+
+
+def _read_stats(stream) -> dict:
+    """The firmware's statistics (``coiltrack firmware`` prints them as JSON at its end)."""
+    try:
+        with stream:
+            return json.loads(stream.read())
+    except (OSError, ValueError):
+        return {"status": {}, "timing": {}}
+
+
+def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool = False,
+            transport: str = "pty", cfg=None, config_path=None, outputs=None) -> dict:
+    """Firmware in a child process (``coiltrack firmware``) on the slave side of
+    a raw pseudo-terminal; emulator here on the master side; both on
+    CLOCK_MONOTONIC from a shared epoch (the nodes still keep their own
+    drifting clocks and synchronise to the firmware's broadcasts). On a
+    machine with two or more CPUs the firmware is pinned to the last one and
+    the emulator to the first. ``transport="slcan"`` puts the two on a CAN
+    bus instead: python-can's slcan interface on each side of a bridge of
+    pseudo-terminals. ``cfg``: the firmware configuration (default the
+    scenario's), read by the child from ``config_path`` over the scenario's.
+
+    The child dies with this process, and writes no file (its statistics come
+    back on its standard output). Stopped early (SIGINT, SIGTERM), the child
+    is stopped within a second and the report of what was done, marked
+    ``interrupted``, goes with the exception as ``exc.partial``. ``outputs``
+    (:mod:`coiltrack.tools.outputs`) taps the emulator's end of the link."""
+    # here, not at the top: the firmware's process imports this module and needs no world
+    from ..outputs import report as report_mod
+    from .runner import BenchSetup, Progress
+
+    cfg = cfg or scenario.firmware_config()
+    link_args, link, close, threads = _two_process_link(transport)
+    epoch_ns = time.monotonic_ns() + CHILD_START_NS     # give the child time to start
+    if outputs is not None:     # tools.outputs: the emulator's end of the link is tapped
+        link = outputs.wrap(link, side="emulator", clock_us=WallClock(epoch_ns).now)
+    try:
+        bench = BenchSetup(scenario, seed, duration_s, link, faults, cfg=cfg)
+        clock = WallClock(epoch_ns)
+        # the child's statistics come back on its standard output (a few kB, written at its end)
+        cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
+               "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
+               *(["--config", str(config_path)] if config_path else []),
+               *(["--calibration", cfg.calibration_file] if cfg.calibration_file else []),
+               "--core", cfg.impl]
+        env = None
+        if cfg.signing_key:     # the key reaches the child in its environment, not on its command line
+            from ..args import KEY_ENV
+
+            env = {**os.environ, KEY_ENV: cfg.signing_key}
+            cmd += ["--key", "@env"]
+        emu_timing = EmulatorTiming()
+        stopped, code, fw_stats = _beside_child(_pin_cpus(cmd), bench, clock, duration_s,
+                                                Progress(progress, duration_s, f"{scenario.name} ({transport})"),
+                                                env, emu_timing, threads)
+    finally:
+        close()
+    done_s = duration_s if stopped is None else elapsed_s(clock, duration_s)
+    rep = report_mod.build(bench, fw_stats.get("status", {}), done_s, transport=transport, cfg=cfg)
+    rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
+    rep.update(emu_timing.report())
+    rep["firmware_exit_code"] = code
+    if outputs is not None:
+        outputs.finish(bench, rep)
+    if stopped is not None:
+        raise mark(rep, stopped)
+    return rep
+
+
+def elapsed_s(clock, duration_s: float) -> float:
+    """Seconds of a wall-clock run done by now (at least 1 ms, at most ``duration_s``)."""
+    return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
+
+
+def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None, timing=None, threads=(),
+                  keep_awake: bool = True):
+    """Start the firmware process and run the emulator beside it (until 0.3 s after
+    ``duration_s``, so the last frames arrive), the emulator's loop at SCHED_FIFO below the
+    firmware (:class:`EmulatorRealtime`; ``threads``: helper threads of the link raised with
+    it). Returns the :class:`Stopped` that ended the run early (or None), the child's exit
+    status and its statistics (its standard output). ``timing``: an :class:`EmulatorTiming`;
+    ``keep_awake``: this process's CPUs kept from idling meanwhile (:class:`KeepAwake`)."""
+    child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
+    try:
+        with held_signals():
+            child = _start_pinned(cmd, stdout=subprocess.PIPE, env=env)
+        emu_cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
+        with KeepAwake(emu_cpus if keep_awake else ()), EmulatorRealtime(threads=threads) as ert:
+            if timing is not None:
+                timing.sched = ert.info.get("emulator_sched")
+            emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog, timing=timing)
+        wait_s = 30.0
+    except Stopped as exc:
+        stopped = exc
+    finally:
+        prog.done()
+        code = stop_child(child, wait_s=wait_s) if child is not None else None
+    return stopped, code, _read_stats(child.stdout) if child is not None else {"status": {}, "timing": {}}
+
+
+class _NullFirmware:
+    """A firmware whose tick does nothing (the platform's floor)."""
+
+    def tick(self, now_us: int) -> None:
+        pass
+
+
+def floor_main(argv=None) -> int:
+    """``python -m coiltrack.tools.bench.realtime --cpu 1 --seconds 60``: the firmware loop with a tick
+    that does nothing, at the firmware's CPU, priority and set-up; prints its timing (JSON). Its
+    deadline misses are the ones the machine alone causes, the floor of the two-process bench's."""
+    import argparse
+
+    from .. import args as A
+
+    p = argparse.ArgumentParser(prog="python -m coiltrack.tools.bench.realtime", description=floor_main.__doc__)
+    p.add_argument("--cpu", type=A.cpu, default=(os.cpu_count() or 1) - 1, help="CPU (default the last)")
+    p.add_argument("--seconds", type=A.real(0.001, 3600.0), default=60.0, help="how long (default 60)")
+    p.add_argument("--rt-priority", type=A.integer(1, 99), default=FIRMWARE_RT_PRIORITY, metavar="P")
+    p.add_argument("--no-keep-awake", action="store_true", help="let the CPU idle between ticks (see KeepAwake)")
+    a = p.parse_args(argv)
+    with KeepAwake(() if a.no_keep_awake else (a.cpu,)):
+        rt = _realtime_setup(a.cpu, a.rt_priority)
+        out = firmware_loop(_NullFirmware(), WallClock(), int(a.seconds * 1e6), 1000)
+    out.update({"rt_" + k: v for k, v in rt.items()})
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(floor_main())

@@ -1,0 +1,1 @@
+"""The fits of ``coiltrack calibrate`` (``fits``) and the distortion survey (``survey``)."""

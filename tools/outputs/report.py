@@ -1,0 +1,398 @@
+"""Bench report: accuracy against ground truth, the Cramer-Rao bound for the
+same geometry and noise, rates, link counters and pulse-window checks."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from coiltrack.firmware.rotation import matrix_from_quat
+from coiltrack.hil.crlb import crlb_position_rms
+from coiltrack.protocol.schema import POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_VALID
+
+#: distance bands of the per-range breakdown, cm
+RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
+
+
+
+def is_wall_clock(key: str) -> bool:
+    """A report key measured on the wall clock (tick execution, jitter, speed), which differs
+    from run to run of the same seed; every other figure is a function of scenario, seed,
+    duration and configuration."""
+    return key.startswith("tick_") or key in ("wall_s", "speedup", "deadline_misses")
+
+
+def _rot_angle(Ra, Rb) -> float:
+    c = (float(np.trace(Ra.T @ Rb)) - 1.0) * 0.5
+    return math.acos(max(-1.0, min(1.0, c)))
+
+
+def window_violations(bench) -> int:
+    """Count windows that used a sample outside the flat part of the true pulse.
+
+    Compared on TRUE time (``hil.bench.window_truth``): the true instants of
+    the first and last used samples (the bench knows which sample carried
+    which time stamp, whatever the node's clock drift and sync error) against
+    the true edges the driver produced; the flat part starts when the L/R
+    current and the eddy fields of every conductor in the world have settled
+    to 1e-3 of the pulse's field (``World.flat_start_us``) and ends at the
+    true end edge.
+    """
+    from coiltrack.hil.bench import window_truth
+
+    return sum(1 for r in window_truth(bench) if r.get("violation"))
+
+
+#: battery of the thesis source: four AA cells (thesis sec 5.2.2), 6 V x 2.4 Ah
+BATTERY_WH = 6.0 * 2.4
+
+
+def energy(executed, world, duration_s: float, battery_wh: float = BATTERY_WH) -> dict:
+    """Coil charge and energy of the pulses the driver executed.
+
+    ``coil_energy_j`` is the energy dissipated in the windings, I^2 R t per
+    pulse (flat-top approximation; the L/R edges are a few tenths of a
+    millisecond of a 60 ms pulse). The driver draws ``I`` from the supply for
+    the length of the pulse, so the battery delivers ``V * I * t``;
+    ``projected_runtime_h`` is the battery energy over that mean power.
+    """
+    charge = coil_e = supply_e = 0.0
+    for e in executed:
+        t = (e["end_us"] - e["start_us"]) * 1e-6
+        i = abs(e["current_a"])
+        r = world.coils[e["coil"]].resistance
+        charge += i * t
+        coil_e += i * i * r * t
+        supply_e += world.supply_v * i * t
+    p_mean = supply_e / duration_s if duration_s > 0 else 0.0
+    lengths = sorted(e["end_us"] - e["start_us"] for e in executed)
+    return {
+        "pulse_ms": round(lengths[len(lengths) // 2] * 1e-3, 3) if lengths else None,   # median executed pulse
+        "pulses_per_s": round(len(executed) / duration_s, 3) if duration_s > 0 else 0.0,
+        "coil_charge_c": round(charge, 4),
+        "coil_energy_j": round(coil_e, 4),
+        "supply_energy_j": round(supply_e, 4),
+        "projected_runtime_h": round(battery_wh / p_mean, 2) if p_mean > 0 else None,
+    }
+
+
+def _core_of(cfg) -> str:
+    """The numeric core a firmware of ``cfg`` runs in this install (``coiltrack.firmware.core``)."""
+    from coiltrack.firmware.core import resolve
+
+    return resolve(getattr(cfg, "impl", "compiled"))
+
+
+def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dict:
+    rec = bench.recorder
+    world = bench.world
+    pos_err, ang_err, crlbs = [], [], []
+    n_used = [w.n_used for _, w in rec.windows if w.n_used]
+    n_base = [w.n_base for _, w in rec.windows if w.n_base]
+    nu = float(np.median(n_used)) if n_used else 1.0
+    nb = float(np.median(n_base)) if n_base else 1.0
+    sigma_amp = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
+    currents = np.array([c.current for c in cfg.coils])
+    amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
+    if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
+        sigma_amp = np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils)))
+    truth_amp = None    # DC pulses: the bound's currents and sample counts from the bench's ground truth
+    if amp_sigma is None or amp_sigma(cfg) is None:
+        from coiltrack.hil.crlb import TruthAmplitudes
+
+        truth_amp = TruthAmplitudes(bench, bench.scenario.sensor.noise_t, cfg.baseline_us)
+    invalid = 0
+    fused = []          # (distance, position error, angle error) of the fused poses (IMU rate)
+    for rp in rec.poses:
+        m = rp["msg"]
+        if not m.status & POSE_VALID:
+            invalid += 1
+            continue
+        if m.status & POSE_FUSED:
+            pf = np.array([m.px, m.py, m.pz])
+            Rf = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
+            fused.append((float(np.linalg.norm(rp["true_p"])), float(np.linalg.norm(pf - rp["true_p"])),
+                          _rot_angle(Rf, rp["true_R"])))
+            continue
+        p = np.array([m.px, m.py, m.pz])
+        R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
+        pos_err.append(float(np.linalg.norm(p - rp["true_p"])))
+        ang_err.append(_rot_angle(R, rp["true_R"]))
+        inp = truth_amp.for_pose(rp, len(world.coils)) if truth_amp is not None else None
+        crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], *(inp or (currents, sigma_amp))))
+        rp["crlb_m"] = crlbs[-1]            # per pose, for the pose table (tools.outputs.posecsv)
+    per_node: dict[int, list] = {}
+    for rp in rec.poses:
+        m = rp["msg"]
+        if m.status & POSE_VALID and not m.status & POSE_FUSED:
+            p = np.array([m.px, m.py, m.pz])
+            R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
+            per_node.setdefault(m.node, []).append((float(np.linalg.norm(p - rp["true_p"])), _rot_angle(R, rp["true_R"])))
+    pe, ae, cb = np.array(pos_err), np.array(ang_err), np.array(crlbs)
+    rms = lambda a: float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")  # noqa: E731
+    emu_bad = bench.emulator.decoder.frames_bad
+    dist = [float(np.linalg.norm(rp["true_p"])) for rp in rec.poses]
+    vdist = np.array([float(np.linalg.norm(rp["true_p"])) for rp in rec.poses
+                      if rp["msg"].status & POSE_VALID and not rp["msg"].status & POSE_FUSED])
+    by_range = {}
+    for lo, hi in RANGE_BANDS_CM:
+        sel = (vdist >= lo / 100) & (vdist < hi / 100)
+        if np.any(sel):
+            by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(rms(pe[sel]) * 1e3, 2),
+                                        "crlb_position_rms_mm": round(rms(cb[sel]) * 1e3, 2),
+                                        "orientation_rms_deg": round(math.degrees(rms(ae[sel])), 2)}
+    from coiltrack.hil.bench import bench_metrics, fault_summary
+
+    truth = bench_metrics(bench, cfg.fall_us, cfg.baseline_us)
+    rep = {
+        "scenario": bench.scenario.name,
+        "seed": bench.seed,
+        "transport": transport,
+        "core": fw_status.get("core") or _core_of(cfg),     # the numeric core that ran ([core] impl)
+        "duration_s": duration_s,
+        "poses": int(pe.size),
+        "poses_invalid": invalid,
+        "position_rms_mm": round(rms(pe) * 1e3, 3),
+        "position_p95_mm": round(float(np.percentile(pe, 95)) * 1e3, 3) if pe.size else None,
+        "orientation_rms_deg": round(math.degrees(rms(ae)), 3),
+        "crlb_position_rms_mm": round(rms(cb) * 1e3, 3),
+        "pose_rate_hz": round(pe.size / duration_s, 3) if duration_s > 0 else 0.0,
+        "by_range": by_range,
+        "distance_range_cm": [round(min(dist) * 100, 1), round(max(dist) * 100, 1)] if dist else None,
+        "frames_rx": fw_status.get("rx_frames_ok", 0),
+        "frames_bad": fw_status.get("rx_frames_bad", 0) + emu_bad,
+        "pulse_window_violations": truth.pop("pulse_window_violations"),
+        "windows_flagged": fw_status.get("windows_flagged", 0),
+        "coil_pulses": len(bench.driver.executed),
+        "mag_samples": bench.sensor.samples,
+        "source_moving": bool(getattr(world, "source_moving", False)),
+    }
+    if len(cfg.sensor_ids) > 1:
+        # every sensor's own figures (magnetic poses), in node order
+        rep["sensors"] = []
+        for node in cfg.sensor_ids:
+            e = np.array(per_node.get(node, []), dtype=float).reshape(-1, 2)
+            rep["sensors"].append({"node": int(node), "poses": int(e.shape[0]),
+                                   "position_rms_mm": round(rms(e[:, 0]) * 1e3, 3),
+                                   "orientation_rms_deg": round(math.degrees(rms(e[:, 1])), 3)})
+    rep.update(energy(bench.driver.executed, world, duration_s))
+    if hasattr(bench.driver, "accuracy_report"):
+        rep["coil_driver"] = bench.driver.accuracy_report()
+    rep.update(truth)
+    rep["faults"] = fault_summary(bench, fw_status)
+    if hasattr(bench.link, "counts"):
+        rep["link_faults"] = dict(bench.link.counts)
+    if getattr(bench, "verifier", None) is not None:
+        # what the nodes did with the firmware's signatures (commands accepted, refused by kind)
+        rep["signing"] = {**bench.verifier.counters(), "firmware_signed": fw_status.get("tx_signed", 0)}
+    if fused:
+        _fused_keys(rep, np.array(fused), duration_s, fw_status, rms)
+    # consistency flags of the valid poses (NIS monitor, health), and the adaptive mode's counters
+    if "ac_blocks" in fw_status:
+        _ac_keys(rep, fw_status)
+        rep.update(_ac_energy(bench, duration_s))
+    rep["poses_distorted"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
+                                 and rp["msg"].status & POSE_DISTORTED)
+    rep["poses_inconsistent"] = sum(1 for rp in rec.poses if rp["msg"].status & POSE_VALID
+                                    and rp["msg"].status & POSE_INCONSISTENT)
+    rep.update(quality_keys(rec.poses))
+    if "adaptive_pulses" in fw_status:
+        rep["adaptive"] = {k[len("adaptive_"):]: v for k, v in fw_status.items() if k.startswith("adaptive_")}
+    from .faultreport import fault_keys
+
+    rep.update(fault_keys(bench))
+    ref = bench.scenario.reference
+    if ref:
+        rep["paper"] = ref
+    if getattr(bench.scenario, "report_extra", None) is not None:
+        rep.update(bench.scenario.report_extra(bench, rep, cfg))
+    return rep
+
+
+def quality_keys(poses) -> dict:
+    """``quality_error_rank_corr``: minus Spearman's rank correlation (``scipy.stats.spearmanr``)
+    of POSE.quality with the true position error over the valid magnetic poses, so that a quality
+    falling as the error grows (the intent) is POSITIVE (1: the error's order exactly reversed;
+    None: fewer than 3 poses, a constant quality or error, or scipy missing); ``quality_mean``."""
+    q, e = [], []
+    for rp in poses:
+        m = rp["msg"]
+        if m.status & POSE_VALID and not m.status & POSE_FUSED and hasattr(m, "quality"):
+            q.append(float(m.quality))
+            e.append(float(np.linalg.norm(np.array([m.px, m.py, m.pz]) - rp["true_p"])))
+    out = {"quality_error_rank_corr": None, "quality_mean": round(float(np.mean(q)), 1) if q else None}
+    if len(q) < 3 or np.ptp(q) == 0 or np.ptp(e) == 0:
+        return out
+    try:
+        from scipy.stats import spearmanr
+    except ImportError:
+        return out
+    rho = float(spearmanr(q, e).statistic)
+    out["quality_error_rank_corr"] = round(-rho, 3) if math.isfinite(rho) else None
+    return out
+
+
+def _fused_keys(rep: dict, fz: np.ndarray, duration_s: float, fw_status: dict, rms) -> None:
+    """With fused poses (``POSE_FUSED``, the thesis ch. 6 filter at the IMU
+    rate) the headline keys describe them and the magnetic-only solutions of the
+    same run move to ``magnetic_*``."""
+    for k in ("poses", "position_rms_mm", "position_p95_mm", "orientation_rms_deg", "pose_rate_hz"):
+        rep["magnetic_" + k] = rep[k]
+    rep["magnetic_by_range"] = rep.pop("by_range")
+    fd, fe, fa = fz[:, 0], fz[:, 1], fz[:, 2]
+    rep["poses"] = int(fe.size)
+    rep["position_rms_mm"] = round(rms(fe) * 1e3, 3)
+    rep["position_p95_mm"] = round(float(np.percentile(fe, 95)) * 1e3, 3)
+    rep["orientation_rms_deg"] = round(math.degrees(rms(fa)), 3)
+    rep["pose_rate_hz"] = round(fe.size / duration_s, 3)
+    mag = rep["magnetic_position_rms_mm"]
+    rep["fused_to_magnetic_position"] = round(rep["position_rms_mm"] / mag, 3) if mag else None
+    by_range = {}
+    for lo, hi in RANGE_BANDS_CM:
+        sel = (fd >= lo / 100) & (fd < hi / 100)
+        if np.any(sel):
+            mb = rep["magnetic_by_range"].get(f"{lo}-{hi}cm", {})
+            by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(rms(fe[sel]) * 1e3, 2),
+                                        "orientation_rms_deg": round(math.degrees(rms(fa[sel])), 2),
+                                        "magnetic_position_rms_mm": mb.get("position_rms_mm"),
+                                        "magnetic_orientation_rms_deg": mb.get("orientation_rms_deg"),
+                                        "crlb_position_rms_mm": mb.get("crlb_position_rms_mm")}
+    rep["by_range"] = by_range
+    rep["fusion"] = {k: v for k, v in fw_status.items()
+                     if k.startswith(("fusion_", "fused_", "imu_", "compass_", "source_imu"))}
+
+
+def _ac_keys(rep: dict, fw_status: dict) -> None:
+    """AC excitation: ``excitation``, the magnetic pose rate and the demodulator's figures."""
+    rep["excitation"] = "ac"
+    rep.setdefault("magnetic_pose_rate_hz", rep["pose_rate_hz"])
+    rep["ac_quadrature_ratio_mean"] = round(fw_status["ac_quadrature_ratio_mean"], 5)
+    rep["ac_quadrature_ratio_max"] = round(fw_status["ac_quadrature_ratio_max"], 5)
+    rep["ac"] = {k[len("ac_"):]: (round(v, 5) if isinstance(v, float) else v)
+                 for k, v in fw_status.items() if k.startswith("ac_")}
+
+
+def _ac_energy(bench, duration_s: float, battery_wh: float = BATTERY_WH) -> dict:
+    """Coil charge and energy of AC drive: ``|I|^2 R / 2`` per coil while on; a linear driver from
+    the supply draws the rectified mean ``(2/pi) |I|``, so the battery delivers ``V (2/pi) |I| t``."""
+    drv = getattr(bench.driver, "ac_driver", None)
+    plans = getattr(bench.driver, "plans", {})
+    if drv is None or not plans:
+        return {}
+    on_s = max(0.0, duration_s - min(p["on_true_us"] for p in plans.values()) * 1e-6)
+    world = bench.world
+    charge = coil_e = 0.0
+    for k, d in enumerate(drv.drives):
+        if d is None:
+            continue
+        i = abs(d.current)
+        charge += 2.0 / math.pi * i * on_s
+        coil_e += 0.5 * i * i * world.coils[k].resistance * on_s
+    supply_e = world.supply_v * charge
+    p_mean = supply_e / duration_s if duration_s > 0 else 0.0
+    return {"pulses_per_s": 0.0, "coil_charge_c": round(charge, 4), "coil_energy_j": round(coil_e, 4),
+            "supply_energy_j": round(supply_e, 4),
+            "projected_runtime_h": round(battery_wh / p_mean, 2) if p_mean > 0 else None}
+
+
+def format_table(rep: dict) -> str:
+    rows = [
+        ("scenario", rep["scenario"]), ("seed", rep["seed"]), ("transport", rep["transport"]),
+        ("duration", f'{rep["duration_s"]:.1f} s'),
+        ("poses", f'{rep["poses"]} valid, {rep["poses_invalid"]} invalid ({rep["pose_rate_hz"]:.2f} Hz)'),
+        ("position RMS", f'{rep["position_rms_mm"]:.2f} mm  (CRLB {rep["crlb_position_rms_mm"]:.2f} mm)'),
+        ("orientation RMS", f'{rep["orientation_rms_deg"]:.2f} deg'),
+    ]
+    if "magnetic_position_rms_mm" in rep:
+        rows[5] = ("position RMS (fused)", f'{rep["position_rms_mm"]:.2f} mm  ({rep["fused_to_magnetic_position"]} '
+                                           f'of magnetic only)')
+        rows[6] = ("orientation RMS (fused)", f'{rep["orientation_rms_deg"]:.2f} deg')
+        rows += [("magnetic only", f'{rep["magnetic_position_rms_mm"]:.2f} mm (CRLB {rep["crlb_position_rms_mm"]:.2f}'
+                                   f' mm), {rep["magnetic_orientation_rms_deg"]:.2f} deg, '
+                                   f'{rep["magnetic_poses"]} poses')]
+    if rep.get("source_moving"):
+        rows.append(("source moving", "true (body-worn: its own IMU and magnetometer module)"))
+    rows += [
+        ("frames rx / bad", f'{rep["frames_rx"]} / {rep["frames_bad"]}'),
+        ("pulse window violations", rep["pulse_window_violations"]),
+        ("coil energy", f'{rep["coil_energy_j"]:.2f} J in {rep["pulses_per_s"]:.2f} pulses/s'
+                        + (f'; battery {rep["projected_runtime_h"]} h (4 AA)' if rep["projected_runtime_h"] else '')),
+    ]
+    cd = rep.get("coil_driver")
+    if cd and cd.get("current_error_rms") is not None:
+        rows.append(("coil driver", f'current error {cd["current_error_rms"] * 100:.2f} % rms (static gain '
+                                    f'+-{cd["static_gain_error_max"] * 100:.1f} %), winding up to '
+                                    f'{cd["winding_temp_max_c"]:.1f} C (R +{cd["resistance_rise_max"] * 100:.2f} %), '
+                                    f'{cd["pulses_voltage_limited"]} pulses voltage-limited'))
+    if "fixed_position_rms_mm" in rep:
+        rows += [("fixed X/Y/Z cycle", f'{rep["fixed_position_rms_mm"]:.2f} mm, '
+                                       f'{rep["fixed_orientation_rms_deg"]:.2f} deg, '
+                                       f'{rep["fixed_coil_energy_j"]:.2f} J in {rep["fixed_pulses_per_s"]:.2f} '
+                                       f'pulses/s; battery '
+                                       f'{rep["fixed_projected_runtime_h"]} h (same trajectory and seed)'),
+                 ("this run / fixed", f'position RMS x{rep["position_rms_ratio"]}, orientation RMS '
+                                      f'x{rep["orientation_rms_ratio"]}, coil energy x{rep["energy_ratio"]}')]
+    if "perfect_position_rms_mm" in rep:
+        # an imperfect-bench scenario: the same trajectory and seed uncalibrated and on the perfect bench
+        rows += [("calibration", rep.get("calibration") or "none"),
+                 ("uncalibrated", f'{rep["uncalibrated_position_rms_mm"]:.2f} mm, '
+                                  f'{rep["uncalibrated_orientation_rms_deg"]:.2f} deg (x{rep["uncalibrated_over_calibrated_position"]}'
+                                  f', x{rep["uncalibrated_over_calibrated_orientation"]} of this run)'),
+                 ("perfect bench", f'{rep["perfect_position_rms_mm"]:.2f} mm, {rep["perfect_orientation_rms_deg"]:.2f} deg '
+                                   f'(this run x{rep["calibrated_over_perfect_position"]}, '
+                                   f'x{rep["calibrated_over_perfect_orientation"]} of it)')]
+    if rep.get("excitation") == "ac":
+        rows.append(("AC excitation", f'{rep["magnetic_pose_rate_hz"]:.1f} magnetic poses/s; quadrature / in-phase '
+                                      f'{rep["ac_quadrature_ratio_mean"]:.4f} mean, {rep["ac_quadrature_ratio_max"]:.4f} max'))
+    if rep.get("poses_distorted") or rep.get("poses_inconsistent"):
+        rows.append(("poses flagged", f'{rep["poses_distorted"]} distorted, {rep["poses_inconsistent"]} inconsistent'))
+    if rep.get("distance_range_cm"):
+        rows.insert(4, ("distance range", f'{rep["distance_range_cm"][0]}-{rep["distance_range_cm"][1]} cm'))
+    for k in ("tick_jitter_us_median", "tick_jitter_us_p99", "tick_jitter_us_max", "deadline_misses",
+              "latency_ms_p50", "latency_ms_p99", "pulse_window_min_margin_us"):
+        if rep.get(k) is not None:
+            rows.append((k, rep[k]))
+    fl = rep.get("faults")
+    if fl and (fl["injected"].get("switches") or fl["reported"].get("events")):
+        rows.append(("faults injected", ", ".join(fl["injected"]["switches"]) or "-"))
+        ev = fl["reported"]["events"]
+        rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
+        if rep.get("fault_recovery_s"):
+            rows.append(("fault recovery", ", ".join(f"{k} {'-' if v is None else f'{v:g} s'}"
+                                                     for k, v in rep["fault_recovery_s"].items())))
+        if rep.get("faults_unreported"):
+            rows.append(("faults unreported", ", ".join(rep["faults_unreported"])))
+    if rep.get("overconfident_fraction") is not None:
+        rows.append(("overconfident poses", f'{rep["poses_overconfident"]} ({rep["overconfident_fraction"]:.4f} of '
+                                            f'the valid; 99.9 % chi-square, 3 dof)'))
+    for sn in rep.get("sensors", []):
+        rows.append((f"  sensor {sn['node']}", f"{sn['position_rms_mm']:.1f} mm, {sn['orientation_rms_deg']:.2f} deg, "
+                                              f"{sn['poses']} poses"))
+    sg = rep.get("signing")
+    if sg:
+        rows.append(("signed commands", f'{sg["firmware_signed"]} sent, {sg["accepted"]} accepted; refused '
+                                        f'{sg["unsigned"]} unsigned, {sg["forged"]} forged, {sg["replayed"]} replayed'))
+    if rep.get("interrupted"):
+        rows.append(("interrupted", f'stopped by {rep.get("stopped_by")}: the figures are of the part that ran'))
+    if "paper" in rep:
+        p = rep["paper"]
+        rows.append(("paper", f'{p.get("position_rms_mm")} mm, {p.get("orientation_rms_deg")} deg ({p.get("source")})'))
+    for band, b in rep.get("by_range", {}).items():
+        if "magnetic_position_rms_mm" in b:
+            rows.append((f"  at {band}", f'{b["position_rms_mm"]:.1f} mm, {b["orientation_rms_deg"]:.1f} deg fused; '
+                                         f'{b["magnetic_position_rms_mm"]} mm (CRLB {b["crlb_position_rms_mm"]}), '
+                                         f'{b["magnetic_orientation_rms_deg"]} deg magnetic'))
+            continue
+        rows.append((f"  at {band}", f'{b["position_rms_mm"]:.1f} mm (CRLB {b["crlb_position_rms_mm"]:.1f}), '
+                                     f'{b["orientation_rms_deg"]:.1f} deg, {b["poses"]} poses'))
+    if not rep["poses"] and "magnetic_position_rms_mm" not in rep:    # no pose: no error to show
+        rows = [r for r in rows if r[0] not in ("position RMS", "orientation RMS")]
+    w = max(len(k) for k, _ in rows)
+    return "\n".join(f"  {k:<{w}}  {v}" for k, v in rows)
+
+
+def write_json(rep: dict, path: str) -> None:
+    """The report as strict JSON (``null`` for a figure that is not a finite number)."""
+    from .jsonout import write
+
+    write(path, rep)
