@@ -55,6 +55,7 @@ import sys
 import numpy as np
 
 from ..bench.sweep import parse_seeds as _seeds_arg
+from ..inputs.sweepfile import read_json
 
 #: cycle of ``schepers-adaptive``'s fixed baseline (three 60 ms pulses in 600 ms)
 CYCLE_S = 0.6
@@ -142,8 +143,6 @@ def exponent(rms_hi, rms_lo, energy_hi: float, energy_lo: float) -> np.ndarray:
 
 
 def _sweep_figures(path: str) -> dict:
-    from ..inputs.sweepfile import read_json
-
     d = read_json(path)
     out = {}
     for r in d["runs"]:

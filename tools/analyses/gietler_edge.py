@@ -36,6 +36,7 @@ import math
 import numpy as np
 
 from coiltrack.tools import args as A
+from ..bench import gietler as G
 
 
 def _filter(spec, cfg, model, iterations):
@@ -122,7 +123,7 @@ def streams(spec, cfg, model, truth, fields, n_streams, seed, diverge_m, draws=4
 
 
 def main(argv=None) -> int:
-    from ..bench import gietler as G
+    # imported where used here and below: the scenarios (scipy underneath) load only when needed, not for --help
     from ..scenarios.gietler import SPECS, _split
 
     p = argparse.ArgumentParser(prog="python -m coiltrack.tools.analyses.gietler_edge", description=__doc__.split("\n")[0])

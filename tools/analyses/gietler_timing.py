@@ -14,6 +14,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from ..bench import gietler as G
 
 CASES = (("air (base model H0)", "gietler-air", "extended", 2.5),
          ("copper cube (extended H, 79 sub-volumes)", "gietler-copper", "extended", 20.0),
@@ -21,7 +22,7 @@ CASES = (("air (base model H0)", "gietler-air", "extended", 2.5),
 
 
 def main(argv=None) -> int:
-    from ..bench import gietler as G
+    # imported where used here and below: the scenarios (scipy underneath) load only when needed, not for --help
     from ..scenarios.gietler import _split
 
     p = argparse.ArgumentParser(prog="python -m coiltrack.tools.analyses.gietler_timing", description=__doc__.split("\n")[0])

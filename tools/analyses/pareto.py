@@ -18,13 +18,12 @@ import json
 import statistics
 import sys
 from pathlib import Path
+from ..inputs.sweepfile import read_json
 
 
 def load(paths) -> list[dict]:
     """One row per grid point of every sweep file."""
     rows = []
-    from ..inputs.sweepfile import read_json
-
     for path in paths:
         d = read_json(path)          # strictly: a damaged file is refused naming it and the key
         groups: dict[str, list[dict]] = {}

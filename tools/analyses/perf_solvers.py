@@ -16,6 +16,7 @@ import dataclasses
 import time
 
 import numpy as np
+from ..bench.framelog import replay
 
 __all__ = ["solver_costs", "format_solver_costs"]
 
@@ -23,8 +24,6 @@ __all__ = ["solver_costs", "format_solver_costs"]
 def _one(header: dict, reads, solver: str, warm_us: int) -> dict:
     from coiltrack.firmware.loop import Firmware
     from coiltrack.firmware.pose.solver import SOLVE_RUNNING
-
-    from ..bench.framelog import replay
 
     evals, times, cpus, iters = [], [], [], []
     clk, cpu = time.perf_counter_ns, time.thread_time_ns

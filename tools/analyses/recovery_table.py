@@ -29,6 +29,7 @@ import subprocess
 import sys
 
 import numpy as np
+from coiltrack.tools.outputs.faultreport import recovery_time
 
 #: the four faults of the recovery table (docs/faults.md, README "Faults and recovery"): name, switch, end (s)
 FAULTS = (("sensor", "node_off=sensor@40s-45s", 45.0), ("driver", "node_off=driver@40s-45s", 45.0),
@@ -85,7 +86,6 @@ def run(cmd: list[str], out: str, seed: int, name: str, switch: str | None) -> N
 
 def table(out: str, seeds: list[int]) -> list[dict]:
     from coiltrack.hil.faults import TimedFault
-    from coiltrack.tools.outputs.faultreport import recovery_time
 
     rows = []
     for seed in seeds:

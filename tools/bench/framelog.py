@@ -23,6 +23,7 @@ import json
 
 from coiltrack.firmware.config import FirmwareConfig, config_from_dict, config_to_dict  # noqa: F401
 from coiltrack.firmware.port import Port
+from ..inputs.infile import InputFileError, loads_json, read_bytes, text_lines, warn
 
 FORMAT = "coiltrack-frames/1"
 
@@ -79,8 +80,6 @@ def write_log(path, header: dict, reads) -> None:
 
 def _check_header(header, path) -> None:
     """The header's values, of the right types (an InputFileError naming the key)."""
-    from ..inputs.infile import InputFileError
-
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise InputFileError(path, f"not a {FORMAT} header", line=1)
     tick = header.get("tick_us")
@@ -129,8 +128,6 @@ def read_log(path) -> tuple[dict, list[tuple[int, bytes]]]:
     used up to the damage: the reads before it, and the header with ``duration_s`` the
     time of the last read kept and ``truncated`` (line, reads kept, recorded duration,
     what is wrong there)."""
-    from ..inputs.infile import InputFileError, loads_json, read_bytes, text_lines
-
     data = read_bytes(path)
     if not data.strip():
         raise InputFileError(path, "is empty: no frame log in it")
@@ -174,8 +171,6 @@ def load(command: str, path):
     """:func:`read_log` for ``coiltrack COMMAND``: None after a one-line error, or the log,
     with a warning line on standard error where it was cut short."""
     import sys
-
-    from ..inputs.infile import warn
 
     try:
         header, reads = read_log(path)

@@ -12,6 +12,7 @@ import struct
 import termios
 
 from coiltrack.firmware.port import Port
+from ..args import bitrate
 
 
 class InprocEnd(Port):
@@ -191,8 +192,6 @@ class GuardedPort(Port):
 
 def add_link_arguments(p, serial_port_type=str) -> None:
     """The link options of ``firmware`` and ``emulator``: a serial port or a python-can bus."""
-    from ..args import bitrate
-
     p.add_argument("--transport", choices=("serial", "can"), default="serial",
                    help="serial: COBS frames on --port; can: the same messages on a python-can bus")
     p.add_argument("--port", type=serial_port_type, help="serial device, pty path or pyserial URL (--transport serial)")

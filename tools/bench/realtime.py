@@ -43,6 +43,8 @@ from coiltrack.hil.clock import WallClock
 from .links import FdLink, make_raw_pty
 from .timing import _stats, inproc_timing, no_ticks  # noqa: F401  (inproc_timing: for the callers of realtime)
 from ..stopping import Stopped, held_signals, mark, start_child, stop_child
+from .. import args as A
+from ..outputs import report as report_mod
 
 
 #: time the firmware process is given to start (imports, set-up, memory locked) before the shared
@@ -455,7 +457,6 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     ``interrupted``, goes with the exception as ``exc.partial``. ``outputs``
     (:mod:`coiltrack.tools.outputs`) taps the emulator's end of the link."""
     # here, not at the top: the firmware's process imports this module and needs no world
-    from ..outputs import report as report_mod
     from .runner import BenchSetup, Progress
 
     cfg = cfg or scenario.firmware_config()
@@ -539,8 +540,6 @@ def floor_main(argv=None) -> int:
     that does nothing, at the firmware's CPU, priority and set-up; prints its timing (JSON). Its
     deadline misses are the ones the machine alone causes, the floor of the two-process bench's."""
     import argparse
-
-    from .. import args as A
 
     p = argparse.ArgumentParser(prog="python -m coiltrack.tools.bench.realtime", description=floor_main.__doc__)
     p.add_argument("--cpu", type=A.cpu, default=(os.cpu_count() or 1) - 1, help="CPU (default the last)")

@@ -18,6 +18,8 @@ import traceback
 import numpy as np
 
 from ..stopping import Stopped, mark
+from ..outputs import report as report_mod
+from .links import inproc_pair
 
 #: link fault rates for the whole run (per frame)
 LINK_RATES = {"drop": 0.01, "corrupt": 0.01, "duplicate": 0.005, "truncate": 0.002, "garbage": 0.002,
@@ -76,6 +78,7 @@ def footprint(fw) -> dict:
     from its objects, ``tools.commands.perf.state_bytes``) and ``items`` (elements of
     every list, dict, set and tuple reachable from them): a buffer or a queue
     that grows shows in one of the two."""
+    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from ..commands.perf import state_bytes
 
     total, _ = state_bytes(fw)
@@ -108,8 +111,6 @@ def soak_run(scenario, seed: int, duration_s: float, schedule: str | None = None
     the report says ``crashed`` with the traceback's last line."""
     from coiltrack.firmware.loop import Firmware
 
-    from ..outputs import report as report_mod
-    from .links import inproc_pair
     from .runner import BenchSetup, parse_faults
 
     cfg = scenario.firmware_config()

@@ -36,6 +36,7 @@ from .. import scenarios
 from ..scenarios import EXPERIMENTS
 from ..scenarios.base import Experiment, override_dict  # noqa: F401  (here for the callers of sweep)
 from ..stopping import Stopped
+from ..outputs.report import is_wall_clock
 
 #: figures where a larger value is the better one (their worst is the minimum, their p90 the
 #: 10th percentile); for every other figure (errors, energy, counts of faults) worst is the maximum
@@ -146,8 +147,6 @@ class Task:
 def figures(rep: dict) -> dict:
     """The numeric top-level keys of a bench report that depend on the run alone (not the
     wall-clock timing figures); NaN becomes None (strict JSON)."""
-    from ..outputs.report import is_wall_clock
-
     out = {}
     for k, v in rep.items():
         if isinstance(v, bool) or not (v is None or isinstance(v, (int, float))):
@@ -161,6 +160,7 @@ def figures(rep: dict) -> dict:
 def run_task(task: Task) -> dict:
     """One bench run (as ``coiltrack bench --transport inproc``, with the fixed-cycle
     comparison of an actuation-policy scenario): ``{"seed", "params", "figures"}``."""
+    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from .runner import add_fixed_comparison, run_inproc
 
     try:

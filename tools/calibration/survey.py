@@ -28,6 +28,8 @@ import os
 import tempfile
 
 import numpy as np
+from coiltrack.tools.outputs import report as report_mod
+from coiltrack.tools.outputs.report import RANGE_BANDS_CM
 
 __all__ = ["jig_poses", "survey_amplitudes", "fit_survey", "survey_table", "correction_report"]
 
@@ -264,7 +266,7 @@ def _run(scenario, seed: int, duration_s: float, cfg):
     """One in-process run on the simulated clock (``tools.bench.runner.run_inproc``'s core): the report
     and ``{t_us: position}`` of the valid magnetic poses."""
     from coiltrack.firmware.loop import Firmware
-    from coiltrack.tools.outputs import report as report_mod
+    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from coiltrack.tools.bench import runner
 
     fw_end, emu_end = runner.sim_link_pair("inproc")
@@ -292,8 +294,6 @@ def poses_of(bench) -> dict:
 
 def table_error_by_range(run: dict, clean: dict) -> dict:
     """:func:`table_error_mm` per distance band of ``tools.outputs.report.RANGE_BANDS_CM`` (true distance)."""
-    from coiltrack.tools.outputs.report import RANGE_BANDS_CM
-
     out = {}
     for lo, hi in RANGE_BANDS_CM:
         sel = [k for k in set(run) & set(clean) if lo / 100 <= np.linalg.norm(clean[k][1]) < hi / 100]

@@ -8,6 +8,13 @@ import sys
 
 from .. import args as A
 from .. import scenarios
+from ..bench.sweep import experiment
+from ..inputs.infile import InputFileError
+from ..inputs.userconfig import load_over
+from ..outputs import report
+from ..outputs.sinks import add_bench_arguments, open_or_exit
+from ..scenarios import get
+from ..stopping import Stopped, mark
 
 EXIT = {130: "stopped by SIGINT: the report of what was done is printed (and written), marked interrupted",
         143: "stopped by SIGTERM: likewise"}
@@ -51,8 +58,6 @@ def add_arguments(p) -> None:
                    help="sign the firmware's commands with KEY (64 hex digits, a passphrase, @FILE or @env for "
                         "$COILTRACK_SIGNING_KEY); the emulated nodes then require signatures and refuse, and count, "
                         "unsigned or forged commands")
-    from ..outputs.sinks import add_bench_arguments
-
     add_bench_arguments(p)
 
 
@@ -61,10 +66,8 @@ def _setup(args):
     one-line error (a str) that refuses one of them."""
     from coiltrack.firmware.config import ConfigError
 
+    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from ..bench.runner import parse_faults
-    from ..scenarios import get
-    from ..bench.sweep import experiment
-    from ..inputs.userconfig import load_over
 
     sc = get(args.scenario)
     if experiment(args.scenario) is not None:
@@ -72,8 +75,6 @@ def _setup(args):
                 f"run it with `coiltrack sweep --scenario {args.scenario}`")
     if args.log and args.transport not in ("inproc", "can"):
         return "--log needs an in-process transport (inproc or can)"
-    from ..inputs.infile import InputFileError
-
     try:
         cfg = load_over(args.config, sc.firmware_config()) if args.config else None
     except InputFileError as exc:
@@ -103,7 +104,6 @@ def _setup(args):
 
 def _run(args, sc, duration, cfg, faults, outputs) -> dict:
     from ..bench.runner import add_fixed_comparison, run_inproc
-    from ..stopping import Stopped, mark
 
     if args.transport in ("inproc", "can"):
         rep = run_inproc(sc, args.seed, duration, faults=faults, progress=not args.quiet, cfg=cfg,
@@ -126,16 +126,11 @@ def _run(args, sc, duration, cfg, faults, outputs) -> dict:
 
 
 def run(args) -> int:
-    from ..outputs import report
-    from ..stopping import Stopped
-
     setup = _setup(args)
     if isinstance(setup, str):
         print(f"coiltrack bench: {setup}", file=sys.stderr)
         return 2
     sc, duration, cfg, faults = setup
-    from ..outputs.sinks import open_or_exit
-
     outputs = open_or_exit("bench", args, can_link=args.transport in ("can", "slcan"))
     code = 0
     try:

@@ -20,6 +20,9 @@ import datetime
 import sys
 
 from .. import args as A
+from ..inputs.infile import InputFileError
+from ..inputs.userconfig import load_over
+from ..stopping import held_signals, Stopped
 
 HELP = "estimate a calibration file from a calibration run (grid of known poses, free motion)"
 EXIT = {130: "stopped by SIGINT: no calibration written; a recording made by --record is kept (in --recording, "
@@ -28,6 +31,7 @@ EXIT = {130: "stopped by SIGINT: no calibration written; a recording made by --r
 
 
 def add_arguments(p) -> None:
+    # imported where used here and below: the fits (scipy underneath) load only when needed, not for --help
     from ..calibration.fits import METHODS
 
     p.add_argument("--method", choices=sorted(METHODS), required=True, help="the calibration procedure")
@@ -142,8 +146,6 @@ def _save_recording(rec: dict, path) -> None:
 def _stopped_fitting(args, rec: dict, exc) -> int:
     """SIGINT or SIGTERM during the fit: no calibration file, but a recording made here is
     kept (written now if ``--recording`` has not already), to fit later with ``--input``."""
-    from ..stopping import held_signals
-
     if args.record:
         path = recording_path(args)
         with held_signals():       # a second signal waits for the recording to be written
@@ -167,9 +169,6 @@ def run(args) -> int:
     from coiltrack.firmware.config import ConfigError, FirmwareConfig
 
     from ..calibration.fits import METHODS
-    from ..inputs.infile import InputFileError
-    from ..stopping import Stopped
-    from ..inputs.userconfig import load_over
 
     try:
         cfg = load_over(args.config, FirmwareConfig()) if args.config else FirmwareConfig()

@@ -13,6 +13,7 @@ import time
 
 from .. import args as A
 from ..stopping import Stopped
+from ..bench.check import select, run_jobs, summarize
 
 HELP = "robustness sweep: every scenario on a range of seeds, counting exceptions and faults unreported"
 EXIT = {1: "a run raised an exception, or a fault injected was not reported (the table names them)",
@@ -38,8 +39,8 @@ def add_arguments(p) -> None:
 
 
 def _plan(args) -> tuple[list[str], list[int]]:
+    # imported where used here and below: the scenarios (scipy underneath) load only when needed, not for --help
     from .. import scenarios
-    from ..bench.check import select
     from ..bench.sweep import parse_seeds
 
     try:
@@ -89,8 +90,6 @@ def format_summary(s: dict, runs: list[dict]) -> str:
 
 
 def run(args) -> int:
-    from ..bench.check import run_jobs, summarize
-
     try:
         names, seeds = _plan(args)
     except ValueError as exc:

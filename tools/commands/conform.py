@@ -8,6 +8,7 @@ from __future__ import annotations
 import sys
 
 from .. import args as A
+from ..bench.links import warn_virtual_bus
 
 EXIT = {1: "a rule that applies to a node failed"}
 HELP = "conformance suite against a node on a serial port or CAN bus"
@@ -76,8 +77,6 @@ def run(args) -> int:
                           mag_rate_hz=args.mag_rate or None, seed=args.seed, link_id=args.link_id,
                           key=key_from_text(args.key) if args.key else None, bench=args.bench,
                           bench_current_ma=args.bench_current_ma, bench_pulse_ms=args.bench_pulse_ms)
-    from ..bench.links import warn_virtual_bus
-
     warn_virtual_bus(args, "conform")
     try:
         link, what = open_link(args)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import sys
 
 from .. import args as A
+from ..outputs.jsonout import dumps
 
 HELP = "decode a raw serial capture or a python-can log into readable messages"
 
@@ -22,8 +23,6 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     from coiltrack.protocol.capture import decode_file, format_message
-
-    from ..outputs.jsonout import dumps
 
     try:
         res = decode_file(args.file, args.format)

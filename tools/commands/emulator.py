@@ -16,6 +16,11 @@ import sys
 
 from .. import args as A
 from .. import scenarios
+from ..bench.links import add_link_arguments, FdLink, GuardedPort, make_raw_pty, open_link, warn_virtual_bus
+from ..bench.realtime import elapsed_s, emulator_loop
+from ..outputs import report
+from ..outputs.sinks import add_capture_argument, open_or_exit
+from ..stopping import Stopped, mark
 
 EXIT = {130: "stopped by SIGINT: the report of what was done is printed (and written), marked interrupted",
         143: "stopped by SIGTERM: likewise"}
@@ -23,8 +28,6 @@ HELP = "run the emulated coil driver and sensor nodes on a serial link or a CAN 
 
 
 def add_arguments(p) -> None:
-    from ..bench.links import add_link_arguments
-
     add_link_arguments(p, serial_port_type=A.serial_port)
     p.add_argument("--create-pty", action="store_true",
                    help="create a pseudo-terminal, print its path and talk on it (serial frames; not with --transport can)")
@@ -36,8 +39,6 @@ def add_arguments(p) -> None:
     p.add_argument("--epoch-ns", type=A.integer(0), default=None, help="CLOCK_MONOTONIC epoch shared with the firmware")
     p.add_argument("--faults", default="", help="fault switches, as for 'coiltrack bench --faults'")
     p.add_argument("--json", type=A.output_path, metavar="PATH", help="write the report as JSON")
-    from ..outputs.sinks import add_capture_argument
-
     add_capture_argument(p)
 
 
@@ -45,8 +46,6 @@ def _link(args):
     """The emulator's end of the link (pty, serial port or CAN bus), its kind, and the
     path of a pty created for it (None otherwise)."""
     from coiltrack.protocol.schema import NODE_COIL_DRIVER
-
-    from ..bench.links import FdLink, GuardedPort, make_raw_pty, open_link
 
     if args.create_pty:
         master, slave, name = make_raw_pty()
@@ -69,11 +68,8 @@ def run(args) -> int:
     from coiltrack.hil.clock import WallClock
     from coiltrack.hil.nodes import Recorder
 
-    from ..outputs import report
-    from .. import scenarios
-    from ..bench.realtime import elapsed_s, emulator_loop
+    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from ..bench.runner import BenchSetup, parse_faults
-    from ..stopping import Stopped, mark
 
     if not args.create_pty and args.transport == "serial" and args.port is None:
         print("coiltrack emulator: give --port, --create-pty or --transport can --channel", file=sys.stderr)
@@ -83,8 +79,6 @@ def run(args) -> int:
               f"cannot carry --transport {args.transport}; on CAN give the bus: --interface slcan --channel "
               f"DEVICE, --interface socketcan --channel can0", file=sys.stderr)
         return 2
-    from ..bench.links import warn_virtual_bus
-
     warn_virtual_bus(args, "emulator")
     sc = scenarios.get(args.scenario)
     duration = args.duration if args.duration is not None else sc.duration_s
@@ -93,8 +87,6 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"coiltrack emulator: --faults: {exc}", file=sys.stderr)
         return 2
-    from ..outputs.sinks import open_or_exit
-
     outputs = open_or_exit("emulator", args)
     try:
         link, kind, pty = _link(args)

@@ -18,6 +18,14 @@ import sys
 
 from .. import args as A
 from .. import scenarios
+from ..bench.links import add_link_arguments, GuardedPort, open_link, warn_virtual_bus
+from ..bench.realtime import KeepAwake, _realtime_setup, firmware_loop, no_ticks
+from ..inputs.infile import InputFileError
+from ..inputs.userconfig import load_over
+from ..outputs import jsonout
+from ..outputs.sinks import add_capture_argument, add_igtl_arguments, open_or_exit
+from ..scenarios import get
+from ..stopping import PeerSilent, Stopped, mark
 
 HELP = "run the firmware loop on a serial port or a CAN bus (wall clock)"
 EXIT = {3: "stopped because the nodes were silent for --peer-timeout seconds (statistics still written)",
@@ -26,8 +34,6 @@ EXIT = {3: "stopped because the nodes were silent for --peer-timeout seconds (st
 
 
 def add_arguments(p) -> None:
-    from ..bench.links import add_link_arguments
-
     add_link_arguments(p)
     p.add_argument("--config", type=A.input_file, metavar="FILE",
                    help="TOML firmware configuration, over the scenario's (see examples/firmware.toml)")
@@ -53,8 +59,6 @@ def add_arguments(p) -> None:
     p.add_argument("--rt-priority", type=A.integer(1, 99), default=None, metavar="P",
                    help="SCHED_FIFO priority with --realtime, 1..99 (default 30: above the two-process "
                         "bench's emulator at 20, below the kernel's threaded interrupts at 50)")
-    from ..outputs.sinks import add_capture_argument, add_igtl_arguments
-
     add_igtl_arguments(p)
     add_capture_argument(p)
     p.add_argument("--key", type=A.signing_key, metavar="KEY",
@@ -64,10 +68,6 @@ def add_arguments(p) -> None:
 
 def _config(args):
     from coiltrack.firmware.config import ConfigError
-
-    from ..inputs.infile import InputFileError
-    from ..scenarios import get
-    from ..inputs.userconfig import load_over
 
     base = get(args.scenario).firmware_config()
     try:
@@ -93,11 +93,6 @@ def run(args) -> int:
     from coiltrack.firmware.loop import Firmware
     from coiltrack.hil.clock import WallClock
 
-    from ..outputs import jsonout
-    from ..bench.links import GuardedPort, open_link
-    from ..bench.realtime import KeepAwake, _realtime_setup, firmware_loop, no_ticks
-    from ..stopping import PeerSilent, Stopped, mark
-
     cfg = _config(args)
     if cfg is None:
         return 2
@@ -108,16 +103,12 @@ def run(args) -> int:
         if isinstance(cfg, str):
             print(f"coiltrack firmware: {cfg}", file=sys.stderr)
             return 2
-    from ..bench.links import warn_virtual_bus
-
     warn_virtual_bus(args, "firmware")
     try:
         link, _ = open_link(args, cfg.node_id)
     except ValueError as exc:
         print(f"coiltrack firmware: {exc}", file=sys.stderr)
         return 2
-    from ..outputs.sinks import open_or_exit
-
     outputs = open_or_exit("firmware", args, can_link=args.transport == "can")
     clock = WallClock(args.epoch_ns)
     port = GuardedPort(outputs.wrap(link, clock_us=clock.now), clock, args.peer_timeout)

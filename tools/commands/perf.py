@@ -37,6 +37,10 @@ import numpy as np
 
 from .. import args as A
 from .. import scenarios
+from ..bench.alloc import NumpyAllocationCounter, available
+from ..bench.framelog import RecordingPort, config_to_dict, replay, load
+from ..bench.links import inproc_pair
+from ..bench.work_classes import TickWork, summarise
 
 HELP = "time the firmware tick on recorded inputs (per phase, allocations, state bytes, filterpy comparison)"
 
@@ -161,9 +165,7 @@ def _with_core(cfg, core):
 def _record(scenario: str, seed: int, duration: float, core=None):
     from coiltrack.firmware.loop import Firmware
 
-    from .. import scenarios
-    from ..bench.framelog import RecordingPort, config_to_dict
-    from ..bench.links import inproc_pair
+    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from ..bench.runner import BenchSetup
 
     sc = scenarios.get(scenario)
@@ -313,10 +315,6 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=Non
     from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter
     from coiltrack.firmware.loop import PHASES, Firmware
     from coiltrack.firmware.model.signal import SignalModel
-
-    from ..bench.alloc import NumpyAllocationCounter, available
-    from ..bench.framelog import replay
-    from ..bench.work_classes import TickWork, summarise
 
     warm = int(warmup_s * 1e6)
     tick_ns, phase_ns, imu_ticks, cpu_ns = [], [[] for _ in PHASES], [], []
@@ -517,8 +515,6 @@ def format_table(rep: dict) -> str:
 
 
 def run(args) -> int:
-    from ..bench.framelog import load
-
     if args.log:
         log = load("perf", args.log)
         if log is None:

@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from ..inputs.infile import InputFileError, load_json, warn
+from ..outputs.plot import plot_run, written_path
+from ..outputs.posecsv import read_csv
+from ..outputs.sinks import OutputError, check_writable
 
 HELP = "draw a bench run (pose table or report) as a PNG"
 
@@ -21,8 +25,6 @@ def add_arguments(p) -> None:
 
 def _check_report(rep, path) -> None:
     """The parts of a bench report the figure reads, of the right types."""
-    from ..inputs.infile import InputFileError
-
     if not isinstance(rep, dict) or "scenario" not in rep:
         raise InputFileError(path, "not a bench report (no 'scenario')")
     for key in ("magnetic_by_range", "by_range"):
@@ -51,9 +53,6 @@ def load(path: str):
     """(pose table or None, report or None) of a .csv table or a .json report, read strictly
     (``tools.inputs.infile``): a damaged file is an InputFileError naming it; a pose table cut
     short is used up to the damage, with a warning line."""
-    from ..inputs.infile import load_json, warn
-    from ..outputs.posecsv import read_csv
-
     def damaged(which):
         return lambda msg: warn("plot", which, msg)
 
@@ -70,9 +69,6 @@ def load(path: str):
 
 
 def run(args) -> int:
-    from ..outputs.sinks import OutputError, check_writable
-    from ..outputs.plot import plot_run, written_path
-
     out = args.out or str(Path(args.file).with_suffix(".png"))
     try:
         if not 20 <= args.dpi <= 300:

@@ -14,6 +14,8 @@ import sys
 from pathlib import Path
 
 from .. import args as A
+from ..docsgen import results as R
+from ..docsgen.results import HEADLINE
 
 EXIT = {1: "a scenario run failed: the others are written, the failed one is listed with its error"}
 HELP = "run scenarios and write the results pages (and, with --publish, the README's headline table)"
@@ -27,7 +29,7 @@ TABLE_FILES = (README, Path("docs") / "index.md")
 def _scenarios(text: str) -> list[str]:
     import argparse
 
-    from ..docsgen.results import HEADLINE
+    # imported where used here and below: the scenarios (scipy underneath) load only when needed, not for --help
     from ..scenarios import SCENARIOS
 
     if text == "headline":
@@ -70,8 +72,6 @@ def _version() -> str:
 
 
 def run(args) -> int:
-    from ..docsgen import results as R
-
     if args.render and not args.publish:
         print("coiltrack results: error: --render needs --publish", file=sys.stderr)
         return 2

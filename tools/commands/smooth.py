@@ -17,6 +17,8 @@ import sys
 import numpy as np
 
 from .. import args as A
+from ..bench.framelog import replay, load
+from ..outputs.jsonout import dumps
 
 HELP = "RTS-smooth the fusion filter over a recorded run (frame log from `bench --log`)"
 NAME = "smooth"
@@ -31,6 +33,7 @@ def add_arguments(p) -> None:
 
 def _truth_world(header):
     """The scenario's world for the log's seed (as ``tools.bench.runner.BenchSetup`` builds it)."""
+    # imported where used here and below: the scenarios (scipy underneath) load only when needed, not for --help
     from .. import scenarios
 
     sc = scenarios.SCENARIOS.get(header.get("scenario"))
@@ -50,8 +53,6 @@ def smooth_log(header: dict, reads) -> dict:
     """Replay, smooth, evaluate. Returns the summary and the smoothed segments per node."""
     from coiltrack.firmware.loop import Firmware
     from coiltrack.firmware.estimate.smoother import FusionRecorder, smooth
-
-    from ..bench.framelog import replay
 
     recorders = {}
 
@@ -115,8 +116,6 @@ def smooth_log(header: dict, reads) -> dict:
 def write_poses(path, segments) -> None:
     from coiltrack.firmware.loop import _quat
 
-    from ..outputs.jsonout import dumps
-
     with open(path, "w") as fh:
         for node, segs in segments.items():
             for s in segs:
@@ -135,8 +134,6 @@ def write_poses(path, segments) -> None:
 
 def run(args) -> int:
     import coiltrack.hil.world  # noqa: F401 - the truth needs the bench extra: checked before the replay
-
-    from ..bench.framelog import load
 
     log = load("smooth", args.log)
     if log is None:

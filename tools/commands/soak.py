@@ -13,6 +13,10 @@ import sys
 
 from .. import args as A
 from .. import scenarios
+from ..bench.soak import soak_run, random_schedule, passed
+from ..bench.sweep import parse_seeds
+from ..scenarios import get
+from ..stopping import held_signals, Interrupted, Stopped
 
 HELP = "long bench runs under a seeded random schedule of every fault switch"
 EXIT = {1: "a soak condition failed (a crash, a fault unreported or not recovered from within 3 s, more than "
@@ -35,9 +39,6 @@ def add_arguments(p) -> None:
 
 
 def _one(job):
-    from ..scenarios import get
-    from ..bench.soak import soak_run
-
     name, seed, duration = job
     return soak_run(get(name), seed, duration)
 
@@ -76,10 +77,6 @@ def format_rows(rows: list[dict]) -> str:
 
 
 def run(args) -> int:
-    from ..scenarios import get
-    from ..bench.soak import random_schedule
-    from ..bench.sweep import parse_seeds
-
     try:
         seeds = parse_seeds(args.seeds, MAX_SEEDS)
     except ValueError as exc:
@@ -98,8 +95,6 @@ def run(args) -> int:
         reps, stopped = exc.reps, exc.stopped
         print(f"coiltrack soak: stopped by {stopped.reason} with {len(exc.reps)} of {len(jobs)} seeds run "
               "(the one under way to where it stopped); writing them", file=sys.stderr)
-    from ..stopping import held_signals
-
     with held_signals():        # a second signal waits for the report to be written
         code = _finish(args, seeds, reps, stopped)
     return code
@@ -137,8 +132,6 @@ def _one_stoppable(job):
     where it stopped (marked interrupted) is returned; None once stopped."""
     import signal
 
-    from ..stopping import Interrupted, Stopped
-
     def stop(signum, frame):
         _note_stop(signum, frame)
         signal.signal(signal.SIGTERM, _note_stop)
@@ -163,8 +156,6 @@ def _run_jobs(jobs, workers: int) -> list[dict]:
     """Every seed's report in order; a SIGINT or SIGTERM (``Stopped``) becomes
     :class:`_SoakStopped` with the reports finished and those of the seeds under way to
     where they stopped."""
-    from ..stopping import Stopped
-
     reps = []
     if workers > 1 and len(jobs) > 1:
         import multiprocessing
@@ -177,8 +168,6 @@ def _run_jobs(jobs, workers: int) -> list[dict]:
             for f in futs:
                 reps.append(f.result())
         except Stopped as exc:
-            from ..stopping import held_signals
-
             with held_signals():        # a second signal waits for the workers' reports
                 for f in futs:
                     f.cancel()
@@ -212,8 +201,6 @@ def _run_jobs(jobs, workers: int) -> list[dict]:
 
 def _finish(args, seeds, reps: list[dict], stopped) -> int:
     """The table printed and the JSON written of the seeds run; the exit status."""
-    from ..bench.soak import passed
-
     rows = [summary_row(r) for r in reps]
     print(f"coiltrack soak: {args.scenario}, {args.duration:g} s per seed, seeds {', '.join(map(str, seeds))}"
           + (f" (stopped by {stopped.reason}: {len(reps)} seeds reported)" if stopped else ""))

@@ -56,6 +56,7 @@ class BadArgument(ValueError):
 
 
 def run(args) -> int:
+    # imported where used here and below: the scenarios (scipy underneath) load only when needed, not for --help
     from ..bench import sweep
 
     try:

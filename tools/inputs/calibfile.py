@@ -8,13 +8,12 @@ twice, a ``nan`` or ``inf`` are refused naming the file and its line or key."""
 from __future__ import annotations
 
 import dataclasses
+from .infile import InputFileError, load_toml
 
 
 def read_table(path) -> dict:
     """The calibration file's tables, read strictly; an
     :class:`~coiltrack.tools.inputs.infile.InputFileError` when it cannot be a calibration."""
-    from .infile import InputFileError, load_toml
-
     d = load_toml(path, "calibration table")
     if not d:
         raise InputFileError(path, "holds no calibration table (only comments): not a calibration file")
@@ -26,8 +25,6 @@ def with_calibration(path, cfg):
     that refuses the file (missing, not UTF-8, empty, not TOML, a bad value: the key named)."""
     from coiltrack.firmware.calibration import load_calibration
     from coiltrack.firmware.config import ConfigError
-
-    from .infile import InputFileError
 
     try:
         read_table(path)

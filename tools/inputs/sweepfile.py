@@ -62,6 +62,7 @@ def read_csv(path, on_damage=None) -> list[dict]:
     those after it the figures; an empty figure is None). A damaged row ends the runs: with
     ``on_damage(message)`` the rows before it are returned, without it is refused; a file
     with no run is refused."""
+    # imported where used here and below: the sweep engine and its scenarios (scipy underneath) load only when needed
     from ..bench.sweep import parse_value
 
     data = read_bytes(path)

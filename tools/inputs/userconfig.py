@@ -9,6 +9,7 @@ that the checks themselves trip over (a string where a number belongs).
 from __future__ import annotations
 
 from coiltrack.firmware.config import ConfigError, FirmwareConfig, config_from_dict
+from .infile import load_toml
 
 
 def _crashes(d: dict, base: FirmwareConfig) -> bool:
@@ -54,8 +55,6 @@ def load_over(path, base: FirmwareConfig) -> FirmwareConfig:
     not UTF-8, empty, not TOML, a key given twice, a ``nan`` or ``inf``) is an
     :class:`~coiltrack.tools.inputs.infile.InputFileError` naming the file and its line or key (a file
     of comments alone puts nothing over ``base``); a bad value a :class:`ConfigError`."""
-    from .infile import load_toml
-
     cfg = merge(load_toml(path, "configuration"), base)
     cal = getattr(cfg, "calibration_file", "")
     if cal and cal != getattr(base, "calibration_file", ""):

@@ -24,6 +24,7 @@ import numpy as np
 from coiltrack.firmware.rotation import angle_between, matrix_from_quat, quat_from_matrix
 from coiltrack.protocol import schema
 from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID
+from ..inputs.infile import InputFileError, read_bytes, text_lines
 
 COLUMNS = ("t_us", "t_s", "sensor", "kind", "status", "status_bits",
            "x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz",
@@ -145,8 +146,6 @@ def read_csv(path, on_damage=None) -> dict[str, np.ndarray]:
     not finite where it must be, an unknown kind) ends the table: with ``on_damage(message)``
     the rows before it are returned and the message says where it stops; without, the
     damage is refused too."""
-    from ..inputs.infile import InputFileError, read_bytes, text_lines
-
     data = read_bytes(path)
     lines, damage = text_lines(data, path)
     if not data.strip():

@@ -9,6 +9,8 @@ import numpy as np
 from coiltrack.firmware.rotation import matrix_from_quat
 from coiltrack.hil.crlb import crlb_position_rms
 from coiltrack.protocol.schema import POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_VALID
+from .faultreport import fault_keys
+from .jsonout import write
 
 #: distance bands of the per-range breakdown, cm
 RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
@@ -198,8 +200,6 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     rep.update(quality_keys(rec.poses))
     if "adaptive_pulses" in fw_status:
         rep["adaptive"] = {k[len("adaptive_"):]: v for k, v in fw_status.items() if k.startswith("adaptive_")}
-    from .faultreport import fault_keys
-
     rep.update(fault_keys(bench))
     ref = bench.scenario.reference
     if ref:
@@ -393,6 +393,4 @@ def format_table(rep: dict) -> str:
 
 def write_json(rep: dict, path: str) -> None:
     """The report as strict JSON (``null`` for a figure that is not a finite number)."""
-    from .jsonout import write
-
     write(path, rep)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from ..bench.linktap import TapPort
 
 
 class OutputError(ValueError):
@@ -141,8 +142,6 @@ class Outputs:
     def wrap(self, link, side: str = "firmware", clock_us=None):
         """Tap ``link`` (the firmware's port, or the emulator's link: ``side``); opens the
         capture. ``clock_us()`` stamps CAN frames (default: the time of :meth:`tick`)."""
-        from ..bench.linktap import TapPort
-
         wall_clock = clock_us is not None
         clock_us = clock_us or (lambda: self.now_us)
         rx, tx = [], []

@@ -117,6 +117,7 @@ def add_imperfect_comparison(rep: dict, scenario: Scenario, seed: int, duration_
     ``calibrated_over_perfect_position`` (and ``_orientation``). Other scenarios: ``rep`` unchanged."""
     if scenario.name not in PERFECT:
         return rep
+    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from ..bench.runner import run_inproc
 
     cfg = cfg or scenario.firmware_config()
