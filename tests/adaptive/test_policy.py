@@ -20,7 +20,7 @@ from coiltrack.firmware.loop import Firmware
 from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.pose.reference import so3_exp
 from coiltrack.tools.outputs import report
-from coiltrack.tools import scenarios
+from coiltrack.tools.scenarios import thesis as scenarios
 from coiltrack.tools.bench.links import inproc_pair
 
 
