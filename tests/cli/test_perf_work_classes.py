@@ -53,7 +53,11 @@ def test_the_worst_ticks_in_field_evaluations_time():
     rep = measure(header, reads, 2.0)
     ev = rep["field_eval_us"]
     assert ev > 0
-    assert abs(rep["tick_p999_in_field_evals"] - rep["tick_cpu_us_p999"] / ev) <= 0.2
-    assert abs(rep["tick_max_in_field_evals"] - rep["tick_cpu_us_max"] / ev) <= 0.2
+    # the report rounds field_eval_us to 1 ns and the ratios to 0.1 (from the unrounded time): the
+    # ratio recomputed here carries up to 0.5 ns / ev of relative error (2 evaluations at 344 us
+    # with a 0.285 us evaluation of the compiled core), besides the ratio's own rounding
+    for key, cpu in (("tick_p999_in_field_evals", "tick_cpu_us_p999"), ("tick_max_in_field_evals", "tick_cpu_us_max")):
+        ratio = rep[cpu] / ev
+        assert abs(rep[key] - ratio) <= 0.2 + ratio * 0.0005 / ev * 1.01, key
     assert rep["tick_max_in_field_evals"] >= rep["max_field_evals_per_tick"]
     assert "in the budget's unit" in format_table(rep)
