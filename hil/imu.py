@@ -151,10 +151,11 @@ class SourceImuNode(Node):
         I = self.world.coil_currents(t)
         B = (self.world.earth_source_frame(t) + I @ self._unit + self.flip_state * self.mag_offset
              + self.rng.normal(0.0, m.noise_t, 3))
-        sat = bool(np.any(np.abs(B) > m.range_t))
+        full = min(m.range_t, 32767 * MAG_LSB_T)       # the part's range or the field's (as SensorNode)
+        sat = bool(np.any(~(np.abs(B) <= full)))
         if sat:
             self.saturations += 1
-        lim = m.range_t / MAG_LSB_T
+        lim = full / MAG_LSB_T
         counts = np.clip(np.round(B / MAG_LSB_T), -lim, lim)
         self.mag_samples += 1
         stamp = max(0, self.master(t) + STAMP_LSB_US // 2) // STAMP_LSB_US * STAMP_LSB_US

@@ -535,8 +535,9 @@ class CoilDriverNode(Node):
             rec["faults"] = faults
             rec["measured_a"] = measured
             ma = _i16(measured / CURRENT_LSB_A)
-            rec["reported_start_us"] = self.master(rec["start_us"])
-            rec["reported_end_us"] = self.master(rec["end_us"])
+            # (a clock stepped back far enough puts an edge before the master's zero: reported as 0)
+            rec["reported_start_us"] = max(0, self.master(rec["start_us"]))
+            rec["reported_end_us"] = max(0, self.master(rec["end_us"]))
             send(self, CoilStatus(c, rec["pulse_id"], ma, rec["reported_start_us"], rec["reported_end_us"], faults))
             self.executed.append(rec)
 

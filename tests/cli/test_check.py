@@ -93,4 +93,5 @@ def test_select_and_one_fault():
         check.select("c", names)
     kinds = {check.one_fault(s, 5.0, 3).split("=")[0] for s in range(8)}
     assert kinds == {"sat", "node_off", "open_circuit", "short", "overheat", "sag", "metal"}
-    assert check.one_fault(3, 5.0, 3) == "open_circuit=0@2.000s-3.000s"
+    assert check.one_fault(3, 5.0, 3) == "open_circuit=0@1.500s-2.500s"
+    assert check.one_fault(2, 5.0, 3) == "node_off=driver@1.500s-4.500s"      # the driver's 2.5 s timeout

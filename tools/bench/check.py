@@ -13,8 +13,9 @@ its ``poses``, ``poses_invalid`` and, with a fault, ``faults_unreported`` (the f
 raised none of the FAULT_EVENTs they should, ``tools.outputs.faultreport``).
 
 :func:`one_fault` gives the ``--faults one`` schedule: a single timed fault per run, its kind
-chosen by the seed (every kind in turn over consecutive seeds), on from 40 % to 60 % of the
-run, so a short run still has a second after it for the event to arrive.
+chosen by the seed (every kind in turn over consecutive seeds), on from 30 % of the run for 20 %
+of it (a driver outage at least 3 s: the firmware waits 2.5 s before it declares the driver
+lost, so ``--faults one`` wants runs of 5 s or more).
 """
 from __future__ import annotations
 
@@ -26,6 +27,8 @@ from pathlib import Path
 #: the timed fault kinds of ``--faults one``, in turn by seed (``hil.faults`` syntax; {c} a coil)
 ONE_FAULT_KINDS = ("sat={w}", "node_off=sensor@{w}", "node_off=driver@{w}", "open_circuit={c}@{w}",
                    "short={c}@{w}", "overheat={c}@{w}", "sag=0.6@{w}", "metal={w}")
+#: the shortest driver outage of ``--faults one`` (s): ``HealthConfig.driver_timeout_us`` is 2.5 s
+DRIVER_OFF_MIN_S = 3.0
 #: packages of the tree, by the folder a frame's file lies in
 _SIDES = (("hil", "bench"), ("firmware_py", "firmware"), ("firmware", "firmware"), ("tools", "tools"),
           ("protocol", "protocol"))
@@ -49,10 +52,15 @@ def select(patterns: str | None, names) -> list[str]:
 
 
 def one_fault(seed: int, duration_s: float, n_coils: int) -> str:
-    """The ``--faults one`` schedule of ``seed``: kind ``ONE_FAULT_KINDS[seed % 8]``, on over
-    [0.4, 0.6] of the run, on coil ``seed // 8 % n_coils``."""
+    """The ``--faults one`` schedule of ``seed``: kind ``ONE_FAULT_KINDS[seed % 8]``, on from 30 %
+    of the run for 20 % of it (a driver outage for at least ``DRIVER_OFF_MIN_S``: the firmware
+    declares the driver lost after 2.5 s of silence), on coil ``seed // 8 % n_coils``."""
     kind = ONE_FAULT_KINDS[seed % len(ONE_FAULT_KINDS)]
-    w = f"{0.4 * duration_s:.3f}s-{0.6 * duration_s:.3f}s"
+    length = 0.2 * duration_s
+    if kind.startswith("node_off=driver"):
+        length = max(length, DRIVER_OFF_MIN_S)
+    t0 = 0.3 * duration_s
+    w = f"{t0:.3f}s-{t0 + length:.3f}s"
     return kind.format(w=w, c=(seed // len(ONE_FAULT_KINDS)) % max(1, n_coils))
 
 
