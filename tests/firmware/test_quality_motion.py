@@ -83,9 +83,11 @@ def test_motion_term_is_the_linearised_solve():
     the reference model (``pose.reference.measurement_model_and_jacobian``, numpy):
     ``dx = P H^T W D H xdot``, ``P = (H^T W H)^-1``, ``chi2 = |u - H dx|^2_W``, ``u = D H xdot``,
     at the pose given, with the motion the previous pose implies (one cycle back along ``v``,
-    ``w``). Relative 1e-9 (observed ~1e-13). Catches the pulses' time offsets with the wrong
-    sign or unscaled, the rate of turn taken in the source frame, ``H`` transposed, the weights
-    or the covariance left out."""
+    ``w``). Relative 1e-9 (observed ~1e-13). Catches the pulses' time offsets taken from another
+    instant than the burst's middle (the first pulse's) or left in microseconds, the rate of turn
+    reversed against the velocity (the relative rotation transposed), a wrong covariance and the
+    motion's residual not taken out of the fit's. (A sign common to all offsets cannot show: the
+    error's magnitude is even in the motion.)"""
     rng = np.random.default_rng(35)
     sig = np.full((3, 3), SIGMA)
     d = np.repeat((START + END) / 2e6 - T_MID * 1e-6, 3)
