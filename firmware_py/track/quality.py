@@ -200,7 +200,7 @@ class PoseQuality:
         n = sm.n
         d = self._d
         for j in range(n):
-            d[j] = ((start[j] + end[j]) * 0.5 - t_us) * 1e-6
+            d[j] = ((int(start[j]) + int(end[j])) * 0.5 - t_us) * 1e-6   # int(): no numpy int64 arithmetic
         h, H, u, g = self._h, self._H, self._u, self._g
         sm.measure(p[0], p[1], p[2], R, currents, h, H)
         # u = D H xdot; g = H^T W u
