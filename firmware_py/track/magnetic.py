@@ -374,7 +374,7 @@ class MagneticTracker:
             tp.have_pose = True
             cov = sv.covariance
             q = self.quality.grade_burst(ch.node, t_pose, getattr(sv, "cost", 0.0), cov, tp.position, tp.rotation,
-                                         self.currents, ch.sigma, sched.start, sched.end)
+                                         ch.S, ch.sigma, sched.start, sched.end)
             self.tx.pose_cov6(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), sv.covariance,
                               self._status | POSE_VALID, q)
         else:

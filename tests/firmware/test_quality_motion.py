@@ -41,7 +41,7 @@ def _burst(p0, R0, v, w, rng=None):
     for j in range(3):
         d = ((START[j] + END[j]) / 2 - T_MID) * 1e-6
         Rj = R0 @ Rotation.from_rotvec(w * d).as_matrix()
-        S[:, j] = measurement_model(p0 + v * d, Rj, COILS, CUR)[:, j]
+        S[:, j] = measurement_model(p0 + v * d, Rj, COILS, CUR, "exact")[:, j]
     if rng is not None:
         S += rng.normal(0.0, SIGMA, S.shape)
     return S
@@ -54,15 +54,17 @@ def _graded(p0, R0, v, w, rng=None, exact_rates=False):
     (after the grade) and the true position error."""
     sig = np.full((3, 3), SIGMA)
     sv = PoseSolver(COILS, "exact", gate_probability=1.0)      # no chi-square gate: the motion fails it
-    assert sv.solve(_burst(p0, R0, v, w, rng), CUR, sig, x0_position=p0, x0_rotation=R0) == 0
+    sv_signals = [_burst(p0, R0, v, w, rng)]
+    assert sv.solve(sv_signals[0], CUR, sig, x0_position=p0, x0_rotation=R0) == 0
     pq = PoseQuality(CFG, 3, [SimpleNamespace(node=NODE)], COILS)
     cyc = CFG.cycle_us * 1e-6
     pa, Ra = (sv.position, sv.rotation) if exact_rates else (p0, R0)
     p_prev, R_prev = pa - v * cyc, Ra @ Rotation.from_rotvec(-w * cyc).as_matrix()
-    pq.grade_burst(NODE, T_MID - CFG.cycle_us, 3.0, sv.covariance, p_prev, R_prev, CUR, sig,
+    pq.grade_burst(NODE, T_MID - CFG.cycle_us, 3.0, sv.covariance, p_prev, R_prev, sv_signals[0], sig,
                    START - CFG.cycle_us, END - CFG.cycle_us)
     assert pq.motion_m2 == 0.0                      # no earlier solution: no motion term
-    pq.grade_burst(NODE, T_MID, sv.cost, sv.covariance, sv.position, sv.rotation, CUR, sig, START, END)
+    pq.grade_burst(NODE, T_MID, sv.cost, sv.covariance, sv.position, sv.rotation, sv_signals[0], sig,
+                   START, END)
     return sv, pq, float(np.linalg.norm(sv.position - p0))
 
 
@@ -80,14 +82,17 @@ def _case(rng, r_lo=0.15, r_hi=0.40, v_max=0.12, w_max_deg=30.0):
 
 def test_motion_term_is_the_linearised_solve():
     """The quality's ``dp_motion`` and ``chi2_motion`` against the closed form written here with
-    the reference model (``pose.reference.measurement_model_and_jacobian``, numpy):
-    ``dx = P H^T W D H xdot``, ``P = (H^T W H)^-1``, ``chi2 = |u - H dx|^2_W``, ``u = D H xdot``,
-    at the pose given, with the motion the previous pose implies (one cycle back along ``v``,
-    ``w``). Relative 1e-9 (observed ~1e-13). Catches the pulses' time offsets taken from another
-    instant than the burst's middle (the first pulse's) or left in microseconds, the rate of turn
-    reversed against the velocity (the relative rotation transposed), a wrong covariance and the
-    motion's residual not taken out of the fit's. (A sign common to all offsets cannot show: the
-    error's magnitude is even in the motion.)"""
+    the reference model (``pose.reference.measurement_model_and_jacobian``, numpy, dipole coils:
+    Schepers & Veltink eqs 8-11): ``dx = P H^T W D H xdot``, ``P = (H^T W H)^-1``,
+    ``chi2 = |u - H dx|^2_W``, ``u = D H xdot``, at the pose given, with the motion the previous
+    pose implies (one cycle back along ``v``, ``w``) and the burst's signals the dipoles' at that
+    pose (the quality writes the dipole gradient in the measured field: exact there). Relative
+    1e-9 (observed ~1e-14). Catches the pulses' time offsets taken from another instant than
+    the burst's middle (the first pulse's) or left in microseconds, the rate of turn reversed
+    against the velocity (the relative rotation transposed), a gradient or orientation column
+    wrong in the Jacobian, a wrong covariance and the motion's residual not taken out of the
+    fit's. (A sign common to all offsets cannot show: the error's magnitude is even in the
+    motion.)"""
     rng = np.random.default_rng(35)
     sig = np.full((3, 3), SIGMA)
     d = np.repeat((START + END) / 2e6 - T_MID * 1e-6, 3)
@@ -95,7 +100,7 @@ def test_motion_term_is_the_linearised_solve():
     cyc = CFG.cycle_us * 1e-6
     for _ in range(8):
         p0, R0, v, w = _case(rng)
-        _, Hr = measurement_model_and_jacobian(p0, R0, COILS, CUR)
+        h, Hr = measurement_model_and_jacobian(p0, R0, COILS, CUR, "dipole")
         H = Hr.transpose(1, 0, 2).reshape(9, 6)          # row 3 j + i
         P = np.linalg.inv(H.T @ (W[:, None] * H))
         u = d * (H @ np.r_[v, w])
@@ -103,9 +108,9 @@ def test_motion_term_is_the_linearised_solve():
         chi2 = float(np.sum(W * (u - H @ dx) ** 2))
         pq = PoseQuality(CFG, 3, [SimpleNamespace(node=NODE)], COILS)
         pq.grade_burst(NODE, T_MID - CFG.cycle_us, 3.0, P, p0 - v * cyc,
-                       R0 @ Rotation.from_rotvec(-w * cyc).as_matrix(), CUR, sig, START - CFG.cycle_us,
+                       R0 @ Rotation.from_rotvec(-w * cyc).as_matrix(), h, sig, START - CFG.cycle_us,
                        END - CFG.cycle_us)
-        pq.grade_burst(NODE, T_MID, 3.0 + chi2, P, p0, R0, CUR, sig, START, END)
+        pq.grade_burst(NODE, T_MID, 3.0 + chi2, P, p0, R0, h, sig, START, END)
         assert abs(pq.motion_m2 - dx[:3] @ dx[:3]) <= 1e-9 * (dx[:3] @ dx[:3]), (pq.motion_m2, dx)
         assert abs(pq.chi2_motion - chi2) <= 1e-9 * chi2 + 1e-12, (pq.chi2_motion, chi2)
         # the residual the motion explains is not counted again: the fit is at its noise level
@@ -115,21 +120,23 @@ def test_motion_term_is_the_linearised_solve():
 
 def test_motion_term_is_the_solved_error_of_a_moving_sensor():
     """Noise-free bursts of 12 seeded motions at 15-40 cm, up to 4 cm/s and 10 deg/s (a slow hand:
-    the first-order model's domain), solved by the firmware's solver: the pose's error is the
-    motion within the burst alone, and the quality's ``|dp_motion|`` is that error to 20 %
-    (measured: 11 of 12 within 3 %, one at 14 %: 14 mm at 20 cm in an ill-conditioned direction,
-    where the second-order terms grow), the residual it attributes to the motion the solver's
-    cost to 30 % (measured: 11 within 10 %, the same one at 23 %). The motion is
-    estimated from the previous pose as the firmware does; here that pose lies one cycle of the
-    true motion back from the solved one. A still sensor gets no motion term."""
+    the first-order model's domain), of the exact loops, solved by the firmware's solver: the
+    pose's error is the motion within the burst alone, and the quality's ``|dp_motion|`` is that
+    error to 35 % (measured: 8 of 12 within 6 %, the largest 31 % at 20 cm), the residual it
+    attributes to the motion the solver's cost to 50 % (measured: 9 within 8 %, the largest
+    42 %): the quality's Jacobian is the dipole's, which the loops of 5.5 cm differ from by
+    ``(a / r)^2`` (8-10 % at 17-20 cm, times an angular factor up to 2), and the rest is of
+    second order in the motion. The motion is estimated from the previous pose as the firmware
+    does; here that pose lies one cycle of the true motion back from the solved one. A still
+    sensor gets no motion term."""
     rng = np.random.default_rng(34)
     for _ in range(12):
         p0, R0, v, w = _case(rng, v_max=0.04, w_max_deg=10.0)
         sv, pq, err = _graded(p0, R0, v, w, exact_rates=True)
         est = math.sqrt(pq.motion_m2)
         assert err > 1e-4, err                      # the motion moves the pose (0.1 mm at least)
-        assert abs(est - err) <= 0.20 * err, (est, err, p0, v, w)
-        assert abs(pq.chi2_motion - sv.cost) <= 0.30 * sv.cost + 1e-3, (pq.chi2_motion, sv.cost)
+        assert abs(est - err) <= 0.35 * err, (est, err, p0, v, w)
+        assert abs(pq.chi2_motion - sv.cost) <= 0.50 * sv.cost + 1e-3, (pq.chi2_motion, sv.cost)
     p0, R0, _, _ = _case(rng)
     _, pq, err = _graded(p0, R0, np.zeros(3), np.zeros(3))
     assert err < 1e-6 and pq.motion_m2 < 1e-14
