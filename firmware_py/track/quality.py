@@ -23,7 +23,9 @@ with three parts:
   its quality come from the uncompensated solve, and a magnetic-only tracker has no IMU at
   all. ``xdot`` is taken from the node's previous magnetic solution (one cycle earlier:
   ``(p - p_prev) / dt`` and ``log(R_prev^T R) / dt``; none after a gap of more than two cycles,
-  the first pose, or AC excitation, whose coils are measured at once). The motion's effect
+  the first pose, or AC excitation, whose coils are measured at once; a pose that jumped from
+  the previous one gets a large motion term and a low quality, one of the two being wrong). The
+  motion's effect
   depends on its direction against the geometry (a tangential move at close range changes the
   three columns quite differently from a radial one), which is why the magnitude ``|v| t_rms``
   alone does not rank it: measured on ``imperfect-fusion`` (calibrated, seed 4, 60 s) the
