@@ -25,10 +25,9 @@ with three parts:
   ``(p - p_prev) / dt`` and ``log(R_prev^T R) / dt``; none after a gap of more than two cycles,
   the first pose, or AC excitation, whose coils are measured at once; a pose that jumped from
   the previous one gets a large motion term and a low quality, one of the two being wrong). The
-  motion's effect
-  depends on its direction against the geometry (a tangential move at close range changes the
-  three columns quite differently from a radial one), which is why the magnitude ``|v| t_rms``
-  alone does not rank it: measured on ``imperfect-fusion`` (calibrated, seed 4, 60 s) the
+  motion's effect depends on its direction against the geometry (a tangential move at close
+  range changes the three columns quite differently from a radial one), which is why the
+  magnitude ``|v| t_rms`` alone does not rank it: measured on ``imperfect-fusion`` (calibrated, seed 4, 60 s) the
   linearised ``|dp_motion|`` with the true motion ranks the error with Spearman 0.93, ``|v|``
   and ``|w| r`` times the burst's rms time with 0.25;
 * ``x = x_fit + x_nis + x_quiet``, the pose's inconsistency beyond the noise (~1 when everything
