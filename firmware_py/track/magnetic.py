@@ -139,7 +139,7 @@ class MagneticTracker:
         self.solve_ticks_max = 0         # the most ticks a burst's solves took after its windows closed
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
-        self.quality = PoseQuality(cfg, len(coils), self.channels)    # POSE.quality (track.quality)
+        self.quality = PoseQuality(cfg, len(coils), self.channels, coils)    # POSE.quality (track.quality)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
         self.ahead = cfg.solve_ahead and cfg.excitation == "pulsed" and self.solver.memoryless
         self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
@@ -373,7 +373,8 @@ class MagneticTracker:
             np.copyto(tp.rotation, sv.rotation)
             tp.have_pose = True
             cov = sv.covariance
-            q = self.quality.grade(ch.node, getattr(sv, "cost", 0.0), cov[0, 0] + cov[1, 1] + cov[2, 2])
+            q = self.quality.grade_burst(ch.node, t_pose, getattr(sv, "cost", 0.0), cov, tp.position, tp.rotation,
+                                         ch.S, ch.sigma, sched.start, sched.end)
             self.tx.pose_cov6(ch.node, t_pose, tp.position, quat_tuple(tp.rotation),
                               self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
         else:
