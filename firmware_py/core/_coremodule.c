@@ -589,6 +589,26 @@ static PyTypeObject InsStepType = {
     .tp_methods = InsStep_methods,
 };
 
+/* strapdown_rotate(R, ux, uy, uz): R <- R exp([u]x) in place (Strapdown.rotate; R a writable
+ * C-contiguous float64 3x3) */
+static PyObject *core_strapdown_rotate(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    double u[3], E[9];
+    Py_buffer rv;
+    int k;
+    (void)mod;
+    if (check_nargs("strapdown_rotate", nargs, 4) < 0)
+        return NULL;
+    for (k = 0; k < 3; ++k)
+        if (get_double(args[1 + k], &u[k]) < 0)
+            return NULL;
+    if (get_doubles(args[0], 9, 1, &rv, "R") < 0)
+        return NULL;
+    ct_strapdown_rotate((double *)rv.buf, u[0], u[1], u[2], E);
+    PyBuffer_Release(&rv);
+    Py_RETURN_NONE;
+}
+
 /* exp_rotvec(wx, wy, wz) -> 9-tuple, as linalg.exp_rotvec (for tests) */
 static PyObject *core_exp_rotvec(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -671,6 +691,8 @@ static PyObject *core_dipole_point(PyObject *mod, PyObject *const *args, Py_ssiz
 static PyMethodDef core_methods[] = {
     {"loop_point", (PyCFunction)(void (*)(void))core_loop_point, METH_FASTCALL,
      "loop_point(x, y, z, radius, scale, jac): as coiltrack.firmware.model.field.loop_point"},
+    {"strapdown_rotate", (PyCFunction)(void (*)(void))core_strapdown_rotate, METH_FASTCALL,
+     "strapdown_rotate(R, ux, uy, uz): R <- R exp([u]x), as Strapdown.rotate"},
     {"exp_rotvec", (PyCFunction)(void (*)(void))core_exp_rotvec, METH_FASTCALL,
      "exp_rotvec(wx, wy, wz): exp([w]x) row-major, as coiltrack.firmware.linalg.exp_rotvec"},
     {"dipole_point", (PyCFunction)(void (*)(void))core_dipole_point, METH_FASTCALL,
