@@ -44,4 +44,4 @@ docs: $(DOCS_STAMP)
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
 
 clean:
-	rm -rf $(VENV) build *.egg-info site
+	rm -rf $(VENV) build *.egg-info site firmware_py/_core*.so

@@ -491,6 +491,105 @@ static PyTypeObject KUpdateType = {
     .tp_methods = KUpdate_methods,
 };
 
+/* ---------------------------------------------------------------- OriProp */
+#define ORI_NBUF 6
+typedef struct {
+    PyObject_HEAD
+    struct ct_ori o;
+    Py_buffer views[ORI_NBUF];
+    int bound;
+} OriPropObject;
+
+static void OriProp_dealloc(OriPropObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < ORI_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int OriProp_init(OriPropObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "theta", "bias", "dist", "R", "Rc", "A", "Q", "P", "T", NULL};
+    static const char *names[ORI_NBUF] = {"R", "Rc", "A", "Q", "P", "T"};
+    PyObject *o[ORI_NBUF];
+    double *ptr[ORI_NBUF];
+    int n, t0, b0, d0, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiiiOOOOOO", kwlist, &n, &t0, &b0, &d0, &o[0], &o[1], &o[2],
+                                     &o[3], &o[4], &o[5]))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "OriProp: already bound");
+        return -1;
+    }
+    if (n < 9 || n > 256 || t0 < 0 || b0 < 0 || d0 < 0 || t0 + 3 > n || b0 + 3 > n || d0 + 3 > n) {
+        PyErr_SetString(PyExc_ValueError, "OriProp: bad state size or row indices");
+        return -1;
+    }
+    for (i = 0; i < ORI_NBUF; ++i) {
+        if (get_doubles(o[i], i < 2 ? 9 : (Py_ssize_t)n * n, i != 0 && i != 3, &self->views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    self->o.n = n;
+    self->o.theta = t0;
+    self->o.bias = b0;
+    self->o.dist = d0;
+    self->o.gyro_noise = 0.0;
+    self->o.gyro_bias_rw = 0.0;
+    self->o.R = ptr[0];
+    self->o.Rc = ptr[1];
+    self->o.A = ptr[2];
+    self->o.Q = ptr[3];
+    self->o.P = ptr[4];
+    self->o.T = ptr[5];
+    self->bound = 1;
+    return 0;
+}
+
+/* propagate(dt_acc, dt2_acc, cd_acc, qd_acc, gyro_noise, gyro_bias_rw) */
+static PyObject *OriProp_propagate(OriPropObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[6];
+    int i;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "OriProp: not bound");
+        return NULL;
+    }
+    if (check_nargs("propagate", nargs, 6) < 0)
+        return NULL;
+    for (i = 0; i < 6; ++i)
+        if (get_double(args[i], &v[i]) < 0)
+            return NULL;
+    self->o.gyro_noise = v[4];
+    self->o.gyro_bias_rw = v[5];
+    ct_orientation_propagate(&self->o, v[0], v[1], v[2], v[3]);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef OriProp_methods[] = {
+    {"propagate", (PyCFunction)(void (*)(void))OriProp_propagate, METH_FASTCALL,
+     "propagate(dt_acc, dt2_acc, cd_acc, qd_acc, gyro_noise, gyro_bias_rw): OrientationFilter.propagate's "
+     "numeric body"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject OriPropType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.OriProp",
+    .tp_basicsize = sizeof(OriPropObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "OriProp(n, theta, bias, dist, R, Rc, A, Q, P, T): the orientation "
+              "filter's covariance propagation bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)OriProp_init,
+    .tp_dealloc = (destructor)OriProp_dealloc,
+    .tp_methods = OriProp_methods,
+};
+
 /* ---------------------------------------------------------------- InsStep */
 #define INS_NBUF 9
 typedef struct {
@@ -589,6 +688,26 @@ static PyTypeObject InsStepType = {
     .tp_methods = InsStep_methods,
 };
 
+/* strapdown_rotate(R, ux, uy, uz): R <- R exp([u]x) in place (Strapdown.rotate; R a writable
+ * C-contiguous float64 3x3) */
+static PyObject *core_strapdown_rotate(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    double u[3], E[9];
+    Py_buffer rv;
+    int k;
+    (void)mod;
+    if (check_nargs("strapdown_rotate", nargs, 4) < 0)
+        return NULL;
+    for (k = 0; k < 3; ++k)
+        if (get_double(args[1 + k], &u[k]) < 0)
+            return NULL;
+    if (get_doubles(args[0], 9, 1, &rv, "R") < 0)
+        return NULL;
+    ct_strapdown_rotate((double *)rv.buf, u[0], u[1], u[2], E);
+    PyBuffer_Release(&rv);
+    Py_RETURN_NONE;
+}
+
 /* exp_rotvec(wx, wy, wz) -> 9-tuple, as linalg.exp_rotvec (for tests) */
 static PyObject *core_exp_rotvec(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -671,6 +790,8 @@ static PyObject *core_dipole_point(PyObject *mod, PyObject *const *args, Py_ssiz
 static PyMethodDef core_methods[] = {
     {"loop_point", (PyCFunction)(void (*)(void))core_loop_point, METH_FASTCALL,
      "loop_point(x, y, z, radius, scale, jac): as coiltrack.firmware.model.field.loop_point"},
+    {"strapdown_rotate", (PyCFunction)(void (*)(void))core_strapdown_rotate, METH_FASTCALL,
+     "strapdown_rotate(R, ux, uy, uz): R <- R exp([u]x), as Strapdown.rotate"},
     {"exp_rotvec", (PyCFunction)(void (*)(void))core_exp_rotvec, METH_FASTCALL,
      "exp_rotvec(wx, wy, wz): exp([w]x) row-major, as coiltrack.firmware.linalg.exp_rotvec"},
     {"dipole_point", (PyCFunction)(void (*)(void))core_dipole_point, METH_FASTCALL,
@@ -686,7 +807,7 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
     if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0 ||
-        PyType_Ready(&KUpdateType) < 0)
+        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
     if (m == NULL)
@@ -700,6 +821,12 @@ PyMODINIT_FUNC PyInit__core(void)
     Py_INCREF(&CovPredictType);
     if (PyModule_AddObject(m, "CovPredict", (PyObject *)&CovPredictType) < 0) {
         Py_DECREF(&CovPredictType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&OriPropType);
+    if (PyModule_AddObject(m, "OriProp", (PyObject *)&OriPropType) < 0) {
+        Py_DECREF(&OriPropType);
         Py_DECREF(m);
         return NULL;
     }

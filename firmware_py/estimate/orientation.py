@@ -80,6 +80,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware import core as _core_choice
 from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
 from coiltrack.firmware.estimate.layout import BIAS, DIST, ORIENTATION_LAYOUT, THETA
 from coiltrack.firmware.estimate.strapdown import Strapdown
@@ -220,6 +221,14 @@ class OrientationFilter:
         self._Tv = memoryview(self._T)
         for i in range(3):
             self._Hmag[i, DIST.start + i] = 1.0
+        # the numeric core of propagate, bound once here (coiltrack.firmware.core:
+        # core/src/orientation.c, the same blocks and the compiled covariance prediction)
+        self._ck = None
+        ext = _core_choice.extension()
+        if ext is not None and self.pred.core == "compiled":
+            self._ck = ext.OriProp(N, THETA.start, BIAS.start, DIST.start, self.R, self._Rc, self.pred.A,
+                                   self.pred.Q, self.P, self.pred._T)
+            self.propagate = self._propagate_compiled
 
     # ------------------------------------------------------------ init
     def initialize(self, t_us: int, ax, ay, az, mx, my, mz) -> bool:
@@ -389,6 +398,18 @@ class OrientationFilter:
             Q[DIST.start + i, DIST.start + i] = qd
         self.pred.predict(self.P)
         np.copyto(self._Rc, self.R)
+        self._dt_acc = 0.0
+        self._dt2_acc = 0.0
+        self._cd_acc = 1.0
+        self._qd_acc = 0.0
+
+    def _propagate_compiled(self) -> None:
+        """:meth:`propagate` on the compiled core (``ct_orientation_propagate``)."""
+        if self._dt_acc <= 0.0:
+            return
+        p = self.prm
+        self._ck.propagate(self._dt_acc, self._dt2_acc, self._cd_acc, self._qd_acc, p.gyro_noise, p.gyro_bias_rw)
+        self.pred.after_predict(self.P)
         self._dt_acc = 0.0
         self._dt2_acc = 0.0
         self._cd_acc = 1.0

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from coiltrack.firmware import core as _core_choice
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, VEL
 from coiltrack.firmware.linalg import exp_rotvec
 
@@ -61,6 +62,14 @@ class Strapdown:
         self.E = np.eye(3)
         self.T = np.eye(3)
         self.Ev = memoryview(self.E)
+        #: the numeric core of :meth:`rotate`, bound once here (``coiltrack.firmware.core``:
+        #: ``core/src/strapdown.c`` ``ct_strapdown_rotate``, the same Rodrigues and a 3x3 product
+        #: equal to the BLAS one to rounding; ``E`` is then not written)
+        self.core = "python"
+        ext = _core_choice.extension()
+        if ext is not None:
+            self.rotate = ext.strapdown_rotate
+            self.core = "compiled"
 
     def rotate(self, R, ux: float, uy: float, uz: float) -> None:
         """``R <- R exp([u]x)`` (``R`` a (3, 3) array; ``u = w T``, eqs 2.27, 6.1)."""

@@ -93,6 +93,20 @@ struct ct_ins {
 };
 void ct_ins_propagate(struct ct_ins *s, double dt, const double *in, double ka, double kg);
 
+/* ----------------------------------------------------------- orientation
+ * coiltrack.firmware.estimate.orientation.OrientationFilter.propagate: the composed transition
+ * and noise since the last update, P <- A P A^T + Q, then Rc <- R.  theta, bias, dist: the
+ * layout's row indices (estimate.layout.ORIENTATION_LAYOUT). */
+struct ct_ori {
+    int n, theta, bias, dist;
+    double gyro_noise, gyro_bias_rw;
+    const double *R;                /* 3x3, the orientation now */
+    double *Rc;                     /* 3x3, the orientation at the last propagation */
+    double *A, *Q, *P, *T;          /* n x n */
+};
+void ct_orientation_propagate(const struct ct_ori *o, double dt_acc, double dt2_acc, double cd_acc,
+                              double qd_acc);
+
 #ifdef __cplusplus
 }
 #endif

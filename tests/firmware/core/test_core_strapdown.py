@@ -93,3 +93,28 @@ def test_both_live_and_shadow_states_are_bound(monkeypatch):
     got._step_compiled(got.st, 0, 0, 0.01, 0, 0, 9.81, 0, 0, 9.81, 0.1, 0.2, 0.3, 0, 0, 9.81, 0, 0, 9.81)
     np.testing.assert_array_equal(got.sh.p, p_sh)
     np.testing.assert_array_equal(got.sh.P, P_sh)
+
+
+def test_strapdown_rotate_matches_the_reference(monkeypatch):
+    """Strapdown.rotate on the compiled core (ct_strapdown_rotate) against the reference (numpy's
+    3x3 product) over 1000 chained steps with tiny and near-pi increments: equal to 1e-13 (the
+    product's rounding, accumulated), and still a rotation."""
+    from coiltrack.firmware.estimate.strapdown import Strapdown
+
+    monkeypatch.setitem(core._state, "selected", "python")
+    ref = Strapdown()
+    monkeypatch.setitem(core._state, "selected", "compiled")
+    got = Strapdown()
+    assert (ref.core, got.core) == ("python", "compiled")
+    rng = np.random.default_rng(23)
+    R1 = Rotation.from_rotvec([0.3, -2.0, 1.0]).as_matrix()
+    R2 = R1.copy()
+    for i in range(1000):
+        u = rng.normal(size=3)
+        u *= (1e-9 if i % 3 == 0 else (math.pi - 1e-6 if i % 3 == 1 else 0.01)) / np.linalg.norm(u)
+        ref.rotate(R1, *u)
+        got.rotate(R2, *u)
+    np.testing.assert_allclose(R2, R1, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(R2 @ R2.T, np.eye(3), atol=1e-12)
+    with pytest.raises(TypeError, match="R"):
+        got.rotate(np.eye(3)[:, ::-1], 0.1, 0.0, 0.0)
