@@ -115,9 +115,11 @@ def table(out: str, seeds: list[int]) -> list[dict]:
             rows.append({"seed": seed, "fault": name, "rec": next(iter(j["fault_recovery_s"].values())),
                          "rec_ref": recovery_against(ft, fe, rt, re, t_end, lvl),
                          "rec_local": recovery_against(ft, fe, rt, re, t_end, None),
-                         "undisturbed": und[10], "undisturbed_worst": max((u for u in und if u is not None), default=None),
+                         "undisturbed": und[10],
+                         "undisturbed_worst": max((u for u in und if u is not None), default=None),
                          "level_mm": lvl,
-                         "rms_mm": j["position_rms_mm"], "rms_ratio": round(j["position_rms_mm"] / j0["position_rms_mm"], 3),
+                         "rms_mm": j["position_rms_mm"],
+                         "rms_ratio": round(j["position_rms_mm"] / j0["position_rms_mm"], 3),
                          "overconfident": j["overconfident_fraction"], "over_fused": j["overconfidence"]["fused"],
                          "over_mag": j["overconfidence"]["magnetic"],
                          "over_in_window": sum(v for k, v in by.items() if k != "outside fault windows")})
@@ -139,7 +141,8 @@ def main(argv=None) -> int:
             run(cmd, a.dir, seed, "none", None)
             for name, switch, _ in FAULTS:
                 run(cmd, a.dir, seed, name, switch)
-    cols = ("seed", "fault", "rec", "rec_ref", "rec_local", "undisturbed", "undisturbed_worst", "level_mm", "rms_mm", "rms_ratio", "overconfident",
+    cols = ("seed", "fault", "rec", "rec_ref", "rec_local", "undisturbed", "undisturbed_worst", "level_mm", "rms_mm",
+            "rms_ratio", "overconfident",
             "over_fused", "over_mag", "over_in_window")
     w = csv.writer(sys.stdout, delimiter="\t")
     w.writerow(cols)
