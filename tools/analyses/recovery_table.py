@@ -10,9 +10,12 @@ saturation 40-45 s, open coil 1 at 40-50 s), keeping each run's report and pose 
 * ``rec_ref``: the same search against the undisturbed run of the same seed: the first
   instant whose next second of valid fused poses has an RMS error within twice
   ``max(level, the undisturbed run's RMS over the same second)``;
+* ``rec_local``: the same against twice the undisturbed run's RMS over the same second
+  alone (no level): how long the fault's trace stays worse than the tracker's own;
 * ``undisturbed``: ``fault_recovery_s`` the undisturbed run itself would get for a fault
   ending at the same instant, with the same level: what the measure asks of the tracker
-  that had no fault at all;
+  that had no fault at all (``undisturbed_worst``: the longest for fault ends up to 1 s
+  either side);
 * fused RMS and its ratio to the undisturbed run, the overconfident fraction (fused and
   magnetic-only poses), and the overconfident poses in the fault window and the 3 s after.
 
@@ -64,7 +67,7 @@ def recovery_against(ft, fe, rt, re, t_end: float, level_mm: float, step=0.1, wi
         s = (ft >= t) & (ft < t + window)
         r = (rt >= t) & (rt < t + window)
         if s.sum() >= 2 and r.sum() >= 2:
-            ref = max(level_mm * 1e-3, math.sqrt(float(np.mean(re[r] ** 2))))
+            ref = max((level_mm or 0.0) * 1e-3, math.sqrt(float(np.mean(re[r] ** 2))))
             if math.sqrt(float(np.mean(fe[s] ** 2))) <= 2.0 * ref:
                 return round(k * step, 2)
         if len(ft) and t > ft[-1]:
@@ -104,12 +107,19 @@ def table(out: str, seeds: list[int]) -> list[dict]:
             j = json.load(open(p + ".json"))
             ft, fe = fused_errors(p + ".csv")
             lvl = j["no_fault_level_mm"]
-            virtual = TimedFault("sat", int((t_end - 5.0) * 1e6), int(t_end * 1e6))
+            und = []
+            for k in range(-10, 11):          # fault ends 1 s either side of the real one
+                te = t_end + 0.1 * k
+                und.append(recovery_time(rt, re, TimedFault("sat", int((te - 5.0) * 1e6), int(te * 1e6)), lvl))
             by = j["overconfident_by_fault"]
             rows.append({"seed": seed, "fault": name, "rec": next(iter(j["fault_recovery_s"].values())),
                          "rec_ref": recovery_against(ft, fe, rt, re, t_end, lvl),
-                         "undisturbed": recovery_time(rt, re, virtual, lvl), "level_mm": lvl,
-                         "rms_mm": j["position_rms_mm"], "rms_ratio": round(j["position_rms_mm"] / j0["position_rms_mm"], 3),
+                         "rec_local": recovery_against(ft, fe, rt, re, t_end, None),
+                         "undisturbed": und[10],
+                         "undisturbed_worst": max((u for u in und if u is not None), default=None),
+                         "level_mm": lvl,
+                         "rms_mm": j["position_rms_mm"],
+                         "rms_ratio": round(j["position_rms_mm"] / j0["position_rms_mm"], 3),
                          "overconfident": j["overconfident_fraction"], "over_fused": j["overconfidence"]["fused"],
                          "over_mag": j["overconfidence"]["magnetic"],
                          "over_in_window": sum(v for k, v in by.items() if k != "outside fault windows")})
@@ -131,7 +141,8 @@ def main(argv=None) -> int:
             run(cmd, a.dir, seed, "none", None)
             for name, switch, _ in FAULTS:
                 run(cmd, a.dir, seed, name, switch)
-    cols = ("seed", "fault", "rec", "rec_ref", "undisturbed", "level_mm", "rms_mm", "rms_ratio", "overconfident",
+    cols = ("seed", "fault", "rec", "rec_ref", "rec_local", "undisturbed", "undisturbed_worst", "level_mm", "rms_mm",
+            "rms_ratio", "overconfident",
             "over_fused", "over_mag", "over_in_window")
     w = csv.writer(sys.stdout, delimiter="\t")
     w.writerow(cols)
