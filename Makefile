@@ -29,7 +29,8 @@ test: $(STAMP)
 
 # the documentation site: MkDocs with the Material theme (extra `docs`), built strict (a broken
 # internal link or a page missing from the nav fails it) into site/. The reference pages
-# (commands, scenarios, configuration keys) are generated from the code first, into docs/reference/.
+# (commands, scenarios, configuration keys) are generated from the code first, into docs/reference/
+# (ignored by git), and the protocol specification's message table is brought up to date.
 DOCS_STAMP := $(VENV)/.docs-installed
 
 $(DOCS_STAMP): $(STAMP)

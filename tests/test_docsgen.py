@@ -120,3 +120,16 @@ def test_results_command_refuses_bad_arguments(tmp_path, capsys, monkeypatch):
     assert "--publish" in capsys.readouterr().err
     (tmp_path / "f").write_text("")
     assert main(["results", "--out", "f", "--scenarios", "static"]) == 2
+
+
+def test_protocol_table_is_brought_up_to_date():
+    from coiltrack.protocol.docgen import BEGIN, END, extract_generated, markdown_table
+    from coiltrack.tools.docsgen.__main__ import protocol_text
+
+    stale = f"# spec\n\ntext before\n\n{BEGIN}\n| old | table |\n{END}\n\ntext after\n"
+    new = protocol_text(stale)
+    assert extract_generated(new) == markdown_table()
+    assert new.startswith("# spec\n\ntext before\n\n") and new.endswith(f"{END}\n\ntext after\n")
+    assert protocol_text(new) == new
+    with pytest.raises(ValueError):
+        protocol_text("no block here")

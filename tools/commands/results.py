@@ -4,6 +4,7 @@ By default the headline scenarios run at their own durations and the pages go to
 out/results/ (results.json and index.md). With --publish they go to docs/results/ and the
 headline table of README.md is written again from the same results.json (run it from the
 repository's top folder); only the scenarios run are replaced in the committed results.json.
+The files are written again after every run, so a stopped command keeps the runs it made.
 --render writes the pages and the README table again from the committed results.json without
 running anything. Figures are those of the simulated clock: the same code, scenario, seed and
 duration give the same figures on every machine."""
@@ -95,9 +96,13 @@ def run(args) -> int:
             return 2
         data = old
     else:
+        done = []
+
         def progress(r):
             what = r.get("error") or f"{r['report'].get('position_rms_mm')} mm"
             print(f"  {r['scenario']:<40} {r['duration_s']:g} s  {what}", file=sys.stderr, flush=True)
+            done.append(r)              # written after every run: a stopped command keeps what it ran
+            R.write(out, R.merge(old if args.publish else None, done, _version()))
 
         print(f"coiltrack results: {len(args.scenarios)} scenarios, seed {args.seed}, "
               f"{args.workers} worker(s)", file=sys.stderr)

@@ -121,15 +121,30 @@ def _subparsers_action(parser):
 
 # ------------------------------------------------------------------ scenarios
 
+def _coils_text(coils: list, base: list) -> str:
+    """The coils of a scenario by what differs from the default source's coil of the same index."""
+    def fmt(x):
+        return "[" + ", ".join(f"{c:g}" for c in x) + "]" if isinstance(x, list) else f"{x:g}" \
+            if isinstance(x, float) else str(x)
+    per = []
+    for i, c in enumerate(coils):
+        ref = base[i] if i < len(base) else {}
+        per.append(", ".join(f"{k} {fmt(v)}" for k, v in c.items() if ref.get(k) != v) or "as the default")
+    if len(set(per)) == 1:
+        return f"{len(coils)} coils, each: {per[0]}"
+    return f"{len(coils)} coils: " + "; ".join(f"[{i}] {p}" for i, p in enumerate(per))
+
+
 def _diff(a, b, prefix=""):
-    """Keys of the TOML-shaped dict ``a`` that differ from ``b``: ``[(section.key, value)]``."""
+    """Keys of the TOML-shaped dict ``a`` that differ from ``b``: ``[(section.key, value)]``
+    (the coils summarised by :func:`_coils_text`)."""
     out = []
     for k, v in a.items():
         w = b.get(k) if isinstance(b, dict) else None
         if isinstance(v, dict):
             out.extend(_diff(v, w or {}, f"{prefix}{k}."))
         elif v != w:
-            out.append((prefix + k, v))
+            out.append((prefix + k, _coils_text(v, w or []) if k == "coils" else v))
     return out
 
 
