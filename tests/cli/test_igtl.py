@@ -145,7 +145,7 @@ def test_fused_bench_on_two_devices_received_by_pyigtl(tmp_path, igtl_client):
             proc.kill()
     assert proc.returncode == 0, err
     rep = json.loads(rep_path.read_text())
-    end = time.monotonic() + 10                 # the server flushes before it stops: all is on the way
+    end = time.monotonic() + 60                 # a hang guard only: the server flushes before it stops
     while len(client.received) < rep["igtl_sent"] and time.monotonic() < end:
         time.sleep(0.01)
     got = list(client.received)
