@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from coiltrack.hil.faults import TimedFault
-from coiltrack.tools import faultreport as fr
-from coiltrack.tools.recovery_table import recovery_against
+from coiltrack.tools.outputs import faultreport as fr
+from coiltrack.tools.analyses.recovery_table import recovery_against
 
 T = np.arange(0.0, 60.0, 1 / 120)
 
