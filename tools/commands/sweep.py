@@ -279,15 +279,3 @@ def _n(count: int, noun: str) -> str:
 
 def _nan(v) -> float:
     return math.nan if v is None else v
-
-
-def shown_figures(summary: list[dict], headline) -> tuple:
-    """The figures of the printed summary: the headline ones, then every other figure
-    whose median differs between grid points (what the swept keys moved; JSON and CSV
-    have every figure anyway)."""
-    medians: dict[str, set] = {}
-    for g in summary:
-        for name, s in g["figures"].items():
-            medians.setdefault(name, set()).add(s["median"])
-    moved = tuple(n for n, m in medians.items() if n not in headline and len(summary) > 1 and len(m) > 1)
-    return tuple(headline) + moved
