@@ -120,6 +120,23 @@ int ct_spd_inverse(int n, const double *a, double *out, double *L, double *M)
     return 1;
 }
 
+/* out (n x m) = A (n x n) H^T, H (m x n) row-major; H's structural zeros skipped.  The sums run
+ * over k in the same order as the reference's, so the result does not depend on the zeros. */
+static void mul_ht(int n, int m, const double *A, const double *H, double *out)
+{
+    int i, k, r;
+    for (i = 0; i < n * m; ++i)
+        out[i] = 0.0;
+    for (r = 0; r < m; ++r)
+        for (k = 0; k < n; ++k) {
+            double h = H[r * n + k];
+            if (h == 0.0)
+                continue;
+            for (i = 0; i < n; ++i)
+                out[i * m + r] += A[i * n + k] * h;
+        }
+}
+
 /* KalmanUpdate.update: the one update of every filter (innovation variance, chi-square gate,
  * gain, Joseph form P = (I - K H) P (I - K H)^T + K R K^T; thesis eqs 2.19-2.25 / 6.6-6.7),
  * the structural zeros of H skipped.  Returns the health flags; *nis receives the NIS (inf when
@@ -134,16 +151,7 @@ int ct_kalman_update(const struct ct_kalman *u, double *P, double gate, double *
     int ok;
 
     /* PHt = P H^T, S = H PHt + R */
-    for (i = 0; i < n * m; ++i)
-        PHt[i] = 0.0;
-    for (r = 0; r < m; ++r)
-        for (k = 0; k < n; ++k) {
-            double h = H[r * n + k];
-            if (h == 0.0)
-                continue;
-            for (i = 0; i < n; ++i)
-                PHt[i * m + r] += P[i * n + k] * h;
-        }
+    mul_ht(n, m, P, H, PHt);
     for (r = 0; r < m; ++r)
         for (c = 0; c < m; ++c) {
             double s = 0.0;
@@ -203,16 +211,7 @@ int ct_kalman_update(const struct ct_kalman *u, double *P, double gate, double *
             T[i * n + j] = P[i * n + j] - s;
         }
     /* TH = T H^T (H's zeros skipped), X = TH K^T, P = T - X */
-    for (i = 0; i < n * m; ++i)
-        TH[i] = 0.0;
-    for (r = 0; r < m; ++r)
-        for (k = 0; k < n; ++k) {
-            double h = H[r * n + k];
-            if (h == 0.0)
-                continue;
-            for (i = 0; i < n; ++i)
-                TH[i * m + r] += T[i * n + k] * h;
-        }
+    mul_ht(n, m, T, H, TH);
     /* KR = K R */
     for (i = 0; i < n; ++i)
         for (c = 0; c < m; ++c) {
