@@ -257,6 +257,9 @@ class PulseExtractor:
         self._emp_vv = memoryview(self._emp_var)
         self._n_used = 0        # used in-pulse samples of the last extract
         self._n_rec = 0         # of which timestamps recorded (<= max_samples)
+        self._sums = [0.0] * 5  # baseline regression sums of the window being extracted
+        self._pm = [0.0] * 11   # in-pulse moments of the window being extracted
+        self._pm_sat = False
 
     # ------------------------------------------------------------------ timing
     def span(self, start_us: int, end_us: int) -> tuple[int, int]:
@@ -322,7 +325,9 @@ class PulseExtractor:
         """Estimate the pulse amplitude for the window ``[start_us, end_us]``.
 
         Writes ``amp_out`` (3,) tesla and ``var_out`` (3,) tesla^2; returns
-        ``(flags, n_pulse, n_base)``. Never raises on bad data.
+        ``(flags, n_pulse, n_base)``. Never raises on bad data. The span's
+        samples are read in time order, in its three parts (module docstring):
+        the before-baseline, the used in-pulse samples, the after-baseline.
         """
         ev = self._emp_vv
         ev[0] = _INF
@@ -335,187 +340,185 @@ class PulseExtractor:
             end = operator.index(end_us)
         except TypeError:
             return self._fail(PULSE_INCOMPLETE, amp_out, var_out, 0, 0)
-
         ring = self._ring
         n = len(ring)
         if n == 0:
             return self._fail(PULSE_INCOMPLETE, amp_out, var_out, 0, 0)
+        idx = ring.index_at_or_after
+        i_lo = idx(start - self._baseline_us)                       # span start
+        i_hi = idx(end + self._fall_us + self._baseline_us + 1)     # first sample after the span
+        flags = self._span_flags(i_lo, i_hi, n)
+        if i_lo == i_hi:
+            return self._fail(flags, amp_out, var_out, 0, 0)
+        sums = self._sums                         # regression sums over both sides
+        sums[0] = sums[1] = sums[2] = sums[3] = sums[4] = 0.0
+        ref = ring.slot(i_lo)                     # values relative to the first span sample
+        i_pre = idx(start - self._guard_us + 1)   # before-baseline: [i_lo, i_pre)
+        before = self._baseline_side(i_lo, i_pre, start, ref)
+        used0 = max(idx(start + self._settle_us), idx(start) + 1, i_pre)   # not the first in [start, end]
+        used1 = min(idx(end - self._guard_us + 1), idx(end + 1) - 1)       # nor the last
+        n_p = self._pulse_moments(used0, used1, start, ref)
+        i_post = max(idx(end + self._fall_us), i_pre, used1 if used1 > used0 else 0)
+        after = self._baseline_side(i_post, i_hi, start, ref)
+        if before[4] or after[4] or self._pm_sat:
+            flags |= PULSE_SATURATED
+        n_a = before[0]
+        n_c = after[0]
+        n_b = n_a + n_c
+        self._n_used = n_p
+        self._n_rec = n_p if n_p < self.max_samples else self.max_samples
+        if n_p < self._min_pulse or n_a < self._min_base or n_c < self._min_base:
+            flags |= PULSE_TOO_FEW
+        if n_p == 0 or n_b == 0:
+            return self._fail(flags, amp_out, var_out, n_p, n_b)
+        flags |= self._amplitude(before, after, n_p, amp_out, var_out)
+        return flags, n_p, n_b
 
-        lo = start - self._baseline_us            # span start
-        hi = end + self._fall_us + self._baseline_us  # span end
-        pre_hi = start - self._guard_us           # before-baseline: [lo, pre_hi]
-        post_lo = end + self._fall_us             # after-baseline: [post_lo, hi]
-        use_lo = start + self._settle_us          # settled window: [use_lo, use_hi]
-        use_hi = end - self._guard_us
-
-        i_lo = ring.index_at_or_after(lo)
-        i_hi = ring.index_at_or_after(hi + 1)     # first sample after the span
-        p_first = ring.index_at_or_after(start)   # first sample inside [start, end]
-        p_last = ring.index_at_or_after(end + 1) - 1  # last sample inside [start, end]
-
+    def _span_flags(self, i_lo: int, i_hi: int, n: int) -> int:
+        """``PULSE_INCOMPLETE`` and ``PULSE_FLIP`` of the span ``[i_lo, i_hi)`` (logical
+        indices): not bracketed on both sides, a gap between consecutive samples (the
+        bracketing samples included), or a change of the flip state."""
+        ring = self._ring
+        tv = ring.tv
+        fv = ring.fv
         flags = PULSE_OK
         if i_lo == 0 or i_hi >= n:                # span not bracketed on both sides
             flags |= PULSE_INCOMPLETE
-
-        cap = ring.capacity
-        tv = ring.tv
-        bv = ring.bv
-        fv = ring.fv
-        uv = self._used_tv
-        max_rec = self.max_samples
-        base = ring.slot(0)                   # physical slot of logical 0 (mod cap)
-
-        # gap tracking over consecutive samples, bracketing samples included
-        if i_lo > 0:
-            p = base + i_lo - 1
-            p = p + cap if p < 0 else (p - cap if p >= cap else p)
-            prev_t = tv[p]
-            have_prev = True
-        else:
-            prev_t = 0
-            have_prev = False
-        min_dt = 0
-        max_dt = 0
-        n_dt = 0
-
+        first = i_lo - 1 if i_lo > 0 else i_lo
+        last = i_hi if i_hi < n else i_hi - 1
+        min_dt = max_dt = n_dt = 0
         flip0 = -1
-        flip_changed = False
-        sat = False
-        # field values are accumulated relative to the first span sample
-        rx = ry = rz = 0.0
-        have_ref = False
-        # before side
-        n_a = 0
-        ax = ay = az = 0.0
-        # after side
-        n_c = 0
-        cx = cy = cz = 0.0
-        # both sides, regression sums (times relative to start, microseconds)
-        st = stt = 0.0
-        stx = sty = stz = 0.0
-        # pulse: running means, centred sums of squares (q) and time
-        # co-moments (k) per axis (Welford), for the mean and the empirical
-        # variance of the residuals about the fitted baseline slope
-        n_p = 0
-        mt = qt = 0.0
-        mx = my = mz = 0.0
-        qx = qy = qz = 0.0
-        kx = ky = kz = 0.0
-
-        p = base + i_lo
-        p = p + cap if p < 0 else (p - cap if p >= cap else p)
-        for i in range(i_lo, i_hi):
-            t = tv[p]
-            if have_prev:
+        if first <= last:
+            prev_t = tv[ring.slot(first)]
+            for i in range(first + 1, last + 1):
+                t = tv[ring.slot(i)]
                 dt = t - prev_t
                 if n_dt == 0 or dt < min_dt:
                     min_dt = dt
                 if dt > max_dt:
                     max_dt = dt
                 n_dt += 1
-            prev_t = t
-            have_prev = True
-            f = fv[p]
-            fb = f & SAMPLE_FLIP
+                prev_t = t
+        for i in range(i_lo, i_hi):
+            fb = fv[ring.slot(i)] & SAMPLE_FLIP
             if flip0 < 0:
                 flip0 = fb
             elif fb != flip0:
-                flip_changed = True
-            j = 3 * p
-            if not have_ref:
-                rx = bv[j]
-                ry = bv[j + 1]
-                rz = bv[j + 2]
-                have_ref = True
-            if t <= pre_hi:
-                x = bv[j] - rx
-                y = bv[j + 1] - ry
-                z = bv[j + 2] - rz
-                tr = float(t - start)
-                n_a += 1
-                ax += x
-                ay += y
-                az += z
-                st += tr
-                stt += tr * tr
-                stx += tr * x
-                sty += tr * y
-                stz += tr * z
-                if f & SAMPLE_SATURATED:
-                    sat = True
-            elif use_lo <= t <= use_hi and p_first < i < p_last:
-                x = bv[j] - rx
-                y = bv[j + 1] - ry
-                z = bv[j + 2] - rz
-                if n_p < max_rec:
-                    uv[n_p] = t
-                n_p += 1
-                tr = float(t - start)
-                d_t = tr - mt
-                mt += d_t / n_p
-                qt += d_t * (tr - mt)
-                d = x - mx
-                mx += d / n_p
-                qx += d * (x - mx)
-                kx += d_t * (x - mx)
-                d = y - my
-                my += d / n_p
-                qy += d * (y - my)
-                ky += d_t * (y - my)
-                d = z - mz
-                mz += d / n_p
-                qz += d * (z - mz)
-                kz += d_t * (z - mz)
-                if f & SAMPLE_SATURATED:
-                    sat = True
-            elif t >= post_lo:
-                x = bv[j] - rx
-                y = bv[j + 1] - ry
-                z = bv[j + 2] - rz
-                tr = float(t - start)
-                n_c += 1
-                cx += x
-                cy += y
-                cz += z
-                st += tr
-                stt += tr * tr
-                stx += tr * x
-                sty += tr * y
-                stz += tr * z
-                if f & SAMPLE_SATURATED:
-                    sat = True
-            p += 1
-            if p == cap:
-                p = 0
-        if i_hi < n and have_prev:                # interval to the bracketing sample after
-            dt = tv[p] - prev_t
-            if n_dt == 0 or dt < min_dt:
-                min_dt = dt
-            if dt > max_dt:
-                max_dt = dt
-            n_dt += 1
-
-        self._n_used = n_p
-        self._n_rec = n_p if n_p < max_rec else max_rec
-        if flip_changed:
-            flags |= PULSE_FLIP
-        if sat:
-            flags |= PULSE_SATURATED
+                flags |= PULSE_FLIP
+                break
         if n_dt > 0:
             if self._max_gap_us > 0:
                 if max_dt > self._max_gap_us:
                     flags |= PULSE_INCOMPLETE
             elif n_dt > 1 and 2 * max_dt > 3 * min_dt:
                 flags |= PULSE_INCOMPLETE
-        n_b = n_a + n_c
-        if n_p < self._min_pulse or n_a < self._min_base or n_c < self._min_base:
-            flags |= PULSE_TOO_FEW
-        if n_p == 0 or n_b == 0:
-            return self._fail(flags, amp_out, var_out, n_p, n_b)
+        return flags
 
+    def _baseline_side(self, i0: int, i1: int, start: int, ref: int) -> tuple:
+        """One baseline side, samples ``[i0, i1)``: ``(n, sum x, sum y, sum z, saturated)``
+        of the values relative to slot ``ref``; the regression sums over both sides
+        (``self._sums``: t, t^2, t x, t y, t z; t relative to ``start``, us) go on."""
+        ring = self._ring
+        tv = ring.tv
+        bv = ring.bv
+        fv = ring.fv
+        j = 3 * ref
+        rx = bv[j]
+        ry = bv[j + 1]
+        rz = bv[j + 2]
+        sums = self._sums
+        st, stt, stx, sty, stz = sums[0], sums[1], sums[2], sums[3], sums[4]
+        n = 0
+        ax = ay = az = 0.0
+        sat = False
+        for i in range(i0, i1):
+            p = ring.slot(i)
+            j = 3 * p
+            x = bv[j] - rx
+            y = bv[j + 1] - ry
+            z = bv[j + 2] - rz
+            tr = float(tv[p] - start)
+            n += 1
+            ax += x
+            ay += y
+            az += z
+            st += tr
+            stt += tr * tr
+            stx += tr * x
+            sty += tr * y
+            stz += tr * z
+            if fv[p] & SAMPLE_SATURATED:
+                sat = True
+        sums[0], sums[1], sums[2], sums[3], sums[4] = st, stt, stx, sty, stz
+        return n, ax, ay, az, sat
+
+    def _pulse_moments(self, i0: int, i1: int, start: int, ref: int) -> int:
+        """The used in-pulse samples ``[i0, i1)``: running means, centred sums of squares
+        (q) and time co-moments (k) per axis (Welford), for the mean and the empirical
+        variance of the residuals about the fitted baseline slope, into ``self._pm``
+        (t, q_t, x, y, z, q_x, q_y, q_z, k_x, k_y, k_z); their times into the used-time
+        buffer. Returns their count."""
+        ring = self._ring
+        tv = ring.tv
+        bv = ring.bv
+        fv = ring.fv
+        uv = self._used_tv
+        max_rec = self.max_samples
+        j = 3 * ref
+        rx = bv[j]
+        ry = bv[j + 1]
+        rz = bv[j + 2]
+        n_p = 0
+        mt = qt = 0.0
+        mx = my = mz = 0.0
+        qx = qy = qz = 0.0
+        kx = ky = kz = 0.0
+        sat = False
+        for i in range(i0, i1):
+            p = ring.slot(i)
+            t = tv[p]
+            j = 3 * p
+            x = bv[j] - rx
+            y = bv[j + 1] - ry
+            z = bv[j + 2] - rz
+            if n_p < max_rec:
+                uv[n_p] = t
+            n_p += 1
+            tr = float(t - start)
+            d_t = tr - mt
+            mt += d_t / n_p
+            qt += d_t * (tr - mt)
+            d = x - mx
+            mx += d / n_p
+            qx += d * (x - mx)
+            kx += d_t * (x - mx)
+            d = y - my
+            my += d / n_p
+            qy += d * (y - my)
+            ky += d_t * (y - my)
+            d = z - mz
+            mz += d / n_p
+            qz += d * (z - mz)
+            kz += d_t * (z - mz)
+            if fv[p] & SAMPLE_SATURATED:
+                sat = True
+        pm = self._pm
+        pm[0], pm[1], pm[2], pm[3], pm[4] = mt, qt, mx, my, mz
+        pm[5], pm[6], pm[7], pm[8], pm[9], pm[10] = qx, qy, qz, kx, ky, kz
+        self._pm_sat = sat
+        return n_p
+
+    def _amplitude(self, before: tuple, after: tuple, n_p: int, amp_out, var_out) -> int:
+        """Amplitude and variance from the sums (module docstring); the empirical variance;
+        returns ``PULSE_BASELINE_DRIFT`` when the sides disagree beyond noise, else 0."""
+        n_a, ax, ay, az, _ = before
+        n_c, cx, cy, cz, _ = after
+        st, stt, stx, sty, stz = self._sums
+        mt, qt, mx, my, mz, qx, qy, qz, kx, ky, kz = self._pm
+        flags = PULSE_OK
         s2 = self._sigma * self._sigma
         tm = mt                                   # mean time of the used samples
-        inv_nb = 1.0 / n_b
+        inv_nb = 1.0 / (n_a + n_c)
         bx = (ax + cx) * inv_nb
         by = (ay + cy) * inv_nb
         bz = (az + cz) * inv_nb
@@ -541,7 +544,6 @@ class PulseExtractor:
             if (abs(ax * inv_a - cx * inv_c) > lim or abs(ay * inv_a - cy * inv_c) > lim
                     or abs(az * inv_a - cz * inv_c) > lim):
                 flags |= PULSE_BASELINE_DRIFT
-
         amp_out[0] = mx - bx
         amp_out[1] = my - by
         amp_out[2] = mz - bz
@@ -553,7 +555,8 @@ class PulseExtractor:
             # sum of squared residuals about the baseline slope:
             # sum((x - mx) - g (t - mt))^2 = qx - 2 g kx + g^2 qt
             k = 1.0 / ((n_p - 1) * n_p)
+            ev = self._emp_vv
             ev[0] = max(qx - 2.0 * gx * kx + gx * gx * qt, 0.0) * k
             ev[1] = max(qy - 2.0 * gy * ky + gy * gy * qt, 0.0) * k
             ev[2] = max(qz - 2.0 * gz * kz + gz * gz * qt, 0.0) * k
-        return flags, n_p, n_b
+        return flags
