@@ -180,6 +180,12 @@ class FrameEncoder:
         self.frames += 1
         return out
 
+    def take_seq(self) -> int:
+        """The sequence number of a frame built elsewhere (a signed one): returned, then advanced."""
+        seq = self.seq
+        self.seq = (seq + 1) & 0xFF
+        return seq
+
 
 class FrameDecoder:
     """Streaming decoder: ``feed(bytes) -> list of messages``.
