@@ -409,6 +409,14 @@ class _Partial:
         self.last_data = b""
         self.t_last = t
 
+    def add(self, sn: int, data: bytes, t: float) -> bool:
+        """Append a consecutive frame's payload (``data[1:]``, up to the announced total);
+        True once the PDU is complete."""
+        self.buf += data[1:1 + self.total - len(self.buf)]
+        self.last_sn, self.last_data, self.t_last = sn, data, t
+        self.next_sn = (sn + 1) & 0x0F
+        return len(self.buf) >= self.total
+
 
 def _copy_header(h: DecodedFrame) -> DecodedFrame:
     c = DecodedFrame()
@@ -535,61 +543,69 @@ class CanReassembler:
             del self._partials[arb]
             part = None
             self._bad(arb, "timeouts")
-        if pci == 0:                                   # single frame
-            L = data[0] & 0x0F
-            start = 1
-            if L == 0:                                  # CAN FD escape: length in byte 1
-                if len(data) < 2:
-                    self._bad(arb, "framing_errors", FramingError("FD single frame without length"))
-                    return []
-                L, start = data[1], 2
-            if L == 0 or start + L > len(data):
-                self._bad(arb, "framing_errors", FramingError(f"single frame length {L} in {len(data)} bytes"))
-                return []
-            if part is not None:
-                del self._partials[arb]
-                self._bad(arb, "aborted")
-            return self._complete(arb, msg_id, src, data[start:start + L])
-        if pci == 1:                                   # first frame
-            if len(data) < 3:
-                self._bad(arb, "framing_errors", FramingError("first frame too short"))
-                return []
-            total = ((data[0] & 0x0F) << 8) | data[1]
-            if total <= len(data) - 2 or total > MAX_PDU:
-                self._bad(arb, "framing_errors", FramingError(f"first frame announces {total} bytes"))
-                return []
-            if part is not None:
-                if part.next_sn == 1 and data == part.first:
-                    self.duplicates += 1           # the same first frame twice
-                    return []
-                self._bad(arb, "aborted")
-            self._partials[arb] = _Partial(total, data, t)
-            return []
-        if pci == 2:                                   # consecutive frame
-            if part is None:
-                self._bad(arb, "unexpected_cf", FramingError(f"CAN id {arb:#05x}: consecutive frame without first frame"))
-                return []
-            sn = data[0] & 0x0F
-            if sn == part.last_sn and data == part.last_data:
-                self.duplicates += 1
-                return []
-            if sn != part.next_sn or len(data) < 2:
-                del self._partials[arb]
-                self._bad(arb, "out_of_order", FramingError(f"CAN id {arb:#05x}: sequence nibble {sn}, expected {part.next_sn}"))
-                return []
-            need = part.total - len(part.buf)
-            part.buf += data[1:1 + need]
-            part.last_sn, part.last_data, part.t_last = sn, data, t
-            part.next_sn = (sn + 1) & 0x0F
-            if len(part.buf) < part.total:
-                return []
-            del self._partials[arb]
-            return self._complete(arb, msg_id, src, bytes(part.buf))
+        if pci == 0:
+            return self._iso_single(arb, msg_id, src, data, part)
+        if pci == 1:
+            return self._iso_first(arb, data, part, t)
+        if pci == 2:
+            return self._iso_consecutive(arb, msg_id, src, data, part, t)
         if pci == 3:                                   # flow control: not used on a broadcast bus
             self.ignored += 1
             return []
         self._bad(arb, "framing_errors", FramingError(f"CAN id {arb:#05x}: unknown PCI {data[0]:#04x}"))
         return []
+
+    def _iso_single(self, arb: int, msg_id: int, src: int, data: bytes, part) -> list:
+        """An ISO-TP single frame (PCI 0): its length (CAN FD: in byte 1), then the PDU."""
+        L = data[0] & 0x0F
+        start = 1
+        if L == 0:                                  # CAN FD escape: length in byte 1
+            if len(data) < 2:
+                self._bad(arb, "framing_errors", FramingError("FD single frame without length"))
+                return []
+            L, start = data[1], 2
+        if L == 0 or start + L > len(data):
+            self._bad(arb, "framing_errors", FramingError(f"single frame length {L} in {len(data)} bytes"))
+            return []
+        if part is not None:
+            del self._partials[arb]
+            self._bad(arb, "aborted")
+        return self._complete(arb, msg_id, src, data[start:start + L])
+
+    def _iso_first(self, arb: int, data: bytes, part, t: float) -> list:
+        """An ISO-TP first frame (PCI 1): starts a PDU (a repeated first frame is a duplicate)."""
+        if len(data) < 3:
+            self._bad(arb, "framing_errors", FramingError("first frame too short"))
+            return []
+        total = ((data[0] & 0x0F) << 8) | data[1]
+        if total <= len(data) - 2 or total > MAX_PDU:
+            self._bad(arb, "framing_errors", FramingError(f"first frame announces {total} bytes"))
+            return []
+        if part is not None:
+            if part.next_sn == 1 and data == part.first:
+                self.duplicates += 1           # the same first frame twice
+                return []
+            self._bad(arb, "aborted")
+        self._partials[arb] = _Partial(total, data, t)
+        return []
+
+    def _iso_consecutive(self, arb: int, msg_id: int, src: int, data: bytes, part, t: float) -> list:
+        """An ISO-TP consecutive frame (PCI 2): in sequence, a repeat, or out of order."""
+        if part is None:
+            self._bad(arb, "unexpected_cf", FramingError(f"CAN id {arb:#05x}: consecutive frame without first frame"))
+            return []
+        sn = data[0] & 0x0F
+        if sn == part.last_sn and data == part.last_data:
+            self.duplicates += 1
+            return []
+        if sn != part.next_sn or len(data) < 2:
+            del self._partials[arb]
+            self._bad(arb, "out_of_order", FramingError(f"CAN id {arb:#05x}: sequence nibble {sn}, expected {part.next_sn}"))
+            return []
+        if not part.add(sn, data, t):
+            return []
+        del self._partials[arb]
+        return self._complete(arb, msg_id, src, bytes(part.buf))
 
     def _single(self, arb: int, msg_id: int, src: int, data: bytes) -> list:
         """A single-frame message (no PCI, seq or PDU CRC): its length is checked, nothing else."""
