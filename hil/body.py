@@ -268,62 +268,82 @@ def movement(name: str, seed: int = 0) -> BodyMotion:
     """
     rng = np.random.default_rng(seed)
     if name.endswith("walking"):
-        f = 0.9
-        return BodyMotion(
-            speed_mps=1.25,
-            pelvis_translation=(_zero(),                                       # steady progression (speed_mps)
-                                _SinSum([0.02], [2 * np.pi * f], [0.0]),    # lateral sway at f
-                                _SinSum([0.011], [4 * np.pi * f], [np.pi / 2])),  # bounce 2.2 cm p-p at 2 f
-            pelvis_angles=(_harmonics(rng, f, 0.0, [4.0], 0.0, jitter_deg=0.5),     # rotation
-                           _harmonics(rng, f, 0.0, [4.0], np.pi / 2, jitter_deg=0.5),  # obliquity
-                           _harmonics(rng, 2 * f, 0.0, [2.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.3)),
-            joints={
-                "trunk": (_harmonics(rng, 2 * f, 2.0, [1.5], rng.uniform(0, 2 * np.pi), jitter_deg=0.3),
-                          _harmonics(rng, f, 0.0, [2.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.3),
-                          _harmonics(rng, f, 0.0, [6.0], np.pi, jitter_deg=0.5)),
-                "thigh": (_harmonics(rng, f, 10.0, [20.0, 3.0], 0.0, jitter_deg=1.5),
-                          _harmonics(rng, f, 0.0, [4.0, 1.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.5),
-                          _harmonics(rng, f, 0.0, [5.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.5)),
-                "shank": (_harmonics(rng, f, 25.0, [25.0, 10.0], -0.5 * np.pi, jitter_deg=2.0),),
-                "upper_arm": (_harmonics(rng, f, 5.0, [16.0, 2.0], np.pi, jitter_deg=1.5),
-                              _harmonics(rng, f, 8.0, [2.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.5)),
-                "forearm": (_harmonics(rng, f, 20.0, [8.0], np.pi, jitter_deg=1.0),),
-            })
+        return _walking(rng)
     sway = (_sway(rng, 0.005), _sway(rng, 0.005), _zero())
-    hips = HIP_CENTRE
-    if name == "back-flexion":
-        per = 6.0
-        return BodyMotion(pelvis_translation=sway, pelvis_pivot=hips,
-                          pelvis_angles=(_zero(), _zero(), _bend(rng, per, 25.0, 2.0)),
-                          joints={"trunk": (_bend(rng, per, 40.0, 3.0), _wobble(rng, 3.0, 0.1, 0.3),
-                                            _wobble(rng, 3.0, 0.1, 0.3))})
-    if name == "back-latero-flexion":
-        per = 6.0
-        lat = _SinSum([np.radians(25.0), np.radians(2.0) * rng.uniform(0.3, 1.0)],
-                      2 * np.pi / per * np.array([1.0, 2.0]), [0.0, rng.uniform(0, 2 * np.pi)])
-        obl = _SinSum([np.radians(3.0)], [2 * np.pi / per], [np.pi])
-        return BodyMotion(pelvis_translation=sway, pelvis_pivot=hips, pelvis_angles=(_zero(), obl, _zero()),
-                          joints={"trunk": (_wobble(rng, 4.0, 0.1, 0.3), lat, _wobble(rng, 3.0, 0.1, 0.3))})
-    if name == "back-rotation":
-        per = 6.0
-        rot = _SinSum([np.radians(20.0), np.radians(2.0) * rng.uniform(0.3, 1.0)],
-                      2 * np.pi / per * np.array([1.0, 2.0]), [0.0, rng.uniform(0, 2 * np.pi)])
-        yaw = _SinSum([np.radians(5.0)], [2 * np.pi / per], [np.pi])
-        return BodyMotion(pelvis_translation=sway, pelvis_pivot=hips, pelvis_angles=(yaw, _zero(), _zero()),
-                          joints={"trunk": (_wobble(rng, 4.0, 0.1, 0.3), _wobble(rng, 3.0, 0.1, 0.3), rot)})
-    if name in ("arm-flexion", "arm-abduction"):
-        per = 4.0
-        main = _bend(rng, per, 90.0, 3.0)
-        other = _wobble(rng, 6.0, 0.5 / per, 1.5 / per)
-        hum = _wobble(rng, 5.0, 0.5 / per, 1.5 / per)
-        arm = (main, other, hum) if name == "arm-flexion" else (other, main, hum)
-        return BodyMotion(pelvis_translation=sway, pelvis_pivot=hips,
-                          pelvis_angles=(_wobble(rng, 1.0, 0.1, 0.4), _wobble(rng, 1.0, 0.1, 0.4),
-                                         _wobble(rng, 1.0, 0.1, 0.4)),
-                          joints={"trunk": (_wobble(rng, 2.0, 0.1, 0.4), _wobble(rng, 2.0, 0.1, 0.4),
-                                            _wobble(rng, 2.0, 0.1, 0.4)),
-                                  "upper_arm": arm})
-    raise ValueError(f"unknown movement '{name}'; known: {', '.join(MOVEMENTS)}")
+    task = _STANDING.get(name)
+    if task is None:
+        raise ValueError(f"unknown movement '{name}'; known: {', '.join(MOVEMENTS)}")
+    return task(rng, sway, name)
+
+
+def _walking(rng) -> BodyMotion:
+    """Walking: the gait of :func:`movement`'s docstring (seeded phases and jitter)."""
+    f = 0.9
+    return BodyMotion(
+        speed_mps=1.25,
+        pelvis_translation=(_zero(),                                       # steady progression (speed_mps)
+                            _SinSum([0.02], [2 * np.pi * f], [0.0]),    # lateral sway at f
+                            _SinSum([0.011], [4 * np.pi * f], [np.pi / 2])),  # bounce 2.2 cm p-p at 2 f
+        pelvis_angles=(_harmonics(rng, f, 0.0, [4.0], 0.0, jitter_deg=0.5),     # rotation
+                       _harmonics(rng, f, 0.0, [4.0], np.pi / 2, jitter_deg=0.5),  # obliquity
+                       _harmonics(rng, 2 * f, 0.0, [2.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.3)),
+        joints={
+            "trunk": (_harmonics(rng, 2 * f, 2.0, [1.5], rng.uniform(0, 2 * np.pi), jitter_deg=0.3),
+                      _harmonics(rng, f, 0.0, [2.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.3),
+                      _harmonics(rng, f, 0.0, [6.0], np.pi, jitter_deg=0.5)),
+            "thigh": (_harmonics(rng, f, 10.0, [20.0, 3.0], 0.0, jitter_deg=1.5),
+                      _harmonics(rng, f, 0.0, [4.0, 1.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.5),
+                      _harmonics(rng, f, 0.0, [5.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.5)),
+            "shank": (_harmonics(rng, f, 25.0, [25.0, 10.0], -0.5 * np.pi, jitter_deg=2.0),),
+            "upper_arm": (_harmonics(rng, f, 5.0, [16.0, 2.0], np.pi, jitter_deg=1.5),
+                          _harmonics(rng, f, 8.0, [2.0], rng.uniform(0, 2 * np.pi), jitter_deg=0.5)),
+            "forearm": (_harmonics(rng, f, 20.0, [8.0], np.pi, jitter_deg=1.0),),
+        })
+
+
+def _back_flexion(rng, sway, name: str) -> BodyMotion:
+    per = 6.0
+    return BodyMotion(pelvis_translation=sway, pelvis_pivot=HIP_CENTRE,
+                      pelvis_angles=(_zero(), _zero(), _bend(rng, per, 25.0, 2.0)),
+                      joints={"trunk": (_bend(rng, per, 40.0, 3.0), _wobble(rng, 3.0, 0.1, 0.3),
+                                        _wobble(rng, 3.0, 0.1, 0.3))})
+
+
+def _back_latero_flexion(rng, sway, name: str) -> BodyMotion:
+    per = 6.0
+    lat = _SinSum([np.radians(25.0), np.radians(2.0) * rng.uniform(0.3, 1.0)],
+                  2 * np.pi / per * np.array([1.0, 2.0]), [0.0, rng.uniform(0, 2 * np.pi)])
+    obl = _SinSum([np.radians(3.0)], [2 * np.pi / per], [np.pi])
+    return BodyMotion(pelvis_translation=sway, pelvis_pivot=HIP_CENTRE, pelvis_angles=(_zero(), obl, _zero()),
+                      joints={"trunk": (_wobble(rng, 4.0, 0.1, 0.3), lat, _wobble(rng, 3.0, 0.1, 0.3))})
+
+
+def _back_rotation(rng, sway, name: str) -> BodyMotion:
+    per = 6.0
+    rot = _SinSum([np.radians(20.0), np.radians(2.0) * rng.uniform(0.3, 1.0)],
+                  2 * np.pi / per * np.array([1.0, 2.0]), [0.0, rng.uniform(0, 2 * np.pi)])
+    yaw = _SinSum([np.radians(5.0)], [2 * np.pi / per], [np.pi])
+    return BodyMotion(pelvis_translation=sway, pelvis_pivot=HIP_CENTRE, pelvis_angles=(yaw, _zero(), _zero()),
+                      joints={"trunk": (_wobble(rng, 4.0, 0.1, 0.3), _wobble(rng, 3.0, 0.1, 0.3), rot)})
+
+
+def _arm(rng, sway, name: str) -> BodyMotion:
+    per = 4.0
+    main = _bend(rng, per, 90.0, 3.0)
+    other = _wobble(rng, 6.0, 0.5 / per, 1.5 / per)
+    hum = _wobble(rng, 5.0, 0.5 / per, 1.5 / per)
+    arm = (main, other, hum) if name == "arm-flexion" else (other, main, hum)
+    return BodyMotion(pelvis_translation=sway, pelvis_pivot=HIP_CENTRE,
+                      pelvis_angles=(_wobble(rng, 1.0, 0.1, 0.4), _wobble(rng, 1.0, 0.1, 0.4),
+                                     _wobble(rng, 1.0, 0.1, 0.4)),
+                      joints={"trunk": (_wobble(rng, 2.0, 0.1, 0.4), _wobble(rng, 2.0, 0.1, 0.4),
+                                        _wobble(rng, 2.0, 0.1, 0.4)),
+                              "upper_arm": arm})
+
+
+#: the standing tasks of :func:`movement` (pelvis pivoting about the hips, 5 mm sway)
+_STANDING = {"back-flexion": _back_flexion, "back-latero-flexion": _back_latero_flexion,
+             "back-rotation": _back_rotation, "arm-flexion": _arm, "arm-abduction": _arm}
 
 
 def body_worn(name: str, seed: int = 0, duration_s: float = 60.0):
