@@ -38,14 +38,12 @@ on the master clock.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Callable
 
 from coiltrack.protocol import FrameDecoder, Signer
 from coiltrack.protocol.signing import now_timestamp
 
 from coiltrack.firmware.actuate.schedule import PulseSchedule
-from coiltrack.firmware.compose import Parts, Pipeline, compose  # noqa: F401  (Pipeline: the type of .pipeline)
+from coiltrack.firmware.compose import Parts, Pipeline, compose
 from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.core import select as select_core
 from coiltrack.firmware.measure.windows import SensorChannel, WindowCloser
@@ -95,7 +93,7 @@ class Firmware:
         self.core = select_core(cfg.impl)
         # the room's map goes into the pose solvers' signal model as they are built
         distortion = getattr(calibration, "distortion", None) if cfg.distortion_apply else None
-        self.pipeline = compose(Parts(cfg, self.coils, self.channels, self.schedule, self.closer,
+        self.pipeline: Pipeline = compose(Parts(cfg, self.coils, self.channels, self.schedule, self.closer,
                                       self.supervisor, self.tx, distortion))
         self.tracker = self.pipeline.tracker
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
