@@ -133,11 +133,12 @@ def test_the_window_extractor_with_gyro_baseline_keeps_the_contract():
 
 
 def test_every_link_is_a_port():
-    """The links of the bench (subclasses) and of the protocol package (structural: it never
-    imports the firmware), classes and live instances."""
+    """The links of the bench (subclasses), of the protocol package and the bench's faulty link
+    (structural: neither imports the firmware), classes and live instances."""
     import can
 
     from coiltrack.firmware.port import SerialPort
+    from coiltrack.hil.faults import FaultyLink, LinkFaults
     from coiltrack.protocol.can import CanLink
     from coiltrack.protocol.serial_link import FdPort, SerialLink
     from coiltrack.tools.bench.framelog import RecordingPort, ReplayPort
@@ -145,10 +146,11 @@ def test_every_link_is_a_port():
     from coiltrack.tools.bench.linktap import TapPort
 
     for cls in (SerialPort, CanLink, FdPort, SerialLink, RecordingPort, ReplayPort, FdLink, GuardedPort, InprocEnd,
-                TapPort):
+                TapPort, FaultyLink):
         assert problems(cls, Port) == [], cls
     a, b = inproc_pair()
     assert problems(a, Port) == [] and problems(TapPort(a), Port) == []
+    assert problems(FaultyLink(b, LinkFaults()), Port) == []
     bus = can.Bus(interface="virtual", channel="test-seams-port", receive_own_messages=False)
     try:
         assert problems(CanLink(bus, 1), Port) == []
