@@ -93,8 +93,8 @@ class Firmware:
         self.core = select_core(cfg.impl)
         # the room's map goes into the pose solvers' signal model as they are built
         distortion = getattr(calibration, "distortion", None) if cfg.distortion_apply else None
-        self.pipeline: Pipeline = compose(Parts(cfg, self.coils, self.channels, self.schedule, self.closer,
-                                      self.supervisor, self.tx, distortion))
+        parts = Parts(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx, distortion)
+        self.pipeline: Pipeline = compose(parts)
         self.tracker = self.pipeline.tracker
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
                                  self.tx, other=self.pipeline.on_message, calibration=sensor_cal,
