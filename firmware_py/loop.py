@@ -25,10 +25,12 @@ tick runs them top-down, in this order, with no blocking call and no sleep:
 6. transmit (:mod:`coiltrack.firmware.transmit`): the heartbeat (poses and
    window reports leave as they are made, through the same transmitter).
 
-The pipeline is chosen by :func:`compose` from ``actuation``, ``fusion`` and
-``single_coil_fusion`` (and ``excitation = "ac"``: :mod:`coiltrack.firmware.track.ac`;
-``tight_fusion``: :mod:`coiltrack.firmware.track.tight_fusion`);
-the loop itself has no mode flag. Every buffer is
+The pipeline is composed in one place, :mod:`coiltrack.firmware.compose` (its table
+``TRACKERS``, from ``excitation``, ``actuation``, ``single_coil_fusion``, ``fusion`` and
+``tight_fusion``); each stage is behind a ``typing.Protocol`` (``track.Tracker``,
+``actuate.Actuation``, ``measure.Measurement``, ``pose.Solver``, ``port.Port``;
+``docs/guide/extending.md``). The loop itself has no mode flag, and no stage writes
+another's state. Every buffer is
 created at start-up; the steady-state tick allocates no numpy array
 (``tests/firmware/test_alloc.py``). Time is an integer count of microseconds
 on the master clock.
@@ -36,60 +38,24 @@ on the master clock.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Callable
 
 from coiltrack.protocol import FrameDecoder, Signer
 from coiltrack.protocol.signing import now_timestamp
 
-from coiltrack.firmware.actuate.burst import BurstActuation
 from coiltrack.firmware.actuate.schedule import PulseSchedule
+from coiltrack.firmware.compose import Parts, Pipeline, compose
 from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.core import select as select_core
-from coiltrack.firmware.measure.burst import BurstMeasurement
 from coiltrack.firmware.measure.windows import SensorChannel, WindowCloser
 from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.port import Port
 from coiltrack.firmware.receive import Receiver
 from coiltrack.firmware.rotation import quat_tuple as _quat  # noqa: F401  (re-exported for tools)
 from coiltrack.firmware.supervise.supervisor import Supervisor
-from coiltrack.firmware.track.burst_fusion import BurstFusionTracker
-from coiltrack.firmware.track.magnetic import MagneticTracker
-from coiltrack.firmware.track.single_coil_tracker import SingleCoilTracker
 from coiltrack.firmware.transmit import Transmitter
 
 #: the tick's stages, in order (``Firmware.tick_timed`` times each)
 PHASES = ("receive", "measure", "track", "actuate", "supervise", "transmit")
-
-
-@dataclass(frozen=True)
-class Pipeline:
-    """The actuation and measurement stages (``step(now_us)`` callables) and
-    the tracker of one configuration."""
-    actuate: Callable[[int], None]
-    measure: Callable[[int], None]
-    track: Callable[[int], None]
-    tracker: object
-    on_message: Callable | None = None     # messages the receiver does not route (AC_DRIVE_STATUS)
-
-
-def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, closer: WindowCloser,
-            supervisor: Supervisor, tx: Transmitter) -> Pipeline:
-    """Choose the pipeline once from the configuration."""
-    if cfg.excitation == "ac":
-        from coiltrack.firmware.track.ac import compose_ac
-
-        return Pipeline(*compose_ac(cfg, coils, channels, schedule, supervisor, tx))
-    if cfg.actuation == "adaptive" or cfg.single_coil_fusion:
-        mode = "adaptive" if cfg.actuation == "adaptive" else "fixed"
-        t = SingleCoilTracker(cfg, coils, channels, schedule, closer, supervisor, tx, mode)
-        return Pipeline(t.actuate, t.measure, t.track, t)
-    burst = BurstMeasurement(channels, schedule, closer, cfg.windows_budget)
-    kind = BurstFusionTracker if cfg.fusion else MagneticTracker
-    if cfg.tight_fusion:              # each pulse window a measurement at its own time ([tight])
-        from coiltrack.firmware.track.tight_fusion import TightFusionTracker as kind
-    t = kind(cfg, coils, channels, schedule, burst, supervisor, tx)
-    return Pipeline(BurstActuation(cfg, schedule, channels, t).step, burst.step, t.step, t)
 
 
 class Firmware:
@@ -125,12 +91,11 @@ class Firmware:
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
         # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
         self.core = select_core(cfg.impl)
-        self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
+        # the room's map goes into the pose solvers' signal model as they are built
+        distortion = getattr(calibration, "distortion", None) if cfg.distortion_apply else None
+        parts = Parts(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx, distortion)
+        self.pipeline: Pipeline = compose(parts)
         self.tracker = self.pipeline.tracker
-        if calibration is not None and getattr(calibration, "distortion", None) is not None and cfg.distortion_apply:
-            from coiltrack.firmware.model.distortion import install
-
-            install(self.tracker, calibration.distortion)      # the room's map in the pose solver's signal model
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
                                  self.tx, other=self.pipeline.on_message, calibration=sensor_cal,
                                  imu_interval_us=1e6 / cfg.imu_delta_rate_hz, imu_step_us=1e6 / cfg.imu_rate_hz,
@@ -144,10 +109,9 @@ class Firmware:
     def _begin(self, now_us: int) -> None:
         if self.boot_us is None:
             self.boot_us = now_us
-            self.tx.boot_us = now_us
         self.ticks += 1
         self.last_tick_us = now_us
-        self.tx.now_us = now_us
+        self.tx.begin_tick(now_us)
 
     def tick(self, now_us: int) -> None:
         self._begin(now_us)

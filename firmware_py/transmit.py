@@ -45,6 +45,7 @@ class Transmitter:
         self.next_heartbeat_us = 0
         self.boot_us = 0
         self.now_us = 0
+        self._ticked = False    # begin_tick has set boot_us
         self.tx_errors = 0
         self.poses = 0          # POSEs sent with POSE_VALID
         self.fused_poses = 0    # ... of which fused (POSE_FUSED)
@@ -86,6 +87,14 @@ class Transmitter:
         """A POSE whose covariance is unknown (every variance at the f32 maximum, quality 0)."""
         self.pose(node, t_us, float(p[0]), float(p[1]), float(p[2]), q[0], q[1], q[2], q[3],
                   F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, status, 0)
+
+    def begin_tick(self, now_us: int) -> None:
+        """The tick's time (us, master clock): what is sent in the tick is stamped with it (events,
+        signatures); the first tick's is the boot time (``boot_us``)."""
+        if not self._ticked:
+            self._ticked = True
+            self.boot_us = now_us
+        self.now_us = now_us
 
     def step(self, now_us: int) -> None:
         """The periodic HEARTBEAT."""

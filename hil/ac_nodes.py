@@ -66,7 +66,6 @@ class ACDriverNode(CoilDriverNode):
         self.ac_driver: ACCoilDriver | None = None
         self.next_status_us: int | None = None
         self.ac_refused = 0
-        world.ac_driver = None
 
     def on_message(self, msg, now_us: int, send) -> None:
         if msg.NAME != "AC_DRIVE_CMD":
@@ -90,7 +89,6 @@ class ACDriverNode(CoilDriverNode):
         super().on_power_off(now_us)
         self.plans.clear()
         self.ac_driver = None
-        self.world.ac_driver = None
         self.next_status_us = None
 
     def _rebuild(self) -> None:
@@ -107,7 +105,6 @@ class ACDriverNode(CoilDriverNode):
         on = min(p["on_true_us"] for p in self.plans.values())
         self.ac_driver = ACCoilDriver(src, reqs, self.ac_limits, start_s=on * 1e-6,
                                       current_noise_a=self.current_noise_a)
-        self.world.ac_driver = self.ac_driver
         self.next_status_us = max(p["on_true_us"] for p in self.plans.values()) + 50_000
 
     def step(self, now_us: int, send) -> None:
@@ -162,20 +159,24 @@ def object_response(world, obj, omega: float, k: int, point) -> np.ndarray:
 
 
 class FastSensorNode(SensorNode):
-    """A sensor node with a fast magnetometer under AC excitation (see module docstring)."""
+    """A sensor node with a fast magnetometer under AC excitation (see module docstring).
+
+    ``driver``: the coil driver whose AC drive (its ``ac_driver``, an :class:`hil.ac.ACCoilDriver`
+    or None while no plan runs) the node's samples see; None: no AC drive at all."""
 
     def __init__(self, node_id: int, world, profile: FastMagProfile | None = None, imu=None, seed: int = 0,
-                 clock=None, faults=None):
+                 clock=None, faults=None, driver=None):
         profile = profile or FastMagProfile.mmc5983ma()
         mag = MagSpec(rate_hz=profile.rate_hz, noise_t=profile.noise_rms_t, flip_every=0,
                       range_t=min(profile.range_t, 32767 * MAG_LSB_T))
         super().__init__(node_id, world, mag=mag, imu=imu, seed=seed, clock=clock, faults=faults)
         self.profile = profile
+        self.driver = driver
         self._resp_cache: dict = {}
 
     def _coil_ac_field(self, t_us: int) -> np.ndarray:
         """Coil and object AC fields (T, source frame) at true time ``t_us`` as the part outputs them."""
-        drv = getattr(self.world, "ac_driver", None)
+        drv = self.driver.ac_driver if self.driver is not None else None
         if drv is None:
             return np.zeros(3)
         prof = self.profile
@@ -217,24 +218,21 @@ class FastSensorNode(SensorNode):
         self._send_mag(t, B, send)
 
 
-def install_ac(bench, profile: FastMagProfile | None = None, seed_driver: int = 0, seed_sensor: int = 0) -> None:
-    """Replace an assembled bench's (``hil.bench.assemble``) coil driver and sensor nodes by their AC
-    counterparts, keeping their ids, clocks, faults, off-windows and IMUs."""
-    world = bench.world
-    old = bench.driver
-    drv = ACDriverNode(old.node_id, world, seed=seed_driver, clock=old.clock, faults=old.faults)
-    drv.off_windows = list(old.off_windows)
-    sensors = []
-    for i, s in enumerate(bench.sensors):
-        f = FastSensorNode(s.node_id, world, profile, imu=s.imu, seed=seed_sensor + 1009 * i, clock=s.clock,
-                           faults=s.faults)
-        f.off_windows = list(s.off_windows)
-        sensors.append(f)
-    emu = bench.emulator
-    extra = emu.nodes[1 + len(emu.sensors):]
-    emu.driver, emu.sensors = drv, sensors
-    emu.nodes = [drv, *sensors, *extra]
-    bench.driver, bench.sensors = drv, sensors
+class ACNodeKinds:
+    """The nodes of a bench under AC excitation (``hil.bench.assemble(..., kinds=ACNodeKinds(profile))``):
+    an :class:`ACDriverNode` and :class:`FastSensorNode` s with the magnetometer ``profile`` that
+    see its drive. The AC driver keeps its own limits (:class:`hil.ac.ACLimits`), not the pulse
+    limits of the bench."""
+
+    def __init__(self, profile: FastMagProfile | None = None):
+        self.profile = profile
+
+    def driver(self, node_id: int, world, *, limits, seed: int, clock, faults) -> ACDriverNode:
+        return ACDriverNode(node_id, world, seed=seed, clock=clock, faults=faults)
+
+    def sensor(self, node_id: int, world, *, mag, imu, seed: int, clock, faults, driver) -> FastSensorNode:
+        return FastSensorNode(node_id, world, self.profile, imu=imu, seed=seed, clock=clock, faults=faults,
+                              driver=driver)
 
 
 def ac_amplitude_sigma(freqs_hz, rate_hz: float, window_s: float, noise_t: float, integration_s: float,

@@ -51,6 +51,19 @@ class Bench:
         return self.sensors[0]
 
 
+class NodeKinds:
+    """The nodes a bench is built of: the pulsed-DC coil driver and sensor nodes
+    (:mod:`hil.nodes`). Another excitation brings its own (``hil.ac_nodes.ACNodeKinds``), so
+    :func:`assemble` builds the bench once, with the right nodes."""
+
+    def driver(self, node_id: int, world, *, limits, seed: int, clock, faults) -> CoilDriverNode:
+        return CoilDriverNode(node_id, world, limits=limits, seed=seed, clock=clock, faults=faults)
+
+    def sensor(self, node_id: int, world, *, mag, imu, seed: int, clock, faults, driver) -> SensorNode:
+        """A sensor node (``driver``: the bench's coil driver, for nodes that see its drive)."""
+        return SensorNode(node_id, world, mag=mag, imu=imu, seed=seed, clock=clock, faults=faults)
+
+
 def random_clock(rng: np.random.Generator, drift_ppm_max: float) -> NodeClock:
     """Offset 0.1..5 s, drift uniform in +-drift_ppm_max."""
     return NodeClock(offset_us=int(rng.integers(100_000, 5_000_000)),
@@ -60,7 +73,7 @@ def random_clock(rng: np.random.Generator, drift_ppm_max: float) -> NodeClock:
 def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: BenchFaults | LinkFaults | None = None,
              seed_driver: int = 0, seed_sensor: int = 0, seed_faults: int = 0, seed_clocks: int | None = None,
              clock_drift_ppm: float = 50.0, sensor_ids=(NODE_SENSOR_BASE,), driver_limits=None,
-             verifier=None, sensor_worlds=None) -> Bench:
+             verifier=None, sensor_worlds=None, kinds: NodeKinds | None = None) -> Bench:
     """Build the nodes of one run and apply the fault switches.
 
     Node clocks get seeded offsets and drifts (``clock_drift_ppm`` bound;
@@ -71,7 +84,8 @@ def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: B
     of what the firmware sends (a :class:`coiltrack.protocol.SignatureVerifier`
     that requires signed commands: an unsigned, forged or replayed command is
     dropped and counted, never executed). ``sensor_worlds``: per sensor id, the
-    :meth:`hil.world.World.view` that sensor moves in (default: all in ``world``).
+    :meth:`hil.world.World.view` that sensor moves in (default: all in ``world``). ``kinds``:
+    the node classes (default :class:`NodeKinds`, pulsed DC; ``hil.ac_nodes.ACNodeKinds``).
     A sensor's clock and noise are drawn by its node id (``id - 16``-th draw), so a
     sensor run alone (``sensor_ids=(id,)``) sees what it sees among others.
     """
@@ -97,13 +111,15 @@ def assemble(world, link, *, mag: MagSpec, imu: ImuSpec | None = None, faults: B
         world.add(MetalObject(radius=faults.metal_radius_m, carried_offset=[0.0, d, 0.0],
                               t_on_us=f.t_on_us, t_off_us=f.t_off_us))
     lk = FaultyLink(link, faults.link, seed=seed_faults) if faults.link.active() else link
-    driver = CoilDriverNode(NODE_COIL_DRIVER, world, limits=driver_limits, seed=seed_driver,
-                            clock=clocks["driver"], faults=faults)
+    kinds = kinds or NodeKinds()
+    driver = kinds.driver(NODE_COIL_DRIVER, world, limits=driver_limits, seed=seed_driver,
+                          clock=clocks["driver"], faults=faults)
     sensors = []
     worlds = sensor_worlds or {}
     for i, sid in enumerate(sensor_ids):
-        sensors.append(SensorNode(sid, worlds.get(sid, world), mag=MagSpec(**vars(mag)), imu=imu,
-                                  seed=seed_sensor + 1009 * slot[i], clock=sensor_clocks[i], faults=faults))
+        sensors.append(kinds.sensor(sid, worlds.get(sid, world), mag=MagSpec(**vars(mag)), imu=imu,
+                                    seed=seed_sensor + 1009 * slot[i], clock=sensor_clocks[i], faults=faults,
+                                    driver=driver))
     for f in faults.of("node_off"):
         (driver if f.target == "driver" else sensors[0]).add_off_window(f.t_on_us, f.t_off_us)
     recorder = Recorder(world)

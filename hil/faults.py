@@ -116,7 +116,8 @@ class FaultyLink:
 
     ``service(now_us)`` (called by the emulator every step) releases delayed
     frames whose time has come; without it delayed frames go out on the next
-    write.
+    write. A byte link like the one it wraps: ``read``, ``write``, ``close`` (the link
+    contract ``coiltrack.firmware.port.Port``, structurally: ``hil`` never imports the firmware).
     """
 
     def __init__(self, link, faults: LinkFaults, seed: int = 0):
@@ -186,6 +187,12 @@ class FaultyLink:
         due = self._due(self._held_out, self.now_us)
         if due:
             self.link.write(due)
+
+    def close(self) -> None:
+        """Close the wrapped link (frames still held back are dropped)."""
+        close = getattr(self.link, "close", None)
+        if close is not None:
+            close()
 
     def write(self, data: bytes) -> None:
         out = self._mangle(data, self._held_out)

@@ -676,6 +676,9 @@ class CanReassembler:
 class CanLink:
     """Byte-stream Port over a python-can bus (see the module docstring).
 
+    It implements the firmware's link contract ``coiltrack.firmware.port.Port``
+    (``read``, ``write``, ``close``) structurally: ``protocol`` never imports the firmware.
+
     ``node_id`` is this station's node id: it is used as the CAN sender for
     frames written with ``src`` 0, and frames arriving from any id this link
     has sent as (``node_id`` and every ``src`` written) are ignored, so an

@@ -10,6 +10,9 @@ from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 
 
 class BurstActuation:
+    """The fixed cycle's bursts (an :class:`coiltrack.firmware.actuate.Actuation`); tells
+    ``tracker`` (a :class:`coiltrack.firmware.track.BurstTracker`) of each burst it opens."""
+
     def __init__(self, cfg, schedule, channels, tracker):
         n = len(cfg.coils)
         self.cycle = FixedCycle(n, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us, cfg.lead_us)

@@ -54,6 +54,7 @@ class ACBlockMeasurement:
         self._cursor = [-(1 << 62)] * len(self.channels)
         self.pending = [-1] * len(self.channels)       # a block a channel completed, to solve next tick
         self.complete = False
+        self.closed_last = 0             # pulse windows closed in a step: AC blocks close none
         self.t_ref = 0
         self.block_k = -1
         self.distorted = [False] * len(self.channels)
@@ -99,7 +100,7 @@ class ACBlockMeasurement:
             ok = d.finish(k)
             self._skv[i] = k
             if ok and d.signal_chi2() < self.signal_gate:
-                d.block_flags |= PULSE_TOO_FEW           # no coil field in the block (drive off): not solved
+                d.flag_block(PULSE_TOO_FEW)              # no coil field in the block (drive off): not solved
                 self.blocks_no_signal += 1
             elif ok:
                 self.quad_ratio[i] = q = d.quadrature_ratio()

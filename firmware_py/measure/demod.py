@@ -281,6 +281,11 @@ class Demodulator:
                 V[ax * n + j] = v_in
         return True
 
+    def flag_block(self, flags: int) -> None:
+        """Add ``PULSE_*`` bits to the last finished block's ``block_flags`` (its reader's verdict,
+        e.g. ``PULSE_TOO_FEW`` for a block without signal)."""
+        self.block_flags |= flags
+
     def signal_chi2(self) -> float:
         """``sum S^2 / var(S)`` of the last block: chi-square with ``3 n`` degrees of freedom without a drive."""
         c = 0.0

@@ -157,7 +157,6 @@ class GyroBaselineExtractor(PulseExtractor):
         src = self._src
         out = self._turned
         out.clear()
-        out._latest = NO_TIME_US
         try:
             start = operator.index(start_us)
             end = operator.index(end_us)

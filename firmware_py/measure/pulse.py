@@ -165,6 +165,11 @@ class SampleRing(Ring):
         self.fv[p] = fl
         self._latest = t
 
+    def clear(self) -> None:
+        """Empty the ring; the next sample may have any time."""
+        Ring.clear(self)
+        self._latest = NO_TIME_US
+
     @property
     def latest_t_us(self) -> int:
         """Time of the newest sample, ``NO_TIME_US`` when empty."""

@@ -9,7 +9,9 @@ of the samples used).
 :class:`WindowCloser` closes one commanded pulse's window for every channel
 (:meth:`WindowCloser.close`): it extracts the amplitude, reports the window
 (``PULSE_WINDOW``) and counts flagged windows. Every excitation policy closes
-its windows through it.
+its windows through it. A channel's extractor is a
+:class:`coiltrack.firmware.measure.WindowExtractor` (the plain baseline or the
+gyroscope-turned one).
 """
 from __future__ import annotations
 

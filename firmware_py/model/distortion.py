@@ -42,7 +42,7 @@ import math
 
 from coiltrack.firmware.model.field import dipole_point
 
-__all__ = ["DistortionMap", "install"]
+__all__ = ["DistortionMap"]
 
 #: the largest map accepted (equivalent dipoles per coil): bounds the kernel calls per evaluation
 MAX_DIPOLES_PER_COIL = 16
@@ -175,23 +175,3 @@ class DistortionMap:
             by += t[1]
             bz += t[2]
         return bx, by, bz
-
-
-#: the tracker attributes that hold pose solvers: the burst solve and the fused pipeline's
-#: motion-compensated re-solve (``track.burst_fusion``), which must fit the same model
-_SOLVERS = ("solver", "comp_solver")
-
-
-def install(tracker, dmap: DistortionMap) -> int:
-    """Put ``dmap`` into the signal model of each of ``tracker``'s pose solvers (start-up);
-    returns how many signal models took it (0: the pipeline has none that the map applies to)."""
-    taken = 0
-    for name in _SOLVERS:
-        signal = getattr(getattr(tracker, name, None), "signal", None)
-        if signal is None or not hasattr(signal, "set_distortion"):
-            continue
-        if signal.n != dmap.n:
-            raise ValueError(f"distortion.coils: the map has {dmap.n} coils, the source {signal.n}")
-        signal.set_distortion(dmap)
-        taken += 1
-    return taken

@@ -139,6 +139,13 @@ class Health:
         self.events_dropped = 0
         self.kick_sync = False
 
+    def take_kick_sync(self) -> bool:
+        """Whether a node came back since the last call (time sync should start over for it);
+        clears the request."""
+        kick = self.kick_sync
+        self.kick_sync = False
+        return kick
+
     def set_coils(self, n_coils: int) -> None:
         self.n_coils = n_coils
         self.status_seen = [False] * n_coils

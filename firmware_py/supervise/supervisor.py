@@ -110,6 +110,15 @@ class Supervisor:
         elif mid == _ID_HEARTBEAT:
             h.heard(msg.node, now_us)
 
+    def driver_heard(self, now_us: int) -> None:
+        """The coil driver spoke in a message the supervisor is not given (``AC_DRIVE_STATUS``)."""
+        self.health.heard(self.driver_id, now_us)
+
+    def coil_report(self, coil: int, faults: int) -> None:
+        """The driver's word on ``coil`` of the running plan outside ``COIL_STATUS`` (``faults``:
+        its ``COIL_FAULT_*`` bits; ``AC_DRIVE_STATUS`` of AC excitation)."""
+        self.health.on_coil_status(coil, faults)
+
     def _quiet(self, t_us: int) -> bool:
         ps, pe, m = self._ps, self._pe, self._margin
         for j in range(self.n):
@@ -141,8 +150,7 @@ class Supervisor:
                 quiet_from = last_end + cfg.fall_us + cfg.baseline_us + cfg.guard_us
                 quiet_to = pc + cfg.cycle_us - cfg.baseline_us - cfg.guard_us
                 self.flips.plan(now_us, quiet_from, quiet_to, send)
-        if self.health.kick_sync:
-            self.health.kick_sync = False
+        if self.health.take_kick_sync():
             self.timesync.kick()
             for node in self.health.back_nodes():
                 self.timesync.forget(node)          # it re-acquires: its first replies are no step

@@ -1,6 +1,6 @@
 """Trackers and pipeline of AC excitation.
 
-The AC pipeline (:func:`compose_ac`, chosen by ``excitation = "ac"``):
+The AC pipeline (``excitation = "ac"``, composed by :mod:`coiltrack.firmware.compose`):
 actuate :class:`coiltrack.firmware.actuate.ac.ACActuation` (the drive plan),
 measure :class:`coiltrack.firmware.measure.ac_blocks.ACBlockMeasurement`
 (synchronous demodulation into blocks), track the pulsed-DC trackers behind
@@ -33,7 +33,7 @@ from coiltrack.protocol.schema import AC_FAULT_REFUSED, COIL_FAULT_REFUSED, POSE
 
 from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
-from coiltrack.firmware.track.burst_fusion import BurstFusionTracker
+from coiltrack.firmware.track.burst_fusion import BurstFusionTracker, SensorInertial
 from coiltrack.firmware.track.magnetic import MagneticTracker
 
 
@@ -67,26 +67,28 @@ class _ACMixin:
 class ACMagneticTracker(_ACMixin, MagneticTracker):
     """A magnetic-only pose per AC block."""
 
-    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx):
-        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx)
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, solvers):
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers)
         self.measure, self.act = measure, act
 
 
 class ACFusionTracker(_ACMixin, BurstFusionTracker):
     """AC blocks fused with the IMU (see module docstring)."""
 
-    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx):
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, solvers):
         cfg = dataclasses.replace(cfg, motion_compensation=False)
-        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx)
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers)
         self.measure, self.act = measure, act
-        quiet = _AlwaysQuiet()
-        age = cfg.ac_window_us + 3 * cfg.ac_hop_us
-        for ins in self.inertial.values():
-            ins.ori.gate = quiet
-            ins.ori.max_age_us = age
-            ins.burst_rms_s = cfg.ac_window_us * 1e-6 / math.sqrt(12.0)
         self._fuse_mid = {ch.node: -1 for ch in self.channels}
         self.blocks_fused = 0
+
+    def _sensor_inertial(self, node: int, cfg, gate) -> SensorInertial:
+        """A sensor's inertial part for AC blocks: the compass always quiet (the earth-field ring
+        holds only the blocks' DC terms), a compass sample up to a block and three hops old, and
+        the motion within a block the rms time ``T_w / sqrt(12)`` of a uniform block."""
+        return SensorInertial(node, cfg, _AlwaysQuiet(), self._fixed_phi, self._fixed_fref, self.source,
+                              compass_max_age_us=cfg.ac_window_us + 3 * cfg.ac_hop_us,
+                              burst_rms_s=cfg.ac_window_us * 1e-6 / math.sqrt(12.0))
 
     def _plan_snapshots(self, now_us: int) -> None:
         """Each sensor without an update under way: its snapshot at the middle of the next block not begun."""
@@ -148,21 +150,20 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
 assert AC_FAULT_REFUSED == COIL_FAULT_REFUSED
 
 
-def compose_ac(cfg, coils, channels, schedule, supervisor, tx):
-    """The AC pipeline's stages: ``(actuate, measure, track, tracker, on_message)``."""
-    act = ACActuation(cfg, tx)
-    measure = ACBlockMeasurement(cfg, channels, schedule, act)
-    kind = ACFusionTracker if cfg.fusion else ACMagneticTracker
-    tracker = kind(cfg, coils, channels, schedule, measure, act, supervisor, tx)
+class StatusRouter:
+    """The AC pipeline's messages the receiver does not route: ``AC_DRIVE_STATUS`` goes to the
+    actuation (:meth:`ACActuation.on_status`) and, as the driver's word on a coil of the running
+    plan, to the supervisor (a refusal is the one fatal AC fault; the same bit as
+    ``COIL_FAULT_REFUSED``)."""
 
-    health = supervisor.health
+    def __init__(self, act: ACActuation, supervisor):
+        self.act = act
+        self.supervisor = supervisor
 
-    def on_message(msg, now_us: int) -> None:
+    def on_message(self, msg, now_us: int) -> None:
         if msg.ID == AC_STATUS_ID:
+            act = self.act
             act.on_status(msg, now_us)
-            # the driver answered for this coil (a refusal is the one fatal AC fault; same bit as COIL_FAULT_REFUSED)
-            health.heard(cfg.coil_driver_id, now_us)
+            self.supervisor.driver_heard(now_us)
             if msg.coil < act.n and msg.plan_id == act.plan_id:
-                health.on_coil_status(msg.coil, msg.faults & AC_FAULT_REFUSED)
-
-    return act.step, measure.step, tracker.step, tracker, on_message
+                self.supervisor.coil_report(msg.coil, msg.faults & AC_FAULT_REFUSED)

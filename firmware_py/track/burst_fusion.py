@@ -42,7 +42,6 @@ from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEA
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
-from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
 from coiltrack.firmware.track.source_unaccelerated import Unaccelerated
@@ -140,12 +139,14 @@ def quiet_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, ga
 class _Ori:
     """A ch. 2 filter fed from an IMU ring and a magnetometer ring."""
 
-    def __init__(self, cfg, gate: PulseGate):
+    def __init__(self, cfg, gate: PulseGate, max_age_us: int | None = None):
         self.f = OrientationFilter(OrientationParams.from_config(cfg))
         self.gate = gate
         self.flip = FlipOffset()
         self.compass_t = -(1 << 62)
-        self.max_age_us = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz)
+        # a compass sample's largest distance from the IMU sample it serves (default two intervals of each)
+        self.max_age_us = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz) if max_age_us is None \
+            else int(max_age_us)
         self.compass_used = 0
         self.every = cfg.ori_update_every
         self.n = 0
@@ -242,13 +243,17 @@ class SensorInertial:
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
 
-    def __init__(self, node: int, cfg, gate: PulseGate, fixed_phi, fixed_fref, source: SourceInertial | None):
+    def __init__(self, node: int, cfg, gate: PulseGate, fixed_phi, fixed_fref, source: SourceInertial | None,
+                 compass_max_age_us: int | None = None, burst_rms_s: float | None = None):
+        """``gate``: the compass gate; ``compass_max_age_us`` (default :class:`_Ori`'s) and
+        ``burst_rms_s`` (default the fixed cycle's, below) are given by a pipeline whose bursts
+        are not the fixed cycle's (AC blocks: ``track.ac``)."""
         self.node = node
         self.cfg = cfg
         n = len(cfg.coils)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
-        self.ori = _Ori(cfg, gate)
+        self.ori = _Ori(cfg, gate, compass_max_age_us)
         self.fusion = FusionFilter(FusionParams.from_config(cfg, source is not None), self.ori.f,
                                    imu_capacity=cfg.fusion_replay_capacity,
                                    history_capacity=cfg.fusion_history_capacity,
@@ -289,7 +294,8 @@ class SensorInertial:
         self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
         self._Cfv = memoryview(self._Cf)
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
-        self.burst_rms_s = cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0)
+        self.burst_rms_s = cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0) if burst_rms_s is None \
+            else float(burst_rms_s)
         self.w_last = [0.0, 0.0, 0.0]      # latest rate, offset removed (rad/s)
         self.compensated = 0
         self.comp_rejected = 0
@@ -529,16 +535,15 @@ class BurstFusionTracker(MagneticTracker):
     delayed update of the fusion filter at the burst's middle follows in the
     next ticks (``SensorInertial.fuse``), never in the tick of a solve."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
-        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx)
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers)
         gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
         self._fixed_phi = np.eye(3)                                   # a fixed source: Phi = I
         self._fixed_fref = np.array([-v for v in cfg.gravity_mps2])  # its specific force, source frame
         # eq 6.8 without a_source in the comparison runs
         source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
         self.source = source_cls(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
-        self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
-                         for ch in self.channels}
+        self.inertial = {ch.node: self._sensor_inertial(ch.node, cfg, gate) for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
         self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
@@ -550,8 +555,13 @@ class BurstFusionTracker(MagneticTracker):
         self._deferring = False
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
-        self.comp_solver = make_pose_solver(cfg, coils, 1.0)
+        self.comp_solver = solvers(1.0)
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
+
+    def _sensor_inertial(self, node: int, cfg, gate: PulseGate) -> SensorInertial:
+        """The inertial part of sensor ``node`` (a pipeline of other bursts builds it with its own
+        compass gate and timing: ``track.ac``)."""
+        return SensorInertial(node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:

@@ -36,7 +36,6 @@ import numpy as np
 from coiltrack.protocol.schema import POSE_VALID
 
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
-from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.pose.staged import SolveResult
 from coiltrack.firmware.rotation import quat_tuple
@@ -109,16 +108,21 @@ def _closed_before(done, j: int) -> bool:
 
 
 class MagneticTracker:
-    """Solves each burst for every sensor and reports the magnetic poses."""
+    """Solves each burst for every sensor and reports the magnetic poses (a
+    :class:`coiltrack.firmware.track.BurstTracker`).
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
+    ``burst``: the measurement stage (a :class:`coiltrack.firmware.measure.Measurement`);
+    ``solvers``: ``gate_probability -> Solver`` (``compose.solver_factory``: the configured
+    pose solver with the room's distortion map)."""
+
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers):
         self.cfg = cfg
         self.channels = tuple(channels)
         self.schedule = schedule
         self.burst = burst
         self.supervisor = supervisor
         self.tx = tx
-        self.solver = make_pose_solver(cfg, coils, cfg.solve_gate_probability)
+        self.solver = solvers(cfg.solve_gate_probability)
         self.nominal = np.array([c.current for c in cfg.coils])
         self.currents = np.zeros(len(coils))
         self._curv = memoryview(self.currents)

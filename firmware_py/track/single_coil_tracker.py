@@ -167,13 +167,17 @@ class SingleCoilTracker:
     :meth:`on_coil_status`; :meth:`counters` for the status.
     """
 
-    def __init__(self, cfg, coils, channels, pulses, closer, supervisor, tx, schedule: str = "adaptive"):
+    def __init__(self, cfg, coils, channels, pulses, closer, supervisor, tx, schedule: str = "adaptive",
+                 distortion=None):
+        """``distortion``: the room's map (``model.distortion``) for the acquisition's pose solver."""
         self.cfg = cfg
         self.pulses_sched = pulses
         self.closer = closer
         self.supervisor = supervisor
         self.tx = tx
         self.solver = PoseSolver(coils, cfg.field_model)
+        if distortion is not None:
+            self.solver.signal.set_distortion(distortion)
         self.now_us = 0
         self.boot_us: int | None = None
         if schedule not in ("adaptive", "fixed"):

@@ -184,8 +184,8 @@ class _TightSensor:
 class TightFusionTracker(MagneticTracker):
     """Magnetic-only poses of each burst, and the tightly coupled fused poses (module docstring)."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
-        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx)
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers)
         n = len(coils)
         self.n = n
         self.source = _SourceSamples(cfg.imu_ring_capacity, cfg.gravity_mps2) if cfg.source_imu_id else None

@@ -7,6 +7,7 @@ written here with scipy's spherical Bessel functions of complex argument
 and cotangent forms; the field at the sensor is the point dipole of that moment.
 """
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -92,9 +93,9 @@ def test_fast_node_samples_the_filtered_coil_and_conductor_fields():
     world = World(src, StaticPose(SENSOR_P, np.eye(3)), objects=[ConductingSphereObject(sphere)])
     freqs = (215.0, 315.0, 465.0)
     reqs = [ACRequest(k, f, 1.5 * abs(coil_impedance(src[k], 2 * np.pi * f)), 0.4 * k) for k, f in enumerate(freqs)]
-    world.ac_driver = drv = ACCoilDriver(src, reqs, start_s=0.0)
+    drv = ACCoilDriver(src, reqs, start_s=0.0)
     prof = FastMagProfile.mmc5983ma()
-    node = FastSensorNode(16, world, prof)
+    node = FastSensorNode(16, world, prof, driver=SimpleNamespace(ac_driver=drv))   # a driver node running drv
     U = src.unit_fields(SENSOR_P[None, :])[:, 0, :]
     for t_us in (500_123, 731_777):           # long after the L/R switch-on transient
         t = t_us * 1e-6

@@ -13,7 +13,7 @@ from scipy.stats import chi2
 
 from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.model.field import Coil
-from coiltrack.firmware.pose.factory import make_pose_solver
+from coiltrack.firmware.compose import make_pose_solver
 from coiltrack.firmware.pose.reference import measurement_model, so3_exp
 from coiltrack.firmware.pose.solver import SOLVE_OK
 from coiltrack.firmware.track.burst_fusion import PulseGate, SensorInertial

@@ -115,17 +115,33 @@ def test_map_evaluation_allocates_no_array():
     assert grown <= 0
 
 
-def test_the_map_reaches_every_pose_solver_of_the_fused_pipeline():
-    """The fused pipeline solves each burst twice (the plain solve and the motion-compensated
-    re-solve of ``track.burst_fusion``): catches the map put into the first only, so that the
-    re-solve fits the room-free model."""
+def _tracker_with(name: str, dm, **changes):
+    """The tracker of scenario ``name``'s firmware built with a calibration holding the map ``dm``."""
+    import dataclasses
+
+    from coiltrack.firmware.calibration import Calibration
     from coiltrack.firmware.loop import Firmware
-    from coiltrack.firmware.model.distortion import install
     from coiltrack.tools import scenarios
     from coiltrack.tools.bench.links import inproc_pair
 
     fw_end, _ = inproc_pair()
-    tracker = Firmware(scenarios.get("roetenberg-fusion").firmware_config(), fw_end).tracker
+    cfg = dataclasses.replace(scenarios.get(name).firmware_config(), **changes)
+    return Firmware(cfg, fw_end, calibration=Calibration(distortion=dm)).tracker
+
+
+def test_the_map_reaches_every_pose_solver_of_the_fused_pipeline():
+    """The fused pipeline solves each burst twice (the plain solve and the motion-compensated
+    re-solve of ``track.burst_fusion``): catches the map put into the first only, so that the
+    re-solve fits the room-free model. The map is given to each solver as the composition
+    (``firmware.compose``) builds it; ``distortion_apply = false`` leaves every solver without."""
     dm = _map()
-    assert install(tracker, dm) == 2
+    tracker = _tracker_with("roetenberg-fusion", dm)
     assert tracker.solver.signal.distortion is dm and tracker.comp_solver.signal.distortion is dm
+    tracker = _tracker_with("roetenberg-fusion", dm, distortion_apply=False)
+    assert tracker.solver.signal.distortion is None and tracker.comp_solver.signal.distortion is None
+
+
+def test_the_map_reaches_the_single_coil_acquisition_solver():
+    """The single-coil tracker's acquisition solves a full burst: catches its solver left out."""
+    dm = _map()
+    assert _tracker_with("schepers-adaptive", dm).solver.signal.distortion is dm

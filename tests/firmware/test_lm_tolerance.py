@@ -9,7 +9,7 @@ import pytest
 
 from coiltrack.firmware.config import ConfigError, FirmwareConfig
 from coiltrack.firmware.model.field import orthogonal_source
-from coiltrack.firmware.pose.factory import make_pose_solver
+from coiltrack.firmware.compose import make_pose_solver
 from coiltrack.firmware.pose.reference import measurement_model, so3_exp
 from coiltrack.firmware.pose.solver import SOLVE_OK
 

@@ -53,12 +53,14 @@ class BenchSetup:
         imu_rate = getattr(spec, "imu_rate_hz", 0.0)
         delta_rate = getattr(spec, "imu_delta_rate_hz", 0.0)
         imu = ImuSpec(rate_hz=imu_rate, delta_rate_hz=delta_rate) if imu_rate else None
+        kinds = getattr(spec, "node_kinds", None)   # a sensor spec that brings its own nodes (AC excitation)
         self.bench = assemble(self.world, link, mag=mag, imu=imu, faults=faults, seed_driver=s_driver,
                               seed_sensor=s_sensor, seed_faults=s_faults, seed_clocks=s_clocks,
                               clock_drift_ppm=getattr(spec, "clock_drift_ppm", 50.0),
-                              sensor_ids=sids, verifier=self.verifier, sensor_worlds=views)
+                              sensor_ids=sids, verifier=self.verifier, sensor_worlds=views,
+                              kinds=kinds() if kinds is not None else None)
         install = getattr(spec, "install", None)
-        if install is not None:             # a sensor spec that brings its own nodes (AC excitation)
+        if install is not None:             # a sensor spec that completes its nodes (imperfections)
             install(self.bench, s_driver, s_sensor)
         src_id = getattr(spec, "source_imu_id", 0)
         if src_id:

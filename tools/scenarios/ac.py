@@ -27,17 +27,18 @@ MMC_INTEGRATION_US = 500
 
 @dataclass(frozen=True)
 class ACSensorSpec(SensorSpec):
-    """The fast magnetometer of AC excitation; the bench's nodes become the AC ones (``hil.ac_nodes``)."""
+    """The fast magnetometer of AC excitation; the bench is built of the AC nodes (``hil.ac_nodes``)."""
     rate_hz: float = MMC_RATE_HZ
     noise_t: float = MMC_NOISE_T
     flip_every: int = 0
     excitation: str = "ac"
 
-    def install(self, bench, seed_driver: int, seed_sensor: int) -> None:
-        from coiltrack.hil.ac_nodes import install_ac
+    def node_kinds(self):
+        """The bench's nodes (``hil.bench.assemble(kinds=...)``): the AC driver and the fast magnetometer."""
+        from coiltrack.hil.ac_nodes import ACNodeKinds
         from coiltrack.hil.magnetometers import FastMagProfile
 
-        install_ac(bench, FastMagProfile.mmc5983ma(0b11, self.rate_hz), seed_driver, seed_sensor)
+        return ACNodeKinds(FastMagProfile.mmc5983ma(0b11, self.rate_hz))
 
     def amplitude_sigma(self, cfg):
         """Per-element standard deviation of the signal matrix (T, (n,)) for the CRLB of the report."""
