@@ -43,6 +43,9 @@ __all__ = [
     "loop_jacobian",
     "dipole_field",
     "dipole_jacobian",
+    "dipole_point",
+    "dipole_polar",
+    "loop_point",
     "Coil",
     "CoilSet",
     "orthogonal_source",
@@ -50,6 +53,9 @@ __all__ = [
 
 #: vacuum permeability, T m / A (pre-2019 SI definition, used throughout)
 MU0 = 4e-7 * math.pi
+#: ``mu0 / 2 pi`` (T m / A): Raab's ``C`` of eq 3 per unit moment (``seeds/004_86267342cd7488ce.txt``),
+#: the dipole's axial field ``C m / rho^3`` (:func:`dipole_polar`)
+MU0_2PI = MU0 / (2.0 * math.pi)
 
 _HALF_PI = 0.5 * math.pi
 # AGM iteration caps.  From k_c >= 1e-8 (any m < 1 representable in double)
@@ -909,3 +915,27 @@ def dipole_point(px, py, pz, mx, my, mz, jac=True):
                 c5 * (mx * py + my * px - f * px * py),
                 c5 * (mx * pz + mz * px - f * px * pz),
                 c5 * (my * pz + mz * py - f * py * pz))
+
+
+def dipole_polar(ux, uy, uz, rho, mx, my, mz, jac=True):
+    """Dipole field (and gradient) at the point ``rho u`` relative to the dipole,
+    given by its unit direction ``u`` and range ``rho``, Python floats: Raab
+    et al. 1979 (``seeds/004_86267342cd7488ce.txt``) eq 5 in vector form,
+    ``B = (C / 2 rho^3)(3 (m.u) u - m)`` with ``C = mu0 / 2 pi`` (eq 3,
+    :data:`MU0_2PI`), and ``dB/dp = (C / 2 rho^4)(3 (u m^T + (m.u) I + m
+    u^T) - 15 (m.u) u u^T)``; Schepers & Veltink eqs 8 and 10 written in
+    ``(u, rho)``. The same field as :func:`dipole_point` at ``p = rho u``
+    (to rounding: that kernel takes the point, this one the direction and the
+    range a tracker in Raab's coordinates holds). Returns the tuple layout of
+    :func:`loop_point`: ``(bx, by, bz)`` T and, when ``jac``, ``(jxx, jyy,
+    jzz, jxy, jxz, jyz)`` T/m."""
+    kd = 0.5 * MU0_2PI / (rho * rho * rho)
+    mu = mx * ux + my * uy + mz * uz
+    b = (kd * (3.0 * mu * ux - mx), kd * (3.0 * mu * uy - my), kd * (3.0 * mu * uz - mz))
+    if not jac:
+        return b
+    kj = kd / rho
+    f = 15.0 * mu
+    return b + (kj * (6.0 * ux * mx + 3.0 * mu - f * ux * ux), kj * (6.0 * uy * my + 3.0 * mu - f * uy * uy),
+                kj * (6.0 * uz * mz + 3.0 * mu - f * uz * uz), kj * (3.0 * (ux * my + mx * uy) - f * ux * uy),
+                kj * (3.0 * (ux * mz + mx * uz) - f * ux * uz), kj * (3.0 * (uy * mz + my * uz) - f * uy * uz))
