@@ -186,7 +186,8 @@ class RaabTracker(StagedSolve):
         this x range (or this, in rad, in orientation) from where it was
         evaluated.
     correction : bool
-        Apply the exact-model correction (module docstring).
+        Apply the exact-model correction (module docstring): the component
+        ``corrector`` is ``raab_correction.LoopCorrection`` or ``NoCorrection``.
     start_position, start_euler : optional
         Start of an acquisition (m, source frame; ``(psi, theta, phi)`` rad);
         default: the hemisphere direction at the range of the invariant,
@@ -225,7 +226,6 @@ class RaabTracker(StagedSolve):
         self.gate = _gate(n, gate_probability)
         self.step_tol = float(step_tol)
         self.refresh = float(refresh)
-        self.correction = bool(correction)
         self.max_step = float(max_step)
         self.step_sigma = float(step_sigma)
         self._start_p = None if start_position is None else tuple(float(v) for v in start_position)
@@ -235,9 +235,9 @@ class RaabTracker(StagedSolve):
         init_results(self)              # position, rotation, covariance, iterations, cost, status
         self._cov = flat(self.covariance)
         self.angles = memoryview(np.zeros(6))
-        #: the exact-loop correction (or none), chosen here once; the covariance, published into ``covariance``
-        self._corr = LoopCorrection(n) if self.correction else NoCorrection()
-        self._covm = RaabCovariance(n, self._cbar, self.covariance)
+        #: the exact-loop correction (``correction``) or none, chosen here once (``pose.raab_correction``)
+        self.corrector = LoopCorrection(n) if correction else NoCorrection()
+        self._covm = RaabCovariance(n, self._cbar, self.covariance)     # publishes into ``covariance``
         self._buffers(n)
         self._x = [0.0] * 6                          # alpha, beta, rho, psi, theta, phi
         self._hemi = (1.0, 0.0, 0.0)
@@ -315,7 +315,7 @@ class RaabTracker(StagedSolve):
             self._limit = self.iters
             if self._cache_ok and not self._moved():
                 # the cached evaluation still holds here: the first update evaluates no field
-                self._corr.resume()
+                self.corrector.resume()
                 self._then(self._unit_update, 1)
                 return SOLVE_RUNNING
         self._then(self._unit_measure, self.n)
@@ -403,7 +403,7 @@ class RaabTracker(StagedSolve):
         """The signals corrected at the estimate (``S_c``, by the correction
         chosen at construction: ``pose.raab_correction``), then ``F = S_c M^+``
         into ``_F`` and ``k = |F|_F / sqrt(3/2)`` (= ``C / rho^3``, eq 21)."""
-        self._corr.correct(self._Sv, self._Sc, self.n, self._point(), self._pm, self._R, self._x[2], self._curv)
+        self.corrector.correct(self._Sv, self._Sc, self.n, self._point(), self._pm, self._R, self._x[2], self._curv)
         self._k = coupling(self.n, self._Sc, self._mp, self._F)
 
     # ------------------------------------------------------------- units
@@ -415,7 +415,7 @@ class RaabTracker(StagedSolve):
         B_model - B_raab`` with its gradient, per ampere (Raab's dipole in
         closed form: no field evaluation), then ``K``."""
         px, py, pz = self._point()
-        sig, corr = self.signal, self._corr
+        sig, corr = self.signal, self.corrector
         sig.fields(px, py, pz, self._one, True)
         pm = self._pm
         ddx, ddy, ddz = px - pm[0], py - pm[1], pz - pm[2]
@@ -449,7 +449,7 @@ class RaabTracker(StagedSolve):
         if not (k > 0.0 and math.isfinite(k)):
             self._finish(SOLVE_NONFINITE)
             return
-        d = self._corr.precondition_step(x[2], detect(x, self._R, self._F, k))
+        d = self.corrector.precondition_step(x[2], detect(x, self._R, self._F, k))
         da0, db0, drho, dpsi0, dth0, dphi0 = d
         if max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0)) < _ACQUIRED_STEP:
             self._acquiring = False
@@ -478,12 +478,11 @@ class RaabTracker(StagedSolve):
         """The next unit after an update of size ``step`` (``small``: converged):
         the correction again where the estimate moved past the refresh, the
         finish, or another update."""
-        x = self._x
+        x, corr = self._x, self.corrector
         if not (math.isfinite(rho) and math.isfinite(psi) and math.isfinite(x[0])):
             self._finish(SOLVE_NONFINITE)
-        elif (small or step < 0.5 * self.refresh or (not self._corr.lin and step < _EARLY_REFRESH
-                                                      and self._corr.rel >= K_MIN)) \
-                and self._corr.refreshes and self._moved() and self.iterations < self._limit:
+        elif (small or step < 0.5 * self.refresh or (not corr.lin and step < _EARLY_REFRESH and corr.rel >= K_MIN)) \
+                and corr.refreshes and self._moved() and self.iterations < self._limit:
             # moved past the refresh and what remains of the steps (about the last one) is within half of it
             self._done_at_refresh = small and not self._acquiring
             self._then(self._unit_measure, self.n)          # the correction again, where the pose now is
@@ -533,7 +532,7 @@ class RaabTracker(StagedSolve):
                 self._then(self._unit_measure, self.n)
                 return
         self.cost = cost
-        self._covm.publish(x, self._R, self._wv, self._curv, self._pm, self._corr.rel, self._point())
+        self._covm.publish(x, self._R, self._wv, self._curv, self._pm, self.corrector.rel, self._point())
         status = SOLVE_OK if self.converged else SOLVE_NOT_CONVERGED
         if self._mirrored or self._reacquired:
             status |= SOLVE_REACQUIRED

@@ -90,8 +90,8 @@ class LoopCorrection:
         self.lin = False                             # the correction's linear term (and K) in use
         self.k_id = False                            # K taken as I (the correction's gradient below K_MIN)
         self.k_ok = False                            # K factored, at _pk
-        self._b = memoryview(np.zeros(3 * n))        # correction B_model - B_raab per A (source frame), [3 j + i]
-        self._G = memoryview(np.zeros(9 * n))        # its gradient d/dp per A, [9 j + 3 r + c]
+        self.b = memoryview(np.zeros(3 * n))        # correction B_model - B_raab per A (source frame), [3 j + i]
+        self.G = memoryview(np.zeros(9 * n))        # its gradient d/dp per A, [9 j + 3 r + c]
         self._pk = [0.0] * 3
         self._Fk = [0.0] * 54                        # the six detected couplings of K's columns
         self._K = [0.0] * 36                         # K = I + G D T, LU factors
@@ -109,7 +109,7 @@ class LoopCorrection:
         if dx * dx + dy * dy + dz * dz > (_LIN_MAX * rho) ** 2:
             dx = dy = dz = 0.0
             self.lin = False
-        b, G = self._b, self._G
+        b, G = self.b, self.G
         r00, r01, r02, r10, r11, r12, r20, r21, r22 = (R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2],
                                                        R[2, 0], R[2, 1], R[2, 2])
         for j in range(n):
@@ -140,7 +140,7 @@ class LoopCorrection:
         ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
         ux, uy, uz = cb * ca, cb * sa, -sb
         ddx, ddy, ddz = dd
-        b, G = self._b, self._G
+        b, G = self.b, self.G
         rel = shift = 0.0
         for j in range(self.n):
             o, g = 3 * j, 9 * j
@@ -197,7 +197,7 @@ class LoopCorrection:
         quadratically instead of by the ratio of loop to dipole near the source.
         ``x`` the estimate, ``mp`` ``M^+``, ``cur`` the currents, ``k = C /
         rho^3`` of the corrected coupling."""
-        n, b, G = self.n, self._b, self._G
+        n, b, G = self.n, self.b, self.G
         ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
         p00, p01, p02 = cb * ca, cb * sa, -sb
         p10, p11 = -sa, ca
