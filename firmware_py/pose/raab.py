@@ -126,12 +126,12 @@ import math
 import numpy as np
 
 from coiltrack.firmware.estimate.ekf import chi2_gate
-from coiltrack.firmware.linalg import Rot3, flat, nearest_rotation
+from coiltrack.firmware.linalg import Rot3, flat
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.raab_correction import K_MIN, LoopCorrection, NoCorrection
 from coiltrack.firmware.pose.raab_covariance import RaabCovariance
 from coiltrack.firmware.pose.raab_update import (C_RAAB, MAX_STEP, POLE_COS, angles_from_pose, clip, coupling, dcm,
-                                                 detect, error_angles, is_rotation, moment_pseudo_inverse,
+                                                 detect, error_angles, load_rotation, moment_pseudo_inverse,
                                                  orientation_update, position_update, residual_cost, wrap)
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
                                             SOLVE_OK, SOLVE_REACQUIRED, SOLVE_RUNNING)
@@ -248,7 +248,7 @@ class RaabTracker(StagedSolve):
         self._reacquired = False
         self._limit = 1
         self._mirrored = False
-        self._cache_ok = False                       # the correction and the covariance's rows hold an evaluation at _pm
+        self._cache_ok = False                       # the correction and the covariance rows hold an evaluation at _pm
         self._pm = [0.0] * 3                         # point of the last evaluation
         self._last_step = math.inf                   # the previous update's step (its rate)
         self._done_at_refresh = False                # the update before this evaluation had converged
@@ -345,13 +345,7 @@ class RaabTracker(StagedSolve):
                 m9[3 * i + j] = x0_rotation[i, j]
                 if not math.isfinite(m9[3 * i + j]):
                     return False
-        if is_rotation(m9):
-            R = self._R                              # a rotation already (the tracked pose): its own nearest
-            R[0, 0], R[0, 1], R[0, 2] = m9[0], m9[1], m9[2]
-            R[1, 0], R[1, 1], R[1, 2] = m9[3], m9[4], m9[5]
-            R[2, 0], R[2, 1], R[2, 2] = m9[6], m9[7], m9[8]
-        else:
-            nearest_rotation(m9, self._Rn, self._rot3)
+        load_rotation(m9, self._R, self._Rn, self._rot3)
         c = self._cbar
         px, py, pz = x0_position[0] - c[0], x0_position[1] - c[1], x0_position[2] - c[2]
         if px * px + py * py + pz * pz <= 0.0:

@@ -95,8 +95,11 @@ class RaabCovariance:
                                                                                  -By, Bx, 0.0)
 
     def publish(self, x, R, w, cur, pm, rel: float, point) -> None:
-        """The covariance of ``(p, dtheta)`` at the estimate, (6, 6) into
-        ``covariance``, without a 6x6 inversion while it can be carried.
+        """The covariance of ``(p, dtheta)`` at the estimate ``x`` (rotation
+        ``R``, Raab's coordinates, at ``point`` in the source frame) for the
+        weights ``w = 1 / sigma`` and currents ``cur``, the last evaluation at
+        ``pm`` (``rel``: its correction's gradient over the dipole's), (6, 6)
+        into ``out``, without a 6x6 inversion while it can be carried.
 
         The information of the exact model at the last evaluation ``p_m``,
         with source-frame orientation errors ``dtheta_s = R dtheta``, is
@@ -106,8 +109,9 @@ class RaabCovariance:
         one ``sigma_j``; then ``R`` cancels from ``H_j^T H_j``. Its robust
         inverse ``C_s`` (``pose.covariance``) is formed at an evaluation
         (:meth:`_cov_form`) and carried to each estimate in closed form
-        (:meth:`_cov_carry`) while that is accurate (:meth:`_carry_too_far`). While the ``q_j`` stay proportional to those of
-        ``C_s`` (within ``_Q_TOL``) only the common scale changes:
+        (:meth:`_cov_carry`) while that is accurate (:meth:`_carry_too_far`).
+        While the ``q_j`` stay proportional to those of ``C_s`` (within
+        ``_Q_TOL``) only the common scale changes:
         ``C = C_s q_m^2 / q^2``. Weights that differ between the axes of a
         coil: the sensor-frame information at the current ``R`` is formed
         and inverted (the evaluation's position)."""

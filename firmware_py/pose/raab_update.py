@@ -35,12 +35,12 @@ from __future__ import annotations
 
 import math
 
-from coiltrack.firmware.linalg import inv3_sym
+from coiltrack.firmware.linalg import inv3_sym, nearest_rotation
 from coiltrack.firmware.model.field import MU0_2PI, dipole_polar
 
 __all__ = ["C_RAAB", "POLE_COS", "MAX_STEP", "wrap", "clip", "error_angles", "position_update", "dcm", "euler",
-           "orientation_update", "angles_from_pose", "is_rotation", "moment_pseudo_inverse", "coupling",
-           "post_sense", "detect", "residual_cost"]
+           "orientation_update", "angles_from_pose", "is_rotation", "load_rotation", "moment_pseudo_inverse",
+           "coupling", "post_sense", "detect", "residual_cost"]
 
 #: C of eq 3 per unit moment (T m^3 / A m^2): F = (C / rho^3) A Q
 C_RAAB = MU0_2PI
@@ -192,6 +192,19 @@ def is_rotation(m) -> bool:
             and abs(a0 * a6 + a1 * a7 + a2 * a8) < t and abs(a3 * a6 + a4 * a7 + a5 * a8) < t):
         return False
     return a0 * (a4 * a8 - a5 * a7) - a1 * (a3 * a8 - a5 * a6) + a2 * (a3 * a7 - a4 * a6) > 0.0
+
+
+def load_rotation(m9, R, Rn, work) -> None:
+    """The start's rotation ``m9`` (9, row-major) into ``R`` (``R[i, j]``, a view
+    of the array ``Rn``): as it is when it is a rotation already to
+    ``_ORTHO_TOL`` (the tracked pose is its own nearest rotation), else its
+    nearest rotation (``linalg.nearest_rotation`` with the scratch ``work``)."""
+    if is_rotation(m9):
+        R[0, 0], R[0, 1], R[0, 2] = m9[0], m9[1], m9[2]
+        R[1, 0], R[1, 1], R[1, 2] = m9[3], m9[4], m9[5]
+        R[2, 0], R[2, 1], R[2, 2] = m9[6], m9[7], m9[8]
+    else:
+        nearest_rotation(m9, Rn, work)
 
 
 def moment_pseudo_inverse(n: int, mpa, cur, mom, mp) -> bool:
