@@ -91,6 +91,17 @@ class PulseSchedule:
             self.end[c] = msg.end_us
         return True
 
+    def ac_block(self, start_us: int, end_us: int, others_end_us: int, currents) -> None:
+        """An AC block (``measure.ac_blocks``) as every coil's latest pulse: from ``start_us``
+        to ``end_us`` for the last coil and to ``others_end_us`` for the others (kept a block
+        past the end: the supervisor then treats every sample as taken with the coils on), the
+        measured current of coil ``j`` ``currents[j]`` (A)."""
+        n = self.n
+        for j in range(n):
+            self.start[j] = start_us
+            self.end[j] = others_end_us if j < n - 1 else end_us
+            self._mv[j] = currents[j]
+
     def any_faults(self) -> int:
         f = 0
         fv = self._fv

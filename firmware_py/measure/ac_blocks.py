@@ -146,20 +146,12 @@ class ACBlockMeasurement:
         d0 = self.demods[0]
         start = d0.t0 + k * d0.hop_us
         end = start + d0.window_us
-        sched = self.schedule
         mid = (start + end) // 2
-        for j in range(self.n):
-            sched.start[j] = start
-            sched.end[j] = end + d0.window_us if j < self.n - 1 else end
-            sched._mv[j] = self.act.amplitude_a[j]
+        self.schedule.ac_block(start, end, end + d0.window_us, self.act.amplitude_a)
         bad = False
         for i, ch in enumerate(self.channels):
             d = self.demods[i]
-            np.copyto(ch.S, d.S)
-            np.copyto(ch.var, d.var)
-            ch.flags.fill(d.block_flags)
-            ch.done.fill(True)
-            ch.pulse_mid.fill(mid)
+            ch.load_block(d.S, d.var, d.block_flags, mid)
             if d.block_flags:
                 bad = True
             self.quad_sum += self.quad_ratio[i]

@@ -92,6 +92,16 @@ class SensorChannel:
         self.done.fill(False)
         self.flags.fill(0)
 
+    def load_block(self, S, var, flags: int, mid_us: int) -> None:
+        """A demodulated AC block as this channel's burst (``measure.ac_blocks``): amplitudes
+        ``S`` and variances ``var`` (3, n), every window flagged ``flags``, done, its middle at
+        ``mid_us``."""
+        np.copyto(self.S, S)
+        np.copyto(self.var, var)
+        self.flags.fill(flags)
+        self.done.fill(True)
+        self.pulse_mid.fill(mid_us)
+
     def burst_flags(self) -> int:
         f = 0
         fl = self._flv

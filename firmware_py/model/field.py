@@ -43,6 +43,9 @@ __all__ = [
     "loop_jacobian",
     "dipole_field",
     "dipole_jacobian",
+    "dipole_point",
+    "dipole_polar",
+    "loop_point",
     "Coil",
     "CoilSet",
     "orthogonal_source",
@@ -50,6 +53,9 @@ __all__ = [
 
 #: vacuum permeability, T m / A (pre-2019 SI definition, used throughout)
 MU0 = 4e-7 * math.pi
+#: ``mu0 / 2 pi`` (T m / A): Raab's ``C`` of eq 3 per unit moment (``seeds/004_86267342cd7488ce.txt``),
+#: the dipole's axial field ``C m / rho^3`` (:func:`dipole_polar`)
+MU0_2PI = MU0 / (2.0 * math.pi)
 
 _HALF_PI = 0.5 * math.pi
 # AGM iteration caps.  From k_c >= 1e-8 (any m < 1 representable in double)
@@ -163,36 +169,17 @@ def _loop_core(u, z, jac, sqrt=np.sqrt, maximum=np.maximum, unconverged=_unconve
         B = C0 * (x/a * F, y/a * F, G)
 
     and, if ``jac``, ``Fz = dF/dz`` and ``H = 2 dF/du`` (i.e. ``(dF/drho)/rho``)
-    are returned as well.
-
-    Derivation (Schepers & Veltink eqs 6-7, radius normalised to 1).  With
-    ``alpha^2 = (1-rho)^2 + z^2``, ``beta^2 = (1+rho)^2 + z^2``,
-    ``s = 1 + rho^2 + z^2``, ``m = 1 - alpha^2/beta^2`` (eq 7, ``m = k^2``),
-    run the AGM from ``(beta, alpha)``, which is the AGM of eq ``agm_ellipke``
-    scaled by beta.  Its limit ``M = AGM(beta, alpha)`` and the terms
-    ``c_n`` (n >= 1) are even functions of rho (``a_1 = (alpha+beta)/2``,
-    ``b_1 = sqrt(alpha beta)`` are symmetric in alpha, beta), and::
-
-        K = pi beta / (2 M)
-        E = K (1 - (2 rho + rho^2 S) / beta^2),  S = sum_{n>=1} 2^(n-1) (c_n/rho)^2
-
-    ``d_n = (c_n/rho)^2`` obeys ``d_1 = 1/a_1^2``,
-    ``d_{n+1} = u d_n^2 / (16 a_{n+1}^2)``: no subtraction and no division by
-    rho.  Substituting into eq 6 gives, with ``P = alpha^2 beta^2``::
-
-        B_rho / rho = C0 * pi z (4 - s S) / (2 M P)                       = C0 F
-        B_z         = C0 * pi (2 (1 - u + z^2) - (2 - s) u S) / (2 M P)  = C0 G
-
-    Both are smooth in ``u = rho^2``; the cancellations of the textbook form
-    near the axis (``(a^2+r^2) E - alpha^2 K = O(rho^2)``) and far away are
-    gone.  Derivatives are propagated alongside the AGM (forward mode), again
-    in ``u`` and ``z`` only.  ``P`` is clamped to 1e-300 exactly on the wire.
+    are returned as well.  Three steps: the start of the AGM from
+    ``(beta, alpha)`` (here), the AGM with its series ``S`` (:func:`_agm_series`,
+    or :func:`_agm_series_jac` with the derivatives carried forward), and the
+    field functions (:func:`_loop_fg`, :func:`_loop_fg_jac`); the derivation of
+    Schepers & Veltink eqs 6-7 in this form is in :func:`_agm_series`.
 
     The same code runs on numpy arrays and, with ``sqrt=math.sqrt``,
     ``maximum=max`` and ``unconverged=_unconverged_scalar``, on Python floats
     (faster for the few points a pose solve needs, and the form a C port
-    takes).  It uses no ``**`` and no division that can hit zero, so the
-    float path cannot raise either.
+    takes: ``core/src/field.c ct_loop_core``).  It uses no ``**`` and no
+    division that can hit zero, so the float path cannot raise either.
 
     Parameters
     ----------
@@ -215,22 +202,40 @@ def _loop_core(u, z, jac, sqrt=np.sqrt, maximum=np.maximum, unconverged=_unconve
     a = sqrt(0.5 * (s + q))  # a_1 = (alpha + beta) / 2
     b = sqrt(q)  # b_1 = sqrt(alpha beta)
     d = 1.0 / (a * a)  # d_1
+    if not jac:
+        M, S = _agm_series(u, a, b, d, sqrt, unconverged)
+        return _loop_fg(u, z, z2, s, one_m_u, P, M, S)
+    M, S, dM, dS, P_u, P_z = _agm_series_jac(u, z, z2, s, one_m_u, P, q, a, b, d, sqrt, unconverged)
+    return _loop_fg_jac(u, z, z2, s, one_m_u, P, M, S, dM, dS, P_u, P_z)
+
+
+def _agm_series(u, a, b, d, sqrt, unconverged):
+    """The AGM from ``(a_1, b_1)`` and the series ``S``; returns ``(M, S)``.
+
+    Derivation (Schepers & Veltink eqs 6-7, radius normalised to 1).  With
+    ``alpha^2 = (1-rho)^2 + z^2``, ``beta^2 = (1+rho)^2 + z^2``,
+    ``s = 1 + rho^2 + z^2``, ``m = 1 - alpha^2/beta^2`` (eq 7, ``m = k^2``),
+    run the AGM from ``(beta, alpha)``, which is the AGM of eq ``agm_ellipke``
+    scaled by beta.  Its limit ``M = AGM(beta, alpha)`` and the terms
+    ``c_n`` (n >= 1) are even functions of rho (``a_1 = (alpha+beta)/2``,
+    ``b_1 = sqrt(alpha beta)`` are symmetric in alpha, beta), and::
+
+        K = pi beta / (2 M)
+        E = K (1 - (2 rho + rho^2 S) / beta^2),  S = sum_{n>=1} 2^(n-1) (c_n/rho)^2
+
+    ``d_n = (c_n/rho)^2`` obeys ``d_1 = 1/a_1^2``,
+    ``d_{n+1} = u d_n^2 / (16 a_{n+1}^2)``: no subtraction and no division by
+    rho.  Substituting into eq 6 gives, with ``P = alpha^2 beta^2``::
+
+        B_rho / rho = C0 * pi z (4 - s S) / (2 M P)                       = C0 F
+        B_z         = C0 * pi (2 (1 - u + z^2) - (2 - s) u S) / (2 M P)  = C0 G
+
+    Both are smooth in ``u = rho^2``; the cancellations of the textbook form
+    near the axis (``(a^2+r^2) E - alpha^2 K = O(rho^2)``) and far away are
+    gone.  ``P`` is clamped to 1e-300 exactly on the wire.
+    """
     S = 1.0 * d  # a new array (or float), updated in place below
     w = 1.0
-    if jac:
-        # first derivatives wrt u (suffix _u) and z (suffix _z)
-        P_u = 2.0 * (z2 - one_m_u)
-        P_z = 4.0 * z * s
-        q_u = P_u / (2.0 * q)
-        q_z = P_z / (2.0 * q)
-        a_u = (1.0 + q_u) / (4.0 * a)
-        a_z = (2.0 * z + q_z) / (4.0 * a)
-        b_u = q_u / (2.0 * b)
-        b_z = q_z / (2.0 * b)
-        d_u = -2.0 * d * a_u / a
-        d_z = -2.0 * d * a_z / a
-        S_u = 1.0 * d_u
-        S_z = 1.0 * d_z
     for _ in range(_LOOP_MAX_ITER):
         if not unconverged(a, b):
             break
@@ -238,29 +243,71 @@ def _loop_core(u, z, jac, sqrt=np.sqrt, maximum=np.maximum, unconverged=_unconve
         bn = sqrt(a * b)
         r16 = 1.0 / (16.0 * an * an)
         dn = u * d * d * r16
-        if jac:
-            an_u = 0.5 * (a_u + b_u)
-            an_z = 0.5 * (a_z + b_z)
-            bn_u = (a_u * b + a * b_u) / (2.0 * bn)
-            bn_z = (a_z * b + a * b_z) / (2.0 * bn)
-            dn_u = (d * d + 2.0 * u * d * d_u) * r16 - 2.0 * dn * an_u / an
-            dn_z = (2.0 * u * d * d_z) * r16 - 2.0 * dn * an_z / an
-            a_u, a_z, b_u, b_z, d_u, d_z = an_u, an_z, bn_u, bn_z, dn_u, dn_z
         a, b, d = an, bn, dn
         w *= 2.0
         S += w * d
-        if jac:
-            S_u += w * d_u
-            S_z += w * d_z
-    M = 0.5 * (a + b)
+    return 0.5 * (a + b), S
+
+
+def _agm_series_jac(u, z, z2, s, one_m_u, P, q, a, b, d, sqrt, unconverged):
+    """:func:`_agm_series` with the first derivatives with respect to ``u``
+    (suffix ``_u``) and ``z`` (suffix ``_z``) propagated alongside the AGM
+    (forward mode); returns ``(M, S, (M_u, M_z), (S_u, S_z), P_u, P_z)``."""
+    P_u = 2.0 * (z2 - one_m_u)
+    P_z = 4.0 * z * s
+    q_u = P_u / (2.0 * q)
+    q_z = P_z / (2.0 * q)
+    a_u = (1.0 + q_u) / (4.0 * a)
+    a_z = (2.0 * z + q_z) / (4.0 * a)
+    b_u = q_u / (2.0 * b)
+    b_z = q_z / (2.0 * b)
+    d_u = -2.0 * d * a_u / a
+    d_z = -2.0 * d * a_z / a
+    S = 1.0 * d  # a new array (or float), updated in place below
+    S_u = 1.0 * d_u
+    S_z = 1.0 * d_z
+    w = 1.0
+    for _ in range(_LOOP_MAX_ITER):
+        if not unconverged(a, b):
+            break
+        an = 0.5 * (a + b)
+        bn = sqrt(a * b)
+        r16 = 1.0 / (16.0 * an * an)
+        dn = u * d * d * r16
+        an_u = 0.5 * (a_u + b_u)
+        an_z = 0.5 * (a_z + b_z)
+        bn_u = (a_u * b + a * b_u) / (2.0 * bn)
+        bn_z = (a_z * b + a * b_z) / (2.0 * bn)
+        dn_u = (d * d + 2.0 * u * d * d_u) * r16 - 2.0 * dn * an_u / an
+        dn_z = (2.0 * u * d * d_z) * r16 - 2.0 * dn * an_z / an
+        a_u, a_z, b_u, b_z, d_u, d_z = an_u, an_z, bn_u, bn_z, dn_u, dn_z
+        a, b, d = an, bn, dn
+        w *= 2.0
+        S += w * d
+        S_u += w * d_u
+        S_z += w * d_z
+    return 0.5 * (a + b), S, (0.5 * (a_u + b_u), 0.5 * (a_z + b_z)), (S_u, S_z), P_u, P_z
+
+
+def _loop_fg(u, z, z2, s, one_m_u, P, M, S):
+    """``F`` and ``G`` of :func:`_loop_core` from the AGM's ``M`` and ``S``
+    (the formulas of :func:`_agm_series`)."""
     inv = _HALF_PI / (M * P)
     Nf = 4.0 - s * S
     F = z * Nf * inv
     G = (2.0 * (one_m_u + z2) - (one_m_u - z2) * u * S) * inv
-    if not jac:
-        return F, G
-    M_u = 0.5 * (a_u + b_u)
-    M_z = 0.5 * (a_z + b_z)
+    return F, G
+
+
+def _loop_fg_jac(u, z, z2, s, one_m_u, P, M, S, dM, dS, P_u, P_z):
+    """``F``, ``G``, ``Fz = dF/dz`` and ``H = 2 dF/du`` of :func:`_loop_core`
+    from the AGM's ``M``, ``S`` and their derivatives."""
+    inv = _HALF_PI / (M * P)
+    Nf = 4.0 - s * S
+    F = z * Nf * inv
+    G = (2.0 * (one_m_u + z2) - (one_m_u - z2) * u * S) * inv
+    M_u, M_z = dM
+    S_u, S_z = dS
     Nf_u = -(S + s * S_u)
     Nf_z = -(2.0 * z * S + s * S_z)
     lu = M_u / M + P_u / P
@@ -868,3 +915,27 @@ def dipole_point(px, py, pz, mx, my, mz, jac=True):
                 c5 * (mx * py + my * px - f * px * py),
                 c5 * (mx * pz + mz * px - f * px * pz),
                 c5 * (my * pz + mz * py - f * py * pz))
+
+
+def dipole_polar(ux, uy, uz, rho, mx, my, mz, jac=True):
+    """Dipole field (and gradient) at the point ``rho u`` relative to the dipole,
+    given by its unit direction ``u`` and range ``rho``, Python floats: Raab
+    et al. 1979 (``seeds/004_86267342cd7488ce.txt``) eq 5 in vector form,
+    ``B = (C / 2 rho^3)(3 (m.u) u - m)`` with ``C = mu0 / 2 pi`` (eq 3,
+    :data:`MU0_2PI`), and ``dB/dp = (C / 2 rho^4)(3 (u m^T + (m.u) I + m
+    u^T) - 15 (m.u) u u^T)``; Schepers & Veltink eqs 8 and 10 written in
+    ``(u, rho)``. The same field as :func:`dipole_point` at ``p = rho u``
+    (to rounding: that kernel takes the point, this one the direction and the
+    range a tracker in Raab's coordinates holds). Returns the tuple layout of
+    :func:`loop_point`: ``(bx, by, bz)`` T and, when ``jac``, ``(jxx, jyy,
+    jzz, jxy, jxz, jyz)`` T/m."""
+    kd = 0.5 * MU0_2PI / (rho * rho * rho)
+    mu = mx * ux + my * uy + mz * uz
+    b = (kd * (3.0 * mu * ux - mx), kd * (3.0 * mu * uy - my), kd * (3.0 * mu * uz - mz))
+    if not jac:
+        return b
+    kj = kd / rho
+    f = 15.0 * mu
+    return b + (kj * (6.0 * ux * mx + 3.0 * mu - f * ux * ux), kj * (6.0 * uy * my + 3.0 * mu - f * uy * uy),
+                kj * (6.0 * uz * mz + 3.0 * mu - f * uz * uz), kj * (3.0 * (ux * my + mx * uy) - f * ux * uy),
+                kj * (3.0 * (ux * mz + mx * uz) - f * ux * uz), kj * (3.0 * (uy * mz + my * uz) - f * uy * uz))

@@ -160,7 +160,9 @@ class Acquisition(Staged):
         n = signal.n
         self.signal, self.S, self.cur = signal, S, cur
         self.cbar, self.reach = cbar, reach
-        self.exact = signal.model == "exact"
+        #: the range within which the start is refined on the invariants: the exact model's near field
+        #: (``NEAR_FIELD`` x ``reach``), none for the dipole model (Kuipers' start is exact there)
+        self._near = NEAR_FIELD * reach if signal.model == "exact" else 0.0
         self.p = np.zeros(3)
         self.R = np.zeros((3, 3))
         self._pv = memoryview(self.p)
@@ -215,7 +217,7 @@ class Acquisition(Staged):
         p = self._pv
         cx, cy, cz = self.cbar
         r0 = math.sqrt((p[0] - cx) ** 2 + (p[1] - cy) ** 2 + (p[2] - cz) ** 2)
-        if not self.exact or not r0 < NEAR_FIELD * self.reach:
+        if not r0 < self._near:
             self._then(None)
             return
         self._r0 = r0

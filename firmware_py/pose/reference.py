@@ -519,6 +519,25 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
         three independent coil moments without ``x0``.
     """
     cs = _as_coilset(coils)
+    S, cur, w = _solve_inputs(S, cs, currents, sigma)
+    p, R = _solve_start(S, cs, cur, w, hemisphere, model, x0)
+    start = (p.copy(), R.copy())
+    p, R, H, cost, it, converged = _lm_iterate(S, cs, cur, w, model, p, R, iters)
+    # re-orthonormalise once: products of exp() drift at the 1e-16 level
+    R = _nearest_rotation(R)
+    Jw = (H * w[:, :, None]).reshape(3 * cs.n, 6)
+    cov = _robust_inverse(Jw.T @ Jw)
+    if info is not None:
+        info["iterations"] = it
+        info["cost"] = cost
+        info["converged"] = converged
+        info["x0"] = start
+    return p, R, cov
+
+
+def _solve_inputs(S, cs, currents, sigma):
+    """:func:`solve_pose`'s inputs checked: ``S`` (3, n) finite, the currents
+    (n,) and the weights ``w = 1 / sigma`` (3, n); ValueError otherwise."""
     n = cs.n
     S = np.asarray(S, dtype=float)
     if S.shape != (3, n):
@@ -527,32 +546,51 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
         raise ValueError("signal matrix is not finite")
     cur = np.asarray(currents, dtype=float).reshape(n)
     w = 1.0 / _sigma_array(sigma, n)  # (3, n)
+    return S, cur, w
 
+
+def _solve_start(S, cs, cur, w, hemisphere, model, x0):
+    """:func:`solve_pose`'s start ``(p, R)``: ``x0`` (its rotation made the
+    nearest rotation) or, without it, :func:`_initial_pose`."""
     if x0 is None:
-        p, R = _initial_pose(S, cs, cur, hemisphere, model, math.sqrt(float(np.mean(w ** -2))))
-    else:
-        p = np.array(x0[0], dtype=float).reshape(3)
-        R0 = np.asarray(x0[1], dtype=float).reshape(3, 3)
-        if not (np.all(np.isfinite(p)) and np.all(np.isfinite(R0))):
-            raise ValueError("x0 is not finite")
-        R = _nearest_rotation(R0)
-    start = (p.copy(), R.copy())
+        return _initial_pose(S, cs, cur, hemisphere, model, math.sqrt(float(np.mean(w ** -2))))
+    p = np.array(x0[0], dtype=float).reshape(3)
+    R0 = np.asarray(x0[1], dtype=float).reshape(3, 3)
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(R0))):
+        raise ValueError("x0 is not finite")
+    return p, _nearest_rotation(R0)
 
+
+class _Residual:
+    """The weighted residual of :func:`solve_pose` at a pose: ``h``, ``H``
+    (``measurement_model_and_jacobian``) into the given buffers and the cost
+    ``sum ((S - h) w)^2``."""
+
+    def __init__(self, S, cs, cur, w, model):
+        self.S, self.cs, self.cur, self.w, self.model = S, cs, cur, w, model
+        self.r = np.empty(S.shape)
+
+    def cost(self, pp, RR, hh, HH):
+        measurement_model_and_jacobian(pp, RR, self.cs, self.cur, self.model, out_h=hh, out_H=HH)
+        r = self.r
+        np.subtract(self.S, hh, out=r)
+        np.multiply(r, self.w, out=r)
+        return float(np.dot(r.ravel(), r.ravel()))
+
+
+def _lm_iterate(S, cs, cur, w, model, p, R, iters):
+    """The Levenberg-Marquardt steps of :func:`solve_pose` from ``(p, R)``;
+    returns ``(p, R, H, cost, iterations, converged)`` with ``H`` the
+    Jacobian at the returned pose."""
+    n = cs.n
     m = 3 * n
     h = np.empty((3, n))
     H = np.empty((3, n, 6))
     h_t = np.empty((3, n))
     H_t = np.empty((3, n, 6))
-    r = np.empty((3, n))
     dR = np.empty((3, 3))
-
-    def evaluate(pp, RR, hh, HH):
-        measurement_model_and_jacobian(pp, RR, cs, cur, model, out_h=hh, out_H=HH)
-        np.subtract(S, hh, out=r)
-        np.multiply(r, w, out=r)
-        return float(np.dot(r.ravel(), r.ravel()))
-
-    cost = evaluate(p, R, h, H)
+    res = _Residual(S, cs, cur, w, model)
+    cost = res.cost(p, R, h, H)
     lam = 1e-6
     converged = False
     it = 0
@@ -574,7 +612,7 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
             break
         p_t = p + delta[:3]
         R_t = R @ so3_exp(delta[3:], out=dR)
-        cost_t = evaluate(p_t, R_t, h_t, H_t)
+        cost_t = res.cost(p_t, R_t, h_t, H_t)
         # a step this small is followed by one of ~1e-18 (quadratic
         # convergence) or is below the rounding level of the cost
         small = (float(np.linalg.norm(delta[:3])) <= _STEP_TOL * max(float(np.linalg.norm(p)), 1e-3)
@@ -589,22 +627,13 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
             if small or rel < _COST_TOL:
                 converged = True
                 break
+        # rejected: converged if the step is tiny or the cost is flat to
+        # its rounding level (otherwise the damping climbs for nothing)
+        elif small or (cost_t - cost) < _COST_TOL * max(cost, 1e-300):
+            converged = True
+            break
         else:
-            # rejected: converged if the step is tiny or the cost is flat to
-            # its rounding level (otherwise the damping climbs for nothing)
-            if small or (cost_t - cost) < _COST_TOL * max(cost, 1e-300):
-                converged = True
-                break
             lam *= 10.0
             if lam > 1e12:
                 break
-    # re-orthonormalise once: products of exp() drift at the 1e-16 level
-    R = _nearest_rotation(R)
-    Jw = (H * w[:, :, None]).reshape(m, 6)
-    cov = _robust_inverse(Jw.T @ Jw)
-    if info is not None:
-        info["iterations"] = it
-        info["cost"] = cost
-        info["converged"] = converged
-        info["x0"] = start
-    return p, R, cov
+    return p, R, H, cost, it, converged

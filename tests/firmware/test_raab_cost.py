@@ -96,8 +96,8 @@ def test_cached_correction_is_the_loop_minus_dipole_at_a_moved_estimate():
         cur2 = CUR * np.array([0.9, 1.1, 1.05])
         q = offset(rng, pm, 0.02)
         ref = loop_fields(q, cur2) - dipole_fields(q, cur2)            # source frame, column j
-        b = np.array(tr._b).reshape(3, 3).T * cur2
-        G = np.array(tr._G).reshape(3, 3, 3)
+        b = np.array(tr.corrector.b).reshape(3, 3).T * cur2
+        G = np.array(tr.corrector.G).reshape(3, 3, 3)
         lin = b + np.stack([G[j] @ (q - pm) for j in range(3)], axis=1) * cur2
         scale = np.linalg.norm(ref)
         assert np.linalg.norm(lin - ref) < 0.005 * scale
