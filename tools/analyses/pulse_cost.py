@@ -66,7 +66,7 @@ import numpy as np
 
 #: bisection on log(mu) between these (A^2; the fixed cycle's pulses are about 1 A^2)
 MU_RANGE = (1e-14, 1e14)
-MU_STEPS = 72
+MU_STEPS = 48                 # 64 e-folds / 2^48: mu to 2e-13 relative
 
 
 @dataclass(frozen=True)
@@ -127,12 +127,15 @@ def pulse_samples(T: float, B: float, tm: Timing, phase: str = "mean") -> tuple[
 
 @dataclass(frozen=True)
 class Kinds:
-    """Pulse kinds a policy may use: per kind ``T`` (s), time slot ``T + gap`` (s) and the white-noise
-    factor ``c = 1/n_u + 1/n_b`` (per-sample variance units). Arrays of shape (L,)."""
+    """Pulse kinds a policy may use, arrays of shape (L,): ``T`` (s) and the time slot ``T + gap`` (s),
+    ``c = 1/n_u + 1/n_b`` (the white noise of one pulse in per-sample variances) and ``tc``, the factor
+    of ``sigma^2`` in the energy per weight ``T a`` (``T c`` for one length; at most that over an
+    interval of lengths)."""
 
     T: np.ndarray
     slot: np.ndarray
     c: np.ndarray
+    tc: np.ndarray
     baseline: np.ndarray
 
     @classmethod
@@ -141,29 +144,46 @@ class Kinds:
         nu, nb = pulse_samples(T, B, tm, phase)
         if nu <= 0 or nb <= 0:
             raise ValueError(f"a {T * 1e3:g} ms pulse with {B * 1e3:g} ms baselines uses no sample")
-        return cls(np.array([T]), np.array([T + tm.gap_s(B)]), np.array([1.0 / nu + 1.0 / nb]), np.array([B]))
+        c = 1.0 / nu + 1.0 / nb
+        return cls(np.array([T]), np.array([T + tm.gap_s(B)]), np.array([c]), np.array([T * c]), np.array([B]))
 
     @classmethod
-    def chosen(cls, lengths_s, baselines_s, tm: Timing, phase: str = "mean") -> "Kinds":
+    def chosen(cls, lengths_s, baselines_s, tm: Timing, phase: str = "mean", sub: int = 8) -> "Kinds":
         """Any pulse length between consecutive values of the sorted grid ``lengths_s``, with any of
-        ``baselines_s``: per grid interval ``[T_i, T_i+1]`` one optimistic kind (the shortest time
-        ``T_i``, the samples of ``T_i+1``), whose cost is below that of every length in the interval
-        (the counts never fall with the length), so the bound holds for any length, not only the
-        grid's; intervals whose longer end uses no sample are left out."""
+        ``baselines_s``: per grid interval ``[T0, T1]`` one optimistic kind whose cost is below that of
+        every length in it: the time of ``T0``, the white noise ``c`` of ``T1`` (the counts never fall
+        with the length) and ``tc = min T/n_u + T0/n_b``. ``T/n_u`` is monotone where ``n_u`` is affine
+        in ``T`` (the mean count is, away from the shortest pulses: checked on ``sub`` points), so its
+        least is at an end; elsewhere ``T0/n_u(T1)``. Intervals whose longer end uses no sample are
+        left out."""
         Ts = np.sort(np.asarray(lengths_s, dtype=float))
-        out = {"T": [], "slot": [], "c": [], "baseline": []}
+        out = {"T": [], "slot": [], "c": [], "tc": [], "baseline": []}
         for B in baselines_s:
             for lo, hi in zip(Ts[:-1], Ts[1:]):
                 nu, nb = pulse_samples(float(hi), float(B), tm, phase)
                 if nu <= 0 or nb <= 0:
                     continue
+                tn = lo / nu
+                pts = np.linspace(lo, hi, sub + 1)
+                n = np.array([pulse_samples(float(t), float(B), tm, phase)[0] for t in pts])
+                if n[0] > 0 and np.allclose(n, np.linspace(n[0], n[-1], sub + 1), rtol=0, atol=1e-9):
+                    tn = min(lo / n[0], hi / n[-1])
                 out["T"].append(lo)
                 out["slot"].append(lo + tm.gap_s(B))
                 out["c"].append(1.0 / nu + 1.0 / nb)
+                out["tc"].append(tn + lo / nb)
                 out["baseline"].append(B)
         if not out["T"]:
             raise ValueError("no pulse length of the grid uses a sample")
-        return cls(*(np.array(out[k], dtype=float) for k in ("T", "slot", "c", "baseline")))
+        return cls(*(np.array(out[k], dtype=float) for k in ("T", "slot", "c", "tc", "baseline")))
+
+    @classmethod
+    def grid(cls, lengths_s, baselines_s, tm: Timing, phase: str = "mean") -> "Kinds":
+        """Exactly the lengths of the grid (each a real pulse: the optimum over them is at or above
+        the optimum over every length, the companion of :meth:`chosen` from above)."""
+        ks = [cls.fixed(float(t), float(B), tm, phase) for B in baselines_s for t in np.sort(lengths_s)
+              if min(pulse_samples(float(t), float(B), tm, phase)) > 0]
+        return cls(*(np.concatenate([getattr(k, f) for k in ks]) for f in ("T", "slot", "c", "tc", "baseline")))
 
 
 def pulse_weight(I, a, b):
@@ -184,7 +204,7 @@ class WindowCost:
         u2 = np.asarray(u2, dtype=float)
         self.a = sigma2 * kinds.c[None, None, :] + tau * tau * u2[..., None]          # (W, K, L)
         self.b = (rho * rho * u2)[..., None]                                          # (W, K, 1)
-        self.Ta = kinds.T * self.a
+        self.Ta = sigma2 * kinds.tc + kinds.T * tau * tau * u2[..., None]
         self.dmin = self.a / np.square(np.asarray(imax, dtype=float))[..., None]
         # the most information a window's time can hold per unit of x: slot / s_max
         self.psi = np.min(kinds.slot * (self.b + self.dmin), axis=-1)                 # (W, K)
