@@ -258,10 +258,12 @@ def mode_kinds(mode: str, tm: Timing, fixed_pulse_s: float, baseline_s: float, l
     ``baseline_s`` or ``long_baseline_s``)."""
     if mode == "fixed":
         return Kinds.fixed(fixed_pulse_s, baseline_s, tm, phase)
-    # the grid's step up to 150 ms, five times it beyond (long pulses are rarely the best, and the
-    # optimistic kinds keep the bound valid on any grid)
-    fine = np.arange(step_s, min(0.15, max_pulse_s) + 0.5 * step_s, step_s)
-    grid = np.concatenate([fine, np.arange(fine[-1] + 5 * step_s, max_pulse_s + 2.5 * step_s, 5 * step_s)])
+    # the grid's step up to 100 ms, ten times it to 200 ms, then one interval to the longest (long
+    # pulses are never near the best; the optimistic kinds keep the bound valid on any grid)
+    fine = np.arange(step_s, min(0.1, max_pulse_s) + 0.5 * step_s, step_s)
+    grid = np.concatenate([fine, np.arange(fine[-1] + 10 * step_s, min(0.2, max_pulse_s) + 5 * step_s, 10 * step_s),
+                           [max_pulse_s]])
+    grid = np.unique(grid[grid <= max_pulse_s + 1e-12])
     bs = [baseline_s] if mode == "chosen" else sorted({baseline_s, long_baseline_s})
     return (Kinds.grid if grid_lengths else Kinds.chosen)(grid, bs, tm, phase)
 
@@ -382,7 +384,7 @@ def _arguments(argv):
     ap.add_argument("--long-baseline-ms", type=float, default=100.0, help="the longer baselines (default 100)")
     ap.add_argument("--max-pulse-ms", type=float, default=400.0, help="longest pulse considered (default 400)")
     ap.add_argument("--length-step-ms", type=float, default=0.5,
-                    help="pulse-length grid step up to 150 ms, five times it beyond (default 0.5)")
+                    help="pulse-length grid step up to 100 ms, ten times it to 200 ms (default 0.5)")
     ap.add_argument("--grid-lengths", action="store_true",
                     help="only the grid's lengths, each a real pulse: the companion from above of the bound's "
                          "credit between grid points (the least energy over every length lies between the two)")

@@ -65,8 +65,8 @@ from dataclasses import dataclass
 import numpy as np
 
 #: bisection on log(mu) between these (A^2; the fixed cycle's pulses are about 1 A^2)
-MU_RANGE = (1e-14, 1e14)
-MU_STEPS = 48                 # 64 e-folds / 2^48: mu to 2e-13 relative
+MU_RANGE = (1e-9, 1e9)
+MU_STEPS = 40                 # 41 e-folds / 2^40: mu to 4e-11 relative
 
 
 @dataclass(frozen=True)
