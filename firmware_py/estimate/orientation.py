@@ -325,6 +325,16 @@ class OrientationFilter:
         self.reacquired += 1
         return True
 
+    def lose(self) -> None:
+        """The IMU stream broke off: what the gyroscopes missed cannot be integrated; the
+        orientation is to be found again (:meth:`reacquire`)."""
+        self.initialized = False
+
+    @property
+    def learning(self) -> bool:
+        """The compass samples are still learning ``|m|`` and the dip (eqs 2.8-2.10)."""
+        return self._learn > 0
+
     def set_bias(self, bx, by, bz) -> None:
         self.bias[0] = bx
         self.bias[1] = by

@@ -140,12 +140,14 @@ def quiet_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, ga
 class _Ori:
     """A ch. 2 filter fed from an IMU ring and a magnetometer ring."""
 
-    def __init__(self, cfg, gate: PulseGate):
+    def __init__(self, cfg, gate: PulseGate, max_age_us: int | None = None):
         self.f = OrientationFilter(OrientationParams.from_config(cfg))
         self.gate = gate
         self.flip = FlipOffset()
         self.compass_t = -(1 << 62)
-        self.max_age_us = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz)
+        # a compass sample's largest distance from the IMU sample it serves (default two intervals of each)
+        self.max_age_us = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz) if max_age_us is None \
+            else int(max_age_us)
         self.compass_used = 0
         self.every = cfg.ori_update_every
         self.n = 0
@@ -155,7 +157,7 @@ class _Ori:
     def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         f = self.f
         if f.initialized and t - f.t_us > self.gap_us:
-            f.initialized = False              # what the gyroscopes missed cannot be integrated
+            f.lose()                           # what the gyroscopes missed cannot be integrated
             self.lost = True
         slot = quiet_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
         if slot >= 0:
@@ -185,7 +187,7 @@ class _Ori:
             if slot >= 0:
                 f.update_mag(mx, my, mz)
                 self.compass_used += 1
-        elif slot >= 0 and f._learn > 0:
+        elif slot >= 0 and f.learning:
             f.update_mag(mx, my, mz)          # learning |m| and the dip: every sample counts
 
 
@@ -207,6 +209,40 @@ class SourceInertial:
         g = [-v for v in cfg.gravity_mps2]
         self._fv[0], self._fv[1], self._fv[2] = g[0], g[1], g[2]
         self.samples = 0
+
+    fixed = False
+
+    def on_imu(self, msg) -> None:
+        """An IMU sample of a node that is not a tracked sensor: kept if it is the source's."""
+        if msg.node == self.node:
+            self.imu.push(msg)
+
+    def on_mag(self, msg, lsb: float) -> None:
+        """A MAG_SAMPLE of a node that is not a tracked sensor: kept if it is the source's."""
+        if msg.node == self.node:
+            self.mag.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
+
+    def hold(self, t_next: int, now_us: int, wait_us: int) -> bool:
+        """A sensor sample at ``t_next`` waits (True) until the source's samples reach its time
+        (at most ``wait_us`` behind the clock ``now_us``); else the source is brought to it."""
+        if self.imu.last_t < t_next and now_us - t_next < wait_us:
+            return True
+        self.process(t_next)
+        return False
+
+    def catch_up(self, until_us: int, pairs) -> None:
+        """Process what no sensor sample of ``pairs`` waits for: up to ``until_us`` and the
+        oldest sensor sample still queued."""
+        until = until_us
+        for _, ins in pairs:
+            if len(ins.imu):
+                t = ins.imu.tv[ins.imu.slot(0)]
+                if t < until:
+                    until = t
+        self.process(until)
+
+    def counters(self) -> dict:
+        return {"source_imu_samples": self.samples}
 
     def process(self, until_us: int | None = None) -> None:
         """Drain the IMU ring (up to the samples at ``until_us`` when given)."""
@@ -238,26 +274,69 @@ class UnacceleratedSource(Unaccelerated, SourceInertial):
     """:class:`SourceInertial` taken as unaccelerated (``track.source_unaccelerated``)."""
 
 
+class FixedSource:
+    """A source without an IMU (the null object of :class:`SourceInertial`): ``Phi = I`` and
+    ``Phi f_source = -g`` (``-gravity_mps2``, m/s^2), no sample to keep, wait for or count."""
+
+    fixed = True
+
+    def __init__(self, cfg):
+        self.phi = np.eye(3)
+        self.fref = np.array([-v for v in cfg.gravity_mps2])
+
+    def on_imu(self, msg) -> None:
+        """No source IMU: nothing to keep."""
+
+    def on_mag(self, msg, lsb: float) -> None:
+        """No source module: nothing to keep."""
+
+    def hold(self, t_next: int, now_us: int, wait_us: int) -> bool:
+        return False
+
+    def catch_up(self, until_us: int, pairs) -> None:
+        """Nothing to process."""
+
+    def process(self, until_us: int | None = None) -> None:
+        """Nothing to process."""
+
+    def counters(self) -> dict:
+        return {}
+
+
+def make_source(cfg, gate: PulseGate):
+    """The source of ``cfg``, chosen once: its IMU and magnetometer (``source_imu_id``; taken as
+    unaccelerated when ``source_acceleration`` is off: eq 6.8 without ``a_source`` in the
+    comparison runs) or a fixed source."""
+    if not cfg.source_imu_id:
+        return FixedSource(cfg)
+    source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
+    return source_cls(cfg.source_imu_id, cfg, gate)
+
+
 class SensorInertial:
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
 
-    def __init__(self, node: int, cfg, gate: PulseGate, fixed_phi, fixed_fref, source: SourceInertial | None):
+    def __init__(self, node: int, cfg, gate: PulseGate, source, compass_max_age_us: int | None = None,
+                 burst_rms_s: float | None = None):
+        """``source``: :class:`SourceInertial` or :class:`FixedSource` (:func:`make_source`);
+        ``gate``: the compass gate; ``compass_max_age_us`` (default :class:`_Ori`'s) and
+        ``burst_rms_s`` (default the fixed cycle's, below) are given by a pipeline whose bursts
+        are not the fixed cycle's (AC blocks: ``track.ac``)."""
         self.node = node
         self.cfg = cfg
         n = len(cfg.coils)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
-        self.ori = _Ori(cfg, gate)
-        self.fusion = FusionFilter(FusionParams.from_config(cfg, source is not None), self.ori.f,
+        self.ori = _Ori(cfg, gate, compass_max_age_us)
+        self.fusion = FusionFilter(FusionParams.from_config(cfg, not source.fixed), self.ori.f,
                                    imu_capacity=cfg.fusion_replay_capacity,
                                    history_capacity=cfg.fusion_history_capacity,
-                                   output_capacity=cfg.pose_output_capacity)
-        self.fusion.source_fixed = source is None
+                                   output_capacity=cfg.pose_output_capacity, fixed_source=source.fixed)
         self.source = source
-        self._phi = fixed_phi if source is None else source.phi
+        self._phi = source.phi
         self._phiv = memoryview(self._phi)
-        self._fref = fixed_fref if source is None else source.fref
+        self._fref = source.fref
         self._frv = memoryview(self._fref)
         # one burst: reference instant, compensated signals
         self.t_ref = 0
@@ -289,7 +368,8 @@ class SensorInertial:
         self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
         self._Cfv = memoryview(self._Cf)
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
-        self.burst_rms_s = cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0)
+        self.burst_rms_s = cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0) if burst_rms_s is None \
+            else float(burst_rms_s)
         self.w_last = [0.0, 0.0, 0.0]      # latest rate, offset removed (rad/s)
         self.compensated = 0
         self.comp_rejected = 0
@@ -320,11 +400,8 @@ class SensorInertial:
         tv = ring.tv
         while max_steps > 0:
             max_steps -= 1
-            if src is not None and len(ring):
-                t_next = tv[ring.slot(0)]
-                if src.imu.last_t < t_next and now_us - t_next < wait_us:
-                    return
-                src.process(t_next)
+            if len(ring) and src.hold(tv[ring.slot(0)], now_us, wait_us):
+                return
             t = ring.pop_sample(s6)
             if t < 0:
                 return
@@ -532,13 +609,8 @@ class BurstFusionTracker(MagneticTracker):
     def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
         super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx)
         gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
-        self._fixed_phi = np.eye(3)                                   # a fixed source: Phi = I
-        self._fixed_fref = np.array([-v for v in cfg.gravity_mps2])  # its specific force, source frame
-        # eq 6.8 without a_source in the comparison runs
-        source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
-        self.source = source_cls(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
-        self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
-                         for ch in self.channels}
+        self.source = make_source(cfg, gate)          # the source's IMU, or fixed: chosen once
+        self.inertial = {ch.node: self._sensor_inertial(ch.node, cfg, gate) for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
         self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
@@ -553,18 +625,22 @@ class BurstFusionTracker(MagneticTracker):
         self.comp_solver = make_pose_solver(cfg, coils, 1.0)
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
 
+    def _sensor_inertial(self, node: int, cfg, gate: PulseGate) -> SensorInertial:
+        """The inertial part of sensor ``node`` (a pipeline of other bursts builds it with its own
+        compass gate and timing: ``track.ac``)."""
+        return SensorInertial(node, cfg, gate, self.source)
+
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
         ins = self.inertial.get(msg.node)
         if ins is not None:
             ins.imu.push(msg)
-        elif self.source is not None and msg.node == self.source.node:
-            self.source.imu.push(msg)
+        else:
+            self.source.on_imu(msg)
 
     def on_mag(self, msg, lsb: float) -> None:
         """A MAG_SAMPLE of a node that is not a tracked sensor: the source's module."""
-        if self.source is not None and msg.node == self.source.node:
-            self.source.mag.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
+        self.source.on_mag(msg, lsb)
 
     def on_burst(self, t_ref: int) -> None:
         for ins in self.inertial.values():
@@ -574,22 +650,14 @@ class BurstFusionTracker(MagneticTracker):
     def step(self, now_us: int) -> None:
         """Predict (drain the IMU rings: the source's first, its orientation and
         specific force feed eq 6.8), solve, fuse, and send the fused poses."""
-        src = self.source
         n0 = 0
         n1 = 0
         for ch, ins in self._pairs:
             n0 += ins.samples
             ins.process(ch.ring, now_us, self.source_wait_us, self.imu_steps)
             n1 += ins.samples
-        if src is not None:
-            # what no sensor sample waits for: at most the wait behind the clock
-            until = now_us - self.source_wait_us
-            for _, ins in self._pairs:
-                if len(ins.imu):
-                    t = ins.imu.tv[ins.imu.slot(0)]
-                    if t < until:
-                        until = t
-            src.process(until)
+        # what no sensor sample waits for: at most the wait behind the clock
+        self.source.catch_up(now_us - self.source_wait_us, self._pairs)
         self._imu_last = n1 - n0
         # bounded tick: a tick that propagated IMU samples (the fused tick) leaves the fusion
         # step (the update or a replay step) to the next one, at most one tick in a row (so it
@@ -669,7 +737,7 @@ class BurstFusionTracker(MagneticTracker):
         tx = self.tx
         for ch, ins in self._pairs:
             fus = ins.fusion
-            d = fus._odv
+            d = fus.out_dv
             if fus.recoveries != ins.recoveries_seen:
                 kept = fus.biases_kept != ins.kept_seen
                 ins.recoveries_seen = fus.recoveries
@@ -705,7 +773,7 @@ class BurstFusionTracker(MagneticTracker):
                 if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], self.range_m):
                     status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
                     ins.poses_out_of_range += 1
-                tx.pose(ch.node, fus._otv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
+                tx.pose(ch.node, fus.out_tv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
                         d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
                         d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status,
                         self.quality.last[ch.node])     # the quality of the last magnetic solution
@@ -729,6 +797,5 @@ class BurstFusionTracker(MagneticTracker):
             "fusion_output_dropped": sum(i.fusion.out_dropped for i in ins),
             "compass_updates": sum(i.ori.compass_used for i in ins),
         })
-        if self.source is not None:
-            d["source_imu_samples"] = self.source.samples
+        d.update(self.source.counters())
         return d

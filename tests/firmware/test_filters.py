@@ -224,9 +224,9 @@ def _fusion_run(model, T, seed, *, nees=False, recorder=None, mirror=None, bias=
     t_us, K, f, w, m, rng = _imu(TRAJ, T, seed, bias=bias)
     of = OrientationFilter(_orientation_params())
     ff = FusionFilter(FusionParams.from_config(None, measurement_model=model, acc_noise=ACC_S, gyro_noise=GYR_S,
-                                   gyro_bias_sigma=0.02), of if model != 1 else None)
-    ff.source_fixed = source is None
-    ff.recorder = recorder
+                                   gyro_bias_sigma=0.02), of if model != 1 else None,
+                      fixed_source=source is None)
+    ff.attach_recorder(recorder)
     phi = np.eye(3)
     fr = np.array([0.0, 0.0, 9.81])
     next_ref = 330_000
@@ -371,8 +371,8 @@ def test_moving_source_net_acceleration_eq_6_8():
     for name, source in (("with source", src), ("fixed", None)):
         global _imu_override
         of = OrientationFilter(_orientation_params())
-        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S))
-        ff.source_fixed = source is None
+        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S),
+                          fixed_source=source is None)
         from coiltrack.firmware.pose.reference import crlb
         from coiltrack.firmware.model.field import orthogonal_source
         coils, cur = orthogonal_source(0.055, 50), np.full(3, 1.5)
@@ -478,8 +478,8 @@ class _Feed:
         self.t_us, self.K, self.f, self.w, self.m, _ = _imu(TRAJ, 4.0, seed)
         self.of = OrientationFilter(_orientation_params())
         self.ff = FusionFilter(FusionParams.from_config(None, measurement_model=3, acc_noise=ACC_S, gyro_noise=GYR_S,
-                                            gyro_bias_sigma=0.02), self.of, imu_capacity=imu_capacity)
-        self.ff.source_fixed = True
+                                            gyro_bias_sigma=0.02), self.of, imu_capacity=imu_capacity,
+                               fixed_source=True)
         self.i = 0
 
     def push(self):
