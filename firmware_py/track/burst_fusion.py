@@ -413,6 +413,75 @@ class SensorInertial:
             wl = self.w_last
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
 
+    def on_solution(self, solver, solved: bool) -> None:
+        """The burst's magnetic-only solution (``solver`` holds it) is to be fused; none
+        (``solved`` False): nothing to fuse."""
+        if solved:
+            np.copyto(self.mag_position, solver.position)
+            np.copyto(self.mag_rotation, solver.rotation)
+            np.copyto(self.mag_cov, solver.covariance)
+            self.pending = True
+            self.stage = _COMPENSATE
+        else:
+            self.pending = False
+
+    def send_fused(self, tx, node: int, range_m: float, quality) -> None:
+        """Send the fused poses the fusion filter queued (``POSE_FUSED``, with ``quality``, that
+        of the last magnetic solution), their status from the filter's bits; the recovery and
+        dead-reckoning events on changes."""
+        fus = self.fusion
+        d = fus.out_dv
+        if fus.recoveries != self.recoveries_seen:
+            kept = fus.biases_kept != self.kept_seen
+            self.recoveries_seen = fus.recoveries
+            self.kept_seen = fus.biases_kept
+            tx.event(EVT_TRACK_REINIT, node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
+        while True:
+            k = fus.pop_output()
+            if k < 0:
+                break
+            st = int(d[k, OUT_STATUS])
+            status = self._status(st)
+            self._dead_reckoning(tx, node, st)
+            if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], range_m):
+                status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
+                self.poses_out_of_range += 1
+            tx.pose(node, fus.out_tv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
+                    d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
+                    d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status,
+                    quality)
+            fus.release_output()
+
+    def _status(self, st: int) -> int:
+        """The POSE status of a fused pose with the filter's ``OUT_*`` bits ``st``."""
+        status = POSE_VALID | POSE_FUSED
+        if st & OUT_STALE:
+            status |= POSE_STALE
+        if st & OUT_INCONSISTENT:
+            status |= POSE_INCONSISTENT
+        if st & OUT_RECOVERED:
+            status |= POSE_RECOVERED
+        if st & OUT_DEAD_RECKONING:
+            status |= POSE_DEAD_RECKONING
+            self.poses_dead_reckoning += 1
+            if st & OUT_LOST:          # past what the filter vouches for: sent, not valid
+                status &= ~POSE_VALID
+                self.poses_lost += 1
+        return status
+
+    def _dead_reckoning(self, tx, node: int, st: int) -> None:
+        """``EVT_DEAD_RECKONING`` when the dead-reckoning state (0 tracking, 1 dead
+        reckoning, 2 lost) of the filter's bits ``st`` changes."""
+        dr = 0
+        if st & OUT_DEAD_RECKONING:
+            dr = 2 if st & OUT_LOST else 1
+        if dr != self.dr_state:
+            if dr > self.dr_state:
+                tx.event(EVT_DEAD_RECKONING, node | ((1 << 8) if dr == 2 else 0))
+            elif dr == 0:
+                tx.event(EVT_DEAD_RECKONING, node | (1 << 9))
+            self.dr_state = dr
+
     def schedule(self, t_ref: int) -> None:
         """A burst was commanded; its pose will refer to ``t_ref``."""
         self.t_ref = int(t_ref)
@@ -711,16 +780,7 @@ class BurstFusionTracker(MagneticTracker):
         return self._rep_cov
 
     def on_solution(self, ch, solved: bool) -> None:
-        ins = self.inertial[ch.node]
-        if solved:
-            sv = self.solver
-            np.copyto(ins.mag_position, sv.position)
-            np.copyto(ins.mag_rotation, sv.rotation)
-            np.copyto(ins.mag_cov, sv.covariance)
-            ins.pending = True
-            ins.stage = _COMPENSATE
-        else:
-            ins.pending = False
+        self.inertial[ch.node].on_solution(self.solver, solved)
 
     def _fuse_step(self, budget: int, fresh: bool, charges: int = 0) -> None:
         """This tick's part of one sensor's delayed magnetic update (``charges``: what of the
@@ -734,50 +794,8 @@ class BurstFusionTracker(MagneticTracker):
 
     def _send_fused(self) -> None:
         """Send the fused poses queued by the fusion filters (IMU rate)."""
-        tx = self.tx
         for ch, ins in self._pairs:
-            fus = ins.fusion
-            d = fus.out_dv
-            if fus.recoveries != ins.recoveries_seen:
-                kept = fus.biases_kept != ins.kept_seen
-                ins.recoveries_seen = fus.recoveries
-                ins.kept_seen = fus.biases_kept
-                tx.event(EVT_TRACK_REINIT, ch.node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
-            while True:
-                k = fus.pop_output()
-                if k < 0:
-                    break
-                st = int(d[k, OUT_STATUS])
-                status = POSE_VALID | POSE_FUSED
-                if st & OUT_STALE:
-                    status |= POSE_STALE
-                if st & OUT_INCONSISTENT:
-                    status |= POSE_INCONSISTENT
-                if st & OUT_RECOVERED:
-                    status |= POSE_RECOVERED
-                dr = 0
-                if st & OUT_DEAD_RECKONING:
-                    status |= POSE_DEAD_RECKONING
-                    ins.poses_dead_reckoning += 1
-                    dr = 1
-                    if st & OUT_LOST:          # past what the filter vouches for: sent, not valid
-                        status &= ~POSE_VALID
-                        ins.poses_lost += 1
-                        dr = 2
-                if dr != ins.dr_state:
-                    if dr > ins.dr_state:
-                        tx.event(EVT_DEAD_RECKONING, ch.node | ((1 << 8) if dr == 2 else 0))
-                    elif dr == 0:
-                        tx.event(EVT_DEAD_RECKONING, ch.node | (1 << 9))
-                    ins.dr_state = dr
-                if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], self.range_m):
-                    status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
-                    ins.poses_out_of_range += 1
-                tx.pose(ch.node, fus.out_tv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
-                        d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
-                        d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status,
-                        self.quality.last[ch.node])     # the quality of the last magnetic solution
-                fus.release_output()
+            ins.send_fused(self.tx, ch.node, self.range_m, self.quality.last[ch.node])
 
     def counters(self) -> dict:
         ins = tuple(self.inertial.values())

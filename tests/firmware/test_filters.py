@@ -632,7 +632,7 @@ def test_outputs_continue_during_the_replay_and_the_shadow_takes_over():
     assert np.abs(da - dc).max() > 1e-5            # the update shows in the poses after the swap
     _assert_same_state(a.ff.st, b.ff.st, 1e-12)
     _assert_same_state(a.ff.sn, b.ff.sn, 1e-12)
-    assert a.ff.sn.t_us == t_snap and b.ff.snap_valid and b.ff.snap_initialized
+    assert a.ff.sn.t_us == t_snap and b.ff.snap.valid and b.ff.snap.initialized
     if counter is not None:
         assert counter.count == 0
 
@@ -671,7 +671,7 @@ def test_rejected_solution_starts_no_replay_and_keeps_the_snapshot():
     b, c = _ready_pair(2)
     t_ref, q, R, C = _Feed.solution(930_000)
     assert b.ff.begin_magnetic_update(t_ref, q + [3.0, 0.0, 0.0], R, C, final=False) & EKF_GATED
-    assert not b.ff.replaying and b.ff.snap_valid and b.ff.rejected == 0
+    assert not b.ff.replaying and b.ff.snap.valid and b.ff.rejected == 0
     _assert_same_state(b.ff.st, c.ff.st, 0.0)
     assert b.ff.begin_magnetic_update(t_ref, q, R, C) == 0 and b.ff.replaying
     b.ff.finish()
