@@ -124,8 +124,8 @@ class KalmanUpdate:
             self.update = self._update_compiled
             self.core = "compiled"
 
-    def _update_compiled(self, P: np.ndarray) -> int:
-        flags = self._ck.update(P, self.gate)
+    def _update_compiled(self, P: np.ndarray, gate: float | None = None) -> int:
+        flags = self._ck.update(P, self.gate if gate is None else gate)
         self.nis = self._nisv[0]
         if flags != EKF_OK:
             self.rejected += 1
@@ -135,9 +135,10 @@ class KalmanUpdate:
             symmetrize(P, self._T, self._Tt, self._half)
         return EKF_OK
 
-    def update(self, P: np.ndarray) -> int:
+    def update(self, P: np.ndarray, gate: float | None = None) -> int:
         """One update of ``P`` with the current ``H``, ``R``, ``y``; returns the
-        health flags (``EKF_OK`` when applied). ``dx`` is zeroed when rejected."""
+        health flags (``EKF_OK`` when applied). ``dx`` is zeroed when rejected.
+        ``gate``: this update's NIS gate instead of ``self.gate`` (``math.inf``: ungated)."""
         m = self.m
         np.matmul(P, self._Ht, out=self._PHt)
         np.matmul(self.H, self._PHt, out=self.S)
@@ -160,7 +161,7 @@ class KalmanUpdate:
             self.dx.fill(0.0)
             self.rejected += 1
             return EKF_NONFINITE
-        if nis > self.gate:
+        if nis > (self.gate if gate is None else gate):
             self.dx.fill(0.0)
             self.rejected += 1
             return EKF_GATED

@@ -97,6 +97,16 @@ with the random-walk variance of eqs 6.13-6.14 added for the time between).
 Outputs older than ``dead_reckon_after_us`` since the last accepted update
 carry ``OUT_DEAD_RECKONING``, older than ``dead_reckon_limit_us`` ``OUT_LOST``.
 
+Composition. :class:`FusionFilter` holds the live and shadow states and runs
+the delayed update and its replay; it is built, once, from components of one
+job each: the prediction (``fusion_prediction.InertialPrediction``: IMU ring,
+strapdown and covariance step), the source frame (``fusion_state.MovingSource``
+or ``FixedSource``), the snapshot at t_ref (``fusion_snapshot.Snapshot``), the
+measurement model (``fusion_measurement``: model 1, or models 2 and 3 with
+``Xi``), the (re)start and kept offsets (``fusion_recovery.Recovery``) and the
+outputs (``fusion_output.PoseHistory``, ``PoseOutput``). Every update goes
+through the one update shape, ``ekf.KalmanUpdate``.
+
 All buffers are created in ``__init__``; a step allocates no numpy array.
 """
 from __future__ import annotations
@@ -105,14 +115,19 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware import core as _core_choice
-from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
-from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, PSI, QM, VEL, XI,
-                                               fusion_layout, fusion_measurement_layout)
-from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_nav, transition_static
+from coiltrack.firmware.estimate.ekf import EKF_OK, KalmanUpdate
+from coiltrack.firmware.estimate.fusion_measurement import make_measurement_model
+from coiltrack.firmware.estimate.fusion_output import (OUT_DEAD_RECKONING, OUT_FIELDS, OUT_INCONSISTENT,  # noqa: F401
+                                                      OUT_LOST, OUT_P, OUT_Q, OUT_RECOVERED, OUT_STALE,
+                                                      OUT_STATUS, OUT_VAR_O, OUT_VAR_P, PoseHistory, PoseOutput)
+from coiltrack.firmware.estimate.fusion_prediction import InertialPrediction
+from coiltrack.firmware.estimate.fusion_recovery import Recovery
+from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
+from coiltrack.firmware.estimate.fusion_state import (HIST_FIELDS, HIST_P, HIST_R, IMU_F, IMU_FIELDS,  # noqa: F401
+                                                     IMU_FSRC, IMU_PHI, IMU_W, FixedSource, InsState,
+                                                     MovingSource)
+from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, VEL
 from coiltrack.firmware.linalg import exp_rotvec, rotvec_from_matrix
-from coiltrack.firmware.ring import Ring, field_slices
-from coiltrack.firmware.rotation import quat_from_elements
 
 # fusion health flags (bit field, beside the ekf flags)
 FUS_NOT_INITIALISED = 64
@@ -129,25 +144,6 @@ RECOVER_DISAGREE = 1        # ``reinit_after`` rejected updates in a row (innova
 RECOVER_GAP = 2             # no accepted update for longer than ``dead_reckon_limit_us``
 RECOVER_STREAM = 3          # the IMU stream broke off (``max_gap_us``)
 
-#: named rows of an IMU ring entry: specific force, rate (sensor frame), the
-#: source's specific force in G, the source orientation Phi (row-major)
-IMU_FIELDS = (("F", 3), ("W", 3), ("FSRC", 3), ("PHI", 9))
-#: named rows of a pose-history entry: p_M, R_MS (row-major), source frame
-HIST_FIELDS = (("P", 3), ("R", 9))
-#: named rows of an output entry (the POSE message): p_M, quaternion (w, x, y, z),
-#: position variances (source frame), orientation variances (sensor frame), status bits
-OUT_FIELDS = (("P", 3), ("Q", 4), ("VAR_P", 3), ("VAR_O", 3), ("STATUS", 1))
-_I, _H, _O = field_slices(IMU_FIELDS), field_slices(HIST_FIELDS), field_slices(OUT_FIELDS)
-IMU_F, IMU_W, IMU_FSRC, IMU_PHI = _I["F"].start, _I["W"].start, _I["FSRC"].start, _I["PHI"].start
-HIST_P, HIST_R = _H["P"].start, _H["R"].start
-OUT_P, OUT_Q, OUT_VAR_P, OUT_VAR_O, OUT_STATUS = (_O["P"].start, _O["Q"].start, _O["VAR_P"].start,
-                                                  _O["VAR_O"].start, _O["STATUS"].start)
-#: status bits of ``OUT_STATUS``
-OUT_STALE = 1               # no magnetic update for ``stale_us``
-OUT_INCONSISTENT = 2        # the last update was not accepted cleanly
-OUT_DEAD_RECKONING = 4      # no accepted magnetic update for ``dead_reckon_after_us``: inertial only
-OUT_LOST = 8                # ... for ``dead_reckon_limit_us``: not a valid pose
-OUT_RECOVERED = 16          # restarted from a magnetic solution, no update accepted since
 #: strapdown + covariance steps one replayed IMU sample can cost (split at a snapshot)
 MAX_STEPS_PER_SAMPLE = 2
 
@@ -228,64 +224,6 @@ class FusionParams:
         self.bias_gate_sigmas = float(bias_gate_sigmas)
 
 
-class InsState:
-    """One copy of the inertial state: nominal position ``p``, velocity ``v``,
-    orientation ``Th`` (Theta), offsets ``ba``, ``bg`` at ``t_us``, the error
-    covariance ``P``, and its propagation workspace (``pred``: ``A``, ``Q`` of
-    eq 6.17, written for the step ``dt_last``; ``white``: the rows of the white
-    states, zero in ``A``). The filter holds three: the live state, the shadow
-    (a replay in progress) and the snapshot at t_ref, which is only copied
-    (``white=None``: no workspace)."""
-
-    def __init__(self, n: int, white: tuple[slice, ...] | None, white_q: tuple[float, ...] = ()):
-        self.p = np.zeros(3)
-        self.v = np.zeros(3)
-        self.Th = np.eye(3)
-        self.ba = np.zeros(3)
-        self.bg = np.zeros(3)
-        self.P = np.zeros((n, n))
-        self.t_us = 0
-        self._pv = memoryview(self.p)
-        self._vv = memoryview(self.v)
-        self._Thv = memoryview(self.Th)
-        self._bav = memoryview(self.ba)
-        self._bgv = memoryview(self.bg)
-        self._Pv = memoryview(self.P)
-        self.dt_last = -1.0
-        self.ka = self.kg = 1.0
-        #: the compiled strapdown and covariance step bound to this state's buffers, or None
-        #: (``coiltrack.firmware.core``; ``FusionFilter._step_compiled``)
-        self.ck = None
-        if white is None:
-            self.pred = None
-            return
-        self.pred = CovariancePredict(n)
-        self._Av = memoryview(self.pred.A)
-        self._Qf = memoryview(self.pred.Q.reshape(-1))     # flat: element (i, j) at i n + j
-        ext = _core_choice.extension()
-        if ext is not None and self.pred.core == "compiled":
-            assert (POS.start, VEL.start, ORI.start, ACC.start, GYR.start) == (ext.POS, ext.VEL, ext.ORI,
-                                                                             ext.ACC, ext.GYR)
-            self.ck = ext.InsStep(n, self.p, self.v, self.Th, self.ba, self.bg, self.pred.A, self.P,
-                                  self.pred.Q, self.pred._T)
-        # the white states: no transition, their noise (``white_q``, one variance per block) has no
-        # step in it, so it is written once here
-        for s, q in zip(white, white_q, strict=True):
-            for i in range(s.start, s.stop):
-                self._Av[i, i] = 0.0
-                self.pred.Q[i, i] = q
-
-    def copy_from(self, other: "InsState") -> None:
-        """Take ``other``'s nominal state, covariance and time (not its workspace)."""
-        np.copyto(self.p, other.p)
-        np.copyto(self.v, other.v)
-        np.copyto(self.Th, other.Th)
-        np.copyto(self.ba, other.ba)
-        np.copyto(self.bg, other.bg)
-        np.copyto(self.P, other.P)
-        self.t_us = other.t_us
-
-
 class FusionFilter:
     """The thesis ch. 6 complementary error filter (see module docstring).
 
@@ -298,6 +236,9 @@ class FusionFilter:
     imu_capacity, history_capacity, output_capacity : int
         Ring sizes (IMU samples kept for replay, pose history for motion
         compensation, poses waiting to be sent).
+    fixed_source : bool
+        The source does not move (``Phi = I``): history and output skip the
+        frame change (``fusion_state.FixedSource``, chosen here once).
 
     The nominal state and covariance of the live state are ``p``, ``v``,
     ``Th``, ``ba``, ``bg``, ``P`` (arrays, fixed for the filter's life),
@@ -305,84 +246,33 @@ class FusionFilter:
     """
 
     def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
-                 history_capacity: int = 128, output_capacity: int = 16):
+                 history_capacity: int = 128, output_capacity: int = 16, fixed_source: bool = False):
         self.prm = params
-        prm = params
-        # the step's constants of _set_dt, as it computes them (the same values to the bit)
-        self._dtk = (prm.acc_bias_tau_s, prm.gyro_bias_tau_s, prm.acc_noise ** 2 + prm.source_acc_noise ** 2,
-                     prm.gyro_noise, prm.acc_bias_rw * prm.acc_bias_rw, prm.gyro_bias_rw * prm.gyro_bias_rw)
-        self.layout = fusion_layout(params.measurement_model)
+        self.meas = make_measurement_model(params, xi_filter)
+        self.layout = self.meas.layout
         n = self.layout.n
         self.n = n
-        # flat indices of the diagonals of Q that _set_dt rewrites with the step
-        self._q_diag = tuple(tuple((b.start + i) * (n + 1) for i in range(3)) for b in (VEL, ORI, ACC, GYR))
-        self.model = params.measurement_model
-        if self.model != 1 and xi_filter is None:
-            raise ValueError("measurement models 2 and 3 need the orientation filter Xi")
         self.xi = xi_filter
-        white = (QM, PSI) + ((XI,) if n > 21 else ())
-        white_q = (prm.qm_sigma ** 2, prm.psi_sigma ** 2) + ((prm.psi_sigma ** 2,) if n > 21 else ())
+        self.frame = FixedSource() if fixed_source else MovingSource()
+        white, white_q = self.meas.white(params)
         self.st = InsState(n, white, white_q)        # live
         self.sh = InsState(n, white, white_q)        # shadow: the replay of a delayed update
-        self.sn = InsState(n, None)         # snapshot at t_ref
         self._auth = self.st                # the state that takes snapshots and is recorded
-        self.sd = Strapdown()
-        # the numeric body of each IMU step, chosen once (coiltrack.firmware.core)
-        self._ins_step = self._step_compiled if self.st.ck is not None else self._step_python
-        zl = fusion_measurement_layout(self.model)
-        self.zlayout = zl
-        m = zl.n
-        self.m = m
-        self._zp = zl.ZP.start
-        self._zpsi = zl.ZPSI.start if "ZPSI" in zl.names() else -1
-        self._zxi = zl.ZXI.start if "ZXI" in zl.names() else -1
-        self.upd = KalmanUpdate(n, m, params.gate_probability)
-        self._Hv = memoryview(self.upd.H)
-        self._Rmv = memoryview(self.upd.R)
-        self._yv = self.upd._yv
-        # the measurement matrix C is constant (eqs 6.18, 6.20, 6.21)
-        H = self._Hv
-        for i in range(3):
-            H[self._zp + i, POS.start + i] = 1.0
-            H[self._zp + i, QM.start + i] = 1.0
-            for row, white in ((self._zpsi, PSI), (self._zxi, XI)):
-                if row >= 0:
-                    H[row + i, ORI.start + i] = 1.0
-                    H[row + i, white.start + i] = 1.0
-        r = params.meas_sigma ** 2
-        for i in range(m):
-            self._Rmv[i, i] = r
-        #: the source is fixed (Phi = I): history and output skip the frame change
-        self.source_fixed = False
-        # scratch
+        self.snap = Snapshot(n, self.frame, xi_filter)
+        self.prediction = InertialPrediction(params, n, self.frame, imu_capacity, self.st.ck is not None)
+        self.imu = self.prediction.imu
+        self.zlayout = self.meas.zlayout
+        self.m = self.zlayout.n
+        self.upd = KalmanUpdate(n, self.m, params.gate_probability)
+        self.meas.fill_constant(memoryview(self.upd.H), memoryview(self.upd.R), params)
+        self.recovery = Recovery(params, self.meas)
+        self.history = PoseHistory(history_capacity)
+        self.output = PoseOutput(params, output_capacity, self.frame)
+        # scratch of the correction
         self._E = np.zeros((3, 3))
         self._Ev = memoryview(self._E)
         self._T = np.zeros((3, 3))
-        # snapshot at t_ref: the source orientation and Xi beside the state
-        self._sPhi = np.eye(3)
-        self._sXi = np.eye(3)
-        self._sXiP = np.zeros((3, 3))
-        self._sXiB = np.zeros(3)
-        self._sPhiv = memoryview(self._sPhi)
-        self._sXiv = memoryview(self._sXi)
-        self._sXiPv = memoryview(self._sXiP)
-        self.snap_t = 0
-        self.snap_pending = False
-        self.snap_valid = False
-        self.snap_initialized = False
-        self.snap_xi = False
-        # rings: IMU samples (replay), pose history (motion compensation) and its
-        # shadow (the replayed history), fused poses waiting to be sent
-        self.imu = Ring(imu_capacity, IMU_FIELDS)
-        self.hist = Ring(history_capacity, HIST_FIELDS)
-        self._shist = Ring(history_capacity, HIST_FIELDS)
-        self.out = Ring(output_capacity, OUT_FIELDS)
-        self.imu_t, self.imu_d = self.imu.t, self.imu.d
-        self._itv, self._idv, self._icap = self.imu.tv, self.imu.dv, self.imu.capacity
-        self._otv, self._odv = self.out.tv, self.out.dv
-        self.out_dropped = 0
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
-        # bookkeeping
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
         self._pending = None            # a prepared magnetic update: (t_ref, q, R_ms, C, final)
@@ -396,22 +286,9 @@ class FusionFilter:
         self.rejected = 0
         self.reinits = 0
         self.replays_lost = 0
-        self.steps = 0
-        # recovery: offsets kept across a restart (ACC, GYR and their covariance block)
-        self._kb = np.zeros(6)
-        self._kP = np.zeros((6, 6))
-        self._kbv = memoryview(self._kb)
-        self._kPv = memoryview(self._kP)
-        self.kept = False
-        self.kept_t = 0
-        self.ever_initialised = False
-        self.recovering = False         # restarted, no update accepted since (OUT_RECOVERED)
-        self.recovery_reason = 0        # RECOVER_* of the pending or last restart
-        self.recoveries = 0             # restarts after the first initialisation
-        self.biases_kept = 0            # ... of which kept the offsets
         self.recorder = None       # optional offline hook (smoother); None on the board
 
-    # ------------------------------------------------------------ the live state
+    # ------------------------------------------------------------ the live state, the parts (read)
     p = property(lambda self: self.st.p)
     v = property(lambda self: self.st.v)
     Th = property(lambda self: self.st.Th)
@@ -420,311 +297,108 @@ class FusionFilter:
     P = property(lambda self: self.st.P)
     t_us = property(lambda self: self.st.t_us)
     pred = property(lambda self: self.st.pred)
+    sn = property(lambda self: self.snap.st)
+    hist = property(lambda self: self.history.live)
+    source_fixed = property(lambda self: self.frame.fixed)
+    steps = property(lambda self: self.prediction.steps)
+    imu_t = property(lambda self: self.imu.t)
+    imu_d = property(lambda self: self.imu.d)
+    out_t = property(lambda self: self.output.out.t)
+    out_d = property(lambda self: self.output.out.d)
+    out_tv = property(lambda self: self.output.out.tv)
+    out_dv = property(lambda self: self.output.out.dv)
+    out_dropped = property(lambda self: self.output.dropped)
+    recoveries = property(lambda self: self.recovery.recoveries)
+    biases_kept = property(lambda self: self.recovery.biases_kept)
+    recovery_reason = property(lambda self: self.recovery.recovery_reason)
+
+    def attach_recorder(self, recorder) -> None:
+        """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only)."""
+        self.recorder = recorder
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
         """Keep the state at ``t_ref_us`` (the instant the next magnetic
         solution will refer to)."""
-        self.snap_t = int(t_ref_us)
-        self.snap_pending = True
-        self.snap_valid = False
+        self.snap.schedule(t_ref_us)
 
     def push_imu(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> bool:
         """One sensor IMU sample (specific force m/s^2, rate rad/s, sensor
         frame) with the source's specific force in ``G`` (``r*``) and the
         source orientation ``Phi`` (3x3, memoryview or array). Returns True
         when a fused pose was produced (put in the output ring)."""
-        k = self.imu.push(t_us)          # kept for replay
-        d = self._idv
-        d[k, IMU_F], d[k, IMU_F + 1], d[k, IMU_F + 2] = fx, fy, fz
-        d[k, IMU_W], d[k, IMU_W + 1], d[k, IMU_W + 2] = wx, wy, wz
-        d[k, IMU_FSRC], d[k, IMU_FSRC + 1], d[k, IMU_FSRC + 2] = rx, ry, rz
-        if not self.source_fixed:          # a fixed source keeps Phi = I (columns unused)
-            for i in range(3):
-                for j in range(3):
-                    d[k, IMU_PHI + 3 * i + j] = Phi[i, j]
+        k = self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)    # kept for replay
         st = self.st
         if not self.initialized:
-            if self.snap_pending and t_us >= self.snap_t and not self.replaying:
-                self._snapshot_aux(k, False)
+            snap = self.snap
+            if snap.pending and t_us >= snap.t and not self.replaying:
+                snap.take_aux(self.prediction._idv, k, False)
             return False
         if t_us <= st.t_us:
             return False
         if t_us - st.t_us > self.prm.max_gap_us:
             # the stream broke off: the inertial state is not worth keeping (its offsets may be)
-            self._keep_biases(st)
-            self.recovery_reason = RECOVER_STREAM
+            self.recovery.keep(st, RECOVER_STREAM)
             self.initialized = False
-            self.snap_valid = False
+            self.snap.drop()
             self._end_replay()
             return False
-        self._advance(st, self.hist, k)
+        self._advance(st, self.history.live, k)
         self._output(t_us)
         return True
 
-    def _advance(self, st: InsState, hist: Ring, k: int) -> int:
+    def _advance(self, st: InsState, hist, k: int) -> int:
         """Propagate ``st`` to IMU slot ``k``'s time, splitting the step at a
         pending snapshot (taken if ``st`` is the authoritative state); append
         the poses to ``hist``. Returns the number of steps run (1 or 2)."""
-        t = self._itv[k]
+        pr = self.prediction
+        snap = self.snap
+        t = pr._itv[k]
         t0 = st.t_us
-        if self.snap_pending and t0 < self.snap_t <= t:
-            ts = self.snap_t
+        if snap.due(t0, t):
+            ts = snap.t
             n = 0
             if ts > t0:
                 self._propagate(st, k, t0, ts)
-                st.t_us = ts
-                self._history(st, hist, k)
+                st.set_time(ts)
+                pr.history(st, hist, k)
                 n = 1
             if st is self._auth:
-                self._snapshot(st, k)
+                snap.take(st, pr._idv, k)
             if t > ts:
                 self._propagate(st, k, ts, t)
                 n += 1
         else:
             self._propagate(st, k, t0, t)
             n = 1
-        st.t_us = t
-        self._history(st, hist, k)
+        st.set_time(t)
+        pr.history(st, hist, k)
         return n
 
-    # ------------------------------------------------------------ model
+    def _propagate(self, st: InsState, k: int, t0: int, t1: int) -> None:
+        """``InertialPrediction.propagate`` of ``st`` over ``[t0, t1]``, recorded when it is the
+        authoritative state."""
+        self.prediction.propagate(st, k, t0, t1)
+        if self.recorder is not None and st is self._auth:
+            self.recorder.on_step(self, st, k, t1)
+
     def _step(self, k: int, t0: int, t1: int) -> None:
         """One step of the live state (``tools.commands.perf`` times it)."""
         self._propagate(self.st, k, t0, t1)
 
-    def _propagate(self, st: InsState, k: int, t0: int, t1: int) -> None:
-        """Strapdown and covariance step of ``st`` over ``[t0, t1]`` with the IMU
-        samples of ring slots ``k - 1`` and ``k`` (trapezoidal in the rate
-        and in the global-frame specific force: the samples are instantaneous
-        values; inputs at ``t0`` / ``t1`` interpolated linearly between the
-        two entries). Strapdown and error transition: ``estimate.strapdown``
-        (eqs 6.1-6.4, 6.8, 6.17)."""
-        dt = (t1 - t0) * 1e-6
-        d = self._idv
-        tv = self._itv
-        tk = tv[k]
-        kp = k - 1 if k > 0 else self._icap - 1
-        tp = tv[kp]
-        # interpolation weights of entry k at t0 and t1 (1: entry k alone)
-        if len(self.imu) > 1 and tp < tk:
-            span = 1.0 / (tk - tp)
-            a0 = (t0 - tp) * span
-            a1 = (t1 - tp) * span
-            if a0 < 0.0:
-                a0 = 0.0
-        else:
-            kp = k
-            a0 = a1 = 1.0
-        b0 = 1.0 - a0
-        b1 = 1.0 - a1
-        ba = st._bav
-        bg = st._bgv
-        F, W, S = IMU_F, IMU_W, IMU_FSRC
-        # the two entries, each element read once
-        pfx, pfy, pfz, pwx, pwy, pwz = d[kp, F], d[kp, F + 1], d[kp, F + 2], d[kp, W], d[kp, W + 1], d[kp, W + 2]
-        kfx, kfy, kfz, kwx, kwy, kwz = d[k, F], d[k, F + 1], d[k, F + 2], d[k, W], d[k, W + 1], d[k, W + 2]
-        psx, psy, psz, ksx, ksy, ksz = d[kp, S], d[kp, S + 1], d[kp, S + 2], d[k, S], d[k, S + 1], d[k, S + 2]
-        bax, bay, baz = ba[0], ba[1], ba[2]
-        # inputs at t0 and t1 (offsets removed), the rate at mid-step
-        f0x = b0 * pfx + a0 * kfx - bax
-        f0y = b0 * pfy + a0 * kfy - bay
-        f0z = b0 * pfz + a0 * kfz - baz
-        f1x = b1 * pfx + a1 * kfx - bax
-        f1y = b1 * pfy + a1 * kfy - bay
-        f1z = b1 * pfz + a1 * kfz - baz
-        am = 0.5 * (a0 + a1)
-        bm = 1.0 - am
-        wx = bm * pwx + am * kwx - bg[0]
-        wy = bm * pwy + am * kwy - bg[1]
-        wz = bm * pwz + am * kwz - bg[2]
-        r0x, r0y, r0z = b0 * psx + a0 * ksx, b0 * psy + a0 * ksy, b0 * psz + a0 * ksz
-        r1x, r1y, r1z = b1 * psx + a1 * ksx, b1 * psy + a1 * ksy, b1 * psz + a1 * ksz
-        self._ins_step(st, k, t1, dt, f0x, f0y, f0z, f1x, f1y, f1z, wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z)
-
-    def _step_python(self, st: InsState, k: int, t1: int, dt: float, f0x, f0y, f0z, f1x, f1y, f1z,
-                     wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z) -> None:
-        """The numeric body of :meth:`_propagate` (the reference of ``core/src/strapdown.c``
-        ``ct_ins_propagate``): attitude, position and velocity, offset decay, eq 6.17's blocks
-        and the covariance prediction."""
-        ba = st._bav
-        bg = st._bgv
-        Th = st._Thv
-        # specific force in G at t0 with the attitude at t0, at t1 with the attitude at t1
-        g0x, g0y, g0z = to_nav(Th, f0x, f0y, f0z)
-        self.sd.rotate(st.Th, wx * dt, wy * dt, wz * dt)
-        g1x, g1y, g1z = to_nav(Th, f1x, f1y, f1z)
-        integrate_pv(st._pv, st._vv, dt, g0x - r0x, g0y - r0y, g0z - r0z, g1x - r1x, g1y - r1y, g1z - r1z)
-        if dt != st.dt_last:
-            self._set_dt(st, dt)
-        ka = st.ka
-        kg = st.kg
-        ba[0] *= ka
-        ba[1] *= ka
-        ba[2] *= ka
-        bg[0] *= kg
-        bg[1] *= kg
-        bg[2] *= kg
-        transition_nav(st._Av, dt, Th, 0.5 * (g0x + g1x), 0.5 * (g0y + g1y), 0.5 * (g0z + g1z))
-        st.pred.predict(st.P)
-        self.steps += 1
-        if self.recorder is not None and st is self._auth:
-            self.recorder.on_step(self, st, k, t1)
-
-    def _step_compiled(self, st: InsState, k: int, t1: int, dt: float, f0x, f0y, f0z, f1x, f1y, f1z,
-                       wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z) -> None:
-        """:meth:`_step_python` on the compiled core (``InsState.ck``, bound at start-up): the
-        step's static blocks written first (they depend on ``dt`` alone, not on the step's
-        results), then one call does the rest."""
-        if dt != st.dt_last:
-            self._set_dt(st, dt)
-        st.ck.propagate(dt, f0x, f0y, f0z, f1x, f1y, f1z, wx, wy, wz, r0x, r0y, r0z, r1x, r1y, r1z,
-                        st.ka, st.kg)
-        st.pred.after_predict(st.P)
-        self.steps += 1
-        if self.recorder is not None and st is self._auth:
-            self.recorder.on_step(self, st, k, t1)
-
-    def _set_dt(self, st: InsState, dt: float) -> None:
-        """The parts of ``A`` and ``Q`` that depend on the step alone
-        (eqs 6.10, 6.13-6.14), rewritten only when the step changes (the white
-        magnetic states' noise has no step in it: :class:`InsState` writes it)."""
-        k = self._dtk
-        st.dt_last = dt
-        ka = math.exp(-dt / k[0]) if k[0] > 0.0 else 1.0
-        kg = math.exp(-dt / k[1]) if k[1] > 0.0 else 1.0
-        st.ka = ka
-        st.kg = kg
-        transition_static(st._Av, dt, ka, kg)
-        Q = st._Qf
-        qv = k[2] * dt * dt
-        qo = (k[3] * dt) ** 2
-        qa = k[4] * dt
-        qg = k[5] * dt
-        v, o, a, g = self._q_diag
-        Q[v[0]] = Q[v[1]] = Q[v[2]] = qv
-        Q[o[0]] = Q[o[1]] = Q[o[2]] = qo
-        Q[a[0]] = Q[a[1]] = Q[a[2]] = qa
-        Q[g[0]] = Q[g[1]] = Q[g[2]] = qg
-
-    def _history(self, st: InsState, hist: Ring, k: int) -> None:
-        """Append ``st``'s pose in the source frame to ``hist``: ``p_M = Phi^T p``,
-        ``R_MS = Phi^T Theta`` (Phi of IMU slot ``k``)."""
-        d = self._idv
-        h = hist.push(st.t_us)
-        hd = hist.dv
-        p = st._pv
-        Th = st._Thv
-        P0, R0 = HIST_P, HIST_R
-        if self.source_fixed:
-            hd[h, P0], hd[h, P0 + 1], hd[h, P0 + 2] = p[0], p[1], p[2]
-            for i in range(3):
-                hd[h, R0 + 3 * i], hd[h, R0 + 3 * i + 1], hd[h, R0 + 3 * i + 2] = Th[i, 0], Th[i, 1], Th[i, 2]
-        else:
-            F = IMU_PHI
-            for i in range(3):
-                f0, f1, f2 = d[k, F + i], d[k, F + 3 + i], d[k, F + 6 + i]     # column i of Phi
-                hd[h, P0 + i] = f0 * p[0] + f1 * p[1] + f2 * p[2]
-                for j in range(3):
-                    hd[h, R0 + 3 * i + j] = f0 * Th[0, j] + f1 * Th[1, j] + f2 * Th[2, j]
-
     def _output(self, t_us: int) -> None:
-        """Queue the fused pose (source frame) with its variances: position
-        ``diag(Phi^T P_pp Phi)``, orientation in the sensor frame
-        ``diag(R^T P_oo R)`` with ``R = Theta`` (as the POSE message defines)."""
-        out = self.out
-        if out.full:
-            self.out_dropped += 1
-            return
-        slot = out.push(t_us)
-        od = self._odv
-        hist = self.hist
-        h = hist.peek(0)
-        hd = hist.dv
-        od[slot, OUT_P], od[slot, OUT_P + 1], od[slot, OUT_P + 2] = hd[h, HIST_P], hd[h, HIST_P + 1], hd[h, HIST_P + 2]
-        _quat_into(hd, h, od, slot)
-        k = self.imu.peek(0)
-        d = self._idv
-        st = self.st
-        P = st._Pv
-        Th = st._Thv
-        p0 = POS.start
-        o0 = ORI.start
-        # orientation: diag(Theta^T P_oo Theta) = sum_i Theta[i, c] (P_oo Theta)[i, c]
-        o00, o01, o02 = P[o0, o0], P[o0, o0 + 1], P[o0, o0 + 2]
-        o11, o12, o22 = P[o0 + 1, o0 + 1], P[o0 + 1, o0 + 2], P[o0 + 2, o0 + 2]
-        for c in range(3):
-            x, y, z = Th[0, c], Th[1, c], Th[2, c]
-            od[slot, OUT_VAR_O + c] = (x * (o00 * x + o01 * y + o02 * z) + y * (o01 * x + o11 * y + o12 * z)
-                                       + z * (o02 * x + o12 * y + o22 * z))
-        if self.source_fixed:
-            od[slot, OUT_VAR_P], od[slot, OUT_VAR_P + 1], od[slot, OUT_VAR_P + 2] = (
-                P[p0, p0], P[p0 + 1, p0 + 1], P[p0 + 2, p0 + 2])
-        else:
-            q00, q01, q02 = P[p0, p0], P[p0, p0 + 1], P[p0, p0 + 2]
-            q11, q12, q22 = P[p0 + 1, p0 + 1], P[p0 + 1, p0 + 2], P[p0 + 2, p0 + 2]
-            F = IMU_PHI
-            for c in range(3):
-                x, y, z = d[k, F + c], d[k, F + 3 + c], d[k, F + 6 + c]      # column c of Phi
-                od[slot, OUT_VAR_P + c] = (x * (q00 * x + q01 * y + q02 * z) + y * (q01 * x + q11 * y + q12 * z)
-                                           + z * (q02 * x + q12 * y + q22 * z))
-        status = 0
-        age = t_us - self.last_update_t
-        if age > self.prm.stale_us:
-            status |= OUT_STALE
-        if age > self.prm.dead_reckon_after_us:
-            status |= OUT_DEAD_RECKONING
-            if age > self.prm.dead_reckon_limit_us:
-                status |= OUT_LOST
-        if self.recovering:
-            status |= OUT_RECOVERED
-        if self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT):
-            status |= OUT_INCONSISTENT
-        od[slot, OUT_STATUS] = status
+        """Queue the live state's fused pose (``PoseOutput.queue``)."""
+        self.output.queue(t_us, self.history.live, self.st, self.prediction._idv, self.imu.peek(0),
+                          self.last_update_t, self.recovery.recovering,
+                          bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)))
 
     def pop_output(self) -> int:
         """Slot of the oldest queued pose in ``out_t`` / ``out_d`` (rows
         ``OUT_*``), or -1; call :meth:`release_output` when sent."""
-        return self.out.slot(0) if len(self.out) else -1
+        return self.output.pop()
 
     def release_output(self) -> None:
-        self.out.pop()
-
-    @property
-    def out_t(self):
-        return self.out.t
-
-    @property
-    def out_d(self):
-        return self.out.d
-
-    # ------------------------------------------------------------ snapshot
-    def _snapshot_aux(self, k: int, full: bool) -> None:
-        """Source orientation and Xi at t_ref (all that initialisation needs);
-        ``full``: the inertial state was kept with them."""
-        d = self._idv
-        S = self._sPhiv
-        for i in range(3):
-            for j in range(3):
-                S[i, j] = (1.0 if i == j else 0.0) if self.source_fixed else d[k, IMU_PHI + 3 * i + j]
-        if self.xi is not None and self.xi.initialized:
-            np.copyto(self._sXi, self.xi.R)
-            self.xi.theta_covariance_global(self._sXiPv)
-            np.copyto(self._sXiB, self.xi.bias)
-            self.snap_xi = True
-        else:
-            self.snap_xi = False
-        self.snap_pending = False
-        self.snap_valid = True
-        self.snap_initialized = full
-
-    def _snapshot(self, st: InsState, k: int) -> None:
-        self.sn.copy_from(st)
-        self._snapshot_aux(k, True)
-
-    def _ring_covers(self, t_us: int) -> bool:
-        imu = self.imu
-        return len(imu) > 0 and imu.tv[imu.slot(0)] <= t_us
+        self.output.release()
 
     # ------------------------------------------------------------ update
     def magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
@@ -737,7 +411,7 @@ class FusionFilter:
 
     def finish(self) -> None:
         """Run the replay in progress (if any) to its end."""
-        while not self.step(2 * self._icap):
+        while not self.step(2 * self.imu.capacity):
             pass
 
     def begin_magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
@@ -768,34 +442,39 @@ class FusionFilter:
         initialisation)."""
         if self.replaying:
             return FUS_BUSY
-        if not (self.snap_valid and self.snap_t == t_ref_us and self._ring_covers(t_ref_us)):
+        snap = self.snap
+        if not (snap.matches(t_ref_us) and self.prediction.covers(t_ref_us)):
             self.last_flags = FUS_NO_SNAPSHOT
             return FUS_NO_SNAPSHOT
-        self.snap_valid = False
-        sh = self.sh
-        running = self.initialized and self.snap_initialized
+        snap.drop()
+        running = self.initialized and snap.initialized
         gap = running and t_ref_us - self.last_update_t > self.prm.dead_reckon_limit_us
         if not running or gap:
-            if self.model != 1 and not self.snap_xi:
-                self.last_flags = FUS_NOT_INITIALISED
-                return FUS_NOT_INITIALISED
-            flags = FUS_INITIALISED
-            if gap:                     # too long to bridge: restart from the magnetic solution
-                self._keep_biases(self.sn)
-                self.recovery_reason = RECOVER_GAP
-                flags |= FUS_GAP_REINIT
-            self._initialize(sh, t_ref_us, q, R_ms, C)
-            self.last_flags = flags
-            self.last_update_t = t_ref_us
-            self._start_replay()
-            return flags
-        sh.copy_from(self.sn)
-        self._shist.copy_from(self.hist)
-        self._shist.drop_newer_than(t_ref_us)
-        self._measurement(sh, q, R_ms, C)
+            return self._start(t_ref_us, q, R_ms, C, gap)
+        sh = self.sh
+        sh.copy_from(snap.st)
+        self.history.rewind_shadow(t_ref_us)
+        self.meas.evaluate(sh, snap, q, R_ms, C, self.upd._yv)
         self._pending = (t_ref_us, q, R_ms, C, final)
         self.prepared += 1
         return FUS_PREPARED
+
+    def _start(self, t_ref_us: int, q, R_ms, C, gap: bool) -> int:
+        """(Re)start the shadow from the solution at ``t_ref`` (``gap``: the last update is too
+        old to bridge) and replay from there; ``FUS_NOT_INITIALISED`` when the measurement
+        model cannot start from this snapshot."""
+        if not self.meas.ready(self.snap):
+            self.last_flags = FUS_NOT_INITIALISED
+            return FUS_NOT_INITIALISED
+        flags = FUS_INITIALISED
+        if gap:                     # too long to bridge: restart from the magnetic solution
+            self.recovery.keep(self.snap.st, RECOVER_GAP)
+            flags |= FUS_GAP_REINIT
+        self._initialize(self.sh, t_ref_us, q, R_ms, C)
+        self.last_flags = flags
+        self.last_update_t = t_ref_us
+        self._start_replay()
+        return flags
 
     def apply_magnetic_update(self) -> int:
         """The second half of :meth:`begin_magnetic_update`: gate, gain and
@@ -814,23 +493,22 @@ class FusionFilter:
             self.rejects_in_row = 0
             self.accepted_in_row += 1
             self.updates += 1
-            self.recovering = False
+            self.recovery.accepted()
             self.last_update_t = t_ref_us
             if self.recorder is not None:
                 self.recorder.on_update(self, sh, self.upd.dx)
         elif not final:
-            self.snap_valid = True
+            self.snap.keep()
             return flags
         else:
             self.rejected += 1
             self.rejects_in_row += 1
             self.accepted_in_row = 0
-            if not (self.rejects_in_row >= self.prm.reinit_after and (self.model == 1 or self.snap_xi)):
+            if not (self.rejects_in_row >= self.prm.reinit_after and self.meas.ready(self.snap)):
                 return flags            # the state is unchanged: nothing to replay
             if self.recorder is not None:
                 self.recorder.on_rewind(self, t_ref_us)
-            self._keep_biases(sh)       # sh: the prior at t_ref
-            self.recovery_reason = RECOVER_DISAGREE
+            self.recovery.keep(sh, RECOVER_DISAGREE)       # sh: the prior at t_ref
             self._initialize(sh, t_ref_us, q, R_ms, C)
             self.reinits += 1
             self.rejects_in_row = 0
@@ -878,68 +556,14 @@ class FusionFilter:
                 self.last_flags |= FUS_REPLAY_LOST
                 self.last_step_units = units
                 return True
-            units += self._advance(sh, self._shist, imu.slot(i))
+            units += self._advance(sh, self.history.shadow, imu.slot(i))
 
     def _swap(self) -> None:
         """The shadow has caught up: it becomes the live state."""
         self.st.copy_from(self.sh)
-        self.hist.copy_from(self._shist)
+        self.history.commit()
         self.initialized = True
         self._end_replay()
-
-    def _measurement(self, st: InsState, q, R_ms, C) -> None:
-        """Innovation (eqs 6.18-6.21) at ``st`` and the white blocks of its ``P``."""
-        y = self._yv
-        Phi = self._sPhiv
-        p = st._pv
-        Th = st._Thv
-        P = st._Pv
-        s = self.prm.mag_var_scale
-        # position: Phi q - p
-        z0 = self._zp
-        for i in range(3):
-            y[z0 + i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2] - p[i]
-        # Psi = Phi R_ms
-        psi = self._E
-        np.matmul(self._sPhi, R_ms, out=psi)
-        Psi = self._Ev
-        # white-state covariances: Phi C_pp Phi^T, Psi C_tt Psi^T, Phi C_pt Psi^T
-        q0, s0 = QM.start, PSI.start
-        cp, co = POSE_POS.start, POSE_ORI.start
-        for i in range(3):
-            for j in range(3):
-                cpp = cpt = ctt = 0.0
-                for a in range(3):
-                    fa = Phi[i, a]
-                    pa = Psi[i, a]
-                    for b in range(3):
-                        cpp += fa * C[cp + a, cp + b] * Phi[j, b]
-                        cpt += fa * C[cp + a, co + b] * Psi[j, b]
-                        ctt += pa * C[co + a, co + b] * Psi[j, b]
-                P[q0 + i, q0 + j] = cpp * s
-                P[q0 + i, s0 + j] = cpt * s
-                P[s0 + j, q0 + i] = cpt * s
-                P[s0 + i, s0 + j] = ctt * s
-        if self._zpsi >= 0:
-            _log_diff(Psi, Th, y, self._zpsi)
-        if self._zxi >= 0:
-            _log_diff(self._sXiv, Th, y, self._zxi)
-            x0 = XI.start
-            xs = self.prm.xi_var_scale
-            fl = self.prm.xi_sigma_floor ** 2
-            fh = self.prm.xi_heading_sigma_floor ** 2
-            XP = self._sXiPv
-            for i in range(3):
-                for j in range(3):
-                    P[x0 + i, x0 + j] = XP[i, j] * xs
-                P[x0 + i, x0 + i] += fh if i == 2 else fl
-        if self._zpsi < 0:
-            # the magnetic orientation is not used: keep its white block inert
-            for i in range(3):
-                for j in range(3):
-                    P[s0 + i, s0 + j] = (self.prm.psi_sigma ** 2) if i == j else 0.0
-                    P[q0 + i, s0 + j] = 0.0
-                    P[s0 + j, q0 + i] = 0.0
 
     def _correct(self, st: InsState, dx) -> None:
         p = st._pv
@@ -957,151 +581,19 @@ class FusionFilter:
         np.copyto(st.Th, self._T)
 
     def _initialize(self, st: InsState, t_ref_us: int, q, R_ms, C) -> None:
-        """``st`` at ``t_ref``: position from the magnetic solution, velocity
-        zero, orientation from Xi (models 2, 3) or the magnetic one (model 1),
-        gyroscope offset from the ch. 2 filter; its pose history starts anew."""
-        prm = self.prm
-        Phi = self._sPhiv
-        p = st._pv
-        for i in range(3):
-            p[i] = Phi[i, 0] * q[0] + Phi[i, 1] * q[1] + Phi[i, 2] * q[2]
-        st.v.fill(0.0)
-        st.ba.fill(0.0)
-        st.P.fill(0.0)
-        P = st._Pv
-        use_xi = self.model != 1 and self.snap_xi
-        if use_xi:
-            np.copyto(st.Th, self._sXi)
-            np.copyto(st.bg, self._sXiB)
-        else:
-            np.matmul(self._sPhi, R_ms, out=st.Th)
-            st.bg.fill(0.0)
-        Th = st._Thv
-        p0, o0 = POS.start, ORI.start
-        cp, co = POSE_POS.start, POSE_ORI.start
-        for i in range(3):
-            for j in range(3):
-                cpp = 0.0
-                coo = 0.0
-                for a in range(3):
-                    for b in range(3):
-                        cpp += Phi[i, a] * C[cp + a, cp + b] * Phi[j, b]
-                        coo += Th[i, a] * C[co + a, co + b] * Th[j, b]
-                P[p0 + i, p0 + j] = cpp
-                if use_xi:
-                    P[o0 + i, o0 + j] = self._sXiPv[i, j]
-                else:
-                    P[o0 + i, o0 + j] = coo
-        for i in range(3):
-            P[VEL.start + i, VEL.start + i] = prm.velocity0_sigma ** 2
-            P[ACC.start + i, ACC.start + i] = prm.acc_bias_sigma ** 2
-            P[GYR.start + i, GYR.start + i] = prm.gyro_bias_sigma ** 2
-            P[QM.start + i, QM.start + i] = prm.qm_sigma ** 2
-            P[PSI.start + i, PSI.start + i] = prm.psi_sigma ** 2
-            if self.n > 21:
-                P[XI.start + i, XI.start + i] = prm.psi_sigma ** 2
-        if self.ever_initialised:
-            self.recoveries += 1
-            self.recovering = True
-            if self.kept and self._restore_biases(st, t_ref_us):
-                self.biases_kept += 1
-        self.kept = False
-        self.ever_initialised = True
-        st.t_us = t_ref_us
+        """``st`` at ``t_ref`` from the magnetic solution (``Recovery.initialize``); its pose
+        history starts anew."""
+        self.recovery.initialize(st, t_ref_us, self.snap, q, R_ms, C)
         self.rejects_in_row = 0
         self.accepted_in_row = 0
-        self._shist.clear()
+        self.history.restart_shadow()
         if self.recorder is not None:
             self.recorder.on_init(self, st)
 
-    def _keep_biases(self, st: InsState) -> None:
-        """Remember ``st``'s offsets and their covariance block (rows ``ACC``,
-        ``GYR``) for the next restart, when credible: every offset within
-        ``bias_gate_sigmas`` of its prior (a diverged state has run them off)."""
-        prm = self.prm
-        self.kept = False
-        if not prm.keep_biases:
-            return
-        ga = prm.bias_gate_sigmas * prm.acc_bias_sigma
-        gg = prm.bias_gate_sigmas * prm.gyro_bias_sigma
-        ba, bg = st._bav, st._bgv
-        for i in range(3):
-            if not (abs(ba[i]) <= ga and abs(bg[i]) <= gg):
-                return
-        kb, kP, P = self._kbv, self._kPv, st._Pv
-        a0, g0 = ACC.start, GYR.start
-        for i in range(3):
-            kb[i] = ba[i]
-            kb[3 + i] = bg[i]
-        for i in range(6):
-            ri = a0 + i if i < 3 else g0 + i - 3
-            for j in range(6):
-                kP[i, j] = P[ri, a0 + j if j < 3 else g0 + j - 3]
-        self.kept = True
-        self.kept_t = st.t_us
-
-    def _restore_biases(self, st: InsState, t_us: int) -> bool:
-        """The kept offsets into ``st`` (just initialised at ``t_us``): the
-        nominal values decayed by eqs 6.13-6.14 over the time since they were
-        kept, the variances grown by the random walk (``sigma_rw^2 dt``); not
-        used (False) when a grown variance is no smaller than the prior's."""
-        prm = self.prm
-        dt = max(0, t_us - self.kept_t) * 1e-6
-        qa = prm.acc_bias_rw * prm.acc_bias_rw * dt
-        qg = prm.gyro_bias_rw * prm.gyro_bias_rw * dt
-        kP = self._kPv
-        for i in range(3):
-            if kP[i, i] + qa >= prm.acc_bias_sigma ** 2 or kP[3 + i, 3 + i] + qg >= prm.gyro_bias_sigma ** 2:
-                return False
-        ka = math.exp(-dt / prm.acc_bias_tau_s) if prm.acc_bias_tau_s > 0.0 else 1.0
-        kg = math.exp(-dt / prm.gyro_bias_tau_s) if prm.gyro_bias_tau_s > 0.0 else 1.0
-        kb, P = self._kbv, st._Pv
-        ba, bg = st._bav, st._bgv
-        a0, g0 = ACC.start, GYR.start
-        for i in range(3):
-            ba[i] = ka * kb[i]
-            bg[i] = kg * kb[3 + i]
-        for i in range(6):
-            ri = a0 + i if i < 3 else g0 + i - 3
-            si = ka if i < 3 else kg
-            for j in range(6):
-                sj = ka if j < 3 else kg
-                P[ri, a0 + j if j < 3 else g0 + j - 3] = si * sj * kP[i, j]
-            P[ri, ri] += qa if i < 3 else qg
-        return True
-
     # ------------------------------------------------------------ queries
     def pose_at(self, t_us: int, out_p, out_R) -> bool:
-        """Inertial pose in the source frame at ``t_us`` (linear
-        interpolation of the live history; ``out_R`` is not re-orthonormalised,
-        which is second order in the step rotation). False when ``t_us`` is
-        outside the history."""
-        hist = self.hist
-        n = len(hist)
-        if n < 2:
-            return False
-        i = hist.index_at_or_after(t_us)
-        if i >= n:
-            return False
-        ht = hist.tv
-        if i == 0:
-            if ht[hist.slot(0)] != t_us:
-                return False
-            i = 1
-        prev = hist.slot(i - 1)
-        k = hist.slot(i)
-        t0 = ht[prev]
-        tk = ht[k]
-        a = (t_us - t0) / (tk - t0) if tk > t0 else 1.0
-        b = 1.0 - a
-        hd = hist.dv
-        for c in range(3):
-            out_p[c] = b * hd[prev, HIST_P + c] + a * hd[k, HIST_P + c]
-        for i2 in range(3):
-            for j in range(3):
-                c = HIST_R + 3 * i2 + j
-                out_R[i2, j] = b * hd[prev, c] + a * hd[k, c]
-        return True
+        """Inertial pose in the source frame at ``t_us`` (``PoseHistory.pose_at``)."""
+        return self.history.pose_at(t_us, out_p, out_R)
 
     def velocity_sigma(self) -> float:
         """rms velocity uncertainty per axis, m/s."""
@@ -1129,30 +621,3 @@ class FusionFilter:
         e = np.array(e)
         Ps = self.P[np.ix_(idx, idx)]
         return float(e @ np.linalg.solve(Ps, e))
-
-
-def _log_diff(Z, Th, y, row) -> None:
-    """``y[row:row+3] = log(Z Theta^T)`` (rotation vector, global frame)."""
-    r00 = Z[0, 0] * Th[0, 0] + Z[0, 1] * Th[0, 1] + Z[0, 2] * Th[0, 2]
-    r01 = Z[0, 0] * Th[1, 0] + Z[0, 1] * Th[1, 1] + Z[0, 2] * Th[1, 2]
-    r02 = Z[0, 0] * Th[2, 0] + Z[0, 1] * Th[2, 1] + Z[0, 2] * Th[2, 2]
-    r10 = Z[1, 0] * Th[0, 0] + Z[1, 1] * Th[0, 1] + Z[1, 2] * Th[0, 2]
-    r11 = Z[1, 0] * Th[1, 0] + Z[1, 1] * Th[1, 1] + Z[1, 2] * Th[1, 2]
-    r12 = Z[1, 0] * Th[2, 0] + Z[1, 1] * Th[2, 1] + Z[1, 2] * Th[2, 2]
-    r20 = Z[2, 0] * Th[0, 0] + Z[2, 1] * Th[0, 1] + Z[2, 2] * Th[0, 2]
-    r21 = Z[2, 0] * Th[1, 0] + Z[2, 1] * Th[1, 1] + Z[2, 2] * Th[1, 2]
-    r22 = Z[2, 0] * Th[2, 0] + Z[2, 1] * Th[2, 1] + Z[2, 2] * Th[2, 2]
-    x, yy, z = rotvec_from_matrix(r00, r01, r02, r10, r11, r12, r20, r21, r22)
-    y[row] = x
-    y[row + 1] = yy
-    y[row + 2] = z
-
-
-def _quat_into(hd, h, od, slot) -> None:
-    """Unit quaternion (w, x, y, z), w >= 0, of the rotation in history row
-    ``h`` into the output row ``slot``."""
-    r = HIST_R
-    w, x, y, z = quat_from_elements(hd[h, r], hd[h, r + 1], hd[h, r + 2], hd[h, r + 3], hd[h, r + 4],
-                                    hd[h, r + 5], hd[h, r + 6], hd[h, r + 7], hd[h, r + 8])
-    o = OUT_Q
-    od[slot, o], od[slot, o + 1], od[slot, o + 2], od[slot, o + 3] = w, x, y, z

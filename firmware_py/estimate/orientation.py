@@ -71,7 +71,10 @@ acceleration is predicted in the sensor frame (eq 2.5) and does not depend on
 the current orientation error; it is below 1 % of ``Z`` for human motion.
 
 Both updates go through ``ekf.KalmanUpdate`` (innovation, variance, gate,
-gain, Joseph form, health flags). Nothing here allocates after
+gain, Joseph form, health flags), each in a class of its own
+(``orientation_updates.Inclination``, ``orientation_updates.Compass``, which
+also learns ``|m|`` and the dip and adapts the disturbance noise); the filter
+keeps the state, its prediction and the corrections. Nothing here allocates after
 ``__init__``.
 """
 from __future__ import annotations
@@ -81,8 +84,9 @@ import math
 import numpy as np
 
 from coiltrack.firmware import core as _core_choice
-from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
+from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict
 from coiltrack.firmware.estimate.layout import BIAS, DIST, ORIENTATION_LAYOUT, THETA
+from coiltrack.firmware.estimate.orientation_updates import Compass, Inclination
 from coiltrack.firmware.estimate.strapdown import Strapdown
 from coiltrack.firmware.linalg import rotvec_from_matrix
 
@@ -169,8 +173,8 @@ class OrientationFilter:
         self.prm = params
         self.P = np.zeros((N, N))
         self.pred = CovariancePredict(N)
-        self.upd_acc = KalmanUpdate(N, 3, params.gate_probability)
-        self.upd_mag = KalmanUpdate(N, 3, params.gate_probability)
+        self.incl = Inclination(params)   # the inclination update (eqs 2.20, 2.23)
+        self.compass = Compass(params)    # the compass update and its learning (eqs 2.8-2.12, 2.21, 2.24)
         # nominal state
         self.R = np.eye(3)
         self.bias = np.zeros(3)          # gyroscope offset, rad/s, sensor frame
@@ -191,36 +195,15 @@ class OrientationFilter:
         self._qd_acc = 0.0
         self._Av = memoryview(self.pred.A)
         self._Qv = memoryview(self.pred.Q)
-        self.h_g = np.zeros(3)           # earth field direction, global frame
-        self._hgv = memoryview(self.h_g)
-        self.m_ref = 1.0                 # |earth field|, T
         self.initialized = False
         self.t_us = 0
         self.steps = 0
         self.reacquired = 0              # orientations found again after a break (reacquire)
-        self._qwd = params.dist_sigma ** 2
-        self._last_norm = 1.0
-        self._last_dip = 0.0
         self.last_acc_flags = 0
         self.last_mag_flags = 0
-        self.acc_motion_ms = 0.0         # variance of y_A - g Z-, m^2/s^4 (the adaptive motion variance)
-        self._acc_mean = [0.0, 0.0, 0.0]  # running mean of y_A - g Z- (a tilt error shows here, not above)
-        self._acc_sq = 0.0                # running mean of |y_A - g Z-|^2
-        self._acc_started = False
-        self._dt_upd = 0.0               # time since the last inclination update, s
         self._Pv = memoryview(self.P)
         self._ca = 0.0
-        self._learn = 0
-        self._sum_h = 0.0
-        self._sum_v = 0.0
-        self._sum_n = 0.0
-        self._Hacc = memoryview(self.upd_acc.H)
-        self._Hmag = memoryview(self.upd_mag.H)
-        self._Racc = memoryview(self.upd_acc.R)
-        self._Rmag = memoryview(self.upd_mag.R)
         self._Tv = memoryview(self._T)
-        for i in range(3):
-            self._Hmag[i, DIST.start + i] = 1.0
         # the numeric core of propagate, bound once here (coiltrack.firmware.core:
         # core/src/orientation.c, the same blocks and the compiled covariance prediction)
         self._ck = None
@@ -245,27 +228,11 @@ class OrientationFilter:
         # field in the global frame: (north, 0, up) components
         hn = (xx * mx + xy * my + xz * mz) / mn
         hu = (zx * mx + zy * my + zz * mz) / mn
-        self.h_g[0] = hn
-        self.h_g[1] = 0.0
-        self.h_g[2] = hu
-        self.m_ref = mn
-        # |m| and the dip are averaged over the next compass samples (in the
-        # global frame, tilt kept by the inclination updates) before the
-        # compass is used: one sample's noise (or a set/reset offset not yet
-        # estimated) would tilt the reference. The first half of the window
-        # only lets the inclination settle and is not averaged.
-        self._learn = 2 * self.prm.mag_learn_samples
-        self._sum_h = self._sum_v = self._sum_n = 0.0
-        self._last_norm = 1.0
-        self._last_dip = math.atan2(hu, abs(hn))
+        self.compass.start(hn, hu, mn)
         self.bias.fill(0.0)
         self.dist.fill(0.0)
         self.acc.fill(0.0)
-        self.acc_motion_ms = 0.0
-        self._acc_mean[0] = self._acc_mean[1] = self._acc_mean[2] = 0.0
-        self._acc_sq = 0.0
-        self._acc_started = False
-        self._dt_upd = 0.0
+        self.incl.reset()
         p = self.prm
         self.P.fill(0.0)
         Pv = self._Pv
@@ -325,6 +292,23 @@ class OrientationFilter:
         self.reacquired += 1
         return True
 
+    def lose(self) -> None:
+        """The IMU stream broke off: what the gyroscopes missed cannot be integrated; the
+        orientation is to be found again (:meth:`reacquire`)."""
+        self.initialized = False
+
+    @property
+    def learning(self) -> bool:
+        """The compass samples are still learning ``|m|`` and the dip (eqs 2.8-2.10)."""
+        return self.compass.learning
+
+    # the parts' state (read)
+    upd_acc = property(lambda self: self.incl.upd)
+    upd_mag = property(lambda self: self.compass.upd)
+    acc_motion_ms = property(lambda self: self.incl.motion_ms)    # variance of y_A - g Z-, m^2/s^4
+    h_g = property(lambda self: self.compass.h_g)                 # earth field direction, global frame
+    m_ref = property(lambda self: self.compass.m_ref)             # |earth field|, T
+
     def set_bias(self, bx, by, bz) -> None:
         self.bias[0] = bx
         self.bias[1] = by
@@ -359,10 +343,10 @@ class OrientationFilter:
         a[2] *= ca
         self._ca = ca
         self._dt_acc += dt
-        self._dt_upd += dt
+        self.incl.elapse(dt)
         self._dt2_acc += dt * dt
         self._cd_acc *= cd
-        self._qd_acc = self._qd_acc * cd * cd + self._qwd
+        self._qd_acc = self._qd_acc * cd * cd + self.compass.qwd
 
     def propagate(self) -> None:
         """Covariance over the steps since the last call (eq 2.28 and the
@@ -438,29 +422,12 @@ class OrientationFilter:
 
     def update_acc(self, ax, ay, az) -> int:
         """Inclination update (eqs 2.20, 2.23) with an accelerometer sample
-        (m/s^2, sensor frame). Returns ekf health flags (``ORI_FREEFALL`` when
-        ``|y_A|`` is far from ``g``: no inclination information)."""
+        (m/s^2, sensor frame; :class:`orientation_updates.Inclination`). Returns ekf health
+        flags (``ORI_FREEFALL`` when ``|y_A|`` is far from ``g``: no inclination information)."""
         p = self.prm
         a = self._av
         g = p.gravity
-        if p.acc_adapt_gain > 0.0:
-            # the motion the accelerometer sees besides gravity, |y_A - g Z-|^2, averaged over
-            # acc_adapt_tau_s: the variance of the inclination's motion term follows the motion level
-            R = self._Rv
-            ex, ey, ez = ax - g * R[2, 0], ay - g * R[2, 1], az - g * R[2, 2]
-            k = self._dt_upd / p.acc_adapt_tau_s if p.acc_adapt_tau_s > 0.0 else 1.0
-            k = k if k < 1.0 else 1.0
-            if not self._acc_started:         # the first sample is the mean: no variance yet
-                k = 1.0
-                self._acc_started = True
-            m = self._acc_mean
-            m[0] += k * (ex - m[0])
-            m[1] += k * (ey - m[1])
-            m[2] += k * (ez - m[2])
-            self._acc_sq += k * (ex * ex + ey * ey + ez * ez - self._acc_sq)
-            v = self._acc_sq - (m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
-            self.acc_motion_ms = v if v > 0.0 else 0.0
-        self._dt_upd = 0.0
+        self.incl.observe(self._Rv, ax, ay, az)
         vx, vy, vz = ax - a[0], ay - a[1], az - a[2]
         vn = math.sqrt(vx * vx + vy * vy + vz * vz)
         if not (abs(vn - g) <= p.freefall_tolerance * g):
@@ -468,27 +435,9 @@ class OrientationFilter:
             self._post_acc(ax, ay, az)
             return ORI_FREEFALL
         self.propagate()
-        R = self._Rv
-        zx, zy, zz = R[2, 0], R[2, 1], R[2, 2]
-        u = self.upd_acc
-        y = u._yv
-        y[0] = vx / vn - zx
-        y[1] = vy / vn - zy
-        y[2] = vz / vn - zz
-        # the predicted acceleration c_a a+ carries c_a times the previous
-        # orientation error (a+ = y_A - g Z+), so only (1 - c_a) of the
-        # orientation error shows in the inclination difference; its noise is
-        # the accelerometer noise of both samples and the driving noise w_a
-        ca = self._ca
-        _skew_block(self._Hacc, 0, THETA.start, (1.0 - ca) * zx, (1.0 - ca) * zy, (1.0 - ca) * zz)
-        r = ((1.0 + ca * ca) * p.acc_noise ** 2 + p.acc_motion_sigma ** 2
-             + p.acc_adapt_gain * self.acc_motion_ms) / (g * g)
-        Rm = self._Racc
-        for i in range(3):
-            Rm[i, i] = r
-        flags = u.update(self.P)
+        flags = self.incl.update(self._Rv, self.P, vx, vy, vz, vn, self._ca)
         if flags == EKF_OK:
-            self._apply(u._dxv)
+            self._apply(self.incl.upd._dxv)
         self._post_acc(ax, ay, az)
         self.last_acc_flags = flags
         return flags
@@ -503,111 +452,19 @@ class OrientationFilter:
 
     def update_mag(self, mx, my, mz) -> int:
         """Compass update (eqs 2.21, 2.24) with a magnetometer sample (T,
-        sensor frame) taken outside any coil pulse. Also adapts the
-        disturbance driving noise from the change of norm and dip (eq 2.12)."""
-        p = self.prm
-        R = self._Rv
-        if self._learn > self.prm.mag_learn_samples:
-            self._learn -= 1
-            self.last_mag_flags = ORI_LEARNING
-            return ORI_LEARNING
-        if self._learn > 0:
-            gx = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz
-            gy = R[1, 0] * mx + R[1, 1] * my + R[1, 2] * mz
-            gz = R[2, 0] * mx + R[2, 1] * my + R[2, 2] * mz
-            self._sum_h += math.sqrt(gx * gx + gy * gy)
-            self._sum_v += gz
-            self._sum_n += math.sqrt(mx * mx + my * my + mz * mz)
-            self._learn -= 1
-            if self._learn == 0:
-                k = self.prm.mag_learn_samples
-                hh, hv, mn = self._sum_h / k, self._sum_v / k, self._sum_n / k
-                hn = math.sqrt(hh * hh + hv * hv)
-                self.h_g[0] = hh / hn
-                self.h_g[2] = hv / hn
-                self.m_ref = mn
-                self._last_dip = math.atan2(self.h_g[2], self.h_g[0])
+        sensor frame) taken outside any coil pulse (:class:`orientation_updates.Compass`:
+        first the learning of ``|m|`` and the dip; the disturbance driving noise adapted from
+        the change of norm and dip, eq 2.12)."""
+        c = self.compass
+        if c.learn(self._Rv, mx, my, mz):
             self.last_mag_flags = ORI_LEARNING
             return ORI_LEARNING
         self.propagate()
-        inv = 1.0 / self.m_ref
-        nx, ny, nz = mx * inv, my * inv, mz * inv
-        # eq 2.8-2.12: norm and dip of the measured field
-        gx = R[0, 0] * nx + R[0, 1] * ny + R[0, 2] * nz
-        gy = R[1, 0] * nx + R[1, 1] * ny + R[1, 2] * nz
-        gz = R[2, 0] * nx + R[2, 1] * ny + R[2, 2] * nz
-        # the sample-to-sample change is mostly sensor noise: eq 2.12 is applied
-        # to low-passed norm and dip, so only a lasting change raises sigma_d
-        al = p.dist_smoothing
-        norm = (1.0 - al) * self._last_norm + al * math.sqrt(gx * gx + gy * gy + gz * gz)
-        dip = (1.0 - al) * self._last_dip + al * math.atan2(gz, math.sqrt(gx * gx + gy * gy))
-        sd = (p.dist_sigma + p.dist_norm_gain * abs(norm - self._last_norm)
-              + p.dist_dip_gain * abs(dip - self._last_dip))
-        self._qwd = sd * sd
-        self._last_norm = norm
-        self._last_dip = dip
-        d = self._dv
-        hg = self._hgv
-        h0, h2 = hg[0], hg[2]
-        # H_G = R^T h_G
-        hx = R[0, 0] * h0 + R[2, 0] * h2
-        hy = R[0, 1] * h0 + R[2, 1] * h2
-        hz = R[0, 2] * h0 + R[2, 2] * h2
-        u = self.upd_mag
-        y = u._yv
-        y[0] = nx - d[0] - hx
-        y[1] = ny - d[1] - hy
-        y[2] = nz - d[2] - hz
-        _skew_block(self._Hmag, 0, THETA.start, hx, hy, hz)
-        if p.compass_heading_only:
-            Hm = self._Hmag
-            for i in range(3):
-                for j in range(3):
-                    Hm[i, DIST.start + j] = 1.0 if i == j else 0.0
-        r = p.mag_noise ** 2
-        Rm = self._Rmag
-        for i in range(3):
-            Rm[i, i] = r
-        if p.compass_heading_only:
-            self._heading_rows(R[2, 0], R[2, 1], R[2, 2], hx, hy, hz)
-        flags = u.update(self.P)
+        flags = c.update(self._Rv, self._dv, self.P, mx, my, mz)
         if flags == EKF_OK:
-            self._apply(u._dxv)
+            self._apply(c.upd._dxv)
         self.last_mag_flags = flags
         return flags
-
-    def _heading_rows(self, zx, zy, zz, hx, hy, hz) -> None:
-        """The compass measurement in the basis ``e1 = Z x H_G / |.|`` (the
-        way a turn about the vertical moves ``H_G``), ``e2 = Z``, ``e3 = e1 x
-        e2`` (sensor frame): rows, innovation and Jacobian turned by ``E``;
-        ``e2`` and ``e3`` get unit variance (the field's whole magnitude, no
-        information), so the compass corrects the heading and leaves the
-        inclination to the accelerometer (``body_motion.compass_heading_only``)."""
-        ax, ay, az = zy * hz - zz * hy, zz * hx - zx * hz, zx * hy - zy * hx
-        an = math.sqrt(ax * ax + ay * ay + az * az)
-        if not an > 1e-6:
-            return                           # field along the vertical: the full update
-        ax, ay, az = ax / an, ay / an, az / an
-        cx, cy, cz = ay * zz - az * zy, az * zx - ax * zz, ax * zy - ay * zx
-        u = self.upd_mag
-        y = u._yv
-        H = self._Hmag
-        t0, d0 = THETA.start, DIST.start
-        y0, y1, y2 = y[0], y[1], y[2]
-        y[0] = ax * y0 + ay * y1 + az * y2
-        y[1] = zx * y0 + zy * y1 + zz * y2
-        y[2] = cx * y0 + cy * y1 + cz * y2
-        for c in range(3):
-            h0, h1, h2 = H[0, t0 + c], H[1, t0 + c], H[2, t0 + c]
-            H[0, t0 + c] = ax * h0 + ay * h1 + az * h2
-            H[1, t0 + c] = zx * h0 + zy * h1 + zz * h2
-            H[2, t0 + c] = cx * h0 + cy * h1 + cz * h2
-        H[0, d0], H[0, d0 + 1], H[0, d0 + 2] = ax, ay, az
-        H[1, d0], H[1, d0 + 1], H[1, d0 + 2] = zx, zy, zz
-        H[2, d0], H[2, d0 + 1], H[2, d0 + 2] = cx, cy, cz
-        Rm = self._Rmag
-        Rm[1, 1] = 1.0
-        Rm[2, 2] = 1.0
 
     # ----------------------------------------------------------- output
     def theta_covariance_global(self, out) -> None:
@@ -632,16 +489,3 @@ class OrientationFilter:
         M = R_true.T @ R
         x, y, z = rotvec_from_matrix(*M.reshape(9))
         return math.sqrt(x * x + y * y + z * z)
-
-
-def _skew_block(H, row, col, x, y, z) -> None:
-    """Write ``[v]x`` into ``H[row:row+3, col:col+3]`` (memoryview)."""
-    H[row, col] = 0.0
-    H[row, col + 1] = -z
-    H[row, col + 2] = y
-    H[row + 1, col] = z
-    H[row + 1, col + 1] = 0.0
-    H[row + 1, col + 2] = -x
-    H[row + 2, col] = -y
-    H[row + 2, col + 1] = x
-    H[row + 2, col + 2] = 0.0

@@ -327,11 +327,7 @@ class RelativeInertialEKF(SchepersEKF):
         for i in range(3):
             Rm[i, i] = var
             y[i] = float(b[i]) - q[i]
-        keep = upd.gate
-        if not gate:
-            upd.gate = math.inf
-        f = upd.update(self.P)
-        upd.gate = keep
+        f = upd.update(self.P, None if gate else math.inf)
         self.quiet_nis = upd.nis
         if not f & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
             self._inject(upd.dx)

@@ -156,7 +156,7 @@ class _Ori:
     def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         f = self.f
         if f.initialized and t - f.t_us > self.gap_us:
-            f.initialized = False              # what the gyroscopes missed cannot be integrated
+            f.lose()                           # what the gyroscopes missed cannot be integrated
             self.lost = True
         slot = quiet_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
         if slot >= 0:
@@ -186,7 +186,7 @@ class _Ori:
             if slot >= 0:
                 f.update_mag(mx, my, mz)
                 self.compass_used += 1
-        elif slot >= 0 and f._learn > 0:
+        elif slot >= 0 and f.learning:
             f.update_mag(mx, my, mz)          # learning |m| and the dip: every sample counts
 
 
@@ -208,6 +208,40 @@ class SourceInertial:
         g = [-v for v in cfg.gravity_mps2]
         self._fv[0], self._fv[1], self._fv[2] = g[0], g[1], g[2]
         self.samples = 0
+
+    fixed = False
+
+    def on_imu(self, msg) -> None:
+        """An IMU sample of a node that is not a tracked sensor: kept if it is the source's."""
+        if msg.node == self.node:
+            self.imu.push(msg)
+
+    def on_mag(self, msg, lsb: float) -> None:
+        """A MAG_SAMPLE of a node that is not a tracked sensor: kept if it is the source's."""
+        if msg.node == self.node:
+            self.mag.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
+
+    def hold(self, t_next: int, now_us: int, wait_us: int) -> bool:
+        """A sensor sample at ``t_next`` waits (True) until the source's samples reach its time
+        (at most ``wait_us`` behind the clock ``now_us``); else the source is brought to it."""
+        if self.imu.last_t < t_next and now_us - t_next < wait_us:
+            return True
+        self.process(t_next)
+        return False
+
+    def catch_up(self, until_us: int, pairs) -> None:
+        """Process what no sensor sample of ``pairs`` waits for: up to ``until_us`` and the
+        oldest sensor sample still queued."""
+        until = until_us
+        for _, ins in pairs:
+            if len(ins.imu):
+                t = ins.imu.tv[ins.imu.slot(0)]
+                if t < until:
+                    until = t
+        self.process(until)
+
+    def counters(self) -> dict:
+        return {"source_imu_samples": self.samples}
 
     def process(self, until_us: int | None = None) -> None:
         """Drain the IMU ring (up to the samples at ``until_us`` when given)."""
@@ -239,13 +273,53 @@ class UnacceleratedSource(Unaccelerated, SourceInertial):
     """:class:`SourceInertial` taken as unaccelerated (``track.source_unaccelerated``)."""
 
 
+class FixedSource:
+    """A source without an IMU (the null object of :class:`SourceInertial`): ``Phi = I`` and
+    ``Phi f_source = -g`` (``-gravity_mps2``, m/s^2), no sample to keep, wait for or count."""
+
+    fixed = True
+
+    def __init__(self, cfg):
+        self.phi = np.eye(3)
+        self.fref = np.array([-v for v in cfg.gravity_mps2])
+
+    def on_imu(self, msg) -> None:
+        """No source IMU: nothing to keep."""
+
+    def on_mag(self, msg, lsb: float) -> None:
+        """No source module: nothing to keep."""
+
+    def hold(self, t_next: int, now_us: int, wait_us: int) -> bool:
+        return False
+
+    def catch_up(self, until_us: int, pairs) -> None:
+        """Nothing to process."""
+
+    def process(self, until_us: int | None = None) -> None:
+        """Nothing to process."""
+
+    def counters(self) -> dict:
+        return {}
+
+
+def make_source(cfg, gate: PulseGate):
+    """The source of ``cfg``, chosen once: its IMU and magnetometer (``source_imu_id``; taken as
+    unaccelerated when ``source_acceleration`` is off: eq 6.8 without ``a_source`` in the
+    comparison runs) or a fixed source."""
+    if not cfg.source_imu_id:
+        return FixedSource(cfg)
+    source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
+    return source_cls(cfg.source_imu_id, cfg, gate)
+
+
 class SensorInertial:
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
 
-    def __init__(self, node: int, cfg, gate: PulseGate, fixed_phi, fixed_fref, source: SourceInertial | None,
-                 compass_max_age_us: int | None = None, burst_rms_s: float | None = None):
-        """``gate``: the compass gate; ``compass_max_age_us`` (default :class:`_Ori`'s) and
+    def __init__(self, node: int, cfg, gate: PulseGate, source, compass_max_age_us: int | None = None,
+                 burst_rms_s: float | None = None):
+        """``source``: :class:`SourceInertial` or :class:`FixedSource` (:func:`make_source`);
+        ``gate``: the compass gate; ``compass_max_age_us`` (default :class:`_Ori`'s) and
         ``burst_rms_s`` (default the fixed cycle's, below) are given by a pipeline whose bursts
         are not the fixed cycle's (AC blocks: ``track.ac``)."""
         self.node = node
@@ -254,15 +328,14 @@ class SensorInertial:
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.ori = _Ori(cfg, gate, compass_max_age_us)
-        self.fusion = FusionFilter(FusionParams.from_config(cfg, source is not None), self.ori.f,
+        self.fusion = FusionFilter(FusionParams.from_config(cfg, not source.fixed), self.ori.f,
                                    imu_capacity=cfg.fusion_replay_capacity,
                                    history_capacity=cfg.fusion_history_capacity,
-                                   output_capacity=cfg.pose_output_capacity)
-        self.fusion.source_fixed = source is None
+                                   output_capacity=cfg.pose_output_capacity, fixed_source=source.fixed)
         self.source = source
-        self._phi = fixed_phi if source is None else source.phi
+        self._phi = source.phi
         self._phiv = memoryview(self._phi)
-        self._fref = fixed_fref if source is None else source.fref
+        self._fref = source.fref
         self._frv = memoryview(self._fref)
         # one burst: reference instant, compensated signals
         self.t_ref = 0
@@ -326,11 +399,8 @@ class SensorInertial:
         tv = ring.tv
         while max_steps > 0:
             max_steps -= 1
-            if src is not None and len(ring):
-                t_next = tv[ring.slot(0)]
-                if src.imu.last_t < t_next and now_us - t_next < wait_us:
-                    return
-                src.process(t_next)
+            if len(ring) and src.hold(tv[ring.slot(0)], now_us, wait_us):
+                return
             t = ring.pop_sample(s6)
             if t < 0:
                 return
@@ -341,6 +411,75 @@ class SensorInertial:
             b = self.ori.f.bias_v
             wl = self.w_last
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
+
+    def on_solution(self, solver, solved: bool) -> None:
+        """The burst's magnetic-only solution (``solver`` holds it) is to be fused; none
+        (``solved`` False): nothing to fuse."""
+        if solved:
+            np.copyto(self.mag_position, solver.position)
+            np.copyto(self.mag_rotation, solver.rotation)
+            np.copyto(self.mag_cov, solver.covariance)
+            self.pending = True
+            self.stage = _COMPENSATE
+        else:
+            self.pending = False
+
+    def send_fused(self, tx, node: int, range_m: float, quality) -> None:
+        """Send the fused poses the fusion filter queued (``POSE_FUSED``, with ``quality``, that
+        of the last magnetic solution), their status from the filter's bits; the recovery and
+        dead-reckoning events on changes."""
+        fus = self.fusion
+        d = fus.out_dv
+        if fus.recoveries != self.recoveries_seen:
+            kept = fus.biases_kept != self.kept_seen
+            self.recoveries_seen = fus.recoveries
+            self.kept_seen = fus.biases_kept
+            tx.event(EVT_TRACK_REINIT, node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
+        while True:
+            k = fus.pop_output()
+            if k < 0:
+                break
+            st = int(d[k, OUT_STATUS])
+            status = self._status(st)
+            self._dead_reckoning(tx, node, st)
+            if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], range_m):
+                status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
+                self.poses_out_of_range += 1
+            tx.pose(node, fus.out_tv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
+                    d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
+                    d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status,
+                    quality)
+            fus.release_output()
+
+    def _status(self, st: int) -> int:
+        """The POSE status of a fused pose with the filter's ``OUT_*`` bits ``st``."""
+        status = POSE_VALID | POSE_FUSED
+        if st & OUT_STALE:
+            status |= POSE_STALE
+        if st & OUT_INCONSISTENT:
+            status |= POSE_INCONSISTENT
+        if st & OUT_RECOVERED:
+            status |= POSE_RECOVERED
+        if st & OUT_DEAD_RECKONING:
+            status |= POSE_DEAD_RECKONING
+            self.poses_dead_reckoning += 1
+            if st & OUT_LOST:          # past what the filter vouches for: sent, not valid
+                status &= ~POSE_VALID
+                self.poses_lost += 1
+        return status
+
+    def _dead_reckoning(self, tx, node: int, st: int) -> None:
+        """``EVT_DEAD_RECKONING`` when the dead-reckoning state (0 tracking, 1 dead
+        reckoning, 2 lost) of the filter's bits ``st`` changes."""
+        dr = 0
+        if st & OUT_DEAD_RECKONING:
+            dr = 2 if st & OUT_LOST else 1
+        if dr != self.dr_state:
+            if dr > self.dr_state:
+                tx.event(EVT_DEAD_RECKONING, node | ((1 << 8) if dr == 2 else 0))
+            elif dr == 0:
+                tx.event(EVT_DEAD_RECKONING, node | (1 << 9))
+            self.dr_state = dr
 
     def schedule(self, t_ref: int) -> None:
         """A burst was commanded; its pose will refer to ``t_ref``."""
@@ -538,11 +677,7 @@ class BurstFusionTracker(MagneticTracker):
     def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers):
         super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers)
         gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
-        self._fixed_phi = np.eye(3)                                   # a fixed source: Phi = I
-        self._fixed_fref = np.array([-v for v in cfg.gravity_mps2])  # its specific force, source frame
-        # eq 6.8 without a_source in the comparison runs
-        source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
-        self.source = source_cls(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
+        self.source = make_source(cfg, gate)          # the source's IMU, or fixed: chosen once
         self.inertial = {ch.node: self._sensor_inertial(ch.node, cfg, gate) for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
@@ -561,20 +696,19 @@ class BurstFusionTracker(MagneticTracker):
     def _sensor_inertial(self, node: int, cfg, gate: PulseGate) -> SensorInertial:
         """The inertial part of sensor ``node`` (a pipeline of other bursts builds it with its own
         compass gate and timing: ``track.ac``)."""
-        return SensorInertial(node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
+        return SensorInertial(node, cfg, gate, self.source)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
         ins = self.inertial.get(msg.node)
         if ins is not None:
             ins.imu.push(msg)
-        elif self.source is not None and msg.node == self.source.node:
-            self.source.imu.push(msg)
+        else:
+            self.source.on_imu(msg)
 
     def on_mag(self, msg, lsb: float) -> None:
         """A MAG_SAMPLE of a node that is not a tracked sensor: the source's module."""
-        if self.source is not None and msg.node == self.source.node:
-            self.source.mag.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
+        self.source.on_mag(msg, lsb)
 
     def on_burst(self, t_ref: int) -> None:
         for ins in self.inertial.values():
@@ -584,22 +718,14 @@ class BurstFusionTracker(MagneticTracker):
     def step(self, now_us: int) -> None:
         """Predict (drain the IMU rings: the source's first, its orientation and
         specific force feed eq 6.8), solve, fuse, and send the fused poses."""
-        src = self.source
         n0 = 0
         n1 = 0
         for ch, ins in self._pairs:
             n0 += ins.samples
             ins.process(ch.ring, now_us, self.source_wait_us, self.imu_steps)
             n1 += ins.samples
-        if src is not None:
-            # what no sensor sample waits for: at most the wait behind the clock
-            until = now_us - self.source_wait_us
-            for _, ins in self._pairs:
-                if len(ins.imu):
-                    t = ins.imu.tv[ins.imu.slot(0)]
-                    if t < until:
-                        until = t
-            src.process(until)
+        # what no sensor sample waits for: at most the wait behind the clock
+        self.source.catch_up(now_us - self.source_wait_us, self._pairs)
         self._imu_last = n1 - n0
         # bounded tick: a tick that propagated IMU samples (the fused tick) leaves the fusion
         # step (the update or a replay step) to the next one, at most one tick in a row (so it
@@ -653,16 +779,7 @@ class BurstFusionTracker(MagneticTracker):
         return self._rep_cov
 
     def on_solution(self, ch, solved: bool) -> None:
-        ins = self.inertial[ch.node]
-        if solved:
-            sv = self.solver
-            np.copyto(ins.mag_position, sv.position)
-            np.copyto(ins.mag_rotation, sv.rotation)
-            np.copyto(ins.mag_cov, sv.covariance)
-            ins.pending = True
-            ins.stage = _COMPENSATE
-        else:
-            ins.pending = False
+        self.inertial[ch.node].on_solution(self.solver, solved)
 
     def _fuse_step(self, budget: int, fresh: bool, charges: int = 0) -> None:
         """This tick's part of one sensor's delayed magnetic update (``charges``: what of the
@@ -676,50 +793,8 @@ class BurstFusionTracker(MagneticTracker):
 
     def _send_fused(self) -> None:
         """Send the fused poses queued by the fusion filters (IMU rate)."""
-        tx = self.tx
         for ch, ins in self._pairs:
-            fus = ins.fusion
-            d = fus._odv
-            if fus.recoveries != ins.recoveries_seen:
-                kept = fus.biases_kept != ins.kept_seen
-                ins.recoveries_seen = fus.recoveries
-                ins.kept_seen = fus.biases_kept
-                tx.event(EVT_TRACK_REINIT, ch.node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
-            while True:
-                k = fus.pop_output()
-                if k < 0:
-                    break
-                st = int(d[k, OUT_STATUS])
-                status = POSE_VALID | POSE_FUSED
-                if st & OUT_STALE:
-                    status |= POSE_STALE
-                if st & OUT_INCONSISTENT:
-                    status |= POSE_INCONSISTENT
-                if st & OUT_RECOVERED:
-                    status |= POSE_RECOVERED
-                dr = 0
-                if st & OUT_DEAD_RECKONING:
-                    status |= POSE_DEAD_RECKONING
-                    ins.poses_dead_reckoning += 1
-                    dr = 1
-                    if st & OUT_LOST:          # past what the filter vouches for: sent, not valid
-                        status &= ~POSE_VALID
-                        ins.poses_lost += 1
-                        dr = 2
-                if dr != ins.dr_state:
-                    if dr > ins.dr_state:
-                        tx.event(EVT_DEAD_RECKONING, ch.node | ((1 << 8) if dr == 2 else 0))
-                    elif dr == 0:
-                        tx.event(EVT_DEAD_RECKONING, ch.node | (1 << 9))
-                    ins.dr_state = dr
-                if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], self.range_m):
-                    status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
-                    ins.poses_out_of_range += 1
-                tx.pose(ch.node, fus._otv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
-                        d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
-                        d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status,
-                        self.quality.last[ch.node])     # the quality of the last magnetic solution
-                fus.release_output()
+            ins.send_fused(self.tx, ch.node, self.range_m, self.quality.last[ch.node])
 
     def counters(self) -> dict:
         ins = tuple(self.inertial.values())
@@ -739,6 +814,5 @@ class BurstFusionTracker(MagneticTracker):
             "fusion_output_dropped": sum(i.fusion.out_dropped for i in ins),
             "compass_updates": sum(i.ori.compass_used for i in ins),
         })
-        if self.source is not None:
-            d["source_imu_samples"] = self.source.samples
+        d.update(self.source.counters())
         return d

@@ -76,24 +76,48 @@ QUIET_MAX_ORI_SIGMA = math.radians(3.0)
 
 
 class _SourceSamples:
-    """The source IMU's samples, read at a sensor sample's time (linear between the two
-    samples around it; the newest held when none is newer)."""
+    """The source module (``source_imu_id``): its IMU's samples, read at a sensor sample's time
+    (linear between the two samples around it; the newest held when none is newer), and its
+    magnetometer between pulses with its set/reset residual (the quiet field)."""
 
-    def __init__(self, capacity: int, gravity):
-        self.ring = ImuRing(capacity)
+    fixed = False
+
+    def __init__(self, node: int, cfg):
+        self.node = node
+        self.ring = ImuRing(cfg.imu_ring_capacity)
         self.t0 = -(1 << 62)                 # the last popped sample
         self.s0 = [0.0] * 6
         self.have = False
         self.out = [0.0] * 6                 # the source at the asked time: f (m/s^2), w (rad/s)
         self.fo = [0.0, 0.0, 0.0]
         self.wo = [0.0, 0.0, 0.0]
-        g = [-float(v) for v in gravity]
+        g = [-float(v) for v in cfg.gravity_mps2]
         self.fo[0], self.fo[1], self.fo[2] = g[0], g[1], g[2]
         self.samples = 0
+        self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
+        self.flip = FlipOffset()
+        self.mag_t = -(1 << 62)
+
+    def on_imu(self, msg) -> None:
+        """An IMU sample of a node that is not a tracked sensor: kept if it is the source's."""
+        if msg.node == self.node:
+            self.ring.push(msg)
+
+    def on_mag(self, msg, lsb: float) -> None:
+        """A MAG_SAMPLE of a node that is not a tracked sensor: kept if it is the source's."""
+        if msg.node == self.node:
+            self.mag.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
 
     def ready(self, t: int) -> bool:
         """A sample at or after ``t`` is in."""
         return self.ring.last_t >= t
+
+    def sample_into(self, t: int, f, w, g) -> None:
+        """The source's specific force and rate at ``t`` (us) into ``f``, ``w`` (3,) (``g`` unused:
+        a fixed source's)."""
+        self.at(t)
+        f[0], f[1], f[2] = self.fo
+        w[0], w[1], w[2] = self.wo
 
     def at(self, t: int) -> None:
         """``fo``, ``wo`` at ``t`` (us)."""
@@ -118,6 +142,45 @@ class _SourceSamples:
             fo[0], fo[1], fo[2] = s0[0], s0[1], s0[2]
             wo[0], wo[1], wo[2] = s0[3], s0[4], s0[5]
 
+    def observe_flip(self, t: int, age: int, gate: PulseGate, ws) -> None:
+        """The set/reset residual from the quiet sample nearest ``t`` (fed once per sample,
+        whichever sensor reaches it first; ``ws`` the source's rate, rad/s)."""
+        k = quiet_sample(self.mag, self.mag_t, t, age, gate)
+        if k >= 0:
+            self.mag_t = self.mag.time_at(k)
+            bx, by, bz = self.mag.field_at(k)
+            self.flip.observe(self.mag_t, 1 if self.mag.flip_at(k) else 0, bx, by, bz, ws, age)
+
+    def counters(self) -> dict:
+        return {"source_imu_samples": self.samples}
+
+
+class _FixedSource:
+    """No source module (the null object of :class:`_SourceSamples`): ``f_source = -g``, ``w_s = 0``."""
+
+    fixed = True
+
+    def on_imu(self, msg) -> None:
+        """No source IMU: nothing to keep."""
+
+    def on_mag(self, msg, lsb: float) -> None:
+        """No source module: nothing to keep."""
+
+    def ready(self, t: int) -> bool:
+        return True
+
+    def sample_into(self, t: int, f, w, g) -> None:
+        """``f = -g`` (the filter's gravity, m/s^2); ``w`` stays zero."""
+        np.negative(g, out=f)
+
+    def counters(self) -> dict:
+        return {}
+
+
+def _make_source(cfg):
+    """The source of ``cfg``, chosen once: its module (``source_imu_id``) or fixed."""
+    return _SourceSamples(cfg.source_imu_id, cfg) if cfg.source_imu_id else _FixedSource()
+
 
 def _turned_field(ring, k: int, offset, w, t: int, out) -> None:
     """``out`` (3,) = the field of ``ring``'s sample in slot ``k`` with its set/reset residual
@@ -132,12 +195,74 @@ def _turned_field(ring, k: int, offset, w, t: int, out) -> None:
     out[2] = bz - d * (w[0] * by - w[1] * bx)
 
 
+class _QuietField:
+    """The quiet-field update between pulses (module docstring): with a source module only."""
+
+    def __init__(self, cfg, source: _SourceSamples, gate: PulseGate, supervisor):
+        self.source = source
+        self.gate = gate
+        self.supervisor = supervisor
+        self.every = cfg.tight_quiet_every
+        self.var = cfg.tight_quiet_sigma_t * cfg.tight_quiet_sigma_t
+        self.tol = 5.0 * cfg.tight_quiet_sigma_t
+        self.max_ori_var = QUIET_MAX_ORI_SIGMA * QUIET_MAX_ORI_SIGMA
+        self.age = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz)
+
+    def step(self, s: "_TightSensor", t: int, tick: int) -> None:
+        """The set/reset residuals from the quiet samples nearest ``t`` (the IMU step's time), and
+        every ``tight_quiet_every`` steps the quiet-field update (module docstring)."""
+        ekf = s.ekf
+        gate = self.gate
+        age = self.age
+        self.source.observe_flip(t, age, gate, ekf.ws)
+        k = s.observe_quiet(t, age, gate)
+        if k < 0:
+            return
+        if s.quiet_due < self.every or not ekf.initialized or s.quiet_tick == tick:
+            return
+        # not while the orientation is still far from known (a start from one burst of a moving
+        # sensor: its std past QUIET_MAX_ORI_SIGMA on any axis): the windows' linearisation there
+        # correlates the orientation's axes wrongly, and the field's correction across it also
+        # shrinks the variance about it, where the start's error stays (roetenberg-walking-arm, 20 s,
+        # seed 1: 12 deg about the field held for 3 s against a std of 1.2 deg, the track lost twice)
+        P = ekf.P
+        o = ORI.start
+        lim = self.max_ori_var
+        if P[o, o] > lim or P[o + 1, o + 1] > lim or P[o + 2, o + 2] > lim:
+            return
+        if self._update(s, t, k, tick):
+            s.quiet_done()
+
+    def _update(self, s: "_TightSensor", t: int, k: int, tick: int) -> bool:
+        """The quiet-field update at ``t`` (the filter's time) from the sensor's sample in slot ``k``
+        and the source's sample nearest it; False when the source has none (nothing done)."""
+        src = self.source
+        ts = s.ch.ring.time_at(k)
+        ks = quiet_sample(src.mag, -(1 << 62), ts, self.age, self.gate)
+        if ks < 0:
+            return False
+        hl = self.supervisor.health
+        if hl.is_distorted(s.node) or hl.is_distorted(src.node):
+            s.quiet_skip()
+            return True
+        s.quiet_update(t, k, src.mag, ks, src.flip.o, self.var, self.tol, tick)
+        return True
+
+
+class _NoQuietField:
+    """No source module: no quiet-field update."""
+
+    def step(self, s: "_TightSensor", t: int, tick: int) -> None:
+        """Nothing to do."""
+
+
 class _TightSensor:
     """One sensor's IMU ring, relative EKF and window bookkeeping."""
 
     def __init__(self, ch, cfg, n: int, source_imu: bool):
         self.ch = ch
         self.node = ch.node
+        self.n = n
         self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self.s6 = [0.0] * 6
@@ -180,6 +305,235 @@ class _TightSensor:
         self.quiet_skipped = 0                    # distorted or magnitudes apart
         self.quiet_nis_sum = 0.0
 
+    # ------------------------------------------------------------ IMU
+    def step_imu(self, t: int, source, timeout_us: int) -> None:
+        """Pop the oldest IMU sample (at ``t``) and propagate the EKF with it and the source's
+        sample of the same time; a hole in the stream longer than ``timeout_us`` restarts the
+        inputs (the state cannot be carried across it: the track is lost)."""
+        self.imu.pop_sample(self.s6)
+        a, g = self.acc, self.gyr
+        a[0], a[1], a[2], g[0], g[1], g[2] = self.s6
+        ekf = self.ekf
+        source.sample_into(t, self.sacc, self.sgyr, ekf.g)
+        if self.last_imu_us is not None and t - self.last_imu_us > timeout_us:
+            ekf.restart_inputs()
+            if ekf.initialized:
+                self.lose()
+        self.last_imu_us = t
+        ekf.propagate_relative(t, self.acc, self.gyr, self.sacc, self.sgyr)
+        self.samples += 1
+
+    def lose(self) -> None:
+        """The track is lost: the EKF starts again from the next burst's solution."""
+        self.ekf.reset()
+        self.gated_in_row = 0
+        self.lost += 1
+
+    # ------------------------------------------------------------ quiet field
+    def observe_quiet(self, t: int, age: int, gate: PulseGate) -> int:
+        """The sensor's quiet sample nearest ``t`` (newer than the last one): its set/reset
+        residual, one more step towards a quiet-field update; its slot, or -1."""
+        ring = self.ch.ring
+        k = quiet_sample(ring, self.mag_t, t, age, gate)
+        if k < 0:
+            return -1
+        ts = ring.time_at(k)
+        self.mag_t = ts
+        bx, by, bz = ring.field_at(k)
+        self.flip.observe(ts, 1 if ring.flip_at(k) else 0, bx, by, bz, self.ekf.w, age)
+        self.quiet_due += 1
+        return k
+
+    def quiet_skip(self) -> None:
+        """A quiet-field pair not used (a field distorted, or their magnitudes apart)."""
+        self.quiet_skipped += 1
+
+    def quiet_done(self) -> None:
+        self.quiet_due = 0
+
+    def quiet_update(self, t: int, k: int, src_ring, ks: int, src_offset, var: float, tol: float,
+                     tick: int) -> None:
+        """The quiet-field update at ``t`` from the sensor's sample in slot ``k`` and the source's
+        in slot ``ks`` of ``src_ring`` (residual ``src_offset``): both turned to ``t`` with their
+        rates; skipped when their magnitudes differ by more than ``tol`` (T)."""
+        ekf = self.ekf
+        # residuals removed, both turned to t with their rates (the field is fixed in the world:
+        # seen from a frame turning at w it turns at -w)
+        _turned_field(self.ch.ring, k, self.flip.o, ekf.w, t, self.b)
+        _turned_field(src_ring, ks, src_offset, ekf.ws, t, self.e)
+        b, e = self.b, self.e
+        nb = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
+        ne = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
+        if abs(nb - ne) > tol:
+            self.quiet_skipped += 1
+            return
+        self.quiet_tick = tick
+        flags = ekf.update_quiet_field(b, e, var)
+        if flags & EKF_GATED:
+            self.quiet_gated += 1
+        elif not flags & (EKF_NOT_PD | EKF_NONFINITE):
+            self.quiet_updates += 1
+            self.quiet_nis_sum += ekf.quiet_nis
+
+    # ------------------------------------------------------------ windows
+    def schedule_clones(self, t0: int, spacing_us: int, mid) -> None:
+        """A cycle was commanded: a clone at each pulse's measurement time."""
+        for j in range(self.n):
+            self.ekf.release_clone(j)
+            self.ekf.schedule_clone(j, t0 + j * spacing_us + mid[j])
+            self.pending[j] = True
+
+    def ready_window(self) -> int:
+        """The oldest closed window whose clone waits for it (now taken: not offered again), or -1."""
+        ch = self.ch
+        for j in range(self.n):
+            if self.pending[j] and ch.done[j]:
+                self.pending[j] = False
+                return j
+        return -1
+
+    def count_unusable(self) -> None:
+        self.unusable += 1
+
+    def window_update(self, j: int, current: float, model, rel: float) -> int:
+        """Window ``j`` (its amplitudes and variances) as an update through its clone; the flags."""
+        ch = self.ch
+        col = self.col
+        for i in range(3):
+            col[i] = float(ch.var[i, j])
+        return self.ekf.update_single_coil(j, ch.S[:, j], col, j, current, model, rel, 1.0, gate=True)
+
+    def after_window(self, flags: int, now_us: int, lost_var: float, settle: int, reacquire_after: int) -> None:
+        """Count a window update's outcome; lose the track after ``reacquire_after`` gated in a
+        row, or when a position variance is beyond ``lost_var`` ``settle`` updates after a start."""
+        ekf = self.ekf
+        if flags & (EKF_NOT_PD | EKF_NONFINITE):
+            self.unusable += 1
+            return
+        self.since_start += 1
+        if flags & EKF_GATED:
+            self.gated += 1
+            self.gated_in_row += 1
+        else:
+            self.gated_in_row = 0
+            self.updates += 1
+            self.last_update_us = now_us
+            self.nis_sum += ekf.nis
+            self.nis_n += 1
+            self.q_x = ekf.nis / 3.0
+        P = ekf.P
+        b = POS.start
+        wide = P[b, b] > lost_var or P[b + 1, b + 1] > lost_var or P[b + 2, b + 2] > lost_var
+        if self.gated_in_row >= reacquire_after or (wide and self.since_start >= settle):
+            self.lose()
+
+    # ------------------------------------------------------------ start
+    def start(self, sv, cfg, half_burst_us: int, currents, model, now_us: int) -> int:
+        """The burst's solution ``sv`` (the solver) starts the EKF (when it is not running and a
+        clone of the middle pulse was taken): the pose at the burst's middle carried to the
+        present by the gyroscopes, widened by the motion since, then the burst's windows once
+        more, each at its own instant. Returns the field evaluations spent (``n`` per window)."""
+        ekf = self.ekf
+        if ekf.initialized or ekf.t_us is None:
+            return 0
+        n = self.n
+        m = n // 2
+        if not ekf.clone_taken[m]:
+            return 0
+        np.matmul(sv.rotation, ekf.clone_R[m].T, out=self.R3)
+        np.matmul(self.R3, ekf.R, out=self.Rnow)
+        lag = (ekf.t_us - int(ekf.clone_t[m])) * 1e-6
+        half = half_burst_us * 1e-6
+        P6 = self.P6
+        np.copyto(P6, sv.covariance)
+        extra = (cfg.tight_init_sigma_vel * (lag + half)) ** 2
+        ori = (cfg.imu_gyro_bias_sigma * (lag + half)) ** 2
+        # the burst's solution takes the sensor as still: turned by theta between its first and last
+        # pulse (the gyroscopes' relative rotation, the clones'), it is off by up to theta / 2 in
+        # orientation (roetenberg-walking-arm, 20 s, seed 1: a start 13.7 deg off against a std of
+        # 3.8 deg, the arm turning 0.4 rad within the burst)
+        a, z = -1, -1
+        for j in range(n):
+            if ekf.clone_taken[j]:
+                z = j
+                if a < 0:
+                    a = j
+        if 0 <= a < z:
+            np.matmul(ekf.clone_R[a].T, ekf.clone_R[z], out=self.R3)
+            th = rotation_angle(self.R3)
+            ori += 0.25 * th * th
+        for i in range(3):
+            P6[i, i] += extra
+            P6[3 + i, 3 + i] += ori
+        # the gyroscopes' rotation since each pulse (R_now^T R(t_j)), before R is replaced
+        have = self.have
+        for j in range(n):
+            have[j] = bool(ekf.clone_taken[j])
+            if have[j]:
+                np.matmul(ekf.R.T, ekf.clone_R[j], out=self.G[j])
+                self.dt[j] = (ekf.t_us - int(ekf.clone_t[j])) * 1e-6
+            ekf.release_clone(j)
+            self.pending[j] = False
+        ekf.initialize(sv.position, self.Rnow, P6, ekf.t_us, cfg.tight_init_sigma_vel, cfg.imu_acc_bias_sigma,
+                       cfg.imu_gyro_bias_sigma)
+        self.starts += 1
+        self.since_start = 0
+        evals = self._start_windows(cfg, currents, model)
+        self.last_update_us = now_us
+        return evals
+
+    def _start_windows(self, cfg, currents, model) -> int:
+        """The burst's windows once more, each at its own instant, through clones predicted back
+        from the new state (SchepersEKF.back_clone): the motion within the burst, which the
+        solution averages, corrects position, orientation and velocity together."""
+        ekf = self.ekf
+        ch = self.ch
+        evals = 0
+        for j in range(self.n):
+            if not self.have[j] or ch.flags[j] & PULSE_UNUSABLE:
+                continue
+            ekf.back_clone(j, float(self.dt[j]), self.G[j])
+            col = self.col
+            for i in range(3):
+                col[i] = float(ch.var[i, j])
+            c = float(currents[j])
+            rc = cfg.current_tolerance_a / max(abs(c), 1e-6)
+            rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+            ekf.update_single_coil(j, ch.S[:, j], col, j, c, model, rel, 1.0, gate=False)
+            ekf.release_clone(j)
+            evals += self.n
+        return evals
+
+    # ------------------------------------------------------------ output
+    def emit(self, tx, t_us: int, now_us: int, cfg, range_m: float) -> None:
+        """Send the fused POSE (``POSE_FUSED``) at ``t_us``: stale past ``stale_us`` without an
+        update, inconsistent while windows are gated, not valid beyond the working volume or
+        while a position std is above ``tight_valid_sigma_m``."""
+        ekf = self.ekf
+        p = ekf.p
+        status = POSE_VALID | POSE_FUSED
+        if now_us - self.last_update_us > cfg.stale_us:
+            status |= POSE_STALE
+        if self.gated_in_row:
+            status |= POSE_INCONSISTENT
+        if not in_range3(p[0], p[1], p[2], range_m):
+            status &= ~POSE_VALID
+            self.out_of_range += 1
+        qw, qx, qy, qz = quat_tuple(ekf.R)
+        P = ekf.P
+        b, o = POS.start, ORI.start
+        vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
+        lim = cfg.tight_valid_sigma_m
+        if lim > 0.0 and status & POSE_VALID:
+            l2 = lim * lim
+            if P[b, b] > l2 or P[b + 1, b + 1] > l2 or P[b + 2, b + 2] > l2:
+                status &= ~POSE_VALID            # not converged: sent, not valid
+                self.unconverged += 1
+        tx.pose(self.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
+                float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
+                float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
+                quality_from(vp, self.q_x, cfg.quality_error_scale_m))
+
 
 class TightFusionTracker(MagneticTracker):
     """Magnetic-only poses of each burst, and the tightly coupled fused poses (module docstring)."""
@@ -188,9 +542,8 @@ class TightFusionTracker(MagneticTracker):
         super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers)
         n = len(coils)
         self.n = n
-        self.source = _SourceSamples(cfg.imu_ring_capacity, cfg.gravity_mps2) if cfg.source_imu_id else None
-        self.source_node = cfg.source_imu_id
-        self.sensors = {ch.node: _TightSensor(ch, cfg, n, self.source is not None) for ch in self.channels}
+        self.source = _make_source(cfg)           # the source module, or fixed: chosen once
+        self.sensors = {ch.node: _TightSensor(ch, cfg, n, not self.source.fixed) for ch in self.channels}
         self._sens = tuple(self.sensors.values())
         self.model = SingleCoilModel(coils, cfg.field_model)
         # mid time of a pulse's used samples from its start edge (as the extractor uses them)
@@ -199,16 +552,10 @@ class TightFusionTracker(MagneticTracker):
         self._mid = [self.mid_us] * n
         self.half_burst_us = ((n - 1) * cfg.spacing_us + cfg.pulse_us) // 2
         self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
-        # quiet field (module docstring): the source module's magnetometer, its set/reset residual
-        self.quiet_every = cfg.tight_quiet_every if self.source is not None else 0
-        self.quiet_var = cfg.tight_quiet_sigma_t * cfg.tight_quiet_sigma_t
-        self.quiet_tol = 5.0 * cfg.tight_quiet_sigma_t
-        self.quiet_max_ori_var = QUIET_MAX_ORI_SIGMA * QUIET_MAX_ORI_SIGMA
-        self.gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
-        self.src_mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
-        self.src_flip = FlipOffset()
-        self.src_mag_t = -(1 << 62)
-        self.mag_age_us = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz)
+        # quiet field (module docstring): with the source module's magnetometer, chosen once
+        gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
+        self.quiet = (_QuietField(cfg, self.source, gate, supervisor)
+                      if not self.source.fixed and cfg.tight_quiet_every else _NoQuietField())
         self.ticks = 0
         self.imu_steps = cfg.imu_steps_per_tick
         self.evals = 0                       # field evaluations of the window updates (n per update)
@@ -220,24 +567,18 @@ class TightFusionTracker(MagneticTracker):
         s = self.sensors.get(msg.node)
         if s is not None:
             s.imu.push(msg)
-        elif self.source is not None and msg.node == self.source_node:
-            self.source.ring.push(msg)
+        else:
+            self.source.on_imu(msg)
 
     def on_mag(self, msg, lsb: float) -> None:
         """A MAG_SAMPLE of a node that is not a tracked sensor: the source's module."""
-        if self.source is not None and msg.node == self.source_node:
-            self.src_mag.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
+        self.source.on_mag(msg, lsb)
 
     def on_burst(self, t_ref: int) -> None:
         """Clone each sensor's pose at every pulse's measurement time."""
         t0 = int(t_ref) - self.half_burst_us
-        sp = self.cfg.spacing_us
-        mid = self._mid
         for s in self._sens:
-            for j in range(self.n):
-                s.ekf.release_clone(j)
-                s.ekf.schedule_clone(j, t0 + j * sp + mid[j])
-                s.pending[j] = True
+            s.schedule_clones(t0, self.cfg.spacing_us, self._mid)
 
     # ------------------------------------------------------------ tick
     def step(self, now_us: int) -> None:
@@ -251,7 +592,7 @@ class TightFusionTracker(MagneticTracker):
         super().step(now_us)
 
     def _propagate(self, s: _TightSensor, now_us: int) -> None:
-        ring, s6 = s.imu, s.s6
+        ring = s.imu
         src = self.source
         tv = ring.tv
         ekf = s.ekf
@@ -260,262 +601,58 @@ class TightFusionTracker(MagneticTracker):
             if not len(ring):
                 return
             t = tv[ring.slot(0)]
-            if src is not None and not src.ready(t) and now_us - t < self.source_wait_us:
+            if not src.ready(t) and now_us - t < self.source_wait_us:
                 return                       # the source's sample of this time is not in yet
-            ring.pop_sample(s6)
-            a, g = s.acc, s.gyr
-            a[0], a[1], a[2], g[0], g[1], g[2] = s6
-            if src is not None:
-                src.at(t)
-                sa, sg = s.sacc, s.sgyr
-                sa[0], sa[1], sa[2] = src.fo
-                sg[0], sg[1], sg[2] = src.wo
-            else:
-                np.negative(ekf.g, out=s.sacc)
-            if s.last_imu_us is not None and t - s.last_imu_us > cfg.imu_timeout_us:
-                ekf.restart_inputs()         # a hole in the stream: the state cannot be carried across it
-                if ekf.initialized:
-                    self._lose(s)
-            s.last_imu_us = t
-            ekf.propagate_relative(t, s.acc, s.gyr, s.sacc, s.sgyr)
-            s.samples += 1
-            if self.quiet_every:
-                self._quiet(s, t)
+            s.step_imu(t, src, cfg.imu_timeout_us)
+            self.quiet.step(s, t, self.ticks)
             if ekf.initialized and s.samples % cfg.pose_every == 0:
-                self._emit(s, t, now_us)
-
-    def _quiet(self, s: _TightSensor, t: int) -> None:
-        """The set/reset residuals from the quiet samples nearest ``t`` (the IMU step's time), and
-        every ``tight_quiet_every`` steps the quiet-field update (module docstring)."""
-        ekf = s.ekf
-        gate = self.gate
-        age = self.mag_age_us
-        # the source module's residual (fed once per sample, whichever sensor reaches it first)
-        src = self.src_mag
-        k = quiet_sample(src, self.src_mag_t, t, age, gate)
-        if k >= 0:
-            self.src_mag_t = src.time_at(k)
-            bx, by, bz = src.field_at(k)
-            self.src_flip.observe(self.src_mag_t, 1 if src.flip_at(k) else 0, bx, by, bz, ekf.ws, age)
-        ring = s.ch.ring
-        k = quiet_sample(ring, s.mag_t, t, age, gate)
-        if k < 0:
-            return
-        ts = ring.time_at(k)
-        s.mag_t = ts
-        bx, by, bz = ring.field_at(k)
-        s.flip.observe(ts, 1 if ring.flip_at(k) else 0, bx, by, bz, ekf.w, age)
-        s.quiet_due += 1
-        if s.quiet_due < self.quiet_every or not ekf.initialized or s.quiet_tick == self.ticks:
-            return
-        # not while the orientation is still far from known (a start from one burst of a moving
-        # sensor: its std past QUIET_MAX_ORI_SIGMA on any axis): the windows' linearisation there
-        # correlates the orientation's axes wrongly, and the field's correction across it also
-        # shrinks the variance about it, where the start's error stays (roetenberg-walking-arm, 20 s,
-        # seed 1: 12 deg about the field held for 3 s against a std of 1.2 deg, the track lost twice)
-        P = ekf.P
-        o = ORI.start
-        lim = self.quiet_max_ori_var
-        if P[o, o] > lim or P[o + 1, o + 1] > lim or P[o + 2, o + 2] > lim:
-            return
-        if self._quiet_update(s, t, k):
-            s.quiet_due = 0
-
-    def _quiet_update(self, s: _TightSensor, t: int, k: int) -> bool:
-        """The quiet-field update at ``t`` (the filter's time) from the sensor's sample in slot ``k``
-        and the source's sample nearest it; False when the source has none (nothing done)."""
-        ekf = s.ekf
-        src = self.src_mag
-        ring = s.ch.ring
-        ts = ring.time_at(k)
-        ks = quiet_sample(src, -(1 << 62), ts, self.mag_age_us, self.gate)
-        if ks < 0:
-            return False
-        hl = self.supervisor.health
-        if hl.is_distorted(s.node) or hl.is_distorted(self.source_node):
-            s.quiet_skipped += 1
-            return True
-        # residuals removed, both turned to t with their rates (the field is fixed in the world:
-        # seen from a frame turning at w it turns at -w)
-        _turned_field(ring, k, s.flip.o, ekf.w, t, s.b)
-        _turned_field(src, ks, self.src_flip.o, ekf.ws, t, s.e)
-        b, e = s.b, s.e
-        nb = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
-        ne = math.sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2])
-        if abs(nb - ne) > self.quiet_tol:
-            s.quiet_skipped += 1
-            return True
-        s.quiet_tick = self.ticks
-        flags = ekf.update_quiet_field(b, e, self.quiet_var)
-        if flags & EKF_GATED:
-            s.quiet_gated += 1
-        elif not flags & (EKF_NOT_PD | EKF_NONFINITE):
-            s.quiet_updates += 1
-            s.quiet_nis_sum += ekf.quiet_nis
-        return True
+                s.emit(self.tx, t, now_us, cfg, self.range_m)
+                self.fused_poses += 1
 
     def _update_one(self, now_us: int) -> bool:
         """The oldest closed, unused window of one sensor as an EKF update; True if one was used."""
         for s in self._sens:
-            ch = s.ch
-            for j in range(self.n):
-                if s.pending[j] and ch.done[j]:
-                    s.pending[j] = False
-                    if s.ekf.initialized:
-                        self._window(s, j, now_us)
-                        s.ekf.release_clone(j)
-                    else:                    # kept: the burst's solution starts the EKF from it
-                        s.unusable += 1
-                    return True
+            j = s.ready_window()
+            if j >= 0:
+                if s.ekf.initialized:
+                    self._window(s, j, now_us)
+                    s.ekf.release_clone(j)
+                else:                    # kept: the burst's solution starts the EKF from it
+                    s.count_unusable()
+                return True
         return False
 
     def _window(self, s: _TightSensor, j: int, now_us: int) -> None:
-        ekf = s.ekf
         ch = s.ch
         cfg = self.cfg
         if ch.flags[j] & PULSE_UNUSABLE or self.schedule.any_faults() & COIL_FATAL \
                 or self.supervisor.veto:
-            s.unusable += 1
+            s.count_unusable()
             return
         mc = self.schedule.measured[j]
         current = float(mc) if mc != 0.0 else float(self.nominal[j])
         rc = cfg.current_tolerance_a / max(abs(current), 1e-6)
         rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
-        col = s.col
-        for i in range(3):
-            col[i] = float(ch.var[i, j])
-        if not ekf.clone_taken[j]:
-            s.unusable += 1                 # the IMU stream never reached the pulse's time
+        if not s.ekf.clone_taken[j]:
+            s.count_unusable()               # the IMU stream never reached the pulse's time
             return
         m = int(ch.pulse_mid[j]) - int(self.schedule.start[j])
         if 0 < m < cfg.pulse_us:
             self._mid[j] = m
-        flags = ekf.update_single_coil(j, ch.S[:, j], col, j, current, self.model, rel, 1.0, gate=True)
+        flags = s.window_update(j, current, self.model, rel)
         self.evals += self.n
-        if flags & (EKF_NOT_PD | EKF_NONFINITE):
-            s.unusable += 1
-            return
-        s.since_start += 1
-        if flags & EKF_GATED:
-            s.gated += 1
-            s.gated_in_row += 1
-        else:
-            s.gated_in_row = 0
-            s.updates += 1
-            s.last_update_us = now_us
-            s.nis_sum += ekf.nis
-            s.nis_n += 1
-            s.q_x = ekf.nis / 3.0
-        P = ekf.P
-        big = cfg.tight_lost_sigma_m * cfg.tight_lost_sigma_m
-        b = POS.start
-        wide = P[b, b] > big or P[b + 1, b + 1] > big or P[b + 2, b + 2] > big
-        if s.gated_in_row >= cfg.reacquire_after or (wide and s.since_start >= 5 * self.n):
-            self._lose(s)
-
-    def _lose(self, s: _TightSensor) -> None:
-        s.ekf.reset()
-        s.gated_in_row = 0
-        s.lost += 1
+        s.after_window(flags, now_us, cfg.tight_lost_sigma_m * cfg.tight_lost_sigma_m, 5 * self.n,
+                       cfg.reacquire_after)
 
     # ------------------------------------------------------------ start
     def on_solution(self, ch, solved: bool) -> None:
         """The first burst solution (or the first after a lost track) starts the EKF: the pose at
         the burst's middle carried to the present by the gyroscopes (the EKF's own relative
-        orientation since the middle pulse's clone), widened by the motion since."""
-        s = self.sensors[ch.node]
-        ekf = s.ekf
-        if not solved or ekf.initialized or ekf.t_us is None:
-            return
-        m = self.n // 2
-        if not ekf.clone_taken[m]:
-            return
-        cfg = self.cfg
-        sv = self.solver
-        np.matmul(sv.rotation, ekf.clone_R[m].T, out=s.R3)
-        np.matmul(s.R3, ekf.R, out=s.Rnow)
-        lag = (ekf.t_us - int(ekf.clone_t[m])) * 1e-6
-        half = self.half_burst_us * 1e-6
-        P6 = s.P6
-        np.copyto(P6, sv.covariance)
-        extra = (cfg.tight_init_sigma_vel * (lag + half)) ** 2
-        ori = (cfg.imu_gyro_bias_sigma * (lag + half)) ** 2
-        # the burst's solution takes the sensor as still: turned by theta between its first and last
-        # pulse (the gyroscopes' relative rotation, the clones'), it is off by up to theta / 2 in
-        # orientation (roetenberg-walking-arm, 20 s, seed 1: a start 13.7 deg off against a std of
-        # 3.8 deg, the arm turning 0.4 rad within the burst)
-        a, z = -1, -1
-        for j in range(self.n):
-            if ekf.clone_taken[j]:
-                z = j
-                if a < 0:
-                    a = j
-        if 0 <= a < z:
-            np.matmul(ekf.clone_R[a].T, ekf.clone_R[z], out=s.R3)
-            th = rotation_angle(s.R3)
-            ori += 0.25 * th * th
-        for i in range(3):
-            P6[i, i] += extra
-            P6[3 + i, 3 + i] += ori
-        # the gyroscopes' rotation since each pulse (R_now^T R(t_j)), before R is replaced
-        have = s.have
-        for j in range(self.n):
-            have[j] = bool(ekf.clone_taken[j])
-            if have[j]:
-                np.matmul(ekf.R.T, ekf.clone_R[j], out=s.G[j])
-                s.dt[j] = (ekf.t_us - int(ekf.clone_t[j])) * 1e-6
-            ekf.release_clone(j)
-            s.pending[j] = False
-        ekf.initialize(sv.position, s.Rnow, P6, ekf.t_us, cfg.tight_init_sigma_vel, cfg.imu_acc_bias_sigma,
-                       cfg.imu_gyro_bias_sigma)
-        s.starts += 1
-        s.since_start = 0
-        # the burst's windows once more, each at its own instant, through clones predicted back
-        # from the new state (SchepersEKF.back_clone): the motion within the burst, which the
-        # solution averages, corrects position, orientation and velocity together
-        ch = s.ch
-        for j in range(self.n):
-            if not have[j] or ch.flags[j] & PULSE_UNUSABLE:
-                continue
-            ekf.back_clone(j, float(s.dt[j]), s.G[j])
-            col = s.col
-            for i in range(3):
-                col[i] = float(ch.var[i, j])
-            c = float(self.currents[j])
-            rc = cfg.current_tolerance_a / max(abs(c), 1e-6)
-            rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
-            ekf.update_single_coil(j, ch.S[:, j], col, j, c, self.model, rel, 1.0, gate=False)
-            ekf.release_clone(j)
-            self.evals += self.n
-        s.last_update_us = self.now_us
-
-    # ------------------------------------------------------------ output
-    def _emit(self, s: _TightSensor, t_us: int, now_us: int) -> None:
-        ekf = s.ekf
-        p = ekf.p
-        status = POSE_VALID | POSE_FUSED
-        if now_us - s.last_update_us > self.cfg.stale_us:
-            status |= POSE_STALE
-        if s.gated_in_row:
-            status |= POSE_INCONSISTENT
-        if not in_range3(p[0], p[1], p[2], self.range_m):
-            status &= ~POSE_VALID
-            s.out_of_range += 1
-        qw, qx, qy, qz = quat_tuple(ekf.R)
-        P = ekf.P
-        b, o = POS.start, ORI.start
-        vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
-        lim = self.cfg.tight_valid_sigma_m
-        if lim > 0.0 and status & POSE_VALID:
-            l2 = lim * lim
-            if P[b, b] > l2 or P[b + 1, b + 1] > l2 or P[b + 2, b + 2] > l2:
-                status &= ~POSE_VALID            # not converged: sent, not valid
-                s.unconverged += 1
-        self.tx.pose(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
-                     float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
-                     float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
-                     quality_from(vp, s.q_x, self.cfg.quality_error_scale_m))
-        self.fused_poses += 1
+        orientation since the middle pulse's clone), widened by the motion since
+        (:meth:`_TightSensor.start`)."""
+        if solved:
+            self.evals += self.sensors[ch.node].start(self.solver, self.cfg, self.half_burst_us, self.currents,
+                                                      self.model, self.now_us)
 
     def counters(self) -> dict:
         d = super().counters()
@@ -538,6 +675,5 @@ class TightFusionTracker(MagneticTracker):
             "fusion_quiet_skipped": sum(s.quiet_skipped for s in ss),
             "fusion_quiet_nis_mean": (round(sum(s.quiet_nis_sum for s in ss) / nq, 3) if nq else None),
         })
-        if self.source is not None:
-            d["source_imu_samples"] = self.source.samples
+        d.update(self.source.counters())
         return d

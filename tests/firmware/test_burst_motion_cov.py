@@ -16,7 +16,7 @@ from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.compose import make_pose_solver
 from coiltrack.firmware.pose.reference import measurement_model, so3_exp
 from coiltrack.firmware.pose.solver import SOLVE_OK
-from coiltrack.firmware.track.burst_fusion import PulseGate, SensorInertial
+from coiltrack.firmware.track.burst_fusion import FixedSource, PulseGate, SensorInertial
 
 CFG = FirmwareConfig().validate()             # the thesis source: 3 orthogonal coils, r 5.5 cm, 50 turns
 COILS = [Coil(c.center, c.axis, c.radius, c.turns) for c in CFG.coils]
@@ -28,7 +28,7 @@ BOUND = chi2.ppf(0.999, 3)
 def _inertial(cfg):
     n = len(cfg.coils)
     gate = PulseGate(np.zeros(n, np.int64), np.zeros(n, np.int64), cfg.fall_us, cfg.compass_guard_us)
-    return SensorInertial(16, cfg, gate, np.eye(3), np.array([0.0, 0.0, 9.81]), None)
+    return SensorInertial(16, cfg, gate, FixedSource(cfg))
 
 
 def _turning_bursts(seed: int, n: int, cfg):

@@ -224,9 +224,9 @@ def _fusion_run(model, T, seed, *, nees=False, recorder=None, mirror=None, bias=
     t_us, K, f, w, m, rng = _imu(TRAJ, T, seed, bias=bias)
     of = OrientationFilter(_orientation_params())
     ff = FusionFilter(FusionParams.from_config(None, measurement_model=model, acc_noise=ACC_S, gyro_noise=GYR_S,
-                                   gyro_bias_sigma=0.02), of if model != 1 else None)
-    ff.source_fixed = source is None
-    ff.recorder = recorder
+                                   gyro_bias_sigma=0.02), of if model != 1 else None,
+                      fixed_source=source is None)
+    ff.attach_recorder(recorder)
     phi = np.eye(3)
     fr = np.array([0.0, 0.0, 9.81])
     next_ref = 330_000
@@ -371,8 +371,8 @@ def test_moving_source_net_acceleration_eq_6_8():
     for name, source in (("with source", src), ("fixed", None)):
         global _imu_override
         of = OrientationFilter(_orientation_params())
-        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S))
-        ff.source_fixed = source is None
+        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_noise=ACC_S, gyro_noise=GYR_S),
+                          fixed_source=source is None)
         from coiltrack.firmware.pose.reference import crlb
         from coiltrack.firmware.model.field import orthogonal_source
         coils, cur = orthogonal_source(0.055, 50), np.full(3, 1.5)
@@ -478,8 +478,8 @@ class _Feed:
         self.t_us, self.K, self.f, self.w, self.m, _ = _imu(TRAJ, 4.0, seed)
         self.of = OrientationFilter(_orientation_params())
         self.ff = FusionFilter(FusionParams.from_config(None, measurement_model=3, acc_noise=ACC_S, gyro_noise=GYR_S,
-                                            gyro_bias_sigma=0.02), self.of, imu_capacity=imu_capacity)
-        self.ff.source_fixed = True
+                                            gyro_bias_sigma=0.02), self.of, imu_capacity=imu_capacity,
+                               fixed_source=True)
         self.i = 0
 
     def push(self):
@@ -632,7 +632,7 @@ def test_outputs_continue_during_the_replay_and_the_shadow_takes_over():
     assert np.abs(da - dc).max() > 1e-5            # the update shows in the poses after the swap
     _assert_same_state(a.ff.st, b.ff.st, 1e-12)
     _assert_same_state(a.ff.sn, b.ff.sn, 1e-12)
-    assert a.ff.sn.t_us == t_snap and b.ff.snap_valid and b.ff.snap_initialized
+    assert a.ff.sn.t_us == t_snap and b.ff.snap.valid and b.ff.snap.initialized
     if counter is not None:
         assert counter.count == 0
 
@@ -671,7 +671,7 @@ def test_rejected_solution_starts_no_replay_and_keeps_the_snapshot():
     b, c = _ready_pair(2)
     t_ref, q, R, C = _Feed.solution(930_000)
     assert b.ff.begin_magnetic_update(t_ref, q + [3.0, 0.0, 0.0], R, C, final=False) & EKF_GATED
-    assert not b.ff.replaying and b.ff.snap_valid and b.ff.rejected == 0
+    assert not b.ff.replaying and b.ff.snap.valid and b.ff.rejected == 0
     _assert_same_state(b.ff.st, c.ff.st, 0.0)
     assert b.ff.begin_magnetic_update(t_ref, q, R, C) == 0 and b.ff.replaying
     b.ff.finish()

@@ -42,13 +42,12 @@ def _pendulum(t: float, amp: float):
 
 def _run(gain: float, amp: float, seconds: float = 30.0, seed: int = 3):
     cfg = FirmwareConfig(acc_motion_sigma=0.5, acc_adapt_gain=gain)
-    f = OrientationFilter(OrientationParams.from_config(cfg))
-    rng = np.random.default_rng(seed)
+    f = OrientationFilter(OrientationParams.from_config(cfg, mag_learn_samples=0))    # no compass: |m| and
+    rng = np.random.default_rng(seed)                                                 # the dip are not needed
     R0, _, _ = _pendulum(0.0, amp)
     m0 = R0.T @ np.array([20e-6, 0.0, -44e-6])
     f.initialize(0, 0.0, 0.0, G, *m0)
     f.R[:] = R0
-    f._learn = 0                     # no compass: |m| and the dip are not needed
     dt_us = int(1e6 / RATE)
     errs = []
     for k in range(1, int(seconds * RATE)):

@@ -42,8 +42,7 @@ class _Feed:
                                                                   mag_noise=0.5e-7 / 49e-6, gyro_bias_sigma=0.02,
                                                                   mag_learn_samples=60))
         self.ff = FusionFilter(FusionParams.from_config(None, measurement_model=3, acc_noise=ACC_S, gyro_noise=GYR_S,
-                                                        gyro_bias_sigma=0.02, **kw), self.of)
-        self.ff.source_fixed = True
+                                                        gyro_bias_sigma=0.02, **kw), self.of, fixed_source=True)
         self.i = 0
         self.status = []            # (t_us, OUT_STATUS, position variance x) of every output
 
@@ -59,7 +58,7 @@ class _Feed:
         self.i += 1
         if ff.push_imu(t, *self.f[i], *self.w[i], 0.0, 0.0, 9.81, _EYE):
             k = ff.pop_output()
-            self.status.append((t, int(ff._odv[k, OUT_STATUS]), float(ff._odv[k, OUT_VAR_P])))
+            self.status.append((t, int(ff.out_dv[k, OUT_STATUS]), float(ff.out_dv[k, OUT_VAR_P])))
             ff.release_output()
 
     def run_to(self, t_end):
@@ -147,16 +146,16 @@ def test_offsets_restored_after_a_gap_decay_and_grow_by_the_random_walk():
     forms). Catches a variance not grown (an overconfident restart) or a
     missing decay."""
     ff = _tracking(acc_bias_tau_s=500.0, gyro_bias_tau_s=400.0).ff
-    ff._keep_biases(ff.st)
-    assert ff.kept
+    ff.recovery.keep_biases(ff.st)
+    assert ff.recovery.kept
     kb = np.r_[ff.st.ba, ff.st.bg]
     idx = np.r_[ACC.start:ACC.stop, GYR.start:GYR.stop]
     kP = ff.st.P[np.ix_(idx, idx)].copy()
-    t = ff.kept_t + 100_000_000
-    from coiltrack.firmware.estimate.magnetic_inertial import InsState
+    t = ff.recovery.kept_t + 100_000_000
+    from coiltrack.firmware.estimate.fusion_state import InsState
 
     st = InsState(ff.n, None)
-    assert ff._restore_biases(st, t)
+    assert ff.recovery.restore_biases(st, t)
     ka, kg = math.exp(-100 / 500.0), math.exp(-100 / 400.0)
     np.testing.assert_allclose(np.r_[st.ba, st.bg], kb * np.r_[[ka] * 3, [kg] * 3], rtol=1e-12)
     s = np.r_[[ka] * 3, [kg] * 3]
@@ -170,8 +169,8 @@ def test_offsets_beyond_their_gate_are_not_kept():
     the diverged state held."""
     ff = _tracking().ff
     ff.st.ba[1] = 10 * ff.prm.acc_bias_sigma
-    ff._keep_biases(ff.st)
-    assert not ff.kept
+    ff.recovery.keep_biases(ff.st)
+    assert not ff.recovery.kept
 
 
 def test_no_update_sets_dead_reckoning_then_not_valid_with_grown_covariance_and_a_gap_restart():

@@ -114,8 +114,7 @@ T0_US = 1000
 def _fusion(**kw) -> FusionFilter:
     prm = dict(measurement_model=1, acc_noise=0.0155, gyro_noise=0.0067)
     prm.update(kw)
-    ff = FusionFilter(FusionParams.from_config(None, **prm))
-    ff.source_fixed = True
+    ff = FusionFilter(FusionParams.from_config(None, **prm), fixed_source=True)
     return ff
 
 

@@ -64,8 +64,8 @@ def _fusion_ref(x, s0, s1, dt, ka, kg):
 
 
 def _fusion_filter(x, s0, s1, t0, dt_us):
-    ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_bias_tau_s=2.0, gyro_bias_tau_s=3.0))
-    ff.source_fixed = True
+    ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_bias_tau_s=2.0, gyro_bias_tau_s=3.0),
+                      fixed_source=True)
     ff.push_imu(t0, *s0[0], *s0[1], *s0[2], np.eye(3))
     st = ff.st
     st.p[:], st.v[:], st.Th[:], st.ba[:], st.bg[:] = x
@@ -201,8 +201,8 @@ def test_navigation_over_a_second_matches_the_closed_form(which):
     fs = [R.T @ (a - G) for R in Rs]
     T = ts[-1] * 1e-6
     if which == "fusion":
-        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_bias_tau_s=0.0, gyro_bias_tau_s=0.0))
-        ff.source_fixed = True
+        ff = FusionFilter(FusionParams.from_config(None, measurement_model=1, acc_bias_tau_s=0.0,
+                                                   gyro_bias_tau_s=0.0), fixed_source=True)
         ff.push_imu(int(ts[0]), *fs[0], *w, *(-G), np.eye(3))
         ff.st.Th[:] = ROT
         ff.st.v[:] = v0

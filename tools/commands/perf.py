@@ -193,7 +193,7 @@ def _filter_steps(fw) -> dict:
     if fus is None:
         return out
     k = fus.imu.last_pushed_slot()
-    t1 = int(fus._itv[k])
+    t1 = int(fus.imu.tv[k])
     t0 = t1 - int(1e6 / fw.cfg.imu_rate_hz)
     saved = (fus.p.copy(), fus.v.copy(), fus.Th.copy(), fus.ba.copy(), fus.bg.copy(), fus.P.copy())
     n = 2000

@@ -60,7 +60,7 @@ def smooth_log(header: dict, reads) -> dict:
         fw = Firmware(cfg, port)
         for node, ins in getattr(fw.tracker, "inertial", {}).items():
             rec = FusionRecorder()
-            ins.fusion.recorder = rec
+            ins.fusion.attach_recorder(rec)
             recorders[node] = rec
         return fw
 

@@ -1,6 +1,6 @@
 """The compiled strapdown and covariance step (firmware_py/core/src/strapdown.c: ct_exp_rotvec,
 ct_strapdown_rotate, ct_to_nav, ct_integrate_pv, ct_transition_nav, ct_ins_propagate) against its
-reference, FusionFilter._step_python (estimate/magnetic_inertial.py, estimate/strapdown.py,
+reference, InertialPrediction.step_python (estimate/magnetic_inertial.py, estimate/strapdown.py,
 linalg.exp_rotvec). exp_rotvec is bit-identical (the same operations and libm); the attitude
 product and the covariance sums go through BLAS in the reference, so the step is compared to
 1e-12 relative. Seeded; skips where the extension is not built."""
@@ -41,7 +41,8 @@ def _filters(monkeypatch, model=3):
     monkeypatch.setitem(core._state, "selected", "compiled")
     got = FusionFilter(prm, OrientationFilter(OrientationParams.from_config(None)))
     assert ref.st.ck is None and got.st.ck is not None
-    assert ref._ins_step == ref._step_python and got._ins_step == got._step_compiled
+    assert ref.prediction._ins_step == ref.prediction.step_python
+    assert got.prediction._ins_step == got.prediction.step_compiled
     return ref, got
 
 
@@ -72,8 +73,8 @@ def test_ins_step_matches_the_reference(model, monkeypatch):
         r0 = (0.0, 0.0, 9.81) + 0.01 * rng.normal(size=3)
         r1 = r0 + 0.01 * rng.normal(size=3)
         args = (dt, *f0, *f1, *w, *r0, *r1)
-        ref._step_python(ref.st, 0, 0, *args)
-        got._step_compiled(got.st, 0, 0, *args)
+        ref.prediction.step_python(ref.st, *args)
+        got.prediction.step_compiled(got.st, *args)
     for name in ("p", "v", "Th", "ba", "bg"):
         a, b = getattr(ref.st, name), getattr(got.st, name)
         np.testing.assert_allclose(b, a, rtol=0, atol=1e-12 * max(np.abs(a).max(), 1.0), err_msg=name)
@@ -90,7 +91,7 @@ def test_both_live_and_shadow_states_are_bound(monkeypatch):
     assert got.st.ck is not None and got.sh.ck is not None and got.sn.ck is None
     p_sh = got.sh.p.copy()
     P_sh = got.sh.P.copy()
-    got._step_compiled(got.st, 0, 0, 0.01, 0, 0, 9.81, 0, 0, 9.81, 0.1, 0.2, 0.3, 0, 0, 9.81, 0, 0, 9.81)
+    got.prediction.step_compiled(got.st, 0.01, 0, 0, 9.81, 0, 0, 9.81, 0.1, 0.2, 0.3, 0, 0, 9.81, 0, 0, 9.81)
     np.testing.assert_array_equal(got.sh.p, p_sh)
     np.testing.assert_array_equal(got.sh.P, P_sh)
 

@@ -1,0 +1,153 @@
+"""The fusion filter's outputs: its pose history and the fused poses waiting to be sent.
+
+:class:`PoseHistory` keeps the inertial poses in the source frame (the live
+history and the shadow a replay writes), so the firmware can interpolate the
+pose at any recent instant (motion compensation within a burst, thesis
+``002_cd7f1fdb7fc67471.txt`` sec 6.5). :class:`PoseOutput` queues the fused
+poses (the POSE message's fields) with their variances and status bits.
+
+All buffers are created in ``__init__``; nothing here allocates after.
+"""
+from __future__ import annotations
+
+from coiltrack.firmware.estimate.fusion_state import HIST_FIELDS, HIST_P, HIST_R, InsState
+from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.firmware.ring import Ring, field_slices
+from coiltrack.firmware.rotation import quat_from_elements
+
+#: named rows of an output entry (the POSE message): p_M, quaternion (w, x, y, z),
+#: position variances (source frame), orientation variances (sensor frame), status bits
+OUT_FIELDS = (("P", 3), ("Q", 4), ("VAR_P", 3), ("VAR_O", 3), ("STATUS", 1))
+_O = field_slices(OUT_FIELDS)
+OUT_P, OUT_Q, OUT_VAR_P, OUT_VAR_O, OUT_STATUS = (_O["P"].start, _O["Q"].start, _O["VAR_P"].start,
+                                                  _O["VAR_O"].start, _O["STATUS"].start)
+#: status bits of ``OUT_STATUS``
+OUT_STALE = 1               # no magnetic update for ``stale_us``
+OUT_INCONSISTENT = 2        # the last update was not accepted cleanly
+OUT_DEAD_RECKONING = 4      # no accepted magnetic update for ``dead_reckon_after_us``: inertial only
+OUT_LOST = 8                # ... for ``dead_reckon_limit_us``: not a valid pose
+OUT_RECOVERED = 16          # restarted from a magnetic solution, no update accepted since
+
+
+class PoseHistory:
+    """The live pose history (``live``) and the one a replay writes (``shadow``), source frame."""
+
+    def __init__(self, capacity: int):
+        self.live = Ring(capacity, HIST_FIELDS)
+        self.shadow = Ring(capacity, HIST_FIELDS)
+
+    def rewind_shadow(self, t_ref_us: int) -> None:
+        """The shadow starts as the live history up to ``t_ref_us``."""
+        self.shadow.copy_from(self.live)
+        self.shadow.drop_newer_than(t_ref_us)
+
+    def restart_shadow(self) -> None:
+        """The shadow starts empty (the filter restarted)."""
+        self.shadow.clear()
+
+    def commit(self) -> None:
+        """The replay caught up: its history becomes the live one."""
+        self.live.copy_from(self.shadow)
+
+    def pose_at(self, t_us: int, out_p, out_R) -> bool:
+        """Inertial pose in the source frame at ``t_us`` (linear
+        interpolation of the live history; ``out_R`` is not re-orthonormalised,
+        which is second order in the step rotation). False when ``t_us`` is
+        outside the history."""
+        hist = self.live
+        n = len(hist)
+        if n < 2:
+            return False
+        i = hist.index_at_or_after(t_us)
+        if i >= n:
+            return False
+        ht = hist.tv
+        if i == 0:
+            if ht[hist.slot(0)] != t_us:
+                return False
+            i = 1
+        prev = hist.slot(i - 1)
+        k = hist.slot(i)
+        t0 = ht[prev]
+        tk = ht[k]
+        a = (t_us - t0) / (tk - t0) if tk > t0 else 1.0
+        b = 1.0 - a
+        hd = hist.dv
+        for c in range(3):
+            out_p[c] = b * hd[prev, HIST_P + c] + a * hd[k, HIST_P + c]
+        for i2 in range(3):
+            for j in range(3):
+                c = HIST_R + 3 * i2 + j
+                out_R[i2, j] = b * hd[prev, c] + a * hd[k, c]
+        return True
+
+
+class PoseOutput:
+    """Fused poses waiting to be sent (rows ``OUT_*``), ``dropped`` when the queue was full."""
+
+    def __init__(self, params, capacity: int, frame):
+        self.prm = params
+        self.frame = frame
+        self.out = Ring(capacity, OUT_FIELDS)
+        self._otv, self._odv = self.out.tv, self.out.dv
+        self.dropped = 0
+
+    def queue(self, t_us: int, hist: Ring, st: InsState, d, k: int, last_update_t: int, recovering: bool,
+              inconsistent: bool) -> None:
+        """Queue the fused pose (source frame, the newest of ``hist``) with its variances:
+        position ``diag(Phi^T P_pp Phi)`` (Phi of IMU row ``k`` of ``d``), orientation in the
+        sensor frame ``diag(R^T P_oo R)`` with ``R = Theta`` (as the POSE message defines)."""
+        out = self.out
+        if out.full:
+            self.dropped += 1
+            return
+        slot = out.push(t_us)
+        od = self._odv
+        h = hist.peek(0)
+        hd = hist.dv
+        od[slot, OUT_P], od[slot, OUT_P + 1], od[slot, OUT_P + 2] = hd[h, HIST_P], hd[h, HIST_P + 1], hd[h, HIST_P + 2]
+        _quat_into(hd, h, od, slot)
+        P = st._Pv
+        Th = st._Thv
+        o0 = ORI.start
+        # orientation: diag(Theta^T P_oo Theta) = sum_i Theta[i, c] (P_oo Theta)[i, c]
+        o00, o01, o02 = P[o0, o0], P[o0, o0 + 1], P[o0, o0 + 2]
+        o11, o12, o22 = P[o0 + 1, o0 + 1], P[o0 + 1, o0 + 2], P[o0 + 2, o0 + 2]
+        for c in range(3):
+            x, y, z = Th[0, c], Th[1, c], Th[2, c]
+            od[slot, OUT_VAR_O + c] = (x * (o00 * x + o01 * y + o02 * z) + y * (o01 * x + o11 * y + o12 * z)
+                                       + z * (o02 * x + o12 * y + o22 * z))
+        self.frame.position_var(d, k, P, POS.start, od, slot, OUT_VAR_P)
+        od[slot, OUT_STATUS] = self._status(t_us - last_update_t, recovering, inconsistent)
+
+    def _status(self, age: int, recovering: bool, inconsistent: bool) -> int:
+        prm = self.prm
+        status = 0
+        if age > prm.stale_us:
+            status |= OUT_STALE
+        if age > prm.dead_reckon_after_us:
+            status |= OUT_DEAD_RECKONING
+            if age > prm.dead_reckon_limit_us:
+                status |= OUT_LOST
+        if recovering:
+            status |= OUT_RECOVERED
+        if inconsistent:
+            status |= OUT_INCONSISTENT
+        return status
+
+    def pop(self) -> int:
+        """Slot of the oldest queued pose, or -1."""
+        return self.out.slot(0) if len(self.out) else -1
+
+    def release(self) -> None:
+        self.out.pop()
+
+
+def _quat_into(hd, h, od, slot) -> None:
+    """Unit quaternion (w, x, y, z), w >= 0, of the rotation in history row
+    ``h`` into the output row ``slot``."""
+    r = HIST_R
+    w, x, y, z = quat_from_elements(hd[h, r], hd[h, r + 1], hd[h, r + 2], hd[h, r + 3], hd[h, r + 4],
+                                    hd[h, r + 5], hd[h, r + 6], hd[h, r + 7], hd[h, r + 8])
+    o = OUT_Q
+    od[slot, o], od[slot, o + 1], od[slot, o + 2], od[slot, o + 3] = w, x, y, z

@@ -1,0 +1,89 @@
+"""The fusion filter's snapshot at a magnetic solution's reference instant.
+
+A magnetic solution refers to ``t_ref``, the middle of its burst, and arrives
+about 170 ms later (thesis ``002_cd7f1fdb7fc67471.txt`` sec 6.2.3). When the
+IMU stream crosses ``t_ref`` the filter keeps here its state, the source
+orientation ``Phi`` (eq 6.7) and the ch. 2 filter's ``Xi`` with its covariance
+and gyroscope offset (eqs 6.19-6.21); the delayed update restores them.
+
+All buffers are created in ``__init__``; taking a snapshot allocates nothing.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from coiltrack.firmware.estimate.fusion_state import InsState
+
+
+class Snapshot:
+    """The state, ``Phi`` and ``Xi`` at ``t`` (``pending``: scheduled, not taken yet; ``valid``:
+    taken and not used; ``initialized``: the inertial state was running when taken; ``xi``:
+    ``Xi`` was initialised and kept).
+
+    Parameters
+    ----------
+    n : int
+        State dimension.
+    frame : fusion_state.MovingSource or fusion_state.FixedSource
+    xi_filter : orientation.OrientationFilter or None
+    """
+
+    def __init__(self, n: int, frame, xi_filter):
+        self.st = InsState(n, None)
+        self.frame = frame
+        self.xi_filter = xi_filter
+        self.Phi = np.eye(3)
+        self.Xi = np.eye(3)
+        self.XiP = np.zeros((3, 3))
+        self.XiB = np.zeros(3)
+        self.Phiv = memoryview(self.Phi)
+        self.Xiv = memoryview(self.Xi)
+        self.XiPv = memoryview(self.XiP)
+        self.t = 0
+        self.pending = False
+        self.valid = False
+        self.initialized = False
+        self.xi = False
+
+    def schedule(self, t_ref_us: int) -> None:
+        """Keep the state at ``t_ref_us`` when the stream reaches it."""
+        self.t = int(t_ref_us)
+        self.pending = True
+        self.valid = False
+
+    def due(self, t0: int, t1: int) -> bool:
+        """A pending snapshot falls in the step ``(t0, t1]``."""
+        return self.pending and t0 < self.t <= t1
+
+    def take_aux(self, d, k: int, full: bool) -> None:
+        """Source orientation (IMU ring row ``k`` of ``d``) and Xi at t_ref (all that
+        initialisation needs); ``full``: the inertial state was kept with them."""
+        self.frame.phi_into(d, k, self.Phiv)
+        xi = self.xi_filter
+        if xi is not None and xi.initialized:
+            np.copyto(self.Xi, xi.R)
+            xi.theta_covariance_global(self.XiPv)
+            np.copyto(self.XiB, xi.bias)
+            self.xi = True
+        else:
+            self.xi = False
+        self.pending = False
+        self.valid = True
+        self.initialized = full
+
+    def take(self, st: InsState, d, k: int) -> None:
+        """``st`` (at t_ref) with the source orientation and Xi."""
+        self.st.copy_from(st)
+        self.take_aux(d, k, True)
+
+    def matches(self, t_ref_us: int) -> bool:
+        """A valid snapshot at ``t_ref_us``."""
+        return self.valid and self.t == t_ref_us
+
+    def drop(self) -> None:
+        """Not offered again (restored for an update, or the stream broke off)."""
+        self.valid = False
+
+    def keep(self) -> None:
+        """A rejected, not final solution: the snapshot stays for another one of the burst."""
+        self.valid = True
