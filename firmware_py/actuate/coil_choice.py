@@ -398,20 +398,7 @@ class CoilChooser:
         """
         w = self._wv
         P6a, P6 = P6, memoryview(P6)
-        # target: the pose variable (trace: the group, 0 or 3) furthest beyond its bound
-        best_u = -1.0
-        if self.trace:
-            for g in (0, 3):
-                u = (P6[g, g] + P6[g + 1, g + 1] + P6[g + 2, g + 2]) * w[g]
-                if u > best_u:
-                    best_u = u
-                    self.target = g
-        else:
-            for k in range(POSE_DIM):
-                u = P6[k, k] * w[k]
-                if u > best_u:
-                    best_u = u
-                    self.target = k
+        self._pick_target(P6)
         j0 = 0.0
         for k in range(POSE_DIM):
             j0 += P6[k, k] * w[k]
@@ -450,7 +437,29 @@ class CoilChooser:
             for k in range(POSE_DIM):
                 self.var_after[k] = P6[k, k]
             return -1
-        # how strong: smallest current bringing the target variable to sigma_min
+        return self._strength(P6, best_c, var_amp, i_limit)
+
+    def _pick_target(self, P6) -> None:
+        """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
+        w = self._wv
+        best_u = -1.0
+        if self.trace:
+            for g in (0, 3):
+                u = (P6[g, g] + P6[g + 1, g + 1] + P6[g + 2, g + 2]) * w[g]
+                if u > best_u:
+                    best_u = u
+                    self.target = g
+        else:
+            for k in range(POSE_DIM):
+                u = P6[k, k] * w[k]
+                if u > best_u:
+                    best_u = u
+                    self.target = k
+
+    def _strength(self, P6, best_c: int, var_amp, i_limit) -> int:
+        """How strong: the smallest current bringing the target variable to ``sigma_min``
+        (the largest allowed if none does); sets ``current``, ``reached``, ``var_after``."""
+        scalar = isinstance(var_amp, float)
         t = self.target
         t1 = t + 3 if self.trace else t + 1
         goal = 0.0

@@ -211,7 +211,7 @@ def test_nis_excess_is_one_for_consistent_innovations_and_the_scale_otherwise():
 def _tracker(**kw):
     fw_end, _ = inproc_pair()
     fw = Firmware(scenarios.schepers_adaptive_config(**kw), fw_end)
-    return fw.tracker, fw.tracker._sens[0]
+    return fw.tracker.actuation, fw.tracker.actuation.views[0]
 
 
 def test_the_policy_tightens_its_bounds_by_the_nis_excess():
@@ -219,14 +219,14 @@ def test_the_policy_tightens_its_bounds_by_the_nis_excess():
     of the NIS excess (errors twice the covariance: a covariance four times smaller is
     held); without it the NIS does not move them. Catches a policy ignoring the NIS."""
     for fb in (True, False):
-        tr, s = _tracker(nis_feedback=fb, accuracy_target="stated", sigma_range_ref_m=0.0)
+        pol, s = _tracker(nis_feedback=fb, accuracy_target="stated", sigma_range_ref_m=0.0)
         s.pp[:] = (0.25, 0.0, 0.0)
-        s.monitor.excess = 1.0
-        tr._bounds(s)
+        s.sensor.monitor.excess = 1.0
+        pol._bounds(s)
         base = s.smax6.copy()
         np.testing.assert_allclose(base, [0.002] * 3 + [math.radians(0.3)] * 3)
-        s.monitor.excess = 4.0
-        tr._bounds(s)
+        s.sensor.monitor.excess = 4.0
+        pol._bounds(s)
         np.testing.assert_allclose(s.smax6, base / 2.0 if fb else base, rtol=1e-12)
 
 
