@@ -65,8 +65,7 @@ class _SingleCoilActuation:
     ``updated_us``: the tick of its last EKF update); ``book``: the pulses; ``acquisition``:
     the burst that starts a sensor's filter."""
 
-    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, pulse_us: int,
-                 var_amp: float, mid_us: int):
+    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths):
         self.cfg = cfg
         self.n = n_coils = len(coils)
         self._sens = tuple(sensors)
@@ -75,7 +74,9 @@ class _SingleCoilActuation:
         self.supervisor = supervisor
         self.tx = tx
         self.host = host
-        self.pulse_us = int(pulse_us)
+        #: the pulse lengths (``pulse_length.PulseLengths``); the longest bounds the timing checks
+        self.lengths = lengths
+        self.pulse_us = lengths.longest()
         self.lead_us = cfg.adaptive_lead_us
         self.nominal = np.array([c.current for c in cfg.coils])
         self.cycle = FixedCycle(n_coils, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us,
@@ -187,12 +188,12 @@ class AdaptiveActuation(_SingleCoilActuation):
     """Schepers' policy: a pulse when the predicted uncertainty would reach its bound, the coil
     that reduces it most, the current that brings it to ``sigma_min`` (module docstring).
 
-    ``var_amp``: the expected variance of one amplitude component of a pulse (T^2);
-    ``mid_us``: its measurement time after the start edge."""
+    ``lengths`` (``pulse_length.PulseLengths``): one length (``pulse_length = "fixed"``), or
+    the lengths the chooser weighs against the current (``"chosen"``: ``CoilChooser.choose_length``),
+    their starts aligned to the sensor's sample clock."""
 
-    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, pulse_us: int,
-                 var_amp: float, mid_us: int):
-        super().__init__(cfg, coils, sensors, book, acquisition, supervisor, tx, host, pulse_us, var_amp, mid_us)
+    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths):
+        super().__init__(cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths)
         n = self.n
         self.pmodel = SingleCoilModel(coils, cfg.field_model)      # decisions
         d2r = math.pi / 180.0
@@ -206,8 +207,9 @@ class AdaptiveActuation(_SingleCoilActuation):
                                    trace)
         self.policy = ActuationPolicy(smax, cfg.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()
-        self.var_amp = float(var_amp)
-        self.mid_us = int(mid_us)
+        self.var_amp = lengths.var_amp[-1]
+        self.mid_us = lengths.mid_us[-1]
+        self._vars = [0.0] * lengths.n        # the lengths' amplitude variances, inflated
         self.gap_us = cfg.fall_us + cfg.baseline_us + cfg.guard_us
         self.views = tuple(SensorOutlook(s) for s in self._sens)
         self._lim = np.zeros(n)
@@ -261,6 +263,10 @@ class AdaptiveActuation(_SingleCoilActuation):
             return
         self._decided_stamp = stamp
         self._decided_us = now_us
+        if self.lengths.aligned:
+            ring = self._sens[0].track.ring
+            if len(ring):
+                start = self.lengths.align(start, ring.latest_t_us)
         self._decide_predict(start, now_us)
 
     # A decision runs in three ticks (bounded tick): the prediction at the measurement time
@@ -288,8 +294,9 @@ class AdaptiveActuation(_SingleCoilActuation):
             for sl in self.book.slots:
                 if sl.active and not sl.acq:
                     self._model_at(v)
+                    var = self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)]
                     self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
-                                              self.var_amp * s.monitor.r_scale,
+                                              var * s.monitor.r_scale,
                                               cfg.field_model_rel_sigma, cfg.current_tolerance_a)
             if self.policy.due(v.P6, now_us, s.last_update_us):
                 due = True
@@ -304,6 +311,8 @@ class AdaptiveActuation(_SingleCoilActuation):
         # the expected amplitude variance, inflated while the pulses prove inconsistent
         self.host.forget(ws.sensor, now_us)
         self._dec_var = self.var_amp * ws.sensor.monitor.r_scale
+        for k in range(self.lengths.n):
+            self._vars[k] = self.lengths.var_amp[k] * ws.sensor.monitor.r_scale
         self._dec_ws = ws
         self._dec_start = start
         self._dec_phase = 1
@@ -342,11 +351,17 @@ class AdaptiveActuation(_SingleCoilActuation):
         """The coil and current of the pulse (``actuate.coil_choice``), and its command."""
         self._dec_phase = 0
         ws = self._dec_ws
-        coil = self.chooser.choose(ws.P6, self.pmodel, self._dec_var, self._lim)
+        L = self.lengths
+        if L.n == 1:
+            coil = self.chooser.choose(ws.P6, self.pmodel, self._dec_var, self._lim)
+        else:
+            coil = self.chooser.choose_length(ws.P6, self.pmodel, self._vars, L.lengths_us, self._lim)
         if coil < 0:
             self.no_current += 1
             return
-        self.book.command(coil, self.chooser.current, self._dec_start, self.pulse_us, False)
+        k = self.chooser.length if L.n > 1 else 0
+        self.book.command(coil, self.chooser.current, self._dec_start, L.lengths_us[k], False,
+                          L.mid_us[k] if L.n > 1 else -1)
 
     def _model_at(self, v: SensorOutlook) -> None:
         """``pmodel`` at the predicted pose (``v.pp``, and ``v.Rd``: the filter's orientation in
@@ -417,7 +432,8 @@ class AdaptiveActuation(_SingleCoilActuation):
         nn = len(ring)
         if nn == 0:
             return
-        if not self.book.quiet_at(ring.latest_t_us, self.pulse_us):
+        last = self.book.last_pulse_us if self.lengths.n > 1 else self.pulse_us
+        if not self.book.quiet_at(ring.latest_t_us, last):
             return
         p = ring.slot(nn - 1)
         v.quiet[0] = ring.b[p, 0]

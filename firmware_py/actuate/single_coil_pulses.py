@@ -72,9 +72,10 @@ class PulseBook:
         self.pulses = 0
 
     # ------------------------------------------------------------ commands
-    def command(self, coil: int, current: float, start: int, length: int, acq: bool) -> int:
+    def command(self, coil: int, current: float, start: int, length: int, acq: bool, mid_us: int = -1) -> int:
         """Command one pulse; returns its slot, or -1 when every slot is taken. A tracking
-        pulse (``acq`` false) gets the EKF clone no other pulse in flight uses."""
+        pulse (``acq`` false) gets the EKF clone no other pulse in flight uses, taken
+        ``mid_us`` after the start (default: the book's)."""
         i = self.free_slot()
         if i < 0:
             return -1
@@ -98,8 +99,9 @@ class PulseBook:
                     used1 |= o.clone == 1
             sl.clone = 0 if not used0 else (1 if not used1 else -1)
             if sl.clone >= 0:
+                t_m = start + (self.mid_us if mid_us < 0 else mid_us)
                 for f in self.filters:
-                    f.schedule_clone(sl.clone, start + self.mid_us)
+                    f.schedule_clone(sl.clone, t_m)
         self.next_free_us = start + length + self.gap_us
         self.last_pulse_end = start + length
         self.last_pulse_us = length

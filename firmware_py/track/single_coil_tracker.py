@@ -69,6 +69,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference
 from coiltrack.firmware.actuate.coil_choice import NisMonitor, SingleCoilModel
 from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation, FixedActuation
+from coiltrack.firmware.actuate.pulse_length import PulseLengths, fixed_amplitude_variance
 from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
@@ -86,19 +87,18 @@ _EVT_CLEAR = 1 << 31
 ACTUATIONS = {"adaptive": AdaptiveActuation, "fixed": FixedActuation}
 
 
-def amplitude_variance(cfg, pulse_us: int) -> float:
-    """Expected variance of one amplitude component of a ``pulse_us`` pulse (T^2):
-    ``sigma^2 (1/n + 1/n_b)`` with ``n`` the samples used (the settled part less the first
-    and last) and ``n_b`` the two baselines' (``coiltrack.firmware.measure.pulse``)."""
-    per = 1e6 / cfg.mag_rate_hz
-    n_used = max(1, int((pulse_us - cfg.settle_us - cfg.guard_us) / per) - 1)
-    n_base = max(2, 2 * int(cfg.baseline_us / per))
-    return cfg.mag_sigma_t ** 2 * (1.0 / n_used + 1.0 / n_base)
-
-
 def measurement_mid_us(cfg, pulse_us: int) -> int:
     """Mid time of a pulse's used samples, from its start edge."""
     return (cfg.settle_us + pulse_us - cfg.guard_us) // 2
+
+
+def pulse_lengths(cfg, pulse_us: int) -> PulseLengths:
+    """``[adaptive_policy] pulse_length``: ``"fixed"`` (``pulse_us`` at any phase) or
+    ``"chosen"`` (``pulse_length.PulseLengths.chosen``, up to ``pulse_us`` plus two sample
+    periods, for a pulse that must bring more than ``pulse_us`` can at the largest current)."""
+    if cfg.pulse_length == "chosen":
+        return PulseLengths.chosen(cfg, pulse_us + int(2e6 / cfg.mag_rate_hz))
+    return PulseLengths.fixed(cfg, pulse_us)
 
 
 class SingleCoilTracker:
@@ -134,7 +134,7 @@ class SingleCoilTracker:
                               cfg.fall_us + cfg.baseline_us + cfg.guard_us, cfg.first_cycle_us - cfg.adaptive_lead_us)
         self.acquisition = BurstAcquisition(cfg, coils, self._sens, self.book, self.model, supervisor, tx, self)
         self.actuation = ACTUATIONS[schedule](cfg, coils, self._sens, self.book, self.acquisition, supervisor, tx,
-                                              self, self.pulse_us, amplitude_variance(cfg, self.pulse_us), mid)
+                                              self, pulse_lengths(cfg, self.pulse_us))
         # POSE.quality (track.quality): a single pulse leaves no residual freedom, so the
         # consistency is the update's NIS per dimension and the quiet field's, kept per sensor
         # and applied to the filter's position covariance at each fused pose
@@ -161,7 +161,7 @@ class SingleCoilTracker:
             # the fixed cycle of [timing], its pulses' amplitude variance and mid time
             s.ref = FixedCycleReference(
                 np.array([c.current for c in cfg.coils]), cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us,
-                measurement_mid_us(cfg, cfg.pulse_us), amplitude_variance(cfg, cfg.pulse_us),
+                measurement_mid_us(cfg, cfg.pulse_us), fixed_amplitude_variance(cfg, cfg.pulse_us),
                 cfg.field_model_rel_sigma, cfg.current_tolerance_a, cfg.reference_avg_s * 1e6,
                 cfg.sigma_range_exp_pos, cfg.sigma_range_exp_ori, cfg.reference_warmup_us)
         return s
