@@ -512,8 +512,10 @@ class CoilChooser:
         the target variable to ``sigma_min``, and of those the pair of least energy ``I^2 L``
         (the coil's resistance is common to all). The information of each pair is eq 4 with
         the length's amplitude variance and the model error ``(rel_model I |h|)^2``, which
-        saturates it near the source, where shorter pulses then win. If no pair reaches the
-        goal: the longest length at the largest current. Sets ``length`` (an index of
+        saturates it near the source: the current a goal needs then obeys ``I^2 = k var /
+        (1 - k rel^2)``, still proportional to ``var(L)``, so the energies of the lengths keep
+        the ratios of ``L var(L)``; saturation decides only whether the goal is reachable. If
+        no pair reaches it: the longest length at the largest current. Sets ``length`` (an index of
         ``lengths_us``) beside ``coil`` and ``current``; returns the coil or -1."""
         last = len(lengths_us) - 1
         c = self.choose(P6, model, float(var_amps[last]), i_limit)
