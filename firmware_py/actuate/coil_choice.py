@@ -301,7 +301,7 @@ class CoilChooser:
     """
 
     def __init__(self, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
-                 current_sigma: float = 0.0, trace: bool = False, resistance=None):
+                 current_sigma: float = 0.0, trace: bool = False):
         #: bounds on the trace of the position and of the orientation block instead of each
         #: variable (the RMS of a position or orientation error is the root of its trace)
         self.trace = bool(trace)
@@ -319,8 +319,6 @@ class CoilChooser:
         self._smin0 = self.sigma_min.copy()
         self.rel_model = float(rel_model)
         self.current_sigma = float(current_sigma)
-        #: the coils' resistances (ohm): with them the coil is chosen per joule (:meth:`_cheapest`)
-        self.resistance = None if resistance is None else tuple(float(r) for r in resistance)
         self._A = np.zeros((self.n, 3, POSE_DIM))
         self._M = np.zeros((self.n, 3, 3))
         self._At = np.zeros((3, POSE_DIM))
@@ -434,8 +432,6 @@ class CoilChooser:
                 best_red = red
                 best_c = c
         self.reached = False
-        if best_c >= 0 and self.resistance is not None:
-            best_c = self._cheapest(P6, var_amp, i_limit, best_c)
         self.coil = best_c
         if best_c < 0:
             self.current = 0.0
@@ -443,26 +439,6 @@ class CoilChooser:
                 self.var_after[k] = P6[k, k]
             return -1
         return self._strength(P6, best_c, var_amp, i_limit)
-
-    def _cheapest(self, P6, var_amp, i_limit, fallback: int) -> int:
-        """Per joule: of the coils that can bring the target variable to ``sigma_min``, the one
-        whose smallest such current costs least, ``I^2 R_c``; ``fallback`` (the largest
-        reduction) if none can. A coil chosen for its reduction at its largest current may
-        need three times the energy of another that reaches the same goal (its field along
-        the target's direction is weaker at that current, stronger per ampere elsewhere)."""
-        best, best_e = fallback, math.inf
-        for c in range(self.n):
-            if self.reduction[c] < 0.0:
-                continue
-            va = var_amp if isinstance(var_amp, float) else float(var_amp[c])
-            j = self._smallest_current(P6, c, va, self._ref_index(float(i_limit[c])))
-            if j < 0:
-                continue
-            i = float(self.currents[j])
-            e = i * i * self.resistance[c]
-            if e < best_e:
-                best_e, best = e, c
-        return best
 
     def _pick_target(self, P6) -> None:
         """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
