@@ -1,60 +1,38 @@
-"""The single-coil tracker and its actuation (``actuation = "adaptive"``, or
-the fixed cycle with ``single_coil_fusion``).
+"""The single-coil tracker (``actuation = "adaptive"``, or the fixed cycle with
+``single_coil_fusion``): one error-state EKF per sensor, and the pulses that feed it.
 
 Schepers & Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``) sec. 2.1 and
-Fig. 1, as stages of the firmware tick (:meth:`SingleCoilTracker.actuate`,
-:meth:`SingleCoilTracker.measure`; the IMU samples arrive through
-:meth:`SingleCoilTracker.on_imu`):
+Fig. 1, as stages of the firmware tick, each piece one job in its own module:
 
-* between pulses the IMU carries each sensor's state: every ``IMU_SAMPLE``
-  propagates that sensor's error-state EKF (``coiltrack.firmware.estimate.single_coil``)
-  and a ``POSE`` goes out at the IMU rate (every ``pose_every`` samples);
-* when: once per tick, when a pulse could start (``adaptive_lead_us`` ahead,
-  after the quiet gap the previous window needs), the pose covariance is
-  predicted for the instant that pulse would be measured, including the
-  effect of a pulse still in flight (eq 4 does not need its value); if a
-  position or orientation standard deviation would reach its ``sigma_max``
-  (or no update was made for ``adaptive_max_interval_us``) a pulse is due
-  (``adaptive.ActuationPolicy``); a tick that has run an EKF update leaves
-  the decision to the next tick, for the same start (bounded tick: the two
-  heaviest pieces of work of the mode never share one);
-* which and how strong: the coil whose eq-4 update reduces the normalised
-  uncertainty most, at the smallest candidate current that brings the
-  triggering variable to its ``sigma_min``, within the driver limit and the
-  magnetometer range (``adaptive.CoilChooser``,
-  ``adaptive.saturation_current_limit`` with the latest quiet field);
-* one ``COIL_PULSE_CMD`` is sent, scheduled ahead on the master clock and
-  kept within the driver's duty limit; the EKF clones the pose at the
-  pulse's mid time; when the pulse window closes (``coiltrack.firmware.measure.pulse``) its
-  amplitude updates every sensor's EKF through the clone, with the
-  commanded current (the driver regulates it; its 1 mA readback replaces it
-  only when the driver reports a sag) and the current tolerance and the
-  field-model error in the measurement covariance;
+* actuate (:meth:`SingleCoilTracker.actuate`): the policy chosen once by
+  ``schedule`` (``actuate.single_coil_policy``: :class:`AdaptiveActuation`,
+  when, which coil, how strong and, with ``pulse_length = "chosen"``, how long;
+  :class:`FixedActuation`, the X, Y, Z cycle), commanding through the pulses'
+  book (``actuate.single_coil_pulses.PulseBook``: slots, clones, duty, quiet
+  gaps), and the set/reset flips between pulses;
+* measure (:meth:`SingleCoilTracker.measure`): each closed window
+  (``coiltrack.firmware.measure.pulse``) updates every sensor's EKF through the
+  clone taken at its measurement time (``estimate.single_coil.SchepersEKF.update_pulse``
+  with a ``CoilMeasurement``), with the commanded current (the driver regulates
+  it; its 1 mA readback replaces it only when the driver reports a sag) and the
+  current tolerance and the field-model error in the measurement covariance;
+* track (:meth:`SingleCoilTracker.track`): between pulses every ``IMU_SAMPLE``
+  propagates the sensor's filter and a ``POSE`` goes out at the IMU rate;
 * consistency: the NIS of every update is gated (chi-square) and monitored
-  over a window (``adaptive.NisMonitor``); a ferromagnetic object that makes
-  the updates inconsistent (Schepers sec. 3.3) is reported
-  (``EVT_DISTORTION``, ``POSE_DISTORTED``) and, until the window is
-  consistent again, the measurement covariance is inflated by the observed
-  excess and the gate steps aside, so the filter neither diverges on the
-  biased pulses nor drifts on the IMU alone with every pulse rejected;
-* acquisition: a sensor without a pose (boot, lost track, IMU gap) gets a
-  full burst of every coil at its nominal current once its IMU streams. The
-  amplitudes are brought to the burst's mid instant with the gyroscope,
-  solved (the firmware's ``solver.PoseSolver``: Kuipers start, exact-model
-  least squares), and the solution starts the EKF (the orientation carried
-  to the present by the gyroscope integration); the burst's pulses are then
-  applied again as single-coil updates at their own instants
-  (``SchepersEKF.back_clone``), so the motion during the burst, which near
-  the source biases the solution badly, is absorbed. Without an IMU the mode
-  keeps acquiring once a cycle and reports magnetic-only poses;
-* set/reset flips: about every 2 s no new pulse is decided until the
-  windows in flight are closed, then the sensors are told to flip in the
-  gap (``supervisor.flips``), which also keeps them from flipping on their
-  own inside a window.
+  over a window (``coil_choice.NisMonitor``); a ferromagnetic object that
+  makes the updates inconsistent (Schepers sec. 3.3) is reported
+  (``EVT_DISTORTION``, ``POSE_DISTORTED``) and, until the window is consistent
+  again, the measurement covariance is inflated by the observed excess and the
+  gate steps aside;
+* acquisition (``track.single_coil_acquire.BurstAcquisition``): a sensor
+  without a pose gets a burst of every coil, solved and refined pulse by pulse,
+  which starts its filter (:meth:`SingleCoilTracker.tracking_started`).
 
-All arrays are allocated here, at start-up; the per-tick paths, the
-acquisition included, write into them and create no numpy array
-(``tests/adaptive/test_bench_adaptive.py`` counts).
+Per-sensor state is a ``track.single_coil_sensor.SensorTrack``; the policy and
+the acquisition act on it only through this class's methods (``reacquire``,
+``forget``, ``tracking_started``). All arrays are allocated at start-up; the
+per-tick paths, the acquisition included, write into them and create no numpy
+array (``tests/adaptive/test_bench_adaptive.py`` counts).
 """
 from __future__ import annotations
 
