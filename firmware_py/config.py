@@ -260,6 +260,9 @@ class FirmwareConfig:
     duty_margin: float = 0.95               # pulses kept below this fraction of the driver's duty limit
     saturation_sigmas: float = 3.0          # range check: the sensor assumed this many position stds closer
     decision_refresh_us: int = 20_000       # an unchanged prediction is decided again after this long
+    pulse_length: str = "fixed"             # "fixed": every pulse adaptive_pulse_us (or pulse_us) long; "chosen":
+                                            #   the length too, weighed against the current (least I^2 L),
+                                            #   starts put on the magnetometer's sample clock
     # --- Gietler's Brownian-motion tracker (003_93f59c2e1c5b6c59.txt eqs 6-24; estimate/brownian.py)
     gietler_dt_s: float = 0.1               # s, filter step (sec III-C: delta tau = 0.1 s)
     gietler_sigma_v: float = 0.01           # m s^-3/2, velocity Wiener intensity of the model (eq 6)
@@ -661,6 +664,8 @@ class FirmwareConfig:
         need("accuracy_target", self.accuracy_target in ("stated", "fixed"),
              f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
+        need("pulse_length", self.pulse_length in ("fixed", "chosen"),
+             f"must be 'fixed' or 'chosen', got {self.pulse_length!r}")
         need("nis_feedback", isinstance(self.nis_feedback, bool), f"must be true or false, got {self.nis_feedback!r}")
         for name in ("fixed_accuracy_ratio", "reference_avg_s", "reference_catchup", "nis_linear_fraction",
                      "nis_alarm_z",
@@ -774,7 +779,7 @@ SECTIONS: dict[str, tuple[str, ...]] = {
                         "nis_feedback",
                         "nis_feedback_updates", "nis_feedback_max", "nis_linear_fraction", "nis_forget_us",
                         "nis_alarm_z", "nis_alarm_excess", "nis_max_scale", "no_imu_us", "flip_every_us",
-                        "duty_margin", "saturation_sigmas", "decision_refresh_us"),
+                        "duty_margin", "saturation_sigmas", "decision_refresh_us", "pulse_length"),
     "gietler": ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
                 "gietler_iterations", "gietler_iter_tol", "gietler_diverge_m"),
     "body_motion": ("baseline_gyro", "acc_adapt_gain", "acc_adapt_tau_s", "compass_heading_only"),

@@ -336,6 +336,7 @@ class CoilChooser:
         self._vav = memoryview(self.var_after)
         self.coil = -1
         self.current = 0.0
+        self.length = 0           # choose_length: the index of the chosen pulse length
         self.target = 0
         self.reached = False
 
@@ -398,20 +399,7 @@ class CoilChooser:
         """
         w = self._wv
         P6a, P6 = P6, memoryview(P6)
-        # target: the pose variable (trace: the group, 0 or 3) furthest beyond its bound
-        best_u = -1.0
-        if self.trace:
-            for g in (0, 3):
-                u = (P6[g, g] + P6[g + 1, g + 1] + P6[g + 2, g + 2]) * w[g]
-                if u > best_u:
-                    best_u = u
-                    self.target = g
-        else:
-            for k in range(POSE_DIM):
-                u = P6[k, k] * w[k]
-                if u > best_u:
-                    best_u = u
-                    self.target = k
+        self._pick_target(P6)
         j0 = 0.0
         for k in range(POSE_DIM):
             j0 += P6[k, k] * w[k]
@@ -443,25 +431,66 @@ class CoilChooser:
             if red > best_red:
                 best_red = red
                 best_c = c
-        self.coil = best_c
         self.reached = False
+        self.coil = best_c
         if best_c < 0:
             self.current = 0.0
             for k in range(POSE_DIM):
                 self.var_after[k] = P6[k, k]
             return -1
-        # how strong: smallest current bringing the target variable to sigma_min
+        return self._strength(P6, best_c, var_amp, i_limit)
+
+    def _pick_target(self, P6) -> None:
+        """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
+        w = self._wv
+        best_u = -1.0
+        if self.trace:
+            for g in (0, 3):
+                u = (P6[g, g] + P6[g + 1, g + 1] + P6[g + 2, g + 2]) * w[g]
+                if u > best_u:
+                    best_u = u
+                    self.target = g
+        else:
+            for k in range(POSE_DIM):
+                u = P6[k, k] * w[k]
+                if u > best_u:
+                    best_u = u
+                    self.target = k
+
+    def _strength(self, P6, best_c: int, var_amp, i_limit) -> int:
+        """How strong: the smallest current bringing the target variable to ``sigma_min``
+        (the largest allowed if none does); sets ``current``, ``reached``, ``var_after``."""
+        if not isinstance(var_amp, float):
+            var_amp = float(var_amp[best_c])
+        kmax = self._ref_index(float(i_limit[best_c]))
+        j = self._smallest_current(P6, best_c, var_amp, kmax)
+        if j >= 0:
+            self.current = float(self.currents[j])
+            self.reached = True
+            return best_c
+        self.current = float(self.currents[kmax])
+        posterior_pose_variances(P6, self._Av[best_c], self._Mv[best_c], float(self._hn2[best_c]), self.current,
+                                 var_amp, self.rel_model, self._vav, self.current_sigma)
+        return best_c
+
+    def _goal(self) -> float:
+        """``sigma_min^2`` of the target variable (trace: summed over its group)."""
+        t = self.target
+        goal = 0.0
+        for k in range(t, t + 3 if self.trace else t + 1):
+            goal += self.sigma_min[k] * self.sigma_min[k]
+        return goal
+
+    def _smallest_current(self, P6, c: int, var_amp: float, kmax: int) -> int:
+        """Index of the smallest candidate current up to ``kmax`` whose eq-4 update of coil
+        ``c`` (amplitude variance ``var_amp``) brings the target variable to ``sigma_min``
+        (``var_after`` holds its posterior), or -1."""
         t = self.target
         t1 = t + 3 if self.trace else t + 1
-        goal = 0.0
-        for k in range(t, t1):
-            goal += self.sigma_min[k] * self.sigma_min[k]
-        kmax = self._ref_index(float(i_limit[best_c]))
-        A = self._Av[best_c]
-        M = self._Mv[best_c]
-        hn2 = float(self._hn2[best_c])
-        if not scalar:
-            var_amp = float(var_amp[best_c])
+        goal = self._goal()
+        A = self._Av[c]
+        M = self._Mv[c]
+        hn2 = float(self._hn2[c])
         for j in range(kmax + 1):
             i = float(self.currents[j])
             posterior_pose_variances(P6, A, M, hn2, i, var_amp, self.rel_model, self._vav,
@@ -470,13 +499,45 @@ class CoilChooser:
             for k in range(t, t1):
                 va += self._vav[k]
             if va <= goal:
+                return j
+        return -1
+
+    def choose_length(self, P6, model: SingleCoilModel, var_amps, lengths_us, i_limit) -> int:
+        """:meth:`choose` with the pulse length as a lever too (``pulse_length = "chosen"``).
+
+        ``var_amps`` (one per length, T^2, already scaled by the NIS inflation) and
+        ``lengths_us``, shortest first. The coil is the one whose update at its largest
+        current and the longest length (the most information it can bring) reduces the
+        normalised uncertainty most; then, over every length, the smallest current bringing
+        the target variable to ``sigma_min``, and of those the pair of least energy ``I^2 L``
+        (the coil's resistance is common to all). The information of each pair is eq 4 with
+        the length's amplitude variance and the model error ``(rel_model I |h|)^2``, which
+        saturates it near the source: the current a goal needs then obeys ``I^2 = k var /
+        (1 - k rel^2)``, still proportional to ``var(L)``, so the energies of the lengths keep
+        the ratios of ``L var(L)``; saturation decides only whether the goal is reachable. If
+        no pair reaches it: the longest length at the largest current. Sets ``length`` (an index of
+        ``lengths_us``) beside ``coil`` and ``current``; returns the coil or -1."""
+        last = len(lengths_us) - 1
+        c = self.choose(P6, model, float(var_amps[last]), i_limit)
+        self.length = last
+        if c < 0 or not self.reached:
+            return c
+        P6v = memoryview(P6)
+        kmax = self._ref_index(float(i_limit[c]))
+        best_e = self.current * self.current * lengths_us[last]
+        for k in range(last):
+            j = self._smallest_current(P6v, c, float(var_amps[k]), kmax)
+            if j < 0:
+                continue
+            i = float(self.currents[j])
+            e = i * i * lengths_us[k]
+            if e < best_e:
+                best_e = e
+                self.length = k
                 self.current = i
-                self.reached = True
-                return best_c
-        self.current = float(self.currents[kmax])
-        posterior_pose_variances(P6, A, M, hn2, self.current, var_amp, self.rel_model, self._vav,
-                                     self.current_sigma)
-        return best_c
+        posterior_pose_variances(P6v, self._Av[c], self._Mv[c], float(self._hn2[c]), self.current,
+                                 float(var_amps[self.length]), self.rel_model, self._vav, self.current_sigma)
+        return c
 
 
 class ActuationPolicy:

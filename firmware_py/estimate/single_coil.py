@@ -64,11 +64,12 @@ import math
 import numpy as np
 
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
-from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, SCHEPERS_CORE as CORE,
                                                SCHEPERS_LAYOUT, VEL, schepers_layout)
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_sensor, transition_static
-from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
+from coiltrack.firmware.estimate.clones import PoseClones
+from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement, SingleCoilUpdate
 
 __all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
 
@@ -76,9 +77,6 @@ __all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
 EKF_NO_STATE = 1024
 
 _GRAVITY = (0.0, 0.0, -9.81)
-#: margin on the linearisation error: the second-order term of an r^-3 field is 6 (d/r)^2
-#: h; the iterated update removes most of it, 2 (sigma/r)^2 |h| is kept as a margin
-_LIN_K = 2.0
 
 
 N_CORE = CORE.stop
@@ -134,8 +132,6 @@ class SchepersEKF:
         self.layout = self._make_layout(self.n_clones)
         nx = self.layout.n
         self.nx = nx
-        self._cp = tuple(getattr(self.layout, f"C{k}P") for k in range(self.n_clones))
-        self._co = tuple(getattr(self.layout, f"C{k}O") for k in range(self.n_clones))
         self.g = np.array(gravity, dtype=float).reshape(3)
         self.acc_noise = float(acc_noise)
         self.gyr_noise = float(gyr_noise)
@@ -143,6 +139,17 @@ class SchepersEKF:
         self.gyr_bias_rw = float(gyr_bias_rw)
         self.pos_noise = float(pos_noise)
         self.iterations = max(1, int(iterations))
+        self._alloc_state(nx)
+        self._alloc_propagation(nx)
+        # update: the shared shape (``single_coil_update``), plus the nominal NIS for the monitor
+        self._coil_update = SingleCoilUpdate(nx, gate_probability, self.iterations)
+        self.upd = self._coil_update.upd
+        self._meas = CoilMeasurement()
+        self.nis = 0.0
+        self.nis_nominal = 0.0
+
+    def _alloc_state(self, nx: int) -> None:
+        """The nominal state, the covariance, the last inputs and the clones."""
         # nominal state
         self.p = np.zeros(3)
         self.v = np.zeros(3)
@@ -161,13 +168,13 @@ class SchepersEKF:
         self._acc_prev = np.zeros(3)
         self._gyr_prev = np.zeros(3)
         self._have_prev = False
-        # clones
-        self.clone_p = np.zeros((self.n_clones, 3))
-        self.clone_R = np.zeros((self.n_clones, 3, 3))
-        self.clone_R[:] = np.eye(3)
-        self.clone_t = np.zeros(self.n_clones, dtype=np.int64)
-        self.clone_due = np.zeros(self.n_clones, dtype=bool)     # scheduled, not yet taken
-        self.clone_taken = np.zeros(self.n_clones, dtype=bool)
+        # clones (``clones.PoseClones``; their arrays read here under the old names)
+        self.clones = PoseClones(self.layout, self.n_clones)
+        self.clone_p, self.clone_R, self.clone_t = self.clones.p, self.clones.R, self.clones.t
+        self.clone_due, self.clone_taken = self.clones.due, self.clones.taken
+
+    def _alloc_propagation(self, nx: int) -> None:
+        """The buffers of the propagation and of the prediction ahead."""
         # propagation buffers
         self.F = np.eye(nx)
         self._Ft = self.F.T
@@ -182,15 +189,9 @@ class SchepersEKF:
         self._Fv = memoryview(self.F)
         self._fref = (-float(self.g[0]), -float(self.g[1]), -float(self.g[2]))
         self._steps = 0
-        # 0-d operands (a Python float in a ufunc would become a new 0-d array) and a
-        # column buffer (copies between columns of P would otherwise be buffered)
+        # 0-d operands (a Python float in a ufunc would become a new 0-d array)
         self._k0 = np.zeros(())
         self._half = np.full((), 0.5)
-        self._cols = np.zeros((nx, 3))
-        self._rows = np.zeros((3, nx))
-        self._Tb = np.zeros((6, nx))
-        self._TP = np.zeros((6, nx))
-        self._TPT = np.zeros((6, 6))
         # prediction-ahead buffers (core block only)
         self._Fc = np.eye(N_CORE)
         self._Fct = self._Fc.T
@@ -199,19 +200,6 @@ class SchepersEKF:
         self._Pc_diag = self._Pc.reshape(-1)[::N_CORE + 1]
         self._Tc = np.zeros((N_CORE, N_CORE))
         self._qc = np.zeros(N_CORE)
-        # update: the shared shape, plus the nominal NIS for the monitor
-        self.upd = KalmanUpdate(nx, 3, gate_probability)
-        self._PHt = np.zeros((nx, 3))
-        self._S = np.zeros((3, 3))
-        self.y_pred = np.zeros(3)
-        self.nis = 0.0
-        self.nis_nominal = 0.0
-        self._P0 = np.zeros((nx, nx))
-        self._Pprev = np.zeros((nx, nx))
-        self._dx = np.zeros(nx)
-        self._pi = np.zeros(3)
-        self._Ri = np.eye(3)
-        self._Hdx = np.zeros(3)
 
     # ------------------------------------------------------------ set-up
     def initialize(self, p, R, P6, t_us: int, sigma_vel: float, sigma_acc: float,
@@ -232,8 +220,7 @@ class SchepersEKF:
         for s, sig in ((VEL, sigma_vel), (ACC, sigma_acc), (GYR, sigma_gyr)):
             for i in range(s.start, s.stop):
                 self.P[i, i] = sig * sig
-        self.clone_due.fill(False)
-        self.clone_taken.fill(False)
+        self.clones.clear()
         self.initialized = True
         if self.t_us is None:
             self.t_us = int(t_us)
@@ -242,92 +229,27 @@ class SchepersEKF:
         """Forget the pose (keep the inertial integration running)."""
         self.initialized = False
         self.P.fill(0.0)
-        self.clone_due.fill(False)
-        self.clone_taken.fill(False)
+        self.clones.clear()
 
     # ------------------------------------------------------------ clones
     def schedule_clone(self, k: int, t_us: int) -> None:
         """Clone the pose at ``t_us`` (the mid time of pulse slot k's used samples)."""
-        self.clone_t[k] = int(t_us)
-        self.clone_due[k] = True
-        self.clone_taken[k] = False
+        self.clones.schedule(k, t_us)
         if self.t_us is not None and self.t_us >= t_us:
             self._take_clone(k)
 
     def _take_clone(self, k: int) -> None:
-        self.clone_p[k] = self.p
-        self.clone_R[k] = self.R
-        self.clone_due[k] = False
-        self.clone_taken[k] = True
-        if not self.initialized:
-            return
-        cp, co = self._cp[k], self._co[k]
-        P = self.P
-        for dst, src in ((cp, POS), (co, ORI)):
-            np.copyto(self._rows, P[src, :])
-            np.copyto(P[dst, :], self._rows)
-        for dst, src in ((cp, POS), (co, ORI)):
-            np.copyto(self._cols, P[:, src])
-            np.copyto(P[:, dst], self._cols)
+        self.clones.take(k, self.P, self.p, self.R, self.initialized)
 
     def back_clone(self, k: int, dt: float, G) -> None:
-        """Clone k as the pose ``dt`` seconds before the filter's time, predicted
-        backwards from the current state: ``G`` (3, 3) is the orientation increment
-        ``R_now^T R_then`` the gyroscope integration gave. For an amplitude measured
-        before the filter was started (the acquisition burst): the update then
-        corrects the present state, velocity included, through the transition.
-
-        Constant velocity back over ``dt`` (right after a start the orientation
-        is too uncertain to remove gravity from the specific force; the motion's
-        acceleration is left to the velocity uncertainty): nominal
-        ``p_then = p - v dt``, ``R_then = R G``; error::
-
-            dp_then  = dp - dt dv
-            dori_then = G^T (dori + dt dgyr)
-
-        (the inverse of the ``_build_F`` transition without the specific-force
-        terms).
-        """
-        cp, co = self._cp[k], self._co[k]
-        cpk = self.clone_p[k]
-        for i in range(3):
-            cpk[i] = float(self.p[i]) - float(self.v[i]) * dt
-        np.matmul(self.R, G, out=self.clone_R[k])
-        self.clone_due[k] = False
-        self.clone_taken[k] = True
-        if not self.initialized:
-            return
-        T = self._Tb
-        T.fill(0.0)
-        for i in range(3):
-            T[POSE_POS.start + i, POS.start + i] = 1.0
-            T[POSE_POS.start + i, VEL.start + i] = -dt
-            for j in range(3):
-                T[POSE_ORI.start + i, ORI.start + j] = float(G[j, i])
-                T[POSE_ORI.start + i, GYR.start + j] = dt * float(G[j, i])
-        # the clone's rows and columns: T P, and T P T^T
-        P = self.P
-        np.matmul(T, P, out=self._TP)
-        np.matmul(self._TP, T.T, out=self._TPT)
-        np.copyto(P[cp, :], self._TP[POSE_POS])
-        np.copyto(P[co, :], self._TP[POSE_ORI])
-        np.copyto(self._rows, self._TP[POSE_POS])
-        np.copyto(P[:, cp], self._rows.T)
-        np.copyto(self._rows, self._TP[POSE_ORI])
-        np.copyto(P[:, co], self._rows.T)
-        np.copyto(P[cp, cp], self._TPT[POSE_POS, POSE_POS])
-        np.copyto(P[cp, co], self._TPT[POSE_POS, POSE_ORI])
-        np.copyto(P[co, cp], self._TPT[POSE_ORI, POSE_POS])
-        np.copyto(P[co, co], self._TPT[POSE_ORI, POSE_ORI])
+        """Clone k as the pose ``dt`` seconds before the filter's time, predicted backwards
+        from the current state (``clones.PoseClones.back``; ``G`` = ``R_now^T R_then`` from
+        the gyroscope). For an amplitude measured before the filter was started (the
+        acquisition burst): the update then corrects the present state, velocity included."""
+        self.clones.back(k, dt, G, self.P, self.p, self.v, self.R, self.initialized)
 
     def release_clone(self, k: int) -> None:
-        cp, co = self._cp[k], self._co[k]
-        self.P[cp, :].fill(0.0)
-        self.P[co, :].fill(0.0)
-        self.P[:, cp].fill(0.0)
-        self.P[:, co].fill(0.0)
-        self.clone_due[k] = False
-        self.clone_taken[k] = False
+        self.clones.release(k, self.P)
 
     # ------------------------------------------------------- propagation
     def propagate(self, t_us: int, acc, gyr) -> None:
@@ -354,12 +276,8 @@ class SchepersEKF:
         self._gyr_prev[:] = gyr
         t = self.t_us
         while True:
-            nxt = t_us
-            kk = -1
-            for k in range(self.n_clones):
-                if self.clone_due[k] and t < self.clone_t[k] <= nxt:
-                    nxt = int(self.clone_t[k])
-                    kk = k
+            kk = self.clones.next_due(t, t_us)
+            nxt = int(self.clone_t[kk]) if kk >= 0 else t_us
             if nxt > t:
                 self._step((nxt - t) * 1e-6)
                 t = nxt
@@ -486,44 +404,18 @@ class SchepersEKF:
             out6[POSE_ORI.start + i] = self.P[ORI.start + i, ORI.start + i]
 
     # ------------------------------------------------------------ update
-    def update_single_coil(self, k: int, y, var_amp, coil: int, current: float,
-                           model: SingleCoilModel, rel_model: float = 0.0,
-                           r_scale: float = 1.0, gate: bool = True) -> int:
-        """Correct the state with the amplitude ``y`` (3,) (T, sensor frame)
-        of one pulse of ``coil`` carrying ``current`` (A), measured at the
-        time of clone ``k`` (``k = -1``: the current state).
+    def update_pulse(self, k: int, m: CoilMeasurement, model: SingleCoilModel) -> int:
+        """Correct the state with one pulse's amplitude ``m`` (:class:`CoilMeasurement`),
+        measured at the time of clone ``k`` (``k = -1``: the current state), through the
+        iterated update of ``single_coil_update.SingleCoilUpdate``.
 
-        Measurement covariance: ``var_amp`` (3,), the amplitude variances
-        (T^2), plus ``(rel_model |h|)^2`` for the field model, plus the
-        linearisation error of Schepers sec. 3.2: for a field falling as
-        ``r^-3`` the second-order term of ``h(p + dp)`` is about
-        ``6 (dp/r)^2 |h|``, which the first-order model misses (the paper
-        shows it grows near the source and with the uncertainty and "can
-        cause the filter to diverge"); ``(6 sigma_p^2 / r^2 |h|)^2`` is added
-        with ``sigma_p`` the largest prior position std and ``r`` the
-        distance to the coil. Negligible once tracking (``sigma_p/r`` ~ 1 %:
-        6e-4 of the field), it damps the first updates after an acquisition.
-        The whole covariance is multiplied by ``r_scale`` (the NIS monitor's
-        inflation).
-
-        Iterated update (``iterations`` > 1): the measurement is
-        relinearised at the corrected clone pose, ``dx_{i+1} = K_i (y -
-        h(x_i) + H_i dx_i)`` (Gauss-Newton on the eq-4 cost), each pass through
-        the shared ``KalmanUpdate`` from the prior covariance; the last pass
-        gives the covariance. A second pass is made only when the first
-        correction changes ``h`` through its second-order term by more than a
-        tenth of the amplitude noise (after an acquisition, not while
-        tracking). The gate and the NIS are those of the first pass (the
-        plain EKF innovation).
-
-        ``gate=False`` skips the chi-square gate (the caller has already
-        judged the pulses inconsistent and inflated ``R``: gating them too
-        would reject every pulse while the innovations grow, leaving the state
-        to the IMU alone).
-
-        Returns the ``ekf.EKF_*`` flags; ``nis_nominal`` is the first-pass
-        NIS with ``r_scale = 1`` (for the monitor), ``nis`` the one gated.
-        """
+        Measurement covariance: the amplitude variances, plus ``(rel_model |h|)^2`` for the
+        field model and the current, plus the linearisation error of Schepers sec. 3.2 (for a
+        field falling as ``r^-3`` the second-order term of ``h(p + dp)`` is about ``6 (dp/r)^2
+        |h|``; ``(2 sigma_p^2 / r^2 |h|)^2`` is kept with ``sigma_p`` the largest prior
+        position std), the whole multiplied by ``r_scale``. Returns the ``ekf.EKF_*`` flags;
+        ``nis_nominal`` is the first-pass NIS with ``r_scale = 1`` (for the monitor), ``nis``
+        the one gated."""
         if not self.initialized:
             return EKF_NO_STATE
         if k >= 0:
@@ -531,100 +423,27 @@ class SchepersEKF:
                 # the IMU stream has not reached the measurement time: measure now
                 self._take_clone(k)
             p, R = self.clone_p[k], self.clone_R[k]
-            cp, co = self._cp[k], self._co[k]
+            cp, co = self.clones.cp[k], self.clones.co[k]
         else:
             p, R = self.p, self.R
             cp, co = POS, ORI
-        upd = self.upd
-        H = upd.H
-        Rm = upd.R
-        # measurement covariance, from the prior
-        model.evaluate(p, R)
-        cur = self._k0
-        cur[()] = current
-        np.multiply(model.h[coil], cur, out=self.y_pred)
-        yp = self.y_pred
-        hn2 = float(yp[0] * yp[0] + yp[1] * yp[1] + yp[2] * yp[2])
-        b = cp.start
-        sp2 = max(float(self.P[b, b]), float(self.P[b + 1, b + 1]), float(self.P[b + 2, b + 2]))
-        c = model.cs.centers[coil]
-        ddx, ddy, ddz = float(p[0] - c[0]), float(p[1] - c[1]), float(p[2] - c[2])
-        r2 = max(ddx * ddx + ddy * ddy + ddz * ddz, 1e-6)
-        lin = _LIN_K * sp2 / r2
-        extra = (rel_model * rel_model + lin * lin) * hn2
-        Rm.fill(0.0)
-        for i in range(3):
-            Rm[i, i] = float(var_amp[i]) + extra
-        self._P0[:] = self.P
-        dx = self._dx
-        dx.fill(0.0)
-        pi, Ri = self._pi, self._Ri
-        pi[:] = p
-        Ri[:] = R
-        flags = 0
-        for it in range(self.iterations):
-            if it:
-                model.evaluate(pi, Ri)
-                np.multiply(model.h[coil], cur, out=self.y_pred)
-            Hu = model.H[coil]
-            H.fill(0.0)
-            np.multiply(Hu[:, 0:3], cur, out=H[:, cp])
-            np.multiply(Hu[:, 3:6], cur, out=H[:, co])
-            # pseudo-innovation y - h(x_i) + H_i dx_i
-            np.subtract(y, self.y_pred, out=upd.y)
-            if it:
-                np.matmul(H, dx, out=self._Hdx)
-                upd.y += self._Hdx
-            else:
-                # first pass: the nominal NIS (the monitor's input), with the unscaled R
-                np.matmul(self.P, upd._Ht, out=self._PHt)
-                np.matmul(H, self._PHt, out=self._S)
-                self._S += Rm
-                self.nis_nominal = _nis3(self._S, upd.y)
-                if r_scale != 1.0:
-                    for i in range(3):
-                        Rm[i, i] *= r_scale
-            else_gate = upd.gate
-            if it or not gate:
-                upd.gate = math.inf          # the gate belongs to the first pass
-            if it:
-                self.P[:] = self._P0
-            f = upd.update(self.P)
-            upd.gate = else_gate
-            if it == 0:
-                flags = f
-                self.nis = upd.nis
-                if f & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
-                    self.rejected += 1
-                    return f
-            elif f & (EKF_NOT_PD | EKF_NONFINITE):
-                # keep the previous pass
-                self.P[:] = self._Pprev
-                break
-            b = cp.start
-            step = max(abs(float(upd.dx[b + i]) - float(dx[b + i])) for i in range(3))
-            dx[:] = upd.dx
-            if it == 0:
-                # relinearise only if the correction moves h by more than a fraction of the
-                # noise through the second-order term (~ 6 (dp/r)^2 |h|, Schepers sec. 3.2)
-                b = cp.start
-                dp2 = float(dx[b] * dx[b] + dx[b + 1] * dx[b + 1] + dx[b + 2] * dx[b + 2])
-                so = 6.0 * dp2 / r2
-                noise2 = float(var_amp[0] + var_amp[1] + var_amp[2]) / 3.0
-                if so * so * hn2 < 0.01 * noise2:
-                    break
-            if it + 1 < self.iterations:
-                self._Pprev[:] = self.P
-                # next linearisation point: the corrected clone pose
-                np.add(p, dx[cp], out=pi)
-                o = co.start
-                exp_rotvec(float(dx[o]), float(dx[o + 1]), float(dx[o + 2]), self._dR)
-                np.matmul(R, self._dR, out=Ri)
-                if step < 1e-6:
-                    break
-        self._inject(dx)
+        u = self._coil_update
+        flags = u.run(self.P, p, R, cp, co, m, model)
+        self.nis_nominal = u.nis_nominal
+        self.nis = u.nis
+        if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
+            self.rejected += 1
+            return flags
+        self._inject(u.dx)
         self.updates += 1
         return flags
+
+    def update_single_coil(self, k: int, y, var_amp, coil: int, current: float,
+                           model: SingleCoilModel, rel_model: float = 0.0,
+                           r_scale: float = 1.0, gate: bool = True) -> int:
+        """:meth:`update_pulse` with the measurement's fields given one by one (for the
+        trackers that fuse pulse windows of a burst)."""
+        return self.update_pulse(k, self._meas.set(y, var_amp, coil, current, rel_model, r_scale, gate), model)
 
     def _inject(self, dx) -> None:
         """Apply the error estimate to the nominal state (error reset)."""
@@ -634,17 +453,5 @@ class SchepersEKF:
         self.bg += dx[GYR]
         o = ORI.start
         self._sd.rotate(self.R, float(dx[o]), float(dx[o + 1]), float(dx[o + 2]))
-        for k in range(self.n_clones):
-            if self.clone_taken[k]:
-                self.clone_p[k] += dx[self._cp[k]]
-                c = self._co[k].start
-                self._sd.rotate(self.clone_R[k], float(dx[c]), float(dx[c + 1]), float(dx[c + 2]))
+        self.clones.inject(dx, self._sd.rotate)
 
-
-def _nis3(S, r) -> float:
-    """``r^T S^-1 r`` for a symmetric 3x3 ``S`` (inf if not positive definite)."""
-    inv = inv3_sym(float(S[0, 0]), float(S[0, 1]), float(S[0, 2]),
-                   float(S[1, 1]), float(S[1, 2]), float(S[2, 2]))
-    if inv is None:
-        return math.inf
-    return quad3_sym(inv, float(r[0]), float(r[1]), float(r[2]))

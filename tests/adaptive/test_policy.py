@@ -108,6 +108,7 @@ class _FakeFilter:
 
     def __init__(self, p, R):
         self.p, self.R = p, R
+        self.P = np.eye(15) * 1e-6          # the live filter's covariance (its mean: ``live``)
 
     @staticmethod
     def F_of(dt):
@@ -211,7 +212,7 @@ def test_nis_excess_is_one_for_consistent_innovations_and_the_scale_otherwise():
 def _tracker(**kw):
     fw_end, _ = inproc_pair()
     fw = Firmware(scenarios.schepers_adaptive_config(**kw), fw_end)
-    return fw.tracker, fw.tracker._sens[0]
+    return fw.tracker.actuation, fw.tracker.actuation.views[0]
 
 
 def test_the_policy_tightens_its_bounds_by_the_nis_excess():
@@ -219,14 +220,14 @@ def test_the_policy_tightens_its_bounds_by_the_nis_excess():
     of the NIS excess (errors twice the covariance: a covariance four times smaller is
     held); without it the NIS does not move them. Catches a policy ignoring the NIS."""
     for fb in (True, False):
-        tr, s = _tracker(nis_feedback=fb, accuracy_target="stated", sigma_range_ref_m=0.0)
+        pol, s = _tracker(nis_feedback=fb, accuracy_target="stated", sigma_range_ref_m=0.0)
         s.pp[:] = (0.25, 0.0, 0.0)
-        s.monitor.excess = 1.0
-        tr._bounds(s)
+        s.sensor.monitor.excess = 1.0
+        pol._bounds(s)
         base = s.smax6.copy()
         np.testing.assert_allclose(base, [0.002] * 3 + [math.radians(0.3)] * 3)
-        s.monitor.excess = 4.0
-        tr._bounds(s)
+        s.sensor.monitor.excess = 4.0
+        pol._bounds(s)
         np.testing.assert_allclose(s.smax6, base / 2.0 if fb else base, rtol=1e-12)
 
 
@@ -274,3 +275,26 @@ def test_range_law_is_normalised_by_its_own_mean():
     for g, e in ((0, 4.0 / 3.0), (1, 1.0)):
         assert ref.law_now(0.2, g) == pytest.approx(2.0 / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
         assert ref.law_now(0.4, g) == pytest.approx(2.0 * 2.0 ** (2 * e) / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
+
+
+def test_the_bound_brings_the_filters_mean_variance_to_the_fixed_cycles():
+    """``FixedCycleReference.balance``: the variance bound is multiplied by ``avg / live`` per
+    group (the fixed cycle's mean variance over the filter's own, same weights, traces), within
+    ``[1/4, 4]``: a filter whose mean is four times the reference's is held to a quarter of the
+    variance, one at half to twice. Catches the ratio inverted, taken per axis instead of per
+    group, or left out of the bound (a start-inflated mean then held for the whole run)."""
+    pol, v = _tracker(nis_feedback=False)
+    ref = v.sensor.ref
+    ref.start(np.eye(15) * 1e-6, 0)
+    v.pp[:] = (0.25, 0.0, 0.0)
+    ref.avg[:] = (1e-6, 2e-6, 3e-6, 1e-5, 1e-5, 2e-5)
+    ref.live[:] = ref.avg
+    pol._bounds(v)
+    base = v.smax6 ** 2
+    ref.live[:3] = (8e-6, 4e-6, 12e-6)          # trace 4x: a quarter
+    ref.live[3:] = (1e-5, 0.5e-5, 0.5e-5)        # trace 1/2: twice
+    pol._bounds(v)
+    np.testing.assert_allclose(v.smax6[:3] ** 2, base[:3] * 0.25, rtol=1e-12)
+    np.testing.assert_allclose(v.smax6[3:] ** 2, base[3:] * 2.0, rtol=1e-12)
+    ref.live[:3] = 1e-3                            # beyond the clamp
+    assert ref.balance(0) == 0.25 and ref.balance(1) == 2.0

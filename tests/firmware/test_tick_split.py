@@ -84,12 +84,12 @@ def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
     import numpy as np
 
     from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
+    from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation
     from coiltrack.firmware.estimate.single_coil import SchepersEKF
-    from coiltrack.firmware.track.single_coil_tracker import SingleCoilTracker
 
     calls = {"predict": 0, "limits": 0, "choose": 0, "update": 0}
-    real = {n: getattr(SingleCoilTracker, "_decide_" + n) for n in ("predict", "limits", "choose")}
-    real_update, real_eval = SchepersEKF.update_single_coil, SingleCoilModel.evaluate
+    real = {n: getattr(AdaptiveActuation, "_decide_" + n) for n in ("predict", "limits", "choose")}
+    real_update, real_eval = SchepersEKF.update_pulse, SingleCoilModel.evaluate
     seen = {"R": None, "mismatch": 0, "checked": 0, "phase": 0}
 
     def counted(name):
@@ -123,10 +123,10 @@ def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
     turn = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
 
     def on_tick(fw, t, before):
-        tr = fw.tracker
+        tr = fw.tracker.actuation
         if before:
             state.update(calls)
-            state["pulses"] = tr.pulses
+            state["pulses"] = tr.book.pulses
             return
         d = {n: calls[n] - state[n] for n in calls}
         if d["predict"] and tr._dec_phase:
@@ -138,24 +138,24 @@ def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
             stacked.append(t)
         if d["update"] and (d["predict"] or d["limits"] or d["choose"]):
             beside.append(t)
-        if d["choose"] and tr.pulses > state["pulses"]:
-            start = tr.next_free_us - tr.pulse_us - tr.gap_us
+        if d["choose"] and tr.book.pulses > state["pulses"]:
+            start = tr.book.next_free_us - tr.pulse_us - tr.gap_us
             if start != state.get("start") or start - t < tr.lead_us - 4 * fw.cfg.tick_us:
                 late.append((t, start, state.get("start")))
 
     for n in real:
-        setattr(SingleCoilTracker, "_decide_" + n, counted(n))
-    SchepersEKF.update_single_coil, SingleCoilModel.evaluate = update, evaluate
+        setattr(AdaptiveActuation, "_decide_" + n, counted(n))
+    SchepersEKF.update_pulse, SingleCoilModel.evaluate = update, evaluate
     try:
         fw = _run("schepers-adaptive", 3, 6_000_000, on_tick)
     finally:
         for n, f in real.items():
-            setattr(SingleCoilTracker, "_decide_" + n, f)
-        SchepersEKF.update_single_coil, SingleCoilModel.evaluate = real_update, real_eval
+            setattr(AdaptiveActuation, "_decide_" + n, f)
+        SchepersEKF.update_pulse, SingleCoilModel.evaluate = real_update, real_eval
     assert not stacked, f"two decision parts in one tick at {stacked[:5]}"
     assert not beside, f"a decision part beside an EKF update at {beside[:5]}"
     assert not late, f"pulse not commanded for its first tick's start: {late[:5]}"
-    assert calls["update"] > 30 and fw.tracker.pulses > 30 and calls["choose"] > 10
+    assert calls["update"] > 30 and fw.tracker.book.pulses > 30 and calls["choose"] > 10
     assert seen["checked"] >= 3 and seen["mismatch"] == 0
 
 

@@ -1,13 +1,18 @@
 """Energy against accuracy from ``coiltrack sweep --json`` files: the fixed cycles and the
 adaptive policy (README "Adaptive actuation", ``docs/adaptive.md``).
 
-    python -m coiltrack.tools.analyses.pareto SWEEP.json [SWEEP.json ...] [--png PATH] [--markdown]
+    python -m coiltrack.tools.analyses.pareto SWEEP.json [SWEEP.json ...] [--bound BOUND.json ...]
+        [--png PATH] [--markdown]
 
 Per grid point of every sweep: the median over its seeds of the position and orientation RMS,
 the coil energy and the charge drawn from the battery; a point is on the front when no other
 point has at most its energy and both RMS at most its own. For a sweep of an actuation-policy
 scenario (runs carrying ``fixed_*``), per grid point the worst seed's ratios to the fixed cycle
-of the same seed and the median and worst energy ratio: the issue's acceptance figures.
+of the same seed and the median and worst energy ratio: the issue's acceptance figures. With
+``--bound`` (``python -m coiltrack.tools.analyses.energy_bound --json``: the least energy per seed,
+a fraction of the fixed cycle's, e.g. one file for 60 ms pulses and one for chosen lengths), the
+per-seed energy ratios of every adaptive sweep beside each floor and their quotient, and a third
+panel of the figure with both on one plot.
 
 Exit status: 0 done; 2 a bad argument or an unreadable file (nothing written).
 """
@@ -53,6 +58,35 @@ def load(paths) -> list[dict]:
     return rows
 
 
+def load_bounds(paths) -> dict[str, dict[int, float]]:
+    """Per bound file (by its stem): seed -> least energy fraction of the fixed cycle."""
+    out = {}
+    for path in paths or ():
+        with open(path) as fh:
+            d = json.load(fh)
+        out[Path(path).stem] = {int(r["seed"]): float(r["energy_fraction"]) for r in d["seeds"]}
+    return out
+
+
+def bound_table(rows, bounds) -> str:
+    """Seed by seed: each floor, and each adaptive sweep's energy ratio and its quotient by each floor."""
+    acc = [r for r in rows if "per_seed" in r]
+    if not acc or not bounds:
+        return ""
+    head = "| seed | " + " | ".join(f"floor `{b}`" for b in bounds) + " | " + " | ".join(
+        f"`{label(r)}` energy / fixed (/ each floor)" for r in acc) + " |"
+    out = [head, "|" + " --- |" * (1 + len(bounds) + len(acc))]
+    seeds = sorted({s for r in acc for s, *_ in r["per_seed"]})
+    for s in seeds:
+        cells = [f"{bounds[b][s]:.3f}" if s in bounds[b] else "" for b in bounds]
+        for r in acc:
+            e = {x[0]: x[3] for x in r["per_seed"]}.get(s)
+            q = " / ".join(f"{e / bounds[b][s]:.2f}" for b in bounds if s in bounds[b]) if e is not None else ""
+            cells.append(f"{e:.3f} ({q})" if e is not None else "")
+        out.append(f"| {s} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def on_front(rows) -> None:
     for a in rows:
         a["front"] = not any(b is not a and b["coil_energy_j"] <= a["coil_energy_j"]
@@ -87,12 +121,25 @@ def markdown(rows) -> str:
     return "\n".join(out)
 
 
-def plot(rows, path: str) -> None:
+def plot(rows, path: str, bounds=None) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    acc = [r for r in rows if "per_seed" in r]
+    third = bool(acc)
+    fig, axes = plt.subplots(1, 3 if third else 2, figsize=(16 if third else 11, 4.2))
+    if third:
+        ax = axes[2]
+        for r in acc:
+            ax.plot([x[0] for x in r["per_seed"]], [x[3] for x in r["per_seed"]], "o-", label=label(r))
+        for b, per in (bounds or {}).items():
+            ks = sorted(per)
+            ax.plot(ks, [per[k] for k in ks], "k--" if "chosen" not in b else "k:", label=f"floor {b}")
+        ax.set_xlabel("seed")
+        ax.set_ylabel("coil energy / fixed cycle's")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
     for ax, key, unit in ((axes[0], "position_rms_mm", "mm"), (axes[1], "orientation_rms_deg", "deg")):
         for scen in sorted({r["series"] for r in rows}):         # one line per sweep file
             pts = sorted((r for r in rows if r["series"] == scen), key=lambda r: r["coil_energy_j"])
@@ -116,11 +163,13 @@ def plot(rows, path: str) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m coiltrack.tools.analyses.pareto", description=__doc__.split("\n\n")[0])
     p.add_argument("sweeps", nargs="+", help="coiltrack sweep --json files")
+    p.add_argument("--bound", action="append", help="energy_bound --json file (repeatable)")
     p.add_argument("--png", help="write the figure here")
     p.add_argument("--markdown", action="store_true", help="print the tables as markdown")
     a = p.parse_args(argv)
     try:
         rows = load(a.sweeps)
+        bounds = load_bounds(a.bound)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         print(f"pareto: cannot read the sweeps: {exc}", file=sys.stderr)
         return 2
@@ -129,11 +178,15 @@ def main(argv=None) -> int:
         return 2
     on_front(rows)
     print(markdown(rows))
+    table = bound_table(rows, bounds)
+    if table:
+        print()
+        print(table)
     for r in rows:
         if "per_seed" in r:
             print(f"{label(r)}: per seed (seed, position ratio, orientation ratio, energy ratio): {r['per_seed']}")
     if a.png:
-        plot(rows, a.png)
+        plot(rows, a.png, bounds)
         print(f"figure written to {a.png}")
     return 0
 

@@ -1,0 +1,442 @@
+"""The actuation policies of the single-coil mode: the fixed cycle, and Schepers' adaptive one.
+
+Schepers & Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``) sec. 2.1 and Fig. 1,
+as the actuate stage of the single-coil tracker (``track.single_coil_tracker``),
+chosen once at composition (``actuation = "adaptive"``: :class:`AdaptiveActuation`;
+the fixed cycle with ``single_coil_fusion``: :class:`FixedActuation`):
+
+* when: once per tick, when a pulse could start (``adaptive_lead_us`` ahead,
+  after the quiet gap the previous window needs), the pose covariance is
+  predicted for the instant that pulse would be measured, including the
+  effect of a pulse still in flight (eq 4 does not need its value); if a
+  position or orientation standard deviation would reach its ``sigma_max``
+  (or no update was made for ``adaptive_max_interval_us``) a pulse is due
+  (``coil_choice.ActuationPolicy``); a tick that has run an EKF update leaves
+  the decision to the next tick, for the same start (bounded tick);
+* which and how strong: the coil whose eq-4 update reduces the normalised
+  uncertainty most, at the smallest candidate current that brings the
+  triggering variable to its ``sigma_min``, within the driver limit, the
+  magnetometer range and the coils' duty (``coil_choice.CoilChooser``,
+  ``coil_choice.saturation_current_limit`` with the latest quiet field);
+* the accuracy held: the stated bounds, or the fixed cycle's own predicted
+  accuracy (``accuracy.fixed_cycle_bounds``), tightened by the NIS excess;
+* set/reset flips: about every 2 s no new pulse is decided until the
+  windows in flight are closed, then the sensors are told to flip in the gap.
+
+Both policies command through the ``single_coil_pulses.PulseBook`` and start
+the acquisition burst (``track.single_coil_acquire``) when a sensor has no
+pose. They read the tracker's sensors (``track.single_coil_sensor``) and act on
+them only through the tracker's methods (``reacquire``, ``forget``). All arrays
+are allocated here, at start-up.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from coiltrack.firmware.actuate.accuracy import fixed_cycle_bounds, nis_bound_factor
+from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, PoseCovUpdate,
+                                                    SingleCoilModel, current_ladder, saturation_current_limit)
+from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
+from coiltrack.firmware.estimate.layout import ORI, POS
+
+__all__ = ["FixedActuation", "AdaptiveActuation", "SensorOutlook"]
+
+
+class SensorOutlook:
+    """What a decision predicts for one sensor (owned by the policy)."""
+
+    def __init__(self, sensor):
+        self.sensor = sensor
+        self.P6 = np.zeros((POSE_DIM, POSE_DIM))
+        self.pp = np.zeros(3)
+        self.Rd = np.eye(3)                        # the orientation a decision was made at
+        self.quiet = np.zeros(3)
+        self.have_quiet = False
+        self.smax6 = np.zeros(POSE_DIM)            # the bounds of the latest decision (m, rad)
+        self.smin6 = np.zeros(POSE_DIM)
+
+
+class _SingleCoilActuation:
+    """What both policies share: acquisition and loss, the fixed cycle, the flips.
+
+    ``host``: the tracker (``reacquire(sensor)``, ``forget(sensor, now_us)``,
+    ``updated_us``: the tick of its last EKF update); ``book``: the pulses; ``acquisition``:
+    the burst that starts a sensor's filter."""
+
+    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths):
+        self.cfg = cfg
+        self.n = n_coils = len(coils)
+        self._sens = tuple(sensors)
+        self.book = book
+        self.acq = acquisition
+        self.supervisor = supervisor
+        self.tx = tx
+        self.host = host
+        #: the pulse lengths (``pulse_length.PulseLengths``); the longest bounds the timing checks
+        self.lengths = lengths
+        self.pulse_us = lengths.longest()
+        self.lead_us = cfg.adaptive_lead_us
+        self.nominal = np.array([c.current for c in cfg.coils])
+        self.cycle = FixedCycle(n_coils, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us,
+                                self.lead_us)
+        self._warming = False            # the fixed cycle after a start (``reference_warmup_us``)
+        self._held_start = -1            # the start a decision put off to the next tick keeps
+        self._dec_phase = 0              # the decision's next part (0: none in progress)
+        self.no_current = 0              # decisions no coil could carry
+
+    # ------------------------------------------------------------ the stage
+    def step(self, now_us: int) -> None:
+        """Decide the next pulse, and the flips."""
+        self._decide(now_us)
+        self._flip(now_us)
+
+    def _decide(self, now_us: int) -> None:
+        if self._dec_phase:
+            self._resume()
+            return
+        cfg = self.cfg
+        held = self._held_start
+        self._held_start = -1
+        if self.acq.active:
+            return
+        need_acq = False
+        for s in self._sens:
+            if not s.ekf.initialized:
+                need_acq = True
+        if need_acq:
+            if self.book.n_active() == 0:
+                self.acq.try_start(now_us)
+            return
+        # lost: an uncertainty beyond any use, or no usable pulse for a long time
+        big = cfg.acquire_sigma_m * cfg.acquire_sigma_m
+        for s in self._sens:
+            P = s.ekf.P
+            b = POS.start
+            if (P[b, b] > big or P[b + 1, b + 1] > big or P[b + 2, b + 2] > big
+                    or now_us - s.last_update_us > 4 * cfg.adaptive_max_interval_us):
+                self.host.reacquire(s)
+                return
+        if self.book.n_active() >= 2:
+            return
+        # after a start the fixed cycle itself, for reference_warmup_us (accuracy_target "fixed"):
+        # its full-current pulses of every coil, while the errors are too large for eq 4
+        self._warming = False
+        for s in self._sens:
+            if s.ref is not None and s.ref.active and now_us - s.ref_start_us < cfg.reference_warmup_us:
+                self._warming = True
+        self._decide_own(now_us, held)
+
+    def _resume(self) -> None:
+        """The next part of a decision spread over ticks (none in the fixed cycle)."""
+        self._dec_phase = 0
+
+    def _decide_own(self, now_us: int, held: int) -> None:
+        raise NotImplementedError
+
+    def _follows_cycle(self) -> bool:
+        """Whether the fixed cycle's pulses are being commanded (the flips then fit between them)."""
+        return True
+
+    def _decide_fixed(self, now_us: int) -> None:
+        """The fixed X, Y, Z cycle, each pulse commanded ``adaptive_lead_us``
+        before its start and used as a single-coil update."""
+        cyc = self.cycle
+        if not cyc.due(now_us):
+            return
+        start = cyc.start_us()
+        if start >= now_us + self.cfg.tick_us:
+            j = cyc.coil
+            self.book.command(j, float(self.nominal[j]), start, cyc.pulse_us, False)
+        cyc.advance(now_us)      # a cycle that could not be scheduled in time is skipped
+
+    def _flip(self, now_us: int) -> None:
+        """Set/reset flips outside every pulse window (thesis sec 5.5, 7.2).
+
+        Pulses are decided just in time, so there is no planned quiet gap as
+        in the fixed cycle: every ``flip_every_us`` no new pulse is decided
+        until those in flight are closed, then the sensors are told to flip
+        a few milliseconds ahead and the next pulse may not start before that
+        flip's trailing baseline has passed. The command also keeps the
+        sensors from flipping on their own (which could land in a window)."""
+        book = self.book
+        if now_us - book.last_flip_cmd_us < self.cfg.flip_every_us or book.n_active() or self._dec_phase:
+            return
+        cfg = self.cfg
+        fl = self.supervisor.flips
+        t0 = now_us + 1_000
+        if self._follows_cycle() and not self.acq.active:
+            nxt = self.cycle.start_us()
+            if nxt - cfg.baseline_us - 2 * cfg.guard_us < t0 + fl.min_gap_us:
+                return
+        fl.plan(now_us, t0, t0 + fl.min_gap_us, self.tx.send)
+        at = fl.last_at_us
+        book.hold_until(at + cfg.baseline_us + cfg.guard_us + cfg.guard_us)
+        book.note_flip(now_us)
+
+
+class FixedActuation(_SingleCoilActuation):
+    """The fixed X, Y, Z cycle at the nominal currents (``cycle_us``, ``spacing_us``,
+    ``pulse_us``), each pulse a single-coil update (``single_coil_fusion``)."""
+
+    def _decide_own(self, now_us: int, held: int) -> None:
+        self._decide_fixed(now_us)
+
+
+class AdaptiveActuation(_SingleCoilActuation):
+    """Schepers' policy: a pulse when the predicted uncertainty would reach its bound, the coil
+    that reduces it most, the current that brings it to ``sigma_min`` (module docstring).
+
+    ``lengths`` (``pulse_length.PulseLengths``): one length (``pulse_length = "fixed"``), or
+    the lengths the chooser weighs against the current (``"chosen"``: ``CoilChooser.choose_length``),
+    their starts aligned to the sensor's sample clock."""
+
+    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths):
+        super().__init__(cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths)
+        n = self.n
+        self.pmodel = SingleCoilModel(coils, cfg.field_model)      # decisions
+        d2r = math.pi / 180.0
+        smax = (cfg.sigma_max_pos_m,) * 3 + (cfg.sigma_max_ori_deg * d2r,) * 3
+        smin = (cfg.sigma_min_pos_m,) * 3 + (cfg.sigma_min_ori_deg * d2r,) * 3
+        currents = cfg.adaptive_currents_a or current_ladder(
+            min(cfg.adaptive_min_current_a, cfg.adaptive_max_current_a), cfg.adaptive_max_current_a,
+            cfg.adaptive_current_levels)
+        trace = cfg.bound_on == "trace"
+        self.chooser = CoilChooser(n, currents, smax, smin, cfg.field_model_rel_sigma, cfg.current_tolerance_a,
+                                   trace)
+        self.policy = ActuationPolicy(smax, cfg.adaptive_max_interval_us, trace)
+        self.pending_update = PoseCovUpdate()
+        self.var_amp = lengths.var_amp[-1]
+        self.mid_us = lengths.mid_us[-1]
+        self._vars = [0.0] * lengths.n        # the lengths' amplitude variances, inflated
+        self.gap_us = cfg.fall_us + cfg.baseline_us + cfg.guard_us
+        self.views = tuple(SensorOutlook(s) for s in self._sens)
+        self._lim = np.zeros(n)
+        self._zero3 = np.zeros(3)
+        self._decided_stamp = -1
+        self._decided_us = 0
+        self._dec_start = 0
+        self._dec_ws: SensorOutlook | None = None
+        self._dec_var = 0.0
+        self._pm_for = None              # the sensor pmodel was last evaluated for, in this decision
+
+    def _follows_cycle(self) -> bool:
+        return self._warming
+
+    def _resume(self) -> None:
+        if self._dec_phase == 1:
+            self._decide_limits()
+        else:
+            self._decide_choose()
+
+    def _decide_own(self, now_us: int, held: int) -> None:
+        cfg = self.cfg
+        book = self.book
+        if self._warming:
+            n0 = book.pulses
+            self._decide_fixed(now_us)
+            if book.pulses != n0 or book.n_active() >= 2:
+                return
+            # between the cycle's pulses, a pulse on demand only where the filter is far behind the
+            # fixed cycle's present covariance (see _bounds), ending before the cycle's next pulse
+        elif now_us - book.last_flip_cmd_us >= cfg.flip_every_us:
+            return      # a flip is due: let the pulses in flight close first (see _flip)
+        start = max(now_us + self.lead_us, book.next_free_us)
+        if held >= 0:           # put off from the last tick: the start it had (lead less one tick)
+            start = max(held, book.next_free_us, now_us + cfg.tick_us)
+        if start - now_us > self.lead_us + cfg.tick_us:
+            return
+        if self._warming and start + self.pulse_us + self.gap_us + cfg.tick_us > self.cycle.start_us():
+            return
+        # the prediction changes only when an IMU sample (or an update) has moved a filter
+        stamp = 0
+        for s in self._sens:
+            stamp += s.stamp()
+        if stamp == self._decided_stamp and now_us - self._decided_us < cfg.decision_refresh_us:
+            return
+        if self.host.updated_us == now_us and held < 0 and start - now_us > 2 * cfg.tick_us:
+            # bounded tick: this tick has run an EKF update (the heaviest matrix work of the mode);
+            # the decision (a prediction per sensor and pulse in flight, the coil choice) runs in
+            # the next one, for the same start
+            self._held_start = start
+            return
+        self._decided_stamp = stamp
+        self._decided_us = now_us
+        if self.lengths.aligned:
+            ring = self._sens[0].track.ring
+            if len(ring):
+                start = self.lengths.align(start, ring.latest_t_us)
+        self._decide_predict(start, now_us)
+
+    # A decision runs in three ticks (bounded tick): the prediction at the measurement time
+    # (``_decide_predict``), the current limits (``_decide_limits``) and the coil choice with its
+    # command (``_decide_choose``). The first reads everything the others use of the filters
+    # (covariance, orientation, quiet sample, NIS verdict) in its own tick, so the decision is the
+    # one a single tick would make; its command leaves two ticks later, for the same start
+    # (``adaptive_lead_us`` ahead). No flip and no other decision runs in between.
+    def _decide_predict(self, start: int, now_us: int) -> None:
+        """Predicted covariance at the measurement time, with the pulses in flight; which sensor
+        is worst off, and whether a pulse is due."""
+        cfg = self.cfg
+        t_m = start + self.mid_us
+        self._pm_for = None
+        worst = -1.0
+        ws = None
+        due = False
+        for v in self.views:
+            s = v.sensor
+            ekf = s.ekf
+            np.copyto(v.Rd, ekf.R)
+            ekf.predict_pose(t_m - (ekf.t_us if ekf.t_us is not None else now_us), v.P6, v.pp)
+            self._bounds(v)
+            self.policy.set_bounds(v.smax6)
+            for sl in self.book.slots:
+                if sl.active and not sl.acq:
+                    self._model_at(v)
+                    var = self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)]
+                    self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
+                                              var * s.monitor.r_scale,
+                                              cfg.field_model_rel_sigma, cfg.current_tolerance_a)
+            if self.policy.due(v.P6, now_us, s.last_update_us):
+                due = True
+            u = self.policy.worst(v.P6)
+            if u > worst:
+                worst = u
+                ws = v
+        if not due or ws is None:
+            return
+        for v in self.views:
+            self._refresh_quiet(v)
+        # the expected amplitude variance, inflated while the pulses prove inconsistent
+        self.host.forget(ws.sensor, now_us)
+        self._dec_var = self.var_amp * ws.sensor.monitor.r_scale
+        for k in range(self.lengths.n):
+            self._vars[k] = self.lengths.var_amp[k] * ws.sensor.monitor.r_scale
+        self._dec_ws = ws
+        self._dec_start = start
+        self._dec_phase = 1
+
+    def _decide_limits(self) -> None:
+        """Current limits: the driver's, every sensor's magnetometer range, the coils' duty."""
+        cfg = self.cfg
+        lim = self._lim
+        lim.fill(cfg.adaptive_max_current_a)
+        for v in self.views:
+            self._model_at(v)
+            # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
+            r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
+            sp = math.sqrt(max(float(v.P6[0, 0] + v.P6[1, 1] + v.P6[2, 2]), 0.0))
+            gain = (r / max(r - cfg.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
+            for c in range(self.n):
+                if v.have_quiet:
+                    i = saturation_current_limit(self.pmodel.h[c], v.quiet, cfg.mag_range_t,
+                                                 cfg.saturation_margin, gain)
+                else:       # no quiet sample yet: assume the largest earth field on every axis
+                    i = saturation_current_limit(self.pmodel.h[c], self._zero3,
+                                                 cfg.mag_range_t - cfg.earth_field_max_t / cfg.saturation_margin,
+                                                 cfg.saturation_margin, gain)
+                if i < lim[c]:
+                    lim[c] = i
+        for c in range(self.n):
+            if not self.book.duty_ok(c, self._dec_start, self.pulse_us):
+                lim[c] = 0.0
+        ws = self._dec_ws
+        self._model_at(ws)
+        self.policy.set_bounds(ws.smax6)
+        self.chooser.set_bounds(ws.smax6, ws.smin6)
+        self._dec_phase = 2
+
+    def _decide_choose(self) -> None:
+        """The coil and current of the pulse (``actuate.coil_choice``), and its command."""
+        self._dec_phase = 0
+        ws = self._dec_ws
+        L = self.lengths
+        if L.n == 1:
+            coil = self.chooser.choose(ws.P6, self.pmodel, self._dec_var, self._lim)
+        else:
+            coil = self.chooser.choose_length(ws.P6, self.pmodel, self._vars, L.lengths_us, self._lim)
+        if coil < 0:
+            self.no_current += 1
+            return
+        k = self.chooser.length if L.n > 1 else 0
+        self.book.command(coil, self.chooser.current, self._dec_start, L.lengths_us[k], False,
+                          L.mid_us[k] if L.n > 1 else -1)
+
+    def _model_at(self, v: SensorOutlook) -> None:
+        """``pmodel`` at the predicted pose (``v.pp``, and ``v.Rd``: the filter's orientation in
+        the decision's first tick), evaluated once per decision and sensor: nothing in a decision
+        moves the pose it is evaluated at (3 coil field evaluations saved per pulse in flight
+        and per decision)."""
+        if self._pm_for is not v:
+            self.pmodel.evaluate(v.pp, v.Rd)
+            self._pm_for = v
+
+    def _bounds(self, v: SensorOutlook) -> None:
+        """The bounds (``v.smax6``, ``v.smin6``; m, rad) the decision holds for a sensor at its
+        predicted position ``v.pp``.
+
+        ``accuracy_target = "stated"``: ``sigma_max_*`` and ``sigma_min_*``, scaled as
+        ``(r / sigma_range_ref_m)^exp`` when ``sigma_range_ref_m`` > 0. ``"fixed"``: from the
+        fixed cycle's predicted mean variance (``accuracy.fixed_cycle_bounds``; the stated
+        bounds until the reference has started). With ``nis_feedback`` the variance bounds are
+        then divided by the NIS excess (``accuracy.nis_bound_factor``): the accuracy is asked
+        of the errors, not of the covariance."""
+        cfg = self.cfg
+        s = v.sensor
+        mx, mn = v.smax6, v.smin6
+        if s.ref is not None and s.ref.active:
+            ref = s.ref
+            r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
+            fixed_cycle_bounds(ref.avg, cfg.fixed_accuracy_ratio, cfg.adaptive_min_ratio, mx, mn,
+                               ref.law_now(r, 0) * ref.balance(0), ref.law_now(r, 1) * ref.balance(1))
+            if self._warming:
+                # the fixed cycle runs; a pulse between its pulses only when the filter's variance
+                # would pass reference_catchup times the fixed cycle's present one
+                Pr = ref.P
+                k2 = cfg.reference_catchup * cfg.fixed_accuracy_ratio ** 2
+                for k, i in ((0, POS.start), (1, POS.start + 1), (2, POS.start + 2),
+                             (3, ORI.start), (4, ORI.start + 1), (5, ORI.start + 2)):
+                    x = float(Pr[i, i]) * k2
+                    mx[k] = math.sqrt(x) if x > 0.0 else 0.0
+                    mn[k] = cfg.adaptive_min_ratio * float(mx[k])
+        else:
+            self._stated_bounds(v)
+        if cfg.nis_feedback:
+            f = math.sqrt(nis_bound_factor(s.monitor.excess, cfg.nis_feedback_max))
+            if f != 1.0:
+                for k in range(POSE_DIM):
+                    mx[k] = float(mx[k]) / f
+                    mn[k] = float(mn[k]) / f
+
+    def _stated_bounds(self, v: SensorOutlook) -> None:
+        """``sigma_max_*``, ``sigma_min_*``, scaled by ``(r / sigma_range_ref_m)^exp`` when set."""
+        cfg = self.cfg
+        sp = so = 1.0
+        if cfg.sigma_range_ref_m > 0.0:
+            r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
+            x = max(r, 1e-3) / cfg.sigma_range_ref_m
+            sp = x ** cfg.sigma_range_exp_pos
+            so = x ** cfg.sigma_range_exp_ori
+        d2r = math.pi / 180.0
+        mx, mn = v.smax6, v.smin6
+        for k in range(3):
+            mx[k] = cfg.sigma_max_pos_m * sp
+            mn[k] = cfg.sigma_min_pos_m * sp
+            mx[3 + k] = cfg.sigma_max_ori_deg * d2r * so
+            mn[3 + k] = cfg.sigma_min_ori_deg * d2r * so
+
+    def _refresh_quiet(self, v: SensorOutlook) -> None:
+        """The newest magnetometer sample, if no pulse was on when it was taken."""
+        ring = v.sensor.track.ring
+        nn = len(ring)
+        if nn == 0:
+            return
+        last = self.book.last_pulse_us if self.lengths.n > 1 else self.pulse_us
+        if not self.book.quiet_at(ring.latest_t_us, last):
+            return
+        p = ring.slot(nn - 1)
+        v.quiet[0] = ring.b[p, 0]
+        v.quiet[1] = ring.b[p, 1]
+        v.quiet[2] = ring.b[p, 2]
+        v.have_quiet = True

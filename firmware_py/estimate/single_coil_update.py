@@ -1,0 +1,198 @@
+"""The iterated single-coil update of the error-state EKF (``single_coil.SchepersEKF``).
+
+Schepers & Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``): a magnetic update
+takes the pulse of ONE source coil, ``y = I R^T B_c(p) + v`` (eq 5, field eqs
+6-8), linearised with eqs 9-11, and corrects the error state with eq 4; the
+linearisation error grows near the source (sec. 3.2). :class:`CoilMeasurement`
+is the value one pulse hands the filter (amplitude, its variances, coil,
+current, model error, the monitor's inflation, the gate);
+:class:`SingleCoilUpdate` owns the buffers of the update and runs it on the
+covariance its filter passes in (as ``ekf.KalmanUpdate.update`` does), leaving
+the error estimate in ``dx`` for the filter to inject. All arrays are
+allocated in ``__init__``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
+from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
+
+__all__ = ["CoilMeasurement", "SingleCoilUpdate"]
+
+#: margin on the linearisation error: the second-order term of an r^-3 field is 6 (d/r)^2
+#: h; the iterated update removes most of it, 2 (sigma/r)^2 |h| is kept as a margin
+_LIN_K = 2.0
+
+
+class CoilMeasurement:
+    """One pulse's amplitude as the filter takes it (a value object: its owner fills one
+    preallocated instance per pulse, so the tick allocates nothing).
+
+    ``y`` (3,) amplitude, T, sensor frame; ``var`` (3,) its variances, T^2; ``coil``;
+    ``current`` A; ``rel_model``: relative error of the predicted field (model and current,
+    ``R += (rel_model |h|)^2``); ``r_scale``: the NIS monitor's inflation of the whole
+    covariance; ``gate``: whether the chi-square gate applies (false once the monitor has
+    judged the pulses inconsistent and inflated ``R``)."""
+
+    __slots__ = ("y", "var", "coil", "current", "rel_model", "r_scale", "gate")
+
+    def __init__(self, y=None, var=None, coil: int = 0, current: float = 0.0, rel_model: float = 0.0,
+                 r_scale: float = 1.0, gate: bool = True):
+        self.y = np.zeros(3) if y is None else y
+        self.var = np.zeros(3) if var is None else var
+        self.coil = int(coil)
+        self.current = float(current)
+        self.rel_model = float(rel_model)
+        self.r_scale = float(r_scale)
+        self.gate = bool(gate)
+
+    def set(self, y, var, coil: int, current: float, rel_model: float, r_scale: float, gate: bool):
+        """Refill in place (the arrays are referenced, not copied); returns itself."""
+        self.y = y
+        self.var = var
+        self.coil = coil
+        self.current = current
+        self.rel_model = rel_model
+        self.r_scale = r_scale
+        self.gate = gate
+        return self
+
+
+class SingleCoilUpdate:
+    """The buffers and the passes of the iterated single-coil update over ``nx`` states."""
+
+    def __init__(self, nx: int, gate_probability: float, iterations: int):
+        self.nx = int(nx)
+        self.iterations = max(1, int(iterations))
+        self.upd = KalmanUpdate(nx, 3, gate_probability)
+        self._PHt = np.zeros((nx, 3))
+        self._S = np.zeros((3, 3))
+        self.y_pred = np.zeros(3)
+        self.nis = 0.0
+        self.nis_nominal = 0.0
+        self._P0 = np.zeros((nx, nx))
+        self._Pprev = np.zeros((nx, nx))
+        self.dx = np.zeros(nx)
+        self._pi = np.zeros(3)
+        self._Ri = np.eye(3)
+        self._Hdx = np.zeros(3)
+        self._dR = np.eye(3)
+        self._k0 = np.zeros(())
+
+    def _noise(self, P, p, cp, m: CoilMeasurement, model) -> tuple[float, float]:
+        """The measurement covariance from the prior into ``upd.R`` (amplitude variances, the
+        field-model error, the linearisation margin of Schepers sec. 3.2); returns ``|h|^2``
+        and the squared distance to the coil."""
+        yp = self.y_pred
+        hn2 = float(yp[0] * yp[0] + yp[1] * yp[1] + yp[2] * yp[2])
+        b = cp.start
+        sp2 = max(float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]))
+        c = model.cs.centers[m.coil]
+        ddx, ddy, ddz = float(p[0] - c[0]), float(p[1] - c[1]), float(p[2] - c[2])
+        r2 = max(ddx * ddx + ddy * ddy + ddz * ddz, 1e-6)
+        lin = _LIN_K * sp2 / r2
+        extra = (m.rel_model * m.rel_model + lin * lin) * hn2
+        Rm = self.upd.R
+        Rm.fill(0.0)
+        for i in range(3):
+            Rm[i, i] = float(m.var[i]) + extra
+        return hn2, r2
+
+    def _pass(self, it: int, P, cp, co, m: CoilMeasurement, model) -> int:
+        """One pass through the shared ``KalmanUpdate``: the pseudo-innovation
+        ``y - h(x_i) + H_i dx_i``; the first pass also gives the nominal NIS (unscaled R)."""
+        upd = self.upd
+        H = upd.H
+        cur = self._k0
+        Hu = model.H[m.coil]
+        H.fill(0.0)
+        np.multiply(Hu[:, 0:3], cur, out=H[:, cp])
+        np.multiply(Hu[:, 3:6], cur, out=H[:, co])
+        np.subtract(m.y, self.y_pred, out=upd.y)
+        if it:
+            np.matmul(H, self.dx, out=self._Hdx)
+            upd.y += self._Hdx
+        else:
+            np.matmul(P, upd._Ht, out=self._PHt)
+            np.matmul(H, self._PHt, out=self._S)
+            self._S += upd.R
+            self.nis_nominal = _nis3(self._S, upd.y)
+            if m.r_scale != 1.0:
+                for i in range(3):
+                    upd.R[i, i] *= m.r_scale
+        keep = upd.gate
+        if it or not m.gate:
+            upd.gate = math.inf          # the gate belongs to the first pass
+        if it:
+            P[:] = self._P0
+        f = upd.update(P)
+        upd.gate = keep
+        return f
+
+    def run(self, P, p, R, cp, co, m: CoilMeasurement, model) -> int:
+        """Run the update of ``m`` on the covariance ``P`` (corrected in place), linearised at
+        the pose ``(p, R)`` whose error rows are ``cp``, ``co``. Returns the ``ekf.EKF_*``
+        flags of the first pass; the error estimate is left in :attr:`dx` unless that pass
+        was gated or failed.
+
+        Iterated update (``iterations`` > 1): the measurement is relinearised at the
+        corrected clone pose, ``dx_{i+1} = K_i (y - h(x_i) + H_i dx_i)`` (Gauss-Newton on
+        the eq-4 cost), each pass from the prior covariance; the last pass gives the
+        covariance. A second pass is made only when the first correction changes ``h``
+        through its second-order term (``6 (dp/r)^2 |h|``, Schepers sec. 3.2) by more than
+        a tenth of the amplitude noise (after an acquisition, not while tracking)."""
+        model.evaluate(p, R)
+        self._k0[()] = m.current
+        np.multiply(model.h[m.coil], self._k0, out=self.y_pred)
+        hn2, r2 = self._noise(P, p, cp, m, model)
+        self._P0[:] = P
+        dx = self.dx
+        dx.fill(0.0)
+        pi, Ri = self._pi, self._Ri
+        pi[:] = p
+        Ri[:] = R
+        flags = 0
+        upd = self.upd
+        for it in range(self.iterations):
+            if it:
+                model.evaluate(pi, Ri)
+                np.multiply(model.h[m.coil], self._k0, out=self.y_pred)
+            f = self._pass(it, P, cp, co, m, model)
+            if it == 0:
+                flags = f
+                self.nis = upd.nis
+                if f & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
+                    return f
+            elif f & (EKF_NOT_PD | EKF_NONFINITE):
+                P[:] = self._Pprev           # keep the previous pass
+                break
+            b = cp.start
+            step = max(abs(float(upd.dx[b + i]) - float(dx[b + i])) for i in range(3))
+            dx[:] = upd.dx
+            if it == 0:
+                dp2 = float(dx[b] * dx[b] + dx[b + 1] * dx[b + 1] + dx[b + 2] * dx[b + 2])
+                so = 6.0 * dp2 / r2
+                noise2 = float(m.var[0] + m.var[1] + m.var[2]) / 3.0
+                if so * so * hn2 < 0.01 * noise2:
+                    break
+            if it + 1 < self.iterations:
+                self._Pprev[:] = P
+                np.add(p, dx[cp], out=pi)          # next linearisation point: the corrected pose
+                o = co.start
+                exp_rotvec(float(dx[o]), float(dx[o + 1]), float(dx[o + 2]), self._dR)
+                np.matmul(R, self._dR, out=Ri)
+                if step < 1e-6:
+                    break
+        return flags
+
+
+def _nis3(S, r) -> float:
+    """``r^T S^-1 r`` for a symmetric 3x3 ``S`` (inf if not positive definite)."""
+    inv = inv3_sym(float(S[0, 0]), float(S[0, 1]), float(S[0, 2]),
+                   float(S[1, 1]), float(S[1, 2]), float(S[2, 2]))
+    if inv is None:
+        return math.inf
+    return quad3_sym(inv, float(r[0]), float(r[1]), float(r[2]))
