@@ -235,6 +235,7 @@ class Receiver:
             elif mid == _IMU:
                 if _clipped(msg):
                     self.imu_saturated += 1     # the sensor's full scale, not the motion: not used
+                    sup.on_imu_saturated(msg.node, now_us)
                 else:
                     self._on_imu(msg, now_us)
             elif mid == _COIL_STATUS:
@@ -311,6 +312,7 @@ class Receiver:
             # above still anchor the next pair)
             self.imu_saturated_pairs += 1
             self.imu_saturated += n
+            self.supervisor.on_imu_saturated(msg.node, now_us)
             return 0
         r = self._imu
         r.node = msg.node

@@ -29,6 +29,13 @@ Per node (the coil driver and every sensor of the configuration):
 * **Saturation.** A sample with the saturated bit raises ``EVT_SATURATION``
   (at most once per ``saturation_quiet_us``); the pulse extractor flags the
   windows (``POSE_SATURATED``).
+* **IMU saturation.** An IMU sample (or an ``IMU_DELTA`` interval) clipped at
+  the sensor's full scale is not used (``firmware.receive``); the receiver
+  tells :meth:`Health.on_imu_saturated`, which raises ``EVT_SATURATION``
+  with detail ``node | IMU_SATURATION`` once per episode: the first clipped
+  sample after ``saturation_quiet_us`` without one (a fast swing clips a few
+  samples in a row; a hardware fault or a part past its range clips on and
+  on: one event either way, the count in ``imu_saturated_samples``).
 * **Magnetic distortion** (metal near the sensor). Between pulses a sensor
   sees the earth field alone, whose magnitude does not depend on the
   sensor's position or orientation in an undisturbed field (thesis ``002``
@@ -69,6 +76,8 @@ _EVENTS = 32          # pending events
 _NONE = -(1 << 62)
 _OPEN = 1 << 62
 _SAME_STEP_US = 2_000_000   # an anomaly this soon after a suspect interval closed is the same step
+#: EVT_SATURATION detail bit: the node's IMU clipped (without it: its magnetometer)
+IMU_SATURATION = 1 << 8
 
 
 @dataclass(frozen=True)
@@ -116,6 +125,9 @@ class Health:
         self.last_sat_us = [_NONE] * n
         self.saturated_samples = 0
         self.saturation_events = 0
+        self.last_imu_sat_us = [_NONE] * (n + 1)       # the last slot: an IMU of another node (the source's)
+        self.imu_saturated_samples = 0
+        self.imu_saturation_events = 0
         # distortion
         self.ref_sum = [0.0] * (2 * n)
         self.ref_n = [0] * (2 * n)
@@ -270,6 +282,16 @@ class Health:
         elif self.distorted[i] and not now_dist:
             self.distorted[i] = False
             self._event(EVT_DISTORTION, node | (1 << 31))
+
+    def on_imu_saturated(self, node: int, now_us: int) -> None:
+        """An IMU sample of ``node`` clipped (received at ``now_us``): ``EVT_SATURATION`` with
+        detail ``node | IMU_SATURATION`` at the first of an episode (module docstring)."""
+        i = self._slot.get(node, len(self.ids))
+        self.imu_saturated_samples += 1
+        if now_us - self.last_imu_sat_us[i] > self.hcfg.saturation_quiet_us:
+            self.imu_saturation_events += 1
+            self._event(EVT_SATURATION, node | IMU_SATURATION)
+        self.last_imu_sat_us[i] = now_us
 
     # ------------------------------------------------------------ clock steps
     def _open_suspect(self, i: int, t0: int, how: int) -> None:

@@ -119,6 +119,10 @@ class Supervisor:
         its ``COIL_FAULT_*`` bits; ``AC_DRIVE_STATUS`` of AC excitation)."""
         self.health.on_coil_status(coil, faults)
 
+    def on_imu_saturated(self, node: int, now_us: int) -> None:
+        """An IMU sample of ``node`` clipped at full scale (the receiver does not use it)."""
+        self.health.on_imu_saturated(node, now_us)
+
     def _quiet(self, t_us: int) -> bool:
         ps, pe, m = self._ps, self._pe, self._margin
         for j in range(self.n):

@@ -70,8 +70,14 @@ class _Tracker:
 
 
 class _Quiet:
+    def __init__(self):
+        self.imu_saturated = []
+
     def on_message(self, msg, now_us):
         pass
+
+    def on_imu_saturated(self, node, now_us):
+        self.imu_saturated.append((node, now_us))
 
     def on_status(self, msg):
         pass
@@ -253,6 +259,8 @@ def test_the_receiver_uses_a_sample_within_range_and_skips_a_clipped_pair():
         port.buf = b
         rx.step(t + 1000)
     assert rx.imu_saturated_pairs == 1 and rx.imu_saturated == 1 + 10
+    # the supervisor heard of each: the clipped sample at its arrival, the saturated pair once
+    assert rx.supervisor.imu_saturated == [(16, 3000), (16, 201_000)]
     assert len(tracker.imu) == 10
     for t, ax, ay, az, gx, gy, gz in tracker.imu:
         assert 200_000 < t < 300_000
@@ -275,3 +283,28 @@ def test_fast_magnetometer_flags_every_clipped_sample():
             assert (counts[:, 0] == code).all()
         else:
             assert (counts[:, 0] == 131072 + round(7e-4 / m.lsb_t)).all()
+
+
+def test_imu_saturation_is_reported_once_per_episode():
+    """``Health.on_imu_saturated``: the first clipped IMU sample raises EVT_SATURATION with
+    detail ``node | IMU_SATURATION`` (bit 8: not the magnetometer's, whose detail is the node
+    alone); the next ones within ``saturation_quiet_us`` (1 s) of the one before are the same
+    episode (a 3 s stretch clipped at 100 Hz: one event, 300 samples counted); a clip 1.2 s after
+    the last starts a new one. An IMU of a node outside the sensors (the source's) is reported
+    too. Catches an event per sample
+    (300), none at all, or an IMU clip reported as the magnetometer's."""
+    from coiltrack.firmware.supervise.health import IMU_SATURATION, Health
+    from coiltrack.protocol.schema import EVT_SATURATION
+
+    h = Health([16], 1, 100.0)
+    got = []
+    for t in range(1_000_000, 4_000_000, 10_000):
+        h.on_imu_saturated(16, t)
+    h.on_imu_saturated(16, 3_990_000 + 1_200_000)
+    h.on_imu_saturated(40, 5_500_000)           # the source's IMU
+    h.on_imu_saturated(40, 5_600_000)
+    h.flush_events(lambda code, detail: got.append((code, detail)))
+    assert IMU_SATURATION == 1 << 8
+    assert got == [(EVT_SATURATION, 16 | IMU_SATURATION)] * 2 + [(EVT_SATURATION, 40 | IMU_SATURATION)]
+    assert h.imu_saturated_samples == 300 + 1 + 2 and h.imu_saturation_events == 3
+    assert h.saturation_events == 0             # the magnetometer's count is its own

@@ -103,8 +103,10 @@ def _setup(args):
 
 
 def _run(args, sc, duration, cfg, faults, outputs) -> dict:
+    from ..bench.recovery import TraceKeeper, add_recovery_reference, needs_reference, reference_trace
     from ..bench.runner import add_fixed_comparison, run_inproc
 
+    outputs = keep = TraceKeeper(outputs)   # the fused error trace, for the recovery against a no-fault run
     if args.transport in ("inproc", "can"):
         rep = run_inproc(sc, args.seed, duration, faults=faults, progress=not args.quiet, cfg=cfg,
                          transport=args.transport, log_path=args.log, outputs=outputs)
@@ -120,6 +122,10 @@ def _run(args, sc, duration, cfg, faults, outputs) -> dict:
         from ..scenarios.imperfect import add_imperfect_comparison
 
         add_imperfect_comparison(rep, sc, args.seed, duration, cfg=cfg, faults=faults, transport=args.transport)
+        # timed faults: each one's recovery against the same run without them (tools.bench.recovery)
+        if needs_reference(faults) and keep.trace is not None:
+            ref = reference_trace(sc, args.seed, duration, faults=faults, cfg=cfg, transport=args.transport)
+            add_recovery_reference(rep, keep.trace, faults, ref)
     except Stopped as exc:
         raise mark(rep, exc) from None
     return rep

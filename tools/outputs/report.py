@@ -358,8 +358,8 @@ def format_table(rep: dict) -> str:
         ev = fl["reported"]["events"]
         rows.append(("faults reported", ", ".join(f"{k} x{v}" for k, v in sorted(ev.items())) or "-"))
         if rep.get("fault_recovery_s"):
-            rows.append(("fault recovery", ", ".join(f"{k} {'-' if v is None else f'{v:g} s'}"
-                                                     for k, v in rep["fault_recovery_s"].items())))
+            rows.append(("fault recovery", ", ".join(f"{k} {'-' if v is None else f'{v:g} s'}" for k, v in rep[
+                "fault_recovery_s"].items()) + f' (against the {rep.get("recovery_reference", "level")})'))
         if rep.get("faults_unreported"):
             rows.append(("faults unreported", ", ".join(rep["faults_unreported"])))
     if rep.get("overconfident_fraction") is not None:
