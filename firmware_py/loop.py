@@ -45,7 +45,8 @@ from coiltrack.protocol.signing import now_timestamp
 from coiltrack.firmware.actuate.burst import BurstActuation
 from coiltrack.firmware.actuate.schedule import PulseSchedule
 from coiltrack.firmware.config import FirmwareConfig
-from coiltrack.firmware.core import select as select_core
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
+from coiltrack.firmware.core import load as load_core
 from coiltrack.firmware.measure.burst import BurstMeasurement
 from coiltrack.firmware.measure.windows import SensorChannel, WindowCloser
 from coiltrack.firmware.model.field import Coil
@@ -74,21 +75,21 @@ class Pipeline:
 
 
 def compose(cfg: FirmwareConfig, coils, channels, schedule: PulseSchedule, closer: WindowCloser,
-            supervisor: Supervisor, tx: Transmitter) -> Pipeline:
-    """Choose the pipeline once from the configuration."""
+            supervisor: Supervisor, tx: Transmitter, core=_DEFAULT_CORE) -> Pipeline:
+    """Choose the pipeline once from the configuration; its trackers bind the numeric ``core``."""
     if cfg.excitation == "ac":
         from coiltrack.firmware.track.ac import compose_ac
 
-        return Pipeline(*compose_ac(cfg, coils, channels, schedule, supervisor, tx))
+        return Pipeline(*compose_ac(cfg, coils, channels, schedule, supervisor, tx, core))
     if cfg.actuation == "adaptive" or cfg.single_coil_fusion:
         mode = "adaptive" if cfg.actuation == "adaptive" else "fixed"
-        t = SingleCoilTracker(cfg, coils, channels, schedule, closer, supervisor, tx, mode)
+        t = SingleCoilTracker(cfg, coils, channels, schedule, closer, supervisor, tx, mode, core)
         return Pipeline(t.actuate, t.measure, t.track, t)
     burst = BurstMeasurement(channels, schedule, closer, cfg.windows_budget)
     kind = BurstFusionTracker if cfg.fusion else MagneticTracker
     if cfg.tight_fusion:              # each pulse window a measurement at its own time ([tight])
         from coiltrack.firmware.track.tight_fusion import TightFusionTracker as kind
-    t = kind(cfg, coils, channels, schedule, burst, supervisor, tx)
+    t = kind(cfg, coils, channels, schedule, burst, supervisor, tx, core)
     return Pipeline(BurstActuation(cfg, schedule, channels, t).step, burst.step, t.step, t)
 
 
@@ -124,8 +125,10 @@ class Firmware:
         self.closer = WindowCloser(self.channels, cfg.fall_us, cfg.baseline_us, cfg.cycle_us // 2, self.tx)
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
         # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
-        self.core = select_core(cfg.impl)
-        self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx)
+        kernels = load_core(cfg.impl)
+        self.core = kernels.name
+        self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx,
+                                kernels)
         self.tracker = self.pipeline.tracker
         if calibration is not None and getattr(calibration, "distortion", None) is not None and cfg.distortion_apply:
             from coiltrack.firmware.model.distortion import install

@@ -105,7 +105,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware import core as _core_choice
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict, KalmanUpdate
 from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, PSI, QM, VEL, XI,
                                                fusion_layout, fusion_measurement_layout)
@@ -237,7 +237,8 @@ class InsState:
     (a replay in progress) and the snapshot at t_ref, which is only copied
     (``white=None``: no workspace)."""
 
-    def __init__(self, n: int, white: tuple[slice, ...] | None, white_q: tuple[float, ...] = ()):
+    def __init__(self, n: int, white: tuple[slice, ...] | None, white_q: tuple[float, ...] = (),
+                 core=_DEFAULT_CORE):
         self.p = np.zeros(3)
         self.v = np.zeros(3)
         self.Th = np.eye(3)
@@ -259,10 +260,10 @@ class InsState:
         if white is None:
             self.pred = None
             return
-        self.pred = CovariancePredict(n)
+        self.pred = CovariancePredict(n, core)
         self._Av = memoryview(self.pred.A)
         self._Qf = memoryview(self.pred.Q.reshape(-1))     # flat: element (i, j) at i n + j
-        ext = _core_choice.extension()
+        ext = core.ext
         if ext is not None and self.pred.core == "compiled":
             assert (POS.start, VEL.start, ORI.start, ACC.start, GYR.start) == (ext.POS, ext.VEL, ext.ORI,
                                                                              ext.ACC, ext.GYR)
@@ -298,6 +299,8 @@ class FusionFilter:
     imu_capacity, history_capacity, output_capacity : int
         Ring sizes (IMU samples kept for replay, pose history for motion
         compensation, poses waiting to be sent).
+    core : coiltrack.firmware.core.Core
+        The numeric core, chosen at composition.
 
     The nominal state and covariance of the live state are ``p``, ``v``,
     ``Th``, ``ba``, ``bg``, ``P`` (arrays, fixed for the filter's life),
@@ -305,7 +308,7 @@ class FusionFilter:
     """
 
     def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
-                 history_capacity: int = 128, output_capacity: int = 16):
+                 history_capacity: int = 128, output_capacity: int = 16, core=_DEFAULT_CORE):
         self.prm = params
         prm = params
         # the step's constants of _set_dt, as it computes them (the same values to the bit)
@@ -322,11 +325,11 @@ class FusionFilter:
         self.xi = xi_filter
         white = (QM, PSI) + ((XI,) if n > 21 else ())
         white_q = (prm.qm_sigma ** 2, prm.psi_sigma ** 2) + ((prm.psi_sigma ** 2,) if n > 21 else ())
-        self.st = InsState(n, white, white_q)        # live
-        self.sh = InsState(n, white, white_q)        # shadow: the replay of a delayed update
-        self.sn = InsState(n, None)         # snapshot at t_ref
+        self.st = InsState(n, white, white_q, core)        # live
+        self.sh = InsState(n, white, white_q, core)        # shadow: the replay of a delayed update
+        self.sn = InsState(n, None, core=core)         # snapshot at t_ref
         self._auth = self.st                # the state that takes snapshots and is recorded
-        self.sd = Strapdown()
+        self.sd = Strapdown(core)
         # the numeric body of each IMU step, chosen once (coiltrack.firmware.core)
         self._ins_step = self._step_compiled if self.st.ck is not None else self._step_python
         zl = fusion_measurement_layout(self.model)
@@ -336,7 +339,7 @@ class FusionFilter:
         self._zp = zl.ZP.start
         self._zpsi = zl.ZPSI.start if "ZPSI" in zl.names() else -1
         self._zxi = zl.ZXI.start if "ZXI" in zl.names() else -1
-        self.upd = KalmanUpdate(n, m, params.gate_probability)
+        self.upd = KalmanUpdate(n, m, params.gate_probability, core)
         self._Hv = memoryview(self.upd.H)
         self._Rmv = memoryview(self.upd.R)
         self._yv = self.upd._yv

@@ -67,6 +67,7 @@ from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
 from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, SCHEPERS_CORE as CORE,
                                                SCHEPERS_LAYOUT, VEL, schepers_layout)
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_sensor, transition_static
 from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
 
@@ -129,7 +130,8 @@ class SchepersEKF:
         return schepers_layout(n_clones)
 
     def __init__(self, *, n_clones: int, gravity, acc_noise: float, gyr_noise: float, acc_bias_rw: float,
-                 gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int):
+                 gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int,
+                 core=_DEFAULT_CORE):
         self.n_clones = int(n_clones)
         self.layout = self._make_layout(self.n_clones)
         nx = self.layout.n
@@ -175,7 +177,7 @@ class SchepersEKF:
         self._q = np.zeros(nx)
         self._dR = np.eye(3)
         self._R2 = np.eye(3)
-        self._sd = Strapdown()
+        self._sd = Strapdown(core)
         self._pv = memoryview(self.p)
         self._vv = memoryview(self.v)
         self._Rv = memoryview(self.R)
@@ -200,7 +202,7 @@ class SchepersEKF:
         self._Tc = np.zeros((N_CORE, N_CORE))
         self._qc = np.zeros(N_CORE)
         # update: the shared shape, plus the nominal NIS for the monitor
-        self.upd = KalmanUpdate(nx, 3, gate_probability)
+        self.upd = KalmanUpdate(nx, 3, gate_probability, core)
         self._PHt = np.zeros((nx, 3))
         self._S = np.zeros((3, 3))
         self.y_pred = np.zeros(3)

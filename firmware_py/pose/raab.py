@@ -121,6 +121,7 @@ import numpy as np
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.linalg import Rot3, flat, inv3_sym, lu_factor, lu_solve, nearest_rotation
 from coiltrack.firmware.model.field import MU0
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.covariance import RobustInverse6
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
@@ -388,8 +389,8 @@ class RaabTracker(StagedSolve):
     def __init__(self, coils, model: str = "exact", iters: int = 20, acquire_iters: int = 60,
                  gate_probability: float = 1.0, step_tol: float = 1e-4, refresh: float = 0.02,
                  correction: bool = True, start_position=None, start_euler=None, max_step: float = MAX_STEP,
-                 hemisphere=(1.0, 0.0, 0.0), step_sigma: float = STEP_SIGMA):
-        self.signal = SignalModel(coils, model)
+                 hemisphere=(1.0, 0.0, 0.0), step_sigma: float = STEP_SIGMA, core=_DEFAULT_CORE):
+        self.signal = SignalModel(coils, model, core)
         n = self.signal.n
         self.n = n
         self.model = model

@@ -44,6 +44,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.linalg import Rot3, exp_rotvec, flat, float_view, nearest_rotation
 from coiltrack.firmware.model.signal import SignalModel
@@ -219,8 +220,9 @@ class PoseSolver(StagedSolve):
     memoryless = True      # begin resets every part (the LM, the acquisition, the warm-start checks)
 
     def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999,
-                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0):
-        self.signal = SignalModel(coils, model)
+                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0,
+                 core=_DEFAULT_CORE):
+        self.signal = SignalModel(coils, model, core)
         n = self.signal.n
         self.n = n
         self.model = model

@@ -33,6 +33,7 @@ from coiltrack.protocol.schema import AC_FAULT_REFUSED, COIL_FAULT_REFUSED, POSE
 
 from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.track.burst_fusion import BurstFusionTracker
 from coiltrack.firmware.track.magnetic import MagneticTracker
 
@@ -67,17 +68,17 @@ class _ACMixin:
 class ACMagneticTracker(_ACMixin, MagneticTracker):
     """A magnetic-only pose per AC block."""
 
-    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx):
-        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx)
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, core=_DEFAULT_CORE):
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, core)
         self.measure, self.act = measure, act
 
 
 class ACFusionTracker(_ACMixin, BurstFusionTracker):
     """AC blocks fused with the IMU (see module docstring)."""
 
-    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx):
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, core=_DEFAULT_CORE):
         cfg = dataclasses.replace(cfg, motion_compensation=False)
-        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx)
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, core)
         self.measure, self.act = measure, act
         quiet = _AlwaysQuiet()
         age = cfg.ac_window_us + 3 * cfg.ac_hop_us
@@ -148,12 +149,13 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
 assert AC_FAULT_REFUSED == COIL_FAULT_REFUSED
 
 
-def compose_ac(cfg, coils, channels, schedule, supervisor, tx):
-    """The AC pipeline's stages: ``(actuate, measure, track, tracker, on_message)``."""
+def compose_ac(cfg, coils, channels, schedule, supervisor, tx, core=_DEFAULT_CORE):
+    """The AC pipeline's stages: ``(actuate, measure, track, tracker, on_message)``; ``core``:
+    the numeric core (``coiltrack.firmware.core.Core``), chosen at composition."""
     act = ACActuation(cfg, tx)
     measure = ACBlockMeasurement(cfg, channels, schedule, act)
     kind = ACFusionTracker if cfg.fusion else ACMagneticTracker
-    tracker = kind(cfg, coils, channels, schedule, measure, act, supervisor, tx)
+    tracker = kind(cfg, coils, channels, schedule, measure, act, supervisor, tx, core)
 
     health = supervisor.health
 

@@ -36,6 +36,7 @@ from coiltrack.protocol.schema import (ACC_LSB, EVT_DEAD_RECKONING, EVT_TRACK_RE
                                        POSE_FUSED, POSE_INCONSISTENT, POSE_RECOVERED, POSE_STALE, POSE_VALID)
 
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_P, OUT_Q, OUT_RECOVERED, OUT_STALE, OUT_STATUS,
                                                           OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
@@ -140,8 +141,8 @@ def quiet_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, ga
 class _Ori:
     """A ch. 2 filter fed from an IMU ring and a magnetometer ring."""
 
-    def __init__(self, cfg, gate: PulseGate):
-        self.f = OrientationFilter(OrientationParams.from_config(cfg))
+    def __init__(self, cfg, gate: PulseGate, core=_DEFAULT_CORE):
+        self.f = OrientationFilter(OrientationParams.from_config(cfg), core)
         self.gate = gate
         self.flip = FlipOffset()
         self.compass_t = -(1 << 62)
@@ -194,12 +195,12 @@ class SourceInertial:
     ``Phi`` (a ch. 2 filter; identity until initialised) and its specific force
     in the global frame ``Phi f_source`` (eq 6.8)."""
 
-    def __init__(self, node: int, cfg, gate: PulseGate):
+    def __init__(self, node: int, cfg, gate: PulseGate, core=_DEFAULT_CORE):
         self.node = node
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
-        self.ori = _Ori(cfg, gate)
+        self.ori = _Ori(cfg, gate, core)
         self.phi = np.eye(3)
         self.fref = np.zeros(3)
         self._phiv = memoryview(self.phi)
@@ -242,17 +243,18 @@ class SensorInertial:
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
 
-    def __init__(self, node: int, cfg, gate: PulseGate, fixed_phi, fixed_fref, source: SourceInertial | None):
+    def __init__(self, node: int, cfg, gate: PulseGate, fixed_phi, fixed_fref, source: SourceInertial | None,
+                 core=_DEFAULT_CORE):
         self.node = node
         self.cfg = cfg
         n = len(cfg.coils)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
-        self.ori = _Ori(cfg, gate)
+        self.ori = _Ori(cfg, gate, core)
         self.fusion = FusionFilter(FusionParams.from_config(cfg, source is not None), self.ori.f,
                                    imu_capacity=cfg.fusion_replay_capacity,
                                    history_capacity=cfg.fusion_history_capacity,
-                                   output_capacity=cfg.pose_output_capacity)
+                                   output_capacity=cfg.pose_output_capacity, core=core)
         self.fusion.source_fixed = source is None
         self.source = source
         self._phi = fixed_phi if source is None else source.phi
@@ -529,16 +531,16 @@ class BurstFusionTracker(MagneticTracker):
     delayed update of the fusion filter at the burst's middle follows in the
     next ticks (``SensorInertial.fuse``), never in the tick of a solve."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
-        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx)
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, core=_DEFAULT_CORE):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, core)
         gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
         self._fixed_phi = np.eye(3)                                   # a fixed source: Phi = I
         self._fixed_fref = np.array([-v for v in cfg.gravity_mps2])  # its specific force, source frame
         # eq 6.8 without a_source in the comparison runs
         source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
-        self.source = source_cls(cfg.source_imu_id, cfg, gate) if cfg.source_imu_id else None
-        self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source)
-                         for ch in self.channels}
+        self.source = source_cls(cfg.source_imu_id, cfg, gate, core) if cfg.source_imu_id else None
+        self.inertial = {ch.node: SensorInertial(ch.node, cfg, gate, self._fixed_phi, self._fixed_fref, self.source,
+                                                 core) for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
         self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
@@ -550,7 +552,7 @@ class BurstFusionTracker(MagneticTracker):
         self._deferring = False
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
-        self.comp_solver = make_pose_solver(cfg, coils, 1.0)
+        self.comp_solver = make_pose_solver(cfg, coils, 1.0, core)
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
 
     # ------------------------------------------------------------ inputs

@@ -36,6 +36,7 @@ import numpy as np
 from coiltrack.protocol.schema import POSE_VALID
 
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.pose.factory import make_pose_solver
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.pose.staged import SolveResult
@@ -111,14 +112,14 @@ def _closed_before(done, j: int) -> bool:
 class MagneticTracker:
     """Solves each burst for every sensor and reports the magnetic poses."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, core=_DEFAULT_CORE):
         self.cfg = cfg
         self.channels = tuple(channels)
         self.schedule = schedule
         self.burst = burst
         self.supervisor = supervisor
         self.tx = tx
-        self.solver = make_pose_solver(cfg, coils, cfg.solve_gate_probability)
+        self.solver = make_pose_solver(cfg, coils, cfg.solve_gate_probability, core)
         self.nominal = np.array([c.current for c in cfg.coils])
         self.currents = np.zeros(len(coils))
         self._curv = memoryview(self.currents)

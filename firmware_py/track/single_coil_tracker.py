@@ -75,6 +75,7 @@ from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.rotation import quat_tuple as _quat
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.single_coil import CORE, ORI, POS, SchepersEKF
 from coiltrack.firmware.pose.solver import PoseSolver
 from coiltrack.firmware.track.magnetic import SOLVE_FAILED as _SOLVE_FAILED
@@ -167,13 +168,14 @@ class SingleCoilTracker:
     :meth:`on_coil_status`; :meth:`counters` for the status.
     """
 
-    def __init__(self, cfg, coils, channels, pulses, closer, supervisor, tx, schedule: str = "adaptive"):
+    def __init__(self, cfg, coils, channels, pulses, closer, supervisor, tx, schedule: str = "adaptive",
+                 core=_DEFAULT_CORE):
         self.cfg = cfg
         self.pulses_sched = pulses
         self.closer = closer
         self.supervisor = supervisor
         self.tx = tx
-        self.solver = PoseSolver(coils, cfg.field_model)
+        self.solver = PoseSolver(coils, cfg.field_model, core=core)
         self.now_us = 0
         self.boot_us: int | None = None
         if schedule not in ("adaptive", "fixed"):
@@ -183,9 +185,9 @@ class SingleCoilTracker:
         self.schedule = schedule
         n = len(coils)
         self.n = n
-        self.model = SingleCoilModel(coils, cfg.field_model)       # updates
-        self.pmodel = SingleCoilModel(coils, cfg.field_model)      # decisions
-        self.rmodel = SingleCoilModel(coils, cfg.field_model)      # the fixed-cycle reference
+        self.model = SingleCoilModel(coils, cfg.field_model, core)       # updates
+        self.pmodel = SingleCoilModel(coils, cfg.field_model, core)      # decisions
+        self.rmodel = SingleCoilModel(coils, cfg.field_model, core)      # the fixed-cycle reference
         d2r = math.pi / 180.0
         smax = (cfg.sigma_max_pos_m,) * 3 + (cfg.sigma_max_ori_deg * d2r,) * 3
         smin = (cfg.sigma_min_pos_m,) * 3 + (cfg.sigma_min_ori_deg * d2r,) * 3
@@ -222,7 +224,7 @@ class SingleCoilTracker:
         self.sensors: dict[int, _Sensor] = {}
         for tr in channels:
             sid = tr.node
-            ekf = SchepersEKF.from_config(cfg)
+            ekf = SchepersEKF.from_config(cfg, core=core)
             mon = NisMonitor(window=cfg.nis_window, dof=3, gate=chi2_gate(3, gate_p), z=cfg.nis_alarm_z,
                              min_count=min(cfg.nis_window, 3), min_excess=cfg.nis_alarm_excess,
                              max_scale=cfg.nis_max_scale, feedback_updates=cfg.nis_feedback_updates)
@@ -235,7 +237,7 @@ class SingleCoilTracker:
                     self.nominal, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us,
                     (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2, var_f, cfg.field_model_rel_sigma,
                     cfg.current_tolerance_a, cfg.reference_avg_s * 1e6, cfg.sigma_range_exp_pos,
-                    cfg.sigma_range_exp_ori, cfg.reference_warmup_us)
+                    cfg.sigma_range_exp_ori, cfg.reference_warmup_us, core)
         self._sens = tuple(self.sensors.values())
         # POSE.quality (track.quality): a single pulse leaves no residual freedom, so the
         # consistency is the update's NIS per dimension and the quiet field's, kept per sensor

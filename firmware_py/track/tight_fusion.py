@@ -60,6 +60,7 @@ from coiltrack.protocol.schema import POSE_FUSED, POSE_INCONSISTENT, POSE_STALE,
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.relative_inertial import RelativeInertialEKF
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE, SampleRing
@@ -135,10 +136,10 @@ def _turned_field(ring, k: int, offset, w, t: int, out) -> None:
 class _TightSensor:
     """One sensor's IMU ring, relative EKF and window bookkeeping."""
 
-    def __init__(self, ch, cfg, n: int, source_imu: bool):
+    def __init__(self, ch, cfg, n: int, source_imu: bool, core=_DEFAULT_CORE):
         self.ch = ch
         self.node = ch.node
-        self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu)
+        self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu, core=core)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self.s6 = [0.0] * 6
         self.acc = np.zeros(3)
@@ -184,15 +185,15 @@ class _TightSensor:
 class TightFusionTracker(MagneticTracker):
     """Magnetic-only poses of each burst, and the tightly coupled fused poses (module docstring)."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx):
-        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx)
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, core=_DEFAULT_CORE):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, core)
         n = len(coils)
         self.n = n
         self.source = _SourceSamples(cfg.imu_ring_capacity, cfg.gravity_mps2) if cfg.source_imu_id else None
         self.source_node = cfg.source_imu_id
-        self.sensors = {ch.node: _TightSensor(ch, cfg, n, self.source is not None) for ch in self.channels}
+        self.sensors = {ch.node: _TightSensor(ch, cfg, n, self.source is not None, core) for ch in self.channels}
         self._sens = tuple(self.sensors.values())
-        self.model = SingleCoilModel(coils, cfg.field_model)
+        self.model = SingleCoilModel(coils, cfg.field_model, core)
         # mid time of a pulse's used samples from its start edge (as the extractor uses them)
         self.mid_us = (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2
         # ... and as the last windows had it (their samples' mean time from the start edge)
