@@ -688,6 +688,136 @@ static PyTypeObject InsStepType = {
     .tp_methods = InsStep_methods,
 };
 
+/* ----------------------------------------------------------------- PoseLM */
+#define LM_NBUF 18
+typedef struct {
+    PyObject_HEAD
+    struct ct_posefit f;
+    struct ct_lm lm;
+    Py_buffer views[LM_NBUF];
+    int bound;
+} PoseLMObject;
+
+static void PoseLM_dealloc(PoseLMObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < LM_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int PoseLM_init(PoseLMObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "geom", "B", "J", "S", "w", "cur", "h", "H", "p", "p_t", "R", "R_t", "A0", "g0",
+                             "A1", "g1", "d", "st", "lam0", "lam_max", "iters", "cost_tol", "step_sigma",
+                             "step_tol", NULL};
+    static const char *names[LM_NBUF] = {"geom", "B", "J", "S", "w", "cur", "h", "H", "p", "p_t", "R", "R_t",
+                                         "A0", "g0", "A1", "g1", "d", "st"};
+    /* lengths in units of n (negative: a fixed count) and writability */
+    static const int per_n[LM_NBUF] = {CT_COIL_STRIDE, 3, 9, 3, 3, 1, 3, 18, -3, -3, -9, -9, -36, -6, -36, -6,
+                                       -6, -CT_LM_NST};
+    static const int ro[LM_NBUF] = {1, 0, 0, 1, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    PyObject *o[LM_NBUF];
+    double *ptr[LM_NBUF];
+    double lam0, lam_max, cost_tol, step_sigma, step_tol;
+    int n, iters, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOOOOddiddd", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13],
+                                     &o[14], &o[15], &o[16], &o[17], &lam0, &lam_max, &iters, &cost_tol,
+                                     &step_sigma, &step_tol))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "PoseLM: already bound");
+        return -1;
+    }
+    if (n < 1 || n > CT_MAX_COILS) {
+        PyErr_Format(PyExc_ValueError, "PoseLM: n must be in 1..%d, got %d", CT_MAX_COILS, n);
+        return -1;
+    }
+    for (i = 0; i < LM_NBUF; ++i) {
+        Py_ssize_t len = per_n[i] > 0 ? (Py_ssize_t)per_n[i] * n : -(Py_ssize_t)per_n[i];
+        if (get_doubles(o[i], len, !ro[i], &self->views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    self->f.n = n;
+    self->f.geom = ptr[0];
+    self->f.B = ptr[1];
+    self->f.J = ptr[2];
+    self->f.S = ptr[3];
+    self->f.w = ptr[4];
+    self->f.cur = ptr[5];
+    self->f.h = ptr[6];
+    self->f.H = ptr[7];
+    self->f.p = ptr[8];
+    self->f.p_t = ptr[9];
+    self->f.R = ptr[10];
+    self->f.R_t = ptr[11];
+    self->f.step_tol = step_tol;
+    self->lm.A[0] = ptr[12];
+    self->lm.g[0] = ptr[13];
+    self->lm.A[1] = ptr[14];
+    self->lm.g[1] = ptr[15];
+    self->lm.d = ptr[16];
+    self->lm.st = ptr[17];
+    self->lm.lam0 = lam0;
+    self->lm.lam_max = lam_max;
+    self->lm.iters = iters;
+    self->lm.cost_tol = cost_tol;
+    self->lm.step_sigma2 = step_sigma * step_sigma;
+    self->bound = 1;
+    return 0;
+}
+
+static PyObject *PoseLM_start(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
+        return NULL;
+    }
+    if (check_nargs("start", nargs, 0) < 0)
+        return NULL;
+    ct_lm_pose_start(&self->lm, &self->f);
+    return PyLong_FromLong((long)self->lm.st[CT_LM_STATE]);
+}
+
+static PyObject *PoseLM_iterate(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
+        return NULL;
+    }
+    if (check_nargs("iterate", nargs, 0) < 0)
+        return NULL;
+    return PyLong_FromLong(ct_lm_pose_iterate(&self->lm, &self->f));
+}
+
+static PyMethodDef PoseLM_methods[] = {
+    {"start", (PyCFunction)(void (*)(void))PoseLM_start, METH_FASTCALL,
+     "start() -> state: evaluate the fit at the bound (p, R) (LevenbergMarquardt.start)"},
+    {"iterate", (PyCFunction)(void (*)(void))PoseLM_iterate, METH_FASTCALL,
+     "iterate() -> state: one damped step (LevenbergMarquardt.iterate on the pose fit)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject PoseLMType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.PoseLM",
+    .tp_basicsize = sizeof(PoseLMObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "PoseLM(n, geom, B, J, S, w, cur, h, H, p, p_t, R, R_t, A0, g0, A1, g1, d, st, lam0, lam_max, "
+              "iters, cost_tol, step_sigma, step_tol): the pose solver's Levenberg-Marquardt bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)PoseLM_init,
+    .tp_dealloc = (destructor)PoseLM_dealloc,
+    .tp_methods = PoseLM_methods,
+};
+
 /* strapdown_rotate(R, ux, uy, uz): R <- R exp([u]x) in place (Strapdown.rotate; R a writable
  * C-contiguous float64 3x3) */
 static PyObject *core_strapdown_rotate(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
@@ -807,7 +937,7 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
     if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0 ||
-        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0)
+        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0 || PyType_Ready(&PoseLMType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
     if (m == NULL)
@@ -842,7 +972,13 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
+    Py_INCREF(&PoseLMType);
+    if (PyModule_AddObject(m, "PoseLM", (PyObject *)&PoseLMType) < 0) {
+        Py_DECREF(&PoseLMType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (PyModule_AddIntConstant(m, "LM_NST", CT_LM_NST) < 0 || PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
         PyModule_AddIntConstant(m, "ORI", CT_ORI) < 0 || PyModule_AddIntConstant(m, "ACC", CT_ACC) < 0 ||
         PyModule_AddIntConstant(m, "GYR", CT_GYR) < 0) {
         Py_DECREF(m);

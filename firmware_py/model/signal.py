@@ -210,6 +210,11 @@ class SignalModel:
     def reset_evals(self) -> None:
         self.evals = 0
 
+    def charge(self, k: int) -> None:
+        """Count ``k`` evaluations of every coil done by a compiled kernel bound to this model's
+        geometry (``pose.solver``'s Levenberg-Marquardt): ``k n`` evaluations."""
+        self.evals += k * self.n
+
     def moment_per_amp(self, j: int) -> tuple:
         """Dipole moment of coil ``j`` at 1 A, A m^2 (source frame)."""
         ax, ay, az = self._ax[j]

@@ -107,6 +107,37 @@ struct ct_ori {
 void ct_orientation_propagate(const struct ct_ori *o, double dt_acc, double dt2_acc, double cd_acc,
                               double qd_acc);
 
+/* -------------------------------------------------------------------- lm
+ * coiltrack.firmware.pose.solver._PoseFit and pose.lm.LevenbergMarquardt (k = 6): the pose fit's
+ * cost with its normal equations and one damped step.  geom, B, J: the signal model's
+ * (ct_signal_fields); S, w (3n): signals and weights 1 / sigma; cur (n); h (3n), H (18n): scratch;
+ * p, p_t (3), R, R_t (9): the pose and the trial pose. */
+struct ct_posefit {
+    int n;
+    const double *geom;
+    double *B, *J;
+    const double *S, *w, *cur;
+    double *h, *H;
+    double *p, *p_t, *R, *R_t;
+    double step_tol;
+};
+/* the LM's state, in a caller-owned array st[CT_LM_NST] (the Python attributes of the same names) */
+enum { CT_LM_STATE = 0, CT_LM_COST = 1, CT_LM_LAM = 2, CT_LM_IT = 3, CT_LM_CUR = 4, CT_LM_EVALS = 5,
+       CT_LM_NST = 6 };
+enum { CT_LM_RUNNING = 0, CT_LM_CONVERGED = 1, CT_LM_STOPPED = 2 };
+struct ct_lm {
+    double lam0, lam_max, cost_tol, step_sigma2;
+    int iters;
+    double *A[2], *g[2];            /* 36, 6: the accepted point's and the trial's normal equations */
+    double *d;                      /* 6: the step */
+    double *st;                     /* CT_LM_NST */
+};
+int ct_damped_spd_solve_6(const double *a, const double *b, double *x, double lam);   /* linalg_gen.c */
+double ct_pose_cost(const struct ct_posefit *f, const double *p, const double *R, double *a, double *g);
+int ct_pose_small(const struct ct_posefit *f, const double *d);
+void ct_lm_pose_start(const struct ct_lm *lm, const struct ct_posefit *f);
+int ct_lm_pose_iterate(const struct ct_lm *lm, const struct ct_posefit *f);
+
 #ifdef __cplusplus
 }
 #endif
