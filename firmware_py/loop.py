@@ -119,14 +119,14 @@ class Firmware:
         signer = Signer(key, cfg.signing_link_id) if key else None
         if signer is not None and sign_ts0 is None:
             sign_ts0 = now_timestamp()
-        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder, signer, sign_ts0 or 0)
+        # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
+        kernels = load_core(cfg.impl)
+        self.core = kernels.name
+        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder, signer, sign_ts0 or 0, kernels)
         self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.coils])
         self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.sensor_ids)
         self.closer = WindowCloser(self.channels, cfg.fall_us, cfg.baseline_us, cfg.cycle_us // 2, self.tx)
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
-        # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
-        kernels = load_core(cfg.impl)
-        self.core = kernels.name
         self.pipeline = compose(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx,
                                 kernels)
         self.tracker = self.pipeline.tracker

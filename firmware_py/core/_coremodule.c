@@ -865,6 +865,49 @@ static PyObject *core_exp_rotvec(PyObject *mod, PyObject *const *args, Py_ssize_
     return r;
 }
 
+/* pose_frame(seq, src, node, t_us, px, py, pz, qw, qx, qy, qz, v0..v5, status, quality) -> bytes or None:
+ * one POSE frame as encode_frame makes it (None: a value the wire format refuses) */
+static PyObject *core_pose_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_POSE_FRAME_MAX];
+    double v[13];
+    long long ints[3];
+    unsigned long long t_us;
+    int k, seq, src;
+    static const int int_at[3] = {2, 17, 18};
+    (void)mod;
+    if (check_nargs("pose_frame", nargs, 19) < 0)
+        return NULL;
+    seq = (int)PyLong_AsLong(args[0]);
+    src = (int)PyLong_AsLong(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    /* a field struct.pack would refuse (out of range, not an integer, not a float): None, as the
+     * Python counts a tx error for any encoding error */
+    for (k = 0; k < 3; ++k) {
+        int overflow = 0;
+        ints[k] = PyLong_AsLongLongAndOverflow(args[int_at[k]], &overflow);
+        if ((ints[k] == -1 && PyErr_Occurred()) || overflow) {
+            PyErr_Clear();
+            Py_RETURN_NONE;
+        }
+    }
+    t_us = PyLong_AsUnsignedLongLong(args[3]);
+    if (t_us == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        Py_RETURN_NONE;
+    }
+    for (k = 0; k < 13; ++k)
+        if (get_double(args[4 + k], &v[k]) < 0) {
+            PyErr_Clear();
+            Py_RETURN_NONE;
+        }
+    k = ct_pose_frame(out, seq, src, ints[0], (uint64_t)t_us, v, ints[1], ints[2]);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
 /* ------------------------------------------------------- module functions */
 static PyObject *point_tuple(const double *t, int jac)
 {
@@ -918,6 +961,9 @@ static PyObject *core_dipole_point(PyObject *mod, PyObject *const *args, Py_ssiz
 }
 
 static PyMethodDef core_methods[] = {
+    {"pose_frame", (PyCFunction)(void (*)(void))core_pose_frame, METH_FASTCALL,
+     "pose_frame(seq, src, node, t_us, px, py, pz, qw, qx, qy, qz, v0, .., v5, status, quality): one POSE "
+     "frame as protocol.framing.encode_frame makes it, or None where struct.pack refuses a value"},
     {"loop_point", (PyCFunction)(void (*)(void))core_loop_point, METH_FASTCALL,
      "loop_point(x, y, z, radius, scale, jac): as coiltrack.firmware.model.field.loop_point"},
     {"strapdown_rotate", (PyCFunction)(void (*)(void))core_strapdown_rotate, METH_FASTCALL,
@@ -978,7 +1024,10 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (PyModule_AddIntConstant(m, "LM_NST", CT_LM_NST) < 0 || PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
+    if (PyModule_AddIntConstant(m, "POSE_ID", CT_POSE_ID) < 0 ||
+        PyModule_AddIntConstant(m, "POSE_PAYLOAD", CT_POSE_PAYLOAD) < 0 ||
+        PyModule_AddIntConstant(m, "POSE_CRC_EXTRA", CT_POSE_CRC_EXTRA) < 0 ||
+        PyModule_AddIntConstant(m, "LM_NST", CT_LM_NST) < 0 || PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
         PyModule_AddIntConstant(m, "ORI", CT_ORI) < 0 || PyModule_AddIntConstant(m, "ACC", CT_ACC) < 0 ||
         PyModule_AddIntConstant(m, "GYR", CT_GYR) < 0) {
         Py_DECREF(m);

@@ -138,6 +138,20 @@ int ct_pose_small(const struct ct_posefit *f, const double *d);
 void ct_lm_pose_start(const struct ct_lm *lm, const struct ct_posefit *f);
 int ct_lm_pose_iterate(const struct ct_lm *lm, const struct ct_posefit *f);
 
+/* ----------------------------------------------------------------- frame
+ * coiltrack.firmware.transmit.Transmitter.pose with protocol.framing.encode_frame: one POSE frame,
+ * COBS-encoded and delimited, into out (at least CT_POSE_FRAME_MAX bytes), the variances clamped as
+ * Transmitter.pose clamps them; returns its length, or
+ * -1 for a value the wire format cannot carry (struct.pack's refusal).  v: px, py, pz, qw, qx, qy,
+ * qz, then the six variances.  The schema constants are checked against protocol.schema at
+ * start-up (transmit.py). */
+enum { CT_POSE_ID = 48, CT_POSE_PAYLOAD = 64, CT_POSE_CRC_EXTRA = 7,
+       CT_POSE_FRAME_RAW = 5 + 64 + 2, CT_POSE_FRAME_MAX = 5 + 64 + 2 + 2 + 1 };
+#define CT_F32_MAX 3.0e38        /* transmit.F32_MAX: the variances are clamped to it */
+int ct_cobs_encode(const uint8_t *in, int n, uint8_t *out);
+int ct_pose_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t t_us, const double *v, int64_t status,
+                  int64_t quality);
+
 #ifdef __cplusplus
 }
 #endif
