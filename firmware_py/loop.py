@@ -137,7 +137,8 @@ class Firmware:
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
                                  self.tx, other=self.pipeline.on_message, calibration=sensor_cal,
                                  imu_interval_us=1e6 / cfg.imu_delta_rate_hz, imu_step_us=1e6 / cfg.imu_rate_hz,
-                                 frames_per_tick=cfg.rx_frames_per_tick, queue_bytes=cfg.rx_queue_bytes)
+                                 frames_per_tick=cfg.rx_frames_per_tick, queue_bytes=cfg.rx_queue_bytes,
+                                 core=kernels)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None

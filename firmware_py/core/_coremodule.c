@@ -908,6 +908,144 @@ static PyObject *core_pose_frame(PyObject *mod, PyObject *const *args, Py_ssize_
     return PyBytes_FromStringAndSize((const char *)out, k);
 }
 
+/* ---------------------------------------------------------------- ImuDelta */
+/* a C-contiguous int64 buffer of at least n items, writable, or -1 with TypeError naming `what` */
+static int get_int64s(PyObject *obj, Py_ssize_t n, Py_buffer *view, const char *what)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a writable C-contiguous int64 buffer", what);
+        return -1;
+    }
+    f = view->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (view->itemsize != 8 || f == NULL || !((f[0] == 'q' || f[0] == 'l') && f[1] == '\0') ||
+        view->len < n * 8) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs int64 items, at least %zd of them", what, n);
+        return -1;
+    }
+    return 0;
+}
+
+typedef struct {
+    PyObject_HEAD
+    Py_buffer st_view, io_view, out_view;
+    double interval_us, step_us;
+    int bound;
+} ImuDeltaObject;
+
+static void ImuDelta_dealloc(ImuDeltaObject *self)
+{
+    if (self->bound) {
+        PyBuffer_Release(&self->st_view);
+        PyBuffer_Release(&self->io_view);
+        PyBuffer_Release(&self->out_view);
+    }
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int ImuDelta_init(ImuDeltaObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"st", "io", "out", "interval_us", "step_us", NULL};
+    PyObject *st, *io, *out;
+    double interval_us, step_us;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOdd", kwlist, &st, &io, &out, &interval_us, &step_us))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuDelta: already bound");
+        return -1;
+    }
+    if (get_int64s(st, 256 * CT_DELTA_NST, &self->st_view, "st") < 0)
+        return -1;
+    if (get_int64s(io, CT_DIO_N, &self->io_view, "io") < 0) {
+        PyBuffer_Release(&self->st_view);
+        return -1;
+    }
+    if (get_doubles(out, 7, 1, &self->out_view, "out") < 0) {
+        PyBuffer_Release(&self->st_view);
+        PyBuffer_Release(&self->io_view);
+        return -1;
+    }
+    self->interval_us = interval_us;
+    self->step_us = step_us;
+    self->bound = 1;
+    return 0;
+}
+
+/* feed(msg, now_us) -> n: one IMU_DELTA message (node, x, y, z, stamp) */
+static PyObject *ImuDelta_feed(ImuDeltaObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long v[5], now;
+    int k, n;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuDelta: not bound");
+        return NULL;
+    }
+    if (check_nargs("feed", nargs, 2) < 0)
+        return NULL;
+    if (!PyTuple_Check(args[0]) || PyTuple_GET_SIZE(args[0]) != 5) {
+        PyErr_SetString(PyExc_TypeError, "feed: msg must be an IMU_DELTA (a 5-tuple)");
+        return NULL;
+    }
+    for (k = 0; k < 5; ++k) {
+        v[k] = PyLong_AsLongLong(PyTuple_GET_ITEM(args[0], k));
+        if (v[k] == -1 && PyErr_Occurred())
+            return NULL;
+    }
+    now = PyLong_AsLongLong(args[1]);
+    if (now == -1 && PyErr_Occurred())
+        return NULL;
+    if (v[0] < 0 || v[0] > 255) {
+        PyErr_SetString(PyExc_ValueError, "feed: node outside 0..255");
+        return NULL;
+    }
+    n = ct_imu_delta((int64_t *)self->st_view.buf + v[0] * CT_DELTA_NST, v[1], v[2], v[3], v[4], now,
+                     self->interval_us, self->step_us, (double *)self->out_view.buf, (int64_t *)self->io_view.buf);
+    return PyLong_FromLong(n);
+}
+
+static PyMethodDef ImuDelta_methods[] = {
+    {"feed", (PyCFunction)(void (*)(void))ImuDelta_feed, METH_FASTCALL,
+     "feed(msg, now_us) -> n: Receiver._delta for one IMU_DELTA message"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ImuDeltaType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ImuDelta",
+    .tp_basicsize = sizeof(ImuDeltaObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "ImuDelta(st, io, out, interval_us, step_us): the receiver's IMU_DELTA pairs bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)ImuDelta_init,
+    .tp_dealloc = (destructor)ImuDelta_dealloc,
+    .tp_methods = ImuDelta_methods,
+};
+
+/* imu_clipped(msg) -> bool: an IMU_SAMPLE (node, t_us, ax, ay, az, gx, gy, gz) with an axis clipped */
+static PyObject *core_imu_clipped(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t v[6];
+    int k;
+    (void)mod;
+    if (check_nargs("imu_clipped", nargs, 1) < 0)
+        return NULL;
+    if (!PyTuple_Check(args[0]) || PyTuple_GET_SIZE(args[0]) != 8) {
+        PyErr_SetString(PyExc_TypeError, "imu_clipped: msg must be an IMU_SAMPLE (an 8-tuple)");
+        return NULL;
+    }
+    for (k = 0; k < 6; ++k) {
+        long long x = PyLong_AsLongLong(PyTuple_GET_ITEM(args[0], 2 + k));
+        if (x == -1 && PyErr_Occurred())
+            return NULL;
+        v[k] = x;
+    }
+    if (ct_imu_clipped(v))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
 /* ------------------------------------------------------- module functions */
 static PyObject *point_tuple(const double *t, int jac)
 {
@@ -961,6 +1099,8 @@ static PyObject *core_dipole_point(PyObject *mod, PyObject *const *args, Py_ssiz
 }
 
 static PyMethodDef core_methods[] = {
+    {"imu_clipped", (PyCFunction)(void (*)(void))core_imu_clipped, METH_FASTCALL,
+     "imu_clipped(msg): an IMU_SAMPLE with an axis at the clip code (receive._clipped)"},
     {"pose_frame", (PyCFunction)(void (*)(void))core_pose_frame, METH_FASTCALL,
      "pose_frame(seq, src, node, t_us, px, py, pz, qw, qx, qy, qz, v0, .., v5, status, quality): one POSE "
      "frame as protocol.framing.encode_frame makes it, or None where struct.pack refuses a value"},
@@ -983,7 +1123,8 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
     if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0 ||
-        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0 || PyType_Ready(&PoseLMType) < 0)
+        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0 || PyType_Ready(&PoseLMType) < 0 ||
+        PyType_Ready(&ImuDeltaType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
     if (m == NULL)
@@ -1018,13 +1159,26 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
+    Py_INCREF(&ImuDeltaType);
+    if (PyModule_AddObject(m, "ImuDelta", (PyObject *)&ImuDeltaType) < 0) {
+        Py_DECREF(&ImuDeltaType);
+        Py_DECREF(m);
+        return NULL;
+    }
     Py_INCREF(&PoseLMType);
     if (PyModule_AddObject(m, "PoseLM", (PyObject *)&PoseLMType) < 0) {
         Py_DECREF(&PoseLMType);
         Py_DECREF(m);
         return NULL;
     }
-    if (PyModule_AddIntConstant(m, "POSE_ID", CT_POSE_ID) < 0 ||
+    if (PyModule_AddIntConstant(m, "DELTA_NST", CT_DELTA_NST) < 0 || PyModule_AddIntConstant(m, "DIO_N", CT_DIO_N) < 0 ||
+        PyModule_AddIntConstant(m, "IMU_CLIP", CT_IMU_CLIP) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_LEAD_US", CT_STAMP_LEAD_US) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_DVEL", CT_STAMP_DVEL) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_SATURATED", CT_STAMP_SATURATED) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_MASK", CT_STAMP_MASK) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_LSB_US", CT_STAMP_LSB_US) < 0 ||
+        PyModule_AddIntConstant(m, "POSE_ID", CT_POSE_ID) < 0 ||
         PyModule_AddIntConstant(m, "POSE_PAYLOAD", CT_POSE_PAYLOAD) < 0 ||
         PyModule_AddIntConstant(m, "POSE_CRC_EXTRA", CT_POSE_CRC_EXTRA) < 0 ||
         PyModule_AddIntConstant(m, "LM_NST", CT_LM_NST) < 0 || PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||

@@ -152,6 +152,29 @@ int ct_cobs_encode(const uint8_t *in, int n, uint8_t *out);
 int ct_pose_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t t_us, const double *v, int64_t status,
                   int64_t quality);
 
+/* ------------------------------------------------------------------- imu
+ * coiltrack.firmware.receive: _clipped and Receiver._delta (IMU_DELTA pairs into IMU steps).  The
+ * protocol constants (protocol.schema) are checked against these at start-up (receive.py). */
+#define CT_IMU_CLIP 32767
+#define CT_STAMP_LSB_US 8
+#define CT_STAMP_MASK 16383
+#define CT_STAMP_LEAD_US 16384
+#define CT_STAMP_SATURATED 16384
+#define CT_STAMP_DVEL 32768
+#define CT_DANG_LSB_RAD 5e-5
+#define CT_DVEL_LSB_MPS 1e-4
+#define CT_ACC_LSB 1e-3
+#define CT_GYR_LSB 5e-4
+/* one node's state (receive._DeltaState), int64 each */
+enum { CT_D_STAMP = 0, CT_D_X, CT_D_Y, CT_D_Z, CT_D_PENDING, CT_D_SAT, CT_D_LAST, CT_D_HAS_LAST, CT_D_AX, CT_D_AY,
+       CT_D_AZ, CT_D_VX, CT_D_VY, CT_D_VZ, CT_DELTA_NST };
+/* the receiver's counters and the interval start, int64 each */
+enum { CT_DIO_T0 = 0, CT_DIO_UNPAIRED, CT_DIO_ANCHORS, CT_DIO_SATURATED, CT_DIO_SAT_PAIRS, CT_DIO_DELTAS, CT_DIO_N };
+int ct_imu_clipped(const int64_t *v6);
+int64_t ct_unwrap_stamp(int64_t stamp, int64_t now_us);
+int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_t now_us, double interval_us,
+                 double step_us, double *out, int64_t *io);
+
 #ifdef __cplusplus
 }
 #endif

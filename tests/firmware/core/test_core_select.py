@@ -86,7 +86,7 @@ def test_firmware_passes_its_core_to_every_component(impl, scenario):
     cfg = scenarios.get(scenario).firmware_config()
     fw = Firmware(dataclasses.replace(cfg, impl=impl), inproc_pair()[0])
     found = _cores(fw)
-    for cls in ("SignalModel", "Transmitter"):
+    for cls in ("SignalModel", "Transmitter", "Receiver"):
         assert cls in found, (cls, sorted(found))
     assert {name: c for name, c in found.items() if c != {impl}} == {}
     assert fw.status()["core"] == impl
