@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from coiltrack.firmware.actuate.ac import ACActuation
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.burst import BurstActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
 from coiltrack.firmware.measure.burst import BurstMeasurement
@@ -55,7 +56,8 @@ class Parts:
 
     ``coils``: ``field.Coil`` (calibrated when the calibration says so); ``channels``: the
     sensor channels; ``schedule``: the one pulse schedule; ``closer``: the one window closer;
-    ``distortion``: the room's map (``model.distortion.DistortionMap``) or None."""
+    ``distortion``: the room's map (``model.distortion.DistortionMap``) or None; ``core``: the
+    numeric core (``coiltrack.firmware.core.Core``) every component binds its kernels from."""
     cfg: object
     coils: list
     channels: tuple
@@ -64,17 +66,18 @@ class Parts:
     supervisor: object
     tx: object
     distortion: object = None
+    core: object = _DEFAULT_CORE
 
 
 # ------------------------------------------------------------------ pose solvers
-def _lm(cfg, coils, gate_probability: float) -> Solver:
+def _lm(cfg, coils, gate_probability: float, core=_DEFAULT_CORE) -> Solver:
     from coiltrack.firmware.pose.solver import PoseSolver
 
     return PoseSolver(coils, cfg.field_model, gate_probability=gate_probability,
-                      step_tol=cfg.lm_step_tol, cost_tol=cfg.lm_cost_tol, step_sigma=cfg.lm_step_sigma)
+                      step_tol=cfg.lm_step_tol, cost_tol=cfg.lm_cost_tol, step_sigma=cfg.lm_step_sigma, core=core)
 
 
-def _raab(cfg, coils, gate_probability: float) -> Solver:
+def _raab(cfg, coils, gate_probability: float, core=_DEFAULT_CORE) -> Solver:
     from coiltrack.firmware.pose.raab import RaabTracker
 
     start = cfg.raab_start_position
@@ -83,10 +86,10 @@ def _raab(cfg, coils, gate_probability: float) -> Solver:
                        step_tol=cfg.raab_step_tol, refresh=cfg.raab_refresh, correction=cfg.raab_correction,
                        start_position=start if any(v != 0.0 for v in start) else None,
                        start_euler=tuple(math.radians(v) for v in cfg.raab_start_euler_deg),
-                       hemisphere=cfg.hemisphere, step_sigma=cfg.raab_step_sigma)
+                       hemisphere=cfg.hemisphere, step_sigma=cfg.raab_step_sigma, core=core)
 
 
-#: ``[pose] pose_solver`` -> the builder ``(cfg, coils, gate_probability) -> Solver``:
+#: ``[pose] pose_solver`` -> the builder ``(cfg, coils, gate_probability, core) -> Solver``:
 #: ``"lm"`` Kuipers' closed form and least squares (``pose.solver``); ``"raab"`` Raab et al. 1979
 #: (``seeds/004_86267342cd7488ce.txt`` eqs 7-31, ``pose.raab``)
 SOLVERS: dict[str, Callable] = {
@@ -95,23 +98,23 @@ SOLVERS: dict[str, Callable] = {
 }
 
 
-def make_pose_solver(cfg, coils, gate_probability: float, distortion=None) -> Solver:
+def make_pose_solver(cfg, coils, gate_probability: float, distortion=None, core=_DEFAULT_CORE) -> Solver:
     """The solver ``cfg.pose_solver`` for ``coils`` (``field.Coil``), with the signal model
     ``cfg.field_model``, a warm start's chi-square gate ``gate_probability`` and, when given, the
     room's distortion map in its signal model (``model.distortion``; a map of another number of
-    coils is refused, ValueError)."""
-    solver = SOLVERS[cfg.pose_solver](cfg, coils, gate_probability)
+    coils is refused, ValueError), on the numeric core ``core``."""
+    solver = SOLVERS[cfg.pose_solver](cfg, coils, gate_probability, core)
     if distortion is not None:
         solver.signal.set_distortion(distortion)
     return solver
 
 
-def solver_factory(cfg, coils, distortion=None) -> Callable[[float], Solver]:
+def solver_factory(cfg, coils, distortion=None, core=_DEFAULT_CORE) -> Callable[[float], Solver]:
     """``gate_probability -> Solver``: the configured solver, as :func:`make_pose_solver` builds
     it; a tracker that needs a second solver (the fused pipeline's motion-compensated
     re-solve) builds it with the same model and map."""
     def make(gate_probability: float) -> Solver:
-        return make_pose_solver(cfg, coils, gate_probability, distortion)
+        return make_pose_solver(cfg, coils, gate_probability, distortion, core)
 
     return make
 
@@ -136,7 +139,7 @@ def _bursts(kind: type) -> Callable[[Parts], Pipeline]:
         cfg = p.cfg
         burst = BurstMeasurement(p.channels, p.schedule, p.closer, cfg.windows_budget)
         t = kind(cfg, p.coils, p.channels, p.schedule, burst, p.supervisor, p.tx,
-                 solver_factory(cfg, p.coils, p.distortion))
+                 solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
         return Pipeline(BurstActuation(cfg, p.schedule, p.channels, t).step, burst.step, t.step, t)
 
     return build
@@ -147,7 +150,7 @@ def _single_coil(mode: str) -> Callable[[Parts], Pipeline]:
     ``"adaptive"`` or the ``"fixed"`` cycle)."""
     def build(p: Parts) -> Pipeline:
         t = SingleCoilTracker(p.cfg, p.coils, p.channels, p.schedule, p.closer, p.supervisor, p.tx, mode,
-                              distortion=p.distortion)
+                              distortion=p.distortion, core=p.core)
         return Pipeline(t.actuate, t.measure, t.track, t)
 
     return build
@@ -160,7 +163,7 @@ def _ac(kind: type) -> Callable[[Parts], Pipeline]:
         act = ACActuation(cfg, p.tx)
         measure = ACBlockMeasurement(cfg, p.channels, p.schedule, act)
         t = kind(cfg, p.coils, p.channels, p.schedule, measure, act, p.supervisor, p.tx,
-                 solver_factory(cfg, p.coils, p.distortion))
+                 solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
         return Pipeline(act.step, measure.step, t.step, t, StatusRouter(act, p.supervisor).on_message)
 
     return build

@@ -191,7 +191,7 @@ class FirmwareConfig:
     source_acc_sigma: float = 0.0           # m/s^2 per IMU sample: the error of Phi f_source in a_net (eq 6.8)
                                             # as white noise on the velocity; it covers the source orientation's
                                             # error times g on a moving source (0: the IMU's imu_acc_sigma)
-    # --- pose solver of the burst trackers (coiltrack.firmware.pose.factory)
+    # --- pose solver of the burst trackers (coiltrack.firmware.compose)
     pose_solver: str = "lm"                 # "lm": Kuipers + least squares | "raab": Raab's iterative tracker
     raab_iterations: int = 20               # Raab updates per burst with a tracked pose (1: one per pattern,
                                             #   as the paper); near the source each converges ~0.4x
@@ -488,7 +488,7 @@ class FirmwareConfig:
         return key_from_text(self.signing_key) if self.signing_key else b""
 
     def _validate_pose(self, need) -> None:
-        """Keys of the pose solver (``coiltrack.firmware.pose.factory``, ``pose.raab``)."""
+        """Keys of the pose solver (``coiltrack.firmware.compose``, ``pose.raab``)."""
         fin = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
         need("pose_solver", self.pose_solver in ("lm", "raab"), f"must be 'lm' or 'raab', got {self.pose_solver!r}")
         for name in ("raab_iterations", "raab_acquire_iterations"):

@@ -45,7 +45,7 @@ from coiltrack.protocol.signing import now_timestamp
 from coiltrack.firmware.actuate.schedule import PulseSchedule
 from coiltrack.firmware.compose import Parts, Pipeline, compose
 from coiltrack.firmware.config import FirmwareConfig
-from coiltrack.firmware.core import select as select_core
+from coiltrack.firmware.core import load as load_core
 from coiltrack.firmware.measure.windows import SensorChannel, WindowCloser
 from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.port import Port
@@ -84,22 +84,25 @@ class Firmware:
         signer = Signer(key, cfg.signing_link_id) if key else None
         if signer is not None and sign_ts0 is None:
             sign_ts0 = now_timestamp()
-        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder, signer, sign_ts0 or 0)
+        # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
+        kernels = load_core(cfg.impl)
+        self.core = kernels.name
+        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder, signer, sign_ts0 or 0, kernels)
         self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.coils])
         self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.sensor_ids)
         self.closer = WindowCloser(self.channels, cfg.fall_us, cfg.baseline_us, cfg.cycle_us // 2, self.tx)
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
-        # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
-        self.core = select_core(cfg.impl)
         # the room's map goes into the pose solvers' signal model as they are built
         distortion = getattr(calibration, "distortion", None) if cfg.distortion_apply else None
-        parts = Parts(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx, distortion)
+        parts = Parts(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx, distortion,
+                      kernels)
         self.pipeline: Pipeline = compose(parts)
         self.tracker = self.pipeline.tracker
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
                                  self.tx, other=self.pipeline.on_message, calibration=sensor_cal,
                                  imu_interval_us=1e6 / cfg.imu_delta_rate_hz, imu_step_us=1e6 / cfg.imu_rate_hz,
-                                 frames_per_tick=cfg.rx_frames_per_tick, queue_bytes=cfg.rx_queue_bytes)
+                                 frames_per_tick=cfg.rx_frames_per_tick, queue_bytes=cfg.rx_queue_bytes,
+                                 core=kernels)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None

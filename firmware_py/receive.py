@@ -63,10 +63,14 @@ the decoder resynchronises at the next 0x00.
 """
 from __future__ import annotations
 
+import numpy as np
+
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH
 from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, DVEL_LSB_MPS, EVT_SCHEMA_MISMATCH, GYR_LSB,
-                                       IMU_CLIP_COUNTS, MAG_LSB_T, STAMP_DVEL, STAMP_FLIP, STAMP_MASK, STAMP_SATURATED,
-                                       unwrap_stamp)
+                                       IMU_CLIP_COUNTS, MAG_LSB_T, STAMP_DVEL, STAMP_FLIP, STAMP_LEAD_US, STAMP_LSB_US,
+                                       STAMP_MASK, STAMP_SATURATED, unwrap_stamp)
+
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 
 _MAG = MSG["MAG_SAMPLE"].ID
 _IMU = MSG["IMU_SAMPLE"].ID
@@ -77,6 +81,9 @@ _HEARTBEAT = MSG["HEARTBEAT"].ID
 _INV_MAG = 1.0 / MAG_LSB_T
 _INV_ACC = 1.0 / ACC_LSB
 _INV_GYR = 1.0 / GYR_LSB
+# the receiver's IMU counters and the interval start, int64 slots of one array that the compiled
+# decode writes too (core/src/imu.c CT_DIO_*)
+_T0, _UNPAIRED, _ANCHORS, _SATURATED, _SAT_PAIRS, _DELTAS, _NIO = range(7)
 
 
 class MagRecord:
@@ -124,10 +131,23 @@ def _d16(a: int, b: int) -> int:
     return ((a - b + 32768) & 0xFFFF) - 32768
 
 
+def _io_counter(k: int, doc: str):
+    return property(lambda self: int(self._io[k]), doc=doc)
+
+
 class Receiver:
+    """The receive stage (module docstring); ``core``: the numeric core of the IMU decode
+    (``coiltrack.firmware.core.Core``, chosen at composition)."""
+
+    imu_deltas = _io_counter(_DELTAS, "IMU_DELTA pairs turned into IMU steps")
+    imu_delta_unpaired = _io_counter(_UNPAIRED, "IMU_DELTA frames without their pair (dropped)")
+    imu_delta_anchors = _io_counter(_ANCHORS, "IMU_DELTA pairs that only anchor the sums")
+    imu_saturated = _io_counter(_SATURATED, "IMU samples not used: an axis clipped (steps of a pair included)")
+    imu_saturated_pairs = _io_counter(_SAT_PAIRS, "IMU_DELTA pairs with the saturated bit")
+
     def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None,
                  imu_interval_us: float = 1e5, imu_step_us: float = 1e4, calibration=None,
-                 frames_per_tick: int = 0, queue_bytes: int = 16384):
+                 frames_per_tick: int = 0, queue_bytes: int = 16384, core=_DEFAULT_CORE):
         self.port = port
         self.decoder = decoder
         self.channels = {ch.node: ch for ch in channels}
@@ -150,19 +170,36 @@ class Receiver:
         self._mag = MagRecord()
         self._imu = ImuRecord()
         self._deltas: dict[int, _DeltaState] = {}
-        self._t0 = 0
         self._step = 0.0
         self.packed_mag = 0
-        self.imu_deltas = 0
-        self.imu_delta_unpaired = 0
-        self.imu_delta_anchors = 0
-        self.imu_saturated = 0          # IMU samples not used: an axis clipped (steps of a pair included)
-        self.imu_saturated_pairs = 0    # IMU_DELTA pairs with the saturated bit
+        self._io = np.zeros(_NIO, dtype=np.int64)      # counters and the interval start (properties)
+        self._iov = memoryview(self._io)
         self.frames_per_tick = int(frames_per_tick)
         self.queue_bytes = int(queue_bytes)
         self._queue = bytearray()
         self.deferred = 0               # frames left queued at the end of a tick, summed over ticks
         self.queue_overflows = 0
+        self._clipped = _clipped
+        self._bind(core)
+
+    def _bind(self, core) -> None:
+        """The IMU decode on the compiled core (``core/src/imu.c``: ``ct_imu_clipped``,
+        ``ct_imu_delta``, the same operations as :func:`_clipped` and :meth:`_delta`), bound once:
+        every node's pair state in one start-up table (a row per node id)."""
+        self.core = "python"
+        ext = core.ext
+        if ext is None:
+            return
+        assert (ext.DIO_N, ext.IMU_CLIP, ext.STAMP_LEAD_US, ext.STAMP_DVEL, ext.STAMP_SATURATED, ext.STAMP_MASK,
+                ext.STAMP_LSB_US) == (_NIO, IMU_CLIP_COUNTS, STAMP_LEAD_US, STAMP_DVEL, STAMP_SATURATED, STAMP_MASK,
+                                      STAMP_LSB_US)
+        self._dst = np.zeros((256, ext.DELTA_NST), dtype=np.int64)
+        self._dout = np.zeros(7)
+        self._doutv = memoryview(self._dout)
+        self._ck = ext.ImuDelta(self._dst, self._io, self._dout, self.imu_interval_us, self.imu_step_us)
+        self._clipped = ext.imu_clipped
+        self._delta = self._delta_compiled
+        self.core = "compiled"
 
     def _take(self) -> bytes:
         """The bytes of at most ``frames_per_tick`` frames: from the queue, then the port."""
@@ -233,8 +270,8 @@ class Receiver:
                 else:
                     self.tracker.on_mag(msg, MAG_LSB_T)
             elif mid == _IMU:
-                if _clipped(msg):
-                    self.imu_saturated += 1     # the sensor's full scale, not the motion: not used
+                if self._clipped(msg):
+                    self._iov[_SATURATED] += 1  # the sensor's full scale, not the motion: not used
                     sup.on_imu_saturated(msg.node, now_us)
                 else:
                     self._on_imu(msg, now_us)
@@ -258,7 +295,7 @@ class Receiver:
     def _push_steps(self, n: int, now_us: int) -> None:
         """The ``n`` steps of a completed interval, through the supervisor to the tracker."""
         r = self._imu
-        t0, step = self._t0, self._step
+        t0, step = self._iov[_T0], self._step
         sup = self.supervisor
         for i in range(n):
             r.t_us = t0 + int(round((i + 0.5) * step))
@@ -285,14 +322,15 @@ class Receiver:
         if st is None:
             st = self._deltas[msg.node] = _DeltaState()
         s = msg.stamp
+        io = self._iov
         if not s & STAMP_DVEL:
             if st.pending:
-                self.imu_delta_unpaired += 1
+                io[_UNPAIRED] += 1
             st.stamp, st.x, st.y, st.z, st.pending = s & STAMP_MASK, msg.x, msg.y, msg.z, True
             st.sat = bool(s & STAMP_SATURATED)
             return 0
         if not st.pending or st.stamp != s & STAMP_MASK:
-            self.imu_delta_unpaired += 1
+            io[_UNPAIRED] += 1
             st.pending = False
             return 0
         st.pending = False
@@ -303,26 +341,41 @@ class Receiver:
         st.last_end = t_end
         st.ax, st.ay, st.az, st.vx, st.vy, st.vz = st.x, st.y, st.z, msg.x, msg.y, msg.z
         if last is None or not 0 < t_end - last <= 3.5 * self.imu_interval_us:
-            self.imu_delta_anchors += 1
+            io[_ANCHORS] += 1
             return 0
         T = float(t_end - last)
         n = max(1, int(round(T / self.imu_step_us)))
         if st.sat or s & STAMP_SATURATED:
             # a sample of the interval clipped: the pair's means are not the motion (the sums
             # above still anchor the next pair)
-            self.imu_saturated_pairs += 1
-            self.imu_saturated += n
+            io[_SAT_PAIRS] += 1
+            io[_SATURATED] += n
             self.supervisor.on_imu_saturated(msg.node, now_us)
             return 0
         r = self._imu
         r.node = msg.node
-        self._t0 = t_end - int(round(T))
+        io[_T0] = t_end - int(round(T))
         self._step = T / n
         ka = DANG_LSB_RAD / (T * 1e-6 * GYR_LSB)       # delta-angle counts -> rate counts
         kv = DVEL_LSB_MPS / (T * 1e-6 * ACC_LSB)       # delta-velocity counts -> specific-force counts
         r.gx, r.gy, r.gz = dax * ka, day * ka, daz * ka
         r.ax, r.ay, r.az = dvx * kv, dvy * kv, dvz * kv
-        self.imu_deltas += 1
+        io[_DELTAS] += 1
+        return n
+
+    def _delta_compiled(self, msg, now_us: int) -> int:
+        """:meth:`_delta` on the compiled core (``ct_imu_delta``: the node's row of the table,
+        the counters and the interval start in ``_io``, the step and the means in ``_dout``)."""
+        sat = self._iov[_SAT_PAIRS]
+        n = self._ck.feed(msg, now_us)
+        if self._iov[_SAT_PAIRS] != sat:                 # a pair with the saturated bit: not used
+            self.supervisor.on_imu_saturated(msg.node, now_us)
+        if n:
+            o = self._doutv
+            r = self._imu
+            r.node = msg.node
+            self._step = o[6]
+            r.gx, r.gy, r.gz, r.ax, r.ay, r.az = o[0], o[1], o[2], o[3], o[4], o[5]
         return n
 
     def _correct_mag(self, msg, c):

@@ -16,8 +16,11 @@ strictly within a run and across restarts of the firmware.
 from __future__ import annotations
 
 from coiltrack.protocol import MSG, PROTOCOL_VERSION, SCHEMA_HASH, FrameEncoder, SignedFrameEncoder, Signer
+from coiltrack.protocol.framing import _EXTRA as _CRC_EXTRA
+from coiltrack.protocol.framing import encode_frame
 from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID, ROLE_FIRMWARE, STATE_RUNNING
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.port import Port
 
 _HEARTBEAT = MSG["HEARTBEAT"]
@@ -35,7 +38,7 @@ class Transmitter:
     """Encoder, write side of the Port and the counters of what was sent."""
 
     def __init__(self, port: Port, node_id: int, heartbeat_us: int, decoder, signer: Signer | None = None,
-                 sign_ts0: int = 0):
+                 sign_ts0: int = 0, core=_DEFAULT_CORE):
         self.port = port
         self.node_id = node_id
         self.signer = signer
@@ -50,6 +53,7 @@ class Transmitter:
         self.poses = 0          # POSEs sent with POSE_VALID
         self.fused_poses = 0    # ... of which fused (POSE_FUSED)
         self.decoder = decoder  # the receiver's: the frames it dropped go into the heartbeat
+        self._bind(core)
 
     def send(self, msg) -> None:
         try:
@@ -95,6 +99,51 @@ class Transmitter:
             self._ticked = True
             self.boot_us = now_us
         self.now_us = now_us
+
+    def _bind(self, core) -> None:
+        """The numeric core of :meth:`pose` (``coiltrack.firmware.core``), bound once: on the
+        compiled core an unsigned link's POSE frame is built by ``core/src/frame.c``
+        (``ct_pose_frame``: the same bytes as ``encode_frame``), and this transmitter numbers its
+        frames itself (``seq``, as ``FrameEncoder`` does) so POSEs and the other messages share
+        one sequence. A signed link keeps the Python encoder."""
+        ext = core.ext
+        self.core = "python"
+        self._seq = 0
+        if ext is None or self.signer is not None:
+            return
+        assert (ext.POSE_ID, ext.POSE_PAYLOAD, ext.POSE_CRC_EXTRA) == (_POSE.ID, 64, _CRC_EXTRA[_POSE.ID][0])
+        self._pose_frame = ext.pose_frame
+        self.send = self._send_numbered
+        self.pose = self._pose_compiled
+        self.core = "compiled"
+
+    def _send_numbered(self, msg) -> None:
+        """:meth:`send` on the compiled core: ``encode_frame`` with this transmitter's sequence."""
+        try:
+            frame = encode_frame(msg, self._seq, self.node_id)
+            self._seq = (self._seq + 1) & 0xFF
+            self.port.write(frame)
+        except Exception:  # a full or broken link must not stop the loop
+            self.tx_errors += 1
+
+    def _pose_compiled(self, node: int, t_us: int, px: float, py: float, pz: float, qw: float, qx: float,
+                       qy: float, qz: float, v0: float, v1: float, v2: float, v3: float, v4: float, v5: float,
+                       status: int, quality: int = 255) -> None:
+        """:meth:`pose` on the compiled core (``ct_pose_frame`` clamps the variances as ``_f32``)."""
+        frame = self._pose_frame(self._seq, self.node_id, node, t_us, px, py, pz, qw, qx, qy, qz, v0, v1, v2, v3,
+                                 v4, v5, status, quality)
+        if frame is None:
+            self.tx_errors += 1                # a value the wire format refuses (struct.pack's error)
+        else:
+            self._seq = (self._seq + 1) & 0xFF
+            try:
+                self.port.write(frame)
+            except Exception:  # a full or broken link must not stop the loop
+                self.tx_errors += 1
+        if status & POSE_VALID:
+            self.poses += 1
+            if status & POSE_FUSED:
+                self.fused_poses += 1
 
     def step(self, now_us: int) -> None:
         """The periodic HEARTBEAT."""

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import KalmanUpdate
 from coiltrack.firmware.estimate.layout import ORI, POS, SCHEPERS_CORE as CORE
 
@@ -112,7 +113,7 @@ class FixedCycleReference:
 
     def __init__(self, currents, first_cycle_us: int, cycle_us: int, spacing_us: int, mid_us: int,
                  var_amp: float, rel_model: float, current_sigma: float, avg_us: float,
-                 exp_pos: float = 0.0, exp_ori: float = 0.0, warmup_us: int = 0):
+                 exp_pos: float = 0.0, exp_ori: float = 0.0, warmup_us: int = 0, core=_DEFAULT_CORE):
         self.currents = tuple(float(c) for c in currents)
         self.n = len(self.currents)
         self.first_cycle_us = int(first_cycle_us)
@@ -131,7 +132,7 @@ class FixedCycleReference:
         self._Ft = self.F.T
         self.q = np.zeros(n)
         self._T = np.zeros((n, n))
-        self.upd = KalmanUpdate(n, 3, 1.0)
+        self.upd = KalmanUpdate(n, 3, 1.0, core)
         self.avg = np.zeros(6)
         self.live = np.zeros(6)          # the live filter's pose variances, the same mean
         #: the running mean of ``r^(2 exp)`` (position, orientation) over the same instants as

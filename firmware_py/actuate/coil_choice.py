@@ -64,6 +64,7 @@ import numpy as np
 from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.field import CoilSet
 from coiltrack.firmware.linalg import inv3_sym
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.model.signal import SignalModel
 
 __all__ = [
@@ -129,11 +130,12 @@ class SingleCoilModel:
     coils : sequence of ``coiltrack.firmware.model.field.Coil`` or a ``CoilSet``
         Any geometry: each coil has its own centre, axis, radius and turns.
     model : {"exact", "dipole"}
+    core : ``coiltrack.firmware.core.Core``, the numeric core (chosen at composition)
     """
 
-    def __init__(self, coils, model: str = "exact"):
+    def __init__(self, coils, model: str = "exact", core=_DEFAULT_CORE):
         self.cs = coils if isinstance(coils, CoilSet) else CoilSet(coils)
-        self.signal = SignalModel(self.cs.coils, model)
+        self.signal = SignalModel(self.cs.coils, model, core)
         n = self.cs.n
         self.n = n
         self.model = model

@@ -35,6 +35,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.accuracy import fixed_cycle_bounds, nis_bound_factor
 from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, PoseCovUpdate,
                                                     SingleCoilModel, current_ladder, saturation_current_limit)
@@ -65,7 +66,7 @@ class _SingleCoilActuation:
     ``updated_us``: the tick of its last EKF update); ``book``: the pulses; ``acquisition``:
     the burst that starts a sensor's filter."""
 
-    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths):
+    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths, core=_DEFAULT_CORE):
         self.cfg = cfg
         self.n = n_coils = len(coils)
         self._sens = tuple(sensors)
@@ -192,10 +193,10 @@ class AdaptiveActuation(_SingleCoilActuation):
     the lengths the chooser weighs against the current (``"chosen"``: ``CoilChooser.choose_length``),
     their starts aligned to the sensor's sample clock."""
 
-    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths):
-        super().__init__(cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths)
+    def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths, core=_DEFAULT_CORE):
+        super().__init__(cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths, core)
         n = self.n
-        self.pmodel = SingleCoilModel(coils, cfg.field_model)      # decisions
+        self.pmodel = SingleCoilModel(coils, cfg.field_model, core)      # decisions
         d2r = math.pi / 180.0
         smax = (cfg.sigma_max_pos_m,) * 3 + (cfg.sigma_max_ori_deg * d2r,) * 3
         smin = (cfg.sigma_min_pos_m,) * 3 + (cfg.sigma_min_ori_deg * d2r,) * 3

@@ -6,18 +6,24 @@ The C sources beside this module (``src/*.c``, ``include/coiltrack_core.h`` and 
 modules are the reference and the specification: each C kernel follows one Python function with
 the same name and the same operations in the same order (see ``include/coiltrack_core.h``).
 
-The choice is made once, at composition: :class:`coiltrack.firmware.loop.Firmware` calls
-:func:`select` with the configuration's ``[core] impl`` before it builds its stages, and each
-component that does numeric work (``model.signal.SignalModel``) binds the chosen kernel when it
-is constructed (:func:`extension`); no tick tests the choice. ``"compiled"`` (the default) falls
+The choice is made once, at composition, and passed down; nothing here is mutable.
+:class:`coiltrack.firmware.loop.Firmware` calls :func:`load` with the configuration's
+``[core] impl`` and hands the :class:`Core` it gets to the stages it builds; each component that
+binds kernels (``model.signal.SignalModel``, ``estimate.ekf``, ``pose.solver``, ``receive``,
+``transmit``, ...) takes it as its ``core`` constructor argument and binds the chosen kernels
+there, so no tick tests the choice. A component built without one (a tool, a test) runs
+:data:`DEFAULT`: the compiled core where it is built, else the Python one. ``"compiled"`` falls
 back to ``"python"`` where the extension was not built (an install without a C compiler), with
-one line on stderr saying so.
+one line on stderr saying so (:func:`load`).
 """
 from __future__ import annotations
 
+import functools
 import sys
+from dataclasses import dataclass
+from types import ModuleType
 
-__all__ = ["IMPLS", "available", "resolve", "select", "current", "extension"]
+__all__ = ["IMPLS", "Core", "PYTHON", "DEFAULT", "available", "resolve", "load"]
 
 #: the values of ``[core] impl``
 IMPLS = ("compiled", "python")
@@ -27,7 +33,25 @@ try:
 except ImportError:         # built without a compiler: the Python core only
     _ext = None
 
-_state = {"selected": "compiled" if _ext is not None else "python", "said": False}
+
+@dataclass(frozen=True)
+class Core:
+    """One numeric core: its ``name`` (``"compiled"`` or ``"python"``) and, for the compiled
+    one, the extension module ``ext`` whose kernels the components bind (None for Python)."""
+    name: str
+    ext: ModuleType | None = None
+
+    def __post_init__(self):
+        if self.name not in IMPLS:
+            raise ValueError(f"core impl must be one of {IMPLS}, got {self.name!r}")
+        if (self.name == "compiled") != (self.ext is not None):
+            raise ValueError("a compiled core needs its extension module, the Python core none")
+
+
+#: the Python reference
+PYTHON = Core("python")
+#: what a component built without a ``core`` runs: compiled where built, else Python
+DEFAULT = Core("compiled", _ext) if _ext is not None else PYTHON
 
 
 def available() -> bool:
@@ -35,32 +59,25 @@ def available() -> bool:
     return _ext is not None
 
 
-def resolve(impl: str) -> str:
-    """The core that runs for ``impl`` here: ``"compiled"`` only where the extension is built
-    (otherwise ``"python"``, said once per process on stderr)."""
+def resolve(impl: str, ext: ModuleType | None = _ext) -> str:
+    """The core that runs for ``impl`` where the extension is ``ext``: ``"compiled"`` only where
+    it is built, otherwise ``"python"``."""
     if impl not in IMPLS:
         raise ValueError(f"core impl must be one of {IMPLS}, got {impl!r}")
-    if impl == "compiled" and _ext is None:
-        if not _state["said"]:
-            _state["said"] = True
-            print("coiltrack: the compiled core is not built in this install (no C compiler at "
-                  "`pip install`); running the Python core", file=sys.stderr)
-        return "python"
-    return impl
+    return "python" if ext is None else impl
 
 
-def select(impl: str) -> str:
-    """Choose the core the components constructed from now on bind (composition time);
-    returns the core that runs (:func:`resolve`)."""
-    _state["selected"] = resolve(impl)
-    return _state["selected"]
+@functools.cache
+def _say_python_fallback() -> None:
+    """The one line saying the compiled core is missing (once per process: cached)."""
+    print("coiltrack: the compiled core is not built in this install (no C compiler at "
+          "`pip install`); running the Python core", file=sys.stderr)
 
 
-def current() -> str:
-    """The core the components constructed now bind: ``"compiled"`` or ``"python"``."""
-    return _state["selected"]
-
-
-def extension():
-    """The compiled extension module when the selected core is the compiled one, else None."""
-    return _ext if _state["selected"] == "compiled" else None
+def load(impl: str, ext: ModuleType | None = _ext) -> Core:
+    """The :class:`Core` for ``[core] impl`` (chosen once, at composition): ``"compiled"`` where
+    the extension ``ext`` is built, else the Python core with one line on stderr saying so."""
+    name = resolve(impl, ext)
+    if name != impl:
+        _say_python_fallback()
+    return Core(name, ext) if name == "compiled" else PYTHON

@@ -688,6 +688,136 @@ static PyTypeObject InsStepType = {
     .tp_methods = InsStep_methods,
 };
 
+/* ----------------------------------------------------------------- PoseLM */
+#define LM_NBUF 18
+typedef struct {
+    PyObject_HEAD
+    struct ct_posefit f;
+    struct ct_lm lm;
+    Py_buffer views[LM_NBUF];
+    int bound;
+} PoseLMObject;
+
+static void PoseLM_dealloc(PoseLMObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < LM_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int PoseLM_init(PoseLMObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "geom", "B", "J", "S", "w", "cur", "h", "H", "p", "p_t", "R", "R_t", "A0", "g0",
+                             "A1", "g1", "d", "st", "lam0", "lam_max", "iters", "cost_tol", "step_sigma",
+                             "step_tol", NULL};
+    static const char *names[LM_NBUF] = {"geom", "B", "J", "S", "w", "cur", "h", "H", "p", "p_t", "R", "R_t",
+                                         "A0", "g0", "A1", "g1", "d", "st"};
+    /* lengths in units of n (negative: a fixed count) and writability */
+    static const int per_n[LM_NBUF] = {CT_COIL_STRIDE, 3, 9, 3, 3, 1, 3, 18, -3, -3, -9, -9, -36, -6, -36, -6,
+                                       -6, -CT_LM_NST};
+    static const int ro[LM_NBUF] = {1, 0, 0, 1, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    PyObject *o[LM_NBUF];
+    double *ptr[LM_NBUF];
+    double lam0, lam_max, cost_tol, step_sigma, step_tol;
+    int n, iters, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOOOOddiddd", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13],
+                                     &o[14], &o[15], &o[16], &o[17], &lam0, &lam_max, &iters, &cost_tol,
+                                     &step_sigma, &step_tol))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "PoseLM: already bound");
+        return -1;
+    }
+    if (n < 1 || n > CT_MAX_COILS) {
+        PyErr_Format(PyExc_ValueError, "PoseLM: n must be in 1..%d, got %d", CT_MAX_COILS, n);
+        return -1;
+    }
+    for (i = 0; i < LM_NBUF; ++i) {
+        Py_ssize_t len = per_n[i] > 0 ? (Py_ssize_t)per_n[i] * n : -(Py_ssize_t)per_n[i];
+        if (get_doubles(o[i], len, !ro[i], &self->views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    self->f.n = n;
+    self->f.geom = ptr[0];
+    self->f.B = ptr[1];
+    self->f.J = ptr[2];
+    self->f.S = ptr[3];
+    self->f.w = ptr[4];
+    self->f.cur = ptr[5];
+    self->f.h = ptr[6];
+    self->f.H = ptr[7];
+    self->f.p = ptr[8];
+    self->f.p_t = ptr[9];
+    self->f.R = ptr[10];
+    self->f.R_t = ptr[11];
+    self->f.step_tol = step_tol;
+    self->lm.A[0] = ptr[12];
+    self->lm.g[0] = ptr[13];
+    self->lm.A[1] = ptr[14];
+    self->lm.g[1] = ptr[15];
+    self->lm.d = ptr[16];
+    self->lm.st = ptr[17];
+    self->lm.lam0 = lam0;
+    self->lm.lam_max = lam_max;
+    self->lm.iters = iters;
+    self->lm.cost_tol = cost_tol;
+    self->lm.step_sigma2 = step_sigma * step_sigma;
+    self->bound = 1;
+    return 0;
+}
+
+static PyObject *PoseLM_start(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
+        return NULL;
+    }
+    if (check_nargs("start", nargs, 0) < 0)
+        return NULL;
+    ct_lm_pose_start(&self->lm, &self->f);
+    return PyLong_FromLong((long)self->lm.st[CT_LM_STATE]);
+}
+
+static PyObject *PoseLM_iterate(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
+        return NULL;
+    }
+    if (check_nargs("iterate", nargs, 0) < 0)
+        return NULL;
+    return PyLong_FromLong(ct_lm_pose_iterate(&self->lm, &self->f));
+}
+
+static PyMethodDef PoseLM_methods[] = {
+    {"start", (PyCFunction)(void (*)(void))PoseLM_start, METH_FASTCALL,
+     "start() -> state: evaluate the fit at the bound (p, R) (LevenbergMarquardt.start)"},
+    {"iterate", (PyCFunction)(void (*)(void))PoseLM_iterate, METH_FASTCALL,
+     "iterate() -> state: one damped step (LevenbergMarquardt.iterate on the pose fit)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject PoseLMType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.PoseLM",
+    .tp_basicsize = sizeof(PoseLMObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "PoseLM(n, geom, B, J, S, w, cur, h, H, p, p_t, R, R_t, A0, g0, A1, g1, d, st, lam0, lam_max, "
+              "iters, cost_tol, step_sigma, step_tol): the pose solver's Levenberg-Marquardt bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)PoseLM_init,
+    .tp_dealloc = (destructor)PoseLM_dealloc,
+    .tp_methods = PoseLM_methods,
+};
+
 /* strapdown_rotate(R, ux, uy, uz): R <- R exp([u]x) in place (Strapdown.rotate; R a writable
  * C-contiguous float64 3x3) */
 static PyObject *core_strapdown_rotate(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
@@ -733,6 +863,187 @@ static PyObject *core_exp_rotvec(PyObject *mod, PyObject *const *args, Py_ssize_
         PyTuple_SET_ITEM(r, k, f);
     }
     return r;
+}
+
+/* pose_frame(seq, src, node, t_us, px, py, pz, qw, qx, qy, qz, v0..v5, status, quality) -> bytes or None:
+ * one POSE frame as encode_frame makes it (None: a value the wire format refuses) */
+static PyObject *core_pose_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_POSE_FRAME_MAX];
+    double v[13];
+    long long ints[3];
+    unsigned long long t_us;
+    int k, seq, src;
+    static const int int_at[3] = {2, 17, 18};
+    (void)mod;
+    if (check_nargs("pose_frame", nargs, 19) < 0)
+        return NULL;
+    seq = (int)PyLong_AsLong(args[0]);
+    src = (int)PyLong_AsLong(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    /* a field struct.pack would refuse (out of range, not an integer, not a float): None, as the
+     * Python counts a tx error for any encoding error */
+    for (k = 0; k < 3; ++k) {
+        int overflow = 0;
+        ints[k] = PyLong_AsLongLongAndOverflow(args[int_at[k]], &overflow);
+        if ((ints[k] == -1 && PyErr_Occurred()) || overflow) {
+            PyErr_Clear();
+            Py_RETURN_NONE;
+        }
+    }
+    t_us = PyLong_AsUnsignedLongLong(args[3]);
+    if (t_us == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        Py_RETURN_NONE;
+    }
+    for (k = 0; k < 13; ++k)
+        if (get_double(args[4 + k], &v[k]) < 0) {
+            PyErr_Clear();
+            Py_RETURN_NONE;
+        }
+    k = ct_pose_frame(out, seq, src, ints[0], (uint64_t)t_us, v, ints[1], ints[2]);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
+/* ---------------------------------------------------------------- ImuDelta */
+/* a C-contiguous int64 buffer of at least n items, writable, or -1 with TypeError naming `what` */
+static int get_int64s(PyObject *obj, Py_ssize_t n, Py_buffer *view, const char *what)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a writable C-contiguous int64 buffer", what);
+        return -1;
+    }
+    f = view->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (view->itemsize != 8 || f == NULL || !((f[0] == 'q' || f[0] == 'l') && f[1] == '\0') ||
+        view->len < n * 8) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs int64 items, at least %zd of them", what, n);
+        return -1;
+    }
+    return 0;
+}
+
+typedef struct {
+    PyObject_HEAD
+    Py_buffer st_view, io_view, out_view;
+    double interval_us, step_us;
+    int bound;
+} ImuDeltaObject;
+
+static void ImuDelta_dealloc(ImuDeltaObject *self)
+{
+    if (self->bound) {
+        PyBuffer_Release(&self->st_view);
+        PyBuffer_Release(&self->io_view);
+        PyBuffer_Release(&self->out_view);
+    }
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int ImuDelta_init(ImuDeltaObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"st", "io", "out", "interval_us", "step_us", NULL};
+    PyObject *st, *io, *out;
+    double interval_us, step_us;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOdd", kwlist, &st, &io, &out, &interval_us, &step_us))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuDelta: already bound");
+        return -1;
+    }
+    if (get_int64s(st, 256 * CT_DELTA_NST, &self->st_view, "st") < 0)
+        return -1;
+    if (get_int64s(io, CT_DIO_N, &self->io_view, "io") < 0) {
+        PyBuffer_Release(&self->st_view);
+        return -1;
+    }
+    if (get_doubles(out, 7, 1, &self->out_view, "out") < 0) {
+        PyBuffer_Release(&self->st_view);
+        PyBuffer_Release(&self->io_view);
+        return -1;
+    }
+    self->interval_us = interval_us;
+    self->step_us = step_us;
+    self->bound = 1;
+    return 0;
+}
+
+/* feed(msg, now_us) -> n: one IMU_DELTA message (node, x, y, z, stamp) */
+static PyObject *ImuDelta_feed(ImuDeltaObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long v[5], now;
+    int k, n;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuDelta: not bound");
+        return NULL;
+    }
+    if (check_nargs("feed", nargs, 2) < 0)
+        return NULL;
+    if (!PyTuple_Check(args[0]) || PyTuple_GET_SIZE(args[0]) != 5) {
+        PyErr_SetString(PyExc_TypeError, "feed: msg must be an IMU_DELTA (a 5-tuple)");
+        return NULL;
+    }
+    for (k = 0; k < 5; ++k) {
+        v[k] = PyLong_AsLongLong(PyTuple_GET_ITEM(args[0], k));
+        if (v[k] == -1 && PyErr_Occurred())
+            return NULL;
+    }
+    now = PyLong_AsLongLong(args[1]);
+    if (now == -1 && PyErr_Occurred())
+        return NULL;
+    if (v[0] < 0 || v[0] > 255) {
+        PyErr_SetString(PyExc_ValueError, "feed: node outside 0..255");
+        return NULL;
+    }
+    n = ct_imu_delta((int64_t *)self->st_view.buf + v[0] * CT_DELTA_NST, v[1], v[2], v[3], v[4], now,
+                     self->interval_us, self->step_us, (double *)self->out_view.buf, (int64_t *)self->io_view.buf);
+    return PyLong_FromLong(n);
+}
+
+static PyMethodDef ImuDelta_methods[] = {
+    {"feed", (PyCFunction)(void (*)(void))ImuDelta_feed, METH_FASTCALL,
+     "feed(msg, now_us) -> n: Receiver._delta for one IMU_DELTA message"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ImuDeltaType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ImuDelta",
+    .tp_basicsize = sizeof(ImuDeltaObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "ImuDelta(st, io, out, interval_us, step_us): the receiver's IMU_DELTA pairs bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)ImuDelta_init,
+    .tp_dealloc = (destructor)ImuDelta_dealloc,
+    .tp_methods = ImuDelta_methods,
+};
+
+/* imu_clipped(msg) -> bool: an IMU_SAMPLE (node, t_us, ax, ay, az, gx, gy, gz) with an axis clipped */
+static PyObject *core_imu_clipped(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t v[6];
+    int k;
+    (void)mod;
+    if (check_nargs("imu_clipped", nargs, 1) < 0)
+        return NULL;
+    if (!PyTuple_Check(args[0]) || PyTuple_GET_SIZE(args[0]) != 8) {
+        PyErr_SetString(PyExc_TypeError, "imu_clipped: msg must be an IMU_SAMPLE (an 8-tuple)");
+        return NULL;
+    }
+    for (k = 0; k < 6; ++k) {
+        long long x = PyLong_AsLongLong(PyTuple_GET_ITEM(args[0], 2 + k));
+        if (x == -1 && PyErr_Occurred())
+            return NULL;
+        v[k] = x;
+    }
+    if (ct_imu_clipped(v))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
 }
 
 /* ------------------------------------------------------- module functions */
@@ -788,6 +1099,11 @@ static PyObject *core_dipole_point(PyObject *mod, PyObject *const *args, Py_ssiz
 }
 
 static PyMethodDef core_methods[] = {
+    {"imu_clipped", (PyCFunction)(void (*)(void))core_imu_clipped, METH_FASTCALL,
+     "imu_clipped(msg): an IMU_SAMPLE with an axis at the clip code (receive._clipped)"},
+    {"pose_frame", (PyCFunction)(void (*)(void))core_pose_frame, METH_FASTCALL,
+     "pose_frame(seq, src, node, t_us, px, py, pz, qw, qx, qy, qz, v0, .., v5, status, quality): one POSE "
+     "frame as protocol.framing.encode_frame makes it, or None where struct.pack refuses a value"},
     {"loop_point", (PyCFunction)(void (*)(void))core_loop_point, METH_FASTCALL,
      "loop_point(x, y, z, radius, scale, jac): as coiltrack.firmware.model.field.loop_point"},
     {"strapdown_rotate", (PyCFunction)(void (*)(void))core_strapdown_rotate, METH_FASTCALL,
@@ -807,7 +1123,8 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
     if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0 ||
-        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0)
+        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0 || PyType_Ready(&PoseLMType) < 0 ||
+        PyType_Ready(&ImuDeltaType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
     if (m == NULL)
@@ -842,7 +1159,29 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
+    Py_INCREF(&ImuDeltaType);
+    if (PyModule_AddObject(m, "ImuDelta", (PyObject *)&ImuDeltaType) < 0) {
+        Py_DECREF(&ImuDeltaType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    Py_INCREF(&PoseLMType);
+    if (PyModule_AddObject(m, "PoseLM", (PyObject *)&PoseLMType) < 0) {
+        Py_DECREF(&PoseLMType);
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (PyModule_AddIntConstant(m, "DELTA_NST", CT_DELTA_NST) < 0 || PyModule_AddIntConstant(m, "DIO_N", CT_DIO_N) < 0 ||
+        PyModule_AddIntConstant(m, "IMU_CLIP", CT_IMU_CLIP) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_LEAD_US", CT_STAMP_LEAD_US) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_DVEL", CT_STAMP_DVEL) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_SATURATED", CT_STAMP_SATURATED) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_MASK", CT_STAMP_MASK) < 0 ||
+        PyModule_AddIntConstant(m, "STAMP_LSB_US", CT_STAMP_LSB_US) < 0 ||
+        PyModule_AddIntConstant(m, "POSE_ID", CT_POSE_ID) < 0 ||
+        PyModule_AddIntConstant(m, "POSE_PAYLOAD", CT_POSE_PAYLOAD) < 0 ||
+        PyModule_AddIntConstant(m, "POSE_CRC_EXTRA", CT_POSE_CRC_EXTRA) < 0 ||
+        PyModule_AddIntConstant(m, "LM_NST", CT_LM_NST) < 0 || PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
         PyModule_AddIntConstant(m, "ORI", CT_ORI) < 0 || PyModule_AddIntConstant(m, "ACC", CT_ACC) < 0 ||
         PyModule_AddIntConstant(m, "GYR", CT_GYR) < 0) {
         Py_DECREF(m);

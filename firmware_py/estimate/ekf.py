@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware import core as _core_choice
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import flat, inv3_sym, spd_inverse
 
 #: rounding makes P drift from symmetry; it is re-symmetrised every this many calls
@@ -78,7 +78,7 @@ class KalmanUpdate:
     and ``K`` describe the update.
     """
 
-    def __init__(self, n: int, m: int, gate_probability: float = 0.999):
+    def __init__(self, n: int, m: int, gate_probability: float = 0.999, core=_DEFAULT_CORE):
         self.n = n
         self.m = m
         self.gate = chi2_gate(m, gate_probability)
@@ -111,7 +111,7 @@ class KalmanUpdate:
         self.rejected = 0
         #: the numeric core of :meth:`update`, bound once here (``coiltrack.firmware.core``)
         self.core = "python"
-        ext = _core_choice.extension()
+        ext = core.ext
         if ext is not None:
             # core/src/ekf.c ct_kalman_update: the same steps with H's structural zeros skipped
             # (equal to the BLAS products below to rounding; S's inverse is the same code)
@@ -205,7 +205,7 @@ class CovariancePredict:
     """Workspace for ``P = A P A^T + Q`` with ``A`` (n, n) and a diagonal or
     full ``Q`` (thesis eq 2.18 / 6.5, Fig. 4.3)."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, core=_DEFAULT_CORE):
         self.n = n
         self.A = np.eye(n)
         self.Q = np.zeros((n, n))
@@ -218,7 +218,7 @@ class CovariancePredict:
         self.count = 0
         #: the numeric core of :meth:`predict`, bound once here (``coiltrack.firmware.core``)
         self.core = "python"
-        ext = _core_choice.extension()
+        ext = core.ext
         if ext is not None:
             # core/src/ekf.c: the same product with A's structural zeros skipped (equal to the
             # BLAS products below to rounding); A, Q and the scratch are bound once

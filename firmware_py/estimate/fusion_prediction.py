@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import IMU_F, IMU_FIELDS, IMU_FSRC, IMU_W, InsState
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, VEL
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_nav, transition_static
@@ -36,7 +37,7 @@ class InertialPrediction:
         The states carry the compiled step (``InsState.ck``): use it.
     """
 
-    def __init__(self, params, n: int, frame, imu_capacity: int, compiled: bool):
+    def __init__(self, params, n: int, frame, imu_capacity: int, compiled: bool, core=_DEFAULT_CORE):
         prm = params
         # the step's constants of set_dt, as it computes them (the same values to the bit)
         self._dtk = (prm.acc_bias_tau_s, prm.gyro_bias_tau_s, prm.acc_noise ** 2 + prm.source_acc_noise ** 2,
@@ -44,7 +45,7 @@ class InertialPrediction:
         # flat indices of the diagonals of Q that set_dt rewrites with the step
         self._q_diag = tuple(tuple((b.start + i) * (n + 1) for i in range(3)) for b in (VEL, ORI, ACC, GYR))
         self.frame = frame
-        self.sd = Strapdown()
+        self.sd = Strapdown(core)
         self.imu = Ring(imu_capacity, IMU_FIELDS)
         self._itv, self._idv, self._icap = self.imu.tv, self.imu.dv, self.imu.capacity
         self.steps = 0

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import InsState
 
 
@@ -28,8 +29,8 @@ class Snapshot:
     xi_filter : orientation.OrientationFilter or None
     """
 
-    def __init__(self, n: int, frame, xi_filter):
-        self.st = InsState(n, None)
+    def __init__(self, n: int, frame, xi_filter, core=_DEFAULT_CORE):
+        self.st = InsState(n, None, core=core)
         self.frame = frame
         self.xi_filter = xi_filter
         self.Phi = np.eye(3)

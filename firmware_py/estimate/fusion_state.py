@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from coiltrack.firmware import core as _core_choice
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import CovariancePredict
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, VEL
 from coiltrack.firmware.ring import field_slices
@@ -41,7 +41,8 @@ class InsState:
     (a replay in progress) and the snapshot at t_ref, which is only copied
     (``white=None``: no workspace)."""
 
-    def __init__(self, n: int, white: tuple[slice, ...] | None, white_q: tuple[float, ...] = ()):
+    def __init__(self, n: int, white: tuple[slice, ...] | None, white_q: tuple[float, ...] = (),
+                 core=_DEFAULT_CORE):
         self.p = np.zeros(3)
         self.v = np.zeros(3)
         self.Th = np.eye(3)
@@ -63,10 +64,10 @@ class InsState:
         if white is None:
             self.pred = None
             return
-        self.pred = CovariancePredict(n)
+        self.pred = CovariancePredict(n, core)
         self._Av = memoryview(self.pred.A)
         self._Qf = memoryview(self.pred.Q.reshape(-1))     # flat: element (i, j) at i n + j
-        ext = _core_choice.extension()
+        ext = core.ext
         if ext is not None and self.pred.core == "compiled":
             assert (POS.start, VEL.start, ORI.start, ACC.start, GYR.start) == (ext.POS, ext.VEL, ext.ORI,
                                                                              ext.ACC, ext.GYR)

@@ -115,6 +115,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_OK, KalmanUpdate
 from coiltrack.firmware.estimate.fusion_measurement import make_measurement_model
 from coiltrack.firmware.estimate.fusion_output import (OUT_DEAD_RECKONING, OUT_FIELDS, OUT_INCONSISTENT,  # noqa: F401
@@ -239,6 +240,8 @@ class FusionFilter:
     fixed_source : bool
         The source does not move (``Phi = I``): history and output skip the
         frame change (``fusion_state.FixedSource``, chosen here once).
+    core : coiltrack.firmware.core.Core
+        The numeric core, chosen at composition.
 
     The nominal state and covariance of the live state are ``p``, ``v``,
     ``Th``, ``ba``, ``bg``, ``P`` (arrays, fixed for the filter's life),
@@ -246,7 +249,8 @@ class FusionFilter:
     """
 
     def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
-                 history_capacity: int = 128, output_capacity: int = 16, fixed_source: bool = False):
+                 history_capacity: int = 128, output_capacity: int = 16, fixed_source: bool = False,
+                 core=_DEFAULT_CORE):
         self.prm = params
         self.meas = make_measurement_model(params, xi_filter)
         self.layout = self.meas.layout
@@ -255,15 +259,15 @@ class FusionFilter:
         self.xi = xi_filter
         self.frame = FixedSource() if fixed_source else MovingSource()
         white, white_q = self.meas.white(params)
-        self.st = InsState(n, white, white_q)        # live
-        self.sh = InsState(n, white, white_q)        # shadow: the replay of a delayed update
+        self.st = InsState(n, white, white_q, core)        # live
+        self.sh = InsState(n, white, white_q, core)        # shadow: the replay of a delayed update
         self._auth = self.st                # the state that takes snapshots and is recorded
-        self.snap = Snapshot(n, self.frame, xi_filter)
-        self.prediction = InertialPrediction(params, n, self.frame, imu_capacity, self.st.ck is not None)
+        self.snap = Snapshot(n, self.frame, xi_filter, core)
+        self.prediction = InertialPrediction(params, n, self.frame, imu_capacity, self.st.ck is not None, core)
         self.imu = self.prediction.imu
         self.zlayout = self.meas.zlayout
         self.m = self.zlayout.n
-        self.upd = KalmanUpdate(n, self.m, params.gate_probability)
+        self.upd = KalmanUpdate(n, self.m, params.gate_probability, core)
         self.meas.fill_constant(memoryview(self.upd.H), memoryview(self.upd.R), params)
         self.recovery = Recovery(params, self.meas)
         self.history = PoseHistory(history_capacity)

@@ -83,7 +83,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware import core as _core_choice
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_OK, CovariancePredict
 from coiltrack.firmware.estimate.layout import BIAS, DIST, ORIENTATION_LAYOUT, THETA
 from coiltrack.firmware.estimate.orientation_updates import Compass, Inclination
@@ -167,14 +167,15 @@ def _triad(ax, ay, az, mx, my, mz):
 
 
 class OrientationFilter:
-    """Complementary orientation Kalman filter of thesis ch. 2 (see module)."""
+    """Complementary orientation Kalman filter of thesis ch. 2 (see module); ``core``: the
+    numeric core (``coiltrack.firmware.core.Core``), chosen at composition."""
 
-    def __init__(self, params: OrientationParams):
+    def __init__(self, params: OrientationParams, core=_DEFAULT_CORE):
         self.prm = params
         self.P = np.zeros((N, N))
-        self.pred = CovariancePredict(N)
-        self.incl = Inclination(params)   # the inclination update (eqs 2.20, 2.23)
-        self.compass = Compass(params)    # the compass update and its learning (eqs 2.8-2.12, 2.21, 2.24)
+        self.pred = CovariancePredict(N, core)
+        self.incl = Inclination(params, core)   # the inclination update (eqs 2.20, 2.23)
+        self.compass = Compass(params, core)    # the compass update and its learning (eqs 2.8-2.12, 2.21, 2.24)
         # nominal state
         self.R = np.eye(3)
         self.bias = np.zeros(3)          # gyroscope offset, rad/s, sensor frame
@@ -184,7 +185,7 @@ class OrientationFilter:
         self.bias_v = memoryview(self.bias)   # the gyroscope bias as Python floats (the tracker reads it)
         self._dv = memoryview(self.dist)
         self._av = memoryview(self.acc)
-        self._sd = Strapdown()           # the attitude step (estimate.strapdown)
+        self._sd = Strapdown(core)       # the attitude step (estimate.strapdown)
         self._T = np.zeros((3, 3))
         self._O = np.zeros((3, 3))       # orthonormalisation scratch
         self._Rc = np.eye(3)             # orientation when the covariance was last propagated
@@ -207,7 +208,7 @@ class OrientationFilter:
         # the numeric core of propagate, bound once here (coiltrack.firmware.core:
         # core/src/orientation.c, the same blocks and the compiled covariance prediction)
         self._ck = None
-        ext = _core_choice.extension()
+        ext = core.ext
         if ext is not None and self.pred.core == "compiled":
             self._ck = ext.OriProp(N, THETA.start, BIAS.start, DIST.start, self.R, self._Rc, self.pred.A,
                                    self.pred.Q, self.P, self.pred._T)

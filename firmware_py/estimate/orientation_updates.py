@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import KalmanUpdate
 from coiltrack.firmware.estimate.layout import DIST, ORIENTATION_LAYOUT, THETA
 
@@ -32,9 +33,9 @@ class Inclination:
     """The accelerometer's inclination update and the motion level it is weighted by
     (``motion_ms``: variance of ``y_A - g Z-``, m^2/s^4)."""
 
-    def __init__(self, params):
+    def __init__(self, params, core=_DEFAULT_CORE):
         self.prm = params
-        self.upd = KalmanUpdate(N, 3, params.gate_probability)
+        self.upd = KalmanUpdate(N, 3, params.gate_probability, core)
         self._H = memoryview(self.upd.H)
         self._R = memoryview(self.upd.R)
         self.motion_ms = 0.0
@@ -107,9 +108,9 @@ class Compass:
     earth field's direction ``h_g`` (global frame), and the disturbance's driving noise
     (``qwd``, eq 2.12)."""
 
-    def __init__(self, params):
+    def __init__(self, params, core=_DEFAULT_CORE):
         self.prm = params
-        self.upd = KalmanUpdate(N, 3, params.gate_probability)
+        self.upd = KalmanUpdate(N, 3, params.gate_probability, core)
         self._H = memoryview(self.upd.H)
         self._R = memoryview(self.upd.R)
         for i in range(3):

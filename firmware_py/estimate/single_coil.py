@@ -67,6 +67,7 @@ from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, POSE_POS, SCHEPERS_CORE as CORE,
                                                SCHEPERS_LAYOUT, VEL, schepers_layout)
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_sensor, transition_static
 from coiltrack.firmware.estimate.clones import PoseClones
 from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement, SingleCoilUpdate
@@ -127,7 +128,8 @@ class SchepersEKF:
         return schepers_layout(n_clones)
 
     def __init__(self, *, n_clones: int, gravity, acc_noise: float, gyr_noise: float, acc_bias_rw: float,
-                 gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int):
+                 gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int,
+                 core=_DEFAULT_CORE):
         self.n_clones = int(n_clones)
         self.layout = self._make_layout(self.n_clones)
         nx = self.layout.n
@@ -142,7 +144,7 @@ class SchepersEKF:
         self._alloc_state(nx)
         self._alloc_propagation(nx)
         # update: the shared shape (``single_coil_update``), plus the nominal NIS for the monitor
-        self._coil_update = SingleCoilUpdate(nx, gate_probability, self.iterations)
+        self._coil_update = SingleCoilUpdate(nx, gate_probability, self.iterations, core)
         self.upd = self._coil_update.upd
         self._meas = CoilMeasurement()
         self.nis = 0.0
@@ -182,7 +184,7 @@ class SchepersEKF:
         self._q = np.zeros(nx)
         self._dR = np.eye(3)
         self._R2 = np.eye(3)
-        self._sd = Strapdown()
+        self._sd = Strapdown(core)
         self._pv = memoryview(self.p)
         self._vv = memoryview(self.v)
         self._Rv = memoryview(self.R)

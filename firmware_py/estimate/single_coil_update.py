@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
 from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
 
@@ -64,10 +65,10 @@ class CoilMeasurement:
 class SingleCoilUpdate:
     """The buffers and the passes of the iterated single-coil update over ``nx`` states."""
 
-    def __init__(self, nx: int, gate_probability: float, iterations: int):
+    def __init__(self, nx: int, gate_probability: float, iterations: int, core=_DEFAULT_CORE):
         self.nx = int(nx)
         self.iterations = max(1, int(iterations))
-        self.upd = KalmanUpdate(nx, 3, gate_probability)
+        self.upd = KalmanUpdate(nx, 3, gate_probability, core)
         self._PHt = np.zeros((nx, 3))
         self._S = np.zeros((3, 3))
         self.y_pred = np.zeros(3)

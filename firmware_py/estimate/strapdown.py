@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from coiltrack.firmware import core as _core_choice
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, VEL
 from coiltrack.firmware.linalg import exp_rotvec
 
@@ -58,7 +58,7 @@ _P, _V, _O, _A, _G = POS.start, VEL.start, ORI.start, ACC.start, GYR.start
 class Strapdown:
     """Scratch of the attitude step (two 3x3 buffers, allocated once)."""
 
-    def __init__(self):
+    def __init__(self, core=_DEFAULT_CORE):
         self.E = np.eye(3)
         self.T = np.eye(3)
         self.Ev = memoryview(self.E)
@@ -66,7 +66,7 @@ class Strapdown:
         #: ``core/src/strapdown.c`` ``ct_strapdown_rotate``, the same Rodrigues and a 3x3 product
         #: equal to the BLAS one to rounding; ``E`` is then not written)
         self.core = "python"
-        ext = _core_choice.extension()
+        ext = core.ext
         if ext is not None:
             self.rotate = ext.strapdown_rotate
             self.core = "compiled"

@@ -68,7 +68,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware import core as _core_choice
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.field import MU0, dipole_point, loop_point
 
@@ -99,6 +99,8 @@ class SignalModel:
     ----------
     coils : sequence of ``field.Coil``, length n >= 1
     model : {"exact", "dipole"}
+    core : ``coiltrack.firmware.core.Core``
+        The numeric core, chosen at composition (default: compiled where built).
 
     Attributes
     ----------
@@ -110,7 +112,7 @@ class SignalModel:
     evals : int             field evaluations so far (coils x points)
     """
 
-    def __init__(self, coils, model: str = "exact"):
+    def __init__(self, coils, model: str = "exact", core=_DEFAULT_CORE):
         if model not in FIELD_MODELS:
             raise ValueError(f"model must be one of {FIELD_MODELS}, got {model!r}")
         n = len(coils)
@@ -142,7 +144,7 @@ class SignalModel:
             self._kernel = [self._dipole] * n
         #: the numeric core this model runs, bound once here (``coiltrack.firmware.core``)
         self.core = "python"
-        ext = _core_choice.extension()
+        ext = core.ext
         if ext is not None and n <= ext.MAX_COILS:
             self._bind_compiled(ext)
 
@@ -207,6 +209,11 @@ class SignalModel:
 
     def reset_evals(self) -> None:
         self.evals = 0
+
+    def charge(self, k: int) -> None:
+        """Count ``k`` evaluations of every coil done by a compiled kernel bound to this model's
+        geometry (``pose.solver``'s Levenberg-Marquardt): ``k n`` evaluations."""
+        self.evals += k * self.n
 
     def moment_per_amp(self, j: int) -> tuple:
         """Dipole moment of coil ``j`` at 1 A, A m^2 (source frame)."""

@@ -125,6 +125,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.linalg import Rot3, flat
 from coiltrack.firmware.model.signal import SignalModel
@@ -216,8 +217,8 @@ class RaabTracker(StagedSolve):
     def __init__(self, coils, model: str = "exact", iters: int = 20, acquire_iters: int = 60,
                  gate_probability: float = 1.0, step_tol: float = 1e-4, refresh: float = 0.02,
                  correction: bool = True, start_position=None, start_euler=None, max_step: float = MAX_STEP,
-                 hemisphere=(1.0, 0.0, 0.0), step_sigma: float = STEP_SIGMA):
-        self.signal = SignalModel(coils, model)
+                 hemisphere=(1.0, 0.0, 0.0), step_sigma: float = STEP_SIGMA, core=_DEFAULT_CORE):
+        self.signal = SignalModel(coils, model, core)
         n = self.signal.n
         self.n = n
         self.model = model

@@ -44,6 +44,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.linalg import Rot3, exp_rotvec, flat, float_view, nearest_rotation
 from coiltrack.firmware.model.signal import SignalModel
@@ -120,9 +121,17 @@ class _PoseFit:
     def trial(self, d, A, g) -> float:
         p, pt = self.p, self.p_t
         pt[0], pt[1], pt[2] = p[0] + d[0], p[1] + d[1], p[2] + d[2]
-        exp_rotvec(d[3], d[4], d[5], self._dRm)
-        np.matmul(self.R, self._dR, out=self.R_t)
-        return self._cost(pt[0], pt[1], pt[2], self._Rtm, A, g)
+        E = self._dRm
+        exp_rotvec(d[3], d[4], d[5], E)
+        # R_t = R E as three sums per element in this order (the compiled step's, so both cores
+        # take the same LM decisions to the bit; BLAS's product may fuse multiply-adds)
+        R, Rt = self._Rm, self._Rtm
+        for i in range(3):
+            r0, r1, r2 = R[i, 0], R[i, 1], R[i, 2]
+            Rt[i, 0] = r0 * E[0, 0] + r1 * E[1, 0] + r2 * E[2, 0]
+            Rt[i, 1] = r0 * E[0, 1] + r1 * E[1, 1] + r2 * E[2, 1]
+            Rt[i, 2] = r0 * E[0, 2] + r1 * E[1, 2] + r2 * E[2, 2]
+        return self._cost(pt[0], pt[1], pt[2], Rt, A, g)
 
     def accept(self) -> None:
         p, pt = self.p, self.p_t
@@ -195,6 +204,68 @@ class _PoseFit:
         return cost
 
 
+class _CompiledLM:
+    """:class:`pose.lm.LevenbergMarquardt` on :class:`_PoseFit`, compiled (``core/src/lm.c``:
+    ``ct_lm_pose_start``, ``ct_lm_pose_iterate``, the fit's cost ``ct_pose_cost``): the same
+    interface (``start``, ``iterate``, ``state``, ``cost``, ``it``, ``lam``, ``A``, ``g``) over
+    the fit's own buffers, the state in a small array the kernel writes. The same operations in
+    the same order as the Python, so the same result to the bit. Bound once at start-up; the signal model's evaluation count is charged per evaluation."""
+
+    def __init__(self, ext, fit: _PoseFit, lam0: float, lam_max: float, iters: int, cost_tol: float,
+                 step_sigma: float):
+        sig = fit.signal
+        self.k = 6
+        self.iters = iters
+        self._sig = sig
+        self._st = np.zeros(ext.LM_NST)
+        self._stv = memoryview(self._st)
+        self._A = [memoryview(np.zeros(36)), memoryview(np.zeros(36))]
+        self._g = [memoryview(np.zeros(6)), memoryview(np.zeros(6))]
+        self.d = memoryview(np.zeros(6))
+        self.problem = fit
+        self._ck = ext.PoseLM(sig.n, sig._geom, sig.B, sig.J, fit.S, fit.w, fit.cur, fit._h, fit._H, fit.p, fit.p_t,
+                              fit.R, fit.R_t, self._A[0], self._g[0], self._A[1], self._g[1], self.d, self._st,
+                              lam0, lam_max, iters, cost_tol, step_sigma, fit.step_tol)
+
+    @property
+    def state(self) -> int:
+        return int(self._stv[0])
+
+    @property
+    def cost(self) -> float:
+        return self._stv[1]
+
+    @property
+    def lam(self) -> float:
+        return self._stv[2]
+
+    @property
+    def it(self) -> int:
+        return int(self._stv[3])
+
+    @property
+    def A(self):
+        return self._A[int(self._stv[4])]
+
+    @property
+    def g(self):
+        return self._g[int(self._stv[4])]
+
+    def start(self, problem) -> None:
+        st = self._stv
+        st[5] = 0.0
+        self._ck.start()
+        self._sig.charge(1)
+
+    def iterate(self) -> int:
+        st = self._stv
+        st[5] = 0.0
+        state = self._ck.iterate()
+        if st[5] != 0.0:
+            self._sig.charge(1)
+        return state
+
+
 class PoseSolver(StagedSolve):
     """Preallocated, resumable Kuipers + Levenberg-Marquardt pose solver.
 
@@ -219,8 +290,9 @@ class PoseSolver(StagedSolve):
     memoryless = True      # begin resets every part (the LM, the acquisition, the warm-start checks)
 
     def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999,
-                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0):
-        self.signal = SignalModel(coils, model)
+                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0,
+                 core=_DEFAULT_CORE):
+        self.signal = SignalModel(coils, model, core)
         n = self.signal.n
         self.n = n
         self.model = model
@@ -245,7 +317,13 @@ class PoseSolver(StagedSolve):
         self._cbar = tuple(float(v) for v in cbar)
         reach = float(max(c.radius for c in coils)) + float(np.linalg.norm(centers - cbar, axis=1).max())
         self._fit = _PoseFit(self.signal, self._Sv, self._wv, self._curv, step_tol)
-        self._lm = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
+        self._lm_py = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
+        self._lm = self._lm_py
+        #: the compiled LM (``core``), or None: used for every fit while the model has no
+        #: distortion map (``model.distortion``, added to the field in Python)
+        self._lm_c = None
+        if self.signal.core == "compiled":
+            self._lm_c = _CompiledLM(core.ext, self._fit, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
         self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
         self._inv = RobustInverse6()
         self._hemi = (1.0, 0.0, 0.0)
@@ -346,6 +424,8 @@ class PoseSolver(StagedSolve):
             self._then(None)
 
     def _unit_lm_start(self) -> None:
+        lmc = self._lm_c
+        self._lm = lmc if lmc is not None and self.signal.distortion is None else self._lm_py
         self._lm.start(self._fit)
         if self._lm.state == LM_RUNNING:
             self._then(self._unit_lm_step, self.n)

@@ -31,6 +31,7 @@ import math
 
 from coiltrack.protocol.schema import AC_FAULT_REFUSED, COIL_FAULT_REFUSED, POSE_DISTORTED
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
 from coiltrack.firmware.track.burst_fusion import BurstFusionTracker, SensorInertial
@@ -67,17 +68,17 @@ class _ACMixin:
 class ACMagneticTracker(_ACMixin, MagneticTracker):
     """A magnetic-only pose per AC block."""
 
-    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, solvers):
-        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers)
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, solvers, core=_DEFAULT_CORE):
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers, core)
         self.measure, self.act = measure, act
 
 
 class ACFusionTracker(_ACMixin, BurstFusionTracker):
     """AC blocks fused with the IMU (see module docstring)."""
 
-    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, solvers):
+    def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, solvers, core=_DEFAULT_CORE):
         cfg = dataclasses.replace(cfg, motion_compensation=False)
-        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers)
+        super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers, core)
         self.measure, self.act = measure, act
         self._fuse_mid = {ch.node: -1 for ch in self.channels}
         self.blocks_fused = 0
@@ -86,9 +87,9 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         """A sensor's inertial part for AC blocks: the compass always quiet (the earth-field ring
         holds only the blocks' DC terms), a compass sample up to a block and three hops old, and
         the motion within a block the rms time ``T_w / sqrt(12)`` of a uniform block."""
-        return SensorInertial(node, cfg, _AlwaysQuiet(), self._fixed_phi, self._fixed_fref, self.source,
+        return SensorInertial(node, cfg, _AlwaysQuiet(), self.source,
                               compass_max_age_us=cfg.ac_window_us + 3 * cfg.ac_hop_us,
-                              burst_rms_s=cfg.ac_window_us * 1e-6 / math.sqrt(12.0))
+                              burst_rms_s=cfg.ac_window_us * 1e-6 / math.sqrt(12.0), core=self.core)
 
     def _plan_snapshots(self, now_us: int) -> None:
         """Each sensor without an update under way: its snapshot at the middle of the next block not begun."""

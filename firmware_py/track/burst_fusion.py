@@ -36,6 +36,7 @@ from coiltrack.protocol.schema import (ACC_LSB, EVT_DEAD_RECKONING, EVT_TRACK_RE
                                        POSE_FUSED, POSE_INCONSISTENT, POSE_RECOVERED, POSE_STALE, POSE_VALID)
 
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_P, OUT_Q, OUT_RECOVERED, OUT_STALE, OUT_STATUS,
                                                           OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
@@ -139,8 +140,8 @@ def quiet_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, ga
 class _Ori:
     """A ch. 2 filter fed from an IMU ring and a magnetometer ring."""
 
-    def __init__(self, cfg, gate: PulseGate, max_age_us: int | None = None):
-        self.f = OrientationFilter(OrientationParams.from_config(cfg))
+    def __init__(self, cfg, gate: PulseGate, max_age_us: int | None = None, core=_DEFAULT_CORE):
+        self.f = OrientationFilter(OrientationParams.from_config(cfg), core)
         self.gate = gate
         self.flip = FlipOffset()
         self.compass_t = -(1 << 62)
@@ -195,12 +196,12 @@ class SourceInertial:
     ``Phi`` (a ch. 2 filter; identity until initialised) and its specific force
     in the global frame ``Phi f_source`` (eq 6.8)."""
 
-    def __init__(self, node: int, cfg, gate: PulseGate):
+    def __init__(self, node: int, cfg, gate: PulseGate, core=_DEFAULT_CORE):
         self.node = node
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
-        self.ori = _Ori(cfg, gate)
+        self.ori = _Ori(cfg, gate, core=core)
         self.phi = np.eye(3)
         self.fref = np.zeros(3)
         self._phiv = memoryview(self.phi)
@@ -302,14 +303,14 @@ class FixedSource:
         return {}
 
 
-def make_source(cfg, gate: PulseGate):
+def make_source(cfg, gate: PulseGate, core=_DEFAULT_CORE):
     """The source of ``cfg``, chosen once: its IMU and magnetometer (``source_imu_id``; taken as
     unaccelerated when ``source_acceleration`` is off: eq 6.8 without ``a_source`` in the
     comparison runs) or a fixed source."""
     if not cfg.source_imu_id:
         return FixedSource(cfg)
     source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
-    return source_cls(cfg.source_imu_id, cfg, gate)
+    return source_cls(cfg.source_imu_id, cfg, gate, core)
 
 
 class SensorInertial:
@@ -317,7 +318,7 @@ class SensorInertial:
     compensation buffers of one sensor node."""
 
     def __init__(self, node: int, cfg, gate: PulseGate, source, compass_max_age_us: int | None = None,
-                 burst_rms_s: float | None = None):
+                 burst_rms_s: float | None = None, core=_DEFAULT_CORE):
         """``source``: :class:`SourceInertial` or :class:`FixedSource` (:func:`make_source`);
         ``gate``: the compass gate; ``compass_max_age_us`` (default :class:`_Ori`'s) and
         ``burst_rms_s`` (default the fixed cycle's, below) are given by a pipeline whose bursts
@@ -327,11 +328,12 @@ class SensorInertial:
         n = len(cfg.coils)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
-        self.ori = _Ori(cfg, gate, compass_max_age_us)
+        self.ori = _Ori(cfg, gate, compass_max_age_us, core)
         self.fusion = FusionFilter(FusionParams.from_config(cfg, not source.fixed), self.ori.f,
                                    imu_capacity=cfg.fusion_replay_capacity,
                                    history_capacity=cfg.fusion_history_capacity,
-                                   output_capacity=cfg.pose_output_capacity, fixed_source=source.fixed)
+                                   output_capacity=cfg.pose_output_capacity, fixed_source=source.fixed,
+                                   core=core)
         self.source = source
         self._phi = source.phi
         self._phiv = memoryview(self._phi)
@@ -674,10 +676,11 @@ class BurstFusionTracker(MagneticTracker):
     delayed update of the fusion filter at the burst's middle follows in the
     next ticks (``SensorInertial.fuse``), never in the tick of a solve."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers):
-        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers)
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers, core=_DEFAULT_CORE):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers, core)
+        self.core = core
         gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
-        self.source = make_source(cfg, gate)          # the source's IMU, or fixed: chosen once
+        self.source = make_source(cfg, gate, core)    # the source's IMU, or fixed: chosen once
         self.inertial = {ch.node: self._sensor_inertial(ch.node, cfg, gate) for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
@@ -696,7 +699,7 @@ class BurstFusionTracker(MagneticTracker):
     def _sensor_inertial(self, node: int, cfg, gate: PulseGate) -> SensorInertial:
         """The inertial part of sensor ``node`` (a pipeline of other bursts builds it with its own
         compass gate and timing: ``track.ac``)."""
-        return SensorInertial(node, cfg, gate, self.source)
+        return SensorInertial(node, cfg, gate, self.source, core=self.core)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:

@@ -35,6 +35,7 @@ import numpy as np
 
 from coiltrack.protocol.schema import POSE_VALID
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.pose.staged import SolveResult
@@ -113,9 +114,10 @@ class MagneticTracker:
 
     ``burst``: the measurement stage (a :class:`coiltrack.firmware.measure.Measurement`);
     ``solvers``: ``gate_probability -> Solver`` (``compose.solver_factory``: the configured
-    pose solver with the room's distortion map)."""
+    pose solver with the room's distortion map); ``core``: the numeric core
+    (``coiltrack.firmware.core.Core``) of the tracker's own filters, chosen at composition."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers):
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers, core=_DEFAULT_CORE):
         self.cfg = cfg
         self.channels = tuple(channels)
         self.schedule = schedule

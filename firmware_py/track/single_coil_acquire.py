@@ -24,6 +24,7 @@ import numpy as np
 
 from coiltrack.protocol.schema import POSE_VALID
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import exp_rotvec
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.pose.solver import PoseSolver
@@ -63,7 +64,8 @@ class BurstAcquisition:
     the single-coil model the refinement updates through; ``host``: the tracker
     (``tracking_started(sensor, status, now_us)``, ``boot_us``)."""
 
-    def __init__(self, cfg, coils, sensors, book, model, supervisor, tx, host, distortion=None):
+    def __init__(self, cfg, coils, sensors, book, model, supervisor, tx, host, distortion=None,
+                 core=_DEFAULT_CORE):
         self.cfg = cfg
         self.n = len(coils)
         self._sens = tuple(sensors)
@@ -72,7 +74,7 @@ class BurstAcquisition:
         self.supervisor = supervisor
         self.tx = tx
         self.host = host
-        self.solver = PoseSolver(coils, cfg.field_model)
+        self.solver = PoseSolver(coils, cfg.field_model, core=core)
         if distortion is not None:                  # the room's map (model.distortion)
             self.solver.signal.set_distortion(distortion)
         self.nominal = np.array([c.current for c in cfg.coils])

@@ -52,6 +52,7 @@ from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.rotation import quat_tuple as _quat
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.single_coil import CORE, ORI, POS, SchepersEKF
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
@@ -89,8 +90,10 @@ class SingleCoilTracker:
     """
 
     def __init__(self, cfg, coils, channels, pulses, closer, supervisor, tx, schedule: str = "adaptive",
-                 distortion=None):
-        """``distortion``: the room's map (``model.distortion``) for the acquisition's pose solver."""
+                 distortion=None, core=_DEFAULT_CORE):
+        """``distortion``: the room's map (``model.distortion``) for the acquisition's pose solver;
+        ``core``: the numeric core (``coiltrack.firmware.core.Core``), chosen at composition."""
+        self.core = core
         if schedule not in ACTUATIONS:
             raise ValueError("schedule must be 'adaptive' or 'fixed'")
         self.cfg = cfg
@@ -102,8 +105,8 @@ class SingleCoilTracker:
         self.updated_us = -1            # the tick of the last EKF update (the decision then waits)
         n = len(coils)
         self.n = n
-        self.model = SingleCoilModel(coils, cfg.field_model)       # updates
-        self.rmodel = SingleCoilModel(coils, cfg.field_model)      # the fixed-cycle reference
+        self.model = SingleCoilModel(coils, cfg.field_model, core)       # updates
+        self.rmodel = SingleCoilModel(coils, cfg.field_model, core)      # the fixed-cycle reference
         self.pulse_us = cfg.adaptive_pulse_us or cfg.pulse_us
         self.sensors: dict[int, SensorTrack] = {}
         for k, tr in enumerate(channels):
@@ -113,9 +116,9 @@ class SingleCoilTracker:
         self.book = PulseBook(cfg, n, pulses, [s.ekf for s in self._sens], mid,
                               cfg.fall_us + cfg.baseline_us + cfg.guard_us, cfg.first_cycle_us - cfg.adaptive_lead_us)
         self.acquisition = BurstAcquisition(cfg, coils, self._sens, self.book, self.model, supervisor, tx, self,
-                                            distortion)
+                                            distortion, core)
         self.actuation = ACTUATIONS[schedule](cfg, coils, self._sens, self.book, self.acquisition, supervisor, tx,
-                                              self, pulse_lengths(cfg, self.pulse_us))
+                                              self, pulse_lengths(cfg, self.pulse_us), core)
         # POSE.quality (track.quality): a single pulse leaves no residual freedom, so the
         # consistency is the update's NIS per dimension and the quiet field's, kept per sensor
         # and applied to the filter's position covariance at each fused pose
@@ -137,14 +140,14 @@ class SingleCoilTracker:
         mon = NisMonitor(window=cfg.nis_window, dof=3, gate=chi2_gate(3, cfg.nis_gate_probability),
                          z=cfg.nis_alarm_z, min_count=min(cfg.nis_window, 3), min_excess=cfg.nis_alarm_excess,
                          max_scale=cfg.nis_max_scale, feedback_updates=cfg.nis_feedback_updates)
-        s = SensorTrack(k, tr, cfg, SchepersEKF.from_config(cfg), mon)
+        s = SensorTrack(k, tr, cfg, SchepersEKF.from_config(cfg, core=self.core), mon)
         if cfg.accuracy_target == "fixed" and schedule == "adaptive":
             # the fixed cycle of [timing], its pulses' amplitude variance and mid time
             s.ref = FixedCycleReference(
                 np.array([c.current for c in cfg.coils]), cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us,
                 measurement_mid_us(cfg, cfg.pulse_us), fixed_amplitude_variance(cfg, cfg.pulse_us),
                 cfg.field_model_rel_sigma, cfg.current_tolerance_a, cfg.reference_avg_s * 1e6,
-                cfg.sigma_range_exp_pos, cfg.sigma_range_exp_ori, cfg.reference_warmup_us)
+                cfg.sigma_range_exp_pos, cfg.sigma_range_exp_ori, cfg.reference_warmup_us, self.core)
         return s
 
     # ------------------------------------------------------------ inputs

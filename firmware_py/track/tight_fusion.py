@@ -60,6 +60,7 @@ from coiltrack.protocol.schema import POSE_FUSED, POSE_INCONSISTENT, POSE_STALE,
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.relative_inertial import RelativeInertialEKF
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE, SampleRing
@@ -259,11 +260,11 @@ class _NoQuietField:
 class _TightSensor:
     """One sensor's IMU ring, relative EKF and window bookkeeping."""
 
-    def __init__(self, ch, cfg, n: int, source_imu: bool):
+    def __init__(self, ch, cfg, n: int, source_imu: bool, core=_DEFAULT_CORE):
         self.ch = ch
         self.node = ch.node
         self.n = n
-        self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu)
+        self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu, core=core)
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self.s6 = [0.0] * 6
         self.acc = np.zeros(3)
@@ -538,14 +539,14 @@ class _TightSensor:
 class TightFusionTracker(MagneticTracker):
     """Magnetic-only poses of each burst, and the tightly coupled fused poses (module docstring)."""
 
-    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers):
-        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers)
+    def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers, core=_DEFAULT_CORE):
+        super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers, core)
         n = len(coils)
         self.n = n
         self.source = _make_source(cfg)           # the source module, or fixed: chosen once
-        self.sensors = {ch.node: _TightSensor(ch, cfg, n, not self.source.fixed) for ch in self.channels}
+        self.sensors = {ch.node: _TightSensor(ch, cfg, n, not self.source.fixed, core) for ch in self.channels}
         self._sens = tuple(self.sensors.values())
-        self.model = SingleCoilModel(coils, cfg.field_model)
+        self.model = SingleCoilModel(coils, cfg.field_model, core)
         # mid time of a pulse's used samples from its start edge (as the extractor uses them)
         self.mid_us = (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2
         # ... and as the last windows had it (their samples' mean time from the start edge)

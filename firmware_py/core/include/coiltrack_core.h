@@ -107,6 +107,74 @@ struct ct_ori {
 void ct_orientation_propagate(const struct ct_ori *o, double dt_acc, double dt2_acc, double cd_acc,
                               double qd_acc);
 
+/* -------------------------------------------------------------------- lm
+ * coiltrack.firmware.pose.solver._PoseFit and pose.lm.LevenbergMarquardt (k = 6): the pose fit's
+ * cost with its normal equations and one damped step.  geom, B, J: the signal model's
+ * (ct_signal_fields); S, w (3n): signals and weights 1 / sigma; cur (n); h (3n), H (18n): scratch;
+ * p, p_t (3), R, R_t (9): the pose and the trial pose. */
+struct ct_posefit {
+    int n;
+    const double *geom;
+    double *B, *J;
+    const double *S, *w, *cur;
+    double *h, *H;
+    double *p, *p_t, *R, *R_t;
+    double step_tol;
+};
+/* the LM's state, in a caller-owned array st[CT_LM_NST] (the Python attributes of the same names) */
+enum { CT_LM_STATE = 0, CT_LM_COST = 1, CT_LM_LAM = 2, CT_LM_IT = 3, CT_LM_CUR = 4, CT_LM_EVALS = 5,
+       CT_LM_NST = 6 };
+enum { CT_LM_RUNNING = 0, CT_LM_CONVERGED = 1, CT_LM_STOPPED = 2 };
+struct ct_lm {
+    double lam0, lam_max, cost_tol, step_sigma2;
+    int iters;
+    double *A[2], *g[2];            /* 36, 6: the accepted point's and the trial's normal equations */
+    double *d;                      /* 6: the step */
+    double *st;                     /* CT_LM_NST */
+};
+int ct_damped_spd_solve_6(const double *a, const double *b, double *x, double lam);   /* linalg_gen.c */
+double ct_pose_cost(const struct ct_posefit *f, const double *p, const double *R, double *a, double *g);
+int ct_pose_small(const struct ct_posefit *f, const double *d);
+void ct_lm_pose_start(const struct ct_lm *lm, const struct ct_posefit *f);
+int ct_lm_pose_iterate(const struct ct_lm *lm, const struct ct_posefit *f);
+
+/* ----------------------------------------------------------------- frame
+ * coiltrack.firmware.transmit.Transmitter.pose with protocol.framing.encode_frame: one POSE frame,
+ * COBS-encoded and delimited, into out (at least CT_POSE_FRAME_MAX bytes), the variances clamped as
+ * Transmitter.pose clamps them; returns its length, or
+ * -1 for a value the wire format cannot carry (struct.pack's refusal).  v: px, py, pz, qw, qx, qy,
+ * qz, then the six variances.  The schema constants are checked against protocol.schema at
+ * start-up (transmit.py). */
+enum { CT_POSE_ID = 48, CT_POSE_PAYLOAD = 64, CT_POSE_CRC_EXTRA = 7,
+       CT_POSE_FRAME_RAW = 5 + 64 + 2, CT_POSE_FRAME_MAX = 5 + 64 + 2 + 2 + 1 };
+#define CT_F32_MAX 3.0e38        /* transmit.F32_MAX: the variances are clamped to it */
+int ct_cobs_encode(const uint8_t *in, int n, uint8_t *out);
+int ct_pose_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t t_us, const double *v, int64_t status,
+                  int64_t quality);
+
+/* ------------------------------------------------------------------- imu
+ * coiltrack.firmware.receive: _clipped and Receiver._delta (IMU_DELTA pairs into IMU steps).  The
+ * protocol constants (protocol.schema) are checked against these at start-up (receive.py). */
+#define CT_IMU_CLIP 32767
+#define CT_STAMP_LSB_US 8
+#define CT_STAMP_MASK 16383
+#define CT_STAMP_LEAD_US 16384
+#define CT_STAMP_SATURATED 16384
+#define CT_STAMP_DVEL 32768
+#define CT_DANG_LSB_RAD 5e-5
+#define CT_DVEL_LSB_MPS 1e-4
+#define CT_ACC_LSB 1e-3
+#define CT_GYR_LSB 5e-4
+/* one node's state (receive._DeltaState), int64 each */
+enum { CT_D_STAMP = 0, CT_D_X, CT_D_Y, CT_D_Z, CT_D_PENDING, CT_D_SAT, CT_D_LAST, CT_D_HAS_LAST, CT_D_AX, CT_D_AY,
+       CT_D_AZ, CT_D_VX, CT_D_VY, CT_D_VZ, CT_DELTA_NST };
+/* the receiver's counters and the interval start, int64 each */
+enum { CT_DIO_T0 = 0, CT_DIO_UNPAIRED, CT_DIO_ANCHORS, CT_DIO_SATURATED, CT_DIO_SAT_PAIRS, CT_DIO_DELTAS, CT_DIO_N };
+int ct_imu_clipped(const int64_t *v6);
+int64_t ct_unwrap_stamp(int64_t stamp, int64_t now_us);
+int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_t now_us, double interval_us,
+                 double step_us, double *out, int64_t *io);
+
 #ifdef __cplusplus
 }
 #endif

@@ -16,10 +16,8 @@ pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not
 
 
 def _pair(n, monkeypatch):
-    monkeypatch.setitem(core._state, "selected", "python")
-    ref = CovariancePredict(n)
-    monkeypatch.setitem(core._state, "selected", "compiled")
-    got = CovariancePredict(n)
+    ref = CovariancePredict(n, core.PYTHON)
+    got = CovariancePredict(n, core.load("compiled"))
     assert (ref.core, got.core) == ("python", "compiled")
     return ref, got
 

@@ -20,10 +20,8 @@ pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not
 
 
 def _pair(n, m, monkeypatch, gate_probability=0.999):
-    monkeypatch.setitem(core._state, "selected", "python")
-    ref = KalmanUpdate(n, m, gate_probability)
-    monkeypatch.setitem(core._state, "selected", "compiled")
-    got = KalmanUpdate(n, m, gate_probability)
+    ref = KalmanUpdate(n, m, gate_probability, core.PYTHON)
+    got = KalmanUpdate(n, m, gate_probability, core.load("compiled"))
     assert (ref.core, got.core) == ("python", "compiled")
     return ref, got
 
@@ -79,11 +77,7 @@ def test_inverse_of_s_is_bit_identical(m):
     inv = spd_inverse(m)
     for _ in range(30):
         S = _spd(rng, m, cond=1e8)
-        core._state["selected"] = "compiled"
-        try:
-            u = KalmanUpdate(m, m, 1.0)
-        finally:
-            core._state["selected"] = "compiled" if core.available() else "python"
+        u = KalmanUpdate(m, m, 1.0, core.load("compiled"))
         u.H[:] = np.eye(m)
         u.R[:] = S
         u.y[:] = 0.0

@@ -22,10 +22,8 @@ H = np.array([0.2e-4, 0.0, -0.45e-4])       # earth field, global frame (north, 
 
 def _pair(monkeypatch, **kw):
     prm = OrientationParams.from_config(None, mag_learn_samples=20, **kw)
-    monkeypatch.setitem(core._state, "selected", "python")
-    ref = OrientationFilter(prm)
-    monkeypatch.setitem(core._state, "selected", "compiled")
-    got = OrientationFilter(prm)
+    ref = OrientationFilter(prm, core.PYTHON)
+    got = OrientationFilter(prm, core.load("compiled"))
     assert ref._ck is None and got._ck is not None
     return ref, got
 

@@ -20,47 +20,84 @@ def test_bad_impl_is_refused_naming_the_key():
     assert config_to_dict(FirmwareConfig())["core"] == {"impl": "compiled"}
 
 
-def test_compiled_falls_back_to_python_once_where_not_built(monkeypatch, capsys):
-    """Without the extension, ``compiled`` resolves to ``python`` with one line on stderr, said
-    once per process; ``python`` is said nothing."""
-    monkeypatch.setattr(core, "_ext", None)
-    monkeypatch.setitem(core._state, "said", False)
-    monkeypatch.setitem(core._state, "selected", "python")
-    assert core.resolve("python") == "python"
+def test_compiled_falls_back_to_python_once_where_not_built(capsys):
+    """Without the extension, ``compiled`` loads the Python core with one line on stderr, said
+    once per process; ``python`` is said nothing; an unknown core is refused."""
+    core._say_python_fallback.cache_clear()
+    assert core.load("python", ext=None) is core.PYTHON
     assert capsys.readouterr().err == ""
-    assert core.select("compiled") == "python"
-    assert core.extension() is None
-    assert core.resolve("compiled") == "python"
+    assert core.load("compiled", ext=None) is core.PYTHON
+    assert core.load("compiled", ext=None).ext is None
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Python core" in err
+    assert core.resolve("compiled", ext=None) == "python"
     with pytest.raises(ValueError, match="impl"):
         core.resolve("numba")
+    with pytest.raises(ValueError, match="extension"):
+        core.Core("compiled", None)
 
 
+def _cores(obj) -> dict:
+    """``{class name: {core names}}`` of every firmware object reachable from ``obj`` that binds
+    kernels (has a ``core`` name)."""
+    seen: set[int] = set()
+    found: dict[str, set] = {}
+
+    def walk(o, depth: int) -> None:
+        if depth > 14 or id(o) in seen:
+            return
+        seen.add(id(o))
+        if isinstance(o, dict):
+            for v in o.values():
+                walk(v, depth + 1)
+        elif isinstance(o, (list, tuple)):
+            for v in o:
+                walk(v, depth + 1)
+        elif (getattr(type(o), "__module__", "") or "").startswith("coiltrack.firmware"):
+            c = getattr(o, "core", None)
+            if isinstance(c, str):
+                found.setdefault(type(o).__name__, set()).add(c)
+            for v in getattr(o, "__dict__", {}).values():
+                walk(v, depth + 1)
+
+    walk(obj, 0)
+    return found
+
+
+# one scenario of each pipeline: burst fusion (LM), tight fusion, adaptive single coil, the
+# fixed single-coil cycle, Raab's tracker, AC fused, AC magnetic only
+PIPELINES = ("roetenberg-fusion", "roetenberg-flexion-back", "schepers-adaptive", "schepers-fixed-910",
+             "raab-acquire", "raab-ac", "ac-vs-dc-metal")
+
+
+@pytest.mark.parametrize("scenario", PIPELINES)
 @pytest.mark.parametrize("impl", ["python", "compiled"])
-def test_firmware_binds_the_chosen_core_at_composition(impl, monkeypatch):
-    """A Firmware composed with ``impl`` runs that core in every signal model it built (and says
-    so in its status); a later composition with the other core does not change the first's."""
+def test_firmware_passes_its_core_to_every_component(impl, scenario):
+    """A Firmware composed with ``impl`` runs that core in every component that binds kernels
+    (signal models, Kalman updates, covariance predictions, strapdowns, solvers, receive,
+    transmit), whatever the pipeline; a second Firmware on the other core changes nothing of the
+    first's (no state is shared between them)."""
     if impl == "compiled":
         pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
     from coiltrack.firmware.loop import Firmware
-    from coiltrack.firmware.model.signal import SignalModel
-    from coiltrack.tools.commands.perf import instances
+    from coiltrack.tools import scenarios
     from coiltrack.tools.bench.links import inproc_pair
 
-    monkeypatch.setitem(core._state, "selected", core._state["selected"])
-    fw = Firmware(dataclasses.replace(FirmwareConfig(), impl=impl), inproc_pair()[0])
-    models = instances(fw, SignalModel)
-    assert models and {m.core for m in models} == {impl}
+    cfg = scenarios.get(scenario).firmware_config()
+    fw = Firmware(dataclasses.replace(cfg, impl=impl), inproc_pair()[0])
+    found = _cores(fw)
+    for cls in ("SignalModel", "Transmitter", "Receiver"):
+        assert cls in found, (cls, sorted(found))
+    assert {name: c for name, c in found.items() if c != {impl}} == {}
     assert fw.status()["core"] == impl
     other = "python" if impl == "compiled" else "compiled"
     if other == "compiled" and not core.available():
         return
-    Firmware(dataclasses.replace(FirmwareConfig(), impl=other), inproc_pair()[0])
-    assert {m.core for m in models} == {impl}
+    Firmware(dataclasses.replace(cfg, impl=other), inproc_pair()[0])
+    assert _cores(fw) == found
 
 
-def test_bench_reports_are_the_same_with_either_core(monkeypatch):
+def test_bench_reports_are_the_same_with_either_core():
     """roetenberg-fusion, seed 1, 2 s, on each core: every report key that is not measured on the
     wall clock is equal (the compiled kernels are bit-identical to the reference, so the whole
     closed loop is), and each report says its core."""
@@ -69,7 +106,6 @@ def test_bench_reports_are_the_same_with_either_core(monkeypatch):
     from coiltrack.tools.outputs.report import is_wall_clock
     from coiltrack.tools.bench.runner import run_inproc
 
-    monkeypatch.setitem(core._state, "selected", core._state["selected"])
     sc = scenarios.get("roetenberg-fusion")
     reps = {impl: run_inproc(sc, 1, 2.0, cfg=dataclasses.replace(sc.firmware_config(), impl=impl))
             for impl in ("python", "compiled")}

@@ -72,10 +72,8 @@ def test_dipole_point_is_bit_identical_to_the_reference(jac):
 
 def _pair(coils, model, monkeypatch):
     """The same model built on the Python core and on the compiled core."""
-    monkeypatch.setitem(core._state, "selected", "python")
-    ref = SignalModel(coils, model)
-    monkeypatch.setitem(core._state, "selected", "compiled")
-    got = SignalModel(coils, model)
+    ref = SignalModel(coils, model, core.PYTHON)
+    got = SignalModel(coils, model, core.load("compiled"))
     assert (ref.core, got.core) == ("python", "compiled")
     return ref, got
 

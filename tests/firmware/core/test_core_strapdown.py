@@ -36,10 +36,9 @@ def test_exp_rotvec_is_bit_identical():
 
 def _filters(monkeypatch, model=3):
     prm = FusionParams.from_config(None, measurement_model=model)
-    monkeypatch.setitem(core._state, "selected", "python")
-    ref = FusionFilter(prm, OrientationFilter(OrientationParams.from_config(None)))
-    monkeypatch.setitem(core._state, "selected", "compiled")
-    got = FusionFilter(prm, OrientationFilter(OrientationParams.from_config(None)))
+    c = core.load("compiled")
+    ref = FusionFilter(prm, OrientationFilter(OrientationParams.from_config(None), core.PYTHON), core=core.PYTHON)
+    got = FusionFilter(prm, OrientationFilter(OrientationParams.from_config(None), c), core=c)
     assert ref.st.ck is None and got.st.ck is not None
     assert ref.prediction._ins_step == ref.prediction.step_python
     assert got.prediction._ins_step == got.prediction.step_compiled
@@ -102,10 +101,8 @@ def test_strapdown_rotate_matches_the_reference(monkeypatch):
     product's rounding, accumulated), and still a rotation."""
     from coiltrack.firmware.estimate.strapdown import Strapdown
 
-    monkeypatch.setitem(core._state, "selected", "python")
-    ref = Strapdown()
-    monkeypatch.setitem(core._state, "selected", "compiled")
-    got = Strapdown()
+    ref = Strapdown(core.PYTHON)
+    got = Strapdown(core.load("compiled"))
     assert (ref.core, got.core) == ("python", "compiled")
     rng = np.random.default_rng(23)
     R1 = Rotation.from_rotvec([0.3, -2.0, 1.0]).as_matrix()
