@@ -54,24 +54,12 @@ ALLOWED: dict[tuple[str, str, str], str] = {
         "the node's own delta integrator (node.delta), on the same path",
 }
 
-_FUSION = "the fusion work (issue 31: the fusing trackers compose their parts instead of reaching into them): "
 _SINGLE = "the single-coil work (issue 31: SingleCoilTracker split along its three jobs): "
 
 #: file -> the findings another piece of work removes (an expected failure until then)
 PENDING: dict[str, str] = {
-    "firmware_py/track/burst_fusion.py":
-        _FUSION + "BurstFusionTracker sets its SensorInertial parts' state (ins.pending, ins.stage, the "
-        "pose counters), SensorInertial sets self.fusion.source_fixed, _Ori sets f.initialized",
-    "firmware_py/track/tight_fusion.py": _FUSION + "TightFusionTracker sets its _TightSensor parts' state",
-    "firmware_py/estimate/magnetic_inertial.py": _FUSION + "FusionFilter steps its state object (st.t_us, st.ka)",
-    "firmware_py/estimate/relative_inertial.py":
-        _FUSION + "the tight tracker's filter opens its update's gate by writing upd.gate",
-    "firmware_py/estimate/single_coil.py": _SINGLE + "SchepersEKF writes its update's y and gate",
     "firmware_py/track/single_coil_tracker.py":
         _SINGLE + "the tracker sets its _Sensor parts' state and its NisMonitor's gated count",
-    "protocol/conformance.py":
-        "the Conformance split (issue 31, classes of one job): the forger's frame bumps the encoder's "
-        "sequence (self.encoder.seq); the encoder should hand out the next one",
     "hil/imperfections.py":
         "the imperfect bench attaches each sensor's imperfections after the bench is built (node.imperfect) "
         "and copies the node's IMU biases into them: its nodes should be built with them "

@@ -142,7 +142,7 @@ class SchepersEKF:
         self.pos_noise = float(pos_noise)
         self.iterations = max(1, int(iterations))
         self._alloc_state(nx)
-        self._alloc_propagation(nx)
+        self._alloc_propagation(nx, core)
         # update: the shared shape (``single_coil_update``), plus the nominal NIS for the monitor
         self._coil_update = SingleCoilUpdate(nx, gate_probability, self.iterations, core)
         self.upd = self._coil_update.upd
@@ -175,7 +175,7 @@ class SchepersEKF:
         self.clone_p, self.clone_R, self.clone_t = self.clones.p, self.clones.R, self.clones.t
         self.clone_due, self.clone_taken = self.clones.due, self.clones.taken
 
-    def _alloc_propagation(self, nx: int) -> None:
+    def _alloc_propagation(self, nx: int, core) -> None:
         """The buffers of the propagation and of the prediction ahead."""
         # propagation buffers
         self.F = np.eye(nx)

@@ -115,7 +115,7 @@ class SingleCoilUpdate:
         np.subtract(m.y, self.y_pred, out=upd.y)
         if it:
             np.matmul(H, self.dx, out=self._Hdx)
-            upd.y += self._Hdx
+            np.add(upd.y, self._Hdx, out=upd.y)
         else:
             np.matmul(P, upd._Ht, out=self._PHt)
             np.matmul(H, self._PHt, out=self._S)
@@ -124,14 +124,10 @@ class SingleCoilUpdate:
             if m.r_scale != 1.0:
                 for i in range(3):
                     upd.R[i, i] *= m.r_scale
-        keep = upd.gate
-        if it or not m.gate:
-            upd.gate = math.inf          # the gate belongs to the first pass
         if it:
             P[:] = self._P0
-        f = upd.update(P)
-        upd.gate = keep
-        return f
+        # the gate belongs to the first pass
+        return upd.update(P, math.inf if it or not m.gate else None)
 
     def run(self, P, p, R, cp, co, m: CoilMeasurement, model) -> int:
         """Run the update of ``m`` on the covariance ``P`` (corrected in place), linearised at

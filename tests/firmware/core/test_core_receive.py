@@ -36,6 +36,9 @@ class _Sink:
     def on_imu(self, msg, now):
         self.imu.append((msg.node, msg.t_us, msg.ax, msg.ay, msg.az, msg.gx, msg.gy, msg.gz))
 
+    def on_imu_saturated(self, node, now):
+        self.sup.append(("saturated", node, now))
+
 
 def _receiver(c):
     port, sink = _Port(), _Sink()
