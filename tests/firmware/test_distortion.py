@@ -144,4 +144,4 @@ def test_the_map_reaches_every_pose_solver_of_the_fused_pipeline():
 def test_the_map_reaches_the_single_coil_acquisition_solver():
     """The single-coil tracker's acquisition solves a full burst: catches its solver left out."""
     dm = _map()
-    assert _tracker_with("schepers-adaptive", dm).solver.signal.distortion is dm
+    assert _tracker_with("schepers-adaptive", dm).acquisition.solver.signal.distortion is dm
