@@ -143,3 +143,26 @@ def test_ac_driver_refuses_before_sync_and_reports_its_current_after():
         assert m.faults == 0
         assert m.amplitude_ua * 1e-6 == pytest.approx(1.5, rel=1e-3)
         assert abs(m.phase_urad * 1e-6) < 1e-3
+
+
+def test_the_ac_bench_is_built_once_of_its_own_nodes():
+    """``hil.bench.assemble(kinds=ACNodeKinds(...))`` builds the AC driver and the fast sensor
+    nodes themselves (they were swapped in after the bench was built): the emulator serves exactly
+    those nodes, each sensor sees that driver's drive, and a node-off fault lands on them."""
+    from coiltrack.hil.ac_nodes import ACNodeKinds
+    from coiltrack.hil.bench import assemble
+    from coiltrack.hil.faults import BenchFaults
+    from coiltrack.hil.nodes import MagSpec
+    from coiltrack.tools.bench.links import inproc_pair
+
+    world = World(physics.thesis_source(), StaticPose(SENSOR_P, np.eye(3)))
+    _, emu_end = inproc_pair()
+    prof = FastMagProfile.mmc5983ma()
+    bench = assemble(world, emu_end, mag=MagSpec(), faults=BenchFaults.parse("node_off=sensor@1s-2s"),
+                     sensor_ids=(16, 17), kinds=ACNodeKinds(prof), seed_sensor=5)
+    assert type(bench.driver) is ACDriverNode
+    assert [type(s) for s in bench.sensors] == [FastSensorNode, FastSensorNode]
+    assert bench.emulator.nodes == [bench.driver, *bench.sensors] and bench.emulator.driver is bench.driver
+    assert all(s.driver is bench.driver and s.profile is prof for s in bench.sensors)
+    assert bench.sensors[0].off_windows == [(1_000_000, 2_000_000)] and bench.sensors[1].off_windows == []
+    assert bench.sensors[0]._coil_ac_field(1_000).tolist() == [0.0, 0.0, 0.0]     # no plan runs yet

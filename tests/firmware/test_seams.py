@@ -187,3 +187,71 @@ def test_a_class_that_breaks_a_contract_is_caught():
     assert any("on_coil_status missing" in p for p in problems(NoStatus(), Tracker))
     assert any("on_imu" in p for p in problems(ShortImu(), Tracker))
     assert problems(ShortImu, Tracker) and not isinstance(object(), Solver)
+
+
+# --------------------------------------------------------------------------- the owners' methods
+def test_the_transmitter_takes_the_tick_time_and_keeps_the_first_as_boot():
+    """``Transmitter.begin_tick`` (the loop no longer sets the transmitter's clock): the first
+    tick's time is the boot time, later ticks move only ``now_us``, and an event is stamped with
+    the tick's time; catches the boot time moved by every tick."""
+    from coiltrack.firmware.transmit import Transmitter
+    from coiltrack.protocol import FrameDecoder
+
+    a, b = inproc_pair()
+    tx = Transmitter(a, 1, 100_000, FrameDecoder())
+    tx.begin_tick(5_000)
+    tx.begin_tick(7_000)
+    tx.event(3, 9)
+    assert (tx.boot_us, tx.now_us) == (5_000, 7_000)
+    msgs = FrameDecoder().feed(b.read())
+    assert [(m.NAME, m.t_us, m.code, m.detail) for m in msgs] == [("FAULT_EVENT", 7_000, 3, 9)]
+    fw = _firmware(CONFIGS["magnetic"]())
+    fw.tick(11_000)
+    fw.tick(12_000)
+    assert (fw.tx.boot_us, fw.tx.now_us, fw.boot_us) == (11_000, 12_000, 11_000)
+
+
+def test_a_node_back_asks_the_time_sync_once():
+    """``Health.take_kick_sync``: a node heard again after it was lost asks for one restart of
+    the time sync, and the request is taken once (the supervisor no longer clears it)."""
+    from coiltrack.firmware.supervise.health import Health
+
+    h = Health((16,), 2, 120.0)
+    h.heard(16, 0)
+    h.step(10_000_000)                  # silent for 10 s: lost
+    assert not h.take_kick_sync()
+    h.heard(16, 10_000_001)
+    assert h.take_kick_sync() and not h.take_kick_sync()
+
+
+def test_a_cleared_sample_ring_takes_any_time_again():
+    """``SampleRing.clear`` (the gyro-baseline extractor refills its scratch ring every window):
+    after it a sample older than the last one before is taken, not refused as out of order."""
+    from coiltrack.firmware.measure.pulse import SampleRing
+
+    r = SampleRing(8)
+    r.push(1_000, 1e-6, 0.0, 0.0, False, 0)
+    r.push(500, 1e-6, 0.0, 0.0, False, 0)
+    assert len(r) == 1 and r.rejected == 1
+    r.clear()
+    r.push(500, 2e-6, 0.0, 0.0, False, 0)
+    assert len(r) == 1 and r.rejected == 1 and r.latest_t_us == 500
+
+
+def test_the_ac_inertial_parts_are_built_with_their_own_compass_gate_and_timing():
+    """The AC fused tracker builds each sensor's inertial part with the always-quiet compass
+    gate, a block and three hops of compass age and the block's rms time ``T_w / sqrt(12)``
+    (they were set after construction); the source keeps the pulse gate."""
+    import math
+
+    cfg = CONFIGS["ac-fusion"]()
+    tracker = _firmware(cfg).tracker
+    for ins in tracker.inertial.values():
+        assert ins.ori.gate.quiet(0) and ins.ori.gate.quiet(123_456)
+        assert ins.ori.max_age_us == cfg.ac_window_us + 3 * cfg.ac_hop_us
+        assert ins.burst_rms_s == pytest.approx(cfg.ac_window_us * 1e-6 / math.sqrt(12.0), rel=1e-15)
+    pulsed = _firmware(CONFIGS["burst-fusion"]()).tracker
+    n = len(pulsed.cfg.coils)
+    for ins in pulsed.inertial.values():
+        assert ins.burst_rms_s == pytest.approx(pulsed.cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0))
+        assert ins.ori.max_age_us == int(2e6 / pulsed.cfg.imu_rate_hz) + int(2e6 / pulsed.cfg.mag_rate_hz)
