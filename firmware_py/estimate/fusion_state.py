@@ -15,11 +15,14 @@ All buffers are created by the constructors; nothing here allocates after.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import CovariancePredict
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, VEL
+from coiltrack.firmware.linalg import exp_rotvec, rotvec_from_matrix
 from coiltrack.firmware.ring import field_slices
 
 #: named rows of an IMU ring entry: specific force, rate (sensor frame), the
@@ -58,6 +61,9 @@ class InsState:
         self._Pv = memoryview(self.P)
         self.dt_last = -1.0
         self.ka = self.kg = 1.0
+        self._E = np.zeros((3, 3))          # scratch of the correction
+        self._Ev = memoryview(self._E)
+        self._T = np.zeros((3, 3))
         #: the compiled strapdown and covariance step bound to this state's buffers, or None
         #: (``coiltrack.firmware.core``; ``InertialPrediction.step_compiled``)
         self.ck = None
@@ -89,6 +95,50 @@ class InsState:
         np.copyto(self.bg, other.bg)
         np.copyto(self.P, other.P)
         self.t_us = other.t_us
+
+    def correct(self, dx) -> None:
+        """Feed the error estimate ``dx`` (``layout.fusion_layout`` rows) back into the nominal
+        state: ``p, v, b_a, b_g`` added, ``Theta <- exp([ori]x) Theta`` (global-frame error)."""
+        p = self._pv
+        v = self._vv
+        ba = self._bav
+        bg = self._bgv
+        for i in range(3):
+            p[i] += dx[POS.start + i]
+            v[i] += dx[VEL.start + i]
+            ba[i] += dx[ACC.start + i]
+            bg[i] += dx[GYR.start + i]
+        o = ORI.start
+        exp_rotvec(dx[o], dx[o + 1], dx[o + 2], self._Ev)
+        np.matmul(self._E, self.Th, out=self._T)
+        np.copyto(self.Th, self._T)
+
+    def velocity_sigma(self) -> float:
+        """rms velocity uncertainty per axis, m/s."""
+        P = self._Pv
+        v0 = VEL.start
+        return math.sqrt(max(P[v0, v0] + P[v0 + 1, v0 + 1] + P[v0 + 2, v0 + 2], 0.0) / 3.0)
+
+    def speed_squared(self) -> float:
+        v = self._vv
+        return v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+
+    def nees(self, p_true_g, R_true_g, v_true_g=None) -> float:
+        """Normalised estimation error squared of position, orientation (and
+        velocity) against a truth in the global frame (tests; allocates)."""
+        e = []
+        idx = []
+        e.extend(np.asarray(p_true_g) - self.p)
+        idx.extend(range(POS.start, POS.stop))
+        if v_true_g is not None:
+            e.extend(np.asarray(v_true_g) - self.v)
+            idx.extend(range(VEL.start, VEL.stop))
+        M = np.asarray(R_true_g) @ self.Th.T
+        e.extend(rotvec_from_matrix(*M.reshape(9)))
+        idx.extend(range(ORI.start, ORI.stop))
+        e = np.array(e)
+        Ps = self.P[np.ix_(idx, idx)]
+        return float(e @ np.linalg.solve(Ps, e))
 
     def set_time(self, t_us: int) -> None:
         """The state now refers to ``t_us``."""

@@ -111,10 +111,6 @@ All buffers are created in ``__init__``; a step allocates no numpy array.
 """
 from __future__ import annotations
 
-import math
-
-import numpy as np
-
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_OK, KalmanUpdate
 from coiltrack.firmware.estimate.fusion_measurement import make_measurement_model
@@ -127,8 +123,6 @@ from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
 from coiltrack.firmware.estimate.fusion_state import (HIST_FIELDS, HIST_P, HIST_R, IMU_F, IMU_FIELDS,  # noqa: F401
                                                      IMU_FSRC, IMU_PHI, IMU_W, FixedSource, InsState,
                                                      MovingSource)
-from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, POS, VEL
-from coiltrack.firmware.linalg import exp_rotvec, rotvec_from_matrix
 
 # fusion health flags (bit field, beside the ekf flags)
 FUS_NOT_INITIALISED = 64
@@ -256,7 +250,6 @@ class FusionFilter:
         self.layout = self.meas.layout
         n = self.layout.n
         self.n = n
-        self.xi = xi_filter
         self.frame = FixedSource() if fixed_source else MovingSource()
         white, white_q = self.meas.white(params)
         self.st = InsState(n, white, white_q, core)        # live
@@ -272,10 +265,6 @@ class FusionFilter:
         self.recovery = Recovery(params, self.meas)
         self.history = PoseHistory(history_capacity)
         self.output = PoseOutput(params, output_capacity, self.frame)
-        # scratch of the correction
-        self._E = np.zeros((3, 3))
-        self._Ev = memoryview(self._E)
-        self._T = np.zeros((3, 3))
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
@@ -493,7 +482,7 @@ class FusionFilter:
         self.last_nis = self.upd.nis
         self.last_flags = flags
         if flags == EKF_OK:
-            self._correct(sh, self.upd._dxv)
+            sh.correct(self.upd._dxv)
             self.rejects_in_row = 0
             self.accepted_in_row += 1
             self.updates += 1
@@ -569,21 +558,6 @@ class FusionFilter:
         self.initialized = True
         self._end_replay()
 
-    def _correct(self, st: InsState, dx) -> None:
-        p = st._pv
-        v = st._vv
-        ba = st._bav
-        bg = st._bgv
-        for i in range(3):
-            p[i] += dx[POS.start + i]
-            v[i] += dx[VEL.start + i]
-            ba[i] += dx[ACC.start + i]
-            bg[i] += dx[GYR.start + i]
-        o = ORI.start
-        exp_rotvec(dx[o], dx[o + 1], dx[o + 2], self._Ev)
-        np.matmul(self._E, st.Th, out=self._T)
-        np.copyto(st.Th, self._T)
-
     def _initialize(self, st: InsState, t_ref_us: int, q, R_ms, C) -> None:
         """``st`` at ``t_ref`` from the magnetic solution (``Recovery.initialize``); its pose
         history starts anew."""
@@ -600,28 +574,12 @@ class FusionFilter:
         return self.history.pose_at(t_us, out_p, out_R)
 
     def velocity_sigma(self) -> float:
-        """rms velocity uncertainty per axis, m/s."""
-        P = self.st._Pv
-        v0 = VEL.start
-        return math.sqrt(max(P[v0, v0] + P[v0 + 1, v0 + 1] + P[v0 + 2, v0 + 2], 0.0) / 3.0)
+        """rms velocity uncertainty per axis of the live state, m/s."""
+        return self.st.velocity_sigma()
 
     def speed_squared(self) -> float:
-        v = self.st._vv
-        return v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        return self.st.speed_squared()
 
     def nees(self, p_true_g, R_true_g, v_true_g=None) -> float:
-        """Normalised estimation error squared of position, orientation (and
-        velocity) against a truth in the global frame (tests; allocates)."""
-        e = []
-        idx = []
-        e.extend(np.asarray(p_true_g) - self.p)
-        idx.extend(range(POS.start, POS.stop))
-        if v_true_g is not None:
-            e.extend(np.asarray(v_true_g) - self.v)
-            idx.extend(range(VEL.start, VEL.stop))
-        M = np.asarray(R_true_g) @ self.Th.T
-        e.extend(rotvec_from_matrix(*M.reshape(9)))
-        idx.extend(range(ORI.start, ORI.stop))
-        e = np.array(e)
-        Ps = self.P[np.ix_(idx, idx)]
-        return float(e @ np.linalg.solve(Ps, e))
+        """``InsState.nees`` of the live state (tests; allocates)."""
+        return self.st.nees(p_true_g, R_true_g, v_true_g)

@@ -196,8 +196,12 @@ class SourceInertial:
     ``Phi`` (a ch. 2 filter; identity until initialised) and its specific force
     in the global frame ``Phi f_source`` (eq 6.8)."""
 
-    def __init__(self, node: int, cfg, gate: PulseGate, core=_DEFAULT_CORE):
+    def __init__(self, node: int, cfg, gate: PulseGate, force=None, core=_DEFAULT_CORE):
+        """``force``: how ``Phi f_source`` follows the source's accelerometer (default
+        :class:`MeasuredForce`; ``source_unaccelerated.Unaccelerated`` keeps it ``-g``);
+        ``core``: the numeric core of its orientation filter."""
         self.node = node
+        self.force = MeasuredForce() if force is None else force
         self.imu = ImuRing(cfg.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
@@ -260,18 +264,16 @@ class SourceInertial:
             f = self.ori.f
             if f.initialized:
                 np.copyto(self.phi, f.R)
-                self._specific_force(ax, ay, az)
+                self.force.update(self._phiv, self._fv, ax, ay, az)
 
-    def _specific_force(self, ax: float, ay: float, az: float) -> None:
-        """``Phi f_source`` (eq 6.8, global frame, m/s^2) from the source's accelerometer sample."""
-        P = self._phiv
-        fv = self._fv
+
+class MeasuredForce:
+    """``Phi f_source`` (eq 6.8, global frame, m/s^2) from the source's accelerometer sample."""
+
+    def update(self, P, fv, ax: float, ay: float, az: float) -> None:
+        """``fv`` (3,) = ``P`` (Phi, 3x3) times the sample ``(ax, ay, az)``."""
         for i in range(3):
             fv[i] = P[i, 0] * ax + P[i, 1] * ay + P[i, 2] * az
-
-
-class UnacceleratedSource(Unaccelerated, SourceInertial):
-    """:class:`SourceInertial` taken as unaccelerated (``track.source_unaccelerated``)."""
 
 
 class FixedSource:
@@ -309,8 +311,8 @@ def make_source(cfg, gate: PulseGate, core=_DEFAULT_CORE):
     comparison runs) or a fixed source."""
     if not cfg.source_imu_id:
         return FixedSource(cfg)
-    source_cls = SourceInertial if cfg.source_acceleration else UnacceleratedSource
-    return source_cls(cfg.source_imu_id, cfg, gate, core)
+    return SourceInertial(cfg.source_imu_id, cfg, gate, MeasuredForce() if cfg.source_acceleration else Unaccelerated(),
+                          core)
 
 
 class SensorInertial:

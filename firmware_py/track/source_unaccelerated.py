@@ -3,7 +3,8 @@ acceleration, for comparison.
 
 Thesis ``002_cd7f1fdb7fc67471.txt`` eq 6.8: ``a_net = a_sensor - a_source``.
 :class:`burst_fusion.SourceInertial` gives the fusion filter ``Phi`` and
-``Phi f_source`` from the source's IMU. :class:`Unaccelerated` (``burst_fusion.UnacceleratedSource``) keeps
+``Phi f_source`` from the source's IMU (``burst_fusion.MeasuredForce``). With
+:class:`Unaccelerated` as its ``force`` it keeps
 ``Phi`` from the same ch. 2 filter but hands the fusion ``Phi f_source = -g``
 (``-gravity_mps2``, global frame, m/s^2), i.e. it treats the source as
 unaccelerated: what a tracker that knows the source's orientation but not its
@@ -15,8 +16,8 @@ from __future__ import annotations
 
 
 class Unaccelerated:
-    """Mixed in before :class:`burst_fusion.SourceInertial` (as ``burst_fusion.UnacceleratedSource``,
-    so this module needs nothing of burst_fusion's): the specific force stays ``-g`` (3,) m/s^2."""
+    """The ``force`` of :class:`burst_fusion.SourceInertial` (as ``burst_fusion.MeasuredForce``;
+    this module needs nothing of burst_fusion's): the specific force stays ``-g`` (3,) m/s^2."""
 
-    def _specific_force(self, ax: float, ay: float, az: float) -> None:
+    def update(self, P, fv, ax: float, ay: float, az: float) -> None:
         """The source taken as unaccelerated: ``Phi f_source`` stays ``-g`` (set at construction)."""
