@@ -105,11 +105,12 @@ def plot_front_with_bound(points: list[dict], bound: dict, path: str) -> None:
             line = ax.plot(med, r, "--", marker="v", lw=1.5, label=_COLUMN_LABELS.get(col, col))[0]
             ax.errorbar(med, r, xerr=[[0.0] * len(r), [w - m for w, m in zip(worst, med)]], fmt="none",
                         ecolor=line.get_color(), capsize=3)
-        ax.set_xlabel("coil energy / fixed cycle's (median of seeds; bound: bar to the worst seed)")
-        ax.set_ylabel(f"{key} RMS / fixed cycle's (median; bar to the worst seed)")
+        ax.set_xlabel("coil energy / fixed cycle's")
+        ax.set_ylabel(f"{key} RMS / fixed cycle's")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=6.5, loc="upper right")
-    fig.suptitle("schepers-adaptive: energy against accuracy, ratios to the fixed cycle of the same seed")
+    fig.suptitle("schepers-adaptive: energy against accuracy, ratios to the fixed cycle of the same seed "
+                 "(median of seeds, bar to the worst)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
