@@ -38,6 +38,10 @@ def test_ratios_per_seed_then_median_and_worst(tmp_path):
     assert pts["adaptive pulse_length=chosen"]["energy"] == pytest.approx(0.4)
     f = pts["fixed-640"]
     assert f["energy"] == pytest.approx(0.5) and f["position"] == pytest.approx((1.175, 1.25))
+    # the reference is the first grid point of a swept fixed cycle, not the last run of the seed
+    f910 = _sweep(tmp_path / "fixed-910.json", "schepers-fixed-910", [
+        _run(1, {"timing.cycle_us": 600000}, 30.0, 4.0, 0.5), _run(1, {"timing.cycle_us": 900000}, 20.0, 9.0, 0.9)])
+    assert fp.reference(f910) == {1: ref[1]}
 
 
 def test_bound_files_become_lines_and_the_png_is_written(tmp_path):

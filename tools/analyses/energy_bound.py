@@ -297,15 +297,16 @@ class SeedModel:
 
     def weight(self, currents, rho: float) -> np.ndarray:
         """Information weights (W, K) of one pulse per coil at ``currents`` with the cycle's pulse and
-        baseline and the model error ``rho``."""
-        nu, nb = pulse_samples(self.T0, self.B0, self.tm, self.phase)
+        baseline and the model error ``rho`` (the cycle's pulses are not timed to the samples: the
+        mean counts whatever ``phase``)."""
+        nu, nb = pulse_samples(self.T0, self.B0, self.tm, "mean")
         a = self.cfg.mag_sigma_t ** 2 * (1 / nu + 1 / nb) + self.cfg.current_tolerance_a ** 2 * self.u2
         return pulse_weight(np.asarray(currents, dtype=float)[None, :], a, rho * rho * self.u2)
 
     def saturated_share(self) -> float:
         """Share of the fixed cycle's coil-windows whose model error ``((rho I)^2 + tau^2) |u|^2``
         exceeds the white noise ``sigma^2 (1/n_u + 1/n_b)`` of the extraction."""
-        nu, nb = pulse_samples(self.T0, self.B0, self.tm, self.phase)
+        nu, nb = pulse_samples(self.T0, self.B0, self.tm, "mean")
         c = self.cfg
         model = ((c.field_model_rel_sigma * self.I0[None, :]) ** 2 + c.current_tolerance_a ** 2) * self.u2
         return float(np.mean(model > c.mag_sigma_t ** 2 * (1 / nu + 1 / nb)))
@@ -317,7 +318,8 @@ class SeedModel:
 
     def exponents(self, hi: tuple, lo: tuple, rho_sweep: float, currents=(0.91, 0.45)) -> tuple[float, float]:
         """(a_pos, a_rot) fitted to the fixed cycle's current sweep: figures ``hi``/``lo`` =
-        (position RMS, orientation RMS, energy) at ``currents`` with the sweep's model error."""
+        (position RMS, orientation RMS, energy) at ``currents`` (those of ``schepers-fixed-910`` and
+        ``-450``, ``tools/scenarios/adaptive.py``) with the sweep's model error."""
         J = [np.einsum("wk,wkij->wij", self.window * self.weight(np.full(len(self.I0), i), rho_sweep), self.Jt)
              for i in currents]
         return (fit_exponent(J[0], J[1], hi[0], lo[0], POS), fit_exponent(J[0], J[1], hi[1], lo[1], ROT))

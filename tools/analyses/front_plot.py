@@ -9,7 +9,7 @@ and position or orientation RMS (median over the seeds, the worst seed as the ba
 an actuation-policy scenario carries its own fixed cycle (``fixed_*`` figures, ``coiltrack sweep
 --scenario schepers-adaptive``), one point per grid point (e.g. ``pulse_length`` fixed or chosen,
 ``fixed_accuracy_ratio``); a sweep of a fixed cycle (``schepers-fixed-640``) is divided by the
-``--fixed-json`` sweep seed by seed. The fixed cycle is the point (1, 1). A bound file
+``--fixed-json`` sweep (its first grid point) seed by seed. The fixed cycle is the point (1, 1). A bound file
 (``python -m coiltrack.tools.analyses.energy_bound --json``) holds, per column (60 ms pulses; pulse
 length chosen; chosen with long baselines), the least energy of every seed at RMS at most ``ratio``
 times the fixed cycle's: drawn at height ``ratio``, the median with a bar to the worst seed; several
@@ -33,6 +33,14 @@ _COLUMN_LABELS = {"fixed": "bound, 60 ms pulses", "chosen": "bound, pulse length
 
 def _by_seed(runs) -> dict:
     return {int(r["seed"]): r["figures"] for r in runs if r and r.get("figures")}
+
+
+def reference(path: str) -> dict:
+    """The figures per seed of the fixed cycle in ``path``: the runs of its first grid point
+    (``fixed-910.json`` swept over ``timing.cycle_us`` starts with the 600 ms cycle)."""
+    runs = read_json(path)["runs"]
+    first = runs[0]["params"] if runs else {}
+    return _by_seed(r for r in runs if r["params"] == first)
 
 
 def sweep_points(path: str, fixed: dict | None) -> list[dict]:
@@ -97,11 +105,12 @@ def plot_front_with_bound(points: list[dict], bound: dict, path: str) -> None:
             line = ax.plot(med, r, "--", marker="v", lw=1.5, label=_COLUMN_LABELS.get(col, col))[0]
             ax.errorbar(med, r, xerr=[[0.0] * len(r), [w - m for w, m in zip(worst, med)]], fmt="none",
                         ecolor=line.get_color(), capsize=3)
-        ax.set_xlabel("coil energy / fixed cycle's (median of seeds; bound: bar to the worst seed)")
-        ax.set_ylabel(f"{key} RMS / fixed cycle's (median; bar to the worst seed)")
+        ax.set_xlabel("coil energy / fixed cycle's")
+        ax.set_ylabel(f"{key} RMS / fixed cycle's")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=6.5, loc="upper right")
-    fig.suptitle("schepers-adaptive: energy against accuracy, ratios to the fixed cycle of the same seed")
+    fig.suptitle("schepers-adaptive: energy against accuracy, ratios to the fixed cycle of the same seed "
+                 "(median of seeds, bar to the worst)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
@@ -117,7 +126,7 @@ def main(argv=None) -> int:
         print("front_plot: give --sweep-json or --bound", file=sys.stderr)
         return 2
     try:
-        fixed = _by_seed(read_json(a.fixed_json)["runs"]) if a.fixed_json else None
+        fixed = reference(a.fixed_json) if a.fixed_json else None
         points = [pt for p in a.sweep_json for pt in sweep_points(p, fixed)]
         bound = bound_points(a.bound)
     except (OSError, ValueError, KeyError, TypeError) as exc:
