@@ -81,6 +81,7 @@ def test_recovery_is_held_to_the_no_fault_run_where_it_is_itself_above_twice_the
     keys = fr.recovery_keys(t, flt, [f], 10.0, (t, und))
     assert keys == {"fault_recovery_s": {f.describe(): pytest.approx(1.2)}, "recovery_reference": "no-fault run"}
     assert fr.recovery_keys(t, flt, [f], 10.0)["recovery_reference"] == "level"
+    assert fr.recovery_keys(t, flt, [], 10.0) == {"fault_recovery_s": {}}
 
 
 def test_bench_rescores_recovery_against_the_no_fault_trace():

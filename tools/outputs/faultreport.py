@@ -162,10 +162,12 @@ def fault_keys(bench, reference_level_mm: float | None = None, reference=None) -
 
 def recovery_keys(ft, fe, timed, level_mm: float | None, reference=None) -> dict:
     """``fault_recovery_s`` (per fault of ``timed``, :func:`recovery_time`) and
-    ``recovery_reference`` (what the error was held against) of the fused errors
-    ``fe`` (m) at true times ``ft`` (s)."""
-    return {"fault_recovery_s": {f.describe(): recovery_time(ft, fe, f, level_mm, reference) for f in timed},
-            "recovery_reference": "level" if reference is None else "no-fault run"}
+    ``recovery_reference`` (what the error was held against; only with a timed fault) of the
+    fused errors ``fe`` (m) at true times ``ft`` (s)."""
+    out = {"fault_recovery_s": {f.describe(): recovery_time(ft, fe, f, level_mm, reference) for f in timed}}
+    if timed:
+        out["recovery_reference"] = "level" if reference is None else "no-fault run"
+    return out
 
 
 def recovery_time(ft, fe, fault, level_mm: float | None, reference=None) -> float | None:
