@@ -83,7 +83,11 @@ class FirmwareConfig:
     mag_rate_hz: float = 120.0
     ring_capacity: int = 4096
     # --- work per tick (a slower board lowers them)
-    track_budget_evals: int = 9            # coil field evaluations (field + Jacobian at one point) per tick
+    track_budget_evals: int = 9            # coil field evaluations (field + Jacobian at one point) per tick;
+                                           # a warm 3-coil solve is 3 (k + 2) of them (k LM steps, ~3): 9
+                                           # spreads it over two ticks; on the compiled core ([core]) 18 fits
+                                           # it in one (the LM step with its cost in C, ~7x cheaper), a board
+                                           # 4x slower keeps 9 (coiltrack perf: max_field_evals_per_tick)
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
     windows_budget: int = 4                # pulse windows closed per tick: with many sensors a pulse's
                                            # windows are all ready in the same tick (16 sensors: 1.2 ms)

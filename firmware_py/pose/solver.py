@@ -278,6 +278,9 @@ class PoseSolver(StagedSolve):
     gate_probability : float
         Probability of the chi-square consistency gate of a warm start
         (a key of ``estimate.ekf.CHI2_QUANTILES``; 1.0 disables the cost test).
+    core : coiltrack.firmware.core.Core
+        The numeric core, chosen at composition: on the compiled one the signal model and the
+        LM step with its cost (``_CompiledLM``) run in C, bit-identical to the Python.
 
     After a solve: ``position`` (3,), ``rotation`` (3, 3), ``covariance``
     (6, 6), ``iterations``, ``cost``, ``converged``, ``status``. Work
