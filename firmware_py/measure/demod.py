@@ -218,11 +218,6 @@ class Demodulator:
         self._kv[s] = k
 
     # ------------------------------------------------------------ a block
-    def flag_block(self, flags: int) -> None:
-        """Add ``flags`` (``PULSE_*``) to the solved block's ``block_flags`` (the measure
-        stage's verdict on it, e.g. ``PULSE_TOO_FEW`` for a block without coil field)."""
-        self.block_flags |= flags
-
     def finish(self, k: int) -> bool:
         """Solve block ``k`` into ``S``, ``Q``, ``var`` (T, T, T^2, (3, n)) and ``dc`` (T, (3,),
         at the block's middle); ``block_flags``: ``PULSE_TOO_FEW`` when it holds fewer than
@@ -285,6 +280,11 @@ class Demodulator:
                 Q[ax * n + j] = a * gi - q * gr
                 V[ax * n + j] = v_in
         return True
+
+    def flag_block(self, flags: int) -> None:
+        """Add ``PULSE_*`` bits to the last finished block's ``block_flags`` (its reader's verdict,
+        e.g. ``PULSE_TOO_FEW`` for a block without signal)."""
+        self.block_flags |= flags
 
     def signal_chi2(self) -> float:
         """``sum S^2 / var(S)`` of the last block: chi-square with ``3 n`` degrees of freedom without a drive."""
