@@ -218,11 +218,6 @@ class Demodulator:
         self._kv[s] = k
 
     # ------------------------------------------------------------ a block
-    def flag_block(self, flags: int) -> None:
-        """Add ``flags`` (``PULSE_*``) to the solved block's ``block_flags`` (the measure
-        stage's verdict on it, e.g. ``PULSE_TOO_FEW`` for a block without coil field)."""
-        self.block_flags |= flags
-
     def finish(self, k: int) -> bool:
         """Solve block ``k`` into ``S``, ``Q``, ``var`` (T, T, T^2, (3, n)) and ``dc`` (T, (3,),
         at the block's middle); ``block_flags``: ``PULSE_TOO_FEW`` when it holds fewer than
