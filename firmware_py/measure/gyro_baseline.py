@@ -155,26 +155,61 @@ class GyroBaselineExtractor(PulseExtractor):
         """As the base extractor's, on the turned samples; ``amp_out`` in the
         sensor frame at ``t_m``, the middle of the used in-pulse samples."""
         src = self._src
-        out = self._turned
-        out.clear()
+        self._turned.clear()
         try:
             start = operator.index(start_us)
             end = operator.index(end_us)
         except TypeError:
             self._ring = src
             return PulseExtractor.extract(self, start_us, end_us, amp_out, var_out)
-        n = len(src)
-        if n == 0 or len(self._gyro) == 0:
+        if len(src) == 0 or len(self._gyro) == 0:
             self._ring = src
             return PulseExtractor.extract(self, start, end, amp_out, var_out)
+        a, b = self._copied_span(start, end)
+        g = self._gyro
+        gt = g.tv
+        if (gt[g.slot(0)] > src.tv[src.slot(a)] + self._gap
+                or gt[g.slot(len(g) - 1)] < src.tv[src.slot(b)] - self._gap):
+            self.plain_windows += 1               # the rates do not cover the window: the linear baseline
+            self._ring = src
+            return PulseExtractor.extract(self, start, end, amp_out, var_out)
+        q_m = self._turn(a, b, self._mid_time(start, end))
+        ang = 2.0 * math.acos(min(1.0, abs(q_m[0])))
+        if ang > self.max_angle_rad:
+            self.max_angle_rad = ang
+        self.turned_windows += 1
+        self._ring = self._turned
+        try:
+            res = PulseExtractor.extract(self, start, end, amp_out, var_out)
+        finally:
+            self._ring = src
+        # back into the sensor frame at t_m: amp = R(t_m)^T amp_a
+        qw, qx, qy, qz = q_m
+        x, y, z = _rotate((qw, -qx, -qy, -qz), amp_out[0], amp_out[1], amp_out[2])
+        amp_out[0] = x
+        amp_out[1] = y
+        amp_out[2] = z
+        return res
+
+    def _copied_span(self, start: int, end: int) -> tuple[int, int]:
+        """Logical indices ``[a, b]`` of the source samples the window reads, the bracketing
+        samples included (the newest that fit the turned ring when more than one window holds)."""
+        src = self._src
+        n = len(src)
         lo, hi = self.span(start, end)
         i_lo = src.index_at_or_after(lo)
         i_hi = src.index_at_or_after(hi + 1)
-        a = i_lo - 1 if i_lo > 0 else 0           # the bracketing samples are copied too
+        a = i_lo - 1 if i_lo > 0 else 0
         b = i_hi if i_hi < n else n - 1
-        if b - a + 1 > out.capacity:              # more than one window holds: keep the newest
-            a = b - out.capacity + 1
-        # t_m: the middle of the used in-pulse samples (the window's ``pulse_mid``)
+        if b - a + 1 > self._turned.capacity:
+            a = b - self._turned.capacity + 1
+        return a, b
+
+    def _mid_time(self, start: int, end: int) -> int:
+        """``t_m``: the middle of the used in-pulse samples (the window's ``pulse_mid``), or of the
+        settled window when it holds none."""
+        src = self._src
+        n = len(src)
         u0 = src.index_at_or_after(start + self._settle_us)
         p_first = src.index_at_or_after(start)
         if u0 <= p_first:
@@ -184,22 +219,21 @@ class GyroBaselineExtractor(PulseExtractor):
         if u1 >= p_last:
             u1 = p_last - 1
         if 0 <= u0 <= u1 < n:
-            t_m = (src.tv[src.slot(u0)] + src.tv[src.slot(u1)]) // 2
-        else:
-            t_m = (start + self._settle_us + end - self._guard_us) // 2
+            return (src.tv[src.slot(u0)] + src.tv[src.slot(u1)]) // 2
+        return (start + self._settle_us + end - self._guard_us) // 2
+
+    def _turn(self, a: int, b: int, t_m: int):
+        """Copy the source samples ``[a, b]`` into the turned ring, each rotated by the attitude
+        integrated from the first (the gyroscope's rates); returns the attitude at ``t_m``."""
+        src = self._src
+        out = self._turned
         g = self._gyro
-        gt = g.tv
-        if (gt[g.slot(0)] > src.tv[src.slot(a)] + self._gap
-                or gt[g.slot(len(g) - 1)] < src.tv[src.slot(b)] - self._gap):
-            self.plain_windows += 1               # the rates do not cover the window: the linear baseline
-            self._ring = src
-            return PulseExtractor.extract(self, start, end, amp_out, var_out)
-        self._cur = g.index_at_or_after(src.tv[src.slot(a)])
-        if self._cur > 0:
-            self._cur -= 1
         tv = src.tv
         bv = src.bv
         fv = src.fv
+        self._cur = g.index_at_or_after(tv[src.slot(a)])
+        if self._cur > 0:
+            self._cur -= 1
         q = (1.0, 0.0, 0.0, 0.0)
         q_m = q
         t_prev = tv[src.slot(a)]
@@ -220,22 +254,7 @@ class GyroBaselineExtractor(PulseExtractor):
             out.push(t, x, y, z, bool(f & 1), (f >> 1) & 1)
         if not have_m:                            # t_m after the last sample (an incomplete window)
             q_m = self._step(q, t_prev, t_m)
-        ang = 2.0 * math.acos(min(1.0, abs(q_m[0])))
-        if ang > self.max_angle_rad:
-            self.max_angle_rad = ang
-        self.turned_windows += 1
-        self._ring = out
-        try:
-            res = PulseExtractor.extract(self, start, end, amp_out, var_out)
-        finally:
-            self._ring = src
-        # back into the sensor frame at t_m: amp = R(t_m)^T amp_a
-        qw, qx, qy, qz = q_m
-        x, y, z = _rotate((qw, -qx, -qy, -qz), amp_out[0], amp_out[1], amp_out[2])
-        amp_out[0] = x
-        amp_out[1] = y
-        amp_out[2] = z
-        return res
+        return q_m
 
 
 def _rotate(q, vx: float, vy: float, vz: float):
