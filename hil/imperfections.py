@@ -246,6 +246,11 @@ class SensorImperfection:
     accel_bias0: np.ndarray | None = None
     gyro_bias0: np.ndarray | None = None
 
+    def record_turn_on(self, acc_bias, gyro_bias) -> None:
+        """The node's own turn-on IMU biases (m/s^2, rad/s), kept for the calibration table."""
+        self.accel_bias0 = np.array(acc_bias, dtype=float)
+        self.gyro_bias0 = np.array(gyro_bias, dtype=float)
+
 
 def _r(x, nd: int = 9):
     """Nested lists of floats rounded to ``nd`` significant-ish decimals, for the report."""
@@ -315,10 +320,7 @@ class Imperfections:
             si = self.sensors.get(int(node.node_id))
             if si is None:
                 continue
-            node.imperfect = si
-            if getattr(node, "imu", None) is not None:
-                si.accel_bias0 = np.array(node.acc_bias, dtype=float)
-                si.gyro_bias0 = np.array(node.gyro_bias, dtype=float)
+            node.fit_imperfection(si)
 
     # -- reporting ---------------------------------------------------------------------------
 

@@ -902,6 +902,13 @@ class SensorNode(Node):
              + self.rng.normal(0.0, m.noise_t, 3))
         self._send_mag(t, B, send)
 
+    def fit_imperfection(self, si) -> None:
+        """Give this sensor its imperfections (``hil.imperfections.SensorImperfection``) before the
+        run starts (see :meth:`_sensed`); they record its own turn-on IMU biases."""
+        self.imperfect = si
+        if getattr(self, "imu", None) is not None:
+            si.record_turn_on(self.acc_bias, self.gyro_bias)
+
     def _sensed(self, t: int):
         """The field (3,) T the magnetometer reads at true time ``t`` before its flip offset and
         noise: the world's field in the sensor frame, through the imperfect magnetometer model

@@ -60,10 +60,6 @@ _SINGLE = "the single-coil work (issue 31: SingleCoilTracker split along its thr
 PENDING: dict[str, str] = {
     "firmware_py/track/single_coil_tracker.py":
         _SINGLE + "the tracker sets its _Sensor parts' state and its NisMonitor's gated count",
-    "hil/imperfections.py":
-        "the imperfect bench attaches each sensor's imperfections after the bench is built (node.imperfect) "
-        "and copies the node's IMU biases into them: its nodes should be built with them "
-        "(hil.bench.assemble(kinds=...), as the AC bench is)",
 }
 
 
