@@ -311,159 +311,187 @@ def _tracker_at(fw) -> str:
     return ", ".join(parts) or "-"
 
 
-def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=None) -> dict:
-    from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter
-    from coiltrack.firmware.loop import PHASES, Firmware
-    from coiltrack.firmware.model.signal import SignalModel
+class _TickRecorder:
+    """Times every tick of a replay (wall and CPU, each stage, the tick's work class) after
+    ``warm`` us, and the interpreter's garbage collections inside them; with ``worst`` each
+    tick's row for ``worst_ticks``."""
 
-    warm = int(warmup_s * 1e6)
-    tick_ns, phase_ns, imu_ticks, cpu_ns = [], [[] for _ in PHASES], [], []
-    prof = np.zeros(len(PHASES), dtype=np.int64)
-    clk = time.perf_counter_ns
-    cpu = time.thread_time_ns
-    state = {}
-    work = {"evals": 0, "replay": 0}
-    kinds = []                       # each measured tick's work class (tools.bench.work_classes)
-    # --worst: every tick's CPU time, stages, evaluations, garbage collections and tracker position
-    per_tick = []
-    gcs = [0]
-    gc_ns = []                       # CPU time of each collection the measured ticks ran
-    gc_t0 = [0]
+    def __init__(self, warm: int, worst: int, core):
+        from coiltrack.firmware.loop import PHASES
 
-    def on_gc(phase, info):
+        self.warm, self.worst, self.core = warm, worst, core
+        self.tick_ns, self.phase_ns, self.imu_ticks, self.cpu_ns = [], [[] for _ in PHASES], [], []
+        self.prof = np.zeros(len(PHASES), dtype=np.int64)
+        self.work = {"evals": 0, "replay": 0}
+        self.kinds = []                  # each measured tick's work class (tools.bench.work_classes)
+        self.per_tick = []               # --worst: CPU time, stages, evaluations, collections, tracker position
+        self.gcs = 0
+        self.gc_ns = []                  # CPU time of each collection the measured ticks ran
+        self._gc_t0 = 0
+        self.in_tick = False
+        self.fw = None
+        self.eval_ns_before = 0.0
+
+    def on_gc(self, phase, info) -> None:
         if phase == "start":
-            gcs[0] += 1
-            gc_t0[0] = cpu()
-        elif state.get("in_tick"):
-            gc_ns.append(cpu() - gc_t0[0])
+            self.gcs += 1
+            self._gc_t0 = time.thread_time_ns()
+        elif self.in_tick:
+            self.gc_ns.append(time.thread_time_ns() - self._gc_t0)
 
-    def factory(cfg, port):
-        fw = Firmware(_with_core(cfg, core), port)
-        real_tick = fw.tick_timed
-        rx = fw.receiver
-        models = tuple(instances(fw, SignalModel))     # every field evaluation goes through one of these
-        filters = tuple(instances(fw, FusionFilter))
-        tw = TickWork(fw, instances)
-        state["eval_ns_before"] = field_eval_ns(fw)
+    def factory(self, cfg, port):
+        """The replay's firmware, its ``tick`` timed."""
+        from coiltrack.firmware.estimate.magnetic_inertial import FusionFilter
+        from coiltrack.firmware.loop import Firmware
+        from coiltrack.firmware.model.signal import SignalModel
 
-        def timed(t):
-            n0 = rx.imu_received
-            e0 = sum(m.evals for m in models)
-            tw.begin()
-            at = _tracker_at(fw) if worst else None
-            g0 = gcs[0]
-            state["in_tick"] = t >= warm
-            c = cpu()
-            a = clk()
-            real_tick(t, prof)
-            dt = clk() - a
-            dc = cpu() - c
-            state["in_tick"] = False
-            kind = tw.end()
-            if t >= warm:
-                cpu_ns.append(dc)
-                kinds.append(kind)
-                ev = sum(m.evals for m in models) - e0
-                work["evals"] = max(work["evals"], ev)
-                if worst:
-                    per_tick.append((dc, t, dt, tuple(int(x) for x in prof), ev, gcs[0] - g0, at))
-                work["replay"] = max(work["replay"], max((f.last_step_units for f in filters), default=0))
-                tick_ns.append(dt)
-                for i in range(len(PHASES)):
-                    phase_ns[i].append(int(prof[i]))
-                if rx.imu_received > n0:
-                    imu_ticks.append(dt)
-        fw.tick = timed
-        state["fw"] = fw
+        fw = Firmware(_with_core(cfg, self.core), port)
+        self.fw = fw
+        self._models = tuple(instances(fw, SignalModel))     # every field evaluation goes through one of these
+        self._filters = tuple(instances(fw, FusionFilter))
+        self._tw = TickWork(fw, instances)
+        self._real_tick = fw.tick_timed
+        self.eval_ns_before = field_eval_ns(fw)
+        fw.tick = self.tick
         return fw
 
-    # a board has no garbage collector: start-up objects are moved out of the
-    # collector's generations, so its pauses do not show as firmware time
+    def tick(self, t) -> None:
+        from coiltrack.firmware.loop import PHASES
+
+        fw, rx, models = self.fw, self.fw.receiver, self._models
+        n0 = rx.imu_received
+        e0 = sum(m.evals for m in models)
+        self._tw.begin()
+        at = _tracker_at(fw) if self.worst else None
+        g0 = self.gcs
+        self.in_tick = t >= self.warm
+        c = time.thread_time_ns()
+        a = time.perf_counter_ns()
+        self._real_tick(t, self.prof)
+        dt = time.perf_counter_ns() - a
+        dc = time.thread_time_ns() - c
+        self.in_tick = False
+        kind = self._tw.end()
+        if t < self.warm:
+            return
+        self.cpu_ns.append(dc)
+        self.kinds.append(kind)
+        ev = sum(m.evals for m in models) - e0
+        self.work["evals"] = max(self.work["evals"], ev)
+        if self.worst:
+            self.per_tick.append((dc, t, dt, tuple(int(x) for x in self.prof), ev, self.gcs - g0, at))
+        self.work["replay"] = max(self.work["replay"], max((f.last_step_units for f in self._filters), default=0))
+        self.tick_ns.append(dt)
+        for i in range(len(PHASES)):
+            self.phase_ns[i].append(int(self.prof[i]))
+        if rx.imu_received > n0:
+            self.imu_ticks.append(dt)
+
+
+def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=None) -> dict:
+    """Replay a recorded run through a timed firmware; the report of ``coiltrack perf``."""
     import gc
 
+    warm = int(warmup_s * 1e6)
+    r = _TickRecorder(warm, worst, core)
+    # a board has no garbage collector: start-up objects are moved out of the
+    # collector's generations, so its pauses do not show as firmware time
     gc.collect()
     gc.freeze()
-    gc.callbacks.append(on_gc)
+    gc.callbacks.append(r.on_gc)
     try:
-        replay(factory, header, reads)
+        replay(r.factory, header, reads)
     finally:
-        gc.callbacks.remove(on_gc)
+        gc.callbacks.remove(r.on_gc)
         gc.unfreeze()
-    fw = state["fw"]
-    ph = np.array(phase_ns)
+    fw = r.fw
     rep = {"scenario": header.get("scenario"), "seed": header.get("seed"), "duration_s": header["duration_s"],
-           "warmup_s": warmup_s, "ticks": len(tick_ns), "tick_us": int(header["tick_us"]), "core": fw.core}
-    st = _stats(tick_ns)
-    rep.update({"tick_us_median": st["median"], "tick_us_p99": st["p99"], "tick_us_p999": st["p999"],
-                "tick_us_max": st["max"]})
-    sc = _stats(cpu_ns)
-    rep.update({"tick_cpu_us_median": sc["median"], "tick_cpu_us_p99": sc["p99"], "tick_cpu_us_p999": sc["p999"],
-                "tick_cpu_us_max": sc["max"],
-                "cpu_deadline_misses": int(sum(1 for d in cpu_ns if d >= rep["tick_us"] * 1000))})
-    # the largest work done in one tick, in machine-independent units, against the configured budget
-    cfg = fw.cfg
-    rep.update({"max_field_evals_per_tick": work["evals"], "track_budget_evals": cfg.track_budget_evals,
-                "max_replay_steps_per_tick": work["replay"], "replay_budget_steps": cfg.replay_budget_steps})
-    si = _stats(imu_ticks)
-    rep.update({"fused_tick_us_median": si["median"], "fused_tick_us_p99": si["p99"], "fused_ticks": si["n"]})
-    rep["phases_us"] = {}
-    for i, name in enumerate(PHASES):
-        rep["phases_us"][name] = _stats(ph[i])
-        active = ph[i][ph[i] > 2000]          # ticks where the phase did work (> 2 us)
-        rep["phases_us"][name]["active_median"] = round(float(np.median(active)) / 1e3, 2) if active.size else None
-        rep["phases_us"][name]["active_ticks"] = int(active.size)
-    rep["deadline_misses"] = int(sum(1 for d in tick_ns if d >= rep["tick_us"] * 1000))
-    wc = summarise(cpu_ns, kinds)
-    rep["work_classes"] = wc["classes"]
-    rep["p999_work_classes"] = wc["p999_classes"]
-    # the interpreter's garbage collections that ran inside measured ticks (a board has none):
-    # they count in the tick times above; here they are told apart from the firmware's work
-    rep["gc_collections_in_ticks"] = len(gc_ns)
-    rep["gc_us_max"] = round(max(gc_ns) / 1e3, 2) if gc_ns else 0.0
-    if worst:
-        per_tick.sort(key=lambda r: -r[0])
-        rep["worst_ticks"] = [{"t_us": r[1], "cpu_us": round(r[0] / 1e3, 2), "wall_us": round(r[2] / 1e3, 2),
-                               "phases_us": {name: round(r[3][i] / 1e3, 2) for i, name in enumerate(PHASES)},
-                               "field_evals": r[4], "gc_collections": r[5], "tracker_at": r[6]}
-                              for r in per_tick[:worst]]
+           "warmup_s": warmup_s, "ticks": len(r.tick_ns), "tick_us": int(header["tick_us"]), "core": fw.core}
+    _timing_keys(rep, r)
     total, parts = state_bytes(fw)
     rep["state_bytes"] = total
     rep["state_bytes_by_part"] = parts
     rep.update(signing_cost())
     # the tick's times in the budget's unit: how many field evaluations' time the worst ticks
     # take on this machine now (its speed measured before and after the replay)
-    ev = 0.5 * (state["eval_ns_before"] + field_eval_ns(fw)) / 1e3
+    sc = _stats(r.cpu_ns)
+    ev = 0.5 * (r.eval_ns_before + field_eval_ns(fw)) / 1e3
     rep["field_eval_us"] = round(ev, 3)
     rep["tick_p999_in_field_evals"] = round(sc["p999"] / ev, 1) if sc["p999"] is not None else None
     rep["tick_max_in_field_evals"] = round(sc["max"] / ev, 1) if sc["max"] is not None else None
     rep["status"] = {k: v for k, v in fw.status().items() if k in ("cycles", "poses", "fused_poses", "fusion_updates")}
-    # allocations: a second replay with the counting allocator around every tick
-    if available():
-        counter = NumpyAllocationCounter()
-        counts = []
-
-        def factory2(cfg, port):
-            fw2 = Firmware(_with_core(cfg, core), port)
-            real_tick = fw2.tick
-
-            def counted(t):
-                before = counter.count
-                with counter:
-                    real_tick(t)
-                if t >= warm:
-                    counts.append(counter.count - before)
-            fw2.tick = counted
-            return fw2
-
-        replay(factory2, header, reads)
-        c = np.asarray(counts)
-        rep["allocs_per_tick"] = round(float(c.mean()), 6) if c.size else None
-        rep["allocs_max_tick"] = int(c.max()) if c.size else None
-        rep["ticks_with_allocs"] = int((c > 0).sum())
-    else:                          # pragma: no cover
-        rep["allocs_per_tick"] = None
+    rep.update(_alloc_keys(header, reads, warm, core))
     rep.update(_filter_steps(fw))
     return rep
+
+
+def _timing_keys(rep: dict, r: _TickRecorder) -> None:
+    """The tick, CPU, work, fused-tick, stage, work-class and collection figures into ``rep``."""
+    from coiltrack.firmware.loop import PHASES
+
+    st = _stats(r.tick_ns)
+    rep.update({"tick_us_median": st["median"], "tick_us_p99": st["p99"], "tick_us_p999": st["p999"],
+                "tick_us_max": st["max"]})
+    sc = _stats(r.cpu_ns)
+    rep.update({"tick_cpu_us_median": sc["median"], "tick_cpu_us_p99": sc["p99"], "tick_cpu_us_p999": sc["p999"],
+                "tick_cpu_us_max": sc["max"],
+                "cpu_deadline_misses": int(sum(1 for d in r.cpu_ns if d >= rep["tick_us"] * 1000))})
+    # the largest work done in one tick, in machine-independent units, against the configured budget
+    cfg = r.fw.cfg
+    rep.update({"max_field_evals_per_tick": r.work["evals"], "track_budget_evals": cfg.track_budget_evals,
+                "max_replay_steps_per_tick": r.work["replay"], "replay_budget_steps": cfg.replay_budget_steps})
+    si = _stats(r.imu_ticks)
+    rep.update({"fused_tick_us_median": si["median"], "fused_tick_us_p99": si["p99"], "fused_ticks": si["n"]})
+    ph = np.array(r.phase_ns)
+    rep["phases_us"] = {}
+    for i, name in enumerate(PHASES):
+        rep["phases_us"][name] = _stats(ph[i])
+        active = ph[i][ph[i] > 2000]          # ticks where the phase did work (> 2 us)
+        rep["phases_us"][name]["active_median"] = round(float(np.median(active)) / 1e3, 2) if active.size else None
+        rep["phases_us"][name]["active_ticks"] = int(active.size)
+    rep["deadline_misses"] = int(sum(1 for d in r.tick_ns if d >= rep["tick_us"] * 1000))
+    wc = summarise(r.cpu_ns, r.kinds)
+    rep["work_classes"] = wc["classes"]
+    rep["p999_work_classes"] = wc["p999_classes"]
+    # the interpreter's garbage collections that ran inside measured ticks (a board has none):
+    # they count in the tick times above; here they are told apart from the firmware's work
+    rep["gc_collections_in_ticks"] = len(r.gc_ns)
+    rep["gc_us_max"] = round(max(r.gc_ns) / 1e3, 2) if r.gc_ns else 0.0
+    if r.worst:
+        rows = sorted(r.per_tick, key=lambda x: -x[0])
+        rep["worst_ticks"] = [{"t_us": x[1], "cpu_us": round(x[0] / 1e3, 2), "wall_us": round(x[2] / 1e3, 2),
+                               "phases_us": {name: round(x[3][i] / 1e3, 2) for i, name in enumerate(PHASES)},
+                               "field_evals": x[4], "gc_collections": x[5], "tracker_at": x[6]}
+                              for x in rows[:r.worst]]
+
+
+def _alloc_keys(header: dict, reads, warm: int, core) -> dict:
+    """Allocations: a second replay with the counting allocator around every tick."""
+    from coiltrack.firmware.loop import Firmware
+
+    if not available():            # pragma: no cover
+        return {"allocs_per_tick": None}
+    counter = NumpyAllocationCounter()
+    counts = []
+
+    def factory2(cfg, port):
+        fw2 = Firmware(_with_core(cfg, core), port)
+        real_tick = fw2.tick
+
+        def counted(t):
+            before = counter.count
+            with counter:
+                real_tick(t)
+            if t >= warm:
+                counts.append(counter.count - before)
+        fw2.tick = counted
+        return fw2
+
+    replay(factory2, header, reads)
+    c = np.asarray(counts)
+    return {"allocs_per_tick": round(float(c.mean()), 6) if c.size else None,
+            "allocs_max_tick": int(c.max()) if c.size else None,
+            "ticks_with_allocs": int((c > 0).sum())}
 
 
 def format_table(rep: dict) -> str:
