@@ -85,64 +85,19 @@ def _core_of(cfg) -> str:
     return resolve(getattr(cfg, "impl", "compiled"))
 
 
+def _rms(a) -> float:
+    return float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")
+
+
 def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dict:
+    """The bench report of a finished run: the poses against the ground truth, the bound, the
+    coil energy, the link, the faults and each scenario's own keys."""
     rec = bench.recorder
     world = bench.world
-    pos_err, ang_err, crlbs = [], [], []
-    n_used = [w.n_used for _, w in rec.windows if w.n_used]
-    n_base = [w.n_base for _, w in rec.windows if w.n_base]
-    nu = float(np.median(n_used)) if n_used else 1.0
-    nb = float(np.median(n_base)) if n_base else 1.0
-    sigma_amp = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
-    currents = np.array([c.current for c in cfg.coils])
-    amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
-    if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
-        sigma_amp = np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils)))
-    truth_amp = None    # DC pulses: the bound's currents and sample counts from the bench's ground truth
-    if amp_sigma is None or amp_sigma(cfg) is None:
-        from coiltrack.hil.crlb import TruthAmplitudes
-
-        truth_amp = TruthAmplitudes(bench, bench.scenario.sensor.noise_t, cfg.baseline_us)
-    invalid = 0
-    fused = []          # (distance, position error, angle error) of the fused poses (IMU rate)
-    for rp in rec.poses:
-        m = rp["msg"]
-        if not m.status & POSE_VALID:
-            invalid += 1
-            continue
-        if m.status & POSE_FUSED:
-            pf = np.array([m.px, m.py, m.pz])
-            Rf = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
-            fused.append((float(np.linalg.norm(rp["true_p"])), float(np.linalg.norm(pf - rp["true_p"])),
-                          _rot_angle(Rf, rp["true_R"])))
-            continue
-        p = np.array([m.px, m.py, m.pz])
-        R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
-        pos_err.append(float(np.linalg.norm(p - rp["true_p"])))
-        ang_err.append(_rot_angle(R, rp["true_R"]))
-        inp = truth_amp.for_pose(rp, len(world.coils)) if truth_amp is not None else None
-        crlbs.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], *(inp or (currents, sigma_amp))))
-        rp["crlb_m"] = crlbs[-1]            # per pose, for the pose table (tools.outputs.posecsv)
-    per_node: dict[int, list] = {}
-    for rp in rec.poses:
-        m = rp["msg"]
-        if m.status & POSE_VALID and not m.status & POSE_FUSED:
-            p = np.array([m.px, m.py, m.pz])
-            R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
-            per_node.setdefault(m.node, []).append((float(np.linalg.norm(p - rp["true_p"])), _rot_angle(R, rp["true_R"])))
-    pe, ae, cb = np.array(pos_err), np.array(ang_err), np.array(crlbs)
-    rms = lambda a: float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")  # noqa: E731
-    emu_bad = bench.emulator.decoder.frames_bad
+    errs = _PoseErrors(bench, cfg)
+    pe, ae, cb = np.array(errs.pos), np.array(errs.ang), np.array(errs.crlb)
+    rms = _rms
     dist = [float(np.linalg.norm(rp["true_p"])) for rp in rec.poses]
-    vdist = np.array([float(np.linalg.norm(rp["true_p"])) for rp in rec.poses
-                      if rp["msg"].status & POSE_VALID and not rp["msg"].status & POSE_FUSED])
-    by_range = {}
-    for lo, hi in RANGE_BANDS_CM:
-        sel = (vdist >= lo / 100) & (vdist < hi / 100)
-        if np.any(sel):
-            by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(rms(pe[sel]) * 1e3, 2),
-                                        "crlb_position_rms_mm": round(rms(cb[sel]) * 1e3, 2),
-                                        "orientation_rms_deg": round(math.degrees(rms(ae[sel])), 2)}
     from coiltrack.hil.bench import bench_metrics, fault_summary
 
     truth = bench_metrics(bench, cfg.fall_us, cfg.baseline_us)
@@ -153,16 +108,16 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "core": fw_status.get("core") or _core_of(cfg),     # the numeric core that ran ([core] impl)
         "duration_s": duration_s,
         "poses": int(pe.size),
-        "poses_invalid": invalid,
+        "poses_invalid": errs.invalid,
         "position_rms_mm": round(rms(pe) * 1e3, 3),
         "position_p95_mm": round(float(np.percentile(pe, 95)) * 1e3, 3) if pe.size else None,
         "orientation_rms_deg": round(math.degrees(rms(ae)), 3),
         "crlb_position_rms_mm": round(rms(cb) * 1e3, 3),
         "pose_rate_hz": round(pe.size / duration_s, 3) if duration_s > 0 else 0.0,
-        "by_range": by_range,
+        "by_range": _by_range(rec, pe, ae, cb),
         "distance_range_cm": [round(min(dist) * 100, 1), round(max(dist) * 100, 1)] if dist else None,
         "frames_rx": fw_status.get("rx_frames_ok", 0),
-        "frames_bad": fw_status.get("rx_frames_bad", 0) + emu_bad,
+        "frames_bad": fw_status.get("rx_frames_bad", 0) + bench.emulator.decoder.frames_bad,
         "pulse_window_violations": truth.pop("pulse_window_violations"),
         "windows_flagged": fw_status.get("windows_flagged", 0),
         "coil_pulses": len(bench.driver.executed),
@@ -170,25 +125,100 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "source_moving": bool(getattr(world, "source_moving", False)),
     }
     if len(cfg.sensor_ids) > 1:
-        # every sensor's own figures (magnetic poses), in node order
-        rep["sensors"] = []
-        for node in cfg.sensor_ids:
-            e = np.array(per_node.get(node, []), dtype=float).reshape(-1, 2)
-            rep["sensors"].append({"node": int(node), "poses": int(e.shape[0]),
-                                   "position_rms_mm": round(rms(e[:, 0]) * 1e3, 3),
-                                   "orientation_rms_deg": round(math.degrees(rms(e[:, 1])), 3)})
+        rep["sensors"] = _sensor_keys(cfg, errs.per_node)
     rep.update(energy(bench.driver.executed, world, duration_s))
     if hasattr(bench.driver, "accuracy_report"):
         rep["coil_driver"] = bench.driver.accuracy_report()
     rep.update(truth)
     rep["faults"] = fault_summary(bench, fw_status)
+    _tail_keys(rep, bench, fw_status, np.array(errs.fused), duration_s, cfg)
+    return rep
+
+
+class _PoseErrors:
+    """The errors of a run's valid poses against the ground truth: magnetic (position, angle,
+    the position bound at each), fused (distance, position error, angle error), per sensor node,
+    and the count of invalid poses."""
+
+    def __init__(self, bench, cfg):
+        rec = bench.recorder
+        world = bench.world
+        sigma_amp, truth_amp = _amplitude_sigma(bench, cfg)
+        currents = np.array([c.current for c in cfg.coils])
+        self.pos, self.ang, self.crlb, self.fused = [], [], [], []
+        self.invalid = 0
+        self.per_node: dict[int, list] = {}
+        for rp in rec.poses:
+            m = rp["msg"]
+            if not m.status & POSE_VALID:
+                self.invalid += 1
+                continue
+            p = np.array([m.px, m.py, m.pz])
+            R = matrix_from_quat(np.array([m.qw, m.qx, m.qy, m.qz]))
+            if m.status & POSE_FUSED:
+                self.fused.append((float(np.linalg.norm(rp["true_p"])), float(np.linalg.norm(p - rp["true_p"])),
+                                   _rot_angle(R, rp["true_R"])))
+                continue
+            self.pos.append(float(np.linalg.norm(p - rp["true_p"])))
+            self.ang.append(_rot_angle(R, rp["true_R"]))
+            inp = truth_amp.for_pose(rp, len(world.coils)) if truth_amp is not None else None
+            self.crlb.append(crlb_position_rms(world, rp["true_p"], rp["true_R"], *(inp or (currents, sigma_amp))))
+            rp["crlb_m"] = self.crlb[-1]            # per pose, for the pose table (tools.outputs.posecsv)
+            self.per_node.setdefault(m.node, []).append((self.pos[-1], self.ang[-1]))
+
+
+def _amplitude_sigma(bench, cfg):
+    """The amplitude sigma of the bound (the windows' median sample counts, or the AC
+    demodulator's), and for DC pulses the bound's ground-truth currents and counts."""
+    rec = bench.recorder
+    n_used = [w.n_used for _, w in rec.windows if w.n_used]
+    n_base = [w.n_base for _, w in rec.windows if w.n_base]
+    nu = float(np.median(n_used)) if n_used else 1.0
+    nb = float(np.median(n_base)) if n_base else 1.0
+    sigma_amp = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
+    amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
+    if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
+        return np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils))), None
+    from coiltrack.hil.crlb import TruthAmplitudes
+
+    return sigma_amp, TruthAmplitudes(bench, bench.scenario.sensor.noise_t, cfg.baseline_us)
+
+
+def _by_range(rec, pe, ae, cb) -> dict:
+    """The magnetic poses' figures in each band of :data:`RANGE_BANDS_CM`."""
+    vdist = np.array([float(np.linalg.norm(rp["true_p"])) for rp in rec.poses
+                      if rp["msg"].status & POSE_VALID and not rp["msg"].status & POSE_FUSED])
+    by_range = {}
+    for lo, hi in RANGE_BANDS_CM:
+        sel = (vdist >= lo / 100) & (vdist < hi / 100)
+        if np.any(sel):
+            by_range[f"{lo}-{hi}cm"] = {"poses": int(sel.sum()), "position_rms_mm": round(_rms(pe[sel]) * 1e3, 2),
+                                        "crlb_position_rms_mm": round(_rms(cb[sel]) * 1e3, 2),
+                                        "orientation_rms_deg": round(math.degrees(_rms(ae[sel])), 2)}
+    return by_range
+
+
+def _sensor_keys(cfg, per_node: dict) -> list:
+    """Every sensor's own figures (magnetic poses), in node order."""
+    out = []
+    for node in cfg.sensor_ids:
+        e = np.array(per_node.get(node, []), dtype=float).reshape(-1, 2)
+        out.append({"node": int(node), "poses": int(e.shape[0]), "position_rms_mm": round(_rms(e[:, 0]) * 1e3, 3),
+                    "orientation_rms_deg": round(math.degrees(_rms(e[:, 1])), 3)})
+    return out
+
+
+def _tail_keys(rep: dict, bench, fw_status: dict, fused, duration_s: float, cfg) -> None:
+    """The link, signing, fused, AC, consistency, quality, adaptive and fault keys, the paper's
+    figure and the scenario's own keys, in that order."""
+    rec = bench.recorder
     if hasattr(bench.link, "counts"):
         rep["link_faults"] = dict(bench.link.counts)
     if getattr(bench, "verifier", None) is not None:
         # what the nodes did with the firmware's signatures (commands accepted, refused by kind)
         rep["signing"] = {**bench.verifier.counters(), "firmware_signed": fw_status.get("tx_signed", 0)}
-    if fused:
-        _fused_keys(rep, np.array(fused), duration_s, fw_status, rms)
+    if len(fused):
+        _fused_keys(rep, fused, duration_s, fw_status, _rms)
     # consistency flags of the valid poses (NIS monitor, health), and the adaptive mode's counters
     if "ac_blocks" in fw_status:
         _ac_keys(rep, fw_status)
@@ -206,7 +236,6 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         rep["paper"] = ref
     if getattr(bench.scenario, "report_extra", None) is not None:
         rep.update(bench.scenario.report_extra(bench, rep, cfg))
-    return rep
 
 
 def quality_keys(poses) -> dict:
