@@ -137,21 +137,23 @@ def test_pulse_length_chosen_where_information_per_joule_peaks(rate, B, c_over, 
         assert closed < 0.83           # shorter pulses must win: 23 ms needs 0.82 of the 60 ms pulse's energy
 
 
-@pytest.mark.parametrize("rate", [100.0, 1000.0])
-def test_credit_between_grid_lengths_is_below_every_length(rate):
+@pytest.mark.parametrize("rate,phase", [(100.0, "mean"), (1000.0, "mean"), (100.0, "aligned")])
+def test_credit_between_grid_lengths_is_below_every_length(rate, phase):
     """Each kind of ``Kinds.chosen`` costs at most what every pulse length of its interval costs (time
     ``T + gap``, white noise ``c``, energy factor ``T c``): checked against ``Kinds.fixed`` at 11 lengths
     per interval, the shortest pulses (where the count is not affine in the length) included. Catches a
     credit above a real pulse (the bound would then not be one) and a credit looser than needed."""
     tm = Timing(rate, 3e-3, 2e-3, 3e-3)
     grid = np.arange(0.005, 0.09, 0.005)
-    ch = Kinds.chosen(grid, [0.035], tm)
+    ch = Kinds.chosen(grid, [0.035], tm, phase)
     for T0, slot, c, tc in zip(ch.T, ch.slot, ch.c, ch.tc):
         for t in np.linspace(T0, T0 + 0.005, 11):
-            if min(pulse_samples(float(t), 0.035, tm)) <= 0:
+            if min(pulse_samples(float(t), 0.035, tm, phase)) <= 0:
                 continue
-            k = Kinds.fixed(float(t), 0.035, tm)
+            k = Kinds.fixed(float(t), 0.035, tm, phase)
             assert slot <= k.slot[0] + 1e-15 and c <= k.c[0] + 1e-12 and tc <= k.tc[0] + 1e-12
+    if phase == "aligned":
+        return
     # tight where the count is affine: below the interval's best length by at most the baseline's part
     # of the step, 5 ms / n_b (the T / n_u part exact at an end)
     i = int(np.argmin(np.abs(ch.T - 0.06)))

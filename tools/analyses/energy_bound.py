@@ -67,8 +67,9 @@ for every ``a > 0`` and each accuracy constraint is a convex set in ``x``;
 ``pulse_cost``), and the time limits are linear. SLSQP's optimum is therefore
 the global one (within its tolerance, ``ftol`` 1e-10). Every simplification
 gives a policy more than it has: real-valued pulse counts; pulse lengths
-between grid points credited with the shorter length's time and the longer
-one's samples; the mean sample counts over the phase (the weight is concave in
+between grid points credited with the shorter length's time, the longer
+one's samples and the least ``T / n_u`` of the two (``Kinds.chosen``;
+``--grid-lengths`` gives the companion from above); the mean sample counts over the phase (the weight is concave in
 them); the baseline's straight-line fit credited as a mean; the filter's
 linearisation term, the NIS inflation and the magnetometer's saturation
 margin left out; the duty limit (``coil_max_duty``) left out and reported
