@@ -16,7 +16,6 @@ from .jsonout import write
 RANGE_BANDS_CM = ((10, 30), (30, 45), (45, 60), (60, 90))
 
 
-
 def is_wall_clock(key: str) -> bool:
     """A report key measured on the wall clock (tick execution, jitter, speed), which differs
     from run to run of the same seed; every other figure is a function of scenario, seed,
@@ -325,6 +324,19 @@ def _ac_energy(bench, duration_s: float, battery_wh: float = BATTERY_WH) -> dict
 
 
 def format_table(rep: dict) -> str:
+    """The report as the two-column table ``coiltrack bench`` prints."""
+    rows = (_accuracy_rows(rep) + _energy_rows(rep) + _comparison_rows(rep) + _flag_rows(rep)
+            + _detail_rows(rep))
+    if rep.get("distance_range_cm"):
+        rows.insert(4, ("distance range", f'{rep["distance_range_cm"][0]}-{rep["distance_range_cm"][1]} cm'))
+    if not rep["poses"] and "magnetic_position_rms_mm" not in rep:    # no pose: no error to show
+        rows = [r for r in rows if r[0] not in ("position RMS", "orientation RMS")]
+    w = max(len(k) for k, _ in rows)
+    return "\n".join(f"  {k:<{w}}  {v}" for k, v in rows)
+
+
+def _accuracy_rows(rep: dict) -> list:
+    """The run, its poses and their accuracy (fused and magnetic)."""
     rows = [
         ("scenario", rep["scenario"]), ("seed", rep["seed"]), ("transport", rep["transport"]),
         ("duration", f'{rep["duration_s"]:.1f} s'),
@@ -341,7 +353,12 @@ def format_table(rep: dict) -> str:
                                    f'{rep["magnetic_poses"]} poses')]
     if rep.get("source_moving"):
         rows.append(("source moving", "true (body-worn: its own IMU and magnetometer module)"))
-    rows += [
+    return rows
+
+
+def _energy_rows(rep: dict) -> list:
+    """The link, the pulse windows, the coil energy and the driver."""
+    rows = [
         ("frames rx / bad", f'{rep["frames_rx"]} / {rep["frames_bad"]}'),
         ("pulse window violations", rep["pulse_window_violations"]),
         ("coil energy", f'{rep["coil_energy_j"]:.2f} J in {rep["pulses_per_s"]:.2f} pulses/s'
@@ -353,6 +370,12 @@ def format_table(rep: dict) -> str:
                                     f'+-{cd["static_gain_error_max"] * 100:.1f} %), winding up to '
                                     f'{cd["winding_temp_max_c"]:.1f} C (R +{cd["resistance_rise_max"] * 100:.2f} %), '
                                     f'{cd["pulses_voltage_limited"]} pulses voltage-limited'))
+    return rows
+
+
+def _comparison_rows(rep: dict) -> list:
+    """The fixed cycle of the same trajectory, the uncalibrated and the perfect bench."""
+    rows = []
     if "fixed_position_rms_mm" in rep:
         rows += [("fixed X/Y/Z cycle", f'{rep["fixed_position_rms_mm"]:.2f} mm, '
                                        f'{rep["fixed_orientation_rms_deg"]:.2f} deg, '
@@ -370,13 +393,17 @@ def format_table(rep: dict) -> str:
                  ("perfect bench", f'{rep["perfect_position_rms_mm"]:.2f} mm, {rep["perfect_orientation_rms_deg"]:.2f} deg '
                                    f'(this run x{rep["calibrated_over_perfect_position"]}, '
                                    f'x{rep["calibrated_over_perfect_orientation"]} of it)')]
+    return rows
+
+
+def _flag_rows(rep: dict) -> list:
+    """AC excitation, flagged poses, timing, faults and overconfidence."""
+    rows = []
     if rep.get("excitation") == "ac":
         rows.append(("AC excitation", f'{rep["magnetic_pose_rate_hz"]:.1f} magnetic poses/s; quadrature / in-phase '
                                       f'{rep["ac_quadrature_ratio_mean"]:.4f} mean, {rep["ac_quadrature_ratio_max"]:.4f} max'))
     if rep.get("poses_distorted") or rep.get("poses_inconsistent"):
         rows.append(("poses flagged", f'{rep["poses_distorted"]} distorted, {rep["poses_inconsistent"]} inconsistent'))
-    if rep.get("distance_range_cm"):
-        rows.insert(4, ("distance range", f'{rep["distance_range_cm"][0]}-{rep["distance_range_cm"][1]} cm'))
     for k in ("tick_jitter_us_median", "tick_jitter_us_p99", "tick_jitter_us_max", "deadline_misses",
               "latency_ms_p50", "latency_ms_p99", "pulse_window_min_margin_us"):
         if rep.get(k) is not None:
@@ -394,6 +421,12 @@ def format_table(rep: dict) -> str:
     if rep.get("overconfident_fraction") is not None:
         rows.append(("overconfident poses", f'{rep["poses_overconfident"]} ({rep["overconfident_fraction"]:.4f} of '
                                             f'the valid; 99.9 % chi-square, 3 dof)'))
+    return rows
+
+
+def _detail_rows(rep: dict) -> list:
+    """Each sensor, signing, interruption, the paper's figure and the range bands."""
+    rows = []
     for sn in rep.get("sensors", []):
         rows.append((f"  sensor {sn['node']}", f"{sn['position_rms_mm']:.1f} mm, {sn['orientation_rms_deg']:.2f} deg, "
                                               f"{sn['poses']} poses"))
@@ -414,10 +447,7 @@ def format_table(rep: dict) -> str:
             continue
         rows.append((f"  at {band}", f'{b["position_rms_mm"]:.1f} mm (CRLB {b["crlb_position_rms_mm"]:.1f}), '
                                      f'{b["orientation_rms_deg"]:.1f} deg, {b["poses"]} poses'))
-    if not rep["poses"] and "magnetic_position_rms_mm" not in rep:    # no pose: no error to show
-        rows = [r for r in rows if r[0] not in ("position RMS", "orientation RMS")]
-    w = max(len(k) for k, _ in rows)
-    return "\n".join(f"  {k:<{w}}  {v}" for k, v in rows)
+    return rows
 
 
 def write_json(rep: dict, path: str) -> None:
