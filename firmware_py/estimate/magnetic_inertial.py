@@ -92,7 +92,7 @@ Recovery (docs/faults.md). The filter restarts from a magnetic solution
 ``dead_reckon_limit_us`` (``RECOVER_GAP``: the inertial state alone is not
 vouched for that long) or after the IMU stream broke off (``RECOVER_STREAM``).
 The offsets ``b_a``, ``b_g`` and their covariance block survive a restart
-while credible (:meth:`_keep_biases`, :meth:`_restore_biases`: decayed and
+while credible (``fusion_recovery.Recovery.keep_biases``, ``restore_biases``: decayed and
 with the random-walk variance of eqs 6.13-6.14 added for the time between).
 Outputs older than ``dead_reckon_after_us`` since the last accepted update
 carry ``OUT_DEAD_RECKONING``, older than ``dead_reckon_limit_us`` ``OUT_LOST``.

@@ -75,7 +75,7 @@ def _offset_source_magnetometer(size_t, along: bool):
         on_mag = tr.on_mag
 
         def shifted(msg, lsb):
-            if msg.node == tr.source_node:
+            if msg.node == tr.source.node:
                 msg.x, msg.y, msg.z = msg.x + k[0], msg.y + k[1], msg.z + k[2]
             on_mag(msg, lsb)
         tr.on_mag = shifted
