@@ -25,17 +25,6 @@ filter:
   ``P_ref[k, k]`` (m^2, rad^2), an exponential average over
   ``reference_avg_cycles`` cycles: the RMS error a consistent filter on the
   fixed cycle would show is the square root of this mean.
-* ``live`` (6,) is the same mean of the live filter's pose variances, with the
-  same weights. The RMS of a run is the root of the mean over the whole run,
-  start included, and the adaptive filter goes through the same start (the
-  fixed cycle itself for ``reference_warmup_us``, then a covariance still
-  converging: the heading and the gyroscope offsets take tens of seconds), so
-  holding ``avg`` as a steady bound would hold the reference's start-inflated
-  mean ever after, and the run's mean would exceed the fixed cycle's (twice
-  the orientation variance on seed 1). :meth:`FixedCycleReference.balance`
-  is ``avg / live`` per group: the bound is multiplied by it, so the filter's
-  own mean is brought to the reference's (integral feedback on the mean
-  variance; the range law still spreads it over the ranges).
 * :func:`fixed_cycle_bounds` turns it into the policy's bounds. Between two
   adaptive pulses a variance climbs from ``sigma_min^2 = m^2 sigma_max^2``
   to ``sigma_max^2`` about linearly, so its time mean is ``(1 + m^2) / 2
@@ -58,8 +47,6 @@ from coiltrack.firmware.estimate.layout import ORI, POS, SCHEPERS_CORE as CORE
 __all__ = ["FixedCycleReference", "fixed_cycle_bounds", "nis_bound_factor"]
 
 N_CORE = CORE.stop
-#: the largest factor :meth:`FixedCycleReference.balance` moves a variance bound by, either way
-BALANCE_MAX = 4.0
 
 
 def fixed_cycle_bounds(avg6, ratio: float, min_ratio: float, out_max6, out_min6, law_pos: float = 1.0,
@@ -134,7 +121,6 @@ class FixedCycleReference:
         self._T = np.zeros((n, n))
         self.upd = KalmanUpdate(n, 3, 1.0, core)
         self.avg = np.zeros(6)
-        self.live = np.zeros(6)          # the live filter's pose variances, the same mean
         #: the running mean of ``r^(2 exp)`` (position, orientation) over the same instants as
         #: :attr:`avg`: the range law's own mean, which normalises it (``fixed_cycle_bounds``)
         self.exp = (2.0 * float(exp_pos), 2.0 * float(exp_ori))
@@ -166,7 +152,6 @@ class FixedCycleReference:
         for k in range(3):
             self.avg[k] = self.P[POS.start + k, POS.start + k]
             self.avg[3 + k] = self.P[ORI.start + k, ORI.start + k]
-        self.live[:] = self.avg
         self.t_us = int(t_us)
         self.elapsed_us = 0.0
         self.law[0] = self.law[1] = -1.0          # set at the first interval
@@ -221,28 +206,12 @@ class FixedCycleReference:
             x = r ** self.exp[g]
             self.law[g] = x if self.law[g] < 0.0 else self.law[g] + a * (x - self.law[g])
         P = self.P
-        Pl = ekf.P
         avg = self.avg
-        live = self.live
         for k in range(3):
             i = POS.start + k
             j = ORI.start + k
             avg[k] += a * (float(P[i, i]) - float(avg[k]))
             avg[3 + k] += a * (float(P[j, j]) - float(avg[3 + k]))
-            live[k] += a * (float(Pl[i, i]) - float(live[k]))
-            live[3 + k] += a * (float(Pl[j, j]) - float(live[3 + k]))
-
-    def balance(self, g: int) -> float:
-        """``avg / live`` summed over group ``g`` (0 position, 1 orientation), within
-        ``[1/BALANCE_MAX, BALANCE_MAX]``: the factor on the variance bound that brings the
-        live filter's mean variance to the fixed cycle's (module docstring)."""
-        o = 3 * g
-        a = float(self.avg[o]) + float(self.avg[o + 1]) + float(self.avg[o + 2])
-        b = float(self.live[o]) + float(self.live[o + 1]) + float(self.live[o + 2])
-        if not (a > 0.0 and b > 0.0):
-            return 1.0
-        x = a / b
-        return BALANCE_MAX if x > BALANCE_MAX else (1.0 / BALANCE_MAX if x < 1.0 / BALANCE_MAX else x)
 
     def _pulse(self, ekf, model, coil: int) -> None:
         """Eq-4 covariance update of ``coil`` at its nominal current (Joseph form)."""

@@ -684,6 +684,10 @@ class NisMonitor:
             x = 10.0 * self.dof * self.max_scale
         self.excess += self._alpha * (x / self.dof - self.excess)
 
+    def note_gated(self) -> None:
+        """One update was rejected by the gate (counted in :attr:`gated`)."""
+        self.gated += 1
+
     def bound(self) -> float:
         n = self.count
         return float(self._bound[n]) if n else math.inf

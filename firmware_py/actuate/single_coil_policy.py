@@ -390,7 +390,7 @@ class AdaptiveActuation(_SingleCoilActuation):
             ref = s.ref
             r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
             fixed_cycle_bounds(ref.avg, cfg.fixed_accuracy_ratio, cfg.adaptive_min_ratio, mx, mn,
-                               ref.law_now(r, 0) * ref.balance(0), ref.law_now(r, 1) * ref.balance(1))
+                               ref.law_now(r, 0), ref.law_now(r, 1))
             if self._warming:
                 # the fixed cycle runs; a pulse between its pulses only when the filter's variance
                 # would pass reference_catchup times the fixed cycle's present one

@@ -295,7 +295,7 @@ class SingleCoilTracker:
         if flags & EKF_GATED:
             s.gated += 1
             self.gated += 1
-            mon.gated += 1
+            mon.note_gated()
             if not (mon.inconsistent or s.distorted):
                 # rejections a flagged disturbance explains are no sign of a lost track:
                 # an acquisition now would only start from a distorted solution

@@ -108,7 +108,6 @@ class _FakeFilter:
 
     def __init__(self, p, R):
         self.p, self.R = p, R
-        self.P = np.eye(15) * 1e-6          # the live filter's covariance (its mean: ``live``)
 
     @staticmethod
     def F_of(dt):
@@ -275,26 +274,3 @@ def test_range_law_is_normalised_by_its_own_mean():
     for g, e in ((0, 4.0 / 3.0), (1, 1.0)):
         assert ref.law_now(0.2, g) == pytest.approx(2.0 / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
         assert ref.law_now(0.4, g) == pytest.approx(2.0 * 2.0 ** (2 * e) / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
-
-
-def test_the_bound_brings_the_filters_mean_variance_to_the_fixed_cycles():
-    """``FixedCycleReference.balance``: the variance bound is multiplied by ``avg / live`` per
-    group (the fixed cycle's mean variance over the filter's own, same weights, traces), within
-    ``[1/4, 4]``: a filter whose mean is four times the reference's is held to a quarter of the
-    variance, one at half to twice. Catches the ratio inverted, taken per axis instead of per
-    group, or left out of the bound (a start-inflated mean then held for the whole run)."""
-    pol, v = _tracker(nis_feedback=False)
-    ref = v.sensor.ref
-    ref.start(np.eye(15) * 1e-6, 0)
-    v.pp[:] = (0.25, 0.0, 0.0)
-    ref.avg[:] = (1e-6, 2e-6, 3e-6, 1e-5, 1e-5, 2e-5)
-    ref.live[:] = ref.avg
-    pol._bounds(v)
-    base = v.smax6 ** 2
-    ref.live[:3] = (8e-6, 4e-6, 12e-6)          # trace 4x: a quarter
-    ref.live[3:] = (1e-5, 0.5e-5, 0.5e-5)        # trace 1/2: twice
-    pol._bounds(v)
-    np.testing.assert_allclose(v.smax6[:3] ** 2, base[:3] * 0.25, rtol=1e-12)
-    np.testing.assert_allclose(v.smax6[3:] ** 2, base[3:] * 2.0, rtol=1e-12)
-    ref.live[:3] = 1e-3                            # beyond the clamp
-    assert ref.balance(0) == 0.25 and ref.balance(1) == 2.0
