@@ -22,13 +22,67 @@ updates scored.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
 #: filter variants: (figure suffix, model, iterated)
 VARIANTS = (("", "extended", True), ("_ekf", "extended", False), ("_base", "base", True),
             ("_ekf_base", "base", False))
+
+
+@dataclass(frozen=True)
+class GietlerFilterConfig:
+    """The Brownian-motion filters' settings (``003_93f59c2e1c5b6c59.txt`` eqs 6-24;
+    ``coiltrack.firmware.estimate.brownian``): a research experiment's, not the firmware's
+    configuration. A sweep sets them as ``--set gietler.KEY=V`` (:func:`filter_config_from_dict`)."""
+    gietler_dt_s: float = 0.1               # s, filter step (sec III-C: delta tau = 0.1 s)
+    gietler_sigma_v: float = 0.01           # m s^-3/2, velocity Wiener intensity of the model (eq 6)
+    gietler_sigma_w: float = 0.1            # rad s^-3/2, Euler-rate Wiener intensity (eq 7)
+    gietler_noise_var: float = 1e-4         # (A/m)^2, measurement noise variance per component (eq 14)
+    gietler_p0: float = 0.1                 # initial covariance P0 = p0 I (eq 17; 0.1 in sec III-C)
+    gietler_iterations: int = 3             # iterated EKF: at most this many linearisations per step (1: EKF)
+    gietler_iter_tol: float = 1e-4          # m or rad: the iteration stops when no state moves more
+    gietler_diverge_m: float = 2.0          # m: an estimate farther from the receiver has diverged
+
+    def validate(self) -> "GietlerFilterConfig":
+        """Return self, or raise ConfigError naming ``gietler.KEY``."""
+        from coiltrack.firmware.config import ConfigError
+
+        for name in ("gietler_dt_s", "gietler_sigma_v", "gietler_sigma_w", "gietler_noise_var", "gietler_p0",
+                     "gietler_iter_tol", "gietler_diverge_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"gietler.{name}", f"must be a positive number, got {v!r}")
+        v = self.gietler_iterations
+        if not (isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 100):
+            raise ConfigError("gietler.gietler_iterations", f"must be an integer in 1..100 (1: the plain EKF), got {v!r}")
+        return self
+
+
+def filter_config_from_dict(d: dict, base: GietlerFilterConfig | None = None) -> GietlerFilterConfig:
+    """``{"gietler": {key: value}}`` over ``base``, validated; anything else refused by name."""
+    from coiltrack.firmware.config import ConfigError
+
+    base = base or GietlerFilterConfig()
+    kw = {}
+    names = {f.name: f.default for f in fields(GietlerFilterConfig)}
+    for sec, table in d.items():
+        if sec != "gietler" or not isinstance(table, dict):
+            raise ConfigError(sec if not isinstance(table, dict) else f"{sec}.{next(iter(table), '')}",
+                              "not a setting of the Gietler experiment (its sections: gietler, noise)")
+        for key, value in table.items():
+            if key not in names:
+                raise ConfigError(f"gietler.{key}", f"unknown key (the gietler section has: {', '.join(names)})")
+            if isinstance(names[key], int):
+                if not isinstance(value, int) or isinstance(value, bool):
+                    raise ConfigError(f"gietler.{key}", f"must be an integer, got {value!r}")
+            elif not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ConfigError(f"gietler.{key}", f"must be a number, got {value!r}")
+            else:
+                value = float(value)
+            kw[key] = value
+    return replace(base, **kw).validate()
 
 
 @dataclass(frozen=True)
@@ -137,7 +191,7 @@ def truth_and_measurements(spec: GietlerSpec, seed: int, obj=None):
 
 
 def run_filter(spec: GietlerSpec, cfg, model, truth: dict, V: np.ndarray, iterated: bool) -> dict:
-    """One filter (configured by the FirmwareConfig ``cfg``, section ``gietler``) over the run:
+    """One filter (configured by the :class:`GietlerFilterConfig` ``cfg``) over the run:
     ``mse_m2`` (time average of |z - z^|^2 over the updates; None when diverged),
     ``diverged`` (0/1), ``iterations`` (iterates over the run, one model evaluation each),
     ``evals`` (field evaluations), ``z_hat`` (n, 3)."""

@@ -2,14 +2,15 @@
 (default ``docs/reference``) and bring the generated message table of the protocol
 specification (``--protocol``, default ``docs/protocol.md``; the block of
 :mod:`coiltrack.protocol.docgen`) up to date; ``--check``: write nothing, exit 1 if a page or
-the table differs from the code's."""
+the table differs from the code's. ``--example PATH``: write the example configuration file
+(``examples/firmware.toml``: every key with its default and meaning) instead."""
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
 
-from .reference import PAGES
+from .reference import PAGES, example_toml
 
 
 def protocol_text(text: str) -> str:
@@ -32,7 +33,21 @@ def main(argv=None) -> int:
                    help="the protocol specification whose generated message table is brought up to date "
                         "(default docs/protocol.md; '' for none)")
     p.add_argument("--check", action="store_true", help="only compare: exit 1 when a page is out of date")
+    p.add_argument("--example", metavar="PATH",
+                   help="write the example configuration (every key, its default and meaning) to PATH "
+                        "(examples/firmware.toml) and nothing else; with --check only compare")
     args = p.parse_args(argv)
+    if args.example:
+        path, text = Path(args.example), example_toml()
+        if args.check:
+            if not path.exists() or path.read_text() != text:
+                print(f"out of date: {path}", file=sys.stderr)
+                return 1
+            return 0
+        if not path.exists() or path.read_text() != text:
+            path.write_text(text)
+            print(f"wrote {path}")
+        return 0
     out = Path(args.out)
     stale = []
     if not args.check:

@@ -6,8 +6,11 @@
   with its description, duration, sensor, the paper's figures and the configuration keys it sets
   over the defaults;
 * ``configuration.md``: every key of :class:`coiltrack.firmware.config.FirmwareConfig` by section
-  (:data:`coiltrack.firmware.config.SECTIONS`) with its type, default, unit, accepted range (the
-  messages of ``FirmwareConfig.validate``) and meaning (the comments beside the field).
+  (:data:`coiltrack.firmware.config.SECTION_TYPES`, one dataclass each) with its type, default, unit,
+  accepted range (the messages of the section's ``check`` methods) and meaning (the comments beside
+  the field).
+
+:func:`example_toml` writes ``examples/firmware.toml`` from the same code.
 
 Each page is a pure function of the code (no run, no clock), so generating twice gives the same
 bytes.
@@ -271,12 +274,27 @@ def _message(node: ast.AST) -> str:
     return s.strip().rstrip(",")
 
 
+def _helper_messages(module) -> dict[str, str]:
+    """Module-level checks of several keys at once (``_positive_ints(self, need, names)``): the
+    message of the ``need`` call in each."""
+    out = {}
+    for node in ast.parse(inspect.getsource(module)).body:
+        if isinstance(node, ast.FunctionDef) and any(a.arg == "need" for a in node.args.args):
+            for sub in ast.walk(node):
+                if (isinstance(sub, ast.Call) and isinstance(sub.func, ast.Name) and sub.func.id == "need"
+                        and len(sub.args) >= 3):
+                    out[node.name] = _message(sub.args[2])
+    return out
+
+
 def validation_rules(cls) -> dict[str, list[str]]:
     """The accepted range of each key: the messages of the ``need(key, ok, message)`` calls of
-    the class's ``validate`` and ``_validate_*`` methods (a ``for name in (...)`` loop gives its
-    message to every name)."""
+    the class's ``validate``, ``check`` and ``check_with`` methods and their helpers (a ``for name
+    in (...)`` loop gives its message to every name, and so does a module-level helper given a
+    tuple of names)."""
     src = textwrap.dedent(inspect.getsource(cls))
     tree = ast.parse(src)
+    helpers = _helper_messages(inspect.getmodule(cls))
     rules: dict[str, list[str]] = {}
 
     def add(key, msg):
@@ -289,6 +307,11 @@ def validation_rules(cls) -> dict[str, list[str]]:
             for child in node.body:
                 visit(child, {**loop_names, node.target.id: names})
             return
+        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in helpers
+                and len(node.args) >= 3 and isinstance(node.args[2], ast.Tuple)):
+            for e in node.args[2].elts:
+                if isinstance(e, ast.Constant) and isinstance(e.value, str):
+                    add(e.value, helpers[node.func.id])
         if (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "need"
                 and len(node.args) >= 3):
             key, msg = node.args[0], _message(node.args[2])
@@ -301,7 +324,8 @@ def validation_rules(cls) -> dict[str, list[str]]:
             visit(child, loop_names)
 
     for node in tree.body[0].body:
-        if isinstance(node, ast.FunctionDef) and (node.name == "validate" or node.name.startswith("_validate")):
+        if isinstance(node, ast.FunctionDef) and (node.name in ("validate", "check", "check_with")
+                                                  or node.name.startswith(("_validate", "_check"))):
             visit(node, {})
     return rules
 
@@ -353,31 +377,63 @@ def _type_text(value) -> str:
     return type(value).__name__
 
 
+def section_meanings() -> dict[str, dict[str, str]]:
+    """Per section, the comments beside each key (:func:`field_comments` of its dataclass)."""
+    from coiltrack.firmware import config as C
+
+    return {sec: field_comments(cls) for sec, cls in C.SECTION_TYPES.items()}
+
+
+def section_rules() -> dict[str, list[str]]:
+    """The accepted range of every key: the ``need`` messages of every section's checks and of
+    :class:`FirmwareConfig` (a key is named once in the whole configuration)."""
+    from coiltrack.firmware import config as C
+
+    rules: dict[str, list[str]] = {}
+    for cls in C.SECTION_TYPES.values():
+        for k, msgs in validation_rules(cls).items():
+            for m in msgs:
+                if m not in rules.setdefault(k, []):
+                    rules[k].append(m)
+    return rules
+
+
+def section_title(cls) -> str:
+    """The first sentence of a section's docstring, its ``[name]`` tag left out."""
+    doc = prose(cls.__doc__ or "")
+    doc = re.sub(r"^`\[\w+\]`:\s*", "", " ".join(doc.split()))
+    return doc[:1].upper() + doc[1:]
+
+
 def configuration_page() -> str:
     from coiltrack.firmware import config as C
 
     default = C.FirmwareConfig()
-    meaning = field_comments(C.FirmwareConfig)
-    ranges = validation_rules(C.FirmwareConfig)
+    meaning = section_meanings()
+    ranges = section_rules()
     coil_meaning = field_comments(C.CoilConfig)
     out = [HEADER, "# Configuration keys\n\n",
-           f"Every key of the firmware configuration (`FirmwareConfig`), in its {len(C.SECTIONS)} sections. "
+           f"Every key of the firmware configuration (`FirmwareConfig`), in its {len(C.SECTIONS)} sections: "
+           "in code `cfg.SECTION.KEY` (`cfg.timing.pulse_us`), one frozen dataclass per section "
+           "(`coiltrack.firmware.config.SECTION_TYPES`). "
            "A TOML file says them as tables of the same names (`examples/firmware.toml` spells out every key "
-           "of the thesis bench) and is given with `--config FILE` to `bench`, `firmware` and `perf`; "
+           "with its default; `python -m coiltrack.tools.docsgen --example examples/firmware.toml` writes it) "
+           "and is given with `--config FILE` to `bench`, `firmware` and `perf`; "
            "`coiltrack sweep --set section.key=V1,V2` varies one. A bad value is refused naming "
            "`section.key`, exit status 2. The unit is read from the key's name (`_us` microseconds, `_m` "
-           "metres, `_t` tesla, ...), the range from the checks of `FirmwareConfig.validate`, the meaning "
+           "metres, `_t` tesla, ...), the range from the checks of each section's dataclass, the meaning "
            "from the comments beside the field in `firmware_py/config.py`. How the sections fit together: "
            "[Configuration](../guide/configuration.md).\n\n",
            "Sections: " + ", ".join(f"[`{s}`](#{s})" for s in C.SECTIONS) + ".\n"]
     for sec, keys in C.SECTIONS.items():
-        out.append(f"\n## {sec}\n\n| key | type | default | unit | accepted | meaning |\n"
+        out.append(f"\n## {sec}\n\n{section_title(C.SECTION_TYPES[sec])}\n\n"
+                   "| key | type | default | unit | accepted | meaning |\n"
                    "| --- | --- | --- | --- | --- | --- |\n")
         for k in keys:
-            v = getattr(default, k)
+            v = getattr(getattr(default, sec), k)
             acc = "; ".join(ranges.get(k, []))
             out.append(f"| `{k}` | {_type_text(v)} | {cell(_default_text(k, v))} | {unit_of(k)} | "
-                       f"{cell(acc)} | {cell(meaning.get(k, ''))} |\n")
+                       f"{cell(acc)} | {cell(meaning[sec].get(k, ''))} |\n")
         if sec == "source":
             out.append("\n`[[source.coils]]`: one table per coil (1 to 16 coils):\n\n"
                        "| key | type | default | meaning |\n| --- | --- | --- | --- |\n")
@@ -385,6 +441,66 @@ def configuration_page() -> str:
                 d = f.default
                 out.append(f"| `{f.name}` | {_type_text(d)} | {cell(_default_text(f.name, d))} | "
                            f"{cell(coil_meaning.get(f.name, ''))} |\n")
+    return "".join(out)
+
+
+# ------------------------------------------------------------------ examples/firmware.toml
+
+EXAMPLE_HEADER = """\
+# coiltrack firmware configuration: every key with its default, the thesis source and timing
+# (Roetenberg 2006, sec. 5.2-5.3: three orthogonal coils of 50 turns, radius 5.5 cm, 1.5 A;
+# 60 ms pulses, a 600 ms cycle). Generated from the code by
+#   python -m coiltrack.tools.docsgen --example examples/firmware.toml
+# (do not edit: a test compares it with the code). A file of your own needs only the keys it
+# changes; every key not given keeps its default, and a bad value is refused naming section.key.
+#
+#   coiltrack firmware --config examples/firmware.toml --port /dev/ttyUSB0
+#   coiltrack bench --config examples/firmware.toml --scenario roetenberg-bench
+#
+# The meaning, unit and accepted range of every key: docs/reference/configuration.md.
+"""
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (tuple, list)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return str(v)
+
+
+def _comment(text: str, width: int = 100) -> list[str]:
+    return ["# " + line for line in textwrap.wrap(" ".join(text.split()), width - 2)] if text else []
+
+
+def example_toml() -> str:
+    """``examples/firmware.toml``: every section and key of the configuration with its default
+    and its meaning as a comment; :func:`coiltrack.firmware.config.load_config` reads it back
+    as the default configuration."""
+    from coiltrack.firmware import config as C
+
+    default = C.FirmwareConfig()
+    meaning = section_meanings()
+    coil_meaning = field_comments(C.CoilConfig)
+    out = [EXAMPLE_HEADER]
+    for sec, keys in C.SECTIONS.items():
+        out.append("\n" + "\n".join(_comment(section_title(C.SECTION_TYPES[sec]).replace("`", ""))) + "\n")
+        out.append(f"[{sec}]\n")
+        for k in keys:
+            if k == "coils":
+                continue
+            out.extend(line + "\n" for line in _comment(meaning[sec].get(k, "").replace("`", "")))
+            out.append(f"{k} = {_toml_value(getattr(getattr(default, sec), k))}\n")
+        if sec == "source":
+            for c in default.source.coils:
+                out.append("\n[[source.coils]]\n")
+                for f in fields(C.CoilConfig):
+                    note = coil_meaning.get(f.name, "")
+                    out.append(f"{f.name} = {_toml_value(getattr(c, f.name))}" + (f"  # {note}" if note else "") + "\n")
     return "".join(out)
 
 

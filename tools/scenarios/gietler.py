@@ -4,7 +4,9 @@ Each scenario is a measurement-level experiment (:mod:`coiltrack.tools.bench.gie
 ``coiltrack sweep --scenario gietler-air --seeds 1-100 --set noise.var=1e-1,1e-2,1e-3,1e-4,1e-5``
 runs every seed at every noise level; ``noise.var`` ((A/m)^2) is the emulated noise
 variance and, as in the paper, the filters' ``R`` (``gietler.gietler_noise_var``).
-Other ``--set`` keys are firmware configuration keys (e.g. ``gietler.gietler_iterations``).
+The other ``--set`` keys are the filters' settings, section ``gietler``
+(:class:`coiltrack.tools.bench.gietler.GietlerFilterConfig`, e.g. ``gietler.gietler_iterations``):
+the experiment runs no firmware, so it has no firmware configuration keys.
 The sweep's JSON then has ``levels`` (iterated EKF, extended model), ``levels_ekf``
 (plain EKF), and with an object ``levels_base`` and ``levels_ekf_base`` (base model
 ``H0``): per level ``noise_var``, ``mse_m2`` (mean over the runs that did not
@@ -18,11 +20,11 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from coiltrack.firmware.config import ConfigError, FirmwareConfig, config_from_dict
+from coiltrack.firmware.config import ConfigError, FirmwareConfig
 
 from ..bench import gietler as run_path
-from ..bench.gietler import VARIANTS, GietlerSpec
-from .base import Experiment, Family, Scenario, override_dict
+from ..bench.gietler import VARIANTS, GietlerFilterConfig, GietlerSpec, filter_config_from_dict
+from .base import Experiment, Family, Scenario
 
 SCENARIOS = Family()        # this family's scenarios (listed in scenarios/__init__.py)
 register = SCENARIOS.add
@@ -111,20 +113,19 @@ def _not_a_bench_world(seed, duration_s):
     raise ValueError("a Gietler scenario is a measurement-level experiment: run it with `coiltrack sweep`")
 
 
-def _config(spec: GietlerSpec):
-    def make() -> FirmwareConfig:
-        # Good-start experiments (sec IV-C): P0 lowered to 1e-3 I
-        p0 = 0.1 if spec.x0_filter["z"] == (0.05, -0.1, 0.4) else 1e-3
-        return FirmwareConfig(gietler_dt_s=spec.dt_s, gietler_sigma_v=spec.sigma_v, gietler_sigma_w=spec.sigma_w,
-                              gietler_noise_var=spec.noise_var, gietler_p0=p0)
-    return make
+def _filter_config(spec: GietlerSpec) -> GietlerFilterConfig:
+    """The filters' settings of one experiment: its model's intensities and noise, P0."""
+    # Good-start experiments (sec IV-C): P0 lowered to 1e-3 I
+    p0 = 0.1 if spec.x0_filter["z"] == (0.05, -0.1, 0.4) else 1e-3
+    return GietlerFilterConfig(gietler_dt_s=spec.dt_s, gietler_sigma_v=spec.sigma_v, gietler_sigma_w=spec.sigma_w,
+                               gietler_noise_var=spec.noise_var, gietler_p0=p0)
 
 
 def _parameters(spec: GietlerSpec) -> dict:
     d = {"trajectory": "eq 33 helix" if spec.trajectory == "helix" else "eq 8 Brownian motion",
          "duration_s": spec.duration_s, "dt_s": spec.dt_s, "sigma_v": spec.sigma_v, "sigma_w": spec.sigma_w,
          "emitters": "1 A m^2 along z, y, x at 0, p12 = (0.05, 0.05, 0.05), p13 = (-0.02, 0.03, 0.02) m",
-         "receiver": "origin", "divergence": "|z^| > 2 m"}
+         "receiver": "origin", "divergence": "|z^| > 2 m", "filter_p0": _filter_config(spec).gietler_p0}
     if spec.cube_center is not None:
         d.update(cube=f"{spec.cube_edge * 100:g} cm edge at {spec.cube_center} m (platform frame)",
                  sigma_s_per_m=spec.sigma, mu_r=spec.mu_r, freq_hz=spec.freq_hz,
@@ -136,16 +137,16 @@ def _parameters(spec: GietlerSpec) -> dict:
 for _name, _spec in SPECS.items():
     register(Scenario(
         name=_name, summary=_DESCRIPTIONS[_name][0] + " (coiltrack sweep)", description=_DESCRIPTIONS[_name][1],
-        duration_s=_spec.duration_s, build_world=_not_a_bench_world, firmware_config=_config(_spec),
+        duration_s=_spec.duration_s, build_world=_not_a_bench_world, firmware_config=FirmwareConfig,
         reference={"source": f"Gietler et al. 2019, {PAPER[_name]['source']}", **PAPER[_name]},
         parameters=_parameters(_spec)))
 
 
 # ---------------------------------------------------------------- the sweep experiment
 
-def _split(scenario: str, overrides) -> tuple[GietlerSpec, FirmwareConfig]:
-    """``noise.var`` -> the emulated noise and the filters' R; every other key -> the firmware
-    configuration (a ConfigError naming the key when it is unknown or out of range)."""
+def _split(scenario: str, overrides) -> tuple[GietlerSpec, GietlerFilterConfig]:
+    """``noise.var`` -> the emulated noise and the filters' R; ``gietler.KEY`` -> the filters'
+    settings (a ConfigError naming the key when it is unknown or out of range)."""
     spec = SPECS[scenario]
     rest = []
     noise = None
@@ -159,12 +160,23 @@ def _split(scenario: str, overrides) -> tuple[GietlerSpec, FirmwareConfig]:
             raise ConfigError(key, "unknown key (the noise section has: var)")
         else:
             rest.append((key, value))
-    base = _config(spec)()
+    base = _filter_config(spec)
     if noise is not None:
         spec = replace(spec, noise_var=noise)
         base = replace(base, gietler_noise_var=noise)
-    cfg = config_from_dict(override_dict(rest), base) if rest else base
+    cfg = filter_config_from_dict(_nest(rest), base) if rest else base
     return spec, cfg
+
+
+def _nest(overrides) -> dict:
+    """((section.key, value), ...) -> {section: {key: value}}; a plain key names no section."""
+    d: dict = {}
+    for key, value in overrides:
+        section, dot, name = key.rpartition(".")
+        if not dot:
+            raise ConfigError(key, "not a setting of the Gietler experiment (write gietler.KEY or noise.var)")
+        d.setdefault(section, {})[name] = value
+    return d
 
 
 def _check(scenario, overrides) -> None:
