@@ -40,7 +40,7 @@ def main() -> None:
     ap.add_argument("--true-xi", action="store_true")
     a = ap.parse_args()
     sc = scenarios.get(a.scenario)
-    cfg = dataclasses.replace(sc.firmware_config(), **json.loads(a.set)).validate()
+    cfg = sc.firmware_config().with_keys(**json.loads(a.set)).validate()
     fw_end, emu_end = sim_link_pair("inproc")
     bench = BenchSetup(sc, a.seed, a.duration, emu_end, cfg=cfg)
     fw = Firmware(cfg, fw_end)
@@ -66,7 +66,7 @@ def main() -> None:
                 ep.append(_tilt_deg(src.ori.f.R[2], world.source_kinematics(np.array([t]))[3][0]))
             if ins.fusion.initialized:
                 eth.append(_tilt_deg(ins.fusion.st.Th[2], Rw))
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     rep = report_mod.build(bench, fw.status(), a.duration, transport="inproc", cfg=cfg)
 
     def rms(v):

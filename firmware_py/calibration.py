@@ -387,9 +387,9 @@ def load_calibration(path, cfg=None) -> Calibration:
         raise CalibrationError("<file>", f"not valid TOML: {exc}") from None
     if cfg is None:
         return Calibration.from_table(d)
-    return Calibration.from_table(d, len(cfg.coils), [c.axis for c in cfg.coils],
-                                  getattr(cfg, "calibration_max_gain_error", 0.5),
-                                  getattr(cfg, "calibration_max_tilt_deg", 20.0))
+    return Calibration.from_table(d, len(cfg.source.coils), [c.axis for c in cfg.source.coils],
+                                  getattr(getattr(cfg, "calibration", None), "calibration_max_gain_error", 0.5),
+                                  getattr(getattr(cfg, "calibration", None), "calibration_max_tilt_deg", 20.0))
 
 
 def calibrated_coils(coils, source: SourceCalibration | None) -> list:

@@ -73,20 +73,20 @@ class Parts:
 def _lm(cfg, coils, gate_probability: float, core=_DEFAULT_CORE) -> Solver:
     from coiltrack.firmware.pose.solver import PoseSolver
 
-    return PoseSolver(coils, cfg.field_model, gate_probability=gate_probability,
-                      step_tol=cfg.lm_step_tol, cost_tol=cfg.lm_cost_tol, step_sigma=cfg.lm_step_sigma, core=core)
+    return PoseSolver(coils, cfg.source.field_model, gate_probability=gate_probability,
+                      step_tol=cfg.pose.lm_step_tol, cost_tol=cfg.pose.lm_cost_tol, step_sigma=cfg.pose.lm_step_sigma, core=core)
 
 
 def _raab(cfg, coils, gate_probability: float, core=_DEFAULT_CORE) -> Solver:
     from coiltrack.firmware.pose.raab import RaabTracker
 
-    start = cfg.raab_start_position
-    return RaabTracker(coils, cfg.field_model, iters=cfg.raab_iterations,
-                       acquire_iters=cfg.raab_acquire_iterations, gate_probability=gate_probability,
-                       step_tol=cfg.raab_step_tol, refresh=cfg.raab_refresh, correction=cfg.raab_correction,
+    start = cfg.pose.raab_start_position
+    return RaabTracker(coils, cfg.source.field_model, iters=cfg.pose.raab_iterations,
+                       acquire_iters=cfg.pose.raab_acquire_iterations, gate_probability=gate_probability,
+                       step_tol=cfg.pose.raab_step_tol, refresh=cfg.pose.raab_refresh, correction=cfg.pose.raab_correction,
                        start_position=start if any(v != 0.0 for v in start) else None,
-                       start_euler=tuple(math.radians(v) for v in cfg.raab_start_euler_deg),
-                       hemisphere=cfg.hemisphere, step_sigma=cfg.raab_step_sigma, core=core)
+                       start_euler=tuple(math.radians(v) for v in cfg.pose.raab_start_euler_deg),
+                       hemisphere=cfg.source.hemisphere, step_sigma=cfg.pose.raab_step_sigma, core=core)
 
 
 #: ``[pose] pose_solver`` -> the builder ``(cfg, coils, gate_probability, core) -> Solver``:
@@ -99,11 +99,11 @@ SOLVERS: dict[str, Callable] = {
 
 
 def make_pose_solver(cfg, coils, gate_probability: float, distortion=None, core=_DEFAULT_CORE) -> Solver:
-    """The solver ``cfg.pose_solver`` for ``coils`` (``field.Coil``), with the signal model
-    ``cfg.field_model``, a warm start's chi-square gate ``gate_probability`` and, when given, the
+    """The solver ``cfg.pose.pose_solver`` for ``coils`` (``field.Coil``), with the signal model
+    ``cfg.source.field_model``, a warm start's chi-square gate ``gate_probability`` and, when given, the
     room's distortion map in its signal model (``model.distortion``; a map of another number of
     coils is refused, ValueError), on the numeric core ``core``."""
-    solver = SOLVERS[cfg.pose_solver](cfg, coils, gate_probability, core)
+    solver = SOLVERS[cfg.pose.pose_solver](cfg, coils, gate_probability, core)
     if distortion is not None:
         solver.signal.set_distortion(distortion)
     return solver
@@ -122,22 +122,22 @@ def solver_factory(cfg, coils, distortion=None, core=_DEFAULT_CORE) -> Callable[
 # ------------------------------------------------------------------ pipelines
 def pipeline_choice(cfg) -> str:
     """The key of :data:`TRACKERS` the configuration chooses."""
-    if cfg.excitation == "ac":
-        return "ac-fusion" if cfg.fusion else "ac-magnetic"
-    if cfg.actuation == "adaptive":
+    if cfg.ac.excitation == "ac":
+        return "ac-fusion" if cfg.fusion.fusion else "ac-magnetic"
+    if cfg.adaptive.actuation == "adaptive":
         return "single-coil-adaptive"
-    if cfg.single_coil_fusion:
+    if cfg.adaptive.single_coil_fusion:
         return "single-coil-fixed"
-    if cfg.tight_fusion:
+    if cfg.tight.tight_fusion:
         return "tight-fusion"        # each pulse window a measurement at its own time ([tight])
-    return "burst-fusion" if cfg.fusion else "magnetic"
+    return "burst-fusion" if cfg.fusion.fusion else "magnetic"
 
 
 def _bursts(kind: type) -> Callable[[Parts], Pipeline]:
     """The pipeline of ``kind``, a tracker of bursts of the fixed X, Y, Z cycle."""
     def build(p: Parts) -> Pipeline:
         cfg = p.cfg
-        burst = BurstMeasurement(p.channels, p.schedule, p.closer, cfg.windows_budget)
+        burst = BurstMeasurement(p.channels, p.schedule, p.closer, cfg.budget.windows_budget)
         t = kind(cfg, p.coils, p.channels, p.schedule, burst, p.supervisor, p.tx,
                  solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
         return Pipeline(BurstActuation(cfg, p.schedule, p.channels, t).step, burst.step, t.step, t)

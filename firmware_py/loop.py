@@ -68,40 +68,40 @@ class Firmware:
         of the configuration, read here, or none)."""
         self.cfg = cfg.validate()
         self.port = port
-        if calibration is None and cfg.calibration_file:
+        if calibration is None and cfg.calibration.calibration_file:
             from coiltrack.firmware.calibration import load_calibration
 
-            calibration = load_calibration(cfg.calibration_file, cfg)
+            calibration = load_calibration(cfg.calibration.calibration_file, cfg)
         self.calibration = calibration
-        self.coils = [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.coils]
-        if calibration is not None and calibration.source is not None and cfg.calibration_source:
+        self.coils = [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.source.coils]
+        if calibration is not None and calibration.source is not None and cfg.calibration.calibration_source:
             from coiltrack.firmware.calibration import calibrated_coils
 
             self.coils = calibrated_coils(self.coils, calibration.source)
-        sensor_cal = calibration.sensors if calibration is not None and cfg.calibration_sensors else None
+        sensor_cal = calibration.sensors if calibration is not None and cfg.calibration.calibration_sensors else None
         decoder = FrameDecoder()
         key = cfg.signing_key_bytes()
-        signer = Signer(key, cfg.signing_link_id) if key else None
+        signer = Signer(key, cfg.signing.signing_link_id) if key else None
         if signer is not None and sign_ts0 is None:
             sign_ts0 = now_timestamp()
         # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
-        kernels = load_core(cfg.impl)
+        kernels = load_core(cfg.core.impl)
         self.core = kernels.name
-        self.tx = Transmitter(port, cfg.node_id, cfg.heartbeat_us, decoder, signer, sign_ts0 or 0, kernels)
-        self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.coils])
-        self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.sensor_ids)
-        self.closer = WindowCloser(self.channels, cfg.fall_us, cfg.baseline_us, cfg.cycle_us // 2, self.tx)
+        self.tx = Transmitter(port, cfg.link.node_id, cfg.link.heartbeat_us, decoder, signer, sign_ts0 or 0, kernels)
+        self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.source.coils])
+        self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.link.sensor_ids)
+        self.closer = WindowCloser(self.channels, cfg.pulse.fall_us, cfg.pulse.baseline_us, cfg.timing.cycle_us // 2, self.tx)
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
         # the room's map goes into the pose solvers' signal model as they are built
-        distortion = getattr(calibration, "distortion", None) if cfg.distortion_apply else None
+        distortion = getattr(calibration, "distortion", None) if cfg.distortion.distortion_apply else None
         parts = Parts(cfg, self.coils, self.channels, self.schedule, self.closer, self.supervisor, self.tx, distortion,
                       kernels)
         self.pipeline: Pipeline = compose(parts)
         self.tracker = self.pipeline.tracker
         self.receiver = Receiver(port, decoder, self.channels, self.schedule, self.tracker, self.supervisor,
                                  self.tx, other=self.pipeline.on_message, calibration=sensor_cal,
-                                 imu_interval_us=1e6 / cfg.imu_delta_rate_hz, imu_step_us=1e6 / cfg.imu_rate_hz,
-                                 frames_per_tick=cfg.rx_frames_per_tick, queue_bytes=cfg.rx_queue_bytes,
+                                 imu_interval_us=1e6 / cfg.imu.imu_delta_rate_hz, imu_step_us=1e6 / cfg.imu.imu_rate_hz,
+                                 frames_per_tick=cfg.receive.rx_frames_per_tick, queue_bytes=cfg.receive.rx_queue_bytes,
                                  core=kernels)
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)

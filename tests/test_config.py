@@ -6,8 +6,8 @@ from coiltrack.firmware.config import ConfigError, FirmwareConfig, config_from_d
 
 def test_default_is_valid_and_thesis_timing():
     cfg = FirmwareConfig().validate()
-    assert (cfg.pulse_us, cfg.cycle_us) == (60_000, 600_000)
-    assert len(cfg.coils) == 3 and cfg.coils[0].turns == 50 and cfg.coils[0].radius == 0.055
+    assert (cfg.timing.pulse_us, cfg.timing.cycle_us) == (60_000, 600_000)
+    assert len(cfg.source.coils) == 3 and cfg.source.coils[0].turns == 50 and cfg.source.coils[0].radius == 0.055
 
 
 @pytest.mark.parametrize("d, key", [
@@ -38,8 +38,8 @@ def test_load_toml(tmp_path):
                  '[[source.coils]]\naxis = [1.0, 0.0, 0.0]\n'
                  '[[source.coils]]\naxis = [0.0, 1.0, 0.0]\ncenter = [0.0, 0.01, 0.0]\n')
     cfg = load_config(p)
-    assert cfg.pulse_us == 40000 and cfg.field_model == "dipole" and len(cfg.coils) == 2
-    assert cfg.coils[1].center == (0.0, 0.01, 0.0)
+    assert cfg.timing.pulse_us == 40000 and cfg.source.field_model == "dipole" and len(cfg.source.coils) == 2
+    assert cfg.source.coils[1].center == (0.0, 0.01, 0.0)
 
 
 def test_load_toml_syntax_error(tmp_path):
@@ -72,7 +72,7 @@ def test_load_toml_with_fusion_keys(tmp_path):
     p.write_text('[imu]\nimu_rate_hz = 120.0\n[fusion]\nmeasurement_model = 1\nmotion_compensation = false\n'
                  '[link]\nsource_imu_id = 8\n[orientation]\nori_update_every = 2\n')
     cfg = load_config(p)
-    assert cfg.measurement_model == 1 and cfg.motion_compensation is False and cfg.source_imu_id == 8
+    assert cfg.fusion.measurement_model == 1 and cfg.fusion.motion_compensation is False and cfg.link.source_imu_id == 8
 
 
 @pytest.mark.parametrize("d, key, words", [
@@ -96,7 +96,7 @@ def test_round_trip_through_sections():
 
     from coiltrack.firmware.config import SECTIONS, config_to_dict
 
-    cfg = FirmwareConfig(pulse_us=40_000, fusion=False, node_id=3)
+    cfg = FirmwareConfig().with_(timing={"pulse_us": 40_000}, fusion={"fusion": False}, link={"node_id": 3})
     assert config_from_dict(config_to_dict(cfg)) == cfg
     keys = [k for ks in SECTIONS.values() for k in ks]
     assert sorted(keys) == sorted(f.name for f in fields(FirmwareConfig))

@@ -6,11 +6,11 @@ from coiltrack.firmware.config import ConfigError, config_from_dict, load_config
 
 
 @pytest.mark.parametrize("d,key", [
-    ({"body_motion": {"baseline_gyro": 1}}, "body_motion.baseline_gyro"),
-    ({"body_motion": {"acc_adapt_gain": -0.5}}, "body_motion.acc_adapt_gain"),
-    ({"body_motion": {"acc_adapt_gain": float("nan")}}, "body_motion.acc_adapt_gain"),
-    ({"body_motion": {"acc_adapt_tau_s": 0.0}}, "body_motion.acc_adapt_tau_s"),
-    ({"body_motion": {"compass_heading_only": "yes"}}, "body_motion.compass_heading_only"),
+    ({"body": {"baseline_gyro": 1}}, "body.baseline_gyro"),
+    ({"body": {"acc_adapt_gain": -0.5}}, "body.acc_adapt_gain"),
+    ({"body": {"acc_adapt_gain": float("nan")}}, "body.acc_adapt_gain"),
+    ({"body": {"acc_adapt_tau_s": 0.0}}, "body.acc_adapt_tau_s"),
+    ({"body": {"compass_heading_only": "yes"}}, "body.compass_heading_only"),
 ])
 def test_bad_body_motion_values_name_the_key(d, key):
     """Catches a key left out of validation or filed in the wrong section."""
@@ -24,5 +24,5 @@ def test_load_toml_with_body_motion_keys(tmp_path):
     p = tmp_path / "fw.toml"
     p.write_text("[body_motion]\nbaseline_gyro = true\nacc_adapt_gain = 1.0\nacc_adapt_tau_s = 2.0\n")
     cfg = load_config(p)
-    assert cfg.baseline_gyro is True and cfg.acc_adapt_gain == 1.0 and cfg.acc_adapt_tau_s == 2.0
-    assert cfg.compass_heading_only is False
+    assert cfg.body.baseline_gyro is True and cfg.body.acc_adapt_gain == 1.0 and cfg.body.acc_adapt_tau_s == 2.0
+    assert cfg.body.compass_heading_only is False

@@ -58,7 +58,7 @@ def test_configuration_page_has_every_key_with_default_and_range():
     # a range written in a loop of validate() reaches every key of the loop
     row = next(line for line in page.splitlines() if line.startswith("| `imu_sample_evals` |"))
     assert "0..1000000" in row
-    assert default.pulse_us == 60000
+    assert default.timing.pulse_us == 60000
 
 
 def test_field_comments_read_the_trailing_and_continued_comments():

@@ -24,7 +24,7 @@ def test_survey_recovers_known_equivalent_dipoles_within_their_sigma():
     (R vs R^T), a wrong current scaling, and sigmas not scaled by the residual."""
     cfg = FirmwareConfig()
     p, R = survey.jig_poses(radii=(0.2, 0.4, 0.7), n_az=4, n_el=3, seed=3)
-    cur = np.array([c.current for c in cfg.coils])
+    cur = np.array([c.current for c in cfg.source.coils])
     nom = survey._nominal_fields(cfg, p)
     truth_q = [np.array([-0.5, 0.02, 0.01]), np.array([-0.52, -0.03, 0.0]), np.array([-0.48, 0.0, 0.04])]
     truth_m = [np.array([-0.09, 0.0, 0.0]), np.array([0.0, -0.1, 0.0]), np.array([0.0, 0.0, -0.1])]

@@ -37,13 +37,13 @@ class ACActuation:
     """The actuate stage of AC excitation (``step(now_us)``) and the driver's reports (``on_status``)."""
 
     def __init__(self, cfg, tx):
-        n = len(cfg.coils)
+        n = len(cfg.source.coils)
         self.n = n
         self.tx = tx
-        self.freq_hz = np.array([float(f) for f in cfg.ac_freqs_hz])
-        amp = [cfg.ac_current_a or abs(float(c.current)) for c in cfg.coils]
+        self.freq_hz = np.array([float(f) for f in cfg.ac.ac_freqs_hz])
+        amp = [cfg.ac.ac_current_a or abs(float(c.current)) for c in cfg.source.coils]
         self.target_ua = tuple(int(round(a / AC_CURRENT_LSB_A)) for a in amp)
-        self.freq_mhz = tuple(int(round(f / AC_FREQ_LSB_HZ)) for f in cfg.ac_freqs_hz)
+        self.freq_mhz = tuple(int(round(f / AC_FREQ_LSB_HZ)) for f in cfg.ac.ac_freqs_hz)
         self.amplitude_a = np.zeros(n)
         self.phase_rad = np.zeros(n)
         self.faults = np.zeros(n, dtype=np.int64)
@@ -51,8 +51,8 @@ class ACActuation:
         self._pv = memoryview(self.phase_rad)
         self._fv = memoryview(self.faults)
         self.reported = [False] * n
-        self.start_after_us = int(cfg.ac_start_us)
-        self.lead_us = int(cfg.ac_lead_us)
+        self.start_after_us = int(cfg.ac.ac_start_us)
+        self.lead_us = int(cfg.ac.ac_lead_us)
         self.plan_id = -1
         self.ref_us = 0
         self.on_us = 0
@@ -62,7 +62,7 @@ class ACActuation:
         self.refusals = 0
         self.statuses = 0
         self.timeouts = 0
-        self.status_timeout_us = int(cfg.ac_status_timeout_us)
+        self.status_timeout_us = int(cfg.ac.ac_status_timeout_us)
         self.last_status_us = 0
         self._boot = None
 

@@ -14,12 +14,12 @@ class BurstActuation:
     ``tracker`` (a :class:`coiltrack.firmware.track.BurstTracker`) of each burst it opens."""
 
     def __init__(self, cfg, schedule, channels, tracker):
-        n = len(cfg.coils)
-        self.cycle = FixedCycle(n, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us, cfg.lead_us)
+        n = len(cfg.source.coils)
+        self.cycle = FixedCycle(n, cfg.timing.first_cycle_us, cfg.timing.cycle_us, cfg.timing.spacing_us, cfg.timing.pulse_us, cfg.timing.lead_us)
         self.schedule = schedule
         self.channels = tuple(channels)
         self.tracker = tracker
-        self.nominal = tuple(float(c.current) for c in cfg.coils)
+        self.nominal = tuple(float(c.current) for c in cfg.source.coils)
         self._waited = False
 
     def step(self, now_us: int) -> None:

@@ -58,10 +58,10 @@ def fixed_amplitude_variance(cfg, pulse_us: int) -> float:
     """The variance the single-coil mode has always assumed for a ``pulse_us`` pulse at an
     arbitrary phase (T^2): ``n_u = (pulse - settle - guard) / T - 1`` (the first and last
     samples), ``n_b = 2 baseline / T``."""
-    per = 1e6 / cfg.mag_rate_hz
-    n_used = max(1, int((pulse_us - cfg.settle_us - cfg.guard_us) / per) - 1)
-    n_base = max(2, 2 * int(cfg.baseline_us / per))
-    return cfg.mag_sigma_t ** 2 * (1.0 / n_used + 1.0 / n_base)
+    per = 1e6 / cfg.pulse.mag_rate_hz
+    n_used = max(1, int((pulse_us - cfg.pulse.settle_us - cfg.pulse.guard_us) / per) - 1)
+    n_base = max(2, 2 * int(cfg.pulse.baseline_us / per))
+    return cfg.pulse.mag_sigma_t ** 2 * (1.0 / n_used + 1.0 / n_base)
 
 
 class PulseLengths:
@@ -85,7 +85,7 @@ class PulseLengths:
     def fixed(cls, cfg, pulse_us: int) -> "PulseLengths":
         """One length at an arbitrary phase (``pulse_length = "fixed"``)."""
         return cls((pulse_us,), (fixed_amplitude_variance(cfg, pulse_us),),
-                   ((cfg.settle_us + pulse_us - cfg.guard_us) // 2,), False, 0.0, 1e6 / cfg.mag_rate_hz)
+                   ((cfg.pulse.settle_us + pulse_us - cfg.pulse.guard_us) // 2,), False, 0.0, 1e6 / cfg.pulse.mag_rate_hz)
 
     @classmethod
     def chosen(cls, cfg, max_us: int) -> "PulseLengths":
@@ -93,18 +93,18 @@ class PulseLengths:
         and is the first; ``b`` = half the guard: the last) keeping ``m - 1`` samples, from
         ``min_pulse_samples`` used samples up to the longest not above ``max_us`` (at least
         one): each with the variance and mid time its window gives at that phase."""
-        per = 1e6 / cfg.mag_rate_hz
-        a = 0.5 * cfg.settle_us
-        b = 0.5 * cfg.guard_us
+        per = 1e6 / cfg.pulse.mag_rate_hz
+        a = 0.5 * cfg.pulse.settle_us
+        b = 0.5 * cfg.pulse.guard_us
         lengths, var, mid = [], [], []
-        m = cfg.min_pulse_samples + 1
+        m = cfg.pulse.min_pulse_samples + 1
         while True:
             length = int(math.ceil(a + m * per + b))
             if lengths and length > max_us:
                 break
-            n_u, n_b = window_samples(length, a, per, cfg.settle_us, cfg.guard_us, cfg.fall_us, cfg.baseline_us)
+            n_u, n_b = window_samples(length, a, per, cfg.pulse.settle_us, cfg.pulse.guard_us, cfg.pulse.fall_us, cfg.pulse.baseline_us)
             lengths.append(length)
-            var.append(cfg.mag_sigma_t ** 2 * (1.0 / max(n_u, 1) + 1.0 / max(n_b, 1)))
+            var.append(cfg.pulse.mag_sigma_t ** 2 * (1.0 / max(n_u, 1) + 1.0 / max(n_b, 1)))
             mid.append(int(round(a + 0.5 * m * per)))          # samples a + T ... a + (m - 1) T
             m += 1
         return cls(lengths, var, mid, True, a, per)

@@ -78,9 +78,9 @@ class _SingleCoilActuation:
         #: the pulse lengths (``pulse_length.PulseLengths``); the longest bounds the timing checks
         self.lengths = lengths
         self.pulse_us = lengths.longest()
-        self.lead_us = cfg.adaptive_lead_us
-        self.nominal = np.array([c.current for c in cfg.coils])
-        self.cycle = FixedCycle(n_coils, cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us, cfg.pulse_us,
+        self.lead_us = cfg.adaptive.adaptive_lead_us
+        self.nominal = np.array([c.current for c in cfg.source.coils])
+        self.cycle = FixedCycle(n_coils, cfg.timing.first_cycle_us, cfg.timing.cycle_us, cfg.timing.spacing_us, cfg.timing.pulse_us,
                                 self.lead_us)
         self._warming = False            # the fixed cycle after a start (``reference_warmup_us``)
         self._held_start = -1            # the start a decision put off to the next tick keeps
@@ -111,12 +111,12 @@ class _SingleCoilActuation:
                 self.acq.try_start(now_us)
             return
         # lost: an uncertainty beyond any use, or no usable pulse for a long time
-        big = cfg.acquire_sigma_m * cfg.acquire_sigma_m
+        big = cfg.adaptive.acquire_sigma_m * cfg.adaptive.acquire_sigma_m
         for s in self._sens:
             P = s.ekf.P
             b = POS.start
             if (P[b, b] > big or P[b + 1, b + 1] > big or P[b + 2, b + 2] > big
-                    or now_us - s.last_update_us > 4 * cfg.adaptive_max_interval_us):
+                    or now_us - s.last_update_us > 4 * cfg.adaptive.adaptive_max_interval_us):
                 self.host.reacquire(s)
                 return
         if self.book.n_active() >= 2:
@@ -125,7 +125,7 @@ class _SingleCoilActuation:
         # its full-current pulses of every coil, while the errors are too large for eq 4
         self._warming = False
         for s in self._sens:
-            if s.ref is not None and s.ref.active and now_us - s.ref_start_us < cfg.reference_warmup_us:
+            if s.ref is not None and s.ref.active and now_us - s.ref_start_us < cfg.adaptive.reference_warmup_us:
                 self._warming = True
         self._decide_own(now_us, held)
 
@@ -147,7 +147,7 @@ class _SingleCoilActuation:
         if not cyc.due(now_us):
             return
         start = cyc.start_us()
-        if start >= now_us + self.cfg.tick_us:
+        if start >= now_us + self.cfg.timing.tick_us:
             j = cyc.coil
             self.book.command(j, float(self.nominal[j]), start, cyc.pulse_us, False)
         cyc.advance(now_us)      # a cycle that could not be scheduled in time is skipped
@@ -162,18 +162,18 @@ class _SingleCoilActuation:
         flip's trailing baseline has passed. The command also keeps the
         sensors from flipping on their own (which could land in a window)."""
         book = self.book
-        if now_us - book.last_flip_cmd_us < self.cfg.flip_every_us or book.n_active() or self._dec_phase:
+        if now_us - book.last_flip_cmd_us < self.cfg.adaptive.flip_every_us or book.n_active() or self._dec_phase:
             return
         cfg = self.cfg
         fl = self.supervisor.flips
         t0 = now_us + 1_000
         if self._follows_cycle() and not self.acq.active:
             nxt = self.cycle.start_us()
-            if nxt - cfg.baseline_us - 2 * cfg.guard_us < t0 + fl.min_gap_us:
+            if nxt - cfg.pulse.baseline_us - 2 * cfg.pulse.guard_us < t0 + fl.min_gap_us:
                 return
         fl.plan(now_us, t0, t0 + fl.min_gap_us, self.tx.send)
         at = fl.last_at_us
-        book.hold_until(at + cfg.baseline_us + cfg.guard_us + cfg.guard_us)
+        book.hold_until(at + cfg.pulse.baseline_us + cfg.pulse.guard_us + cfg.pulse.guard_us)
         book.note_flip(now_us)
 
 
@@ -196,22 +196,22 @@ class AdaptiveActuation(_SingleCoilActuation):
     def __init__(self, cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths, core=_DEFAULT_CORE):
         super().__init__(cfg, coils, sensors, book, acquisition, supervisor, tx, host, lengths, core)
         n = self.n
-        self.pmodel = SingleCoilModel(coils, cfg.field_model, core)      # decisions
+        self.pmodel = SingleCoilModel(coils, cfg.source.field_model, core)      # decisions
         d2r = math.pi / 180.0
-        smax = (cfg.sigma_max_pos_m,) * 3 + (cfg.sigma_max_ori_deg * d2r,) * 3
-        smin = (cfg.sigma_min_pos_m,) * 3 + (cfg.sigma_min_ori_deg * d2r,) * 3
-        currents = cfg.adaptive_currents_a or current_ladder(
-            min(cfg.adaptive_min_current_a, cfg.adaptive_max_current_a), cfg.adaptive_max_current_a,
-            cfg.adaptive_current_levels)
-        trace = cfg.bound_on == "trace"
-        self.chooser = CoilChooser(n, currents, smax, smin, cfg.field_model_rel_sigma, cfg.current_tolerance_a,
+        smax = (cfg.adaptive.sigma_max_pos_m,) * 3 + (cfg.adaptive.sigma_max_ori_deg * d2r,) * 3
+        smin = (cfg.adaptive.sigma_min_pos_m,) * 3 + (cfg.adaptive.sigma_min_ori_deg * d2r,) * 3
+        currents = cfg.adaptive.adaptive_currents_a or current_ladder(
+            min(cfg.adaptive.adaptive_min_current_a, cfg.adaptive.adaptive_max_current_a), cfg.adaptive.adaptive_max_current_a,
+            cfg.adaptive.adaptive_current_levels)
+        trace = cfg.adaptive.bound_on == "trace"
+        self.chooser = CoilChooser(n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
                                    trace)
-        self.policy = ActuationPolicy(smax, cfg.adaptive_max_interval_us, trace)
+        self.policy = ActuationPolicy(smax, cfg.adaptive.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()
         self.var_amp = lengths.var_amp[-1]
         self.mid_us = lengths.mid_us[-1]
         self._vars = [0.0] * lengths.n        # the lengths' amplitude variances, inflated
-        self.gap_us = cfg.fall_us + cfg.baseline_us + cfg.guard_us
+        self.gap_us = cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
         self.views = tuple(SensorOutlook(s) for s in self._sens)
         self._lim = np.zeros(n)
         self._zero3 = np.zeros(3)
@@ -241,22 +241,22 @@ class AdaptiveActuation(_SingleCoilActuation):
                 return
             # between the cycle's pulses, a pulse on demand only where the filter is far behind the
             # fixed cycle's present covariance (see _bounds), ending before the cycle's next pulse
-        elif now_us - book.last_flip_cmd_us >= cfg.flip_every_us:
+        elif now_us - book.last_flip_cmd_us >= cfg.adaptive.flip_every_us:
             return      # a flip is due: let the pulses in flight close first (see _flip)
         start = max(now_us + self.lead_us, book.next_free_us)
         if held >= 0:           # put off from the last tick: the start it had (lead less one tick)
-            start = max(held, book.next_free_us, now_us + cfg.tick_us)
-        if start - now_us > self.lead_us + cfg.tick_us:
+            start = max(held, book.next_free_us, now_us + cfg.timing.tick_us)
+        if start - now_us > self.lead_us + cfg.timing.tick_us:
             return
-        if self._warming and start + self.pulse_us + self.gap_us + cfg.tick_us > self.cycle.start_us():
+        if self._warming and start + self.pulse_us + self.gap_us + cfg.timing.tick_us > self.cycle.start_us():
             return
         # the prediction changes only when an IMU sample (or an update) has moved a filter
         stamp = 0
         for s in self._sens:
             stamp += s.stamp()
-        if stamp == self._decided_stamp and now_us - self._decided_us < cfg.decision_refresh_us:
+        if stamp == self._decided_stamp and now_us - self._decided_us < cfg.adaptive.decision_refresh_us:
             return
-        if self.host.updated_us == now_us and held < 0 and start - now_us > 2 * cfg.tick_us:
+        if self.host.updated_us == now_us and held < 0 and start - now_us > 2 * cfg.timing.tick_us:
             # bounded tick: this tick has run an EKF update (the heaviest matrix work of the mode);
             # the decision (a prediction per sensor and pulse in flight, the coil choice) runs in
             # the next one, for the same start
@@ -298,7 +298,7 @@ class AdaptiveActuation(_SingleCoilActuation):
                     var = self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)]
                     self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
                                               var * s.monitor.r_scale,
-                                              cfg.field_model_rel_sigma, cfg.current_tolerance_a)
+                                              cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a)
             if self.policy.due(v.P6, now_us, s.last_update_us):
                 due = True
             u = self.policy.worst(v.P6)
@@ -322,21 +322,21 @@ class AdaptiveActuation(_SingleCoilActuation):
         """Current limits: the driver's, every sensor's magnetometer range, the coils' duty."""
         cfg = self.cfg
         lim = self._lim
-        lim.fill(cfg.adaptive_max_current_a)
+        lim.fill(cfg.adaptive.adaptive_max_current_a)
         for v in self.views:
             self._model_at(v)
             # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
             r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
             sp = math.sqrt(max(float(v.P6[0, 0] + v.P6[1, 1] + v.P6[2, 2]), 0.0))
-            gain = (r / max(r - cfg.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
+            gain = (r / max(r - cfg.adaptive.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
             for c in range(self.n):
                 if v.have_quiet:
-                    i = saturation_current_limit(self.pmodel.h[c], v.quiet, cfg.mag_range_t,
-                                                 cfg.saturation_margin, gain)
+                    i = saturation_current_limit(self.pmodel.h[c], v.quiet, cfg.pulse.mag_range_t,
+                                                 cfg.pulse.saturation_margin, gain)
                 else:       # no quiet sample yet: assume the largest earth field on every axis
                     i = saturation_current_limit(self.pmodel.h[c], self._zero3,
-                                                 cfg.mag_range_t - cfg.earth_field_max_t / cfg.saturation_margin,
-                                                 cfg.saturation_margin, gain)
+                                                 cfg.pulse.mag_range_t - cfg.pulse.earth_field_max_t / cfg.pulse.saturation_margin,
+                                                 cfg.pulse.saturation_margin, gain)
                 if i < lim[c]:
                     lim[c] = i
         for c in range(self.n):
@@ -389,22 +389,22 @@ class AdaptiveActuation(_SingleCoilActuation):
         if s.ref is not None and s.ref.active:
             ref = s.ref
             r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
-            fixed_cycle_bounds(ref.avg, cfg.fixed_accuracy_ratio, cfg.adaptive_min_ratio, mx, mn,
+            fixed_cycle_bounds(ref.avg, cfg.adaptive.fixed_accuracy_ratio, cfg.adaptive.adaptive_min_ratio, mx, mn,
                                ref.law_now(r, 0), ref.law_now(r, 1))
             if self._warming:
                 # the fixed cycle runs; a pulse between its pulses only when the filter's variance
                 # would pass reference_catchup times the fixed cycle's present one
                 Pr = ref.P
-                k2 = cfg.reference_catchup * cfg.fixed_accuracy_ratio ** 2
+                k2 = cfg.adaptive.reference_catchup * cfg.adaptive.fixed_accuracy_ratio ** 2
                 for k, i in ((0, POS.start), (1, POS.start + 1), (2, POS.start + 2),
                              (3, ORI.start), (4, ORI.start + 1), (5, ORI.start + 2)):
                     x = float(Pr[i, i]) * k2
                     mx[k] = math.sqrt(x) if x > 0.0 else 0.0
-                    mn[k] = cfg.adaptive_min_ratio * float(mx[k])
+                    mn[k] = cfg.adaptive.adaptive_min_ratio * float(mx[k])
         else:
             self._stated_bounds(v)
-        if cfg.nis_feedback:
-            f = math.sqrt(nis_bound_factor(s.monitor.excess, cfg.nis_feedback_max))
+        if cfg.adaptive.nis_feedback:
+            f = math.sqrt(nis_bound_factor(s.monitor.excess, cfg.adaptive.nis_feedback_max))
             if f != 1.0:
                 for k in range(POSE_DIM):
                     mx[k] = float(mx[k]) / f
@@ -414,18 +414,18 @@ class AdaptiveActuation(_SingleCoilActuation):
         """``sigma_max_*``, ``sigma_min_*``, scaled by ``(r / sigma_range_ref_m)^exp`` when set."""
         cfg = self.cfg
         sp = so = 1.0
-        if cfg.sigma_range_ref_m > 0.0:
+        if cfg.adaptive.sigma_range_ref_m > 0.0:
             r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
-            x = max(r, 1e-3) / cfg.sigma_range_ref_m
-            sp = x ** cfg.sigma_range_exp_pos
-            so = x ** cfg.sigma_range_exp_ori
+            x = max(r, 1e-3) / cfg.adaptive.sigma_range_ref_m
+            sp = x ** cfg.adaptive.sigma_range_exp_pos
+            so = x ** cfg.adaptive.sigma_range_exp_ori
         d2r = math.pi / 180.0
         mx, mn = v.smax6, v.smin6
         for k in range(3):
-            mx[k] = cfg.sigma_max_pos_m * sp
-            mn[k] = cfg.sigma_min_pos_m * sp
-            mx[3 + k] = cfg.sigma_max_ori_deg * d2r * so
-            mn[3 + k] = cfg.sigma_min_ori_deg * d2r * so
+            mx[k] = cfg.adaptive.sigma_max_pos_m * sp
+            mn[k] = cfg.adaptive.sigma_min_pos_m * sp
+            mx[3 + k] = cfg.adaptive.sigma_max_ori_deg * d2r * so
+            mn[3 + k] = cfg.adaptive.sigma_min_ori_deg * d2r * so
 
     def _refresh_quiet(self, v: SensorOutlook) -> None:
         """The newest magnetometer sample, if no pulse was on when it was taken."""

@@ -192,7 +192,7 @@ class PulseBook:
         the driver enforces; a refused pulse is a wasted decision)."""
         cfg = self.cfg
         end = start + length
-        w0 = end - cfg.coil_duty_window_us
+        w0 = end - cfg.limits.coil_duty_window_us
         on = length
         h = self._histv
         for k in range(DUTY_HIST):
@@ -200,7 +200,7 @@ class PulseBook:
             e0 = h[c, k, 1]
             if e0 > w0 and e0 > s0:
                 on += min(e0, end) - max(s0, w0)
-        return on <= cfg.duty_margin * cfg.coil_max_duty * cfg.coil_duty_window_us
+        return on <= cfg.adaptive.duty_margin * cfg.limits.coil_max_duty * cfg.limits.coil_duty_window_us
 
     def quiet_at(self, t: int, pulse_us: int) -> bool:
         """Whether a magnetometer sample taken at ``t`` saw no coil current (outside every
@@ -208,9 +208,9 @@ class PulseBook:
         the last pulse's length as the policy reckons it)."""
         cfg = self.cfg
         for sl in self.slots:
-            if sl.active and sl.start - cfg.guard_us <= t <= sl.end + cfg.fall_us + cfg.guard_us:
+            if sl.active and sl.start - cfg.pulse.guard_us <= t <= sl.end + cfg.pulse.fall_us + cfg.pulse.guard_us:
                 return False
-        if self.last_pulse_end and self.last_pulse_end - pulse_us - cfg.guard_us <= t <= \
-                self.last_pulse_end + cfg.fall_us + cfg.guard_us:
+        if self.last_pulse_end and self.last_pulse_end - pulse_us - cfg.pulse.guard_us <= t <= \
+                self.last_pulse_end + cfg.pulse.fall_us + cfg.pulse.guard_us:
             return False
         return True

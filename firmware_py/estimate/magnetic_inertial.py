@@ -161,18 +161,18 @@ class FusionParams:
             from coiltrack.firmware.config import FirmwareConfig
             cfg = FirmwareConfig()
         kw = dict(
-            measurement_model=cfg.measurement_model, acc_noise=cfg.imu_acc_sigma, gyro_noise=cfg.imu_gyro_sigma,
-            source_acc_noise=(cfg.source_acc_sigma or cfg.imu_acc_sigma) if source_imu else 0.0,
-            acc_bias_sigma=cfg.imu_acc_bias_sigma, gyro_bias_sigma=cfg.imu_gyro_bias_sigma,
-            acc_bias_rw=cfg.imu_acc_bias_rw, gyro_bias_rw=cfg.imu_gyro_bias_rw,
-            acc_bias_tau_s=cfg.bias_tau_s, gyro_bias_tau_s=cfg.bias_tau_s,
-            velocity0_sigma=cfg.init_sigma_vel, gate_probability=cfg.fusion_gate_probability,
-            reinit_after=cfg.fusion_reinit_after, xi_var_scale=cfg.xi_var_scale, xi_sigma_floor=cfg.xi_sigma_floor,
-            xi_heading_sigma_floor=cfg.xi_heading_sigma_floor, mag_var_scale=cfg.mag_var_scale,
-            qm_sigma=cfg.qm_sigma, psi_sigma=cfg.psi_sigma, meas_sigma=cfg.meas_sigma,
-            max_gap_us=max(cfg.imu_timeout_us, int(3e6 / cfg.imu_rate_hz)), stale_us=cfg.stale_us,
-            dead_reckon_after_us=cfg.dead_reckon_after_us, dead_reckon_limit_us=cfg.dead_reckon_limit_us,
-            keep_biases=cfg.recovery_keep_biases, bias_gate_sigmas=cfg.recovery_bias_gate_sigmas)
+            measurement_model=cfg.fusion.measurement_model, acc_noise=cfg.imu.imu_acc_sigma, gyro_noise=cfg.imu.imu_gyro_sigma,
+            source_acc_noise=(cfg.body.source_acc_sigma or cfg.imu.imu_acc_sigma) if source_imu else 0.0,
+            acc_bias_sigma=cfg.imu.imu_acc_bias_sigma, gyro_bias_sigma=cfg.imu.imu_gyro_bias_sigma,
+            acc_bias_rw=cfg.imu.imu_acc_bias_rw, gyro_bias_rw=cfg.imu.imu_gyro_bias_rw,
+            acc_bias_tau_s=cfg.fusion.bias_tau_s, gyro_bias_tau_s=cfg.fusion.bias_tau_s,
+            velocity0_sigma=cfg.adaptive.init_sigma_vel, gate_probability=cfg.fusion.fusion_gate_probability,
+            reinit_after=cfg.fusion.fusion_reinit_after, xi_var_scale=cfg.fusion.xi_var_scale, xi_sigma_floor=cfg.fusion.xi_sigma_floor,
+            xi_heading_sigma_floor=cfg.fusion.xi_heading_sigma_floor, mag_var_scale=cfg.fusion.mag_var_scale,
+            qm_sigma=cfg.fusion.qm_sigma, psi_sigma=cfg.fusion.psi_sigma, meas_sigma=cfg.fusion.meas_sigma,
+            max_gap_us=max(cfg.imu.imu_timeout_us, int(3e6 / cfg.imu.imu_rate_hz)), stale_us=cfg.link.stale_us,
+            dead_reckon_after_us=cfg.recovery.dead_reckon_after_us, dead_reckon_limit_us=cfg.recovery.dead_reckon_limit_us,
+            keep_biases=cfg.recovery.recovery_keep_biases, bias_gate_sigmas=cfg.recovery.recovery_bias_gate_sigmas)
         kw.update(overrides)
         return cls(**kw)
 

@@ -54,7 +54,7 @@ with ``Z_G = R^T e_z`` and ``H_G = R^T h_G``; the noise variances are
 eq 2.35 without the gyroscope term (which enters through ``Q``):
 ``(c_a^2 Q_a + Q_wa + Q_vA) / g^2`` and ``Q_vM / |m|^2``.
 
-Adaptive motion variance (``body_motion.acc_adapt_gain`` ``k``, default 0:
+Adaptive motion variance (``body.acc_adapt_gain`` ``k``, default 0:
 off). One ``Q_wa`` cannot suit a still sensor and a walking trunk (1-3
 m/s^2 at 0.9-1.8 Hz, read as 6-17 deg of tilt). As eq 2.12 raises the
 disturbance's driving noise with the measured change of the field, the
@@ -109,15 +109,15 @@ class OrientationParams:
             from coiltrack.firmware.config import FirmwareConfig
             cfg = FirmwareConfig()
         kw = dict(
-            gyro_noise=cfg.imu_gyro_sigma, gyro_bias_rw=cfg.imu_gyro_bias_rw,
-            gyro_bias_sigma=cfg.imu_gyro_bias_sigma, acc_noise=cfg.imu_acc_sigma,
-            acc_motion_sigma=cfg.acc_motion_sigma, acc_corr_time_s=cfg.acc_corr_time_s,
-            mag_noise=cfg.mag_sigma_t / cfg.earth_field_t, dist_corr=cfg.dist_corr, dist_sigma=cfg.dist_sigma,
-            dist_norm_gain=cfg.dist_norm_gain, dist_dip_gain=cfg.dist_dip_gain, dist_smoothing=cfg.dist_smoothing,
-            gravity=math.sqrt(sum(v * v for v in cfg.gravity_mps2)), gate_probability=cfg.fusion_gate_probability,
-            theta0_sigma=cfg.theta0_sigma, freefall_tolerance=cfg.freefall_tolerance,
-            mag_learn_samples=cfg.mag_learn_samples, acc_adapt_gain=cfg.acc_adapt_gain,
-            acc_adapt_tau_s=cfg.acc_adapt_tau_s, compass_heading_only=cfg.compass_heading_only)
+            gyro_noise=cfg.imu.imu_gyro_sigma, gyro_bias_rw=cfg.imu.imu_gyro_bias_rw,
+            gyro_bias_sigma=cfg.imu.imu_gyro_bias_sigma, acc_noise=cfg.imu.imu_acc_sigma,
+            acc_motion_sigma=cfg.orientation.acc_motion_sigma, acc_corr_time_s=cfg.orientation.acc_corr_time_s,
+            mag_noise=cfg.pulse.mag_sigma_t / cfg.orientation.earth_field_t, dist_corr=cfg.orientation.dist_corr, dist_sigma=cfg.orientation.dist_sigma,
+            dist_norm_gain=cfg.orientation.dist_norm_gain, dist_dip_gain=cfg.orientation.dist_dip_gain, dist_smoothing=cfg.orientation.dist_smoothing,
+            gravity=math.sqrt(sum(v * v for v in cfg.imu.gravity_mps2)), gate_probability=cfg.fusion.fusion_gate_probability,
+            theta0_sigma=cfg.orientation.theta0_sigma, freefall_tolerance=cfg.orientation.freefall_tolerance,
+            mag_learn_samples=cfg.orientation.mag_learn_samples, acc_adapt_gain=cfg.body.acc_adapt_gain,
+            acc_adapt_tau_s=cfg.body.acc_adapt_tau_s, compass_heading_only=cfg.body.compass_heading_only)
         kw.update(overrides)
         return cls(**kw)
 

@@ -6,7 +6,7 @@ convention of :mod:`~coiltrack.firmware.estimate.orientation`:
 
 * :class:`Inclination` (eqs 2.20, 2.23, 2.29, 2.31-2.32): ``z = Z_A - Z_G =
   [Z x] theta + v``, with the adaptive motion variance ``Q_wa + k var(y_A -
-  g Z-)`` (``body_motion.acc_adapt_gain``);
+  g Z-)`` (``body.acc_adapt_gain``);
 * :class:`Compass` (eqs 2.21, 2.24, 2.30, 2.33): ``z = H_M - H_G = [H x] theta
   + d + v``; it first learns ``|m|`` and the dip (eqs 2.8-2.10) and raises the
   disturbance's driving noise with the change of norm and dip (eq 2.12);
@@ -223,7 +223,7 @@ class Compass:
         e2`` (sensor frame): rows, innovation and Jacobian turned by ``E``;
         ``e2`` and ``e3`` get unit variance (the field's whole magnitude, no
         information), so the compass corrects the heading and leaves the
-        inclination to the accelerometer (``body_motion.compass_heading_only``)."""
+        inclination to the accelerometer (``body.compass_heading_only``)."""
         ax, ay, az = zy * hz - zz * hy, zz * hx - zx * hz, zx * hy - zy * hx
         an = math.sqrt(ax * ax + ay * ay + az * az)
         if not an > 1e-6:

@@ -115,16 +115,16 @@ class RelativeInertialEKF(SchepersEKF):
         if cfg is None:
             from coiltrack.firmware.config import FirmwareConfig
             cfg = FirmwareConfig()
-        root = math.sqrt(cfg.imu_rate_hz)
-        states = source_imu and cfg.tight_source_bias_states
-        kw = dict(n_clones=n_clones, src_position=cfg.tight_source_imu_position_m,
-                  src_acc_noise=(cfg.imu_acc_sigma / root) if source_imu else 0.0,
-                  src_gyr_noise=(cfg.imu_gyro_sigma / root) if source_imu else 0.0,
-                  src_acc_bias_rw=cfg.imu_acc_bias_rw if states else 0.0,
-                  src_gyr_bias_rw=cfg.imu_gyro_bias_rw if states else 0.0,
-                  src_acc_bias_sigma=cfg.imu_acc_bias_sigma if states else 0.0,
-                  src_gyr_bias_sigma=cfg.imu_gyro_bias_sigma if states else 0.0,
-                  extra_acc_noise=cfg.tight_acc_noise)
+        root = math.sqrt(cfg.imu.imu_rate_hz)
+        states = source_imu and cfg.tight.tight_source_bias_states
+        kw = dict(n_clones=n_clones, src_position=cfg.tight.tight_source_imu_position_m,
+                  src_acc_noise=(cfg.imu.imu_acc_sigma / root) if source_imu else 0.0,
+                  src_gyr_noise=(cfg.imu.imu_gyro_sigma / root) if source_imu else 0.0,
+                  src_acc_bias_rw=cfg.imu.imu_acc_bias_rw if states else 0.0,
+                  src_gyr_bias_rw=cfg.imu.imu_gyro_bias_rw if states else 0.0,
+                  src_acc_bias_sigma=cfg.imu.imu_acc_bias_sigma if states else 0.0,
+                  src_gyr_bias_sigma=cfg.imu.imu_gyro_bias_sigma if states else 0.0,
+                  extra_acc_noise=cfg.tight.tight_acc_noise)
         kw.update(overrides)
         return super().from_config(cfg, **kw)
 

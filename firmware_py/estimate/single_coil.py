@@ -114,11 +114,11 @@ class SchepersEKF:
         if cfg is None:
             from coiltrack.firmware.config import FirmwareConfig
             cfg = FirmwareConfig()
-        root = math.sqrt(cfg.imu_rate_hz)
-        kw = dict(n_clones=2, gravity=cfg.gravity_mps2, acc_noise=cfg.imu_acc_sigma / root,
-                  gyr_noise=cfg.imu_gyro_sigma / root, acc_bias_rw=cfg.imu_acc_bias_rw,
-                  gyr_bias_rw=cfg.imu_gyro_bias_rw, pos_noise=cfg.adaptive_pos_noise,
-                  gate_probability=cfg.nis_gate_probability, iterations=cfg.single_coil_iterations)
+        root = math.sqrt(cfg.imu.imu_rate_hz)
+        kw = dict(n_clones=2, gravity=cfg.imu.gravity_mps2, acc_noise=cfg.imu.imu_acc_sigma / root,
+                  gyr_noise=cfg.imu.imu_gyro_sigma / root, acc_bias_rw=cfg.imu.imu_acc_bias_rw,
+                  gyr_bias_rw=cfg.imu.imu_gyro_bias_rw, pos_noise=cfg.adaptive.adaptive_pos_noise,
+                  gate_probability=cfg.adaptive.nis_gate_probability, iterations=cfg.adaptive.single_coil_iterations)
         kw.update(overrides)
         return cls(**kw)
 

@@ -43,11 +43,11 @@ class ACBlockMeasurement:
         self.schedule = schedule
         self.act = actuation
         self.n = schedule.n
-        self.demods = tuple(Demodulator(cfg.ac_freqs_hz, cfg.ac_window_us, cfg.ac_hop_us, cfg.mag_sigma_t,
-                                        cfg.mag_integration_us) for _ in self.channels)
+        self.demods = tuple(Demodulator(cfg.ac.ac_freqs_hz, cfg.ac.ac_window_us, cfg.ac.ac_hop_us, cfg.pulse.mag_sigma_t,
+                                        cfg.ac.mag_integration_us) for _ in self.channels)
         self.earth = {ch.node: SampleRing(64) for ch in self.channels}
         self._earth = tuple(self.earth[ch.node] for ch in self.channels)
-        per_tick = cfg.mag_rate_hz * cfg.tick_us * 1e-6
+        per_tick = cfg.pulse.mag_rate_hz * cfg.timing.tick_us * 1e-6
         self.max_samples = max_samples or max(4, int(math.ceil(4 * per_tick)))
         self.solved_k = np.full(len(self.channels), -1, dtype=np.int64)
         self._skv = memoryview(self.solved_k)
@@ -66,7 +66,7 @@ class ACBlockMeasurement:
         self.blocks_distorted = 0
         self.blocks_no_signal = 0
         self.signal_gate = chi2_gate(3 * self.n, 0.9999)
-        self.q_gate = chi2_gate(3 * self.n, cfg.ac_distortion_probability)
+        self.q_gate = chi2_gate(3 * self.n, cfg.ac.ac_distortion_probability)
         self.quad_sum = 0.0
         self.quad_max = 0.0
         self.resid_sum = 0.0
@@ -78,7 +78,7 @@ class ACBlockMeasurement:
         if not act.ready:
             return
         if not self.started or self.plan_id != act.plan_id:      # the first plan, or a new one
-            t0 = act.on_us + self.cfg.ac_settle_us
+            t0 = act.on_us + self.cfg.ac.ac_settle_us
             for d in self.demods:
                 d.start(t0, act.ref_us, act.amplitude_a, act.phase_rad)
             for i in range(len(self.pending)):
@@ -104,7 +104,7 @@ class ACBlockMeasurement:
                 self.blocks_no_signal += 1
             elif ok:
                 self.quad_ratio[i] = q = d.quadrature_ratio()
-                self.distorted[i] = q > self.cfg.ac_distortion_ratio and d.quadrature_chi2() > self.q_gate
+                self.distorted[i] = q > self.cfg.ac.ac_distortion_ratio and d.quadrature_chi2() > self.q_gate
                 if self.distorted[i]:
                     self.blocks_distorted += 1
                 e = self._earth[i]

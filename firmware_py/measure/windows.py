@@ -29,36 +29,36 @@ _WINDOW = MSG["PULSE_WINDOW"]
 
 def window_samples(cfg) -> int:
     """The most samples one window can hold (extractor scratch size)."""
-    return max(64, int(2 * (cfg.pulse_us + 2 * cfg.baseline_us) * 1e-6 * cfg.mag_rate_hz) + 8)
+    return max(64, int(2 * (cfg.timing.pulse_us + 2 * cfg.pulse.baseline_us) * 1e-6 * cfg.pulse.mag_rate_hz) + 8)
 
 
 def gyro_samples(cfg) -> int:
     """Gyroscope samples a node keeps for its windows: two windows' spans and
     the closer's timeout (half a cycle) at the IMU rate."""
-    span_us = cfg.pulse_us + cfg.fall_us + 2 * cfg.baseline_us + cfg.cycle_us // 2
-    return max(16, int(2 * span_us * 1e-6 * cfg.imu_rate_hz) + 8)
+    span_us = cfg.timing.pulse_us + cfg.pulse.fall_us + 2 * cfg.pulse.baseline_us + cfg.timing.cycle_us // 2
+    return max(16, int(2 * span_us * 1e-6 * cfg.imu.imu_rate_hz) + 8)
 
 
 class SensorChannel:
     """One magnetometer node: ring, extractor and the burst's amplitudes.
 
-    With ``body_motion.baseline_gyro`` the node's gyroscope rates are kept
+    With ``body.baseline_gyro`` the node's gyroscope rates are kept
     (``gyro``, fed by :meth:`push_imu`) and the extractor turns each window's
     samples with them (:mod:`coiltrack.firmware.measure.gyro_baseline`);
     otherwise ``gyro`` is None and the IMU samples are not kept here."""
 
     def __init__(self, node: int, cfg):
-        n = len(cfg.coils)
+        n = len(cfg.source.coils)
         self.node = node
-        self.ring = SampleRing(cfg.ring_capacity)
-        kw = dict(settle_us=cfg.settle_us, fall_us=cfg.fall_us, baseline_us=cfg.baseline_us,
-                  guard_us=cfg.guard_us, min_pulse_samples=cfg.min_pulse_samples,
-                  min_baseline_samples=cfg.min_baseline_samples, drift_limit_t=cfg.drift_limit_t,
-                  sigma_t=cfg.mag_sigma_t, max_samples=window_samples(cfg))
-        if cfg.baseline_gyro:
+        self.ring = SampleRing(cfg.pulse.ring_capacity)
+        kw = dict(settle_us=cfg.pulse.settle_us, fall_us=cfg.pulse.fall_us, baseline_us=cfg.pulse.baseline_us,
+                  guard_us=cfg.pulse.guard_us, min_pulse_samples=cfg.pulse.min_pulse_samples,
+                  min_baseline_samples=cfg.pulse.min_baseline_samples, drift_limit_t=cfg.pulse.drift_limit_t,
+                  sigma_t=cfg.pulse.mag_sigma_t, max_samples=window_samples(cfg))
+        if cfg.body.baseline_gyro:
             self.gyro = GyroRing(gyro_samples(cfg))
             self.extractor = GyroBaselineExtractor(self.ring, self.gyro, window_samples(cfg),
-                                                   gyro_gap_us=int(3e6 / cfg.imu_rate_hz), **kw)
+                                                   gyro_gap_us=int(3e6 / cfg.imu.imu_rate_hz), **kw)
         else:
             self.gyro = None
             self.extractor = PulseExtractor(self.ring, **kw)
@@ -76,7 +76,7 @@ class SensorChannel:
         self._sigv = memoryview(self.sigma)
         self._flv = memoryview(self.flags)
         self.pmv = memoryview(self.pulse_mid)
-        self._sigma_floor2 = (0.1 * cfg.mag_sigma_t) ** 2
+        self._sigma_floor2 = (0.1 * cfg.pulse.mag_sigma_t) ** 2
 
     def push(self, msg, lsb: float) -> None:
         """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""

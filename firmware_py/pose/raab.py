@@ -148,7 +148,7 @@ _EARLY_REFRESH = 0.03
 #: a result beyond the hemisphere plane by more than this sine of its elevation is mirrored back
 _HEMI_MARGIN = 0.1
 #: a tracking update also converges when its position and orientation steps are below this fraction
-#: of the smallest standard deviations of the last covariance (``[raab_cost] raab_step_sigma``)
+#: of the smallest standard deviations of the last covariance (``[pose] raab_step_sigma``)
 STEP_SIGMA = 0.05
 #: the noise-level stop applies while a step is more than this fraction of the one before (linear rate;
 #: with quadratic convergence the next step is below step_tol anyway)
@@ -203,7 +203,7 @@ class RaabTracker(StagedSolve):
     step_sigma : float
         A linearly converging update also stops when its position and
         orientation steps are below this fraction of the smallest standard
-        deviations of the last covariance (``[raab_cost] raab_step_sigma``;
+        deviations of the last covariance (``[pose] raab_step_sigma``;
         0: only ``step_tol``).
 
     Results as ``PoseSolver``: ``position`` (3,) m, ``rotation`` (3, 3)

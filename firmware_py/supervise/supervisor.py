@@ -57,12 +57,12 @@ class Supervisor:
         self.schedule = schedule
         self.tx = tx
         self.scfg = scfg = scfg or SupervisorConfig()
-        self.n = len(cfg.coils)
-        self.sensor_ids = tuple(cfg.sensor_ids)
-        self.driver_id = cfg.coil_driver_id
+        self.n = len(cfg.source.coils)
+        self.sensor_ids = tuple(cfg.link.sensor_ids)
+        self.driver_id = cfg.link.coil_driver_id
         self.timesync = TimeSyncMaster(self.sensor_ids + (self.driver_id,), scfg.sync_period_us,
                                        scfg.sync_latency_us, scfg.sync_step_threshold_us)
-        self.health = Health(self.sensor_ids, self.driver_id, cfg.mag_rate_hz, scfg.health)
+        self.health = Health(self.sensor_ids, self.driver_id, cfg.pulse.mag_rate_hz, scfg.health)
         self.health.set_coils(self.n)
         self.flips = FlipScheduler(self.sensor_ids, scfg.flip_min_gap_us)
         self._ps = memoryview(schedule.start)
@@ -71,7 +71,7 @@ class Supervisor:
         self._burst = None
         self._first_burst = True
         self._margin = scfg.health.quiet_margin_us
-        self._fall = cfg.fall_us
+        self._fall = cfg.pulse.fall_us
         self.veto = False
         self.poses_vetoed = 0
 
@@ -151,8 +151,8 @@ class Supervisor:
                 for d in BURST_SYNCS_AFTER_US:
                     self.timesync.request(last_end + d)
             if self.scfg.flips:
-                quiet_from = last_end + cfg.fall_us + cfg.baseline_us + cfg.guard_us
-                quiet_to = pc + cfg.cycle_us - cfg.baseline_us - cfg.guard_us
+                quiet_from = last_end + cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
+                quiet_to = pc + cfg.timing.cycle_us - cfg.pulse.baseline_us - cfg.pulse.guard_us
                 self.flips.plan(now_us, quiet_from, quiet_to, send)
         if self.health.take_kick_sync():
             self.timesync.kick()
@@ -182,8 +182,8 @@ class Supervisor:
                 t0 = ps[j]
             if pe[j] > t1:
                 t1 = pe[j]
-        t0 -= cfg.baseline_us + cfg.guard_us
-        t1 += cfg.fall_us + cfg.baseline_us
+        t0 -= cfg.pulse.baseline_us + cfg.pulse.guard_us
+        t1 += cfg.pulse.fall_us + cfg.pulse.baseline_us
         if h.suspect(node, t0, t1) or h.suspect(self.driver_id, t0, t1):
             bits |= POSE_INCONSISTENT | POSE_DEGRADED
             veto = True

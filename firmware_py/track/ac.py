@@ -77,7 +77,7 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
     """AC blocks fused with the IMU (see module docstring)."""
 
     def __init__(self, cfg, coils, channels, schedule, measure, act, supervisor, tx, solvers, core=_DEFAULT_CORE):
-        cfg = dataclasses.replace(cfg, motion_compensation=False)
+        cfg = cfg.with_(fusion={"motion_compensation": False})
         super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers, core)
         self.measure, self.act = measure, act
         self._fuse_mid = {ch.node: -1 for ch in self.channels}
@@ -88,8 +88,8 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         holds only the blocks' DC terms), a compass sample up to a block and three hops old, and
         the motion within a block the rms time ``T_w / sqrt(12)`` of a uniform block."""
         return SensorInertial(node, cfg, _AlwaysQuiet(), self.source,
-                              compass_max_age_us=cfg.ac_window_us + 3 * cfg.ac_hop_us,
-                              burst_rms_s=cfg.ac_window_us * 1e-6 / math.sqrt(12.0), core=self.core)
+                              compass_max_age_us=cfg.ac.ac_window_us + 3 * cfg.ac.ac_hop_us,
+                              burst_rms_s=cfg.ac.ac_window_us * 1e-6 / math.sqrt(12.0), core=self.core)
 
     def _plan_snapshots(self, now_us: int) -> None:
         """Each sensor without an update under way: its snapshot at the middle of the next block not begun."""

@@ -146,12 +146,12 @@ class _Ori:
         self.flip = FlipOffset()
         self.compass_t = -(1 << 62)
         # a compass sample's largest distance from the IMU sample it serves (default two intervals of each)
-        self.max_age_us = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz) if max_age_us is None \
+        self.max_age_us = int(2e6 / cfg.imu.imu_rate_hz) + int(2e6 / cfg.pulse.mag_rate_hz) if max_age_us is None \
             else int(max_age_us)
         self.compass_used = 0
-        self.every = cfg.ori_update_every
+        self.every = cfg.orientation.ori_update_every
         self.n = 0
-        self.gap_us = cfg.imu_timeout_us     # a longer break in the IMU stream: the orientation is lost
+        self.gap_us = cfg.imu.imu_timeout_us     # a longer break in the IMU stream: the orientation is lost
         self.lost = False
 
     def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
@@ -202,15 +202,15 @@ class SourceInertial:
         ``core``: the numeric core of its orientation filter."""
         self.node = node
         self.force = MeasuredForce() if force is None else force
-        self.imu = ImuRing(cfg.imu_ring_capacity)
+        self.imu = ImuRing(cfg.imu.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
-        self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
+        self.mag = SampleRing(max(16, int(cfg.pulse.mag_rate_hz)))
         self.ori = _Ori(cfg, gate, core=core)
         self.phi = np.eye(3)
         self.fref = np.zeros(3)
         self._phiv = memoryview(self.phi)
         self._fv = memoryview(self.fref)
-        g = [-v for v in cfg.gravity_mps2]
+        g = [-v for v in cfg.imu.gravity_mps2]
         self._fv[0], self._fv[1], self._fv[2] = g[0], g[1], g[2]
         self.samples = 0
 
@@ -284,7 +284,7 @@ class FixedSource:
 
     def __init__(self, cfg):
         self.phi = np.eye(3)
-        self.fref = np.array([-v for v in cfg.gravity_mps2])
+        self.fref = np.array([-v for v in cfg.imu.gravity_mps2])
 
     def on_imu(self, msg) -> None:
         """No source IMU: nothing to keep."""
@@ -309,9 +309,9 @@ def make_source(cfg, gate: PulseGate, core=_DEFAULT_CORE):
     """The source of ``cfg``, chosen once: its IMU and magnetometer (``source_imu_id``; taken as
     unaccelerated when ``source_acceleration`` is off: eq 6.8 without ``a_source`` in the
     comparison runs) or a fixed source."""
-    if not cfg.source_imu_id:
+    if not cfg.link.source_imu_id:
         return FixedSource(cfg)
-    return SourceInertial(cfg.source_imu_id, cfg, gate, MeasuredForce() if cfg.source_acceleration else Unaccelerated(),
+    return SourceInertial(cfg.link.source_imu_id, cfg, gate, MeasuredForce() if cfg.body.source_acceleration else Unaccelerated(),
                           core)
 
 
@@ -327,14 +327,14 @@ class SensorInertial:
         are not the fixed cycle's (AC blocks: ``track.ac``)."""
         self.node = node
         self.cfg = cfg
-        n = len(cfg.coils)
-        self.imu = ImuRing(cfg.imu_ring_capacity)
+        n = len(cfg.source.coils)
+        self.imu = ImuRing(cfg.imu.imu_ring_capacity)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.ori = _Ori(cfg, gate, compass_max_age_us, core)
         self.fusion = FusionFilter(FusionParams.from_config(cfg, not source.fixed), self.ori.f,
-                                   imu_capacity=cfg.fusion_replay_capacity,
-                                   history_capacity=cfg.fusion_history_capacity,
-                                   output_capacity=cfg.pose_output_capacity, fixed_source=source.fixed,
+                                   imu_capacity=cfg.fusion.fusion_replay_capacity,
+                                   history_capacity=cfg.fusion.fusion_history_capacity,
+                                   output_capacity=cfg.fusion.pose_output_capacity, fixed_source=source.fixed,
                                    core=core)
         self.source = source
         self._phi = source.phi
@@ -371,7 +371,7 @@ class SensorInertial:
         self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
         self._Cfv = memoryview(self._Cf)
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
-        self.burst_rms_s = cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0) if burst_rms_s is None \
+        self.burst_rms_s = cfg.timing.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0) if burst_rms_s is None \
             else float(burst_rms_s)
         self.w_last = [0.0, 0.0, 0.0]      # latest rate, offset removed (rad/s)
         self.compensated = 0
@@ -586,7 +586,7 @@ class SensorInertial:
         if stage == _COMPENSATE:
             self.comp_ok = False
             self.stage = _UPDATE_MAG
-            if self.cfg.motion_compensation and self.compensate_begin(solver, S, currents):
+            if self.cfg.fusion.motion_compensation and self.compensate_begin(solver, S, currents):
                 self.stage = _COMPENSATE_PULSES
         elif stage == _COMPENSATE_PULSES:
             done = self.compensate_step(solver, S, currents, pulse_t, budget)
@@ -681,16 +681,16 @@ class BurstFusionTracker(MagneticTracker):
     def __init__(self, cfg, coils, channels, schedule, burst, supervisor, tx, solvers, core=_DEFAULT_CORE):
         super().__init__(cfg, coils, channels, schedule, burst, supervisor, tx, solvers, core)
         self.core = core
-        gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
+        gate = PulseGate(schedule.start, schedule.end, cfg.pulse.fall_us, cfg.orientation.compass_guard_us)
         self.source = make_source(cfg, gate, core)    # the source's IMU, or fixed: chosen once
         self.inertial = {ch.node: self._sensor_inertial(ch.node, cfg, gate) for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
-        self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
-        self.imu_steps = cfg.imu_steps_per_tick
-        self.replay_budget = cfg.replay_budget_steps
+        self.source_wait_us = int(1.5e6 / cfg.imu.imu_delta_rate_hz)
+        self.imu_steps = cfg.budget.imu_steps_per_tick
+        self.replay_budget = cfg.budget.replay_budget_steps
         self.deferred = 0               # ticks whose fusion step waited behind IMU samples
-        self.imu_sample_evals = cfg.imu_sample_evals
+        self.imu_sample_evals = cfg.budget.imu_sample_evals
         self._imu_last = 0              # IMU samples processed in this tick (charged: _tick_charges)
         self._deferring = False
         # the compensated re-solve starts from the burst's own solution: no consistency gate

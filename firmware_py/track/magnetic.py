@@ -124,30 +124,30 @@ class MagneticTracker:
         self.burst = burst
         self.supervisor = supervisor
         self.tx = tx
-        self.solver = solvers(cfg.solve_gate_probability)
-        self.nominal = np.array([c.current for c in cfg.coils])
+        self.solver = solvers(cfg.budget.solve_gate_probability)
+        self.nominal = np.array([c.current for c in cfg.source.coils])
         self.currents = np.zeros(len(coils))
         self._curv = memoryview(self.currents)
         self._nomv = memoryview(self.nominal)
         self._measv = memoryview(schedule.measured)
-        self.poses = {ch.node: TrackedPose(cfg.hemisphere) for ch in self.channels}
+        self.poses = {ch.node: TrackedPose(cfg.source.hemisphere) for ch in self.channels}
         self._next = -1                  # index of the channel being solved; -1: idle
         self._handover = False           # the start of channel _next waits for the next tick
         self._units = 0                  # work charged in this tick (field evaluations)
         self._charged = 0                # of which the tick's other work (window_evals, imu_sample_evals)
         self._waited = False             # the last tick's charges left the solve no room
-        self.window_evals = cfg.window_evals
+        self.window_evals = cfg.budget.window_evals
         self._status = 0                 # POSE_* bits of that channel's burst
-        self.budget = cfg.track_budget_evals
+        self.budget = cfg.budget.track_budget_evals
         self._burst_ticks = 0            # ticks since the burst's last window closed
-        self.range_m = cfg.working_range_m
+        self.range_m = cfg.pose.working_range_m
         self.out_of_range = 0            # solutions beyond the working volume, not sent as poses
         self.solve_ticks_max = 0         # the most ticks a burst's solves took after its windows closed
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
         self.quality = PoseQuality(cfg, len(coils), self.channels, coils)    # POSE.quality (track.quality)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
-        self.ahead = cfg.solve_ahead and cfg.excitation == "pulsed" and self.solver.memoryless
+        self.ahead = cfg.budget.solve_ahead and cfg.ac.excitation == "pulsed" and self.solver.memoryless
         self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
         self._inputs = tuple(tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.position,
                                                            tp.warm_p, tp.warm_R))

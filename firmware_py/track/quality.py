@@ -88,9 +88,9 @@ class PoseQuality:
     (:meth:`grade_burst`)."""
 
     def __init__(self, cfg, n_coils: int, channels=(), coils=None):
-        self.scale = float(cfg.quality_error_scale_m)
-        self.earth = float(cfg.earth_field_t)
-        self.quiet_sigma = float(cfg.quality_quiet_sigma_t)
+        self.scale = float(cfg.quality.quality_error_scale_m)
+        self.earth = float(cfg.orientation.earth_field_t)
+        self.quiet_sigma = float(cfg.quality.quality_quiet_sigma_t)
         self.dof = 3 * int(n_coils) - 6
         self._rings = {ch.node: (ch.ring, ch.ring.bv) for ch in channels
                        if hasattr(ch, "ring")}
@@ -98,7 +98,7 @@ class PoseQuality:
         self.motion_m2 = 0.0             # the last graded pose's |dp_motion|^2 (m^2)
         self.chi2_motion = 0.0           # and the residual its motion explains
         self._n = 0                      # coils of the motion term (0: none)
-        if coils is not None and getattr(cfg, "excitation", "pulsed") == "pulsed" and len(coils) >= 2:
+        if coils is not None and getattr(getattr(cfg, "ac", None), "excitation", "pulsed") == "pulsed" and len(coils) >= 2:
             n = len(coils)
             self._n = n
             self._c = [tuple(float(v) for v in c.center) for c in coils]
@@ -109,7 +109,7 @@ class PoseQuality:
             self._d = memoryview(np.zeros(n))
             self._xd = memoryview(np.zeros(6))
         # the motion is taken from the previous solution no older than two cycles
-        self.max_gap_us = 2 * int(getattr(cfg, "cycle_us", 0))
+        self.max_gap_us = 2 * int(getattr(getattr(cfg, "timing", None), "cycle_us", 0))
         # per node: [have, t_us, px, py, pz, r00, r01, r02, r10, r11, r12, r20, r21, r22]
         self._prev = {ch.node: [0.0] * 14 for ch in channels}
 

@@ -52,7 +52,7 @@ class _Burst:
         self.dR = np.eye(3)
         self.R3 = np.eye(3)
         self.P6 = np.zeros((6, 6))
-        self.hemisphere = np.array(cfg.hemisphere, dtype=float)
+        self.hemisphere = np.array(cfg.source.hemisphere, dtype=float)
         self.position = np.zeros(3)
         self.have_pose = False
 
@@ -74,16 +74,16 @@ class BurstAcquisition:
         self.supervisor = supervisor
         self.tx = tx
         self.host = host
-        self.solver = PoseSolver(coils, cfg.field_model, core=core)
+        self.solver = PoseSolver(coils, cfg.source.field_model, core=core)
         if distortion is not None:                  # the room's map (model.distortion)
             self.solver.signal.set_distortion(distortion)
-        self.nominal = np.array([c.current for c in cfg.coils])
+        self.nominal = np.array([c.current for c in cfg.source.coils])
         self.bursts = tuple(_Burst(cfg, self.n) for _ in self._sens)
         self._cur = np.zeros(self.n)
         self.acq_t = np.zeros(self.n, dtype=np.int64)        # mid times of the burst's pulses
         self.t_ref = 0
         self.active = False
-        self.next_acq_us = cfg.first_cycle_us - cfg.lead_us
+        self.next_acq_us = cfg.timing.first_cycle_us - cfg.timing.lead_us
         self.acquisitions = 0
 
     def request(self, now_us: int) -> None:
@@ -95,8 +95,8 @@ class BurstAcquisition:
         instant with the gyroscope, and the filter starts from it); a sensor that
         has sent no IMU sample for ``no_imu_us`` gets magnetic-only acquisitions."""
         for s in self._sens:
-            live = s.last_imu_us is not None and now_us - s.last_imu_us <= self.cfg.imu_timeout_us
-            if not live and now_us - (self.host.boot_us or 0) < self.cfg.no_imu_us:
+            live = s.last_imu_us is not None and now_us - s.last_imu_us <= self.cfg.imu.imu_timeout_us
+            if not live and now_us - (self.host.boot_us or 0) < self.cfg.adaptive.no_imu_us:
                 return False
         return True
 
@@ -108,20 +108,20 @@ class BurstAcquisition:
     def _start(self, now_us: int) -> None:
         cfg = self.cfg
         book = self.book
-        start0 = max(now_us + cfg.lead_us, book.next_free_us)
-        mid = (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2
+        start0 = max(now_us + cfg.timing.lead_us, book.next_free_us)
+        mid = (cfg.pulse.settle_us + cfg.timing.pulse_us - cfg.pulse.guard_us) // 2
         for b in self.bursts:
             b.Sflags.fill(0)
             b.acq_have.fill(False)
         for j in range(self.n):
-            book.command(j, float(self.nominal[j]), start0 + j * cfg.spacing_us, cfg.pulse_us, True)
-            self.acq_t[j] = start0 + j * cfg.spacing_us + mid
-        t_ref = (start0 + (self.n - 1) * cfg.spacing_us + start0 + cfg.pulse_us) // 2
+            book.command(j, float(self.nominal[j]), start0 + j * cfg.timing.spacing_us, cfg.timing.pulse_us, True)
+            self.acq_t[j] = start0 + j * cfg.timing.spacing_us + mid
+        t_ref = (start0 + (self.n - 1) * cfg.timing.spacing_us + start0 + cfg.timing.pulse_us) // 2
         self.t_ref = t_ref
         for s in self._sens:
             s.ekf.schedule_clone(0, t_ref)
-        last_end = start0 + (self.n - 1) * cfg.spacing_us + cfg.pulse_us
-        self.supervisor.flips.plan(now_us, last_end + book.gap_us, last_end + book.gap_us + cfg.cycle_us // 4,
+        last_end = start0 + (self.n - 1) * cfg.timing.spacing_us + cfg.timing.pulse_us
+        self.supervisor.flips.plan(now_us, last_end + book.gap_us, last_end + book.gap_us + cfg.timing.cycle_us // 4,
                                    self.tx.send)
         book.note_flip(now_us)
         self.active = True
@@ -153,7 +153,7 @@ class BurstAcquisition:
         """Every window of the burst is closed: solve it for each sensor and start its filter."""
         self.book.end_burst()
         self.active = False
-        self.next_acq_us = now_us + self.cfg.cycle_us // 2
+        self.next_acq_us = now_us + self.cfg.timing.cycle_us // 2
         for s in self._sens:
             self._finish_one(s, now_us)
 
@@ -197,7 +197,7 @@ class BurstAcquisition:
         cfg = self.cfg
         if flags & PULSE_TOO_FEW:
             return False
-        floor = (0.1 * cfg.mag_sigma_t) ** 2
+        floor = (0.1 * cfg.pulse.mag_sigma_t) ** 2
         for i in range(3):
             for j in range(self.n):
                 v = float(b.Svar[i, j])
@@ -213,21 +213,21 @@ class BurstAcquisition:
         np.matmul(R, ekf.clone_R[0].T, out=b.R3)
         np.matmul(b.R3, ekf.R, out=b.Rnow)
         lag = (ekf.t_us - self.t_ref) * 1e-6
-        half = (cfg.pulse_us + (self.n - 1) * cfg.spacing_us) * 0.5e-6
+        half = (cfg.timing.pulse_us + (self.n - 1) * cfg.timing.spacing_us) * 0.5e-6
         # the solution is blurred by the motion during the burst (position) and carried
         # by an uncalibrated gyroscope (orientation): widen its covariance accordingly
         P6 = b.P6
         np.copyto(P6, cov)
-        extra = (cfg.init_sigma_vel * (lag + half)) ** 2
-        gb = cfg.imu_gyro_bias_sigma * (lag + half)
+        extra = (cfg.adaptive.init_sigma_vel * (lag + half)) ** 2
+        gb = cfg.imu.imu_gyro_bias_sigma * (lag + half)
         for i in range(3):
             P6[i, i] += extra
-            P6[3 + i, 3 + i] += gb * gb + cfg.init_sigma_ori_deg ** 2 * (math.pi / 180.0) ** 2
+            P6[3 + i, 3 + i] += gb * gb + cfg.adaptive.init_sigma_ori_deg ** 2 * (math.pi / 180.0) ** 2
         ekf.release_clone(0)
         for j in range(self.n):
             np.matmul(ekf.R.T, b.acq_R[j], out=b.acq_G[j])     # before R is replaced
-        ekf.initialize(p, b.Rnow, P6, ekf.t_us, cfg.init_sigma_vel, cfg.imu_acc_bias_sigma,
-                       cfg.imu_gyro_bias_sigma)
+        ekf.initialize(p, b.Rnow, P6, ekf.t_us, cfg.adaptive.init_sigma_vel, cfg.imu.imu_acc_bias_sigma,
+                       cfg.imu.imu_gyro_bias_sigma)
 
     def _refine(self, s, b: _Burst) -> None:
         """Use the burst's pulses once more, as single-coil updates at their own instants.
@@ -247,8 +247,8 @@ class BurstAcquisition:
             dt = (ekf.t_us - int(self.acq_t[j])) * 1e-6
             ekf.back_clone(1, dt, b.acq_G[j])
             c = float(self._cur[j])
-            rc = cfg.current_tolerance_a / max(abs(c), 1e-6)
-            rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+            rc = cfg.limits.current_tolerance_a / max(abs(c), 1e-6)
+            rel = math.sqrt(cfg.adaptive.field_model_rel_sigma * cfg.adaptive.field_model_rel_sigma + rc * rc)
             col = b.col
             for i in range(3):
                 col[i] = float(b.Svar[i, j])

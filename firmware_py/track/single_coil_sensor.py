@@ -29,7 +29,7 @@ class SensorTrack:
         self.mon_t = 0                             # when the monitor last heard an update
         self.acc = np.zeros(3)
         self.gyr = np.zeros(3)
-        self.imu = ImuRing(cfg.imu_ring_capacity)
+        self.imu = ImuRing(cfg.imu.imu_ring_capacity)
         self.meas = CoilMeasurement()              # the pulse being applied (a value refilled per update)
         self.last_update_us = 0
         self.last_imu_us: int | None = None

@@ -68,15 +68,15 @@ ACTUATIONS = {"adaptive": AdaptiveActuation, "fixed": FixedActuation}
 
 def measurement_mid_us(cfg, pulse_us: int) -> int:
     """Mid time of a pulse's used samples, from its start edge."""
-    return (cfg.settle_us + pulse_us - cfg.guard_us) // 2
+    return (cfg.pulse.settle_us + pulse_us - cfg.pulse.guard_us) // 2
 
 
 def pulse_lengths(cfg, pulse_us: int) -> PulseLengths:
     """``[adaptive_policy] pulse_length``: ``"fixed"`` (``pulse_us`` at any phase) or
     ``"chosen"`` (``pulse_length.PulseLengths.chosen``, up to ``pulse_us`` plus two sample
     periods, for a pulse that must bring more than ``pulse_us`` can at the largest current)."""
-    if cfg.pulse_length == "chosen":
-        return PulseLengths.chosen(cfg, pulse_us + int(2e6 / cfg.mag_rate_hz))
+    if cfg.adaptive.pulse_length == "chosen":
+        return PulseLengths.chosen(cfg, pulse_us + int(2e6 / cfg.pulse.mag_rate_hz))
     return PulseLengths.fixed(cfg, pulse_us)
 
 
@@ -105,16 +105,16 @@ class SingleCoilTracker:
         self.updated_us = -1            # the tick of the last EKF update (the decision then waits)
         n = len(coils)
         self.n = n
-        self.model = SingleCoilModel(coils, cfg.field_model, core)       # updates
-        self.rmodel = SingleCoilModel(coils, cfg.field_model, core)      # the fixed-cycle reference
-        self.pulse_us = cfg.adaptive_pulse_us or cfg.pulse_us
+        self.model = SingleCoilModel(coils, cfg.source.field_model, core)       # updates
+        self.rmodel = SingleCoilModel(coils, cfg.source.field_model, core)      # the fixed-cycle reference
+        self.pulse_us = cfg.adaptive.adaptive_pulse_us or cfg.timing.pulse_us
         self.sensors: dict[int, SensorTrack] = {}
         for k, tr in enumerate(channels):
             self.sensors[tr.node] = self._sensor(k, tr, schedule)
         self._sens = tuple(self.sensors.values())
         mid = measurement_mid_us(cfg, self.pulse_us)
         self.book = PulseBook(cfg, n, pulses, [s.ekf for s in self._sens], mid,
-                              cfg.fall_us + cfg.baseline_us + cfg.guard_us, cfg.first_cycle_us - cfg.adaptive_lead_us)
+                              cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us, cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us)
         self.acquisition = BurstAcquisition(cfg, coils, self._sens, self.book, self.model, supervisor, tx, self,
                                             distortion, core)
         self.actuation = ACTUATIONS[schedule](cfg, coils, self._sens, self.book, self.acquisition, supervisor, tx,
@@ -123,7 +123,7 @@ class SingleCoilTracker:
         # consistency is the update's NIS per dimension and the quiet field's, kept per sensor
         # and applied to the filter's position covariance at each fused pose
         self.quality = PoseQuality(cfg, 0, channels)
-        self.q_scale = float(cfg.quality_error_scale_m)
+        self.q_scale = float(cfg.quality.quality_error_scale_m)
         self.q_x = {sid: 0.0 for sid in self.sensors}
         self._s6 = [0.0] * 6                 # one popped IMU sample (f, w)
         # counters
@@ -137,17 +137,17 @@ class SingleCoilTracker:
         """One sensor's filter, monitor and (``accuracy_target = "fixed"``) the fixed cycle's
         predicted accuracy beside it."""
         cfg = self.cfg
-        mon = NisMonitor(window=cfg.nis_window, dof=3, gate=chi2_gate(3, cfg.nis_gate_probability),
-                         z=cfg.nis_alarm_z, min_count=min(cfg.nis_window, 3), min_excess=cfg.nis_alarm_excess,
-                         max_scale=cfg.nis_max_scale, feedback_updates=cfg.nis_feedback_updates)
+        mon = NisMonitor(window=cfg.adaptive.nis_window, dof=3, gate=chi2_gate(3, cfg.adaptive.nis_gate_probability),
+                         z=cfg.adaptive.nis_alarm_z, min_count=min(cfg.adaptive.nis_window, 3), min_excess=cfg.adaptive.nis_alarm_excess,
+                         max_scale=cfg.adaptive.nis_max_scale, feedback_updates=cfg.adaptive.nis_feedback_updates)
         s = SensorTrack(k, tr, cfg, SchepersEKF.from_config(cfg, core=self.core), mon)
-        if cfg.accuracy_target == "fixed" and schedule == "adaptive":
+        if cfg.adaptive.accuracy_target == "fixed" and schedule == "adaptive":
             # the fixed cycle of [timing], its pulses' amplitude variance and mid time
             s.ref = FixedCycleReference(
-                np.array([c.current for c in cfg.coils]), cfg.first_cycle_us, cfg.cycle_us, cfg.spacing_us,
-                measurement_mid_us(cfg, cfg.pulse_us), fixed_amplitude_variance(cfg, cfg.pulse_us),
-                cfg.field_model_rel_sigma, cfg.current_tolerance_a, cfg.reference_avg_s * 1e6,
-                cfg.sigma_range_exp_pos, cfg.sigma_range_exp_ori, cfg.reference_warmup_us, self.core)
+                np.array([c.current for c in cfg.source.coils]), cfg.timing.first_cycle_us, cfg.timing.cycle_us, cfg.timing.spacing_us,
+                measurement_mid_us(cfg, cfg.timing.pulse_us), fixed_amplitude_variance(cfg, cfg.timing.pulse_us),
+                cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a, cfg.adaptive.reference_avg_s * 1e6,
+                cfg.adaptive.sigma_range_exp_pos, cfg.adaptive.sigma_range_exp_ori, cfg.adaptive.reference_warmup_us, self.core)
         return s
 
     # ------------------------------------------------------------ inputs
@@ -198,7 +198,7 @@ class SingleCoilTracker:
             gap = t - s.last_imu_us
             if gap <= 0:
                 return
-            if gap > self.cfg.imu_timeout_us:
+            if gap > self.cfg.imu.imu_timeout_us:
                 # a hole in the stream: the state cannot be carried across it
                 ekf.restart_inputs()
                 if ekf.initialized:
@@ -210,7 +210,7 @@ class SingleCoilTracker:
         s.imu_samples += 1
         if self.acquisition.active:
             self.acquisition.note_orientation(s, t)
-        if ekf.initialized and s.imu_samples % self.cfg.pose_every == 0:
+        if ekf.initialized and s.imu_samples % self.cfg.adaptive.pose_every == 0:
             self._emit_fused(s, t, now_us)
 
     # ------------------------------------------------------------ windows
@@ -240,9 +240,9 @@ class SingleCoilTracker:
         for s in self._sens:
             tr = s.track
             flags = self.closer.close_one(tr, sl.coil, sl.pid, sl.start, sl.end)
-            t0 = sl.start - cfg.baseline_us - cfg.guard_us
-            t1 = sl.end + cfg.fall_us + cfg.baseline_us
-            suspect = health.suspect(tr.node, t0, t1) or health.suspect(cfg.coil_driver_id, t0, t1)
+            t0 = sl.start - cfg.pulse.baseline_us - cfg.pulse.guard_us
+            t1 = sl.end + cfg.pulse.fall_us + cfg.pulse.baseline_us
+            suspect = health.suspect(tr.node, t0, t1) or health.suspect(cfg.link.coil_driver_id, t0, t1)
             if sl.acq:
                 self.acquisition.record(s, sl.coil, tr.amp, tr.amp_var,
                                         flags | (PULSE_TOO_FEW if (fatal or suspect) else 0), current)
@@ -276,10 +276,10 @@ class SingleCoilTracker:
         k = sl.clone
         pc = ekf.clone_p[k] if k >= 0 else ekf.p
         r2 = float(pc[0] * pc[0] + pc[1] * pc[1] + pc[2] * pc[2])
-        linear = sp2 < cfg.nis_linear_fraction * cfg.nis_linear_fraction * r2
+        linear = sp2 < cfg.adaptive.nis_linear_fraction * cfg.adaptive.nis_linear_fraction * r2
         # relative errors of the predicted field: the model, and the current
-        rc = cfg.current_tolerance_a / max(abs(current), 1e-6)
-        rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+        rc = cfg.limits.current_tolerance_a / max(abs(current), 1e-6)
+        rel = math.sqrt(cfg.adaptive.field_model_rel_sigma * cfg.adaptive.field_model_rel_sigma + rc * rc)
         # once the monitor has judged the pulses inconsistent, the inflated covariance is the
         # protection: gating them as well would reject them all and leave the state to the IMU
         m = s.meas.set(tr.amp, tr.amp_var, sl.coil, current, rel, mon.r_scale, not mon.inconsistent)
@@ -327,8 +327,8 @@ class SingleCoilTracker:
             self.tx.event(EVT_DISTORTION, (s.node | _EVT_NIS) | (0 if dist else _EVT_CLEAR))
         s.distorted = dist
         P = s.ekf.P
-        big = cfg.acquire_sigma_m * cfg.acquire_sigma_m
-        if (s.gated_in_row >= cfg.reacquire_after
+        big = cfg.adaptive.acquire_sigma_m * cfg.adaptive.acquire_sigma_m
+        if (s.gated_in_row >= cfg.adaptive.reacquire_after
                 or P[POS.start, POS.start] > big or P[POS.start + 1, POS.start + 1] > big
                 or P[POS.start + 2, POS.start + 2] > big):
             self.reacquire(s)
@@ -336,7 +336,7 @@ class SingleCoilTracker:
     # ------------------------------------------------------------ the track's life
     def forget(self, s: SensorTrack, now_us: int) -> None:
         """Forget a verdict that no update has tested for a while."""
-        if s.monitor.count and now_us - s.mon_t > self.cfg.nis_forget_us:
+        if s.monitor.count and now_us - s.mon_t > self.cfg.adaptive.nis_forget_us:
             s.monitor.reset()
 
     def reacquire(self, s: SensorTrack) -> None:
@@ -367,7 +367,7 @@ class SingleCoilTracker:
         status = POSE_VALID | POSE_FUSED | s.bits
         if s.distorted:
             status |= POSE_DISTORTED
-        if now_us - s.last_update_us > self.cfg.stale_us:
+        if now_us - s.last_update_us > self.cfg.link.stale_us:
             status |= POSE_STALE
         qw, qx, qy, qz = _quat(ekf.R)
         P = ekf.P

@@ -85,17 +85,17 @@ class _SourceSamples:
 
     def __init__(self, node: int, cfg):
         self.node = node
-        self.ring = ImuRing(cfg.imu_ring_capacity)
+        self.ring = ImuRing(cfg.imu.imu_ring_capacity)
         self.t0 = -(1 << 62)                 # the last popped sample
         self.s0 = [0.0] * 6
         self.have = False
         self.out = [0.0] * 6                 # the source at the asked time: f (m/s^2), w (rad/s)
         self.fo = [0.0, 0.0, 0.0]
         self.wo = [0.0, 0.0, 0.0]
-        g = [-float(v) for v in cfg.gravity_mps2]
+        g = [-float(v) for v in cfg.imu.gravity_mps2]
         self.fo[0], self.fo[1], self.fo[2] = g[0], g[1], g[2]
         self.samples = 0
-        self.mag = SampleRing(max(16, int(cfg.mag_rate_hz)))
+        self.mag = SampleRing(max(16, int(cfg.pulse.mag_rate_hz)))
         self.flip = FlipOffset()
         self.mag_t = -(1 << 62)
 
@@ -180,7 +180,7 @@ class _FixedSource:
 
 def _make_source(cfg):
     """The source of ``cfg``, chosen once: its module (``source_imu_id``) or fixed."""
-    return _SourceSamples(cfg.source_imu_id, cfg) if cfg.source_imu_id else _FixedSource()
+    return _SourceSamples(cfg.link.source_imu_id, cfg) if cfg.link.source_imu_id else _FixedSource()
 
 
 def _turned_field(ring, k: int, offset, w, t: int, out) -> None:
@@ -203,11 +203,11 @@ class _QuietField:
         self.source = source
         self.gate = gate
         self.supervisor = supervisor
-        self.every = cfg.tight_quiet_every
-        self.var = cfg.tight_quiet_sigma_t * cfg.tight_quiet_sigma_t
-        self.tol = 5.0 * cfg.tight_quiet_sigma_t
+        self.every = cfg.tight.tight_quiet_every
+        self.var = cfg.tight.tight_quiet_sigma_t * cfg.tight.tight_quiet_sigma_t
+        self.tol = 5.0 * cfg.tight.tight_quiet_sigma_t
         self.max_ori_var = QUIET_MAX_ORI_SIGMA * QUIET_MAX_ORI_SIGMA
-        self.age = int(2e6 / cfg.imu_rate_hz) + int(2e6 / cfg.mag_rate_hz)
+        self.age = int(2e6 / cfg.imu.imu_rate_hz) + int(2e6 / cfg.pulse.mag_rate_hz)
 
     def step(self, s: "_TightSensor", t: int, tick: int) -> None:
         """The set/reset residuals from the quiet samples nearest ``t`` (the IMU step's time), and
@@ -265,7 +265,7 @@ class _TightSensor:
         self.node = ch.node
         self.n = n
         self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu, core=core)
-        self.imu = ImuRing(cfg.imu_ring_capacity)
+        self.imu = ImuRing(cfg.imu.imu_ring_capacity)
         self.s6 = [0.0] * 6
         self.acc = np.zeros(3)
         self.gyr = np.zeros(3)
@@ -447,8 +447,8 @@ class _TightSensor:
         half = half_burst_us * 1e-6
         P6 = self.P6
         np.copyto(P6, sv.covariance)
-        extra = (cfg.tight_init_sigma_vel * (lag + half)) ** 2
-        ori = (cfg.imu_gyro_bias_sigma * (lag + half)) ** 2
+        extra = (cfg.tight.tight_init_sigma_vel * (lag + half)) ** 2
+        ori = (cfg.imu.imu_gyro_bias_sigma * (lag + half)) ** 2
         # the burst's solution takes the sensor as still: turned by theta between its first and last
         # pulse (the gyroscopes' relative rotation, the clones'), it is off by up to theta / 2 in
         # orientation (roetenberg-walking-arm, 20 s, seed 1: a start 13.7 deg off against a std of
@@ -475,8 +475,8 @@ class _TightSensor:
                 self.dt[j] = (ekf.t_us - int(ekf.clone_t[j])) * 1e-6
             ekf.release_clone(j)
             self.pending[j] = False
-        ekf.initialize(sv.position, self.Rnow, P6, ekf.t_us, cfg.tight_init_sigma_vel, cfg.imu_acc_bias_sigma,
-                       cfg.imu_gyro_bias_sigma)
+        ekf.initialize(sv.position, self.Rnow, P6, ekf.t_us, cfg.tight.tight_init_sigma_vel, cfg.imu.imu_acc_bias_sigma,
+                       cfg.imu.imu_gyro_bias_sigma)
         self.starts += 1
         self.since_start = 0
         evals = self._start_windows(cfg, currents, model)
@@ -498,8 +498,8 @@ class _TightSensor:
             for i in range(3):
                 col[i] = float(ch.var[i, j])
             c = float(currents[j])
-            rc = cfg.current_tolerance_a / max(abs(c), 1e-6)
-            rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+            rc = cfg.limits.current_tolerance_a / max(abs(c), 1e-6)
+            rel = math.sqrt(cfg.adaptive.field_model_rel_sigma * cfg.adaptive.field_model_rel_sigma + rc * rc)
             ekf.update_single_coil(j, ch.S[:, j], col, j, c, model, rel, 1.0, gate=False)
             ekf.release_clone(j)
             evals += self.n
@@ -513,7 +513,7 @@ class _TightSensor:
         ekf = self.ekf
         p = ekf.p
         status = POSE_VALID | POSE_FUSED
-        if now_us - self.last_update_us > cfg.stale_us:
+        if now_us - self.last_update_us > cfg.link.stale_us:
             status |= POSE_STALE
         if self.gated_in_row:
             status |= POSE_INCONSISTENT
@@ -524,7 +524,7 @@ class _TightSensor:
         P = ekf.P
         b, o = POS.start, ORI.start
         vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
-        lim = cfg.tight_valid_sigma_m
+        lim = cfg.tight.tight_valid_sigma_m
         if lim > 0.0 and status & POSE_VALID:
             l2 = lim * lim
             if P[b, b] > l2 or P[b + 1, b + 1] > l2 or P[b + 2, b + 2] > l2:
@@ -533,7 +533,7 @@ class _TightSensor:
         tx.pose(self.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
                 float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
                 float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
-                quality_from(vp, self.q_x, cfg.quality_error_scale_m))
+                quality_from(vp, self.q_x, cfg.quality.quality_error_scale_m))
 
 
 class TightFusionTracker(MagneticTracker):
@@ -546,19 +546,19 @@ class TightFusionTracker(MagneticTracker):
         self.source = _make_source(cfg)           # the source module, or fixed: chosen once
         self.sensors = {ch.node: _TightSensor(ch, cfg, n, not self.source.fixed, core) for ch in self.channels}
         self._sens = tuple(self.sensors.values())
-        self.model = SingleCoilModel(coils, cfg.field_model, core)
+        self.model = SingleCoilModel(coils, cfg.source.field_model, core)
         # mid time of a pulse's used samples from its start edge (as the extractor uses them)
-        self.mid_us = (cfg.settle_us + cfg.pulse_us - cfg.guard_us) // 2
+        self.mid_us = (cfg.pulse.settle_us + cfg.timing.pulse_us - cfg.pulse.guard_us) // 2
         # ... and as the last windows had it (their samples' mean time from the start edge)
         self._mid = [self.mid_us] * n
-        self.half_burst_us = ((n - 1) * cfg.spacing_us + cfg.pulse_us) // 2
-        self.source_wait_us = int(1.5e6 / cfg.imu_delta_rate_hz)
+        self.half_burst_us = ((n - 1) * cfg.timing.spacing_us + cfg.timing.pulse_us) // 2
+        self.source_wait_us = int(1.5e6 / cfg.imu.imu_delta_rate_hz)
         # quiet field (module docstring): with the source module's magnetometer, chosen once
-        gate = PulseGate(schedule.start, schedule.end, cfg.fall_us, cfg.compass_guard_us)
+        gate = PulseGate(schedule.start, schedule.end, cfg.pulse.fall_us, cfg.orientation.compass_guard_us)
         self.quiet = (_QuietField(cfg, self.source, gate, supervisor)
-                      if not self.source.fixed and cfg.tight_quiet_every else _NoQuietField())
+                      if not self.source.fixed and cfg.tight.tight_quiet_every else _NoQuietField())
         self.ticks = 0
-        self.imu_steps = cfg.imu_steps_per_tick
+        self.imu_steps = cfg.budget.imu_steps_per_tick
         self.evals = 0                       # field evaluations of the window updates (n per update)
         self.fused_poses = 0
         self.now_us = 0
@@ -579,7 +579,7 @@ class TightFusionTracker(MagneticTracker):
         """Clone each sensor's pose at every pulse's measurement time."""
         t0 = int(t_ref) - self.half_burst_us
         for s in self._sens:
-            s.schedule_clones(t0, self.cfg.spacing_us, self._mid)
+            s.schedule_clones(t0, self.cfg.timing.spacing_us, self._mid)
 
     # ------------------------------------------------------------ tick
     def step(self, now_us: int) -> None:
@@ -604,9 +604,9 @@ class TightFusionTracker(MagneticTracker):
             t = tv[ring.slot(0)]
             if not src.ready(t) and now_us - t < self.source_wait_us:
                 return                       # the source's sample of this time is not in yet
-            s.step_imu(t, src, cfg.imu_timeout_us)
+            s.step_imu(t, src, cfg.imu.imu_timeout_us)
             self.quiet.step(s, t, self.ticks)
-            if ekf.initialized and s.samples % cfg.pose_every == 0:
+            if ekf.initialized and s.samples % cfg.adaptive.pose_every == 0:
                 s.emit(self.tx, t, now_us, cfg, self.range_m)
                 self.fused_poses += 1
 
@@ -632,18 +632,18 @@ class TightFusionTracker(MagneticTracker):
             return
         mc = self.schedule.measured[j]
         current = float(mc) if mc != 0.0 else float(self.nominal[j])
-        rc = cfg.current_tolerance_a / max(abs(current), 1e-6)
-        rel = math.sqrt(cfg.field_model_rel_sigma * cfg.field_model_rel_sigma + rc * rc)
+        rc = cfg.limits.current_tolerance_a / max(abs(current), 1e-6)
+        rel = math.sqrt(cfg.adaptive.field_model_rel_sigma * cfg.adaptive.field_model_rel_sigma + rc * rc)
         if not s.ekf.clone_taken[j]:
             s.count_unusable()               # the IMU stream never reached the pulse's time
             return
         m = int(ch.pulse_mid[j]) - int(self.schedule.start[j])
-        if 0 < m < cfg.pulse_us:
+        if 0 < m < cfg.timing.pulse_us:
             self._mid[j] = m
         flags = s.window_update(j, current, self.model, rel)
         self.evals += self.n
-        s.after_window(flags, now_us, cfg.tight_lost_sigma_m * cfg.tight_lost_sigma_m, 5 * self.n,
-                       cfg.reacquire_after)
+        s.after_window(flags, now_us, cfg.tight.tight_lost_sigma_m * cfg.tight.tight_lost_sigma_m, 5 * self.n,
+                       cfg.adaptive.reacquire_after)
 
     # ------------------------------------------------------------ start
     def on_solution(self, ch, solved: bool) -> None:

@@ -29,10 +29,10 @@ def test_plan_sent_ahead_then_ready_with_the_measured_phasors():
     act = ACActuation(cfg, tx)
     boot = 5_000
     act.step(boot)
-    on = boot + cfg.ac_start_us
-    act.step(on - cfg.ac_lead_us - 1000)
+    on = boot + cfg.ac.ac_start_us
+    act.step(on - cfg.ac.ac_lead_us - 1000)
     assert tx.sent == []
-    act.step(on - cfg.ac_lead_us)
+    act.step(on - cfg.ac.ac_lead_us)
     assert [(m.coil, m.freq_mhz, m.amplitude_ua, m.ref_us, m.start_us) for m in tx.sent] == [
         (0, 215_000, 1_500_000, on, on), (1, 315_000, 1_500_000, on, on), (2, 465_000, 1_500_000, on, on)]
     pid = tx.sent[0].plan_id
@@ -55,14 +55,14 @@ def test_refused_plan_is_sent_again_later_with_a_new_id():
     tx = _Tx()
     act = ACActuation(cfg, tx)
     act.step(0)
-    act.step(cfg.ac_start_us - cfg.ac_lead_us)
+    act.step(cfg.ac.ac_start_us - cfg.ac.ac_lead_us)
     first = tx.sent[:3]
     act.on_status(Status(0, first[0].plan_id, 215_000, 0, 0, first[0].ref_us, AC_FAULT_REFUSED))
     assert act.refusals == 1 and tx.events and not act.ready
-    t = cfg.ac_start_us + cfg.ac_lead_us
+    t = cfg.ac.ac_start_us + cfg.ac.ac_lead_us
     act.step(t)
     assert len(tx.sent) == 3
     act.step(t + 1000)
     second = tx.sent[3:]
     assert len(second) == 3 and {m.plan_id for m in second} == {first[0].plan_id + 1}
-    assert second[0].start_us == t + 1000 + cfg.ac_lead_us == second[0].ref_us
+    assert second[0].start_us == t + 1000 + cfg.ac.ac_lead_us == second[0].ref_us

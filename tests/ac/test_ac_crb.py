@@ -81,7 +81,7 @@ def runs():
     rng = np.random.default_rng(12)
     world = World(physics.thesis_source(), None)
     cfg = FirmwareConfig()
-    solver = PoseSolver([Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.coils], "exact")
+    solver = PoseSolver([Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.source.coils], "exact")
     sigma = np.broadcast_to(ac_amplitude_sigma(FREQS, 1000.0, WINDOW_US * 1e-6, PROF.noise_rms_t, 0.5e-3), (3, 3))
     currents = np.full(3, AMP)
     res = []

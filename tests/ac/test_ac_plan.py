@@ -13,7 +13,7 @@ from coiltrack.tools.scenarios.ac import ac_config
 
 
 def _ac(**kw):
-    return dataclasses.replace(ac_config(fusion=False), **kw)
+    return (ac_config(fusion=False)).with_keys(**kw)
 
 
 def test_scenario_plans_pass():

@@ -21,7 +21,7 @@ def test_driver_power_cut_replans_and_poses_resume():
     while t <= 6_500_000:
         bench.emulator.step(t)
         fw.tick(t)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     st = fw.status()
     assert st["ac_status_timeouts"] == 1 and st["ac_plans_sent"] == 2, st
     valid = [rp["msg"].t_us for rp in bench.recorder.poses

@@ -33,7 +33,7 @@ def test_ac_ticks_allocate_no_numpy_array():
     while t < WARMUP_US:
         bench.emulator.step(t)
         fw.tick(t)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     st0 = fw.status()
     allocating = 0
     for _ in range(TICKS):
@@ -42,7 +42,7 @@ def test_ac_ticks_allocate_no_numpy_array():
         with counter:
             fw.tick(t)
         allocating += counter.count != before
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     st = fw.status()
     assert allocating == 0, f"{allocating} ticks allocated numpy arrays"
     assert st["ac_blocks"] - st0["ac_blocks"] >= 160          # 1.5 s at 111 blocks/s

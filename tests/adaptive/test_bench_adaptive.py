@@ -38,7 +38,7 @@ def _run(name, seed, duration_s, cfg=None, count_alloc_after_us=None):
             allocating += counter.count != before
         else:
             fw.tick(t)
-        t += fw.cfg.tick_us
+        t += fw.cfg.timing.tick_us
     bench.emulator.step(t)
     return fw, bench, allocating
 
@@ -156,20 +156,20 @@ def test_adaptive_ticks_allocate_no_numpy_array():
     cfg = fw.cfg
     ex = sorted(bench.driver.executed, key=lambda e: e["start_us"])
     acq_end = ex[2]["end_us"]
-    slots = [(cfg.first_cycle_us + k * cfg.cycle_us + j * cfg.spacing_us, j) for k in range(40) for j in range(3)]
-    slots = [(t, j) for t, j in slots if acq_end + cfg.lead_us < t < acq_end + cfg.reference_warmup_us - cfg.cycle_us]
+    slots = [(cfg.timing.first_cycle_us + k * cfg.timing.cycle_us + j * cfg.timing.spacing_us, j) for k in range(40) for j in range(3)]
+    slots = [(t, j) for t, j in slots if acq_end + cfg.timing.lead_us < t < acq_end + cfg.adaptive.reference_warmup_us - cfg.timing.cycle_us]
     assert len(slots) >= 6
     for t, j in slots:       # driver clock: its offset and drift from the master are well under 5 ms
         assert any(e["coil"] == j and abs(e["start_us"] - t) < 5_000 and abs(e["target_a"] - 0.91) < 2e-3
                    for e in ex), (t, j)
-    late = [e for e in ex if e["start_us"] > acq_end + cfg.reference_warmup_us + cfg.cycle_us]
+    late = [e for e in ex if e["start_us"] > acq_end + cfg.adaptive.reference_warmup_us + cfg.timing.cycle_us]
     assert len({round(e["target_a"], 3) for e in late}) >= 5     # commanded (the achieved carry the regulation error)
 
 
 def test_without_imu_the_mode_keeps_acquiring_magnetic_poses():
     """No IMU samples: nothing can carry the state between pulses, so the mode
     falls back to full bursts and magnetic-only poses (the fixed cycle's)."""
-    cfg = scenarios.get("static").firmware_config().__class__(actuation="adaptive")
+    cfg = scenarios.get("static").firmware_config().__class__().with_(adaptive={"actuation": "adaptive"})
     fw, bench, _ = _run("static", seed=1, duration_s=4.0, cfg=cfg)
     mags = [rp for rp in bench.recorder.poses if rp["msg"].status & POSE_VALID and not rp["msg"].status & POSE_FUSED]
     assert len(mags) >= 4

@@ -20,12 +20,12 @@ def _cfg(**kw):
 def _extract(cfg, length_us: int, phase_us: float):
     """The firmware's extractor on a constant pulse of ``length_us`` whose samples (100 Hz,
     noise-free) fall at ``start + phase_us + k T``: (flags, n_pulse, n_base, var)."""
-    per = 1e6 / cfg.mag_rate_hz
+    per = 1e6 / cfg.pulse.mag_rate_hz
     ring = SampleRing(64)
     start = 500_000
-    ext = PulseExtractor(ring, settle_us=cfg.settle_us, fall_us=cfg.fall_us, baseline_us=cfg.baseline_us,
-                         guard_us=cfg.guard_us, min_pulse_samples=cfg.min_pulse_samples,
-                         min_baseline_samples=cfg.min_baseline_samples, sigma_t=cfg.mag_sigma_t)
+    ext = PulseExtractor(ring, settle_us=cfg.pulse.settle_us, fall_us=cfg.pulse.fall_us, baseline_us=cfg.pulse.baseline_us,
+                         guard_us=cfg.pulse.guard_us, min_pulse_samples=cfg.pulse.min_pulse_samples,
+                         min_baseline_samples=cfg.pulse.min_baseline_samples, sigma_t=cfg.pulse.mag_sigma_t)
     for k in range(-8, 20):
         t = int(round(start + phase_us + k * per))
         on = start <= t <= start + length_us
@@ -46,21 +46,21 @@ def test_chosen_lengths_keep_m_minus_one_samples_through_the_extraction():
     cfg = _cfg()
     L = PulseLengths.chosen(cfg, 80_000)
     assert L.lengths_us == (42_500, 52_500, 62_500, 72_500)
-    s2 = cfg.mag_sigma_t ** 2
+    s2 = cfg.pulse.mag_sigma_t ** 2
     for k, length in enumerate(L.lengths_us):
         m = k + 4
         flags, n_p, n_b, var = _extract(cfg, length, L.lead_in_us)
-        assert not flags & PULSE_TOO_FEW and n_p == m - 1 >= cfg.min_pulse_samples and n_b == 6
+        assert not flags & PULSE_TOO_FEW and n_p == m - 1 >= cfg.pulse.min_pulse_samples and n_b == 6
         assert var == pytest.approx(s2 * (1.0 / (m - 1) + 1.0 / 6.0), rel=1e-9)
         assert L.var_amp[k] == pytest.approx(var, rel=1e-12)
         assert L.mid_us[k] == 1_500 + 5_000 * m             # the used samples' mean time
-        assert window_samples(length, L.lead_in_us, 10_000, cfg.settle_us, cfg.guard_us, cfg.fall_us,
-                              cfg.baseline_us) == (n_p, n_b)
+        assert window_samples(length, L.lead_in_us, 10_000, cfg.pulse.settle_us, cfg.pulse.guard_us, cfg.pulse.fall_us,
+                              cfg.pulse.baseline_us) == (n_p, n_b)
     # the same 42.5 ms at another phase loses a sample and is refused: alignment is what makes it usable
     flags, n_p, _, _ = _extract(cfg, 42_500, 6_000)
     assert flags & PULSE_TOO_FEW and n_p == 2
     # the fixed cycle's 60 ms pulses at the bench's phase (2.58 ms): 4 used, 6 baseline samples
-    assert window_samples(60_000, 2_584, 10_000, cfg.settle_us, cfg.guard_us, cfg.fall_us, cfg.baseline_us) == (4, 6)
+    assert window_samples(60_000, 2_584, 10_000, cfg.pulse.settle_us, cfg.pulse.guard_us, cfg.pulse.fall_us, cfg.pulse.baseline_us) == (4, 6)
 
 
 def test_align_puts_a_sample_half_the_settle_time_after_the_start():

@@ -104,8 +104,8 @@ def test_a_config_file_goes_over_the_scenarios_configuration(tmp_path):
     path.write_text("[timing]\nlead_us = 40000\n[pulse]\nmag_sigma_t = 1e-7\n")
     base = scenarios.get("roetenberg-fusion").firmware_config()
     cfg = load_over(path, base)
-    assert cfg.lead_us == 40_000 and cfg.mag_sigma_t == 1e-7
-    assert cfg.imu_rate_hz == base.imu_rate_hz == 120.0          # the scenario's, not the default 100
+    assert cfg.timing.lead_us == 40_000 and cfg.pulse.mag_sigma_t == 1e-7
+    assert cfg.imu.imu_rate_hz == base.imu.imu_rate_hz == 120.0          # the scenario's, not the default 100
 
 
 def test_bench_config_changes_the_run(tmp_path):

@@ -175,7 +175,7 @@ def test_bench_config_damage_is_refused_naming_the_file_and_the_line_or_key(text
         from coiltrack.tools.scenarios import get
         from coiltrack.tools.inputs.userconfig import load_over
 
-        assert load_over(p, get("static").firmware_config()).pulse_us == 50000
+        assert load_over(p, get("static").firmware_config()).timing.pulse_us == 50000
         return
     _refused(argv, capsys, "--config", p, named)
 

@@ -34,7 +34,7 @@ def test_classes_partition_the_ticks_and_follow_the_filters_rates():
     imu = sum(w["ticks"] for k, w in wc.items() if "imu" in k.split("+"))
     ori = sum(w["ticks"] for k, w in wc.items() if "orientation" in k.split("+"))
     assert imu == rep["fused_ticks"]
-    assert abs(ori / imu - 1.0 / cfg.ori_update_every) <= 0.02
+    assert abs(ori / imu - 1.0 / cfg.orientation.ori_update_every) <= 0.02
     assert any("window" in k.split("+") for k in wc)
     assert any("solve" in k.split("+") for k in wc)
     top = sum(rep["p999_work_classes"].values())

@@ -64,8 +64,8 @@ def live_run():
         if t >= WARMUP_US:
             per_tick.append(counter.count - before)
             measured += 1
-        t += cfg.tick_us
-    header = {"scenario": sc.name, "seed": 4, "duration_s": t * 1e-6, "tick_us": cfg.tick_us,
+        t += cfg.timing.tick_us
+    header = {"scenario": sc.name, "seed": 4, "duration_s": t * 1e-6, "tick_us": cfg.timing.tick_us,
               "config": config_to_dict(cfg)}
     return {"fw": fw, "per_tick": np.asarray(per_tick), "header": header, "reads": port.reads}
 

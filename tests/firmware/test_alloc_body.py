@@ -24,7 +24,7 @@ def test_body_ticks_allocate_no_numpy_array(name):
     """(The tightly coupled tracker, and the loosely coupled one.)"""
     sc = scenarios.get(name)
     cfg = sc.firmware_config()
-    assert cfg.baseline_gyro and cfg.acc_adapt_gain > 0
+    assert cfg.body.baseline_gyro and cfg.body.acc_adapt_gain > 0
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 1, 5.2, emu_end)
     fw = Firmware(cfg, fw_end)
@@ -43,10 +43,10 @@ def test_body_ticks_allocate_no_numpy_array(name):
             bad += counter.count != before
         else:
             fw.tick(t)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     turned = sum(ch.extractor.turned_windows for ch in fw.channels)
     assert turned >= 20, turned
     assert fw.status().get("fused_poses", 0) > 100
-    if cfg.tight_fusion:
+    if cfg.tight.tight_fusion:
         assert fw.status()["fusion_quiet_updates"] - quiet0 >= 20
     assert bad == 0, f"{bad} ticks allocated numpy arrays"

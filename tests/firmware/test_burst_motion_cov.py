@@ -19,15 +19,15 @@ from coiltrack.firmware.pose.solver import SOLVE_OK
 from coiltrack.firmware.track.burst_fusion import FixedSource, PulseGate, SensorInertial
 
 CFG = FirmwareConfig().validate()             # the thesis source: 3 orthogonal coils, r 5.5 cm, 50 turns
-COILS = [Coil(c.center, c.axis, c.radius, c.turns) for c in CFG.coils]
-CUR = np.array([c.current for c in CFG.coils])
+COILS = [Coil(c.center, c.axis, c.radius, c.turns) for c in CFG.source.coils]
+CUR = np.array([c.current for c in CFG.source.coils])
 SIGMA_T = 5e-8                       # 50 nT per pulse amplitude (the thesis bench's noise)
 BOUND = chi2.ppf(0.999, 3)
 
 
 def _inertial(cfg):
-    n = len(cfg.coils)
-    gate = PulseGate(np.zeros(n, np.int64), np.zeros(n, np.int64), cfg.fall_us, cfg.compass_guard_us)
+    n = len(cfg.source.coils)
+    gate = PulseGate(np.zeros(n, np.int64), np.zeros(n, np.int64), cfg.pulse.fall_us, cfg.orientation.compass_guard_us)
     return SensorInertial(16, cfg, gate, FixedSource(cfg))
 
 
@@ -36,7 +36,7 @@ def _turning_bursts(seed: int, n: int, cfg):
     random axis (still in position): pulse j measured at ``(j - 1) spacing`` about the
     burst's middle, in the frame of that instant. Returns (S, p, R_mid, w)."""
     rng = np.random.default_rng(seed)
-    dt = np.array([-1.0, 0.0, 1.0]) * cfg.spacing_us * 1e-6
+    dt = np.array([-1.0, 0.0, 1.0]) * cfg.timing.spacing_us * 1e-6
     out = []
     for _ in range(n):
         u = rng.normal(size=3)
@@ -63,7 +63,7 @@ def test_a_turning_sensor_near_the_source_is_within_the_bound_of_the_covariance_
     a sensor still in position) or a rotation term given to the orientation alone."""
     cfg = CFG
     ins = _inertial(cfg)
-    ps = make_pose_solver(cfg, COILS, cfg.solve_gate_probability)
+    ps = make_pose_solver(cfg, COILS, cfg.budget.solve_gate_probability)
     sig = np.full((3, 3), SIGMA_T)
     C = np.zeros((6, 6))
     out_solver = out_fused = 0
@@ -94,6 +94,6 @@ def test_a_still_sensor_gets_nothing_added():
     ins.w_last[:] = (0.0, np.radians(30.0), 0.0)
     p = np.array([0.2, 0.05, -0.03])
     ins.motion_cov(C0, False, C, p)
-    t2 = (cfg.spacing_us * 1e-6) ** 2 * (9 - 1) / 12.0
+    t2 = (cfg.timing.spacing_us * 1e-6) ** 2 * (9 - 1) / 12.0
     ao = np.radians(30.0) ** 2 * t2
     np.testing.assert_allclose(np.diag(C), np.diag(C0) + np.r_[[float(p @ p) * ao] * 3, [ao] * 3], rtol=1e-12)

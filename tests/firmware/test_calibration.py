@@ -197,8 +197,8 @@ def test_loader_refuses_bad_values_naming_the_key(edit, key):
     edit(t)
     cfg = FirmwareConfig()
     with pytest.raises(CalibrationError) as exc:
-        Calibration.from_table(t, 3, [c.axis for c in cfg.coils], cfg.calibration_max_gain_error,
-                               cfg.calibration_max_tilt_deg)
+        Calibration.from_table(t, 3, [c.axis for c in cfg.source.coils], cfg.calibration.calibration_max_gain_error,
+                               cfg.calibration.calibration_max_tilt_deg)
     assert exc.value.key == key
     assert f"'{key}'" in str(exc.value)
 
@@ -271,8 +271,8 @@ def test_a_calibrated_fused_firmware_tick_allocates_no_array(tmp_path):
     v = {k: a.tolist() for k, a in _sensor_values(rng).items()}
     path = tmp_path / "cal.toml"
     path.write_text(dumps_toml({"source": _tilted_source(rng).to_table(),
-                                "sensor": {str(s): v for s in cfg.sensor_ids}}))
-    cfg = dataclasses.replace(cfg, calibration_file=str(path))
+                                "sensor": {str(s): v for s in cfg.link.sensor_ids}}))
+    cfg = cfg.with_(calibration={"calibration_file": str(path)})
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 4, 8.0, emu_end)
     fw = Firmware(cfg, fw_end)
@@ -288,6 +288,6 @@ def test_a_calibrated_fused_firmware_tick_allocates_no_array(tmp_path):
             counted += counter.count - before
         else:
             fw.tick(t)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     assert counted == 0
     assert fw.status()["cycles"] >= 10 and fw.receiver.imu_received > 800

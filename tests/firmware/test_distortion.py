@@ -125,7 +125,7 @@ def _tracker_with(name: str, dm, **changes):
     from coiltrack.tools.bench.links import inproc_pair
 
     fw_end, _ = inproc_pair()
-    cfg = dataclasses.replace(scenarios.get(name).firmware_config(), **changes)
+    cfg = (scenarios.get(name).firmware_config()).with_keys(**changes)
     return Firmware(cfg, fw_end, calibration=Calibration(distortion=dm)).tracker
 
 

@@ -103,16 +103,18 @@ def test_fusing_trackers_choose_their_source_once():
     counted); with one: the source module, its acceleration measured or (``source_acceleration``
     off) taken as -g."""
     cfg = FirmwareConfig()
-    gate = burst_fusion.PulseGate(np.zeros(3, np.int64), np.zeros(3, np.int64), cfg.fall_us, cfg.compass_guard_us)
+    gate = burst_fusion.PulseGate(np.zeros(3, np.int64), np.zeros(3, np.int64), cfg.pulse.fall_us, cfg.orientation.compass_guard_us)
     fixed = burst_fusion.make_source(cfg, gate)
     assert fixed.fixed and fixed.counters() == {} and not fixed.hold(0, 0, 10**6)
     np.testing.assert_array_equal(fixed.phi, np.eye(3))
-    np.testing.assert_array_equal(fixed.fref, -np.asarray(cfg.gravity_mps2))
-    cfg8 = FirmwareConfig(source_imu_id=8)
+    np.testing.assert_array_equal(fixed.fref, -np.asarray(cfg.imu.gravity_mps2))
+    cfg8 = FirmwareConfig().with_(link={"source_imu_id": 8})
     moving = burst_fusion.make_source(cfg8, gate)
     assert not moving.fixed and isinstance(moving.force, burst_fusion.MeasuredForce)
     assert "source_imu_samples" in moving.counters()
-    noanet = burst_fusion.make_source(FirmwareConfig(source_imu_id=8, source_acceleration=False), gate)
+    noanet = burst_fusion.make_source(FirmwareConfig().with_(
+        link={"source_imu_id": 8},
+        body={"source_acceleration": False}), gate)
     fv = noanet.fref.copy()
     noanet.force.update(memoryview(np.eye(3)), memoryview(noanet.fref), 1.0, 2.0, 3.0)
     np.testing.assert_array_equal(noanet.fref, fv)

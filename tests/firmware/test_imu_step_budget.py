@@ -1,4 +1,4 @@
-"""IMU steps given back from IMU_DELTA pairs are spread over ticks (``[imu_delta] imu_steps_per_tick``).
+"""IMU steps given back from IMU_DELTA pairs are spread over ticks (``[budget] imu_steps_per_tick``).
 
 A 10 Hz pair turns into twelve 120 Hz steps at once; run in one tick, each step a strapdown
 and covariance prediction, that tick is twelve fused ticks long (1.3-1.6 ms measured with
@@ -39,9 +39,9 @@ def test_delta_pairs_are_fused_a_budget_at_a_time():
         if t >= WARMUP_US:
             most = max(most, ins.samples - before)
             allocs += (counter.count - a0) if counter else 0
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     assert fw.receiver.imu_deltas > 0, "the scenario sends IMU_DELTA pairs"
-    assert most == cfg.imu_steps_per_tick            # the budget binds, and is kept
+    assert most == cfg.budget.imu_steps_per_tick            # the budget binds, and is kept
     backlog = fw.receiver.imu_received - ins.samples
     assert 0 <= backlog <= 12, backlog                # at most one pair's steps still queued
     assert ins.imu.dropped == 0

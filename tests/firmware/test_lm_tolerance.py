@@ -1,4 +1,4 @@
-"""``[lm]`` lm_step_tol / lm_cost_tol / lm_step_sigma reach the pose solver; a looser
+"""``[pose]`` lm_step_tol / lm_cost_tol / lm_step_sigma reach the pose solver; a looser
 cost tolerance, or a stop on a step shorter than a fraction of the solution's standard
 deviation, ends the LM earlier at a pose that differs from the tight one by a small
 fraction of that standard deviation."""
@@ -19,7 +19,7 @@ SIGMA_T = 5e-8
 
 
 def _solves(cfg, cases):
-    ps = make_pose_solver(cfg, COILS, cfg.solve_gate_probability)
+    ps = make_pose_solver(cfg, COILS, cfg.budget.solve_gate_probability)
     sig = np.full((3, 3), SIGMA_T)
     out = []
     for S, x0p, x0R in cases:
@@ -50,7 +50,7 @@ def test_a_looser_cost_tolerance_stops_earlier_within_a_tenth_of_a_sigma():
     cases = _cases(5, 24, 0.02)
     base = FirmwareConfig().validate()
     tight = _solves(base, cases)
-    loose = _solves(dataclasses.replace(base, lm_cost_tol=1e-2).validate(), cases)
+    loose = _solves(base.with_(pose={"lm_cost_tol": 1e-2}).validate(), cases)
     assert sum(t[1] for t in tight) > sum(q[1] for q in loose)
     for (pt, _, C), (pl, _, _) in zip(tight, loose):
         e = pl - pt
@@ -66,11 +66,11 @@ def test_a_step_shorter_than_a_fraction_of_a_sigma_stops_the_lm_there():
     ~100 sigma away) and the key not reaching the solver (the default's iterations)."""
     cases = _cases(7, 24, 0.05)
     base = FirmwareConfig().validate()
-    tight = _solves(dataclasses.replace(base, lm_cost_tol=1e-9, lm_step_tol=1e-9).validate(), cases)
+    tight = _solves(base.with_(pose={"lm_cost_tol": 1e-9, "lm_step_tol": 1e-9}).validate(), cases)
     default = _solves(base, cases)
-    assert [q[1] for q in _solves(dataclasses.replace(base, lm_step_sigma=0.0).validate(), cases)] == \
+    assert [q[1] for q in _solves(base.with_(pose={"lm_step_sigma": 0.0}).validate(), cases)] == \
         [q[1] for q in default]
-    sig = _solves(dataclasses.replace(base, lm_step_sigma=0.1).validate(), cases)
+    sig = _solves(base.with_(pose={"lm_step_sigma": 0.1}).validate(), cases)
     assert sum(q[1] for q in sig) < sum(q[1] for q in default)
     for (pt, _, C), (ps, _, _) in zip(tight, sig):
         e = ps - pt
@@ -83,4 +83,4 @@ def test_a_step_shorter_than_a_fraction_of_a_sigma_stops_the_lm_there():
 def test_bad_tolerances_are_refused_naming_the_key(key, value):
     """Catches a missing check (a zero tolerance never stops on the cost, NaN never compares)."""
     with pytest.raises(ConfigError, match=rf"lm\.{key}"):
-        dataclasses.replace(FirmwareConfig(), **{key: value}).validate()
+        FirmwareConfig().with_keys(**{key: value}).validate()

@@ -91,17 +91,17 @@ def test_learned_offset_keeps_the_attitude_through_a_compass_and_accelerometer_o
     n_rest = int(60e6 / DT_US)
     for k in range(1, n_rest + 1):
         t = k * DT_US
-        w = BIAS + rng.normal(0.0, cfg.imu_gyro_sigma, 3)
+        w = BIAS + rng.normal(0.0, cfg.imu.imu_gyro_sigma, 3)
         f.predict(t, *w)
-        if k % cfg.ori_update_every == 0:
-            a = acc0 + rng.normal(0.0, cfg.imu_acc_sigma, 3)
-            m = mag0 + rng.normal(0.0, cfg.mag_sigma_t, 3)
+        if k % cfg.orientation.ori_update_every == 0:
+            a = acc0 + rng.normal(0.0, cfg.imu.imu_acc_sigma, 3)
+            m = mag0 + rng.normal(0.0, cfg.pulse.mag_sigma_t, 3)
             f.update_acc(*a)
             f.update_mag(*m)
     rest_err = _angle_deg(Rm, f.R)
     assert rest_err < 0.5, rest_err
     np.testing.assert_allclose(f.bias, BIAS, atol=1e-3)
-    err = _coast(f, n_rest * DT_US, 30.0, rng, cfg.imu_gyro_sigma)
+    err = _coast(f, n_rest * DT_US, 30.0, rng, cfg.imu.imu_gyro_sigma)
     uncorrected = _uncorrected_error_deg(30.0)
     assert uncorrected > 30.0, uncorrected
     assert err < 1.0, (err, uncorrected)

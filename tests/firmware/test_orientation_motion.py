@@ -1,5 +1,5 @@
 """The ch. 2 orientation filter under a known body acceleration (the
-adaptive motion variance, ``body_motion.acc_adapt_gain``).
+adaptive motion variance, ``body.acc_adapt_gain``).
 
 Closed form: an inverted pendulum, the sensor ``L = 0.5 m`` above a pivot
 (T1 above the lumbar joint), swinging about the x axis by
@@ -41,7 +41,7 @@ def _pendulum(t: float, amp: float):
 
 
 def _run(gain: float, amp: float, seconds: float = 30.0, seed: int = 3):
-    cfg = FirmwareConfig(acc_motion_sigma=0.5, acc_adapt_gain=gain)
+    cfg = FirmwareConfig().with_(orientation={"acc_motion_sigma": 0.5}, body={"acc_adapt_gain": gain})
     f = OrientationFilter(OrientationParams.from_config(cfg, mag_learn_samples=0))    # no compass: |m| and
     rng = np.random.default_rng(seed)                                                 # the dip are not needed
     R0, _, _ = _pendulum(0.0, amp)
@@ -53,10 +53,10 @@ def _run(gain: float, amp: float, seconds: float = 30.0, seed: int = 3):
     for k in range(1, int(seconds * RATE)):
         t = k * dt_us
         R, w, fs = _pendulum(t * 1e-6, amp)
-        w = w + rng.normal(0.0, cfg.imu_gyro_sigma, 3) + BIAS
+        w = w + rng.normal(0.0, cfg.imu.imu_gyro_sigma, 3) + BIAS
         f.predict(t, w[0], w[1], w[2])
-        if k % cfg.ori_update_every == 0:
-            fs = fs + rng.normal(0.0, cfg.imu_acc_sigma, 3)
+        if k % cfg.orientation.ori_update_every == 0:
+            fs = fs + rng.normal(0.0, cfg.imu.imu_acc_sigma, 3)
             f.update_acc(fs[0], fs[1], fs[2])
         if t > 10e6:                 # after the offset has been learned
             z = f.R[2] / np.linalg.norm(f.R[2])
@@ -92,5 +92,5 @@ def test_still_sensor_is_the_thesis_filter():
     adaptive, fa = _run(1.0, 0.0)
     assert fixed < 0.2 and adaptive < 0.2, (fixed, adaptive)
     assert abs(adaptive - fixed) < 0.05
-    assert fa.acc_motion_ms < 10 * 3 * FirmwareConfig().imu_acc_sigma ** 2
+    assert fa.acc_motion_ms < 10 * 3 * FirmwareConfig().imu.imu_acc_sigma ** 2
     np.testing.assert_allclose(fa.bias[:2], BIAS[:2], atol=5e-4)

@@ -14,7 +14,7 @@ def test_clean_fit_is_high_and_a_larger_residual_lowers_it_monotonically():
     (e0 = 1 cm), and an inflated residual lowers the quality strictly (chi2 x 2..1000), as does a
     larger covariance: catches a grade that rises with the residual (a sign), ignores it, or
     ignores the covariance."""
-    pq = PoseQuality(FirmwareConfig(quality_quiet_sigma_t=0.0), 3)
+    pq = PoseQuality(FirmwareConfig().with_(quality={"quality_quiet_sigma_t": 0.0}), 3)
     assert pq.grade(16, 3.0, VAR_1MM) == 232
     assert pq.grade(16, 1.0, VAR_1MM) == 232                  # below the noise level: not better
     qs = [pq.grade(16, 3.0 * f, VAR_1MM) for f in (1, 2, 4, 8, 16, 64, 1000)]
@@ -28,7 +28,7 @@ def test_nis_and_quiet_field_terms_lower_it():
     grade; a non-finite cost gives 0 (catches a term that is dropped from the sum)."""
     from coiltrack.firmware.measure.windows import SensorChannel
 
-    cfg = FirmwareConfig(quality_quiet_sigma_t=2e-6)
+    cfg = FirmwareConfig().with_(quality={"quality_quiet_sigma_t": 2e-6})
     ch = SensorChannel(16, cfg)
     pq = PoseQuality(cfg, 3, [ch])
     ch.ring.push(1000, 20e-6, 0.0, -45e-6, False, 0)          # |B| = 49.2 uT (earth_field_t 49 uT)

@@ -28,7 +28,7 @@ from coiltrack.firmware.track.quality import PoseQuality
 COILS = orthogonal_source(0.055, 50)
 CUR = np.array([1.5, 1.5, 1.5])
 SIGMA = 2.85e-8                   # T, one pulse amplitude's noise (roetenberg-fusion's windows)
-CFG = FirmwareConfig(quality_quiet_sigma_t=0.0)
+CFG = FirmwareConfig().with_(quality={"quality_quiet_sigma_t": 0.0})
 NODE = 16
 T_MID = 10_130_000                # us: the burst's middle; pulses start at 10.0, 10.1, 10.2 s
 START = np.array([10_000_000, 10_100_000, 10_200_000], dtype=np.int64)
@@ -57,11 +57,11 @@ def _graded(p0, R0, v, w, rng=None, exact_rates=False):
     sv_signals = [_burst(p0, R0, v, w, rng)]
     assert sv.solve(sv_signals[0], CUR, sig, x0_position=p0, x0_rotation=R0) == 0
     pq = PoseQuality(CFG, 3, [SimpleNamespace(node=NODE)], COILS)
-    cyc = CFG.cycle_us * 1e-6
+    cyc = CFG.timing.cycle_us * 1e-6
     pa, Ra = (sv.position, sv.rotation) if exact_rates else (p0, R0)
     p_prev, R_prev = pa - v * cyc, Ra @ Rotation.from_rotvec(-w * cyc).as_matrix()
-    pq.grade_burst(NODE, T_MID - CFG.cycle_us, 3.0, sv.covariance, p_prev, R_prev, sv_signals[0], sig,
-                   START - CFG.cycle_us, END - CFG.cycle_us)
+    pq.grade_burst(NODE, T_MID - CFG.timing.cycle_us, 3.0, sv.covariance, p_prev, R_prev, sv_signals[0], sig,
+                   START - CFG.timing.cycle_us, END - CFG.timing.cycle_us)
     assert pq.motion_m2 == 0.0                      # no earlier solution: no motion term
     pq.grade_burst(NODE, T_MID, sv.cost, sv.covariance, sv.position, sv.rotation, sv_signals[0], sig,
                    START, END)
@@ -97,7 +97,7 @@ def test_motion_term_is_the_linearised_solve():
     sig = np.full((3, 3), SIGMA)
     d = np.repeat((START + END) / 2e6 - T_MID * 1e-6, 3)
     W = np.full(9, SIGMA ** -2)
-    cyc = CFG.cycle_us * 1e-6
+    cyc = CFG.timing.cycle_us * 1e-6
     for _ in range(8):
         p0, R0, v, w = _case(rng)
         h, Hr = measurement_model_and_jacobian(p0, R0, COILS, CUR, "dipole")
@@ -107,9 +107,9 @@ def test_motion_term_is_the_linearised_solve():
         dx = P @ H.T @ (W * u)
         chi2 = float(np.sum(W * (u - H @ dx) ** 2))
         pq = PoseQuality(CFG, 3, [SimpleNamespace(node=NODE)], COILS)
-        pq.grade_burst(NODE, T_MID - CFG.cycle_us, 3.0, P, p0 - v * cyc,
-                       R0 @ Rotation.from_rotvec(-w * cyc).as_matrix(), h, sig, START - CFG.cycle_us,
-                       END - CFG.cycle_us)
+        pq.grade_burst(NODE, T_MID - CFG.timing.cycle_us, 3.0, P, p0 - v * cyc,
+                       R0 @ Rotation.from_rotvec(-w * cyc).as_matrix(), h, sig, START - CFG.timing.cycle_us,
+                       END - CFG.timing.cycle_us)
         pq.grade_burst(NODE, T_MID, 3.0 + chi2, P, p0, R0, h, sig, START, END)
         assert abs(pq.motion_m2 - dx[:3] @ dx[:3]) <= 1e-9 * (dx[:3] @ dx[:3]), (pq.motion_m2, dx)
         assert abs(pq.chi2_motion - chi2) <= 1e-9 * chi2 + 1e-12, (pq.chi2_motion, chi2)

@@ -96,4 +96,4 @@ def test_a_queue_beyond_its_bytes_is_dropped_and_counted():
                                        ("rx_queue_bytes", 100), ("rx_queue_bytes", True)])
 def test_bad_budget_values_are_refused_by_name(key, value):
     with pytest.raises(ConfigError, match=key):
-        FirmwareConfig(**{key: value}).validate()
+        FirmwareConfig().with_keys(**{key: value}).validate()

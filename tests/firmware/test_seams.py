@@ -27,7 +27,7 @@ from coiltrack.tools.bench.links import inproc_pair
 
 
 def _scenario(name: str, **changes):
-    return lambda: dataclasses.replace(scenarios.get(name).firmware_config(), **changes)
+    return lambda: (scenarios.get(name).firmware_config()).with_keys(**changes)
 
 
 def _single_coil_fixed():
@@ -113,18 +113,18 @@ def test_the_pipeline_of_each_choice_keeps_its_contracts(key):
 @pytest.mark.parametrize("name", sorted(SOLVER_CONFIGS))
 def test_each_pose_solver_keeps_the_solver_contract(name):
     cfg = SOLVER_CONFIGS[name]()
-    assert cfg.pose_solver == name
+    assert cfg.pose.pose_solver == name
     from coiltrack.firmware.model.field import Coil
 
     tracker = _firmware(cfg).tracker
-    built = compose.SOLVERS[name](cfg, [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.coils], 0.999)
+    built = compose.SOLVERS[name](cfg, [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.source.coils], 0.999)
     assert type(tracker.solver) is type(built)
     assert problems(tracker.solver, Solver) == [] and problems(built, Solver) == []
 
 
 def test_the_window_extractor_with_gyro_baseline_keeps_the_contract():
     cfg = CONFIGS["tight-fusion"]()
-    assert cfg.baseline_gyro
+    assert cfg.body.baseline_gyro
     fw = _firmware(cfg)
     from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor
 
@@ -248,10 +248,10 @@ def test_the_ac_inertial_parts_are_built_with_their_own_compass_gate_and_timing(
     tracker = _firmware(cfg).tracker
     for ins in tracker.inertial.values():
         assert ins.ori.gate.quiet(0) and ins.ori.gate.quiet(123_456)
-        assert ins.ori.max_age_us == cfg.ac_window_us + 3 * cfg.ac_hop_us
-        assert ins.burst_rms_s == pytest.approx(cfg.ac_window_us * 1e-6 / math.sqrt(12.0), rel=1e-15)
+        assert ins.ori.max_age_us == cfg.ac.ac_window_us + 3 * cfg.ac.ac_hop_us
+        assert ins.burst_rms_s == pytest.approx(cfg.ac.ac_window_us * 1e-6 / math.sqrt(12.0), rel=1e-15)
     pulsed = _firmware(CONFIGS["burst-fusion"]()).tracker
-    n = len(pulsed.cfg.coils)
+    n = len(pulsed.cfg.source.coils)
     for ins in pulsed.inertial.values():
-        assert ins.burst_rms_s == pytest.approx(pulsed.cfg.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0))
-        assert ins.ori.max_age_us == int(2e6 / pulsed.cfg.imu_rate_hz) + int(2e6 / pulsed.cfg.mag_rate_hz)
+        assert ins.burst_rms_s == pytest.approx(pulsed.cfg.timing.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0))
+        assert ins.ori.max_age_us == int(2e6 / pulsed.cfg.imu.imu_rate_hz) + int(2e6 / pulsed.cfg.pulse.mag_rate_hz)

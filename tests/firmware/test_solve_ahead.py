@@ -30,7 +30,7 @@ def _run(ahead: bool, seconds: float = 10.0, counter=None, patch=None):
     sc = scenarios.get("roetenberg-bench")
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 1, seconds + 1.0, emu_end)
-    cfg = dataclasses.replace(sc.firmware_config(), solve_ahead=ahead).validate()
+    cfg = sc.firmware_config().with_(budget={"solve_ahead": ahead}).validate()
     fw = Firmware(cfg, fw_end)
     tr = fw.tracker
     rows = []
@@ -56,7 +56,7 @@ def _run(ahead: bool, seconds: float = 10.0, counter=None, patch=None):
                 fw.tick(t)
         else:
             fw.tick(t)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     return fw, rows
 
 
@@ -138,7 +138,7 @@ def test_no_solve_ahead_for_ac_blocks_or_a_solver_that_keeps_state(name):
     """AC blocks have no last window; Raab's tracker carries its state from one solve to the
     next, so a solve ahead would change the next one: neither solves ahead."""
     cfg = scenarios.get(name).firmware_config()
-    assert cfg.solve_ahead
+    assert cfg.budget.solve_ahead
     fw_end, _ = inproc_pair()
     assert not Firmware(cfg, fw_end).tracker.ahead
 
@@ -146,7 +146,7 @@ def test_no_solve_ahead_for_ac_blocks_or_a_solver_that_keeps_state(name):
 @pytest.mark.parametrize("value", [1, 0, "yes", None])
 def test_bad_solve_ahead_is_refused_naming_the_key(value):
     with pytest.raises(ConfigError, match=r"budget\.solve_ahead"):
-        dataclasses.replace(FirmwareConfig(), solve_ahead=value).validate()
+        FirmwareConfig().with_(budget={"solve_ahead": value}).validate()
 
 
 def test_closed_before_reads_every_earlier_window():

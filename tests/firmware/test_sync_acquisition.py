@@ -35,7 +35,7 @@ def _run(step_at_us=None, step_us=0, duration_us=3_000_000):
     offsets (one per reply) and the clock-step events."""
     fw = Firmware(scenarios.get("static").firmware_config(), inproc_pair()[0])
     sup = fw.supervisor
-    rate = fw.cfg.mag_rate_hz
+    rate = fw.cfg.pulse.mag_rate_hz
     clock = NodeClock(offset_us=3_544_628, drift_ppm=-45.6)
     if step_at_us is not None:
         clock.add_step(step_at_us, step_us)

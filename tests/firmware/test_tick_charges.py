@@ -26,7 +26,7 @@ def _run(name: str, seconds: float, **keys):
     sc = scenarios.get(name)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 1, seconds + 1.0, emu_end)
-    cfg = dataclasses.replace(sc.firmware_config(), **keys).validate()
+    cfg = sc.firmware_config().with_keys(**keys).validate()
     fw = Firmware(cfg, fw_end)
     tr = fw.tracker
     models = tuple(instances(fw, SignalModel))
@@ -48,7 +48,7 @@ def _run(name: str, seconds: float, **keys):
         e0 = sum(m.evals for m in models)
         fw.tick(t)
         ticks.append((getattr(tr.burst, "closed_last", 0), getattr(tr, "_imu_last", 0), sum(m.evals for m in models) - e0))
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     return cfg, np.array(ticks), solutions
 
 
@@ -71,7 +71,7 @@ def test_a_full_charge_leaves_no_solve_work_in_ticks_with_windows_or_imu_samples
     busy = (ticks[:, 0] > 0) | (ticks[:, 1] > 0)
     assert busy.sum() > 2400                      # the IMU at 120 Hz and the windows of every burst
     assert ticks[busy & ~_waived(ticks), 2].max() == 0
-    assert ticks[:, 2].max() <= cfg.track_budget_evals
+    assert ticks[:, 2].max() <= cfg.budget.track_budget_evals
     _, free_ticks, free = _run("roetenberg-fusion", 20.0)
     free_busy = (free_ticks[:, 0] > 0) | (free_ticks[:, 1] > 0)
     assert (free_busy & (free_ticks[:, 2] > 0)).sum() >= 20
@@ -87,12 +87,12 @@ def test_a_partial_charge_and_the_evaluations_add_up_to_the_budget():
     (7 + 3 = 10), and a charge that blocks the whole tick whatever its size."""
     cfg, ticks, _ = _run("roetenberg-fusion", 20.0, window_evals=7, imu_sample_evals=7)
     work = 7 * ticks[:, 0] + 7 * ticks[:, 1] + ticks[:, 2]
-    assert work[(ticks[:, 2] > 0) & ~_waived(ticks)].max() <= cfg.track_budget_evals
-    assert ticks[:, 2].max() <= cfg.track_budget_evals
+    assert work[(ticks[:, 2] > 0) & ~_waived(ticks)].max() <= cfg.budget.track_budget_evals
+    assert ticks[:, 2].max() <= cfg.budget.track_budget_evals
     cfg, ticks, _ = _run("roetenberg-fusion", 6.0, window_evals=2, imu_sample_evals=2)
     work = 2 * ticks[:, 0] + 2 * ticks[:, 1] + ticks[:, 2]
     charged = (ticks[:, 0] + ticks[:, 1]) > 0
-    assert work[~_waived(ticks)].max() <= cfg.track_budget_evals
+    assert work[~_waived(ticks)].max() <= cfg.budget.track_budget_evals
     assert (charged & (ticks[:, 2] > 0)).any()
 
 
@@ -129,4 +129,4 @@ def test_charged_windows_delay_the_magnetic_poses_without_changing_them():
 @pytest.mark.parametrize("value", [-1, 1.5, True, "4"])
 def test_bad_charge_is_refused_naming_the_key(key, value):
     with pytest.raises(ConfigError, match=rf"budget\.{key}"):
-        dataclasses.replace(FirmwareConfig(), **{key: value}).validate()
+        FirmwareConfig().with_keys(**{key: value}).validate()

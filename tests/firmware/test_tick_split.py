@@ -23,7 +23,7 @@ def _run(name: str, seed: int, run_us: int, on_tick, **overrides):
     sc = scenarios.get(name)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, seed, run_us * 1e-6 + 1.0, emu_end)
-    cfg = dataclasses.replace(sc.firmware_config(), **overrides)
+    cfg = sc.firmware_config().with_keys(**overrides)
     fw = Firmware(cfg, fw_end)
     t = 0
     while t < run_us:
@@ -31,7 +31,7 @@ def _run(name: str, seed: int, run_us: int, on_tick, **overrides):
         on_tick(fw, t, True)
         fw.tick(t)
         on_tick(fw, t, False)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     return fw
 
 
@@ -140,7 +140,7 @@ def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
             beside.append(t)
         if d["choose"] and tr.book.pulses > state["pulses"]:
             start = tr.book.next_free_us - tr.pulse_us - tr.gap_us
-            if start != state.get("start") or start - t < tr.lead_us - 4 * fw.cfg.tick_us:
+            if start != state.get("start") or start - t < tr.lead_us - 4 * fw.cfg.timing.tick_us:
                 late.append((t, start, state.get("start")))
 
     for n in real:
@@ -199,11 +199,11 @@ def test_sixteen_sensors_hand_over_within_the_track_budget():
             return
         if t >= WARMUP_US and state["units"] > state["worst"]:
             state["worst"], state["t_worst"] = state["units"], t
-        if t >= WARMUP_US and state["units"] > fw.cfg.track_budget_evals:
+        if t >= WARMUP_US and state["units"] > fw.cfg.budget.track_budget_evals:
             state["ticks_over"] += 1
 
     fw = _run("multi16", 1, 4_000_000, on_tick)
-    budget = fw.cfg.track_budget_evals
+    budget = fw.cfg.budget.track_budget_evals
     assert state["ticks_over"] == 0, (state["ticks_over"], state["worst"], state["t_worst"], budget)
     assert state["worst"] == budget                 # the budget is used, not left idle
     assert sorted(per_node) == list(range(16, 32))

@@ -27,11 +27,11 @@ def run_bench(scenario="static", seed=1, duration_s=10.0, faults="", cfg=None, s
     bench = BenchSetup(sc, seed, duration_s, emu_end, BenchFaults.parse(faults) if isinstance(faults, str) else faults)
     config = sc.firmware_config()
     if cfg:
-        config = dataclasses.replace(config, **cfg)
+        config = config.with_keys(**cfg)
     fw = Firmware(config, fw_end)
     if setup is not None:
         setup(fw, bench)
-    tick = config.tick_us
+    tick = config.timing.tick_us
     end = int(duration_s * 1e6)
     t = 0
     while t <= end:

@@ -72,7 +72,7 @@ def _run_inproc(prefetch: bool, duration_us: int = 2_500_000):
         fw.tick(t)
         if prefetch:
             emu.prefetch(t + AHEAD_US, PREFETCH_PIECE, PREFETCH_PIECE)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     return bytes(sent), sensor, on_path
 
 

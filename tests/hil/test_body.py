@@ -177,11 +177,11 @@ def test_body_scenarios_are_registered_with_their_thesis_rows():
             sc = scenarios.get(name + suffix)
             assert sc.reference["magnetic_position_rms_mm"] == fig[0]
             assert sc.reference["position_rms_mm"] == fig[2]
-            assert sc.sensor.source_imu_id == sc.firmware_config().source_imu_id != 0
-        assert scenarios.get(name + "-noanet").firmware_config().source_acceleration is False
+            assert sc.sensor.source_imu_id == sc.firmware_config().link.source_imu_id != 0
+        assert scenarios.get(name + "-noanet").firmware_config().body.source_acceleration is False
         assert scenarios.get(name + "-nooffset").sensor.source_acc_offset is False
-        assert scenarios.get(name).firmware_config().tight_fusion is True
-        assert scenarios.get(name + "-loose").firmware_config().tight_fusion is False
+        assert scenarios.get(name).firmware_config().tight.tight_fusion is True
+        assert scenarios.get(name + "-loose").firmware_config().tight.tight_fusion is False
     w = scenarios.get("roetenberg-walking-leg").build_world(1, 2.0)
     assert w.source_moving
 
@@ -192,7 +192,7 @@ def test_body_config_keys_refused_by_name(key, value):
     """A bad ``[body]`` value is refused with a ConfigError naming ``body.<key>``, from a TOML-shaped
     dict as from the dataclass. Catches a key outside its section or an unchecked value."""
     with pytest.raises(ConfigError, match=f"body.{key}"):
-        FirmwareConfig(**{key: value}).validate()
+        FirmwareConfig().with_keys(**{key: value}).validate()
     with pytest.raises(ConfigError, match=f"body.{key}"):
         config_from_dict({"body": {key: value}})
 

@@ -111,6 +111,6 @@ def test_quiet_field_keys_refused_by_name(key, value):
     """A bad quiet-field value is refused with a ConfigError naming ``tight.<key>``, from the dataclass
     and from a TOML-shaped dict. Catches a key outside its section or an unchecked value."""
     with pytest.raises(ConfigError, match=f"tight.{key}"):
-        FirmwareConfig(**{key: value}).validate()
+        FirmwareConfig().with_keys(**{key: value}).validate()
     with pytest.raises(ConfigError, match=f"tight.{key}"):
         config_from_dict({"tight": {key: value}})

@@ -54,7 +54,7 @@ def test_crlb_ignores_the_firmwares_window_counts(bench_runner):
     assert rep["crlb_position_rms_mm"] == ref["crlb_position_rms_mm"]
     from coiltrack.hil.crlb import TruthAmplitudes
 
-    ta = TruthAmplitudes(b, run.scenario.sensor.noise_t, cfg.baseline_us)
+    ta = TruthAmplitudes(b, run.scenario.sensor.noise_t, cfg.pulse.baseline_us)
     rp = next(r for r in b.recorder.poses if r["windows"])
     cur, sig = ta.for_pose(rp, 3)
     ex = {(e["coil"], e["pulse_id"]): e["current_a"] for e in b.driver.executed}

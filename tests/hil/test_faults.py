@@ -32,7 +32,7 @@ def _pose_error(rp):
 
 def check_survived_and_vouched(run, recovered_after_us=None, min_valid_after=3, allow=0):
     fw, b = run.fw, run.bench
-    assert fw.ticks == int(DURATION * 1e6) // run.cfg.tick_us + 1
+    assert fw.ticks == int(DURATION * 1e6) // run.cfg.timing.tick_us + 1
     poses = b.recorder.poses
     assert len(poses) >= int(DURATION / 0.6) - 2              # a pose (valid or not) every cycle
     for rp in poses:

@@ -18,7 +18,7 @@ DURATION = 5.0
 
 def _run(sensor_ids):
     sc = scenarios.get("multi16")
-    cfg = dataclasses.replace(sc.firmware_config(), sensor_ids=tuple(sensor_ids))
+    cfg = sc.firmware_config().with_(link={"sensor_ids": tuple(sensor_ids)})
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 4, DURATION, emu_end, None, cfg=cfg)
     fw = Firmware(cfg, fw_end)
@@ -26,7 +26,7 @@ def _run(sensor_ids):
     while t <= int(DURATION * 1e6):
         bench.emulator.step(t)
         fw.tick(t)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     bench.emulator.step(t)
     return report_mod.build(bench, fw.status(), DURATION, transport="inproc", cfg=cfg)
 

@@ -68,11 +68,11 @@ def test_steady_tick_with_raab_allocates_nothing():
     sc = scenarios.get("roetenberg-fusion")
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 2, 21.0, emu_end)
-    cfg = dataclasses.replace(sc.firmware_config(), pose_solver="raab")
+    cfg = sc.firmware_config().with_(pose={"pose_solver": "raab"})
     fw = Firmware(cfg, fw_end)
     counter = NumpyAllocationCounter()
     counts = 0
-    for t in range(0, 20_000_001, cfg.tick_us):
+    for t in range(0, 20_000_001, cfg.timing.tick_us):
         bench.emulator.step(t)
         before = counter.count
         with counter:

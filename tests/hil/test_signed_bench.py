@@ -39,15 +39,15 @@ def _run(fw_key: str, node_key: str, sign_ts0: int = 123_456_789):
     sc = scenarios.get("static")
     fw_end, emu_end = inproc_pair()
     base = sc.firmware_config()
-    bench = BenchSetup(sc, 2, DURATION, emu_end, None, cfg=dataclasses.replace(base, signing_key=node_key))
-    cfg = dataclasses.replace(base, signing_key=fw_key)
+    bench = BenchSetup(sc, 2, DURATION, emu_end, None, cfg=base.with_(signing={"signing_key": node_key}))
+    cfg = base.with_(signing={"signing_key": fw_key})
     tap = _Tap(fw_end)
     fw = Firmware(cfg, tap, sign_ts0=sign_ts0)
     t = 0
     while t <= int(DURATION * 1e6):
         bench.emulator.step(t)
         fw.tick(t)
-        t += cfg.tick_us
+        t += cfg.timing.tick_us
     bench.emulator.step(t)
     bench.sent = bytes(tap.sent)
     return bench, fw, report_mod.build(bench, fw.status(), DURATION, transport="inproc", cfg=cfg)

@@ -82,7 +82,7 @@ def test_sync_keeps_100ppm_clocks_aligned(thesis_run):
     master late by the broadcast's link latency, the same for both (one tick in this runner:
     the emulator reads the broadcast at its next step), so it cancels between them."""
     b = thesis_run.bench
-    tick = thesis_run.cfg.tick_us
+    tick = thesis_run.cfg.timing.tick_us
     assert b.sensor.clock.drift_ppm == 100.0 and b.driver.clock.drift_ppm == -100.0
     assert abs(b.sensor.clock.offset_us) > 100_000 and abs(b.driver.clock.offset_us) > 100_000
     ex = b.driver.executed
@@ -121,14 +121,14 @@ def test_pulse_commands_reach_the_driver_ahead(thesis_run, fast_run):
     for run in (thesis_run, fast_run):
         b = run.bench
         assert b.driver.refused == 0
-        lead = run.cfg.lead_us
+        lead = run.cfg.timing.lead_us
         for e in b.driver.executed:
             # in master time (driver's view) and in true time
             # commands leave lead_us before the cycle; coil j starts j * spacing later
-            j_max = len(run.cfg.coils) - 1
-            assert lead - run.cfg.tick_us <= e["lead_us"] <= lead + j_max * run.cfg.spacing_us + 100
-            assert e["start_us"] - e["rx_true_us"] >= lead - 2 * run.cfg.tick_us
-        assert run.rep["command_lead_min_ms"] >= (lead - run.cfg.tick_us) / 1000
+            j_max = len(run.cfg.source.coils) - 1
+            assert lead - run.cfg.timing.tick_us <= e["lead_us"] <= lead + j_max * run.cfg.timing.spacing_us + 100
+            assert e["start_us"] - e["rx_true_us"] >= lead - 2 * run.cfg.timing.tick_us
+        assert run.rep["command_lead_min_ms"] >= (lead - run.cfg.timing.tick_us) / 1000
 
 
 def test_flips_stay_out_of_the_pulse_windows(thesis_run, bench_runner):
@@ -152,10 +152,10 @@ def test_flips_stay_out_of_the_pulse_windows(thesis_run, bench_runner):
 def test_time_sync_broadcasts_and_replies(thesis_run):
     rec = thesis_run.bench.recorder
     t = np.array([r for r, _ in rec.time_syncs])
-    assert np.max(np.diff(t)) <= 250_000 + thesis_run.cfg.tick_us
+    assert np.max(np.diff(t)) <= 250_000 + thesis_run.cfg.timing.tick_us
     st = thesis_run.fw.status()
     assert st["sync_replies"] >= 2 * (st["sync_sent"] - 1)
-    assert st["sync_rtt_us_min"] == thesis_run.cfg.tick_us       # one tick each way in this runner
+    assert st["sync_rtt_us_min"] == thesis_run.cfg.timing.tick_us       # one tick each way in this runner
 
 
 def test_latency_from_last_sample_to_pose_is_bounded(thesis_run, fast_run):
@@ -167,9 +167,9 @@ def test_latency_from_last_sample_to_pose_is_bounded(thesis_run, fast_run):
         rep = run.rep
         st = run.fw.status()
         assert rep["latency_ms_max"] is not None
-        assert 1 <= st["solve_ticks_max"] <= -(-st["solve_evals_max"] // run.cfg.track_budget_evals) + 2
-        assert rep["latency_ms_max"] * 1000 <= (3 + st["solve_ticks_max"]) * run.cfg.tick_us
-        assert rep["latency_ms_p50"] * 1000 >= run.cfg.tick_us - 1
+        assert 1 <= st["solve_ticks_max"] <= -(-st["solve_evals_max"] // run.cfg.budget.track_budget_evals) + 2
+        assert rep["latency_ms_max"] * 1000 <= (3 + st["solve_ticks_max"]) * run.cfg.timing.tick_us
+        assert rep["latency_ms_p50"] * 1000 >= run.cfg.timing.tick_us - 1
 
 
 # ---------------------------------------------------------------------------

@@ -167,7 +167,7 @@ def test_busload_sync_rate_matches_a_counted_firmware_run():
             while (f := sniff.recv(timeout=0)) is not None:
                 for _, m in rx.feed_with_headers(f):
                     seen.append((t, m, f.is_extended_id))
-            t += cfg.tick_us
+            t += cfg.timing.tick_us
     finally:
         fw_end.close()
         emu_end.close()
@@ -177,9 +177,9 @@ def test_busload_sync_rate_matches_a_counted_firmware_run():
     assert len(starts) >= 4
     t0, t1 = starts[0], starts[3]
     syncs = [m.sync_seq for t, m, _ in seen if m.NAME == "TIME_SYNC" and t0 <= t < t1]
-    hz = firmware_sync_hz(cfg.cycle_us, len(cfg.coils))
-    assert len(syncs) == round(hz * cfg.cycle_us * 3e-6) == 18
-    nodes = tuple(cfg.sensor_ids) + (cfg.coil_driver_id,)
+    hz = firmware_sync_hz(cfg.timing.cycle_us, len(cfg.source.coils))
+    assert len(syncs) == round(hz * cfg.timing.cycle_us * 3e-6) == 18
+    nodes = tuple(cfg.link.sensor_ids) + (cfg.link.coil_driver_id,)
     for n in nodes:
         answered = {m.sync_seq for _, m, _ in seen if m.NAME == "TIME_SYNC_REPLY" and m.node == n}
         assert set(syncs) <= answered, n

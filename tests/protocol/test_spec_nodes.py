@@ -215,10 +215,10 @@ def test_timing_and_capability_figures_are_the_defaults(doc):
     assert _num(doc, r"firmware: every (\d+) ms,\s+`sync_period_us`") * 1000 == s.sync_period_us
     assert _num(doc, r"a\s+sensor silent for (\d+) ms") * 1000 == h.sensor_timeout_us
     assert _num(doc, r"the largest configured current: \*\*([\d.]+) A\*\*") == \
-        max(max(c.current for c in cfg.coils), cfg.adaptive_max_current_a)
-    assert _num(doc, r"\| pulse length \| (\d+) ms \(`pulse_us`\)") * 1000 == cfg.pulse_us
-    assert _num(doc, r"\*\*(\d+) ms\*\* minimum lead") * 1000 == min(cfg.lead_us, cfg.adaptive_lead_us)
+        max(max(c.current for c in cfg.source.coils), cfg.adaptive.adaptive_max_current_a)
+    assert _num(doc, r"\| pulse length \| (\d+) ms \(`pulse_us`\)") * 1000 == cfg.timing.pulse_us
+    assert _num(doc, r"\*\*(\d+) ms\*\* minimum lead") * 1000 == min(cfg.timing.lead_us, cfg.adaptive.adaptive_lead_us)
     assert _num(doc, r"the largest configured current: \*\*[\d.]+ A\*\* \| ([\d.]+) A \|") == lim.max_current_a
     assert _num(doc, r"\| \*\*60 ms\*\* \| (\d+) ms \|") * 1000 == lim.max_pulse_us
     assert _num(doc, r"must not refuse as late a command 10 ms ahead \| (\d+) us \|") == lim.min_lead_us
-    assert _num(doc, r"default \*\*([\d.]+) Hz\*\*; `imu_rate_hz`") == cfg.mag_rate_hz
+    assert _num(doc, r"default \*\*([\d.]+) Hz\*\*; `imu_rate_hz`") == cfg.pulse.mag_rate_hz

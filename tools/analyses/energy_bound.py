@@ -289,11 +289,11 @@ class SeedModel:
         self.Jt, self.u = unit_model(world.source, p, R)
         self.u2 = np.sum(self.u ** 2, axis=-1)
         earth = np.einsum("nji,j->ni", R, world.earth)                       # R^T earth, sensor frame
-        self.imax = current_limit(self.u, earth, cfg.mag_range_t, cfg.max_current_a)
+        self.imax = current_limit(self.u, earth, cfg.pulse.mag_range_t, cfg.limits.max_current_a)
         self.tm = Timing.from_config(cfg)
-        self.I0 = np.array([c.current for c in cfg.coils])
-        self.T0, self.B0 = cfg.pulse_us * 1e-6, cfg.baseline_us * 1e-6
-        self.x0 = window * self.weight(self.I0, cfg.field_model_rel_sigma)
+        self.I0 = np.array([c.current for c in cfg.source.coils])
+        self.T0, self.B0 = cfg.timing.pulse_us * 1e-6, cfg.pulse.baseline_us * 1e-6
+        self.x0 = window * self.weight(self.I0, cfg.adaptive.field_model_rel_sigma)
         self.ref_energy = window * float(np.mean(self.I0 ** 2)) * self.T0
 
     def weight(self, currents, rho: float) -> np.ndarray:
@@ -301,7 +301,7 @@ class SeedModel:
         baseline and the model error ``rho`` (the cycle's pulses are not timed to the samples: the
         mean counts whatever ``phase``)."""
         nu, nb = pulse_samples(self.T0, self.B0, self.tm, "mean")
-        a = self.cfg.mag_sigma_t ** 2 * (1 / nu + 1 / nb) + self.cfg.current_tolerance_a ** 2 * self.u2
+        a = self.cfg.pulse.mag_sigma_t ** 2 * (1 / nu + 1 / nb) + self.cfg.limits.current_tolerance_a ** 2 * self.u2
         return pulse_weight(np.asarray(currents, dtype=float)[None, :], a, rho * rho * self.u2)
 
     def saturated_share(self) -> float:
@@ -372,7 +372,7 @@ def _sweep_model_error() -> float:
     """The model error of the ``schepers-fixed-910``/``-450`` sweeps the exponents are fitted to."""
     from coiltrack.tools import scenarios
 
-    return float(scenarios.get("schepers-fixed-910").firmware_config().field_model_rel_sigma)
+    return float(scenarios.get("schepers-fixed-910").firmware_config().adaptive.field_model_rel_sigma)
 
 
 def _arguments(argv):

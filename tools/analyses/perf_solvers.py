@@ -30,7 +30,7 @@ def _one(header: dict, reads, solver: str, warm_us: int) -> dict:
     state = {"ns": 0, "cpu": 0, "t": 0}
 
     def factory(cfg, port):
-        fw = Firmware(dataclasses.replace(cfg, pose_solver=solver), port)
+        fw = Firmware(cfg.with_(pose={"pose_solver": solver}), port)
         sv = fw.tracker.solver
         begin, step = sv.begin, sv.step
 

@@ -80,7 +80,7 @@ class Timing:
 
     @classmethod
     def from_config(cls, cfg) -> "Timing":
-        return cls(float(cfg.mag_rate_hz), cfg.settle_us * 1e-6, cfg.guard_us * 1e-6, cfg.fall_us * 1e-6)
+        return cls(float(cfg.pulse.mag_rate_hz), cfg.pulse.settle_us * 1e-6, cfg.pulse.guard_us * 1e-6, cfg.pulse.fall_us * 1e-6)
 
     def gap_s(self, baseline_s: float) -> float:
         """Quiet time a pulse needs after it before the next: fall + baseline + guard."""

@@ -61,7 +61,7 @@ def run_one(name: str, seed: int, duration: float, solver: str) -> dict:
     sc = scenarios.get(name)
     if sc.report_extra is None:
         sc = dataclasses.replace(sc, report_extra=tracking_figures)
-    cfg = dataclasses.replace(sc.firmware_config(), pose_solver=solver)
+    cfg = sc.firmware_config().with_(pose={"pose_solver": solver})
     sink = []
     saved = [(cls, _instrument(cls, sink)) for _, cls in SOLVERS]
     try:

@@ -112,7 +112,7 @@ def check_run(scenario: str, seed: int, duration_s: float, faults: str = "none")
             if faults != "none":
                 text = faults
                 if faults == "one":
-                    text = one_fault(seed, duration_s, len(sc.firmware_config().coils))
+                    text = one_fault(seed, duration_s, len(sc.firmware_config().source.coils))
                 out["faults"] = text
                 lf = parse_faults(text, sc)
             rep = run_inproc(sc, int(seed), float(duration_s), faults=lf)

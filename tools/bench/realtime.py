@@ -471,13 +471,13 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
                "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
                *(["--config", str(config_path)] if config_path else []),
-               *(["--calibration", cfg.calibration_file] if cfg.calibration_file else []),
-               "--core", cfg.impl]
+               *(["--calibration", cfg.calibration.calibration_file] if cfg.calibration.calibration_file else []),
+               "--core", cfg.core.impl]
         env = None
-        if cfg.signing_key:     # the key reaches the child in its environment, not on its command line
+        if cfg.signing.signing_key:     # the key reaches the child in its environment, not on its command line
             from ..args import KEY_ENV
 
-            env = {**os.environ, KEY_ENV: cfg.signing_key}
+            env = {**os.environ, KEY_ENV: cfg.signing.signing_key}
             cmd += ["--key", "@env"]
         emu_timing = EmulatorTiming()
         stopped, code, fw_stats = _beside_child(_pin_cpus(cmd), bench, clock, duration_s,

@@ -43,7 +43,7 @@ class BenchSetup:
         self.seed = seed
         self.duration_s = duration_s
         self.world = scenario.build_world(s_world, duration_s)
-        sids = tuple((cfg or scenario.firmware_config()).sensor_ids)
+        sids = tuple((cfg or scenario.firmware_config()).link.sensor_ids)
         views = scenario.sensor_worlds(self.world, s_world, duration_s, sids) if scenario.sensor_worlds else None
         spec = scenario.sensor
         key = (cfg or scenario.firmware_config()).signing_key_bytes()
@@ -156,18 +156,18 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     fw = Firmware(cfg, fw_end)
     prog = Progress(progress, duration_s, scenario.name)
     wall0 = time.perf_counter()
-    t, exec_ns, stopped = _tick_loop(bench, fw, rec_port, int(duration_s * 1e6), cfg.tick_us, prog, outputs)
+    t, exec_ns, stopped = _tick_loop(bench, fw, rec_port, int(duration_s * 1e6), cfg.timing.tick_us, prog, outputs)
     fw_end.close()
     emu_end.close()
     prog.done()
     wall = time.perf_counter() - wall0
-    done_s = duration_s if stopped is None else max(t, cfg.tick_us) * 1e-6
+    done_s = duration_s if stopped is None else max(t, cfg.timing.tick_us) * 1e-6
     rep = report_mod.build(bench, fw.status(), done_s, transport=transport, cfg=cfg)
-    rep.update(inproc_timing(exec_ns, cfg.tick_us))
+    rep.update(inproc_timing(exec_ns, cfg.timing.tick_us))
     rep["wall_s"] = round(wall, 2)
     rep["speedup"] = round(done_s / wall, 1) if wall > 0 else None
     if rec_port is not None:
-        write_log(log_path, {"scenario": scenario.name, "seed": seed, "duration_s": done_s, "tick_us": cfg.tick_us,
+        write_log(log_path, {"scenario": scenario.name, "seed": seed, "duration_s": done_s, "tick_us": cfg.timing.tick_us,
                              "config": config_to_dict(cfg)}, rec_port.reads)
         rep["log"] = str(log_path)
     if outputs is not None:

@@ -114,14 +114,14 @@ def soak_run(scenario, seed: int, duration_s: float, schedule: str | None = None
     from .runner import BenchSetup, parse_faults
 
     cfg = scenario.firmware_config()
-    n_coils = len(cfg.coils)
+    n_coils = len(cfg.source.coils)
     schedule = random_schedule(seed, duration_s, n_coils) if schedule is None else schedule
     faults = parse_faults(schedule, scenario)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(scenario, seed, duration_s, emu_end, faults, cfg=cfg)
     fw = Firmware(cfg, fw_end)
     end_us = int(duration_s * 1e6)
-    tick = cfg.tick_us
+    tick = cfg.timing.tick_us
     every = max(tick, (end_us // MEMORY_SAMPLES) // tick * tick)
     memory = []
     crash = None

@@ -108,19 +108,19 @@ class _GridModel:
         self.b_on = np.asarray(rec["b_on"], float)
         self.b_off = np.asarray(rec["b_off"], float)
         self.S, self.K = self.b_on.shape[0], self.b_on.shape[1]
-        if len(cfg.coils) != self.K:
-            raise ValueError(f"the recording has {self.K} coils, the configuration {len(cfg.coils)}")
+        if len(cfg.source.coils) != self.K:
+            raise ValueError(f"the recording has {self.K} coils, the configuration {len(cfg.source.coils)}")
         meta = rec.get("meta", {})
         E = np.asarray(meta.get("earth_field_t", [0.0, 0.0, 0.0]), float).reshape(3)
-        self.node = int(rec.get("node", meta.get("node", cfg.sensor_ids[0])))
+        self.node = int(rec.get("node", meta.get("node", cfg.link.sensor_ids[0])))
         noise = float(rec["noise_t"])
         self.sig_on = noise / math.sqrt(int(rec["n_on"]))
         self.sig_o = noise / math.sqrt(int(rec["n_off"]))
-        self.nom = cfg.coils
+        self.nom = cfg.source.coils
         if not np.linalg.norm(E) > 0:
             raise ValueError("the grid fit needs the earth field (meta.earth_field_t): it fixes the soft-iron scale")
         self.T = np.asarray(rec.get("temperature_c", np.full(self.S, T_REF_C)), float) - T_REF_C
-        self.rng_t = float(cfg.mag_range_t)
+        self.rng_t = float(cfg.pulse.mag_range_t)
         self.Be = np.einsum("sji,j->si", self.Rs, E)            # earth field, sensor frame (S, 3)
 
     def x0(self) -> np.ndarray:
@@ -247,7 +247,7 @@ def fit_free(rec: dict, cfg: FirmwareConfig | None = None) -> dict:
     rate = 1.0 / float(np.median(np.diff(t)))
     st = _StillMeans(rec, rate)
     # magnetometer and accelerometer ellipsoids on the still means
-    range_t = float(cfg.mag_range_t) if cfg is not None else 32767 * 5e-9
+    range_t = float(cfg.pulse.mag_range_t) if cfg is not None else 32767 * 5e-9
     Ms, hm, Mss, hms, rms_m = _ellipsoid(st.mm, Emag, st.s_mag, st.tm, range_t)
     A, ba, As, bas, rms_a = _ellipsoid(st.am, g0, st.s_acc)
     Ai, Mi = np.linalg.inv(A), np.linalg.inv(Ms)

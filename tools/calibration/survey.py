@@ -75,8 +75,8 @@ def _nominal_fields(cfg, p):
     from coiltrack.firmware.model.field import Coil
     from coiltrack.firmware.model.signal import SignalModel
 
-    coils = [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.coils]
-    sm = SignalModel(coils, cfg.field_model)
+    coils = [Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.source.coils]
+    sm = SignalModel(coils, cfg.source.field_model)
     ones = [1.0] * len(coils)
     out = np.zeros((len(coils), p.shape[0], 3))
     for i in range(p.shape[0]):
@@ -179,7 +179,7 @@ def fit_survey(cfg, p, R, S, currents, dipoles_per_coil: int = 3, weight: str = 
         w = np.linalg.norm(p, axis=1) / np.linalg.norm(nom[k], axis=1) if weight == "position" else None
         if w is not None:
             w = w / np.mean(w)
-        q, mu, sq, smu, res = _fit_coil(p, r, dipoles_per_coil, _starts(np.asarray(cfg.coils[k].center, float), start_distances_m), w)
+        q, mu, sq, smu, res = _fit_coil(p, r, dipoles_per_coil, _starts(np.asarray(cfg.source.coils[k].center, float), start_distances_m), w)
         table[f"coil{k}_position_m"] = q.tolist()
         table[f"coil{k}_moment_am2_per_a"] = mu.tolist()
         table[f"coil{k}_position_m_sigma"] = sq.tolist()
@@ -198,7 +198,7 @@ def survey_table(world, cfg, noise_t: float, seed: int = 1, dipoles_per_coil: in
                  poses=None) -> tuple[dict, dict]:
     """Jig poses, amplitudes and fit in one call: ``(distortion table, summary)``."""
     p, R = poses if poses is not None else jig_poses(seed=seed)
-    cur = [c.current for c in cfg.coils]
+    cur = [c.current for c in cfg.source.coils]
     S, sigma = survey_amplitudes(world, p, R, cur, noise_t, bursts=bursts, seed=seed)
     table, summary = fit_survey(cfg, p, R, S, cur, dipoles_per_coil)
     summary["amplitude_sigma_t"] = sigma
@@ -228,7 +228,7 @@ def record_survey(scenario, seed: int = 1, bursts: int = 50) -> dict:
     world = sc.build_world(s_world, sc.duration_s)
     cfg = sc.firmware_config()
     p, R = jig_poses(seed=seed)
-    cur = np.array([c.current for c in cfg.coils])
+    cur = np.array([c.current for c in cfg.source.coils])
     S, sigma = survey_amplitudes(world, p, R, cur, sc.sensor.noise_t, bursts=bursts, seed=seed)
     return {"kind": "survey", "p": p, "R": R, "S": S, "currents": cur, "sigma_t": sigma,
             "meta": {"scenario": sc.name, "seed": int(seed), "bursts": int(bursts)}}
@@ -241,8 +241,8 @@ def fit_recording(rec: dict, cfg=None, dipoles_per_coil: int = 3) -> dict:
 
     cfg = cfg or FirmwareConfig()
     S = np.asarray(rec["S"], float)
-    if S.ndim != 3 or S.shape[2] != len(cfg.coils):
-        raise ValueError(f"survey: amplitudes for {S.shape[-1]} coils, the configuration has {len(cfg.coils)}")
+    if S.ndim != 3 or S.shape[2] != len(cfg.source.coils):
+        raise ValueError(f"survey: amplitudes for {S.shape[-1]} coils, the configuration has {len(cfg.source.coils)}")
     table, summary = fit_survey(cfg, np.asarray(rec["p"], float), np.asarray(rec["R"], float), S,
                                 np.asarray(rec["currents"], float), dipoles_per_coil)
     meta = {"method": "survey", "poses": int(table["n_points"]), "residual_rms": table["residual_rms_t"],
@@ -273,7 +273,7 @@ def _run(scenario, seed: int, duration_s: float, cfg):
     bench = runner.BenchSetup(scenario, seed, duration_s, emu_end, None, cfg=cfg)
     fw = Firmware(cfg, fw_end)
     prog = runner.Progress(False, duration_s, scenario.name)
-    runner._tick_loop(bench, fw, None, int(duration_s * 1e6), cfg.tick_us, prog)
+    runner._tick_loop(bench, fw, None, int(duration_s * 1e6), cfg.timing.tick_us, prog)
     fw_end.close()
     emu_end.close()
     rep = report_mod.build(bench, fw.status(), duration_s, transport="inproc", cfg=cfg)
@@ -323,8 +323,8 @@ def correction_report(bench, rep: dict, cfg, clean_scenario) -> dict:
     sc = bench.scenario
     seed, duration = bench.seed, rep["duration_s"]
     plain = dataclasses.replace(sc, report_extra=None)
-    bare = dataclasses.replace(cfg, calibration_file="")
-    user_file = getattr(cfg, "calibration_file", "")
+    bare = cfg.with_(calibration={"calibration_file": ""})
+    user_file = getattr(getattr(cfg, "calibration", None), "calibration_file", "")
     if user_file:
         # this run already applied a calibration file (bench --calibration): it is the corrected run
         cor, cor_poses = rep, poses_of(bench)
@@ -337,7 +337,7 @@ def correction_report(bench, rep: dict, cfg, clean_scenario) -> dict:
         with tempfile.TemporaryDirectory() as d:
             path = os.path.join(d, "survey.toml")
             write_calibration(path, table, summary)
-            cor, cor_poses = _run(plain, seed, duration, dataclasses.replace(cfg, calibration_file=path))
+            cor, cor_poses = _run(plain, seed, duration, cfg.with_(calibration={"calibration_file": path}))
     clean, clean_poses = _run(clean_scenario, seed, duration, bare)
     out["uncorrected_position_rms_mm"] = unc.get("position_rms_mm")
     out["uncorrected_orientation_rms_deg"] = unc.get("orientation_rms_deg")

@@ -88,11 +88,11 @@ def _setup(args):
     if args.key:
         import dataclasses
 
-        cfg = dataclasses.replace(cfg or sc.firmware_config(), signing_key=args.key)
+        cfg = (cfg or sc.firmware_config()).with_(signing={"signing_key": args.key})
     if args.core:
         import dataclasses
 
-        cfg = dataclasses.replace(cfg or sc.firmware_config(), impl=args.core)
+        cfg = (cfg or sc.firmware_config()).with_(core={"impl": args.core})
     if args.calibration:
         from ..inputs.calibfile import with_calibration
 

@@ -54,11 +54,11 @@ def firmware_sync_hz(cycle_us: int | None = None, coils: int | None = None) -> f
     from coiltrack.protocol.busload import sync_broadcasts_per_cycle
 
     fc, sc = FirmwareConfig(), SupervisorConfig()
-    cycle = fc.cycle_us if cycle_us is None else int(cycle_us)
-    n = len(fc.coils) if coils is None else int(coils)
+    cycle = fc.timing.cycle_us if cycle_us is None else int(cycle_us)
+    n = len(fc.source.coils) if coils is None else int(coils)
     req = []
     if sc.sync_around_burst:
-        last_end = fc.lead_us + (n - 1) * fc.spacing_us + fc.pulse_us     # after the commands leave
+        last_end = fc.timing.lead_us + (n - 1) * fc.timing.spacing_us + fc.timing.pulse_us     # after the commands leave
         req = [0] + [last_end + d for d in BURST_SYNCS_AFTER_US]
     return sync_broadcasts_per_cycle(cycle, sc.sync_period_us, req) * 1e6 / cycle
 
@@ -68,8 +68,8 @@ def run(args) -> int:
     from coiltrack.protocol.busload import Traffic, bus_load, format_report
 
     fc = FirmwareConfig()
-    coils = len(fc.coils) if args.coils is None else args.coils
-    cycle_us = fc.cycle_us if args.cycle_ms is None else int(round(args.cycle_ms * 1000.0))
+    coils = len(fc.source.coils) if args.coils is None else args.coils
+    cycle_us = fc.timing.cycle_us if args.cycle_ms is None else int(round(args.cycle_ms * 1000.0))
     sync_hz = firmware_sync_hz(cycle_us, coils) if args.sync_rate is None else args.sync_rate
     t = Traffic(sensors=args.nodes, coils=coils, mag_rate_hz=args.mag_rate, imu_rate_hz=args.imu_rate,
                 cycle_s=cycle_us / 1e6, heartbeat_hz=args.heartbeat_rate, sync_hz=sync_hz,

@@ -184,7 +184,7 @@ def run(args) -> int:
 
         try:
             old = read_table(args.merge)
-            Calibration.from_table(old, len(cfg.coils))
+            Calibration.from_table(old, len(cfg.source.coils))
         except InputFileError as exc:
             print(f"coiltrack calibrate: --merge {exc}", file=sys.stderr)
             return 2
@@ -218,7 +218,7 @@ def run(args) -> int:
     tables["meta"]["date"] = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     if old is not None:
         tables = merge_tables(tables, old)
-    Calibration.from_table(tables, len(cfg.coils))      # what is written must load
+    Calibration.from_table(tables, len(cfg.source.coils))      # what is written must load
     with open(args.out, "w") as fh:
         fh.write(dumps_toml(tables))
     m = tables["meta"]

@@ -75,11 +75,11 @@ def _config(args):
         if args.key:
             import dataclasses
 
-            cfg = dataclasses.replace(cfg, signing_key=args.key)
+            cfg = cfg.with_(signing={"signing_key": args.key})
         if args.core:
             import dataclasses
 
-            cfg = dataclasses.replace(cfg, impl=args.core)
+            cfg = cfg.with_(core={"impl": args.core})
         return cfg
     except InputFileError as exc:
         print(f"coiltrack firmware: --config {exc}", file=sys.stderr)
@@ -105,7 +105,7 @@ def run(args) -> int:
             return 2
     warn_virtual_bus(args, "firmware")
     try:
-        link, _ = open_link(args, cfg.node_id)
+        link, _ = open_link(args, cfg.link.node_id)
     except ValueError as exc:
         print(f"coiltrack firmware: {exc}", file=sys.stderr)
         return 2
@@ -123,10 +123,10 @@ def run(args) -> int:
             rt.update(_realtime_setup(args.cpu, **({"priority": args.rt_priority} if args.rt_priority else {})))
         rt["keep_awake"] = bool(awake.children)
         # a link that coalesces writes (a pty: FdLink) sends a tick's frames together after it
-        timing = firmware_loop(fw, clock, duration_us, cfg.tick_us, after_tick=getattr(link, "flush", None))
+        timing = firmware_loop(fw, clock, duration_us, cfg.timing.tick_us, after_tick=getattr(link, "flush", None))
     except Stopped as exc:
         # a signal before the loop's first statement has no partial: zero ticks, still the keys
-        timing, code = exc.partial or no_ticks(cfg.tick_us), exc.exit_code
+        timing, code = exc.partial or no_ticks(cfg.timing.tick_us), exc.exit_code
         mark(report, exc)
         hint = " (--peer-timeout 0 keeps waiting)" if isinstance(exc, PeerSilent) else ""
         print(f"coiltrack firmware: stopped: {exc.reason}{hint}", file=sys.stderr)

@@ -159,7 +159,7 @@ def _with_core(cfg, core):
         return cfg
     import dataclasses
 
-    return dataclasses.replace(cfg, impl=core)
+    return cfg.with_(core={"impl": core})
 
 
 def _record(scenario: str, seed: int, duration: float, core=None):
@@ -179,8 +179,8 @@ def _record(scenario: str, seed: int, duration: float, core=None):
         bench.emulator.step(t)
         port.now_us = t
         fw.tick(t)
-        t += cfg.tick_us
-    header = {"scenario": scenario, "seed": seed, "duration_s": duration, "tick_us": cfg.tick_us,
+        t += cfg.timing.tick_us
+    header = {"scenario": scenario, "seed": seed, "duration_s": duration, "tick_us": cfg.timing.tick_us,
               "config": config_to_dict(cfg)}
     return header, port.reads
 
@@ -194,7 +194,7 @@ def _filter_steps(fw) -> dict:
         return out
     k = fus.imu.last_pushed_slot()
     t1 = int(fus.imu.tv[k])
-    t0 = t1 - int(1e6 / fw.cfg.imu_rate_hz)
+    t0 = t1 - int(1e6 / fw.cfg.imu.imu_rate_hz)
     saved = (fus.p.copy(), fus.v.copy(), fus.Th.copy(), fus.ba.copy(), fus.bg.copy(), fus.P.copy())
     n = 2000
     ts = np.zeros(n, dtype=np.int64)
@@ -438,8 +438,8 @@ def _timing_keys(rep: dict, r: _TickRecorder) -> None:
                 "cpu_deadline_misses": int(sum(1 for d in r.cpu_ns if d >= rep["tick_us"] * 1000))})
     # the largest work done in one tick, in machine-independent units, against the configured budget
     cfg = r.fw.cfg
-    rep.update({"max_field_evals_per_tick": r.work["evals"], "track_budget_evals": cfg.track_budget_evals,
-                "max_replay_steps_per_tick": r.work["replay"], "replay_budget_steps": cfg.replay_budget_steps})
+    rep.update({"max_field_evals_per_tick": r.work["evals"], "track_budget_evals": cfg.budget.track_budget_evals,
+                "max_replay_steps_per_tick": r.work["replay"], "replay_budget_steps": cfg.budget.replay_budget_steps})
     si = _stats(r.imu_ticks)
     rep.update({"fused_tick_us_median": si["median"], "fused_tick_us_p99": si["p99"], "fused_ticks": si["n"]})
     ph = np.array(r.phase_ns)

@@ -85,7 +85,7 @@ def run(args) -> int:
     sc = get(args.scenario)
     if args.print_schedule:
         for s in seeds:
-            print(f"seed {s}: {random_schedule(s, args.duration, len(sc.firmware_config().coils))}")
+            print(f"seed {s}: {random_schedule(s, args.duration, len(sc.firmware_config().source.coils))}")
         return 0
     jobs = [(args.scenario, s, args.duration) for s in seeds]
     stopped = None

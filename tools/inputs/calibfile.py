@@ -33,4 +33,4 @@ def with_calibration(path, cfg):
         return f"--calibration {exc}"
     except ConfigError as exc:
         return f"--calibration {path}: {exc}"
-    return dataclasses.replace(cfg, calibration_file=str(path))
+    return cfg.with_(calibration={"calibration_file": str(path)})

@@ -56,8 +56,8 @@ def load_over(path, base: FirmwareConfig) -> FirmwareConfig:
     :class:`~coiltrack.tools.inputs.infile.InputFileError` naming the file and its line or key (a file
     of comments alone puts nothing over ``base``); a bad value a :class:`ConfigError`."""
     cfg = merge(load_toml(path, "configuration"), base)
-    cal = getattr(cfg, "calibration_file", "")
-    if cal and cal != getattr(base, "calibration_file", ""):
+    cal = getattr(getattr(cfg, "calibration", None), "calibration_file", "")
+    if cal and cal != getattr(getattr(base, "calibration", None), "calibration_file", ""):
         from .calibfile import read_table
         from .infile import InputFileError
 

@@ -81,7 +81,7 @@ def _core_of(cfg) -> str:
     """The numeric core a firmware of ``cfg`` runs in this install (``coiltrack.firmware.core``)."""
     from coiltrack.firmware.core import resolve
 
-    return resolve(getattr(cfg, "impl", "compiled"))
+    return resolve(getattr(getattr(cfg, "core", None), "impl", "compiled"))
 
 
 def _rms(a) -> float:
@@ -99,7 +99,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
     dist = [float(np.linalg.norm(rp["true_p"])) for rp in rec.poses]
     from coiltrack.hil.bench import bench_metrics, fault_summary
 
-    truth = bench_metrics(bench, cfg.fall_us, cfg.baseline_us)
+    truth = bench_metrics(bench, cfg.pulse.fall_us, cfg.pulse.baseline_us)
     rep = {
         "scenario": bench.scenario.name,
         "seed": bench.seed,
@@ -123,7 +123,7 @@ def build(bench, fw_status: dict, duration_s: float, transport: str, cfg) -> dic
         "mag_samples": bench.sensor.samples,
         "source_moving": bool(getattr(world, "source_moving", False)),
     }
-    if len(cfg.sensor_ids) > 1:
+    if len(cfg.link.sensor_ids) > 1:
         rep["sensors"] = _sensor_keys(cfg, errs.per_node)
     rep.update(energy(bench.driver.executed, world, duration_s))
     if hasattr(bench.driver, "accuracy_report"):
@@ -143,7 +143,7 @@ class _PoseErrors:
         rec = bench.recorder
         world = bench.world
         sigma_amp, truth_amp = _amplitude_sigma(bench, cfg)
-        currents = np.array([c.current for c in cfg.coils])
+        currents = np.array([c.current for c in cfg.source.coils])
         self.pos, self.ang, self.crlb, self.fused = [], [], [], []
         self.invalid = 0
         self.per_node: dict[int, list] = {}
@@ -177,10 +177,10 @@ def _amplitude_sigma(bench, cfg):
     sigma_amp = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
     amp_sigma = getattr(bench.scenario.sensor, "amplitude_sigma", None)
     if amp_sigma is not None and amp_sigma(cfg) is not None:      # AC blocks: the demodulator's sigma
-        return np.broadcast_to(amp_sigma(cfg), (3, len(cfg.coils))), None
+        return np.broadcast_to(amp_sigma(cfg), (3, len(cfg.source.coils))), None
     from coiltrack.hil.crlb import TruthAmplitudes
 
-    return sigma_amp, TruthAmplitudes(bench, bench.scenario.sensor.noise_t, cfg.baseline_us)
+    return sigma_amp, TruthAmplitudes(bench, bench.scenario.sensor.noise_t, cfg.pulse.baseline_us)
 
 
 def _by_range(rec, pe, ae, cb) -> dict:
@@ -200,7 +200,7 @@ def _by_range(rec, pe, ae, cb) -> dict:
 def _sensor_keys(cfg, per_node: dict) -> list:
     """Every sensor's own figures (magnetic poses), in node order."""
     out = []
-    for node in cfg.sensor_ids:
+    for node in cfg.link.sensor_ids:
         e = np.array(per_node.get(node, []), dtype=float).reshape(-1, 2)
         out.append({"node": int(node), "poses": int(e.shape[0]), "position_rms_mm": round(_rms(e[:, 0]) * 1e3, 3),
                     "orientation_rms_deg": round(math.degrees(_rms(e[:, 1])), 3)})

@@ -42,11 +42,11 @@ class ACSensorSpec(SensorSpec):
 
     def amplitude_sigma(self, cfg):
         """Per-element standard deviation of the signal matrix (T, (n,)) for the CRLB of the report."""
-        if cfg.excitation != "ac":
+        if cfg.ac.excitation != "ac":
             return None
         from coiltrack.hil.ac_nodes import ac_amplitude_sigma
 
-        return ac_amplitude_sigma(cfg.ac_freqs_hz, self.rate_hz, cfg.ac_window_us * 1e-6, self.noise_t,
+        return ac_amplitude_sigma(cfg.ac.ac_freqs_hz, self.rate_hz, cfg.ac.ac_window_us * 1e-6, self.noise_t,
                                   MMC_INTEGRATION_US * 1e-6)
 
 
@@ -60,7 +60,7 @@ def ac_config(fusion: bool = True, **kw) -> FirmwareConfig:
                     imu_gyro_sigma=8.7e-4 * math.sqrt(500.0), fusion_replay_capacity=1024,
                     fusion_history_capacity=1024, replay_budget_steps=16, imu_timeout_us=20_000)
     base.update(kw)
-    return FirmwareConfig(**base)
+    return FirmwareConfig().with_keys(**base)
 
 
 def _raab_world(seed: int, duration_s: float):
@@ -118,8 +118,10 @@ def _metal_dc_config() -> FirmwareConfig:
     # pulsed DC, magnetic only, the same magnetometer; settle and fall cover L/R and the plate's
     # eddy field (tau 2 ms: e^-7, 1e-3 of it) after each edge; pulses 120 ms apart to keep the
     # trailing baseline clear of the next pulse
-    return FirmwareConfig(mag_rate_hz=MMC_RATE_HZ, mag_sigma_t=MMC_NOISE_T, settle_us=14_000, fall_us=14_000,
-                          spacing_us=120_000, fusion=False)
+    return FirmwareConfig().with_(
+        pulse={"mag_rate_hz": MMC_RATE_HZ, "mag_sigma_t": MMC_NOISE_T, "settle_us": 14_000, "fall_us": 14_000},
+        timing={"spacing_us": 120_000},
+        fusion={"fusion": False})
 
 
 register(Scenario(

@@ -23,9 +23,9 @@ Every row has five scenarios on the same motion and seed:
   burst (sec 6.5).
 
 Every body scenario turns each pulse window's samples with the sensor's
-gyroscope before the baseline fit (``body_motion.baseline_gyro``) and raises
+gyroscope before the baseline fit (``body.baseline_gyro``) and raises
 the ch. 2 filters' inclination variance with the measured motion
-(``body_motion.acc_adapt_gain``); see ``docs/bodyworn.md``.
+(``body.acc_adapt_gain``); see ``docs/bodyworn.md``.
 """
 from __future__ import annotations
 
@@ -59,7 +59,7 @@ BODY_ACC_MOTION_SIGMA = 0.5
 #: (0.17 m/s^2 x sqrt(72))
 BODY_SOURCE_ACC_SIGMA = 1.5
 
-#: the ch. 2 filters' adaptive motion variance (``body_motion.acc_adapt_gain``): the inclination
+#: the ch. 2 filters' adaptive motion variance (``body.acc_adapt_gain``): the inclination
 #: variance grows with the measured variance of ``y_A - g Z`` (walking trunk 1-3 m/s^2 at 0.9-1.8 Hz;
 #: on roetenberg-walking-back, 20 s, seed 1, the sensor's tilt error 8.9 -> 2.4 deg rms)
 BODY_ACC_ADAPT_GAIN = 1.0
@@ -99,7 +99,7 @@ def _body_config(movement: str, **kw):
                     baseline_gyro=True, acc_adapt_gain=BODY_ACC_ADAPT_GAIN,
                     tight_init_sigma_vel=_START_SIGMA_VEL.get(movement, 0.2), tight_valid_sigma_m=BODY_VALID_SIGMA_M)
         base.update(kw)
-        return FirmwareConfig(**base)
+        return FirmwareConfig().with_keys(**base)
     return make
 
 

@@ -98,7 +98,7 @@ def imperfection_figures(bench, rep: dict, cfg) -> dict:
     ``calibration`` (the firmware's calibration file, None without)."""
     imp = getattr(bench.world, "imperfections", None)
     return {"imperfections": imp.listing() if imp is not None else [],
-            "calibration": getattr(cfg, "calibration_file", "") or None}
+            "calibration": getattr(getattr(cfg, "calibration", None), "calibration_file", "") or None}
 
 
 #: report keys copied from the comparison runs
@@ -122,9 +122,9 @@ def add_imperfect_comparison(rep: dict, scenario: Scenario, seed: int, duration_
 
     cfg = cfg or scenario.firmware_config()
     tr = transport if transport in ("inproc", "can") else "inproc"
-    if getattr(cfg, "calibration_file", ""):
+    if getattr(getattr(cfg, "calibration", None), "calibration_file", ""):
         unc = run_inproc(scenario, seed, duration_s, faults=faults, transport=tr,
-                         cfg=dataclasses.replace(cfg, calibration_file=""))
+                         cfg=cfg.with_(calibration={"calibration_file": ""}))
     else:
         unc = rep
     per = run_inproc(PERFECT[scenario.name], seed, duration_s, faults=faults, transport=tr, cfg=cfg_perfect(cfg))
@@ -141,8 +141,8 @@ def add_imperfect_comparison(rep: dict, scenario: Scenario, seed: int, duration_
 def cfg_perfect(cfg):
     """The firmware configuration of the perfect run: the same, without a calibration file (a
     perfect bench is the nominal one)."""
-    if getattr(cfg, "calibration_file", ""):
-        return dataclasses.replace(cfg, calibration_file="")
+    if getattr(getattr(cfg, "calibration", None), "calibration_file", ""):
+        return cfg.with_(calibration={"calibration_file": ""})
     return cfg
 
 

@@ -39,7 +39,7 @@ def _views(world, seed: int, duration_s: float, sensor_ids):
 
 
 def _config() -> FirmwareConfig:
-    return FirmwareConfig(sensor_ids=SENSORS)
+    return FirmwareConfig().with_(link={"sensor_ids": SENSORS})
 
 
 register(Scenario(

@@ -69,7 +69,7 @@ def tracking_figures(bench, rep: dict, cfg) -> dict:
     nu = float(np.median(n_used)) if n_used else 1.0
     nb = float(np.median(n_base)) if n_base else 1.0
     sigma = bench.scenario.sensor.noise_t * math.sqrt(1.0 / nu + 1.0 / nb)
-    currents = np.array([c.current for c in cfg.coils])
+    currents = np.array([c.current for c in cfg.source.coils])
     inside, flips, mirrored, was = [], 0, 0, False
     errs = []                       # (position error, its bound's RMS radius, orientation error) per update
     for rp in rec.poses:
@@ -102,7 +102,7 @@ def tracking_figures(bench, rep: dict, cfg) -> dict:
     after = [e for e in errs[first:] if e is not None] if first is not None else []
     rms = lambda v: round(math.sqrt(sum(x * x for x in v) / len(v)), 3) if v else None  # noqa: E731
     return {"acquisition_updates": first, "hemisphere_flips": flips, "mirrored_poses": mirrored,
-            "pose_solver": cfg.pose_solver,
+            "pose_solver": cfg.pose.pose_solver,
             "after_acquisition_position_rms_mm": rms([e[0] * 1e3 for e in after]),
             "after_acquisition_crlb_position_rms_mm": rms([e[1] * 1e3 for e in after]),
             "after_acquisition_orientation_rms_deg": rms([math.degrees(e[2]) for e in after])}
@@ -119,7 +119,7 @@ def _acquire_config(**kw) -> FirmwareConfig:
     base = dict(pose_solver="raab", raab_iterations=1, raab_acquire_iterations=1, fusion=False,
                 raab_start_position=ACQUIRE_START_P, raab_start_euler_deg=(0.0, 0.0, 0.0))
     base.update(kw)
-    return FirmwareConfig(**base)
+    return FirmwareConfig().with_keys(**base)
 
 
 register(Scenario(
@@ -149,7 +149,7 @@ def _helix_world(seed: int, duration_s: float):
 def _helix_config(**kw) -> FirmwareConfig:
     base = dict(pose_solver="raab", fusion=False)
     base.update(kw)
-    return FirmwareConfig(**base)
+    return FirmwareConfig().with_keys(**base)
 
 
 register(Scenario(

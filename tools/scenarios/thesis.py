@@ -78,7 +78,8 @@ def _hil_fast_config():
 
     # thesis noise density at 1 kHz: 0.05 uT * sqrt(500 / 60); settle covers L/R (2.3 ms) and the
     # plate's eddy field (tau 2 ms) to 1e-3 of the pulse
-    return FirmwareConfig(mag_rate_hz=1000.0, mag_sigma_t=0.5e-7 * math.sqrt(500.0 / 60.0), settle_us=6000)
+    return FirmwareConfig().with_(
+        pulse={"mag_rate_hz": 1000.0, "mag_sigma_t": 0.5e-7 * math.sqrt(500.0 / 60.0), "settle_us": 6000})
 
 
 register(Scenario(
@@ -103,8 +104,11 @@ def _fusion_config(source_imu: bool = False, **kw):
         from coiltrack.hil.imu import NODE_SOURCE_IMU
 
         # (with IMU_DELTA pairs the receive stage gives the filters the 120 Hz steps back)
-        return FirmwareConfig(imu_rate_hz=120.0, imu_delta_rate_hz=FUSION_DELTA_HZ,
-                              source_imu_id=NODE_SOURCE_IMU if source_imu else 0, **kw)
+        return FirmwareConfig().with_keys(
+            imu_rate_hz=120.0,
+            imu_delta_rate_hz=FUSION_DELTA_HZ,
+            source_imu_id=NODE_SOURCE_IMU if source_imu else 0,
+            **kw)
     return make
 
 
@@ -231,7 +235,7 @@ def schepers_fixed_config(**kw) -> FirmwareConfig:
                 mag_rate_hz=100.0, mag_sigma_t=3e-8, imu_rate_hz=100.0, actuation="fixed",
                 single_coil_fusion=True, init_sigma_vel=0.05)
     base.update(kw)
-    return FirmwareConfig(**base)
+    return FirmwareConfig().with_keys(**base)
 
 
 def schepers_adaptive_config(**kw) -> FirmwareConfig:

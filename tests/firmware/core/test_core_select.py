@@ -16,7 +16,7 @@ def test_bad_impl_is_refused_naming_the_key():
         config_from_dict({"core": {"impl": "fast"}})
     with pytest.raises(ConfigError, match=r"belongs in section \[core\]"):
         config_from_dict({"timing": {"impl": "python"}})
-    assert config_from_dict({"core": {"impl": "python"}}).impl == "python"
+    assert config_from_dict({"core": {"impl": "python"}}).core.impl == "python"
     assert config_to_dict(FirmwareConfig())["core"] == {"impl": "compiled"}
 
 
@@ -84,7 +84,7 @@ def test_firmware_passes_its_core_to_every_component(impl, scenario):
     from coiltrack.tools.bench.links import inproc_pair
 
     cfg = scenarios.get(scenario).firmware_config()
-    fw = Firmware(dataclasses.replace(cfg, impl=impl), inproc_pair()[0])
+    fw = Firmware(cfg.with_(core={"impl": impl}), inproc_pair()[0])
     found = _cores(fw)
     for cls in ("SignalModel", "Transmitter", "Receiver"):
         assert cls in found, (cls, sorted(found))
@@ -93,7 +93,7 @@ def test_firmware_passes_its_core_to_every_component(impl, scenario):
     other = "python" if impl == "compiled" else "compiled"
     if other == "compiled" and not core.available():
         return
-    Firmware(dataclasses.replace(cfg, impl=other), inproc_pair()[0])
+    Firmware(cfg.with_(core={"impl": other}), inproc_pair()[0])
     assert _cores(fw) == found
 
 
@@ -107,7 +107,7 @@ def test_bench_reports_are_the_same_with_either_core():
     from coiltrack.tools.bench.runner import run_inproc
 
     sc = scenarios.get("roetenberg-fusion")
-    reps = {impl: run_inproc(sc, 1, 2.0, cfg=dataclasses.replace(sc.firmware_config(), impl=impl))
+    reps = {impl: run_inproc(sc, 1, 2.0, cfg=sc.firmware_config().with_(core={"impl": impl}))
             for impl in ("python", "compiled")}
     assert reps["python"]["core"] == "python" and reps["compiled"]["core"] == "compiled"
     assert reps["compiled"]["poses"] > 0
