@@ -101,7 +101,7 @@ formed again where that carry would err by more than 2 %.
 that converges only linearly (its step more than ``_LINEAR_RATE`` of the one
 before: a residual from motion within the burst or a low signal) also stops
 when its position and orientation steps are below ``step_sigma`` of the
-smallest standard deviations of the last covariance (``[raab_cost]
+smallest standard deviations of the last covariance (``[pose]
 raab_step_sigma``); a refresh whose new correction moves the signals by less
 than ``step_sigma`` of their noise needs no update after it.
 

@@ -72,7 +72,7 @@ def measurement_mid_us(cfg, pulse_us: int) -> int:
 
 
 def pulse_lengths(cfg, pulse_us: int) -> PulseLengths:
-    """``[adaptive_policy] pulse_length``: ``"fixed"`` (``pulse_us`` at any phase) or
+    """``[adaptive] pulse_length``: ``"fixed"`` (``pulse_us`` at any phase) or
     ``"chosen"`` (``pulse_length.PulseLengths.chosen``, up to ``pulse_us`` plus two sample
     periods, for a pulse that must bring more than ``pulse_us`` can at the largest current)."""
     if cfg.adaptive.pulse_length == "chosen":

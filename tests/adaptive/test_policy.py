@@ -254,8 +254,8 @@ def test_energy_counts_the_winding_and_the_supply():
 def test_bad_policy_values_are_refused_naming_the_key(key, value):
     """A bad value of the new section is refused with its qualified name."""
     with pytest.raises(ConfigError) as e:
-        config_from_dict({"adaptive_policy": {key: value}})
-    assert e.value.key == f"adaptive_policy.{key}"
+        config_from_dict({"adaptive": {key: value}})
+    assert e.value.key == f"adaptive.{key}"
 
 
 def test_range_law_is_normalised_by_its_own_mean():

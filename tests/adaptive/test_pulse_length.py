@@ -150,5 +150,5 @@ def test_model_error_keeps_the_energy_ratio_of_the_lengths():
 
 def test_bad_pulse_length_is_refused_naming_the_key():
     with pytest.raises(ConfigError) as e:
-        config_from_dict({"adaptive_policy": {"pulse_length": "short"}})
-    assert e.value.key == "adaptive_policy.pulse_length"
+        config_from_dict({"adaptive": {"pulse_length": "short"}})
+    assert e.value.key == "adaptive.pulse_length"

@@ -82,5 +82,5 @@ def test_a_step_shorter_than_a_fraction_of_a_sigma_stops_the_lm_there():
                                        ("lm_step_sigma", float("inf"))])
 def test_bad_tolerances_are_refused_naming_the_key(key, value):
     """Catches a missing check (a zero tolerance never stops on the cost, NaN never compares)."""
-    with pytest.raises(ConfigError, match=rf"lm\.{key}"):
+    with pytest.raises(ConfigError, match=rf"pose\.{key}"):
         FirmwareConfig().with_keys(**{key: value}).validate()
