@@ -94,12 +94,14 @@ def test_round_trip_through_sections():
     key of FirmwareConfig appears in exactly one section."""
     from dataclasses import fields
 
-    from coiltrack.firmware.config import SECTIONS, config_to_dict
+    from coiltrack.firmware.config import SECTION_TYPES, SECTIONS, config_to_dict
 
     cfg = FirmwareConfig().with_(timing={"pulse_us": 40_000}, fusion={"fusion": False}, link={"node_id": 3})
     assert config_from_dict(config_to_dict(cfg)) == cfg
     keys = [k for ks in SECTIONS.values() for k in ks]
-    assert sorted(keys) == sorted(f.name for f in fields(FirmwareConfig))
+    assert sorted(keys) == sorted(f.name for cls in SECTION_TYPES.values() for f in fields(cls))
+    assert len(keys) == len(set(keys))
+    assert [f.name for f in fields(FirmwareConfig)] == list(SECTIONS)
 
 
 def test_config_error_survives_pickling():

@@ -62,11 +62,11 @@ def test_configuration_page_has_every_key_with_default_and_range():
 
 
 def test_field_comments_read_the_trailing_and_continued_comments():
-    meaning = ref.field_comments(C.FirmwareConfig)
-    assert meaning["spacing_us"] == "pulse j starts at cycle start + j * spacing"
-    assert meaning["windows_budget"].startswith("pulse windows closed per tick")
-    assert "16 sensors: 1.2 ms" in meaning["windows_budget"]      # the continuation line
-    assert meaning["working_range_m"].startswith("the working volume")   # the block above
+    meaning = ref.section_meanings()
+    assert meaning["timing"]["spacing_us"] == "pulse j starts at cycle start + j * spacing"
+    assert meaning["budget"]["windows_budget"].startswith("pulse windows closed per tick")
+    assert "16 sensors: 1.2 ms" in meaning["budget"]["windows_budget"]      # the continuation line
+    assert meaning["pose"]["working_range_m"].startswith("the working volume")   # the block above
 
 
 def test_unit_of_reads_the_suffix():
