@@ -34,6 +34,34 @@ def _f32(v: float) -> float:
     return v if v < F32_MAX else F32_MAX
 
 
+class PoseReport:
+    """One POSE as a tracker fills it, in place (one record per tracker or sensor, made at
+    start-up): ``node``, ``t_us`` (master clock), position ``p`` (3, m, source frame), orientation
+    quaternion ``q`` (w, x, y, z), the variances ``var`` (position x, y, z in m^2, then
+    orientation in rad^2), the ``POSE_*`` bits ``status`` and the quality 0-255 ``quality``
+    (``track.quality``; 255 when the tracker does not grade its poses)."""
+    __slots__ = ("node", "t_us", "p", "q", "var", "status", "quality")
+
+    def __init__(self, node: int = 0):
+        self.node = node
+        self.t_us = 0
+        self.p = [0.0, 0.0, 0.0]
+        self.q = [1.0, 0.0, 0.0, 0.0]
+        self.var = [0.0] * 6
+        self.status = 0
+        self.quality = 255
+
+
+def fill_pose(r: PoseReport, p, q, P, b: int, o: int) -> None:
+    """Position ``p``, quaternion ``q`` (4) and the diagonal variances of the covariance ``P``
+    (position block at row ``b``, orientation at ``o``) into the record ``r``."""
+    rp, rq, v = r.p, r.q, r.var
+    rp[0], rp[1], rp[2] = float(p[0]), float(p[1]), float(p[2])
+    rq[0], rq[1], rq[2], rq[3] = q
+    v[0], v[1], v[2] = float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2])
+    v[3], v[4], v[5] = float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2])
+
+
 class Transmitter:
     """Encoder, write side of the Port and the counters of what was sent."""
 
@@ -53,6 +81,7 @@ class Transmitter:
         self.poses = 0          # POSEs sent with POSE_VALID
         self.fused_poses = 0    # ... of which fused (POSE_FUSED)
         self.decoder = decoder  # the receiver's: the frames it dropped go into the heartbeat
+        self._own = PoseReport()  # the record of pose_cov6 and pose_unknown
         self._bind(core)
 
     def send(self, msg) -> None:
@@ -67,14 +96,11 @@ class Transmitter:
     def event(self, code: int, detail: int) -> None:
         self.send(_FAULT(self.node_id, self.now_us, code, detail & 0xFFFFFFFF))
 
-    def pose(self, node: int, t_us: int, px: float, py: float, pz: float, qw: float, qx: float, qy: float,
-             qz: float, v0: float, v1: float, v2: float, v3: float, v4: float, v5: float, status: int,
-             quality: int = 255) -> None:
-        """Send one POSE: position (m, source frame), orientation quaternion,
-        the variances of position (m^2) and orientation (rad^2), ``POSE_*`` bits and the
-        quality 0-255 (``track.quality``; 255 when the tracker does not grade its poses)."""
-        self.send(_POSE(node, t_us, px, py, pz, qw, qx, qy, qz, _f32(v0), _f32(v1), _f32(v2),
-                        _f32(v3), _f32(v4), _f32(v5), status, quality))
+    def pose(self, r: PoseReport) -> None:
+        """Send one POSE (:class:`PoseReport`); variances beyond the f32 range go as :data:`F32_MAX`."""
+        p, q, v, status = r.p, r.q, r.var, r.status
+        self.send(_POSE(r.node, r.t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3], _f32(v[0]), _f32(v[1]),
+                        _f32(v[2]), _f32(v[3]), _f32(v[4]), _f32(v[5]), status, r.quality))
         if status & POSE_VALID:
             self.poses += 1
             if status & POSE_FUSED:
@@ -83,14 +109,24 @@ class Transmitter:
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the
         diagonal of a 6x6 covariance (``cov[i, i]``)."""
-        self.pose(node, t_us, float(p[0]), float(p[1]), float(p[2]), q[0], q[1], q[2], q[3],
-                  float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2]), float(cov[3, 3]),
-                  float(cov[4, 4]), float(cov[5, 5]), status, quality)
+        r = self._own
+        r.node, r.t_us, r.status, r.quality = node, t_us, status, quality
+        r.p[0], r.p[1], r.p[2] = float(p[0]), float(p[1]), float(p[2])
+        r.q[0], r.q[1], r.q[2], r.q[3] = q[0], q[1], q[2], q[3]
+        v = r.var
+        v[0], v[1], v[2] = float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])
+        v[3], v[4], v[5] = float(cov[3, 3]), float(cov[4, 4]), float(cov[5, 5])
+        self.pose(r)
 
     def pose_unknown(self, node: int, t_us: int, p, q, status: int) -> None:
         """A POSE whose covariance is unknown (every variance at the f32 maximum, quality 0)."""
-        self.pose(node, t_us, float(p[0]), float(p[1]), float(p[2]), q[0], q[1], q[2], q[3],
-                  F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, F32_MAX, status, 0)
+        r = self._own
+        r.node, r.t_us, r.status, r.quality = node, t_us, status, 0
+        r.p[0], r.p[1], r.p[2] = float(p[0]), float(p[1]), float(p[2])
+        r.q[0], r.q[1], r.q[2], r.q[3] = q[0], q[1], q[2], q[3]
+        v = r.var
+        v[0] = v[1] = v[2] = v[3] = v[4] = v[5] = F32_MAX
+        self.pose(r)
 
     def begin_tick(self, now_us: int) -> None:
         """The tick's time (us, master clock): what is sent in the tick is stamped with it (events,
@@ -126,12 +162,11 @@ class Transmitter:
         except Exception:  # a full or broken link must not stop the loop
             self.tx_errors += 1
 
-    def _pose_compiled(self, node: int, t_us: int, px: float, py: float, pz: float, qw: float, qx: float,
-                       qy: float, qz: float, v0: float, v1: float, v2: float, v3: float, v4: float, v5: float,
-                       status: int, quality: int = 255) -> None:
+    def _pose_compiled(self, r: PoseReport) -> None:
         """:meth:`pose` on the compiled core (``ct_pose_frame`` clamps the variances as ``_f32``)."""
-        frame = self._pose_frame(self._seq, self.node_id, node, t_us, px, py, pz, qw, qx, qy, qz, v0, v1, v2, v3,
-                                 v4, v5, status, quality)
+        p, q, v, status = r.p, r.q, r.var, r.status
+        frame = self._pose_frame(self._seq, self.node_id, r.node, r.t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3],
+                                 v[0], v[1], v[2], v[3], v[4], v[5], status, r.quality)
         if frame is None:
             self.tx_errors += 1                # a value the wire format refuses (struct.pack's error)
         else:

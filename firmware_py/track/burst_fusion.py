@@ -35,6 +35,7 @@ import numpy as np
 from coiltrack.protocol.schema import (ACC_LSB, EVT_DEAD_RECKONING, EVT_TRACK_REINIT, GYR_LSB, POSE_DEAD_RECKONING,
                                        POSE_FUSED, POSE_INCONSISTENT, POSE_RECOVERED, POSE_STALE, POSE_VALID)
 
+from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
@@ -326,6 +327,7 @@ class SensorInertial:
         ``burst_rms_s`` (default the fixed cycle's, below) are given by a pipeline whose bursts
         are not the fixed cycle's (AC blocks: ``track.ac``)."""
         self.node = node
+        self._report = PoseReport(node)     # the fused POSE being sent (filled in place)
         self.cfg = cfg
         n = len(cfg.source.coils)
         self.imu = ImuRing(cfg.imu.imu_ring_capacity)
@@ -449,10 +451,14 @@ class SensorInertial:
             if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], range_m):
                 status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
                 self.poses_out_of_range += 1
-            tx.pose(node, fus.out_tv[k], d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], d[k, OUT_Q],
-                    d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3], d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1],
-                    d[k, OUT_VAR_P + 2], d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2], status,
-                    quality)
+            r = self._report
+            r.node, r.t_us, r.status, r.quality = node, fus.out_tv[k], status, quality
+            rp, rq, v = r.p, r.q, r.var
+            rp[0], rp[1], rp[2] = d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2]
+            rq[0], rq[1], rq[2], rq[3] = d[k, OUT_Q], d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3]
+            v[0], v[1], v[2] = d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1], d[k, OUT_VAR_P + 2]
+            v[3], v[4], v[5] = d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2]
+            tx.pose(r)
             fus.release_output()
 
     def _status(self, st: int) -> int:

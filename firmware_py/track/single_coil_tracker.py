@@ -44,6 +44,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
                                        POSE_DEGRADED, POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
                                        POSE_STALE, POSE_VALID)
 
+from coiltrack.firmware.transmit import PoseReport, fill_pose
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference
 from coiltrack.firmware.actuate.coil_choice import NisMonitor, SingleCoilModel
 from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation, FixedActuation
@@ -100,6 +101,7 @@ class SingleCoilTracker:
         self.closer = closer
         self.supervisor = supervisor
         self.tx = tx
+        self._report = PoseReport()           # the POSE being sent (filled in place)
         self.now_us = 0
         self.boot_us: int | None = None
         self.updated_us = -1            # the tick of the last EKF update (the decision then waits)
@@ -375,10 +377,11 @@ class SingleCoilTracker:
         o = ORI.start
         b = POS.start
         vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
-        self.tx.pose(s.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
-                     float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
-                     float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
-                     quality_from(vp, self.q_x[s.node], self.q_scale))
+        r = self._report
+        r.node, r.t_us, r.status = s.node, t_us, status
+        r.quality = quality_from(vp, self.q_x[s.node], self.q_scale)
+        fill_pose(r, p, (qw, qx, qy, qz), P, b, o)
+        self.tx.pose(r)
 
     def counters(self) -> dict:
         mons = [s.monitor for s in self._sens]

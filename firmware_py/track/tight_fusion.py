@@ -57,6 +57,7 @@ import numpy as np
 
 from coiltrack.protocol.schema import POSE_FUSED, POSE_INCONSISTENT, POSE_STALE, POSE_VALID
 
+from coiltrack.firmware.transmit import PoseReport, fill_pose
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.estimate.layout import ORI, POS
@@ -263,6 +264,7 @@ class _TightSensor:
     def __init__(self, ch, cfg, n: int, source_imu: bool, core=_DEFAULT_CORE):
         self.ch = ch
         self.node = ch.node
+        self._report = PoseReport(ch.node)     # the POSE being sent (filled in place)
         self.n = n
         self.ekf = RelativeInertialEKF.from_config(cfg, n_clones=n, source_imu=source_imu, core=core)
         self.imu = ImuRing(cfg.imu.imu_ring_capacity)
@@ -530,10 +532,11 @@ class _TightSensor:
             if P[b, b] > l2 or P[b + 1, b + 1] > l2 or P[b + 2, b + 2] > l2:
                 status &= ~POSE_VALID            # not converged: sent, not valid
                 self.unconverged += 1
-        tx.pose(self.node, t_us, float(p[0]), float(p[1]), float(p[2]), qw, qx, qy, qz,
-                float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]),
-                float(P[o, o]), float(P[o + 1, o + 1]), float(P[o + 2, o + 2]), status,
-                quality_from(vp, self.q_x, cfg.quality.quality_error_scale_m))
+        r = self._report
+        r.t_us, r.status = t_us, status
+        r.quality = quality_from(vp, self.q_x, cfg.quality.quality_error_scale_m)
+        fill_pose(r, p, (qw, qx, qy, qz), P, b, o)
+        tx.pose(r)
 
 
 class TightFusionTracker(MagneticTracker):
