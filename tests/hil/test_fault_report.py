@@ -84,6 +84,24 @@ def test_recovery_is_held_to_the_no_fault_run_where_it_is_itself_above_twice_the
     assert fr.recovery_keys(t, flt, [], 10.0) == {"fault_recovery_s": {}}
 
 
+def test_an_imu_saturation_does_not_report_a_magnetometer_saturation():
+    """``EVT_SATURATION`` with the IMU detail bit is the IMU's (``health.IMU_SATURATION``): a timed
+    magnetometer saturation answered only by it stays unreported; the magnetometer's own event
+    (detail: the node) reports it. Catches the detail bit left unread."""
+    from coiltrack.firmware.supervise.health import IMU_SATURATION
+    from coiltrack.protocol.schema import EVT_SATURATION
+
+    sat = TimedFault("sat", 10_000_000, 12_000_000)
+    imu = SimpleNamespace(code=EVT_SATURATION, detail=16 | IMU_SATURATION)
+    mag = SimpleNamespace(code=EVT_SATURATION, detail=16)
+    rep, unrep = fr.reported_faults([(11_000_000, imu)], [sat])
+    assert rep == {sat.describe(): ["EVT_SATURATION_IMU"]} and unrep == [sat.describe()]
+    rep, unrep = fr.reported_faults([(11_000_000, imu), (14_500_000, mag)], [sat])
+    assert rep[sat.describe()] == ["EVT_SATURATION", "EVT_SATURATION_IMU"] and unrep == []
+    _, unrep = fr.reported_faults([(15_500_000, mag)], [sat])          # after the grace: not its report
+    assert unrep == [sat.describe()]
+
+
 def test_bench_rescores_recovery_against_the_no_fault_trace():
     """``tools.bench.recovery.add_recovery_reference`` replaces the report's level-only recovery by
     the one against the no-fault trace, with the report's own level; ``TraceKeeper`` keeps the

@@ -38,6 +38,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.supervise.health import IMU_SATURATION
 from coiltrack.protocol import schema
 from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID
 
@@ -135,18 +136,7 @@ def fault_keys(bench, reference_level_mm: float | None = None, reference=None) -
         sel = ft_a >= max(ends) * 1e-6
         out["fused_rms_after_faults_mm"] = round(float(np.sqrt(np.mean(fe_a[sel] ** 2))) * 1e3, 3) if sel.any() else None
     out.update(recovery_keys(ft_a, fe_a, timed, level, reference))
-    names = _evt_names()
-    rep, unrep = {}, []
-    for f in timed:
-        t0 = f.t_on_us
-        t1 = (f.t_off_us if f.t_off_us is not None else math.inf) + REPORT_GRACE_S * 1e6
-        got = sorted({names.get(ev.code, f"code_{ev.code}") for t, ev in rec.events if t0 <= t <= t1})
-        rep[f.describe()] = got
-        want = EXPECTED_EVENTS.get(f.kind)
-        if want and not any(w in got for w in want):
-            unrep.append(f.describe())
-    out["faults_reported"] = rep
-    out["faults_unreported"] = unrep
+    out["faults_reported"], out["faults_unreported"] = reported_faults(rec.events, timed)
     # where the overconfident poses were: in a fault window or the REPORT_GRACE_S after it, or elsewhere
     ot_a = np.array(ot)
     by, inside = {}, np.zeros(ot_a.size, bool)
@@ -158,6 +148,33 @@ def fault_keys(bench, reference_level_mm: float | None = None, reference=None) -
     by["outside fault windows"] = int((~inside).sum())
     out["overconfident_by_fault"] = by
     return out
+
+
+def event_name(ev, names: dict[int, str]) -> str:
+    """The report's name of a FAULT_EVENT: its ``EVT_*`` name, and ``EVT_SATURATION_IMU`` for a
+    saturation the firmware raised for an IMU (detail bit ``health.IMU_SATURATION``), which does
+    not report a magnetometer's."""
+    name = names.get(ev.code, f"code_{ev.code}")
+    if name == "EVT_SATURATION" and ev.detail & IMU_SATURATION:
+        return "EVT_SATURATION_IMU"
+    return name
+
+
+def reported_faults(events, timed) -> tuple[dict, list]:
+    """Per timed fault, the event names received from its start to ``REPORT_GRACE_S`` after its
+    end; and the faults none of whose :data:`EXPECTED_EVENTS` came. ``events``: (master time us,
+    FAULT_EVENT) pairs."""
+    names = _evt_names()
+    rep, unrep = {}, []
+    for f in timed:
+        t0 = f.t_on_us
+        t1 = (f.t_off_us if f.t_off_us is not None else math.inf) + REPORT_GRACE_S * 1e6
+        got = sorted({event_name(ev, names) for t, ev in events if t0 <= t <= t1})
+        rep[f.describe()] = got
+        want = EXPECTED_EVENTS.get(f.kind)
+        if want and not any(w in got for w in want):
+            unrep.append(f.describe())
+    return rep, unrep
 
 
 def recovery_keys(ft, fe, timed, level_mm: float | None, reference=None) -> dict:
