@@ -44,6 +44,16 @@ def _children(pid: int) -> list[int]:
         return []
 
 
+def _cpu_s(pid: int) -> float:
+    """CPU time (user + system, s) a process has used: how far it got, whatever the machine's load."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            f = fh.read().split(") ")[1].split()
+        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
 def _gone(pid: int) -> bool:
     try:
         with open(f"/proc/{pid}/stat") as fh:
@@ -356,8 +366,10 @@ def test_a_parallel_soak_stopped_reports_its_seeds_under_way_and_leaves_no_worke
                                          "--workers", "2", "--json", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        # the resource tracker and the two workers; then the seeds' first ticks (their state appears in /proc)
+        # the resource tracker and the two workers; then the seeds' first ticks: both workers past their
+        # imports and set-up (about 2 s of CPU), counted in CPU time so a loaded machine only waits longer
         kids = _poll(lambda: (lambda k: k if len(k) >= 3 else None)(_children(proc.pid)), timeout_s=4 * WAIT_S)
+        _poll(lambda: sum(1 for k in _children(proc.pid) if _cpu_s(k) >= 4.0) >= 2, timeout_s=8 * WAIT_S)
         proc.send_signal(signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=4 * WAIT_S)
     finally:
