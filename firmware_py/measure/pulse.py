@@ -357,7 +357,7 @@ class PulseExtractor:
             return self._fail(flags, amp_out, var_out, 0, 0)
         sums = self._sums                         # regression sums over both sides
         sums[0] = sums[1] = sums[2] = sums[3] = sums[4] = 0.0
-        ref = ring.slot(i_lo)                     # values relative to the first span sample
+        ref = ring.field_at(ring.slot(i_lo))      # values relative to the first span sample
         i_pre = idx(start - self._guard_us + 1)   # before-baseline: [i_lo, i_pre)
         before = self._baseline_side(i_lo, i_pre, start, ref)
         used0 = max(idx(start + self._settle_us), idx(start) + 1, i_pre)   # not the first in [start, end]
@@ -419,18 +419,15 @@ class PulseExtractor:
                 flags |= PULSE_INCOMPLETE
         return flags
 
-    def _baseline_side(self, i0: int, i1: int, start: int, ref: int) -> tuple:
+    def _baseline_side(self, i0: int, i1: int, start: int, ref: tuple) -> tuple:
         """One baseline side, samples ``[i0, i1)``: ``(n, sum x, sum y, sum z, saturated)``
-        of the values relative to slot ``ref``; the regression sums over both sides
+        of the values relative to the field ``ref``; the regression sums over both sides
         (``self._sums``: t, t^2, t x, t y, t z; t relative to ``start``, us) go on."""
         ring = self._ring
         tv = ring.tv
         bv = ring.bv
         fv = ring.fv
-        j = 3 * ref
-        rx = bv[j]
-        ry = bv[j + 1]
-        rz = bv[j + 2]
+        rx, ry, rz = ref
         sums = self._sums
         st, stt, stx, sty, stz = sums[0], sums[1], sums[2], sums[3], sums[4]
         n = 0
@@ -457,7 +454,7 @@ class PulseExtractor:
         sums[0], sums[1], sums[2], sums[3], sums[4] = st, stt, stx, sty, stz
         return n, ax, ay, az, sat
 
-    def _pulse_moments(self, i0: int, i1: int, start: int, ref: int) -> int:
+    def _pulse_moments(self, i0: int, i1: int, start: int, ref: tuple) -> int:
         """The used in-pulse samples ``[i0, i1)``: running means, centred sums of squares
         (q) and time co-moments (k) per axis (Welford), for the mean and the empirical
         variance of the residuals about the fitted baseline slope, into ``self._pm``
@@ -469,10 +466,7 @@ class PulseExtractor:
         fv = ring.fv
         uv = self._used_tv
         max_rec = self.max_samples
-        j = 3 * ref
-        rx = bv[j]
-        ry = bv[j + 1]
-        rz = bv[j + 2]
+        rx, ry, rz = ref
         n_p = 0
         mt = qt = 0.0
         mx = my = mz = 0.0
