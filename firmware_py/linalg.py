@@ -568,6 +568,18 @@ def atb3(x, y, rows: int, out) -> None:
             out[3 * a + c] = acc
 
 
+def congruence3(m, c, c0: int, out, o0: int) -> None:
+    """``out[o0:o0+3, o0:o0+3] = M C_b M^T`` with ``C_b = c[c0:c0+3, c0:c0+3]`` (a 3x3 block of a
+    covariance turned into another frame; ``m``, ``c``, ``out`` indexable by ``[i, j]``)."""
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for a in range(3):
+                for b in range(3):
+                    acc += m[i, a] * c[c0 + a, c0 + b] * m[j, b]
+            out[o0 + i, o0 + j] = acc
+
+
 def inv3_sym(a00, a01, a02, a11, a12, a22):
     """Inverse of the symmetric 3x3 ``[[a00 a01 a02] [a01 a11 a12] [a02 a12 a22]]``
     as its six distinct elements ``(i00, i01, i02, i11, i12, i22)`` (adjugate

@@ -25,7 +25,7 @@ from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
 from coiltrack.firmware.estimate.fusion_state import InsState
 from coiltrack.firmware.estimate.layout import (ORI, POS, POSE_ORI, POSE_POS, PSI, QM, XI, fusion_layout,
                                                fusion_measurement_layout)
-from coiltrack.firmware.linalg import rotvec_from_matrix
+from coiltrack.firmware.linalg import congruence3, rotvec_from_matrix
 
 
 class MeasurementModel(Protocol):
@@ -150,16 +150,7 @@ class MagneticOrientation(_Base):
         """``Theta = Phi R_ms`` with the solver's orientation covariance turned into G; no offset."""
         np.matmul(snap.Phi, R_ms, out=st.Th)
         st.bg.fill(0.0)
-        Th = st._Thv
-        P = st._Pv
-        o0, co = ORI.start, POSE_ORI.start
-        for i in range(3):
-            for j in range(3):
-                coo = 0.0
-                for a in range(3):
-                    for b in range(3):
-                        coo += Th[i, a] * C[co + a, co + b] * Th[j, b]
-                P[o0 + i, o0 + j] = coo
+        congruence3(st._Thv, C, POSE_ORI.start, st._Pv, ORI.start)
 
 
 class InertialMagneticOrientation(_Base):

@@ -18,6 +18,7 @@ import numpy as np
 
 from coiltrack.firmware.estimate.fusion_state import InsState
 from coiltrack.firmware.estimate.layout import ACC, GYR, POS, POSE_POS, VEL
+from coiltrack.firmware.linalg import congruence3
 
 
 class Recovery:
@@ -68,14 +69,7 @@ class Recovery:
         st.P.fill(0.0)
         P = st._Pv
         self.meas.start_orientation(st, snap, R_ms, C)
-        p0, cp = POS.start, POSE_POS.start
-        for i in range(3):
-            for j in range(3):
-                cpp = 0.0
-                for a in range(3):
-                    for b in range(3):
-                        cpp += Phi[i, a] * C[cp + a, cp + b] * Phi[j, b]
-                P[p0 + i, p0 + j] = cpp
+        congruence3(Phi, C, POSE_POS.start, P, POS.start)
         for i in range(3):
             P[VEL.start + i, VEL.start + i] = prm.velocity0_sigma ** 2
             P[ACC.start + i, ACC.start + i] = prm.acc_bias_sigma ** 2
