@@ -67,14 +67,20 @@ def _position(data: bytes, offset: int) -> tuple[int, int]:
     return line, offset - (data.rfind(b"\n", 0, offset) + 1) + 1
 
 
-def decode_utf8(data: bytes, path) -> str:
-    """``data`` as UTF-8 text (a UTF-8 byte-order mark dropped), or :class:`InputFileError`
-    naming the encoding it is in instead or the first byte that is not UTF-8."""
+def _without_bom(data: bytes, path) -> bytes:
+    """``data`` without a UTF-8 byte-order mark; :class:`InputFileError` for a UTF-16/32 one."""
     if data.startswith(_UTF8_BOM):
         data = data[len(_UTF8_BOM):]
     for bom, name in _BOMS:
         if data.startswith(bom):
             raise InputFileError(path, f"is {name} text, not UTF-8: save it as UTF-8")
+    return data
+
+
+def decode_utf8(data: bytes, path) -> str:
+    """``data`` as UTF-8 text (a UTF-8 byte-order mark dropped), or :class:`InputFileError`
+    naming the encoding it is in instead or the first byte that is not UTF-8."""
+    data = _without_bom(data, path)
     nul = data.find(b"\x00")
     if nul >= 0:
         line, col = _position(data, nul)
@@ -217,11 +223,7 @@ def text_lines(data: bytes, path):
     line (newline dropped) up to the first that is not UTF-8, and ``damage`` None for a whole
     file, else ``(line number, what)``: that line is not UTF-8, or the last line has no
     newline (the file was cut short there)."""
-    if data.startswith(_UTF8_BOM):
-        data = data[len(_UTF8_BOM):]
-    for bom, name in _BOMS:
-        if data.startswith(bom):
-            raise InputFileError(path, f"is {name} text, not UTF-8: save it as UTF-8")
+    data = _without_bom(data, path)
     raw = data.split(b"\n")
     cut = raw[-1] != b""
     if not cut:
