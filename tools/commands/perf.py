@@ -356,8 +356,6 @@ class _TickRecorder:
         return fw
 
     def tick(self, t) -> None:
-        from coiltrack.firmware.loop import PHASES
-
         fw, rx, models = self.fw, self.fw.receiver, self._models
         n0 = rx.imu_received
         e0 = sum(m.evals for m in models)
@@ -382,8 +380,8 @@ class _TickRecorder:
             self.per_tick.append((dc, t, dt, tuple(int(x) for x in self.prof), ev, self.gcs - g0, at))
         self.work["replay"] = max(self.work["replay"], max((f.last_step_units for f in self._filters), default=0))
         self.tick_ns.append(dt)
-        for i in range(len(PHASES)):
-            self.phase_ns[i].append(int(self.prof[i]))
+        for i, ns in enumerate(self.phase_ns):
+            ns.append(int(self.prof[i]))
         if rx.imu_received > n0:
             self.imu_ticks.append(dt)
 
