@@ -10,7 +10,9 @@ setup(
         Extension(
             "coiltrack.firmware._core",
             sources=[f"{CORE}/_coremodule.c",
-                     *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown", "orientation", "lm", "linalg_gen", "frame", "imu"))],
+                     *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown", "orientation", "lm", "linalg_gen", "frame", "imu")),
+                     f"{CORE}/src/fusimu.c", f"{CORE}/py_fusimu.c",
+                     ],
             include_dirs=[f"{CORE}/include"],
             depends=[f"{CORE}/include/coiltrack_core.h"],
             # no fused multiply-adds: the results must not depend on the compiler's choice

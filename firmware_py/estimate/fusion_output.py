@@ -10,6 +10,7 @@ All buffers are created in ``__init__``; nothing here allocates after.
 """
 from __future__ import annotations
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import HIST_FIELDS, HIST_P, HIST_R, InsState
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.firmware.ring import Ring, field_slices
@@ -83,14 +84,40 @@ class PoseHistory:
 
 
 class PoseOutput:
-    """Fused poses waiting to be sent (rows ``OUT_*``), ``dropped`` when the queue was full."""
+    """Fused poses waiting to be sent (rows ``OUT_*``), ``dropped`` when the queue was full.
 
-    def __init__(self, params, capacity: int, frame):
+    ``core``: the numeric core (``coiltrack.firmware.core``). On the compiled one, given the
+    state ``st``, the IMU ring ``imu`` and the history ``hist`` that :meth:`queue` is always
+    called with (the filter's live ones), a row is written by ``core/src/fusimu.c``
+    ``ct_fus_output`` (bound once, ``ext.FusOutput``)."""
+
+    def __init__(self, params, capacity: int, frame, core=_DEFAULT_CORE, st: InsState | None = None,
+                 imu: Ring | None = None, hist: Ring | None = None):
         self.prm = params
         self.frame = frame
         self.out = Ring(capacity, OUT_FIELDS)
         self._otv, self._odv = self.out.tv, self.out.dv
         self.dropped = 0
+        ext = core.ext
+        if ext is not None and st is not None and imu is not None and hist is not None:
+            assert (OUT_P, OUT_Q, OUT_VAR_P, OUT_VAR_O, OUT_STATUS, self.out.width) == (0, 3, 7, 10, 13,
+                                                                                      ext.FUS_OUT_WIDTH)
+            assert (OUT_STALE, OUT_INCONSISTENT, OUT_DEAD_RECKONING, OUT_LOST, OUT_RECOVERED) == (1, 2, 4, 8, 16)
+            assert (HIST_P, HIST_R, hist.width) == (0, 3, ext.FUS_HIST_WIDTH)
+            self._ck = ext.FusOutput(st.P.shape[0], st.P, st.Th, imu.d, imu.capacity, hist.d, hist.capacity,
+                                     self.out.d, capacity, not frame.fixed, params.stale_us,
+                                     params.dead_reckon_after_us, params.dead_reckon_limit_us)
+            self.queue = self._queue_compiled
+
+    def _queue_compiled(self, t_us: int, hist: Ring, st: InsState, d, k: int, last_update_t: int,
+                        recovering: bool, inconsistent: bool) -> None:
+        """:meth:`queue` on the compiled core (``ct_fus_output``; ``hist``, ``st`` and ``d`` are
+        the bound ones)."""
+        out = self.out
+        if out.full:
+            self.dropped += 1
+            return
+        self._ck.queue(out.push(t_us), hist.peek(0), k, t_us - last_update_t, recovering, inconsistent)
 
     def queue(self, t_us: int, hist: Ring, st: InsState, d, k: int, last_update_t: int, recovering: bool,
               inconsistent: bool) -> None:

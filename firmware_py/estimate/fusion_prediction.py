@@ -6,13 +6,19 @@ net acceleration of eq 6.8, error transition eqs 6.10-6.17 (``A`` of eq 6.17;
 ``estimate.strapdown``), ``Q`` diagonal (sec 6.2.4). The numeric body of a
 step is chosen once, when the filter is built: :meth:`InertialPrediction.step_python`
 or the compiled core's (:meth:`InertialPrediction.step_compiled`,
-``core/src/strapdown.c ct_ins_propagate``).
+``core/src/strapdown.c ct_ins_propagate``). On the compiled core the whole per-sample work
+of a state is bound to it once (``core/src/fusimu.c``): the ring row a sample is kept in
+(:meth:`InertialPrediction.push`), the input interpolation with the step (``ct_fus_propagate``:
+:meth:`~InertialPrediction.propagate`, :meth:`~InertialPrediction.set_dt`,
+:meth:`~InertialPrediction.step_python`) and the history row (``ct_fus_to_source``).
 
 All buffers are created in ``__init__``; a step allocates no numpy array.
 """
 from __future__ import annotations
 
 import math
+
+import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import IMU_F, IMU_FIELDS, IMU_FSRC, IMU_W, InsState
@@ -35,9 +41,14 @@ class InertialPrediction:
         IMU samples kept for replay.
     compiled : bool
         The states carry the compiled step (``InsState.ck``): use it.
+    states : tuple of InsState
+        The states this prediction steps (the filter's live and shadow states): on the compiled
+        core each gets its bound kernel (``ext.FusPred``: its step, the step's workspace
+        scalars ``dt_last, ka, kg`` in its own array, and its history rows).
     """
 
-    def __init__(self, params, n: int, frame, imu_capacity: int, compiled: bool, core=_DEFAULT_CORE):
+    def __init__(self, params, n: int, frame, imu_capacity: int, compiled: bool, core=_DEFAULT_CORE,
+                 states=()):
         prm = params
         # the step's constants of set_dt, as it computes them (the same values to the bit)
         self._dtk = (prm.acc_bias_tau_s, prm.gyro_bias_tau_s, prm.acc_noise ** 2 + prm.source_acc_noise ** 2,
@@ -51,6 +62,41 @@ class InertialPrediction:
         self.steps = 0
         #: the numeric body of each IMU step, chosen once (coiltrack.firmware.core)
         self._ins_step = self.step_compiled if compiled else self.step_python
+        self._kern = {}
+        if compiled and states:
+            self._bind(core.ext, n, frame, states)
+
+    def _bind(self, ext, n: int, frame, states) -> None:
+        """The compiled per-sample path (``core/src/fusimu.c``), bound once to ``states``."""
+        assert (IMU_F, IMU_W, IMU_FSRC, self.imu.width) == (0, 3, 6, ext.FUS_IMU_WIDTH)
+        k = self._dtk
+        moving = not frame.fixed
+        for st in states:
+            ws = np.full(ext.FUS_NST, -1.0)           # dt_last, ka, kg (InsState.set_step)
+            self._kern[st] = ext.FusPred(n, st.p, st.v, st.Th, st.ba, st.bg, st.pred.A, st.P, st.pred.Q,
+                                         st.pred._T, self.imu.t, self.imu.d, ws, k[0], k[1], k[2], k[3], k[4],
+                                         k[5], moving)
+        self._row = ext.FusRow(self.imu.d, self.imu.capacity, moving)
+        self.push = self._push_compiled
+        self.propagate = self._propagate_compiled
+        self.history = self._history_compiled
+
+    def _push_compiled(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> int:
+        """:meth:`push` on the compiled core (the row written by ``ext.FusRow``)."""
+        k = self.imu.push(t_us)
+        self._row.store(k, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
+        return k
+
+    def _propagate_compiled(self, st: InsState, k: int, t0: int, t1: int) -> None:
+        """:meth:`propagate` on the compiled core (``ct_fus_propagate``: the interpolation, the
+        step's static blocks when the step changed, and ``ct_ins_propagate`` in one call)."""
+        self._kern[st].propagate(k, len(self.imu), t0, t1)
+        st.pred.after_predict(st.P)
+        self.steps += 1
+
+    def _history_compiled(self, st: InsState, hist: Ring, k: int) -> None:
+        """:meth:`history` on the compiled core (``ct_fus_to_source``)."""
+        self._kern[st].history(hist.d, hist.push(st.t_us), k)
 
     def push(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> int:
         """Keep one sample for replay (``Phi`` when the source moves); its ring slot."""

@@ -256,7 +256,8 @@ class FusionFilter:
         self.sh = InsState(n, white, white_q, core)        # shadow: the replay of a delayed update
         self._auth = self.st                # the state that takes snapshots and is recorded
         self.snap = Snapshot(n, self.frame, xi_filter, core)
-        self.prediction = InertialPrediction(params, n, self.frame, imu_capacity, self.st.ck is not None, core)
+        self.prediction = InertialPrediction(params, n, self.frame, imu_capacity, self.st.ck is not None, core,
+                                             (self.st, self.sh))
         self.imu = self.prediction.imu
         self.zlayout = self.meas.zlayout
         self.m = self.zlayout.n
@@ -264,7 +265,7 @@ class FusionFilter:
         self.meas.fill_constant(memoryview(self.upd.H), memoryview(self.upd.R), params)
         self.recovery = Recovery(params, self.meas)
         self.history = PoseHistory(history_capacity)
-        self.output = PoseOutput(params, output_capacity, self.frame)
+        self.output = PoseOutput(params, output_capacity, self.frame, core, self.st, self.imu, self.history.live)
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow

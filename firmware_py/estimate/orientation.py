@@ -97,6 +97,13 @@ ORI_NOT_INITIALISED = 64
 ORI_FREEFALL = 128          # accelerometer norm far from g: inclination update skipped
 ORI_LEARNING = 256          # compass sample used to learn |m| and the dip, not as a compass
 
+#: the prediction's sums since the last covariance propagation (``OrientationFilter.sums``): the
+#: time, the sum of the squared steps, the disturbance's correlation and driving noise composed
+#: (``propagate``), the acceleration's last correlation ``c_a`` (eq 2.5) and the time since the
+#: last inclination update (``Inclination.observe``); the compiled core keeps them in the same
+#: array (``core/include/ct_fusimu.h`` ``CT_OA_*``)
+SUM_DT, SUM_DT2, SUM_CD, SUM_QD, SUM_CA, SUM_INCL_DT = range(6)
+
 
 class OrientationParams:
     """Noise and model parameters of the ch. 2 filter (SI units, per sample
@@ -190,10 +197,9 @@ class OrientationFilter:
         self._O = np.zeros((3, 3))       # orthonormalisation scratch
         self._Rc = np.eye(3)             # orientation when the covariance was last propagated
         self._Rcv = memoryview(self._Rc)
-        self._dt_acc = 0.0
-        self._dt2_acc = 0.0
-        self._cd_acc = 1.0
-        self._qd_acc = 0.0
+        self.sums = np.zeros(6)          # the prediction's sums (SUM_*)
+        self._s = memoryview(self.sums)
+        self._s[SUM_CD] = 1.0
         self._Av = memoryview(self.pred.A)
         self._Qv = memoryview(self.pred.Q)
         self.initialized = False
@@ -203,7 +209,6 @@ class OrientationFilter:
         self.last_acc_flags = 0
         self.last_mag_flags = 0
         self._Pv = memoryview(self.P)
-        self._ca = 0.0
         self._Tv = memoryview(self._T)
         # the numeric core of propagate, bound once here (coiltrack.firmware.core:
         # core/src/orientation.c, the same blocks and the compiled covariance prediction)
@@ -213,6 +218,11 @@ class OrientationFilter:
             self._ck = ext.OriProp(N, THETA.start, BIAS.start, DIST.start, self.R, self._Rc, self.pred.A,
                                    self.pred.Q, self.P, self.pred._T)
             self.propagate = self._propagate_compiled
+            # core/src/fusimu.c ct_ori_predict: predict's state step and sums
+            assert (SUM_DT, SUM_DT2, SUM_CD, SUM_QD, SUM_CA, SUM_INCL_DT, 6) == (0, 1, 2, 3, 4, 5, ext.FUS_OA_N)
+            self._ckp = ext.OriPred(self.R, self.bias, self.dist, self.acc, self.sums, params.dist_corr,
+                                    params.acc_corr_time_s)
+            self.predict = self._predict_compiled
 
     # ------------------------------------------------------------ init
     def initialize(self, t_us: int, ax, ay, az, mx, my, mz) -> bool:
@@ -243,10 +253,16 @@ class OrientationFilter:
             Pv[DIST.start + i, DIST.start + i] = p.dist_sigma ** 2
         self.t_us = t_us
         np.copyto(self._Rc, self.R)
-        self._dt_acc = self._dt2_acc = self._qd_acc = 0.0
-        self._cd_acc = 1.0
+        self._restart_sums()
+        self._s[SUM_INCL_DT] = 0.0       # (the inclination restarts: Inclination.reset)
         self.initialized = True
         return True
+
+    def _restart_sums(self) -> None:
+        """No prediction since the covariance was last propagated."""
+        s = self._s
+        s[SUM_DT] = s[SUM_DT2] = s[SUM_QD] = 0.0
+        s[SUM_CD] = 1.0
 
     def _set_R(self, fr) -> None:
         """Write the rows ``X, Y, Z`` of a :func:`_triad` frame into ``R`` (eq 2.1)."""
@@ -287,8 +303,7 @@ class OrientationFilter:
         self.acc.fill(0.0)
         self.t_us = t_us
         np.copyto(self._Rc, self.R)
-        self._dt_acc = self._dt2_acc = self._qd_acc = 0.0
-        self._cd_acc = 1.0
+        self._restart_sums()
         self.initialized = True
         self.reacquired += 1
         return True
@@ -342,12 +357,25 @@ class OrientationFilter:
         a[0] *= ca
         a[1] *= ca
         a[2] *= ca
-        self._ca = ca
-        self._dt_acc += dt
-        self.incl.elapse(dt)
-        self._dt2_acc += dt * dt
-        self._cd_acc *= cd
-        self._qd_acc = self._qd_acc * cd * cd + self.compass.qwd
+        s = self._s
+        s[SUM_CA] = ca
+        s[SUM_DT] += dt
+        s[SUM_INCL_DT] += dt
+        s[SUM_DT2] += dt * dt
+        s[SUM_CD] *= cd
+        s[SUM_QD] = s[SUM_QD] * cd * cd + self.compass.qwd
+
+    def _predict_compiled(self, t_us: int, wx, wy, wz) -> None:
+        """:meth:`predict` on the compiled core (``ct_ori_predict``: the attitude step, the decays and
+        the sums in one call; the periodic orthonormalisation here, on ``R`` alone)."""
+        dt = (t_us - self.t_us) * 1e-6
+        self.t_us = t_us
+        if not dt > 0.0:
+            return
+        self._ckp.predict(dt, wx, wy, wz, self.compass.qwd)
+        self.steps += 1
+        if self.steps & 63 == 0:
+            self._orthonormalize()
 
     def propagate(self) -> None:
         """Covariance over the steps since the last call (eq 2.28 and the
@@ -358,7 +386,8 @@ class OrientationFilter:
         the turn over the interval for the offset term), ``d_N = c_d^N d_0``;
         ``Q`` the sums of the per-step noises (``sum (sigma_G T)^2``,
         ``sigma_wb^2 T_N``, ``sum c_d^2k Q_wd``)."""
-        if self._dt_acc <= 0.0:
+        s = self._s
+        if s[SUM_DT] <= 0.0:
             return
         p = self.prm
         R = self._Rv
@@ -366,39 +395,34 @@ class OrientationFilter:
         A = self._Av
         t0 = THETA.start
         b0 = BIAS.start
-        h = -0.5 * self._dt_acc
+        h = -0.5 * s[SUM_DT]
         for i in range(3):
             for j in range(3):
                 g = R[0, i] * Rc[0, j] + R[1, i] * Rc[1, j] + R[2, i] * Rc[2, j]
                 A[t0 + i, t0 + j] = g
                 A[t0 + i, b0 + j] = h * g + (h if i == j else 0.0)
-            A[DIST.start + i, DIST.start + i] = self._cd_acc
+            A[DIST.start + i, DIST.start + i] = s[SUM_CD]
         Q = self._Qv
-        qt = p.gyro_noise * p.gyro_noise * self._dt2_acc
-        qb = p.gyro_bias_rw * p.gyro_bias_rw * self._dt_acc
-        qd = self._qd_acc
+        qt = p.gyro_noise * p.gyro_noise * s[SUM_DT2]
+        qb = p.gyro_bias_rw * p.gyro_bias_rw * s[SUM_DT]
+        qd = s[SUM_QD]
         for i in range(3):
             Q[t0 + i, t0 + i] = qt
             Q[b0 + i, b0 + i] = qb
             Q[DIST.start + i, DIST.start + i] = qd
         self.pred.predict(self.P)
         np.copyto(self._Rc, self.R)
-        self._dt_acc = 0.0
-        self._dt2_acc = 0.0
-        self._cd_acc = 1.0
-        self._qd_acc = 0.0
+        self._restart_sums()
 
     def _propagate_compiled(self) -> None:
         """:meth:`propagate` on the compiled core (``ct_orientation_propagate``)."""
-        if self._dt_acc <= 0.0:
+        s = self._s
+        if s[SUM_DT] <= 0.0:
             return
         p = self.prm
-        self._ck.propagate(self._dt_acc, self._dt2_acc, self._cd_acc, self._qd_acc, p.gyro_noise, p.gyro_bias_rw)
+        self._ck.propagate(s[SUM_DT], s[SUM_DT2], s[SUM_CD], s[SUM_QD], p.gyro_noise, p.gyro_bias_rw)
         self.pred.after_predict(self.P)
-        self._dt_acc = 0.0
-        self._dt2_acc = 0.0
-        self._cd_acc = 1.0
-        self._qd_acc = 0.0
+        self._restart_sums()
 
     def _orthonormalize(self) -> None:
         """``R <- R (3 I - R^T R) / 2`` (one Newton step of the polar factor)."""
@@ -428,7 +452,9 @@ class OrientationFilter:
         p = self.prm
         a = self._av
         g = p.gravity
-        self.incl.observe(self._Rv, ax, ay, az)
+        s = self._s
+        self.incl.observe(self._Rv, ax, ay, az, s[SUM_INCL_DT])
+        s[SUM_INCL_DT] = 0.0
         vx, vy, vz = ax - a[0], ay - a[1], az - a[2]
         vn = math.sqrt(vx * vx + vy * vy + vz * vz)
         if not (abs(vn - g) <= p.freefall_tolerance * g):
@@ -436,7 +462,7 @@ class OrientationFilter:
             self._post_acc(ax, ay, az)
             return ORI_FREEFALL
         self.propagate()
-        flags = self.incl.update(self._Rv, self.P, vx, vy, vz, vn, self._ca)
+        flags = self.incl.update(self._Rv, self.P, vx, vy, vz, vn, s[SUM_CA])
         if flags == EKF_OK:
             self._apply(self.incl.upd._dxv)
         self._post_acc(ax, ay, az)

@@ -42,7 +42,6 @@ class Inclination:
         self._mean = [0.0, 0.0, 0.0]    # running mean of y_A - g Z- (a tilt error shows here, not above)
         self._sq = 0.0                  # running mean of |y_A - g Z-|^2
         self._started = False
-        self._dt = 0.0                  # time since the last inclination update, s
 
     def reset(self) -> None:
         """A new start: no motion seen yet."""
@@ -50,21 +49,17 @@ class Inclination:
         self._mean[0] = self._mean[1] = self._mean[2] = 0.0
         self._sq = 0.0
         self._started = False
-        self._dt = 0.0
 
-    def elapse(self, dt: float) -> None:
-        """``dt`` (s) of prediction since the last update."""
-        self._dt += dt
-
-    def observe(self, R, ax, ay, az) -> None:
+    def observe(self, R, ax, ay, az, dt: float) -> None:
         """The motion the accelerometer sees besides gravity, ``|y_A - g Z-|^2``, averaged over
         ``acc_adapt_tau_s``: the variance of the inclination's motion term follows the motion
-        level (only when ``acc_adapt_gain`` is on)."""
+        level (only when ``acc_adapt_gain`` is on); ``dt`` (s): the prediction time since the
+        last call (the filter's ``SUM_INCL_DT``)."""
         p = self.prm
         if p.acc_adapt_gain > 0.0:
             g = p.gravity
             ex, ey, ez = ax - g * R[2, 0], ay - g * R[2, 1], az - g * R[2, 2]
-            k = self._dt / p.acc_adapt_tau_s if p.acc_adapt_tau_s > 0.0 else 1.0
+            k = dt / p.acc_adapt_tau_s if p.acc_adapt_tau_s > 0.0 else 1.0
             k = k if k < 1.0 else 1.0
             if not self._started:         # the first sample is the mean: no variance yet
                 k = 1.0
@@ -76,7 +71,6 @@ class Inclination:
             self._sq += k * (ex * ex + ey * ey + ez * ez - self._sq)
             v = self._sq - (m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
             self.motion_ms = v if v > 0.0 else 0.0
-        self._dt = 0.0
 
     def update(self, R, P, vx, vy, vz, vn, ca) -> int:
         """The update of ``P`` with the specific force less the predicted acceleration ``v``

@@ -1,0 +1,57 @@
+/*
+ * The per-IMU-sample path of the fused trackers (core/src/fusimu.c): the fusion filter's
+ * input interpolation and step (coiltrack.firmware.estimate.fusion_prediction.InertialPrediction
+ * .propagate, .set_dt), its pose history and fused output rows (fusion_state.MovingSource /
+ * FixedSource .to_source, .position_var, fusion_output.PoseOutput.queue, _quat_into,
+ * rotation.quat_from_elements), and the orientation filter's per-sample prediction
+ * (estimate.orientation.OrientationFilter.predict).  The same operations in the same order as
+ * the Python reference; state in caller-owned buffers.
+ */
+#ifndef CT_FUSIMU_H
+#define CT_FUSIMU_H
+
+#include <stdint.h>
+
+/* the IMU ring's row (fusion_state.IMU_FIELDS): F, W, FSRC, PHI */
+enum { CT_IMU_F = 0, CT_IMU_W = 3, CT_IMU_FSRC = 6, CT_IMU_PHI = 9, CT_IMU_WIDTH = 18 };
+/* a pose-history row (fusion_state.HIST_FIELDS): P, R */
+enum { CT_HIST_P = 0, CT_HIST_R = 3, CT_HIST_WIDTH = 12 };
+/* an output row (fusion_output.OUT_FIELDS) and its status bits */
+enum { CT_OUT_P = 0, CT_OUT_Q = 3, CT_OUT_VAR_P = 7, CT_OUT_VAR_O = 10, CT_OUT_STATUS = 13, CT_OUT_WIDTH = 14 };
+enum { CT_OUT_STALE = 1, CT_OUT_INCONSISTENT = 2, CT_OUT_DEAD_RECKONING = 4, CT_OUT_LOST = 8,
+       CT_OUT_RECOVERED = 16 };
+/* the step's workspace scalars (InsState.dt_last, ka, kg) */
+enum { CT_FS_DT_LAST = 0, CT_FS_KA = 1, CT_FS_KG = 2, CT_FS_NST = 3 };
+
+/* one inertial state's prediction (InertialPrediction bound to one InsState) */
+struct ct_fus_pred {
+    struct ct_ins ins;              /* the state's buffers (ct_ins_propagate) */
+    double *Q;                      /* n x n, the diagonals set_dt writes */
+    const int64_t *itv;             /* the IMU ring's times (icap) */
+    const double *idv;              /* its rows (icap x CT_IMU_WIDTH) */
+    int icap;
+    double tau_a, tau_g, qv_k, gyro_noise, qa_k, qg_k;   /* InertialPrediction._dtk */
+    double *st;                     /* CT_FS_NST */
+};
+void ct_fus_set_dt(const struct ct_fus_pred *f, double dt);
+void ct_fus_propagate(const struct ct_fus_pred *f, int k, int nring, int64_t t0, int64_t t1);
+/* history row hd (CT_HIST_WIDTH) of p, Th in the source frame (Phi of IMU row d; moving: 0 = fixed) */
+void ct_fus_to_source(const double *d, int moving, const double *p, const double *Th, double *hd);
+void ct_quat_from_elements(const double *r, double *q);
+/* one output row od (CT_OUT_WIDTH) from history row hd, the state's P (n x n) and Th, IMU row d */
+void ct_fus_output(double *od, const double *hd, const double *P, int n, const double *Th, const double *d,
+                   int moving, double status);
+int ct_fus_status(int64_t age, int64_t stale_us, int64_t dr_after_us, int64_t dr_limit_us, int recovering,
+                  int inconsistent);
+
+/* the orientation filter's per-sample prediction; its accumulators in acc[CT_OA_N]
+ * (OrientationFilter._dt_acc, _dt2_acc, _cd_acc, _qd_acc, _ca and Inclination._dt) */
+enum { CT_OA_DT = 0, CT_OA_DT2 = 1, CT_OA_CD = 2, CT_OA_QD = 3, CT_OA_CA = 4, CT_OA_INCL_DT = 5, CT_OA_N = 6 };
+struct ct_ori_pred {
+    double *R, *bias, *dist, *acc, *E;  /* 9, 3, 3, 3, 9 (scratch) */
+    double *st;                         /* CT_OA_N */
+    double dist_corr, acc_corr_time_s;
+};
+void ct_ori_predict(const struct ct_ori_pred *o, double dt, double wx, double wy, double wz, double qwd);
+
+#endif /* CT_FUSIMU_H */

@@ -1,0 +1,481 @@
+/*
+ * The CPython glue of core/src/fusimu.c (the per-IMU-sample path of the fused trackers):
+ *
+ *   FusPred(n, p, v, Th, ba, bg, A, P, Q, T, itv, idv, st, tau_a, tau_g, qv_k, gyro_noise, qa_k,
+ *           qg_k, moving)
+ *       .propagate(k, nring, t0, t1)      InertialPrediction.propagate of the bound state
+ *       .history(hd, h, k)                InertialPrediction.history's row (to_source)
+ *   FusRow(idv, moving).store(k, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
+ *                                         InertialPrediction.push's row
+ *   FusOutput(n, P, Th, idv, hd, od, moving, stale_us, dr_after_us, dr_limit_us)
+ *       .queue(slot, h, k, age, recovering, inconsistent)   PoseOutput.queue's row
+ *   OriPred(R, bias, dist, acc, st, dist_corr, acc_corr_time_s)
+ *       .predict(dt, wx, wy, wz, qwd)     OrientationFilter.predict after its time step
+ *
+ * The arrays are bound once (buffer protocol) at construction; the per-call methods are
+ * METH_FASTCALL, read their numbers in place and create no Python object (they return None).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+#define FUS_MAXBUF 14
+
+/* the bound buffers of one object */
+typedef struct {
+    Py_buffer v[FUS_MAXBUF];
+    int n;
+} fus_views;
+
+static void fus_release(fus_views *b)
+{
+    while (b->n > 0)
+        PyBuffer_Release(&b->v[--b->n]);
+}
+
+/* bind obj as a C-contiguous buffer of at least `count` items of `fmt` ('d' or 'q'); its pointer */
+static void *fus_bind(fus_views *b, PyObject *obj, Py_ssize_t count, char fmt, int writable, const char *what)
+{
+    Py_buffer *v = &b->v[b->n];
+    const char *f;
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, v, flags) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
+        return NULL;
+    }
+    f = v->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || v->itemsize != 8 || !(f[0] == fmt || (fmt == 'q' && f[0] == 'l')) || f[1] != '\0' ||
+        v->len < count * 8) {
+        PyBuffer_Release(v);
+        PyErr_Format(PyExc_TypeError, "%s: needs %s items, at least %zd of them", what,
+                     fmt == 'd' ? "float64" : "int64", count);
+        return NULL;
+    }
+    b->n++;
+    return v->buf;
+}
+
+static int fus_double(PyObject *o, double *x)
+{
+    *x = PyFloat_AsDouble(o);
+    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int fus_long(PyObject *o, long long *x)
+{
+    *x = PyLong_AsLongLong(o);
+    return (*x == -1 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int fus_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (nargs != want) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
+        return -1;
+    }
+    return 0;
+}
+
+/* a slot index within 0..cap-1 */
+static int fus_slot(PyObject *o, int cap, int *k, const char *what)
+{
+    long long x;
+    if (fus_long(o, &x) < 0)
+        return -1;
+    if (x < 0 || x >= cap) {
+        PyErr_Format(PyExc_IndexError, "%s: slot %lld outside 0..%d", what, x, cap - 1);
+        return -1;
+    }
+    *k = (int)x;
+    return 0;
+}
+
+/* a 3x3 matrix (array or memoryview, 2-D (3, 3) or flat (9,), any strides) into r[9] */
+static int fus_matrix3(PyObject *obj, double *r)
+{
+    Py_buffer v;
+    const char *f;
+    int i, k;
+    if (PyObject_GetBuffer(obj, &v, PyBUF_RECORDS_RO) < 0)
+        return -1;
+    f = v.format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || v.itemsize != 8 || f[0] != 'd' || f[1] != '\0' ||
+        !((v.ndim == 2 && v.shape[0] == 3 && v.shape[1] == 3) || (v.ndim == 1 && v.shape[0] == 9))) {
+        PyBuffer_Release(&v);
+        PyErr_SetString(PyExc_TypeError, "Phi: needs a float64 buffer of shape (3, 3) or (9,)");
+        return -1;
+    }
+    if (v.ndim == 2) {
+        for (i = 0; i < 3; ++i)
+            for (k = 0; k < 3; ++k)
+                memcpy(&r[3 * i + k], (const char *)v.buf + i * v.strides[0] + k * v.strides[1], sizeof(double));
+    } else {
+        for (i = 0; i < 9; ++i)
+            memcpy(&r[i], (const char *)v.buf + i * v.strides[0], sizeof(double));
+    }
+    PyBuffer_Release(&v);
+    return 0;
+}
+
+#define FUS_DEALLOC(T)                                                   \
+    static void T##_dealloc(T##Object *self)                             \
+    {                                                                    \
+        fus_release(&self->views);                                       \
+        Py_TYPE(self)->tp_free((PyObject *)self);                        \
+    }
+
+#define FUS_TYPE(T, NAME, DOC)                                           \
+    static PyTypeObject T##Type = {                                      \
+        PyVarObject_HEAD_INIT(NULL, 0)                                   \
+        .tp_name = "coiltrack.firmware._core." NAME,                     \
+        .tp_basicsize = sizeof(T##Object),                               \
+        .tp_flags = Py_TPFLAGS_DEFAULT,                                  \
+        .tp_doc = DOC,                                                   \
+        .tp_new = PyType_GenericNew,                                     \
+        .tp_init = (initproc)T##_init,                                   \
+        .tp_dealloc = (destructor)T##_dealloc,                           \
+        .tp_methods = T##_methods,                                       \
+    };
+
+static int fus_fresh(fus_views *b, const char *name)
+{
+    if (b->n) {
+        PyErr_Format(PyExc_RuntimeError, "%s: already bound", name);
+        return -1;
+    }
+    return 0;
+}
+
+/* ---------------------------------------------------------------- FusPred */
+typedef struct {
+    PyObject_HEAD
+    struct ct_fus_pred f;
+    double E[9];
+    int moving;
+    fus_views views;
+} FusPredObject;
+
+FUS_DEALLOC(FusPred)
+
+static int FusPred_init(FusPredObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", "itv", "idv", "st", "tau_a",
+                             "tau_g", "qv_k", "gyro_noise", "qa_k", "qg_k", "moving", NULL};
+    PyObject *o[13];
+    struct ct_fus_pred *f = &self->f;
+    struct ct_ins *s = &f->ins;
+    Py_ssize_t nn, cap;
+    int n, moving;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOddddddp", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &f->tau_a,
+                                     &f->tau_g, &f->qv_k, &f->gyro_noise, &f->qa_k, &f->qg_k, &moving))
+        return -1;
+    if (fus_fresh(&self->views, "FusPred") < 0)
+        return -1;
+    if (n < CT_GYR + 3 || n > 256) {
+        PyErr_Format(PyExc_ValueError, "FusPred: n must be in %d..256, got %d", CT_GYR + 3, n);
+        return -1;
+    }
+    nn = (Py_ssize_t)n * n;
+    if (PyObject_Length(o[9]) < 2) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "FusPred: itv needs at least 2 entries");
+        return -1;
+    }
+    cap = PyObject_Length(o[9]);
+    if (!(s->p = fus_bind(&self->views, o[0], 3, 'd', 1, "p")) ||
+        !(s->v = fus_bind(&self->views, o[1], 3, 'd', 1, "v")) ||
+        !(s->Th = fus_bind(&self->views, o[2], 9, 'd', 1, "Th")) ||
+        !(s->ba = fus_bind(&self->views, o[3], 3, 'd', 1, "ba")) ||
+        !(s->bg = fus_bind(&self->views, o[4], 3, 'd', 1, "bg")) ||
+        !(s->A = fus_bind(&self->views, o[5], nn, 'd', 1, "A")) ||
+        !(s->P = fus_bind(&self->views, o[6], nn, 'd', 1, "P")) ||
+        !(f->Q = fus_bind(&self->views, o[7], nn, 'd', 1, "Q")) ||
+        !(s->T = fus_bind(&self->views, o[8], nn, 'd', 1, "T")) ||
+        !(f->itv = fus_bind(&self->views, o[9], cap, 'q', 0, "itv")) ||
+        !(f->idv = fus_bind(&self->views, o[10], cap * CT_IMU_WIDTH, 'd', 0, "idv")) ||
+        !(f->st = fus_bind(&self->views, o[11], CT_FS_NST, 'd', 1, "st"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    s->n = n;
+    s->Q = f->Q;
+    s->E = self->E;
+    f->icap = (int)cap;
+    self->moving = moving;
+    return 0;
+}
+
+/* propagate(k, nring, t0, t1) */
+static PyObject *FusPred_propagate(FusPredObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long nring, t0, t1;
+    int k;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusPred: not bound");
+        return NULL;
+    }
+    if (fus_nargs("propagate", nargs, 4) < 0 || fus_slot(args[0], self->f.icap, &k, "propagate") < 0 ||
+        fus_long(args[1], &nring) < 0 || fus_long(args[2], &t0) < 0 || fus_long(args[3], &t1) < 0)
+        return NULL;
+    ct_fus_propagate(&self->f, k, (int)nring, (int64_t)t0, (int64_t)t1);
+    Py_RETURN_NONE;
+}
+
+/* history(hd, h, k): row h of the history rows hd = the bound state in the source frame */
+static PyObject *FusPred_history(FusPredObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer hv;
+    int k;
+    long long h;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusPred: not bound");
+        return NULL;
+    }
+    if (fus_nargs("history", nargs, 3) < 0 || fus_long(args[1], &h) < 0 ||
+        fus_slot(args[2], self->f.icap, &k, "history") < 0)
+        return NULL;
+    if (PyObject_GetBuffer(args[0], &hv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0)
+        return NULL;
+    if (hv.itemsize != 8 || h < 0 || (h + 1) * CT_HIST_WIDTH * 8 > hv.len) {
+        PyBuffer_Release(&hv);
+        PyErr_SetString(PyExc_IndexError, "history: row outside the history buffer");
+        return NULL;
+    }
+    ct_fus_to_source(self->f.idv + (long)k * CT_IMU_WIDTH, self->moving, self->f.ins.p, self->f.ins.Th,
+                     (double *)hv.buf + h * CT_HIST_WIDTH);
+    PyBuffer_Release(&hv);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FusPred_methods[] = {
+    {"propagate", (PyCFunction)(void (*)(void))FusPred_propagate, METH_FASTCALL,
+     "propagate(k, nring, t0, t1): InertialPrediction.propagate of the bound state"},
+    {"history", (PyCFunction)(void (*)(void))FusPred_history, METH_FASTCALL,
+     "history(hd, h, k): history row h of hd from the bound state (Phi of IMU row k)"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(FusPred, "FusPred", "FusPred(n, p, v, Th, ba, bg, A, P, Q, T, itv, idv, st, tau_a, tau_g, qv_k, "
+         "gyro_noise, qa_k, qg_k, moving): the fusion filter's step bound to one state and the IMU ring")
+
+/* ----------------------------------------------------------------- FusRow */
+typedef struct {
+    PyObject_HEAD
+    double *idv;
+    int cap, moving;
+    fus_views views;
+} FusRowObject;
+
+FUS_DEALLOC(FusRow)
+
+static int FusRow_init(FusRowObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"idv", "cap", "moving", NULL};
+    PyObject *d;
+    int cap, moving;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "Oip", kwlist, &d, &cap, &moving))
+        return -1;
+    if (fus_fresh(&self->views, "FusRow") < 0)
+        return -1;
+    if (cap < 2) {
+        PyErr_SetString(PyExc_ValueError, "FusRow: cap must be >= 2");
+        return -1;
+    }
+    if (!(self->idv = fus_bind(&self->views, d, (Py_ssize_t)cap * CT_IMU_WIDTH, 'd', 1, "idv")))
+        return -1;
+    self->cap = cap;
+    self->moving = moving;
+    return 0;
+}
+
+/* store(k, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) */
+static PyObject *FusRow_store(FusRowObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[9], phi[9], *row;
+    int k, i;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusRow: not bound");
+        return NULL;
+    }
+    if (fus_nargs("store", nargs, 11) < 0 || fus_slot(args[0], self->cap, &k, "store") < 0)
+        return NULL;
+    for (i = 0; i < 9; ++i)
+        if (fus_double(args[1 + i], &v[i]) < 0)
+            return NULL;
+    if (self->moving && fus_matrix3(args[10], phi) < 0)
+        return NULL;
+    row = self->idv + (long)k * CT_IMU_WIDTH;
+    for (i = 0; i < 9; ++i)
+        row[CT_IMU_F + i] = v[i];
+    if (self->moving)
+        for (i = 0; i < 9; ++i)
+            row[CT_IMU_PHI + i] = phi[i];
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FusRow_methods[] = {
+    {"store", (PyCFunction)(void (*)(void))FusRow_store, METH_FASTCALL,
+     "store(k, f (3), w (3), fsrc (3), Phi): IMU ring row k (Phi kept for a moving source)"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(FusRow, "FusRow", "FusRow(idv, cap, moving): InertialPrediction.push's row writer")
+
+/* -------------------------------------------------------------- FusOutput */
+typedef struct {
+    PyObject_HEAD
+    int n, icap, hcap, ocap, moving;
+    long long stale_us, dr_after_us, dr_limit_us;
+    const double *P, *Th, *idv, *hd;
+    double *od;
+    fus_views views;
+} FusOutputObject;
+
+FUS_DEALLOC(FusOutput)
+
+static int FusOutput_init(FusOutputObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "P", "Th", "idv", "icap", "hd", "hcap", "od", "ocap", "moving", "stale_us",
+                             "dr_after_us", "dr_limit_us", NULL};
+    PyObject *o[5];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOiOiOipLLL", kwlist, &self->n, &o[0], &o[1], &o[2], &self->icap,
+                                     &o[3], &self->hcap, &o[4], &self->ocap, &self->moving, &self->stale_us,
+                                     &self->dr_after_us, &self->dr_limit_us))
+        return -1;
+    if (fus_fresh(&self->views, "FusOutput") < 0)
+        return -1;
+    if (self->n < CT_GYR + 3 || self->n > 256 || self->icap < 2 || self->hcap < 2 || self->ocap < 2) {
+        PyErr_SetString(PyExc_ValueError, "FusOutput: bad state size or ring capacity");
+        return -1;
+    }
+    if (!(self->P = fus_bind(&self->views, o[0], (Py_ssize_t)self->n * self->n, 'd', 0, "P")) ||
+        !(self->Th = fus_bind(&self->views, o[1], 9, 'd', 0, "Th")) ||
+        !(self->idv = fus_bind(&self->views, o[2], (Py_ssize_t)self->icap * CT_IMU_WIDTH, 'd', 0, "idv")) ||
+        !(self->hd = fus_bind(&self->views, o[3], (Py_ssize_t)self->hcap * CT_HIST_WIDTH, 'd', 0, "hd")) ||
+        !(self->od = fus_bind(&self->views, o[4], (Py_ssize_t)self->ocap * CT_OUT_WIDTH, 'd', 1, "od"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    return 0;
+}
+
+/* queue(slot, h, k, age, recovering, inconsistent) */
+static PyObject *FusOutput_queue(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int slot, h, k, rec, inc, status;
+    long long age;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: not bound");
+        return NULL;
+    }
+    if (fus_nargs("queue", nargs, 6) < 0 || fus_slot(args[0], self->ocap, &slot, "queue") < 0 ||
+        fus_slot(args[1], self->hcap, &h, "queue") < 0 || fus_slot(args[2], self->icap, &k, "queue") < 0 ||
+        fus_long(args[3], &age) < 0)
+        return NULL;
+    rec = PyObject_IsTrue(args[4]);
+    inc = PyObject_IsTrue(args[5]);
+    if (rec < 0 || inc < 0)
+        return NULL;
+    status = ct_fus_status((int64_t)age, (int64_t)self->stale_us, (int64_t)self->dr_after_us,
+                           (int64_t)self->dr_limit_us, rec, inc);
+    ct_fus_output(self->od + (long)slot * CT_OUT_WIDTH, self->hd + (long)h * CT_HIST_WIDTH, self->P, self->n,
+                  self->Th, self->idv + (long)k * CT_IMU_WIDTH, self->moving, (double)status);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FusOutput_methods[] = {
+    {"queue", (PyCFunction)(void (*)(void))FusOutput_queue, METH_FASTCALL,
+     "queue(slot, h, k, age, recovering, inconsistent): PoseOutput.queue's output row"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(FusOutput, "FusOutput", "FusOutput(n, P, Th, idv, icap, hd, hcap, od, ocap, moving, stale_us, "
+         "dr_after_us, dr_limit_us): the fused output rows bound to the live state and history")
+
+/* ---------------------------------------------------------------- OriPred */
+typedef struct {
+    PyObject_HEAD
+    struct ct_ori_pred o;
+    double E[9];
+    fus_views views;
+} OriPredObject;
+
+FUS_DEALLOC(OriPred)
+
+static int OriPred_init(OriPredObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"R", "bias", "dist", "acc", "st", "dist_corr", "acc_corr_time_s", NULL};
+    PyObject *o[5];
+    struct ct_ori_pred *p = &self->o;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOdd", kwlist, &o[0], &o[1], &o[2], &o[3], &o[4], &p->dist_corr,
+                                     &p->acc_corr_time_s))
+        return -1;
+    if (fus_fresh(&self->views, "OriPred") < 0)
+        return -1;
+    if (!(p->R = fus_bind(&self->views, o[0], 9, 'd', 1, "R")) ||
+        !(p->bias = fus_bind(&self->views, o[1], 3, 'd', 0, "bias")) ||
+        !(p->dist = fus_bind(&self->views, o[2], 3, 'd', 1, "dist")) ||
+        !(p->acc = fus_bind(&self->views, o[3], 3, 'd', 1, "acc")) ||
+        !(p->st = fus_bind(&self->views, o[4], CT_OA_N, 'd', 1, "st"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    p->E = self->E;
+    return 0;
+}
+
+/* predict(dt, wx, wy, wz, qwd) */
+static PyObject *OriPred_predict(OriPredObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[5];
+    int i;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "OriPred: not bound");
+        return NULL;
+    }
+    if (fus_nargs("predict", nargs, 5) < 0)
+        return NULL;
+    for (i = 0; i < 5; ++i)
+        if (fus_double(args[i], &v[i]) < 0)
+            return NULL;
+    ct_ori_predict(&self->o, v[0], v[1], v[2], v[3], v[4]);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef OriPred_methods[] = {
+    {"predict", (PyCFunction)(void (*)(void))OriPred_predict, METH_FASTCALL,
+     "predict(dt, wx, wy, wz, qwd): OrientationFilter.predict after its time step"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(OriPred, "OriPred", "OriPred(R, bias, dist, acc, st, dist_corr, acc_corr_time_s): the orientation "
+         "filter's per-sample prediction bound to its state")
+
+/* --------------------------------------------------------------- register */
+static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
+{
+    if (PyType_Ready(t) < 0)
+        return -1;
+    Py_INCREF(t);
+    if (PyModule_AddObject(m, name, (PyObject *)t) < 0) {
+        Py_DECREF(t);
+        return -1;
+    }
+    return 0;
+}
+
+int ct_register_fusimu(PyObject *m)
+{
+    if (fus_add(m, &FusPredType, "FusPred") < 0 || fus_add(m, &FusRowType, "FusRow") < 0 ||
+        fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0)
+        return -1;
+    if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
+        PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||
+        PyModule_AddIntConstant(m, "FUS_OUT_WIDTH", CT_OUT_WIDTH) < 0 ||
+        PyModule_AddIntConstant(m, "FUS_OA_N", CT_OA_N) < 0 || PyModule_AddIntConstant(m, "FUS_NST", CT_FS_NST) < 0)
+        return -1;
+    return 0;
+}

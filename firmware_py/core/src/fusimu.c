@@ -1,0 +1,232 @@
+/*
+ * The per-IMU-sample path of the fused trackers, compiled:
+ *
+ * - ct_fus_propagate: coiltrack.firmware.estimate.fusion_prediction.InertialPrediction.propagate
+ *   (the inputs at t0, t1 interpolated between IMU ring rows k - 1 and k) with step_compiled and
+ *   set_dt: thesis seeds/002_cd7f1fdb7fc67471.txt eqs 6.1-6.4, 6.8 (strapdown, ct_ins_propagate),
+ *   6.10, 6.13-6.14 (the step's static blocks of A and its Q, sec 6.2.4), 6.17, 6.5;
+ * - ct_fus_to_source: fusion_state.MovingSource.to_source / FixedSource.to_source (eq 6.7:
+ *   p_M = Phi^T p, R_MS = Phi^T Theta);
+ * - ct_fus_output: fusion_output.PoseOutput.queue with _quat_into (rotation.quat_from_elements,
+ *   Shepperd's method) and MovingSource / FixedSource.position_var;
+ * - ct_ori_predict: estimate.orientation.OrientationFilter.predict (eq 2.27 strapdown, eq 2.5
+ *   acceleration and eq 2.7 disturbance decay, the sums the covariance propagation composes).
+ *
+ * Each follows its Python reference operation by operation, in the same order.
+ */
+#include <math.h>
+
+#include "coiltrack_core.h"
+
+/* InertialPrediction.set_dt: the parts of A and Q that depend on the step alone */
+void ct_fus_set_dt(const struct ct_fus_pred *f, double dt)
+{
+    int n = f->ins.n, i;
+    double *A = f->ins.A, *Q = f->Q;
+    double ka = f->tau_a > 0.0 ? exp(-dt / f->tau_a) : 1.0;
+    double kg = f->tau_g > 0.0 ? exp(-dt / f->tau_g) : 1.0;
+    double qv, qo, qa, qg, go;
+    f->st[CT_FS_DT_LAST] = dt;
+    f->st[CT_FS_KA] = ka;
+    f->st[CT_FS_KG] = kg;
+    for (i = 0; i < 3; ++i) {                       /* strapdown.transition_static */
+        A[(CT_POS + i) * n + CT_VEL + i] = dt;
+        A[(CT_ACC + i) * n + CT_ACC + i] = ka;
+        A[(CT_GYR + i) * n + CT_GYR + i] = kg;
+    }
+    qv = f->qv_k * dt * dt;
+    go = f->gyro_noise * dt;
+    qo = go * go;                                   /* (k[3] * dt) ** 2: both correctly rounded */
+    qa = f->qa_k * dt;
+    qg = f->qg_k * dt;
+    for (i = 0; i < 3; ++i) {
+        Q[(CT_VEL + i) * (n + 1)] = qv;
+        Q[(CT_ORI + i) * (n + 1)] = qo;
+        Q[(CT_ACC + i) * (n + 1)] = qa;
+        Q[(CT_GYR + i) * (n + 1)] = qg;
+    }
+}
+
+/* InertialPrediction.propagate + step_compiled: the step of the bound state over [t0, t1] with IMU
+ * ring slots k - 1 and k (nring: the entries the ring holds) */
+void ct_fus_propagate(const struct ct_fus_pred *f, int k, int nring, int64_t t0, int64_t t1)
+{
+    double dt = (double)(t1 - t0) * 1e-6;
+    const double *pd, *kd;
+    const double *ba = f->ins.ba, *bg = f->ins.bg;
+    double a0, a1, b0, b1, am, bm, in[15];
+    int64_t tk = f->itv[k], tp;
+    int kp = k > 0 ? k - 1 : f->icap - 1;
+    tp = f->itv[kp];
+    if (nring > 1 && tp < tk) {
+        double span = 1.0 / (double)(tk - tp);
+        a0 = (double)(t0 - tp) * span;
+        a1 = (double)(t1 - tp) * span;
+        if (a0 < 0.0)
+            a0 = 0.0;
+    } else {
+        kp = k;
+        a0 = a1 = 1.0;
+    }
+    b0 = 1.0 - a0;
+    b1 = 1.0 - a1;
+    pd = f->idv + (long)kp * CT_IMU_WIDTH;
+    kd = f->idv + (long)k * CT_IMU_WIDTH;
+    in[0] = b0 * pd[CT_IMU_F] + a0 * kd[CT_IMU_F] - ba[0];
+    in[1] = b0 * pd[CT_IMU_F + 1] + a0 * kd[CT_IMU_F + 1] - ba[1];
+    in[2] = b0 * pd[CT_IMU_F + 2] + a0 * kd[CT_IMU_F + 2] - ba[2];
+    in[3] = b1 * pd[CT_IMU_F] + a1 * kd[CT_IMU_F] - ba[0];
+    in[4] = b1 * pd[CT_IMU_F + 1] + a1 * kd[CT_IMU_F + 1] - ba[1];
+    in[5] = b1 * pd[CT_IMU_F + 2] + a1 * kd[CT_IMU_F + 2] - ba[2];
+    am = 0.5 * (a0 + a1);
+    bm = 1.0 - am;
+    in[6] = bm * pd[CT_IMU_W] + am * kd[CT_IMU_W] - bg[0];
+    in[7] = bm * pd[CT_IMU_W + 1] + am * kd[CT_IMU_W + 1] - bg[1];
+    in[8] = bm * pd[CT_IMU_W + 2] + am * kd[CT_IMU_W + 2] - bg[2];
+    in[9] = b0 * pd[CT_IMU_FSRC] + a0 * kd[CT_IMU_FSRC];
+    in[10] = b0 * pd[CT_IMU_FSRC + 1] + a0 * kd[CT_IMU_FSRC + 1];
+    in[11] = b0 * pd[CT_IMU_FSRC + 2] + a0 * kd[CT_IMU_FSRC + 2];
+    in[12] = b1 * pd[CT_IMU_FSRC] + a1 * kd[CT_IMU_FSRC];
+    in[13] = b1 * pd[CT_IMU_FSRC + 1] + a1 * kd[CT_IMU_FSRC + 1];
+    in[14] = b1 * pd[CT_IMU_FSRC + 2] + a1 * kd[CT_IMU_FSRC + 2];
+    if (dt != f->st[CT_FS_DT_LAST])
+        ct_fus_set_dt(f, dt);
+    ct_ins_propagate((struct ct_ins *)&f->ins, dt, in, f->st[CT_FS_KA], f->st[CT_FS_KG]);
+}
+
+void ct_fus_to_source(const double *d, int moving, const double *p, const double *Th, double *hd)
+{
+    int i, j;
+    if (!moving) {
+        hd[CT_HIST_P] = p[0];
+        hd[CT_HIST_P + 1] = p[1];
+        hd[CT_HIST_P + 2] = p[2];
+        for (i = 0; i < 9; ++i)
+            hd[CT_HIST_R + i] = Th[i];
+        return;
+    }
+    for (i = 0; i < 3; ++i) {
+        double f0 = d[CT_IMU_PHI + i], f1 = d[CT_IMU_PHI + 3 + i], f2 = d[CT_IMU_PHI + 6 + i];
+        hd[CT_HIST_P + i] = f0 * p[0] + f1 * p[1] + f2 * p[2];
+        for (j = 0; j < 3; ++j)
+            hd[CT_HIST_R + 3 * i + j] = f0 * Th[j] + f1 * Th[3 + j] + f2 * Th[6 + j];
+    }
+}
+
+/* rotation.quat_from_elements: q = (w, x, y, z), w >= 0, of the row-major r[9] */
+void ct_quat_from_elements(const double *r, double *q)
+{
+    double r00 = r[0], r01 = r[1], r02 = r[2], r10 = r[3], r11 = r[4], r12 = r[5], r20 = r[6],
+           r21 = r[7], r22 = r[8];
+    double t = r00 + r11 + r22, s, w, x, y, z, nn;
+    if (t > 0.0) {
+        s = sqrt(t + 1.0) * 2.0;
+        w = 0.25 * s;
+        x = (r21 - r12) / s;
+        y = (r02 - r20) / s;
+        z = (r10 - r01) / s;
+    } else if (r00 > r11 && r00 > r22) {
+        s = sqrt(1.0 + r00 - r11 - r22) * 2.0;
+        w = (r21 - r12) / s;
+        x = 0.25 * s;
+        y = (r01 + r10) / s;
+        z = (r02 + r20) / s;
+    } else if (r11 > r22) {
+        s = sqrt(1.0 + r11 - r00 - r22) * 2.0;
+        w = (r02 - r20) / s;
+        x = (r01 + r10) / s;
+        y = 0.25 * s;
+        z = (r12 + r21) / s;
+    } else {
+        s = sqrt(1.0 + r22 - r00 - r11) * 2.0;
+        w = (r10 - r01) / s;
+        x = (r02 + r20) / s;
+        y = (r12 + r21) / s;
+        z = 0.25 * s;
+    }
+    if (w < 0.0) {
+        w = -w;
+        x = -x;
+        y = -y;
+        z = -z;
+    }
+    nn = sqrt(w * w + x * x + y * y + z * z);
+    q[0] = w / nn;
+    q[1] = x / nn;
+    q[2] = y / nn;
+    q[3] = z / nn;
+}
+
+/* diag(M^T S M) of the symmetric 3x3 block S at row / column s0 of the n x n P; column c of M is
+ * (m[c], m[3 + c], m[6 + c]) */
+static void diag_congruence(const double *P, int n, int s0, const double *m, double *out)
+{
+    const double *r0 = P + (long)s0 * n + s0, *r1 = r0 + n, *r2 = r1 + n;
+    double o00 = r0[0], o01 = r0[1], o02 = r0[2], o11 = r1[1], o12 = r1[2], o22 = r2[2];
+    int c;
+    for (c = 0; c < 3; ++c) {
+        double x = m[c], y = m[3 + c], z = m[6 + c];
+        out[c] = (x * (o00 * x + o01 * y + o02 * z) + y * (o01 * x + o11 * y + o12 * z)
+                  + z * (o02 * x + o12 * y + o22 * z));
+    }
+}
+
+void ct_fus_output(double *od, const double *hd, const double *P, int n, const double *Th, const double *d,
+                   int moving, double status)
+{
+    od[CT_OUT_P] = hd[CT_HIST_P];
+    od[CT_OUT_P + 1] = hd[CT_HIST_P + 1];
+    od[CT_OUT_P + 2] = hd[CT_HIST_P + 2];
+    ct_quat_from_elements(hd + CT_HIST_R, od + CT_OUT_Q);
+    diag_congruence(P, n, CT_ORI, Th, od + CT_OUT_VAR_O);
+    if (moving) {
+        diag_congruence(P, n, CT_POS, d + CT_IMU_PHI, od + CT_OUT_VAR_P);
+    } else {
+        od[CT_OUT_VAR_P] = P[CT_POS * (n + 1)];
+        od[CT_OUT_VAR_P + 1] = P[(CT_POS + 1) * (n + 1)];
+        od[CT_OUT_VAR_P + 2] = P[(CT_POS + 2) * (n + 1)];
+    }
+    od[CT_OUT_STATUS] = status;
+}
+
+/* PoseOutput._status */
+int ct_fus_status(int64_t age, int64_t stale_us, int64_t dr_after_us, int64_t dr_limit_us, int recovering,
+                  int inconsistent)
+{
+    int status = 0;
+    if (age > stale_us)
+        status |= CT_OUT_STALE;
+    if (age > dr_after_us) {
+        status |= CT_OUT_DEAD_RECKONING;
+        if (age > dr_limit_us)
+            status |= CT_OUT_LOST;
+    }
+    if (recovering)
+        status |= CT_OUT_RECOVERED;
+    if (inconsistent)
+        status |= CT_OUT_INCONSISTENT;
+    return status;
+}
+
+/* OrientationFilter.predict after its time step (dt > 0): R <- R exp([(w - b) dt]x) (eq 2.27),
+ * d <- c_d d (eq 2.7), a <- c_a a (eq 2.5), and the sums of the composed propagation */
+void ct_ori_predict(const struct ct_ori_pred *o, double dt, double wx, double wy, double wz, double qwd)
+{
+    const double *b = o->bias;
+    double *d = o->dist, *a = o->acc, *s = o->st;
+    double cd = o->dist_corr, ca;
+    ct_strapdown_rotate(o->R, (wx - b[0]) * dt, (wy - b[1]) * dt, (wz - b[2]) * dt, o->E);
+    d[0] *= cd;
+    d[1] *= cd;
+    d[2] *= cd;
+    ca = o->acc_corr_time_s > 0.0 ? exp(-dt / o->acc_corr_time_s) : 0.0;
+    a[0] *= ca;
+    a[1] *= ca;
+    a[2] *= ca;
+    s[CT_OA_CA] = ca;
+    s[CT_OA_DT] += dt;
+    s[CT_OA_INCL_DT] += dt;
+    s[CT_OA_DT2] += dt * dt;
+    s[CT_OA_CD] *= cd;
+    s[CT_OA_QD] = s[CT_OA_QD] * cd * cd + qwd;
+}
