@@ -5,12 +5,15 @@
  *           qg_k, moving)
  *       .propagate(k, nring, t0, t1)      InertialPrediction.propagate of the bound state
  *       .history(hd, h, k)                InertialPrediction.history's row (to_source)
+ *       .advance(k, nring, t0, t1, hd, h) both (InertialPrediction.advance)
  *   FusRow(idv, moving).store(k, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
  *                                         InertialPrediction.push's row
  *   FusOutput(n, P, Th, idv, hd, od, moving, stale_us, dr_after_us, dr_limit_us)
  *       .queue(slot, h, k, age, recovering, inconsistent)   PoseOutput.queue's row
  *   OriPred(R, bias, dist, acc, st, dist_corr, acc_corr_time_s)
  *       .predict(dt, wx, wy, wz, qwd)     OrientationFilter.predict after its time step
+ *   OriUpd(n, theta, bias, dist, R, Rc, b, d, a, sums, incl y/H/R/dx, compass y/H/R/dx, h_g, cst, params)
+ *       .acc_begin / .acc_end / .mag_fill / .mag_apply   the orientation updates around ct_kalman_update
  *
  * The arrays are bound once (buffer protocol) at construction; the per-call methods are
  * METH_FASTCALL, read their numbers in place and create no Python object (they return None).
@@ -21,7 +24,7 @@
 
 #include "coiltrack_core.h"
 
-#define FUS_MAXBUF 14
+#define FUS_MAXBUF 16
 
 /* the bound buffers of one object */
 typedef struct {
@@ -41,6 +44,10 @@ static void *fus_bind(fus_views *b, PyObject *obj, Py_ssize_t count, char fmt, i
     Py_buffer *v = &b->v[b->n];
     const char *f;
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (b->n >= FUS_MAXBUF) {
+        PyErr_Format(PyExc_RuntimeError, "%s: more than %d buffers bound", what, FUS_MAXBUF);
+        return NULL;
+    }
     if (PyObject_GetBuffer(obj, v, flags) < 0) {
         PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
         return NULL;
@@ -254,7 +261,25 @@ static PyObject *FusPred_history(FusPredObject *self, PyObject *const *args, Py_
     Py_RETURN_NONE;
 }
 
+/* advance(k, nring, t0, t1, hd, h): propagate(k, nring, t0, t1) then history(hd, h, k) */
+static PyObject *FusPred_advance(FusPredObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    PyObject *r;
+    if (fus_nargs("advance", nargs, 6) < 0)
+        return NULL;
+    r = FusPred_propagate(self, args, 4);
+    if (r == NULL)
+        return NULL;
+    Py_DECREF(r);
+    {
+        PyObject *h[3] = {args[4], args[5], args[0]};
+        return FusPred_history(self, h, 3);
+    }
+}
+
 static PyMethodDef FusPred_methods[] = {
+    {"advance", (PyCFunction)(void (*)(void))FusPred_advance, METH_FASTCALL,
+     "advance(k, nring, t0, t1, hd, h): propagate, then history row h of hd"},
     {"propagate", (PyCFunction)(void (*)(void))FusPred_propagate, METH_FASTCALL,
      "propagate(k, nring, t0, t1): InertialPrediction.propagate of the bound state"},
     {"history", (PyCFunction)(void (*)(void))FusPred_history, METH_FASTCALL,
@@ -454,6 +479,137 @@ static PyMethodDef OriPred_methods[] = {
 FUS_TYPE(OriPred, "OriPred", "OriPred(R, bias, dist, acc, st, dist_corr, acc_corr_time_s): the orientation "
          "filter's per-sample prediction bound to its state")
 
+/* ----------------------------------------------------------------- OriUpd */
+typedef struct {
+    PyObject_HEAD
+    struct ct_ori_meas o;
+    double E[9];
+    fus_views views;
+} OriUpdObject;
+
+FUS_DEALLOC(OriUpd)
+
+static int OriUpd_init(OriUpdObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "theta", "bias", "dist", "R", "Rc", "b", "d", "a", "sums", "iy", "iH", "iR",
+                             "idx", "my", "mH", "mR", "mdx", "hg", "cst", "gravity", "freefall_tolerance",
+                             "acc_noise", "acc_motion_sigma", "acc_adapt_gain", "mag_noise", "dist_sigma",
+                             "dist_norm_gain", "dist_dip_gain", "dist_smoothing", "heading_only", NULL};
+    PyObject *v[16];
+    struct ct_ori_meas *o = &self->o;
+    Py_ssize_t m;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiiiOOOOOOOOOOOOOOOOddddddddddp", kwlist, &o->n, &o->theta,
+                                     &o->bias, &o->dist, &v[0], &v[1], &v[2], &v[3], &v[4], &v[5], &v[6], &v[7],
+                                     &v[8], &v[9], &v[10], &v[11], &v[12], &v[13], &v[14], &v[15], &o->gravity,
+                                     &o->freefall_tolerance, &o->acc_noise, &o->acc_motion_sigma,
+                                     &o->acc_adapt_gain, &o->mag_noise, &o->dist_sigma, &o->dist_norm_gain,
+                                     &o->dist_dip_gain, &o->dist_smoothing, &o->heading_only))
+        return -1;
+    if (fus_fresh(&self->views, "OriUpd") < 0)
+        return -1;
+    if (o->n < 9 || o->n > 256 || o->theta < 0 || o->bias < 0 || o->dist < 0 || o->theta + 3 > o->n ||
+        o->bias + 3 > o->n || o->dist + 3 > o->n) {
+        PyErr_SetString(PyExc_ValueError, "OriUpd: bad state size or row indices");
+        return -1;
+    }
+    m = (Py_ssize_t)3 * o->n;
+    if (!(o->R = fus_bind(&self->views, v[0], 9, 'd', 1, "R")) ||
+        !(o->Rc = fus_bind(&self->views, v[1], 9, 'd', 1, "Rc")) ||
+        !(o->b = fus_bind(&self->views, v[2], 3, 'd', 1, "b")) ||
+        !(o->d = fus_bind(&self->views, v[3], 3, 'd', 1, "d")) ||
+        !(o->a = fus_bind(&self->views, v[4], 3, 'd', 1, "a")) ||
+        !(o->sums = fus_bind(&self->views, v[5], CT_OA_N, 'd', 0, "sums")) ||
+        !(o->iy = fus_bind(&self->views, v[6], 3, 'd', 1, "iy")) ||
+        !(o->iH = fus_bind(&self->views, v[7], m, 'd', 1, "iH")) ||
+        !(o->iR = fus_bind(&self->views, v[8], 9, 'd', 1, "iR")) ||
+        !(o->idx = fus_bind(&self->views, v[9], o->n, 'd', 0, "idx")) ||
+        !(o->my = fus_bind(&self->views, v[10], 3, 'd', 1, "my")) ||
+        !(o->mH = fus_bind(&self->views, v[11], m, 'd', 1, "mH")) ||
+        !(o->mR = fus_bind(&self->views, v[12], 9, 'd', 1, "mR")) ||
+        !(o->mdx = fus_bind(&self->views, v[13], o->n, 'd', 0, "mdx")) ||
+        !(o->hg = fus_bind(&self->views, v[14], 3, 'd', 0, "hg")) ||
+        !(o->cst = fus_bind(&self->views, v[15], CT_CS_N, 'd', 1, "cst"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    o->E = self->E;
+    return 0;
+}
+
+static int OriUpd_bound(OriUpdObject *self)
+{
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "OriUpd: not bound");
+        return -1;
+    }
+    return 0;
+}
+
+/* acc_begin(ax, ay, az, motion_ms) -> bool (False: free fall, nothing to update) */
+static PyObject *OriUpd_acc_begin(OriUpdObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[4];
+    int i;
+    if (OriUpd_bound(self) < 0 || fus_nargs("acc_begin", nargs, 4) < 0)
+        return NULL;
+    for (i = 0; i < 4; ++i)
+        if (fus_double(args[i], &v[i]) < 0)
+            return NULL;
+    if (ct_ori_incl_begin(&self->o, v[0], v[1], v[2], v[3]))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* acc_end(ok): the inclination's correction applied when ok, then the acceleration a+ */
+static PyObject *OriUpd_acc_end(OriUpdObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int ok;
+    if (OriUpd_bound(self) < 0 || fus_nargs("acc_end", nargs, 1) < 0 || (ok = PyObject_IsTrue(args[0])) < 0)
+        return NULL;
+    if (ok)
+        ct_ori_apply(&self->o, self->o.idx);
+    ct_ori_post_acc(&self->o);
+    Py_RETURN_NONE;
+}
+
+/* mag_fill(mx, my, mz) */
+static PyObject *OriUpd_mag_fill(OriUpdObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[3];
+    int i;
+    if (OriUpd_bound(self) < 0 || fus_nargs("mag_fill", nargs, 3) < 0)
+        return NULL;
+    for (i = 0; i < 3; ++i)
+        if (fus_double(args[i], &v[i]) < 0)
+            return NULL;
+    ct_ori_compass_fill(&self->o, v[0], v[1], v[2]);
+    Py_RETURN_NONE;
+}
+
+/* mag_apply(): the compass's correction */
+static PyObject *OriUpd_mag_apply(OriUpdObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (OriUpd_bound(self) < 0 || fus_nargs("mag_apply", nargs, 0) < 0)
+        return NULL;
+    (void)args;
+    ct_ori_apply(&self->o, self->o.mdx);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef OriUpd_methods[] = {
+    {"acc_begin", (PyCFunction)(void (*)(void))OriUpd_acc_begin, METH_FASTCALL,
+     "acc_begin(ax, ay, az, motion_ms) -> bool: update_acc's free-fall test and the inclination's y, H, R"},
+    {"acc_end", (PyCFunction)(void (*)(void))OriUpd_acc_end, METH_FASTCALL,
+     "acc_end(ok): _apply of the inclination's correction when ok, then _post_acc"},
+    {"mag_fill", (PyCFunction)(void (*)(void))OriUpd_mag_fill, METH_FASTCALL,
+     "mag_fill(mx, my, mz): Compass.update's driving noise and the compass's y, H, R"},
+    {"mag_apply", (PyCFunction)(void (*)(void))OriUpd_mag_apply, METH_FASTCALL,
+     "mag_apply(): _apply of the compass's correction"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(OriUpd, "OriUpd", "OriUpd(n, theta, bias, dist, R, Rc, b, d, a, sums, iy, iH, iR, idx, my, mH, mR, mdx, "
+         "hg, cst, gravity, ..., heading_only): the orientation filter's updates around their Kalman update")
+
 /* --------------------------------------------------------------- register */
 static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -470,12 +626,14 @@ static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 int ct_register_fusimu(PyObject *m)
 {
     if (fus_add(m, &FusPredType, "FusPred") < 0 || fus_add(m, &FusRowType, "FusRow") < 0 ||
-        fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0)
+        fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0 ||
+        fus_add(m, &OriUpdType, "OriUpd") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_OUT_WIDTH", CT_OUT_WIDTH) < 0 ||
-        PyModule_AddIntConstant(m, "FUS_OA_N", CT_OA_N) < 0 || PyModule_AddIntConstant(m, "FUS_NST", CT_FS_NST) < 0)
+        PyModule_AddIntConstant(m, "FUS_OA_N", CT_OA_N) < 0 || PyModule_AddIntConstant(m, "FUS_NST", CT_FS_NST) < 0 ||
+        PyModule_AddIntConstant(m, "FUS_CS_N", CT_CS_N) < 0)
         return -1;
     return 0;
 }

@@ -80,6 +80,7 @@ class InertialPrediction:
         self.push = self._push_compiled
         self.propagate = self._propagate_compiled
         self.history = self._history_compiled
+        self.advance = self._advance_compiled
 
     def _push_compiled(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> int:
         """:meth:`push` on the compiled core (the row written by ``ext.FusRow``)."""
@@ -93,6 +94,13 @@ class InertialPrediction:
         self._kern[st].propagate(k, len(self.imu), t0, t1)
         st.pred.after_predict(st.P)
         self.steps += 1
+
+    def _advance_compiled(self, st: InsState, hist: Ring, k: int, t0: int, t1: int) -> None:
+        """:meth:`advance` on the compiled core (one call: ``ct_fus_propagate``, ``ct_fus_to_source``)."""
+        self._kern[st].advance(k, len(self.imu), t0, t1, hist.d, hist.push(t1))
+        st.pred.after_predict(st.P)
+        self.steps += 1
+        st.set_time(t1)
 
     def _history_compiled(self, st: InsState, hist: Ring, k: int) -> None:
         """:meth:`history` on the compiled core (``ct_fus_to_source``)."""
@@ -220,6 +228,13 @@ class InertialPrediction:
         Q[o[0]] = Q[o[1]] = Q[o[2]] = qo
         Q[a[0]] = Q[a[1]] = Q[a[2]] = qa
         Q[g[0]] = Q[g[1]] = Q[g[2]] = qg
+
+    def advance(self, st: InsState, hist: Ring, k: int, t0: int, t1: int) -> None:
+        """:meth:`propagate` of ``st`` over ``[t0, t1]``, ``st`` then at ``t1``, and its pose appended
+        to ``hist`` (:meth:`history`): a step not split by a snapshot."""
+        self.propagate(st, k, t0, t1)
+        st.set_time(t1)
+        self.history(st, hist, k)
 
     def history(self, st: InsState, hist: Ring, k: int) -> None:
         """Append ``st``'s pose in the source frame to ``hist``: ``p_M = Phi^T p``,

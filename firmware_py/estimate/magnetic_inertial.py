@@ -363,8 +363,10 @@ class FusionFilter:
                 self._propagate(st, k, ts, t)
                 n += 1
         else:
-            self._propagate(st, k, t0, t)
-            n = 1
+            pr.advance(st, hist, k, t0, t)         # (the step, the time, the history row)
+            if self.recorder is not None and st is self._auth:
+                self.recorder.on_step(self, st, k, t)
+            return 1
         st.set_time(t)
         pr.history(st, hist, k)
         return n

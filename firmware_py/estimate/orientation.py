@@ -223,6 +223,21 @@ class OrientationFilter:
             self._ckp = ext.OriPred(self.R, self.bias, self.dist, self.acc, self.sums, params.dist_corr,
                                     params.acc_corr_time_s)
             self.predict = self._predict_compiled
+            self._bind_updates(ext, params)
+
+    def _bind_updates(self, ext, p: OrientationParams) -> None:
+        """The compiled measurement parts of the two updates (``core/src/fusimu.c``
+        ``ct_ori_incl_begin``, ``ct_ori_compass_fill``, ``ct_ori_apply``, ``ct_ori_post_acc``), bound
+        once to the filter's and its updates' buffers; the Kalman update between them stays
+        ``ekf.KalmanUpdate`` (compiled too)."""
+        iu, cu, c = self.incl.upd, self.compass.upd, self.compass
+        self._cku = ext.OriUpd(N, THETA.start, BIAS.start, DIST.start, self.R, self._Rc, self.bias, self.dist,
+                               self.acc, self.sums, iu.y, iu.H, iu.R, iu.dx, cu.y, cu.H, cu.R, cu.dx, c.h_g, c.state,
+                               p.gravity, p.freefall_tolerance, p.acc_noise, p.acc_motion_sigma, p.acc_adapt_gain,
+                               p.mag_noise, p.dist_sigma, p.dist_norm_gain, p.dist_dip_gain, p.dist_smoothing,
+                               p.compass_heading_only)
+        self.update_acc = self._update_acc_compiled
+        self.update_mag = self._update_mag_compiled
 
     # ------------------------------------------------------------ init
     def initialize(self, t_us: int, ax, ay, az, mx, my, mz) -> bool:
@@ -469,6 +484,21 @@ class OrientationFilter:
         self.last_acc_flags = flags
         return flags
 
+    def _update_acc_compiled(self, ax, ay, az) -> int:
+        """:meth:`update_acc` on the compiled core (``OriUpd``: the free-fall test with the
+        inclination's measurement, and after the update the correction and ``a+``)."""
+        s = self._s
+        self.incl.observe(self._Rv, ax, ay, az, s[SUM_INCL_DT])
+        s[SUM_INCL_DT] = 0.0
+        if not self._cku.acc_begin(ax, ay, az, self.incl.motion_ms):
+            self.last_acc_flags = ORI_FREEFALL
+            return ORI_FREEFALL
+        self.propagate()                 # (the measurement does not depend on P)
+        flags = self.incl.upd.update(self.P)
+        self._cku.acc_end(flags == EKF_OK)
+        self.last_acc_flags = flags
+        return flags
+
     def _post_acc(self, ax, ay, az) -> None:
         R = self._Rv
         g = self.prm.gravity
@@ -490,6 +520,21 @@ class OrientationFilter:
         flags = c.update(self._Rv, self._dv, self.P, mx, my, mz)
         if flags == EKF_OK:
             self._apply(c.upd._dxv)
+        self.last_mag_flags = flags
+        return flags
+
+    def _update_mag_compiled(self, mx, my, mz) -> int:
+        """:meth:`update_mag` on the compiled core (``OriUpd``: the compass's measurement, and after
+        the update its correction)."""
+        c = self.compass
+        if c.learn(self._Rv, mx, my, mz):
+            self.last_mag_flags = ORI_LEARNING
+            return ORI_LEARNING
+        self._cku.mag_fill(mx, my, mz)   # (the measurement does not depend on P)
+        self.propagate()
+        flags = c.upd.update(self.P)
+        if flags == EKF_OK:
+            self._cku.mag_apply()
         self.last_mag_flags = flags
         return flags
 

@@ -28,6 +28,10 @@ from coiltrack.firmware.estimate.layout import DIST, ORIENTATION_LAYOUT, THETA
 
 N = ORIENTATION_LAYOUT.n
 
+#: the compass's state (``Compass.state``; the compiled core's ``CT_CS_*``): ``|m|`` (T), the
+#: disturbance's driving noise ``qwd`` (eq 2.12), the low-passed norm and dip
+CS_MREF, CS_QWD, CS_NORM, CS_DIP = range(4)
+
 
 class Inclination:
     """The accelerometer's inclination update and the motion level it is weighted by
@@ -100,7 +104,7 @@ class Inclination:
 class Compass:
     """The magnetometer's compass update, the learning of ``|m|`` (``m_ref``, T) and of the
     earth field's direction ``h_g`` (global frame), and the disturbance's driving noise
-    (``qwd``, eq 2.12)."""
+    (``qwd``, eq 2.12); the scalars in ``state`` (``CS_*``), which the compiled core shares."""
 
     def __init__(self, params, core=_DEFAULT_CORE):
         self.prm = params
@@ -111,10 +115,12 @@ class Compass:
             self._H[i, DIST.start + i] = 1.0
         self.h_g = np.zeros(3)           # earth field direction, global frame
         self._hgv = memoryview(self.h_g)
-        self.m_ref = 1.0                 # |earth field|, T
-        self.qwd = params.dist_sigma ** 2
-        self._last_norm = 1.0
-        self._last_dip = 0.0
+        self.state = np.zeros(4)         # CS_*: |m|, qwd, the low-passed norm and dip
+        self._s = memoryview(self.state)
+        self._s[CS_MREF] = 1.0           # |earth field|, T
+        self._s[CS_QWD] = params.dist_sigma ** 2
+        self._s[CS_NORM] = 1.0
+        self._s[CS_DIP] = 0.0
         self._learn = 0
         self._sum_h = 0.0
         self._sum_v = 0.0
@@ -124,13 +130,16 @@ class Compass:
     def learning(self) -> bool:
         return self._learn > 0
 
+    m_ref = property(lambda self: self._s[CS_MREF])      # |earth field|, T
+    qwd = property(lambda self: self._s[CS_QWD])          # the disturbance's driving noise (eq 2.12)
+
     def start(self, hn: float, hu: float, mn: float) -> None:
         """The field of a start (north and up components of its direction, its magnitude): the
         compass learns over the next samples before it is used (:meth:`learn`)."""
         self.h_g[0] = hn
         self.h_g[1] = 0.0
         self.h_g[2] = hu
-        self.m_ref = mn
+        self._s[CS_MREF] = mn
         # |m| and the dip are averaged over the next compass samples (in the
         # global frame, tilt kept by the inclination updates) before the
         # compass is used: one sample's noise (or a set/reset offset not yet
@@ -138,8 +147,8 @@ class Compass:
         # only lets the inclination settle and is not averaged.
         self._learn = 2 * self.prm.mag_learn_samples
         self._sum_h = self._sum_v = self._sum_n = 0.0
-        self._last_norm = 1.0
-        self._last_dip = math.atan2(hu, abs(hn))
+        self._s[CS_NORM] = 1.0
+        self._s[CS_DIP] = math.atan2(hu, abs(hn))
 
     def learn(self, R, mx, my, mz) -> bool:
         """While learning (True): the sample goes into ``|m|`` and the dip (eqs 2.8-2.10)."""
@@ -160,8 +169,8 @@ class Compass:
                 hn = math.sqrt(hh * hh + hv * hv)
                 self.h_g[0] = hh / hn
                 self.h_g[2] = hv / hn
-                self.m_ref = mn
-                self._last_dip = math.atan2(self.h_g[2], self.h_g[0])
+                self._s[CS_MREF] = mn
+                self._s[CS_DIP] = math.atan2(self.h_g[2], self.h_g[0])
             return True
         return False
 
@@ -170,7 +179,8 @@ class Compass:
         ``H_G = R^T h_g`` and the disturbance ``d``; adapts ``qwd`` (eq 2.12). Returns the ekf
         flags (the correction in ``upd.dx``)."""
         p = self.prm
-        inv = 1.0 / self.m_ref
+        cs = self._s
+        inv = 1.0 / cs[CS_MREF]
         nx, ny, nz = mx * inv, my * inv, mz * inv
         # eq 2.8-2.12: norm and dip of the measured field
         gx = R[0, 0] * nx + R[0, 1] * ny + R[0, 2] * nz
@@ -179,13 +189,13 @@ class Compass:
         # the sample-to-sample change is mostly sensor noise: eq 2.12 is applied
         # to low-passed norm and dip, so only a lasting change raises sigma_d
         al = p.dist_smoothing
-        norm = (1.0 - al) * self._last_norm + al * math.sqrt(gx * gx + gy * gy + gz * gz)
-        dip = (1.0 - al) * self._last_dip + al * math.atan2(gz, math.sqrt(gx * gx + gy * gy))
-        sd = (p.dist_sigma + p.dist_norm_gain * abs(norm - self._last_norm)
-              + p.dist_dip_gain * abs(dip - self._last_dip))
-        self.qwd = sd * sd
-        self._last_norm = norm
-        self._last_dip = dip
+        norm = (1.0 - al) * cs[CS_NORM] + al * math.sqrt(gx * gx + gy * gy + gz * gz)
+        dip = (1.0 - al) * cs[CS_DIP] + al * math.atan2(gz, math.sqrt(gx * gx + gy * gy))
+        sd = (p.dist_sigma + p.dist_norm_gain * abs(norm - cs[CS_NORM])
+              + p.dist_dip_gain * abs(dip - cs[CS_DIP]))
+        cs[CS_QWD] = sd * sd
+        cs[CS_NORM] = norm
+        cs[CS_DIP] = dip
         hg = self._hgv
         h0, h2 = hg[0], hg[2]
         # H_G = R^T h_G

@@ -54,4 +54,31 @@ struct ct_ori_pred {
 };
 void ct_ori_predict(const struct ct_ori_pred *o, double dt, double wx, double wy, double wz, double qwd);
 
+/* the orientation filter's two updates around the one Kalman update (ct_kalman_update, run by the
+ * caller between them): orientation_updates.Inclination.update's and Compass.update's measurement
+ * (y, H, R), OrientationFilter._apply and _post_acc.  The compass state cst[CT_CS_N]
+ * (orientation_updates.Compass.state); the last accelerometer sample and its difference from the
+ * predicted acceleration in sc[CT_OS_N]. */
+enum { CT_CS_MREF = 0, CT_CS_QWD = 1, CT_CS_NORM = 2, CT_CS_DIP = 3, CT_CS_N = 4 };
+enum { CT_OS_AX = 0, CT_OS_AY, CT_OS_AZ, CT_OS_VX, CT_OS_VY, CT_OS_VZ, CT_OS_VN, CT_OS_N };
+struct ct_ori_meas {
+    int n, theta, bias, dist;           /* the layout's rows (layout.ORIENTATION_LAYOUT) */
+    double *R, *Rc, *b, *d, *a, *E;     /* 9, 9, 3, 3, 3, 9 (scratch) */
+    const double *sums;                 /* CT_OA_N (ct_ori_pred's) */
+    double *iy, *iH, *iR;               /* the inclination update's y (3), H (3 x n), R (3 x 3) */
+    const double *idx;                  /* its correction (n) */
+    double *my, *mH, *mR;               /* the compass update's */
+    const double *mdx;
+    const double *hg;                   /* 3: the earth field's direction, global frame */
+    double *cst;                        /* CT_CS_N */
+    double sc[CT_OS_N];
+    double gravity, freefall_tolerance, acc_noise, acc_motion_sigma, acc_adapt_gain;
+    double mag_noise, dist_sigma, dist_norm_gain, dist_dip_gain, dist_smoothing;
+    int heading_only;
+};
+int ct_ori_incl_begin(struct ct_ori_meas *o, double ax, double ay, double az, double motion_ms);
+void ct_ori_apply(const struct ct_ori_meas *o, const double *dx);
+void ct_ori_post_acc(const struct ct_ori_meas *o);
+void ct_ori_compass_fill(const struct ct_ori_meas *o, double mx, double my, double mz);
+
 #endif /* CT_FUSIMU_H */

@@ -230,3 +230,155 @@ void ct_ori_predict(const struct ct_ori_pred *o, double dt, double wx, double wy
     s[CT_OA_CD] *= cd;
     s[CT_OA_QD] = s[CT_OA_QD] * cd * cd + qwd;
 }
+
+/* orientation_updates.skew_block: [v]x into the 3 rows of H (n columns) at column c */
+static void skew_block(double *H, int n, int c, double x, double y, double z)
+{
+    H[c] = 0.0;
+    H[c + 1] = -z;
+    H[c + 2] = y;
+    H[n + c] = z;
+    H[n + c + 1] = 0.0;
+    H[n + c + 2] = -x;
+    H[2 * n + c] = -y;
+    H[2 * n + c + 1] = x;
+    H[2 * n + c + 2] = 0.0;
+}
+
+/* OrientationFilter.update_acc up to its propagation (eqs 2.20, 2.23): v = y_A - a-, the free-fall
+ * test (0: free fall, _post_acc done, no update), else Inclination.update's y, H and R (1) */
+int ct_ori_incl_begin(struct ct_ori_meas *o, double ax, double ay, double az, double motion_ms)
+{
+    const double *R = o->R, *a = o->a;
+    double g = o->gravity, vx, vy, vz, vn, ca, zx, zy, zz, r;
+    double *sc = o->sc;
+    sc[CT_OS_AX] = ax;
+    sc[CT_OS_AY] = ay;
+    sc[CT_OS_AZ] = az;
+    vx = ax - a[0];
+    vy = ay - a[1];
+    vz = az - a[2];
+    vn = sqrt(vx * vx + vy * vy + vz * vz);
+    if (!(fabs(vn - g) <= o->freefall_tolerance * g)) {
+        ct_ori_post_acc(o);
+        return 0;
+    }
+    ca = o->sums[CT_OA_CA];
+    zx = R[6];
+    zy = R[7];
+    zz = R[8];
+    o->iy[0] = vx / vn - zx;
+    o->iy[1] = vy / vn - zy;
+    o->iy[2] = vz / vn - zz;
+    skew_block(o->iH, o->n, o->theta, (1.0 - ca) * zx, (1.0 - ca) * zy, (1.0 - ca) * zz);
+    r = ((1.0 + ca * ca) * (o->acc_noise * o->acc_noise) + o->acc_motion_sigma * o->acc_motion_sigma
+         + o->acc_adapt_gain * motion_ms) / (g * g);
+    o->iR[0] = r;
+    o->iR[4] = r;
+    o->iR[8] = r;
+    return 1;
+}
+
+/* OrientationFilter._apply: R <- R exp([theta]x), Rc <- R, b += db, d += dd */
+void ct_ori_apply(const struct ct_ori_meas *o, const double *dx)
+{
+    int i;
+    ct_strapdown_rotate(o->R, dx[o->theta], dx[o->theta + 1], dx[o->theta + 2], o->E);
+    for (i = 0; i < 9; ++i)
+        o->Rc[i] = o->R[i];
+    for (i = 0; i < 3; ++i) {
+        o->b[i] += dx[o->bias + i];
+        o->d[i] += dx[o->dist + i];
+    }
+}
+
+/* OrientationFilter._post_acc: a+ = y_A - g Z+ (eq 2.5) with the sample of ct_ori_incl_begin */
+void ct_ori_post_acc(const struct ct_ori_meas *o)
+{
+    const double *R = o->R, *sc = o->sc;
+    double g = o->gravity;
+    o->a[0] = sc[CT_OS_AX] - g * R[6];
+    o->a[1] = sc[CT_OS_AY] - g * R[7];
+    o->a[2] = sc[CT_OS_AZ] - g * R[8];
+}
+
+/* Compass._heading_rows: the measurement turned to (Z x H_G, Z, their cross product) */
+static void heading_rows(const struct ct_ori_meas *o, double zx, double zy, double zz, double hx, double hy,
+                         double hz)
+{
+    double ax = zy * hz - zz * hy, ay = zz * hx - zx * hz, az = zx * hy - zy * hx, an, cx, cy, cz;
+    double y0, y1, y2, *y = o->my, *H = o->mH;
+    int n = o->n, t0 = o->theta, d0 = o->dist, c;
+    an = sqrt(ax * ax + ay * ay + az * az);
+    if (!(an > 1e-6))
+        return;
+    ax = ax / an;
+    ay = ay / an;
+    az = az / an;
+    cx = ay * zz - az * zy;
+    cy = az * zx - ax * zz;
+    cz = ax * zy - ay * zx;
+    y0 = y[0];
+    y1 = y[1];
+    y2 = y[2];
+    y[0] = ax * y0 + ay * y1 + az * y2;
+    y[1] = zx * y0 + zy * y1 + zz * y2;
+    y[2] = cx * y0 + cy * y1 + cz * y2;
+    for (c = 0; c < 3; ++c) {
+        double h0 = H[t0 + c], h1 = H[n + t0 + c], h2 = H[2 * n + t0 + c];
+        H[t0 + c] = ax * h0 + ay * h1 + az * h2;
+        H[n + t0 + c] = zx * h0 + zy * h1 + zz * h2;
+        H[2 * n + t0 + c] = cx * h0 + cy * h1 + cz * h2;
+    }
+    H[d0] = ax;
+    H[d0 + 1] = ay;
+    H[d0 + 2] = az;
+    H[n + d0] = zx;
+    H[n + d0 + 1] = zy;
+    H[n + d0 + 2] = zz;
+    H[2 * n + d0] = cx;
+    H[2 * n + d0 + 1] = cy;
+    H[2 * n + d0 + 2] = cz;
+    o->mR[4] = 1.0;
+    o->mR[8] = 1.0;
+}
+
+/* Compass.update up to its Kalman update (eqs 2.8-2.12, 2.21, 2.24): the driving noise of the
+ * disturbance from the low-passed norm and dip, then y, H and R */
+void ct_ori_compass_fill(const struct ct_ori_meas *o, double mx, double my, double mz)
+{
+    const double *R = o->R, *d = o->d, *hg = o->hg;
+    double *cst = o->cst, *H = o->mH;
+    double inv = 1.0 / cst[CT_CS_MREF], nx = mx * inv, ny = my * inv, nz = mz * inv;
+    double gx = R[0] * nx + R[1] * ny + R[2] * nz;
+    double gy = R[3] * nx + R[4] * ny + R[5] * nz;
+    double gz = R[6] * nx + R[7] * ny + R[8] * nz;
+    double al = o->dist_smoothing, norm, dip, sd, h0, h2, hx, hy, hz, r;
+    int n = o->n, i, j;
+    norm = (1.0 - al) * cst[CT_CS_NORM] + al * sqrt(gx * gx + gy * gy + gz * gz);
+    dip = (1.0 - al) * cst[CT_CS_DIP] + al * atan2(gz, sqrt(gx * gx + gy * gy));
+    sd = (o->dist_sigma + o->dist_norm_gain * fabs(norm - cst[CT_CS_NORM])
+          + o->dist_dip_gain * fabs(dip - cst[CT_CS_DIP]));
+    cst[CT_CS_QWD] = sd * sd;
+    cst[CT_CS_NORM] = norm;
+    cst[CT_CS_DIP] = dip;
+    h0 = hg[0];
+    h2 = hg[2];
+    hx = R[0] * h0 + R[6] * h2;
+    hy = R[1] * h0 + R[7] * h2;
+    hz = R[2] * h0 + R[8] * h2;
+    o->my[0] = nx - d[0] - hx;
+    o->my[1] = ny - d[1] - hy;
+    o->my[2] = nz - d[2] - hz;
+    skew_block(H, n, o->theta, hx, hy, hz);
+    if (o->heading_only)
+        for (i = 0; i < 3; ++i)
+            for (j = 0; j < 3; ++j)
+                H[i * n + o->dist + j] = i == j ? 1.0 : 0.0;
+    r = o->mag_noise * o->mag_noise;
+    o->mR[0] = r;
+    o->mR[4] = r;
+    o->mR[8] = r;
+    if (o->heading_only)
+        heading_rows(o, R[6], R[7], R[8], hx, hy, hz);
+}
