@@ -18,8 +18,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import IMU_F, IMU_FIELDS, IMU_FSRC, IMU_W, InsState
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, VEL
@@ -44,7 +42,7 @@ class InertialPrediction:
     states : tuple of InsState
         The states this prediction steps (the filter's live and shadow states): on the compiled
         core each gets its bound kernel (``ext.FusPred``: its step, the step's workspace
-        scalars ``dt_last, ka, kg`` in its own array, and its history rows).
+        scalars ``dt_last, ka, kg`` in the state's ``ws``, and its history rows).
     """
 
     def __init__(self, params, n: int, frame, imu_capacity: int, compiled: bool, core=_DEFAULT_CORE,
@@ -71,10 +69,11 @@ class InertialPrediction:
         assert (IMU_F, IMU_W, IMU_FSRC, self.imu.width) == (0, 3, 6, ext.FUS_IMU_WIDTH)
         k = self._dtk
         moving = not frame.fixed
+        assert ext.FUS_NST == 3
         for st in states:
-            ws = np.full(ext.FUS_NST, -1.0)           # dt_last, ka, kg (InsState.set_step)
+            # (st.ws: dt_last, ka, kg, which the kernel's set_dt writes as InsState.set_step)
             self._kern[st] = ext.FusPred(n, st.p, st.v, st.Th, st.ba, st.bg, st.pred.A, st.P, st.pred.Q,
-                                         st.pred._T, self.imu.t, self.imu.d, ws, k[0], k[1], k[2], k[3], k[4],
+                                         st.pred._T, self.imu.t, self.imu.d, st.ws, k[0], k[1], k[2], k[3], k[4],
                                          k[5], moving)
         self._row = ext.FusRow(self.imu.d, self.imu.capacity, moving)
         self.push = self._push_compiled

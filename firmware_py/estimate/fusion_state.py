@@ -59,8 +59,10 @@ class InsState:
         self._bav = memoryview(self.ba)
         self._bgv = memoryview(self.bg)
         self._Pv = memoryview(self.P)
-        self.dt_last = -1.0
-        self.ka = self.kg = 1.0
+        # the step the workspace is written for and the offsets' decay over it (set_step): in an
+        # array, which the compiled per-sample step shares (fusion_prediction, ``ext.FusPred``)
+        self.ws = np.array([-1.0, 1.0, 1.0])
+        self._wsv = memoryview(self.ws)
         self._E = np.zeros((3, 3))          # scratch of the correction
         self._Ev = memoryview(self._E)
         self._T = np.zeros((3, 3))
@@ -144,12 +146,17 @@ class InsState:
         """The state now refers to ``t_us``."""
         self.t_us = t_us
 
+    dt_last = property(lambda self: self._wsv[0])    # the step (s) the workspace is written for
+    ka = property(lambda self: self._wsv[1])         # the offsets' decay factors over it
+    kg = property(lambda self: self._wsv[2])
+
     def set_step(self, dt: float, ka: float, kg: float) -> None:
         """The step ``dt`` (s) the workspace's ``A`` and ``Q`` are written for, and the offsets'
         decay factors over it (eqs 6.13-6.14)."""
-        self.dt_last = dt
-        self.ka = ka
-        self.kg = kg
+        w = self._wsv
+        w[0] = dt
+        w[1] = ka
+        w[2] = kg
 
 
 class MovingSource:

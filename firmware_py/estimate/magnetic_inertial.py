@@ -281,6 +281,8 @@ class FusionFilter:
         self.reinits = 0
         self.replays_lost = 0
         self.recorder = None       # optional offline hook (smoother); None on the board
+        if self.st.ck is not None:
+            self.push_imu = self._push_imu_compiled
 
     # ------------------------------------------------------------ the live state, the parts (read)
     p = property(lambda self: self.st.p)
@@ -322,6 +324,23 @@ class FusionFilter:
         source orientation ``Phi`` (3x3, memoryview or array). Returns True
         when a fused pose was produced (put in the output ring)."""
         k = self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)    # kept for replay
+        return self._after_push(t_us, k)
+
+    def _push_imu_compiled(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> bool:
+        """:meth:`push_imu` on the compiled core: a step not split by a snapshot and not recorded
+        goes straight to its kernels (``InertialPrediction.advance``, ``PoseOutput.queue``)."""
+        k = self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
+        st = self.st
+        t0 = st.t_us
+        if not self.initialized or t_us <= t0 or t_us - t0 > self.prm.max_gap_us or self.snap.due(t0, t_us) \
+                or self.recorder is not None:
+            return self._after_push(t_us, k)
+        self.prediction.advance(st, self.history.live, k, t0, t_us)
+        self._output(t_us)
+        return True
+
+    def _after_push(self, t_us: int, k: int) -> bool:
+        """:meth:`push_imu` after the sample is kept in ring slot ``k``."""
         st = self.st
         if not self.initialized:
             snap = self.snap
