@@ -15,6 +15,8 @@
 
 #define CT_MAX_COILS 64
 
+int ct_register_fusion(PyObject *m);
+
 /* ------------------------------------------------------------------ buffers */
 static int is_double_format(const Py_buffer *v)
 {
@@ -1192,6 +1194,10 @@ PyMODINIT_FUNC PyInit__core(void)
         PyModule_AddIntConstant(m, "KIND_LOOP_AXES", CT_KIND_LOOP_AXES) < 0 ||
         PyModule_AddIntConstant(m, "KIND_DIPOLE", CT_KIND_DIPOLE) < 0 ||
         PyModule_AddIntConstant(m, "MAX_COILS", CT_MAX_COILS) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (ct_register_fusion(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }
