@@ -162,6 +162,15 @@ class Ring:
         self._head = 0
         self._count = 0
 
+    def advance(self, n: int) -> None:
+        """Account for ``n`` entries a compiled kernel pushed: it wrote their times and rows into
+        ``t`` and ``d`` at the slots ``n`` calls of :meth:`push` would have given (from
+        ``slot(0) + len`` on, overwriting the oldest when full)."""
+        cap = self.capacity
+        self._head = (self._head + n) % cap
+        c = self._count + n
+        self._count = c if c < cap else cap
+
     def copy_from(self, other: "Ring") -> None:
         """Take ``other``'s entries (same capacity and width); one array copy each."""
         if other.capacity != self.capacity or other.width != self.width:

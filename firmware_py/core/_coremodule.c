@@ -16,6 +16,7 @@
 #define CT_MAX_COILS 64
 
 int ct_register_fusimu(PyObject *m);
+int ct_register_fusion(PyObject *m);
 
 /* ------------------------------------------------------------------ buffers */
 static int is_double_format(const Py_buffer *v)
@@ -1197,7 +1198,7 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (ct_register_fusimu(m) < 0) {
+    if (ct_register_fusimu(m) < 0 || ct_register_fusion(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

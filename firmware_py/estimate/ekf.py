@@ -230,6 +230,11 @@ class CovariancePredict:
         self._ck.predict(P)
         self.after_predict(P)
 
+    def set_count(self, count: int) -> None:
+        """The count after predictions a compiled kernel ran with their periodic symmetrisation
+        (``core/src/fusion.c`` ``ct_fusion_replay``, as :meth:`after_predict` does it)."""
+        self.count = count
+
     def after_predict(self, P: np.ndarray) -> None:
         """The bookkeeping after a compiled prediction of ``P`` (its count, and the periodic
         symmetrisation as :meth:`predict` does it)."""

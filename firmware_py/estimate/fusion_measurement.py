@@ -50,6 +50,9 @@ class MeasurementModel(Protocol):
     def evaluate(self, st: InsState, snap: Snapshot, q, R_ms, C, y) -> None:
         """Innovation into ``y`` and the white blocks of ``st.P``."""
 
+    def bind(self, st: InsState, snap: Snapshot, y, core):
+        """:meth:`evaluate` for ``st``, ``snap`` and ``y`` on ``core``, chosen once: ``f(q, R_ms, C)``."""
+
     def start_orientation(self, st: InsState, snap: Snapshot, R_ms, C) -> None:
         """The start's orientation, gyroscope offset and orientation block of ``st.P``."""
 
@@ -119,6 +122,23 @@ class _Base:
         self._E = np.zeros((3, 3))       # Psi = Phi R_ms
         self._Ev = memoryview(self._E)
 
+    def bind(self, st: InsState, snap: Snapshot, y, core):
+        """This model's :meth:`evaluate` for ``st`` and ``snap`` into ``y`` (an array), chosen
+        once at composition: ``f(q, R_ms, C)``. On the compiled core it is
+        ``core/src/fusion.c`` ``ct_fusion_evaluate`` (the same operations; the 3x3 product
+        ``Phi R_ms`` summed in order where the reference calls BLAS: equal to rounding)."""
+        ext = core.ext
+        if ext is None:
+            yv = memoryview(y)
+            return lambda q, R_ms, C: self.evaluate(st, snap, q, R_ms, C, yv)
+        prm = self.prm
+        x0 = XI.start if "XI" in self.layout.names() else -1
+        self._ck = ext.FusionMeas(self.layout.n, self._zp, self._zpsi, self._zxi, QM.start, PSI.start, x0,
+                                  POSE_POS.start, POSE_ORI.start, int(self.xi_model), prm.mag_var_scale,
+                                  prm.xi_var_scale, prm.xi_sigma_floor ** 2, prm.xi_heading_sigma_floor ** 2,
+                                  prm.psi_sigma ** 2, snap.Phi, snap.Xi, snap.XiP, st.p, st.Th, st.P, y, self._E)
+        return self._ck.evaluate
+
     def fill_constant(self, H, R, prm) -> None:
         rows = tuple((r, w) for r, w in ((self._zpsi, PSI), (self._zxi, XI)) if r >= 0)
         _fill_h(H, self._zp, rows)
@@ -132,6 +152,8 @@ class _Base:
 
 class MagneticOrientation(_Base):
     """Model 1 (eq 6.18): position and the magnetic orientation ``Psi``."""
+
+    xi_model = False        #: the compiled evaluate's branch (``ct_fusion_evaluate``)
 
     def __init__(self, prm):
         super().__init__(1, prm)
@@ -156,6 +178,8 @@ class MagneticOrientation(_Base):
 class InertialMagneticOrientation(_Base):
     """Models 2 (eq 6.20) and 3 (eq 6.21): the orientation ``Xi`` of the ch. 2 filter (and, in
     model 3, the magnetic one beside it); the filter starts from ``Xi``."""
+
+    xi_model = True         #: the compiled evaluate's branch (``ct_fusion_evaluate``)
 
     def __init__(self, model: int, prm, xi_filter):
         if xi_filter is None:

@@ -208,6 +208,10 @@ class InertialPrediction:
         st.pred.after_predict(st.P)
         self.steps += 1
 
+    def add_steps(self, n: int) -> None:
+        """``n`` steps run by a compiled kernel (the replay's, ``core/src/fusion.c``)."""
+        self.steps += n
+
     def set_dt(self, st: InsState, dt: float) -> None:
         """The parts of ``A`` and ``Q`` that depend on the step alone
         (eqs 6.10, 6.13-6.14), rewritten only when the step changes (the white

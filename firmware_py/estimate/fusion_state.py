@@ -69,6 +69,13 @@ class InsState:
         #: the compiled strapdown and covariance step bound to this state's buffers, or None
         #: (``coiltrack.firmware.core``; ``InertialPrediction.step_compiled``)
         self.ck = None
+        #: :meth:`correct` and :meth:`copy_from` on the compiled core (``core/src/fusion.c``
+        #: ``ct_fusion_correct``, ``ct_fusion_copy``), bound here once, or None
+        self.cs = None
+        if core.ext is not None:
+            self.cs = core.ext.FusState(n, self.p, self.v, self.Th, self.ba, self.bg, self.P)
+            self.correct = self._correct_compiled
+            self.copy_from = self._copy_from_compiled
         if white is None:
             self.pred = None
             return
@@ -97,6 +104,16 @@ class InsState:
         np.copyto(self.bg, other.bg)
         np.copyto(self.P, other.P)
         self.t_us = other.t_us
+
+    def _copy_from_compiled(self, other: "InsState") -> None:
+        """:meth:`copy_from` on the compiled core (both states bound to it)."""
+        self.cs.copy_from(other.cs)
+        self.t_us = other.t_us
+
+    def _correct_compiled(self, dx) -> None:
+        """:meth:`correct` on the compiled core (``dx``: a float64 buffer; the orientation
+        product summed in order where the reference calls BLAS: equal to rounding)."""
+        self.cs.correct(dx)
 
     def correct(self, dx) -> None:
         """Feed the error estimate ``dx`` (``layout.fusion_layout`` rows) back into the nominal

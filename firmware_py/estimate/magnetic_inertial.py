@@ -119,6 +119,7 @@ from coiltrack.firmware.estimate.fusion_output import (OUT_DEAD_RECKONING, OUT_F
                                                       OUT_STATUS, OUT_VAR_O, OUT_VAR_P, PoseHistory, PoseOutput)
 from coiltrack.firmware.estimate.fusion_prediction import InertialPrediction
 from coiltrack.firmware.estimate.fusion_recovery import Recovery
+from coiltrack.firmware.estimate.fusion_replay import CompiledReplay
 from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
 from coiltrack.firmware.estimate.fusion_state import (HIST_FIELDS, HIST_P, HIST_R, IMU_F, IMU_FIELDS,  # noqa: F401
                                                      IMU_FSRC, IMU_PHI, IMU_W, FixedSource, InsState,
@@ -266,6 +267,11 @@ class FusionFilter:
         self.recovery = Recovery(params, self.meas)
         self.history = PoseHistory(history_capacity)
         self.output = PoseOutput(params, output_capacity, self.frame, core, self.st, self.imu, self.history.live)
+        #: the measurement model's evaluation for the shadow and the snapshot, and the replay's
+        #: kernel (None: the Python loop of :meth:`step`), chosen once (``core``)
+        self._evaluate = self.meas.bind(self.sh, self.snap, self.upd.y, core)
+        self._replay_ck = (CompiledReplay(self.sh, self.prediction, self.history.shadow, self.snap, self.frame,
+                                          core.ext) if self.sh.ck is not None else None)
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
@@ -309,8 +315,10 @@ class FusionFilter:
     recovery_reason = property(lambda self: self.recovery.recovery_reason)
 
     def attach_recorder(self, recorder) -> None:
-        """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only)."""
+        """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only). Its
+        per-step hook runs in the Python replay only: the compiled one is not used from now on."""
         self.recorder = recorder
+        self._replay_ck = None
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
@@ -469,7 +477,7 @@ class FusionFilter:
         sh = self.sh
         sh.copy_from(snap.st)
         self.history.rewind_shadow(t_ref_us)
-        self.meas.evaluate(sh, snap, q, R_ms, C, self.upd._yv)
+        self._evaluate(q, R_ms, C)
         self._pending = (t_ref_us, q, R_ms, C, final)
         self.prepared += 1
         return FUS_PREPARED
@@ -552,6 +560,8 @@ class FusionFilter:
         self.last_step_units = 0
         if not self.replaying:
             return True
+        if self._replay_ck is not None:
+            return self._step_compiled(budget_replay_steps)
         sh = self.sh
         imu = self.imu
         units = 0
@@ -572,6 +582,23 @@ class FusionFilter:
                 self.last_step_units = units
                 return True
             units += self._advance(sh, self.history.shadow, imu.slot(i))
+
+    def _step_compiled(self, budget_replay_steps: int) -> bool:
+        """:meth:`step`'s loop in one call of the compiled core (``fusion_replay.CompiledReplay``);
+        the same ends."""
+        ck = self._replay_ck
+        rc = ck.run(budget_replay_steps)
+        self.last_step_units = ck.units
+        if rc == ck.ext.REPLAY_CAUGHT_UP:
+            self._swap()
+            return True
+        if rc == ck.ext.REPLAY_BUDGET:
+            return False
+        # the sample before the next one left the ring: the replay cannot go on
+        self._end_replay()
+        self.replays_lost += 1
+        self.last_flags |= FUS_REPLAY_LOST
+        return True
 
     def _swap(self) -> None:
         """The shadow has caught up: it becomes the live state."""

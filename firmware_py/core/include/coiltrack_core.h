@@ -176,6 +176,7 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
                  double step_us, double *out, int64_t *io);
 
 #include "ct_fusimu.h"
+#include "ct_fusion.h"
 
 #ifdef __cplusplus
 }

@@ -1,0 +1,101 @@
+/*
+ * The fusion filter's delayed magnetic update and its replay (compiled core).
+ *
+ * References (the Python is the specification, followed operation by operation):
+ *   coiltrack.firmware.estimate.fusion_measurement (MagneticOrientation.evaluate,
+ *     InertialMagneticOrientation.evaluate, _position_and_white, _log_diff) and
+ *     coiltrack.firmware.linalg.rotvec_from_matrix;
+ *   coiltrack.firmware.estimate.fusion_state.InsState.correct and copy_from;
+ *   coiltrack.firmware.estimate.magnetic_inertial.FusionFilter.step and _advance, with
+ *     fusion_prediction.InertialPrediction.propagate, set_dt, step_compiled and history,
+ *     fusion_state.MovingSource / FixedSource.to_source, ring.Ring.push / index_at_or_after and
+ *     ekf.CovariancePredict.after_predict.
+ * Thesis seeds/002_cd7f1fdb7fc67471.txt: measurement models eqs 6.18, 6.20, 6.21 (sec 6.2.5),
+ * the white blocks' covariance (sec 6.5), strapdown eqs 6.1-6.4, 6.8, transition eq 6.17 and
+ * the delayed update's rewind and replay (sec 6.2.3).
+ */
+#ifndef CT_FUSION_H
+#define CT_FUSION_H
+
+#include <stdint.h>
+
+/* ------------------------------------------------------------ measurement
+ * One model's constants (fusion_measurement._Base and its prm), fixed at start-up.  Row indices:
+ * zp, zpsi, zxi of y (-1: the model has no such rows); q0, s0, x0 of the state (QM, PSI, XI;
+ * x0 -1 for model 1); cp, co of the solver's covariance C (POSE_POS, POSE_ORI). */
+struct ct_fusmeas {
+    int n;
+    int zp, zpsi, zxi;
+    int q0, s0, x0;
+    int cp, co;
+    double mag_var_scale;       /* prm.mag_var_scale */
+    double xi_var_scale;        /* prm.xi_var_scale */
+    double xi_floor2;           /* prm.xi_sigma_floor ** 2 */
+    double xi_heading_floor2;   /* prm.xi_heading_sigma_floor ** 2 */
+    double psi_var;             /* prm.psi_sigma ** 2 */
+};
+/* linalg.rotvec_from_matrix of r (row-major 3x3) into w (3) */
+void ct_fusion_rotvec_from_matrix(const double *r, double *w);
+/* MagneticOrientation.evaluate (xi_model 0) / InertialMagneticOrientation.evaluate (1): the
+ * innovation into y and the white blocks of P (n x n); Psi (9) is the model's scratch
+ * (Psi = Phi R_ms); Xi, XiP (9 each) the snapshot's, read by models 2 and 3 only. */
+void ct_fusion_evaluate(const struct ct_fusmeas *m, int xi_model, const double *Phi, const double *Xi,
+                        const double *XiP, const double *q, const double *R_ms, const double *C,
+                        const double *p, const double *Th, double *P, double *y, double *Psi);
+
+/* ------------------------------------------------------------ the state
+ * One InsState's nominal state and covariance (fusion_state.InsState). */
+struct ct_fusstate {
+    int n;
+    double *p, *v, *Th, *ba, *bg, *P;     /* 3, 3, 9, 3, 3, n x n */
+};
+/* InsState.correct: p, v, b_a, b_g += dx; Theta <- exp([dx_ori]x) Theta */
+void ct_fusion_correct(const struct ct_fusstate *s, const double *dx);
+/* InsState.copy_from (the nominal state and covariance; the time is the caller's) */
+void ct_fusion_copy(const struct ct_fusstate *dst, const struct ct_fusstate *src);
+
+/* ------------------------------------------------------------ the replay
+ * FusionFilter.step on the compiled core, bound to the shadow state (its InsStep buffers), the
+ * IMU ring and the shadow pose history.  The Python attributes it reads and advances live in the
+ * caller's io (int64) and fo (double) arrays, indexed by these: */
+enum {
+    CT_RIO_T = 0,           /* in/out: the shadow's t_us */
+    CT_RIO_IMU_FIRST,       /* in: the IMU ring's oldest slot (Ring.slot(0)) */
+    CT_RIO_IMU_COUNT,       /* in: len(imu) */
+    CT_RIO_HIST_FIRST,      /* in: the shadow history's oldest slot */
+    CT_RIO_HIST_COUNT,      /* in: len(history.shadow) */
+    CT_RIO_HIST_PUSHED,     /* out: entries pushed onto the shadow history by this call */
+    CT_RIO_SNAP_PENDING,    /* in: snap.pending */
+    CT_RIO_SNAP_T,          /* in: snap.t */
+    CT_RIO_UNITS,           /* in/out: strapdown steps of this FusionFilter.step call so far */
+    CT_RIO_PRED_COUNT,      /* in/out: the shadow's CovariancePredict.count */
+    CT_RIO_STEPS,           /* out: strapdown steps run by this call */
+    CT_RIO_SPLIT,           /* in/out: -1, or the IMU slot whose step was split at the snapshot time:
+                               the snapshot is to be taken, then the call resumes with its rest */
+    CT_RIO_N
+};
+enum { CT_RFO_DT_LAST = 0, CT_RFO_KA, CT_RFO_KG, CT_RFO_N };     /* InsState.dt_last, ka, kg */
+/* what ct_fusion_replay stopped at */
+enum { CT_REPLAY_CAUGHT_UP = 0, CT_REPLAY_BUDGET = 1, CT_REPLAY_LOST = 2, CT_REPLAY_SNAPSHOT = 3 };
+/* IMU ring row (fusion_state.IMU_FIELDS) and pose-history row (HIST_FIELDS) */
+enum { CT_IMU_F = 0, CT_IMU_W = 3, CT_IMU_FSRC = 6, CT_IMU_PHI = 9, CT_IMU_WIDTH = 18 };
+enum { CT_HIST_P = 0, CT_HIST_R = 3, CT_HIST_WIDTH = 12 };
+struct ct_replay {
+    struct ct_ins ins;              /* the shadow's strapdown and covariance step (strapdown.c) */
+    double *Qd;                     /* = ins.Q, written by set_dt's diagonal */
+    int fixed;                      /* FixedSource: no frame change */
+    int imu_cap, hist_cap;
+    const int64_t *imu_t;           /* imu_cap */
+    const double *imu_d;            /* imu_cap x CT_IMU_WIDTH */
+    int64_t *hist_t;                /* hist_cap */
+    double *hist_d;                 /* hist_cap x CT_HIST_WIDTH */
+    double dtk[6];                  /* InertialPrediction._dtk */
+    int symmetrize_every;           /* ekf.SYMMETRIZE_EVERY */
+};
+/* Replay IMU samples on the shadow until it has caught up with the newest one, the budget of
+ * strapdown steps is spent, the sample before the next one left the ring, or a pending snapshot
+ * falls in the next sample (then the step is split: the part up to the snapshot time is run,
+ * io[CT_RIO_SPLIT] names the slot, and the caller takes the snapshot and calls again). */
+int ct_fusion_replay(const struct ct_replay *r, int64_t *io, double *fo, int budget);
+
+#endif /* CT_FUSION_H */

@@ -1,0 +1,513 @@
+/*
+ * CPython glue of the fusion filter's update and replay kernels (src/fusion.c, ct_fusion.h):
+ * FusionMeas (a measurement model's evaluate bound to the shadow state, the snapshot and the
+ * update's y), FusState (InsState.correct and copy_from bound to one state's buffers) and
+ * Replay (FusionFilter.step's replay bound to the shadow, the IMU ring and the shadow history).
+ * The arrays are bound once through the buffer protocol; the per-call methods use METH_FASTCALL
+ * and create no Python object (they return None or a small int).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+int ct_register_fusion(PyObject *m);
+
+#define FU_MAXBUF 20
+
+/* a C-contiguous buffer of at least n items of 8 bytes, float64 ('d') or int64 ('q', 'l') */
+static int fu_get(PyObject *obj, Py_ssize_t n, int writable, int int64, Py_buffer *view, const char *what)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    const char *f;
+    int ok;
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous %s buffer", what, writable ? "writable " : "",
+                     int64 ? "int64" : "float64");
+        return -1;
+    }
+    f = view->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    ok = f != NULL && view->itemsize == 8 && f[1] == '\0' && (int64 ? (f[0] == 'q' || f[0] == 'l') : f[0] == 'd');
+    if (!ok || view->len < n * 8) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs %s items, at least %zd of them", what, int64 ? "int64" : "float64", n);
+        return -1;
+    }
+    return 0;
+}
+
+/* n doubles of a small argument (a float64 array of any strides and at most 2 dimensions, or a
+ * sequence of numbers or of sequences of numbers) into out[n], row-major */
+static int fu_small(PyObject *obj, Py_ssize_t n, double *out, const char *what)
+{
+    Py_buffer v;
+    Py_ssize_t i, j, k = 0;
+    if (PyObject_CheckBuffer(obj)) {
+        const char *f;
+        if (PyObject_GetBuffer(obj, &v, PyBUF_RECORDS_RO) < 0)
+            return -1;
+        f = v.format;
+        if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+            f++;
+        if (f == NULL || f[0] != 'd' || f[1] != '\0' || v.itemsize != 8 || v.ndim > 2 || v.len != n * 8) {
+            PyBuffer_Release(&v);
+            PyErr_Format(PyExc_TypeError, "%s: needs %zd float64 items", what, n);
+            return -1;
+        }
+        if (v.ndim == 0) {
+            memcpy(out, v.buf, 8);
+        } else if (v.ndim == 1) {
+            for (i = 0; i < n; ++i)
+                memcpy(&out[i], (const char *)v.buf + i * v.strides[0], 8);
+        } else {
+            for (i = 0; i < v.shape[0]; ++i)
+                for (j = 0; j < v.shape[1]; ++j)
+                    memcpy(&out[k++], (const char *)v.buf + i * v.strides[0] + j * v.strides[1], 8);
+        }
+        PyBuffer_Release(&v);
+        return 0;
+    }
+    {
+        PyObject *seq = PySequence_Fast(obj, what);
+        Py_ssize_t len;
+        if (seq == NULL)
+            return -1;
+        len = PySequence_Fast_GET_SIZE(seq);
+        for (i = 0; i < len; ++i) {
+            PyObject *it = PySequence_Fast_GET_ITEM(seq, i);
+            if (PyFloat_Check(it) || PyLong_Check(it)) {
+                if (k >= n)
+                    break;
+                out[k++] = PyFloat_AsDouble(it);
+            } else {
+                PyObject *row = PySequence_Fast(it, what);
+                if (row == NULL) {
+                    Py_DECREF(seq);
+                    return -1;
+                }
+                for (j = 0; j < PySequence_Fast_GET_SIZE(row) && k < n; ++j)
+                    out[k++] = PyFloat_AsDouble(PySequence_Fast_GET_ITEM(row, j));
+                Py_DECREF(row);
+            }
+            if (PyErr_Occurred()) {
+                Py_DECREF(seq);
+                return -1;
+            }
+        }
+        Py_DECREF(seq);
+        if (k != n) {
+            PyErr_Format(PyExc_TypeError, "%s: needs %zd numbers", what, n);
+            return -1;
+        }
+        return 0;
+    }
+}
+
+/* bind nb buffers (o[i], len[i] items, writable wr[i], int64 i64[i]) into views / ptr */
+static int fu_bind(int nb, PyObject **o, const Py_ssize_t *len, const int *wr, const int *i64, const char **names,
+                   Py_buffer *views, void **ptr)
+{
+    int i;
+    for (i = 0; i < nb; ++i) {
+        if (fu_get(o[i], len[i], wr[i], i64 ? i64[i] : 0, &views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&views[i]);
+            return -1;
+        }
+        ptr[i] = views[i].buf;
+    }
+    return 0;
+}
+
+typedef struct {
+    PyObject_HEAD
+    Py_buffer views[FU_MAXBUF];
+    int nviews;
+} FuBase;
+
+static void Fu_dealloc(PyObject *o)
+{
+    FuBase *self = (FuBase *)o;
+    int i;
+    for (i = 0; i < self->nviews; ++i)
+        PyBuffer_Release(&self->views[i]);
+    Py_TYPE(o)->tp_free(o);
+}
+
+static int fu_check_unbound(FuBase *self, const char *what)
+{
+    if (self->nviews) {
+        PyErr_Format(PyExc_RuntimeError, "%s: already bound", what);
+        return -1;
+    }
+    return 0;
+}
+
+static int fu_check_bound(FuBase *self, const char *what)
+{
+    if (!self->nviews) {
+        PyErr_Format(PyExc_RuntimeError, "%s: not bound", what);
+        return -1;
+    }
+    return 0;
+}
+
+/* ---------------------------------------------------------------- FusionMeas */
+typedef struct {
+    FuBase b;
+    struct ct_fusmeas m;
+    int xi_model;
+    const double *Phi, *Xi, *XiP, *p, *Th;
+    double *P, *y, *Psi;
+} FusionMeasObject;
+
+static int FusionMeas_init(FusionMeasObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "zp", "zpsi", "zxi", "q0", "s0", "x0", "cp", "co", "xi_model", "mag_var_scale",
+                             "xi_var_scale", "xi_floor2", "xi_heading_floor2", "psi_var", "Phi", "Xi", "XiP", "p",
+                             "Th", "P", "y", "Psi", NULL};
+    static const char *names[8] = {"Phi", "Xi", "XiP", "p", "Th", "P", "y", "Psi"};
+    static const int wr[8] = {0, 0, 0, 0, 0, 1, 1, 1};
+    struct ct_fusmeas *m = &self->m;
+    PyObject *o[8];
+    Py_ssize_t len[8];
+    void *ptr[8];
+    int rows;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiiiiiiiiidddddOOOOOOOO", kwlist, &m->n, &m->zp, &m->zpsi, &m->zxi,
+                                     &m->q0, &m->s0, &m->x0, &m->cp, &m->co, &self->xi_model, &m->mag_var_scale,
+                                     &m->xi_var_scale, &m->xi_floor2, &m->xi_heading_floor2, &m->psi_var, &o[0],
+                                     &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7]))
+        return -1;
+    if (fu_check_unbound(&self->b, "FusionMeas") < 0)
+        return -1;
+    rows = 3 + (m->zpsi >= 0 ? 3 : 0) + (m->zxi >= 0 ? 3 : 0);
+    if (m->n < 1 || m->n > 256 || m->zp < 0 || m->zp + 3 > rows || m->zpsi + 3 > rows || m->zxi + 3 > rows ||
+        (m->zpsi < 0 && m->zxi < 0) || (self->xi_model && (m->zxi < 0 || m->x0 < 0)) ||
+        (!self->xi_model && m->zpsi < 0) || m->q0 < 0 || m->q0 + 3 > m->n || m->s0 < 0 || m->s0 + 3 > m->n ||
+        m->x0 + 3 > m->n || m->cp < 0 || m->cp + 3 > 6 || m->co < 0 || m->co + 3 > 6) {
+        PyErr_SetString(PyExc_ValueError, "FusionMeas: bad state size or row indices");
+        return -1;
+    }
+    len[0] = len[1] = len[2] = len[4] = len[7] = 9;
+    len[3] = 3;
+    len[5] = (Py_ssize_t)m->n * m->n;
+    len[6] = rows;
+    if (fu_bind(8, o, len, wr, NULL, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 8;
+    self->Phi = ptr[0];
+    self->Xi = ptr[1];
+    self->XiP = ptr[2];
+    self->p = ptr[3];
+    self->Th = ptr[4];
+    self->P = ptr[5];
+    self->y = ptr[6];
+    self->Psi = ptr[7];
+    return 0;
+}
+
+/* evaluate(q, R_ms, C) */
+static PyObject *FusionMeas_evaluate(FusionMeasObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double q[3], R[9], C[36];
+    if (fu_check_bound(&self->b, "FusionMeas") < 0)
+        return NULL;
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "evaluate() takes 3 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    if (fu_small(args[0], 3, q, "q") < 0 || fu_small(args[1], 9, R, "R_ms") < 0 || fu_small(args[2], 36, C, "C") < 0)
+        return NULL;
+    ct_fusion_evaluate(&self->m, self->xi_model, self->Phi, self->Xi, self->XiP, q, R, C, self->p, self->Th,
+                       self->P, self->y, self->Psi);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FusionMeas_methods[] = {
+    {"evaluate", (PyCFunction)(void (*)(void))FusionMeas_evaluate, METH_FASTCALL,
+     "evaluate(q, R_ms, C): the measurement model's innovation into y and the white blocks of P"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject FusionMeasType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.FusionMeas",
+    .tp_basicsize = sizeof(FusionMeasObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "FusionMeas(n, zp, zpsi, zxi, q0, s0, x0, cp, co, xi_model, mag_var_scale, xi_var_scale, xi_floor2, "
+              "xi_heading_floor2, psi_var, Phi, Xi, XiP, p, Th, P, y, Psi): fusion_measurement's evaluate bound "
+              "to the shadow state, the snapshot and the update's y",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)FusionMeas_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = FusionMeas_methods,
+};
+
+/* ---------------------------------------------------------------- FusState */
+typedef struct {
+    FuBase b;
+    struct ct_fusstate s;
+} FusStateObject;
+
+static PyTypeObject FusStateType;
+
+static int FusState_init(FusStateObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "p", "v", "Th", "ba", "bg", "P", NULL};
+    static const char *names[6] = {"p", "v", "Th", "ba", "bg", "P"};
+    static const int wr[6] = {1, 1, 1, 1, 1, 1};
+    PyObject *o[6];
+    Py_ssize_t len[6];
+    void *ptr[6];
+    int n;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOO", kwlist, &n, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5]))
+        return -1;
+    if (fu_check_unbound(&self->b, "FusState") < 0)
+        return -1;
+    if (n < CT_GYR + 3 || n > 256) {
+        PyErr_Format(PyExc_ValueError, "FusState: n must be in %d..256, got %d", CT_GYR + 3, n);
+        return -1;
+    }
+    len[0] = len[1] = len[3] = len[4] = 3;
+    len[2] = 9;
+    len[5] = (Py_ssize_t)n * n;
+    if (fu_bind(6, o, len, wr, NULL, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 6;
+    self->s.n = n;
+    self->s.p = ptr[0];
+    self->s.v = ptr[1];
+    self->s.Th = ptr[2];
+    self->s.ba = ptr[3];
+    self->s.bg = ptr[4];
+    self->s.P = ptr[5];
+    return 0;
+}
+
+/* correct(dx): dx a float64 array of n items (read in place) */
+static PyObject *FusState_correct(FusStateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer v;
+    if (fu_check_bound(&self->b, "FusState") < 0)
+        return NULL;
+    if (nargs != 1) {
+        PyErr_Format(PyExc_TypeError, "correct() takes 1 argument (%zd given)", nargs);
+        return NULL;
+    }
+    if (fu_get(args[0], self->s.n, 0, 0, &v, "dx") < 0)
+        return NULL;
+    ct_fusion_correct(&self->s, (const double *)v.buf);
+    PyBuffer_Release(&v);
+    Py_RETURN_NONE;
+}
+
+/* copy_from(other): the other state's nominal state and covariance */
+static PyObject *FusState_copy_from(FusStateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    FusStateObject *other;
+    if (fu_check_bound(&self->b, "FusState") < 0)
+        return NULL;
+    if (nargs != 1 || !PyObject_TypeCheck(args[0], &FusStateType)) {
+        PyErr_SetString(PyExc_TypeError, "copy_from() takes one FusState");
+        return NULL;
+    }
+    other = (FusStateObject *)args[0];
+    if (fu_check_bound(&other->b, "FusState") < 0)
+        return NULL;
+    if (other->s.n != self->s.n) {
+        PyErr_SetString(PyExc_ValueError, "copy_from: states of different sizes");
+        return NULL;
+    }
+    ct_fusion_copy(&self->s, &other->s);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FusState_methods[] = {
+    {"correct", (PyCFunction)(void (*)(void))FusState_correct, METH_FASTCALL,
+     "correct(dx): InsState.correct (p, v, offsets added; Theta <- exp([dx_ori]x) Theta)"},
+    {"copy_from", (PyCFunction)(void (*)(void))FusState_copy_from, METH_FASTCALL,
+     "copy_from(other): InsState.copy_from's arrays (the time is the caller's)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject FusStateType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.FusState",
+    .tp_basicsize = sizeof(FusStateObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "FusState(n, p, v, Th, ba, bg, P): InsState.correct and copy_from bound to one state's buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)FusState_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = FusState_methods,
+};
+
+/* ---------------------------------------------------------------- Replay */
+#define RP_NBUF 15
+typedef struct {
+    FuBase b;
+    struct ct_replay r;
+    double E[9];
+    int64_t *io;
+    double *fo;
+} ReplayObject;
+
+static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", "imu_t", "imu_d", "hist_t",
+                             "hist_d", "io", "fo", "fixed", "dtk", "symmetrize_every", NULL};
+    static const char *names[RP_NBUF] = {"p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", "imu_t", "imu_d",
+                                         "hist_t", "hist_d", "io", "fo"};
+    static const int wr[RP_NBUF] = {1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 1};
+    static const int i64[RP_NBUF] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1, 0, 1, 0};
+    struct ct_replay *r = &self->r;
+    PyObject *o[RP_NBUF], *dtk;
+    Py_ssize_t len[RP_NBUF];
+    void *ptr[RP_NBUF];
+    Py_buffer tv;
+    int n, fixed, sym, i, icap, hcap;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOpOi", kwlist, &n, &o[0], &o[1], &o[2], &o[3], &o[4],
+                                     &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14],
+                                     &fixed, &dtk, &sym))
+        return -1;
+    if (fu_check_unbound(&self->b, "Replay") < 0)
+        return -1;
+    if (n < CT_GYR + 3 || n > 256 || sym < 1) {
+        PyErr_Format(PyExc_ValueError, "Replay: n must be in %d..256 and symmetrize_every >= 1", CT_GYR + 3);
+        return -1;
+    }
+    if (fu_small(dtk, 6, r->dtk, "dtk") < 0)
+        return -1;
+    /* the rings' capacities from their time arrays */
+    if (fu_get(o[9], 2, 0, 1, &tv, "imu_t") < 0)
+        return -1;
+    icap = (int)(tv.len / 8);
+    PyBuffer_Release(&tv);
+    if (fu_get(o[11], 2, 1, 1, &tv, "hist_t") < 0)
+        return -1;
+    hcap = (int)(tv.len / 8);
+    PyBuffer_Release(&tv);
+    for (i = 0; i < 5; ++i)
+        len[i] = i == 2 ? 9 : 3;
+    for (i = 5; i < 9; ++i)
+        len[i] = (Py_ssize_t)n * n;
+    len[9] = icap;
+    len[10] = (Py_ssize_t)icap * CT_IMU_WIDTH;
+    len[11] = hcap;
+    len[12] = (Py_ssize_t)hcap * CT_HIST_WIDTH;
+    len[13] = CT_RIO_N;
+    len[14] = CT_RFO_N;
+    if (fu_bind(RP_NBUF, o, len, wr, i64, names, self->b.views, ptr) < 0)
+        return -1;
+    if (self->b.views[10].len != len[10] * 8 || self->b.views[12].len != len[12] * 8) {
+        for (i = 0; i < RP_NBUF; ++i)
+            PyBuffer_Release(&self->b.views[i]);
+        PyErr_SetString(PyExc_ValueError, "Replay: the IMU ring needs 18 columns, the pose history 12");
+        return -1;
+    }
+    self->b.nviews = RP_NBUF;
+    r->ins.n = n;
+    r->ins.p = ptr[0];
+    r->ins.v = ptr[1];
+    r->ins.Th = ptr[2];
+    r->ins.ba = ptr[3];
+    r->ins.bg = ptr[4];
+    r->ins.A = ptr[5];
+    r->ins.P = ptr[6];
+    r->ins.Q = ptr[7];
+    r->Qd = ptr[7];
+    r->ins.T = ptr[8];
+    r->ins.E = self->E;
+    r->imu_t = ptr[9];
+    r->imu_d = ptr[10];
+    r->hist_t = ptr[11];
+    r->hist_d = ptr[12];
+    r->imu_cap = icap;
+    r->hist_cap = hcap;
+    r->fixed = fixed;
+    r->symmetrize_every = sym;
+    self->io = ptr[13];
+    self->fo = ptr[14];
+    return 0;
+}
+
+/* replay(budget) -> CT_REPLAY_* (the bound io and fo carry the rest) */
+static PyObject *Replay_replay(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long budget;
+    int64_t *io = self->io;
+    if (fu_check_bound(&self->b, "Replay") < 0)
+        return NULL;
+    if (nargs != 1) {
+        PyErr_Format(PyExc_TypeError, "replay() takes 1 argument (%zd given)", nargs);
+        return NULL;
+    }
+    budget = PyLong_AsLong(args[0]);
+    if (budget == -1 && PyErr_Occurred())
+        return NULL;
+    if (budget > 1L << 30)
+        budget = 1L << 30;
+    if (io[CT_RIO_IMU_COUNT] < 0 || io[CT_RIO_IMU_COUNT] > self->r.imu_cap || io[CT_RIO_IMU_FIRST] < 0 ||
+        io[CT_RIO_IMU_FIRST] >= self->r.imu_cap || io[CT_RIO_HIST_COUNT] < 0 ||
+        io[CT_RIO_HIST_COUNT] > self->r.hist_cap || io[CT_RIO_HIST_FIRST] < 0 ||
+        io[CT_RIO_HIST_FIRST] >= self->r.hist_cap || io[CT_RIO_SPLIT] >= self->r.imu_cap) {
+        PyErr_SetString(PyExc_ValueError, "replay: ring slots or counts out of range");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_fusion_replay(&self->r, io, self->fo, (int)budget));
+}
+
+static PyMethodDef Replay_methods[] = {
+    {"replay", (PyCFunction)(void (*)(void))Replay_replay, METH_FASTCALL,
+     "replay(budget) -> REPLAY_*: FusionFilter.step's replay on the shadow state (io, fo: its attributes)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ReplayType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.Replay",
+    .tp_basicsize = sizeof(ReplayObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Replay(n, p, v, Th, ba, bg, A, P, Q, T, imu_t, imu_d, hist_t, hist_d, io, fo, fixed, dtk, "
+              "symmetrize_every): the fusion filter's replay bound to the shadow state and its rings",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Replay_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = Replay_methods,
+};
+
+/* ---------------------------------------------------------------- registration */
+static int fu_add_type(PyObject *m, PyTypeObject *t, const char *name)
+{
+    if (PyType_Ready(t) < 0)
+        return -1;
+    Py_INCREF(t);
+    if (PyModule_AddObject(m, name, (PyObject *)t) < 0) {
+        Py_DECREF(t);
+        return -1;
+    }
+    return 0;
+}
+
+int ct_register_fusion(PyObject *m)
+{
+    static const struct { const char *name; long v; } consts[] = {
+        {"RIO_T", CT_RIO_T}, {"RIO_IMU_FIRST", CT_RIO_IMU_FIRST}, {"RIO_IMU_COUNT", CT_RIO_IMU_COUNT},
+        {"RIO_HIST_FIRST", CT_RIO_HIST_FIRST}, {"RIO_HIST_COUNT", CT_RIO_HIST_COUNT},
+        {"RIO_HIST_PUSHED", CT_RIO_HIST_PUSHED}, {"RIO_SNAP_PENDING", CT_RIO_SNAP_PENDING},
+        {"RIO_SNAP_T", CT_RIO_SNAP_T}, {"RIO_UNITS", CT_RIO_UNITS}, {"RIO_PRED_COUNT", CT_RIO_PRED_COUNT},
+        {"RIO_STEPS", CT_RIO_STEPS}, {"RIO_SPLIT", CT_RIO_SPLIT}, {"RIO_N", CT_RIO_N},
+        {"RFO_DT_LAST", CT_RFO_DT_LAST}, {"RFO_KA", CT_RFO_KA}, {"RFO_KG", CT_RFO_KG}, {"RFO_N", CT_RFO_N},
+        {"REPLAY_CAUGHT_UP", CT_REPLAY_CAUGHT_UP}, {"REPLAY_BUDGET", CT_REPLAY_BUDGET},
+        {"REPLAY_LOST", CT_REPLAY_LOST}, {"REPLAY_SNAPSHOT", CT_REPLAY_SNAPSHOT},
+        {"IMU_WIDTH", CT_IMU_WIDTH}, {"IMU_F", CT_IMU_F}, {"IMU_W", CT_IMU_W}, {"IMU_FSRC", CT_IMU_FSRC},
+        {"IMU_PHI", CT_IMU_PHI}, {"HIST_WIDTH", CT_HIST_WIDTH}, {"HIST_P", CT_HIST_P}, {"HIST_R", CT_HIST_R}};
+    size_t i;
+    if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
+        fu_add_type(m, &ReplayType, "Replay") < 0)
+        return -1;
+    for (i = 0; i < sizeof consts / sizeof consts[0]; ++i)
+        if (PyModule_AddIntConstant(m, consts[i].name, consts[i].v) < 0)
+            return -1;
+    return 0;
+}

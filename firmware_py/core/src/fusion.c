@@ -1,0 +1,397 @@
+/*
+ * The fusion filter's delayed magnetic update and its replay: the compiled form of
+ * coiltrack.firmware.estimate.fusion_measurement (the measurement models' evaluate),
+ * fusion_state.InsState.correct / copy_from and magnetic_inertial.FusionFilter.step (the replay
+ * of the buffered IMU samples on the shadow state, with fusion_prediction.InertialPrediction's
+ * propagate, set_dt and history).  Declarations and references: include/ct_fusion.h.
+ *
+ * The scalar steps are the reference's operations in the same order.  Where the reference calls
+ * BLAS for a 3x3 product (Psi = Phi R_ms, Theta <- E Theta) the sum runs over k in increasing
+ * order, equal to rounding.  exp and pow are the reference's libm calls (math.exp, float ** 2).
+ */
+#include <math.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+/* ------------------------------------------------------------ measurement */
+
+/* linalg.rotvec_from_matrix: the rotation vector w, |w| <= pi, of the rotation r (row-major) */
+void ct_fusion_rotvec_from_matrix(const double *r, double *w)
+{
+    double c = 0.5 * (r[0] + r[4] + r[8] - 1.0);
+    double vx, vy, vz, s, angle, d, ax, ay, az, x, nrm;
+    if (c > 1.0)
+        c = 1.0;
+    else if (c < -1.0)
+        c = -1.0;
+    vx = 0.5 * (r[7] - r[5]);
+    vy = 0.5 * (r[2] - r[6]);
+    vz = 0.5 * (r[3] - r[1]);
+    s = sqrt(vx * vx + vy * vy + vz * vz);          /* sin(angle) */
+    if (c > 0.0) {
+        double f;
+        angle = atan2(s, c);
+        f = s < 1e-8 ? 1.0 + angle * angle / 6.0 : angle / s;
+        w[0] = vx * f;
+        w[1] = vy * f;
+        w[2] = vz * f;
+        return;
+    }
+    /* angle in [pi/2, pi]: axis from the symmetric part (Python's max(x, 0.0) keeps a NaN) */
+    angle = atan2(s, c);
+    d = 1.0 - c;
+    x = (r[0] - c) / d;
+    ax = sqrt(0.0 > x ? 0.0 : x);
+    x = (r[4] - c) / d;
+    ay = sqrt(0.0 > x ? 0.0 : x);
+    x = (r[8] - c) / d;
+    az = sqrt(0.0 > x ? 0.0 : x);
+    if (ax >= ay && ax >= az) {
+        ay = copysign(ay, r[1] + r[3]);
+        az = copysign(az, r[2] + r[6]);
+        if (vx < 0.0) {
+            ax = -ax;
+            ay = -ay;
+            az = -az;
+        }
+    } else if (ay >= az) {
+        ax = copysign(ax, r[1] + r[3]);
+        az = copysign(az, r[5] + r[7]);
+        if (vy < 0.0) {
+            ax = -ax;
+            ay = -ay;
+            az = -az;
+        }
+    } else {
+        ax = copysign(ax, r[2] + r[6]);
+        ay = copysign(ay, r[5] + r[7]);
+        if (vz < 0.0) {
+            ax = -ax;
+            ay = -ay;
+            az = -az;
+        }
+    }
+    nrm = sqrt(ax * ax + ay * ay + az * az);
+    w[0] = ax * angle / nrm;
+    w[1] = ay * angle / nrm;
+    w[2] = az * angle / nrm;
+}
+
+/* fusion_measurement._position_and_white: y[zp..] = Phi q - p; Psi = Phi R_ms; the white blocks
+ * Phi C_pp Phi^T, Psi C_tt Psi^T, Phi C_pt Psi^T (times mag_var_scale) into P */
+static void position_and_white(const struct ct_fusmeas *m, const double *Phi, const double *q,
+                               const double *R_ms, const double *C, const double *p, double *P, double *y,
+                               double *Psi)
+{
+    const int n = m->n, zp = m->zp, q0 = m->q0, s0 = m->s0, cp = m->cp, co = m->co;
+    const double s = m->mag_var_scale;
+    int i, j, a, b;
+    for (i = 0; i < 3; ++i)
+        y[zp + i] = Phi[3 * i] * q[0] + Phi[3 * i + 1] * q[1] + Phi[3 * i + 2] * q[2] - p[i];
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j)
+            Psi[3 * i + j] = Phi[3 * i] * R_ms[j] + Phi[3 * i + 1] * R_ms[3 + j] + Phi[3 * i + 2] * R_ms[6 + j];
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            double cpp = 0.0, cpt = 0.0, ctt = 0.0;
+            for (a = 0; a < 3; ++a) {
+                double fa = Phi[3 * i + a];
+                double pa = Psi[3 * i + a];
+                for (b = 0; b < 3; ++b) {
+                    cpp += fa * C[6 * (cp + a) + cp + b] * Phi[3 * j + b];
+                    cpt += fa * C[6 * (cp + a) + co + b] * Psi[3 * j + b];
+                    ctt += pa * C[6 * (co + a) + co + b] * Psi[3 * j + b];
+                }
+            }
+            P[(q0 + i) * n + q0 + j] = cpp * s;
+            P[(q0 + i) * n + s0 + j] = cpt * s;
+            P[(s0 + j) * n + q0 + i] = cpt * s;
+            P[(s0 + i) * n + s0 + j] = ctt * s;
+        }
+}
+
+/* fusion_measurement._log_diff: y[row..] = log(Z Theta^T) */
+static void log_diff(const double *Z, const double *Th, double *y, int row)
+{
+    double r[9];
+    int i, j;
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j)
+            r[3 * i + j] = Z[3 * i] * Th[3 * j] + Z[3 * i + 1] * Th[3 * j + 1] + Z[3 * i + 2] * Th[3 * j + 2];
+    ct_fusion_rotvec_from_matrix(r, y + row);
+}
+
+void ct_fusion_evaluate(const struct ct_fusmeas *m, int xi_model, const double *Phi, const double *Xi,
+                        const double *XiP, const double *q, const double *R_ms, const double *C,
+                        const double *p, const double *Th, double *P, double *y, double *Psi)
+{
+    const int n = m->n;
+    int i, j;
+    position_and_white(m, Phi, q, R_ms, C, p, P, y, Psi);
+    if (!xi_model) {                         /* MagneticOrientation.evaluate */
+        log_diff(Psi, Th, y, m->zpsi);
+        return;
+    }
+    /* InertialMagneticOrientation.evaluate */
+    if (m->zpsi >= 0)
+        log_diff(Psi, Th, y, m->zpsi);
+    log_diff(Xi, Th, y, m->zxi);
+    for (i = 0; i < 3; ++i) {
+        double *row = P + (m->x0 + i) * n + m->x0;
+        for (j = 0; j < 3; ++j)
+            row[j] = XiP[3 * i + j] * m->xi_var_scale;
+        row[i] += i == 2 ? m->xi_heading_floor2 : m->xi_floor2;
+    }
+    if (m->zpsi < 0) {
+        /* the magnetic orientation is not used: keep its white block inert */
+        const int q0 = m->q0, s0 = m->s0;
+        for (i = 0; i < 3; ++i)
+            for (j = 0; j < 3; ++j) {
+                P[(s0 + i) * n + s0 + j] = i == j ? m->psi_var : 0.0;
+                P[(q0 + i) * n + s0 + j] = 0.0;
+                P[(s0 + j) * n + q0 + i] = 0.0;
+            }
+    }
+}
+
+/* ------------------------------------------------------------ the state */
+
+void ct_fusion_correct(const struct ct_fusstate *s, const double *dx)
+{
+    double E[9], T[9];
+    int i, j;
+    for (i = 0; i < 3; ++i) {
+        s->p[i] += dx[CT_POS + i];
+        s->v[i] += dx[CT_VEL + i];
+        s->ba[i] += dx[CT_ACC + i];
+        s->bg[i] += dx[CT_GYR + i];
+    }
+    ct_exp_rotvec(dx[CT_ORI], dx[CT_ORI + 1], dx[CT_ORI + 2], E);
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j)
+            T[3 * i + j] = E[3 * i] * s->Th[j] + E[3 * i + 1] * s->Th[3 + j] + E[3 * i + 2] * s->Th[6 + j];
+    memcpy(s->Th, T, sizeof T);
+}
+
+void ct_fusion_copy(const struct ct_fusstate *dst, const struct ct_fusstate *src)
+{
+    memcpy(dst->p, src->p, 3 * sizeof(double));
+    memcpy(dst->v, src->v, 3 * sizeof(double));
+    memcpy(dst->Th, src->Th, 9 * sizeof(double));
+    memcpy(dst->ba, src->ba, 3 * sizeof(double));
+    memcpy(dst->bg, src->bg, 3 * sizeof(double));
+    memcpy(dst->P, src->P, (size_t)src->n * (size_t)src->n * sizeof(double));
+}
+
+/* ------------------------------------------------------------ the replay */
+
+/* Ring.index_at_or_after over `count` entries from slot `first` */
+static int64_t ring_index_at_or_after(const int64_t *tv, int64_t cap, int64_t first, int64_t count, int64_t t)
+{
+    int64_t lo = 0, hi = count;
+    while (lo < hi) {
+        int64_t mid = (lo + hi) >> 1;
+        int64_t p = first + mid;
+        if (p >= cap)
+            p -= cap;
+        if (tv[p] < t)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    return lo;
+}
+
+/* InertialPrediction.set_dt: the step's own blocks of A (transition_static) and the diagonal of Q */
+static void replay_set_dt(const struct ct_replay *r, double dt, double *fo)
+{
+    const int n = r->ins.n;
+    const double *k = r->dtk;
+    double ka = k[0] > 0.0 ? exp(-dt / k[0]) : 1.0;
+    double kg = k[1] > 0.0 ? exp(-dt / k[1]) : 1.0;
+    double qv = k[2] * dt * dt, qo = pow(k[3] * dt, 2.0), qa = k[4] * dt, qg = k[5] * dt;
+    double *A = r->ins.A, *Q = r->Qd;
+    int i;
+    fo[CT_RFO_DT_LAST] = dt;
+    fo[CT_RFO_KA] = ka;
+    fo[CT_RFO_KG] = kg;
+    for (i = 0; i < 3; ++i) {
+        A[(CT_POS + i) * n + CT_VEL + i] = dt;
+        A[(CT_ACC + i) * n + CT_ACC + i] = ka;
+        A[(CT_GYR + i) * n + CT_GYR + i] = kg;
+    }
+    for (i = 0; i < 3; ++i) {
+        Q[(CT_VEL + i) * (n + 1)] = qv;
+        Q[(CT_ORI + i) * (n + 1)] = qo;
+        Q[(CT_ACC + i) * (n + 1)] = qa;
+        Q[(CT_GYR + i) * (n + 1)] = qg;
+    }
+}
+
+/* ekf.symmetrize in place: P = (P + P^T) / 2 */
+static void symmetrize(double *P, int n)
+{
+    int i, j;
+    for (i = 0; i < n; ++i) {
+        P[i * n + i] = (P[i * n + i] + P[i * n + i]) * 0.5;
+        for (j = i + 1; j < n; ++j) {
+            double a = P[i * n + j], b = P[j * n + i];
+            P[i * n + j] = (a + b) * 0.5;
+            P[j * n + i] = (b + a) * 0.5;
+        }
+    }
+}
+
+/* InertialPrediction.propagate (its input interpolation) and step_compiled (set_dt when the step
+ * changes, ct_ins_propagate, CovariancePredict.after_predict) of the shadow over [t0, t1] with the
+ * IMU samples of slots k - 1 and k */
+static void replay_propagate(const struct ct_replay *r, int64_t k, int64_t t0, int64_t t1, int64_t *io, double *fo)
+{
+    const struct ct_ins *s = &r->ins;
+    const double dt = (double)(t1 - t0) * 1e-6;
+    const int64_t tk = r->imu_t[k];
+    int64_t kp = k > 0 ? k - 1 : r->imu_cap - 1;
+    const int64_t tp = r->imu_t[kp];
+    const double *dp, *dk;
+    double a0, a1, b0, b1, am, bm, in[15];
+    if (io[CT_RIO_IMU_COUNT] > 1 && tp < tk) {
+        double span = 1.0 / (double)(tk - tp);
+        a0 = (double)(t0 - tp) * span;
+        a1 = (double)(t1 - tp) * span;
+        if (a0 < 0.0)
+            a0 = 0.0;
+    } else {
+        kp = k;
+        a0 = a1 = 1.0;
+    }
+    b0 = 1.0 - a0;
+    b1 = 1.0 - a1;
+    dp = r->imu_d + kp * CT_IMU_WIDTH;
+    dk = r->imu_d + k * CT_IMU_WIDTH;
+    /* inputs at t0 and t1 (offsets removed), the rate at mid-step */
+    in[0] = b0 * dp[CT_IMU_F] + a0 * dk[CT_IMU_F] - s->ba[0];
+    in[1] = b0 * dp[CT_IMU_F + 1] + a0 * dk[CT_IMU_F + 1] - s->ba[1];
+    in[2] = b0 * dp[CT_IMU_F + 2] + a0 * dk[CT_IMU_F + 2] - s->ba[2];
+    in[3] = b1 * dp[CT_IMU_F] + a1 * dk[CT_IMU_F] - s->ba[0];
+    in[4] = b1 * dp[CT_IMU_F + 1] + a1 * dk[CT_IMU_F + 1] - s->ba[1];
+    in[5] = b1 * dp[CT_IMU_F + 2] + a1 * dk[CT_IMU_F + 2] - s->ba[2];
+    am = 0.5 * (a0 + a1);
+    bm = 1.0 - am;
+    in[6] = bm * dp[CT_IMU_W] + am * dk[CT_IMU_W] - s->bg[0];
+    in[7] = bm * dp[CT_IMU_W + 1] + am * dk[CT_IMU_W + 1] - s->bg[1];
+    in[8] = bm * dp[CT_IMU_W + 2] + am * dk[CT_IMU_W + 2] - s->bg[2];
+    in[9] = b0 * dp[CT_IMU_FSRC] + a0 * dk[CT_IMU_FSRC];
+    in[10] = b0 * dp[CT_IMU_FSRC + 1] + a0 * dk[CT_IMU_FSRC + 1];
+    in[11] = b0 * dp[CT_IMU_FSRC + 2] + a0 * dk[CT_IMU_FSRC + 2];
+    in[12] = b1 * dp[CT_IMU_FSRC] + a1 * dk[CT_IMU_FSRC];
+    in[13] = b1 * dp[CT_IMU_FSRC + 1] + a1 * dk[CT_IMU_FSRC + 1];
+    in[14] = b1 * dp[CT_IMU_FSRC + 2] + a1 * dk[CT_IMU_FSRC + 2];
+    if (dt != fo[CT_RFO_DT_LAST])
+        replay_set_dt(r, dt, fo);
+    ct_ins_propagate((struct ct_ins *)s, dt, in, fo[CT_RFO_KA], fo[CT_RFO_KG]);
+    io[CT_RIO_PRED_COUNT] += 1;
+    if (io[CT_RIO_PRED_COUNT] % r->symmetrize_every == 0)
+        symmetrize(s->P, s->n);
+    io[CT_RIO_STEPS] += 1;
+}
+
+/* InertialPrediction.history: push the shadow's pose at t in the source frame (to_source, Phi of
+ * IMU slot k) onto the shadow history; *head, *count: the ring's */
+static void replay_history(const struct ct_replay *r, int64_t k, int64_t t, int64_t *head, int64_t *count,
+                           int64_t *io)
+{
+    const int64_t h = *head;
+    const double *p = r->ins.p, *Th = r->ins.Th;
+    double *hd = r->hist_d + h * CT_HIST_WIDTH;
+    int i, j;
+    r->hist_t[h] = t;
+    *head = h + 1 == r->hist_cap ? 0 : h + 1;
+    if (*count < r->hist_cap)
+        *count += 1;
+    io[CT_RIO_HIST_PUSHED] += 1;
+    if (r->fixed) {
+        hd[CT_HIST_P] = p[0];
+        hd[CT_HIST_P + 1] = p[1];
+        hd[CT_HIST_P + 2] = p[2];
+        for (i = 0; i < 9; ++i)
+            hd[CT_HIST_R + i] = Th[i];
+        return;
+    }
+    {
+        const double *F = r->imu_d + k * CT_IMU_WIDTH + CT_IMU_PHI;
+        for (i = 0; i < 3; ++i) {
+            double f0 = F[i], f1 = F[3 + i], f2 = F[6 + i];       /* column i of Phi */
+            hd[CT_HIST_P + i] = f0 * p[0] + f1 * p[1] + f2 * p[2];
+            for (j = 0; j < 3; ++j)
+                hd[CT_HIST_R + 3 * i + j] = f0 * Th[j] + f1 * Th[3 + j] + f2 * Th[6 + j];
+        }
+    }
+}
+
+int ct_fusion_replay(const struct ct_replay *r, int64_t *io, double *fo, int budget)
+{
+    const int64_t cap = r->imu_cap, first = io[CT_RIO_IMU_FIRST], count = io[CT_RIO_IMU_COUNT];
+    const int pending = io[CT_RIO_SNAP_PENDING] != 0;
+    const int64_t ts = io[CT_RIO_SNAP_T];
+    int64_t t = io[CT_RIO_T];
+    int64_t hcount = io[CT_RIO_HIST_COUNT];
+    int64_t head = io[CT_RIO_HIST_FIRST] + hcount;
+    int64_t units = io[CT_RIO_UNITS];
+    int rc;
+    if (head >= r->hist_cap)
+        head -= r->hist_cap;
+    io[CT_RIO_STEPS] = 0;
+    io[CT_RIO_HIST_PUSHED] = 0;
+    if (io[CT_RIO_SPLIT] >= 0) {
+        /* the rest of the step split at the snapshot (taken by the caller at t) */
+        const int64_t k = io[CT_RIO_SPLIT], tk = r->imu_t[k];
+        io[CT_RIO_SPLIT] = -1;
+        if (tk > t) {
+            replay_propagate(r, k, t, tk, io, fo);
+            units += 1;
+        }
+        t = tk;
+        replay_history(r, k, t, &head, &hcount, io);
+    }
+    for (;;) {
+        const int64_t i = ring_index_at_or_after(r->imu_t, cap, first, count, t + 1);
+        int64_t k, tk, t0;
+        if (i >= count) {
+            rc = CT_REPLAY_CAUGHT_UP;
+            break;
+        }
+        if (units >= budget) {
+            rc = CT_REPLAY_BUDGET;
+            break;
+        }
+        if (i == 0) {
+            rc = CT_REPLAY_LOST;
+            break;
+        }
+        k = first + i;
+        if (k >= cap)
+            k -= cap;
+        tk = r->imu_t[k];
+        t0 = t;
+        if (pending && t0 < ts && ts <= tk) {
+            /* FusionFilter._advance: the step split at the snapshot time */
+            if (ts > t0) {
+                replay_propagate(r, k, t0, ts, io, fo);
+                t = ts;
+                replay_history(r, k, t, &head, &hcount, io);
+                units += 1;
+            }
+            io[CT_RIO_SPLIT] = k;
+            rc = CT_REPLAY_SNAPSHOT;
+            break;
+        }
+        replay_propagate(r, k, t0, tk, io, fo);
+        units += 1;
+        t = tk;
+        replay_history(r, k, t, &head, &hcount, io);
+    }
+    io[CT_RIO_T] = t;
+    io[CT_RIO_UNITS] = units;
+    return rc;
+}

@@ -1,0 +1,84 @@
+"""The fusion filter's replay on the compiled core: :meth:`FusionFilter.step
+<coiltrack.firmware.estimate.magnetic_inertial.FusionFilter.step>` in one C call per tick.
+
+A delayed magnetic update is applied to the shadow state at ``t_ref`` and the IMU samples since
+are replayed on it (thesis ``002_cd7f1fdb7fc67471.txt`` sec 6.2.3; strapdown eqs 6.1-6.4, 6.8,
+transition eq 6.17). The reference is the Python loop of ``FusionFilter.step`` and ``_advance``
+with ``InertialPrediction.propagate``, ``set_dt``, ``step_compiled`` and ``history``;
+``core/src/fusion.c`` ``ct_fusion_replay`` follows it operation by operation, so the shadow,
+its pose history and every counter come out the same. The kernel works on the arrays bound
+here once (the shadow's, the IMU ring's and the shadow history's) and on two small arrays
+carrying the Python attributes it reads and advances (``io``, ``fo``); :meth:`CompiledReplay.run`
+fills them before the call and hands the results back to their owners through their methods.
+A snapshot falling inside the replay stops the kernel at its instant: the snapshot is taken here
+(``Snapshot.take``, which also reads the orientation filter) and the kernel resumes with the rest
+of that sample.
+
+All buffers are created in ``__init__``; a call allocates no numpy array.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from coiltrack.firmware.estimate.ekf import SYMMETRIZE_EVERY
+from coiltrack.firmware.estimate.fusion_state import (HIST_FIELDS, HIST_P, HIST_R, IMU_F, IMU_FIELDS, IMU_FSRC,
+                                                     IMU_PHI, IMU_W)
+
+__all__ = ["CompiledReplay"]
+
+
+class CompiledReplay:
+    """``ct_fusion_replay`` bound to the shadow state ``sh`` (which carries the compiled step,
+    ``InsState.ck``), the ``prediction``'s IMU ring, the shadow pose history ``hist``, the
+    snapshot ``snap`` and the source ``frame``. :meth:`run` returns the kernel's stop
+    (``ext.REPLAY_*``) and leaves the strapdown steps of the call in ``units``."""
+
+    def __init__(self, sh, prediction, hist, snap, frame, ext):
+        assert (ext.IMU_F, ext.IMU_W, ext.IMU_FSRC, ext.IMU_PHI, ext.IMU_WIDTH) == (
+            IMU_F, IMU_W, IMU_FSRC, IMU_PHI, sum(w for _, w in IMU_FIELDS))
+        assert (ext.HIST_P, ext.HIST_R, ext.HIST_WIDTH) == (HIST_P, HIST_R, sum(w for _, w in HIST_FIELDS))
+        self.sh, self.pr, self.imu, self.hist, self.snap = sh, prediction, prediction.imu, hist, snap
+        self.ext = ext
+        self._io = np.zeros(ext.RIO_N, dtype=np.int64)
+        self._fo = np.zeros(ext.RFO_N)
+        self._iov = memoryview(self._io)
+        self._fov = memoryview(self._fo)
+        pred = sh.pred
+        self._ck = ext.Replay(sh.P.shape[0], sh.p, sh.v, sh.Th, sh.ba, sh.bg, pred.A, sh.P, pred.Q, pred._T,
+                              self.imu.t, self.imu.d, hist.t, hist.d, self._io, self._fo, frame.fixed,
+                              prediction._dtk, SYMMETRIZE_EVERY)
+        self.units = 0
+
+    def run(self, budget: int) -> int:
+        """Replay on the shadow, at most ``budget`` strapdown steps started (a sample split at a
+        snapshot finishes), as ``FusionFilter.step``'s loop does; the kernel's stop."""
+        ext = self.ext
+        io, fo = self._iov, self._fov
+        sh, imu, hist, snap, pr = self.sh, self.imu, self.hist, self.snap, self.pr
+        io[ext.RIO_UNITS] = 0
+        io[ext.RIO_SPLIT] = -1
+        while True:
+            io[ext.RIO_T] = sh.t_us
+            io[ext.RIO_IMU_FIRST] = imu.slot(0)
+            io[ext.RIO_IMU_COUNT] = len(imu)
+            io[ext.RIO_HIST_FIRST] = hist.slot(0)
+            io[ext.RIO_HIST_COUNT] = len(hist)
+            io[ext.RIO_SNAP_PENDING] = 1 if snap.pending else 0
+            io[ext.RIO_SNAP_T] = snap.t
+            io[ext.RIO_PRED_COUNT] = sh.pred.count
+            fo[ext.RFO_DT_LAST] = sh.dt_last
+            fo[ext.RFO_KA] = sh.ka
+            fo[ext.RFO_KG] = sh.kg
+            rc = self._ck.replay(budget)
+            sh.set_time(io[ext.RIO_T])
+            sh.set_step(fo[ext.RFO_DT_LAST], fo[ext.RFO_KA], fo[ext.RFO_KG])
+            sh.pred.set_count(io[ext.RIO_PRED_COUNT])
+            hist.advance(io[ext.RIO_HIST_PUSHED])
+            pr.add_steps(io[ext.RIO_STEPS])
+            if rc != ext.REPLAY_SNAPSHOT:
+                break
+            # FusionFilter._advance: the shadow (the authoritative state in a replay) at the
+            # snapshot's instant is kept, then the kernel resumes with the rest of the sample
+            snap.take(sh, pr._idv, io[ext.RIO_SPLIT])
+        self.units = io[ext.RIO_UNITS]
+        return rc

@@ -1,0 +1,379 @@
+"""The fusion filter's delayed magnetic update and its replay on the compiled core
+(firmware_py/core/src/fusion.c: ct_fusion_evaluate, ct_fusion_rotvec_from_matrix,
+ct_fusion_correct, ct_fusion_copy, ct_fusion_replay) against their Python reference
+(estimate/fusion_measurement.py, fusion_state.InsState.correct / copy_from, and
+magnetic_inertial.FusionFilter.step with fusion_prediction), and against independent
+references: scipy's rotation vector and numpy's congruences for the measurement, filterpy's
+Kalman update for one whole update. The 3x3 products the reference takes from BLAS are summed in
+order in C, so states are compared to 1e-12 relative; discrete outcomes (flags, step counts,
+ring positions, the time) exactly. Seeded; skips where the extension is not built."""
+import math
+
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+from scipy.spatial.transform import Rotation
+
+from coiltrack.firmware import core
+from coiltrack.firmware.estimate.ekf import EKF_OK
+from coiltrack.firmware.estimate.layout import ORI, POSE_ORI, POSE_POS, PSI, QM, XI
+from coiltrack.firmware.estimate.magnetic_inertial import FUS_REPLAY_LOST, FusionFilter, FusionParams
+from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
+from coiltrack.hil.motion import HandMovedBench
+
+_core = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
+COMPILED = core.load("compiled")
+
+
+def _pair(model, fixed=True, imu_capacity=128):
+    """The same filter on the Python core (reference) and on the compiled one; each with its own
+    ch. 2 filter on the Python core (so the snapshots' Xi are the same to the bit)."""
+    prm = FusionParams.from_config(None, measurement_model=model)
+    out = []
+    for c in (core.PYTHON, COMPILED):
+        of = OrientationFilter(OrientationParams.from_config(None), core.PYTHON)
+        out.append(FusionFilter(prm, of, imu_capacity=imu_capacity, fixed_source=fixed, core=c))
+    ref, got = out
+    assert ref._replay_ck is None and got._replay_ck is not None
+    assert ref.sh.cs is None and got.sh.cs is not None and got.sn.cs is not None
+    return ref, got
+
+
+def _close(a, b, rel=1e-12, what=""):
+    """``b`` equal to ``a`` within ``rel`` of ``a``'s largest element (or of 1)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    assert a.shape == b.shape, what
+    if a.size == 0:
+        return
+    tol = rel * max(float(np.abs(a).max()), 1.0)
+    d = float(np.abs(b - a).max())
+    assert d <= tol, f"{what}: differs by {d:.3g} (tolerance {tol:.3g})"
+
+
+def _random_rotation(rng, angle=None):
+    u = rng.normal(size=3)
+    u /= np.linalg.norm(u)
+    return Rotation.from_rotvec(u * (rng.uniform(0, math.pi) if angle is None else angle)).as_matrix()
+
+
+def _spd(rng, n, scale):
+    M = rng.normal(size=(n, n))
+    return scale * (M @ M.T + n * np.eye(n))
+
+
+def _fill(ff, rng, Th, Phi, Xi):
+    """One random shadow state and snapshot (the same in both filters: call with equal rng)."""
+    sh, snap = ff.sh, ff.snap
+    sh.p[:] = rng.normal(size=3) * 0.2
+    sh.Th[:] = Th
+    sh.P[:] = _spd(rng, ff.n, 1e-4)
+    snap.Phi[:] = Phi
+    snap.Xi[:] = Xi
+    snap.XiP[:] = _spd(rng, 3, 1e-5)
+
+
+@pytest.mark.parametrize("model", [1, 2, 3])
+def test_evaluate_matches_the_reference_and_scipy(model):
+    """ct_fusion_evaluate against the models' evaluate over 80 random states, snapshots and
+    solutions, with orientation errors from tiny (the series branch of the rotation vector) to
+    near pi (the axis from the symmetric part): y and every element of P equal to 1e-12. The
+    innovation's orientation rows are scipy's rotation vector of Psi Theta^T and Xi Theta^T, its
+    position rows Phi q - p, the white blocks Phi C_pp Phi^T s, Psi C_tt Psi^T s, Phi C_pt Psi^T s
+    (numpy), so a transposed Phi, a dropped scale or a wrong sign near pi fails."""
+    rng = np.random.default_rng(40 + model)
+    ref, got = _pair(model)
+    prm = ref.prm
+    zl = ref.zlayout
+    names = zl.names()
+    for it in range(80):
+        Phi = _random_rotation(rng)
+        Th = _random_rotation(rng)
+        kind = it % 4
+        err = (1e-9, 0.3, math.pi - 1e-7, math.pi - 0.2)[kind]
+        Rerr = _random_rotation(rng, err)
+        R_ms = Phi.T @ Rerr @ Th            # Psi = Phi R_ms = Rerr Theta: log(Psi Theta^T) = log(Rerr)
+        Xi = _random_rotation(rng, (1e-9, 0.1, math.pi - 1e-6, 2.0)[kind]) @ Th
+        q = rng.normal(size=3) * 0.3
+        C = _spd(rng, 6, 1e-6)
+        seed = int(rng.integers(1 << 30))
+        for ff in (ref, got):
+            _fill(ff, np.random.default_rng(seed), Th, Phi, Xi)
+        ref.meas.evaluate(ref.sh, ref.snap, q, R_ms, C, memoryview(ref.upd.y))
+        got._evaluate(q, R_ms, C)
+        _close(ref.upd.y, got.upd.y, what="y")
+        _close(ref.sh.P, got.sh.P, what="P")
+        # the independent references
+        y, P, s = got.upd.y, got.sh.P, prm.mag_var_scale
+        np.testing.assert_allclose(y[zl.ZP], Phi @ q - got.sh.p, rtol=0, atol=1e-14)
+        Psi = Phi @ R_ms
+        for row, Z in (("ZPSI", Psi), ("ZXI", Xi)):
+            if row in names:
+                rv = Rotation.from_matrix(Z @ Th.T).as_rotvec()
+                if np.linalg.norm(rv) > math.pi - 1e-6:      # the same rotation either way round
+                    rv = rv if np.dot(rv, y[getattr(zl, row)]) > 0 else -rv
+                np.testing.assert_allclose(y[getattr(zl, row)], rv, rtol=0, atol=1e-7, err_msg=row)
+        Cpp, Cpt, Ctt = C[POSE_POS, POSE_POS], C[POSE_POS, POSE_ORI], C[POSE_ORI, POSE_ORI]
+        np.testing.assert_allclose(P[QM, QM], Phi @ Cpp @ Phi.T * s, rtol=1e-12, atol=1e-20)
+        if "ZPSI" in names:
+            np.testing.assert_allclose(P[PSI, PSI], Psi @ Ctt @ Psi.T * s, rtol=1e-12, atol=1e-20)
+            np.testing.assert_allclose(P[QM, PSI], Phi @ Cpt @ Psi.T * s, rtol=1e-12, atol=1e-20)
+            np.testing.assert_allclose(P[PSI, QM], (Phi @ Cpt @ Psi.T * s).T, rtol=1e-12, atol=1e-20)
+        else:
+            np.testing.assert_array_equal(P[PSI, PSI], np.eye(3) * prm.psi_sigma ** 2)
+            np.testing.assert_array_equal(P[QM, PSI], 0.0)
+        if "ZXI" in names:
+            floor = np.diag([prm.xi_sigma_floor ** 2, prm.xi_sigma_floor ** 2, prm.xi_heading_sigma_floor ** 2])
+            np.testing.assert_allclose(P[XI, XI], got.snap.XiP * prm.xi_var_scale + floor, rtol=1e-14)
+
+
+def test_evaluate_takes_arrays_lists_and_transposed_views():
+    """The solution may come as any float64 array (a transposed view too) or as nested lists:
+    the same result; a wrong size is refused with a message naming the argument."""
+    rng = np.random.default_rng(47)
+    _, got = _pair(3)
+    Th, Phi = _random_rotation(rng), _random_rotation(rng)
+    _fill(got, rng, Th, Phi, Th)
+    q, R, C = rng.normal(size=3), _random_rotation(rng), _spd(rng, 6, 1e-6)
+    got._evaluate(q, R, C)
+    y0, P0 = got.upd.y.copy(), got.sh.P.copy()
+    for args in ((list(q), R.tolist(), C.tolist()), (q, np.asfortranarray(R), C.T.T), (q, R.T.copy().T, C)):
+        got._evaluate(*args)
+        np.testing.assert_array_equal(got.upd.y, y0)
+        np.testing.assert_array_equal(got.sh.P, P0)
+    with pytest.raises(TypeError, match="R_ms"):
+        got._evaluate(q, np.eye(2), C)
+    with pytest.raises(TypeError, match="C"):
+        got._evaluate(q, R, np.eye(5))
+
+
+def test_correct_and_copy_match_the_reference():
+    """ct_fusion_correct against InsState.correct (random corrections, rotations from 1e-9 rad
+    to near pi, 300 chained): p, v, offsets, Theta to 1e-12; ct_fusion_copy gives the other
+    state's arrays and time to the bit."""
+    rng = np.random.default_rng(48)
+    ref, got = _pair(3)
+    Th = _random_rotation(rng)
+    for ff in (ref, got):
+        _fill(ff, np.random.default_rng(1), Th, np.eye(3), np.eye(3))
+        ff.sh.v[:] = (0.1, 0.2, -0.3)
+        ff.sh.ba[:] = (0.01, 0.0, -0.02)
+        ff.sh.bg[:] = (0.001, -0.002, 0.0)
+    dx = np.zeros(ref.n)
+    for i in range(300):
+        dx[:] = rng.normal(size=ref.n) * 1e-3
+        u = rng.normal(size=3)
+        dx[ORI] = u / np.linalg.norm(u) * (1e-9, 1e-3, 1.0, math.pi - 1e-6)[i % 4]
+        ref.sh.correct(dx)
+        got.sh.correct(memoryview(dx))
+    for name in ("p", "v", "Th", "ba", "bg", "P"):
+        _close(getattr(ref.sh, name), getattr(got.sh, name), what=name)
+    np.testing.assert_allclose(got.sh.Th @ got.sh.Th.T, np.eye(3), atol=1e-12)
+    got.sh.t_us = 123_456
+    got.st.copy_from(got.sh)
+    for name in ("p", "v", "Th", "ba", "bg", "P"):
+        np.testing.assert_array_equal(getattr(got.st, name), getattr(got.sh, name))
+    assert got.st.t_us == 123_456
+
+
+def test_one_update_matches_filterpy():
+    """prepare and apply of one delayed update on the compiled core against filterpy's
+    KalmanFilter.update (Joseph form) on the same H, R, innovation and prior: the correction
+    applied to the shadow and its posterior covariance to 1e-10 relative."""
+    rng = np.random.default_rng(49)
+    _, got = _pair(3)
+    Th, Phi = _random_rotation(rng), _random_rotation(rng)
+    _fill(got, rng, Th, Phi, _random_rotation(rng, 0.01) @ Th)
+    got.sh.P.fill(0.0)                      # the white states carry no cross-covariance (A's zero rows)
+    got.sh.P[:15, :15] = _spd(rng, 15, 1e-5)
+    q = Phi.T @ got.sh.p + rng.normal(size=3) * 1e-3
+    R_ms = Phi.T @ _random_rotation(rng, 0.01) @ Th
+    C = _spd(rng, 6, 1e-7)
+    got._evaluate(q, R_ms, C)
+    kf = KalmanFilter(dim_x=got.n, dim_z=got.m)
+    kf.x = np.zeros(got.n)
+    kf.P = got.sh.P.copy()
+    kf.H = got.upd.H.copy()
+    kf.R = got.upd.R.copy()
+    p0 = got.sh.p.copy()
+    kf.update(got.upd.y.copy())
+    assert got.upd.update(got.sh.P, math.inf) == EKF_OK
+    got.sh.correct(got.upd.dx)
+    np.testing.assert_allclose(got.upd.dx, kf.x, rtol=0, atol=1e-10 * np.abs(kf.x).max())
+    np.testing.assert_allclose(got.sh.P, kf.P, rtol=0, atol=1e-10 * np.abs(kf.P).max())
+    np.testing.assert_allclose(got.sh.p, p0 + kf.x[:3], rtol=0, atol=1e-15)
+
+
+# ------------------------------------------------------------------ the replay
+
+_TRAJ = HandMovedBench(seed=3, duration_s=10, v_max=0.12, w_max_deg=40.0)
+_G = np.array([0.0, 0.0, -9.81])
+_EARTH = np.array([20e-6, 0.0, -45e-6])
+
+
+class _Run:
+    """Both filters fed the same IMU samples (irregular steps, so the step-dependent blocks are
+    rewritten), the same Phi (a turning source unless fixed) and the same magnetic solutions
+    (the truth moved by a fixed error), each stage compared."""
+
+    def __init__(self, model, fixed, imu_capacity=128, seed=50):
+        rng = np.random.default_rng(seed)
+        self.ref, self.got = _pair(model, fixed, imu_capacity)
+        self.lost = 0
+        self.i = 0
+        t = 1000 + np.cumsum(rng.integers(700, 1400, size=4000))
+        k = _TRAJ.kinematics(t)
+        ang = 0.0 if fixed else 0.3 * np.sin(t * 1e-6)
+        Phi = Rotation.from_rotvec(np.outer(ang * np.ones(t.size), [0.0, 0.0, 1.0])).as_matrix()
+        Rg = Phi @ k.R                                           # sensor orientation in G
+        a = np.einsum("nij,nj->ni", Phi, k.acceleration) - _G
+        self.t_us = t
+        self.f = np.einsum("nji,nj->ni", Rg, a) + rng.normal(0, 0.01, (t.size, 3))
+        self.w = k.angular_velocity + 0.005 + rng.normal(0, 0.005, (t.size, 3))
+        self.m = np.einsum("nji,j->ni", Rg, _EARTH)
+        self.Phi = Phi
+        self.rsrc = (0.0, 0.0, 9.81)              # the source's specific force in G (it does not accelerate)
+
+    @property
+    def t(self):
+        return int(self.t_us[self.i - 1]) if self.i else 0
+
+    def push(self):
+        i = self.i
+        self.i += 1
+        t = int(self.t_us[i])
+        f, w, m, Phi = self.f[i], self.w[i], self.m[i], self.Phi[i]
+        for ff in (self.ref, self.got):
+            of = ff.snap.xi_filter
+            if not of.initialized:
+                of.initialize(t, *f, *m)
+            else:
+                of.predict(t, *w)
+                of.update_acc(*f)
+                of.update_mag(*m)
+            ff.push_imu(t, *f, *w, *self.rsrc, Phi)
+        return t
+
+    def solution(self, t_ref):
+        k = _TRAJ.kinematics(np.array([t_ref]))
+        C = np.diag([4e-6, 3e-6, 5e-6, 1e-4, 1.2e-4, 0.8e-4])
+        C[0, 4] = C[4, 0] = 2e-6
+        R = k.R[0] @ Rotation.from_rotvec([0.004, -0.006, 0.003]).as_matrix()
+        return t_ref, k.position[0] + [0.002, -0.001, 0.0015], R, C
+
+    def check_step(self, what):
+        """The cheap part of :meth:`check`, after every replay step: the shadow and the counters."""
+        a, b = self.ref, self.got
+        assert (a.sh.t_us, a.steps, a.sh.pred.count, a.replaying, a.last_flags, len(a.history.shadow)) == \
+               (b.sh.t_us, b.steps, b.sh.pred.count, b.replaying, b.last_flags, len(b.history.shadow)), what
+        _close(a.sh.P, b.sh.P, what=f"{what}: sh.P")
+        _close(a.sh.p, b.sh.p, what=f"{what}: sh.p")
+
+    def check(self, what):
+        a, b = self.ref, self.got
+        for name in ("p", "v", "Th", "ba", "bg", "P"):
+            for st in ("st", "sh", "sn"):
+                _close(getattr(getattr(a, st), name), getattr(getattr(b, st), name), what=f"{what}: {st}.{name}")
+        for st in ("st", "sh", "sn"):
+            assert getattr(a, st).t_us == getattr(b, st).t_us, (what, st)
+        assert (a.sh.dt_last, a.sh.ka, a.sh.kg) == (b.sh.dt_last, b.sh.ka, b.sh.kg), what
+        assert a.sh.pred.count == b.sh.pred.count and a.st.pred.count == b.st.pred.count, what
+        assert (a.steps, a.updates, a.rejected, a.replays_lost, a.last_flags, a.replaying, a.initialized) == \
+               (b.steps, b.updates, b.rejected, b.replays_lost, b.last_flags, b.replaying, b.initialized), what
+        assert (a.snap.pending, a.snap.valid, a.snap.t, a.snap.xi) == (b.snap.pending, b.snap.valid, b.snap.t, b.snap.xi)
+        _close(a.snap.Xi, b.snap.Xi, what=f"{what}: Xi")
+        for h in ("live", "shadow"):
+            ra, rb = getattr(a.history, h), getattr(b.history, h)
+            assert len(ra) == len(rb) and ra.slot(0) == rb.slot(0), (what, h)
+            used = [ra.slot(i) for i in range(len(ra))]
+            np.testing.assert_array_equal(ra.t[used], rb.t[used], err_msg=f"{what}: history {h}")
+            _close(ra.d[used], rb.d[used], what=f"{what}: history {h}")
+
+    def run(self, t_end, budget, period_us=300_000, delay_us=90_000, every=1):
+        """Bursts every ``period_us``: the snapshot scheduled ahead of the stream (while a replay
+        runs, so the shadow takes it), the solution ``delay_us`` after t_ref, then ``budget``
+        replay steps every ``every`` samples."""
+        pending = []
+        next_burst = 250_000
+        n = 0
+        while self.t < t_end:
+            t = self.push()
+            n += 1
+            if t >= next_burst - 40_000 and next_burst not in [p for p, _ in pending]:
+                t_ref = next_burst + 333                    # off the sample grid: a split step
+                for ff in (self.ref, self.got):
+                    ff.schedule_snapshot(t_ref)
+                pending.append((next_burst, t_ref))
+                next_burst += period_us
+            for burst, t_ref in list(pending):
+                if t >= t_ref + delay_us:
+                    pending.remove((burst, t_ref))
+                    sol = self.solution(t_ref)
+                    for ff in (self.ref, self.got):
+                        ff.finish()
+                    fa = self.ref.begin_magnetic_update(*sol)
+                    fb = self.got.begin_magnetic_update(*sol)
+                    assert fa == fb, (t, fa, fb)
+                    self.check(f"update at {t}")
+            if (self.ref.replaying or self.got.replaying) and n % every == 0:
+                da, db = self.ref.step(budget), self.got.step(budget)
+                assert (da, self.ref.last_step_units) == (db, self.got.last_step_units), t
+                self.check(f"replay end at {t}") if da else self.check_step(f"replay step at {t}")
+        self.lost = self.got.replays_lost
+
+
+@pytest.mark.parametrize("model, fixed, budget", [(1, True, 8), (3, False, 3), (2, True, 1), (3, True, 50)])
+def test_replay_matches_the_reference(model, fixed, budget):
+    """FusionFilter.step on the compiled core (one ct_fusion_replay call, resumed once after a
+    snapshot taken inside the replay) against the Python loop, from the first solution over
+    1.5 s of irregular IMU steps: after every update and every replay step the live, shadow and
+    snapshot states agree to 1e-12, and the times, step counts, the replay's units, the flags, the
+    step-dependent blocks and both pose histories (slots, times, rows) are the same."""
+    r = _Run(model, fixed)
+    r.run(1_500_000, budget)
+    assert r.got.updates >= 3 and r.got.steps > 1000
+    assert r.got.initialized
+
+
+def test_replay_through_a_snapshot_inside_it():
+    """A snapshot scheduled while a slow replay (1 step per sample) runs is taken by the shadow
+    when it crosses t_ref (``REPLAY_SNAPSHOT``: the sample split there), on both cores alike."""
+    r = _Run(3, False)
+    taken = []
+    ck = r.got._replay_ck
+    run0 = ck.run
+
+    def run(budget):
+        before = r.got.snap.pending
+        rc = run0(budget)
+        taken.append(before and not r.got.snap.pending)
+        return rc
+
+    ck.run = run
+    r.run(1_300_000, 1)
+    assert any(taken)
+
+
+def test_a_replay_that_loses_its_samples_ends_alike():
+    """An IMU ring too short for a slow replay: the sample before the next one leaves the ring
+    and the replay ends with FUS_REPLAY_LOST, on both cores at the same step."""
+    r = _Run(3, True, imu_capacity=40)
+    flags = []
+    step0 = r.got.step
+
+    def step(budget):
+        done = step0(budget)
+        flags.append(r.got.last_flags)
+        return done
+
+    r.got.step = step
+    r.run(1_000_000, 1, delay_us=20_000, every=3)
+    assert r.got.replays_lost > 0 and r.ref.replays_lost == r.got.replays_lost
+    assert any(f & FUS_REPLAY_LOST for f in flags)
+
+
+def test_the_recorder_keeps_the_python_replay():
+    """The offline recorder's per-step hook runs in the Python loop: attaching one unbinds the
+    compiled replay (chosen once then)."""
+    _, got = _pair(3)
+    got.attach_recorder(object())
+    assert got._replay_ck is None
