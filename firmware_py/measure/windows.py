@@ -21,6 +21,7 @@ import numpy as np
 
 from coiltrack.protocol import MSG
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
 from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
 
@@ -45,9 +46,10 @@ class SensorChannel:
     With ``body.baseline_gyro`` the node's gyroscope rates are kept
     (``gyro``, fed by :meth:`push_imu`) and the extractor turns each window's
     samples with them (:mod:`coiltrack.firmware.measure.gyro_baseline`);
-    otherwise ``gyro`` is None and the IMU samples are not kept here."""
+    otherwise ``gyro`` is None and the IMU samples are not kept here. ``core``: the numeric core
+    (``coiltrack.firmware.core``, chosen at composition) the plain extractor runs."""
 
-    def __init__(self, node: int, cfg):
+    def __init__(self, node: int, cfg, core=_DEFAULT_CORE):
         n = len(cfg.source.coils)
         self.node = node
         self.ring = SampleRing(cfg.pulse.ring_capacity)
@@ -61,7 +63,7 @@ class SensorChannel:
                                                    gyro_gap_us=int(3e6 / cfg.imu.imu_rate_hz), **kw)
         else:
             self.gyro = None
-            self.extractor = PulseExtractor(self.ring, **kw)
+            self.extractor = PulseExtractor(self.ring, core=core, **kw)
         self.S = np.zeros((3, n))          # amplitudes, sensor frame, column per coil (T)
         self.var = np.zeros((3, n))        # their variances (T^2)
         self.sigma = np.zeros((3, n))      # their standard deviations, floored, for the solver (T)
