@@ -354,6 +354,15 @@ class PulseExtractor:
             out[k] = uv[k]
         return n
 
+    def last_used_span(self) -> tuple[int, int]:
+        """Times of the first and the last in-pulse sample the last extract recorded (the
+        first and the last of :meth:`last_used_times`), ``(0, 0)`` when none."""
+        n = self._n_rec
+        if n == 0:
+            return 0, 0
+        uv = self._used_tv
+        return uv[0], uv[n - 1]
+
     def last_empirical_var(self, out) -> int:
         """Write the empirical variance of the last in-pulse mean per axis,
         ``s^2 / n_pulse``, into ``out`` (3,); return ``n_pulse``. ``s^2`` is
