@@ -89,7 +89,7 @@ class Firmware:
         self.core = kernels.name
         self.tx = Transmitter(port, cfg.link.node_id, cfg.link.heartbeat_us, decoder, signer, sign_ts0 or 0, kernels)
         self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.source.coils])
-        self.channels = tuple(SensorChannel(sid, cfg) for sid in cfg.link.sensor_ids)
+        self.channels = tuple(SensorChannel(sid, cfg, kernels) for sid in cfg.link.sensor_ids)
         self.closer = WindowCloser(self.channels, cfg.pulse.fall_us, cfg.pulse.baseline_us, cfg.timing.cycle_us // 2, self.tx)
         self.supervisor = Supervisor(cfg, self.schedule, self.tx)
         # the room's map goes into the pose solvers' signal model as they are built

@@ -801,11 +801,32 @@ static PyObject *PoseLM_iterate(PoseLMObject *self, PyObject *const *args, Py_ss
     return PyLong_FromLong(ct_lm_pose_iterate(&self->lm, &self->f));
 }
 
+/* run(cost, spent, budget) -> steps: the LM's steps while it runs and the next step's charge fits
+ * (ct_lm_pose_run, PoseSolver's run of _unit_lm_step units) */
+static PyObject *PoseLM_run(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long v[3];
+    int i;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
+        return NULL;
+    }
+    if (check_nargs("run", nargs, 3) < 0)
+        return NULL;
+    for (i = 0; i < 3; ++i) {
+        v[i] = PyLong_AsLongLong(args[i]);
+        if (v[i] == -1 && PyErr_Occurred())
+            return NULL;
+    }
+    return PyLong_FromLong(ct_lm_pose_run(&self->lm, &self->f, v[0], v[1], v[2]));
+}
+
 static PyMethodDef PoseLM_methods[] = {
     {"start", (PyCFunction)(void (*)(void))PoseLM_start, METH_FASTCALL,
      "start() -> state: evaluate the fit at the bound (p, R) (LevenbergMarquardt.start)"},
     {"iterate", (PyCFunction)(void (*)(void))PoseLM_iterate, METH_FASTCALL,
      "iterate() -> state: one damped step (LevenbergMarquardt.iterate on the pose fit)"},
+    {"run", (PyCFunction)(void (*)(void))PoseLM_run, METH_FASTCALL, "run(cost, spent, budget) -> steps taken"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject PoseLMType = {
@@ -1122,6 +1143,8 @@ static struct PyModuleDef core_module = {
     "The compiled core of the coiltrack firmware (C99 kernels; the Python modules are the reference).",
     -1, core_methods, NULL, NULL, NULL, NULL};
 
+int ct_register_window(PyObject *m);   /* py_window.c */
+
 PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
@@ -1187,6 +1210,10 @@ PyMODINIT_FUNC PyInit__core(void)
         PyModule_AddIntConstant(m, "LM_NST", CT_LM_NST) < 0 || PyModule_AddIntConstant(m, "POS", CT_POS) < 0 || PyModule_AddIntConstant(m, "VEL", CT_VEL) < 0 ||
         PyModule_AddIntConstant(m, "ORI", CT_ORI) < 0 || PyModule_AddIntConstant(m, "ACC", CT_ACC) < 0 ||
         PyModule_AddIntConstant(m, "GYR", CT_GYR) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (ct_register_window(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

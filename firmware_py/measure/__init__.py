@@ -71,6 +71,9 @@ class WindowExtractor(Protocol):
     def last_used_times(self, out) -> int:
         """The times of the in-pulse samples the last extraction used, into ``out``; how many."""
 
+    def last_used_span(self) -> tuple[int, int]:
+        """The times of the first and the last of them, ``(0, 0)`` when none."""
+
 
 @runtime_checkable
 class Demodulation(Protocol):

@@ -89,6 +89,7 @@ import operator
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.ring import Ring
 
 # quality flags (bit field, int)
@@ -108,6 +109,8 @@ SAMPLE_FLIP = 2
 #: ``SampleRing.latest_t_us`` / ``oldest_t_us`` of an empty ring.
 NO_TIME_US = -(1 << 63)
 _INT64_MAX = (1 << 63) - 1
+#: window times the compiled extraction takes (beyond: the reference, in Python's ints)
+_T_FAR = 1 << 61
 _INF = math.inf
 
 
@@ -210,6 +213,12 @@ class SampleRing(Ring):
         """Whether the sample in ``slot`` was saturated."""
         return bool(self.fv[slot] & SAMPLE_SATURATED)
 
+    def extract_with(self, kernel, start_us: int, end_us: int) -> int:
+        """Run the compiled extraction ``kernel`` (``core/src/window.c``: ``PulseWindow``, bound
+        to this ring's arrays) on the window ``[start_us, end_us]`` at the ring's present state
+        (head and count); returns the window flags."""
+        return kernel.extract(start_us, end_us, self._head, self._count)
+
     @property
     def oldest_t_us(self) -> int:
         """Time of the oldest retained sample, ``NO_TIME_US`` when empty."""
@@ -227,13 +236,16 @@ class PulseExtractor:
     ``max_samples`` sizes the buffer of used in-pulse timestamps kept for
     :meth:`last_used_times`. ``max_gap_us`` (0 = automatic) and
     ``drift_nsigma`` tune the ``PULSE_INCOMPLETE`` gap test and the
-    ``PULSE_BASELINE_DRIFT`` noise allowance.
+    ``PULSE_BASELINE_DRIFT`` noise allowance. ``core`` (``coiltrack.firmware.core``, chosen at
+    composition): on the compiled one :meth:`extract` is one call of ``ct_pulse_extract``
+    (``core/src/window.c``: the same operations in the same order, so the same result to the
+    bit), bound here to the ring's arrays and this extractor's scratch.
     """
 
     def __init__(self, ring: SampleRing, *, settle_us: int, fall_us: int, baseline_us: int,
                  guard_us: int, min_pulse_samples: int = 3, min_baseline_samples: int = 2,
                  drift_limit_t: float = 2e-6, sigma_t: float = 5e-8, max_samples: int = 256,
-                 max_gap_us: int = 0, drift_nsigma: float = 3.0):
+                 max_gap_us: int = 0, drift_nsigma: float = 3.0, core=_DEFAULT_CORE):
         self._ring = ring
         self._settle_us = operator.index(settle_us)
         self._fall_us = operator.index(fall_us)
@@ -265,6 +277,46 @@ class PulseExtractor:
         self._sums = [0.0] * 5  # baseline regression sums of the window being extracted
         self._pm = [0.0] * 11   # in-pulse moments of the window being extracted
         self._pm_sat = False
+        #: the numeric core the extraction runs (``"compiled"`` or ``"python"``)
+        self.core = "python"
+        if core.ext is not None and type(self).extract is PulseExtractor.extract:
+            self._bind_compiled(core.ext)      # (a subclass with its own extract keeps it)
+
+    def _bind_compiled(self, ext) -> None:
+        """Run :meth:`extract` on ``ct_pulse_extract``: the kernel bound once to the ring's
+        arrays, the used-time and empirical-variance buffers and its result buffers (amplitude
+        and variance; flags, counts); the method is replaced on this instance, so no call tests
+        the choice."""
+        ring = self._ring
+        self._res = np.zeros(6)
+        self._resv = memoryview(self._res)
+        self._ires = np.zeros(4, dtype=np.int64)
+        self._iresv = memoryview(self._ires)
+        self._ck = ext.PulseWindow(ring.t, ring.b, ring.flags, self._used_t, self._emp_var, self._res, self._ires,
+                                   self._settle_us, self._fall_us, self._baseline_us, self._guard_us,
+                                   self._min_pulse, self._min_base, self._max_gap_us, self.max_samples,
+                                   self._drift_limit, self._sigma, self._drift_nsigma)
+        self.extract = self._extract_compiled
+        self.core = "compiled"
+
+    def _extract_compiled(self, start_us: int, end_us: int, amp_out, var_out) -> tuple[int, int, int]:
+        """:meth:`extract` on the compiled kernel; a time that is no integer, or one so far out
+        that the span's ends would leave int64, goes to the reference (which flags it)."""
+        try:
+            start = operator.index(start_us)
+            end = operator.index(end_us)
+        except TypeError:
+            start = end = _T_FAR
+        if not (-_T_FAR < start < _T_FAR and -_T_FAR < end < _T_FAR):
+            return PulseExtractor.extract(self, start_us, end_us, amp_out, var_out)
+        flags = self._ring.extract_with(self._ck, start, end)
+        r, ir = self._resv, self._iresv
+        amp_out[0], amp_out[1], amp_out[2] = r[0], r[1], r[2]
+        var_out[0], var_out[1], var_out[2] = r[3], r[4], r[5]
+        n_p = ir[1]
+        self._n_used = n_p
+        self._n_rec = ir[3]
+        return flags, n_p, ir[2]
 
     # ------------------------------------------------------------------ timing
     def span(self, start_us: int, end_us: int) -> tuple[int, int]:
@@ -301,6 +353,15 @@ class PulseExtractor:
         for k in range(n):
             out[k] = uv[k]
         return n
+
+    def last_used_span(self) -> tuple[int, int]:
+        """Times of the first and the last in-pulse sample the last extract recorded (the
+        first and the last of :meth:`last_used_times`), ``(0, 0)`` when none."""
+        n = self._n_rec
+        if n == 0:
+            return 0, 0
+        uv = self._used_tv
+        return uv[0], uv[n - 1]
 
     def last_empirical_var(self, out) -> int:
         """Write the empirical variance of the last in-pulse mean per axis,

@@ -21,6 +21,7 @@ import numpy as np
 
 from coiltrack.protocol import MSG
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
 from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
 
@@ -45,9 +46,10 @@ class SensorChannel:
     With ``body.baseline_gyro`` the node's gyroscope rates are kept
     (``gyro``, fed by :meth:`push_imu`) and the extractor turns each window's
     samples with them (:mod:`coiltrack.firmware.measure.gyro_baseline`);
-    otherwise ``gyro`` is None and the IMU samples are not kept here."""
+    otherwise ``gyro`` is None and the IMU samples are not kept here. ``core``: the numeric core
+    (``coiltrack.firmware.core``, chosen at composition) the plain extractor runs."""
 
-    def __init__(self, node: int, cfg):
+    def __init__(self, node: int, cfg, core=_DEFAULT_CORE):
         n = len(cfg.source.coils)
         self.node = node
         self.ring = SampleRing(cfg.pulse.ring_capacity)
@@ -61,7 +63,7 @@ class SensorChannel:
                                                    gyro_gap_us=int(3e6 / cfg.imu.imu_rate_hz), **kw)
         else:
             self.gyro = None
-            self.extractor = PulseExtractor(self.ring, **kw)
+            self.extractor = PulseExtractor(self.ring, core=core, **kw)
         self.S = np.zeros((3, n))          # amplitudes, sensor frame, column per coil (T)
         self.var = np.zeros((3, n))        # their variances (T^2)
         self.sigma = np.zeros((3, n))      # their standard deviations, floored, for the solver (T)
@@ -72,7 +74,11 @@ class SensorChannel:
         self.amp_var = np.zeros(3)
         self.used_times = np.zeros(self.extractor.max_samples, dtype=np.int64)
         self.samples = 0
+        self._Sv = memoryview(self.S)
         self._varv = memoryview(self.var)
+        self._ampv = memoryview(self.amp)
+        self._avv = memoryview(self.amp_var)
+        self._donev = memoryview(self.done)
         self._sigv = memoryview(self.sigma)
         self._flv = memoryview(self.flags)
         self.pmv = memoryview(self.pulse_mid)
@@ -87,6 +93,16 @@ class SensorChannel:
         """An ``IMU_SAMPLE`` of this node: its rates for the extractor (kept only with a gyro ring)."""
         if self.gyro is not None:
             self.gyro.push(msg)
+
+    def take_window(self, coil: int, flags: int, mid_us: int) -> None:
+        """The window just extracted into ``amp``, ``amp_var`` as coil ``coil``'s column of the
+        burst, with its flags and the mean time ``mid_us`` of its samples; the window done."""
+        S, var, a, v = self._Sv, self._varv, self._ampv, self._avv
+        S[0, coil], S[1, coil], S[2, coil] = a[0], a[1], a[2]
+        var[0, coil], var[1, coil], var[2, coil] = v[0], v[1], v[2]
+        self._flv[coil] = flags
+        self._donev[coil] = True
+        self.pmv[coil] = mid_us
 
     def new_burst(self) -> None:
         self.done.fill(False)
@@ -152,19 +168,11 @@ class WindowCloser:
         return the window flags."""
         ex = ch.extractor
         flags, n_used, n_base = ex.extract(start, end, ch.amp, ch.amp_var)
-        ch.S[:, coil] = ch.amp
-        ch.var[:, coil] = ch.amp_var
-        ch.flags[coil] = flags
-        ch.done[coil] = True
         self.closed += 1
         if flags:
             self.flagged += 1
-        first = last = 0
-        if n_used:
-            m = ex.last_used_times(ch.used_times)
-            if m:
-                first, last = int(ch.used_times[0]), int(ch.used_times[m - 1])
-        ch.pulse_mid[coil] = (first + last) // 2 if last else (start + end) // 2
+        first, last = ex.last_used_span() if n_used else (0, 0)
+        ch.take_window(coil, flags, (first + last) // 2 if last else (start + end) // 2)
         self.tx.send(_WINDOW(ch.node, coil, pulse_id, first, last, min(n_used, 255), min(n_base, 255),
                              flags & 0xFF))
         return flags

@@ -46,7 +46,7 @@ import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
-from coiltrack.firmware.linalg import Rot3, exp_rotvec, flat, float_view, nearest_rotation
+from coiltrack.firmware.linalg import ORTHONORMAL_TOL, Rot3, exp_rotvec, flat, float_view, nearest_rotation
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.acquire import Acquisition
 from coiltrack.firmware.pose.covariance import RobustInverse6
@@ -265,6 +265,16 @@ class _CompiledLM:
             self._sig.charge(1)
         return state
 
+    def run(self, cost: int, spent: int, budget: int) -> int:
+        """:meth:`iterate` while the LM runs and the next step's charge ``cost`` fits beside
+        ``spent`` in ``budget`` (the first always runs: ``staged.run_units`` over the steps), in
+        one call (``ct_lm_pose_run``); returns the steps taken, their evaluations charged."""
+        st = self._stv
+        st[5] = 0.0
+        k = self._ck.run(cost, spent, budget)
+        self._sig.charge(int(st[5]))
+        return k
+
 
 class PoseSolver(StagedSolve):
     """Preallocated, resumable Kuipers + Levenberg-Marquardt pose solver.
@@ -328,6 +338,7 @@ class PoseSolver(StagedSolve):
         if self.signal.core == "compiled":
             self._lm_c = _CompiledLM(core.ext, self._fit, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
         self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
+        self._unit_lm_steps = self._unit_lm_step      # the LM step unit, one bound method (identity)
         self._inv = RobustInverse6()
         self._hemi = (1.0, 0.0, 0.0)
         self._check_hemi = False
@@ -337,6 +348,68 @@ class PoseSolver(StagedSolve):
         self.solve_evals = 0
         self.evals_last_step = 0
         self.max_evals_per_step = 0
+        if self._lm_c is not None:
+            self._bind_compiled(core.ext)
+
+    def _bind_compiled(self, ext) -> None:
+        """Run the solve's bookkeeping on the compiled core (``core/src/window.c``): the inputs'
+        copy and checks (``_load``, ``_load_x0``), the results' copies (``_publish``) through a
+        ``SolveIO`` bound to the solver's buffers, and a run of LM steps in one call
+        (``ct_lm_pose_run``); the methods are replaced on this instance, so no call tests the
+        choice. Inputs the kernels do not take (not float64 arrays of the expected shapes) and a
+        matrix that is no rotation (``linalg.nearest_rotation``'s eigen-decomposition) go to the
+        Python."""
+        self._iost = np.zeros(1)
+        self._iostv = memoryview(self._iost)
+        self._io = ext.SolveIO(self.n, self._S, self._w, self._cur, self._m9, self._fit.p, self._fit.R,
+                               self.rotation, self.position, self._iost, ORTHONORMAL_TOL)
+        self._load = self._load_compiled
+        self._load_x0 = self._load_x0_compiled
+        self._publish_pose = self._publish_pose_compiled
+        self._run = self._run_compiled
+
+    def _load_compiled(self, S, currents, sigma) -> bool:
+        ok = self._io.load(S, sigma, currents)
+        if ok is None:
+            return StagedSolve._load(self, S, currents, sigma)
+        if ok:
+            self._sigma_rms = self._iostv[0]
+        return ok
+
+    def _load_x0_compiled(self, x0_position, x0_rotation) -> bool:
+        if x0_position is None or x0_rotation is None:
+            return PoseSolver._load_x0(self, x0_position, x0_rotation)
+        self._warm = True
+        r = self._io.x0(x0_position, x0_rotation)
+        if r is None:
+            return PoseSolver._load_x0(self, x0_position, x0_rotation)
+        if r == 2:
+            nearest_rotation(self._m9, self._fit.R, self._rot3)
+        return r != 0
+
+    def _publish_pose_compiled(self) -> None:
+        if not self._io.publish():
+            nearest_rotation(self._m9, self.rotation, self._rot3)
+
+    def _run_compiled(self, budget: int) -> int:
+        """:func:`staged.run_units` with the compiled LM's steps run in one call
+        (:meth:`_CompiledLM.run`): the same units, charges and evaluations."""
+        signal = self.signal
+        start = signal.evals
+        spent = 0
+        while self.next_unit is not None:
+            cost = self.next_cost
+            if spent > 0 and spent + cost > budget:
+                break
+            if self.next_unit is self._unit_lm_steps and self._lm is self._lm_c:
+                spent += cost * self._lm_c.run(cost, spent, budget)
+                if self._lm_c.state != LM_RUNNING:
+                    self._then(self._unit_finish, self.n)
+                continue
+            self.next_unit()
+            spent += cost
+        self.units_last = spent
+        return signal.evals - start
 
     # ------------------------------------------------------------ public
     def solve(self, S, currents, sigma, hemisphere=None, x0_position=None, x0_rotation=None) -> int:
@@ -431,7 +504,7 @@ class PoseSolver(StagedSolve):
         self._lm = lmc if lmc is not None and self.signal.distortion is None else self._lm_py
         self._lm.start(self._fit)
         if self._lm.state == LM_RUNNING:
-            self._then(self._unit_lm_step, self.n)
+            self._then(self._unit_lm_steps, self.n)
         else:
             self._then(self._unit_finish, self.n)
 
@@ -464,18 +537,23 @@ class PoseSolver(StagedSolve):
         lim = _HEMI_MARGIN * math.sqrt((dx * dx + dy * dy + dz * dz) * (hx * hx + hy * hy + hz * hz))
         return dx * hx + dy * hy + dz * hz < -lim
 
-    def _publish(self) -> None:
-        """Results of the fit: re-orthonormalised rotation, covariance."""
-        fit, lm = self._fit, self._lm
+    def _publish_pose(self) -> None:
+        """The fit's pose into the results: the rotation re-orthonormalised, the position."""
         m9 = self._m9
-        R = fit.R
+        R = self._fit.R
         for i in range(3):
             for j in range(3):
                 m9[3 * i + j] = R[i, j]
         nearest_rotation(m9, self.rotation, self._rot3)
-        p = fit.p
+        p = self._fit.p
         pos = self.position
         pos[0], pos[1], pos[2] = p[0], p[1], p[2]
+
+    def _publish(self) -> None:
+        """Results of the fit: re-orthonormalised rotation, covariance."""
+        fit, lm = self._fit, self._lm
+        self._publish_pose()
+        p = fit.p
         self._inv.into(lm.A, self._cov)
         self.iterations = lm.it
         self.cost = lm.cost

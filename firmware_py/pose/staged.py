@@ -100,7 +100,7 @@ class StagedSolve(Staged):
         (a single unit of work larger than that runs alone); returns
         ``SOLVE_RUNNING`` or, once finished, the final status."""
         if self.next_unit is not None:
-            used = run_units(self, self.signal, budget_evals)
+            used = self._run(budget_evals)
         else:
             used = self.units_last = 0
         self.evals_last_step = used
@@ -108,6 +108,11 @@ class StagedSolve(Staged):
         if used > self.max_evals_per_step:
             self.max_evals_per_step = used
         return SOLVE_RUNNING if self.next_unit is not None else self.status
+
+    def _run(self, budget_evals: int) -> int:
+        """The units of one :meth:`step` (:func:`run_units`; a solver may run a stretch of its
+        units in one compiled call, charged and counted as the units would be)."""
+        return run_units(self, self.signal, budget_evals)
 
     #: a solve's result depends on nothing but the arguments of its ``begin`` (no state is kept
     #: from one solve to the next), so a solve run early on the same arguments is the same solve
