@@ -12,7 +12,8 @@ setup(
             sources=[f"{CORE}/_coremodule.c",
                      *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown", "orientation", "lm", "linalg_gen", "frame", "imu")),
                      f"{CORE}/py_ac.c",
-                     f"{CORE}/src/demod.c"],
+                     f"{CORE}/src/demod.c",
+                     f"{CORE}/src/raab.c"],
             include_dirs=[f"{CORE}/include"],
             depends=[f"{CORE}/include/coiltrack_core.h", f"{CORE}/include/ct_ac.h"],
             # no fused multiply-adds: the results must not depend on the compiler's choice

@@ -261,14 +261,125 @@ static PyTypeObject DemodType = {
     .tp_methods = Demod_methods,
 };
 
+/* -------------------------------------------------------------------- Raab */
+enum { RB_PAR, RB_CBAR, RB_S, RB_MP, RB_CUR, RB_SC, RB_F, RB_X, RB_R, RB_PM, RB_B, RB_G, RB_K, RB_PERM, RB_OUT,
+       RB_NBUF };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_raab r;
+    Py_buffer views[RB_NBUF];
+    int nbound;
+} RaabObject;
+
+static void Raab_release(RaabObject *self)
+{
+    int i;
+    for (i = 0; i < self->nbound; ++i)
+        PyBuffer_Release(&self->views[i]);
+    self->nbound = 0;
+}
+
+static void Raab_dealloc(RaabObject *self)
+{
+    Raab_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* Raab(n, corr, par, cbar, S, mp, cur, Sc, F, x, R, pm, b, G, K, perm, out): pose.raab_update.Update's buffers */
+static int Raab_init(RaabObject *self, PyObject *args, PyObject *kw)
+{
+    static const char *names[RB_NBUF] = {"par", "cbar", "S", "mp", "cur", "Sc", "F", "x", "R", "pm", "b", "G", "K",
+                                         "perm", "out"};
+    PyObject *objs[RB_NBUF];
+    Py_ssize_t want[RB_NBUF];
+    int n, corr, i;
+    if (kw != NULL && PyDict_Size(kw) > 0) {
+        PyErr_SetString(PyExc_TypeError, "Raab: positional arguments only");
+        return -1;
+    }
+    if (!PyArg_ParseTuple(args, "ipOOOOOOOOOOOOOOO", &n, &corr, &objs[RB_PAR], &objs[RB_CBAR], &objs[RB_S],
+                          &objs[RB_MP], &objs[RB_CUR], &objs[RB_SC], &objs[RB_F], &objs[RB_X], &objs[RB_R],
+                          &objs[RB_PM], &objs[RB_B], &objs[RB_G], &objs[RB_K], &objs[RB_PERM], &objs[RB_OUT]))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Raab: already bound");
+        return -1;
+    }
+    if (n < 3 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "Raab: n must be in 3..64");
+        return -1;
+    }
+    want[RB_PAR] = CT_RP_N; want[RB_CBAR] = 3; want[RB_S] = want[RB_MP] = want[RB_SC] = 3 * n; want[RB_CUR] = n;
+    want[RB_F] = 9; want[RB_X] = 6; want[RB_R] = 9; want[RB_PM] = 3; want[RB_B] = 3 * n; want[RB_G] = 9 * n;
+    want[RB_K] = 36; want[RB_PERM] = 6; want[RB_OUT] = CT_RO_N;
+    for (i = 0; i < RB_NBUF; ++i) {
+        int ro = i == RB_PAR || i == RB_CBAR || i == RB_S || i == RB_MP || i == RB_CUR || i == RB_PM ||
+                 i == RB_B || i == RB_G || i == RB_K || i == RB_PERM;
+        if (ac_buffer(objs[i], want[i], 8, i == RB_PERM ? "ql" : "d", !ro, &self->views[i], names[i]) < 0) {
+            Raab_release(self);
+            return -1;
+        }
+        self->nbound = i + 1;
+    }
+#define DBUF(i) ((double *)self->views[i].buf)
+    self->r.n = n;
+    self->r.corr = corr;
+    self->r.par = DBUF(RB_PAR); self->r.cbar = DBUF(RB_CBAR); self->r.S = DBUF(RB_S); self->r.mp = DBUF(RB_MP);
+    self->r.cur = DBUF(RB_CUR); self->r.Sc = DBUF(RB_SC); self->r.F = DBUF(RB_F); self->r.x = DBUF(RB_X);
+    self->r.R = DBUF(RB_R); self->r.pm = DBUF(RB_PM); self->r.b = DBUF(RB_B); self->r.G = DBUF(RB_G);
+    self->r.K = DBUF(RB_K); self->r.perm = (const int64_t *)self->views[RB_PERM].buf; self->r.out = DBUF(RB_OUT);
+#undef DBUF
+    return 0;
+}
+
+/* update(lin, k_id) -> int: the bits of ct_raab_update */
+static PyObject *Raab_update(RaabObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int lin, k_id;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Raab: not bound");
+        return NULL;
+    }
+    if (ac_nargs("update", nargs, 2) < 0)
+        return NULL;
+    lin = PyObject_IsTrue(args[0]);
+    k_id = PyObject_IsTrue(args[1]);
+    if (lin < 0 || k_id < 0)
+        return NULL;
+    return PyLong_FromLong(ct_raab_update(&self->r, lin, k_id));
+}
+
+static PyMethodDef Raab_methods[] = {
+    {"update", (PyCFunction)(void (*)(void))Raab_update, METH_FASTCALL,
+     "update(lin, k_id) -> bits: one update of Raab's tracker, as pose.raab_update.Update.run"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RaabType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.Raab",
+    .tp_basicsize = sizeof(RaabObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "A Raab tracker's buffers bound for ct_raab_update (pose.raab_update.Update)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Raab_init,
+    .tp_dealloc = (destructor)Raab_dealloc,
+    .tp_methods = Raab_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_ac(PyObject *m)
 {
-    if (PyType_Ready(&DemodType) < 0)
+    if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0)
         return -1;
     Py_INCREF(&DemodType);
     if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
         Py_DECREF(&DemodType);
+        return -1;
+    }
+    Py_INCREF(&RaabType);
+    if (PyModule_AddObject(m, "Raab", (PyObject *)&RaabType) < 0) {
+        Py_DECREF(&RaabType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "DM_NST", CT_DM_NST) < 0 || PyModule_AddIntConstant(m, "DMO_N", CT_DMO_N) < 0)

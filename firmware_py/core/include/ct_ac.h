@@ -47,4 +47,40 @@ int ct_demod_feed(const struct ct_demod *d, const int64_t *rt, const double *rb,
  * quadrature_ratio into out) */
 int ct_demod_finish(const struct ct_demod *d, int64_t k);
 
+/* ------------------------------------------------------------------- raab
+ * One update of Raab's tracker (pose.raab.RaabTracker._unit_update through pose.raab_update.Update):
+ * the exact-loop correction (raab_correction.LoopCorrection.correct, or none), F = S_c M^+ and
+ * k = |F|_F / sqrt(3/2) (coupling), the detection (detect: eqs 7, 11, 21-26), the preconditioner's
+ * solve (precondition_step: linalg.lu_solve), the clip (Fig. 8), the frame conversion and the update
+ * by addition (orientation_update, position_update: eqs 27-31) and R = A^T (dcm, Table II).
+ * The constants, from the Python modules at binding: */
+enum { CT_RP_C = 0, CT_RP_POLE_COS = 1, CT_RP_MAX_STEP = 2, CT_RP_LIN_MAX = 3, CT_RP_LIN_STEP = 4,
+       CT_RP_ACQUIRED_STEP = 5, CT_RP_N = 6 };
+/* the update's results: the clipped steps (d_alpha0, d_beta0, d_rho, d_psi0, d_theta0, d_phi0), k,
+ * and 1.0 when the unclipped angle steps were all below CT_RP_ACQUIRED_STEP */
+enum { CT_RO_DA0 = 0, CT_RO_DB0 = 1, CT_RO_DRHO = 2, CT_RO_DPSI0 = 3, CT_RO_DTH0 = 4, CT_RO_DPHI0 = 5, CT_RO_K = 6,
+       CT_RO_ACQUIRED = 7, CT_RO_N = 8 };
+/* the return bits of ct_raab_update */
+enum { CT_RAAB_OK = 1, CT_RAAB_LIN_DROPPED = 2 };
+
+struct ct_raab {
+    int n;
+    int corr;                       /* 1: the exact-loop correction (b, G, K, perm), 0: none */
+    const double *par;              /* CT_RP_N */
+    const double *cbar;             /* 3: the coil centres' centroid */
+    const double *S, *mp, *cur;     /* 3 n signals [3 j + i], M^+ [3 j + c], n currents */
+    double *Sc, *F;                 /* 3 n corrected signals, 9 coupling */
+    double *x;                      /* 6: alpha, beta, rho, psi, theta, phi */
+    double *R;                      /* 9: R = A^T (sensor -> source), row-major */
+    const double *pm;               /* 3: the point of the last evaluation */
+    const double *b, *G;            /* 3 n, 9 n: the correction per ampere and its gradient */
+    const double *K;                /* 36: K's LU factors */
+    const int64_t *perm;            /* 6 */
+    double *out;                    /* CT_RO_N */
+};
+
+/* returns CT_RAAB_OK (bit) when k > 0 and finite (then the update is done), and CT_RAAB_LIN_DROPPED
+ * when the correction's linear term was dropped (the estimate beyond CT_RP_LIN_MAX x range of pm) */
+int ct_raab_update(const struct ct_raab *r, int lin, int k_id);
+
 #endif /* CT_AC_H */
