@@ -14,10 +14,20 @@ setup(
     ext_modules=[
         Extension(
             "coiltrack.firmware._core",
+<<<<<<< HEAD
             sources=[f"{CORE}/_coremodule.c", *sorted(glob(f"{CORE}/src/*.c")),
                      *sorted(glob(f"{CORE}/py_*.c"))],
             include_dirs=[f"{CORE}/include"],
             depends=sorted(glob(f"{CORE}/include/*.h")),
+=======
+            sources=[f"{CORE}/_coremodule.c",
+                     *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown", "orientation", "lm", "linalg_gen", "frame", "imu")),
+                     f"{CORE}/py_ac.c",
+                     f"{CORE}/src/demod.c",
+                     f"{CORE}/src/raab.c"],
+            include_dirs=[f"{CORE}/include"],
+            depends=[f"{CORE}/include/coiltrack_core.h", f"{CORE}/include/ct_ac.h"],
+>>>>>>> s4-ac
             # no fused multiply-adds: the results must not depend on the compiler's choice
             # (it fuses by default on aarch64 and with -march=native); C99 as on the board
             extra_compile_args=["-O2", "-ffp-contract=off", "-std=c99"],

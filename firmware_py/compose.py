@@ -161,7 +161,7 @@ def _ac(kind: type) -> Callable[[Parts], Pipeline]:
     def build(p: Parts) -> Pipeline:
         cfg = p.cfg
         act = ACActuation(cfg, p.tx)
-        measure = ACBlockMeasurement(cfg, p.channels, p.schedule, act)
+        measure = ACBlockMeasurement(cfg, p.channels, p.schedule, act, core=p.core)
         t = kind(cfg, p.coils, p.channels, p.schedule, measure, act, p.supervisor, p.tx,
                  solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
         return Pipeline(act.step, measure.step, t.step, t, StatusRouter(act, p.supervisor).on_message)

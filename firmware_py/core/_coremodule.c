@@ -1144,6 +1144,7 @@ static struct PyModuleDef core_module = {
     -1, core_methods, NULL, NULL, NULL, NULL};
 
 int ct_register_window(PyObject *m);   /* py_window.c */
+int ct_register_ac(PyObject *m);
 
 PyMODINIT_FUNC PyInit__core(void)
 {
@@ -1225,7 +1226,7 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (ct_register_fusimu(m) < 0 || ct_register_fusion(m) < 0) {
+    if (ct_register_fusimu(m) < 0 || ct_register_fusion(m) < 0 || ct_register_ac(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

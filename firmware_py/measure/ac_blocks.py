@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.measure.demod import Demodulator
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, SampleRing
@@ -37,22 +38,21 @@ from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, SampleRing
 class ACBlockMeasurement:
     """The measure stage of AC excitation (``step(now_us)``); ``complete`` / :meth:`release` as a burst."""
 
-    def __init__(self, cfg, channels, schedule, actuation, max_samples: int = 0):
+    def __init__(self, cfg, channels, schedule, actuation, max_samples: int = 0, core=_DEFAULT_CORE):
         self.cfg = cfg
         self.channels = tuple(channels)
         self.schedule = schedule
         self.act = actuation
         self.n = schedule.n
+        # each channel's demodulator reads its sample ring (``Demodulator.feed``) on the numeric core ``core``
         self.demods = tuple(Demodulator(cfg.ac.ac_freqs_hz, cfg.ac.ac_window_us, cfg.ac.ac_hop_us, cfg.pulse.mag_sigma_t,
-                                        cfg.ac.mag_integration_us) for _ in self.channels)
+                                        cfg.ac.mag_integration_us, ch.ring, core) for ch in self.channels)
         self.earth = {ch.node: SampleRing(64) for ch in self.channels}
         self._earth = tuple(self.earth[ch.node] for ch in self.channels)
         per_tick = cfg.pulse.mag_rate_hz * cfg.timing.tick_us * 1e-6
         self.max_samples = max_samples or max(4, int(math.ceil(4 * per_tick)))
         self.solved_k = np.full(len(self.channels), -1, dtype=np.int64)
         self._skv = memoryview(self.solved_k)
-        self._cursor = [-(1 << 62)] * len(self.channels)
-        self.pending = [-1] * len(self.channels)       # a block a channel completed, to solve next tick
         self.complete = False
         self.closed_last = 0             # pulse windows closed in a step: AC blocks close none
         self.t_ref = 0
@@ -81,8 +81,7 @@ class ACBlockMeasurement:
             t0 = act.on_us + self.cfg.ac.ac_settle_us
             for d in self.demods:
                 d.start(t0, act.ref_us, act.amplitude_a, act.phase_rad)
-            for i in range(len(self.pending)):
-                self.pending[i] = -1
+            for i in range(len(self.demods)):
                 self._skv[i] = -1
             self.block_k = -1
             self.plan_id = act.plan_id
@@ -92,42 +91,28 @@ class ACBlockMeasurement:
         self._assemble()
 
     def _feed(self, i: int, ch) -> None:
+        """Solve the block channel ``i`` completed in the previous tick, else feed its new samples
+        (``Demodulator.feed``: at most ``max_samples``, up to one that completes a block)."""
         d = self.demods[i]
-        if self.pending[i] >= 0:                      # solve what the previous tick completed
-            k = self.pending[i]
-            self.pending[i] = -1
-            d.set_currents(self.act.amplitude_a, self.act.phase_rad)
-            ok = d.finish(k)
-            self._skv[i] = k
-            if ok and d.signal_chi2() < self.signal_gate:
-                d.flag_block(PULSE_TOO_FEW)              # no coil field in the block (drive off): not solved
-                self.blocks_no_signal += 1
-            elif ok:
-                self.quad_ratio[i] = q = d.quadrature_ratio()
-                self.distorted[i] = q > self.cfg.ac.ac_distortion_ratio and d.quadrature_chi2() > self.q_gate
-                if self.distorted[i]:
-                    self.blocks_distorted += 1
-                e = self._earth[i]
-                dc = d._dcv
-                e.push(d.block_mid(k), dc[0], dc[1], dc[2], False, 0)
+        k = d.pending
+        if k < 0:
+            d.feed(self.max_samples)
             return
-        ring = ch.ring
-        if len(ring) == 0:
-            return
-        idx = ring.index_at_or_after(self._cursor[i] + 1)
-        tv, bv, fv = ring.tv, ring.bv, ring.fv
-        left = self.max_samples
-        while idx < len(ring) and left > 0:
-            s = ring.slot(idx)
-            t = tv[s]
-            self._cursor[i] = t
-            j = 3 * s
-            k = d.push(t, bv[j], bv[j + 1], bv[j + 2], fv[s])
-            idx += 1
-            left -= 1
-            if k >= 0:
-                self.pending[i] = k
-                return
+        d.clear_pending()
+        d.set_currents(self.act.amplitude_a, self.act.phase_rad)
+        ok = d.finish(k)
+        self._skv[i] = k
+        if ok and d.signal_chi2() < self.signal_gate:
+            d.flag_block(PULSE_TOO_FEW)              # no coil field in the block (drive off): not solved
+            self.blocks_no_signal += 1
+        elif ok:
+            self.quad_ratio[i] = q = d.quadrature_ratio()
+            self.distorted[i] = q > self.cfg.ac.ac_distortion_ratio and d.quadrature_chi2() > self.q_gate
+            if self.distorted[i]:
+                self.blocks_distorted += 1
+            e = self._earth[i]
+            dc = d._dcv
+            e.push(d.block_mid(k), dc[0], dc[1], dc[2], False, 0)
 
     def _assemble(self) -> None:
         """Hand block ``k`` to the tracker when every channel has solved it."""

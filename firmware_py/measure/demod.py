@@ -47,10 +47,19 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import chol_inverse, chol_solve, cholesky
 from coiltrack.firmware.measure.pulse import PULSE_SATURATED, PULSE_TOO_FEW, SAMPLE_SATURATED
 
 _TWO_PI = 2.0 * math.pi
+
+# the integer state, an int64 array (``Demodulator._st``; ``core/include/ct_ac.h``: CT_DM_*)
+_T0, _REF, _NEXT_K, _LAST_T, _STARTED, _CURSOR, _PENDING, _BLOCK_K, _BLOCK_FLAGS, _BLOCK_SAMPLES = range(10)
+_NST = 10
+# the block's figures besides S, Q, var, dc, a float64 array (``Demodulator._out``; CT_DMO_*)
+_RESID, _SIGNAL_CHI2, _QUAD_CHI2, _QUAD_RATIO = range(4)
+_NOUT = 4
+_NO_TIME = -(1 << 62)
 
 
 def mag_response(f_hz: float, integration_s: float) -> tuple[float, float]:
@@ -66,13 +75,23 @@ class Demodulator:
     """Sliding-block least-squares demodulation of one magnetometer (see module docstring).
 
     ``freqs_hz`` (n,), ``window_us`` = ``m hop_us``, ``sigma_t`` per-sample
-    noise (T), ``integration_us`` the magnetometer's averaging time.
+    noise (T), ``integration_us`` the magnetometer's averaging time; ``ring``
+    the channel's ``measure.pulse.SampleRing`` that :meth:`feed` reads (None:
+    samples only through :meth:`push`); ``core`` the numeric core
+    (``coiltrack.firmware.core``): where it is compiled, :meth:`push`,
+    :meth:`feed` and :meth:`finish` run the kernels of ``core/src/demod.c``
+    (the same operations in the same order), bound once here to this
+    object's buffers and the ring's.
     :meth:`start` sets the block grid and the current phasors; :meth:`push`
     adds one sample and returns the index of a block it completes (or -1);
     :meth:`finish` solves that block into ``S``, ``Q``, ``var``, ``dc``.
+    The integer state (``t0``, ``next_k``, the feed's cursor, the last
+    block's flags ...) is the int64 array ``_st``, the block's residual and
+    statistics the float64 array ``_out``: the compiled kernels share them.
     """
 
-    def __init__(self, freqs_hz, window_us: int, hop_us: int, sigma_t: float, integration_us: int):
+    def __init__(self, freqs_hz, window_us: int, hop_us: int, sigma_t: float, integration_us: int, ring=None,
+                 core=_DEFAULT_CORE):
         n = len(freqs_hz)
         if window_us % hop_us:
             raise ValueError("window_us must be a multiple of hop_us")
@@ -85,7 +104,27 @@ class Demodulator:
         self.sigma2 = float(sigma_t) ** 2
         ti = integration_us * 1e-6
         self.h = tuple(mag_response(f, ti) for f in self.freqs)
-        s = self.slots
+        self._accumulators(self.slots, p)
+        self._solve_buffers(n, p)
+        self._st = np.zeros(_NST, dtype=np.int64)
+        self._stv = st = memoryview(self._st)
+        st[_LAST_T] = st[_CURSOR] = _NO_TIME
+        st[_PENDING] = st[_BLOCK_K] = -1
+        self._out = np.zeros(_NOUT)
+        self._outv = memoryview(self._out)
+        self.amp = [0.0] * n
+        self._cph = np.ones(n)           # cos, sin of the current phase
+        self._sph = np.zeros(n)
+        self.cph, self.sph = memoryview(self._cph), memoryview(self._sph)
+        self.ring = ring
+        #: the numeric core this demodulator runs, bound once here (``coiltrack.firmware.core``)
+        self.core = "python"
+        if core.ext is not None and n <= 64:
+            self._bind_compiled(core.ext)
+
+    def _accumulators(self, s: int, p: int) -> None:
+        """The ``s`` block accumulators: ``G`` (normal matrix), ``R`` (right-hand sides), ``BB``
+        (sums of squares), sample counts, flags and the block each slot holds."""
         self.G = np.zeros((s, p * p))
         self.R = np.zeros((s, p * 3))
         self.BB = np.zeros((s, 3))
@@ -100,6 +139,10 @@ class Demodulator:
         self._kv = memoryview(self.kslot)
         self.phi = np.zeros(p)
         self._phv = memoryview(self.phi)
+
+    def _solve_buffers(self, n: int, p: int) -> None:
+        """A block's solve (``Gf``, ``L``, ``Ginv``, ``x``, ``b``, ``X``) and its results (``S``,
+        ``Q``, ``var``, ``qvar``, ``dc``)."""
         self.Gf = np.zeros(p * p)
         self.L = np.zeros(p * p)
         self.Ginv = np.zeros(p * p)
@@ -108,7 +151,6 @@ class Demodulator:
         self.X = np.zeros((p, 3))
         self._Gfv, self._Lv, self._Giv = memoryview(self.Gf), memoryview(self.L), memoryview(self.Ginv)
         self._xv, self._bv, self._Xv = memoryview(self.x), memoryview(self.b), memoryview(self.X.reshape(-1))
-        # results of the last finished block
         self.S = np.zeros((3, n))
         self.Q = np.zeros((3, n))
         self.var = np.zeros((3, n))
@@ -117,29 +159,85 @@ class Demodulator:
         self._Sv, self._Qv, self._varv, self._dcv = (memoryview(self.S.reshape(-1)), memoryview(self.Q.reshape(-1)),
                                                    memoryview(self.var.reshape(-1)), memoryview(self.dc))
         self._qvv = memoryview(self.qvar)
-        self.block_k = -1
-        self.block_flags = 0
-        self.block_samples = 0
-        self.residual_ratio = 0.0        # sqrt(RSS / ((N - p) sigma^2)) per axis, rms
-        self.t0 = 0
-        self.ref_us = 0
-        self.amp = [0.0] * n
-        self.cph = [1.0] * n             # cos, sin of the current phase
-        self.sph = [0.0] * n
-        self.next_k = 0                  # the next block to finish
-        self.last_t = -(1 << 62)
-        self.started = False
+
+    def _bind_compiled(self, ext) -> None:
+        """Run :meth:`push`, :meth:`feed` and :meth:`finish` on the compiled kernels
+        (``core/src/demod.c``): every buffer bound once; the methods are replaced on this
+        instance, so no call tests the choice."""
+        freqs = np.array(self.freqs)
+        h = np.array([v for hv in self.h for v in hv])
+        bufs = (freqs, h, self._cph, self._sph, self.G, self.R, self.BB, self.count, self.flags, self.kslot,
+                self.phi, self.Gf, self.L, self.Ginv, self.x, self.b, self.X, self.S, self.Q, self.var, self.qvar,
+                self.dc, self._st, self._out)
+        r = self.ring
+        ring = None if r is None else (r.t, r.b, r.flags)
+        self._ck = ext.Demod(self.n, self.slots, self.window_us, self.hop_us, self.sigma2, bufs, ring)
+        self._keep = (freqs, h)
+        self.push = self._ck.push
+        self.finish = self._ck.finish
+        self.feed = self._feed_compiled
+        self.signal_chi2 = self._signal_chi2_compiled
+        self.quadrature_chi2 = self._quadrature_chi2_compiled
+        self.quadrature_ratio = self._quadrature_ratio_compiled
+        self.core = "compiled"
+
+    # ------------------------------------------------------------ state
+    @property
+    def t0(self) -> int:
+        """Start of block 0 (us)."""
+        return self._stv[_T0]
+
+    @property
+    def ref_us(self) -> int:
+        """The drive's phase reference (us)."""
+        return self._stv[_REF]
+
+    @property
+    def next_k(self) -> int:
+        """The next block to finish."""
+        return self._stv[_NEXT_K]
+
+    @property
+    def started(self) -> bool:
+        return self._stv[_STARTED] != 0
+
+    @property
+    def pending(self) -> int:
+        """The block the last :meth:`feed` completed (to :meth:`finish`), or -1."""
+        return self._stv[_PENDING]
+
+    @property
+    def block_k(self) -> int:
+        """The last finished block."""
+        return self._stv[_BLOCK_K]
+
+    @property
+    def block_flags(self) -> int:
+        """``PULSE_*`` flags of the last finished block."""
+        return self._stv[_BLOCK_FLAGS]
+
+    @property
+    def block_samples(self) -> int:
+        """Samples in the last finished block."""
+        return self._stv[_BLOCK_SAMPLES]
+
+    @property
+    def residual_ratio(self) -> float:
+        """``sqrt(RSS / ((N - p) sigma^2))`` of the last solved block, per axis, rms."""
+        return self._outv[_RESID]
 
     # ------------------------------------------------------------ set-up
     def start(self, t0_us: int, ref_us: int, amplitude, phase) -> None:
         """Blocks ``k = 0, 1, ...`` span ``[t0 + k hop, t0 + k hop + T_w)``; the drive's phase
         reference ``ref_us`` and measured current phasors (A, rad) per coil."""
-        self.t0 = int(t0_us)
-        self.ref_us = int(ref_us)
+        st = self._stv
+        st[_T0] = int(t0_us)
+        st[_REF] = int(ref_us)
         self.set_currents(amplitude, phase)
         self.kslot.fill(-1)
-        self.next_k = 0
-        self.started = True
+        st[_NEXT_K] = 0
+        st[_PENDING] = -1
+        st[_STARTED] = 1
 
     def set_currents(self, amplitude, phase) -> None:
         for j in range(self.n):
@@ -148,33 +246,66 @@ class Demodulator:
             self.sph[j] = math.sin(phase[j])
 
     def block_mid(self, k: int) -> int:
-        return self.t0 + k * self.hop_us + self.window_us // 2
+        return self._stv[_T0] + k * self.hop_us + self.window_us // 2
 
     def block_end(self, k: int) -> int:
-        return self.t0 + k * self.hop_us + self.window_us
+        return self._stv[_T0] + k * self.hop_us + self.window_us
+
+    def clear_pending(self) -> None:
+        """The block :meth:`feed` completed is taken (or dropped)."""
+        self._stv[_PENDING] = -1
 
     # ------------------------------------------------------------ samples
+    def feed(self, left: int) -> bool:
+        """Push the ring's samples newer than the last fed, at most ``left``, up to the first that
+        completes a block (then True, its index in :attr:`pending`)."""
+        ring = self.ring
+        nr = len(ring)
+        if nr == 0:
+            return False
+        st = self._stv
+        idx = ring.index_at_or_after(st[_CURSOR] + 1)
+        tv, bv, fv = ring.tv, ring.bv, ring.fv
+        while idx < nr and left > 0:
+            s = ring.slot(idx)
+            t = tv[s]
+            st[_CURSOR] = t
+            j = 3 * s
+            k = self.push(t, bv[j], bv[j + 1], bv[j + 2], fv[s])
+            idx += 1
+            left -= 1
+            if k >= 0:
+                st[_PENDING] = k
+                return True
+        return False
+
+    def _feed_compiled(self, left: int) -> bool:
+        ring = self.ring
+        return self._ck.feed(len(ring), ring.last_pushed_slot(), left)
+
     def push(self, t: int, bx: float, by: float, bz: float, sample_flags: int) -> int:
         """Add one sample (T, sensor frame); returns a block index ``k`` that is now complete
         (the sample lies past its end; call :meth:`finish`), else -1. Samples before ``t0`` or
         not newer than the last are ignored."""
-        if not self.started or t <= self.last_t or t < self.t0:
+        st = self._stv
+        t0, next_k = st[_T0], st[_NEXT_K]
+        if not st[_STARTED] or t <= st[_LAST_T] or t < t0:
             return -1
-        self.last_t = t
+        st[_LAST_T] = t
         done = -1
-        if t >= self.block_end(self.next_k):
-            done = self.next_k
         hop, W, p = self.hop_us, self.window_us, self.p
-        rel = t - self.t0
+        if t >= t0 + next_k * hop + W:
+            done = next_k
+        rel = t - t0
         k_hi = rel // hop
         k_lo = (rel - W) // hop + 1
         if k_lo < 0:
             k_lo = 0
-        if k_lo < self.next_k:
-            k_lo = self.next_k
+        if k_lo < next_k:
+            k_lo = next_k
         ph = self._phv
         ph[0] = 1.0
-        dt = (t - self.ref_us) * 1e-6
+        dt = (t - st[_REF]) * 1e-6
         for j in range(self.n):
             c = self.freqs[j] * dt
             c -= math.floor(c)
@@ -187,7 +318,7 @@ class Demodulator:
             s = k % self.slots
             if kv[s] != k:
                 self._clear(s, k)
-            ph[1] = (t - self.t0 - k * hop) / W - 0.5
+            ph[1] = (t - t0 - k * hop) / W - 0.5
             G, R, BB = self._Gv[s], self._Rv[s], self._BBv[s]
             for i in range(p):
                 pi = ph[i]
@@ -222,16 +353,17 @@ class Demodulator:
         """Solve block ``k`` into ``S``, ``Q``, ``var`` (T, T, T^2, (3, n)) and ``dc`` (T, (3,),
         at the block's middle); ``block_flags``: ``PULSE_TOO_FEW`` when it holds fewer than
         ``p + 2`` samples or is singular, ``PULSE_SATURATED``. Returns True when solved."""
-        self.next_k = k + 1
+        st = self._stv
+        st[_NEXT_K] = k + 1
         s = k % self.slots
-        p, n = self.p, self.n
-        self.block_k = k
+        p = self.p
+        st[_BLOCK_K] = k
         if self._kv[s] != k or self._cv[s] < p + 2:
-            self.block_flags = PULSE_TOO_FEW
-            self.block_samples = self._cv[s] if self._kv[s] == k else 0
+            st[_BLOCK_FLAGS] = PULSE_TOO_FEW
+            st[_BLOCK_SAMPLES] = self._cv[s] if self._kv[s] == k else 0
             return False
-        self.block_flags = self._flv[s]
-        self.block_samples = N = self._cv[s]
+        st[_BLOCK_FLAGS] = self._flv[s]
+        st[_BLOCK_SAMPLES] = N = self._cv[s]
         G, R, BB = self._Gv[s], self._Rv[s], self._BBv[s]
         Gf, L, Gi, X, b, x = self._Gfv, self._Lv, self._Giv, self._Xv, self._bv, self._xv
         for i in range(p):
@@ -241,7 +373,7 @@ class Demodulator:
                 Gf[ip + j] = v
                 Gf[j * p + i] = v
         if not cholesky(Gf, p, L):
-            self.block_flags |= PULSE_TOO_FEW
+            st[_BLOCK_FLAGS] |= PULSE_TOO_FEW
             return False
         rss = 0.0
         for ax in range(3):
@@ -254,8 +386,15 @@ class Demodulator:
                 fit += x[i] * b[i]
             rss += BB[ax] - fit
         dof = N - p
-        self.residual_ratio = math.sqrt(max(rss, 0.0) / (3.0 * dof * self.sigma2)) if dof > 0 else 0.0
+        self._outv[_RESID] = math.sqrt(max(rss, 0.0) / (3.0 * dof * self.sigma2)) if dof > 0 else 0.0
         chol_inverse(Gf, p, Gi, L)
+        self._phasors(X, Gi)
+        return True
+
+    def _phasors(self, X, Gi) -> None:
+        """The fitted coefficients ``X`` and the inverse normal matrix ``Gi`` of a block into ``S``,
+        ``Q``, ``var``, ``qvar``, ``dc`` (the module docstring's ``W = Z / (H e^{i phi})``)."""
+        p, n = self.p, self.n
         S, Q, V, dc = self._Sv, self._Qv, self._varv, self._dcv
         for ax in range(3):
             dc[ax] = X[ax]                    # tau = 0 at the block's middle
@@ -279,12 +418,11 @@ class Demodulator:
                 S[ax * n + j] = a * gr + q * gi
                 Q[ax * n + j] = a * gi - q * gr
                 V[ax * n + j] = v_in
-        return True
 
     def flag_block(self, flags: int) -> None:
         """Add ``PULSE_*`` bits to the last finished block's ``block_flags`` (its reader's verdict,
         e.g. ``PULSE_TOO_FEW`` for a block without signal)."""
-        self.block_flags |= flags
+        self._stv[_BLOCK_FLAGS] |= flags
 
     def signal_chi2(self) -> float:
         """``sum S^2 / var(S)`` of the last block: chi-square with ``3 n`` degrees of freedom without a drive."""
@@ -312,3 +450,13 @@ class Demodulator:
             ss += S[i] * S[i]
             qq += Q[i] * Q[i]
         return math.sqrt(qq / ss) if ss > 0.0 else 0.0
+
+    # the compiled finish computes the block's statistics with it (``core/src/demod.c``)
+    def _signal_chi2_compiled(self) -> float:
+        return self._outv[_SIGNAL_CHI2]
+
+    def _quadrature_chi2_compiled(self) -> float:
+        return self._outv[_QUAD_CHI2]
+
+    def _quadrature_ratio_compiled(self) -> float:
+        return self._outv[_QUAD_RATIO]

@@ -131,9 +131,11 @@ from coiltrack.firmware.linalg import Rot3, flat
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.raab_correction import K_MIN, LoopCorrection, NoCorrection
 from coiltrack.firmware.pose.raab_covariance import RaabCovariance
-from coiltrack.firmware.pose.raab_update import (C_RAAB, MAX_STEP, POLE_COS, angles_from_pose, clip, coupling, dcm,
-                                                 detect, error_angles, load_rotation, moment_pseudo_inverse,
-                                                 orientation_update, position_update, residual_cost, wrap)
+from coiltrack.firmware.pose.raab_update import (ACQUIRED, C_RAAB, DA0, DB0, DPHI0, DPSI0, DRHO, DTH0, K_OUT,
+                                                 MAX_STEP, POLE_COS, Update, angles_from_pose, coupling,
+                                                 error_angles, load_rotation, moment_pseudo_inverse,
+                                                 orientation_update, point, position_update, residual_cost,
+                                                 sync_rotation, wrap)
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
                                             SOLVE_OK, SOLVE_REACQUIRED, SOLVE_RUNNING)
 from coiltrack.firmware.pose.staged import StagedSolve, init_results
@@ -239,8 +241,13 @@ class RaabTracker(StagedSolve):
         #: the exact-loop correction (``correction``) or none, chosen here once (``pose.raab_correction``)
         self.corrector = LoopCorrection(n) if correction else NoCorrection()
         self._covm = RaabCovariance(n, self._cbar, self.covariance)     # publishes into ``covariance``
+        self._x = memoryview(np.zeros(6))           # alpha, beta, rho, psi, theta, phi
+        self._pm = memoryview(np.zeros(3))          # point of the last evaluation
         self._buffers(n)
-        self._x = [0.0] * 6                          # alpha, beta, rho, psi, theta, phi
+        #: one update (eqs 7-31) on these buffers, Python or compiled as ``core`` (``raab_update.Update``)
+        self._upd = Update(n, self._x, self._Rn, self._Sv, self._Sc, self._mp, self._F, self._pm, self._cbar,
+                           self._curv, self.corrector, self.max_step, _ACQUIRED_STEP, core)
+        self._uo = self._upd._o
         self._hemi = (1.0, 0.0, 0.0)
         self._acq_hemi = tuple(float(v) for v in hemisphere)
         self._acquiring = False
@@ -250,7 +257,6 @@ class RaabTracker(StagedSolve):
         self._limit = 1
         self._mirrored = False
         self._cache_ok = False                       # the correction and the covariance rows hold an evaluation at _pm
-        self._pm = [0.0] * 3                         # point of the last evaluation
         self._last_step = math.inf                   # the previous update's step (its rate)
         self._done_at_refresh = False                # the update before this evaluation had converged
         self._k = 0.0
@@ -381,18 +387,10 @@ class RaabTracker(StagedSolve):
     # ------------------------------------------------------------- model
     def _sync_rotation(self) -> None:
         """``R = A^T`` of the current angles."""
-        x = self._x
-        a = dcm(x[3], x[4], x[5])
-        R = self._R
-        R[0, 0], R[0, 1], R[0, 2] = a[0], a[3], a[6]
-        R[1, 0], R[1, 1], R[1, 2] = a[1], a[4], a[7]
-        R[2, 0], R[2, 1], R[2, 2] = a[2], a[5], a[8]
+        sync_rotation(self._x, self._R)
 
     def _point(self):
-        x, c = self._x, self._cbar
-        ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
-        r = x[2]
-        return c[0] + r * cb * ca, c[1] + r * cb * sa, c[2] - r * sb
+        return point(self._x, self._cbar)
 
     def _coupling(self) -> None:
         """The signals corrected at the estimate (``S_c``, by the correction
@@ -437,25 +435,18 @@ class RaabTracker(StagedSolve):
         """One update of eqs 7-31 (no field evaluation, charged 1): the
         detection (``raab_update.detect``), solved through ``K`` by the
         correction, clipped to ``max_step`` (Fig. 8), converted and added
-        (eqs 27-31), then the stop (:meth:`_after_update`)."""
-        x = self._x
-        self._coupling()
-        k = self._k
-        if not (k > 0.0 and math.isfinite(k)):
+        (eqs 27-31) by ``raab_update.Update`` (Python or compiled), then the
+        stop (:meth:`_after_update`)."""
+        x, o = self._x, self._uo
+        ok = self._upd.run()
+        self._k = o[K_OUT]
+        if not ok:
             self._finish(SOLVE_NONFINITE)
             return
-        d = self.corrector.precondition_step(x[2], detect(x, self._R, self._F, k))
-        da0, db0, drho, dpsi0, dth0, dphi0 = d
-        if max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0)) < _ACQUIRED_STEP:
+        if o[ACQUIRED]:
             self._acquiring = False
-        m = self.max_step
-        da0, db0, dpsi0, dth0, dphi0 = clip(da0, m), clip(db0, m), clip(dpsi0, m), clip(dth0, m), clip(dphi0, m)
-        drho = clip(drho, m * x[2])
-        rho = x[2] + drho
-        psi, theta, phi = orientation_update(x[0], x[1], x[3], x[4], x[5], dphi0, dth0, dpsi0)
-        x[0], x[1] = position_update(x[0], x[1], da0, db0)
-        x[2], x[3], x[4], x[5] = rho, psi, theta, phi
-        self._sync_rotation()
+        da0, db0, drho, dpsi0, dth0, dphi0 = o[DA0], o[DB0], o[DRHO], o[DPSI0], o[DTH0], o[DPHI0]
+        rho, psi = x[2], x[3]
         self.iterations += 1
         step = max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0), abs(drho) / rho)
         small = step <= self.step_tol

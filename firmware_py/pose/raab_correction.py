@@ -34,9 +34,9 @@ _K_REUSE = 0.15
 #: (beyond ~55 cm for the thesis source): K - I is of that order, the rate of the updates without it
 K_MIN = 0.02
 #: the preconditioner is applied to detected steps below this (rad, x range): the linear regime
-_LIN_STEP = 0.15
+LIN_STEP = _LIN_STEP = 0.15
 #: the correction's linear term is used within this fraction of the range (rad) of its evaluation
-_LIN_MAX = 0.1
+LIN_MAX = _LIN_MAX = 0.1
 
 
 class NoCorrection:
@@ -48,6 +48,7 @@ class NoCorrection:
     refreshes = False
     rel = 1.0
     lin = False
+    k_id = True
 
     def correct(self, S, Sc, n: int, point, pm, R, rho: float, cur) -> None:
         """``S_c = S``."""
@@ -70,6 +71,10 @@ class NoCorrection:
     def precondition_step(self, rho: float, d):
         """Raab's detection as it is (``K = I``)."""
         return d
+
+    def kernel_buffers(self):
+        """No buffers for the compiled update (``pose.raab_update.Update``): no correction."""
+        return None
 
 
 class LoopCorrection:
@@ -94,8 +99,8 @@ class LoopCorrection:
         self.G = memoryview(np.zeros(9 * n))        # its gradient d/dp per A, [9 j + 3 r + c]
         self._pk = [0.0] * 3
         self._Fk = [0.0] * 54                        # the six detected couplings of K's columns
-        self._K = [0.0] * 36                         # K = I + G D T, LU factors
-        self._perm = [0] * 6
+        self._K = memoryview(np.zeros(36))          # K = I + G D T, LU factors
+        self._perm = memoryview(np.zeros(6, dtype=np.int64))
         self._e = [0.0] * 6
         self._y = [0.0] * 6
 
@@ -121,8 +126,13 @@ class LoopCorrection:
             Sc[o + 1] = S[o + 1] - (r01 * vx + r11 * vy + r21 * vz)
             Sc[o + 2] = S[o + 2] - (r02 * vx + r12 * vy + r22 * vz)
 
+    def kernel_buffers(self):
+        """``(b, G, K, perm)`` for the compiled update (``pose.raab_update.Update``), bound once."""
+        return self.b, self.G, self._K, self._perm
+
     def drop_linear(self) -> None:
-        """A new evaluation: the linear term is not in use until :meth:`prepare`."""
+        """A new evaluation (or the estimate beyond the linear term's range): the linear term is
+        not in use until :meth:`prepare`."""
         self.lin = False
 
     def resume(self) -> None:

@@ -28,19 +28,27 @@ moment (``model.field.MU0_2PI``; the field itself ``model.field.dipole_polar``).
 * :func:`angles_from_pose`, :func:`dcm`, :func:`euler`: the coordinates of a
   pose and back.
 * :func:`residual_cost`: the residual against Raab's dipole (the gate).
+* :class:`Update`: one whole update on a tracker's buffers (the correction,
+  :func:`coupling`, :func:`detect`, the preconditioner, the clip, the
+  conversion, :func:`sync_rotation`), the Python reference or the compiled
+  kernel ``core/src/raab.c`` (``ct_raab_update``), chosen at construction.
 
-Python floats only: nothing is allocated.
+Python floats only: nothing is allocated after construction.
 """
 from __future__ import annotations
 
 import math
 
+import numpy as np
+
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import inv3_sym, nearest_rotation
 from coiltrack.firmware.model.field import MU0_2PI, dipole_polar
+from coiltrack.firmware.pose import raab_correction as rc
 
 __all__ = ["C_RAAB", "POLE_COS", "MAX_STEP", "wrap", "clip", "error_angles", "position_update", "dcm", "euler",
            "orientation_update", "angles_from_pose", "is_rotation", "load_rotation", "moment_pseudo_inverse",
-           "coupling", "post_sense", "detect", "residual_cost"]
+           "coupling", "post_sense", "detect", "residual_cost", "point", "sync_rotation", "Update"]
 
 #: C of eq 3 per unit moment (T m^3 / A m^2): F = (C / rho^3) A Q
 C_RAAB = MU0_2PI
@@ -327,3 +335,90 @@ def residual_cost(n: int, x, R, Sc, w, mom) -> float:
             e = (Sc[o + i] - (R[0, i] * bx + R[1, i] * by + R[2, i] * bz)) * w[o + i]
             cost += e * e
     return cost
+
+
+def point(x, c):
+    """The source-frame point of Raab's coordinates ``x`` about the centre ``c``."""
+    ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
+    r = x[2]
+    return c[0] + r * cb * ca, c[1] + r * cb * sa, c[2] - r * sb
+
+
+def sync_rotation(x, R) -> None:
+    """``R = A^T`` (``R[i, j]``) of the angles ``x[3:6]`` (:func:`dcm`)."""
+    a = dcm(x[3], x[4], x[5])
+    R[0, 0], R[0, 1], R[0, 2] = a[0], a[3], a[6]
+    R[1, 0], R[1, 1], R[1, 2] = a[1], a[4], a[7]
+    R[2, 0], R[2, 1], R[2, 2] = a[2], a[5], a[8]
+
+
+# Update.out: the clipped steps, k and the acquisition test (core/include/ct_ac.h: CT_RO_*)
+DA0, DB0, DRHO, DPSI0, DTH0, DPHI0, K_OUT, ACQUIRED = range(8)
+
+
+class Update:
+    """One update of eqs 7-31 on a tracker's buffers (``pose.raab.RaabTracker``): the signals
+    corrected at the estimate by ``corrector`` (``pose.raab_correction``) into ``Sc``, ``F =
+    S_c M^+`` and ``k = C / rho^3`` (eq 21), the detection (eqs 7, 11, 22-26) solved through the
+    corrector's ``K``, each step clipped to ``max_step`` (Fig. 8), converted and added (eqs
+    27-31) to ``x`` (alpha, beta, rho, psi, theta, phi), and ``R = A^T`` again. :meth:`run`
+    returns False (nothing updated) when ``k`` is not positive and finite; ``out``: the clipped
+    steps, ``k`` and whether the unclipped angle steps were all below ``acquired_step``.
+
+    ``x`` (6), ``Rn`` (3, 3), ``S``, ``Sc``, ``mp`` (3 n), ``F`` (9), ``pm`` (3), ``cur`` (n):
+    float64 buffers the tracker owns; ``cbar`` the source centre. On a compiled ``core`` the
+    kernel ``ct_raab_update`` (``core/src/raab.c``: the same operations in the same order) is
+    bound here to them and :meth:`run` replaced on this instance."""
+
+    def __init__(self, n: int, x, Rn, S, Sc, mp, F, pm, cbar, cur, corrector, max_step: float,
+                 acquired_step: float, core=_DEFAULT_CORE):
+        self.n = n
+        self.x, self.Rn, self.R, self.S, self.Sc, self.mp, self.F = x, Rn, memoryview(Rn), S, Sc, mp, F
+        self.pm, self.cbar, self.cur = pm, tuple(cbar), cur
+        self.corrector = corrector
+        self.max_step = float(max_step)
+        self.acquired_step = float(acquired_step)
+        self.out = np.zeros(8)
+        self._o = memoryview(self.out)
+        self.core = "python"
+        if core.ext is not None and n <= 64:
+            self._bind_compiled(core.ext)
+
+    def _bind_compiled(self, ext) -> None:
+        """``run`` on ``ct_raab_update``, its buffers and constants bound once."""
+        bufs = self.corrector.kernel_buffers()
+        zero = np.zeros(max(9 * self.n, 36))
+        b, G, K, perm = bufs if bufs is not None else (zero, zero, zero, np.zeros(6, dtype=np.int64))
+        self._par = np.array([C_RAAB, POLE_COS, self.max_step, rc.LIN_MAX, rc.LIN_STEP, self.acquired_step])
+        self._cb = np.array(self.cbar)
+        self._ck = ext.Raab(self.n, bufs is not None, self._par, self._cb, self.S, self.mp, self.cur, self.Sc, self.F,
+                            self.x, self.Rn, self.pm, b, G, K, perm, self.out)
+        self._zero = zero
+        self.run = self._run_compiled
+        self.core = "compiled"
+
+    def run(self) -> bool:
+        x, R, corr, o = self.x, self.R, self.corrector, self._o
+        corr.correct(self.S, self.Sc, self.n, point(x, self.cbar), self.pm, R, x[2], self.cur)
+        k = o[K_OUT] = coupling(self.n, self.Sc, self.mp, self.F)
+        if not (k > 0.0 and math.isfinite(k)):
+            return False
+        da0, db0, drho, dpsi0, dth0, dphi0 = corr.precondition_step(x[2], detect(x, R, self.F, k))
+        o[ACQUIRED] = 1.0 if max(abs(da0), abs(db0), abs(dpsi0), abs(dth0), abs(dphi0)) < self.acquired_step else 0.0
+        m = self.max_step
+        da0, db0, dpsi0, dth0, dphi0 = clip(da0, m), clip(db0, m), clip(dpsi0, m), clip(dth0, m), clip(dphi0, m)
+        drho = clip(drho, m * x[2])
+        rho = x[2] + drho
+        psi, theta, phi = orientation_update(x[0], x[1], x[3], x[4], x[5], dphi0, dth0, dpsi0)
+        x[0], x[1] = position_update(x[0], x[1], da0, db0)
+        x[2], x[3], x[4], x[5] = rho, psi, theta, phi
+        sync_rotation(x, R)
+        o[DA0], o[DB0], o[DRHO], o[DPSI0], o[DTH0], o[DPHI0] = da0, db0, drho, dpsi0, dth0, dphi0
+        return True
+
+    def _run_compiled(self) -> bool:
+        corr = self.corrector
+        r = self._ck.update(corr.lin, corr.k_id)
+        if r & 2:                                   # the estimate left the linear term's range (correct)
+            corr.drop_linear()
+        return r & 1 == 1

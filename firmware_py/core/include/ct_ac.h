@@ -1,0 +1,86 @@
+/*
+ * coiltrack compiled core, AC excitation (Raab et al. 1979, seeds/004_86267342cd7488ce.txt):
+ * the synchronous demodulation of coiltrack.firmware.measure.demod.Demodulator (src/demod.c)
+ * and one update of Raab's iterative tracker, coiltrack.firmware.pose.raab_update and
+ * raab_correction (src/raab.c).  The Python functions are the reference: same names with the
+ * ct_ prefix, the same floating-point operations in the same order.
+ */
+#ifndef CT_AC_H
+#define CT_AC_H
+
+#include <stdint.h>
+
+/* ------------------------------------------------------------------ demod
+ * The demodulator's integer state, an int64 array st[CT_DM_NST] (Demodulator._st). */
+enum { CT_DM_T0 = 0, CT_DM_REF = 1, CT_DM_NEXT_K = 2, CT_DM_LAST_T = 3, CT_DM_STARTED = 4, CT_DM_CURSOR = 5,
+       CT_DM_PENDING = 6, CT_DM_BLOCK_K = 7, CT_DM_BLOCK_FLAGS = 8, CT_DM_BLOCK_SAMPLES = 9, CT_DM_NST = 10 };
+/* its results besides S, Q, var, qvar, dc: a float64 array out[CT_DMO_N] */
+enum { CT_DMO_RESID = 0, CT_DMO_SIGNAL_CHI2 = 1, CT_DMO_QUAD_CHI2 = 2, CT_DMO_QUAD_RATIO = 3, CT_DMO_N = 4 };
+/* measure.pulse's flag bits the demodulator sets */
+enum { CT_PULSE_TOO_FEW = 1, CT_PULSE_SATURATED = 2, CT_SAMPLE_SATURATED = 1 };
+
+/* one demodulator's caller-owned buffers (n coils, p = 2 + 2 n unknowns, `slots` block accumulators) */
+struct ct_demod {
+    int n, p, slots;
+    int64_t window_us, hop_us;
+    double sigma2;
+    const double *freqs;            /* n */
+    const double *h;                /* 2 n: the magnetometer's response (re, im) per coil */
+    const double *cph, *sph;        /* n: cos, sin of the current phases */
+    double *G, *R, *BB;             /* slots x p p, slots x 3 p, slots x 3 */
+    int64_t *count, *flags, *kslot; /* slots */
+    double *phi;                    /* p */
+    double *Gf, *L, *Ginv, *x, *b, *X;  /* p p, p p, p p, p, p, 3 p: a block's solve */
+    double *S, *Q, *var, *qvar, *dc;    /* 3 n, 3 n, 3 n, n, 3 */
+    int64_t *st;                    /* CT_DM_NST */
+    double *out;                    /* CT_DMO_N */
+};
+
+/* Demodulator.push: one sample; returns the block it completes, or -1 */
+int64_t ct_demod_push(const struct ct_demod *d, int64_t t, double bx, double by, double bz, int64_t sample_flags);
+/* Demodulator.feed over a measure.pulse.SampleRing (times rt, fields rb (cap x 3), flags rf; `count`
+ * entries, the newest in slot `last`): the samples after the cursor, at most `left`, up to the first that
+ * completes a block (then st[CT_DM_PENDING] = its index); returns 1 when one did, else 0 */
+int ct_demod_feed(const struct ct_demod *d, const int64_t *rt, const double *rb, const uint8_t *rf, int64_t cap,
+                  int64_t count, int64_t last, int64_t left);
+/* Demodulator.finish: solve block k; 1 when solved (then also signal_chi2, quadrature_chi2 and
+ * quadrature_ratio into out) */
+int ct_demod_finish(const struct ct_demod *d, int64_t k);
+
+/* ------------------------------------------------------------------- raab
+ * One update of Raab's tracker (pose.raab.RaabTracker._unit_update through pose.raab_update.Update):
+ * the exact-loop correction (raab_correction.LoopCorrection.correct, or none), F = S_c M^+ and
+ * k = |F|_F / sqrt(3/2) (coupling), the detection (detect: eqs 7, 11, 21-26), the preconditioner's
+ * solve (precondition_step: linalg.lu_solve), the clip (Fig. 8), the frame conversion and the update
+ * by addition (orientation_update, position_update: eqs 27-31) and R = A^T (dcm, Table II).
+ * The constants, from the Python modules at binding: */
+enum { CT_RP_C = 0, CT_RP_POLE_COS = 1, CT_RP_MAX_STEP = 2, CT_RP_LIN_MAX = 3, CT_RP_LIN_STEP = 4,
+       CT_RP_ACQUIRED_STEP = 5, CT_RP_N = 6 };
+/* the update's results: the clipped steps (d_alpha0, d_beta0, d_rho, d_psi0, d_theta0, d_phi0), k,
+ * and 1.0 when the unclipped angle steps were all below CT_RP_ACQUIRED_STEP */
+enum { CT_RO_DA0 = 0, CT_RO_DB0 = 1, CT_RO_DRHO = 2, CT_RO_DPSI0 = 3, CT_RO_DTH0 = 4, CT_RO_DPHI0 = 5, CT_RO_K = 6,
+       CT_RO_ACQUIRED = 7, CT_RO_N = 8 };
+/* the return bits of ct_raab_update */
+enum { CT_RAAB_OK = 1, CT_RAAB_LIN_DROPPED = 2 };
+
+struct ct_raab {
+    int n;
+    int corr;                       /* 1: the exact-loop correction (b, G, K, perm), 0: none */
+    const double *par;              /* CT_RP_N */
+    const double *cbar;             /* 3: the coil centres' centroid */
+    const double *S, *mp, *cur;     /* 3 n signals [3 j + i], M^+ [3 j + c], n currents */
+    double *Sc, *F;                 /* 3 n corrected signals, 9 coupling */
+    double *x;                      /* 6: alpha, beta, rho, psi, theta, phi */
+    double *R;                      /* 9: R = A^T (sensor -> source), row-major */
+    const double *pm;               /* 3: the point of the last evaluation */
+    const double *b, *G;            /* 3 n, 9 n: the correction per ampere and its gradient */
+    const double *K;                /* 36: K's LU factors */
+    const int64_t *perm;            /* 6 */
+    double *out;                    /* CT_RO_N */
+};
+
+/* returns CT_RAAB_OK (bit) when k > 0 and finite (then the update is done), and CT_RAAB_LIN_DROPPED
+ * when the correction's linear term was dropped (the estimate beyond CT_RP_LIN_MAX x range of pm) */
+int ct_raab_update(const struct ct_raab *r, int lin, int k_id);
+
+#endif /* CT_AC_H */

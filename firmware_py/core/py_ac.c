@@ -1,0 +1,388 @@
+/*
+ * CPython glue of the AC kernels (include/ct_ac.h): Demod binds a Demodulator's numpy arrays
+ * (and its channel's sample ring) once at construction; Raab binds a Raab tracker's buffers.
+ * The per-call methods use METH_FASTCALL and write into the bound buffers; they return None,
+ * a bool or (Demod.push only) the completed block's index.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+/* a C-contiguous buffer of at least n items of `itemsize` bytes whose format is one of `formats`
+ * (writable when asked), or -1 with TypeError naming `what` */
+static int ac_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize, const char *formats, int writable,
+                     Py_buffer *view, const char *what)
+{
+    const char *f;
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
+        return -1;
+    }
+    f = view->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (view->itemsize != itemsize || f == NULL || f[0] == '\0' || f[1] != '\0' || strchr(formats, f[0]) == NULL ||
+        view->len < n * itemsize) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs %zd items of %zd bytes ('%s')", what, n, itemsize, formats);
+        return -1;
+    }
+    return 0;
+}
+
+#define F64 8, "d"
+#define I64 8, "ql"
+#define U8 1, "B"
+
+static int ac_int64(PyObject *o, int64_t *v)
+{
+    long long x = PyLong_AsLongLong(o);
+    if (x == -1 && PyErr_Occurred())
+        return -1;
+    *v = (int64_t)x;
+    return 0;
+}
+
+static int ac_double(PyObject *o, double *x)
+{
+    *x = PyFloat_AsDouble(o);
+    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int ac_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (nargs != want) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
+        return -1;
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------------- Demod */
+enum { DM_FREQS, DM_H, DM_CPH, DM_SPH, DM_G, DM_R, DM_BB, DM_COUNT, DM_FLAGS, DM_KSLOT, DM_PHI, DM_GF, DM_L,
+       DM_GINV, DM_X, DM_B, DM_XX, DM_S, DM_Q, DM_VAR, DM_QVAR, DM_DC, DM_ST, DM_OUT, DM_NBUF };
+enum { DM_RT, DM_RB, DM_RF, DM_NRING };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_demod d;
+    Py_buffer views[DM_NBUF], ring[DM_NRING];
+    int64_t cap;
+    int nbound, ring_bound;
+} DemodObject;
+
+static void Demod_release(DemodObject *self)
+{
+    int i;
+    for (i = 0; i < self->nbound; ++i)
+        PyBuffer_Release(&self->views[i]);
+    self->nbound = 0;
+    if (self->ring_bound)
+        for (i = 0; i < DM_NRING; ++i)
+            PyBuffer_Release(&self->ring[i]);
+    self->ring_bound = 0;
+}
+
+static void Demod_dealloc(DemodObject *self)
+{
+    Demod_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* Demod(n, slots, window_us, hop_us, sigma2, bufs, ring): bufs the 24 arrays in the order of
+ * Demodulator._bind; ring None or (t, b, flags) of the channel's SampleRing */
+static int Demod_init(DemodObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "slots", "window_us", "hop_us", "sigma2", "bufs", "ring", NULL};
+    static const char *names[DM_NBUF] = {"freqs", "h", "cph", "sph", "G", "R", "BB", "count", "flags", "kslot",
+                                         "phi", "Gf", "L", "Ginv", "x", "b", "X", "S", "Q", "var", "qvar", "dc",
+                                         "st", "out"};
+    int n, slots, i, p;
+    long long window_us, hop_us;
+    double sigma2;
+    PyObject *bufs, *ring;
+    Py_ssize_t want[DM_NBUF];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiLLdOO", kwlist, &n, &slots, &window_us, &hop_us, &sigma2, &bufs,
+                                     &ring))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Demod: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 64 || slots < 1 || window_us < 1 || hop_us < 1) {
+        PyErr_SetString(PyExc_ValueError, "Demod: n in 1..64, slots, window_us and hop_us >= 1");
+        return -1;
+    }
+    if (!PyTuple_Check(bufs) || PyTuple_GET_SIZE(bufs) != DM_NBUF) {
+        PyErr_Format(PyExc_TypeError, "Demod: bufs must be a tuple of %d arrays", DM_NBUF);
+        return -1;
+    }
+    p = 2 + 2 * n;
+    want[DM_FREQS] = n; want[DM_H] = 2 * n; want[DM_CPH] = n; want[DM_SPH] = n;
+    want[DM_G] = (Py_ssize_t)slots * p * p; want[DM_R] = (Py_ssize_t)slots * 3 * p; want[DM_BB] = 3 * slots;
+    want[DM_COUNT] = want[DM_FLAGS] = want[DM_KSLOT] = slots;
+    want[DM_PHI] = p; want[DM_GF] = want[DM_L] = want[DM_GINV] = p * p; want[DM_X] = want[DM_B] = p;
+    want[DM_XX] = 3 * p; want[DM_S] = want[DM_Q] = want[DM_VAR] = 3 * n; want[DM_QVAR] = n; want[DM_DC] = 3;
+    want[DM_ST] = CT_DM_NST; want[DM_OUT] = CT_DMO_N;
+    for (i = 0; i < DM_NBUF; ++i) {
+        int is_int = i == DM_COUNT || i == DM_FLAGS || i == DM_KSLOT || i == DM_ST;
+        int ro = i == DM_FREQS || i == DM_H;
+        if (ac_buffer(PyTuple_GET_ITEM(bufs, i), want[i], 8, is_int ? "ql" : "d", !ro, &self->views[i],
+                      names[i]) < 0) {
+            Demod_release(self);
+            return -1;
+        }
+        self->nbound = i + 1;
+    }
+    if (ring != Py_None) {
+        if (!PyTuple_Check(ring) || PyTuple_GET_SIZE(ring) != 3) {
+            Demod_release(self);
+            PyErr_SetString(PyExc_TypeError, "Demod: ring must be None or (t, b, flags)");
+            return -1;
+        }
+        if (ac_buffer(PyTuple_GET_ITEM(ring, 0), 2, I64, 0, &self->ring[DM_RT], "ring t") < 0) {
+            Demod_release(self);
+            return -1;
+        }
+        self->cap = (int64_t)(self->ring[DM_RT].len / 8);
+        if (ac_buffer(PyTuple_GET_ITEM(ring, 1), 3 * self->cap, F64, 0, &self->ring[DM_RB], "ring b") < 0) {
+            PyBuffer_Release(&self->ring[DM_RT]);
+            Demod_release(self);
+            return -1;
+        }
+        if (ac_buffer(PyTuple_GET_ITEM(ring, 2), self->cap, U8, 0, &self->ring[DM_RF], "ring flags") < 0) {
+            PyBuffer_Release(&self->ring[DM_RT]);
+            PyBuffer_Release(&self->ring[DM_RB]);
+            Demod_release(self);
+            return -1;
+        }
+        self->ring_bound = 1;
+    }
+#define DBUF(i) ((double *)self->views[i].buf)
+#define IBUF(i) ((int64_t *)self->views[i].buf)
+    self->d.n = n;
+    self->d.p = p;
+    self->d.slots = slots;
+    self->d.window_us = (int64_t)window_us;
+    self->d.hop_us = (int64_t)hop_us;
+    self->d.sigma2 = sigma2;
+    self->d.freqs = DBUF(DM_FREQS); self->d.h = DBUF(DM_H); self->d.cph = DBUF(DM_CPH); self->d.sph = DBUF(DM_SPH);
+    self->d.G = DBUF(DM_G); self->d.R = DBUF(DM_R); self->d.BB = DBUF(DM_BB);
+    self->d.count = IBUF(DM_COUNT); self->d.flags = IBUF(DM_FLAGS); self->d.kslot = IBUF(DM_KSLOT);
+    self->d.phi = DBUF(DM_PHI); self->d.Gf = DBUF(DM_GF); self->d.L = DBUF(DM_L); self->d.Ginv = DBUF(DM_GINV);
+    self->d.x = DBUF(DM_X); self->d.b = DBUF(DM_B); self->d.X = DBUF(DM_XX);
+    self->d.S = DBUF(DM_S); self->d.Q = DBUF(DM_Q); self->d.var = DBUF(DM_VAR); self->d.qvar = DBUF(DM_QVAR);
+    self->d.dc = DBUF(DM_DC); self->d.st = IBUF(DM_ST); self->d.out = DBUF(DM_OUT);
+#undef DBUF
+#undef IBUF
+    return 0;
+}
+
+static int Demod_ready(DemodObject *self)
+{
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Demod: not bound");
+        return -1;
+    }
+    return 0;
+}
+
+/* push(t, bx, by, bz, sample_flags) -> k or -1 */
+static PyObject *Demod_push(DemodObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t, fl;
+    double bx, by, bz;
+    if (Demod_ready(self) < 0 || ac_nargs("push", nargs, 5) < 0)
+        return NULL;
+    if (ac_int64(args[0], &t) < 0 || ac_double(args[1], &bx) < 0 || ac_double(args[2], &by) < 0 ||
+        ac_double(args[3], &bz) < 0 || ac_int64(args[4], &fl) < 0)
+        return NULL;
+    return PyLong_FromLongLong((long long)ct_demod_push(&self->d, t, bx, by, bz, fl));
+}
+
+/* feed(count, last, left) -> bool: the bound ring's new samples (count entries, the newest in slot last) */
+static PyObject *Demod_feed(DemodObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t count, last, left;
+    if (Demod_ready(self) < 0 || ac_nargs("feed", nargs, 3) < 0)
+        return NULL;
+    if (!self->ring_bound) {
+        PyErr_SetString(PyExc_RuntimeError, "Demod: no ring bound");
+        return NULL;
+    }
+    if (ac_int64(args[0], &count) < 0 || ac_int64(args[1], &last) < 0 || ac_int64(args[2], &left) < 0)
+        return NULL;
+    if (count < 0 || count > self->cap || (count > 0 && (last < 0 || last >= self->cap))) {
+        PyErr_SetString(PyExc_ValueError, "feed: count or last outside the ring");
+        return NULL;
+    }
+    if (ct_demod_feed(&self->d, (const int64_t *)self->ring[DM_RT].buf, (const double *)self->ring[DM_RB].buf,
+                      (const uint8_t *)self->ring[DM_RF].buf, self->cap, count, last, left))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* finish(k) -> bool */
+static PyObject *Demod_finish(DemodObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k;
+    if (Demod_ready(self) < 0 || ac_nargs("finish", nargs, 1) < 0 || ac_int64(args[0], &k) < 0)
+        return NULL;
+    if (k < 0) {
+        PyErr_SetString(PyExc_ValueError, "finish: k must be >= 0");
+        return NULL;
+    }
+    if (ct_demod_finish(&self->d, k))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef Demod_methods[] = {
+    {"push", (PyCFunction)(void (*)(void))Demod_push, METH_FASTCALL,
+     "push(t, bx, by, bz, sample_flags) -> k: as Demodulator.push"},
+    {"feed", (PyCFunction)(void (*)(void))Demod_feed, METH_FASTCALL,
+     "feed(count, last, left) -> bool: as Demodulator.feed over the bound ring"},
+    {"finish", (PyCFunction)(void (*)(void))Demod_finish, METH_FASTCALL,
+     "finish(k) -> bool: as Demodulator.finish, with the block's statistics into out"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject DemodType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.Demod",
+    .tp_basicsize = sizeof(DemodObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "One demodulator's buffers bound for ct_demod_push / feed / finish (measure.demod.Demodulator)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Demod_init,
+    .tp_dealloc = (destructor)Demod_dealloc,
+    .tp_methods = Demod_methods,
+};
+
+/* -------------------------------------------------------------------- Raab */
+enum { RB_PAR, RB_CBAR, RB_S, RB_MP, RB_CUR, RB_SC, RB_F, RB_X, RB_R, RB_PM, RB_B, RB_G, RB_K, RB_PERM, RB_OUT,
+       RB_NBUF };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_raab r;
+    Py_buffer views[RB_NBUF];
+    int nbound;
+} RaabObject;
+
+static void Raab_release(RaabObject *self)
+{
+    int i;
+    for (i = 0; i < self->nbound; ++i)
+        PyBuffer_Release(&self->views[i]);
+    self->nbound = 0;
+}
+
+static void Raab_dealloc(RaabObject *self)
+{
+    Raab_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* Raab(n, corr, par, cbar, S, mp, cur, Sc, F, x, R, pm, b, G, K, perm, out): pose.raab_update.Update's buffers */
+static int Raab_init(RaabObject *self, PyObject *args, PyObject *kw)
+{
+    static const char *names[RB_NBUF] = {"par", "cbar", "S", "mp", "cur", "Sc", "F", "x", "R", "pm", "b", "G", "K",
+                                         "perm", "out"};
+    PyObject *objs[RB_NBUF];
+    Py_ssize_t want[RB_NBUF];
+    int n, corr, i;
+    if (kw != NULL && PyDict_Size(kw) > 0) {
+        PyErr_SetString(PyExc_TypeError, "Raab: positional arguments only");
+        return -1;
+    }
+    if (!PyArg_ParseTuple(args, "ipOOOOOOOOOOOOOOO", &n, &corr, &objs[RB_PAR], &objs[RB_CBAR], &objs[RB_S],
+                          &objs[RB_MP], &objs[RB_CUR], &objs[RB_SC], &objs[RB_F], &objs[RB_X], &objs[RB_R],
+                          &objs[RB_PM], &objs[RB_B], &objs[RB_G], &objs[RB_K], &objs[RB_PERM], &objs[RB_OUT]))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Raab: already bound");
+        return -1;
+    }
+    if (n < 3 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "Raab: n must be in 3..64");
+        return -1;
+    }
+    want[RB_PAR] = CT_RP_N; want[RB_CBAR] = 3; want[RB_S] = want[RB_MP] = want[RB_SC] = 3 * n; want[RB_CUR] = n;
+    want[RB_F] = 9; want[RB_X] = 6; want[RB_R] = 9; want[RB_PM] = 3; want[RB_B] = 3 * n; want[RB_G] = 9 * n;
+    want[RB_K] = 36; want[RB_PERM] = 6; want[RB_OUT] = CT_RO_N;
+    for (i = 0; i < RB_NBUF; ++i) {
+        int ro = i == RB_PAR || i == RB_CBAR || i == RB_S || i == RB_MP || i == RB_CUR || i == RB_PM ||
+                 i == RB_B || i == RB_G || i == RB_K || i == RB_PERM;
+        if (ac_buffer(objs[i], want[i], 8, i == RB_PERM ? "ql" : "d", !ro, &self->views[i], names[i]) < 0) {
+            Raab_release(self);
+            return -1;
+        }
+        self->nbound = i + 1;
+    }
+#define DBUF(i) ((double *)self->views[i].buf)
+    self->r.n = n;
+    self->r.corr = corr;
+    self->r.par = DBUF(RB_PAR); self->r.cbar = DBUF(RB_CBAR); self->r.S = DBUF(RB_S); self->r.mp = DBUF(RB_MP);
+    self->r.cur = DBUF(RB_CUR); self->r.Sc = DBUF(RB_SC); self->r.F = DBUF(RB_F); self->r.x = DBUF(RB_X);
+    self->r.R = DBUF(RB_R); self->r.pm = DBUF(RB_PM); self->r.b = DBUF(RB_B); self->r.G = DBUF(RB_G);
+    self->r.K = DBUF(RB_K); self->r.perm = (const int64_t *)self->views[RB_PERM].buf; self->r.out = DBUF(RB_OUT);
+#undef DBUF
+    return 0;
+}
+
+/* update(lin, k_id) -> int: the bits of ct_raab_update */
+static PyObject *Raab_update(RaabObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int lin, k_id;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Raab: not bound");
+        return NULL;
+    }
+    if (ac_nargs("update", nargs, 2) < 0)
+        return NULL;
+    lin = PyObject_IsTrue(args[0]);
+    k_id = PyObject_IsTrue(args[1]);
+    if (lin < 0 || k_id < 0)
+        return NULL;
+    return PyLong_FromLong(ct_raab_update(&self->r, lin, k_id));
+}
+
+static PyMethodDef Raab_methods[] = {
+    {"update", (PyCFunction)(void (*)(void))Raab_update, METH_FASTCALL,
+     "update(lin, k_id) -> bits: one update of Raab's tracker, as pose.raab_update.Update.run"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RaabType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.Raab",
+    .tp_basicsize = sizeof(RaabObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "A Raab tracker's buffers bound for ct_raab_update (pose.raab_update.Update)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Raab_init,
+    .tp_dealloc = (destructor)Raab_dealloc,
+    .tp_methods = Raab_methods,
+};
+
+/* ------------------------------------------------------------------ module */
+int ct_register_ac(PyObject *m)
+{
+    if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0)
+        return -1;
+    Py_INCREF(&DemodType);
+    if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
+        Py_DECREF(&DemodType);
+        return -1;
+    }
+    Py_INCREF(&RaabType);
+    if (PyModule_AddObject(m, "Raab", (PyObject *)&RaabType) < 0) {
+        Py_DECREF(&RaabType);
+        return -1;
+    }
+    if (PyModule_AddIntConstant(m, "DM_NST", CT_DM_NST) < 0 || PyModule_AddIntConstant(m, "DMO_N", CT_DMO_N) < 0)
+        return -1;
+    return 0;
+}

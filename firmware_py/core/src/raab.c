@@ -1,0 +1,317 @@
+/*
+ * One update of Raab's iterative tracker (Raab et al. 1979, seeds/004_86267342cd7488ce.txt,
+ * eqs 7-31): coiltrack.firmware.pose.raab_update (coupling, post_sense, detect, clip,
+ * position_update, orientation_update, dcm, euler, wrap) and raab_correction.LoopCorrection
+ * (correct, precondition_step with linalg.lu_solve), composed as pose.raab_update.Update.run.
+ * The same operations in the same order as the Python.
+ */
+#include "coiltrack_core.h"
+
+#include <math.h>
+
+static const double PI = 3.141592653589793;
+static const double TWO_PI = 2.0 * 3.141592653589793;
+
+/* wrap: angle into (-pi, pi] */
+static double wrap(double a)
+{
+    a = fmod(a, TWO_PI);
+    if (a > PI)
+        a -= TWO_PI;
+    else if (a <= -PI)
+        a += TWO_PI;
+    return a;
+}
+
+/* clip: x into [-m, m] */
+static double clip(double x, double m)
+{
+    return x > m ? m : (x < -m ? -m : x);
+}
+
+/* Python's max(a, b): b only when b > a */
+static double pymax(double a, double b)
+{
+    return b > a ? b : a;
+}
+
+/* dcm: A = T_phi T_theta T_psi (Table II), row-major */
+static void dcm(double psi, double theta, double phi, double *a)
+{
+    double cs = cos(psi), ss = sin(psi), ct = cos(theta), st = sin(theta), cf = cos(phi), sf = sin(phi);
+    a[0] = ct * cs;
+    a[1] = ct * ss;
+    a[2] = -st;
+    a[3] = sf * st * cs - cf * ss;
+    a[4] = sf * st * ss + cf * cs;
+    a[5] = sf * ct;
+    a[6] = cf * st * cs + sf * ss;
+    a[7] = cf * st * ss - sf * cs;
+    a[8] = cf * ct;
+}
+
+/* euler: (psi, theta, phi) of A */
+static void euler(const double *a, double *e)
+{
+    double s = -a[2];
+    s = s > 1.0 ? 1.0 : (s < -1.0 ? -1.0 : s);
+    e[0] = atan2(a[1], a[0]);
+    e[1] = asin(s);
+    e[2] = atan2(a[5], a[8]);
+}
+
+/* position_update (eqs 27-28): the new (alpha, beta) into ab */
+static void position_update(double alpha, double beta, double da0, double db0, double pole_cos, double *ab)
+{
+    double cb = cos(beta), ca, sa, sb, v0, v1, v2, ux, uy, uz, nrm, rxy;
+    if (fabs(cb) >= pole_cos) {
+        double a = alpha + da0 / cb, b = beta + db0;
+        if (b > 0.5 * PI) {
+            b = PI - b;
+            a = a + PI;
+        } else if (b < -0.5 * PI) {
+            b = -PI - b;
+            a = a + PI;
+        }
+        ab[0] = wrap(a);
+        ab[1] = b;
+        return;
+    }
+    ca = cos(alpha);
+    sa = sin(alpha);
+    sb = sin(beta);
+    v0 = 1.0;
+    v1 = da0;
+    v2 = -db0;
+    ux = cb * ca * v0 - sa * v1 + sb * ca * v2;
+    uy = cb * sa * v0 + ca * v1 + sb * sa * v2;
+    uz = -sb * v0 + cb * v2;
+    nrm = sqrt(ux * ux + uy * uy + uz * uz);
+    ux = ux / nrm;
+    uy = uy / nrm;
+    uz = uz / nrm;
+    rxy = hypot(ux, uy);
+    ab[0] = rxy > 1e-12 ? atan2(uy, ux) : alpha;
+    ab[1] = atan2(-uz, rxy);
+}
+
+/* orientation_update (eqs 29-31): the new (psi, theta, phi) into e */
+static void orientation_update(double alpha, double beta, double psi, double theta, double phi, double dphi0,
+                               double dtheta0, double dpsi0, double pole_cos, double *e)
+{
+    double ca = cos(alpha), sa = sin(alpha), cb = cos(beta), sb = sin(beta);
+    double d0 = dphi0, d1 = dtheta0, d2 = dpsi0;
+    double wx = cb * ca * d0 - sa * d1 + sb * ca * d2;
+    double wy = cb * sa * d0 + ca * d1 + sb * sa * d2;
+    double wz = -sb * d0 + cb * d2;
+    double ct = cos(theta), A[9], n[9], t2, f, g, e00, e11, e22, e01, e10, e02, e20, e12, e21;
+    int i;
+    if (fabs(ct) >= pole_cos) {
+        double cs = cos(psi), ss = sin(psi);
+        double vx = cs * wx + ss * wy, vy = -ss * wx + cs * wy, vz = wz;
+        double dphi1 = vx / ct;
+        e[0] = wrap(psi + vz + dphi1 * sin(theta));
+        e[1] = theta + vy;
+        e[2] = wrap(phi + dphi1);
+        return;
+    }
+    dcm(psi, theta, phi, A);
+    t2 = wx * wx + wy * wy + wz * wz;
+    if (t2 < 1e-12) {
+        f = 1.0 - t2 / 6.0;
+        g = 0.5 - t2 / 24.0;
+    } else {
+        double t = sqrt(t2);
+        f = sin(t) / t;
+        g = (1.0 - cos(t)) / t2;
+    }
+    e00 = 1.0 - g * (wy * wy + wz * wz);
+    e11 = 1.0 - g * (wx * wx + wz * wz);
+    e22 = 1.0 - g * (wx * wx + wy * wy);
+    e01 = g * wx * wy - f * wz;
+    e10 = g * wx * wy + f * wz;
+    e02 = g * wx * wz + f * wy;
+    e20 = g * wx * wz - f * wy;
+    e12 = g * wy * wz - f * wx;
+    e21 = g * wy * wz + f * wx;
+    for (i = 0; i < 3; ++i) {
+        double a0 = A[3 * i], a1 = A[3 * i + 1], a2 = A[3 * i + 2];
+        n[3 * i] = a0 * e00 + a1 * e01 + a2 * e02;
+        n[3 * i + 1] = a0 * e10 + a1 * e11 + a2 * e12;
+        n[3 * i + 2] = a0 * e20 + a1 * e21 + a2 * e22;
+    }
+    euler(n, e);
+}
+
+/* post_sense (eqs 7, 11): (xy, yx, xz, zx, yz, zy) of F_7 = P R F P^T into o */
+static void post_sense(const double *x, const double *R, const double *F, double *o)
+{
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]);
+    double p00 = cb * ca, p01 = cb * sa, p02 = -sb, p10 = -sa, p11 = ca, p20 = sb * ca, p21 = sb * sa, p22 = cb;
+    double r00 = R[0], r01 = R[1], r02 = R[2], r10 = R[3], r11 = R[4], r12 = R[5], r20 = R[6], r21 = R[7],
+           r22 = R[8];
+    double a00 = p00 * r00 + p01 * r10 + p02 * r20, a01 = p00 * r01 + p01 * r11 + p02 * r21,
+           a02 = p00 * r02 + p01 * r12 + p02 * r22;
+    double a10 = p10 * r00 + p11 * r10, a11 = p10 * r01 + p11 * r11, a12 = p10 * r02 + p11 * r12;
+    double a20 = p20 * r00 + p21 * r10 + p22 * r20, a21 = p20 * r01 + p21 * r11 + p22 * r21,
+           a22 = p20 * r02 + p21 * r12 + p22 * r22;
+    double f0 = F[0], f1 = F[1], f2 = F[2], f3 = F[3], f4 = F[4], f5 = F[5], f6 = F[6], f7 = F[7], f8 = F[8];
+    double h0x = f0 * p00 + f1 * p01 + f2 * p02, h1x = f3 * p00 + f4 * p01 + f5 * p02,
+           h2x = f6 * p00 + f7 * p01 + f8 * p02;
+    double h0y = f0 * p10 + f1 * p11, h1y = f3 * p10 + f4 * p11, h2y = f6 * p10 + f7 * p11;
+    double h0z = f0 * p20 + f1 * p21 + f2 * p22, h1z = f3 * p20 + f4 * p21 + f5 * p22,
+           h2z = f6 * p20 + f7 * p21 + f8 * p22;
+    o[0] = a00 * h0y + a01 * h1y + a02 * h2y;
+    o[1] = a10 * h0x + a11 * h1x + a12 * h2x;
+    o[2] = a00 * h0z + a01 * h1z + a02 * h2z;
+    o[3] = a20 * h0x + a21 * h1x + a22 * h2x;
+    o[4] = a10 * h0z + a11 * h1z + a12 * h2z;
+    o[5] = a20 * h0y + a21 * h1y + a22 * h2y;
+}
+
+/* detect: (d_alpha0, d_beta0, d_rho, d_psi0, d_theta0, d_phi0) into d */
+static void detect(const double *x, const double *R, const double *F, double k, double c_raab, double *d)
+{
+    double f[6], inv = 1.0 / k, fxy, fyx, fxz, fzx, fyz, fzy, rho;
+    post_sense(x, R, F, f);
+    fxy = f[0] * inv;
+    fyx = f[1] * inv;
+    fxz = f[2] * inv;
+    fzx = f[3] * inv;
+    fyz = f[4] * inv;
+    fzy = f[5] * inv;
+    d[0] = (2.0 / 3.0) * (2.0 * fxy - fyx);
+    d[1] = (2.0 / 3.0) * (fzx - 2.0 * fxz);
+    d[3] = 2.0 * (fxy - fyx);
+    d[4] = 2.0 * (fzx - fxz);
+    d[5] = fzy - fyz;
+    rho = pow(c_raab / k, 1.0 / 3.0);
+    d[2] = rho - x[2];
+}
+
+/* LoopCorrection.correct at the estimate; returns 1 when the linear term was dropped */
+static int correct(const struct ct_raab *r, double px, double py, double pz)
+{
+    const double *b = r->b, *G = r->G, *R = r->R, *pm = r->pm, *S = r->S;
+    double dx = px - pm[0], dy = py - pm[1], dz = pz - pm[2], lim = r->par[CT_RP_LIN_MAX] * r->x[2];
+    int dropped = 0, j;
+    if (dx * dx + dy * dy + dz * dz > pow(lim, 2.0)) {
+        dx = dy = dz = 0.0;
+        dropped = 1;
+    }
+    for (j = 0; j < r->n; ++j) {
+        int o = 3 * j, g = 9 * j;
+        double c = r->cur[j];
+        double vx = (b[o] + G[g] * dx + G[g + 1] * dy + G[g + 2] * dz) * c;
+        double vy = (b[o + 1] + G[g + 3] * dx + G[g + 4] * dy + G[g + 5] * dz) * c;
+        double vz = (b[o + 2] + G[g + 6] * dx + G[g + 7] * dy + G[g + 8] * dz) * c;
+        r->Sc[o] = S[o] - (R[0] * vx + R[3] * vy + R[6] * vz);
+        r->Sc[o + 1] = S[o + 1] - (R[1] * vx + R[4] * vy + R[7] * vz);
+        r->Sc[o + 2] = S[o + 2] - (R[2] * vx + R[5] * vy + R[8] * vz);
+    }
+    return dropped;
+}
+
+/* coupling: F = S_c M^+, returns k = |F|_F / sqrt(3/2) */
+static double coupling(int n, const double *Sc, const double *mp, double *F)
+{
+    double f0 = 0.0, f1 = 0.0, f2 = 0.0, f3 = 0.0, f4 = 0.0, f5 = 0.0, f6 = 0.0, f7 = 0.0, f8 = 0.0;
+    int j;
+    for (j = 0; j < n; ++j) {
+        int o = 3 * j;
+        double s0 = Sc[o], s1 = Sc[o + 1], s2 = Sc[o + 2], m0 = mp[o], m1 = mp[o + 1], m2 = mp[o + 2];
+        f0 += s0 * m0;
+        f1 += s0 * m1;
+        f2 += s0 * m2;
+        f3 += s1 * m0;
+        f4 += s1 * m1;
+        f5 += s1 * m2;
+        f6 += s2 * m0;
+        f7 += s2 * m1;
+        f8 += s2 * m2;
+    }
+    F[0] = f0; F[1] = f1; F[2] = f2; F[3] = f3; F[4] = f4; F[5] = f5; F[6] = f6; F[7] = f7; F[8] = f8;
+    return sqrt(f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + f4 * f4 + f5 * f5 + f6 * f6 + f7 * f7 + f8 * f8) / sqrt(1.5);
+}
+
+/* linalg.lu_solve: e <- K^-1 e (n = 6) */
+static void lu_solve6(const double *K, const int64_t *perm, double *e)
+{
+    double y[6], acc;
+    int i, j;
+    for (i = 0; i < 6; ++i) {
+        acc = e[perm[i]];
+        for (j = 0; j < i; ++j)
+            acc -= K[6 * i + j] * y[j];
+        y[i] = acc;
+    }
+    for (i = 5; i >= 0; --i) {
+        acc = y[i];
+        for (j = i + 1; j < 6; ++j)
+            acc -= K[6 * i + j] * e[j];
+        e[i] = acc / K[6 * i + i];
+    }
+}
+
+int ct_raab_update(const struct ct_raab *r, int lin, int k_id)
+{
+    double *x = r->x, *o = r->out, d[6], e[3], ab[2], A[9], k, m, rho;
+    const double *par = r->par, *c = r->cbar;
+    int ret = 0, i;
+    if (r->corr) {
+        double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]), q = x[2];
+        if (correct(r, c[0] + q * cb * ca, c[1] + q * cb * sa, c[2] - q * sb)) {
+            ret |= CT_RAAB_LIN_DROPPED;
+            lin = 0;
+        }
+    } else {
+        for (i = 0; i < 3 * r->n; ++i)
+            r->Sc[i] = r->S[i];
+    }
+    k = coupling(r->n, r->Sc, r->mp, r->F);
+    o[CT_RO_K] = k;
+    if (!(k > 0.0 && isfinite(k)))
+        return ret;
+    detect(x, r->R, r->F, k, par[CT_RP_C], d);
+    if (r->corr && lin && !k_id) {
+        double big = fabs(d[0]);
+        big = pymax(big, fabs(d[1]));
+        big = pymax(big, fabs(d[2]) / x[2]);
+        big = pymax(big, fabs(d[3]));
+        big = pymax(big, fabs(d[4]));
+        big = pymax(big, fabs(d[5]));
+        if (big < par[CT_RP_LIN_STEP])
+            lu_solve6(r->K, r->perm, d);
+    }
+    {
+        double big = fabs(d[0]);
+        big = pymax(big, fabs(d[1]));
+        big = pymax(big, fabs(d[3]));
+        big = pymax(big, fabs(d[4]));
+        big = pymax(big, fabs(d[5]));
+        o[CT_RO_ACQUIRED] = big < par[CT_RP_ACQUIRED_STEP] ? 1.0 : 0.0;
+    }
+    m = par[CT_RP_MAX_STEP];
+    d[0] = clip(d[0], m);
+    d[1] = clip(d[1], m);
+    d[3] = clip(d[3], m);
+    d[4] = clip(d[4], m);
+    d[5] = clip(d[5], m);
+    d[2] = clip(d[2], m * x[2]);
+    rho = x[2] + d[2];
+    orientation_update(x[0], x[1], x[3], x[4], x[5], d[5], d[4], d[3], par[CT_RP_POLE_COS], e);
+    position_update(x[0], x[1], d[0], d[1], par[CT_RP_POLE_COS], ab);
+    x[0] = ab[0];
+    x[1] = ab[1];
+    x[2] = rho;
+    x[3] = e[0];
+    x[4] = e[1];
+    x[5] = e[2];
+    dcm(x[3], x[4], x[5], A);               /* R = A^T (RaabTracker._sync_rotation) */
+    r->R[0] = A[0]; r->R[1] = A[3]; r->R[2] = A[6];
+    r->R[3] = A[1]; r->R[4] = A[4]; r->R[5] = A[7];
+    r->R[6] = A[2]; r->R[7] = A[5]; r->R[8] = A[8];
+    for (i = 0; i < 6; ++i)
+        o[i] = d[i];
+    return ret | CT_RAAB_OK;
+}
