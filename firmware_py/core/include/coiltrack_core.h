@@ -175,6 +175,8 @@ int64_t ct_unwrap_stamp(int64_t stamp, int64_t now_us);
 int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_t now_us, double interval_us,
                  double step_us, double *out, int64_t *io);
 
+#include "ct_rxdecode.h"
+
 #ifdef __cplusplus
 }
 #endif
