@@ -21,13 +21,12 @@ setup(
             depends=sorted(glob(f"{CORE}/include/*.h")),
 =======
             sources=[f"{CORE}/_coremodule.c",
-                     *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown", "orientation", "lm", "linalg_gen", "frame", "imu")),
-                     f"{CORE}/py_ac.c",
-                     f"{CORE}/src/demod.c",
-                     f"{CORE}/src/raab.c"],
+                     f"{CORE}/py_rxdecode.c",
+                     f"{CORE}/src/rxdecode.c",
+                     *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown", "orientation", "lm", "linalg_gen", "frame", "imu"))],
             include_dirs=[f"{CORE}/include"],
-            depends=[f"{CORE}/include/coiltrack_core.h", f"{CORE}/include/ct_ac.h"],
->>>>>>> s4-ac
+            depends=[f"{CORE}/include/coiltrack_core.h", f"{CORE}/include/ct_rxdecode.h"],
+>>>>>>> s4-recv
             # no fused multiply-adds: the results must not depend on the compiler's choice
             # (it fuses by default on aarch64 and with -march=native); C99 as on the board
             extra_compile_args=["-O2", "-ffp-contract=off", "-std=c99"],

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import time
 
-from coiltrack.protocol import FrameDecoder, Signer
+from coiltrack.protocol import Signer
 from coiltrack.protocol.signing import now_timestamp
 
 from coiltrack.firmware.actuate.schedule import PulseSchedule
@@ -50,6 +50,7 @@ from coiltrack.firmware.measure.windows import SensorChannel, WindowCloser
 from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.port import Port
 from coiltrack.firmware.receive import Receiver
+from coiltrack.firmware.rxdecode import frame_decoder
 from coiltrack.firmware.rotation import quat_tuple as _quat  # noqa: F401  (re-exported for tools)
 from coiltrack.firmware.supervise.supervisor import Supervisor
 from coiltrack.firmware.transmit import Transmitter
@@ -79,7 +80,6 @@ class Firmware:
 
             self.coils = calibrated_coils(self.coils, calibration.source)
         sensor_cal = calibration.sensors if calibration is not None and cfg.calibration.calibration_sensors else None
-        decoder = FrameDecoder()
         key = cfg.signing_key_bytes()
         signer = Signer(key, cfg.signing.signing_link_id) if key else None
         if signer is not None and sign_ts0 is None:
@@ -87,6 +87,7 @@ class Firmware:
         # the numeric core ([core] impl), chosen once: the stages composed below bind its kernels
         kernels = load_core(cfg.core.impl)
         self.core = kernels.name
+        decoder = frame_decoder(kernels)        # the receive stage's, on that core (its counters: the heartbeat's)
         self.tx = Transmitter(port, cfg.link.node_id, cfg.link.heartbeat_us, decoder, signer, sign_ts0 or 0, kernels)
         self.schedule = PulseSchedule(len(self.coils), self.tx, [c.resistance for c in cfg.source.coils])
         self.channels = tuple(SensorChannel(sid, cfg, kernels) for sid in cfg.link.sensor_ids)

@@ -71,6 +71,8 @@ from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, DVEL_LSB_MPS, EVT_
                                        STAMP_MASK, STAMP_SATURATED, unwrap_stamp)
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
+from coiltrack.firmware.rxdecode import RXK_IMU as _RXK_IMU, RXK_MAG as _RXK_MAG, RXK_MAG_PACKED as _RXK_MAG_PACKED
+from coiltrack.firmware.rxdecode import RXR_CLIP as _RXR_CLIP, RXR_KIND as _RXR_KIND, CompiledFrameDecoder
 
 _MAG = MSG["MAG_SAMPLE"].ID
 _IMU = MSG["IMU_SAMPLE"].ID
@@ -169,6 +171,7 @@ class Receiver:
         self.imu_step_us = float(imu_step_us)           # the filters' IMU step (1 / imu_rate_hz)
         self._mag = MagRecord()
         self._imu = ImuRecord()
+        self._imus = ImuRecord()                # a received IMU_SAMPLE (compiled frame decode)
         self._deltas: dict[int, _DeltaState] = {}
         self._step = 0.0
         self.packed_mag = 0
@@ -181,6 +184,8 @@ class Receiver:
         self.queue_overflows = 0
         self._clipped = _clipped
         self._bind(core)
+        if isinstance(decoder, CompiledFrameDecoder):
+            self.step = self._step_rows
 
     def _bind(self, core) -> None:
         """The IMU decode on the compiled core (``core/src/imu.c``: ``ct_imu_clipped``,
@@ -248,40 +253,79 @@ class Receiver:
         data = self._take()
         if not data:
             return
-        sup = self.supervisor
         for msg in self.decoder.feed(data):
-            mid = msg.ID
-            if mid == _MAG_PACKED:
-                msg = self._unpack_mag(msg, now_us)
-                mid = _MAG
-            elif mid == _IMU_DELTA:
-                n = self._delta(msg, now_us)
-                if n:
-                    self._push_steps(n, now_us)
-                continue
-            sup.on_message(msg, now_us)
-            if mid == _MAG:
-                c = self.mag_cal.get(msg.node) if self.mag_cal else None
-                if c is not None:
-                    msg = self._correct_mag(msg, c)
-                ch = self.channels.get(msg.node)
-                if ch is not None:
-                    ch.push(msg, MAG_LSB_T)
+            self._route(msg, now_us)
+
+    def _step_rows(self, now_us: int) -> None:
+        """:meth:`step` on the compiled frame decode (:class:`coiltrack.firmware.rxdecode.CompiledFrameDecoder`,
+        bound at construction): the same messages routed in the same order, the sample messages
+        (MAG_PACKED already restored, MAG_SAMPLE, IMU_SAMPLE with its clipped-axis check) read from
+        its rows into the stage's records, the others unpacked by protocol.codec."""
+        data = self._take()
+        if not data:
+            return
+        dec = self.decoder
+        q, w = dec.rows, dec.width
+        pos, end = 0, len(data)
+        while pos < end:
+            n = dec.decode(data, pos, now_us)
+            pos = dec.pos
+            for b in range(0, n * w, w):
+                kind = q[b + _RXR_KIND]
+                if kind == _RXK_MAG_PACKED or kind == _RXK_MAG:
+                    r = self._mag
+                    r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
+                    if kind == _RXK_MAG_PACKED:
+                        self.packed_mag += 1
+                    self._route(r, now_us)
+                elif kind == _RXK_IMU:
+                    r = self._imus
+                    r.node, r.t_us, r.ax, r.ay, r.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
+                    r.gx, r.gy, r.gz = q[b + 6], q[b + 7], q[b + 8]
+                    self.supervisor.on_message(r, now_us)
+                    self._imu_in(r, q[b + _RXR_CLIP], now_us)
                 else:
-                    self.tracker.on_mag(msg, MAG_LSB_T)
-            elif mid == _IMU:
-                if self._clipped(msg):
-                    self._iov[_SATURATED] += 1  # the sensor's full scale, not the motion: not used
-                    sup.on_imu_saturated(msg.node, now_us)
-                else:
-                    self._on_imu(msg, now_us)
-            elif mid == _COIL_STATUS:
-                self.schedule.on_status(msg)
-                self.tracker.on_coil_status(msg)
-            elif mid == _HEARTBEAT:
-                self._on_heartbeat(msg)
-            elif self.other is not None:
-                self.other(msg, now_us)
+                    self._route(dec.raw_message(b // w), now_us)
+
+    def _route(self, msg, now_us: int) -> None:
+        """One decoded message to its stage (module docstring), the supervisor first."""
+        mid = msg.ID
+        if mid == _MAG_PACKED:
+            msg = self._unpack_mag(msg, now_us)
+            mid = _MAG
+        elif mid == _IMU_DELTA:
+            n = self._delta(msg, now_us)
+            if n:
+                self._push_steps(n, now_us)
+            return
+        self.supervisor.on_message(msg, now_us)
+        if mid == _MAG:
+            c = self.mag_cal.get(msg.node) if self.mag_cal else None
+            if c is not None:
+                msg = self._correct_mag(msg, c)
+            ch = self.channels.get(msg.node)
+            if ch is not None:
+                ch.push(msg, MAG_LSB_T)
+            else:
+                self.tracker.on_mag(msg, MAG_LSB_T)
+        elif mid == _IMU:
+            self._imu_in(msg, self._clipped(msg), now_us)
+        elif mid == _COIL_STATUS:
+            self.schedule.on_status(msg)
+            self.tracker.on_coil_status(msg)
+        elif mid == _HEARTBEAT:
+            self._on_heartbeat(msg)
+        elif self.other is not None:
+            self.other(msg, now_us)
+
+    def _imu_in(self, msg, clipped, now_us: int) -> None:
+        """A received IMU sample: ``clipped`` (an axis at the clip code) is the sensor's full
+        scale, not the motion: not used, counted; else to the channel and the tracker."""
+        if clipped:
+            self._iov[_SATURATED] += 1
+            self.supervisor.on_imu_saturated(msg.node, now_us)
+        else:
+            self._on_imu(msg, now_us)
 
     def _unpack_mag(self, msg, now_us: int) -> MagRecord:
         r = self._mag

@@ -1,0 +1,199 @@
+/*
+ * The CPython glue of the receive stage's frame decode (src/rxdecode.c): RxDecode binds the
+ * decoder's caller-owned buffers once (start-up); decode(data, pos, now_us) is METH_FASTCALL,
+ * reads the bytes in place and writes rows into the bound table (it returns a small int).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+/* a C-contiguous buffer of at least n items of itemsize bytes (int64 'q'/'l' or bytes 'B'),
+ * writable or not, or -1 with TypeError naming `what` */
+static int rx_get(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize, int writable, Py_buffer *view,
+                  const char *what)
+{
+    const char *f;
+    int ok;
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
+        return -1;
+    }
+    f = view->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (itemsize == 8)
+        ok = f != NULL && (f[0] == 'q' || f[0] == 'l') && f[1] == '\0';
+    else
+        ok = f == NULL || ((f[0] == 'B' || f[0] == 'b' || f[0] == 'c') && f[1] == '\0');
+    if (!ok || view->itemsize != itemsize || view->len < n * itemsize) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs %s items, at least %zd of them", what,
+                     itemsize == 8 ? "int64" : "byte", n);
+        return -1;
+    }
+    return 0;
+}
+
+enum { RX_SIZES, RX_EXTRAS, RX_ST, RX_SEQ, RX_ROWS, RX_PAY, RX_BUF, RX_RAW, RX_NVIEWS };
+
+typedef struct {
+    PyObject_HEAD
+    Py_buffer views[RX_NVIEWS];
+    int nbound;
+    struct ct_rx d;
+} RxDecodeObject;
+
+static void RxDecode_dealloc(RxDecodeObject *self)
+{
+    int k;
+    for (k = 0; k < self->nbound; ++k)
+        PyBuffer_Release(&self->views[k]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int RxDecode_init(RxDecodeObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"sizes", "extras", "st", "last_seq", "rows", "pay", "buf", "raw", "max_encoded",
+                             "max_payload", NULL};
+    PyObject *o[RX_NVIEWS];
+    int max_encoded, max_payload, k;
+    Py_ssize_t cap;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOOii", kwlist, &o[RX_SIZES], &o[RX_EXTRAS], &o[RX_ST],
+                                     &o[RX_SEQ], &o[RX_ROWS], &o[RX_PAY], &o[RX_BUF], &o[RX_RAW], &max_encoded,
+                                     &max_payload))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RxDecode: already bound");
+        return -1;
+    }
+    if (max_encoded < 1 || max_payload < 1 || max_payload > 255) {
+        PyErr_SetString(PyExc_ValueError, "RxDecode: max_encoded >= 1 and max_payload in 1..255");
+        return -1;
+    }
+    {
+        static const char *what[RX_NVIEWS] = {"sizes", "extras", "st", "last_seq", "rows", "pay", "buf", "raw"};
+        const Py_ssize_t want[RX_NVIEWS] = {256, 256, CT_RX_NST, 256, CT_RXR_W, 0, max_encoded, max_encoded};
+        for (k = 0; k < RX_NVIEWS; ++k) {
+            int bytes = k == RX_PAY || k == RX_BUF || k == RX_RAW;
+            if (rx_get(o[k], want[k], bytes ? 1 : 8, k >= RX_ST, &self->views[k], what[k]) < 0) {
+                while (k-- > 0)
+                    PyBuffer_Release(&self->views[k]);
+                return -1;
+            }
+        }
+    }
+    cap = self->views[RX_ROWS].len / (8 * CT_RXR_W);
+    if (self->views[RX_PAY].len < cap * max_payload || cap > 65536) {
+        for (k = 0; k < RX_NVIEWS; ++k)
+            PyBuffer_Release(&self->views[k]);
+        PyErr_SetString(PyExc_ValueError, "RxDecode: pay needs max_payload bytes per row (at most 65536 rows)");
+        return -1;
+    }
+    self->nbound = RX_NVIEWS;
+    self->d.sizes = (const int64_t *)self->views[RX_SIZES].buf;
+    self->d.extras = (const int64_t *)self->views[RX_EXTRAS].buf;
+    self->d.st = (int64_t *)self->views[RX_ST].buf;
+    self->d.last_seq = (int64_t *)self->views[RX_SEQ].buf;
+    self->d.rows = (int64_t *)self->views[RX_ROWS].buf;
+    self->d.pay = (uint8_t *)self->views[RX_PAY].buf;
+    self->d.buf = (uint8_t *)self->views[RX_BUF].buf;
+    self->d.raw = (uint8_t *)self->views[RX_RAW].buf;
+    self->d.cap = (int)cap;
+    self->d.max_encoded = max_encoded;
+    self->d.max_payload = max_payload;
+    for (k = 0; k < 256; ++k)
+        if (self->d.sizes[k] > max_payload || self->d.extras[k] < 0 || self->d.extras[k] > 255) {
+            for (k = 0; k < RX_NVIEWS; ++k)
+                PyBuffer_Release(&self->views[k]);
+            self->nbound = 0;
+            PyErr_SetString(PyExc_ValueError, "RxDecode: a size beyond max_payload or an extra outside 0..255");
+            return -1;
+        }
+    return 0;
+}
+
+/* decode(data, pos, now_us) -> rows: FrameDecoder.feed of data[pos:] (st[RX_POS]: where it stopped) */
+static PyObject *RxDecode_decode(RxDecodeObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    const uint8_t *p;
+    Py_ssize_t n;
+    long long pos, now;
+    Py_buffer v;
+    int rows, view = 0;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RxDecode: not bound");
+        return NULL;
+    }
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "decode() takes 3 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    if (PyBytes_Check(args[0])) {
+        p = (const uint8_t *)PyBytes_AS_STRING(args[0]);
+        n = PyBytes_GET_SIZE(args[0]);
+    } else {
+        if (PyObject_GetBuffer(args[0], &v, PyBUF_SIMPLE) < 0)
+            return NULL;
+        p = (const uint8_t *)v.buf;
+        n = v.len;
+        view = 1;
+    }
+    pos = PyLong_AsLongLong(args[1]);
+    now = (pos == -1 && PyErr_Occurred()) ? -1 : PyLong_AsLongLong(args[2]);
+    if ((pos == -1 || now == -1) && PyErr_Occurred()) {
+        if (view)
+            PyBuffer_Release(&v);
+        return NULL;
+    }
+    if (pos < 0 || pos > n) {
+        if (view)
+            PyBuffer_Release(&v);
+        PyErr_SetString(PyExc_ValueError, "decode: pos outside the data");
+        return NULL;
+    }
+    rows = ct_rx_feed(&self->d, p, (int64_t)n, (int64_t)pos, (int64_t)now);
+    if (view)
+        PyBuffer_Release(&v);
+    return PyLong_FromLong(rows);
+}
+
+static PyMethodDef RxDecode_methods[] = {
+    {"decode", (PyCFunction)(void (*)(void))RxDecode_decode, METH_FASTCALL,
+     "decode(data, pos, now_us) -> rows: protocol.framing.FrameDecoder.feed of data[pos:] into the bound rows"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RxDecodeType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.RxDecode",
+    .tp_basicsize = sizeof(RxDecodeObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "RxDecode(sizes, extras, st, last_seq, rows, pay, buf, raw, max_encoded, max_payload): the "
+              "receive stage's frame decoder bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)RxDecode_init,
+    .tp_dealloc = (destructor)RxDecode_dealloc,
+    .tp_methods = RxDecode_methods,
+};
+
+int ct_register_rxdecode(PyObject *m)
+{
+    static const struct { const char *name; long value; } ints[] = {
+        {"RX_NST", CT_RX_NST}, {"RX_POS", CT_RX_POS}, {"RX_BUFLEN", CT_RX_BUFLEN}, {"RX_DROPPING", CT_RX_DROPPING},
+        {"RXR_W", CT_RXR_W}, {"RXR_KIND", CT_RXR_KIND}, {"RXR_CLIP", CT_RXR_CLIP}, {"RXR_STAMP", CT_RXR_STAMP},
+        {"RXK_RAW", CT_RXK_RAW}, {"RXK_MAG_PACKED", CT_RXK_MAG_PACKED}, {"RXK_MAG", CT_RXK_MAG},
+        {"RXK_IMU", CT_RXK_IMU}, {"STAMP_FLIP", CT_STAMP_FLIP}};
+    size_t k;
+    if (PyType_Ready(&RxDecodeType) < 0)
+        return -1;
+    Py_INCREF(&RxDecodeType);
+    if (PyModule_AddObject(m, "RxDecode", (PyObject *)&RxDecodeType) < 0) {
+        Py_DECREF(&RxDecodeType);
+        return -1;
+    }
+    for (k = 0; k < sizeof ints / sizeof ints[0]; ++k)
+        if (PyModule_AddIntConstant(m, ints[k].name, ints[k].value) < 0)
+            return -1;
+    return 0;
+}
