@@ -1119,6 +1119,8 @@ static struct PyModuleDef core_module = {
     "The compiled core of the coiltrack firmware (C99 kernels; the Python modules are the reference).",
     -1, core_methods, NULL, NULL, NULL, NULL};
 
+int ct_register_single_coil(PyObject *m);
+
 PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
@@ -1192,6 +1194,10 @@ PyMODINIT_FUNC PyInit__core(void)
         PyModule_AddIntConstant(m, "KIND_LOOP_AXES", CT_KIND_LOOP_AXES) < 0 ||
         PyModule_AddIntConstant(m, "KIND_DIPOLE", CT_KIND_DIPOLE) < 0 ||
         PyModule_AddIntConstant(m, "MAX_COILS", CT_MAX_COILS) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    if (ct_register_single_coil(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }
