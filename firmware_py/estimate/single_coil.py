@@ -160,7 +160,9 @@ class SchepersEKF:
         self._meas = CoilMeasurement()
         self.nis = 0.0
         self.nis_nominal = 0.0
-        self.core = "python"
+        #: where this filter's own dynamics run ("compiled" or "python"; its update and strapdown
+        #: report their own ``core``): Python under the Python core or for a subclass's dynamics
+        self.kernels = "python"
         if core.ext is not None:
             self._bind_compiled(core.ext)
 
@@ -175,7 +177,7 @@ class SchepersEKF:
             self._predict_ahead, self.core_transition = ck.predict_pose, ck.build_F
             if cls._inject is SchepersEKF._inject:
                 self._inject = ck.inject
-            self.core = "compiled"
+            self.kernels = "compiled"
 
     def _alloc_state(self, nx: int) -> None:
         """The nominal state, the covariance, the last inputs and the clones."""
