@@ -1146,6 +1146,7 @@ static struct PyModuleDef core_module = {
 int ct_register_window(PyObject *m);   /* py_window.c */
 int ct_register_ac(PyObject *m);
 int ct_register_rxdecode(PyObject *m);
+int ct_register_single_coil(PyObject *m);
 
 PyMODINIT_FUNC PyInit__core(void)
 {
@@ -1227,7 +1228,7 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (ct_register_fusimu(m) < 0 || ct_register_fusion(m) < 0 || ct_register_ac(m) < 0 || ct_register_rxdecode(m) < 0) {
+    if (ct_register_fusimu(m) < 0 || ct_register_fusion(m) < 0 || ct_register_ac(m) < 0 || ct_register_rxdecode(m) < 0 || ct_register_single_coil(m) < 0) {
         Py_DECREF(m);
         return NULL;
     }

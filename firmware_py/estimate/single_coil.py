@@ -56,6 +56,14 @@ nominal pose, and corrects the whole state when the amplitude is in.
 Every update goes through the shared ``coiltrack.firmware.estimate.ekf.KalmanUpdate``
 (innovation, innovation covariance, chi-square gate, gain, Joseph form,
 health flags). All arrays are allocated in ``__init__``.
+
+The compiled core (``coiltrack.firmware.core``, chosen once at construction by the ``core``
+argument): ``core/src/single_coil.c`` follows :meth:`SchepersEKF._advance` (with ``_step``,
+``_build_F``, ``_orthonormalize``), ``_predict_ahead``, ``_take_clone_now``,
+``release_clone``, ``core_transition`` and ``_inject`` operation by operation; the products
+the Python hands to BLAS (``F P F^T``) are summed there in index order with ``F``'s structural
+zeros skipped, equal to rounding. A subclass that changes the dynamics (overrides ``_step``,
+``_build_F``, ``_accel``, ``_advance`` or ``_fill_q``) runs them in Python.
 """
 from __future__ import annotations
 
@@ -73,6 +81,9 @@ from coiltrack.firmware.estimate.clones import PoseClones
 from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement, SingleCoilUpdate
 
 __all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
+
+#: the methods whose compiled form is bound only where a subclass keeps them all
+_DYNAMICS = ("_step", "_build_F", "_accel", "_advance", "_fill_q", "_predict_ahead")
 
 #: the filter is not initialised (no pose yet): nothing done
 EKF_NO_STATE = 1024
@@ -149,6 +160,24 @@ class SchepersEKF:
         self._meas = CoilMeasurement()
         self.nis = 0.0
         self.nis_nominal = 0.0
+        #: where this filter's own dynamics run ("compiled" or "python"; its update and strapdown
+        #: report their own ``core``): Python under the Python core or for a subclass's dynamics
+        self.kernels = "python"
+        if core.ext is not None:
+            self._bind_compiled(core.ext)
+
+    def _bind_compiled(self, ext) -> None:
+        """Bind the compiled kernels (``core/src/single_coil.c``) in place of the reference
+        methods of the same contract, once; the dynamics only where this class's are run."""
+        cls = type(self)
+        if all(getattr(cls, name) is getattr(SchepersEKF, name) for name in _DYNAMICS):
+            ck = _compiled(self, ext)
+            self._ck = ck
+            self._advance, self._take_clone_now, self.release_clone = ck.propagate, ck.take_clone, ck.release_clone
+            self._predict_ahead, self.core_transition = ck.predict_pose, ck.build_F
+            if cls._inject is SchepersEKF._inject:
+                self._inject = ck.inject
+            self.kernels = "compiled"
 
     def _alloc_state(self, nx: int) -> None:
         """The nominal state, the covariance, the last inputs and the clones."""
@@ -190,6 +219,7 @@ class SchepersEKF:
         self._Rv = memoryview(self.R)
         self._Fv = memoryview(self.F)
         self._fref = (-float(self.g[0]), -float(self.g[1]), -float(self.g[2]))
+        self._fref_a = np.array(self._fref)
         self._steps = 0
         # 0-d operands (a Python float in a ufunc would become a new 0-d array)
         self._k0 = np.zeros(())
@@ -241,7 +271,10 @@ class SchepersEKF:
             self._take_clone(k)
 
     def _take_clone(self, k: int) -> None:
-        self.clones.take(k, self.P, self.p, self.R, self.initialized)
+        self._take_clone_now(k, self.initialized)
+
+    def _take_clone_now(self, k: int, initialized: bool) -> None:
+        self.clones.take(k, self.P, self.p, self.R, initialized)
 
     def back_clone(self, k: int, dt: float, G) -> None:
         """Clone k as the pose ``dt`` seconds before the filter's time, predicted backwards
@@ -268,6 +301,12 @@ class SchepersEKF:
             return
         if t_us <= self.t_us:
             return
+        self._advance(self.t_us, t_us, acc, gyr, self.initialized)
+        self.t_us = t_us
+
+    def _advance(self, t0: int, t_us: int, acc, gyr, initialized: bool) -> None:
+        """From the filter's time ``t0`` to ``t_us`` > ``t0``: the interval's mean inputs, the
+        steps split at the clones due inside it (``initialized``: the covariance is propagated)."""
         np.add(self._acc_prev, acc, out=self.f)
         np.multiply(self.f, self._half, out=self.f)
         self.f -= self.ba
@@ -276,7 +315,7 @@ class SchepersEKF:
         self.w -= self.bg
         self._acc_prev[:] = acc
         self._gyr_prev[:] = gyr
-        t = self.t_us
+        t = t0
         while True:
             kk = self.clones.next_due(t, t_us)
             nxt = int(self.clone_t[kk]) if kk >= 0 else t_us
@@ -284,14 +323,13 @@ class SchepersEKF:
                 self._step((nxt - t) * 1e-6)
                 t = nxt
             if kk >= 0:
-                self._take_clone(kk)
+                self._take_clone_now(kk, initialized)
                 continue
             if t >= t_us:
                 break
         for k in range(self.n_clones):
             if self.clone_due[k] and self.clone_t[k] <= t_us:
-                self._take_clone(k)
-        self.t_us = t_us
+                self._take_clone_now(k, initialized)
 
     def restart_inputs(self) -> None:
         """After a gap in the IMU stream: the next sample starts a new interval."""
@@ -379,8 +417,10 @@ class SchepersEKF:
         """Pose covariance (6x6 over ``(dp, ori)``) and position predicted
         ``horizon_us`` ahead with the last inertial inputs held, without
         changing the filter (for the when/which decisions)."""
-        T = max(int(horizon_us), 0) * 1e-6
-        n = max(1, int(steps))
+        self._predict_ahead(max(int(horizon_us), 0) * 1e-6, max(1, int(steps)), out_P6, out_p)
+
+    def _predict_ahead(self, T: float, n: int, out_P6, out_p) -> None:
+        """:meth:`predict_pose` over ``T`` seconds in ``n`` steps."""
         dt = T / n
         Pc = self._Pc
         Pc[:] = self.P[CORE, CORE]
@@ -457,3 +497,16 @@ class SchepersEKF:
         self._sd.rotate(self.R, float(dx[o]), float(dx[o + 1]), float(dx[o + 2]))
         self.clones.inject(dx, self._sd.rotate)
 
+
+
+def _compiled(ekf: SchepersEKF, ext):
+    """The compiled kernels (``ext.SchepersCore``) bound to the arrays of ``ekf``."""
+    arrays = (ekf.p, ekf.v, ekf.R, ekf.ba, ekf.bg, ekf.f, ekf.w, ekf._acc_prev, ekf._gyr_prev, ekf.P, ekf.F,
+              ekf._T, ekf._q, ekf._Fc, ekf._Pc, ekf._Tc, ekf._qc, ekf._sd.E, ekf._R2, ekf._dR, ekf._fref_a,
+              ekf.clone_p, ekf.clone_R)
+    cl = ekf.clones
+    return ext.SchepersCore(ekf.nx, ekf.n_clones, arrays, cl.t, cl.due, cl.taken,
+                            tuple(c.start for c in cl.cp), tuple(c.start for c in cl.co),
+                            ekf.acc_noise * ekf.acc_noise, ekf.pos_noise * ekf.pos_noise,
+                            ekf.gyr_noise * ekf.gyr_noise, ekf.acc_bias_rw * ekf.acc_bias_rw,
+                            ekf.gyr_bias_rw * ekf.gyr_bias_rw)

@@ -10,6 +10,13 @@ current, model error, the monitor's inflation, the gate);
 covariance its filter passes in (as ``ekf.KalmanUpdate.update`` does), leaving
 the error estimate in ``dx`` for the filter to inject. All arrays are
 allocated in ``__init__``.
+
+The compiled core (``coiltrack.firmware.core``, chosen once by the ``core`` argument):
+``core/src/single_coil.c`` follows ``_noise``, ``_pass`` up to the shared update and
+:meth:`SingleCoilUpdate.run`'s bookkeeping between the passes operation by operation (the
+products the Python hands to BLAS, ``P H^T``, ``H P H^T``, ``H dx`` and ``R dR``, summed in index
+order with ``H``'s zeros skipped: equal to rounding); the field model's evaluation and the shared
+``KalmanUpdate.update`` (its own compiled kernel, count and symmetrisation) are called as they are.
 """
 from __future__ import annotations
 
@@ -82,6 +89,18 @@ class SingleCoilUpdate:
         self._Hdx = np.zeros(3)
         self._dR = np.eye(3)
         self._k0 = np.zeros(())
+        self.core = "python"
+        ext = core.ext
+        if ext is not None:
+            self._st = np.zeros(ext.SC_NST)
+            self._stv = memoryview(self._st)
+            self._nis_at = ext.SC_NIS_NOMINAL
+            u = self.upd
+            self._ck = ext.SingleCoilUpdateCore(nx, (u.H, u.R, u.y, u.dx, self._PHt, self._S, self.y_pred, self._P0,
+                                                     self._Pprev, self.dx, self._pi, self._Ri, self._Hdx, self._dR,
+                                                     self._st))
+            self.run = self._run_compiled
+            self.core = "compiled"
 
     def _noise(self, P, p, cp, m: CoilMeasurement, model) -> tuple[float, float]:
         """The measurement covariance from the prior into ``upd.R`` (amplitude variances, the
@@ -183,6 +202,27 @@ class SingleCoilUpdate:
                 np.matmul(R, self._dR, out=Ri)
                 if step < 1e-6:
                     break
+        return flags
+
+    def _run_compiled(self, P, p, R, cp, co, m: CoilMeasurement, model) -> int:
+        """:meth:`run` through the compiled passes (``ct_scu_begin``, ``ct_scu_pass``,
+        ``ct_scu_after``) around the model's evaluation and the shared update."""
+        model.evaluate(p, R)
+        ck, upd = self._ck, self.upd
+        b, o = cp.start, co.start
+        ck.begin(P, p, R, b, o, model.h, model.H, model.cs.centers, m.coil, m.y, m.var, m.current, m.rel_model,
+                 m.r_scale)
+        self.nis_nominal = self._stv[self._nis_at]
+        flags = upd.update(P, math.inf if not m.gate else None)
+        self.nis = upd.nis
+        if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
+            return flags
+        f, it = flags, 0
+        while ck.after(it, f, self.iterations, P, p, R, b, o, m.var):
+            it += 1
+            model.evaluate(self._pi, self._Ri)
+            ck.again(it, P, b, o, model.h, model.H, m.coil, m.y, m.current)
+            f = upd.update(P, math.inf)
         return flags
 
 

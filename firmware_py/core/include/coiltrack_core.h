@@ -185,4 +185,6 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
 }
 #endif
 
+#include "ct_single_coil.h"
+
 #endif /* COILTRACK_CORE_H */

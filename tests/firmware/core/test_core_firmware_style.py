@@ -1,5 +1,6 @@
-"""The C core is written as firmware: only <math.h>, <string.h>, <stdint.h> (and its own header)
-included; no global mutable state (no data, no bss in its objects); and `coiltrack core-size`
+"""The C core is written as firmware: only <math.h>, <string.h>, <stdint.h> (and its own headers:
+coiltrack_core.h and the areas' include/ct_<area>.h) included; no global mutable state (no data, no
+bss in its objects); and `coiltrack core-size`
 says how to get the Cortex-M7 toolchain when it is absent (exit 2). No test needs that toolchain."""
 import re
 import shutil

@@ -1,0 +1,652 @@
+/*
+ * CPython glue of the single-coil EKF kernels (src/single_coil.c, include/ct_single_coil.h):
+ * SchepersCore binds one coiltrack.firmware.estimate.single_coil.SchepersEKF's arrays and
+ * SingleCoilUpdateCore one estimate.single_coil_update.SingleCoilUpdate's, once, at construction;
+ * the per-call methods are METH_FASTCALL, read their arguments in place (small vectors that may be
+ * strided views are copied into locals) and create no Python object (None, a small int or a bool).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+/* ------------------------------------------------------------------ buffers */
+static int sc_is_format(const Py_buffer *v, char want, Py_ssize_t itemsize)
+{
+    const char *f = v->format;
+    if (v->itemsize != itemsize || f == NULL)
+        return 0;
+    if (f[0] == '@' || f[0] == '=' || f[0] == '<')
+        f++;
+    if (want == 'q')                 /* a 64-bit signed integer: 'q' or 'l' where long is 64-bit */
+        return (f[0] == 'q' || (f[0] == 'l' && sizeof(long) == 8)) && f[1] == '\0';
+    return f[0] == want && f[1] == '\0';
+}
+
+/* a C-contiguous buffer of at least n items of format `fmt` ('d', 'q', '?'), or -1 with TypeError */
+static int sc_get(PyObject *obj, Py_ssize_t n, char fmt, Py_ssize_t itemsize, int writable, Py_buffer *view,
+                  const char *what)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
+        return -1;
+    }
+    if (!sc_is_format(view, fmt, itemsize) || view->len < n * itemsize) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs at least %zd items of format '%c'", what, n, fmt);
+        return -1;
+    }
+    return 0;
+}
+
+static int sc_doubles(PyObject *obj, Py_ssize_t n, int writable, Py_buffer *view, const char *what)
+{
+    return sc_get(obj, n, 'd', (Py_ssize_t)sizeof(double), writable, view, what);
+}
+
+/* n float64 items of a buffer of any strides (a view such as a column of a matrix) into out */
+static int sc_copy_doubles(PyObject *obj, int n, double *out, const char *what)
+{
+    Py_buffer v;
+    Py_ssize_t total = 1, idx[3] = {0, 0, 0};
+    int i, d;
+    if (PyObject_GetBuffer(obj, &v, PyBUF_RECORDS_RO) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a float64 buffer", what);
+        return -1;
+    }
+    for (d = 0; d < v.ndim; ++d)
+        total *= v.shape[d];
+    if (!sc_is_format(&v, 'd', (Py_ssize_t)sizeof(double)) || v.ndim < 1 || v.ndim > 3 || total != n) {
+        PyBuffer_Release(&v);
+        PyErr_Format(PyExc_TypeError, "%s: needs %d float64 items", what, n);
+        return -1;
+    }
+    for (i = 0; i < n; ++i) {
+        const char *ptr = (const char *)v.buf;
+        for (d = 0; d < v.ndim; ++d)
+            ptr += idx[d] * v.strides[d];
+        memcpy(&out[i], ptr, sizeof(double));
+        for (d = v.ndim - 1; d >= 0; --d) {       /* row-major odometer */
+            if (++idx[d] < v.shape[d])
+                break;
+            idx[d] = 0;
+        }
+    }
+    PyBuffer_Release(&v);
+    return 0;
+}
+
+static int sc_double(PyObject *o, double *x)
+{
+    *x = PyFloat_AsDouble(o);
+    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+}
+
+static int sc_int(PyObject *o, long lo, long hi, long *x, const char *what)
+{
+    *x = PyLong_AsLong(o);
+    if (*x == -1 && PyErr_Occurred())
+        return -1;
+    if (*x < lo || *x > hi) {
+        PyErr_Format(PyExc_ValueError, "%s must be in %ld..%ld, got %ld", what, lo, hi, *x);
+        return -1;
+    }
+    return 0;
+}
+
+static int sc_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (nargs != want) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
+        return -1;
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------ SchepersCore */
+/* the float64 arrays bound, in this order, with their sizes (N: nx, C: nc) */
+enum { SC_P3, SC_V, SC_R, SC_BA, SC_BG, SC_F3, SC_W, SC_AP, SC_GP, SC_PP, SC_FF, SC_TT, SC_Q, SC_FC, SC_PC, SC_TC,
+       SC_QC, SC_E, SC_R2, SC_DR, SC_FREF, SC_CLP, SC_CLR, SC_ND };
+static const char *sc_names[SC_ND] = {"p", "v", "R", "ba", "bg", "f", "w", "acc_prev", "gyr_prev", "P", "F", "T",
+                                      "q", "Fc", "Pc", "Tc", "qc", "E", "R2", "dR", "fref", "clone_p", "clone_R"};
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_sc s;
+    Py_buffer views[SC_ND + 3];
+    int nviews;
+} SchepersCoreObject;
+
+static void SchepersCore_release(SchepersCoreObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void SchepersCore_dealloc(SchepersCoreObject *self)
+{
+    SchepersCore_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static Py_ssize_t sc_len(int i, Py_ssize_t nx, Py_ssize_t nc)
+{
+    switch (i) {
+    case SC_R: case SC_E: case SC_R2: case SC_DR:
+        return 9;
+    case SC_PP: case SC_FF: case SC_TT:
+        return nx * nx;
+    case SC_Q:
+        return nx;
+    case SC_FC: case SC_PC: case SC_TC:
+        return CT_SC_CORE * CT_SC_CORE;
+    case SC_QC:
+        return CT_SC_CORE;
+    case SC_CLP:
+        return nc * 3;
+    case SC_CLR:
+        return nc * 9;
+    default:
+        return 3;
+    }
+}
+
+/* SchepersCore(nx, nc, arrays, clone_t, clone_due, clone_taken, cp, co, qa, qpos, qg, qba, qbg) */
+static int SchepersCore_init(SchepersCoreObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"nx", "nc", "arrays", "clone_t", "clone_due", "clone_taken", "cp", "co", "qa",
+                             "qpos", "qg", "qba", "qbg", NULL};
+    PyObject *arrays, *ct, *cd, *ck, *cp, *co;
+    double *ptr[SC_ND];
+    int nx, nc, i;
+    struct ct_sc *s = &self->s;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiO!OOOO!O!ddddd", kwlist, &nx, &nc, &PyTuple_Type, &arrays, &ct,
+                                     &cd, &ck, &PyTuple_Type, &cp, &PyTuple_Type, &co, &s->qa, &s->qpos, &s->qg,
+                                     &s->qba, &s->qbg))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "SchepersCore: already bound");
+        return -1;
+    }
+    if (nc < 0 || nc > CT_SC_MAX_CLONES || nx < CT_SC_CORE + 6 * nc || nx > 256 || PyTuple_GET_SIZE(arrays) != SC_ND ||
+        PyTuple_GET_SIZE(cp) != nc || PyTuple_GET_SIZE(co) != nc) {
+        PyErr_Format(PyExc_ValueError, "SchepersCore: nc in 0..%d, nx in 15+6nc..256, %d arrays and nc clone rows",
+                     CT_SC_MAX_CLONES, SC_ND);
+        return -1;
+    }
+    for (i = 0; i < nc; ++i) {
+        long a, b;
+        if (sc_int(PyTuple_GET_ITEM(cp, i), CT_SC_CORE, nx - 3, &a, "cp") < 0 ||
+            sc_int(PyTuple_GET_ITEM(co, i), CT_SC_CORE, nx - 3, &b, "co") < 0)
+            return -1;
+        s->cp[i] = (int)a;
+        s->co[i] = (int)b;
+    }
+    for (i = 0; i < SC_ND; ++i) {
+        if (sc_doubles(PyTuple_GET_ITEM(arrays, i), sc_len(i, nx, nc), i != SC_FREF, &self->views[i], sc_names[i]) < 0) {
+            SchepersCore_release(self);
+            return -1;
+        }
+        self->nviews = i + 1;
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    if (sc_get(ct, nc, 'q', 8, 0, &self->views[SC_ND], "clone_t") < 0) {
+        SchepersCore_release(self);
+        return -1;
+    }
+    self->nviews = SC_ND + 1;
+    if (sc_get(cd, nc, '?', 1, 1, &self->views[SC_ND + 1], "clone_due") < 0) {
+        SchepersCore_release(self);
+        return -1;
+    }
+    self->nviews = SC_ND + 2;
+    if (sc_get(ck, nc, '?', 1, 1, &self->views[SC_ND + 2], "clone_taken") < 0) {
+        SchepersCore_release(self);
+        return -1;
+    }
+    self->nviews = SC_ND + 3;
+    s->nx = nx;
+    s->nc = nc;
+    s->p = ptr[SC_P3];
+    s->v = ptr[SC_V];
+    s->R = ptr[SC_R];
+    s->ba = ptr[SC_BA];
+    s->bg = ptr[SC_BG];
+    s->f = ptr[SC_F3];
+    s->w = ptr[SC_W];
+    s->acc_prev = ptr[SC_AP];
+    s->gyr_prev = ptr[SC_GP];
+    s->P = ptr[SC_PP];
+    s->F = ptr[SC_FF];
+    s->T = ptr[SC_TT];
+    s->q = ptr[SC_Q];
+    s->Fc = ptr[SC_FC];
+    s->Pc = ptr[SC_PC];
+    s->Tc = ptr[SC_TC];
+    s->qc = ptr[SC_QC];
+    s->E = ptr[SC_E];
+    s->R2 = ptr[SC_R2];
+    s->dR = ptr[SC_DR];
+    s->fref = ptr[SC_FREF];
+    s->cl_p = ptr[SC_CLP];
+    s->cl_R = ptr[SC_CLR];
+    s->cl_t = (int64_t *)self->views[SC_ND].buf;
+    s->cl_due = (uint8_t *)self->views[SC_ND + 1].buf;
+    s->cl_taken = (uint8_t *)self->views[SC_ND + 2].buf;
+    s->steps = 0;
+    return 0;
+}
+
+static int sc_ready(SchepersCoreObject *self)
+{
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "SchepersCore: not bound");
+        return -1;
+    }
+    return 0;
+}
+
+/* propagate(t0, t_us, acc, gyr, initialized) */
+static PyObject *SchepersCore_propagate(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long t0, t1;
+    double acc[3], gyr[3];
+    int init;
+    if (sc_ready(self) < 0 || sc_nargs("propagate", nargs, 5) < 0)
+        return NULL;
+    t0 = PyLong_AsLongLong(args[0]);
+    t1 = PyLong_AsLongLong(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    if (sc_copy_doubles(args[2], 3, acc, "acc") < 0 || sc_copy_doubles(args[3], 3, gyr, "gyr") < 0)
+        return NULL;
+    if ((init = PyObject_IsTrue(args[4])) < 0)
+        return NULL;
+    if (t1 <= t0) {
+        PyErr_SetString(PyExc_ValueError, "propagate: t_us must be after the filter's time");
+        return NULL;
+    }
+    ct_sc_propagate(&self->s, (int64_t)t0, (int64_t)t1, acc, gyr, init);
+    Py_RETURN_NONE;
+}
+
+/* step(dt, initialized) */
+static PyObject *SchepersCore_step(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double dt;
+    int init;
+    if (sc_ready(self) < 0 || sc_nargs("step", nargs, 2) < 0 || sc_double(args[0], &dt) < 0)
+        return NULL;
+    if ((init = PyObject_IsTrue(args[1])) < 0)
+        return NULL;
+    ct_sc_step(&self->s, dt, init);
+    Py_RETURN_NONE;
+}
+
+/* build_F(F, q, dt): F a square float64 array (n x n, n >= 15) of any strides' owner, q >= 15 */
+static PyObject *SchepersCore_build_F(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer fv, qv;
+    double dt;
+    Py_ssize_t n;
+    if (sc_ready(self) < 0 || sc_nargs("build_F", nargs, 3) < 0 || sc_double(args[2], &dt) < 0)
+        return NULL;
+    if (sc_doubles(args[0], CT_SC_CORE * CT_SC_CORE, 1, &fv, "F") < 0)
+        return NULL;
+    if (fv.ndim != 2 || fv.shape[0] != fv.shape[1] || fv.shape[0] < CT_SC_CORE) {
+        PyBuffer_Release(&fv);
+        PyErr_SetString(PyExc_TypeError, "F: needs a square (n, n) float64 array, n >= 15");
+        return NULL;
+    }
+    n = fv.shape[0];
+    if (sc_doubles(args[1], CT_SC_CORE, 1, &qv, "q") < 0) {
+        PyBuffer_Release(&fv);
+        return NULL;
+    }
+    ct_sc_build_F(&self->s, (double *)fv.buf, (int)n, (double *)qv.buf, dt);
+    PyBuffer_Release(&qv);
+    PyBuffer_Release(&fv);
+    Py_RETURN_NONE;
+}
+
+/* predict_pose(T, n, P6, pp) */
+static PyObject *SchepersCore_predict_pose(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv, ppv;
+    double T;
+    long n;
+    if (sc_ready(self) < 0 || sc_nargs("predict_pose", nargs, 4) < 0 || sc_double(args[0], &T) < 0 ||
+        sc_int(args[1], 1, 1L << 30, &n, "steps") < 0)
+        return NULL;
+    if (sc_doubles(args[2], 36, 1, &pv, "P6") < 0)
+        return NULL;
+    if (sc_doubles(args[3], 3, 1, &ppv, "pp") < 0) {
+        PyBuffer_Release(&pv);
+        return NULL;
+    }
+    ct_sc_predict_pose(&self->s, T, (int)n, (double *)pv.buf, (double *)ppv.buf);
+    PyBuffer_Release(&ppv);
+    PyBuffer_Release(&pv);
+    Py_RETURN_NONE;
+}
+
+/* take_clone(k, initialized), release_clone(k) */
+static PyObject *SchepersCore_take_clone(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long k;
+    int init;
+    if (sc_ready(self) < 0 || sc_nargs("take_clone", nargs, 2) < 0 || sc_int(args[0], 0, self->s.nc - 1, &k, "k") < 0)
+        return NULL;
+    if ((init = PyObject_IsTrue(args[1])) < 0)
+        return NULL;
+    ct_sc_take_clone(&self->s, (int)k, init);
+    Py_RETURN_NONE;
+}
+
+static PyObject *SchepersCore_release_clone(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long k;
+    if (sc_ready(self) < 0 || sc_nargs("release_clone", nargs, 1) < 0 ||
+        sc_int(args[0], 0, self->s.nc - 1, &k, "k") < 0)
+        return NULL;
+    ct_sc_release_clone(&self->s, (int)k);
+    Py_RETURN_NONE;
+}
+
+/* inject(dx) */
+static PyObject *SchepersCore_inject(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer dv;
+    if (sc_ready(self) < 0 || sc_nargs("inject", nargs, 1) < 0)
+        return NULL;
+    if (sc_doubles(args[0], self->s.nx, 0, &dv, "dx") < 0)
+        return NULL;
+    ct_sc_inject(&self->s, (const double *)dv.buf);
+    PyBuffer_Release(&dv);
+    Py_RETURN_NONE;
+}
+
+/* steps(): the strapdown steps taken (SchepersEKF._steps) */
+static PyObject *SchepersCore_steps(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (sc_ready(self) < 0 || sc_nargs("steps", nargs, 0) < 0)
+        return NULL;
+    return PyLong_FromLongLong((long long)self->s.steps);
+}
+
+#define SC_METH(name, doc) {#name, (PyCFunction)(void (*)(void))SchepersCore_##name, METH_FASTCALL, doc}
+static PyMethodDef SchepersCore_methods[] = {
+    SC_METH(propagate, "propagate(t0, t_us, acc, gyr, initialized): SchepersEKF.propagate from t0 < t_us"),
+    SC_METH(step, "step(dt, initialized): SchepersEKF._step"),
+    SC_METH(build_F, "build_F(F, q, dt): SchepersEKF._build_F into a square F and q"),
+    SC_METH(predict_pose, "predict_pose(T, steps, P6, pp): SchepersEKF.predict_pose over T seconds"),
+    SC_METH(take_clone, "take_clone(k, initialized): PoseClones.take"),
+    SC_METH(release_clone, "release_clone(k): PoseClones.release"),
+    SC_METH(inject, "inject(dx): SchepersEKF._inject with PoseClones.inject"),
+    SC_METH(steps, "steps(): the strapdown steps taken"),
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SchepersCoreType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SchepersCore",
+    .tp_basicsize = sizeof(SchepersCoreObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SchepersCore(nx, nc, arrays, clone_t, clone_due, clone_taken, cp, co, qa, qpos, qg, qba, qbg): "
+              "one single-coil EKF's kernels bound to its arrays (estimate.single_coil)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SchepersCore_init,
+    .tp_dealloc = (destructor)SchepersCore_dealloc,
+    .tp_methods = SchepersCore_methods,
+};
+
+/* ---------------------------------------------------- SingleCoilUpdateCore */
+enum { SU_H, SU_R, SU_Y, SU_UDX, SU_PHT, SU_S, SU_YP, SU_P0, SU_PPREV, SU_DX, SU_PI, SU_RI, SU_HDX, SU_DR, SU_ST,
+       SU_N };
+static const char *su_names[SU_N] = {"H", "R", "y", "udx", "PHt", "S", "y_pred", "P0", "Pprev", "dx", "pi", "Ri",
+                                     "Hdx", "dR", "st"};
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_scu u;
+    Py_buffer views[SU_N];
+    int nviews;
+} SCUpdateObject;
+
+static void SCUpdate_release(SCUpdateObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void SCUpdate_dealloc(SCUpdateObject *self)
+{
+    SCUpdate_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* SingleCoilUpdateCore(nx, arrays) */
+static int SCUpdate_init(SCUpdateObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"nx", "arrays", NULL};
+    PyObject *arrays;
+    double *ptr[SU_N];
+    int nx, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iO!", kwlist, &nx, &PyTuple_Type, &arrays))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "SingleCoilUpdateCore: already bound");
+        return -1;
+    }
+    if (nx < CT_SC_CORE || nx > 256 || PyTuple_GET_SIZE(arrays) != SU_N) {
+        PyErr_Format(PyExc_ValueError, "SingleCoilUpdateCore: nx in 15..256 and %d arrays", SU_N);
+        return -1;
+    }
+    for (i = 0; i < SU_N; ++i) {
+        Py_ssize_t len;
+        switch (i) {
+        case SU_H: case SU_PHT: len = 3 * (Py_ssize_t)nx; break;
+        case SU_R: case SU_S: case SU_RI: case SU_DR: len = 9; break;
+        case SU_UDX: case SU_DX: len = nx; break;
+        case SU_P0: case SU_PPREV: len = (Py_ssize_t)nx * nx; break;
+        case SU_ST: len = CT_SCU_NST; break;
+        default: len = 3;
+        }
+        if (sc_doubles(PyTuple_GET_ITEM(arrays, i), len, i != SU_UDX, &self->views[i], su_names[i]) < 0) {
+            SCUpdate_release(self);
+            return -1;
+        }
+        self->nviews = i + 1;
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    self->u.nx = nx;
+    self->u.H = ptr[SU_H];
+    self->u.R = ptr[SU_R];
+    self->u.y = ptr[SU_Y];
+    self->u.udx = ptr[SU_UDX];
+    self->u.PHt = ptr[SU_PHT];
+    self->u.S = ptr[SU_S];
+    self->u.y_pred = ptr[SU_YP];
+    self->u.P0 = ptr[SU_P0];
+    self->u.Pprev = ptr[SU_PPREV];
+    self->u.dx = ptr[SU_DX];
+    self->u.pi = ptr[SU_PI];
+    self->u.Ri = ptr[SU_RI];
+    self->u.Hdx = ptr[SU_HDX];
+    self->u.dR = ptr[SU_DR];
+    self->u.st = ptr[SU_ST];
+    return 0;
+}
+
+static int su_ready(SCUpdateObject *self)
+{
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "SingleCoilUpdateCore: not bound");
+        return -1;
+    }
+    return 0;
+}
+
+/* the coil's rows of the model (h (n, 3), H (n, 3, 6), centres (n, 3)) into m; views released by
+ * the caller (3 of them, in hv) */
+static int su_model(PyObject *h, PyObject *H, PyObject *centres, long coil, Py_buffer *hv, struct ct_scm *m)
+{
+    Py_ssize_t n;
+    if (sc_doubles(h, 3, 0, &hv[0], "h") < 0)
+        return -1;
+    n = hv[0].len / (Py_ssize_t)(3 * sizeof(double));
+    if (coil < 0 || coil >= n) {
+        PyBuffer_Release(&hv[0]);
+        PyErr_Format(PyExc_ValueError, "coil must be in 0..%zd, got %ld", n - 1, coil);
+        return -1;
+    }
+    if (sc_doubles(H, 18 * n, 0, &hv[1], "H") < 0) {
+        PyBuffer_Release(&hv[0]);
+        return -1;
+    }
+    if (centres != NULL && sc_doubles(centres, 3 * n, 0, &hv[2], "centres") < 0) {
+        PyBuffer_Release(&hv[0]);
+        PyBuffer_Release(&hv[1]);
+        return -1;
+    }
+    m->h = (const double *)hv[0].buf + 3 * coil;
+    m->Hu = (const double *)hv[1].buf + 18 * coil;
+    m->centre = centres != NULL ? (const double *)hv[2].buf + 3 * coil : NULL;
+    return 0;
+}
+
+static void su_model_release(Py_buffer *hv, int with_centres)
+{
+    PyBuffer_Release(&hv[0]);
+    PyBuffer_Release(&hv[1]);
+    if (with_centres)
+        PyBuffer_Release(&hv[2]);
+}
+
+/* the clone rows cp, co of an nx-state filter */
+static int su_rows(SCUpdateObject *self, PyObject *a, PyObject *b, long *cp, long *co)
+{
+    return (sc_int(a, 0, self->u.nx - 3, cp, "cp") < 0 || sc_int(b, 0, self->u.nx - 3, co, "co") < 0) ? -1 : 0;
+}
+
+/* begin(P, p, R, cp, co, h, H, centres, coil, y, var, current, rel_model, r_scale) */
+static PyObject *SCUpdate_begin(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv, hv[3];
+    double p[3], R[9], y[3], var[3];
+    long cp, co, coil;
+    struct ct_scm m;
+    if (su_ready(self) < 0 || sc_nargs("begin", nargs, 14) < 0 || su_rows(self, args[3], args[4], &cp, &co) < 0 ||
+        sc_int(args[8], 0, 1L << 20, &coil, "coil") < 0)
+        return NULL;
+    if (sc_copy_doubles(args[1], 3, p, "p") < 0 || sc_copy_doubles(args[2], 9, R, "R") < 0 ||
+        sc_copy_doubles(args[9], 3, y, "y") < 0 || sc_copy_doubles(args[10], 3, var, "var") < 0 ||
+        sc_double(args[11], &m.current) < 0 || sc_double(args[12], &m.rel_model) < 0 ||
+        sc_double(args[13], &m.r_scale) < 0)
+        return NULL;
+    m.y = y;
+    m.var = var;
+    if (su_model(args[5], args[6], args[7], coil, hv, &m) < 0)
+        return NULL;
+    if (sc_doubles(args[0], (Py_ssize_t)self->u.nx * self->u.nx, 1, &pv, "P") < 0) {
+        su_model_release(hv, 1);
+        return NULL;
+    }
+    ct_scu_begin(&self->u, (double *)pv.buf, p, R, (int)cp, (int)co, &m);
+    PyBuffer_Release(&pv);
+    su_model_release(hv, 1);
+    Py_RETURN_NONE;
+}
+
+/* again(it, P, cp, co, h, H, coil, y, current): y_pred and pass it (> 0) at the model just evaluated */
+static PyObject *SCUpdate_again(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv, hv[3];
+    double y[3];
+    long it, cp, co, coil;
+    struct ct_scm m;
+    if (su_ready(self) < 0 || sc_nargs("again", nargs, 9) < 0 || sc_int(args[0], 1, 1L << 20, &it, "it") < 0 ||
+        su_rows(self, args[2], args[3], &cp, &co) < 0 || sc_int(args[6], 0, 1L << 20, &coil, "coil") < 0)
+        return NULL;
+    if (sc_copy_doubles(args[7], 3, y, "y") < 0 || sc_double(args[8], &m.current) < 0)
+        return NULL;
+    m.y = y;
+    m.var = NULL;
+    m.rel_model = 0.0;
+    m.r_scale = 1.0;
+    if (su_model(args[4], args[5], NULL, coil, hv, &m) < 0)
+        return NULL;
+    if (sc_doubles(args[1], (Py_ssize_t)self->u.nx * self->u.nx, 1, &pv, "P") < 0) {
+        su_model_release(hv, 0);
+        return NULL;
+    }
+    ct_scu_predict(&self->u, &m);
+    ct_scu_pass(&self->u, (int)it, (double *)pv.buf, (int)cp, (int)co, &m);
+    PyBuffer_Release(&pv);
+    su_model_release(hv, 0);
+    Py_RETURN_NONE;
+}
+
+/* after(it, flags, iterations, P, p, R, cp, co, var) -> bool: another pass follows */
+static PyObject *SCUpdate_after(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    double p[3], R[9], var[3];
+    long it, flags, iters, cp, co;
+    int more;
+    if (su_ready(self) < 0 || sc_nargs("after", nargs, 9) < 0 || sc_int(args[0], 0, 1L << 20, &it, "it") < 0 ||
+        sc_int(args[1], 0, 1L << 20, &flags, "flags") < 0 || sc_int(args[2], 1, 1L << 20, &iters, "iterations") < 0 ||
+        su_rows(self, args[6], args[7], &cp, &co) < 0)
+        return NULL;
+    if (sc_copy_doubles(args[4], 3, p, "p") < 0 || sc_copy_doubles(args[5], 9, R, "R") < 0 ||
+        sc_copy_doubles(args[8], 3, var, "var") < 0)
+        return NULL;
+    if (sc_doubles(args[3], (Py_ssize_t)self->u.nx * self->u.nx, 1, &pv, "P") < 0)
+        return NULL;
+    more = ct_scu_after(&self->u, (int)it, (int)flags, (int)iters, (double *)pv.buf, p, R, (int)cp, (int)co, var);
+    PyBuffer_Release(&pv);
+    return PyBool_FromLong(more);
+}
+
+#define SU_METH(name, doc) {#name, (PyCFunction)(void (*)(void))SCUpdate_##name, METH_FASTCALL, doc}
+static PyMethodDef SCUpdate_methods[] = {
+    SU_METH(begin, "begin(P, p, R, cp, co, h, H, centres, coil, y, var, current, rel_model, r_scale): "
+                   "SingleCoilUpdate.run up to the first pass's shared update"),
+    SU_METH(again, "again(it, P, cp, co, h, H, coil, y, current): pass it up to its shared update"),
+    SU_METH(after, "after(it, flags, iterations, P, p, R, cp, co, var) -> bool: keep pass it, another pass?"),
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SCUpdateType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SingleCoilUpdateCore",
+    .tp_basicsize = sizeof(SCUpdateObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SingleCoilUpdateCore(nx, arrays): the single-coil update's passes bound to its buffers "
+              "(estimate.single_coil_update)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SCUpdate_init,
+    .tp_dealloc = (destructor)SCUpdate_dealloc,
+    .tp_methods = SCUpdate_methods,
+};
+
+/* ------------------------------------------------------------------ module */
+int ct_register_single_coil(PyObject *m)
+{
+    if (PyType_Ready(&SchepersCoreType) < 0 || PyType_Ready(&SCUpdateType) < 0)
+        return -1;
+    Py_INCREF(&SchepersCoreType);
+    if (PyModule_AddObject(m, "SchepersCore", (PyObject *)&SchepersCoreType) < 0) {
+        Py_DECREF(&SchepersCoreType);
+        return -1;
+    }
+    Py_INCREF(&SCUpdateType);
+    if (PyModule_AddObject(m, "SingleCoilUpdateCore", (PyObject *)&SCUpdateType) < 0) {
+        Py_DECREF(&SCUpdateType);
+        return -1;
+    }
+    if (PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
+        PyModule_AddIntConstant(m, "SC_NIS_NOMINAL", CT_SCU_NIS_NOMINAL) < 0)
+        return -1;
+    return 0;
+}
