@@ -18,14 +18,6 @@ setup(
                      *sorted(glob(f"{CORE}/py_*.c"))],
             include_dirs=[f"{CORE}/include"],
             depends=sorted(glob(f"{CORE}/include/*.h")),
-=======
-                     f"{CORE}/py_single_coil.c",
-                     f"{CORE}/src/single_coil.c",
-                     *(f"{CORE}/src/{name}.c" for name in ("field", "signal", "ekf", "strapdown", "orientation", "lm", "linalg_gen", "frame", "imu"))],
-            include_dirs=[f"{CORE}/include"],
-            depends=[f"{CORE}/include/coiltrack_core.h",
-                     f"{CORE}/include/ct_single_coil.h"],
->>>>>>> s4-single
             # no fused multiply-adds: the results must not depend on the compiler's choice
             # (it fuses by default on aarch64 and with -march=native); C99 as on the board
             extra_compile_args=["-O2", "-ffp-contract=off", "-std=c99"],

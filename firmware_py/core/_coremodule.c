@@ -15,8 +15,6 @@
 
 #define CT_MAX_COILS 64
 
-int ct_register_fusimu(PyObject *m);
-int ct_register_fusion(PyObject *m);
 
 /* ------------------------------------------------------------------ buffers */
 static int is_double_format(const Py_buffer *v)
@@ -1143,10 +1141,17 @@ static struct PyModuleDef core_module = {
     "The compiled core of the coiltrack firmware (C99 kernels; the Python modules are the reference).",
     -1, core_methods, NULL, NULL, NULL, NULL};
 
-int ct_register_window(PyObject *m);   /* py_window.c */
+/* each area's glue (py_<area>.c) adds its types and constants to the module */
+int ct_register_window(PyObject *m);
+int ct_register_fusimu(PyObject *m);
+int ct_register_fusion(PyObject *m);
 int ct_register_ac(PyObject *m);
 int ct_register_rxdecode(PyObject *m);
 int ct_register_single_coil(PyObject *m);
+static int (*const AREAS[])(PyObject *) = {
+    ct_register_window, ct_register_fusimu, ct_register_fusion, ct_register_ac, ct_register_rxdecode,
+    ct_register_single_coil,
+};
 
 PyMODINIT_FUNC PyInit__core(void)
 {
@@ -1216,10 +1221,6 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (ct_register_window(m) < 0) {
-        Py_DECREF(m);
-        return NULL;
-    }
     if (PyModule_AddIntConstant(m, "COIL_STRIDE", CT_COIL_STRIDE) < 0 ||
         PyModule_AddIntConstant(m, "KIND_LOOP", CT_KIND_LOOP) < 0 ||
         PyModule_AddIntConstant(m, "KIND_LOOP_AXES", CT_KIND_LOOP_AXES) < 0 ||
@@ -1228,9 +1229,11 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
-    if (ct_register_fusimu(m) < 0 || ct_register_fusion(m) < 0 || ct_register_ac(m) < 0 || ct_register_rxdecode(m) < 0 || ct_register_single_coil(m) < 0) {
-        Py_DECREF(m);
-        return NULL;
+    for (size_t i = 0; i < sizeof AREAS / sizeof AREAS[0]; i++) {
+        if (AREAS[i](m) < 0) {
+            Py_DECREF(m);
+            return NULL;
+        }
     }
     return m;
 }

@@ -180,11 +180,11 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
 #include "ct_window.h"
 #include "ct_ac.h"
 #include "ct_rxdecode.h"
+#include "ct_single_coil.h"
 
 #ifdef __cplusplus
 }
 #endif
 
-#include "ct_single_coil.h"
 
 #endif /* COILTRACK_CORE_H */

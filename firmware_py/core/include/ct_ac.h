@@ -16,8 +16,7 @@ enum { CT_DM_T0 = 0, CT_DM_REF = 1, CT_DM_NEXT_K = 2, CT_DM_LAST_T = 3, CT_DM_ST
        CT_DM_PENDING = 6, CT_DM_BLOCK_K = 7, CT_DM_BLOCK_FLAGS = 8, CT_DM_BLOCK_SAMPLES = 9, CT_DM_NST = 10 };
 /* its results besides S, Q, var, qvar, dc: a float64 array out[CT_DMO_N] */
 enum { CT_DMO_RESID = 0, CT_DMO_SIGNAL_CHI2 = 1, CT_DMO_QUAD_CHI2 = 2, CT_DMO_QUAD_RATIO = 3, CT_DMO_N = 4 };
-/* measure.pulse's flag bits the demodulator sets */
-enum { CT_PULSE_TOO_FEW = 1, CT_PULSE_SATURATED = 2, CT_SAMPLE_SATURATED = 1 };
+/* measure.pulse's flag bits the demodulator sets (CT_PULSE_*, CT_SAMPLE_*): ct_window.h */
 
 /* one demodulator's caller-owned buffers (n coils, p = 2 + 2 n unknowns, `slots` block accumulators) */
 struct ct_demod {

@@ -77,9 +77,7 @@ enum {
 enum { CT_RFO_DT_LAST = 0, CT_RFO_KA, CT_RFO_KG, CT_RFO_N };     /* InsState.dt_last, ka, kg */
 /* what ct_fusion_replay stopped at */
 enum { CT_REPLAY_CAUGHT_UP = 0, CT_REPLAY_BUDGET = 1, CT_REPLAY_LOST = 2, CT_REPLAY_SNAPSHOT = 3 };
-/* IMU ring row (fusion_state.IMU_FIELDS) and pose-history row (HIST_FIELDS) */
-enum { CT_IMU_F = 0, CT_IMU_W = 3, CT_IMU_FSRC = 6, CT_IMU_PHI = 9, CT_IMU_WIDTH = 18 };
-enum { CT_HIST_P = 0, CT_HIST_R = 3, CT_HIST_WIDTH = 12 };
+/* the IMU ring's row (CT_IMU_*) and the pose-history row (CT_HIST_*): ct_fusimu.h */
 struct ct_replay {
     struct ct_ins ins;              /* the shadow's strapdown and covariance step (strapdown.c) */
     double *Qd;                     /* = ins.Q, written by set_dt's diagonal */
