@@ -39,8 +39,9 @@ static int fu_get(PyObject *obj, Py_ssize_t n, int writable, int int64, Py_buffe
     return 0;
 }
 
-/* n doubles of a small argument (a float64 array of any strides and at most 2 dimensions, or a
- * sequence of numbers or of sequences of numbers) into out[n], row-major */
+/* n doubles of a small argument (a float64 array of any strides and at most 2 dimensions, read in
+ * place; else a sequence of numbers or of sequences of numbers, an integer array too) into out[n],
+ * row-major */
 static int fu_small(PyObject *obj, Py_ssize_t n, double *out, const char *what)
 {
     Py_buffer v;
@@ -53,9 +54,9 @@ static int fu_small(PyObject *obj, Py_ssize_t n, double *out, const char *what)
         if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
             f++;
         if (f == NULL || f[0] != 'd' || f[1] != '\0' || v.itemsize != 8 || v.ndim > 2 || v.len != n * 8) {
+            /* another item type or shape: read it as numbers below (slow, not the firmware's path) */
             PyBuffer_Release(&v);
-            PyErr_Format(PyExc_TypeError, "%s: needs %zd float64 items", what, n);
-            return -1;
+            goto numbers;
         }
         if (v.ndim == 0) {
             memcpy(out, v.buf, 8);
@@ -70,6 +71,7 @@ static int fu_small(PyObject *obj, Py_ssize_t n, double *out, const char *what)
         PyBuffer_Release(&v);
         return 0;
     }
+numbers:
     {
         PyObject *seq = PySequence_Fast(obj, what);
         Py_ssize_t len;
@@ -78,7 +80,7 @@ static int fu_small(PyObject *obj, Py_ssize_t n, double *out, const char *what)
         len = PySequence_Fast_GET_SIZE(seq);
         for (i = 0; i < len; ++i) {
             PyObject *it = PySequence_Fast_GET_ITEM(seq, i);
-            if (PyFloat_Check(it) || PyLong_Check(it)) {
+            if (!PySequence_Check(it)) {             /* a number (a numpy scalar too) */
                 if (k >= n)
                     break;
                 out[k++] = PyFloat_AsDouble(it);

@@ -48,37 +48,41 @@ class CompiledReplay:
                               self.imu.t, self.imu.d, hist.t, hist.d, self._io, self._fo, frame.fixed,
                               prediction._dtk, SYMMETRIZE_EVERY)
         self.units = 0
+        self._idx = (ext.RIO_T, ext.RIO_IMU_FIRST, ext.RIO_IMU_COUNT, ext.RIO_HIST_FIRST, ext.RIO_HIST_COUNT,
+                     ext.RIO_HIST_PUSHED, ext.RIO_SNAP_PENDING, ext.RIO_SNAP_T, ext.RIO_UNITS, ext.RIO_PRED_COUNT,
+                     ext.RIO_STEPS, ext.RIO_SPLIT, ext.RFO_DT_LAST, ext.RFO_KA, ext.RFO_KG, ext.REPLAY_SNAPSHOT)
 
     def run(self, budget: int) -> int:
         """Replay on the shadow, at most ``budget`` strapdown steps started (a sample split at a
         snapshot finishes), as ``FusionFilter.step``'s loop does; the kernel's stop."""
-        ext = self.ext
+        T, IF, IC, HF, HC, HP, SP, ST, U, PC, STEPS, SPLIT, DT, KA, KG, SNAPSHOT = self._idx
         io, fo = self._iov, self._fov
         sh, imu, hist, snap, pr = self.sh, self.imu, self.hist, self.snap, self.pr
-        io[ext.RIO_UNITS] = 0
-        io[ext.RIO_SPLIT] = -1
+        pred = sh.pred
+        io[U] = 0
+        io[SPLIT] = -1
         while True:
-            io[ext.RIO_T] = sh.t_us
-            io[ext.RIO_IMU_FIRST] = imu.slot(0)
-            io[ext.RIO_IMU_COUNT] = len(imu)
-            io[ext.RIO_HIST_FIRST] = hist.slot(0)
-            io[ext.RIO_HIST_COUNT] = len(hist)
-            io[ext.RIO_SNAP_PENDING] = 1 if snap.pending else 0
-            io[ext.RIO_SNAP_T] = snap.t
-            io[ext.RIO_PRED_COUNT] = sh.pred.count
-            fo[ext.RFO_DT_LAST] = sh.dt_last
-            fo[ext.RFO_KA] = sh.ka
-            fo[ext.RFO_KG] = sh.kg
+            io[T] = sh.t_us
+            io[IF] = imu.slot(0)
+            io[IC] = len(imu)
+            io[HF] = hist.slot(0)
+            io[HC] = len(hist)
+            io[SP] = 1 if snap.pending else 0
+            io[ST] = snap.t
+            io[PC] = pred.count
+            fo[DT] = sh.dt_last
+            fo[KA] = sh.ka
+            fo[KG] = sh.kg
             rc = self._ck.replay(budget)
-            sh.set_time(io[ext.RIO_T])
-            sh.set_step(fo[ext.RFO_DT_LAST], fo[ext.RFO_KA], fo[ext.RFO_KG])
-            sh.pred.set_count(io[ext.RIO_PRED_COUNT])
-            hist.advance(io[ext.RIO_HIST_PUSHED])
-            pr.add_steps(io[ext.RIO_STEPS])
-            if rc != ext.REPLAY_SNAPSHOT:
+            sh.set_time(io[T])
+            sh.set_step(fo[DT], fo[KA], fo[KG])
+            pred.set_count(io[PC])
+            hist.advance(io[HP])
+            pr.add_steps(io[STEPS])
+            if rc != SNAPSHOT:
                 break
             # FusionFilter._advance: the shadow (the authoritative state in a replay) at the
             # snapshot's instant is kept, then the kernel resumes with the rest of the sample
-            snap.take(sh, pr._idv, io[ext.RIO_SPLIT])
-        self.units = io[ext.RIO_UNITS]
+            snap.take(sh, pr._idv, io[SPLIT])
+        self.units = io[U]
         return rc

@@ -127,8 +127,8 @@ def test_evaluate_matches_the_reference_and_scipy(model):
 
 
 def test_evaluate_takes_arrays_lists_and_transposed_views():
-    """The solution may come as any float64 array (a transposed view too) or as nested lists:
-    the same result; a wrong size is refused with a message naming the argument."""
+    """The solution may come as any float64 array (a transposed view too), an integer array or
+    nested lists: the same result; a wrong size is refused with a message naming the argument."""
     rng = np.random.default_rng(47)
     _, got = _pair(3)
     Th, Phi = _random_rotation(rng), _random_rotation(rng)
@@ -140,6 +140,11 @@ def test_evaluate_takes_arrays_lists_and_transposed_views():
         got._evaluate(*args)
         np.testing.assert_array_equal(got.upd.y, y0)
         np.testing.assert_array_equal(got.sh.P, P0)
+    qi = np.array([1, -2, 3])                           # an integer array is read as numbers
+    got._evaluate(qi, R, C)
+    yi = got.upd.y.copy()
+    got._evaluate(qi.astype(float), R, C)
+    np.testing.assert_array_equal(got.upd.y, yi)
     with pytest.raises(TypeError, match="R_ms"):
         got._evaluate(q, np.eye(2), C)
     with pytest.raises(TypeError, match="C"):
