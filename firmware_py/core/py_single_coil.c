@@ -368,9 +368,23 @@ static PyObject *SchepersCore_inject(SchepersCoreObject *self, PyObject *const *
     Py_RETURN_NONE;
 }
 
+/* pose_values(out): a POSE's 14 values */
+static PyObject *SchepersCore_pose_values(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer ov;
+    if (sc_ready(self) < 0 || sc_nargs("pose_values", nargs, 1) < 0)
+        return NULL;
+    if (sc_doubles(args[0], 14, 1, &ov, "out") < 0)
+        return NULL;
+    ct_sc_pose_values(&self->s, (double *)ov.buf);
+    PyBuffer_Release(&ov);
+    Py_RETURN_NONE;
+}
+
 /* steps(): the strapdown steps taken (SchepersEKF._steps) */
 static PyObject *SchepersCore_steps(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
+    (void)args;
     if (sc_ready(self) < 0 || sc_nargs("steps", nargs, 0) < 0)
         return NULL;
     return PyLong_FromLongLong((long long)self->s.steps);
@@ -385,6 +399,7 @@ static PyMethodDef SchepersCore_methods[] = {
     SC_METH(take_clone, "take_clone(k, initialized): PoseClones.take"),
     SC_METH(release_clone, "release_clone(k): PoseClones.release"),
     SC_METH(inject, "inject(dx): SchepersEKF._inject with PoseClones.inject"),
+    SC_METH(pose_values, "pose_values(out): SchepersEKF.pose_values into out (14)"),
     SC_METH(steps, "steps(): the strapdown steps taken"),
     {NULL, NULL, 0, NULL}};
 

@@ -1,7 +1,8 @@
 /*
  * The single-coil error-state EKF (Schepers & Veltink 2010, seeds/000_e46ec0e8bf7ea271.txt
  * sec. 2.1, eq 4) in C99: the compiled form of coiltrack.firmware.estimate.single_coil
- * (SchepersEKF: propagate, _step, _build_F, _fill_q, _orthonormalize, predict_pose, _inject),
+ * (SchepersEKF: propagate, _step, _build_F, _fill_q, _orthonormalize, predict_pose, _inject,
+ * pose_values with rotation.quat_from_elements),
  * estimate.clones (PoseClones.take, release, next_due, inject) and
  * estimate.single_coil_update (SingleCoilUpdate: _noise, _pass and run's passes around the shared
  * Kalman update, ct_kalman_update).  The Python is the reference: the same names (ct_sc_ prefix),
@@ -52,6 +53,7 @@ void ct_sc_propagate(struct ct_sc *s, int64_t t0, int64_t t_us, const double *ac
                      int initialized);
 void ct_sc_predict_pose(struct ct_sc *s, double T, int n, double *P6, double *pp);
 void ct_sc_inject(struct ct_sc *s, const double *dx);
+void ct_sc_pose_values(const struct ct_sc *s, double *out);
 
 /* one SingleCoilUpdate's buffers: the shared update's H (3 x nx), R (3 x 3), y (3), dx (nx) and
  * the passes' own */

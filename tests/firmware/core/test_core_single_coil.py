@@ -16,7 +16,7 @@ from coiltrack.firmware import core
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_OK
-from coiltrack.firmware.estimate.single_coil import CORE, ORI, POS, SchepersEKF
+from coiltrack.firmware.estimate.single_coil import ORI, POS, SchepersEKF
 from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement
 from coiltrack.firmware.model.field import Coil
 from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
@@ -134,6 +134,30 @@ def test_prediction_ahead_and_core_transition_match_the_reference():
     np.testing.assert_array_equal(qs[0], qs[1])
     # the prediction left the filters as they were
     _same_state(ref, got)
+
+
+@pytest.mark.parametrize("angle", [0.3, 2.0, math.pi - 1e-9, math.pi])
+def test_pose_values_are_the_reference_bit_for_bit(angle):
+    """The POSE values (position, quaternion by Shepperd's method in each of its four branches,
+    variances, position trace): the same operations, so equal bit for bit; the quaternion also
+    against scipy (sign fixed by w >= 0) to 1e-12, near and at a half turn."""
+    rng = np.random.default_rng(int(angle * 100))
+    ref, got = _pair()
+    _start((ref, got), rng)
+    for axis in np.eye(3).tolist() + [[1.0, 1.0, 1.0]]:
+        rot = Rotation.from_rotvec(np.array(axis) / np.linalg.norm(axis) * angle)
+        for e in (ref, got):
+            e.R[:] = rot.as_matrix()
+        a, b = np.zeros(14), np.zeros(14)
+        ref.pose_values(a)
+        got.pose_values(b)
+        np.testing.assert_array_equal(a, b)
+        x, y, z, w = rot.as_quat()
+        q = np.array([w, x, y, z]) * (1.0 if w > 0 or (w == 0 and x >= 0) else -1.0)
+        assert abs(abs(float(np.dot(b[3:7], q))) - 1.0) < 1e-12
+        np.testing.assert_array_equal(b[7:10], np.diag(ref.P)[POS])
+        np.testing.assert_array_equal(b[10:13], np.diag(ref.P)[ORI])
+        assert b[13] == ref.P[0, 0] + ref.P[1, 1] + ref.P[2, 2]
 
 
 def _truth_amplitude(model, p, R, coil, current):
