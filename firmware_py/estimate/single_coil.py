@@ -59,7 +59,7 @@ health flags). All arrays are allocated in ``__init__``.
 
 The compiled core (``coiltrack.firmware.core``, chosen once at construction by the ``core``
 argument): ``core/src/single_coil.c`` follows :meth:`SchepersEKF._advance` (with ``_step``,
-``_build_F``, ``_orthonormalize``), ``_predict_ahead``, ``_take_clone_now``,
+``_build_F``, ``_orthonormalize``), ``_predict_ahead``, ``_take_clone_now``, ``_back_clone_now``,
 ``release_clone``, ``core_transition``, ``pose_values`` and ``_inject`` operation by operation; the products
 the Python hands to BLAS (``F P F^T``) are summed there in index order with ``F``'s structural
 zeros skipped, equal to rounding. A subclass that changes the dynamics (overrides ``_step``,
@@ -173,6 +173,7 @@ class SchepersEKF:
             ck = _compiled(self, ext)
             self._ck = ck
             self._advance, self._take_clone_now, self.release_clone = ck.propagate, ck.take_clone, ck.release_clone
+            self._back_clone_now = ck.back_clone
             self._predict_ahead, self.core_transition, self.pose_values = ck.predict_pose, ck.build_F, ck.pose_values
             if cls._inject is SchepersEKF._inject:
                 self._inject = ck.inject
@@ -231,6 +232,7 @@ class SchepersEKF:
         self._Pc_diag = self._Pc.reshape(-1)[::N_CORE + 1]
         self._Tc = np.zeros((N_CORE, N_CORE))
         self._qc = np.zeros(N_CORE)
+        self._TPb, self._TPTb = np.zeros((6, nx)), np.zeros((6, 6))      # the compiled back_clone's scratch
 
     # ------------------------------------------------------------ set-up
     def initialize(self, p, R, P6, t_us: int, sigma_vel: float, sigma_acc: float,
@@ -280,7 +282,10 @@ class SchepersEKF:
         from the current state (``clones.PoseClones.back``; ``G`` = ``R_now^T R_then`` from
         the gyroscope). For an amplitude measured before the filter was started (the
         acquisition burst): the update then corrects the present state, velocity included."""
-        self.clones.back(k, dt, G, self.P, self.p, self.v, self.R, self.initialized)
+        self._back_clone_now(k, dt, G, self.initialized)
+
+    def _back_clone_now(self, k: int, dt: float, G, initialized: bool) -> None:
+        self.clones.back(k, dt, G, self.P, self.p, self.v, self.R, initialized)
 
     def release_clone(self, k: int) -> None:
         self.clones.release(k, self.P)
@@ -385,12 +390,9 @@ class SchepersEKF:
             q[GYR.start + i] = qbg
 
     def core_transition(self, F, q, dt: float) -> None:
-        """The error transition of the core block (15, 15) over ``dt`` (s) at the
-        present inputs and state, into ``F`` (a memoryview of a (15, 15) array
-        whose off-model entries stay as ``transition_static`` writes them) and
-        its diagonal process noise into ``q`` (15,): the transition this filter
-        applies to its own covariance (eq 6.17 in this convention), for a
-        covariance carried beside it (``coiltrack.firmware.actuate.accuracy``)."""
+        """The core block's error transition over ``dt`` (s) into ``F`` ((15, 15), its off-model
+        entries as ``transition_static`` writes them) and its diagonal noise into ``q`` (15,): what
+        this filter applies (eq 6.17), for a covariance beside it (``actuate.accuracy``)."""
         self._build_F(F, q, dt)
 
     def _accel(self):
@@ -512,7 +514,7 @@ def _compiled(ekf: SchepersEKF, ext):
     """The compiled kernels (``ext.SchepersCore``) bound to the arrays of ``ekf``."""
     arrays = (ekf.p, ekf.v, ekf.R, ekf.ba, ekf.bg, ekf.f, ekf.w, ekf._acc_prev, ekf._gyr_prev, ekf.P, ekf.F,
               ekf._T, ekf._q, ekf._Fc, ekf._Pc, ekf._Tc, ekf._qc, ekf._sd.E, ekf._R2, ekf._dR, ekf._fref_a,
-              ekf.clone_p, ekf.clone_R)
+              ekf.clone_p, ekf.clone_R, ekf._TPb, ekf._TPTb)
     cl = ekf.clones
     return ext.SchepersCore(ekf.nx, ekf.n_clones, arrays, cl.t, cl.due, cl.taken,
                             tuple(c.start for c in cl.cp), tuple(c.start for c in cl.co),

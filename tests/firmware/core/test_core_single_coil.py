@@ -101,6 +101,26 @@ def test_propagation_matches_the_reference():
     _same_state(ref, got)
 
 
+@pytest.mark.parametrize("initialized", [True, False])
+def test_a_clone_predicted_backwards_matches_the_reference(initialized):
+    """back_clone (the acquisition's refinement: a pulse measured before the filter started):
+    the clone's nominal pose p - v dt, R G and its rows and columns of P (T P, T P T^T), equal to
+    1e-12 relative; a transposed G or a dropped dt term is off by far more."""
+    rng = np.random.default_rng(51)
+    ref, got = _pair()
+    if initialized:
+        _start((ref, got), rng)
+    _run_imu((ref, got), np.random.default_rng(52), n=12, clones=False)
+    G = Rotation.from_rotvec(rng.normal(0, 0.2, 3)).as_matrix()
+    for e in (ref, got):
+        e.back_clone(1, 0.137, G)
+    _same_state(ref, got)
+    assert got.clone_taken[1] and not got.clone_due[1]
+    if initialized:
+        b = got.clones.cp[1].start
+        assert np.abs(got.P[b:b + 3, b:b + 3] - ref.P[POS, POS]).max() > 1e-9     # not a plain copy
+
+
 def test_propagation_before_initialisation_carries_only_the_nominal_state():
     """Without a pose the covariance is not propagated (P stays 0) but the strapdown runs."""
     ref, got = _pair()
