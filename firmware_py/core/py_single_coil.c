@@ -108,9 +108,10 @@ static int sc_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
 /* ------------------------------------------------------------ SchepersCore */
 /* the float64 arrays bound, in this order, with their sizes (N: nx, C: nc) */
 enum { SC_P3, SC_V, SC_R, SC_BA, SC_BG, SC_F3, SC_W, SC_AP, SC_GP, SC_PP, SC_FF, SC_TT, SC_Q, SC_FC, SC_PC, SC_TC,
-       SC_QC, SC_E, SC_R2, SC_DR, SC_FREF, SC_CLP, SC_CLR, SC_ND };
+       SC_QC, SC_E, SC_R2, SC_DR, SC_FREF, SC_CLP, SC_CLR, SC_TPB, SC_TPT, SC_ND };
 static const char *sc_names[SC_ND] = {"p", "v", "R", "ba", "bg", "f", "w", "acc_prev", "gyr_prev", "P", "F", "T",
-                                      "q", "Fc", "Pc", "Tc", "qc", "E", "R2", "dR", "fref", "clone_p", "clone_R"};
+                                      "q", "Fc", "Pc", "Tc", "qc", "E", "R2", "dR", "fref", "clone_p", "clone_R",
+                                      "TP", "TPT"};
 
 typedef struct {
     PyObject_HEAD
@@ -148,6 +149,10 @@ static Py_ssize_t sc_len(int i, Py_ssize_t nx, Py_ssize_t nc)
         return nc * 3;
     case SC_CLR:
         return nc * 9;
+    case SC_TPB:
+        return 6 * nx;
+    case SC_TPT:
+        return 36;
     default:
         return 3;
     }
@@ -232,6 +237,8 @@ static int SchepersCore_init(SchepersCoreObject *self, PyObject *args, PyObject 
     s->fref = ptr[SC_FREF];
     s->cl_p = ptr[SC_CLP];
     s->cl_R = ptr[SC_CLR];
+    s->TP = ptr[SC_TPB];
+    s->TPT = ptr[SC_TPT];
     s->cl_t = (int64_t *)self->views[SC_ND].buf;
     s->cl_due = (uint8_t *)self->views[SC_ND + 1].buf;
     s->cl_taken = (uint8_t *)self->views[SC_ND + 2].buf;
@@ -345,6 +352,21 @@ static PyObject *SchepersCore_take_clone(SchepersCoreObject *self, PyObject *con
     Py_RETURN_NONE;
 }
 
+/* back_clone(k, dt, G, initialized) */
+static PyObject *SchepersCore_back_clone(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long k;
+    double dt, G[9];
+    int init;
+    if (sc_ready(self) < 0 || sc_nargs("back_clone", nargs, 4) < 0 || sc_int(args[0], 0, self->s.nc - 1, &k, "k") < 0 ||
+        sc_double(args[1], &dt) < 0 || sc_copy_doubles(args[2], 9, G, "G") < 0)
+        return NULL;
+    if ((init = PyObject_IsTrue(args[3])) < 0)
+        return NULL;
+    ct_sc_back_clone(&self->s, (int)k, dt, G, init, self->s.TP, self->s.TPT);
+    Py_RETURN_NONE;
+}
+
 static PyObject *SchepersCore_release_clone(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     long k;
@@ -368,9 +390,23 @@ static PyObject *SchepersCore_inject(SchepersCoreObject *self, PyObject *const *
     Py_RETURN_NONE;
 }
 
+/* pose_values(out): a POSE's 14 values */
+static PyObject *SchepersCore_pose_values(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer ov;
+    if (sc_ready(self) < 0 || sc_nargs("pose_values", nargs, 1) < 0)
+        return NULL;
+    if (sc_doubles(args[0], 14, 1, &ov, "out") < 0)
+        return NULL;
+    ct_sc_pose_values(&self->s, (double *)ov.buf);
+    PyBuffer_Release(&ov);
+    Py_RETURN_NONE;
+}
+
 /* steps(): the strapdown steps taken (SchepersEKF._steps) */
 static PyObject *SchepersCore_steps(SchepersCoreObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
+    (void)args;
     if (sc_ready(self) < 0 || sc_nargs("steps", nargs, 0) < 0)
         return NULL;
     return PyLong_FromLongLong((long long)self->s.steps);
@@ -384,7 +420,9 @@ static PyMethodDef SchepersCore_methods[] = {
     SC_METH(predict_pose, "predict_pose(T, steps, P6, pp): SchepersEKF.predict_pose over T seconds"),
     SC_METH(take_clone, "take_clone(k, initialized): PoseClones.take"),
     SC_METH(release_clone, "release_clone(k): PoseClones.release"),
+    SC_METH(back_clone, "back_clone(k, dt, G, initialized): PoseClones.back"),
     SC_METH(inject, "inject(dx): SchepersEKF._inject with PoseClones.inject"),
+    SC_METH(pose_values, "pose_values(out): SchepersEKF.pose_values into out (14)"),
     SC_METH(steps, "steps(): the strapdown steps taken"),
     {NULL, NULL, 0, NULL}};
 

@@ -59,8 +59,8 @@ health flags). All arrays are allocated in ``__init__``.
 
 The compiled core (``coiltrack.firmware.core``, chosen once at construction by the ``core``
 argument): ``core/src/single_coil.c`` follows :meth:`SchepersEKF._advance` (with ``_step``,
-``_build_F``, ``_orthonormalize``), ``_predict_ahead``, ``_take_clone_now``,
-``release_clone``, ``core_transition`` and ``_inject`` operation by operation; the products
+``_build_F``, ``_orthonormalize``), ``_predict_ahead``, ``_take_clone_now``, ``_back_clone_now``,
+``release_clone``, ``core_transition``, ``pose_values`` and ``_inject`` operation by operation; the products
 the Python hands to BLAS (``F P F^T``) are summed there in index order with ``F``'s structural
 zeros skipped, equal to rounding. A subclass that changes the dynamics (overrides ``_step``,
 ``_build_F``, ``_accel``, ``_advance`` or ``_fill_q``) runs them in Python.
@@ -79,6 +79,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_sensor, transition_static
 from coiltrack.firmware.estimate.clones import PoseClones
 from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement, SingleCoilUpdate
+from coiltrack.firmware.rotation import quat_tuple
 
 __all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
 
@@ -160,9 +161,7 @@ class SchepersEKF:
         self._meas = CoilMeasurement()
         self.nis = 0.0
         self.nis_nominal = 0.0
-        #: where this filter's own dynamics run ("compiled" or "python"; its update and strapdown
-        #: report their own ``core``): Python under the Python core or for a subclass's dynamics
-        self.kernels = "python"
+        self.kernels = "python"        # where its own dynamics run (its update reports its own core)
         if core.ext is not None:
             self._bind_compiled(core.ext)
 
@@ -174,7 +173,8 @@ class SchepersEKF:
             ck = _compiled(self, ext)
             self._ck = ck
             self._advance, self._take_clone_now, self.release_clone = ck.propagate, ck.take_clone, ck.release_clone
-            self._predict_ahead, self.core_transition = ck.predict_pose, ck.build_F
+            self._back_clone_now = ck.back_clone
+            self._predict_ahead, self.core_transition, self.pose_values = ck.predict_pose, ck.build_F, ck.pose_values
             if cls._inject is SchepersEKF._inject:
                 self._inject = ck.inject
             self.kernels = "compiled"
@@ -232,6 +232,7 @@ class SchepersEKF:
         self._Pc_diag = self._Pc.reshape(-1)[::N_CORE + 1]
         self._Tc = np.zeros((N_CORE, N_CORE))
         self._qc = np.zeros(N_CORE)
+        self._TPb, self._TPTb = np.zeros((6, nx)), np.zeros((6, 6))      # the compiled back_clone's scratch
 
     # ------------------------------------------------------------ set-up
     def initialize(self, p, R, P6, t_us: int, sigma_vel: float, sigma_acc: float,
@@ -281,7 +282,10 @@ class SchepersEKF:
         from the current state (``clones.PoseClones.back``; ``G`` = ``R_now^T R_then`` from
         the gyroscope). For an amplitude measured before the filter was started (the
         acquisition burst): the update then corrects the present state, velocity included."""
-        self.clones.back(k, dt, G, self.P, self.p, self.v, self.R, self.initialized)
+        self._back_clone_now(k, dt, G, self.initialized)
+
+    def _back_clone_now(self, k: int, dt: float, G, initialized: bool) -> None:
+        self.clones.back(k, dt, G, self.P, self.p, self.v, self.R, initialized)
 
     def release_clone(self, k: int) -> None:
         self.clones.release(k, self.P)
@@ -386,12 +390,9 @@ class SchepersEKF:
             q[GYR.start + i] = qbg
 
     def core_transition(self, F, q, dt: float) -> None:
-        """The error transition of the core block (15, 15) over ``dt`` (s) at the
-        present inputs and state, into ``F`` (a memoryview of a (15, 15) array
-        whose off-model entries stay as ``transition_static`` writes them) and
-        its diagonal process noise into ``q`` (15,): the transition this filter
-        applies to its own covariance (eq 6.17 in this convention), for a
-        covariance carried beside it (``coiltrack.firmware.actuate.accuracy``)."""
+        """The core block's error transition over ``dt`` (s) into ``F`` ((15, 15), its off-model
+        entries as ``transition_static`` writes them) and its diagonal noise into ``q`` (15,): what
+        this filter applies (eq 6.17), for a covariance beside it (``actuate.accuracy``)."""
         self._build_F(F, q, dt)
 
     def _accel(self):
@@ -402,15 +403,7 @@ class SchepersEKF:
         return ax - r[0], ay - r[1], az - r[2]
 
     def _orthonormalize(self) -> None:
-        """One Newton step of the polar decomposition, ``R (3 I - R^T R) / 2``."""
-        R = self.R
-        np.matmul(R.T, R, out=self._R2)
-        np.negative(self._R2, out=self._R2)
-        for i in range(3):
-            self._R2[i, i] += 3.0
-        np.multiply(self._R2, self._half, out=self._R2)
-        np.matmul(R, self._R2, out=self._dR)
-        R[:] = self._dR
+        _orthonormalize(self.R, self._R2, self._dR, self._half)
 
     # -------------------------------------------------------- prediction
     def predict_pose(self, horizon_us: int, out_P6, out_p, steps: int = 8) -> None:
@@ -440,10 +433,16 @@ class SchepersEKF:
         for i in range(3):
             out_p[i] = p[i] + (v[i] + 0.5 * T * a[i]) * T
 
-    def pose_variances(self, out6) -> None:
+    def pose_values(self, out) -> None:
+        """A POSE's values into ``out`` (14): the position, the quaternion w, x, y, z
+        (``rotation.quat_tuple``), the variances of ``POS`` and ``ORI``, and ``POS``'s trace."""
+        p, P, b, o = self.p, self.P, POS.start, ORI.start
+        out[0], out[1], out[2] = float(p[0]), float(p[1]), float(p[2])
+        out[3], out[4], out[5], out[6] = quat_tuple(self.R)
         for i in range(3):
-            out6[POSE_POS.start + i] = self.P[POS.start + i, POS.start + i]
-            out6[POSE_ORI.start + i] = self.P[ORI.start + i, ORI.start + i]
+            out[7 + i] = float(P[b + i, b + i])
+            out[10 + i] = float(P[o + i, o + i])
+        out[13] = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
 
     # ------------------------------------------------------------ update
     def update_pulse(self, k: int, m: CoilMeasurement, model: SingleCoilModel) -> int:
@@ -499,11 +498,23 @@ class SchepersEKF:
 
 
 
+def _orthonormalize(R, R2, dR, half) -> None:
+    """One Newton step of the polar decomposition, ``R <- R (3 I - R^T R) / 2`` (``R2``, ``dR``:
+    (3, 3) scratch, ``half`` a 0-d 0.5)."""
+    np.matmul(R.T, R, out=R2)
+    np.negative(R2, out=R2)
+    for i in range(3):
+        R2[i, i] += 3.0
+    np.multiply(R2, half, out=R2)
+    np.matmul(R, R2, out=dR)
+    R[:] = dR
+
+
 def _compiled(ekf: SchepersEKF, ext):
     """The compiled kernels (``ext.SchepersCore``) bound to the arrays of ``ekf``."""
     arrays = (ekf.p, ekf.v, ekf.R, ekf.ba, ekf.bg, ekf.f, ekf.w, ekf._acc_prev, ekf._gyr_prev, ekf.P, ekf.F,
               ekf._T, ekf._q, ekf._Fc, ekf._Pc, ekf._Tc, ekf._qc, ekf._sd.E, ekf._R2, ekf._dR, ekf._fref_a,
-              ekf.clone_p, ekf.clone_R)
+              ekf.clone_p, ekf.clone_R, ekf._TPb, ekf._TPTb)
     cl = ekf.clones
     return ext.SchepersCore(ekf.nx, ekf.n_clones, arrays, cl.t, cl.due, cl.taken,
                             tuple(c.start for c in cl.cp), tuple(c.start for c in cl.co),

@@ -44,7 +44,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
                                        POSE_DEGRADED, POSE_DISTORTED, POSE_FUSED, POSE_INCONSISTENT, POSE_SATURATED,
                                        POSE_STALE, POSE_VALID)
 
-from coiltrack.firmware.transmit import PoseReport, fill_pose
+from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference
 from coiltrack.firmware.actuate.coil_choice import NisMonitor, SingleCoilModel
 from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation, FixedActuation
@@ -52,9 +52,8 @@ from coiltrack.firmware.actuate.pulse_length import PulseLengths, fixed_amplitud
 from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
-from coiltrack.firmware.rotation import quat_tuple as _quat
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.estimate.single_coil import CORE, ORI, POS, SchepersEKF
+from coiltrack.firmware.estimate.single_coil import CORE, POS, SchepersEKF
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
 from coiltrack.firmware.track.single_coil_sensor import SensorTrack
@@ -102,6 +101,8 @@ class SingleCoilTracker:
         self.supervisor = supervisor
         self.tx = tx
         self._report = PoseReport()           # the POSE being sent (filled in place)
+        self._vals_a = np.zeros(14)           # its values (SchepersEKF.pose_values)
+        self._vals = memoryview(self._vals_a)
         self.now_us = 0
         self.boot_us: int | None = None
         self.updated_us = -1            # the tick of the last EKF update (the decision then waits)
@@ -371,16 +372,15 @@ class SingleCoilTracker:
             status |= POSE_DISTORTED
         if now_us - s.last_update_us > self.cfg.link.stale_us:
             status |= POSE_STALE
-        qw, qx, qy, qz = _quat(ekf.R)
-        P = ekf.P
-        p = ekf.p
-        o = ORI.start
-        b = POS.start
-        vp = float(P[b, b]) + float(P[b + 1, b + 1]) + float(P[b + 2, b + 2])
+        v = self._vals
+        ekf.pose_values(self._vals_a)         # position, quaternion, variances, position trace
         r = self._report
         r.node, r.t_us, r.status = s.node, t_us, status
-        r.quality = quality_from(vp, self.q_x[s.node], self.q_scale)
-        fill_pose(r, p, (qw, qx, qy, qz), P, b, o)
+        r.quality = quality_from(v[13], self.q_x[s.node], self.q_scale)
+        rp, rq, rv = r.p, r.q, r.var
+        rp[0], rp[1], rp[2] = v[0], v[1], v[2]
+        rq[0], rq[1], rq[2], rq[3] = v[3], v[4], v[5], v[6]
+        rv[0], rv[1], rv[2], rv[3], rv[4], rv[5] = v[7], v[8], v[9], v[10], v[11], v[12]
         self.tx.pose(r)
 
     def counters(self) -> dict:

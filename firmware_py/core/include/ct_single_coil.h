@@ -1,8 +1,9 @@
 /*
  * The single-coil error-state EKF (Schepers & Veltink 2010, seeds/000_e46ec0e8bf7ea271.txt
  * sec. 2.1, eq 4) in C99: the compiled form of coiltrack.firmware.estimate.single_coil
- * (SchepersEKF: propagate, _step, _build_F, _fill_q, _orthonormalize, predict_pose, _inject),
- * estimate.clones (PoseClones.take, release, next_due, inject) and
+ * (SchepersEKF: propagate, _step, _build_F, _fill_q, _orthonormalize, predict_pose, _inject,
+ * pose_values with rotation.quat_from_elements),
+ * estimate.clones (PoseClones.take, back, release, next_due, inject) and
  * estimate.single_coil_update (SingleCoilUpdate: _noise, _pass and run's passes around the shared
  * Kalman update, ct_kalman_update).  The Python is the reference: the same names (ct_sc_ prefix),
  * the same scalar operations in the same order; the products the reference hands to BLAS
@@ -32,6 +33,7 @@ struct ct_sc {
     double *acc_prev, *gyr_prev;       /* 3, 3: the last raw samples */
     double *P, *F, *T, *q;             /* nx x nx covariance, transition, scratch; nx noise */
     double *Fc, *Pc, *Tc, *qc;         /* 15 x 15 (and 15) of the prediction ahead */
+    double *TP, *TPT;                  /* 6 x nx, 6 x 6: scratch of a clone predicted backwards */
     double *E, *R2, *dR;               /* 3x3 scratch each */
     const double *fref;                /* 3: the specific force of the navigation frame (-g) */
     double *cl_p, *cl_R;               /* nc x 3, nc x 3 x 3: the clones' nominal poses */
@@ -47,11 +49,13 @@ void ct_sc_build_F(const struct ct_sc *s, double *F, int n, double *q, double dt
 void ct_sc_step(struct ct_sc *s, double dt, int initialized);
 void ct_sc_take_clone(struct ct_sc *s, int k, int initialized);
 void ct_sc_release_clone(struct ct_sc *s, int k);
+void ct_sc_back_clone(struct ct_sc *s, int k, double dt, const double *G, int initialized, double *TP, double *TPT);
 int ct_sc_next_due(const struct ct_sc *s, int64_t t, int64_t until);
 void ct_sc_propagate(struct ct_sc *s, int64_t t0, int64_t t_us, const double *acc, const double *gyr,
                      int initialized);
 void ct_sc_predict_pose(struct ct_sc *s, double T, int n, double *P6, double *pp);
 void ct_sc_inject(struct ct_sc *s, const double *dx);
+void ct_sc_pose_values(const struct ct_sc *s, double *out);
 
 /* one SingleCoilUpdate's buffers: the shared update's H (3 x nx), R (3 x 3), y (3), dx (nx) and
  * the passes' own */

@@ -204,6 +204,68 @@ void ct_sc_release_clone(struct ct_sc *s, int k)
     s->cl_taken[k] = 0;
 }
 
+/* PoseClones.back: clone k as the pose dt seconds before the filter's state, predicted backwards
+ * (G = R_now^T R_then, row-major 3x3): p_then = p - v dt, R_then = R G; its rows and columns of P
+ * from T P and T P T^T with T = [[I, -dt I, 0, 0], [0, 0, G^T, dt G^T]] over (POS, VEL, ORI, GYR).
+ * TP (6 x nx), TPT (6 x 6): scratch. */
+void ct_sc_back_clone(struct ct_sc *s, int k, double dt, const double *G, int initialized, double *TP, double *TPT)
+{
+    int n = s->nx, cp = s->cp[k], co = s->co[k], i, j, r, c;
+    double *P = s->P, *cR = s->cl_R + 9 * k;
+    for (i = 0; i < 3; ++i)
+        s->cl_p[3 * k + i] = s->p[i] - s->v[i] * dt;
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j)
+            cR[3 * i + j] = s->R[3 * i] * G[j] + s->R[3 * i + 1] * G[3 + j] + s->R[3 * i + 2] * G[6 + j];
+    s->cl_due[k] = 0;
+    s->cl_taken[k] = 1;
+    if (!initialized)
+        return;
+    for (i = 0; i < 3; ++i)                        /* TP = T P, T's zeros skipped (k increasing) */
+        for (j = 0; j < n; ++j) {
+            double a = 0.0, b = 0.0;
+            int m;
+            a += 1.0 * P[(CT_POS + i) * n + j];
+            a += -dt * P[(CT_VEL + i) * n + j];
+            for (m = 0; m < 3; ++m)
+                b += G[3 * m + i] * P[(CT_ORI + m) * n + j];
+            for (m = 0; m < 3; ++m)
+                b += dt * G[3 * m + i] * P[(CT_GYR + m) * n + j];
+            TP[i * n + j] = a;
+            TP[(3 + i) * n + j] = b;
+        }
+    for (r = 0; r < 6; ++r)                        /* TPT = TP T^T */
+        for (c = 0; c < 3; ++c) {
+            const double *t = TP + r * n;
+            double a = 0.0, b = 0.0;
+            int m;
+            a += t[CT_POS + c] * 1.0;
+            a += t[CT_VEL + c] * -dt;
+            for (m = 0; m < 3; ++m)
+                b += t[CT_ORI + m] * G[3 * m + c];
+            for (m = 0; m < 3; ++m)
+                b += t[CT_GYR + m] * (dt * G[3 * m + c]);
+            TPT[r * 6 + c] = a;
+            TPT[r * 6 + 3 + c] = b;
+        }
+    for (i = 0; i < 3; ++i) {                      /* the clone's rows, then its columns */
+        memcpy(P + (cp + i) * n, TP + i * n, (size_t)n * sizeof(double));
+        memcpy(P + (co + i) * n, TP + (3 + i) * n, (size_t)n * sizeof(double));
+    }
+    for (j = 0; j < n; ++j)
+        for (i = 0; i < 3; ++i) {
+            P[j * n + cp + i] = TP[i * n + j];
+            P[j * n + co + i] = TP[(3 + i) * n + j];
+        }
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            P[(cp + i) * n + cp + j] = TPT[i * 6 + j];
+            P[(cp + i) * n + co + j] = TPT[i * 6 + 3 + j];
+            P[(co + i) * n + cp + j] = TPT[(3 + i) * 6 + j];
+            P[(co + i) * n + co + j] = TPT[(3 + i) * 6 + 3 + j];
+        }
+}
+
 /* PoseClones.next_due: the clone due in (t, until] soonest (-1: none) */
 int ct_sc_next_due(const struct ct_sc *s, int64_t t, int64_t until)
 {
@@ -298,6 +360,66 @@ void ct_sc_inject(struct ct_sc *s, const double *dx)
                 cp[i] += dx[s->cp[k] + i];
             ct_strapdown_rotate(s->cl_R + 9 * k, dx[c], dx[c + 1], dx[c + 2], s->E);
         }
+}
+
+/* rotation.quat_from_elements: the unit quaternion (w, x, y, z), w >= 0, of R (Shepperd) */
+static void quat_from_elements(const double *R, double *q)
+{
+    double r00 = R[0], r01 = R[1], r02 = R[2], r10 = R[3], r11 = R[4], r12 = R[5], r20 = R[6], r21 = R[7], r22 = R[8];
+    double t = r00 + r11 + r22, s, w, x, y, z, n;
+    if (t > 0.0) {
+        s = sqrt(t + 1.0) * 2.0;
+        w = 0.25 * s;
+        x = (r21 - r12) / s;
+        y = (r02 - r20) / s;
+        z = (r10 - r01) / s;
+    } else if (r00 > r11 && r00 > r22) {
+        s = sqrt(1.0 + r00 - r11 - r22) * 2.0;
+        w = (r21 - r12) / s;
+        x = 0.25 * s;
+        y = (r01 + r10) / s;
+        z = (r02 + r20) / s;
+    } else if (r11 > r22) {
+        s = sqrt(1.0 + r11 - r00 - r22) * 2.0;
+        w = (r02 - r20) / s;
+        x = (r01 + r10) / s;
+        y = 0.25 * s;
+        z = (r12 + r21) / s;
+    } else {
+        s = sqrt(1.0 + r22 - r00 - r11) * 2.0;
+        w = (r10 - r01) / s;
+        x = (r02 + r20) / s;
+        y = (r12 + r21) / s;
+        z = 0.25 * s;
+    }
+    if (w < 0.0) {
+        w = -w;
+        x = -x;
+        y = -y;
+        z = -z;
+    }
+    n = sqrt(w * w + x * x + y * y + z * z);
+    q[0] = w / n;
+    q[1] = x / n;
+    q[2] = y / n;
+    q[3] = z / n;
+}
+
+/* SchepersEKF.pose_values: a POSE's values into out (14): position, quaternion, the variances of
+ * POS and ORI, POS's trace */
+void ct_sc_pose_values(const struct ct_sc *s, double *out)
+{
+    const double *P = s->P;
+    int n = s->nx, b = CT_POS, o = CT_ORI, i;
+    out[0] = s->p[0];
+    out[1] = s->p[1];
+    out[2] = s->p[2];
+    quat_from_elements(s->R, out + 3);
+    for (i = 0; i < 3; ++i) {
+        out[7 + i] = P[(b + i) * n + b + i];
+        out[10 + i] = P[(o + i) * n + o + i];
+    }
+    out[13] = P[b * n + b] + P[(b + 1) * n + b + 1] + P[(b + 2) * n + b + 2];
 }
 
 /* ------------------------------------------------------------ the update */
