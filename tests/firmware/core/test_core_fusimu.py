@@ -331,9 +331,9 @@ def test_report_copies_the_output_row():
     rng = np.random.default_rng(81)
     prm, frame, pair = _output_pair(True)
     reps = []
+    M = rng.normal(size=(21, 21))
     for po, st, imu, hist in pair:
         st.p[:], st.Th[:] = (0.1, 0.2, 0.3), Rotation.from_rotvec([0.3, 0.2, -1.0]).as_matrix()
-        M = rng.normal(size=(21, 21))
         st.P[:] = M @ M.T
         k = imu.push(77)
         frame.store(imu.dv, k, memoryview(np.eye(3)))
