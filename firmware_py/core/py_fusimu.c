@@ -10,6 +10,7 @@
  *                                         InertialPrediction.push's row
  *   FusOutput(n, P, Th, idv, hd, od, moving, stale_us, dr_after_us, dr_limit_us)
  *       .queue(slot, h, k, age, recovering, inconsistent)   PoseOutput.queue's row
+ *       .report(slot, p, q, var) -> status                  PoseOutput.into_report's copy
  *   OriPred(R, bias, dist, acc, st, dist_corr, acc_corr_time_s)
  *       .predict(dt, wx, wy, wz, qwd)     OrientationFilter.predict after its time step
  *   OriUpd(n, theta, bias, dist, R, Rc, b, d, a, sums, incl y/H/R/dx, compass y/H/R/dx, h_g, cst, params)
@@ -413,7 +414,44 @@ static PyObject *FusOutput_queue(FusOutputObject *self, PyObject *const *args, P
     Py_RETURN_NONE;
 }
 
+/* n floats from od into the list l (its first n items) */
+static int fus_fill_list(PyObject *l, const double *od, int n, const char *what)
+{
+    int i;
+    if (!PyList_Check(l) || PyList_GET_SIZE(l) < n) {
+        PyErr_Format(PyExc_TypeError, "report: %s needs a list of at least %d items", what, n);
+        return -1;
+    }
+    for (i = 0; i < n; ++i) {
+        PyObject *x = PyFloat_FromDouble(od[i]);
+        if (x == NULL)
+            return -1;
+        PyList_SetItem(l, i, x);            /* steals x, releases the old item */
+    }
+    return 0;
+}
+
+/* report(slot, p, q, var) -> status: output row slot into the lists p (3), q (4), var (6) */
+static PyObject *FusOutput_report(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    const double *od;
+    int slot;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: not bound");
+        return NULL;
+    }
+    if (fus_nargs("report", nargs, 4) < 0 || fus_slot(args[0], self->ocap, &slot, "report") < 0)
+        return NULL;
+    od = self->od + (long)slot * CT_OUT_WIDTH;
+    if (fus_fill_list(args[1], od + CT_OUT_P, 3, "p") < 0 || fus_fill_list(args[2], od + CT_OUT_Q, 4, "q") < 0 ||
+        fus_fill_list(args[3], od + CT_OUT_VAR_P, 6, "var") < 0)
+        return NULL;
+    return PyLong_FromLong((long)od[CT_OUT_STATUS]);
+}
+
 static PyMethodDef FusOutput_methods[] = {
+    {"report", (PyCFunction)(void (*)(void))FusOutput_report, METH_FASTCALL,
+     "report(slot, p, q, var) -> status: PoseOutput.into_report's copy of output row slot"},
     {"queue", (PyCFunction)(void (*)(void))FusOutput_queue, METH_FASTCALL,
      "queue(slot, h, k, age, recovering, inconsistent): PoseOutput.queue's output row"},
     {NULL, NULL, 0, NULL}};

@@ -39,8 +39,7 @@ from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
-                                                          OUT_P, OUT_Q, OUT_RECOVERED, OUT_STALE, OUT_STATUS,
-                                                          OUT_VAR_O, OUT_VAR_P, FusionFilter, FusionParams)
+                                                          OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
@@ -398,24 +397,23 @@ class SensorInertial:
         first, so ``Phi f_source`` is the one of the same instant: the source's steps and the
         sensor's arrive an interval apart."""
         ring, s6 = self.imu, self._s6
-        fus = self.fusion
+        push = self.fusion.push_imu
+        ori_step = self.ori.step
+        b = self.ori.f.bias_v
+        wl = self.w_last
         phi = self._phiv
         fr = self._frv
-        src = self.source
+        hold = self.source.hold
         tv = ring.tv
-        while max_steps > 0:
+        while max_steps > 0 and len(ring):
             max_steps -= 1
-            if len(ring) and src.hold(tv[ring.slot(0)], now_us, wait_us):
+            if hold(tv[ring.slot(0)], now_us, wait_us):
                 return
             t = ring.pop_sample(s6)
-            if t < 0:
-                return
             ax, ay, az, wx, wy, wz = s6
-            self.ori.step(t, ax, ay, az, wx, wy, wz, mag)
-            fus.push_imu(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
+            ori_step(t, ax, ay, az, wx, wy, wz, mag)
+            push(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
             self.samples += 1
-            b = self.ori.f.bias_v
-            wl = self.w_last
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
 
     def on_solution(self, solver, solved: bool) -> None:
@@ -435,31 +433,27 @@ class SensorInertial:
         of the last magnetic solution), their status from the filter's bits; the recovery and
         dead-reckoning events on changes."""
         fus = self.fusion
-        d = fus.out_dv
         if fus.recoveries != self.recoveries_seen:
             kept = fus.biases_kept != self.kept_seen
             self.recoveries_seen = fus.recoveries
             self.kept_seen = fus.biases_kept
             tx.event(EVT_TRACK_REINIT, node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
+        out = fus.output
+        r = self._report
+        rp = r.p
         while True:
-            k = fus.pop_output()
+            k = out.pop()
             if k < 0:
                 break
-            st = int(d[k, OUT_STATUS])
+            st = out.into_report(k, r)         # time, position, quaternion, variances
             status = self._status(st)
             self._dead_reckoning(tx, node, st)
-            if status & POSE_VALID and not in_range3(d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2], range_m):
+            if status & POSE_VALID and not in_range3(rp[0], rp[1], rp[2], range_m):
                 status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
                 self.poses_out_of_range += 1
-            r = self._report
-            r.node, r.t_us, r.status, r.quality = node, fus.out_tv[k], status, quality
-            rp, rq, v = r.p, r.q, r.var
-            rp[0], rp[1], rp[2] = d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2]
-            rq[0], rq[1], rq[2], rq[3] = d[k, OUT_Q], d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3]
-            v[0], v[1], v[2] = d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1], d[k, OUT_VAR_P + 2]
-            v[3], v[4], v[5] = d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2]
+            r.node, r.status, r.quality = node, status, quality
             tx.pose(r)
-            fus.release_output()
+            out.release()
 
     def _status(self, st: int) -> int:
         """The POSE status of a fused pose with the filter's ``OUT_*`` bits ``st``."""

@@ -320,3 +320,38 @@ def test_bad_bindings_are_refused():
     row = ext.FusRow(z(8, 18), 8, True)
     with pytest.raises(TypeError, match="Phi"):
         row.store(0, *([0.0] * 9), z(2, 2))
+
+
+def test_report_copies_the_output_row():
+    """PoseOutput.into_report on both cores: the POSE record's time, position, quaternion and six
+    variances are the output row's (the same floats), the returned status its OUT_* bits; a
+    record whose lists are too short is refused, not written past."""
+    from coiltrack.firmware.transmit import PoseReport
+
+    rng = np.random.default_rng(81)
+    prm, frame, pair = _output_pair(True)
+    reps = []
+    M = rng.normal(size=(21, 21))
+    for po, st, imu, hist in pair:
+        st.p[:], st.Th[:] = (0.1, 0.2, 0.3), Rotation.from_rotvec([0.3, 0.2, -1.0]).as_matrix()
+        st.P[:] = M @ M.T
+        k = imu.push(77)
+        frame.store(imu.dv, k, memoryview(np.eye(3)))
+        h = hist.push(77)
+        frame.to_source(imu.dv, k, st._pv, st._Thv, hist.dv, h)
+        po.queue(77, hist, st, imu.dv, k, 77 - prm.dead_reckon_after_us - 1, True, False)
+        r = PoseReport(3)
+        s = po.pop()
+        status = po.into_report(s, r)
+        row = po.out.d[s]
+        age = prm.dead_reckon_after_us + 1
+        want = (age > prm.stale_us) * OUT_STALE | OUT_DEAD_RECKONING | OUT_RECOVERED
+        assert status == int(row[OUT_STATUS]) == want
+        assert r.t_us == 77 and r.p == list(row[OUT_P:OUT_P + 3]) and r.q == list(row[OUT_Q:OUT_Q + 4])
+        assert r.var == list(row[OUT_VAR_P:OUT_VAR_P + 3]) + list(row[OUT_VAR_O:OUT_VAR_O + 3])
+        reps.append((r.t_us, r.p, r.q, r.var))
+        if po.into_report.__func__ is PoseOutput._into_report_compiled:
+            r.var = [0.0] * 5
+            with pytest.raises(TypeError, match="var"):
+                po.into_report(s, r)
+    assert reps[0] == reps[1]
