@@ -277,10 +277,11 @@ class PulseExtractor:
         self._sums = [0.0] * 5  # baseline regression sums of the window being extracted
         self._pm = [0.0] * 11   # in-pulse moments of the window being extracted
         self._pm_sat = False
-        #: the numeric core the extraction runs (``"compiled"`` or ``"python"``)
-        self.core = "python"
-        if core.ext is not None and type(self).extract is PulseExtractor.extract:
-            self._bind_compiled(core.ext)      # (a subclass with its own extract keeps it)
+        if type(self).extract is PulseExtractor.extract:     # (a subclass with its own extract keeps it)
+            #: the numeric core the extraction runs (``"compiled"`` or ``"python"``)
+            self.core = "python"
+            if core.ext is not None:
+                self._bind_compiled(core.ext)
 
     def _bind_compiled(self, ext) -> None:
         """Run :meth:`extract` on ``ct_pulse_extract``: the kernel bound once to the ring's

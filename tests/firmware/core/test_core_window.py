@@ -184,7 +184,7 @@ def test_a_subclass_with_its_own_extract_keeps_it():
 
     ex = GyroBaselineExtractor(SampleRing(16), GyroRing(16), 64, settle_us=0, fall_us=0, baseline_us=1000,
                                guard_us=0)
-    assert ex.core == "python" and ex.extract.__func__ is GyroBaselineExtractor.extract
+    assert not hasattr(ex, "core") and ex.extract.__func__ is GyroBaselineExtractor.extract
 
 
 @pytest.mark.skipif(not available(), reason="needs numpy's allocation hooks")
