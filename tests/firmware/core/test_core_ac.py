@@ -181,7 +181,8 @@ def test_a_pure_tone_demodulates_to_its_amplitude_in_closed_form():
 
 # ---------------------------------------------------------------------------------------- Raab's update
 from coiltrack.firmware.pose.raab_correction import LoopCorrection, NoCorrection  # noqa: E402
-from coiltrack.firmware.pose.raab_update import ACQUIRED, K_OUT, Update, moment_pseudo_inverse, sync_rotation  # noqa: E402
+from coiltrack.firmware.pose.raab_update import (ACQUIRED, K_OUT, Update, moment_pseudo_inverse,  # noqa: E402
+                                                 sync_rotation)
 
 
 def _raab_case(seed, core, correction=True, beta=None, theta=None, far=False, zero_signal=False):
@@ -223,7 +224,8 @@ def _raab_state(u):
 
 
 @pytest.mark.parametrize("case", [dict(), dict(correction=False), dict(far=True), dict(beta=1.45),
-                                  dict(theta=-1.5), dict(beta=-1.5, theta=1.47), dict(zero_signal=True, correction=False)],
+                                  dict(theta=-1.5), dict(beta=-1.5, theta=1.47),
+                                  dict(zero_signal=True, correction=False)],
                          ids=["tracking", "no-correction", "lin-dropped", "pole-beta", "pole-theta", "both-poles",
                               "no-signal"])
 def test_raab_update_bit_equal_to_the_reference(case):
