@@ -242,7 +242,7 @@ class RaabTracker(StagedSolve):
         self._cov = flat(self.covariance)
         self.angles = memoryview(np.zeros(6))
         #: the exact-loop correction (``correction``) or none, chosen here once (``pose.raab_correction``)
-        self.corrector = LoopCorrection(n) if correction else NoCorrection()
+        self.corrector = LoopCorrection(n, core) if correction else NoCorrection()
         self._covm = RaabCovariance(n, self._cbar, self.covariance)     # publishes into ``covariance``
         self._x = memoryview(np.zeros(6))           # alpha, beta, rho, psi, theta, phi
         self._pm = memoryview(np.zeros(3))          # point of the last evaluation
