@@ -1,8 +1,9 @@
 /*
  * CPython glue of the AC kernels (include/ct_ac.h): Demod binds a Demodulator's numpy arrays
  * (and its channel's sample ring) once at construction; Raab binds a Raab tracker's buffers.
- * The per-call methods use METH_FASTCALL and write into the bound buffers; they return None,
- * a bool or (Demod.push only) the completed block's index.
+ * RaabCorr binds the exact-loop correction's. The per-call methods use METH_FASTCALL and write into
+ * the bound buffers (RaabCorr's read their per-call arrays in place); they return None, a bool, a
+ * small int of flag bits or (Demod.push only) the completed block's index.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -367,10 +368,170 @@ static PyTypeObject RaabType = {
     .tp_methods = Raab_methods,
 };
 
+/* ---------------------------------------------------------------- RaabCorr */
+enum { RC_B, RC_G, RC_K, RC_PERM, RC_NBUF };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_raab_corr c;
+    Py_buffer views[RC_NBUF];
+    int nbound;
+} RaabCorrObject;
+
+static void RaabCorr_release(RaabCorrObject *self)
+{
+    int i;
+    for (i = 0; i < self->nbound; ++i)
+        PyBuffer_Release(&self->views[i]);
+    self->nbound = 0;
+}
+
+static void RaabCorr_dealloc(RaabCorrObject *self)
+{
+    RaabCorr_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* RaabCorr(n, c_raab, b, G, K, perm): raab_correction.LoopCorrection's buffers */
+static int RaabCorr_init(RaabCorrObject *self, PyObject *args, PyObject *kw)
+{
+    static const char *names[RC_NBUF] = {"b", "G", "K", "perm"};
+    PyObject *objs[RC_NBUF];
+    Py_ssize_t want[RC_NBUF];
+    int n, i;
+    double c_raab;
+    if (kw != NULL && PyDict_Size(kw) > 0) {
+        PyErr_SetString(PyExc_TypeError, "RaabCorr: positional arguments only");
+        return -1;
+    }
+    if (!PyArg_ParseTuple(args, "idOOOO", &n, &c_raab, &objs[RC_B], &objs[RC_G], &objs[RC_K], &objs[RC_PERM]))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabCorr: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "RaabCorr: n must be in 1..64");
+        return -1;
+    }
+    want[RC_B] = 3 * n; want[RC_G] = 9 * n; want[RC_K] = 36; want[RC_PERM] = 6;
+    for (i = 0; i < RC_NBUF; ++i) {
+        if (ac_buffer(objs[i], want[i], 8, i == RC_PERM ? "ql" : "d", 1, &self->views[i], names[i]) < 0) {
+            RaabCorr_release(self);
+            return -1;
+        }
+        self->nbound = i + 1;
+    }
+    self->c.n = n;
+    self->c.c_raab = c_raab;
+    self->c.b = (double *)self->views[RC_B].buf;
+    self->c.G = (double *)self->views[RC_G].buf;
+    self->c.K = (double *)self->views[RC_K].buf;
+    self->c.perm = (int64_t *)self->views[RC_PERM].buf;
+    return 0;
+}
+
+static int RaabCorr_ready(RaabCorrObject *self)
+{
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabCorr: not bound");
+        return -1;
+    }
+    return 0;
+}
+
+/* per-call float64 buffers (the last writable when asked): views[i] of args[i] with at least want[i] items */
+static int ac_views(PyObject *const *args, int k, const Py_ssize_t *want, const char *const *names, int writable_last,
+                    Py_buffer *views)
+{
+    int i;
+    for (i = 0; i < k; ++i)
+        if (ac_buffer(args[i], want[i], F64, writable_last && i == k - 1, &views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&views[i]);
+            return -1;
+        }
+    return 0;
+}
+
+/* refresh(x, Bv, Jv, mpa, w, cur, ddx, ddy, ddz, shift_ok, out): out = (rel, shift) */
+static PyObject *RaabCorr_refresh(RaabCorrObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *const names[7] = {"x", "Bv", "Jv", "mpa", "w", "cur", "out"};
+    PyObject *a[7];
+    Py_ssize_t want[7];
+    Py_buffer v[7];
+    double dd[3];
+    int n = self->c.n, shift_ok, i;
+    if (RaabCorr_ready(self) < 0 || ac_nargs("refresh", nargs, 11) < 0)
+        return NULL;
+    if (ac_double(args[6], &dd[0]) < 0 || ac_double(args[7], &dd[1]) < 0 || ac_double(args[8], &dd[2]) < 0)
+        return NULL;
+    shift_ok = PyObject_IsTrue(args[9]);
+    if (shift_ok < 0)
+        return NULL;
+    for (i = 0; i < 6; ++i)
+        a[i] = args[i];
+    a[6] = args[10];
+    want[0] = 6; want[1] = 3 * n; want[2] = 9 * n; want[3] = 3 * n; want[4] = 3 * n; want[5] = n; want[6] = 2;
+    if (ac_views(a, 7, want, names, 1, v) < 0)
+        return NULL;
+    ct_raab_refresh(&self->c, (const double *)v[0].buf, (const double *)v[1].buf, (const double *)v[2].buf,
+                    (const double *)v[3].buf, (const double *)v[4].buf, (const double *)v[5].buf, dd, shift_ok,
+                    (double *)v[6].buf);
+    for (i = 0; i < 7; ++i)
+        PyBuffer_Release(&v[i]);
+    Py_RETURN_NONE;
+}
+
+/* precondition(x, mp, cur, k) -> bool (K factored) */
+static PyObject *RaabCorr_precondition(RaabCorrObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *const names[3] = {"x", "mp", "cur"};
+    Py_ssize_t want[3];
+    Py_buffer v[3];
+    double k;
+    int n = self->c.n, ok, i;
+    if (RaabCorr_ready(self) < 0 || ac_nargs("precondition", nargs, 4) < 0)
+        return NULL;
+    if (ac_double(args[3], &k) < 0)
+        return NULL;
+    want[0] = 6; want[1] = 3 * n; want[2] = n;
+    if (ac_views(args, 3, want, names, 0, v) < 0)
+        return NULL;
+    ok = ct_raab_precondition(&self->c, (const double *)v[0].buf, (const double *)v[1].buf,
+                              (const double *)v[2].buf, k);
+    for (i = 0; i < 3; ++i)
+        PyBuffer_Release(&v[i]);
+    if (ok)
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef RaabCorr_methods[] = {
+    {"refresh", (PyCFunction)(void (*)(void))RaabCorr_refresh, METH_FASTCALL,
+     "refresh(x, Bv, Jv, mpa, w, cur, ddx, ddy, ddz, shift_ok, out): as LoopCorrection.refresh, (rel, shift) "
+     "into out"},
+    {"precondition", (PyCFunction)(void (*)(void))RaabCorr_precondition, METH_FASTCALL,
+     "precondition(x, mp, cur, k) -> bool: K and its LU factors, as LoopCorrection.precondition"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RaabCorrType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.RaabCorr",
+    .tp_basicsize = sizeof(RaabCorrObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "The exact-loop correction's buffers bound for ct_raab_refresh / ct_raab_precondition",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)RaabCorr_init,
+    .tp_dealloc = (destructor)RaabCorr_dealloc,
+    .tp_methods = RaabCorr_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_ac(PyObject *m)
 {
-    if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0)
+    if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0 || PyType_Ready(&RaabCorrType) < 0)
         return -1;
     Py_INCREF(&DemodType);
     if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
@@ -380,6 +541,11 @@ int ct_register_ac(PyObject *m)
     Py_INCREF(&RaabType);
     if (PyModule_AddObject(m, "Raab", (PyObject *)&RaabType) < 0) {
         Py_DECREF(&RaabType);
+        return -1;
+    }
+    Py_INCREF(&RaabCorrType);
+    if (PyModule_AddObject(m, "RaabCorr", (PyObject *)&RaabCorrType) < 0) {
+        Py_DECREF(&RaabCorrType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "DM_NST", CT_DM_NST) < 0 || PyModule_AddIntConstant(m, "DMO_N", CT_DMO_N) < 0)

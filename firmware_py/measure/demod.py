@@ -37,6 +37,13 @@ with ``g = 1/(H e^{i phi}) = |g| (c + i s)``.
 
 Everything is allocated in the constructor; :meth:`Demodulator.push` and
 :meth:`Demodulator.finish` create no numpy array (memoryviews, Python floats).
+:meth:`Demodulator.feed` pushes a tick's new samples straight from the
+channel's sample ring. On the compiled core (``coiltrack.firmware.core``,
+chosen at construction) push, feed and finish are the C kernels of
+``core/src/demod.c`` (``ct_demod_push``, ``ct_demod_feed``: one call per tick
+and channel, ``ct_demod_finish``), which follow these methods operation by
+operation and give the same results to the bit; the Python here is their
+reference.
 Work: a sample costs ``m (p (p + 1)/2 + 3 p)`` multiply-adds (``m`` blocks per
 sample), a finished block one ``p x p`` Cholesky factorisation, its inverse and
 three solves.

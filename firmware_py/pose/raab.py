@@ -113,7 +113,10 @@ charged ``n``). ``solve_evals`` counts real evaluations, as ``PoseSolver``.
 Nothing is allocated after construction (Python floats and preallocated
 buffers).
 
-The modules: the arithmetic of one update (steps 1-5) in ``pose.raab_update``;
+The modules: the arithmetic of one update (steps 1-5) in ``pose.raab_update``
+(``Update``: the whole update on this tracker's buffers, Python or, on the
+compiled core chosen at construction, ``ct_raab_update`` of
+``core/src/raab.c``, the same to the bit);
 the exact-loop correction and ``K``, chosen at construction (``correction``),
 in ``pose.raab_correction``; the covariance in ``pose.raab_covariance``; here
 the tracker's state, its acquisition and plausibility, the units of work and
@@ -239,7 +242,7 @@ class RaabTracker(StagedSolve):
         self._cov = flat(self.covariance)
         self.angles = memoryview(np.zeros(6))
         #: the exact-loop correction (``correction``) or none, chosen here once (``pose.raab_correction``)
-        self.corrector = LoopCorrection(n) if correction else NoCorrection()
+        self.corrector = LoopCorrection(n, core) if correction else NoCorrection()
         self._covm = RaabCovariance(n, self._cbar, self.covariance)     # publishes into ``covariance``
         self._x = memoryview(np.zeros(6))           # alpha, beta, rho, psi, theta, phi
         self._pm = memoryview(np.zeros(3))          # point of the last evaluation

@@ -15,7 +15,11 @@ centroid of the coil centres) at the point ``p_m`` of the last evaluation and
 + G D T`` (:meth:`LoopCorrection.precondition`), which restores quadratic
 convergence near the source and changes only the rate, not the fixed point.
 
-Python floats and buffers allocated at construction only.
+Python floats and buffers allocated at construction only. On the compiled core
+(chosen at construction) :meth:`LoopCorrection.refresh` and
+:meth:`LoopCorrection.precondition` are ``ct_raab_refresh`` and
+``ct_raab_precondition`` of ``core/src/raab.c`` (the same operations in the
+same order); these methods are their reference.
 """
 from __future__ import annotations
 
@@ -23,8 +27,9 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import lu_factor, lu_solve
-from coiltrack.firmware.model.field import dipole_polar
+from coiltrack.firmware.model.field import MU0_2PI, dipole_polar
 
 __all__ = ["LoopCorrection", "NoCorrection", "K_MIN"]
 
@@ -89,7 +94,7 @@ class LoopCorrection:
 
     refreshes = True
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, core=_DEFAULT_CORE):
         self.n = n
         self.rel = 1.0                               # the correction's gradient / the dipole's at the evaluation
         self.lin = False                             # the correction's linear term (and K) in use
@@ -103,6 +108,29 @@ class LoopCorrection:
         self._perm = memoryview(np.zeros(6, dtype=np.int64))
         self._e = [0.0] * 6
         self._y = [0.0] * 6
+        self._ro = memoryview(np.zeros(2))          # rel, shift of the compiled refresh
+        #: the numeric core, bound once here (``coiltrack.firmware.core``)
+        self.core = "python"
+        if core.ext is not None and n <= 64:
+            self._bind_compiled(core.ext)
+
+    def _bind_compiled(self, ext) -> None:
+        """:meth:`refresh` and :meth:`precondition` on ``ct_raab_refresh`` / ``ct_raab_precondition``
+        (``core/src/raab.c``), bound once to ``b``, ``G``, ``K`` and its permutation; the methods
+        are replaced on this instance."""
+        self._ck = ext.RaabCorr(self.n, MU0_2PI, self.b, self.G, self._K, self._perm)
+        self.refresh = self._refresh_compiled
+        self.precondition = self._precondition_compiled
+        self.core = "compiled"
+
+    def _refresh_compiled(self, Bv, Jv, x, mpa, w, cur, dd, shift_ok: bool) -> float:
+        ro = self._ro
+        self._ck.refresh(x, Bv, Jv, mpa, w, cur, dd[0], dd[1], dd[2], shift_ok, ro)
+        self.rel = ro[0]
+        return ro[1]
+
+    def _precondition_compiled(self, x, mp, cur, k: float) -> None:
+        self.k_ok = self._ck.precondition(x, mp, cur, k)
 
     def correct(self, S, Sc, n: int, point, pm, R, rho: float, cur) -> None:
         """``S_c[:, j] = S[:, j] - R^T (b_j + G_j (p - p_m)) I_j`` at the

@@ -82,4 +82,22 @@ struct ct_raab {
  * when the correction's linear term was dropped (the estimate beyond CT_RP_LIN_MAX x range of pm) */
 int ct_raab_update(const struct ct_raab *r, int lin, int k_id);
 
+/* raab_correction.LoopCorrection's refresh and preconditioner: its buffers b (3 n), G (9 n), K (36), perm (6) */
+struct ct_raab_corr {
+    int n;
+    double c_raab;                  /* C of eq 3 (model.field.MU0_2PI) */
+    double *b, *G, *K;
+    int64_t *perm;
+};
+/* LoopCorrection.refresh: b, G from the exact model's fields Bv (3 n) and gradients Jv (9 n) per ampere at the
+ * estimate x and Raab's dipole of the moments per ampere mpa (model.field.dipole_polar); out[0] = rel, out[1] =
+ * the shift against the last correction's linear term moved by dd (3) in the noise (weights w, currents cur)
+ * when shift_ok, else 0 */
+void ct_raab_refresh(const struct ct_raab_corr *c, const double *x, const double *Bv, const double *Jv,
+                     const double *mpa, const double *w, const double *cur, const double *dd, int shift_ok,
+                     double *out);
+/* LoopCorrection.precondition: K = I + G D T at x (M^+ mp, currents cur, k = C / rho^3) and its LU factors
+ * (linalg.lu_factor); returns 1 when factored */
+int ct_raab_precondition(const struct ct_raab_corr *c, const double *x, const double *mp, const double *cur, double k);
+
 #endif /* CT_AC_H */

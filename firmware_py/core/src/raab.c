@@ -2,7 +2,9 @@
  * One update of Raab's iterative tracker (Raab et al. 1979, seeds/004_86267342cd7488ce.txt,
  * eqs 7-31): coiltrack.firmware.pose.raab_update (coupling, post_sense, detect, clip,
  * position_update, orientation_update, dcm, euler, wrap) and raab_correction.LoopCorrection
- * (correct, precondition_step with linalg.lu_solve), composed as pose.raab_update.Update.run.
+ * (correct, precondition_step with linalg.lu_solve), composed as pose.raab_update.Update.run; and the
+ * correction's refresh (with model.field.dipole_polar) and its preconditioner K (precondition, with
+ * linalg.lu_factor).
  * The same operations in the same order as the Python.
  */
 #include "coiltrack_core.h"
@@ -314,4 +316,185 @@ int ct_raab_update(const struct ct_raab *r, int lin, int k_id)
     for (i = 0; i < 6; ++i)
         o[i] = d[i];
     return ret | CT_RAAB_OK;
+}
+
+/* model.field.dipole_polar with its gradient: (bx, by, bz, jxx, jyy, jzz, jxy, jxz, jyz) into o */
+static void dipole_polar(double ux, double uy, double uz, double rho, double mx, double my, double mz, double c_raab,
+                         double *o)
+{
+    double kd = 0.5 * c_raab / (rho * rho * rho), mu = mx * ux + my * uy + mz * uz, kj, f;
+    o[0] = kd * (3.0 * mu * ux - mx);
+    o[1] = kd * (3.0 * mu * uy - my);
+    o[2] = kd * (3.0 * mu * uz - mz);
+    kj = kd / rho;
+    f = 15.0 * mu;
+    o[3] = kj * (6.0 * ux * mx + 3.0 * mu - f * ux * ux);
+    o[4] = kj * (6.0 * uy * my + 3.0 * mu - f * uy * uy);
+    o[5] = kj * (6.0 * uz * mz + 3.0 * mu - f * uz * uz);
+    o[6] = kj * (3.0 * (ux * my + mx * uy) - f * ux * uy);
+    o[7] = kj * (3.0 * (ux * mz + mx * uz) - f * ux * uz);
+    o[8] = kj * (3.0 * (uy * mz + my * uz) - f * uy * uz);
+}
+
+void ct_raab_refresh(const struct ct_raab_corr *c, const double *x, const double *Bv, const double *Jv,
+                     const double *mpa, const double *w, const double *cur, const double *dd, int shift_ok,
+                     double *out)
+{
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]);
+    double ux = cb * ca, uy = cb * sa, uz = -sb, ddx = dd[0], ddy = dd[1], ddz = dd[2], rel = 0.0, shift = 0.0;
+    double *b = c->b, *G = c->G;
+    int j, q;
+    for (j = 0; j < c->n; ++j) {
+        int o = 3 * j, g = 9 * j;
+        double dp[9], nx, ny, nz, gg, jj, gxx, gyy, gzz, gxy, gxz, gyz;
+        dipole_polar(ux, uy, uz, x[2], mpa[o], mpa[o + 1], mpa[o + 2], c->c_raab, dp);
+        gxx = dp[3]; gyy = dp[4]; gzz = dp[5]; gxy = dp[6]; gxz = dp[7]; gyz = dp[8];
+        nx = Bv[o] - dp[0];
+        ny = Bv[o + 1] - dp[1];
+        nz = Bv[o + 2] - dp[2];
+        if (shift_ok) {
+            double ex = nx - (b[o] + G[g] * ddx + G[g + 1] * ddy + G[g + 2] * ddz);
+            double ey = ny - (b[o + 1] + G[g + 3] * ddx + G[g + 4] * ddy + G[g + 5] * ddz);
+            double ez = nz - (b[o + 2] + G[g + 6] * ddx + G[g + 7] * ddy + G[g + 8] * ddz);
+            double wm = w[o];
+            if (w[o + 1] > wm)                  /* Python's max(w[o], w[o + 1], w[o + 2]) */
+                wm = w[o + 1];
+            if (w[o + 2] > wm)
+                wm = w[o + 2];
+            wm = wm * cur[j];
+            shift += (ex * ex + ey * ey + ez * ez) * wm * wm;
+        }
+        b[o] = nx;
+        b[o + 1] = ny;
+        b[o + 2] = nz;
+        G[g] = Jv[g] - gxx;
+        G[g + 1] = Jv[g + 1] - gxy;
+        G[g + 2] = Jv[g + 2] - gxz;
+        G[g + 3] = Jv[g + 3] - gxy;
+        G[g + 4] = Jv[g + 4] - gyy;
+        G[g + 5] = Jv[g + 5] - gyz;
+        G[g + 6] = Jv[g + 6] - gxz;
+        G[g + 7] = Jv[g + 7] - gyz;
+        G[g + 8] = Jv[g + 8] - gzz;
+        gg = 0.0;
+        for (q = g; q < g + 9; ++q)
+            gg += G[q] * G[q];
+        jj = gxx * gxx + gyy * gyy + gzz * gzz + 2.0 * (gxy * gxy + gxz * gxz + gyz * gyz);
+        if (gg > rel * rel * jj)
+            rel = sqrt(gg / jj);
+    }
+    out[0] = rel;
+    out[1] = shift;
+}
+
+/* linalg.lu_factor of the 6 x 6 K in place, the permutation into perm; 0 when a pivot is below 1e-12 */
+static int lu_factor6(double *K, int64_t *perm)
+{
+    int i, c, r, j;
+    for (i = 0; i < 6; ++i)
+        perm[i] = i;
+    for (c = 0; c < 6; ++c) {
+        int piv = c;
+        double best = fabs(K[6 * c + c]), d;
+        for (r = c + 1; r < 6; ++r)
+            if (fabs(K[6 * r + c]) > best) {
+                piv = r;
+                best = fabs(K[6 * r + c]);
+            }
+        if (!(best > 1e-12))
+            return 0;
+        if (piv != c) {
+            int64_t t;
+            for (j = 0; j < 6; ++j) {
+                double v = K[6 * c + j];
+                K[6 * c + j] = K[6 * piv + j];
+                K[6 * piv + j] = v;
+            }
+            t = perm[c];
+            perm[c] = perm[piv];
+            perm[piv] = t;
+        }
+        d = K[6 * c + c];
+        for (r = c + 1; r < 6; ++r) {
+            double f = K[6 * r + c] / d;
+            K[6 * r + c] = f;
+            for (j = c + 1; j < 6; ++j)
+                K[6 * r + j] -= f * K[6 * c + j];
+        }
+    }
+    return 1;
+}
+
+int ct_raab_precondition(const struct ct_raab_corr *c, const double *x, const double *mp, const double *cur, double k)
+{
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]);
+    double p00 = cb * ca, p01 = cb * sa, p02 = -sb, p10 = -sa, p11 = ca, p20 = sb * ca, p21 = sb * sa, p22 = cb;
+    double rho = x[2], Fk[54], inv;
+    const double *b = c->b, *G = c->G;
+    double *K = c->K;
+    int i, j, e, cc, r;
+    for (i = 0; i < 54; ++i)
+        Fk[i] = 0.0;
+    for (j = 0; j < c->n; ++j) {
+        double cj = cur[j], m0, m1, m2, q0, q1, q2, bx, by, bz, t0, t1, t2, cols[3][3], ys[6][3];
+        const double E[3][3] = {{p00, p01, p02}, {p10, p11, 0.0}, {p20, p21, p22}};
+        int o = 3 * j, g = 9 * j;
+        m0 = mp[o];
+        m1 = mp[o + 1];
+        m2 = mp[o + 2];
+        q0 = p00 * m0 + p01 * m1 + p02 * m2;
+        q1 = p10 * m0 + p11 * m1;
+        q2 = p20 * m0 + p21 * m1 + p22 * m2;
+        bx = b[o] * cj;
+        by = b[o + 1] * cj;
+        bz = b[o + 2] * cj;
+        t0 = p00 * bx + p01 * by + p02 * bz;
+        t1 = p10 * bx + p11 * by;
+        t2 = p20 * bx + p21 * by + p22 * bz;
+        for (e = 0; e < 3; ++e) {               /* G_j P^T e_k = G_j (row k of P) */
+            double e0 = E[e][0], e1 = E[e][1], e2 = E[e][2];
+            double w0 = (G[g] * e0 + G[g + 1] * e1 + G[g + 2] * e2) * cj;
+            double w1 = (G[g + 3] * e0 + G[g + 4] * e1 + G[g + 5] * e2) * cj;
+            double w2 = (G[g + 6] * e0 + G[g + 7] * e1 + G[g + 8] * e2) * cj;
+            cols[e][0] = p00 * w0 + p01 * w1 + p02 * w2;
+            cols[e][1] = p10 * w0 + p11 * w1;
+            cols[e][2] = p20 * w0 + p21 * w1 + p22 * w2;
+        }
+        for (i = 0; i < 3; ++i) {
+            ys[0][i] = rho * cols[1][i];
+            ys[1][i] = -rho * cols[2][i];
+            ys[2][i] = cols[0][i];
+        }
+        ys[3][0] = t1; ys[3][1] = -t0; ys[3][2] = 0.0;
+        ys[4][0] = -t2; ys[4][1] = 0.0; ys[4][2] = t0;
+        ys[5][0] = 0.0; ys[5][1] = t2; ys[5][2] = -t1;
+        for (cc = 0; cc < 6; ++cc) {
+            double y0 = ys[cc][0], y1 = ys[cc][1], y2 = ys[cc][2];
+            int f = 9 * cc;
+            Fk[f] += y0 * q0;
+            Fk[f + 1] += y0 * q1;
+            Fk[f + 2] += y0 * q2;
+            Fk[f + 3] += y1 * q0;
+            Fk[f + 4] += y1 * q1;
+            Fk[f + 5] += y1 * q2;
+            Fk[f + 6] += y2 * q0;
+            Fk[f + 7] += y2 * q1;
+            Fk[f + 8] += y2 * q2;
+        }
+    }
+    inv = 1.0 / k;
+    for (cc = 0; cc < 6; ++cc) {
+        int f = 9 * cc;
+        double fxy = Fk[f + 1] * inv, fyx = Fk[f + 3] * inv, fxz = Fk[f + 2] * inv, fzx = Fk[f + 6] * inv,
+               fyz = Fk[f + 5] * inv, fzy = Fk[f + 7] * inv, col[6];
+        col[0] = (2.0 / 3.0) * (2.0 * fxy - fyx);
+        col[1] = (2.0 / 3.0) * (fzx - 2.0 * fxz);
+        col[2] = -(rho / 9.0) * (2.0 * Fk[f] - Fk[f + 4] - Fk[f + 8]) * inv;
+        col[3] = 2.0 * (fxy - fyx);
+        col[4] = 2.0 * (fzx - fxz);
+        col[5] = fzy - fyz;
+        for (r = 0; r < 6; ++r)
+            K[6 * r + cc] = col[r] + (r == cc ? 1.0 : 0.0);
+    }
+    return lu_factor6(K, c->perm);
 }

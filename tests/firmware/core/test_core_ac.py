@@ -181,7 +181,8 @@ def test_a_pure_tone_demodulates_to_its_amplitude_in_closed_form():
 
 # ---------------------------------------------------------------------------------------- Raab's update
 from coiltrack.firmware.pose.raab_correction import LoopCorrection, NoCorrection  # noqa: E402
-from coiltrack.firmware.pose.raab_update import ACQUIRED, K_OUT, Update, moment_pseudo_inverse, sync_rotation  # noqa: E402
+from coiltrack.firmware.pose.raab_update import (ACQUIRED, K_OUT, Update, moment_pseudo_inverse,  # noqa: E402
+                                                 sync_rotation)
 
 
 def _raab_case(seed, core, correction=True, beta=None, theta=None, far=False, zero_signal=False):
@@ -223,7 +224,8 @@ def _raab_state(u):
 
 
 @pytest.mark.parametrize("case", [dict(), dict(correction=False), dict(far=True), dict(beta=1.45),
-                                  dict(theta=-1.5), dict(beta=-1.5, theta=1.47), dict(zero_signal=True, correction=False)],
+                                  dict(theta=-1.5), dict(beta=-1.5, theta=1.47),
+                                  dict(zero_signal=True, correction=False)],
                          ids=["tracking", "no-correction", "lin-dropped", "pole-beta", "pole-theta", "both-poles",
                               "no-signal"])
 def test_raab_update_bit_equal_to_the_reference(case):
@@ -275,3 +277,61 @@ def test_raab_update_converges_on_an_exact_dipole_coupling():
         assert upd.run()
     np.testing.assert_allclose(np.array(x), truth, rtol=0, atol=1e-9)
     assert upd.out[ACQUIRED] == 1.0
+
+
+def _corr_pair(seed):
+    """A LoopCorrection on each core and the same seeded fields, moments, weights and pose."""
+    rng = np.random.default_rng(seed)
+    n = 3
+    x = memoryview(np.array([rng.uniform(-3, 3), rng.uniform(-1.4, 1.4), rng.uniform(0.15, 0.6),
+                             rng.uniform(-3, 3), rng.uniform(-1.4, 1.4), rng.uniform(-3, 3)]))
+    scale = (0.3 / x[2]) ** 3
+    Bv = memoryview(rng.normal(0, 1e-6, 3 * n) * scale)
+    Jv = memoryview(rng.normal(0, 1e-5, 9 * n) * scale)
+    mpa = memoryview(np.eye(3).reshape(-1) * 0.47 + rng.normal(0, 0.02, 9))
+    w = memoryview(rng.uniform(0.8e7, 1.2e7, 3 * n))
+    cur = memoryview(rng.uniform(1.3, 1.7, n))
+    mom, mp = memoryview(np.zeros(3 * n)), memoryview(np.zeros(3 * n))
+    assert moment_pseudo_inverse(n, mpa, cur, mom, mp)
+    cp, cc = LoopCorrection(n, fcore.PYTHON), LoopCorrection(n, COMPILED)
+    assert cp.core == "python" and cc.core == "compiled"
+    return cp, cc, x, Bv, Jv, mpa, w, cur, mp, rng
+
+
+def test_loop_correction_refresh_and_preconditioner_bit_equal_to_the_reference():
+    """The correction refreshed twice (the second against the first's linear term moved by a
+    seeded shift: the noise-weighted shift of eq. ``refresh``) and ``K = I + G D T`` formed and
+    LU-factored: the same b, G, rel, shift, K, permutation and k_ok as the Python, bit for bit
+    (catches a dipole gradient element swapped, the weight's max over the wrong axes, a pivot
+    chosen otherwise)."""
+    for seed in range(8):
+        cp, cc, x, Bv, Jv, mpa, w, cur, mp, rng = _corr_pair(seed)
+        dd = tuple(rng.normal(0, 0.01, 3))
+        for shift_ok in (False, True):
+            sp = cp.refresh(Bv, Jv, x, mpa, w, cur, dd, shift_ok)
+            sc = cc.refresh(Bv, Jv, x, mpa, w, cur, dd, shift_ok)
+            assert sp == sc and cp.rel == cc.rel
+            assert np.array_equal(np.array(cp.b), np.array(cc.b)) and np.array_equal(np.array(cp.G), np.array(cc.G))
+        assert sp > 0.0
+        k = 2e-7 / x[2] ** 3
+        cp.precondition(x, mp, cur, k)
+        cc.precondition(x, mp, cur, k)
+        assert cp.k_ok == cc.k_ok
+        _same(cp.kernel_buffers(), cc.kernel_buffers())
+
+
+def test_preconditioner_of_a_zero_correction_is_the_identity():
+    """Edge case, in both: a correction of zero (b = G = 0: the loop equals Raab's dipole) has
+    ``K = I + G D T = I`` exactly, factored without a row exchange (catches a missing identity or
+    a column written into the wrong row)."""
+    cp, cc, x, Bv, Jv, mpa, w, cur, mp, rng = _corr_pair(3)
+    for c in (cp, cc):
+        for i in range(len(c.b)):
+            c.b[i] = 0.0
+        for i in range(len(c.G)):
+            c.G[i] = 0.0
+        c.precondition(x, mp, cur, 2e-7 / x[2] ** 3)
+        assert c.k_ok
+        b, G, K, perm = c.kernel_buffers()
+        np.testing.assert_array_equal(np.array(K).reshape(6, 6), np.eye(6))
+        assert list(perm) == list(range(6))
