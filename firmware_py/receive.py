@@ -52,6 +52,12 @@ reading).
 The records are allocated once (one of each) and reused: every consumer
 copies the values it keeps.
 
+Decode: on the Python core the protocol's ``FrameDecoder`` (the reference); on
+the compiled core :class:`coiltrack.firmware.rxdecode.CompiledFrameDecoder`
+(``core/src/rxdecode.c``: the same frames, counters and resynchronisation),
+whose rows already hold the restored MAG_PACKED and the IMU_SAMPLE's clip
+check; the routing is the same for both (:meth:`Receiver._route`).
+
 Budget: at most ``frames_per_tick`` frames (``[receive] rx_frames_per_tick``)
 are decoded and routed in one tick; the bytes of the others stay in the
 receive queue (one bytearray, at most ``queue_bytes``) for the next ticks,

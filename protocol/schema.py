@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import struct
 from dataclasses import dataclass, field as dc_field
+from functools import cached_property
 
 PROTOCOL_VERSION = 4
 
@@ -189,15 +190,15 @@ class MessageDef:
     sender_field: bool = False
     extra: dict = dc_field(default_factory=dict, compare=False)
 
-    @property
+    @cached_property
     def fmt(self) -> str:
         return "<" + "".join(f.fmt for f in self.fields)
 
-    @property
+    @cached_property
     def size(self) -> int:
         return struct.calcsize(self.fmt)
 
-    @property
+    @cached_property
     def field_names(self) -> tuple[str, ...]:
         return tuple(f.name for f in self.fields)
 
@@ -205,7 +206,7 @@ class MessageDef:
         """Text the CRC extra byte and schema hash are computed from."""
         return self.name + " " + " ".join(f"{f.type} {f.name}" for f in self.fields) + " "
 
-    @property
+    @cached_property
     def crc_extra(self) -> int:
         """One byte folded from the definition, mixed into every frame's CRC
         (MAVLink's CRC_EXTRA): a peer with a different definition of this

@@ -22,7 +22,10 @@ from coiltrack.tools.bench.runner import BenchSetup
 
 def _run(name: str, seconds: float, **keys):
     """Per tick ``(windows closed, IMU samples processed, field evaluations)``, and the
-    magnetic solutions reported ``(tick, ticks since the burst completed, position, rotation)``."""
+    magnetic solutions reported ``(tick, ticks since the burst completed, position, rotation)``.
+    The budget is 9 field evaluations unless given (the cases below are sized for it: a board 4x
+    slower's, not the compiled core's default)."""
+    keys.setdefault("track_budget_evals", 9)
     sc = scenarios.get(name)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 1, seconds + 1.0, emu_end)
@@ -85,7 +88,7 @@ def test_a_partial_charge_and_the_evaluations_add_up_to_the_budget():
     of 7. With 2, one unit fits beside a charge and some charged ticks do solve. Catches the rule
     of the uncharged budget (the first unit always runs) kept once something is charged
     (7 + 3 = 10), and a charge that blocks the whole tick whatever its size."""
-    cfg, ticks, _ = _run("roetenberg-fusion", 20.0, window_evals=7, imu_sample_evals=7, track_budget_evals=9)
+    cfg, ticks, _ = _run("roetenberg-fusion", 20.0, window_evals=7, imu_sample_evals=7)
     work = 7 * ticks[:, 0] + 7 * ticks[:, 1] + ticks[:, 2]
     assert work[(ticks[:, 2] > 0) & ~_waived(ticks)].max() <= cfg.budget.track_budget_evals
     assert ticks[:, 2].max() <= cfg.budget.track_budget_evals
