@@ -133,3 +133,43 @@ def test_protocol_table_is_brought_up_to_date():
     assert protocol_text(new) == new
     with pytest.raises(ValueError):
         protocol_text("no block here")
+
+
+@pytest.mark.parametrize("scenario", ["roetenberg-fusion", "raab-ac", "schepers-adaptive"])
+def test_results_core_option_runs_that_core_with_the_same_figures(scenario, tmp_path):
+    """`coiltrack results --core python` runs every firmware on the Python reference and the
+    page's command says so; the compiled core gives the same figures (every report key but
+    ``core`` equal, floats to 1e-9 relative). Fails if the option is dropped on the way to the
+    run (both reports would name one core) or if a compiled kernel drifts from its reference."""
+    from coiltrack.firmware import core
+
+    if not core.available():
+        pytest.skip("the compiled core is not built here")
+    from coiltrack.tools.cli import main
+
+    reps = {}
+    for impl in ("python", "compiled"):
+        out = tmp_path / impl
+        assert main(["results", "--scenarios", scenario, "--duration", "2", "--core", impl,
+                     "--out", str(out)]) == 0
+        run = json.loads((out / "results.json").read_text())["runs"][0]
+        assert run["command"].endswith(f"--core {impl}")
+        assert run["report"]["core"] == impl
+        reps[impl] = run["report"]
+
+    def same(a, b, path):
+        if isinstance(a, dict):
+            assert set(a) == set(b), path
+            for k in a:
+                if k != "core":
+                    same(a[k], b[k], f"{path}.{k}")
+        elif isinstance(a, list):
+            assert len(a) == len(b), path
+            for i, (x, y) in enumerate(zip(a, b)):
+                same(x, y, f"{path}[{i}]")
+        elif isinstance(a, float) and isinstance(b, float):
+            assert a == pytest.approx(b, rel=1e-9, abs=1e-300), path
+        else:
+            assert a == b, path
+
+    same(reps["python"], reps["compiled"], scenario)

@@ -53,6 +53,9 @@ def add_arguments(p) -> None:
                    help=f"simulated seconds of every run, (0, {A.MAX_BENCH_S:g}] (default: each scenario's own)")
     p.add_argument("--workers", type=A.integer(1, 64), default=1,
                    help="runs at the same time, in spawned processes, 1-64 (default 1)")
+    p.add_argument("--core", choices=("compiled", "python"), default=None,
+                   help="the firmware's numeric core of every run ([core] impl; default the configuration's: "
+                        "compiled where the extension is built); the two give the same figures")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--out", metavar="DIR", default="out/results",
                    help="directory of results.json and index.md (default out/results; created)")
@@ -106,7 +109,7 @@ def run(args) -> int:
 
         print(f"coiltrack results: {len(args.scenarios)} scenarios, seed {args.seed}, "
               f"{args.workers} worker(s)", file=sys.stderr)
-        runs = R.run_all(args.scenarios, args.seed, args.duration, args.workers, progress)
+        runs = R.run_all(args.scenarios, args.seed, args.duration, args.workers, progress, args.core)
         data = R.merge(old if args.publish else None, runs, _version())
     for path in R.write(out, data):
         print(f"wrote {path}")

@@ -33,14 +33,16 @@ HEADLINE = ("roetenberg-bench", "roetenberg-fusion", "schepers-adaptive", "raab-
 FORMAT = "coiltrack-results/1"
 
 
-def command(scenario: str, seed: int, duration_s: float, default_s: float, experiment: bool = False) -> str:
-    """The command that gives a run's figures: ``coiltrack bench``, or for a measurement-level
-    experiment (Gietler's scenarios, :func:`coiltrack.tools.bench.sweep.experiment`) ``coiltrack sweep``
+def command(scenario: str, seed: int, duration_s: float, default_s: float, experiment: bool = False,
+            core: str | None = None) -> str:
+    """The command that gives a run's figures: ``coiltrack bench`` (with ``--core`` where one was
+    chosen), or for a measurement-level experiment (Gietler's scenarios,
+    :func:`coiltrack.tools.bench.sweep.experiment`, which run no firmware core) ``coiltrack sweep``
     of that one seed."""
     dur = "" if duration_s == default_s else f" --duration {duration_s:g}"
     if experiment:
         return f"coiltrack sweep --scenario {scenario} --seeds {seed}{dur}"
-    return f"coiltrack bench --scenario {scenario} --seed {seed}{dur}"
+    return f"coiltrack bench --scenario {scenario} --seed {seed}{dur}" + (f" --core {core}" if core else "")
 
 
 def _clean(v):
@@ -54,23 +56,25 @@ def _clean(v):
     return v
 
 
-def run_one(job: tuple[str, int, float]) -> dict:
-    """One scenario run (a worker process): the report without its wall-clock keys."""
+def run_one(job: tuple[str, int, float, str | None]) -> dict:
+    """One scenario run (a worker process): the report without its wall-clock keys. ``job``:
+    the scenario, seed, duration and numeric core (``[core] impl``; None: the configuration's)."""
     # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from coiltrack.tools.bench.runner import add_fixed_comparison, run_inproc
     from coiltrack.tools.scenarios import SCENARIOS
     from coiltrack.tools.bench.sweep import experiment
 
-    name, seed, duration_s = job
+    name, seed, duration_s, core = job
     sc = SCENARIOS[name]
     exp = experiment(name)
-    cmd = command(name, seed, duration_s, sc.duration_s, exp is not None)
+    cmd = command(name, seed, duration_s, sc.duration_s, exp is not None, core)
+    cfg = sc.firmware_config().with_(core={"impl": core}) if core else None
     try:
         if exp is not None:                       # a measurement-level experiment: its figures
             rep = dict(exp.run(name, seed, duration_s, ()))
             rep["paper"] = {"source": sc.reference.get("source")} if sc.reference.get("source") else {}
         else:
-            rep = run_inproc(sc, seed, duration_s)
+            rep = run_inproc(sc, seed, duration_s, cfg=cfg)
             add_fixed_comparison(rep, sc, seed, duration_s)
     except Exception as exc:                      # reported on the page, the other runs go on
         return {"scenario": name, "seed": seed, "duration_s": duration_s, "command": cmd,
@@ -80,12 +84,15 @@ def run_one(job: tuple[str, int, float]) -> dict:
             "summary": sc.summary or sc.description, "report": _clean(keep)}
 
 
-def run_all(names, seed: int, duration_s: float | None, workers: int, progress=None) -> list[dict]:
-    """Run every scenario of ``names`` (each at its own duration unless ``duration_s``) on a
-    process pool of ``workers`` spawned processes; results in the order of ``names``."""
+def run_all(names, seed: int, duration_s: float | None, workers: int, progress=None,
+            core: str | None = None) -> list[dict]:
+    """Run every scenario of ``names`` (each at its own duration unless ``duration_s``, on the
+    numeric ``core`` where one is named) on a process pool of ``workers`` spawned processes;
+    results in the order of ``names``."""
     from coiltrack.tools.scenarios import SCENARIOS
 
-    jobs = [(n, seed, float(duration_s if duration_s is not None else SCENARIOS[n].duration_s)) for n in names]
+    jobs = [(n, seed, float(duration_s if duration_s is not None else SCENARIOS[n].duration_s), core)
+            for n in names]
     if workers <= 1:
         out = []
         for j in jobs:
