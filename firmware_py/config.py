@@ -227,11 +227,11 @@ class LimitsConfig:
 @dataclass(frozen=True)
 class BudgetConfig:
     """``[budget]``: the work per tick (a slower board lowers it)."""
-    track_budget_evals: int = 18           # coil field evaluations (field + Jacobian at one point) per tick;
-                                           # a warm 3-coil solve is 3 (k + 2) of them (k LM steps: 15-30 on
-                                           # roetenberg-bench): 18 finishes most in one or two ticks on the
-                                           # compiled core ([core]; CPU p99.9 unchanged: coiltrack perf), a
-                                           # board 4x slower sets 9 (coiltrack perf: max_field_evals_per_tick)
+    track_budget_evals: int = 9            # coil field evaluations (field + Jacobian at one point) per tick;
+                                           # a warm 3-coil solve is 3 (k + 2) of them (k LM steps, ~3): 9
+                                           # spreads it over two ticks; on the compiled core ([core]) 18 fits
+                                           # it in one (the LM step with its cost in C, ~7x cheaper), a board
+                                           # 4x slower keeps 9 (coiltrack perf: max_field_evals_per_tick)
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
     solve_gate_probability: float = 1.0    # a warm-started solve whose cost fails this chi-square
                                            # probability is solved again from acquisition (1.0: never;

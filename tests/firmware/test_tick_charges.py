@@ -22,10 +22,7 @@ from coiltrack.tools.bench.runner import BenchSetup
 
 def _run(name: str, seconds: float, **keys):
     """Per tick ``(windows closed, IMU samples processed, field evaluations)``, and the
-    magnetic solutions reported ``(tick, ticks since the burst completed, position, rotation)``.
-    The budget is 9 field evaluations unless given (the cases below are sized for it: a board 4x
-    slower's, not the compiled core's default)."""
-    keys.setdefault("track_budget_evals", 9)
+    magnetic solutions reported ``(tick, ticks since the burst completed, position, rotation)``."""
     sc = scenarios.get(name)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 1, seconds + 1.0, emu_end)
@@ -84,8 +81,8 @@ def test_a_full_charge_leaves_no_solve_work_in_ticks_with_windows_or_imu_samples
 def test_a_partial_charge_and_the_evaluations_add_up_to_the_budget():
     """``roetenberg-fusion``, 20 s, 7 evaluations per window and per IMU sample: in every tick
     but those after a wait (charged nothing) the charges and the field evaluations together
-    are at most ``track_budget_evals`` (9 here): a 3-evaluation unit does not fit beside a charge
-    of 7. With 2, one unit fits beside a charge and some charged ticks do solve. Catches the rule
+    are at most ``track_budget_evals`` (9): a 3-evaluation unit does not fit beside a charge of
+    7. With 2, one unit fits beside a charge and some charged ticks do solve. Catches the rule
     of the uncharged budget (the first unit always runs) kept once something is charged
     (7 + 3 = 10), and a charge that blocks the whole tick whatever its size."""
     cfg, ticks, _ = _run("roetenberg-fusion", 20.0, window_evals=7, imu_sample_evals=7)
