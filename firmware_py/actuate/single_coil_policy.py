@@ -41,6 +41,7 @@ from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, C
                                                     SingleCoilModel, current_ladder, saturation_current_limit)
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.protocol.schema import CURRENT_LSB_A
 
 __all__ = ["FixedActuation", "AdaptiveActuation", "SensorOutlook"]
 
@@ -204,8 +205,11 @@ class AdaptiveActuation(_SingleCoilActuation):
             min(cfg.adaptive.adaptive_min_current_a, cfg.adaptive.adaptive_max_current_a), cfg.adaptive.adaptive_max_current_a,
             cfg.adaptive.adaptive_current_levels)
         trace = cfg.adaptive.bound_on == "trace"
+        # a ladder made here is a search grid, not the driver's levels: the current is refined
+        # to the command's resolution (``CoilChooser`` ``step_a``); given levels are kept as given
+        step = 0.0 if cfg.adaptive.adaptive_currents_a else CURRENT_LSB_A
         self.chooser = CoilChooser(n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
-                                   trace)
+                                   trace, step)
         self.policy = ActuationPolicy(smax, cfg.adaptive.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()
         self.var_amp = lengths.var_amp[-1]
