@@ -60,9 +60,12 @@ __all__ = ["FixedCycleReference", "fixed_cycle_bounds", "nis_bound_factor"]
 
 N_CORE = CORE.stop
 
-#: the reference has settled when its gyroscope-offset variance falls by less than this fraction
-#: over one cycle (see the module docstring)
+#: a ``settle_drop`` that settles the schepers-adaptive reference about 10 s after a start (seeds 1,
+#: 10: 10.7 s; see the module docstring)
 SETTLE_DROP = 0.05
+#: ... or at the latest this long after its start (us): a sensor whose offsets are seen too weakly
+#: to converge is held to the mean from then on
+SETTLE_MAX_US = 30_000_000
 
 
 def fixed_cycle_bounds(avg6, ratio: float, min_ratio: float, out_max6, out_min6, law_pos: float = 1.0,
@@ -122,7 +125,7 @@ class FixedCycleReference:
     def __init__(self, currents, first_cycle_us: int, cycle_us: int, spacing_us: int, mid_us: int,
                  var_amp: float, rel_model: float, current_sigma: float, avg_us: float,
                  exp_pos: float = 0.0, exp_ori: float = 0.0, warmup_us: int = 0, core=_DEFAULT_CORE,
-                 settle_drop: float = SETTLE_DROP):
+                 settle_drop: float = 0.0):
         self.currents = tuple(float(c) for c in currents)
         self.n = len(self.currents)
         self.first_cycle_us = int(first_cycle_us)
@@ -161,6 +164,10 @@ class FixedCycleReference:
         self.cycle_start = self.first_cycle_us
         self.coil = 0
         self.pulses = 0          # reference pulses taken (counted, never commanded)
+
+    def set_settle(self, drop: float) -> None:
+        """The ``settle_drop`` of the next start (the policy's ``reference_settle_drop``)."""
+        self.settle_drop = float(drop)
 
     def law_now(self, r: float, g: int) -> float:
         """``r^(2 e_g) / mean(r^(2 e_g))`` for group ``g`` (0 position, 1 orientation)."""
@@ -203,14 +210,15 @@ class FixedCycleReference:
 
     def _check_settled(self) -> None:
         """At a cycle's end: settled once ``warmup_us`` has passed and the gyroscope-offset
-        variance fell by less than ``settle_drop`` over the cycle."""
+        variance fell by less than ``settle_drop`` over the cycle (or ``SETTLE_MAX_US`` have passed)."""
         P = self.P
         g = float(P[GYR.start, GYR.start]) + float(P[GYR.start + 1, GYR.start + 1]) + float(P[GYR.start + 2, GYR.start + 2])
         prev = self._gyr_var
         self._gyr_var = g
         if self.settled or self.elapsed_us < self.warmup_us:
             return
-        if self.settle_drop <= 0.0 or (prev > 0.0 and g > (1.0 - self.settle_drop) * prev):
+        if (self.settle_drop <= 0.0 or (prev > 0.0 and g > (1.0 - self.settle_drop) * prev)
+                or self.elapsed_us >= SETTLE_MAX_US):
             self.settled = True
 
     def step(self, ekf, t_us: int, model) -> None:
@@ -240,11 +248,13 @@ class FixedCycleReference:
         # the present values until settled; then the mean since then until avg_us have passed,
         # then an exponential one over avg_us
         self.elapsed_us += dt_us
-        if not self.settled and self.settle_drop <= 0.0 and self.elapsed_us > self.warmup_us:
-            self.settled = True
-        if self.settled:
-            self.mean_us += dt_us
-        e = self.mean_us
+        if self.settle_drop <= 0.0:
+            e = self.elapsed_us - self.warmup_us
+            self.settled = e > 0.0
+        else:
+            if self.settled:
+                self.mean_us += dt_us
+            e = self.mean_us
         a = 1.0 if e <= dt_us else dt_us / (e if e < self.avg_us else self.avg_us)
         if a > 1.0:
             a = 1.0

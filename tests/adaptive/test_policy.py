@@ -139,7 +139,7 @@ def test_fixed_cycle_reference_matches_information_form_updates():
     model = SingleCoilModel(_coils())
     cur = (0.91, 0.6, 0.45)
     var_amp, rel, cs = (1.7e-8) ** 2, 1e-3, 1e-3
-    ref = FixedCycleReference(cur, 200_000, 600_000, 140_000, 29_000, var_amp, rel, cs, 300_000, settle_drop=0.0)
+    ref = FixedCycleReference(cur, 200_000, 600_000, 140_000, 29_000, var_amp, rel, cs, 300_000)
     A = rng.normal(size=(15, 15)) * 1e-3
     P0 = A @ A.T + 1e-6 * np.eye(15)
     t0 = 150_000
@@ -266,7 +266,7 @@ def test_range_law_is_normalised_by_its_own_mean():
     ekf = _FakeFilter(np.array([0.2, 0.0, 0.0]), np.eye(3))
     model = SingleCoilModel(_coils())
     ref = FixedCycleReference((0.91,) * 3, 10 ** 9, 600_000, 140_000, 29_000, 1e-16, 0.0, 0.0, 1e12,
-                              4.0 / 3.0, 1.0, settle_drop=0.0)
+                              4.0 / 3.0, 1.0)
     ref.start(np.eye(15) * 1e-6, 0)
     for k in range(1, 201):
         ekf.p[0] = 0.2 if (k - 1) // 10 % 2 == 0 else 0.4
