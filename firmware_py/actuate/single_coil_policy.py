@@ -212,9 +212,12 @@ class AdaptiveActuation(_SingleCoilActuation):
             min(cfg.adaptive.adaptive_min_current_a, cfg.adaptive.adaptive_max_current_a), cfg.adaptive.adaptive_max_current_a,
             cfg.adaptive.adaptive_current_levels)
         trace = cfg.adaptive.bound_on == "trace"
-        # a ladder made here is a search grid, not the driver's levels: the current is refined
-        # to the command's resolution (``CoilChooser`` ``step_a``); given levels are kept as given
-        step = 0.0 if cfg.adaptive.adaptive_currents_a else CURRENT_LSB_A
+        # a ladder made here is a search grid, not the driver's levels: with adaptive_current_step_a
+        # the current is refined between its rungs (``CoilChooser`` ``step_a``), never finer than the
+        # command's resolution; given levels are kept as given
+        step = 0.0 if cfg.adaptive.adaptive_currents_a else cfg.adaptive.adaptive_current_step_a
+        if 0.0 < step < CURRENT_LSB_A:
+            step = CURRENT_LSB_A
         self.chooser = CoilChooser(n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
                                    trace, step)
         self.policy = ActuationPolicy(smax, cfg.adaptive.adaptive_max_interval_us, trace)

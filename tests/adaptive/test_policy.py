@@ -252,7 +252,8 @@ def test_energy_counts_the_winding_and_the_supply():
                                         ("adaptive_min_ratio", 1.5), ("bound_on", "norm"),
                                         ("nis_feedback_max", 0.5), ("flip_every_us", 0),
                                         ("reference_settle_drop", 1.0), ("reference_settle_drop", -0.1),
-                                        ("reference_settle_drop", float("nan"))])
+                                        ("reference_settle_drop", float("nan")), ("adaptive_current_step_a", -1e-3),
+                                        ("adaptive_current_step_a", 0.5)])
 def test_bad_policy_values_are_refused_naming_the_key(key, value):
     """A bad value of the new section is refused with its qualified name."""
     with pytest.raises(ConfigError) as e:
