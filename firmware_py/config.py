@@ -289,6 +289,8 @@ class AdaptiveConfig:
     adaptive_min_current_a: float = 0.05
     adaptive_max_current_a: float = 1.5
     adaptive_current_levels: int = 16
+    adaptive_current_step_a: float = 0.0    # > 0: the current is refined between the ladder's rungs to this
+                                            #   resolution (0.001: the command's mA), no overshoot of sigma_min
     adaptive_pulse_us: int = 0             # 0: pulse_us
     adaptive_lead_us: int = 10_000         # a single pulse is commanded this long before it starts
     adaptive_max_interval_us: int = 1_000_000
@@ -315,6 +317,10 @@ class AdaptiveConfig:
     reference_warmup_us: int = 2_000_000   # "fixed": for this long after a start the fixed cycle itself runs
                                             #   (the start's errors are too large for the linear eq 4), and its
                                             #   covariance is not yet part of the mean the policy holds
+    reference_settle_drop: float = 0.0      # "fixed": > 0: after a start the fixed cycle runs, and its reference's
+                                            #   mean follows its present covariance, until the reference's gyro-
+                                            #   offset variance falls by less than this fraction a cycle (0.05:
+                                            #   about 10 s); 0: the mean from reference_warmup_us on
     reference_catchup: float = 2.0          # "fixed", warm-up: a pulse on demand between the cycle's pulses
                                             #   when a variance would pass this many times the cycle's own
     nis_feedback: bool = True               # bounds tightened by the NIS excess: where the innovations show
@@ -344,6 +350,10 @@ class AdaptiveConfig:
                                        "init_sigma_vel"))
         _non_negative_numbers(self, need, ("sigma_range_ref_m", "sigma_range_exp_pos", "sigma_range_exp_ori",
                                            "adaptive_pos_noise", "field_model_rel_sigma", "init_sigma_ori_deg"))
+        need("adaptive_current_step_a", _fin(self.adaptive_current_step_a) and 0.0 <= self.adaptive_current_step_a <= 0.1,
+             f"must be in [0, 0.1] A, got {self.adaptive_current_step_a!r}")
+        need("reference_settle_drop", _fin(self.reference_settle_drop) and 0.0 <= self.reference_settle_drop < 1.0,
+             f"must be in [0, 1), got {self.reference_settle_drop!r}")
         need("sigma_min_pos_m", self.sigma_min_pos_m <= self.sigma_max_pos_m, "must not exceed sigma_max_pos_m")
         need("sigma_min_ori_deg", self.sigma_min_ori_deg <= self.sigma_max_ori_deg,
              "must not exceed sigma_max_ori_deg")

@@ -281,6 +281,15 @@ class CoilChooser:
         (``R_v += (rel_model |y|)^2``).
     current_sigma : float
         Std of the coil current (A): ``R_v += (current_sigma |hu|)^2``.
+    step_a : float
+        The driver's current resolution (A). 0: only the candidate currents are
+        commanded. > 0 (the candidates are a ladder the firmware made, not the
+        driver's only levels): the smallest current reaching ``sigma_min`` is
+        refined between the ladder's rungs by bisection to this resolution
+        (rounded up). A rung reached overshoots the goal by up to the ladder's
+        step in ``I^2`` (47 % for 16 rungs from 0.05 to 0.91 A): the variance
+        falls below ``sigma_min`` and the time mean below the bound held, an
+        accuracy nobody asked for, paid in energy.
 
     After :meth:`choose`:
 
@@ -303,7 +312,7 @@ class CoilChooser:
     """
 
     def __init__(self, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
-                 current_sigma: float = 0.0, trace: bool = False):
+                 current_sigma: float = 0.0, trace: bool = False, step_a: float = 0.0):
         #: bounds on the trace of the position and of the orientation block instead of each
         #: variable (the RMS of a position or orientation error is the root of its trace)
         self.trace = bool(trace)
@@ -321,6 +330,7 @@ class CoilChooser:
         self._smin0 = self.sigma_min.copy()
         self.rel_model = float(rel_model)
         self.current_sigma = float(current_sigma)
+        self.step_a = float(step_a)
         self._A = np.zeros((self.n, 3, POSE_DIM))
         self._M = np.zeros((self.n, 3, 3))
         self._At = np.zeros((3, POSE_DIM))
@@ -467,7 +477,7 @@ class CoilChooser:
         kmax = self._ref_index(float(i_limit[best_c]))
         j = self._smallest_current(P6, best_c, var_amp, kmax)
         if j >= 0:
-            self.current = float(self.currents[j])
+            self.current = self._refine(P6, best_c, var_amp, j)
             self.reached = True
             return best_c
         self.current = float(self.currents[kmax])
@@ -504,6 +514,41 @@ class CoilChooser:
                 return j
         return -1
 
+    def _target_after(self, P6, c: int, var_amp: float, i: float) -> float:
+        """The target's posterior variance (trace: summed over its group) after coil ``c`` at
+        ``i`` A; ``var_after`` holds the posterior."""
+        posterior_pose_variances(P6, self._Av[c], self._Mv[c], float(self._hn2[c]), i, var_amp, self.rel_model,
+                                 self._vav, self.current_sigma)
+        t = self.target
+        va = 0.0
+        for k in range(t, t + 3 if self.trace else t + 1):
+            va += self._vav[k]
+        return va
+
+    def _refine(self, P6, c: int, var_amp: float, j: int) -> float:
+        """The smallest current (to ``step_a``, rounded up) between rung ``j - 1`` (0 A for the
+        first) and rung ``j``, which reaches the goal, of coil ``c``; ``var_after`` holds its
+        posterior. Bisection: the posterior variance falls monotonically with the current (eq 4:
+        ``S^-1`` shrinks as the information ``I^2 / (a + b I^2)`` grows). Rung ``j`` itself
+        without a resolution."""
+        hi = float(self.currents[j])
+        step = self.step_a
+        if not step > 0.0:
+            return hi
+        lo = float(self.currents[j - 1]) if j > 0 else 0.0
+        goal = self._goal()
+        while hi - lo > step:
+            mid = 0.5 * (lo + hi)
+            if self._target_after(P6, c, var_amp, mid) <= goal:
+                hi = mid
+            else:
+                lo = mid
+        i = math.ceil(hi / step - 1e-9) * step
+        if i > float(self.currents[j]):
+            i = float(self.currents[j])
+        self._target_after(P6, c, var_amp, i)
+        return i
+
     def choose_length(self, P6, model: SingleCoilModel, var_amps, lengths_us, i_limit) -> int:
         """:meth:`choose` with the pulse length as a lever too (``pulse_length = "chosen"``).
 
@@ -531,7 +576,7 @@ class CoilChooser:
             j = self._smallest_current(P6v, c, float(var_amps[k]), kmax)
             if j < 0:
                 continue
-            i = float(self.currents[j])
+            i = self._refine(P6v, c, float(var_amps[k]), j)
             e = i * i * lengths_us[k]
             if e < best_e:
                 best_e = e

@@ -250,7 +250,10 @@ def test_energy_counts_the_winding_and_the_supply():
 
 @pytest.mark.parametrize("key, value", [("accuracy_target", "best"), ("fixed_accuracy_ratio", 0.0),
                                         ("adaptive_min_ratio", 1.5), ("bound_on", "norm"),
-                                        ("nis_feedback_max", 0.5), ("flip_every_us", 0)])
+                                        ("nis_feedback_max", 0.5), ("flip_every_us", 0),
+                                        ("reference_settle_drop", 1.0), ("reference_settle_drop", -0.1),
+                                        ("reference_settle_drop", float("nan")), ("adaptive_current_step_a", -1e-3),
+                                        ("adaptive_current_step_a", 0.5)])
 def test_bad_policy_values_are_refused_naming_the_key(key, value):
     """A bad value of the new section is refused with its qualified name."""
     with pytest.raises(ConfigError) as e:
