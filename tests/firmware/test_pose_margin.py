@@ -149,3 +149,21 @@ def test_degenerate_covariances_are_left_alone():
     flat = memoryview(big.ravel().copy())
     RotationMargin().into(flat)
     assert np.array_equal(np.array(flat).reshape(6, 6), big)
+
+
+def test_margin_allocates_no_array():
+    """``RotationMargin.into`` runs in the tick (every solve's covariance): no numpy array data is
+    allocated in it (``tools.bench.alloc.NumpyAllocationCounter``), as the tick's rule asks."""
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+
+    if not available():
+        pytest.skip("the counting allocator is not available here")
+    rng = np.random.default_rng(11)
+    cov = memoryview(_random_cov(rng, 1.0).ravel().copy())
+    m = RotationMargin()
+    m.into(cov)
+    counter = NumpyAllocationCounter()
+    with counter:
+        for _ in range(20):
+            m.into(cov)
+    assert counter.count == 0
