@@ -111,6 +111,9 @@ class RotationMargin:
     the orientation explains). Allocation-free; ``pose.reference.rotation_margin`` is the
     numpy form."""
 
+    def __init__(self):
+        self._d = memoryview(np.zeros(9))
+
     def into(self, cov) -> None:
         """``cov`` (36, row-major, (p, dtheta)): its position block plus the margin, in place."""
         t00, t01, t02, t11, t12, t22 = cov[21], cov[22], cov[23], cov[28], cov[29], cov[35]
@@ -136,3 +139,43 @@ class RotationMargin:
                 cov[6 * i + j] += m
                 if j != i:
                     cov[6 * j + i] += m
+
+    def realized_into(self, C, t2: float, Phi, P, q0: int, scale: float) -> None:
+        """The margin for an orientation error known to be ``|theta|^2 = t2`` (rad^2), for a filter
+        that knows the orientation far better than the solver (the fusion filter's innovation
+        ``log(Psi Theta^T)``, thesis ``002_cd7f1fdb7fc67471.txt`` eq 6.21): :meth:`into` put
+        the expected ``|theta|^2 = tr(C_tt)`` in ``C``; where the solution's error is larger, the
+        rest ``1/4 (t2 - tr C_tt) (C_pt C_tt^-1 C_tp + 2 C_pt C_tp / tr C_tt)`` (``t2`` at most
+        ``MARGIN_MAX_ORI_VAR``), turned by ``Phi`` into the filter's frame and times ``scale``,
+        is added to ``P[q0:q0+3, q0:q0+3]``. The Monte Carlo of the class docstring, by the size
+        of the solution's own orientation error: the mean square of 21 beyond 45 deg (5.8 at 30-45
+        deg) falls under 5 (3 dof: 3.0). ``C`` (6, 6) as the solver's; nothing when ``t2`` is
+        within the expected or the orientation block is degenerate."""
+        tr = C[3, 3] + C[4, 4] + C[5, 5]
+        t2 = t2 if t2 < MARGIN_MAX_ORI_VAR else MARGIN_MAX_ORI_VAR
+        if not (tr > 0.0 and t2 > tr and math.isfinite(tr)):
+            return
+        inv = inv3_sym(C[3, 3], C[3, 4], C[3, 5], C[4, 4], C[4, 5], C[5, 5])
+        if inv is None:
+            return
+        i00, i01, i02, i11, i12, i22 = inv
+        f = 0.25 * (t2 - tr)
+        g = 2.0 / tr
+        d = self._d
+        for i in range(3):
+            c0, c1, c2 = C[i, 3], C[i, 4], C[i, 5]
+            k0 = c0 * i00 + c1 * i01 + c2 * i02
+            k1 = c0 * i01 + c1 * i11 + c2 * i12
+            k2 = c0 * i02 + c1 * i12 + c2 * i22
+            for j in range(i, 3):
+                e0, e1, e2 = C[j, 3], C[j, 4], C[j, 5]
+                v = f * (k0 * e0 + k1 * e1 + k2 * e2 + g * (c0 * e0 + c1 * e1 + c2 * e2))
+                d[3 * i + j] = v
+                d[3 * j + i] = v
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                for a in range(3):
+                    for b in range(3):
+                        acc += Phi[i, a] * d[3 * a + b] * Phi[j, b]
+                P[q0 + i, q0 + j] += acc * scale
