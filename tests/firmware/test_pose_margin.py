@@ -167,3 +167,31 @@ def test_margin_allocates_no_array():
         for _ in range(20):
             m.into(cov)
     assert counter.count == 0
+
+
+def test_realized_margin_against_numpy():
+    """``realized_into`` adds ``Phi dM Phi^T scale`` to the 3x3 block at ``q0`` of ``P`` and
+    nothing elsewhere, ``dM = 1/4 (t2 - tr C_tt) (C_pt C_tt^-1 C_tp + 2 C_pt C_tp / tr C_tt)``
+    (numpy, 1e-12); nothing when ``t2`` is within ``tr C_tt``; ``t2`` capped at
+    ``MARGIN_MAX_ORI_VAR``. Catches ``Phi`` transposed, the scale or the cap dropped, the
+    expected part counted twice."""
+    rng = np.random.default_rng(17)
+    m = RotationMargin()
+    for k in range(8):
+        C = _random_cov(rng, 0.5)
+        Ct, Cpt = C[3:, 3:], C[:3, 3:]
+        tr = float(np.trace(Ct))
+        t2 = tr * (0.5 + 4.0 * rng.random()) if k < 6 else 5.0 * MARGIN_MAX_ORI_VAR
+        Phi = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        P = rng.normal(size=(21, 21))
+        before = P.copy()
+        m.realized_into(C, t2, memoryview(Phi), memoryview(P), 15, 1.7)
+        t2c = min(t2, MARGIN_MAX_ORI_VAR)
+        dM = np.zeros((3, 3))
+        if t2c > tr:
+            dM = 0.25 * (t2c - tr) * (Cpt @ np.linalg.solve(Ct, Cpt.T) + 2.0 * Cpt @ Cpt.T / tr)
+        want = before.copy()
+        want[15:18, 15:18] += 1.7 * Phi @ dM @ Phi.T
+        assert np.abs(P - want).max() <= 1e-12 * max(np.abs(dM).max(), 1e-300) + 1e-15
+        if t2c <= tr:
+            assert np.array_equal(P, before)
