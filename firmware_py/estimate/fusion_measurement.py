@@ -26,6 +26,7 @@ from coiltrack.firmware.estimate.fusion_state import InsState
 from coiltrack.firmware.estimate.layout import (ORI, POS, POSE_ORI, POSE_POS, PSI, QM, XI, fusion_layout,
                                                fusion_measurement_layout)
 from coiltrack.firmware.linalg import congruence3, rotvec_from_matrix
+from coiltrack.firmware.pose.covariance import RotationMargin
 
 
 class MeasurementModel(Protocol):
@@ -185,6 +186,7 @@ class InertialMagneticOrientation(_Base):
         if xi_filter is None:
             raise ValueError("measurement models 2 and 3 need the orientation filter Xi")
         super().__init__(model, prm)
+        self._margin = RotationMargin()
 
     def white(self, prm):
         return (QM, PSI, XI), (prm.qm_sigma ** 2, prm.psi_sigma ** 2, prm.psi_sigma ** 2)
@@ -198,6 +200,10 @@ class InertialMagneticOrientation(_Base):
         P = st._Pv
         if self._zpsi >= 0:
             _log_diff(self._Ev, st._Thv, y, self._zpsi)
+            # the position's margin for the orientation error this solution has (pose.covariance)
+            z = self._zpsi
+            self._margin.realized_into(C, y[z] * y[z] + y[z + 1] * y[z + 1] + y[z + 2] * y[z + 2], snap.Phiv, P,
+                                       QM.start, prm.mag_var_scale)
         _log_diff(snap.Xiv, st._Thv, y, self._zxi)
         x0 = XI.start
         xs = prm.xi_var_scale

@@ -29,7 +29,7 @@ from coiltrack.firmware.model.field import MU0, CoilSet
 from coiltrack.firmware.linalg import exp_rotvec
 from coiltrack.firmware.linalg import skew_into as _skew_into
 from coiltrack.firmware.pose.acquire import GRID_CANDIDATES, GRID_DIRECTIONS, NEAR_FIELD, fibonacci_directions
-from coiltrack.firmware.pose.covariance import EIG_FLOOR, MAX_VARIANCE
+from coiltrack.firmware.pose.covariance import EIG_FLOOR, MARGIN_MAX_ORI_VAR, MAX_VARIANCE
 
 __all__ = [
     "kuipers",
@@ -40,6 +40,7 @@ __all__ = [
     "measurement_jacobian",
     "measurement_model_and_jacobian",
     "so3_exp",
+    "rotation_margin",
     "MAX_VARIANCE",
 ]
 
@@ -272,6 +273,28 @@ def _robust_inverse(A):
     top = float(w[-1]) if w[-1] > 0.0 else 0.0
     w = np.maximum(w, max(_EIG_FLOOR * top, 1.0 / MAX_VARIANCE))
     return (V / w) @ V.T
+
+
+def rotation_margin(cov):
+    """``cov`` (6, 6) with its position block plus the second-order margin of the orientation
+    error (``pose.covariance.RotationMargin``, whose allocation-free form follows this one):
+    ``1/4 K (tr(C_tt) C_tt + 2 C_tt^2) K^T``, ``K = C_pt C_tt^-1``, with ``C_tt`` scaled down to
+    a trace of ``MARGIN_MAX_ORI_VAR`` when larger. A copy; ``cov`` unchanged."""
+    out = np.array(cov, dtype=float)
+    Ct, Cpt = out[3:, 3:], out[:3, 3:]
+    tr = float(np.trace(Ct))
+    if not (tr > 0.0 and math.isfinite(tr)):
+        return out
+    try:
+        np.linalg.cholesky(Ct)
+    except np.linalg.LinAlgError:
+        return out
+    s = min(1.0, MARGIN_MAX_ORI_VAR / tr)
+    K = Cpt @ np.linalg.inv(Ct)
+    Cs = s * Ct
+    M = 0.25 * K @ (np.trace(Cs) * Cs + 2.0 * Cs @ Cs) @ K.T
+    out[:3, :3] += 0.5 * (M + M.T)
+    return out
 
 
 def crlb(position, rotation, coils, currents, sigma, model="exact"):
@@ -509,7 +532,9 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
         Sensor-to-source rotation.
     covariance : ndarray, shape (6, 6)
         ``(H^T W H)^-1`` at the solution for ``(p, dtheta)``, m and rad, with
-        ``R_true = R_est exp([dtheta]x)`` (sensor-frame rotation error).
+        ``R_true = R_est exp([dtheta]x)`` (sensor-frame rotation error), its
+        position block plus the second-order margin of the orientation error
+        (:func:`rotation_margin`).
         Near-singular geometry gives large variances, never an exception.
 
     Raises
@@ -526,7 +551,7 @@ def solve_pose(S, coils, currents, sigma, hemisphere=(1.0, 0.0, 0.0), model="exa
     # re-orthonormalise once: products of exp() drift at the 1e-16 level
     R = _nearest_rotation(R)
     Jw = (H * w[:, :, None]).reshape(3 * cs.n, 6)
-    cov = _robust_inverse(Jw.T @ Jw)
+    cov = rotation_margin(_robust_inverse(Jw.T @ Jw))
     if info is not None:
         info["iterations"] = it
         info["cost"] = cost

@@ -25,7 +25,8 @@ Stages (``tests/firmware/test_solver.py`` compares them with the reference):
    ``seeds/000_e46ec0e8bf7ea271.txt`` eqs 5-11), multiplicative orientation
    step ``R = R exp([d]x)``; one unit of work = one step = ``n``
    evaluations;
-3. covariance ``(H^T W H)^-1`` at the solution (``pose.covariance``).
+3. covariance ``(H^T W H)^-1`` at the solution with the second-order margin of
+   the orientation error in its position block (``pose.covariance``).
 
 Warm start: with ``x0`` (the tracked pose) only stage 2 runs. If it does
 not converge, if its cost exceeds the chi-square quantile of ``3 n - 6``
@@ -49,7 +50,7 @@ from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.linalg import ORTHONORMAL_TOL, Rot3, exp_rotvec, flat, float_view, nearest_rotation
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.acquire import Acquisition
-from coiltrack.firmware.pose.covariance import RobustInverse6
+from coiltrack.firmware.pose.covariance import RobustInverse6, RotationMargin
 from coiltrack.firmware.pose.lm import LM_CONVERGED, LM_RUNNING, LevenbergMarquardt
 from coiltrack.firmware.pose.staged import SOLVE_RUNNING as _RUNNING
 from coiltrack.firmware.pose.staged import StagedSolve, init_results
@@ -340,6 +341,7 @@ class PoseSolver(StagedSolve):
         self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
         self._unit_lm_steps = self._unit_lm_step      # the LM step unit, one bound method (identity)
         self._inv = RobustInverse6()
+        self._margin = RotationMargin()
         self._hemi = (1.0, 0.0, 0.0)
         self._check_hemi = False
         self._sigma_rms = 0.0
@@ -555,6 +557,7 @@ class PoseSolver(StagedSolve):
         self._publish_pose()
         p = fit.p
         self._inv.into(lm.A, self._cov)
+        self._margin.into(self._cov)
         self.iterations = lm.it
         self.cost = lm.cost
         self.converged = lm.state == LM_CONVERGED
