@@ -23,6 +23,8 @@
  * One model's constants (fusion_measurement._Base and its prm), fixed at start-up.  Row indices:
  * zp, zpsi, zxi of y (-1: the model has no such rows); q0, s0, x0 of the state (QM, PSI, XI;
  * x0 -1 for model 1); cp, co of the solver's covariance C (POSE_POS, POSE_ORI). */
+/* pose.covariance.MARGIN_MAX_ORI_VAR (rad^2), checked against it at start-up (fusion_measurement.py) */
+#define CT_MARGIN_MAX_ORI_VAR 1.0
 struct ct_fusmeas {
     int n;
     int zp, zpsi, zxi;

@@ -122,6 +122,52 @@ static void log_diff(const double *Z, const double *Th, double *y, int row)
     ct_fusion_rotvec_from_matrix(r, y + row);
 }
 
+/* pose.covariance.RotationMargin.realized_into: the rest of the second-order margin for an
+ * orientation error known to be |theta|^2 = t2 (at most CT_MARGIN_MAX_ORI_VAR) where it exceeds
+ * the expected tr(C_tt), turned by Phi into the filter's frame, times mag_var_scale, added to
+ * P[q0.., q0..]; nothing when t2 is within the expected or C_tt is not positive definite. */
+static void rotation_margin_realized(const struct ct_fusmeas *m, const double *C, double t2, const double *Phi,
+                                     double *P)
+{
+    const int n = m->n, q0 = m->q0, cp = m->cp, co = m->co;
+    const double *Ct = C + 6 * co + co;          /* C_tt's first element */
+    double s[9], inv[9], d[9], tr, f, g, i00, i01, i02, i11, i12, i22;
+    int i, j, a, b;
+    tr = Ct[0] + Ct[7] + Ct[14];
+    t2 = t2 < CT_MARGIN_MAX_ORI_VAR ? t2 : CT_MARGIN_MAX_ORI_VAR;
+    if (!(tr > 0.0 && t2 > tr && isfinite(tr)))
+        return;
+    s[0] = Ct[0]; s[3] = s[1] = Ct[1]; s[6] = s[2] = Ct[2];
+    s[4] = Ct[7]; s[7] = s[5] = Ct[8]; s[8] = Ct[14];
+    if (!ct_inv3(s, inv))
+        return;
+    i00 = inv[0]; i01 = inv[1]; i02 = inv[2]; i11 = inv[4]; i12 = inv[5]; i22 = inv[8];
+    f = 0.25 * (t2 - tr);
+    g = 2.0 / tr;
+    for (i = 0; i < 3; ++i) {
+        const double *ci = C + 6 * (cp + i) + co;
+        const double c0 = ci[0], c1 = ci[1], c2 = ci[2];
+        const double k0 = c0 * i00 + c1 * i01 + c2 * i02;
+        const double k1 = c0 * i01 + c1 * i11 + c2 * i12;
+        const double k2 = c0 * i02 + c1 * i12 + c2 * i22;
+        for (j = i; j < 3; ++j) {
+            const double *cj = C + 6 * (cp + j) + co;
+            const double e0 = cj[0], e1 = cj[1], e2 = cj[2];
+            const double v = f * (k0 * e0 + k1 * e1 + k2 * e2 + g * (c0 * e0 + c1 * e1 + c2 * e2));
+            d[3 * i + j] = v;
+            d[3 * j + i] = v;
+        }
+    }
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            double acc = 0.0;
+            for (a = 0; a < 3; ++a)
+                for (b = 0; b < 3; ++b)
+                    acc += Phi[3 * i + a] * d[3 * a + b] * Phi[3 * j + b];
+            P[(q0 + i) * n + q0 + j] += acc * m->mag_var_scale;
+        }
+}
+
 void ct_fusion_evaluate(const struct ct_fusmeas *m, int xi_model, const double *Phi, const double *Xi,
                         const double *XiP, const double *q, const double *R_ms, const double *C,
                         const double *p, const double *Th, double *P, double *y, double *Psi)
@@ -134,8 +180,12 @@ void ct_fusion_evaluate(const struct ct_fusmeas *m, int xi_model, const double *
         return;
     }
     /* InertialMagneticOrientation.evaluate */
-    if (m->zpsi >= 0)
-        log_diff(Psi, Th, y, m->zpsi);
+    if (m->zpsi >= 0) {
+        const int z = m->zpsi;
+        log_diff(Psi, Th, y, z);
+        /* the position's margin for the orientation error this solution has (pose.covariance) */
+        rotation_margin_realized(m, C, y[z] * y[z] + y[z + 1] * y[z + 1] + y[z + 2] * y[z + 2], Phi, P);
+    }
     log_diff(Xi, Th, y, m->zxi);
     for (i = 0; i < 3; ++i) {
         double *row = P + (m->x0 + i) * n + m->x0;
