@@ -163,21 +163,23 @@ class PoseOutput:
             status |= OUT_INCONSISTENT
         return status
 
+    def time_us(self, k: int) -> int:
+        """The time of output row ``k`` (master clock, us)."""
+        return self._otv[k]
+
     def into_report(self, k: int, r) -> int:
-        """Output row ``k`` into the POSE record ``r`` (``transmit.PoseReport``: its time, position,
-        quaternion and variances, the POSE message's fields); the row's ``OUT_*`` status bits."""
+        """Output row ``k``'s position, quaternion and variances into the POSE record ``r``
+        (``transmit.PoseReport``; its time is :meth:`time_us`); the row's ``OUT_*`` status bits."""
         d = self._odv
         rp, rq, v = r.p, r.q, r.var
         rp[0], rp[1], rp[2] = d[k, OUT_P], d[k, OUT_P + 1], d[k, OUT_P + 2]
         rq[0], rq[1], rq[2], rq[3] = d[k, OUT_Q], d[k, OUT_Q + 1], d[k, OUT_Q + 2], d[k, OUT_Q + 3]
         v[0], v[1], v[2] = d[k, OUT_VAR_P], d[k, OUT_VAR_P + 1], d[k, OUT_VAR_P + 2]
         v[3], v[4], v[5] = d[k, OUT_VAR_O], d[k, OUT_VAR_O + 1], d[k, OUT_VAR_O + 2]
-        r.t_us = self._otv[k]
         return int(d[k, OUT_STATUS])
 
     def _into_report_compiled(self, k: int, r) -> int:
         """:meth:`into_report` on the compiled core (``ext.FusOutput.report``)."""
-        r.t_us = self._otv[k]
         return self._ck.report(k, r.p, r.q, r.var)
 
     def pop(self) -> int:

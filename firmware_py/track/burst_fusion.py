@@ -445,7 +445,8 @@ class SensorInertial:
             k = out.pop()
             if k < 0:
                 break
-            st = out.into_report(k, r)         # time, position, quaternion, variances
+            r.t_us = out.time_us(k)
+            st = out.into_report(k, r)         # position, quaternion, variances
             status = self._status(st)
             self._dead_reckoning(tx, node, st)
             if status & POSE_VALID and not in_range3(rp[0], rp[1], rp[2], range_m):

@@ -323,8 +323,8 @@ def test_bad_bindings_are_refused():
 
 
 def test_report_copies_the_output_row():
-    """PoseOutput.into_report on both cores: the POSE record's time, position, quaternion and six
-    variances are the output row's (the same floats), the returned status its OUT_* bits; a
+    """PoseOutput.into_report on both cores: the POSE record's position, quaternion and six
+    variances are the output row's (the same floats; its time is time_us), the returned status its OUT_* bits; a
     record whose lists are too short is refused, not written past."""
     from coiltrack.firmware.transmit import PoseReport
 
@@ -343,6 +343,7 @@ def test_report_copies_the_output_row():
         r = PoseReport(3)
         s = po.pop()
         status = po.into_report(s, r)
+        r.t_us = po.time_us(s)
         row = po.out.d[s]
         age = prm.dead_reckon_after_us + 1
         want = (age > prm.stale_us) * OUT_STALE | OUT_DEAD_RECKONING | OUT_RECOVERED
