@@ -502,6 +502,10 @@ def elapsed_s(clock, duration_s: float) -> float:
     return min(duration_s, max(round(clock.now() * 1e-6, 3), 0.001))
 
 
+#: seconds the firmware process has after its SIGTERM to end by itself (its statistics written)
+FIRMWARE_GRACE_S = 5.0
+
+
 def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None, timing=None, threads=(),
                   keep_awake: bool = True):
     """Start the firmware process and run the emulator beside it (until 0.3 s after
@@ -524,7 +528,9 @@ def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=Non
         stopped = exc
     finally:
         prog.done()
-        code = stop_child(child, wait_s=wait_s) if child is not None else None
+        # a stopped run gives the firmware FIRMWARE_GRACE_S after its SIGTERM to write its
+        # statistics (a loaded machine can take seconds) before it is killed
+        code = stop_child(child, wait_s=wait_s, grace_s=FIRMWARE_GRACE_S) if child is not None else None
     return stopped, code, _read_stats(child.stdout) if child is not None else {"status": {}, "timing": {}}
 
 
