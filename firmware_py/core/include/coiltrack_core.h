@@ -57,6 +57,8 @@ void ct_signal_project_jac(int n, const double *R, const double *B, const double
 /* ------------------------------------------------------------------- ekf
  * coiltrack.firmware.estimate.ekf.CovariancePredict.predict: P <- A P A^T + Q (n x n, row-major),
  * A's zero entries skipped; T is n x n scratch. */
+/* P <- A P A^T alone (A's zero entries skipped): the prediction without its noise */
+void ct_congruence_sparse(int n, const double *A, double *P, double *T);
 void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T);
 
 /* KalmanUpdate.update (estimate.ekf): the one update shape of every filter.  The caller owns

@@ -15,7 +15,7 @@
 
 #include "coiltrack_core.h"
 
-void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T)
+void ct_congruence_sparse(int n, const double *A, double *P, double *T)
 {
     int i, j, k;
     /* T = A P, row by row over A's non-zero entries */
@@ -46,6 +46,12 @@ void ct_covariance_predict(int n, const double *A, double *P, const double *Q, d
                 P[i * n + j] += T[i * n + k] * a;
         }
     }
+}
+
+void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T)
+{
+    int i;
+    ct_congruence_sparse(n, A, P, T);
     for (i = 0; i < n * n; ++i)
         P[i] += Q[i];
 }

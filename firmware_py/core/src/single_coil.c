@@ -87,33 +87,8 @@ void ct_sc_build_F(const struct ct_sc *s, double *F, int n, double *q, double dt
 /* P <- F P F^T, then P_ii += q_i (n x n; T scratch), F's zero entries skipped */
 static void fpf_q(int n, const double *F, double *P, const double *q, double *T)
 {
-    int i, j, k;
-    for (i = 0; i < n * n; ++i)
-        T[i] = 0.0;
-    for (i = 0; i < n; ++i) {
-        const double *Fi = F + i * n;
-        double *Ti = T + i * n;
-        for (k = 0; k < n; ++k) {
-            double a = Fi[k];
-            const double *Pk = P + k * n;
-            if (a == 0.0)
-                continue;
-            for (j = 0; j < n; ++j)
-                Ti[j] += a * Pk[j];
-        }
-    }
-    for (i = 0; i < n * n; ++i)
-        P[i] = 0.0;
-    for (j = 0; j < n; ++j) {
-        const double *Fj = F + j * n;
-        for (k = 0; k < n; ++k) {
-            double a = Fj[k];
-            if (a == 0.0)
-                continue;
-            for (i = 0; i < n; ++i)
-                P[i * n + j] += T[i * n + k] * a;
-        }
-    }
+    int i;
+    ct_congruence_sparse(n, F, P, T);
     for (i = 0; i < n; ++i)
         P[i * n + i] += q[i];
 }
@@ -362,49 +337,6 @@ void ct_sc_inject(struct ct_sc *s, const double *dx)
         }
 }
 
-/* rotation.quat_from_elements: the unit quaternion (w, x, y, z), w >= 0, of R (Shepperd) */
-static void quat_from_elements(const double *R, double *q)
-{
-    double r00 = R[0], r01 = R[1], r02 = R[2], r10 = R[3], r11 = R[4], r12 = R[5], r20 = R[6], r21 = R[7], r22 = R[8];
-    double t = r00 + r11 + r22, s, w, x, y, z, n;
-    if (t > 0.0) {
-        s = sqrt(t + 1.0) * 2.0;
-        w = 0.25 * s;
-        x = (r21 - r12) / s;
-        y = (r02 - r20) / s;
-        z = (r10 - r01) / s;
-    } else if (r00 > r11 && r00 > r22) {
-        s = sqrt(1.0 + r00 - r11 - r22) * 2.0;
-        w = (r21 - r12) / s;
-        x = 0.25 * s;
-        y = (r01 + r10) / s;
-        z = (r02 + r20) / s;
-    } else if (r11 > r22) {
-        s = sqrt(1.0 + r11 - r00 - r22) * 2.0;
-        w = (r02 - r20) / s;
-        x = (r01 + r10) / s;
-        y = 0.25 * s;
-        z = (r12 + r21) / s;
-    } else {
-        s = sqrt(1.0 + r22 - r00 - r11) * 2.0;
-        w = (r10 - r01) / s;
-        x = (r02 + r20) / s;
-        y = (r12 + r21) / s;
-        z = 0.25 * s;
-    }
-    if (w < 0.0) {
-        w = -w;
-        x = -x;
-        y = -y;
-        z = -z;
-    }
-    n = sqrt(w * w + x * x + y * y + z * z);
-    q[0] = w / n;
-    q[1] = x / n;
-    q[2] = y / n;
-    q[3] = z / n;
-}
-
 /* SchepersEKF.pose_values: a POSE's values into out (14): position, quaternion, the variances of
  * POS and ORI, POS's trace */
 void ct_sc_pose_values(const struct ct_sc *s, double *out)
@@ -414,7 +346,7 @@ void ct_sc_pose_values(const struct ct_sc *s, double *out)
     out[0] = s->p[0];
     out[1] = s->p[1];
     out[2] = s->p[2];
-    quat_from_elements(s->R, out + 3);
+    ct_quat_from_elements(s->R, out + 3);
     for (i = 0; i < 3; ++i) {
         out[7 + i] = P[(b + i) * n + b + i];
         out[10 + i] = P[(o + i) * n + o + i];
