@@ -158,12 +158,12 @@ def test_tools_top_holds_at_most_12_modules():
     assert len(top) <= TOOLS_TOP_MAX, f"{len(top)} modules directly in tools/: {top}"
 
 
-def test_every_tools_subpackage_is_in_pyproject():
+def test_every_subpackage_is_in_pyproject():
     """A subpackage missing from [tool.setuptools] packages is left out of a wheel (an editable
-    install still finds it, so nothing else would notice)."""
+    install still finds it, so nothing else would notice: ``protocol/conformance`` was)."""
     import tomllib
 
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
-    pkgs = {"coiltrack.tools." + ".".join(p.parent.relative_to(ROOT / "tools").parts)
-            for p in (ROOT / "tools").rglob("__init__.py") if p.parent != ROOT / "tools"}
+    pkgs = {".".join([name, *p.parent.relative_to(ROOT / folder).parts])
+            for folder, name in PACKAGES.items() for p in (ROOT / folder).rglob("__init__.py")}
     assert pkgs - listed == set()
