@@ -181,8 +181,8 @@ static int FusPred_init(FusPredObject *self, PyObject *args, PyObject *kw)
     Py_ssize_t nn, cap;
     int n, moving;
     if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOddddddp", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
-                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &f->tau_a,
-                                     &f->tau_g, &f->qv_k, &f->gyro_noise, &f->qa_k, &f->qg_k, &moving))
+                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &f->dtk[0],
+                                     &f->dtk[1], &f->dtk[2], &f->dtk[3], &f->dtk[4], &f->dtk[5], &moving))
         return -1;
     if (fus_fresh(&self->views, "FusPred") < 0)
         return -1;

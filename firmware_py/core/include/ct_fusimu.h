@@ -30,10 +30,15 @@ struct ct_fus_pred {
     const int64_t *itv;             /* the IMU ring's times (icap) */
     const double *idv;              /* its rows (icap x CT_IMU_WIDTH) */
     int icap;
-    double tau_a, tau_g, qv_k, gyro_noise, qa_k, qg_k;   /* InertialPrediction._dtk */
+    double dtk[6];                  /* InertialPrediction._dtk: tau_a, tau_g, qv_k, gyro_noise, qa_k, qg_k */
     double *st;                     /* CT_FS_NST */
 };
-void ct_fus_set_dt(const struct ct_fus_pred *f, double dt);
+/* the step's static blocks of ins->A and Q's diagonal, ws[CT_FS_NST] (InertialPrediction.set_dt) */
+void ct_fus_set_dt(const struct ct_ins *ins, double *Q, const double *dtk, double *ws, double dt);
+/* one step of the state ins (its Q, dtk, ws) over [t0, t1] with slots k - 1 and k of the IMU ring
+ * (times itv, rows idv, icap slots, nring held): the forward path's and the replay's */
+void ct_fus_step(const struct ct_ins *ins, double *Q, const double *dtk, double *ws, const int64_t *itv,
+                 const double *idv, int64_t icap, int64_t k, int64_t nring, int64_t t0, int64_t t1);
 void ct_fus_propagate(const struct ct_fus_pred *f, int k, int nring, int64_t t0, int64_t t1);
 /* history row hd (CT_HIST_WIDTH) of p, Th in the source frame (Phi of IMU row d; moving: 0 = fixed) */
 void ct_fus_to_source(const double *d, int moving, const double *p, const double *Th, double *hd);

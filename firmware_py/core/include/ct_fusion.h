@@ -76,7 +76,8 @@ enum {
                                the snapshot is to be taken, then the call resumes with its rest */
     CT_RIO_N
 };
-enum { CT_RFO_DT_LAST = 0, CT_RFO_KA, CT_RFO_KG, CT_RFO_N };     /* InsState.dt_last, ka, kg */
+/* InsState.dt_last, ka, kg: the step's scalars ct_fus_step keeps (ct_fusimu.h's CT_FS_*) */
+enum { CT_RFO_DT_LAST = CT_FS_DT_LAST, CT_RFO_KA = CT_FS_KA, CT_RFO_KG = CT_FS_KG, CT_RFO_N = CT_FS_NST };
 /* what ct_fusion_replay stopped at */
 enum { CT_REPLAY_CAUGHT_UP = 0, CT_REPLAY_BUDGET = 1, CT_REPLAY_LOST = 2, CT_REPLAY_SNAPSHOT = 3 };
 /* the IMU ring's row (CT_IMU_*) and the pose-history row (CT_HIST_*): ct_fusimu.h */

@@ -1,9 +1,9 @@
 /*
  * The per-IMU-sample path of the fused trackers, compiled:
  *
- * - ct_fus_propagate: coiltrack.firmware.estimate.fusion_prediction.InertialPrediction.propagate
- *   (the inputs at t0, t1 interpolated between IMU ring rows k - 1 and k) with step_compiled and
- *   set_dt: thesis seeds/002_cd7f1fdb7fc67471.txt eqs 6.1-6.4, 6.8 (strapdown, ct_ins_propagate),
+ * - ct_fus_step / ct_fus_propagate: coiltrack.firmware.estimate.fusion_prediction
+ *   .InertialPrediction.propagate (the inputs at t0, t1 interpolated between IMU ring rows k - 1 and
+ *   k) with step_compiled and set_dt (ct_fus_set_dt), the one step the replay (fusion.c) runs too: thesis seeds/002_cd7f1fdb7fc67471.txt eqs 6.1-6.4, 6.8 (strapdown, ct_ins_propagate),
  *   6.10, 6.13-6.14 (the step's static blocks of A and its Q, sec 6.2.4), 6.17, 6.5;
  * - ct_fus_to_source: fusion_state.MovingSource.to_source / FixedSource.to_source (eq 6.7:
  *   p_M = Phi^T p, R_MS = Phi^T Theta);
@@ -18,27 +18,29 @@
 
 #include "coiltrack_core.h"
 
-/* InertialPrediction.set_dt: the parts of A and Q that depend on the step alone */
-void ct_fus_set_dt(const struct ct_fus_pred *f, double dt)
+/* InertialPrediction.set_dt: the parts of A (ins->A) and of Q's diagonal that depend on the step
+ * alone, and the step's scalars ws[CT_FS_*]; dtk: InertialPrediction._dtk (tau_a, tau_g, the
+ * velocity's noise density, gyro_noise, the offsets' random walks).  The orientation's noise
+ * (k[3] * dt) ** 2 is the correctly rounded square go * go (what a compiler makes of
+ * pow(go, 2.0) too); the reference's ** calls libm's pow, within 0.52 ulp, which differs from it in
+ * the last bit for about one step length in a thousand. */
+void ct_fus_set_dt(const struct ct_ins *ins, double *Q, const double *dtk, double *ws, double dt)
 {
-    int n = f->ins.n, i;
-    double *A = f->ins.A, *Q = f->Q;
-    double ka = f->tau_a > 0.0 ? exp(-dt / f->tau_a) : 1.0;
-    double kg = f->tau_g > 0.0 ? exp(-dt / f->tau_g) : 1.0;
-    double qv, qo, qa, qg, go;
-    f->st[CT_FS_DT_LAST] = dt;
-    f->st[CT_FS_KA] = ka;
-    f->st[CT_FS_KG] = kg;
+    const int n = ins->n;
+    double *A = ins->A;
+    double ka = dtk[0] > 0.0 ? exp(-dt / dtk[0]) : 1.0;
+    double kg = dtk[1] > 0.0 ? exp(-dt / dtk[1]) : 1.0;
+    double go = dtk[3] * dt;
+    double qv = dtk[2] * dt * dt, qo = go * go, qa = dtk[4] * dt, qg = dtk[5] * dt;
+    int i;
+    ws[CT_FS_DT_LAST] = dt;
+    ws[CT_FS_KA] = ka;
+    ws[CT_FS_KG] = kg;
     for (i = 0; i < 3; ++i) {                       /* strapdown.transition_static */
         A[(CT_POS + i) * n + CT_VEL + i] = dt;
         A[(CT_ACC + i) * n + CT_ACC + i] = ka;
         A[(CT_GYR + i) * n + CT_GYR + i] = kg;
     }
-    qv = f->qv_k * dt * dt;
-    go = f->gyro_noise * dt;
-    qo = go * go;                                   /* (k[3] * dt) ** 2: both correctly rounded */
-    qa = f->qa_k * dt;
-    qg = f->qg_k * dt;
     for (i = 0; i < 3; ++i) {
         Q[(CT_VEL + i) * (n + 1)] = qv;
         Q[(CT_ORI + i) * (n + 1)] = qo;
@@ -47,17 +49,21 @@ void ct_fus_set_dt(const struct ct_fus_pred *f, double dt)
     }
 }
 
-/* InertialPrediction.propagate + step_compiled: the step of the bound state over [t0, t1] with IMU
- * ring slots k - 1 and k (nring: the entries the ring holds) */
-void ct_fus_propagate(const struct ct_fus_pred *f, int k, int nring, int64_t t0, int64_t t1)
+/* InertialPrediction.propagate + step_compiled: the step of the state ins over [t0, t1] with the
+ * IMU ring's (itv, idv, icap slots) samples k - 1 and k, nring: the entries the ring holds; the
+ * inputs at t0 and t1 interpolated linearly (offsets removed), the rate at mid-step; set_dt when
+ * the step changed, then ct_ins_propagate.  The one step of the forward path (ct_fus_propagate)
+ * and of the replay on the shadow (fusion.c). */
+void ct_fus_step(const struct ct_ins *ins, double *Q, const double *dtk, double *ws, const int64_t *itv,
+                 const double *idv, int64_t icap, int64_t k, int64_t nring, int64_t t0, int64_t t1)
 {
-    double dt = (double)(t1 - t0) * 1e-6;
+    const double dt = (double)(t1 - t0) * 1e-6;
+    const double *ba = ins->ba, *bg = ins->bg;
     const double *pd, *kd;
-    const double *ba = f->ins.ba, *bg = f->ins.bg;
     double a0, a1, b0, b1, am, bm, in[15];
-    int64_t tk = f->itv[k], tp;
-    int kp = k > 0 ? k - 1 : f->icap - 1;
-    tp = f->itv[kp];
+    const int64_t tk = itv[k];
+    int64_t kp = k > 0 ? k - 1 : icap - 1;
+    const int64_t tp = itv[kp];
     if (nring > 1 && tp < tk) {
         double span = 1.0 / (double)(tk - tp);
         a0 = (double)(t0 - tp) * span;
@@ -70,8 +76,8 @@ void ct_fus_propagate(const struct ct_fus_pred *f, int k, int nring, int64_t t0,
     }
     b0 = 1.0 - a0;
     b1 = 1.0 - a1;
-    pd = f->idv + (long)kp * CT_IMU_WIDTH;
-    kd = f->idv + (long)k * CT_IMU_WIDTH;
+    pd = idv + kp * CT_IMU_WIDTH;
+    kd = idv + k * CT_IMU_WIDTH;
     in[0] = b0 * pd[CT_IMU_F] + a0 * kd[CT_IMU_F] - ba[0];
     in[1] = b0 * pd[CT_IMU_F + 1] + a0 * kd[CT_IMU_F + 1] - ba[1];
     in[2] = b0 * pd[CT_IMU_F + 2] + a0 * kd[CT_IMU_F + 2] - ba[2];
@@ -89,9 +95,15 @@ void ct_fus_propagate(const struct ct_fus_pred *f, int k, int nring, int64_t t0,
     in[12] = b1 * pd[CT_IMU_FSRC] + a1 * kd[CT_IMU_FSRC];
     in[13] = b1 * pd[CT_IMU_FSRC + 1] + a1 * kd[CT_IMU_FSRC + 1];
     in[14] = b1 * pd[CT_IMU_FSRC + 2] + a1 * kd[CT_IMU_FSRC + 2];
-    if (dt != f->st[CT_FS_DT_LAST])
-        ct_fus_set_dt(f, dt);
-    ct_ins_propagate((struct ct_ins *)&f->ins, dt, in, f->st[CT_FS_KA], f->st[CT_FS_KG]);
+    if (dt != ws[CT_FS_DT_LAST])
+        ct_fus_set_dt(ins, Q, dtk, ws, dt);
+    ct_ins_propagate((struct ct_ins *)ins, dt, in, ws[CT_FS_KA], ws[CT_FS_KG]);
+}
+
+/* InertialPrediction.propagate + step_compiled of the bound state (ct_fus_step) */
+void ct_fus_propagate(const struct ct_fus_pred *f, int k, int nring, int64_t t0, int64_t t1)
+{
+    ct_fus_step(&f->ins, f->Q, f->dtk, f->st, f->itv, f->idv, f->icap, k, nring, t0, t1);
 }
 
 void ct_fus_to_source(const double *d, int moving, const double *p, const double *Th, double *hd)

@@ -3,11 +3,12 @@
  * coiltrack.firmware.estimate.fusion_measurement (the measurement models' evaluate),
  * fusion_state.InsState.correct / copy_from and magnetic_inertial.FusionFilter.step (the replay
  * of the buffered IMU samples on the shadow state, with fusion_prediction.InertialPrediction's
- * propagate, set_dt and history).  Declarations and references: include/ct_fusion.h.
+ * history, and its propagate and set_dt through the forward path's ct_fus_step, fusimu.c).
+ * Declarations and references: include/ct_fusion.h.
  *
  * The scalar steps are the reference's operations in the same order.  Where the reference calls
  * BLAS for a 3x3 product (Psi = Phi R_ms, Theta <- E Theta) the sum runs over k in increasing
- * order, equal to rounding.  exp and pow are the reference's libm calls (math.exp, float ** 2).
+ * order, equal to rounding.
  */
 #include <math.h>
 #include <string.h>
@@ -253,32 +254,6 @@ static int64_t ring_index_at_or_after(const int64_t *tv, int64_t cap, int64_t fi
     return lo;
 }
 
-/* InertialPrediction.set_dt: the step's own blocks of A (transition_static) and the diagonal of Q */
-static void replay_set_dt(const struct ct_replay *r, double dt, double *fo)
-{
-    const int n = r->ins.n;
-    const double *k = r->dtk;
-    double ka = k[0] > 0.0 ? exp(-dt / k[0]) : 1.0;
-    double kg = k[1] > 0.0 ? exp(-dt / k[1]) : 1.0;
-    double qv = k[2] * dt * dt, qo = pow(k[3] * dt, 2.0), qa = k[4] * dt, qg = k[5] * dt;
-    double *A = r->ins.A, *Q = r->Qd;
-    int i;
-    fo[CT_RFO_DT_LAST] = dt;
-    fo[CT_RFO_KA] = ka;
-    fo[CT_RFO_KG] = kg;
-    for (i = 0; i < 3; ++i) {
-        A[(CT_POS + i) * n + CT_VEL + i] = dt;
-        A[(CT_ACC + i) * n + CT_ACC + i] = ka;
-        A[(CT_GYR + i) * n + CT_GYR + i] = kg;
-    }
-    for (i = 0; i < 3; ++i) {
-        Q[(CT_VEL + i) * (n + 1)] = qv;
-        Q[(CT_ORI + i) * (n + 1)] = qo;
-        Q[(CT_ACC + i) * (n + 1)] = qa;
-        Q[(CT_GYR + i) * (n + 1)] = qg;
-    }
-}
-
 /* ekf.symmetrize in place: P = (P + P^T) / 2 */
 static void symmetrize(double *P, int n)
 {
@@ -293,56 +268,15 @@ static void symmetrize(double *P, int n)
     }
 }
 
-/* InertialPrediction.propagate (its input interpolation) and step_compiled (set_dt when the step
- * changes, ct_ins_propagate, CovariancePredict.after_predict) of the shadow over [t0, t1] with the
- * IMU samples of slots k - 1 and k */
+/* InertialPrediction.propagate and step_compiled of the shadow over [t0, t1] with the IMU samples
+ * of slots k - 1 and k (ct_fus_step, fusimu.c: the forward path's step), then
+ * CovariancePredict.after_predict */
 static void replay_propagate(const struct ct_replay *r, int64_t k, int64_t t0, int64_t t1, int64_t *io, double *fo)
 {
-    const struct ct_ins *s = &r->ins;
-    const double dt = (double)(t1 - t0) * 1e-6;
-    const int64_t tk = r->imu_t[k];
-    int64_t kp = k > 0 ? k - 1 : r->imu_cap - 1;
-    const int64_t tp = r->imu_t[kp];
-    const double *dp, *dk;
-    double a0, a1, b0, b1, am, bm, in[15];
-    if (io[CT_RIO_IMU_COUNT] > 1 && tp < tk) {
-        double span = 1.0 / (double)(tk - tp);
-        a0 = (double)(t0 - tp) * span;
-        a1 = (double)(t1 - tp) * span;
-        if (a0 < 0.0)
-            a0 = 0.0;
-    } else {
-        kp = k;
-        a0 = a1 = 1.0;
-    }
-    b0 = 1.0 - a0;
-    b1 = 1.0 - a1;
-    dp = r->imu_d + kp * CT_IMU_WIDTH;
-    dk = r->imu_d + k * CT_IMU_WIDTH;
-    /* inputs at t0 and t1 (offsets removed), the rate at mid-step */
-    in[0] = b0 * dp[CT_IMU_F] + a0 * dk[CT_IMU_F] - s->ba[0];
-    in[1] = b0 * dp[CT_IMU_F + 1] + a0 * dk[CT_IMU_F + 1] - s->ba[1];
-    in[2] = b0 * dp[CT_IMU_F + 2] + a0 * dk[CT_IMU_F + 2] - s->ba[2];
-    in[3] = b1 * dp[CT_IMU_F] + a1 * dk[CT_IMU_F] - s->ba[0];
-    in[4] = b1 * dp[CT_IMU_F + 1] + a1 * dk[CT_IMU_F + 1] - s->ba[1];
-    in[5] = b1 * dp[CT_IMU_F + 2] + a1 * dk[CT_IMU_F + 2] - s->ba[2];
-    am = 0.5 * (a0 + a1);
-    bm = 1.0 - am;
-    in[6] = bm * dp[CT_IMU_W] + am * dk[CT_IMU_W] - s->bg[0];
-    in[7] = bm * dp[CT_IMU_W + 1] + am * dk[CT_IMU_W + 1] - s->bg[1];
-    in[8] = bm * dp[CT_IMU_W + 2] + am * dk[CT_IMU_W + 2] - s->bg[2];
-    in[9] = b0 * dp[CT_IMU_FSRC] + a0 * dk[CT_IMU_FSRC];
-    in[10] = b0 * dp[CT_IMU_FSRC + 1] + a0 * dk[CT_IMU_FSRC + 1];
-    in[11] = b0 * dp[CT_IMU_FSRC + 2] + a0 * dk[CT_IMU_FSRC + 2];
-    in[12] = b1 * dp[CT_IMU_FSRC] + a1 * dk[CT_IMU_FSRC];
-    in[13] = b1 * dp[CT_IMU_FSRC + 1] + a1 * dk[CT_IMU_FSRC + 1];
-    in[14] = b1 * dp[CT_IMU_FSRC + 2] + a1 * dk[CT_IMU_FSRC + 2];
-    if (dt != fo[CT_RFO_DT_LAST])
-        replay_set_dt(r, dt, fo);
-    ct_ins_propagate((struct ct_ins *)s, dt, in, fo[CT_RFO_KA], fo[CT_RFO_KG]);
+    ct_fus_step(&r->ins, r->Qd, r->dtk, fo, r->imu_t, r->imu_d, r->imu_cap, k, io[CT_RIO_IMU_COUNT], t0, t1);
     io[CT_RIO_PRED_COUNT] += 1;
     if (io[CT_RIO_PRED_COUNT] % r->symmetrize_every == 0)
-        symmetrize(s->P, s->n);
+        symmetrize(r->ins.P, r->ins.n);
     io[CT_RIO_STEPS] += 1;
 }
 
