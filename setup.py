@@ -17,7 +17,7 @@ setup(
             sources=[f"{CORE}/_coremodule.c", *sorted(glob(f"{CORE}/src/*.c")),
                      *sorted(glob(f"{CORE}/py_*.c"))],
             include_dirs=[f"{CORE}/include"],
-            depends=sorted(glob(f"{CORE}/include/*.h")),
+            depends=sorted(glob(f"{CORE}/include/*.h")) + sorted(glob(f"{CORE}/*.h")),   # py_glue.h
             # no fused multiply-adds: the results must not depend on the compiler's choice
             # (it fuses by default on aarch64 and with -march=native); C99 as on the board
             extra_compile_args=["-O2", "-ffp-contract=off", "-std=c99"],

@@ -12,6 +12,7 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 #define CT_MAX_COILS 64
 
@@ -19,29 +20,14 @@
 /* ------------------------------------------------------------------ buffers */
 static int is_double_format(const Py_buffer *v)
 {
-    const char *f = v->format;
-    if (v->itemsize != (Py_ssize_t)sizeof(double) || f == NULL)
-        return 0;
-    if (f[0] == '@' || f[0] == '=' || f[0] == '<')
-        f++;
-    return f[0] == 'd' && f[1] == '\0';
+    const char *f = ct_py_format(v);
+    return v->itemsize == (Py_ssize_t)sizeof(double) && f[0] == 'd' && f[1] == '\0';
 }
 
 /* a C-contiguous float64 buffer of at least n doubles, or -1 with TypeError naming `what` */
 static int get_doubles(PyObject *obj, Py_ssize_t n, int writable, Py_buffer *view, const char *what)
 {
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous float64 buffer", what,
-                     writable ? "writable " : "");
-        return -1;
-    }
-    if (!is_double_format(view) || view->len < n * (Py_ssize_t)sizeof(double)) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_TypeError, "%s: needs float64 items, at least %zd of them", what, n);
-        return -1;
-    }
-    return 0;
+    return ct_py_buffer(obj, n, (Py_ssize_t)sizeof(double), "d", writable, view, what);
 }
 
 /* a 3x3 rotation (array, 2-D or flat memoryview, any strides) into r[9], row-major */
@@ -99,17 +85,12 @@ static int get_currents(PyObject *obj, int n, double *c)
 
 static int get_double(PyObject *o, double *x)
 {
-    *x = PyFloat_AsDouble(o);
-    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+    return ct_py_double(o, x);
 }
 
 static int check_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
 {
-    if (nargs != want) {
-        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
-        return -1;
-    }
-    return 0;
+    return ct_py_nargs(name, nargs, want);
 }
 
 /* ------------------------------------------------------------------ Signal */
@@ -934,21 +915,7 @@ static PyObject *core_pose_frame(PyObject *mod, PyObject *const *args, Py_ssize_
 /* a C-contiguous int64 buffer of at least n items, writable, or -1 with TypeError naming `what` */
 static int get_int64s(PyObject *obj, Py_ssize_t n, Py_buffer *view, const char *what)
 {
-    const char *f;
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a writable C-contiguous int64 buffer", what);
-        return -1;
-    }
-    f = view->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (view->itemsize != 8 || f == NULL || !((f[0] == 'q' || f[0] == 'l') && f[1] == '\0') ||
-        view->len < n * 8) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_TypeError, "%s: needs int64 items, at least %zd of them", what, n);
-        return -1;
-    }
-    return 0;
+    return ct_py_buffer(obj, n, 8, "ql", 1, view, what);
 }
 
 typedef struct {

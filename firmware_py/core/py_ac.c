@@ -10,28 +10,14 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 /* a C-contiguous buffer of at least n items of `itemsize` bytes whose format is one of `formats`
  * (writable when asked), or -1 with TypeError naming `what` */
 static int ac_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize, const char *formats, int writable,
                      Py_buffer *view, const char *what)
 {
-    const char *f;
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
-        return -1;
-    }
-    f = view->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (view->itemsize != itemsize || f == NULL || f[0] == '\0' || f[1] != '\0' || strchr(formats, f[0]) == NULL ||
-        view->len < n * itemsize) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_TypeError, "%s: needs %zd items of %zd bytes ('%s')", what, n, itemsize, formats);
-        return -1;
-    }
-    return 0;
+    return ct_py_buffer(obj, n, itemsize, formats, writable, view, what);
 }
 
 #define F64 8, "d"
@@ -40,26 +26,17 @@ static int ac_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize, const cha
 
 static int ac_int64(PyObject *o, int64_t *v)
 {
-    long long x = PyLong_AsLongLong(o);
-    if (x == -1 && PyErr_Occurred())
-        return -1;
-    *v = (int64_t)x;
-    return 0;
+    return ct_py_int64(o, v);
 }
 
 static int ac_double(PyObject *o, double *x)
 {
-    *x = PyFloat_AsDouble(o);
-    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+    return ct_py_double(o, x);
 }
 
 static int ac_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
 {
-    if (nargs != want) {
-        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
-        return -1;
-    }
-    return 0;
+    return ct_py_nargs(name, nargs, want);
 }
 
 /* ------------------------------------------------------------------- Demod */

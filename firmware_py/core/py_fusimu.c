@@ -24,6 +24,7 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 #define FUS_MAXBUF 16
 
@@ -42,35 +43,18 @@ static void fus_release(fus_views *b)
 /* bind obj as a C-contiguous buffer of at least `count` items of `fmt` ('d' or 'q'); its pointer */
 static void *fus_bind(fus_views *b, PyObject *obj, Py_ssize_t count, char fmt, int writable, const char *what)
 {
-    Py_buffer *v = &b->v[b->n];
-    const char *f;
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (b->n >= FUS_MAXBUF) {
         PyErr_Format(PyExc_RuntimeError, "%s: more than %d buffers bound", what, FUS_MAXBUF);
         return NULL;
     }
-    if (PyObject_GetBuffer(obj, v, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
+    if (ct_py_buffer(obj, count, 8, fmt == 'd' ? "d" : "ql", writable, &b->v[b->n], what) < 0)
         return NULL;
-    }
-    f = v->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (f == NULL || v->itemsize != 8 || !(f[0] == fmt || (fmt == 'q' && f[0] == 'l')) || f[1] != '\0' ||
-        v->len < count * 8) {
-        PyBuffer_Release(v);
-        PyErr_Format(PyExc_TypeError, "%s: needs %s items, at least %zd of them", what,
-                     fmt == 'd' ? "float64" : "int64", count);
-        return NULL;
-    }
-    b->n++;
-    return v->buf;
+    return b->v[b->n++].buf;
 }
 
 static int fus_double(PyObject *o, double *x)
 {
-    *x = PyFloat_AsDouble(o);
-    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+    return ct_py_double(o, x);
 }
 
 static int fus_long(PyObject *o, long long *x)
@@ -81,11 +65,7 @@ static int fus_long(PyObject *o, long long *x)
 
 static int fus_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
 {
-    if (nargs != want) {
-        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
-        return -1;
-    }
-    return 0;
+    return ct_py_nargs(name, nargs, want);
 }
 
 /* a slot index within 0..cap-1 */

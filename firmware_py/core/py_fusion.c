@@ -11,6 +11,7 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 int ct_register_fusion(PyObject *m);
 
@@ -19,24 +20,7 @@ int ct_register_fusion(PyObject *m);
 /* a C-contiguous buffer of at least n items of 8 bytes, float64 ('d') or int64 ('q', 'l') */
 static int fu_get(PyObject *obj, Py_ssize_t n, int writable, int int64, Py_buffer *view, const char *what)
 {
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    const char *f;
-    int ok;
-    if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous %s buffer", what, writable ? "writable " : "",
-                     int64 ? "int64" : "float64");
-        return -1;
-    }
-    f = view->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    ok = f != NULL && view->itemsize == 8 && f[1] == '\0' && (int64 ? (f[0] == 'q' || f[0] == 'l') : f[0] == 'd');
-    if (!ok || view->len < n * 8) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_TypeError, "%s: needs %s items, at least %zd of them", what, int64 ? "int64" : "float64", n);
-        return -1;
-    }
-    return 0;
+    return ct_py_buffer(obj, n, 8, int64 ? "ql" : "d", writable, view, what);
 }
 
 /* n doubles of a small argument (a float64 array of any strides and at most 2 dimensions, read in

@@ -8,32 +8,14 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 /* a C-contiguous buffer of at least n items of itemsize bytes (int64 'q'/'l' or bytes 'B'),
  * writable or not, or -1 with TypeError naming `what` */
 static int rx_get(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize, int writable, Py_buffer *view,
                   const char *what)
 {
-    const char *f;
-    int ok;
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
-        return -1;
-    }
-    f = view->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (itemsize == 8)
-        ok = f != NULL && (f[0] == 'q' || f[0] == 'l') && f[1] == '\0';
-    else
-        ok = f == NULL || ((f[0] == 'B' || f[0] == 'b' || f[0] == 'c') && f[1] == '\0');
-    if (!ok || view->itemsize != itemsize || view->len < n * itemsize) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_TypeError, "%s: needs %s items, at least %zd of them", what,
-                     itemsize == 8 ? "int64" : "byte", n);
-        return -1;
-    }
-    return 0;
+    return ct_py_buffer(obj, n, itemsize, itemsize == 8 ? "ql" : "Bbc", writable, view, what);
 }
 
 enum { RX_SIZES, RX_EXTRAS, RX_ST, RX_SEQ, RX_ROWS, RX_PAY, RX_BUF, RX_RAW, RX_NVIEWS };

@@ -10,6 +10,7 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 /* ------------------------------------------------------------------ buffers */
 static int sc_is_format(const Py_buffer *v, char want, Py_ssize_t itemsize)
@@ -28,17 +29,8 @@ static int sc_is_format(const Py_buffer *v, char want, Py_ssize_t itemsize)
 static int sc_get(PyObject *obj, Py_ssize_t n, char fmt, Py_ssize_t itemsize, int writable, Py_buffer *view,
                   const char *what)
 {
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
-        return -1;
-    }
-    if (!sc_is_format(view, fmt, itemsize) || view->len < n * itemsize) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_TypeError, "%s: needs at least %zd items of format '%c'", what, n, fmt);
-        return -1;
-    }
-    return 0;
+    const char one[2] = {fmt, '\0'};
+    return ct_py_buffer(obj, n, itemsize, fmt == 'q' ? "ql" : one, writable, view, what);
 }
 
 static int sc_doubles(PyObject *obj, Py_ssize_t n, int writable, Py_buffer *view, const char *what)
@@ -80,8 +72,7 @@ static int sc_copy_doubles(PyObject *obj, int n, double *out, const char *what)
 
 static int sc_double(PyObject *o, double *x)
 {
-    *x = PyFloat_AsDouble(o);
-    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+    return ct_py_double(o, x);
 }
 
 static int sc_int(PyObject *o, long lo, long hi, long *x, const char *what)
@@ -98,11 +89,7 @@ static int sc_int(PyObject *o, long lo, long hi, long *x, const char *what)
 
 static int sc_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
 {
-    if (nargs != want) {
-        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
-        return -1;
-    }
-    return 0;
+    return ct_py_nargs(name, nargs, want);
 }
 
 /* ------------------------------------------------------------ SchepersCore */

@@ -1,0 +1,79 @@
+/*
+ * The CPython glue's shared helpers (_coremodule.c and every core/py_<area>.c): binding a caller's
+ * array as a buffer at construction, and reading a METH_FASTCALL call's numbers. Static inline:
+ * each glue file that includes this header has its own copy, no symbol is shared between them.
+ * Outside the firmware core (src/ and include/ never include Python.h).
+ */
+#ifndef CT_PY_GLUE_H
+#define CT_PY_GLUE_H
+
+#ifndef PY_SSIZE_T_CLEAN
+#define PY_SSIZE_T_CLEAN
+#endif
+#include <Python.h>
+#include <stdint.h>
+#include <string.h>
+
+/* the struct-module character of a buffer's items, its byte-order prefix ('@', '=', '<': native
+ * on the little-endian hosts the extension builds for) skipped; "B" where the exporter gives none
+ * (PEP 3118: unsigned bytes) */
+static inline const char *ct_py_format(const Py_buffer *v)
+{
+    const char *f = v->format;
+    if (f == NULL)
+        return "B";
+    if (f[0] == '@' || f[0] == '=' || f[0] == '<')
+        f++;
+    return f;
+}
+
+/* Bind obj as a C-contiguous buffer (writable when asked) of at least n items of itemsize bytes
+ * whose format is one character of `formats` ("d": float64, "ql": int64, "B": bytes, ...):
+ * 0, or -1 with a TypeError naming `what` (nothing held then). */
+static inline int ct_py_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize, const char *formats, int writable,
+                               Py_buffer *view, const char *what)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
+        return -1;
+    }
+    f = ct_py_format(view);
+    if (view->itemsize != itemsize || f[0] == '\0' || f[1] != '\0' || strchr(formats, f[0]) == NULL ||
+        view->len < n * itemsize) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s: needs at least %zd items of %zd bytes (format %s)", what, n, itemsize,
+                     formats);
+        return -1;
+    }
+    return 0;
+}
+
+/* a call's float argument (an int too) */
+static inline int ct_py_double(PyObject *o, double *x)
+{
+    *x = PyFloat_AsDouble(o);
+    return (*x == -1.0 && PyErr_Occurred()) ? -1 : 0;
+}
+
+/* a call's integer argument */
+static inline int ct_py_int64(PyObject *o, int64_t *x)
+{
+    long long v = PyLong_AsLongLong(o);
+    if (v == -1 && PyErr_Occurred())
+        return -1;
+    *x = (int64_t)v;
+    return 0;
+}
+
+/* a METH_FASTCALL method's argument count */
+static inline int ct_py_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (nargs != want) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, want, nargs);
+        return -1;
+    }
+    return 0;
+}
+
+#endif /* CT_PY_GLUE_H */
