@@ -1,9 +1,9 @@
 /*
  * CPython glue of the AC kernels (include/ct_ac.h): Demod binds a Demodulator's numpy arrays
  * (and its channel's sample ring) once at construction; Raab binds a Raab tracker's buffers.
- * RaabCorr binds the exact-loop correction's, RaabCov the covariance's. The per-call methods use METH_FASTCALL and write into
- * the bound buffers (RaabCorr's read their per-call arrays in place); they return None, a bool, a
- * small int of flag bits or (Demod.push only) the completed block's index.
+ * RaabCorr binds the exact-loop correction's, RaabCov the covariance's. The per-call methods use
+ * METH_FASTCALL and write into the bound buffers (RaabCorr's read their per-call arrays in place);
+ * they return None, a bool, a small int of flag bits or (Demod.push only) the completed block's index.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

@@ -217,3 +217,29 @@ def test_singular_and_non_finite_information_as_the_reference():
             assert sides[1].out[0, 0] == pytest.approx(MAX_VARIANCE, rel=1e-12)
         if kw.get("zero"):
             assert np.all(np.isfinite(sides[1].out)) and sides[1].out[0, 0] >= 1e10
+
+
+def test_compiled_publication_allocates_no_numpy_array():
+    """The compiled rows and publications (formed, carried, the sensor frame's form) create no
+    numpy array (``tools.bench.alloc.NumpyAllocationCounter``: a single temporary counts 1)."""
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+
+    if not available():
+        pytest.skip("numpy memory handler API not reachable")
+    s = _Side(COMPILED)
+    s.set_pose(_pose(np.random.default_rng(2)))
+    s.evaluate()
+    w, cur = np.full(3 * N, 1e7), np.full(N, 1.5)
+    for i in range(3 * N):
+        s.w[i] = w[i]
+    for j in range(N):
+        s.cur[j] = cur[j]
+    R, pt = memoryview(s.Rn), point(s.x, CBAR)
+    counter = NumpyAllocationCounter()
+    with counter:
+        s.cov.rows(s.sig.Bv, s.sig.Jv)
+        for k in range(3):
+            s.cov.publish(s.x, R, s.w, s.cur, s.pm, 0.1, pt)
+            s.w[0] = 1.2e7 if k == 1 else 1e7
+    assert counter.count == 0
+    assert s.cov.sig_p > 0.0
