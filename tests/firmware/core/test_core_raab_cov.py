@@ -243,3 +243,45 @@ def test_compiled_publication_allocates_no_numpy_array():
             s.w[0] = 1.2e7 if k == 1 else 1e7
     assert counter.count == 0
     assert s.cov.sig_p > 0.0
+
+
+def test_tracker_on_either_core_publishes_the_same_poses_and_covariances():
+    """Raab's tracker (``pose.raab.RaabTracker``, exact-loop correction) on each core tracking a
+    seeded path of the exact model's signals with noise, warm-started from its last solution, a
+    coil's axes weighted unequally in some solves: the same status, iterations and evaluations,
+    positions and rotations to 1e-12, covariances to 1e-12 of sqrt(C_ii C_kk), every solve."""
+    from coiltrack.firmware.pose.raab import RaabTracker
+
+    rng = np.random.default_rng(4)
+    trk = {c.name: RaabTracker(COILS, core=c) for c in (fcore.PYTHON, COMPILED)}
+    assert trk["compiled"]._covm.core == "compiled" and trk["python"]._covm.core == "python"
+    truth = SignalModel(COILS, "exact", fcore.PYTHON)
+    cur = np.array([1.5, 1.49, 1.51])
+    p = np.array([0.25, 0.1, -0.05])
+    rv = np.array([0.3, -0.2, 0.5])
+    for k in range(40):
+        p = p + rng.normal(0, 0.004, 3)
+        rv = rv + rng.normal(0, 0.01, 3)
+        th = np.linalg.norm(rv)
+        Kx = np.array([[0, -rv[2], rv[1]], [rv[2], 0, -rv[0]], [-rv[1], rv[0], 0]]) / th
+        R = np.eye(3) + math.sin(th) * Kx + (1 - math.cos(th)) * Kx @ Kx
+        truth.fields(p[0], p[1], p[2], memoryview(cur), False)
+        S = R.T @ np.array(truth.B).T + rng.normal(0, 1e-9, (3, 3))
+        sigma = np.full((3, 3), 1e-9)
+        if k % 7 == 3:
+            sigma[1, 2] = 1.5e-9                                # one coil's axes weighted unequally
+        res = {}
+        for name, t in trk.items():
+            warm = k > 0 and t.status & 1 == 0
+            st = t.solve(S, cur, sigma, HEMI_X, t.position.copy() if warm else None,
+                         t.rotation.copy() if warm else None)
+            res[name] = (st, t.iterations, t.solve_evals, t.position.copy(), t.rotation.copy(), t.covariance.copy())
+        a, b = res["python"], res["compiled"]
+        assert a[:3] == b[:3]
+        np.testing.assert_allclose(b[3], a[3], rtol=0, atol=1e-12 * np.linalg.norm(a[3]))
+        np.testing.assert_allclose(b[4], a[4], rtol=0, atol=1e-12)
+        _close(a[5], b[5])
+        assert np.all(np.diag(a[5]) > 0.0)
+
+
+HEMI_X = np.array([1.0, 0.0, 0.0])
