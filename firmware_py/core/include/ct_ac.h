@@ -113,7 +113,7 @@ struct ct_raab_cov {
     const double *par;              /* CT_RCP_N */
     const double *cbar;             /* 3: the coil centres' centroid */
     double *cov;                    /* 36: the published covariance of (p, dtheta) */
-    double *K, *H;                  /* 18 n each: rows [J_j | [B_j]x] per A (source frame), the same in the sensor frame */
+    double *K, *H;                  /* 18 n each: rows [J_j | [B_j]x] per A, source and sensor frame */
     double *q, *qm;                 /* 3 n weights x currents of a formation, n those of C_s */
     double *A, *Cs, *pc;            /* 36 information, 36 C_s, 3 where C_s was formed */
     double *st;                     /* CT_RCS_N */
