@@ -1,9 +1,9 @@
 /*
  * CPython glue of the AC kernels (include/ct_ac.h): Demod binds a Demodulator's numpy arrays
  * (and its channel's sample ring) once at construction; Raab binds a Raab tracker's buffers.
- * RaabCorr binds the exact-loop correction's. The per-call methods use METH_FASTCALL and write into
- * the bound buffers (RaabCorr's read their per-call arrays in place); they return None, a bool, a
- * small int of flag bits or (Demod.push only) the completed block's index.
+ * RaabCorr binds the exact-loop correction's, RaabCov the covariance's. The per-call methods use
+ * METH_FASTCALL and write into the bound buffers (RaabCorr's read their per-call arrays in place);
+ * they return None, a bool, a small int of flag bits or (Demod.push only) the completed block's index.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -505,10 +505,137 @@ static PyTypeObject RaabCorrType = {
     .tp_methods = RaabCorr_methods,
 };
 
+/* ----------------------------------------------------------------- RaabCov */
+enum { RV_PAR, RV_CBAR, RV_COV, RV_K, RV_H, RV_Q, RV_QM, RV_A, RV_CS, RV_PC, RV_ST, RV_T, RV_L, RV_M, RV_X, RV_R,
+       RV_W, RV_CUR, RV_PM, RV_BV, RV_JV, RV_NBUF };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_raab_cov c;
+    const double *x, *R, *w, *cur, *pm, *Bv, *Jv;
+    Py_buffer views[RV_NBUF];
+    int nbound;
+} RaabCovObject;
+
+static void RaabCov_release(RaabCovObject *self)
+{
+    int i;
+    for (i = 0; i < self->nbound; ++i)
+        PyBuffer_Release(&self->views[i]);
+    self->nbound = 0;
+}
+
+static void RaabCov_dealloc(RaabCovObject *self)
+{
+    RaabCov_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* RaabCov(n, bufs): bufs the 21 arrays par, cbar, cov, K, H, q, qm, A, Cs, pc, st, T, L, M (its own) and
+ * x, R, w, cur, pm, Bv, Jv (the tracker's and its signal model's, read per call) */
+static int RaabCov_init(RaabCovObject *self, PyObject *args, PyObject *kw)
+{
+    static const char *names[RV_NBUF] = {"par", "cbar", "cov", "K", "H", "q", "qm", "A", "Cs", "pc", "st", "T", "L",
+                                         "M", "x", "R", "w", "cur", "pm", "Bv", "Jv"};
+    PyObject *bufs;
+    Py_ssize_t want[RV_NBUF];
+    int n, i;
+    if (kw != NULL && PyDict_Size(kw) > 0) {
+        PyErr_SetString(PyExc_TypeError, "RaabCov: positional arguments only");
+        return -1;
+    }
+    if (!PyArg_ParseTuple(args, "iO", &n, &bufs))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabCov: already bound");
+        return -1;
+    }
+    if (n < 3 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "RaabCov: n must be in 3..64");
+        return -1;
+    }
+    if (!PyTuple_Check(bufs) || PyTuple_GET_SIZE(bufs) != RV_NBUF) {
+        PyErr_Format(PyExc_TypeError, "RaabCov: bufs must be a tuple of %d arrays", RV_NBUF);
+        return -1;
+    }
+    want[RV_PAR] = CT_RCP_N; want[RV_CBAR] = 3; want[RV_COV] = 36; want[RV_K] = want[RV_H] = 18 * n;
+    want[RV_Q] = 3 * n; want[RV_QM] = n; want[RV_A] = want[RV_CS] = 36; want[RV_PC] = 3; want[RV_ST] = CT_RCS_N;
+    want[RV_T] = want[RV_L] = want[RV_M] = 36; want[RV_X] = 6; want[RV_R] = 9; want[RV_W] = 3 * n; want[RV_CUR] = n;
+    want[RV_PM] = 3; want[RV_BV] = 3 * n; want[RV_JV] = 9 * n;
+    for (i = 0; i < RV_NBUF; ++i) {
+        int ro = i == RV_PAR || i == RV_CBAR || i >= RV_X;
+        if (ac_buffer(PyTuple_GET_ITEM(bufs, i), want[i], F64, !ro, &self->views[i], names[i]) < 0) {
+            RaabCov_release(self);
+            return -1;
+        }
+        self->nbound = i + 1;
+    }
+#define DBUF(i) ((double *)self->views[i].buf)
+    self->c.n = n;
+    self->c.par = DBUF(RV_PAR); self->c.cbar = DBUF(RV_CBAR); self->c.cov = DBUF(RV_COV);
+    self->c.K = DBUF(RV_K); self->c.H = DBUF(RV_H); self->c.q = DBUF(RV_Q); self->c.qm = DBUF(RV_QM);
+    self->c.A = DBUF(RV_A); self->c.Cs = DBUF(RV_CS); self->c.pc = DBUF(RV_PC); self->c.st = DBUF(RV_ST);
+    self->c.T = DBUF(RV_T); self->c.L = DBUF(RV_L); self->c.M = DBUF(RV_M);
+    self->x = DBUF(RV_X); self->R = DBUF(RV_R); self->w = DBUF(RV_W); self->cur = DBUF(RV_CUR);
+    self->pm = DBUF(RV_PM); self->Bv = DBUF(RV_BV); self->Jv = DBUF(RV_JV);
+#undef DBUF
+    return 0;
+}
+
+static int RaabCov_ready(RaabCovObject *self)
+{
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabCov: not bound");
+        return -1;
+    }
+    return 0;
+}
+
+/* rows(): the bound Bv, Jv into K */
+static PyObject *RaabCov_rows(RaabCovObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (RaabCov_ready(self) < 0 || ac_nargs("rows", nargs, 0) < 0)
+        return NULL;
+    ct_raab_cov_rows(&self->c, self->Bv, self->Jv);
+    Py_RETURN_NONE;
+}
+
+/* publish(rel) -> bool (False: nothing changed, the reference publishes) */
+static PyObject *RaabCov_publish(RaabCovObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double rel;
+    if (RaabCov_ready(self) < 0 || ac_nargs("publish", nargs, 1) < 0 || ac_double(args[0], &rel) < 0)
+        return NULL;
+    if (ct_raab_cov_publish(&self->c, self->x, self->R, self->w, self->cur, self->pm, rel))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef RaabCov_methods[] = {
+    {"rows", (PyCFunction)(void (*)(void))RaabCov_rows, METH_FASTCALL,
+     "rows(): as RaabCovariance.rows of the bound fields and gradients"},
+    {"publish", (PyCFunction)(void (*)(void))RaabCov_publish, METH_FASTCALL,
+     "publish(rel) -> bool: as RaabCovariance.publish on the bound buffers; False where the reference must run"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RaabCovType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.RaabCov",
+    .tp_basicsize = sizeof(RaabCovObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Raab's covariance buffers bound for ct_raab_cov_rows / ct_raab_cov_publish (pose.raab_covariance)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)RaabCov_init,
+    .tp_dealloc = (destructor)RaabCov_dealloc,
+    .tp_methods = RaabCov_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_ac(PyObject *m)
 {
-    if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0 || PyType_Ready(&RaabCorrType) < 0)
+    if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0 || PyType_Ready(&RaabCorrType) < 0 ||
+        PyType_Ready(&RaabCovType) < 0)
         return -1;
     Py_INCREF(&DemodType);
     if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
@@ -523,6 +650,11 @@ int ct_register_ac(PyObject *m)
     Py_INCREF(&RaabCorrType);
     if (PyModule_AddObject(m, "RaabCorr", (PyObject *)&RaabCorrType) < 0) {
         Py_DECREF(&RaabCorrType);
+        return -1;
+    }
+    Py_INCREF(&RaabCovType);
+    if (PyModule_AddObject(m, "RaabCov", (PyObject *)&RaabCovType) < 0) {
+        Py_DECREF(&RaabCovType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "DM_NST", CT_DM_NST) < 0 || PyModule_AddIntConstant(m, "DMO_N", CT_DMO_N) < 0)

@@ -243,10 +243,14 @@ class RaabTracker(StagedSolve):
         self.angles = memoryview(np.zeros(6))
         #: the exact-loop correction (``correction``) or none, chosen here once (``pose.raab_correction``)
         self.corrector = LoopCorrection(n, core) if correction else NoCorrection()
-        self._covm = RaabCovariance(n, self._cbar, self.covariance)     # publishes into ``covariance``
         self._x = memoryview(np.zeros(6))           # alpha, beta, rho, psi, theta, phi
         self._pm = memoryview(np.zeros(3))          # point of the last evaluation
         self._buffers(n)
+        #: publishes into ``covariance`` (``pose.raab_covariance``: Python or, on the compiled ``core``,
+        #: ``ct_raab_cov_publish`` reading these buffers)
+        self._covm = RaabCovariance(n, self._cbar, self.covariance, core,
+                                    (self._x, self._Rn, self._wv, self._curv, self._pm, self.signal.Bv,
+                                     self.signal.Jv))
         #: one update (eqs 7-31) on these buffers, Python or compiled as ``core`` (``raab_update.Update``)
         self._upd = Update(n, self._x, self._Rn, self._Sv, self._Sc, self._mp, self._F, self._pm, self._cbar,
                            self._curv, self.corrector, self.max_step, _ACQUIRED_STEP, core)

@@ -9,7 +9,12 @@ estimate's orientation, the weights' common scale), formed again where that
 carry would err by more than ``_COV_TOL``.
 
 Python floats and buffers allocated at construction only (two numpy products
-into them per formation).
+into them per formation). On the compiled core (chosen at construction, with the
+tracker's buffers bound: ``inputs``) :meth:`RaabCovariance.rows` and
+:meth:`RaabCovariance.publish` are ``ct_raab_cov_rows`` and ``ct_raab_cov_publish``
+of ``core/src/raab_cov.c`` (the same operations in the same order but the
+information's sum, 1e-12 relative); where the robust inverse needs its
+eigenvalue floor the kernel changes nothing and the Python reference publishes.
 """
 from __future__ import annotations
 
@@ -17,8 +22,9 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import flat
-from coiltrack.firmware.pose.covariance import RobustInverse6
+from coiltrack.firmware.pose.covariance import EIG_FLOOR, MAX_VARIANCE, RobustInverse6
 
 __all__ = ["RaabCovariance"]
 
@@ -57,9 +63,16 @@ class RaabCovariance:
 
     Owns the rows ``[J_j | [B_j]x]`` per ampere of the last evaluation
     (:meth:`rows`) and the source-frame covariance ``C_s`` formed from them at
-    ``p_c``."""
+    ``p_c``.
 
-    def __init__(self, n: int, cbar, out):
+    ``inputs``: the tracker's buffers ``(x, Rn, w, cur, pm, Bv, Jv)`` (Raab's
+    coordinates (6), the rotation (3, 3), the weights (3 n), the currents (n),
+    the last evaluation's point (3), the signal model's fields (3 n) and
+    gradients (9 n)), which :meth:`rows` and :meth:`publish` then read: on a
+    compiled ``core`` they are bound to the kernels here and the two methods
+    replaced on this instance (their arguments must be those buffers)."""
+
+    def __init__(self, n: int, cbar, out, core=_DEFAULT_CORE, inputs=None):
         self.n = n
         self._cbar = cbar
         self._cov = flat(out)
@@ -69,17 +82,48 @@ class RaabCovariance:
         self._H = flat(self._Hn)
         self._qn = np.zeros((3 * n, 1))              # weights x currents of the information, a column
         self._qv = flat(self._qn)
-        self._qm = [0.0] * n                         # per-coil weight x current of the cached covariance
+        self._qm = memoryview(np.zeros(n))           # per-coil weight x current of the cached covariance
         self._HWn = np.zeros((3 * n, 6))
         self._HWt = self._HWn.T
         self._An = np.zeros((6, 6))
         self._A36 = flat(self._An)
         self._Cs = memoryview(np.zeros(36))          # covariance at p_c, source-frame orientation error
         self._cs_ok = False                          # _Cs formed at _pc (isotropic weights _qm)
-        self._pc = [0.0] * 3                         # where _Cs was formed (an evaluation point)
+        self._pc = memoryview(np.zeros(3))           # where _Cs was formed (an evaluation point)
         self._inv = RobustInverse6()
         self.sig_p = 0.0
         self.sig_o = 0.0
+        self.core = "python"
+        if core.ext is not None and inputs is not None and 3 <= n <= 64:
+            self._bind_compiled(core.ext, inputs)
+
+    def _bind_compiled(self, ext, inputs) -> None:
+        """:meth:`rows` and :meth:`publish` on ``ct_raab_cov_rows`` / ``ct_raab_cov_publish``, the buffers
+        (these and the tracker's ``inputs``) and the constants bound once."""
+        self._par = np.array([_COV_TOL, _CARRY_MAX, _Q_TOL, _ISO_TOL, MAX_VARIANCE, EIG_FLOOR])
+        self._cb = np.array(self._cbar, dtype=float)
+        self._st = np.zeros(3)                       # C_s formed, sig_p, sig_o (ct_ac.h: CT_RCS_*)
+        self._stv = memoryview(self._st)
+        self._scratch = np.zeros((3, 36))
+        own = (self._par, self._cb, self._cov, self._Ks, self._H, self._qv, self._qm, self._A36, self._Cs, self._pc,
+               self._st, self._scratch[0], self._scratch[1], self._scratch[2])
+        self._ck = ext.RaabCov(self.n, own + tuple(inputs))
+        self.rows = self._rows_compiled
+        self.publish = self._publish_compiled
+        self.core = "compiled"
+
+    def _rows_compiled(self, Bv, Jv) -> None:
+        self._ck.rows()
+
+    def _publish_compiled(self, x, R, w, cur, pm, rel: float, point) -> None:
+        st = self._stv
+        if not self._ck.publish(rel):
+            # the robust inverse takes its eigenvalue floor: the reference, from the same state
+            self._cs_ok = st[0] != 0.0
+            RaabCovariance.publish(self, x, R, w, cur, pm, rel, point)
+            st[0], st[1], st[2] = 1.0 if self._cs_ok else 0.0, self.sig_p, self.sig_o
+            return
+        self.sig_p, self.sig_o = st[1], st[2]
 
     def rows(self, Bv, Jv) -> None:
         """The rows ``[J_j | [B_j]x]`` (source frame; orientation error

@@ -100,4 +100,33 @@ void ct_raab_refresh(const struct ct_raab_corr *c, const double *x, const double
  * (linalg.lu_factor); returns 1 when factored */
 int ct_raab_precondition(const struct ct_raab_corr *c, const double *x, const double *mp, const double *cur, double k);
 
+/* ------------------------------------------------------------- raab_cov
+ * The covariance of Raab's tracker, pose.raab_covariance.RaabCovariance (src/raab_cov.c).
+ * Its constants, from the Python modules at binding: */
+enum { CT_RCP_COV_TOL = 0, CT_RCP_CARRY_MAX = 1, CT_RCP_Q_TOL = 2, CT_RCP_ISO_TOL = 3, CT_RCP_MAX_VARIANCE = 4,
+       CT_RCP_EIG_FLOOR = 5, CT_RCP_N = 6 };
+/* its state besides the buffers: C_s formed (1.0) or not, and the published sigmas */
+enum { CT_RCS_CS_OK = 0, CT_RCS_SIG_P = 1, CT_RCS_SIG_O = 2, CT_RCS_N = 3 };
+
+struct ct_raab_cov {
+    int n;
+    const double *par;              /* CT_RCP_N */
+    const double *cbar;             /* 3: the coil centres' centroid */
+    double *cov;                    /* 36: the published covariance of (p, dtheta) */
+    double *K, *H;                  /* 18 n each: rows [J_j | [B_j]x] per A, source and sensor frame */
+    double *q, *qm;                 /* 3 n weights x currents of a formation, n those of C_s */
+    double *A, *Cs, *pc;            /* 36 information, 36 C_s, 3 where C_s was formed */
+    double *st;                     /* CT_RCS_N */
+    double *T, *L, *M;              /* 36 each: scratch */
+};
+
+/* RaabCovariance.rows: the rows [J_j | [B_j]x] of the fields Bv (3 n) and gradients Jv (9 n) per ampere */
+void ct_raab_cov_rows(const struct ct_raab_cov *c, const double *Bv, const double *Jv);
+/* RaabCovariance.publish at the estimate x (6, Raab's coordinates; R (9) row-major), weights w (3 n), currents
+ * cur (n), the last evaluation at pm (3), rel; returns 1 when published, 0 (nothing changed) where the robust
+ * inverse needs its eigenvalue floor (pose.covariance.RobustInverse6._floored) or the reference would divide
+ * by zero: the caller then runs the reference */
+int ct_raab_cov_publish(const struct ct_raab_cov *c, const double *x, const double *R, const double *w,
+                        const double *cur, const double *pm, double rel);
+
 #endif /* CT_AC_H */
