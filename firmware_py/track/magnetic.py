@@ -145,7 +145,7 @@ class MagneticTracker:
         self.solve_ticks_max = 0         # the most ticks a burst's solves took after its windows closed
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
-        self.quality = PoseQuality(cfg, len(coils), self.channels, coils)    # POSE.quality (track.quality)
+        self.quality = PoseQuality(cfg, len(coils), self.channels, coils, core)    # POSE.quality (track.quality)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
         self.ahead = cfg.budget.solve_ahead and cfg.ac.excitation == "pulsed" and self.solver.memoryless
         self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
