@@ -1,6 +1,6 @@
 /*
- * CPython glue of the solve's finish and the POSE's quality (src/finish.c): the types SolveFinish
- * and BurstQuality, bound once (start-up) to the caller's numpy arrays; their per-call methods
+ * CPython glue of the solve's finish and the POSE's quality (src/finish.c): the types SolveFinish,
+ * BurstQuality and ReportPose, bound once (start-up) to the caller's numpy arrays; their per-call methods
  * (METH_FASTCALL) take numbers and the call's input arrays, write into the bound buffers and
  * create no Python object (the small ints they return are the interpreter's cached ones).
  */
@@ -318,6 +318,109 @@ static PyTypeObject BurstQualityType = {
     .tp_methods = BurstQuality_methods,
 };
 
+/* ------------------------------------------------------------- ReportPose */
+#define RP_NBUF 3
+typedef struct {
+    PyObject_HEAD
+    double *p, *R, *q;
+    Py_buffer views[RP_NBUF];
+    int bound;
+} ReportPoseObject;
+
+static void ReportPose_dealloc(ReportPoseObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < RP_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int ReportPose_init(ReportPoseObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"position", "rotation", "q", NULL};
+    static const char *names[RP_NBUF] = {"position", "rotation", "q"};
+    const Py_ssize_t len[RP_NBUF] = {3, 9, 4};
+    PyObject *o[RP_NBUF];
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOO", kwlist, &o[0], &o[1], &o[2]))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "ReportPose: already bound");
+        return -1;
+    }
+    for (i = 0; i < RP_NBUF; ++i)
+        if (fin_buffer(o[i], len[i], 8, "d", i == 2, &self->views[i], names[i], 0) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+    self->p = (double *)self->views[0].buf;
+    self->R = (double *)self->views[1].buf;
+    self->q = (double *)self->views[2].buf;
+    self->bound = 1;
+    return 0;
+}
+
+/* take(dst_p, dst_R, range_m) -> True, False or None (ct_report_take; None: arrays of another kind) */
+static PyObject *ReportPose_take(ReportPoseObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vp, vr;
+    double range_m;
+    int r;
+    if (!self->bound || nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "ReportPose.take(dst_p, dst_R, range_m): bound, three arguments");
+        return NULL;
+    }
+    if (fin_double(args[2], &range_m) < 0)
+        return NULL;
+    if (fin_buffer(args[0], 3, 8, "d", 1, &vp, "dst_p", 1) < 0)
+        Py_RETURN_NONE;
+    if (fin_buffer(args[1], 9, 8, "d", 1, &vr, "dst_R", 1) < 0) {
+        PyBuffer_Release(&vp);
+        Py_RETURN_NONE;
+    }
+    r = ct_report_take(self->p, self->R, range_m, (double *)vp.buf, (double *)vr.buf);
+    PyBuffer_Release(&vp);
+    PyBuffer_Release(&vr);
+    return PyBool_FromLong(r);
+}
+
+/* quat(R) -> True or None: rotation.quat_tuple of R (9) into the bound q (ct_quat_from_elements) */
+static PyObject *ReportPose_quat(ReportPoseObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vr;
+    if (!self->bound || nargs != 1) {
+        PyErr_SetString(PyExc_TypeError, "ReportPose.quat(R): bound, one argument");
+        return NULL;
+    }
+    if (fin_buffer(args[0], 9, 8, "d", 0, &vr, "R", 1) < 0)
+        Py_RETURN_NONE;
+    ct_quat_from_elements((const double *)vr.buf, self->q);
+    PyBuffer_Release(&vr);
+    Py_RETURN_TRUE;
+}
+
+static PyMethodDef ReportPose_methods[] = {
+    {"take", (PyCFunction)(void (*)(void))ReportPose_take, METH_FASTCALL,
+     "take(dst_p, dst_R, range_m) -> True (in range: copied), False, or None (arrays of another kind)"},
+    {"quat", (PyCFunction)(void (*)(void))ReportPose_quat, METH_FASTCALL,
+     "quat(R) -> True (quat_tuple of R into q) or None (an array of another kind)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ReportPoseType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ReportPose",
+    .tp_basicsize = sizeof(ReportPoseObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "ReportPose(position, rotation, q): a tracker's report of its solver's pose (the range check, the "
+              "copies, the quaternion) bound to the solver's results and a quaternion buffer",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)ReportPose_init,
+    .tp_dealloc = (destructor)ReportPose_dealloc,
+    .tp_methods = ReportPose_methods,
+};
+
 /* quality_from(var_trace_m2, x, scale_m, motion_m2) -> int (track.quality.quality_from) */
 static PyObject *fin_quality_from(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -398,7 +501,8 @@ static PyMethodDef fin_functions[] = {
 int ct_register_finish(PyObject *m)
 {
     PyMethodDef *f;
-    if (PyType_Ready(&SolveFinishType) < 0 || PyType_Ready(&BurstQualityType) < 0)
+    if (PyType_Ready(&SolveFinishType) < 0 || PyType_Ready(&BurstQualityType) < 0 ||
+        PyType_Ready(&ReportPoseType) < 0)
         return -1;
     Py_INCREF(&SolveFinishType);
     if (PyModule_AddObject(m, "SolveFinish", (PyObject *)&SolveFinishType) < 0) {
@@ -408,6 +512,11 @@ int ct_register_finish(PyObject *m)
     Py_INCREF(&BurstQualityType);
     if (PyModule_AddObject(m, "BurstQuality", (PyObject *)&BurstQualityType) < 0) {
         Py_DECREF(&BurstQualityType);
+        return -1;
+    }
+    Py_INCREF(&ReportPoseType);
+    if (PyModule_AddObject(m, "ReportPose", (PyObject *)&ReportPoseType) < 0) {
+        Py_DECREF(&ReportPoseType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "FINISH_WORK", CT_ROBUST6_WORK) < 0)

@@ -70,4 +70,8 @@ int ct_grade_burst(const struct ct_quality *qs, double *prev, int64_t t_us, doub
                    const double *p, const double *R, const double *S, const double *sigma, const int64_t *start,
                    const int64_t *end, double nis, double quiet, double *motion);
 
+/* MagneticTracker._report's pose: when p lies within range_m of the source (track.magnetic.in_range)
+ * p (3) and R (9) copied into dst_p and dst_R and 1, else 0 (nothing copied) */
+int ct_report_take(const double *p, const double *R, double range_m, double *dst_p, double *dst_R);
+
 #endif /* CT_FINISH_H */

@@ -380,3 +380,14 @@ int ct_grade_burst(const struct ct_quality *qs, double *prev, int64_t t_us, doub
     x = (qs->dof > 0 && fit > 0.0 ? fit / qs->dof : 0.0) + nis + quiet;
     return ct_quality_from(var_trace, x, qs->scale, motion[0]);
 }
+
+/* ---------------------------------------------------------------- report */
+
+int ct_report_take(const double *p, const double *R, double range_m, double *dst_p, double *dst_R)
+{
+    if (!(sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) <= range_m))
+        return 0;
+    memcpy(dst_p, p, 3 * sizeof(double));
+    memcpy(dst_R, R, 9 * sizeof(double));
+    return 1;
+}

@@ -408,3 +408,41 @@ def test_compiled_finish_and_grade_allocate_no_array():
             assert s.solve(S, cur, sigma, hemi, x0, R) != SOLVE_RUNNING
             got.grade_burst(16, 1_000_000 + k * 200_000, cost, C, gp, gR, gS, gs, start, end)
     assert c.count == 0
+
+
+# -------------------------------------------------------------------- report
+def test_report_pose_bit_identical():
+    """The magnetic tracker's report of its solver's pose: the range check (inside, outside, on
+    the boundary, NaN) with its copies, and the POSE's quaternion (every branch of Shepperd's
+    method: a positive trace and each largest diagonal element) the same as in_range, np.copyto
+    and rotation.quat_tuple; scipy's quaternion as the independent reference (w >= 0)."""
+    from coiltrack.firmware.rotation import quat_tuple
+    from coiltrack.firmware.track.magnetic import in_range
+
+    rng = np.random.default_rng(11)
+    pos, rot, q = np.zeros(3), np.eye(3), np.zeros(4)
+    rp = EXT.ReportPose(pos, rot, q)
+    angles = [rng.normal(size=3) for _ in range(200)] + [np.array([math.pi, 0, 0]), np.array([0, math.pi, 0]),
+                                                        np.array([0, 0, math.pi]), np.zeros(3)]
+    for k, rv in enumerate(angles):
+        R = Rotation.from_rotvec(rv).as_matrix()
+        p = rng.normal(size=3) * 0.5
+        if k == 3:
+            p[1] = math.nan
+        rng_m = float(np.linalg.norm(p)) if k == 4 else 0.6
+        pos[:], rot[:] = p, R
+        dst_p, dst_R = np.full(3, 7.0), np.full((3, 3), 7.0)
+        took = rp.take(dst_p, dst_R, rng_m)
+        assert took == in_range(p, rng_m), k
+        if took:
+            np.testing.assert_array_equal(dst_p, p)
+            np.testing.assert_array_equal(dst_R, R)
+        else:
+            assert np.all(dst_p == 7.0) and np.all(dst_R == 7.0)
+        assert rp.quat(R)
+        assert tuple(q) == quat_tuple(R), k
+        want = Rotation.from_matrix(R).as_quat()[[3, 0, 1, 2]]
+        if abs(want[0]) > 1e-9:                     # (w = 0: either sign is the rotation)
+            np.testing.assert_allclose(q, want if want[0] > 0 else -want, atol=1e-12, err_msg=str(k))
+    assert rp.take(np.zeros(3, np.float32), np.zeros((3, 3)), 1.0) is None
+    assert rp.quat(np.eye(3).T) is None
