@@ -369,6 +369,15 @@ class PoseSolver(StagedSolve):
         self._load_x0 = self._load_x0_compiled
         self._publish_pose = self._publish_pose_compiled
         self._run = self._run_compiled
+        # the finish (core/src/finish.c): warm-start checks, covariance and rotation margin
+        self._fpar = np.zeros(4)                     # check_hemi, the hemisphere (set by begin)
+        self._fparv = memoryview(self._fpar)
+        self._fwork = np.zeros(ext.FINISH_WORK)
+        cx, cy, cz = self._cbar
+        self._fin = ext.SolveFinish(self.n, self.gate, cx, cy, cz, self._fpar, self._fit.p, self.covariance,
+                                    self._fwork)
+        self._load_hemisphere = self._load_hemisphere_compiled
+        self._unit_finish = self._unit_finish_compiled
 
     def _load_compiled(self, S, currents, sigma) -> bool:
         ok = self._io.load(S, sigma, currents)
@@ -392,6 +401,36 @@ class PoseSolver(StagedSolve):
     def _publish_pose_compiled(self) -> None:
         if not self._io.publish():
             nearest_rotation(self._m9, self.rotation, self._rot3)
+
+    def _load_hemisphere_compiled(self, hemisphere) -> bool:
+        """:meth:`_load_hemisphere`, the side also into the compiled finish's parameters."""
+        ok = PoseSolver._load_hemisphere(self, hemisphere)
+        par = self._fparv
+        hx, hy, hz = self._hemi
+        par[0], par[1], par[2], par[3] = (1.0 if self._check_hemi else 0.0), hx, hy, hz
+        return ok
+
+    def _unit_finish_compiled(self) -> None:
+        """:meth:`_unit_finish` with its numbers in one compiled call (``ct_solve_finish``: the
+        warm-start checks, ``RobustInverse6``, ``RotationMargin``, the finiteness test), the
+        same operations in the same order."""
+        lm = self._lm
+        r = self._fin.finish(lm.A, self._warm and not self._reacquired, lm.state, lm.cost)
+        if r < 0:
+            self._reacquired = True
+            self._start_acquisition()
+            return
+        self._publish_pose()
+        self.iterations = lm.it
+        self.cost = lm.cost
+        self.converged = lm.state == LM_CONVERGED
+        status = SOLVE_OK if self.converged else SOLVE_NOT_CONVERGED
+        if not r:
+            status |= SOLVE_NONFINITE
+        if self._reacquired:
+            status |= SOLVE_REACQUIRED
+        self.status = status
+        self._then(None)
 
     def _run_compiled(self, budget: int) -> int:
         """:func:`staged.run_units` with the compiled LM's steps run in one call

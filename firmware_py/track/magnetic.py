@@ -145,7 +145,8 @@ class MagneticTracker:
         self.solve_ticks_max = 0         # the most ticks a burst's solves took after its windows closed
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
-        self.quality = PoseQuality(cfg, len(coils), self.channels, coils)    # POSE.quality (track.quality)
+        self.quality = PoseQuality(cfg, len(coils), self.channels, coils, core)    # POSE.quality (track.quality)
+        self._bind_report(core)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
         self.ahead = cfg.budget.solve_ahead and cfg.ac.excitation == "pulsed" and self.solver.memoryless
         self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
@@ -369,22 +370,20 @@ class MagneticTracker:
         tp = self.poses[ch.node]
         sv = self.solver
         t_pose = (int(sched.start[0]) + int(sched.end[-1])) // 2      # the middle of the burst
-        if solved and not in_range(sv.position, self.range_m):
+        if solved and not self._take_solution(tp):
             # a diverged start led the solve out of the working volume: no pose; acquire again
             solved = False
             tp.have_pose = False
             self.out_of_range += 1
         if solved:
-            np.copyto(tp.position, sv.position)
-            np.copyto(tp.rotation, sv.rotation)
             tp.have_pose = True
             cov = sv.covariance
             q = self.quality.grade_burst(ch.node, t_pose, getattr(sv, "cost", 0.0), cov, tp.position, tp.rotation,
                                          ch.S, ch.sigma, sched.start, sched.end)
-            self.tx.pose_cov6(ch.node, t_pose, tp.position, quat_tuple(tp.rotation),
+            self.tx.pose_cov6(ch.node, t_pose, tp.position, self._quat(tp.rotation),
                               self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
         else:
-            self.tx.pose_unknown(ch.node, t_pose, tp.position, quat_tuple(tp.rotation), self._status)
+            self.tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
         self.on_solution(ch, solved)
         self._next += 1
         if self._next == len(self.channels):
@@ -398,6 +397,40 @@ class MagneticTracker:
         else:
             self._units += self.solver.n
             self._begin(self.channels[self._next])
+
+    def _take_solution(self, tp: TrackedPose) -> bool:
+        """The solver's pose into ``tp`` when it lies in the working volume (False: not taken)."""
+        sv = self.solver
+        if not in_range(sv.position, self.range_m):
+            return False
+        np.copyto(tp.position, sv.position)
+        np.copyto(tp.rotation, sv.rotation)
+        return True
+
+    def _quat(self, R):
+        """The POSE's quaternion of ``R`` (``rotation.quat_tuple``)."""
+        return quat_tuple(R)
+
+    def _bind_report(self, core) -> None:
+        """:meth:`_take_solution` and :meth:`_quat` on the compiled core (``core/src/finish.c``
+        ``ct_report_take``, ``fusimu.c`` ``ct_quat_from_elements``: the same operations, the same
+        bits) through a ``ReportPose`` bound to the solver's results; replaced on this instance."""
+        ext = core.ext
+        sv = self.solver
+        if ext is None or not all(isinstance(getattr(sv, k, None), np.ndarray) for k in ("position", "rotation")):
+            return
+        self._q = np.zeros(4)
+        self._qv = memoryview(self._q)
+        self._rp = ext.ReportPose(sv.position, sv.rotation, self._q)
+        self._take_solution = self._take_solution_compiled
+        self._quat = self._quat_compiled
+
+    def _take_solution_compiled(self, tp: TrackedPose) -> bool:
+        r = self._rp.take(tp.position, tp.rotation, self.range_m)
+        return MagneticTracker._take_solution(self, tp) if r is None else r
+
+    def _quat_compiled(self, R):
+        return self._qv if self._rp.quat(R) else quat_tuple(R)
 
     def warm_start(self, ch, tp: TrackedPose) -> bool:
         """Put the solve's start into ``tp.warm_p``, ``tp.warm_R``: the last

@@ -65,6 +65,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import rotvec_from_matrix
 
 __all__ = ["quality_from", "PoseQuality"]
@@ -85,9 +86,11 @@ class PoseQuality:
     """Grades a solved pose (module docstring). ``n_coils``: the solver's coils;
     ``channels``: the sensor channels whose newest sample is the quiet field; ``coils``
     (``field.Coil``, optional): the source, for the motion within a pulsed burst
-    (:meth:`grade_burst`)."""
+    (:meth:`grade_burst`); ``core`` (``coiltrack.firmware.core.Core``): on the compiled one
+    :meth:`grade_burst` runs ``core/src/finish.c`` (``ct_grade_burst``, the same operations in the
+    same order: the same quality, motion term and residual to the bit)."""
 
-    def __init__(self, cfg, n_coils: int, channels=(), coils=None):
+    def __init__(self, cfg, n_coils: int, channels=(), coils=None, core=_DEFAULT_CORE):
         self.scale = float(cfg.quality.quality_error_scale_m)
         self.earth = float(cfg.orientation.earth_field_t)
         self.quiet_sigma = float(cfg.quality.quality_quiet_sigma_t)
@@ -110,8 +113,41 @@ class PoseQuality:
             self._xd = memoryview(np.zeros(6))
         # the motion is taken from the previous solution no older than two cycles
         self.max_gap_us = 2 * int(getattr(getattr(cfg, "timing", None), "cycle_us", 0))
-        # per node: [have, t_us, px, py, pz, r00, r01, r02, r10, r11, r12, r20, r21, r22]
-        self._prev = {ch.node: [0.0] * 14 for ch in channels}
+        # per node: [have, t_us, px, py, pz, r00, r01, r02, r10, r11, r12, r20, r21, r22], one row
+        # of _prev_rows each (the compiled grading reads and writes the same rows)
+        self._row = {}
+        for ch in channels:
+            self._row.setdefault(ch.node, len(self._row))
+        self._prev_rows = np.zeros((max(len(self._row), 1), 14))
+        self._prev = {node: memoryview(self._prev_rows[k]) for node, k in self._row.items()}
+        if self._n and core.ext is not None:
+            self._bind_compiled(core.ext)
+
+    def _bind_compiled(self, ext) -> None:
+        """:meth:`grade_burst` on the compiled core (``ct_grade_burst`` through a
+        ``BurstQuality`` bound to this grader's rows and scratch); the method is replaced on this
+        instance, so no call tests the choice."""
+        self._motion_out = np.zeros(2)
+        self._mov = memoryview(self._motion_out)
+        self._centers = np.array(self._c, dtype=float)
+        self._bq = ext.BurstQuality(self._n, self.dof, self.scale, float(self.max_gap_us), self._centers,
+                                    self._prev_rows, self._H, self._u, self._g, self._dx, self._d, self._xd,
+                                    self._motion_out)
+        self.grade_burst = self._grade_burst_compiled
+
+    def _grade_burst_compiled(self, node: int, t_us: int, cost: float, cov, p, R, S, sigma,
+                              start, end, nis_per_dim: float = 0.0) -> int:
+        """:meth:`grade_burst` in one compiled call (the arrays of another kind than the
+        tracker's: by the Python)."""
+        q = self._bq.grade(self._row.get(node, -1), t_us, cost, nis_per_dim, self.quiet_term(node), cov, p, R, S,
+                           sigma, start, end)
+        if q is None:
+            return PoseQuality.grade_burst(self, node, t_us, cost, cov, p, R, S, sigma, start, end, nis_per_dim)
+        mv = self._mov
+        self.motion_m2 = mv[0]
+        self.chi2_motion = mv[1]
+        self.last[node] = q
+        return q
 
     def fit_term(self, cost: float) -> float:
         """``chi2 / dof`` (0 without residual freedom)."""
