@@ -19,13 +19,9 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol import MSG
-
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
 from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
-
-_WINDOW = MSG["PULSE_WINDOW"]
 
 
 def window_samples(cfg) -> int:
@@ -83,6 +79,9 @@ class SensorChannel:
         self._flv = memoryview(self.flags)
         self.pmv = memoryview(self.pulse_mid)
         self._sigma_floor2 = (0.1 * cfg.pulse.mag_sigma_t) ** 2
+        if core.ext is not None:         # the solver weights on the compiled core (core/src/multi.c)
+            self._sigma_k = core.ext.sigma_from
+            self.sigma_from = self._sigma_from_compiled
 
     def push(self, msg, lsb: float) -> None:
         """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
@@ -130,9 +129,15 @@ class SensorChannel:
         that found no noise is not trusted beyond a tenth of the sensor's)."""
         self.sigma_from(self._varv, self._sigv)
 
+    def _sigma_from_compiled(self, var, sig) -> None:
+        """:meth:`sigma_from` in one call of ``ct_sigma_from`` (the same square roots of the same
+        values: equal to the bit)."""
+        self._sigma_k(var, sig, self._sigma_floor2)
+
     def sigma_from(self, var, sig) -> None:
         """``sig = sqrt(max(var, floor))`` for variances ``var`` (3, n) of this channel's
-        windows (2-D memoryviews; ``sig`` may be ``var`` itself)."""
+        windows (2-D memoryviews; ``sig`` may be ``var`` itself). On the compiled core one call
+        of ``ct_sigma_from`` (:meth:`_sigma_from_compiled`, bound at construction)."""
         floor = self._sigma_floor2
         n = self.S.shape[1]
         for i in range(3):
@@ -173,6 +178,6 @@ class WindowCloser:
             self.flagged += 1
         first, last = ex.last_used_span() if n_used else (0, 0)
         ch.take_window(coil, flags, (first + last) // 2 if last else (start + end) // 2)
-        self.tx.send(_WINDOW(ch.node, coil, pulse_id, first, last, min(n_used, 255), min(n_base, 255),
-                             flags & 0xFF))
+        self.tx.pulse_window(ch.node, coil, pulse_id, first, last, n_used if n_used < 255 else 255,
+                             n_base if n_base < 255 else 255, flags & 0xFF)
         return flags
