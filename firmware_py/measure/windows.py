@@ -70,6 +70,9 @@ class SensorChannel:
         self.amp_var = np.zeros(3)
         self.used_times = np.zeros(self.extractor.max_samples, dtype=np.int64)
         self.samples = 0
+        #: changes of what this channel's windows are read from (samples pushed, windows taken, burst
+        #: started or loaded): a caller that computed something from them may keep it while this holds
+        self.changes = 0
         self._Sv = memoryview(self.S)
         self._varv = memoryview(self.var)
         self._ampv = memoryview(self.amp)
@@ -87,6 +90,7 @@ class SensorChannel:
         """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
         self.ring.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
         self.samples += 1
+        self.changes += 1
 
     def push_imu(self, msg) -> None:
         """An ``IMU_SAMPLE`` of this node: its rates for the extractor (kept only with a gyro ring)."""
@@ -102,10 +106,12 @@ class SensorChannel:
         self._flv[coil] = flags
         self._donev[coil] = True
         self.pmv[coil] = mid_us
+        self.changes += 1
 
     def new_burst(self) -> None:
         self.done.fill(False)
         self.flags.fill(0)
+        self.changes += 1
 
     def load_block(self, S, var, flags: int, mid_us: int) -> None:
         """A demodulated AC block as this channel's burst (``measure.ac_blocks``): amplitudes
@@ -116,6 +122,7 @@ class SensorChannel:
         self.flags.fill(flags)
         self.done.fill(True)
         self.pulse_mid.fill(mid_us)
+        self.changes += 1
 
     def burst_flags(self) -> int:
         f = 0
@@ -160,12 +167,23 @@ class WindowCloser:
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
         """Every channel has the samples after the window, or it timed out."""
+        return self.ready_upto(start, end, now_us, 0) == len(self.channels)
+
+    def ready_upto(self, start: int, end: int, now_us: int, first: int) -> int:
+        """How many channels, in order, have every sample the window reads (all of them once it
+        timed out), asking from channel ``first`` on: a caller that keeps the count asks only
+        the channels not ready yet, since a window once ready stays ready (a ring takes only
+        later samples and is never emptied: ``SampleRing.push``)."""
+        chs = self.channels
+        n = len(chs)
         if now_us > end + self.fall_us + self.baseline_us + self.timeout_us:
-            return True
-        for ch in self.channels:
-            if not ch.extractor.ready(start, end):
-                return False
-        return True
+            return n
+        i = first
+        while i < n:
+            if not chs[i].extractor.ready(start, end):
+                return i
+            i += 1
+        return n
 
     def close_one(self, ch: SensorChannel, coil: int, pulse_id: int, start: int, end: int) -> int:
         """Extract coil ``coil``'s amplitude on channel ``ch`` into ``ch.amp``,
