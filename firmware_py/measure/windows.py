@@ -69,6 +69,8 @@ class SensorChannel:
         self.amp = np.zeros(3)             # the last closed window
         self.amp_var = np.zeros(3)
         self.used_times = np.zeros(self.extractor.max_samples, dtype=np.int64)
+        self.info = np.zeros(4, dtype=np.int64)    # the last closed window: n_used, n_base, first, last (us)
+        self.infov = memoryview(self.info)
         self.samples = 0
         #: changes of what this channel's windows are read from (samples pushed, windows taken, burst
         #: started or loaded): a caller that computed something from them may keep it while this holds
@@ -85,6 +87,9 @@ class SensorChannel:
         if core.ext is not None:         # the solver weights on the compiled core (core/src/multi.c)
             self._sigma_k = core.ext.sigma_from
             self.sigma_from = self._sigma_from_compiled
+        if self.extractor.bind_column(self.S, self.var, self.flags, self.done, self.pulse_mid, self.amp,
+                                      self.amp_var, self.info):
+            self.close_window = self._close_window_compiled
 
     def push(self, msg, lsb: float) -> None:
         """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
@@ -107,6 +112,29 @@ class SensorChannel:
         self._donev[coil] = True
         self.pmv[coil] = mid_us
         self.changes += 1
+
+    def close_window(self, coil: int, start: int, end: int) -> int:
+        """Extract the window ``[start, end]`` into ``amp``, ``amp_var`` and, as coil ``coil``'s,
+        into the burst (:meth:`take_window`, its middle the mean of the first and the last used
+        sample times, or of ``start`` and ``end`` with none); ``info`` = n_used, n_base, first,
+        last. Returns the window flags. On the compiled core one call of ``ct_window_column``
+        (:meth:`_close_window_compiled`, bound at construction)."""
+        ex = self.extractor
+        flags, n_used, n_base = ex.extract(start, end, self.amp, self.amp_var)
+        first, last = ex.last_used_span() if n_used else (0, 0)
+        self.take_window(coil, flags, (first + last) // 2 if last else (start + end) // 2)
+        iv = self.infov
+        iv[0], iv[1], iv[2], iv[3] = n_used, n_base, first, last
+        return flags
+
+    def _close_window_compiled(self, coil: int, start: int, end: int) -> int:
+        """:meth:`close_window` in one call (``PulseExtractor.extract_column``); a time the compiled
+        extraction does not take goes to the reference."""
+        flags = self.extractor.extract_column(coil, start, end)
+        if flags is None:
+            return SensorChannel.close_window(self, coil, start, end)
+        self.changes += 1
+        return flags
 
     def new_burst(self) -> None:
         self.done.fill(False)
@@ -189,13 +217,12 @@ class WindowCloser:
         """Extract coil ``coil``'s amplitude on channel ``ch`` into ``ch.amp``,
         ``ch.amp_var`` and column ``coil`` of the burst; send its PULSE_WINDOW;
         return the window flags."""
-        ex = ch.extractor
-        flags, n_used, n_base = ex.extract(start, end, ch.amp, ch.amp_var)
+        flags = ch.close_window(coil, start, end)
         self.closed += 1
         if flags:
             self.flagged += 1
-        first, last = ex.last_used_span() if n_used else (0, 0)
-        ch.take_window(coil, flags, (first + last) // 2 if last else (start + end) // 2)
-        self.tx.pulse_window(ch.node, coil, pulse_id, first, last, n_used if n_used < 255 else 255,
+        iv = ch.infov
+        n_used, n_base = iv[0], iv[1]
+        self.tx.pulse_window(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255,
                              n_base if n_base < 255 else 255, flags & 0xFF)
         return flags

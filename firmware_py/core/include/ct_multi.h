@@ -25,4 +25,26 @@ int ct_window_frame(uint8_t *out, int seq, int src, int64_t node, int64_t coil, 
  * sig may be var. */
 void ct_sigma_from(int64_t n, const double *var, double *sig, double floor);
 
+/* ------------------------------------------------------------ window column
+ * measure.windows.SensorChannel.close_window: PulseExtractor.extract (ct_pulse_extract, include/
+ * ct_window.h) of the window [start, end] into the extractor's res (amp 3, var 3) and ires (flags,
+ * n_pulse, n_base, n_rec), then, as the Python does after it, the amplitude into the channel's amp
+ * and amp_var and into column coil of its burst (S, var: 3 x n row-major; flags, done, pulse_mid),
+ * its middle the mean of the first and the last used sample times (floored, as Python's //) or,
+ * with none, of start and end; info = n_used, n_base, first, last.  Returns the window flags. */
+struct ct_sample_ring;
+struct ct_pulse;
+struct ct_window_column {
+    int64_t n;                      /* coils: the burst's columns */
+    double *res;                    /* the extractor's result buffers (ct_pulse_extract's amp, var) */
+    int64_t *ires;                  /* ... and its out[4] */
+    double *amp, *amp_var;          /* the channel's last window (3 each) */
+    double *S, *V;                  /* the channel's burst amplitudes and variances (3 x n) */
+    int64_t *flags, *pulse_mid;     /* (n) */
+    uint8_t *done;                  /* (n) */
+    int64_t *info;                  /* (4): n_used, n_base, first, last */
+};
+int64_t ct_window_column(const struct ct_window_column *c, const struct ct_pulse *x, const struct ct_sample_ring *r,
+                         int64_t start, int64_t end, int64_t coil);
+
 #endif

@@ -75,3 +75,40 @@ void ct_sigma_from(int64_t n, const double *var, double *sig, double floor)
         sig[k] = sqrt(v > floor ? v : floor);
     }
 }
+
+/* Python's x // 2 */
+static int64_t ct_floor_half(int64_t x)
+{
+    int64_t q = x / 2;
+    return (x % 2 != 0 && x < 0) ? q - 1 : q;
+}
+
+int64_t ct_window_column(const struct ct_window_column *c, const struct ct_pulse *x, const struct ct_sample_ring *r,
+                         int64_t start, int64_t end, int64_t coil)
+{
+    int64_t flags, n_used, n_rec, first = 0, last = 0, n = c->n;
+    int i;
+    flags = ct_pulse_extract(x, r, start, end, c->res, c->res + 3, c->ires);
+    n_used = c->ires[1];
+    n_rec = c->ires[3];
+    if (n_used && n_rec) {
+        first = x->used_t[0];
+        last = x->used_t[n_rec - 1];
+    }
+    for (i = 0; i < 3; ++i) {
+        c->amp[i] = c->res[i];
+        c->amp_var[i] = c->res[3 + i];
+    }
+    for (i = 0; i < 3; ++i) {
+        c->S[i * n + coil] = c->amp[i];
+        c->V[i * n + coil] = c->amp_var[i];
+    }
+    c->flags[coil] = flags;
+    c->done[coil] = 1;
+    c->pulse_mid[coil] = last ? ct_floor_half(first + last) : ct_floor_half(start + end);
+    c->info[0] = n_used;
+    c->info[1] = c->ires[2];
+    c->info[2] = first;
+    c->info[3] = last;
+    return flags;
+}
