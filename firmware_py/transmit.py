@@ -26,6 +26,7 @@ from coiltrack.firmware.port import Port
 _HEARTBEAT = MSG["HEARTBEAT"]
 _POSE = MSG["POSE"]
 _FAULT = MSG["FAULT_EVENT"]
+_WINDOW = MSG["PULSE_WINDOW"]
 #: the largest finite f32 (POSE covariance fields): larger variances are sent as this
 F32_MAX = 3.0e38
 
@@ -83,6 +84,7 @@ class Transmitter:
         self.decoder = decoder  # the receiver's: the frames it dropped go into the heartbeat
         self._own = PoseReport()  # the record of pose_cov6 and pose_unknown
         self._bind(core)
+        self._bind_window(core)
 
     def send(self, msg) -> None:
         try:
@@ -95,6 +97,11 @@ class Transmitter:
 
     def event(self, code: int, detail: int) -> None:
         self.send(_FAULT(self.node_id, self.now_us, code, detail & 0xFFFFFFFF))
+
+    def pulse_window(self, node: int, coil: int, pulse_id: int, first_us: int, last_us: int, n_used: int,
+                     n_base: int, flags: int) -> None:
+        """Send one ``PULSE_WINDOW`` (which samples a window's amplitude used: ``measure.windows``)."""
+        self.send(_WINDOW(node, coil, pulse_id, first_us, last_us, n_used, n_base, flags))
 
     def pose(self, r: PoseReport) -> None:
         """Send one POSE (:class:`PoseReport`); variances beyond the f32 range go as :data:`F32_MAX`."""
@@ -152,6 +159,33 @@ class Transmitter:
         self.send = self._send_numbered
         self.pose = self._pose_compiled
         self.core = "compiled"
+
+    def _bind_window(self, core) -> None:
+        """:meth:`pulse_window` on the compiled core (as :meth:`_bind` binds :meth:`pose`): the frame
+        built by ``core/src/multi.c`` (``ct_window_frame``: the same bytes as ``encode_frame``),
+        numbered with this transmitter's sequence. A signed link or the Python core keeps
+        :meth:`send`."""
+        if self.core != "compiled":
+            return
+        ext = core.ext
+        assert (ext.WINDOW_ID, ext.WINDOW_PAYLOAD, ext.WINDOW_CRC_EXTRA) == (_WINDOW.ID, 23, _CRC_EXTRA[_WINDOW.ID][0])
+        self._window_frame = ext.window_frame
+        self.pulse_window = self._pulse_window_compiled
+
+    def _pulse_window_compiled(self, node: int, coil: int, pulse_id: int, first_us: int, last_us: int, n_used: int,
+                               n_base: int, flags: int) -> None:
+        """:meth:`pulse_window` on the compiled core (a field out of its range: a tx error, as
+        ``struct.pack``'s refusal in :meth:`_send_numbered`)."""
+        frame = self._window_frame(self._seq, self.node_id, node, coil, pulse_id, first_us, last_us, n_used, n_base,
+                                   flags)
+        if frame is None:
+            self.tx_errors += 1
+            return
+        self._seq = (self._seq + 1) & 0xFF
+        try:
+            self.port.write(frame)
+        except Exception:  # a full or broken link must not stop the loop
+            self.tx_errors += 1
 
     def _send_numbered(self, msg) -> None:
         """:meth:`send` on the compiled core: ``encode_frame`` with this transmitter's sequence."""

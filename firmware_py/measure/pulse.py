@@ -219,6 +219,12 @@ class SampleRing(Ring):
         (head and count); returns the window flags."""
         return kernel.extract(start_us, end_us, self._head, self._count)
 
+    def close_with(self, kernel, start_us: int, end_us: int, coil: int) -> int:
+        """Run the compiled window close ``kernel`` (``core/src/multi.c``: ``WindowColumn``, bound to
+        this ring's arrays) on the window ``[start_us, end_us]`` at the ring's present state, into
+        column ``coil``; returns the window flags."""
+        return kernel.close(start_us, end_us, self._head, self._count, coil)
+
     @property
     def oldest_t_us(self) -> int:
         """Time of the oldest retained sample, ``NO_TIME_US`` when empty."""
@@ -227,7 +233,46 @@ class SampleRing(Ring):
         return self.tv[self.slot(0)]
 
 
-class PulseExtractor:
+class _WindowColumn:
+    """The part of :class:`PulseExtractor` that closes a sensor channel's window into its burst in
+    one compiled call (``core/src/multi.c``: ``ct_window_column``), bound by :meth:`bind_column`."""
+
+    def bind_column(self, S, var, flags, done, pulse_mid, amp, amp_var, info) -> bool:
+        """On the compiled core, bind :meth:`extract_column` to a sensor channel's burst buffers
+        (``measure.windows.SensorChannel``: ``S``, ``var`` (3, n), ``flags``, ``done``,
+        ``pulse_mid`` (n,), its last window ``amp``, ``amp_var`` (3,) and ``info`` (4,) int64);
+        False (nothing bound) on the Python core or for an extractor with an extraction of its own."""
+        if self._ext is None:
+            return False
+        ring = self._ring
+        self._colk = self._ext.WindowColumn(
+            ring.t, ring.b, ring.flags, self._used_t, self._emp_var, self._res, self._ires, S, var, flags, done,
+            pulse_mid, amp, amp_var, info, self._settle_us, self._fall_us, self._baseline_us, self._guard_us,
+            self._min_pulse, self._min_base, self._max_gap_us, self.max_samples, self._drift_limit, self._sigma,
+            self._drift_nsigma)
+        return True
+
+    def extract_column(self, coil: int, start_us: int, end_us: int):
+        """After :meth:`bind_column`: the channel's ``close_window`` in one call of
+        ``ct_window_column`` (:meth:`extract` of the window into the bound ``amp``, ``amp_var`` and
+        column ``coil``, its flags, middle, and ``info`` = n_used, n_base, first and last used
+        sample times, as ``SensorChannel.close_window`` writes them); returns the flags, or None
+        for a time the compiled extraction does not take (the caller then runs the reference)."""
+        try:
+            start = operator.index(start_us)
+            end = operator.index(end_us)
+        except TypeError:
+            return None
+        if not (-_T_FAR < start < _T_FAR and -_T_FAR < end < _T_FAR):
+            return None
+        flags = self._ring.close_with(self._colk, start, end, coil)
+        ir = self._iresv
+        self._n_used = ir[1]
+        self._n_rec = ir[3]
+        return flags
+
+
+class PulseExtractor(_WindowColumn):
     """Extract pulse amplitudes from a :class:`SampleRing` (see module docstring).
 
     All times are integer microseconds; ``settle_us``, ``fall_us``,
@@ -277,6 +322,7 @@ class PulseExtractor:
         self._sums = [0.0] * 5  # baseline regression sums of the window being extracted
         self._pm = [0.0] * 11   # in-pulse moments of the window being extracted
         self._pm_sat = False
+        self._ext = None        # the compiled core's extension, once bound
         if type(self).extract is PulseExtractor.extract:     # (a subclass with its own extract keeps it)
             #: the numeric core the extraction runs (``"compiled"`` or ``"python"``)
             self.core = "python"
@@ -299,6 +345,7 @@ class PulseExtractor:
                                    self._drift_limit, self._sigma, self._drift_nsigma)
         self.extract = self._extract_compiled
         self.core = "compiled"
+        self._ext = ext
 
     def _extract_compiled(self, start_us: int, end_us: int, amp_out, var_out) -> tuple[int, int, int]:
         """:meth:`extract` on the compiled kernel; a time that is no integer, or one so far out

@@ -19,13 +19,9 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol import MSG
-
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
 from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
-
-_WINDOW = MSG["PULSE_WINDOW"]
 
 
 def window_samples(cfg) -> int:
@@ -73,7 +69,12 @@ class SensorChannel:
         self.amp = np.zeros(3)             # the last closed window
         self.amp_var = np.zeros(3)
         self.used_times = np.zeros(self.extractor.max_samples, dtype=np.int64)
+        self.info = np.zeros(4, dtype=np.int64)    # the last closed window: n_used, n_base, first, last (us)
+        self.infov = memoryview(self.info)
         self.samples = 0
+        #: changes of what this channel's windows are read from (samples pushed, windows taken, burst
+        #: started or loaded): a caller that computed something from them may keep it while this holds
+        self.changes = 0
         self._Sv = memoryview(self.S)
         self._varv = memoryview(self.var)
         self._ampv = memoryview(self.amp)
@@ -83,11 +84,18 @@ class SensorChannel:
         self._flv = memoryview(self.flags)
         self.pmv = memoryview(self.pulse_mid)
         self._sigma_floor2 = (0.1 * cfg.pulse.mag_sigma_t) ** 2
+        if core.ext is not None:         # the solver weights on the compiled core (core/src/multi.c)
+            self._sigma_k = core.ext.sigma_from
+            self.sigma_from = self._sigma_from_compiled
+        if self.extractor.bind_column(self.S, self.var, self.flags, self.done, self.pulse_mid, self.amp,
+                                      self.amp_var, self.info):
+            self.close_window = self._close_window_compiled
 
     def push(self, msg, lsb: float) -> None:
         """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
         self.ring.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
         self.samples += 1
+        self.changes += 1
 
     def push_imu(self, msg) -> None:
         """An ``IMU_SAMPLE`` of this node: its rates for the extractor (kept only with a gyro ring)."""
@@ -103,10 +111,35 @@ class SensorChannel:
         self._flv[coil] = flags
         self._donev[coil] = True
         self.pmv[coil] = mid_us
+        self.changes += 1
+
+    def close_window(self, coil: int, start: int, end: int) -> int:
+        """Extract the window ``[start, end]`` into ``amp``, ``amp_var`` and, as coil ``coil``'s,
+        into the burst (:meth:`take_window`, its middle the mean of the first and the last used
+        sample times, or of ``start`` and ``end`` with none); ``info`` = n_used, n_base, first,
+        last. Returns the window flags. On the compiled core one call of ``ct_window_column``
+        (:meth:`_close_window_compiled`, bound at construction)."""
+        ex = self.extractor
+        flags, n_used, n_base = ex.extract(start, end, self.amp, self.amp_var)
+        first, last = ex.last_used_span() if n_used else (0, 0)
+        self.take_window(coil, flags, (first + last) // 2 if last else (start + end) // 2)
+        iv = self.infov
+        iv[0], iv[1], iv[2], iv[3] = n_used, n_base, first, last
+        return flags
+
+    def _close_window_compiled(self, coil: int, start: int, end: int) -> int:
+        """:meth:`close_window` in one call (``PulseExtractor.extract_column``); a time the compiled
+        extraction does not take goes to the reference."""
+        flags = self.extractor.extract_column(coil, start, end)
+        if flags is None:
+            return SensorChannel.close_window(self, coil, start, end)
+        self.changes += 1
+        return flags
 
     def new_burst(self) -> None:
         self.done.fill(False)
         self.flags.fill(0)
+        self.changes += 1
 
     def load_block(self, S, var, flags: int, mid_us: int) -> None:
         """A demodulated AC block as this channel's burst (``measure.ac_blocks``): amplitudes
@@ -117,6 +150,7 @@ class SensorChannel:
         self.flags.fill(flags)
         self.done.fill(True)
         self.pulse_mid.fill(mid_us)
+        self.changes += 1
 
     def burst_flags(self) -> int:
         f = 0
@@ -130,9 +164,15 @@ class SensorChannel:
         that found no noise is not trusted beyond a tenth of the sensor's)."""
         self.sigma_from(self._varv, self._sigv)
 
+    def _sigma_from_compiled(self, var, sig) -> None:
+        """:meth:`sigma_from` in one call of ``ct_sigma_from`` (the same square roots of the same
+        values: equal to the bit)."""
+        self._sigma_k(var, sig, self._sigma_floor2)
+
     def sigma_from(self, var, sig) -> None:
         """``sig = sqrt(max(var, floor))`` for variances ``var`` (3, n) of this channel's
-        windows (2-D memoryviews; ``sig`` may be ``var`` itself)."""
+        windows (2-D memoryviews; ``sig`` may be ``var`` itself). On the compiled core one call
+        of ``ct_sigma_from`` (:meth:`_sigma_from_compiled`, bound at construction)."""
         floor = self._sigma_floor2
         n = self.S.shape[1]
         for i in range(3):
@@ -155,24 +195,34 @@ class WindowCloser:
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
         """Every channel has the samples after the window, or it timed out."""
+        return self.ready_upto(start, end, now_us, 0) == len(self.channels)
+
+    def ready_upto(self, start: int, end: int, now_us: int, first: int) -> int:
+        """How many channels, in order, have every sample the window reads (all of them once it
+        timed out), asking from channel ``first`` on: a caller that keeps the count asks only
+        the channels not ready yet, since a window once ready stays ready (a ring takes only
+        later samples and is never emptied: ``SampleRing.push``)."""
+        chs = self.channels
+        n = len(chs)
         if now_us > end + self.fall_us + self.baseline_us + self.timeout_us:
-            return True
-        for ch in self.channels:
-            if not ch.extractor.ready(start, end):
-                return False
-        return True
+            return n
+        i = first
+        while i < n:
+            if not chs[i].extractor.ready(start, end):
+                return i
+            i += 1
+        return n
 
     def close_one(self, ch: SensorChannel, coil: int, pulse_id: int, start: int, end: int) -> int:
         """Extract coil ``coil``'s amplitude on channel ``ch`` into ``ch.amp``,
         ``ch.amp_var`` and column ``coil`` of the burst; send its PULSE_WINDOW;
         return the window flags."""
-        ex = ch.extractor
-        flags, n_used, n_base = ex.extract(start, end, ch.amp, ch.amp_var)
+        flags = ch.close_window(coil, start, end)
         self.closed += 1
         if flags:
             self.flagged += 1
-        first, last = ex.last_used_span() if n_used else (0, 0)
-        ch.take_window(coil, flags, (first + last) // 2 if last else (start + end) // 2)
-        self.tx.send(_WINDOW(ch.node, coil, pulse_id, first, last, min(n_used, 255), min(n_base, 255),
-                             flags & 0xFF))
+        iv = ch.infov
+        n_used, n_base = iv[0], iv[1]
+        self.tx.pulse_window(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255,
+                             n_base if n_base < 255 else 255, flags & 0xFF)
         return flags

@@ -155,6 +155,10 @@ class MagneticTracker:
                              for ch, tp in ((ch, self.poses[ch.node]) for ch in self.channels))
         self._ahead_k = -1               # the channel whose burst the solver is solving ahead; -1: none
         self._ahead_seen = None          # the burst every channel has had its turn to be solved ahead for
+        # per channel, the SensorChannel.changes at which its burst was last found not ready to be
+        # solved ahead (for the window _idle_window): nothing that test reads has changed while it holds
+        self._idle = [-1] * len(self.channels)
+        self._idle_window = (None, None)
         self.ahead_solves = 0            # bursts solved ahead
         self.ahead_used = 0              # of which the burst's solve (the same inputs)
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
@@ -255,6 +259,7 @@ class MagneticTracker:
             return                       # no room to begin beside the tick's other work
         j = sched.n - 1
         start, end = int(sched.start[j]), int(sched.end[j])
+        idle = self._idle_for(start, end)
         seen = True
         for k, ch in enumerate(self.channels):
             ah = self._ahead[k]
@@ -264,7 +269,11 @@ class MagneticTracker:
                 ah.burst, ah.done = burst, False
                 continue
             seen = False
+            c = ch.changes
+            if idle[k] == c:
+                continue                 # not ready when last asked, and nothing it reads changed since
             if ch.done[j] or not _closed_before(ch.done, j) or not ch.extractor.expect_complete(start, end):
+                idle[k] = c
                 continue
             ah.burst = burst
             ah.done = False
@@ -275,6 +284,19 @@ class MagneticTracker:
             return
         if seen:
             self._ahead_seen = burst
+
+    def _idle_for(self, start: int, end: int) -> list:
+        """The channels' :attr:`_idle` marks for the last window ``[start, end]``, forgotten when
+        the window is another. A channel's readiness to be solved ahead reads only its windows'
+        closed flags and its samples (``PulseExtractor.expect_complete``), each change of which
+        counts in its ``changes``: so the idle ticks ask only the channels that changed, and a
+        tick's work scales with the samples that came in, not with the sensors."""
+        if self._idle_window != (start, end):
+            self._idle_window = (start, end)
+            idle = self._idle
+            for k in range(len(idle)):
+                idle[k] = -1
+        return self._idle
 
     def _ahead_pending(self) -> bool:
         """A solve ahead runs, or sensors of the open burst have not had their turn yet."""

@@ -1,0 +1,50 @@
+/*
+ * The per-sensor work of many sensors sharing one tick: the compiled form of what the window
+ * closer (coiltrack.firmware.measure.windows) does for each of a burst's windows on each sensor
+ * channel.  Same names (ct_ prefix), same operations in the same order as the Python reference.
+ */
+#ifndef CT_MULTI_H
+#define CT_MULTI_H
+
+#include <stdint.h>
+
+/* ------------------------------------------------------------ PULSE_WINDOW
+ * coiltrack.firmware.transmit.Transmitter.pulse_window with protocol.framing.encode_frame: one
+ * PULSE_WINDOW frame (payload "<BBHQQBBB": node, coil, pulse_id, first_us, last_us, n_used, n_base,
+ * flags), COBS-encoded and delimited, into out (at least CT_WINDOW_FRAME_MAX bytes); returns its
+ * length, or -1 for a field out of its range (struct.pack's refusal).  The schema constants are
+ * checked against protocol.schema at start-up (transmit.py). */
+enum { CT_WINDOW_ID = 0x31, CT_WINDOW_PAYLOAD = 23, CT_WINDOW_CRC_EXTRA = 0xB7,
+       CT_WINDOW_FRAME_RAW = 5 + 23 + 2, CT_WINDOW_FRAME_MAX = 5 + 23 + 2 + 2 + 1 };
+int ct_window_frame(uint8_t *out, int seq, int src, int64_t node, int64_t coil, int64_t pulse_id, uint64_t first_us,
+                    uint64_t last_us, int64_t n_used, int64_t n_base, int64_t flags);
+
+/* ------------------------------------------------------------ solver weights
+ * measure.windows.SensorChannel.sigma_from: sig[k] = sqrt(max(var[k], floor)) over the n items of a
+ * channel's (3, coils) variances (a NaN variance gives the floor, as the Python's comparison does);
+ * sig may be var. */
+void ct_sigma_from(int64_t n, const double *var, double *sig, double floor);
+
+/* ------------------------------------------------------------ window column
+ * measure.windows.SensorChannel.close_window: PulseExtractor.extract (ct_pulse_extract, include/
+ * ct_window.h) of the window [start, end] into the extractor's res (amp 3, var 3) and ires (flags,
+ * n_pulse, n_base, n_rec), then, as the Python does after it, the amplitude into the channel's amp
+ * and amp_var and into column coil of its burst (S, var: 3 x n row-major; flags, done, pulse_mid),
+ * its middle the mean of the first and the last used sample times (floored, as Python's //) or,
+ * with none, of start and end; info = n_used, n_base, first, last.  Returns the window flags. */
+struct ct_sample_ring;
+struct ct_pulse;
+struct ct_window_column {
+    int64_t n;                      /* coils: the burst's columns */
+    double *res;                    /* the extractor's result buffers (ct_pulse_extract's amp, var) */
+    int64_t *ires;                  /* ... and its out[4] */
+    double *amp, *amp_var;          /* the channel's last window (3 each) */
+    double *S, *V;                  /* the channel's burst amplitudes and variances (3 x n) */
+    int64_t *flags, *pulse_mid;     /* (n) */
+    uint8_t *done;                  /* (n) */
+    int64_t *info;                  /* (4): n_used, n_base, first, last */
+};
+int64_t ct_window_column(const struct ct_window_column *c, const struct ct_pulse *x, const struct ct_sample_ring *r,
+                         int64_t start, int64_t end, int64_t coil);
+
+#endif

@@ -1,0 +1,337 @@
+/*
+ * CPython glue of the many-sensor kernels (src/multi.c): window_frame (one PULSE_WINDOW frame, as
+ * Transmitter.pulse_window sends it), sigma_from (SensorChannel.sigma_from) and the type
+ * WindowColumn (SensorChannel.close_window, bound once at start-up to the channel's and its
+ * extractor's buffers).  METH_FASTCALL; they read their arguments in place and create no Python
+ * object but window_frame's bytes and the flags returned.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+/* an integer argument into *x; 0 (the error cleared) for anything struct.pack would refuse */
+static int mul_int64(PyObject *o, int64_t *x)
+{
+    int overflow = 0;
+    long long v = PyLong_AsLongLongAndOverflow(o, &overflow);
+    if ((v == -1 && PyErr_Occurred()) || overflow) {
+        PyErr_Clear();
+        return 0;
+    }
+    *x = (int64_t)v;
+    return 1;
+}
+
+/* an unsigned 64-bit argument ('Q') into *x; 0 (the error cleared) when struct.pack would refuse it */
+static int mul_uint64(PyObject *o, uint64_t *x)
+{
+    unsigned long long v;
+    PyObject *i = PyLong_Check(o) ? (Py_INCREF(o), o) : PyNumber_Index(o);
+    if (i == NULL) {
+        PyErr_Clear();
+        return 0;
+    }
+    v = PyLong_AsUnsignedLongLong(i);
+    Py_DECREF(i);
+    if (v == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        return 0;
+    }
+    *x = (uint64_t)v;
+    return 1;
+}
+
+/* window_frame(seq, src, node, coil, pulse_id, first_us, last_us, n_used, n_base, flags) -> bytes or
+ * None: one PULSE_WINDOW frame as encode_frame makes it (None: a value the wire format refuses) */
+static PyObject *mul_window_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_WINDOW_FRAME_MAX];
+    int64_t seq, src, f[8];
+    uint64_t first, last;
+    int k;
+    static const int at[6] = {2, 3, 4, 7, 8, 9};
+    (void)mod;
+    if (nargs != 10) {
+        PyErr_Format(PyExc_TypeError, "window_frame() takes 10 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    if (!mul_int64(args[0], &seq) || !mul_int64(args[1], &src)) {
+        PyErr_SetString(PyExc_TypeError, "window_frame: seq and src must be integers");
+        return NULL;
+    }
+    for (k = 0; k < 6; ++k)
+        if (!mul_int64(args[at[k]], &f[k]))
+            Py_RETURN_NONE;
+    if (!mul_uint64(args[5], &first) || !mul_uint64(args[6], &last))
+        Py_RETURN_NONE;
+    k = ct_window_frame(out, (int)(seq & 0xFF), (int)(src & 0xFF), f[0], f[1], f[2], first, last, f[3], f[4], f[5]);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
+/* a C-contiguous float64 buffer, or -1 with TypeError naming `what` */
+static int mul_doubles(PyObject *obj, int writable, Py_buffer *v, const char *what)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous float64 buffer", what, writable ? "writable " : "");
+        return -1;
+    }
+    f = v->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8) {
+        PyBuffer_Release(v);
+        PyErr_Format(PyExc_TypeError, "%s: needs float64 items", what);
+        return -1;
+    }
+    return 0;
+}
+
+/* sigma_from(var, sig, floor): sig = sqrt(max(var, floor)) item by item (sig may be var) */
+static PyObject *mul_sigma_from(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vv, vs;
+    double floor;
+    (void)mod;
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "sigma_from() takes 3 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    floor = PyFloat_AsDouble(args[2]);
+    if (floor == -1.0 && PyErr_Occurred())
+        return NULL;
+    if (mul_doubles(args[0], 0, &vv, "var") < 0)
+        return NULL;
+    if (mul_doubles(args[1], 1, &vs, "sig") < 0) {
+        PyBuffer_Release(&vv);
+        return NULL;
+    }
+    if (vv.len != vs.len) {
+        PyBuffer_Release(&vv);
+        PyBuffer_Release(&vs);
+        PyErr_SetString(PyExc_ValueError, "sigma_from: var and sig differ in size");
+        return NULL;
+    }
+    ct_sigma_from((int64_t)(vv.len / 8), (const double *)vv.buf, (double *)vs.buf, floor);
+    PyBuffer_Release(&vv);
+    PyBuffer_Release(&vs);
+    Py_RETURN_NONE;
+}
+
+/* ------------------------------------------------------------- WindowColumn */
+/* a C-contiguous buffer of at least n items of `size` bytes whose format is one of `fmts`, or -1
+ * with TypeError naming `what` */
+static int mul_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t size, const char *fmts, int writable, Py_buffer *v,
+                      const char *what)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
+        return -1;
+    }
+    f = v->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || v->itemsize != size || f[0] == '\0' || f[1] != '\0' || strchr(fmts, f[0]) == NULL ||
+        v->len < n * size) {
+        PyBuffer_Release(v);
+        PyErr_Format(PyExc_TypeError, "%s: needs %zd items of %zd bytes (format %s)", what, n, size, fmts);
+        return -1;
+    }
+    return 0;
+}
+
+#define WC_NBUF 15
+typedef struct {
+    PyObject_HEAD
+    struct ct_pulse x;
+    struct ct_sample_ring r;
+    struct ct_window_column c;
+    Py_buffer views[WC_NBUF];
+    int bound;
+} WindowColumnObject;
+
+static void WindowColumn_dealloc(WindowColumnObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < WC_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int WindowColumn_init(WindowColumnObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"t", "b", "flags", "used_t", "emp_var", "res", "ires", "S", "var", "wflags", "done",
+                             "pulse_mid", "amp", "amp_var", "info", "settle_us", "fall_us", "baseline_us",
+                             "guard_us", "min_pulse", "min_base", "max_gap_us", "max_samples", "drift_limit",
+                             "sigma", "drift_nsigma", NULL};
+    static const char *fmts[WC_NBUF] = {"qlL", "d", "B", "ql", "d", "d", "ql", "d", "d", "ql", "?", "ql", "d", "d",
+                                        "ql"};
+    static const int size[WC_NBUF] = {8, 8, 1, 8, 8, 8, 8, 8, 8, 8, 1, 8, 8, 8, 8};
+    static const int writable[WC_NBUF] = {0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1};
+    PyObject *o[WC_NBUF];
+    long long settle, fall, base, guard, minp, minb, gap, maxs;
+    double drift, sigma, nsig;
+    Py_ssize_t cap = 0, ncoil = 0, len;
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOOOOOOOOOLLLLLLLLddd", kwlist, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14],
+                                     &settle, &fall, &base, &guard, &minp, &minb, &gap, &maxs, &drift, &sigma, &nsig))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "WindowColumn: already bound");
+        return -1;
+    }
+    if (maxs < 1) {
+        PyErr_SetString(PyExc_ValueError, "WindowColumn: max_samples must be >= 1");
+        return -1;
+    }
+    for (i = 0; i < WC_NBUF; ++i) {
+        /* t sets the ring's capacity, wflags the coils; the rest is checked against them */
+        switch (i) {
+        case 0: len = 2; break;
+        case 1: len = 3 * cap; break;
+        case 2: len = cap; break;
+        case 3: len = (Py_ssize_t)maxs; break;
+        case 4: case 12: case 13: len = 3; break;
+        case 5: len = 6; break;
+        case 6: case 14: len = 4; break;
+        case 9: len = 1; break;
+        case 7: case 8: len = 3 * ncoil; break;
+        default: len = ncoil; break;
+        }
+        if (i == 7) {      /* the coils from wflags, bound out of order: S and var are 3 x n */
+            Py_buffer fv;
+            if (mul_buffer(o[9], 1, 8, fmts[9], 1, &fv, kwlist[9]) < 0) {
+                while (--i >= 0)
+                    PyBuffer_Release(&self->views[i]);
+                return -1;
+            }
+            ncoil = fv.len / 8;
+            PyBuffer_Release(&fv);
+            len = 3 * ncoil;
+        }
+        if (mul_buffer(o[i], len, size[i], fmts[i], writable[i], &self->views[i], kwlist[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        if (i == 0)
+            cap = self->views[0].len / 8;
+    }
+    self->r.t = (const int64_t *)self->views[0].buf;
+    self->r.b = (const double *)self->views[1].buf;
+    self->r.flags = (const uint8_t *)self->views[2].buf;
+    self->r.cap = (int64_t)cap;
+    self->r.head = 0;
+    self->r.count = 0;
+    self->x.used_t = (int64_t *)self->views[3].buf;
+    self->x.emp_var = (double *)self->views[4].buf;
+    self->x.settle_us = settle;
+    self->x.fall_us = fall;
+    self->x.baseline_us = base;
+    self->x.guard_us = guard;
+    self->x.min_pulse = minp;
+    self->x.min_base = minb;
+    self->x.max_gap_us = gap;
+    self->x.max_samples = maxs;
+    self->x.drift_limit = drift;
+    self->x.sigma = sigma;
+    self->x.drift_nsigma = nsig;
+    self->c.n = (int64_t)ncoil;
+    self->c.res = (double *)self->views[5].buf;
+    self->c.ires = (int64_t *)self->views[6].buf;
+    self->c.S = (double *)self->views[7].buf;
+    self->c.V = (double *)self->views[8].buf;
+    self->c.flags = (int64_t *)self->views[9].buf;
+    self->c.done = (uint8_t *)self->views[10].buf;
+    self->c.pulse_mid = (int64_t *)self->views[11].buf;
+    self->c.amp = (double *)self->views[12].buf;
+    self->c.amp_var = (double *)self->views[13].buf;
+    self->c.info = (int64_t *)self->views[14].buf;
+    self->bound = 1;
+    return 0;
+}
+
+/* close(start_us, end_us, head, count, coil) -> flags */
+static PyObject *WindowColumn_close(WindowColumnObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t v[5];
+    int k;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "WindowColumn: not bound");
+        return NULL;
+    }
+    if (nargs != 5) {
+        PyErr_Format(PyExc_TypeError, "close() takes 5 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    for (k = 0; k < 5; ++k) {
+        long long x = PyLong_AsLongLong(args[k]);
+        if (x == -1 && PyErr_Occurred())
+            return NULL;
+        v[k] = (int64_t)x;
+    }
+    if (v[2] < 0 || v[2] >= self->r.cap || v[3] < 0 || v[3] > self->r.cap) {
+        PyErr_SetString(PyExc_ValueError, "close: head or count outside the ring");
+        return NULL;
+    }
+    if (v[4] < 0 || v[4] >= self->c.n) {
+        PyErr_SetString(PyExc_ValueError, "close: coil outside the burst");
+        return NULL;
+    }
+    self->r.head = v[2];
+    self->r.count = v[3];
+    return PyLong_FromLongLong(ct_window_column(&self->c, &self->x, &self->r, v[0], v[1], v[4]));
+}
+
+static PyMethodDef WindowColumn_methods[] = {
+    {"close", (PyCFunction)(void (*)(void))WindowColumn_close, METH_FASTCALL,
+     "close(start_us, end_us, head, count, coil) -> flags: SensorChannel.close_window over the bound ring (its "
+     "head and count): the extraction into res, ires, the amplitude into amp, amp_var and column coil of the "
+     "burst, (n_used, n_base, first, last) into info"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject WindowColumnType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.WindowColumn",
+    .tp_basicsize = sizeof(WindowColumnObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "WindowColumn(t, b, flags, used_t, emp_var, res, ires, S, var, wflags, done, pulse_mid, amp, amp_var, "
+              "info, settle_us, fall_us, baseline_us, guard_us, min_pulse, min_base, max_gap_us, max_samples, "
+              "drift_limit, sigma, drift_nsigma): a pulse extractor bound to its ring, its scratch and a sensor "
+              "channel's burst, closing one window into its column per call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)WindowColumn_init,
+    .tp_dealloc = (destructor)WindowColumn_dealloc,
+    .tp_methods = WindowColumn_methods,
+};
+
+static PyMethodDef multi_functions[] = {
+    {"window_frame", (PyCFunction)(void (*)(void))mul_window_frame, METH_FASTCALL,
+     "window_frame(seq, src, node, coil, pulse_id, first_us, last_us, n_used, n_base, flags) -> bytes or None: "
+     "one PULSE_WINDOW frame as encode_frame makes it (None: a value the wire format refuses)"},
+    {"sigma_from", (PyCFunction)(void (*)(void))mul_sigma_from, METH_FASTCALL,
+     "sigma_from(var, sig, floor): sig = sqrt(max(var, floor)) item by item (SensorChannel.sigma_from)"},
+    {NULL, NULL, 0, NULL}};
+
+int ct_register_multi(PyObject *m)
+{
+    if (PyModule_AddFunctions(m, multi_functions) < 0 || PyType_Ready(&WindowColumnType) < 0)
+        return -1;
+    Py_INCREF(&WindowColumnType);
+    if (PyModule_AddObject(m, "WindowColumn", (PyObject *)&WindowColumnType) < 0) {
+        Py_DECREF(&WindowColumnType);
+        return -1;
+    }
+    if (PyModule_AddIntConstant(m, "WINDOW_ID", CT_WINDOW_ID) < 0 ||
+        PyModule_AddIntConstant(m, "WINDOW_PAYLOAD", CT_WINDOW_PAYLOAD) < 0 ||
+        PyModule_AddIntConstant(m, "WINDOW_CRC_EXTRA", CT_WINDOW_CRC_EXTRA) < 0)
+        return -1;
+    return 0;
+}
