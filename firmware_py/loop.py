@@ -119,8 +119,13 @@ class Firmware:
 
     def tick(self, now_us: int) -> None:
         self._begin(now_us)
-        for stage in self.stages:
-            stage(now_us)
+        receive, measure, track, actuate, supervise, transmit = self.stages
+        receive(now_us)
+        measure(now_us)
+        track(now_us)
+        actuate(now_us)
+        supervise(now_us)
+        transmit(now_us)
 
     def tick_timed(self, now_us: int, out_ns) -> None:
         """:meth:`tick`, writing each stage's duration (ns, :data:`PHASES` order) into ``out_ns``."""

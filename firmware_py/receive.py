@@ -212,9 +212,9 @@ class Receiver:
         self._delta = self._delta_compiled
         self.core = "compiled"
 
-    def _take(self) -> bytes:
-        """The bytes of at most ``frames_per_tick`` frames: from the queue, then the port."""
-        data = self.port.read()
+    def _take(self, data) -> bytes:
+        """The bytes of at most ``frames_per_tick`` frames: from the queue, then ``data`` (the
+        port's read)."""
         k = self.frames_per_tick
         q = self._queue
         if not k:
@@ -256,7 +256,10 @@ class Receiver:
         self.deferred += q.count(b"\x00")
 
     def step(self, now_us: int) -> None:
-        data = self._take()
+        data = self.port.read()
+        if not data and not self._queue:         # nothing received, nothing queued
+            return
+        data = self._take(data)
         if not data:
             return
         for msg in self.decoder.feed(data):
@@ -267,7 +270,10 @@ class Receiver:
         bound at construction): the same messages routed in the same order, the sample messages
         (MAG_PACKED already restored, MAG_SAMPLE, IMU_SAMPLE with its clipped-axis check) read from
         its rows into the stage's records, the others unpacked by protocol.codec."""
-        data = self._take()
+        data = self.port.read()
+        if not data and not self._queue:         # nothing received, nothing queued
+            return
+        data = self._take(data)
         if not data:
             return
         dec = self.decoder

@@ -108,6 +108,10 @@ class Health:
         self.timeout_us = [hcfg.sensor_timeout_us] * (n - 1) + [hcfg.driver_timeout_us]
         self.last_heard = [boot_us] * n
         self.lost = [False] * n
+        # no node can be lost before this time (us): the earliest ``last_heard + timeout_us`` of the
+        # nodes not lost, or earlier (a sign of life only moves a node's deadline later): until then
+        # :meth:`step` returns at once
+        self._check_us = boot_us + min(self.timeout_us)
         self.lost_events = 0
         self.back_events = 0
         self._back = ()
@@ -173,6 +177,8 @@ class Health:
         self._ev_n += 1
 
     def flush_events(self, emit) -> None:
+        if not self._ev_n:
+            return
         for i in range(self._ev_n):
             emit(self._ev_code[i], self._ev_detail[i])
         self._ev_n = 0
@@ -183,6 +189,9 @@ class Health:
         if i < 0:
             return
         self.last_heard[i] = now_us
+        due = now_us + self.timeout_us[i]
+        if due < self._check_us:            # (a clock that went back, a node back: an earlier check)
+            self._check_us = due
         if self.lost[i]:
             self.lost[i] = False
             self.back_events += 1
@@ -202,9 +211,20 @@ class Health:
         return out
 
     def step(self, now_us: int) -> None:
+        """Mark the nodes silent past their timeout lost; nothing to look at before ``_check_us``."""
+        if now_us <= self._check_us:
+            return
+        check = _OPEN
+        lost, heard, timeout = self.lost, self.last_heard, self.timeout_us
         for i in range(len(self.ids)):
-            if not self.lost[i] and now_us - self.last_heard[i] > self.timeout_us[i]:
+            if lost[i]:
+                continue
+            due = heard[i] + timeout[i]
+            if now_us > due:
                 self._set_lost(i)
+            elif due < check:
+                check = due
+        self._check_us = check
 
     def _set_lost(self, i: int) -> None:
         self.lost[i] = True
