@@ -408,17 +408,19 @@ class SensorInertial:
         first, so ``Phi f_source`` is the one of the same instant: the source's steps and the
         sensor's arrive an interval apart."""
         ring, s6 = self.imu, self._s6
+        if not len(ring):
+            return
         push = self.fusion.push_imu
         ori_step = self.ori.step
         b = self.ori.f.bias_v
         wl = self.w_last
         phi = self._phiv
         fr = self._frv
-        hold = self.source.hold
+        hold = None if self.source.fixed else self.source.hold      # (a fixed source never holds)
         tv = ring.tv
         while max_steps > 0 and len(ring):
             max_steps -= 1
-            if hold(tv[ring.slot(0)], now_us, wait_us):
+            if hold is not None and hold(tv[ring.slot(0)], now_us, wait_us):
                 return
             t = ring.pop_sample(s6)
             ax, ay, az, wx, wy, wz = s6
