@@ -289,13 +289,17 @@ class Receiver:
                     r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
                     if kind == _RXK_MAG_PACKED:
                         self.packed_mag += 1
-                    self._route(r, now_us)
+                    self.supervisor.on_message(r, now_us)
+                    self._mag_in(r)
                 elif kind == _RXK_IMU:
                     r = self._imus
                     r.node, r.t_us, r.ax, r.ay, r.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
                     r.gx, r.gy, r.gz = q[b + 6], q[b + 7], q[b + 8]
                     self.supervisor.on_message(r, now_us)
-                    self._imu_in(r, q[b + _RXR_CLIP], now_us)
+                    if q[b + _RXR_CLIP]:
+                        self._imu_in(r, True, now_us)
+                    else:
+                        self._on_imu(r, now_us)
                 else:
                     self._route(dec.raw_message(b // w), now_us)
 
@@ -312,14 +316,7 @@ class Receiver:
             return
         self.supervisor.on_message(msg, now_us)
         if mid == _MAG:
-            c = self.mag_cal.get(msg.node) if self.mag_cal else None
-            if c is not None:
-                msg = self._correct_mag(msg, c)
-            ch = self.channels.get(msg.node)
-            if ch is not None:
-                ch.push(msg, MAG_LSB_T)
-            else:
-                self.tracker.on_mag(msg, MAG_LSB_T)
+            self._mag_in(msg)
         elif mid == _IMU:
             self._imu_in(msg, self._clipped(msg), now_us)
         elif mid == _COIL_STATUS:
@@ -329,6 +326,18 @@ class Receiver:
             self._on_heartbeat(msg)
         elif self.other is not None:
             self.other(msg, now_us)
+
+    def _mag_in(self, msg) -> None:
+        """A magnetometer sample (the supervisor has seen it): calibrated, to its sensor's
+        channel, or to the tracker (a node that is not a tracked sensor: the source's module)."""
+        c = self.mag_cal.get(msg.node) if self.mag_cal else None
+        if c is not None:
+            msg = self._correct_mag(msg, c)
+        ch = self.channels.get(msg.node)
+        if ch is not None:
+            ch.push(msg, MAG_LSB_T)
+        else:
+            self.tracker.on_mag(msg, MAG_LSB_T)
 
     def _imu_in(self, msg, clipped, now_us: int) -> None:
         """A received IMU sample: ``clipped`` (an axis at the clip code) is the sensor's full
