@@ -111,7 +111,7 @@ class Health:
         # no node can be lost before this time (us): the earliest ``last_heard + timeout_us`` of the
         # nodes not lost, or earlier (a sign of life only moves a node's deadline later): until then
         # :meth:`step` returns at once
-        self._check_us = boot_us + min(self.timeout_us)
+        self.check_us = boot_us + min(self.timeout_us)
         self.lost_events = 0
         self.back_events = 0
         self._back = ()
@@ -190,8 +190,8 @@ class Health:
             return
         self.last_heard[i] = now_us
         due = now_us + self.timeout_us[i]
-        if due < self._check_us:            # (a clock that went back, a node back: an earlier check)
-            self._check_us = due
+        if due < self.check_us:            # (a clock that went back, a node back: an earlier check)
+            self.check_us = due
         if self.lost[i]:
             self.lost[i] = False
             self.back_events += 1
@@ -212,7 +212,7 @@ class Health:
 
     def step(self, now_us: int) -> None:
         """Mark the nodes silent past their timeout lost; nothing to look at before ``_check_us``."""
-        if now_us <= self._check_us:
+        if now_us <= self.check_us:
             return
         check = _OPEN
         lost, heard, timeout = self.lost, self.last_heard, self.timeout_us
@@ -224,7 +224,7 @@ class Health:
                 self._set_lost(i)
             elif due < check:
                 check = due
-        self._check_us = check
+        self.check_us = check
 
     def _set_lost(self, i: int) -> None:
         self.lost[i] = True

@@ -143,8 +143,11 @@ class Supervisor:
             self.timesync.kick()
             for node in h.back_nodes():
                 self.timesync.forget(node)          # it re-acquires: its first replies are no step
-        self.timesync.step(now_us, self.tx.send)
-        h.step(now_us)
+        ts = self.timesync
+        if now_us >= ts.due_us:                     # (before it, nothing to broadcast)
+            ts.step(now_us, self.tx.send)
+        if now_us > h.check_us:                     # (until then no node can be lost)
+            h.step(now_us)
         h.flush_events(self.tx.event)
 
     def _new_burst(self, pc: int, now_us: int) -> None:

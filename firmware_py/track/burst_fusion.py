@@ -348,6 +348,7 @@ class SensorInertial:
                                    output_capacity=cfg.fusion.pose_output_capacity, fixed_source=source.fixed,
                                    core=core)
         self._take = self.fusion.output.take_report     # the next queued fused pose into a record
+        self._recovery = self.fusion.recovery           # its restarts (read: the events on changes)
         self.source = source
         self._phi = source.phi
         self._phiv = memoryview(self._phi)
@@ -445,12 +446,12 @@ class SensorInertial:
         """Send the fused poses the fusion filter queued (``POSE_FUSED``, with ``quality``, that
         of the last magnetic solution), their status from the filter's bits; the recovery and
         dead-reckoning events on changes."""
-        fus = self.fusion
-        if fus.recoveries != self.recoveries_seen:
-            kept = fus.biases_kept != self.kept_seen
-            self.recoveries_seen = fus.recoveries
-            self.kept_seen = fus.biases_kept
-            tx.event(EVT_TRACK_REINIT, node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
+        rec = self._recovery
+        if rec.recoveries != self.recoveries_seen:
+            kept = rec.biases_kept != self.kept_seen
+            self.recoveries_seen = rec.recoveries
+            self.kept_seen = rec.biases_kept
+            tx.event(EVT_TRACK_REINIT, node | (rec.recovery_reason << 8) | ((1 << 12) if kept else 0))
         r = self._report
         take = self._take
         st = take(r)                           # time, position, quaternion, variances; -1: none
