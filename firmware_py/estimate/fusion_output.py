@@ -10,11 +10,16 @@ All buffers are created in ``__init__``; nothing here allocates after.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import HIST_FIELDS, HIST_P, HIST_R, InsState
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.firmware.ring import Ring, field_slices
 from coiltrack.firmware.rotation import quat_from_elements
+
+if TYPE_CHECKING:
+    from coiltrack.firmware.transmit import PoseReport
 
 #: named rows of an output entry (the POSE message): p_M, quaternion (w, x, y, z),
 #: position variances (source frame), orientation variances (sensor frame), status bits
@@ -183,7 +188,7 @@ class PoseOutput:
         """:meth:`into_report` on the compiled core (``ext.FusOutput.report``)."""
         return self._ck.report(k, r.p, r.q, r.var)
 
-    def take_report(self, r) -> int:
+    def take_report(self, r: PoseReport) -> int:
         """The oldest queued pose into the POSE record ``r`` (``transmit.PoseReport``: its time
         and :meth:`into_report`'s fields) and off the queue (:meth:`pop`, :meth:`time_us`,
         :meth:`into_report` and :meth:`release` in one call); its ``OUT_*`` status bits, or -1
@@ -194,7 +199,7 @@ class PoseOutput:
         r.t_us = self._otv[k]
         return self.into_report(k, r)
 
-    def _take_report_compiled(self, r) -> int:
+    def _take_report_compiled(self, r: PoseReport) -> int:
         """:meth:`take_report` on the compiled core (``ext.FusOutput.report``)."""
         k = self.out.pop()
         if k < 0:
