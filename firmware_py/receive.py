@@ -222,7 +222,9 @@ class Receiver:
         if not q:
             if not data:
                 return b""
-            # the common case: no backlog and at most k frames arrived
+            # the common case: no backlog and fewer than k frames arrived (one count, in C)
+            if data.count(b"\x00") < k:
+                return data
             end = -1
             for _ in range(k):
                 end = data.find(b"\x00", end + 1)
@@ -271,9 +273,8 @@ class Receiver:
         (MAG_PACKED already restored, MAG_SAMPLE, IMU_SAMPLE with its clipped-axis check) read from
         its rows into the stage's records, the others unpacked by protocol.codec."""
         data = self.port.read()
-        if not data and not self._queue:         # nothing received, nothing queued
-            return
-        data = self._take(data)
+        if self._queue or (data and self.frames_per_tick and data.count(b"\x00") >= self.frames_per_tick):
+            data = self._take(data)              # a backlog, or a tick's worth of frames or more
         if not data:
             return
         dec = self.decoder
