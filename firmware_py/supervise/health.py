@@ -211,7 +211,7 @@ class Health:
         return out
 
     def step(self, now_us: int) -> None:
-        """Mark the nodes silent past their timeout lost; nothing to look at before ``_check_us``."""
+        """Mark the nodes silent past their timeout lost; nothing to look at until ``check_us``."""
         if now_us <= self.check_us:
             return
         check = _OPEN
