@@ -151,7 +151,7 @@ class Health:
         # pending events (code, detail), a fixed ring
         self._ev_code = [0] * _EVENTS
         self._ev_detail = [0] * _EVENTS
-        self._ev_n = 0
+        self.events_queued = 0             # events waiting for flush_events (read by the supervisor)
         self.events_dropped = 0
         self.kick_sync = False
 
@@ -169,19 +169,19 @@ class Health:
 
     # ------------------------------------------------------------ events
     def _event(self, code: int, detail: int) -> None:
-        if self._ev_n >= _EVENTS:
+        if self.events_queued >= _EVENTS:
             self.events_dropped += 1
             return
-        self._ev_code[self._ev_n] = code
-        self._ev_detail[self._ev_n] = detail
-        self._ev_n += 1
+        self._ev_code[self.events_queued] = code
+        self._ev_detail[self.events_queued] = detail
+        self.events_queued += 1
 
     def flush_events(self, emit) -> None:
-        if not self._ev_n:
+        if not self.events_queued:
             return
-        for i in range(self._ev_n):
+        for i in range(self.events_queued):
             emit(self._ev_code[i], self._ev_detail[i])
-        self._ev_n = 0
+        self.events_queued = 0
 
     # ------------------------------------------------------------ liveness
     def heard(self, node: int, now_us: int) -> None:

@@ -148,7 +148,8 @@ class Supervisor:
             ts.step(now_us, self.tx.send)
         if now_us > h.check_us:                     # (until then no node can be lost)
             h.step(now_us)
-        h.flush_events(self.tx.event)
+        if h.events_queued:
+            h.flush_events(self.tx.event)
 
     def _new_burst(self, pc: int, now_us: int) -> None:
         """The burst opened at ``pc``: its coil-status check, the time syncs around it and the
