@@ -119,19 +119,34 @@ class Firmware:
 
     def tick(self, now_us: int) -> None:
         self._begin(now_us)
-        for stage in self.stages:
-            stage(now_us)
+        receive, measure, track, actuate, supervise, transmit = self.stages
+        receive(now_us)
+        measure(now_us)
+        track(now_us)
+        actuate(now_us)
+        supervise(now_us)
+        transmit(now_us)
 
     def tick_timed(self, now_us: int, out_ns) -> None:
         """:meth:`tick`, writing each stage's duration (ns, :data:`PHASES` order) into ``out_ns``."""
         self._begin(now_us)
         clk = time.perf_counter_ns
-        k = 0
-        for stage in self.stages:
-            t0 = clk()
-            stage(now_us)
-            out_ns[k] = clk() - t0
-            k += 1
+        receive, measure, track, actuate, supervise, transmit = self.stages
+        t0 = clk()
+        receive(now_us)
+        t1 = clk()
+        measure(now_us)
+        t2 = clk()
+        track(now_us)
+        t3 = clk()
+        actuate(now_us)
+        t4 = clk()
+        supervise(now_us)
+        t5 = clk()
+        transmit(now_us)
+        t6 = clk()
+        out_ns[0], out_ns[1], out_ns[2] = t1 - t0, t2 - t1, t3 - t2
+        out_ns[3], out_ns[4], out_ns[5] = t4 - t3, t5 - t4, t6 - t5
 
     # --------------------------------------------------------------- status
     @property

@@ -212,9 +212,9 @@ class Receiver:
         self._delta = self._delta_compiled
         self.core = "compiled"
 
-    def _take(self) -> bytes:
-        """The bytes of at most ``frames_per_tick`` frames: from the queue, then the port."""
-        data = self.port.read()
+    def _take(self, data) -> bytes:
+        """The bytes of at most ``frames_per_tick`` frames: from the queue, then ``data`` (the
+        port's read)."""
         k = self.frames_per_tick
         q = self._queue
         if not k:
@@ -222,7 +222,9 @@ class Receiver:
         if not q:
             if not data:
                 return b""
-            # the common case: no backlog and at most k frames arrived
+            # the common case: no backlog and fewer than k frames arrived (one count, in C)
+            if data.count(b"\x00") < k:
+                return data
             end = -1
             for _ in range(k):
                 end = data.find(b"\x00", end + 1)
@@ -256,7 +258,10 @@ class Receiver:
         self.deferred += q.count(b"\x00")
 
     def step(self, now_us: int) -> None:
-        data = self._take()
+        data = self.port.read()
+        if not data and not self._queue:         # nothing received, nothing queued
+            return
+        data = self._take(data)
         if not data:
             return
         for msg in self.decoder.feed(data):
@@ -267,7 +272,9 @@ class Receiver:
         bound at construction): the same messages routed in the same order, the sample messages
         (MAG_PACKED already restored, MAG_SAMPLE, IMU_SAMPLE with its clipped-axis check) read from
         its rows into the stage's records, the others unpacked by protocol.codec."""
-        data = self._take()
+        data = self.port.read()
+        if self._queue or (data and self.frames_per_tick and data.count(b"\x00") >= self.frames_per_tick):
+            data = self._take(data)              # a backlog, or a tick's worth of frames or more
         if not data:
             return
         dec = self.decoder
@@ -283,13 +290,17 @@ class Receiver:
                     r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
                     if kind == _RXK_MAG_PACKED:
                         self.packed_mag += 1
-                    self._route(r, now_us)
+                    self.supervisor.on_message(r, now_us)
+                    self._mag_in(r)
                 elif kind == _RXK_IMU:
                     r = self._imus
                     r.node, r.t_us, r.ax, r.ay, r.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
                     r.gx, r.gy, r.gz = q[b + 6], q[b + 7], q[b + 8]
                     self.supervisor.on_message(r, now_us)
-                    self._imu_in(r, q[b + _RXR_CLIP], now_us)
+                    if q[b + _RXR_CLIP]:
+                        self._imu_in(r, True, now_us)
+                    else:
+                        self._on_imu(r, now_us)
                 else:
                     self._route(dec.raw_message(b // w), now_us)
 
@@ -306,14 +317,7 @@ class Receiver:
             return
         self.supervisor.on_message(msg, now_us)
         if mid == _MAG:
-            c = self.mag_cal.get(msg.node) if self.mag_cal else None
-            if c is not None:
-                msg = self._correct_mag(msg, c)
-            ch = self.channels.get(msg.node)
-            if ch is not None:
-                ch.push(msg, MAG_LSB_T)
-            else:
-                self.tracker.on_mag(msg, MAG_LSB_T)
+            self._mag_in(msg)
         elif mid == _IMU:
             self._imu_in(msg, self._clipped(msg), now_us)
         elif mid == _COIL_STATUS:
@@ -323,6 +327,18 @@ class Receiver:
             self._on_heartbeat(msg)
         elif self.other is not None:
             self.other(msg, now_us)
+
+    def _mag_in(self, msg) -> None:
+        """A magnetometer sample (the supervisor has seen it): calibrated, to its sensor's
+        channel, or to the tracker (a node that is not a tracked sensor: the source's module)."""
+        c = self.mag_cal.get(msg.node) if self.mag_cal else None
+        if c is not None:
+            msg = self._correct_mag(msg, c)
+        ch = self.channels.get(msg.node)
+        if ch is not None:
+            ch.push(msg, MAG_LSB_T)
+        else:
+            self.tracker.on_mag(msg, MAG_LSB_T)
 
     def _imu_in(self, msg, clipped, now_us: int) -> None:
         """A received IMU sample: ``clipped`` (an axis at the clip code) is the sensor's full

@@ -24,6 +24,8 @@ class BurstActuation:
 
     def step(self, now_us: int) -> None:
         cyc = self.cycle
+        if now_us < cyc.due_us:          # nothing due: the next command's time, kept by the cycle
+            return
         while cyc.due(now_us):
             if cyc.coil == 0 and not self._open(now_us):
                 return

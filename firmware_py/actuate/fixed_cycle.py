@@ -21,6 +21,13 @@ class FixedCycle:
         self.lead_us = lead_us
         self.cycle_start = first_cycle_us
         self.coil = 0                     # next coil of the cycle to command
+        self.due_us = 0                   # the next command's time (kept by _retime)
+        self._retime()
+
+    def _retime(self) -> None:
+        """``due_us``: when the next pulse's command should leave (:meth:`due`), recomputed
+        whenever the next pulse changes, so a tick before it is one comparison."""
+        self.due_us = self.cycle_start + self.coil * self.spacing_us - self.lead_us
 
     def start_us(self) -> int:
         """Start of the next pulse (coil :attr:`coil`)."""
@@ -28,7 +35,7 @@ class FixedCycle:
 
     def due(self, now_us: int) -> bool:
         """Whether the next pulse's command should leave now."""
-        return now_us >= self.start_us() - self.lead_us
+        return now_us >= self.due_us
 
     def t_ref(self) -> int:
         """The middle of the current cycle's burst (its pose refers to it)."""
@@ -43,6 +50,7 @@ class FixedCycle:
             self.coil = 0
             self.cycle_start += self.cycle_us
             self.skip_late(now_us)
+        self._retime()
 
     def skip_late(self, now_us: int) -> None:
         """Skip whole cycles whose first command time has passed."""
@@ -50,3 +58,4 @@ class FixedCycle:
             return
         while self.cycle_start - self.lead_us < now_us:
             self.cycle_start += self.cycle_us
+        self._retime()

@@ -10,11 +10,16 @@ All buffers are created in ``__init__``; nothing here allocates after.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import HIST_FIELDS, HIST_P, HIST_R, InsState
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.firmware.ring import Ring, field_slices
 from coiltrack.firmware.rotation import quat_from_elements
+
+if TYPE_CHECKING:
+    from coiltrack.firmware.transmit import PoseReport
 
 #: named rows of an output entry (the POSE message): p_M, quaternion (w, x, y, z),
 #: position variances (source frame), orientation variances (sensor frame), status bits
@@ -109,6 +114,7 @@ class PoseOutput:
                                      params.dead_reckon_after_us, params.dead_reckon_limit_us)
             self.queue = self._queue_compiled
             self.into_report = self._into_report_compiled
+            self.take_report = self._take_report_compiled
 
     def _queue_compiled(self, t_us: int, hist: Ring, st: InsState, d, k: int, last_update_t: int,
                         recovering: bool, inconsistent: bool) -> None:
@@ -180,6 +186,25 @@ class PoseOutput:
 
     def _into_report_compiled(self, k: int, r) -> int:
         """:meth:`into_report` on the compiled core (``ext.FusOutput.report``)."""
+        return self._ck.report(k, r.p, r.q, r.var)
+
+    def take_report(self, r: PoseReport) -> int:
+        """The oldest queued pose into the POSE record ``r`` (``transmit.PoseReport``: its time
+        and :meth:`into_report`'s fields) and off the queue (:meth:`pop`, :meth:`time_us`,
+        :meth:`into_report` and :meth:`release` in one call); its ``OUT_*`` status bits, or -1
+        when none is queued."""
+        k = self.out.pop()                     # (the row stays as it is until the next queue)
+        if k < 0:
+            return -1
+        r.t_us = self._otv[k]
+        return self.into_report(k, r)
+
+    def _take_report_compiled(self, r: PoseReport) -> int:
+        """:meth:`take_report` on the compiled core (``ext.FusOutput.report``)."""
+        k = self.out.pop()
+        if k < 0:
+            return -1
+        r.t_us = self._otv[k]
         return self._ck.report(k, r.p, r.q, r.var)
 
     def pop(self) -> int:

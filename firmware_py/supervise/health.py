@@ -108,6 +108,10 @@ class Health:
         self.timeout_us = [hcfg.sensor_timeout_us] * (n - 1) + [hcfg.driver_timeout_us]
         self.last_heard = [boot_us] * n
         self.lost = [False] * n
+        # no node can be lost before this time (us): the earliest ``last_heard + timeout_us`` of the
+        # nodes not lost, or earlier (a sign of life only moves a node's deadline later): until then
+        # :meth:`step` returns at once
+        self.check_us = boot_us + min(self.timeout_us)
         self.lost_events = 0
         self.back_events = 0
         self._back = ()
@@ -147,7 +151,7 @@ class Health:
         # pending events (code, detail), a fixed ring
         self._ev_code = [0] * _EVENTS
         self._ev_detail = [0] * _EVENTS
-        self._ev_n = 0
+        self.events_queued = 0             # events waiting for flush_events (read by the supervisor)
         self.events_dropped = 0
         self.kick_sync = False
 
@@ -165,17 +169,19 @@ class Health:
 
     # ------------------------------------------------------------ events
     def _event(self, code: int, detail: int) -> None:
-        if self._ev_n >= _EVENTS:
+        if self.events_queued >= _EVENTS:
             self.events_dropped += 1
             return
-        self._ev_code[self._ev_n] = code
-        self._ev_detail[self._ev_n] = detail
-        self._ev_n += 1
+        self._ev_code[self.events_queued] = code
+        self._ev_detail[self.events_queued] = detail
+        self.events_queued += 1
 
     def flush_events(self, emit) -> None:
-        for i in range(self._ev_n):
+        if not self.events_queued:
+            return
+        for i in range(self.events_queued):
             emit(self._ev_code[i], self._ev_detail[i])
-        self._ev_n = 0
+        self.events_queued = 0
 
     # ------------------------------------------------------------ liveness
     def heard(self, node: int, now_us: int) -> None:
@@ -183,6 +189,9 @@ class Health:
         if i < 0:
             return
         self.last_heard[i] = now_us
+        due = now_us + self.timeout_us[i]
+        if due < self.check_us:            # (a clock that went back, a node back: an earlier check)
+            self.check_us = due
         if self.lost[i]:
             self.lost[i] = False
             self.back_events += 1
@@ -202,9 +211,20 @@ class Health:
         return out
 
     def step(self, now_us: int) -> None:
+        """Mark the nodes silent past their timeout lost; nothing to look at until ``check_us``."""
+        if now_us <= self.check_us:
+            return
+        check = _OPEN
+        lost, heard, timeout = self.lost, self.last_heard, self.timeout_us
         for i in range(len(self.ids)):
-            if not self.lost[i] and now_us - self.last_heard[i] > self.timeout_us[i]:
+            if lost[i]:
+                continue
+            due = heard[i] + timeout[i]
+            if now_us > due:
                 self._set_lost(i)
+            elif due < check:
+                check = due
+        self.check_us = check
 
     def _set_lost(self, i: int) -> None:
         self.lost[i] = True

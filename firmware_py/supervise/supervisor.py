@@ -132,35 +132,47 @@ class Supervisor:
 
     # ------------------------------------------------------------ tick
     def step(self, now_us: int) -> None:
-        send = self.tx.send
+        """A new burst's time syncs and flip commands; the time sync, the nodes' liveness and
+        the events they raised. A tick with nothing due is a few comparisons: each part keeps
+        the time of its next work."""
         pc = self.schedule.burst_start
         if pc is not None and pc != self._burst:
-            self._burst = pc
-            missing = self.health.new_burst()
-            if not self._first_burst:
-                self.health.note_missing_status(missing)
-            self._first_burst = False
-            last_end = self.schedule.burst_end
-            cfg = self.cfg
-            if self.scfg.sync_around_burst:
-                # one as the commands leave, three 2 ms apart right after the last pulse: a node
-                # takes a forward clock step only when three broadcasts agree (a stall of the
-                # link delays frames 2 ms apart by amounts 2 ms apart, so it cannot fake one),
-                # so a step during the burst shows in the replies before the burst's pose
-                self.timesync.request(now_us)
-                for d in BURST_SYNCS_AFTER_US:
-                    self.timesync.request(last_end + d)
-            if self.scfg.flips:
-                quiet_from = last_end + cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
-                quiet_to = pc + cfg.timing.cycle_us - cfg.pulse.baseline_us - cfg.pulse.guard_us
-                self.flips.plan(now_us, quiet_from, quiet_to, send)
-        if self.health.take_kick_sync():
+            self._new_burst(pc, now_us)
+        h = self.health
+        if h.kick_sync and h.take_kick_sync():
             self.timesync.kick()
-            for node in self.health.back_nodes():
+            for node in h.back_nodes():
                 self.timesync.forget(node)          # it re-acquires: its first replies are no step
-        self.timesync.step(now_us, send)
-        self.health.step(now_us)
-        self.health.flush_events(self.tx.event)
+        ts = self.timesync
+        if now_us >= ts.due_us:                     # (before it, nothing to broadcast)
+            ts.step(now_us, self.tx.send)
+        if now_us > h.check_us:                     # (until then no node can be lost)
+            h.step(now_us)
+        if h.events_queued:
+            h.flush_events(self.tx.event)
+
+    def _new_burst(self, pc: int, now_us: int) -> None:
+        """The burst opened at ``pc``: its coil-status check, the time syncs around it and the
+        flip commands for the quiet gap after it."""
+        self._burst = pc
+        missing = self.health.new_burst()
+        if not self._first_burst:
+            self.health.note_missing_status(missing)
+        self._first_burst = False
+        last_end = self.schedule.burst_end
+        cfg = self.cfg
+        if self.scfg.sync_around_burst:
+            # one as the commands leave, three 2 ms apart right after the last pulse: a node
+            # takes a forward clock step only when three broadcasts agree (a stall of the
+            # link delays frames 2 ms apart by amounts 2 ms apart, so it cannot fake one),
+            # so a step during the burst shows in the replies before the burst's pose
+            self.timesync.request(now_us)
+            for d in BURST_SYNCS_AFTER_US:
+                self.timesync.request(last_end + d)
+        if self.scfg.flips:
+            quiet_from = last_end + cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
+            quiet_to = pc + cfg.timing.cycle_us - cfg.pulse.baseline_us - cfg.pulse.guard_us
+            self.flips.plan(now_us, quiet_from, quiet_to, self.tx.send)
 
     # ------------------------------------------------------------ poses
     def pose_status(self, node: int, window_flags: int) -> int:

@@ -30,6 +30,7 @@ TimeSyncMsg = MSG["TIME_SYNC"]
 _HISTORY = 16        # broadcasts remembered for round-trip times
 _REQUESTS = 6        # pending requested broadcast times
 _REPLIES = 5         # reply arrival times remembered per node
+_NEVER = 1 << 62     # no request pending
 _ACQUIRE = 4         # replies of a (re)acquiring node not judged for steps
 
 
@@ -44,6 +45,7 @@ class TimeSyncMaster:
         self._sent_seq = [-1] * _HISTORY
         self._sent_t = [0] * _HISTORY
         self._req = [-1] * _REQUESTS           # requested broadcast times (-1: free)
+        self.due_us = 0                       # the next broadcast: min(next_us, the requests)
         self.node_ids = tuple(int(n) for n in node_ids)
         n = len(self.node_ids)
         self._slot = {nid: i for i, nid in enumerate(self.node_ids)}
@@ -80,10 +82,13 @@ class TimeSyncMaster:
     def kick(self) -> None:
         """Broadcast at the next tick (a node came back)."""
         self.next_us = 0
+        self.due_us = 0
 
     def request(self, at_us: int) -> None:
         """Broadcast at (or right after) master time ``at_us`` besides the periodic ones."""
         r = self._req
+        if at_us < self.due_us:
+            self.due_us = at_us
         for i in range(_REQUESTS):
             if r[i] < 0:
                 r[i] = at_us
@@ -97,14 +102,21 @@ class TimeSyncMaster:
             r[j] = at_us
 
     def step(self, now_us: int, send) -> bool:
-        """Send a broadcast when one is due; return True when it did."""
+        """Send a broadcast when one is due; return True when it did. Nothing is due before
+        ``_due_us`` (the periodic time and the requests, kept as they are set)."""
+        if now_us < self.due_us:
+            return False
         due = now_us >= self.next_us
         r = self._req
+        req = _NEVER                           # the earliest request still pending
         for i in range(_REQUESTS):
             if 0 <= r[i] <= now_us:
                 due = True
                 r[i] = -1
+            elif r[i] > now_us and r[i] < req:
+                req = r[i]
         if not due:
+            self.due_us = req if req < self.next_us else self.next_us
             return False
         seq = self.seq
         k = seq % _HISTORY
@@ -114,6 +126,7 @@ class TimeSyncMaster:
         self.seq = (seq + 1) & 0xFFFF
         self.sent += 1
         self.next_us = now_us + self.period_us
+        self.due_us = req if req < self.next_us else self.next_us
         return True
 
     def acquiring(self, i: int) -> bool:

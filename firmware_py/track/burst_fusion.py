@@ -51,6 +51,8 @@ from coiltrack.firmware.track.source_unaccelerated import Unaccelerated
 _COMP_MAX_VEL_SIGMA = 0.05
 #: the steps of fusing one burst (``SensorInertial.fuse``)
 _COMPENSATE, _COMPENSATE_PULSES, _SOLVE, _UPDATE_COMP, _APPLY_COMP, _UPDATE_MAG, _APPLY_MAG, _REPLAY = range(8)
+#: the POSE status of a fused pose whose filter raised no ``OUT_*`` bit
+_FUSED_VALID = POSE_VALID | POSE_FUSED
 
 
 class PulseGate:
@@ -248,6 +250,10 @@ class SourceInertial:
     def counters(self) -> dict:
         return {"source_imu_samples": self.samples}
 
+    def queued(self) -> int:
+        """IMU samples waiting in the ring."""
+        return len(self.imu)
+
     def process(self, until_us: int | None = None) -> None:
         """Drain the IMU ring (up to the samples at ``until_us`` when given)."""
         ring, s6 = self.imu, self._s6
@@ -301,6 +307,10 @@ class FixedSource:
     def process(self, until_us: int | None = None) -> None:
         """Nothing to process."""
 
+    def queued(self) -> int:
+        """No samples wait."""
+        return 0
+
     def counters(self) -> dict:
         return {}
 
@@ -337,6 +347,8 @@ class SensorInertial:
                                    history_capacity=cfg.fusion.fusion_history_capacity,
                                    output_capacity=cfg.fusion.pose_output_capacity, fixed_source=source.fixed,
                                    core=core)
+        self._take = self.fusion.output.take_report     # the next queued fused pose into a record
+        self._recovery = self.fusion.recovery           # its restarts (read: the events on changes)
         self.source = source
         self._phi = source.phi
         self._phiv = memoryview(self._phi)
@@ -397,17 +409,19 @@ class SensorInertial:
         first, so ``Phi f_source`` is the one of the same instant: the source's steps and the
         sensor's arrive an interval apart."""
         ring, s6 = self.imu, self._s6
+        if not len(ring):
+            return
         push = self.fusion.push_imu
         ori_step = self.ori.step
         b = self.ori.f.bias_v
         wl = self.w_last
         phi = self._phiv
         fr = self._frv
-        hold = self.source.hold
+        hold = None if self.source.fixed else self.source.hold      # (a fixed source never holds)
         tv = ring.tv
         while max_steps > 0 and len(ring):
             max_steps -= 1
-            if hold(tv[ring.slot(0)], now_us, wait_us):
+            if hold is not None and hold(tv[ring.slot(0)], now_us, wait_us):
                 return
             t = ring.pop_sample(s6)
             ax, ay, az, wx, wy, wz = s6
@@ -432,29 +446,29 @@ class SensorInertial:
         """Send the fused poses the fusion filter queued (``POSE_FUSED``, with ``quality``, that
         of the last magnetic solution), their status from the filter's bits; the recovery and
         dead-reckoning events on changes."""
-        fus = self.fusion
-        if fus.recoveries != self.recoveries_seen:
-            kept = fus.biases_kept != self.kept_seen
-            self.recoveries_seen = fus.recoveries
-            self.kept_seen = fus.biases_kept
-            tx.event(EVT_TRACK_REINIT, node | (fus.recovery_reason << 8) | ((1 << 12) if kept else 0))
-        out = fus.output
+        rec = self._recovery
+        if rec.recoveries != self.recoveries_seen:
+            kept = rec.biases_kept != self.kept_seen
+            self.recoveries_seen = rec.recoveries
+            self.kept_seen = rec.biases_kept
+            tx.event(EVT_TRACK_REINIT, node | (rec.recovery_reason << 8) | ((1 << 12) if kept else 0))
         r = self._report
+        take = self._take
+        st = take(r)                           # time, position, quaternion, variances; -1: none
+        if st < 0:
+            return
         rp = r.p
-        while True:
-            k = out.pop()
-            if k < 0:
-                break
-            r.t_us = out.time_us(k)
-            st = out.into_report(k, r)         # position, quaternion, variances
-            status = self._status(st)
-            self._dead_reckoning(tx, node, st)
+        pose = tx.pose
+        while st >= 0:
+            status = self._status(st) if st else _FUSED_VALID
+            if st or self.dr_state:
+                self._dead_reckoning(tx, node, st)
             if status & POSE_VALID and not in_range3(rp[0], rp[1], rp[2], range_m):
                 status &= ~POSE_VALID          # diverged: beyond the working volume, not a pose
                 self.poses_out_of_range += 1
             r.node, r.status, r.quality = node, status, quality
-            tx.pose(r)
-            out.release()
+            pose(r)
+            st = take(r)
 
     def _status(self, st: int) -> int:
         """The POSE status of a fused pose with the filter's ``OUT_*`` bits ``st``."""
@@ -694,6 +708,9 @@ class BurstFusionTracker(MagneticTracker):
         self.imu_sample_evals = cfg.budget.imu_sample_evals
         self._imu_last = 0              # IMU samples processed in this tick (charged: _tick_charges)
         self._deferring = False
+        # nothing queued and nothing under way since the last step (see step): cleared by every
+        # sample and burst the tracker is given
+        self._idle = False
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = solvers(1.0)
@@ -706,6 +723,7 @@ class BurstFusionTracker(MagneticTracker):
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
+        self._idle = False
         ins = self.inertial.get(msg.node)
         if ins is not None:
             ins.imu.push(msg)
@@ -717,13 +735,26 @@ class BurstFusionTracker(MagneticTracker):
         self.source.on_mag(msg, lsb)
 
     def on_burst(self, t_ref: int) -> None:
+        self._idle = False
         for ins in self.inertial.values():
             ins.schedule(t_ref)
 
     # ------------------------------------------------------------ tick
     def step(self, now_us: int) -> None:
         """Predict (drain the IMU rings: the source's first, its orientation and
-        specific force feed eq 6.8), solve, fuse, and send the fused poses."""
+        specific force feed eq 6.8), solve, fuse, and send the fused poses.
+
+        A quiet tick returns at once: no IMU sample queued and no burst to solve, solve ahead
+        or fuse (``_idle``, set after a step that left nothing, cleared by :meth:`on_imu` and
+        :meth:`on_burst`; the measurement stage's complete burst and the solve ahead are read
+        live). The full step would do nothing in it but clear ``_imu_last``."""
+        if self._idle and not self.busy() and not (self.ahead and self._ahead_pending()):
+            self._imu_last = 0
+            return
+        self._idle = self._step(now_us)
+
+    def _step(self, now_us: int) -> bool:
+        """:meth:`step`'s work; whether it left the tracker settled (:meth:`_settled`)."""
         n0 = 0
         n1 = 0
         for ch, ins in self._pairs:
@@ -731,26 +762,53 @@ class BurstFusionTracker(MagneticTracker):
             ins.process(ch.ring, now_us, self.source_wait_us, self.imu_steps)
             n1 += ins.samples
         # what no sensor sample waits for: at most the wait behind the clock
-        self.source.catch_up(now_us - self.source_wait_us, self._pairs)
+        if not self.source.fixed:
+            self.source.catch_up(now_us - self.source_wait_us, self._pairs)
         self._imu_last = n1 - n0
+        fusing = self._fusing()
+        fresh = not self.busy()
         # bounded tick: a tick that propagated IMU samples (the fused tick) leaves the fusion
         # step (the update or a replay step) to the next one, at most one tick in a row (so it
         # always progresses). (Putting off the solve steps too changes the fused figures for the
         # same seed, roetenberg-fusion seed 1: 38.83 against 38.80 mm; this leaves them as they were.)
-        if n1 != n0 and not self._deferring and not self.busy() and self._fusing():
+        if n1 != n0 and not self._deferring and fusing and fresh:
             self._deferring = True
             self.deferred += 1
             self._send_fused()
-            return
+            return False
         self._deferring = False
+        solve = not fresh or (self.ahead and not fusing and self._ahead_pending())
+        if not solve and not fusing:
+            self._waited = False         # (what _fuse_step does with nothing to fuse)
+            self._send_fused()
+            return self._drained()       # (nothing under way: settled once nothing is queued)
         e0 = self.solver.signal.evals
-        fresh = not self.busy()
         charges = self._charges()
-        if not fresh or (self.ahead and self._ahead_pending() and not self._fusing()):
+        if solve:
             super().step(now_us)         # (a tick with nothing to fuse may solve ahead)
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
             self._fuse_step(self.budget - charges - (self.solver.signal.evals - e0), fresh, charges)
         self._send_fused()
+        return self._settled()
+
+    def _settled(self) -> bool:
+        """Nothing queued and nothing under way: the next step does nothing until a sample or a
+        burst comes in, or the measurement stage completes a burst (:meth:`step`)."""
+        if self._waited or self._deferring or self.busy():
+            return False
+        for _, ins in self._pairs:
+            if ins.pending:
+                return False
+        return self._drained()
+
+    def _drained(self) -> bool:
+        """No IMU sample queued, the sensors' or the source's."""
+        if self.source.queued():
+            return False
+        for _, ins in self._pairs:
+            if len(ins.imu):
+                return False
+        return True
 
     def _tick_charges(self) -> int:
         """The windows closed and ``imu_sample_evals`` per IMU sample processed in this tick."""
