@@ -321,6 +321,9 @@ class AdaptiveConfig:
                                             #   mean follows its present covariance, until the reference's gyro-
                                             #   offset variance falls by less than this fraction a cycle (0.05:
                                             #   about 10 s); 0: the mean from reference_warmup_us on
+    reference_hold: str = "bound"           # "fixed": "bound": each decision holds the reference's mean variance;
+                                            #   "mean": the filter's own running mean is held at the reference's,
+                                            #   a deficit carried (coiltrack.firmware.actuate.accuracy_budget)
     reference_catchup: float = 2.0          # "fixed", warm-up: a pulse on demand between the cycle's pulses
                                             #   when a variance would pass this many times the cycle's own
     nis_feedback: bool = True               # bounds tightened by the NIS excess: where the innovations show
@@ -369,6 +372,8 @@ class AdaptiveConfig:
     def _check_policy(self, need) -> None:
         need("accuracy_target", self.accuracy_target in ("stated", "fixed"),
              f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
+        need("reference_hold", self.reference_hold in ("bound", "mean"),
+             f"must be 'bound' or 'mean', got {self.reference_hold!r}")
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("pulse_length", self.pulse_length in ("fixed", "chosen"),
              f"must be 'fixed' or 'chosen', got {self.pulse_length!r}")

@@ -406,7 +406,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         if s.ref is not None and s.ref.active:
             ref = s.ref
             r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
-            fixed_cycle_bounds(ref.avg, cfg.adaptive.fixed_accuracy_ratio, cfg.adaptive.adaptive_min_ratio, mx, mn,
+            fixed_cycle_bounds(ref.held_avg(cfg.adaptive.fixed_accuracy_ratio), cfg.adaptive.fixed_accuracy_ratio, cfg.adaptive.adaptive_min_ratio, mx, mn,
                                ref.law_now(r, 0), ref.law_now(r, 1))
             if self._warming:
                 # the fixed cycle runs; a pulse between its pulses only when the filter's variance
