@@ -291,6 +291,8 @@ class AdaptiveConfig:
     adaptive_current_levels: int = 16
     adaptive_current_step_a: float = 0.0    # > 0: the current is refined between the ladder's rungs to this
                                             #   resolution (0.001: the command's mA), no overshoot of sigma_min
+    unreached_share: float = 0.0            # > 0: a pulse whose goal no allowed current reaches takes this share
+                                            #   of the largest current's reduction at the least current; 0: the largest
     adaptive_pulse_us: int = 0             # 0: pulse_us
     adaptive_lead_us: int = 10_000         # a single pulse is commanded this long before it starts
     adaptive_max_interval_us: int = 1_000_000
@@ -355,6 +357,8 @@ class AdaptiveConfig:
                                            "adaptive_pos_noise", "field_model_rel_sigma", "init_sigma_ori_deg"))
         need("adaptive_current_step_a", _fin(self.adaptive_current_step_a) and 0.0 <= self.adaptive_current_step_a <= 0.1,
              f"must be in [0, 0.1] A, got {self.adaptive_current_step_a!r}")
+        need("unreached_share", _fin(self.unreached_share) and 0.0 <= self.unreached_share <= 1.0,
+             f"must be in [0, 1], got {self.unreached_share!r}")
         need("reference_settle_drop", _fin(self.reference_settle_drop) and 0.0 <= self.reference_settle_drop < 1.0,
              f"must be in [0, 1), got {self.reference_settle_drop!r}")
         need("sigma_min_pos_m", self.sigma_min_pos_m <= self.sigma_max_pos_m, "must not exceed sigma_max_pos_m")

@@ -219,7 +219,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         if 0.0 < step < CURRENT_LSB_A:
             step = CURRENT_LSB_A
         self.chooser = CoilChooser(n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
-                                   trace, step)
+                                   trace, step, cfg.adaptive.unreached_share)
         self.policy = ActuationPolicy(smax, cfg.adaptive.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()
         self.var_amp = lengths.var_amp[-1]
