@@ -19,7 +19,9 @@ the fixed cycle with ``single_coil_fusion``: :class:`FixedActuation`):
   magnetometer range and the coils' duty (``coil_choice.CoilChooser``,
   ``coil_choice.saturation_current_limit`` with the latest quiet field);
 * the accuracy held: the stated bounds, or the fixed cycle's own predicted
-  accuracy (``accuracy.fixed_cycle_bounds``), tightened by the NIS excess;
+  accuracy (``accuracy.fixed_cycle_bounds``; with ``reference_hold = "mean"`` the
+  filter's own running mean held at the cycle's, a deficit carried:
+  ``accuracy_budget``), tightened by the NIS excess;
 * set/reset flips: about every 2 s no new pulse is decided until the
   windows in flight are closed, then the sensors are told to flip in the gap.
 
