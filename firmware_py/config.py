@@ -291,6 +291,8 @@ class AdaptiveConfig:
     adaptive_current_levels: int = 16
     adaptive_current_step_a: float = 0.0    # > 0: the current is refined between the ladder's rungs to this
                                             #   resolution (0.001: the command's mA), no overshoot of sigma_min
+    unreached_share: float = 0.0            # > 0: a pulse whose goal no allowed current reaches takes this share
+                                            #   of the largest current's reduction at the least current; 0: the largest
     adaptive_pulse_us: int = 0             # 0: pulse_us
     adaptive_lead_us: int = 10_000         # a single pulse is commanded this long before it starts
     adaptive_max_interval_us: int = 1_000_000
@@ -321,6 +323,9 @@ class AdaptiveConfig:
                                             #   mean follows its present covariance, until the reference's gyro-
                                             #   offset variance falls by less than this fraction a cycle (0.05:
                                             #   about 10 s); 0: the mean from reference_warmup_us on
+    reference_hold: str = "bound"           # "fixed": "bound": each decision holds the reference's mean variance;
+                                            #   "mean": the filter's own running mean is held at the reference's,
+                                            #   a deficit carried (coiltrack.firmware.actuate.accuracy_budget)
     reference_catchup: float = 2.0          # "fixed", warm-up: a pulse on demand between the cycle's pulses
                                             #   when a variance would pass this many times the cycle's own
     nis_feedback: bool = True               # bounds tightened by the NIS excess: where the innovations show
@@ -352,6 +357,8 @@ class AdaptiveConfig:
                                            "adaptive_pos_noise", "field_model_rel_sigma", "init_sigma_ori_deg"))
         need("adaptive_current_step_a", _fin(self.adaptive_current_step_a) and 0.0 <= self.adaptive_current_step_a <= 0.1,
              f"must be in [0, 0.1] A, got {self.adaptive_current_step_a!r}")
+        need("unreached_share", _fin(self.unreached_share) and 0.0 <= self.unreached_share <= 1.0,
+             f"must be in [0, 1], got {self.unreached_share!r}")
         need("reference_settle_drop", _fin(self.reference_settle_drop) and 0.0 <= self.reference_settle_drop < 1.0,
              f"must be in [0, 1), got {self.reference_settle_drop!r}")
         need("sigma_min_pos_m", self.sigma_min_pos_m <= self.sigma_max_pos_m, "must not exceed sigma_max_pos_m")
@@ -369,6 +376,8 @@ class AdaptiveConfig:
     def _check_policy(self, need) -> None:
         need("accuracy_target", self.accuracy_target in ("stated", "fixed"),
              f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
+        need("reference_hold", self.reference_hold in ("bound", "mean"),
+             f"must be 'bound' or 'mean', got {self.reference_hold!r}")
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("pulse_length", self.pulse_length in ("fixed", "chosen"),
              f"must be 'fixed' or 'chosen', got {self.pulse_length!r}")

@@ -164,6 +164,12 @@ class FixedCycleReference:
         self.cycle_start = self.first_cycle_us
         self.coil = 0
         self.pulses = 0          # reference pulses taken (counted, never commanded)
+        self._a = 1.0            # the weight of the latest interval in the means
+
+    def held_avg(self, ratio: float):
+        """The mean pose variances (6,) the policy's bounds hold (``fixed_cycle_bounds``): the
+        reference's own (``accuracy_budget.MeanBudgetReference`` carries a deficit in them)."""
+        return self.avg
 
     def set_settle(self, drop: float) -> None:
         """The ``settle_drop`` of the next start (the policy's ``reference_settle_drop``)."""
@@ -258,6 +264,7 @@ class FixedCycleReference:
         a = 1.0 if e <= dt_us else dt_us / (e if e < self.avg_us else self.avg_us)
         if a > 1.0:
             a = 1.0
+        self._a = a
         p = ekf.p
         r = (float(p[0]) * float(p[0]) + float(p[1]) * float(p[1]) + float(p[2]) * float(p[2])) ** 0.5
         r = r if r > 1e-3 else 1e-3

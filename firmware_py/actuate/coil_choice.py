@@ -312,7 +312,7 @@ class CoilChooser:
     """
 
     def __init__(self, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
-                 current_sigma: float = 0.0, trace: bool = False, step_a: float = 0.0):
+                 current_sigma: float = 0.0, trace: bool = False, step_a: float = 0.0, unreached_share: float = 0.0):
         #: bounds on the trace of the position and of the orientation block instead of each
         #: variable (the RMS of a position or orientation error is the root of its trace)
         self.trace = bool(trace)
@@ -331,6 +331,9 @@ class CoilChooser:
         self.rel_model = float(rel_model)
         self.current_sigma = float(current_sigma)
         self.step_a = float(step_a)
+        #: > 0: when no allowed current reaches ``sigma_min``, the least current giving this share of
+        #: the largest one's reduction (``unreached_goal``); 0: the largest allowed current
+        self.unreached_share = float(unreached_share)
         self._A = np.zeros((self.n, 3, POSE_DIM))
         self._M = np.zeros((self.n, 3, 3))
         self._At = np.zeros((3, POSE_DIM))
@@ -475,15 +478,48 @@ class CoilChooser:
         if not isinstance(var_amp, float):
             var_amp = float(var_amp[best_c])
         kmax = self._ref_index(float(i_limit[best_c]))
-        j = self._smallest_current(P6, best_c, var_amp, kmax)
+        goal = self._goal()
+        j = self._smallest_current(P6, best_c, var_amp, kmax, goal)
         if j >= 0:
-            self.current = self._refine(P6, best_c, var_amp, j)
+            self.current = self._refine(P6, best_c, var_amp, j, goal)
             self.reached = True
             return best_c
+        if self.unreached_share > 0.0:
+            # out of reach: the share of the largest current's reduction, at the least current
+            # (``unreached_goal``); _smallest_current left the largest current's posterior in var_after
+            g2 = self.unreached_goal(self._prior(P6), self._group_after())
+            j = self._smallest_current(P6, best_c, var_amp, kmax, g2)
+            if j >= 0:
+                self.current = self._refine(P6, best_c, var_amp, j, g2)
+                return best_c
         self.current = float(self.currents[kmax])
         posterior_pose_variances(P6, self._Av[best_c], self._Mv[best_c], float(self._hn2[best_c]), self.current,
                                  var_amp, self.rel_model, self._vav, self.current_sigma)
         return best_c
+
+    def unreached_goal(self, prior: float, best: float) -> float:
+        """The target's variance asked of a pulse when no allowed current brings it to
+        ``sigma_min``: ``best + (1 - share) (prior - best)``, i.e. ``unreached_share`` of the
+        reduction the largest allowed current gives (``best`` its posterior). The eq-4
+        information of a pulse, ``I^2 / (a + b I^2)`` per ``I^2`` of energy, falls as the current
+        grows (the field model's error ``b``, ``estimate.single_coil``), and where one coil's
+        pulse cannot reach the goal at all (directions it does not see) the last amperes buy
+        almost nothing: the reduction's last part costs the most."""
+        return best + (1.0 - self.unreached_share) * (prior - best)
+
+    def _prior(self, P6) -> float:
+        t = self.target
+        v = 0.0
+        for k in range(t, t + 3 if self.trace else t + 1):
+            v += P6[k, k]
+        return v
+
+    def _group_after(self) -> float:
+        t = self.target
+        v = 0.0
+        for k in range(t, t + 3 if self.trace else t + 1):
+            v += self._vav[k]
+        return v
 
     def _goal(self) -> float:
         """``sigma_min^2`` of the target variable (trace: summed over its group)."""
@@ -493,13 +529,12 @@ class CoilChooser:
             goal += self.sigma_min[k] * self.sigma_min[k]
         return goal
 
-    def _smallest_current(self, P6, c: int, var_amp: float, kmax: int) -> int:
+    def _smallest_current(self, P6, c: int, var_amp: float, kmax: int, goal: float) -> int:
         """Index of the smallest candidate current up to ``kmax`` whose eq-4 update of coil
         ``c`` (amplitude variance ``var_amp``) brings the target variable to ``sigma_min``
         (``var_after`` holds its posterior), or -1."""
         t = self.target
         t1 = t + 3 if self.trace else t + 1
-        goal = self._goal()
         A = self._Av[c]
         M = self._Mv[c]
         hn2 = float(self._hn2[c])
@@ -525,7 +560,7 @@ class CoilChooser:
             va += self._vav[k]
         return va
 
-    def _refine(self, P6, c: int, var_amp: float, j: int) -> float:
+    def _refine(self, P6, c: int, var_amp: float, j: int, goal: float) -> float:
         """The smallest current (to ``step_a``, rounded up) between rung ``j - 1`` (0 A for the
         first) and rung ``j``, which reaches the goal, of coil ``c``; ``var_after`` holds its
         posterior. Bisection: the posterior variance falls monotonically with the current (eq 4:
@@ -536,7 +571,6 @@ class CoilChooser:
         if not step > 0.0:
             return hi
         lo = float(self.currents[j - 1]) if j > 0 else 0.0
-        goal = self._goal()
         while hi - lo > step:
             mid = 0.5 * (lo + hi)
             if self._target_after(P6, c, var_amp, mid) <= goal:
@@ -572,11 +606,12 @@ class CoilChooser:
         P6v = memoryview(P6)
         kmax = self._ref_index(float(i_limit[c]))
         best_e = self.current * self.current * lengths_us[last]
+        goal = self._goal()
         for k in range(last):
-            j = self._smallest_current(P6v, c, float(var_amps[k]), kmax)
+            j = self._smallest_current(P6v, c, float(var_amps[k]), kmax, goal)
             if j < 0:
                 continue
-            i = self._refine(P6v, c, float(var_amps[k]), j)
+            i = self._refine(P6v, c, float(var_amps[k]), j, goal)
             e = i * i * lengths_us[k]
             if e < best_e:
                 best_e = e

@@ -19,7 +19,9 @@ the fixed cycle with ``single_coil_fusion``: :class:`FixedActuation`):
   magnetometer range and the coils' duty (``coil_choice.CoilChooser``,
   ``coil_choice.saturation_current_limit`` with the latest quiet field);
 * the accuracy held: the stated bounds, or the fixed cycle's own predicted
-  accuracy (``accuracy.fixed_cycle_bounds``), tightened by the NIS excess;
+  accuracy (``accuracy.fixed_cycle_bounds``; with ``reference_hold = "mean"`` the
+  filter's own running mean held at the cycle's, a deficit carried:
+  ``accuracy_budget``), tightened by the NIS excess;
 * set/reset flips: about every 2 s no new pulse is decided until the
   windows in flight are closed, then the sensors are told to flip in the gap.
 
@@ -219,7 +221,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         if 0.0 < step < CURRENT_LSB_A:
             step = CURRENT_LSB_A
         self.chooser = CoilChooser(n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
-                                   trace, step)
+                                   trace, step, cfg.adaptive.unreached_share)
         self.policy = ActuationPolicy(smax, cfg.adaptive.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()
         self.var_amp = lengths.var_amp[-1]
@@ -406,7 +408,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         if s.ref is not None and s.ref.active:
             ref = s.ref
             r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
-            fixed_cycle_bounds(ref.avg, cfg.adaptive.fixed_accuracy_ratio, cfg.adaptive.adaptive_min_ratio, mx, mn,
+            fixed_cycle_bounds(ref.held_avg(cfg.adaptive.fixed_accuracy_ratio), cfg.adaptive.fixed_accuracy_ratio, cfg.adaptive.adaptive_min_ratio, mx, mn,
                                ref.law_now(r, 0), ref.law_now(r, 1))
             if self._warming:
                 # the fixed cycle runs; a pulse between its pulses only when the filter's variance

@@ -46,6 +46,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
 
 from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference
+from coiltrack.firmware.actuate.accuracy_budget import MeanBudgetReference
 from coiltrack.firmware.actuate.coil_choice import NisMonitor, SingleCoilModel
 from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation, FixedActuation
 from coiltrack.firmware.actuate.pulse_length import PulseLengths, fixed_amplitude_variance
@@ -146,7 +147,9 @@ class SingleCoilTracker:
         s = SensorTrack(k, tr, cfg, SchepersEKF.from_config(cfg, core=self.core), mon)
         if cfg.adaptive.accuracy_target == "fixed" and schedule == "adaptive":
             # the fixed cycle of [timing], its pulses' amplitude variance and mid time
-            s.ref = FixedCycleReference(
+            # "mean": the same reference, holding the filter's running mean (actuate.accuracy_budget)
+            kind = MeanBudgetReference if cfg.adaptive.reference_hold == "mean" else FixedCycleReference
+            s.ref = kind(
                 np.array([c.current for c in cfg.source.coils]), cfg.timing.first_cycle_us, cfg.timing.cycle_us, cfg.timing.spacing_us,
                 measurement_mid_us(cfg, cfg.timing.pulse_us), fixed_amplitude_variance(cfg, cfg.timing.pulse_us),
                 cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a, cfg.adaptive.reference_avg_s * 1e6,

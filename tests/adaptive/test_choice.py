@@ -254,3 +254,43 @@ def test_pose_cov_update_is_eq4():
         P = P6.copy()
         assert u.apply(P, model.H[c], model.h[c], i, 1e-16, 2e-3)
         np.testing.assert_allclose(P, ref, rtol=1e-7, atol=1e-14 * np.abs(P6).max())
+
+
+def test_unreached_goal_takes_the_share_at_the_least_current():
+    """``unreached_share``: where no allowed current brings the target to ``sigma_min``, the
+    least ladder current whose posterior target variance is within ``(1 - share)`` of the way
+    from the largest current's posterior to the prior (``best + (1 - share)(prior - best)``,
+    dense eq 4 by brute force); share 0 keeps the largest current. With a field-model error
+    the information ``I^2 / (a + b I^2)`` saturates, so this current is well below the largest.
+    Catches the share applied to the posterior instead of the reduction, a goal left at
+    ``sigma_min`` (the largest current again), or a current that is not the least."""
+    rng = np.random.default_rng(11)
+    currents = current_ladder(0.05, 1.5, 24)
+    smax = [4e-3] * 3 + [0.01] * 3
+    smin = [1e-6] * 3 + [1e-6] * 3                # out of reach of any one pulse
+    model = SingleCoilModel(orthogonal())
+    i_limit = np.full(3, 1.5)
+    share, rel, va = 0.8, 3e-3, (1.5e-8) ** 2
+    ch = CoilChooser(3, currents, smax, smin, rel_model=rel, current_sigma=1e-3, unreached_share=share)
+    ch0 = CoilChooser(3, currents, smax, smin, rel_model=rel, current_sigma=1e-3)
+    smaller = 0
+    for trial in range(20):
+        p, R = random_pose(rng, (0.15, 0.25))
+        P6 = random_P6(rng)
+        model.evaluate(p, R)
+        coil = ch.choose(P6, model, va, i_limit)
+        assert ch0.choose(P6, model, va, i_limit) == coil and ch0.current == 1.5
+        bc, _, bt, _, _ = brute_force(P6, model, va, rel, currents, i_limit, smax, smin, 1e-3)
+        assert coil == bc and ch.target == bt and not ch.reached
+
+        def post(i):
+            H = i * model.H[coil]
+            Rv = (va + ((rel * i) ** 2 + 1e-6) * float(model.h[coil] @ model.h[coil])) * np.eye(3)
+            K = P6 @ H.T @ np.linalg.inv(H @ P6 @ H.T + Rv)
+            return float(np.diag(P6 - K @ H @ P6)[bt])
+        goal = post(1.5) + (1.0 - share) * (P6[bt, bt] - post(1.5))
+        want = min(i for i in currents if post(i) <= goal)
+        assert ch.current == pytest.approx(want, rel=1e-12)
+        assert ch.var_after[bt] == pytest.approx(post(want), rel=1e-9)
+        smaller += want < 1.0
+    assert smaller >= 10
