@@ -27,6 +27,7 @@ from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.hil import motion
 from coiltrack.hil import physics as ph
 from coiltrack.hil.world import FerroObject, World
+from coiltrack.protocol import MSG
 from coiltrack.tools.scenarios.base import Scenario, SensorSpec
 
 CYCLE_US, FIRST_US, SWITCH_US = 600_000, 200_000, 380_000
@@ -65,16 +66,16 @@ def _z_scores(run_bench, noise_t, cycles=60):
     captured = []
 
     def capture(fw, bench):
-        orig = fw.tx.send
+        orig = fw.tx.pulse_window          # every PULSE_WINDOW leaves through it (either core)
         channels = {ch.node: ch for ch in fw.channels}
 
-        def send(msg):
-            if msg.NAME == "PULSE_WINDOW":
-                tr = channels[msg.node]
-                captured.append((msg, tr.S[:, msg.coil].copy(), tr.var[:, msg.coil].copy()))
-            orig(msg)
+        def pulse_window(*fields):
+            msg = MSG["PULSE_WINDOW"](*fields)
+            tr = channels[msg.node]
+            captured.append((msg, tr.S[:, msg.coil].copy(), tr.var[:, msg.coil].copy()))
+            orig(*fields)
 
-        fw.tx.send = send
+        fw.tx.pulse_window = pulse_window
 
     sc = _scenario(noise_t)
     run = run_bench(scenario_obj=sc, seed=2, duration_s=0.2 + 0.6 * cycles, setup=capture)

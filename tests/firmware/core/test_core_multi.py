@@ -108,7 +108,6 @@ def test_pulse_window_through_the_transmitter_on_both_cores():
     """Interleaved with other messages, windows in range and out of it: both cores write the same
     frames with the same sequence numbers and count the same tx errors (a refused window takes no
     sequence number; a failed write does)."""
-    rng = np.random.default_rng(32)
     outs = []
     for kernels in (core.PYTHON, COMPILED):
         port = _Capture()
@@ -124,7 +123,6 @@ def test_pulse_window_through_the_transmitter_on_both_cores():
         outs.append((port.frames, tx.tx_errors, failing.tx_errors))
     assert outs[0] == outs[1]
     assert outs[0][1] > 20 and outs[0][2] == 1
-    del rng
 
 
 # ---------------------------------------------------------------- solver weights
@@ -230,7 +228,6 @@ def test_close_window_bit_for_bit_on_random_rings():
 def test_close_one_sends_what_it_closed():
     """Through the window closer on both cores: the same PULSE_WINDOW frames (the window's used
     sample span, counts clipped at 255) and the same flagged count."""
-    rng = np.random.default_rng(36)
     outs = []
     for kernels in (core.PYTHON, COMPILED):
         cfg = FirmwareConfig().with_(link={"sensor_ids": (16, 17)}).validate()
@@ -249,7 +246,6 @@ def test_close_one_sends_what_it_closed():
                 closer.close_one(chans[step % 2], int(r.integers(0, 3)), step & 0xFFFF, start, start + 60_000)
         outs.append((port.frames, closer.closed, closer.flagged))
     assert outs[0] == outs[1] and len(outs[0][0]) > 200
-    del rng
 
 
 # ---------------------------------------------------------------- asked only what is due
