@@ -351,7 +351,22 @@ static PyObject *Raab_update(RaabObject *self, PyObject *const *args, Py_ssize_t
     return PyLong_FromLong(ct_raab_update(&self->r, lin, k_id));
 }
 
+/* couple() -> int: the bits of ct_raab_coupling */
+static PyObject *Raab_couple(RaabObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Raab: not bound");
+        return NULL;
+    }
+    if (ac_nargs("couple", nargs, 0) < 0)
+        return NULL;
+    return PyLong_FromLong(ct_raab_coupling(&self->r));
+}
+
 static PyMethodDef Raab_methods[] = {
+    {"couple", (PyCFunction)(void (*)(void))Raab_couple, METH_FASTCALL,
+     "couple() -> bits: the corrected signals, F and k, as pose.raab_update.Update.couple"},
     {"update", (PyCFunction)(void (*)(void))Raab_update, METH_FASTCALL,
      "update(lin, k_id) -> bits: one update of Raab's tracker, as pose.raab_update.Update.run"},
     {NULL, NULL, 0, NULL}};

@@ -402,9 +402,9 @@ class RaabTracker(StagedSolve):
     def _coupling(self) -> None:
         """The signals corrected at the estimate (``S_c``, by the correction
         chosen at construction: ``pose.raab_correction``), then ``F = S_c M^+``
-        into ``_F`` and ``k = |F|_F / sqrt(3/2)`` (= ``C / rho^3``, eq 21)."""
-        self.corrector.correct(self._Sv, self._Sc, self.n, self._point(), self._pm, self._R, self._x[2], self._curv)
-        self._k = coupling(self.n, self._Sc, self._mp, self._F)
+        into ``_F`` and ``k = |F|_F / sqrt(3/2)`` (= ``C / rho^3``, eq 21):
+        ``raab_update.Update.couple`` (Python or compiled)."""
+        self._k = self._upd.couple()
 
     # ------------------------------------------------------------- units
     def _unit_measure(self) -> None:

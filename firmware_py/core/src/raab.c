@@ -255,23 +255,39 @@ static void lu_solve6(const double *K, const int64_t *perm, double *e)
     }
 }
 
-int ct_raab_update(const struct ct_raab *r, int lin, int k_id)
+/* the signals corrected at the estimate (correct at raab_update.point, or S_c = S without the correction),
+ * F and k (coupling) into out[CT_RO_K]; returns 1 when the correction's linear term was dropped */
+static int couple(const struct ct_raab *r, double *k)
 {
-    double *x = r->x, *o = r->out, d[6], e[3], ab[2], A[9], k, m, rho;
-    const double *par = r->par, *c = r->cbar;
-    int ret = 0, i;
+    const double *x = r->x, *c = r->cbar;
+    int dropped = 0, i;
     if (r->corr) {
         double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]), q = x[2];
-        if (correct(r, c[0] + q * cb * ca, c[1] + q * cb * sa, c[2] - q * sb)) {
-            ret |= CT_RAAB_LIN_DROPPED;
-            lin = 0;
-        }
+        dropped = correct(r, c[0] + q * cb * ca, c[1] + q * cb * sa, c[2] - q * sb);
     } else {
         for (i = 0; i < 3 * r->n; ++i)
             r->Sc[i] = r->S[i];
     }
-    k = coupling(r->n, r->Sc, r->mp, r->F);
-    o[CT_RO_K] = k;
+    *k = coupling(r->n, r->Sc, r->mp, r->F);
+    r->out[CT_RO_K] = *k;
+    return dropped;
+}
+
+int ct_raab_coupling(const struct ct_raab *r)
+{
+    double k;
+    return couple(r, &k) ? CT_RAAB_LIN_DROPPED : 0;
+}
+
+int ct_raab_update(const struct ct_raab *r, int lin, int k_id)
+{
+    double *x = r->x, *o = r->out, d[6], e[3], ab[2], A[9], k, m, rho;
+    const double *par = r->par;
+    int ret = 0, i;
+    if (couple(r, &k)) {
+        ret |= CT_RAAB_LIN_DROPPED;
+        lin = 0;
+    }
     if (!(k > 0.0 && isfinite(k)))
         return ret;
     detect(x, r->R, r->F, k, par[CT_RP_C], d);

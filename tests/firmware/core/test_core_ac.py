@@ -249,6 +249,25 @@ def test_raab_update_bit_equal_to_the_reference(case):
             assert not case.get("zero_signal")
 
 
+@pytest.mark.parametrize("case", [dict(), dict(correction=False), dict(far=True), dict(zero_signal=True)],
+                         ids=["tracking", "no-correction", "lin-dropped", "no-signal"])
+def test_raab_couple_bit_equal_to_the_reference(case):
+    """``Update.couple`` (the tracker's ``_coupling``: the signals corrected at the estimate, ``F =
+    S_c M^+`` and ``k``) compiled against the Python, bit for bit, and the correction's linear term
+    dropped in both beyond its range. Catches a point of the correction other than the estimate's,
+    the linear term kept beyond its range, or ``k`` of the uncorrected signals."""
+    for seed in range(6):
+        up, uc = _raab_case(seed, fcore.PYTHON, **case), _raab_case(seed, COMPILED, **case)
+        kp, kc = up.couple(), uc.couple()
+        assert kp == kc and kp == up.out[K_OUT] == uc.out[K_OUT]
+        _same(_raab_state(up), _raab_state(uc))
+        assert up.corrector.lin == (not case.get("far") and case.get("correction", True))
+        if case.get("zero_signal") and case.get("correction", True):
+            assert kp > 0.0                         # the correction alone couples
+        if case.get("correction") is False:
+            assert np.array_equal(np.array(uc.Sc), np.array(uc.S))
+
+
 def test_raab_update_converges_on_an_exact_dipole_coupling():
     """Independent of the reference: signals made by Raab's dipole (eq 5, the sensor at a known
     pose, no correction) and the estimate started 0.05 rad and 5 % range off: the compiled
