@@ -368,7 +368,8 @@ class Update:
     ``x`` (6), ``Rn`` (3, 3), ``S``, ``Sc``, ``mp`` (3 n), ``F`` (9), ``pm`` (3), ``cur`` (n):
     float64 buffers the tracker owns; ``cbar`` the source centre. On a compiled ``core`` the
     kernel ``ct_raab_update`` (``core/src/raab.c``: the same operations in the same order) is
-    bound here to them and :meth:`run` and :meth:`couple` replaced on this instance."""
+    bound here to them and :meth:`run`, :meth:`couple` and :meth:`pseudo_inverse` replaced on this
+    instance."""
 
     def __init__(self, n: int, x, Rn, S, Sc, mp, F, pm, cbar, cur, corrector, max_step: float,
                  acquired_step: float, core=_DEFAULT_CORE):
@@ -396,7 +397,16 @@ class Update:
         self._zero = zero
         self.run = self._run_compiled
         self.couple = self._couple_compiled
+        self.pseudo_inverse = self._pseudo_inverse_compiled
         self.core = "compiled"
+
+    def pseudo_inverse(self, mpa, mom) -> bool:
+        """:func:`moment_pseudo_inverse` of the moments per ampere ``mpa`` at the currents ``cur``:
+        the moments into ``mom`` and ``M^+`` into ``mp`` (the tracker's ``begin``)."""
+        return moment_pseudo_inverse(self.n, mpa, self.cur, mom, self.mp)
+
+    def _pseudo_inverse_compiled(self, mpa, mom) -> bool:
+        return self._ck.pseudo_inverse(mpa, mom)
 
     def couple(self) -> float:
         """The signals corrected at the estimate into ``Sc``, ``F = S_c M^+`` and ``k = C /

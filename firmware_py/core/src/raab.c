@@ -514,3 +514,49 @@ int ct_raab_precondition(const struct ct_raab_corr *c, const double *x, const do
     }
     return lu_factor6(K, c->perm);
 }
+
+/* raab_update.moment_pseudo_inverse: the moments at the currents into mom ([3 j + a]) and M^+ = M^T (M M^T)^-1
+ * into mp ([3 j + c]); 0 when the moments do not span 3-D (mom written, mp not) */
+int ct_raab_pseudo_inverse(int n, const double *mpa, const double *cur, double *mom, double *mp)
+{
+    double g00 = 0.0, g01 = 0.0, g02 = 0.0, g11 = 0.0, g12 = 0.0, g22 = 0.0, scale, a[9], inv[9], det;
+    double i00, i01, i02, i11, i12, i22;
+    int j;
+    for (j = 0; j < n; ++j) {
+        double c = cur[j], mx = mpa[3 * j] * c, my = mpa[3 * j + 1] * c, mz = mpa[3 * j + 2] * c;
+        mom[3 * j] = mx;
+        mom[3 * j + 1] = my;
+        mom[3 * j + 2] = mz;
+        g00 += mx * mx;
+        g01 += mx * my;
+        g02 += mx * mz;
+        g11 += my * my;
+        g12 += my * mz;
+        g22 += mz * mz;
+    }
+    scale = g00 + g11 + g22;
+    if (!(scale > 0.0))
+        return 0;
+    a[0] = g00 / scale;
+    a[1] = a[3] = g01 / scale;
+    a[2] = a[6] = g02 / scale;
+    a[4] = g11 / scale;
+    a[5] = a[7] = g12 / scale;
+    a[8] = g22 / scale;
+    det = a[0] * (a[4] * a[8] - a[5] * a[5]) - a[1] * (a[1] * a[8] - a[5] * a[2]) + a[2] * (a[1] * a[5] - a[4] * a[2]);
+    if (!(det > 1e-12) || !ct_inv3(a, inv))        /* linalg.inv3_sym */
+        return 0;
+    i00 = inv[0] / scale;
+    i01 = inv[1] / scale;
+    i02 = inv[2] / scale;
+    i11 = inv[4] / scale;
+    i12 = inv[5] / scale;
+    i22 = inv[8] / scale;
+    for (j = 0; j < n; ++j) {
+        double mx = mom[3 * j], my = mom[3 * j + 1], mz = mom[3 * j + 2];
+        mp[3 * j] = mx * i00 + my * i01 + mz * i02;
+        mp[3 * j + 1] = mx * i01 + my * i11 + mz * i12;
+        mp[3 * j + 2] = mx * i02 + my * i12 + mz * i22;
+    }
+    return 1;
+}
