@@ -292,7 +292,7 @@ static int Raab_init(RaabObject *self, PyObject *args, PyObject *kw)
     want[RB_F] = 9; want[RB_X] = 6; want[RB_R] = 9; want[RB_PM] = 3; want[RB_B] = 3 * n; want[RB_G] = 9 * n;
     want[RB_K] = 36; want[RB_PERM] = 6; want[RB_OUT] = CT_RO_N;
     for (i = 0; i < RB_NBUF; ++i) {
-        int ro = i == RB_PAR || i == RB_CBAR || i == RB_S || i == RB_MP || i == RB_CUR || i == RB_PM ||
+        int ro = i == RB_PAR || i == RB_CBAR || i == RB_S || i == RB_CUR || i == RB_PM ||
                  i == RB_B || i == RB_G || i == RB_K || i == RB_PERM;
         if (ac_buffer(objs[i], want[i], 8, i == RB_PERM ? "ql" : "d", !ro, &self->views[i], names[i]) < 0) {
             Raab_release(self);
@@ -328,7 +328,48 @@ static PyObject *Raab_update(RaabObject *self, PyObject *const *args, Py_ssize_t
     return PyLong_FromLong(ct_raab_update(&self->r, lin, k_id));
 }
 
+/* couple() -> int: the bits of ct_raab_coupling */
+static PyObject *Raab_couple(RaabObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Raab: not bound");
+        return NULL;
+    }
+    if (ac_nargs("couple", nargs, 0) < 0)
+        return NULL;
+    return PyLong_FromLong(ct_raab_coupling(&self->r));
+}
+
+/* pseudo_inverse(mpa, mom) -> bool: the moments per ampere mpa (3 n) at the bound currents into mom (3 n),
+ * M^+ into the bound mp (bound writable) */
+static PyObject *Raab_pseudo_inverse(RaabObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer a, m;
+    int n = self->r.n, ok;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "Raab: not bound");
+        return NULL;
+    }
+    if (ac_nargs("pseudo_inverse", nargs, 2) < 0 || ac_buffer(args[0], 3 * n, F64, 0, &a, "mpa") < 0)
+        return NULL;
+    if (ac_buffer(args[1], 3 * n, F64, 1, &m, "mom") < 0) {
+        PyBuffer_Release(&a);
+        return NULL;
+    }
+    ok = ct_raab_pseudo_inverse(n, (const double *)a.buf, self->r.cur, (double *)m.buf, (double *)self->r.mp);
+    PyBuffer_Release(&a);
+    PyBuffer_Release(&m);
+    if (ok)
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
 static PyMethodDef Raab_methods[] = {
+    {"pseudo_inverse", (PyCFunction)(void (*)(void))Raab_pseudo_inverse, METH_FASTCALL,
+     "pseudo_inverse(mpa, mom) -> bool: as pose.raab_update.moment_pseudo_inverse into mom and the bound mp"},
+    {"couple", (PyCFunction)(void (*)(void))Raab_couple, METH_FASTCALL,
+     "couple() -> bits: the corrected signals, F and k, as pose.raab_update.Update.couple"},
     {"update", (PyCFunction)(void (*)(void))Raab_update, METH_FASTCALL,
      "update(lin, k_id) -> bits: one update of Raab's tracker, as pose.raab_update.Update.run"},
     {NULL, NULL, 0, NULL}};

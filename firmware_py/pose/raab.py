@@ -136,7 +136,7 @@ from coiltrack.firmware.pose.raab_correction import K_MIN, LoopCorrection, NoCor
 from coiltrack.firmware.pose.raab_covariance import RaabCovariance
 from coiltrack.firmware.pose.raab_update import (ACQUIRED, C_RAAB, DA0, DB0, DPHI0, DPSI0, DRHO, DTH0, K_OUT,
                                                  MAX_STEP, POLE_COS, Update, angles_from_pose, coupling,
-                                                 error_angles, load_rotation, moment_pseudo_inverse,
+                                                 error_angles, load_rotation,
                                                  orientation_update, point, position_update, residual_cost,
                                                  sync_rotation, wrap)
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
@@ -313,7 +313,7 @@ class RaabTracker(StagedSolve):
             return SOLVE_BAD_INPUT
         self.solve_evals = 0
         self._reacquired = False
-        if not moment_pseudo_inverse(self.n, self._mpa, self._curv, self._mom, self._mp):
+        if not self._upd.pseudo_inverse(self._mpa, self._mom):           # raab_update.moment_pseudo_inverse
             self.status = SOLVE_NO_START
             return SOLVE_NO_START
         self.iterations = 0
@@ -402,9 +402,9 @@ class RaabTracker(StagedSolve):
     def _coupling(self) -> None:
         """The signals corrected at the estimate (``S_c``, by the correction
         chosen at construction: ``pose.raab_correction``), then ``F = S_c M^+``
-        into ``_F`` and ``k = |F|_F / sqrt(3/2)`` (= ``C / rho^3``, eq 21)."""
-        self.corrector.correct(self._Sv, self._Sc, self.n, self._point(), self._pm, self._R, self._x[2], self._curv)
-        self._k = coupling(self.n, self._Sc, self._mp, self._F)
+        into ``_F`` and ``k = |F|_F / sqrt(3/2)`` (= ``C / rho^3``, eq 21):
+        ``raab_update.Update.couple`` (Python or compiled)."""
+        self._k = self._upd.couple()
 
     # ------------------------------------------------------------- units
     def _unit_measure(self) -> None:

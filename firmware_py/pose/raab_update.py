@@ -368,7 +368,8 @@ class Update:
     ``x`` (6), ``Rn`` (3, 3), ``S``, ``Sc``, ``mp`` (3 n), ``F`` (9), ``pm`` (3), ``cur`` (n):
     float64 buffers the tracker owns; ``cbar`` the source centre. On a compiled ``core`` the
     kernel ``ct_raab_update`` (``core/src/raab.c``: the same operations in the same order) is
-    bound here to them and :meth:`run` replaced on this instance."""
+    bound here to them and :meth:`run`, :meth:`couple` and :meth:`pseudo_inverse` replaced on this
+    instance."""
 
     def __init__(self, n: int, x, Rn, S, Sc, mp, F, pm, cbar, cur, corrector, max_step: float,
                  acquired_step: float, core=_DEFAULT_CORE):
@@ -395,7 +396,31 @@ class Update:
                             self.x, self.Rn, self.pm, b, G, K, perm, self.out)
         self._zero = zero
         self.run = self._run_compiled
+        self.couple = self._couple_compiled
+        self.pseudo_inverse = self._pseudo_inverse_compiled
         self.core = "compiled"
+
+    def pseudo_inverse(self, mpa, mom) -> bool:
+        """:func:`moment_pseudo_inverse` of the moments per ampere ``mpa`` at the currents ``cur``:
+        the moments into ``mom`` and ``M^+`` into ``mp`` (the tracker's ``begin``)."""
+        return moment_pseudo_inverse(self.n, mpa, self.cur, mom, self.mp)
+
+    def _pseudo_inverse_compiled(self, mpa, mom) -> bool:
+        return self._ck.pseudo_inverse(mpa, mom)
+
+    def couple(self) -> float:
+        """The signals corrected at the estimate into ``Sc``, ``F = S_c M^+`` and ``k = C /
+        rho^3`` (eq 21; also into ``out``), returned: the first part of :meth:`run`
+        (``pose.raab.RaabTracker._coupling``)."""
+        x = self.x
+        self.corrector.correct(self.S, self.Sc, self.n, point(x, self.cbar), self.pm, self.R, x[2], self.cur)
+        k = self._o[K_OUT] = coupling(self.n, self.Sc, self.mp, self.F)
+        return k
+
+    def _couple_compiled(self) -> float:
+        if self._ck.couple() & 2:                   # the estimate left the linear term's range (correct)
+            self.corrector.drop_linear()
+        return self._o[K_OUT]
 
     def run(self) -> bool:
         x, R, corr, o = self.x, self.R, self.corrector, self._o

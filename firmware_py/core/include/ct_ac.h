@@ -81,6 +81,12 @@ struct ct_raab {
 /* returns CT_RAAB_OK (bit) when k > 0 and finite (then the update is done), and CT_RAAB_LIN_DROPPED
  * when the correction's linear term was dropped (the estimate beyond CT_RP_LIN_MAX x range of pm) */
 int ct_raab_update(const struct ct_raab *r, int lin, int k_id);
+/* RaabTracker._coupling (pose.raab, through raab_update.Update.couple): the first part of ct_raab_update, the
+ * corrected signals, F and k (into out[CT_RO_K]); returns CT_RAAB_LIN_DROPPED as ct_raab_update */
+int ct_raab_coupling(const struct ct_raab *r);
+/* raab_update.moment_pseudo_inverse (n coils, moments per ampere mpa (3 n), currents cur (n)): the moments into
+ * mom (3 n) and M^+ into mp (3 n); 0 when the moments do not span 3-D */
+int ct_raab_pseudo_inverse(int n, const double *mpa, const double *cur, double *mom, double *mp);
 
 /* raab_correction.LoopCorrection's refresh and preconditioner: its buffers b (3 n), G (9 n), K (36), perm (6) */
 struct ct_raab_corr {

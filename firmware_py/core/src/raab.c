@@ -255,23 +255,39 @@ static void lu_solve6(const double *K, const int64_t *perm, double *e)
     }
 }
 
-int ct_raab_update(const struct ct_raab *r, int lin, int k_id)
+/* the signals corrected at the estimate (correct at raab_update.point, or S_c = S without the correction),
+ * F and k (coupling) into out[CT_RO_K]; returns 1 when the correction's linear term was dropped */
+static int couple(const struct ct_raab *r, double *k)
 {
-    double *x = r->x, *o = r->out, d[6], e[3], ab[2], A[9], k, m, rho;
-    const double *par = r->par, *c = r->cbar;
-    int ret = 0, i;
+    const double *x = r->x, *c = r->cbar;
+    int dropped = 0, i;
     if (r->corr) {
         double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]), q = x[2];
-        if (correct(r, c[0] + q * cb * ca, c[1] + q * cb * sa, c[2] - q * sb)) {
-            ret |= CT_RAAB_LIN_DROPPED;
-            lin = 0;
-        }
+        dropped = correct(r, c[0] + q * cb * ca, c[1] + q * cb * sa, c[2] - q * sb);
     } else {
         for (i = 0; i < 3 * r->n; ++i)
             r->Sc[i] = r->S[i];
     }
-    k = coupling(r->n, r->Sc, r->mp, r->F);
-    o[CT_RO_K] = k;
+    *k = coupling(r->n, r->Sc, r->mp, r->F);
+    r->out[CT_RO_K] = *k;
+    return dropped;
+}
+
+int ct_raab_coupling(const struct ct_raab *r)
+{
+    double k;
+    return couple(r, &k) ? CT_RAAB_LIN_DROPPED : 0;
+}
+
+int ct_raab_update(const struct ct_raab *r, int lin, int k_id)
+{
+    double *x = r->x, *o = r->out, d[6], e[3], ab[2], A[9], k, m, rho;
+    const double *par = r->par;
+    int ret = 0, i;
+    if (couple(r, &k)) {
+        ret |= CT_RAAB_LIN_DROPPED;
+        lin = 0;
+    }
     if (!(k > 0.0 && isfinite(k)))
         return ret;
     detect(x, r->R, r->F, k, par[CT_RP_C], d);
@@ -497,4 +513,50 @@ int ct_raab_precondition(const struct ct_raab_corr *c, const double *x, const do
             K[6 * r + cc] = col[r] + (r == cc ? 1.0 : 0.0);
     }
     return lu_factor6(K, c->perm);
+}
+
+/* raab_update.moment_pseudo_inverse: the moments at the currents into mom ([3 j + a]) and M^+ = M^T (M M^T)^-1
+ * into mp ([3 j + c]); 0 when the moments do not span 3-D (mom written, mp not) */
+int ct_raab_pseudo_inverse(int n, const double *mpa, const double *cur, double *mom, double *mp)
+{
+    double g00 = 0.0, g01 = 0.0, g02 = 0.0, g11 = 0.0, g12 = 0.0, g22 = 0.0, scale, a[9], inv[9], det;
+    double i00, i01, i02, i11, i12, i22;
+    int j;
+    for (j = 0; j < n; ++j) {
+        double c = cur[j], mx = mpa[3 * j] * c, my = mpa[3 * j + 1] * c, mz = mpa[3 * j + 2] * c;
+        mom[3 * j] = mx;
+        mom[3 * j + 1] = my;
+        mom[3 * j + 2] = mz;
+        g00 += mx * mx;
+        g01 += mx * my;
+        g02 += mx * mz;
+        g11 += my * my;
+        g12 += my * mz;
+        g22 += mz * mz;
+    }
+    scale = g00 + g11 + g22;
+    if (!(scale > 0.0))
+        return 0;
+    a[0] = g00 / scale;
+    a[1] = a[3] = g01 / scale;
+    a[2] = a[6] = g02 / scale;
+    a[4] = g11 / scale;
+    a[5] = a[7] = g12 / scale;
+    a[8] = g22 / scale;
+    det = a[0] * (a[4] * a[8] - a[5] * a[5]) - a[1] * (a[1] * a[8] - a[5] * a[2]) + a[2] * (a[1] * a[5] - a[4] * a[2]);
+    if (!(det > 1e-12) || !ct_inv3(a, inv))        /* linalg.inv3_sym */
+        return 0;
+    i00 = inv[0] / scale;
+    i01 = inv[1] / scale;
+    i02 = inv[2] / scale;
+    i11 = inv[4] / scale;
+    i12 = inv[5] / scale;
+    i22 = inv[8] / scale;
+    for (j = 0; j < n; ++j) {
+        double mx = mom[3 * j], my = mom[3 * j + 1], mz = mom[3 * j + 2];
+        mp[3 * j] = mx * i00 + my * i01 + mz * i02;
+        mp[3 * j + 1] = mx * i01 + my * i11 + mz * i12;
+        mp[3 * j + 2] = mx * i02 + my * i12 + mz * i22;
+    }
+    return 1;
 }

@@ -249,6 +249,60 @@ def test_raab_update_bit_equal_to_the_reference(case):
             assert not case.get("zero_signal")
 
 
+@pytest.mark.parametrize("case", [dict(), dict(correction=False), dict(far=True), dict(zero_signal=True)],
+                         ids=["tracking", "no-correction", "lin-dropped", "no-signal"])
+def test_raab_couple_bit_equal_to_the_reference(case):
+    """``Update.couple`` (the tracker's ``_coupling``: the signals corrected at the estimate, ``F =
+    S_c M^+`` and ``k``) compiled against the Python, bit for bit, and the correction's linear term
+    dropped in both beyond its range. Catches a point of the correction other than the estimate's,
+    the linear term kept beyond its range, or ``k`` of the uncorrected signals."""
+    for seed in range(6):
+        up, uc = _raab_case(seed, fcore.PYTHON, **case), _raab_case(seed, COMPILED, **case)
+        kp, kc = up.couple(), uc.couple()
+        assert kp == kc and kp == up.out[K_OUT] == uc.out[K_OUT]
+        _same(_raab_state(up), _raab_state(uc))
+        assert up.corrector.lin == (not case.get("far") and case.get("correction", True))
+        if case.get("zero_signal") and case.get("correction", True):
+            assert kp > 0.0                         # the correction alone couples
+        if case.get("correction") is False:
+            assert np.array_equal(np.array(uc.Sc), np.array(uc.S))
+
+
+@pytest.mark.parametrize("case", ["seeded", "zero-current", "planar", "collinear"])
+def test_raab_pseudo_inverse_bit_equal_to_the_reference(case):
+    """``Update.pseudo_inverse`` (``moment_pseudo_inverse``: the moments at the currents and ``M^+ =
+    M^T (M M^T)^-1``) compiled against the Python, bit for bit, including the moments that do not
+    span 3-D (a zero current, coplanar and collinear moments: False in both, ``mp`` untouched);
+    and, independently, ``M M^+ = I`` against numpy to 1e-12 where they span. Catches a Gram
+    element of the wrong pair, a determinant test of the wrong sign or ``M^+`` transposed."""
+    for seed in range(6):
+        up, uc = _raab_case(seed, fcore.PYTHON), _raab_case(seed, COMPILED)
+        rng = np.random.default_rng(100 + seed)
+        mpa = np.eye(3).reshape(-1) * 0.47 + rng.normal(0, 0.02, 9)
+        cur = rng.uniform(1.3, 1.7, 3)
+        if case == "zero-current":
+            cur[:] = 0.0
+        elif case == "planar":
+            mpa[6:9] = 0.3 * mpa[0:3] - 0.7 * mpa[3:6]
+        elif case == "collinear":
+            mpa[3:6] = 2.0 * mpa[0:3]
+            mpa[6:9] = -mpa[0:3]
+        res = []
+        for u in (up, uc):
+            for j in range(3):
+                u.cur[j] = cur[j]
+            mom = memoryview(np.zeros(9))
+            ok = u.pseudo_inverse(memoryview(mpa.copy()), mom)
+            res.append((ok, np.array(mom), np.array(u.mp)))
+        assert res[0][0] == res[1][0] == (case == "seeded")
+        assert np.array_equal(res[0][1], res[1][1]) and np.array_equal(res[0][2], res[1][2])
+        if case == "seeded":
+            M = res[1][1].reshape(3, 3).T                   # (3, n): column j the moment of coil j
+            Mp = res[1][2].reshape(3, 3)                    # (n, 3)
+            np.testing.assert_allclose(M @ Mp, np.eye(3), rtol=0, atol=1e-12)
+            np.testing.assert_allclose(Mp, np.linalg.pinv(M), rtol=1e-10, atol=0)
+
+
 def test_raab_update_converges_on_an_exact_dipole_coupling():
     """Independent of the reference: signals made by Raab's dipole (eq 5, the sensor at a known
     pose, no correction) and the estimate started 0.05 rad and 5 % range off: the compiled
