@@ -156,9 +156,9 @@ class MagneticTracker:
         self._ahead_k = -1               # the channel whose burst the solver is solving ahead; -1: none
         self._ahead_seen = None          # the burst every channel has had its turn to be solved ahead for
         # per channel, the SensorChannel.changes at which its burst was last found not ready to be
-        # solved ahead (for the window _idle_window): nothing that test reads has changed while it holds
-        self._idle = [-1] * len(self.channels)
-        self._idle_window = (None, None)
+        # solved ahead (for the window _ahead_unchanged_window): nothing that test reads has changed while it holds
+        self._ahead_unchanged = [-1] * len(self.channels)
+        self._ahead_unchanged_window = (None, None)
         self.ahead_solves = 0            # bursts solved ahead
         self.ahead_used = 0              # of which the burst's solve (the same inputs)
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
@@ -286,17 +286,17 @@ class MagneticTracker:
             self._ahead_seen = burst
 
     def _idle_for(self, start: int, end: int) -> list:
-        """The channels' :attr:`_idle` marks for the last window ``[start, end]``, forgotten when
+        """The channels' :attr:`_ahead_unchanged` marks for the last window ``[start, end]``, forgotten when
         the window is another. A channel's readiness to be solved ahead reads only its windows'
         closed flags and its samples (``PulseExtractor.expect_complete``), each change of which
         counts in its ``changes``: so the idle ticks ask only the channels that changed, and a
         tick's work scales with the samples that came in, not with the sensors."""
-        if self._idle_window != (start, end):
-            self._idle_window = (start, end)
-            idle = self._idle
+        if self._ahead_unchanged_window != (start, end):
+            self._ahead_unchanged_window = (start, end)
+            idle = self._ahead_unchanged
             for k in range(len(idle)):
                 idle[k] = -1
-        return self._idle
+        return self._ahead_unchanged
 
     def _ahead_pending(self) -> bool:
         """A solve ahead runs, or sensors of the open burst have not had their turn yet."""
