@@ -439,8 +439,10 @@ class MagneticTracker:
         bits) through a ``ReportPose`` bound to the solver's results; replaced on this instance."""
         ext = core.ext
         sv = self.solver
-        if ext is None or not all(isinstance(getattr(sv, k, None), np.ndarray) for k in ("position", "rotation")):
-            return
+        arrays = [getattr(sv, k, None) for k in ("position", "rotation")]
+        if ext is None or not all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
+                                  and a.size == m for a, m in zip(arrays, (3, 9))):
+            return                       # results of another kind: the Python's own copies
         self._q = np.zeros(4)
         self._qv = memoryview(self._q)
         self._rp = ext.ReportPose(sv.position, sv.rotation, self._q)
