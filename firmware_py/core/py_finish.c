@@ -62,6 +62,7 @@ typedef struct {
     struct ct_warmcheck w;
     double *par;                 /* check_hemi, hx, hy, hz: written by the solver's begin */
     double *p, *cov, *work;
+    double tol;                  /* linalg.ORTHONORMAL_TOL, for nearest */
     Py_buffer views[SF_NBUF];
     int bound;
 } SolveFinishObject;
@@ -77,14 +78,14 @@ static void SolveFinish_dealloc(SolveFinishObject *self)
 
 static int SolveFinish_init(SolveFinishObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"n", "gate", "cx", "cy", "cz", "par", "p", "cov", "work", NULL};
+    static char *kwlist[] = {"n", "gate", "cx", "cy", "cz", "par", "p", "cov", "work", "tol", NULL};
     static const char *names[SF_NBUF] = {"par", "p", "cov", "work"};
     const Py_ssize_t len[SF_NBUF] = {4, 3, 36, CT_ROBUST6_WORK};
     PyObject *o[SF_NBUF];
-    double gate, cx, cy, cz;
+    double gate, cx, cy, cz, tol = 1e-12;
     int n, i;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iddddOOOO", kwlist, &n, &gate, &cx, &cy, &cz, &o[0], &o[1], &o[2],
-                                     &o[3]))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iddddOOOO|d", kwlist, &n, &gate, &cx, &cy, &cz, &o[0], &o[1], &o[2],
+                                     &o[3], &tol))
         return -1;
     if (self->bound) {
         PyErr_SetString(PyExc_RuntimeError, "SolveFinish: already bound");
@@ -100,6 +101,7 @@ static int SolveFinish_init(SolveFinishObject *self, PyObject *args, PyObject *k
     self->p = (double *)self->views[1].buf;
     self->cov = (double *)self->views[2].buf;
     self->work = (double *)self->views[3].buf;
+    self->tol = tol;
     self->w.n = n;
     self->w.gate = gate;
     self->w.cbar[0] = cx;
@@ -151,7 +153,30 @@ static PyObject *SolveFinish_inverse(SolveFinishObject *self, PyObject *const *a
     Py_RETURN_NONE;
 }
 
+/* nearest(m, out) -> True, or None for arrays of another kind: linalg.nearest_rotation of m (9)
+ * into out (9, writable) with the bound work (ct_nearest_rotation) */
+static PyObject *SolveFinish_nearest(SolveFinishObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vm, vo;
+    if (!self->bound || nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "SolveFinish.nearest(m, out): bound, two arguments");
+        return NULL;
+    }
+    if (fin_buffer(args[0], 9, 8, "d", 0, &vm, "m", 1) < 0)
+        Py_RETURN_NONE;
+    if (fin_buffer(args[1], 9, 8, "d", 1, &vo, "out", 1) < 0) {
+        PyBuffer_Release(&vm);
+        Py_RETURN_NONE;
+    }
+    ct_nearest_rotation((const double *)vm.buf, (double *)vo.buf, self->work, self->tol);
+    PyBuffer_Release(&vm);
+    PyBuffer_Release(&vo);
+    Py_RETURN_TRUE;
+}
+
 static PyMethodDef SolveFinish_methods[] = {
+    {"nearest", (PyCFunction)(void (*)(void))SolveFinish_nearest, METH_FASTCALL,
+     "nearest(m, out) -> True (linalg.nearest_rotation of m into out) or None (an array of another kind)"},
     {"finish", (PyCFunction)(void (*)(void))SolveFinish_finish, METH_FASTCALL,
      "finish(A, check, state, cost) -> -1 (check and the warm start failed), 0 or 1 (the covariance of A "
      "written; 1: p and cov[0] finite)"},

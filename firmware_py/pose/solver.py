@@ -358,9 +358,9 @@ class PoseSolver(StagedSolve):
         copy and checks (``_load``, ``_load_x0``), the results' copies (``_publish``) through a
         ``SolveIO`` bound to the solver's buffers, and a run of LM steps in one call
         (``ct_lm_pose_run``); the methods are replaced on this instance, so no call tests the
-        choice. Inputs the kernels do not take (not float64 arrays of the expected shapes) and a
-        matrix that is no rotation (``linalg.nearest_rotation``'s eigen-decomposition) go to the
-        Python."""
+        choice. Inputs the kernels do not take (not float64 arrays of the expected shapes) go to the
+        Python; a matrix that is no rotation goes through ``linalg.nearest_rotation``'s compiled
+        form (``SolveFinish.nearest``, ``ct_nearest_rotation``)."""
         self._iost = np.zeros(1)
         self._iostv = memoryview(self._iost)
         self._io = ext.SolveIO(self.n, self._S, self._w, self._cur, self._m9, self._fit.p, self._fit.R,
@@ -375,7 +375,7 @@ class PoseSolver(StagedSolve):
         self._fwork = np.zeros(ext.FINISH_WORK)
         cx, cy, cz = self._cbar
         self._fin = ext.SolveFinish(self.n, self.gate, cx, cy, cz, self._fpar, self._fit.p, self.covariance,
-                                    self._fwork)
+                                    self._fwork, ORTHONORMAL_TOL)
         self._load_hemisphere = self._load_hemisphere_compiled
         self._unit_finish = self._unit_finish_compiled
 
@@ -394,12 +394,12 @@ class PoseSolver(StagedSolve):
         r = self._io.x0(x0_position, x0_rotation)
         if r is None:
             return PoseSolver._load_x0(self, x0_position, x0_rotation)
-        if r == 2:
+        if r == 2 and self._fin.nearest(self._m9, self._fit.R) is None:
             nearest_rotation(self._m9, self._fit.R, self._rot3)
         return r != 0
 
     def _publish_pose_compiled(self) -> None:
-        if not self._io.publish():
+        if not self._io.publish() and self._fin.nearest(self._m9, self.rotation) is None:
             nearest_rotation(self._m9, self.rotation, self._rot3)
 
     def _load_hemisphere_compiled(self, hemisphere) -> bool:

@@ -5,7 +5,8 @@
  * References (the Python is the specification, followed operation by operation, same names with
  * the ct_ prefix):
  *   coiltrack.firmware.pose.covariance: RobustInverse6.into (_floored), RotationMargin.into;
- *   coiltrack.firmware.linalg: jacobi_eigh (jacobi_eigh_loops, _sort_eigen), spd_inverse(6);
+ *   coiltrack.firmware.linalg: jacobi_eigh (jacobi_eigh_loops, _sort_eigen), spd_inverse(6),
+ *     nearest_rotation;
  *   coiltrack.firmware.pose.solver.PoseSolver: _unit_finish, _warm_start_failed, _publish;
  *   coiltrack.firmware.track.quality: quality_from, PoseQuality.grade_burst (_motion, _jacobian,
  *     _remember).
@@ -24,6 +25,12 @@
 /* linalg.jacobi_eigh (its loops, jacobi_eigh_loops): a (n x n, overwritten), eigenvalues into w
  * (ascending), unit eigenvectors into the columns of v (n x n) */
 void ct_fin_jacobi_eigh(double *a, int n, double *w, double *v, int sweeps);
+
+/* linalg.nearest_rotation (Horn 1987 / Bar-Itzhack 2000): the proper rotation nearest m (9,
+ * row-major) into out (9); m copied when it is a rotation to tol already; work: 36 doubles (the 4x4
+ * K, its eigenvalues, its eigenvectors) */
+#define CT_NEAREST_WORK 36
+void ct_nearest_rotation(const double *m, double *out, double *work, double tol);
 
 /* RobustInverse6 workspace: CT_ROBUST6_WORK doubles (Cholesky L, M; the Jacobi copy, V, w) */
 #define CT_ROBUST6_WORK (4 * 36 + 6)

@@ -92,6 +92,48 @@ void ct_fin_jacobi_eigh(double *a, int n, double *w, double *v, int sweeps)
     sort_eigen(a, n, w, v);
 }
 
+/* linalg.nearest_rotation: the unit quaternion maximising q^T K q (K from m, below) is the
+ * eigenvector of K's largest eigenvalue (the last column of v); its rotation matrix is
+ * rotation.matrix_from_quat's */
+void ct_nearest_rotation(const double *m, double *out, double *work, double tol)
+{
+    double *k = work, *w = work + 16, *v = work + 20;
+    double qw, qx, qy, qz, nrm;
+    if (ct_is_rotation(m, tol)) {
+        memcpy(out, m, 9 * sizeof(double));
+        return;
+    }
+    k[0] = m[0] + m[4] + m[8];
+    k[1] = k[4] = m[7] - m[5];
+    k[2] = k[8] = m[2] - m[6];
+    k[3] = k[12] = m[3] - m[1];
+    k[5] = m[0] - m[4] - m[8];
+    k[6] = k[9] = m[1] + m[3];
+    k[7] = k[13] = m[2] + m[6];
+    k[10] = -m[0] + m[4] - m[8];
+    k[11] = k[14] = m[5] + m[7];
+    k[15] = -m[0] - m[4] + m[8];
+    ct_fin_jacobi_eigh(k, 4, w, v, 60);
+    qw = v[3];
+    qx = v[7];
+    qy = v[11];
+    qz = v[15];
+    nrm = sqrt(qw * qw + qx * qx + qy * qy + qz * qz);
+    qw /= nrm;
+    qx /= nrm;
+    qy /= nrm;
+    qz /= nrm;
+    out[0] = 1.0 - 2.0 * (qy * qy + qz * qz);
+    out[1] = 2.0 * (qx * qy - qw * qz);
+    out[2] = 2.0 * (qx * qz + qw * qy);
+    out[3] = 2.0 * (qx * qy + qw * qz);
+    out[4] = 1.0 - 2.0 * (qx * qx + qz * qz);
+    out[5] = 2.0 * (qy * qz - qw * qx);
+    out[6] = 2.0 * (qx * qz - qw * qy);
+    out[7] = 2.0 * (qy * qz + qw * qx);
+    out[8] = 1.0 - 2.0 * (qx * qx + qy * qy);
+}
+
 /* ------------------------------------------------------------ covariance */
 
 /* Python's max(a, b) of two non-NaN floats: a unless b > a */

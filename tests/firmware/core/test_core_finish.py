@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from coiltrack.firmware import core
 from coiltrack.firmware.config import FirmwareConfig
-from coiltrack.firmware.linalg import jacobi_eigh
+from coiltrack.firmware.linalg import Rot3, jacobi_eigh, nearest_rotation
 from coiltrack.firmware.model.distortion import DistortionMap
 from coiltrack.firmware.model.field import Coil, orthogonal_source
 from coiltrack.firmware.pose.covariance import MAX_VARIANCE, RobustInverse6, RotationMargin
@@ -446,3 +446,41 @@ def test_report_pose_bit_identical():
             np.testing.assert_allclose(q, want if want[0] > 0 else -want, atol=1e-12, err_msg=str(k))
     assert rp.take(np.zeros(3, np.float32), np.zeros((3, 3)), 1.0) is None
     assert rp.quat(np.eye(3).T) is None
+
+
+def _svd_projection(m):
+    """The independent reference: the orthogonal Procrustes projection U diag(1, 1, det(U V^T)) V^T."""
+    u, _, vt = np.linalg.svd(m)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def test_nearest_rotation_bit_identical_and_against_the_svd_projection():
+    """ct_nearest_rotation against linalg.nearest_rotation to the bit and against the SVD
+    projection to 1e-12: an interpolated warm start (two rotations averaged, as the fusion
+    history's pose_at gives), noisy and scaled matrices, a reflection (det < 0: the proper
+    rotation nearest it), and a rotation to the tolerance already (copied unchanged). A wrong sign
+    in one of K's off-diagonal elements or the smallest eigenvector taken would fail both."""
+    fin, _ = _finisher()
+    rng = np.random.default_rng(30)
+    cases = []
+    for _ in range(60):
+        a, b = Rotation.random(2, random_state=rng).as_matrix()
+        cases.append(0.5 * (a + b) if np.linalg.det(a + b) > 0 else a)
+        cases.append(a + rng.normal(0.0, 0.05, (3, 3)))
+        cases.append(rng.uniform(0.5, 2.0) * b)
+    # distinct singular values, so the nearest proper rotation is unique
+    cases.append(np.diag([1.0, 1.0, -1.0]) @ Rotation.random(random_state=rng).as_matrix() @ np.diag([1.3, 1.0, 0.7]))
+    exact = Rotation.random(random_state=rng).as_matrix()
+    cases.append(exact)
+    for m in cases:
+        m9 = np.ascontiguousarray(m, dtype=float).ravel()
+        ref = np.zeros((3, 3))
+        nearest_rotation(memoryview(m9), ref, Rot3())
+        out = np.full((3, 3), np.nan)
+        assert fin.nearest(m9, out) is True
+        np.testing.assert_array_equal(out, ref)
+        np.testing.assert_allclose(out, _svd_projection(m), rtol=0, atol=1e-12)
+    out = np.zeros((3, 3))
+    fin.nearest(exact.ravel().copy(), out)
+    np.testing.assert_array_equal(out, exact)
+    assert fin.nearest(np.zeros(9, dtype=np.float32), out) is None     # another kind: the caller's Python
