@@ -280,27 +280,35 @@ class Receiver:
         dec = self.decoder
         q, w = dec.rows, dec.width
         pos, end = 0, len(data)
+        seen = self.supervisor.on_message
+        # a magnetometer sample straight to its channel (:meth:`_mag_in` without the call) when
+        # no node's magnetometer is calibrated
+        chans = None if self.mag_cal else self.channels
+        r = self._mag
         while pos < end:
             n = dec.decode(data, pos, now_us)
             pos = dec.pos
             for b in range(0, n * w, w):
                 kind = q[b + _RXR_KIND]
                 if kind == _RXK_MAG_PACKED or kind == _RXK_MAG:
-                    r = self._mag
                     r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
                     if kind == _RXK_MAG_PACKED:
                         self.packed_mag += 1
-                    self.supervisor.on_message(r, now_us)
-                    self._mag_in(r)
-                elif kind == _RXK_IMU:
-                    r = self._imus
-                    r.node, r.t_us, r.ax, r.ay, r.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
-                    r.gx, r.gy, r.gz = q[b + 6], q[b + 7], q[b + 8]
-                    self.supervisor.on_message(r, now_us)
-                    if q[b + _RXR_CLIP]:
-                        self._imu_in(r, True, now_us)
+                    seen(r, now_us)
+                    ch = None if chans is None else chans.get(r.node)
+                    if ch is not None:
+                        ch.push(r, MAG_LSB_T)
                     else:
-                        self._on_imu(r, now_us)
+                        self._mag_in(r)
+                elif kind == _RXK_IMU:
+                    ri = self._imus
+                    ri.node, ri.t_us, ri.ax, ri.ay, ri.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
+                    ri.gx, ri.gy, ri.gz = q[b + 6], q[b + 7], q[b + 8]
+                    seen(ri, now_us)
+                    if q[b + _RXR_CLIP]:
+                        self._imu_in(ri, True, now_us)
+                    else:
+                        self._on_imu(ri, now_us)
                 else:
                     self._route(dec.raw_message(b // w), now_us)
 

@@ -708,9 +708,10 @@ class BurstFusionTracker(MagneticTracker):
         self.imu_sample_evals = cfg.budget.imu_sample_evals
         self._imu_last = 0              # IMU samples processed in this tick (charged: _tick_charges)
         self._deferring = False
-        # nothing queued and nothing under way since the last step (see step): cleared by every
-        # sample and burst the tracker is given
+        # no IMU sample queued, the sensors' or the source's, since the last step drained the rings
+        # (see step): cleared by every sample the tracker is given
         self._idle = False
+        self._n_pending = 0             # sensors with a delayed magnetic update under way (``pending``)
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = solvers(1.0)
@@ -735,7 +736,6 @@ class BurstFusionTracker(MagneticTracker):
         self.source.on_mag(msg, lsb)
 
     def on_burst(self, t_ref: int) -> None:
-        self._idle = False
         for ins in self.inertial.values():
             ins.schedule(t_ref)
 
@@ -744,82 +744,79 @@ class BurstFusionTracker(MagneticTracker):
         """Predict (drain the IMU rings: the source's first, its orientation and
         specific force feed eq 6.8), solve, fuse, and send the fused poses.
 
-        A quiet tick returns at once: no IMU sample queued and no burst to solve, solve ahead
-        or fuse (``_idle``, set after a step that left nothing, cleared by :meth:`on_imu` and
-        :meth:`on_burst`; the measurement stage's complete burst and the solve ahead are read
-        live). The full step would do nothing in it but clear ``_imu_last``."""
-        if self._idle and not self.busy() and not (self.ahead and self._ahead_pending()):
+        A quiet tick returns at once: no IMU sample queued (``_idle``, set by a step that
+        drained the rings, cleared by :meth:`on_imu`), no sensor fusing (``_n_pending``, kept
+        as updates begin and end) and no burst to solve or solve ahead (read live). The full
+        step would do nothing in it but clear ``_imu_last``, ``_waited`` and ``_deferring``.
+        Nor does the full step visit the sensors for what they do not have: the rings only
+        when a sample may be queued, the fused outputs only of a tick that processed IMU
+        samples or fused a burst (a filter queues a pose or restarts in those calls only)."""
+        if self._idle and not self._n_pending and not self.busy() and not (self.ahead and self._ahead_pending()):
             self._imu_last = 0
+            self._waited = False
+            self._deferring = False
             return
-        self._idle = self._step(now_us)
+        self._step(now_us)
 
-    def _step(self, now_us: int) -> bool:
-        """:meth:`step`'s work; whether it left the tracker settled (:meth:`_settled`)."""
-        n0 = 0
-        n1 = 0
-        for ch, ins in self._pairs:
-            n0 += ins.samples
-            ins.process(ch.ring, now_us, self.source_wait_us, self.imu_steps)
-            n1 += ins.samples
-        # what no sensor sample waits for: at most the wait behind the clock
-        if not self.source.fixed:
-            self.source.catch_up(now_us - self.source_wait_us, self._pairs)
-        self._imu_last = n1 - n0
-        fusing = self._fusing()
+    def _step(self, now_us: int) -> None:
+        """:meth:`step`'s work."""
+        n = 0 if self._idle else self._process(now_us)
+        self._imu_last = n
+        fusing = self._n_pending > 0
         fresh = not self.busy()
         # bounded tick: a tick that propagated IMU samples (the fused tick) leaves the fusion
         # step (the update or a replay step) to the next one, at most one tick in a row (so it
         # always progresses). (Putting off the solve steps too changes the fused figures for the
         # same seed, roetenberg-fusion seed 1: 38.83 against 38.80 mm; this leaves them as they were.)
-        if n1 != n0 and not self._deferring and fusing and fresh:
+        if n and not self._deferring and fusing and fresh:
             self._deferring = True
             self.deferred += 1
             self._send_fused()
-            return False
+            return
         self._deferring = False
         solve = not fresh or (self.ahead and not fusing and self._ahead_pending())
         if not solve and not fusing:
             self._waited = False         # (what _fuse_step does with nothing to fuse)
-            self._send_fused()
-            return self._drained()       # (nothing under way: settled once nothing is queued)
+            if n:
+                self._send_fused()
+            return
         e0 = self.solver.signal.evals
         charges = self._charges()
         if solve:
             super().step(now_us)         # (a tick with nothing to fuse may solve ahead)
+        fused = None
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
-            self._fuse_step(self.budget - charges - (self.solver.signal.evals - e0), fresh, charges)
-        self._send_fused()
-        return self._settled()
+            fused = self._fuse_step(self.budget - charges - (self.solver.signal.evals - e0), fresh, charges)
+        if n:
+            self._send_fused()
+        elif fused is not None:          # the one sensor whose filter was touched in this tick
+            fused.send_fused(self.tx, fused.node, self.range_m, self.quality.last[fused.node])
 
-    def _settled(self) -> bool:
-        """Nothing queued and nothing under way: the next step does nothing until a sample or a
-        burst comes in, or the measurement stage completes a burst (:meth:`step`)."""
-        if self._waited or self._deferring or self.busy():
-            return False
-        for _, ins in self._pairs:
-            if ins.pending:
-                return False
-        return self._drained()
-
-    def _drained(self) -> bool:
-        """No IMU sample queued, the sensors' or the source's."""
-        if self.source.queued():
-            return False
-        for _, ins in self._pairs:
+    def _process(self, now_us: int) -> int:
+        """Drain the sensors' IMU rings (and the source's, up to what no sensor sample waits
+        for: at most the wait behind the clock); the samples processed. Sets ``_idle`` when
+        nothing is left queued."""
+        n = 0
+        left = False
+        wait = self.source_wait_us
+        steps = self.imu_steps
+        for ch, ins in self._pairs:
+            n -= ins.samples
+            ins.process(ch.ring, now_us, wait, steps)
+            n += ins.samples
             if len(ins.imu):
-                return False
-        return True
+                left = True
+        src = self.source
+        if not src.fixed:
+            src.catch_up(now_us - wait, self._pairs)
+            if src.queued():
+                left = True
+        self._idle = not left
+        return n
 
     def _tick_charges(self) -> int:
         """The windows closed and ``imu_sample_evals`` per IMU sample processed in this tick."""
         return super()._tick_charges() + self.imu_sample_evals * self._imu_last
-
-    def _fusing(self) -> bool:
-        """A sensor's delayed magnetic update (re-solve, update or replay) is in progress."""
-        for _, ins in self._pairs:
-            if ins.pending:
-                return True
-        return False
 
     def _ahead_wanted(self, ch) -> bool:
         """A sensor whose fusion filter runs starts from the filter's pose, not from a burst solved ahead."""
@@ -843,17 +840,26 @@ class BurstFusionTracker(MagneticTracker):
         return self._rep_cov
 
     def on_solution(self, ch, solved: bool) -> None:
-        self.inertial[ch.node].on_solution(self.solver, solved)
+        ins = self.inertial[ch.node]
+        was = ins.pending
+        ins.on_solution(self.solver, solved)
+        self._n_pending += int(ins.pending) - int(was)
 
-    def _fuse_step(self, budget: int, fresh: bool, charges: int = 0) -> None:
+    def _fuse_step(self, budget: int, fresh: bool, charges: int = 0):
         """This tick's part of one sensor's delayed magnetic update (``charges``: what of the
-        budget the tick's other work took; a re-solve that found no room waits one tick only)."""
+        budget the tick's other work took; a re-solve that found no room waits one tick only);
+        the sensor fused (:class:`SensorInertial`), None when none is pending."""
         self._waited = False
+        if not self._n_pending:
+            return None
         for ch, ins in self._pairs:
             if ins.pending:
                 ins.fuse(self.comp_solver, ch.S, self.currents, ch.sigma, ch.pmv, budget, self.replay_budget, fresh)
                 self._waited = bool(charges) and ins.waiting
-                return
+                if not ins.pending:
+                    self._n_pending -= 1
+                return ins
+        return None
 
     def _send_fused(self) -> None:
         """Send the fused poses queued by the fusion filters (IMU rate)."""
