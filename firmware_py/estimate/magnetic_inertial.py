@@ -112,7 +112,7 @@ All buffers are created in ``__init__``; a step allocates no numpy array.
 from __future__ import annotations
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.estimate.ekf import EKF_OK, KalmanUpdate
+from coiltrack.firmware.estimate.ekf import EKF_OK, SYMMETRIZE_EVERY, KalmanUpdate
 from coiltrack.firmware.estimate.fusion_measurement import make_measurement_model
 from coiltrack.firmware.estimate.fusion_output import (OUT_DEAD_RECKONING, OUT_FIELDS, OUT_INCONSISTENT,  # noqa: F401
                                                       OUT_LOST, OUT_P, OUT_Q, OUT_RECOVERED, OUT_STALE,
@@ -288,6 +288,8 @@ class FusionFilter:
         self.replays_lost = 0
         self.recorder = None       # optional offline hook (smoother); None on the board
         if self.st.ck is not None:
+            self.prediction.bind_live(self.st, self.history.live, self.output._ck)
+            self._out = self.output.out
             self.push_imu = self._push_imu_compiled
 
     # ------------------------------------------------------------ the live state, the parts (read)
@@ -335,16 +337,21 @@ class FusionFilter:
         return self._after_push(t_us, k)
 
     def _push_imu_compiled(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> bool:
-        """:meth:`push_imu` on the compiled core: a step not split by a snapshot and not recorded
-        goes straight to its kernels (``InertialPrediction.advance``, ``PoseOutput.queue``)."""
-        k = self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
+        """:meth:`push_imu` on the compiled core: a step not split by a snapshot, not recorded,
+        whose covariance is not symmetrised after it and whose pose finds room in the output
+        queue is one call (``InertialPrediction.sample``: the ring row, the step, the history
+        row and the queued pose, as :meth:`_after_push` with ``InertialPrediction.advance`` and
+        :meth:`_output` make them); any other goes through :meth:`_after_push`."""
         st = self.st
         t0 = st.t_us
+        out = self._out
         if not self.initialized or t_us <= t0 or t_us - t0 > self.prm.max_gap_us or self.snap.due(t0, t_us) \
-                or self.recorder is not None:
-            return self._after_push(t_us, k)
-        self.prediction.advance(st, self.history.live, k, t0, t_us)
-        self._output(t_us)
+                or self.recorder is not None or out.full or (st.pred.count + 1) % SYMMETRIZE_EVERY == 0:
+            return self._after_push(t_us, self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi))
+        self.prediction.sample(st, self.history.live, t0, t_us, out.push(t_us), t_us - self.last_update_t,
+                               self.recovery.recovering,
+                               bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)),
+                               fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
         return True
 
     def _after_push(self, t_us: int, k: int) -> bool:
