@@ -18,6 +18,9 @@
  *   OriUpd(n, theta, bias, dist, R, Rc, b, d, a, sums, incl y/H/R/dx, compass y/H/R/dx, h_g, cst, params)
  *       .acc_begin / .acc_end / .mag_fill / .mag_apply   the orientation updates around ct_kalman_update
  *
+ *   QuietSample(t, flags, starts, ends, before, after).find(head, count, after_t, t_imu, max_age_us)
+ *                                         track.burst_fusion.quiet_sample
+ *
  * The arrays are bound once (buffer protocol) at construction; the per-call methods are
  * METH_FASTCALL, read their numbers in place and create no Python object (they return None).
  */
@@ -758,6 +761,82 @@ static PyMethodDef OriUpd_methods[] = {
 FUS_TYPE(OriUpd, "OriUpd", "OriUpd(n, theta, bias, dist, R, Rc, b, d, a, sums, iy, iH, iR, idx, my, mH, mR, mdx, "
          "hg, cst, gravity, ..., heading_only): the orientation filter's updates around their Kalman update")
 
+/* ----------------------------------------------------------- QuietSample */
+typedef struct {
+    PyObject_HEAD
+    struct ct_quiet q;
+    fus_views views;
+} QuietSampleObject;
+
+FUS_DEALLOC(QuietSample)
+
+static int QuietSample_init(QuietSampleObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"t", "flags", "starts", "ends", "before", "after", NULL};
+    PyObject *o[4];
+    struct ct_quiet *q = &self->q;
+    Py_ssize_t cap, n;
+    long long before, after;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOLL", kwlist, &o[0], &o[1], &o[2], &o[3], &before, &after))
+        return -1;
+    if (fus_fresh(&self->views, "QuietSample") < 0)
+        return -1;
+    if ((cap = PyObject_Length(o[0])) < 0 || (n = PyObject_Length(o[2])) < 0)
+        return -1;
+    if (cap < 2 || PyObject_Length(o[1]) != cap || PyObject_Length(o[3]) != n) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "QuietSample: t and flags need the ring's length (>= 2), starts "
+                            "and ends the schedule's");
+        return -1;
+    }
+    if (!(q->tv = fus_bind(&self->views, o[0], cap, 'q', 0, "t")))
+        return -1;
+    if (ct_py_buffer(o[1], cap, 1, "B", 0, &self->views.v[self->views.n], "flags") < 0) {
+        fus_release(&self->views);
+        return -1;
+    }
+    q->fl = self->views.v[self->views.n++].buf;
+    if (!(q->ps = fus_bind(&self->views, o[2], n, 'q', 0, "starts")) ||
+        !(q->pe = fus_bind(&self->views, o[3], n, 'q', 0, "ends"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    q->cap = cap;
+    q->n = n;
+    q->before = before;
+    q->after = after;
+    return 0;
+}
+
+/* find(head, count, after_t, t_imu, max_age_us) -> slot or -1 */
+static PyObject *QuietSample_find(QuietSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long v[5];
+    int i;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "QuietSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("find", nargs, 5) < 0)
+        return NULL;
+    for (i = 0; i < 5; ++i)
+        if (fus_long(args[i], &v[i]) < 0)
+            return NULL;
+    if (v[0] < 0 || v[0] >= self->q.cap || v[1] < 0 || v[1] > self->q.cap) {
+        PyErr_SetString(PyExc_IndexError, "find: head or count outside the ring");
+        return NULL;
+    }
+    return PyLong_FromLongLong((long long)ct_quiet_sample(&self->q, v[0], v[1], v[2], v[3], v[4]));
+}
+
+static PyMethodDef QuietSample_methods[] = {
+    {"find", (PyCFunction)(void (*)(void))QuietSample_find, METH_FASTCALL,
+     "find(head, count, after_t, t_imu, max_age_us) -> slot or -1: track.burst_fusion.quiet_sample"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(QuietSample, "QuietSample", "QuietSample(t, flags, starts, ends, before, after): the compass sample "
+         "search (quiet_sample) bound to a magnetometer ring and a pulse schedule")
+
 /* --------------------------------------------------------------- register */
 static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -776,7 +855,7 @@ int ct_register_fusimu(PyObject *m)
     if (fus_add(m, &FusPredType, "FusPred") < 0 || fus_add(m, &FusRowType, "FusRow") < 0 ||
         fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0 ||
         fus_add(m, &OriUpdType, "OriUpd") < 0 ||
-        fus_add(m, &FusLiveType, "FusLive") < 0)
+        fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||

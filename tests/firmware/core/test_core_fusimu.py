@@ -427,3 +427,52 @@ def test_report_copies_the_output_row():
             with pytest.raises(TypeError, match="var"):
                 po.into_report(s, r)
     assert reps[0] == reps[1]
+
+
+def test_quiet_sample_matches_the_reference():
+    """The compass sample's search (``ct_quiet_sample``, ``ext.QuietSample`` through
+    ``PulseGate.sample_kernel``) against ``burst_fusion.quiet_sample`` on seeded rings: empty,
+    part-filled and wrapped, saturated samples, IMU times between, before and after the samples,
+    pulses around them, the age limit and the previous compass sample's time; the same slot
+    every time (integer logic: exact). The nearest sample found by brute force too, where one
+    qualifies. A search that stops at the newest sample, an inclusive age limit read as exclusive
+    or a pulse's fall time left out picks another sample."""
+    from coiltrack.firmware.measure.pulse import SampleRing
+    from coiltrack.firmware.track.burst_fusion import PulseGate, quiet_sample
+
+    ext = core.load("compiled").ext
+    rng = np.random.default_rng(23)
+    starts, ends = np.zeros(3, np.int64), np.zeros(3, np.int64)
+    gate = PulseGate(starts, ends, 600, 200)
+    agree = found = 0
+    for case in range(60):
+        ring = SampleRing(16)
+        k = gate.sample_kernel(ext, ring)
+        t = 1_000_000
+        for _ in range(int(rng.integers(0, 40))):
+            t += int(rng.integers(5000, 12000))
+            ring.push(t, 1e-5, 2e-5, -4e-5, rng.random() < 0.1, int(rng.integers(0, 2)))
+        t_first = ring.time_at(ring.slot(0)) if len(ring) else t
+        starts[:] = np.sort(rng.integers(t_first - 20000, t + 20000, 3))
+        ends[:] = starts + int(rng.integers(1000, 15000))
+        for _ in range(25):
+            t_imu = int(rng.integers(t_first - 30000, t + 30000))
+            after = int(rng.integers(t_first - 20000, t + 5000)) if rng.random() < 0.5 else -(1 << 62)
+            age = int(rng.choice([8000, 16666, 40000]))
+            want = quiet_sample(ring, after, t_imu, age, gate)
+            h = ring.last_pushed_slot() + 1
+            got = k.find(h if h < ring.capacity else 0, len(ring), after, t_imu, age)
+            assert got == want, (case, t_imu, after, age)
+            agree += 1
+            if want >= 0:
+                found += 1
+                tw = ring.time_at(want)
+                times = [ring.time_at(ring.slot(i)) for i in range(len(ring))]
+                assert abs(tw - t_imu) == min(abs(x - t_imu) for x in times)
+                assert tw > after and abs(tw - t_imu) <= age and not ring.saturated_at(want)
+                assert all(not (a - 200 <= tw <= b + 800) for a, b in zip(starts, ends))
+    assert agree == 1500 and found > 100
+    with pytest.raises(IndexError):
+        gate.sample_kernel(ext, SampleRing(16)).find(16, 0, 0, 0, 0)
+    with pytest.raises(TypeError, match="flags"):
+        ext.QuietSample(np.zeros(16, np.int64), np.zeros(16), starts, ends, 1, 2)
