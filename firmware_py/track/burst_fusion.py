@@ -162,8 +162,9 @@ class _Ori:
         self.gap_us = cfg.imu.imu_timeout_us     # a longer break in the IMU stream: the orientation is lost
         self.lost = False
         # the compass sample's search (quiet_sample) on the compiled core: bound to the magnetometer
-        # ring at its first sample (the ring a filter is fed from does not change), None: Python
-        self._ext = core.ext
+        # ring at its first sample (the ring a filter is fed from does not change); None: Python
+        # (also for a gate without the compiled search: track.ac's, always quiet)
+        self._ext = core.ext if getattr(gate, "sample_kernel", None) is not None else None
         self._qk = None
         self._qring = None
 
