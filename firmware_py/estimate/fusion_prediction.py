@@ -10,7 +10,9 @@ or the compiled core's (:meth:`InertialPrediction.step_compiled`,
 of a state is bound to it once (``core/src/fusimu.c``): the ring row a sample is kept in
 (:meth:`InertialPrediction.push`), the input interpolation with the step (``ct_fus_propagate``:
 :meth:`~InertialPrediction.propagate`, :meth:`~InertialPrediction.set_dt`,
-:meth:`~InertialPrediction.step_python`) and the history row (``ct_fus_to_source``).
+:meth:`~InertialPrediction.step_python`) and the history row (``ct_fus_to_source``); the
+live state's forward path of one sample (the row, the step, the history row and the queued
+pose) is one call (:meth:`InertialPrediction.sample`, ``ext.FusLive``).
 
 All buffers are created in ``__init__``; a step allocates no numpy array.
 """
