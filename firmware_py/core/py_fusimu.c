@@ -11,10 +11,15 @@
  *   FusOutput(n, P, Th, idv, hd, od, moving, stale_us, dr_after_us, dr_limit_us)
  *       .queue(slot, h, k, age, recovering, inconsistent)   PoseOutput.queue's row
  *       .report(slot, p, q, var) -> status                  PoseOutput.into_report's copy
+ *   FusLive(pred, row, out, hd).sample(k, nring, t0, t1, h, o, age, recovering, inconsistent, f, w, fsrc, Phi)
+ *                                         FusRow.store, FusPred.advance, FusOutput.queue in one call
  *   OriPred(R, bias, dist, acc, st, dist_corr, acc_corr_time_s)
  *       .predict(dt, wx, wy, wz, qwd)     OrientationFilter.predict after its time step
  *   OriUpd(n, theta, bias, dist, R, Rc, b, d, a, sums, incl y/H/R/dx, compass y/H/R/dx, h_g, cst, params)
  *       .acc_begin / .acc_end / .mag_fill / .mag_apply   the orientation updates around ct_kalman_update
+ *
+ *   QuietSample(t, flags, starts, ends, before, after).find(head, count, after_t, t_imu, max_age_us)
+ *                                         track.burst_fusion.quiet_sample
  *
  * The arrays are bound once (buffer protocol) at construction; the per-call methods are
  * METH_FASTCALL, read their numbers in place and create no Python object (they return None).
@@ -439,6 +444,134 @@ static PyMethodDef FusOutput_methods[] = {
 FUS_TYPE(FusOutput, "FusOutput", "FusOutput(n, P, Th, idv, icap, hd, hcap, od, ocap, moving, stale_us, "
          "dr_after_us, dr_limit_us): the fused output rows bound to the live state and history")
 
+/* ---------------------------------------------------------------- FusLive */
+/* The forward path of one IMU sample on the live state in one call: FusRow.store, FusPred.advance
+ * (ct_fus_propagate, ct_fus_to_source into the live history FusOutput is bound to) and
+ * FusOutput.queue, the same kernels in the same order (magnetic_inertial.FusionFilter.push_imu's
+ * step not split by a snapshot). */
+typedef struct {
+    PyObject_HEAD
+    FusPredObject *pred;
+    FusRowObject *row;
+    FusOutputObject *out;
+    double *hd;                     /* the live history's rows, writable (out->hd) */
+    fus_views views;
+} FusLiveObject;
+
+static void FusLive_dealloc(FusLiveObject *self)
+{
+    Py_XDECREF(self->pred);
+    Py_XDECREF(self->row);
+    Py_XDECREF(self->out);
+    fus_release(&self->views);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int FusLive_init(FusLiveObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"pred", "row", "out", "hd", NULL};
+    FusPredObject *pred;
+    FusRowObject *row;
+    FusOutputObject *out;
+    PyObject *hd;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!O!O", kwlist, &FusPredType, &pred, &FusRowType, &row,
+                                     &FusOutputType, &out, &hd))
+        return -1;
+    if (self->pred != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusLive: already bound");
+        return -1;
+    }
+    if (!pred->views.n || !row->views.n || !out->views.n) {
+        PyErr_SetString(PyExc_ValueError, "FusLive: pred, row and out must be bound");
+        return -1;
+    }
+    if (row->idv != pred->f.idv || out->idv != pred->f.idv || row->cap != pred->f.icap || out->icap != pred->f.icap ||
+        out->P != pred->f.ins.P || out->Th != pred->f.ins.Th || out->n != pred->f.ins.n ||
+        row->moving != pred->moving || out->moving != pred->moving) {
+        PyErr_SetString(PyExc_ValueError, "FusLive: pred, row and out must share the IMU ring, the state and the frame");
+        return -1;
+    }
+    if (!(self->hd = fus_bind(&self->views, hd, (Py_ssize_t)out->hcap * CT_HIST_WIDTH, 'd', 1, "hd")))
+        return -1;
+    if (self->hd != out->hd) {
+        fus_release(&self->views);
+        PyErr_SetString(PyExc_ValueError, "FusLive: hd must be the history rows out is bound to");
+        return -1;
+    }
+    Py_INCREF(pred);
+    Py_INCREF(row);
+    Py_INCREF(out);
+    self->pred = pred;
+    self->row = row;
+    self->out = out;
+    return 0;
+}
+
+/* sample(k, nring, t0, t1, h, o, age, recovering, inconsistent, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi):
+ * IMU ring row k := the sample (FusRow.store), the live state stepped over [t0, t1]
+ * (ct_fus_propagate), history row h := its pose in the source frame (ct_fus_to_source), and, when
+ * o >= 0, output row o := the fused pose with its variances and status (FusOutput.queue) */
+static PyObject *FusLive_sample(FusLiveObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    FusPredObject *pr = self->pred;
+    FusOutputObject *out = self->out;
+    double v[9], phi[9], *row, *hd;
+    long long nring, t0, t1, o, age;
+    int k, h, i, rec, inc;
+    if (pr == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusLive: not bound");
+        return NULL;
+    }
+    if (fus_nargs("sample", nargs, 19) < 0 || fus_slot(args[0], pr->f.icap, &k, "sample") < 0 ||
+        fus_long(args[1], &nring) < 0 || fus_long(args[2], &t0) < 0 || fus_long(args[3], &t1) < 0 ||
+        fus_slot(args[4], out->hcap, &h, "sample") < 0 || fus_long(args[5], &o) < 0 || fus_long(args[6], &age) < 0)
+        return NULL;
+    if (o < -1 || o >= out->ocap) {
+        PyErr_Format(PyExc_IndexError, "sample: output slot %lld outside -1..%d", o, out->ocap - 1);
+        return NULL;
+    }
+    if ((rec = PyObject_IsTrue(args[7])) < 0 || (inc = PyObject_IsTrue(args[8])) < 0)
+        return NULL;
+    for (i = 0; i < 9; ++i)
+        if (fus_double(args[9 + i], &v[i]) < 0)
+            return NULL;
+    if (pr->moving && fus_matrix3(args[18], phi) < 0)
+        return NULL;
+    row = self->row->idv + (long)k * CT_IMU_WIDTH;                   /* FusRow.store */
+    for (i = 0; i < 9; ++i)
+        row[CT_IMU_F + i] = v[i];
+    if (pr->moving)
+        for (i = 0; i < 9; ++i)
+            row[CT_IMU_PHI + i] = phi[i];
+    ct_fus_propagate(&pr->f, k, (int)nring, (int64_t)t0, (int64_t)t1);  /* FusPred.advance */
+    hd = self->hd + (long)h * CT_HIST_WIDTH;
+    ct_fus_to_source(row, pr->moving, pr->f.ins.p, pr->f.ins.Th, hd);
+    if (o >= 0)                                                     /* FusOutput.queue */
+        ct_fus_output(out->od + (long)o * CT_OUT_WIDTH, hd, out->P, out->n, out->Th, row, out->moving,
+                      (double)ct_fus_status((int64_t)age, (int64_t)out->stale_us, (int64_t)out->dr_after_us,
+                                            (int64_t)out->dr_limit_us, rec, inc));
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FusLive_methods[] = {
+    {"sample", (PyCFunction)(void (*)(void))FusLive_sample, METH_FASTCALL,
+     "sample(k, nring, t0, t1, h, o, age, recovering, inconsistent, f (3), w (3), fsrc (3), Phi): "
+     "FusRow.store, FusPred.advance and (o >= 0) FusOutput.queue in one call"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject FusLiveType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.FusLive",
+    .tp_basicsize = sizeof(FusLiveObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "FusLive(pred, row, out, hd): one IMU sample's forward step on the live state (row, step, history, "
+              "output) through the bound FusPred, FusRow and FusOutput",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)FusLive_init,
+    .tp_dealloc = (destructor)FusLive_dealloc,
+    .tp_methods = FusLive_methods,
+};
+
 /* ---------------------------------------------------------------- OriPred */
 typedef struct {
     PyObject_HEAD
@@ -628,6 +761,82 @@ static PyMethodDef OriUpd_methods[] = {
 FUS_TYPE(OriUpd, "OriUpd", "OriUpd(n, theta, bias, dist, R, Rc, b, d, a, sums, iy, iH, iR, idx, my, mH, mR, mdx, "
          "hg, cst, gravity, ..., heading_only): the orientation filter's updates around their Kalman update")
 
+/* ----------------------------------------------------------- QuietSample */
+typedef struct {
+    PyObject_HEAD
+    struct ct_quiet q;
+    fus_views views;
+} QuietSampleObject;
+
+FUS_DEALLOC(QuietSample)
+
+static int QuietSample_init(QuietSampleObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"t", "flags", "starts", "ends", "before", "after", NULL};
+    PyObject *o[4];
+    struct ct_quiet *q = &self->q;
+    Py_ssize_t cap, n;
+    long long before, after;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOLL", kwlist, &o[0], &o[1], &o[2], &o[3], &before, &after))
+        return -1;
+    if (fus_fresh(&self->views, "QuietSample") < 0)
+        return -1;
+    if ((cap = PyObject_Length(o[0])) < 0 || (n = PyObject_Length(o[2])) < 0)
+        return -1;
+    if (cap < 2 || PyObject_Length(o[1]) != cap || PyObject_Length(o[3]) != n) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "QuietSample: t and flags need the ring's length (>= 2), starts "
+                            "and ends the schedule's");
+        return -1;
+    }
+    if (!(q->tv = fus_bind(&self->views, o[0], cap, 'q', 0, "t")))
+        return -1;
+    if (ct_py_buffer(o[1], cap, 1, "B", 0, &self->views.v[self->views.n], "flags") < 0) {
+        fus_release(&self->views);
+        return -1;
+    }
+    q->fl = self->views.v[self->views.n++].buf;
+    if (!(q->ps = fus_bind(&self->views, o[2], n, 'q', 0, "starts")) ||
+        !(q->pe = fus_bind(&self->views, o[3], n, 'q', 0, "ends"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    q->cap = cap;
+    q->n = n;
+    q->before = before;
+    q->after = after;
+    return 0;
+}
+
+/* find(head, count, after_t, t_imu, max_age_us) -> slot or -1 */
+static PyObject *QuietSample_find(QuietSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long v[5];
+    int i;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "QuietSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("find", nargs, 5) < 0)
+        return NULL;
+    for (i = 0; i < 5; ++i)
+        if (fus_long(args[i], &v[i]) < 0)
+            return NULL;
+    if (v[0] < 0 || v[0] >= self->q.cap || v[1] < 0 || v[1] > self->q.cap) {
+        PyErr_SetString(PyExc_IndexError, "find: head or count outside the ring");
+        return NULL;
+    }
+    return PyLong_FromLongLong((long long)ct_quiet_sample(&self->q, v[0], v[1], v[2], v[3], v[4]));
+}
+
+static PyMethodDef QuietSample_methods[] = {
+    {"find", (PyCFunction)(void (*)(void))QuietSample_find, METH_FASTCALL,
+     "find(head, count, after_t, t_imu, max_age_us) -> slot or -1: track.burst_fusion.quiet_sample"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(QuietSample, "QuietSample", "QuietSample(t, flags, starts, ends, before, after): the compass sample "
+         "search (quiet_sample) bound to a magnetometer ring and a pulse schedule")
+
 /* --------------------------------------------------------------- register */
 static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -645,7 +854,8 @@ int ct_register_fusimu(PyObject *m)
 {
     if (fus_add(m, &FusPredType, "FusPred") < 0 || fus_add(m, &FusRowType, "FusRow") < 0 ||
         fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0 ||
-        fus_add(m, &OriUpdType, "OriUpd") < 0)
+        fus_add(m, &OriUpdType, "OriUpd") < 0 ||
+        fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||

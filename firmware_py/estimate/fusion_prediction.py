@@ -10,7 +10,9 @@ or the compiled core's (:meth:`InertialPrediction.step_compiled`,
 of a state is bound to it once (``core/src/fusimu.c``): the ring row a sample is kept in
 (:meth:`InertialPrediction.push`), the input interpolation with the step (``ct_fus_propagate``:
 :meth:`~InertialPrediction.propagate`, :meth:`~InertialPrediction.set_dt`,
-:meth:`~InertialPrediction.step_python`) and the history row (``ct_fus_to_source``).
+:meth:`~InertialPrediction.step_python`) and the history row (``ct_fus_to_source``); the
+live state's forward path of one sample (the row, the step, the history row and the queued
+pose) is one call (:meth:`InertialPrediction.sample`, ``ext.FusLive``).
 
 All buffers are created in ``__init__``; a step allocates no numpy array.
 """
@@ -76,10 +78,35 @@ class InertialPrediction:
                                          st.pred._T, self.imu.t, self.imu.d, st.ws, k[0], k[1], k[2], k[3], k[4],
                                          k[5], moving)
         self._row = ext.FusRow(self.imu.d, self.imu.capacity, moving)
+        self._ext = ext
         self.push = self._push_compiled
         self.propagate = self._propagate_compiled
         self.history = self._history_compiled
         self.advance = self._advance_compiled
+
+    def bind_live(self, st: InsState, hist: Ring, out_kernel) -> None:
+        """The compiled forward path of one sample (:meth:`sample`): ``st`` (one of the bound
+        states), the history ``hist`` and the output kernel ``out_kernel`` (``ext.FusOutput``,
+        bound to ``st``, this ring and ``hist``) in one ``ext.FusLive``."""
+        self._live = self._ext.FusLive(self._kern[st], self._row, out_kernel, hist.d)
+
+    def sample(self, st: InsState, hist: Ring, t0: int, t1: int, o: int, age: int, recovering: bool,
+               inconsistent: bool, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> None:
+        """:meth:`push` of the sample at ``t1``, :meth:`advance` of ``st`` (the state given to
+        :meth:`bind_live`) from ``t0`` and, when ``o >= 0``, ``PoseOutput.queue`` of its pose into
+        output row ``o`` (``age``: since the last accepted update, the status flags) in one call of
+        the compiled core (``ext.FusLive.sample``: ``ct_fus_propagate``, ``ct_fus_to_source``,
+        ``ct_fus_status``, ``ct_fus_output``, the kernels of those three, in their order). The
+        caller makes sure that the step is not split by a snapshot and that ``P`` is not
+        symmetrised after it (``ekf.CovariancePredict.after_predict``), which the queued
+        variances would read."""
+        imu = self.imu
+        k = imu.push(t1)
+        self._live.sample(k, len(imu), t0, t1, hist.push(t1), o, age, recovering, inconsistent, fx, fy, fz,
+                          wx, wy, wz, rx, ry, rz, Phi)
+        st.pred.after_predict(st.P)
+        self.steps += 1
+        st.set_time(t1)
 
     def _push_compiled(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> int:
         """:meth:`push` on the compiled core (the row written by ``ext.FusRow``)."""

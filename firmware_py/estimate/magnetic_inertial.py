@@ -112,7 +112,7 @@ All buffers are created in ``__init__``; a step allocates no numpy array.
 from __future__ import annotations
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.estimate.ekf import EKF_OK, KalmanUpdate
+from coiltrack.firmware.estimate.ekf import EKF_OK, SYMMETRIZE_EVERY, KalmanUpdate
 from coiltrack.firmware.estimate.fusion_measurement import make_measurement_model
 from coiltrack.firmware.estimate.fusion_output import (OUT_DEAD_RECKONING, OUT_FIELDS, OUT_INCONSISTENT,  # noqa: F401
                                                       OUT_LOST, OUT_P, OUT_Q, OUT_RECOVERED, OUT_STALE,
@@ -220,7 +220,52 @@ class FusionParams:
         self.bias_gate_sigmas = float(bias_gate_sigmas)
 
 
-class FusionFilter:
+class FilterView:
+    """The reads of a :class:`FusionFilter`: its live state, its parts and the queries on them
+    (each delegates to the part that owns the value)."""
+
+    # ------------------------------------------------------------ the live state, the parts
+    p = property(lambda self: self.st.p)
+    v = property(lambda self: self.st.v)
+    Th = property(lambda self: self.st.Th)
+    ba = property(lambda self: self.st.ba)
+    bg = property(lambda self: self.st.bg)
+    P = property(lambda self: self.st.P)
+    t_us = property(lambda self: self.st.t_us)
+    pred = property(lambda self: self.st.pred)
+    sn = property(lambda self: self.snap.st)
+    hist = property(lambda self: self.history.live)
+    source_fixed = property(lambda self: self.frame.fixed)
+    steps = property(lambda self: self.prediction.steps)
+    imu_t = property(lambda self: self.imu.t)
+    imu_d = property(lambda self: self.imu.d)
+    out_t = property(lambda self: self.output.out.t)
+    out_d = property(lambda self: self.output.out.d)
+    out_tv = property(lambda self: self.output.out.tv)
+    out_dv = property(lambda self: self.output.out.dv)
+    out_dropped = property(lambda self: self.output.dropped)
+    recoveries = property(lambda self: self.recovery.recoveries)
+    biases_kept = property(lambda self: self.recovery.biases_kept)
+    recovery_reason = property(lambda self: self.recovery.recovery_reason)
+
+    # ------------------------------------------------------------ queries
+    def pose_at(self, t_us: int, out_p, out_R) -> bool:
+        """Inertial pose in the source frame at ``t_us`` (``PoseHistory.pose_at``)."""
+        return self.history.pose_at(t_us, out_p, out_R)
+
+    def velocity_sigma(self) -> float:
+        """rms velocity uncertainty per axis of the live state, m/s."""
+        return self.st.velocity_sigma()
+
+    def speed_squared(self) -> float:
+        return self.st.speed_squared()
+
+    def nees(self, p_true_g, R_true_g, v_true_g=None) -> float:
+        """``InsState.nees`` of the live state (tests; allocates)."""
+        return self.st.nees(p_true_g, R_true_g, v_true_g)
+
+
+class FusionFilter(FilterView):
     """The thesis ch. 6 complementary error filter (see module docstring).
 
     Parameters
@@ -288,31 +333,8 @@ class FusionFilter:
         self.replays_lost = 0
         self.recorder = None       # optional offline hook (smoother); None on the board
         if self.st.ck is not None:
+            self.prediction.bind_live(self.st, self.history.live, self.output._ck)
             self.push_imu = self._push_imu_compiled
-
-    # ------------------------------------------------------------ the live state, the parts (read)
-    p = property(lambda self: self.st.p)
-    v = property(lambda self: self.st.v)
-    Th = property(lambda self: self.st.Th)
-    ba = property(lambda self: self.st.ba)
-    bg = property(lambda self: self.st.bg)
-    P = property(lambda self: self.st.P)
-    t_us = property(lambda self: self.st.t_us)
-    pred = property(lambda self: self.st.pred)
-    sn = property(lambda self: self.snap.st)
-    hist = property(lambda self: self.history.live)
-    source_fixed = property(lambda self: self.frame.fixed)
-    steps = property(lambda self: self.prediction.steps)
-    imu_t = property(lambda self: self.imu.t)
-    imu_d = property(lambda self: self.imu.d)
-    out_t = property(lambda self: self.output.out.t)
-    out_d = property(lambda self: self.output.out.d)
-    out_tv = property(lambda self: self.output.out.tv)
-    out_dv = property(lambda self: self.output.out.dv)
-    out_dropped = property(lambda self: self.output.dropped)
-    recoveries = property(lambda self: self.recovery.recoveries)
-    biases_kept = property(lambda self: self.recovery.biases_kept)
-    recovery_reason = property(lambda self: self.recovery.recovery_reason)
 
     def attach_recorder(self, recorder) -> None:
         """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only). Its
@@ -335,16 +357,18 @@ class FusionFilter:
         return self._after_push(t_us, k)
 
     def _push_imu_compiled(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> bool:
-        """:meth:`push_imu` on the compiled core: a step not split by a snapshot and not recorded
-        goes straight to its kernels (``InertialPrediction.advance``, ``PoseOutput.queue``)."""
-        k = self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
+        """:meth:`push_imu` on the compiled core: a step not split by a snapshot, not recorded, not followed
+        by ``P``'s symmetrisation (the queued variances read ``P``) and with room in the output queue is one
+        call (``InertialPrediction.sample``); any other goes through :meth:`_after_push`."""
         st = self.st
         t0 = st.t_us
+        out = self.output.out
         if not self.initialized or t_us <= t0 or t_us - t0 > self.prm.max_gap_us or self.snap.due(t0, t_us) \
-                or self.recorder is not None:
-            return self._after_push(t_us, k)
-        self.prediction.advance(st, self.history.live, k, t0, t_us)
-        self._output(t_us)
+                or self.recorder is not None or out.full or (st.pred.count + 1) % SYMMETRIZE_EVERY == 0:
+            return self._after_push(t_us, self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi))
+        self.prediction.sample(st, self.history.live, t0, t_us, out.push(t_us), t_us - self.last_update_t,
+                               self.recovery.recovering, bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)),
+                               fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
         return True
 
     def _after_push(self, t_us: int, k: int) -> bool:
@@ -616,19 +640,3 @@ class FusionFilter:
         self.history.restart_shadow()
         if self.recorder is not None:
             self.recorder.on_init(self, st)
-
-    # ------------------------------------------------------------ queries
-    def pose_at(self, t_us: int, out_p, out_R) -> bool:
-        """Inertial pose in the source frame at ``t_us`` (``PoseHistory.pose_at``)."""
-        return self.history.pose_at(t_us, out_p, out_R)
-
-    def velocity_sigma(self) -> float:
-        """rms velocity uncertainty per axis of the live state, m/s."""
-        return self.st.velocity_sigma()
-
-    def speed_squared(self) -> float:
-        return self.st.speed_squared()
-
-    def nees(self, p_true_g, R_true_g, v_true_g=None) -> float:
-        """``InsState.nees`` of the live state (tests; allocates)."""
-        return self.st.nees(p_true_g, R_true_g, v_true_g)

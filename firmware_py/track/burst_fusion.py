@@ -74,6 +74,12 @@ class PulseGate:
                 return False
         return True
 
+    def sample_kernel(self, ext, ring: SampleRing):
+        """:func:`quiet_sample` of ``ring`` with this gate on the compiled core
+        (``core/src/fusimu.c ct_quiet_sample``, ``ext.QuietSample``), bound to the ring's arrays and
+        the schedule's (read as they are at each call)."""
+        return ext.QuietSample(ring.t, ring.flags, self._ps, self._pe, self.before, self.after)
+
 
 class FlipOffset:
     """Residual set/reset offset of a flipped magnetoresistive sensor.
@@ -155,13 +161,29 @@ class _Ori:
         self.n = 0
         self.gap_us = cfg.imu.imu_timeout_us     # a longer break in the IMU stream: the orientation is lost
         self.lost = False
+        # the compass sample's search (quiet_sample) on the compiled core: bound to the magnetometer
+        # ring at its first sample (the ring a filter is fed from does not change); None: Python
+        # (also for a gate without the compiled search: track.ac's, always quiet)
+        self._ext = core.ext if getattr(gate, "sample_kernel", None) is not None else None
+        self._qk = None
+        self._qring = None
+
+    def _quiet(self, mag: SampleRing, t: int) -> int:
+        """:func:`quiet_sample` for the IMU sample at ``t``, on the filter's core."""
+        if self._ext is None:
+            return quiet_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
+        if mag is not self._qring:
+            self._qk = self.gate.sample_kernel(self._ext, mag)
+            self._qring = mag
+        h = mag.last_pushed_slot() + 1                 # (the ring's head: the next push's slot)
+        return self._qk.find(h if h < mag.capacity else 0, len(mag), self.compass_t, t, self.max_age_us)
 
     def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         f = self.f
         if f.initialized and t - f.t_us > self.gap_us:
             f.lose()                           # what the gyroscopes missed cannot be integrated
             self.lost = True
-        slot = quiet_sample(mag, self.compass_t, t, self.max_age_us, self.gate)
+        slot = self._quiet(mag, t)
         if slot >= 0:
             self.compass_t = mag.time_at(slot)
             st = 1 if mag.flip_at(slot) else 0

@@ -4,7 +4,8 @@
  * .propagate, .set_dt), its pose history and fused output rows (fusion_state.MovingSource /
  * FixedSource .to_source, .position_var, fusion_output.PoseOutput.queue, _quat_into,
  * rotation.quat_from_elements), and the orientation filter's per-sample prediction
- * (estimate.orientation.OrientationFilter.predict).  The same operations in the same order as
+ * (estimate.orientation.OrientationFilter.predict) with the choice of its compass sample
+ * (track.burst_fusion.quiet_sample).  The same operations in the same order as
  * the Python reference; state in caller-owned buffers.
  */
 #ifndef CT_FUSIMU_H
@@ -85,5 +86,20 @@ int ct_ori_incl_begin(struct ct_ori_meas *o, double ax, double ay, double az, do
 void ct_ori_apply(const struct ct_ori_meas *o, const double *dx);
 void ct_ori_post_acc(const struct ct_ori_meas *o);
 void ct_ori_compass_fill(const struct ct_ori_meas *o, double mx, double my, double mz);
+
+/* the compass sample of an orientation filter (track.burst_fusion.quiet_sample with
+ * measure.pulse.SampleRing.nearest_slot and PulseGate.quiet): the magnetometer ring's times tv and
+ * flags fl (cap slots; bit CT_SAMPLE_SATURATED, ct_window.h), the pulse schedule's starts ps and ends pe (n pulses), the gate's margins */
+struct ct_quiet {
+    const int64_t *tv;
+    const uint8_t *fl;
+    int64_t cap;
+    const int64_t *ps, *pe;
+    int64_t n, before, after;
+};
+/* the slot of the sample nearest t_imu in the ring at (head, count) if newer than after_t, within
+ * max_age_us of t_imu, not saturated and outside the pulses; else -1 */
+int64_t ct_quiet_sample(const struct ct_quiet *q, int64_t head, int64_t count, int64_t after_t, int64_t t_imu,
+                        int64_t max_age_us);
 
 #endif /* CT_FUSIMU_H */

@@ -12,6 +12,10 @@
  * - ct_ori_predict: estimate.orientation.OrientationFilter.predict (eq 2.27 strapdown, eq 2.5
  *   acceleration and eq 2.7 disturbance decay, the sums the covariance propagation composes).
  *
+ * - ct_quiet_sample: track.burst_fusion.quiet_sample with measure.pulse.SampleRing.nearest_slot and
+ *   PulseGate.quiet (the compass sample of the ch. 2 filter: thesis seeds/002_cd7f1fdb7fc67471.txt
+ *   ch. 2 needs the earth field alone, outside the coil pulses).
+ *
  * Each follows its Python reference operation by operation, in the same order.
  */
 #include <math.h>
@@ -393,4 +397,51 @@ void ct_ori_compass_fill(const struct ct_ori_meas *o, double mx, double my, doub
     o->mR[8] = r;
     if (o->heading_only)
         heading_rows(o, R[6], R[7], R[8], hx, hy, hz);
+}
+
+/* SampleRing.nearest_slot: back from the newest sample to the first at or before t, compared
+ * with the one after it */
+static int64_t nearest_slot(const struct ct_quiet *q, int64_t head, int64_t count, int64_t t)
+{
+    int64_t slot = head, best = -1, i;
+    for (i = 0; i < count; ++i) {
+        slot -= 1;
+        if (slot < 0)
+            slot += q->cap;
+        if (q->tv[slot] <= t) {
+            if (best < 0 || t - q->tv[slot] < q->tv[best] - t)
+                best = slot;
+            break;
+        }
+        best = slot;
+    }
+    return best;
+}
+
+/* PulseGate.quiet */
+static int pulse_quiet(const struct ct_quiet *q, int64_t t)
+{
+    int64_t j;
+    for (j = 0; j < q->n; ++j)
+        if (q->ps[j] - q->before <= t && t <= q->pe[j] + q->after)
+            return 0;
+    return 1;
+}
+
+/* track.burst_fusion.quiet_sample */
+int64_t ct_quiet_sample(const struct ct_quiet *q, int64_t head, int64_t count, int64_t after_t, int64_t t_imu,
+                        int64_t max_age_us)
+{
+    int64_t best = nearest_slot(q, head, count, t_imu), t, age;
+    if (best < 0)
+        return -1;
+    t = q->tv[best];
+    age = t - t_imu;
+    if (age < 0)
+        age = -age;
+    if (t <= after_t || age > max_age_us)
+        return -1;
+    if ((q->fl[best] & CT_SAMPLE_SATURATED) || !pulse_quiet(q, t))
+        return -1;
+    return best;
 }

@@ -121,6 +121,60 @@ def test_fused_samples_match_the_reference(fixed):
     assert ref.steps == got.steps > 400
 
 
+
+@pytest.mark.parametrize("fixed", [True, False])
+def test_one_call_sample_matches_the_reference(fixed):
+    """The forward path in one call (``ext.FusLive.sample`` through ``InertialPrediction.sample``)
+    against the Python reference over 300 samples whose fused poses are taken off the output
+    queue only every 20th sample, so the queue fills and drops: the queued rows, their times, the
+    drop count, the history and the state the same (to 1e-12: the reference's step goes through
+    BLAS), and bit-identical to the compiled kernels called one by one (``_after_push``), with
+    the one-call path taken for most samples and left for the steps after which ``P`` is
+    symmetrised (its variances would read it) and for a full queue. A pose queued before the
+    symmetrisation, a row written into a full queue or a history row of the previous step differ
+    by far more."""
+    rng = np.random.default_rng(7 + fixed)
+    ref, got = _fusion_pair(fixed)
+    sep = _fusion_pair(fixed)[1]             # the compiled kernels one call each
+    sep.push_imu = lambda t, *a: sep._after_push(t, sep.prediction.push(t, *a))
+    calls = []
+    one_call = got.prediction.sample
+    got.prediction.sample = lambda *a: (calls.append(a[4]), one_call(*a))   # (o: the output slot)
+    t = 2_000_000
+    s0 = _sample(rng, 1, fixed)
+    for ff in (ref, got, sep):
+        _start(ff, 9, t, s0)
+    for i in range(300):
+        t += 8333 + (i % 3 == 0)
+        s = _sample(rng, i, fixed)
+        assert ref.push_imu(t, *s) == got.push_imu(t, *s) == sep.push_imu(t, *s) is True, i
+        if i % 20 == 19:
+            while True:
+                kr, kg, ks = ref.pop_output(), got.pop_output(), sep.pop_output()
+                assert (kr < 0) == (kg < 0) == (ks < 0)
+                if kr < 0:
+                    break
+                assert ref.out_t[kr] == got.out_t[kg] == sep.out_t[ks]
+                assert ref.out_d[kr][OUT_STATUS] == got.out_d[kg][OUT_STATUS]
+                assert _rel(ref.out_d[kr], got.out_d[kg]) < 1e-12, i
+                np.testing.assert_array_equal(got.out_d[kg], sep.out_d[ks])
+                for ff in (ref, got, sep):
+                    ff.release_output()
+    assert ref.out_dropped == got.out_dropped == sep.out_dropped > 40
+    assert 150 < len(calls) < 300 - 300 // 16 and min(calls) >= 0
+    for name in ("p", "v", "Th", "ba", "bg", "P"):
+        assert _rel(getattr(ref.st, name), getattr(got.st, name)) < 1e-12, name
+    assert ref.st.t_us == got.st.t_us and ref.steps == got.steps
+    assert ref.st.pred.count == got.st.pred.count
+    np.testing.assert_array_equal(got.hist.t, ref.hist.t)
+    assert _rel(ref.hist.d, got.hist.d) < 1e-12
+    np.testing.assert_array_equal(got.imu.d, ref.imu.d)
+    np.testing.assert_array_equal(got.imu.t, ref.imu.t)
+    for name in ("p", "v", "Th", "ba", "bg", "P", "ws"):
+        np.testing.assert_array_equal(getattr(got.st, name), getattr(sep.st, name), err_msg=name)
+    np.testing.assert_array_equal(got.hist.d, sep.hist.d)
+
+
 def test_step_workspace_is_the_closed_form():
     """After one compiled step of dt: A's POS-VEL block dt I (eq 6.10), the offsets' decay
     exp(-dt / tau) (eqs 6.13-6.14) and Q's diagonal (sec 6.2.4: velocity (s_a^2 + s_as^2) dt^2,
@@ -320,6 +374,23 @@ def test_bad_bindings_are_refused():
     row = ext.FusRow(z(8, 18), 8, True)
     with pytest.raises(TypeError, match="Phi"):
         row.store(0, *([0.0] * 9), z(2, 2))
+    # the one-call sample: its parts must share the ring, the state and the history it writes
+    st = [z(n, n), z(3, 3)]
+    args[7], args[3] = st[0], st[1]
+    idv, hd, od = z(8, 18), z(8, 12), z(4, 14)
+    args[11] = idv
+    k = ext.FusPred(*args)
+    row = ext.FusRow(idv, 8, True)
+    out = ext.FusOutput(n, st[0], st[1], idv, 8, hd, 8, od, 4, True, 1, 2, 3)
+    live = ext.FusLive(k, row, out, hd)
+    with pytest.raises(IndexError, match="output slot"):
+        live.sample(1, 2, 0, 10, 0, 4, 0, False, False, *([0.0] * 9), np.eye(3))
+    with pytest.raises(ValueError, match="history"):
+        ext.FusLive(k, row, out, z(8, 12))
+    with pytest.raises(ValueError, match="share"):
+        ext.FusLive(k, ext.FusRow(z(8, 18), 8, True), out, hd)
+    with pytest.raises(TypeError):
+        ext.FusLive(row, k, out, hd)
 
 
 def test_report_copies_the_output_row():
@@ -356,3 +427,52 @@ def test_report_copies_the_output_row():
             with pytest.raises(TypeError, match="var"):
                 po.into_report(s, r)
     assert reps[0] == reps[1]
+
+
+def test_quiet_sample_matches_the_reference():
+    """The compass sample's search (``ct_quiet_sample``, ``ext.QuietSample`` through
+    ``PulseGate.sample_kernel``) against ``burst_fusion.quiet_sample`` on seeded rings: empty,
+    part-filled and wrapped, saturated samples, IMU times between, before and after the samples,
+    pulses around them, the age limit and the previous compass sample's time; the same slot
+    every time (integer logic: exact). The nearest sample found by brute force too, where one
+    qualifies. A search that stops at the newest sample, an inclusive age limit read as exclusive
+    or a pulse's fall time left out picks another sample."""
+    from coiltrack.firmware.measure.pulse import SampleRing
+    from coiltrack.firmware.track.burst_fusion import PulseGate, quiet_sample
+
+    ext = core.load("compiled").ext
+    rng = np.random.default_rng(23)
+    starts, ends = np.zeros(3, np.int64), np.zeros(3, np.int64)
+    gate = PulseGate(starts, ends, 600, 200)
+    agree = found = 0
+    for case in range(60):
+        ring = SampleRing(16)
+        k = gate.sample_kernel(ext, ring)
+        t = 1_000_000
+        for _ in range(int(rng.integers(0, 40))):
+            t += int(rng.integers(5000, 12000))
+            ring.push(t, 1e-5, 2e-5, -4e-5, rng.random() < 0.1, int(rng.integers(0, 2)))
+        t_first = ring.time_at(ring.slot(0)) if len(ring) else t
+        starts[:] = np.sort(rng.integers(t_first - 20000, t + 20000, 3))
+        ends[:] = starts + int(rng.integers(1000, 15000))
+        for _ in range(25):
+            t_imu = int(rng.integers(t_first - 30000, t + 30000))
+            after = int(rng.integers(t_first - 20000, t + 5000)) if rng.random() < 0.5 else -(1 << 62)
+            age = int(rng.choice([8000, 16666, 40000]))
+            want = quiet_sample(ring, after, t_imu, age, gate)
+            h = ring.last_pushed_slot() + 1
+            got = k.find(h if h < ring.capacity else 0, len(ring), after, t_imu, age)
+            assert got == want, (case, t_imu, after, age)
+            agree += 1
+            if want >= 0:
+                found += 1
+                tw = ring.time_at(want)
+                times = [ring.time_at(ring.slot(i)) for i in range(len(ring))]
+                assert abs(tw - t_imu) == min(abs(x - t_imu) for x in times)
+                assert tw > after and abs(tw - t_imu) <= age and not ring.saturated_at(want)
+                assert all(not (a - 200 <= tw <= b + 800) for a, b in zip(starts, ends))
+    assert agree == 1500 and found > 100
+    with pytest.raises(IndexError):
+        gate.sample_kernel(ext, SampleRing(16)).find(16, 0, 0, 0, 0)
+    with pytest.raises(TypeError, match="flags"):
+        ext.QuietSample(np.zeros(16, np.int64), np.zeros(16), starts, ends, 1, 2)
