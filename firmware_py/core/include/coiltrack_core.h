@@ -151,6 +151,10 @@ enum { CT_POSE_ID = 48, CT_POSE_PAYLOAD = 64, CT_POSE_CRC_EXTRA = 7,
        CT_POSE_FRAME_RAW = 5 + 64 + 2, CT_POSE_FRAME_MAX = 5 + 64 + 2 + 2 + 1 };
 #define CT_F32_MAX 3.0e38        /* transmit.F32_MAX: the variances are clamped to it */
 int ct_cobs_encode(const uint8_t *in, int n, uint8_t *out);
+/* protocol.framing.build_frame + encode_frame for a payload already in raw[5 .. 5 + len): the header
+ * (len, flags 0, seq, src, id), the CRC over header and payload and the message's CRC extra, COBS
+ * into out with its 0x00 delimiter; returns the encoded length (raw: room for len + 7) */
+int ct_frame_seal(uint8_t *raw, int len, int seq, int src, int id, uint8_t crc_extra, uint8_t *out);
 int ct_pose_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t t_us, const double *v, int64_t status,
                   int64_t quality);
 

@@ -47,7 +47,7 @@ struct ct_rx {
     int cap, max_encoded, max_payload;
 };
 
-uint16_t ct_rx_crc16(uint16_t crc, const uint8_t *p, int n);
+uint16_t ct_crc16(uint16_t crc, const uint8_t *p, int n);
 int ct_rx_cobs_decode(const uint8_t *in, int n, uint8_t *out);
 int ct_rx_feed(const struct ct_rx *d, const uint8_t *data, int64_t n, int64_t pos, int64_t now_us);
 

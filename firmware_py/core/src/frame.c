@@ -16,18 +16,6 @@
 
 #include "coiltrack_core.h"
 
-/* CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, not reflected), bit by bit: no table, no data */
-static uint16_t ct_crc16(uint16_t crc, const uint8_t *p, int n)
-{
-    int i, b;
-    for (i = 0; i < n; ++i) {
-        crc ^= (uint16_t)((uint16_t)p[i] << 8);
-        for (b = 0; b < 8; ++b)
-            crc = (uint16_t)((crc & 0x8000u) ? (((unsigned)crc << 1) ^ 0x1021u) : ((unsigned)crc << 1));
-    }
-    return crc;
-}
-
 /* struct's '<f': round to the nearest f32; a finite double beyond the f32 range is refused */
 static int ct_put_f32(uint8_t *o, double v)
 {
@@ -68,22 +56,32 @@ int ct_cobs_encode(const uint8_t *in, int n, uint8_t *out)
 
 /* POSE: the v[13] doubles are px, py, pz, qw, qx, qy, qz and the six variances, each clamped to
  * transmit.F32_MAX (_f32: a NaN too) */
+int ct_frame_seal(uint8_t *raw, int len, int seq, int src, int id, uint8_t crc_extra, uint8_t *out)
+{
+    uint16_t crc;
+    int k;
+    raw[0] = (uint8_t)len;
+    raw[1] = 0;
+    raw[2] = (uint8_t)(seq & 0xFF);
+    raw[3] = (uint8_t)(src & 0xFF);
+    raw[4] = (uint8_t)id;
+    crc = ct_crc16(ct_crc16(0xFFFFu, raw, 5 + len), &crc_extra, 1);
+    raw[5 + len] = (uint8_t)(crc & 0xFF);
+    raw[6 + len] = (uint8_t)(crc >> 8);
+    k = ct_cobs_encode(raw, len + 7, out);
+    out[k] = 0;
+    return k + 1;
+}
+
 int ct_pose_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t t_us, const double *v, int64_t status,
                   int64_t quality)
 {
     uint8_t raw[CT_POSE_FRAME_RAW];
     uint8_t *pl = raw + 5;
     uint64_t t;
-    uint16_t crc;
-    const uint8_t extra = CT_POSE_CRC_EXTRA;
-    int i, k;
+    int i;
     if (node < 0 || node > 0xFF || status < 0 || status > 0xFFFF || quality < 0 || quality > 0xFF)
         return -1;
-    raw[0] = CT_POSE_PAYLOAD;
-    raw[1] = 0;
-    raw[2] = (uint8_t)(seq & 0xFF);
-    raw[3] = (uint8_t)(src & 0xFF);
-    raw[4] = CT_POSE_ID;
     pl[0] = (uint8_t)node;
     t = t_us;
     for (i = 0; i < 8; ++i)
@@ -98,11 +96,5 @@ int ct_pose_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t t_us, c
     pl[61] = (uint8_t)status;
     pl[62] = (uint8_t)(status >> 8);
     pl[63] = (uint8_t)quality;
-    crc = ct_crc16(0xFFFFu, raw, 5 + CT_POSE_PAYLOAD);
-    crc = ct_crc16(crc, &extra, 1);
-    raw[5 + CT_POSE_PAYLOAD] = (uint8_t)(crc & 0xFF);
-    raw[6 + CT_POSE_PAYLOAD] = (uint8_t)(crc >> 8);
-    k = ct_cobs_encode(raw, CT_POSE_FRAME_RAW, out);
-    out[k] = 0;
-    return k + 1;
+    return ct_frame_seal(raw, CT_POSE_PAYLOAD, seq, src, CT_POSE_ID, CT_POSE_CRC_EXTRA, out);
 }

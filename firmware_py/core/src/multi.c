@@ -14,18 +14,6 @@
 
 #include "coiltrack_core.h"
 
-/* CRC-16/CCITT-FALSE (poly 0x1021, not reflected) of n bytes on from crc, bit by bit: no table */
-static uint16_t ct_multi_crc16(uint16_t crc, const uint8_t *p, int n)
-{
-    int i, b;
-    for (i = 0; i < n; ++i) {
-        crc ^= (uint16_t)((uint16_t)p[i] << 8);
-        for (b = 0; b < 8; ++b)
-            crc = (uint16_t)((crc & 0x8000u) ? (((unsigned)crc << 1) ^ 0x1021u) : ((unsigned)crc << 1));
-    }
-    return crc;
-}
-
 static void ct_put_u64(uint8_t *o, uint64_t v)
 {
     int i;
@@ -38,17 +26,9 @@ int ct_window_frame(uint8_t *out, int seq, int src, int64_t node, int64_t coil, 
 {
     uint8_t raw[CT_WINDOW_FRAME_RAW];
     uint8_t *pl = raw + 5;
-    uint16_t crc;
-    const uint8_t extra = CT_WINDOW_CRC_EXTRA;
-    int k;
     if (node < 0 || node > 0xFF || coil < 0 || coil > 0xFF || pulse_id < 0 || pulse_id > 0xFFFF || n_used < 0 ||
         n_used > 0xFF || n_base < 0 || n_base > 0xFF || flags < 0 || flags > 0xFF)
         return -1;
-    raw[0] = CT_WINDOW_PAYLOAD;
-    raw[1] = 0;
-    raw[2] = (uint8_t)(seq & 0xFF);
-    raw[3] = (uint8_t)(src & 0xFF);
-    raw[4] = CT_WINDOW_ID;
     pl[0] = (uint8_t)node;
     pl[1] = (uint8_t)coil;
     pl[2] = (uint8_t)pulse_id;
@@ -58,13 +38,7 @@ int ct_window_frame(uint8_t *out, int seq, int src, int64_t node, int64_t coil, 
     pl[20] = (uint8_t)n_used;
     pl[21] = (uint8_t)n_base;
     pl[22] = (uint8_t)flags;
-    crc = ct_multi_crc16(0xFFFFu, raw, 5 + CT_WINDOW_PAYLOAD);
-    crc = ct_multi_crc16(crc, &extra, 1);
-    raw[5 + CT_WINDOW_PAYLOAD] = (uint8_t)(crc & 0xFF);
-    raw[6 + CT_WINDOW_PAYLOAD] = (uint8_t)(crc >> 8);
-    k = ct_cobs_encode(raw, CT_WINDOW_FRAME_RAW, out);
-    out[k] = 0;
-    return k + 1;
+    return ct_frame_seal(raw, CT_WINDOW_PAYLOAD, seq, src, CT_WINDOW_ID, CT_WINDOW_CRC_EXTRA, out);
 }
 
 void ct_sigma_from(int64_t n, const double *var, double *sig, double floor)

@@ -21,7 +21,7 @@ enum { RX_HEADER = 5, RX_CRC = 2, RX_SIG = 13, RX_FLAG_SIGNED = 1 };
 
 /* CRC-16/CCITT-FALSE (poly 0x1021, not reflected) continued from crc over n bytes (crcmod's
  * mkCrcFun(0x11021, initCrc=0xFFFF, rev=False)) */
-uint16_t ct_rx_crc16(uint16_t crc, const uint8_t *p, int n)
+uint16_t ct_crc16(uint16_t crc, const uint8_t *p, int n)
 {
     int i, b;
     for (i = 0; i < n; ++i) {
@@ -147,7 +147,7 @@ static int ct_rx_frame(const struct ct_rx *d, const uint8_t *enc, int n, int64_t
     }
     end = RX_HEADER + length;
     extra = (uint8_t)d->extras[id];
-    crc = ct_rx_crc16(ct_rx_crc16(0xFFFF, raw, end), &extra, 1);
+    crc = ct_crc16(ct_crc16(0xFFFF, raw, end), &extra, 1);
     if (crc != (uint16_t)(raw[end] | (raw[end + 1] << 8))) {            /* CrcError */
         st[CT_RX_CRC_ERRORS] += 1;
         return 0;
