@@ -230,3 +230,23 @@ def add_fixed_comparison(rep: dict, scenario: Scenario, seed: int, duration_s: f
     rep["orientation_rms_ratio"] = ratio(rep.get("orientation_rms_deg"), ref.get("orientation_rms_deg"))
     rep["energy_ratio"] = ratio(rep.get("coil_energy_j"), ref.get("coil_energy_j"))
     return rep
+
+
+def record_log(sc: "Scenario", seed: int, duration: float, cfg=None):
+    """The frame log of an in-process bench run of scenario ``sc`` for ``duration`` s (its
+    configuration, or the :class:`FirmwareConfig` ``cfg``): the header and the reads, tick by tick,
+    as ``coiltrack bench --log`` writes them (for ``framelog.replay``)."""
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, seed, duration, emu_end)
+    cfg = cfg or sc.firmware_config()
+    port = RecordingPort(fw_end)
+    fw = Firmware(cfg, port)
+    t = 0
+    while t <= duration * 1e6:
+        bench.emulator.step(t)
+        port.now_us = t
+        fw.tick(t)
+        t += cfg.timing.tick_us
+    header = {"scenario": sc.name, "seed": seed, "duration_s": duration, "tick_us": cfg.timing.tick_us,
+              "config": config_to_dict(cfg)}
+    return header, port.reads

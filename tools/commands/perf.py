@@ -38,8 +38,7 @@ import numpy as np
 from .. import args as A
 from .. import scenarios
 from ..bench.alloc import NumpyAllocationCounter, available
-from ..bench.framelog import RecordingPort, config_to_dict, replay, load
-from ..bench.links import inproc_pair
+from ..bench.framelog import replay, load
 from ..bench.work_classes import TickWork, summarise
 
 HELP = "time the firmware tick on recorded inputs (per phase, allocations, state bytes, filterpy comparison)"
@@ -163,26 +162,11 @@ def _with_core(cfg, core):
 
 
 def _record(scenario: str, seed: int, duration: float, core=None):
-    from coiltrack.firmware.loop import Firmware
-
-    # imported where used here and below: the world's physics (magpylib) loads only when a run starts
-    from ..bench.runner import BenchSetup
+    # imported where used: the world's physics (magpylib) loads only when a run starts
+    from ..bench.runner import record_log
 
     sc = scenarios.get(scenario)
-    fw_end, emu_end = inproc_pair()
-    bench = BenchSetup(sc, seed, duration, emu_end)
-    cfg = _with_core(sc.firmware_config(), core)
-    port = RecordingPort(fw_end)
-    fw = Firmware(cfg, port)
-    t = 0
-    while t <= duration * 1e6:
-        bench.emulator.step(t)
-        port.now_us = t
-        fw.tick(t)
-        t += cfg.timing.tick_us
-    header = {"scenario": scenario, "seed": seed, "duration_s": duration, "tick_us": cfg.timing.tick_us,
-              "config": config_to_dict(cfg)}
-    return header, port.reads
+    return record_log(sc, seed, duration, _with_core(sc.firmware_config(), core))
 
 
 def _filter_steps(fw) -> dict:

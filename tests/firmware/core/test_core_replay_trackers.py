@@ -25,12 +25,10 @@ import pytest
 
 pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 
-from coiltrack.firmware.config import config_to_dict  # noqa: E402
 from coiltrack.firmware.loop import Firmware  # noqa: E402
 from coiltrack.firmware.transmit import POSE_VALID  # noqa: E402
 from coiltrack.tools import scenarios  # noqa: E402
-from coiltrack.tools.bench.framelog import RecordingPort, replay  # noqa: E402
-from coiltrack.tools.bench.links import inproc_pair  # noqa: E402
+from coiltrack.tools.bench.framelog import replay  # noqa: E402
 
 #: columns of a pose row: node, t_us, status, quality (compared exactly), then the floats
 EXACT = 4
@@ -38,24 +36,11 @@ EXACT = 4
 
 def _record(name: str, seed: int, duration: float, cfg=None):
     """The frame log of a bench run of scenario ``name`` (its configuration, or ``cfg``), recorded
-    on the compiled core (as ``coiltrack perf`` records: tools.commands.perf._record)."""
-    from coiltrack.tools.bench.runner import BenchSetup
+    on the compiled core (as ``coiltrack perf`` records)."""
+    from coiltrack.tools.bench.runner import record_log
 
     sc = scenarios.get(name)
-    cfg = (cfg or sc.firmware_config()).with_(core={"impl": "compiled"})
-    fw_end, emu_end = inproc_pair()
-    bench = BenchSetup(sc, seed, duration, emu_end)
-    port = RecordingPort(fw_end)
-    fw = Firmware(cfg, port)
-    t = 0
-    while t <= duration * 1e6:
-        bench.emulator.step(t)
-        port.now_us = t
-        fw.tick(t)
-        t += cfg.timing.tick_us
-    header = {"scenario": name, "seed": seed, "duration_s": duration, "tick_us": cfg.timing.tick_us,
-              "config": config_to_dict(cfg)}
-    return header, port.reads
+    return record_log(sc, seed, duration, (cfg or sc.firmware_config()).with_(core={"impl": "compiled"}))
 
 
 def _poses(header, reads, impl: str, cfg_change=None) -> np.ndarray:
