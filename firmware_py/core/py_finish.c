@@ -9,26 +9,21 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 /* a C-contiguous buffer of at least n items of `size` bytes whose format is one of `fmts`, or -1
  * with TypeError naming `what` (or, quiet, -1 with no error set) */
+/* ct_py_buffer (py_glue.h), and exactly n items when n > 0; quiet: no exception set on refusal (the
+ * caller falls back to the Python) */
 static int fin_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t size, const char *fmts, int writable, Py_buffer *v,
                       const char *what, int quiet)
 {
-    const char *f;
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, v, flags) < 0) {
+    if (ct_py_buffer(obj, n, size, fmts, writable, v, what) < 0) {
         if (quiet)
             PyErr_Clear();
-        else
-            PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
         return -1;
     }
-    f = v->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (f == NULL || v->itemsize != size || f[0] == '\0' || f[1] != '\0' || strchr(fmts, f[0]) == NULL ||
-        (n > 0 && v->len != n * size)) {
+    if (n > 0 && v->len != n * size) {
         PyBuffer_Release(v);
         if (!quiet)
             PyErr_Format(PyExc_TypeError, "%s: needs %zd items of %zd bytes (format %s)", what, n, size, fmts);
@@ -39,20 +34,12 @@ static int fin_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t size, const char *
 
 static int fin_double(PyObject *o, double *x)
 {
-    double v = PyFloat_AsDouble(o);
-    if (v == -1.0 && PyErr_Occurred())
-        return -1;
-    *x = v;
-    return 0;
+    return ct_py_double(o, x);
 }
 
 static int fin_int64(PyObject *o, int64_t *x)
 {
-    long long v = PyLong_AsLongLong(o);
-    if (v == -1 && PyErr_Occurred())
-        return -1;
-    *x = (int64_t)v;
-    return 0;
+    return ct_py_int64(o, x);
 }
 
 /* ------------------------------------------------------------ SolveFinish */

@@ -10,6 +10,7 @@
 #include <string.h>
 
 #include "coiltrack_core.h"
+#include "py_glue.h"
 
 /* an integer argument into *x; 0 (the error cleared) for anything struct.pack would refuse */
 static int mul_int64(PyObject *o, int64_t *x)
@@ -123,26 +124,10 @@ static PyObject *mul_sigma_from(PyObject *mod, PyObject *const *args, Py_ssize_t
 }
 
 /* ------------------------------------------------------------- WindowColumn */
-/* a C-contiguous buffer of at least n items of `size` bytes whose format is one of `fmts`, or -1
- * with TypeError naming `what` */
 static int mul_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t size, const char *fmts, int writable, Py_buffer *v,
                       const char *what)
 {
-    const char *f;
-    if (PyObject_GetBuffer(obj, v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0)) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: needs a %sC-contiguous buffer", what, writable ? "writable " : "");
-        return -1;
-    }
-    f = v->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (f == NULL || v->itemsize != size || f[0] == '\0' || f[1] != '\0' || strchr(fmts, f[0]) == NULL ||
-        v->len < n * size) {
-        PyBuffer_Release(v);
-        PyErr_Format(PyExc_TypeError, "%s: needs %zd items of %zd bytes (format %s)", what, n, size, fmts);
-        return -1;
-    }
-    return 0;
+    return ct_py_buffer(obj, n, size, fmts, writable, v, what);
 }
 
 #define WC_NBUF 15
