@@ -79,6 +79,11 @@ _UNBOUNDED = 1 << 62
 # beyond this sine of its elevation (~6 deg): near the plane both mirror
 # solutions are close to it and acquisition would pick the same one
 _HEMI_MARGIN = 0.1
+# the compiled warm path's state (core/include/ct_solve.h: CT_SV_*, the phases CT_PH_*)
+_SV_PHASE, _SV_STATUS, _SV_ITERATIONS, _SV_COST, _SV_CONVERGED = 0, 1, 2, 3, 4
+_SV_WARM, _SV_REACQUIRED, _SV_SIGMA_RMS, _SV_CHECK_HEMI, _SV_HEMI = 5, 6, 7, 8, 9
+_SV_SPENT, _SV_EVALS, _SV_NST = 12, 13, 14
+_PH_NONE, _PH_LM_START, _PH_ACQUIRE = 0, 1, 4
 
 
 def _gate(n: int, probability: float) -> float:
@@ -331,6 +336,7 @@ class PoseSolver(StagedSolve):
         self._cbar = tuple(float(v) for v in cbar)
         reach = float(max(c.radius for c in coils)) + float(np.linalg.norm(centers - cbar, axis=1).max())
         self._fit = _PoseFit(self.signal, self._Sv, self._wv, self._curv, step_tol)
+        self._lm_args = (1e-6, 1e12, self.iters, cost_tol, step_sigma)
         self._lm_py = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
         self._lm = self._lm_py
         #: the compiled LM (``core``), or None: used for every fit while the model has no
@@ -378,6 +384,100 @@ class PoseSolver(StagedSolve):
                                     self._fwork, ORTHONORMAL_TOL)
         self._load_hemisphere = self._load_hemisphere_compiled
         self._unit_finish = self._unit_finish_compiled
+        self._bind_run(ext)
+
+    def _bind_run(self, ext) -> None:
+        """The warm path in two compiled calls (``core/src/solve.c``): :meth:`begin`'s checks and
+        copies (``ct_solve_begin``) and a budget's run of the LM's start, its steps and the finish
+        (``ct_solve_run``, :meth:`_unit_run`) through a ``SolveRun`` bound to the fit's, the
+        compiled LM's and the results' buffers and its state ``_svst``. The acquisition stays in
+        the Python (its units, then the LM's start :meth:`_unit_lm_start_compiled`); a model with
+        a distortion map, or inputs the kernel does not take, go the units' way as before."""
+        if ext.SOLVE_NST != _SV_NST or ext.SOLVE_SPENT != _SV_SPENT or ext.SOLVE_EVALS != _SV_EVALS:
+            raise RuntimeError("the compiled core's solve state does not match pose.solver's")
+        self._svst = np.zeros(_SV_NST)
+        self._svv = memoryview(self._svst)
+        fit, lm, sig = self._fit, self._lm_c, self.signal
+        cx, cy, cz = self._cbar
+        lam0, lam_max, iters, cost_tol, step_sigma = self._lm_args
+        self._sv = ext.SolveRun(self.n, self.gate, cx, cy, cz, ORTHONORMAL_TOL, lam0, lam_max, iters, cost_tol,
+                                step_sigma, fit.step_tol,
+                                (sig._geom, sig.B, sig.J, fit.S, fit.w, fit.cur, fit._h, fit._H, fit.p, fit.p_t, fit.R,
+                                 fit.R_t, lm._A[0], lm._g[0], lm._A[1], lm._g[1], lm.d, lm._st, self.covariance,
+                                 self.rotation, self.position, self._m9, self._fwork, self._svst))
+        self._unit_c = self._unit_run                 # the compiled units' marker, one bound method (identity)
+        self.begin = self._begin_compiled
+        self._unit_lm_start = self._unit_lm_start_compiled
+
+    def _begin_compiled(self, S, currents, sigma, hemisphere=None, x0_position=None, x0_rotation=None) -> int:
+        """:meth:`begin` with its checks and copies in one compiled call (``ct_solve_begin``: the
+        same decisions, the same bits); a warm solve goes on in :meth:`_unit_run`."""
+        st = None
+        if self.signal.distortion is None:
+            st = self._sv.begin(S, sigma, currents, hemisphere, x0_position, x0_rotation)
+        if st is None:
+            return PoseSolver.begin(self, S, currents, sigma, hemisphere, x0_position, x0_rotation)
+        self.status = st
+        if st != SOLVE_RUNNING:
+            self._then(None)
+            return st
+        self._reacquired = False
+        self.solve_evals = 0
+        if x0_position is not None:
+            self._warm = True
+            self._lm = self._lm_c
+            self._then(self._unit_c, self.n)
+        else:
+            self._warm = False
+            self._sync_from_run()
+            self._start_acquisition()
+        return SOLVE_RUNNING
+
+    def _sync_from_run(self) -> None:
+        """The compiled begin's hemisphere check and ``sigma`` rms into the attributes the
+        acquisition and :meth:`_unit_lm_start_compiled` read."""
+        sv = self._svv
+        self._sigma_rms = sv[_SV_SIGMA_RMS]
+        self._check_hemi = sv[_SV_CHECK_HEMI] != 0.0
+        self._hemi = (sv[_SV_HEMI], sv[_SV_HEMI + 1], sv[_SV_HEMI + 2])
+
+    def _unit_lm_start_compiled(self) -> None:
+        """:meth:`_unit_lm_start` (after an acquisition, or a begin the kernel did not take): with
+        no distortion map, the solve's state into ``_svst`` and the LM's start as the first of the
+        compiled units (:meth:`_unit_run`)."""
+        if self.signal.distortion is not None:
+            PoseSolver._unit_lm_start(self)
+            return
+        sv = self._svv
+        sv[_SV_WARM] = 1.0 if self._warm else 0.0
+        sv[_SV_REACQUIRED] = 1.0 if self._reacquired else 0.0
+        sv[_SV_CHECK_HEMI] = 1.0 if self._check_hemi else 0.0
+        sv[_SV_HEMI], sv[_SV_HEMI + 1], sv[_SV_HEMI + 2] = self._hemi
+        sv[_SV_PHASE] = _PH_LM_START
+        self._lm = self._lm_c
+        self._then(self._unit_c, self.n)
+        self._unit_run()
+
+    def _unit_run(self) -> None:
+        """One compiled unit (the LM's start, a step or the finish: ``ct_solve_run`` with no
+        budget runs exactly one)."""
+        self._after_run(self._sv.run(0, 0))
+
+    def _after_run(self, phase: int) -> None:
+        """After a compiled run: its evaluations counted; finished, the results; the warm start
+        failed its checks, the acquisition begun."""
+        sv = self._svv
+        self.signal.charge(int(sv[_SV_EVALS]))
+        if phase == _PH_NONE:
+            self.iterations = int(sv[_SV_ITERATIONS])
+            self.cost = sv[_SV_COST]
+            self.converged = sv[_SV_CONVERGED] != 0.0
+            self.status = int(sv[_SV_STATUS])
+            self._then(None)
+        elif phase == _PH_ACQUIRE:
+            self._reacquired = True
+            self._sync_from_run()
+            self._start_acquisition()
 
     def _load_compiled(self, S, currents, sigma) -> bool:
         ok = self._io.load(S, sigma, currents)
@@ -433,20 +533,24 @@ class PoseSolver(StagedSolve):
         self._then(None)
 
     def _run_compiled(self, budget: int) -> int:
-        """:func:`staged.run_units` with the compiled LM's steps run in one call
-        (:meth:`_CompiledLM.run`): the same units, charges and evaluations."""
+        """:func:`staged.run_units` with the compiled units (:meth:`_unit_run`) run in one call
+        (``ct_solve_run``) and the Python LM's steps as units: the same units, charges and
+        evaluations."""
         signal = self.signal
         start = signal.evals
         spent = 0
+        unit_c = self._unit_c
         while self.next_unit is not None:
+            if self.next_unit is unit_c:
+                phase = self._sv.run(spent, budget)
+                spent = int(self._svv[_SV_SPENT])
+                self._after_run(phase)
+                if phase != _PH_NONE and phase != _PH_ACQUIRE:
+                    break                # the next unit does not fit
+                continue
             cost = self.next_cost
             if spent > 0 and spent + cost > budget:
                 break
-            if self.next_unit is self._unit_lm_steps and self._lm is self._lm_c:
-                spent += cost * self._lm_c.run(cost, spent, budget)
-                if self._lm_c.state != LM_RUNNING:
-                    self._then(self._unit_finish, self.n)
-                continue
             self.next_unit()
             spent += cost
         self.units_last = spent

@@ -1,0 +1,252 @@
+/*
+ * CPython glue of a pose solve's warm path (src/solve.c): the type SolveRun, bound once (start-up)
+ * to a PoseSolver's buffers (its fit's, its LM's, its results' and its state's); its per-call
+ * methods (METH_FASTCALL) take the solve's input arrays and ints, write into the bound buffers and
+ * create no Python object (the small ints they return are the interpreter's cached ones).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+#include "py_glue.h"
+
+/* the solver's caller-owned buffers: lengths in units of n (negative: a fixed count), writability */
+#define SR_NBUF 24
+static const char *sr_names[SR_NBUF] = {"geom", "B", "J", "S", "w", "cur", "h", "H", "p", "p_t", "R", "R_t",
+                                        "A0", "g0", "A1", "g1", "d", "lmst", "cov", "rotation", "position", "m9",
+                                        "work", "st"};
+static const int sr_per_n[SR_NBUF] = {CT_COIL_STRIDE, 3, 9, 3, 3, 1, 3, 18, -3, -3, -9, -9, -36, -6, -36, -6, -6,
+                                      -CT_LM_NST, -36, -9, -3, -9, -CT_ROBUST6_WORK, -CT_SV_NST};
+static const int sr_ro[SR_NBUF] = {1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_posefit f;
+    struct ct_lm lm;
+    struct ct_solve s;
+    Py_buffer views[SR_NBUF];
+    int bound;
+} SolveRunObject;
+
+static void SolveRun_dealloc(SolveRunObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < SR_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int SolveRun_init(SolveRunObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "gate", "cx", "cy", "cz", "tol", "lam0", "lam_max", "iters", "cost_tol",
+                             "step_sigma", "step_tol", "buffers", NULL};
+    PyObject *bufs, *seq;
+    double *ptr[SR_NBUF];
+    double gate, cx, cy, cz, tol, lam0, lam_max, cost_tol, step_sigma, step_tol;
+    int n, iters, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "idddddddidddO", kwlist, &n, &gate, &cx, &cy, &cz, &tol, &lam0,
+                                     &lam_max, &iters, &cost_tol, &step_sigma, &step_tol, &bufs))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "SolveRun: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 64) {
+        PyErr_Format(PyExc_ValueError, "SolveRun: n must be in 1..64, got %d", n);
+        return -1;
+    }
+    seq = PySequence_Fast(bufs, "SolveRun: buffers must be a sequence");
+    if (seq == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(seq) != SR_NBUF) {
+        Py_DECREF(seq);
+        PyErr_Format(PyExc_ValueError, "SolveRun: needs %d buffers", SR_NBUF);
+        return -1;
+    }
+    for (i = 0; i < SR_NBUF; ++i) {
+        Py_ssize_t len = sr_per_n[i] > 0 ? (Py_ssize_t)sr_per_n[i] * n : -(Py_ssize_t)sr_per_n[i];
+        if (ct_py_buffer(PySequence_Fast_GET_ITEM(seq, i), len, 8, "d", !sr_ro[i], &self->views[i], sr_names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            Py_DECREF(seq);
+            return -1;
+        }
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    Py_DECREF(seq);
+    self->f.n = n;
+    self->f.geom = ptr[0];
+    self->f.B = ptr[1];
+    self->f.J = ptr[2];
+    self->f.S = ptr[3];
+    self->f.w = ptr[4];
+    self->f.cur = ptr[5];
+    self->f.h = ptr[6];
+    self->f.H = ptr[7];
+    self->f.p = ptr[8];
+    self->f.p_t = ptr[9];
+    self->f.R = ptr[10];
+    self->f.R_t = ptr[11];
+    self->f.step_tol = step_tol;
+    self->lm.A[0] = ptr[12];
+    self->lm.g[0] = ptr[13];
+    self->lm.A[1] = ptr[14];
+    self->lm.g[1] = ptr[15];
+    self->lm.d = ptr[16];
+    self->lm.st = ptr[17];
+    self->lm.lam0 = lam0;
+    self->lm.lam_max = lam_max;
+    self->lm.iters = iters;
+    self->lm.cost_tol = cost_tol;
+    self->lm.step_sigma2 = step_sigma * step_sigma;
+    self->s.f = &self->f;
+    self->s.lm = &self->lm;
+    self->s.n = n;
+    self->s.gate = gate;
+    self->s.cbar[0] = cx;
+    self->s.cbar[1] = cy;
+    self->s.cbar[2] = cz;
+    self->s.tol = tol;
+    self->s.cov = ptr[18];
+    self->s.rot = ptr[19];
+    self->s.pos = ptr[20];
+    self->s.m9 = ptr[21];
+    self->s.work = ptr[22];
+    self->s.st = ptr[23];
+    self->bound = 1;
+    return 0;
+}
+
+/* a float64 buffer of shape (rows, cols) (cols 0: 1-D of rows items), any strides, or 0 (no error set) */
+static int sr_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    f = v->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8 || v->strides == NULL ||
+        (cols == 0 ? (v->ndim != 1 || v->shape[0] != rows)
+                   : (v->ndim != 2 || v->shape[0] != rows || v->shape[1] != cols)) ||
+        v->strides[0] % 8 != 0 || (cols > 0 && v->strides[1] % 8 != 0)) {
+        PyBuffer_Release(v);
+        return 0;
+    }
+    return 1;
+}
+
+/* the element (i, j) of a viewed matrix (j only for 2-D) */
+static double sr_at(const Py_buffer *v, Py_ssize_t i, Py_ssize_t j)
+{
+    const char *b = (const char *)v->buf + i * v->strides[0];
+    if (v->ndim == 2)
+        b += j * v->strides[1];
+    return *(const double *)b;
+}
+
+/* begin(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> status (ct_solve_begin: 1 bad input,
+ * 16 running, the phase in st) or None: an input of another kind (the caller's Python begin) */
+static PyObject *SolveRun_begin(SolveRunObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer v[6];
+    double hemi[3], x0p[3], x0R[9];
+    const double *ph = NULL, *pp = NULL, *pr = NULL;
+    int have[6] = {0, 0, 0, 0, 0, 0}, ok = 1, r = 0, i, j;
+    const Py_ssize_t n = self->s.n;
+    if (!self->bound || nargs != 6) {
+        PyErr_SetString(PyExc_TypeError, "SolveRun.begin(S, sigma, cur, hemisphere, x0_position, x0_rotation): "
+                                         "bound, six arguments");
+        return NULL;
+    }
+    if ((args[4] == Py_None) != (args[5] == Py_None))
+        Py_RETURN_NONE;
+    ok = (have[0] = sr_view(args[0], &v[0], 3, n)) && (have[1] = sr_view(args[1], &v[1], 3, n)) &&
+         v[0].strides[0] == v[1].strides[0] && v[0].strides[1] == v[1].strides[1] &&
+         (have[2] = sr_view(args[2], &v[2], n, 0)) && (args[3] == Py_None || (have[3] = sr_view(args[3], &v[3], 3, 0)))
+         && (args[4] == Py_None || ((have[4] = sr_view(args[4], &v[4], 3, 0)) && (have[5] = sr_view(args[5], &v[5], 3, 3))));
+    if (ok) {
+        if (have[3]) {
+            for (i = 0; i < 3; ++i)
+                hemi[i] = sr_at(&v[3], i, 0);
+            ph = hemi;
+        }
+        if (have[4]) {
+            for (i = 0; i < 3; ++i) {
+                x0p[i] = sr_at(&v[4], i, 0);
+                for (j = 0; j < 3; ++j)
+                    x0R[3 * i + j] = sr_at(&v[5], i, j);
+            }
+            pp = x0p;
+            pr = x0R;
+        }
+        r = ct_solve_begin(&self->s, (const double *)v[0].buf, (const double *)v[1].buf, v[0].strides[0] / 8,
+                           v[0].strides[1] / 8, (const double *)v[2].buf, v[2].strides[0] / 8, ph, pp, pr);
+    }
+    for (i = 0; i < 6; ++i)
+        if (have[i])
+            PyBuffer_Release(&v[i]);
+    if (!ok)
+        Py_RETURN_NONE;
+    return PyLong_FromLong(r);
+}
+
+/* run(spent, budget) -> phase (ct_solve_run); the units charged (spent included) into st[SPENT],
+ * the evaluations done into st[EVALS] */
+static PyObject *SolveRun_run(SolveRunObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t spent, budget;
+    double *st = self->s.st, *lst = self->lm.st;
+    int phase;
+    if (!self->bound || nargs != 2) {
+        PyErr_SetString(PyExc_TypeError, "SolveRun.run(spent, budget): bound, two arguments");
+        return NULL;
+    }
+    if (ct_py_int64(args[0], &spent) < 0 || ct_py_int64(args[1], &budget) < 0)
+        return NULL;
+    lst[CT_LM_EVALS] = 0.0;
+    phase = ct_solve_run(&self->s, &spent, budget);
+    st[CT_SV_SPENT] = (double)spent;
+    st[CT_SV_EVALS] = lst[CT_LM_EVALS];
+    return PyLong_FromLong(phase);
+}
+
+static PyMethodDef SolveRun_methods[] = {
+    {"begin", (PyCFunction)(void (*)(void))SolveRun_begin, METH_FASTCALL,
+     "begin(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> status or None (PoseSolver.begin's checks and "
+     "copies; None: an input of another kind)"},
+    {"run", (PyCFunction)(void (*)(void))SolveRun_run, METH_FASTCALL,
+     "run(spent, budget) -> phase: the LM's start, steps and the finish while they fit (staged.run_units)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SolveRunType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SolveRun",
+    .tp_basicsize = sizeof(SolveRunObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SolveRun(n, gate, cx, cy, cz, tol, lam0, lam_max, iters, cost_tol, step_sigma, step_tol, buffers): "
+              "a pose solver's warm path (begin, the LM units and the finish) bound to its buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SolveRun_init,
+    .tp_dealloc = (destructor)SolveRun_dealloc,
+    .tp_methods = SolveRun_methods,
+};
+
+int ct_register_solve(PyObject *m)
+{
+    if (PyType_Ready(&SolveRunType) < 0)
+        return -1;
+    Py_INCREF(&SolveRunType);
+    if (PyModule_AddObject(m, "SolveRun", (PyObject *)&SolveRunType) < 0) {
+        Py_DECREF(&SolveRunType);
+        return -1;
+    }
+    if (PyModule_AddIntConstant(m, "SOLVE_NST", CT_SV_NST) < 0 || PyModule_AddIntConstant(m, "SOLVE_SPENT", CT_SV_SPENT) < 0
+        || PyModule_AddIntConstant(m, "SOLVE_EVALS", CT_SV_EVALS) < 0)
+        return -1;
+    return 0;
+}
