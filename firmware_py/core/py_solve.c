@@ -215,7 +215,46 @@ static PyObject *SolveRun_run(SolveRunObject *self, PyObject *const *args, Py_ss
     return PyLong_FromLong(phase);
 }
 
+/* predict(p, R, currents, out) -> True or None: StagedSolve.predict_signals, out[:, j] = R^T B_j(p)
+ * (3, n) for the currents (n) through the bound model's geometry (ct_signal_fields without the
+ * gradient, ct_signal_project); None: an array of another kind (the caller's Python) */
+static PyObject *SolveRun_predict(SolveRunObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer v[4];
+    double R[9], cur[64], h[3 * 64];
+    const Py_ssize_t n = self->s.n;
+    const struct ct_posefit *f = &self->f;
+    int have[4] = {0, 0, 0, 0}, ok, i, j;
+    if (!self->bound || nargs != 4) {
+        PyErr_SetString(PyExc_TypeError, "SolveRun.predict(p, R, currents, out): bound, four arguments");
+        return NULL;
+    }
+    ok = (have[0] = sr_view(args[0], &v[0], 3, 0)) && (have[1] = sr_view(args[1], &v[1], 3, 3)) &&
+         (have[2] = sr_view(args[2], &v[2], n, 0)) && (have[3] = sr_view(args[3], &v[3], 3, n)) && !v[3].readonly;
+    if (ok) {
+        for (i = 0; i < 3; ++i)
+            for (j = 0; j < 3; ++j)
+                R[3 * i + j] = sr_at(&v[1], i, j);
+        for (j = 0; j < n; ++j)
+            cur[j] = sr_at(&v[2], j, 0);
+        ct_signal_fields(f->geom, (int)n, sr_at(&v[0], 0, 0), sr_at(&v[0], 1, 0), sr_at(&v[0], 2, 0), cur, 0, f->B,
+                         f->J);
+        ct_signal_project((int)n, R, f->B, h);
+        for (j = 0; j < n; ++j)
+            for (i = 0; i < 3; ++i)
+                *(double *)((char *)v[3].buf + i * v[3].strides[0] + j * v[3].strides[1]) = h[3 * j + i];
+    }
+    for (i = 0; i < 4; ++i)
+        if (have[i])
+            PyBuffer_Release(&v[i]);
+    if (!ok)
+        Py_RETURN_NONE;
+    Py_RETURN_TRUE;
+}
+
 static PyMethodDef SolveRun_methods[] = {
+    {"predict", (PyCFunction)(void (*)(void))SolveRun_predict, METH_FASTCALL,
+     "predict(p, R, currents, out) -> True or None (StagedSolve.predict_signals; None: an array of another kind)"},
     {"begin", (PyCFunction)(void (*)(void))SolveRun_begin, METH_FASTCALL,
      "begin(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> status or None (PoseSolver.begin's checks and "
      "copies; None: an input of another kind)"},

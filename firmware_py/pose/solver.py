@@ -408,6 +408,16 @@ class PoseSolver(StagedSolve):
         self._unit_c = self._unit_run                 # the compiled units' marker, one bound method (identity)
         self.begin = self._begin_compiled
         self._unit_lm_start = self._unit_lm_start_compiled
+        self.predict_signals = self._predict_signals_compiled
+
+    def _predict_signals_compiled(self, p, R, currents, out) -> None:
+        """:meth:`predict_signals` in one compiled call (the model's fields and projection,
+        ``SolveRun.predict``: the same operations, the same bits), ``n`` evaluations counted; a
+        model with a distortion map or arrays of another kind: the Python."""
+        if self.signal.distortion is None and self._sv.predict(p, R, currents, out):
+            self.signal.charge(1)
+            return
+        StagedSolve.predict_signals(self, p, R, currents, out)
 
     def _begin_compiled(self, S, currents, sigma, hemisphere=None, x0_position=None, x0_rotation=None) -> int:
         """:meth:`begin` with its checks and copies in one compiled call (``ct_solve_begin``: the
