@@ -282,82 +282,12 @@ class _CompiledLM:
         return k
 
 
-class PoseSolver(StagedSolve):
-    """Preallocated, resumable Kuipers + Levenberg-Marquardt pose solver.
-
-    Parameters
-    ----------
-    coils : sequence of ``field.Coil``, length n
-    model : {"exact", "dipole"}
-    iters : int
-        LM iteration limit (as ``solve_pose``).
-    gate_probability : float
-        Probability of the chi-square consistency gate of a warm start
-        (a key of ``estimate.ekf.CHI2_QUANTILES``; 1.0 disables the cost test).
-    core : coiltrack.firmware.core.Core
-        The numeric core, chosen at composition: on the compiled one the signal model and the
-        LM step with its cost (``_CompiledLM``) run in C, bit-identical to the Python.
-
-    After a solve: ``position`` (3,), ``rotation`` (3, 3), ``covariance``
-    (6, 6), ``iterations``, ``cost``, ``converged``, ``status``. Work
-    counters, in field evaluations: ``solve_evals`` (the last solve so
-    far), ``evals_last_step`` and ``max_evals_per_step`` (the most one
-    ``step`` did since :meth:`reset_step_stats`); ``signal.evals`` counts
-    every evaluation of the model.
-    """
-
-    memoryless = True      # begin resets every part (the LM, the acquisition, the warm-start checks)
-
-    def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999,
-                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0,
-                 core=_DEFAULT_CORE):
-        self.signal = SignalModel(coils, model, core)
-        n = self.signal.n
-        self.n = n
-        self.model = model
-        self.exact = model == "exact"
-        self.iters = int(iters)
-        self.gate = _gate(n, gate_probability)
-        init_results(self)              # position, rotation, covariance, iterations, cost, status
-        self._cov = flat(self.covariance)
-        # per-solve inputs in the signal layout [3 j + i]
-        self._S = np.zeros((n, 3))
-        self._w = np.zeros((n, 3))
-        self._cur = np.zeros(n)
-        self._Sv = flat(self._S)
-        self._wv = flat(self._w)
-        self._curv = memoryview(self._cur)
-        self._pcur = memoryview(np.zeros(n))         # predict_signals' own currents
-        self._hp = memoryview(np.zeros(3 * n))
-        self._m9 = memoryview(np.zeros(9))
-        self._rot3 = Rot3()
-        centers = np.array([c.center for c in coils], dtype=float)
-        cbar = centers.mean(axis=0)
-        self._cbar = tuple(float(v) for v in cbar)
-        reach = float(max(c.radius for c in coils)) + float(np.linalg.norm(centers - cbar, axis=1).max())
-        self._fit = _PoseFit(self.signal, self._Sv, self._wv, self._curv, step_tol)
-        self._lm_args = (1e-6, 1e12, self.iters, cost_tol, step_sigma)
-        self._lm_py = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
-        self._lm = self._lm_py
-        #: the compiled LM (``core``), or None: used for every fit while the model has no
-        #: distortion map (``model.distortion``, added to the field in Python)
-        self._lm_c = None
-        if self.signal.core == "compiled":
-            self._lm_c = _CompiledLM(core.ext, self._fit, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
-        self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
-        self._unit_lm_steps = self._unit_lm_step      # the LM step unit, one bound method (identity)
-        self._inv = RobustInverse6()
-        self._margin = RotationMargin()
-        self._hemi = (1.0, 0.0, 0.0)
-        self._check_hemi = False
-        self._sigma_rms = 0.0
-        self._warm = False
-        self._reacquired = False
-        self.solve_evals = 0
-        self.evals_last_step = 0
-        self.max_evals_per_step = 0
-        if self._lm_c is not None:
-            self._bind_compiled(core.ext)
+class _CompiledSolver:
+    """:class:`PoseSolver`'s compiled core (``core/src/window.c``, ``finish.c``, ``solve.c``): bound
+    once by :meth:`_bind_compiled`, which replaces the methods on the instance, so no call tests the
+    choice. The Python methods of :class:`PoseSolver` stay the reference; each method here does the
+    same operations in the same order (the same results to the bit) or hands inputs of another kind
+    to them."""
 
     def _bind_compiled(self, ext) -> None:
         """Run the solve's bookkeeping on the compiled core (``core/src/window.c``): the inputs'
@@ -565,6 +495,86 @@ class PoseSolver(StagedSolve):
             spent += cost
         self.units_last = spent
         return signal.evals - start
+
+
+class PoseSolver(_CompiledSolver, StagedSolve):
+    """Preallocated, resumable Kuipers + Levenberg-Marquardt pose solver.
+
+    Parameters
+    ----------
+    coils : sequence of ``field.Coil``, length n
+    model : {"exact", "dipole"}
+    iters : int
+        LM iteration limit (as ``solve_pose``).
+    gate_probability : float
+        Probability of the chi-square consistency gate of a warm start
+        (a key of ``estimate.ekf.CHI2_QUANTILES``; 1.0 disables the cost test).
+    core : coiltrack.firmware.core.Core
+        The numeric core, chosen at composition: on the compiled one the signal model, the LM
+        step with its cost (``_CompiledLM``), the begin's checks, a budget's run of the LM's
+        units with the finish and the predicted signals (``_CompiledSolver``) run in C,
+        bit-identical to the Python.
+
+    After a solve: ``position`` (3,), ``rotation`` (3, 3), ``covariance``
+    (6, 6), ``iterations``, ``cost``, ``converged``, ``status``. Work
+    counters, in field evaluations: ``solve_evals`` (the last solve so
+    far), ``evals_last_step`` and ``max_evals_per_step`` (the most one
+    ``step`` did since :meth:`reset_step_stats`); ``signal.evals`` counts
+    every evaluation of the model.
+    """
+
+    memoryless = True      # begin resets every part (the LM, the acquisition, the warm-start checks)
+
+    def __init__(self, coils, model: str = "exact", iters: int = 20, gate_probability: float = 0.999,
+                 step_tol: float = STEP_TOL, cost_tol: float = COST_TOL, step_sigma: float = 0.0,
+                 core=_DEFAULT_CORE):
+        self.signal = SignalModel(coils, model, core)
+        n = self.signal.n
+        self.n = n
+        self.model = model
+        self.exact = model == "exact"
+        self.iters = int(iters)
+        self.gate = _gate(n, gate_probability)
+        init_results(self)              # position, rotation, covariance, iterations, cost, status
+        self._cov = flat(self.covariance)
+        # per-solve inputs in the signal layout [3 j + i]
+        self._S = np.zeros((n, 3))
+        self._w = np.zeros((n, 3))
+        self._cur = np.zeros(n)
+        self._Sv = flat(self._S)
+        self._wv = flat(self._w)
+        self._curv = memoryview(self._cur)
+        self._pcur = memoryview(np.zeros(n))         # predict_signals' own currents
+        self._hp = memoryview(np.zeros(3 * n))
+        self._m9 = memoryview(np.zeros(9))
+        self._rot3 = Rot3()
+        centers = np.array([c.center for c in coils], dtype=float)
+        cbar = centers.mean(axis=0)
+        self._cbar = tuple(float(v) for v in cbar)
+        reach = float(max(c.radius for c in coils)) + float(np.linalg.norm(centers - cbar, axis=1).max())
+        self._fit = _PoseFit(self.signal, self._Sv, self._wv, self._curv, step_tol)
+        self._lm_args = (1e-6, 1e12, self.iters, cost_tol, step_sigma)
+        self._lm_py = LevenbergMarquardt(6, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
+        self._lm = self._lm_py
+        #: the compiled LM (``core``), or None: used for every fit while the model has no
+        #: distortion map (``model.distortion``, added to the field in Python)
+        self._lm_c = None
+        if self.signal.core == "compiled":
+            self._lm_c = _CompiledLM(core.ext, self._fit, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
+        self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
+        self._unit_lm_steps = self._unit_lm_step      # the LM step unit, one bound method (identity)
+        self._inv = RobustInverse6()
+        self._margin = RotationMargin()
+        self._hemi = (1.0, 0.0, 0.0)
+        self._check_hemi = False
+        self._sigma_rms = 0.0
+        self._warm = False
+        self._reacquired = False
+        self.solve_evals = 0
+        self.evals_last_step = 0
+        self.max_evals_per_step = 0
+        if self._lm_c is not None:
+            self._bind_compiled(core.ext)
 
     # ------------------------------------------------------------ public
     def solve(self, S, currents, sigma, hemisphere=None, x0_position=None, x0_rotation=None) -> int:
