@@ -85,6 +85,7 @@ class Transmitter:
         self._own = PoseReport()  # the record of pose_cov6 and pose_unknown
         self._bind(core)
         self._bind_window(core)
+        self._bind_cov6()
 
     def send(self, msg) -> None:
         try:
@@ -124,6 +125,37 @@ class Transmitter:
         v[0], v[1], v[2] = float(cov[0, 0]), float(cov[1, 1]), float(cov[2, 2])
         v[3], v[4], v[5] = float(cov[3, 3]), float(cov[4, 4]), float(cov[5, 5])
         self.pose(r)
+
+    def _bind_cov6(self) -> None:
+        """:meth:`pose_cov6` on the compiled core: the frame built from the arguments in one
+        ``ct_pose_frame`` call (:meth:`_pose_cov6_compiled`), without the record in between."""
+        if self.core != "compiled":
+            return
+        self._pose_cov6_via = self.pose        # the bound :meth:`_pose_compiled`
+        self.pose_cov6 = self._pose_cov6_compiled
+
+    def _pose_cov6_compiled(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
+        """:meth:`pose_cov6` on the compiled core: the same values into ``ct_pose_frame`` as
+        :meth:`pose_cov6` hands :meth:`_pose_compiled` (read as ``float()`` reads them: the same
+        bytes); while :meth:`pose` is not
+        the one bound at start-up (a recorder wraps it) every pose goes through it."""
+        if self.pose is not self._pose_cov6_via:
+            Transmitter.pose_cov6(self, node, t_us, p, q, cov, status, quality)
+            return
+        frame = self._pose_frame(self._seq, self.node_id, node, t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3],
+                                 cov[0, 0], cov[1, 1], cov[2, 2], cov[3, 3], cov[4, 4], cov[5, 5], status, quality)
+        if frame is None:
+            self.tx_errors += 1                # a value the wire format refuses (struct.pack's error)
+        else:
+            self._seq = (self._seq + 1) & 0xFF
+            try:
+                self.port.write(frame)
+            except Exception:  # a full or broken link must not stop the loop
+                self.tx_errors += 1
+        if status & POSE_VALID:
+            self.poses += 1
+            if status & POSE_FUSED:
+                self.fused_poses += 1
 
     def pose_unknown(self, node: int, t_us: int, p, q, status: int) -> None:
         """A POSE whose covariance is unknown (every variance at the f32 maximum, quality 0)."""

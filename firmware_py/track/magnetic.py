@@ -130,6 +130,8 @@ class MagneticTracker:
         self._curv = memoryview(self.currents)
         self._nomv = memoryview(self.nominal)
         self._measv = memoryview(schedule.measured)
+        self._startv = memoryview(schedule.start)      # int64: read as Python ints
+        self._endv = memoryview(schedule.end)
         self.poses = {ch.node: TrackedPose(cfg.source.hemisphere) for ch in self.channels}
         self._next = -1                  # index of the channel being solved; -1: idle
         self._handover = False           # the start of channel _next waits for the next tick
@@ -391,7 +393,7 @@ class MagneticTracker:
         sched = self.schedule
         tp = self.poses[ch.node]
         sv = self.solver
-        t_pose = (int(sched.start[0]) + int(sched.end[-1])) // 2      # the middle of the burst
+        t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
         if solved and not self._take_solution(tp):
             # a diverged start led the solve out of the working volume: no pose; acquire again
             solved = False

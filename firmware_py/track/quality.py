@@ -95,6 +95,7 @@ class PoseQuality:
         self.earth = float(cfg.orientation.earth_field_t)
         self.quiet_sigma = float(cfg.quality.quality_quiet_sigma_t)
         self.dof = 3 * int(n_coils) - 6
+        self._quiet_off = self.quiet_sigma <= 0.0 or self.earth <= 0.0      # quiet_term is 0
         self._rings = {ch.node: (ch.ring, ch.ring.bv) for ch in channels
                        if hasattr(ch, "ring")}
         self.last = {ch.node: 0 for ch in channels}     # the last quality per node (0 before any)
@@ -155,12 +156,15 @@ class PoseQuality:
 
     def quiet_term(self, node: int) -> float:
         """``((|B| - earth_field_t) / sigma)^2`` of the newest sample of ``node`` (0 if unused)."""
-        if self.quiet_sigma <= 0.0 or self.earth <= 0.0:
+        if self._quiet_off:
             return 0.0
         rv = self._rings.get(node)
-        if rv is None or len(rv[0]) == 0:
+        if rv is None:
             return 0.0
-        p = 3 * rv[0].peek(0)
+        p = rv[0].peek(0)                # -1: the ring is empty
+        if p < 0:
+            return 0.0
+        p *= 3
         b = rv[1]
         m = math.sqrt(b[p] * b[p] + b[p + 1] * b[p + 1] + b[p + 2] * b[p + 2])
         z = (m - self.earth) / self.quiet_sigma
