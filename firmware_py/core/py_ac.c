@@ -47,9 +47,9 @@ enum { DM_RT, DM_RB, DM_RF, DM_NRING };
 typedef struct {
     PyObject_HEAD
     struct ct_demod d;
-    Py_buffer views[DM_NBUF], ring[DM_NRING];
+    Py_buffer views[DM_NBUF], ring[DM_NRING], phase;
     int64_t cap;
-    int nbound, ring_bound;
+    int nbound, ring_bound, phase_bound;
 } DemodObject;
 
 static void Demod_release(DemodObject *self)
@@ -62,6 +62,9 @@ static void Demod_release(DemodObject *self)
         for (i = 0; i < DM_NRING; ++i)
             PyBuffer_Release(&self->ring[i]);
     self->ring_bound = 0;
+    if (self->phase_bound)
+        PyBuffer_Release(&self->phase);
+    self->phase_bound = 0;
 }
 
 static void Demod_dealloc(DemodObject *self)
@@ -70,21 +73,22 @@ static void Demod_dealloc(DemodObject *self)
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* Demod(n, slots, window_us, hop_us, sigma2, bufs, ring): bufs the 24 arrays in the order of
- * Demodulator._bind; ring None or (t, b, flags) of the channel's SampleRing */
+/* Demod(n, slots, window_us, hop_us, sigma2, bufs, ring[, phase]): bufs the 24 arrays in the order of
+ * Demodulator._bind; ring None or (t, b, flags) of the channel's SampleRing; phase None or the drive's
+ * measured current phases (n, the actuation's array: step reads them) */
 static int Demod_init(DemodObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"n", "slots", "window_us", "hop_us", "sigma2", "bufs", "ring", NULL};
+    static char *kwlist[] = {"n", "slots", "window_us", "hop_us", "sigma2", "bufs", "ring", "phase", NULL};
     static const char *names[DM_NBUF] = {"freqs", "h", "cph", "sph", "G", "R", "BB", "count", "flags", "kslot",
                                          "phi", "Gf", "L", "Ginv", "x", "b", "X", "S", "Q", "var", "qvar", "dc",
                                          "st", "out"};
     int n, slots, i, p;
     long long window_us, hop_us;
     double sigma2;
-    PyObject *bufs, *ring;
+    PyObject *bufs, *ring, *phase = Py_None;
     Py_ssize_t want[DM_NBUF];
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiLLdOO", kwlist, &n, &slots, &window_us, &hop_us, &sigma2, &bufs,
-                                     &ring))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiLLdOO|O", kwlist, &n, &slots, &window_us, &hop_us, &sigma2, &bufs,
+                                     &ring, &phase))
         return -1;
     if (self->nbound) {
         PyErr_SetString(PyExc_RuntimeError, "Demod: already bound");
@@ -138,6 +142,13 @@ static int Demod_init(DemodObject *self, PyObject *args, PyObject *kw)
             return -1;
         }
         self->ring_bound = 1;
+    }
+    if (phase != Py_None) {
+        if (ac_buffer(phase, n, 8, "d", 0, &self->phase, "phase") < 0) {
+            Demod_release(self);
+            return -1;
+        }
+        self->phase_bound = 1;
     }
 #define DBUF(i) ((double *)self->views[i].buf)
 #define IBUF(i) ((int64_t *)self->views[i].buf)
@@ -203,6 +214,31 @@ static PyObject *Demod_feed(DemodObject *self, PyObject *const *args, Py_ssize_t
     Py_RETURN_FALSE;
 }
 
+/* step(count, last, left, signal_gate, ratio_max, q_gate) -> int: the CT_DMS_* bits of ct_demod_step over
+ * the bound ring (count entries, the newest in slot last) and the bound phases */
+static PyObject *Demod_step(DemodObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t count, last, left;
+    double sg, rm, qg;
+    if (Demod_ready(self) < 0 || ac_nargs("step", nargs, 6) < 0)
+        return NULL;
+    if (!self->ring_bound || !self->phase_bound) {
+        PyErr_SetString(PyExc_RuntimeError, "Demod: no ring or no phases bound");
+        return NULL;
+    }
+    if (ac_int64(args[0], &count) < 0 || ac_int64(args[1], &last) < 0 || ac_int64(args[2], &left) < 0 ||
+        ac_double(args[3], &sg) < 0 || ac_double(args[4], &rm) < 0 || ac_double(args[5], &qg) < 0)
+        return NULL;
+    if (count < 0 || count > self->cap || (count > 0 && (last < 0 || last >= self->cap))) {
+        PyErr_SetString(PyExc_ValueError, "step: count or last outside the ring");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_demod_step(&self->d, (const double *)self->phase.buf,
+                                         (const int64_t *)self->ring[DM_RT].buf, (const double *)self->ring[DM_RB].buf,
+                                         (const uint8_t *)self->ring[DM_RF].buf, self->cap, count, last, left, sg,
+                                         rm, qg));
+}
+
 /* finish(k) -> bool */
 static PyObject *Demod_finish(DemodObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -223,6 +259,8 @@ static PyMethodDef Demod_methods[] = {
      "push(t, bx, by, bz, sample_flags) -> k: as Demodulator.push"},
     {"feed", (PyCFunction)(void (*)(void))Demod_feed, METH_FASTCALL,
      "feed(count, last, left) -> bool: as Demodulator.feed over the bound ring"},
+    {"step", (PyCFunction)(void (*)(void))Demod_step, METH_FASTCALL,
+     "step(count, last, left, signal_gate, ratio_max, q_gate) -> int: as Demodulator.step"},
     {"finish", (PyCFunction)(void (*)(void))Demod_finish, METH_FASTCALL,
      "finish(k) -> bool: as Demodulator.finish, with the block's statistics into out"},
     {NULL, NULL, 0, NULL}};

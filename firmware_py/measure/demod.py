@@ -66,6 +66,8 @@ _NST = 10
 # the block's figures besides S, Q, var, dc, a float64 array (``Demodulator._out``; CT_DMO_*)
 _RESID, _SIGNAL_CHI2, _QUAD_CHI2, _QUAD_RATIO = range(4)
 _NOUT = 4
+# :meth:`Demodulator.step`'s result bits (``ct_ac.h``: CT_DMS_*)
+STEP_FINISHED, STEP_SOLVED, STEP_NO_SIGNAL, STEP_DISTORTED = 1, 2, 4, 8
 _NO_TIME = -(1 << 62)
 
 
@@ -98,7 +100,7 @@ class Demodulator:
     """
 
     def __init__(self, freqs_hz, window_us: int, hop_us: int, sigma_t: float, integration_us: int, ring=None,
-                 core=_DEFAULT_CORE):
+                 core=_DEFAULT_CORE, currents=None):
         n = len(freqs_hz)
         if window_us % hop_us:
             raise ValueError("window_us must be a multiple of hop_us")
@@ -124,6 +126,9 @@ class Demodulator:
         self._sph = np.zeros(n)
         self.cph, self.sph = memoryview(self._cph), memoryview(self._sph)
         self.ring = ring
+        # the drive's measured current phasors (amplitude, phase: (n,) arrays the actuation owns) that
+        # :meth:`step` takes for each block it solves
+        self._currents = currents
         #: the numeric core this demodulator runs, bound once here (``coiltrack.firmware.core``)
         self.core = "python"
         if core.ext is not None and n <= 64:
@@ -178,11 +183,14 @@ class Demodulator:
                 self.dc, self._st, self._out)
         r = self.ring
         ring = None if r is None else (r.t, r.b, r.flags)
-        self._ck = ext.Demod(self.n, self.slots, self.window_us, self.hop_us, self.sigma2, bufs, ring)
+        phase = None if self._currents is None else self._currents[1]
+        self._ck = ext.Demod(self.n, self.slots, self.window_us, self.hop_us, self.sigma2, bufs, ring, phase)
         self._keep = (freqs, h)
         self.push = self._ck.push
         self.finish = self._ck.finish
         self.feed = self._feed_compiled
+        if phase is not None and r is not None:
+            self.step = self._step_compiled
         self.signal_chi2 = self._signal_chi2_compiled
         self.quadrature_chi2 = self._quadrature_chi2_compiled
         self.quadrature_ratio = self._quadrature_ratio_compiled
@@ -289,6 +297,34 @@ class Demodulator:
     def _feed_compiled(self, left: int) -> bool:
         ring = self.ring
         return self._ck.feed(len(ring), ring.last_pushed_slot(), left)
+
+    def step(self, left: int, signal_gate: float, ratio_max: float, q_gate: float) -> int:
+        """One tick of this channel (``measure.ac_blocks.ACBlockMeasurement``): the block the
+        last :meth:`feed` completed is solved (:meth:`finish`) at the drive's current phasors of
+        now (``currents``), else :meth:`feed` takes up to ``left`` new samples. A solved block
+        whose ``signal_chi2`` is below ``signal_gate`` (no coil field: the drive is off) is
+        flagged ``PULSE_TOO_FEW``; one whose ``quadrature_ratio`` exceeds ``ratio_max`` and
+        whose ``quadrature_chi2`` exceeds ``q_gate`` is distorted. Returns the ``STEP_*`` bits
+        (0: fed; ``block_k`` the block finished)."""
+        k = self._stv[_PENDING]
+        if k < 0:
+            self.feed(left)
+            return 0
+        self._stv[_PENDING] = -1
+        amplitude, phase = self._currents
+        self.set_currents(amplitude, phase)
+        if not self.finish(k):
+            return STEP_FINISHED
+        if self.signal_chi2() < signal_gate:
+            self._stv[_BLOCK_FLAGS] |= PULSE_TOO_FEW
+            return STEP_FINISHED | STEP_SOLVED | STEP_NO_SIGNAL
+        if self.quadrature_ratio() > ratio_max and self.quadrature_chi2() > q_gate:
+            return STEP_FINISHED | STEP_SOLVED | STEP_DISTORTED
+        return STEP_FINISHED | STEP_SOLVED
+
+    def _step_compiled(self, left: int, signal_gate: float, ratio_max: float, q_gate: float) -> int:
+        ring = self.ring
+        return self._ck.step(len(ring), ring.last_pushed_slot(), left, signal_gate, ratio_max, q_gate)
 
     def push(self, t: int, bx: float, by: float, bz: float, sample_flags: int) -> int:
         """Add one sample (T, sensor frame); returns a block index ``k`` that is now complete

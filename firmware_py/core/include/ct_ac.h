@@ -25,7 +25,7 @@ struct ct_demod {
     double sigma2;
     const double *freqs;            /* n */
     const double *h;                /* 2 n: the magnetometer's response (re, im) per coil */
-    const double *cph, *sph;        /* n: cos, sin of the current phases */
+    double *cph, *sph;              /* n: cos, sin of the current phases */
     double *G, *R, *BB;             /* slots x p p, slots x 3 p, slots x 3 */
     int64_t *count, *flags, *kslot; /* slots */
     double *phi;                    /* p */
@@ -42,6 +42,15 @@ int64_t ct_demod_push(const struct ct_demod *d, int64_t t, double bx, double by,
  * completes a block (then st[CT_DM_PENDING] = its index); returns 1 when one did, else 0 */
 int ct_demod_feed(const struct ct_demod *d, const int64_t *rt, const double *rb, const uint8_t *rf, int64_t cap,
                   int64_t count, int64_t last, int64_t left);
+/* Demodulator.step's result bits */
+enum { CT_DMS_FINISHED = 1, CT_DMS_SOLVED = 2, CT_DMS_NO_SIGNAL = 4, CT_DMS_DISTORTED = 8 };
+/* Demodulator.step: one tick of a channel: the block the last feed completed solved at the drive's
+ * current phases `phase` (n) of now, with its gates (signal_chi2 below signal_gate: flagged
+ * CT_PULSE_TOO_FEW; quadrature_ratio above ratio_max and quadrature_chi2 above q_gate: distorted),
+ * else ct_demod_feed over the ring; returns the CT_DMS_* bits (0: fed) */
+int ct_demod_step(const struct ct_demod *d, const double *phase, const int64_t *rt, const double *rb,
+                  const uint8_t *rf, int64_t cap, int64_t count, int64_t last, int64_t left, double signal_gate,
+                  double ratio_max, double q_gate);
 /* Demodulator.finish: solve block k; 1 when solved (then also signal_chi2, quadrature_chi2 and
  * quadrature_ratio into out) */
 int ct_demod_finish(const struct ct_demod *d, int64_t k);
