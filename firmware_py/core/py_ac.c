@@ -710,11 +710,192 @@ static PyTypeObject RaabCovType = {
     .tp_methods = RaabCov_methods,
 };
 
+/* ----------------------------------------------------------------- RaabIn */
+enum { RI_CBAR, RI_SV, RI_WV, RI_CUR, RI_SRMS, RI_HEMI, RI_M9, RI_R, RI_X, RI_MPA, RI_MOM, RI_MP, RI_NBUF };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_raab_in in;
+    Py_buffer views[RI_NBUF];
+    int nbound;
+} RaabInObject;
+
+static void RaabIn_release(RaabInObject *self)
+{
+    int i;
+    for (i = 0; i < self->nbound; ++i)
+        PyBuffer_Release(&self->views[i]);
+    self->nbound = 0;
+}
+
+static void RaabIn_dealloc(RaabInObject *self)
+{
+    RaabIn_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* RaabIn(n, tol, bufs): bufs the 12 arrays cbar, Sv, wv, cur, sigma_rms, hemi, m9, R, x, mpa, mom, mp */
+static int RaabIn_init(RaabInObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "tol", "bufs", NULL};
+    static const char *names[RI_NBUF] = {"cbar", "Sv", "wv", "cur", "sigma_rms", "hemi", "m9", "R", "x", "mpa",
+                                         "mom", "mp"};
+    int n, i;
+    double tol;
+    PyObject *bufs;
+    Py_ssize_t want[RI_NBUF];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "idO", kwlist, &n, &tol, &bufs))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIn: already bound");
+        return -1;
+    }
+    if (n < 3 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "RaabIn: n in 3..64");
+        return -1;
+    }
+    if (!PyTuple_Check(bufs) || PyTuple_GET_SIZE(bufs) != RI_NBUF) {
+        PyErr_Format(PyExc_TypeError, "RaabIn: bufs must be a tuple of %d arrays", RI_NBUF);
+        return -1;
+    }
+    want[RI_CBAR] = 3; want[RI_SV] = want[RI_WV] = 3 * n; want[RI_CUR] = n; want[RI_SRMS] = 1; want[RI_HEMI] = 3;
+    want[RI_M9] = want[RI_R] = 9; want[RI_X] = 6; want[RI_MPA] = want[RI_MOM] = want[RI_MP] = 3 * n;
+    for (i = 0; i < RI_NBUF; ++i) {
+        int ro = i == RI_CBAR || i == RI_MPA;
+        if (ac_buffer(PyTuple_GET_ITEM(bufs, i), want[i], F64, !ro, &self->views[i], names[i]) < 0) {
+            RaabIn_release(self);
+            return -1;
+        }
+        self->nbound = i + 1;
+    }
+#define DBUF(i) ((double *)self->views[i].buf)
+    self->in.n = n;
+    self->in.tol = tol;
+    self->in.cbar = DBUF(RI_CBAR); self->in.Sv = DBUF(RI_SV); self->in.wv = DBUF(RI_WV); self->in.cur = DBUF(RI_CUR);
+    self->in.sigma_rms = DBUF(RI_SRMS); self->in.hemi = DBUF(RI_HEMI); self->in.m9 = DBUF(RI_M9);
+    self->in.R = DBUF(RI_R); self->in.x = DBUF(RI_X); self->in.mpa = DBUF(RI_MPA); self->in.mom = DBUF(RI_MOM);
+    self->in.mp = DBUF(RI_MP);
+#undef DBUF
+    return 0;
+}
+
+/* a float64 buffer of shape (rows, cols) (cols 0: 1-D of rows items), any strides in whole items, or 0
+ * (no error set: the caller's Python takes that input) */
+static int ac_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    f = v->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8 || v->strides == NULL ||
+        (cols == 0 ? (v->ndim != 1 || v->shape[0] != rows)
+                   : (v->ndim != 2 || v->shape[0] != rows || v->shape[1] != cols)) ||
+        v->strides[0] % 8 != 0 || (cols > 0 && v->strides[1] % 8 != 0)) {
+        PyBuffer_Release(v);
+        return 0;
+    }
+    return 1;
+}
+
+#define AC_AT(v, i) (*(const double *)((const char *)(v).buf + (i) * (v).strides[0]))
+#define AC_AT2(v, i, j) (*(const double *)((const char *)(v).buf + (i) * (v).strides[0] + (j) * (v).strides[1]))
+
+/* inputs(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> int or None: ct_raab_inputs (the
+ * CT_RIN_* codes) for float64 arrays (3, n), (3, n), (n,), (3,) or None, (3,) or None, (3, 3) or None;
+ * None for inputs of another kind (the Python reference takes them) */
+static PyObject *RaabIn_inputs(RaabInObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vs, vg, vc, vh, vp, vr;
+    int n = self->in.n, r, have_h, have_p, have_r, i, j;
+    double h[3], p[3], m[9];
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIn: not bound");
+        return NULL;
+    }
+    if (ac_nargs("inputs", nargs, 6) < 0)
+        return NULL;
+    have_h = args[3] != Py_None;
+    have_p = args[4] != Py_None;
+    have_r = args[5] != Py_None;
+    if (!ac_view(args[0], &vs, 3, n))
+        Py_RETURN_NONE;
+    if (!ac_view(args[1], &vg, 3, n)) {
+        PyBuffer_Release(&vs);
+        Py_RETURN_NONE;
+    }
+    if (vs.strides[0] != vg.strides[0] || vs.strides[1] != vg.strides[1] || !ac_view(args[2], &vc, n, 0)) {
+        PyBuffer_Release(&vs);
+        PyBuffer_Release(&vg);
+        Py_RETURN_NONE;
+    }
+    r = 1;
+    if (have_h) {
+        if (ac_view(args[3], &vh, 3, 0)) {
+            for (i = 0; i < 3; ++i)
+                h[i] = AC_AT(vh, i);
+            PyBuffer_Release(&vh);
+        } else
+            r = 0;
+    }
+    if (r && have_p) {
+        if (ac_view(args[4], &vp, 3, 0)) {
+            for (i = 0; i < 3; ++i)
+                p[i] = AC_AT(vp, i);
+            PyBuffer_Release(&vp);
+        } else
+            r = 0;
+    }
+    if (r && have_r) {
+        if (ac_view(args[5], &vr, 3, 3)) {
+            for (i = 0; i < 3; ++i)
+                for (j = 0; j < 3; ++j)
+                    m[3 * i + j] = AC_AT2(vr, i, j);
+            PyBuffer_Release(&vr);
+        } else
+            r = 0;
+    }
+    if (r)
+        r = ct_raab_inputs(&self->in, (const double *)vs.buf, (const double *)vg.buf, vs.strides[0] / 8,
+                           vs.strides[1] / 8, (const double *)vc.buf, vc.strides[0] / 8, have_h ? h : NULL,
+                           have_p && have_r ? p : NULL, have_p && have_r ? m : NULL, have_p == have_r);
+    else
+        r = -1;
+    PyBuffer_Release(&vs);
+    PyBuffer_Release(&vg);
+    PyBuffer_Release(&vc);
+    if (r < 0)
+        Py_RETURN_NONE;
+    return PyLong_FromLong(r);
+}
+#undef AC_AT
+#undef AC_AT2
+
+static PyMethodDef RaabIn_methods[] = {
+    {"inputs", (PyCFunction)(void (*)(void))RaabIn_inputs, METH_FASTCALL,
+     "inputs(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> int or None: as RaabTracker._inputs"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RaabInType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.RaabIn",
+    .tp_basicsize = sizeof(RaabInObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Raab's tracker's input buffers bound for ct_raab_inputs (pose.raab.RaabTracker._inputs)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)RaabIn_init,
+    .tp_dealloc = (destructor)RaabIn_dealloc,
+    .tp_methods = RaabIn_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_ac(PyObject *m)
 {
     if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0 || PyType_Ready(&RaabCorrType) < 0 ||
-        PyType_Ready(&RaabCovType) < 0)
+        PyType_Ready(&RaabCovType) < 0 || PyType_Ready(&RaabInType) < 0)
         return -1;
     Py_INCREF(&DemodType);
     if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
@@ -734,6 +915,11 @@ int ct_register_ac(PyObject *m)
     Py_INCREF(&RaabCovType);
     if (PyModule_AddObject(m, "RaabCov", (PyObject *)&RaabCovType) < 0) {
         Py_DECREF(&RaabCovType);
+        return -1;
+    }
+    Py_INCREF(&RaabInType);
+    if (PyModule_AddObject(m, "RaabIn", (PyObject *)&RaabInType) < 0) {
+        Py_DECREF(&RaabInType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "DM_NST", CT_DM_NST) < 0 || PyModule_AddIntConstant(m, "DMO_N", CT_DMO_N) < 0)

@@ -80,7 +80,49 @@ def mag_response(f_hz: float, integration_s: float) -> tuple[float, float]:
     return s * math.cos(math.pi * u), -s * math.sin(math.pi * u)
 
 
-class Demodulator:
+class _DemodBuffers:
+    """A demodulator's arrays, allocated once at construction (:class:`Demodulator`)."""
+
+    def _accumulators(self, s: int, p: int) -> None:
+        """The ``s`` block accumulators: ``G`` (normal matrix), ``R`` (right-hand sides), ``BB``
+        (sums of squares), sample counts, flags and the block each slot holds."""
+        self.G = np.zeros((s, p * p))
+        self.R = np.zeros((s, p * 3))
+        self.BB = np.zeros((s, 3))
+        self.count = np.zeros(s, dtype=np.int64)
+        self.flags = np.zeros(s, dtype=np.int64)
+        self.kslot = np.full(s, -1, dtype=np.int64)
+        self._Gv = [memoryview(self.G[i]) for i in range(s)]
+        self._Rv = [memoryview(self.R[i]) for i in range(s)]
+        self._BBv = [memoryview(self.BB[i]) for i in range(s)]
+        self._cv = memoryview(self.count)
+        self._flv = memoryview(self.flags)
+        self._kv = memoryview(self.kslot)
+        self.phi = np.zeros(p)
+        self._phv = memoryview(self.phi)
+
+    def _solve_buffers(self, n: int, p: int) -> None:
+        """A block's solve (``Gf``, ``L``, ``Ginv``, ``x``, ``b``, ``X``) and its results (``S``,
+        ``Q``, ``var``, ``qvar``, ``dc``)."""
+        self.Gf = np.zeros(p * p)
+        self.L = np.zeros(p * p)
+        self.Ginv = np.zeros(p * p)
+        self.x = np.zeros(p)
+        self.b = np.zeros(p)
+        self.X = np.zeros((p, 3))
+        self._Gfv, self._Lv, self._Giv = memoryview(self.Gf), memoryview(self.L), memoryview(self.Ginv)
+        self._xv, self._bv, self._Xv = memoryview(self.x), memoryview(self.b), memoryview(self.X.reshape(-1))
+        self.S = np.zeros((3, n))
+        self.Q = np.zeros((3, n))
+        self.var = np.zeros((3, n))
+        self.qvar = np.zeros(n)              # variance of each coil's quadrature element (T^2)
+        self.dc = np.zeros(3)
+        self._Sv, self._Qv, self._varv, self._dcv = (memoryview(self.S.reshape(-1)), memoryview(self.Q.reshape(-1)),
+                                                   memoryview(self.var.reshape(-1)), memoryview(self.dc))
+        self._qvv = memoryview(self.qvar)
+
+
+class Demodulator(_DemodBuffers):
     """Sliding-block least-squares demodulation of one magnetometer (see module docstring).
 
     ``freqs_hz`` (n,), ``window_us`` = ``m hop_us``, ``sigma_t`` per-sample
@@ -133,44 +175,6 @@ class Demodulator:
         self.core = "python"
         if core.ext is not None and n <= 64:
             self._bind_compiled(core.ext)
-
-    def _accumulators(self, s: int, p: int) -> None:
-        """The ``s`` block accumulators: ``G`` (normal matrix), ``R`` (right-hand sides), ``BB``
-        (sums of squares), sample counts, flags and the block each slot holds."""
-        self.G = np.zeros((s, p * p))
-        self.R = np.zeros((s, p * 3))
-        self.BB = np.zeros((s, 3))
-        self.count = np.zeros(s, dtype=np.int64)
-        self.flags = np.zeros(s, dtype=np.int64)
-        self.kslot = np.full(s, -1, dtype=np.int64)
-        self._Gv = [memoryview(self.G[i]) for i in range(s)]
-        self._Rv = [memoryview(self.R[i]) for i in range(s)]
-        self._BBv = [memoryview(self.BB[i]) for i in range(s)]
-        self._cv = memoryview(self.count)
-        self._flv = memoryview(self.flags)
-        self._kv = memoryview(self.kslot)
-        self.phi = np.zeros(p)
-        self._phv = memoryview(self.phi)
-
-    def _solve_buffers(self, n: int, p: int) -> None:
-        """A block's solve (``Gf``, ``L``, ``Ginv``, ``x``, ``b``, ``X``) and its results (``S``,
-        ``Q``, ``var``, ``qvar``, ``dc``)."""
-        self.Gf = np.zeros(p * p)
-        self.L = np.zeros(p * p)
-        self.Ginv = np.zeros(p * p)
-        self.x = np.zeros(p)
-        self.b = np.zeros(p)
-        self.X = np.zeros((p, 3))
-        self._Gfv, self._Lv, self._Giv = memoryview(self.Gf), memoryview(self.L), memoryview(self.Ginv)
-        self._xv, self._bv, self._Xv = memoryview(self.x), memoryview(self.b), memoryview(self.X.reshape(-1))
-        self.S = np.zeros((3, n))
-        self.Q = np.zeros((3, n))
-        self.var = np.zeros((3, n))
-        self.qvar = np.zeros(n)              # variance of each coil's quadrature element (T^2)
-        self.dc = np.zeros(3)
-        self._Sv, self._Qv, self._varv, self._dcv = (memoryview(self.S.reshape(-1)), memoryview(self.Q.reshape(-1)),
-                                                   memoryview(self.var.reshape(-1)), memoryview(self.dc))
-        self._qvv = memoryview(self.qvar)
 
     def _bind_compiled(self, ext) -> None:
         """Run :meth:`push`, :meth:`feed` and :meth:`finish` on the compiled kernels

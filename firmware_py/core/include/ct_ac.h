@@ -144,4 +144,34 @@ void ct_raab_cov_rows(const struct ct_raab_cov *c, const double *Bv, const doubl
 int ct_raab_cov_publish(const struct ct_raab_cov *c, const double *x, const double *R, const double *w,
                         const double *cur, const double *pm, double rel);
 
+
+/* ----------------------------------------------------------- raab begin
+ * RaabTracker._inputs (pose.raab): a solve's inputs into the tracker's buffers: the signals, their
+ * weights 1/sigma and the currents (StagedSolve._load), the hemisphere (_load_hemisphere), the warm
+ * start's rotation and Raab's angles of its position (_load_x0: raab_update.is_rotation,
+ * load_rotation, angles_from_pose) and the moments with M^+ (moment_pseudo_inverse). */
+struct ct_raab_in {
+    int n;
+    double tol;                     /* raab_update._ORTHO_TOL */
+    const double *cbar;             /* 3 */
+    double *Sv, *wv, *cur;          /* 3 n, 3 n, n */
+    double *sigma_rms;              /* 1 */
+    double *hemi;                   /* 3 */
+    double *m9, *R, *x;             /* 9 (the warm start's matrix), 9 (R = A^T), 6 (alpha ... phi) */
+    const double *mpa;              /* 3 n: moments per ampere */
+    double *mom, *mp;               /* 3 n, 3 n */
+};
+/* its results: the first check that failed, or where the caller goes on */
+enum { CT_RIN_BAD_LOAD = 0, CT_RIN_BAD_HEMI = 1, CT_RIN_BAD_X0 = 2, CT_RIN_PROJECT = 3, CT_RIN_NO_START = 4,
+       CT_RIN_OK = 5 };
+/* S, sigma (3 x n at row and column strides rs, cs), cur (n at cstride); hemi (3) or NULL; x0p (3) and
+ * x0R (9, row-major) or NULL, x0_pair 0 when exactly one of them was given. CT_RIN_PROJECT: the warm
+ * start's matrix (in m9) is no rotation to tol: the caller projects it (linalg.nearest_rotation) and
+ * goes on with angles_from_pose and the pseudo-inverse */
+int ct_raab_inputs(const struct ct_raab_in *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
+                   const double *cur, int64_t cstride, const double *hemi, const double *x0p, const double *x0R,
+                   int x0_pair);
+int ct_raab_is_rotation(const double *m, double tol);
+void ct_raab_angles_from_pose(double px, double py, double pz, const double *R, double *x);
+
 #endif /* CT_AC_H */

@@ -1,0 +1,131 @@
+"""Raab's tracker's inputs (``pose.raab_inputs.RaabInputs``): the compiled ``ct_raab_inputs``
+against the Python reference, bit for bit, on seeded inputs and the edge cases the reference
+handles; the warm start's angles against their definition (the point and ``A = R^T`` they give
+back)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from coiltrack.firmware import core as fcore
+from coiltrack.firmware.pose import raab_inputs as ri
+from coiltrack.firmware.pose.raab import RaabTracker
+from coiltrack.firmware.pose.raab_update import dcm, point
+from coiltrack.hil.physics import thesis_source
+
+pytestmark = pytest.mark.skipif(not fcore.available(), reason="the compiled core is not built")
+
+
+def _pair():
+    coils = thesis_source().coils
+    tp = RaabTracker(coils, core=fcore.PYTHON)
+    tc = RaabTracker(coils, core=fcore.DEFAULT)
+    assert tp._in.core == "python" and tc._in.core == "compiled"
+    return tp, tc
+
+
+def _buffers(t):
+    """Everything the inputs write (the tracker's buffers and the component's flags)."""
+    i = t._in
+    return (np.array(t._Sv), np.array(t._wv), np.array(t._curv), np.array(i.hemi), t._Rn.copy(), np.array(t._x),
+            np.array(t._mom), np.array(t._mp), i.check_hemi, i.warm, i._sigma_rms)
+
+
+def _same(tp, tc, args):
+    rp, rc = tp._in.load(*args), tc._in.load(*args)
+    assert rp == rc, (rp, rc)
+    for a, b in zip(_buffers(tp), _buffers(tc)):
+        assert np.array_equal(a, b, equal_nan=True), (a, b)
+    return rp
+
+
+def _rotation(rng):
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _case(rng, n=3):
+    S = rng.normal(0, 1e-6, (3, n))
+    sigma = rng.uniform(1e-9, 1e-8, (3, n))
+    cur = rng.uniform(0.5, 2.0, n)
+    return S, cur, sigma
+
+
+def test_random_inputs_bit_equal_to_the_reference():
+    """Seeded signals, currents, hemispheres and warm starts (rotations, some transposed views and
+    Fortran-ordered signals): the same result code and the same buffers, bit for bit: catches a
+    weight not inverted, a signal read at the wrong stride, an angle from the wrong element of
+    ``A = R^T`` or the moments at the nominal instead of the measured currents."""
+    rng = np.random.default_rng(3)
+    tp, tc = _pair()
+    codes = set()
+    for k in range(200):
+        S, cur, sigma = _case(rng)
+        if k % 3 == 1:
+            S, sigma = np.asfortranarray(S), np.asfortranarray(sigma)
+        hemi = rng.normal(size=3) if k % 2 else None
+        if k % 4 == 0:
+            args = (S, cur, sigma, hemi, None, None)
+        else:
+            R = _rotation(rng)
+            R = R.T.copy().T if k % 5 == 0 else R
+            args = (S, cur, sigma, hemi, rng.uniform(-0.5, 0.5, 3), R)
+        codes.add(_same(tp, tc, args))
+    assert codes == {ri.OK}
+
+
+def test_edge_cases_give_the_reference_code_and_buffers():
+    """The checks in their order: a NaN signal, a zero sigma, a NaN current (BAD_LOAD), a NaN or a
+    zero hemisphere (BAD_HEMI), one of the warm start's two arguments, a NaN in the rotation or
+    the position, a start at the coils' centre (BAD_X0), zero currents (NO_START), a warm start's
+    matrix that is no rotation (projected by the Python's nearest_rotation) and inputs that are no
+    float64 arrays (the reference takes them): each the same in both."""
+    rng = np.random.default_rng(8)
+    tp, tc = _pair()
+    R = _rotation(rng)
+    p = np.array([0.2, -0.1, 0.15])
+    cases = []
+    S, cur, sigma = _case(rng)
+    cases.append(((S, cur, sigma, None, p, R), ri.OK))
+    bad = S.copy(); bad[1, 2] = np.nan
+    cases.append(((bad, cur, sigma, None, p, R), ri.BAD_LOAD))
+    bad = sigma.copy(); bad[2, 0] = 0.0
+    cases.append(((S, cur, bad, None, p, R), ri.BAD_LOAD))
+    cases.append(((S, np.array([1.0, np.nan, 1.0]), sigma, None, p, R), ri.BAD_LOAD))
+    cases.append(((S, cur, sigma, np.array([np.nan, 0.0, 1.0]), p, R), ri.BAD_HEMI))
+    cases.append(((S, cur, sigma, np.zeros(3), p, R), ri.BAD_HEMI))
+    cases.append(((S, cur, sigma, None, p, None), ri.BAD_X0))
+    cases.append(((S, cur, sigma, None, None, R), ri.BAD_X0))
+    badR = R.copy(); badR[1, 1] = np.inf
+    cases.append(((S, cur, sigma, None, p, badR), ri.BAD_X0))
+    cases.append(((S, cur, sigma, None, np.array([0.1, np.nan, 0.0]), R), ri.BAD_X0))
+    centre = np.array(tp._cbar)
+    cases.append(((S, cur, sigma, None, centre, R), ri.BAD_X0))
+    cases.append(((S, np.zeros(3), sigma, None, p, R), ri.NO_START))
+    skew = R + 1e-6 * rng.normal(size=(3, 3))
+    cases.append(((S, cur, sigma, np.array([1.0, 0.0, 0.0]), p, skew), ri.OK))
+    cases.append(((S.tolist(), list(cur), sigma, (1.0, 0.0, 0.0), tuple(p), R), ri.BAD_LOAD))    # no shape
+    cases.append(((S, list(cur), sigma, (0.0, 1.0, 0.0), tuple(p), R), ri.OK))
+    cases.append(((S.astype(np.float32), cur, sigma.astype(np.float32), None, p, R), ri.OK))
+    for args, want in cases:
+        assert _same(tp, tc, args) == want
+    # the projection: the skewed matrix's nearest rotation, not the matrix itself
+    _same(tp, tc, (S, cur, sigma, None, p, skew))
+    assert np.allclose(tc._Rn.T @ tc._Rn, np.eye(3), atol=1e-14) and not np.array_equal(tc._Rn, skew)
+
+
+def test_warm_start_angles_give_back_the_pose():
+    """Raab's angles of a warm start give back its point (``raab_update.point``) and ``A = R^T``
+    (``dcm``, Table II) to rounding: an independent check of the angles' definition."""
+    rng = np.random.default_rng(21)
+    _, tc = _pair()
+    for _ in range(50):
+        S, cur, sigma = _case(rng)
+        R, p = _rotation(rng), rng.uniform(-0.5, 0.5, 3)
+        assert tc._in.load(S, cur, sigma, None, p, R) == ri.OK
+        x = tc._x
+        assert np.allclose(point(x, tc._cbar), p, rtol=0, atol=1e-14)
+        assert np.allclose(np.array(dcm(x[3], x[4], x[5])).reshape(3, 3), R.T, rtol=0, atol=1e-13)
