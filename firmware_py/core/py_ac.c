@@ -710,17 +710,18 @@ static PyTypeObject RaabCovType = {
     .tp_methods = RaabCov_methods,
 };
 
-/* ----------------------------------------------------------------- RaabIn */
-enum { RI_CBAR, RI_SV, RI_WV, RI_CUR, RI_SRMS, RI_HEMI, RI_M9, RI_R, RI_X, RI_MPA, RI_MOM, RI_MP, RI_NBUF };
+/* ----------------------------------------------------------------- RaabIO */
+enum { RI_CBAR, RI_SV, RI_WV, RI_CUR, RI_SRMS, RI_HEMI, RI_M9, RI_R, RI_X, RI_MPA, RI_MOM, RI_MP, RI_SC, RI_POS,
+       RI_ROT, RI_ANG, RI_NBUF };
 
 typedef struct {
     PyObject_HEAD
-    struct ct_raab_in in;
+    struct ct_raab_io in;
     Py_buffer views[RI_NBUF];
     int nbound;
-} RaabInObject;
+} RaabIOObject;
 
-static void RaabIn_release(RaabInObject *self)
+static void RaabIO_release(RaabIOObject *self)
 {
     int i;
     for (i = 0; i < self->nbound; ++i)
@@ -728,42 +729,44 @@ static void RaabIn_release(RaabInObject *self)
     self->nbound = 0;
 }
 
-static void RaabIn_dealloc(RaabInObject *self)
+static void RaabIO_dealloc(RaabIOObject *self)
 {
-    RaabIn_release(self);
+    RaabIO_release(self);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* RaabIn(n, tol, bufs): bufs the 12 arrays cbar, Sv, wv, cur, sigma_rms, hemi, m9, R, x, mpa, mom, mp */
-static int RaabIn_init(RaabInObject *self, PyObject *args, PyObject *kw)
+/* RaabIO(n, tol, c_raab, bufs): bufs the 16 arrays cbar, Sv, wv, cur, sigma_rms, hemi, m9, R, x, mpa, mom, mp,
+ * Sc, position, rotation, angles */
+static int RaabIO_init(RaabIOObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"n", "tol", "bufs", NULL};
+    static char *kwlist[] = {"n", "tol", "c_raab", "bufs", NULL};
     static const char *names[RI_NBUF] = {"cbar", "Sv", "wv", "cur", "sigma_rms", "hemi", "m9", "R", "x", "mpa",
-                                         "mom", "mp"};
+                                         "mom", "mp", "Sc", "position", "rotation", "angles"};
     int n, i;
-    double tol;
+    double tol, c_raab;
     PyObject *bufs;
     Py_ssize_t want[RI_NBUF];
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "idO", kwlist, &n, &tol, &bufs))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iddO", kwlist, &n, &tol, &c_raab, &bufs))
         return -1;
     if (self->nbound) {
-        PyErr_SetString(PyExc_RuntimeError, "RaabIn: already bound");
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: already bound");
         return -1;
     }
     if (n < 3 || n > 64) {
-        PyErr_SetString(PyExc_ValueError, "RaabIn: n in 3..64");
+        PyErr_SetString(PyExc_ValueError, "RaabIO: n in 3..64");
         return -1;
     }
     if (!PyTuple_Check(bufs) || PyTuple_GET_SIZE(bufs) != RI_NBUF) {
-        PyErr_Format(PyExc_TypeError, "RaabIn: bufs must be a tuple of %d arrays", RI_NBUF);
+        PyErr_Format(PyExc_TypeError, "RaabIO: bufs must be a tuple of %d arrays", RI_NBUF);
         return -1;
     }
     want[RI_CBAR] = 3; want[RI_SV] = want[RI_WV] = 3 * n; want[RI_CUR] = n; want[RI_SRMS] = 1; want[RI_HEMI] = 3;
     want[RI_M9] = want[RI_R] = 9; want[RI_X] = 6; want[RI_MPA] = want[RI_MOM] = want[RI_MP] = 3 * n;
+    want[RI_SC] = 3 * n; want[RI_POS] = 3; want[RI_ROT] = 9; want[RI_ANG] = 6;
     for (i = 0; i < RI_NBUF; ++i) {
-        int ro = i == RI_CBAR || i == RI_MPA;
+        int ro = i == RI_CBAR || i == RI_MPA || i == RI_SC;
         if (ac_buffer(PyTuple_GET_ITEM(bufs, i), want[i], F64, !ro, &self->views[i], names[i]) < 0) {
-            RaabIn_release(self);
+            RaabIO_release(self);
             return -1;
         }
         self->nbound = i + 1;
@@ -774,7 +777,9 @@ static int RaabIn_init(RaabInObject *self, PyObject *args, PyObject *kw)
     self->in.cbar = DBUF(RI_CBAR); self->in.Sv = DBUF(RI_SV); self->in.wv = DBUF(RI_WV); self->in.cur = DBUF(RI_CUR);
     self->in.sigma_rms = DBUF(RI_SRMS); self->in.hemi = DBUF(RI_HEMI); self->in.m9 = DBUF(RI_M9);
     self->in.R = DBUF(RI_R); self->in.x = DBUF(RI_X); self->in.mpa = DBUF(RI_MPA); self->in.mom = DBUF(RI_MOM);
-    self->in.mp = DBUF(RI_MP);
+    self->in.mp = DBUF(RI_MP); self->in.Sc = DBUF(RI_SC); self->in.position = DBUF(RI_POS);
+    self->in.rotation = DBUF(RI_ROT); self->in.angles = DBUF(RI_ANG);
+    self->in.c_raab = c_raab;
 #undef DBUF
     return 0;
 }
@@ -807,13 +812,13 @@ static int ac_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols
 /* inputs(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> int or None: ct_raab_inputs (the
  * CT_RIN_* codes) for float64 arrays (3, n), (3, n), (n,), (3,) or None, (3,) or None, (3, 3) or None;
  * None for inputs of another kind (the Python reference takes them) */
-static PyObject *RaabIn_inputs(RaabInObject *self, PyObject *const *args, Py_ssize_t nargs)
+static PyObject *RaabIO_inputs(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer vs, vg, vc, vh, vp, vr;
     int n = self->in.n, r, have_h, have_p, have_r, i, j;
     double h[3], p[3], m[9];
     if (!self->nbound) {
-        PyErr_SetString(PyExc_RuntimeError, "RaabIn: not bound");
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
         return NULL;
     }
     if (ac_nargs("inputs", nargs, 6) < 0)
@@ -874,28 +879,60 @@ static PyObject *RaabIn_inputs(RaabInObject *self, PyObject *const *args, Py_ssi
 #undef AC_AT
 #undef AC_AT2
 
-static PyMethodDef RaabIn_methods[] = {
-    {"inputs", (PyCFunction)(void (*)(void))RaabIn_inputs, METH_FASTCALL,
-     "inputs(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> int or None: as RaabTracker._inputs"},
+/* residual_cost() -> float: ct_raab_residual_cost over the bound buffers */
+static PyObject *RaabIO_residual_cost(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("residual_cost", nargs, 0) < 0)
+        return NULL;
+    return PyFloat_FromDouble(ct_raab_residual_cost(&self->in));
+}
+
+/* finish_pose() -> bool: ct_raab_finish_pose (False: the position is not finite) */
+static PyObject *RaabIO_finish_pose(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("finish_pose", nargs, 0) < 0)
+        return NULL;
+    if (ct_raab_finish_pose(&self->in))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef RaabIO_methods[] = {
+    {"residual_cost", (PyCFunction)(void (*)(void))RaabIO_residual_cost, METH_FASTCALL,
+     "residual_cost() -> float: as raab_update.residual_cost of the bound buffers"},
+    {"finish_pose", (PyCFunction)(void (*)(void))RaabIO_finish_pose, METH_FASTCALL,
+     "finish_pose() -> bool: RaabTracker._finish's pose into the bound results"},
+    {"inputs", (PyCFunction)(void (*)(void))RaabIO_inputs, METH_FASTCALL,
+     "inputs(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> int or None: as RaabIO.load"},
     {NULL, NULL, 0, NULL}};
 
-static PyTypeObject RaabInType = {
+static PyTypeObject RaabIOType = {
     PyVarObject_HEAD_INIT(NULL, 0)
-    .tp_name = "coiltrack.firmware._core.RaabIn",
-    .tp_basicsize = sizeof(RaabInObject),
+    .tp_name = "coiltrack.firmware._core.RaabIO",
+    .tp_basicsize = sizeof(RaabIOObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "Raab's tracker's input buffers bound for ct_raab_inputs (pose.raab.RaabTracker._inputs)",
+    .tp_doc = "Raab's tracker's inputs and results bound for ct_raab_inputs and the others of pose.raab_io",
     .tp_new = PyType_GenericNew,
-    .tp_init = (initproc)RaabIn_init,
-    .tp_dealloc = (destructor)RaabIn_dealloc,
-    .tp_methods = RaabIn_methods,
+    .tp_init = (initproc)RaabIO_init,
+    .tp_dealloc = (destructor)RaabIO_dealloc,
+    .tp_methods = RaabIO_methods,
 };
 
 /* ------------------------------------------------------------------ module */
 int ct_register_ac(PyObject *m)
 {
     if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0 || PyType_Ready(&RaabCorrType) < 0 ||
-        PyType_Ready(&RaabCovType) < 0 || PyType_Ready(&RaabInType) < 0)
+        PyType_Ready(&RaabCovType) < 0 || PyType_Ready(&RaabIOType) < 0)
         return -1;
     Py_INCREF(&DemodType);
     if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
@@ -917,9 +954,9 @@ int ct_register_ac(PyObject *m)
         Py_DECREF(&RaabCovType);
         return -1;
     }
-    Py_INCREF(&RaabInType);
-    if (PyModule_AddObject(m, "RaabIn", (PyObject *)&RaabInType) < 0) {
-        Py_DECREF(&RaabInType);
+    Py_INCREF(&RaabIOType);
+    if (PyModule_AddObject(m, "RaabIO", (PyObject *)&RaabIOType) < 0) {
+        Py_DECREF(&RaabIOType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "DM_NST", CT_DM_NST) < 0 || PyModule_AddIntConstant(m, "DMO_N", CT_DMO_N) < 0)

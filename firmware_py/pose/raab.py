@@ -134,11 +134,11 @@ from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.raab_correction import K_MIN, LoopCorrection, NoCorrection
 from coiltrack.firmware.pose.raab_covariance import RaabCovariance
-from coiltrack.firmware.pose.raab_inputs import NO_START, OK, RaabInputs
+from coiltrack.firmware.pose.raab_io import NO_START, OK, RaabIO
 from coiltrack.firmware.pose.raab_update import (ACQUIRED, C_RAAB, DA0, DB0, DPHI0, DPSI0, DRHO, DTH0, K_OUT,
                                                  MAX_STEP, POLE_COS, Update, angles_from_pose, coupling,
                                                  error_angles, orientation_update, point, position_update,
-                                                 residual_cost, sync_rotation, wrap)
+                                                 sync_rotation, wrap)
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
                                             SOLVE_OK, SOLVE_REACQUIRED, SOLVE_RUNNING)
 from coiltrack.firmware.pose.staged import StagedSolve, init_results
@@ -255,10 +255,10 @@ class RaabTracker(StagedSolve):
         self._upd = Update(n, self._x, self._Rn, self._Sv, self._Sc, self._mp, self._F, self._pm, self._cbar,
                            self._curv, self.corrector, self.max_step, _ACQUIRED_STEP, core)
         self._uo = self._upd._o
-        #: a solve's inputs into these buffers (``pose.raab_inputs``: Python or ``ct_raab_inputs``); its
+        #: a solve's inputs into these buffers (``pose.raab_io``: Python or ``ct_raab_io``); its
         #: ``hemi``, ``check_hemi`` and ``warm`` are the last ``begin``'s
-        self._in = RaabInputs(n, self._cbar, self._Sv, self._wv, self._curv, self._x, self._Rn, self._mpa,
-                              self._mom, self._upd, core)
+        self._in = RaabIO(n, self._cbar, self._Sv, self._wv, self._curv, self._x, self._Rn, self._mpa, self._mom,
+                          self._Sc, self._upd, (self.position, self.rotation, self.angles), core)
         self._acq_hemi = tuple(float(v) for v in hemisphere)
         self._acquiring = False
         self._reacquired = False
@@ -306,7 +306,7 @@ class RaabTracker(StagedSolve):
         (3, 3)). ``SOLVE_BAD_INPUT`` / ``SOLVE_NO_START`` at once, else
         ``SOLVE_RUNNING``."""
         self._then(None)
-        r = self._in.load(S, currents, sigma, hemisphere, x0_position, x0_rotation)    # pose.raab_inputs
+        r = self._in.load(S, currents, sigma, hemisphere, x0_position, x0_rotation)    # pose.raab_io
         if r < NO_START:
             self.status = SOLVE_BAD_INPUT
             return SOLVE_BAD_INPUT
@@ -502,22 +502,13 @@ class RaabTracker(StagedSolve):
         """The residual against the exact model at the estimate
         (``raab_update.residual_cost`` of the corrected signals)."""
         self._coupling()
-        return residual_cost(self.n, self._x, self._R, self._Sc, self._wv, self._mom)
+        return self._in.residual_cost()
 
     def _finish(self, status: int) -> None:
         """The published results: ``position``, ``rotation``, ``angles`` of the
         estimate and ``status`` (the covariance is published by
         ``pose.raab_covariance``)."""
-        x = self._x
-        px, py, pz = self._point()
-        pos = self.position
-        pos[0], pos[1], pos[2] = px, py, pz
-        self._sync_rotation()
-        np.copyto(self.rotation, self._Rn)
-        ang = self.angles
-        for i in range(6):
-            ang[i] = x[i]
-        if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
+        if not self._in.finish_pose():                # pose.raab_io: position, rotation, angles
             status |= SOLVE_NONFINITE
         self.status = status
         self._then(None)

@@ -146,13 +146,14 @@ int ct_raab_cov_publish(const struct ct_raab_cov *c, const double *x, const doub
 
 
 /* ----------------------------------------------------------- raab begin
- * RaabTracker._inputs (pose.raab): a solve's inputs into the tracker's buffers: the signals, their
+ * pose.raab_io.RaabIO.load: a solve's inputs into the tracker's buffers: the signals, their
  * weights 1/sigma and the currents (StagedSolve._load), the hemisphere (_load_hemisphere), the warm
  * start's rotation and Raab's angles of its position (_load_x0: raab_update.is_rotation,
  * load_rotation, angles_from_pose) and the moments with M^+ (moment_pseudo_inverse). */
-struct ct_raab_in {
+struct ct_raab_io {
     int n;
     double tol;                     /* raab_update._ORTHO_TOL */
+    double c_raab;                  /* C of eq 3 (model.field.MU0_2PI) */
     const double *cbar;             /* 3 */
     double *Sv, *wv, *cur;          /* 3 n, 3 n, n */
     double *sigma_rms;              /* 1 */
@@ -160,6 +161,8 @@ struct ct_raab_in {
     double *m9, *R, *x;             /* 9 (the warm start's matrix), 9 (R = A^T), 6 (alpha ... phi) */
     const double *mpa;              /* 3 n: moments per ampere */
     double *mom, *mp;               /* 3 n, 3 n */
+    const double *Sc;               /* 3 n: the corrected signals (residual_cost) */
+    double *position, *rotation, *angles;   /* 3, 9, 6: the published pose (RaabTracker._finish) */
 };
 /* its results: the first check that failed, or where the caller goes on */
 enum { CT_RIN_BAD_LOAD = 0, CT_RIN_BAD_HEMI = 1, CT_RIN_BAD_X0 = 2, CT_RIN_PROJECT = 3, CT_RIN_NO_START = 4,
@@ -168,10 +171,15 @@ enum { CT_RIN_BAD_LOAD = 0, CT_RIN_BAD_HEMI = 1, CT_RIN_BAD_X0 = 2, CT_RIN_PROJE
  * x0R (9, row-major) or NULL, x0_pair 0 when exactly one of them was given. CT_RIN_PROJECT: the warm
  * start's matrix (in m9) is no rotation to tol: the caller projects it (linalg.nearest_rotation) and
  * goes on with angles_from_pose and the pseudo-inverse */
-int ct_raab_inputs(const struct ct_raab_in *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
+int ct_raab_inputs(const struct ct_raab_io *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
                    const double *cur, int64_t cstride, const double *hemi, const double *x0p, const double *x0R,
                    int x0_pair);
 int ct_raab_is_rotation(const double *m, double tol);
+/* raab_update.residual_cost of the corrected signals Sc with the weights wv at the estimate x, R */
+double ct_raab_residual_cost(const struct ct_raab_io *io);
+/* RaabTracker._finish's pose: position = point(x, cbar), R = A^T of x's angles (sync_rotation), rotation
+ * = R, angles = x; 1 when the position is finite */
+int ct_raab_finish_pose(const struct ct_raab_io *io);
 void ct_raab_angles_from_pose(double px, double py, double pz, const double *R, double *x);
 
 #endif /* CT_AC_H */

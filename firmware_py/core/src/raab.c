@@ -594,7 +594,7 @@ void ct_raab_angles_from_pose(double px, double py, double pz, const double *R, 
 }
 
 /* StagedSolve._load: the signals, weights and currents; 0 on a value not finite or a sigma not positive */
-static int raab_load(const struct ct_raab_in *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
+static int raab_load(const struct ct_raab_io *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
                      const double *cur, int64_t cstride)
 {
     int n = in->n, i, j;
@@ -618,7 +618,7 @@ static int raab_load(const struct ct_raab_in *in, const double *S, const double 
     return 1;
 }
 
-int ct_raab_inputs(const struct ct_raab_in *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
+int ct_raab_inputs(const struct ct_raab_io *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
                    const double *cur, int64_t cstride, const double *hemi, const double *x0p, const double *x0R,
                    int x0_pair)
 {
@@ -664,4 +664,44 @@ int ct_raab_inputs(const struct ct_raab_in *in, const double *S, const double *s
     if (!ct_raab_pseudo_inverse(in->n, in->mpa, in->cur, in->mom, in->mp))
         return CT_RIN_NO_START;
     return CT_RIN_OK;
+}
+
+/* raab_update.residual_cost: sum ((S_c - R^T h_raab(x)) w)^2, h_raab the dipole (model.field.dipole_polar
+ * without its gradient) of the moments mom */
+double ct_raab_residual_cost(const struct ct_raab_io *io)
+{
+    const double *x = io->x, *R = io->R, *Sc = io->Sc, *w = io->wv, *mom = io->mom;
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]);
+    double ux = cb * ca, uy = cb * sa, uz = -sb, rho = x[2], cost = 0.0;
+    int j, i;
+    for (j = 0; j < io->n; ++j) {
+        int o = 3 * j;
+        double mx = mom[o], my = mom[o + 1], mz = mom[o + 2];
+        double kd = 0.5 * io->c_raab / (rho * rho * rho), mu = mx * ux + my * uy + mz * uz;
+        double bx = kd * (3.0 * mu * ux - mx), by = kd * (3.0 * mu * uy - my), bz = kd * (3.0 * mu * uz - mz);
+        for (i = 0; i < 3; ++i) {
+            double e = (Sc[o + i] - (R[i] * bx + R[3 + i] * by + R[6 + i] * bz)) * w[o + i];
+            cost += e * e;
+        }
+    }
+    return cost;
+}
+
+int ct_raab_finish_pose(const struct ct_raab_io *io)
+{
+    const double *x = io->x, *c = io->cbar;
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]), r = x[2], a[9];
+    double px = c[0] + r * cb * ca, py = c[1] + r * cb * sa, pz = c[2] - r * sb, *R = io->R;
+    int i;
+    io->position[0] = px;
+    io->position[1] = py;
+    io->position[2] = pz;
+    dcm(x[3], x[4], x[5], a);                   /* sync_rotation: R = A^T */
+    R[0] = a[0]; R[1] = a[3]; R[2] = a[6];
+    R[3] = a[1]; R[4] = a[4]; R[5] = a[7];
+    R[6] = a[2]; R[7] = a[5]; R[8] = a[8];
+    memcpy(io->rotation, R, 9 * sizeof(double));
+    for (i = 0; i < 6; ++i)
+        io->angles[i] = x[i];
+    return isfinite(px) && isfinite(py) && isfinite(pz);
 }

@@ -1,4 +1,4 @@
-"""Raab's tracker's inputs (``pose.raab_inputs.RaabInputs``): the compiled ``ct_raab_inputs``
+"""Raab's tracker's inputs (``pose.raab_io.RaabIO``): the compiled ``ct_raab_io``
 against the Python reference, bit for bit, on seeded inputs and the edge cases the reference
 handles; the warm start's angles against their definition (the point and ``A = R^T`` they give
 back)."""
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from coiltrack.firmware import core as fcore
-from coiltrack.firmware.pose import raab_inputs as ri
+from coiltrack.firmware.pose import raab_io as rio
 from coiltrack.firmware.pose.raab import RaabTracker
 from coiltrack.firmware.pose.raab_update import dcm, point
 from coiltrack.hil.physics import thesis_source
@@ -74,7 +74,7 @@ def test_random_inputs_bit_equal_to_the_reference():
             R = R.T.copy().T if k % 5 == 0 else R
             args = (S, cur, sigma, hemi, rng.uniform(-0.5, 0.5, 3), R)
         codes.add(_same(tp, tc, args))
-    assert codes == {ri.OK}
+    assert codes == {rio.OK}
 
 
 def test_edge_cases_give_the_reference_code_and_buffers():
@@ -89,27 +89,27 @@ def test_edge_cases_give_the_reference_code_and_buffers():
     p = np.array([0.2, -0.1, 0.15])
     cases = []
     S, cur, sigma = _case(rng)
-    cases.append(((S, cur, sigma, None, p, R), ri.OK))
+    cases.append(((S, cur, sigma, None, p, R), rio.OK))
     bad = S.copy(); bad[1, 2] = np.nan
-    cases.append(((bad, cur, sigma, None, p, R), ri.BAD_LOAD))
+    cases.append(((bad, cur, sigma, None, p, R), rio.BAD_LOAD))
     bad = sigma.copy(); bad[2, 0] = 0.0
-    cases.append(((S, cur, bad, None, p, R), ri.BAD_LOAD))
-    cases.append(((S, np.array([1.0, np.nan, 1.0]), sigma, None, p, R), ri.BAD_LOAD))
-    cases.append(((S, cur, sigma, np.array([np.nan, 0.0, 1.0]), p, R), ri.BAD_HEMI))
-    cases.append(((S, cur, sigma, np.zeros(3), p, R), ri.BAD_HEMI))
-    cases.append(((S, cur, sigma, None, p, None), ri.BAD_X0))
-    cases.append(((S, cur, sigma, None, None, R), ri.BAD_X0))
+    cases.append(((S, cur, bad, None, p, R), rio.BAD_LOAD))
+    cases.append(((S, np.array([1.0, np.nan, 1.0]), sigma, None, p, R), rio.BAD_LOAD))
+    cases.append(((S, cur, sigma, np.array([np.nan, 0.0, 1.0]), p, R), rio.BAD_HEMI))
+    cases.append(((S, cur, sigma, np.zeros(3), p, R), rio.BAD_HEMI))
+    cases.append(((S, cur, sigma, None, p, None), rio.BAD_X0))
+    cases.append(((S, cur, sigma, None, None, R), rio.BAD_X0))
     badR = R.copy(); badR[1, 1] = np.inf
-    cases.append(((S, cur, sigma, None, p, badR), ri.BAD_X0))
-    cases.append(((S, cur, sigma, None, np.array([0.1, np.nan, 0.0]), R), ri.BAD_X0))
+    cases.append(((S, cur, sigma, None, p, badR), rio.BAD_X0))
+    cases.append(((S, cur, sigma, None, np.array([0.1, np.nan, 0.0]), R), rio.BAD_X0))
     centre = np.array(tp._cbar)
-    cases.append(((S, cur, sigma, None, centre, R), ri.BAD_X0))
-    cases.append(((S, np.zeros(3), sigma, None, p, R), ri.NO_START))
+    cases.append(((S, cur, sigma, None, centre, R), rio.BAD_X0))
+    cases.append(((S, np.zeros(3), sigma, None, p, R), rio.NO_START))
     skew = R + 1e-6 * rng.normal(size=(3, 3))
-    cases.append(((S, cur, sigma, np.array([1.0, 0.0, 0.0]), p, skew), ri.OK))
-    cases.append(((S.tolist(), list(cur), sigma, (1.0, 0.0, 0.0), tuple(p), R), ri.BAD_LOAD))    # no shape
-    cases.append(((S, list(cur), sigma, (0.0, 1.0, 0.0), tuple(p), R), ri.OK))
-    cases.append(((S.astype(np.float32), cur, sigma.astype(np.float32), None, p, R), ri.OK))
+    cases.append(((S, cur, sigma, np.array([1.0, 0.0, 0.0]), p, skew), rio.OK))
+    cases.append(((S.tolist(), list(cur), sigma, (1.0, 0.0, 0.0), tuple(p), R), rio.BAD_LOAD))    # no shape
+    cases.append(((S, list(cur), sigma, (0.0, 1.0, 0.0), tuple(p), R), rio.OK))
+    cases.append(((S.astype(np.float32), cur, sigma.astype(np.float32), None, p, R), rio.OK))
     for args, want in cases:
         assert _same(tp, tc, args) == want
     # the projection: the skewed matrix's nearest rotation, not the matrix itself
@@ -125,7 +125,48 @@ def test_warm_start_angles_give_back_the_pose():
     for _ in range(50):
         S, cur, sigma = _case(rng)
         R, p = _rotation(rng), rng.uniform(-0.5, 0.5, 3)
-        assert tc._in.load(S, cur, sigma, None, p, R) == ri.OK
+        assert tc._in.load(S, cur, sigma, None, p, R) == rio.OK
         x = tc._x
         assert np.allclose(point(x, tc._cbar), p, rtol=0, atol=1e-14)
         assert np.allclose(np.array(dcm(x[3], x[4], x[5])).reshape(3, 3), R.T, rtol=0, atol=1e-13)
+
+
+def test_residual_cost_and_finish_pose_bit_equal_to_the_reference():
+    """At seeded estimates (angles, range, corrected signals, weights, moments; one estimate with a
+    NaN range): ``residual_cost`` and the published pose (position, rotation, angles, the finite
+    flag) the same in both, bit for bit; the residual also against numpy's dipole field of
+    ``model.field.dipole_point`` summed independently (1e-12 relative): catches ``R`` applied
+    untransposed, a weight squared twice or the dipole's range cubed wrong."""
+    from coiltrack.firmware.model.field import dipole_point
+
+    rng = np.random.default_rng(13)
+    tp, tc = _pair()
+    for k in range(60):
+        x = np.array([rng.uniform(-3, 3), rng.uniform(-1.4, 1.4), rng.uniform(0.1, 0.6),
+                      rng.uniform(-3, 3), rng.uniform(-1.4, 1.4), rng.uniform(-3, 3)])
+        if k == 59:
+            x[2] = np.nan
+        Sc, w, mom = rng.normal(0, 1e-6, 9), rng.uniform(1e7, 1e9, 9), rng.normal(0, 0.5, 9)
+        for t in (tp, tc):
+            for i in range(6):
+                t._x[i] = x[i]
+            for i in range(9):
+                t._Sc[i], t._wv[i], t._mom[i] = Sc[i], w[i], mom[i]
+            sync = np.array(dcm(x[3], x[4], x[5])).reshape(3, 3).T
+            t._Rn[:] = sync
+        cp, cc = tp._in.residual_cost(), tc._in.residual_cost()
+        assert cp == cc or (np.isnan(cp) and np.isnan(cc))
+        okp, okc = tp._in.finish_pose(), tc._in.finish_pose()
+        assert okp == okc == (k != 59)
+        for a, b in ((tp.position, tc.position), (tp.rotation, tc.rotation), (np.array(tp.angles),
+                                                                               np.array(tc.angles))):
+            assert np.array_equal(a, b, equal_nan=True)
+        if k == 59:
+            continue
+        u = np.array([np.cos(x[1]) * np.cos(x[0]), np.cos(x[1]) * np.sin(x[0]), -np.sin(x[1])])
+        ref = 0.0
+        for j in range(3):
+            b = np.array(dipole_point(*(x[2] * u), *mom[3 * j:3 * j + 3], False)[:3])
+            ref += np.sum(((Sc[3 * j:3 * j + 3] - sync.T @ b) * w[3 * j:3 * j + 3]) ** 2)
+        assert cc == pytest.approx(ref, rel=1e-12)
+        assert np.allclose(tc.position, point(x, tc._cbar), rtol=0, atol=0)

@@ -1,11 +1,11 @@
-"""A solve's inputs into Raab's tracker (``pose.raab.RaabTracker.begin``).
+"""A solve's inputs into Raab's tracker and its published pose (``pose.raab.RaabTracker``).
 
 Raab et al. 1979 (``seeds/004_86267342cd7488ce.txt``): the tracker works on the
 signal matrix ``S``, the coil moments at the measured currents and their
 pseudo-inverse ``M^+`` (eq 7's ``F = S M^+``), from a start that is the tracked
 pose in Raab's coordinates ``(alpha, beta, rho, psi, theta, phi)`` (Table II)
 or, without one, an acquisition on the configured hemisphere.
-:class:`RaabInputs` takes one solve's arguments into the tracker's buffers:
+:class:`RaabIO` takes one solve's arguments into the tracker's buffers:
 
 * the signals ``S`` (3, n) T, their weights ``1 / sigma`` and the currents (n,)
   A (``StagedSolve._load``: every value finite, every ``sigma`` positive);
@@ -15,8 +15,8 @@ or, without one, an acquisition on the configured hemisphere.
   angles of its position about the coils' centre (``angles_from_pose``);
 * the moments at the currents and ``M^+`` (``raab_update.moment_pseudo_inverse``).
 
-On the compiled core (``coiltrack.firmware.core``) :meth:`RaabInputs.load` is
-one call of ``ct_raab_inputs`` (``core/src/raab.c``, the same operations in
+On the compiled core (``coiltrack.firmware.core``) :meth:`RaabIO.load` is
+one call of ``ct_raab_io`` (``core/src/raab.c``, the same operations in
 the same order; inputs that are no float64 arrays, and a warm start's matrix
 that is no rotation, go through the Python here, the reference).
 """
@@ -28,32 +28,36 @@ import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.linalg import Rot3, nearest_rotation
-from coiltrack.firmware.pose.raab_update import _ORTHO_TOL, angles_from_pose, load_rotation
+from coiltrack.firmware.pose.raab_update import (_ORTHO_TOL, C_RAAB, angles_from_pose, load_rotation, point,
+                                                 residual_cost, sync_rotation)
 from coiltrack.firmware.pose.staged import StagedSolve
 
-#: :meth:`RaabInputs.load`'s results (``core/include/ct_ac.h``: CT_RIN_*): the first check that failed
+#: :meth:`RaabIO.load`'s results (``core/include/ct_ac.h``: CT_RIN_*): the first check that failed
 #: (a bad load, hemisphere or warm start), the moments without a pseudo-inverse, or all taken
 BAD_LOAD, BAD_HEMI, BAD_X0, PROJECT, NO_START, OK = range(6)
 
 
-class RaabInputs:
+class RaabIO:
     """``begin``'s inputs into the buffers of a Raab tracker with ``n`` coils (module docstring).
 
     ``cbar`` the coils' centre; ``Sv``, ``wv`` (3 n), ``cur`` (n), ``x`` (6), ``Rn`` (3, 3),
-    ``mpa``, ``mom`` (3 n): the tracker's buffers (memoryviews of float64 arrays, ``Rn`` an
-    array); ``update`` its ``raab_update.Update`` (the pseudo-inverse). After :meth:`load`:
-    ``check_hemi`` (a hemisphere was given), ``hemi`` (3,), ``warm`` (a warm start was given).
+    ``mpa``, ``mom``, ``Sc`` (3 n): the tracker's buffers (memoryviews of float64 arrays, ``Rn``
+    an array); ``update`` its ``raab_update.Update`` (the pseudo-inverse); ``results`` its
+    ``(position, rotation, angles)`` (arrays (3,), (3, 3) and a memoryview (6,)). After
+    :meth:`load`: ``check_hemi`` (a hemisphere was given), ``hemi`` (3,), ``warm`` (a warm start
+    was given).
     """
 
-    def __init__(self, n: int, cbar, Sv, wv, cur, x, Rn, mpa, mom, update, core=_DEFAULT_CORE):
+    def __init__(self, n: int, cbar, Sv, wv, cur, x, Rn, mpa, mom, Sc, update, results, core=_DEFAULT_CORE):
         self.n = n
         self._cbar = tuple(float(c) for c in cbar)
         # the names StagedSolve._load reads and writes
         self._Sv, self._wv, self._curv = Sv, wv, cur
         self._sigma_rms = 0.0
         self._x, self._Rn, self._R = x, Rn, memoryview(Rn)
-        self._mpa, self._mom = mpa, mom
+        self._mpa, self._mom, self._Sc = mpa, mom, Sc
         self._upd = update
+        self._pos, self._rot, self._ang = results
         self._hemi = np.array([1.0, 0.0, 0.0])
         self.hemi = memoryview(self._hemi)
         self.check_hemi = False
@@ -65,14 +69,17 @@ class RaabInputs:
             self._bind_compiled(core.ext)
 
     def _bind_compiled(self, ext) -> None:
-        """:meth:`load` on ``ct_raab_inputs``, the buffers bound once."""
+        """:meth:`load` on ``ct_raab_io``, the buffers bound once."""
         self._cb = np.array(self._cbar)
         self._srms = np.zeros(1)
         self._srmsv = memoryview(self._srms)
-        self._ck = ext.RaabIn(self.n, _ORTHO_TOL, (self._cb, self._Sv, self._wv, self._curv, self._srms, self._hemi,
-                                                    self._m9, self._Rn, self._x, self._mpa, self._mom,
-                                                    self._upd.mp))
+        self._ck = ext.RaabIO(self.n, _ORTHO_TOL, C_RAAB,
+                              (self._cb, self._Sv, self._wv, self._curv, self._srms, self._hemi, self._m9, self._Rn,
+                               self._x, self._mpa, self._mom, self._upd.mp, self._Sc, self._pos, self._rot,
+                               self._ang))
         self.load = self._load_compiled
+        self.residual_cost = self._ck.residual_cost
+        self.finish_pose = self._ck.finish_pose
         self.core = "compiled"
 
     def load(self, S, currents, sigma, hemisphere, x0_position, x0_rotation) -> int:
@@ -89,7 +96,7 @@ class RaabInputs:
     def _load_compiled(self, S, currents, sigma, hemisphere, x0_position, x0_rotation) -> int:
         r = self._ck.inputs(S, sigma, currents, hemisphere, x0_position, x0_rotation)
         if r is None:                                # inputs of another kind: the reference takes them
-            return RaabInputs.load(self, S, currents, sigma, hemisphere, x0_position, x0_rotation)
+            return RaabIO.load(self, S, currents, sigma, hemisphere, x0_position, x0_rotation)
         self._sigma_rms = self._srmsv[0]
         if r >= BAD_HEMI:
             self.check_hemi = hemisphere is not None
@@ -138,3 +145,23 @@ class RaabInputs:
         x = self._x
         x[0], x[1], x[2], x[3], x[4], x[5] = angles_from_pose(px, py, pz, self._R)
         return True
+
+    def residual_cost(self) -> float:
+        """``raab_update.residual_cost`` of the corrected signals ``Sc`` (weights ``wv``, the moments
+        ``mom``) at the estimate ``x``, ``R`` (the caller corrects the signals first)."""
+        return residual_cost(self.n, self._x, self._R, self._Sc, self._wv, self._mom)
+
+    def finish_pose(self) -> bool:
+        """The estimate published: ``position`` its point about the coils' centre, ``R = A^T`` of
+        its angles (``sync_rotation``) and ``rotation`` a copy, ``angles`` = ``x``; False when the
+        position is not finite."""
+        x = self._x
+        px, py, pz = point(x, self._cbar)
+        pos = self._pos
+        pos[0], pos[1], pos[2] = px, py, pz
+        sync_rotation(x, self._R)
+        np.copyto(self._rot, self._Rn)
+        ang = self._ang
+        for i in range(6):
+            ang[i] = x[i]
+        return math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)
