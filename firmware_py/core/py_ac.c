@@ -712,7 +712,7 @@ static PyTypeObject RaabCovType = {
 
 /* ----------------------------------------------------------------- RaabIO */
 enum { RI_CBAR, RI_SV, RI_WV, RI_CUR, RI_SRMS, RI_HEMI, RI_M9, RI_R, RI_X, RI_MPA, RI_MOM, RI_MP, RI_SC, RI_POS,
-       RI_ROT, RI_ANG, RI_NBUF };
+       RI_ROT, RI_ANG, RI_PM, RI_ACQ, RI_NBUF };
 
 typedef struct {
     PyObject_HEAD
@@ -735,18 +735,18 @@ static void RaabIO_dealloc(RaabIOObject *self)
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* RaabIO(n, tol, c_raab, bufs): bufs the 16 arrays cbar, Sv, wv, cur, sigma_rms, hemi, m9, R, x, mpa, mom, mp,
- * Sc, position, rotation, angles */
+/* RaabIO(n, tol, c_raab, margin, bufs): bufs the 18 arrays cbar, Sv, wv, cur, sigma_rms, hemi, m9, R, x, mpa,
+ * mom, mp, Sc, position, rotation, angles, pm, acq_hemi */
 static int RaabIO_init(RaabIOObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"n", "tol", "c_raab", "bufs", NULL};
+    static char *kwlist[] = {"n", "tol", "c_raab", "margin", "bufs", NULL};
     static const char *names[RI_NBUF] = {"cbar", "Sv", "wv", "cur", "sigma_rms", "hemi", "m9", "R", "x", "mpa",
-                                         "mom", "mp", "Sc", "position", "rotation", "angles"};
+                                         "mom", "mp", "Sc", "position", "rotation", "angles", "pm", "acq_hemi"};
     int n, i;
-    double tol, c_raab;
+    double tol, c_raab, margin;
     PyObject *bufs;
     Py_ssize_t want[RI_NBUF];
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iddO", kwlist, &n, &tol, &c_raab, &bufs))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "idddO", kwlist, &n, &tol, &c_raab, &margin, &bufs))
         return -1;
     if (self->nbound) {
         PyErr_SetString(PyExc_RuntimeError, "RaabIO: already bound");
@@ -762,9 +762,9 @@ static int RaabIO_init(RaabIOObject *self, PyObject *args, PyObject *kw)
     }
     want[RI_CBAR] = 3; want[RI_SV] = want[RI_WV] = 3 * n; want[RI_CUR] = n; want[RI_SRMS] = 1; want[RI_HEMI] = 3;
     want[RI_M9] = want[RI_R] = 9; want[RI_X] = 6; want[RI_MPA] = want[RI_MOM] = want[RI_MP] = 3 * n;
-    want[RI_SC] = 3 * n; want[RI_POS] = 3; want[RI_ROT] = 9; want[RI_ANG] = 6;
+    want[RI_SC] = 3 * n; want[RI_POS] = 3; want[RI_ROT] = 9; want[RI_ANG] = 6; want[RI_PM] = want[RI_ACQ] = 3;
     for (i = 0; i < RI_NBUF; ++i) {
-        int ro = i == RI_CBAR || i == RI_MPA || i == RI_SC;
+        int ro = i == RI_CBAR || i == RI_MPA || i == RI_SC || i == RI_PM || i == RI_ACQ;
         if (ac_buffer(PyTuple_GET_ITEM(bufs, i), want[i], F64, !ro, &self->views[i], names[i]) < 0) {
             RaabIO_release(self);
             return -1;
@@ -779,7 +779,9 @@ static int RaabIO_init(RaabIOObject *self, PyObject *args, PyObject *kw)
     self->in.R = DBUF(RI_R); self->in.x = DBUF(RI_X); self->in.mpa = DBUF(RI_MPA); self->in.mom = DBUF(RI_MOM);
     self->in.mp = DBUF(RI_MP); self->in.Sc = DBUF(RI_SC); self->in.position = DBUF(RI_POS);
     self->in.rotation = DBUF(RI_ROT); self->in.angles = DBUF(RI_ANG);
+    self->in.pm = DBUF(RI_PM); self->in.acq_hemi = DBUF(RI_ACQ);
     self->in.c_raab = c_raab;
+    self->in.margin = margin;
 #undef DBUF
     return 0;
 }
@@ -907,7 +909,40 @@ static PyObject *RaabIO_finish_pose(RaabIOObject *self, PyObject *const *args, P
     Py_RETURN_FALSE;
 }
 
+/* moved(refresh) -> bool: ct_raab_moved */
+static PyObject *RaabIO_moved(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double refresh;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("moved", nargs, 1) < 0 || ac_double(args[0], &refresh) < 0)
+        return NULL;
+    if (ct_raab_moved(&self->in, refresh))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* behind(acquiring) -> bool: ct_raab_behind */
+static PyObject *RaabIO_behind(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int acquiring;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("behind", nargs, 1) < 0 || (acquiring = PyObject_IsTrue(args[0])) < 0)
+        return NULL;
+    if (ct_raab_behind(&self->in, acquiring))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
 static PyMethodDef RaabIO_methods[] = {
+    {"moved", (PyCFunction)(void (*)(void))RaabIO_moved, METH_FASTCALL, "moved(refresh) -> bool: as RaabIO.moved"},
+    {"behind", (PyCFunction)(void (*)(void))RaabIO_behind, METH_FASTCALL,
+     "behind(acquiring) -> bool: as RaabIO.behind"},
     {"residual_cost", (PyCFunction)(void (*)(void))RaabIO_residual_cost, METH_FASTCALL,
      "residual_cost() -> float: as raab_update.residual_cost of the bound buffers"},
     {"finish_pose", (PyCFunction)(void (*)(void))RaabIO_finish_pose, METH_FASTCALL,

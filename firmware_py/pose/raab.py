@@ -258,8 +258,8 @@ class RaabTracker(StagedSolve):
         #: a solve's inputs into these buffers (``pose.raab_io``: Python or ``ct_raab_io``); its
         #: ``hemi``, ``check_hemi`` and ``warm`` are the last ``begin``'s
         self._in = RaabIO(n, self._cbar, self._Sv, self._wv, self._curv, self._x, self._Rn, self._mpa, self._mom,
-                          self._Sc, self._upd, (self.position, self.rotation, self.angles), core)
-        self._acq_hemi = tuple(float(v) for v in hemisphere)
+                          self._Sc, self._pm, self._upd, (self.position, self.rotation, self.angles), hemisphere,
+                          _HEMI_MARGIN, core)
         self._acquiring = False
         self._reacquired = False
         self._limit = 1
@@ -458,21 +458,14 @@ class RaabTracker(StagedSolve):
         """The estimate is more than ``refresh`` x range from the last evaluation
         (the correction is exact in the orientation, and the covariance is
         carried to the estimate's orientation: only the position counts)."""
-        px, py, pz = self._point()
-        pm = self._pm
-        dx, dy, dz = px - pm[0], py - pm[1], pz - pm[2]
-        return dx * dx + dy * dy + dz * dz > (self.refresh * self._x[2]) ** 2
+        return self._in.moved(self.refresh)                 # pose.raab_io
 
     def _unit_finish(self) -> None:
         """Plausibility (hemisphere), the gate, the covariance (charged ``n``)."""
         x = self._x
-        hx, hy, hz = self._acq_hemi if self._acquiring else self._in.hemi
-        ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
-        ux, uy, uz = cb * ca, cb * sa, -sb
-        hn = math.sqrt(hx * hx + hy * hy + hz * hz)
         warm = self._in.warm
         if (self._in.check_hemi or self._acquiring or not warm) and not self._mirrored \
-                and ux * hx + uy * hy + uz * hz < -_HEMI_MARGIN * hn:
+                and self._in.behind(self._acquiring):
             # footnote 3: the same coupling at -u with the same orientation; evaluated there again
             x[0], x[1] = wrap(x[0] + math.pi), -x[1]
             self._mirrored = True

@@ -42,20 +42,26 @@ class RaabIO:
 
     ``cbar`` the coils' centre; ``Sv``, ``wv`` (3 n), ``cur`` (n), ``x`` (6), ``Rn`` (3, 3),
     ``mpa``, ``mom``, ``Sc`` (3 n): the tracker's buffers (memoryviews of float64 arrays, ``Rn``
-    an array); ``update`` its ``raab_update.Update`` (the pseudo-inverse); ``results`` its
-    ``(position, rotation, angles)`` (arrays (3,), (3, 3) and a memoryview (6,)). After
+    an array), ``pm`` (3) the point of its last evaluation; ``update`` its ``raab_update.Update``
+    (the pseudo-inverse); ``results`` its ``(position, rotation, angles)`` (arrays (3,), (3, 3)
+    and a memoryview (6,)); ``acq_hemi`` the acquisition's hemisphere and ``margin`` the sine of
+    the elevation beyond it that :meth:`behind` tests. After
     :meth:`load`: ``check_hemi`` (a hemisphere was given), ``hemi`` (3,), ``warm`` (a warm start
     was given).
     """
 
-    def __init__(self, n: int, cbar, Sv, wv, cur, x, Rn, mpa, mom, Sc, update, results, core=_DEFAULT_CORE):
+    def __init__(self, n: int, cbar, Sv, wv, cur, x, Rn, mpa, mom, Sc, pm, update, results, acq_hemi,
+                 margin: float, core=_DEFAULT_CORE):
         self.n = n
         self._cbar = tuple(float(c) for c in cbar)
         # the names StagedSolve._load reads and writes
         self._Sv, self._wv, self._curv = Sv, wv, cur
         self._sigma_rms = 0.0
         self._x, self._Rn, self._R = x, Rn, memoryview(Rn)
-        self._mpa, self._mom, self._Sc = mpa, mom, Sc
+        self._mpa, self._mom, self._Sc, self._pm = mpa, mom, Sc, pm
+        self._acq = np.array([float(v) for v in acq_hemi])
+        self._acqv = memoryview(self._acq)
+        self._margin = float(margin)
         self._upd = update
         self._pos, self._rot, self._ang = results
         self._hemi = np.array([1.0, 0.0, 0.0])
@@ -73,10 +79,12 @@ class RaabIO:
         self._cb = np.array(self._cbar)
         self._srms = np.zeros(1)
         self._srmsv = memoryview(self._srms)
-        self._ck = ext.RaabIO(self.n, _ORTHO_TOL, C_RAAB,
+        self._ck = ext.RaabIO(self.n, _ORTHO_TOL, C_RAAB, self._margin,
                               (self._cb, self._Sv, self._wv, self._curv, self._srms, self._hemi, self._m9, self._Rn,
                                self._x, self._mpa, self._mom, self._upd.mp, self._Sc, self._pos, self._rot,
-                               self._ang))
+                               self._ang, self._pm, self._acq))
+        self.moved = self._ck.moved
+        self.behind = self._ck.behind
         self.load = self._load_compiled
         self.residual_cost = self._ck.residual_cost
         self.finish_pose = self._ck.finish_pose
@@ -145,6 +153,24 @@ class RaabIO:
         x = self._x
         x[0], x[1], x[2], x[3], x[4], x[5] = angles_from_pose(px, py, pz, self._R)
         return True
+
+    def moved(self, refresh: float) -> bool:
+        """The estimate's point is more than ``refresh`` x range from ``pm`` (the last evaluation)."""
+        x = self._x
+        px, py, pz = point(x, self._cbar)
+        pm = self._pm
+        dx, dy, dz = px - pm[0], py - pm[1], pz - pm[2]
+        return dx * dx + dy * dy + dz * dz > (refresh * x[2]) ** 2
+
+    def behind(self, acquiring: bool) -> bool:
+        """The estimate's direction is more than ``margin`` (the sine of its elevation) behind the
+        plane of the hemisphere: the acquisition's while ``acquiring``, else the last ``begin``'s."""
+        x = self._x
+        hx, hy, hz = self._acqv if acquiring else self.hemi
+        ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
+        ux, uy, uz = cb * ca, cb * sa, -sb
+        hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+        return ux * hx + uy * hy + uz * hz < -self._margin * hn
 
     def residual_cost(self) -> float:
         """``raab_update.residual_cost`` of the corrected signals ``Sc`` (weights ``wv``, the moments

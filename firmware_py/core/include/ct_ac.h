@@ -162,6 +162,9 @@ struct ct_raab_io {
     const double *mpa;              /* 3 n: moments per ampere */
     double *mom, *mp;               /* 3 n, 3 n */
     const double *Sc;               /* 3 n: the corrected signals (residual_cost) */
+    const double *pm;               /* 3: the point of the last evaluation (moved) */
+    const double *acq_hemi;         /* 3: the acquisition's hemisphere (behind) */
+    double margin;                  /* behind: pose.raab._HEMI_MARGIN */
     double *position, *rotation, *angles;   /* 3, 9, 6: the published pose (RaabTracker._finish) */
 };
 /* its results: the first check that failed, or where the caller goes on */
@@ -180,6 +183,11 @@ double ct_raab_residual_cost(const struct ct_raab_io *io);
 /* RaabTracker._finish's pose: position = point(x, cbar), R = A^T of x's angles (sync_rotation), rotation
  * = R, angles = x; 1 when the position is finite */
 int ct_raab_finish_pose(const struct ct_raab_io *io);
+/* RaabIO.moved: the estimate's point more than refresh x range from pm */
+int ct_raab_moved(const struct ct_raab_io *io, double refresh);
+/* RaabIO.behind: the estimate's direction more than margin behind the hemisphere (the acquisition's when
+ * acquiring, else the last begin's) */
+int ct_raab_behind(const struct ct_raab_io *io, int acquiring);
 void ct_raab_angles_from_pose(double px, double py, double pz, const double *R, double *x);
 
 #endif /* CT_AC_H */

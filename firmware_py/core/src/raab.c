@@ -705,3 +705,21 @@ int ct_raab_finish_pose(const struct ct_raab_io *io)
         io->angles[i] = x[i];
     return isfinite(px) && isfinite(py) && isfinite(pz);
 }
+
+int ct_raab_moved(const struct ct_raab_io *io, double refresh)
+{
+    const double *x = io->x, *c = io->cbar, *pm = io->pm;
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]), r = x[2];
+    double px = c[0] + r * cb * ca, py = c[1] + r * cb * sa, pz = c[2] - r * sb;    /* point */
+    double dx = px - pm[0], dy = py - pm[1], dz = pz - pm[2];
+    return dx * dx + dy * dy + dz * dz > pow(refresh * x[2], 2.0);
+}
+
+int ct_raab_behind(const struct ct_raab_io *io, int acquiring)
+{
+    const double *x = io->x, *h = acquiring ? io->acq_hemi : io->hemi;
+    double hx = h[0], hy = h[1], hz = h[2];
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]);
+    double ux = cb * ca, uy = cb * sa, uz = -sb, hn = sqrt(hx * hx + hy * hy + hz * hz);
+    return ux * hx + uy * hy + uz * hz < -io->margin * hn;
+}

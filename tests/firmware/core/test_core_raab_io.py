@@ -170,3 +170,37 @@ def test_residual_cost_and_finish_pose_bit_equal_to_the_reference():
             ref += np.sum(((Sc[3 * j:3 * j + 3] - sync.T @ b) * w[3 * j:3 * j + 3]) ** 2)
         assert cc == pytest.approx(ref, rel=1e-12)
         assert np.allclose(tc.position, point(x, tc._cbar), rtol=0, atol=0)
+
+
+def test_moved_and_behind_decide_as_the_reference():
+    """The refresh test (``moved``) and the hemisphere test (``behind``, acquiring or not) at seeded
+    estimates around their thresholds (the last evaluation's point at about ``refresh`` x range,
+    directions near the hemisphere's margin): the same decisions in both, and each decision
+    against its definition in numpy: catches a range not squared or the acquisition's hemisphere
+    taken while tracking."""
+    rng = np.random.default_rng(29)
+    tp, tc = _pair()
+    hemi = np.array([0.3, -0.8, 0.5])
+    seen = set()
+    for k in range(400):
+        x = np.array([rng.uniform(-3, 3), rng.uniform(-1.5, 1.5), rng.uniform(0.1, 0.6), 0.0, 0.0, 0.0])
+        p = np.array(point(x, tp._cbar))
+        d = rng.normal(size=3)
+        pm = p + d / np.linalg.norm(d) * 0.02 * x[2] * rng.uniform(0.98, 1.02)
+        S, cur, sigma = _case(rng)
+        for t in (tp, tc):
+            assert t._in.load(S, cur, sigma, hemi, None, None) == rio.OK
+            for i in range(6):
+                t._x[i] = x[i]
+            for i in range(3):
+                t._pm[i] = pm[i]
+        m = tp._in.moved(0.02)
+        assert m == tc._in.moved(0.02) == (np.sum((p - pm) ** 2) > (0.02 * x[2]) ** 2)
+        u = (p - np.array(tp._cbar)) / x[2]
+        for acq in (False, True):
+            h = np.array(tp._in._acq) if acq else hemi
+            b = tp._in.behind(acq)
+            assert b == tc._in.behind(acq)
+            assert b == (u @ h < -0.1 * np.linalg.norm(h)) or abs(u @ h + 0.1 * np.linalg.norm(h)) < 1e-12
+            seen.add((m, b))
+    assert seen == {(False, False), (False, True), (True, False), (True, True)}
