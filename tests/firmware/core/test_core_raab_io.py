@@ -204,3 +204,38 @@ def test_moved_and_behind_decide_as_the_reference():
             assert b == (u @ h < -0.1 * np.linalg.norm(h)) or abs(u @ h + 0.1 * np.linalg.norm(h)) < 1e-12
             seen.add((m, b))
     assert seen == {(False, False), (False, True), (True, False), (True, True)}
+
+
+def test_gated_warm_solves_equal_the_reference():
+    """Whole solves with the residual gate on (0.99): warm starts near a seeded pose (the gate
+    passes) and far from it with a distorted signal (the gate fails: a reacquisition), each on both
+    cores: the same status, iterations, cost, pose and covariance, bit for bit (the gate's decision
+    sees the same cost)."""
+    from coiltrack.firmware.pose.solver import SOLVE_REACQUIRED
+
+    coils = thesis_source().coils
+    tp = RaabTracker(coils, gate_probability=0.99, core=fcore.PYTHON)
+    tc = RaabTracker(coils, gate_probability=0.99, core=fcore.DEFAULT)
+    rng = np.random.default_rng(31)
+    flags = passed = 0
+    for k in range(12):
+        R, p = _rotation(rng), np.array([0.25, 0.1, 0.05]) + rng.uniform(-0.05, 0.05, 3)
+        cur = np.array([1.0, 1.1, 0.9])
+        S = np.zeros((3, 3))
+        tp.predict_signals(p, R, cur, S)
+        sigma = np.full((3, 3), 2e-9)
+        S += rng.normal(0, 2e-9, (3, 3))
+        if k % 3 == 2:
+            S[:, 1] *= 1.3                          # a distorted coil: the residual fails the gate
+        dR = _rotation(rng) if k % 4 == 3 else np.eye(3)
+        x0p, x0R = p + rng.normal(0, 0.003, 3), R @ dR
+        sp = tp.solve(S, cur, sigma, None, x0p, x0R)
+        sc = tc.solve(S, cur, sigma, None, x0p, x0R)
+        assert sp == sc
+        flags |= sp
+        assert (tp.iterations, tp.cost, tp.converged) == (tc.iterations, tc.cost, tc.converged)
+        for a, b in ((tp.position, tc.position), (tp.rotation, tc.rotation), (tp.covariance, tc.covariance)):
+            assert np.allclose(a, b, rtol=1e-12, atol=0)
+        assert np.array_equal(tp.position, tc.position) and np.array_equal(tp.rotation, tc.rotation)
+        passed += not sp & SOLVE_REACQUIRED and tp.cost > 0.0
+    assert flags & SOLVE_REACQUIRED and passed
