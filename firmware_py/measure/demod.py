@@ -132,7 +132,10 @@ class Demodulator(_DemodBuffers):
     (``coiltrack.firmware.core``): where it is compiled, :meth:`push`,
     :meth:`feed` and :meth:`finish` run the kernels of ``core/src/demod.c``
     (the same operations in the same order), bound once here to this
-    object's buffers and the ring's.
+    object's buffers and the ring's; ``currents`` the drive's measured
+    ``(amplitude, phase)`` arrays (n,) that :meth:`step` reads for each block
+    it solves (the actuation's; None: no :meth:`step`, and :meth:`step` on the
+    compiled core as well only with ``ring`` and ``currents``).
     :meth:`start` sets the block grid and the current phasors; :meth:`push`
     adds one sample and returns the index of a block it completes (or -1);
     :meth:`finish` solves that block into ``S``, ``Q``, ``var``, ``dc``.
