@@ -47,9 +47,9 @@ enum { DM_RT, DM_RB, DM_RF, DM_NRING };
 typedef struct {
     PyObject_HEAD
     struct ct_demod d;
-    Py_buffer views[DM_NBUF], ring[DM_NRING];
+    Py_buffer views[DM_NBUF], ring[DM_NRING], phase;
     int64_t cap;
-    int nbound, ring_bound;
+    int nbound, ring_bound, phase_bound;
 } DemodObject;
 
 static void Demod_release(DemodObject *self)
@@ -62,6 +62,9 @@ static void Demod_release(DemodObject *self)
         for (i = 0; i < DM_NRING; ++i)
             PyBuffer_Release(&self->ring[i]);
     self->ring_bound = 0;
+    if (self->phase_bound)
+        PyBuffer_Release(&self->phase);
+    self->phase_bound = 0;
 }
 
 static void Demod_dealloc(DemodObject *self)
@@ -70,21 +73,22 @@ static void Demod_dealloc(DemodObject *self)
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
-/* Demod(n, slots, window_us, hop_us, sigma2, bufs, ring): bufs the 24 arrays in the order of
- * Demodulator._bind; ring None or (t, b, flags) of the channel's SampleRing */
+/* Demod(n, slots, window_us, hop_us, sigma2, bufs, ring[, phase]): bufs the 24 arrays in the order of
+ * Demodulator._bind; ring None or (t, b, flags) of the channel's SampleRing; phase None or the drive's
+ * measured current phases (n, the actuation's array: step reads them) */
 static int Demod_init(DemodObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"n", "slots", "window_us", "hop_us", "sigma2", "bufs", "ring", NULL};
+    static char *kwlist[] = {"n", "slots", "window_us", "hop_us", "sigma2", "bufs", "ring", "phase", NULL};
     static const char *names[DM_NBUF] = {"freqs", "h", "cph", "sph", "G", "R", "BB", "count", "flags", "kslot",
                                          "phi", "Gf", "L", "Ginv", "x", "b", "X", "S", "Q", "var", "qvar", "dc",
                                          "st", "out"};
     int n, slots, i, p;
     long long window_us, hop_us;
     double sigma2;
-    PyObject *bufs, *ring;
+    PyObject *bufs, *ring, *phase = Py_None;
     Py_ssize_t want[DM_NBUF];
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiLLdOO", kwlist, &n, &slots, &window_us, &hop_us, &sigma2, &bufs,
-                                     &ring))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiLLdOO|O", kwlist, &n, &slots, &window_us, &hop_us, &sigma2, &bufs,
+                                     &ring, &phase))
         return -1;
     if (self->nbound) {
         PyErr_SetString(PyExc_RuntimeError, "Demod: already bound");
@@ -138,6 +142,13 @@ static int Demod_init(DemodObject *self, PyObject *args, PyObject *kw)
             return -1;
         }
         self->ring_bound = 1;
+    }
+    if (phase != Py_None) {
+        if (ac_buffer(phase, n, 8, "d", 0, &self->phase, "phase") < 0) {
+            Demod_release(self);
+            return -1;
+        }
+        self->phase_bound = 1;
     }
 #define DBUF(i) ((double *)self->views[i].buf)
 #define IBUF(i) ((int64_t *)self->views[i].buf)
@@ -203,6 +214,31 @@ static PyObject *Demod_feed(DemodObject *self, PyObject *const *args, Py_ssize_t
     Py_RETURN_FALSE;
 }
 
+/* step(count, last, left, signal_gate, ratio_max, q_gate) -> int: the CT_DMS_* bits of ct_demod_step over
+ * the bound ring (count entries, the newest in slot last) and the bound phases */
+static PyObject *Demod_step(DemodObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t count, last, left;
+    double sg, rm, qg;
+    if (Demod_ready(self) < 0 || ac_nargs("step", nargs, 6) < 0)
+        return NULL;
+    if (!self->ring_bound || !self->phase_bound) {
+        PyErr_SetString(PyExc_RuntimeError, "Demod: no ring or no phases bound");
+        return NULL;
+    }
+    if (ac_int64(args[0], &count) < 0 || ac_int64(args[1], &last) < 0 || ac_int64(args[2], &left) < 0 ||
+        ac_double(args[3], &sg) < 0 || ac_double(args[4], &rm) < 0 || ac_double(args[5], &qg) < 0)
+        return NULL;
+    if (count < 0 || count > self->cap || (count > 0 && (last < 0 || last >= self->cap))) {
+        PyErr_SetString(PyExc_ValueError, "step: count or last outside the ring");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_demod_step(&self->d, (const double *)self->phase.buf,
+                                         (const int64_t *)self->ring[DM_RT].buf, (const double *)self->ring[DM_RB].buf,
+                                         (const uint8_t *)self->ring[DM_RF].buf, self->cap, count, last, left, sg,
+                                         rm, qg));
+}
+
 /* finish(k) -> bool */
 static PyObject *Demod_finish(DemodObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -223,6 +259,8 @@ static PyMethodDef Demod_methods[] = {
      "push(t, bx, by, bz, sample_flags) -> k: as Demodulator.push"},
     {"feed", (PyCFunction)(void (*)(void))Demod_feed, METH_FASTCALL,
      "feed(count, last, left) -> bool: as Demodulator.feed over the bound ring"},
+    {"step", (PyCFunction)(void (*)(void))Demod_step, METH_FASTCALL,
+     "step(count, last, left, signal_gate, ratio_max, q_gate) -> int: as Demodulator.step"},
     {"finish", (PyCFunction)(void (*)(void))Demod_finish, METH_FASTCALL,
      "finish(k) -> bool: as Demodulator.finish, with the block's statistics into out"},
     {NULL, NULL, 0, NULL}};
@@ -672,11 +710,264 @@ static PyTypeObject RaabCovType = {
     .tp_methods = RaabCov_methods,
 };
 
+/* ----------------------------------------------------------------- RaabIO */
+enum { RI_CBAR, RI_SV, RI_WV, RI_CUR, RI_SRMS, RI_HEMI, RI_M9, RI_R, RI_X, RI_MPA, RI_MOM, RI_MP, RI_SC, RI_POS,
+       RI_ROT, RI_ANG, RI_PM, RI_ACQ, RI_NBUF };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_raab_io in;
+    Py_buffer views[RI_NBUF];
+    int nbound;
+} RaabIOObject;
+
+static void RaabIO_release(RaabIOObject *self)
+{
+    int i;
+    for (i = 0; i < self->nbound; ++i)
+        PyBuffer_Release(&self->views[i]);
+    self->nbound = 0;
+}
+
+static void RaabIO_dealloc(RaabIOObject *self)
+{
+    RaabIO_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* RaabIO(n, tol, c_raab, margin, bufs): bufs the 18 arrays cbar, Sv, wv, cur, sigma_rms, hemi, m9, R, x, mpa,
+ * mom, mp, Sc, position, rotation, angles, pm, acq_hemi */
+static int RaabIO_init(RaabIOObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "tol", "c_raab", "margin", "bufs", NULL};
+    static const char *names[RI_NBUF] = {"cbar", "Sv", "wv", "cur", "sigma_rms", "hemi", "m9", "R", "x", "mpa",
+                                         "mom", "mp", "Sc", "position", "rotation", "angles", "pm", "acq_hemi"};
+    int n, i;
+    double tol, c_raab, margin;
+    PyObject *bufs;
+    Py_ssize_t want[RI_NBUF];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "idddO", kwlist, &n, &tol, &c_raab, &margin, &bufs))
+        return -1;
+    if (self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: already bound");
+        return -1;
+    }
+    if (n < 3 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "RaabIO: n in 3..64");
+        return -1;
+    }
+    if (!PyTuple_Check(bufs) || PyTuple_GET_SIZE(bufs) != RI_NBUF) {
+        PyErr_Format(PyExc_TypeError, "RaabIO: bufs must be a tuple of %d arrays", RI_NBUF);
+        return -1;
+    }
+    want[RI_CBAR] = 3; want[RI_SV] = want[RI_WV] = 3 * n; want[RI_CUR] = n; want[RI_SRMS] = 1; want[RI_HEMI] = 3;
+    want[RI_M9] = want[RI_R] = 9; want[RI_X] = 6; want[RI_MPA] = want[RI_MOM] = want[RI_MP] = 3 * n;
+    want[RI_SC] = 3 * n; want[RI_POS] = 3; want[RI_ROT] = 9; want[RI_ANG] = 6; want[RI_PM] = want[RI_ACQ] = 3;
+    for (i = 0; i < RI_NBUF; ++i) {
+        int ro = i == RI_CBAR || i == RI_MPA || i == RI_SC || i == RI_PM || i == RI_ACQ;
+        if (ac_buffer(PyTuple_GET_ITEM(bufs, i), want[i], F64, !ro, &self->views[i], names[i]) < 0) {
+            RaabIO_release(self);
+            return -1;
+        }
+        self->nbound = i + 1;
+    }
+#define DBUF(i) ((double *)self->views[i].buf)
+    self->in.n = n;
+    self->in.tol = tol;
+    self->in.cbar = DBUF(RI_CBAR); self->in.Sv = DBUF(RI_SV); self->in.wv = DBUF(RI_WV); self->in.cur = DBUF(RI_CUR);
+    self->in.sigma_rms = DBUF(RI_SRMS); self->in.hemi = DBUF(RI_HEMI); self->in.m9 = DBUF(RI_M9);
+    self->in.R = DBUF(RI_R); self->in.x = DBUF(RI_X); self->in.mpa = DBUF(RI_MPA); self->in.mom = DBUF(RI_MOM);
+    self->in.mp = DBUF(RI_MP); self->in.Sc = DBUF(RI_SC); self->in.position = DBUF(RI_POS);
+    self->in.rotation = DBUF(RI_ROT); self->in.angles = DBUF(RI_ANG);
+    self->in.pm = DBUF(RI_PM); self->in.acq_hemi = DBUF(RI_ACQ);
+    self->in.c_raab = c_raab;
+    self->in.margin = margin;
+#undef DBUF
+    return 0;
+}
+
+/* a float64 buffer of shape (rows, cols) (cols 0: 1-D of rows items), any strides in whole items, or 0
+ * (no error set: the caller's Python takes that input) */
+static int ac_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    f = v->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8 || v->strides == NULL ||
+        (cols == 0 ? (v->ndim != 1 || v->shape[0] != rows)
+                   : (v->ndim != 2 || v->shape[0] != rows || v->shape[1] != cols)) ||
+        v->strides[0] % 8 != 0 || (cols > 0 && v->strides[1] % 8 != 0)) {
+        PyBuffer_Release(v);
+        return 0;
+    }
+    return 1;
+}
+
+#define AC_AT(v, i) (*(const double *)((const char *)(v).buf + (i) * (v).strides[0]))
+#define AC_AT2(v, i, j) (*(const double *)((const char *)(v).buf + (i) * (v).strides[0] + (j) * (v).strides[1]))
+
+/* inputs(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> int or None: ct_raab_inputs (the
+ * CT_RIN_* codes) for float64 arrays (3, n), (3, n), (n,), (3,) or None, (3,) or None, (3, 3) or None;
+ * None for inputs of another kind (the Python reference takes them) */
+static PyObject *RaabIO_inputs(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vs, vg, vc, vh, vp, vr;
+    int n = self->in.n, r, have_h, have_p, have_r, i, j;
+    double h[3], p[3], m[9];
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("inputs", nargs, 6) < 0)
+        return NULL;
+    have_h = args[3] != Py_None;
+    have_p = args[4] != Py_None;
+    have_r = args[5] != Py_None;
+    if (!ac_view(args[0], &vs, 3, n))
+        Py_RETURN_NONE;
+    if (!ac_view(args[1], &vg, 3, n)) {
+        PyBuffer_Release(&vs);
+        Py_RETURN_NONE;
+    }
+    if (vs.strides[0] != vg.strides[0] || vs.strides[1] != vg.strides[1] || !ac_view(args[2], &vc, n, 0)) {
+        PyBuffer_Release(&vs);
+        PyBuffer_Release(&vg);
+        Py_RETURN_NONE;
+    }
+    r = 1;
+    if (have_h) {
+        if (ac_view(args[3], &vh, 3, 0)) {
+            for (i = 0; i < 3; ++i)
+                h[i] = AC_AT(vh, i);
+            PyBuffer_Release(&vh);
+        } else
+            r = 0;
+    }
+    if (r && have_p) {
+        if (ac_view(args[4], &vp, 3, 0)) {
+            for (i = 0; i < 3; ++i)
+                p[i] = AC_AT(vp, i);
+            PyBuffer_Release(&vp);
+        } else
+            r = 0;
+    }
+    if (r && have_r) {
+        if (ac_view(args[5], &vr, 3, 3)) {
+            for (i = 0; i < 3; ++i)
+                for (j = 0; j < 3; ++j)
+                    m[3 * i + j] = AC_AT2(vr, i, j);
+            PyBuffer_Release(&vr);
+        } else
+            r = 0;
+    }
+    if (r)
+        r = ct_raab_inputs(&self->in, (const double *)vs.buf, (const double *)vg.buf, vs.strides[0] / 8,
+                           vs.strides[1] / 8, (const double *)vc.buf, vc.strides[0] / 8, have_h ? h : NULL,
+                           have_p && have_r ? p : NULL, have_p && have_r ? m : NULL, have_p == have_r);
+    else
+        r = -1;
+    PyBuffer_Release(&vs);
+    PyBuffer_Release(&vg);
+    PyBuffer_Release(&vc);
+    if (r < 0)
+        Py_RETURN_NONE;
+    return PyLong_FromLong(r);
+}
+#undef AC_AT
+#undef AC_AT2
+
+/* residual_cost() -> float: ct_raab_residual_cost over the bound buffers */
+static PyObject *RaabIO_residual_cost(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("residual_cost", nargs, 0) < 0)
+        return NULL;
+    return PyFloat_FromDouble(ct_raab_residual_cost(&self->in));
+}
+
+/* finish_pose() -> bool: ct_raab_finish_pose (False: the position is not finite) */
+static PyObject *RaabIO_finish_pose(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("finish_pose", nargs, 0) < 0)
+        return NULL;
+    if (ct_raab_finish_pose(&self->in))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* moved(refresh) -> bool: ct_raab_moved */
+static PyObject *RaabIO_moved(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double refresh;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("moved", nargs, 1) < 0 || ac_double(args[0], &refresh) < 0)
+        return NULL;
+    if (ct_raab_moved(&self->in, refresh))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* behind(acquiring) -> bool: ct_raab_behind */
+static PyObject *RaabIO_behind(RaabIOObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int acquiring;
+    if (!self->nbound) {
+        PyErr_SetString(PyExc_RuntimeError, "RaabIO: not bound");
+        return NULL;
+    }
+    if (ac_nargs("behind", nargs, 1) < 0 || (acquiring = PyObject_IsTrue(args[0])) < 0)
+        return NULL;
+    if (ct_raab_behind(&self->in, acquiring))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef RaabIO_methods[] = {
+    {"moved", (PyCFunction)(void (*)(void))RaabIO_moved, METH_FASTCALL, "moved(refresh) -> bool: as RaabIO.moved"},
+    {"behind", (PyCFunction)(void (*)(void))RaabIO_behind, METH_FASTCALL,
+     "behind(acquiring) -> bool: as RaabIO.behind"},
+    {"residual_cost", (PyCFunction)(void (*)(void))RaabIO_residual_cost, METH_FASTCALL,
+     "residual_cost() -> float: as raab_update.residual_cost of the bound buffers"},
+    {"finish_pose", (PyCFunction)(void (*)(void))RaabIO_finish_pose, METH_FASTCALL,
+     "finish_pose() -> bool: RaabTracker._finish's pose into the bound results"},
+    {"inputs", (PyCFunction)(void (*)(void))RaabIO_inputs, METH_FASTCALL,
+     "inputs(S, sigma, cur, hemisphere, x0_position, x0_rotation) -> int or None: as RaabIO.load"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RaabIOType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.RaabIO",
+    .tp_basicsize = sizeof(RaabIOObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Raab's tracker's inputs and results bound for ct_raab_inputs and the others of pose.raab_io",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)RaabIO_init,
+    .tp_dealloc = (destructor)RaabIO_dealloc,
+    .tp_methods = RaabIO_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_ac(PyObject *m)
 {
     if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0 || PyType_Ready(&RaabCorrType) < 0 ||
-        PyType_Ready(&RaabCovType) < 0)
+        PyType_Ready(&RaabCovType) < 0 || PyType_Ready(&RaabIOType) < 0)
         return -1;
     Py_INCREF(&DemodType);
     if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
@@ -696,6 +987,11 @@ int ct_register_ac(PyObject *m)
     Py_INCREF(&RaabCovType);
     if (PyModule_AddObject(m, "RaabCov", (PyObject *)&RaabCovType) < 0) {
         Py_DECREF(&RaabCovType);
+        return -1;
+    }
+    Py_INCREF(&RaabIOType);
+    if (PyModule_AddObject(m, "RaabIO", (PyObject *)&RaabIOType) < 0) {
+        Py_DECREF(&RaabIOType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "DM_NST", CT_DM_NST) < 0 || PyModule_AddIntConstant(m, "DMO_N", CT_DMO_N) < 0)

@@ -31,8 +31,8 @@ import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
-from coiltrack.firmware.measure.demod import Demodulator
-from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, SampleRing
+from coiltrack.firmware.measure.demod import STEP_DISTORTED, STEP_NO_SIGNAL, STEP_SOLVED, Demodulator
+from coiltrack.firmware.measure.pulse import SampleRing
 
 
 class ACBlockMeasurement:
@@ -44,9 +44,11 @@ class ACBlockMeasurement:
         self.schedule = schedule
         self.act = actuation
         self.n = schedule.n
-        # each channel's demodulator reads its sample ring (``Demodulator.feed``) on the numeric core ``core``
+        # each channel's demodulator reads its sample ring (``Demodulator.feed``) and, for each block it
+        # solves, the actuation's measured current phasors (``Demodulator.step``) on the numeric core ``core``
+        currents = (actuation.amplitude_a, actuation.phase_rad)
         self.demods = tuple(Demodulator(cfg.ac.ac_freqs_hz, cfg.ac.ac_window_us, cfg.ac.ac_hop_us, cfg.pulse.mag_sigma_t,
-                                        cfg.ac.mag_integration_us, ch.ring, core) for ch in self.channels)
+                                        cfg.ac.mag_integration_us, ch.ring, core, currents) for ch in self.channels)
         self.earth = {ch.node: SampleRing(64) for ch in self.channels}
         self._earth = tuple(self.earth[ch.node] for ch in self.channels)
         per_tick = cfg.pulse.mag_rate_hz * cfg.timing.tick_us * 1e-6
@@ -67,6 +69,7 @@ class ACBlockMeasurement:
         self.blocks_no_signal = 0
         self.signal_gate = chi2_gate(3 * self.n, 0.9999)
         self.q_gate = chi2_gate(3 * self.n, cfg.ac.ac_distortion_probability)
+        self._ratio_max = float(cfg.ac.ac_distortion_ratio)
         self.quad_sum = 0.0
         self.quad_max = 0.0
         self.resid_sum = 0.0
@@ -86,33 +89,29 @@ class ACBlockMeasurement:
             self.block_k = -1
             self.plan_id = act.plan_id
             self.started = True
-        for i, ch in enumerate(self.channels):
-            self._feed(i, ch)
+        for i in range(len(self.demods)):
+            self._feed(i)
         self._assemble()
 
-    def _feed(self, i: int, ch) -> None:
+    def _feed(self, i: int) -> None:
         """Solve the block channel ``i`` completed in the previous tick, else feed its new samples
-        (``Demodulator.feed``: at most ``max_samples``, up to one that completes a block)."""
+        (``Demodulator.step``: at most ``max_samples``, up to one that completes a block; the
+        block's signal and distortion gates)."""
         d = self.demods[i]
-        k = d.pending
-        if k < 0:
-            d.feed(self.max_samples)
+        r = d.step(self.max_samples, self.signal_gate, self._ratio_max, self.q_gate)
+        if not r:
             return
-        d.clear_pending()
-        d.set_currents(self.act.amplitude_a, self.act.phase_rad)
-        ok = d.finish(k)
+        k = d.block_k
         self._skv[i] = k
-        if ok and d.signal_chi2() < self.signal_gate:
-            d.flag_block(PULSE_TOO_FEW)              # no coil field in the block (drive off): not solved
-            self.blocks_no_signal += 1
-        elif ok:
-            self.quad_ratio[i] = q = d.quadrature_ratio()
-            self.distorted[i] = q > self.cfg.ac.ac_distortion_ratio and d.quadrature_chi2() > self.q_gate
-            if self.distorted[i]:
+        if r & STEP_NO_SIGNAL:
+            self.blocks_no_signal += 1               # no coil field in the block (drive off): not solved
+        elif r & STEP_SOLVED:
+            self.quad_ratio[i] = d.quadrature_ratio()
+            self.distorted[i] = dist = r & STEP_DISTORTED != 0
+            if dist:
                 self.blocks_distorted += 1
-            e = self._earth[i]
             dc = d._dcv
-            e.push(d.block_mid(k), dc[0], dc[1], dc[2], False, 0)
+            self._earth[i].push(d.block_mid(k), dc[0], dc[1], dc[2], False, 0)
 
     def _assemble(self) -> None:
         """Hand block ``k`` to the tracker when every channel has solved it."""

@@ -66,6 +66,8 @@ _NST = 10
 # the block's figures besides S, Q, var, dc, a float64 array (``Demodulator._out``; CT_DMO_*)
 _RESID, _SIGNAL_CHI2, _QUAD_CHI2, _QUAD_RATIO = range(4)
 _NOUT = 4
+# :meth:`Demodulator.step`'s result bits (``ct_ac.h``: CT_DMS_*)
+STEP_FINISHED, STEP_SOLVED, STEP_NO_SIGNAL, STEP_DISTORTED = 1, 2, 4, 8
 _NO_TIME = -(1 << 62)
 
 
@@ -78,56 +80,8 @@ def mag_response(f_hz: float, integration_s: float) -> tuple[float, float]:
     return s * math.cos(math.pi * u), -s * math.sin(math.pi * u)
 
 
-class Demodulator:
-    """Sliding-block least-squares demodulation of one magnetometer (see module docstring).
-
-    ``freqs_hz`` (n,), ``window_us`` = ``m hop_us``, ``sigma_t`` per-sample
-    noise (T), ``integration_us`` the magnetometer's averaging time; ``ring``
-    the channel's ``measure.pulse.SampleRing`` that :meth:`feed` reads (None:
-    samples only through :meth:`push`); ``core`` the numeric core
-    (``coiltrack.firmware.core``): where it is compiled, :meth:`push`,
-    :meth:`feed` and :meth:`finish` run the kernels of ``core/src/demod.c``
-    (the same operations in the same order), bound once here to this
-    object's buffers and the ring's.
-    :meth:`start` sets the block grid and the current phasors; :meth:`push`
-    adds one sample and returns the index of a block it completes (or -1);
-    :meth:`finish` solves that block into ``S``, ``Q``, ``var``, ``dc``.
-    The integer state (``t0``, ``next_k``, the feed's cursor, the last
-    block's flags ...) is the int64 array ``_st``, the block's residual and
-    statistics the float64 array ``_out``: the compiled kernels share them.
-    """
-
-    def __init__(self, freqs_hz, window_us: int, hop_us: int, sigma_t: float, integration_us: int, ring=None,
-                 core=_DEFAULT_CORE):
-        n = len(freqs_hz)
-        if window_us % hop_us:
-            raise ValueError("window_us must be a multiple of hop_us")
-        self.n = n
-        self.p = p = 2 + 2 * n
-        self.m = m = window_us // hop_us
-        self.slots = m + 1
-        self.window_us, self.hop_us = int(window_us), int(hop_us)
-        self.freqs = tuple(float(f) for f in freqs_hz)
-        self.sigma2 = float(sigma_t) ** 2
-        ti = integration_us * 1e-6
-        self.h = tuple(mag_response(f, ti) for f in self.freqs)
-        self._accumulators(self.slots, p)
-        self._solve_buffers(n, p)
-        self._st = np.zeros(_NST, dtype=np.int64)
-        self._stv = st = memoryview(self._st)
-        st[_LAST_T] = st[_CURSOR] = _NO_TIME
-        st[_PENDING] = st[_BLOCK_K] = -1
-        self._out = np.zeros(_NOUT)
-        self._outv = memoryview(self._out)
-        self.amp = [0.0] * n
-        self._cph = np.ones(n)           # cos, sin of the current phase
-        self._sph = np.zeros(n)
-        self.cph, self.sph = memoryview(self._cph), memoryview(self._sph)
-        self.ring = ring
-        #: the numeric core this demodulator runs, bound once here (``coiltrack.firmware.core``)
-        self.core = "python"
-        if core.ext is not None and n <= 64:
-            self._bind_compiled(core.ext)
+class _DemodBuffers:
+    """A demodulator's arrays, allocated once at construction (:class:`Demodulator`)."""
 
     def _accumulators(self, s: int, p: int) -> None:
         """The ``s`` block accumulators: ``G`` (normal matrix), ``R`` (right-hand sides), ``BB``
@@ -167,6 +121,64 @@ class Demodulator:
                                                    memoryview(self.var.reshape(-1)), memoryview(self.dc))
         self._qvv = memoryview(self.qvar)
 
+
+class Demodulator(_DemodBuffers):
+    """Sliding-block least-squares demodulation of one magnetometer (see module docstring).
+
+    ``freqs_hz`` (n,), ``window_us`` = ``m hop_us``, ``sigma_t`` per-sample
+    noise (T), ``integration_us`` the magnetometer's averaging time; ``ring``
+    the channel's ``measure.pulse.SampleRing`` that :meth:`feed` reads (None:
+    samples only through :meth:`push`); ``core`` the numeric core
+    (``coiltrack.firmware.core``): where it is compiled, :meth:`push`,
+    :meth:`feed` and :meth:`finish` run the kernels of ``core/src/demod.c``
+    (the same operations in the same order), bound once here to this
+    object's buffers and the ring's; ``currents`` the drive's measured
+    ``(amplitude, phase)`` arrays (n,) that :meth:`step` reads for each block
+    it solves (the actuation's; None: no :meth:`step`, and :meth:`step` on the
+    compiled core as well only with ``ring`` and ``currents``).
+    :meth:`start` sets the block grid and the current phasors; :meth:`push`
+    adds one sample and returns the index of a block it completes (or -1);
+    :meth:`finish` solves that block into ``S``, ``Q``, ``var``, ``dc``.
+    The integer state (``t0``, ``next_k``, the feed's cursor, the last
+    block's flags ...) is the int64 array ``_st``, the block's residual and
+    statistics the float64 array ``_out``: the compiled kernels share them.
+    """
+
+    def __init__(self, freqs_hz, window_us: int, hop_us: int, sigma_t: float, integration_us: int, ring=None,
+                 core=_DEFAULT_CORE, currents=None):
+        n = len(freqs_hz)
+        if window_us % hop_us:
+            raise ValueError("window_us must be a multiple of hop_us")
+        self.n = n
+        self.p = p = 2 + 2 * n
+        self.m = m = window_us // hop_us
+        self.slots = m + 1
+        self.window_us, self.hop_us = int(window_us), int(hop_us)
+        self.freqs = tuple(float(f) for f in freqs_hz)
+        self.sigma2 = float(sigma_t) ** 2
+        ti = integration_us * 1e-6
+        self.h = tuple(mag_response(f, ti) for f in self.freqs)
+        self._accumulators(self.slots, p)
+        self._solve_buffers(n, p)
+        self._st = np.zeros(_NST, dtype=np.int64)
+        self._stv = st = memoryview(self._st)
+        st[_LAST_T] = st[_CURSOR] = _NO_TIME
+        st[_PENDING] = st[_BLOCK_K] = -1
+        self._out = np.zeros(_NOUT)
+        self._outv = memoryview(self._out)
+        self.amp = [0.0] * n
+        self._cph = np.ones(n)           # cos, sin of the current phase
+        self._sph = np.zeros(n)
+        self.cph, self.sph = memoryview(self._cph), memoryview(self._sph)
+        self.ring = ring
+        # the drive's measured current phasors (amplitude, phase: (n,) arrays the actuation owns) that
+        # :meth:`step` takes for each block it solves
+        self._currents = currents
+        #: the numeric core this demodulator runs, bound once here (``coiltrack.firmware.core``)
+        self.core = "python"
+        if core.ext is not None and n <= 64:
+            self._bind_compiled(core.ext)
+
     def _bind_compiled(self, ext) -> None:
         """Run :meth:`push`, :meth:`feed` and :meth:`finish` on the compiled kernels
         (``core/src/demod.c``): every buffer bound once; the methods are replaced on this
@@ -178,11 +190,14 @@ class Demodulator:
                 self.dc, self._st, self._out)
         r = self.ring
         ring = None if r is None else (r.t, r.b, r.flags)
-        self._ck = ext.Demod(self.n, self.slots, self.window_us, self.hop_us, self.sigma2, bufs, ring)
+        phase = None if self._currents is None else self._currents[1]
+        self._ck = ext.Demod(self.n, self.slots, self.window_us, self.hop_us, self.sigma2, bufs, ring, phase)
         self._keep = (freqs, h)
         self.push = self._ck.push
         self.finish = self._ck.finish
         self.feed = self._feed_compiled
+        if phase is not None and r is not None:
+            self.step = self._step_compiled
         self.signal_chi2 = self._signal_chi2_compiled
         self.quadrature_chi2 = self._quadrature_chi2_compiled
         self.quadrature_ratio = self._quadrature_ratio_compiled
@@ -289,6 +304,34 @@ class Demodulator:
     def _feed_compiled(self, left: int) -> bool:
         ring = self.ring
         return self._ck.feed(len(ring), ring.last_pushed_slot(), left)
+
+    def step(self, left: int, signal_gate: float, ratio_max: float, q_gate: float) -> int:
+        """One tick of this channel (``measure.ac_blocks.ACBlockMeasurement``): the block the
+        last :meth:`feed` completed is solved (:meth:`finish`) at the drive's current phasors of
+        now (``currents``), else :meth:`feed` takes up to ``left`` new samples. A solved block
+        whose ``signal_chi2`` is below ``signal_gate`` (no coil field: the drive is off) is
+        flagged ``PULSE_TOO_FEW``; one whose ``quadrature_ratio`` exceeds ``ratio_max`` and
+        whose ``quadrature_chi2`` exceeds ``q_gate`` is distorted. Returns the ``STEP_*`` bits
+        (0: fed; ``block_k`` the block finished)."""
+        k = self._stv[_PENDING]
+        if k < 0:
+            self.feed(left)
+            return 0
+        self._stv[_PENDING] = -1
+        amplitude, phase = self._currents
+        self.set_currents(amplitude, phase)
+        if not self.finish(k):
+            return STEP_FINISHED
+        if self.signal_chi2() < signal_gate:
+            self._stv[_BLOCK_FLAGS] |= PULSE_TOO_FEW
+            return STEP_FINISHED | STEP_SOLVED | STEP_NO_SIGNAL
+        if self.quadrature_ratio() > ratio_max and self.quadrature_chi2() > q_gate:
+            return STEP_FINISHED | STEP_SOLVED | STEP_DISTORTED
+        return STEP_FINISHED | STEP_SOLVED
+
+    def _step_compiled(self, left: int, signal_gate: float, ratio_max: float, q_gate: float) -> int:
+        ring = self.ring
+        return self._ck.step(len(ring), ring.last_pushed_slot(), left, signal_gate, ratio_max, q_gate)
 
     def push(self, t: int, bx: float, by: float, bz: float, sample_flags: int) -> int:
         """Add one sample (T, sensor frame); returns a block index ``k`` that is now complete

@@ -130,14 +130,14 @@ import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
-from coiltrack.firmware.linalg import Rot3, flat
+from coiltrack.firmware.linalg import flat
 from coiltrack.firmware.model.signal import SignalModel
 from coiltrack.firmware.pose.raab_correction import K_MIN, LoopCorrection, NoCorrection
 from coiltrack.firmware.pose.raab_covariance import RaabCovariance
+from coiltrack.firmware.pose.raab_io import NO_START, OK, RaabIO
 from coiltrack.firmware.pose.raab_update import (ACQUIRED, C_RAAB, DA0, DB0, DPHI0, DPSI0, DRHO, DTH0, K_OUT,
                                                  MAX_STEP, POLE_COS, Update, angles_from_pose, coupling,
-                                                 error_angles, load_rotation,
-                                                 orientation_update, point, position_update, residual_cost,
+                                                 error_angles, orientation_update, point, position_update,
                                                  sync_rotation, wrap)
 from coiltrack.firmware.pose.solver import (SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_NOT_CONVERGED,
                                             SOLVE_OK, SOLVE_REACQUIRED, SOLVE_RUNNING)
@@ -255,11 +255,12 @@ class RaabTracker(StagedSolve):
         self._upd = Update(n, self._x, self._Rn, self._Sv, self._Sc, self._mp, self._F, self._pm, self._cbar,
                            self._curv, self.corrector, self.max_step, _ACQUIRED_STEP, core)
         self._uo = self._upd._o
-        self._hemi = (1.0, 0.0, 0.0)
-        self._acq_hemi = tuple(float(v) for v in hemisphere)
+        #: a solve's inputs into these buffers (``pose.raab_io``: Python or ``ct_raab_io``); its
+        #: ``hemi``, ``check_hemi`` and ``warm`` are the last ``begin``'s
+        self._in = RaabIO(n, self._cbar, self._Sv, self._wv, self._curv, self._x, self._Rn, self._mpa, self._mom,
+                          self._Sc, self._pm, self._upd, (self.position, self.rotation, self.angles), hemisphere,
+                          _HEMI_MARGIN, core)
         self._acquiring = False
-        self._check_hemi = False
-        self._warm = False
         self._reacquired = False
         self._limit = 1
         self._mirrored = False
@@ -289,8 +290,6 @@ class RaabTracker(StagedSolve):
         self._F = memoryview(np.zeros(9))            # corrected coupling S_c M^+, row-major
         self._Rn = np.eye(3)                         # estimate's rotation (sensor -> source)
         self._R = memoryview(self._Rn)               # indexed R[i, j] as Python floats
-        self._m9 = memoryview(np.zeros(9))
-        self._rot3 = Rot3()
 
     # ------------------------------------------------------------ public
     def solve(self, S, currents, sigma, hemisphere=None, x0_position=None, x0_rotation=None) -> int:
@@ -307,13 +306,13 @@ class RaabTracker(StagedSolve):
         (3, 3)). ``SOLVE_BAD_INPUT`` / ``SOLVE_NO_START`` at once, else
         ``SOLVE_RUNNING``."""
         self._then(None)
-        if not (self._load(S, currents, sigma) and self._load_hemisphere(hemisphere)
-                and self._load_x0(x0_position, x0_rotation)):
+        r = self._in.load(S, currents, sigma, hemisphere, x0_position, x0_rotation)    # pose.raab_io
+        if r < NO_START:
             self.status = SOLVE_BAD_INPUT
             return SOLVE_BAD_INPUT
         self.solve_evals = 0
         self._reacquired = False
-        if not self._upd.pseudo_inverse(self._mpa, self._mom):           # raab_update.moment_pseudo_inverse
+        if r != OK:                                  # the moments do not span 3-D (moment_pseudo_inverse)
             self.status = SOLVE_NO_START
             return SOLVE_NO_START
         self.iterations = 0
@@ -322,7 +321,7 @@ class RaabTracker(StagedSolve):
         self._last_step = math.inf
         self._done_at_refresh = False
         self.status = SOLVE_RUNNING
-        if not self._warm:
+        if not self._in.warm:
             self._acquiring = True
             self._start_acquisition()
         else:
@@ -335,39 +334,6 @@ class RaabTracker(StagedSolve):
         self._then(self._unit_measure, self.n)
         return SOLVE_RUNNING
 
-    # ------------------------------------------------------------- input
-    def _load_hemisphere(self, hemisphere) -> bool:
-        self._check_hemi = hemisphere is not None
-        if hemisphere is None:
-            self._hemi = (1.0, 0.0, 0.0)
-            return True
-        hx, hy, hz = hemisphere[0], hemisphere[1], hemisphere[2]
-        self._hemi = (hx, hy, hz)
-        return math.isfinite(hx) and math.isfinite(hy) and math.isfinite(hz) and (hx * hx + hy * hy + hz * hz) > 0.0
-
-    def _load_x0(self, x0_position, x0_rotation) -> bool:
-        self._warm = x0_position is not None
-        if (x0_position is None) != (x0_rotation is None):
-            return False
-        if x0_position is None:
-            return True
-        m9 = self._m9
-        for i in range(3):
-            if not math.isfinite(x0_position[i]):
-                return False
-            for j in range(3):
-                m9[3 * i + j] = x0_rotation[i, j]
-                if not math.isfinite(m9[3 * i + j]):
-                    return False
-        load_rotation(m9, self._R, self._Rn, self._rot3)
-        c = self._cbar
-        px, py, pz = x0_position[0] - c[0], x0_position[1] - c[1], x0_position[2] - c[2]
-        if px * px + py * py + pz * pz <= 0.0:
-            return False
-        x = self._x
-        x[0], x[1], x[2], x[3], x[4], x[5] = angles_from_pose(px, py, pz, self._R)
-        return True
-
     def _start_acquisition(self) -> None:
         """Start without a prior: the configured start, or the hemisphere
         direction at the range of the invariant ``|S M^+|_F`` with zero
@@ -379,7 +345,7 @@ class RaabTracker(StagedSolve):
             px, py, pz = self._start_p[0] - c[0], self._start_p[1] - c[1], self._start_p[2] - c[2]
             rho = math.sqrt(px * px + py * py + pz * pz)
         else:
-            px, py, pz = self._hemi
+            px, py, pz = self._in.hemi
             rho = 0.0
         rxy = math.hypot(px, py)
         x[0] = math.atan2(py, px) if rxy > 0.0 else 0.0
@@ -492,20 +458,14 @@ class RaabTracker(StagedSolve):
         """The estimate is more than ``refresh`` x range from the last evaluation
         (the correction is exact in the orientation, and the covariance is
         carried to the estimate's orientation: only the position counts)."""
-        px, py, pz = self._point()
-        pm = self._pm
-        dx, dy, dz = px - pm[0], py - pm[1], pz - pm[2]
-        return dx * dx + dy * dy + dz * dz > (self.refresh * self._x[2]) ** 2
+        return self._in.moved(self.refresh)                 # pose.raab_io
 
     def _unit_finish(self) -> None:
         """Plausibility (hemisphere), the gate, the covariance (charged ``n``)."""
         x = self._x
-        hx, hy, hz = self._acq_hemi if self._acquiring else self._hemi
-        ca, sa, cb, sb = math.cos(x[0]), math.sin(x[0]), math.cos(x[1]), math.sin(x[1])
-        ux, uy, uz = cb * ca, cb * sa, -sb
-        hn = math.sqrt(hx * hx + hy * hy + hz * hz)
-        if (self._check_hemi or self._acquiring or not self._warm) and not self._mirrored \
-                and ux * hx + uy * hy + uz * hz < -_HEMI_MARGIN * hn:
+        warm = self._in.warm
+        if (self._in.check_hemi or self._acquiring or not warm) and not self._mirrored \
+                and self._in.behind(self._acquiring):
             # footnote 3: the same coupling at -u with the same orientation; evaluated there again
             x[0], x[1] = wrap(x[0] + math.pi), -x[1]
             self._mirrored = True
@@ -515,7 +475,7 @@ class RaabTracker(StagedSolve):
             self._then(self._unit_measure, self.n)
             return
         cost = 0.0
-        if self.gate < math.inf and self._warm and not self._reacquired:
+        if self.gate < math.inf and warm and not self._reacquired:
             cost = self._residual_cost()
             if not cost <= self.gate:
                 self._reacquired = True
@@ -535,22 +495,13 @@ class RaabTracker(StagedSolve):
         """The residual against the exact model at the estimate
         (``raab_update.residual_cost`` of the corrected signals)."""
         self._coupling()
-        return residual_cost(self.n, self._x, self._R, self._Sc, self._wv, self._mom)
+        return self._in.residual_cost()
 
     def _finish(self, status: int) -> None:
         """The published results: ``position``, ``rotation``, ``angles`` of the
         estimate and ``status`` (the covariance is published by
         ``pose.raab_covariance``)."""
-        x = self._x
-        px, py, pz = self._point()
-        pos = self.position
-        pos[0], pos[1], pos[2] = px, py, pz
-        self._sync_rotation()
-        np.copyto(self.rotation, self._Rn)
-        ang = self.angles
-        for i in range(6):
-            ang[i] = x[i]
-        if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
+        if not self._in.finish_pose():                # pose.raab_io: position, rotation, angles
             status |= SOLVE_NONFINITE
         self.status = status
         self._then(None)

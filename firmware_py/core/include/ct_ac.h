@@ -25,7 +25,7 @@ struct ct_demod {
     double sigma2;
     const double *freqs;            /* n */
     const double *h;                /* 2 n: the magnetometer's response (re, im) per coil */
-    const double *cph, *sph;        /* n: cos, sin of the current phases */
+    double *cph, *sph;              /* n: cos, sin of the current phases */
     double *G, *R, *BB;             /* slots x p p, slots x 3 p, slots x 3 */
     int64_t *count, *flags, *kslot; /* slots */
     double *phi;                    /* p */
@@ -42,6 +42,15 @@ int64_t ct_demod_push(const struct ct_demod *d, int64_t t, double bx, double by,
  * completes a block (then st[CT_DM_PENDING] = its index); returns 1 when one did, else 0 */
 int ct_demod_feed(const struct ct_demod *d, const int64_t *rt, const double *rb, const uint8_t *rf, int64_t cap,
                   int64_t count, int64_t last, int64_t left);
+/* Demodulator.step's result bits */
+enum { CT_DMS_FINISHED = 1, CT_DMS_SOLVED = 2, CT_DMS_NO_SIGNAL = 4, CT_DMS_DISTORTED = 8 };
+/* Demodulator.step: one tick of a channel: the block the last feed completed solved at the drive's
+ * current phases `phase` (n) of now, with its gates (signal_chi2 below signal_gate: flagged
+ * CT_PULSE_TOO_FEW; quadrature_ratio above ratio_max and quadrature_chi2 above q_gate: distorted),
+ * else ct_demod_feed over the ring; returns the CT_DMS_* bits (0: fed) */
+int ct_demod_step(const struct ct_demod *d, const double *phase, const int64_t *rt, const double *rb,
+                  const uint8_t *rf, int64_t cap, int64_t count, int64_t last, int64_t left, double signal_gate,
+                  double ratio_max, double q_gate);
 /* Demodulator.finish: solve block k; 1 when solved (then also signal_chi2, quadrature_chi2 and
  * quadrature_ratio into out) */
 int ct_demod_finish(const struct ct_demod *d, int64_t k);
@@ -134,5 +143,51 @@ void ct_raab_cov_rows(const struct ct_raab_cov *c, const double *Bv, const doubl
  * by zero: the caller then runs the reference */
 int ct_raab_cov_publish(const struct ct_raab_cov *c, const double *x, const double *R, const double *w,
                         const double *cur, const double *pm, double rel);
+
+
+/* ----------------------------------------------------------- raab begin
+ * pose.raab_io.RaabIO.load: a solve's inputs into the tracker's buffers: the signals, their
+ * weights 1/sigma and the currents (StagedSolve._load), the hemisphere (_load_hemisphere), the warm
+ * start's rotation and Raab's angles of its position (_load_x0: raab_update.is_rotation,
+ * load_rotation, angles_from_pose) and the moments with M^+ (moment_pseudo_inverse). */
+struct ct_raab_io {
+    int n;
+    double tol;                     /* raab_update._ORTHO_TOL */
+    double c_raab;                  /* C of eq 3 (model.field.MU0_2PI) */
+    const double *cbar;             /* 3 */
+    double *Sv, *wv, *cur;          /* 3 n, 3 n, n */
+    double *sigma_rms;              /* 1 */
+    double *hemi;                   /* 3 */
+    double *m9, *R, *x;             /* 9 (the warm start's matrix), 9 (R = A^T), 6 (alpha ... phi) */
+    const double *mpa;              /* 3 n: moments per ampere */
+    double *mom, *mp;               /* 3 n, 3 n */
+    const double *Sc;               /* 3 n: the corrected signals (residual_cost) */
+    const double *pm;               /* 3: the point of the last evaluation (moved) */
+    const double *acq_hemi;         /* 3: the acquisition's hemisphere (behind) */
+    double margin;                  /* behind: pose.raab._HEMI_MARGIN */
+    double *position, *rotation, *angles;   /* 3, 9, 6: the published pose (RaabTracker._finish) */
+};
+/* its results: the first check that failed, or where the caller goes on */
+enum { CT_RIN_BAD_LOAD = 0, CT_RIN_BAD_HEMI = 1, CT_RIN_BAD_X0 = 2, CT_RIN_PROJECT = 3, CT_RIN_NO_START = 4,
+       CT_RIN_OK = 5 };
+/* S, sigma (3 x n at row and column strides rs, cs), cur (n at cstride); hemi (3) or NULL; x0p (3) and
+ * x0R (9, row-major) or NULL, x0_pair 0 when exactly one of them was given. CT_RIN_PROJECT: the warm
+ * start's matrix (in m9) is no rotation to tol: the caller projects it (linalg.nearest_rotation) and
+ * goes on with angles_from_pose and the pseudo-inverse */
+int ct_raab_inputs(const struct ct_raab_io *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
+                   const double *cur, int64_t cstride, const double *hemi, const double *x0p, const double *x0R,
+                   int x0_pair);
+int ct_raab_is_rotation(const double *m, double tol);
+/* raab_update.residual_cost of the corrected signals Sc with the weights wv at the estimate x, R */
+double ct_raab_residual_cost(const struct ct_raab_io *io);
+/* RaabTracker._finish's pose: position = point(x, cbar), R = A^T of x's angles (sync_rotation), rotation
+ * = R, angles = x; 1 when the position is finite */
+int ct_raab_finish_pose(const struct ct_raab_io *io);
+/* RaabIO.moved: the estimate's point more than refresh x range from pm */
+int ct_raab_moved(const struct ct_raab_io *io, double refresh);
+/* RaabIO.behind: the estimate's direction more than margin behind the hemisphere (the acquisition's when
+ * acquiring, else the last begin's) */
+int ct_raab_behind(const struct ct_raab_io *io, int acquiring);
+void ct_raab_angles_from_pose(double px, double py, double pz, const double *R, double *x);
 
 #endif /* CT_AC_H */

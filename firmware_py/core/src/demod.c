@@ -297,3 +297,29 @@ int ct_demod_finish(const struct ct_demod *d, int64_t k)
     demod_statistics(d);
     return 1;
 }
+
+int ct_demod_step(const struct ct_demod *d, const double *phase, const int64_t *rt, const double *rb,
+                  const uint8_t *rf, int64_t cap, int64_t count, int64_t last, int64_t left, double signal_gate,
+                  double ratio_max, double q_gate)
+{
+    int64_t k = d->st[CT_DM_PENDING];
+    int j;
+    if (k < 0) {
+        ct_demod_feed(d, rt, rb, rf, cap, count, last, left);
+        return 0;
+    }
+    d->st[CT_DM_PENDING] = -1;
+    for (j = 0; j < d->n; ++j) {            /* Demodulator.set_currents */
+        d->cph[j] = cos(phase[j]);
+        d->sph[j] = sin(phase[j]);
+    }
+    if (!ct_demod_finish(d, k))
+        return CT_DMS_FINISHED;
+    if (d->out[CT_DMO_SIGNAL_CHI2] < signal_gate) {
+        d->st[CT_DM_BLOCK_FLAGS] |= CT_PULSE_TOO_FEW;
+        return CT_DMS_FINISHED | CT_DMS_SOLVED | CT_DMS_NO_SIGNAL;
+    }
+    if (d->out[CT_DMO_QUAD_RATIO] > ratio_max && d->out[CT_DMO_QUAD_CHI2] > q_gate)
+        return CT_DMS_FINISHED | CT_DMS_SOLVED | CT_DMS_DISTORTED;
+    return CT_DMS_FINISHED | CT_DMS_SOLVED;
+}

@@ -10,6 +10,7 @@
 #include "coiltrack_core.h"
 
 #include <math.h>
+#include <string.h>
 
 static const double PI = 3.141592653589793;
 static const double TWO_PI = 2.0 * 3.141592653589793;
@@ -559,4 +560,166 @@ int ct_raab_pseudo_inverse(int n, const double *mpa, const double *cur, double *
         mp[3 * j + 2] = mx * i02 + my * i12 + mz * i22;
     }
     return 1;
+}
+
+/* ------------------------------------------------------------ begin's inputs */
+
+/* raab_update.is_rotation: m (9, row-major) orthonormal by rows to tol with determinant > 0 */
+int ct_raab_is_rotation(const double *m, double tol)
+{
+    double a0 = m[0], a1 = m[1], a2 = m[2], a3 = m[3], a4 = m[4], a5 = m[5], a6 = m[6], a7 = m[7], a8 = m[8];
+    if (!(fabs(a0 * a0 + a1 * a1 + a2 * a2 - 1.0) < tol && fabs(a3 * a3 + a4 * a4 + a5 * a5 - 1.0) < tol &&
+          fabs(a6 * a6 + a7 * a7 + a8 * a8 - 1.0) < tol && fabs(a0 * a3 + a1 * a4 + a2 * a5) < tol &&
+          fabs(a0 * a6 + a1 * a7 + a2 * a8) < tol && fabs(a3 * a6 + a4 * a7 + a5 * a8) < tol))
+        return 0;
+    return a0 * (a4 * a8 - a5 * a7) - a1 * (a3 * a8 - a5 * a6) + a2 * (a3 * a7 - a4 * a6) > 0.0;
+}
+
+/* raab_update.angles_from_pose: (alpha, beta, rho, psi, theta, phi) of p (from the source centre) and
+ * R (row-major, sensor -> source) into x */
+void ct_raab_angles_from_pose(double px, double py, double pz, const double *R, double *x)
+{
+    double rho = sqrt(px * px + py * py + pz * pz), rxy = hypot(px, py), a[9], e[3];
+    double alpha = rxy > 0.0 ? atan2(py, px) : 0.0, beta = atan2(-pz, rxy);
+    a[0] = R[0]; a[1] = R[3]; a[2] = R[6];          /* A = R^T */
+    a[3] = R[1]; a[4] = R[4]; a[5] = R[7];
+    a[6] = R[2]; a[7] = R[5]; a[8] = R[8];
+    euler(a, e);
+    x[0] = alpha;
+    x[1] = beta;
+    x[2] = rho;
+    x[3] = e[0];
+    x[4] = e[1];
+    x[5] = e[2];
+}
+
+/* StagedSolve._load: the signals, weights and currents; 0 on a value not finite or a sigma not positive */
+static int raab_load(const struct ct_raab_io *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
+                     const double *cur, int64_t cstride)
+{
+    int n = in->n, i, j;
+    double ssum = 0.0;
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < n; ++j) {
+            double s = S[i * rs + j * cs], sg = sigma[i * rs + j * cs];
+            if (!(isfinite(s) && isfinite(sg) && sg > 0.0))
+                return 0;
+            in->Sv[3 * j + i] = s;
+            in->wv[3 * j + i] = 1.0 / sg;
+            ssum += sg * sg;
+        }
+    for (j = 0; j < n; ++j) {
+        double c = cur[j * cstride];
+        if (!isfinite(c))
+            return 0;
+        in->cur[j] = c;
+    }
+    *in->sigma_rms = sqrt(ssum / (double)(3 * n));
+    return 1;
+}
+
+int ct_raab_inputs(const struct ct_raab_io *in, const double *S, const double *sigma, int64_t rs, int64_t cs,
+                   const double *cur, int64_t cstride, const double *hemi, const double *x0p, const double *x0R,
+                   int x0_pair)
+{
+    double *h = in->hemi, *m9 = in->m9, *R = in->R;
+    int i, j;
+    if (!raab_load(in, S, sigma, rs, cs, cur, cstride))
+        return CT_RIN_BAD_LOAD;
+    if (hemi == NULL) {                                     /* _load_hemisphere */
+        h[0] = 1.0;
+        h[1] = 0.0;
+        h[2] = 0.0;
+    } else {
+        double hx = hemi[0], hy = hemi[1], hz = hemi[2];
+        h[0] = hx;
+        h[1] = hy;
+        h[2] = hz;
+        if (!(isfinite(hx) && isfinite(hy) && isfinite(hz) && (hx * hx + hy * hy + hz * hz) > 0.0))
+            return CT_RIN_BAD_HEMI;
+    }
+    if (!x0_pair)                                           /* _load_x0 */
+        return CT_RIN_BAD_X0;
+    if (x0p != NULL) {
+        double px, py, pz;
+        for (i = 0; i < 3; ++i) {
+            if (!isfinite(x0p[i]))
+                return CT_RIN_BAD_X0;
+            for (j = 0; j < 3; ++j) {
+                m9[3 * i + j] = x0R[3 * i + j];
+                if (!isfinite(m9[3 * i + j]))
+                    return CT_RIN_BAD_X0;
+            }
+        }
+        if (!ct_raab_is_rotation(m9, in->tol))              /* load_rotation */
+            return CT_RIN_PROJECT;
+        memcpy(R, m9, 9 * sizeof(double));
+        px = x0p[0] - in->cbar[0];
+        py = x0p[1] - in->cbar[1];
+        pz = x0p[2] - in->cbar[2];
+        if (px * px + py * py + pz * pz <= 0.0)
+            return CT_RIN_BAD_X0;
+        ct_raab_angles_from_pose(px, py, pz, R, in->x);
+    }
+    if (!ct_raab_pseudo_inverse(in->n, in->mpa, in->cur, in->mom, in->mp))
+        return CT_RIN_NO_START;
+    return CT_RIN_OK;
+}
+
+/* raab_update.residual_cost: sum ((S_c - R^T h_raab(x)) w)^2, h_raab the dipole (model.field.dipole_polar
+ * without its gradient) of the moments mom */
+double ct_raab_residual_cost(const struct ct_raab_io *io)
+{
+    const double *x = io->x, *R = io->R, *Sc = io->Sc, *w = io->wv, *mom = io->mom;
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]);
+    double ux = cb * ca, uy = cb * sa, uz = -sb, rho = x[2], cost = 0.0;
+    int j, i;
+    for (j = 0; j < io->n; ++j) {
+        int o = 3 * j;
+        double mx = mom[o], my = mom[o + 1], mz = mom[o + 2];
+        double kd = 0.5 * io->c_raab / (rho * rho * rho), mu = mx * ux + my * uy + mz * uz;
+        double bx = kd * (3.0 * mu * ux - mx), by = kd * (3.0 * mu * uy - my), bz = kd * (3.0 * mu * uz - mz);
+        for (i = 0; i < 3; ++i) {
+            double e = (Sc[o + i] - (R[i] * bx + R[3 + i] * by + R[6 + i] * bz)) * w[o + i];
+            cost += e * e;
+        }
+    }
+    return cost;
+}
+
+int ct_raab_finish_pose(const struct ct_raab_io *io)
+{
+    const double *x = io->x, *c = io->cbar;
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]), r = x[2], a[9];
+    double px = c[0] + r * cb * ca, py = c[1] + r * cb * sa, pz = c[2] - r * sb, *R = io->R;
+    int i;
+    io->position[0] = px;
+    io->position[1] = py;
+    io->position[2] = pz;
+    dcm(x[3], x[4], x[5], a);                   /* sync_rotation: R = A^T */
+    R[0] = a[0]; R[1] = a[3]; R[2] = a[6];
+    R[3] = a[1]; R[4] = a[4]; R[5] = a[7];
+    R[6] = a[2]; R[7] = a[5]; R[8] = a[8];
+    memcpy(io->rotation, R, 9 * sizeof(double));
+    for (i = 0; i < 6; ++i)
+        io->angles[i] = x[i];
+    return isfinite(px) && isfinite(py) && isfinite(pz);
+}
+
+int ct_raab_moved(const struct ct_raab_io *io, double refresh)
+{
+    const double *x = io->x, *c = io->cbar, *pm = io->pm;
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]), r = x[2];
+    double px = c[0] + r * cb * ca, py = c[1] + r * cb * sa, pz = c[2] - r * sb;    /* point */
+    double dx = px - pm[0], dy = py - pm[1], dz = pz - pm[2];
+    return dx * dx + dy * dy + dz * dz > pow(refresh * x[2], 2.0);
+}
+
+int ct_raab_behind(const struct ct_raab_io *io, int acquiring)
+{
+    const double *x = io->x, *h = acquiring ? io->acq_hemi : io->hemi;
+    double hx = h[0], hy = h[1], hz = h[2];
+    double ca = cos(x[0]), sa = sin(x[0]), cb = cos(x[1]), sb = sin(x[1]);
+    double ux = cb * ca, uy = cb * sa, uz = -sb, hn = sqrt(hx * hx + hy * hy + hz * hz);
+    return ux * hx + uy * hy + uz * hz < -io->margin * hn;
 }

@@ -127,6 +127,55 @@ def test_feed_over_a_wrapping_ring_equals_the_reference():
     assert solved >= 50
 
 
+def test_step_over_a_ring_with_its_gates_equals_the_reference():
+    """``Demodulator.step`` (one call per tick: feed, or the pending block solved at the drive's
+    phases of now with its signal and distortion gates) compiled against the Python reference:
+    the same bits, blocks and results tick by tick while the drive's phases change between
+    blocks, the carriers' amplitudes are switched off for a stretch (the signal gate) and the
+    ratio gate is set between blocks' quadrature ratios (some blocks distorted, some not):
+    catches phases read before the block is taken, a gate compared the wrong way or a flag not
+    set on a block without signal."""
+    from coiltrack.firmware.measure.demod import STEP_DISTORTED, STEP_FINISHED, STEP_NO_SIGNAL, STEP_SOLVED
+
+    rng = np.random.default_rng(17)
+    t, B, fl = _samples(rng, 900, sat_every=1_000_000)
+    B[300:420] = B[300:420].mean(axis=0) + rng.normal(0, SIGMA, (120, 3))      # the drive off
+    amp, ph = np.array([1.5, 1.4, 1.6]), np.array([0.3, -2.0, 1.1])
+    rp, rc = SampleRing(64), SampleRing(64)
+    dp = Demodulator(FREQS, W_US, HOP_US, SIGMA, 500, rp, fcore.PYTHON, (amp, ph))
+    dc = Demodulator(FREQS, W_US, HOP_US, SIGMA, 500, rc, COMPILED, (amp, ph))
+    assert dc.step.__func__ is Demodulator._step_compiled
+    for d in (dp, dc):
+        d.start(int(t[0]) + 1000, 777, amp, ph)
+    ratios = []
+    i, seen = 0, 0
+    gates = (chi2_gate_9999(), 1.0, 1.0)                 # the blocks' ratios here: 0.3 to 2.1
+    while i < len(t):
+        for _ in range(2):
+            if i < len(t):
+                for r in (rp, rc):
+                    r.push(int(t[i]), float(B[i, 0]), float(B[i, 1]), float(B[i, 2]), bool(fl[i]), 0)
+                i += 1
+        rp_ = dp.step(4, *gates)
+        rc_ = dc.step(4, *gates)
+        assert rp_ == rc_
+        assert dp._st.tolist() == dc._st.tolist()
+        if rp_ & STEP_SOLVED:
+            _same(_state(dp), _state(dc))
+            ratios.append(dp.quadrature_ratio())
+        if rp_:
+            seen |= rp_
+            ph += 0.01                               # the drive's measured phases move between blocks
+    assert seen & STEP_FINISHED and seen & STEP_NO_SIGNAL and seen & STEP_SOLVED
+    assert seen & STEP_DISTORTED and min(ratios) < 1.0 < max(ratios)
+
+
+def chi2_gate_9999():
+    from coiltrack.firmware.estimate.ekf import chi2_gate
+
+    return chi2_gate(9, 0.9999)
+
+
 def test_demodulation_equals_scipy_least_squares_of_the_same_model():
     """Independent reference: one block's samples fitted by ``scipy.linalg.lstsq`` with the
     module docstring's model (DC, ramp, a cosine and a sine per carrier against t_ref); the
