@@ -165,6 +165,27 @@ class FixedCycleReference:
         self.coil = 0
         self.pulses = 0          # reference pulses taken (counted, never commanded)
         self._a = 1.0            # the weight of the latest interval in the means
+        self.kernels = "python"
+        if core.ext is not None:
+            self._bind_compiled(core.ext)
+
+    def _own_means(self):
+        """The running means a subclass keeps beside the reference's in ``_propagate`` (None:
+        none; ``accuracy_budget.MeanBudgetReference``: the live filter's variance traces)."""
+        return None
+
+    def _bind_compiled(self, ext) -> None:
+        """Bind the compiled propagation (``core/src/sc_policy.c`` ``ct_scp_ref_propagate``) in
+        place of :meth:`_propagate`, once, where this class's (or the mean budget's) is run."""
+        if type(self)._propagate.__qualname__ not in ("FixedCycleReference._propagate",
+                                                      "MeanBudgetReference._propagate"):
+            return
+        self._st = np.zeros(ext.REF_NST)
+        self._stv = memoryview(self._st)
+        self._ck = ext.FixedRefCore((self.P, self.F, self.q, self._T, self.avg, self.law, self._st), self._own_means(),
+                                    self.warmup_us, self.avg_us, self.exp[0], self.exp[1])
+        self._propagate = self._propagate_compiled
+        self.kernels = "compiled"
 
     def held_avg(self, ratio: float):
         """The mean pose variances (6,) the policy's bounds hold (``fixed_cycle_bounds``): the
@@ -278,6 +299,20 @@ class FixedCycleReference:
             j = ORI.start + k
             avg[k] += a * (float(P[i, i]) - float(avg[k]))
             avg[3 + k] += a * (float(P[j, j]) - float(avg[3 + k]))
+
+    def _propagate_compiled(self, ekf, dt: float, dt_us: int) -> None:
+        """:meth:`_propagate` through ``ct_scp_ref_propagate`` (the live filter's compiled
+        transition); the Python reference where the filter runs its own dynamics."""
+        eck = getattr(ekf, "_ck", None)
+        if eck is None:
+            type(self)._propagate(self, ekf, dt, dt_us)
+            return
+        self._ck.propagate(eck, dt, dt_us, self.elapsed_us, self.mean_us, self.settled, self.settle_drop)
+        st = self._stv
+        self.elapsed_us = st[0]
+        self.mean_us = st[1]
+        self.settled = st[2] != 0.0
+        self._a = st[3]
 
     def _pulse(self, ekf, model, coil: int) -> None:
         """Eq-4 covariance update of ``coil`` at its nominal current (Joseph form)."""

@@ -234,6 +234,13 @@ class AdaptiveActuation(_SingleCoilActuation):
                 s.ref.set_settle(cfg.adaptive.reference_settle_drop)
         self._lim = np.zeros(n)
         self._zero3 = np.zeros(3)
+        #: where the decision's numeric parts run (the chooser runs its own)
+        self.kernels = "python"
+        if core.ext is not None:
+            self._pk = core.ext.PolicyCore(n, self.pmodel.h, self.pmodel.H, self._lim)
+            self._in_flight = self._in_flight_compiled
+            self._range_limits = self._range_limits_compiled
+            self.kernels = "compiled"
         self._decided_stamp = -1
         self._decided_us = 0
         self._dec_start = 0
@@ -315,9 +322,7 @@ class AdaptiveActuation(_SingleCoilActuation):
                 if sl.active and not sl.acq:
                     self._model_at(v)
                     var = self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)]
-                    self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
-                                              var * s.monitor.r_scale,
-                                              cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a)
+                    self._in_flight(v, sl, var * s.monitor.r_scale)
             if self.policy.due(v.P6, now_us, s.last_update_us):
                 due = True
             u = self.policy.worst(v.P6)
@@ -344,20 +349,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         lim.fill(cfg.adaptive.adaptive_max_current_a)
         for v in self.views:
             self._model_at(v)
-            # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
-            r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
-            sp = math.sqrt(max(float(v.P6[0, 0] + v.P6[1, 1] + v.P6[2, 2]), 0.0))
-            gain = (r / max(r - cfg.adaptive.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
-            for c in range(self.n):
-                if v.have_quiet:
-                    i = saturation_current_limit(self.pmodel.h[c], v.quiet, cfg.pulse.mag_range_t,
-                                                 cfg.pulse.saturation_margin, gain)
-                else:       # no quiet sample yet: assume the largest earth field on every axis
-                    i = saturation_current_limit(self.pmodel.h[c], self._zero3,
-                                                 cfg.pulse.mag_range_t - cfg.pulse.earth_field_max_t / cfg.pulse.saturation_margin,
-                                                 cfg.pulse.saturation_margin, gain)
-                if i < lim[c]:
-                    lim[c] = i
+            self._range_limits(v)
         for c in range(self.n):
             if not self.book.duty_ok(c, self._dec_start, self.pulse_us):
                 lim[c] = 0.0
@@ -366,6 +358,45 @@ class AdaptiveActuation(_SingleCoilActuation):
         self.policy.set_bounds(ws.smax6)
         self.chooser.set_bounds(ws.smax6, ws.smin6)
         self._dec_phase = 2
+
+    def _range_limits(self, v: SensorOutlook) -> None:
+        """Each coil's limit (``_lim``) lowered to the current that keeps the magnetometer of
+        ``v``'s sensor in range (``coil_choice.saturation_current_limit``; ``pmodel`` at its pose)."""
+        cfg = self.cfg
+        lim = self._lim
+        # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
+        r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
+        sp = math.sqrt(max(float(v.P6[0, 0] + v.P6[1, 1] + v.P6[2, 2]), 0.0))
+        gain = (r / max(r - cfg.adaptive.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
+        for c in range(self.n):
+            if v.have_quiet:
+                i = saturation_current_limit(self.pmodel.h[c], v.quiet, cfg.pulse.mag_range_t,
+                                             cfg.pulse.saturation_margin, gain)
+            else:       # no quiet sample yet: assume the largest earth field on every axis
+                i = saturation_current_limit(self.pmodel.h[c], self._zero3,
+                                             cfg.pulse.mag_range_t - cfg.pulse.earth_field_max_t / cfg.pulse.saturation_margin,
+                                             cfg.pulse.saturation_margin, gain)
+            if i < lim[c]:
+                lim[c] = i
+
+    def _range_limits_compiled(self, v: SensorOutlook) -> None:
+        """:meth:`_range_limits` in one call (``ct_scp_range_limits``), bit for bit."""
+        p = self.cfg.pulse
+        self._pk.range_limits(v.pp, v.P6, v.quiet, v.have_quiet, self.cfg.adaptive.saturation_sigmas, p.mag_range_t,
+                              p.saturation_margin, p.earth_field_max_t)
+
+    def _in_flight(self, v: SensorOutlook, sl, var: float) -> None:
+        """The eq-4 covariance update of pulse ``sl`` in flight (amplitude variance ``var``) on
+        ``v.P6`` (``coil_choice.PoseCovUpdate``; ``pmodel`` at ``v``'s pose)."""
+        cfg = self.cfg
+        self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current, var,
+                                  cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a)
+
+    def _in_flight_compiled(self, v: SensorOutlook, sl, var: float) -> None:
+        """:meth:`_in_flight` through ``ct_scp_pose_cov_update`` (the products to rounding)."""
+        cfg = self.cfg
+        self._pk.pose_cov_update(v.P6, sl.coil, sl.current, var, cfg.adaptive.field_model_rel_sigma,
+                                 cfg.limits.current_tolerance_a)
 
     def _decide_choose(self) -> None:
         """The coil and current of the pulse (``actuate.coil_choice``), and its command."""

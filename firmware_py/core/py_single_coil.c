@@ -655,6 +655,235 @@ static PyTypeObject SCUpdateType = {
     .tp_methods = SCUpdate_methods,
 };
 
+/* ---------------------------------------------------------- FixedRefCore */
+/* accuracy.FixedCycleReference's buffers (and MeanBudgetReference's own, or None) */
+enum { RF_P, RF_F, RF_Q, RF_T, RF_AVG, RF_LAW, RF_ST, RF_OWN, RF_N };
+static const char *rf_names[RF_N] = {"P", "F", "q", "T", "avg", "law", "st", "own"};
+static const Py_ssize_t rf_len[RF_N] = {CT_SC_CORE * CT_SC_CORE, CT_SC_CORE * CT_SC_CORE, CT_SC_CORE,
+                                        CT_SC_CORE * CT_SC_CORE, 6, 2, CT_REF_NST, 2};
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_scref r;
+    Py_buffer views[RF_N];
+    int nviews;
+} FixedRefObject;
+
+static void FixedRef_release(FixedRefObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void FixedRef_dealloc(FixedRefObject *self)
+{
+    FixedRef_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* FixedRefCore(arrays, own, warmup_us, avg_us, exp_pos, exp_ori): arrays = (P, F, q, T, avg, law, st) */
+static int FixedRef_init(FixedRefObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"arrays", "own", "warmup_us", "avg_us", "exp_pos", "exp_ori", NULL};
+    PyObject *arrays, *own;
+    double *ptr[RF_N];
+    int i;
+    struct ct_scref *r = &self->r;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!Odddd", kwlist, &PyTuple_Type, &arrays, &own, &r->warmup_us,
+                                     &r->avg_us, &r->exp[0], &r->exp[1]))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: already bound");
+        return -1;
+    }
+    if (PyTuple_GET_SIZE(arrays) != RF_OWN) {
+        PyErr_Format(PyExc_ValueError, "FixedRefCore: %d arrays", RF_OWN);
+        return -1;
+    }
+    for (i = 0; i < RF_N; ++i) {
+        PyObject *o = i < RF_OWN ? PyTuple_GET_ITEM(arrays, i) : own;
+        ptr[i] = NULL;
+        if (o == Py_None && i == RF_OWN)
+            break;
+        if (sc_doubles(o, rf_len[i], 1, &self->views[i], rf_names[i]) < 0) {
+            FixedRef_release(self);
+            return -1;
+        }
+        self->nviews = i + 1;
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    r->P = ptr[RF_P];
+    r->F = ptr[RF_F];
+    r->q = ptr[RF_Q];
+    r->T = ptr[RF_T];
+    r->avg = ptr[RF_AVG];
+    r->law = ptr[RF_LAW];
+    r->st = ptr[RF_ST];
+    r->own = ptr[RF_OWN];
+    return 0;
+}
+
+/* propagate(ekf_core, dt, dt_us, elapsed_us, mean_us, settled, settle_drop) */
+static PyObject *FixedRef_propagate(FixedRefObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double dt, elapsed, mean, drop;
+    int64_t dt_us;
+    int settled;
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs("propagate", nargs, 7) < 0)
+        return NULL;
+    if (!PyObject_TypeCheck(args[0], &SchepersCoreType) || !((SchepersCoreObject *)args[0])->nviews) {
+        PyErr_SetString(PyExc_TypeError, "propagate: ekf_core must be a bound SchepersCore");
+        return NULL;
+    }
+    if (sc_double(args[1], &dt) < 0 || ct_py_int64(args[2], &dt_us) < 0 || sc_double(args[3], &elapsed) < 0 ||
+        sc_double(args[4], &mean) < 0 || (settled = PyObject_IsTrue(args[5])) < 0 || sc_double(args[6], &drop) < 0)
+        return NULL;
+    ct_scp_ref_propagate(&((SchepersCoreObject *)args[0])->s, &self->r, dt, dt_us, elapsed, mean, settled, drop);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FixedRef_methods[] = {
+    {"propagate", (PyCFunction)(void (*)(void))FixedRef_propagate, METH_FASTCALL,
+     "propagate(ekf_core, dt, dt_us, elapsed_us, mean_us, settled, settle_drop): FixedCycleReference._propagate "
+     "(and MeanBudgetReference's running mean); the scalars after it in st"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject FixedRefType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.FixedRefCore",
+    .tp_basicsize = sizeof(FixedRefObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "FixedRefCore(arrays, own, warmup_us, avg_us, exp_pos, exp_ori): the fixed cycle's reference "
+              "covariance propagation bound to its arrays (actuate.accuracy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)FixedRef_init,
+    .tp_dealloc = (destructor)FixedRef_dealloc,
+    .tp_methods = FixedRef_methods,
+};
+
+/* ------------------------------------------------------------ PolicyCore */
+/* the decision model's h (n x 3), H (n x 3 x 6) and the limits (n) bound; the scratch of PoseCovUpdate */
+typedef struct {
+    PyObject_HEAD
+    struct ct_scp_cov w;
+    int n;
+    const double *h, *H;
+    double *lim;
+    Py_buffer views[3];
+    int nviews;
+} PolicyObject;
+
+static void Policy_release(PolicyObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void Policy_dealloc(PolicyObject *self)
+{
+    Policy_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* PolicyCore(n, h, H, lim) */
+static int Policy_init(PolicyObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "h", "H", "lim", NULL};
+    PyObject *h, *H, *lim;
+    int n;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOO", kwlist, &n, &h, &H, &lim))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "PolicyCore: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "PolicyCore: n in 1..64");
+        return -1;
+    }
+    if (sc_doubles(h, 3 * n, 0, &self->views[0], "h") < 0)
+        return -1;
+    self->nviews = 1;
+    if (sc_doubles(H, 18 * n, 0, &self->views[1], "H") < 0 || (self->nviews = 2,
+        sc_doubles(lim, n, 1, &self->views[2], "lim") < 0)) {
+        Policy_release(self);
+        return -1;
+    }
+    self->nviews = 3;
+    self->n = n;
+    self->h = (const double *)self->views[0].buf;
+    self->H = (const double *)self->views[1].buf;
+    self->lim = (double *)self->views[2].buf;
+    return 0;
+}
+
+static int po_ready(PolicyObject *self, const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "PolicyCore: not bound");
+        return -1;
+    }
+    return sc_nargs(name, nargs, want);
+}
+
+/* pose_cov_update(P6, coil, current, var_amp, rel_model, current_sigma) -> bool */
+static PyObject *Policy_pose_cov_update(PolicyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    long coil;
+    double cur, var, rel, cs;
+    int ok;
+    if (po_ready(self, "pose_cov_update", nargs, 6) < 0 || sc_int(args[1], 0, self->n - 1, &coil, "coil") < 0 ||
+        sc_double(args[2], &cur) < 0 || sc_double(args[3], &var) < 0 || sc_double(args[4], &rel) < 0 ||
+        sc_double(args[5], &cs) < 0)
+        return NULL;
+    if (sc_doubles(args[0], 36, 1, &pv, "P6") < 0)
+        return NULL;
+    ok = ct_scp_pose_cov_update(&self->w, (double *)pv.buf, self->H + 18 * coil, self->h + 3 * coil, cur, var, rel,
+                                cs);
+    PyBuffer_Release(&pv);
+    return PyBool_FromLong(ok);
+}
+
+/* range_limits(pp, P6, quiet, have_quiet, saturation_sigmas, range_t, margin, earth_max_t) */
+static PyObject *Policy_range_limits(PolicyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double pp[3], quiet[3], P6[36], ss, rt, mg, em;
+    int hq;
+    if (po_ready(self, "range_limits", nargs, 8) < 0 || sc_copy_doubles(args[0], 3, pp, "pp") < 0 ||
+        sc_copy_doubles(args[1], 36, P6, "P6") < 0 || sc_copy_doubles(args[2], 3, quiet, "quiet") < 0 ||
+        (hq = PyObject_IsTrue(args[3])) < 0 || sc_double(args[4], &ss) < 0 || sc_double(args[5], &rt) < 0 ||
+        sc_double(args[6], &mg) < 0 || sc_double(args[7], &em) < 0)
+        return NULL;
+    ct_scp_range_limits(self->n, self->h, pp, P6, quiet, hq, ss, rt, mg, em, self->lim);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Policy_methods[] = {
+    {"pose_cov_update", (PyCFunction)(void (*)(void))Policy_pose_cov_update, METH_FASTCALL,
+     "pose_cov_update(P6, coil, current, var_amp, rel_model, current_sigma) -> bool: PoseCovUpdate.apply"},
+    {"range_limits", (PyCFunction)(void (*)(void))Policy_range_limits, METH_FASTCALL,
+     "range_limits(pp, P6, quiet, have_quiet, saturation_sigmas, range_t, margin, earth_max_t): one sensor's "
+     "magnetometer-range limits into lim (AdaptiveActuation._decide_limits)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject PolicyType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.PolicyCore",
+    .tp_basicsize = sizeof(PolicyObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "PolicyCore(n, h, H, lim): the adaptive policy's eq-4 update of a pulse in flight and its current "
+              "limits, bound to the decision model's arrays (actuate.single_coil_policy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Policy_init,
+    .tp_dealloc = (destructor)Policy_dealloc,
+    .tp_methods = Policy_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_single_coil(PyObject *m)
 {
@@ -670,7 +899,20 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&SCUpdateType);
         return -1;
     }
-    if (PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
+    if (PyType_Ready(&FixedRefType) < 0 || PyType_Ready(&PolicyType) < 0)
+        return -1;
+    Py_INCREF(&FixedRefType);
+    if (PyModule_AddObject(m, "FixedRefCore", (PyObject *)&FixedRefType) < 0) {
+        Py_DECREF(&FixedRefType);
+        return -1;
+    }
+    Py_INCREF(&PolicyType);
+    if (PyModule_AddObject(m, "PolicyCore", (PyObject *)&PolicyType) < 0) {
+        Py_DECREF(&PolicyType);
+        return -1;
+    }
+    if (PyModule_AddIntConstant(m, "REF_NST", CT_REF_NST) < 0 ||
+        PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
         PyModule_AddIntConstant(m, "SC_NIS_NOMINAL", CT_SCU_NIS_NOMINAL) < 0)
         return -1;
     return 0;

@@ -1,0 +1,174 @@
+/*
+ * The adaptive single-coil policy's numeric parts: the fixed cycle's reference covariance
+ * (actuate/accuracy.py, accuracy_budget.py), the eq-4 update of a pulse in flight
+ * (coil_choice.PoseCovUpdate) and the magnetometer-range current limits
+ * (single_coil_policy._decide_limits, coil_choice.saturation_current_limit); see ct_sc_policy.h.
+ */
+#include <math.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+/* FixedCycleReference._propagate (the reference covariance carried over dt with the live filter's
+ * transition, thesis seeds/002_cd7f1fdb7fc67471.txt eq 6.17, and its running means), with
+ * MeanBudgetReference._propagate's mean of the live filter's position and orientation variance
+ * traces where r->own is bound.  The scalars the reference keeps as attributes come in as
+ * arguments and go out in r->st. */
+void ct_scp_ref_propagate(const struct ct_sc *s, struct ct_scref *r, double dt, int64_t dt_us, double elapsed_us,
+                          double mean_us, int settled, double settle_drop)
+{
+    const int n = CT_SC_CORE;
+    double *P = r->P, *avg = r->avg, e, a, rr, du = (double)dt_us;
+    const double *p = s->p;
+    int i, g, k;
+    ct_sc_build_F(s, r->F, n, r->q, dt);             /* ekf.core_transition */
+    ct_congruence_sparse(n, r->F, P, r->T);
+    for (i = 0; i < n; ++i)
+        P[i * n + i] += r->q[i];
+    elapsed_us += du;
+    if (settle_drop <= 0.0) {
+        e = elapsed_us - r->warmup_us;
+        settled = e > 0.0;
+    } else {
+        if (settled)
+            mean_us += du;
+        e = mean_us;
+    }
+    a = e <= du ? 1.0 : du / (e < r->avg_us ? e : r->avg_us);
+    if (a > 1.0)
+        a = 1.0;
+    rr = pow(p[0] * p[0] + p[1] * p[1] + p[2] * p[2], 0.5);
+    rr = rr > 1e-3 ? rr : 1e-3;
+    for (g = 0; g < 2; ++g) {
+        double x = pow(rr, r->exp[g]);
+        r->law[g] = r->law[g] < 0.0 ? x : r->law[g] + a * (x - r->law[g]);
+    }
+    for (k = 0; k < 3; ++k) {
+        int pi = CT_POS + k, oi = CT_ORI + k;
+        avg[k] += a * (P[pi * n + pi] - avg[k]);
+        avg[3 + k] += a * (P[oi * n + oi] - avg[3 + k]);
+    }
+    if (r->own != NULL) {
+        const double *L = s->P;
+        int m = s->nx, b = CT_POS, o = CT_ORI;
+        double x = L[b * m + b] + L[(b + 1) * m + b + 1] + L[(b + 2) * m + b + 2];
+        r->own[0] += a * (x - r->own[0]);
+        x = L[o * m + o] + L[(o + 1) * m + o + 1] + L[(o + 2) * m + o + 2];
+        r->own[1] += a * (x - r->own[1]);
+    }
+    r->st[CT_REF_ELAPSED] = elapsed_us;
+    r->st[CT_REF_MEAN] = mean_us;
+    r->st[CT_REF_SETTLED] = settled ? 1.0 : 0.0;
+    r->st[CT_REF_A] = a;
+}
+
+/* PoseCovUpdate.apply: P6 <- P6 - P6 H^T (H P6 H^T + R_v)^-1 H P6 with H = current Hu (Hu 3 x 6, hu 3),
+ * symmetrised; 0 (P6 untouched) when the innovation covariance is not positive definite */
+int ct_scp_pose_cov_update(struct ct_scp_cov *w, double *P6, const double *Hu, const double *hu, double current,
+                           double var_amp, double rel_model, double current_sigma)
+{
+    double *A = w->A, *M = w->M, *G = w->G, *Si = w->Si, *T = w->T, *T2 = w->T2, s[9], hn2, r;
+    int i, j, k;
+    for (i = 0; i < 3; ++i)                          /* A = Hu P6, then A *= current */
+        for (j = 0; j < 6; ++j) {
+            double x = 0.0;
+            for (k = 0; k < 6; ++k)
+                x += Hu[i * 6 + k] * P6[k * 6 + j];
+            A[i * 6 + j] = x;
+        }
+    for (i = 0; i < 18; ++i)
+        A[i] = A[i] * current;
+    for (i = 0; i < 3; ++i)                          /* M = A Hu^T, then M *= current */
+        for (j = 0; j < 3; ++j) {
+            double x = 0.0;
+            for (k = 0; k < 6; ++k)
+                x += A[i * 6 + k] * Hu[j * 6 + k];
+            M[i * 3 + j] = x;
+        }
+    for (i = 0; i < 9; ++i)
+        M[i] = M[i] * current;
+    hn2 = hu[0] * hu[0] + hu[1] * hu[1] + hu[2] * hu[2];
+    r = var_amp + (rel_model * rel_model * current * current + current_sigma * current_sigma) * hn2;
+    s[0] = M[0] + r;                                 /* linalg.inv3_sym(M00 + r, M01, M02, M11 + r, M12, M22 + r) */
+    s[3] = M[1];
+    s[6] = M[2];
+    s[4] = M[4] + r;
+    s[7] = M[5];
+    s[8] = M[8] + r;
+    if (!ct_inv3(s, Si))
+        return 0;
+    for (i = 0; i < 3; ++i)                          /* G = Si A */
+        for (j = 0; j < 6; ++j) {
+            double x = 0.0;
+            for (k = 0; k < 3; ++k)
+                x += Si[i * 3 + k] * A[k * 6 + j];
+            G[i * 6 + j] = x;
+        }
+    for (i = 0; i < 6; ++i)                          /* T = A^T G */
+        for (j = 0; j < 6; ++j) {
+            double x = 0.0;
+            for (k = 0; k < 3; ++k)
+                x += A[k * 6 + i] * G[k * 6 + j];
+            T[i * 6 + j] = x;
+        }
+    for (i = 0; i < 36; ++i)
+        P6[i] = P6[i] - T[i];
+    memcpy(T2, P6, sizeof w->T2);                    /* symmetrise */
+    for (i = 0; i < 6; ++i)
+        for (j = 0; j < 6; ++j)
+            P6[i * 6 + j] = T2[i * 6 + j] + T2[j * 6 + i];
+    for (i = 0; i < 36; ++i)
+        P6[i] = P6[i] * 0.5;
+    return 1;
+}
+
+/* coil_choice.saturation_current_limit: the largest current keeping every magnetometer axis in
+ * range (HUGE_VAL: no axis constrains it; 0: the quiet field alone is beyond the margin) */
+double ct_scp_saturation_current_limit(const double *hu, const double *quiet, double range_t, double margin,
+                                       double gain)
+{
+    double lim = margin * range_t, best = HUGE_VAL;
+    int k;
+    for (k = 0; k < 3; ++k) {
+        double a = gain * fabs(hu[k]);
+        double room = lim - fabs(quiet[k]);
+        if (room <= 0.0)
+            return 0.0;
+        if (a > 0.0) {
+            double i = room / a;
+            if (i < best)
+                best = i;
+        }
+    }
+    return best;
+}
+
+/* max(a, b) as Python's max: a unless b > a */
+static double pymax2(double a, double b)
+{
+    return b > a ? b : a;
+}
+
+/* AdaptiveActuation._decide_limits for one sensor: every coil's limit (lim, n) lowered to the current
+ * that keeps the magnetometer in range at the predicted position pp (3) with the position
+ * uncertainty of P6 (6 x 6); h (n x 3): the per-ampere fields there; quiet (3) the latest quiet
+ * field (have_quiet 0: none yet, the largest earth field assumed on every axis) */
+void ct_scp_range_limits(int n, const double *h, const double *pp, const double *P6, const double *quiet,
+                         int have_quiet, double saturation_sigmas, double range_t, double margin,
+                         double earth_max_t, double *lim)
+{
+    static const double zero3[3] = {0.0, 0.0, 0.0};
+    double r = sqrt(pp[0] * pp[0] + pp[1] * pp[1] + pp[2] * pp[2]);
+    double sp = sqrt(pymax2(P6[0] + P6[7] + P6[14], 0.0));
+    double gain = r > 0.0 ? pow(r / pymax2(r - saturation_sigmas * sp, 0.5 * r), 3.0) : 8.0;
+    int c;
+    for (c = 0; c < n; ++c) {
+        double i;
+        if (have_quiet)
+            i = ct_scp_saturation_current_limit(h + 3 * c, quiet, range_t, margin, gain);
+        else
+            i = ct_scp_saturation_current_limit(h + 3 * c, zero3, range_t - earth_max_t / margin, margin, gain);
+        if (i < lim[c])
+            lim[c] = i;
+    }
+}
