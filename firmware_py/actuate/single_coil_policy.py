@@ -246,16 +246,17 @@ class AdaptiveActuation(_SingleCoilActuation):
         self._dec_start = 0
         self._dec_ws: SensorOutlook | None = None
         self._dec_var = 0.0
+        self._dec_coil = -1
         self._pm_for = None              # the sensor pmodel was last evaluated for, in this decision
 
     def _follows_cycle(self) -> bool:
         return self._warming
 
     def _resume(self) -> None:
-        if self._dec_phase == 1:
-            self._decide_limits()
-        else:
+        if self._dec_phase == 2:
             self._decide_choose()
+        else:
+            self._decide_command()
 
     def _decide_own(self, now_us: int, held: int) -> None:
         cfg = self.cfg
@@ -295,13 +296,16 @@ class AdaptiveActuation(_SingleCoilActuation):
             if len(ring):
                 start = self.lengths.align(start, ring.latest_t_us)
         self._decide_predict(start, now_us)
+        if self._dec_phase == 1:
+            self._decide_limits()
 
     # A decision runs in three ticks (bounded tick): the prediction at the measurement time
-    # (``_decide_predict``), the current limits (``_decide_limits``) and the coil choice with its
-    # command (``_decide_choose``). The first reads everything the others use of the filters
-    # (covariance, orientation, quiet sample, NIS verdict) in its own tick, so the decision is the
-    # one a single tick would make; its command leaves two ticks later, for the same start
-    # (``adaptive_lead_us`` ahead). No flip and no other decision runs in between.
+    # (``_decide_predict``) with the current limits (``_decide_limits``), the coil choice
+    # (``_decide_choose``), and its command (``_decide_command``). The first reads everything the
+    # others use of the filters (covariance, orientation, quiet sample, NIS verdict) in its own
+    # tick, so the decision is the one a single tick would make; its command leaves two ticks
+    # later, for the same start (``adaptive_lead_us`` ahead). No flip and no other decision runs in
+    # between.
     def _decide_predict(self, start: int, now_us: int) -> None:
         """Predicted covariance at the measurement time, with the pulses in flight; which sensor
         is worst off, and whether a pulse is due."""
@@ -343,7 +347,8 @@ class AdaptiveActuation(_SingleCoilActuation):
         self._dec_phase = 1
 
     def _decide_limits(self) -> None:
-        """Current limits: the driver's, every sensor's magnetometer range, the coils' duty."""
+        """Current limits: the driver's, every sensor's magnetometer range, the coils' duty (in the
+        prediction's tick: nothing they read moves between the decision's ticks)."""
         cfg = self.cfg
         lim = self._lim
         lim.fill(cfg.adaptive.adaptive_max_current_a)
@@ -399,7 +404,7 @@ class AdaptiveActuation(_SingleCoilActuation):
                                  cfg.limits.current_tolerance_a)
 
     def _decide_choose(self) -> None:
-        """The coil and current of the pulse (``actuate.coil_choice``), and its command."""
+        """The coil and current of the pulse (``actuate.coil_choice``); its command in the next tick."""
         self._dec_phase = 0
         ws = self._dec_ws
         L = self.lengths
@@ -410,8 +415,15 @@ class AdaptiveActuation(_SingleCoilActuation):
         if coil < 0:
             self.no_current += 1
             return
+        self._dec_coil = coil
+        self._dec_phase = 3
+
+    def _decide_command(self) -> None:
+        """The chosen pulse's command (``single_coil_pulses.PulseBook``), for the decision's start."""
+        self._dec_phase = 0
+        L = self.lengths
         k = self.chooser.length if L.n > 1 else 0
-        self.book.command(coil, self.chooser.current, self._dec_start, L.lengths_us[k], False,
+        self.book.command(self._dec_coil, self.chooser.current, self._dec_start, L.lengths_us[k], False,
                           L.mid_us[k] if L.n > 1 else -1)
 
     def _model_at(self, v: SensorOutlook) -> None:
