@@ -38,7 +38,8 @@ import math
 import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.actuate.accuracy import fixed_cycle_bounds, nis_bound_factor
+from coiltrack.firmware.actuate.accuracy import FixedCycleReference, fixed_cycle_bounds, nis_bound_factor
+from coiltrack.firmware.actuate.accuracy_budget import HOLD_MAX, HOLD_MIN, MeanBudgetReference
 from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, PoseCovUpdate,
                                                     SingleCoilModel, current_ladder, saturation_current_limit)
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
@@ -60,6 +61,7 @@ class SensorOutlook:
         self.have_quiet = False
         self.smax6 = np.zeros(POSE_DIM)            # the bounds of the latest decision (m, rad)
         self.smin6 = np.zeros(POSE_DIM)
+        self.bounds_core = None                    # the compiled bounds bound to these arrays
 
 
 class _SingleCoilActuation:
@@ -240,6 +242,8 @@ class AdaptiveActuation(_SingleCoilActuation):
             self._pk = core.ext.PolicyCore(n, self.pmodel.h, self.pmodel.H, self._lim)
             self._in_flight = self._in_flight_compiled
             self._range_limits = self._range_limits_compiled
+            if self._bind_bounds(core.ext):
+                self._bounds = self._bounds_compiled
             self.kernels = "compiled"
         self._decided_stamp = -1
         self._decided_us = 0
@@ -471,6 +475,35 @@ class AdaptiveActuation(_SingleCoilActuation):
                 for k in range(POSE_DIM):
                     mx[k] = float(mx[k]) / f
                     mn[k] = float(mn[k]) / f
+
+    def _bind_bounds(self, ext) -> bool:
+        """Bind each view's compiled bounds (``sc_policy.c`` ``ct_scp_bounds``) to its arrays and its
+        reference's; False (the Python reference kept) where a reference is of another kind."""
+        a = self.cfg.adaptive
+        cores = []
+        for v in self.views:
+            ref = v.sensor.ref
+            refs = mean = None
+            if ref is not None:
+                if type(ref) is MeanBudgetReference:
+                    mean = (ref.own, ref.factor, ref._held)
+                elif type(ref) is not FixedCycleReference:
+                    return False
+                refs = (ref.avg, ref.law, ref.P)
+            params = np.array([a.fixed_accuracy_ratio, a.adaptive_min_ratio, a.reference_catchup,
+                               1.0 if a.nis_feedback else 0.0, a.nis_feedback_max, HOLD_MIN, HOLD_MAX,
+                               a.sigma_max_pos_m, a.sigma_min_pos_m, a.sigma_max_ori_deg, a.sigma_min_ori_deg,
+                               a.sigma_range_ref_m, a.sigma_range_exp_pos, a.sigma_range_exp_ori,
+                               ref.exp[0] if ref is not None else 0.0, ref.exp[1] if ref is not None else 0.0])
+            cores.append(ext.BoundsCore((v.pp, v.smax6, v.smin6), refs, mean, params))
+        for v, c in zip(self.views, cores):
+            v.bounds_core = c
+        return True
+
+    def _bounds_compiled(self, v: SensorOutlook) -> None:
+        """:meth:`_bounds` in one call (``ct_scp_bounds``), bit for bit."""
+        s = v.sensor
+        v.bounds_core.bounds(s.ref is not None and s.ref.active, self._warming, s.monitor.excess)
 
     def _stated_bounds(self, v: SensorOutlook) -> None:
         """``sigma_max_*``, ``sigma_min_*``, scaled by ``(r / sigma_range_ref_m)^exp`` when set."""

@@ -884,6 +884,126 @@ static PyTypeObject PolicyType = {
     .tp_methods = Policy_methods,
 };
 
+/* ------------------------------------------------------------ BoundsCore */
+/* one SensorOutlook's (pp, smax6, smin6), its reference's (avg, law, P) or None, the mean budget's
+ * (own, factor, held) or None, and the configuration (CT_BND_N floats) */
+enum { BD_PP, BD_MX, BD_MN, BD_AVG, BD_LAW, BD_P, BD_OWN, BD_FACTOR, BD_HELD, BD_N };
+static const char *bd_names[BD_N] = {"pp", "smax6", "smin6", "avg", "law", "P", "own", "factor", "held"};
+static const Py_ssize_t bd_len[BD_N] = {3, 6, 6, 6, 2, CT_SC_CORE * CT_SC_CORE, 2, 2, 6};
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_scp_bounds b;
+    Py_buffer views[BD_N];
+    int nviews;
+} BoundsObject;
+
+static void Bounds_release(BoundsObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void Bounds_dealloc(BoundsObject *self)
+{
+    Bounds_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* BoundsCore(view, ref, mean, params): view = (pp, smax6, smin6), ref = (avg, law, P) or None,
+ * mean = (own, factor, held) or None, params: CT_BND_N floats */
+static int Bounds_init(BoundsObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"view", "ref", "mean", "params", NULL};
+    PyObject *view, *ref, *mean, *params, *groups[3];
+    double *ptr[BD_N];
+    int g, i, k = 0;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOO", kwlist, &PyTuple_Type, &view, &ref, &mean, &params))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "BoundsCore: already bound");
+        return -1;
+    }
+    groups[0] = view;
+    groups[1] = ref;
+    groups[2] = mean;
+    if (mean != Py_None && ref == Py_None) {
+        PyErr_SetString(PyExc_ValueError, "BoundsCore: a mean budget needs its reference");
+        return -1;
+    }
+    for (g = 0; g < 3; ++g) {
+        PyObject *t = groups[g];
+        if (t == Py_None && g > 0) {
+            for (i = 0; i < 3; ++i)
+                ptr[3 * g + i] = NULL;
+            continue;
+        }
+        if (!PyTuple_Check(t) || PyTuple_GET_SIZE(t) != 3) {
+            PyErr_Format(PyExc_TypeError, "BoundsCore: %s needs 3 arrays", g == 0 ? "view" : g == 1 ? "ref" : "mean");
+            Bounds_release(self);
+            return -1;
+        }
+        for (i = 0; i < 3; ++i) {
+            int j = 3 * g + i;
+            if (sc_doubles(PyTuple_GET_ITEM(t, i), bd_len[j], j != BD_PP && j != BD_AVG && j != BD_LAW && j != BD_P &&
+                           j != BD_OWN, &self->views[k], bd_names[j]) < 0) {
+                Bounds_release(self);
+                return -1;
+            }
+            ptr[j] = (double *)self->views[k].buf;
+            self->nviews = ++k;
+        }
+    }
+    if (sc_copy_doubles(params, CT_BND_N, self->b.c, "params") < 0) {
+        Bounds_release(self);
+        return -1;
+    }
+    self->b.pp = ptr[BD_PP];
+    self->b.mx = ptr[BD_MX];
+    self->b.mn = ptr[BD_MN];
+    self->b.avg = ptr[BD_AVG];
+    self->b.law = ptr[BD_LAW];
+    self->b.P = ptr[BD_P];
+    self->b.own = ptr[BD_OWN];
+    self->b.factor = ptr[BD_FACTOR];
+    self->b.held = ptr[BD_HELD];
+    return 0;
+}
+
+/* bounds(ref_active, warming, excess) */
+static PyObject *Bounds_bounds(BoundsObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int active, warming;
+    double excess;
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "BoundsCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs("bounds", nargs, 3) < 0 || (active = PyObject_IsTrue(args[0])) < 0 ||
+        (warming = PyObject_IsTrue(args[1])) < 0 || sc_double(args[2], &excess) < 0)
+        return NULL;
+    ct_scp_bounds(&self->b, active, warming, excess);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Bounds_methods[] = {
+    {"bounds", (PyCFunction)(void (*)(void))Bounds_bounds, METH_FASTCALL,
+     "bounds(ref_active, warming, excess): AdaptiveActuation._bounds into smax6, smin6"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject BoundsType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.BoundsCore",
+    .tp_basicsize = sizeof(BoundsObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "BoundsCore(view, ref, mean, params): one sensor's decision bounds bound to its arrays "
+              "(actuate.single_coil_policy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Bounds_init,
+    .tp_dealloc = (destructor)Bounds_dealloc,
+    .tp_methods = Bounds_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_single_coil(PyObject *m)
 {
@@ -899,8 +1019,13 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&SCUpdateType);
         return -1;
     }
-    if (PyType_Ready(&FixedRefType) < 0 || PyType_Ready(&PolicyType) < 0)
+    if (PyType_Ready(&FixedRefType) < 0 || PyType_Ready(&PolicyType) < 0 || PyType_Ready(&BoundsType) < 0)
         return -1;
+    Py_INCREF(&BoundsType);
+    if (PyModule_AddObject(m, "BoundsCore", (PyObject *)&BoundsType) < 0) {
+        Py_DECREF(&BoundsType);
+        return -1;
+    }
     Py_INCREF(&FixedRefType);
     if (PyModule_AddObject(m, "FixedRefCore", (PyObject *)&FixedRefType) < 0) {
         Py_DECREF(&FixedRefType);
@@ -911,7 +1036,7 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&PolicyType);
         return -1;
     }
-    if (PyModule_AddIntConstant(m, "REF_NST", CT_REF_NST) < 0 ||
+    if (PyModule_AddIntConstant(m, "REF_NST", CT_REF_NST) < 0 || PyModule_AddIntConstant(m, "BND_N", CT_BND_N) < 0 ||
         PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
         PyModule_AddIntConstant(m, "SC_NIS_NOMINAL", CT_SCU_NIS_NOMINAL) < 0)
         return -1;

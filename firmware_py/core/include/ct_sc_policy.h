@@ -49,6 +49,21 @@ void ct_scp_range_limits(int n, const double *h, const double *pp, const double 
                          int have_quiet, double saturation_sigmas, double range_t, double margin,
                          double earth_max_t, double *lim);
 
+/* one sensor's decision bounds (AdaptiveActuation._bounds): the view's arrays, its reference's
+ * (NULL: no reference) and the mean budget's (NULL: the plain reference), the configuration */
+enum { CT_BND_RATIO, CT_BND_MIN_RATIO, CT_BND_CATCHUP, CT_BND_NIS, CT_BND_NIS_MAX, CT_BND_HOLD_MIN,
+       CT_BND_HOLD_MAX, CT_BND_SMAX_POS, CT_BND_SMIN_POS, CT_BND_SMAX_ORI, CT_BND_SMIN_ORI, CT_BND_RANGE_REF,
+       CT_BND_EXP_POS, CT_BND_EXP_ORI, CT_BND_REF_EXP0, CT_BND_REF_EXP1, CT_BND_N };
+struct ct_scp_bounds {
+    const double *pp;                  /* 3: the predicted position */
+    double *mx, *mn;                   /* 6, 6: the bounds (m, rad) */
+    const double *avg, *law, *P;       /* 6, 2, 15 x 15: the reference's */
+    const double *own;                 /* 2: the mean budget's (NULL: none) */
+    double *factor, *held;             /* 2, 6: the mean budget's held means */
+    double c[CT_BND_N];
+};
+void ct_scp_bounds(struct ct_scp_bounds *b, int ref_active, int warming, double excess);
+
 #ifdef __cplusplus
 }
 #endif

@@ -172,3 +172,119 @@ void ct_scp_range_limits(int n, const double *h, const double *pp, const double 
             lim[c] = i;
     }
 }
+
+/* accuracy.FixedCycleReference.law_now: r^(2 e_g) / mean(r^(2 e_g)) */
+static double law_now(const struct ct_scp_bounds *b, double r, int g)
+{
+    double m = b->law[g];
+    if (!(m > 0.0))
+        return 1.0;
+    r = r > 1e-3 ? r : 1e-3;
+    return pow(r, b->c[CT_BND_REF_EXP0 + g]) / m;
+}
+
+/* accuracy_budget.hold_factor */
+static double hold_factor(const struct ct_scp_bounds *b, double own, double target)
+{
+    double f;
+    if (!(target > 0.0))
+        return 1.0;
+    f = 2.0 - own / target;
+    if (!(f > b->c[CT_BND_HOLD_MIN]))
+        return b->c[CT_BND_HOLD_MIN];
+    return f < b->c[CT_BND_HOLD_MAX] ? f : b->c[CT_BND_HOLD_MAX];
+}
+
+/* the reference's held_avg: its means (FixedCycleReference), or each group times its hold factor
+ * (MeanBudgetReference.held_avg, writing factor and held) */
+static const double *held_avg(struct ct_scp_bounds *b)
+{
+    double k2 = b->c[CT_BND_RATIO] * b->c[CT_BND_RATIO];
+    int g, k;
+    if (b->own == NULL)
+        return b->avg;
+    for (g = 0; g < 2; ++g) {
+        int o = 3 * g;
+        double t = b->avg[o] + b->avg[o + 1] + b->avg[o + 2];
+        double f = hold_factor(b, b->own[g], k2 * t);
+        b->factor[g] = f;
+        for (k = o; k < o + 3; ++k)
+            b->held[k] = b->avg[k] * f;
+    }
+    return b->held;
+}
+
+/* accuracy.fixed_cycle_bounds */
+static void fixed_cycle_bounds(const double *avg6, double ratio, double min_ratio, double *mx, double *mn,
+                               double law_pos, double law_ori)
+{
+    double k = 2.0 * ratio * ratio / (1.0 + min_ratio * min_ratio);
+    int i;
+    for (i = 0; i < 6; ++i) {
+        double v = avg6[i] * (i < 3 ? law_pos : law_ori);
+        double s = v > 0.0 ? pow(k * v, 0.5) : 0.0;
+        mx[i] = s;
+        mn[i] = min_ratio * s;
+    }
+}
+
+/* AdaptiveActuation._stated_bounds */
+static void stated_bounds(struct ct_scp_bounds *b)
+{
+    const double *c = b->c, d2r = 3.141592653589793 / 180.0;
+    double sp = 1.0, so = 1.0;
+    int k;
+    if (c[CT_BND_RANGE_REF] > 0.0) {
+        const double *pp = b->pp;
+        double r = sqrt(pp[0] * pp[0] + pp[1] * pp[1] + pp[2] * pp[2]);
+        double x = (1e-3 > r ? 1e-3 : r) / c[CT_BND_RANGE_REF];
+        sp = pow(x, c[CT_BND_EXP_POS]);
+        so = pow(x, c[CT_BND_EXP_ORI]);
+    }
+    for (k = 0; k < 3; ++k) {
+        b->mx[k] = c[CT_BND_SMAX_POS] * sp;
+        b->mn[k] = c[CT_BND_SMIN_POS] * sp;
+        b->mx[3 + k] = c[CT_BND_SMAX_ORI] * d2r * so;
+        b->mn[3 + k] = c[CT_BND_SMIN_ORI] * d2r * so;
+    }
+}
+
+/* AdaptiveActuation._bounds: a sensor's decision bounds at its predicted position (ref_active: its
+ * reference runs; warming: the fixed cycle's warm-up; excess: its NIS monitor's) */
+void ct_scp_bounds(struct ct_scp_bounds *b, int ref_active, int warming, double excess)
+{
+    const double *c = b->c;
+    double *mx = b->mx, *mn = b->mn;
+    int k;
+    if (ref_active && b->avg != NULL) {
+        const double *pp = b->pp;
+        double r = sqrt(pp[0] * pp[0] + pp[1] * pp[1] + pp[2] * pp[2]);
+        const double *held = held_avg(b);
+        fixed_cycle_bounds(held, c[CT_BND_RATIO], c[CT_BND_MIN_RATIO], mx, mn, law_now(b, r, 0), law_now(b, r, 1));
+        if (warming) {
+            static const int idx[6] = {CT_POS, CT_POS + 1, CT_POS + 2, CT_ORI, CT_ORI + 1, CT_ORI + 2};
+            double k2 = c[CT_BND_CATCHUP] * pow(c[CT_BND_RATIO], 2.0);
+            for (k = 0; k < 6; ++k) {
+                int i = idx[k];
+                double x = b->P[i * CT_SC_CORE + i] * k2;
+                mx[k] = x > 0.0 ? sqrt(x) : 0.0;
+                mn[k] = c[CT_BND_MIN_RATIO] * mx[k];
+            }
+        }
+    } else {
+        stated_bounds(b);
+    }
+    if (c[CT_BND_NIS] != 0.0) {
+        double f;                                  /* accuracy.nis_bound_factor */
+        if (!(excess > 1.0))
+            f = 1.0;
+        else
+            f = excess < c[CT_BND_NIS_MAX] ? excess : c[CT_BND_NIS_MAX];
+        f = sqrt(f);
+        if (f != 1.0)
+            for (k = 0; k < 6; ++k) {
+                mx[k] = mx[k] / f;
+                mn[k] = mn[k] / f;
+            }
+    }
+}

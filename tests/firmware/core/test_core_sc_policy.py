@@ -248,3 +248,45 @@ def test_bad_bindings_are_refused_with_their_names():
     with pytest.raises(TypeError, match="lim"):
         _core.PolicyCore(3, np.zeros((3, 3)), np.zeros((3, 3, 6)), np.zeros(2))
     del rng
+
+
+@pytest.mark.parametrize("kw", [{}, {"reference_hold": "mean"}, {"accuracy_target": "stated"},
+                                {"accuracy_target": "stated", "sigma_range_ref_m": 0.3}])
+def test_the_bounds_are_the_python_ones_bit_for_bit(kw):
+    """``_bounds`` compiled and in Python, over random predicted positions, reference means, range
+    laws (a negative mean: no law yet), reference covariances (the warm-up's), NIS excesses
+    (below 1, between, beyond the cap) and a reference active or not: the same bounds to the
+    bit, and the mean budget's held means and factors too. Catches a law applied to the wrong
+    group, the NIS factor not rooted, the warm-up's catch-up read from the wrong diagonal."""
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.tools.bench.links import inproc_pair
+    from coiltrack.tools.scenarios import thesis as scenarios
+
+    acts = []
+    for impl in ("python", "compiled"):
+        fw_end, _ = inproc_pair()
+        fw = Firmware(scenarios.schepers_adaptive_config(**kw).with_(core={"impl": impl}), fw_end)
+        acts.append(fw.tracker.actuation)
+    assert acts[1]._bounds.__name__ == "_bounds_compiled"
+    for trial in range(120):
+        outs = []
+        for act in acts:
+            rng = np.random.default_rng(trial)
+            v = act.views[0]
+            s, ref = v.sensor, v.sensor.ref
+            v.pp[:] = rng.normal(0, 0.2, 3)
+            if ref is not None:
+                ref.active = bool(trial % 3)
+                ref.avg[:] = rng.random(6) * 1e-5
+                ref.law[:] = rng.random(2) - 0.2
+                A = rng.normal(size=(15, 15))
+                ref.P[:] = A @ A.T * 1e-6
+                if isinstance(ref, MeanBudgetReference):
+                    ref.own[:] = rng.random(2) * 1e-5
+            act._warming = bool(trial % 2)
+            s.monitor.excess = float(rng.random() * 6.0)
+            act._bounds(v)
+            extra = [ref.factor, ref._held] if isinstance(ref, MeanBudgetReference) else []
+            outs.append(np.concatenate([v.smax6, v.smin6] + extra))
+        np.testing.assert_array_equal(outs[1], outs[0], err_msg=f"trial {trial}")
+    assert np.all(outs[0][:6] > 0.0)
