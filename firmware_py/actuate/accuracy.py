@@ -192,6 +192,12 @@ class FixedCycleReference:
         reference's own (``accuracy_budget.MeanBudgetReference`` carries a deficit in them)."""
         return self.avg
 
+    def held_arrays(self):
+        """The arrays :meth:`held_avg` and :meth:`law_now` read, ``(avg, law, P)``, and those the
+        mean budget's ``held_avg`` reads and writes, ``(own, factor, held)`` (None here): for a
+        compiled decision bound to them (``single_coil_policy``'s ``ct_scp_bounds``)."""
+        return (self.avg, self.law, self.P), None
+
     def set_settle(self, drop: float) -> None:
         """The ``settle_drop`` of the next start (the policy's ``reference_settle_drop``)."""
         self.settle_drop = float(drop)

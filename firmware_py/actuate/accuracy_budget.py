@@ -91,6 +91,9 @@ class MeanBudgetReference(FixedCycleReference):
     def _own_means(self):
         return self.own
 
+    def held_arrays(self):
+        return (self.avg, self.law, self.P), (self.own, self.factor, self._held)
+
     def held_avg(self, ratio: float):
         """The reference's mean variances, each group times its ``hold_factor`` against
         ``ratio^2`` times the reference's mean trace (``ratio``: ``fixed_accuracy_ratio``)."""

@@ -485,11 +485,9 @@ class AdaptiveActuation(_SingleCoilActuation):
             ref = v.sensor.ref
             refs = mean = None
             if ref is not None:
-                if type(ref) is MeanBudgetReference:
-                    mean = (ref.own, ref.factor, ref._held)
-                elif type(ref) is not FixedCycleReference:
+                if type(ref) not in (FixedCycleReference, MeanBudgetReference):
                     return False
-                refs = (ref.avg, ref.law, ref.P)
+                refs, mean = ref.held_arrays()
             params = np.array([a.fixed_accuracy_ratio, a.adaptive_min_ratio, a.reference_catchup,
                                1.0 if a.nis_feedback else 0.0, a.nis_feedback_max, HOLD_MIN, HOLD_MAX,
                                a.sigma_max_pos_m, a.sigma_min_pos_m, a.sigma_max_ori_deg, a.sigma_min_ori_deg,
