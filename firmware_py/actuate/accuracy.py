@@ -185,6 +185,11 @@ class FixedCycleReference:
         self._ck = ext.FixedRefCore((self.P, self.F, self.q, self._T, self.avg, self.law, self._st), self._own_means(),
                                     self.warmup_us, self.avg_us, self.exp[0], self.exp[1])
         self._propagate = self._propagate_compiled
+        if type(self)._pulse is FixedCycleReference._pulse:
+            upd = self.upd
+            self._ck.bind_pulse(upd.H, upd.R, upd.y, N_CORE, POS.start, ORI.start, self.var_amp, self.rel_model,
+                                self.current_sigma)
+            self._pulse = self._pulse_compiled
         self.kernels = "compiled"
 
     def held_avg(self, ratio: float):
@@ -263,10 +268,11 @@ class FixedCycleReference:
             return
         t_us = int(t_us)
         while True:
-            t_m = self.next_mid_us()
+            t_m = self.cycle_start + self.coil * self.spacing_us + self.mid_us      # next_mid_us()
             t1 = t_m if t_m <= t_us else t_us
-            if t1 > self.t_us:
-                self._propagate(ekf, (t1 - self.t_us) * 1e-6, t1 - self.t_us)
+            d_us = t1 - self.t_us
+            if d_us > 0:
+                self._propagate(ekf, d_us * 1e-6, d_us)
                 self.t_us = t1
             if t_m > t_us:
                 break
@@ -341,4 +347,13 @@ class FixedCycleReference:
             Rm[i, i] = r
         upd.y.fill(0.0)
         upd.update(self.P)
+        self.pulses += 1
+
+    def _pulse_compiled(self, ekf, model, coil: int) -> None:
+        """:meth:`_pulse` with its measurement (``H``, ``R``, ``y``) filled by
+        ``ct_scp_ref_pulse_fill`` (``core/src/sc_policy.c``): the same products, the same bits;
+        the update is the same ``KalmanUpdate``'s."""
+        model.evaluate(ekf.p, ekf.R)
+        self._ck.pulse(model.h, model.H, coil, self.currents[coil])
+        self.upd.update(self.P)
         self.pulses += 1

@@ -662,17 +662,25 @@ static const char *rf_names[RF_N] = {"P", "F", "q", "T", "avg", "law", "st", "ow
 static const Py_ssize_t rf_len[RF_N] = {CT_SC_CORE * CT_SC_CORE, CT_SC_CORE * CT_SC_CORE, CT_SC_CORE,
                                         CT_SC_CORE * CT_SC_CORE, 6, 2, CT_REF_NST, 2};
 
+/* the pulse's update buffers (KalmanUpdate's H, R, y: bind_pulse) */
+enum { RFP_H, RFP_R, RFP_Y, RFP_N };
+
 typedef struct {
     PyObject_HEAD
     struct ct_scref r;
     Py_buffer views[RF_N];
     int nviews;
+    Py_buffer pviews[RFP_N];
+    int npviews, nx, pos, ori;
+    double var_amp, rel_model, current_sigma;
 } FixedRefObject;
 
 static void FixedRef_release(FixedRefObject *self)
 {
     while (self->nviews > 0)
         PyBuffer_Release(&self->views[--self->nviews]);
+    while (self->npviews > 0)
+        PyBuffer_Release(&self->pviews[--self->npviews]);
 }
 
 static void FixedRef_dealloc(FixedRefObject *self)
@@ -746,10 +754,74 @@ static PyObject *FixedRef_propagate(FixedRefObject *self, PyObject *const *args,
     Py_RETURN_NONE;
 }
 
+/* bind_pulse(H, R, y, nx, pos, ori, var_amp, rel_model, current_sigma): the pulse's update buffers
+ * (H 3 x nx, R 3 x 3, y 3) and constants, once */
+static PyObject *FixedRef_bind_pulse(FixedRefObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *names[RFP_N] = {"H", "R", "y"};
+    long nx, pos, ori;
+    int i;
+    if (self->npviews) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: pulse already bound");
+        return NULL;
+    }
+    if (sc_nargs("bind_pulse", nargs, 9) < 0 || sc_int(args[3], 6, CT_SC_CORE, &nx, "nx") < 0 ||
+        sc_int(args[4], 0, nx - 3, &pos, "pos") < 0 || sc_int(args[5], 0, nx - 3, &ori, "ori") < 0 ||
+        sc_double(args[6], &self->var_amp) < 0 || sc_double(args[7], &self->rel_model) < 0 ||
+        sc_double(args[8], &self->current_sigma) < 0)
+        return NULL;
+    for (i = 0; i < RFP_N; ++i) {
+        Py_ssize_t n = i == RFP_H ? 3 * nx : (i == RFP_R ? 9 : 3);
+        if (sc_doubles(args[i], n, 1, &self->pviews[i], names[i]) < 0) {
+            while (self->npviews > 0)
+                PyBuffer_Release(&self->pviews[--self->npviews]);
+            return NULL;
+        }
+        self->npviews = i + 1;
+    }
+    self->nx = (int)nx;
+    self->pos = (int)pos;
+    self->ori = (int)ori;
+    Py_RETURN_NONE;
+}
+
+/* pulse(h, H, coil, current): FixedCycleReference._pulse's H, R and y from the model's h (n x 3) and
+ * H (n x 3 x 6) of coil `coil` at `current` (ct_scp_ref_pulse_fill) */
+static PyObject *FixedRef_pulse(FixedRefObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vh, vH;
+    long coil;
+    double c;
+    if (self->npviews != RFP_N) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: pulse not bound");
+        return NULL;
+    }
+    if (sc_nargs("pulse", nargs, 4) < 0 || sc_int(args[2], 0, 1L << 20, &coil, "coil") < 0 ||
+        sc_double(args[3], &c) < 0)
+        return NULL;
+    if (sc_doubles(args[0], 3 * (coil + 1), 0, &vh, "h") < 0)
+        return NULL;
+    if (sc_doubles(args[1], 18 * (coil + 1), 0, &vH, "H") < 0) {
+        PyBuffer_Release(&vh);
+        return NULL;
+    }
+    ct_scp_ref_pulse_fill(self->nx, (double *)self->pviews[RFP_H].buf, (double *)self->pviews[RFP_R].buf,
+                          (double *)self->pviews[RFP_Y].buf, (const double *)vH.buf + 18 * coil,
+                          (const double *)vh.buf + 3 * coil, c, self->var_amp, self->rel_model,
+                          self->current_sigma, self->pos, self->ori);
+    PyBuffer_Release(&vH);
+    PyBuffer_Release(&vh);
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef FixedRef_methods[] = {
     {"propagate", (PyCFunction)(void (*)(void))FixedRef_propagate, METH_FASTCALL,
      "propagate(ekf_core, dt, dt_us, elapsed_us, mean_us, settled, settle_drop): FixedCycleReference._propagate "
      "(and MeanBudgetReference's running mean); the scalars after it in st"},
+    {"bind_pulse", (PyCFunction)(void (*)(void))FixedRef_bind_pulse, METH_FASTCALL,
+     "bind_pulse(H, R, y, nx, pos, ori, var_amp, rel_model, current_sigma): the pulse's update buffers, once"},
+    {"pulse", (PyCFunction)(void (*)(void))FixedRef_pulse, METH_FASTCALL,
+     "pulse(h, H, coil, current): FixedCycleReference._pulse's H, R and y (the update is KalmanUpdate's)"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject FixedRefType = {

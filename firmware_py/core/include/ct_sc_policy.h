@@ -43,6 +43,9 @@ struct ct_scp_cov {
 int ct_scp_pose_cov_update(struct ct_scp_cov *w, double *P6, const double *Hu, const double *hu, double current,
                            double var_amp, double rel_model, double current_sigma);
 
+void ct_scp_ref_pulse_fill(int nx, double *H, double *R, double *y, const double *Hu, const double *hu,
+                           double current, double var_amp, double rel_model, double current_sigma, int pos, int ori);
+
 double ct_scp_saturation_current_limit(const double *hu, const double *quiet, double range_t, double margin,
                                        double gain);
 void ct_scp_range_limits(int n, const double *h, const double *pp, const double *P6, const double *quiet,

@@ -122,6 +122,32 @@ int ct_scp_pose_cov_update(struct ct_scp_cov *w, double *P6, const double *Hu, c
     return 1;
 }
 
+/* FixedCycleReference._pulse's measurement (accuracy.py): H (3 x nx) zero but for current times the
+ * coil's per-ampere Jacobian Hu (3 x 6) in the position (columns pos..pos+2) and orientation (ori..ori+2)
+ * blocks, R = r I3 with r = var_amp + (rel_model^2 current^2 + current_sigma^2) |hu|^2, y = 0; the
+ * update itself is the shared KalmanUpdate's (ct_kalman_update) */
+void ct_scp_ref_pulse_fill(int nx, double *H, double *R, double *y, const double *Hu, const double *hu,
+                           double current, double var_amp, double rel_model, double current_sigma, int pos, int ori)
+{
+    double hn2, r;
+    int i, j;
+    for (i = 0; i < 3 * nx; ++i)
+        H[i] = 0.0;
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            H[i * nx + pos + j] = current * Hu[i * 6 + j];
+            H[i * nx + ori + j] = current * Hu[i * 6 + 3 + j];
+        }
+    hn2 = hu[0] * hu[0] + hu[1] * hu[1] + hu[2] * hu[2];
+    r = var_amp + (rel_model * rel_model * current * current + current_sigma * current_sigma) * hn2;
+    for (i = 0; i < 9; ++i)
+        R[i] = 0.0;
+    for (i = 0; i < 3; ++i) {
+        R[i * 3 + i] = r;
+        y[i] = 0.0;
+    }
+}
+
 /* coil_choice.saturation_current_limit: the largest current keeping every magnetometer axis in
  * range (HUGE_VAL: no axis constrains it; 0: the quiet field alone is beyond the margin) */
 double ct_scp_saturation_current_limit(const double *hu, const double *quiet, double range_t, double margin,
