@@ -1076,6 +1076,103 @@ static PyTypeObject BoundsType = {
     .tp_methods = Bounds_methods,
 };
 
+/* --------------------------------------------------------------- NisCore */
+/* coil_choice.NisMonitor's ring, bounds and state (track.single_coil_nis.CompiledNisMonitor) */
+enum { NM_BUF, NM_BOUND, NM_ST, NM_N };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_nis m;
+    Py_buffer views[NM_N];
+    int nviews;
+} NisObject;
+
+static void Nis_dealloc(NisObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* NisCore(buf, bound, st, window, min_count, dof, min_mean, max_scale, excess_gate, alpha) */
+static int Nis_init(NisObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"buf", "bound", "st", "window", "min_count", "dof", "min_mean", "max_scale",
+                             "excess_gate", "alpha", NULL};
+    static const char *names[NM_N] = {"buf", "bound", "st"};
+    PyObject *o[NM_N];
+    struct ct_nis *m = &self->m;
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOiiddddd", kwlist, &o[0], &o[1], &o[2], &m->window,
+                                     &m->min_count, &m->dof, &m->min_mean, &m->max_scale, &m->excess_gate,
+                                     &m->alpha))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "NisCore: already bound");
+        return -1;
+    }
+    if (m->window < 1 || m->min_count < 1 || m->min_count > m->window || !(m->dof > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "NisCore: need 1 <= min_count <= window and dof > 0");
+        return -1;
+    }
+    for (i = 0; i < NM_N; ++i) {
+        Py_ssize_t n = i == NM_BUF ? m->window : (i == NM_BOUND ? m->window + 1 : CT_NIS_NST);
+        if (sc_doubles(o[i], n, i != NM_BOUND, &self->views[i], names[i]) < 0) {
+            while (self->nviews > 0)
+                PyBuffer_Release(&self->views[--self->nviews]);
+            return -1;
+        }
+        self->nviews = i + 1;
+    }
+    m->buf = (double *)self->views[NM_BUF].buf;
+    m->bound = (const double *)self->views[NM_BOUND].buf;
+    m->st = (double *)self->views[NM_ST].buf;
+    return 0;
+}
+
+static PyObject *Nis_call(NisObject *self, PyObject *const *args, Py_ssize_t nargs, const char *name,
+                          void (*f)(struct ct_nis *, double))
+{
+    double x;
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "NisCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs(name, nargs, 1) < 0 || sc_double(args[0], &x) < 0)
+        return NULL;
+    f(&self->m, x);
+    Py_RETURN_NONE;
+}
+
+static PyObject *Nis_add(NisObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    return Nis_call(self, args, nargs, "add", ct_nis_add);
+}
+
+static PyObject *Nis_add_used(NisObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    return Nis_call(self, args, nargs, "add_used", ct_nis_add_used);
+}
+
+static PyMethodDef Nis_methods[] = {
+    {"add", (PyCFunction)(void (*)(void))Nis_add, METH_FASTCALL, "add(nis_nominal): NisMonitor.add (ct_nis_add)"},
+    {"add_used", (PyCFunction)(void (*)(void))Nis_add_used, METH_FASTCALL,
+     "add_used(nis_used): NisMonitor.add_used (ct_nis_add_used)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject NisType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.NisCore",
+    .tp_basicsize = sizeof(NisObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "NisCore(buf, bound, st, window, min_count, dof, min_mean, max_scale, excess_gate, alpha): a NIS "
+              "monitor's window test bound to its arrays (actuate.coil_choice.NisMonitor)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Nis_init,
+    .tp_dealloc = (destructor)Nis_dealloc,
+    .tp_methods = Nis_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_single_coil(PyObject *m)
 {
@@ -1108,6 +1205,15 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&PolicyType);
         return -1;
     }
+    if (PyType_Ready(&NisType) < 0)
+        return -1;
+    Py_INCREF(&NisType);
+    if (PyModule_AddObject(m, "NisCore", (PyObject *)&NisType) < 0) {
+        Py_DECREF(&NisType);
+        return -1;
+    }
+    if (PyModule_AddIntConstant(m, "NIS_NST", CT_NIS_NST) < 0)
+        return -1;
     if (PyModule_AddIntConstant(m, "REF_NST", CT_REF_NST) < 0 || PyModule_AddIntConstant(m, "BND_N", CT_BND_N) < 0 ||
         PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
         PyModule_AddIntConstant(m, "SC_NIS_NOMINAL", CT_SCU_NIS_NOMINAL) < 0)

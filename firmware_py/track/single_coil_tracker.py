@@ -19,7 +19,8 @@ Fig. 1, as stages of the firmware tick, each piece one job in its own module:
 * track (:meth:`SingleCoilTracker.track`): between pulses every ``IMU_SAMPLE``
   propagates the sensor's filter and a ``POSE`` goes out at the IMU rate;
 * consistency: the NIS of every update is gated (chi-square) and monitored
-  over a window (``coil_choice.NisMonitor``); a ferromagnetic object that
+  over a window (``coil_choice.NisMonitor``; on the compiled core its twin
+  ``track.single_coil_nis.CompiledNisMonitor``); a ferromagnetic object that
   makes the updates inconsistent (Schepers sec. 3.3) is reported
   (``EVT_DISTORTION``, ``POSE_DISTORTED``) and, until the window is consistent
   again, the measurement covariance is inflated by the observed excess and the
@@ -47,7 +48,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
 from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference
 from coiltrack.firmware.actuate.accuracy_budget import MeanBudgetReference
-from coiltrack.firmware.actuate.coil_choice import NisMonitor, SingleCoilModel
+from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation, FixedActuation
 from coiltrack.firmware.actuate.pulse_length import PulseLengths, fixed_amplitude_variance
 from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
@@ -57,6 +58,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.single_coil import CORE, POS, SchepersEKF
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
+from coiltrack.firmware.track.single_coil_nis import nis_monitor
 from coiltrack.firmware.track.single_coil_sensor import SensorTrack
 from coiltrack.firmware.track.status import COIL_FATAL as _FATAL, input_status
 #: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
@@ -160,7 +162,7 @@ class SingleCoilTracker:
         """One sensor's filter, monitor and (``accuracy_target = "fixed"``) the fixed cycle's
         predicted accuracy beside it."""
         cfg = self.cfg
-        mon = NisMonitor(window=cfg.adaptive.nis_window, dof=3, gate=chi2_gate(3, cfg.adaptive.nis_gate_probability),
+        mon = nis_monitor(self.core, window=cfg.adaptive.nis_window, dof=3, gate=chi2_gate(3, cfg.adaptive.nis_gate_probability),
                          z=cfg.adaptive.nis_alarm_z, min_count=min(cfg.adaptive.nis_window, 3), min_excess=cfg.adaptive.nis_alarm_excess,
                          max_scale=cfg.adaptive.nis_max_scale, feedback_updates=cfg.adaptive.nis_feedback_updates)
         s = SensorTrack(k, tr, cfg, SchepersEKF.from_config(cfg, core=self.core), mon)

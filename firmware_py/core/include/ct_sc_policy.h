@@ -46,6 +46,19 @@ int ct_scp_pose_cov_update(struct ct_scp_cov *w, double *P6, const double *Hu, c
 void ct_scp_ref_pulse_fill(int nx, double *H, double *R, double *y, const double *Hu, const double *hu,
                            double current, double var_amp, double rel_model, double current_sigma, int pos, int ori);
 
+/* one coil_choice.NisMonitor: its ring (window), the chi-square bounds by count (window + 1), the
+ * state (CT_NIS_NST: the integers and the flag held as doubles) and its constants */
+enum { CT_NIS_COUNT, CT_NIS_HEAD, CT_NIS_MEAN, CT_NIS_INCONSISTENT, CT_NIS_R_SCALE, CT_NIS_TOTAL, CT_NIS_FLAGGED,
+       CT_NIS_EXCESS, CT_NIS_NST };
+struct ct_nis {
+    double *buf, *st;
+    const double *bound;
+    int window, min_count;
+    double dof, min_mean, max_scale, excess_gate, alpha;
+};
+void ct_nis_add(struct ct_nis *m, double x);
+void ct_nis_add_used(struct ct_nis *m, double x);
+
 double ct_scp_saturation_current_limit(const double *hu, const double *quiet, double range_t, double margin,
                                        double gain);
 void ct_scp_range_limits(int n, const double *h, const double *pp, const double *P6, const double *quiet,

@@ -148,6 +148,51 @@ void ct_scp_ref_pulse_fill(int nx, double *H, double *R, double *y, const double
     }
 }
 
+/* coil_choice.NisMonitor.add: the window's NIS (nominal covariance) in the ring, its mean over the
+ * values held, the chi-square test with hysteresis and the covariance-matching scale */
+void ct_nis_add(struct ct_nis *m, double x)
+{
+    double *st = m->st, s, mean, a;
+    int count = (int)st[CT_NIS_COUNT], head = (int)st[CT_NIS_HEAD], k, beyond, inc;
+    if (!isfinite(x))
+        x = 1e9;
+    m->buf[head] = x;
+    head = (head + 1) % m->window;
+    if (count < m->window)
+        count += 1;
+    s = 0.0;
+    for (k = 0; k < count; ++k)
+        s += m->buf[k];
+    mean = s / (double)count;
+    st[CT_NIS_COUNT] = (double)count;
+    st[CT_NIS_HEAD] = (double)head;
+    st[CT_NIS_MEAN] = mean;
+    st[CT_NIS_TOTAL] += 1.0;
+    beyond = count >= m->min_count && mean > m->bound[count];
+    inc = beyond && (st[CT_NIS_INCONSISTENT] != 0.0 || mean > m->min_mean);
+    st[CT_NIS_INCONSISTENT] = inc ? 1.0 : 0.0;
+    if (inc) {
+        st[CT_NIS_FLAGGED] += 1.0;
+        a = mean / m->dof;
+        a = 1.0 > a ? 1.0 : a;                       /* min(max(a, 1.0), max_scale) */
+        st[CT_NIS_R_SCALE] = m->max_scale < a ? m->max_scale : a;
+    } else {
+        st[CT_NIS_R_SCALE] = 1.0;
+    }
+}
+
+/* coil_choice.NisMonitor.add_used: the exponential mean of NIS / dof with the covariance used */
+void ct_nis_add_used(struct ct_nis *m, double x)
+{
+    double *st = m->st;
+    x = x < m->excess_gate ? x : m->excess_gate;
+    if (!(x >= 0.0))                                 /* NaN */
+        x = m->excess_gate;
+    if (x == HUGE_VAL)
+        x = 10.0 * m->dof * m->max_scale;
+    st[CT_NIS_EXCESS] += m->alpha * (x / m->dof - st[CT_NIS_EXCESS]);
+}
+
 /* coil_choice.saturation_current_limit: the largest current keeping every magnetometer axis in
  * range (HUGE_VAL: no axis constrains it; 0: the quiet field alone is beyond the margin) */
 double ct_scp_saturation_current_limit(const double *hu, const double *quiet, double range_t, double margin,

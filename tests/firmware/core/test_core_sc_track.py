@@ -9,6 +9,8 @@ update ``P - P H^T (H P H^T + R)^-1 H P`` through numpy.linalg. Seeded; skips wh
 is not built."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -135,3 +137,79 @@ def test_bad_pulse_bindings_are_refused_with_their_names():
         got._ck.bind_pulse(got.upd.H, got.upd.R, got.upd.y, 15, 0, 6, 1.0, 0.0, 0.0)
     with pytest.raises(TypeError, match="H"):
         got._ck.pulse(model.h, np.zeros((2, 3, 6)), 2, 1.0)
+
+
+_MON_STATE = ("count", "_head", "mean", "inconsistent", "r_scale", "total", "flagged", "excess", "gated")
+
+
+def _monitors(**kw):
+    from coiltrack.firmware.actuate.coil_choice import NisMonitor
+    from coiltrack.firmware.track.single_coil_nis import CompiledNisMonitor, nis_monitor
+
+    got = nis_monitor(COMPILED, **kw)
+    assert isinstance(got, CompiledNisMonitor) and got.kernels == "compiled"
+    assert type(nis_monitor(core.PYTHON, **kw)) is NisMonitor
+    return NisMonitor(**kw), got
+
+
+@pytest.mark.parametrize("kw", [dict(window=8, dof=3, gate=16.27, z=2.326, min_count=3, min_excess=1.5,
+                                     max_scale=50.0, feedback_updates=30),
+                                dict(window=1, dof=2, gate=9.0, min_count=1, max_scale=1e4, feedback_updates=1),
+                                dict(window=5, dof=3, min_count=5, min_excess=0.0, max_scale=3.0)])
+def test_the_compiled_nis_monitor_is_the_reference_bit_for_bit(kw):
+    """A seeded run of chi-square NIS values, a disturbance (scaled ones), NaN, inf and resets:
+    after every step each attribute of the twin is the reference's, bit for bit. Independent
+    check: the mean is the last ``window`` values' (numpy), the excess the exponential mean of the
+    gated NIS / dof. Catches the ring's head wrapped wrongly, the hysteresis dropped, the scale not
+    capped, NaN or inf taken as a value."""
+    ref, got = _monitors(**kw)
+    rng = np.random.default_rng(17)
+    vals, excess = [], 1.0
+    alpha = 1.0 / max(1, kw["feedback_updates"]) if "feedback_updates" in kw else 1.0 / 30
+    gate = kw.get("gate", 16.27)
+    for i in range(400):
+        x = float(rng.chisquare(kw["dof"]))
+        if 120 <= i < 200:
+            x *= 12.0                                   # a ferromagnetic disturbance
+        if i in (50, 51, 260):
+            x = (math.nan, math.inf, -math.inf)[(i - 50) % 3 if i < 260 else 2]
+        if i in (300, 301):
+            x = 1e300
+        for m in (ref, got):
+            m.add(x)
+            m.add_used(x * 0.5)
+            if i % 7 == 0:
+                m.note_gated()
+        u = x * 0.5 if x * 0.5 < gate else gate
+        u = gate if not u >= 0.0 else u
+        excess += alpha * (u / kw["dof"] - excess)
+        vals.append(x if math.isfinite(x) else 1e9)
+        if i == 330:
+            ref.reset()
+            got.reset()
+            vals, excess = [], 1.0
+        for name in _MON_STATE:
+            a, b = getattr(ref, name), getattr(got, name)
+            assert type(a) is type(b) and (a == b or (a != a and b != b)), (i, name, a, b)
+        assert got.bound() == ref.bound()
+        if vals:
+            w = vals[-kw["window"]:] if len(vals) >= kw["window"] else vals
+            assert got.mean == pytest.approx(float(np.mean(w)), rel=1e-12)
+        assert got.excess == pytest.approx(excess, rel=1e-12)
+    np.testing.assert_array_equal(got._buf, ref._buf)
+    assert ref.flagged > 0 and ref.total == 400
+
+
+def test_the_compiled_nis_monitor_allocates_nothing_and_refuses_bad_bindings():
+    from coiltrack.firmware import _core
+
+    _, got = _monitors(window=8, dof=3, min_count=3)
+    with NumpyAllocationCounter() as n:
+        for i in range(200):
+            got.add(float(i % 13))
+            got.add_used(float(i % 5))
+    assert n.count == 0 and got.total == 200
+    with pytest.raises(TypeError, match="bound"):
+        _core.NisCore(got._buf, np.zeros(8), got._st, 8, 3, 3.0, 3.0, 10.0, 16.0, 0.1)
+    with pytest.raises(ValueError, match="min_count"):
+        _core.NisCore(got._buf, got._bound, got._st, 8, 9, 3.0, 3.0, 10.0, 16.0, 0.1)
