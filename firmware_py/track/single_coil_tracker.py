@@ -157,6 +157,9 @@ class SingleCoilTracker:
         # each filter's covariance, flat (its diagonal read as floats: the same values as P[i, i])
         self._Pf = {s.index: memoryview(s.ekf.P.reshape(-1)) for s in self._sens}
         self._nP = self._sens[0].ekf.P.shape[1] if self._sens else 0
+        # its position and its clones' (read as floats: the same products as on numpy's scalars)
+        self._pv = {s.index: (memoryview(s.ekf.p), memoryview(s.ekf.clone_p)) for s in self._sens}
+        self._forget_us = a.nis_forget_us
 
     def _sensor(self, k: int, tr, schedule: str) -> SensorTrack:
         """One sensor's filter, monitor and (``accuracy_target = "fixed"``) the fixed cycle's
@@ -301,8 +304,12 @@ class SingleCoilTracker:
         b = POS.start * d
         sp2 = max(P[b], P[b + d], P[b + 2 * d])
         k = sl.clone
-        pc = ekf.clone_p[k] if k >= 0 else ekf.p
-        r2 = float(pc[0] * pc[0] + pc[1] * pc[1] + pc[2] * pc[2])
+        p, cp = self._pv[s.index]
+        if k >= 0:
+            x, y, z = cp[k, 0], cp[k, 1], cp[k, 2]
+        else:
+            x, y, z = p[0], p[1], p[2]
+        r2 = x * x + y * y + z * z
         linear = sp2 < self._lin2 * r2
         # relative errors of the predicted field: the model, and the current
         rc = self._tol_a / max(abs(current), 1e-6)
@@ -362,7 +369,7 @@ class SingleCoilTracker:
     # ------------------------------------------------------------ the track's life
     def forget(self, s: SensorTrack, now_us: int) -> None:
         """Forget a verdict that no update has tested for a while."""
-        if s.monitor.count and now_us - s.mon_t > self.cfg.adaptive.nis_forget_us:
+        if s.monitor.count and now_us - s.mon_t > self._forget_us:
             s.monitor.reset()
 
     def reacquire(self, s: SensorTrack) -> None:
