@@ -165,11 +165,43 @@ class FixedCycleReference:
         self.coil = 0
         self.pulses = 0          # reference pulses taken (counted, never commanded)
         self._a = 1.0            # the weight of the latest interval in the means
+        self.kernels = "python"
+        if core.ext is not None:
+            self._bind_compiled(core.ext)
+
+    def _own_means(self):
+        """The running means a subclass keeps beside the reference's in ``_propagate`` (None:
+        none; ``accuracy_budget.MeanBudgetReference``: the live filter's variance traces)."""
+        return None
+
+    def _bind_compiled(self, ext) -> None:
+        """Bind the compiled propagation (``core/src/sc_policy.c`` ``ct_scp_ref_propagate``) in
+        place of :meth:`_propagate`, once, where this class's (or the mean budget's) is run."""
+        if type(self)._propagate.__qualname__ not in ("FixedCycleReference._propagate",
+                                                      "MeanBudgetReference._propagate"):
+            return
+        self._st = np.zeros(ext.REF_NST)
+        self._stv = memoryview(self._st)
+        self._ck = ext.FixedRefCore((self.P, self.F, self.q, self._T, self.avg, self.law, self._st), self._own_means(),
+                                    self.warmup_us, self.avg_us, self.exp[0], self.exp[1])
+        self._propagate = self._propagate_compiled
+        if type(self)._pulse is FixedCycleReference._pulse:
+            upd = self.upd
+            self._ck.bind_pulse(upd.H, upd.R, upd.y, N_CORE, POS.start, ORI.start, self.var_amp, self.rel_model,
+                                self.current_sigma)
+            self._pulse = self._pulse_compiled
+        self.kernels = "compiled"
 
     def held_avg(self, ratio: float):
         """The mean pose variances (6,) the policy's bounds hold (``fixed_cycle_bounds``): the
         reference's own (``accuracy_budget.MeanBudgetReference`` carries a deficit in them)."""
         return self.avg
+
+    def held_arrays(self):
+        """The arrays :meth:`held_avg` and :meth:`law_now` read, ``(avg, law, P)``, and those the
+        mean budget's ``held_avg`` reads and writes, ``(own, factor, held)`` (None here): for a
+        compiled decision bound to them (``single_coil_policy``'s ``ct_scp_bounds``)."""
+        return (self.avg, self.law, self.P), None
 
     def set_settle(self, drop: float) -> None:
         """The ``settle_drop`` of the next start (the policy's ``reference_settle_drop``)."""
@@ -236,10 +268,11 @@ class FixedCycleReference:
             return
         t_us = int(t_us)
         while True:
-            t_m = self.next_mid_us()
+            t_m = self.cycle_start + self.coil * self.spacing_us + self.mid_us      # next_mid_us()
             t1 = t_m if t_m <= t_us else t_us
-            if t1 > self.t_us:
-                self._propagate(ekf, (t1 - self.t_us) * 1e-6, t1 - self.t_us)
+            d_us = t1 - self.t_us
+            if d_us > 0:
+                self._propagate(ekf, d_us * 1e-6, d_us)
                 self.t_us = t1
             if t_m > t_us:
                 break
@@ -279,6 +312,20 @@ class FixedCycleReference:
             avg[k] += a * (float(P[i, i]) - float(avg[k]))
             avg[3 + k] += a * (float(P[j, j]) - float(avg[3 + k]))
 
+    def _propagate_compiled(self, ekf, dt: float, dt_us: int) -> None:
+        """:meth:`_propagate` through ``ct_scp_ref_propagate`` (the live filter's compiled
+        transition); the Python reference where the filter runs its own dynamics."""
+        eck = getattr(ekf, "_ck", None)
+        if eck is None:
+            type(self)._propagate(self, ekf, dt, dt_us)
+            return
+        self._ck.propagate(eck, dt, dt_us, self.elapsed_us, self.mean_us, self.settled, self.settle_drop)
+        st = self._stv
+        self.elapsed_us = st[0]
+        self.mean_us = st[1]
+        self.settled = st[2] != 0.0
+        self._a = st[3]
+
     def _pulse(self, ekf, model, coil: int) -> None:
         """Eq-4 covariance update of ``coil`` at its nominal current (Joseph form)."""
         model.evaluate(ekf.p, ekf.R)
@@ -300,4 +347,13 @@ class FixedCycleReference:
             Rm[i, i] = r
         upd.y.fill(0.0)
         upd.update(self.P)
+        self.pulses += 1
+
+    def _pulse_compiled(self, ekf, model, coil: int) -> None:
+        """:meth:`_pulse` with its measurement (``H``, ``R``, ``y``) filled by
+        ``ct_scp_ref_pulse_fill`` (``core/src/sc_policy.c``): the same products, the same bits;
+        the update is the same ``KalmanUpdate``'s."""
+        model.evaluate(ekf.p, ekf.R)
+        self._ck.pulse(model.h, model.H, coil, self.currents[coil])
+        self.upd.update(self.P)
         self.pulses += 1

@@ -66,9 +66,9 @@ class MeanBudgetReference(FixedCycleReference):
     (module docstring). Same parameters."""
 
     def __init__(self, *args, **kw):
-        super().__init__(*args, **kw)
         #: mean of the live filter's position and orientation variance traces (m^2, rad^2)
         self.own = np.zeros(2)
+        super().__init__(*args, **kw)
         self._held = np.zeros(6)
         #: the factors of the latest ``held_avg`` (position, orientation)
         self.factor = np.ones(2)
@@ -87,6 +87,12 @@ class MeanBudgetReference(FixedCycleReference):
         self.own[0] += a * (x - float(self.own[0]))
         x = float(P[ORI.start, ORI.start]) + float(P[ORI.start + 1, ORI.start + 1]) + float(P[ORI.start + 2, ORI.start + 2])
         self.own[1] += a * (x - float(self.own[1]))
+
+    def _own_means(self):
+        return self.own
+
+    def held_arrays(self):
+        return (self.avg, self.law, self.P), (self.own, self.factor, self._held)
 
     def held_avg(self, ratio: float):
         """The reference's mean variances, each group times its ``hold_factor`` against

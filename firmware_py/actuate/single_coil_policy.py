@@ -38,7 +38,8 @@ import math
 import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.actuate.accuracy import fixed_cycle_bounds, nis_bound_factor
+from coiltrack.firmware.actuate.accuracy import FixedCycleReference, fixed_cycle_bounds, nis_bound_factor
+from coiltrack.firmware.actuate.accuracy_budget import HOLD_MAX, HOLD_MIN, MeanBudgetReference
 from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, PoseCovUpdate,
                                                     SingleCoilModel, current_ladder, saturation_current_limit)
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
@@ -60,6 +61,7 @@ class SensorOutlook:
         self.have_quiet = False
         self.smax6 = np.zeros(POSE_DIM)            # the bounds of the latest decision (m, rad)
         self.smin6 = np.zeros(POSE_DIM)
+        self.bounds_core = None                    # the compiled bounds bound to these arrays
 
 
 class _SingleCoilActuation:
@@ -234,21 +236,31 @@ class AdaptiveActuation(_SingleCoilActuation):
                 s.ref.set_settle(cfg.adaptive.reference_settle_drop)
         self._lim = np.zeros(n)
         self._zero3 = np.zeros(3)
+        #: where the decision's numeric parts run (the chooser runs its own)
+        self.kernels = "python"
+        if core.ext is not None:
+            self._pk = core.ext.PolicyCore(n, self.pmodel.h, self.pmodel.H, self._lim)
+            self._in_flight = self._in_flight_compiled
+            self._range_limits = self._range_limits_compiled
+            if self._bind_bounds(core.ext):
+                self._bounds = self._bounds_compiled
+            self.kernels = "compiled"
         self._decided_stamp = -1
         self._decided_us = 0
         self._dec_start = 0
         self._dec_ws: SensorOutlook | None = None
         self._dec_var = 0.0
+        self._dec_coil = -1
         self._pm_for = None              # the sensor pmodel was last evaluated for, in this decision
 
     def _follows_cycle(self) -> bool:
         return self._warming
 
     def _resume(self) -> None:
-        if self._dec_phase == 1:
-            self._decide_limits()
-        else:
+        if self._dec_phase == 2:
             self._decide_choose()
+        else:
+            self._decide_command()
 
     def _decide_own(self, now_us: int, held: int) -> None:
         cfg = self.cfg
@@ -288,13 +300,16 @@ class AdaptiveActuation(_SingleCoilActuation):
             if len(ring):
                 start = self.lengths.align(start, ring.latest_t_us)
         self._decide_predict(start, now_us)
+        if self._dec_phase == 1:
+            self._decide_limits()
 
     # A decision runs in three ticks (bounded tick): the prediction at the measurement time
-    # (``_decide_predict``), the current limits (``_decide_limits``) and the coil choice with its
-    # command (``_decide_choose``). The first reads everything the others use of the filters
-    # (covariance, orientation, quiet sample, NIS verdict) in its own tick, so the decision is the
-    # one a single tick would make; its command leaves two ticks later, for the same start
-    # (``adaptive_lead_us`` ahead). No flip and no other decision runs in between.
+    # (``_decide_predict``) with the current limits (``_decide_limits``), the coil choice
+    # (``_decide_choose``), and its command (``_decide_command``). The first reads everything the
+    # others use of the filters (covariance, orientation, quiet sample, NIS verdict) in its own
+    # tick, so the decision is the one a single tick would make; its command leaves two ticks
+    # later, for the same start (``adaptive_lead_us`` ahead). No flip and no other decision runs in
+    # between.
     def _decide_predict(self, start: int, now_us: int) -> None:
         """Predicted covariance at the measurement time, with the pulses in flight; which sensor
         is worst off, and whether a pulse is due."""
@@ -315,9 +330,7 @@ class AdaptiveActuation(_SingleCoilActuation):
                 if sl.active and not sl.acq:
                     self._model_at(v)
                     var = self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)]
-                    self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
-                                              var * s.monitor.r_scale,
-                                              cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a)
+                    self._in_flight(v, sl, var * s.monitor.r_scale)
             if self.policy.due(v.P6, now_us, s.last_update_us):
                 due = True
             u = self.policy.worst(v.P6)
@@ -338,26 +351,14 @@ class AdaptiveActuation(_SingleCoilActuation):
         self._dec_phase = 1
 
     def _decide_limits(self) -> None:
-        """Current limits: the driver's, every sensor's magnetometer range, the coils' duty."""
+        """Current limits: the driver's, every sensor's magnetometer range, the coils' duty (in the
+        prediction's tick: nothing they read moves between the decision's ticks)."""
         cfg = self.cfg
         lim = self._lim
         lim.fill(cfg.adaptive.adaptive_max_current_a)
         for v in self.views:
             self._model_at(v)
-            # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
-            r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
-            sp = math.sqrt(max(float(v.P6[0, 0] + v.P6[1, 1] + v.P6[2, 2]), 0.0))
-            gain = (r / max(r - cfg.adaptive.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
-            for c in range(self.n):
-                if v.have_quiet:
-                    i = saturation_current_limit(self.pmodel.h[c], v.quiet, cfg.pulse.mag_range_t,
-                                                 cfg.pulse.saturation_margin, gain)
-                else:       # no quiet sample yet: assume the largest earth field on every axis
-                    i = saturation_current_limit(self.pmodel.h[c], self._zero3,
-                                                 cfg.pulse.mag_range_t - cfg.pulse.earth_field_max_t / cfg.pulse.saturation_margin,
-                                                 cfg.pulse.saturation_margin, gain)
-                if i < lim[c]:
-                    lim[c] = i
+            self._range_limits(v)
         for c in range(self.n):
             if not self.book.duty_ok(c, self._dec_start, self.pulse_us):
                 lim[c] = 0.0
@@ -367,8 +368,47 @@ class AdaptiveActuation(_SingleCoilActuation):
         self.chooser.set_bounds(ws.smax6, ws.smin6)
         self._dec_phase = 2
 
+    def _range_limits(self, v: SensorOutlook) -> None:
+        """Each coil's limit (``_lim``) lowered to the current that keeps the magnetometer of
+        ``v``'s sensor in range (``coil_choice.saturation_current_limit``; ``pmodel`` at its pose)."""
+        cfg = self.cfg
+        lim = self._lim
+        # the field grows as r^-3: allow for the sensor being saturation_sigmas stds closer
+        r = math.sqrt(float(v.pp[0] * v.pp[0] + v.pp[1] * v.pp[1] + v.pp[2] * v.pp[2]))
+        sp = math.sqrt(max(float(v.P6[0, 0] + v.P6[1, 1] + v.P6[2, 2]), 0.0))
+        gain = (r / max(r - cfg.adaptive.saturation_sigmas * sp, 0.5 * r)) ** 3 if r > 0.0 else 8.0
+        for c in range(self.n):
+            if v.have_quiet:
+                i = saturation_current_limit(self.pmodel.h[c], v.quiet, cfg.pulse.mag_range_t,
+                                             cfg.pulse.saturation_margin, gain)
+            else:       # no quiet sample yet: assume the largest earth field on every axis
+                i = saturation_current_limit(self.pmodel.h[c], self._zero3,
+                                             cfg.pulse.mag_range_t - cfg.pulse.earth_field_max_t / cfg.pulse.saturation_margin,
+                                             cfg.pulse.saturation_margin, gain)
+            if i < lim[c]:
+                lim[c] = i
+
+    def _range_limits_compiled(self, v: SensorOutlook) -> None:
+        """:meth:`_range_limits` in one call (``ct_scp_range_limits``), bit for bit."""
+        p = self.cfg.pulse
+        self._pk.range_limits(v.pp, v.P6, v.quiet, v.have_quiet, self.cfg.adaptive.saturation_sigmas, p.mag_range_t,
+                              p.saturation_margin, p.earth_field_max_t)
+
+    def _in_flight(self, v: SensorOutlook, sl, var: float) -> None:
+        """The eq-4 covariance update of pulse ``sl`` in flight (amplitude variance ``var``) on
+        ``v.P6`` (``coil_choice.PoseCovUpdate``; ``pmodel`` at ``v``'s pose)."""
+        cfg = self.cfg
+        self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current, var,
+                                  cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a)
+
+    def _in_flight_compiled(self, v: SensorOutlook, sl, var: float) -> None:
+        """:meth:`_in_flight` through ``ct_scp_pose_cov_update`` (the products to rounding)."""
+        cfg = self.cfg
+        self._pk.pose_cov_update(v.P6, sl.coil, sl.current, var, cfg.adaptive.field_model_rel_sigma,
+                                 cfg.limits.current_tolerance_a)
+
     def _decide_choose(self) -> None:
-        """The coil and current of the pulse (``actuate.coil_choice``), and its command."""
+        """The coil and current of the pulse (``actuate.coil_choice``); its command in the next tick."""
         self._dec_phase = 0
         ws = self._dec_ws
         L = self.lengths
@@ -379,8 +419,15 @@ class AdaptiveActuation(_SingleCoilActuation):
         if coil < 0:
             self.no_current += 1
             return
+        self._dec_coil = coil
+        self._dec_phase = 3
+
+    def _decide_command(self) -> None:
+        """The chosen pulse's command (``single_coil_pulses.PulseBook``), for the decision's start."""
+        self._dec_phase = 0
+        L = self.lengths
         k = self.chooser.length if L.n > 1 else 0
-        self.book.command(coil, self.chooser.current, self._dec_start, L.lengths_us[k], False,
+        self.book.command(self._dec_coil, self.chooser.current, self._dec_start, L.lengths_us[k], False,
                           L.mid_us[k] if L.n > 1 else -1)
 
     def _model_at(self, v: SensorOutlook) -> None:
@@ -428,6 +475,33 @@ class AdaptiveActuation(_SingleCoilActuation):
                 for k in range(POSE_DIM):
                     mx[k] = float(mx[k]) / f
                     mn[k] = float(mn[k]) / f
+
+    def _bind_bounds(self, ext) -> bool:
+        """Bind each view's compiled bounds (``sc_policy.c`` ``ct_scp_bounds``) to its arrays and its
+        reference's; False (the Python reference kept) where a reference is of another kind."""
+        a = self.cfg.adaptive
+        cores = []
+        for v in self.views:
+            ref = v.sensor.ref
+            refs = mean = None
+            if ref is not None:
+                if type(ref) not in (FixedCycleReference, MeanBudgetReference):
+                    return False
+                refs, mean = ref.held_arrays()
+            params = np.array([a.fixed_accuracy_ratio, a.adaptive_min_ratio, a.reference_catchup,
+                               1.0 if a.nis_feedback else 0.0, a.nis_feedback_max, HOLD_MIN, HOLD_MAX,
+                               a.sigma_max_pos_m, a.sigma_min_pos_m, a.sigma_max_ori_deg, a.sigma_min_ori_deg,
+                               a.sigma_range_ref_m, a.sigma_range_exp_pos, a.sigma_range_exp_ori,
+                               ref.exp[0] if ref is not None else 0.0, ref.exp[1] if ref is not None else 0.0])
+            cores.append(ext.BoundsCore((v.pp, v.smax6, v.smin6), refs, mean, params))
+        for v, c in zip(self.views, cores):
+            v.bounds_core = c
+        return True
+
+    def _bounds_compiled(self, v: SensorOutlook) -> None:
+        """:meth:`_bounds` in one call (``ct_scp_bounds``), bit for bit."""
+        s = v.sensor
+        v.bounds_core.bounds(s.ref is not None and s.ref.active, self._warming, s.monitor.excess)
 
     def _stated_bounds(self, v: SensorOutlook) -> None:
         """``sigma_max_*``, ``sigma_min_*``, scaled by ``(r / sigma_range_ref_m)^exp`` when set."""

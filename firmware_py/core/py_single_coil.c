@@ -655,6 +655,524 @@ static PyTypeObject SCUpdateType = {
     .tp_methods = SCUpdate_methods,
 };
 
+/* ---------------------------------------------------------- FixedRefCore */
+/* accuracy.FixedCycleReference's buffers (and MeanBudgetReference's own, or None) */
+enum { RF_P, RF_F, RF_Q, RF_T, RF_AVG, RF_LAW, RF_ST, RF_OWN, RF_N };
+static const char *rf_names[RF_N] = {"P", "F", "q", "T", "avg", "law", "st", "own"};
+static const Py_ssize_t rf_len[RF_N] = {CT_SC_CORE * CT_SC_CORE, CT_SC_CORE * CT_SC_CORE, CT_SC_CORE,
+                                        CT_SC_CORE * CT_SC_CORE, 6, 2, CT_REF_NST, 2};
+
+/* the pulse's update buffers (KalmanUpdate's H, R, y: bind_pulse) */
+enum { RFP_H, RFP_R, RFP_Y, RFP_N };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_scref r;
+    Py_buffer views[RF_N];
+    int nviews;
+    Py_buffer pviews[RFP_N];
+    int npviews, nx, pos, ori;
+    double var_amp, rel_model, current_sigma;
+} FixedRefObject;
+
+static void FixedRef_release(FixedRefObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    while (self->npviews > 0)
+        PyBuffer_Release(&self->pviews[--self->npviews]);
+}
+
+static void FixedRef_dealloc(FixedRefObject *self)
+{
+    FixedRef_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* FixedRefCore(arrays, own, warmup_us, avg_us, exp_pos, exp_ori): arrays = (P, F, q, T, avg, law, st) */
+static int FixedRef_init(FixedRefObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"arrays", "own", "warmup_us", "avg_us", "exp_pos", "exp_ori", NULL};
+    PyObject *arrays, *own;
+    double *ptr[RF_N];
+    int i;
+    struct ct_scref *r = &self->r;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!Odddd", kwlist, &PyTuple_Type, &arrays, &own, &r->warmup_us,
+                                     &r->avg_us, &r->exp[0], &r->exp[1]))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: already bound");
+        return -1;
+    }
+    if (PyTuple_GET_SIZE(arrays) != RF_OWN) {
+        PyErr_Format(PyExc_ValueError, "FixedRefCore: %d arrays", RF_OWN);
+        return -1;
+    }
+    for (i = 0; i < RF_N; ++i) {
+        PyObject *o = i < RF_OWN ? PyTuple_GET_ITEM(arrays, i) : own;
+        ptr[i] = NULL;
+        if (o == Py_None && i == RF_OWN)
+            break;
+        if (sc_doubles(o, rf_len[i], 1, &self->views[i], rf_names[i]) < 0) {
+            FixedRef_release(self);
+            return -1;
+        }
+        self->nviews = i + 1;
+        ptr[i] = (double *)self->views[i].buf;
+    }
+    r->P = ptr[RF_P];
+    r->F = ptr[RF_F];
+    r->q = ptr[RF_Q];
+    r->T = ptr[RF_T];
+    r->avg = ptr[RF_AVG];
+    r->law = ptr[RF_LAW];
+    r->st = ptr[RF_ST];
+    r->own = ptr[RF_OWN];
+    return 0;
+}
+
+/* propagate(ekf_core, dt, dt_us, elapsed_us, mean_us, settled, settle_drop) */
+static PyObject *FixedRef_propagate(FixedRefObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double dt, elapsed, mean, drop;
+    int64_t dt_us;
+    int settled;
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs("propagate", nargs, 7) < 0)
+        return NULL;
+    if (!PyObject_TypeCheck(args[0], &SchepersCoreType) || !((SchepersCoreObject *)args[0])->nviews) {
+        PyErr_SetString(PyExc_TypeError, "propagate: ekf_core must be a bound SchepersCore");
+        return NULL;
+    }
+    if (sc_double(args[1], &dt) < 0 || ct_py_int64(args[2], &dt_us) < 0 || sc_double(args[3], &elapsed) < 0 ||
+        sc_double(args[4], &mean) < 0 || (settled = PyObject_IsTrue(args[5])) < 0 || sc_double(args[6], &drop) < 0)
+        return NULL;
+    ct_scp_ref_propagate(&((SchepersCoreObject *)args[0])->s, &self->r, dt, dt_us, elapsed, mean, settled, drop);
+    Py_RETURN_NONE;
+}
+
+/* bind_pulse(H, R, y, nx, pos, ori, var_amp, rel_model, current_sigma): the pulse's update buffers
+ * (H 3 x nx, R 3 x 3, y 3) and constants, once */
+static PyObject *FixedRef_bind_pulse(FixedRefObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const char *names[RFP_N] = {"H", "R", "y"};
+    long nx, pos, ori;
+    int i;
+    if (self->npviews) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: pulse already bound");
+        return NULL;
+    }
+    if (sc_nargs("bind_pulse", nargs, 9) < 0 || sc_int(args[3], 6, CT_SC_CORE, &nx, "nx") < 0 ||
+        sc_int(args[4], 0, nx - 3, &pos, "pos") < 0 || sc_int(args[5], 0, nx - 3, &ori, "ori") < 0 ||
+        sc_double(args[6], &self->var_amp) < 0 || sc_double(args[7], &self->rel_model) < 0 ||
+        sc_double(args[8], &self->current_sigma) < 0)
+        return NULL;
+    for (i = 0; i < RFP_N; ++i) {
+        Py_ssize_t n = i == RFP_H ? 3 * nx : (i == RFP_R ? 9 : 3);
+        if (sc_doubles(args[i], n, 1, &self->pviews[i], names[i]) < 0) {
+            while (self->npviews > 0)
+                PyBuffer_Release(&self->pviews[--self->npviews]);
+            return NULL;
+        }
+        self->npviews = i + 1;
+    }
+    self->nx = (int)nx;
+    self->pos = (int)pos;
+    self->ori = (int)ori;
+    Py_RETURN_NONE;
+}
+
+/* pulse(h, H, coil, current): FixedCycleReference._pulse's H, R and y from the model's h (n x 3) and
+ * H (n x 3 x 6) of coil `coil` at `current` (ct_scp_ref_pulse_fill) */
+static PyObject *FixedRef_pulse(FixedRefObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vh, vH;
+    long coil;
+    double c;
+    if (self->npviews != RFP_N) {
+        PyErr_SetString(PyExc_RuntimeError, "FixedRefCore: pulse not bound");
+        return NULL;
+    }
+    if (sc_nargs("pulse", nargs, 4) < 0 || sc_int(args[2], 0, 1L << 20, &coil, "coil") < 0 ||
+        sc_double(args[3], &c) < 0)
+        return NULL;
+    if (sc_doubles(args[0], 3 * (coil + 1), 0, &vh, "h") < 0)
+        return NULL;
+    if (sc_doubles(args[1], 18 * (coil + 1), 0, &vH, "H") < 0) {
+        PyBuffer_Release(&vh);
+        return NULL;
+    }
+    ct_scp_ref_pulse_fill(self->nx, (double *)self->pviews[RFP_H].buf, (double *)self->pviews[RFP_R].buf,
+                          (double *)self->pviews[RFP_Y].buf, (const double *)vH.buf + 18 * coil,
+                          (const double *)vh.buf + 3 * coil, c, self->var_amp, self->rel_model,
+                          self->current_sigma, self->pos, self->ori);
+    PyBuffer_Release(&vH);
+    PyBuffer_Release(&vh);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef FixedRef_methods[] = {
+    {"propagate", (PyCFunction)(void (*)(void))FixedRef_propagate, METH_FASTCALL,
+     "propagate(ekf_core, dt, dt_us, elapsed_us, mean_us, settled, settle_drop): FixedCycleReference._propagate "
+     "(and MeanBudgetReference's running mean); the scalars after it in st"},
+    {"bind_pulse", (PyCFunction)(void (*)(void))FixedRef_bind_pulse, METH_FASTCALL,
+     "bind_pulse(H, R, y, nx, pos, ori, var_amp, rel_model, current_sigma): the pulse's update buffers, once"},
+    {"pulse", (PyCFunction)(void (*)(void))FixedRef_pulse, METH_FASTCALL,
+     "pulse(h, H, coil, current): FixedCycleReference._pulse's H, R and y (the update is KalmanUpdate's)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject FixedRefType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.FixedRefCore",
+    .tp_basicsize = sizeof(FixedRefObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "FixedRefCore(arrays, own, warmup_us, avg_us, exp_pos, exp_ori): the fixed cycle's reference "
+              "covariance propagation bound to its arrays (actuate.accuracy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)FixedRef_init,
+    .tp_dealloc = (destructor)FixedRef_dealloc,
+    .tp_methods = FixedRef_methods,
+};
+
+/* ------------------------------------------------------------ PolicyCore */
+/* the decision model's h (n x 3), H (n x 3 x 6) and the limits (n) bound; the scratch of PoseCovUpdate */
+typedef struct {
+    PyObject_HEAD
+    struct ct_scp_cov w;
+    int n;
+    const double *h, *H;
+    double *lim;
+    Py_buffer views[3];
+    int nviews;
+} PolicyObject;
+
+static void Policy_release(PolicyObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void Policy_dealloc(PolicyObject *self)
+{
+    Policy_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* PolicyCore(n, h, H, lim) */
+static int Policy_init(PolicyObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "h", "H", "lim", NULL};
+    PyObject *h, *H, *lim;
+    int n;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOO", kwlist, &n, &h, &H, &lim))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "PolicyCore: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 64) {
+        PyErr_SetString(PyExc_ValueError, "PolicyCore: n in 1..64");
+        return -1;
+    }
+    if (sc_doubles(h, 3 * n, 0, &self->views[0], "h") < 0)
+        return -1;
+    self->nviews = 1;
+    if (sc_doubles(H, 18 * n, 0, &self->views[1], "H") < 0 || (self->nviews = 2,
+        sc_doubles(lim, n, 1, &self->views[2], "lim") < 0)) {
+        Policy_release(self);
+        return -1;
+    }
+    self->nviews = 3;
+    self->n = n;
+    self->h = (const double *)self->views[0].buf;
+    self->H = (const double *)self->views[1].buf;
+    self->lim = (double *)self->views[2].buf;
+    return 0;
+}
+
+static int po_ready(PolicyObject *self, const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "PolicyCore: not bound");
+        return -1;
+    }
+    return sc_nargs(name, nargs, want);
+}
+
+/* pose_cov_update(P6, coil, current, var_amp, rel_model, current_sigma) -> bool */
+static PyObject *Policy_pose_cov_update(PolicyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    long coil;
+    double cur, var, rel, cs;
+    int ok;
+    if (po_ready(self, "pose_cov_update", nargs, 6) < 0 || sc_int(args[1], 0, self->n - 1, &coil, "coil") < 0 ||
+        sc_double(args[2], &cur) < 0 || sc_double(args[3], &var) < 0 || sc_double(args[4], &rel) < 0 ||
+        sc_double(args[5], &cs) < 0)
+        return NULL;
+    if (sc_doubles(args[0], 36, 1, &pv, "P6") < 0)
+        return NULL;
+    ok = ct_scp_pose_cov_update(&self->w, (double *)pv.buf, self->H + 18 * coil, self->h + 3 * coil, cur, var, rel,
+                                cs);
+    PyBuffer_Release(&pv);
+    return PyBool_FromLong(ok);
+}
+
+/* range_limits(pp, P6, quiet, have_quiet, saturation_sigmas, range_t, margin, earth_max_t) */
+static PyObject *Policy_range_limits(PolicyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double pp[3], quiet[3], P6[36], ss, rt, mg, em;
+    int hq;
+    if (po_ready(self, "range_limits", nargs, 8) < 0 || sc_copy_doubles(args[0], 3, pp, "pp") < 0 ||
+        sc_copy_doubles(args[1], 36, P6, "P6") < 0 || sc_copy_doubles(args[2], 3, quiet, "quiet") < 0 ||
+        (hq = PyObject_IsTrue(args[3])) < 0 || sc_double(args[4], &ss) < 0 || sc_double(args[5], &rt) < 0 ||
+        sc_double(args[6], &mg) < 0 || sc_double(args[7], &em) < 0)
+        return NULL;
+    ct_scp_range_limits(self->n, self->h, pp, P6, quiet, hq, ss, rt, mg, em, self->lim);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Policy_methods[] = {
+    {"pose_cov_update", (PyCFunction)(void (*)(void))Policy_pose_cov_update, METH_FASTCALL,
+     "pose_cov_update(P6, coil, current, var_amp, rel_model, current_sigma) -> bool: PoseCovUpdate.apply"},
+    {"range_limits", (PyCFunction)(void (*)(void))Policy_range_limits, METH_FASTCALL,
+     "range_limits(pp, P6, quiet, have_quiet, saturation_sigmas, range_t, margin, earth_max_t): one sensor's "
+     "magnetometer-range limits into lim (AdaptiveActuation._decide_limits)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject PolicyType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.PolicyCore",
+    .tp_basicsize = sizeof(PolicyObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "PolicyCore(n, h, H, lim): the adaptive policy's eq-4 update of a pulse in flight and its current "
+              "limits, bound to the decision model's arrays (actuate.single_coil_policy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Policy_init,
+    .tp_dealloc = (destructor)Policy_dealloc,
+    .tp_methods = Policy_methods,
+};
+
+/* ------------------------------------------------------------ BoundsCore */
+/* one SensorOutlook's (pp, smax6, smin6), its reference's (avg, law, P) or None, the mean budget's
+ * (own, factor, held) or None, and the configuration (CT_BND_N floats) */
+enum { BD_PP, BD_MX, BD_MN, BD_AVG, BD_LAW, BD_P, BD_OWN, BD_FACTOR, BD_HELD, BD_N };
+static const char *bd_names[BD_N] = {"pp", "smax6", "smin6", "avg", "law", "P", "own", "factor", "held"};
+static const Py_ssize_t bd_len[BD_N] = {3, 6, 6, 6, 2, CT_SC_CORE * CT_SC_CORE, 2, 2, 6};
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_scp_bounds b;
+    Py_buffer views[BD_N];
+    int nviews;
+} BoundsObject;
+
+static void Bounds_release(BoundsObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void Bounds_dealloc(BoundsObject *self)
+{
+    Bounds_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* BoundsCore(view, ref, mean, params): view = (pp, smax6, smin6), ref = (avg, law, P) or None,
+ * mean = (own, factor, held) or None, params: CT_BND_N floats */
+static int Bounds_init(BoundsObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"view", "ref", "mean", "params", NULL};
+    PyObject *view, *ref, *mean, *params, *groups[3];
+    double *ptr[BD_N];
+    int g, i, k = 0;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOO", kwlist, &PyTuple_Type, &view, &ref, &mean, &params))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "BoundsCore: already bound");
+        return -1;
+    }
+    groups[0] = view;
+    groups[1] = ref;
+    groups[2] = mean;
+    if (mean != Py_None && ref == Py_None) {
+        PyErr_SetString(PyExc_ValueError, "BoundsCore: a mean budget needs its reference");
+        return -1;
+    }
+    for (g = 0; g < 3; ++g) {
+        PyObject *t = groups[g];
+        if (t == Py_None && g > 0) {
+            for (i = 0; i < 3; ++i)
+                ptr[3 * g + i] = NULL;
+            continue;
+        }
+        if (!PyTuple_Check(t) || PyTuple_GET_SIZE(t) != 3) {
+            PyErr_Format(PyExc_TypeError, "BoundsCore: %s needs 3 arrays", g == 0 ? "view" : g == 1 ? "ref" : "mean");
+            Bounds_release(self);
+            return -1;
+        }
+        for (i = 0; i < 3; ++i) {
+            int j = 3 * g + i;
+            if (sc_doubles(PyTuple_GET_ITEM(t, i), bd_len[j], j != BD_PP && j != BD_AVG && j != BD_LAW && j != BD_P &&
+                           j != BD_OWN, &self->views[k], bd_names[j]) < 0) {
+                Bounds_release(self);
+                return -1;
+            }
+            ptr[j] = (double *)self->views[k].buf;
+            self->nviews = ++k;
+        }
+    }
+    if (sc_copy_doubles(params, CT_BND_N, self->b.c, "params") < 0) {
+        Bounds_release(self);
+        return -1;
+    }
+    self->b.pp = ptr[BD_PP];
+    self->b.mx = ptr[BD_MX];
+    self->b.mn = ptr[BD_MN];
+    self->b.avg = ptr[BD_AVG];
+    self->b.law = ptr[BD_LAW];
+    self->b.P = ptr[BD_P];
+    self->b.own = ptr[BD_OWN];
+    self->b.factor = ptr[BD_FACTOR];
+    self->b.held = ptr[BD_HELD];
+    return 0;
+}
+
+/* bounds(ref_active, warming, excess) */
+static PyObject *Bounds_bounds(BoundsObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int active, warming;
+    double excess;
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "BoundsCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs("bounds", nargs, 3) < 0 || (active = PyObject_IsTrue(args[0])) < 0 ||
+        (warming = PyObject_IsTrue(args[1])) < 0 || sc_double(args[2], &excess) < 0)
+        return NULL;
+    ct_scp_bounds(&self->b, active, warming, excess);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Bounds_methods[] = {
+    {"bounds", (PyCFunction)(void (*)(void))Bounds_bounds, METH_FASTCALL,
+     "bounds(ref_active, warming, excess): AdaptiveActuation._bounds into smax6, smin6"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject BoundsType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.BoundsCore",
+    .tp_basicsize = sizeof(BoundsObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "BoundsCore(view, ref, mean, params): one sensor's decision bounds bound to its arrays "
+              "(actuate.single_coil_policy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Bounds_init,
+    .tp_dealloc = (destructor)Bounds_dealloc,
+    .tp_methods = Bounds_methods,
+};
+
+/* --------------------------------------------------------------- NisCore */
+/* coil_choice.NisMonitor's ring, bounds and state (track.single_coil_nis.CompiledNisMonitor) */
+enum { NM_BUF, NM_BOUND, NM_ST, NM_N };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_nis m;
+    Py_buffer views[NM_N];
+    int nviews;
+} NisObject;
+
+static void Nis_dealloc(NisObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* NisCore(buf, bound, st, window, min_count, dof, min_mean, max_scale, excess_gate, alpha) */
+static int Nis_init(NisObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"buf", "bound", "st", "window", "min_count", "dof", "min_mean", "max_scale",
+                             "excess_gate", "alpha", NULL};
+    static const char *names[NM_N] = {"buf", "bound", "st"};
+    PyObject *o[NM_N];
+    struct ct_nis *m = &self->m;
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOiiddddd", kwlist, &o[0], &o[1], &o[2], &m->window,
+                                     &m->min_count, &m->dof, &m->min_mean, &m->max_scale, &m->excess_gate,
+                                     &m->alpha))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "NisCore: already bound");
+        return -1;
+    }
+    if (m->window < 1 || m->min_count < 1 || m->min_count > m->window || !(m->dof > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "NisCore: need 1 <= min_count <= window and dof > 0");
+        return -1;
+    }
+    for (i = 0; i < NM_N; ++i) {
+        Py_ssize_t n = i == NM_BUF ? m->window : (i == NM_BOUND ? m->window + 1 : CT_NIS_NST);
+        if (sc_doubles(o[i], n, i != NM_BOUND, &self->views[i], names[i]) < 0) {
+            while (self->nviews > 0)
+                PyBuffer_Release(&self->views[--self->nviews]);
+            return -1;
+        }
+        self->nviews = i + 1;
+    }
+    m->buf = (double *)self->views[NM_BUF].buf;
+    m->bound = (const double *)self->views[NM_BOUND].buf;
+    m->st = (double *)self->views[NM_ST].buf;
+    return 0;
+}
+
+static PyObject *Nis_call(NisObject *self, PyObject *const *args, Py_ssize_t nargs, const char *name,
+                          void (*f)(struct ct_nis *, double))
+{
+    double x;
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "NisCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs(name, nargs, 1) < 0 || sc_double(args[0], &x) < 0)
+        return NULL;
+    f(&self->m, x);
+    Py_RETURN_NONE;
+}
+
+static PyObject *Nis_add(NisObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    return Nis_call(self, args, nargs, "add", ct_nis_add);
+}
+
+static PyObject *Nis_add_used(NisObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    return Nis_call(self, args, nargs, "add_used", ct_nis_add_used);
+}
+
+static PyMethodDef Nis_methods[] = {
+    {"add", (PyCFunction)(void (*)(void))Nis_add, METH_FASTCALL, "add(nis_nominal): NisMonitor.add (ct_nis_add)"},
+    {"add_used", (PyCFunction)(void (*)(void))Nis_add_used, METH_FASTCALL,
+     "add_used(nis_used): NisMonitor.add_used (ct_nis_add_used)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject NisType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.NisCore",
+    .tp_basicsize = sizeof(NisObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "NisCore(buf, bound, st, window, min_count, dof, min_mean, max_scale, excess_gate, alpha): a NIS "
+              "monitor's window test bound to its arrays (actuate.coil_choice.NisMonitor)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Nis_init,
+    .tp_dealloc = (destructor)Nis_dealloc,
+    .tp_methods = Nis_methods,
+};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_single_coil(PyObject *m)
 {
@@ -670,7 +1188,34 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&SCUpdateType);
         return -1;
     }
-    if (PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
+    if (PyType_Ready(&FixedRefType) < 0 || PyType_Ready(&PolicyType) < 0 || PyType_Ready(&BoundsType) < 0)
+        return -1;
+    Py_INCREF(&BoundsType);
+    if (PyModule_AddObject(m, "BoundsCore", (PyObject *)&BoundsType) < 0) {
+        Py_DECREF(&BoundsType);
+        return -1;
+    }
+    Py_INCREF(&FixedRefType);
+    if (PyModule_AddObject(m, "FixedRefCore", (PyObject *)&FixedRefType) < 0) {
+        Py_DECREF(&FixedRefType);
+        return -1;
+    }
+    Py_INCREF(&PolicyType);
+    if (PyModule_AddObject(m, "PolicyCore", (PyObject *)&PolicyType) < 0) {
+        Py_DECREF(&PolicyType);
+        return -1;
+    }
+    if (PyType_Ready(&NisType) < 0)
+        return -1;
+    Py_INCREF(&NisType);
+    if (PyModule_AddObject(m, "NisCore", (PyObject *)&NisType) < 0) {
+        Py_DECREF(&NisType);
+        return -1;
+    }
+    if (PyModule_AddIntConstant(m, "NIS_NST", CT_NIS_NST) < 0)
+        return -1;
+    if (PyModule_AddIntConstant(m, "REF_NST", CT_REF_NST) < 0 || PyModule_AddIntConstant(m, "BND_N", CT_BND_N) < 0 ||
+        PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
         PyModule_AddIntConstant(m, "SC_NIS_NOMINAL", CT_SCU_NIS_NOMINAL) < 0)
         return -1;
     return 0;

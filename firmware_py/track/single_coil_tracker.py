@@ -19,7 +19,8 @@ Fig. 1, as stages of the firmware tick, each piece one job in its own module:
 * track (:meth:`SingleCoilTracker.track`): between pulses every ``IMU_SAMPLE``
   propagates the sensor's filter and a ``POSE`` goes out at the IMU rate;
 * consistency: the NIS of every update is gated (chi-square) and monitored
-  over a window (``coil_choice.NisMonitor``); a ferromagnetic object that
+  over a window (``coil_choice.NisMonitor``; on the compiled core its twin
+  ``track.single_coil_nis.CompiledNisMonitor``); a ferromagnetic object that
   makes the updates inconsistent (Schepers sec. 3.3) is reported
   (``EVT_DISTORTION``, ``POSE_DISTORTED``) and, until the window is consistent
   again, the measurement covariance is inflated by the observed excess and the
@@ -47,7 +48,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
 from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference
 from coiltrack.firmware.actuate.accuracy_budget import MeanBudgetReference
-from coiltrack.firmware.actuate.coil_choice import NisMonitor, SingleCoilModel
+from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation, FixedActuation
 from coiltrack.firmware.actuate.pulse_length import PulseLengths, fixed_amplitude_variance
 from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
@@ -57,6 +58,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.single_coil import CORE, POS, SchepersEKF
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
+from coiltrack.firmware.track.single_coil_nis import nis_monitor
 from coiltrack.firmware.track.single_coil_sensor import SensorTrack
 from coiltrack.firmware.track.status import COIL_FATAL as _FATAL, input_status
 #: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
@@ -130,6 +132,7 @@ class SingleCoilTracker:
         self.q_scale = float(cfg.quality.quality_error_scale_m)
         self.q_x = {sid: 0.0 for sid in self.sensors}
         self._s6 = [0.0] * 6                 # one popped IMU sample (f, w)
+        self._consts(cfg)
         # counters
         self.updates = 0
         self.gated = 0
@@ -137,11 +140,32 @@ class SingleCoilTracker:
         self.distortion_events = 0
         self.reacquired = 0
 
+    def _consts(self, cfg) -> None:
+        """The configuration's numbers the per-window and per-sample paths use, read once (the
+        same values and the same operations on them as read where used)."""
+        a = cfg.adaptive
+        self._pre_us = cfg.pulse.baseline_us + cfg.pulse.guard_us       # a window's span: start - these
+        self._post_us = cfg.pulse.fall_us + cfg.pulse.baseline_us       # ... to end + these
+        self._driver = cfg.link.coil_driver_id
+        self._lin2 = a.nis_linear_fraction * a.nis_linear_fraction
+        self._rel2 = a.field_model_rel_sigma * a.field_model_rel_sigma
+        self._tol_a = cfg.limits.current_tolerance_a
+        self._big = a.acquire_sigma_m * a.acquire_sigma_m
+        self._reacq = a.reacquire_after
+        self._imu_timeout = cfg.imu.imu_timeout_us
+        self._pose_every = a.pose_every
+        # each filter's covariance, flat (its diagonal read as floats: the same values as P[i, i])
+        self._Pf = {s.index: memoryview(s.ekf.P.reshape(-1)) for s in self._sens}
+        self._nP = self._sens[0].ekf.P.shape[1] if self._sens else 0
+        # its position and its clones' (read as floats: the same products as on numpy's scalars)
+        self._pv = {s.index: (memoryview(s.ekf.p), memoryview(s.ekf.clone_p)) for s in self._sens}
+        self._forget_us = a.nis_forget_us
+
     def _sensor(self, k: int, tr, schedule: str) -> SensorTrack:
         """One sensor's filter, monitor and (``accuracy_target = "fixed"``) the fixed cycle's
         predicted accuracy beside it."""
         cfg = self.cfg
-        mon = NisMonitor(window=cfg.adaptive.nis_window, dof=3, gate=chi2_gate(3, cfg.adaptive.nis_gate_probability),
+        mon = nis_monitor(self.core, window=cfg.adaptive.nis_window, dof=3, gate=chi2_gate(3, cfg.adaptive.nis_gate_probability),
                          z=cfg.adaptive.nis_alarm_z, min_count=min(cfg.adaptive.nis_window, 3), min_excess=cfg.adaptive.nis_alarm_excess,
                          max_scale=cfg.adaptive.nis_max_scale, feedback_updates=cfg.adaptive.nis_feedback_updates)
         s = SensorTrack(k, tr, cfg, SchepersEKF.from_config(cfg, core=self.core), mon)
@@ -204,7 +228,7 @@ class SingleCoilTracker:
             gap = t - s.last_imu_us
             if gap <= 0:
                 return
-            if gap > self.cfg.imu.imu_timeout_us:
+            if gap > self._imu_timeout:
                 # a hole in the stream: the state cannot be carried across it
                 ekf.restart_inputs()
                 if ekf.initialized:
@@ -216,7 +240,7 @@ class SingleCoilTracker:
         s.imu_samples += 1
         if self.acquisition.active:
             self.acquisition.note_orientation(s, t)
-        if ekf.initialized and s.imu_samples % self.cfg.adaptive.pose_every == 0:
+        if ekf.initialized and s.imu_samples % self._pose_every == 0:
             self._emit_fused(s, t, now_us)
 
     # ------------------------------------------------------------ windows
@@ -234,7 +258,6 @@ class SingleCoilTracker:
             self.acquisition.finish(now_us)
 
     def _close_one(self, sl, now_us: int) -> None:
-        cfg = self.cfg
         # the driver regulates the commanded current; its measurement (1 mA steps, noisy)
         # replaces it only when the driver reports that it could not (supply sag)
         current = sl.current
@@ -243,12 +266,13 @@ class SingleCoilTracker:
             current = sl.measured
         fatal = bool(sl.faults & _FATAL) or (sl.status and sl.measured == 0.0)
         health = self.supervisor.health
+        t0 = sl.start - self._pre_us
+        t1 = sl.end + self._post_us
+        driver_suspect = health.suspect(self._driver, t0, t1)       # (the same for every sensor)
         for s in self._sens:
             tr = s.track
             flags = self.closer.close_one(tr, sl.coil, sl.pid, sl.start, sl.end)
-            t0 = sl.start - cfg.pulse.baseline_us - cfg.pulse.guard_us
-            t1 = sl.end + cfg.pulse.fall_us + cfg.pulse.baseline_us
-            suspect = health.suspect(tr.node, t0, t1) or health.suspect(cfg.link.coil_driver_id, t0, t1)
+            suspect = health.suspect(tr.node, t0, t1) or driver_suspect
             if sl.acq:
                 self.acquisition.record(s, sl.coil, tr.amp, tr.amp_var,
                                         flags | (PULSE_TOO_FEW if (fatal or suspect) else 0), current)
@@ -268,7 +292,6 @@ class SingleCoilTracker:
 
     def _update(self, s: SensorTrack, sl, current: float, bits: int, now_us: int) -> None:
         self.updated_us = now_us
-        cfg = self.cfg
         ekf = s.ekf
         # one NIS monitor per sensor: inflating the pulses of single coils instead proved
         # unstable (once the state is biased, the consistent-looking coil is the disturbed one)
@@ -276,16 +299,21 @@ class SingleCoilTracker:
         tr = s.track
         # the NIS tests the model only where the linearisation holds: the prior position
         # std small against the range
-        P = ekf.P
-        b = POS.start
-        sp2 = max(float(P[b, b]), float(P[b + 1, b + 1]), float(P[b + 2, b + 2]))
+        P = self._Pf[s.index]
+        d = self._nP + 1
+        b = POS.start * d
+        sp2 = max(P[b], P[b + d], P[b + 2 * d])
         k = sl.clone
-        pc = ekf.clone_p[k] if k >= 0 else ekf.p
-        r2 = float(pc[0] * pc[0] + pc[1] * pc[1] + pc[2] * pc[2])
-        linear = sp2 < cfg.adaptive.nis_linear_fraction * cfg.adaptive.nis_linear_fraction * r2
+        p, cp = self._pv[s.index]
+        if k >= 0:
+            x, y, z = cp[k, 0], cp[k, 1], cp[k, 2]
+        else:
+            x, y, z = p[0], p[1], p[2]
+        r2 = x * x + y * y + z * z
+        linear = sp2 < self._lin2 * r2
         # relative errors of the predicted field: the model, and the current
-        rc = cfg.limits.current_tolerance_a / max(abs(current), 1e-6)
-        rel = math.sqrt(cfg.adaptive.field_model_rel_sigma * cfg.adaptive.field_model_rel_sigma + rc * rc)
+        rc = self._tol_a / max(abs(current), 1e-6)
+        rel = math.sqrt(self._rel2 + rc * rc)
         # once the monitor has judged the pulses inconsistent, the inflated covariance is the
         # protection: gating them as well would reject them all and leave the state to the IMU
         m = s.meas.set(tr.amp, tr.amp_var, sl.coil, current, rel, mon.r_scale, not mon.inconsistent)
@@ -317,7 +345,6 @@ class SingleCoilTracker:
     def _verdict(self, s: SensorTrack, bits: int, now_us: int) -> None:
         """The update's status bits, the distortion events, and a lost track: updates rejected
         again and again, or an uncertainty beyond any use."""
-        cfg = self.cfg
         mon = s.monitor
         was = s.distorted
         hdist = self.supervisor.health.is_distorted(s.node)
@@ -332,17 +359,17 @@ class SingleCoilTracker:
             self.distortion_events += 1 if dist else 0
             self.tx.event(EVT_DISTORTION, (s.node | _EVT_NIS) | (0 if dist else _EVT_CLEAR))
         s.distorted = dist
-        P = s.ekf.P
-        big = cfg.adaptive.acquire_sigma_m * cfg.adaptive.acquire_sigma_m
-        if (s.gated_in_row >= cfg.adaptive.reacquire_after
-                or P[POS.start, POS.start] > big or P[POS.start + 1, POS.start + 1] > big
-                or P[POS.start + 2, POS.start + 2] > big):
+        P = self._Pf[s.index]
+        d = self._nP + 1
+        b = POS.start * d
+        big = self._big
+        if s.gated_in_row >= self._reacq or P[b] > big or P[b + d] > big or P[b + 2 * d] > big:
             self.reacquire(s)
 
     # ------------------------------------------------------------ the track's life
     def forget(self, s: SensorTrack, now_us: int) -> None:
         """Forget a verdict that no update has tested for a while."""
-        if s.monitor.count and now_us - s.mon_t > self.cfg.adaptive.nis_forget_us:
+        if s.monitor.count and now_us - s.mon_t > self._forget_us:
             s.monitor.reset()
 
     def reacquire(self, s: SensorTrack) -> None:

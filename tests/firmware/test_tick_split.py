@@ -71,24 +71,24 @@ def test_fused_ticks_leave_the_fusion_steps_to_the_next_tick():
 
 
 def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
-    """``schepers-adaptive``, 6 s: a pulse decision's three parts (prediction, current limits,
-    coil choice with the command) run in three different ticks, none of them in a tick that ran
-    an EKF update (the first is put off from one; the others have not met one); the pulse is commanded for the start the decision found in its first tick,
-    at least ``adaptive_lead_us`` less four ticks ahead (a start held from an update tick, two
-    more parts). The model
-    of the limits and the choice is evaluated at the orientation the filter had in the first
-    tick, not the one it has when they run (the filter is turned by 1 mrad after each first
-    part, as an IMU step between the parts would turn it). Catches two parts stacked in one tick, the first part run
-    beside an update, a start recomputed at the command (the pulse moved later) and the
-    orientation read afresh in a later part."""
+    """``schepers-adaptive``, 6 s: a pulse decision's three parts (the prediction with the current
+    limits, the coil choice, the command) run in three different ticks, none of them in a tick that
+    ran an EKF update (the first is put off from one; the others have not met one), and the limits
+    never without the prediction; the pulse is commanded for the start the decision found in its
+    first tick, at least ``adaptive_lead_us`` less four ticks ahead (a start held from an update
+    tick, two more parts). The model of the limits and the choice is evaluated at the orientation
+    the filter had in the first tick, not the one it has when they run (the filter is turned by
+    1 mrad after each first part, as an IMU step between the parts would turn it). Catches two
+    parts stacked in one tick, the first part run beside an update, a start recomputed at the
+    command (the pulse moved later) and the orientation read afresh in a later part."""
     import numpy as np
 
     from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
     from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation
     from coiltrack.firmware.estimate.single_coil import SchepersEKF
 
-    calls = {"predict": 0, "limits": 0, "choose": 0, "update": 0}
-    real = {n: getattr(AdaptiveActuation, "_decide_" + n) for n in ("predict", "limits", "choose")}
+    calls = {"predict": 0, "limits": 0, "choose": 0, "command": 0, "update": 0}
+    real = {n: getattr(AdaptiveActuation, "_decide_" + n) for n in ("predict", "limits", "choose", "command")}
     real_update, real_eval = SchepersEKF.update_pulse, SingleCoilModel.evaluate
     seen = {"R": None, "mismatch": 0, "checked": 0, "phase": 0}
 
@@ -133,12 +133,13 @@ def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
             state["start"] = tr._dec_start
             for s in tr._sens:           # the filter moves before the next part, as an IMU step would
                 np.matmul(s.ekf.R, turn, out=s.ekf.R)
-        parts = d["limits"] + d["choose"] + (1 if d["predict"] and (tr._dec_phase or d["choose"]) else 0)
-        if parts > 1:
+        first = 1 if d["predict"] and (tr._dec_phase or d["limits"]) else 0
+        parts = first + d["choose"] + d["command"]
+        if parts > 1 or d["limits"] > first:
             stacked.append(t)
-        if d["update"] and (d["predict"] or d["limits"] or d["choose"]):
+        if d["update"] and (d["predict"] or d["limits"] or d["choose"] or d["command"]):
             beside.append(t)
-        if d["choose"] and tr.book.pulses > state["pulses"]:
+        if d["command"] and tr.book.pulses > state["pulses"]:
             start = tr.book.next_free_us - tr.pulse_us - tr.gap_us
             if start != state.get("start") or start - t < tr.lead_us - 4 * fw.cfg.timing.tick_us:
                 late.append((t, start, state.get("start")))
@@ -156,6 +157,7 @@ def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
     assert not beside, f"a decision part beside an EKF update at {beside[:5]}"
     assert not late, f"pulse not commanded for its first tick's start: {late[:5]}"
     assert calls["update"] > 30 and fw.tracker.book.pulses > 30 and calls["choose"] > 10
+    assert calls["command"] > 10 and calls["limits"] == calls["choose"]
     assert seen["checked"] >= 3 and seen["mismatch"] == 0
 
 

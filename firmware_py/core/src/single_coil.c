@@ -84,11 +84,76 @@ void ct_sc_build_F(const struct ct_sc *s, double *F, int n, double *q, double dt
     ct_sc_fill_q(s, q, dt);
 }
 
+/* F's non-zero entries row by row (n <= NZ_MAXN, at most NZ_ROW a row; the filter's transition
+ * has 8): row i's columns are col[i * NZ_ROW .. + cnt[i]) */
+#define NZ_MAXN 64
+#define NZ_ROW 16
+struct nzrows {
+    uint8_t cnt[NZ_MAXN];
+    uint8_t col[NZ_MAXN * NZ_ROW];
+};
+
+/* 1 with the lists filled, 0 when F does not fit them (then ct_congruence_sparse) */
+static int nz_rows(int n, const double *F, struct nzrows *z)
+{
+    int i, k;
+    if (n > NZ_MAXN)
+        return 0;
+    for (i = 0; i < n; ++i) {
+        int m = 0;
+        for (k = 0; k < n; ++k)
+            if (F[i * n + k] != 0.0) {
+                if (m == NZ_ROW)
+                    return 0;
+                z->col[i * NZ_ROW + m++] = (uint8_t)k;
+            }
+        z->cnt[i] = (uint8_t)m;
+    }
+    return 1;
+}
+
+/* P <- F P F^T (ekf.c ct_congruence_sparse's sums: each element over F's non-zero entries in
+ * increasing index order from 0, so the same bits), from F's non-zero lists z; T scratch */
+static void congruence_rows(int n, const double *F, const struct nzrows *z, double *P, double *T)
+{
+    int i, j, m;
+    for (i = 0; i < n; ++i) {                      /* T = F P */
+        double *Ti = T + i * n;
+        const uint8_t *ci = z->col + i * NZ_ROW;
+        for (j = 0; j < n; ++j)
+            Ti[j] = 0.0;
+        for (m = 0; m < z->cnt[i]; ++m) {
+            int k = ci[m];
+            double a = F[i * n + k];
+            const double *Pk = P + k * n;
+            for (j = 0; j < n; ++j)
+                Ti[j] += a * Pk[j];
+        }
+    }
+    for (i = 0; i < n; ++i) {                      /* P = T F^T */
+        const double *Ti = T + i * n;
+        for (j = 0; j < n; ++j) {
+            const double *Fj = F + j * n;
+            const uint8_t *cj = z->col + j * NZ_ROW;
+            double x = 0.0;
+            for (m = 0; m < z->cnt[j]; ++m) {
+                int k = cj[m];
+                x += Ti[k] * Fj[k];
+            }
+            P[i * n + j] = x;
+        }
+    }
+}
+
 /* P <- F P F^T, then P_ii += q_i (n x n; T scratch), F's zero entries skipped */
 static void fpf_q(int n, const double *F, double *P, const double *q, double *T)
 {
+    struct nzrows z = {{0}, {0}};
     int i;
-    ct_congruence_sparse(n, F, P, T);
+    if (nz_rows(n, F, &z))
+        congruence_rows(n, F, &z, P, T);
+    else
+        ct_congruence_sparse(n, F, P, T);
     for (i = 0; i < n; ++i)
         P[i * n + i] += q[i];
 }
@@ -299,9 +364,18 @@ void ct_sc_predict_pose(struct ct_sc *s, double T, int n, double *P6, double *pp
     for (i = 0; i < N; ++i)
         memcpy(Pc + i * N, s->P + i * s->nx, N * sizeof(double));
     if (dt > 0.0) {
+        struct nzrows z = {{0}, {0}};
+        int k, fits;
         ct_sc_build_F(s, s->Fc, N, s->qc, dt);
-        for (i = 0; i < n; ++i)
-            fpf_q(N, s->Fc, Pc, s->qc, s->Tc);
+        fits = nz_rows(N, s->Fc, &z);              /* the same F for every step */
+        for (i = 0; i < n; ++i) {
+            if (fits)
+                congruence_rows(N, s->Fc, &z, Pc, s->Tc);
+            else
+                ct_congruence_sparse(N, s->Fc, Pc, s->Tc);
+            for (k = 0; k < N; ++k)
+                Pc[k * N + k] += s->qc[k];
+        }
     }
     for (i = 0; i < 3; ++i)
         for (j = 0; j < 3; ++j) {
