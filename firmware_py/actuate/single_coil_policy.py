@@ -314,7 +314,7 @@ class AdaptiveActuation(_SingleCoilActuation):
             for sl in self.book.slots:
                 if sl.active and not sl.acq:
                     self._model_at(v)
-                    var = self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)]
+                    var = self.host.sharing.chained(self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)])
                     self.pending_update.apply(v.P6, self.pmodel.H[sl.coil], self.pmodel.h[sl.coil], sl.current,
                                               var * s.monitor.r_scale,
                                               cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a)
@@ -330,9 +330,11 @@ class AdaptiveActuation(_SingleCoilActuation):
             self._refresh_quiet(v)
         # the expected amplitude variance, inflated while the pulses prove inconsistent
         self.host.forget(ws.sensor, now_us)
-        self._dec_var = self.var_amp * ws.sensor.monitor.r_scale
+        # ... and the share of a baseline the previous pulse's window also used (estimate.shared_baseline)
+        sh, prev = self.host.sharing, self.book.last_pulse_end
+        self._dec_var = sh.predicted(self.var_amp, start, prev) * ws.sensor.monitor.r_scale
         for k in range(self.lengths.n):
-            self._vars[k] = self.lengths.var_amp[k] * ws.sensor.monitor.r_scale
+            self._vars[k] = sh.predicted(self.lengths.var_amp[k], start, prev) * ws.sensor.monitor.r_scale
         self._dec_ws = ws
         self._dec_start = start
         self._dec_phase = 1
