@@ -30,11 +30,17 @@ when none is yet, when the earliest pulse that may still be commanded
 (``earliest_next_us``) would overlap it; the before side when the previous
 pulse's after samples overlap it.
 
-The shared part. The baseline is a least-squares line predicted at the middle
-of the used in-pulse samples; with the sides equal that point is the baseline
-samples' mean time, every sample weighs ``1/n_b`` and one side contributes
-``sigma^2 / (2 n_b)``; a fraction ``f`` of a side shared adds ``f sigma^2 /
-(2 n_b)``. Both sides shared: ``sigma^2 (1/n_u + 2/n_b)``, the chain's variance.
+The shared part. The baseline is a least-squares line through the quiet samples
+``t_j`` predicted at the used samples' mean time ``t_m``: sample ``j`` weighs
+``w_j = 1/n_b + (t_m - t_bar)(t_j - t_bar)/S_tt`` (``1/n_b`` for a constant
+baseline), and the shared samples add ``sigma^2 sum_shared w_j^2`` (the bound's
+``B``; by Cauchy-Schwarz each pulse of a pair counting its own weights' part twice
+is enough). The samples are put back on the sampling grid from the window's first
+and last used sample times (``measure.windows.SensorChannel.info``); if the count
+differs from the extraction's (a gap in the stream), each shared fraction ``f`` of a
+side adds ``f sigma^2 / n_b`` instead (twice the even split's share). With the sides
+equal, ``t_m = t_bar``, every weight is ``1/n_b`` and both sides shared give
+``sigma^2 (1/n_u + 2/n_b)``: the chain's variance.
 """
 from __future__ import annotations
 
@@ -77,7 +83,8 @@ class SharedBaselines:
     Windows are closed in the order of their pulses: :meth:`close` takes one (its edges, the
     start of the next pulse if one is commanded, else ``-1``, and the earliest start a pulse
     not yet commanded may have) and remembers its end for the next; :meth:`variance` then
-    gives each sensor's amplitude variance for it (a buffer of this object, refilled per call).
+    gives each sensor's amplitude variance for it (a buffer of this object, refilled per call;
+    pure float arithmetic, nothing allocated).
     """
 
     def __init__(self, fall_us: int, baseline_us: int, guard_us: int, sigma_t: float, period_us: float,
@@ -86,10 +93,16 @@ class SharedBaselines:
         self.baseline_us = int(baseline_us)
         self.guard_us = int(guard_us)
         self.sigma2 = float(sigma_t) * float(sigma_t)
+        self.period_us = float(period_us)
         self.enabled = bool(enabled)
-        self.n_base = max(2, 2 * int(self.baseline_us / float(period_us)))
+        self.n_base = max(2, 2 * int(self.baseline_us / self.period_us))
         self.prev_end = None          # the end of the pulse whose window was closed last
-        self.shared = 0.0             # the window being closed: shared sides, 0..2 (before + after)
+        self.shared = 0.0             # the window being closed: shared fractions, 0..2 (before + after)
+        self.fb = 0.0
+        self.fa = 0.0
+        self._start = self._end = 0
+        self._b0 = self._b1 = 0       # the window's before samples shared: [b0, b1] (empty: b1 < b0)
+        self._a0 = self._a1 = 0       # its after samples shared: [a0, a1]
         self.var = np.zeros(3)
 
     def before_after(self, start: int, end: int, prev_end, next_start: int) -> tuple[float, float]:
@@ -109,21 +122,88 @@ class SharedBaselines:
     def close(self, start: int, end: int, next_start: int, earliest_next_us: int) -> float:
         """The window of the pulse ``[start, end]`` is being closed: ``next_start`` is the start
         of the next pulse if one is commanded (else -1; then a pulse starting at
-        ``earliest_next_us`` may still follow, -1: none may). Sets and returns
+        ``earliest_next_us`` or later may still follow, -1: none may). Sets and returns
         :attr:`shared` (before + after fractions)."""
-        nxt = next_start if next_start >= 0 else earliest_next_us
-        fb, fa = self.before_after(start, end, self.prev_end, nxt)
+        prev = self.prev_end
         self.prev_end = end
-        self.shared = (fb + fa) if self.enabled else 0.0
+        self._start, self._end = start, end
+        self._b0, self._b1 = 1, 0
+        self._a0, self._a1 = 1, 0
+        if next_start >= 0:
+            fb, fa = self.before_after(start, end, prev, next_start)
+            self._a0, self._a1 = next_start - self.baseline_us, next_start - self.guard_us
+        else:
+            # any later start s >= earliest: its before span [s - baseline, s - guard] lies in
+            # [earliest - baseline, inf)
+            fb, _ = self.before_after(start, end, prev, -1)
+            fa = 0.0
+            if earliest_next_us >= 0:
+                fa = span_overlap(end + self.fall_us, end + self.fall_us + self.baseline_us,
+                                  earliest_next_us - self.baseline_us, 1 << 62)
+                self._a0, self._a1 = earliest_next_us - self.baseline_us, 1 << 62
+        if prev is not None:
+            self._b0, self._b1 = prev + self.fall_us, prev + self.fall_us + self.baseline_us
+        if not self.enabled:
+            fb = fa = 0.0
+        self.fb, self.fa = fb, fa
+        self.shared = fb + fa
         return self.shared
 
-    def variance(self, amp_var, n_base: int):
-        """``amp_var`` (3,) plus the shared sides' baseline variance counted once more,
-        ``shared sigma^2 / (2 n_b)`` per component, into :attr:`var` (returned)."""
+    def shared_variance(self, n_used: int, n_base: int, first_us: int, last_us: int) -> float:
+        """``sigma^2 sum_shared w_j^2``: the shared samples' part of the amplitude variance of
+        the window just closed (module docstring), its samples put back on the grid of period
+        ``period_us`` through the first and last used sample times; the fraction rule when they
+        do not give ``n_base`` samples."""
+        if self.shared <= 0.0 or n_base <= 0:
+            return 0.0
+        T = self.period_us
+        if n_used <= 0 or last_us < first_us:
+            return self.shared * self.sigma2 / n_base
+        b_lo, b_hi = self._start - self.baseline_us, self._start - self.guard_us
+        a_lo, a_hi = self._end + self.fall_us, self._end + self.fall_us + self.baseline_us
+        # the baseline samples: first - k T (before), last + k T (after), k = 1, 2, ...
+        n = 0
+        st = stt = 0.0
+        for side in (0, 1):
+            k = 1
+            while True:
+                t = first_us - k * T if side == 0 else last_us + k * T
+                if (side == 0 and t < b_lo) or (side == 1 and t > a_hi):
+                    break
+                if (side == 0 and t <= b_hi) or (side == 1 and t >= a_lo):
+                    n += 1
+                    st += t
+                    stt += t * t
+                k += 1
+        if n != n_base:
+            return self.shared * self.sigma2 / n_base
+        tbar = st / n
+        sxx = stt - n * tbar * tbar
+        tm = 0.5 * (first_us + last_us)
+        slope = (tm - tbar) / sxx if sxx > 1e-9 * T * T else 0.0
+        acc = 0.0
+        for side in (0, 1):
+            lo, hi = (self._b0, self._b1) if side == 0 else (self._a0, self._a1)
+            if hi < lo:
+                continue
+            k = 1
+            while True:
+                t = first_us - k * T if side == 0 else last_us + k * T
+                if (side == 0 and t < b_lo) or (side == 1 and t > a_hi):
+                    break
+                inside = (side == 0 and t <= b_hi) or (side == 1 and t >= a_lo)
+                if inside and lo <= t <= hi:
+                    w = 1.0 / n + slope * (t - tbar)
+                    acc += w * w
+                k += 1
+        return self.sigma2 * acc
+
+    def variance(self, amp_var, info):
+        """``amp_var`` (3,) plus the shared samples' part counted once more
+        (:meth:`shared_variance`; ``info``: the window's n_used, n_base, first and last used
+        sample times), into :attr:`var` (returned)."""
         v = self.var
-        extra = 0.0
-        if self.shared > 0.0 and n_base > 0:
-            extra = self.shared * self.sigma2 / (2.0 * n_base)
+        extra = self.shared_variance(int(info[0]), int(info[1]), int(info[2]), int(info[3]))
         v[0] = float(amp_var[0]) + extra
         v[1] = float(amp_var[1]) + extra
         v[2] = float(amp_var[2]) + extra
@@ -131,9 +211,9 @@ class SharedBaselines:
 
     def predicted(self, var_amp: float, start: int, prev_end: int) -> float:
         """The variance a pulse starting at ``start`` will be taken with (a decision's
-        prediction, nominal ``n_b``): its before side as the previous pulse (ending at
-        ``prev_end``; 0 or less: none) leaves it, its after side shared (a pulse may follow
-        back to back)."""
+        prediction, nominal ``n_b``, sides even): its before side as the previous pulse
+        (ending at ``prev_end``; 0 or less: none) leaves it, its after side shared (a pulse may
+        follow back to back)."""
         if not self.enabled:
             return var_amp
         fb = 0.0
@@ -144,4 +224,4 @@ class SharedBaselines:
 
     def chained(self, var_amp: float) -> float:
         """The variance of a pulse in flight as a decision predicts it: both sides shared."""
-        return var_amp + 2.0 * self.sigma2 / (2.0 * self.n_base) if self.enabled else var_amp
+        return var_amp + self.sigma2 / self.n_base if self.enabled else var_amp

@@ -296,7 +296,7 @@ class SingleCoilTracker:
         rel = math.sqrt(cfg.adaptive.field_model_rel_sigma * cfg.adaptive.field_model_rel_sigma + rc * rc)
         # once the monitor has judged the pulses inconsistent, the inflated covariance is the
         # protection: gating them as well would reject them all and leave the state to the IMU
-        m = s.meas.set(tr.amp, self.sharing.variance(tr.amp_var, int(tr.infov[1])), sl.coil, current, rel, mon.r_scale,
+        m = s.meas.set(tr.amp, self.sharing.variance(tr.amp_var, tr.infov), sl.coil, current, rel, mon.r_scale,
                        not mon.inconsistent)
         flags = ekf.update_pulse(sl.clone, m, self.model)
         if flags & (EKF_NOT_PD | EKF_NONFINITE):
