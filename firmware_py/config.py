@@ -348,7 +348,8 @@ class AdaptiveConfig:
                                             #   starts put on the magnetometer's sample clock
     baseline_sharing: str = "bound"         # "bound": a baseline two pulses share counts twice its variance in
                                             #   each (their errors are correlated; estimate.shared_baseline);
-                                            #   "ignore": each amplitude's own variance, as if independent
+                                            #   "apart": that, and pulses kept a baseline further apart so none
+                                            #   is shared; "ignore": each amplitude's own variance, as if independent
 
     def check(self, need) -> None:
         need("actuation", self.actuation in ("fixed", "adaptive"),
@@ -385,8 +386,8 @@ class AdaptiveConfig:
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("pulse_length", self.pulse_length in ("fixed", "chosen"),
              f"must be 'fixed' or 'chosen', got {self.pulse_length!r}")
-        need("baseline_sharing", self.baseline_sharing in ("bound", "ignore"),
-             f"must be 'bound' or 'ignore', got {self.baseline_sharing!r}")
+        need("baseline_sharing", self.baseline_sharing in ("bound", "apart", "ignore"),
+             f"must be 'bound', 'apart' or 'ignore', got {self.baseline_sharing!r}")
         _bools(self, need, ("nis_feedback",))
         _positive_numbers(self, need, ("fixed_accuracy_ratio", "reference_avg_s", "reference_catchup",
                                        "nis_linear_fraction", "nis_alarm_z", "saturation_sigmas"))

@@ -37,6 +37,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.estimate.shared_baseline import pulse_gap_us
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.accuracy import fixed_cycle_bounds, nis_bound_factor
 from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, PoseCovUpdate,
@@ -227,7 +228,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         self.var_amp = lengths.var_amp[-1]
         self.mid_us = lengths.mid_us[-1]
         self._vars = [0.0] * lengths.n        # the lengths' amplitude variances, inflated
-        self.gap_us = cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
+        self.gap_us = pulse_gap_us(cfg)
         self.views = tuple(SensorOutlook(s) for s in self._sens)
         for s in self._sens:
             if s.ref is not None:

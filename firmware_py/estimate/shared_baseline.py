@@ -46,7 +46,23 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["span_overlap", "next_start", "SharedBaselines"]
+__all__ = ["span_overlap", "next_start", "pulse_gap_us", "SharedBaselines"]
+
+
+def pulse_gap_us(cfg) -> int:
+    """The quiet time the single-coil mode keeps after a pulse's end: its fall and after-baseline
+    and a guard (``fall + baseline + guard``: the next pulse's before-baseline is then this one's
+    after-baseline); with ``[adaptive] baseline_sharing = "apart"`` one baseline and guard more,
+    so the next pulse's before-baseline ``[s - baseline, s - guard]`` starts after this one's
+    after-baseline ends and no sample serves two amplitudes. Back to back, a chain of pulses
+    averages like ``sigma^2 (1/n_u + 2/n_b)`` per pulse; apart, each keeps ``sigma^2 (1/n_u +
+    1/n_b)``: for a 60 ms pulse at 100 Hz 1.44 times the information at the same current (the
+    same joules) for 1.35 times the time between pulses."""
+    p = cfg.pulse
+    gap = p.fall_us + p.baseline_us + p.guard_us
+    if cfg.adaptive.baseline_sharing == "apart":
+        gap += p.baseline_us + p.guard_us
+    return gap
 
 
 def span_overlap(a0: int, a1: int, b0: int, b1: int) -> float:
@@ -78,7 +94,8 @@ class SharedBaselines:
     ``sigma_t``: the magnetometer's per-sample noise std (T); ``period_us``: its sample period
     (the nominal ``n_b = 2 baseline / T`` of a decision's prediction, as
     ``actuate.pulse_length.fixed_amplitude_variance``); ``enabled``: False keeps the
-    amplitudes' own variances (``[adaptive] baseline_sharing = "ignore"``).
+    amplitudes' own variances (``[adaptive] baseline_sharing = "ignore"``; ``"bound"`` and
+    ``"apart"`` count the shared part).
 
     Windows are closed in the order of their pulses: :meth:`close` takes one (its edges, the
     start of the next pulse if one is commanded, else ``-1``, and the earliest start a pulse
@@ -88,13 +105,15 @@ class SharedBaselines:
     """
 
     def __init__(self, fall_us: int, baseline_us: int, guard_us: int, sigma_t: float, period_us: float,
-                 enabled: bool = True):
+                 enabled: bool = True, apart: bool = False):
         self.fall_us = int(fall_us)
         self.baseline_us = int(baseline_us)
         self.guard_us = int(guard_us)
         self.sigma2 = float(sigma_t) * float(sigma_t)
         self.period_us = float(period_us)
         self.enabled = bool(enabled)
+        #: pulses are kept apart (``pulse_gap_us``): a decision predicts no side shared
+        self.apart = bool(apart)
         self.n_base = max(2, 2 * int(self.baseline_us / self.period_us))
         self.prev_end = None          # the end of the pulse whose window was closed last
         self.shared = 0.0             # the window being closed: shared fractions, 0..2 (before + after)
@@ -213,15 +232,16 @@ class SharedBaselines:
         """The variance a pulse starting at ``start`` will be taken with (a decision's
         prediction, nominal ``n_b``, sides even): its before side as the previous pulse
         (ending at ``prev_end``; 0 or less: none) leaves it, its after side shared (a pulse may
-        follow back to back)."""
+        follow back to back; not when pulses are kept apart)."""
         if not self.enabled:
             return var_amp
         fb = 0.0
         if prev_end > 0:
             fb = span_overlap(start - self.baseline_us, start - self.guard_us, prev_end + self.fall_us,
                               prev_end + self.fall_us + self.baseline_us)
-        return var_amp + (fb + 1.0) * self.sigma2 / (2.0 * self.n_base)
+        return var_amp + (fb + (0.0 if self.apart else 1.0)) * self.sigma2 / (2.0 * self.n_base)
 
     def chained(self, var_amp: float) -> float:
-        """The variance of a pulse in flight as a decision predicts it: both sides shared."""
-        return var_amp + self.sigma2 / self.n_base if self.enabled else var_amp
+        """The variance of a pulse in flight as a decision predicts it: both sides shared (none
+        when pulses are kept apart)."""
+        return var_amp + self.sigma2 / self.n_base if self.enabled and not self.apart else var_amp

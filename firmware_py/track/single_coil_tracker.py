@@ -54,7 +54,7 @@ from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.estimate.shared_baseline import SharedBaselines, next_start
+from coiltrack.firmware.estimate.shared_baseline import SharedBaselines, next_start, pulse_gap_us
 from coiltrack.firmware.estimate.single_coil import CORE, POS, SchepersEKF
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
@@ -119,10 +119,11 @@ class SingleCoilTracker:
         self._sens = tuple(self.sensors.values())
         mid = measurement_mid_us(cfg, self.pulse_us)
         self.book = PulseBook(cfg, n, pulses, [s.ekf for s in self._sens], mid,
-                              cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us, cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us)
+                              pulse_gap_us(cfg), cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us)
         # amplitudes sharing baseline samples with a neighbour's (estimate.shared_baseline)
         self.sharing = SharedBaselines(cfg.pulse.fall_us, cfg.pulse.baseline_us, cfg.pulse.guard_us, cfg.pulse.mag_sigma_t,
-                                       1e6 / cfg.pulse.mag_rate_hz, cfg.adaptive.baseline_sharing == "bound")
+                                       1e6 / cfg.pulse.mag_rate_hz, cfg.adaptive.baseline_sharing != "ignore",
+                                       cfg.adaptive.baseline_sharing == "apart")
         self._lead_us = cfg.adaptive.adaptive_lead_us if schedule == "adaptive" else -1
         self.acquisition = BurstAcquisition(cfg, coils, self._sens, self.book, self.model, supervisor, tx, self,
                                             distortion, core)
