@@ -186,3 +186,29 @@ def test_a_bad_baseline_sharing_is_refused_naming_the_key():
         config_from_dict({"adaptive": {"baseline_sharing": "twice"}})
     assert e.value.key == "adaptive.baseline_sharing"
     assert config_from_dict({"adaptive": {"baseline_sharing": "ignore"}}).adaptive.baseline_sharing == "ignore"
+
+
+def test_apart_keeps_the_next_before_baseline_off_this_after_baseline():
+    """``pulse_gap_us``: back to back (``bound``) the next pulse's before span lies on this one's
+    after span (33 of its 35 ms); ``apart`` starts it one baseline and guard later, where the two
+    spans are disjoint and the extraction's weights show no correlation; the bound then adds
+    nothing, and a decision predicts nothing either."""
+    from coiltrack.firmware.estimate.shared_baseline import pulse_gap_us
+    from coiltrack.tools.scenarios import thesis as scenarios
+
+    cfg = scenarios.schepers_adaptive_config()
+    assert pulse_gap_us(cfg) == FALL + BASE + GUARD
+    apart = cfg.with_keys(baseline_sharing="apart")
+    gap = pulse_gap_us(apart)
+    assert gap == FALL + 2 * BASE + 2 * GUARD
+    sh = SharedBaselines(FALL, BASE, GUARD, SIGMA, PER)
+    assert sh.before_after(200_000, 260_000, 200_000 - GAP, -1)[0] == pytest.approx(33_000 / 33_000)
+    assert sh.before_after(200_000, 260_000, 200_000 - gap, 260_000 + gap) == (0.0, 0.0)
+    for phase in (0, 5_000):
+        edges, W, var, info = _chain(3, gap, phase)
+        C = SIGMA ** 2 * W @ W.T
+        assert np.allclose(C, np.diag(var), rtol=1e-9, atol=1e-30)
+        assert np.array_equal(_used(edges, var, info, earliest_after_last=edges[-1][1] + gap), var)
+    ap = SharedBaselines(FALL, BASE, GUARD, SIGMA, PER, apart=True)
+    v = SIGMA ** 2 * (1 / 5 + 1 / 6)
+    assert ap.predicted(v, 200_000, 200_000 - gap) == v and ap.chained(v) == v
