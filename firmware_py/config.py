@@ -346,10 +346,11 @@ class AdaptiveConfig:
     pulse_length: str = "fixed"             # "fixed": every pulse adaptive_pulse_us (or pulse_us) long; "chosen":
                                             #   the length too, weighed against the current (least I^2 L),
                                             #   starts put on the magnetometer's sample clock
-    baseline_sharing: str = "bound"         # "bound": a baseline two pulses share counts twice its variance in
-                                            #   each (their errors are correlated; estimate.shared_baseline);
-                                            #   "apart": that, and pulses kept a baseline further apart so none
-                                            #   is shared; "ignore": each amplitude's own variance, as if independent
+    baseline_sharing: str = "ignore"        # "ignore": each amplitude's own variance, as if independent (back to
+                                            #   back, neighbours share a baseline: errors correlated ~0.24, the
+                                            #   filter overconfident); "bound": a shared baseline counts twice its
+                                            #   variance in each (estimate.shared_baseline); "apart": that, and
+                                            #   pulses kept a baseline further apart so none is shared
 
     def check(self, need) -> None:
         need("actuation", self.actuation in ("fixed", "adaptive"),
