@@ -212,3 +212,45 @@ def test_apart_keeps_the_next_before_baseline_off_this_after_baseline():
     ap = SharedBaselines(FALL, BASE, GUARD, SIGMA, PER, apart=True)
     v = SIGMA ** 2 * (1 / 5 + 1 / 6)
     assert ap.predicted(v, 200_000, 200_000 - gap) == v and ap.chained(v) == v
+
+
+@pytest.mark.parametrize("mode", ["bound", "apart"])
+def test_live_ticks_allocate_nothing_and_back_to_back_pulses_are_counted(mode):
+    """A live 8 s ``schepers-adaptive`` run with the bound (and with the pulses apart): no tick
+    creates a numpy array; with ``bound`` the windows closed after the warm-up were mostly shared
+    on both sides (pulses back to back), with ``apart`` none was shared and the pulses are at
+    least ``pulse + fall + 2 baseline + 2 guard`` apart."""
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.tools.bench.links import inproc_pair
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+    from coiltrack.tools.bench.runner import BenchSetup
+    from coiltrack.tools.scenarios import get
+
+    if not available():
+        pytest.skip("numpy memory handler API not reachable")
+    sc = get("schepers-adaptive")
+    cfg = sc.firmware_config().with_keys(baseline_sharing=mode, adaptive_current_step_a=0.001)
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, 3, 8.0, emu_end)
+    fw = Firmware(cfg, fw_end)
+    sh = fw.tracker.sharing
+    counter = NumpyAllocationCounter()
+    allocating = 0
+    shared = []
+    for t in range(0, 8_000_001, cfg.timing.tick_us):
+        bench.emulator.step(t)
+        before = counter.count
+        n0 = sh.prev_end
+        with counter:
+            fw.tick(t)
+        allocating += counter.count != before
+        if sh.prev_end != n0 and t > 4_000_000:
+            shared.append(sh.shared)
+    assert fw.status()["adaptive_updates"] > 30 and len(shared) > 10
+    assert allocating == 0
+    if mode == "bound":
+        assert np.mean(np.array(shared) > 1.5) > 0.5
+    else:
+        assert max(shared) == 0.0
+        ex = sorted(e["start_us"] for e in bench.driver.executed if e["start_us"] > 4_000_000)
+        assert min(np.diff(ex)) >= LENGTH + FALL + 2 * BASE + 2 * GUARD - 1_000
