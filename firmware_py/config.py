@@ -346,6 +346,11 @@ class AdaptiveConfig:
     pulse_length: str = "fixed"             # "fixed": every pulse adaptive_pulse_us (or pulse_us) long; "chosen":
                                             #   the length too, weighed against the current (least I^2 L),
                                             #   starts put on the magnetometer's sample clock
+    baseline_sharing: str = "ignore"        # "ignore": each amplitude's own variance, as if independent (back to
+                                            #   back, neighbours share a baseline: errors correlated ~0.24, the
+                                            #   filter overconfident); "bound": a shared baseline counts twice its
+                                            #   variance in each (estimate.shared_baseline); "apart": that, and
+                                            #   pulses kept a baseline further apart so none is shared
 
     def check(self, need) -> None:
         need("actuation", self.actuation in ("fixed", "adaptive"),
@@ -382,6 +387,8 @@ class AdaptiveConfig:
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("pulse_length", self.pulse_length in ("fixed", "chosen"),
              f"must be 'fixed' or 'chosen', got {self.pulse_length!r}")
+        need("baseline_sharing", self.baseline_sharing in ("bound", "apart", "ignore"),
+             f"must be 'bound', 'apart' or 'ignore', got {self.baseline_sharing!r}")
         _bools(self, need, ("nis_feedback",))
         _positive_numbers(self, need, ("fixed_accuracy_ratio", "reference_avg_s", "reference_catchup",
                                        "nis_linear_fraction", "nis_alarm_z", "saturation_sigmas"))

@@ -37,6 +37,7 @@ import math
 
 import numpy as np
 
+from coiltrack.firmware.estimate.shared_baseline import pulse_gap_us
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference, fixed_cycle_bounds, nis_bound_factor
 from coiltrack.firmware.actuate.accuracy_budget import HOLD_MAX, HOLD_MIN, MeanBudgetReference
@@ -229,7 +230,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         self.var_amp = lengths.var_amp[-1]
         self.mid_us = lengths.mid_us[-1]
         self._vars = [0.0] * lengths.n        # the lengths' amplitude variances, inflated
-        self.gap_us = cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
+        self.gap_us = pulse_gap_us(cfg)
         self.views = tuple(SensorOutlook(s) for s in self._sens)
         for s in self._sens:
             if s.ref is not None:
@@ -329,7 +330,7 @@ class AdaptiveActuation(_SingleCoilActuation):
             for sl in self.book.slots:
                 if sl.active and not sl.acq:
                     self._model_at(v)
-                    var = self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)]
+                    var = self.host.sharing.chained(self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)])
                     self._in_flight(v, sl, var * s.monitor.r_scale)
             if self.policy.due(v.P6, now_us, s.last_update_us):
                 due = True
@@ -343,9 +344,11 @@ class AdaptiveActuation(_SingleCoilActuation):
             self._refresh_quiet(v)
         # the expected amplitude variance, inflated while the pulses prove inconsistent
         self.host.forget(ws.sensor, now_us)
-        self._dec_var = self.var_amp * ws.sensor.monitor.r_scale
+        # ... and the share of a baseline the previous pulse's window also used (estimate.shared_baseline)
+        sh, prev = self.host.sharing, self.book.last_pulse_end
+        self._dec_var = sh.predicted(self.var_amp, start, prev) * ws.sensor.monitor.r_scale
         for k in range(self.lengths.n):
-            self._vars[k] = self.lengths.var_amp[k] * ws.sensor.monitor.r_scale
+            self._vars[k] = sh.predicted(self.lengths.var_amp[k], start, prev) * ws.sensor.monitor.r_scale
         self._dec_ws = ws
         self._dec_start = start
         self._dec_phase = 1

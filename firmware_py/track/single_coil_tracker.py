@@ -55,6 +55,7 @@ from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
+from coiltrack.firmware.estimate.shared_baseline import SharedBaselines, next_start, pulse_gap_us
 from coiltrack.firmware.estimate.single_coil import CORE, POS, SchepersEKF
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
@@ -120,7 +121,12 @@ class SingleCoilTracker:
         self._sens = tuple(self.sensors.values())
         mid = measurement_mid_us(cfg, self.pulse_us)
         self.book = PulseBook(cfg, n, pulses, [s.ekf for s in self._sens], mid,
-                              cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us, cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us)
+                              pulse_gap_us(cfg), cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us)
+        # amplitudes sharing baseline samples with a neighbour's (estimate.shared_baseline)
+        self.sharing = SharedBaselines(cfg.pulse.fall_us, cfg.pulse.baseline_us, cfg.pulse.guard_us, cfg.pulse.mag_sigma_t,
+                                       1e6 / cfg.pulse.mag_rate_hz, cfg.adaptive.baseline_sharing != "ignore",
+                                       cfg.adaptive.baseline_sharing == "apart")
+        self._lead_us = cfg.adaptive.adaptive_lead_us if schedule == "adaptive" else -1
         self.acquisition = BurstAcquisition(cfg, coils, self._sens, self.book, self.model, supervisor, tx, self,
                                             distortion, core)
         self.actuation = ACTUATIONS[schedule](cfg, coils, self._sens, self.book, self.acquisition, supervisor, tx,
@@ -269,6 +275,9 @@ class SingleCoilTracker:
         t0 = sl.start - self._pre_us
         t1 = sl.end + self._post_us
         driver_suspect = health.suspect(self._driver, t0, t1)       # (the same for every sensor)
+        lead = self._lead_us      # adaptive: a pulse not yet commanded may start this soon
+        self.sharing.close(sl.start, sl.end, next_start(self.book.slots, sl),
+                           max(self.book.next_free_us, now_us + lead) if lead >= 0 else -1)
         for s in self._sens:
             tr = s.track
             flags = self.closer.close_one(tr, sl.coil, sl.pid, sl.start, sl.end)
@@ -316,7 +325,8 @@ class SingleCoilTracker:
         rel = math.sqrt(self._rel2 + rc * rc)
         # once the monitor has judged the pulses inconsistent, the inflated covariance is the
         # protection: gating them as well would reject them all and leave the state to the IMU
-        m = s.meas.set(tr.amp, tr.amp_var, sl.coil, current, rel, mon.r_scale, not mon.inconsistent)
+        m = s.meas.set(tr.amp, self.sharing.variance(tr.amp_var, tr.infov), sl.coil, current, rel, mon.r_scale,
+                       not mon.inconsistent)
         flags = ekf.update_pulse(sl.clone, m, self.model)
         if flags & (EKF_NOT_PD | EKF_NONFINITE):
             self.unusable += 1

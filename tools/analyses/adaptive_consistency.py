@@ -18,6 +18,13 @@ POSE the filter sent at its own time). Per ``--bin`` seconds it prints:
   covariance's largest and smallest axes (1 each); the error (deg) and ``sqrt(tr P)`` (deg);
 * the position NEES (3).
 
+Then, over the run after its first 4 s, the amplitude errors ``(y - I h(p_true, R_true)) /
+sqrt(var)`` of the pulses the filter took (``var`` as the filter took it; the truth at the
+pulse's measurement time): their mean square per component (1 for honest variances) and the
+correlation of consecutive pulses' errors, for pulses that share baseline samples (the next one
+starting less than two baselines after this one's end: ``estimate.shared_baseline``) and for
+those that do not. Independent errors give 0; a shared baseline about 0.2.
+
 The NIS cannot show an error along a direction no recent pulse observed; this NEES can.
 Not a bench command: a measurement for the note.
 """
@@ -32,6 +39,25 @@ import sys
 import numpy as np
 
 TICK_EVERY_US = 20_000
+
+
+@contextlib.contextmanager
+def _update_probe(ups: list):
+    """Record every single-coil update: measurement time, coil, current, amplitude, its variance."""
+    from coiltrack.firmware.estimate.single_coil import SchepersEKF
+
+    orig = SchepersEKF.update_pulse
+
+    def update_pulse(self, k, m, model):
+        t = int(self.clone_t[k]) if k >= 0 else int(self.t_us or 0)
+        flags = orig(self, k, m, model)
+        ups.append((t, int(m.coil), float(m.current), np.array(m.y, dtype=float), np.array(m.var, dtype=float), flags))
+        return flags
+    SchepersEKF.update_pulse = update_pulse
+    try:
+        yield
+    finally:
+        SchepersEKF.update_pulse = orig
 
 
 @contextlib.contextmanager
@@ -67,6 +93,7 @@ def _run(seed: int, duration: float, fixed: bool, keys: dict):
     if keys:
         cfg = cfg.with_keys(**keys)
     rec: list = []
+    ups: list = []
     got = {}
     orig = report.build
 
@@ -75,11 +102,38 @@ def _run(seed: int, duration: float, fixed: bool, keys: dict):
         return orig(bench, *a, **k)
     report.build = build
     try:
-        with _tick_probe(rec):
+        with _tick_probe(rec), _update_probe(ups):
             rep = runner.run_inproc(sc, seed, duration, cfg=cfg)
     finally:
         report.build = orig
-    return cfg, rep, got["bench"], rec
+    return cfg, rep, got["bench"], rec, ups
+
+
+def amplitude_errors(cfg, bench, ups, skip_s: float = 4.0) -> dict:
+    """Normalised amplitude errors of the updates after ``skip_s`` (module docstring): mean square
+    per component, and the correlation of consecutive pulses' errors, sharing a baseline or not."""
+    from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
+    from coiltrack.firmware.model.field import Coil
+
+    ups = [u for u in ups if u[0] * 1e-6 > skip_s and not u[5] & 0b1111]
+    if len(ups) < 3:
+        return {"updates": len(ups)}
+    model = SingleCoilModel([Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.source.coils])
+    K = bench.world.sensor_kinematics(np.array([u[0] for u in ups], dtype=np.int64))
+    z = np.zeros((len(ups), 3))
+    for i, (t, c, cur, y, var, _) in enumerate(ups):
+        model.evaluate(K.position[i], K.R[i])
+        z[i] = (y - cur * np.asarray(model.h[c])) / np.sqrt(var)
+    pulse_us = cfg.adaptive.adaptive_pulse_us or cfg.timing.pulse_us
+    p = cfg.pulse
+    # consecutive measurement times closer than pulse + fall + 2 baselines + guard: shared samples
+    near = np.diff([u[0] for u in ups]) < pulse_us + p.fall_us + 2 * p.baseline_us + p.guard_us
+    out = {"updates": len(ups), "mean_square": round(float(np.mean(z * z)), 3)}
+    for name, m in (("shared", near), ("apart", ~near)):
+        out[f"pairs_{name}"] = int(m.sum())
+        if m.sum() >= 3:
+            out[f"corr_{name}"] = round(float(np.corrcoef(z[:-1][m].ravel(), z[1:][m].ravel())[0, 1]), 3)
+    return out
 
 
 def tabulate(cfg, bench, rec, duration: float, bin_s: float) -> list[dict]:
@@ -151,7 +205,7 @@ def main(argv=None) -> int:
         keys = _keys(a.set)
         if not (0.0 < a.duration <= 3600.0) or not (0.0 < a.bin <= a.duration):
             raise ValueError("--duration must be in (0, 3600] s and --bin in (0, duration]")
-        cfg, rep, bench, rec = _run(a.seed, a.duration, a.fixed, keys)
+        cfg, rep, bench, rec, ups = _run(a.seed, a.duration, a.fixed, keys)
     except (ValueError, TypeError) as exc:
         print(f"adaptive_consistency: {exc}", file=sys.stderr)
         return 2
@@ -161,6 +215,7 @@ def main(argv=None) -> int:
         print(f"{r['t_s']:4.0f}  {str(r['pulses']):14s} {str(r['cos_big_field']):22s} {r['nees_ori']:7.2f} "
               f"{r['nees_ori_big']:5.2f} {r['nees_ori_small']:6.2f} {r['err_deg']:8.3f} {r['sigma_deg']:9.3f} "
               f"{r['nees_pos']:8.2f}")
+    print("amplitude errors:", json.dumps(amplitude_errors(cfg, bench, ups)))
     return 0
 
 
