@@ -309,13 +309,13 @@ class SeedModel:
         exceeds the white noise ``sigma^2 (1/n_u + 1/n_b)`` of the extraction."""
         nu, nb = pulse_samples(self.T0, self.B0, self.tm, "mean")
         c = self.cfg
-        model = ((c.field_model_rel_sigma * self.I0[None, :]) ** 2 + c.current_tolerance_a ** 2) * self.u2
-        return float(np.mean(model > c.mag_sigma_t ** 2 * (1 / nu + 1 / nb)))
+        model = ((c.adaptive.field_model_rel_sigma * self.I0[None, :]) ** 2 + c.limits.current_tolerance_a ** 2) * self.u2
+        return float(np.mean(model > c.pulse.mag_sigma_t ** 2 * (1 / nu + 1 / nb)))
 
     def cost(self, kinds: Kinds) -> WindowCost:
         c = self.cfg
-        return WindowCost(kinds, c.mag_sigma_t ** 2, self.u2, c.field_model_rel_sigma, c.current_tolerance_a,
-                          self.imax, self.D)
+        return WindowCost(kinds, c.pulse.mag_sigma_t ** 2, self.u2, c.adaptive.field_model_rel_sigma,
+                          c.limits.current_tolerance_a, self.imax, self.D)
 
     def exponents(self, hi: tuple, lo: tuple, rho_sweep: float, currents=(0.91, 0.45)) -> tuple[float, float]:
         """(a_pos, a_rot) fitted to the fixed cycle's current sweep: figures ``hi``/``lo`` =
@@ -384,6 +384,7 @@ def _arguments(argv):
     ap.add_argument("--pulse-length", choices=("fixed", "chosen", "all"), default="all",
                     help="fixed: the cycle's 60 ms pulses and 35 ms baselines; chosen: any pulse length with "
                          "those baselines, and with baselines of --long-baseline-ms as well; all: both (default)")
+    ap.add_argument("--columns", help="a comma list of columns (fixed, chosen, chosen-long) instead of --pulse-length's")
     ap.add_argument("--long-baseline-ms", type=float, default=100.0, help="the longer baselines (default 100)")
     ap.add_argument("--max-pulse-ms", type=float, default=400.0, help="longest pulse considered (default 400)")
     ap.add_argument("--length-step-ms", type=float, default=0.5,
@@ -406,6 +407,9 @@ def _check(a) -> str | None:
         return "--ratio must be >= 1, --window >= 1, --duration > 0"
     if not (a.long_baseline_ms > 0 and a.length_step_ms > 0 and a.max_pulse_ms > a.length_step_ms):
         return "--long-baseline-ms and --length-step-ms must be > 0, --max-pulse-ms > --length-step-ms"
+    bad = [m for m in (a.columns or "").split(",") if a.columns and m.strip() not in MODES]
+    if bad:
+        return f"--columns: unknown column(s) {bad}; choose from {', '.join(MODES)}"
     for name in ("a_pos", "a_rot"):
         v = getattr(a, name)
         if v is not None and not (v > 0):
@@ -420,6 +424,8 @@ def main(argv=None) -> int:
         print(f"energy_bound: {bad}", file=sys.stderr)
         return 2
     modes = {"fixed": ("fixed",), "chosen": ("chosen", "chosen-long"), "all": MODES}[a.pulse_length]
+    if a.columns:
+        modes = tuple(m.strip() for m in a.columns.split(","))
     hi = lo = None
     if a.a_pos is None or a.a_rot is None:
         try:
