@@ -1,6 +1,7 @@
 """The least coil energy any pulse policy needs for the fixed cycle's accuracy.
 
-``python -m coiltrack.tools.analyses.energy_bound --seeds 1-10 [--pulse-length fixed|chosen|all] --json bound.json``
+``python -m coiltrack.tools.analyses.energy_bound --seeds 1-10 [--pulse-length fixed|chosen|all]
+[--columns fixed,chosen,chosen-long] [--sample-phase mean|aligned] --json bound.json``
 
 Schepers & Veltink 2010 (``../shared/seeds/001_*``, sec. 2.3-2.4) save energy
 by deciding when, which coil and how strong; the seed paper also treats the
@@ -31,7 +32,8 @@ firmware's policy:
   energy, and the bound is *lower* for it.
 * **What a pulse costs.** ``I^2 T`` (coil resistance equal for all, it
   cancels), for a pulse of length ``T``, with ``n_u(T)`` counted as the
-  extraction counts (``pulse_cost.pulse_samples``), baselines of ``B`` that
+  extraction counts (``pulse_cost.pulse_samples``: a window with fewer than
+  ``min_pulse_samples`` used samples is refused and counts none), baselines of ``B`` that
   cost no energy but time (``fall + B + guard`` after every pulse), one coil at
   a time, the window's time at most its duration, the current at most the
   driver's ``max_current_a`` and within the magnetometer's ``mag_range_t``
@@ -57,6 +59,12 @@ firmware's policy:
   gyroscope random walk ``1/2`` for orientation.
 * **The accuracy asked.** The mean over the windows of each block's ``v`` at
   most ``ratio^2`` times the fixed cycle's (``ratio`` 1.1 is "within 10 %").
+
+**Which floor a policy is held to.** ``pulse_length = "fixed"`` starts its pulses at any phase of
+the magnetometer's samples: the ``fixed`` column at ``--sample-phase mean``. ``pulse_length =
+"chosen"`` puts every start on the sample clock (``actuate.pulse_length.PulseLengths.align``), which a
+pulse at an arbitrary phase cannot: its floor is the ``chosen`` column at ``--sample-phase aligned``
+(``--columns chosen``), below the mean-phase one.
 
 **Why it is a lower bound.** The least total energy under those constraints
 is a convex programme: ``J -> 1 / tr_B(J^-1)`` is concave (the information on
