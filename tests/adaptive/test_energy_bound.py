@@ -294,7 +294,7 @@ def test_fitted_exponent_without_saturation_is_the_energy_ratio_one():
 
 
 @pytest.mark.parametrize("argv", [["--ratio", "0.5"], ["--length-step-ms", "0"], ["--a-pos", "-1", "--a-rot", "1"],
-                                  ["--seeds", "1", "--sweeps", "/nonexistent"]])
+                                  ["--seeds", "1", "--sweeps", "/nonexistent"], ["--columns", "fixed,short"]])
 def test_bad_arguments_exit_2(argv, capsys):
     assert eb.main(argv) == 2
     assert "energy_bound:" in capsys.readouterr().err
