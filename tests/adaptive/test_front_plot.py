@@ -83,3 +83,17 @@ def test_timed_bound_has_its_own_column_and_shared_settings_leave_the_labels(tmp
     assert shared == {("reference_hold", "mean"), ("unreached_share", "0.8")}
     labels = [pt["label"] for path in (a, c) for pt in fp.sweep_points(path, None, shared)]
     assert labels == ["fixed", "chosen pulse_length=chosen"]
+
+
+def test_bound_columns_pick_the_floors_drawn(tmp_path, capsys):
+    """``--bound-columns`` keeps the named columns only; a name no file has is refused (exit 2, nothing
+    written)."""
+    p = tmp_path / "b.json"
+    p.write_text(json.dumps({"ratio": 1.1, "summary": {"fixed": {"median": 0.49, "worst": 0.54, "best": 0.45},
+                                                       "chosen": {"median": 0.48, "worst": 0.53, "best": 0.44}}}))
+    png = tmp_path / "f.png"
+    assert fp.main(["--bound", str(p), "--bound-columns", "fixed", "--png", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "fixed: ratio 1.1" in out and "chosen:" not in out
+    assert fp.main(["--bound", str(p), "--bound-columns", "chosen aligned", "--png", str(tmp_path / "g.png")]) == 2
+    assert not (tmp_path / "g.png").exists()

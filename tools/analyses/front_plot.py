@@ -2,7 +2,7 @@
 
     python -m coiltrack.tools.analyses.front_plot --sweep-json adaptive.json [--sweep-json ...]
         [--fixed-json fixed-910.json --sweep-json fixed-640.json ...] --bound bound.json [--bound ...]
-        --png out/front.png
+        [--bound-columns 'fixed,chosen aligned'] --png out/front.png
 
 Both axes are ratios to the fixed X, Y, Z cycle of the same seed: coil energy (median over the seeds)
 and position or orientation RMS (median over the seeds, the worst seed as the bar's end). A sweep of
@@ -140,6 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep-json", action="append", default=[], help="a coiltrack sweep --json file (repeatable)")
     ap.add_argument("--fixed-json", help="the 0.91 A fixed cycle's sweep, to divide fixed-cycle sweeps by")
     ap.add_argument("--bound", action="append", default=[], help="an energy_bound --json file (repeatable)")
+    ap.add_argument("--bound-columns", help="draw only these bound columns, a comma list (e.g. 'fixed,chosen aligned')")
     ap.add_argument("--png", required=True, help="write the figure here (under out/)")
     a = ap.parse_args(argv)
     if not a.sweep_json and not a.bound:
@@ -150,6 +151,12 @@ def main(argv=None) -> int:
         common = common_settings(a.sweep_json) if len(a.sweep_json) > 1 else frozenset()
         points = [pt for p in a.sweep_json for pt in sweep_points(p, fixed, common)]
         bound = bound_points(a.bound)
+        if a.bound_columns:
+            keep = [c.strip() for c in a.bound_columns.split(",")]
+            unknown = [c for c in keep if c not in bound]
+            if unknown:
+                raise ValueError(f"--bound-columns: no column {unknown} in the bound files (they have {sorted(bound)})")
+            bound = {c: bound[c] for c in keep}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         print(f"front_plot: cannot read the files: {exc}", file=sys.stderr)
         return 2
