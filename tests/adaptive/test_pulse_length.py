@@ -179,3 +179,42 @@ def test_bad_pulse_length_is_refused_naming_the_key():
     with pytest.raises(ConfigError) as e:
         config_from_dict({"adaptive": {"pulse_length": "short"}})
     assert e.value.key == "adaptive.pulse_length"
+
+
+def test_chosen_lengths_end_to_end_allocate_nothing_and_every_window_is_used():
+    """``pulse_length = "chosen"`` with ``unreached_share`` on the bench for 8 s (seed 3): every pulse
+    after the acquisition burst and the warm-up is one of ``PulseLengths.chosen``'s lengths (to the
+    driver clock's microsecond), their
+    windows are extracted (no flagged window, single-coil updates made) and no tick creates a numpy
+    array (the length choice included). Catches a length the extraction refuses or a window closed at
+    the wrong edge."""
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.tools import scenarios as sc_reg
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+    from coiltrack.tools.bench.links import inproc_pair
+    from coiltrack.tools.bench.runner import BenchSetup
+
+    cfg = _cfg(unreached_share=0.8, adaptive_current_step_a=0.001)
+    sc = sc_reg.get("schepers-adaptive")
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, 3, 8.0, emu_end)
+    fw = Firmware(cfg, fw_end)
+    counter = NumpyAllocationCounter() if available() else None
+    allocating, t = 0, 0
+    while t <= 8_000_000:
+        bench.emulator.step(t)
+        if counter is not None:
+            before = counter.count
+            with counter:
+                fw.tick(t)
+            allocating += counter.count != before
+        else:
+            fw.tick(t)
+        t += cfg.timing.tick_us
+    s = fw.status()
+    assert allocating == 0 and s["windows_flagged"] == 0 and s["adaptive_updates"] > 40
+    lengths = set(PulseLengths.chosen(cfg, cfg.timing.pulse_us + 20_000).lengths_us)
+    late = [e for e in bench.driver.executed if e["start_us"] > 4_000_000]
+    assert len(late) > 20
+    # the driver's clock runs on its own: an executed length is within 2 us of a commanded one
+    assert all(min(abs(e["end_us"] - e["start_us"] - L) for L in lengths) <= 2 for e in late)
