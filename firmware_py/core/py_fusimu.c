@@ -837,6 +837,256 @@ static PyMethodDef QuietSample_methods[] = {
 FUS_TYPE(QuietSample, "QuietSample", "QuietSample(t, flags, starts, ends, before, after): the compass sample "
          "search (quiet_sample) bound to a magnetometer ring and a pulse schedule")
 
+
+/* ---------------------------------------------------------------- OriStep */
+#define OS_MAXBUF 64
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_ori_step o;
+    double E[9];
+    Py_buffer v[OS_MAXBUF];
+    int nv;
+} OriStepObject;
+
+static void OriStep_release(OriStepObject *self)
+{
+    while (self->nv > 0)
+        PyBuffer_Release(&self->v[--self->nv]);
+}
+
+static void OriStep_dealloc(OriStepObject *self)
+{
+    OriStep_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* bind obj (or its attribute `attr` when attr is not NULL) as `count` items of `fmt` */
+static void *os_bind(OriStepObject *self, PyObject *obj, const char *attr, Py_ssize_t count, const char *fmt,
+                     Py_ssize_t itemsize, int writable)
+{
+    PyObject *a = obj;
+    int rc;
+    if (self->nv >= OS_MAXBUF) {
+        PyErr_SetString(PyExc_RuntimeError, "OriStep: too many buffers");
+        return NULL;
+    }
+    if (attr != NULL && (a = PyObject_GetAttrString(obj, attr)) == NULL)
+        return NULL;
+    rc = ct_py_buffer(a, count, itemsize, fmt, writable, &self->v[self->nv], attr != NULL ? attr : "buffer");
+    if (attr != NULL)
+        Py_DECREF(a);
+    if (rc < 0)
+        return NULL;
+    return self->v[self->nv++].buf;
+}
+
+#define OS_D(obj, attr, count, wr) ((double *)os_bind(self, (obj), (attr), (count), "d", 8, (wr)))
+
+/* a float attribute */
+static int os_attr_double(PyObject *obj, const char *attr, double *x)
+{
+    PyObject *a = PyObject_GetAttrString(obj, attr);
+    int rc;
+    if (a == NULL)
+        return -1;
+    rc = ct_py_double(a, x);
+    Py_DECREF(a);
+    return rc;
+}
+
+/* the buffers of one ekf.KalmanUpdate (3 x n) into u, its NIS cell into *nis */
+static int os_bind_kalman(OriStepObject *self, PyObject *upd, int n, struct ct_kalman *u, double **nis)
+{
+    Py_ssize_t m = 3, mn = 3 * (Py_ssize_t)n, nn = (Py_ssize_t)n * n;
+    u->n = n;
+    u->m = 3;
+    if (!(u->H = OS_D(upd, "H", mn, 1)) || !(u->R = OS_D(upd, "R", m * m, 1)) || !(u->y = OS_D(upd, "y", m, 1)) ||
+        !(u->dx = OS_D(upd, "dx", n, 1)) || !(u->S = OS_D(upd, "S", m * m, 1)) ||
+        !(u->Sinv = OS_D(upd, "Sinv", m * m, 1)) || !(u->K = OS_D(upd, "K", mn, 1)) ||
+        !(u->PHt = OS_D(upd, "_PHt", mn, 1)) || !(u->T = OS_D(upd, "_T", nn, 1)) ||
+        !(u->TH = OS_D(upd, "_TH", mn, 1)) || !(u->X = OS_D(upd, "_X", nn, 1)) ||
+        !(u->KR = OS_D(upd, "_KR", mn, 1)) || !(u->w = OS_D(upd, "_w", m, 1)) || !(u->L = OS_D(upd, "_L", m * m, 1)) ||
+        !(u->M = OS_D(upd, "_M", m * m, 1)) || !(*nis = OS_D(upd, "_nis", 1, 1)))
+        return -1;
+    return 0;
+}
+
+/* OriStep(f, upd_acc, upd_mag, compass, flip_s, flip_i, inc, ct, mag_t, mag_flags, mag_b, starts, ends,
+ *         before, after, every, max_age_us, symmetrize_every, flip_gain, n, theta, bias, dist) */
+static int OriStep_init(OriStepObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"f", "upd_acc", "upd_mag", "compass", "flip_s", "flip_i", "inc", "ct", "mag_t",
+                             "mag_flags", "mag_b", "starts", "ends", "before", "after", "every", "max_age_us",
+                             "symmetrize_every", "flip_gain", "n", "theta", "bias", "dist", NULL};
+    PyObject *f, *iu, *mu, *cp, *fs, *fi, *inc, *ct, *mt, *mf, *mb, *ps, *pe, *prm = NULL, *pred = NULL;
+    long long before, after, max_age;
+    int every, sym, n, th, bi, di, heading = 0;
+    double gain;
+    Py_ssize_t cap, np_, nn;
+    struct ct_ori_step *o = &self->o;
+    struct ct_ori_meas *me = &o->meas;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOOOOOOOLLiLidiiii", kwlist, &f, &iu, &mu, &cp, &fs, &fi, &inc,
+                                     &ct, &mt, &mf, &mb, &ps, &pe, &before, &after, &every, &max_age, &sym, &gain,
+                                     &n, &th, &bi, &di))
+        return -1;
+    if (self->nv) {
+        PyErr_SetString(PyExc_RuntimeError, "OriStep: already bound");
+        return -1;
+    }
+    if (n < 9 || n > 256 || th < 0 || bi < 0 || di < 0 || th + 3 > n || bi + 3 > n || di + 3 > n || every < 1 ||
+        sym < 1) {
+        PyErr_SetString(PyExc_ValueError, "OriStep: bad state size, row indices, update interval or symmetrisation");
+        return -1;
+    }
+    nn = (Py_ssize_t)n * n;
+    if ((cap = PyObject_Length(mt)) < 2 || (np_ = PyObject_Length(ps)) < 0 || PyObject_Length(pe) != np_) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "OriStep: the magnetometer ring needs >= 2 slots, starts and ends "
+                            "the schedule's length");
+        return -1;
+    }
+    if ((prm = PyObject_GetAttrString(f, "prm")) == NULL || (pred = PyObject_GetAttrString(f, "pred")) == NULL)
+        goto fail;
+    /* OrientationFilter.predict (ct_ori_pred) */
+    if (!(o->pred.R = OS_D(f, "R", 9, 1)) || !(o->pred.bias = OS_D(f, "bias", 3, 1)) ||
+        !(o->pred.dist = OS_D(f, "dist", 3, 1)) || !(o->pred.acc = OS_D(f, "acc", 3, 1)) ||
+        !(o->pred.st = OS_D(f, "sums", CT_OA_N, 1)) || os_attr_double(prm, "dist_corr", &o->pred.dist_corr) < 0 ||
+        os_attr_double(prm, "acc_corr_time_s", &o->pred.acc_corr_time_s) < 0)
+        goto fail;
+    o->pred.E = self->E;
+    /* propagate (ct_ori) */
+    o->prop.n = n;
+    o->prop.theta = th;
+    o->prop.bias = bi;
+    o->prop.dist = di;
+    o->prop.R = o->pred.R;
+    if (!(o->prop.Rc = OS_D(f, "_Rc", 9, 1)) || !(o->prop.A = OS_D(pred, "A", nn, 1)) ||
+        !(o->prop.Q = OS_D(pred, "Q", nn, 1)) || !(o->prop.P = OS_D(f, "P", nn, 1)) ||
+        !(o->prop.T = OS_D(pred, "_T", nn, 1)) || os_attr_double(prm, "gyro_noise", &o->prop.gyro_noise) < 0 ||
+        os_attr_double(prm, "gyro_bias_rw", &o->prop.gyro_bias_rw) < 0)
+        goto fail;
+    /* the two updates */
+    if (os_bind_kalman(self, iu, n, &o->iu, &o->inis) < 0 || os_bind_kalman(self, mu, n, &o->mu, &o->mnis) < 0 ||
+        os_attr_double(iu, "gate", &o->igate) < 0 || os_attr_double(mu, "gate", &o->mgate) < 0)
+        goto fail;
+    /* their measurements (ct_ori_meas) */
+    me->n = n;
+    me->theta = th;
+    me->bias = bi;
+    me->dist = di;
+    me->R = o->pred.R;
+    me->Rc = o->prop.Rc;
+    me->b = o->pred.bias;
+    me->d = o->pred.dist;
+    me->a = o->pred.acc;
+    me->E = self->E;
+    me->sums = o->pred.st;
+    me->iy = (double *)o->iu.y;
+    me->iH = (double *)o->iu.H;
+    me->iR = (double *)o->iu.R;
+    me->idx = o->iu.dx;
+    me->my = (double *)o->mu.y;
+    me->mH = (double *)o->mu.H;
+    me->mR = (double *)o->mu.R;
+    me->mdx = o->mu.dx;
+    if (!(me->hg = OS_D(cp, "h_g", 3, 0)) || !(me->cst = OS_D(cp, "state", CT_CS_N, 1)) ||
+        os_attr_double(prm, "gravity", &me->gravity) < 0 ||
+        os_attr_double(prm, "freefall_tolerance", &me->freefall_tolerance) < 0 ||
+        os_attr_double(prm, "acc_noise", &me->acc_noise) < 0 ||
+        os_attr_double(prm, "acc_motion_sigma", &me->acc_motion_sigma) < 0 ||
+        os_attr_double(prm, "acc_adapt_gain", &me->acc_adapt_gain) < 0 ||
+        os_attr_double(prm, "mag_noise", &me->mag_noise) < 0 ||
+        os_attr_double(prm, "dist_sigma", &me->dist_sigma) < 0 ||
+        os_attr_double(prm, "dist_norm_gain", &me->dist_norm_gain) < 0 ||
+        os_attr_double(prm, "dist_dip_gain", &me->dist_dip_gain) < 0 ||
+        os_attr_double(prm, "dist_smoothing", &me->dist_smoothing) < 0 ||
+        os_attr_double(prm, "acc_adapt_tau_s", &o->acc_adapt_tau_s) < 0)
+        goto fail;
+    {
+        PyObject *h = PyObject_GetAttrString(prm, "compass_heading_only");
+        if (h == NULL || (heading = PyObject_IsTrue(h)) < 0) {
+            Py_XDECREF(h);
+            goto fail;
+        }
+        Py_DECREF(h);
+        me->heading_only = heading;
+    }
+    /* the compass sample's search, the ring's fields, FlipOffset, Inclination, _Ori */
+    if (!(o->q.tv = (const int64_t *)os_bind(self, mt, NULL, cap, "ql", 8, 0)) ||
+        !(o->q.fl = (const uint8_t *)os_bind(self, mf, NULL, cap, "B", 1, 0)) ||
+        !(o->q.ps = (const int64_t *)os_bind(self, ps, NULL, np_, "ql", 8, 0)) ||
+        !(o->q.pe = (const int64_t *)os_bind(self, pe, NULL, np_, "ql", 8, 0)) ||
+        !(o->mb = OS_D(mb, NULL, 3 * cap, 0)) || !(o->fl = OS_D(fs, NULL, CT_FL_N, 1)) ||
+        !(o->fi = (int64_t *)os_bind(self, fi, NULL, CT_FI_COUNT, "ql", 8, 1)) ||
+        !(o->inc = OS_D(inc, NULL, CT_IN_N, 1)) || !(o->ct = (int64_t *)os_bind(self, ct, NULL, 1, "ql", 8, 1)))
+        goto fail;
+    o->q.cap = cap;
+    o->q.n = np_;
+    o->q.before = before;
+    o->q.after = after;
+    o->flip_gain = gain;
+    o->every = every;
+    o->symmetrize_every = sym;
+    o->max_age_us = max_age;
+    Py_DECREF(prm);
+    Py_DECREF(pred);
+    return 0;
+fail:
+    Py_XDECREF(prm);
+    Py_XDECREF(pred);
+    OriStep_release(self);
+    return -1;
+}
+
+/* sample(t, ax, ay, az, wx, wy, wz, t_prev, n, head, count, pcount, icount, mcount) -> CT_OS_* bits */
+static PyObject *OriStep_sample(OriStepObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[6];
+    long long t, tp, n, head, count, pc, ic, mc;
+    int i;
+    if (!self->nv) {
+        PyErr_SetString(PyExc_RuntimeError, "OriStep: not bound");
+        return NULL;
+    }
+    if (fus_nargs("sample", nargs, 14) < 0 || fus_long(args[0], &t) < 0)
+        return NULL;
+    for (i = 0; i < 6; ++i)
+        if (fus_double(args[1 + i], &v[i]) < 0)
+            return NULL;
+    if (fus_long(args[7], &tp) < 0 || fus_long(args[8], &n) < 0 || fus_long(args[9], &head) < 0 ||
+        fus_long(args[10], &count) < 0 || fus_long(args[11], &pc) < 0 || fus_long(args[12], &ic) < 0 ||
+        fus_long(args[13], &mc) < 0)
+        return NULL;
+    if (head < 0 || head >= self->o.q.cap || count < 0 || count > self->o.q.cap) {
+        PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_ori_sample(&self->o, (int64_t)t, v[0], v[1], v[2], v[3], v[4], v[5], (int64_t)tp,
+                                         (int)n, (int64_t)head, (int64_t)count, (int64_t)pc, (int64_t)ic,
+                                         (int64_t)mc));
+}
+
+static PyMethodDef OriStep_methods[] = {
+    {"sample", (PyCFunction)(void (*)(void))OriStep_sample, METH_FASTCALL,
+     "sample(t, ax, ay, az, wx, wy, wz, t_prev, n, head, count, pcount, icount, mcount) -> bits: one IMU sample "
+     "of _Ori.step on an initialised filter that has learned its compass"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject OriStepType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.OriStep",
+    .tp_basicsize = sizeof(OriStepObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "OriStep(f, upd_acc, upd_mag, compass, flip_s, flip_i, inc, ct, mag_t, mag_flags, mag_b, starts, ends, "
+              "before, after, every, max_age_us, symmetrize_every, flip_gain, n, theta, bias, dist): an orientation "
+              "filter's IMU sample (compass search, set/reset offset, prediction, updates) in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)OriStep_init,
+    .tp_dealloc = (destructor)OriStep_dealloc,
+    .tp_methods = OriStep_methods,
+};
+
 /* --------------------------------------------------------------- register */
 static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -855,13 +1105,15 @@ int ct_register_fusimu(PyObject *m)
     if (fus_add(m, &FusPredType, "FusPred") < 0 || fus_add(m, &FusRowType, "FusRow") < 0 ||
         fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0 ||
         fus_add(m, &OriUpdType, "OriUpd") < 0 ||
-        fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0)
+        fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0 ||
+        fus_add(m, &OriStepType, "OriStep") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_OUT_WIDTH", CT_OUT_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_OA_N", CT_OA_N) < 0 || PyModule_AddIntConstant(m, "FUS_NST", CT_FS_NST) < 0 ||
-        PyModule_AddIntConstant(m, "FUS_CS_N", CT_CS_N) < 0)
+        PyModule_AddIntConstant(m, "FUS_CS_N", CT_CS_N) < 0 || PyModule_AddIntConstant(m, "FUS_FL_N", CT_FL_N) < 0 ||
+        PyModule_AddIntConstant(m, "FUS_FI_N", CT_FI_COUNT) < 0 || PyModule_AddIntConstant(m, "FUS_IN_N", CT_IN_N) < 0)
         return -1;
     return 0;
 }

@@ -104,6 +104,11 @@ ORI_LEARNING = 256          # compass sample used to learn |m| and the dip, not 
 #: array (``core/include/ct_fusimu.h`` ``CT_OA_*``)
 SUM_DT, SUM_DT2, SUM_CD, SUM_QD, SUM_CA, SUM_INCL_DT = range(6)
 
+#: what one sample on the compiled core did (``core/src/fusimu.c ct_ori_sample``, ``CT_OS_*``): a
+#: prediction step; an update round; the inclination's Kalman update (its ekf flags at bit 8) or free
+#: fall; the compass's update (its flags at bit 12); the covariance propagations (their number at bit 16)
+OS_PREDICTED, OS_ROUND, OS_ACC, OS_FREEFALL, OS_MAG = 1, 2, 4, 8, 16
+
 
 class OrientationParams:
     """Noise and model parameters of the ch. 2 filter (SI units, per sample
@@ -391,6 +396,24 @@ class OrientationFilter:
         self.steps += 1
         if self.steps & 63 == 0:
             self._orthonormalize()
+
+    def sample_done(self, t_us: int, r: int) -> None:
+        """The bookkeeping of one sample the compiled core ran whole (``ct_ori_sample``, what it did in
+        the ``OS_*`` bits ``r``): the time, the step count, the updates' and the propagations' counts
+        (their symmetrisations ran in the kernel) and the updates' flags."""
+        self.t_us = t_us
+        if r & OS_PREDICTED:
+            self.steps += 1
+        if not r & OS_ROUND:
+            return
+        if r & OS_FREEFALL:
+            self.last_acc_flags = ORI_FREEFALL
+        elif r & OS_ACC:
+            self.last_acc_flags = self.incl.upd.counted((r >> 8) & 15)
+        if r >> 16:
+            self.pred.set_count(self.pred.count + (r >> 16))
+        if r & OS_MAG:
+            self.last_mag_flags = self.compass.upd.counted((r >> 12) & 15)
 
     def propagate(self) -> None:
         """Covariance over the steps since the last call (eq 2.28 and the

@@ -36,11 +36,12 @@ from coiltrack.protocol.schema import (ACC_LSB, EVT_DEAD_RECKONING, EVT_TRACK_RE
                                        POSE_FUSED, POSE_INCONSISTENT, POSE_RECOVERED, POSE_STALE, POSE_VALID)
 
 from coiltrack.firmware.transmit import PoseReport
-from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, SYMMETRIZE_EVERY
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
-from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
+from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
+from coiltrack.firmware.estimate.orientation import N as ORI_N, OS_MAG, OS_ROUND, OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
@@ -94,23 +95,27 @@ class FlipOffset:
     """
 
     def __init__(self, gain: float = 0.2):
-        self.o = [0.0, 0.0, 0.0]
+        # the state in two arrays the compiled core shares (core/include/ct_fusimu.h CT_FL_*, CT_FI_*):
+        # the offset o and the previous sample (T); the previous flip state, its time, the jumps seen
+        self.s = np.zeros(6)
+        self.si = np.zeros(3, dtype=np.int64)
+        self.o = memoryview(self.s)[0:3]
+        self.prev = memoryview(self.s)[3:6]
+        self._i = memoryview(self.si)
+        self._i[0] = -1
         self.gain = float(gain)
-        self.prev_state = -1
-        self.prev = [0.0, 0.0, 0.0]
-        self.prev_t = 0
-        self.n = 0
 
     def observe(self, t_us: int, state: int, mx, my, mz, rate, max_dt_us: int) -> None:
         """Feed every quiet compass sample (T) with its flip state (0/1) and
         the current bias-free rate (rad/s, 3 floats)."""
-        if state == self.prev_state:          # no flip: just remember the sample
+        si = self._i                           # previous state, its time, jumps seen
+        if state == si[0]:                     # no flip: just remember the sample
             p = self.prev
             p[0], p[1], p[2] = mx, my, mz
-            self.prev_t = t_us
+            si[1] = t_us
             return
-        if self.prev_state >= 0 and 0 < t_us - self.prev_t <= max_dt_us:
-            dt = (t_us - self.prev_t) * 1e-6
+        if si[0] >= 0 and 0 < t_us - si[1] <= max_dt_us:
+            dt = (t_us - si[1]) * 1e-6
             wx, wy, wz = rate[0] * dt, rate[1] * dt, rate[2] * dt
             px, py, pz = self.prev
             # field seen from the rotated frame: p - w x p (first order)
@@ -118,15 +123,17 @@ class FlipOffset:
             ey = py - (wz * px - wx * pz)
             ez = pz - (wx * py - wy * px)
             s = 1.0 if state else -1.0
-            k = 1.0 / (self.n + 1) if self.n < 1.0 / self.gain else self.gain
+            n = si[2]
+            k = 1.0 / (n + 1) if n < 1.0 / self.gain else self.gain
             o = self.o
             o[0] += k * (0.5 * s * (mx - ex) - o[0])
             o[1] += k * (0.5 * s * (my - ey) - o[1])
             o[2] += k * (0.5 * s * (mz - ez) - o[2])
-            self.n += 1
-        self.prev_state = state
-        self.prev[0], self.prev[1], self.prev[2] = mx, my, mz
-        self.prev_t = t_us
+            si[2] = n + 1
+        si[0] = state
+        p = self.prev
+        p[0], p[1], p[2] = mx, my, mz
+        si[1] = t_us
 
 
 def quiet_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, gate: PulseGate):
@@ -152,7 +159,8 @@ class _Ori:
         self.f = OrientationFilter(OrientationParams.from_config(cfg), core)
         self.gate = gate
         self.flip = FlipOffset()
-        self.compass_t = -(1 << 62)
+        self._ct = np.full(1, -(1 << 62), dtype=np.int64)    # the last compass sample's time (us)
+        self._ctv = memoryview(self._ct)
         # a compass sample's largest distance from the IMU sample it serves (default two intervals of each)
         self.max_age_us = int(2e6 / cfg.imu.imu_rate_hz) + int(2e6 / cfg.pulse.mag_rate_hz) if max_age_us is None \
             else int(max_age_us)
@@ -167,6 +175,46 @@ class _Ori:
         self._ext = core.ext if getattr(gate, "sample_kernel", None) is not None else None
         self._qk = None
         self._qring = None
+        # one sample of an initialised filter whose compass has learned, in one call of the compiled
+        # core (core/src/fusimu.c ct_ori_sample, ext.OriStep), bound to the magnetometer ring at its first
+        # such sample; the filter's compiled updates are its reference's kernels
+        self._sk = None
+        self._sring = None
+        if self._ext is not None and getattr(self.f, "_cku", None) is not None:
+            self.step = self._step_compiled
+
+    compass_t = property(lambda self: self._ctv[0])     # the last compass sample's time (us)
+
+    def _bind_sample(self, mag: SampleRing) -> None:
+        """``ext.OriStep`` bound to the filter, its updates, ``mag`` and the gate's schedule."""
+        f, g, fl = self.f, self.gate, self.flip
+        self._sk = self._ext.OriStep(f, f.incl.upd, f.compass.upd, f.compass, fl.s, fl.si, f.incl.st, self._ct,
+                                     mag.t, mag.flags, mag.b, g._ps, g._pe, g.before, g.after, self.every,
+                                     self.max_age_us, SYMMETRIZE_EVERY, fl.gain, ORI_N, THETA.start, BIAS.start,
+                                     DIST.start)
+        self._sring = mag
+
+    def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        """:meth:`step` of a sample the compiled core takes whole (``ext.OriStep.sample``: the compass
+        sample, the set/reset offset, the prediction and the update round, the operations of
+        :meth:`step_python` in its order): an initialised filter, no break in the stream, the compass
+        learned and no orthonormalisation due; any other sample goes through :meth:`step_python`."""
+        f = self.f
+        if not f.initialized or t - f.t_us > self.gap_us or f.learning or (t > f.t_us and (f.steps + 1) & 63 == 0):
+            self.step_python(t, ax, ay, az, wx, wy, wz, mag)
+            return
+        if mag is not self._sring:
+            self._bind_sample(mag)
+        h = mag.last_pushed_slot() + 1                 # (the ring's head: the next push's slot)
+        r = self._sk.sample(t, ax, ay, az, wx, wy, wz, f.t_us, self.n, h if h < mag.capacity else 0, len(mag),
+                            f.pred.count, f.incl.upd.count, f.compass.upd.count)
+        f.sample_done(t, r)
+        if r & OS_ROUND:
+            self.n = 0
+            if r & OS_MAG:
+                self.compass_used += 1
+        else:
+            self.n += 1
 
     def _quiet(self, mag: SampleRing, t: int) -> int:
         """:func:`quiet_sample` for the IMU sample at ``t``, on the filter's core."""
@@ -179,13 +227,19 @@ class _Ori:
         return self._qk.find(h if h < mag.capacity else 0, len(mag), self.compass_t, t, self.max_age_us)
 
     def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        """One IMU sample (specific force, rate) with the magnetometer ring ``mag``: the compass
+        sample and its set/reset offset, the prediction and every ``every`` samples the updates."""
+        self.step_python(t, ax, ay, az, wx, wy, wz, mag)
+
+    def step_python(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        """:meth:`step` on the Python reference (and any sample the compiled one does not take)."""
         f = self.f
         if f.initialized and t - f.t_us > self.gap_us:
             f.lose()                           # what the gyroscopes missed cannot be integrated
             self.lost = True
         slot = self._quiet(mag, t)
         if slot >= 0:
-            self.compass_t = mag.time_at(slot)
+            self._ctv[0] = mag.time_at(slot)
             st = 1 if mag.flip_at(slot) else 0
             mx, my, mz = mag.field_at(slot)
             bb = f.bias_v
