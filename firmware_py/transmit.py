@@ -113,6 +113,33 @@ class Transmitter:
             if status & POSE_FUSED:
                 self.fused_poses += 1
 
+    def fused_pose(self, kernel, k: int, t_us: int, node: int, status: int, quality: int, range_m: float) -> bool:
+        """A fused pose sent straight from its output row ``k`` (``estimate.fusion_output.PoseOutput``'s
+        compiled kernel ``kernel``): True when sent as :meth:`pose` sends it; False (nothing sent)
+        when the row needs the reference path (an ``OUT_*`` bit, beyond ``range_m``, a value the
+        wire format refuses) and always on the Python core or a signed link."""
+        return False
+
+    def _fused_pose_compiled(self, kernel, k: int, t_us: int, node: int, status: int, quality: int,
+                             range_m: float) -> bool:
+        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.pose_frame``, ``ct_pose_frame``); while
+        :meth:`pose` is not this transmitter's own (a recorder wraps it) every pose goes through it."""
+        if self.pose is not self._pose_own:
+            return False
+        frame = kernel.pose_frame(k, t_us, self._seq, self.node_id, node, status, quality, range_m)
+        if frame is None:
+            return False
+        self._seq = (self._seq + 1) & 0xFF
+        try:
+            self.port.write(frame)
+        except Exception:  # a full or broken link must not stop the loop
+            self.tx_errors += 1
+        if status & POSE_VALID:
+            self.poses += 1
+            if status & POSE_FUSED:
+                self.fused_poses += 1
+        return True
+
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the
         diagonal of a 6x6 covariance (``cov[i, i]``)."""
@@ -157,7 +184,8 @@ class Transmitter:
         assert (ext.POSE_ID, ext.POSE_PAYLOAD, ext.POSE_CRC_EXTRA) == (_POSE.ID, 64, _CRC_EXTRA[_POSE.ID][0])
         self._pose_frame = ext.pose_frame
         self.send = self._send_numbered
-        self.pose = self._pose_compiled
+        self.pose = self._pose_own = self._pose_compiled
+        self.fused_pose = self._fused_pose_compiled
         self.core = "compiled"
 
     def _bind_window(self, core) -> None:

@@ -26,6 +26,7 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <math.h>
 #include <string.h>
 
 #include "coiltrack_core.h"
@@ -434,7 +435,43 @@ static PyObject *FusOutput_report(FusOutputObject *self, PyObject *const *args, 
     return PyLong_FromLong((long)od[CT_OUT_STATUS]);
 }
 
+
+/* pose_frame(slot, t_us, seq, src, node, status, quality, range_m) -> bytes or None: the POSE frame
+ * (ct_pose_frame) of output row slot sent with `status` when the row carries no OUT_* bit and its
+ * position lies within range_m of the source (track.magnetic.in_range3); None for any other row or a
+ * value the wire format refuses (the caller sends it through the reference path) */
+static PyObject *FusOutput_pose_frame(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_POSE_FRAME_MAX];
+    const double *od;
+    long long t, seq, src, node, status, quality;
+    double range;
+    int slot, k;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: not bound");
+        return NULL;
+    }
+    if (fus_nargs("pose_frame", nargs, 8) < 0 || fus_slot(args[0], self->ocap, &slot, "pose_frame") < 0 ||
+        fus_long(args[1], &t) < 0 || fus_long(args[2], &seq) < 0 || fus_long(args[3], &src) < 0 ||
+        fus_long(args[4], &node) < 0 || fus_long(args[5], &status) < 0 || fus_long(args[6], &quality) < 0 ||
+        fus_double(args[7], &range) < 0)
+        return NULL;
+    od = self->od + (long)slot * CT_OUT_WIDTH;
+    if (od[CT_OUT_STATUS] != 0.0 || t < 0 ||
+        !(sqrt(od[CT_OUT_P] * od[CT_OUT_P] + od[CT_OUT_P + 1] * od[CT_OUT_P + 1] + od[CT_OUT_P + 2] * od[CT_OUT_P + 2])
+          <= range))
+        Py_RETURN_NONE;
+    k = ct_pose_frame(out, (int)seq, (int)src, (int64_t)node, (uint64_t)t, od + CT_OUT_P, (int64_t)status,
+                      (int64_t)quality);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
 static PyMethodDef FusOutput_methods[] = {
+    {"pose_frame", (PyCFunction)(void (*)(void))FusOutput_pose_frame, METH_FASTCALL,
+     "pose_frame(slot, t_us, seq, src, node, status, quality, range_m) -> bytes or None: the POSE frame of an "
+     "output row without OUT_* bits within range_m (None: the reference path sends it)"},
     {"report", (PyCFunction)(void (*)(void))FusOutput_report, METH_FASTCALL,
      "report(slot, p, q, var) -> status: PoseOutput.into_report's copy of output row slot"},
     {"queue", (PyCFunction)(void (*)(void))FusOutput_queue, METH_FASTCALL,

@@ -115,6 +115,27 @@ class PoseOutput:
             self.queue = self._queue_compiled
             self.into_report = self._into_report_compiled
             self.take_report = self._take_report_compiled
+            self.send_plain = self._send_plain_compiled
+
+    def send_plain(self, tx, node: int, status: int, quality: int, range_m: float) -> bool:
+        """Send the queued poses, oldest first, that need nothing but their frame: no ``OUT_*``
+        bit and within ``range_m`` of the source, sent with ``status`` (``tx.fused_pose``); stops
+        at the first other one (left queued). True when none is left. The Python core sends
+        none here: every pose goes through :meth:`take_report` (the reference)."""
+        return not len(self.out)
+
+    def _send_plain_compiled(self, tx, node: int, status: int, quality: int, range_m: float) -> bool:
+        """:meth:`send_plain` on the compiled core (``ext.FusOutput.pose_frame``: the POSE frame
+        straight from the output row, ``ct_pose_frame``)."""
+        out = self.out
+        otv = self._otv
+        send = tx.fused_pose
+        while len(out):
+            k = out.slot(0)
+            if not send(self._ck, k, otv[k], node, status, quality, range_m):
+                return False
+            out.pop()
+        return True
 
     def _queue_compiled(self, t_us: int, hist: Ring, st: InsState, d, k: int, last_update_t: int,
                         recovering: bool, inconsistent: bool) -> None:

@@ -424,6 +424,7 @@ class SensorInertial:
                                    output_capacity=cfg.fusion.pose_output_capacity, fixed_source=source.fixed,
                                    core=core)
         self._take = self.fusion.output.take_report     # the next queued fused pose into a record
+        self._send_plain = self.fusion.output.send_plain    # the queued poses that need their frame alone
         self._recovery = self.fusion.recovery           # its restarts (read: the events on changes)
         self.source = source
         self._phi = source.phi
@@ -528,6 +529,8 @@ class SensorInertial:
             self.recoveries_seen = rec.recoveries
             self.kept_seen = rec.biases_kept
             tx.event(EVT_TRACK_REINIT, node | (rec.recovery_reason << 8) | ((1 << 12) if kept else 0))
+        if not self.dr_state and self._send_plain(tx, node, _FUSED_VALID, quality, range_m):
+            return                             # (each sent as below: no OUT_* bit, in range)
         r = self._report
         take = self._take
         st = take(r)                           # time, position, quaternion, variances; -1: none
