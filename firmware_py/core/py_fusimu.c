@@ -544,6 +544,30 @@ static int FusLive_init(FusLiveObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
+/* FusLive.sample's work once its arguments are read: IMU ring row k := (f, w, fsrc, Phi), the step
+ * over [t0, t1] (nring entries held), history row h, and output row o when o >= 0 */
+static void fus_live_step(FusLiveObject *self, int k, int nring, int64_t t0, int64_t t1, int h, int o, int64_t age,
+                          int rec, int inc, const double *v, const double *phi)
+{
+    FusPredObject *pr = self->pred;
+    FusOutputObject *out = self->out;
+    double *row, *hd;
+    int i;
+    row = self->row->idv + (long)k * CT_IMU_WIDTH;                   /* FusRow.store */
+    for (i = 0; i < 9; ++i)
+        row[CT_IMU_F + i] = v[i];
+    if (pr->moving)
+        for (i = 0; i < 9; ++i)
+            row[CT_IMU_PHI + i] = phi[i];
+    ct_fus_propagate(&pr->f, k, nring, t0, t1);  /* FusPred.advance */
+    hd = self->hd + (long)h * CT_HIST_WIDTH;
+    ct_fus_to_source(row, pr->moving, pr->f.ins.p, pr->f.ins.Th, hd);
+    if (o >= 0)                                                     /* FusOutput.queue */
+        ct_fus_output(out->od + (long)o * CT_OUT_WIDTH, hd, out->P, out->n, out->Th, row, out->moving,
+                      (double)ct_fus_status(age, (int64_t)out->stale_us, (int64_t)out->dr_after_us,
+                                            (int64_t)out->dr_limit_us, rec, inc));
+}
+
 /* sample(k, nring, t0, t1, h, o, age, recovering, inconsistent, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi):
  * IMU ring row k := the sample (FusRow.store), the live state stepped over [t0, t1]
  * (ct_fus_propagate), history row h := its pose in the source frame (ct_fus_to_source), and, when
@@ -552,7 +576,7 @@ static PyObject *FusLive_sample(FusLiveObject *self, PyObject *const *args, Py_s
 {
     FusPredObject *pr = self->pred;
     FusOutputObject *out = self->out;
-    double v[9], phi[9], *row, *hd;
+    double v[9], phi[9];
     long long nring, t0, t1, o, age;
     int k, h, i, rec, inc;
     if (pr == NULL) {
@@ -574,19 +598,7 @@ static PyObject *FusLive_sample(FusLiveObject *self, PyObject *const *args, Py_s
             return NULL;
     if (pr->moving && fus_matrix3(args[18], phi) < 0)
         return NULL;
-    row = self->row->idv + (long)k * CT_IMU_WIDTH;                   /* FusRow.store */
-    for (i = 0; i < 9; ++i)
-        row[CT_IMU_F + i] = v[i];
-    if (pr->moving)
-        for (i = 0; i < 9; ++i)
-            row[CT_IMU_PHI + i] = phi[i];
-    ct_fus_propagate(&pr->f, k, (int)nring, (int64_t)t0, (int64_t)t1);  /* FusPred.advance */
-    hd = self->hd + (long)h * CT_HIST_WIDTH;
-    ct_fus_to_source(row, pr->moving, pr->f.ins.p, pr->f.ins.Th, hd);
-    if (o >= 0)                                                     /* FusOutput.queue */
-        ct_fus_output(out->od + (long)o * CT_OUT_WIDTH, hd, out->P, out->n, out->Th, row, out->moving,
-                      (double)ct_fus_status((int64_t)age, (int64_t)out->stale_us, (int64_t)out->dr_after_us,
-                                            (int64_t)out->dr_limit_us, rec, inc));
+    fus_live_step(self, k, (int)nring, (int64_t)t0, (int64_t)t1, h, (int)o, (int64_t)age, rec, inc, v, phi);
     Py_RETURN_NONE;
 }
 
@@ -1124,6 +1136,158 @@ static PyTypeObject OriStepType = {
     .tp_methods = OriStep_methods,
 };
 
+
+/* --------------------------------------------------------------- ImuSample */
+/* One IMU sample of a sensor of a fused tracker in one call (track.burst_fusion.SensorInertial
+ * .process on a sample both parts take whole): the sample off the sensor's IMU ring, the orientation
+ * filter's step (OriStep, ct_ori_sample), and the fusion filter's forward step (FusLive) with the
+ * sample kept in its IMU ring, the pose in the live history and the fused pose queued; the rings'
+ * heads and counts in their int64 arrays (fusion_rings.KernelRing), the latest bias-free rate into
+ * w_last. */
+typedef struct {
+    PyObject_HEAD
+    OriStepObject *ori;
+    FusLiveObject *live;
+    int64_t *in_hc, *in_t, *pi_hc, *pi_t, *hi_hc, *hi_t, *ou_hc, *ou_t;
+    const double *in_d;
+    double *wl;
+    int64_t in_cap, pi_cap, hi_cap, ou_cap;
+    fus_views views;
+} ImuSampleObject;
+
+static void ImuSample_dealloc(ImuSampleObject *self)
+{
+    Py_XDECREF(self->ori);
+    Py_XDECREF(self->live);
+    fus_release(&self->views);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* a KernelRing's (t, hc) bound; its capacity */
+static int imu_ring_bind(ImuSampleObject *self, PyObject *t, PyObject *hc, int64_t **tp, int64_t **hp,
+                         int64_t *cap, const char *what)
+{
+    Py_ssize_t n = PyObject_Length(t);
+    if (n < 2) {
+        if (!PyErr_Occurred())
+            PyErr_Format(PyExc_ValueError, "ImuSample: %s needs at least 2 slots", what);
+        return -1;
+    }
+    if (!(*tp = fus_bind(&self->views, t, n, 'q', 1, what)) || !(*hp = fus_bind(&self->views, hc, 2, 'q', 1, what)))
+        return -1;
+    *cap = n;
+    return 0;
+}
+
+static int ImuSample_init(ImuSampleObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"ori", "live", "in_t", "in_d", "in_hc", "pi_t", "pi_hc", "hi_t", "hi_hc", "ou_t",
+                             "ou_hc", "w_last", NULL};
+    PyObject *ori, *live, *o[10];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!OOOOOOOOOO", kwlist, &OriStepType, &ori, &FusLiveType, &live,
+                                     &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9]))
+        return -1;
+    if (fus_fresh(&self->views, "ImuSample") < 0)
+        return -1;
+    if (((OriStepObject *)ori)->nv == 0 || ((FusLiveObject *)live)->pred == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: OriStep or FusLive not bound");
+        return -1;
+    }
+    if (imu_ring_bind(self, o[0], o[2], &self->in_t, &self->in_hc, &self->in_cap, "in") < 0 ||
+        !(self->in_d = fus_bind(&self->views, o[1], self->in_cap * 6, 'd', 0, "in_d")) ||
+        imu_ring_bind(self, o[3], o[4], &self->pi_t, &self->pi_hc, &self->pi_cap, "pi") < 0 ||
+        imu_ring_bind(self, o[5], o[6], &self->hi_t, &self->hi_hc, &self->hi_cap, "hi") < 0 ||
+        imu_ring_bind(self, o[7], o[8], &self->ou_t, &self->ou_hc, &self->ou_cap, "ou") < 0 ||
+        !(self->wl = fus_bind(&self->views, o[9], 3, 'd', 1, "w_last"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    {
+        FusLiveObject *lv = (FusLiveObject *)live;
+        if (self->pi_cap != lv->pred->f.icap || self->hi_cap != lv->out->hcap || self->ou_cap != lv->out->ocap) {
+            fus_release(&self->views);
+            PyErr_SetString(PyExc_ValueError, "ImuSample: the rings are not the ones FusLive is bound to");
+            return -1;
+        }
+    }
+    Py_INCREF(ori);
+    Py_INCREF(live);
+    self->ori = (OriStepObject *)ori;
+    self->live = (FusLiveObject *)live;
+    return 0;
+}
+
+/* sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, rx, ry, rz, Phi)
+ * -> the orientation step's CT_OS_* bits: the oldest sample of the sensor's IMU ring (its time t)
+ * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0 */
+static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long tp, n, head, count, pc, ic, mc, t0, age;
+    double v[9], phi[9];
+    const double *d, *b;
+    int64_t k, t, kf, h, o;
+    int r, rec, inc, i;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("sample", nargs, 15) < 0 || fus_long(args[0], &tp) < 0 || fus_long(args[1], &n) < 0 ||
+        fus_long(args[2], &head) < 0 || fus_long(args[3], &count) < 0 || fus_long(args[4], &pc) < 0 ||
+        fus_long(args[5], &ic) < 0 || fus_long(args[6], &mc) < 0 || fus_long(args[7], &t0) < 0 ||
+        fus_long(args[8], &age) < 0)
+        return NULL;
+    if ((rec = PyObject_IsTrue(args[9])) < 0 || (inc = PyObject_IsTrue(args[10])) < 0)
+        return NULL;
+    for (i = 0; i < 3; ++i)
+        if (fus_double(args[11 + i], &v[6 + i]) < 0)
+            return NULL;
+    if (self->live->pred->moving && fus_matrix3(args[14], phi) < 0)
+        return NULL;
+    if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
+        PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
+        return NULL;
+    }
+    if ((k = ct_ring_pop(self->in_hc, self->in_cap)) < 0) {
+        PyErr_SetString(PyExc_IndexError, "sample: the IMU ring is empty");
+        return NULL;
+    }
+    t = self->in_t[k];
+    d = self->in_d + 6 * k;
+    for (i = 0; i < 6; ++i)
+        v[i] = d[i];
+    r = ct_ori_sample(&self->ori->o, t, v[0], v[1], v[2], v[3], v[4], v[5], (int64_t)tp, (int)n, (int64_t)head,
+                      (int64_t)count, (int64_t)pc, (int64_t)ic, (int64_t)mc);
+    o = ct_ring_push(self->ou_hc, self->ou_cap, self->ou_t, t);          /* PoseOutput's row */
+    kf = ct_ring_push(self->pi_hc, self->pi_cap, self->pi_t, t);         /* InertialPrediction.sample */
+    h = ct_ring_push(self->hi_hc, self->hi_cap, self->hi_t, t);
+    fus_live_step(self->live, (int)kf, (int)self->pi_hc[1], (int64_t)t0, t, (int)h, (int)o, (int64_t)age, rec, inc,
+                  v, phi);
+    b = self->ori->o.pred.bias;                                          /* SensorInertial.w_last */
+    self->wl[0] = v[3] - b[0];
+    self->wl[1] = v[4] - b[1];
+    self->wl[2] = v[5] - b[2];
+    return PyLong_FromLong(r);
+}
+
+static PyMethodDef ImuSample_methods[] = {
+    {"sample", (PyCFunction)(void (*)(void))ImuSample_sample, METH_FASTCALL,
+     "sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, rx, ry, rz, Phi) "
+     "-> bits: the oldest IMU sample through the orientation filter (OriStep) and the fusion filter (FusLive)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ImuSampleType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ImuSample",
+    .tp_basicsize = sizeof(ImuSampleObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "ImuSample(ori, live, in_t, in_d, in_hc, pi_t, pi_hc, hi_t, hi_hc, ou_t, ou_hc, w_last): one IMU "
+              "sample of a fused tracker's sensor (its ring, the orientation filter, the fusion filter) in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)ImuSample_init,
+    .tp_dealloc = (destructor)ImuSample_dealloc,
+    .tp_methods = ImuSample_methods,
+};
+
 /* --------------------------------------------------------------- register */
 static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -1143,7 +1307,8 @@ int ct_register_fusimu(PyObject *m)
         fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0 ||
         fus_add(m, &OriUpdType, "OriUpd") < 0 ||
         fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0 ||
-        fus_add(m, &OriStepType, "OriStep") < 0)
+        fus_add(m, &OriStepType, "OriStep") < 0 ||
+        fus_add(m, &ImuSampleType, "ImuSample") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||

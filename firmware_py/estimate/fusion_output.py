@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import HIST_FIELDS, HIST_P, HIST_R, InsState
 from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
 from coiltrack.firmware.ring import Ring, field_slices
 from coiltrack.firmware.rotation import quat_from_elements
 
@@ -39,7 +40,7 @@ class PoseHistory:
     """The live pose history (``live``) and the one a replay writes (``shadow``), source frame."""
 
     def __init__(self, capacity: int):
-        self.live = Ring(capacity, HIST_FIELDS)
+        self.live = KernelRing(capacity, HIST_FIELDS)    # (its head and count shared: ext.ImuSample)
         self.shadow = Ring(capacity, HIST_FIELDS)
 
     def rewind_shadow(self, t_ref_us: int) -> None:
@@ -100,7 +101,7 @@ class PoseOutput:
                  imu: Ring | None = None, hist: Ring | None = None):
         self.prm = params
         self.frame = frame
-        self.out = Ring(capacity, OUT_FIELDS)
+        self.out = KernelRing(capacity, OUT_FIELDS)      # (its head and count shared: ext.ImuSample)
         self._otv, self._odv = self.out.tv, self.out.dv
         self.dropped = 0
         ext = core.ext

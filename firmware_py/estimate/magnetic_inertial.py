@@ -371,6 +371,28 @@ class FusionFilter(FilterView):
                                fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
         return True
 
+    def live_ready(self, t_us: int) -> bool:
+        """The sample at ``t_us`` takes :meth:`_push_imu_compiled`'s one-call path (its conditions):
+        then :meth:`live_sample` may step it together with the sensor's orientation filter."""
+        st = self.st
+        t0 = st.t_us
+        return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us and not self.snap.due(t0, t_us) \
+            and self.recorder is None and not self.output.out.full and (st.pred.count + 1) % SYMMETRIZE_EVERY != 0
+
+    def live_sample(self, kernel, t_us: int, t_prev: int, n: int, head: int, count: int, pcount: int, icount: int,
+                    mcount: int, rx, ry, rz, Phi) -> int:
+        """One sample (at ``t_us``, the oldest of the sensor's IMU ring) that :meth:`live_ready` let through,
+        with the source's specific force ``r*`` and orientation ``Phi``, stepped by ``kernel``
+        (``ext.ImuSample``, ``track.burst_fusion.SensorInertial``'s): the orientation filter's step
+        (its arguments: ``ext.OriStep.sample``'s) and this filter's forward step as
+        :meth:`_push_imu_compiled` makes it, in one call; the orientation step's bits."""
+        st = self.st
+        r = kernel.sample(t_prev, n, head, count, pcount, icount, mcount, st.t_us, t_us - self.last_update_t,
+                          self.recovery.recovering, bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)),
+                          rx, ry, rz, Phi)
+        self.prediction.sampled(st, t_us)
+        return r
+
     def _after_push(self, t_us: int, k: int) -> bool:
         """:meth:`push_imu` after the sample is kept in ring slot ``k``."""
         st = self.st

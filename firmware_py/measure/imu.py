@@ -3,13 +3,15 @@ from __future__ import annotations
 
 from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
 
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
 from coiltrack.firmware.ring import Ring
 
 
-class ImuRing(Ring):
+class ImuRing(KernelRing):
     """Fixed-capacity ring of received IMU samples (time, specific force
     m/s^2, rate rad/s; sensor frame), drained by the tick (``pop``). A full
-    ring drops its oldest sample (counted)."""
+    ring drops its oldest sample (counted). Its head and count are shared with the compiled
+    per-sample path (``estimate.fusion_rings.KernelRing``)."""
 
     def __init__(self, capacity: int):
         super().__init__(capacity, (("F", 3), ("W", 3)))

@@ -184,6 +184,8 @@ class _Ori:
             self.step = self._step_compiled
 
     compass_t = property(lambda self: self._ctv[0])     # the last compass sample's time (us)
+    kernel = property(lambda self: self._ext)            # the compiled core's module (None: Python)
+    sample_kernel = property(lambda self: self._sk)      # ext.OriStep (bound by takes)
 
     def _bind_sample(self, mag: SampleRing) -> None:
         """``ext.OriStep`` bound to the filter, its updates, ``mag`` and the gate's schedule."""
@@ -194,21 +196,33 @@ class _Ori:
                                      DIST.start)
         self._sring = mag
 
-    def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
-        """:meth:`step` of a sample the compiled core takes whole (``ext.OriStep.sample``: the compass
-        sample, the set/reset offset, the prediction and the update round, the operations of
-        :meth:`step_python` in its order): an initialised filter, no break in the stream, the compass
-        learned and no orthonormalisation due; any other sample goes through :meth:`step_python`."""
+    def takes(self, t: int, mag: SampleRing) -> bool:
+        """The compiled core takes the sample at ``t`` whole (``ext.OriStep``, bound to ``mag`` here):
+        an initialised filter, no break in the stream, the compass learned and no
+        orthonormalisation due."""
         f = self.f
         if not f.initialized or t - f.t_us > self.gap_us or f.learning or (t > f.t_us and (f.steps + 1) & 63 == 0):
-            self.step_python(t, ax, ay, az, wx, wy, wz, mag)
-            return
+            return False
         if mag is not self._sring:
             self._bind_sample(mag)
+        return True
+
+    def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        """:meth:`step` of a sample the compiled core takes whole (:meth:`takes`; ``ext.OriStep.sample``:
+        the compass sample, the set/reset offset, the prediction and the update round, the
+        operations of :meth:`step_python` in its order); any other goes through :meth:`step_python`."""
+        if not self.takes(t, mag):
+            self.step_python(t, ax, ay, az, wx, wy, wz, mag)
+            return
+        f = self.f
         h = mag.last_pushed_slot() + 1                 # (the ring's head: the next push's slot)
-        r = self._sk.sample(t, ax, ay, az, wx, wy, wz, f.t_us, self.n, h if h < mag.capacity else 0, len(mag),
-                            f.pred.count, f.incl.upd.count, f.compass.upd.count)
-        f.sample_done(t, r)
+        self.sampled(t, self._sk.sample(t, ax, ay, az, wx, wy, wz, f.t_us, self.n, h if h < mag.capacity else 0,
+                                        len(mag), f.pred.count, f.incl.upd.count, f.compass.upd.count))
+
+    def sampled(self, t: int, r: int) -> None:
+        """The bookkeeping of a sample at ``t`` the compiled core took whole (what it did: the
+        ``orientation.OS_*`` bits ``r``)."""
+        self.f.sample_done(t, r)
         if r & OS_ROUND:
             self.n = 0
             if r & OS_MAG:
@@ -463,7 +477,16 @@ class SensorInertial:
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
         self.burst_rms_s = cfg.timing.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0) if burst_rms_s is None \
             else float(burst_rms_s)
-        self.w_last = [0.0, 0.0, 0.0]      # latest rate, offset removed (rad/s)
+        self._wl = np.zeros(3)
+        self.w_last = memoryview(self._wl)  # latest rate, offset removed (rad/s)
+        # a sample both filters take whole in one call of the compiled core (ext.ImuSample: the IMU
+        # ring's sample, the orientation filter's step, the fusion filter's forward step), bound at
+        # the first such sample
+        self._ks = None
+        self._ks_ring = None
+        if getattr(self.ori, "takes", None) is not None and getattr(self.fusion, "live_ready", None) is not None \
+                and self.fusion.st.ck is not None:
+            self.process = self._process_compiled
         self.compensated = 0
         self.comp_rejected = 0
         self.fused = 0
@@ -506,6 +529,56 @@ class SensorInertial:
             push(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
             self.samples += 1
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
+
+    def _process_compiled(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
+        """:meth:`process` on the compiled core: a sample both filters take whole (``_Ori.takes``,
+        ``FusionFilter.live_ready``) is one call (``ext.ImuSample`` through ``FusionFilter.live_sample``:
+        the same steps in the same order); any other goes as in :meth:`process`."""
+        ring = self.imu
+        if not len(ring):
+            return
+        ori, fus = self.ori, self.fusion
+        f = ori.f
+        hold = None if self.source.fixed else self.source.hold
+        tv = ring.tv
+        phi, fr = self._phiv, self._frv
+        while max_steps > 0 and len(ring):
+            max_steps -= 1
+            t = tv[ring.slot(0)]
+            if hold is not None and hold(t, now_us, wait_us):
+                return
+            if ori.takes(t, mag) and fus.live_ready(t):
+                ks = self._ks if self._ks_ring is mag else self._bind_sample(mag)
+                h = mag.last_pushed_slot() + 1
+                ori.sampled(t, fus.live_sample(ks, t, f.t_us, ori.n, h if h < mag.capacity else 0, len(mag),
+                                               f.pred.count, f.incl.upd.count, f.compass.upd.count, fr[0], fr[1],
+                                               fr[2], phi))
+            else:
+                self._sample_python(mag)
+            self.samples += 1
+
+    def _sample_python(self, mag: SampleRing) -> None:
+        """The oldest sample through :meth:`process`'s steps one by one."""
+        s6 = self._s6
+        t = self.imu.pop_sample(s6)
+        ax, ay, az, wx, wy, wz = s6
+        self.ori.step(t, ax, ay, az, wx, wy, wz, mag)
+        fr = self._frv
+        self.fusion.push_imu(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], self._phiv)
+        b = self.ori.f.bias_v
+        wl = self.w_last
+        wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
+
+    def _bind_sample(self, mag: SampleRing):
+        """``ext.ImuSample`` bound to this sensor's rings, its filters' kernels (the orientation
+        filter's as bound to ``mag``) and ``w_last``."""
+        fus = self.fusion
+        pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
+        self._ks = self.ori.kernel.ImuSample(self.ori.sample_kernel, fus.prediction.live_kernel, self.imu.t,
+                                             self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
+                                             out.hc, self._wl)
+        self._ks_ring = mag
+        return self._ks
 
     def on_solution(self, solver, solved: bool) -> None:
         """The burst's magnetic-only solution (``solver`` holds it) is to be fused; none

@@ -148,4 +148,9 @@ void ct_incl_observe(double *inc, const double *R, double gravity, double gain, 
                      double az, double dt);
 void ct_symmetrize(int n, double *P, double *T);
 
+/* ring.Ring.push / pop on a ring whose head and count are hc[0], hc[1] (fusion_rings.KernelRing):
+ * the slot pushed (its time written into tv) or popped (-1: empty) */
+int64_t ct_ring_push(int64_t *hc, int64_t cap, int64_t *tv, int64_t t);
+int64_t ct_ring_pop(int64_t *hc, int64_t cap);
+
 #endif /* CT_FUSIMU_H */

@@ -594,3 +594,27 @@ int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, 
     }
     return r | (nprop << CT_OS_PROP_SHIFT);
 }
+
+/* ring.Ring.push: the next slot gets time t; a full ring overwrites its oldest entry */
+int64_t ct_ring_push(int64_t *hc, int64_t cap, int64_t *tv, int64_t t)
+{
+    int64_t p = hc[0], n = p + 1;
+    tv[p] = t;
+    hc[0] = n == cap ? 0 : n;
+    if (hc[1] < cap)
+        hc[1] += 1;
+    return p;
+}
+
+/* ring.Ring.pop: the oldest entry's slot, or -1 when empty */
+int64_t ct_ring_pop(int64_t *hc, int64_t cap)
+{
+    int64_t p;
+    if (hc[1] == 0)
+        return -1;
+    p = hc[0] - hc[1];
+    if (p < 0)
+        p += cap;
+    hc[1] -= 1;
+    return p;
+}
