@@ -398,22 +398,16 @@ class OrientationFilter:
             self._orthonormalize()
 
     def sample_done(self, t_us: int, r: int) -> None:
-        """The bookkeeping of one sample the compiled core ran whole (``ct_ori_sample``, what it did in
-        the ``OS_*`` bits ``r``): the time, the step count, the updates' and the propagations' counts
-        (their symmetrisations ran in the kernel) and the updates' flags."""
+        """The bookkeeping of a sample the compiled core ran whole (``ct_ori_sample``; what it did: the
+        ``OS_*`` bits ``r``): time, steps, the counts (its symmetrisations ran in it), the flags."""
         self.t_us = t_us
-        if r & OS_PREDICTED:
-            self.steps += 1
-        if not r & OS_ROUND:
-            return
-        if r & OS_FREEFALL:
-            self.last_acc_flags = ORI_FREEFALL
-        elif r & OS_ACC:
-            self.last_acc_flags = self.incl.upd.counted((r >> 8) & 15)
-        if r >> 16:
+        self.steps += r & OS_PREDICTED
+        if r & OS_ROUND:
+            if r & (OS_FREEFALL | OS_ACC):
+                self.last_acc_flags = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)
             self.pred.set_count(self.pred.count + (r >> 16))
-        if r & OS_MAG:
-            self.last_mag_flags = self.compass.upd.counted((r >> 12) & 15)
+            if r & OS_MAG:
+                self.last_mag_flags = self.compass.upd.counted((r >> 12) & 15)
 
     def propagate(self) -> None:
         """Covariance over the steps since the last call (eq 2.28 and the

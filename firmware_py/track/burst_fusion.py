@@ -415,6 +415,56 @@ def make_source(cfg, gate: PulseGate, core=_DEFAULT_CORE):
                           core)
 
 
+class _OneCall:
+    """:meth:`SensorInertial.process` on the compiled core: a sample both filters take whole
+    (``_Ori.takes``, ``FusionFilter.live_ready``) is one call (``ext.ImuSample`` through
+    ``FusionFilter.live_sample``: the sample off the IMU ring, the orientation filter's step, the
+    fusion filter's forward step, ``w_last``; the same steps in the same order), bound at the first
+    such sample; any other goes through ``slow`` (the steps one by one)."""
+
+    def __init__(self, imu, ori: _Ori, fusion, source, w_last, slow):
+        self.imu, self.ori, self.fusion, self.source, self.w_last, self.slow = imu, ori, fusion, source, w_last, slow
+        self._phiv = memoryview(source.phi)
+        self._frv = memoryview(source.fref)
+        self.kernel = None
+        self._ring = None
+
+    def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
+        """:meth:`SensorInertial.process`'s loop; the samples processed."""
+        ring, ori, fus = self.imu, self.ori, self.fusion
+        f = ori.f
+        hold = None if self.source.fixed else self.source.hold
+        tv = ring.tv
+        phi, fr = self._phiv, self._frv
+        n = 0
+        while max_steps > 0 and len(ring):
+            max_steps -= 1
+            t = tv[ring.slot(0)]
+            if hold is not None and hold(t, now_us, wait_us):
+                break
+            if ori.takes(t, mag) and fus.live_ready(t):
+                ks = self.kernel if self._ring is mag else self._bind(mag)
+                h = mag.last_pushed_slot() + 1
+                ori.sampled(t, fus.live_sample(ks, t, f.t_us, ori.n, h if h < mag.capacity else 0, len(mag),
+                                               f.pred.count, f.incl.upd.count, f.compass.upd.count, fr[0], fr[1],
+                                               fr[2], phi))
+            else:
+                self.slow(mag)
+            n += 1
+        return n
+
+    def _bind(self, mag: SampleRing):
+        """``ext.ImuSample`` bound to the rings, the filters' kernels (the orientation filter's as bound
+        to ``mag``) and ``w_last``."""
+        fus = self.fusion
+        pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
+        self.kernel = self.ori.kernel.ImuSample(self.ori.sample_kernel, fus.prediction.live_kernel, self.imu.t,
+                                                self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
+                                                out.hc, self.w_last)
+        self._ring = mag
+        return self.kernel
+
+
 class SensorInertial:
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
@@ -479,13 +529,8 @@ class SensorInertial:
             else float(burst_rms_s)
         self._wl = np.zeros(3)
         self.w_last = memoryview(self._wl)  # latest rate, offset removed (rad/s)
-        # a sample both filters take whole in one call of the compiled core (ext.ImuSample: the IMU
-        # ring's sample, the orientation filter's step, the fusion filter's forward step), bound at
-        # the first such sample
-        self._ks = None
-        self._ks_ring = None
-        if getattr(self.ori, "takes", None) is not None and getattr(self.fusion, "live_ready", None) is not None \
-                and self.fusion.st.ck is not None:
+        if getattr(self.ori, "takes", None) is not None and self.fusion.st.ck is not None:
+            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self._wl, self._sample_python)
             self.process = self._process_compiled
         self.compensated = 0
         self.comp_rejected = 0
@@ -531,31 +576,9 @@ class SensorInertial:
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
 
     def _process_compiled(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
-        """:meth:`process` on the compiled core: a sample both filters take whole (``_Ori.takes``,
-        ``FusionFilter.live_ready``) is one call (``ext.ImuSample`` through ``FusionFilter.live_sample``:
-        the same steps in the same order); any other goes as in :meth:`process`."""
-        ring = self.imu
-        if not len(ring):
-            return
-        ori, fus = self.ori, self.fusion
-        f = ori.f
-        hold = None if self.source.fixed else self.source.hold
-        tv = ring.tv
-        phi, fr = self._phiv, self._frv
-        while max_steps > 0 and len(ring):
-            max_steps -= 1
-            t = tv[ring.slot(0)]
-            if hold is not None and hold(t, now_us, wait_us):
-                return
-            if ori.takes(t, mag) and fus.live_ready(t):
-                ks = self._ks if self._ks_ring is mag else self._bind_sample(mag)
-                h = mag.last_pushed_slot() + 1
-                ori.sampled(t, fus.live_sample(ks, t, f.t_us, ori.n, h if h < mag.capacity else 0, len(mag),
-                                               f.pred.count, f.incl.upd.count, f.compass.upd.count, fr[0], fr[1],
-                                               fr[2], phi))
-            else:
-                self._sample_python(mag)
-            self.samples += 1
+        """:meth:`process` on the compiled core (:class:`_OneCall`)."""
+        if len(self.imu):
+            self.samples += self._one.run(mag, now_us, wait_us, max_steps)
 
     def _sample_python(self, mag: SampleRing) -> None:
         """The oldest sample through :meth:`process`'s steps one by one."""
@@ -568,17 +591,6 @@ class SensorInertial:
         b = self.ori.f.bias_v
         wl = self.w_last
         wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
-
-    def _bind_sample(self, mag: SampleRing):
-        """``ext.ImuSample`` bound to this sensor's rings, its filters' kernels (the orientation
-        filter's as bound to ``mag``) and ``w_last``."""
-        fus = self.fusion
-        pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
-        self._ks = self.ori.kernel.ImuSample(self.ori.sample_kernel, fus.prediction.live_kernel, self.imu.t,
-                                             self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
-                                             out.hc, self._wl)
-        self._ks_ring = mag
-        return self._ks
 
     def on_solution(self, solver, solved: bool) -> None:
         """The burst's magnetic-only solution (``solver`` holds it) is to be fused; none

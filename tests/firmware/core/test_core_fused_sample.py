@@ -207,7 +207,7 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     assert f.compass.upd.rejected > 0 or heading_only       # the disturbance gated
     assert got.ori.flip.si[2] >= 2                           # flips seen
     assert got.fusion.out_dropped > 0 and got.fusion.snap.valid
-    assert got._ks is not None and sep._ks is None and ref._ks is None and len(calls) > 400   # one call each
+    assert got._one.kernel is not None and sep._one.kernel is None and len(calls) > 400   # one call each
     # the POSE frames: the same bytes on the one-call path as through PoseReport and pose
     fa, fb, fr = sens["got"][1].port.frames, sens["sep"][1].port.frames, sens["ref"][1].port.frames
     assert len(fa) == len(fb) == len(fr) > 300
