@@ -1219,7 +1219,8 @@ static int ImuSample_init(ImuSampleObject *self, PyObject *args, PyObject *kw)
 
 /* sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, rx, ry, rz, Phi)
  * -> the orientation step's CT_OS_* bits: the oldest sample of the sensor's IMU ring (its time t)
- * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0 */
+ * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0;
+ * -1 (nothing done) when the output queue is full (PoseOutput.queue would drop the pose) */
 static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     long long tp, n, head, count, pc, ic, mc, t0, age;
@@ -1247,6 +1248,8 @@ static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, 
         PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
         return NULL;
     }
+    if (self->ou_hc[1] == self->ou_cap)                                  /* the output queue is full */
+        return PyLong_FromLong(-1);
     if ((k = ct_ring_pop(self->in_hc, self->in_cap)) < 0) {
         PyErr_SetString(PyExc_IndexError, "sample: the IMU ring is empty");
         return NULL;
@@ -1269,7 +1272,28 @@ static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, 
     return PyLong_FromLong(r);
 }
 
+/* peek() -> the time of the oldest sample of the IMU ring, or -1 when it is empty */
+static PyObject *ImuSample_peek(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t p;
+    (void)args;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("peek", nargs, 0) < 0)
+        return NULL;
+    if (self->in_hc[1] <= 0)
+        return PyLong_FromLong(-1);
+    p = self->in_hc[0] - self->in_hc[1];
+    if (p < 0)
+        p += self->in_cap;
+    return PyLong_FromLongLong((long long)self->in_t[p]);
+}
+
 static PyMethodDef ImuSample_methods[] = {
+    {"peek", (PyCFunction)(void (*)(void))ImuSample_peek, METH_FASTCALL,
+     "peek() -> the time of the IMU ring's oldest sample, or -1 when it is empty"},
     {"sample", (PyCFunction)(void (*)(void))ImuSample_sample, METH_FASTCALL,
      "sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, rx, ry, rz, Phi) "
      "-> bits: the oldest IMU sample through the orientation filter (OriStep) and the fusion filter (FusLive)"},

@@ -372,12 +372,15 @@ class FusionFilter(FilterView):
         return True
 
     def live_ready(self, t_us: int) -> bool:
-        """The sample at ``t_us`` takes :meth:`_push_imu_compiled`'s one-call path (its conditions):
-        then :meth:`live_sample` may step it together with the sensor's orientation filter."""
+        """The sample at ``t_us`` takes :meth:`_push_imu_compiled`'s one-call path (its conditions but
+        the output queue's room, which :meth:`live_sample`'s kernel tests): then :meth:`live_sample`
+        may step it together with the sensor's orientation filter."""
         st = self.st
         t0 = st.t_us
-        return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us and not self.snap.due(t0, t_us) \
-            and self.recorder is None and not self.output.out.full and (st.pred.count + 1) % SYMMETRIZE_EVERY != 0
+        snap = self.snap
+        return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
+            and not (snap.pending and t0 < snap.t <= t_us) and self.recorder is None \
+            and (st.pred.count + 1) % SYMMETRIZE_EVERY != 0
 
     def live_sample(self, kernel, t_us: int, t_prev: int, n: int, head: int, count: int, pcount: int, icount: int,
                     mcount: int, rx, ry, rz, Phi) -> int:
@@ -385,12 +388,14 @@ class FusionFilter(FilterView):
         with the source's specific force ``r*`` and orientation ``Phi``, stepped by ``kernel``
         (``ext.ImuSample``, ``track.burst_fusion.SensorInertial``'s): the orientation filter's step
         (its arguments: ``ext.OriStep.sample``'s) and this filter's forward step as
-        :meth:`_push_imu_compiled` makes it, in one call; the orientation step's bits."""
+        :meth:`_push_imu_compiled` makes it, in one call; the orientation step's bits, or -1 (nothing
+        done) when the output queue is full."""
         st = self.st
         r = kernel.sample(t_prev, n, head, count, pcount, icount, mcount, st.t_us, t_us - self.last_update_t,
                           self.recovery.recovering, bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)),
                           rx, ry, rz, Phi)
-        self.prediction.sampled(st, t_us)
+        if r >= 0:
+            self.prediction.sampled(st, t_us)
         return r
 
     def _after_push(self, t_us: int, k: int) -> bool:

@@ -126,13 +126,10 @@ class Compass:
         self._s[CS_NORM] = 1.0
         self._s[CS_DIP] = 0.0
         self._learn = 0
+        self.learning = False            # still learning |m| and the dip (``_learn > 0``)
         self._sum_h = 0.0
         self._sum_v = 0.0
         self._sum_n = 0.0
-
-    @property
-    def learning(self) -> bool:
-        return self._learn > 0
 
     m_ref = property(lambda self: self._s[CS_MREF])      # |earth field|, T
     qwd = property(lambda self: self._s[CS_QWD])          # the disturbance's driving noise (eq 2.12)
@@ -150,6 +147,7 @@ class Compass:
         # estimated) would tilt the reference. The first half of the window
         # only lets the inclination settle and is not averaged.
         self._learn = 2 * self.prm.mag_learn_samples
+        self.learning = self._learn > 0
         self._sum_h = self._sum_v = self._sum_n = 0.0
         self._s[CS_NORM] = 1.0
         self._s[CS_DIP] = math.atan2(hu, abs(hn))
@@ -157,7 +155,7 @@ class Compass:
     def learn(self, R, mx, my, mz) -> bool:
         """While learning (True): the sample goes into ``|m|`` and the dip (eqs 2.8-2.10)."""
         if self._learn > self.prm.mag_learn_samples:
-            self._learn -= 1
+            self._learn -= 1                 # (still > 0: learning)
             return True
         if self._learn > 0:
             gx = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz
@@ -167,6 +165,7 @@ class Compass:
             self._sum_v += gz
             self._sum_n += math.sqrt(mx * mx + my * my + mz * mz)
             self._learn -= 1
+            self.learning = self._learn > 0
             if self._learn == 0:
                 k = self.prm.mag_learn_samples
                 hh, hv, mn = self._sum_h / k, self._sum_v / k, self._sum_n / k

@@ -187,6 +187,12 @@ class _Ori:
     kernel = property(lambda self: self._ext)            # the compiled core's module (None: Python)
     sample_kernel = property(lambda self: self._sk)      # ext.OriStep (bound by takes)
 
+    def bind(self, mag: SampleRing):
+        """``ext.OriStep`` bound to ``mag`` (the one of the samples :meth:`ready` lets through)."""
+        if mag is not self._sring:
+            self._bind_sample(mag)
+        return self._sk
+
     def _bind_sample(self, mag: SampleRing) -> None:
         """``ext.OriStep`` bound to the filter, its updates, ``mag`` and the gate's schedule."""
         f, g, fl = self.f, self.gate, self.flip
@@ -197,15 +203,20 @@ class _Ori:
         self._sring = mag
 
     def takes(self, t: int, mag: SampleRing) -> bool:
-        """The compiled core takes the sample at ``t`` whole (``ext.OriStep``, bound to ``mag`` here):
-        an initialised filter, no break in the stream, the compass learned and no
-        orthonormalisation due."""
-        f = self.f
-        if not f.initialized or t - f.t_us > self.gap_us or f.learning or (t > f.t_us and (f.steps + 1) & 63 == 0):
+        """The compiled core takes the sample at ``t`` whole (:meth:`ready`; ``ext.OriStep``, bound to
+        ``mag`` here)."""
+        if not self.ready(t):
             return False
         if mag is not self._sring:
             self._bind_sample(mag)
         return True
+
+    def ready(self, t: int) -> bool:
+        """The sample at ``t`` is one the compiled core takes whole: an initialised filter, no break
+        in the stream, the compass learned and no orthonormalisation due."""
+        f = self.f
+        return f.initialized and t - f.t_us <= self.gap_us and not f.compass.learning \
+            and (t <= f.t_us or (f.steps + 1) & 63 != 0)
 
     def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         """:meth:`step` of a sample the compiled core takes whole (:meth:`takes`; ``ext.OriStep.sample``:
@@ -219,9 +230,11 @@ class _Ori:
         self.sampled(t, self._sk.sample(t, ax, ay, az, wx, wy, wz, f.t_us, self.n, h if h < mag.capacity else 0,
                                         len(mag), f.pred.count, f.incl.upd.count, f.compass.upd.count))
 
-    def sampled(self, t: int, r: int) -> None:
+    def sampled(self, t: int, r: int) -> bool:
         """The bookkeeping of a sample at ``t`` the compiled core took whole (what it did: the
-        ``orientation.OS_*`` bits ``r``)."""
+        ``orientation.OS_*`` bits ``r``); False (nothing done) for ``r`` < 0: the core did not take it."""
+        if r < 0:
+            return False
         self.f.sample_done(t, r)
         if r & OS_ROUND:
             self.n = 0
@@ -229,6 +242,7 @@ class _Ori:
                 self.compass_used += 1
         else:
             self.n += 1
+        return True
 
     def _quiet(self, mag: SampleRing, t: int) -> int:
         """:func:`quiet_sample` for the IMU sample at ``t``, on the filter's core."""
@@ -431,24 +445,23 @@ class _OneCall:
 
     def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
         """:meth:`SensorInertial.process`'s loop; the samples processed."""
-        ring, ori, fus = self.imu, self.ori, self.fusion
+        ori, fus = self.ori, self.fusion
+        ks = self.kernel if self._ring is mag else self._bind(mag)
         f = ori.f
         hold = None if self.source.fixed else self.source.hold
-        tv = ring.tv
         phi, fr = self._phiv, self._frv
         n = 0
-        while max_steps > 0 and len(ring):
+        while max_steps > 0:
+            t = ks.peek()                              # (the oldest sample's time; -1: none)
+            if t < 0:
+                break
             max_steps -= 1
-            t = tv[ring.slot(0)]
             if hold is not None and hold(t, now_us, wait_us):
                 break
-            if ori.takes(t, mag) and fus.live_ready(t):
-                ks = self.kernel if self._ring is mag else self._bind(mag)
-                h = mag.last_pushed_slot() + 1
-                ori.sampled(t, fus.live_sample(ks, t, f.t_us, ori.n, h if h < mag.capacity else 0, len(mag),
-                                               f.pred.count, f.incl.upd.count, f.compass.upd.count, fr[0], fr[1],
-                                               fr[2], phi))
-            else:
+            h = mag.last_pushed_slot() + 1
+            if not (ori.ready(t) and fus.live_ready(t)) or not ori.sampled(t, fus.live_sample(
+                    ks, t, f.t_us, ori.n, h if h < mag.capacity else 0, len(mag), f.pred.count, f.incl.upd.count,
+                    f.compass.upd.count, fr[0], fr[1], fr[2], phi)):
                 self.slow(mag)
             n += 1
         return n
@@ -458,7 +471,7 @@ class _OneCall:
         to ``mag``) and ``w_last``."""
         fus = self.fusion
         pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
-        self.kernel = self.ori.kernel.ImuSample(self.ori.sample_kernel, fus.prediction.live_kernel, self.imu.t,
+        self.kernel = self.ori.kernel.ImuSample(self.ori.bind(mag), fus.prediction.live_kernel, self.imu.t,
                                                 self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
                                                 out.hc, self.w_last)
         self._ring = mag
