@@ -113,22 +113,24 @@ class Transmitter:
             if status & POSE_FUSED:
                 self.fused_poses += 1
 
-    def fused_pose(self, kernel, k: int, t_us: int, node: int, status: int, quality: int, range_m: float) -> bool:
-        """A fused pose sent straight from its output row ``k`` (``estimate.fusion_output.PoseOutput``'s
-        compiled kernel ``kernel``): True when sent as :meth:`pose` sends it; False (nothing sent)
-        when the row needs the reference path (an ``OUT_*`` bit, beyond ``range_m``, a value the
-        wire format refuses) and always on the Python core or a signed link."""
-        return False
+    def fused_pose(self, kernel, node: int, status: int, quality: int, range_m: float) -> int:
+        """The oldest queued fused pose sent straight from its output row (``estimate.fusion_output.PoseOutput``'s
+        compiled kernel ``kernel``) with ``status`` and ``quality``, as :meth:`pose` sends it: 1 (sent,
+        off the queue); 0 none queued; -1 (nothing sent) when the row needs the reference path (an
+        ``OUT_*`` bit, beyond ``range_m``, a value the wire format refuses), and always on the
+        Python core or a signed link."""
+        return -1
 
-    def _fused_pose_compiled(self, kernel, k: int, t_us: int, node: int, status: int, quality: int,
-                             range_m: float) -> bool:
-        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.pose_frame``, ``ct_pose_frame``); while
+    def _fused_pose_compiled(self, kernel, node: int, status: int, quality: int, range_m: float) -> int:
+        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.pose_next``, ``ct_pose_frame``); while
         :meth:`pose` is not this transmitter's own (a recorder wraps it) every pose goes through it."""
         if self.pose is not self._pose_own:
-            return False
-        frame = kernel.pose_frame(k, t_us, self._seq, self.node_id, node, status, quality, range_m)
+            return -1
+        frame = kernel.pose_next(self._seq, self.node_id, node, status, quality, range_m)
         if frame is None:
-            return False
+            return -1
+        if frame == 0:
+            return 0
         self._seq = (self._seq + 1) & 0xFF
         try:
             self.port.write(frame)
@@ -138,7 +140,7 @@ class Transmitter:
             self.poses += 1
             if status & POSE_FUSED:
                 self.fused_poses += 1
-        return True
+        return 1
 
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the

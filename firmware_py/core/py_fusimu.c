@@ -345,6 +345,7 @@ typedef struct {
     long long stale_us, dr_after_us, dr_limit_us;
     const double *P, *Th, *idv, *hd;
     double *od;
+    int64_t *ot, *ohc;              /* the output ring's times and head / count (KernelRing), or NULL */
     fus_views views;
 } FusOutputObject;
 
@@ -353,11 +354,11 @@ FUS_DEALLOC(FusOutput)
 static int FusOutput_init(FusOutputObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "P", "Th", "idv", "icap", "hd", "hcap", "od", "ocap", "moving", "stale_us",
-                             "dr_after_us", "dr_limit_us", NULL};
-    PyObject *o[5];
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOiOiOipLLL", kwlist, &self->n, &o[0], &o[1], &o[2], &self->icap,
-                                     &o[3], &self->hcap, &o[4], &self->ocap, &self->moving, &self->stale_us,
-                                     &self->dr_after_us, &self->dr_limit_us))
+                             "dr_after_us", "dr_limit_us", "ot", "ohc", NULL};
+    PyObject *o[5], *ot = NULL, *ohc = NULL;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOiOiOipLLL|OO", kwlist, &self->n, &o[0], &o[1], &o[2],
+                                     &self->icap, &o[3], &self->hcap, &o[4], &self->ocap, &self->moving,
+                                     &self->stale_us, &self->dr_after_us, &self->dr_limit_us, &ot, &ohc))
         return -1;
     if (fus_fresh(&self->views, "FusOutput") < 0)
         return -1;
@@ -370,6 +371,13 @@ static int FusOutput_init(FusOutputObject *self, PyObject *args, PyObject *kw)
         !(self->idv = fus_bind(&self->views, o[2], (Py_ssize_t)self->icap * CT_IMU_WIDTH, 'd', 0, "idv")) ||
         !(self->hd = fus_bind(&self->views, o[3], (Py_ssize_t)self->hcap * CT_HIST_WIDTH, 'd', 0, "hd")) ||
         !(self->od = fus_bind(&self->views, o[4], (Py_ssize_t)self->ocap * CT_OUT_WIDTH, 'd', 1, "od"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    self->ot = self->ohc = NULL;
+    if (ot != NULL && ohc != NULL &&
+        (!(self->ot = fus_bind(&self->views, ot, self->ocap, 'q', 0, "ot")) ||
+         !(self->ohc = fus_bind(&self->views, ohc, 2, 'q', 1, "ohc")))) {
         fus_release(&self->views);
         return -1;
     }
@@ -440,23 +448,12 @@ static PyObject *FusOutput_report(FusOutputObject *self, PyObject *const *args, 
  * (ct_pose_frame) of output row slot sent with `status` when the row carries no OUT_* bit and its
  * position lies within range_m of the source (track.magnetic.in_range3); None for any other row or a
  * value the wire format refuses (the caller sends it through the reference path) */
-static PyObject *FusOutput_pose_frame(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+static PyObject *fus_row_frame(FusOutputObject *self, int slot, long long t, long long seq, long long src,
+                               long long node, long long status, long long quality, double range)
 {
     uint8_t out[CT_POSE_FRAME_MAX];
-    const double *od;
-    long long t, seq, src, node, status, quality;
-    double range;
-    int slot, k;
-    if (!self->views.n) {
-        PyErr_SetString(PyExc_RuntimeError, "FusOutput: not bound");
-        return NULL;
-    }
-    if (fus_nargs("pose_frame", nargs, 8) < 0 || fus_slot(args[0], self->ocap, &slot, "pose_frame") < 0 ||
-        fus_long(args[1], &t) < 0 || fus_long(args[2], &seq) < 0 || fus_long(args[3], &src) < 0 ||
-        fus_long(args[4], &node) < 0 || fus_long(args[5], &status) < 0 || fus_long(args[6], &quality) < 0 ||
-        fus_double(args[7], &range) < 0)
-        return NULL;
-    od = self->od + (long)slot * CT_OUT_WIDTH;
+    const double *od = self->od + (long)slot * CT_OUT_WIDTH;
+    int k;
     if (od[CT_OUT_STATUS] != 0.0 || t < 0 ||
         !(sqrt(od[CT_OUT_P] * od[CT_OUT_P] + od[CT_OUT_P + 1] * od[CT_OUT_P + 1] + od[CT_OUT_P + 2] * od[CT_OUT_P + 2])
           <= range))
@@ -468,7 +465,55 @@ static PyObject *FusOutput_pose_frame(FusOutputObject *self, PyObject *const *ar
     return PyBytes_FromStringAndSize((const char *)out, k);
 }
 
+static PyObject *FusOutput_pose_frame(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long t, seq, src, node, status, quality;
+    double range;
+    int slot;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: not bound");
+        return NULL;
+    }
+    if (fus_nargs("pose_frame", nargs, 8) < 0 || fus_slot(args[0], self->ocap, &slot, "pose_frame") < 0 ||
+        fus_long(args[1], &t) < 0 || fus_long(args[2], &seq) < 0 || fus_long(args[3], &src) < 0 ||
+        fus_long(args[4], &node) < 0 || fus_long(args[5], &status) < 0 || fus_long(args[6], &quality) < 0 ||
+        fus_double(args[7], &range) < 0)
+        return NULL;
+    return fus_row_frame(self, slot, t, seq, src, node, status, quality, range);
+}
+
+/* pose_next(seq, src, node, status, quality, range_m) -> bytes, None or 0: pose_frame of the oldest
+ * queued row of the bound output ring, which is then off the queue (bytes); None: that row needs
+ * the reference path (left queued); 0: none queued */
+static PyObject *FusOutput_pose_next(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long seq, src, node, status, quality;
+    double range;
+    PyObject *fr;
+    int64_t p;
+    if (self->ohc == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: no output ring bound (ot, ohc)");
+        return NULL;
+    }
+    if (fus_nargs("pose_next", nargs, 6) < 0 || fus_long(args[0], &seq) < 0 || fus_long(args[1], &src) < 0 ||
+        fus_long(args[2], &node) < 0 || fus_long(args[3], &status) < 0 || fus_long(args[4], &quality) < 0 ||
+        fus_double(args[5], &range) < 0)
+        return NULL;
+    if (self->ohc[1] <= 0)
+        return PyLong_FromLong(0);
+    p = self->ohc[0] - self->ohc[1];
+    if (p < 0)
+        p += self->ocap;
+    fr = fus_row_frame(self, (int)p, (long long)self->ot[p], seq, src, node, status, quality, range);
+    if (fr != NULL && fr != Py_None)
+        ct_ring_pop(self->ohc, self->ocap);
+    return fr;
+}
+
 static PyMethodDef FusOutput_methods[] = {
+    {"pose_next", (PyCFunction)(void (*)(void))FusOutput_pose_next, METH_FASTCALL,
+     "pose_next(seq, src, node, status, quality, range_m) -> bytes (sent: off the queue), None (the reference "
+     "path's) or 0 (none queued): pose_frame of the oldest queued row"},
     {"pose_frame", (PyCFunction)(void (*)(void))FusOutput_pose_frame, METH_FASTCALL,
      "pose_frame(slot, t_us, seq, src, node, status, quality, range_m) -> bytes or None: the POSE frame of an "
      "output row without OUT_* bits within range_m (None: the reference path sends it)"},

@@ -112,7 +112,7 @@ class PoseOutput:
             assert (HIST_P, HIST_R, hist.width) == (0, 3, ext.FUS_HIST_WIDTH)
             self._ck = ext.FusOutput(st.P.shape[0], st.P, st.Th, imu.d, imu.capacity, hist.d, hist.capacity,
                                      self.out.d, capacity, not frame.fixed, params.stale_us,
-                                     params.dead_reckon_after_us, params.dead_reckon_limit_us)
+                                     params.dead_reckon_after_us, params.dead_reckon_limit_us, self.out.t, self.out.hc)
             self.queue = self._queue_compiled
             self.into_report = self._into_report_compiled
             self.take_report = self._take_report_compiled
@@ -126,17 +126,13 @@ class PoseOutput:
         return not len(self.out)
 
     def _send_plain_compiled(self, tx, node: int, status: int, quality: int, range_m: float) -> bool:
-        """:meth:`send_plain` on the compiled core (``ext.FusOutput.pose_frame``: the POSE frame
-        straight from the output row, ``ct_pose_frame``)."""
-        out = self.out
-        otv = self._otv
+        """:meth:`send_plain` on the compiled core (``ext.FusOutput.pose_next``: the POSE frame straight
+        from the oldest output row, ``ct_pose_frame``, and the row off the queue)."""
         send = tx.fused_pose
-        while len(out):
-            k = out.slot(0)
-            if not send(self._ck, k, otv[k], node, status, quality, range_m):
-                return False
-            out.pop()
-        return True
+        while True:
+            r = send(self._ck, node, status, quality, range_m)
+            if r <= 0:
+                return r == 0
 
     def _queue_compiled(self, t_us: int, hist: Ring, st: InsState, d, k: int, last_update_t: int,
                         recovering: bool, inconsistent: bool) -> None:
