@@ -372,9 +372,8 @@ class FusionFilter(FilterView):
         return True
 
     def live_ready(self, t_us: int) -> bool:
-        """The sample at ``t_us`` takes :meth:`_push_imu_compiled`'s one-call path (its conditions but
-        the output queue's room, which :meth:`live_sample`'s kernel tests): then :meth:`live_sample`
-        may step it together with the sensor's orientation filter."""
+        """The sample at ``t_us`` meets :meth:`_push_imu_compiled`'s conditions (but the output queue's
+        room, which :meth:`live_sample`'s kernel tests) for :meth:`live_sample`."""
         st = self.st
         t0 = st.t_us
         snap = self.snap
@@ -384,12 +383,10 @@ class FusionFilter(FilterView):
 
     def live_sample(self, kernel, t_us: int, t_prev: int, n: int, head: int, count: int, pcount: int, icount: int,
                     mcount: int, rx, ry, rz, Phi) -> int:
-        """One sample (at ``t_us``, the oldest of the sensor's IMU ring) that :meth:`live_ready` let through,
-        with the source's specific force ``r*`` and orientation ``Phi``, stepped by ``kernel``
-        (``ext.ImuSample``, ``track.burst_fusion.SensorInertial``'s): the orientation filter's step
-        (its arguments: ``ext.OriStep.sample``'s) and this filter's forward step as
-        :meth:`_push_imu_compiled` makes it, in one call; the orientation step's bits, or -1 (nothing
-        done) when the output queue is full."""
+        """The oldest sample of the sensor's IMU ring (at ``t_us``, :meth:`live_ready`), with the source's
+        ``r*`` and ``Phi``, through ``kernel`` (``ext.ImuSample``): the orientation filter's step (its
+        arguments ``ext.OriStep.sample``'s) and :meth:`_push_imu_compiled`'s step in one call; the
+        orientation step's bits, or -1 (nothing done) when the output queue is full."""
         st = self.st
         r = kernel.sample(t_prev, n, head, count, pcount, icount, mcount, st.t_us, t_us - self.last_update_t,
                           self.recovery.recovering, bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)),
