@@ -540,10 +540,10 @@ class SensorInertial:
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
         self.burst_rms_s = cfg.timing.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0) if burst_rms_s is None \
             else float(burst_rms_s)
-        self._wl = np.zeros(3)
-        self.w_last = memoryview(self._wl)  # latest rate, offset removed (rad/s)
+        self.w_last = np.zeros(3)          # latest rate, offset removed (rad/s)
+        self._wlv = memoryview(self.w_last)
         if getattr(self.ori, "takes", None) is not None and self.fusion.st.ck is not None:
-            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self._wl, self._sample_python)
+            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python)
             self.process = self._process_compiled
         self.compensated = 0
         self.comp_rejected = 0
@@ -572,7 +572,7 @@ class SensorInertial:
         push = self.fusion.push_imu
         ori_step = self.ori.step
         b = self.ori.f.bias_v
-        wl = self.w_last
+        wl = self._wlv
         phi = self._phiv
         fr = self._frv
         hold = None if self.source.fixed else self.source.hold      # (a fixed source never holds)
@@ -602,7 +602,7 @@ class SensorInertial:
         fr = self._frv
         self.fusion.push_imu(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], self._phiv)
         b = self.ori.f.bias_v
-        wl = self.w_last
+        wl = self._wlv
         wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
 
     def on_solution(self, solver, solved: bool) -> None:
@@ -854,7 +854,7 @@ class SensorInertial:
             ap = sv * sv * tr2
             ao = 0.0
         else:
-            wl = self.w_last
+            wl = self._wlv
             ao = (wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2]) * tr2
             ap = fus.speed_squared() * tr2 if fus.initialized else 0.0
             ap += (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) * ao
