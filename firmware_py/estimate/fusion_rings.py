@@ -32,5 +32,41 @@ class KernelRing(Ring):
     _head = property(lambda self: self._hcv[0], _set_head)     # slot of the next push
     _count = property(lambda self: self._hcv[1], _set_count)   # entries held
 
+    # the operations of every tick, on the array directly (the same as Ring's through the properties)
     def __len__(self) -> int:
         return self._hcv[1]
+
+    @property
+    def full(self) -> bool:
+        return self._hcv[1] == self.capacity
+
+    def push(self, t_us: int) -> int:
+        hc = self._hcv
+        p = hc[0]
+        self.tv[p] = t_us
+        n = p + 1
+        hc[0] = 0 if n == self.capacity else n
+        if hc[1] < self.capacity:
+            hc[1] += 1
+        return p
+
+    def pop(self) -> int:
+        hc = self._hcv
+        c = hc[1]
+        if c == 0:
+            return -1
+        p = hc[0] - c
+        if p < 0:
+            p += self.capacity
+        hc[1] = c - 1
+        return p
+
+    def slot(self, i: int) -> int:
+        hc = self._hcv
+        p = hc[0] - hc[1] + i
+        cap = self.capacity
+        if p < 0:
+            p += cap
+        elif p >= cap:
+            p -= cap
+        return p

@@ -4,7 +4,6 @@ from __future__ import annotations
 from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
 
 from coiltrack.firmware.estimate.fusion_rings import KernelRing
-from coiltrack.firmware.ring import Ring
 
 
 class ImuRing(KernelRing):
@@ -27,7 +26,7 @@ class ImuRing(KernelRing):
         self.last_t = t
         if self.full:
             self.dropped += 1
-        k = Ring.push(self, t)
+        k = KernelRing.push(self, t)
         d = self.dv
         d[k, 0] = msg.ax * ACC_LSB
         d[k, 1] = msg.ay * ACC_LSB
