@@ -592,7 +592,7 @@ static int FusLive_init(FusLiveObject *self, PyObject *args, PyObject *kw)
 /* FusLive.sample's work once its arguments are read: IMU ring row k := (f, w, fsrc, Phi), the step
  * over [t0, t1] (nring entries held), history row h, and output row o when o >= 0 */
 static void fus_live_step(FusLiveObject *self, int k, int nring, int64_t t0, int64_t t1, int h, int o, int64_t age,
-                          int rec, int inc, const double *v, const double *phi)
+                          int rec, int inc, const double *v, const double *phi, double *sym)
 {
     FusPredObject *pr = self->pred;
     FusOutputObject *out = self->out;
@@ -605,6 +605,8 @@ static void fus_live_step(FusLiveObject *self, int k, int nring, int64_t t0, int
         for (i = 0; i < 9; ++i)
             row[CT_IMU_PHI + i] = phi[i];
     ct_fus_propagate(&pr->f, k, nring, t0, t1);  /* FusPred.advance */
+    if (sym != NULL)                             /* CovariancePredict.after_predict's symmetrisation */
+        ct_symmetrize(pr->f.ins.n, pr->f.ins.P, sym);
     hd = self->hd + (long)h * CT_HIST_WIDTH;
     ct_fus_to_source(row, pr->moving, pr->f.ins.p, pr->f.ins.Th, hd);
     if (o >= 0)                                                     /* FusOutput.queue */
@@ -643,7 +645,7 @@ static PyObject *FusLive_sample(FusLiveObject *self, PyObject *const *args, Py_s
             return NULL;
     if (pr->moving && fus_matrix3(args[18], phi) < 0)
         return NULL;
-    fus_live_step(self, k, (int)nring, (int64_t)t0, (int64_t)t1, h, (int)o, (int64_t)age, rec, inc, v, phi);
+    fus_live_step(self, k, (int)nring, (int64_t)t0, (int64_t)t1, h, (int)o, (int64_t)age, rec, inc, v, phi, NULL);
     Py_RETURN_NONE;
 }
 
@@ -1196,6 +1198,8 @@ typedef struct {
     int64_t *in_hc, *in_t, *pi_hc, *pi_t, *hi_hc, *hi_t, *ou_hc, *ou_t;
     const double *in_d;
     double *wl;
+    double *sym;                    /* n x n: the symmetrisation's scratch (CovariancePredict._T2) */
+    int sym_every;                  /* ekf.SYMMETRIZE_EVERY */
     int64_t in_cap, pi_cap, hi_cap, ou_cap;
     fus_views views;
 } ImuSampleObject;
@@ -1227,11 +1231,16 @@ static int imu_ring_bind(ImuSampleObject *self, PyObject *t, PyObject *hc, int64
 static int ImuSample_init(ImuSampleObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"ori", "live", "in_t", "in_d", "in_hc", "pi_t", "pi_hc", "hi_t", "hi_hc", "ou_t",
-                             "ou_hc", "w_last", NULL};
-    PyObject *ori, *live, *o[10];
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!OOOOOOOOOO", kwlist, &OriStepType, &ori, &FusLiveType, &live,
-                                     &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9]))
+                             "ou_hc", "w_last", "sym", "symmetrize_every", NULL};
+    PyObject *ori, *live, *o[11];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!OOOOOOOOOOOi", kwlist, &OriStepType, &ori, &FusLiveType, &live,
+                                     &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10],
+                                     &self->sym_every))
         return -1;
+    if (self->sym_every < 1) {
+        PyErr_SetString(PyExc_ValueError, "ImuSample: symmetrize_every must be >= 1");
+        return -1;
+    }
     if (fus_fresh(&self->views, "ImuSample") < 0)
         return -1;
     if (((OriStepObject *)ori)->nv == 0 || ((FusLiveObject *)live)->pred == NULL) {
@@ -1243,7 +1252,10 @@ static int ImuSample_init(ImuSampleObject *self, PyObject *args, PyObject *kw)
         imu_ring_bind(self, o[3], o[4], &self->pi_t, &self->pi_hc, &self->pi_cap, "pi") < 0 ||
         imu_ring_bind(self, o[5], o[6], &self->hi_t, &self->hi_hc, &self->hi_cap, "hi") < 0 ||
         imu_ring_bind(self, o[7], o[8], &self->ou_t, &self->ou_hc, &self->ou_cap, "ou") < 0 ||
-        !(self->wl = fus_bind(&self->views, o[9], 3, 'd', 1, "w_last"))) {
+        !(self->wl = fus_bind(&self->views, o[9], 3, 'd', 1, "w_last")) ||
+        !(self->sym = fus_bind(&self->views, o[10],
+                               (Py_ssize_t)((FusLiveObject *)live)->pred->f.ins.n * ((FusLiveObject *)live)->pred->f.ins.n,
+                               'd', 1, "sym"))) {
         fus_release(&self->views);
         return -1;
     }
@@ -1262,13 +1274,16 @@ static int ImuSample_init(ImuSampleObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
-/* sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, rx, ry, rz, Phi)
+/* sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, fcount, rx, ry, rz,
+ *        Phi)
  * -> the orientation step's CT_OS_* bits: the oldest sample of the sensor's IMU ring (its time t)
  * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0;
- * -1 (nothing done) when the output queue is full (PoseOutput.queue would drop the pose) */
+ * fcount: the fusion state's prediction count (the step after which P is symmetrised, as
+ * CovariancePredict.after_predict does it); -1 (nothing done) when the output queue is full
+ * (PoseOutput.queue would drop the pose) */
 static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    long long tp, n, head, count, pc, ic, mc, t0, age;
+    long long tp, n, head, count, pc, ic, mc, t0, age, fc;
     double v[9], phi[9];
     const double *d, *b;
     int64_t k, t, kf, h, o;
@@ -1277,17 +1292,17 @@ static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, 
         PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
         return NULL;
     }
-    if (fus_nargs("sample", nargs, 15) < 0 || fus_long(args[0], &tp) < 0 || fus_long(args[1], &n) < 0 ||
+    if (fus_nargs("sample", nargs, 16) < 0 || fus_long(args[0], &tp) < 0 || fus_long(args[1], &n) < 0 ||
         fus_long(args[2], &head) < 0 || fus_long(args[3], &count) < 0 || fus_long(args[4], &pc) < 0 ||
         fus_long(args[5], &ic) < 0 || fus_long(args[6], &mc) < 0 || fus_long(args[7], &t0) < 0 ||
         fus_long(args[8], &age) < 0)
         return NULL;
-    if ((rec = PyObject_IsTrue(args[9])) < 0 || (inc = PyObject_IsTrue(args[10])) < 0)
+    if ((rec = PyObject_IsTrue(args[9])) < 0 || (inc = PyObject_IsTrue(args[10])) < 0 || fus_long(args[11], &fc) < 0)
         return NULL;
     for (i = 0; i < 3; ++i)
-        if (fus_double(args[11 + i], &v[6 + i]) < 0)
+        if (fus_double(args[12 + i], &v[6 + i]) < 0)
             return NULL;
-    if (self->live->pred->moving && fus_matrix3(args[14], phi) < 0)
+    if (self->live->pred->moving && fus_matrix3(args[15], phi) < 0)
         return NULL;
     if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
         PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
@@ -1309,7 +1324,7 @@ static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, 
     kf = ct_ring_push(self->pi_hc, self->pi_cap, self->pi_t, t);         /* InertialPrediction.sample */
     h = ct_ring_push(self->hi_hc, self->hi_cap, self->hi_t, t);
     fus_live_step(self->live, (int)kf, (int)self->pi_hc[1], (int64_t)t0, t, (int)h, (int)o, (int64_t)age, rec, inc,
-                  v, phi);
+                  v, phi, (fc + 1) % self->sym_every == 0 ? self->sym : NULL);
     b = self->ori->o.pred.bias;                                          /* SensorInertial.w_last */
     self->wl[0] = v[3] - b[0];
     self->wl[1] = v[4] - b[1];
@@ -1340,7 +1355,8 @@ static PyMethodDef ImuSample_methods[] = {
     {"peek", (PyCFunction)(void (*)(void))ImuSample_peek, METH_FASTCALL,
      "peek() -> the time of the IMU ring's oldest sample, or -1 when it is empty"},
     {"sample", (PyCFunction)(void (*)(void))ImuSample_sample, METH_FASTCALL,
-     "sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, rx, ry, rz, Phi) "
+     "sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, fcount, rx, ry, rz, "
+     "Phi) "
      "-> bits: the oldest IMU sample through the orientation filter (OriStep) and the fusion filter (FusLive)"},
     {NULL, NULL, 0, NULL}};
 
@@ -1349,7 +1365,8 @@ static PyTypeObject ImuSampleType = {
     .tp_name = "coiltrack.firmware._core.ImuSample",
     .tp_basicsize = sizeof(ImuSampleObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "ImuSample(ori, live, in_t, in_d, in_hc, pi_t, pi_hc, hi_t, hi_hc, ou_t, ou_hc, w_last): one IMU "
+    .tp_doc = "ImuSample(ori, live, in_t, in_d, in_hc, pi_t, pi_hc, hi_t, hi_hc, ou_t, ou_hc, w_last, sym, "
+              "symmetrize_every): one IMU "
               "sample of a fused tracker's sensor (its ring, the orientation filter, the fusion filter) in one call",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)ImuSample_init,

@@ -111,8 +111,9 @@ class InertialPrediction:
 
     def sampled(self, st: InsState, t1: int) -> None:
         """The bookkeeping after a compiled forward step of ``st`` to ``t1`` (:meth:`sample`, or
-        ``ext.ImuSample`` through ``FusionFilter.live_sample``): the prediction's count, the steps, the time."""
-        st.pred.after_predict(st.P)
+        ``ext.ImuSample`` through ``FusionFilter.live_sample``: the periodic symmetrisation ran in the
+        kernel; none is due after :meth:`sample`'s): the prediction's count, the steps, the time."""
+        st.pred.set_count(st.pred.count + 1)
         self.steps += 1
         st.set_time(t1)
 

@@ -372,14 +372,13 @@ class FusionFilter(FilterView):
         return True
 
     def live_ready(self, t_us: int) -> bool:
-        """The sample at ``t_us`` meets :meth:`_push_imu_compiled`'s conditions (but the output queue's
-        room, which :meth:`live_sample`'s kernel tests) for :meth:`live_sample`."""
+        """The sample at ``t_us`` meets :meth:`_push_imu_compiled`'s conditions for :meth:`live_sample` (but
+        the output queue's room, which its kernel tests, and ``P``'s symmetrisation, which it runs)."""
         st = self.st
         t0 = st.t_us
         snap = self.snap
         return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
-            and not (snap.pending and t0 < snap.t <= t_us) and self.recorder is None \
-            and (st.pred.count + 1) % SYMMETRIZE_EVERY != 0
+            and not (snap.pending and t0 < snap.t <= t_us) and self.recorder is None
 
     def live_sample(self, kernel, t_us: int, t_prev: int, n: int, head: int, count: int, pcount: int, icount: int,
                     mcount: int, rx, ry, rz, Phi) -> int:
@@ -390,7 +389,7 @@ class FusionFilter(FilterView):
         st = self.st
         r = kernel.sample(t_prev, n, head, count, pcount, icount, mcount, st.t_us, t_us - self.last_update_t,
                           self.recovery.recovering, bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)),
-                          rx, ry, rz, Phi)
+                          st.pred.count, rx, ry, rz, Phi)
         if r >= 0:
             self.prediction.sampled(st, t_us)
         return r

@@ -473,7 +473,7 @@ class _OneCall:
         pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
         self.kernel = self.ori.kernel.ImuSample(self.ori.bind(mag), fus.prediction.live_kernel, self.imu.t,
                                                 self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
-                                                out.hc, self.w_last)
+                                                out.hc, self.w_last, fus.st.pred._T2, SYMMETRIZE_EVERY)
         self._ring = mag
         return self.kernel
 
