@@ -1201,6 +1201,9 @@ typedef struct {
     double *sym;                    /* n x n: the symmetrisation's scratch (CovariancePredict._T2) */
     int sym_every;                  /* ekf.SYMMETRIZE_EVERY */
     int64_t in_cap, pi_cap, hi_cap, ou_cap;
+    int64_t held_t;                 /* begin's sample (its time, f, w) and compass sample, for finish */
+    double held[6], held_m[CT_OM_N];
+    int holding;
     fus_views views;
 } ImuSampleObject;
 
@@ -1274,8 +1277,25 @@ static int ImuSample_init(ImuSampleObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
-/* sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, fcount, rx, ry, rz,
- *        Phi)
+/* the fusion filter's arguments of sample and finish: t0, age, recovering, inconsistent, fcount, rx, ry, rz
+ * (into v[6..8]), Phi */
+static int imu_fus_args(ImuSampleObject *self, PyObject *const *args, long long *t0, long long *age, int *rec,
+                        int *inc, long long *fc, double *v, double *phi)
+{
+    int i;
+    if (fus_long(args[0], t0) < 0 || fus_long(args[1], age) < 0 || (*rec = PyObject_IsTrue(args[2])) < 0 ||
+        (*inc = PyObject_IsTrue(args[3])) < 0 || fus_long(args[4], fc) < 0)
+        return -1;
+    for (i = 0; i < 3; ++i)
+        if (fus_double(args[5 + i], &v[6 + i]) < 0)
+            return -1;
+    if (self->live->pred->moving && fus_matrix3(args[8], phi) < 0)
+        return -1;
+    return 0;
+}
+
+/* sample(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, t_prev, n, head, count, pcount, icount,
+ *        mcount)
  * -> the orientation step's CT_OS_* bits: the oldest sample of the sensor's IMU ring (its time t)
  * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0;
  * fcount: the fusion state's prediction count (the step after which P is symmetrised, as
@@ -1292,17 +1312,10 @@ static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, 
         PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
         return NULL;
     }
-    if (fus_nargs("sample", nargs, 16) < 0 || fus_long(args[0], &tp) < 0 || fus_long(args[1], &n) < 0 ||
-        fus_long(args[2], &head) < 0 || fus_long(args[3], &count) < 0 || fus_long(args[4], &pc) < 0 ||
-        fus_long(args[5], &ic) < 0 || fus_long(args[6], &mc) < 0 || fus_long(args[7], &t0) < 0 ||
-        fus_long(args[8], &age) < 0)
-        return NULL;
-    if ((rec = PyObject_IsTrue(args[9])) < 0 || (inc = PyObject_IsTrue(args[10])) < 0 || fus_long(args[11], &fc) < 0)
-        return NULL;
-    for (i = 0; i < 3; ++i)
-        if (fus_double(args[12 + i], &v[6 + i]) < 0)
-            return NULL;
-    if (self->live->pred->moving && fus_matrix3(args[15], phi) < 0)
+    if (fus_nargs("sample", nargs, 16) < 0 || imu_fus_args(self, args, &t0, &age, &rec, &inc, &fc, v, phi) < 0 ||
+        fus_long(args[9], &tp) < 0 || fus_long(args[10], &n) < 0 || fus_long(args[11], &head) < 0 ||
+        fus_long(args[12], &count) < 0 || fus_long(args[13], &pc) < 0 || fus_long(args[14], &ic) < 0 ||
+        fus_long(args[15], &mc) < 0)
         return NULL;
     if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
         PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
@@ -1351,12 +1364,89 @@ static PyObject *ImuSample_peek(ImuSampleObject *self, PyObject *const *args, Py
     return PyLong_FromLongLong((long long)self->in_t[p]);
 }
 
+/* begin(t_prev, head, count) -> bits or -1: sample's first half for a sample whose prediction the
+ * caller follows with the orientation's orthonormalisation: the oldest sample off the IMU ring, the
+ * compass sample and the prediction (ct_ori_sample_begin), held for finish; -1 (nothing done) when
+ * the output queue is full */
+static PyObject *ImuSample_begin(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long tp, head, count;
+    const double *d;
+    int64_t k;
+    int i;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("begin", nargs, 3) < 0 || fus_long(args[0], &tp) < 0 || fus_long(args[1], &head) < 0 ||
+        fus_long(args[2], &count) < 0)
+        return NULL;
+    if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
+        PyErr_SetString(PyExc_IndexError, "begin: head or count outside the magnetometer ring");
+        return NULL;
+    }
+    if (self->ou_hc[1] == self->ou_cap)
+        return PyLong_FromLong(-1);
+    if ((k = ct_ring_pop(self->in_hc, self->in_cap)) < 0) {
+        PyErr_SetString(PyExc_IndexError, "begin: the IMU ring is empty");
+        return NULL;
+    }
+    self->held_t = self->in_t[k];
+    d = self->in_d + 6 * k;
+    for (i = 0; i < 6; ++i)
+        self->held[i] = d[i];
+    self->holding = 1;
+    return PyLong_FromLong(ct_ori_sample_begin(&self->ori->o, self->held_t, self->held[3], self->held[4],
+                                               self->held[5], (int64_t)tp, (int64_t)head, (int64_t)count,
+                                               self->held_m));
+}
+
+/* finish(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, n, pcount, icount, mcount) -> bits: the
+ * held sample's update round (ct_ori_sample_end) and the fusion filter's forward step, as sample */
+static PyObject *ImuSample_finish(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long n, pc, ic, mc, t0, age, fc;
+    double v[9], phi[9];
+    const double *b;
+    int64_t t, kf, h, o;
+    int r, rec, inc, i;
+    if (self->ori == NULL || !self->holding) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: finish without begin");
+        return NULL;
+    }
+    if (fus_nargs("finish", nargs, 13) < 0 || imu_fus_args(self, args, &t0, &age, &rec, &inc, &fc, v, phi) < 0 ||
+        fus_long(args[9], &n) < 0 || fus_long(args[10], &pc) < 0 || fus_long(args[11], &ic) < 0 ||
+        fus_long(args[12], &mc) < 0)
+        return NULL;
+    self->holding = 0;
+    t = self->held_t;
+    for (i = 0; i < 6; ++i)
+        v[i] = self->held[i];
+    r = ct_ori_sample_end(&self->ori->o, v[0], v[1], v[2], (int)n, self->held_m, (int64_t)pc, (int64_t)ic,
+                          (int64_t)mc);
+    o = ct_ring_push(self->ou_hc, self->ou_cap, self->ou_t, t);
+    kf = ct_ring_push(self->pi_hc, self->pi_cap, self->pi_t, t);
+    h = ct_ring_push(self->hi_hc, self->hi_cap, self->hi_t, t);
+    fus_live_step(self->live, (int)kf, (int)self->pi_hc[1], (int64_t)t0, t, (int)h, (int)o, (int64_t)age, rec, inc,
+                  v, phi, (fc + 1) % self->sym_every == 0 ? self->sym : NULL);
+    b = self->ori->o.pred.bias;
+    self->wl[0] = v[3] - b[0];
+    self->wl[1] = v[4] - b[1];
+    self->wl[2] = v[5] - b[2];
+    return PyLong_FromLong(r);
+}
+
 static PyMethodDef ImuSample_methods[] = {
+    {"begin", (PyCFunction)(void (*)(void))ImuSample_begin, METH_FASTCALL,
+     "begin(t_prev, head, count) -> bits or -1: sample's first half (up to the orientation's prediction)"},
+    {"finish", (PyCFunction)(void (*)(void))ImuSample_finish, METH_FASTCALL,
+     "finish(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, n, pcount, icount, mcount) -> bits: "
+     "sample's second half (the update round and the fusion filter's step) of the sample begin took"},
     {"peek", (PyCFunction)(void (*)(void))ImuSample_peek, METH_FASTCALL,
      "peek() -> the time of the IMU ring's oldest sample, or -1 when it is empty"},
     {"sample", (PyCFunction)(void (*)(void))ImuSample_sample, METH_FASTCALL,
-     "sample(t_prev, n, head, count, pcount, icount, mcount, t0, age, recovering, inconsistent, fcount, rx, ry, rz, "
-     "Phi) "
+     "sample(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, t_prev, n, head, count, pcount, icount, "
+     "mcount) "
      "-> bits: the oldest IMU sample through the orientation filter (OriStep) and the fusion filter (FusLive)"},
     {NULL, NULL, 0, NULL}};
 

@@ -380,16 +380,14 @@ class FusionFilter(FilterView):
         return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
             and not (snap.pending and t0 < snap.t <= t_us) and self.recorder is None
 
-    def live_sample(self, kernel, t_us: int, t_prev: int, n: int, head: int, count: int, pcount: int, icount: int,
-                    mcount: int, rx, ry, rz, Phi) -> int:
+    def live_sample(self, step, t_us: int, rx, ry, rz, Phi, *ori) -> int:
         """The oldest sample of the sensor's IMU ring (at ``t_us``, :meth:`live_ready`), with the source's
-        ``r*`` and ``Phi``, through ``kernel`` (``ext.ImuSample``): the orientation filter's step (its
-        arguments ``ext.OriStep.sample``'s) and :meth:`_push_imu_compiled`'s step in one call; the
+        ``r*`` and ``Phi``, through ``step`` (``ext.ImuSample.sample`` or ``finish``; ``ori``: its orientation
+        filter's arguments): that filter's step and :meth:`_push_imu_compiled`'s in one call; the
         orientation step's bits, or -1 (nothing done) when the output queue is full."""
         st = self.st
-        r = kernel.sample(t_prev, n, head, count, pcount, icount, mcount, st.t_us, t_us - self.last_update_t,
-                          self.recovery.recovering, bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)),
-                          st.pred.count, rx, ry, rz, Phi)
+        r = step(st.t_us, t_us - self.last_update_t, self.recovery.recovering,
+                 bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)), st.pred.count, rx, ry, rz, Phi, *ori)
         if r >= 0:
             self.prediction.sampled(st, t_us)
         return r

@@ -346,9 +346,7 @@ class OrientationFilter:
     m_ref = property(lambda self: self.compass.m_ref)             # |earth field|, T
 
     def set_bias(self, bx, by, bz) -> None:
-        self.bias[0] = bx
-        self.bias[1] = by
-        self.bias[2] = bz
+        self.bias[0], self.bias[1], self.bias[2] = bx, by, bz
 
     # --------------------------------------------------------- predict
     def predict(self, t_us: int, wx, wy, wz) -> None:
@@ -398,10 +396,12 @@ class OrientationFilter:
             self._orthonormalize()
 
     def sample_done(self, t_us: int, r: int) -> None:
-        """The bookkeeping of a sample the compiled core ran whole (``ct_ori_sample``; what it did: the
-        ``OS_*`` bits ``r``): time, steps, the counts (its symmetrisations ran in it), the flags."""
+        """The bookkeeping of a sample the compiled core ran (``ct_ori_sample``, or its halves; the ``OS_*``
+        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags."""
         self.t_us = t_us
         self.steps += r & OS_PREDICTED
+        if r & OS_PREDICTED and self.steps & 63 == 0:
+            self._orthonormalize()       # (after ct_ori_sample_begin: its caller finishes the sample)
         if r & OS_ROUND:
             if r & (OS_FREEFALL | OS_ACC):
                 self.last_acc_flags = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)

@@ -212,11 +212,15 @@ class _Ori:
         return True
 
     def ready(self, t: int) -> bool:
-        """The sample at ``t`` is one the compiled core takes whole: an initialised filter, no break
-        in the stream, the compass learned and no orthonormalisation due."""
+        """The sample at ``t`` is one the compiled core takes whole in one call (:meth:`settled`, and no
+        orthonormalisation due)."""
         f = self.f
-        return f.initialized and t - f.t_us <= self.gap_us and not f.compass.learning \
-            and (t <= f.t_us or (f.steps + 1) & 63 != 0)
+        return self.settled(t) and (t <= f.t_us or (f.steps + 1) & 63 != 0)
+
+    def settled(self, t: int) -> bool:
+        """An initialised filter, no break in the stream before ``t``, the compass learned."""
+        f = self.f
+        return f.initialized and t - f.t_us <= self.gap_us and not f.compass.learning
 
     def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         """:meth:`step` of a sample the compiled core takes whole (:meth:`takes`; ``ext.OriStep.sample``:
@@ -458,11 +462,22 @@ class _OneCall:
             max_steps -= 1
             if hold is not None and hold(t, now_us, wait_us):
                 break
-            h = mag.last_pushed_slot() + 1
-            if not (ori.ready(t) and fus.live_ready(t)) or not ori.sampled(t, fus.live_sample(
-                    ks, t, f.t_us, ori.n, h if h < mag.capacity else 0, len(mag), f.pred.count, f.incl.upd.count,
-                    f.compass.upd.count, fr[0], fr[1], fr[2], phi)):
+            if not (ori.settled(t) and fus.live_ready(t)):
                 self.slow(mag)
+            else:
+                h = mag.last_pushed_slot() + 1
+                h = h if h < mag.capacity else 0
+                if t > f.t_us and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
+                    r = ks.begin(f.t_us, h, len(mag))
+                    if r >= 0:
+                        f.sample_done(t, r)
+                        r = fus.live_sample(ks.finish, t, fr[0], fr[1], fr[2], phi, ori.n, f.pred.count,
+                                            f.incl.upd.count, f.compass.upd.count)
+                else:
+                    r = fus.live_sample(ks.sample, t, fr[0], fr[1], fr[2], phi, f.t_us, ori.n, h, len(mag),
+                                        f.pred.count, f.incl.upd.count, f.compass.upd.count)
+                if not ori.sampled(t, r):
+                    self.slow(mag)
             n += 1
         return n
 

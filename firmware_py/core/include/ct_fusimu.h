@@ -139,6 +139,13 @@ struct ct_ori_step {
 /* the sample (t, f, w) at step `steps`, update-round counter n, after the prediction at t_prev;
  * the magnetometer ring at (head, count); the counts of the propagations (pcount) and of the two
  * updates (icount, mcount) decide the symmetrisations.  Returns the CT_OS_* bits. */
+/* the two halves of ct_ori_sample, for a sample whose prediction the caller follows with its
+ * orthonormalisation: up to the prediction (the compass sample into m[CT_OM_*]), and the update round */
+enum { CT_OM_FOUND = 0, CT_OM_X = 1, CT_OM_Y = 2, CT_OM_Z = 3, CT_OM_N = 4 };
+int ct_ori_sample_begin(const struct ct_ori_step *o, int64_t t, double wx, double wy, double wz, int64_t t_prev,
+                        int64_t head, int64_t count, double *m);
+int ct_ori_sample_end(const struct ct_ori_step *o, double ax, double ay, double az, int n, const double *m,
+                      int64_t pcount, int64_t icount, int64_t mcount);
 int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx, double wy,
                   double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount, int64_t icount,
                   int64_t mcount);

@@ -540,18 +540,17 @@ static int ori_kalman(const struct ct_ori_step *o, const struct ct_kalman *u, do
     return flags;
 }
 
-int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx, double wy,
-                  double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount, int64_t icount,
-                  int64_t mcount)
+/* ct_ori_sample up to its prediction (the compass sample with its set/reset offset into m[CT_OM_*]) */
+int ct_ori_sample_begin(const struct ct_ori_step *o, int64_t t, double wx, double wy, double wz, int64_t t_prev,
+                        int64_t head, int64_t count, double *m)
 {
-    struct ct_ori_meas *me = (struct ct_ori_meas *)&o->meas;
     const double *b = o->pred.bias, *fo = o->fl + CT_FL_O;
-    double mx = 0.0, my = 0.0, mz = 0.0, dt, *s = o->pred.st;
+    double dt;
     int64_t slot = ct_quiet_sample(&o->q, head, count, o->ct[0], t, o->max_age_us);
-    int r = 0, nprop = 0, flags;
+    m[CT_OM_FOUND] = 0.0;
     if (slot >= 0) {                                        /* _Ori.step: the compass sample */
         int st = (o->q.fl[slot] & CT_SAMPLE_FLIP) ? 1 : 0;
-        double sg;
+        double sg, mx, my, mz;
         o->ct[0] = o->q.tv[slot];
         mx = o->mb[3 * slot];
         my = o->mb[3 * slot + 1];
@@ -559,15 +558,26 @@ int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, 
         ct_flip_observe(o->fl, o->fi, o->flip_gain, o->ct[0], st, mx, my, mz, wx - b[0], wy - b[1], wz - b[2],
                         o->max_age_us);
         sg = st ? 1.0 : -1.0;
-        mx -= sg * fo[0];
-        my -= sg * fo[1];
-        mz -= sg * fo[2];
+        m[CT_OM_FOUND] = 1.0;
+        m[CT_OM_X] = mx - sg * fo[0];
+        m[CT_OM_Y] = my - sg * fo[1];
+        m[CT_OM_Z] = mz - sg * fo[2];
     }
     dt = (double)(t - t_prev) * 1e-6;                        /* OrientationFilter.predict */
     if (dt > 0.0) {
         ct_ori_predict(&o->pred, dt, wx, wy, wz, o->meas.cst[CT_CS_QWD]);
-        r |= CT_OS_PREDICTED;
+        return CT_OS_PREDICTED;
     }
+    return 0;
+}
+
+/* ct_ori_sample after its prediction (and the caller's orthonormalisation): the update round */
+int ct_ori_sample_end(const struct ct_ori_step *o, double ax, double ay, double az, int n, const double *m,
+                      int64_t pcount, int64_t icount, int64_t mcount)
+{
+    struct ct_ori_meas *me = (struct ct_ori_meas *)&o->meas;
+    double *s = o->pred.st;
+    int r = 0, nprop = 0, flags;
     if (n + 1 < o->every)
         return r;
     r |= CT_OS_ROUND;                                       /* update_acc */
@@ -584,8 +594,8 @@ int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, 
         ct_ori_post_acc(me);
         r |= CT_OS_ACC | (flags << CT_OS_ACC_SHIFT);
     }
-    if (slot >= 0) {                                        /* update_mag (the compass has learned) */
-        ct_ori_compass_fill(me, mx, my, mz);
+    if (m[CT_OM_FOUND] != 0.0) {                            /* update_mag (the compass has learned) */
+        ct_ori_compass_fill(me, m[CT_OM_X], m[CT_OM_Y], m[CT_OM_Z]);
         nprop += ori_propagate(o, pcount + nprop);
         flags = ori_kalman(o, &o->mu, o->mgate, o->mnis, mcount);
         if (flags == CT_EKF_OK)
@@ -593,6 +603,15 @@ int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, 
         r |= CT_OS_MAG | (flags << CT_OS_MAG_SHIFT);
     }
     return r | (nprop << CT_OS_PROP_SHIFT);
+}
+
+int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx, double wy,
+                  double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount, int64_t icount,
+                  int64_t mcount)
+{
+    double m[CT_OM_N];
+    int r = ct_ori_sample_begin(o, t, wx, wy, wz, t_prev, head, count, m);
+    return r | ct_ori_sample_end(o, ax, ay, az, n, m, pcount, icount, mcount);
 }
 
 /* ring.Ring.push: the next slot gets time t; a full ring overwrites its oldest entry */

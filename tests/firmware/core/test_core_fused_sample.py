@@ -162,7 +162,7 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     gtx.fused_pose = lambda *a: (sent.append(fused_pose(*a)), sent[-1])[1]
     calls = []
     live = sens["got"][0].fusion.live_sample
-    sens["got"][0].fusion.live_sample = lambda *a: (calls.append(a[1]), live(*a))[1]
+    sens["got"][0].fusion.live_sample = lambda *a: (calls.append(a[0].__name__), live(*a))[1]
     tm = t0
     t = t0
     for i in range(900):
@@ -208,6 +208,7 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     assert got.ori.flip.si[2] >= 2                           # flips seen
     assert got.fusion.out_dropped > 0 and got.fusion.snap.valid
     assert got._one.kernel is not None and sep._one.kernel is None and len(calls) > 400   # one call each
+    assert calls.count("finish") >= 3                        # (and two where R was orthonormalised)
     # the POSE frames: the same bytes on the one-call path as through PoseReport and pose
     fa, fb, fr = sens["got"][1].port.frames, sens["sep"][1].port.frames, sens["ref"][1].port.frames
     assert len(fa) == len(fb) == len(fr) > 300
@@ -218,13 +219,13 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
 
 def test_one_call_path_is_taken_and_left():
     """The one-call path runs for the samples of an initialised filter that has learned its
-    compass and whose fusion filter runs; a sample whose step would orthonormalise R, a
-    scheduled snapshot inside the step or a full output queue take the reference path."""
+    compass and whose fusion filter runs, in two calls (``begin``, ``finish``) for those whose
+    prediction orthonormalises R; a sample before the compass learned takes the reference path."""
     cfg, sens = _sensors(0.0, False)
     ins = sens["got"][0]
     calls = []
     live = ins.fusion.live_sample
-    ins.fusion.live_sample = lambda *a: (calls.append(ins.ori.f.steps + 1), live(*a))[1]
+    ins.fusion.live_sample = lambda *a: (calls.append(a[0].__name__), live(*a))[1]
     mag = SampleRing(64)
     _start_fusion(ins, 1_000_000)
     t = 1_000_000
@@ -236,10 +237,9 @@ def test_one_call_path_is_taken_and_left():
         ins.send_fused(sens["got"][1], 16, 1.0, 200)
     f = ins.ori.f
     assert not f.learning and f.steps == 399 and f.upd_mag.count > 50     # (the first sample initialises)
-    # all but the samples before the compass learned (2 x 12 compass samples), the six whose step
-    # orthonormalises R and those whose step holds a snapshot
-    assert 300 < len(calls) <= 400 - 24 - 6
-    assert all(s % 64 for s in calls)
+    # all but the samples before the compass learned (2 x 12 compass samples); the steps 64, 128, ...
+    # 384 (each orthonormalises R) in two calls
+    assert 350 < len(calls) <= 400 - 24 and calls.count("finish") == 6
 
 
 def test_kernel_ring_is_a_ring():
