@@ -180,7 +180,8 @@ class _Ori:
         # such sample; the filter's compiled updates are its reference's kernels
         self._sk = None
         self._sring = None
-        if self._ext is not None and getattr(self.f, "_cku", None) is not None:
+        self.one_call = self._ext is not None and getattr(self.f, "_cku", None) is not None
+        if self.one_call:
             self.step = self._step_compiled
 
     compass_t = property(lambda self: self._ctv[0])     # the last compass sample's time (us)
@@ -557,7 +558,7 @@ class SensorInertial:
             else float(burst_rms_s)
         self.w_last = np.zeros(3)          # latest rate, offset removed (rad/s)
         self._wlv = memoryview(self.w_last)
-        if getattr(self.ori, "takes", None) is not None and self.fusion.st.ck is not None:
+        if self.ori.one_call and self.fusion.st.ck is not None:
             self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python)
             self.process = self._process_compiled
         self.compensated = 0
