@@ -26,6 +26,7 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <math.h>
 #include <string.h>
 
 #include "coiltrack_core.h"
@@ -344,6 +345,7 @@ typedef struct {
     long long stale_us, dr_after_us, dr_limit_us;
     const double *P, *Th, *idv, *hd;
     double *od;
+    int64_t *ot, *ohc;              /* the output ring's times and head / count (KernelRing), or NULL */
     fus_views views;
 } FusOutputObject;
 
@@ -352,11 +354,11 @@ FUS_DEALLOC(FusOutput)
 static int FusOutput_init(FusOutputObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "P", "Th", "idv", "icap", "hd", "hcap", "od", "ocap", "moving", "stale_us",
-                             "dr_after_us", "dr_limit_us", NULL};
-    PyObject *o[5];
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOiOiOipLLL", kwlist, &self->n, &o[0], &o[1], &o[2], &self->icap,
-                                     &o[3], &self->hcap, &o[4], &self->ocap, &self->moving, &self->stale_us,
-                                     &self->dr_after_us, &self->dr_limit_us))
+                             "dr_after_us", "dr_limit_us", "ot", "ohc", NULL};
+    PyObject *o[5], *ot = NULL, *ohc = NULL;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOiOiOipLLL|OO", kwlist, &self->n, &o[0], &o[1], &o[2],
+                                     &self->icap, &o[3], &self->hcap, &o[4], &self->ocap, &self->moving,
+                                     &self->stale_us, &self->dr_after_us, &self->dr_limit_us, &ot, &ohc))
         return -1;
     if (fus_fresh(&self->views, "FusOutput") < 0)
         return -1;
@@ -369,6 +371,13 @@ static int FusOutput_init(FusOutputObject *self, PyObject *args, PyObject *kw)
         !(self->idv = fus_bind(&self->views, o[2], (Py_ssize_t)self->icap * CT_IMU_WIDTH, 'd', 0, "idv")) ||
         !(self->hd = fus_bind(&self->views, o[3], (Py_ssize_t)self->hcap * CT_HIST_WIDTH, 'd', 0, "hd")) ||
         !(self->od = fus_bind(&self->views, o[4], (Py_ssize_t)self->ocap * CT_OUT_WIDTH, 'd', 1, "od"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    self->ot = self->ohc = NULL;
+    if (ot != NULL && ohc != NULL &&
+        (!(self->ot = fus_bind(&self->views, ot, self->ocap, 'q', 0, "ot")) ||
+         !(self->ohc = fus_bind(&self->views, ohc, 2, 'q', 1, "ohc")))) {
         fus_release(&self->views);
         return -1;
     }
@@ -434,7 +443,80 @@ static PyObject *FusOutput_report(FusOutputObject *self, PyObject *const *args, 
     return PyLong_FromLong((long)od[CT_OUT_STATUS]);
 }
 
+
+/* pose_frame(slot, t_us, seq, src, node, status, quality, range_m) -> bytes or None: the POSE frame
+ * (ct_pose_frame) of output row slot sent with `status` when the row carries no OUT_* bit and its
+ * position lies within range_m of the source (track.magnetic.in_range3); None for any other row or a
+ * value the wire format refuses (the caller sends it through the reference path) */
+static PyObject *fus_row_frame(FusOutputObject *self, int slot, long long t, long long seq, long long src,
+                               long long node, long long status, long long quality, double range)
+{
+    uint8_t out[CT_POSE_FRAME_MAX];
+    const double *od = self->od + (long)slot * CT_OUT_WIDTH;
+    int k;
+    if (od[CT_OUT_STATUS] != 0.0 || t < 0 ||
+        !(sqrt(od[CT_OUT_P] * od[CT_OUT_P] + od[CT_OUT_P + 1] * od[CT_OUT_P + 1] + od[CT_OUT_P + 2] * od[CT_OUT_P + 2])
+          <= range))
+        Py_RETURN_NONE;
+    k = ct_pose_frame(out, (int)seq, (int)src, (int64_t)node, (uint64_t)t, od + CT_OUT_P, (int64_t)status,
+                      (int64_t)quality);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
+static PyObject *FusOutput_pose_frame(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long t, seq, src, node, status, quality;
+    double range;
+    int slot;
+    if (!self->views.n) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: not bound");
+        return NULL;
+    }
+    if (fus_nargs("pose_frame", nargs, 8) < 0 || fus_slot(args[0], self->ocap, &slot, "pose_frame") < 0 ||
+        fus_long(args[1], &t) < 0 || fus_long(args[2], &seq) < 0 || fus_long(args[3], &src) < 0 ||
+        fus_long(args[4], &node) < 0 || fus_long(args[5], &status) < 0 || fus_long(args[6], &quality) < 0 ||
+        fus_double(args[7], &range) < 0)
+        return NULL;
+    return fus_row_frame(self, slot, t, seq, src, node, status, quality, range);
+}
+
+/* pose_next(seq, src, node, status, quality, range_m) -> bytes, None or 0: pose_frame of the oldest
+ * queued row of the bound output ring, which is then off the queue (bytes); None: that row needs
+ * the reference path (left queued); 0: none queued */
+static PyObject *FusOutput_pose_next(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long seq, src, node, status, quality;
+    double range;
+    PyObject *fr;
+    int64_t p;
+    if (self->ohc == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: no output ring bound (ot, ohc)");
+        return NULL;
+    }
+    if (fus_nargs("pose_next", nargs, 6) < 0 || fus_long(args[0], &seq) < 0 || fus_long(args[1], &src) < 0 ||
+        fus_long(args[2], &node) < 0 || fus_long(args[3], &status) < 0 || fus_long(args[4], &quality) < 0 ||
+        fus_double(args[5], &range) < 0)
+        return NULL;
+    if (self->ohc[1] <= 0)
+        return PyLong_FromLong(0);
+    p = self->ohc[0] - self->ohc[1];
+    if (p < 0)
+        p += self->ocap;
+    fr = fus_row_frame(self, (int)p, (long long)self->ot[p], seq, src, node, status, quality, range);
+    if (fr != NULL && fr != Py_None)
+        ct_ring_pop(self->ohc, self->ocap);
+    return fr;
+}
+
 static PyMethodDef FusOutput_methods[] = {
+    {"pose_next", (PyCFunction)(void (*)(void))FusOutput_pose_next, METH_FASTCALL,
+     "pose_next(seq, src, node, status, quality, range_m) -> bytes (sent: off the queue), None (the reference "
+     "path's) or 0 (none queued): pose_frame of the oldest queued row"},
+    {"pose_frame", (PyCFunction)(void (*)(void))FusOutput_pose_frame, METH_FASTCALL,
+     "pose_frame(slot, t_us, seq, src, node, status, quality, range_m) -> bytes or None: the POSE frame of an "
+     "output row without OUT_* bits within range_m (None: the reference path sends it)"},
     {"report", (PyCFunction)(void (*)(void))FusOutput_report, METH_FASTCALL,
      "report(slot, p, q, var) -> status: PoseOutput.into_report's copy of output row slot"},
     {"queue", (PyCFunction)(void (*)(void))FusOutput_queue, METH_FASTCALL,
@@ -507,6 +589,32 @@ static int FusLive_init(FusLiveObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
+/* FusLive.sample's work once its arguments are read: IMU ring row k := (f, w, fsrc, Phi), the step
+ * over [t0, t1] (nring entries held), history row h, and output row o when o >= 0 */
+static void fus_live_step(FusLiveObject *self, int k, int nring, int64_t t0, int64_t t1, int h, int o, int64_t age,
+                          int rec, int inc, const double *v, const double *phi, double *sym)
+{
+    FusPredObject *pr = self->pred;
+    FusOutputObject *out = self->out;
+    double *row, *hd;
+    int i;
+    row = self->row->idv + (long)k * CT_IMU_WIDTH;                   /* FusRow.store */
+    for (i = 0; i < 9; ++i)
+        row[CT_IMU_F + i] = v[i];
+    if (pr->moving)
+        for (i = 0; i < 9; ++i)
+            row[CT_IMU_PHI + i] = phi[i];
+    ct_fus_propagate(&pr->f, k, nring, t0, t1);  /* FusPred.advance */
+    if (sym != NULL)                             /* CovariancePredict.after_predict's symmetrisation */
+        ct_symmetrize(pr->f.ins.n, pr->f.ins.P, sym);
+    hd = self->hd + (long)h * CT_HIST_WIDTH;
+    ct_fus_to_source(row, pr->moving, pr->f.ins.p, pr->f.ins.Th, hd);
+    if (o >= 0)                                                     /* FusOutput.queue */
+        ct_fus_output(out->od + (long)o * CT_OUT_WIDTH, hd, out->P, out->n, out->Th, row, out->moving,
+                      (double)ct_fus_status(age, (int64_t)out->stale_us, (int64_t)out->dr_after_us,
+                                            (int64_t)out->dr_limit_us, rec, inc));
+}
+
 /* sample(k, nring, t0, t1, h, o, age, recovering, inconsistent, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi):
  * IMU ring row k := the sample (FusRow.store), the live state stepped over [t0, t1]
  * (ct_fus_propagate), history row h := its pose in the source frame (ct_fus_to_source), and, when
@@ -515,7 +623,7 @@ static PyObject *FusLive_sample(FusLiveObject *self, PyObject *const *args, Py_s
 {
     FusPredObject *pr = self->pred;
     FusOutputObject *out = self->out;
-    double v[9], phi[9], *row, *hd;
+    double v[9], phi[9];
     long long nring, t0, t1, o, age;
     int k, h, i, rec, inc;
     if (pr == NULL) {
@@ -537,19 +645,7 @@ static PyObject *FusLive_sample(FusLiveObject *self, PyObject *const *args, Py_s
             return NULL;
     if (pr->moving && fus_matrix3(args[18], phi) < 0)
         return NULL;
-    row = self->row->idv + (long)k * CT_IMU_WIDTH;                   /* FusRow.store */
-    for (i = 0; i < 9; ++i)
-        row[CT_IMU_F + i] = v[i];
-    if (pr->moving)
-        for (i = 0; i < 9; ++i)
-            row[CT_IMU_PHI + i] = phi[i];
-    ct_fus_propagate(&pr->f, k, (int)nring, (int64_t)t0, (int64_t)t1);  /* FusPred.advance */
-    hd = self->hd + (long)h * CT_HIST_WIDTH;
-    ct_fus_to_source(row, pr->moving, pr->f.ins.p, pr->f.ins.Th, hd);
-    if (o >= 0)                                                     /* FusOutput.queue */
-        ct_fus_output(out->od + (long)o * CT_OUT_WIDTH, hd, out->P, out->n, out->Th, row, out->moving,
-                      (double)ct_fus_status((int64_t)age, (int64_t)out->stale_us, (int64_t)out->dr_after_us,
-                                            (int64_t)out->dr_limit_us, rec, inc));
+    fus_live_step(self, k, (int)nring, (int64_t)t0, (int64_t)t1, h, (int)o, (int64_t)age, rec, inc, v, phi, NULL);
     Py_RETURN_NONE;
 }
 
@@ -837,6 +933,537 @@ static PyMethodDef QuietSample_methods[] = {
 FUS_TYPE(QuietSample, "QuietSample", "QuietSample(t, flags, starts, ends, before, after): the compass sample "
          "search (quiet_sample) bound to a magnetometer ring and a pulse schedule")
 
+
+/* ---------------------------------------------------------------- OriStep */
+#define OS_MAXBUF 64
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_ori_step o;
+    double E[9];
+    Py_buffer v[OS_MAXBUF];
+    int nv;
+} OriStepObject;
+
+static void OriStep_release(OriStepObject *self)
+{
+    while (self->nv > 0)
+        PyBuffer_Release(&self->v[--self->nv]);
+}
+
+static void OriStep_dealloc(OriStepObject *self)
+{
+    OriStep_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* bind obj (or its attribute `attr` when attr is not NULL) as `count` items of `fmt` */
+static void *os_bind(OriStepObject *self, PyObject *obj, const char *attr, Py_ssize_t count, const char *fmt,
+                     Py_ssize_t itemsize, int writable)
+{
+    PyObject *a = obj;
+    int rc;
+    if (self->nv >= OS_MAXBUF) {
+        PyErr_SetString(PyExc_RuntimeError, "OriStep: too many buffers");
+        return NULL;
+    }
+    if (attr != NULL && (a = PyObject_GetAttrString(obj, attr)) == NULL)
+        return NULL;
+    rc = ct_py_buffer(a, count, itemsize, fmt, writable, &self->v[self->nv], attr != NULL ? attr : "buffer");
+    if (attr != NULL)
+        Py_DECREF(a);
+    if (rc < 0)
+        return NULL;
+    return self->v[self->nv++].buf;
+}
+
+#define OS_D(obj, attr, count, wr) ((double *)os_bind(self, (obj), (attr), (count), "d", 8, (wr)))
+
+/* a float attribute */
+static int os_attr_double(PyObject *obj, const char *attr, double *x)
+{
+    PyObject *a = PyObject_GetAttrString(obj, attr);
+    int rc;
+    if (a == NULL)
+        return -1;
+    rc = ct_py_double(a, x);
+    Py_DECREF(a);
+    return rc;
+}
+
+/* the buffers of one ekf.KalmanUpdate (3 x n) into u, its NIS cell into *nis */
+static int os_bind_kalman(OriStepObject *self, PyObject *upd, int n, struct ct_kalman *u, double **nis)
+{
+    Py_ssize_t m = 3, mn = 3 * (Py_ssize_t)n, nn = (Py_ssize_t)n * n;
+    u->n = n;
+    u->m = 3;
+    if (!(u->H = OS_D(upd, "H", mn, 1)) || !(u->R = OS_D(upd, "R", m * m, 1)) || !(u->y = OS_D(upd, "y", m, 1)) ||
+        !(u->dx = OS_D(upd, "dx", n, 1)) || !(u->S = OS_D(upd, "S", m * m, 1)) ||
+        !(u->Sinv = OS_D(upd, "Sinv", m * m, 1)) || !(u->K = OS_D(upd, "K", mn, 1)) ||
+        !(u->PHt = OS_D(upd, "_PHt", mn, 1)) || !(u->T = OS_D(upd, "_T", nn, 1)) ||
+        !(u->TH = OS_D(upd, "_TH", mn, 1)) || !(u->X = OS_D(upd, "_X", nn, 1)) ||
+        !(u->KR = OS_D(upd, "_KR", mn, 1)) || !(u->w = OS_D(upd, "_w", m, 1)) || !(u->L = OS_D(upd, "_L", m * m, 1)) ||
+        !(u->M = OS_D(upd, "_M", m * m, 1)) || !(*nis = OS_D(upd, "_nis", 1, 1)))
+        return -1;
+    return 0;
+}
+
+/* OriStep(f, upd_acc, upd_mag, compass, flip_s, flip_i, inc, ct, mag_t, mag_flags, mag_b, starts, ends,
+ *         before, after, every, max_age_us, symmetrize_every, flip_gain, n, theta, bias, dist) */
+static int OriStep_init(OriStepObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"f", "upd_acc", "upd_mag", "compass", "flip_s", "flip_i", "inc", "ct", "mag_t",
+                             "mag_flags", "mag_b", "starts", "ends", "before", "after", "every", "max_age_us",
+                             "symmetrize_every", "flip_gain", "n", "theta", "bias", "dist", NULL};
+    PyObject *f, *iu, *mu, *cp, *fs, *fi, *inc, *ct, *mt, *mf, *mb, *ps, *pe, *prm = NULL, *pred = NULL;
+    long long before, after, max_age;
+    int every, sym, n, th, bi, di, heading = 0;
+    double gain;
+    Py_ssize_t cap, np_, nn;
+    struct ct_ori_step *o = &self->o;
+    struct ct_ori_meas *me = &o->meas;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOOOOOOOLLiLidiiii", kwlist, &f, &iu, &mu, &cp, &fs, &fi, &inc,
+                                     &ct, &mt, &mf, &mb, &ps, &pe, &before, &after, &every, &max_age, &sym, &gain,
+                                     &n, &th, &bi, &di))
+        return -1;
+    if (self->nv) {
+        PyErr_SetString(PyExc_RuntimeError, "OriStep: already bound");
+        return -1;
+    }
+    if (n < 9 || n > 256 || th < 0 || bi < 0 || di < 0 || th + 3 > n || bi + 3 > n || di + 3 > n || every < 1 ||
+        sym < 1) {
+        PyErr_SetString(PyExc_ValueError, "OriStep: bad state size, row indices, update interval or symmetrisation");
+        return -1;
+    }
+    nn = (Py_ssize_t)n * n;
+    if ((cap = PyObject_Length(mt)) < 2 || (np_ = PyObject_Length(ps)) < 0 || PyObject_Length(pe) != np_) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "OriStep: the magnetometer ring needs >= 2 slots, starts and ends "
+                            "the schedule's length");
+        return -1;
+    }
+    if ((prm = PyObject_GetAttrString(f, "prm")) == NULL || (pred = PyObject_GetAttrString(f, "pred")) == NULL)
+        goto fail;
+    /* OrientationFilter.predict (ct_ori_pred) */
+    if (!(o->pred.R = OS_D(f, "R", 9, 1)) || !(o->pred.bias = OS_D(f, "bias", 3, 1)) ||
+        !(o->pred.dist = OS_D(f, "dist", 3, 1)) || !(o->pred.acc = OS_D(f, "acc", 3, 1)) ||
+        !(o->pred.st = OS_D(f, "sums", CT_OA_N, 1)) || os_attr_double(prm, "dist_corr", &o->pred.dist_corr) < 0 ||
+        os_attr_double(prm, "acc_corr_time_s", &o->pred.acc_corr_time_s) < 0)
+        goto fail;
+    o->pred.E = self->E;
+    /* propagate (ct_ori) */
+    o->prop.n = n;
+    o->prop.theta = th;
+    o->prop.bias = bi;
+    o->prop.dist = di;
+    o->prop.R = o->pred.R;
+    if (!(o->prop.Rc = OS_D(f, "_Rc", 9, 1)) || !(o->prop.A = OS_D(pred, "A", nn, 1)) ||
+        !(o->prop.Q = OS_D(pred, "Q", nn, 1)) || !(o->prop.P = OS_D(f, "P", nn, 1)) ||
+        !(o->prop.T = OS_D(pred, "_T", nn, 1)) || os_attr_double(prm, "gyro_noise", &o->prop.gyro_noise) < 0 ||
+        os_attr_double(prm, "gyro_bias_rw", &o->prop.gyro_bias_rw) < 0)
+        goto fail;
+    /* the two updates */
+    if (os_bind_kalman(self, iu, n, &o->iu, &o->inis) < 0 || os_bind_kalman(self, mu, n, &o->mu, &o->mnis) < 0 ||
+        os_attr_double(iu, "gate", &o->igate) < 0 || os_attr_double(mu, "gate", &o->mgate) < 0)
+        goto fail;
+    /* their measurements (ct_ori_meas) */
+    me->n = n;
+    me->theta = th;
+    me->bias = bi;
+    me->dist = di;
+    me->R = o->pred.R;
+    me->Rc = o->prop.Rc;
+    me->b = o->pred.bias;
+    me->d = o->pred.dist;
+    me->a = o->pred.acc;
+    me->E = self->E;
+    me->sums = o->pred.st;
+    me->iy = (double *)o->iu.y;
+    me->iH = (double *)o->iu.H;
+    me->iR = (double *)o->iu.R;
+    me->idx = o->iu.dx;
+    me->my = (double *)o->mu.y;
+    me->mH = (double *)o->mu.H;
+    me->mR = (double *)o->mu.R;
+    me->mdx = o->mu.dx;
+    if (!(me->hg = OS_D(cp, "h_g", 3, 0)) || !(me->cst = OS_D(cp, "state", CT_CS_N, 1)) ||
+        os_attr_double(prm, "gravity", &me->gravity) < 0 ||
+        os_attr_double(prm, "freefall_tolerance", &me->freefall_tolerance) < 0 ||
+        os_attr_double(prm, "acc_noise", &me->acc_noise) < 0 ||
+        os_attr_double(prm, "acc_motion_sigma", &me->acc_motion_sigma) < 0 ||
+        os_attr_double(prm, "acc_adapt_gain", &me->acc_adapt_gain) < 0 ||
+        os_attr_double(prm, "mag_noise", &me->mag_noise) < 0 ||
+        os_attr_double(prm, "dist_sigma", &me->dist_sigma) < 0 ||
+        os_attr_double(prm, "dist_norm_gain", &me->dist_norm_gain) < 0 ||
+        os_attr_double(prm, "dist_dip_gain", &me->dist_dip_gain) < 0 ||
+        os_attr_double(prm, "dist_smoothing", &me->dist_smoothing) < 0 ||
+        os_attr_double(prm, "acc_adapt_tau_s", &o->acc_adapt_tau_s) < 0)
+        goto fail;
+    {
+        PyObject *h = PyObject_GetAttrString(prm, "compass_heading_only");
+        if (h == NULL || (heading = PyObject_IsTrue(h)) < 0) {
+            Py_XDECREF(h);
+            goto fail;
+        }
+        Py_DECREF(h);
+        me->heading_only = heading;
+    }
+    /* the compass sample's search, the ring's fields, FlipOffset, Inclination, _Ori */
+    if (!(o->q.tv = (const int64_t *)os_bind(self, mt, NULL, cap, "ql", 8, 0)) ||
+        !(o->q.fl = (const uint8_t *)os_bind(self, mf, NULL, cap, "B", 1, 0)) ||
+        !(o->q.ps = (const int64_t *)os_bind(self, ps, NULL, np_, "ql", 8, 0)) ||
+        !(o->q.pe = (const int64_t *)os_bind(self, pe, NULL, np_, "ql", 8, 0)) ||
+        !(o->mb = OS_D(mb, NULL, 3 * cap, 0)) || !(o->fl = OS_D(fs, NULL, CT_FL_N, 1)) ||
+        !(o->fi = (int64_t *)os_bind(self, fi, NULL, CT_FI_COUNT, "ql", 8, 1)) ||
+        !(o->inc = OS_D(inc, NULL, CT_IN_N, 1)) || !(o->ct = (int64_t *)os_bind(self, ct, NULL, 1, "ql", 8, 1)))
+        goto fail;
+    o->q.cap = cap;
+    o->q.n = np_;
+    o->q.before = before;
+    o->q.after = after;
+    o->flip_gain = gain;
+    o->every = every;
+    o->symmetrize_every = sym;
+    o->max_age_us = max_age;
+    Py_DECREF(prm);
+    Py_DECREF(pred);
+    return 0;
+fail:
+    Py_XDECREF(prm);
+    Py_XDECREF(pred);
+    OriStep_release(self);
+    return -1;
+}
+
+/* sample(t, ax, ay, az, wx, wy, wz, t_prev, n, head, count, pcount, icount, mcount) -> CT_OS_* bits */
+static PyObject *OriStep_sample(OriStepObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v[6];
+    long long t, tp, n, head, count, pc, ic, mc;
+    int i;
+    if (!self->nv) {
+        PyErr_SetString(PyExc_RuntimeError, "OriStep: not bound");
+        return NULL;
+    }
+    if (fus_nargs("sample", nargs, 14) < 0 || fus_long(args[0], &t) < 0)
+        return NULL;
+    for (i = 0; i < 6; ++i)
+        if (fus_double(args[1 + i], &v[i]) < 0)
+            return NULL;
+    if (fus_long(args[7], &tp) < 0 || fus_long(args[8], &n) < 0 || fus_long(args[9], &head) < 0 ||
+        fus_long(args[10], &count) < 0 || fus_long(args[11], &pc) < 0 || fus_long(args[12], &ic) < 0 ||
+        fus_long(args[13], &mc) < 0)
+        return NULL;
+    if (head < 0 || head >= self->o.q.cap || count < 0 || count > self->o.q.cap) {
+        PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_ori_sample(&self->o, (int64_t)t, v[0], v[1], v[2], v[3], v[4], v[5], (int64_t)tp,
+                                         (int)n, (int64_t)head, (int64_t)count, (int64_t)pc, (int64_t)ic,
+                                         (int64_t)mc));
+}
+
+static PyMethodDef OriStep_methods[] = {
+    {"sample", (PyCFunction)(void (*)(void))OriStep_sample, METH_FASTCALL,
+     "sample(t, ax, ay, az, wx, wy, wz, t_prev, n, head, count, pcount, icount, mcount) -> bits: one IMU sample "
+     "of _Ori.step on an initialised filter that has learned its compass"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject OriStepType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.OriStep",
+    .tp_basicsize = sizeof(OriStepObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "OriStep(f, upd_acc, upd_mag, compass, flip_s, flip_i, inc, ct, mag_t, mag_flags, mag_b, starts, ends, "
+              "before, after, every, max_age_us, symmetrize_every, flip_gain, n, theta, bias, dist): an orientation "
+              "filter's IMU sample (compass search, set/reset offset, prediction, updates) in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)OriStep_init,
+    .tp_dealloc = (destructor)OriStep_dealloc,
+    .tp_methods = OriStep_methods,
+};
+
+
+/* --------------------------------------------------------------- ImuSample */
+/* One IMU sample of a sensor of a fused tracker in one call (track.burst_fusion.SensorInertial
+ * .process on a sample both parts take whole): the sample off the sensor's IMU ring, the orientation
+ * filter's step (OriStep, ct_ori_sample), and the fusion filter's forward step (FusLive) with the
+ * sample kept in its IMU ring, the pose in the live history and the fused pose queued; the rings'
+ * heads and counts in their int64 arrays (fusion_rings.KernelRing), the latest bias-free rate into
+ * w_last. */
+typedef struct {
+    PyObject_HEAD
+    OriStepObject *ori;
+    FusLiveObject *live;
+    int64_t *in_hc, *in_t, *pi_hc, *pi_t, *hi_hc, *hi_t, *ou_hc, *ou_t;
+    const double *in_d;
+    double *wl;
+    double *sym;                    /* n x n: the symmetrisation's scratch (CovariancePredict._T2) */
+    int sym_every;                  /* ekf.SYMMETRIZE_EVERY */
+    int64_t in_cap, pi_cap, hi_cap, ou_cap;
+    int64_t held_t;                 /* begin's sample (its time, f, w) and compass sample, for finish */
+    double held[6], held_m[CT_OM_N];
+    int holding;
+    fus_views views;
+} ImuSampleObject;
+
+static void ImuSample_dealloc(ImuSampleObject *self)
+{
+    Py_XDECREF(self->ori);
+    Py_XDECREF(self->live);
+    fus_release(&self->views);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* a KernelRing's (t, hc) bound; its capacity */
+static int imu_ring_bind(ImuSampleObject *self, PyObject *t, PyObject *hc, int64_t **tp, int64_t **hp,
+                         int64_t *cap, const char *what)
+{
+    Py_ssize_t n = PyObject_Length(t);
+    if (n < 2) {
+        if (!PyErr_Occurred())
+            PyErr_Format(PyExc_ValueError, "ImuSample: %s needs at least 2 slots", what);
+        return -1;
+    }
+    if (!(*tp = fus_bind(&self->views, t, n, 'q', 1, what)) || !(*hp = fus_bind(&self->views, hc, 2, 'q', 1, what)))
+        return -1;
+    *cap = n;
+    return 0;
+}
+
+static int ImuSample_init(ImuSampleObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"ori", "live", "in_t", "in_d", "in_hc", "pi_t", "pi_hc", "hi_t", "hi_hc", "ou_t",
+                             "ou_hc", "w_last", "sym", "symmetrize_every", NULL};
+    PyObject *ori, *live, *o[11];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!OOOOOOOOOOOi", kwlist, &OriStepType, &ori, &FusLiveType, &live,
+                                     &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10],
+                                     &self->sym_every))
+        return -1;
+    if (self->sym_every < 1) {
+        PyErr_SetString(PyExc_ValueError, "ImuSample: symmetrize_every must be >= 1");
+        return -1;
+    }
+    if (fus_fresh(&self->views, "ImuSample") < 0)
+        return -1;
+    if (((OriStepObject *)ori)->nv == 0 || ((FusLiveObject *)live)->pred == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: OriStep or FusLive not bound");
+        return -1;
+    }
+    if (imu_ring_bind(self, o[0], o[2], &self->in_t, &self->in_hc, &self->in_cap, "in") < 0 ||
+        !(self->in_d = fus_bind(&self->views, o[1], self->in_cap * 6, 'd', 0, "in_d")) ||
+        imu_ring_bind(self, o[3], o[4], &self->pi_t, &self->pi_hc, &self->pi_cap, "pi") < 0 ||
+        imu_ring_bind(self, o[5], o[6], &self->hi_t, &self->hi_hc, &self->hi_cap, "hi") < 0 ||
+        imu_ring_bind(self, o[7], o[8], &self->ou_t, &self->ou_hc, &self->ou_cap, "ou") < 0 ||
+        !(self->wl = fus_bind(&self->views, o[9], 3, 'd', 1, "w_last")) ||
+        !(self->sym = fus_bind(&self->views, o[10],
+                               (Py_ssize_t)((FusLiveObject *)live)->pred->f.ins.n * ((FusLiveObject *)live)->pred->f.ins.n,
+                               'd', 1, "sym"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    {
+        FusLiveObject *lv = (FusLiveObject *)live;
+        if (self->pi_cap != lv->pred->f.icap || self->hi_cap != lv->out->hcap || self->ou_cap != lv->out->ocap) {
+            fus_release(&self->views);
+            PyErr_SetString(PyExc_ValueError, "ImuSample: the rings are not the ones FusLive is bound to");
+            return -1;
+        }
+    }
+    Py_INCREF(ori);
+    Py_INCREF(live);
+    self->ori = (OriStepObject *)ori;
+    self->live = (FusLiveObject *)live;
+    return 0;
+}
+
+/* the fusion filter's arguments of sample and finish: t0, age, recovering, inconsistent, fcount, rx, ry, rz
+ * (into v[6..8]), Phi */
+static int imu_fus_args(ImuSampleObject *self, PyObject *const *args, long long *t0, long long *age, int *rec,
+                        int *inc, long long *fc, double *v, double *phi)
+{
+    int i;
+    if (fus_long(args[0], t0) < 0 || fus_long(args[1], age) < 0 || (*rec = PyObject_IsTrue(args[2])) < 0 ||
+        (*inc = PyObject_IsTrue(args[3])) < 0 || fus_long(args[4], fc) < 0)
+        return -1;
+    for (i = 0; i < 3; ++i)
+        if (fus_double(args[5 + i], &v[6 + i]) < 0)
+            return -1;
+    if (self->live->pred->moving && fus_matrix3(args[8], phi) < 0)
+        return -1;
+    return 0;
+}
+
+/* sample(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, t_prev, n, head, count, pcount, icount,
+ *        mcount)
+ * -> the orientation step's CT_OS_* bits: the oldest sample of the sensor's IMU ring (its time t)
+ * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0;
+ * fcount: the fusion state's prediction count (the step after which P is symmetrised, as
+ * CovariancePredict.after_predict does it); -1 (nothing done) when the output queue is full
+ * (PoseOutput.queue would drop the pose) */
+static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long tp, n, head, count, pc, ic, mc, t0, age, fc;
+    double v[9], phi[9];
+    const double *d, *b;
+    int64_t k, t, kf, h, o;
+    int r, rec, inc, i;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("sample", nargs, 16) < 0 || imu_fus_args(self, args, &t0, &age, &rec, &inc, &fc, v, phi) < 0 ||
+        fus_long(args[9], &tp) < 0 || fus_long(args[10], &n) < 0 || fus_long(args[11], &head) < 0 ||
+        fus_long(args[12], &count) < 0 || fus_long(args[13], &pc) < 0 || fus_long(args[14], &ic) < 0 ||
+        fus_long(args[15], &mc) < 0)
+        return NULL;
+    if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
+        PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
+        return NULL;
+    }
+    if (self->ou_hc[1] == self->ou_cap)                                  /* the output queue is full */
+        return PyLong_FromLong(-1);
+    if ((k = ct_ring_pop(self->in_hc, self->in_cap)) < 0) {
+        PyErr_SetString(PyExc_IndexError, "sample: the IMU ring is empty");
+        return NULL;
+    }
+    t = self->in_t[k];
+    d = self->in_d + 6 * k;
+    for (i = 0; i < 6; ++i)
+        v[i] = d[i];
+    r = ct_ori_sample(&self->ori->o, t, v[0], v[1], v[2], v[3], v[4], v[5], (int64_t)tp, (int)n, (int64_t)head,
+                      (int64_t)count, (int64_t)pc, (int64_t)ic, (int64_t)mc);
+    o = ct_ring_push(self->ou_hc, self->ou_cap, self->ou_t, t);          /* PoseOutput's row */
+    kf = ct_ring_push(self->pi_hc, self->pi_cap, self->pi_t, t);         /* InertialPrediction.sample */
+    h = ct_ring_push(self->hi_hc, self->hi_cap, self->hi_t, t);
+    fus_live_step(self->live, (int)kf, (int)self->pi_hc[1], (int64_t)t0, t, (int)h, (int)o, (int64_t)age, rec, inc,
+                  v, phi, (fc + 1) % self->sym_every == 0 ? self->sym : NULL);
+    b = self->ori->o.pred.bias;                                          /* SensorInertial.w_last */
+    self->wl[0] = v[3] - b[0];
+    self->wl[1] = v[4] - b[1];
+    self->wl[2] = v[5] - b[2];
+    return PyLong_FromLong(r);
+}
+
+/* peek() -> the time of the oldest sample of the IMU ring, or -1 when it is empty */
+static PyObject *ImuSample_peek(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t p;
+    (void)args;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("peek", nargs, 0) < 0)
+        return NULL;
+    if (self->in_hc[1] <= 0)
+        return PyLong_FromLong(-1);
+    p = self->in_hc[0] - self->in_hc[1];
+    if (p < 0)
+        p += self->in_cap;
+    return PyLong_FromLongLong((long long)self->in_t[p]);
+}
+
+/* begin(t_prev, head, count) -> bits or -1: sample's first half for a sample whose prediction the
+ * caller follows with the orientation's orthonormalisation: the oldest sample off the IMU ring, the
+ * compass sample and the prediction (ct_ori_sample_begin), held for finish; -1 (nothing done) when
+ * the output queue is full */
+static PyObject *ImuSample_begin(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long tp, head, count;
+    const double *d;
+    int64_t k;
+    int i;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("begin", nargs, 3) < 0 || fus_long(args[0], &tp) < 0 || fus_long(args[1], &head) < 0 ||
+        fus_long(args[2], &count) < 0)
+        return NULL;
+    if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
+        PyErr_SetString(PyExc_IndexError, "begin: head or count outside the magnetometer ring");
+        return NULL;
+    }
+    if (self->ou_hc[1] == self->ou_cap)
+        return PyLong_FromLong(-1);
+    if ((k = ct_ring_pop(self->in_hc, self->in_cap)) < 0) {
+        PyErr_SetString(PyExc_IndexError, "begin: the IMU ring is empty");
+        return NULL;
+    }
+    self->held_t = self->in_t[k];
+    d = self->in_d + 6 * k;
+    for (i = 0; i < 6; ++i)
+        self->held[i] = d[i];
+    self->holding = 1;
+    return PyLong_FromLong(ct_ori_sample_begin(&self->ori->o, self->held_t, self->held[3], self->held[4],
+                                               self->held[5], (int64_t)tp, (int64_t)head, (int64_t)count,
+                                               self->held_m));
+}
+
+/* finish(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, n, pcount, icount, mcount) -> bits: the
+ * held sample's update round (ct_ori_sample_end) and the fusion filter's forward step, as sample */
+static PyObject *ImuSample_finish(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long n, pc, ic, mc, t0, age, fc;
+    double v[9], phi[9];
+    const double *b;
+    int64_t t, kf, h, o;
+    int r, rec, inc, i;
+    if (self->ori == NULL || !self->holding) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: finish without begin");
+        return NULL;
+    }
+    if (fus_nargs("finish", nargs, 13) < 0 || imu_fus_args(self, args, &t0, &age, &rec, &inc, &fc, v, phi) < 0 ||
+        fus_long(args[9], &n) < 0 || fus_long(args[10], &pc) < 0 || fus_long(args[11], &ic) < 0 ||
+        fus_long(args[12], &mc) < 0)
+        return NULL;
+    self->holding = 0;
+    t = self->held_t;
+    for (i = 0; i < 6; ++i)
+        v[i] = self->held[i];
+    r = ct_ori_sample_end(&self->ori->o, v[0], v[1], v[2], (int)n, self->held_m, (int64_t)pc, (int64_t)ic,
+                          (int64_t)mc);
+    o = ct_ring_push(self->ou_hc, self->ou_cap, self->ou_t, t);
+    kf = ct_ring_push(self->pi_hc, self->pi_cap, self->pi_t, t);
+    h = ct_ring_push(self->hi_hc, self->hi_cap, self->hi_t, t);
+    fus_live_step(self->live, (int)kf, (int)self->pi_hc[1], (int64_t)t0, t, (int)h, (int)o, (int64_t)age, rec, inc,
+                  v, phi, (fc + 1) % self->sym_every == 0 ? self->sym : NULL);
+    b = self->ori->o.pred.bias;
+    self->wl[0] = v[3] - b[0];
+    self->wl[1] = v[4] - b[1];
+    self->wl[2] = v[5] - b[2];
+    return PyLong_FromLong(r);
+}
+
+static PyMethodDef ImuSample_methods[] = {
+    {"begin", (PyCFunction)(void (*)(void))ImuSample_begin, METH_FASTCALL,
+     "begin(t_prev, head, count) -> bits or -1: sample's first half (up to the orientation's prediction)"},
+    {"finish", (PyCFunction)(void (*)(void))ImuSample_finish, METH_FASTCALL,
+     "finish(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, n, pcount, icount, mcount) -> bits: "
+     "sample's second half (the update round and the fusion filter's step) of the sample begin took"},
+    {"peek", (PyCFunction)(void (*)(void))ImuSample_peek, METH_FASTCALL,
+     "peek() -> the time of the IMU ring's oldest sample, or -1 when it is empty"},
+    {"sample", (PyCFunction)(void (*)(void))ImuSample_sample, METH_FASTCALL,
+     "sample(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, t_prev, n, head, count, pcount, icount, "
+     "mcount) "
+     "-> bits: the oldest IMU sample through the orientation filter (OriStep) and the fusion filter (FusLive)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ImuSampleType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ImuSample",
+    .tp_basicsize = sizeof(ImuSampleObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "ImuSample(ori, live, in_t, in_d, in_hc, pi_t, pi_hc, hi_t, hi_hc, ou_t, ou_hc, w_last, sym, "
+              "symmetrize_every): one IMU "
+              "sample of a fused tracker's sensor (its ring, the orientation filter, the fusion filter) in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)ImuSample_init,
+    .tp_dealloc = (destructor)ImuSample_dealloc,
+    .tp_methods = ImuSample_methods,
+};
+
 /* --------------------------------------------------------------- register */
 static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -855,13 +1482,16 @@ int ct_register_fusimu(PyObject *m)
     if (fus_add(m, &FusPredType, "FusPred") < 0 || fus_add(m, &FusRowType, "FusRow") < 0 ||
         fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0 ||
         fus_add(m, &OriUpdType, "OriUpd") < 0 ||
-        fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0)
+        fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0 ||
+        fus_add(m, &OriStepType, "OriStep") < 0 ||
+        fus_add(m, &ImuSampleType, "ImuSample") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_OUT_WIDTH", CT_OUT_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_OA_N", CT_OA_N) < 0 || PyModule_AddIntConstant(m, "FUS_NST", CT_FS_NST) < 0 ||
-        PyModule_AddIntConstant(m, "FUS_CS_N", CT_CS_N) < 0)
+        PyModule_AddIntConstant(m, "FUS_CS_N", CT_CS_N) < 0 || PyModule_AddIntConstant(m, "FUS_FL_N", CT_FL_N) < 0 ||
+        PyModule_AddIntConstant(m, "FUS_FI_N", CT_FI_COUNT) < 0 || PyModule_AddIntConstant(m, "FUS_IN_N", CT_IN_N) < 0)
         return -1;
     return 0;
 }

@@ -135,6 +135,16 @@ class KalmanUpdate:
             symmetrize(P, self._T, self._Tt, self._half)
         return EKF_OK
 
+    def counted(self, flags: int) -> int:
+        """The bookkeeping of an update a compiled kernel ran with its symmetrisation (the count or the
+        rejection, the NIS it wrote); returns ``flags``."""
+        self.nis = self._nisv[0]
+        if flags != EKF_OK:
+            self.rejected += 1
+        else:
+            self.count += 1
+        return flags
+
     def update(self, P: np.ndarray, gate: float | None = None) -> int:
         """One update of ``P`` with the current ``H``, ``R``, ``y``; returns the
         health flags (``EKF_OK`` when applied). ``dx`` is zeroed when rejected.

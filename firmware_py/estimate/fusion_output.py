@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import HIST_FIELDS, HIST_P, HIST_R, InsState
 from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
 from coiltrack.firmware.ring import Ring, field_slices
 from coiltrack.firmware.rotation import quat_from_elements
 
@@ -39,7 +40,7 @@ class PoseHistory:
     """The live pose history (``live``) and the one a replay writes (``shadow``), source frame."""
 
     def __init__(self, capacity: int):
-        self.live = Ring(capacity, HIST_FIELDS)
+        self.live = KernelRing(capacity, HIST_FIELDS)    # (its head and count shared: ext.ImuSample)
         self.shadow = Ring(capacity, HIST_FIELDS)
 
     def rewind_shadow(self, t_ref_us: int) -> None:
@@ -100,7 +101,7 @@ class PoseOutput:
                  imu: Ring | None = None, hist: Ring | None = None):
         self.prm = params
         self.frame = frame
-        self.out = Ring(capacity, OUT_FIELDS)
+        self.out = KernelRing(capacity, OUT_FIELDS)      # (its head and count shared: ext.ImuSample)
         self._otv, self._odv = self.out.tv, self.out.dv
         self.dropped = 0
         ext = core.ext
@@ -111,10 +112,27 @@ class PoseOutput:
             assert (HIST_P, HIST_R, hist.width) == (0, 3, ext.FUS_HIST_WIDTH)
             self._ck = ext.FusOutput(st.P.shape[0], st.P, st.Th, imu.d, imu.capacity, hist.d, hist.capacity,
                                      self.out.d, capacity, not frame.fixed, params.stale_us,
-                                     params.dead_reckon_after_us, params.dead_reckon_limit_us)
+                                     params.dead_reckon_after_us, params.dead_reckon_limit_us, self.out.t, self.out.hc)
             self.queue = self._queue_compiled
             self.into_report = self._into_report_compiled
             self.take_report = self._take_report_compiled
+            self.send_plain = self._send_plain_compiled
+
+    def send_plain(self, tx, node: int, status: int, quality: int, range_m: float) -> bool:
+        """Send the queued poses, oldest first, that need nothing but their frame: no ``OUT_*``
+        bit and within ``range_m`` of the source, sent with ``status`` (``tx.fused_pose``); stops
+        at the first other one (left queued). True when none is left. The Python core sends
+        none here: every pose goes through :meth:`take_report` (the reference)."""
+        return not len(self.out)
+
+    def _send_plain_compiled(self, tx, node: int, status: int, quality: int, range_m: float) -> bool:
+        """:meth:`send_plain` on the compiled core (``ext.FusOutput.pose_next``: the POSE frame straight
+        from the oldest output row, ``ct_pose_frame``, and the row off the queue)."""
+        send = tx.fused_pose
+        while True:
+            r = send(self._ck, node, status, quality, range_m)
+            if r <= 0:
+                return r == 0
 
     def _queue_compiled(self, t_us: int, hist: Ring, st: InsState, d, k: int, last_update_t: int,
                         recovering: bool, inconsistent: bool) -> None:

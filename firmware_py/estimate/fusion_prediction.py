@@ -24,6 +24,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import IMU_F, IMU_FIELDS, IMU_FSRC, IMU_W, InsState
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, VEL
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_nav, transition_static
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
 from coiltrack.firmware.ring import Ring
 
 
@@ -57,7 +58,7 @@ class InertialPrediction:
         self._q_diag = tuple(tuple((b.start + i) * (n + 1) for i in range(3)) for b in (VEL, ORI, ACC, GYR))
         self.frame = frame
         self.sd = Strapdown(core)
-        self.imu = Ring(imu_capacity, IMU_FIELDS)
+        self.imu = KernelRing(imu_capacity, IMU_FIELDS)     # (its head and count shared: ext.ImuSample)
         self._itv, self._idv, self._icap = self.imu.tv, self.imu.dv, self.imu.capacity
         self.steps = 0
         #: the numeric body of each IMU step, chosen once (coiltrack.firmware.core)
@@ -90,6 +91,8 @@ class InertialPrediction:
         bound to ``st``, this ring and ``hist``) in one ``ext.FusLive``."""
         self._live = self._ext.FusLive(self._kern[st], self._row, out_kernel, hist.d)
 
+    live_kernel = property(lambda self: self._live)     # ext.FusLive (bind_live)
+
     def sample(self, st: InsState, hist: Ring, t0: int, t1: int, o: int, age: int, recovering: bool,
                inconsistent: bool, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> None:
         """:meth:`push` of the sample at ``t1``, :meth:`advance` of ``st`` (the state given to
@@ -104,7 +107,13 @@ class InertialPrediction:
         k = imu.push(t1)
         self._live.sample(k, len(imu), t0, t1, hist.push(t1), o, age, recovering, inconsistent, fx, fy, fz,
                           wx, wy, wz, rx, ry, rz, Phi)
-        st.pred.after_predict(st.P)
+        self.sampled(st, t1)
+
+    def sampled(self, st: InsState, t1: int) -> None:
+        """The bookkeeping after a compiled forward step of ``st`` to ``t1`` (:meth:`sample`, or
+        ``ext.ImuSample`` through ``FusionFilter.live_sample``: the periodic symmetrisation ran in the
+        kernel; none is due after :meth:`sample`'s): the prediction's count, the steps, the time."""
+        st.pred.set_count(st.pred.count + 1)
         self.steps += 1
         st.set_time(t1)
 

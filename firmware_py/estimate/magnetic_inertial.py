@@ -371,6 +371,27 @@ class FusionFilter(FilterView):
                                fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)
         return True
 
+    def live_ready(self, t_us: int) -> bool:
+        """The sample at ``t_us`` meets :meth:`_push_imu_compiled`'s conditions for :meth:`live_sample` (but
+        the output queue's room, which its kernel tests, and ``P``'s symmetrisation, which it runs)."""
+        st = self.st
+        t0 = st.t_us
+        snap = self.snap
+        return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
+            and not (snap.pending and t0 < snap.t <= t_us) and self.recorder is None
+
+    def live_sample(self, step, t_us: int, rx, ry, rz, Phi, *ori) -> int:
+        """The oldest sample of the sensor's IMU ring (at ``t_us``, :meth:`live_ready`), with the source's
+        ``r*`` and ``Phi``, through ``step`` (``ext.ImuSample.sample`` or ``finish``; ``ori``: its orientation
+        filter's arguments): that filter's step and :meth:`_push_imu_compiled`'s in one call; the
+        orientation step's bits, or -1 (nothing done) when the output queue is full."""
+        st = self.st
+        r = step(st.t_us, t_us - self.last_update_t, self.recovery.recovering,
+                 bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)), st.pred.count, rx, ry, rz, Phi, *ori)
+        if r >= 0:
+            self.prediction.sampled(st, t_us)
+        return r
+
     def _after_push(self, t_us: int, k: int) -> bool:
         """:meth:`push_imu` after the sample is kept in ring slot ``k``."""
         st = self.st

@@ -104,6 +104,11 @@ ORI_LEARNING = 256          # compass sample used to learn |m| and the dip, not 
 #: array (``core/include/ct_fusimu.h`` ``CT_OA_*``)
 SUM_DT, SUM_DT2, SUM_CD, SUM_QD, SUM_CA, SUM_INCL_DT = range(6)
 
+#: what one sample on the compiled core did (``core/src/fusimu.c ct_ori_sample``, ``CT_OS_*``): a
+#: prediction step; an update round; the inclination's Kalman update (its ekf flags at bit 8) or free
+#: fall; the compass's update (its flags at bit 12); the covariance propagations (their number at bit 16)
+OS_PREDICTED, OS_ROUND, OS_ACC, OS_FREEFALL, OS_MAG = 1, 2, 4, 8, 16
+
 
 class OrientationParams:
     """Noise and model parameters of the ch. 2 filter (SI units, per sample
@@ -341,9 +346,7 @@ class OrientationFilter:
     m_ref = property(lambda self: self.compass.m_ref)             # |earth field|, T
 
     def set_bias(self, bx, by, bz) -> None:
-        self.bias[0] = bx
-        self.bias[1] = by
-        self.bias[2] = bz
+        self.bias[0], self.bias[1], self.bias[2] = bx, by, bz
 
     # --------------------------------------------------------- predict
     def predict(self, t_us: int, wx, wy, wz) -> None:
@@ -391,6 +394,20 @@ class OrientationFilter:
         self.steps += 1
         if self.steps & 63 == 0:
             self._orthonormalize()
+
+    def sample_done(self, t_us: int, r: int) -> None:
+        """The bookkeeping of a sample the compiled core ran (``ct_ori_sample``, or its halves; the ``OS_*``
+        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags."""
+        self.t_us = t_us
+        self.steps += r & OS_PREDICTED
+        if r & OS_PREDICTED and self.steps & 63 == 0:
+            self._orthonormalize()       # (after ct_ori_sample_begin: its caller finishes the sample)
+        if r & OS_ROUND:
+            if r & (OS_FREEFALL | OS_ACC):
+                self.last_acc_flags = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)
+            self.pred.set_count(self.pred.count + (r >> 16))
+            if r & OS_MAG:
+                self.last_mag_flags = self.compass.upd.counted((r >> 12) & 15)
 
     def propagate(self) -> None:
         """Covariance over the steps since the last call (eq 2.28 and the

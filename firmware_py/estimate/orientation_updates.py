@@ -31,6 +31,9 @@ N = ORIENTATION_LAYOUT.n
 #: the compass's state (``Compass.state``; the compiled core's ``CT_CS_*``): ``|m|`` (T), the
 #: disturbance's driving noise ``qwd`` (eq 2.12), the low-passed norm and dip
 CS_MREF, CS_QWD, CS_NORM, CS_DIP = range(4)
+#: the inclination's motion level (``Inclination.st``; the compiled core's ``CT_IN_*``): the variance,
+#: the running mean (3), the mean square, started (0 / 1)
+IN_MOTION, IN_MEAN, IN_SQ, IN_STARTED = 0, 1, 4, 5
 
 
 class Inclination:
@@ -42,17 +45,16 @@ class Inclination:
         self.upd = KalmanUpdate(N, 3, params.gate_probability, core)
         self._H = memoryview(self.upd.H)
         self._R = memoryview(self.upd.R)
-        self.motion_ms = 0.0
-        self._mean = [0.0, 0.0, 0.0]    # running mean of y_A - g Z- (a tilt error shows here, not above)
-        self._sq = 0.0                  # running mean of |y_A - g Z-|^2
-        self._started = False
+        # the motion level, the running mean of y_A - g Z- (a tilt error shows here, not above), the
+        # running mean of |y_A - g Z-|^2 and whether it started (IN_*; the compiled core's CT_IN_*)
+        self.st = np.zeros(6)
+        self._st = memoryview(self.st)
+
+    motion_ms = property(lambda self: self._st[IN_MOTION])    # variance of y_A - g Z-, m^2/s^4
 
     def reset(self) -> None:
         """A new start: no motion seen yet."""
-        self.motion_ms = 0.0
-        self._mean[0] = self._mean[1] = self._mean[2] = 0.0
-        self._sq = 0.0
-        self._started = False
+        self.st.fill(0.0)
 
     def observe(self, R, ax, ay, az, dt: float) -> None:
         """The motion the accelerometer sees besides gravity, ``|y_A - g Z-|^2``, averaged over
@@ -65,16 +67,18 @@ class Inclination:
             ex, ey, ez = ax - g * R[2, 0], ay - g * R[2, 1], az - g * R[2, 2]
             k = dt / p.acc_adapt_tau_s if p.acc_adapt_tau_s > 0.0 else 1.0
             k = k if k < 1.0 else 1.0
-            if not self._started:         # the first sample is the mean: no variance yet
+            s = self._st
+            if s[IN_STARTED] == 0.0:      # the first sample is the mean: no variance yet
                 k = 1.0
-                self._started = True
-            m = self._mean
-            m[0] += k * (ex - m[0])
-            m[1] += k * (ey - m[1])
-            m[2] += k * (ez - m[2])
-            self._sq += k * (ex * ex + ey * ey + ez * ez - self._sq)
-            v = self._sq - (m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
-            self.motion_ms = v if v > 0.0 else 0.0
+                s[IN_STARTED] = 1.0
+            m0 = s[IN_MEAN] + k * (ex - s[IN_MEAN])
+            m1 = s[IN_MEAN + 1] + k * (ey - s[IN_MEAN + 1])
+            m2 = s[IN_MEAN + 2] + k * (ez - s[IN_MEAN + 2])
+            s[IN_MEAN], s[IN_MEAN + 1], s[IN_MEAN + 2] = m0, m1, m2
+            sq = s[IN_SQ] + k * (ex * ex + ey * ey + ez * ez - s[IN_SQ])
+            s[IN_SQ] = sq
+            v = sq - (m0 * m0 + m1 * m1 + m2 * m2)
+            s[IN_MOTION] = v if v > 0.0 else 0.0
 
     def update(self, R, P, vx, vy, vz, vn, ca) -> int:
         """The update of ``P`` with the specific force less the predicted acceleration ``v``
@@ -122,13 +126,10 @@ class Compass:
         self._s[CS_NORM] = 1.0
         self._s[CS_DIP] = 0.0
         self._learn = 0
+        self.learning = False            # still learning |m| and the dip (``_learn > 0``)
         self._sum_h = 0.0
         self._sum_v = 0.0
         self._sum_n = 0.0
-
-    @property
-    def learning(self) -> bool:
-        return self._learn > 0
 
     m_ref = property(lambda self: self._s[CS_MREF])      # |earth field|, T
     qwd = property(lambda self: self._s[CS_QWD])          # the disturbance's driving noise (eq 2.12)
@@ -146,6 +147,7 @@ class Compass:
         # estimated) would tilt the reference. The first half of the window
         # only lets the inclination settle and is not averaged.
         self._learn = 2 * self.prm.mag_learn_samples
+        self.learning = self._learn > 0
         self._sum_h = self._sum_v = self._sum_n = 0.0
         self._s[CS_NORM] = 1.0
         self._s[CS_DIP] = math.atan2(hu, abs(hn))
@@ -153,7 +155,7 @@ class Compass:
     def learn(self, R, mx, my, mz) -> bool:
         """While learning (True): the sample goes into ``|m|`` and the dip (eqs 2.8-2.10)."""
         if self._learn > self.prm.mag_learn_samples:
-            self._learn -= 1
+            self._learn -= 1                 # (still > 0: learning)
             return True
         if self._learn > 0:
             gx = R[0, 0] * mx + R[0, 1] * my + R[0, 2] * mz
@@ -163,6 +165,7 @@ class Compass:
             self._sum_v += gz
             self._sum_n += math.sqrt(mx * mx + my * my + mz * mz)
             self._learn -= 1
+            self.learning = self._learn > 0
             if self._learn == 0:
                 k = self.prm.mag_learn_samples
                 hh, hv, mn = self._sum_h / k, self._sum_v / k, self._sum_n / k

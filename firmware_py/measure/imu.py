@@ -3,13 +3,14 @@ from __future__ import annotations
 
 from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
 
-from coiltrack.firmware.ring import Ring
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
 
 
-class ImuRing(Ring):
+class ImuRing(KernelRing):
     """Fixed-capacity ring of received IMU samples (time, specific force
     m/s^2, rate rad/s; sensor frame), drained by the tick (``pop``). A full
-    ring drops its oldest sample (counted)."""
+    ring drops its oldest sample (counted). Its head and count are shared with the compiled
+    per-sample path (``estimate.fusion_rings.KernelRing``)."""
 
     def __init__(self, capacity: int):
         super().__init__(capacity, (("F", 3), ("W", 3)))
@@ -25,7 +26,7 @@ class ImuRing(Ring):
         self.last_t = t
         if self.full:
             self.dropped += 1
-        k = Ring.push(self, t)
+        k = KernelRing.push(self, t)
         d = self.dv
         d[k, 0] = msg.ax * ACC_LSB
         d[k, 1] = msg.ay * ACC_LSB

@@ -36,11 +36,12 @@ from coiltrack.protocol.schema import (ACC_LSB, EVT_DEAD_RECKONING, EVT_TRACK_RE
                                        POSE_FUSED, POSE_INCONSISTENT, POSE_RECOVERED, POSE_STALE, POSE_VALID)
 
 from coiltrack.firmware.transmit import PoseReport
-from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, SYMMETRIZE_EVERY
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
-from coiltrack.firmware.estimate.orientation import OrientationFilter, OrientationParams
+from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
+from coiltrack.firmware.estimate.orientation import N as ORI_N, OS_MAG, OS_ROUND, OrientationFilter, OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
@@ -94,23 +95,27 @@ class FlipOffset:
     """
 
     def __init__(self, gain: float = 0.2):
-        self.o = [0.0, 0.0, 0.0]
+        # the state in two arrays the compiled core shares (core/include/ct_fusimu.h CT_FL_*, CT_FI_*):
+        # the offset o and the previous sample (T); the previous flip state, its time, the jumps seen
+        self.s = np.zeros(6)
+        self.si = np.zeros(3, dtype=np.int64)
+        self.o = memoryview(self.s)[0:3]
+        self.prev = memoryview(self.s)[3:6]
+        self._i = memoryview(self.si)
+        self._i[0] = -1
         self.gain = float(gain)
-        self.prev_state = -1
-        self.prev = [0.0, 0.0, 0.0]
-        self.prev_t = 0
-        self.n = 0
 
     def observe(self, t_us: int, state: int, mx, my, mz, rate, max_dt_us: int) -> None:
         """Feed every quiet compass sample (T) with its flip state (0/1) and
         the current bias-free rate (rad/s, 3 floats)."""
-        if state == self.prev_state:          # no flip: just remember the sample
+        si = self._i                           # previous state, its time, jumps seen
+        if state == si[0]:                     # no flip: just remember the sample
             p = self.prev
             p[0], p[1], p[2] = mx, my, mz
-            self.prev_t = t_us
+            si[1] = t_us
             return
-        if self.prev_state >= 0 and 0 < t_us - self.prev_t <= max_dt_us:
-            dt = (t_us - self.prev_t) * 1e-6
+        if si[0] >= 0 and 0 < t_us - si[1] <= max_dt_us:
+            dt = (t_us - si[1]) * 1e-6
             wx, wy, wz = rate[0] * dt, rate[1] * dt, rate[2] * dt
             px, py, pz = self.prev
             # field seen from the rotated frame: p - w x p (first order)
@@ -118,15 +123,17 @@ class FlipOffset:
             ey = py - (wz * px - wx * pz)
             ez = pz - (wx * py - wy * px)
             s = 1.0 if state else -1.0
-            k = 1.0 / (self.n + 1) if self.n < 1.0 / self.gain else self.gain
+            n = si[2]
+            k = 1.0 / (n + 1) if n < 1.0 / self.gain else self.gain
             o = self.o
             o[0] += k * (0.5 * s * (mx - ex) - o[0])
             o[1] += k * (0.5 * s * (my - ey) - o[1])
             o[2] += k * (0.5 * s * (mz - ez) - o[2])
-            self.n += 1
-        self.prev_state = state
-        self.prev[0], self.prev[1], self.prev[2] = mx, my, mz
-        self.prev_t = t_us
+            si[2] = n + 1
+        si[0] = state
+        p = self.prev
+        p[0], p[1], p[2] = mx, my, mz
+        si[1] = t_us
 
 
 def quiet_sample(ring: SampleRing, after_t: int, t_imu: int, max_age_us: int, gate: PulseGate):
@@ -152,7 +159,8 @@ class _Ori:
         self.f = OrientationFilter(OrientationParams.from_config(cfg), core)
         self.gate = gate
         self.flip = FlipOffset()
-        self.compass_t = -(1 << 62)
+        self._ct = np.full(1, -(1 << 62), dtype=np.int64)    # the last compass sample's time (us)
+        self._ctv = memoryview(self._ct)
         # a compass sample's largest distance from the IMU sample it serves (default two intervals of each)
         self.max_age_us = int(2e6 / cfg.imu.imu_rate_hz) + int(2e6 / cfg.pulse.mag_rate_hz) if max_age_us is None \
             else int(max_age_us)
@@ -167,6 +175,79 @@ class _Ori:
         self._ext = core.ext if getattr(gate, "sample_kernel", None) is not None else None
         self._qk = None
         self._qring = None
+        # one sample of an initialised filter whose compass has learned, in one call of the compiled
+        # core (core/src/fusimu.c ct_ori_sample, ext.OriStep), bound to the magnetometer ring at its first
+        # such sample; the filter's compiled updates are its reference's kernels
+        self._sk = None
+        self._sring = None
+        self.one_call = self._ext is not None and getattr(self.f, "_cku", None) is not None
+        if self.one_call:
+            self.step = self._step_compiled
+
+    compass_t = property(lambda self: self._ctv[0])     # the last compass sample's time (us)
+    kernel = property(lambda self: self._ext)            # the compiled core's module (None: Python)
+    sample_kernel = property(lambda self: self._sk)      # ext.OriStep (bound by takes)
+
+    def bind(self, mag: SampleRing):
+        """``ext.OriStep`` bound to ``mag`` (the one of the samples :meth:`ready` lets through)."""
+        if mag is not self._sring:
+            self._bind_sample(mag)
+        return self._sk
+
+    def _bind_sample(self, mag: SampleRing) -> None:
+        """``ext.OriStep`` bound to the filter, its updates, ``mag`` and the gate's schedule."""
+        f, g, fl = self.f, self.gate, self.flip
+        self._sk = self._ext.OriStep(f, f.incl.upd, f.compass.upd, f.compass, fl.s, fl.si, f.incl.st, self._ct,
+                                     mag.t, mag.flags, mag.b, g._ps, g._pe, g.before, g.after, self.every,
+                                     self.max_age_us, SYMMETRIZE_EVERY, fl.gain, ORI_N, THETA.start, BIAS.start,
+                                     DIST.start)
+        self._sring = mag
+
+    def takes(self, t: int, mag: SampleRing) -> bool:
+        """The compiled core takes the sample at ``t`` whole (:meth:`ready`; ``ext.OriStep``, bound to
+        ``mag`` here)."""
+        if not self.ready(t):
+            return False
+        if mag is not self._sring:
+            self._bind_sample(mag)
+        return True
+
+    def ready(self, t: int) -> bool:
+        """The sample at ``t`` is one the compiled core takes whole in one call (:meth:`settled`, and no
+        orthonormalisation due)."""
+        f = self.f
+        return self.settled(t) and (t <= f.t_us or (f.steps + 1) & 63 != 0)
+
+    def settled(self, t: int) -> bool:
+        """An initialised filter, no break in the stream before ``t``, the compass learned."""
+        f = self.f
+        return f.initialized and t - f.t_us <= self.gap_us and not f.compass.learning
+
+    def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        """:meth:`step` of a sample the compiled core takes whole (:meth:`takes`; ``ext.OriStep.sample``:
+        the compass sample, the set/reset offset, the prediction and the update round, the
+        operations of :meth:`step_python` in its order); any other goes through :meth:`step_python`."""
+        if not self.takes(t, mag):
+            self.step_python(t, ax, ay, az, wx, wy, wz, mag)
+            return
+        f = self.f
+        h = mag.last_pushed_slot() + 1                 # (the ring's head: the next push's slot)
+        self.sampled(t, self._sk.sample(t, ax, ay, az, wx, wy, wz, f.t_us, self.n, h if h < mag.capacity else 0,
+                                        len(mag), f.pred.count, f.incl.upd.count, f.compass.upd.count))
+
+    def sampled(self, t: int, r: int) -> bool:
+        """The bookkeeping of a sample at ``t`` the compiled core took whole (what it did: the
+        ``orientation.OS_*`` bits ``r``); False (nothing done) for ``r`` < 0: the core did not take it."""
+        if r < 0:
+            return False
+        self.f.sample_done(t, r)
+        if r & OS_ROUND:
+            self.n = 0
+            if r & OS_MAG:
+                self.compass_used += 1
+        else:
+            self.n += 1
+        return True
 
     def _quiet(self, mag: SampleRing, t: int) -> int:
         """:func:`quiet_sample` for the IMU sample at ``t``, on the filter's core."""
@@ -179,13 +260,19 @@ class _Ori:
         return self._qk.find(h if h < mag.capacity else 0, len(mag), self.compass_t, t, self.max_age_us)
 
     def step(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        """One IMU sample (specific force, rate) with the magnetometer ring ``mag``: the compass
+        sample and its set/reset offset, the prediction and every ``every`` samples the updates."""
+        self.step_python(t, ax, ay, az, wx, wy, wz, mag)
+
+    def step_python(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
+        """:meth:`step` on the Python reference (and any sample the compiled one does not take)."""
         f = self.f
         if f.initialized and t - f.t_us > self.gap_us:
             f.lose()                           # what the gyroscopes missed cannot be integrated
             self.lost = True
         slot = self._quiet(mag, t)
         if slot >= 0:
-            self.compass_t = mag.time_at(slot)
+            self._ctv[0] = mag.time_at(slot)
             st = 1 if mag.flip_at(slot) else 0
             mx, my, mz = mag.field_at(slot)
             bb = f.bias_v
@@ -347,6 +434,66 @@ def make_source(cfg, gate: PulseGate, core=_DEFAULT_CORE):
                           core)
 
 
+class _OneCall:
+    """:meth:`SensorInertial.process` on the compiled core: a sample both filters take whole
+    (``_Ori.takes``, ``FusionFilter.live_ready``) is one call (``ext.ImuSample`` through
+    ``FusionFilter.live_sample``: the sample off the IMU ring, the orientation filter's step, the
+    fusion filter's forward step, ``w_last``; the same steps in the same order), bound at the first
+    such sample; any other goes through ``slow`` (the steps one by one)."""
+
+    def __init__(self, imu, ori: _Ori, fusion, source, w_last, slow):
+        self.imu, self.ori, self.fusion, self.source, self.w_last, self.slow = imu, ori, fusion, source, w_last, slow
+        self._phiv = memoryview(source.phi)
+        self._frv = memoryview(source.fref)
+        self.kernel = None
+        self._ring = None
+
+    def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
+        """:meth:`SensorInertial.process`'s loop; the samples processed."""
+        ori, fus = self.ori, self.fusion
+        ks = self.kernel if self._ring is mag else self._bind(mag)
+        f = ori.f
+        hold = None if self.source.fixed else self.source.hold
+        phi, fr = self._phiv, self._frv
+        n = 0
+        while max_steps > 0:
+            t = ks.peek()                              # (the oldest sample's time; -1: none)
+            if t < 0:
+                break
+            max_steps -= 1
+            if hold is not None and hold(t, now_us, wait_us):
+                break
+            if not (ori.settled(t) and fus.live_ready(t)):
+                self.slow(mag)
+            else:
+                h = mag.last_pushed_slot() + 1
+                h = h if h < mag.capacity else 0
+                if t > f.t_us and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
+                    r = ks.begin(f.t_us, h, len(mag))
+                    if r >= 0:
+                        f.sample_done(t, r)
+                        r = fus.live_sample(ks.finish, t, fr[0], fr[1], fr[2], phi, ori.n, f.pred.count,
+                                            f.incl.upd.count, f.compass.upd.count)
+                else:
+                    r = fus.live_sample(ks.sample, t, fr[0], fr[1], fr[2], phi, f.t_us, ori.n, h, len(mag),
+                                        f.pred.count, f.incl.upd.count, f.compass.upd.count)
+                if not ori.sampled(t, r):
+                    self.slow(mag)
+            n += 1
+        return n
+
+    def _bind(self, mag: SampleRing):
+        """``ext.ImuSample`` bound to the rings, the filters' kernels (the orientation filter's as bound
+        to ``mag``) and ``w_last``."""
+        fus = self.fusion
+        pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
+        self.kernel = self.ori.kernel.ImuSample(self.ori.bind(mag), fus.prediction.live_kernel, self.imu.t,
+                                                self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
+                                                out.hc, self.w_last, fus.st.pred._T2, SYMMETRIZE_EVERY)
+        self._ring = mag
+        return self.kernel
+
+
 class SensorInertial:
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
@@ -370,6 +517,7 @@ class SensorInertial:
                                    output_capacity=cfg.fusion.pose_output_capacity, fixed_source=source.fixed,
                                    core=core)
         self._take = self.fusion.output.take_report     # the next queued fused pose into a record
+        self._send_plain = self.fusion.output.send_plain    # the queued poses that need their frame alone
         self._recovery = self.fusion.recovery           # its restarts (read: the events on changes)
         self.source = source
         self._phi = source.phi
@@ -408,7 +556,11 @@ class SensorInertial:
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
         self.burst_rms_s = cfg.timing.spacing_us * 1e-6 * math.sqrt((n * n - 1) / 12.0) if burst_rms_s is None \
             else float(burst_rms_s)
-        self.w_last = [0.0, 0.0, 0.0]      # latest rate, offset removed (rad/s)
+        self.w_last = np.zeros(3)          # latest rate, offset removed (rad/s)
+        self._wlv = memoryview(self.w_last)
+        if self.ori.one_call and self.fusion.st.ck is not None:
+            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python)
+            self.process = self._process_compiled
         self.compensated = 0
         self.comp_rejected = 0
         self.fused = 0
@@ -436,7 +588,7 @@ class SensorInertial:
         push = self.fusion.push_imu
         ori_step = self.ori.step
         b = self.ori.f.bias_v
-        wl = self.w_last
+        wl = self._wlv
         phi = self._phiv
         fr = self._frv
         hold = None if self.source.fixed else self.source.hold      # (a fixed source never holds)
@@ -451,6 +603,23 @@ class SensorInertial:
             push(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
             self.samples += 1
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
+
+    def _process_compiled(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
+        """:meth:`process` on the compiled core (:class:`_OneCall`)."""
+        if len(self.imu):
+            self.samples += self._one.run(mag, now_us, wait_us, max_steps)
+
+    def _sample_python(self, mag: SampleRing) -> None:
+        """The oldest sample through :meth:`process`'s steps one by one."""
+        s6 = self._s6
+        t = self.imu.pop_sample(s6)
+        ax, ay, az, wx, wy, wz = s6
+        self.ori.step(t, ax, ay, az, wx, wy, wz, mag)
+        fr = self._frv
+        self.fusion.push_imu(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], self._phiv)
+        b = self.ori.f.bias_v
+        wl = self._wlv
+        wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
 
     def on_solution(self, solver, solved: bool) -> None:
         """The burst's magnetic-only solution (``solver`` holds it) is to be fused; none
@@ -474,6 +643,8 @@ class SensorInertial:
             self.recoveries_seen = rec.recoveries
             self.kept_seen = rec.biases_kept
             tx.event(EVT_TRACK_REINIT, node | (rec.recovery_reason << 8) | ((1 << 12) if kept else 0))
+        if not self.dr_state and self._send_plain(tx, node, _FUSED_VALID, quality, range_m):
+            return                             # (each sent as below: no OUT_* bit, in range)
         r = self._report
         take = self._take
         st = take(r)                           # time, position, quaternion, variances; -1: none
@@ -699,7 +870,7 @@ class SensorInertial:
             ap = sv * sv * tr2
             ao = 0.0
         else:
-            wl = self.w_last
+            wl = self._wlv
             ao = (wl[0] * wl[0] + wl[1] * wl[1] + wl[2] * wl[2]) * tr2
             ap = fus.speed_squared() * tr2 if fus.initialized else 0.0
             ap += (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) * ao

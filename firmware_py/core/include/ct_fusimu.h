@@ -102,4 +102,62 @@ struct ct_quiet {
 int64_t ct_quiet_sample(const struct ct_quiet *q, int64_t head, int64_t count, int64_t after_t, int64_t t_imu,
                         int64_t max_age_us);
 
+/* one IMU sample of an orientation filter fed from a magnetometer ring (track.burst_fusion._Ori.step
+ * on an initialised filter whose compass has learned |m|, with OrientationFilter.predict,
+ * update_acc, update_mag, propagate, Inclination.observe, FlipOffset.observe and the two
+ * KalmanUpdate.update with their periodic symmetrisation): the compass sample (ct_quiet_sample),
+ * the set/reset offset, the prediction and, every `every` samples, the two updates. */
+/* FlipOffset's state: fl[CT_FL_*] (the offset o and the previous sample), fi[CT_FI_*] */
+enum { CT_FL_O = 0, CT_FL_PREV = 3, CT_FL_N = 6 };
+enum { CT_FI_STATE = 0, CT_FI_T = 1, CT_FI_N = 2, CT_FI_COUNT = 3 };
+/* Inclination's motion level: inc[CT_IN_*] (motion_ms, the running mean, the mean square, started) */
+enum { CT_IN_MOTION = 0, CT_IN_MEAN = 1, CT_IN_SQ = 4, CT_IN_STARTED = 5, CT_IN_N = 6 };
+/* the result's bits: a prediction step ran; an update round ran; the inclination's Kalman update
+ * ran (its ekf flags at CT_OS_ACC_SHIFT) or it was free fall; the compass's ran (flags at
+ * CT_OS_MAG_SHIFT); the covariance propagations (count at CT_OS_PROP_SHIFT) */
+enum { CT_OS_PREDICTED = 1, CT_OS_ROUND = 2, CT_OS_ACC = 4, CT_OS_FREEFALL = 8, CT_OS_MAG = 16,
+       CT_OS_ACC_SHIFT = 8, CT_OS_MAG_SHIFT = 12, CT_OS_PROP_SHIFT = 16 };
+struct ct_ori_step {
+    struct ct_ori_pred pred;
+    struct ct_ori_meas meas;
+    struct ct_ori prop;                 /* its T is also the symmetrisation's scratch */
+    struct ct_kalman iu, mu;            /* the inclination's and the compass's update */
+    double igate, mgate;
+    double *inis, *mnis;                /* 1 each: the updates' NIS */
+    struct ct_quiet q;
+    const double *mb;                   /* the magnetometer ring's fields (cap x 3) */
+    double *fl;                         /* CT_FL_N */
+    int64_t *fi;                        /* CT_FI_COUNT */
+    double flip_gain;
+    double *inc;                        /* CT_IN_N */
+    double acc_adapt_tau_s;
+    int64_t *ct;                        /* 1: the last compass sample's time */
+    int every;                          /* _Ori.every: an update round every `every` samples */
+    int symmetrize_every;               /* ekf.SYMMETRIZE_EVERY */
+    int64_t max_age_us;
+};
+/* the sample (t, f, w) at step `steps`, update-round counter n, after the prediction at t_prev;
+ * the magnetometer ring at (head, count); the counts of the propagations (pcount) and of the two
+ * updates (icount, mcount) decide the symmetrisations.  Returns the CT_OS_* bits. */
+/* the two halves of ct_ori_sample, for a sample whose prediction the caller follows with its
+ * orthonormalisation: up to the prediction (the compass sample into m[CT_OM_*]), and the update round */
+enum { CT_OM_FOUND = 0, CT_OM_X = 1, CT_OM_Y = 2, CT_OM_Z = 3, CT_OM_N = 4 };
+int ct_ori_sample_begin(const struct ct_ori_step *o, int64_t t, double wx, double wy, double wz, int64_t t_prev,
+                        int64_t head, int64_t count, double *m);
+int ct_ori_sample_end(const struct ct_ori_step *o, double ax, double ay, double az, int n, const double *m,
+                      int64_t pcount, int64_t icount, int64_t mcount);
+int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx, double wy,
+                  double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount, int64_t icount,
+                  int64_t mcount);
+void ct_flip_observe(double *fl, int64_t *fi, double gain, int64_t t_us, int state, double mx, double my,
+                     double mz, double rx, double ry, double rz, int64_t max_dt_us);
+void ct_incl_observe(double *inc, const double *R, double gravity, double gain, double tau, double ax, double ay,
+                     double az, double dt);
+void ct_symmetrize(int n, double *P, double *T);
+
+/* ring.Ring.push / pop on a ring whose head and count are hc[0], hc[1] (fusion_rings.KernelRing):
+ * the slot pushed (its time written into tv) or popped (-1: empty) */
+int64_t ct_ring_push(int64_t *hc, int64_t cap, int64_t *tv, int64_t t);
+int64_t ct_ring_pop(int64_t *hc, int64_t cap);
+
 #endif /* CT_FUSIMU_H */

@@ -19,6 +19,7 @@
  * Each follows its Python reference operation by operation, in the same order.
  */
 #include <math.h>
+#include <string.h>
 
 #include "coiltrack_core.h"
 
@@ -444,4 +445,195 @@ int64_t ct_quiet_sample(const struct ct_quiet *q, int64_t head, int64_t count, i
     if ((q->fl[best] & CT_SAMPLE_SATURATED) || !pulse_quiet(q, t))
         return -1;
     return best;
+}
+
+/* track.burst_fusion.FlipOffset.observe: the set/reset offset from the jump across a flip, the
+ * field turned back by the rate (rx, ry, rz) over the samples' interval (first order) */
+void ct_flip_observe(double *fl, int64_t *fi, double gain, int64_t t_us, int state, double mx, double my,
+                     double mz, double rx, double ry, double rz, int64_t max_dt_us)
+{
+    double *o = fl + CT_FL_O, *p = fl + CT_FL_PREV;
+    if (state == fi[CT_FI_STATE]) {
+        p[0] = mx;
+        p[1] = my;
+        p[2] = mz;
+        fi[CT_FI_T] = t_us;
+        return;
+    }
+    if (fi[CT_FI_STATE] >= 0 && 0 < t_us - fi[CT_FI_T] && t_us - fi[CT_FI_T] <= max_dt_us) {
+        double dt = (double)(t_us - fi[CT_FI_T]) * 1e-6;
+        double wx = rx * dt, wy = ry * dt, wz = rz * dt;
+        double px = p[0], py = p[1], pz = p[2];
+        double ex = px - (wy * pz - wz * py);
+        double ey = py - (wz * px - wx * pz);
+        double ez = pz - (wx * py - wy * px);
+        double s = state ? 1.0 : -1.0;
+        double k = (double)fi[CT_FI_N] < 1.0 / gain ? 1.0 / (double)(fi[CT_FI_N] + 1) : gain;
+        o[0] += k * (0.5 * s * (mx - ex) - o[0]);
+        o[1] += k * (0.5 * s * (my - ey) - o[1]);
+        o[2] += k * (0.5 * s * (mz - ez) - o[2]);
+        fi[CT_FI_N] += 1;
+    }
+    fi[CT_FI_STATE] = state;
+    p[0] = mx;
+    p[1] = my;
+    p[2] = mz;
+    fi[CT_FI_T] = t_us;
+}
+
+/* orientation_updates.Inclination.observe: the variance of y_A - g Z- about its running mean */
+void ct_incl_observe(double *inc, const double *R, double gravity, double gain, double tau, double ax, double ay,
+                     double az, double dt)
+{
+    double ex, ey, ez, k, v, *m = inc + CT_IN_MEAN;
+    if (!(gain > 0.0))
+        return;
+    ex = ax - gravity * R[6];
+    ey = ay - gravity * R[7];
+    ez = az - gravity * R[8];
+    k = tau > 0.0 ? dt / tau : 1.0;
+    k = k < 1.0 ? k : 1.0;
+    if (inc[CT_IN_STARTED] == 0.0) {
+        k = 1.0;
+        inc[CT_IN_STARTED] = 1.0;
+    }
+    m[0] += k * (ex - m[0]);
+    m[1] += k * (ey - m[1]);
+    m[2] += k * (ez - m[2]);
+    inc[CT_IN_SQ] += k * (ex * ex + ey * ey + ez * ez - inc[CT_IN_SQ]);
+    v = inc[CT_IN_SQ] - (m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+    inc[CT_IN_MOTION] = v > 0.0 ? v : 0.0;
+}
+
+/* ekf.symmetrize: P <- (P + P^T) / 2 through the scratch T (the same additions and halvings) */
+void ct_symmetrize(int n, double *P, double *T)
+{
+    int i, j;
+    memcpy(T, P, sizeof(double) * (size_t)n * (size_t)n);
+    for (i = 0; i < n; ++i)
+        for (j = 0; j < n; ++j)
+            P[i * n + j] = (T[i * n + j] + T[j * n + i]) * 0.5;
+}
+
+/* OrientationFilter.propagate (compiled) with CovariancePredict.after_predict's symmetrisation and
+ * _restart_sums; 1 when it ran */
+static int ori_propagate(const struct ct_ori_step *o, int64_t count)
+{
+    double *s = o->pred.st;
+    if (s[CT_OA_DT] <= 0.0)
+        return 0;
+    ct_orientation_propagate(&o->prop, s[CT_OA_DT], s[CT_OA_DT2], s[CT_OA_CD], s[CT_OA_QD]);
+    if ((count + 1) % o->symmetrize_every == 0)
+        ct_symmetrize(o->prop.n, o->prop.P, o->prop.T);
+    s[CT_OA_DT] = s[CT_OA_DT2] = s[CT_OA_QD] = 0.0;
+    s[CT_OA_CD] = 1.0;
+    return 1;
+}
+
+/* KalmanUpdate.update (compiled) with its symmetrisation after the count-th accepted update */
+static int ori_kalman(const struct ct_ori_step *o, const struct ct_kalman *u, double gate, double *nis,
+                      int64_t count)
+{
+    int flags = ct_kalman_update(u, o->prop.P, gate, nis);
+    if (flags == CT_EKF_OK && (count + 1) % o->symmetrize_every == 0)
+        ct_symmetrize(o->prop.n, o->prop.P, o->prop.T);
+    return flags;
+}
+
+/* ct_ori_sample up to its prediction (the compass sample with its set/reset offset into m[CT_OM_*]) */
+int ct_ori_sample_begin(const struct ct_ori_step *o, int64_t t, double wx, double wy, double wz, int64_t t_prev,
+                        int64_t head, int64_t count, double *m)
+{
+    const double *b = o->pred.bias, *fo = o->fl + CT_FL_O;
+    double dt;
+    int64_t slot = ct_quiet_sample(&o->q, head, count, o->ct[0], t, o->max_age_us);
+    m[CT_OM_FOUND] = 0.0;
+    if (slot >= 0) {                                        /* _Ori.step: the compass sample */
+        int st = (o->q.fl[slot] & CT_SAMPLE_FLIP) ? 1 : 0;
+        double sg, mx, my, mz;
+        o->ct[0] = o->q.tv[slot];
+        mx = o->mb[3 * slot];
+        my = o->mb[3 * slot + 1];
+        mz = o->mb[3 * slot + 2];
+        ct_flip_observe(o->fl, o->fi, o->flip_gain, o->ct[0], st, mx, my, mz, wx - b[0], wy - b[1], wz - b[2],
+                        o->max_age_us);
+        sg = st ? 1.0 : -1.0;
+        m[CT_OM_FOUND] = 1.0;
+        m[CT_OM_X] = mx - sg * fo[0];
+        m[CT_OM_Y] = my - sg * fo[1];
+        m[CT_OM_Z] = mz - sg * fo[2];
+    }
+    dt = (double)(t - t_prev) * 1e-6;                        /* OrientationFilter.predict */
+    if (dt > 0.0) {
+        ct_ori_predict(&o->pred, dt, wx, wy, wz, o->meas.cst[CT_CS_QWD]);
+        return CT_OS_PREDICTED;
+    }
+    return 0;
+}
+
+/* ct_ori_sample after its prediction (and the caller's orthonormalisation): the update round */
+int ct_ori_sample_end(const struct ct_ori_step *o, double ax, double ay, double az, int n, const double *m,
+                      int64_t pcount, int64_t icount, int64_t mcount)
+{
+    struct ct_ori_meas *me = (struct ct_ori_meas *)&o->meas;
+    double *s = o->pred.st;
+    int r = 0, nprop = 0, flags;
+    if (n + 1 < o->every)
+        return r;
+    r |= CT_OS_ROUND;                                       /* update_acc */
+    ct_incl_observe(o->inc, o->pred.R, me->gravity, me->acc_adapt_gain, o->acc_adapt_tau_s, ax, ay, az,
+                    s[CT_OA_INCL_DT]);
+    s[CT_OA_INCL_DT] = 0.0;
+    if (!ct_ori_incl_begin(me, ax, ay, az, o->inc[CT_IN_MOTION])) {
+        r |= CT_OS_FREEFALL;
+    } else {
+        nprop += ori_propagate(o, pcount + nprop);
+        flags = ori_kalman(o, &o->iu, o->igate, o->inis, icount);
+        if (flags == CT_EKF_OK)
+            ct_ori_apply(me, me->idx);
+        ct_ori_post_acc(me);
+        r |= CT_OS_ACC | (flags << CT_OS_ACC_SHIFT);
+    }
+    if (m[CT_OM_FOUND] != 0.0) {                            /* update_mag (the compass has learned) */
+        ct_ori_compass_fill(me, m[CT_OM_X], m[CT_OM_Y], m[CT_OM_Z]);
+        nprop += ori_propagate(o, pcount + nprop);
+        flags = ori_kalman(o, &o->mu, o->mgate, o->mnis, mcount);
+        if (flags == CT_EKF_OK)
+            ct_ori_apply(me, me->mdx);
+        r |= CT_OS_MAG | (flags << CT_OS_MAG_SHIFT);
+    }
+    return r | (nprop << CT_OS_PROP_SHIFT);
+}
+
+int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx, double wy,
+                  double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount, int64_t icount,
+                  int64_t mcount)
+{
+    double m[CT_OM_N];
+    int r = ct_ori_sample_begin(o, t, wx, wy, wz, t_prev, head, count, m);
+    return r | ct_ori_sample_end(o, ax, ay, az, n, m, pcount, icount, mcount);
+}
+
+/* ring.Ring.push: the next slot gets time t; a full ring overwrites its oldest entry */
+int64_t ct_ring_push(int64_t *hc, int64_t cap, int64_t *tv, int64_t t)
+{
+    int64_t p = hc[0], n = p + 1;
+    tv[p] = t;
+    hc[0] = n == cap ? 0 : n;
+    if (hc[1] < cap)
+        hc[1] += 1;
+    return p;
+}
+
+/* ring.Ring.pop: the oldest entry's slot, or -1 when empty */
+int64_t ct_ring_pop(int64_t *hc, int64_t cap)
+{
+    int64_t p;
+    if (hc[1] == 0)
+        return -1;
+    p = hc[0] - hc[1];
+    if (p < 0)
+        p += cap;
+    hc[1] -= 1;
+    return p;
 }

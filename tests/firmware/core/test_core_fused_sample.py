@@ -1,0 +1,301 @@
+"""One IMU sample of a fused tracker's sensor in one call of the compiled core
+(``core/src/fusimu.c`` ``ct_ori_sample``, ``ct_ring_push``/``ct_ring_pop``; ``py_fusimu.c``
+``OriStep``, ``ImuSample``, ``FusOutput.pose_frame`` / ``pose_next``) against the Python reference
+(``track.burst_fusion.SensorInertial.process`` with ``_Ori.step``, ``FlipOffset``,
+``orientation_updates.Inclination``, ``FusionFilter.push_imu``, ``SensorInertial.send_fused``).
+
+Three sensors see the same seeded stream: ``ref`` on the Python core, ``sep`` on the compiled core
+with its kernels called one by one (``_Ori.step_python`` through the compiled ``predict``,
+``update_acc``, ``update_mag``; ``FusionFilter.push_imu``'s ``FusLive``) and ``got`` on the
+one-call path. ``got`` equals ``sep`` bit for bit (the same kernels in the same order); both equal
+``ref`` to 1e-9 (its updates' products go through BLAS), with the same discrete decisions (the
+updates' flags and counts, the compass samples chosen, the flips seen) at every step. The stream
+covers the compass's learning, flips of the set/reset state, saturated samples and samples in
+the pulses, a free-fall sample, a magnetic disturbance (gated compass updates), a break in the
+IMU stream (the orientation lost and found again), the periodic orthonormalisation and
+symmetrisations, snapshots and a full output queue; and the POSE frames sent from the queued
+poses are the same bytes.
+"""
+from __future__ import annotations
+
+import math
+import types
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from coiltrack.firmware import core
+from coiltrack.firmware.config import FirmwareConfig
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
+from coiltrack.firmware.measure.pulse import SampleRing
+from coiltrack.firmware.ring import Ring
+from coiltrack.firmware.track.burst_fusion import _FUSED_VALID, FixedSource, PulseGate, SensorInertial
+from coiltrack.firmware.transmit import Transmitter
+from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
+
+pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
+
+G = np.array([0.0, 0.0, 9.81])
+H = np.array([0.2e-4, 0.0, -0.45e-4])       # earth field, global frame (north, west, up), T
+
+
+class _Port:
+    def __init__(self):
+        self.frames = []
+
+    def write(self, data: bytes) -> None:
+        self.frames.append(bytes(data))
+
+
+def _rel(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return float(np.max(np.abs(a - b))) / max(float(np.max(np.abs(a))), 1e-300)
+
+
+def _sensors(adapt: float, heading_only: bool):
+    cfg = FirmwareConfig().with_(orientation={"mag_learn_samples": 12, "ori_update_every": 3},
+                                 body={"acc_adapt_gain": adapt, "acc_adapt_tau_s": 0.3,
+                                       "compass_heading_only": heading_only},
+                                 fusion={"pose_output_capacity": 8})
+    starts = np.array([1_300_000, 2_100_000, 2_900_000], np.int64)
+    ends = starts + 60_000
+    gate = PulseGate(starts, ends, 600, 200)
+    c = core.load("compiled")
+    out = {}
+    for name, k in (("ref", core.PYTHON), ("sep", c), ("got", c)):
+        ins = SensorInertial(16, cfg, gate, FixedSource(cfg), core=k)
+        tx = Transmitter(_Port(), 1, 1_000_000, None, core=k)
+        out[name] = (ins, tx)
+    ins, tx = out["sep"]
+    assert ins.process.__func__ is SensorInertial._process_compiled
+    ins.process = types.MethodType(SensorInertial.process, ins)     # the kernels one by one
+    ins.ori.step = ins.ori.step_python
+    own = tx.pose
+    tx.pose = lambda r: own(r)                                          # (every POSE through pose)
+    assert out["ref"][0].process.__func__ is SensorInertial.process
+    return cfg, out
+
+
+def _start_fusion(ins, t0: int) -> None:
+    """The same running fusion state in each sensor (a full covariance, offsets)."""
+    rng = np.random.default_rng(3)
+    ff = ins.fusion
+    ff.push_imu(t0, *G, 0.0, 0.0, 0.0, *(-G), ins.source.phi)
+    st = ff.st
+    n = st.P.shape[0]
+    M = rng.normal(size=(n, n))
+    st.p[:] = (0.1, -0.2, 0.3)
+    st.v[:] = (0.01, 0.02, -0.01)
+    st.Th[:] = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    st.P[:] = 1e-6 * (M @ M.T) + 1e-6 * np.eye(n)
+    st.t_us = t0
+    ff.initialized = True
+    ff.last_update_t = t0                 # (as if a magnetic update were accepted now)
+
+
+def _imu_msg(t, acc, gyr):
+    a = np.rint(acc / ACC_LSB).astype(int)
+    g = np.rint(gyr / GYR_LSB).astype(int)
+    return types.SimpleNamespace(t_us=int(t), ax=int(a[0]), ay=int(a[1]), az=int(a[2]), gx=int(g[0]),
+                                 gy=int(g[1]), gz=int(g[2]), node=16)
+
+
+def _compare_ori(a, b, exact: bool, where) -> None:
+    fa, fb = a.ori.f, b.ori.f
+    for name in ("R", "P", "bias", "dist", "acc", "sums"):
+        x, y = getattr(fa, name), getattr(fb, name)
+        if exact:
+            np.testing.assert_array_equal(x, y, err_msg=f"{name} {where}")
+        else:
+            assert _rel(x, y) < 1e-9 or np.array_equal(x, y), (name, where)
+    for name in ("initialized", "t_us", "steps", "last_acc_flags", "last_mag_flags", "reacquired"):
+        assert getattr(fa, name) == getattr(fb, name), (name, where)
+    for u, v in ((fa.incl.upd, fb.incl.upd), (fa.compass.upd, fb.compass.upd)):
+        assert (u.count, u.rejected) == (v.count, v.rejected), where
+        assert u.nis == v.nis if exact else abs(u.nis - v.nis) <= 1e-7 * max(abs(u.nis), 1.0), where
+    assert fa.pred.count == fb.pred.count, where
+    assert (a.ori.n, a.ori.compass_used, a.ori.compass_t, a.ori.lost) == \
+        (b.ori.n, b.ori.compass_used, b.ori.compass_t, b.ori.lost), where
+    np.testing.assert_array_equal(a.ori.flip.si, b.ori.flip.si, err_msg=str(where))
+    for x, y in ((a.ori.flip.s, b.ori.flip.s), (fa.compass.state, fb.compass.state), (fa.incl.st, fb.incl.st),
+                 (a.w_last, b.w_last)):
+        if exact:
+            np.testing.assert_array_equal(x, y, err_msg=str(where))
+        else:
+            assert _rel(x, y) < 1e-9 or np.array_equal(x, y), where
+
+
+def _compare_fusion(a, b, exact: bool, where) -> None:
+    fa, fb = a.fusion, b.fusion
+    for name in ("p", "v", "Th", "ba", "bg", "P"):
+        x, y = getattr(fa.st, name), getattr(fb.st, name)
+        if exact:
+            np.testing.assert_array_equal(x, y, err_msg=f"{name} {where}")
+        else:
+            assert _rel(x, y) < 1e-9, (name, where)
+    assert (fa.st.t_us, fa.steps, fa.st.pred.count, fa.out_dropped, len(fa.hist)) == \
+        (fb.st.t_us, fb.steps, fb.st.pred.count, fb.out_dropped, len(fb.hist)), where
+    for ra, rb in ((fa.prediction.imu, fb.prediction.imu), (fa.hist, fb.hist), (fa.output.out, fb.output.out),
+                   (a.imu, b.imu)):
+        assert (len(ra), ra.slot(0) if len(ra) else -1) == (len(rb), rb.slot(0) if len(rb) else -1), where
+        np.testing.assert_array_equal(ra.t, rb.t, err_msg=str(where))
+        if exact:
+            np.testing.assert_array_equal(ra.d, rb.d, err_msg=str(where))
+        else:
+            assert _rel(ra.d, rb.d) < 1e-9 or np.array_equal(ra.d, rb.d), where
+
+
+@pytest.mark.parametrize("adapt, heading_only", [(0.0, False), (0.5, True)])
+def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
+    rng = np.random.default_rng(11 + int(heading_only))
+    cfg, sens = _sensors(adapt, heading_only)
+    mag = SampleRing(64)
+    R = Rotation.from_rotvec([0.1, -0.2, 0.3])
+    w_true = np.array([0.4, -0.3, 0.8])
+    t0 = 1_000_000
+    for ins, _ in sens.values():
+        _start_fusion(ins, t0)
+    sent = []
+    gtx = sens["got"][1]
+    fused_pose = gtx.fused_pose
+    gtx.fused_pose = lambda *a: (sent.append(fused_pose(*a)), sent[-1])[1]
+    calls = []
+    live = sens["got"][0].fusion.live_sample
+    sens["got"][0].fusion.live_sample = lambda *a: (calls.append(a[0].__name__), live(*a))[1]
+    tm = t0
+    t = t0
+    for i in range(900):
+        t += 8333 + (i % 3 == 0)
+        if i == 500:
+            t += 400_000                              # the IMU stream breaks off: orientation lost
+        R = R * Rotation.from_rotvec(w_true * 0.008333)
+        Rm = R.as_matrix()
+        while tm + 10_000 <= t + 4000:                # the magnetometer at 100 Hz, a little ahead
+            tm += 10_000
+            dist = 0.15e-4 * np.array([1.0, 0.5, 0.0]) if 600 < i < 660 else 0.0
+            flip = (tm // 250_000) % 2                # the set/reset state flips every 0.25 s
+            b = Rm.T @ (H + dist) + 3e-8 * rng.normal(size=3) + (1 if flip else -1) * 2e-7
+            mag.push(tm, *b, rng.random() < 0.05, int(flip))
+        acc = Rm.T @ G + 0.2 * rng.normal(size=3)
+        if i == 300:
+            acc = acc * 0.1                           # free fall
+        gyr = w_true + 0.01 * rng.normal(size=3) + 0.02
+        msg = _imu_msg(t, acc, gyr)
+        for ins, _ in sens.values():
+            ins.imu.push(msg)
+        if i == 520:
+            for ins, _ in sens.values():
+                _start_fusion(ins, t + 1)             # (the fusion filter restarted after the break)
+        if i % 60 == 30:
+            for ins, _ in sens.values():
+                ins.schedule(t + 20_000)              # a snapshot inside a later step
+        if i % 2:
+            continue                                  # two samples a tick
+        for ins, tx in sens.values():
+            ins.process(mag, t + 1000, 0, 4)
+            if i % 50 < 40:                           # (the queue fills and drops at times)
+                ins.send_fused(tx, 16, 1.0, 200)
+        where = i
+        _compare_ori(sens["sep"][0], sens["got"][0], True, where)
+        _compare_fusion(sens["sep"][0], sens["got"][0], True, where)
+        _compare_ori(sens["ref"][0], sens["got"][0], False, where)
+        _compare_fusion(sens["ref"][0], sens["got"][0], False, where)
+    got, sep, ref = sens["got"][0], sens["sep"][0], sens["ref"][0]
+    f = got.ori.f
+    assert f.reacquired == 1 and f.incl.upd.count > 100 and f.compass.upd.count > 50
+    assert f.compass.upd.rejected > 0 or heading_only       # the disturbance gated
+    assert got.ori.flip.si[2] >= 2                           # flips seen
+    assert got.fusion.out_dropped > 0 and got.fusion.snap.valid
+    assert got._one.kernel is not None and sep._one.kernel is None and len(calls) > 400   # one call each
+    assert calls.count("finish") >= 3                        # (and two where R was orthonormalised)
+    # the POSE frames: the same bytes on the one-call path as through PoseReport and pose
+    fa, fb, fr = sens["got"][1].port.frames, sens["sep"][1].port.frames, sens["ref"][1].port.frames
+    assert len(fa) == len(fb) == len(fr) > 300
+    assert fa == fb
+    assert sent.count(1) > 100 and sent.count(-1) > 10     # sent from the row, and through the reference
+    assert sens["got"][1].fused_poses == sens["sep"][1].fused_poses == sens["ref"][1].fused_poses
+
+
+def test_one_call_path_is_taken_and_left():
+    """The one-call path runs for the samples of an initialised filter that has learned its
+    compass and whose fusion filter runs, in two calls (``begin``, ``finish``) for those whose
+    prediction orthonormalises R; a sample before the compass learned takes the reference path."""
+    cfg, sens = _sensors(0.0, False)
+    ins = sens["got"][0]
+    calls = []
+    live = ins.fusion.live_sample
+    ins.fusion.live_sample = lambda *a: (calls.append(a[0].__name__), live(*a))[1]
+    mag = SampleRing(64)
+    _start_fusion(ins, 1_000_000)
+    t = 1_000_000
+    for i in range(400):
+        t += 8333
+        mag.push(t - 2000, *(H + 1e-9 * i), False, 0)
+        ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
+        ins.process(mag, t, 0, 8)
+        ins.send_fused(sens["got"][1], 16, 1.0, 200)
+    f = ins.ori.f
+    assert not f.learning and f.steps == 399 and f.upd_mag.count > 50     # (the first sample initialises)
+    # all but the samples before the compass learned (2 x 12 compass samples); the steps 64, 128, ...
+    # 384 (each orthonormalises R) in two calls
+    assert 350 < len(calls) <= 400 - 24 and calls.count("finish") == 6
+
+
+def test_kernel_ring_is_a_ring():
+    """KernelRing: every Ring operation the same (push, pop, peek, slot, search, rewind, copy, clear,
+    advance), head and count in its array; the kernel's push and pop on it (ImuSample) agree."""
+    rng = np.random.default_rng(5)
+    a, b = Ring(7, (("X", 2),)), KernelRing(7, (("X", 2),))
+    t = 0
+    for i in range(200):
+        op = rng.integers(0, 6)
+        if op < 3:
+            t += int(rng.integers(1, 5))
+            assert a.push(t) == b.push(t)
+        elif op == 3:
+            assert a.pop() == b.pop()
+        elif op == 4 and len(a):
+            x = int(rng.integers(a.tv[a.slot(0)], t + 1))
+            a.drop_newer_than(x)
+            b.drop_newer_than(x)
+        else:
+            a.advance(2)
+            b.advance(2)
+        assert len(a) == len(b) == b.hc[1] and a.full == b.full and a.last_pushed_slot() == b.last_pushed_slot()
+        assert [a.peek(k) for k in range(8)] == [b.peek(k) for k in range(8)]
+        assert a.index_at_or_after(t - 3) == b.index_at_or_after(t - 3)
+    c = KernelRing(7, (("X", 2),))
+    c.copy_from(b)
+    assert (len(c), c.slot(0) if len(c) else -1) == (len(b), b.slot(0) if len(b) else -1)
+    c.clear()
+    assert len(c) == 0 and list(c.hc) == [0, 0]
+
+
+def test_pose_frame_refuses_what_the_reference_sends_differently():
+    """``FusOutput.pose_frame`` sends a row with no OUT_* bit and in range only (None otherwise,
+    for the reference path); its bytes are ``Transmitter.pose``'s."""
+    cfg, sens = _sensors(0.0, False)
+    ins, tx = sens["got"]
+    _start_fusion(ins, 1_000_000)
+    po = ins.fusion.output
+    ins.fusion.push_imu(1_008_333, *G, 0.0, 0.0, 0.0, *(-G), ins.source.phi)
+    k = po.out.slot(0)
+    kern = po._ck
+    frame = kern.pose_frame(k, po.out.tv[k], 5, 1, 16, _FUSED_VALID, 200, 1.0)
+    assert frame is not None
+    ref = sens["sep"][1]
+    r = types.SimpleNamespace(node=16, t_us=po.out.tv[k], status=_FUSED_VALID, quality=200, p=[0.0] * 3, q=[0.0] * 4,
+                              var=[0.0] * 6)
+    kern.report(k, r.p, r.q, r.var)
+    ref._seq = 5
+    ref.pose(r)
+    assert ref.port.frames[-1] == frame
+    assert kern.pose_frame(k, po.out.tv[k], 5, 1, 16, _FUSED_VALID, 200, 0.1) is None         # beyond the range
+    assert kern.pose_frame(k, -1, 5, 1, 16, _FUSED_VALID, 200, 1.0) is None                   # a time the wire refuses
+    assert kern.pose_next(5, 1, 16, _FUSED_VALID, 200, 0.1) is None and len(po.out) == 1   # left queued
+    assert kern.pose_next(5, 1, 16, _FUSED_VALID, 200, 1.0) == frame and len(po.out) == 0  # sent: off the queue
+    assert kern.pose_next(5, 1, 16, _FUSED_VALID, 200, 1.0) == 0                          # none queued
+    po.out.d[k, 13] = 4.0
+    assert kern.pose_frame(k, po.out.tv[k], 5, 1, 16, _FUSED_VALID, 200, 1.0) is None         # an OUT_* bit
+    assert math.isfinite(r.p[0])
