@@ -190,8 +190,11 @@ class Receiver:
         self.queue_overflows = 0
         self._clipped = _clipped
         self._bind(core)
+        self._sup_mag = None
         if isinstance(decoder, CompiledFrameDecoder):
             self.step = self._step_rows
+            # the supervisor's MAG_SAMPLE work in one compiled call (its rare cases: on_message)
+            self._sup_mag = supervisor.mag_kernel(core) if hasattr(supervisor, "mag_kernel") else None
 
     def _bind(self, core) -> None:
         """The IMU decode on the compiled core (``core/src/imu.c``: ``ct_imu_clipped``,
@@ -281,6 +284,7 @@ class Receiver:
         q, w = dec.rows, dec.width
         pos, end = 0, len(data)
         seen = self.supervisor.on_message
+        smag = self._sup_mag
         # a magnetometer sample straight to its channel (:meth:`_mag_in` without the call) when
         # no node's magnetometer is calibrated
         chans = None if self.mag_cal else self.channels
@@ -294,7 +298,8 @@ class Receiver:
                     r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
                     if kind == _RXK_MAG_PACKED:
                         self.packed_mag += 1
-                    seen(r, now_us)
+                    if smag is None or smag(r.node, r.t_us, r.x, r.y, r.z, r.flip, now_us):
+                        seen(r, now_us)
                     ch = None if chans is None else chans.get(r.node)
                     if ch is not None:
                         ch.push(r, MAG_LSB_T)

@@ -29,12 +29,22 @@ class FlipScheduler:
         self.flips_planned = 0
         self.last_at_us = 0
 
+    def use_array(self, view) -> None:
+        """Keep the sensors' set/reset states in ``view`` (one int64 item per sensor, shared with the
+        compiled supervisor kernel): the same values."""
+        for i, v in enumerate(self.state):
+            view[i] = v
+        self.state = view
+
     def observe(self, node: int, flip_bit: int) -> None:
         i = self._slot.get(node, -1)
         if i >= 0:
             self.state[i] = flip_bit & 1
 
-    def plan(self, now_us: int, quiet_from_us: int, quiet_to_us: int, send) -> None:
+    def plan(self, now_us: int, quiet_from_us: int, quiet_to_us: int, send, command=None) -> None:
+        """One ``MAG_FLIP_CMD`` per sensor for the gap ``[quiet_from_us, quiet_to_us]`` (module
+        docstring), each through ``send(msg)``, or ``command(node, at_us, state)`` when given
+        (``Transmitter.mag_flip``: the same frame, built on the compiled core without the message)."""
         flip = quiet_to_us - quiet_from_us >= self.min_gap_us
         at = (quiet_from_us + quiet_to_us) // 2 if flip else now_us
         for i, node in enumerate(self.sensor_ids):
@@ -42,6 +52,9 @@ class FlipScheduler:
             if flip:
                 st ^= 1
                 self.flips_planned += 1
-            send(FlipMsg(node, at, st))
+            if command is None:
+                send(FlipMsg(node, at, st))
+            else:
+                command(node, at, st)
             self.sent += 1
         self.last_at_us = at

@@ -21,6 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from coiltrack.protocol import MSG
 from coiltrack.protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DEGRADED, POSE_DISTORTED, POSE_INCONSISTENT
 
@@ -110,6 +112,31 @@ class Supervisor:
         elif mid == _ID_HEARTBEAT:
             h.heard(msg.node, now_us)
 
+    def mag_kernel(self, core):
+        """The MAG_SAMPLE branch of :meth:`on_message` on the compiled core, or None on the python core
+        (or for a node id the kernel's slot table cannot hold): ``kernel(node, t_us, x, y, z, flip,
+        now_us)`` returns 0 when it did the whole branch (``ct_sup_mag``, ``core/src/supervise.c``: the
+        same operations on the same state, which the health and the flip scheduler then keep in its
+        arrays), 1 for a rare case (a lost node, a stamp off the grid, saturation, a distortion flag
+        that changes, ...) that :meth:`on_message` must do: the kernel changed nothing then."""
+        ext = core.ext
+        h = self.health
+        if ext is None or any(not 0 <= nid < ext.SUP_SLOTS for nid in h.ids):
+            return None
+        n = len(h.ids)
+        ni, nd, slots = ext.SUP_NI, ext.SUP_ND, ext.SUP_SLOTS
+        self._si = si = np.zeros(ni + slots + 12 * n, dtype=np.int64)
+        self._sd = sd = np.zeros(nd + 6 * n)
+        h.use_arrays(si, sd, ni, nd, slots)
+        iv = memoryview(si)
+        iv[6], iv[7], iv[8] = self._margin, self._fall, self.n
+        dv = memoryview(sd)
+        dv[3] = MAG_LSB_T
+        at = ni + slots + 7 * n
+        self.flips.use_array(iv[at:at + len(self.sensor_ids)])
+        self._sup_mag = ext.SupMag(si, sd, self.schedule.start, self.schedule.end)
+        return self._sup_mag.mag
+
     def driver_heard(self, now_us: int) -> None:
         """The coil driver spoke in a message the supervisor is not given (``AC_DRIVE_STATUS``)."""
         self.health.heard(self.driver_id, now_us)
@@ -172,7 +199,7 @@ class Supervisor:
         if self.scfg.flips:
             quiet_from = last_end + cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
             quiet_to = pc + cfg.timing.cycle_us - cfg.pulse.baseline_us - cfg.pulse.guard_us
-            self.flips.plan(now_us, quiet_from, quiet_to, self.tx.send)
+            self.flips.plan(now_us, quiet_from, quiet_to, self.tx.send, self.tx.mag_flip)
 
     # ------------------------------------------------------------ poses
     def pose_status(self, node: int, window_flags: int) -> int:

@@ -189,6 +189,7 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
 #include "ct_single_coil.h"
 #include "ct_finish.h"
 #include "ct_multi.h"
+#include "ct_supervise.h"
 
 #ifdef __cplusplus
 }

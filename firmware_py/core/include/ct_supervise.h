@@ -1,0 +1,49 @@
+/*
+ * The supervisor's per-sample work (coiltrack.firmware.supervise): what Supervisor.on_message does
+ * for a MAG_SAMPLE (Health.heard, FlipScheduler.observe, Supervisor._quiet, Health.on_mag), in one
+ * call, for the sixteen-sensor receive stage.  Same names (ct_ prefix), same operations in the same
+ * order as the Python reference; the rare cases stay the reference's (see ct_sup_mag).
+ */
+#ifndef CT_SUPERVISE_H
+#define CT_SUPERVISE_H
+
+#include <stdint.h>
+
+/* The state lives in two caller-owned arrays (supervise/health.py binds them; the Python's lists
+ * become views of them), laid out in this order:
+ *   si (int64): CT_SUP_NI header items, the node -> slot table (256 items, -1: not a node), then
+ *     n items each of last_heard, timeout_us, lost, last_stamp, suspect_open, suspect_reply_seen,
+ *     distorted, flip_state (FlipScheduler.state: the sensors' slots), then 2n each of ref_n and
+ *     dist_state;
+ *   sd (float64): CT_SUP_ND header items, then 2n each of ref_sum, ref_mag, avg_mag.
+ * n = the nodes (the sensors, then the coil driver). */
+enum { CT_SUP_CHECK_US, CT_SUP_N, CT_SUP_DRIVER, CT_SUP_FUTURE_TOL, CT_SUP_INTERVAL_TOL, CT_SUP_LEARN,
+       CT_SUP_MARGIN, CT_SUP_FALL, CT_SUP_NCOILS, CT_SUP_NI = 16 };
+enum { CT_SUP_PERIOD, CT_SUP_ALPHA, CT_SUP_THRESHOLD, CT_SUP_LSB, CT_SUP_ND = 8 };
+enum { CT_SUP_SLOTS = 256 };
+/* the items of si and sd for n nodes */
+#define CT_SUP_SI_LEN(n) (CT_SUP_NI + CT_SUP_SLOTS + 8 * (n) + 4 * (n))
+#define CT_SUP_SD_LEN(n) (CT_SUP_ND + 6 * (n))
+
+struct ct_sup {
+    int64_t *si;
+    double *sd;
+    const int64_t *slot;                    /* 256 */
+    int64_t *last_heard, *timeout_us, *lost, *last_stamp, *suspect_open, *suspect_reply_seen, *distorted;
+    int64_t *flip_state, *ref_n, *dist_state;
+    double *ref_sum, *ref_mag, *avg_mag;
+    const int64_t *ps, *pe;                 /* the pulse schedule's start and end (n_coils each) */
+};
+
+/* the pointers of s from si, sd (n nodes: si[CT_SUP_N]) and the schedule's arrays */
+void ct_sup_bind(struct ct_sup *s, int64_t *si, double *sd, const int64_t *ps, const int64_t *pe);
+
+/* Supervisor.on_message for a MAG_SAMPLE (node, t_us, x, y, z counts of MAG_LSB_T, flip bits) received
+ * at now_us.  Returns 0 when it did all of it, 1 when the sample is a rare case the Python reference
+ * does (the coil driver's sample, a node that was lost, a stamp off the grid or from the future, a
+ * suspect interval to close, a saturated sample, a distortion flag that changes): then nothing was
+ * changed. */
+int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, int64_t y, int64_t z, int64_t flip,
+               int64_t now_us);
+
+#endif

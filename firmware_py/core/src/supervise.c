@@ -1,0 +1,138 @@
+/*
+ * The supervisor's per-sample work (include/ct_supervise.h): a MAG_SAMPLE's liveness, set/reset
+ * state, quiet check, time-stamp check and quiet-field magnitude, as
+ * coiltrack.firmware.supervise.supervisor.Supervisor.on_message does them through Health.heard,
+ * FlipScheduler.observe, Supervisor._quiet and Health.on_mag (the distortion check: thesis 002 ch. 2,
+ * the field magnitude between pulses).  Every rare case is left to the Python (return 1 before any
+ * write), so the two cores run the same operations on the same values.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+
+#define CT_SUP_NONE (-((int64_t)1 << 62))
+
+void ct_sup_bind(struct ct_sup *s, int64_t *si, double *sd, const int64_t *ps, const int64_t *pe)
+{
+    int64_t n = si[CT_SUP_N];
+    int64_t *p = si + CT_SUP_NI + CT_SUP_SLOTS;
+    double *q = sd + CT_SUP_ND;
+    s->si = si;
+    s->sd = sd;
+    s->slot = si + CT_SUP_NI;
+    s->last_heard = p;
+    s->timeout_us = p + n;
+    s->lost = p + 2 * n;
+    s->last_stamp = p + 3 * n;
+    s->suspect_open = p + 4 * n;
+    s->suspect_reply_seen = p + 5 * n;
+    s->distorted = p + 6 * n;
+    s->flip_state = p + 7 * n;
+    s->ref_n = p + 8 * n;
+    s->dist_state = p + 10 * n;
+    s->ref_sum = q;
+    s->ref_mag = q + 2 * n;
+    s->avg_mag = q + 4 * n;
+    s->ps = ps;
+    s->pe = pe;
+}
+
+/* Supervisor._quiet: no pulse (with its fall and the margin) around t_us */
+static int ct_sup_quiet(const struct ct_sup *s, int64_t t_us)
+{
+    int64_t j, m = s->si[CT_SUP_MARGIN], fall = s->si[CT_SUP_FALL], n = s->si[CT_SUP_NCOILS];
+    for (j = 0; j < n; ++j)
+        if (s->ps[j] - m <= t_us && t_us <= s->pe[j] + fall + m)
+            return 0;
+    return 1;
+}
+
+int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, int64_t y, int64_t z, int64_t flip,
+               int64_t now_us)
+{
+    int64_t *si = s->si;
+    const double *sd = s->sd;
+    int64_t i, prev, due, st, learn;
+    int quiet, write_avg = 0, ds_new = 0;
+    double a = 0.0, m;
+    if (node < 0 || node >= CT_SUP_SLOTS)
+        return 1;
+    i = s->slot[node];
+    if (i < 0)
+        return 0;                                   /* not a node: heard, observe and on_mag do nothing */
+    if (i == si[CT_SUP_DRIVER] || s->lost[i])
+        return 1;
+    quiet = ct_sup_quiet(s, t_us);
+    /* Health.on_mag: the time stamp */
+    prev = s->last_stamp[i];
+    if (t_us > now_us + si[CT_SUP_FUTURE_TOL])
+        return 1;
+    if (prev != CT_SUP_NONE) {
+        int64_t dt = t_us - prev;
+        if (dt > 0) {
+            double P = sd[CT_SUP_PERIOD];
+            double k = floor((double)dt / P + 0.5);
+            if (k < 1.0)
+                k = 1.0;
+            if (k <= 64.0 && fabs((double)dt - k * P) > (double)si[CT_SUP_INTERVAL_TOL])
+                return 1;
+        }
+    }
+    if (s->suspect_open[i] && s->suspect_reply_seen[i] && !(prev != CT_SUP_NONE && t_us - prev <= 0))
+        return 1;
+    if (flip & 2)
+        return 1;                                   /* saturated */
+    st = 2 * i + (flip & 1);
+    learn = si[CT_SUP_LEARN];
+    if (prev == CT_SUP_NONE || t_us - prev > 0) {
+        if (quiet && s->ref_n[st] >= learn) {
+            /* the exponential average against the reference: a flag that changes is the Python's */
+            double bx = (double)x * sd[CT_SUP_LSB], by = (double)y * sd[CT_SUP_LSB], bz = (double)z * sd[CT_SUP_LSB];
+            double dev, thr = sd[CT_SUP_THRESHOLD];
+            int now_dist;
+            m = sqrt(bx * bx + by * by + bz * bz);
+            a = s->avg_mag[st] + sd[CT_SUP_ALPHA] * (m - s->avg_mag[st]);
+            dev = fabs(a - s->ref_mag[st]);
+            ds_new = (int)s->dist_state[st];
+            if (dev > thr)
+                ds_new = 1;
+            else if (dev < 0.5 * thr)
+                ds_new = 0;
+            now_dist = (st == 2 * i ? ds_new : s->dist_state[2 * i] != 0) ||
+                       (st == 2 * i + 1 ? ds_new : s->dist_state[2 * i + 1] != 0);
+            if (now_dist != (s->distorted[i] != 0))
+                return 1;
+            write_avg = 1;
+        }
+    }
+    /* Health.heard */
+    s->last_heard[i] = now_us;
+    due = now_us + s->timeout_us[i];
+    if (due < si[CT_SUP_CHECK_US])
+        si[CT_SUP_CHECK_US] = due;
+    /* FlipScheduler.observe (the sensors' slots are the health's) */
+    s->flip_state[i] = flip & 1;
+    if (prev != CT_SUP_NONE && t_us - prev <= 0)
+        return 0;                                   /* a duplicated or delayed frame: skipped */
+    s->last_stamp[i] = t_us;
+    if (!quiet)
+        return 0;
+    if (s->ref_n[st] < learn) {
+        double bx = (double)x * sd[CT_SUP_LSB], by = (double)y * sd[CT_SUP_LSB], bz = (double)z * sd[CT_SUP_LSB];
+        m = sqrt(bx * bx + by * by + bz * bz);
+        s->ref_sum[st] += m;
+        s->ref_n[st] += 1;
+        if (s->ref_n[st] == learn) {
+            s->ref_mag[st] = s->ref_sum[st] / (double)s->ref_n[st];
+            s->avg_mag[st] = s->ref_mag[st];
+        }
+        return 0;
+    }
+    if (write_avg) {
+        s->avg_mag[st] = a;
+        s->dist_state[st] = ds_new;
+    }
+    return 0;
+}
