@@ -1,8 +1,8 @@
 /*
- * CPython glue of the supervisor's per-sample kernel (src/supervise.c): the type SupMag binds the
- * supervisor's two state arrays and the pulse schedule's start and end once (start-up); mag(node,
- * t_us, x, y, z, flip, now_us) is METH_FASTCALL, reads its integers in place and returns a small int
- * (no Python object created).
+ * CPython glue of the supervisor's kernels (src/supervise.c): the type SupMag binds the supervisor's
+ * two state arrays and the pulse schedule's start and end once (start-up); mag(node, t_us, x, y, z,
+ * flip, now_us) and pose_status(node, window_flags) are METH_FASTCALL, read their integers in place
+ * and return an int (mag: a small one, no Python object created).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -44,7 +44,7 @@ static int SupMag_init(SupMagObject *self, PyObject *args, PyObject *kw)
     self->nbound = 1;
     n = ((int64_t *)self->views[SUP_SI].buf)[CT_SUP_N];
     nc = ((int64_t *)self->views[SUP_SI].buf)[CT_SUP_NCOILS];
-    if (n < 1 || n > CT_SUP_SLOTS || nc < 0 || self->views[SUP_SI].len < (Py_ssize_t)CT_SUP_SI_LEN(n) * 8) {
+    if (n < 1 || n > CT_SUP_SLOTS || nc < 1 || self->views[SUP_SI].len < (Py_ssize_t)CT_SUP_SI_LEN(n, nc) * 8) {
         PyErr_SetString(PyExc_ValueError, "SupMag: si's node count, coil count or length is wrong");
         return -1;
     }
@@ -80,7 +80,23 @@ static PyObject *SupMag_mag(SupMagObject *self, PyObject *const *args, Py_ssize_
     return PyLong_FromLong(ct_sup_mag(&self->s, v[0], v[1], v[2], v[3], v[4], v[5], v[6]));
 }
 
+static PyObject *SupMag_pose_status(SupMagObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t node, flags;
+    if (ct_py_nargs("pose_status", nargs, 2) < 0)
+        return NULL;
+    if (self->nbound != SUP_NVIEWS) {
+        PyErr_SetString(PyExc_RuntimeError, "SupMag: not bound");
+        return NULL;
+    }
+    if (ct_py_int64(args[0], &node) < 0 || ct_py_int64(args[1], &flags) < 0)
+        return NULL;
+    return PyLong_FromLongLong(ct_sup_pose_status(&self->s, node, flags));
+}
+
 static PyMethodDef SupMag_methods[] = {
+    {"pose_status", (PyCFunction)(void (*)(void))SupMag_pose_status, METH_FASTCALL,
+     "pose_status(node, window_flags) -> bits | veto << 32: Supervisor.pose_status's POSE_* bits and veto"},
     {"mag", (PyCFunction)(void (*)(void))SupMag_mag, METH_FASTCALL,
      "mag(node, t_us, x, y, z, flip, now_us) -> 0 or 1: Supervisor.on_message for a MAG_SAMPLE (0: done; 1: a rare "
      "case for the Python reference, nothing changed)"},
@@ -109,7 +125,8 @@ int ct_register_supervise(PyObject *m)
         return -1;
     }
     if (PyModule_AddIntConstant(m, "SUP_NI", CT_SUP_NI) < 0 || PyModule_AddIntConstant(m, "SUP_ND", CT_SUP_ND) < 0 ||
-        PyModule_AddIntConstant(m, "SUP_SLOTS", CT_SUP_SLOTS) < 0)
+        PyModule_AddIntConstant(m, "SUP_SLOTS", CT_SUP_SLOTS) < 0 ||
+        PyModule_AddIntConstant(m, "SUP_SUSPECT", CT_SUP_SUSPECT) < 0)
         return -1;
     return 0;
 }

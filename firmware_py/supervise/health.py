@@ -173,12 +173,14 @@ class Health:
         in ``si`` (int64) and ``sd`` (float64), laid out as ``ct_supervise.h`` says (header ``ni``,
         ``nd`` items; a node -> slot table of ``slots`` items): the same values, the lists become
         views of the arrays (the Python reference runs on them unchanged). Writes this object's
-        header items; the caller writes its own (margin, fall, coils)."""
+        header items; the caller writes its own (margin, fall, coils, the pose bits). After
+        :meth:`set_coils`."""
         n = len(self.ids)
         hc = self.hcfg
         iv, dv = memoryview(si), memoryview(sd)
         iv[0], iv[1], iv[2] = self._sc[0], n, self.driver_slot
         iv[3], iv[4], iv[5] = hc.stamp_future_tol_us, hc.stamp_interval_tol_us, hc.distortion_learn_samples
+        iv[8], iv[11] = self.n_coils, COIL_FAULT_FATAL
         dv[0], dv[1], dv[2] = self.period_us, self._alpha, hc.distortion_threshold_t
         for k in range(slots):
             iv[ni + k] = -1
@@ -191,6 +193,18 @@ class Health:
         at += n                                     # the flip states (FlipScheduler.use_array)
         for name in ("ref_n", "dist_state"):
             at = self._adopt(name, iv, at, 2 * n)
+        for name in ("status_seen", "status_faults"):
+            at = self._adopt(name, iv, at, self.n_coils)
+        for name in ("susp_t0", "susp_t1"):        # (node slot i's intervals: a view of row i)
+            rows = getattr(self, name)
+            views = []
+            for i in range(n):
+                v = iv[at:at + _SUSPECT]
+                for k in range(_SUSPECT):
+                    v[k] = rows[i][k]
+                views.append(v)
+                at += _SUSPECT
+            setattr(self, name, views)
         at = nd
         for name in self.FLOAT_LISTS:
             at = self._adopt(name, dv, at, 2 * n)

@@ -28,7 +28,7 @@ from coiltrack.protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DEGRADED,
 
 from coiltrack.firmware.supervise.flips import FlipScheduler
 from coiltrack.firmware.measure.pulse import PULSE_SATURATED
-from coiltrack.firmware.supervise.health import Health, HealthConfig
+from coiltrack.firmware.supervise.health import _SUSPECT, Health, HealthConfig
 from coiltrack.firmware.supervise.timesync import TimeSyncMaster
 
 _ID_HEARTBEAT = MSG["HEARTBEAT"].ID
@@ -76,6 +76,7 @@ class Supervisor:
         self._fall = cfg.pulse.fall_us
         self.veto = False
         self.poses_vetoed = 0
+        self._sup = None                # the compiled kernels (mag_kernel), bound once
 
     # ------------------------------------------------------------ receive
     def on_message(self, msg, now_us: int) -> None:
@@ -118,24 +119,31 @@ class Supervisor:
         now_us)`` returns 0 when it did the whole branch (``ct_sup_mag``, ``core/src/supervise.c``: the
         same operations on the same state, which the health and the flip scheduler then keep in its
         arrays), 1 for a rare case (a lost node, a stamp off the grid, saturation, a distortion flag
-        that changes, ...) that :meth:`on_message` must do: the kernel changed nothing then."""
+        that changes, ...) that :meth:`on_message` must do: the kernel changed nothing then. Binds
+        :meth:`pose_status` on the compiled core too (``ct_sup_pose_status``)."""
         ext = core.ext
         h = self.health
-        if ext is None or any(not 0 <= nid < ext.SUP_SLOTS for nid in h.ids):
+        if ext is None or any(not 0 <= nid < ext.SUP_SLOTS for nid in h.ids) or self.n < 1:
             return None
-        n = len(h.ids)
-        ni, nd, slots = ext.SUP_NI, ext.SUP_ND, ext.SUP_SLOTS
-        self._si = si = np.zeros(ni + slots + 12 * n, dtype=np.int64)
-        self._sd = sd = np.zeros(nd + 6 * n)
-        h.use_arrays(si, sd, ni, nd, slots)
-        iv = memoryview(si)
-        iv[6], iv[7], iv[8] = self._margin, self._fall, self.n
-        dv = memoryview(sd)
-        dv[3] = MAG_LSB_T
-        at = ni + slots + 7 * n
-        self.flips.use_array(iv[at:at + len(self.sensor_ids)])
-        self._sup_mag = ext.SupMag(si, sd, self.schedule.start, self.schedule.end)
-        return self._sup_mag.mag
+        if self._sup is None:
+            assert ext.SUP_SUSPECT == _SUSPECT
+            n, nc = len(h.ids), self.n
+            ni, nd, slots = ext.SUP_NI, ext.SUP_ND, ext.SUP_SLOTS
+            self._si = si = np.zeros(ni + slots + 12 * n + 2 * nc + 2 * _SUSPECT * n, dtype=np.int64)
+            self._sd = sd = np.zeros(nd + 6 * n)
+            h.use_arrays(si, sd, ni, nd, slots)
+            iv = memoryview(si)
+            p = self.cfg.pulse
+            iv[6], iv[7], iv[9], iv[10] = self._margin, self._fall, p.baseline_us + p.guard_us, p.fall_us + p.baseline_us
+            iv[12], iv[13], iv[14], iv[15] = (PULSE_SATURATED, POSE_COIL_FAULT, POSE_INCONSISTENT | POSE_DEGRADED,
+                                              POSE_DISTORTED)
+            memoryview(sd)[3] = MAG_LSB_T
+            at = ni + slots + 7 * n
+            self.flips.use_array(iv[at:at + len(self.sensor_ids)])
+            self._sup = ext.SupMag(si, sd, self.schedule.start, self.schedule.end)
+            self._pose_k = self._sup.pose_status
+            self.pose_status = self._pose_status_compiled
+        return self._sup.mag
 
     def driver_heard(self, now_us: int) -> None:
         """The coil driver spoke in a message the supervisor is not given (``AC_DRIVE_STATUS``)."""
@@ -234,6 +242,16 @@ class Supervisor:
         if veto:
             self.poses_vetoed += 1
         return bits
+
+    def _pose_status_compiled(self, node: int, window_flags: int) -> int:
+        """:meth:`pose_status` on the compiled core (``ct_sup_pose_status``: the same operations on
+        the same state; bit 32 of its result the veto)."""
+        r = self._pose_k(node, window_flags)
+        veto = r >> 32
+        self.veto = veto == 1
+        if veto:
+            self.poses_vetoed += 1
+        return r & 0xFFFFFFFF
 
     # ------------------------------------------------------------ status
     def counters(self) -> dict:

@@ -1,7 +1,8 @@
 /*
- * The supervisor's per-sample work (coiltrack.firmware.supervise): what Supervisor.on_message does
- * for a MAG_SAMPLE (Health.heard, FlipScheduler.observe, Supervisor._quiet, Health.on_mag), in one
- * call, for the sixteen-sensor receive stage.  Same names (ct_ prefix), same operations in the same
+ * The supervisor's per-sample and per-pose work (coiltrack.firmware.supervise): what
+ * Supervisor.on_message does for a MAG_SAMPLE (Health.heard, FlipScheduler.observe, Supervisor._quiet,
+ * Health.on_mag), in one call, for the sixteen-sensor receive stage; and Supervisor.pose_status
+ * (Health.burst_status, Health.suspect, Health.is_distorted) for each sensor's pose.  Same names (ct_ prefix), same operations in the same
  * order as the Python reference; the rare cases stay the reference's (see ct_sup_mag).
  */
 #ifndef CT_SUPERVISE_H
@@ -14,15 +15,21 @@
  *   si (int64): CT_SUP_NI header items, the node -> slot table (256 items, -1: not a node), then
  *     n items each of last_heard, timeout_us, lost, last_stamp, suspect_open, suspect_reply_seen,
  *     distorted, flip_state (FlipScheduler.state: the sensors' slots), then 2n each of ref_n and
- *     dist_state;
+ *     dist_state, then n_coils each of status_seen and status_faults, then 4n each of susp_t0 and
+ *     susp_t1 (row i: node slot i's suspect intervals);
  *   sd (float64): CT_SUP_ND header items, then 2n each of ref_sum, ref_mag, avg_mag.
  * n = the nodes (the sensors, then the coil driver). */
 enum { CT_SUP_CHECK_US, CT_SUP_N, CT_SUP_DRIVER, CT_SUP_FUTURE_TOL, CT_SUP_INTERVAL_TOL, CT_SUP_LEARN,
-       CT_SUP_MARGIN, CT_SUP_FALL, CT_SUP_NCOILS, CT_SUP_NI = 16 };
+       CT_SUP_MARGIN, CT_SUP_FALL, CT_SUP_NCOILS,
+       /* pose_status: the span's widening (baseline + guard before, fall + baseline after), the fatal
+        * coil faults, the saturated window flag and the POSE_* bits it sets */
+       CT_SUP_BASE_GUARD, CT_SUP_FALL_BASE, CT_SUP_FATAL, CT_SUP_SATURATED, CT_SUP_BIT_COIL_FAULT,
+       CT_SUP_BIT_INCONSISTENT, CT_SUP_BIT_DISTORTED, CT_SUP_NI };
+enum { CT_SUP_SUSPECT = 4 };             /* suspect intervals per node (health._SUSPECT) */
 enum { CT_SUP_PERIOD, CT_SUP_ALPHA, CT_SUP_THRESHOLD, CT_SUP_LSB, CT_SUP_ND = 8 };
 enum { CT_SUP_SLOTS = 256 };
-/* the items of si and sd for n nodes */
-#define CT_SUP_SI_LEN(n) (CT_SUP_NI + CT_SUP_SLOTS + 8 * (n) + 4 * (n))
+/* the items of si and sd for n nodes and nc coils */
+#define CT_SUP_SI_LEN(n, nc) (CT_SUP_NI + CT_SUP_SLOTS + 12 * (n) + 2 * (nc) + 2 * CT_SUP_SUSPECT * (n))
 #define CT_SUP_SD_LEN(n) (CT_SUP_ND + 6 * (n))
 
 struct ct_sup {
@@ -31,6 +38,7 @@ struct ct_sup {
     const int64_t *slot;                    /* 256 */
     int64_t *last_heard, *timeout_us, *lost, *last_stamp, *suspect_open, *suspect_reply_seen, *distorted;
     int64_t *flip_state, *ref_n, *dist_state;
+    int64_t *status_seen, *status_faults, *susp_t0, *susp_t1;
     double *ref_sum, *ref_mag, *avg_mag;
     const int64_t *ps, *pe;                 /* the pulse schedule's start and end (n_coils each) */
 };
@@ -45,5 +53,9 @@ void ct_sup_bind(struct ct_sup *s, int64_t *si, double *sd, const int64_t *ps, c
  * changed. */
 int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, int64_t y, int64_t z, int64_t flip,
                int64_t now_us);
+
+/* Supervisor.pose_status(node, window_flags): the extra POSE_* bits of node's pose from the current
+ * burst, and (bit 32) whether the firmware vetoes it. */
+int64_t ct_sup_pose_status(const struct ct_sup *s, int64_t node, int64_t window_flags);
 
 #endif

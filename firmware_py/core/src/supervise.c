@@ -1,9 +1,10 @@
 /*
- * The supervisor's per-sample work (include/ct_supervise.h): a MAG_SAMPLE's liveness, set/reset
- * state, quiet check, time-stamp check and quiet-field magnitude, as
+ * The supervisor's per-sample and per-pose work (include/ct_supervise.h): a MAG_SAMPLE's liveness,
+ * set/reset state, quiet check, time-stamp check and quiet-field magnitude, as
  * coiltrack.firmware.supervise.supervisor.Supervisor.on_message does them through Health.heard,
  * FlipScheduler.observe, Supervisor._quiet and Health.on_mag (the distortion check: thesis 002 ch. 2,
- * the field magnitude between pulses).  Every rare case is left to the Python (return 1 before any
+ * the field magnitude between pulses), and a pose's status bits as Supervisor.pose_status makes them.
+ * Every rare case of a sample is left to the Python (return 1 before any
  * write), so the two cores run the same operations on the same values.
  */
 #include <math.h>
@@ -32,6 +33,10 @@ void ct_sup_bind(struct ct_sup *s, int64_t *si, double *sd, const int64_t *ps, c
     s->flip_state = p + 7 * n;
     s->ref_n = p + 8 * n;
     s->dist_state = p + 10 * n;
+    s->status_seen = p + 12 * n;
+    s->status_faults = s->status_seen + si[CT_SUP_NCOILS];
+    s->susp_t0 = s->status_faults + si[CT_SUP_NCOILS];
+    s->susp_t1 = s->susp_t0 + CT_SUP_SUSPECT * n;
     s->ref_sum = q;
     s->ref_mag = q + 2 * n;
     s->avg_mag = q + 4 * n;
@@ -135,4 +140,58 @@ int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, in
         s->dist_state[st] = ds_new;
     }
     return 0;
+}
+
+/* Health.suspect: node slot i's clock suspect anywhere in [t0, t1] */
+static int ct_sup_suspect(const struct ct_sup *s, int64_t i, int64_t t0, int64_t t1)
+{
+    const int64_t *a, *b;
+    int k;
+    if (i < 0)
+        return 0;
+    if (s->suspect_open[i])
+        return 1;
+    a = s->susp_t0 + CT_SUP_SUSPECT * i;
+    b = s->susp_t1 + CT_SUP_SUSPECT * i;
+    for (k = 0; k < CT_SUP_SUSPECT; ++k)
+        if (a[k] != CT_SUP_NONE && a[k] <= t1 && b[k] >= t0)
+            return 1;
+    return 0;
+}
+
+int64_t ct_sup_pose_status(const struct ct_sup *s, int64_t node, int64_t window_flags)
+{
+    const int64_t *si = s->si;
+    int64_t bits = 0, veto = 0, t0, t1, i, j, nc = si[CT_SUP_NCOILS];
+    int ok = 1, fatal = 0;
+    for (j = 0; j < nc; ++j) {                      /* Health.burst_status */
+        if (!s->status_seen[j])
+            ok = 0;
+        if (s->status_faults[j] & si[CT_SUP_FATAL])
+            fatal = 1;
+    }
+    if (!ok || fatal) {
+        bits |= si[CT_SUP_BIT_COIL_FAULT];
+        veto = 1;
+    }
+    t0 = s->ps[0];
+    t1 = s->pe[0];
+    for (j = 1; j < nc; ++j) {
+        if (s->ps[j] < t0)
+            t0 = s->ps[j];
+        if (s->pe[j] > t1)
+            t1 = s->pe[j];
+    }
+    t0 -= si[CT_SUP_BASE_GUARD];
+    t1 += si[CT_SUP_FALL_BASE];
+    i = (node >= 0 && node < CT_SUP_SLOTS) ? s->slot[node] : -1;
+    if (ct_sup_suspect(s, i, t0, t1) || ct_sup_suspect(s, si[CT_SUP_DRIVER], t0, t1)) {
+        bits |= si[CT_SUP_BIT_INCONSISTENT];
+        veto = 1;
+    }
+    if (i >= 0 && s->distorted[i])
+        bits |= si[CT_SUP_BIT_DISTORTED];
+    if (window_flags & si[CT_SUP_SATURATED])
+        veto = 1;
+    return bits | (veto << 32);
 }

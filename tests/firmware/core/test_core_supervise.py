@@ -1,15 +1,17 @@
-"""The supervisor's per-sample kernel (firmware_py/core/src/supervise.c, py_supervise.c) against
-its Python reference, ``Supervisor.on_message`` for a MAG_SAMPLE (``Health.heard``,
-``FlipScheduler.observe``, ``Supervisor._quiet``, ``Health.on_mag``), and the burst's
-MAG_FLIP_CMD frame (``flip_frame``) against ``protocol.framing.encode_frame``.
+"""The supervisor's kernels (firmware_py/core/src/supervise.c, py_supervise.c) against their
+Python references, ``Supervisor.on_message`` for a MAG_SAMPLE (``Health.heard``,
+``FlipScheduler.observe``, ``Supervisor._quiet``, ``Health.on_mag``) and
+``Supervisor.pose_status``, and the burst's MAG_FLIP_CMD frame (``flip_frame``) against
+``protocol.framing.encode_frame``.
 
 Two supervisors get the same seeded stream of samples (several sensors, the coil driver and an
 unknown node; stamps on the sample grid, jittered, stepped, duplicated and from the future;
 saturated samples; quiet fields that learn their reference and then drift past the distortion
 threshold and back; pulses moving over the stamps), sync replies that show clock steps and
-silences that lose nodes: one through ``on_message`` alone, one through the kernel with
+silences that lose nodes, coil statuses with faults and new bursts: one through ``on_message`` alone, one through the kernel with
 ``on_message`` for what the kernel hands back. After every message their whole per-node state,
-counters and events must be equal, the floats bit for bit. Catches a dropped case (the kernel
+counters and events must be equal, the floats bit for bit, and the two must give every pose the
+same status bits and veto. Catches a dropped case (the kernel
 writing where the reference raises an event), an off-by-one in the state layout, a stamp tolerance
 compared the wrong way, a magnitude from the wrong set/reset slot. Seeded; skips without the
 extension."""
@@ -26,7 +28,7 @@ from coiltrack.firmware.supervise.supervisor import Supervisor
 from coiltrack.firmware.transmit import Transmitter
 from coiltrack.protocol import MSG
 from coiltrack.protocol.framing import encode_frame
-from coiltrack.protocol.schema import MAG_LSB_T
+from coiltrack.protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DISTORTED, POSE_INCONSISTENT
 
 ext = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 COMPILED = core.load("compiled")
@@ -92,7 +94,7 @@ def test_mag_kernel_follows_on_message_through_every_case():
     stamp = {n: 0 for n in SENSORS}
     level = {n: 50e-6 for n in SENSORS}
     now = 1000
-    handed_back = flag_changes = 0
+    handed_back = flag_changes = pose_bits = vetoes = 0
     flags = list(ref.health.distorted)
     for k in range(30000):
         now += rng.choice((1500, 2300, 2300, 3000))     # a little more than 1 / (rate x sensors)
@@ -141,6 +143,20 @@ def test_mag_kernel_follows_on_message_through_every_case():
         if rng.random() < 0.2:
             for s in (ref, fast):
                 s.health.step(now)
+        if rng.random() < 0.05:                         # a coil's status (faults now and then), a new burst
+            c, faults = rng.randrange(len(sched.start)), rng.choice((0, 0, 0, 1, 2, 4, 8, 16))
+            st = MSG["COIL_STATUS"](c, int(sched.pulse_id[c]), 1000, int(sched.start[c]), int(sched.end[c]), faults)
+            renew = rng.random() < 0.3
+            for s in (ref, fast):
+                s.on_message(st, now)
+                if renew:
+                    s.health.new_burst()
+        if rng.random() < 0.1:                          # a pose's status: bits, veto and the count agree
+            node, flags = rng.choice(SENSORS + (2, 99)), rng.choice((0, 0, 1, 2, 4, 8, 16, 32, 64, 128))
+            got = [(s.pose_status(node, flags), s.veto, s.poses_vetoed) for s in (ref, fast)]
+            assert got[0] == got[1], (k, got)
+            pose_bits |= got[0][0]
+            vetoes += got[0][1]
         flags_set = list(ref.health.distorted)
         if flags_set != flags:
             flag_changes += 1
@@ -152,6 +168,8 @@ def test_mag_kernel_follows_on_message_through_every_case():
     # every case was met: the kernel handed back the rare ones and did the rest
     assert h.lost_events and h.back_events and h.clock_steps and h.saturation_events and flag_changes >= 4
     assert 1000 < handed_back < 15000              # (the stream is rich in rare cases on purpose)
+    assert fast.pose_status == fast._pose_status_compiled and vetoes > 100
+    assert pose_bits & POSE_COIL_FAULT and pose_bits & POSE_INCONSISTENT and pose_bits & POSE_DISTORTED
     assert min(h.ref_n) == 0 and max(h.ref_n) >= h.hcfg.distortion_learn_samples
 
 
