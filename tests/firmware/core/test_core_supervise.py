@@ -201,3 +201,47 @@ def test_flip_frame_is_encode_frame_and_the_transmitter_sends_it_on_both_cores()
         tx.mag_flip(17, 5, 1)
         outs.append((bytes(port.data), tx.tx_errors))
     assert outs[0] == outs[1] and outs[0][1] == 1
+
+
+def test_pose_status_at_the_edges_of_the_span():
+    """A sensor's clock was suspect in [a, b] (a sync reply showed a step): its pose is inconsistent
+    and vetoed exactly when the burst's span, its pulses widened by baseline + guard before and
+    fall + baseline after, meets [a, b] (a closed form); both cores agree to the microsecond at each
+    edge, and the other sensors' poses are untouched. Catches a widening dropped or swapped, an
+    open interval end, the driver's intervals not looked at."""
+    sched, (ref, fast), kernel = _pair()
+    p = ref.cfg.pulse
+    before, after = p.baseline_us + p.guard_us, p.fall_us + p.baseline_us
+    a, b = 1_000_000, 1_004_000
+    for s in (ref, fast):
+        s.health.on_sync_reply(17, True, a, b)
+    n = len(sched.start)
+    for lo_edge in (-1, 0, 1):
+        for hi_edge in (-1, 0, 1):
+            for first, last in ((0, n - 1), (n - 1, 0)):
+                # the span ends at a + hi_edge (a pulse ending there), or starts at b + lo_edge
+                for which in ("end", "start"):
+                    for j in range(n):
+                        sched.start[j], sched.end[j] = 500_000 + 1000 * j, 500_500 + 1000 * j
+                    if which == "end":
+                        sched.end[last] = a + hi_edge - after
+                        sched.start[last] = sched.end[last] - 500
+                        sched.start[first] = min(int(sched.start[first]), int(sched.start[last]))
+                    else:
+                        sched.start[first] = b + lo_edge + before
+                        for j in range(n):
+                            sched.start[j] = max(int(sched.start[j]), b + lo_edge + before)
+                            sched.end[j] = sched.start[j] + 500
+                        sched.start[first] = b + lo_edge + before
+                    t0 = int(sched.start.min()) - before
+                    t1 = int(sched.end.max()) + after
+                    want = t0 <= b and t1 >= a
+                    for node in (17, 16):
+                        got = [s.pose_status(node, 0) for s in (ref, fast)]
+                        assert got[0] == got[1]
+                        assert bool(got[0] & POSE_INCONSISTENT) == (want and node == 17), (which, lo_edge, hi_edge)
+    # the driver's suspect interval makes every sensor's pose inconsistent
+    for s in (ref, fast):
+        s.health.on_sync_reply(ref.driver_id, True, a, b)
+    sched.start[:], sched.end[:] = a, a + 500
+    assert all(s.pose_status(16, 0) & POSE_INCONSISTENT and s.veto for s in (ref, fast))
