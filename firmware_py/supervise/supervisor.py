@@ -15,7 +15,8 @@ it, and sends through the transmitter.
 
 Per burst: a ``TIME_SYNC`` right when the commands leave and three right after
 the last pulse ends (plus the periodic ones), and one ``MAG_FLIP_CMD`` per
-sensor for the quiet gap after the burst.
+sensor for the quiet gap after the burst (``flips_per_tick`` of them a tick, from the
+burst's first).
 """
 from __future__ import annotations
 
@@ -50,6 +51,7 @@ class SupervisorConfig:
     sync_around_burst: bool = True
     flips: bool = True
     flip_min_gap_us: int = 10_000
+    flips_per_tick: int = 4             # MAG_FLIP_CMDs sent in one tick (0: all of a burst at once)
     health: HealthConfig = field(default_factory=HealthConfig)
 
 
@@ -173,6 +175,8 @@ class Supervisor:
         pc = self.schedule.burst_start
         if pc is not None and pc != self._burst:
             self._new_burst(pc, now_us)
+        elif self.flips.pending:                    # the burst's flip commands, a few a tick
+            self.flips.step(self.tx.send, self.tx.mag_flip, self.scfg.flips_per_tick)
         h = self.health
         if h.kick_sync and h.take_kick_sync():
             self.timesync.kick()
@@ -207,7 +211,7 @@ class Supervisor:
         if self.scfg.flips:
             quiet_from = last_end + cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
             quiet_to = pc + cfg.timing.cycle_us - cfg.pulse.baseline_us - cfg.pulse.guard_us
-            self.flips.plan(now_us, quiet_from, quiet_to, self.tx.send, self.tx.mag_flip)
+            self.flips.plan(now_us, quiet_from, quiet_to, self.tx.send, self.tx.mag_flip, self.scfg.flips_per_tick)
 
     # ------------------------------------------------------------ poses
     def pose_status(self, node: int, window_flags: int) -> int:
