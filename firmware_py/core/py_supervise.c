@@ -1,8 +1,8 @@
 /*
  * CPython glue of the supervisor's kernels (src/supervise.c): the type SupMag binds the supervisor's
  * two state arrays and the pulse schedule's start and end once (start-up); mag(node, t_us, x, y, z,
- * flip, now_us) and pose_status(node, window_flags) are METH_FASTCALL, read their integers in place
- * and return an int (mag: a small one, no Python object created).
+ * flip, now_us), reply(offset, now_us) and pose_status(node, window_flags) are METH_FASTCALL, read
+ * their integers in place and return an int (mag, reply: a small one, no Python object created).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -11,12 +11,14 @@
 #include "coiltrack_core.h"
 #include "py_glue.h"
 
-enum { SUP_SI, SUP_SD, SUP_PS, SUP_PE, SUP_NVIEWS };
+enum { SUP_SI, SUP_SD, SUP_PS, SUP_PE, SUP_PAY, SUP_NVIEWS };
 
 typedef struct {
     PyObject_HEAD
     Py_buffer views[SUP_NVIEWS];
     int nbound;
+    int bound;                      /* si, sd, start, end bound (the payloads: optional) */
+    Py_ssize_t pay_len;             /* 0: no payloads bound */
     struct ct_sup s;
 } SupMagObject;
 
@@ -30,10 +32,12 @@ static void SupMag_dealloc(SupMagObject *self)
 
 static int SupMag_init(SupMagObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"si", "sd", "start", "end", NULL};
+    static char *kwlist[] = {"si", "sd", "start", "end", "payloads", NULL};
     PyObject *o[SUP_NVIEWS];
     int64_t n, nc;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOO", kwlist, &o[SUP_SI], &o[SUP_SD], &o[SUP_PS], &o[SUP_PE]))
+    o[SUP_PAY] = Py_None;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOO|O", kwlist, &o[SUP_SI], &o[SUP_SD], &o[SUP_PS], &o[SUP_PE],
+                                     &o[SUP_PAY]))
         return -1;
     if (self->nbound) {
         PyErr_SetString(PyExc_RuntimeError, "SupMag: already bound");
@@ -57,6 +61,13 @@ static int SupMag_init(SupMagObject *self, PyObject *args, PyObject *kw)
     if (ct_py_buffer(o[SUP_PE], nc, 8, "ql", 0, &self->views[SUP_PE], "SupMag end") < 0)
         return -1;
     self->nbound = 4;
+    if (o[SUP_PAY] != Py_None) {
+        if (ct_py_buffer(o[SUP_PAY], 1, 1, "Bbc", 0, &self->views[SUP_PAY], "SupMag payloads") < 0)
+            return -1;
+        self->nbound = 5;
+        self->pay_len = self->views[SUP_PAY].len;
+    }
+    self->bound = 1;
     ct_sup_bind(&self->s, (int64_t *)self->views[SUP_SI].buf, (double *)self->views[SUP_SD].buf,
                 (const int64_t *)self->views[SUP_PS].buf, (const int64_t *)self->views[SUP_PE].buf);
     return 0;
@@ -70,7 +81,7 @@ static PyObject *SupMag_mag(SupMagObject *self, PyObject *const *args, Py_ssize_
         PyErr_Format(PyExc_TypeError, "mag() takes 7 arguments (%zd given)", nargs);
         return NULL;
     }
-    if (self->nbound != SUP_NVIEWS) {
+    if (!self->bound) {
         PyErr_SetString(PyExc_RuntimeError, "SupMag: not bound");
         return NULL;
     }
@@ -85,7 +96,7 @@ static PyObject *SupMag_pose_status(SupMagObject *self, PyObject *const *args, P
     int64_t node, flags;
     if (ct_py_nargs("pose_status", nargs, 2) < 0)
         return NULL;
-    if (self->nbound != SUP_NVIEWS) {
+    if (!self->bound) {
         PyErr_SetString(PyExc_RuntimeError, "SupMag: not bound");
         return NULL;
     }
@@ -94,7 +105,29 @@ static PyObject *SupMag_pose_status(SupMagObject *self, PyObject *const *args, P
     return PyLong_FromLongLong(ct_sup_pose_status(&self->s, node, flags));
 }
 
+/* reply(offset, now_us) -> 0 or 1: the TIME_SYNC_REPLY whose payload starts at payloads[offset] */
+static PyObject *SupMag_reply(SupMagObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t off, now;
+    if (ct_py_nargs("reply", nargs, 2) < 0)
+        return NULL;
+    if (!self->bound || self->pay_len == 0) {
+        PyErr_SetString(PyExc_RuntimeError, "SupMag: no payloads bound");
+        return NULL;
+    }
+    if (ct_py_int64(args[0], &off) < 0 || ct_py_int64(args[1], &now) < 0)
+        return NULL;
+    if (off < 0 || off + 19 > self->pay_len) {
+        PyErr_SetString(PyExc_ValueError, "reply: the payload lies outside the bound payloads");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_sup_reply(&self->s, (const uint8_t *)self->views[SUP_PAY].buf + off, now));
+}
+
 static PyMethodDef SupMag_methods[] = {
+    {"reply", (PyCFunction)(void (*)(void))SupMag_reply, METH_FASTCALL,
+     "reply(offset, now_us) -> 0 or 1: Supervisor.on_message for the TIME_SYNC_REPLY at payloads[offset] (0: done; "
+     "1: a rare case for the Python reference, nothing changed)"},
     {"pose_status", (PyCFunction)(void (*)(void))SupMag_pose_status, METH_FASTCALL,
      "pose_status(node, window_flags) -> bits | veto << 32: Supervisor.pose_status's POSE_* bits and veto"},
     {"mag", (PyCFunction)(void (*)(void))SupMag_mag, METH_FASTCALL,
@@ -107,8 +140,8 @@ static PyTypeObject SupMagType = {
     .tp_name = "coiltrack.firmware._core.SupMag",
     .tp_basicsize = sizeof(SupMagObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "SupMag(si, sd, start, end): the supervisor's per-sample state (two arrays, ct_supervise.h) and the "
-              "pulse schedule's start and end, bound once",
+    .tp_doc = "SupMag(si, sd, start, end, payloads=None): the supervisor's state (two arrays, ct_supervise.h), the "
+              "pulse schedule's start and end and the frame decoder's payloads, bound once",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)SupMag_init,
     .tp_dealloc = (destructor)SupMag_dealloc,
@@ -126,7 +159,10 @@ int ct_register_supervise(PyObject *m)
     }
     if (PyModule_AddIntConstant(m, "SUP_NI", CT_SUP_NI) < 0 || PyModule_AddIntConstant(m, "SUP_ND", CT_SUP_ND) < 0 ||
         PyModule_AddIntConstant(m, "SUP_SLOTS", CT_SUP_SLOTS) < 0 ||
-        PyModule_AddIntConstant(m, "SUP_SUSPECT", CT_SUP_SUSPECT) < 0)
+        PyModule_AddIntConstant(m, "SUP_SUSPECT", CT_SUP_SUSPECT) < 0 ||
+        PyModule_AddIntConstant(m, "SUP_HISTORY", CT_SUP_HISTORY) < 0 ||
+        PyModule_AddIntConstant(m, "SUP_REPLIES", CT_SUP_REPLIES) < 0 ||
+        PyModule_AddIntConstant(m, "SUP_ACQUIRE", CT_SUP_ACQUIRE) < 0)
         return -1;
     return 0;
 }

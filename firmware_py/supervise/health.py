@@ -115,6 +115,7 @@ class Health:
         self.lost_events = 0
         self.back_events = 0
         self._back = ()
+        self._backv = [0]                   # whether _back holds nodes (use_arrays: a view)
         # time stamps (sensors)
         self.period_us = 1e6 / mag_rate_hz
         self.last_stamp = [_NONE] * n
@@ -187,6 +188,8 @@ class Health:
         for nid, i in self._slot.items():
             iv[ni + nid] = i
         self._sc = iv[0:1]
+        iv[16] = self._backv[0]
+        self._backv = iv[16:17]
         at = ni + slots
         for name in self.INT_LISTS:
             at = self._adopt(name, iv, at, n)
@@ -261,6 +264,7 @@ class Health:
             self._event(EVT_NODE_BACK, node)
             self.kick_sync = True
             self._back = self._back + (node,)
+            self._backv[0] = 1
             self.last_stamp[i] = _NONE
             if i == self.driver_slot:
                 self.missing_cycles = 0
@@ -271,6 +275,7 @@ class Health:
         out = self._back
         if out:
             self._back = ()
+            self._backv[0] = 0
         return out
 
     def step(self, now_us: int) -> None:

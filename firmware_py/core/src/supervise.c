@@ -37,6 +37,18 @@ void ct_sup_bind(struct ct_sup *s, int64_t *si, double *sd, const int64_t *ps, c
     s->status_faults = s->status_seen + si[CT_SUP_NCOILS];
     s->susp_t0 = s->status_faults + si[CT_SUP_NCOILS];
     s->susp_t1 = s->susp_t0 + CT_SUP_SUSPECT * n;
+    s->sent_seq = s->susp_t1 + CT_SUP_SUSPECT * n;
+    s->sent_t = s->sent_seq + CT_SUP_HISTORY;
+    s->have = s->sent_t + CT_SUP_HISTORY;
+    s->last_reply = s->have + n;
+    s->hk = s->last_reply + n;
+    s->acquired = s->hk + n;
+    s->offset = s->acquired + n;
+    s->drift = s->offset + n;
+    s->rtt = s->drift + n;
+    s->rtt_min = s->rtt + n;
+    s->replies = s->rtt_min + n;
+    s->hist = s->replies + n;
     s->ref_sum = q;
     s->ref_mag = q + 2 * n;
     s->avg_mag = q + 4 * n;
@@ -194,4 +206,72 @@ int64_t ct_sup_pose_status(const struct ct_sup *s, int64_t node, int64_t window_
     if (window_flags & si[CT_SUP_SATURATED])
         veto = 1;
     return bits | (veto << 32);
+}
+
+static int64_t ct_sup_le(const uint8_t *p, int nbytes)
+{
+    uint64_t v = 0;
+    int k;
+    for (k = nbytes - 1; k >= 0; --k)
+        v = (v << 8) | p[k];
+    return (int64_t)v;
+}
+
+/* Python's a // b for b > 0 */
+static int64_t ct_sup_floordiv(int64_t a, int64_t b)
+{
+    int64_t q = a / b;
+    return (a % b != 0 && a < 0) ? q - 1 : q;
+}
+
+int ct_sup_reply(const struct ct_sup *s, const uint8_t *pay, int64_t now_us)
+{
+    int64_t *si = s->si;
+    int64_t node = pay[0], seq = ct_sup_le(pay + 1, 2);
+    int64_t offset = (int32_t)(uint32_t)ct_sup_le(pay + 11, 4), drift = (int32_t)(uint32_t)ct_sup_le(pay + 15, 4);
+    int64_t i, k, due, *hist;
+    int acquiring;
+    if (si[CT_SUP_BACK])
+        return 1;                                   /* the time sync forgets the nodes back first */
+    i = s->slot[node];
+    if (i < 0)
+        return 0;                                   /* not a node: nothing to do */
+    if (s->lost[i] || s->suspect_open[i])
+        return 1;
+    if (s->have[i] && s->acquired[i] >= CT_SUP_ACQUIRE) {   /* TimeSyncMaster.on_reply's step test */
+        int64_t dt = now_us - s->last_reply[i], pred, d;
+        if (dt > ((int64_t)1 << 31) || dt < -((int64_t)1 << 31))
+            return 1;
+        pred = s->offset[i] + ct_sup_floordiv(s->drift[i] * dt, 1000000000);
+        d = offset - pred;
+        if ((d < 0 ? -d : d) > si[CT_SUP_STEP_THRESHOLD])
+            return 1;                               /* a clock step */
+    }
+    /* Health.heard */
+    s->last_heard[i] = now_us;
+    due = now_us + s->timeout_us[i];
+    if (due < si[CT_SUP_CHECK_US])
+        si[CT_SUP_CHECK_US] = due;
+    acquiring = s->acquired[i] < CT_SUP_ACQUIRE;
+    hist = s->hist + CT_SUP_REPLIES * i;          /* (first_suspect_us matters for a step only) */
+    /* TimeSyncMaster.on_reply */
+    k = seq % CT_SUP_HISTORY;
+    if (s->sent_seq[k] == seq) {
+        int64_t rtt = now_us - s->sent_t[k];
+        s->rtt[i] = rtt;
+        if (s->rtt_min[i] == 0 || rtt < s->rtt_min[i])
+            s->rtt_min[i] = rtt;
+    }
+    s->have[i] = 1;
+    s->acquired[i] += 1;
+    s->last_reply[i] = now_us;
+    hist[s->hk[i]] = now_us;
+    s->hk[i] = (s->hk[i] + 1) % CT_SUP_REPLIES;
+    s->offset[i] = offset;
+    s->drift[i] = drift;
+    s->replies[i] += 1;
+    /* Health.on_sync_reply: no suspect interval open, no step: nothing; then restart_stamps */
+    if (acquiring)
+        s->last_stamp[i] = CT_SUP_NONE;
+    return 0;
 }

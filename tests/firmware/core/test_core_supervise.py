@@ -1,12 +1,14 @@
 """The supervisor's kernels (firmware_py/core/src/supervise.c, py_supervise.c) against their
 Python references, ``Supervisor.on_message`` for a MAG_SAMPLE (``Health.heard``,
-``FlipScheduler.observe``, ``Supervisor._quiet``, ``Health.on_mag``) and
-``Supervisor.pose_status``, and the burst's MAG_FLIP_CMD frame (``flip_frame``) against
+``FlipScheduler.observe``, ``Supervisor._quiet``, ``Health.on_mag``), for a
+TIME_SYNC_REPLY (``Health.heard``, ``TimeSyncMaster.on_reply``, ``Health.on_sync_reply``, the
+stamps restarted while a node acquires) and ``Supervisor.pose_status``, and the burst's MAG_FLIP_CMD frame (``flip_frame``) against
 ``protocol.framing.encode_frame``.
 
 Two supervisors get the same seeded stream of samples (several sensors, the coil driver and an
 unknown node; stamps on the sample grid, jittered, stepped, duplicated and from the future;
-saturated samples; quiet fields that learn their reference and then drift past the distortion
+saturated samples; sync replies, some answering broadcasts, some showing clock steps, some from
+the driver and an unknown node; quiet fields that learn their reference and then drift past the distortion
 threshold and back; pulses moving over the stamps), sync replies that show clock steps and
 silences that lose nodes, coil statuses with faults and new bursts: one through ``on_message`` alone, one through the kernel with
 ``on_message`` for what the kernel hands back. After every message their whole per-node state,
@@ -27,6 +29,7 @@ from coiltrack.firmware.supervise.health import Health
 from coiltrack.firmware.supervise.supervisor import Supervisor
 from coiltrack.firmware.transmit import Transmitter
 from coiltrack.protocol import MSG
+from coiltrack.protocol.codec import STRUCTS
 from coiltrack.protocol.framing import encode_frame
 from coiltrack.protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DISTORTED, POSE_INCONSISTENT
 
@@ -34,6 +37,9 @@ ext = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core 
 COMPILED = core.load("compiled")
 SENSORS = (16, 17, 18, 40)
 _MAG, _REPLY = MSG["MAG_SAMPLE"], MSG["TIME_SYNC_REPLY"]
+STRUCT_REPLY = STRUCTS[_REPLY.ID]
+#: the frame decoder's payload table the reply kernel reads (a reply at offset 40)
+PAYLOADS = bytearray(128)
 
 
 class _Schedule:
@@ -64,7 +70,7 @@ def _pair():
     cfg = dataclasses.replace(cfg, link=dataclasses.replace(cfg.link, sensor_ids=SENSORS))
     sched = _Schedule(len(cfg.source.coils))
     sups = [Supervisor(cfg, sched, _Tx()) for _ in range(2)]
-    kernel = sups[1].mag_kernel(COMPILED)
+    kernel = sups[1].mag_kernel(COMPILED, PAYLOADS)
     assert kernel is not None and sups[0].mag_kernel(core.load("python")) is None
     return sched, sups, kernel
 
@@ -79,6 +85,10 @@ def _state(sup):
                  list(h.suspect_quiet_replies))
     d["counters"] = sup.counters()
     d["events"] = h.events_queued, list(h._ev_code), list(h._ev_detail)
+    ts = sup.timesync
+    d["timesync"] = {name: [int(v) for v in getattr(ts, name)] for name in ts.NODE_LISTS + ("_sent_seq", "_sent_t")}
+    d["timesync"]["hist"] = [[int(v) for v in r] for r in ts._hist]
+    d["timesync"]["steps"] = list(ts.steps)
     return d
 
 
@@ -94,7 +104,9 @@ def test_mag_kernel_follows_on_message_through_every_case():
     stamp = {n: 0 for n in SENSORS}
     level = {n: 50e-6 for n in SENSORS}
     now = 1000
-    handed_back = flag_changes = pose_bits = vetoes = 0
+    handed_back = flag_changes = pose_bits = vetoes = replies_back = replies_done = 0
+    reply = fast.reply_kernel()
+    offset = {}
     flags = list(ref.health.distorted)
     for k in range(30000):
         now += rng.choice((1500, 2300, 2300, 3000))     # a little more than 1 / (rate x sensors)
@@ -110,10 +122,24 @@ def test_mag_kernel_follows_on_message_through_every_case():
                 level[n] += 3e-6 if k % 4000 == 1000 else -3e-6
         r = rng.random()
         node = rng.choice(SENSORS) if r < 0.97 else rng.choice((2, 99))
-        if r > 0.995:                                   # a sync reply (some show a step)
-            msg = _REPLY(rng.choice(SENSORS), rng.randrange(256), now, rng.choice((0, 0, 5000)), 0)
+        if rng.random() < 0.01:                         # a broadcast (the replies' round trips)
             for s in (ref, fast):
-                s.on_message(msg, now)
+                s.timesync.kick()
+                s.timesync.step(now, s.tx.send)
+        if r > 0.95:                                    # a sync reply (a few show a step)
+            seq = (ref.timesync.seq - rng.randrange(1, 20)) & 0xFFFF
+            off = offset.setdefault(node, rng.randrange(-3000, 3000))
+            if rng.random() < 0.02:
+                off = offset[node] = off + rng.choice((-5000, 5000))
+            msg = _REPLY(rng.choice(SENSORS + (2, 2, 99)), seq, now + off, off + rng.randrange(-200, 200),
+                         rng.randrange(-50_000, 50_000))
+            ref.on_message(msg, now)
+            STRUCT_REPLY.pack_into(PAYLOADS, 40, *msg)
+            if reply(40, now):
+                replies_back += 1
+                fast.on_message(msg, now)
+            else:
+                replies_done += 1
         else:
             t = stamp.get(node, now)
             c = rng.random()
@@ -169,6 +195,7 @@ def test_mag_kernel_follows_on_message_through_every_case():
     assert h.lost_events and h.back_events and h.clock_steps and h.saturation_events and flag_changes >= 4
     assert 1000 < handed_back < 15000              # (the stream is rich in rare cases on purpose)
     assert fast.pose_status == fast._pose_status_compiled and vetoes > 100
+    assert replies_done > 200 and replies_back > 20 and sum(ref.timesync.steps) > 5 and max(ref.timesync.rtt_us)
     assert pose_bits & POSE_COIL_FAULT and pose_bits & POSE_INCONSISTENT and pose_bits & POSE_DISTORTED
     assert min(h.ref_n) == 0 and max(h.ref_n) >= h.hcfg.distortion_learn_samples
 
