@@ -80,6 +80,17 @@ _SAME_STEP_US = 2_000_000   # an anomaly this soon after a suspect interval clos
 IMU_SATURATION = 1 << 8
 
 
+def _adopt(obj, name: str, view, at: int, k: int) -> int:
+    """``obj``'s list ``name`` (``k`` items) into ``view[at:at + k]``, kept as that view (the
+    compiled core's shared state, :meth:`Health.use_arrays`); the next free item."""
+    old = getattr(obj, name)
+    v = view[at:at + k]
+    for j in range(k):
+        v[j] = old[j]
+    setattr(obj, name, v)
+    return at + k
+
+
 @dataclass(frozen=True)
 class HealthConfig:
     sensor_timeout_us: int = 250_000
@@ -192,12 +203,12 @@ class Health:
         self._backv = iv[16:17]
         at = ni + slots
         for name in self.INT_LISTS:
-            at = self._adopt(name, iv, at, n)
+            at = _adopt(self, name, iv, at, n)
         at += n                                     # the flip states (FlipScheduler.use_array)
         for name in ("ref_n", "dist_state"):
-            at = self._adopt(name, iv, at, 2 * n)
+            at = _adopt(self, name, iv, at, 2 * n)
         for name in ("status_seen", "status_faults"):
-            at = self._adopt(name, iv, at, self.n_coils)
+            at = _adopt(self, name, iv, at, self.n_coils)
         for name in ("susp_t0", "susp_t1"):        # (node slot i's intervals: a view of row i)
             rows = getattr(self, name)
             views = []
@@ -210,16 +221,7 @@ class Health:
             setattr(self, name, views)
         at = nd
         for name in self.FLOAT_LISTS:
-            at = self._adopt(name, dv, at, 2 * n)
-
-    def _adopt(self, name: str, view, at: int, k: int) -> int:
-        """The list ``name`` (``k`` items) into ``view[at:at + k]``, kept as that view; the next free item."""
-        old = getattr(self, name)
-        v = view[at:at + k]
-        for j in range(k):
-            v[j] = old[j]
-        setattr(self, name, v)
-        return at + k
+            at = _adopt(self, name, dv, at, 2 * n)
 
     def take_kick_sync(self) -> bool:
         """Whether a node came back since the last call (time sync should start over for it);
