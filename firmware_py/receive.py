@@ -86,6 +86,7 @@ _MAG_PACKED = MSG["MAG_PACKED"].ID
 _IMU_DELTA = MSG["IMU_DELTA"].ID
 _COIL_STATUS = MSG["COIL_STATUS"].ID
 _HEARTBEAT = MSG["HEARTBEAT"].ID
+_SYNC_REPLY = MSG["TIME_SYNC_REPLY"].ID
 _INV_MAG = 1.0 / MAG_LSB_T
 _INV_ACC = 1.0 / ACC_LSB
 _INV_GYR = 1.0 / GYR_LSB
@@ -190,8 +191,14 @@ class Receiver:
         self.queue_overflows = 0
         self._clipped = _clipped
         self._bind(core)
+        self._sup_mag = self._sup_reply = None
         if isinstance(decoder, CompiledFrameDecoder):
             self.step = self._step_rows
+            # the supervisor's MAG_SAMPLE work in one compiled call (its rare cases: on_message)
+            self._sup_mag = supervisor.mag_kernel(core, decoder.payloads) if hasattr(supervisor, "mag_kernel") else None
+            # and a time-sync reply, for a pipeline that takes no other message
+            if self._sup_mag is not None and other is None:
+                self._sup_reply = supervisor.reply_kernel()
 
     def _bind(self, core) -> None:
         """The IMU decode on the compiled core (``core/src/imu.c``: ``ct_imu_clipped``,
@@ -281,6 +288,7 @@ class Receiver:
         q, w = dec.rows, dec.width
         pos, end = 0, len(data)
         seen = self.supervisor.on_message
+        smag, sreply = self._sup_mag, self._sup_reply
         # a magnetometer sample straight to its channel (:meth:`_mag_in` without the call) when
         # no node's magnetometer is calibrated
         chans = None if self.mag_cal else self.channels
@@ -294,7 +302,8 @@ class Receiver:
                     r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
                     if kind == _RXK_MAG_PACKED:
                         self.packed_mag += 1
-                    seen(r, now_us)
+                    if smag is None or smag(r.node, r.t_us, r.x, r.y, r.z, r.flip, now_us):
+                        seen(r, now_us)
                     ch = None if chans is None else chans.get(r.node)
                     if ch is not None:
                         ch.push(r, MAG_LSB_T)
@@ -309,7 +318,7 @@ class Receiver:
                         self._imu_in(ri, True, now_us)
                     else:
                         self._on_imu(ri, now_us)
-                else:
+                elif sreply is None or q[b] != _SYNC_REPLY or sreply(q[b + 1], now_us):
                     self._route(dec.raw_message(b // w), now_us)
 
     def _route(self, msg, now_us: int) -> None:

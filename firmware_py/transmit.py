@@ -27,6 +27,7 @@ _HEARTBEAT = MSG["HEARTBEAT"]
 _POSE = MSG["POSE"]
 _FAULT = MSG["FAULT_EVENT"]
 _WINDOW = MSG["PULSE_WINDOW"]
+_FLIP = MSG["MAG_FLIP_CMD"]
 #: the largest finite f32 (POSE covariance fields): larger variances are sent as this
 F32_MAX = 3.0e38
 
@@ -103,6 +104,10 @@ class Transmitter:
                      n_base: int, flags: int) -> None:
         """Send one ``PULSE_WINDOW`` (which samples a window's amplitude used: ``measure.windows``)."""
         self.send(_WINDOW(node, coil, pulse_id, first_us, last_us, n_used, n_base, flags))
+
+    def mag_flip(self, node: int, at_us: int, state: int) -> None:
+        """Send one ``MAG_FLIP_CMD`` (``supervise.flips``: ``node`` to set/reset ``state`` at ``at_us``)."""
+        self.send(_FLIP(node, at_us, state))
 
     def pose(self, r: PoseReport) -> None:
         """Send one POSE (:class:`PoseReport`); variances beyond the f32 range go as :data:`F32_MAX`."""
@@ -233,6 +238,22 @@ class Transmitter:
         assert (ext.WINDOW_ID, ext.WINDOW_PAYLOAD, ext.WINDOW_CRC_EXTRA) == (_WINDOW.ID, 23, _CRC_EXTRA[_WINDOW.ID][0])
         self._window_frame = ext.window_frame
         self.pulse_window = self._pulse_window_compiled
+        assert (ext.FLIP_ID, ext.FLIP_PAYLOAD, ext.FLIP_CRC_EXTRA) == (_FLIP.ID, 10, _CRC_EXTRA[_FLIP.ID][0])
+        self._flip_frame = ext.flip_frame
+        self.mag_flip = self._mag_flip_compiled
+
+    def _mag_flip_compiled(self, node: int, at_us: int, state: int) -> None:
+        """:meth:`mag_flip` on the compiled core (``ct_flip_frame``, ``core/src/multi.c``: the same bytes
+        as ``encode_frame``), numbered with this transmitter's sequence."""
+        frame = self._flip_frame(self._seq, self.node_id, node, at_us, state)
+        if frame is None:
+            self.tx_errors += 1
+            return
+        self._seq = (self._seq + 1) & 0xFF
+        try:
+            self.port.write(frame)
+        except Exception:  # a full or broken link must not stop the loop
+            self.tx_errors += 1
 
     def _pulse_window_compiled(self, node: int, coil: int, pulse_id: int, first_us: int, last_us: int, n_used: int,
                                n_base: int, flags: int) -> None:

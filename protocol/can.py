@@ -112,8 +112,8 @@ from .busform import BUS_FORM_IDS, BUS_FORM_SIZE, BusContext
 from .codec import CLASS_BY_ID, STRUCTS
 from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolError,
                      UnknownMessageError)
-from .framing import (CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
-                      build_frame, cobs_encode, parse_frame)
+from .framing import (_EXTRA, CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
+                      build_frame, cobs_encode, crc16, parse_frame)
 from .slcan import line_length as slcan_line_length
 from .schema import BY_ID, MAX_PAYLOAD, MESSAGES
 
@@ -418,6 +418,23 @@ class _Partial:
         return len(self.buf) >= self.total
 
 
+def _plain_singles() -> dict[int, tuple]:
+    """Function code -> ``(n, msg_id, size, sender_field)`` of the messages whose single frame
+    :meth:`CanReassembler.feed_serial` turns into the serial frame straight from its bytes: no bus
+    form, at most 8 data bytes (a single frame on a classic and an FD bus alike), integer fields
+    only (``unpack`` then ``pack`` gives back the very bytes)."""
+    out = {}
+    for mid, base in BASE_ID.items():
+        d = BY_ID[mid]
+        if mid in BUS_FORM_IDS or direct_size(mid) > 8 or set(STRUCTS[mid].format) - set("<bBhHiIqQ"):
+            continue
+        out[base] = (direct_size(mid), mid, d.size, bool(d.sender_field))
+    return out
+
+
+_PLAIN_SINGLE = _plain_singles()
+
+
 def _copy_header(h: DecodedFrame) -> DecodedFrame:
     c = DecodedFrame()
     c.seq, c.src, c.flags, c.msg_id, c.signature, c.signed_part = (
@@ -554,6 +571,46 @@ class CanReassembler:
             return []
         self._bad(arb, "framing_errors", FramingError(f"CAN id {arb:#05x}: unknown PCI {data[0]:#04x}"))
         return []
+
+    def feed_serial(self, frame, out: bytearray) -> None:
+        """:meth:`feed_with_headers`, each message appended to ``out`` as the serial link carries it
+        (``build_frame`` with its header's seq, src, flags and signature, COBS-encoded, then 0x00:
+        what :meth:`CanLink.read` returns). A plain single frame (``_PLAIN_SINGLE``: a sample's
+        MAG_PACKED, IMU_DELTA) of the exact length, with no verifier or ``on_frame`` to see the
+        message, becomes that frame straight from its bytes: the same counters, seq and header as
+        :meth:`_single`, the same bytes as ``build_frame`` of the unpacked message."""
+        arb = frame.arbitration_id
+        fast = None
+        if not (frame.is_extended_id or frame.is_error_frame or frame.is_remote_frame or arb > 0x7FF
+                or self.verifier is not None or self.on_frame is not None):
+            fast = _PLAIN_SINGLE.get(arb & FUNCTION_MASK)
+        data = frame.data
+        if fast is None or data is None or len(data) != fast[0]:
+            for hdr, msg in self.feed_with_headers(frame):
+                out += cobs_encode(build_frame(msg, hdr.seq, hdr.src, hdr.flags, hdr.signature))
+                out.append(0)
+            return
+        n, msg_id, size, sender = fast
+        src = arb & NODE_MASK
+        self.frames_in += 1
+        seq = (self._last_seq.get(src, -1) + 1) & 0xFF      # the sender's previous seq + 1 (_single)
+        self._last_seq[src] = seq
+        self._synth_seq[src] = True
+        hdr = self.header
+        hdr.seq, hdr.src, hdr.flags, hdr.msg_id, hdr.signature, hdr.signed_part = seq, src, 0, msg_id, b"", b""
+        self.single_frames += 1
+        self.messages_ok += 1
+        raw = bytearray((size, 0, seq, src, msg_id))
+        if sender:
+            raw.append(src)
+        raw += data
+        crc = crc16(_EXTRA[msg_id], crc16(raw))
+        raw.append(crc & 0xFF)
+        raw.append(crc >> 8)
+        for block in raw.split(b"\x00"):                 # COBS (cobs_encode; a frame this short has
+            out.append(len(block) + 1)                  # no block of 254 bytes)
+            out += block
+        out.append(0)
 
     def _iso_single(self, arb: int, msg_id: int, src: int, data: bytes, part) -> list:
         """An ISO-TP single frame (PCI 0): its length (CAN FD: in byte 1), then the PDU."""
@@ -715,6 +772,7 @@ class CanLink:
         out = bytearray()
         # an slcan adapter: only the bytes it held when the read began (see _adapter_held)
         left = self._adapter_held()
+        feed = self.reassembler.feed_serial
         for _ in range(self.max_frames_per_read):
             if left is not None and left <= 0:
                 break
@@ -741,10 +799,7 @@ class CanLink:
                     and (arb & FUNCTION_MASK) in _MSG_BY_BASE:
                 self.echoes += 1
                 continue
-            for hdr, msg in self.reassembler.feed_with_headers(frame):
-                raw = build_frame(msg, hdr.seq, hdr.src, hdr.flags, hdr.signature)
-                out += cobs_encode(raw)
-                out.append(0)
+            feed(frame, out)
         return bytes(out)
 
     def close(self) -> None:

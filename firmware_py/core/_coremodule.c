@@ -1118,12 +1118,14 @@ int ct_register_single_coil(PyObject *m);
 int ct_register_finish(PyObject *m);
 int ct_register_multi(PyObject *m);
 int ct_register_solve(PyObject *m);
+int ct_register_supervise(PyObject *m);
 static int (*const AREAS[])(PyObject *) = {
     ct_register_window, ct_register_fusimu, ct_register_fusion, ct_register_ac, ct_register_rxdecode,
     ct_register_single_coil,
     ct_register_finish,
     ct_register_multi,
     ct_register_solve,
+    ct_register_supervise,
 };
 
 PyMODINIT_FUNC PyInit__core(void)

@@ -1,9 +1,9 @@
 /*
  * CPython glue of the many-sensor kernels (src/multi.c): window_frame (one PULSE_WINDOW frame, as
- * Transmitter.pulse_window sends it), sigma_from (SensorChannel.sigma_from) and the type
+ * Transmitter.pulse_window sends it), flip_frame (one MAG_FLIP_CMD, as Transmitter.mag_flip), sigma_from (SensorChannel.sigma_from) and the type
  * WindowColumn (SensorChannel.close_window, bound once at start-up to the channel's and its
  * extractor's buffers).  METH_FASTCALL; they read their arguments in place and create no Python
- * object but window_frame's bytes and the flags returned.
+ * object but the frames' bytes and the flags returned.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -68,6 +68,31 @@ static PyObject *mul_window_frame(PyObject *mod, PyObject *const *args, Py_ssize
     if (!mul_uint64(args[5], &first) || !mul_uint64(args[6], &last))
         Py_RETURN_NONE;
     k = ct_window_frame(out, (int)(seq & 0xFF), (int)(src & 0xFF), f[0], f[1], f[2], first, last, f[3], f[4], f[5]);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
+/* flip_frame(seq, src, node, at_us, state) -> bytes or None: one MAG_FLIP_CMD frame as encode_frame
+ * makes it (None: a value the wire format refuses) */
+static PyObject *mul_flip_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_FLIP_FRAME_MAX];
+    int64_t seq, src, node, state;
+    uint64_t at;
+    int k;
+    (void)mod;
+    if (nargs != 5) {
+        PyErr_Format(PyExc_TypeError, "flip_frame() takes 5 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    if (!mul_int64(args[0], &seq) || !mul_int64(args[1], &src)) {
+        PyErr_SetString(PyExc_TypeError, "flip_frame: seq and src must be integers");
+        return NULL;
+    }
+    if (!mul_int64(args[2], &node) || !mul_uint64(args[3], &at) || !mul_int64(args[4], &state))
+        Py_RETURN_NONE;
+    k = ct_flip_frame(out, (int)(seq & 0xFF), (int)(src & 0xFF), node, at, state);
     if (k < 0)
         Py_RETURN_NONE;
     return PyBytes_FromStringAndSize((const char *)out, k);
@@ -301,6 +326,9 @@ static PyMethodDef multi_functions[] = {
     {"window_frame", (PyCFunction)(void (*)(void))mul_window_frame, METH_FASTCALL,
      "window_frame(seq, src, node, coil, pulse_id, first_us, last_us, n_used, n_base, flags) -> bytes or None: "
      "one PULSE_WINDOW frame as encode_frame makes it (None: a value the wire format refuses)"},
+    {"flip_frame", (PyCFunction)(void (*)(void))mul_flip_frame, METH_FASTCALL,
+     "flip_frame(seq, src, node, at_us, state) -> bytes or None: one MAG_FLIP_CMD frame as encode_frame makes it "
+     "(None: a value the wire format refuses)"},
     {"sigma_from", (PyCFunction)(void (*)(void))mul_sigma_from, METH_FASTCALL,
      "sigma_from(var, sig, floor): sig = sqrt(max(var, floor)) item by item (SensorChannel.sigma_from)"},
     {NULL, NULL, 0, NULL}};
@@ -316,7 +344,10 @@ int ct_register_multi(PyObject *m)
     }
     if (PyModule_AddIntConstant(m, "WINDOW_ID", CT_WINDOW_ID) < 0 ||
         PyModule_AddIntConstant(m, "WINDOW_PAYLOAD", CT_WINDOW_PAYLOAD) < 0 ||
-        PyModule_AddIntConstant(m, "WINDOW_CRC_EXTRA", CT_WINDOW_CRC_EXTRA) < 0)
+        PyModule_AddIntConstant(m, "WINDOW_CRC_EXTRA", CT_WINDOW_CRC_EXTRA) < 0 ||
+        PyModule_AddIntConstant(m, "FLIP_ID", CT_FLIP_ID) < 0 ||
+        PyModule_AddIntConstant(m, "FLIP_PAYLOAD", CT_FLIP_PAYLOAD) < 0 ||
+        PyModule_AddIntConstant(m, "FLIP_CRC_EXTRA", CT_FLIP_CRC_EXTRA) < 0)
         return -1;
     return 0;
 }

@@ -80,6 +80,17 @@ _SAME_STEP_US = 2_000_000   # an anomaly this soon after a suspect interval clos
 IMU_SATURATION = 1 << 8
 
 
+def _adopt(obj, name: str, view, at: int, k: int) -> int:
+    """``obj``'s list ``name`` (``k`` items) into ``view[at:at + k]``, kept as that view (the
+    compiled core's shared state, :meth:`Health.use_arrays`); the next free item."""
+    old = getattr(obj, name)
+    v = view[at:at + k]
+    for j in range(k):
+        v[j] = old[j]
+    setattr(obj, name, v)
+    return at + k
+
+
 @dataclass(frozen=True)
 class HealthConfig:
     sensor_timeout_us: int = 250_000
@@ -111,10 +122,11 @@ class Health:
         # no node can be lost before this time (us): the earliest ``last_heard + timeout_us`` of the
         # nodes not lost, or earlier (a sign of life only moves a node's deadline later): until then
         # :meth:`step` returns at once
-        self.check_us = boot_us + min(self.timeout_us)
+        self._sc = [boot_us + min(self.timeout_us)]    # [check_us] (:meth:`use_arrays`: a view)
         self.lost_events = 0
         self.back_events = 0
         self._back = ()
+        self._backv = [0]                   # whether _back holds nodes (use_arrays: a view)
         # time stamps (sensors)
         self.period_us = 1e6 / mag_rate_hz
         self.last_stamp = [_NONE] * n
@@ -154,6 +166,62 @@ class Health:
         self.events_queued = 0             # events waiting for flush_events (read by the supervisor)
         self.events_dropped = 0
         self.kick_sync = False
+
+    @property
+    def check_us(self) -> int:
+        """No node can be lost before this time (us); :meth:`step` returns at once until then."""
+        return self._sc[0]
+
+    @check_us.setter
+    def check_us(self, v: int) -> None:
+        self._sc[0] = v
+
+    #: the per-node lists the compiled core shares (:meth:`use_arrays`), in ``ct_supervise.h``'s order
+    INT_LISTS = ("last_heard", "timeout_us", "lost", "last_stamp", "suspect_open", "suspect_reply_seen", "distorted")
+    FLOAT_LISTS = ("ref_sum", "ref_mag", "avg_mag")
+
+    def use_arrays(self, si, sd, ni: int, nd: int, slots: int) -> None:
+        """Keep the per-node state the compiled supervisor kernel shares (``core/src/supervise.c``)
+        in ``si`` (int64) and ``sd`` (float64), laid out as ``ct_supervise.h`` says (header ``ni``,
+        ``nd`` items; a node -> slot table of ``slots`` items): the same values, the lists become
+        views of the arrays (the Python reference runs on them unchanged). Writes this object's
+        header items; the caller writes its own (margin, fall, coils, the pose bits). After
+        :meth:`set_coils`."""
+        n = len(self.ids)
+        hc = self.hcfg
+        iv, dv = memoryview(si), memoryview(sd)
+        iv[0], iv[1], iv[2] = self._sc[0], n, self.driver_slot
+        iv[3], iv[4], iv[5] = hc.stamp_future_tol_us, hc.stamp_interval_tol_us, hc.distortion_learn_samples
+        iv[8], iv[11] = self.n_coils, COIL_FAULT_FATAL
+        dv[0], dv[1], dv[2] = self.period_us, self._alpha, hc.distortion_threshold_t
+        for k in range(slots):
+            iv[ni + k] = -1
+        for nid, i in self._slot.items():
+            iv[ni + nid] = i
+        self._sc = iv[0:1]
+        iv[16] = self._backv[0]
+        self._backv = iv[16:17]
+        at = ni + slots
+        for name in self.INT_LISTS:
+            at = _adopt(self, name, iv, at, n)
+        at += n                                     # the flip states (FlipScheduler.use_array)
+        for name in ("ref_n", "dist_state"):
+            at = _adopt(self, name, iv, at, 2 * n)
+        for name in ("status_seen", "status_faults"):
+            at = _adopt(self, name, iv, at, self.n_coils)
+        for name in ("susp_t0", "susp_t1"):        # (node slot i's intervals: a view of row i)
+            rows = getattr(self, name)
+            views = []
+            for i in range(n):
+                v = iv[at:at + _SUSPECT]
+                for k in range(_SUSPECT):
+                    v[k] = rows[i][k]
+                views.append(v)
+                at += _SUSPECT
+            setattr(self, name, views)
+        at = nd
+        for name in self.FLOAT_LISTS:
+            at = _adopt(self, name, dv, at, 2 * n)
 
     def take_kick_sync(self) -> bool:
         """Whether a node came back since the last call (time sync should start over for it);
@@ -198,6 +266,7 @@ class Health:
             self._event(EVT_NODE_BACK, node)
             self.kick_sync = True
             self._back = self._back + (node,)
+            self._backv[0] = 1
             self.last_stamp[i] = _NONE
             if i == self.driver_slot:
                 self.missing_cycles = 0
@@ -208,6 +277,7 @@ class Health:
         out = self._back
         if out:
             self._back = ()
+            self._backv[0] = 0
         return out
 
     def step(self, now_us: int) -> None:

@@ -15,19 +15,23 @@ it, and sends through the transmitter.
 
 Per burst: a ``TIME_SYNC`` right when the commands leave and three right after
 the last pulse ends (plus the periodic ones), and one ``MAG_FLIP_CMD`` per
-sensor for the quiet gap after the burst.
+sensor for the quiet gap after the burst (``flips_per_tick`` of them a tick, from the
+burst's first).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from coiltrack.protocol import MSG
 from coiltrack.protocol.schema import MAG_LSB_T, POSE_COIL_FAULT, POSE_DEGRADED, POSE_DISTORTED, POSE_INCONSISTENT
 
 from coiltrack.firmware.supervise.flips import FlipScheduler
 from coiltrack.firmware.measure.pulse import PULSE_SATURATED
-from coiltrack.firmware.supervise.health import Health, HealthConfig
-from coiltrack.firmware.supervise.timesync import TimeSyncMaster
+from coiltrack.firmware.supervise.health import _SUSPECT, Health, HealthConfig
+from coiltrack.firmware.supervise.timesync import _ACQUIRE as ts_ACQUIRE, _HISTORY as ts_HISTORY
+from coiltrack.firmware.supervise.timesync import _REPLIES as ts_REPLIES, TimeSyncMaster
 
 _ID_HEARTBEAT = MSG["HEARTBEAT"].ID
 _ID_SYNC_REPLY = MSG["TIME_SYNC_REPLY"].ID
@@ -48,6 +52,7 @@ class SupervisorConfig:
     sync_around_burst: bool = True
     flips: bool = True
     flip_min_gap_us: int = 10_000
+    flips_per_tick: int = 4             # MAG_FLIP_CMDs sent in one tick (0: all of a burst at once)
     health: HealthConfig = field(default_factory=HealthConfig)
 
 
@@ -74,6 +79,8 @@ class Supervisor:
         self._fall = cfg.pulse.fall_us
         self.veto = False
         self.poses_vetoed = 0
+        self._sup = None                # the compiled kernels (mag_kernel), bound once
+        self._sup_payloads = False
 
     # ------------------------------------------------------------ receive
     def on_message(self, msg, now_us: int) -> None:
@@ -110,6 +117,44 @@ class Supervisor:
         elif mid == _ID_HEARTBEAT:
             h.heard(msg.node, now_us)
 
+    def mag_kernel(self, core, payloads=None):
+        """The MAG_SAMPLE branch of :meth:`on_message` on the compiled core, or None on the python core
+        (or for a node id the kernel's slot table cannot hold): ``kernel(node, t_us, x, y, z, flip,
+        now_us)`` returns 0 when it did the whole branch (``ct_sup_mag``, ``core/src/supervise.c``: the
+        same operations on the same state, which the health and the flip scheduler then keep in its
+        arrays), 1 for a rare case (a lost node, a stamp off the grid, saturation, a distortion flag
+        that changes, ...) that :meth:`on_message` must do: the kernel changed nothing then. Binds
+        :meth:`pose_status` on the compiled core too (``ct_sup_pose_status``), and with
+        ``payloads`` (the frame decoder's payload table) :meth:`reply_kernel`."""
+        ext = core.ext
+        h = self.health
+        if ext is None or any(not 0 <= nid < ext.SUP_SLOTS for nid in h.ids) or self.n < 1:
+            return None
+        if self._sup is None:
+            assert (ext.SUP_SUSPECT, ext.SUP_HISTORY, ext.SUP_REPLIES, ext.SUP_ACQUIRE) == (
+                _SUSPECT, ts_HISTORY, ts_REPLIES, ts_ACQUIRE) and self.timesync.node_ids == h.ids and ext.SUP_NI == 18
+            n, nc = len(h.ids), self.n
+            ni, nd, slots = ext.SUP_NI, ext.SUP_ND, ext.SUP_SLOTS
+            at_ts = ni + slots + 12 * n + 2 * nc + 2 * _SUSPECT * n
+            self._si = si = np.zeros(at_ts + 2 * ts_HISTORY + 9 * n + ts_REPLIES * n, dtype=np.int64)
+            self._sd = sd = np.zeros(nd + 6 * n)
+            h.use_arrays(si, sd, ni, nd, slots)
+            iv = memoryview(si)
+            p = self.cfg.pulse
+            iv[6], iv[7], iv[9], iv[10] = self._margin, self._fall, p.baseline_us + p.guard_us, p.fall_us + p.baseline_us
+            iv[12], iv[13], iv[14], iv[15] = (PULSE_SATURATED, POSE_COIL_FAULT, POSE_INCONSISTENT | POSE_DEGRADED,
+                                              POSE_DISTORTED)
+            iv[17] = self.timesync.step_threshold_us
+            memoryview(sd)[3] = MAG_LSB_T
+            at = ni + slots + 7 * n
+            self.flips.use_array(iv[at:at + len(self.sensor_ids)])
+            self.timesync.use_arrays(iv[at_ts:])
+            self._sup = ext.SupMag(si, sd, self.schedule.start, self.schedule.end, payloads)
+            self._sup_payloads = payloads is not None
+            self._pose_k = self._sup.pose_status
+            self.pose_status = self._pose_status_compiled
+        return self._sup.mag
+
     def driver_heard(self, now_us: int) -> None:
         """The coil driver spoke in a message the supervisor is not given (``AC_DRIVE_STATUS``)."""
         self.health.heard(self.driver_id, now_us)
@@ -138,6 +183,8 @@ class Supervisor:
         pc = self.schedule.burst_start
         if pc is not None and pc != self._burst:
             self._new_burst(pc, now_us)
+        elif self.flips.pending:                    # the burst's flip commands, a few a tick
+            self.flips.step(self.tx.send, self.tx.mag_flip, self.scfg.flips_per_tick)
         h = self.health
         if h.kick_sync and h.take_kick_sync():
             self.timesync.kick()
@@ -172,7 +219,7 @@ class Supervisor:
         if self.scfg.flips:
             quiet_from = last_end + cfg.pulse.fall_us + cfg.pulse.baseline_us + cfg.pulse.guard_us
             quiet_to = pc + cfg.timing.cycle_us - cfg.pulse.baseline_us - cfg.pulse.guard_us
-            self.flips.plan(now_us, quiet_from, quiet_to, self.tx.send)
+            self.flips.plan(now_us, quiet_from, quiet_to, self.tx.send, self.tx.mag_flip, self.scfg.flips_per_tick)
 
     # ------------------------------------------------------------ poses
     def pose_status(self, node: int, window_flags: int) -> int:
@@ -207,6 +254,25 @@ class Supervisor:
         if veto:
             self.poses_vetoed += 1
         return bits
+
+    def reply_kernel(self):
+        """The TIME_SYNC_REPLY branch of :meth:`on_message` on the compiled core (bound by
+        :meth:`mag_kernel` with the decoder's payloads), or None: ``kernel(offset, now_us)`` reads
+        the reply's payload at ``payloads[offset]`` and returns 0 when it did the whole branch
+        (``ct_sup_reply``: the same operations on the same state), 1 for a rare case (a node back
+        or lost, a reply showing a clock step, a suspect interval open) that :meth:`on_message`
+        must do: the kernel changed nothing then."""
+        return self._sup.reply if self._sup is not None and self._sup_payloads else None
+
+    def _pose_status_compiled(self, node: int, window_flags: int) -> int:
+        """:meth:`pose_status` on the compiled core (``ct_sup_pose_status``: the same operations on
+        the same state; bit 32 of its result the veto)."""
+        r = self._pose_k(node, window_flags)
+        veto = r >> 32
+        self.veto = veto == 1
+        if veto:
+            self.poses_vetoed += 1
+        return r & 0xFFFFFFFF
 
     # ------------------------------------------------------------ status
     def counters(self) -> dict:

@@ -62,6 +62,32 @@ class TimeSyncMaster:
         self.steps = [0] * n
         self.sent = 0
 
+    #: the per-node lists the compiled supervisor kernel shares (:meth:`use_arrays`), in ``ct_supervise.h``'s order
+    NODE_LISTS = ("have", "last_reply_us", "_hk", "acquired", "offset_us", "drift_ppb", "rtt_us", "rtt_min_us",
+                  "replies")
+
+    def use_arrays(self, view) -> None:
+        """Keep the state a reply changes in ``view`` (int64 items laid out as ``ct_supervise.h``
+        says: the sent sequence numbers and times, the per-node lists, the reply history), shared
+        with the compiled supervisor kernel: the same values, the lists become views of it."""
+        n = len(self.node_ids)
+        at = 0
+        for name, k in (("_sent_seq", _HISTORY), ("_sent_t", _HISTORY)) + tuple((m, n) for m in self.NODE_LISTS):
+            old = getattr(self, name)
+            v = view[at:at + k]
+            for j in range(k):
+                v[j] = old[j]
+            setattr(self, name, v)
+            at += k
+        rows = []
+        for i in range(n):
+            v = view[at:at + _REPLIES]
+            for j in range(_REPLIES):
+                v[j] = self._hist[i][j]
+            rows.append(v)
+            at += _REPLIES
+        self._hist = rows
+
     def slot(self, node: int) -> int:
         return self._slot.get(node, -1)
 

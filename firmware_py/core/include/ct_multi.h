@@ -19,6 +19,14 @@ enum { CT_WINDOW_ID = 0x31, CT_WINDOW_PAYLOAD = 23, CT_WINDOW_CRC_EXTRA = 0xB7,
 int ct_window_frame(uint8_t *out, int seq, int src, int64_t node, int64_t coil, int64_t pulse_id, uint64_t first_us,
                     uint64_t last_us, int64_t n_used, int64_t n_base, int64_t flags);
 
+/* ------------------------------------------------------------ MAG_FLIP_CMD
+ * coiltrack.firmware.transmit.Transmitter.mag_flip with protocol.framing.encode_frame: one
+ * MAG_FLIP_CMD frame (payload "<BQB": node, at_us, state) as ct_window_frame makes a PULSE_WINDOW;
+ * -1 for a field out of its range. */
+enum { CT_FLIP_ID = 0x22, CT_FLIP_PAYLOAD = 10, CT_FLIP_CRC_EXTRA = 0x51,
+       CT_FLIP_FRAME_RAW = 5 + 10 + 2, CT_FLIP_FRAME_MAX = 5 + 10 + 2 + 2 + 1 };
+int ct_flip_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t at_us, int64_t state);
+
 /* ------------------------------------------------------------ solver weights
  * measure.windows.SensorChannel.sigma_from: sig[k] = sqrt(max(var[k], floor)) over the n items of a
  * channel's (3, coils) variances (a NaN variance gives the floor, as the Python's comparison does);

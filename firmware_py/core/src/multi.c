@@ -1,6 +1,7 @@
 /*
  * The per-sensor work of many sensors sharing one tick (include/ct_multi.h): the PULSE_WINDOW frame
- * every closed window sends and the solver weights of a channel's burst.
+ * every closed window sends, the MAG_FLIP_CMD frame each sensor gets per burst and the solver weights
+ * of a channel's burst.
  *
  * Frame before COBS (little endian, protocol/framing.py): len, flags (0), seq, src, msg_id, the
  * payload "<BBHQQBBB" (protocol.schema PULSE_WINDOW), CRC-16/CCITT-FALSE over header and payload
@@ -39,6 +40,18 @@ int ct_window_frame(uint8_t *out, int seq, int src, int64_t node, int64_t coil, 
     pl[21] = (uint8_t)n_base;
     pl[22] = (uint8_t)flags;
     return ct_frame_seal(raw, CT_WINDOW_PAYLOAD, seq, src, CT_WINDOW_ID, CT_WINDOW_CRC_EXTRA, out);
+}
+
+int ct_flip_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t at_us, int64_t state)
+{
+    uint8_t raw[CT_FLIP_FRAME_RAW];
+    uint8_t *pl = raw + 5;
+    if (node < 0 || node > 0xFF || state < 0 || state > 0xFF)
+        return -1;
+    pl[0] = (uint8_t)node;
+    ct_put_u64(pl + 1, at_us);
+    pl[9] = (uint8_t)state;
+    return ct_frame_seal(raw, CT_FLIP_PAYLOAD, seq, src, CT_FLIP_ID, CT_FLIP_CRC_EXTRA, out);
 }
 
 void ct_sigma_from(int64_t n, const double *var, double *sig, double floor)
