@@ -13,6 +13,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_posefit.h"
 
 #define CT_MAX_COILS 64
 
@@ -671,7 +672,7 @@ static PyTypeObject InsStepType = {
 };
 
 /* ----------------------------------------------------------------- PoseLM */
-#define LM_NBUF 18
+#define LM_NBUF CT_PY_POSEFIT_NBUF
 typedef struct {
     PyObject_HEAD
     struct ct_posefit f;
@@ -726,31 +727,7 @@ static int PoseLM_init(PoseLMObject *self, PyObject *args, PyObject *kw)
         }
         ptr[i] = (double *)self->views[i].buf;
     }
-    self->f.n = n;
-    self->f.geom = ptr[0];
-    self->f.B = ptr[1];
-    self->f.J = ptr[2];
-    self->f.S = ptr[3];
-    self->f.w = ptr[4];
-    self->f.cur = ptr[5];
-    self->f.h = ptr[6];
-    self->f.H = ptr[7];
-    self->f.p = ptr[8];
-    self->f.p_t = ptr[9];
-    self->f.R = ptr[10];
-    self->f.R_t = ptr[11];
-    self->f.step_tol = step_tol;
-    self->lm.A[0] = ptr[12];
-    self->lm.g[0] = ptr[13];
-    self->lm.A[1] = ptr[14];
-    self->lm.g[1] = ptr[15];
-    self->lm.d = ptr[16];
-    self->lm.st = ptr[17];
-    self->lm.lam0 = lam0;
-    self->lm.lam_max = lam_max;
-    self->lm.iters = iters;
-    self->lm.cost_tol = cost_tol;
-    self->lm.step_sigma2 = step_sigma * step_sigma;
+    ct_py_bind_posefit(&self->f, &self->lm, n, ptr, lam0, lam_max, iters, cost_tol, step_sigma, step_tol);
     self->bound = 1;
     return 0;
 }
@@ -780,32 +757,11 @@ static PyObject *PoseLM_iterate(PoseLMObject *self, PyObject *const *args, Py_ss
     return PyLong_FromLong(ct_lm_pose_iterate(&self->lm, &self->f));
 }
 
-/* run(cost, spent, budget) -> steps: the LM's steps while it runs and the next step's charge fits
- * (ct_lm_pose_run, PoseSolver's run of _unit_lm_step units) */
-static PyObject *PoseLM_run(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    long long v[3];
-    int i;
-    if (!self->bound) {
-        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
-        return NULL;
-    }
-    if (check_nargs("run", nargs, 3) < 0)
-        return NULL;
-    for (i = 0; i < 3; ++i) {
-        v[i] = PyLong_AsLongLong(args[i]);
-        if (v[i] == -1 && PyErr_Occurred())
-            return NULL;
-    }
-    return PyLong_FromLong(ct_lm_pose_run(&self->lm, &self->f, v[0], v[1], v[2]));
-}
-
 static PyMethodDef PoseLM_methods[] = {
     {"start", (PyCFunction)(void (*)(void))PoseLM_start, METH_FASTCALL,
      "start() -> state: evaluate the fit at the bound (p, R) (LevenbergMarquardt.start)"},
     {"iterate", (PyCFunction)(void (*)(void))PoseLM_iterate, METH_FASTCALL,
      "iterate() -> state: one damped step (LevenbergMarquardt.iterate on the pose fit)"},
-    {"run", (PyCFunction)(void (*)(void))PoseLM_run, METH_FASTCALL, "run(cost, spent, budget) -> steps taken"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject PoseLMType = {

@@ -271,16 +271,6 @@ class _CompiledLM:
             self._sig.charge(1)
         return state
 
-    def run(self, cost: int, spent: int, budget: int) -> int:
-        """:meth:`iterate` while the LM runs and the next step's charge ``cost`` fits beside
-        ``spent`` in ``budget`` (the first always runs: ``staged.run_units`` over the steps), in
-        one call (``ct_lm_pose_run``); returns the steps taken, their evaluations charged."""
-        st = self._stv
-        st[5] = 0.0
-        k = self._ck.run(cost, spent, budget)
-        self._sig.charge(int(st[5]))
-        return k
-
 
 class _CompiledSolver:
     """:class:`PoseSolver`'s compiled core (``core/src/window.c``, ``finish.c``, ``solve.c``): bound
@@ -292,8 +282,8 @@ class _CompiledSolver:
     def _bind_compiled(self, ext) -> None:
         """Run the solve's bookkeeping on the compiled core (``core/src/window.c``): the inputs'
         copy and checks (``_load``, ``_load_x0``), the results' copies (``_publish``) through a
-        ``SolveIO`` bound to the solver's buffers, and a run of LM steps in one call
-        (``ct_lm_pose_run``); the methods are replaced on this instance, so no call tests the
+        ``SolveIO`` bound to the solver's buffers, and a budget's run of the LM's units in one call
+        (``ct_solve_run``, :meth:`_bind_run`); the methods are replaced on this instance, so no call tests the
         choice. Inputs the kernels do not take (not float64 arrays of the expected shapes) go to the
         Python; a matrix that is no rotation goes through ``linalg.nearest_rotation``'s compiled
         form (``SolveFinish.nearest``, ``ct_nearest_rotation``)."""
