@@ -114,6 +114,10 @@ class Transmitter:
         p, q, v, status = r.p, r.q, r.var, r.status
         self.send(_POSE(r.node, r.t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3], _f32(v[0]), _f32(v[1]),
                         _f32(v[2]), _f32(v[3]), _f32(v[4]), _f32(v[5]), status, r.quality))
+        self._count_pose(status)
+
+    def _count_pose(self, status: int) -> None:
+        """A sent POSE counted: ``poses`` when valid, ``fused_poses`` when fused too."""
         if status & POSE_VALID:
             self.poses += 1
             if status & POSE_FUSED:
@@ -137,15 +141,8 @@ class Transmitter:
             return -1
         if frame == 0:
             return 0
-        self._seq = (self._seq + 1) & 0xFF
-        try:
-            self.port.write(frame)
-        except Exception:  # a full or broken link must not stop the loop
-            self.tx_errors += 1
-        if status & POSE_VALID:
-            self.poses += 1
-            if status & POSE_FUSED:
-                self.fused_poses += 1
+        self._write_numbered(frame)
+        self._count_pose(status)
         return 1
 
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
@@ -178,18 +175,8 @@ class Transmitter:
             return
         frame = self._pose_frame(self._seq, self.node_id, node, t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3],
                                  cov[0, 0], cov[1, 1], cov[2, 2], cov[3, 3], cov[4, 4], cov[5, 5], status, quality)
-        if frame is None:
-            self.tx_errors += 1                # a value the wire format refuses (struct.pack's error)
-        else:
-            self._seq = (self._seq + 1) & 0xFF
-            try:
-                self.port.write(frame)
-            except Exception:  # a full or broken link must not stop the loop
-                self.tx_errors += 1
-        if status & POSE_VALID:
-            self.poses += 1
-            if status & POSE_FUSED:
-                self.fused_poses += 1
+        self._write_numbered(frame)
+        self._count_pose(status)
 
     def pose_unknown(self, node: int, t_us: int, p, q, status: int) -> None:
         """A POSE whose covariance is unknown (every variance at the f32 maximum, quality 0)."""
@@ -246,14 +233,7 @@ class Transmitter:
         """:meth:`mag_flip` on the compiled core (``ct_flip_frame``, ``core/src/multi.c``: the same bytes
         as ``encode_frame``), numbered with this transmitter's sequence."""
         frame = self._flip_frame(self._seq, self.node_id, node, at_us, state)
-        if frame is None:
-            self.tx_errors += 1
-            return
-        self._seq = (self._seq + 1) & 0xFF
-        try:
-            self.port.write(frame)
-        except Exception:  # a full or broken link must not stop the loop
-            self.tx_errors += 1
+        self._write_numbered(frame)
 
     def _pulse_window_compiled(self, node: int, coil: int, pulse_id: int, first_us: int, last_us: int, n_used: int,
                                n_base: int, flags: int) -> None:
@@ -261,6 +241,11 @@ class Transmitter:
         ``struct.pack``'s refusal in :meth:`_send_numbered`)."""
         frame = self._window_frame(self._seq, self.node_id, node, coil, pulse_id, first_us, last_us, n_used, n_base,
                                    flags)
+        self._write_numbered(frame)
+
+    def _write_numbered(self, frame) -> None:
+        """A frame built on the compiled core written with this transmitter's sequence; ``None`` (a
+        value the wire format refuses, as ``struct.pack``'s error in :meth:`_send_numbered`): a tx error."""
         if frame is None:
             self.tx_errors += 1
             return
@@ -284,18 +269,8 @@ class Transmitter:
         p, q, v, status = r.p, r.q, r.var, r.status
         frame = self._pose_frame(self._seq, self.node_id, r.node, r.t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3],
                                  v[0], v[1], v[2], v[3], v[4], v[5], status, r.quality)
-        if frame is None:
-            self.tx_errors += 1                # a value the wire format refuses (struct.pack's error)
-        else:
-            self._seq = (self._seq + 1) & 0xFF
-            try:
-                self.port.write(frame)
-            except Exception:  # a full or broken link must not stop the loop
-                self.tx_errors += 1
-        if status & POSE_VALID:
-            self.poses += 1
-            if status & POSE_FUSED:
-                self.fused_poses += 1
+        self._write_numbered(frame)
+        self._count_pose(status)
 
     def step(self, now_us: int) -> None:
         """The periodic HEARTBEAT."""
