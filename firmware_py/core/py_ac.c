@@ -786,28 +786,6 @@ static int RaabIO_init(RaabIOObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
-/* a float64 buffer of shape (rows, cols) (cols 0: 1-D of rows items), any strides in whole items, or 0
- * (no error set: the caller's Python takes that input) */
-static int ac_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols)
-{
-    const char *f;
-    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
-        PyErr_Clear();
-        return 0;
-    }
-    f = v->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8 || v->strides == NULL ||
-        (cols == 0 ? (v->ndim != 1 || v->shape[0] != rows)
-                   : (v->ndim != 2 || v->shape[0] != rows || v->shape[1] != cols)) ||
-        v->strides[0] % 8 != 0 || (cols > 0 && v->strides[1] % 8 != 0)) {
-        PyBuffer_Release(v);
-        return 0;
-    }
-    return 1;
-}
-
 #define AC_AT(v, i) (*(const double *)((const char *)(v).buf + (i) * (v).strides[0]))
 #define AC_AT2(v, i, j) (*(const double *)((const char *)(v).buf + (i) * (v).strides[0] + (j) * (v).strides[1]))
 
@@ -828,20 +806,20 @@ static PyObject *RaabIO_inputs(RaabIOObject *self, PyObject *const *args, Py_ssi
     have_h = args[3] != Py_None;
     have_p = args[4] != Py_None;
     have_r = args[5] != Py_None;
-    if (!ac_view(args[0], &vs, 3, n))
+    if (!ct_py_view(args[0], &vs, 3, n))
         Py_RETURN_NONE;
-    if (!ac_view(args[1], &vg, 3, n)) {
+    if (!ct_py_view(args[1], &vg, 3, n)) {
         PyBuffer_Release(&vs);
         Py_RETURN_NONE;
     }
-    if (vs.strides[0] != vg.strides[0] || vs.strides[1] != vg.strides[1] || !ac_view(args[2], &vc, n, 0)) {
+    if (vs.strides[0] != vg.strides[0] || vs.strides[1] != vg.strides[1] || !ct_py_view(args[2], &vc, n, 0)) {
         PyBuffer_Release(&vs);
         PyBuffer_Release(&vg);
         Py_RETURN_NONE;
     }
     r = 1;
     if (have_h) {
-        if (ac_view(args[3], &vh, 3, 0)) {
+        if (ct_py_view(args[3], &vh, 3, 0)) {
             for (i = 0; i < 3; ++i)
                 h[i] = AC_AT(vh, i);
             PyBuffer_Release(&vh);
@@ -849,7 +827,7 @@ static PyObject *RaabIO_inputs(RaabIOObject *self, PyObject *const *args, Py_ssi
             r = 0;
     }
     if (r && have_p) {
-        if (ac_view(args[4], &vp, 3, 0)) {
+        if (ct_py_view(args[4], &vp, 3, 0)) {
             for (i = 0; i < 3; ++i)
                 p[i] = AC_AT(vp, i);
             PyBuffer_Release(&vp);
@@ -857,7 +835,7 @@ static PyObject *RaabIO_inputs(RaabIOObject *self, PyObject *const *args, Py_ssi
             r = 0;
     }
     if (r && have_r) {
-        if (ac_view(args[5], &vr, 3, 3)) {
+        if (ct_py_view(args[5], &vr, 3, 3)) {
             for (i = 0; i < 3; ++i)
                 for (j = 0; j < 3; ++j)
                     m[3 * i + j] = AC_AT2(vr, i, j);

@@ -49,6 +49,29 @@ static inline int ct_py_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize,
     return 0;
 }
 
+/* Take obj, when it is a float64 array of shape (rows, cols) (cols 0: 1-D of rows items) with any
+ * strides in whole items, as a read-only view: 1 (v held, the caller releases it), or 0 with no error
+ * set and nothing held (another kind of input: the caller's Python reference takes it) */
+static inline int ct_py_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols)
+{
+    const char *f;
+    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
+        PyErr_Clear();
+        return 0;
+    }
+    f = v->format;
+    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
+        f++;
+    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8 || v->strides == NULL ||
+        (cols == 0 ? (v->ndim != 1 || v->shape[0] != rows)
+                   : (v->ndim != 2 || v->shape[0] != rows || v->shape[1] != cols)) ||
+        v->strides[0] % 8 != 0 || (cols > 0 && v->strides[1] % 8 != 0)) {
+        PyBuffer_Release(v);
+        return 0;
+    }
+    return 1;
+}
+
 /* a call's float argument (an int too) */
 static inline int ct_py_double(PyObject *o, double *x)
 {

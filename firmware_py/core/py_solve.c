@@ -96,27 +96,6 @@ static int SolveRun_init(SolveRunObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
-/* a float64 buffer of shape (rows, cols) (cols 0: 1-D of rows items), any strides, or 0 (no error set) */
-static int sr_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols)
-{
-    const char *f;
-    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
-        PyErr_Clear();
-        return 0;
-    }
-    f = v->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8 || v->strides == NULL ||
-        (cols == 0 ? (v->ndim != 1 || v->shape[0] != rows)
-                   : (v->ndim != 2 || v->shape[0] != rows || v->shape[1] != cols)) ||
-        v->strides[0] % 8 != 0 || (cols > 0 && v->strides[1] % 8 != 0)) {
-        PyBuffer_Release(v);
-        return 0;
-    }
-    return 1;
-}
-
 /* the element (i, j) of a viewed matrix (j only for 2-D) */
 static double sr_at(const Py_buffer *v, Py_ssize_t i, Py_ssize_t j)
 {
@@ -142,10 +121,12 @@ static PyObject *SolveRun_begin(SolveRunObject *self, PyObject *const *args, Py_
     }
     if ((args[4] == Py_None) != (args[5] == Py_None))
         Py_RETURN_NONE;
-    ok = (have[0] = sr_view(args[0], &v[0], 3, n)) && (have[1] = sr_view(args[1], &v[1], 3, n)) &&
+    ok = (have[0] = ct_py_view(args[0], &v[0], 3, n)) && (have[1] = ct_py_view(args[1], &v[1], 3, n)) &&
          v[0].strides[0] == v[1].strides[0] && v[0].strides[1] == v[1].strides[1] &&
-         (have[2] = sr_view(args[2], &v[2], n, 0)) && (args[3] == Py_None || (have[3] = sr_view(args[3], &v[3], 3, 0)))
-         && (args[4] == Py_None || ((have[4] = sr_view(args[4], &v[4], 3, 0)) && (have[5] = sr_view(args[5], &v[5], 3, 3))));
+         (have[2] = ct_py_view(args[2], &v[2], n, 0)) &&
+         (args[3] == Py_None || (have[3] = ct_py_view(args[3], &v[3], 3, 0))) &&
+         (args[4] == Py_None ||
+          ((have[4] = ct_py_view(args[4], &v[4], 3, 0)) && (have[5] = ct_py_view(args[5], &v[5], 3, 3))));
     if (ok) {
         if (have[3]) {
             for (i = 0; i < 3; ++i)
@@ -206,8 +187,8 @@ static PyObject *SolveRun_predict(SolveRunObject *self, PyObject *const *args, P
         PyErr_SetString(PyExc_TypeError, "SolveRun.predict(p, R, currents, out): bound, four arguments");
         return NULL;
     }
-    ok = (have[0] = sr_view(args[0], &v[0], 3, 0)) && (have[1] = sr_view(args[1], &v[1], 3, 3)) &&
-         (have[2] = sr_view(args[2], &v[2], n, 0)) && (have[3] = sr_view(args[3], &v[3], 3, n)) && !v[3].readonly;
+    ok = (have[0] = ct_py_view(args[0], &v[0], 3, 0)) && (have[1] = ct_py_view(args[1], &v[1], 3, 3)) &&
+         (have[2] = ct_py_view(args[2], &v[2], n, 0)) && (have[3] = ct_py_view(args[3], &v[3], 3, n)) && !v[3].readonly;
     if (ok) {
         for (i = 0; i < 3; ++i)
             for (j = 0; j < 3; ++j)

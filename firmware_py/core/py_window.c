@@ -219,27 +219,6 @@ static int SolveIO_init(SolveIOObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
-/* a float64 buffer of shape (rows, cols) (cols 0: 1-D of rows items), any strides, or 0 (no error set) */
-static int sio_view(PyObject *obj, Py_buffer *v, Py_ssize_t rows, Py_ssize_t cols)
-{
-    const char *f;
-    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
-        PyErr_Clear();
-        return 0;
-    }
-    f = v->format;
-    if (f != NULL && (f[0] == '@' || f[0] == '=' || f[0] == '<'))
-        f++;
-    if (f == NULL || f[0] != 'd' || f[1] != '\0' || v->itemsize != 8 || v->strides == NULL ||
-        (cols == 0 ? (v->ndim != 1 || v->shape[0] != rows)
-                   : (v->ndim != 2 || v->shape[0] != rows || v->shape[1] != cols)) ||
-        v->strides[0] % 8 != 0 || (cols > 0 && v->strides[1] % 8 != 0)) {
-        PyBuffer_Release(v);
-        return 0;
-    }
-    return 1;
-}
-
 /* load(S, sigma, cur) -> True, False or None: StagedSolve._load for float64 (3, n), (3, n), (n,)
  * buffers (None: another kind of input, for the Python's own checks); sigma_rms into st[0] */
 static PyObject *SolveIO_load(SolveIOObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -250,13 +229,13 @@ static PyObject *SolveIO_load(SolveIOObject *self, PyObject *const *args, Py_ssi
         PyErr_SetString(PyExc_TypeError, "SolveIO.load(S, sigma, cur): bound, three arguments");
         return NULL;
     }
-    if (!sio_view(args[0], &vs, 3, self->n))
+    if (!ct_py_view(args[0], &vs, 3, self->n))
         Py_RETURN_NONE;
-    if (!sio_view(args[1], &vg, 3, self->n)) {
+    if (!ct_py_view(args[1], &vg, 3, self->n)) {
         PyBuffer_Release(&vs);
         Py_RETURN_NONE;
     }
-    if (vs.strides[0] != vg.strides[0] || vs.strides[1] != vg.strides[1] || !sio_view(args[2], &vc, self->n, 0)) {
+    if (vs.strides[0] != vg.strides[0] || vs.strides[1] != vg.strides[1] || !ct_py_view(args[2], &vc, self->n, 0)) {
         PyBuffer_Release(&vs);
         PyBuffer_Release(&vg);
         Py_RETURN_NONE;
@@ -282,9 +261,9 @@ static PyObject *SolveIO_x0(SolveIOObject *self, PyObject *const *args, Py_ssize
         PyErr_SetString(PyExc_TypeError, "SolveIO.x0(position, rotation): bound, two arguments");
         return NULL;
     }
-    if (!sio_view(args[0], &vp, 3, 0))
+    if (!ct_py_view(args[0], &vp, 3, 0))
         Py_RETURN_NONE;
-    if (!sio_view(args[1], &vr, 3, 3)) {
+    if (!ct_py_view(args[1], &vr, 3, 3)) {
         PyBuffer_Release(&vp);
         Py_RETURN_NONE;
     }
