@@ -11,32 +11,13 @@ import pytest
 
 from coiltrack.firmware import core
 from coiltrack.firmware.transmit import Transmitter
-from coiltrack.protocol import FrameDecoder
 from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID
 
 _core = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 
 
-class _Port:
-    def __init__(self, fail_every: int = 0):
-        self.frames = []
-        self.fail_every = fail_every
-        self.n = 0
-
-    def read(self) -> bytes:
-        return b""
-
-    def write(self, data: bytes) -> None:
-        self.n += 1
-        if self.fail_every and self.n % self.fail_every == 0:
-            raise OSError("link full")
-        self.frames.append(bytes(data))
-
-
-def _pair(fail_every: int = 0):
-    ref = Transmitter(_Port(fail_every), 7, 100_000, FrameDecoder(), core=core.PYTHON)
-    got = Transmitter(_Port(fail_every), 7, 100_000, FrameDecoder(), core=core.load("compiled"))
-    assert (ref.core, got.core) == ("python", "compiled")
+def _pair(transmitter_pair, fail_every: int = 0):
+    ref, got = transmitter_pair(fail_every)
     assert got.pose_cov6.__func__ is Transmitter._pose_cov6_compiled      # the compiled path is the one tested
     return ref, got
 
@@ -61,11 +42,11 @@ def _args(rng):
 
 
 @pytest.mark.parametrize("fail_every", [0, 3])
-def test_pose_cov6_frames_are_the_python_bytes(fail_every):
+def test_pose_cov6_frames_are_the_python_bytes(fail_every, transmitter_pair):
     """1500 poses with random arrays, refused integers and a link failing every third write: the
     same frames (bytes, sequence numbers), tx errors and pose counters as the Python reference."""
     rng = random.Random(11)
-    ref, got = _pair(fail_every)
+    ref, got = _pair(transmitter_pair, fail_every)
     for k in range(1500):
         a = _args(rng)
         ref.pose_cov6(*a)
@@ -78,11 +59,11 @@ def test_pose_cov6_frames_are_the_python_bytes(fail_every):
     assert ref.tx_errors > 0 and ref.fused_poses > 0
 
 
-def test_pose_cov6_goes_through_a_wrapped_pose():
+def test_pose_cov6_goes_through_a_wrapped_pose(transmitter_pair):
     """A recorder that wraps ``pose`` (as the replay tests do) sees the magnetic poses with the
     reference's record values, and the frames stay the reference's."""
     rng = random.Random(2)
-    ref, got = _pair()
+    ref, got = _pair(transmitter_pair)
     seen = []
     send = got.pose
 

@@ -7,29 +7,12 @@ import random
 
 import pytest
 
-from coiltrack.firmware import core
-from coiltrack.firmware.transmit import F32_MAX, PoseReport, Transmitter
+from coiltrack.firmware.transmit import F32_MAX, PoseReport
 from coiltrack.protocol import MSG, FrameDecoder
 from coiltrack.protocol.framing import encode_frame
 from coiltrack.protocol.schema import POSE_FUSED, POSE_VALID
 
 _core = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
-
-
-class _Port:
-    def __init__(self, fail_every: int = 0):
-        self.frames = []
-        self.fail_every = fail_every
-        self.n = 0
-
-    def read(self) -> bytes:
-        return b""
-
-    def write(self, data: bytes) -> None:
-        self.n += 1
-        if self.fail_every and self.n % self.fail_every == 0:
-            raise OSError("link full")
-        self.frames.append(bytes(data))
 
 
 def _send(t, node, t_us, px, py, pz, qw, qx, qy, qz, v0, v1, v2, v3, v4, v5, status, quality=255):
@@ -40,13 +23,6 @@ def _send(t, node, t_us, px, py, pz, qw, qx, qy, qz, v0, v1, v2, v3, v4, v5, sta
     r.q[:] = [qw, qx, qy, qz]
     r.var[:] = [v0, v1, v2, v3, v4, v5]
     t.pose(r)
-
-
-def _pair(fail_every: int = 0):
-    ref = Transmitter(_Port(fail_every), 7, 100_000, FrameDecoder(), core=core.PYTHON)
-    got = Transmitter(_Port(fail_every), 7, 100_000, FrameDecoder(), core=core.load("compiled"))
-    assert (ref.core, got.core) == ("python", "compiled")
-    return ref, got
 
 
 def _values(rng):
@@ -63,12 +39,12 @@ def _values(rng):
     return out
 
 
-def test_pose_frames_are_the_python_bytes():
+def test_pose_frames_are_the_python_bytes(transmitter_pair):
     """2000 POSEs with random fields (node, 64-bit time, status, quality over their ranges, floats
     over the f32 range and past it, NaN and infinite): the same frames (bytes), the same tx
     errors where struct.pack refuses a value, the same pose counters."""
     rng = random.Random(3)
-    ref, got = _pair()
+    ref, got = transmitter_pair()
     for _ in range(2000):
         v = _values(rng)
         node = rng.choice([0, 1, 255, rng.randrange(256)])
@@ -82,9 +58,9 @@ def test_pose_frames_are_the_python_bytes():
     assert 0 < ref.tx_errors < 2000 and ref.poses > 0
 
 
-def test_variances_are_clamped_as_the_reference():
+def test_variances_are_clamped_as_the_reference(transmitter_pair):
     """A NaN or huge variance leaves as F32_MAX, as ``_f32`` sends it (read back by the decoder)."""
-    ref, got = _pair()
+    ref, got = transmitter_pair()
     for t in (ref, got):
         _send(t, 3, 10, 0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0, math.nan, 1e300, math.inf, 2.5e-7, -1.0, 3.0e38,
                POSE_VALID, 200)
@@ -96,10 +72,10 @@ def test_variances_are_clamped_as_the_reference():
     assert msg.var_ry == -1.0
 
 
-def test_out_of_range_integers_are_refused_and_counted():
+def test_out_of_range_integers_are_refused_and_counted(transmitter_pair):
     """A node above 255, a negative time, a status above 16 bits or a quality above 255: no
     frame, one tx error, the sequence number not spent (as FrameEncoder on struct's error)."""
-    ref, got = _pair()
+    ref, got = transmitter_pair()
     good = (0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0, 1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4)
     for args in ((256, 5, *good, 1, 9), (1, -1, *good, 1, 9), (1, 5, *good, 1 << 16, 9), (1, 5, *good, 1, 256),
                  (1, 1 << 70, *good, 1, 9), (1, 5, *good, 1, 9)):
@@ -110,12 +86,12 @@ def test_out_of_range_integers_are_refused_and_counted():
     assert got.port.frames[0] == encode_frame(MSG["POSE"](1, 5, *good, 1, 9), 0, 7)
 
 
-def test_one_sequence_with_the_other_messages_and_a_failing_link():
+def test_one_sequence_with_the_other_messages_and_a_failing_link(transmitter_pair):
     """POSEs, events and heartbeats interleaved over more than 256 frames, every third write
     failing: the same bytes in the same order and the same errors as the Python transmitter (the
     sequence number wraps at 256 and advances over a failed write, as FrameEncoder's)."""
     rng = random.Random(5)
-    ref, got = _pair(fail_every=3)
+    ref, got = transmitter_pair(fail_every=3)
     for k in range(700):
         r = rng.random()
         for t in (ref, got):
