@@ -13,7 +13,6 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
-#include "py_posefit.h"
 
 #define CT_MAX_COILS 64
 
@@ -671,112 +670,6 @@ static PyTypeObject InsStepType = {
     .tp_methods = InsStep_methods,
 };
 
-/* ----------------------------------------------------------------- PoseLM */
-#define LM_NBUF CT_PY_POSEFIT_NBUF
-typedef struct {
-    PyObject_HEAD
-    struct ct_posefit f;
-    struct ct_lm lm;
-    Py_buffer views[LM_NBUF];
-    int bound;
-} PoseLMObject;
-
-static void PoseLM_dealloc(PoseLMObject *self)
-{
-    int i;
-    if (self->bound)
-        for (i = 0; i < LM_NBUF; ++i)
-            PyBuffer_Release(&self->views[i]);
-    Py_TYPE(self)->tp_free((PyObject *)self);
-}
-
-static int PoseLM_init(PoseLMObject *self, PyObject *args, PyObject *kw)
-{
-    static char *kwlist[] = {"n", "geom", "B", "J", "S", "w", "cur", "h", "H", "p", "p_t", "R", "R_t", "A0", "g0",
-                             "A1", "g1", "d", "st", "lam0", "lam_max", "iters", "cost_tol", "step_sigma",
-                             "step_tol", NULL};
-    static const char *names[LM_NBUF] = {"geom", "B", "J", "S", "w", "cur", "h", "H", "p", "p_t", "R", "R_t",
-                                         "A0", "g0", "A1", "g1", "d", "st"};
-    /* lengths in units of n (negative: a fixed count) and writability */
-    static const int per_n[LM_NBUF] = {CT_COIL_STRIDE, 3, 9, 3, 3, 1, 3, 18, -3, -3, -9, -9, -36, -6, -36, -6,
-                                       -6, -CT_LM_NST};
-    static const int ro[LM_NBUF] = {1, 0, 0, 1, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
-    PyObject *o[LM_NBUF];
-    double *ptr[LM_NBUF];
-    double lam0, lam_max, cost_tol, step_sigma, step_tol;
-    int n, iters, i;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOOOOddiddd", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
-                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13],
-                                     &o[14], &o[15], &o[16], &o[17], &lam0, &lam_max, &iters, &cost_tol,
-                                     &step_sigma, &step_tol))
-        return -1;
-    if (self->bound) {
-        PyErr_SetString(PyExc_RuntimeError, "PoseLM: already bound");
-        return -1;
-    }
-    if (n < 1 || n > CT_MAX_COILS) {
-        PyErr_Format(PyExc_ValueError, "PoseLM: n must be in 1..%d, got %d", CT_MAX_COILS, n);
-        return -1;
-    }
-    for (i = 0; i < LM_NBUF; ++i) {
-        Py_ssize_t len = per_n[i] > 0 ? (Py_ssize_t)per_n[i] * n : -(Py_ssize_t)per_n[i];
-        if (get_doubles(o[i], len, !ro[i], &self->views[i], names[i]) < 0) {
-            while (--i >= 0)
-                PyBuffer_Release(&self->views[i]);
-            return -1;
-        }
-        ptr[i] = (double *)self->views[i].buf;
-    }
-    ct_py_bind_posefit(&self->f, &self->lm, n, ptr, lam0, lam_max, iters, cost_tol, step_sigma, step_tol);
-    self->bound = 1;
-    return 0;
-}
-
-static PyObject *PoseLM_start(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    (void)args;
-    if (!self->bound) {
-        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
-        return NULL;
-    }
-    if (check_nargs("start", nargs, 0) < 0)
-        return NULL;
-    ct_lm_pose_start(&self->lm, &self->f);
-    return PyLong_FromLong((long)self->lm.st[CT_LM_STATE]);
-}
-
-static PyObject *PoseLM_iterate(PoseLMObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    (void)args;
-    if (!self->bound) {
-        PyErr_SetString(PyExc_RuntimeError, "PoseLM: not bound");
-        return NULL;
-    }
-    if (check_nargs("iterate", nargs, 0) < 0)
-        return NULL;
-    return PyLong_FromLong(ct_lm_pose_iterate(&self->lm, &self->f));
-}
-
-static PyMethodDef PoseLM_methods[] = {
-    {"start", (PyCFunction)(void (*)(void))PoseLM_start, METH_FASTCALL,
-     "start() -> state: evaluate the fit at the bound (p, R) (LevenbergMarquardt.start)"},
-    {"iterate", (PyCFunction)(void (*)(void))PoseLM_iterate, METH_FASTCALL,
-     "iterate() -> state: one damped step (LevenbergMarquardt.iterate on the pose fit)"},
-    {NULL, NULL, 0, NULL}};
-
-static PyTypeObject PoseLMType = {
-    PyVarObject_HEAD_INIT(NULL, 0)
-    .tp_name = "coiltrack.firmware._core.PoseLM",
-    .tp_basicsize = sizeof(PoseLMObject),
-    .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "PoseLM(n, geom, B, J, S, w, cur, h, H, p, p_t, R, R_t, A0, g0, A1, g1, d, st, lam0, lam_max, "
-              "iters, cost_tol, step_sigma, step_tol): the pose solver's Levenberg-Marquardt bound to its buffers",
-    .tp_new = PyType_GenericNew,
-    .tp_init = (initproc)PoseLM_init,
-    .tp_dealloc = (destructor)PoseLM_dealloc,
-    .tp_methods = PoseLM_methods,
-};
-
 /* strapdown_rotate(R, ux, uy, uz): R <- R exp([u]x) in place (Strapdown.rotate; R a writable
  * C-contiguous float64 3x3) */
 static PyObject *core_strapdown_rotate(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
@@ -1088,7 +981,7 @@ PyMODINIT_FUNC PyInit__core(void)
 {
     PyObject *m;
     if (PyType_Ready(&SignalType) < 0 || PyType_Ready(&CovPredictType) < 0 || PyType_Ready(&InsStepType) < 0 ||
-        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0 || PyType_Ready(&PoseLMType) < 0 ||
+        PyType_Ready(&KUpdateType) < 0 || PyType_Ready(&OriPropType) < 0 ||
         PyType_Ready(&ImuDeltaType) < 0)
         return NULL;
     m = PyModule_Create(&core_module);
@@ -1127,12 +1020,6 @@ PyMODINIT_FUNC PyInit__core(void)
     Py_INCREF(&ImuDeltaType);
     if (PyModule_AddObject(m, "ImuDelta", (PyObject *)&ImuDeltaType) < 0) {
         Py_DECREF(&ImuDeltaType);
-        Py_DECREF(m);
-        return NULL;
-    }
-    Py_INCREF(&PoseLMType);
-    if (PyModule_AddObject(m, "PoseLM", (PyObject *)&PoseLMType) < 0) {
-        Py_DECREF(&PoseLMType);
         Py_DECREF(m);
         return NULL;
     }

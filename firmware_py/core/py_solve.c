@@ -10,7 +10,6 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
-#include "py_posefit.h"
 
 /* the solver's caller-owned buffers: lengths in units of n (negative: a fixed count), writability */
 #define SR_NBUF 24
@@ -77,7 +76,31 @@ static int SolveRun_init(SolveRunObject *self, PyObject *args, PyObject *kw)
         ptr[i] = (double *)self->views[i].buf;
     }
     Py_DECREF(seq);
-    ct_py_bind_posefit(&self->f, &self->lm, n, ptr, lam0, lam_max, iters, cost_tol, step_sigma, step_tol);
+    self->f.n = n;
+    self->f.geom = ptr[0];
+    self->f.B = ptr[1];
+    self->f.J = ptr[2];
+    self->f.S = ptr[3];
+    self->f.w = ptr[4];
+    self->f.cur = ptr[5];
+    self->f.h = ptr[6];
+    self->f.H = ptr[7];
+    self->f.p = ptr[8];
+    self->f.p_t = ptr[9];
+    self->f.R = ptr[10];
+    self->f.R_t = ptr[11];
+    self->f.step_tol = step_tol;
+    self->lm.A[0] = ptr[12];
+    self->lm.g[0] = ptr[13];
+    self->lm.A[1] = ptr[14];
+    self->lm.g[1] = ptr[15];
+    self->lm.d = ptr[16];
+    self->lm.st = ptr[17];
+    self->lm.lam0 = lam0;
+    self->lm.lam_max = lam_max;
+    self->lm.iters = iters;
+    self->lm.cost_tol = cost_tol;
+    self->lm.step_sigma2 = step_sigma * step_sigma;
     self->s.f = &self->f;
     self->s.lm = &self->lm;
     self->s.n = n;

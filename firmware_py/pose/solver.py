@@ -211,27 +211,20 @@ class _PoseFit:
 
 
 class _CompiledLM:
-    """:class:`pose.lm.LevenbergMarquardt` on :class:`_PoseFit`, compiled (``core/src/lm.c``:
-    ``ct_lm_pose_start``, ``ct_lm_pose_iterate``, the fit's cost ``ct_pose_cost``): the same
-    interface (``start``, ``iterate``, ``state``, ``cost``, ``it``, ``lam``, ``A``, ``g``) over
-    the fit's own buffers, the state in a small array the kernel writes. The same operations in
-    the same order as the Python, so the same result to the bit. Bound once at start-up; the signal model's evaluation count is charged per evaluation."""
+    """The compiled Levenberg-Marquardt's buffers and state (``core/src/lm.c``, run by
+    ``ct_solve_run`` through the ``SolveRun`` of :meth:`_CompiledSolver._bind_run`): the
+    interface of :class:`pose.lm.LevenbergMarquardt` the solver reads (``state``, ``cost``,
+    ``it``, ``lam``, ``A``, ``g``, ``d``) over the arrays the kernel writes, the state in a
+    small array (``LM_NST``). Allocated once at start-up."""
 
-    def __init__(self, ext, fit: _PoseFit, lam0: float, lam_max: float, iters: int, cost_tol: float,
-                 step_sigma: float):
-        sig = fit.signal
+    def __init__(self, ext, iters: int):
         self.k = 6
         self.iters = iters
-        self._sig = sig
         self._st = np.zeros(ext.LM_NST)
         self._stv = memoryview(self._st)
         self._A = [memoryview(np.zeros(36)), memoryview(np.zeros(36))]
         self._g = [memoryview(np.zeros(6)), memoryview(np.zeros(6))]
         self.d = memoryview(np.zeros(6))
-        self.problem = fit
-        self._ck = ext.PoseLM(sig.n, sig._geom, sig.B, sig.J, fit.S, fit.w, fit.cur, fit._h, fit._H, fit.p, fit.p_t,
-                              fit.R, fit.R_t, self._A[0], self._g[0], self._A[1], self._g[1], self.d, self._st,
-                              lam0, lam_max, iters, cost_tol, step_sigma, fit.step_tol)
 
     @property
     def state(self) -> int:
@@ -256,20 +249,6 @@ class _CompiledLM:
     @property
     def g(self):
         return self._g[int(self._stv[4])]
-
-    def start(self, problem) -> None:
-        st = self._stv
-        st[5] = 0.0
-        self._ck.start()
-        self._sig.charge(1)
-
-    def iterate(self) -> int:
-        st = self._stv
-        st[5] = 0.0
-        state = self._ck.iterate()
-        if st[5] != 0.0:
-            self._sig.charge(1)
-        return state
 
 
 class _CompiledSolver:
@@ -501,7 +480,7 @@ class PoseSolver(_CompiledSolver, StagedSolve):
         (a key of ``estimate.ekf.CHI2_QUANTILES``; 1.0 disables the cost test).
     core : coiltrack.firmware.core.Core
         The numeric core, chosen at composition: on the compiled one the signal model, the LM
-        step with its cost (``_CompiledLM``), the begin's checks, a budget's run of the LM's
+        step with its cost (on ``_CompiledLM``'s buffers), the begin's checks, a budget's run of the LM's
         units with the finish and the predicted signals (``_CompiledSolver``) run in C,
         bit-identical to the Python.
 
@@ -550,7 +529,7 @@ class PoseSolver(_CompiledSolver, StagedSolve):
         #: distortion map (``model.distortion``, added to the field in Python)
         self._lm_c = None
         if self.signal.core == "compiled":
-            self._lm_c = _CompiledLM(core.ext, self._fit, 1e-6, 1e12, self.iters, cost_tol, step_sigma)
+            self._lm_c = _CompiledLM(core.ext, self.iters)
         self._acq = Acquisition(self.signal, self._Sv, self._curv, self._cbar, reach)
         self._unit_lm_steps = self._unit_lm_step      # the LM step unit, one bound method (identity)
         self._inv = RobustInverse6()
@@ -655,8 +634,7 @@ class PoseSolver(_CompiledSolver, StagedSolve):
             self._then(None)
 
     def _unit_lm_start(self) -> None:
-        lmc = self._lm_c
-        self._lm = lmc if lmc is not None and self.signal.distortion is None else self._lm_py
+        self._lm = self._lm_py          # (the compiled LM runs in the compiled units: _unit_lm_start_compiled)
         self._lm.start(self._fit)
         if self._lm.state == LM_RUNNING:
             self._then(self._unit_lm_steps, self.n)

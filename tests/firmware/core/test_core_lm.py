@@ -39,6 +39,18 @@ def test_pair_binds_the_compiled_lm():
     assert ref._lm_c is None and got._lm_c is not None
 
 
+#: the solve's phases (core/include/ct_solve.h CT_PH_*): the LM's start, one of its steps
+_PH_LM_START, _PH_LM_STEPS = 1, 2
+
+
+def _one_unit(solver, phase: int) -> None:
+    """One compiled unit of the solve on the solver's bound fit and LM (``SolveRun.run`` with no
+    budget runs exactly one, ``ct_solve_run``): the LM's start (``ct_lm_pose_start``) or one of
+    its steps (``ct_lm_pose_iterate``)."""
+    solver._svv[0] = phase
+    solver._sv.run(0, 0)
+
+
 def _spd(rng, k, cond):
     q, _ = np.linalg.qr(rng.normal(size=(k, k)))
     return (q * np.geomspace(1.0, 1.0 / cond, k)) @ q.T
@@ -64,15 +76,15 @@ def test_damped_solve_matches_the_generated_python():
         lam = 10.0 ** rng.uniform(-12, 10) if trial % 7 else 0.0
         x_ref = memoryview(np.zeros(6))
         ok_ref = py(memoryview(a.reshape(-1).copy()), memoryview(b.copy()), x_ref, lam)
-        # the compiled LM solves A[cur] d = g[cur] at its lambda; with iters = 0 after start no
-        # trial is evaluated, so set the state by hand and read d
+        # the compiled LM solves A[cur] d = g[cur] at its lambda (one step of the solve's units):
+        # set the state by hand and read d
         lm._A[0][:] = memoryview(a.reshape(-1).copy())
         lm._g[0][:] = memoryview(b.copy())
         st = lm._stv
         st[0], st[1], st[2], st[3], st[4] = 0.0, math.inf, lam, 0.0, 0.0
         for i in range(6):
             lm.d[i] = 0.0
-        lm.iterate()
+        _one_unit(solver, _PH_LM_STEPS)
         if ok_ref:
             assert list(lm.d) == list(x_ref), trial
         else:
@@ -94,9 +106,10 @@ def _pose_cases(rng):
 
 @pytest.mark.parametrize("coils,model", [(ORTHO, "exact"), (ORTHO, "dipole"), (SKEWED, "exact")])
 def test_cost_and_normal_equations_bit_identical(coils, model):
-    """ct_pose_cost (through the LM's start) against _PoseFit._cost: cost, the 36 entries of
-    H^T W H and the 6 of H^T W (S - h), on 45 poses with random signals and weights spread over
-    four decades (a weight of 1e-12 makes the normal matrix nearly singular)."""
+    """ct_pose_cost (through the LM's start, one compiled unit of the solve) against
+    _PoseFit._cost: cost, the 36 entries of H^T W H and the 6 of H^T W (S - h), on 45 poses with
+    random signals and weights spread over four decades (a weight of 1e-12 makes the normal matrix
+    nearly singular)."""
     rng = np.random.default_rng(5)
     s = PoseSolver(coils, model, core=core.load("compiled"))
     n = len(coils)
@@ -108,7 +121,7 @@ def test_cost_and_normal_equations_bit_identical(coils, model):
         s._cur[:] = rng.uniform(-2, 2, n)
         s._fit.set(p, R)
         s._lm_py.start(s._fit)
-        s._lm_c.start(s._fit)
+        _one_unit(s, _PH_LM_START)
         assert s._lm_c.cost == s._lm_py.cost
         assert list(s._lm_c.A) == list(s._lm_py.A)
         assert list(s._lm_c.g) == list(s._lm_py.g)
