@@ -46,9 +46,5 @@ int ct_solve_load(int n, const double *S, const double *sigma, int64_t rs, int64
                   int64_t cstride, double *Sv, double *wv, double *cv, double *sigma_rms);
 /* linalg._is_rotation (M row-major, tol = linalg.ORTHONORMAL_TOL) */
 int ct_is_rotation(const double *m, double tol);
-/* PoseSolver's LM steps in one call (needs coiltrack_core.h's ct_lm, ct_posefit) */
-struct ct_lm;
-struct ct_posefit;
-int ct_lm_pose_run(const struct ct_lm *lm, const struct ct_posefit *f, int64_t cost, int64_t spent, int64_t budget);
 
 #endif /* CT_WINDOW_H */

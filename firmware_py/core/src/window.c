@@ -345,20 +345,3 @@ int ct_is_rotation(const double *m, double tol)
         return 0;
     return m00 * (m11 * m22 - m12 * m21) - m01 * (m10 * m22 - m12 * m20) + m02 * (m10 * m21 - m11 * m20) > 0.0;
 }
-
-/* PoseSolver's run of LM steps (staged.run_units over _unit_lm_step): steps while the LM runs and
- * the next step's charge `cost` fits beside `spent` in `budget` (the first always runs); returns
- * the steps taken.  The evaluations they did are counted in st[CT_LM_EVALS]. */
-int ct_lm_pose_run(const struct ct_lm *lm, const struct ct_posefit *f, int64_t cost, int64_t spent, int64_t budget)
-{
-    int k = 0;
-    for (;;) {
-        if (spent > 0 && spent + cost > budget)
-            break;
-        k += 1;
-        spent += cost;
-        if (ct_lm_pose_iterate(lm, f) != CT_LM_RUNNING)
-            break;
-    }
-    return k;
-}
