@@ -590,23 +590,34 @@ class CoilChooser:
         ``lengths_us``, shortest first. The coil is the one whose update at its largest
         current and the longest length (the most information it can bring) reduces the
         normalised uncertainty most; then, over every length, the smallest current bringing
-        the target variable to ``sigma_min``, and of those the pair of least energy ``I^2 L``
-        (the coil's resistance is common to all). The information of each pair is eq 4 with
-        the length's amplitude variance and the model error ``(rel_model I |h|)^2``, which
-        saturates it near the source: the current a goal needs then obeys ``I^2 = k var /
-        (1 - k rel^2)``, still proportional to ``var(L)``, so the energies of the lengths keep
-        the ratios of ``L var(L)``; saturation decides only whether the goal is reachable. If
-        no pair reaches it: the longest length at the largest current. Sets ``length`` (an index of
+        the target variable to its goal, and of those the pair of least energy ``I^2 L``
+        (the coil's resistance is common to all). The goal is ``sigma_min``; where the
+        longest length at the largest current does not reach it, with ``unreached_share``
+        the share of that pulse's reduction (``unreached_goal``, as :meth:`choose` asks of
+        the longest), so an unreached pulse is as short as the goal allows too; without it,
+        the longest length at the largest current (the most a pulse can bring). The
+        information of each pair is eq 4 (Schepers & Veltink 2010,
+        ``seeds/000_e46ec0e8bf7ea271.txt``) with the length's amplitude variance and the
+        model error ``(rel_model I |h|)^2``, which saturates it near the source: the current
+        a goal needs then obeys ``I^2 = k var / (1 - k rel^2)``, still proportional to
+        ``var(L)``, so the energies of the lengths keep the ratios of ``L var(L)``;
+        saturation decides only whether the goal is reachable. Sets ``length`` (an index of
         ``lengths_us``) beside ``coil`` and ``current``; returns the coil or -1."""
         last = len(lengths_us) - 1
         c = self.choose(P6, model, float(var_amps[last]), i_limit)
         self.length = last
-        if c < 0 or not self.reached:
+        if c < 0:
             return c
         P6v = memoryview(P6)
         kmax = self._ref_index(float(i_limit[c]))
+        if self.reached:
+            goal = self._goal()
+        elif self.unreached_share > 0.0 and kmax >= 0:
+            goal = self.unreached_goal(self._prior(P6v), self._target_after(P6v, c, float(var_amps[last]),
+                                                                           float(self.currents[kmax])))
+        else:
+            return c
         best_e = self.current * self.current * lengths_us[last]
-        goal = self._goal()
         for k in range(last):
             j = self._smallest_current(P6v, c, float(var_amps[k]), kmax, goal)
             if j < 0:

@@ -59,6 +59,40 @@ def test_samples_of_todays_pulse_counted_by_hand():
     assert pulse_samples(0.03, 0.035, Timing(1000.0, 3e-3, 2e-3, 3e-3)) == pytest.approx((25.0, 68.0), abs=1e-9)
 
 
+def test_a_window_the_extraction_refuses_counts_no_sample():
+    """``min_pulse_samples`` 3 (the firmware's): a 30.5 ms pulse with a sample just after its start uses
+    two (10, 20 ms; 0 and 30 are the first and the last), which the extractor refuses, so it counts none,
+    and the best phase of a 30.5 ms pulse then brings nothing; a 40.5 ms one uses three (10, 20, 30 ms).
+    By hand on the 100 Hz clock the mean count of a 50 ms pulse is 3 at every phase (kept), of a 45 ms
+    one 2.5 (2 or 3 used, half the phases each) without the minimum and 1.5 with it. Catches a bound
+    crediting windows the extraction drops (the optimum's 30 ms pulses)."""
+    tm3 = Timing(100.0, 3e-3, 2e-3, 3e-3, 3)
+    assert pulse_samples(0.0305, 0.035, TM100, "aligned")[0] == 2
+    assert pulse_samples(0.0305, 0.035, tm3, "aligned")[0] == 0
+    assert pulse_samples(0.0405, 0.035, tm3, "aligned")[0] == 3
+    assert pulse_samples(0.05, 0.035, tm3)[0] == pytest.approx(3.0, abs=1e-9)
+    assert pulse_samples(0.045, 0.035, TM100)[0] == pytest.approx(2.5, abs=1e-9)
+    assert pulse_samples(0.045, 0.035, tm3)[0] == pytest.approx(1.5, abs=1e-9)
+    assert pulse_samples(0.06, 0.035, tm3) == pytest.approx((4.0, 6.8), abs=1e-9)
+
+
+def test_seed_model_reads_the_sectioned_configuration():
+    """The scenario's world and configuration at a short duration: the fixed cycle's information weight
+    per coil and window equals the closed form ``I^2 / (sigma^2 (1/4 + 1/6.8) + ((rho I)^2 + tau^2) |u|^2)``
+    (60 ms pulses, 35 ms baselines at 100 Hz), the extraction's minimum comes from the configuration,
+    and the saturated share is the share of coil-windows whose model error exceeds the white noise."""
+    m = eb.SeedModel(1, 1, 3.0)
+    c = m.cfg
+    assert m.tm.min_used == c.pulse.min_pulse_samples
+    a = c.pulse.mag_sigma_t ** 2 * (1 / 4 + 1 / 6.8)
+    rho, tau = c.adaptive.field_model_rel_sigma, c.limits.current_tolerance_a
+    want = m.I0 ** 2 / (a + ((rho * m.I0) ** 2 + tau ** 2) * m.u2)
+    np.testing.assert_allclose(m.x0, want, rtol=1e-9)
+    model = ((rho * m.I0) ** 2 + tau ** 2) * m.u2
+    assert m.saturated_share() == pytest.approx(float(np.mean(model > a)), abs=1e-12)
+    assert m.cost(Kinds.fixed(0.06, 0.035, m.tm)).D == pytest.approx(0.6)
+
+
 def test_used_samples_never_fall_with_the_length():
     """The optimistic kinds of ``Kinds.chosen`` are below every length of their interval only if the
     count never falls with the length; checked on a 0.1 ms grid."""
@@ -260,7 +294,7 @@ def test_fitted_exponent_without_saturation_is_the_energy_ratio_one():
 
 
 @pytest.mark.parametrize("argv", [["--ratio", "0.5"], ["--length-step-ms", "0"], ["--a-pos", "-1", "--a-rot", "1"],
-                                  ["--seeds", "1", "--sweeps", "/nonexistent"]])
+                                  ["--seeds", "1", "--sweeps", "/nonexistent"], ["--columns", "fixed,short"]])
 def test_bad_arguments_exit_2(argv, capsys):
     assert eb.main(argv) == 2
     assert "energy_bound:" in capsys.readouterr().err

@@ -62,3 +62,38 @@ def test_bound_files_become_lines_and_the_png_is_written(tmp_path):
     bad.write_text(json.dumps({"ratio": 1.1}))
     assert fp.main(["--bound", str(bad), "--png", str(tmp_path / "x.png")]) == 2
     assert not (tmp_path / "x.png").exists()
+
+
+def test_timed_bound_has_its_own_column_and_shared_settings_leave_the_labels(tmp_path):
+    """A bound of pulses timed to the samples (``--sample-phase aligned``) is a column of its own beside
+    the one at an arbitrary phase (the chosen policy starts its pulses on the sample clock, the fixed one
+    does not: two different floors); settings every sweep point shares are left out of the labels, so the
+    fixed and chosen modes read apart."""
+    p1, p2 = tmp_path / "b1.json", tmp_path / "b2.json"
+    p1.write_text(json.dumps({"ratio": 1.1, "summary": {"fixed": {"median": 0.49, "worst": 0.54, "best": 0.45}}}))
+    p2.write_text(json.dumps({"ratio": 1.1, "sample_phase": "aligned",
+                              "summary": {"chosen": {"median": 0.42, "worst": 0.47, "best": 0.37}}}))
+    b = fp.bound_points([str(p1), str(p2)])
+    assert b == {"fixed": [(1.1, 0.49, 0.54)], "chosen aligned": [(1.1, 0.42, 0.47)]}
+    common = {"reference_hold": "mean", "unreached_share": 0.8}
+    a = _sweep(tmp_path / "fixed.json", "schepers-adaptive", [_run(1, dict(common), 6.0, 5.0, 0.5, (10.0, 5.0, 0.5))])
+    c = _sweep(tmp_path / "chosen.json", "schepers-adaptive",
+               [_run(1, dict(common, **{"adaptive_policy.pulse_length": "chosen"}), 5.0, 5.0, 0.5, (10.0, 5.0, 0.5))])
+    shared = fp.common_settings([a, c])
+    assert shared == {("reference_hold", "mean"), ("unreached_share", "0.8")}
+    labels = [pt["label"] for path in (a, c) for pt in fp.sweep_points(path, None, shared)]
+    assert labels == ["fixed", "chosen pulse_length=chosen"]
+
+
+def test_bound_columns_pick_the_floors_drawn(tmp_path, capsys):
+    """``--bound-columns`` keeps the named columns only; a name no file has is refused (exit 2, nothing
+    written)."""
+    p = tmp_path / "b.json"
+    p.write_text(json.dumps({"ratio": 1.1, "summary": {"fixed": {"median": 0.49, "worst": 0.54, "best": 0.45},
+                                                       "chosen": {"median": 0.48, "worst": 0.53, "best": 0.44}}}))
+    png = tmp_path / "f.png"
+    assert fp.main(["--bound", str(p), "--bound-columns", "fixed", "--png", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "fixed: ratio 1.1" in out and "chosen:" not in out
+    assert fp.main(["--bound", str(p), "--bound-columns", "chosen aligned", "--png", str(tmp_path / "g.png")]) == 2
+    assert not (tmp_path / "g.png").exists()

@@ -148,7 +148,73 @@ def test_model_error_keeps_the_energy_ratio_of_the_lengths():
     assert not ch3.reached and ch3.length == L.n - 1 and ch3.current == float(ch3.currents[-1])
 
 
+@pytest.mark.parametrize("rel_model", [0.0, 3e-3])
+def test_unreached_pulse_takes_the_length_of_least_energy_for_its_share(rel_model):
+    """The driver allows 20 mA, too little for ``sigma_min`` at any length: with ``unreached_share``
+    0.8 the goal is 80 % of the reduction of the longest length at 20 mA (``unreached_goal``), and the
+    42.5 ms pulse reaches it for ``21.25 / 24.17`` of the energy the longest needs (the closed form of
+    :func:`test_model_error_keeps_the_energy_ratio_of_the_lengths`: ``I^2`` proportional to ``var(L)``).
+    At 10 mA the 52.5 ms pulse at the limit reaches it too: ``52.5 / 72.5`` of the energy at the same
+    current. Before, an unreached pulse was always the longest (catches that, and a goal taken from
+    a shorter length's largest current)."""
+    L = PulseLengths.chosen(_cfg(), 80_000)
+    for lim, k_want, ratio in ((0.02, 0, 21.25 / 24.1667), (0.01, 1, 52.5 / 72.5)):
+        ch, model, P6 = _case(rel_model)
+        ch.unreached_share = 0.8
+        c = ch.choose_length(P6, model, list(L.var_amp), L.lengths_us, np.full(3, lim))
+        assert c >= 0 and not ch.reached and ch.length == k_want
+        ref, _, _ = _case(rel_model)
+        ref.unreached_share = 0.8
+        assert ref.choose(P6, model, L.var_amp[-1], np.full(3, lim)) == c
+        # the same goal: the longest at the limit, 80 % of its reduction
+        prior = ch._prior(P6)
+        best = ref._target_after(P6, c, L.var_amp[-1], lim)
+        goal = prior - 0.8 * (prior - best)
+        assert ch._target_after(P6, c, L.var_amp[ch.length], ch.current) <= goal * (1 + 1e-12)
+        e = ch.current ** 2 * L.lengths_us[ch.length] / (ref.current ** 2 * L.lengths_us[-1])
+        assert e == pytest.approx(ratio, rel=5e-3)
+
+
 def test_bad_pulse_length_is_refused_naming_the_key():
     with pytest.raises(ConfigError) as e:
         config_from_dict({"adaptive": {"pulse_length": "short"}})
     assert e.value.key == "adaptive.pulse_length"
+
+
+def test_chosen_lengths_end_to_end_allocate_nothing_and_every_window_is_used():
+    """``pulse_length = "chosen"`` with ``unreached_share`` on the bench for 8 s (seed 3): every pulse
+    after the acquisition burst and the warm-up is one of ``PulseLengths.chosen``'s lengths (to the
+    driver clock's microsecond), their
+    windows are extracted (no flagged window, single-coil updates made) and no tick creates a numpy
+    array (the length choice included). Catches a length the extraction refuses or a window closed at
+    the wrong edge."""
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.tools import scenarios as sc_reg
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+    from coiltrack.tools.bench.links import inproc_pair
+    from coiltrack.tools.bench.runner import BenchSetup
+
+    cfg = _cfg(unreached_share=0.8, adaptive_current_step_a=0.001)
+    sc = sc_reg.get("schepers-adaptive")
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, 3, 8.0, emu_end)
+    fw = Firmware(cfg, fw_end)
+    counter = NumpyAllocationCounter() if available() else None
+    allocating, t = 0, 0
+    while t <= 8_000_000:
+        bench.emulator.step(t)
+        if counter is not None:
+            before = counter.count
+            with counter:
+                fw.tick(t)
+            allocating += counter.count != before
+        else:
+            fw.tick(t)
+        t += cfg.timing.tick_us
+    s = fw.status()
+    assert allocating == 0 and s["windows_flagged"] == 0 and s["adaptive_updates"] > 40
+    lengths = set(PulseLengths.chosen(cfg, cfg.timing.pulse_us + 20_000).lengths_us)
+    late = [e for e in bench.driver.executed if e["start_us"] > 4_000_000]
+    assert len(late) > 20
+    # the driver's clock runs on its own: an executed length is within 2 us of a commanded one
+    assert all(min(abs(e["end_us"] - e["start_us"] - L) for L in lengths) <= 2 for e in late)

@@ -1,6 +1,7 @@
 """The least coil energy any pulse policy needs for the fixed cycle's accuracy.
 
-``python -m coiltrack.tools.analyses.energy_bound --seeds 1-10 [--pulse-length fixed|chosen|all] --json bound.json``
+``python -m coiltrack.tools.analyses.energy_bound --seeds 1-10 [--pulse-length fixed|chosen|all]
+[--columns fixed,chosen,chosen-long] [--sample-phase mean|aligned] --json bound.json``
 
 Schepers & Veltink 2010 (``../shared/seeds/001_*``, sec. 2.3-2.4) save energy
 by deciding when, which coil and how strong; the seed paper also treats the
@@ -31,7 +32,8 @@ firmware's policy:
   energy, and the bound is *lower* for it.
 * **What a pulse costs.** ``I^2 T`` (coil resistance equal for all, it
   cancels), for a pulse of length ``T``, with ``n_u(T)`` counted as the
-  extraction counts (``pulse_cost.pulse_samples``), baselines of ``B`` that
+  extraction counts (``pulse_cost.pulse_samples``: a window with fewer than
+  ``min_pulse_samples`` used samples is refused and counts none), baselines of ``B`` that
   cost no energy but time (``fall + B + guard`` after every pulse), one coil at
   a time, the window's time at most its duration, the current at most the
   driver's ``max_current_a`` and within the magnetometer's ``mag_range_t``
@@ -57,6 +59,12 @@ firmware's policy:
   gyroscope random walk ``1/2`` for orientation.
 * **The accuracy asked.** The mean over the windows of each block's ``v`` at
   most ``ratio^2`` times the fixed cycle's (``ratio`` 1.1 is "within 10 %").
+
+**Which floor a policy is held to.** ``pulse_length = "fixed"`` starts its pulses at any phase of
+the magnetometer's samples: the ``fixed`` column at ``--sample-phase mean``. ``pulse_length =
+"chosen"`` puts every start on the sample clock (``actuate.pulse_length.PulseLengths.align``), which a
+pulse at an arbitrary phase cannot: its floor is the ``chosen`` column at ``--sample-phase aligned``
+(``--columns chosen``), below the mean-phase one.
 
 **Why it is a lower bound.** The least total energy under those constraints
 is a convex programme: ``J -> 1 / tr_B(J^-1)`` is concave (the information on
@@ -309,13 +317,13 @@ class SeedModel:
         exceeds the white noise ``sigma^2 (1/n_u + 1/n_b)`` of the extraction."""
         nu, nb = pulse_samples(self.T0, self.B0, self.tm, "mean")
         c = self.cfg
-        model = ((c.field_model_rel_sigma * self.I0[None, :]) ** 2 + c.current_tolerance_a ** 2) * self.u2
-        return float(np.mean(model > c.mag_sigma_t ** 2 * (1 / nu + 1 / nb)))
+        model = ((c.adaptive.field_model_rel_sigma * self.I0[None, :]) ** 2 + c.limits.current_tolerance_a ** 2) * self.u2
+        return float(np.mean(model > c.pulse.mag_sigma_t ** 2 * (1 / nu + 1 / nb)))
 
     def cost(self, kinds: Kinds) -> WindowCost:
         c = self.cfg
-        return WindowCost(kinds, c.mag_sigma_t ** 2, self.u2, c.field_model_rel_sigma, c.current_tolerance_a,
-                          self.imax, self.D)
+        return WindowCost(kinds, c.pulse.mag_sigma_t ** 2, self.u2, c.adaptive.field_model_rel_sigma,
+                          c.limits.current_tolerance_a, self.imax, self.D)
 
     def exponents(self, hi: tuple, lo: tuple, rho_sweep: float, currents=(0.91, 0.45)) -> tuple[float, float]:
         """(a_pos, a_rot) fitted to the fixed cycle's current sweep: figures ``hi``/``lo`` =
@@ -384,6 +392,7 @@ def _arguments(argv):
     ap.add_argument("--pulse-length", choices=("fixed", "chosen", "all"), default="all",
                     help="fixed: the cycle's 60 ms pulses and 35 ms baselines; chosen: any pulse length with "
                          "those baselines, and with baselines of --long-baseline-ms as well; all: both (default)")
+    ap.add_argument("--columns", help="a comma list of columns (fixed, chosen, chosen-long) instead of --pulse-length's")
     ap.add_argument("--long-baseline-ms", type=float, default=100.0, help="the longer baselines (default 100)")
     ap.add_argument("--max-pulse-ms", type=float, default=400.0, help="longest pulse considered (default 400)")
     ap.add_argument("--length-step-ms", type=float, default=0.5,
@@ -406,6 +415,9 @@ def _check(a) -> str | None:
         return "--ratio must be >= 1, --window >= 1, --duration > 0"
     if not (a.long_baseline_ms > 0 and a.length_step_ms > 0 and a.max_pulse_ms > a.length_step_ms):
         return "--long-baseline-ms and --length-step-ms must be > 0, --max-pulse-ms > --length-step-ms"
+    bad = [m for m in (a.columns or "").split(",") if a.columns and m.strip() not in MODES]
+    if bad:
+        return f"--columns: unknown column(s) {bad}; choose from {', '.join(MODES)}"
     for name in ("a_pos", "a_rot"):
         v = getattr(a, name)
         if v is not None and not (v > 0):
@@ -420,6 +432,8 @@ def main(argv=None) -> int:
         print(f"energy_bound: {bad}", file=sys.stderr)
         return 2
     modes = {"fixed": ("fixed",), "chosen": ("chosen", "chosen-long"), "all": MODES}[a.pulse_length]
+    if a.columns:
+        modes = tuple(m.strip() for m in a.columns.split(","))
     hi = lo = None
     if a.a_pos is None or a.a_rot is None:
         try:

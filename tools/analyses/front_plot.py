@@ -2,7 +2,7 @@
 
     python -m coiltrack.tools.analyses.front_plot --sweep-json adaptive.json [--sweep-json ...]
         [--fixed-json fixed-910.json --sweep-json fixed-640.json ...] --bound bound.json [--bound ...]
-        --png out/front.png
+        [--bound-columns 'fixed,chosen aligned'] --png out/front.png
 
 Both axes are ratios to the fixed X, Y, Z cycle of the same seed: coil energy (median over the seeds)
 and position or orientation RMS (median over the seeds, the worst seed as the bar's end). A sweep of
@@ -13,8 +13,11 @@ an actuation-policy scenario carries its own fixed cycle (``fixed_*`` figures, `
 (``python -m coiltrack.tools.analyses.energy_bound --json``) holds, per column (60 ms pulses; pulse
 length chosen; chosen with long baselines), the least energy of every seed at RMS at most ``ratio``
 times the fixed cycle's: drawn at height ``ratio``, the median with a bar to the worst seed; several
-files at several ``--ratio`` draw the bound as a line. Nothing left of a bound's line at its height
-keeps that accuracy (within the bound's model).
+files at several ``--ratio`` draw the bound as a line. A bound of pulses timed to the magnetometer's
+samples (``--sample-phase aligned``: the floor of ``pulse_length = "chosen"``, whose starts are put on
+the sample clock) is drawn as a column of its own. Nothing left of a bound's line at its height keeps
+that accuracy (within the bound's model). Settings every sweep point shares are printed once and left
+out of the labels.
 
 Exit status: 0 written; 2 a bad argument or an unreadable file (nothing written).
 """
@@ -28,7 +31,10 @@ from pathlib import Path
 from ..inputs.sweepfile import read_json
 
 _COLUMN_LABELS = {"fixed": "bound, 60 ms pulses", "chosen": "bound, pulse length chosen",
-                  "chosen-long": "bound, length and baseline chosen"}
+                  "chosen-long": "bound, length and baseline chosen",
+                  "fixed aligned": "bound, 60 ms pulses timed to the samples",
+                  "chosen aligned": "bound, pulse length chosen, timed to the samples",
+                  "chosen-long aligned": "bound, length and baseline chosen, timed to the samples"}
 
 
 def _by_seed(runs) -> dict:
@@ -43,13 +49,18 @@ def reference(path: str) -> dict:
     return _by_seed(r for r in runs if r["params"] == first)
 
 
-def sweep_points(path: str, fixed: dict | None) -> list[dict]:
-    """One point per grid point of a sweep file: energy ratio median, RMS ratios median and worst."""
+def _param_items(params) -> tuple:
+    return tuple(sorted((k.split(".")[-1], str(v)) for k, v in (params or {}).items()))
+
+
+def sweep_points(path: str, fixed: dict | None, common: frozenset = frozenset()) -> list[dict]:
+    """One point per grid point of a sweep file: energy ratio median, RMS ratios median and worst.
+    The label names the file and the grid point's settings except those in ``common``."""
     d = read_json(path)
     groups: dict[str, list] = {}
     for r in d["runs"]:
         if r and r.get("figures"):
-            groups.setdefault(" ".join(f"{k.split('.')[-1]}={v}" for k, v in sorted((r["params"] or {}).items())),
+            groups.setdefault(" ".join(f"{k}={v}" for k, v in _param_items(r["params"]) if (k, v) not in common),
                               []).append(r)
     out = []
     for label, runs in groups.items():
@@ -71,15 +82,24 @@ def sweep_points(path: str, fixed: dict | None) -> list[dict]:
     return out
 
 
+def common_settings(paths) -> frozenset:
+    """The (key, value) settings every grid point of every sweep file shares (left out of the labels)."""
+    sets = [frozenset(_param_items(r["params"])) for p in paths for r in read_json(p)["runs"] if r and r.get("figures")]
+    return frozenset.intersection(*sets) if sets else frozenset()
+
+
 def bound_points(paths) -> dict:
-    """Per column of the bound files: [(ratio, median, worst)] sorted by ratio."""
+    """Per column of the bound files: [(ratio, median, worst)] sorted by ratio; a file of pulses timed
+    to the samples (``--sample-phase aligned``) has its own columns (``chosen aligned``)."""
     from ..inputs.infile import InputFileError, load_json
 
     out: dict[str, list] = {}
     for path in paths:
         d = load_json(path, "energy bound")
         try:
-            rows = [(col, float(d["ratio"]), float(fig["median"]), float(fig["worst"])) for col, fig in d["summary"].items()]
+            tag = " aligned" if d.get("sample_phase") == "aligned" else ""
+            rows = [(col + tag, float(d["ratio"]), float(fig["median"]), float(fig["worst"]))
+                    for col, fig in d["summary"].items()]
         except (KeyError, TypeError, AttributeError, ValueError) as exc:
             raise InputFileError(path, f"not an energy_bound --json file ({exc!r:.60})") from None
         for col, r, med, worst in rows:
@@ -120,6 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep-json", action="append", default=[], help="a coiltrack sweep --json file (repeatable)")
     ap.add_argument("--fixed-json", help="the 0.91 A fixed cycle's sweep, to divide fixed-cycle sweeps by")
     ap.add_argument("--bound", action="append", default=[], help="an energy_bound --json file (repeatable)")
+    ap.add_argument("--bound-columns", help="draw only these bound columns, a comma list (e.g. 'fixed,chosen aligned')")
     ap.add_argument("--png", required=True, help="write the figure here (under out/)")
     a = ap.parse_args(argv)
     if not a.sweep_json and not a.bound:
@@ -127,11 +148,20 @@ def main(argv=None) -> int:
         return 2
     try:
         fixed = reference(a.fixed_json) if a.fixed_json else None
-        points = [pt for p in a.sweep_json for pt in sweep_points(p, fixed)]
+        common = common_settings(a.sweep_json) if len(a.sweep_json) > 1 else frozenset()
+        points = [pt for p in a.sweep_json for pt in sweep_points(p, fixed, common)]
         bound = bound_points(a.bound)
+        if a.bound_columns:
+            keep = [c.strip() for c in a.bound_columns.split(",")]
+            unknown = [c for c in keep if c not in bound]
+            if unknown:
+                raise ValueError(f"--bound-columns: no column {unknown} in the bound files (they have {sorted(bound)})")
+            bound = {c: bound[c] for c in keep}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         print(f"front_plot: cannot read the files: {exc}", file=sys.stderr)
         return 2
+    if common:
+        print("settings of every sweep point: " + " ".join(f"{k}={v}" for k, v in sorted(common)))
     for pt in points:
         print(f"{pt['label']}: energy {pt['energy']:.3f}, position {pt['position'][0]:.3f} (worst {pt['position'][1]:.3f}), "
               f"orientation {pt['orientation'][0]:.3f} (worst {pt['orientation'][1]:.3f})")

@@ -12,7 +12,8 @@ of the same seed and the median and worst energy ratio: the issue's acceptance f
 ``--bound`` (``python -m coiltrack.tools.analyses.energy_bound --json``: the least energy per seed,
 a fraction of the fixed cycle's, e.g. one file for 60 ms pulses and one for chosen lengths), the
 per-seed energy ratios of every adaptive sweep beside each floor and their quotient, and a third
-panel of the figure with both on one plot.
+panel of the figure with both on one plot. An ``energy_bound`` file given among the sweeps (the
+folder's ``docs/adaptive-sweeps/*.json``) is read as ``--bound``: one floor per column.
 
 Exit status: 0 done; 2 a bad argument or an unreadable file (nothing written).
 """
@@ -58,13 +59,29 @@ def load(paths) -> list[dict]:
     return rows
 
 
+def is_bound_file(path: str) -> bool:
+    """Whether ``path`` is an ``energy_bound --json`` file (seeds and summary, no runs), not a sweep."""
+    with open(path) as fh:
+        d = json.load(fh)
+    return isinstance(d, dict) and "runs" not in d and "seeds" in d and "summary" in d
+
+
 def load_bounds(paths) -> dict[str, dict[int, float]]:
-    """Per bound file (by its stem): seed -> least energy fraction of the fixed cycle."""
+    """Per bound file and column: seed -> least energy fraction of the fixed cycle. A file of
+    ``energy_bound --json`` has one floor per column (``modes``: fixed, chosen, chosen-long), named
+    ``STEM COLUMN`` (``aligned`` added for pulses timed to the samples); a file of one floor per seed
+    (``energy_fraction``) is named by its stem."""
     out = {}
     for path in paths or ():
         with open(path) as fh:
             d = json.load(fh)
-        out[Path(path).stem] = {int(r["seed"]): float(r["energy_fraction"]) for r in d["seeds"]}
+        tag = " aligned" if d.get("sample_phase") == "aligned" else ""
+        for r in d["seeds"]:
+            if "modes" in r:
+                for col, fig in r["modes"].items():
+                    out.setdefault(f"{Path(path).stem} {col}{tag}", {})[int(r["seed"])] = float(fig["energy_fraction"])
+            else:
+                out.setdefault(Path(path).stem, {})[int(r["seed"])] = float(r["energy_fraction"])
     return out
 
 
@@ -168,8 +185,10 @@ def main(argv=None) -> int:
     p.add_argument("--markdown", action="store_true", help="print the tables as markdown")
     a = p.parse_args(argv)
     try:
-        rows = load(a.sweeps)
-        bounds = load_bounds(a.bound)
+        # energy_bound files among the sweeps (a folder's *.json) are floors, not sweeps
+        floors = [p for p in a.sweeps if is_bound_file(p)]
+        rows = load([p for p in a.sweeps if p not in floors])
+        bounds = load_bounds((a.bound or []) + floors)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         print(f"pareto: cannot read the sweeps: {exc}", file=sys.stderr)
         return 2

@@ -56,7 +56,8 @@ on average; the two 35 ms baselines give 6.8 (``(2 B - guard) / 10 ms``).
 magnetometer's samples (the firmware's): the counts averaged over a uniform
 phase (the weight is concave in the counts, so this over-states the mean
 information: the bound stays below). ``"aligned"`` gives every pulse the best
-phase (a policy that times its pulses to the samples).
+phase (a policy that times its pulses to the samples). A window with fewer used samples than the
+extraction accepts (``Timing.min_used``, ``min_pulse_samples``) counts none: it is refused.
 """
 from __future__ import annotations
 
@@ -71,16 +72,19 @@ MU_STEPS = 40                 # 41 e-folds / 2^40: mu to 4e-11 relative
 
 @dataclass(frozen=True)
 class Timing:
-    """The extraction's timing (seconds) and the magnetometer's rate (Hz)."""
+    """The extraction's timing (seconds), the magnetometer's rate (Hz) and the fewest used in-pulse
+    samples it accepts (``min_pulse_samples``: a window with fewer is refused and brings nothing)."""
 
     rate_hz: float
     settle_s: float
     guard_s: float
     fall_s: float
+    min_used: int = 1
 
     @classmethod
     def from_config(cls, cfg) -> "Timing":
-        return cls(float(cfg.pulse.mag_rate_hz), cfg.pulse.settle_us * 1e-6, cfg.pulse.guard_us * 1e-6, cfg.pulse.fall_us * 1e-6)
+        return cls(float(cfg.pulse.mag_rate_hz), cfg.pulse.settle_us * 1e-6, cfg.pulse.guard_us * 1e-6, cfg.pulse.fall_us * 1e-6,
+                   int(cfg.pulse.min_pulse_samples))
 
     def gap_s(self, baseline_s: float) -> float:
         """Quiet time a pulse needs after it before the next: fall + baseline + guard."""
@@ -98,7 +102,8 @@ def _counts(phi: float, T: float, B: float, tm: Timing) -> tuple[int, int]:
         used &= (t != inside[0]) & (t != inside[-1])
     before = (t >= -B) & (t <= -tm.guard_s)
     after = (t >= T + tm.fall_s) & (t <= T + tm.fall_s + B)
-    return int(used.sum()), int(before.sum() + after.sum())
+    n_used = int(used.sum())
+    return (n_used if n_used >= tm.min_used else 0), int(before.sum() + after.sum())
 
 
 def pulse_samples(T: float, B: float, tm: Timing, phase: str = "mean") -> tuple[float, float]:
