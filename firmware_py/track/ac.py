@@ -29,20 +29,24 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
+
 from coiltrack.protocol.schema import AC_FAULT_REFUSED, COIL_FAULT_REFUSED, POSE_DISTORTED
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
-from coiltrack.firmware.track.burst_fusion import BurstFusionTracker, SensorInertial
+from coiltrack.firmware.track.burst_fusion import BurstFusionTracker, PulseGate, SensorInertial
 from coiltrack.firmware.track.magnetic import MagneticTracker
 
 
-class _AlwaysQuiet:
-    """The compass gate of AC excitation: the earth-field ring holds only DC terms."""
+class _AlwaysQuiet(PulseGate):
+    """The compass gate of AC excitation: the earth-field ring holds only DC terms, so no sample
+    is inside a pulse (a :class:`PulseGate` over an empty schedule: quiet at every time, and on
+    the compiled core the same one-call sample as a pulsed source's)."""
 
-    def quiet(self, t_us: int) -> bool:
-        return True
+    def __init__(self):
+        super().__init__(np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), 0, 0)
 
 
 class _ACMixin:
