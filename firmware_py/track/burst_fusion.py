@@ -171,7 +171,7 @@ class _Ori:
         self.lost = False
         # the compass sample's search (quiet_sample) on the compiled core: bound to the magnetometer
         # ring at its first sample (the ring a filter is fed from does not change); None: Python
-        # (also for a gate without the compiled search: track.ac's, always quiet)
+        # (also for a gate without the compiled search)
         self._ext = core.ext if getattr(gate, "sample_kernel", None) is not None else None
         self._qk = None
         self._qring = None
