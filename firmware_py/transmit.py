@@ -86,7 +86,6 @@ class Transmitter:
         self._own = PoseReport()  # the record of pose_cov6 and pose_unknown
         self._bind(core)
         self._bind_window(core)
-        self._bind_cov6()
 
     def send(self, msg) -> None:
         try:
@@ -157,20 +156,12 @@ class Transmitter:
         v[3], v[4], v[5] = float(cov[3, 3]), float(cov[4, 4]), float(cov[5, 5])
         self.pose(r)
 
-    def _bind_cov6(self) -> None:
-        """:meth:`pose_cov6` on the compiled core: the frame built from the arguments in one
-        ``ct_pose_frame`` call (:meth:`_pose_cov6_compiled`), without the record in between."""
-        if self.core != "compiled":
-            return
-        self._pose_cov6_via = self.pose        # the bound :meth:`_pose_compiled`
-        self.pose_cov6 = self._pose_cov6_compiled
-
     def _pose_cov6_compiled(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose_cov6` on the compiled core: the same values into ``ct_pose_frame`` as
         :meth:`pose_cov6` hands :meth:`_pose_compiled` (read as ``float()`` reads them: the same
         bytes); while :meth:`pose` is not
         the one bound at start-up (a recorder wraps it) every pose goes through it."""
-        if self.pose is not self._pose_cov6_via:
+        if self.pose is not self._pose_own:
             Transmitter.pose_cov6(self, node, t_us, p, q, cov, status, quality)
             return
         frame = self._pose_frame(self._seq, self.node_id, node, t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3],
@@ -212,6 +203,7 @@ class Transmitter:
         self.send = self._send_numbered
         self.pose = self._pose_own = self._pose_compiled
         self.fused_pose = self._fused_pose_compiled
+        self.pose_cov6 = self._pose_cov6_compiled    # the frame from the arguments, no record between
         self.core = "compiled"
 
     def _bind_window(self, core) -> None:
