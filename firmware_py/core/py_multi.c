@@ -11,6 +11,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_pulse.h"
 
 /* an integer argument into *x; 0 (the error cleared) for anything struct.pack would refuse */
 static int mul_int64(PyObject *o, int64_t *x)
@@ -149,12 +150,6 @@ static PyObject *mul_sigma_from(PyObject *mod, PyObject *const *args, Py_ssize_t
 }
 
 /* ------------------------------------------------------------- WindowColumn */
-static int mul_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t size, const char *fmts, int writable, Py_buffer *v,
-                      const char *what)
-{
-    return ct_py_buffer(obj, n, size, fmts, writable, v, what);
-}
-
 #define WC_NBUF 15
 typedef struct {
     PyObject_HEAD
@@ -185,19 +180,19 @@ static int WindowColumn_init(WindowColumnObject *self, PyObject *args, PyObject 
     static const int size[WC_NBUF] = {8, 8, 1, 8, 8, 8, 8, 8, 8, 8, 1, 8, 8, 8, 8};
     static const int writable[WC_NBUF] = {0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1, 1};
     PyObject *o[WC_NBUF];
-    long long settle, fall, base, guard, minp, minb, gap, maxs;
-    double drift, sigma, nsig;
+    long long st[8];     /* settle, fall, baseline, guard, min_pulse, min_base, max_gap, max_samples */
+    double fl[3];        /* drift_limit, sigma, drift_nsigma */
     Py_ssize_t cap = 0, ncoil = 0, len;
     int i;
     if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOOOOOOOOOLLLLLLLLddd", kwlist, &o[0], &o[1], &o[2], &o[3],
                                      &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14],
-                                     &settle, &fall, &base, &guard, &minp, &minb, &gap, &maxs, &drift, &sigma, &nsig))
+                                     &st[0], &st[1], &st[2], &st[3], &st[4], &st[5], &st[6], &st[7], &fl[0], &fl[1], &fl[2]))
         return -1;
     if (self->bound) {
         PyErr_SetString(PyExc_RuntimeError, "WindowColumn: already bound");
         return -1;
     }
-    if (maxs < 1) {
+    if (st[7] < 1) {
         PyErr_SetString(PyExc_ValueError, "WindowColumn: max_samples must be >= 1");
         return -1;
     }
@@ -207,7 +202,7 @@ static int WindowColumn_init(WindowColumnObject *self, PyObject *args, PyObject 
         case 0: len = 2; break;
         case 1: len = 3 * cap; break;
         case 2: len = cap; break;
-        case 3: len = (Py_ssize_t)maxs; break;
+        case 3: len = (Py_ssize_t)st[7]; break;
         case 4: case 12: case 13: len = 3; break;
         case 5: len = 6; break;
         case 6: case 14: len = 4; break;
@@ -217,7 +212,7 @@ static int WindowColumn_init(WindowColumnObject *self, PyObject *args, PyObject 
         }
         if (i == 7) {      /* the coils from wflags, bound out of order: S and var are 3 x n */
             Py_buffer fv;
-            if (mul_buffer(o[9], 1, 8, fmts[9], 1, &fv, kwlist[9]) < 0) {
+            if (ct_py_buffer(o[9], 1, 8, fmts[9], 1, &fv, kwlist[9]) < 0) {
                 while (--i >= 0)
                     PyBuffer_Release(&self->views[i]);
                 return -1;
@@ -226,7 +221,7 @@ static int WindowColumn_init(WindowColumnObject *self, PyObject *args, PyObject 
             PyBuffer_Release(&fv);
             len = 3 * ncoil;
         }
-        if (mul_buffer(o[i], len, size[i], fmts[i], writable[i], &self->views[i], kwlist[i]) < 0) {
+        if (ct_py_buffer(o[i], len, size[i], fmts[i], writable[i], &self->views[i], kwlist[i]) < 0) {
             while (--i >= 0)
                 PyBuffer_Release(&self->views[i]);
             return -1;
@@ -234,25 +229,7 @@ static int WindowColumn_init(WindowColumnObject *self, PyObject *args, PyObject 
         if (i == 0)
             cap = self->views[0].len / 8;
     }
-    self->r.t = (const int64_t *)self->views[0].buf;
-    self->r.b = (const double *)self->views[1].buf;
-    self->r.flags = (const uint8_t *)self->views[2].buf;
-    self->r.cap = (int64_t)cap;
-    self->r.head = 0;
-    self->r.count = 0;
-    self->x.used_t = (int64_t *)self->views[3].buf;
-    self->x.emp_var = (double *)self->views[4].buf;
-    self->x.settle_us = settle;
-    self->x.fall_us = fall;
-    self->x.baseline_us = base;
-    self->x.guard_us = guard;
-    self->x.min_pulse = minp;
-    self->x.min_base = minb;
-    self->x.max_gap_us = gap;
-    self->x.max_samples = maxs;
-    self->x.drift_limit = drift;
-    self->x.sigma = sigma;
-    self->x.drift_nsigma = nsig;
+    ct_py_pulse_bind(&self->r, &self->x, self->views, cap, st, fl);
     self->c.n = (int64_t)ncoil;
     self->c.res = (double *)self->views[5].buf;
     self->c.ires = (int64_t *)self->views[6].buf;

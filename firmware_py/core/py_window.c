@@ -10,20 +10,10 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_pulse.h"
 
 /* a C-contiguous buffer of at least n items of `size` bytes whose format is one of `fmts`, or -1
  * with TypeError naming `what` */
-static int win_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t size, const char *fmts, int writable, Py_buffer *v,
-                      const char *what)
-{
-    return ct_py_buffer(obj, n, size, fmts, writable, v, what);
-}
-
-static int win_int64(PyObject *o, int64_t *x)
-{
-    return ct_py_int64(o, x);
-}
-
 /* ------------------------------------------------------------- PulseWindow */
 #define PW_NBUF 7
 typedef struct {
@@ -55,25 +45,25 @@ static int PulseWindow_init(PulseWindowObject *self, PyObject *args, PyObject *k
     static const int size[PW_NBUF] = {8, 8, 1, 8, 8, 8, 8};
     static const int writable[PW_NBUF] = {0, 0, 0, 1, 1, 1, 1};
     PyObject *o[PW_NBUF];
-    long long settle, fall, base, guard, minp, minb, gap, maxs;
-    double drift, sigma, nsig;
+    long long st[8];     /* settle, fall, baseline, guard, min_pulse, min_base, max_gap, max_samples */
+    double fl[3];        /* drift_limit, sigma, drift_nsigma */
     Py_ssize_t cap = 0, len[PW_NBUF];
     int i;
     if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOOOLLLLLLLLddd", kwlist, &o[0], &o[1], &o[2], &o[3], &o[4],
-                                     &o[5], &o[6], &settle, &fall, &base, &guard, &minp, &minb, &gap, &maxs, &drift,
-                                     &sigma, &nsig))
+                                     &o[5], &o[6], &st[0], &st[1], &st[2], &st[3], &st[4], &st[5], &st[6], &st[7],
+                                     &fl[0], &fl[1], &fl[2]))
         return -1;
     if (self->bound) {
         PyErr_SetString(PyExc_RuntimeError, "PulseWindow: already bound");
         return -1;
     }
-    if (maxs < 1) {
+    if (st[7] < 1) {
         PyErr_SetString(PyExc_ValueError, "PulseWindow: max_samples must be >= 1");
         return -1;
     }
     for (i = 0; i < PW_NBUF; ++i) {
-        len[i] = i == 0 ? 2 : i == 1 ? 3 * cap : i == 2 ? cap : i == 3 ? (Py_ssize_t)maxs : i == 4 ? 3 : i == 5 ? 6 : 4;
-        if (win_buffer(o[i], len[i], size[i], fmts[i], writable[i], &self->views[i], names[i]) < 0) {
+        len[i] = i == 0 ? 2 : i == 1 ? 3 * cap : i == 2 ? cap : i == 3 ? (Py_ssize_t)st[7] : i == 4 ? 3 : i == 5 ? 6 : 4;
+        if (ct_py_buffer(o[i], len[i], size[i], fmts[i], writable[i], &self->views[i], names[i]) < 0) {
             while (--i >= 0)
                 PyBuffer_Release(&self->views[i]);
             return -1;
@@ -81,27 +71,9 @@ static int PulseWindow_init(PulseWindowObject *self, PyObject *args, PyObject *k
         if (i == 0)
             cap = self->views[0].len / 8;
     }
-    self->r.t = (const int64_t *)self->views[0].buf;
-    self->r.b = (const double *)self->views[1].buf;
-    self->r.flags = (const uint8_t *)self->views[2].buf;
-    self->r.cap = (int64_t)cap;
-    self->r.head = 0;
-    self->r.count = 0;
-    self->x.used_t = (int64_t *)self->views[3].buf;
-    self->x.emp_var = (double *)self->views[4].buf;
+    ct_py_pulse_bind(&self->r, &self->x, self->views, cap, st, fl);
     self->res = (double *)self->views[5].buf;
     self->ires = (int64_t *)self->views[6].buf;
-    self->x.settle_us = settle;
-    self->x.fall_us = fall;
-    self->x.baseline_us = base;
-    self->x.guard_us = guard;
-    self->x.min_pulse = minp;
-    self->x.min_base = minb;
-    self->x.max_gap_us = gap;
-    self->x.max_samples = maxs;
-    self->x.drift_limit = drift;
-    self->x.sigma = sigma;
-    self->x.drift_nsigma = nsig;
     self->bound = 1;
     return 0;
 }
@@ -118,8 +90,8 @@ static PyObject *PulseWindow_extract(PulseWindowObject *self, PyObject *const *a
         PyErr_Format(PyExc_TypeError, "extract() takes 4 arguments (%zd given)", nargs);
         return NULL;
     }
-    if (win_int64(args[0], &start) < 0 || win_int64(args[1], &end) < 0 || win_int64(args[2], &head) < 0 ||
-        win_int64(args[3], &count) < 0)
+    if (ct_py_int64(args[0], &start) < 0 || ct_py_int64(args[1], &end) < 0 || ct_py_int64(args[2], &head) < 0 ||
+        ct_py_int64(args[3], &count) < 0)
         return NULL;
     if (head < 0 || head >= self->r.cap || count < 0 || count > self->r.cap) {
         PyErr_SetString(PyExc_ValueError, "extract: head or count outside the ring");
@@ -197,7 +169,7 @@ static int SolveIO_init(SolveIOObject *self, PyObject *args, PyObject *kw)
     len[4] = len[7] = 3;
     len[8] = 1;
     for (i = 0; i < SIO_NBUF; ++i) {
-        if (win_buffer(o[i], len[i], 8, "d", 1, &self->views[i], names[i]) < 0) {
+        if (ct_py_buffer(o[i], len[i], 8, "d", 1, &self->views[i], names[i]) < 0) {
             while (--i >= 0)
                 PyBuffer_Release(&self->views[i]);
             return -1;
