@@ -1047,6 +1047,13 @@ PyMODINIT_FUNC PyInit__core(void)
         Py_DECREF(m);
         return NULL;
     }
+#ifndef CT_SOURCE_HASH
+#define CT_SOURCE_HASH "unknown"
+#endif
+    if (PyModule_AddStringConstant(m, "SOURCE_HASH", CT_SOURCE_HASH) < 0) { /* setup.py: sources.py */
+        Py_DECREF(m);
+        return NULL;
+    }
     for (size_t i = 0; i < sizeof AREAS / sizeof AREAS[0]; i++) {
         if (AREAS[i](m) < 0) {
             Py_DECREF(m);
