@@ -909,6 +909,7 @@ class BurstFusionTracker(MagneticTracker):
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = solvers(1.0)
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
+        self._bind_report_chain(core)
 
     def _sensor_inertial(self, node: int, cfg, gate: PulseGate) -> SensorInertial:
         """The inertial part of sensor ``node`` (a pipeline of other bursts builds it with its own
@@ -1031,6 +1032,19 @@ class BurstFusionTracker(MagneticTracker):
         sent with the noise's 0.2 mm."""
         self.inertial[ch.node].motion_cov(cov, False, self._rep_cov, self.solver.position)
         return self._rep_cov
+
+    _chain_covariance = reported_covariance
+
+    def _chain_motion(self, ch):
+        """The compiled report's motion (``SensorInertial.motion_cov``'s inputs: the rate, the
+        fusion filter's velocity, the burst's rms time) and its output :attr:`_rep_cov`."""
+        ins = self.inertial[ch.node]
+        return ins.w_last, ins.fusion.st.v, self._rep_cov, ins.burst_rms_s, ins.fusion
+
+    def _bind_report_chain(self, core) -> None:
+        """Bound once the sensors' filters exist (the end of ``__init__``)."""
+        if hasattr(self, "_rep_cov"):
+            super()._bind_report_chain(core)
 
     def on_solution(self, ch, solved: bool) -> None:
         ins = self.inertial[ch.node]

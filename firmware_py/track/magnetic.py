@@ -164,6 +164,7 @@ class MagneticTracker:
         self.ahead_solves = 0            # bursts solved ahead
         self.ahead_used = 0              # of which the burst's solve (the same inputs)
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
+        self._bind_report_chain(core)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -390,23 +391,14 @@ class MagneticTracker:
     def _report(self, ch, solved: bool) -> None:
         """Send the burst's magnetic POSE of ``ch`` (without ``POSE_FUSED``),
         hand a solution to :meth:`on_solution`, move on to the next sensor."""
-        sched = self.schedule
         tp = self.poses[ch.node]
-        sv = self.solver
         t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
-        if solved and not self._take_solution(tp):
+        if solved and not self._report_pose(ch, tp, t_pose):
             # a diverged start led the solve out of the working volume: no pose; acquire again
             solved = False
             tp.have_pose = False
             self.out_of_range += 1
-        if solved:
-            tp.have_pose = True
-            cov = sv.covariance
-            q = self.quality.grade_burst(ch.node, t_pose, getattr(sv, "cost", 0.0), cov, tp.position, tp.rotation,
-                                         ch.S, ch.sigma, sched.start, sched.end)
-            self.tx.pose_cov6(ch.node, t_pose, tp.position, self._quat(tp.rotation),
-                              self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
-        else:
+        if not solved:
             self.tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
         self.on_solution(ch, solved)
         self._next += 1
@@ -421,6 +413,71 @@ class MagneticTracker:
         else:
             self._units += self.solver.n
             self._begin(self.channels[self._next])
+
+    def _report_pose(self, ch, tp: TrackedPose, t_pose: int) -> bool:
+        """The solved burst's magnetic POSE of ``ch`` whose middle is ``t_pose``: the solution
+        taken into ``tp``, graded (``PoseQuality.grade_burst``) and sent with
+        :meth:`reported_covariance`; False when it lies beyond the working volume (nothing
+        taken, nothing sent)."""
+        if not self._take_solution(tp):
+            return False
+        sched = self.schedule
+        sv = self.solver
+        tp.have_pose = True
+        cov = sv.covariance
+        q = self.quality.grade_burst(ch.node, t_pose, getattr(sv, "cost", 0.0), cov, tp.position, tp.rotation,
+                                     ch.S, ch.sigma, sched.start, sched.end)
+        self.tx.pose_cov6(ch.node, t_pose, tp.position, self._quat(tp.rotation),
+                          self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
+        return True
+
+    def _report_pose_compiled(self, ch, tp: TrackedPose, t_pose: int) -> bool:
+        """:meth:`_report_pose` with its numbers in one compiled call per channel (``ReportChain``,
+        ``core/src/report.c`` ``ct_report_solved``: the range check and copies, the grading,
+        the quaternion and the reported covariance, the same operations in the same order)."""
+        chain, cov, fus = self._chains[ch.node]
+        q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
+                                      fus is not None and fus.initialized)
+        if q < 0:
+            return False
+        tp.have_pose = True
+        self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, self._status | POSE_VALID, q)
+        return True
+
+    def _chain_motion(self, ch):
+        """Hook: what :meth:`reported_covariance` adds for ``ch``, for the compiled report: None
+        (the solver's covariance as it is), or ``(w_last, velocity, out, burst_rms_s, fusion)``
+        (``SensorInertial.motion_cov``'s inputs, its output and the filter whose ``initialized``
+        it reads)."""
+        return None
+
+    def _bind_report_chain(self, core) -> None:
+        """:meth:`_report_pose` on the compiled core: one ``ReportChain`` per channel bound to the
+        solver's results, the tracked pose, the channel's signals, the schedule and the quality's
+        row (``PoseQuality.report_chain``); replaced on this instance. Left to the Python where any
+        part is of another kind: no compiled grading, results or inputs of another layout, or a
+        :meth:`reported_covariance` whose arithmetic the chain does not repeat (a class states
+        the one it does in ``_chain_covariance``)."""
+        ext = core.ext
+        sv = self.solver
+        if ext is None or not hasattr(self, "_rp") or not hasattr(sv, "cost") \
+                or type(self).reported_covariance is not type(self)._chain_covariance:
+            return
+        chains = {}
+        for ch in self.channels:
+            tp = self.poses[ch.node]
+            try:
+                m = self._chain_motion(ch)
+                chain = self.quality.report_chain(ext, ch.node, sv.position, sv.rotation, sv.covariance, tp.position,
+                                                  tp.rotation, ch.S, ch.sigma, self.schedule.start,
+                                                  self.schedule.end, self._q, None if m is None else m[:4])
+            except (AttributeError, TypeError, ValueError):
+                chain = None
+            if chain is None:
+                return
+            chains[ch.node] = (chain, sv.covariance, None) if m is None else (chain, m[2], m[4])
+        self._chains = chains
+        self._report_pose = self._report_pose_compiled
 
     def _take_solution(self, tp: TrackedPose) -> bool:
         """The solver's pose into ``tp`` when it lies in the working volume (False: not taken)."""
@@ -475,6 +532,8 @@ class MagneticTracker:
         """Hook: the covariance the magnetic-only POSE of ``ch`` is sent with (the solver's
         ``cov``; a tracker that sees the motion within the burst adds it)."""
         return cov
+
+    _chain_covariance = reported_covariance     # what the compiled report repeats (_bind_report_chain)
 
     def on_solution(self, ch, solved: bool) -> None:
         """Hook: the burst of ``ch`` was solved (``self.solver`` holds it) or not."""
