@@ -182,10 +182,135 @@ static PyTypeObject ReportChainType = {
     .tp_methods = ReportChain_methods,
 };
 
+/* ------------------------------------------------------------- WarmStart */
+enum { WS_T, WS_D, WS_HC, WS_TP, WS_TR, WS_WP, WS_WR, WS_NBUF };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_hist h;
+    double *tp, *tR, *wp, *wR;
+    Py_buffer views[WS_NBUF];
+    int held[WS_NBUF];
+    int bound;
+} WarmStartObject;
+
+static void ws_release(WarmStartObject *self)
+{
+    int i;
+    for (i = 0; i < WS_NBUF; ++i)
+        if (self->held[i]) {
+            PyBuffer_Release(&self->views[i]);
+            self->held[i] = 0;
+        }
+}
+
+static void WarmStart_dealloc(WarmStartObject *self)
+{
+    ws_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int WarmStart_init(WarmStartObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"cap", "width", "t", "d", "hc", "tp", "tR", "wp", "wR", NULL};
+    static const char *names[WS_NBUF] = {"t", "d", "hc", "tp", "tR", "wp", "wR"};
+    static const int writable[WS_NBUF] = {0, 0, 0, 0, 0, 1, 1};
+    PyObject *o[WS_NBUF];
+    Py_ssize_t len[WS_NBUF];
+    Py_ssize_t cap, width;
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "nnOOOOOOO", kwlist, &cap, &width, &o[0], &o[1], &o[2], &o[3], &o[4],
+                                     &o[5], &o[6]))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "WarmStart: already bound");
+        return -1;
+    }
+    if (cap < 2 || width < 12) {
+        PyErr_SetString(PyExc_ValueError, "WarmStart: cap must be >= 2 and width >= 12");
+        return -1;
+    }
+    len[WS_T] = cap;
+    len[WS_D] = cap * width;
+    len[WS_HC] = 2;
+    len[WS_TP] = len[WS_WP] = 3;
+    len[WS_TR] = len[WS_WR] = 9;
+    memset(self->held, 0, sizeof self->held);
+    for (i = 0; i < WS_NBUF; ++i) {
+        int ints = i == WS_T || i == WS_HC;
+        if (ct_py_buffer(o[i], len[i], 8, ints ? "ql" : "d", writable[i], &self->views[i], names[i]) < 0) {
+            ws_release(self);
+            return -1;
+        }
+        self->held[i] = 1;
+        if (self->views[i].len != len[i] * 8) {
+            PyErr_Format(PyExc_TypeError, "%s: needs %zd items", names[i], len[i]);
+            ws_release(self);
+            return -1;
+        }
+    }
+    self->h.t = self->views[WS_T].buf;
+    self->h.d = self->views[WS_D].buf;
+    self->h.hc = self->views[WS_HC].buf;
+    self->h.cap = cap;
+    self->h.width = width;
+    self->tp = self->views[WS_TP].buf;
+    self->tR = self->views[WS_TR].buf;
+    self->wp = self->views[WS_WP].buf;
+    self->wR = self->views[WS_WR].buf;
+    self->bound = 1;
+    return 0;
+}
+
+/* warm(t_ref, have_pose, initialized, range_m) -> True or False (ct_report_warm_start) */
+static PyObject *WarmStart_warm(WarmStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t_ref;
+    double range_m;
+    int have, init;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "WarmStart: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("WarmStart.warm", nargs, 4) < 0 || ct_py_int64(args[0], &t_ref) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    init = PyObject_IsTrue(args[2]);
+    if (have < 0 || init < 0 || ct_py_double(args[3], &range_m) < 0)
+        return NULL;
+    if (ct_report_warm_start(&self->h, t_ref, have, init, range_m, self->tp, self->tR, self->wp, self->wR))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef WarmStart_methods[] = {
+    {"warm", (PyCFunction)(void (*)(void))WarmStart_warm, METH_FASTCALL,
+     "warm(t_ref, have_pose, initialized, range_m) -> whether a start was put into wp, wR "
+     "(BurstFusionTracker.warm_start: ct_report_warm_start)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject WarmStartType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.WarmStart",
+    .tp_basicsize = sizeof(WarmStartObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "WarmStart(cap, width, t, d, hc, tp, tR, wp, wR): one sensor's solve start from its fusion filter's "
+              "live pose history (t, d, hc) or its tracked pose (tp, tR) into wp, wR",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)WarmStart_init,
+    .tp_dealloc = (destructor)WarmStart_dealloc,
+    .tp_methods = WarmStart_methods,
+};
+
 int ct_register_report(PyObject *m)
 {
-    if (PyType_Ready(&ReportChainType) < 0)
+    if (PyType_Ready(&ReportChainType) < 0 || PyType_Ready(&WarmStartType) < 0)
         return -1;
+    Py_INCREF(&WarmStartType);
+    if (PyModule_AddObject(m, "WarmStart", (PyObject *)&WarmStartType) < 0) {
+        Py_DECREF(&WarmStartType);
+        return -1;
+    }
     Py_INCREF(&ReportChainType);
     if (PyModule_AddObject(m, "ReportChain", (PyObject *)&ReportChainType) < 0) {
         Py_DECREF(&ReportChainType);

@@ -48,4 +48,24 @@ void ct_report_motion_cov(const double *C, const double *p, const double *wl, co
 int ct_report_solved(const struct ct_report *r, int64_t t_us, double cost, double nis, double quiet, double range_m,
                      int initialized);
 
+/* a fusion filter's live pose history (estimate.fusion_output.PoseHistory.live, a KernelRing): its
+ * times t (cap), rows d (cap x width: the position at 0, the rotation's nine at 3) and head and
+ * count hc (2) */
+struct ct_hist {
+    const int64_t *t;
+    const double *d;
+    const int64_t *hc;
+    int64_t cap, width;
+};
+
+/* PoseHistory.pose_at (with Ring.index_at_or_after and Ring.slot): the pose at t_us interpolated
+ * into out_p (3) and out_R (9); 0 (nothing written) when t_us lies outside the history */
+int ct_report_pose_at(const struct ct_hist *h, int64_t t_us, double *out_p, double *out_R);
+
+/* BurstFusionTracker.warm_start over MagneticTracker.warm_start: the solve's start into wp (3), wR (9):
+ * the fusion filter's pose at t_ref (h; initialized) when the tracked pose is had (have_pose) and it
+ * lies within range_m, else the tracked pose tp (3), tR (9); 0 (nothing written) before a pose */
+int ct_report_warm_start(const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
+                         const double *tp, const double *tR, double *wp, double *wR);
+
 #endif /* CT_REPORT_H */
