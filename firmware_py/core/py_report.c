@@ -302,10 +302,128 @@ static PyTypeObject WarmStartType = {
     .tp_methods = WarmStart_methods,
 };
 
+/* ------------------------------------------------------------- AheadSame */
+#define AS_MAX 8
+
+typedef struct {
+    PyObject_HEAD
+    int n;
+    const double *a[AS_MAX], *b[AS_MAX];
+    int64_t len[AS_MAX];
+    Py_buffer va[AS_MAX], vb[AS_MAX];
+    int bound;
+} AheadSameObject;
+
+static void as_release(AheadSameObject *self, int upto)
+{
+    int k;
+    for (k = 0; k < upto; ++k) {
+        PyBuffer_Release(&self->va[k]);
+        PyBuffer_Release(&self->vb[k]);
+    }
+}
+
+static void AheadSame_dealloc(AheadSameObject *self)
+{
+    if (self->bound)
+        as_release(self, self->n);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* AheadSame(a, b): two sequences of as many float64 C-contiguous arrays, pair k of the same size */
+static int AheadSame_init(AheadSameObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"a", "b", NULL};
+    PyObject *sa, *sb, *fa = NULL, *fb = NULL;
+    Py_ssize_t n, k;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OO", kwlist, &sa, &sb))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "AheadSame: already bound");
+        return -1;
+    }
+    fa = PySequence_Fast(sa, "AheadSame: a must be a sequence");
+    fb = fa == NULL ? NULL : PySequence_Fast(sb, "AheadSame: b must be a sequence");
+    if (fb == NULL) {
+        Py_XDECREF(fa);
+        return -1;
+    }
+    n = PySequence_Fast_GET_SIZE(fa);
+    if (n != PySequence_Fast_GET_SIZE(fb) || n < 1 || n > AS_MAX) {
+        PyErr_Format(PyExc_ValueError, "AheadSame: a and b need the same number of arrays, 1..%d", AS_MAX);
+        goto fail;
+    }
+    for (k = 0; k < n; ++k) {
+        if (ct_py_buffer(PySequence_Fast_GET_ITEM(fa, k), 1, 8, "d", 0, &self->va[k], "a") < 0)
+            goto fail_k;
+        if (ct_py_buffer(PySequence_Fast_GET_ITEM(fb, k), 1, 8, "d", 0, &self->vb[k], "b") < 0) {
+            PyBuffer_Release(&self->va[k]);
+            goto fail_k;
+        }
+        if (self->va[k].len != self->vb[k].len) {
+            PyBuffer_Release(&self->va[k]);
+            PyBuffer_Release(&self->vb[k]);
+            PyErr_SetString(PyExc_ValueError, "AheadSame: a pair of arrays of different sizes");
+            goto fail_k;
+        }
+        self->a[k] = self->va[k].buf;
+        self->b[k] = self->vb[k].buf;
+        self->len[k] = self->va[k].len / 8;
+    }
+    self->n = (int)n;
+    self->bound = 1;
+    Py_DECREF(fa);
+    Py_DECREF(fb);
+    return 0;
+fail_k:
+    as_release(self, (int)k);
+fail:
+    Py_DECREF(fa);
+    Py_DECREF(fb);
+    return -1;
+}
+
+static PyObject *AheadSame_same(AheadSameObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "AheadSame: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("AheadSame.same", nargs, 0) < 0)
+        return NULL;
+    if (ct_report_same(self->n, self->a, self->b, self->len))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef AheadSame_methods[] = {
+    {"same", (PyCFunction)(void (*)(void))AheadSame_same, METH_FASTCALL,
+     "same() -> whether every pair of the bound arrays is equal element by element (_Ahead.same: ct_report_same)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject AheadSameType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.AheadSame",
+    .tp_basicsize = sizeof(AheadSameObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "AheadSame(a, b): pairs of float64 arrays compared element by element (a burst solved ahead's inputs "
+              "against the burst's own)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)AheadSame_init,
+    .tp_dealloc = (destructor)AheadSame_dealloc,
+    .tp_methods = AheadSame_methods,
+};
+
 int ct_register_report(PyObject *m)
 {
-    if (PyType_Ready(&ReportChainType) < 0 || PyType_Ready(&WarmStartType) < 0)
+    if (PyType_Ready(&ReportChainType) < 0 || PyType_Ready(&WarmStartType) < 0 || PyType_Ready(&AheadSameType) < 0)
         return -1;
+    Py_INCREF(&AheadSameType);
+    if (PyModule_AddObject(m, "AheadSame", (PyObject *)&AheadSameType) < 0) {
+        Py_DECREF(&AheadSameType);
+        return -1;
+    }
     Py_INCREF(&WarmStartType);
     if (PyModule_AddObject(m, "WarmStart", (PyObject *)&WarmStartType) < 0) {
         Py_DECREF(&WarmStartType);

@@ -29,6 +29,7 @@ one that waited (which is charged nothing).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -155,6 +156,11 @@ class MagneticTracker:
         self._inputs = tuple(tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.position,
                                                            tp.warm_p, tp.warm_R))
                              for ch, tp in ((ch, self.poses[ch.node]) for ch in self.channels))
+        # per channel, whether its burst's inputs are those its solve ahead began with (_Ahead.same; on
+        # the compiled core one ``AheadSame`` call, ``core/src/report.c`` ``ct_report_same``)
+        self._same = tuple(functools.partial(ah.same, inp) for ah, inp in zip(self._ahead, self._inputs))
+        if core.ext is not None:
+            self._same = tuple(core.ext.AheadSame(ah._views, inp).same for ah, inp in zip(self._ahead, self._inputs))
         self._ahead_k = -1               # the channel whose burst the solver is solving ahead; -1: none
         self._ahead_seen = None          # the burst every channel has had its turn to be solved ahead for
         # per channel, the SensorChannel.changes at which its burst was last found not ready to be
@@ -341,7 +347,7 @@ class MagneticTracker:
         if ah.burst != self.schedule.burst_start or not (ah.done or running == k):
             return False
         ah.burst = None
-        if not ah.same(self._inputs[k]):
+        if not self._same[k]():
             self.ahead_missed += 1
             return False
         self.ahead_used += 1

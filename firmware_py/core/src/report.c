@@ -117,3 +117,14 @@ int ct_report_warm_start(const struct ct_hist *h, int64_t t_ref, int have_pose, 
     memcpy(wR, tR, 9 * sizeof(double));
     return 1;
 }
+
+int ct_report_same(int n, const double *const *a, const double *const *b, const int64_t *len)
+{
+    int k;
+    int64_t i;
+    for (k = 0; k < n; ++k)
+        for (i = 0; i < len[k]; ++i)
+            if (a[k][i] != b[k][i])
+                return 0;
+    return 1;
+}
