@@ -109,7 +109,78 @@ def _closed_before(done, j: int) -> bool:
     return True
 
 
-class MagneticTracker:
+class _CompiledReport:
+    """:class:`MagneticTracker`'s report on the compiled core (``core/src/finish.c``,
+    ``core/src/report.c``): bound once at construction, replacing the methods on the instance, so
+    no call tests the choice. The Python methods of :class:`MagneticTracker` stay the reference;
+    each method here does the same operations in the same order (the same results to the bit) or
+    hands inputs of another kind to them."""
+
+    def _bind_report(self, core) -> None:
+        """:meth:`_take_solution` and :meth:`_quat` on the compiled core (``core/src/finish.c``
+        ``ct_report_take``, ``fusimu.c`` ``ct_quat_from_elements``: the same operations, the same
+        bits) through a ``ReportPose`` bound to the solver's results; replaced on this instance."""
+        ext = core.ext
+        sv = self.solver
+        arrays = [getattr(sv, k, None) for k in ("position", "rotation")]
+        if ext is None or not all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
+                                  and a.size == m for a, m in zip(arrays, (3, 9))):
+            return                       # results of another kind: the Python's own copies
+        self._q = np.zeros(4)
+        self._qv = memoryview(self._q)
+        self._rp = ext.ReportPose(sv.position, sv.rotation, self._q)
+        self._take_solution = self._take_solution_compiled
+        self._quat = self._quat_compiled
+
+    def _take_solution_compiled(self, tp: TrackedPose) -> bool:
+        r = self._rp.take(tp.position, tp.rotation, self.range_m)
+        return MagneticTracker._take_solution(self, tp) if r is None else r
+
+    def _quat_compiled(self, R):
+        return self._qv if self._rp.quat(R) else quat_tuple(R)
+
+    def _report_pose_compiled(self, ch, tp: TrackedPose, t_pose: int) -> bool:
+        """:meth:`_report_pose` with its numbers in one compiled call per channel (``ReportChain``,
+        ``core/src/report.c`` ``ct_report_solved``: the range check and copies, the grading,
+        the quaternion and the reported covariance, the same operations in the same order)."""
+        chain, cov, fus = self._chains[ch.node]
+        q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
+                                      fus is not None and fus.initialized)
+        if q < 0:
+            return False
+        tp.have_pose = True
+        self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, self._status | POSE_VALID, q)
+        return True
+
+    def _bind_report_chain(self, core) -> None:
+        """:meth:`_report_pose` on the compiled core: one ``ReportChain`` per channel bound to the
+        solver's results, the tracked pose, the channel's signals, the schedule and the quality's
+        row (``PoseQuality.report_chain``); replaced on this instance. Left to the Python where any
+        part is of another kind: no compiled grading, results or inputs of another layout, or a
+        :meth:`reported_covariance` whose arithmetic the chain does not repeat (a class states
+        the one it does in ``_chain_covariance``)."""
+        ext = core.ext
+        sv = self.solver
+        if ext is None or not hasattr(self, "_rp") or not hasattr(sv, "cost") \
+                or type(self).reported_covariance is not type(self)._chain_covariance:
+            return
+        chains = {}
+        for ch in self.channels:
+            tp = self.poses[ch.node]
+            try:
+                m = self._chain_motion(ch)
+                chain = self.quality.report_chain(ext, ch.node, sv.position, sv.rotation, sv.covariance, tp.position,
+                                                  tp.rotation, ch.S, ch.sigma, self.schedule.start,
+                                                  self.schedule.end, self._q, None if m is None else m[:4])
+            except (AttributeError, TypeError, ValueError):
+                chain = None
+            if chain is None:
+                return
+            chains[ch.node] = (chain, sv.covariance, None) if m is None else (chain, m[2], m[4])
+        self._chains = chains
+        self._report_pose = self._report_pose_compiled
+
+class MagneticTracker(_CompiledReport):
     """Solves each burst for every sensor and reports the magnetic poses (a
     :class:`coiltrack.firmware.track.BurstTracker`).
 
@@ -437,53 +508,12 @@ class MagneticTracker:
                           self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
         return True
 
-    def _report_pose_compiled(self, ch, tp: TrackedPose, t_pose: int) -> bool:
-        """:meth:`_report_pose` with its numbers in one compiled call per channel (``ReportChain``,
-        ``core/src/report.c`` ``ct_report_solved``: the range check and copies, the grading,
-        the quaternion and the reported covariance, the same operations in the same order)."""
-        chain, cov, fus = self._chains[ch.node]
-        q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
-                                      fus is not None and fus.initialized)
-        if q < 0:
-            return False
-        tp.have_pose = True
-        self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, self._status | POSE_VALID, q)
-        return True
-
     def _chain_motion(self, ch):
         """Hook: what :meth:`reported_covariance` adds for ``ch``, for the compiled report: None
         (the solver's covariance as it is), or ``(w_last, velocity, out, burst_rms_s, fusion)``
         (``SensorInertial.motion_cov``'s inputs, its output and the filter whose ``initialized``
         it reads)."""
         return None
-
-    def _bind_report_chain(self, core) -> None:
-        """:meth:`_report_pose` on the compiled core: one ``ReportChain`` per channel bound to the
-        solver's results, the tracked pose, the channel's signals, the schedule and the quality's
-        row (``PoseQuality.report_chain``); replaced on this instance. Left to the Python where any
-        part is of another kind: no compiled grading, results or inputs of another layout, or a
-        :meth:`reported_covariance` whose arithmetic the chain does not repeat (a class states
-        the one it does in ``_chain_covariance``)."""
-        ext = core.ext
-        sv = self.solver
-        if ext is None or not hasattr(self, "_rp") or not hasattr(sv, "cost") \
-                or type(self).reported_covariance is not type(self)._chain_covariance:
-            return
-        chains = {}
-        for ch in self.channels:
-            tp = self.poses[ch.node]
-            try:
-                m = self._chain_motion(ch)
-                chain = self.quality.report_chain(ext, ch.node, sv.position, sv.rotation, sv.covariance, tp.position,
-                                                  tp.rotation, ch.S, ch.sigma, self.schedule.start,
-                                                  self.schedule.end, self._q, None if m is None else m[:4])
-            except (AttributeError, TypeError, ValueError):
-                chain = None
-            if chain is None:
-                return
-            chains[ch.node] = (chain, sv.covariance, None) if m is None else (chain, m[2], m[4])
-        self._chains = chains
-        self._report_pose = self._report_pose_compiled
 
     def _take_solution(self, tp: TrackedPose) -> bool:
         """The solver's pose into ``tp`` when it lies in the working volume (False: not taken)."""
@@ -497,29 +527,6 @@ class MagneticTracker:
     def _quat(self, R):
         """The POSE's quaternion of ``R`` (``rotation.quat_tuple``)."""
         return quat_tuple(R)
-
-    def _bind_report(self, core) -> None:
-        """:meth:`_take_solution` and :meth:`_quat` on the compiled core (``core/src/finish.c``
-        ``ct_report_take``, ``fusimu.c`` ``ct_quat_from_elements``: the same operations, the same
-        bits) through a ``ReportPose`` bound to the solver's results; replaced on this instance."""
-        ext = core.ext
-        sv = self.solver
-        arrays = [getattr(sv, k, None) for k in ("position", "rotation")]
-        if ext is None or not all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
-                                  and a.size == m for a, m in zip(arrays, (3, 9))):
-            return                       # results of another kind: the Python's own copies
-        self._q = np.zeros(4)
-        self._qv = memoryview(self._q)
-        self._rp = ext.ReportPose(sv.position, sv.rotation, self._q)
-        self._take_solution = self._take_solution_compiled
-        self._quat = self._quat_compiled
-
-    def _take_solution_compiled(self, tp: TrackedPose) -> bool:
-        r = self._rp.take(tp.position, tp.rotation, self.range_m)
-        return MagneticTracker._take_solution(self, tp) if r is None else r
-
-    def _quat_compiled(self, R):
-        return self._qv if self._rp.quat(R) else quat_tuple(R)
 
     def warm_start(self, ch, tp: TrackedPose) -> bool:
         """Put the solve's start into ``tp.warm_p``, ``tp.warm_R``: the last
