@@ -306,6 +306,7 @@ class _CompiledSolver:
                                  self.rotation, self.position, self._m9, self._fwork, self._svst))
         self._unit_c = self._unit_run                 # the compiled units' marker, one bound method (identity)
         self.begin = self._begin_compiled
+        self.step = self._step_compiled
         self._unit_lm_start = self._unit_lm_start_compiled
         self.predict_signals = self._predict_signals_compiled
 
@@ -441,13 +442,38 @@ class _CompiledSolver:
         self.status = status
         self._then(None)
 
+    def _step_compiled(self, budget_evals: int) -> int:
+        """:meth:`StagedSolve.step` in one frame where the next unit is the compiled one (a warm
+        solve's LM or finish): the run (``ct_solve_run``), the Python's units after it where the
+        warm start failed its checks (:meth:`_run_from`), the charges and the step's counters, in
+        the reference's order; other units: the reference's step."""
+        if self.next_unit is not self._unit_c:
+            return StagedSolve.step(self, budget_evals)
+        signal = self.signal
+        start = signal.evals
+        phase = self._sv.run(0, budget_evals)
+        spent = int(self._svv[_SV_SPENT])
+        self._after_run(phase)
+        if phase == _PH_ACQUIRE:
+            spent = self._run_from(spent, budget_evals)
+        self.units_last = spent
+        used = signal.evals - start
+        self.evals_last_step = used
+        self.solve_evals += used
+        if used > self.max_evals_per_step:
+            self.max_evals_per_step = used
+        return SOLVE_RUNNING if self.next_unit is not None else self.status
+
     def _run_compiled(self, budget: int) -> int:
         """:func:`staged.run_units` with the compiled units (:meth:`_unit_run`) run in one call
         (``ct_solve_run``) and the Python LM's steps as units: the same units, charges and
         evaluations."""
-        signal = self.signal
-        start = signal.evals
-        spent = 0
+        start = self.signal.evals
+        self.units_last = self._run_from(0, budget)
+        return self.signal.evals - start
+
+    def _run_from(self, spent: int, budget: int) -> int:
+        """:meth:`_run_compiled`'s units from ``spent`` charged in this step; the charges after them."""
         unit_c = self._unit_c
         while self.next_unit is not None:
             if self.next_unit is unit_c:
@@ -462,8 +488,7 @@ class _CompiledSolver:
                 break
             self.next_unit()
             spent += cost
-        self.units_last = spent
-        return signal.evals - start
+        return spent
 
 
 class PoseSolver(_CompiledSolver, StagedSolve):

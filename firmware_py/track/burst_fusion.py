@@ -909,6 +909,7 @@ class BurstFusionTracker(MagneticTracker):
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = solvers(1.0)
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
+        self._bind_report_chain(core)
 
     def _sensor_inertial(self, node: int, cfg, gate: PulseGate) -> SensorInertial:
         """The inertial part of sensor ``node`` (a pipeline of other bursts builds it with its own
@@ -1031,6 +1032,52 @@ class BurstFusionTracker(MagneticTracker):
         sent with the noise's 0.2 mm."""
         self.inertial[ch.node].motion_cov(cov, False, self._rep_cov, self.solver.position)
         return self._rep_cov
+
+    _chain_covariance = reported_covariance
+
+    def _chain_motion(self, ch):
+        """The compiled report's motion (``SensorInertial.motion_cov``'s inputs: the rate, the
+        fusion filter's velocity, the burst's rms time) and its output :attr:`_rep_cov`."""
+        ins = self.inertial[ch.node]
+        return ins.w_last, ins.fusion.st.v, self._rep_cov, ins.burst_rms_s, ins.fusion
+
+    def _bind_report_chain(self, core) -> None:
+        """Bound once the sensors' filters exist (the end of ``__init__``), with :meth:`_bind_warm`."""
+        if hasattr(self, "_rep_cov"):
+            super()._bind_report_chain(core)
+            self._bind_warm(core)
+
+    def _bind_warm(self, core) -> None:
+        """:meth:`warm_start` on the compiled core: one ``WarmStart`` per sensor (``core/src/report.c``
+        ``ct_report_warm_start``: ``PoseHistory.pose_at`` over the fusion filter's live history, the
+        range check and the tracked pose's copies; the same operations, the same bits) bound to that
+        history and the tracked pose; replaced on this instance. Left to the Python where a class
+        overrides :meth:`warm_start` or the filter's ``pose_at``, or the history is of another kind."""
+        from coiltrack.firmware.estimate.fusion_output import PoseHistory
+        from coiltrack.firmware.estimate.fusion_state import HIST_P, HIST_R
+        from coiltrack.firmware.estimate.magnetic_inertial import FilterView
+        ext = core.ext
+        if ext is None or type(self).warm_start is not BurstFusionTracker.warm_start or (HIST_P, HIST_R) != (0, 3):
+            return
+        warms = {}
+        for ch in self.channels:
+            ins = self.inertial[ch.node]
+            tp = self.poses[ch.node]
+            try:
+                fus = ins.fusion
+                hist = fus.history.live
+                if type(fus).pose_at is not FilterView.pose_at or type(fus.history).pose_at is not PoseHistory.pose_at:
+                    return
+                warms[ch.node] = (ext.WarmStart(hist.capacity, hist.width, hist.t, hist.d, hist.hc, tp.position,
+                                                tp.rotation, tp.warm_p, tp.warm_R), ins)
+            except (AttributeError, TypeError, ValueError):
+                return
+        self._warms = warms
+        self.warm_start = self._warm_start_compiled
+
+    def _warm_start_compiled(self, ch, tp) -> bool:
+        w, ins = self._warms[ch.node]
+        return w.warm(ins.t_ref, tp.have_pose, ins.fusion.initialized, self.range_m)
 
     def on_solution(self, ch, solved: bool) -> None:
         ins = self.inertial[ch.node]

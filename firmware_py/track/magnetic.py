@@ -29,6 +29,7 @@ one that waited (which is charged nothing).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -108,7 +109,78 @@ def _closed_before(done, j: int) -> bool:
     return True
 
 
-class MagneticTracker:
+class _CompiledReport:
+    """:class:`MagneticTracker`'s report on the compiled core (``core/src/finish.c``,
+    ``core/src/report.c``): bound once at construction, replacing the methods on the instance, so
+    no call tests the choice. The Python methods of :class:`MagneticTracker` stay the reference;
+    each method here does the same operations in the same order (the same results to the bit) or
+    hands inputs of another kind to them."""
+
+    def _bind_report(self, core) -> None:
+        """:meth:`_take_solution` and :meth:`_quat` on the compiled core (``core/src/finish.c``
+        ``ct_report_take``, ``fusimu.c`` ``ct_quat_from_elements``: the same operations, the same
+        bits) through a ``ReportPose`` bound to the solver's results; replaced on this instance."""
+        ext = core.ext
+        sv = self.solver
+        arrays = [getattr(sv, k, None) for k in ("position", "rotation")]
+        if ext is None or not all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
+                                  and a.size == m for a, m in zip(arrays, (3, 9))):
+            return                       # results of another kind: the Python's own copies
+        self._q = np.zeros(4)
+        self._qv = memoryview(self._q)
+        self._rp = ext.ReportPose(sv.position, sv.rotation, self._q)
+        self._take_solution = self._take_solution_compiled
+        self._quat = self._quat_compiled
+
+    def _take_solution_compiled(self, tp: TrackedPose) -> bool:
+        r = self._rp.take(tp.position, tp.rotation, self.range_m)
+        return MagneticTracker._take_solution(self, tp) if r is None else r
+
+    def _quat_compiled(self, R):
+        return self._qv if self._rp.quat(R) else quat_tuple(R)
+
+    def _report_pose_compiled(self, ch, tp: TrackedPose, t_pose: int) -> bool:
+        """:meth:`_report_pose` with its numbers in one compiled call per channel (``ReportChain``,
+        ``core/src/report.c`` ``ct_report_solved``: the range check and copies, the grading,
+        the quaternion and the reported covariance, the same operations in the same order)."""
+        chain, cov, fus = self._chains[ch.node]
+        q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
+                                      fus is not None and fus.initialized)
+        if q < 0:
+            return False
+        tp.have_pose = True
+        self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, self._status | POSE_VALID, q)
+        return True
+
+    def _bind_report_chain(self, core) -> None:
+        """:meth:`_report_pose` on the compiled core: one ``ReportChain`` per channel bound to the
+        solver's results, the tracked pose, the channel's signals, the schedule and the quality's
+        row (``PoseQuality.report_chain``); replaced on this instance. Left to the Python where any
+        part is of another kind: no compiled grading, results or inputs of another layout, or a
+        :meth:`reported_covariance` whose arithmetic the chain does not repeat (a class states
+        the one it does in ``_chain_covariance``)."""
+        ext = core.ext
+        sv = self.solver
+        if ext is None or not hasattr(self, "_rp") or not hasattr(sv, "cost") \
+                or type(self).reported_covariance is not type(self)._chain_covariance:
+            return
+        chains = {}
+        for ch in self.channels:
+            tp = self.poses[ch.node]
+            try:
+                m = self._chain_motion(ch)
+                chain = self.quality.report_chain(ext, ch.node, sv.position, sv.rotation, sv.covariance, tp.position,
+                                                  tp.rotation, ch.S, ch.sigma, self.schedule.start,
+                                                  self.schedule.end, self._q, None if m is None else m[:4])
+            except (AttributeError, TypeError, ValueError):
+                chain = None
+            if chain is None:
+                return
+            chains[ch.node] = (chain, sv.covariance, None) if m is None else (chain, m[2], m[4])
+        self._chains = chains
+        self._report_pose = self._report_pose_compiled
+
+class MagneticTracker(_CompiledReport):
     """Solves each burst for every sensor and reports the magnetic poses (a
     :class:`coiltrack.firmware.track.BurstTracker`).
 
@@ -155,6 +227,11 @@ class MagneticTracker:
         self._inputs = tuple(tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.position,
                                                            tp.warm_p, tp.warm_R))
                              for ch, tp in ((ch, self.poses[ch.node]) for ch in self.channels))
+        # per channel, whether its burst's inputs are those its solve ahead began with (_Ahead.same; on
+        # the compiled core one ``AheadSame`` call, ``core/src/report.c`` ``ct_report_same``)
+        self._same = tuple(functools.partial(ah.same, inp) for ah, inp in zip(self._ahead, self._inputs))
+        if core.ext is not None:
+            self._same = tuple(core.ext.AheadSame(ah._views, inp).same for ah, inp in zip(self._ahead, self._inputs))
         self._ahead_k = -1               # the channel whose burst the solver is solving ahead; -1: none
         self._ahead_seen = None          # the burst every channel has had its turn to be solved ahead for
         # per channel, the SensorChannel.changes at which its burst was last found not ready to be
@@ -164,6 +241,7 @@ class MagneticTracker:
         self.ahead_solves = 0            # bursts solved ahead
         self.ahead_used = 0              # of which the burst's solve (the same inputs)
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
+        self._bind_report_chain(core)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -340,7 +418,7 @@ class MagneticTracker:
         if ah.burst != self.schedule.burst_start or not (ah.done or running == k):
             return False
         ah.burst = None
-        if not ah.same(self._inputs[k]):
+        if not self._same[k]():
             self.ahead_missed += 1
             return False
         self.ahead_used += 1
@@ -390,23 +468,14 @@ class MagneticTracker:
     def _report(self, ch, solved: bool) -> None:
         """Send the burst's magnetic POSE of ``ch`` (without ``POSE_FUSED``),
         hand a solution to :meth:`on_solution`, move on to the next sensor."""
-        sched = self.schedule
         tp = self.poses[ch.node]
-        sv = self.solver
         t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
-        if solved and not self._take_solution(tp):
+        if solved and not self._report_pose(ch, tp, t_pose):
             # a diverged start led the solve out of the working volume: no pose; acquire again
             solved = False
             tp.have_pose = False
             self.out_of_range += 1
-        if solved:
-            tp.have_pose = True
-            cov = sv.covariance
-            q = self.quality.grade_burst(ch.node, t_pose, getattr(sv, "cost", 0.0), cov, tp.position, tp.rotation,
-                                         ch.S, ch.sigma, sched.start, sched.end)
-            self.tx.pose_cov6(ch.node, t_pose, tp.position, self._quat(tp.rotation),
-                              self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
-        else:
+        if not solved:
             self.tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
         self.on_solution(ch, solved)
         self._next += 1
@@ -422,6 +491,30 @@ class MagneticTracker:
             self._units += self.solver.n
             self._begin(self.channels[self._next])
 
+    def _report_pose(self, ch, tp: TrackedPose, t_pose: int) -> bool:
+        """The solved burst's magnetic POSE of ``ch`` whose middle is ``t_pose``: the solution
+        taken into ``tp``, graded (``PoseQuality.grade_burst``) and sent with
+        :meth:`reported_covariance`; False when it lies beyond the working volume (nothing
+        taken, nothing sent)."""
+        if not self._take_solution(tp):
+            return False
+        sched = self.schedule
+        sv = self.solver
+        tp.have_pose = True
+        cov = sv.covariance
+        q = self.quality.grade_burst(ch.node, t_pose, getattr(sv, "cost", 0.0), cov, tp.position, tp.rotation,
+                                     ch.S, ch.sigma, sched.start, sched.end)
+        self.tx.pose_cov6(ch.node, t_pose, tp.position, self._quat(tp.rotation),
+                          self.reported_covariance(ch, cov), self._status | POSE_VALID, q)
+        return True
+
+    def _chain_motion(self, ch):
+        """Hook: what :meth:`reported_covariance` adds for ``ch``, for the compiled report: None
+        (the solver's covariance as it is), or ``(w_last, velocity, out, burst_rms_s, fusion)``
+        (``SensorInertial.motion_cov``'s inputs, its output and the filter whose ``initialized``
+        it reads)."""
+        return None
+
     def _take_solution(self, tp: TrackedPose) -> bool:
         """The solver's pose into ``tp`` when it lies in the working volume (False: not taken)."""
         sv = self.solver
@@ -434,29 +527,6 @@ class MagneticTracker:
     def _quat(self, R):
         """The POSE's quaternion of ``R`` (``rotation.quat_tuple``)."""
         return quat_tuple(R)
-
-    def _bind_report(self, core) -> None:
-        """:meth:`_take_solution` and :meth:`_quat` on the compiled core (``core/src/finish.c``
-        ``ct_report_take``, ``fusimu.c`` ``ct_quat_from_elements``: the same operations, the same
-        bits) through a ``ReportPose`` bound to the solver's results; replaced on this instance."""
-        ext = core.ext
-        sv = self.solver
-        arrays = [getattr(sv, k, None) for k in ("position", "rotation")]
-        if ext is None or not all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous
-                                  and a.size == m for a, m in zip(arrays, (3, 9))):
-            return                       # results of another kind: the Python's own copies
-        self._q = np.zeros(4)
-        self._qv = memoryview(self._q)
-        self._rp = ext.ReportPose(sv.position, sv.rotation, self._q)
-        self._take_solution = self._take_solution_compiled
-        self._quat = self._quat_compiled
-
-    def _take_solution_compiled(self, tp: TrackedPose) -> bool:
-        r = self._rp.take(tp.position, tp.rotation, self.range_m)
-        return MagneticTracker._take_solution(self, tp) if r is None else r
-
-    def _quat_compiled(self, R):
-        return self._qv if self._rp.quat(R) else quat_tuple(R)
 
     def warm_start(self, ch, tp: TrackedPose) -> bool:
         """Put the solve's start into ``tp.warm_p``, ``tp.warm_R``: the last
@@ -475,6 +545,8 @@ class MagneticTracker:
         """Hook: the covariance the magnetic-only POSE of ``ch`` is sent with (the solver's
         ``cov``; a tracker that sees the motion within the burst adds it)."""
         return cov
+
+    _chain_covariance = reported_covariance     # what the compiled report repeats (_bind_report_chain)
 
     def on_solution(self, ch, solved: bool) -> None:
         """Hook: the burst of ``ch`` was solved (``self.solver`` holds it) or not."""

@@ -150,6 +150,35 @@ class PoseQuality:
         self.last[node] = q
         return q
 
+    def report_chain(self, ext, node: int, sp, sR, scov, tp, tR, S, sigma, start, end, q, motion=None):
+        """A compiled report of ``node``'s solved bursts (``ext.ReportChain``, ``core/src/report.c``)
+        bound to the solver's results ``sp``, ``sR``, ``scov``, the tracked pose ``tp``, ``tR``, the
+        channel's ``S`` and ``sigma``, the pulses' ``start`` and ``end``, the quaternion ``q`` (4,)
+        and this grader's row of ``node`` and scratch; ``motion``: ``(w_last, velocity, out,
+        burst_rms_s)`` of the reported covariance's motion term, or None. None when the grading is
+        not compiled or ``node`` has no row (the Python grades)."""
+        if getattr(self, "_bq", None) is None or node not in self._row:
+            return None
+        wl, v, cov, rms = (None, None, None, 0.0) if motion is None else motion
+        return ext.ReportChain(self._n, self.dof, self.scale, float(self.max_gap_us), self._row[node], self._centers,
+                               self._prev_rows, self._H, self._u, self._g, self._dx, self._d, self._xd,
+                               self._motion_out, sp, sR, scov, tp, tR, S, sigma, start, end, q, wl, v, cov,
+                               float(rms))
+
+    def grade_report(self, chain, node: int, t_us: int, cost: float, range_m: float, initialized: bool,
+                     nis_per_dim: float = 0.0) -> int:
+        """A solved burst's report through ``chain`` (:meth:`report_chain`; ``ct_report_solved``):
+        -1 when the solution lies beyond ``range_m`` (nothing graded), else its quality as
+        :meth:`grade_burst` gives it (kept in ``last[node]``, the motion in ``motion_m2`` and
+        ``chi2_motion``)."""
+        q = chain.solved(t_us, cost, nis_per_dim, self.quiet_term(node), range_m, initialized)
+        if q >= 0:
+            mv = self._mov
+            self.motion_m2 = mv[0]
+            self.chi2_motion = mv[1]
+            self.last[node] = q
+        return q
+
     def fit_term(self, cost: float) -> float:
         """``chi2 / dof`` (0 without residual freedom)."""
         return cost / self.dof if self.dof > 0 else 0.0
