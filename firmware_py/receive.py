@@ -285,17 +285,19 @@ class Receiver:
         if not data:
             return
         dec = self.decoder
-        q, w = dec.rows, dec.width
+        q, w, cap = dec.rows, dec.width, dec.capacity
         pos, end = 0, len(data)
         seen = self.supervisor.on_message
         smag, sreply = self._sup_mag, self._sup_reply
         # a magnetometer sample straight to its channel (:meth:`_mag_in` without the call) when
-        # no node's magnetometer is calibrated
+        # no node's magnetometer is calibrated; an IMU sample likewise (:meth:`_on_imu`'s steps)
+        # when no node's IMU is
         chans = None if self.mag_cal else self.channels
+        ichans = None if self.imu_cal else self.channels
         r = self._mag
         while pos < end:
             n = dec.decode(data, pos, now_us)
-            pos = dec.pos
+            pos = end if n < cap else dec.pos        # (fewer rows than the table holds: all taken)
             for b in range(0, n * w, w):
                 kind = q[b + _RXR_KIND]
                 if kind == _RXK_MAG_PACKED or kind == _RXK_MAG:
@@ -316,8 +318,14 @@ class Receiver:
                     seen(ri, now_us)
                     if q[b + _RXR_CLIP]:
                         self._imu_in(ri, True, now_us)
-                    else:
+                    elif ichans is None:
                         self._on_imu(ri, now_us)
+                    else:
+                        self.imu_received += 1
+                        ch = ichans.get(ri.node)
+                        if ch is not None:
+                            ch.push_imu(ri)
+                        self.tracker.on_imu(ri, now_us)
                 elif sreply is None or q[b] != _SYNC_REPLY or sreply(q[b + 1], now_us):
                     self._route(dec.raw_message(b // w), now_us)
 
