@@ -139,14 +139,23 @@ class Transmitter:
             return -1
         nxt = kernel.pose_next
         nid = self.node_id
+        write = self.port.write
+        valid = status & POSE_VALID
         while True:
             frame = nxt(self._seq, nid, node, status, quality, range_m)
             if frame is None:
                 return -1
             if frame == 0:
                 return 0
-            self._write_numbered(frame)
-            self._count_pose(status)
+            self._seq = (self._seq + 1) & 0xFF         # (_write_numbered and _count_pose, inline)
+            try:
+                write(frame)
+            except Exception:  # a full or broken link must not stop the loop
+                self.tx_errors += 1
+            if valid:
+                self.poses += 1
+                if status & POSE_FUSED:
+                    self.fused_poses += 1
 
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the

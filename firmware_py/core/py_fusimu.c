@@ -1586,8 +1586,9 @@ int ct_register_fusimu(PyObject *m)
         PyModule_AddIntConstant(m, "FUS_OUT_WIDTH", CT_OUT_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_OA_N", CT_OA_N) < 0 || PyModule_AddIntConstant(m, "FUS_NST", CT_FS_NST) < 0 ||
         PyModule_AddIntConstant(m, "FUS_CS_N", CT_CS_N) < 0 || PyModule_AddIntConstant(m, "FUS_FL_N", CT_FL_N) < 0 ||
-        PyModule_AddIntConstant(m, "FUS_FI_N", CT_FI_COUNT) < 0 || PyModule_AddIntConstant(m, "FUS_IN_N", CT_IN_N) < 0 ||
-        PyModule_AddIntConstant(m, "FUS_IR_N", CT_IR_N) < 0)
+        PyModule_AddIntConstant(m, "FUS_FI_N", CT_FI_COUNT) < 0 || PyModule_AddIntConstant(m, "FUS_IN_N", CT_IN_N) < 0)
+        return -1;
+    if (PyModule_AddIntConstant(m, "FUS_IR_N", CT_IR_N) < 0)
         return -1;
     return 0;
 }

@@ -448,30 +448,24 @@ class _OneCall:
         self.kernel = None
         self._ring = None
         self._hold = None if source.fixed else source.hold     # (a fixed source never holds)
-        f = ori.f
-        self._upd = (f.pred, f.incl.upd, f.compass.upd)         # (their counts: the kernel's arguments)
+        self._b = ()
 
     def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
-        """:meth:`SensorInertial.process`'s loop; the samples processed. (The filters' update objects
-        and the bound methods are read once a call: they do not change while it runs.)"""
-        ks = self.kernel if self._ring is mag else self._bind(mag)
-        peek = ks.peek
+        """:meth:`SensorInertial.process`'s loop; the samples processed. (What does not change after
+        :meth:`_bind` is read from one tuple made there.)"""
+        if self._ring is not mag:
+            self._bind(mag)
+        peek, sample, begin, finish, f, pu, iu, cu, hold, phi, fr, cap, last = self._b
         t = peek()                                     # (the oldest sample's time; -1: none)
         if t < 0:
             return 0
         ori, fus = self.ori, self.fusion
-        f = ori.f
-        settled, ready, live = ori.settled, fus.live_ready, fus.live_sample
-        pu, iu, cu = self._upd
-        hold = self._hold
-        phi, fr = self._phiv, self._frv
-        cap, last = mag.capacity, mag.last_pushed_slot
         n = 0
         while max_steps > 0 and t >= 0:
             max_steps -= 1
             if hold is not None and hold(t, now_us, wait_us):
                 break
-            if not (settled(t) and ready(t)):
+            if not (ori.settled(t) and fus.live_ready(t)):
                 self.slow(mag)
             else:
                 h = last() + 1
@@ -479,13 +473,13 @@ class _OneCall:
                     h = 0
                 tp = f.t_us
                 if t > tp and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
-                    r = ks.begin(tp, h, len(mag))
+                    r = begin(tp, h, len(mag))
                     if r >= 0:
                         f.sample_done(t, r)
-                        r = live(ks.finish, t, fr[0], fr[1], fr[2], phi, ori.n, pu.count, iu.count, cu.count)
+                        r = fus.live_sample(finish, t, fr[0], fr[1], fr[2], phi, ori.n, pu.count, iu.count, cu.count)
                 else:
-                    r = live(ks.sample, t, fr[0], fr[1], fr[2], phi, tp, ori.n, h, len(mag), pu.count, iu.count,
-                             cu.count)
+                    r = fus.live_sample(sample, t, fr[0], fr[1], fr[2], phi, tp, ori.n, h, len(mag), pu.count,
+                                        iu.count, cu.count)
                 if not ori.sampled(t, r):
                     self.slow(mag)
             n += 1
@@ -494,14 +488,18 @@ class _OneCall:
 
     def _bind(self, mag: SampleRing):
         """``ext.ImuSample`` bound to the rings, the filters' kernels (the orientation filter's as bound
-        to ``mag``) and ``w_last``."""
+        to ``mag``) and ``w_last``; with what :meth:`run` reads of it, the filters and ``mag``."""
         fus = self.fusion
         pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
-        self.kernel = self.ori.kernel.ImuSample(self.ori.bind(mag), fus.prediction.live_kernel, self.imu.t,
-                                                self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
-                                                out.hc, self.w_last, fus.st.pred._T2, SYMMETRIZE_EVERY)
+        ks = self.kernel = self.ori.kernel.ImuSample(self.ori.bind(mag), fus.prediction.live_kernel, self.imu.t,
+                                                     self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc,
+                                                     out.t, out.hc, self.w_last, fus.st.pred._T2, SYMMETRIZE_EVERY)
+        f = self.ori.f
+        # (the filters' update objects: their counts are the kernel's arguments)
+        self._b = (ks.peek, ks.sample, ks.begin, ks.finish, f, f.pred, f.incl.upd, f.compass.upd, self._hold,
+                   self._phiv, self._frv, mag.capacity, mag.last_pushed_slot)
         self._ring = mag
-        return self.kernel
+        return ks
 
 
 class SensorInertial:
