@@ -20,6 +20,8 @@
  *
  *   QuietSample(t, flags, starts, ends, before, after).find(head, count, after_t, t_imu, max_age_us)
  *                                         track.burst_fusion.quiet_sample
+ *   ImuPush(t, d, hc, st, acc_lsb, gyr_lsb).push(msg)
+ *                                         measure.imu.ImuRing.push (ct_imu_ring_push)
  *
  * The arrays are bound once (buffer protocol) at construction; the per-call methods are
  * METH_FASTCALL, read their numbers in place and create no Python object (they return None).
