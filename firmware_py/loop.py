@@ -109,16 +109,17 @@ class Firmware:
         self.boot_us: int | None = None
         self.ticks = 0
         self.last_tick_us: int | None = None
+        self._begin_tick = self.tx.begin_tick
+        self._out = self._outv = None           # tick_timed's output and its view
 
-    def _begin(self, now_us: int) -> None:
+    def tick(self, now_us: int) -> None:
+        # the tick's start (here and in tick_timed, inline): the boot time, the count, the
+        # transmitter's clock
         if self.boot_us is None:
             self.boot_us = now_us
         self.ticks += 1
         self.last_tick_us = now_us
-        self.tx.begin_tick(now_us)
-
-    def tick(self, now_us: int) -> None:
-        self._begin(now_us)
+        self._begin_tick(now_us)
         receive, measure, track, actuate, supervise, transmit = self.stages
         receive(now_us)
         measure(now_us)
@@ -129,7 +130,11 @@ class Firmware:
 
     def tick_timed(self, now_us: int, out_ns) -> None:
         """:meth:`tick`, writing each stage's duration (ns, :data:`PHASES` order) into ``out_ns``."""
-        self._begin(now_us)
+        if self.boot_us is None:                # (the tick's start, as in tick)
+            self.boot_us = now_us
+        self.ticks += 1
+        self.last_tick_us = now_us
+        self._begin_tick(now_us)
         clk = time.perf_counter_ns
         receive, measure, track, actuate, supervise, transmit = self.stages
         t0 = clk()
@@ -145,8 +150,12 @@ class Firmware:
         t5 = clk()
         transmit(now_us)
         t6 = clk()
-        out_ns[0], out_ns[1], out_ns[2] = t1 - t0, t2 - t1, t3 - t2
-        out_ns[3], out_ns[4], out_ns[5] = t4 - t3, t5 - t4, t6 - t5
+        if out_ns is not self._out:            # (its memoryview, made once: a store there is cheaper)
+            self._out = out_ns
+            self._outv = memoryview(out_ns) if hasattr(out_ns, "__array_interface__") else out_ns
+        o = self._outv
+        o[0], o[1], o[2] = t1 - t0, t2 - t1, t3 - t2
+        o[3], o[4], o[5] = t4 - t3, t5 - t4, t6 - t5
 
     # --------------------------------------------------------------- status
     @property

@@ -199,6 +199,13 @@ class Receiver:
             # and a time-sync reply, for a pipeline that takes no other message
             if self._sup_mag is not None and other is None:
                 self._sup_reply = supervisor.reply_kernel()
+            # what _step_rows reads, fixed from here: the decoder, its rows, the supervisor's entry and
+            # kernels; a magnetometer sample goes straight to its channel (:meth:`_mag_in` without the
+            # call) when no node's magnetometer is calibrated (``chans``), an IMU sample likewise
+            # (:meth:`_on_imu`'s steps) when no node's IMU is (``ichans``)
+            self._rows_b = (decoder, decoder.decode, decoder.rows, decoder.width, decoder.capacity,
+                            supervisor.on_message, self._sup_mag, self._sup_reply,
+                            None if self.mag_cal else self.channels, None if self.imu_cal else self.channels)
 
     def _bind(self, core) -> None:
         """The IMU decode on the compiled core (``core/src/imu.c``: ``ct_imu_clipped``,
@@ -284,18 +291,12 @@ class Receiver:
             data = self._take(data)              # a backlog, or a tick's worth of frames or more
         if not data:
             return
-        dec = self.decoder
-        q, w = dec.rows, dec.width
+        dec, decode, q, w, cap, seen, smag, sreply, chans, ichans = self._rows_b
         pos, end = 0, len(data)
-        seen = self.supervisor.on_message
-        smag, sreply = self._sup_mag, self._sup_reply
-        # a magnetometer sample straight to its channel (:meth:`_mag_in` without the call) when
-        # no node's magnetometer is calibrated
-        chans = None if self.mag_cal else self.channels
         r = self._mag
         while pos < end:
-            n = dec.decode(data, pos, now_us)
-            pos = dec.pos
+            n = decode(data, pos, now_us)
+            pos = end if n < cap else dec.pos        # (fewer rows than the table holds: all taken)
             for b in range(0, n * w, w):
                 kind = q[b + _RXR_KIND]
                 if kind == _RXK_MAG_PACKED or kind == _RXK_MAG:
@@ -316,8 +317,14 @@ class Receiver:
                     seen(ri, now_us)
                     if q[b + _RXR_CLIP]:
                         self._imu_in(ri, True, now_us)
-                    else:
+                    elif ichans is None:
                         self._on_imu(ri, now_us)
+                    else:
+                        self.imu_received += 1
+                        ch = ichans.get(ri.node)
+                        if ch is not None:
+                            ch.push_imu(ri)
+                        self.tracker.on_imu(ri, now_us)
                 elif sreply is None or q[b] != _SYNC_REPLY or sreply(q[b + 1], now_us):
                     self._route(dec.raw_message(b // w), now_us)
 

@@ -91,6 +91,8 @@ class CompiledFrameDecoder:
         self.decode = self._rx.decode
         self._pos = ext.RX_POS
         self.width = ext.RXR_W
+        #: rows one :meth:`decode` writes at most (fewer: it took all its data, :attr:`pos` is its end)
+        self.capacity = rows
         self.verifier = self.on_frame = None
 
     @property

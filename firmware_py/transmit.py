@@ -123,26 +123,39 @@ class Transmitter:
                 self.fused_poses += 1
 
     def fused_pose(self, kernel, node: int, status: int, quality: int, range_m: float) -> int:
-        """The oldest queued fused pose sent straight from its output row (``estimate.fusion_output.PoseOutput``'s
-        compiled kernel ``kernel``) with ``status`` and ``quality``, as :meth:`pose` sends it: 1 (sent,
-        off the queue); 0 none queued; -1 (nothing sent) when the row needs the reference path (an
-        ``OUT_*`` bit, beyond ``range_m``, a value the wire format refuses), and always on the
-        Python core or a signed link."""
+        """The queued fused poses, oldest first, sent straight from their output rows
+        (``estimate.fusion_output.PoseOutput``'s compiled kernel ``kernel``) with ``status`` and
+        ``quality``, as :meth:`pose` sends each, and off the queue: 0 when none is left queued; -1
+        when the next one needs the reference path (an ``OUT_*`` bit, beyond ``range_m``, a value
+        the wire format refuses: left queued), and always (nothing sent) on the Python core or a
+        signed link."""
         return -1
 
     def _fused_pose_compiled(self, kernel, node: int, status: int, quality: int, range_m: float) -> int:
-        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.pose_next``, ``ct_pose_frame``); while
-        :meth:`pose` is not this transmitter's own (a recorder wraps it) every pose goes through it."""
+        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.pose_next``, ``ct_pose_frame``, one
+        call a pose); while :meth:`pose` is not this transmitter's own (a recorder wraps it) every
+        pose goes through it."""
         if self.pose is not self._pose_own:
             return -1
-        frame = kernel.pose_next(self._seq, self.node_id, node, status, quality, range_m)
-        if frame is None:
-            return -1
-        if frame == 0:
-            return 0
-        self._write_numbered(frame)
-        self._count_pose(status)
-        return 1
+        nxt = kernel.pose_next
+        nid = self.node_id
+        write = self.port.write
+        valid = status & POSE_VALID
+        while True:
+            frame = nxt(self._seq, nid, node, status, quality, range_m)
+            if frame is None:
+                return -1
+            if frame == 0:
+                return 0
+            self._seq = (self._seq + 1) & 0xFF         # (_write_numbered and _count_pose, inline)
+            try:
+                write(frame)
+            except Exception:  # a full or broken link must not stop the loop
+                self.tx_errors += 1
+            if valid:
+                self.poses += 1
+                if status & POSE_FUSED:
+                    self.fused_poses += 1
 
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the

@@ -20,6 +20,8 @@
  *
  *   QuietSample(t, flags, starts, ends, before, after).find(head, count, after_t, t_imu, max_age_us)
  *                                         track.burst_fusion.quiet_sample
+ *   ImuPush(t, d, hc, st, acc_lsb, gyr_lsb).push(msg)
+ *                                         measure.imu.ImuRing.push (ct_imu_ring_push)
  *
  * The arrays are bound once (buffer protocol) at construction; the per-call methods are
  * METH_FASTCALL, read their numbers in place and create no Python object (they return None).
@@ -1464,6 +1466,101 @@ static PyTypeObject ImuSampleType = {
     .tp_methods = ImuSample_methods,
 };
 
+/* --------------------------------------------------------------- ImuPush */
+/* measure.imu.ImuRing.push of a received sample (receive.ImuRecord or any object with its fields) on
+ * the compiled core: the ring's times, rows, head and count and its state (CT_IR_*) bound once; the
+ * record's fields read by name (the names interned at construction) */
+typedef struct {
+    PyObject_HEAD
+    int64_t *t, *hc, *st;
+    double *d;
+    int64_t cap;
+    double acc_lsb, gyr_lsb;
+    PyObject *names[7];             /* t_us, ax, ay, az, gx, gy, gz */
+    fus_views views;
+} ImuPushObject;
+
+static void ImuPush_dealloc(ImuPushObject *self)
+{
+    int i;
+    for (i = 0; i < 7; ++i)
+        Py_XDECREF(self->names[i]);
+    fus_release(&self->views);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int ImuPush_init(ImuPushObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"t", "d", "hc", "st", "acc_lsb", "gyr_lsb", NULL};
+    static const char *fields[7] = {"t_us", "ax", "ay", "az", "gx", "gy", "gz"};
+    PyObject *t, *d, *hc, *st;
+    Py_ssize_t n;
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOdd", kwlist, &t, &d, &hc, &st, &self->acc_lsb, &self->gyr_lsb))
+        return -1;
+    if (fus_fresh(&self->views, "ImuPush") < 0)
+        return -1;
+    n = PyObject_Length(t);
+    if (n < 1) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "ImuPush: t needs at least 1 slot");
+        return -1;
+    }
+    if (!(self->t = fus_bind(&self->views, t, n, 'q', 1, "t")) ||
+        !(self->d = fus_bind(&self->views, d, n * 6, 'd', 1, "d")) ||
+        !(self->hc = fus_bind(&self->views, hc, 2, 'q', 1, "hc")) ||
+        !(self->st = fus_bind(&self->views, st, CT_IR_N, 'q', 1, "st"))) {
+        fus_release(&self->views);
+        return -1;
+    }
+    self->cap = n;
+    for (i = 0; i < 7; ++i)
+        if (!(self->names[i] = PyUnicode_InternFromString(fields[i]))) {
+            fus_release(&self->views);
+            return -1;
+        }
+    return 0;
+}
+
+/* push(msg): ImuRing.push(msg) */
+static PyObject *ImuPush_push(ImuPushObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double s[6];
+    long long t;
+    PyObject *v;
+    int i;
+    if (self->t == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuPush: not bound");
+        return NULL;
+    }
+    if (fus_nargs("push", nargs, 1) < 0)
+        return NULL;
+    if (!(v = PyObject_GetAttr(args[0], self->names[0])))
+        return NULL;
+    t = PyLong_AsLongLong(v);
+    Py_DECREF(v);
+    if (t == -1 && PyErr_Occurred())
+        return NULL;
+    for (i = 0; i < 6; ++i) {
+        if (!(v = PyObject_GetAttr(args[0], self->names[1 + i])))
+            return NULL;
+        if (fus_double(v, &s[i]) < 0) {
+            Py_DECREF(v);
+            return NULL;
+        }
+        Py_DECREF(v);
+    }
+    ct_imu_ring_push(self->hc, self->cap, self->t, self->d, self->st, (int64_t)t, s, self->acc_lsb, self->gyr_lsb);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef ImuPush_methods[] = {
+    {"push", (PyCFunction)(void (*)(void))ImuPush_push, METH_FASTCALL,
+     "push(msg): measure.imu.ImuRing.push of the sample msg (t_us, ax..az, gx..gz) into the bound ring"},
+    {NULL, NULL, 0, NULL}};
+
+FUS_TYPE(ImuPush, "ImuPush", "ImuPush(t, d, hc, st, acc_lsb, gyr_lsb): measure.imu.ImuRing.push bound to a ring")
+
 /* --------------------------------------------------------------- register */
 static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -1484,7 +1581,7 @@ int ct_register_fusimu(PyObject *m)
         fus_add(m, &OriUpdType, "OriUpd") < 0 ||
         fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0 ||
         fus_add(m, &OriStepType, "OriStep") < 0 ||
-        fus_add(m, &ImuSampleType, "ImuSample") < 0)
+        fus_add(m, &ImuSampleType, "ImuSample") < 0 || fus_add(m, &ImuPushType, "ImuPush") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||
@@ -1492,6 +1589,8 @@ int ct_register_fusimu(PyObject *m)
         PyModule_AddIntConstant(m, "FUS_OA_N", CT_OA_N) < 0 || PyModule_AddIntConstant(m, "FUS_NST", CT_FS_NST) < 0 ||
         PyModule_AddIntConstant(m, "FUS_CS_N", CT_CS_N) < 0 || PyModule_AddIntConstant(m, "FUS_FL_N", CT_FL_N) < 0 ||
         PyModule_AddIntConstant(m, "FUS_FI_N", CT_FI_COUNT) < 0 || PyModule_AddIntConstant(m, "FUS_IN_N", CT_IN_N) < 0)
+        return -1;
+    if (PyModule_AddIntConstant(m, "FUS_IR_N", CT_IR_N) < 0)
         return -1;
     return 0;
 }

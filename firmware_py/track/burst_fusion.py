@@ -313,7 +313,7 @@ class SourceInertial:
         ``core``: the numeric core of its orientation filter."""
         self.node = node
         self.force = MeasuredForce() if force is None else force
-        self.imu = ImuRing(cfg.imu.imu_ring_capacity)
+        self.imu = ImuRing(cfg.imu.imu_ring_capacity, core)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.mag = SampleRing(max(16, int(cfg.pulse.mag_rate_hz)))
         self.ori = _Ori(cfg, gate, core=core)
@@ -447,51 +447,59 @@ class _OneCall:
         self._frv = memoryview(source.fref)
         self.kernel = None
         self._ring = None
+        self._hold = None if source.fixed else source.hold     # (a fixed source never holds)
+        self._b = ()
 
     def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
-        """:meth:`SensorInertial.process`'s loop; the samples processed."""
+        """:meth:`SensorInertial.process`'s loop; the samples processed. (What does not change after
+        :meth:`_bind` is read from one tuple made there.)"""
+        if self._ring is not mag:
+            self._bind(mag)
+        peek, sample, begin, finish, f, pu, iu, cu, hold, phi, fr, cap, last = self._b
+        t = peek()                                     # (the oldest sample's time; -1: none)
+        if t < 0:
+            return 0
         ori, fus = self.ori, self.fusion
-        ks = self.kernel if self._ring is mag else self._bind(mag)
-        f = ori.f
-        hold = None if self.source.fixed else self.source.hold
-        phi, fr = self._phiv, self._frv
         n = 0
-        while max_steps > 0:
-            t = ks.peek()                              # (the oldest sample's time; -1: none)
-            if t < 0:
-                break
+        while max_steps > 0 and t >= 0:
             max_steps -= 1
             if hold is not None and hold(t, now_us, wait_us):
                 break
             if not (ori.settled(t) and fus.live_ready(t)):
                 self.slow(mag)
             else:
-                h = mag.last_pushed_slot() + 1
-                h = h if h < mag.capacity else 0
-                if t > f.t_us and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
-                    r = ks.begin(f.t_us, h, len(mag))
+                h = last() + 1
+                if h == cap:
+                    h = 0
+                tp = f.t_us
+                if t > tp and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
+                    r = begin(tp, h, len(mag))
                     if r >= 0:
                         f.sample_done(t, r)
-                        r = fus.live_sample(ks.finish, t, fr[0], fr[1], fr[2], phi, ori.n, f.pred.count,
-                                            f.incl.upd.count, f.compass.upd.count)
+                        r = fus.live_sample(finish, t, fr[0], fr[1], fr[2], phi, ori.n, pu.count, iu.count, cu.count)
                 else:
-                    r = fus.live_sample(ks.sample, t, fr[0], fr[1], fr[2], phi, f.t_us, ori.n, h, len(mag),
-                                        f.pred.count, f.incl.upd.count, f.compass.upd.count)
+                    r = fus.live_sample(sample, t, fr[0], fr[1], fr[2], phi, tp, ori.n, h, len(mag), pu.count,
+                                        iu.count, cu.count)
                 if not ori.sampled(t, r):
                     self.slow(mag)
             n += 1
+            t = peek()
         return n
 
     def _bind(self, mag: SampleRing):
         """``ext.ImuSample`` bound to the rings, the filters' kernels (the orientation filter's as bound
-        to ``mag``) and ``w_last``."""
+        to ``mag``) and ``w_last``; with what :meth:`run` reads of it, the filters and ``mag``."""
         fus = self.fusion
         pimu, live, out = fus.prediction.imu, fus.history.live, fus.output.out
-        self.kernel = self.ori.kernel.ImuSample(self.ori.bind(mag), fus.prediction.live_kernel, self.imu.t,
-                                                self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc, out.t,
-                                                out.hc, self.w_last, fus.st.pred._T2, SYMMETRIZE_EVERY)
+        ks = self.kernel = self.ori.kernel.ImuSample(self.ori.bind(mag), fus.prediction.live_kernel, self.imu.t,
+                                                     self.imu.d, self.imu.hc, pimu.t, pimu.hc, live.t, live.hc,
+                                                     out.t, out.hc, self.w_last, fus.st.pred._T2, SYMMETRIZE_EVERY)
+        f = self.ori.f
+        # (the filters' update objects: their counts are the kernel's arguments)
+        self._b = (ks.peek, ks.sample, ks.begin, ks.finish, f, f.pred, f.incl.upd, f.compass.upd, self._hold,
+                   self._phiv, self._frv, mag.capacity, mag.last_pushed_slot)
         self._ring = mag
-        return self.kernel
+        return ks
 
 
 class SensorInertial:
@@ -508,7 +516,7 @@ class SensorInertial:
         self._report = PoseReport(node)     # the fused POSE being sent (filled in place)
         self.cfg = cfg
         n = len(cfg.source.coils)
-        self.imu = ImuRing(cfg.imu.imu_ring_capacity)
+        self.imu = ImuRing(cfg.imu.imu_ring_capacity, core)
         self._s6 = [0.0] * 6                # one popped IMU sample (f, w)
         self.ori = _Ori(cfg, gate, compass_max_age_us, core)
         self.fusion = FusionFilter(FusionParams.from_config(cfg, not source.fixed), self.ori.f,
@@ -605,9 +613,8 @@ class SensorInertial:
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
 
     def _process_compiled(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
-        """:meth:`process` on the compiled core (:class:`_OneCall`)."""
-        if len(self.imu):
-            self.samples += self._one.run(mag, now_us, wait_us, max_steps)
+        """:meth:`process` on the compiled core (:class:`_OneCall`; an empty ring returns at once there)."""
+        self.samples += self._one.run(mag, now_us, wait_us, max_steps)
 
     def _sample_python(self, mag: SampleRing) -> None:
         """The oldest sample through :meth:`process`'s steps one by one."""

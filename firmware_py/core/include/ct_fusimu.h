@@ -159,5 +159,11 @@ void ct_symmetrize(int n, double *P, double *T);
  * the slot pushed (its time written into tv) or popped (-1: empty) */
 int64_t ct_ring_push(int64_t *hc, int64_t cap, int64_t *tv, int64_t t);
 int64_t ct_ring_pop(int64_t *hc, int64_t cap);
+/* measure.imu.ImuRing.push: the sample at t (s: ax, ay, az in ACC_LSB, gx, gy, gz in GYR_LSB) into the
+ * ring (times tv, rows d of 6: specific force, rate), its state st[CT_IR_N]: the last time taken,
+ * the samples dropped (not newer, or overwriting a full ring's oldest) and received */
+enum { CT_IR_LAST_T = 0, CT_IR_DROPPED = 1, CT_IR_RECEIVED = 2, CT_IR_N = 3 };
+void ct_imu_ring_push(int64_t *hc, int64_t cap, int64_t *tv, double *d, int64_t *st, int64_t t, const double *s,
+                      double acc_lsb, double gyr_lsb);
 
 #endif /* CT_FUSIMU_H */

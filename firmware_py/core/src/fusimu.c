@@ -637,3 +637,26 @@ int64_t ct_ring_pop(int64_t *hc, int64_t cap)
     hc[1] -= 1;
     return p;
 }
+
+/* measure.imu.ImuRing.push (ct_fusimu.h) */
+void ct_imu_ring_push(int64_t *hc, int64_t cap, int64_t *tv, double *d, int64_t *st, int64_t t, const double *s,
+                      double acc_lsb, double gyr_lsb)
+{
+    int64_t k;
+    if (t <= st[CT_IR_LAST_T]) {                 /* not newer than the previous sample: refused */
+        st[CT_IR_DROPPED] += 1;
+        return;
+    }
+    st[CT_IR_LAST_T] = t;
+    if (hc[1] == cap)
+        st[CT_IR_DROPPED] += 1;
+    k = ct_ring_push(hc, cap, tv, t);
+    d += 6 * k;
+    d[0] = s[0] * acc_lsb;
+    d[1] = s[1] * acc_lsb;
+    d[2] = s[2] * acc_lsb;
+    d[3] = s[3] * gyr_lsb;
+    d[4] = s[4] * gyr_lsb;
+    d[5] = s[5] * gyr_lsb;
+    st[CT_IR_RECEIVED] += 1;
+}

@@ -213,7 +213,7 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     fa, fb, fr = sens["got"][1].port.frames, sens["sep"][1].port.frames, sens["ref"][1].port.frames
     assert len(fa) == len(fb) == len(fr) > 300
     assert fa == fb
-    assert sent.count(1) > 100 and sent.count(-1) > 10     # sent from the row, and through the reference
+    assert sent.count(0) > 50 and sent.count(-1) > 10      # sent from the rows (all queued), and through the reference
     assert sens["got"][1].fused_poses == sens["sep"][1].fused_poses == sens["ref"][1].fused_poses
 
 
