@@ -113,7 +113,7 @@ from .codec import CLASS_BY_ID, STRUCTS
 from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolError,
                      UnknownMessageError)
 from .framing import (_EXTRA, CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
-                      build_frame, cobs_encode, crc16, parse_frame)
+                      build_frame, cobs_encode, crc16, parse_frame, parse_frame_fast)
 from .slcan import line_length as slcan_line_length
 from .schema import BY_ID, MAX_PAYLOAD, MESSAGES
 
@@ -435,6 +435,50 @@ def _plain_singles() -> dict[int, tuple]:
 _PLAIN_SINGLE = _plain_singles()
 
 
+class _Segmented:
+    """What :meth:`CanLink.write` needs of a message it segments straight from a serial frame's bytes."""
+    __slots__ = ("sender", "f32")
+
+    def __init__(self, sender: bool, f32: tuple):
+        self.sender = sender
+        #: the frame offsets of the message's f32 fields: a NaN there takes the message's way (a NaN's
+        #: bits need not survive struct's unpack and pack, which that way applies)
+        self.f32 = f32
+
+
+def _raw_segmented(fd: bool) -> dict[int, _Segmented]:
+    """Message id -> :class:`_Segmented` of the messages an unsigned sender sends as a segmented PDU
+    on a classic (``fd`` False) or CAN FD bus (no bus form, too long for one frame), whose frames
+    :meth:`CanLink.write` takes from the serial bytes."""
+    out = {}
+    for mid, d in BY_ID.items():
+        if mid in BUS_FORM_IDS or is_direct(mid, fd):
+            continue
+        offs, at = [], HEADER_LEN
+        for ch in STRUCTS[mid].format.lstrip("<"):
+            if ch == "f":
+                offs.append(at)
+            at += struct.calcsize("<" + ch)
+        assert at == HEADER_LEN + d.size, d.name
+        out[mid] = _Segmented(bool(d.sender_field), tuple(offs))
+    return out
+
+
+def _f32_nan(offsets: tuple, raw) -> bool:
+    """Whether an f32 field at one of ``offsets`` of ``raw`` holds a NaN."""
+    for o in offsets:
+        if raw[o + 3] & 0x7F == 0x7F and raw[o + 2] & 0x80 and (raw[o + 2] & 0x7F or raw[o + 1] or raw[o]):
+            return True
+    return False
+
+
+#: function code -> message id of the messages with a bus form (their 8-byte single frame:
+#: :meth:`CanReassembler.feed_serial` restores it and builds the serial frame without the generic path)
+_BUS_SINGLE = {BASE_ID[mid]: mid for mid in BUS_FORM_IDS}
+#: per bus (classic, FD): :func:`_raw_segmented`
+_RAW_SEGMENTED = {False: _raw_segmented(False), True: _raw_segmented(True)}
+
+
 def _copy_header(h: DecodedFrame) -> DecodedFrame:
     c = DecodedFrame()
     c.seq, c.src, c.flags, c.msg_id, c.signature, c.signed_part = (
@@ -578,13 +622,22 @@ class CanReassembler:
         what :meth:`CanLink.read` returns). A plain single frame (``_PLAIN_SINGLE``: a sample's
         MAG_PACKED, IMU_DELTA) of the exact length, with no verifier or ``on_frame`` to see the
         message, becomes that frame straight from its bytes: the same counters, seq and header as
-        :meth:`_single`, the same bytes as ``build_frame`` of the unpacked message."""
+        :meth:`_single`, the same bytes as ``build_frame`` of the unpacked message; a bus form's
+        frame (TIME_SYNC_REPLY, COIL_STATUS, HEARTBEAT, ...) that its context restores takes
+        :meth:`_bus_single`, the same as :meth:`_single` without the generic path."""
         arb = frame.arbitration_id
-        fast = None
+        fast = bus = None
         if not (frame.is_extended_id or frame.is_error_frame or frame.is_remote_frame or arb > 0x7FF
                 or self.verifier is not None or self.on_frame is not None):
             fast = _PLAIN_SINGLE.get(arb & FUNCTION_MASK)
+            if fast is None:
+                bus = _BUS_SINGLE.get(arb & FUNCTION_MASK)
         data = frame.data
+        if bus is not None and data is not None and len(data) == BUS_FORM_SIZE:
+            msg = busform.decode(bus, arb & NODE_MASK, data, self.context)
+            if msg is not None:
+                self._bus_single(msg, arb & NODE_MASK, out)
+                return
         if fast is None or data is None or len(data) != fast[0]:
             for hdr, msg in self.feed_with_headers(frame):
                 out += cobs_encode(build_frame(msg, hdr.seq, hdr.src, hdr.flags, hdr.signature))
@@ -609,6 +662,24 @@ class CanReassembler:
         raw.append(crc >> 8)
         for block in raw.split(b"\x00"):                 # COBS (cobs_encode; a frame this short has
             out.append(len(block) + 1)                  # no block of 254 bytes)
+            out += block
+        out.append(0)
+
+    def _bus_single(self, msg, src: int, out: bytearray) -> None:
+        """:meth:`feed_serial` of a bus form's frame (``protocol.busform``) whose message ``msg`` was
+        restored: :meth:`_single`'s counters, seq, header and context, then the serial frame
+        (``build_frame``, COBS inline: a frame this short has no block of 254 bytes)."""
+        self.frames_in += 1
+        self.context.note(msg)
+        seq = (self._last_seq.get(src, -1) + 1) & 0xFF      # the sender's previous seq + 1 (_single)
+        self._last_seq[src] = seq
+        self._synth_seq[src] = True
+        hdr = self.header
+        hdr.seq, hdr.src, hdr.flags, hdr.msg_id, hdr.signature, hdr.signed_part = seq, src, 0, msg.ID, b"", b""
+        self.single_frames += 1
+        self.messages_ok += 1
+        for block in build_frame(msg, seq, src).split(b"\x00"):
+            out.append(len(block) + 1)
             out += block
         out.append(0)
 
@@ -755,6 +826,7 @@ class CanLink:
         self.max_frames_per_read = max_frames_per_read
         self.local_ids = {node_id}
         self._tx_decoder = FrameDecoder(on_frame=self._send_message)
+        self._segmented = _RAW_SEGMENTED[bool(fd)]
         self.frames_tx = 0
         self.messages_tx = 0
         self.frames_rx = 0
@@ -766,18 +838,34 @@ class CanLink:
     # Port interface -------------------------------------------------------
     def write(self, data: bytes) -> None:
         self.bytes_tx += len(data)
-        self._tx_decoder.feed(data)
+        dec = self._tx_decoder
+        raw = dec.take_raw(data) if type(data) is bytes else None
+        if raw is None:
+            dec.feed(data)
+            return
+        mid, src = raw[4], raw[3]
+        seg = self._segmented.get(mid) if 0 < src <= MAX_CAN_NODE else None
+        if seg is None or (seg.f32 and _f32_nan(seg.f32, raw)):
+            self._send_message(dec.header, parse_frame_fast(raw, dec.header))
+            return
+        # an unsigned message sent as its PDU segmented (no bus form, no single frame): the PDU is
+        # the serial frame's seq, payload and CRC (the CRC covers the same header: len, flags 0, seq,
+        # src, msg_id), so the frames come straight from the bytes (_send_message's, to the bit)
+        self.local_ids.add(raw[HEADER_LEN] if seg.sender else src)
+        self._send_frames(self.codec._messages(BASE_ID[mid] | src, bytes(raw[2:3]) + bytes(raw[HEADER_LEN:])))
 
     def read(self) -> bytes:
         out = bytearray()
         # an slcan adapter: only the bytes it held when the read began (see _adapter_held)
         left = self._adapter_held()
         feed = self.reassembler.feed_serial
+        recv = self.bus.recv
+        local = self.local_ids
         for _ in range(self.max_frames_per_read):
             if left is not None and left <= 0:
                 break
             try:
-                frame = self.bus.recv(timeout=0)
+                frame = recv(timeout=0)
             except (can.CanError, OSError, ValueError):
                 self.rx_errors += 1
                 break
@@ -795,7 +883,7 @@ class CanLink:
             arb = frame.arbitration_id
             if frame.is_extended_id:
                 arb = std_of_ext(arb)
-            if arb is not None and not frame.is_error_frame and (arb & NODE_MASK) in self.local_ids \
+            if arb is not None and not frame.is_error_frame and (arb & NODE_MASK) in local \
                     and (arb & FUNCTION_MASK) in _MSG_BY_BASE:
                 self.echoes += 1
                 continue

@@ -78,6 +78,29 @@ def cobs_decode(data) -> bytes:
     return bytes(out)
 
 
+def _cobs_decode_short(data):
+    """:func:`cobs_decode` of one delimited frame ``data`` (COBS, then 0x00) without a block of 254
+    bytes (every frame shorter than 254 bytes): each code byte after the first stands where a zero
+    was, so it becomes that zero in place; None for anything else (a code of 0 or 0xFF, a block
+    running past the end), which :func:`cobs_decode` then judges."""
+    n = len(data) - 1
+    buf = bytearray(data)
+    i = buf[0]
+    if i == 0 or i == 0xFF:
+        return None
+    while i < n:
+        c = buf[i]
+        if c == 0 or c == 0xFF:
+            return None
+        buf[i] = 0
+        i += c
+    if i != n:
+        return None
+    del buf[n:]
+    del buf[0]
+    return buf
+
+
 def build_frame(msg, seq: int = 0, src: int = 0, flags: int = 0, signature: bytes = b"") -> bytes:
     """Unencoded frame bytes (header, payload, CRC[, signature])."""
     st = STRUCTS[msg.ID]
@@ -254,6 +277,35 @@ class FrameDecoder:
                 buf.clear()
             start = z + 1
         return out
+
+    def take_raw(self, data):
+        """:meth:`feed` of ``data`` when it is exactly one whole, good, unsigned frame of a known
+        message (COBS, then the one 0x00) and nothing is buffered or verified: the same counters
+        and sequence check as :meth:`feed`, the header into :attr:`header`, and the unencoded frame
+        returned instead of the message (``on_frame`` is not called: the caller has the bytes, and
+        :func:`parse_frame_fast` of them gives the message). Anything else: None, nothing done (the
+        caller then feeds ``data``)."""
+        n = len(data)
+        if (n < 2 or self._buf or self._dropping or self.verifier is not None or data[-1] != 0
+                or n - 1 > MAX_ENCODED or data.find(b"\x00") != n - 1):
+            return None
+        raw = _cobs_decode_short(data)
+        f = _FAST.get(raw[4]) if raw is not None and len(raw) > 4 else None
+        if f is None or raw[1] or len(raw) != f[1] or raw[0] != f[0]:
+            return None
+        end = f[1] - CRC_LEN
+        if crc16(f[4], crc16(raw[:end])) != raw[end] | (raw[end + 1] << 8):
+            return None
+        self.bytes_in += n
+        hdr = self.header
+        hdr.seq, hdr.src, hdr.flags, hdr.msg_id = raw[2], raw[3], 0, raw[4]
+        hdr.signature = hdr.signed_part = b""
+        last = self._last_seq.get(hdr.src)
+        if last is not None and hdr.seq != ((last + 1) & 0xFF):
+            self.seq_gaps += 1
+        self._last_seq[hdr.src] = hdr.seq
+        self.frames_ok += 1
+        return raw
 
     def _decode(self, enc):
         hdr = self.header

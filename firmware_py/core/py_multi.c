@@ -2,7 +2,7 @@
  * CPython glue of the many-sensor kernels (src/multi.c): window_frame (one PULSE_WINDOW frame, as
  * Transmitter.pulse_window sends it), flip_frame (one MAG_FLIP_CMD, as Transmitter.mag_flip), sigma_from (SensorChannel.sigma_from) and the type
  * WindowColumn (SensorChannel.close_window, bound once at start-up to the channel's and its
- * extractor's buffers).  METH_FASTCALL; they read their arguments in place and create no Python
+ * extractor's buffers) and SamplePush (SensorChannel.push, bound to the channel's sample ring).  METH_FASTCALL; they read their arguments in place and create no Python
  * object but the frames' bytes and the flags returned.
  */
 #define PY_SSIZE_T_CLEAN
@@ -299,6 +299,145 @@ static PyTypeObject WindowColumnType = {
     .tp_methods = WindowColumn_methods,
 };
 
+/* ------------------------------------------------------------- SamplePush */
+#define SP_NBUF 5
+typedef struct {
+    PyObject_HEAD
+    int64_t *t, *st, *cnt;
+    double *b;
+    uint8_t *flags;
+    int64_t cap;
+    Py_buffer views[SP_NBUF];
+    int bound;
+} SamplePushObject;
+
+static void SamplePush_dealloc(SamplePushObject *self)
+{
+    int i;
+    if (self->bound)
+        for (i = 0; i < SP_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int SamplePush_init(SamplePushObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"t", "b", "flags", "state", "counts", NULL};
+    static const char *fmts[SP_NBUF] = {"qlL", "d", "B", "qlL", "qlL"};
+    static const int size[SP_NBUF] = {8, 8, 1, 8, 8};
+    PyObject *o[SP_NBUF];
+    Py_ssize_t cap = 0, len;
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOO", kwlist, &o[0], &o[1], &o[2], &o[3], &o[4]))
+        return -1;
+    if (self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "SamplePush: already bound");
+        return -1;
+    }
+    for (i = 0; i < SP_NBUF; ++i) {
+        len = i == 0 ? 2 : i == 1 ? 3 * cap : i == 2 ? cap : i == 3 ? 4 : 2;
+        if (ct_py_buffer(o[i], len, size[i], fmts[i], 1, &self->views[i], kwlist[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&self->views[i]);
+            return -1;
+        }
+        if (i == 0)
+            cap = self->views[0].len / 8;
+    }
+    if (self->views[1].len != 3 * cap * 8 || self->views[2].len != cap) {
+        for (i = 0; i < SP_NBUF; ++i)
+            PyBuffer_Release(&self->views[i]);
+        PyErr_SetString(PyExc_ValueError, "SamplePush: t, b (cap x 3) and flags differ in capacity");
+        return -1;
+    }
+    self->t = (int64_t *)self->views[0].buf;
+    self->b = (double *)self->views[1].buf;
+    self->flags = (uint8_t *)self->views[2].buf;
+    self->st = (int64_t *)self->views[3].buf;
+    self->cnt = (int64_t *)self->views[4].buf;
+    self->cap = (int64_t)cap;
+    self->bound = 1;
+    return 0;
+}
+
+/* an exact int into *v; 0 for anything else or one beyond int64 */
+static int sp_int(PyObject *o, long long *v)
+{
+    int overflow = 0;
+    if (!PyLong_CheckExact(o))
+        return 0;
+    *v = PyLong_AsLongLongAndOverflow(o, &overflow);
+    if (overflow || (*v == -1 && PyErr_Occurred())) {
+        PyErr_Clear();
+        return 0;
+    }
+    return 1;
+}
+
+/* Python's count * lsb for an exact int count (exactly a double: |count| <= 2**53) or an exact float:
+ * 1 with the product in *x, else 0 */
+static int sp_scaled(PyObject *o, double lsb, double *x)
+{
+    long long v;
+    if (PyFloat_CheckExact(o)) {
+        *x = PyFloat_AS_DOUBLE(o) * lsb;
+        return 1;
+    }
+    if (!sp_int(o, &v) || v > (1LL << 53) || v < -(1LL << 53))
+        return 0;
+    *x = (double)v * lsb;
+    return 1;
+}
+
+/* push(t_us, x, y, z, flip, lsb) -> 1 (pushed), 0 (refused, counted) or -1 (an argument of another kind:
+ * nothing done, the caller's Python reference takes the sample) */
+static PyObject *SamplePush_push(SamplePushObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long t, flip;
+    double x, y, z, lsb;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "SamplePush: not bound");
+        return NULL;
+    }
+    if (nargs != 6) {
+        PyErr_Format(PyExc_TypeError, "push() takes 6 arguments (%zd given)", nargs);
+        return NULL;
+    }
+    if (!PyFloat_CheckExact(args[5]))
+        return PyLong_FromLong(-1);
+    lsb = PyFloat_AS_DOUBLE(args[5]);
+    if (!sp_int(args[0], &t) || !sp_int(args[4], &flip) || !sp_scaled(args[1], lsb, &x) ||
+        !sp_scaled(args[2], lsb, &y) || !sp_scaled(args[3], lsb, &z))
+        return PyLong_FromLong(-1);
+    if (self->st[0] < 0 || self->st[0] >= self->cap || self->st[1] < 0 || self->st[1] > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "push: head or count outside the ring");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_sample_push(self->t, self->b, self->flags, self->cap, self->st, self->cnt,
+                                          (int64_t)t, x, y, z, (flip & 2) != 0, (int)(flip & 1)));
+}
+
+static PyMethodDef SamplePush_methods[] = {
+    {"push", (PyCFunction)(void (*)(void))SamplePush_push, METH_FASTCALL,
+     "push(t_us, x, y, z, flip, lsb) -> 1, 0 or -1: SensorChannel.push of one magnetometer sample (counts x, y, z "
+     "of lsb tesla; flip bit0 set/reset, bit1 saturated) into the bound ring: 1 pushed, 0 refused and counted, -1 "
+     "an argument the kernel does not take (nothing done)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SamplePushType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SamplePush",
+    .tp_basicsize = sizeof(SamplePushObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SamplePush(t, b, flags, state, counts): a sensor channel's sample ring (SampleRing's t, b, flags and "
+              "its state hc = head, count, latest, rejected) and the channel's counters (samples, changes), "
+              "taking one magnetometer sample per call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SamplePush_init,
+    .tp_dealloc = (destructor)SamplePush_dealloc,
+    .tp_methods = SamplePush_methods,
+};
+
 static PyMethodDef multi_functions[] = {
     {"window_frame", (PyCFunction)(void (*)(void))mul_window_frame, METH_FASTCALL,
      "window_frame(seq, src, node, coil, pulse_id, first_us, last_us, n_used, n_base, flags) -> bytes or None: "
@@ -317,6 +456,13 @@ int ct_register_multi(PyObject *m)
     Py_INCREF(&WindowColumnType);
     if (PyModule_AddObject(m, "WindowColumn", (PyObject *)&WindowColumnType) < 0) {
         Py_DECREF(&WindowColumnType);
+        return -1;
+    }
+    if (PyType_Ready(&SamplePushType) < 0)
+        return -1;
+    Py_INCREF(&SamplePushType);
+    if (PyModule_AddObject(m, "SamplePush", (PyObject *)&SamplePushType) < 0) {
+        Py_DECREF(&SamplePushType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "WINDOW_ID", CT_WINDOW_ID) < 0 ||

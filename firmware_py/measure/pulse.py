@@ -123,9 +123,17 @@ class SampleRing(Ring):
     bit1 = flip (set/reset) state. Timestamps are strictly increasing; a full
     ring overwrites its oldest sample. Logical index 0 is the oldest sample
     (``slot``, ``index_at_or_after`` are the ring's).
+
+    The ring's state is one int64 array ``hc`` = head, count, latest time, rejected samples (as
+    ``estimate.fusion_rings.KernelRing`` keeps its head and count), so a compiled kernel bound to it
+    once pushes in place (``core/src/multi.c``: ``ct_sample_push``, through
+    ``measure.windows.SensorChannel.push``); every :class:`~coiltrack.firmware.ring.Ring` operation
+    is the same, reading and writing ``_head`` and ``_count`` there.
     """
 
     def __init__(self, capacity: int):
+        self.hc = np.zeros(4, dtype=np.int64)
+        self._hcv = memoryview(self.hc)
         super().__init__(capacity, (("B", 3),))
         self.t_us = self.t
         self.b = self.d
@@ -134,8 +142,43 @@ class SampleRing(Ring):
         # without creating numpy scalars or arrays
         self.bv = memoryview(self.b.reshape(-1))
         self.fv = memoryview(self.flags)
-        self._latest = NO_TIME_US
-        self.rejected = 0       # samples refused by push (bad data)
+        self._hcv[2] = NO_TIME_US
+
+    def _set_head(self, v: int) -> None:
+        self._hcv[0] = v
+
+    def _set_count(self, v: int) -> None:
+        self._hcv[1] = v
+
+    def _set_latest(self, v: int) -> None:
+        self._hcv[2] = v
+
+    def _set_rejected(self, v: int) -> None:
+        self._hcv[3] = v
+
+    _head = property(lambda self: self._hcv[0], _set_head)          # slot of the next push
+    _count = property(lambda self: self._hcv[1], _set_count)        # samples held
+    _latest = property(lambda self: self._hcv[2], _set_latest)      # time of the newest sample
+    #: samples refused by push (bad data)
+    rejected = property(lambda self: self._hcv[3], _set_rejected)
+
+    def __len__(self) -> int:
+        return self._hcv[1]
+
+    @property
+    def full(self) -> bool:
+        return self._hcv[1] == self.capacity
+
+    def slot(self, i: int) -> int:
+        """Slot of logical index ``i`` (0: the oldest; ``0 <= i < len``)."""
+        hc = self._hcv
+        p = hc[0] - hc[1] + i
+        cap = self.capacity
+        if p < 0:
+            p += cap
+        elif p >= cap:
+            p -= cap
+        return p
 
     def push(self, t_us: int, bx: float, by: float, bz: float,
              saturated: bool, flip: int) -> None:
@@ -145,6 +188,7 @@ class SampleRing(Ring):
         non-integer or out-of-range time, or a non-finite field are dropped
         and counted in ``rejected`` (a dropped sample shows up as a gap).
         """
+        hc = self._hcv
         try:
             t = operator.index(t_us)
             x = float(bx)
@@ -153,20 +197,31 @@ class SampleRing(Ring):
             fl = ((SAMPLE_SATURATED if saturated else 0)
                   | (SAMPLE_FLIP if operator.index(flip) & 1 else 0))
         except (TypeError, ValueError, OverflowError):
-            self.rejected += 1
+            hc[3] += 1
             return
-        if (t <= self._latest or t > _INT64_MAX
+        if (t <= hc[2] or t > _INT64_MAX
                 or not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z))):
-            self.rejected += 1
+            hc[3] += 1
             return
-        p = Ring.push(self, t)
+        p = hc[0]                                 # Ring.push
+        self.tv[p] = t
+        n = p + 1
+        hc[0] = 0 if n == self.capacity else n
+        if hc[1] < self.capacity:
+            hc[1] += 1
         j = 3 * p
         bv = self.bv
         bv[j] = x
         bv[j + 1] = y
         bv[j + 2] = z
         self.fv[p] = fl
-        self._latest = t
+        hc[2] = t
+
+    def push_kernel(self, ext, counts):
+        """The compiled :meth:`push` (``ext.SamplePush``, ``core/src/multi.c`` ``ct_sample_push``) bound to
+        this ring's arrays and state and to a channel's counters ``counts`` (int64 (2,): samples, changes,
+        both counted per sample, as ``SensorChannel.push`` counts them)."""
+        return ext.SamplePush(self.t, self.b, self.flags, self.hc, counts)
 
     def clear(self) -> None:
         """Empty the ring; the next sample may have any time."""
@@ -176,7 +231,7 @@ class SampleRing(Ring):
     @property
     def latest_t_us(self) -> int:
         """Time of the newest sample, ``NO_TIME_US`` when empty."""
-        return self._latest
+        return self._hcv[2]
 
     def nearest_slot(self, t_us: int) -> int:
         """The slot of the sample nearest ``t_us``, or -1 when empty. The search goes back from

@@ -71,10 +71,8 @@ class SensorChannel:
         self.used_times = np.zeros(self.extractor.max_samples, dtype=np.int64)
         self.info = np.zeros(4, dtype=np.int64)    # the last closed window: n_used, n_base, first, last (us)
         self.infov = memoryview(self.info)
-        self.samples = 0
-        #: changes of what this channel's windows are read from (samples pushed, windows taken, burst
-        #: started or loaded): a caller that computed something from them may keep it while this holds
-        self.changes = 0
+        self.cnt = np.zeros(2, dtype=np.int64)     # samples, changes (the properties below)
+        self._cntv = memoryview(self.cnt)
         self._Sv = memoryview(self.S)
         self._varv = memoryview(self.var)
         self._ampv = memoryview(self.amp)
@@ -90,12 +88,36 @@ class SensorChannel:
         if self.extractor.bind_column(self.S, self.var, self.flags, self.done, self.pulse_mid, self.amp,
                                       self.amp_var, self.info):
             self.close_window = self._close_window_compiled
+        if core.ext is not None:         # the sample's way into the ring (core/src/multi.c)
+            self._push_k = self.ring.push_kernel(core.ext, self.cnt).push
+            self.push = self._push_compiled
+
+    def _set_samples(self, v: int) -> None:
+        self._cntv[0] = v
+
+    def _set_changes(self, v: int) -> None:
+        self._cntv[1] = v
+
+    #: samples pushed (refused ones included)
+    samples = property(lambda self: self._cntv[0], _set_samples)
+    #: changes of what this channel's windows are read from (samples pushed, windows taken, burst
+    #: started or loaded): a caller that computed something from them may keep it while this holds
+    changes = property(lambda self: self._cntv[1], _set_changes)
 
     def push(self, msg, lsb: float) -> None:
-        """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla)."""
+        """A ``MAG_SAMPLE`` (counts of ``lsb`` tesla). On the compiled core one call of
+        ``ct_sample_push`` (:meth:`_push_compiled`, bound at construction)."""
         self.ring.push(msg.t_us, msg.x * lsb, msg.y * lsb, msg.z * lsb, bool(msg.flip & 2), msg.flip & 1)
-        self.samples += 1
-        self.changes += 1
+        c = self._cntv
+        c[0] += 1
+        c[1] += 1
+
+    def _push_compiled(self, msg, lsb: float) -> None:
+        """:meth:`push` in one call (``SampleRing.push_kernel``: the same checks, the same products
+        ``count * lsb``, the same ring and counters); an argument of another kind than an int (a
+        float field) goes to the reference."""
+        if self._push_k(msg.t_us, msg.x, msg.y, msg.z, msg.flip, lsb) < 0:
+            SensorChannel.push(self, msg, lsb)
 
     def push_imu(self, msg) -> None:
         """An ``IMU_SAMPLE`` of this node: its rates for the extractor (kept only with a gyro ring)."""

@@ -55,4 +55,14 @@ struct ct_window_column {
 int64_t ct_window_column(const struct ct_window_column *c, const struct ct_pulse *x, const struct ct_sample_ring *r,
                          int64_t start, int64_t end, int64_t coil);
 
+/* ------------------------------------------------------------ sample push
+ * measure.windows.SensorChannel.push with measure.pulse.SampleRing.push: one magnetometer sample
+ * (its field already scaled to tesla, as the Python's msg.x * lsb) into the ring's t, b (cap x 3),
+ * flags, its state st = head, count, latest, rejected (SampleRing.hc) and the channel's counters
+ * cnt = samples, changes (SensorChannel.cnt).  A time not later than the latest or a field that is
+ * not finite is refused and counted (st[3]); the counters count every sample.  Returns 1 (pushed)
+ * or 0 (refused). */
+int ct_sample_push(int64_t *t, double *b, uint8_t *flags, int64_t cap, int64_t *st, int64_t *cnt, int64_t t_us,
+                   double x, double y, double z, int saturated, int flip);
+
 #endif

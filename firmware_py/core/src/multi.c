@@ -99,3 +99,27 @@ int64_t ct_window_column(const struct ct_window_column *c, const struct ct_pulse
     c->info[3] = last;
     return flags;
 }
+
+int ct_sample_push(int64_t *t, double *b, uint8_t *flags, int64_t cap, int64_t *st, int64_t *cnt, int64_t t_us,
+                   double x, double y, double z, int saturated, int flip)
+{
+    int64_t p, n;
+    cnt[0] += 1;
+    cnt[1] += 1;
+    if (t_us <= st[2] || !(isfinite(x) && isfinite(y) && isfinite(z))) {
+        st[3] += 1;
+        return 0;
+    }
+    p = st[0];
+    t[p] = t_us;
+    n = p + 1;
+    st[0] = n == cap ? 0 : n;
+    if (st[1] < cap)
+        st[1] += 1;
+    b[3 * p] = x;
+    b[3 * p + 1] = y;
+    b[3 * p + 2] = z;
+    flags[p] = (uint8_t)((saturated ? CT_SAMPLE_SATURATED : 0) | (flip ? CT_SAMPLE_FLIP : 0));
+    st[2] = t_us;
+    return 1;
+}
