@@ -656,7 +656,7 @@ class CoilChooser:
 
 class CompiledCoilChooser(CoilChooser):
     """:class:`CoilChooser` through the compiled kernels (``sc_choose.c``: ``ct_choose``,
-    ``ct_choose_length``), bit for bit: the same products, scores, comparisons and bisection, so
+    ``ct_choose_length``, ``ct_set_bounds``), bit for bit: the same products, scores, comparisons and bisection, so
     the same coil, current and length. The reference's arrays are bound once; the choice's state
     (``coil``, ``current``, ``length``, ``target``, ``reached``) lives in one array read and written
     through properties under the reference's names. A per-coil ``var_amp`` (an array) takes the
@@ -668,7 +668,7 @@ class CompiledCoilChooser(CoilChooser):
         self._stv = memoryview(self._st)
         super().__init__(n_coils, currents, sigma_max, sigma_min, rel_model, current_sigma, trace, step_a,
                          unreached_share)
-        self._ck = ext.ChooserCore(self.n, (self.currents, self.sigma_min, self.weight, self._A, self._M, self._hn2,
+        self._ck = ext.ChooserCore(self.n, (self.currents, self.sigma_max, self.sigma_min, self.weight, self._A, self._M, self._hn2,
                                             self.reduction, self.i_ref, self._var, self.var_after, self._st),
                                    self.rel_model, self.current_sigma, self.step_a, self.unreached_share, self.trace)
 
@@ -711,6 +711,9 @@ class CompiledCoilChooser(CoilChooser):
     @reached.setter
     def reached(self, v) -> None:
         self._stv[4] = 1.0 if v else 0.0
+
+    def set_bounds(self, sigma_max6, sigma_min6) -> None:
+        self._ck.set_bounds(sigma_max6, sigma_min6)
 
     def choose(self, P6, model: SingleCoilModel, var_amp: float, i_limit) -> int:
         if not isinstance(var_amp, float):

@@ -16,8 +16,8 @@
 /* the most pulse lengths choose_length takes */
 #define CH_MAXLEN 64
 
-enum { CH_CUR, CH_SMIN, CH_W, CH_A, CH_M, CH_HN2, CH_RED, CH_IREF, CH_VAR, CH_VAFTER, CH_ST, CH_NVIEWS };
-static const char *ch_names[CH_NVIEWS] = {"currents", "sigma_min", "weight", "A", "M", "hn2", "reduction", "i_ref",
+enum { CH_CUR, CH_SMAX, CH_SMIN, CH_W, CH_A, CH_M, CH_HN2, CH_RED, CH_IREF, CH_VAR, CH_VAFTER, CH_ST, CH_NVIEWS };
+static const char *ch_names[CH_NVIEWS] = {"currents", "sigma_max", "sigma_min", "weight", "A", "M", "hn2", "reduction", "i_ref",
                                           "var", "var_after", "st"};
 
 typedef struct {
@@ -44,7 +44,7 @@ static Py_ssize_t ch_len(int i, int n, int ncur)
 {
     switch (i) {
     case CH_CUR: return ncur;
-    case CH_SMIN: case CH_W: case CH_VAR: case CH_VAFTER: return 6;
+    case CH_SMAX: case CH_SMIN: case CH_W: case CH_VAR: case CH_VAFTER: return 6;
     case CH_A: return 18 * (Py_ssize_t)n;
     case CH_M: return 9 * (Py_ssize_t)n;
     case CH_ST: return CT_CH_NST;
@@ -53,7 +53,7 @@ static Py_ssize_t ch_len(int i, int n, int ncur)
 }
 
 /* ChooserCore(n, arrays, rel_model, current_sigma, step_a, unreached_share, trace): arrays the
- * tuple (currents, sigma_min, weight, A, M, hn2, reduction, i_ref, var, var_after, st) */
+ * tuple (currents, sigma_max, sigma_min, weight, A, M, hn2, reduction, i_ref, var, var_after, st) */
 static int Chooser_init(ChooserObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "arrays", "rel_model", "current_sigma", "step_a", "unreached_share", "trace", NULL};
@@ -69,13 +69,13 @@ static int Chooser_init(ChooserObject *self, PyObject *args, PyObject *kw)
         return -1;
     }
     if (n < 1 || n > 64 || PyTuple_GET_SIZE(arrays) != CH_NVIEWS) {
-        PyErr_SetString(PyExc_ValueError, "ChooserCore: n in 1..64 and 11 arrays");
+        PyErr_SetString(PyExc_ValueError, "ChooserCore: n in 1..64 and 12 arrays");
         return -1;
     }
     ncur = 0;
     for (i = 0; i < CH_NVIEWS; ++i) {
         Py_ssize_t want = ch_len(i, n, ncur);
-        if (ct_py_buffer(PyTuple_GET_ITEM(arrays, i), want, 8, "d", i >= CH_A, &self->views[i], ch_names[i]) < 0) {
+        if (ct_py_buffer(PyTuple_GET_ITEM(arrays, i), want, 8, "d", i != CH_CUR, &self->views[i], ch_names[i]) < 0) {
             Chooser_release(self);
             return -1;
         }
@@ -95,6 +95,7 @@ static int Chooser_init(ChooserObject *self, PyObject *args, PyObject *kw)
     self->ch.ncur = ncur;
     self->ch.trace = trace;
     self->ch.currents = ptr[CH_CUR];
+    self->ch.sigma_max = ptr[CH_SMAX];
     self->ch.sigma_min = ptr[CH_SMIN];
     self->ch.weight = ptr[CH_W];
     self->ch.A = ptr[CH_A];
@@ -162,6 +163,32 @@ static int ch_ready(ChooserObject *self, const char *name, Py_ssize_t nargs, Py_
     return ct_py_nargs(name, nargs, want);
 }
 
+/* 6 float64 items of a 1-D buffer of any strides into out */
+static int ch_six(PyObject *obj, double *out, const char *what)
+{
+    Py_buffer v;
+    int k;
+    if (!ct_py_view(obj, &v, 6, 0)) {
+        PyErr_Format(PyExc_TypeError, "%s: needs 6 float64 items", what);
+        return -1;
+    }
+    for (k = 0; k < 6; ++k)
+        out[k] = *(const double *)((const char *)v.buf + k * v.strides[0]);
+    PyBuffer_Release(&v);
+    return 0;
+}
+
+/* set_bounds(sigma_max6, sigma_min6) (CoilChooser.set_bounds) */
+static PyObject *Chooser_set_bounds(ChooserObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double mx[6], mn[6];
+    if (ch_ready(self, "set_bounds", nargs, 2) < 0 || ch_six(args[0], mx, "sigma_max6") < 0 ||
+        ch_six(args[1], mn, "sigma_min6") < 0)
+        return NULL;
+    ct_set_bounds(&self->ch, mx, mn);
+    Py_RETURN_NONE;
+}
+
 /* choose(P6, h, H, i_limit, var_amp) -> coil (CoilChooser.choose) */
 static PyObject *Chooser_choose(ChooserObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -220,6 +247,8 @@ static PyObject *Chooser_choose_length(ChooserObject *self, PyObject *const *arg
 }
 
 static PyMethodDef Chooser_methods[] = {
+    {"set_bounds", (PyCFunction)(void (*)(void))Chooser_set_bounds, METH_FASTCALL,
+     "set_bounds(sigma_max6, sigma_min6): CoilChooser.set_bounds"},
     {"choose", (PyCFunction)(void (*)(void))Chooser_choose, METH_FASTCALL,
      "choose(P6, h, H, i_limit, var_amp) -> coil: CoilChooser.choose"},
     {"choose_length", (PyCFunction)(void (*)(void))Chooser_choose_length, METH_FASTCALL,

@@ -9,6 +9,28 @@
 
 #include "coiltrack_core.h"
 
+/* CoilChooser.set_bounds: the thresholds (6, m and rad) and the weights of J(P); a bound not
+ * positive taken as 1e-12, a sigma_min outside (0, sigma_max] as sigma_max */
+void ct_set_bounds(struct ct_chooser *ch, const double *sigma_max6, const double *sigma_min6)
+{
+    double *sm = ch->sigma_max;
+    int g, k;
+    for (k = 0; k < 6; ++k) {
+        double smax = sigma_max6[k], smin = sigma_min6[k];
+        if (!(smax > 0.0))
+            smax = 1e-12;
+        sm[k] = smax;
+        ch->sigma_min[k] = (0.0 < smin && smin <= smax) ? smin : smax;
+        ch->weight[k] = 1.0 / (smax * smax);
+    }
+    if (ch->trace)
+        for (g = 0; g < 6; g += 3) {
+            double w = 1.0 / (sm[g] * sm[g] + sm[g + 1] * sm[g + 1] + sm[g + 2] * sm[g + 2]);
+            for (k = g; k < g + 3; ++k)
+                ch->weight[k] = w;
+        }
+}
+
 /* coil_choice.posterior_pose_variances: diag of P6 - I^2 A^T S^-1 A, S = I^2 M + R_v (eq 4), into
  * out (6); 0 (out = diag(P6)) when S is not positive definite */
 int ct_posterior_pose_variances(const double *P6, const double *A, const double *M, double hnorm2, double current,

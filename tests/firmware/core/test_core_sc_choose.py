@@ -14,7 +14,7 @@ magnetometer's range (``saturation_current_limit``) and to nothing at all, an in
 covariance that is not positive definite. Independent reference: the dense eq 4 of Schepers &
 Veltink 2010 (``seeds/000_e46ec0e8bf7ea271.txt``) through numpy.linalg. Then a replayed
 schepers-adaptive run: every decision of the compiled firmware taken again by the reference on the
-same inputs, and the pulses both cores command. Seeded; skips where the extension is not built."""
+same inputs, and the pulses both cores command. The bounds (``set_bounds``) bit for bit too. Seeded; skips where the extension is not built."""
 import math
 
 import numpy as np
@@ -94,6 +94,16 @@ def test_choose_is_the_reference_bit_for_bit(coils, trace, step, share):
             p *= 0.12 / np.linalg.norm(p)                # close to the source: the range limit bites
         model.evaluate(p, R)
         P6 = _P6(rng, 10.0 ** rng.uniform(-1.5, 1.5))
+        if trial % 3 == 1:                               # the decision's bounds (set_bounds), some invalid
+            smax = np.array(SMAX) * rng.uniform(0.5, 2.0, 6)
+            smin = smax * rng.uniform(0.5, 1.2, 6)
+            if trial % 4 == 1:
+                smax[rng.integers(6)] = 0.0
+                smin[rng.integers(6)] = -1.0
+            ref.set_bounds(smax, smin)
+            got.set_bounds(smax, smin)
+            for name in ("sigma_max", "sigma_min", "weight"):
+                assert np.array_equal(getattr(got, name), getattr(ref, name)), name
         lim = np.full(3, 0.91)
         if trial % 9 == 4:
             quiet = rng.normal(0, 3e-5, 3)
