@@ -464,17 +464,17 @@ class CoilChooser:
         A = self._Av[c]
         M = self._Mv[c]
         o = 18 * c
-        for i in range(3):
-            r = o + 6 * i
-            h0, h1, h2, h3, h4, h5 = Hf[r], Hf[r + 1], Hf[r + 2], Hf[r + 3], Hf[r + 4], Hf[r + 5]
-            for j in range(6):
-                A[i, j] = (h0 * P6[0, j] + h1 * P6[1, j] + h2 * P6[2, j] + h3 * P6[3, j] + h4 * P6[4, j]
-                           + h5 * P6[5, j])
+        u0, u1, u2, u3, u4, u5, v0, v1, v2, v3, v4, v5, w0, w1, w2, w3, w4, w5 = Hf[o:o + 18]   # Hu's rows
+        for j in range(6):
+            p0, p1, p2, p3, p4, p5 = P6[0, j], P6[1, j], P6[2, j], P6[3, j], P6[4, j], P6[5, j]
+            A[0, j] = u0 * p0 + u1 * p1 + u2 * p2 + u3 * p3 + u4 * p4 + u5 * p5
+            A[1, j] = v0 * p0 + v1 * p1 + v2 * p2 + v3 * p3 + v4 * p4 + v5 * p5
+            A[2, j] = w0 * p0 + w1 * p1 + w2 * p2 + w3 * p3 + w4 * p4 + w5 * p5
         for i in range(3):
             a0, a1, a2, a3, a4, a5 = A[i, 0], A[i, 1], A[i, 2], A[i, 3], A[i, 4], A[i, 5]
-            for j in range(3):
-                r = o + 6 * j
-                M[i, j] = a0 * Hf[r] + a1 * Hf[r + 1] + a2 * Hf[r + 2] + a3 * Hf[r + 3] + a4 * Hf[r + 4] + a5 * Hf[r + 5]
+            M[i, 0] = a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4 + a5 * u5
+            M[i, 1] = a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4 + a5 * v5
+            M[i, 2] = a0 * w0 + a1 * w1 + a2 * w2 + a3 * w3 + a4 * w4 + a5 * w5
 
     def _pick_target(self, P6) -> None:
         """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
