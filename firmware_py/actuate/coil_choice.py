@@ -659,13 +659,14 @@ class CompiledCoilChooser(CoilChooser):
     ``ct_choose_length``, ``ct_set_bounds``), bit for bit: the same products, scores, comparisons and bisection, so
     the same coil, current and length. The reference's arrays are bound once; the choice's state
     (``coil``, ``current``, ``length``, ``target``, ``reached``) lives in one array read and written
-    through properties under the reference's names. A per-coil ``var_amp`` (an array) takes the
-    reference's path. ``ext``: the extension module (``coiltrack.firmware.core.Core.ext``)."""
+    through properties under the reference's names. A per-coil ``var_amp`` (an array), or more than ``CH_MAXLEN`` (64) pulse
+    lengths, take the reference's path. ``ext``: the extension module (``coiltrack.firmware.core.Core.ext``)."""
 
     def __init__(self, ext, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
                  current_sigma: float = 0.0, trace: bool = False, step_a: float = 0.0, unreached_share: float = 0.0):
         self._st = np.zeros(ext.CH_NST)
         self._stv = memoryview(self._st)
+        self._maxlen = ext.CH_MAXLEN             # more pulse lengths: the reference's path
         super().__init__(n_coils, currents, sigma_max, sigma_min, rel_model, current_sigma, trace, step_a,
                          unreached_share)
         self._ck = ext.ChooserCore(self.n, (self.currents, self.sigma_max, self.sigma_min, self.weight, self._A, self._M, self._hn2,
@@ -721,6 +722,8 @@ class CompiledCoilChooser(CoilChooser):
         return self._ck.choose(P6, model.h, model.H, i_limit, var_amp)
 
     def choose_length(self, P6, model: SingleCoilModel, var_amps, lengths_us, i_limit) -> int:
+        if len(lengths_us) > self._maxlen:
+            return super().choose_length(P6, model, var_amps, lengths_us, i_limit)
         return self._ck.choose_length(P6, model.h, model.H, i_limit, var_amps, lengths_us)
 
 

@@ -313,7 +313,8 @@ int ct_register_sc_choose(PyObject *m)
         Py_DECREF(&ChooserType);
         return -1;
     }
-    if (PyModule_AddFunctions(m, ch_functions) < 0 || PyModule_AddIntConstant(m, "CH_NST", CT_CH_NST) < 0)
+    if (PyModule_AddFunctions(m, ch_functions) < 0 || PyModule_AddIntConstant(m, "CH_NST", CT_CH_NST) < 0 ||
+        PyModule_AddIntConstant(m, "CH_MAXLEN", CH_MAXLEN) < 0)
         return -1;
     return 0;
 }
