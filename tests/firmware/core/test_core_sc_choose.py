@@ -262,3 +262,20 @@ def test_a_replayed_adaptive_run_decides_the_same_on_either_core():
         replay(factory, header, reads)
     assert len(checked) >= 10 and len({c for c, _ in checked}) >= 2
     assert pulses["python"] == pulses["compiled"] and len(pulses["python"]) > len(checked)
+
+
+def test_more_pulse_lengths_than_the_kernel_takes_run_the_reference():
+    """70 lengths (over CH_MAXLEN): the reference's path, the same choice."""
+    from coiltrack.firmware import _core
+
+    rng = np.random.default_rng(6)
+    model = SingleCoilModel(SKEWED, "exact", core.PYTHON)
+    ref, got = _pair(True, 1e-3, 0.8)
+    n = _core.CH_MAXLEN + 6
+    lengths = tuple(40_000 + 500 * k for k in range(n))
+    var = [(3e-8) ** 2 * 40_000 / x for x in lengths]
+    p, R = _pose(rng)
+    model.evaluate(p, R)
+    P6, lim = _P6(rng), np.full(3, 0.91)
+    assert ref.choose_length(P6, model, var, lengths, lim) == got.choose_length(P6, model, var, lengths, lim) >= 0
+    _same(ref, got, "70 lengths")
