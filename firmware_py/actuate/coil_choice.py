@@ -74,6 +74,8 @@ __all__ = [
     "PoseCovUpdate",
     "saturation_current_limit",
     "CoilChooser",
+    "CompiledCoilChooser",
+    "coil_chooser",
     "ActuationPolicy",
     "NisMonitor",
     "chi2_upper",
@@ -413,7 +415,7 @@ class CoilChooser:
         Returns the chosen coil (also in ``self.coil``), or -1.
         """
         w = self._wv
-        P6a, P6 = P6, memoryview(P6)
+        P6 = memoryview(P6)
         self._pick_target(P6)
         j0 = 0.0
         for k in range(POSE_DIM):
@@ -422,11 +424,10 @@ class CoilChooser:
         best_red = -math.inf
         var = self._varv
         scalar = isinstance(var_amp, float)
+        Hf = memoryview(model.H.reshape(-1))        # a view: coil c's row i from 18 c + 6 i
         for c in range(self.n):
             va = var_amp if scalar else float(var_amp[c])
-            A = self._A[c]
-            np.matmul(model.H[c], P6a, out=A)
-            np.matmul(A, model.H[c].T, out=self._M[c])
+            self._products(c, Hf, P6)
             hc = model.h[c]
             self._hn2[c] = float(hc[0] * hc[0] + hc[1] * hc[1] + hc[2] * hc[2])
             k = self._ref_index(float(i_limit[c]))
@@ -454,6 +455,26 @@ class CoilChooser:
                 self.var_after[k] = P6[k, k]
             return -1
         return self._strength(P6, best_c, var_amp, i_limit)
+
+    def _products(self, c: int, Hf, P6) -> None:
+        """``A = Hu P6`` (3, 6) and ``M = A Hu^T`` (3, 3) of coil ``c`` (``Hu`` its per-ampere
+        Jacobian, rows ``Hf[18 c + 6 i:]``), each sum over ``k`` in increasing order from its first
+        term: the compiled chooser's order (``ct_products``), so the scores it compares are these to
+        the bit (a product through numpy goes to the machine's BLAS, whose order is its own)."""
+        A = self._Av[c]
+        M = self._Mv[c]
+        o = 18 * c
+        u0, u1, u2, u3, u4, u5, v0, v1, v2, v3, v4, v5, w0, w1, w2, w3, w4, w5 = Hf[o:o + 18]   # Hu's rows
+        for j in range(6):
+            p0, p1, p2, p3, p4, p5 = P6[0, j], P6[1, j], P6[2, j], P6[3, j], P6[4, j], P6[5, j]
+            A[0, j] = u0 * p0 + u1 * p1 + u2 * p2 + u3 * p3 + u4 * p4 + u5 * p5
+            A[1, j] = v0 * p0 + v1 * p1 + v2 * p2 + v3 * p3 + v4 * p4 + v5 * p5
+            A[2, j] = w0 * p0 + w1 * p1 + w2 * p2 + w3 * p3 + w4 * p4 + w5 * p5
+        for i in range(3):
+            a0, a1, a2, a3, a4, a5 = A[i, 0], A[i, 1], A[i, 2], A[i, 3], A[i, 4], A[i, 5]
+            M[i, 0] = a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4 + a5 * u5
+            M[i, 1] = a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4 + a5 * v5
+            M[i, 2] = a0 * w0 + a1 * w1 + a2 * w2 + a3 * w3 + a4 * w4 + a5 * w5
 
     def _pick_target(self, P6) -> None:
         """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
@@ -631,6 +652,91 @@ class CoilChooser:
         posterior_pose_variances(P6v, self._Av[c], self._Mv[c], float(self._hn2[c]), self.current,
                                  float(var_amps[self.length]), self.rel_model, self._vav, self.current_sigma)
         return c
+
+
+class CompiledCoilChooser(CoilChooser):
+    """:class:`CoilChooser` through the compiled kernels (``sc_choose.c``: ``ct_choose``,
+    ``ct_choose_length``, ``ct_set_bounds``), bit for bit: the same products, scores, comparisons and bisection, so
+    the same coil, current and length. The reference's arrays are bound once; the choice's state
+    (``coil``, ``current``, ``length``, ``target``, ``reached``) lives in one array read and written
+    through properties under the reference's names. A per-coil ``var_amp`` (an array), or more than ``CH_MAXLEN`` (64) pulse
+    lengths, take the reference's path. ``ext``: the extension module (``coiltrack.firmware.core.Core.ext``)."""
+
+    def __init__(self, ext, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
+                 current_sigma: float = 0.0, trace: bool = False, step_a: float = 0.0, unreached_share: float = 0.0):
+        self._st = np.zeros(ext.CH_NST)
+        self._stv = memoryview(self._st)
+        self._maxlen = ext.CH_MAXLEN             # more pulse lengths: the reference's path
+        super().__init__(n_coils, currents, sigma_max, sigma_min, rel_model, current_sigma, trace, step_a,
+                         unreached_share)
+        self._ck = ext.ChooserCore(self.n, (self.currents, self.sigma_max, self.sigma_min, self.weight, self._A, self._M, self._hn2,
+                                            self.reduction, self.i_ref, self._var, self.var_after, self._st),
+                                   self.rel_model, self.current_sigma, self.step_a, self.unreached_share, self.trace)
+
+    @property
+    def coil(self) -> int:
+        return int(self._stv[0])
+
+    @coil.setter
+    def coil(self, v) -> None:
+        self._stv[0] = float(v)
+
+    @property
+    def current(self) -> float:
+        return self._stv[1]
+
+    @current.setter
+    def current(self, v) -> None:
+        self._stv[1] = float(v)
+
+    @property
+    def length(self) -> int:
+        return int(self._stv[2])
+
+    @length.setter
+    def length(self, v) -> None:
+        self._stv[2] = float(v)
+
+    @property
+    def target(self) -> int:
+        return int(self._stv[3])
+
+    @target.setter
+    def target(self, v) -> None:
+        self._stv[3] = float(v)
+
+    @property
+    def reached(self) -> bool:
+        return self._stv[4] != 0.0
+
+    @reached.setter
+    def reached(self, v) -> None:
+        self._stv[4] = 1.0 if v else 0.0
+
+    def set_bounds(self, sigma_max6, sigma_min6) -> None:
+        self._ck.set_bounds(sigma_max6, sigma_min6)
+
+    def choose(self, P6, model: SingleCoilModel, var_amp: float, i_limit) -> int:
+        if not isinstance(var_amp, float):
+            return super().choose(P6, model, var_amp, i_limit)
+        return self._ck.choose(P6, model.h, model.H, i_limit, var_amp)
+
+    def choose_length(self, P6, model: SingleCoilModel, var_amps, lengths_us, i_limit) -> int:
+        if len(lengths_us) > self._maxlen:
+            return super().choose_length(P6, model, var_amps, lengths_us, i_limit)
+        return self._ck.choose_length(P6, model.h, model.H, i_limit, var_amps, lengths_us)
+
+
+def coil_chooser(core, n_coils: int, currents, sigma_max, sigma_min, rel_model: float = 0.0,
+                 current_sigma: float = 0.0, trace: bool = False, step_a: float = 0.0,
+                 unreached_share: float = 0.0) -> CoilChooser:
+    """The chooser on the numeric core ``core`` (chosen at composition): :class:`CompiledCoilChooser`
+    where the extension is built, else the reference :class:`CoilChooser`."""
+    if core.ext is not None:
+        return CompiledCoilChooser(core.ext, n_coils, currents, sigma_max, sigma_min, rel_model, current_sigma, trace,
+                                   step_a, unreached_share)
+    return CoilChooser(n_coils, currents, sigma_max, sigma_min, rel_model, current_sigma, trace, step_a,
+                       unreached_share)
 
 
 class ActuationPolicy:

@@ -41,8 +41,8 @@ from coiltrack.firmware.estimate.shared_baseline import pulse_gap_us
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference, fixed_cycle_bounds, nis_bound_factor
 from coiltrack.firmware.actuate.accuracy_budget import HOLD_MAX, HOLD_MIN, MeanBudgetReference
-from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, CoilChooser, PoseCovUpdate,
-                                                    SingleCoilModel, current_ladder, saturation_current_limit)
+from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, PoseCovUpdate, SingleCoilModel,
+                                                    coil_chooser, current_ladder, saturation_current_limit)
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.protocol.schema import CURRENT_LSB_A
@@ -223,7 +223,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         step = 0.0 if cfg.adaptive.adaptive_currents_a else cfg.adaptive.adaptive_current_step_a
         if 0.0 < step < CURRENT_LSB_A:
             step = CURRENT_LSB_A
-        self.chooser = CoilChooser(n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
+        self.chooser = coil_chooser(core, n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
                                    trace, step, cfg.adaptive.unreached_share)
         self.policy = ActuationPolicy(smax, cfg.adaptive.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()

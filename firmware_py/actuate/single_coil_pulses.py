@@ -63,7 +63,7 @@ class PulseBook:
         self._order = [0] * len(self.slots)
         # recent pulses per coil (start, end), to stay within the driver's duty limit
         self._hist = np.zeros((n_coils, DUTY_HIST, 2), dtype=np.int64)
-        self._histv = memoryview(self._hist)     # elements read as Python ints
+        self._histv = memoryview(self._hist.reshape(-1))     # elements read as Python ints
         self._hist_k = [0] * n_coils
         self.next_free_us = int(first_free_us)
         self.last_pulse_end = 0
@@ -195,11 +195,13 @@ class PulseBook:
         w0 = end - cfg.limits.coil_duty_window_us
         on = length
         h = self._histv
-        for k in range(DUTY_HIST):
-            s0 = h[c, k, 0]
-            e0 = h[c, k, 1]
-            if e0 > w0 and e0 > s0:
-                on += min(e0, end) - max(s0, w0)
+        b = 2 * DUTY_HIST * c                   # coil c's (start, end) pairs, flat
+        for k in range(b + 1, b + 2 * DUTY_HIST, 2):
+            e0 = h[k]
+            if e0 > w0:                         # most ended before the window: their start not read
+                s0 = h[k - 1]
+                if e0 > s0:
+                    on += min(e0, end) - max(s0, w0)
         return on <= cfg.adaptive.duty_margin * cfg.limits.coil_max_duty * cfg.limits.coil_duty_window_us
 
     def quiet_at(self, t: int, pulse_us: int) -> bool:

@@ -277,3 +277,42 @@ def test_range_law_is_normalised_by_its_own_mean():
     for g, e in ((0, 4.0 / 3.0), (1, 1.0)):
         assert ref.law_now(0.2, g) == pytest.approx(2.0 / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
         assert ref.law_now(0.4, g) == pytest.approx(2.0 * 2.0 ** (2 * e) / (1.0 + 2.0 ** (2 * e)), rel=1e-9)
+
+
+def test_duty_check_is_the_overlap_of_the_remembered_pulses():
+    """PulseBook.duty_ok against the on-time summed directly: the last DUTY_HIST pulses of the coil
+    (start, end), each clipped to the window ``[end - coil_duty_window_us, end]`` of the pulse asked
+    about, plus that pulse's length, against ``duty_margin coil_max_duty coil_duty_window_us``.
+    Random pulse trains, more pulses than remembered, some overlapping the window's start; the other
+    coils' pulses do not count. Catches a pulse of another coil counted, a start read for an end, or
+    a pulse straddling the window's start counted whole."""
+    from coiltrack.firmware.actuate.single_coil_pulses import DUTY_HIST, PulseBook
+    from coiltrack.firmware.config import FirmwareConfig
+
+    cfg = FirmwareConfig()
+    sched = SimpleNamespace(command=lambda coil, current, start, length: (1, current))
+    rng = np.random.default_rng(4)
+    lim = cfg.adaptive.duty_margin * cfg.limits.coil_max_duty * cfg.limits.coil_duty_window_us
+    seen = set()
+    for trial in range(40):
+        book = PulseBook(cfg, 3, sched, (), 30_000, 20_000, 0)
+        hist = [[], [], []]
+        t = 0
+        for _ in range(int(rng.integers(1, 3 * DUTY_HIST))):
+            c = int(rng.integers(3))
+            length = int(rng.integers(20_000, 90_000))
+            t += int(rng.integers(0, 60_000))
+            sl = book.command(c, 0.5, t, length, True)
+            book.release(book.slots[sl])
+            hist[c].append((t, t + length))
+            t += length
+        for _ in range(10):
+            c = int(rng.integers(3))
+            start = t + int(rng.integers(0, 400_000))
+            length = int(rng.integers(20_000, 90_000))
+            end = start + length
+            w0 = end - cfg.limits.coil_duty_window_us
+            on = length + sum(min(e, end) - max(s, w0) for s, e in hist[c][-DUTY_HIST:] if e > w0)
+            assert book.duty_ok(c, start, length) == (on <= lim)
+            seen.add(on <= lim)
+    assert seen == {True, False}
