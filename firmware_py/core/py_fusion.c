@@ -462,6 +462,258 @@ static PyTypeObject ReplayType = {
     .tp_methods = Replay_methods,
 };
 
+/* ---------------------------------------------------------------- SnapAux */
+typedef struct {
+    FuBase b;
+    int fixed, np, t0, imu_cap;
+    const double *imu_d, *R, *P, *bias;
+    double *Phi, *Xi, *XiP, *XiB;
+} SnapAuxObject;
+
+static int SnapAux_init(SnapAuxObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"fixed", "np", "t0", "imu_d", "Phi", "Xi", "XiP", "XiB", "R", "P", "bias", NULL};
+    static const char *names[8] = {"imu_d", "Phi", "Xi", "XiP", "XiB", "R", "P", "bias"};
+    static const int wr[8] = {0, 1, 1, 1, 1, 0, 0, 0};
+    PyObject *o[8];
+    Py_ssize_t len[8];
+    void *ptr[8];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "piiOOOOOOOO", kwlist, &self->fixed, &self->np, &self->t0, &o[0], &o[1],
+                                     &o[2], &o[3], &o[4], &o[5], &o[6], &o[7]))
+        return -1;
+    if (fu_check_unbound(&self->b, "SnapAux") < 0)
+        return -1;
+    if (self->np < 3 || self->np > 256 || self->t0 < 0 || self->t0 + 3 > self->np) {
+        PyErr_SetString(PyExc_ValueError, "SnapAux: bad orientation state size or theta rows");
+        return -1;
+    }
+    if (fu_get(o[0], CT_IMU_WIDTH, 0, 0, &v, "imu_d") < 0)
+        return -1;
+    self->imu_cap = (int)(v.len / (8 * CT_IMU_WIDTH));
+    PyBuffer_Release(&v);
+    len[0] = (Py_ssize_t)self->imu_cap * CT_IMU_WIDTH;
+    len[1] = len[2] = len[3] = len[5] = 9;
+    len[4] = len[7] = 3;
+    len[6] = (Py_ssize_t)self->np * self->np;
+    if (fu_bind(8, o, len, wr, NULL, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 8;
+    self->imu_d = ptr[0];
+    self->Phi = ptr[1];
+    self->Xi = ptr[2];
+    self->XiP = ptr[3];
+    self->XiB = ptr[4];
+    self->R = ptr[5];
+    self->P = ptr[6];
+    self->bias = ptr[7];
+    return 0;
+}
+
+/* take(k, xi): Snapshot.take_aux's arrays from IMU row k (and the ch. 2 filter when xi) */
+static PyObject *SnapAux_take(SnapAuxObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long k;
+    int xi;
+    if (fu_check_bound(&self->b, "SnapAux") < 0 || ct_py_nargs("take", nargs, 2) < 0)
+        return NULL;
+    k = PyLong_AsLong(args[0]);
+    if (k == -1 && PyErr_Occurred())
+        return NULL;
+    xi = PyObject_IsTrue(args[1]);
+    if (xi < 0)
+        return NULL;
+    if (k < 0 || k >= self->imu_cap) {
+        PyErr_SetString(PyExc_ValueError, "take: IMU slot out of range");
+        return NULL;
+    }
+    ct_fusion_snap_aux(self->fixed, self->imu_d + (Py_ssize_t)k * CT_IMU_WIDTH, xi, self->R, self->P, self->np,
+                       self->t0, self->bias, self->Phi, self->Xi, self->XiP, self->XiB);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef SnapAux_methods[] = {
+    {"take", (PyCFunction)(void (*)(void))SnapAux_take, METH_FASTCALL,
+     "take(k, xi): Snapshot.take_aux's Phi (IMU row k) and, when xi, Xi, its covariance and offset"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SnapAuxType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SnapAux",
+    .tp_basicsize = sizeof(SnapAuxObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SnapAux(fixed, np, t0, imu_d, Phi, Xi, XiP, XiB, R, P, bias): the snapshot's source orientation "
+              "and ch. 2 filter, bound to the IMU ring, the snapshot and the filter",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SnapAux_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = SnapAux_methods,
+};
+
+/* ---------------------------------------------------------------- PoseAt */
+typedef struct {
+    FuBase b;
+    int64_t cap;
+    const int64_t *ht, *hc;
+    const double *hd;
+} PoseAtObject;
+
+static int PoseAt_init(PoseAtObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"hist_t", "hist_d", "hc", NULL};
+    static const char *names[3] = {"hist_t", "hist_d", "hc"};
+    static const int wr[3] = {0, 0, 0};
+    static const int i64[3] = {1, 0, 1};
+    PyObject *o[3];
+    Py_ssize_t len[3];
+    void *ptr[3];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOO", kwlist, &o[0], &o[1], &o[2]))
+        return -1;
+    if (fu_check_unbound(&self->b, "PoseAt") < 0)
+        return -1;
+    if (fu_get(o[0], 2, 0, 1, &v, "hist_t") < 0)
+        return -1;
+    self->cap = (int64_t)(v.len / 8);
+    PyBuffer_Release(&v);
+    len[0] = (Py_ssize_t)self->cap;
+    len[1] = (Py_ssize_t)self->cap * CT_HIST_WIDTH;
+    len[2] = 2;
+    if (fu_bind(3, o, len, wr, i64, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 3;
+    self->ht = ptr[0];
+    self->hd = ptr[1];
+    self->hc = ptr[2];
+    return 0;
+}
+
+/* at(t_us, out_p, out_R) -> bool */
+static PyObject *PoseAt_at(PoseAtObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t;
+    Py_buffer vp, vr;
+    int ok;
+    if (fu_check_bound(&self->b, "PoseAt") < 0 || ct_py_nargs("at", nargs, 3) < 0 || ct_py_int64(args[0], &t) < 0)
+        return NULL;
+    if (self->hc[0] < 0 || self->hc[0] >= self->cap || self->hc[1] < 0 || self->hc[1] > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "at: the history's head or count out of range");
+        return NULL;
+    }
+    if (fu_get(args[1], 3, 1, 0, &vp, "out_p") < 0)
+        return NULL;
+    if (fu_get(args[2], 9, 1, 0, &vr, "out_R") < 0) {
+        PyBuffer_Release(&vp);
+        return NULL;
+    }
+    ok = ct_fusion_pose_at(self->ht, self->hd, self->cap, self->hc[0], self->hc[1], t, (double *)vp.buf,
+                           (double *)vr.buf);
+    PyBuffer_Release(&vp);
+    PyBuffer_Release(&vr);
+    if (ok)
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef PoseAt_methods[] = {
+    {"at", (PyCFunction)(void (*)(void))PoseAt_at, METH_FASTCALL,
+     "at(t_us, out_p, out_R) -> bool: PoseHistory.pose_at over the bound history"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject PoseAtType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.PoseAt",
+    .tp_basicsize = sizeof(PoseAtObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "PoseAt(hist_t, hist_d, hc): the pose history's interpolation bound to a KernelRing",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)PoseAt_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = PoseAt_methods,
+};
+
+/* ---------------------------------------------------------------- MotionCov */
+typedef struct {
+    FuBase b;
+    int n;
+    double tr2;
+    const double *P, *v, *w;
+} MotionCovObject;
+
+static int MotionCov_init(MotionCovObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "tr2", "P", "v", "w", NULL};
+    static const char *names[3] = {"P", "v", "w"};
+    static const int wr[3] = {0, 0, 0};
+    PyObject *o[3];
+    Py_ssize_t len[3];
+    void *ptr[3];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "idOOO", kwlist, &self->n, &self->tr2, &o[0], &o[1], &o[2]))
+        return -1;
+    if (fu_check_unbound(&self->b, "MotionCov") < 0)
+        return -1;
+    if (self->n < CT_GYR + 3 || self->n > 256) {
+        PyErr_Format(PyExc_ValueError, "MotionCov: n must be in %d..256", CT_GYR + 3);
+        return -1;
+    }
+    len[0] = (Py_ssize_t)self->n * self->n;
+    len[1] = len[2] = 3;
+    if (fu_bind(3, o, len, wr, NULL, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 3;
+    self->P = ptr[0];
+    self->v = ptr[1];
+    self->w = ptr[2];
+    return 0;
+}
+
+/* into(C, compensated, out, p, initialized) */
+static PyObject *MotionCov_into(MotionCovObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vc, vo, vp;
+    int comp, init;
+    if (fu_check_bound(&self->b, "MotionCov") < 0 || ct_py_nargs("into", nargs, 5) < 0)
+        return NULL;
+    comp = PyObject_IsTrue(args[1]);
+    init = PyObject_IsTrue(args[4]);
+    if (comp < 0 || init < 0)
+        return NULL;
+    if (fu_get(args[0], 36, 0, 0, &vc, "C") < 0)
+        return NULL;
+    if (fu_get(args[2], 36, 1, 0, &vo, "out") < 0) {
+        PyBuffer_Release(&vc);
+        return NULL;
+    }
+    if (fu_get(args[3], 3, 0, 0, &vp, "p") < 0) {
+        PyBuffer_Release(&vc);
+        PyBuffer_Release(&vo);
+        return NULL;
+    }
+    ct_fusion_motion_cov((const double *)vc.buf, (double *)vo.buf, (const double *)vp.buf, comp, init, self->tr2,
+                         self->P, self->n, self->v, self->w);
+    PyBuffer_Release(&vc);
+    PyBuffer_Release(&vo);
+    PyBuffer_Release(&vp);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef MotionCov_methods[] = {
+    {"into", (PyCFunction)(void (*)(void))MotionCov_into, METH_FASTCALL,
+     "into(C, compensated, out, p, initialized): SensorInertial.motion_cov with the bound live state"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject MotionCovType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.MotionCov",
+    .tp_basicsize = sizeof(MotionCovObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "MotionCov(n, tr2, P, v, w): a burst's motion covariance bound to the live state and the rate",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)MotionCov_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = MotionCov_methods,
+};
+
 /* ---------------------------------------------------------------- registration */
 static int fu_add_type(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -490,7 +742,8 @@ int ct_register_fusion(PyObject *m)
         {"IMU_PHI", CT_IMU_PHI}, {"HIST_WIDTH", CT_HIST_WIDTH}, {"HIST_P", CT_HIST_P}, {"HIST_R", CT_HIST_R}};
     size_t i;
     if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
-        fu_add_type(m, &ReplayType, "Replay") < 0)
+        fu_add_type(m, &ReplayType, "Replay") < 0 || fu_add_type(m, &SnapAuxType, "SnapAux") < 0 ||
+        fu_add_type(m, &PoseAtType, "PoseAt") < 0 || fu_add_type(m, &MotionCovType, "MotionCov") < 0)
         return -1;
     for (i = 0; i < sizeof consts / sizeof consts[0]; ++i)
         if (PyModule_AddIntConstant(m, consts[i].name, consts[i].v) < 0)

@@ -52,9 +52,12 @@ class CompiledReplay:
                      ext.RIO_HIST_PUSHED, ext.RIO_SNAP_PENDING, ext.RIO_SNAP_T, ext.RIO_UNITS, ext.RIO_PRED_COUNT,
                      ext.RIO_STEPS, ext.RIO_SPLIT, ext.RFO_DT_LAST, ext.RFO_KA, ext.RFO_KG, ext.REPLAY_SNAPSHOT)
 
-    def run(self, budget: int) -> int:
+    def run(self, budget: int, take: bool = True) -> int:
         """Replay on the shadow, at most ``budget`` strapdown steps started (a sample split at a
-        snapshot finishes), as ``FusionFilter.step``'s loop does; the kernel's stop."""
+        snapshot finishes), as ``FusionFilter.step``'s loop does; the kernel's stop. ``take``: the
+        bound state is the authoritative one (``FusionFilter._advance``): a snapshot falling inside
+        a sample is taken from it (else the sample is only split there). Bound to the live state
+        and its history, one call with ``budget`` 1 is ``_advance`` of the newest sample."""
         T, IF, IC, HF, HC, HP, SP, ST, U, PC, STEPS, SPLIT, DT, KA, KG, SNAPSHOT = self._idx
         io, fo = self._iov, self._fov
         sh, imu, hist, snap, pr = self.sh, self.imu, self.hist, self.snap, self.pr
@@ -83,6 +86,7 @@ class CompiledReplay:
                 break
             # FusionFilter._advance: the shadow (the authoritative state in a replay) at the
             # snapshot's instant is kept, then the kernel resumes with the rest of the sample
-            snap.take(sh, pr._idv, io[SPLIT])
+            if take:
+                snap.take(sh, pr._idv, io[SPLIT])
         self.units = io[U]
         return rc

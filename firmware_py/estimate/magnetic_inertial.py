@@ -310,13 +310,18 @@ class FusionFilter(FilterView):
         self.upd = KalmanUpdate(n, self.m, params.gate_probability, core)
         self.meas.fill_constant(memoryview(self.upd.H), memoryview(self.upd.R), params)
         self.recovery = Recovery(params, self.meas)
-        self.history = PoseHistory(history_capacity)
+        self.history = PoseHistory(history_capacity, core)
         self.output = PoseOutput(params, output_capacity, self.frame, core, self.st, self.imu, self.history.live)
         #: the measurement model's evaluation for the shadow and the snapshot, and the replay's
         #: kernel (None: the Python loop of :meth:`step`), chosen once (``core``)
         self._evaluate = self.meas.bind(self.sh, self.snap, self.upd.y, core)
         self._replay_ck = (CompiledReplay(self.sh, self.prediction, self.history.shadow, self.snap, self.frame,
                                           core.ext) if self.sh.ck is not None else None)
+        #: the live state's step split at a pending snapshot (``_advance``) on the compiled core: the
+        #: same kernel bound to the live state and history, one sample a call (None: Python)
+        self._live_ck = (CompiledReplay(self.st, self.prediction, self.history.live, self.snap, self.frame,
+                                        core.ext) if self.st.ck is not None else None)
+        self.snap.bind(self.imu.d, core)
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
@@ -335,12 +340,14 @@ class FusionFilter(FilterView):
         if self.st.ck is not None:
             self.prediction.bind_live(self.st, self.history.live, self.output._ck)
             self.push_imu = self._push_imu_compiled
+            self.pose_at = self.history.pose_at         # (the kernel's method: PoseHistory.pose_at)
 
     def attach_recorder(self, recorder) -> None:
         """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only). Its
         per-step hook runs in the Python replay only: the compiled one is not used from now on."""
         self.recorder = recorder
         self._replay_ck = None
+        self._live_ck = None
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
@@ -422,6 +429,11 @@ class FusionFilter(FilterView):
         t = pr._itv[k]
         t0 = st.t_us
         if snap.due(t0, t):
+            if st is self.st and self._live_ck is not None and len(self.imu) > 1:
+                # the newest sample k (the live state is at the one before it): the kernel's split
+                # step, the snapshot taken between its halves when the live state is authoritative
+                self._live_ck.run(1, st is self._auth)
+                return self._live_ck.units
             ts = snap.t
             n = 0
             if ts > t0:

@@ -573,6 +573,13 @@ class SensorInertial:
         self.poses_dead_reckoning = 0
         self.poses_lost = 0
         self.poses_out_of_range = 0     # fused poses beyond the working volume (sent, not valid)
+        st = self.fusion.st
+        if st.ck is not None:
+            # motion_cov on the compiled core (core/src/fusion.c ct_fusion_motion_cov), bound to the
+            # live state and w_last
+            self._mc = core.ext.MotionCov(st.P.shape[0], self.burst_rms_s * self.burst_rms_s, st.P, st.v,
+                                          self.w_last).into
+            self.motion_cov = self._motion_cov_compiled
 
     # ------------------------------------------------------------ per sample
     def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
@@ -859,6 +866,10 @@ class SensorInertial:
     def _motion_cov(self, C, compensated: bool) -> None:
         """``_Cf = C`` plus the motion left in the burst (see :meth:`fuse`)."""
         self.motion_cov(C, compensated, self._Cf, self.mag_position)
+
+    def _motion_cov_compiled(self, C, compensated: bool, out, p) -> None:
+        """:meth:`motion_cov` on the compiled core (``C``, ``out``, ``p``: C-contiguous float64 arrays)."""
+        self._mc(C, compensated, out, p, self.fusion.initialized)
 
     def motion_cov(self, C, compensated: bool, out, p) -> None:
         """``out = C`` plus the motion left in a burst solved at ``p`` (see :meth:`fuse`)."""
