@@ -337,26 +337,32 @@ typedef struct {
     double E[9];
     int64_t *io;
     double *fo;
+    const int64_t *imu_hc;          /* the IMU ring's (head, count), or NULL: io carries them */
+    int64_t *hist_hc;               /* the history's (head, count), advanced here, or NULL */
 } ReplayObject;
 
 static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", "imu_t", "imu_d", "hist_t",
-                             "hist_d", "io", "fo", "fixed", "dtk", "symmetrize_every", NULL};
+                             "hist_d", "io", "fo", "fixed", "dtk", "symmetrize_every", "imu_hc", "hist_hc", NULL};
     static const char *names[RP_NBUF] = {"p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", "imu_t", "imu_d",
                                          "hist_t", "hist_d", "io", "fo"};
     static const int wr[RP_NBUF] = {1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 1};
     static const int i64[RP_NBUF] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1, 0, 1, 0};
     struct ct_replay *r = &self->r;
-    PyObject *o[RP_NBUF], *dtk;
+    PyObject *o[RP_NBUF], *dtk, *ohc[2] = {Py_None, Py_None};
     Py_ssize_t len[RP_NBUF];
     void *ptr[RP_NBUF];
     Py_buffer tv;
     int n, fixed, sym, i, icap, hcap;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOpOi", kwlist, &n, &o[0], &o[1], &o[2], &o[3], &o[4],
-                                     &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14],
-                                     &fixed, &dtk, &sym))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOpOi|OO", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14],
+                                     &fixed, &dtk, &sym, &ohc[0], &ohc[1]))
         return -1;
+    if ((ohc[0] == Py_None) != (ohc[1] == Py_None)) {
+        PyErr_SetString(PyExc_TypeError, "Replay: imu_hc and hist_hc go together");
+        return -1;
+    }
     if (fu_check_unbound(&self->b, "Replay") < 0)
         return -1;
     if (n < CT_GYR + 3 || n > 256 || sym < 1) {
@@ -393,6 +399,19 @@ static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
         return -1;
     }
     self->b.nviews = RP_NBUF;
+    self->imu_hc = NULL;
+    self->hist_hc = NULL;
+    if (ohc[0] != Py_None) {
+        /* the rings' head and count (fusion_rings.KernelRing.hc), read and advanced by replay() */
+        if (fu_get(ohc[0], 2, 0, 1, &self->b.views[RP_NBUF], "imu_hc") < 0)
+            return -1;                  /* (the bound views are released by the deallocation) */
+        self->b.nviews = RP_NBUF + 1;
+        if (fu_get(ohc[1], 2, 1, 1, &self->b.views[RP_NBUF + 1], "hist_hc") < 0)
+            return -1;
+        self->b.nviews = RP_NBUF + 2;
+        self->imu_hc = self->b.views[RP_NBUF].buf;
+        self->hist_hc = self->b.views[RP_NBUF + 1].buf;
+    }
     r->ins.n = n;
     r->ins.p = ptr[0];
     r->ins.v = ptr[1];
@@ -434,6 +453,15 @@ static PyObject *Replay_replay(ReplayObject *self, PyObject *const *args, Py_ssi
         return NULL;
     if (budget > 1L << 30)
         budget = 1L << 30;
+    if (self->imu_hc != NULL) {
+        /* Ring.slot(0) and len of the IMU ring and of the history, from their (head, count) */
+        int64_t f = self->imu_hc[0] - self->imu_hc[1];
+        io[CT_RIO_IMU_FIRST] = f < 0 ? f + self->r.imu_cap : f;
+        io[CT_RIO_IMU_COUNT] = self->imu_hc[1];
+        f = self->hist_hc[0] - self->hist_hc[1];
+        io[CT_RIO_HIST_FIRST] = f < 0 ? f + self->r.hist_cap : f;
+        io[CT_RIO_HIST_COUNT] = self->hist_hc[1];
+    }
     if (io[CT_RIO_IMU_COUNT] < 0 || io[CT_RIO_IMU_COUNT] > self->r.imu_cap || io[CT_RIO_IMU_FIRST] < 0 ||
         io[CT_RIO_IMU_FIRST] >= self->r.imu_cap || io[CT_RIO_HIST_COUNT] < 0 ||
         io[CT_RIO_HIST_COUNT] > self->r.hist_cap || io[CT_RIO_HIST_FIRST] < 0 ||
@@ -441,7 +469,16 @@ static PyObject *Replay_replay(ReplayObject *self, PyObject *const *args, Py_ssi
         PyErr_SetString(PyExc_ValueError, "replay: ring slots or counts out of range");
         return NULL;
     }
-    return PyLong_FromLong(ct_fusion_replay(&self->r, io, self->fo, (int)budget));
+    {
+        const int rc = ct_fusion_replay(&self->r, io, self->fo, (int)budget);
+        if (self->hist_hc != NULL) {
+            /* ring.Ring.advance(io[CT_RIO_HIST_PUSHED]) */
+            const int64_t cap = self->r.hist_cap, c = self->hist_hc[1] + io[CT_RIO_HIST_PUSHED];
+            self->hist_hc[0] = (self->hist_hc[0] + io[CT_RIO_HIST_PUSHED]) % cap;
+            self->hist_hc[1] = c < cap ? c : cap;
+        }
+        return PyLong_FromLong(rc);
+    }
 }
 
 static PyMethodDef Replay_methods[] = {
@@ -455,7 +492,9 @@ static PyTypeObject ReplayType = {
     .tp_basicsize = sizeof(ReplayObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_doc = "Replay(n, p, v, Th, ba, bg, A, P, Q, T, imu_t, imu_d, hist_t, hist_d, io, fo, fixed, dtk, "
-              "symmetrize_every): the fusion filter's replay bound to the shadow state and its rings",
+              "symmetrize_every, imu_hc=None, hist_hc=None): the fusion filter's replay bound to the shadow state "
+              "and its rings (with the rings' head and count arrays, replay() reads them and advances the "
+              "history's itself)",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Replay_init,
     .tp_dealloc = Fu_dealloc,

@@ -41,7 +41,7 @@ class PoseHistory:
 
     def __init__(self, capacity: int, core=_DEFAULT_CORE):
         self.live = KernelRing(capacity, HIST_FIELDS)    # (its head and count shared: ext.ImuSample)
-        self.shadow = Ring(capacity, HIST_FIELDS)
+        self.shadow = KernelRing(capacity, HIST_FIELDS)   # (its head and count shared: ext.Replay)
         ext = core.ext
         if ext is not None:
             # pose_at on the compiled core (core/src/fusion.c ct_fusion_pose_at), bound to the live ring
