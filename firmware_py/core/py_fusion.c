@@ -753,6 +753,148 @@ static PyTypeObject MotionCovType = {
     .tp_methods = MotionCov_methods,
 };
 
+/* ---------------------------------------------------------------- Compensate */
+typedef struct {
+    FuBase b;
+    int n, n_st;
+    int64_t cap;
+    double max_sigma;
+    double *S_comp, *p_ref, *R_ref, *p_j, *R_j;
+    const double *h_ref, *h_j, *P, *hd;
+    const int64_t *ht, *hc;
+} CompensateObject;
+
+static int Compensate_init(CompensateObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "n_st", "max_sigma", "S_comp", "h_ref", "h_j", "p_ref", "R_ref", "p_j", "R_j", "P",
+                             "hist_t", "hist_d", "hc", NULL};
+    static const char *names[11] = {"S_comp", "h_ref", "h_j", "p_ref", "R_ref", "p_j", "R_j", "P", "hist_t",
+                                    "hist_d", "hc"};
+    static const int wr[11] = {1, 0, 0, 1, 1, 1, 1, 0, 0, 0, 0};
+    static const int i64[11] = {0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1};
+    PyObject *o[11];
+    Py_ssize_t len[11];
+    void *ptr[11];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iidOOOOOOOOOOO", kwlist, &self->n, &self->n_st, &self->max_sigma,
+                                     &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10]))
+        return -1;
+    if (fu_check_unbound(&self->b, "Compensate") < 0)
+        return -1;
+    if (self->n < 1 || self->n > 64 || self->n_st < CT_GYR + 3 || self->n_st > 256) {
+        PyErr_SetString(PyExc_ValueError, "Compensate: bad pulse count or state size");
+        return -1;
+    }
+    if (fu_get(o[8], 2, 0, 1, &v, "hist_t") < 0)
+        return -1;
+    self->cap = (int64_t)(v.len / 8);
+    PyBuffer_Release(&v);
+    len[0] = len[1] = len[2] = 3 * (Py_ssize_t)self->n;
+    len[3] = len[5] = 3;
+    len[4] = len[6] = 9;
+    len[7] = (Py_ssize_t)self->n_st * self->n_st;
+    len[8] = (Py_ssize_t)self->cap;
+    len[9] = (Py_ssize_t)self->cap * CT_HIST_WIDTH;
+    len[10] = 2;
+    if (fu_bind(11, o, len, wr, i64, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 11;
+    self->S_comp = ptr[0];
+    self->h_ref = ptr[1];
+    self->h_j = ptr[2];
+    self->p_ref = ptr[3];
+    self->R_ref = ptr[4];
+    self->p_j = ptr[5];
+    self->R_j = ptr[6];
+    self->P = ptr[7];
+    self->ht = ptr[8];
+    self->hd = ptr[9];
+    self->hc = ptr[10];
+    return 0;
+}
+
+static int comp_ring_ok(CompensateObject *self)
+{
+    if (self->hc[0] < 0 || self->hc[0] >= self->cap || self->hc[1] < 0 || self->hc[1] > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "Compensate: the history's head or count out of range");
+        return 0;
+    }
+    return 1;
+}
+
+/* begin(S, initialized, t_ref) -> bool */
+static PyObject *Compensate_begin(CompensateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vs;
+    int init, ok;
+    int64_t t;
+    if (fu_check_bound(&self->b, "Compensate") < 0 || ct_py_nargs("begin", nargs, 3) < 0 || !comp_ring_ok(self))
+        return NULL;
+    init = PyObject_IsTrue(args[1]);
+    if (init < 0 || ct_py_int64(args[2], &t) < 0)
+        return NULL;
+    if (fu_get(args[0], 3 * (Py_ssize_t)self->n, 0, 0, &vs, "S") < 0)
+        return NULL;
+    ok = ct_fusion_comp_begin((const double *)vs.buf, self->S_comp, self->n, init, self->P, self->n_st,
+                              self->max_sigma, self->ht, self->hd, self->cap, self->hc[0], self->hc[1], t,
+                              self->p_ref, self->R_ref);
+    PyBuffer_Release(&vs);
+    if (ok)
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* pulse(t_j) -> bool: the pose at pulse time t_j into p_j, R_j */
+static PyObject *Compensate_pulse(CompensateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t;
+    if (fu_check_bound(&self->b, "Compensate") < 0 || ct_py_nargs("pulse", nargs, 1) < 0 || !comp_ring_ok(self) ||
+        ct_py_int64(args[0], &t) < 0)
+        return NULL;
+    if (ct_fusion_pose_at(self->ht, self->hd, self->cap, self->hc[0], self->hc[1], t, self->p_j, self->R_j))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* add(j): pulse j's correction */
+static PyObject *Compensate_add(CompensateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long j;
+    if (fu_check_bound(&self->b, "Compensate") < 0 || ct_py_nargs("add", nargs, 1) < 0)
+        return NULL;
+    j = PyLong_AsLong(args[0]);
+    if (j == -1 && PyErr_Occurred())
+        return NULL;
+    if (j < 0 || j >= self->n) {
+        PyErr_SetString(PyExc_ValueError, "add: pulse index out of range");
+        return NULL;
+    }
+    ct_fusion_comp_add(self->S_comp, self->h_ref, self->h_j, self->n, (int)j);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Compensate_methods[] = {
+    {"begin", (PyCFunction)(void (*)(void))Compensate_begin, METH_FASTCALL,
+     "begin(S, initialized, t_ref) -> bool: compensate_begin's copy, checks and pose at t_ref"},
+    {"pulse", (PyCFunction)(void (*)(void))Compensate_pulse, METH_FASTCALL,
+     "pulse(t_j) -> bool: the pose at a pulse's time into p_j, R_j"},
+    {"add", (PyCFunction)(void (*)(void))Compensate_add, METH_FASTCALL,
+     "add(j): S_comp[:, j] += h_ref[:, j] - h_j[:, j] (in the reference's order)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject CompensateType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.Compensate",
+    .tp_basicsize = sizeof(CompensateObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Compensate(n, n_st, max_sigma, S_comp, h_ref, h_j, p_ref, R_ref, p_j, R_j, P, hist_t, hist_d, hc): "
+              "a sensor's motion compensation within a burst bound to its buffers, the live state and history",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Compensate_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = Compensate_methods,
+};
+
 /* ---------------------------------------------------------------- registration */
 static int fu_add_type(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -782,7 +924,8 @@ int ct_register_fusion(PyObject *m)
     size_t i;
     if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
         fu_add_type(m, &ReplayType, "Replay") < 0 || fu_add_type(m, &SnapAuxType, "SnapAux") < 0 ||
-        fu_add_type(m, &PoseAtType, "PoseAt") < 0 || fu_add_type(m, &MotionCovType, "MotionCov") < 0)
+        fu_add_type(m, &PoseAtType, "PoseAt") < 0 || fu_add_type(m, &MotionCovType, "MotionCov") < 0 ||
+        fu_add_type(m, &CompensateType, "Compensate") < 0)
         return -1;
     for (i = 0; i < sizeof consts / sizeof consts[0]; ++i)
         if (PyModule_AddIntConstant(m, consts[i].name, consts[i].v) < 0)

@@ -351,15 +351,13 @@ class FusionFilter(FilterView):
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
-        """Keep the state at ``t_ref_us`` (the instant the next magnetic
-        solution will refer to)."""
+        """Keep the state at ``t_ref_us`` (the instant the next magnetic solution will refer to)."""
         self.snap.schedule(t_ref_us)
 
     def push_imu(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> bool:
-        """One sensor IMU sample (specific force m/s^2, rate rad/s, sensor
-        frame) with the source's specific force in ``G`` (``r*``) and the
-        source orientation ``Phi`` (3x3, memoryview or array). Returns True
-        when a fused pose was produced (put in the output ring)."""
+        """One sensor IMU sample (specific force m/s^2, rate rad/s, sensor frame) with the source's specific force in
+        ``G`` (``r*``) and the source orientation ``Phi`` (3x3, memoryview or array). Returns True when a fused pose was
+        produced (put in the output ring)."""
         k = self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)    # kept for replay
         return self._after_push(t_us, k)
 
@@ -421,9 +419,8 @@ class FusionFilter(FilterView):
         return True
 
     def _advance(self, st: InsState, hist, k: int) -> int:
-        """Propagate ``st`` to IMU slot ``k``'s time, splitting the step at a
-        pending snapshot (taken if ``st`` is the authoritative state); append
-        the poses to ``hist``. Returns the number of steps run (1 or 2)."""
+        """Propagate ``st`` to IMU slot ``k``'s time, splitting the step at a pending snapshot (taken if ``st`` is the
+        authoritative state); append the poses to ``hist``. Returns the number of steps run (1 or 2)."""
         pr = self.prediction
         snap = self.snap
         t = pr._itv[k]
@@ -456,8 +453,7 @@ class FusionFilter(FilterView):
         return n
 
     def _propagate(self, st: InsState, k: int, t0: int, t1: int) -> None:
-        """``InertialPrediction.propagate`` of ``st`` over ``[t0, t1]``, recorded when it is the
-        authoritative state."""
+        """``InertialPrediction.propagate`` of ``st`` over ``[t0, t1]``, recorded when it is the authoritative state."""
         self.prediction.propagate(st, k, t0, t1)
         if self.recorder is not None and st is self._auth:
             self.recorder.on_step(self, st, k, t1)
@@ -495,30 +491,24 @@ class FusionFilter(FilterView):
             pass
 
     def begin_magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
-        """Fuse one magnetic solution referring to ``t_ref_us``: position
-        ``q`` (3, source frame), orientation ``R_ms`` (3x3, sensor to source)
-        and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``, rows
-        ``layout.POSE_POS``, ``POSE_ORI``). :meth:`prepare_magnetic_update`
-        and :meth:`apply_magnetic_update` in one call (a tick may do them in
-        two). Initialises the filter when needed. The update is applied to the
-        shadow state at ``t_ref``; the replay to the newest IMU sample is left
-        to :meth:`step` (none is needed when the state did not change: a
-        rejected solution). Returns health flags (ekf flags, ``FUS_*``); never
-        raises. With ``final=False`` a rejected solution leaves the snapshot
-        in place (and counts nothing), so the caller can offer another
-        solution of the same burst. ``FUS_BUSY``: the previous replay is still
-        running (nothing done; call again once :meth:`step` has returned True)."""
+        """Fuse one magnetic solution referring to ``t_ref_us``: position ``q`` (3, source frame), orientation ``R_ms``
+        (3x3, sensor to source) and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``, rows
+        ``layout.POSE_POS``, ``POSE_ORI``). :meth:`prepare_magnetic_update` and :meth:`apply_magnetic_update` in one
+        call (a tick may do them in two). Initialises the filter when needed. The update is applied to the shadow state
+        at ``t_ref``; the replay to the newest IMU sample is left to :meth:`step` (none is needed when the state did not
+        change: a rejected solution). Returns health flags (ekf flags, ``FUS_*``); never raises. With ``final=False`` a
+        rejected solution leaves the snapshot in place (and counts nothing), so the caller can offer another solution of
+        the same burst. ``FUS_BUSY``: the previous replay is still running (nothing done; call again once :meth:`step`
+        has returned True)."""
         flags = self.prepare_magnetic_update(t_ref_us, q, R_ms, C, final)
         if flags != FUS_PREPARED:
             return flags
         return self.apply_magnetic_update()
 
     def prepare_magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
-        """The first half of :meth:`begin_magnetic_update`: restore the
-        snapshot at ``t_ref`` into the shadow state and evaluate the
-        measurement model (``q``, ``R_ms``, ``C`` are read now). Returns
-        ``FUS_PREPARED`` (then call :meth:`apply_magnetic_update`), or the
-        final flags when it is already decided (busy, no snapshot,
+        """The first half of :meth:`begin_magnetic_update`: restore the snapshot at ``t_ref`` into the shadow state and
+        evaluate the measurement model (``q``, ``R_ms``, ``C`` are read now). Returns ``FUS_PREPARED`` (then call
+        :meth:`apply_magnetic_update`), or the final flags when it is already decided (busy, no snapshot,
         initialisation)."""
         if self.replaying:
             return FUS_BUSY
@@ -540,9 +530,8 @@ class FusionFilter(FilterView):
         return FUS_PREPARED
 
     def _start(self, t_ref_us: int, q, R_ms, C, gap: bool) -> int:
-        """(Re)start the shadow from the solution at ``t_ref`` (``gap``: the last update is too
-        old to bridge) and replay from there; ``FUS_NOT_INITIALISED`` when the measurement
-        model cannot start from this snapshot."""
+        """(Re)start the shadow from the solution at ``t_ref`` (``gap``: the last update is too old to bridge) and
+        replay from there; ``FUS_NOT_INITIALISED`` when the measurement model cannot start from this snapshot."""
         if not self.meas.ready(self.snap):
             self.last_flags = FUS_NOT_INITIALISED
             return FUS_NOT_INITIALISED
@@ -557,9 +546,8 @@ class FusionFilter(FilterView):
         return flags
 
     def apply_magnetic_update(self) -> int:
-        """The second half of :meth:`begin_magnetic_update`: gate, gain and
-        Joseph update of the prepared measurement, the correction of the
-        shadow state and the start of its replay. Returns the health flags."""
+        """The second half of :meth:`begin_magnetic_update`: gate, gain and Joseph update of the prepared measurement,
+        the correction of the shadow state and the start of its replay. Returns the health flags."""
         t_ref_us, q, R_ms, C, final = self._pending
         self._pending = None
         sh = self.sh
@@ -609,11 +597,9 @@ class FusionFilter(FilterView):
         self._auth = self.st
 
     def step(self, budget_replay_steps: int) -> bool:
-        """Replay IMU samples on the shadow state, at most
-        ``max_replay_steps_per_step(budget)`` strapdown and covariance steps;
-        when the shadow reaches the newest IMU sample it becomes the live
-        state. Returns True when no replay is left (also when none was
-        running)."""
+        """Replay IMU samples on the shadow state, at most ``max_replay_steps_per_step(budget)`` strapdown and
+        covariance steps; when the shadow reaches the newest IMU sample it becomes the live state. Returns True when no
+        replay is left (also when none was running)."""
         self.last_step_units = 0
         if not self.replaying:
             return True
@@ -641,8 +627,7 @@ class FusionFilter(FilterView):
             units += self._advance(sh, self.history.shadow, imu.slot(i))
 
     def _step_compiled(self, budget_replay_steps: int) -> bool:
-        """:meth:`step`'s loop in one call of the compiled core (``fusion_replay.CompiledReplay``);
-        the same ends."""
+        """:meth:`step`'s loop in one call of the compiled core (``fusion_replay.CompiledReplay``); the same ends."""
         ck = self._replay_ck
         rc = ck.run(budget_replay_steps)
         self.last_step_units = ck.units
@@ -665,8 +650,7 @@ class FusionFilter(FilterView):
         self._end_replay()
 
     def _initialize(self, st: InsState, t_ref_us: int, q, R_ms, C) -> None:
-        """``st`` at ``t_ref`` from the magnetic solution (``Recovery.initialize``); its pose
-        history starts anew."""
+        """``st`` at ``t_ref`` from the magnetic solution (``Recovery.initialize``); its pose history starts anew."""
         self.recovery.initialize(st, t_ref_us, self.snap, q, R_ms, C)
         self.rejects_in_row = 0
         self.accepted_in_row = 0

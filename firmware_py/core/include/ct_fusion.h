@@ -118,4 +118,13 @@ int ct_fusion_pose_at(const int64_t *ht, const double *hd, int64_t cap, int64_t 
 void ct_fusion_motion_cov(const double *C, double *out, const double *p, int compensated, int initialized,
                           double tr2, const double *P, int n, const double *v, const double *w);
 
+/* SensorInertial.compensate_begin's checks and copies: S_comp (3 x n) = S; then false (0) when the
+ * filter is not initialised or its velocity's rms uncertainty (InsState.velocity_sigma of the live
+ * covariance P, n_st x n_st) exceeds max_sigma, else ct_fusion_pose_at at t_ref into p_ref, R_ref */
+int ct_fusion_comp_begin(const double *S, double *S_comp, int n, int initialized, const double *P, int n_st,
+                         double max_sigma, const int64_t *ht, const double *hd, int64_t cap, int64_t head,
+                         int64_t count, int64_t t_ref, double *p_ref, double *R_ref);
+/* compensate_step's correction of pulse j: S_comp[:, j] = S_comp[:, j] + h_ref[:, j] - h_j[:, j] */
+void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, int n, int j);
+
 #endif /* CT_FUSION_H */

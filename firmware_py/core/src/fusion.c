@@ -484,3 +484,28 @@ void ct_fusion_motion_cov(const double *C, double *out, const double *p, int com
         out[(3 + i) * 6 + 3 + i] += ao;
     }
 }
+
+/* SensorInertial.compensate_begin (np.copyto, FilterView.velocity_sigma, PoseHistory.pose_at) */
+int ct_fusion_comp_begin(const double *S, double *S_comp, int n, int initialized, const double *P, int n_st,
+                         double max_sigma, const int64_t *ht, const double *hd, int64_t cap, int64_t head,
+                         int64_t count, int64_t t_ref, double *p_ref, double *R_ref)
+{
+    const int v0 = CT_VEL;
+    double s, sv;
+    memcpy(S_comp, S, (size_t)(3 * n) * sizeof(double));
+    if (!initialized)
+        return 0;
+    s = P[v0 * n_st + v0] + P[(v0 + 1) * n_st + v0 + 1] + P[(v0 + 2) * n_st + v0 + 2];
+    sv = sqrt((s > 0.0 ? s : (s == s ? 0.0 : s)) / 3.0);
+    if (sv > max_sigma)
+        return 0;
+    return ct_fusion_pose_at(ht, hd, cap, head, count, t_ref, p_ref, R_ref);
+}
+
+/* SensorInertial.compensate_step's loop body after the prediction of pulse j */
+void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, int n, int j)
+{
+    int i;
+    for (i = 0; i < 3; ++i)
+        S_comp[i * n + j] = S_comp[i * n + j] + h_ref[i * n + j] - h_j[i * n + j];
+}
