@@ -339,6 +339,7 @@ typedef struct {
     double *fo;
     const int64_t *imu_hc;          /* the IMU ring's (head, count), or NULL: io carries them */
     int64_t *hist_hc;               /* the history's (head, count), advanced here, or NULL */
+    PyObject *snap_state, *snap_aux;    /* bind_snapshot's FusState and SnapAux (references held), or NULL */
 } ReplayObject;
 
 static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
@@ -437,22 +438,11 @@ static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
-/* replay(budget) -> CT_REPLAY_* (the bound io and fo carry the rest) */
-static PyObject *Replay_replay(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* one ct_fusion_replay call with the rings' positions taken from and given back to their (head, count) */
+static int replay_once(ReplayObject *self, int budget)
 {
-    long budget;
     int64_t *io = self->io;
-    if (fu_check_bound(&self->b, "Replay") < 0)
-        return NULL;
-    if (nargs != 1) {
-        PyErr_Format(PyExc_TypeError, "replay() takes 1 argument (%zd given)", nargs);
-        return NULL;
-    }
-    budget = PyLong_AsLong(args[0]);
-    if (budget == -1 && PyErr_Occurred())
-        return NULL;
-    if (budget > 1L << 30)
-        budget = 1L << 30;
+    int rc;
     if (self->imu_hc != NULL) {
         /* Ring.slot(0) and len of the IMU ring and of the history, from their (head, count) */
         int64_t f = self->imu_hc[0] - self->imu_hc[1];
@@ -467,23 +457,65 @@ static PyObject *Replay_replay(ReplayObject *self, PyObject *const *args, Py_ssi
         io[CT_RIO_HIST_COUNT] > self->r.hist_cap || io[CT_RIO_HIST_FIRST] < 0 ||
         io[CT_RIO_HIST_FIRST] >= self->r.hist_cap || io[CT_RIO_SPLIT] >= self->r.imu_cap) {
         PyErr_SetString(PyExc_ValueError, "replay: ring slots or counts out of range");
+        return -1;
+    }
+    rc = ct_fusion_replay(&self->r, io, self->fo, budget);
+    if (self->hist_hc != NULL) {
+        /* ring.Ring.advance(io[CT_RIO_HIST_PUSHED]) */
+        const int64_t cap = self->r.hist_cap, c = self->hist_hc[1] + io[CT_RIO_HIST_PUSHED];
+        self->hist_hc[0] = (self->hist_hc[0] + io[CT_RIO_HIST_PUSHED]) % cap;
+        self->hist_hc[1] = c < cap ? c : cap;
+    }
+    return rc;
+}
+
+static long replay_budget(PyObject *o)
+{
+    long budget = PyLong_AsLong(o);
+    if (budget > 1L << 30)
+        budget = 1L << 30;
+    return budget;
+}
+
+/* replay(budget) -> CT_REPLAY_* (the bound io and fo carry the rest) */
+static PyObject *Replay_replay(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long budget;
+    int rc;
+    if (fu_check_bound(&self->b, "Replay") < 0)
+        return NULL;
+    if (nargs != 1) {
+        PyErr_Format(PyExc_TypeError, "replay() takes 1 argument (%zd given)", nargs);
         return NULL;
     }
-    {
-        const int rc = ct_fusion_replay(&self->r, io, self->fo, (int)budget);
-        if (self->hist_hc != NULL) {
-            /* ring.Ring.advance(io[CT_RIO_HIST_PUSHED]) */
-            const int64_t cap = self->r.hist_cap, c = self->hist_hc[1] + io[CT_RIO_HIST_PUSHED];
-            self->hist_hc[0] = (self->hist_hc[0] + io[CT_RIO_HIST_PUSHED]) % cap;
-            self->hist_hc[1] = c < cap ? c : cap;
-        }
-        return PyLong_FromLong(rc);
-    }
+    budget = replay_budget(args[0]);
+    if (budget == -1 && PyErr_Occurred())
+        return NULL;
+    rc = replay_once(self, (int)budget);
+    if (rc < 0)
+        return NULL;
+    return PyLong_FromLong(rc);
+}
+
+static PyObject *Replay_bind_snapshot(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs);
+static PyObject *Replay_replay_take(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs);
+
+static void Replay_dealloc(PyObject *o)
+{
+    ReplayObject *self = (ReplayObject *)o;
+    Py_CLEAR(self->snap_state);
+    Py_CLEAR(self->snap_aux);
+    Fu_dealloc(o);
 }
 
 static PyMethodDef Replay_methods[] = {
     {"replay", (PyCFunction)(void (*)(void))Replay_replay, METH_FASTCALL,
      "replay(budget) -> REPLAY_*: FusionFilter.step's replay on the shadow state (io, fo: its attributes)"},
+    {"bind_snapshot", (PyCFunction)(void (*)(void))Replay_bind_snapshot, METH_FASTCALL,
+     "bind_snapshot(state, aux): the snapshot's FusState and SnapAux, for replay_take"},
+    {"replay_take", (PyCFunction)(void (*)(void))Replay_replay_take, METH_FASTCALL,
+     "replay_take(budget, xi) -> REPLAY_*: replay, a snapshot falling inside it taken here (the state copied into "
+     "the bound snapshot state, SnapAux.take with xi) and the replay resumed"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject ReplayType = {
@@ -497,7 +529,7 @@ static PyTypeObject ReplayType = {
               "history's itself)",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Replay_init,
-    .tp_dealloc = Fu_dealloc,
+    .tp_dealloc = Replay_dealloc,
     .tp_methods = Replay_methods,
 };
 
@@ -588,6 +620,68 @@ static PyTypeObject SnapAuxType = {
     .tp_dealloc = Fu_dealloc,
     .tp_methods = SnapAux_methods,
 };
+
+/* ---------------------------------------------------------------- Replay's snapshot */
+/* bind_snapshot(state, aux): a FusState (the snapshot's state) and a SnapAux */
+static PyObject *Replay_bind_snapshot(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (fu_check_bound(&self->b, "Replay") < 0 || ct_py_nargs("bind_snapshot", nargs, 2) < 0)
+        return NULL;
+    if (!PyObject_TypeCheck(args[0], &FusStateType) || !PyObject_TypeCheck(args[1], &SnapAuxType) ||
+        fu_check_bound(&((FusStateObject *)args[0])->b, "FusState") < 0 ||
+        fu_check_bound(&((SnapAuxObject *)args[1])->b, "SnapAux") < 0) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_TypeError, "bind_snapshot() takes a FusState and a SnapAux");
+        return NULL;
+    }
+    if (((FusStateObject *)args[0])->s.n != self->r.ins.n || ((SnapAuxObject *)args[1])->imu_cap != self->r.imu_cap) {
+        PyErr_SetString(PyExc_ValueError, "bind_snapshot: another state size or IMU ring");
+        return NULL;
+    }
+    Py_INCREF(args[0]);
+    Py_INCREF(args[1]);
+    Py_XSETREF(self->snap_state, args[0]);
+    Py_XSETREF(self->snap_aux, args[1]);
+    Py_RETURN_NONE;
+}
+
+/* replay_take(budget, xi): FusionFilter._advance's snapshot in the replay (Snapshot.take: InsState.copy_from,
+ * take_aux) between the two calls CompiledReplay.run makes around it; io's steps are the sum of both */
+static PyObject *Replay_replay_take(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long budget;
+    int xi, rc;
+    int64_t steps;
+    if (fu_check_bound(&self->b, "Replay") < 0 || ct_py_nargs("replay_take", nargs, 2) < 0)
+        return NULL;
+    if (self->snap_state == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "replay_take: no snapshot bound");
+        return NULL;
+    }
+    budget = replay_budget(args[0]);
+    if (budget == -1 && PyErr_Occurred())
+        return NULL;
+    xi = PyObject_IsTrue(args[1]);
+    if (xi < 0)
+        return NULL;
+    rc = replay_once(self, (int)budget);
+    if (rc == CT_REPLAY_SNAPSHOT) {
+        const struct ct_ins *s = &self->r.ins;
+        const struct ct_fusstate src = {s->n, s->p, s->v, s->Th, s->ba, s->bg, s->P};
+        const SnapAuxObject *a = (const SnapAuxObject *)self->snap_aux;
+        const int64_t k = self->io[CT_RIO_SPLIT];
+        ct_fusion_copy(&((FusStateObject *)self->snap_state)->s, &src);
+        ct_fusion_snap_aux(a->fixed, a->imu_d + (Py_ssize_t)k * CT_IMU_WIDTH, xi, a->R, a->P, a->np, a->t0, a->bias,
+                           a->Phi, a->Xi, a->XiP, a->XiB);
+        self->io[CT_RIO_SNAP_PENDING] = 0;          /* taken: Snapshot.pending */
+        steps = self->io[CT_RIO_STEPS];
+        rc = replay_once(self, (int)budget);
+        self->io[CT_RIO_STEPS] += steps;
+    }
+    if (rc < 0)
+        return NULL;
+    return PyLong_FromLong(rc);
+}
 
 /* ---------------------------------------------------------------- PoseAt */
 typedef struct {

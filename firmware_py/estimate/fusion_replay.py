@@ -84,3 +84,41 @@ class CompiledReplay:
                 snap.take(sh, pr._idv, io[SPLIT])
         self.units = io[U]
         return rc
+
+    def bind_snapshot(self) -> bool:
+        """Let :meth:`split_take` take the snapshot inside the kernel's call (``ext.Replay.replay_take``,
+        bound to the snapshot's state and its compiled ``take_aux``); False where the snapshot has no
+        compiled ``take_aux`` (no ch. 2 filter)."""
+        snap = self.snap
+        if snap.aux_kernel is None or snap.st.cs is None:
+            return False
+        self._ck.bind_snapshot(snap.st.cs, snap.aux_kernel)
+        self._take = self._ck.replay_take
+        return True
+
+    def split_take(self) -> None:
+        """:meth:`run` with ``budget`` 1 of the bound (live, authoritative) state's newest sample, in which
+        the pending snapshot falls (``FusionFilter._advance``): the snapshot taken between the step's
+        halves inside the one call (``Snapshot.take``'s copies; the ch. 2 filter's covariance brought up
+        to date first, as ``take_aux`` does), then its flags (``Snapshot.taken``)."""
+        T, SP, ST, U, PC, STEPS, SPLIT, _ = self._idx
+        io = self._iov
+        sh, snap, pr = self.sh, self.snap, self.pr
+        pred = sh.pred
+        io[U] = 0
+        io[SPLIT] = -1
+        io[T] = sh.t_us
+        pending = snap.pending
+        io[SP] = 1 if pending else 0
+        io[ST] = snap.t
+        io[PC] = pred.count
+        xi = snap.xi_filter.initialized
+        if xi:
+            snap.xi_filter.propagate()
+        self._take(1, xi)
+        sh.set_time(io[T])
+        pred.set_count(io[PC])
+        pr.add_steps(io[STEPS])
+        if pending and not io[SP]:
+            snap.taken(xi)
+        self.units = io[U]

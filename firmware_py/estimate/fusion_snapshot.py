@@ -101,6 +101,17 @@ class Snapshot:
         self.valid = True
         self.initialized = full
 
+    aux_kernel = property(lambda self: self._ck)    # ext.SnapAux (bind), or None: the Python take_aux
+
+    def taken(self, xi: bool) -> None:
+        """The compiled core took the snapshot at ``t`` (``ext.Replay.replay_take``: the state with
+        ``Phi`` and, when ``xi``, the ch. 2 filter's, as :meth:`take`): its time and flags."""
+        self.st.set_time(self.t)
+        self.xi = xi
+        self.pending = False
+        self.valid = True
+        self.initialized = True
+
     def take(self, st: InsState, d, k: int) -> None:
         """``st`` (at t_ref) with the source orientation and Xi."""
         self.st.copy_from(st)

@@ -322,6 +322,7 @@ class FusionFilter(FilterView):
         self._live_ck = (CompiledReplay(self.st, self.prediction, self.history.live, self.snap, self.frame,
                                         core.ext) if self.st.ck is not None else None)
         self.snap.bind(self.imu.d, core)
+        self._live_take = self._live_ck is not None and self._live_ck.bind_snapshot()
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
@@ -346,8 +347,7 @@ class FusionFilter(FilterView):
         """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only). Its
         per-step hook runs in the Python replay only: the compiled one is not used from now on."""
         self.recorder = recorder
-        self._replay_ck = None
-        self._live_ck = None
+        self._replay_ck = self._live_ck = None
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
@@ -427,9 +427,12 @@ class FusionFilter(FilterView):
         t0 = st.t_us
         if snap.due(t0, t):
             if st is self.st and self._live_ck is not None and len(self.imu) > 1:
-                # the newest sample k (the live state is at the one before it): the kernel's split
-                # step, the snapshot taken between its halves when the live state is authoritative
-                self._live_ck.run(1, st is self._auth)
+                # the newest sample k (the live state is at the one before it): the kernel's split step,
+                # the snapshot taken between its halves when the live state is authoritative
+                if self._live_take and st is self._auth:
+                    self._live_ck.split_take()
+                else:
+                    self._live_ck.run(1, st is self._auth)
                 return self._live_ck.units
             ts = snap.t
             n = 0

@@ -396,7 +396,8 @@ def test_the_recorder_keeps_the_python_replay():
 @pytest.mark.parametrize("budget", [1, 2])
 def test_the_live_split_step_is_the_python_split_bit_for_bit(budget):
     """The live state's step split at a pending snapshot (``FusionFilter._advance`` through the
-    replay kernel bound to the live state, ``_live_ck``) against the same compiled filter taking
+    replay kernel bound to the live state, ``_live_ck``: ``split_take`` with the snapshot taken
+    inside the call, ``run`` where the shadow is the one to take it) against the same compiled filter taking
     the Python split (``_propagate``, ``history``, ``Snapshot.take`` one by one): every state, the
     snapshot (Phi, Xi, its covariance and offset) and both histories equal to the bit after every
     update and replay step, while the live state takes the snapshot (a replay of 2 steps a sample
@@ -416,6 +417,13 @@ def test_the_live_split_step_is_the_python_split_bit_for_bit(budget):
         return run0(budget, take)
 
     ck.run = run
+    take0 = ck.split_take
+
+    def split_take():
+        split.append(True)
+        take0()
+
+    ck.split_take = split_take
     r.run(1_300_000, budget)
     assert split and all(take == (budget == 2) for take in split)
     assert r.got.updates >= 3
