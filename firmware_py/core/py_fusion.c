@@ -989,6 +989,101 @@ static PyTypeObject CompensateType = {
     .tp_methods = Compensate_methods,
 };
 
+/* ---------------------------------------------------------------- HistCopy */
+typedef struct {
+    FuBase b;
+    int64_t cap;
+    int64_t *lt, *lhc, *st, *shc;
+    double *ld, *sd;
+} HistCopyObject;
+
+static int HistCopy_init(HistCopyObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc", NULL};
+    static const char *names[6] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc"};
+    static const int wr[6] = {1, 1, 1, 1, 1, 1};
+    static const int i64[6] = {1, 0, 1, 1, 0, 1};
+    PyObject *o[6];
+    Py_ssize_t len[6];
+    void *ptr[6];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOO", kwlist, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5]))
+        return -1;
+    if (fu_check_unbound(&self->b, "HistCopy") < 0)
+        return -1;
+    if (fu_get(o[0], 2, 1, 1, &v, "live_t") < 0)
+        return -1;
+    self->cap = (int64_t)(v.len / 8);
+    PyBuffer_Release(&v);
+    len[0] = len[3] = (Py_ssize_t)self->cap;
+    len[1] = len[4] = (Py_ssize_t)self->cap * CT_HIST_WIDTH;
+    len[2] = len[5] = 2;
+    if (fu_bind(6, o, len, wr, i64, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 6;
+    if (self->b.views[3].len != self->cap * 8 || self->b.views[1].len != len[1] * 8 ||
+        self->b.views[4].len != len[1] * 8) {
+        PyErr_SetString(PyExc_ValueError, "HistCopy: two histories of one capacity and 12 columns");
+        return -1;                      /* (the bound views are released by the deallocation) */
+    }
+    self->lt = ptr[0];
+    self->ld = ptr[1];
+    self->lhc = ptr[2];
+    self->st = ptr[3];
+    self->sd = ptr[4];
+    self->shc = ptr[5];
+    return 0;
+}
+
+static int hist_ok(const int64_t *hc, int64_t cap)
+{
+    if (hc[0] < 0 || hc[0] >= cap || hc[1] < 0 || hc[1] > cap) {
+        PyErr_SetString(PyExc_ValueError, "HistCopy: a history's head or count out of range");
+        return 0;
+    }
+    return 1;
+}
+
+/* rewind(t_ref): PoseHistory.rewind_shadow */
+static PyObject *HistCopy_rewind(HistCopyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t;
+    if (fu_check_bound(&self->b, "HistCopy") < 0 || ct_py_nargs("rewind", nargs, 1) < 0 ||
+        ct_py_int64(args[0], &t) < 0 || !hist_ok(self->lhc, self->cap))
+        return NULL;
+    ct_fusion_hist_copy(self->st, self->sd, self->shc, self->lt, self->ld, self->lhc, self->cap, 1, t);
+    Py_RETURN_NONE;
+}
+
+/* commit(): PoseHistory.commit */
+static PyObject *HistCopy_commit(HistCopyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (fu_check_bound(&self->b, "HistCopy") < 0 || ct_py_nargs("commit", nargs, 0) < 0 ||
+        !hist_ok(self->shc, self->cap))
+        return NULL;
+    ct_fusion_hist_copy(self->lt, self->ld, self->lhc, self->st, self->sd, self->shc, self->cap, 0, 0);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef HistCopy_methods[] = {
+    {"rewind", (PyCFunction)(void (*)(void))HistCopy_rewind, METH_FASTCALL,
+     "rewind(t_ref): the shadow history = the live one up to t_ref"},
+    {"commit", (PyCFunction)(void (*)(void))HistCopy_commit, METH_FASTCALL, "commit(): the live history = the shadow"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject HistCopyType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.HistCopy",
+    .tp_basicsize = sizeof(HistCopyObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "HistCopy(live_t, live_d, live_hc, shadow_t, shadow_d, shadow_hc): the pose histories' rewind and "
+              "commit bound to both rings",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)HistCopy_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = HistCopy_methods,
+};
+
 /* ---------------------------------------------------------------- registration */
 static int fu_add_type(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -1019,7 +1114,7 @@ int ct_register_fusion(PyObject *m)
     if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
         fu_add_type(m, &ReplayType, "Replay") < 0 || fu_add_type(m, &SnapAuxType, "SnapAux") < 0 ||
         fu_add_type(m, &PoseAtType, "PoseAt") < 0 || fu_add_type(m, &MotionCovType, "MotionCov") < 0 ||
-        fu_add_type(m, &CompensateType, "Compensate") < 0)
+        fu_add_type(m, &CompensateType, "Compensate") < 0 || fu_add_type(m, &HistCopyType, "HistCopy") < 0)
         return -1;
     for (i = 0; i < sizeof consts / sizeof consts[0]; ++i)
         if (PyModule_AddIntConstant(m, consts[i].name, consts[i].v) < 0)

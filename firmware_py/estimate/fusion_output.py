@@ -48,6 +48,10 @@ class PoseHistory:
             assert (HIST_P, HIST_R, self.live.width) == (ext.HIST_P, ext.HIST_R, ext.HIST_WIDTH)
             # (the kernel's method itself: out_p, out_R C-contiguous float64 buffers)
             self.pose_at = ext.PoseAt(self.live.t, self.live.d, self.live.hc).at
+            # rewind_shadow and commit (ct_fusion_hist_copy: the same copies and drop)
+            hc = ext.HistCopy(self.live.t, self.live.d, self.live.hc, self.shadow.t, self.shadow.d, self.shadow.hc)
+            self.rewind_shadow = hc.rewind
+            self.commit = hc.commit
 
     def rewind_shadow(self, t_ref_us: int) -> None:
         """The shadow starts as the live history up to ``t_ref_us``."""

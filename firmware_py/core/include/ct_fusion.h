@@ -127,4 +127,9 @@ int ct_fusion_comp_begin(const double *S, double *S_comp, int n, int initialized
 /* compensate_step's correction of pulse j: S_comp[:, j] = S_comp[:, j] + h_ref[:, j] - h_j[:, j] */
 void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, int n, int j);
 
+/* fusion_output.PoseHistory.rewind_shadow / commit: ring.Ring.copy_from of one pose history (times t, rows d of
+ * CT_HIST_WIDTH, capacity cap, (head, count) hc) into the other, then (drop: rewind) Ring.drop_newer_than(t_us) */
+void ct_fusion_hist_copy(int64_t *dt, double *dd, int64_t *dhc, const int64_t *st, const double *sd, const int64_t *shc,
+                         int64_t cap, int drop, int64_t t_us);
+
 #endif /* CT_FUSION_H */

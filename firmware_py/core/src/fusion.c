@@ -509,3 +509,35 @@ void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, 
     for (i = 0; i < 3; ++i)
         S_comp[i * n + j] = S_comp[i * n + j] + h_ref[i * n + j] - h_j[i * n + j];
 }
+
+/* PoseHistory.rewind_shadow (drop) / commit: Ring.copy_from (the whole arrays, head and count), then
+ * Ring.drop_newer_than (index_at_or_after(t_us + 1), the head moved back over the newer entries) */
+void ct_fusion_hist_copy(int64_t *dt, double *dd, int64_t *dhc, const int64_t *st, const double *sd, const int64_t *shc,
+                         int64_t cap, int drop, int64_t t_us)
+{
+    int64_t lo, hi, base, h;
+    memcpy(dt, st, (size_t)cap * sizeof(int64_t));
+    memcpy(dd, sd, (size_t)(cap * CT_HIST_WIDTH) * sizeof(double));
+    dhc[0] = shc[0];
+    dhc[1] = shc[1];
+    if (!drop)
+        return;
+    lo = 0;
+    hi = dhc[1];
+    base = dhc[0] - dhc[1];
+    while (lo < hi) {
+        int64_t mid = (lo + hi) >> 1;
+        int64_t p = base + mid;
+        if (p < 0)
+            p += cap;
+        else if (p >= cap)
+            p -= cap;
+        if (dt[p] < t_us + 1)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    h = dhc[0] - (dhc[1] - lo);
+    dhc[0] = h < 0 ? h + cap : h;
+    dhc[1] = lo;
+}

@@ -633,3 +633,35 @@ def test_compensation_matches_the_reference():
         elif still:
             np.testing.assert_allclose(Sb, S, rtol=0, atol=1e-15)
     assert outcomes == {"no", -1, 1}
+
+
+def test_history_rewind_and_commit_match_the_reference():
+    """ct_fusion_hist_copy (``PoseHistory.rewind_shadow`` and ``commit`` on the compiled core) against
+    the reference's ``Ring.copy_from`` and ``drop_newer_than`` over wrapped and unwrapped histories and
+    rewinds before, at, between and after the entries: the same arrays, heads and counts."""
+    from coiltrack.firmware.estimate.fusion_output import PoseHistory
+    rng = np.random.default_rng(75)
+    cap = 16
+    for n, head in ((0, 0), (1, 5), (7, 3), (16, 9), (12, 14)):
+        ref = _history(rng, cap, n, head)
+        got = PoseHistory(cap, COMPILED)
+        assert got.rewind_shadow != PoseHistory.rewind_shadow.__get__(got)
+        times = [int(ref.live.tv[ref.live.slot(i)]) for i in range(n)]
+        t0, d0, hc0 = ref.live.t.copy(), ref.live.d.copy(), (ref.live._head, ref.live._count)
+        for t in [0, 10**9] + [x + d for x in times for d in (-1, 0, 1)]:
+            for h in (ref, got):
+                np.copyto(h.live.t, t0)
+                np.copyto(h.live.d, d0)
+                h.live._head, h.live._count = hc0
+                h.shadow.clear()
+                h.rewind_shadow(t)
+            for name in ("t", "d"):
+                np.testing.assert_array_equal(getattr(ref.shadow, name), getattr(got.shadow, name))
+            assert (ref.shadow._head, ref.shadow._count) == (got.shadow._head, got.shadow._count), (n, head, t)
+            assert len(got.shadow) == sum(1 for x in times if x <= t)
+            for h in (ref, got):                 # a replay pushes onto the shadow, then commits it
+                h.shadow.d[h.shadow.push(t + 5)] = 0.5
+                h.commit()
+            for name in ("t", "d"):
+                np.testing.assert_array_equal(getattr(ref.live, name), getattr(got.live, name))
+            assert (ref.live._head, ref.live._count) == (got.live._head, got.live._count)
