@@ -1058,6 +1058,7 @@ static PyObject *HistCopy_rewind(HistCopyObject *self, PyObject *const *args, Py
 /* commit(): PoseHistory.commit */
 static PyObject *HistCopy_commit(HistCopyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
+    (void)args;
     if (fu_check_bound(&self->b, "HistCopy") < 0 || ct_py_nargs("commit", nargs, 0) < 0 ||
         !hist_ok(self->shc, self->cap))
         return NULL;
