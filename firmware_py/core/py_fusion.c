@@ -337,26 +337,33 @@ typedef struct {
     double E[9];
     int64_t *io;
     double *fo;
+    const int64_t *imu_hc;          /* the IMU ring's (head, count), or NULL: io carries them */
+    int64_t *hist_hc;               /* the history's (head, count), advanced here, or NULL */
+    PyObject *snap_state, *snap_aux;    /* bind_snapshot's FusState and SnapAux (references held), or NULL */
 } ReplayObject;
 
 static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", "imu_t", "imu_d", "hist_t",
-                             "hist_d", "io", "fo", "fixed", "dtk", "symmetrize_every", NULL};
+                             "hist_d", "io", "fo", "fixed", "dtk", "symmetrize_every", "imu_hc", "hist_hc", NULL};
     static const char *names[RP_NBUF] = {"p", "v", "Th", "ba", "bg", "A", "P", "Q", "T", "imu_t", "imu_d",
                                          "hist_t", "hist_d", "io", "fo"};
     static const int wr[RP_NBUF] = {1, 1, 1, 1, 1, 1, 1, 1, 1, 0, 0, 1, 1, 1, 1};
     static const int i64[RP_NBUF] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1, 0, 1, 0};
     struct ct_replay *r = &self->r;
-    PyObject *o[RP_NBUF], *dtk;
+    PyObject *o[RP_NBUF], *dtk, *ohc[2] = {Py_None, Py_None};
     Py_ssize_t len[RP_NBUF];
     void *ptr[RP_NBUF];
     Py_buffer tv;
     int n, fixed, sym, i, icap, hcap;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOpOi", kwlist, &n, &o[0], &o[1], &o[2], &o[3], &o[4],
-                                     &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14],
-                                     &fixed, &dtk, &sym))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOOOOOpOi|OO", kwlist, &n, &o[0], &o[1], &o[2], &o[3],
+                                     &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10], &o[11], &o[12], &o[13], &o[14],
+                                     &fixed, &dtk, &sym, &ohc[0], &ohc[1]))
         return -1;
+    if ((ohc[0] == Py_None) != (ohc[1] == Py_None)) {
+        PyErr_SetString(PyExc_TypeError, "Replay: imu_hc and hist_hc go together");
+        return -1;
+    }
     if (fu_check_unbound(&self->b, "Replay") < 0)
         return -1;
     if (n < CT_GYR + 3 || n > 256 || sym < 1) {
@@ -393,6 +400,19 @@ static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
         return -1;
     }
     self->b.nviews = RP_NBUF;
+    self->imu_hc = NULL;
+    self->hist_hc = NULL;
+    if (ohc[0] != Py_None) {
+        /* the rings' head and count (fusion_rings.KernelRing.hc), read and advanced by replay() */
+        if (fu_get(ohc[0], 2, 0, 1, &self->b.views[RP_NBUF], "imu_hc") < 0)
+            return -1;                  /* (the bound views are released by the deallocation) */
+        self->b.nviews = RP_NBUF + 1;
+        if (fu_get(ohc[1], 2, 1, 1, &self->b.views[RP_NBUF + 1], "hist_hc") < 0)
+            return -1;
+        self->b.nviews = RP_NBUF + 2;
+        self->imu_hc = self->b.views[RP_NBUF].buf;
+        self->hist_hc = self->b.views[RP_NBUF + 1].buf;
+    }
     r->ins.n = n;
     r->ins.p = ptr[0];
     r->ins.v = ptr[1];
@@ -418,35 +438,84 @@ static int Replay_init(ReplayObject *self, PyObject *args, PyObject *kw)
     return 0;
 }
 
+/* one ct_fusion_replay call with the rings' positions taken from and given back to their (head, count) */
+static int replay_once(ReplayObject *self, int budget)
+{
+    int64_t *io = self->io;
+    int rc;
+    if (self->imu_hc != NULL) {
+        /* Ring.slot(0) and len of the IMU ring and of the history, from their (head, count) */
+        int64_t f = self->imu_hc[0] - self->imu_hc[1];
+        io[CT_RIO_IMU_FIRST] = f < 0 ? f + self->r.imu_cap : f;
+        io[CT_RIO_IMU_COUNT] = self->imu_hc[1];
+        f = self->hist_hc[0] - self->hist_hc[1];
+        io[CT_RIO_HIST_FIRST] = f < 0 ? f + self->r.hist_cap : f;
+        io[CT_RIO_HIST_COUNT] = self->hist_hc[1];
+    }
+    if (io[CT_RIO_IMU_COUNT] < 0 || io[CT_RIO_IMU_COUNT] > self->r.imu_cap || io[CT_RIO_IMU_FIRST] < 0 ||
+        io[CT_RIO_IMU_FIRST] >= self->r.imu_cap || io[CT_RIO_HIST_COUNT] < 0 ||
+        io[CT_RIO_HIST_COUNT] > self->r.hist_cap || io[CT_RIO_HIST_FIRST] < 0 ||
+        io[CT_RIO_HIST_FIRST] >= self->r.hist_cap || io[CT_RIO_SPLIT] >= self->r.imu_cap) {
+        PyErr_SetString(PyExc_ValueError, "replay: ring slots or counts out of range");
+        return -1;
+    }
+    rc = ct_fusion_replay(&self->r, io, self->fo, budget);
+    if (self->hist_hc != NULL) {
+        /* ring.Ring.advance(io[CT_RIO_HIST_PUSHED]) */
+        const int64_t cap = self->r.hist_cap, c = self->hist_hc[1] + io[CT_RIO_HIST_PUSHED];
+        self->hist_hc[0] = (self->hist_hc[0] + io[CT_RIO_HIST_PUSHED]) % cap;
+        self->hist_hc[1] = c < cap ? c : cap;
+    }
+    return rc;
+}
+
+static long replay_budget(PyObject *o)
+{
+    long budget = PyLong_AsLong(o);
+    if (budget > 1L << 30)
+        budget = 1L << 30;
+    return budget;
+}
+
 /* replay(budget) -> CT_REPLAY_* (the bound io and fo carry the rest) */
 static PyObject *Replay_replay(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     long budget;
-    int64_t *io = self->io;
+    int rc;
     if (fu_check_bound(&self->b, "Replay") < 0)
         return NULL;
     if (nargs != 1) {
         PyErr_Format(PyExc_TypeError, "replay() takes 1 argument (%zd given)", nargs);
         return NULL;
     }
-    budget = PyLong_AsLong(args[0]);
+    budget = replay_budget(args[0]);
     if (budget == -1 && PyErr_Occurred())
         return NULL;
-    if (budget > 1L << 30)
-        budget = 1L << 30;
-    if (io[CT_RIO_IMU_COUNT] < 0 || io[CT_RIO_IMU_COUNT] > self->r.imu_cap || io[CT_RIO_IMU_FIRST] < 0 ||
-        io[CT_RIO_IMU_FIRST] >= self->r.imu_cap || io[CT_RIO_HIST_COUNT] < 0 ||
-        io[CT_RIO_HIST_COUNT] > self->r.hist_cap || io[CT_RIO_HIST_FIRST] < 0 ||
-        io[CT_RIO_HIST_FIRST] >= self->r.hist_cap || io[CT_RIO_SPLIT] >= self->r.imu_cap) {
-        PyErr_SetString(PyExc_ValueError, "replay: ring slots or counts out of range");
+    rc = replay_once(self, (int)budget);
+    if (rc < 0)
         return NULL;
-    }
-    return PyLong_FromLong(ct_fusion_replay(&self->r, io, self->fo, (int)budget));
+    return PyLong_FromLong(rc);
+}
+
+static PyObject *Replay_bind_snapshot(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs);
+static PyObject *Replay_replay_take(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs);
+
+static void Replay_dealloc(PyObject *o)
+{
+    ReplayObject *self = (ReplayObject *)o;
+    Py_CLEAR(self->snap_state);
+    Py_CLEAR(self->snap_aux);
+    Fu_dealloc(o);
 }
 
 static PyMethodDef Replay_methods[] = {
     {"replay", (PyCFunction)(void (*)(void))Replay_replay, METH_FASTCALL,
      "replay(budget) -> REPLAY_*: FusionFilter.step's replay on the shadow state (io, fo: its attributes)"},
+    {"bind_snapshot", (PyCFunction)(void (*)(void))Replay_bind_snapshot, METH_FASTCALL,
+     "bind_snapshot(state, aux): the snapshot's FusState and SnapAux, for replay_take"},
+    {"replay_take", (PyCFunction)(void (*)(void))Replay_replay_take, METH_FASTCALL,
+     "replay_take(budget, xi) -> REPLAY_*: replay, a snapshot falling inside it taken here (the state copied into "
+     "the bound snapshot state, SnapAux.take with xi) and the replay resumed"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject ReplayType = {
@@ -455,11 +524,565 @@ static PyTypeObject ReplayType = {
     .tp_basicsize = sizeof(ReplayObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_doc = "Replay(n, p, v, Th, ba, bg, A, P, Q, T, imu_t, imu_d, hist_t, hist_d, io, fo, fixed, dtk, "
-              "symmetrize_every): the fusion filter's replay bound to the shadow state and its rings",
+              "symmetrize_every, imu_hc=None, hist_hc=None): the fusion filter's replay bound to the shadow state "
+              "and its rings (with the rings' head and count arrays, replay() reads them and advances the "
+              "history's itself)",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Replay_init,
-    .tp_dealloc = Fu_dealloc,
+    .tp_dealloc = Replay_dealloc,
     .tp_methods = Replay_methods,
+};
+
+/* ---------------------------------------------------------------- SnapAux */
+typedef struct {
+    FuBase b;
+    int fixed, np, t0, imu_cap;
+    const double *imu_d, *R, *P, *bias;
+    double *Phi, *Xi, *XiP, *XiB;
+} SnapAuxObject;
+
+static int SnapAux_init(SnapAuxObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"fixed", "np", "t0", "imu_d", "Phi", "Xi", "XiP", "XiB", "R", "P", "bias", NULL};
+    static const char *names[8] = {"imu_d", "Phi", "Xi", "XiP", "XiB", "R", "P", "bias"};
+    static const int wr[8] = {0, 1, 1, 1, 1, 0, 0, 0};
+    PyObject *o[8];
+    Py_ssize_t len[8];
+    void *ptr[8];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "piiOOOOOOOO", kwlist, &self->fixed, &self->np, &self->t0, &o[0], &o[1],
+                                     &o[2], &o[3], &o[4], &o[5], &o[6], &o[7]))
+        return -1;
+    if (fu_check_unbound(&self->b, "SnapAux") < 0)
+        return -1;
+    if (self->np < 3 || self->np > 256 || self->t0 < 0 || self->t0 + 3 > self->np) {
+        PyErr_SetString(PyExc_ValueError, "SnapAux: bad orientation state size or theta rows");
+        return -1;
+    }
+    if (fu_get(o[0], CT_IMU_WIDTH, 0, 0, &v, "imu_d") < 0)
+        return -1;
+    self->imu_cap = (int)(v.len / (8 * CT_IMU_WIDTH));
+    PyBuffer_Release(&v);
+    len[0] = (Py_ssize_t)self->imu_cap * CT_IMU_WIDTH;
+    len[1] = len[2] = len[3] = len[5] = 9;
+    len[4] = len[7] = 3;
+    len[6] = (Py_ssize_t)self->np * self->np;
+    if (fu_bind(8, o, len, wr, NULL, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 8;
+    self->imu_d = ptr[0];
+    self->Phi = ptr[1];
+    self->Xi = ptr[2];
+    self->XiP = ptr[3];
+    self->XiB = ptr[4];
+    self->R = ptr[5];
+    self->P = ptr[6];
+    self->bias = ptr[7];
+    return 0;
+}
+
+/* take(k, xi): Snapshot.take_aux's arrays from IMU row k (and the ch. 2 filter when xi) */
+static PyObject *SnapAux_take(SnapAuxObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long k;
+    int xi;
+    if (fu_check_bound(&self->b, "SnapAux") < 0 || ct_py_nargs("take", nargs, 2) < 0)
+        return NULL;
+    k = PyLong_AsLong(args[0]);
+    if (k == -1 && PyErr_Occurred())
+        return NULL;
+    xi = PyObject_IsTrue(args[1]);
+    if (xi < 0)
+        return NULL;
+    if (k < 0 || k >= self->imu_cap) {
+        PyErr_SetString(PyExc_ValueError, "take: IMU slot out of range");
+        return NULL;
+    }
+    ct_fusion_snap_aux(self->fixed, self->imu_d + (Py_ssize_t)k * CT_IMU_WIDTH, xi, self->R, self->P, self->np,
+                       self->t0, self->bias, self->Phi, self->Xi, self->XiP, self->XiB);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef SnapAux_methods[] = {
+    {"take", (PyCFunction)(void (*)(void))SnapAux_take, METH_FASTCALL,
+     "take(k, xi): Snapshot.take_aux's Phi (IMU row k) and, when xi, Xi, its covariance and offset"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SnapAuxType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SnapAux",
+    .tp_basicsize = sizeof(SnapAuxObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SnapAux(fixed, np, t0, imu_d, Phi, Xi, XiP, XiB, R, P, bias): the snapshot's source orientation "
+              "and ch. 2 filter, bound to the IMU ring, the snapshot and the filter",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SnapAux_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = SnapAux_methods,
+};
+
+/* ---------------------------------------------------------------- Replay's snapshot */
+/* bind_snapshot(state, aux): a FusState (the snapshot's state) and a SnapAux */
+static PyObject *Replay_bind_snapshot(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (fu_check_bound(&self->b, "Replay") < 0 || ct_py_nargs("bind_snapshot", nargs, 2) < 0)
+        return NULL;
+    if (!PyObject_TypeCheck(args[0], &FusStateType) || !PyObject_TypeCheck(args[1], &SnapAuxType) ||
+        fu_check_bound(&((FusStateObject *)args[0])->b, "FusState") < 0 ||
+        fu_check_bound(&((SnapAuxObject *)args[1])->b, "SnapAux") < 0) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_TypeError, "bind_snapshot() takes a FusState and a SnapAux");
+        return NULL;
+    }
+    if (((FusStateObject *)args[0])->s.n != self->r.ins.n || ((SnapAuxObject *)args[1])->imu_cap != self->r.imu_cap) {
+        PyErr_SetString(PyExc_ValueError, "bind_snapshot: another state size or IMU ring");
+        return NULL;
+    }
+    Py_INCREF(args[0]);
+    Py_INCREF(args[1]);
+    Py_XSETREF(self->snap_state, args[0]);
+    Py_XSETREF(self->snap_aux, args[1]);
+    Py_RETURN_NONE;
+}
+
+/* replay_take(budget, xi): FusionFilter._advance's snapshot in the replay (Snapshot.take: InsState.copy_from,
+ * take_aux) between the two calls CompiledReplay.run makes around it; io's steps are the sum of both */
+static PyObject *Replay_replay_take(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long budget;
+    int xi, rc;
+    int64_t steps;
+    if (fu_check_bound(&self->b, "Replay") < 0 || ct_py_nargs("replay_take", nargs, 2) < 0)
+        return NULL;
+    if (self->snap_state == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "replay_take: no snapshot bound");
+        return NULL;
+    }
+    budget = replay_budget(args[0]);
+    if (budget == -1 && PyErr_Occurred())
+        return NULL;
+    xi = PyObject_IsTrue(args[1]);
+    if (xi < 0)
+        return NULL;
+    rc = replay_once(self, (int)budget);
+    if (rc == CT_REPLAY_SNAPSHOT) {
+        const struct ct_ins *s = &self->r.ins;
+        const struct ct_fusstate src = {s->n, s->p, s->v, s->Th, s->ba, s->bg, s->P};
+        const SnapAuxObject *a = (const SnapAuxObject *)self->snap_aux;
+        const int64_t k = self->io[CT_RIO_SPLIT];
+        ct_fusion_copy(&((FusStateObject *)self->snap_state)->s, &src);
+        ct_fusion_snap_aux(a->fixed, a->imu_d + (Py_ssize_t)k * CT_IMU_WIDTH, xi, a->R, a->P, a->np, a->t0, a->bias,
+                           a->Phi, a->Xi, a->XiP, a->XiB);
+        self->io[CT_RIO_SNAP_PENDING] = 0;          /* taken: Snapshot.pending */
+        steps = self->io[CT_RIO_STEPS];
+        rc = replay_once(self, (int)budget);
+        self->io[CT_RIO_STEPS] += steps;
+    }
+    if (rc < 0)
+        return NULL;
+    return PyLong_FromLong(rc);
+}
+
+/* ---------------------------------------------------------------- PoseAt */
+typedef struct {
+    FuBase b;
+    int64_t cap;
+    const int64_t *ht, *hc;
+    const double *hd;
+} PoseAtObject;
+
+static int PoseAt_init(PoseAtObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"hist_t", "hist_d", "hc", NULL};
+    static const char *names[3] = {"hist_t", "hist_d", "hc"};
+    static const int wr[3] = {0, 0, 0};
+    static const int i64[3] = {1, 0, 1};
+    PyObject *o[3];
+    Py_ssize_t len[3];
+    void *ptr[3];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOO", kwlist, &o[0], &o[1], &o[2]))
+        return -1;
+    if (fu_check_unbound(&self->b, "PoseAt") < 0)
+        return -1;
+    if (fu_get(o[0], 2, 0, 1, &v, "hist_t") < 0)
+        return -1;
+    self->cap = (int64_t)(v.len / 8);
+    PyBuffer_Release(&v);
+    len[0] = (Py_ssize_t)self->cap;
+    len[1] = (Py_ssize_t)self->cap * CT_HIST_WIDTH;
+    len[2] = 2;
+    if (fu_bind(3, o, len, wr, i64, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 3;
+    self->ht = ptr[0];
+    self->hd = ptr[1];
+    self->hc = ptr[2];
+    return 0;
+}
+
+/* at(t_us, out_p, out_R) -> bool */
+static PyObject *PoseAt_at(PoseAtObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t;
+    Py_buffer vp, vr;
+    int ok;
+    if (fu_check_bound(&self->b, "PoseAt") < 0 || ct_py_nargs("at", nargs, 3) < 0 || ct_py_int64(args[0], &t) < 0)
+        return NULL;
+    if (self->hc[0] < 0 || self->hc[0] >= self->cap || self->hc[1] < 0 || self->hc[1] > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "at: the history's head or count out of range");
+        return NULL;
+    }
+    if (fu_get(args[1], 3, 1, 0, &vp, "out_p") < 0)
+        return NULL;
+    if (fu_get(args[2], 9, 1, 0, &vr, "out_R") < 0) {
+        PyBuffer_Release(&vp);
+        return NULL;
+    }
+    ok = ct_fusion_pose_at(self->ht, self->hd, self->cap, self->hc[0], self->hc[1], t, (double *)vp.buf,
+                           (double *)vr.buf);
+    PyBuffer_Release(&vp);
+    PyBuffer_Release(&vr);
+    if (ok)
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef PoseAt_methods[] = {
+    {"at", (PyCFunction)(void (*)(void))PoseAt_at, METH_FASTCALL,
+     "at(t_us, out_p, out_R) -> bool: PoseHistory.pose_at over the bound history"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject PoseAtType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.PoseAt",
+    .tp_basicsize = sizeof(PoseAtObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "PoseAt(hist_t, hist_d, hc): the pose history's interpolation bound to a KernelRing",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)PoseAt_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = PoseAt_methods,
+};
+
+/* ---------------------------------------------------------------- MotionCov */
+typedef struct {
+    FuBase b;
+    int n;
+    double tr2;
+    const double *P, *v, *w;
+} MotionCovObject;
+
+static int MotionCov_init(MotionCovObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "tr2", "P", "v", "w", NULL};
+    static const char *names[3] = {"P", "v", "w"};
+    static const int wr[3] = {0, 0, 0};
+    PyObject *o[3];
+    Py_ssize_t len[3];
+    void *ptr[3];
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "idOOO", kwlist, &self->n, &self->tr2, &o[0], &o[1], &o[2]))
+        return -1;
+    if (fu_check_unbound(&self->b, "MotionCov") < 0)
+        return -1;
+    if (self->n < CT_GYR + 3 || self->n > 256) {
+        PyErr_Format(PyExc_ValueError, "MotionCov: n must be in %d..256", CT_GYR + 3);
+        return -1;
+    }
+    len[0] = (Py_ssize_t)self->n * self->n;
+    len[1] = len[2] = 3;
+    if (fu_bind(3, o, len, wr, NULL, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 3;
+    self->P = ptr[0];
+    self->v = ptr[1];
+    self->w = ptr[2];
+    return 0;
+}
+
+/* into(C, compensated, out, p, initialized) */
+static PyObject *MotionCov_into(MotionCovObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vc, vo, vp;
+    int comp, init;
+    if (fu_check_bound(&self->b, "MotionCov") < 0 || ct_py_nargs("into", nargs, 5) < 0)
+        return NULL;
+    comp = PyObject_IsTrue(args[1]);
+    init = PyObject_IsTrue(args[4]);
+    if (comp < 0 || init < 0)
+        return NULL;
+    if (fu_get(args[0], 36, 0, 0, &vc, "C") < 0)
+        return NULL;
+    if (fu_get(args[2], 36, 1, 0, &vo, "out") < 0) {
+        PyBuffer_Release(&vc);
+        return NULL;
+    }
+    if (fu_get(args[3], 3, 0, 0, &vp, "p") < 0) {
+        PyBuffer_Release(&vc);
+        PyBuffer_Release(&vo);
+        return NULL;
+    }
+    ct_fusion_motion_cov((const double *)vc.buf, (double *)vo.buf, (const double *)vp.buf, comp, init, self->tr2,
+                         self->P, self->n, self->v, self->w);
+    PyBuffer_Release(&vc);
+    PyBuffer_Release(&vo);
+    PyBuffer_Release(&vp);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef MotionCov_methods[] = {
+    {"into", (PyCFunction)(void (*)(void))MotionCov_into, METH_FASTCALL,
+     "into(C, compensated, out, p, initialized): SensorInertial.motion_cov with the bound live state"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject MotionCovType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.MotionCov",
+    .tp_basicsize = sizeof(MotionCovObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "MotionCov(n, tr2, P, v, w): a burst's motion covariance bound to the live state and the rate",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)MotionCov_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = MotionCov_methods,
+};
+
+/* ---------------------------------------------------------------- Compensate */
+typedef struct {
+    FuBase b;
+    int n, n_st;
+    int64_t cap;
+    double max_sigma;
+    double *S_comp, *p_ref, *R_ref, *p_j, *R_j;
+    const double *h_ref, *h_j, *P, *hd;
+    const int64_t *ht, *hc;
+} CompensateObject;
+
+static int Compensate_init(CompensateObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "n_st", "max_sigma", "S_comp", "h_ref", "h_j", "p_ref", "R_ref", "p_j", "R_j", "P",
+                             "hist_t", "hist_d", "hc", NULL};
+    static const char *names[11] = {"S_comp", "h_ref", "h_j", "p_ref", "R_ref", "p_j", "R_j", "P", "hist_t",
+                                    "hist_d", "hc"};
+    static const int wr[11] = {1, 0, 0, 1, 1, 1, 1, 0, 0, 0, 0};
+    static const int i64[11] = {0, 0, 0, 0, 0, 0, 0, 0, 1, 0, 1};
+    PyObject *o[11];
+    Py_ssize_t len[11];
+    void *ptr[11];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iidOOOOOOOOOOO", kwlist, &self->n, &self->n_st, &self->max_sigma,
+                                     &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10]))
+        return -1;
+    if (fu_check_unbound(&self->b, "Compensate") < 0)
+        return -1;
+    if (self->n < 1 || self->n > 64 || self->n_st < CT_GYR + 3 || self->n_st > 256) {
+        PyErr_SetString(PyExc_ValueError, "Compensate: bad pulse count or state size");
+        return -1;
+    }
+    if (fu_get(o[8], 2, 0, 1, &v, "hist_t") < 0)
+        return -1;
+    self->cap = (int64_t)(v.len / 8);
+    PyBuffer_Release(&v);
+    len[0] = len[1] = len[2] = 3 * (Py_ssize_t)self->n;
+    len[3] = len[5] = 3;
+    len[4] = len[6] = 9;
+    len[7] = (Py_ssize_t)self->n_st * self->n_st;
+    len[8] = (Py_ssize_t)self->cap;
+    len[9] = (Py_ssize_t)self->cap * CT_HIST_WIDTH;
+    len[10] = 2;
+    if (fu_bind(11, o, len, wr, i64, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 11;
+    self->S_comp = ptr[0];
+    self->h_ref = ptr[1];
+    self->h_j = ptr[2];
+    self->p_ref = ptr[3];
+    self->R_ref = ptr[4];
+    self->p_j = ptr[5];
+    self->R_j = ptr[6];
+    self->P = ptr[7];
+    self->ht = ptr[8];
+    self->hd = ptr[9];
+    self->hc = ptr[10];
+    return 0;
+}
+
+static int comp_ring_ok(CompensateObject *self)
+{
+    if (self->hc[0] < 0 || self->hc[0] >= self->cap || self->hc[1] < 0 || self->hc[1] > self->cap) {
+        PyErr_SetString(PyExc_ValueError, "Compensate: the history's head or count out of range");
+        return 0;
+    }
+    return 1;
+}
+
+/* begin(S, initialized, t_ref) -> bool */
+static PyObject *Compensate_begin(CompensateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer vs;
+    int init, ok;
+    int64_t t;
+    if (fu_check_bound(&self->b, "Compensate") < 0 || ct_py_nargs("begin", nargs, 3) < 0 || !comp_ring_ok(self))
+        return NULL;
+    init = PyObject_IsTrue(args[1]);
+    if (init < 0 || ct_py_int64(args[2], &t) < 0)
+        return NULL;
+    if (fu_get(args[0], 3 * (Py_ssize_t)self->n, 0, 0, &vs, "S") < 0)
+        return NULL;
+    ok = ct_fusion_comp_begin((const double *)vs.buf, self->S_comp, self->n, init, self->P, self->n_st,
+                              self->max_sigma, self->ht, self->hd, self->cap, self->hc[0], self->hc[1], t,
+                              self->p_ref, self->R_ref);
+    PyBuffer_Release(&vs);
+    if (ok)
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* pulse(t_j) -> bool: the pose at pulse time t_j into p_j, R_j */
+static PyObject *Compensate_pulse(CompensateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t;
+    if (fu_check_bound(&self->b, "Compensate") < 0 || ct_py_nargs("pulse", nargs, 1) < 0 || !comp_ring_ok(self) ||
+        ct_py_int64(args[0], &t) < 0)
+        return NULL;
+    if (ct_fusion_pose_at(self->ht, self->hd, self->cap, self->hc[0], self->hc[1], t, self->p_j, self->R_j))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+/* add(j): pulse j's correction */
+static PyObject *Compensate_add(CompensateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long j;
+    if (fu_check_bound(&self->b, "Compensate") < 0 || ct_py_nargs("add", nargs, 1) < 0)
+        return NULL;
+    j = PyLong_AsLong(args[0]);
+    if (j == -1 && PyErr_Occurred())
+        return NULL;
+    if (j < 0 || j >= self->n) {
+        PyErr_SetString(PyExc_ValueError, "add: pulse index out of range");
+        return NULL;
+    }
+    ct_fusion_comp_add(self->S_comp, self->h_ref, self->h_j, self->n, (int)j);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef Compensate_methods[] = {
+    {"begin", (PyCFunction)(void (*)(void))Compensate_begin, METH_FASTCALL,
+     "begin(S, initialized, t_ref) -> bool: compensate_begin's copy, checks and pose at t_ref"},
+    {"pulse", (PyCFunction)(void (*)(void))Compensate_pulse, METH_FASTCALL,
+     "pulse(t_j) -> bool: the pose at a pulse's time into p_j, R_j"},
+    {"add", (PyCFunction)(void (*)(void))Compensate_add, METH_FASTCALL,
+     "add(j): S_comp[:, j] += h_ref[:, j] - h_j[:, j] (in the reference's order)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject CompensateType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.Compensate",
+    .tp_basicsize = sizeof(CompensateObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "Compensate(n, n_st, max_sigma, S_comp, h_ref, h_j, p_ref, R_ref, p_j, R_j, P, hist_t, hist_d, hc): "
+              "a sensor's motion compensation within a burst bound to its buffers, the live state and history",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Compensate_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = Compensate_methods,
+};
+
+/* ---------------------------------------------------------------- HistCopy */
+typedef struct {
+    FuBase b;
+    int64_t cap;
+    int64_t *lt, *lhc, *st, *shc;
+    double *ld, *sd;
+} HistCopyObject;
+
+static int HistCopy_init(HistCopyObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc", NULL};
+    static const char *names[6] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc"};
+    static const int wr[6] = {1, 1, 1, 1, 1, 1};
+    static const int i64[6] = {1, 0, 1, 1, 0, 1};
+    PyObject *o[6];
+    Py_ssize_t len[6];
+    void *ptr[6];
+    Py_buffer v;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOO", kwlist, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5]))
+        return -1;
+    if (fu_check_unbound(&self->b, "HistCopy") < 0)
+        return -1;
+    if (fu_get(o[0], 2, 1, 1, &v, "live_t") < 0)
+        return -1;
+    self->cap = (int64_t)(v.len / 8);
+    PyBuffer_Release(&v);
+    len[0] = len[3] = (Py_ssize_t)self->cap;
+    len[1] = len[4] = (Py_ssize_t)self->cap * CT_HIST_WIDTH;
+    len[2] = len[5] = 2;
+    if (fu_bind(6, o, len, wr, i64, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = 6;
+    if (self->b.views[3].len != self->cap * 8 || self->b.views[1].len != len[1] * 8 ||
+        self->b.views[4].len != len[1] * 8) {
+        PyErr_SetString(PyExc_ValueError, "HistCopy: two histories of one capacity and 12 columns");
+        return -1;                      /* (the bound views are released by the deallocation) */
+    }
+    self->lt = ptr[0];
+    self->ld = ptr[1];
+    self->lhc = ptr[2];
+    self->st = ptr[3];
+    self->sd = ptr[4];
+    self->shc = ptr[5];
+    return 0;
+}
+
+static int hist_ok(const int64_t *hc, int64_t cap)
+{
+    if (hc[0] < 0 || hc[0] >= cap || hc[1] < 0 || hc[1] > cap) {
+        PyErr_SetString(PyExc_ValueError, "HistCopy: a history's head or count out of range");
+        return 0;
+    }
+    return 1;
+}
+
+/* rewind(t_ref): PoseHistory.rewind_shadow */
+static PyObject *HistCopy_rewind(HistCopyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t;
+    if (fu_check_bound(&self->b, "HistCopy") < 0 || ct_py_nargs("rewind", nargs, 1) < 0 ||
+        ct_py_int64(args[0], &t) < 0 || !hist_ok(self->lhc, self->cap))
+        return NULL;
+    ct_fusion_hist_copy(self->st, self->sd, self->shc, self->lt, self->ld, self->lhc, self->cap, 1, t);
+    Py_RETURN_NONE;
+}
+
+/* commit(): PoseHistory.commit */
+static PyObject *HistCopy_commit(HistCopyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)args;
+    if (fu_check_bound(&self->b, "HistCopy") < 0 || ct_py_nargs("commit", nargs, 0) < 0 ||
+        !hist_ok(self->shc, self->cap))
+        return NULL;
+    ct_fusion_hist_copy(self->lt, self->ld, self->lhc, self->st, self->sd, self->shc, self->cap, 0, 0);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef HistCopy_methods[] = {
+    {"rewind", (PyCFunction)(void (*)(void))HistCopy_rewind, METH_FASTCALL,
+     "rewind(t_ref): the shadow history = the live one up to t_ref"},
+    {"commit", (PyCFunction)(void (*)(void))HistCopy_commit, METH_FASTCALL, "commit(): the live history = the shadow"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject HistCopyType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.HistCopy",
+    .tp_basicsize = sizeof(HistCopyObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "HistCopy(live_t, live_d, live_hc, shadow_t, shadow_d, shadow_hc): the pose histories' rewind and "
+              "commit bound to both rings",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)HistCopy_init,
+    .tp_dealloc = Fu_dealloc,
+    .tp_methods = HistCopy_methods,
 };
 
 /* ---------------------------------------------------------------- registration */
@@ -490,7 +1113,9 @@ int ct_register_fusion(PyObject *m)
         {"IMU_PHI", CT_IMU_PHI}, {"HIST_WIDTH", CT_HIST_WIDTH}, {"HIST_P", CT_HIST_P}, {"HIST_R", CT_HIST_R}};
     size_t i;
     if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
-        fu_add_type(m, &ReplayType, "Replay") < 0)
+        fu_add_type(m, &ReplayType, "Replay") < 0 || fu_add_type(m, &SnapAuxType, "SnapAux") < 0 ||
+        fu_add_type(m, &PoseAtType, "PoseAt") < 0 || fu_add_type(m, &MotionCovType, "MotionCov") < 0 ||
+        fu_add_type(m, &CompensateType, "Compensate") < 0 || fu_add_type(m, &HistCopyType, "HistCopy") < 0)
         return -1;
     for (i = 0; i < sizeof consts / sizeof consts[0]; ++i)
         if (PyModule_AddIntConstant(m, consts[i].name, consts[i].v) < 0)

@@ -39,9 +39,19 @@ OUT_RECOVERED = 16          # restarted from a magnetic solution, no update acce
 class PoseHistory:
     """The live pose history (``live``) and the one a replay writes (``shadow``), source frame."""
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, core=_DEFAULT_CORE):
         self.live = KernelRing(capacity, HIST_FIELDS)    # (its head and count shared: ext.ImuSample)
-        self.shadow = Ring(capacity, HIST_FIELDS)
+        self.shadow = KernelRing(capacity, HIST_FIELDS)   # (its head and count shared: ext.Replay)
+        ext = core.ext
+        if ext is not None:
+            # pose_at on the compiled core (core/src/fusion.c ct_fusion_pose_at), bound to the live ring
+            assert (HIST_P, HIST_R, self.live.width) == (ext.HIST_P, ext.HIST_R, ext.HIST_WIDTH)
+            # (the kernel's method itself: out_p, out_R C-contiguous float64 buffers)
+            self.pose_at = ext.PoseAt(self.live.t, self.live.d, self.live.hc).at
+            # rewind_shadow and commit (ct_fusion_hist_copy: the same copies and drop)
+            hc = ext.HistCopy(self.live.t, self.live.d, self.live.hc, self.shadow.t, self.shadow.d, self.shadow.hc)
+            self.rewind_shadow = hc.rewind
+            self.commit = hc.commit
 
     def rewind_shadow(self, t_ref_us: int) -> None:
         """The shadow starts as the live history up to ``t_ref_us``."""

@@ -7,9 +7,10 @@ transition eq 6.17). The reference is the Python loop of ``FusionFilter.step`` a
 with ``InertialPrediction.propagate``, ``set_dt``, ``step_compiled`` and ``history``;
 ``core/src/fusion.c`` ``ct_fusion_replay`` follows it operation by operation, so the shadow,
 its pose history and every counter come out the same. The kernel works on the arrays bound
-here once (the shadow's, the IMU ring's and the shadow history's) and on two small arrays
-carrying the Python attributes it reads and advances (``io``, ``fo``); :meth:`CompiledReplay.run`
-fills them before the call and hands the results back to their owners through their methods.
+here once (the shadow's with its step scalars ``ws``, the IMU ring's and the shadow history's with
+their head and count arrays) and on a small array carrying the Python attributes it reads and
+advances (``io``); :meth:`CompiledReplay.run` fills it before the call and hands the results back
+to their owners through their methods.
 A snapshot falling inside the replay stops the kernel at its instant: the snapshot is taken here
 (``Snapshot.take``, which also reads the orientation filter) and the kernel resumes with the rest
 of that sample.
@@ -40,49 +41,84 @@ class CompiledReplay:
         self.sh, self.pr, self.imu, self.hist, self.snap = sh, prediction, prediction.imu, hist, snap
         self.ext = ext
         self._io = np.zeros(ext.RIO_N, dtype=np.int64)
-        self._fo = np.zeros(ext.RFO_N)
         self._iov = memoryview(self._io)
-        self._fov = memoryview(self._fo)
         pred = sh.pred
+        # the state's step scalars (InsState.ws: dt_last, ka, kg) are the kernel's fo, and the rings'
+        # head and count arrays (KernelRing.hc) its ring positions: the kernel reads and writes them
+        # in place (InsState.set_step, Ring.advance)
+        assert (ext.RFO_DT_LAST, ext.RFO_KA, ext.RFO_KG, ext.RFO_N) == (0, 1, 2, sh.ws.size)
         self._ck = ext.Replay(sh.P.shape[0], sh.p, sh.v, sh.Th, sh.ba, sh.bg, pred.A, sh.P, pred.Q, pred._T,
-                              self.imu.t, self.imu.d, hist.t, hist.d, self._io, self._fo, frame.fixed,
-                              prediction._dtk, SYMMETRIZE_EVERY)
+                              self.imu.t, self.imu.d, hist.t, hist.d, self._io, sh.ws, frame.fixed,
+                              prediction._dtk, SYMMETRIZE_EVERY, self.imu.hc, hist.hc)
         self.units = 0
-        self._idx = (ext.RIO_T, ext.RIO_IMU_FIRST, ext.RIO_IMU_COUNT, ext.RIO_HIST_FIRST, ext.RIO_HIST_COUNT,
-                     ext.RIO_HIST_PUSHED, ext.RIO_SNAP_PENDING, ext.RIO_SNAP_T, ext.RIO_UNITS, ext.RIO_PRED_COUNT,
-                     ext.RIO_STEPS, ext.RIO_SPLIT, ext.RFO_DT_LAST, ext.RFO_KA, ext.RFO_KG, ext.REPLAY_SNAPSHOT)
+        self._idx = (ext.RIO_T, ext.RIO_SNAP_PENDING, ext.RIO_SNAP_T, ext.RIO_UNITS, ext.RIO_PRED_COUNT,
+                     ext.RIO_STEPS, ext.RIO_SPLIT, ext.REPLAY_SNAPSHOT)
 
-    def run(self, budget: int) -> int:
+    def run(self, budget: int, take: bool = True) -> int:
         """Replay on the shadow, at most ``budget`` strapdown steps started (a sample split at a
-        snapshot finishes), as ``FusionFilter.step``'s loop does; the kernel's stop."""
-        T, IF, IC, HF, HC, HP, SP, ST, U, PC, STEPS, SPLIT, DT, KA, KG, SNAPSHOT = self._idx
-        io, fo = self._iov, self._fov
-        sh, imu, hist, snap, pr = self.sh, self.imu, self.hist, self.snap, self.pr
+        snapshot finishes), as ``FusionFilter.step``'s loop does; the kernel's stop. ``take``: the
+        bound state is the authoritative one (``FusionFilter._advance``): a snapshot falling inside
+        a sample is taken from it (else the sample is only split there). Bound to the live state
+        and its history, one call with ``budget`` 1 is ``_advance`` of the newest sample."""
+        T, SP, ST, U, PC, STEPS, SPLIT, SNAPSHOT = self._idx
+        io = self._iov
+        sh, snap, pr = self.sh, self.snap, self.pr
         pred = sh.pred
+        replay = self._ck.replay
         io[U] = 0
         io[SPLIT] = -1
         while True:
             io[T] = sh.t_us
-            io[IF] = imu.slot(0)
-            io[IC] = len(imu)
-            io[HF] = hist.slot(0)
-            io[HC] = len(hist)
             io[SP] = 1 if snap.pending else 0
             io[ST] = snap.t
             io[PC] = pred.count
-            fo[DT] = sh.dt_last
-            fo[KA] = sh.ka
-            fo[KG] = sh.kg
-            rc = self._ck.replay(budget)
+            rc = replay(budget)
             sh.set_time(io[T])
-            sh.set_step(fo[DT], fo[KA], fo[KG])
             pred.set_count(io[PC])
-            hist.advance(io[HP])
             pr.add_steps(io[STEPS])
             if rc != SNAPSHOT:
                 break
             # FusionFilter._advance: the shadow (the authoritative state in a replay) at the
             # snapshot's instant is kept, then the kernel resumes with the rest of the sample
-            snap.take(sh, pr._idv, io[SPLIT])
+            if take:
+                snap.take(sh, pr._idv, io[SPLIT])
         self.units = io[U]
         return rc
+
+    def bind_snapshot(self) -> bool:
+        """Let :meth:`split_take` take the snapshot inside the kernel's call (``ext.Replay.replay_take``,
+        bound to the snapshot's state and its compiled ``take_aux``); False where the snapshot has no
+        compiled ``take_aux`` (no ch. 2 filter)."""
+        snap = self.snap
+        if snap.aux_kernel is None or snap.st.cs is None:
+            return False
+        self._ck.bind_snapshot(snap.st.cs, snap.aux_kernel)
+        self._take = self._ck.replay_take
+        return True
+
+    def split_take(self) -> None:
+        """:meth:`run` with ``budget`` 1 of the bound (live, authoritative) state's newest sample, in which
+        the pending snapshot falls (``FusionFilter._advance``): the snapshot taken between the step's
+        halves inside the one call (``Snapshot.take``'s copies; the ch. 2 filter's covariance brought up
+        to date first, as ``take_aux`` does), then its flags (``Snapshot.taken``)."""
+        T, SP, ST, U, PC, STEPS, SPLIT, _ = self._idx
+        io = self._iov
+        sh, snap, pr = self.sh, self.snap, self.pr
+        pred = sh.pred
+        io[U] = 0
+        io[SPLIT] = -1
+        io[T] = sh.t_us
+        pending = snap.pending
+        io[SP] = 1 if pending else 0
+        io[ST] = snap.t
+        io[PC] = pred.count
+        xi = snap.xi_filter.initialized
+        if xi:
+            snap.xi_filter.propagate()
+        self._take(1, xi)
+        sh.set_time(io[T])
+        pred.set_count(io[PC])
+        pr.add_steps(io[STEPS])
+        if pending and not io[SP]:
+            snap.taken(xi)
+        self.units = io[U]

@@ -45,6 +45,35 @@ class Snapshot:
         self.valid = False
         self.initialized = False
         self.xi = False
+        self._ck = None
+
+    def bind(self, imu_d, core=_DEFAULT_CORE) -> None:
+        """On the compiled core, :meth:`take_aux` reads the IMU ring's rows ``imu_d`` (the only ring it is
+        given) in ``core/src/fusion.c`` ``ct_fusion_snap_aux`` (``ext.SnapAux``, bound once here to the
+        ring, this snapshot and the ch. 2 filter's ``R``, covariance and offset); without a ch. 2 filter
+        or a compiled core the Python stays."""
+        ext = core.ext
+        xi = self.xi_filter
+        if ext is None or xi is None:
+            return
+        from coiltrack.firmware.estimate.layout import THETA
+        self._ck = ext.SnapAux(self.frame.fixed, xi.P.shape[0], THETA.start, imu_d, self.Phi, self.Xi, self.XiP,
+                               self.XiB, xi.R, xi.P, xi.bias)
+        self._imu_d = imu_d
+        self.take_aux = self._take_aux_compiled
+
+    def _take_aux_compiled(self, d, k: int, full: bool) -> None:
+        """:meth:`take_aux` on the compiled core (``d`` is the bound ring's rows): the filter's
+        covariance brought up to date (``theta_covariance_global``'s ``propagate``), then one call."""
+        xi = self.xi_filter
+        ok = xi.initialized
+        if ok:
+            xi.propagate()
+        self._ck.take(k, ok)
+        self.xi = ok
+        self.pending = False
+        self.valid = True
+        self.initialized = full
 
     def schedule(self, t_ref_us: int) -> None:
         """Keep the state at ``t_ref_us`` when the stream reaches it."""
@@ -71,6 +100,17 @@ class Snapshot:
         self.pending = False
         self.valid = True
         self.initialized = full
+
+    aux_kernel = property(lambda self: self._ck)    # ext.SnapAux (bind), or None: the Python take_aux
+
+    def taken(self, xi: bool) -> None:
+        """The compiled core took the snapshot at ``t`` (``ext.Replay.replay_take``: the state with
+        ``Phi`` and, when ``xi``, the ch. 2 filter's, as :meth:`take`): its time and flags."""
+        self.st.set_time(self.t)
+        self.xi = xi
+        self.pending = False
+        self.valid = True
+        self.initialized = True
 
     def take(self, st: InsState, d, k: int) -> None:
         """``st`` (at t_ref) with the source orientation and Xi."""

@@ -310,13 +310,19 @@ class FusionFilter(FilterView):
         self.upd = KalmanUpdate(n, self.m, params.gate_probability, core)
         self.meas.fill_constant(memoryview(self.upd.H), memoryview(self.upd.R), params)
         self.recovery = Recovery(params, self.meas)
-        self.history = PoseHistory(history_capacity)
+        self.history = PoseHistory(history_capacity, core)
         self.output = PoseOutput(params, output_capacity, self.frame, core, self.st, self.imu, self.history.live)
         #: the measurement model's evaluation for the shadow and the snapshot, and the replay's
         #: kernel (None: the Python loop of :meth:`step`), chosen once (``core``)
         self._evaluate = self.meas.bind(self.sh, self.snap, self.upd.y, core)
         self._replay_ck = (CompiledReplay(self.sh, self.prediction, self.history.shadow, self.snap, self.frame,
                                           core.ext) if self.sh.ck is not None else None)
+        #: the live state's step split at a pending snapshot (``_advance``) on the compiled core: the
+        #: same kernel bound to the live state and history, one sample a call (None: Python)
+        self._live_ck = (CompiledReplay(self.st, self.prediction, self.history.live, self.snap, self.frame,
+                                        core.ext) if self.st.ck is not None else None)
+        self.snap.bind(self.imu.d, core)
+        self._live_take = self._live_ck is not None and self._live_ck.bind_snapshot()
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         self.initialized = False
         self.replaying = False          # a replay runs on the shadow
@@ -335,24 +341,23 @@ class FusionFilter(FilterView):
         if self.st.ck is not None:
             self.prediction.bind_live(self.st, self.history.live, self.output._ck)
             self.push_imu = self._push_imu_compiled
+            self.pose_at = self.history.pose_at         # (the kernel's method: PoseHistory.pose_at)
 
     def attach_recorder(self, recorder) -> None:
         """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only). Its
         per-step hook runs in the Python replay only: the compiled one is not used from now on."""
         self.recorder = recorder
-        self._replay_ck = None
+        self._replay_ck = self._live_ck = None
 
     # ------------------------------------------------------------ inputs
     def schedule_snapshot(self, t_ref_us: int) -> None:
-        """Keep the state at ``t_ref_us`` (the instant the next magnetic
-        solution will refer to)."""
+        """Keep the state at ``t_ref_us`` (the instant the next magnetic solution will refer to)."""
         self.snap.schedule(t_ref_us)
 
     def push_imu(self, t_us: int, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi) -> bool:
-        """One sensor IMU sample (specific force m/s^2, rate rad/s, sensor
-        frame) with the source's specific force in ``G`` (``r*``) and the
-        source orientation ``Phi`` (3x3, memoryview or array). Returns True
-        when a fused pose was produced (put in the output ring)."""
+        """One sensor IMU sample (specific force m/s^2, rate rad/s, sensor frame) with the source's specific force in
+        ``G`` (``r*``) and the source orientation ``Phi`` (3x3, memoryview or array). Returns True when a fused pose was
+        produced (put in the output ring)."""
         k = self.prediction.push(t_us, fx, fy, fz, wx, wy, wz, rx, ry, rz, Phi)    # kept for replay
         return self._after_push(t_us, k)
 
@@ -414,14 +419,21 @@ class FusionFilter(FilterView):
         return True
 
     def _advance(self, st: InsState, hist, k: int) -> int:
-        """Propagate ``st`` to IMU slot ``k``'s time, splitting the step at a
-        pending snapshot (taken if ``st`` is the authoritative state); append
-        the poses to ``hist``. Returns the number of steps run (1 or 2)."""
+        """Propagate ``st`` to IMU slot ``k``'s time, splitting the step at a pending snapshot (taken if ``st`` is the
+        authoritative state); append the poses to ``hist``. Returns the number of steps run (1 or 2)."""
         pr = self.prediction
         snap = self.snap
         t = pr._itv[k]
         t0 = st.t_us
         if snap.due(t0, t):
+            if st is self.st and self._live_ck is not None and len(self.imu) > 1:
+                # the newest sample k (the live state is at the one before it): the kernel's split step,
+                # the snapshot taken between its halves when the live state is authoritative
+                if self._live_take and st is self._auth:
+                    self._live_ck.split_take()
+                else:
+                    self._live_ck.run(1, st is self._auth)
+                return self._live_ck.units
             ts = snap.t
             n = 0
             if ts > t0:
@@ -444,8 +456,7 @@ class FusionFilter(FilterView):
         return n
 
     def _propagate(self, st: InsState, k: int, t0: int, t1: int) -> None:
-        """``InertialPrediction.propagate`` of ``st`` over ``[t0, t1]``, recorded when it is the
-        authoritative state."""
+        """``InertialPrediction.propagate`` of ``st`` over ``[t0, t1]``, recorded when it is the authoritative state."""
         self.prediction.propagate(st, k, t0, t1)
         if self.recorder is not None and st is self._auth:
             self.recorder.on_step(self, st, k, t1)
@@ -483,30 +494,24 @@ class FusionFilter(FilterView):
             pass
 
     def begin_magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
-        """Fuse one magnetic solution referring to ``t_ref_us``: position
-        ``q`` (3, source frame), orientation ``R_ms`` (3x3, sensor to source)
-        and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``, rows
-        ``layout.POSE_POS``, ``POSE_ORI``). :meth:`prepare_magnetic_update`
-        and :meth:`apply_magnetic_update` in one call (a tick may do them in
-        two). Initialises the filter when needed. The update is applied to the
-        shadow state at ``t_ref``; the replay to the newest IMU sample is left
-        to :meth:`step` (none is needed when the state did not change: a
-        rejected solution). Returns health flags (ekf flags, ``FUS_*``); never
-        raises. With ``final=False`` a rejected solution leaves the snapshot
-        in place (and counts nothing), so the caller can offer another
-        solution of the same burst. ``FUS_BUSY``: the previous replay is still
-        running (nothing done; call again once :meth:`step` has returned True)."""
+        """Fuse one magnetic solution referring to ``t_ref_us``: position ``q`` (3, source frame), orientation ``R_ms``
+        (3x3, sensor to source) and their covariance ``C`` (6x6, ``(p, dtheta)`` as ``solver``, rows
+        ``layout.POSE_POS``, ``POSE_ORI``). :meth:`prepare_magnetic_update` and :meth:`apply_magnetic_update` in one
+        call (a tick may do them in two). Initialises the filter when needed. The update is applied to the shadow state
+        at ``t_ref``; the replay to the newest IMU sample is left to :meth:`step` (none is needed when the state did not
+        change: a rejected solution). Returns health flags (ekf flags, ``FUS_*``); never raises. With ``final=False`` a
+        rejected solution leaves the snapshot in place (and counts nothing), so the caller can offer another solution of
+        the same burst. ``FUS_BUSY``: the previous replay is still running (nothing done; call again once :meth:`step`
+        has returned True)."""
         flags = self.prepare_magnetic_update(t_ref_us, q, R_ms, C, final)
         if flags != FUS_PREPARED:
             return flags
         return self.apply_magnetic_update()
 
     def prepare_magnetic_update(self, t_ref_us: int, q, R_ms, C, final: bool = True) -> int:
-        """The first half of :meth:`begin_magnetic_update`: restore the
-        snapshot at ``t_ref`` into the shadow state and evaluate the
-        measurement model (``q``, ``R_ms``, ``C`` are read now). Returns
-        ``FUS_PREPARED`` (then call :meth:`apply_magnetic_update`), or the
-        final flags when it is already decided (busy, no snapshot,
+        """The first half of :meth:`begin_magnetic_update`: restore the snapshot at ``t_ref`` into the shadow state and
+        evaluate the measurement model (``q``, ``R_ms``, ``C`` are read now). Returns ``FUS_PREPARED`` (then call
+        :meth:`apply_magnetic_update`), or the final flags when it is already decided (busy, no snapshot,
         initialisation)."""
         if self.replaying:
             return FUS_BUSY
@@ -528,9 +533,8 @@ class FusionFilter(FilterView):
         return FUS_PREPARED
 
     def _start(self, t_ref_us: int, q, R_ms, C, gap: bool) -> int:
-        """(Re)start the shadow from the solution at ``t_ref`` (``gap``: the last update is too
-        old to bridge) and replay from there; ``FUS_NOT_INITIALISED`` when the measurement
-        model cannot start from this snapshot."""
+        """(Re)start the shadow from the solution at ``t_ref`` (``gap``: the last update is too old to bridge) and
+        replay from there; ``FUS_NOT_INITIALISED`` when the measurement model cannot start from this snapshot."""
         if not self.meas.ready(self.snap):
             self.last_flags = FUS_NOT_INITIALISED
             return FUS_NOT_INITIALISED
@@ -545,9 +549,8 @@ class FusionFilter(FilterView):
         return flags
 
     def apply_magnetic_update(self) -> int:
-        """The second half of :meth:`begin_magnetic_update`: gate, gain and
-        Joseph update of the prepared measurement, the correction of the
-        shadow state and the start of its replay. Returns the health flags."""
+        """The second half of :meth:`begin_magnetic_update`: gate, gain and Joseph update of the prepared measurement,
+        the correction of the shadow state and the start of its replay. Returns the health flags."""
         t_ref_us, q, R_ms, C, final = self._pending
         self._pending = None
         sh = self.sh
@@ -597,11 +600,9 @@ class FusionFilter(FilterView):
         self._auth = self.st
 
     def step(self, budget_replay_steps: int) -> bool:
-        """Replay IMU samples on the shadow state, at most
-        ``max_replay_steps_per_step(budget)`` strapdown and covariance steps;
-        when the shadow reaches the newest IMU sample it becomes the live
-        state. Returns True when no replay is left (also when none was
-        running)."""
+        """Replay IMU samples on the shadow state, at most ``max_replay_steps_per_step(budget)`` strapdown and
+        covariance steps; when the shadow reaches the newest IMU sample it becomes the live state. Returns True when no
+        replay is left (also when none was running)."""
         self.last_step_units = 0
         if not self.replaying:
             return True
@@ -629,8 +630,7 @@ class FusionFilter(FilterView):
             units += self._advance(sh, self.history.shadow, imu.slot(i))
 
     def _step_compiled(self, budget_replay_steps: int) -> bool:
-        """:meth:`step`'s loop in one call of the compiled core (``fusion_replay.CompiledReplay``);
-        the same ends."""
+        """:meth:`step`'s loop in one call of the compiled core (``fusion_replay.CompiledReplay``); the same ends."""
         ck = self._replay_ck
         rc = ck.run(budget_replay_steps)
         self.last_step_units = ck.units
@@ -653,8 +653,7 @@ class FusionFilter(FilterView):
         self._end_replay()
 
     def _initialize(self, st: InsState, t_ref_us: int, q, R_ms, C) -> None:
-        """``st`` at ``t_ref`` from the magnetic solution (``Recovery.initialize``); its pose
-        history starts anew."""
+        """``st`` at ``t_ref`` from the magnetic solution (``Recovery.initialize``); its pose history starts anew."""
         self.recovery.initialize(st, t_ref_us, self.snap, q, R_ms, C)
         self.rejects_in_row = 0
         self.accepted_in_row = 0

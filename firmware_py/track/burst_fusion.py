@@ -45,6 +45,7 @@ from coiltrack.firmware.estimate.orientation import N as ORI_N, OS_MAG, OS_ROUND
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
+from coiltrack.firmware.track.burst_compiled import CompiledBurst
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
 from coiltrack.firmware.track.source_unaccelerated import Unaccelerated
 
@@ -502,7 +503,7 @@ class _OneCall:
         return ks
 
 
-class SensorInertial:
+class SensorInertial(CompiledBurst):
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
 
@@ -581,6 +582,7 @@ class SensorInertial:
         self.poses_dead_reckoning = 0
         self.poses_lost = 0
         self.poses_out_of_range = 0     # fused poses beyond the working volume (sent, not valid)
+        self._bind_burst_kernels(core, _COMP_MAX_VEL_SIGMA)
 
     # ------------------------------------------------------------ per sample
     def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
@@ -707,13 +709,10 @@ class SensorInertial:
 
     # ------------------------------------------------------------ per burst
     def compensate_begin(self, solver, S, currents) -> bool:
-        """Start bringing the pulses to ``t_ref`` (thesis sec 6.5):
-        ``S_c[:, j] = S[:, j] + h_j(x_ref) - h_j(x_j)`` with the inertial poses
-        ``x_j`` at pulse ``j``'s mean sample time and ``x_ref`` at ``t_ref``.
-        This step predicts ``h(x_ref)``; :meth:`compensate_step` does the
-        pulses. False (``S_comp = S``) when the filter cannot tell the motion:
-        it knows its velocity worse than the motion it is to remove, or its
-        history does not reach ``t_ref``."""
+        """Start bringing the pulses to ``t_ref`` (thesis sec 6.5): ``S_c[:, j] = S[:, j] + h_j(x_ref) - h_j(x_j)`` with
+        the inertial poses ``x_j`` at pulse ``j``'s mean sample time and ``x_ref`` at ``t_ref``. This step predicts
+        ``h(x_ref)``; :meth:`compensate_step` does the pulses. False (``S_comp = S``) when the filter cannot tell the
+        motion: it knows its velocity worse than the motion it is to remove, or its history does not reach ``t_ref``."""
         np.copyto(self.S_comp, S)
         fus = self.fusion
         if not fus.initialized or fus.velocity_sigma() > _COMP_MAX_VEL_SIGMA \
@@ -724,10 +723,9 @@ class SensorInertial:
         return True
 
     def compensate_step(self, solver, S, currents, pulse_t, budget: int) -> int:
-        """Correct the next pulses, ``n`` field evaluations each, within
-        ``budget`` (at least one pulse); returns 1 when all are done, 0 while
-        some are left, -1 (``S_comp = S``) when the history misses a pulse's
-        time (``pulse_t[j]``, memoryview of int)."""
+        """Correct the next pulses, ``n`` field evaluations each, within ``budget`` (at least one pulse); returns 1 when
+        all are done, 0 while some are left, -1 (``S_comp = S``) when the history misses a pulse's time (``pulse_t[j]``,
+        memoryview of int)."""
         n = self.S_comp.shape[1]
         Sc, hr, hj = self._Scv, self._hrv, self._hjv
         fus = self.fusion
@@ -824,9 +822,8 @@ class SensorInertial:
             self.stage = _UPDATE_COMP if self.comp_ok else _UPDATE_MAG
 
     def _filter_step(self, replay_budget: int) -> bool:
-        """One tick of the fusion filter's part: prepare an update (restore the
-        snapshot, evaluate the measurement), apply it (gain, Joseph update),
-        or a step of its replay."""
+        """One tick of the fusion filter's part: prepare an update (restore the snapshot, evaluate the measurement),
+        apply it (gain, Joseph update), or a step of its replay."""
         fus = self.fusion
         stage = self.stage
         if stage in (_UPDATE_COMP, _UPDATE_MAG):

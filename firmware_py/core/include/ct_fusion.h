@@ -99,4 +99,37 @@ struct ct_replay {
  * io[CT_RIO_SPLIT] names the slot, and the caller takes the snapshot and calls again). */
 int ct_fusion_replay(const struct ct_replay *r, int64_t *io, double *fo, int budget);
 
+/* ------------------------------------------------------------ the burst's side
+ * fusion_snapshot.Snapshot.take_aux (with orientation.OrientationFilter.theta_covariance_global,
+ * its propagate run by the caller first): Phi of IMU row imu_row (fixed: the identity) into Phi;
+ * when xi (the ch. 2 filter is initialised): Xi = R, XiP = R P[t0:t0+3, t0:t0+3] R^T (P: np x np),
+ * XiB = bias.  All 3x3 row-major. */
+void ct_fusion_snap_aux(int fixed, const double *imu_row, int xi, const double *R, const double *P, int np, int t0,
+                        const double *bias, double *Phi, double *Xi, double *XiP, double *XiB);
+/* fusion_output.PoseHistory.pose_at over the live history (times ht, rows hd of CT_HIST_WIDTH,
+ * capacity cap, head and count as ring.Ring keeps them): the pose at t_us interpolated into
+ * out_p (3) and out_R (9, row-major); 0 when t_us is outside the history. */
+int ct_fusion_pose_at(const int64_t *ht, const double *hd, int64_t cap, int64_t head, int64_t count, int64_t t_us,
+                      double *out_p, double *out_R);
+/* track.burst_fusion.SensorInertial.motion_cov: out (6x6) = C plus the motion left in a burst
+ * solved at p, with the live state's covariance P (n x n) and velocity v, the rate w (w_last),
+ * tr2 = burst_rms_s^2; compensated: the velocity's uncertainty (InsState.velocity_sigma), else
+ * the rate and (initialized) the speed (InsState.speed_squared). */
+void ct_fusion_motion_cov(const double *C, double *out, const double *p, int compensated, int initialized,
+                          double tr2, const double *P, int n, const double *v, const double *w);
+
+/* SensorInertial.compensate_begin's checks and copies: S_comp (3 x n) = S; then false (0) when the
+ * filter is not initialised or its velocity's rms uncertainty (InsState.velocity_sigma of the live
+ * covariance P, n_st x n_st) exceeds max_sigma, else ct_fusion_pose_at at t_ref into p_ref, R_ref */
+int ct_fusion_comp_begin(const double *S, double *S_comp, int n, int initialized, const double *P, int n_st,
+                         double max_sigma, const int64_t *ht, const double *hd, int64_t cap, int64_t head,
+                         int64_t count, int64_t t_ref, double *p_ref, double *R_ref);
+/* compensate_step's correction of pulse j: S_comp[:, j] = S_comp[:, j] + h_ref[:, j] - h_j[:, j] */
+void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, int n, int j);
+
+/* fusion_output.PoseHistory.rewind_shadow / commit: ring.Ring.copy_from of one pose history (times t, rows d of
+ * CT_HIST_WIDTH, capacity cap, (head, count) hc) into the other, then (drop: rewind) Ring.drop_newer_than(t_us) */
+void ct_fusion_hist_copy(int64_t *dt, double *dd, int64_t *dhc, const int64_t *st, const double *sd, const int64_t *shc,
+                         int64_t cap, int drop, int64_t t_us);
+
 #endif /* CT_FUSION_H */

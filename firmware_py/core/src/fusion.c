@@ -379,3 +379,165 @@ int ct_fusion_replay(const struct ct_replay *r, int64_t *io, double *fo, int bud
     io[CT_RIO_UNITS] = units;
     return rc;
 }
+
+/* ------------------------------------------------------------ the burst's side */
+
+/* Snapshot.take_aux: FixedSource / MovingSource.phi_into, then (Xi initialised) the copies of R
+ * and bias and OrientationFilter.theta_covariance_global's sum in its order */
+void ct_fusion_snap_aux(int fixed, const double *imu_row, int xi, const double *R, const double *P, int np, int t0,
+                        const double *bias, double *Phi, double *Xi, double *XiP, double *XiB)
+{
+    int i, j, k, m;
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j)
+            Phi[3 * i + j] = fixed ? (i == j ? 1.0 : 0.0) : imu_row[CT_IMU_PHI + 3 * i + j];
+    if (!xi)
+        return;
+    memcpy(Xi, R, 9 * sizeof(double));
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            double acc = 0.0;
+            for (k = 0; k < 3; ++k) {
+                const double rik = R[3 * i + k];
+                for (m = 0; m < 3; ++m)
+                    acc += rik * P[(t0 + k) * np + t0 + m] * R[3 * j + m];
+            }
+            XiP[3 * i + j] = acc;
+        }
+    memcpy(XiB, bias, 3 * sizeof(double));
+}
+
+/* PoseHistory.pose_at: ring.Ring.index_at_or_after, the two rows about t_us, their blend */
+int ct_fusion_pose_at(const int64_t *ht, const double *hd, int64_t cap, int64_t head, int64_t count, int64_t t_us,
+                      double *out_p, double *out_R)
+{
+    int64_t lo = 0, hi = count, base = head - count, i, prev, k, t0, tk;
+    double a, b;
+    int c, r, j;
+    if (count < 2)
+        return 0;
+    while (lo < hi) {
+        int64_t mid = (lo + hi) >> 1;
+        int64_t p = base + mid;
+        if (p < 0)
+            p += cap;
+        else if (p >= cap)
+            p -= cap;
+        if (ht[p] < t_us)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    i = lo;
+    if (i >= count)
+        return 0;
+    if (i == 0) {
+        int64_t s0 = base < 0 ? base + cap : base;
+        if (ht[s0] != t_us)
+            return 0;
+        i = 1;
+    }
+    prev = base + i - 1;
+    if (prev < 0)
+        prev += cap;
+    else if (prev >= cap)
+        prev -= cap;
+    k = base + i;
+    if (k < 0)
+        k += cap;
+    else if (k >= cap)
+        k -= cap;
+    t0 = ht[prev];
+    tk = ht[k];
+    a = tk > t0 ? (double)(t_us - t0) / (double)(tk - t0) : 1.0;
+    b = 1.0 - a;
+    for (c = 0; c < 3; ++c)
+        out_p[c] = b * hd[prev * CT_HIST_WIDTH + CT_HIST_P + c] + a * hd[k * CT_HIST_WIDTH + CT_HIST_P + c];
+    for (r = 0; r < 3; ++r)
+        for (j = 0; j < 3; ++j) {
+            c = CT_HIST_R + 3 * r + j;
+            out_R[3 * r + j] = b * hd[prev * CT_HIST_WIDTH + c] + a * hd[k * CT_HIST_WIDTH + c];
+        }
+    return 1;
+}
+
+/* SensorInertial.motion_cov (InsState.velocity_sigma and speed_squared inline, their operations) */
+void ct_fusion_motion_cov(const double *C, double *out, const double *p, int compensated, int initialized,
+                          double tr2, const double *P, int n, const double *v, const double *w)
+{
+    double ap, ao;
+    int i;
+    memcpy(out, C, 36 * sizeof(double));
+    if (compensated) {
+        const int v0 = CT_VEL;
+        double s = P[v0 * n + v0] + P[(v0 + 1) * n + v0 + 1] + P[(v0 + 2) * n + v0 + 2];
+        double sv = sqrt((s > 0.0 ? s : (s == s ? 0.0 : s)) / 3.0);
+        ap = sv * sv * tr2;
+        ao = 0.0;
+    } else {
+        ao = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * tr2;
+        ap = initialized ? (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) * tr2 : 0.0;
+        ap += (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]) * ao;
+    }
+    for (i = 0; i < 3; ++i) {
+        out[i * 6 + i] += ap;
+        out[(3 + i) * 6 + 3 + i] += ao;
+    }
+}
+
+/* SensorInertial.compensate_begin (np.copyto, FilterView.velocity_sigma, PoseHistory.pose_at) */
+int ct_fusion_comp_begin(const double *S, double *S_comp, int n, int initialized, const double *P, int n_st,
+                         double max_sigma, const int64_t *ht, const double *hd, int64_t cap, int64_t head,
+                         int64_t count, int64_t t_ref, double *p_ref, double *R_ref)
+{
+    const int v0 = CT_VEL;
+    double s, sv;
+    memcpy(S_comp, S, (size_t)(3 * n) * sizeof(double));
+    if (!initialized)
+        return 0;
+    s = P[v0 * n_st + v0] + P[(v0 + 1) * n_st + v0 + 1] + P[(v0 + 2) * n_st + v0 + 2];
+    sv = sqrt((s > 0.0 ? s : (s == s ? 0.0 : s)) / 3.0);
+    if (sv > max_sigma)
+        return 0;
+    return ct_fusion_pose_at(ht, hd, cap, head, count, t_ref, p_ref, R_ref);
+}
+
+/* SensorInertial.compensate_step's loop body after the prediction of pulse j */
+void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, int n, int j)
+{
+    int i;
+    for (i = 0; i < 3; ++i)
+        S_comp[i * n + j] = S_comp[i * n + j] + h_ref[i * n + j] - h_j[i * n + j];
+}
+
+/* PoseHistory.rewind_shadow (drop) / commit: Ring.copy_from (the whole arrays, head and count), then
+ * Ring.drop_newer_than (index_at_or_after(t_us + 1), the head moved back over the newer entries) */
+void ct_fusion_hist_copy(int64_t *dt, double *dd, int64_t *dhc, const int64_t *st, const double *sd, const int64_t *shc,
+                         int64_t cap, int drop, int64_t t_us)
+{
+    int64_t lo, hi, base, h;
+    memcpy(dt, st, (size_t)cap * sizeof(int64_t));
+    memcpy(dd, sd, (size_t)(cap * CT_HIST_WIDTH) * sizeof(double));
+    dhc[0] = shc[0];
+    dhc[1] = shc[1];
+    if (!drop)
+        return;
+    lo = 0;
+    hi = dhc[1];
+    base = dhc[0] - dhc[1];
+    while (lo < hi) {
+        int64_t mid = (lo + hi) >> 1;
+        int64_t p = base + mid;
+        if (p < 0)
+            p += cap;
+        else if (p >= cap)
+            p -= cap;
+        if (dt[p] < t_us + 1)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    h = dhc[0] - (dhc[1] - lo);
+    dhc[0] = h < 0 ? h + cap : h;
+    dhc[1] = lo;
+}

@@ -227,9 +227,10 @@ class _Run:
     rewritten), the same Phi (a turning source unless fixed) and the same magnetic solutions
     (the truth moved by a fixed error), each stage compared."""
 
-    def __init__(self, model, fixed, imu_capacity=128, seed=50):
+    def __init__(self, model, fixed, imu_capacity=128, seed=50, rel=1e-12):
         rng = np.random.default_rng(seed)
         self.ref, self.got = _pair(model, fixed, imu_capacity)
+        self.rel = rel
         self.lost = 0
         self.i = 0
         t = 1000 + np.cumsum(rng.integers(700, 1400, size=4000))
@@ -277,14 +278,14 @@ class _Run:
         a, b = self.ref, self.got
         assert (a.sh.t_us, a.steps, a.sh.pred.count, a.replaying, a.last_flags, len(a.history.shadow)) == \
                (b.sh.t_us, b.steps, b.sh.pred.count, b.replaying, b.last_flags, len(b.history.shadow)), what
-        _close(a.sh.P, b.sh.P, what=f"{what}: sh.P")
-        _close(a.sh.p, b.sh.p, what=f"{what}: sh.p")
+        _close(a.sh.P, b.sh.P, rel=self.rel, what=f"{what}: sh.P")
+        _close(a.sh.p, b.sh.p, rel=self.rel, what=f"{what}: sh.p")
 
     def check(self, what):
         a, b = self.ref, self.got
         for name in ("p", "v", "Th", "ba", "bg", "P"):
             for st in ("st", "sh", "sn"):
-                _close(getattr(getattr(a, st), name), getattr(getattr(b, st), name), what=f"{what}: {st}.{name}")
+                _close(getattr(getattr(a, st), name), getattr(getattr(b, st), name), rel=self.rel, what=f"{what}: {st}.{name}")
         for st in ("st", "sh", "sn"):
             assert getattr(a, st).t_us == getattr(b, st).t_us, (what, st)
         assert (a.sh.dt_last, a.sh.ka, a.sh.kg) == (b.sh.dt_last, b.sh.ka, b.sh.kg), what
@@ -292,13 +293,14 @@ class _Run:
         assert (a.steps, a.updates, a.rejected, a.replays_lost, a.last_flags, a.replaying, a.initialized) == \
                (b.steps, b.updates, b.rejected, b.replays_lost, b.last_flags, b.replaying, b.initialized), what
         assert (a.snap.pending, a.snap.valid, a.snap.t, a.snap.xi) == (b.snap.pending, b.snap.valid, b.snap.t, b.snap.xi)
-        _close(a.snap.Xi, b.snap.Xi, what=f"{what}: Xi")
+        for name in ("Phi", "Xi", "XiP", "XiB"):
+            _close(getattr(a.snap, name), getattr(b.snap, name), rel=self.rel, what=f"{what}: snap.{name}")
         for h in ("live", "shadow"):
             ra, rb = getattr(a.history, h), getattr(b.history, h)
             assert len(ra) == len(rb) and ra.slot(0) == rb.slot(0), (what, h)
             used = [ra.slot(i) for i in range(len(ra))]
             np.testing.assert_array_equal(ra.t[used], rb.t[used], err_msg=f"{what}: history {h}")
-            _close(ra.d[used], rb.d[used], what=f"{what}: history {h}")
+            _close(ra.d[used], rb.d[used], rel=self.rel, what=f"{what}: history {h}")
 
     def run(self, t_end, budget, period_us=300_000, delay_us=90_000, every=1):
         """Bursts every ``period_us``: the snapshot scheduled ahead of the stream (while a replay
@@ -389,3 +391,277 @@ def test_the_recorder_keeps_the_python_replay():
     _, got = _pair(3)
     got.attach_recorder(object())
     assert got._replay_ck is None
+
+
+@pytest.mark.parametrize("budget", [1, 2])
+def test_the_live_split_step_is_the_python_split_bit_for_bit(budget):
+    """The live state's step split at a pending snapshot (``FusionFilter._advance`` through the
+    replay kernel bound to the live state, ``_live_ck``: ``split_take`` with the snapshot taken
+    inside the call, ``run`` where the shadow is the one to take it) against the same compiled filter taking
+    the Python split (``_propagate``, ``history``, ``Snapshot.take`` one by one): every state, the
+    snapshot (Phi, Xi, its covariance and offset) and both histories equal to the bit after every
+    update and replay step, while the live state takes the snapshot (a replay of 2 steps a sample
+    catches up before the next burst) and while the shadow does (1 step a sample: the replay
+    runs when the live state crosses t_ref, which only splits its step there)."""
+    r = _Run(3, False, rel=0.0)
+    ref = FusionFilter(r.got.prm, OrientationFilter(OrientationParams.from_config(None), core.PYTHON),
+                       fixed_source=False, core=COMPILED)
+    ref._live_ck = None
+    r.ref = ref
+    split = []
+    ck = r.got._live_ck
+    run0 = ck.run
+
+    def run(budget, take=True):
+        split.append(take)
+        return run0(budget, take)
+
+    ck.run = run
+    take0 = ck.split_take
+
+    def split_take():
+        split.append(True)
+        take0()
+
+    ck.split_take = split_take
+    r.run(1_300_000, budget)
+    assert split and all(take == (budget == 2) for take in split)
+    assert r.got.updates >= 3
+
+
+def _history(rng, cap, n, head):
+    """A pose history (the live ring) of ``n`` entries ending before slot ``head`` (wrapped), random
+    poses, times 900-1100 us apart."""
+    from coiltrack.firmware.estimate.fusion_output import PoseHistory
+    h = PoseHistory(cap, core.PYTHON)
+    live = h.live
+    t = 5000
+    for _ in range(cap + head - n if n < cap else head):
+        live.push(t)
+        t += 1000
+    live.clear()
+    for _ in range(cap):                 # fill, then trim to n entries ending at head
+        live.push(0)
+    live.clear()
+    live._head = (head - n) % cap
+    for _ in range(n):
+        k = live.push(t)
+        live.d[k] = rng.normal(size=live.width)
+        t += int(rng.integers(900, 1100))
+    assert live.slot(len(live)) % cap == head % cap or len(live) == cap
+    return h
+
+
+def test_pose_at_matches_the_reference():
+    """ct_fusion_pose_at (``PoseHistory.pose_at`` on the compiled core, bound to the live ring)
+    against the reference over wrapped and unwrapped rings of 0 to full entries: the same answer
+    for instants before, at and after every entry, between entries and at the ends, and the
+    interpolated pose equal to the bit; the interpolation itself checked against numpy's."""
+    from coiltrack.firmware.estimate.fusion_output import PoseHistory
+    rng = np.random.default_rng(71)
+    cap = 16
+    for n, head in ((0, 0), (1, 5), (2, 0), (7, 3), (16, 9), (16, 0), (12, 14)):
+        ref = _history(rng, cap, n, head)
+        got = PoseHistory(cap, COMPILED)
+        np.copyto(got.live.t, ref.live.t)
+        np.copyto(got.live.d, ref.live.d)
+        got.live._head, got.live._count = ref.live._head, ref.live._count
+        times = [int(ref.live.tv[ref.live.slot(i)]) for i in range(n)]
+        queries = [0, 10**9] + [t + d for t in times for d in (-1, 0, 1, 357)]
+        for t in queries:
+            pa, Ra = np.full(3, 7.0), np.full((3, 3), 7.0)
+            pb, Rb = np.full(3, 7.0), np.full((3, 3), 7.0)
+            oa = ref.pose_at(t, pa, memoryview(Ra))
+            ob = got.pose_at(t, pb, Rb)
+            assert oa == ob, (n, head, t)
+            np.testing.assert_array_equal(pa, pb)
+            np.testing.assert_array_equal(Ra, Rb)
+            if ob:
+                i = next(i for i, ti in enumerate(times) if ti >= t)
+                i = max(i, 1)
+                t0, t1 = times[i - 1], times[i]
+                a = (t - t0) / (t1 - t0)
+                d0, d1 = ref.live.d[ref.live.slot(i - 1)], ref.live.d[ref.live.slot(i)]
+                np.testing.assert_allclose(pb, (1 - a) * d0[0:3] + a * d1[0:3], rtol=1e-14, atol=1e-15)
+                np.testing.assert_allclose(Rb.ravel(), (1 - a) * d0[3:12] + a * d1[3:12], rtol=1e-14, atol=1e-15)
+    assert not got.pose_at(0, np.zeros(3), np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("fixed", [True, False])
+def test_snapshot_aux_matches_the_reference(fixed):
+    """ct_fusion_snap_aux (``Snapshot.take_aux`` on the compiled core) against the reference on
+    random ch. 2 filter states and IMU rows: Phi (the ring row's, or the identity for a fixed
+    source), Xi, its global covariance ``R P_tt R^T`` and the offset equal to the bit, and the
+    covariance against numpy's product; an uninitialised filter leaves Xi alone in both."""
+    from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
+    from coiltrack.firmware.estimate.fusion_state import FixedSource, MovingSource
+    from coiltrack.firmware.estimate.layout import THETA
+    rng = np.random.default_rng(72)
+    frame = FixedSource() if fixed else MovingSource()
+    imu_d = rng.normal(size=(8, _core.IMU_WIDTH))
+    for trial in range(30):
+        xi = OrientationFilter(OrientationParams.from_config(None), core.PYTHON)
+        if trial % 5:
+            xi.initialize(1000, 0.1, 0.2, 9.8, 20.0, 1.0, -40.0)
+            xi.R[:] = _random_rotation(rng, math.pi * (1 - 1e-9) if trial == 1 else None)
+            xi.P[:] = _spd(rng, xi.P.shape[0], 1e-3)
+            xi.bias[:] = rng.normal(size=3) * 1e-3
+        a, b = Snapshot(24, frame, xi), Snapshot(24, frame, xi)
+        b.bind(imu_d, COMPILED)
+        assert b.take_aux != a.take_aux
+        k = int(rng.integers(0, 8))
+        a.take_aux(memoryview(imu_d), k, trial % 2 == 0)
+        b.take_aux(memoryview(imu_d), k, trial % 2 == 0)
+        for name in ("Phi", "Xi", "XiP", "XiB"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert (a.xi, a.pending, a.valid, a.initialized) == (b.xi, b.pending, b.valid, b.initialized)
+        assert b.xi == bool(trial % 5)
+        if b.xi:
+            t0 = THETA.start
+            np.testing.assert_allclose(b.XiP, xi.R @ xi.P[t0:t0 + 3, t0:t0 + 3] @ xi.R.T, rtol=1e-13, atol=1e-18)
+        np.testing.assert_array_equal(b.Phi, np.eye(3) if fixed else imu_d[k, 9:18].reshape(3, 3))
+
+
+def test_motion_cov_matches_the_reference():
+    """ct_fusion_motion_cov (``SensorInertial.motion_cov`` on the compiled core) against the
+    reference, compensated or not, the filter initialised or not, a NaN covariance too: every
+    element equal to the bit; the added diagonal against the closed form of its docstring."""
+    from coiltrack.firmware.config import FirmwareConfig
+    from coiltrack.firmware.track.burst_fusion import FixedSource as FixedSrc
+    from coiltrack.firmware.track.burst_fusion import PulseGate, SensorInertial
+    cfg = FirmwareConfig()
+    gate = PulseGate(np.zeros(3, dtype=np.int64), np.zeros(3, dtype=np.int64), 0, 0)
+    ref = SensorInertial(1, cfg, gate, FixedSrc(cfg), core=core.PYTHON)
+    got = SensorInertial(1, cfg, gate, FixedSrc(cfg), core=COMPILED)
+    assert got.motion_cov != got.__class__.motion_cov.__get__(got)
+    rng = np.random.default_rng(73)
+    for trial in range(40):
+        P = _spd(rng, ref.fusion.n, 1e-3)
+        v, w = rng.normal(size=3), rng.normal(size=3)
+        if trial == 7:
+            P[3, 3] = float("nan")
+        for ins in (ref, got):
+            np.copyto(ins.fusion.st.P, P)
+            np.copyto(ins.fusion.st.v, v)
+            np.copyto(ins.w_last, w)
+            ins.fusion.initialized = trial % 3 != 0
+        C = _spd(rng, 6, 1e-5)
+        p = rng.normal(size=3) * 0.3
+        for comp in (False, True):
+            oa, ob = np.zeros((6, 6)), np.zeros((6, 6))
+            ref.motion_cov(C, comp, oa, p)
+            got.motion_cov(C, comp, ob, p)
+            np.testing.assert_array_equal(oa, ob)
+            tr2 = ref.burst_rms_s ** 2
+            if comp:
+                ap, ao = np.trace(P[3:6, 3:6]) / 3.0 * tr2, 0.0
+            else:
+                ao = float(w @ w) * tr2
+                ap = (float(v @ v) * tr2 if trial % 3 else 0.0) + float(p @ p) * ao
+            if trial != 7 or not comp:
+                np.testing.assert_allclose(np.diag(ob - C), [ap] * 3 + [ao] * 3, rtol=1e-12, atol=1e-30)
+
+
+class _Signals:
+    """A stand-in for the re-solve's solver: ``predict_signals`` a smooth function of the pose (the
+    compensation only needs the same numbers in both cores), evaluations counted."""
+
+    def __init__(self, n):
+        self.n = n
+        self.calls = 0
+
+    def predict_signals(self, p, R, currents, out):
+        self.calls += 1
+        p, R = np.asarray(p), np.asarray(R)
+        for j in range(self.n):
+            out[:, j] = R.T @ (p * (j + 1.0) + currents[j]) + 1e-3 * np.sin(p.sum() * (j + 2))
+
+
+def test_compensation_matches_the_reference():
+    """``SensorInertial.compensate_begin`` / ``compensate_step`` on the compiled core
+    (ct_fusion_comp_begin: the copy, the velocity check and the pose at t_ref; ct_fusion_pose_at
+    per pulse; ct_fusion_comp_add) against the reference over random histories and bursts: the
+    same answers (compensated, not initialised, a velocity too uncertain, t_ref or a pulse outside
+    the history: -1 and the signals as measured) at every budget, and the compensated signals
+    equal to the bit; with a still history the compensation changes nothing."""
+    from coiltrack.firmware.config import FirmwareConfig
+    from coiltrack.firmware.track.burst_fusion import FixedSource as FixedSrc
+    from coiltrack.firmware.track.burst_fusion import PulseGate, SensorInertial
+    cfg = FirmwareConfig()
+    gate = PulseGate(np.zeros(3, dtype=np.int64), np.zeros(3, dtype=np.int64), 0, 0)
+    ref = SensorInertial(1, cfg, gate, FixedSrc(cfg), core=core.PYTHON)
+    got = SensorInertial(1, cfg, gate, FixedSrc(cfg), core=COMPILED)
+    assert got.compensate_step != got.__class__.compensate_step.__get__(got)
+    n = ref.S_comp.shape[1]
+    rng = np.random.default_rng(74)
+    outcomes = set()
+    for trial in range(60):
+        still = trial == 5
+        P = _spd(rng, ref.fusion.n, 1e-5 if trial % 7 else 1e-1)        # every 7th: velocity too uncertain
+        t = np.cumsum(rng.integers(900, 1100, size=40)) + 10_000
+        rows = rng.normal(size=(40, 12)) * (0.0 if still else 0.01)
+        rows[:, 0:3] += [0.1, 0.2, 0.3]
+        for ins in (ref, got):
+            np.copyto(ins.fusion.st.P, P)
+            ins.fusion.initialized = trial % 11 != 3
+            live = ins.fusion.history.live
+            live.clear()
+            for k in range(40):
+                live.d[live.push(int(t[k]))] = rows[k]
+        S = rng.normal(size=(3, n))
+        currents = rng.normal(size=n)
+        t_ref = int(t[20]) + 17 if trial % 13 != 4 else int(t[-1]) + 5     # every 13th: beyond the history
+        pulse_t = np.array([int(t[5]) + 3, int(t[20]), int(t[33]) + 400 if trial % 9 != 2 else int(t[0]) - 50],
+                           dtype=np.int64)
+        budget = int(rng.integers(1, 3 * n + 1))
+        res = []
+        for ins in (ref, got):
+            sig = _Signals(n)
+            ins.t_ref = t_ref
+            r = [ins.compensate_begin(sig, S, currents)]
+            if r[0]:
+                r.append(0)
+                while r[-1] == 0:
+                    r.append(ins.compensate_step(sig, S, currents, memoryview(pulse_t), budget))
+            res.append((r, ins.S_comp.copy(), ins.compensated, sig.calls))
+        (ra, Sa, ca, na), (rb, Sb, cb, nb) = res
+        assert ra == rb and ca == cb and na == nb, (trial, ra, rb)
+        np.testing.assert_array_equal(Sa, Sb)
+        outcomes.add(ra[-1] if ra[0] else "no")
+        if not ra[0] or ra[-1] == -1:
+            np.testing.assert_array_equal(Sb, S)
+        elif still:
+            np.testing.assert_allclose(Sb, S, rtol=0, atol=1e-15)
+    assert outcomes == {"no", -1, 1}
+
+
+def test_history_rewind_and_commit_match_the_reference():
+    """ct_fusion_hist_copy (``PoseHistory.rewind_shadow`` and ``commit`` on the compiled core) against
+    the reference's ``Ring.copy_from`` and ``drop_newer_than`` over wrapped and unwrapped histories and
+    rewinds before, at, between and after the entries: the same arrays, heads and counts."""
+    from coiltrack.firmware.estimate.fusion_output import PoseHistory
+    rng = np.random.default_rng(75)
+    cap = 16
+    for n, head in ((0, 0), (1, 5), (7, 3), (16, 9), (12, 14)):
+        ref = _history(rng, cap, n, head)
+        got = PoseHistory(cap, COMPILED)
+        assert got.rewind_shadow != PoseHistory.rewind_shadow.__get__(got)
+        times = [int(ref.live.tv[ref.live.slot(i)]) for i in range(n)]
+        t0, d0, hc0 = ref.live.t.copy(), ref.live.d.copy(), (ref.live._head, ref.live._count)
+        for t in [0, 10**9] + [x + d for x in times for d in (-1, 0, 1)]:
+            for h in (ref, got):
+                np.copyto(h.live.t, t0)
+                np.copyto(h.live.d, d0)
+                h.live._head, h.live._count = hc0
+                h.shadow.clear()
+                h.rewind_shadow(t)
+            for name in ("t", "d"):
+                np.testing.assert_array_equal(getattr(ref.shadow, name), getattr(got.shadow, name))
+            assert (ref.shadow._head, ref.shadow._count) == (got.shadow._head, got.shadow._count), (n, head, t)
+            assert len(got.shadow) == sum(1 for x in times if x <= t)
+            for h in (ref, got):                 # a replay pushes onto the shadow, then commits it
+                h.shadow.d[h.shadow.push(t + 5)] = 0.5
+                h.commit()
+            for name in ("t", "d"):
+                np.testing.assert_array_equal(getattr(ref.live, name), getattr(got.live, name))
+            assert (ref.live._head, ref.live._count) == (got.live._head, got.live._count)
