@@ -277,6 +277,190 @@ static PyTypeObject DemodType = {
     .tp_methods = Demod_methods,
 };
 
+/* ---------------------------------------------------------------- ACBlocks */
+enum { AB_RT, AB_RB, AB_RF, AB_S, AB_VAR, AB_FLAGS, AB_PMID, AB_DONE, AB_NCH };   /* per channel */
+enum { AB_PHASE, AB_AMP, AB_SSTART, AB_SEND, AB_SMEAS, AB_SK, AB_DIST, AB_QR, AB_ST, AB_FS, AB_RS, AB_NSH };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_ac_blocks a;
+    struct ct_ac_channel ch[CT_ACB_MAX_CH];
+    PyObject *demod[CT_ACB_MAX_CH];
+    Py_buffer cv[CT_ACB_MAX_CH][AB_NCH], sv[AB_NSH];
+    int ncv[CT_ACB_MAX_CH], nsv, nch_bound;
+    int64_t *rs;
+} ACBlocksObject;
+
+static void ACBlocks_release(ACBlocksObject *self)
+{
+    int i, j;
+    for (i = 0; i < self->nch_bound; ++i) {
+        for (j = 0; j < self->ncv[i]; ++j)
+            PyBuffer_Release(&self->cv[i][j]);
+        self->ncv[i] = 0;
+        Py_CLEAR(self->demod[i]);
+    }
+    self->nch_bound = 0;
+    for (j = 0; j < self->nsv; ++j)
+        PyBuffer_Release(&self->sv[j]);
+    self->nsv = 0;
+    self->a.nch = 0;
+}
+
+static void ACBlocks_dealloc(ACBlocksObject *self)
+{
+    ACBlocks_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* channel i of `chans`: (Demod, ring t, ring b, ring flags, S, var, flags, pulse_mid, done) */
+static int ACBlocks_channel(ACBlocksObject *self, int i, PyObject *item, int n)
+{
+    static const char *names[AB_NCH] = {"ring t", "ring b", "ring flags", "S", "var", "flags", "pulse_mid",
+                                        "done"};
+    struct ct_ac_channel *c = &self->ch[i];
+    DemodObject *dm;
+    int j;
+    if (!PyTuple_Check(item) || PyTuple_GET_SIZE(item) != 1 + AB_NCH) {
+        PyErr_SetString(PyExc_TypeError, "ACBlocks: each channel must be a tuple of a Demod and 8 arrays");
+        return -1;
+    }
+    if (!PyObject_TypeCheck(PyTuple_GET_ITEM(item, 0), &DemodType)) {
+        PyErr_SetString(PyExc_TypeError, "ACBlocks: a channel's first item must be a Demod");
+        return -1;
+    }
+    dm = (DemodObject *)PyTuple_GET_ITEM(item, 0);
+    if (!dm->nbound || dm->d.n != n || !dm->ring_bound) {
+        PyErr_SetString(PyExc_ValueError, "ACBlocks: a Demod not bound, without its ring, or of another n");
+        return -1;
+    }
+    Py_INCREF(dm);
+    self->demod[i] = (PyObject *)dm;
+    self->nch_bound = i + 1;
+    for (j = 0; j < AB_NCH; ++j) {
+        Py_ssize_t want = j == AB_RT || j == AB_RF ? 1 : j == AB_RB ? 3 : j == AB_S || j == AB_VAR ? 3 * n : n;
+        const char *fmt = j == AB_RB || j == AB_S || j == AB_VAR ? "d" : j == AB_RF ? "B" : j == AB_DONE ? "?"
+                                                                                                          : "ql";
+        Py_ssize_t size = j == AB_RF || j == AB_DONE ? 1 : 8;
+        if (ac_buffer(PyTuple_GET_ITEM(item, 1 + j), want, size, fmt, j >= AB_S, &self->cv[i][j], names[j]) < 0)
+            return -1;
+        self->ncv[i] = j + 1;
+    }
+    c->dm = &dm->d;
+    c->cap = (int64_t)(self->cv[i][AB_RT].len / 8);
+    if (self->cv[i][AB_RB].len < 3 * c->cap * 8 || self->cv[i][AB_RF].len < c->cap || c->cap != dm->cap) {
+        PyErr_SetString(PyExc_ValueError, "ACBlocks: a ring's arrays are not its Demod's");
+        return -1;
+    }
+    c->rt = (const int64_t *)self->cv[i][AB_RT].buf;
+    c->rb = (const double *)self->cv[i][AB_RB].buf;
+    c->rf = (const uint8_t *)self->cv[i][AB_RF].buf;
+    c->S = (double *)self->cv[i][AB_S].buf;
+    c->var = (double *)self->cv[i][AB_VAR].buf;
+    c->flags = (int64_t *)self->cv[i][AB_FLAGS].buf;
+    c->pulse_mid = (int64_t *)self->cv[i][AB_PMID].buf;
+    c->done = (uint8_t *)self->cv[i][AB_DONE].buf;
+    return 0;
+}
+
+/* ACBlocks(n, chans, phase, amplitude, sched_start, sched_end, sched_measured, solved_k, distorted,
+ * quad_ratio, st, fs, rs): measure.ac_blocks.ACBlockMeasurement._bind_compiled's arrays */
+static int ACBlocks_init(ACBlocksObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"n", "chans", "phase", "amplitude", "sched_start", "sched_end", "sched_measured",
+                             "solved_k", "distorted", "quad_ratio", "st", "fs", "rs", NULL};
+    static const char *names[AB_NSH] = {"phase", "amplitude", "sched_start", "sched_end", "sched_measured",
+                                        "solved_k", "distorted", "quad_ratio", "st", "fs", "rs"};
+    PyObject *chans, *sh[AB_NSH];
+    int n, nch, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iOOOOOOOOOOOO", kwlist, &n, &chans, &sh[0], &sh[1], &sh[2], &sh[3],
+                                     &sh[4], &sh[5], &sh[6], &sh[7], &sh[8], &sh[9], &sh[10]))
+        return -1;
+    if (self->a.nch) {
+        PyErr_SetString(PyExc_RuntimeError, "ACBlocks: already bound");
+        return -1;
+    }
+    if (n < 1 || n > 64 || !PyTuple_Check(chans) || PyTuple_GET_SIZE(chans) < 1 ||
+        PyTuple_GET_SIZE(chans) > CT_ACB_MAX_CH) {
+        PyErr_Format(PyExc_ValueError, "ACBlocks: n in 1..64 and a tuple of 1..%d channels", CT_ACB_MAX_CH);
+        return -1;
+    }
+    nch = (int)PyTuple_GET_SIZE(chans);
+    for (i = 0; i < AB_NSH; ++i) {
+        Py_ssize_t want = i <= AB_SMEAS ? n : i == AB_ST ? CT_ACB_NST : i == AB_FS ? CT_ACBF_N
+                                                           : i == AB_RS ? 2 * nch : nch;
+        int is_int = i == AB_SSTART || i == AB_SEND || i == AB_SK || i == AB_DIST || i == AB_ST || i == AB_RS;
+        int ro = i == AB_PHASE || i == AB_AMP || i == AB_RS;
+        if (ac_buffer(sh[i], want, 8, is_int ? "ql" : "d", !ro, &self->sv[i], names[i]) < 0) {
+            ACBlocks_release(self);
+            return -1;
+        }
+        self->nsv = i + 1;
+    }
+    for (i = 0; i < nch; ++i)
+        if (ACBlocks_channel(self, i, PyTuple_GET_ITEM(chans, i), n) < 0) {
+            ACBlocks_release(self);
+            return -1;
+        }
+#define SD(i) ((double *)self->sv[i].buf)
+#define SI(i) ((int64_t *)self->sv[i].buf)
+    self->a.n = n;
+    self->a.ch = self->ch;
+    self->a.phase = SD(AB_PHASE);
+    self->a.amplitude = SD(AB_AMP);
+    self->a.sched_start = SI(AB_SSTART);
+    self->a.sched_end = SI(AB_SEND);
+    self->a.sched_measured = SD(AB_SMEAS);
+    self->a.solved_k = SI(AB_SK);
+    self->a.distorted = SI(AB_DIST);
+    self->a.quad_ratio = SD(AB_QR);
+    self->a.st = SI(AB_ST);
+    self->a.fs = SD(AB_FS);
+    self->rs = SI(AB_RS);
+    self->a.nch = nch;
+#undef SD
+#undef SI
+    return 0;
+}
+
+/* step() -> int: ct_ac_blocks_step over the bound rings' counts and last slots (rs) */
+static PyObject *ACBlocks_step(ACBlocksObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int i;
+    (void)args;
+    if (!self->a.nch) {
+        PyErr_SetString(PyExc_RuntimeError, "ACBlocks: not bound");
+        return NULL;
+    }
+    if (ac_nargs("step", nargs, 0) < 0)
+        return NULL;
+    for (i = 0; i < self->a.nch; ++i) {
+        int64_t count = self->rs[2 * i], last = self->rs[2 * i + 1], cap = self->ch[i].cap;
+        if (count < 0 || count > cap || (count > 0 && (last < 0 || last >= cap))) {
+            PyErr_SetString(PyExc_ValueError, "ACBlocks.step: count or last outside a ring");
+            return NULL;
+        }
+    }
+    return PyLong_FromLongLong((long long)ct_ac_blocks_step(&self->a, self->rs));
+}
+
+static PyMethodDef ACBlocks_methods[] = {
+    {"step", (PyCFunction)(void (*)(void))ACBlocks_step, METH_FASTCALL,
+     "step() -> int: as ACBlockMeasurement._tick over the bound arrays"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ACBlocksType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ACBlocks",
+    .tp_basicsize = sizeof(ACBlocksObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "The AC measure stage's tick bound for ct_ac_blocks_step (measure.ac_blocks.ACBlockMeasurement)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)ACBlocks_init,
+    .tp_dealloc = (destructor)ACBlocks_dealloc,
+    .tp_methods = ACBlocks_methods,
+};
+
 /* -------------------------------------------------------------------- Raab */
 enum { RB_PAR, RB_CBAR, RB_S, RB_MP, RB_CUR, RB_SC, RB_F, RB_X, RB_R, RB_PM, RB_B, RB_G, RB_K, RB_PERM, RB_OUT,
        RB_NBUF };
@@ -945,8 +1129,13 @@ static PyTypeObject RaabIOType = {
 int ct_register_ac(PyObject *m)
 {
     if (PyType_Ready(&DemodType) < 0 || PyType_Ready(&RaabType) < 0 || PyType_Ready(&RaabCorrType) < 0 ||
-        PyType_Ready(&RaabCovType) < 0 || PyType_Ready(&RaabIOType) < 0)
+        PyType_Ready(&RaabCovType) < 0 || PyType_Ready(&RaabIOType) < 0 || PyType_Ready(&ACBlocksType) < 0)
         return -1;
+    Py_INCREF(&ACBlocksType);
+    if (PyModule_AddObject(m, "ACBlocks", (PyObject *)&ACBlocksType) < 0) {
+        Py_DECREF(&ACBlocksType);
+        return -1;
+    }
     Py_INCREF(&DemodType);
     if (PyModule_AddObject(m, "Demod", (PyObject *)&DemodType) < 0) {
         Py_DECREF(&DemodType);

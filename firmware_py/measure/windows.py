@@ -174,6 +174,11 @@ class SensorChannel:
         self.pulse_mid.fill(mid_us)
         self.changes += 1
 
+    def block_loaded(self) -> None:
+        """:meth:`load_block`'s copies were made by the compiled AC measure stage
+        (``measure.ac_blocks``, ``core/src/ac_blocks.c``): counted as a change."""
+        self.changes += 1
+
     def burst_flags(self) -> int:
         f = 0
         fl = self._flv

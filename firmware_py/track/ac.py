@@ -84,6 +84,8 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         cfg = cfg.with_(fusion={"motion_compensation": False})
         super().__init__(cfg, coils, channels, schedule, measure, supervisor, tx, solvers, core)
         self.measure, self.act = measure, act
+        #: each sensor's channel, inertial part and earth-field ring (the blocks' DC terms: its compass)
+        self._ac_pairs = tuple((ch, ins, measure.earth[ch.node]) for ch, ins in self._pairs)
         self._fuse_mid = {ch.node: -1 for ch in self.channels}
         self.blocks_fused = 0
 
@@ -117,9 +119,9 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         if self.source is not None:
             self.source.process()
         n = 0
-        for ch, ins in self._pairs:
+        for _ch, ins, earth in self._ac_pairs:
             n -= ins.samples
-            ins.process(self.measure.earth[ch.node])
+            ins.process(earth)
             n += ins.samples
         self._imu_last = n
         e0 = self.solver.signal.evals

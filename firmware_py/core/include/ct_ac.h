@@ -190,4 +190,47 @@ int ct_raab_moved(const struct ct_raab_io *io, double refresh);
 int ct_raab_behind(const struct ct_raab_io *io, int acquiring);
 void ct_raab_angles_from_pose(double px, double py, double pz, const double *R, double *x);
 
+/* ------------------------------------------------------------- ac_blocks
+ * The measure stage of AC excitation, measure.ac_blocks.ACBlockMeasurement._tick (src/ac_blocks.c): each
+ * channel's Demodulator.step (ct_demod_step) with the solved block's bookkeeping (_feed), then the
+ * block handed to the tracker when every channel has solved it (_assemble: PulseSchedule.ac_block,
+ * SensorChannel.load_block's copies, the sums).  The integer state, an int64 array st[CT_ACB_NST]
+ * (ACBlockMeasurement._st), and the float one fs[CT_ACBF_N] (_fs): */
+enum { CT_ACB_BLOCK_K = 0, CT_ACB_COMPLETE = 1, CT_ACB_T_REF = 2, CT_ACB_BLOCKS = 3, CT_ACB_SKIPPED = 4,
+       CT_ACB_BAD = 5, CT_ACB_DISTORTED = 6, CT_ACB_NO_SIGNAL = 7, CT_ACB_MAX_SAMPLES = 8, CT_ACB_NST = 9 };
+enum { CT_ACBF_QUAD_SUM = 0, CT_ACBF_QUAD_MAX = 1, CT_ACBF_RESID_SUM = 2, CT_ACBF_SIGNAL_GATE = 3,
+       CT_ACBF_RATIO_MAX = 4, CT_ACBF_Q_GATE = 5, CT_ACBF_N = 6 };
+/* at most this many channels (a bit of ct_ac_blocks_step's result each) */
+#define CT_ACB_MAX_CH 48
+
+/* one channel: its demodulator, its sample ring and its burst's arrays (SensorChannel) */
+struct ct_ac_channel {
+    const struct ct_demod *dm;
+    const int64_t *rt;              /* the ring's times, fields (cap x 3) and flags */
+    const double *rb;
+    const uint8_t *rf;
+    int64_t cap;
+    double *S, *var;                /* 3 n each, row-major (3, n) */
+    int64_t *flags, *pulse_mid;     /* n each */
+    uint8_t *done;                  /* n (numpy bool) */
+};
+
+struct ct_ac_blocks {
+    int nch, n;
+    const struct ct_ac_channel *ch; /* nch */
+    const double *phase;            /* n: the drive's measured current phases (the actuation's) */
+    const double *amplitude;        /* n: its measured amplitudes */
+    int64_t *sched_start, *sched_end;   /* n: PulseSchedule.start, end */
+    double *sched_measured;         /* n: PulseSchedule.measured */
+    int64_t *solved_k, *distorted;  /* nch */
+    double *quad_ratio;             /* nch */
+    int64_t *st;                    /* CT_ACB_NST */
+    double *fs;                     /* CT_ACBF_N */
+};
+
+/* ACBlockMeasurement._tick: `rs` (2 nch) each channel's ring count and last pushed slot; returns bit 0 when
+ * a block was handed over (_assemble: the channels' bursts loaded), bit 1 + i when channel i solved a block
+ * whose DC term goes into its earth ring (done by the caller) */
+int64_t ct_ac_blocks_step(const struct ct_ac_blocks *a, const int64_t *rs);
+
 #endif /* CT_AC_H */
