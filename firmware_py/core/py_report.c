@@ -226,8 +226,8 @@ static int WarmStart_init(WarmStartObject *self, PyObject *args, PyObject *kw)
         PyErr_SetString(PyExc_RuntimeError, "WarmStart: already bound");
         return -1;
     }
-    if (cap < 2 || width < 12) {
-        PyErr_SetString(PyExc_ValueError, "WarmStart: cap must be >= 2 and width >= 12");
+    if (cap < 2 || width != CT_HIST_WIDTH) {
+        PyErr_Format(PyExc_ValueError, "WarmStart: cap must be >= 2 and width %d (the history's rows)", CT_HIST_WIDTH);
         return -1;
     }
     len[WS_T] = cap;
@@ -253,7 +253,6 @@ static int WarmStart_init(WarmStartObject *self, PyObject *args, PyObject *kw)
     self->h.d = self->views[WS_D].buf;
     self->h.hc = self->views[WS_HC].buf;
     self->h.cap = cap;
-    self->h.width = width;
     self->tp = self->views[WS_TP].buf;
     self->tR = self->views[WS_TR].buf;
     self->wp = self->views[WS_WP].buf;

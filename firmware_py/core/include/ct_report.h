@@ -9,7 +9,8 @@
  * PoseQuality.grade_burst, _quat, reported_covariance) and, for the fused tracker's covariance,
  * track.burst_fusion.BurstFusionTracker.reported_covariance with SensorInertial.motion_cov
  * (compensated False).  The kernels it strings together are finish.c's (ct_report_take,
- * ct_grade_burst) and fusimu.c's (ct_quat_from_elements).
+ * ct_grade_burst), fusimu.c's (ct_quat_from_elements) and fusion.c's (ct_fusion_motion_cov,
+ * ct_fusion_pose_at).
  */
 #ifndef CT_REPORT_H
 #define CT_REPORT_H
@@ -36,11 +37,6 @@ struct ct_report {
     double *cov;
 };
 
-/* SensorInertial.motion_cov (compensated False): out = C plus the motion left in a burst solved at
- * p, from the rate wl (3), the velocity v (3; initialized 0: none) and the burst's rms time rms_s */
-void ct_report_motion_cov(const double *C, const double *p, const double *wl, const double *v, int initialized,
-                          double rms_s, double *out);
-
 /* MagneticTracker._report_pose's numbers for a solved burst whose middle is t_us: -1 when the
  * solution lies beyond range_m (nothing written), else the quality (PoseQuality.grade_burst with the
  * fit's cost, the NIS per dimension nis and the quiet term quiet) with the tracked pose, the
@@ -49,21 +45,17 @@ int ct_report_solved(const struct ct_report *r, int64_t t_us, double cost, doubl
                      int initialized);
 
 /* a fusion filter's live pose history (estimate.fusion_output.PoseHistory.live, a KernelRing): its
- * times t (cap), rows d (cap x width: the position at 0, the rotation's nine at 3) and head and
- * count hc (2) */
+ * times t (cap), rows d (cap x CT_HIST_WIDTH: the position at CT_HIST_P, the rotation's nine at
+ * CT_HIST_R) and head and count hc (2), read by fusion.c's ct_fusion_pose_at */
 struct ct_hist {
     const int64_t *t;
     const double *d;
     const int64_t *hc;
-    int64_t cap, width;
+    int64_t cap;
 };
 
-/* PoseHistory.pose_at (with Ring.index_at_or_after and Ring.slot): the pose at t_us interpolated
- * into out_p (3) and out_R (9); 0 (nothing written) when t_us lies outside the history */
-int ct_report_pose_at(const struct ct_hist *h, int64_t t_us, double *out_p, double *out_R);
-
 /* BurstFusionTracker.warm_start over MagneticTracker.warm_start: the solve's start into wp (3), wR (9):
- * the fusion filter's pose at t_ref (h; initialized) when the tracked pose is had (have_pose) and it
+ * the fusion filter's pose at t_ref (ct_fusion_pose_at over h; initialized) when the tracked pose is had (have_pose) and it
  * lies within range_m, else the tracked pose tp (3), tR (9); 0 (nothing written) before a pose */
 int ct_report_warm_start(const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
                          const double *tp, const double *tR, double *wp, double *wR);
