@@ -21,6 +21,17 @@ code indexes ``P`` by these names only)::
     C0P 15  3  m      clone 0: POS at the time pulse slot 0 is measured
     C0O 18  3  rad    clone 0: ORI at that time
     C1P, C1O 21, 24   clone 1
+    GAIN 27  n_coils  1   optional (``coil_gains``): each coil's gain error, a constant
+
+Coil gains (``coil_gains`` > 0, ``[adaptive] coil_gain_sigma``). The pulse model becomes
+``y = (1 + g_c) I R^T B_c(p)`` (eq 5 with the coil's true current ``(1 + g_c) I``): a driver whose
+current sense carries a static gain error (invisible in the current it reports) or a coil whose
+field differs from the model by a constant factor. The field-model term of ``R`` is white, so it
+averages away over repeated pulses of one coil, which a constant error does not: a policy that
+leans on one coil takes its bias into the orientation. The nominal gains ``gain`` scale the
+current the update predicts with, the error columns of ``H`` for ``g_c`` are ``I h_c`` (the
+derivative of eq 5), the gains are constant (identity transition, no process noise) and kept
+through a restart of the pose (their prior variance ``gain_sigma^2`` restored).
 
 Error convention: ``x_true = x_est + dx`` for vectors and
 ``R_true = R_est exp([ori]x)`` (as ``coiltrack.firmware.pose.reference``), so the orientation
@@ -116,6 +127,10 @@ class SchepersEKF:
         Chi-square gate of the 3-dof single-coil update (``ekf.chi2_gate``).
     iterations : int
         Passes of the iterated update (1: plain EKF).
+    coil_gains : int
+        Coils whose gain error is a state (0: none; the module docstring).
+    gain_sigma : float
+        Prior standard deviation of each coil's relative gain error.
     """
 
     @classmethod
@@ -131,6 +146,8 @@ class SchepersEKF:
                   gyr_noise=cfg.imu.imu_gyro_sigma / root, acc_bias_rw=cfg.imu.imu_acc_bias_rw,
                   gyr_bias_rw=cfg.imu.imu_gyro_bias_rw, pos_noise=cfg.adaptive.adaptive_pos_noise,
                   gate_probability=cfg.adaptive.nis_gate_probability, iterations=cfg.adaptive.single_coil_iterations)
+        if cfg.adaptive.coil_gain_sigma > 0.0:
+            kw.update(coil_gains=len(cfg.source.coils), gain_sigma=cfg.adaptive.coil_gain_sigma)
         kw.update(overrides)
         return cls(**kw)
 
@@ -141,9 +158,16 @@ class SchepersEKF:
 
     def __init__(self, *, n_clones: int, gravity, acc_noise: float, gyr_noise: float, acc_bias_rw: float,
                  gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int,
-                 core=_DEFAULT_CORE):
+                 coil_gains: int = 0, gain_sigma: float = 0.0, core=_DEFAULT_CORE):
         self.n_clones = int(n_clones)
-        self.layout = self._make_layout(self.n_clones)
+        self.n_gains = int(coil_gains)
+        self.gain_sigma = float(gain_sigma)
+        if self.n_gains < 0 or (self.n_gains and not self.gain_sigma > 0.0):
+            raise ValueError(f"coil_gains must be >= 0 with gain_sigma > 0, got {coil_gains!r}, {gain_sigma!r}")
+        if self.n_gains and type(self)._make_layout is not SchepersEKF._make_layout:
+            raise ValueError("coil_gains: a filter with its own state table does not carry coil gains")
+        self.layout = self._make_layout(self.n_clones) if not self.n_gains else schepers_layout(self.n_clones,
+                                                                                                 self.n_gains)
         nx = self.layout.n
         self.nx = nx
         self.g = np.array(gravity, dtype=float).reshape(3)
@@ -159,6 +183,7 @@ class SchepersEKF:
         self._coil_update = SingleCoilUpdate(nx, gate_probability, self.iterations, core)
         self.upd = self._coil_update.upd
         self._meas = CoilMeasurement()
+        self._alloc_gains()
         self.nis = 0.0
         self.nis_nominal = 0.0
         self.kernels = "python"        # where its own dynamics run (its update reports its own core)
@@ -203,6 +228,14 @@ class SchepersEKF:
         self.clones = PoseClones(self.layout, self.n_clones)
         self.clone_p, self.clone_R, self.clone_t = self.clones.p, self.clones.R, self.clones.t
         self.clone_due, self.clone_taken = self.clones.due, self.clones.taken
+
+    def _alloc_gains(self) -> None:
+        """The coil gains' nominal values, their rows, and the measurement the update takes with
+        the gain applied (``coil_gains`` > 0)."""
+        self.gain = np.zeros(self.n_gains)
+        self._gain_rows = self.layout.GAIN if self.n_gains else None
+        self._dx_gain = self._coil_update.dx[self._gain_rows] if self.n_gains else None
+        self._meas_g = CoilMeasurement()
 
     def _alloc_propagation(self, nx: int, core) -> None:
         """The buffers of the propagation and of the prediction ahead."""
@@ -253,6 +286,10 @@ class SchepersEKF:
         for s, sig in ((VEL, sigma_vel), (ACC, sigma_acc), (GYR, sigma_gyr)):
             for i in range(s.start, s.stop):
                 self.P[i, i] = sig * sig
+        if self.n_gains:
+            # the gains' estimates are kept through a restart, their variances restored
+            for i in range(self._gain_rows.start, self._gain_rows.stop):
+                self.P[i, i] = self.gain_sigma * self.gain_sigma
         self.clones.clear()
         self.initialized = True
         if self.t_us is None:
@@ -469,13 +506,22 @@ class SchepersEKF:
             p, R = self.p, self.R
             cp, co = POS, ORI
         u = self._coil_update
-        flags = u.run(self.P, p, R, cp, co, m, model)
+        if self.n_gains:
+            # eq 5 with the coil's current (1 + g_c) I; the gain's error column I h_c
+            c = m.coil
+            mg = self._meas_g.set(m.y, m.var, c, m.current * (1.0 + float(self.gain[c])), m.rel_model, m.r_scale,
+                                  m.gate)
+            flags = u.run(self.P, p, R, cp, co, mg, model, self._gain_rows.start + c, m.current)
+        else:
+            flags = u.run(self.P, p, R, cp, co, m, model)
         self.nis_nominal = u.nis_nominal
         self.nis = u.nis
         if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
             self.rejected += 1
             return flags
         self._inject(u.dx)
+        if self.n_gains:
+            self.gain += self._dx_gain
         self.updates += 1
         return flags
 
