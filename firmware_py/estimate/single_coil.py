@@ -21,17 +21,17 @@ code indexes ``P`` by these names only)::
     C0P 15  3  m      clone 0: POS at the time pulse slot 0 is measured
     C0O 18  3  rad    clone 0: ORI at that time
     C1P, C1O 21, 24   clone 1
-    GAIN 27  n_coils  1   optional (``coil_gains``): each coil's gain error, a constant
+    GAIN 27  n_coils  1   :class:`CoilGainEKF` only: each coil's gain error, a constant
 
-Coil gains (``coil_gains`` > 0, ``[adaptive] coil_gain_sigma``). The pulse model becomes
+Coil gains (:class:`CoilGainEKF`, ``[adaptive] coil_gain_sigma`` > 0). The pulse model becomes
 ``y = (1 + g_c) I R^T B_c(p)`` (eq 5 with the coil's true current ``(1 + g_c) I``): a driver whose
 current sense carries a static gain error (invisible in the current it reports) or a coil whose
 field differs from the model by a constant factor. The field-model term of ``R`` is white, so it
 averages away over repeated pulses of one coil, which a constant error does not: a policy that
-leans on one coil takes its bias into the orientation. The nominal gains ``gain`` scale the
-current the update predicts with, the error columns of ``H`` for ``g_c`` are ``I h_c`` (the
-derivative of eq 5), the gains are constant (identity transition, no process noise) and kept
-through a restart of the pose (their prior variance ``gain_sigma^2`` restored).
+leans on one coil takes its bias into the pose. The nominal gains scale the current the update
+predicts with, the error column of ``H`` for ``g_c`` is ``I h_c`` (the derivative of eq 5), the
+gains are constant (identity transition, no process noise) and kept through a restart of the pose
+(their prior variance restored); ``single_coil_update.CoilGains``.
 
 Error convention: ``x_true = x_est + dx`` for vectors and
 ``R_true = R_est exp([ori]x)`` (as ``coiltrack.firmware.pose.reference``), so the orientation
@@ -89,10 +89,10 @@ from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, PO
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_sensor, transition_static
 from coiltrack.firmware.estimate.clones import PoseClones
-from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement, SingleCoilUpdate
+from coiltrack.firmware.estimate.single_coil_update import CoilGains, CoilMeasurement, SingleCoilUpdate
 from coiltrack.firmware.rotation import quat_tuple
 
-__all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
+__all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "CoilGainEKF", "EKF_NO_STATE", "filter_class"]
 
 #: the methods whose compiled form is bound only where a subclass keeps them all
 _DYNAMICS = ("_step", "_build_F", "_accel", "_advance", "_fill_q", "_predict_ahead")
@@ -127,10 +127,6 @@ class SchepersEKF:
         Chi-square gate of the 3-dof single-coil update (``ekf.chi2_gate``).
     iterations : int
         Passes of the iterated update (1: plain EKF).
-    coil_gains : int
-        Coils whose gain error is a state (0: none; the module docstring).
-    gain_sigma : float
-        Prior standard deviation of each coil's relative gain error.
     """
 
     @classmethod
@@ -146,8 +142,6 @@ class SchepersEKF:
                   gyr_noise=cfg.imu.imu_gyro_sigma / root, acc_bias_rw=cfg.imu.imu_acc_bias_rw,
                   gyr_bias_rw=cfg.imu.imu_gyro_bias_rw, pos_noise=cfg.adaptive.adaptive_pos_noise,
                   gate_probability=cfg.adaptive.nis_gate_probability, iterations=cfg.adaptive.single_coil_iterations)
-        if cfg.adaptive.coil_gain_sigma > 0.0:
-            kw.update(coil_gains=len(cfg.source.coils), gain_sigma=cfg.adaptive.coil_gain_sigma)
         kw.update(overrides)
         return cls(**kw)
 
@@ -158,16 +152,9 @@ class SchepersEKF:
 
     def __init__(self, *, n_clones: int, gravity, acc_noise: float, gyr_noise: float, acc_bias_rw: float,
                  gyr_bias_rw: float, pos_noise: float, gate_probability: float, iterations: int,
-                 coil_gains: int = 0, gain_sigma: float = 0.0, core=_DEFAULT_CORE):
+                 core=_DEFAULT_CORE):
         self.n_clones = int(n_clones)
-        self.n_gains = int(coil_gains)
-        self.gain_sigma = float(gain_sigma)
-        if self.n_gains < 0 or (self.n_gains and not self.gain_sigma > 0.0):
-            raise ValueError(f"coil_gains must be >= 0 with gain_sigma > 0, got {coil_gains!r}, {gain_sigma!r}")
-        if self.n_gains and type(self)._make_layout is not SchepersEKF._make_layout:
-            raise ValueError("coil_gains: a filter with its own state table does not carry coil gains")
-        self.layout = self._make_layout(self.n_clones) if not self.n_gains else schepers_layout(self.n_clones,
-                                                                                                 self.n_gains)
+        self.layout = self._make_layout(self.n_clones)
         nx = self.layout.n
         self.nx = nx
         self.g = np.array(gravity, dtype=float).reshape(3)
@@ -183,9 +170,8 @@ class SchepersEKF:
         self._coil_update = SingleCoilUpdate(nx, gate_probability, self.iterations, core)
         self.upd = self._coil_update.upd
         self._meas = CoilMeasurement()
-        self._alloc_gains()
-        self.nis = 0.0
-        self.nis_nominal = 0.0
+        self._run_update = self._coil_update.run      # CoilGainEKF: with its gains
+        self.nis = self.nis_nominal = 0.0
         self.kernels = "python"        # where its own dynamics run (its update reports its own core)
         if core.ext is not None:
             self._bind_compiled(core.ext)
@@ -228,14 +214,6 @@ class SchepersEKF:
         self.clones = PoseClones(self.layout, self.n_clones)
         self.clone_p, self.clone_R, self.clone_t = self.clones.p, self.clones.R, self.clones.t
         self.clone_due, self.clone_taken = self.clones.due, self.clones.taken
-
-    def _alloc_gains(self) -> None:
-        """The coil gains' nominal values, their rows, and the measurement the update takes with
-        the gain applied (``coil_gains`` > 0)."""
-        self.gain = np.zeros(self.n_gains)
-        self._gain_rows = self.layout.GAIN if self.n_gains else None
-        self._dx_gain = self._coil_update.dx[self._gain_rows] if self.n_gains else None
-        self._meas_g = CoilMeasurement()
 
     def _alloc_propagation(self, nx: int, core) -> None:
         """The buffers of the propagation and of the prediction ahead."""
@@ -286,10 +264,6 @@ class SchepersEKF:
         for s, sig in ((VEL, sigma_vel), (ACC, sigma_acc), (GYR, sigma_gyr)):
             for i in range(s.start, s.stop):
                 self.P[i, i] = sig * sig
-        if self.n_gains:
-            # the gains' estimates are kept through a restart, their variances restored
-            for i in range(self._gain_rows.start, self._gain_rows.stop):
-                self.P[i, i] = self.gain_sigma * self.gain_sigma
         self.clones.clear()
         self.initialized = True
         if self.t_us is None:
@@ -506,22 +480,13 @@ class SchepersEKF:
             p, R = self.p, self.R
             cp, co = POS, ORI
         u = self._coil_update
-        if self.n_gains:
-            # eq 5 with the coil's current (1 + g_c) I; the gain's error column I h_c
-            c = m.coil
-            mg = self._meas_g.set(m.y, m.var, c, m.current * (1.0 + float(self.gain[c])), m.rel_model, m.r_scale,
-                                  m.gate)
-            flags = u.run(self.P, p, R, cp, co, mg, model, self._gain_rows.start + c, m.current)
-        else:
-            flags = u.run(self.P, p, R, cp, co, m, model)
+        flags = self._run_update(self.P, p, R, cp, co, m, model)
         self.nis_nominal = u.nis_nominal
         self.nis = u.nis
         if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
             self.rejected += 1
             return flags
         self._inject(u.dx)
-        if self.n_gains:
-            self.gain += self._dx_gain
         self.updates += 1
         return flags
 
@@ -542,6 +507,51 @@ class SchepersEKF:
         self._sd.rotate(self.R, float(dx[o]), float(dx[o + 1]), float(dx[o + 2]))
         self.clones.inject(dx, self._sd.rotate)
 
+
+
+class CoilGainEKF(SchepersEKF):
+    """:class:`SchepersEKF` with each coil's gain error as a state (module docstring, "Coil gains";
+    ``[adaptive] coil_gain_sigma``): ``coil_gains`` coils, prior std ``gain_sigma``. The dynamics and
+    their compiled kernels are the base class's; the gains' rows come after the clones
+    (``layout.schepers_layout``), so the propagation carries them with the identity."""
+
+    @classmethod
+    def from_config(cls, cfg=None, **overrides) -> "CoilGainEKF":
+        """:meth:`SchepersEKF.from_config` with a gain per coil of ``cfg``, prior ``coil_gain_sigma``."""
+        if cfg is None:
+            from coiltrack.firmware.config import FirmwareConfig
+            cfg = FirmwareConfig()
+        kw = dict(coil_gains=len(cfg.source.coils), gain_sigma=cfg.adaptive.coil_gain_sigma)
+        kw.update(overrides)
+        return super().from_config(cfg, **kw)
+
+    def __init__(self, *, coil_gains: int, gain_sigma: float, **kw):
+        if int(coil_gains) < 1 or not (math.isfinite(gain_sigma) and gain_sigma > 0.0):
+            raise ValueError(f"coil_gains must be >= 1 and gain_sigma > 0, got {coil_gains!r}, {gain_sigma!r}")
+        self._n_gains = int(coil_gains)          # read by _make_layout during the base's set-up
+        super().__init__(**kw)
+        self.gains = CoilGains(self.layout.GAIN, gain_sigma, self._coil_update)
+        self._run_update = self.gains.run
+
+    def _make_layout(self, n_clones: int):
+        return schepers_layout(n_clones, self._n_gains)
+
+    def initialize(self, p, R, P6, t_us: int, sigma_vel: float, sigma_acc: float, sigma_gyr: float) -> None:
+        """:meth:`SchepersEKF.initialize`; the gains' estimates kept, their variances the prior's."""
+        super().initialize(p, R, P6, t_us, sigma_vel, sigma_acc, sigma_gyr)
+        self.gains.restore_prior(self.P)
+
+    def update_pulse(self, k: int, m: CoilMeasurement, model: SingleCoilModel) -> int:
+        """:meth:`SchepersEKF.update_pulse`, and the gains' correction where it was applied."""
+        flags = super().update_pulse(k, m, model)
+        if not flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE | EKF_NO_STATE):
+            self.gains.inject()
+        return flags
+
+
+def filter_class(cfg) -> type:
+    """The single-coil filter of ``cfg``: :class:`CoilGainEKF` with ``coil_gain_sigma`` > 0."""
+    return CoilGainEKF if cfg.adaptive.coil_gain_sigma > 0.0 else SchepersEKF
 
 
 def _orthonormalize(R, R2, dR, half) -> None:

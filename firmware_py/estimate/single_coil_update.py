@@ -28,7 +28,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
 from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
 
-__all__ = ["CoilMeasurement", "SingleCoilUpdate"]
+__all__ = ["CoilGains", "CoilMeasurement", "SingleCoilUpdate"]
 
 #: margin on the linearisation error: the second-order term of an r^-3 field is 6 (d/r)^2
 #: h; the iterated update removes most of it, 2 (sigma/r)^2 |h| is kept as a margin
@@ -236,6 +236,39 @@ class SingleCoilUpdate:
             ck.again(it, P, b, o, model.h, model.H, m.coil, m.y, m.current, gain, gain_current)
             f = upd.update(P, math.inf)
         return flags
+
+
+class CoilGains:
+    """Each coil's gain error as states of the single-coil filter (``single_coil.CoilGainEKF``:
+    ``y = (1 + g_c) I R^T B_c(p)``, Schepers & Veltink 2010 eq 5 with the coil's true current):
+    the nominal gains ``gain``, their error rows ``rows``, the prior std ``sigma``, the filter's
+    update ``u`` (:meth:`run` runs it; :meth:`inject` adds the gain rows of its ``dx``)."""
+
+    def __init__(self, rows: slice, sigma: float, u: SingleCoilUpdate):
+        self.rows = rows
+        self.n = rows.stop - rows.start
+        self.sigma = float(sigma)
+        self.gain = np.zeros(self.n)
+        self._u = u
+        self._dx = u.dx[rows]
+        self._meas = CoilMeasurement()
+
+    def restore_prior(self, P) -> None:
+        """The gains' variances the prior's, their covariances 0 (a (re)started pose)."""
+        for i in range(self.rows.start, self.rows.stop):
+            P[i, i] = self.sigma * self.sigma
+
+    def run(self, P, p, R, cp, co, m: CoilMeasurement, model) -> int:
+        """:meth:`SingleCoilUpdate.run` of ``m`` with eq 5 at the coil's current ``(1 + g_c) I``
+        and the gain's error column ``I h_c``."""
+        c = m.coil
+        mg = self._meas.set(m.y, m.var, c, m.current * (1.0 + float(self.gain[c])), m.rel_model, m.r_scale,
+                            m.gate)
+        return self._u.run(P, p, R, cp, co, mg, model, self.rows.start + c, m.current)
+
+    def inject(self) -> None:
+        """Add the update's gain corrections to the nominal gains."""
+        self.gain += self._dx
 
 
 def _nis3(S, r) -> float:

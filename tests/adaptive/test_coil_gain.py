@@ -17,7 +17,7 @@ from coiltrack.firmware import core
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.estimate.layout import SCHEPERS_LAYOUT, schepers_layout
-from coiltrack.firmware.estimate.single_coil import SchepersEKF
+from coiltrack.firmware.estimate.single_coil import CoilGainEKF, SchepersEKF, filter_class
 from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement
 from coiltrack.firmware.model.field import Coil
 
@@ -30,21 +30,22 @@ def test_the_gain_rows_come_after_the_clones_and_only_when_asked():
     lay = schepers_layout(2, 3)
     assert lay.n == 30 and lay.GAIN == slice(27, 30)
     assert schepers_layout(2).n == SCHEPERS_LAYOUT.n == 27 and "GAIN" not in SCHEPERS_LAYOUT.names()
-    e = SchepersEKF.from_config(FirmwareConfig(), core=core.PYTHON)
-    assert e.n_gains == 0 and e.nx == 27
-    g = SchepersEKF.from_config(FirmwareConfig().with_keys(coil_gain_sigma=4e-3), core=core.PYTHON)
-    assert g.n_gains == 3 and g.nx == 30 and g.gain_sigma == 4e-3
+    cfg = FirmwareConfig()
+    assert filter_class(cfg) is SchepersEKF and SchepersEKF.from_config(cfg, core=core.PYTHON).nx == 27
+    cfg = cfg.with_keys(coil_gain_sigma=4e-3)
+    g = filter_class(cfg).from_config(cfg, core=core.PYTHON)
+    assert type(g) is CoilGainEKF and g.gains.n == 3 and g.nx == 30 and g.gains.sigma == 4e-3
 
 
 def test_a_bad_gain_sigma_is_refused_by_name():
     with pytest.raises(Exception, match="coil_gain_sigma"):
         FirmwareConfig().with_keys(coil_gain_sigma=-1e-3).validate()
     with pytest.raises(ValueError, match="coil_gains"):
-        SchepersEKF.from_config(FirmwareConfig(), coil_gains=3, gain_sigma=0.0, core=core.PYTHON)
+        CoilGainEKF.from_config(FirmwareConfig(), coil_gains=3, gain_sigma=0.0, core=core.PYTHON)
 
 
 def _known_pose_filter(cfg_core, sigma0: float):
-    e = SchepersEKF.from_config(FirmwareConfig(), coil_gains=3, gain_sigma=sigma0, iterations=1, core=cfg_core)
+    e = CoilGainEKF.from_config(FirmwareConfig(), coil_gains=3, gain_sigma=sigma0, iterations=1, core=cfg_core)
     p0 = np.array([0.22, -0.09, 0.13])
     R0 = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
     e.initialize(p0, R0, np.diag([1e-18] * 3 + [1e-18] * 3), 0, 1e-9, 1e-9, 1e-9)
@@ -73,9 +74,9 @@ def test_repeated_pulses_of_one_coil_estimate_its_gain_as_the_closed_form(which)
     J = N * I * I * float(h @ h) / s2
     post = 1.0 / (J + 1.0 / (s0 * s0))
     G = e.layout.GAIN
-    assert e.gain[1] == pytest.approx(g * J * post, rel=1e-6)
+    assert e.gains.gain[1] == pytest.approx(g * J * post, rel=1e-6)
     assert e.P[G.start + 1, G.start + 1] == pytest.approx(post, rel=1e-6)
-    assert e.gain[0] == 0.0 and e.gain[2] == 0.0
+    assert e.gains.gain[0] == 0.0 and e.gains.gain[2] == 0.0
     assert e.P[G.start, G.start] == pytest.approx(s0 * s0, rel=1e-12)
     np.testing.assert_allclose(e.p, p0, atol=1e-7)
     # without the gain state the same pulses pull the pose: the bias goes into it
@@ -99,8 +100,8 @@ def test_the_compiled_gain_update_matches_the_reference(iterations, offset_m):
     ``offset_m`` (iterated passes): the same flags, state, gains and P to 1e-10 relative."""
     pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
     cfg = FirmwareConfig()
-    ref = SchepersEKF.from_config(cfg, iterations=iterations, coil_gains=3, gain_sigma=3e-3, core=core.PYTHON)
-    got = SchepersEKF.from_config(cfg, iterations=iterations, coil_gains=3, gain_sigma=3e-3,
+    ref = CoilGainEKF.from_config(cfg, iterations=iterations, coil_gains=3, gain_sigma=3e-3, core=core.PYTHON)
+    got = CoilGainEKF.from_config(cfg, iterations=iterations, coil_gains=3, gain_sigma=3e-3,
                                   core=core.load("compiled"))
     assert (ref.kernels, got.kernels) == ("python", "compiled")
     rng = np.random.default_rng(7 + iterations)
@@ -130,14 +131,14 @@ def test_the_compiled_gain_update_matches_the_reference(iterations, offset_m):
         flags = [e.update_pulse(k, m.set(y, var, coil, 0.8, 3e-3, 1.0, True), mod)
                  for e, mod in zip((ref, got), models)]
         assert flags[0] == flags[1]
-        for name in ("p", "v", "R", "ba", "bg", "gain", "clone_p", "clone_R"):
-            a, b = getattr(ref, name), getattr(got, name)
+        for name in ("p", "v", "R", "ba", "bg", "gains", "clone_p", "clone_R"):
+            a, b = (ref.gains.gain, got.gains.gain) if name == "gains" else (getattr(ref, name), getattr(got, name))
             np.testing.assert_allclose(b, a, rtol=0, atol=1e-10 * max(float(np.abs(a).max()), 1e-300), err_msg=name)
         np.testing.assert_allclose(got.P, ref.P, rtol=0, atol=1e-10 * float(np.abs(ref.P).max()))
         for e in (ref, got):
             e.release_clone(0)
     assert ref.updates == got.updates > 0
-    assert np.count_nonzero(ref.gain) >= 2
+    assert np.count_nonzero(ref.gains.gain) >= 2
 
 
 def test_the_gain_update_allocates_no_array():

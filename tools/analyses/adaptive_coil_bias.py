@@ -20,8 +20,10 @@ relative errors along the field, ``e = (a - I h) . u / (I |h|)``:
   (``hil.nodes.DriverAccuracy.gain_error_max``, invisible in ``COIL_STATUS``: the reported current
   is ``(1 + g_c)`` times the true one).
 
-Per coil it prints the number of updates, the means of the four (``1e-3``), the standard error of
-the truth mean, and the white part the filter assumes (``field_model_rel_sigma``). If the truth
+Per coil it prints the number of updates and the means of the four (``1e-3``), each weighted by
+the inverse of the amplitude noise's variance along ``u`` (``(I |h|)^2 / u^T diag(var) u``: a pulse
+near the source carries a tighter relative error), and the standard error of the truth mean from
+that noise alone. If the truth
 mean is the sum of the coil model's and the driver's, per coil and seed, the constant error
 follows the bench's physics, not the noise. Not a bench command: a measurement for the note.
 """
@@ -51,7 +53,8 @@ def _probe(ups: list):
         else:
             t, p, R = int(self.t_us or 0), self.p.copy(), self.R.copy()
         flags = orig(self, k, m, model)
-        ups.append((t, int(m.coil), float(m.current), np.array(m.y, dtype=float), p, R, int(flags)))
+        ups.append((t, int(m.coil), float(m.current), np.array(m.y, dtype=float), p, R, int(flags),
+                    np.array(m.var, dtype=float)))
         return flags
     SchepersEKF.update_pulse = update_pulse
     try:
@@ -91,13 +94,15 @@ def run_seed(seed: int, duration: float, fixed: bool, keys: dict, skip_s: float 
     model = SingleCoilModel([Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.source.coils])
     K = bench.world.sensor_kinematics(np.array([u[0] for u in ups], dtype=np.int64))
     e = np.zeros((len(ups), 3))
+    w = np.zeros(len(ups))
     coil = np.array([u[1] for u in ups], dtype=int)
-    for i, (t, c, cur, y, p, R, _) in enumerate(ups):
+    for i, (t, c, cur, y, p, R, _, var) in enumerate(ups):
         Rt, pt = K.R[i], K.position[i]
         model.evaluate(pt, Rt)
         h = np.array(model.h[c], dtype=float)
         hn = float(np.linalg.norm(h))
         u = h / hn
+        w[i] = (cur * hn) ** 2 / float(u @ (var * u))        # 1 / the white variance of e along u
         e[i, 0] = float((y - cur * h) @ u) / (cur * hn)
         b = Rt.T @ bench.world.unit_fields(pt)[c]
         e[i, 2] = float((b - h) @ u) / hn
@@ -112,8 +117,9 @@ def run_seed(seed: int, duration: float, fixed: bool, keys: dict, skip_s: float 
         n = int(m.sum())
         row = {"coil": c, "updates": n, "driver": -g[c] / (1.0 + g[c])}
         if n:
-            row.update(truth=float(e[m, 0].mean()), truth_se=float(e[m, 0].std() / math.sqrt(n)),
-                       innov=float(e[m, 1].mean()), coil_model=float(e[m, 2].mean()))
+            wm = w[m] / w[m].sum()
+            row.update(truth=float(wm @ e[m, 0]), truth_se=float(1.0 / math.sqrt(w[m].sum())),
+                       truth_plain=float(e[m, 0].mean()), innov=float(wm @ e[m, 1]), coil_model=float(wm @ e[m, 2]))
         out["coils"].append(row)
     out["rel_model"] = float(getattr(cfg, "field_model_rel_sigma", float("nan"))) if hasattr(cfg, "field_model_rel_sigma") \
         else None
