@@ -158,3 +158,21 @@ def test_the_gain_update_allocates_no_array():
             for _ in range(5):
                 e.update_pulse(-1, m.set(y, var, 2, 0.9, 3e-3, 1.0, True), model)
         assert n.count == 0, c
+
+
+def test_the_bias_summary_recovers_a_known_constant_part():
+    """``adaptive_coil_bias.summarise``: truth means that are the driver's and the coil model's parts
+    plus a known offset give slope, residual and chi-square by hand."""
+    from coiltrack.tools.analyses.adaptive_coil_bias import summarise
+
+    d = [-2e-3, 1e-3, 2.5e-3, -0.5e-3]
+    rows = [{"coils": [{"updates": 10, "driver": x, "coil_model": 2.5e-4, "truth": x + 2.5e-4 + 1e-4,
+                        "truth_se": 1e-4} for x in d]}]
+    s = summarise(rows)
+    md = np.array(d) + 2.5e-4
+    assert s["coil_runs"] == 4
+    assert s["model+driver"]["corr"] == pytest.approx(1.0)
+    assert s["model+driver"]["chi2_per_coil"] == pytest.approx(1.0)
+    assert s["model+driver"]["residual_rms"] == pytest.approx(1e-4)
+    assert s["model+driver"]["slope"] == pytest.approx(float((md + 1e-4) @ md / (md @ md)))
+    assert s["coil_model"]["corr"] is None

@@ -126,6 +126,21 @@ def run_seed(seed: int, duration: float, fixed: bool, keys: dict, skip_s: float 
     return out
 
 
+def summarise(rows: list[dict]) -> dict:
+    """Over every seed and coil: the truth means against the bench's constant part (coil model plus
+    driver), their correlation, the least-squares slope through 0, and the mean of
+    ``((truth - constant) / se)^2`` (1 if the rest is the amplitude noise alone); the same for the
+    driver's part alone and for the coil model's alone, and the spread of the truth means."""
+    t, se, m, d = (np.array([c[k] for r in rows for c in r["coils"] if c["updates"]])
+                   for k in ("truth", "truth_se", "coil_model", "driver"))
+    out = {"coil_runs": int(t.size), "truth_rms": float(np.sqrt(np.mean(t * t)))}
+    for name, x in (("model+driver", m + d), ("driver", d), ("coil_model", m)):
+        out[name] = {"corr": float(np.corrcoef(t, x)[0, 1]) if np.std(x) > 0 else None,
+                     "slope": float((t @ x) / (x @ x)), "chi2_per_coil": float(np.mean(((t - x) / se) ** 2)),
+                     "residual_rms": float(np.sqrt(np.mean((t - x) ** 2)))}
+    return out
+
+
 def _seeds(text: str) -> list[int]:
     out = []
     for part in text.split(","):
@@ -157,7 +172,16 @@ def main(argv=None) -> int:
     ap.add_argument("--fixed", action="store_true", help="the fixed X, Y, Z cycle instead of the policy")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="firmware configuration key (repeatable)")
     ap.add_argument("--json", help="write the rows here")
+    ap.add_argument("--summary", metavar="JSON", help="print the summary of rows written before, run nothing")
     a = ap.parse_args(argv)
+    if a.summary:
+        try:
+            with open(a.summary) as f:
+                print(json.dumps(summarise(json.load(f)), indent=1))
+        except (OSError, ValueError, KeyError) as exc:
+            print(f"adaptive_coil_bias: --summary {a.summary}: {exc}", file=sys.stderr)
+            return 2
+        return 0
     try:
         seeds = _seeds(a.seeds)
         keys = _keys(a.set)
@@ -181,6 +205,7 @@ def main(argv=None) -> int:
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=1)
+    print(json.dumps(summarise(rows), indent=1))
     return 0
 
 
