@@ -176,3 +176,26 @@ def test_the_bias_summary_recovers_a_known_constant_part():
     assert s["model+driver"]["residual_rms"] == pytest.approx(1e-4)
     assert s["model+driver"]["slope"] == pytest.approx(float((md + 1e-4) @ md / (md @ md)))
     assert s["coil_model"]["corr"] is None
+
+
+def test_policy_runs_take_the_fixed_figures_and_ratios_as_the_runner(tmp_path):
+    """``adaptive_policy_runs``: the fixed cycle's figures of a sweep run and the ratios rounded as
+    ``bench.runner.add_fixed_comparison`` rounds them; a sweep of another duration is refused."""
+    import json
+
+    from coiltrack.tools.analyses import adaptive_policy_runs as apr
+    from coiltrack.tools.bench.runner import FIXED_KEYS
+
+    fixed = {"fixed_" + k: 1.0 for k in FIXED_KEYS}
+    fixed.update(fixed_position_rms_mm=4.0, fixed_orientation_rms_deg=0.3, fixed_coil_energy_j=30.0)
+    got = apr.with_fixed({"position_rms_mm": 3.0, "orientation_rms_deg": 0.31, "coil_energy_j": 25.0}, fixed)
+    assert (got["position_rms_ratio"], got["orientation_rms_ratio"], got["energy_ratio"]) == (0.75, 1.033, 0.833)
+    assert all(got["fixed_" + k] == fixed["fixed_" + k] for k in FIXED_KEYS)
+    p = tmp_path / "s.json"
+    p.write_text(json.dumps({"scenario": "schepers-adaptive", "duration_s": 20.0, "interrupted": False,
+                             "runs": [{"seed": 1, "params": {}, "figures": fixed}]}))
+    with pytest.raises(ValueError, match="60.0 s"):
+        apr._fixed_figures(str(p), [1], 60.0)
+    assert apr._fixed_figures(str(p), [1], 20.0)[1]["fixed_coil_energy_j"] == 30.0
+    with pytest.raises(ValueError, match=r"seeds \[2\]"):
+        apr._fixed_figures(str(p), [1, 2], 20.0)
