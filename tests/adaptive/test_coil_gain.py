@@ -199,3 +199,34 @@ def test_policy_runs_take_the_fixed_figures_and_ratios_as_the_runner(tmp_path):
     assert apr._fixed_figures(str(p), [1], 20.0)[1]["fixed_coil_energy_j"] == 30.0
     with pytest.raises(ValueError, match=r"seeds \[2\]"):
         apr._fixed_figures(str(p), [1, 2], 20.0)
+
+
+def test_adaptive_ticks_with_coil_gains_allocate_no_numpy_array():
+    """``schepers-adaptive`` with ``coil_gain_sigma`` on, 8 s (acquisition, warm-up cycle, pulses on
+    demand): each sensor's filter carries the gains, they are updated, and no tick creates a numpy
+    array (``tools.bench.alloc``)."""
+    from coiltrack.firmware.loop import Firmware
+    from coiltrack.tools import scenarios
+    from coiltrack.tools.bench.alloc import NumpyAllocationCounter, available
+    from coiltrack.tools.bench.links import inproc_pair
+    from coiltrack.tools.bench.runner import BenchSetup
+
+    if not available():
+        pytest.skip("numpy memory handler API not reachable")
+    sc = scenarios.get("schepers-adaptive")
+    fw_end, emu_end = inproc_pair()
+    bench = BenchSetup(sc, 3, 8.0, emu_end)
+    fw = Firmware(sc.firmware_config().with_keys(coil_gain_sigma=3e-3), fw_end)
+    counter = NumpyAllocationCounter()
+    allocating, t = 0, 0
+    while t <= 8_000_000:
+        bench.emulator.step(t)
+        before = counter.count
+        with counter:
+            fw.tick(t)
+        allocating += counter.count != before
+        t += fw.cfg.timing.tick_us
+    ekfs = [s.ekf for s in fw.tracker.sensors.values()]
+    assert ekfs and all(type(e) is CoilGainEKF for e in ekfs)
+    assert fw.status()["adaptive_updates"] > 40 and all(np.count_nonzero(e.gains.gain) == 3 for e in ekfs)
+    assert allocating == 0
