@@ -26,11 +26,16 @@ from concurrent.futures import ProcessPoolExecutor
 SCENARIO = "schepers-adaptive"
 
 
-def _policy_run(seed: int, duration: float, keys: dict) -> dict:
-    """The policy's run as ``bench.sweep.run_task`` makes it, without the fixed-cycle comparison."""
+def _policy_run(seed: int, duration: float, keys: dict, fixed_cycle: bool = False) -> dict:
+    """The policy's run as ``bench.sweep.run_task`` makes it, without the fixed-cycle comparison;
+    ``fixed_cycle``: the scenario's fixed cycle itself with ``keys`` (e.g. its filter changed)."""
     from coiltrack.tools.bench.runner import run_inproc
     from coiltrack.tools.bench.sweep import figures, scenario_with
+    from coiltrack.tools.scenarios import get
 
+    if fixed_cycle:
+        sc = get(SCENARIO)
+        return figures(run_inproc(sc, seed, duration, cfg=sc.fixed_config().with_keys(**keys)))
     return figures(run_inproc(scenario_with(SCENARIO, tuple(keys.items())), seed, duration))
 
 
@@ -95,6 +100,8 @@ def main(argv=None) -> int:
     ap.add_argument("--duration", type=float, default=60.0)
     ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="firmware configuration key (repeatable)")
     ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--fixed-cycle", action="store_true",
+                    help="run the scenario's fixed cycle with the --set keys instead of the policy")
     ap.add_argument("--json", required=True)
     a = ap.parse_args(argv)
     try:
@@ -110,7 +117,7 @@ def main(argv=None) -> int:
         return 2
     t0 = time.time()
     with ProcessPoolExecutor(max_workers=a.workers) as ex:
-        futs = {s: ex.submit(_policy_run, s, a.duration, keys) for s in seeds}
+        futs = {s: ex.submit(_policy_run, s, a.duration, keys, a.fixed_cycle) for s in seeds}
         runs = []
         for s in seeds:
             fig = with_fixed(futs[s].result(), fixed[s])
@@ -119,7 +126,8 @@ def main(argv=None) -> int:
                   f"orientation {fig['orientation_rms_ratio']}", flush=True)
     doc = {"scenario": SCENARIO, "executor": "local", "workers": a.workers, "scheduler": None, "seeds": seeds,
            "duration_s": a.duration, "grid": {k: [v] for k, v in keys.items()}, "interrupted": False,
-           "wall_s": round(time.time() - t0, 2), "fixed_from": a.fixed_from, "runs": runs}
+           "wall_s": round(time.time() - t0, 2), "fixed_from": a.fixed_from, "fixed_cycle": a.fixed_cycle,
+           "runs": runs}
     with open(a.json, "w") as f:
         json.dump(doc, f, indent=1)
     return 0
