@@ -351,6 +351,9 @@ class AdaptiveConfig:
                                             #   filter overconfident); "bound": a shared baseline counts twice its
                                             #   variance in each (estimate.shared_baseline); "apart": that, and
                                             #   pulses kept a baseline further apart so none is shared
+    coil_gain_sigma: float = 0.0            # > 0: the single-coil filter estimates each coil's gain error (a
+                                            #   constant, this prior std; y = (1 + g_c) I h_c), which repeated
+                                            #   pulses of one coil do not average away; 0: none
 
     def check(self, need) -> None:
         need("actuation", self.actuation in ("fixed", "adaptive"),
@@ -365,6 +368,8 @@ class AdaptiveConfig:
              f"must be in [0, 0.1] A, got {self.adaptive_current_step_a!r}")
         need("unreached_share", _fin(self.unreached_share) and 0.0 <= self.unreached_share <= 1.0,
              f"must be in [0, 1], got {self.unreached_share!r}")
+        need("coil_gain_sigma", _fin(self.coil_gain_sigma) and 0.0 <= self.coil_gain_sigma <= 0.1,
+             f"must be in [0, 0.1], got {self.coil_gain_sigma!r}")
         need("reference_settle_drop", _fin(self.reference_settle_drop) and 0.0 <= self.reference_settle_drop < 1.0,
              f"must be in [0, 1), got {self.reference_settle_drop!r}")
         need("sigma_min_pos_m", self.sigma_min_pos_m <= self.sigma_max_pos_m, "must not exceed sigma_max_pos_m")

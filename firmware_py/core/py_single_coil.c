@@ -555,15 +555,30 @@ static int su_rows(SCUpdateObject *self, PyObject *a, PyObject *b, long *cp, lon
     return (sc_int(a, 0, self->u.nx - 3, cp, "cp") < 0 || sc_int(b, 0, self->u.nx - 3, co, "co") < 0) ? -1 : 0;
 }
 
-/* begin(P, p, R, cp, co, h, H, centres, coil, y, var, current, rel_model, r_scale) */
+/* the optional coil gain (row, current) of begin and again: args[at], args[at + 1] when given */
+static int su_gain(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs, Py_ssize_t at, struct ct_scm *m)
+{
+    long g;
+    m->gain = -1;
+    m->gain_current = 0.0;
+    if (nargs == at)
+        return 0;
+    if (sc_int(args[at], -1, self->u.nx - 1, &g, "gain") < 0 || sc_double(args[at + 1], &m->gain_current) < 0)
+        return -1;
+    m->gain = (int)g;
+    return 0;
+}
+
+/* begin(P, p, R, cp, co, h, H, centres, coil, y, var, current, rel_model, r_scale[, gain, gain_current]) */
 static PyObject *SCUpdate_begin(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer pv, hv[3];
     double p[3], R[9], y[3], var[3];
     long cp, co, coil;
     struct ct_scm m;
-    if (su_ready(self) < 0 || sc_nargs("begin", nargs, 14) < 0 || su_rows(self, args[3], args[4], &cp, &co) < 0 ||
-        sc_int(args[8], 0, 1L << 20, &coil, "coil") < 0)
+    if (su_ready(self) < 0 || sc_nargs("begin", nargs, nargs == 16 ? 16 : 14) < 0 ||
+        su_rows(self, args[3], args[4], &cp, &co) < 0 || sc_int(args[8], 0, 1L << 20, &coil, "coil") < 0 ||
+        su_gain(self, args, nargs, 14, &m) < 0)
         return NULL;
     if (sc_copy_doubles(args[1], 3, p, "p") < 0 || sc_copy_doubles(args[2], 9, R, "R") < 0 ||
         sc_copy_doubles(args[9], 3, y, "y") < 0 || sc_copy_doubles(args[10], 3, var, "var") < 0 ||
@@ -584,15 +599,17 @@ static PyObject *SCUpdate_begin(SCUpdateObject *self, PyObject *const *args, Py_
     Py_RETURN_NONE;
 }
 
-/* again(it, P, cp, co, h, H, coil, y, current): y_pred and pass it (> 0) at the model just evaluated */
+/* again(it, P, cp, co, h, H, coil, y, current[, gain, gain_current]): y_pred and pass it (> 0) at the
+ * model just evaluated */
 static PyObject *SCUpdate_again(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer pv, hv[3];
     double y[3];
     long it, cp, co, coil;
     struct ct_scm m;
-    if (su_ready(self) < 0 || sc_nargs("again", nargs, 9) < 0 || sc_int(args[0], 1, 1L << 20, &it, "it") < 0 ||
-        su_rows(self, args[2], args[3], &cp, &co) < 0 || sc_int(args[6], 0, 1L << 20, &coil, "coil") < 0)
+    if (su_ready(self) < 0 || sc_nargs("again", nargs, nargs == 11 ? 11 : 9) < 0 ||
+        sc_int(args[0], 1, 1L << 20, &it, "it") < 0 || su_rows(self, args[2], args[3], &cp, &co) < 0 ||
+        sc_int(args[6], 0, 1L << 20, &coil, "coil") < 0 || su_gain(self, args, nargs, 9, &m) < 0)
         return NULL;
     if (sc_copy_doubles(args[7], 3, y, "y") < 0 || sc_double(args[8], &m.current) < 0)
         return NULL;
@@ -636,9 +653,11 @@ static PyObject *SCUpdate_after(SCUpdateObject *self, PyObject *const *args, Py_
 
 #define SU_METH(name, doc) {#name, (PyCFunction)(void (*)(void))SCUpdate_##name, METH_FASTCALL, doc}
 static PyMethodDef SCUpdate_methods[] = {
-    SU_METH(begin, "begin(P, p, R, cp, co, h, H, centres, coil, y, var, current, rel_model, r_scale): "
+    SU_METH(begin, "begin(P, p, R, cp, co, h, H, centres, coil, y, var, current, rel_model, r_scale[, gain, "
+                   "gain_current]): "
                    "SingleCoilUpdate.run up to the first pass's shared update"),
-    SU_METH(again, "again(it, P, cp, co, h, H, coil, y, current): pass it up to its shared update"),
+    SU_METH(again, "again(it, P, cp, co, h, H, coil, y, current[, gain, gain_current]): pass it up to its shared "
+                   "update"),
     SU_METH(after, "after(it, flags, iterations, P, p, R, cp, co, var) -> bool: keep pass it, another pass?"),
     {NULL, NULL, 0, NULL}};
 

@@ -20,11 +20,12 @@ Tables
     measurement models 2 and 3, eqs 6.20-6.21). ``XI`` comes last, so the
     first 21 indices are the same in both tables.
 
-``SCHEPERS_LAYOUT`` and ``schepers_layout(n_clones)`` (15 + 6 per clone)
+``SCHEPERS_LAYOUT`` and ``schepers_layout(n_clones, n_gains)`` (15 + 6 per clone + 1 per coil gain)
     The single-coil EKF (Schepers & Veltink 2010 with the ch. 6 error model,
     ``coiltrack.firmware.estimate.single_coil``): the inertial rows of eq 6.9
-    (sensor-frame orientation error) and, per pulse in flight, a clone of
-    the position and orientation errors at the pulse's measurement time.
+    (sensor-frame orientation error), per pulse in flight a clone of
+    the position and orientation errors at the pulse's measurement time, and
+    optionally (``GAIN``, last) each coil's constant gain error.
 ``relative_layout(n_clones)`` (21 + 6 per clone; ``RELATIVE_LAYOUT``: 3 clones)
     The tightly coupled tracker's relative inertial EKF
     (``coiltrack.firmware.estimate.relative_inertial``): the single-coil
@@ -154,8 +155,11 @@ POSE_POS = POSE_LAYOUT.POS
 POSE_ORI = POSE_LAYOUT.ORI
 
 
-def schepers_layout(n_clones: int) -> StateLayout:
-    """The single-coil EKF's table with ``n_clones`` pulses in flight."""
+def schepers_layout(n_clones: int, n_gains: int = 0) -> StateLayout:
+    """The single-coil EKF's table with ``n_clones`` pulses in flight and, with ``n_gains`` > 0,
+    one gain error per coil after the clones (``[adaptive] coil_gain_sigma``: the measurement is
+    ``y = (1 + g_c) I R^T B_c(p)``, a constant per coil that repeated pulses of that coil do not
+    average away)."""
     rows = [
         ("POS", 3, "m", "position error, source frame"),
         ("VEL", 3, "m/s", "velocity error, source frame"),
@@ -166,6 +170,9 @@ def schepers_layout(n_clones: int) -> StateLayout:
     for k in range(n_clones):
         rows.append((f"C{k}P", 3, "m", f"clone {k}: POS at the measurement time of pulse slot {k}"))
         rows.append((f"C{k}O", 3, "rad", f"clone {k}: ORI at the measurement time of pulse slot {k}"))
+    if n_gains:
+        rows.append(("GAIN", n_gains, "1", "coil gain errors, one per coil, constant: y = (1 + g_c) I R^T B_c(p)"))
+        return StateLayout(f"schepers single-coil EKF ({n_clones} clones, {n_gains} coil gains)", tuple(rows))
     return StateLayout(f"schepers single-coil EKF ({n_clones} clones)", tuple(rows))
 
 

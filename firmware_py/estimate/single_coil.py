@@ -21,6 +21,17 @@ code indexes ``P`` by these names only)::
     C0P 15  3  m      clone 0: POS at the time pulse slot 0 is measured
     C0O 18  3  rad    clone 0: ORI at that time
     C1P, C1O 21, 24   clone 1
+    GAIN 27  n_coils  1   :class:`CoilGainEKF` only: each coil's gain error, a constant
+
+Coil gains (:class:`CoilGainEKF`, ``[adaptive] coil_gain_sigma`` > 0). The pulse model becomes
+``y = (1 + g_c) I R^T B_c(p)`` (eq 5 with the coil's true current ``(1 + g_c) I``): a driver whose
+current sense carries a static gain error (invisible in the current it reports) or a coil whose
+field differs from the model by a constant factor. The field-model term of ``R`` is white, so it
+averages away over repeated pulses of one coil, which a constant error does not: a policy that
+leans on one coil takes its bias into the pose. The nominal gains scale the current the update
+predicts with, the error column of ``H`` for ``g_c`` is ``I h_c`` (the derivative of eq 5), the
+gains are constant (identity transition, no process noise) and kept through a restart of the pose
+(their prior variance restored); ``single_coil_update.CoilGains``.
 
 Error convention: ``x_true = x_est + dx`` for vectors and
 ``R_true = R_est exp([ori]x)`` (as ``coiltrack.firmware.pose.reference``), so the orientation
@@ -78,10 +89,10 @@ from coiltrack.firmware.estimate.layout import (ACC, GYR, ORI, POS, POSE_ORI, PO
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.strapdown import Strapdown, integrate_pv, to_nav, transition_sensor, transition_static
 from coiltrack.firmware.estimate.clones import PoseClones
-from coiltrack.firmware.estimate.single_coil_update import CoilMeasurement, SingleCoilUpdate
+from coiltrack.firmware.estimate.single_coil_update import CoilGains, CoilMeasurement, SingleCoilUpdate
 from coiltrack.firmware.rotation import quat_tuple
 
-__all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "EKF_NO_STATE"]
+__all__ = ["SCHEPERS_LAYOUT", "SchepersEKF", "CoilGainEKF", "EKF_NO_STATE", "filter_class"]
 
 #: the methods whose compiled form is bound only where a subclass keeps them all
 _DYNAMICS = ("_step", "_build_F", "_accel", "_advance", "_fill_q", "_predict_ahead")
@@ -159,8 +170,8 @@ class SchepersEKF:
         self._coil_update = SingleCoilUpdate(nx, gate_probability, self.iterations, core)
         self.upd = self._coil_update.upd
         self._meas = CoilMeasurement()
-        self.nis = 0.0
-        self.nis_nominal = 0.0
+        self._run_update = self._coil_update.run      # CoilGainEKF: with its gains
+        self.nis = self.nis_nominal = 0.0
         self.kernels = "python"        # where its own dynamics run (its update reports its own core)
         if core.ext is not None:
             self._bind_compiled(core.ext)
@@ -469,7 +480,7 @@ class SchepersEKF:
             p, R = self.p, self.R
             cp, co = POS, ORI
         u = self._coil_update
-        flags = u.run(self.P, p, R, cp, co, m, model)
+        flags = self._run_update(self.P, p, R, cp, co, m, model)
         self.nis_nominal = u.nis_nominal
         self.nis = u.nis
         if flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE):
@@ -496,6 +507,51 @@ class SchepersEKF:
         self._sd.rotate(self.R, float(dx[o]), float(dx[o + 1]), float(dx[o + 2]))
         self.clones.inject(dx, self._sd.rotate)
 
+
+
+class CoilGainEKF(SchepersEKF):
+    """:class:`SchepersEKF` with each coil's gain error as a state (module docstring, "Coil gains";
+    ``[adaptive] coil_gain_sigma``): ``coil_gains`` coils, prior std ``gain_sigma``. The dynamics and
+    their compiled kernels are the base class's; the gains' rows come after the clones
+    (``layout.schepers_layout``), so the propagation carries them with the identity."""
+
+    @classmethod
+    def from_config(cls, cfg=None, **overrides) -> "CoilGainEKF":
+        """:meth:`SchepersEKF.from_config` with a gain per coil of ``cfg``, prior ``coil_gain_sigma``."""
+        if cfg is None:
+            from coiltrack.firmware.config import FirmwareConfig
+            cfg = FirmwareConfig()
+        kw = dict(coil_gains=len(cfg.source.coils), gain_sigma=cfg.adaptive.coil_gain_sigma)
+        kw.update(overrides)
+        return super().from_config(cfg, **kw)
+
+    def __init__(self, *, coil_gains: int, gain_sigma: float, **kw):
+        if int(coil_gains) < 1 or not (math.isfinite(gain_sigma) and gain_sigma > 0.0):
+            raise ValueError(f"coil_gains must be >= 1 and gain_sigma > 0, got {coil_gains!r}, {gain_sigma!r}")
+        self._n_gains = int(coil_gains)          # read by _make_layout during the base's set-up
+        super().__init__(**kw)
+        self.gains = CoilGains(self.layout.GAIN, gain_sigma, self._coil_update)
+        self._run_update = self.gains.run
+
+    def _make_layout(self, n_clones: int):
+        return schepers_layout(n_clones, self._n_gains)
+
+    def initialize(self, p, R, P6, t_us: int, sigma_vel: float, sigma_acc: float, sigma_gyr: float) -> None:
+        """:meth:`SchepersEKF.initialize`; the gains' estimates kept, their variances the prior's."""
+        super().initialize(p, R, P6, t_us, sigma_vel, sigma_acc, sigma_gyr)
+        self.gains.restore_prior(self.P)
+
+    def update_pulse(self, k: int, m: CoilMeasurement, model: SingleCoilModel) -> int:
+        """:meth:`SchepersEKF.update_pulse`, and the gains' correction where it was applied."""
+        flags = super().update_pulse(k, m, model)
+        if not flags & (EKF_GATED | EKF_NOT_PD | EKF_NONFINITE | EKF_NO_STATE):
+            self.gains.inject()
+        return flags
+
+
+def filter_class(cfg) -> type:
+    """The single-coil filter of ``cfg``: :class:`CoilGainEKF` with ``coil_gain_sigma`` > 0."""
+    return CoilGainEKF if cfg.adaptive.coil_gain_sigma > 0.0 else SchepersEKF
 
 
 def _orthonormalize(R, R2, dR, half) -> None:

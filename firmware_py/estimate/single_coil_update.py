@@ -28,7 +28,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
 from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
 
-__all__ = ["CoilMeasurement", "SingleCoilUpdate"]
+__all__ = ["CoilGains", "CoilMeasurement", "SingleCoilUpdate"]
 
 #: margin on the linearisation error: the second-order term of an r^-3 field is 6 (d/r)^2
 #: h; the iterated update removes most of it, 2 (sigma/r)^2 |h| is kept as a margin
@@ -121,9 +121,13 @@ class SingleCoilUpdate:
             Rm[i, i] = float(m.var[i]) + extra
         return hn2, r2
 
-    def _pass(self, it: int, P, cp, co, m: CoilMeasurement, model) -> int:
+    def _pass(self, it: int, P, cp, co, m: CoilMeasurement, model, gain: int = -1, gain_current: float = 0.0) -> int:
         """One pass through the shared ``KalmanUpdate``: the pseudo-innovation
-        ``y - h(x_i) + H_i dx_i``; the first pass also gives the nominal NIS (unscaled R)."""
+        ``y - h(x_i) + H_i dx_i``; the first pass also gives the nominal NIS (unscaled R).
+        ``gain`` >= 0: the error row of the coil's gain, whose column of ``H`` is
+        ``gain_current h`` (``y = (1 + g) I h``: ``single_coil`` module docstring); it is left out
+        of ``H_i dx_i`` (the gain's correction enters ``h(x_i)`` and ``H_i dx_i`` alike, so it
+        cancels in a Gauss-Newton pass)."""
         upd = self.upd
         H = upd.H
         cur = self._k0
@@ -135,7 +139,11 @@ class SingleCoilUpdate:
         if it:
             np.matmul(H, self.dx, out=self._Hdx)
             np.add(upd.y, self._Hdx, out=upd.y)
-        else:
+        if gain >= 0:
+            h = model.h[m.coil]
+            for i in range(3):
+                H[i, gain] = float(h[i]) * gain_current
+        if not it:
             np.matmul(P, upd._Ht, out=self._PHt)
             np.matmul(H, self._PHt, out=self._S)
             self._S += upd.R
@@ -148,7 +156,7 @@ class SingleCoilUpdate:
         # the gate belongs to the first pass
         return upd.update(P, math.inf if it or not m.gate else None)
 
-    def run(self, P, p, R, cp, co, m: CoilMeasurement, model) -> int:
+    def run(self, P, p, R, cp, co, m: CoilMeasurement, model, gain: int = -1, gain_current: float = 0.0) -> int:
         """Run the update of ``m`` on the covariance ``P`` (corrected in place), linearised at
         the pose ``(p, R)`` whose error rows are ``cp``, ``co``. Returns the ``ekf.EKF_*``
         flags of the first pass; the error estimate is left in :attr:`dx` unless that pass
@@ -159,7 +167,10 @@ class SingleCoilUpdate:
         the eq-4 cost), each pass from the prior covariance; the last pass gives the
         covariance. A second pass is made only when the first correction changes ``h``
         through its second-order term (``6 (dp/r)^2 |h|``, Schepers sec. 3.2) by more than
-        a tenth of the amplitude noise (after an acquisition, not while tracking)."""
+        a tenth of the amplitude noise (after an acquisition, not while tracking).
+
+        ``gain``, ``gain_current``: the error row of the coil's gain and the current its column of
+        ``H`` is taken at (``_pass``; -1: no gain state)."""
         model.evaluate(p, R)
         self._k0[()] = m.current
         np.multiply(model.h[m.coil], self._k0, out=self.y_pred)
@@ -176,7 +187,7 @@ class SingleCoilUpdate:
             if it:
                 model.evaluate(pi, Ri)
                 np.multiply(model.h[m.coil], self._k0, out=self.y_pred)
-            f = self._pass(it, P, cp, co, m, model)
+            f = self._pass(it, P, cp, co, m, model, gain, gain_current)
             if it == 0:
                 flags = f
                 self.nis = upd.nis
@@ -204,14 +215,15 @@ class SingleCoilUpdate:
                     break
         return flags
 
-    def _run_compiled(self, P, p, R, cp, co, m: CoilMeasurement, model) -> int:
+    def _run_compiled(self, P, p, R, cp, co, m: CoilMeasurement, model, gain: int = -1,
+                      gain_current: float = 0.0) -> int:
         """:meth:`run` through the compiled passes (``ct_scu_begin``, ``ct_scu_pass``,
         ``ct_scu_after``) around the model's evaluation and the shared update."""
         model.evaluate(p, R)
         ck, upd = self._ck, self.upd
         b, o = cp.start, co.start
         ck.begin(P, p, R, b, o, model.h, model.H, model.cs.centers, m.coil, m.y, m.var, m.current, m.rel_model,
-                 m.r_scale)
+                 m.r_scale, gain, gain_current)
         self.nis_nominal = self._stv[self._nis_at]
         flags = upd.update(P, math.inf if not m.gate else None)
         self.nis = upd.nis
@@ -221,9 +233,42 @@ class SingleCoilUpdate:
         while ck.after(it, f, self.iterations, P, p, R, b, o, m.var):
             it += 1
             model.evaluate(self._pi, self._Ri)
-            ck.again(it, P, b, o, model.h, model.H, m.coil, m.y, m.current)
+            ck.again(it, P, b, o, model.h, model.H, m.coil, m.y, m.current, gain, gain_current)
             f = upd.update(P, math.inf)
         return flags
+
+
+class CoilGains:
+    """Each coil's gain error as states of the single-coil filter (``single_coil.CoilGainEKF``:
+    ``y = (1 + g_c) I R^T B_c(p)``, Schepers & Veltink 2010 eq 5 with the coil's true current):
+    the nominal gains ``gain``, their error rows ``rows``, the prior std ``sigma``, the filter's
+    update ``u`` (:meth:`run` runs it; :meth:`inject` adds the gain rows of its ``dx``)."""
+
+    def __init__(self, rows: slice, sigma: float, u: SingleCoilUpdate):
+        self.rows = rows
+        self.n = rows.stop - rows.start
+        self.sigma = float(sigma)
+        self.gain = np.zeros(self.n)
+        self._u = u
+        self._dx = u.dx[rows]
+        self._meas = CoilMeasurement()
+
+    def restore_prior(self, P) -> None:
+        """The gains' variances the prior's, their covariances 0 (a (re)started pose)."""
+        for i in range(self.rows.start, self.rows.stop):
+            P[i, i] = self.sigma * self.sigma
+
+    def run(self, P, p, R, cp, co, m: CoilMeasurement, model) -> int:
+        """:meth:`SingleCoilUpdate.run` of ``m`` with eq 5 at the coil's current ``(1 + g_c) I``
+        and the gain's error column ``I h_c``."""
+        c = m.coil
+        mg = self._meas.set(m.y, m.var, c, m.current * (1.0 + float(self.gain[c])), m.rel_model, m.r_scale,
+                            m.gate)
+        return self._u.run(P, p, R, cp, co, mg, model, self.rows.start + c, m.current)
+
+    def inject(self) -> None:
+        """Add the update's gain corrections to the nominal gains."""
+        self.gain += self._dx
 
 
 def _nis3(S, r) -> float:

@@ -56,7 +56,7 @@ from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.shared_baseline import SharedBaselines, next_start, pulse_gap_us
-from coiltrack.firmware.estimate.single_coil import CORE, POS, SchepersEKF
+from coiltrack.firmware.estimate.single_coil import CORE, POS, filter_class
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
 from coiltrack.firmware.track.single_coil_nis import nis_monitor
@@ -174,7 +174,7 @@ class SingleCoilTracker:
         mon = nis_monitor(self.core, window=cfg.adaptive.nis_window, dof=3, gate=chi2_gate(3, cfg.adaptive.nis_gate_probability),
                          z=cfg.adaptive.nis_alarm_z, min_count=min(cfg.adaptive.nis_window, 3), min_excess=cfg.adaptive.nis_alarm_excess,
                          max_scale=cfg.adaptive.nis_max_scale, feedback_updates=cfg.adaptive.nis_feedback_updates)
-        s = SensorTrack(k, tr, cfg, SchepersEKF.from_config(cfg, core=self.core), mon)
+        s = SensorTrack(k, tr, cfg, filter_class(cfg).from_config(cfg, core=self.core), mon)
         if cfg.adaptive.accuracy_target == "fixed" and schedule == "adaptive":
             # the fixed cycle of [timing], its pulses' amplitude variance and mid time
             # "mean": the same reference, holding the filter's running mean (actuate.accuracy_budget)

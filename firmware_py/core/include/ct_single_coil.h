@@ -72,6 +72,8 @@ enum { CT_SCU_HN2 = 0, CT_SCU_R2 = 1, CT_SCU_NIS_NOMINAL = 2, CT_SCU_NST = 3 };
 struct ct_scm {
     const double *h, *Hu, *centre, *y, *var;
     double current, rel_model, r_scale;
+    int gain;                 /* the coil gain's error row, -1: none (SingleCoilUpdate._pass) */
+    double gain_current;      /* its column of H: gain_current h */
 };
 void ct_scu_predict(struct ct_scu *u, const struct ct_scm *m);
 void ct_scu_noise(struct ct_scu *u, const double *P, const double *p, int cp, const struct ct_scm *m);

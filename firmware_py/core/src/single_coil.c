@@ -498,8 +498,8 @@ void ct_scu_begin(struct ct_scu *u, double *P, const double *p, const double *R,
 }
 
 /* SingleCoilUpdate._pass up to the shared update: H from the coil's per-ampere
- * Jacobian at the clone's rows cp, co, the (pseudo-)innovation; pass 0 also the nominal NIS and the
- * monitor's inflation of R; a later pass restores P to the prior */
+ * Jacobian at the clone's rows cp, co, the (pseudo-)innovation, the coil gain's column (m->gain >= 0);
+ * pass 0 also the nominal NIS and the monitor's inflation of R; a later pass restores P to the prior */
 void ct_scu_pass(struct ct_scu *u, int it, double *P, int cp, int co, const struct ct_scm *m)
 {
     int n = u->nx, i, j, k;
@@ -522,6 +522,11 @@ void ct_scu_pass(struct ct_scu *u, int it, double *P, int cp, int co, const stru
         }
         for (i = 0; i < 3; ++i)
             u->y[i] = u->y[i] + u->Hdx[i];
+    }
+    if (m->gain >= 0)                              /* the coil gain's column, left out of H dx */
+        for (i = 0; i < 3; ++i)
+            H[i * n + m->gain] = m->h[i] * m->gain_current;
+    if (it) {
         memcpy(P, u->P0, (size_t)n * n * sizeof(double));
     } else {
         double *PHt = u->PHt, *S = u->S;
