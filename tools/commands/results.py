@@ -82,7 +82,7 @@ def _version() -> str:
 def _overrides(args) -> tuple:
     """The ``--set`` overrides as ((key, value), ...), each applied to every scenario of the run
     once before anything runs (a ValueError naming the key, the value or the scenario)."""
-    from coiltrack.firmware.config import ConfigError
+    from coiltrack.firmware.config import ConfigError, qualified
 
     from ..bench import sweep
 
@@ -96,7 +96,7 @@ def _overrides(args) -> tuple:
         if len(values) != 1:
             raise ValueError(f"'{text}': one value per key here (`coiltrack sweep --set` takes several)")
         pairs.append((key, values[0]))
-    keys = [k for k, _ in pairs]
+    keys = [qualified(k) for k, _ in pairs]            # pulse_us and timing.pulse_us are one key
     if len(set(keys)) != len(keys):
         raise ValueError("a key is given twice")
     for name in args.scenarios:
