@@ -18,6 +18,17 @@ the firmware alone. Reported, after a warm-up:
   time (``gc_collections_in_ticks``, ``gc_us_max``), which the tick times include; with
   ``--worst N`` the N ticks of the most CPU time, each with its stage times, field evaluations,
   collections and the tracker's sensor and pose-solver unit before it;
+* what the machine did around each tick (``machine``; ``tools.bench.tick_noise``): page faults,
+  context switches inside and just before the tick and core changes, read with
+  ``getrusage(RUSAGE_THREAD)`` outside the timed window, and the CPU figures of the ticks none of
+  these touched (``machine.undisturbed``), so a maximum reached only by disturbed ticks is told
+  from the firmware's own; the worst ticks carry their row and work class. The recorder keeps
+  its per-tick figures in arrays made before the replay: records kept as new Python objects
+  grow the interpreter's heap, and the firmware's short-lived objects then land on pages touched
+  for the first time inside its timed ticks (a page fault each, counted as firmware time);
+* with ``--repeat N`` the log replayed N times and compared tick by tick (``repeat``): each tick's
+  least CPU time over the replays (the firmware's work; the machine's noise does not repeat at
+  the same virtual time) and whether the costliest ticks stay or move;
 * numpy array allocations per tick (``tools.bench.alloc.NumpyAllocationCounter``,
   a second replay);
 * the firmware state in bytes: the data of every numpy array and byte buffer
