@@ -331,6 +331,7 @@ class _TickRecorder:
         self.prof = np.zeros(len(PHASES), dtype=np.int64)
         self.work = {"evals": 0, "replay": 0}
         self.n = 0                                     # measured ticks so far
+        self.blocks0 = None                            # the interpreter's live blocks before the first measured tick
         self._grow(max(int(capacity), 1))
         self._codes = {"kind": {}, "at": {}}           # work class / tracker position -> its index in the arrays
         self.probe = MachineProbe()                    # page faults, context switches and the core around each tick
@@ -440,6 +441,8 @@ class _TickRecorder:
         at = _tracker_at(fw) if self.worst else None
         g0 = self.gcs
         self.in_tick = t >= self.warm
+        if self.blocks0 is None and self.in_tick:
+            self.blocks0 = sys.getallocatedblocks()
         self.probe.before()
         c = time.thread_time_ns()
         a = time.perf_counter_ns()
@@ -492,10 +495,14 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=Non
     the first replay's."""
     warm = int(warmup_s * 1e6)
     r = _timed_replay(header, reads, warm, worst, core)
+    blocks = sys.getallocatedblocks()
     fw = r.fw
     rep = {"scenario": header.get("scenario"), "seed": header.get("seed"), "duration_s": header["duration_s"],
            "warmup_s": warmup_s, "ticks": len(r.tick_ns), "tick_us": int(header["tick_us"]), "core": fw.core}
     _timing_keys(rep, r)
+    # Python objects the measured ticks left alive (the recorder keeps none): a heap that grows tick
+    # after tick is memory a board does not have, and its new pages fault inside the ticks
+    rep["python_blocks_kept"] = blocks - r.blocks0 if r.blocks0 is not None else None
     total, parts = state_bytes(fw)
     rep["state_bytes"] = total
     rep["state_bytes_by_part"] = parts
@@ -617,6 +624,9 @@ def format_table(rep: dict) -> str:
                  f"(the longest {rep['gc_us_max']} us CPU time; counted in the tick times)")
     if rep.get("machine"):
         lines.extend(_machine_lines(rep["machine"]))
+    if rep.get("python_blocks_kept") is not None:
+        lines.append(f"  Python objects kept   {rep['python_blocks_kept']} interpreter blocks more after the measured "
+                     f"ticks than before them")
     lines.append(f"  allocations           {rep.get('allocs_per_tick')} numpy arrays per tick "
                  f"(max {rep.get('allocs_max_tick')} in a tick, {rep.get('ticks_with_allocs')} ticks with any)")
     lines.append(f"  firmware state        {rep['state_bytes']} bytes "
