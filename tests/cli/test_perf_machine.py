@@ -60,8 +60,9 @@ def test_summary_keeps_the_disturbed_ticks_out_of_the_undisturbed_figures():
     after a switch (600 us), one with page faults (400 us), one on a new core (300 us), and one
     undisturbed tick of 200 us. The undisturbed maximum is that 200 us tick, each disturbance
     counts its own tick with its CPU time, and the tick at or above the p99.9 (interpolated:
-    600.3 us, so the costliest alone) is the preempted one. Catches a disturbed tick left in the undisturbed figures, and one counted under
-    two causes."""
+    600.3 us, so the costliest alone) is the preempted one; against a 500 us tick the two
+    misses are counted as disturbed ones. Catches a disturbed tick left in the undisturbed
+    figures, and one counted under two causes."""
     n = 1000
     cpu = np.full(n, 10_000, dtype=np.int64)
     rows = np.zeros((n, len(FIELDS)), dtype=np.int64)
@@ -72,9 +73,10 @@ def test_summary_keeps_the_disturbed_ticks_out_of_the_undisturbed_figures():
     rows[3, FIELDS.index("minflt")] = 3
     rows[3, FIELDS.index("majflt")] = 1
     rows[4, FIELDS.index("migrated")] = 1
-    s = summarise(cpu, rows)
+    s = summarise(cpu, rows, deadline_ns=500_000)
     assert s["undisturbed"] == {"ticks": n - 4, "median": 10.0, "p999": pytest.approx(s["undisturbed"]["p999"]),
-                                "max": 200.0}
+                                "max": 200.0, "deadline_misses": 0}
+    assert s["disturbed"] == {"ticks": 4, "deadline_misses": 2}       # 900 and 600 us against a 500 us tick
     assert s["page_faults"] == {"ticks": 1, "faults": 4, "major": 1, "median": 400.0, "max": 400.0}
     assert s["preempted"] == {"ticks": 1, "median": 900.0, "max": 900.0}
     assert s["switched_before"] == {"ticks": 1, "median": 600.0, "max": 600.0}

@@ -106,7 +106,7 @@ def _cpu_stats(a_us: np.ndarray) -> dict:
             "p999": round(float(np.percentile(a_us, 99.9)), 2), "max": round(float(a_us.max()), 2)}
 
 
-def summarise(cpu_ns, rows) -> dict:
+def summarise(cpu_ns, rows, deadline_ns: int | None = None) -> dict:
     """The CPU figures of the undisturbed ticks and of each disturbance, from each tick's CPU
     time (ns) and its :class:`MachineProbe` row:
 
@@ -117,6 +117,9 @@ def summarise(cpu_ns, rows) -> dict:
     ``switched_before``        ticks that began after a context switch (without one inside);
     ``migrated``               ticks whose core changed (without a switch inside or before);
     ``worst_disturbed``        of the ticks at or above the p99.9 of all, how many are disturbed.
+
+    With ``deadline_ns`` (the tick) ``undisturbed`` and ``disturbed`` also count the ticks of at
+    least that CPU time (``deadline_misses``): a miss of a disturbed tick is the machine's.
     """
     c = np.asarray(cpu_ns, dtype=float) / 1e3
     r = np.asarray(rows, dtype=np.int64).reshape(-1, len(FIELDS))
@@ -127,6 +130,10 @@ def summarise(cpu_ns, rows) -> dict:
     mig = (moved > 0) & ~inside & ~(before > 0)
     disturbed = faults | inside | (before > 0) | (moved > 0)
     out = {"undisturbed": _cpu_stats(c[~disturbed])}
+    if deadline_ns is not None:
+        miss = c >= deadline_ns / 1e3
+        out["undisturbed"]["deadline_misses"] = int((miss & ~disturbed).sum())
+        out["disturbed"] = {"ticks": int(disturbed.sum()), "deadline_misses": int((miss & disturbed).sum())}
     pf = _cpu_stats(c[faults])
     out["page_faults"] = {"ticks": pf["ticks"], "faults": int(minflt.sum() + majflt.sum()), "major": int(majflt.sum()),
                           "median": pf["median"], "max": pf["max"]}

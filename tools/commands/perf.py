@@ -556,7 +556,7 @@ def _timing_keys(rep: dict, r: _TickRecorder) -> None:
     rep["gc_collections_in_ticks"] = len(r.gc_ns)
     rep["gc_us_max"] = round(max(r.gc_ns) / 1e3, 2) if r.gc_ns else 0.0
     # the machine's share: page faults, context switches and core changes around each tick
-    rep["machine"] = machine_summary(r.cpu_ns, r.machine)
+    rep["machine"] = machine_summary(r.cpu_ns, r.machine, rep["tick_us"] * 1000)
     if r.worst:
         rows = sorted(r.per_tick, key=lambda x: -x[0])
         rep["worst_ticks"] = [{"t_us": x[1], "cpu_us": round(x[0] / 1e3, 2), "wall_us": round(x[2] / 1e3, 2),
@@ -662,7 +662,9 @@ def _machine_cell(m) -> str:
 def _machine_lines(m: dict) -> list[str]:
     u, pf = m["undisturbed"], m["page_faults"]
     lines = [f"  the machine           undisturbed ticks (no page fault, context switch or core change in or "
-             f"just before): {u['ticks']}, CPU median {u['median']} us, p99.9 {u['p999']} us, max {u['max']} us",
+             f"just before): {u['ticks']}, CPU median {u['median']} us, p99.9 {u['p999']} us, max {u['max']} us"
+             + (f"; ticks >= the tick: {u['deadline_misses']} undisturbed, {m['disturbed']['deadline_misses']} "
+                f"disturbed" if "disturbed" in m else ""),
              f"    page faults           {pf['faults']} ({pf['major']} major) in {pf['ticks']} ticks, "
              f"their CPU max {pf['max']} us (first touch of memory: the process's own)"]
     for key, what in (("preempted", "switched inside"), ("switched_before", "switched just before"),
