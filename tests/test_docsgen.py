@@ -173,3 +173,41 @@ def test_results_core_option_runs_that_core_with_the_same_figures(scenario, tmp_
             assert a == b, path
 
     same(reps["python"], reps["compiled"], scenario)
+
+
+def test_results_command_refuses_bad_overrides(capsys, monkeypatch, tmp_path):
+    """``coiltrack results --set``: an unknown key, a key given twice, several values (a sweep's
+    form), an out-of-range value, a firmware key on a Gietler experiment and an override of the
+    published results are each refused before anything runs, exit 2, naming what is wrong."""
+    from coiltrack.tools.cli import main
+
+    monkeypatch.chdir(tmp_path)                       # nothing written into the checkout if one is run
+    for argv, word in ((["--set", "no_such_key=1"], "no_such_key"),
+                       (["--set", "track_budget_evals=9", "--set", "budget.track_budget_evals=9"], "twice"),
+                       (["--set", "track_budget_evals=9,18"], "one value"),
+                       (["--set", "track_budget_evals=0"], "positive"),
+                       (["--scenarios", "gietler-air", "--set", "track_budget_evals=18"], "gietler-air"),
+                       (["--publish", "--set", "track_budget_evals=18"], "--publish")):
+        if "--scenarios" not in argv:
+            argv = ["--scenarios", "static", *argv]
+        assert main(["results", *argv]) == 2, argv
+        err = capsys.readouterr().err
+        assert "--set" in err and word in err, (argv, err)
+
+
+def test_results_override_reaches_the_run_and_its_command():
+    """``coiltrack results --set track_budget_evals=3`` (``docsgen.results.run_one`` with
+    overrides): the run is made with the override (a third of the default's field evaluations
+    per tick: the pose is later, so the latency's p99 grows; the accuracy is the same, the
+    solves being the same), the run records it, and its command is the ``coiltrack sweep`` that
+    gives the same figures, the core as ``--set core.impl``. Catches the override dropped on
+    the way to the firmware (the same latency) and a command that cannot reproduce the run."""
+    base = R.run_one(("static", 1, 1.0, None))
+    low = R.run_one(("static", 1, 1.0, None, (("track_budget_evals", 3),)))
+    assert low["overrides"] == {"track_budget_evals": 3} and "overrides" not in base
+    assert low["report"]["latency_ms_p99"] > base["report"]["latency_ms_p99"]
+    assert low["report"]["position_rms_mm"] == base["report"]["position_rms_mm"]
+    assert low["command"] == "coiltrack sweep --scenario static --seeds 1 --duration 1 --set track_budget_evals=3"
+    assert R.command("static", 1, 1.0, 2.0, core="python", overrides=(("pose.raab_refresh", True),)) == \
+        "coiltrack sweep --scenario static --seeds 1 --duration 1 --set pose.raab_refresh=true --set core.impl=python"
+    assert R.command("static", 1, 2.0, 2.0, core="python") == "coiltrack bench --scenario static --seed 1 --core python"

@@ -30,6 +30,7 @@ def _refused(argv, capsys) -> str:
     (["firmware", "--port", "loop://", "--duration", "-5"], "--duration", "[0, 604800]"),
     (["firmware", "--port", "loop://", "--peer-timeout", "nan"], "--peer-timeout", "[0, 3600]"),
     (["perf", "--warmup", "-1"], "--warmup", "[0, 3600]"),
+    (["perf", "--repeat", "0"], "--repeat", "[1, 20]"),
     (["conform", "--port", "x", "--node", "256"], "--node", "[0, 255]"),
     (["bench", "--key", " "], "--key", "the signing key is empty"),
     (["bench", "--key", "@/no/such/key"], "--key", "cannot read the key file"),

@@ -18,6 +18,17 @@ the firmware alone. Reported, after a warm-up:
   time (``gc_collections_in_ticks``, ``gc_us_max``), which the tick times include; with
   ``--worst N`` the N ticks of the most CPU time, each with its stage times, field evaluations,
   collections and the tracker's sensor and pose-solver unit before it;
+* what the machine did around each tick (``machine``; ``tools.bench.tick_noise``): page faults,
+  context switches inside and just before the tick and core changes, read with
+  ``getrusage(RUSAGE_THREAD)`` outside the timed window, and the CPU figures of the ticks none of
+  these touched (``machine.undisturbed``), so a maximum reached only by disturbed ticks is told
+  from the firmware's own; the worst ticks carry their row and work class. The recorder keeps
+  its per-tick figures in arrays made before the replay: records kept as new Python objects
+  grow the interpreter's heap, and the firmware's short-lived objects then land on pages touched
+  for the first time inside its timed ticks (a page fault each, counted as firmware time);
+* with ``--repeat N`` the log replayed N times and compared tick by tick (``repeat``): each tick's
+  least CPU time over the replays (the firmware's work; the machine's noise does not repeat at
+  the same virtual time) and whether the costliest ticks stay or move;
 * numpy array allocations per tick (``tools.bench.alloc.NumpyAllocationCounter``,
   a second replay);
 * the firmware state in bytes: the data of every numpy array and byte buffer
@@ -39,6 +50,7 @@ from .. import args as A
 from .. import scenarios
 from ..bench.alloc import NumpyAllocationCounter, available
 from ..bench.framelog import replay, load
+from ..bench.tick_noise import FIELDS as MACHINE_FIELDS, MachineProbe, recurrence, summarise as machine_summary
 from ..bench.work_classes import TickWork, summarise
 
 HELP = "time the firmware tick on recorded inputs (per phase, allocations, state bytes, filterpy comparison)"
@@ -61,6 +73,11 @@ def add_arguments(p) -> None:
     p.add_argument("--worst", type=A.integer(0, 1000), default=0, metavar="N",
                    help="also list the N ticks of the most CPU time: stage times, field evaluations, the "
                         "tracker's sensor and garbage collections in each (default 0: none)")
+    p.add_argument("--repeat", type=A.integer(1, 20), default=1, metavar="N",
+                   help="replay the log N times in this process (1-20, default 1) and compare the replays tick by "
+                        "tick: each tick's minimum CPU time over them (the firmware's work) and whether the costliest "
+                        "ticks stay at the same time (the firmware's) or move (the machine's); the other figures are "
+                        "the first replay's")
     p.add_argument("--solver", choices=("lm", "raab", "both"),
                    help="also replay with this pose solver ([pose] pose_solver) and report its cost per update: "
                         "field evaluations and time of each burst's solve; 'both': Raab's beside the LM's")
@@ -296,25 +313,54 @@ def _tracker_at(fw) -> str:
 
 
 class _TickRecorder:
-    """Times every tick of a replay (wall and CPU, each stage, the tick's work class) after
+    """Times every tick of a replay (wall and CPU, each stage, the tick's work class, what the
+    machine did around it: :class:`~coiltrack.tools.bench.tick_noise.MachineProbe`) after
     ``warm`` us, and the interpreter's garbage collections inside them; with ``worst`` each
-    tick's row for ``worst_ticks``."""
+    tick's tracker position for ``worst_ticks``.
 
-    def __init__(self, warm: int, worst: int, core):
+    Every per-tick figure goes into arrays allocated here for ``capacity`` ticks (the replay's
+    tick count), not into growing lists of new Python objects: a harness whose own records
+    grow the interpreter's heap tick after tick makes the firmware's short-lived objects
+    land on pages never touched before, and the page faults that follow count in the
+    firmware's tick time."""
+
+    def __init__(self, warm: int, worst: int, core, capacity: int = 0):
         from coiltrack.firmware.loop import PHASES
 
         self.warm, self.worst, self.core = warm, worst, core
-        self.tick_ns, self.phase_ns, self.imu_ticks, self.cpu_ns = [], [[] for _ in PHASES], [], []
         self.prof = np.zeros(len(PHASES), dtype=np.int64)
         self.work = {"evals": 0, "replay": 0}
-        self.kinds = []                  # each measured tick's work class (tools.bench.work_classes)
-        self.per_tick = []               # --worst: CPU time, stages, evaluations, collections, tracker position
+        self.n = 0                                     # measured ticks so far
+        self.blocks0 = None                            # the interpreter's live blocks before the first measured tick
+        self._grow(max(int(capacity), 1))
+        self._codes = {"kind": {}, "at": {}}           # work class / tracker position -> its index in the arrays
+        self.probe = MachineProbe()                    # page faults, context switches and the core around each tick
         self.gcs = 0
-        self.gc_ns = []                  # CPU time of each collection the measured ticks ran
+        self.gc_ns = []                                # CPU time of each collection the measured ticks ran
         self._gc_t0 = 0
         self.in_tick = False
         self.fw = None
         self.eval_ns_before = 0.0
+
+    def _grow(self, size: int) -> None:
+        """Arrays for ``size`` measured ticks (the first ``self.n`` rows kept), each written through."""
+        from coiltrack.firmware.loop import PHASES
+
+        def arr(shape, dtype, old=None):
+            a = np.zeros(shape, dtype=dtype)
+            a.reshape(-1)[:] = 0                       # touched now, not during a timed tick
+            if old is not None:
+                a[:self.n] = old[:self.n]
+            return a
+
+        g = getattr(self, "_cpu", None) is not None
+        self._cpu = arr(size, np.int64, self._cpu if g else None)
+        self._wall = arr(size, np.int64, self._wall if g else None)
+        self._t = arr(size, np.int64, self._t if g else None)
+        self._phase = arr((size, len(PHASES)), np.int64, self._phase if g else None)
+        self._mach = arr((size, len(MACHINE_FIELDS)), np.int64, self._mach if g else None)
+        # per tick: IMU sample received, work class, field evaluations, collections, tracker position
+        self._small = arr((size, 5), np.int32, self._small if g else None)
 
     def on_gc(self, phase, info) -> None:
         if phase == "start":
@@ -322,6 +368,54 @@ class _TickRecorder:
             self._gc_t0 = time.thread_time_ns()
         elif self.in_tick:
             self.gc_ns.append(time.thread_time_ns() - self._gc_t0)
+
+    # the measured ticks' figures, as the report reads them
+    @property
+    def cpu_ns(self):
+        return self._cpu[:self.n]
+
+    @property
+    def tick_ns(self):
+        return self._wall[:self.n]
+
+    @property
+    def t_us(self):
+        return self._t[:self.n]
+
+    @property
+    def imu_ticks(self):
+        return self._wall[:self.n][self._small[:self.n, 0] > 0]
+
+    @property
+    def phase_ns(self):
+        return self._phase[:self.n].T
+
+    @property
+    def machine(self):
+        return self._mach[:self.n]
+
+    @property
+    def kinds(self) -> list:
+        names = {v: k for k, v in self._codes["kind"].items()}
+        return [names[int(c)] for c in self._small[:self.n, 1]]
+
+    @property
+    def per_tick(self) -> list:
+        """--worst: (CPU, t, wall, stages, evaluations, collections, tracker position, machine row, work
+        class) per tick."""
+        at = {v: k for k, v in self._codes["at"].items()}
+        sm = self._small
+        kinds = {v: k for k, v in self._codes["kind"].items()}
+        return [(int(self._cpu[i]), int(self._t[i]), int(self._wall[i]), tuple(int(x) for x in self._phase[i]),
+                 int(sm[i, 2]), int(sm[i, 3]), at.get(int(sm[i, 4]), "-"), tuple(int(x) for x in self._mach[i]),
+                 kinds[int(sm[i, 1])]) for i in range(self.n)]
+
+    def _code(self, table: str, name) -> int:
+        codes = self._codes[table]
+        c = codes.get(name)
+        if c is None:
+            c = codes[name] = len(codes)
+        return c
 
     def factory(self, cfg, port):
         """The replay's firmware, its ``tick`` timed."""
@@ -347,35 +441,40 @@ class _TickRecorder:
         at = _tracker_at(fw) if self.worst else None
         g0 = self.gcs
         self.in_tick = t >= self.warm
+        if self.blocks0 is None and self.in_tick:
+            self.blocks0 = sys.getallocatedblocks()
+        self.probe.before()
         c = time.thread_time_ns()
         a = time.perf_counter_ns()
         self._real_tick(t, self.prof)
         dt = time.perf_counter_ns() - a
         dc = time.thread_time_ns() - c
+        mach = self.probe.after()
         self.in_tick = False
         kind = self._tw.end()
         if t < self.warm:
             return
-        self.cpu_ns.append(dc)
-        self.kinds.append(kind)
+        i = self.n
+        if i == self._cpu.size:
+            self._grow(2 * i)
+        self.n = i + 1
+        self._cpu[i], self._wall[i], self._t[i] = dc, dt, t
+        self._phase[i] = self.prof
+        self._mach[i] = mach
         ev = sum(m.evals for m in models) - e0
-        self.work["evals"] = max(self.work["evals"], ev)
+        sm = self._small[i]
+        sm[0], sm[1], sm[2], sm[3] = rx.imu_received > n0, self._code("kind", kind), ev, self.gcs - g0
         if self.worst:
-            self.per_tick.append((dc, t, dt, tuple(int(x) for x in self.prof), ev, self.gcs - g0, at))
+            sm[4] = self._code("at", at)
+        self.work["evals"] = max(self.work["evals"], ev)
         self.work["replay"] = max(self.work["replay"], max((f.last_step_units for f in self._filters), default=0))
-        self.tick_ns.append(dt)
-        for i, ns in enumerate(self.phase_ns):
-            ns.append(int(self.prof[i]))
-        if rx.imu_received > n0:
-            self.imu_ticks.append(dt)
 
 
-def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=None) -> dict:
-    """Replay a recorded run through a timed firmware; the report of ``coiltrack perf``."""
+def _timed_replay(header: dict, reads, warm: int, worst: int, core) -> _TickRecorder:
+    """One replay of the log through a timed firmware, the collector frozen."""
     import gc
 
-    warm = int(warmup_s * 1e6)
-    r = _TickRecorder(warm, worst, core)
+    r = _TickRecorder(warm, worst, core, int(header["duration_s"] * 1e6) // int(header["tick_us"]) + 1)
     # a board has no garbage collector: start-up objects are moved out of the
     # collector's generations, so its pauses do not show as firmware time
     gc.collect()
@@ -386,10 +485,24 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=Non
     finally:
         gc.callbacks.remove(r.on_gc)
         gc.unfreeze()
+    return r
+
+
+def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=None, repeat: int = 1) -> dict:
+    """Replay a recorded run through a timed firmware; the report of ``coiltrack perf``. With
+    ``repeat`` > 1 the log is replayed that many times and the replays compared tick by tick
+    (``repeat``: :func:`coiltrack.tools.bench.tick_noise.recurrence`); the other figures are
+    the first replay's."""
+    warm = int(warmup_s * 1e6)
+    r = _timed_replay(header, reads, warm, worst, core)
+    blocks = sys.getallocatedblocks()
     fw = r.fw
     rep = {"scenario": header.get("scenario"), "seed": header.get("seed"), "duration_s": header["duration_s"],
            "warmup_s": warmup_s, "ticks": len(r.tick_ns), "tick_us": int(header["tick_us"]), "core": fw.core}
     _timing_keys(rep, r)
+    # Python objects the measured ticks left alive (the recorder keeps none): a heap that grows tick
+    # after tick is memory a board does not have, and its new pages fault inside the ticks
+    rep["python_blocks_kept"] = blocks - r.blocks0 if r.blocks0 is not None else None
     total, parts = state_bytes(fw)
     rep["state_bytes"] = total
     rep["state_bytes_by_part"] = parts
@@ -404,6 +517,9 @@ def measure(header: dict, reads, warmup_s: float = 5.0, worst: int = 0, core=Non
     rep["status"] = {k: v for k, v in fw.status().items() if k in ("cycles", "poses", "fused_poses", "fusion_updates")}
     rep.update(_alloc_keys(header, reads, warm, core))
     rep.update(_filter_steps(fw))
+    if repeat > 1:
+        runs = [r.cpu_ns] + [_timed_replay(header, reads, warm, 0, core).cpu_ns for _ in range(repeat - 1)]
+        rep["repeat"] = recurrence(runs, r.t_us, max(worst, 5))
     return rep
 
 
@@ -439,11 +555,14 @@ def _timing_keys(rep: dict, r: _TickRecorder) -> None:
     # they count in the tick times above; here they are told apart from the firmware's work
     rep["gc_collections_in_ticks"] = len(r.gc_ns)
     rep["gc_us_max"] = round(max(r.gc_ns) / 1e3, 2) if r.gc_ns else 0.0
+    # the machine's share: page faults, context switches and core changes around each tick
+    rep["machine"] = machine_summary(r.cpu_ns, r.machine, rep["tick_us"] * 1000)
     if r.worst:
         rows = sorted(r.per_tick, key=lambda x: -x[0])
         rep["worst_ticks"] = [{"t_us": x[1], "cpu_us": round(x[0] / 1e3, 2), "wall_us": round(x[2] / 1e3, 2),
                                "phases_us": {name: round(x[3][i] / 1e3, 2) for i, name in enumerate(PHASES)},
-                               "field_evals": x[4], "gc_collections": x[5], "tracker_at": x[6]}
+                               "field_evals": x[4], "gc_collections": x[5], "tracker_at": x[6],
+                               "machine": dict(zip(MACHINE_FIELDS, x[7])), "work_class": x[8]}
                               for x in rows[:r.worst]]
 
 
@@ -503,18 +622,26 @@ def format_table(rep: dict) -> str:
         lines.append(f"    at or above the p99.9: {top}")
     lines.append(f"  garbage collections   {rep['gc_collections_in_ticks']} inside measured ticks "
                  f"(the longest {rep['gc_us_max']} us CPU time; counted in the tick times)")
+    if rep.get("machine"):
+        lines.extend(_machine_lines(rep["machine"]))
+    if rep.get("python_blocks_kept") is not None:
+        lines.append(f"  Python objects kept   {rep['python_blocks_kept']} interpreter blocks more after the measured "
+                     f"ticks than before them")
     lines.append(f"  allocations           {rep.get('allocs_per_tick')} numpy arrays per tick "
                  f"(max {rep.get('allocs_max_tick')} in a tick, {rep.get('ticks_with_allocs')} ticks with any)")
     lines.append(f"  firmware state        {rep['state_bytes']} bytes "
                  f"({', '.join(f'{k} {v}' for k, v in list(rep['state_bytes_by_part'].items())[:6])}, ...)")
     if rep.get("worst_ticks"):
         lines.append(f"  the {len(rep['worst_ticks'])} ticks of the most CPU time (t, CPU, wall, costliest stage, "
-                     "field evaluations, garbage collections, tracker before the tick):")
+                     "field evaluations, garbage collections, the machine: page faults, context switches in / "
+                     "before the tick, core changed; work class; tracker before the tick):")
         for w in rep["worst_ticks"]:
             top = max(w["phases_us"].items(), key=lambda kv: kv[1])
             lines.append(f"    t {w['t_us'] / 1e6:9.3f} s  cpu {w['cpu_us']:8.1f} us  wall {w['wall_us']:8.1f} us  "
                          f"{top[0]} {top[1]:.1f} us  evals {w['field_evals']}  gc {w['gc_collections']}  "
-                         f"{w['tracker_at']}")
+                         f"{_machine_cell(w.get('machine'))}  {w.get('work_class', '-')}  {w['tracker_at']}")
+    if rep.get("repeat"):
+        lines.extend(_repeat_lines(rep["repeat"]))
     if "fused_step_us" in rep:
         ref = rep.get("filterpy")
         lines.append(f"  fusion step           {rep['fused_step_us']} us (strapdown + {rep['filter_states']}-state "
@@ -522,6 +649,46 @@ def format_table(rep: dict) -> str:
         lines.append(f"  magnetic update       {rep['fused_update_us']} us ({rep['update_dim']}-dim, Joseph); "
                      f"filterpy update {ref or str(rep['filterpy_update_us']) + ' us'}")
     return "\n".join(lines)
+
+
+def _machine_cell(m) -> str:
+    """A worst tick's machine columns: ``pf N sw I/B mig`` (faults, switches in / before, core)."""
+    if not m:
+        return "-"
+    return (f"pf {m['minflt'] + m['majflt']}" + (f" ({m['majflt']} major)" if m["majflt"] else "")
+            + f"  sw {m['nivcsw'] + m['nvcsw']}/{m['switches_before']}" + ("  moved" if m["migrated"] else ""))
+
+
+def _machine_lines(m: dict) -> list[str]:
+    u, pf = m["undisturbed"], m["page_faults"]
+    lines = [f"  the machine           undisturbed ticks (no page fault, context switch or core change in or "
+             f"just before): {u['ticks']}, CPU median {u['median']} us, p99.9 {u['p999']} us, max {u['max']} us"
+             + (f"; ticks >= the tick: {u['deadline_misses']} undisturbed, {m['disturbed']['deadline_misses']} "
+                f"disturbed" if "disturbed" in m else ""),
+             f"    page faults           {pf['faults']} ({pf['major']} major) in {pf['ticks']} ticks, "
+             f"their CPU max {pf['max']} us (first touch of memory: the process's own)"]
+    for key, what in (("preempted", "switched inside"), ("switched_before", "switched just before"),
+                      ("migrated", "moved to another core")):
+        d = m[key]
+        lines.append(f"    {what:<22}{d['ticks']} ticks, their CPU median {d['median']} us, max {d['max']} us")
+    w = m.get("worst_disturbed")
+    if w:
+        lines.append(f"    at or above the p99.9: {w['disturbed']} of {w['ticks']} ticks disturbed "
+                     f"({w['page_faults']} with page faults, {w['preempted']} switched inside)")
+    return lines
+
+
+def _repeat_lines(r: dict) -> list[str]:
+    mn = r["min_us"]
+    lines = [f"  {r['runs']} replays        each tick's least CPU time over them (the firmware's work): "
+             f"median {mn['median']} us, p99 {mn['p99']} us, p99.9 {mn['p999']} us, max {mn['max']} us",
+             f"    costliest tick at   {', '.join(f'{t / 1e6:.3f}' for t in r['max_at'])} s; of each replay's "
+             f"{len(r['worst'])} costliest ticks, the first replay's: {', '.join(str(k) for k in r['worst_kept'])}",
+             "    costliest work (t, least CPU, CPU in each replay):"]
+    for w in r["worst"]:
+        lines.append(f"    t {w['t_us'] / 1e6:9.3f} s  least {w['min_us']:8.1f} us  "
+                     + " ".join(f"{c:7.1f}" for c in w["cpu_us"]))
+    return lines
 
 
 def run(args) -> int:
@@ -540,7 +707,7 @@ def run(args) -> int:
             print("coiltrack perf: --duration must exceed --warmup", file=sys.stderr)
             return 2
         header, reads = _record(args.scenario, args.seed, args.duration, args.core)
-    rep = measure(header, reads, args.warmup, args.worst, args.core)
+    rep = measure(header, reads, args.warmup, args.worst, args.core, args.repeat)
     print(f"coiltrack perf: {rep['scenario']} seed {rep['seed']}, {rep['duration_s']} s replayed on a virtual clock")
     print(format_table(rep))
     if args.solver:

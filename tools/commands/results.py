@@ -56,6 +56,10 @@ def add_arguments(p) -> None:
     p.add_argument("--core", choices=("compiled", "python"), default=None,
                    help="the firmware's numeric core of every run ([core] impl; default the configuration's: "
                         "compiled where the extension is built); the two give the same figures")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="firmware configuration key (section.key, e.g. budget.track_budget_evals, or a plain key) "
+                        "and one value, put over every scenario's configuration; repeatable. The runs' "
+                        "commands are then `coiltrack sweep ... --set`; not with --publish")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--out", metavar="DIR", default="out/results",
                    help="directory of results.json and index.md (default out/results; created)")
@@ -75,9 +79,42 @@ def _version() -> str:
         return "unknown"
 
 
+def _overrides(args) -> tuple:
+    """The ``--set`` overrides as ((key, value), ...), each applied to every scenario of the run
+    once before anything runs (a ValueError naming the key, the value or the scenario)."""
+    from coiltrack.firmware.config import ConfigError, qualified
+
+    from ..bench import sweep
+
+    if not args.sets:
+        return ()
+    if args.publish:
+        raise ValueError("the published results are the scenarios' own configurations: not with --publish")
+    pairs = []
+    for text in args.sets:
+        key, values = sweep.parse_set(text)
+        if len(values) != 1:
+            raise ValueError(f"'{text}': one value per key here (`coiltrack sweep --set` takes several)")
+        pairs.append((key, values[0]))
+    keys = [qualified(k) for k, _ in pairs]            # pulse_us and timing.pulse_us are one key
+    if len(set(keys)) != len(keys):
+        raise ValueError("a key is given twice")
+    for name in args.scenarios:
+        try:
+            sweep.scenario_with(name, pairs)
+        except ConfigError as exc:
+            raise ValueError(f"{' '.join(args.sets)} on {name}: {exc}") from None
+    return tuple(pairs)
+
+
 def run(args) -> int:
     if args.render and not args.publish:
         print("coiltrack results: error: --render needs --publish", file=sys.stderr)
+        return 2
+    try:
+        overrides = _overrides(args)
+    except ValueError as exc:
+        print(f"coiltrack results: error: argument --set: {exc}", file=sys.stderr)
         return 2
     out = PUBLISH_DIR if args.publish else Path(args.out)
     if out.exists() and not out.is_dir():
@@ -109,7 +146,7 @@ def run(args) -> int:
 
         print(f"coiltrack results: {len(args.scenarios)} scenarios, seed {args.seed}, "
               f"{args.workers} worker(s)", file=sys.stderr)
-        runs = R.run_all(args.scenarios, args.seed, args.duration, args.workers, progress, args.core)
+        runs = R.run_all(args.scenarios, args.seed, args.duration, args.workers, progress, args.core, overrides)
         data = R.merge(old if args.publish else None, runs, _version())
     for path in R.write(out, data):
         print(f"wrote {path}")

@@ -34,15 +34,23 @@ FORMAT = "coiltrack-results/1"
 
 
 def command(scenario: str, seed: int, duration_s: float, default_s: float, experiment: bool = False,
-            core: str | None = None) -> str:
+            core: str | None = None, overrides=()) -> str:
     """The command that gives a run's figures: ``coiltrack bench`` (with ``--core`` where one was
     chosen), or for a measurement-level experiment (Gietler's scenarios,
-    :func:`coiltrack.tools.bench.sweep.experiment`, which run no firmware core) ``coiltrack sweep``
-    of that one seed."""
+    :func:`coiltrack.tools.bench.sweep.experiment`, which run no firmware core) or a run with
+    configuration ``overrides`` (``coiltrack results --set``: ((key, value), ...)) ``coiltrack sweep``
+    of that one seed with a ``--set`` per override (the core as ``--set core.impl=...``)."""
     dur = "" if duration_s == default_s else f" --duration {duration_s:g}"
-    if experiment:
-        return f"coiltrack sweep --scenario {scenario} --seeds {seed}{dur}"
+    if experiment or overrides:
+        sets = [*overrides, *((("core.impl", core),) if core and not experiment else ())]
+        return f"coiltrack sweep --scenario {scenario} --seeds {seed}{dur}" + "".join(
+            f" --set {k}={_value_text(v)}" for k, v in sets)
     return f"coiltrack bench --scenario {scenario} --seed {seed}{dur}" + (f" --core {core}" if core else "")
+
+
+def _value_text(v) -> str:
+    """A ``--set`` value as the command line gives it (``true``/``false`` for a bool)."""
+    return str(v).lower() if isinstance(v, bool) else str(v)
 
 
 def _clean(v):
@@ -56,22 +64,25 @@ def _clean(v):
     return v
 
 
-def run_one(job: tuple[str, int, float, str | None]) -> dict:
+def run_one(job: tuple) -> dict:
     """One scenario run (a worker process): the report without its wall-clock keys. ``job``:
-    the scenario, seed, duration and numeric core (``[core] impl``; None: the configuration's)."""
+    the scenario, seed, duration, numeric core (``[core] impl``; None: the configuration's) and
+    optionally configuration overrides ((key, value), ...; ``coiltrack results --set``)."""
     # imported where used here and below: the world's physics (magpylib) loads only when a run starts
     from coiltrack.tools.bench.runner import add_fixed_comparison, run_inproc
     from coiltrack.tools.scenarios import SCENARIOS
-    from coiltrack.tools.bench.sweep import experiment
+    from coiltrack.tools.bench.sweep import experiment, scenario_with
 
-    name, seed, duration_s, core = job
+    name, seed, duration_s, core = job[:4]
+    overrides = tuple(job[4]) if len(job) > 4 else ()
     sc = SCENARIOS[name]
     exp = experiment(name)
-    cmd = command(name, seed, duration_s, sc.duration_s, exp is not None, core)
-    cfg = sc.firmware_config().with_(core={"impl": core}) if core else None
+    cmd = command(name, seed, duration_s, sc.duration_s, exp is not None, core, overrides)
     try:
+        sc = scenario_with(name, overrides)
+        cfg = sc.firmware_config().with_(core={"impl": core}) if core and exp is None else None
         if exp is not None:                       # a measurement-level experiment: its figures
-            rep = dict(exp.run(name, seed, duration_s, ()))
+            rep = dict(exp.run(name, seed, duration_s, overrides))
             rep["paper"] = {"source": sc.reference.get("source")} if sc.reference.get("source") else {}
         else:
             rep = run_inproc(sc, seed, duration_s, cfg=cfg)
@@ -80,19 +91,23 @@ def run_one(job: tuple[str, int, float, str | None]) -> dict:
         return {"scenario": name, "seed": seed, "duration_s": duration_s, "command": cmd,
                 "error": f"{type(exc).__name__}: {exc}"}
     keep = {k: v for k, v in rep.items() if not is_wall_clock(k) and k not in ("timing_source", "log")}
-    return {"scenario": name, "seed": seed, "duration_s": duration_s, "command": cmd,
-            "summary": sc.summary or sc.description, "report": _clean(keep)}
+    run = {"scenario": name, "seed": seed, "duration_s": duration_s, "command": cmd,
+           "summary": sc.summary or sc.description, "report": _clean(keep)}
+    if overrides:                                 # the configuration the figures were made with
+        run["overrides"] = {k: v for k, v in overrides}
+    return run
 
 
 def run_all(names, seed: int, duration_s: float | None, workers: int, progress=None,
-            core: str | None = None) -> list[dict]:
+            core: str | None = None, overrides=()) -> list[dict]:
     """Run every scenario of ``names`` (each at its own duration unless ``duration_s``, on the
-    numeric ``core`` where one is named) on a process pool of ``workers`` spawned processes;
-    results in the order of ``names``."""
+    numeric ``core`` where one is named, with the configuration ``overrides`` ((key, value), ...)
+    put over each scenario's) on a process pool of ``workers`` spawned processes; results in the
+    order of ``names``."""
     from coiltrack.tools.scenarios import SCENARIOS
 
-    jobs = [(n, seed, float(duration_s if duration_s is not None else SCENARIOS[n].duration_s), core)
-            for n in names]
+    jobs = [(n, seed, float(duration_s if duration_s is not None else SCENARIOS[n].duration_s), core,
+             tuple(overrides)) for n in names]
     if workers <= 1:
         out = []
         for j in jobs:
