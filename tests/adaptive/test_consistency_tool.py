@@ -5,10 +5,10 @@ from coiltrack.tools.analyses import adaptive_consistency as tool
 
 
 def test_set_values_are_parsed_as_json_or_kept_as_text():
-    assert tool._keys(["reference_hold=mean", "unreached_share=0.8", "nis_feedback=false"]) == {
+    assert tool.set_keys(["reference_hold=mean", "unreached_share=0.8", "nis_feedback=false"]) == {
         "reference_hold": "mean", "unreached_share": 0.8, "nis_feedback": False}
     with pytest.raises(ValueError, match="KEY=VALUE"):
-        tool._keys(["reference_hold"])
+        tool.set_keys(["reference_hold"])
 
 
 @pytest.mark.parametrize("argv", [["--duration", "0"], ["--duration", "1", "--bin", "2"], ["--set", "novalue"],

@@ -37,6 +37,9 @@ import sys
 
 import numpy as np
 
+from coiltrack.tools.analyses.adaptive_consistency import set_keys
+from coiltrack.tools.bench.sweep import parse_seeds
+
 
 @contextlib.contextmanager
 def _probe(ups: list):
@@ -141,30 +144,6 @@ def summarise(rows: list[dict]) -> dict:
     return out
 
 
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        if "-" in part:
-            a, b = part.split("-", 1)
-            out.extend(range(int(a), int(b) + 1))
-        else:
-            out.append(int(part))
-    return out
-
-
-def _keys(items) -> dict:
-    out = {}
-    for it in items or ():
-        if "=" not in it:
-            raise ValueError(f"--set {it!r}: expected KEY=VALUE")
-        k, v = it.split("=", 1)
-        try:
-            out[k] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k] = v
-    return out
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", default="1-10")
@@ -183,8 +162,8 @@ def main(argv=None) -> int:
             return 2
         return 0
     try:
-        seeds = _seeds(a.seeds)
-        keys = _keys(a.set)
+        seeds = parse_seeds(a.seeds)
+        keys = set_keys(a.set)
         if not (0.0 < a.duration <= 3600.0):
             raise ValueError("--duration must be in (0, 3600] s")
     except ValueError as exc:

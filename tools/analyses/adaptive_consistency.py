@@ -180,7 +180,8 @@ def tabulate(cfg, bench, rec, duration: float, bin_s: float) -> list[dict]:
     return rows
 
 
-def _keys(items) -> dict:
+def set_keys(items) -> dict:
+    """``--set KEY=VALUE`` items as configuration keys (a value read as JSON where it parses)."""
     out = {}
     for it in items or ():
         if "=" not in it:
@@ -202,7 +203,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="firmware configuration key (repeatable)")
     a = ap.parse_args(argv)
     try:
-        keys = _keys(a.set)
+        keys = set_keys(a.set)
         if not (0.0 < a.duration <= 3600.0) or not (0.0 < a.bin <= a.duration):
             raise ValueError("--duration must be in (0, 3600] s and --bin in (0, duration]")
         cfg, rep, bench, rec, ups = _run(a.seed, a.duration, a.fixed, keys)

@@ -23,6 +23,9 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 
+from coiltrack.tools.analyses.adaptive_consistency import set_keys
+from coiltrack.tools.bench.sweep import parse_seeds
+
 SCENARIO = "schepers-adaptive"
 
 
@@ -73,26 +76,6 @@ def _fixed_figures(path: str, seeds: list[int], duration: float) -> dict[int, di
     return got
 
 
-def _seeds(text: str) -> list[int]:
-    out = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out.extend(range(int(a), int(b or a) + 1))
-    return out
-
-
-def _keys(items) -> dict:
-    from coiltrack.tools.bench.sweep import parse_value
-
-    out = {}
-    for it in items or ():
-        k, eq, v = it.partition("=")
-        if not eq:
-            raise ValueError(f"--set {it!r}: expected KEY=VALUE")
-        out[k] = parse_value(v)
-    return out
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--fixed-from", required=True, metavar="SWEEP.json")
@@ -105,8 +88,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", required=True)
     a = ap.parse_args(argv)
     try:
-        seeds = _seeds(a.seeds)
-        keys = _keys(a.set)
+        seeds = parse_seeds(a.seeds)
+        keys = set_keys(a.set)
         if not (0.0 < a.duration <= 3600.0) or not 1 <= a.workers <= 16:
             raise ValueError("--duration must be in (0, 3600] s and --workers in 1..16")
         from coiltrack.tools.bench.sweep import scenario_with

@@ -22,6 +22,8 @@ struct ct_sample_ring {
 enum { CT_SAMPLE_SATURATED = 1, CT_SAMPLE_FLIP = 2 };
 enum { CT_PULSE_OK = 0, CT_PULSE_TOO_FEW = 1, CT_PULSE_SATURATED = 2, CT_PULSE_BASELINE_DRIFT = 4,
        CT_PULSE_FLIP = 8, CT_PULSE_INCOMPLETE = 16 };
+int64_t ct_times_slot(int64_t cap, int64_t head, int64_t count, int64_t i);
+int64_t ct_times_index_at_or_after(const int64_t *t, int64_t cap, int64_t head, int64_t count, int64_t t_us);
 int64_t ct_ring_slot(const struct ct_sample_ring *r, int64_t i);
 int64_t ct_ring_index_at_or_after(const struct ct_sample_ring *r, int64_t t_us);
 

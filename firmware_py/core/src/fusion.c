@@ -411,42 +411,21 @@ void ct_fusion_snap_aux(int fixed, const double *imu_row, int xi, const double *
 int ct_fusion_pose_at(const int64_t *ht, const double *hd, int64_t cap, int64_t head, int64_t count, int64_t t_us,
                       double *out_p, double *out_R)
 {
-    int64_t lo = 0, hi = count, base = head - count, i, prev, k, t0, tk;
+    int64_t i, prev, k, t0, tk;
     double a, b;
     int c, r, j;
     if (count < 2)
         return 0;
-    while (lo < hi) {
-        int64_t mid = (lo + hi) >> 1;
-        int64_t p = base + mid;
-        if (p < 0)
-            p += cap;
-        else if (p >= cap)
-            p -= cap;
-        if (ht[p] < t_us)
-            lo = mid + 1;
-        else
-            hi = mid;
-    }
-    i = lo;
+    i = ct_times_index_at_or_after(ht, cap, head, count, t_us);
     if (i >= count)
         return 0;
     if (i == 0) {
-        int64_t s0 = base < 0 ? base + cap : base;
-        if (ht[s0] != t_us)
+        if (ht[ct_times_slot(cap, head, count, 0)] != t_us)
             return 0;
         i = 1;
     }
-    prev = base + i - 1;
-    if (prev < 0)
-        prev += cap;
-    else if (prev >= cap)
-        prev -= cap;
-    k = base + i;
-    if (k < 0)
-        k += cap;
-    else if (k >= cap)
-        k -= cap;
+    prev = ct_times_slot(cap, head, count, i - 1);
+    k = ct_times_slot(cap, head, count, i);
     t0 = ht[prev];
     tk = ht[k];
     a = tk > t0 ? (double)(t_us - t0) / (double)(tk - t0) : 1.0;
@@ -515,28 +494,14 @@ void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, 
 void ct_fusion_hist_copy(int64_t *dt, double *dd, int64_t *dhc, const int64_t *st, const double *sd, const int64_t *shc,
                          int64_t cap, int drop, int64_t t_us)
 {
-    int64_t lo, hi, base, h;
+    int64_t lo, h;
     memcpy(dt, st, (size_t)cap * sizeof(int64_t));
     memcpy(dd, sd, (size_t)(cap * CT_HIST_WIDTH) * sizeof(double));
     dhc[0] = shc[0];
     dhc[1] = shc[1];
     if (!drop)
         return;
-    lo = 0;
-    hi = dhc[1];
-    base = dhc[0] - dhc[1];
-    while (lo < hi) {
-        int64_t mid = (lo + hi) >> 1;
-        int64_t p = base + mid;
-        if (p < 0)
-            p += cap;
-        else if (p >= cap)
-            p -= cap;
-        if (dt[p] < t_us + 1)
-            lo = mid + 1;
-        else
-            hi = mid;
-    }
+    lo = ct_times_index_at_or_after(dt, cap, dhc[0], dhc[1], t_us + 1);
     h = dhc[0] - (dhc[1] - lo);
     dhc[0] = h < 0 ? h + cap : h;
     dhc[1] = lo;

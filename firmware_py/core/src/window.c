@@ -19,31 +19,39 @@
 /* Ring.slot: logical index i (0 the oldest) to its slot */
 int64_t ct_ring_slot(const struct ct_sample_ring *r, int64_t i)
 {
-    int64_t p = r->head - r->count + i;
+    return ct_times_slot(r->cap, r->head, r->count, i);
+}
+
+/* Ring.slot over a ring's times alone: logical index i (0 the oldest) of (head, count) to its slot */
+int64_t ct_times_slot(int64_t cap, int64_t head, int64_t count, int64_t i)
+{
+    int64_t p = head - count + i;
     if (p < 0)
-        p += r->cap;
-    else if (p >= r->cap)
-        p -= r->cap;
+        p += cap;
+    else if (p >= cap)
+        p -= cap;
     return p;
 }
 
-/* Ring.index_at_or_after: first logical index with time >= t_us (count if none) */
-int64_t ct_ring_index_at_or_after(const struct ct_sample_ring *r, int64_t t_us)
+/* Ring.index_at_or_after over a ring's times t (cap; head, count): the first logical index with
+ * time >= t_us (count if none); the one binary search of every ring the kernels read by time */
+int64_t ct_times_index_at_or_after(const int64_t *t, int64_t cap, int64_t head, int64_t count, int64_t t_us)
 {
-    int64_t lo = 0, hi = r->count, base = r->head - r->count, cap = r->cap;
+    int64_t lo = 0, hi = count;
     while (lo < hi) {
         int64_t mid = (lo + hi) >> 1;
-        int64_t p = base + mid;
-        if (p < 0)
-            p += cap;
-        else if (p >= cap)
-            p -= cap;
-        if (r->t[p] < t_us)
+        if (t[ct_times_slot(cap, head, count, mid)] < t_us)
             lo = mid + 1;
         else
             hi = mid;
     }
     return lo;
+}
+
+/* Ring.index_at_or_after: first logical index with time >= t_us (count if none) */
+int64_t ct_ring_index_at_or_after(const struct ct_sample_ring *r, int64_t t_us)
+{
+    return ct_times_index_at_or_after(r->t, r->cap, r->head, r->count, t_us);
 }
 
 /* the regression sums over both baseline sides (t, t^2, t x, t y, t z) and one side's result */
