@@ -175,23 +175,13 @@ int64_t ct_demod_push(const struct ct_demod *d, int64_t t, double bx, double by,
 int ct_demod_feed(const struct ct_demod *d, const int64_t *rt, const double *rb, const uint8_t *rf, int64_t cap,
                   int64_t count, int64_t last, int64_t left)
 {
-    int64_t head, base, lo = 0, hi = count, idx, t_min, *st = d->st;
+    int64_t head, base, lo, idx, t_min, *st = d->st;
     if (count <= 0)
         return 0;
     head = last + 1 == cap ? 0 : last + 1;
     base = head - count;
     t_min = st[CT_DM_CURSOR] + 1;
-    while (lo < hi) {                       /* Ring.index_at_or_after */
-        int64_t mid = (lo + hi) >> 1, q = base + mid;
-        if (q < 0)
-            q += cap;
-        else if (q >= cap)
-            q -= cap;
-        if (rt[q] < t_min)
-            lo = mid + 1;
-        else
-            hi = mid;
-    }
+    lo = ct_times_index_at_or_after(rt, cap, head, count, t_min);   /* Ring.index_at_or_after */
     for (idx = lo; idx < count && left > 0; ++idx, --left) {
         int64_t s = base + idx, t, k;           /* Ring.slot */
         if (s < 0)

@@ -237,23 +237,6 @@ void ct_fusion_copy(const struct ct_fusstate *dst, const struct ct_fusstate *src
 
 /* ------------------------------------------------------------ the replay */
 
-/* Ring.index_at_or_after over `count` entries from slot `first` */
-static int64_t ring_index_at_or_after(const int64_t *tv, int64_t cap, int64_t first, int64_t count, int64_t t)
-{
-    int64_t lo = 0, hi = count;
-    while (lo < hi) {
-        int64_t mid = (lo + hi) >> 1;
-        int64_t p = first + mid;
-        if (p >= cap)
-            p -= cap;
-        if (tv[p] < t)
-            lo = mid + 1;
-        else
-            hi = mid;
-    }
-    return lo;
-}
-
 /* ekf.symmetrize in place: P = (P + P^T) / 2 */
 static void symmetrize(double *P, int n)
 {
@@ -339,7 +322,7 @@ int ct_fusion_replay(const struct ct_replay *r, int64_t *io, double *fo, int bud
         replay_history(r, k, t, &head, &hcount, io);
     }
     for (;;) {
-        const int64_t i = ring_index_at_or_after(r->imu_t, cap, first, count, t + 1);
+        const int64_t i = ct_times_index_at_or_after(r->imu_t, cap, first + count, count, t + 1);
         int64_t k, tk, t0;
         if (i >= count) {
             rc = CT_REPLAY_CAUGHT_UP;
