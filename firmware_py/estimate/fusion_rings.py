@@ -16,10 +16,11 @@ from coiltrack.firmware.ring import Ring
 
 
 class KernelRing(Ring):
-    """:class:`~coiltrack.firmware.ring.Ring` with its head and count in ``hc`` (int64, 2)."""
+    """:class:`~coiltrack.firmware.ring.Ring` with its head and count in ``hc`` (int64, ``state``
+    entries: head, count, then any further state a subclass keeps beside them)."""
 
-    def __init__(self, capacity: int, fields: tuple[tuple[str, int], ...]):
-        self.hc = np.zeros(2, dtype=np.int64)
+    def __init__(self, capacity: int, fields: tuple[tuple[str, int], ...], state: int = 2):
+        self.hc = np.zeros(state, dtype=np.int64)
         self._hcv = memoryview(self.hc)
         super().__init__(capacity, fields)
 

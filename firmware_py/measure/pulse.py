@@ -90,7 +90,7 @@ import operator
 import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.ring import Ring
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
 
 # quality flags (bit field, int)
 PULSE_OK = 0
@@ -114,7 +114,7 @@ _T_FAR = 1 << 61
 _INF = math.inf
 
 
-class SampleRing(Ring):
+class SampleRing(KernelRing):
     """Fixed-capacity ring of magnetometer samples (a :class:`~coiltrack.firmware.ring.Ring`
     with one field ``B``).
 
@@ -124,17 +124,14 @@ class SampleRing(Ring):
     ring overwrites its oldest sample. Logical index 0 is the oldest sample
     (``slot``, ``index_at_or_after`` are the ring's).
 
-    The ring's state is one int64 array ``hc`` = head, count, latest time, rejected samples (as
-    ``estimate.fusion_rings.KernelRing`` keeps its head and count), so a compiled kernel bound to it
-    once pushes in place (``core/src/multi.c``: ``ct_sample_push``, through
-    ``measure.windows.SensorChannel.push``); every :class:`~coiltrack.firmware.ring.Ring` operation
-    is the same, reading and writing ``_head`` and ``_count`` there.
+    The ring's state is a :class:`~coiltrack.firmware.estimate.fusion_rings.KernelRing`'s ``hc``
+    with two more entries: head, count, latest time, rejected samples, so a compiled kernel bound
+    to it once pushes in place (``core/src/multi.c``: ``ct_sample_push``, through
+    ``measure.windows.SensorChannel.push``).
     """
 
     def __init__(self, capacity: int):
-        self.hc = np.zeros(4, dtype=np.int64)
-        self._hcv = memoryview(self.hc)
-        super().__init__(capacity, (("B", 3),))
+        super().__init__(capacity, (("B", 3),), state=4)
         self.t_us = self.t
         self.b = self.d
         self.flags = np.zeros(self.capacity, dtype=np.uint8)
@@ -144,41 +141,15 @@ class SampleRing(Ring):
         self.fv = memoryview(self.flags)
         self._hcv[2] = NO_TIME_US
 
-    def _set_head(self, v: int) -> None:
-        self._hcv[0] = v
-
-    def _set_count(self, v: int) -> None:
-        self._hcv[1] = v
-
     def _set_latest(self, v: int) -> None:
         self._hcv[2] = v
 
     def _set_rejected(self, v: int) -> None:
         self._hcv[3] = v
 
-    _head = property(lambda self: self._hcv[0], _set_head)          # slot of the next push
-    _count = property(lambda self: self._hcv[1], _set_count)        # samples held
     _latest = property(lambda self: self._hcv[2], _set_latest)      # time of the newest sample
     #: samples refused by push (bad data)
     rejected = property(lambda self: self._hcv[3], _set_rejected)
-
-    def __len__(self) -> int:
-        return self._hcv[1]
-
-    @property
-    def full(self) -> bool:
-        return self._hcv[1] == self.capacity
-
-    def slot(self, i: int) -> int:
-        """Slot of logical index ``i`` (0: the oldest; ``0 <= i < len``)."""
-        hc = self._hcv
-        p = hc[0] - hc[1] + i
-        cap = self.capacity
-        if p < 0:
-            p += cap
-        elif p >= cap:
-            p -= cap
-        return p
 
     def push(self, t_us: int, bx: float, by: float, bz: float,
              saturated: bool, flip: int) -> None:
@@ -225,7 +196,7 @@ class SampleRing(Ring):
 
     def clear(self) -> None:
         """Empty the ring; the next sample may have any time."""
-        Ring.clear(self)
+        super().clear()
         self._latest = NO_TIME_US
 
     @property
