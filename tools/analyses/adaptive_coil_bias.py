@@ -37,7 +37,7 @@ import sys
 
 import numpy as np
 
-from coiltrack.tools.analyses.adaptive_consistency import set_keys
+from coiltrack.tools.analyses.adaptive_consistency import run_probed, set_keys
 from coiltrack.tools.bench.sweep import parse_seeds
 
 
@@ -70,28 +70,8 @@ def run_seed(seed: int, duration: float, fixed: bool, keys: dict, skip_s: float 
     """One seed: per coil the relative errors along the field (module docstring)."""
     from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
     from coiltrack.firmware.model.field import Coil
-    from coiltrack.tools.bench import runner
-    from coiltrack.tools.outputs import report
-    from coiltrack.tools.scenarios import get
-
-    sc = get("schepers-adaptive")
-    cfg = sc.fixed_config() if fixed else sc.firmware_config()
-    if keys:
-        cfg = cfg.with_keys(**keys)
     ups: list = []
-    got = {}
-    orig = report.build
-
-    def build(bench, *a, **k):
-        got["bench"] = bench
-        return orig(bench, *a, **k)
-    report.build = build
-    try:
-        with _probe(ups):
-            rep = runner.run_inproc(sc, seed, duration, cfg=cfg)
-    finally:
-        report.build = orig
-    bench = got["bench"]
+    cfg, rep, bench = run_probed(seed, duration, fixed, keys, _probe(ups))
     ups = [u for u in ups if u[0] * 1e-6 > skip_s and not u[6] & 0b1111]
     n_coils = len(cfg.source.coils)
     model = SingleCoilModel([Coil(c.center, c.axis, c.radius, c.turns) for c in cfg.source.coils])

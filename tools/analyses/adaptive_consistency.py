@@ -83,7 +83,9 @@ def _tick_probe(rec: list):
         loop.Firmware.tick = orig
 
 
-def _run(seed: int, duration: float, fixed: bool, keys: dict):
+def run_probed(seed: int, duration: float, fixed: bool, keys: dict, *probes):
+    """schepers-adaptive (its fixed cycle when ``fixed``) with ``keys``, run in process under the
+    context managers ``probes``: the configuration, the report and the bench that made it."""
     from coiltrack.tools.bench import runner
     from coiltrack.tools.outputs import report
     from coiltrack.tools.scenarios import get
@@ -92,8 +94,6 @@ def _run(seed: int, duration: float, fixed: bool, keys: dict):
     cfg = sc.fixed_config() if fixed else sc.firmware_config()
     if keys:
         cfg = cfg.with_keys(**keys)
-    rec: list = []
-    ups: list = []
     got = {}
     orig = report.build
 
@@ -102,11 +102,20 @@ def _run(seed: int, duration: float, fixed: bool, keys: dict):
         return orig(bench, *a, **k)
     report.build = build
     try:
-        with _tick_probe(rec), _update_probe(ups):
+        with contextlib.ExitStack() as stack:
+            for p in probes:
+                stack.enter_context(p)
             rep = runner.run_inproc(sc, seed, duration, cfg=cfg)
     finally:
         report.build = orig
-    return cfg, rep, got["bench"], rec, ups
+    return cfg, rep, got["bench"]
+
+
+def _run(seed: int, duration: float, fixed: bool, keys: dict):
+    rec: list = []
+    ups: list = []
+    cfg, rep, bench = run_probed(seed, duration, fixed, keys, _tick_probe(rec), _update_probe(ups))
+    return cfg, rep, bench, rec, ups
 
 
 def amplitude_errors(cfg, bench, ups, skip_s: float = 4.0) -> dict:
