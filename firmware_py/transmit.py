@@ -28,6 +28,7 @@ _POSE = MSG["POSE"]
 _FAULT = MSG["FAULT_EVENT"]
 _WINDOW = MSG["PULSE_WINDOW"]
 _FLIP = MSG["MAG_FLIP_CMD"]
+_PULSE_CMD = MSG["COIL_PULSE_CMD"]
 #: the largest finite f32 (POSE covariance fields): larger variances are sent as this
 F32_MAX = 3.0e38
 
@@ -107,6 +108,10 @@ class Transmitter:
     def mag_flip(self, node: int, at_us: int, state: int) -> None:
         """Send one ``MAG_FLIP_CMD`` (``supervise.flips``: ``node`` to set/reset ``state`` at ``at_us``)."""
         self.send(_FLIP(node, at_us, state))
+
+    def coil_pulse(self, coil: int, pulse_id: int, current_ma: int, start_us: int, length_us: int) -> None:
+        """Send one ``COIL_PULSE_CMD`` (``actuate.schedule.PulseSchedule.command``)."""
+        self.send(_PULSE_CMD(coil, pulse_id, current_ma, start_us, length_us))
 
     def pose(self, r: PoseReport) -> None:
         """Send one POSE (:class:`PoseReport`); variances beyond the f32 range go as :data:`F32_MAX`."""
@@ -233,6 +238,15 @@ class Transmitter:
         assert (ext.FLIP_ID, ext.FLIP_PAYLOAD, ext.FLIP_CRC_EXTRA) == (_FLIP.ID, 10, _CRC_EXTRA[_FLIP.ID][0])
         self._flip_frame = ext.flip_frame
         self.mag_flip = self._mag_flip_compiled
+        assert (ext.PCMD_ID, ext.PCMD_PAYLOAD, ext.PCMD_CRC_EXTRA) == (_PULSE_CMD.ID, 17, _CRC_EXTRA[_PULSE_CMD.ID][0])
+        self._pulse_cmd_frame = ext.pulse_cmd_frame
+        self.coil_pulse = self._coil_pulse_compiled
+
+    def _coil_pulse_compiled(self, coil: int, pulse_id: int, current_ma: int, start_us: int, length_us: int) -> None:
+        """:meth:`coil_pulse` on the compiled core (``ct_pulse_cmd_frame``, ``core/src/sc_policy.c``: the same
+        bytes as ``encode_frame``), numbered with this transmitter's sequence."""
+        self._write_numbered(self._pulse_cmd_frame(self._seq, self.node_id, coil, pulse_id, current_ma, start_us,
+                                                   length_us))
 
     def _mag_flip_compiled(self, node: int, at_us: int, state: int) -> None:
         """:meth:`mag_flip` on the compiled core (``ct_flip_frame``, ``core/src/multi.c``: the same bytes

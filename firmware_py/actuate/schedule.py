@@ -14,10 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from coiltrack.protocol import MSG
 from coiltrack.protocol.schema import BUS_START_LSB_US, CURRENT_LSB_A, EVT_COIL_FAULT, PULSE_ID_MASK
-
-_PULSE_CMD = MSG["COIL_PULSE_CMD"]
 
 
 class PulseSchedule:
@@ -55,7 +52,7 @@ class PulseSchedule:
         self.burst_start = None
 
     def command(self, coil: int, current_a: float, start_us: int, length_us: int) -> tuple[int, float]:
-        """Send one ``COIL_PULSE_CMD``; returns ``(pulse_id, current)`` with
+        """Send one ``COIL_PULSE_CMD`` (``Transmitter.coil_pulse``); returns ``(pulse_id, current)`` with
         the current as the driver is told to regulate it (1 mA steps).
 
         The command is the one the CAN bus form carries exactly (``docs/protocol.md``, "Bus forms"):
@@ -70,7 +67,7 @@ class PulseSchedule:
         self._mv[coil] = 0.0
         self._fv[coil] = 0
         ma = max(-32768, min(32767, int(round(current_a / CURRENT_LSB_A))))
-        self.tx.send(_PULSE_CMD(coil, pid, ma, start_us, length_us))
+        self.tx.coil_pulse(coil, pid, ma, start_us, length_us)
         self.pulses += 1
         self.commanded += 1
         self.energy_j += current_a * current_a * self._resistance[coil] * length_us * 1e-6

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
+
 __all__ = ["PulseSlot", "PulseBook", "DUTY_HIST"]
 
 #: pulses per coil remembered for the duty-cycle check (an array size: at most
@@ -51,9 +53,11 @@ class PulseBook:
     ``schedule``: the firmware's ``PulseSchedule`` (numbers and sends each command; its
     ``energy_j``). ``filters``: the sensors' EKFs, told to clone the pose at each pulse's
     measurement time (``mid_us`` after its start edge). ``gap_us``: the quiet time a pulse
-    needs after its end (fall, baseline, guard)."""
+    needs after its end (fall, baseline, guard). ``core``: the numeric core (on the compiled one
+    :meth:`duty_ok` is ``ct_scp_duty_ok``, bound to the history once)."""
 
-    def __init__(self, cfg, n_coils: int, schedule, filters, mid_us: int, gap_us: int, first_free_us: int):
+    def __init__(self, cfg, n_coils: int, schedule, filters, mid_us: int, gap_us: int, first_free_us: int,
+                 core=_DEFAULT_CORE):
         self.cfg = cfg
         self.schedule = schedule
         self.filters = tuple(filters)
@@ -70,6 +74,11 @@ class PulseBook:
         self.last_pulse_us = 0                   # the length of that pulse
         self.last_flip_cmd_us = -(1 << 62)
         self.pulses = 0
+        if core.ext is not None:
+            lim = cfg.limits
+            self._duty = core.ext.DutyCore(self._hist, n_coils, DUTY_HIST, lim.coil_duty_window_us,
+                                           cfg.adaptive.duty_margin * lim.coil_max_duty * lim.coil_duty_window_us)
+            self.duty_ok = self._duty.ok
 
     # ------------------------------------------------------------ commands
     def command(self, coil: int, current: float, start: int, length: int, acq: bool, mid_us: int = -1) -> int:

@@ -1192,6 +1192,151 @@ static PyTypeObject NisType = {
     .tp_methods = Nis_methods,
 };
 
+/* ------------------------------------------------------------ the pulses' command and duty */
+/* a signed 64-bit argument into *x; 0 (the error cleared) when it is no integer or out of range */
+static int sc_i64(PyObject *o, int64_t *x)
+{
+    int overflow = 0;
+    long long v;
+    if (!PyLong_Check(o))
+        return 0;
+    v = PyLong_AsLongLongAndOverflow(o, &overflow);
+    if ((v == -1 && PyErr_Occurred()) || overflow) {
+        PyErr_Clear();
+        return 0;
+    }
+    *x = (int64_t)v;
+    return 1;
+}
+
+/* an unsigned 64-bit argument ('Q') into *x; 0 (the error cleared) when struct.pack would refuse it */
+static int sc_u64(PyObject *o, uint64_t *x)
+{
+    unsigned long long v;
+    if (!PyLong_Check(o))
+        return 0;
+    v = PyLong_AsUnsignedLongLong(o);
+    if (v == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        return 0;
+    }
+    *x = (uint64_t)v;
+    return 1;
+}
+
+/* pulse_cmd_frame(seq, src, coil, pulse_id, current_ma, start_us, duration_us) -> bytes or None: one
+ * COIL_PULSE_CMD frame as encode_frame makes it (None: a value the wire format refuses) */
+static PyObject *sc_pulse_cmd_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_PCMD_FRAME_MAX];
+    int64_t f[7];
+    uint64_t start;
+    int k;
+    (void)mod;
+    if (sc_nargs("pulse_cmd_frame", nargs, 7) < 0)
+        return NULL;
+    if (!sc_i64(args[0], &f[0]) || !sc_i64(args[1], &f[1])) {
+        PyErr_SetString(PyExc_TypeError, "pulse_cmd_frame: seq and src must be integers");
+        return NULL;
+    }
+    for (k = 2; k < 7; ++k)
+        if (k != 5 && !sc_i64(args[k], &f[k]))
+            Py_RETURN_NONE;
+    if (!sc_u64(args[5], &start))                  /* start_us: 'Q' */
+        Py_RETURN_NONE;
+    k = ct_pulse_cmd_frame(out, (int)(f[0] & 0xFF), (int)(f[1] & 0xFF), f[2], f[3], f[4], start, f[6]);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
+/* one PulseBook's duty history (n_coils x n_hist x 2 int64) bound, with the duty window and bound */
+typedef struct {
+    PyObject_HEAD
+    Py_buffer view;
+    int bound_view, n_coils, n_hist;
+    int64_t window_us;
+    double bound;
+} DutyObject;
+
+static void Duty_dealloc(DutyObject *self)
+{
+    if (self->bound_view)
+        PyBuffer_Release(&self->view);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* DutyCore(hist, n_coils, n_hist, window_us, bound) */
+static int Duty_init(DutyObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"hist", "n_coils", "n_hist", "window_us", "bound", NULL};
+    PyObject *h;
+    int nc, nh;
+    long long w;
+    double b;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OiiLd", kwlist, &h, &nc, &nh, &w, &b))
+        return -1;
+    if (self->bound_view) {
+        PyErr_SetString(PyExc_RuntimeError, "DutyCore: already bound");
+        return -1;
+    }
+    if (nc < 1 || nc > 64 || nh < 1 || nh > 4096) {
+        PyErr_SetString(PyExc_ValueError, "DutyCore: n_coils in 1..64, n_hist in 1..4096");
+        return -1;
+    }
+    if (sc_get(h, (Py_ssize_t)2 * nc * nh, 'q', 8, 0, &self->view, "hist") < 0)
+        return -1;
+    self->bound_view = 1;
+    self->n_coils = nc;
+    self->n_hist = nh;
+    self->window_us = (int64_t)w;
+    self->bound = b;
+    return 0;
+}
+
+/* ok(c, start, length) -> bool: PulseBook.duty_ok (ct_scp_duty_ok) */
+static PyObject *Duty_ok(DutyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long c;
+    int64_t start, length;
+    if (!self->bound_view) {
+        PyErr_SetString(PyExc_RuntimeError, "DutyCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs("ok", nargs, 3) < 0 || sc_int(args[0], 0, self->n_coils - 1, &c, "coil") < 0)
+        return NULL;
+    if (!sc_i64(args[1], &start) || !sc_i64(args[2], &length)) {
+        PyErr_SetString(PyExc_TypeError, "ok: start and length must be 64-bit integers");
+        return NULL;
+    }
+    return PyBool_FromLong(ct_scp_duty_ok((const int64_t *)self->view.buf + (Py_ssize_t)2 * self->n_hist * c,
+                                          self->n_hist, start, length, self->window_us, self->bound));
+}
+
+static PyMethodDef Duty_methods[] = {
+    {"ok", (PyCFunction)(void (*)(void))Duty_ok, METH_FASTCALL,
+     "ok(c, start, length) -> bool: PulseBook.duty_ok (ct_scp_duty_ok)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject DutyType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.DutyCore",
+    .tp_basicsize = sizeof(DutyObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "DutyCore(hist, n_coils, n_hist, window_us, bound): PulseBook.duty_ok bound to the book's history "
+              "(actuate.single_coil_pulses)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Duty_init,
+    .tp_dealloc = (destructor)Duty_dealloc,
+    .tp_methods = Duty_methods,
+};
+
+static PyMethodDef sc_functions[] = {
+    {"pulse_cmd_frame", (PyCFunction)(void (*)(void))sc_pulse_cmd_frame, METH_FASTCALL,
+     "pulse_cmd_frame(seq, src, coil, pulse_id, current_ma, start_us, duration_us) -> bytes or None: one "
+     "COIL_PULSE_CMD frame as encode_frame makes it (ct_pulse_cmd_frame)"},
+    {NULL, NULL, 0, NULL}};
+
 /* ------------------------------------------------------------------ module */
 int ct_register_single_coil(PyObject *m)
 {
@@ -1231,6 +1376,18 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&NisType);
         return -1;
     }
+    if (PyType_Ready(&DutyType) < 0)
+        return -1;
+    Py_INCREF(&DutyType);
+    if (PyModule_AddObject(m, "DutyCore", (PyObject *)&DutyType) < 0) {
+        Py_DECREF(&DutyType);
+        return -1;
+    }
+    if (PyModule_AddFunctions(m, sc_functions) < 0)
+        return -1;
+    if (PyModule_AddIntConstant(m, "PCMD_ID", CT_PCMD_ID) < 0 || PyModule_AddIntConstant(m, "PCMD_PAYLOAD", CT_PCMD_PAYLOAD) < 0 ||
+        PyModule_AddIntConstant(m, "PCMD_CRC_EXTRA", CT_PCMD_CRC_EXTRA) < 0)
+        return -1;
     if (PyModule_AddIntConstant(m, "NIS_NST", CT_NIS_NST) < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "REF_NST", CT_REF_NST) < 0 || PyModule_AddIntConstant(m, "BND_N", CT_BND_N) < 0 ||

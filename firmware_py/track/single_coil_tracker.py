@@ -121,7 +121,7 @@ class SingleCoilTracker:
         self._sens = tuple(self.sensors.values())
         mid = measurement_mid_us(cfg, self.pulse_us)
         self.book = PulseBook(cfg, n, pulses, [s.ekf for s in self._sens], mid,
-                              pulse_gap_us(cfg), cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us)
+                              pulse_gap_us(cfg), cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us, core)
         # amplitudes sharing baseline samples with a neighbour's (estimate.shared_baseline)
         self.sharing = SharedBaselines(cfg.pulse.fall_us, cfg.pulse.baseline_us, cfg.pulse.guard_us, cfg.pulse.mag_sigma_t,
                                        1e6 / cfg.pulse.mag_rate_hz, cfg.adaptive.baseline_sharing != "ignore",

@@ -80,6 +80,17 @@ struct ct_scp_bounds {
 };
 void ct_scp_bounds(struct ct_scp_bounds *b, int ref_active, int warming, double excess);
 
+/* ------------------------------------------------------------ the pulses' book and command
+ * PulseSchedule.command's COIL_PULSE_CMD frame (payload "<BHhQI": coil, pulse_id, current_ma,
+ * start_us, duration_us) as ct_flip_frame makes a MAG_FLIP_CMD (-1: a value struct.pack refuses) */
+enum { CT_PCMD_ID = 0x10, CT_PCMD_PAYLOAD = 17, CT_PCMD_CRC_EXTRA = 0xDE,
+       CT_PCMD_FRAME_RAW = 5 + 17 + 2, CT_PCMD_FRAME_MAX = 5 + 17 + 2 + 2 + 1 };
+int ct_pulse_cmd_frame(uint8_t *out, int seq, int src, int64_t coil, int64_t pulse_id, int64_t current_ma,
+                       uint64_t start_us, int64_t duration_us);
+/* single_coil_pulses.PulseBook.duty_ok over coil c's (start, end) pairs (hist: n_hist of them,
+ * flat); bound = duty_margin * coil_max_duty * coil_duty_window_us as the reference computes it */
+int ct_scp_duty_ok(const int64_t *hist, int n_hist, int64_t start, int64_t length, int64_t window_us, double bound);
+
 #ifdef __cplusplus
 }
 #endif

@@ -359,3 +359,47 @@ void ct_scp_bounds(struct ct_scp_bounds *b, int ref_active, int warming, double 
             }
     }
 }
+
+/* PulseSchedule.command's frame: the payload little endian as struct.pack("<BHhQI") writes it */
+int ct_pulse_cmd_frame(uint8_t *out, int seq, int src, int64_t coil, int64_t pulse_id, int64_t current_ma,
+                       uint64_t start_us, int64_t duration_us)
+{
+    uint8_t raw[CT_PCMD_FRAME_RAW];
+    uint8_t *pl = raw + 5;
+    uint16_t ma;
+    int i;
+    if (coil < 0 || coil > 0xFF || pulse_id < 0 || pulse_id > 0xFFFF || current_ma < -32768 || current_ma > 32767 ||
+        duration_us < 0 || duration_us > 0xFFFFFFFFLL)
+        return -1;
+    ma = (uint16_t)(int16_t)current_ma;
+    pl[0] = (uint8_t)coil;
+    pl[1] = (uint8_t)pulse_id;
+    pl[2] = (uint8_t)(pulse_id >> 8);
+    pl[3] = (uint8_t)ma;
+    pl[4] = (uint8_t)(ma >> 8);
+    for (i = 0; i < 8; ++i)
+        pl[5 + i] = (uint8_t)(start_us >> (8 * i));
+    for (i = 0; i < 4; ++i)
+        pl[13 + i] = (uint8_t)((uint64_t)duration_us >> (8 * i));
+    return ct_frame_seal(raw, CT_PCMD_PAYLOAD, seq, src, CT_PCMD_ID, CT_PCMD_CRC_EXTRA, out);
+}
+
+/* PulseBook.duty_ok: the on-time of [start, start + length) and of the coil's remembered pulses
+ * that end inside the window [end - window_us, end), against the bound; the pairs that ended
+ * before the window are skipped without reading their start, as in the reference */
+int ct_scp_duty_ok(const int64_t *hist, int n_hist, int64_t start, int64_t length, int64_t window_us, double bound)
+{
+    int64_t end = start + length;
+    int64_t w0 = end - window_us;
+    int64_t on = length;
+    int k;
+    for (k = 0; k < n_hist; ++k) {
+        int64_t e0 = hist[2 * k + 1];
+        if (e0 > w0) {
+            int64_t s0 = hist[2 * k];
+            if (e0 > s0)
+                on += (e0 < end ? e0 : end) - (s0 > w0 ? s0 : w0);
+        }
+    }
+    return (double)on <= bound;
+}
