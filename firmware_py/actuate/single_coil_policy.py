@@ -47,7 +47,44 @@ from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.protocol.schema import CURRENT_LSB_A
 
-__all__ = ["FixedActuation", "AdaptiveActuation", "SensorOutlook"]
+__all__ = ["FixedActuation", "AdaptiveActuation", "SensorOutlook", "CompiledActuationPolicy", "actuation_policy"]
+
+
+class CompiledActuationPolicy(ActuationPolicy):
+    """``coil_choice.ActuationPolicy`` on the compiled core: :meth:`set_bounds`, :meth:`due` and
+    :meth:`worst` are one call each (``sc_policy.c`` ``ct_scp_policy_set_bounds``, ``_due``,
+    ``_worst``), bound once to ``var_max`` and to the outputs ``_st`` (the reason, the worst
+    ratio); the same operations in the same order as the reference's: bit for bit (the decision
+    of when to pulse sees the same numbers on both cores). ``reason`` is read from ``_st``."""
+
+    def __init__(self, sigma_max, max_interval_us: int, trace: bool, ext):
+        self._st = np.zeros(2)
+        self._stv = memoryview(self._st)
+        super().__init__(sigma_max, max_interval_us, trace)
+        self._ck = ext.WhenCore(self.var_max, self._st, self.trace, self.max_interval_us)
+        self.set_bounds = self._ck.set_bounds
+        self.due = self._ck.due
+        self._worst = self._ck.worst
+
+    @property
+    def reason(self) -> int:
+        return int(self._stv[0])
+
+    @reason.setter
+    def reason(self, value: int) -> None:
+        self._stv[0] = value
+
+    def worst(self, P6) -> float:
+        self._worst(P6)
+        return self._stv[1]
+
+
+def actuation_policy(core, sigma_max, max_interval_us: int, trace: bool) -> ActuationPolicy:
+    """The policy of when to pulse on ``core`` (``coiltrack.firmware.core``): the reference, or its
+    compiled twin :class:`CompiledActuationPolicy`."""
+    if core.ext is not None:
+        return CompiledActuationPolicy(sigma_max, max_interval_us, trace, core.ext)
+    return ActuationPolicy(sigma_max, max_interval_us, trace)
 
 
 class SensorOutlook:
@@ -225,7 +262,7 @@ class AdaptiveActuation(_SingleCoilActuation):
             step = CURRENT_LSB_A
         self.chooser = coil_chooser(core, n, currents, smax, smin, cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a,
                                    trace, step, cfg.adaptive.unreached_share)
-        self.policy = ActuationPolicy(smax, cfg.adaptive.adaptive_max_interval_us, trace)
+        self.policy = actuation_policy(core, smax, cfg.adaptive.adaptive_max_interval_us, trace)
         self.pending_update = PoseCovUpdate()
         self.var_amp = lengths.var_amp[-1]
         self.mid_us = lengths.mid_us[-1]

@@ -1331,6 +1331,128 @@ static PyTypeObject DutyType = {
     .tp_methods = Duty_methods,
 };
 
+/* ------------------------------------------------------------ WhenCore */
+/* one ActuationPolicy's var_max (6) and its outputs st (2: reason, worst) bound, with trace and the
+ * interval */
+typedef struct {
+    PyObject_HEAD
+    Py_buffer views[2];
+    int nviews, trace;
+    int64_t max_interval_us;
+} WhenObject;
+
+static void When_release(WhenObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+}
+
+static void When_dealloc(WhenObject *self)
+{
+    When_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* WhenCore(var_max, st, trace, max_interval_us) */
+static int When_init(WhenObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"var_max", "st", "trace", "max_interval_us", NULL};
+    PyObject *vm, *st;
+    int trace;
+    long long mi;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOpL", kwlist, &vm, &st, &trace, &mi))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "WhenCore: already bound");
+        return -1;
+    }
+    if (sc_doubles(vm, 6, 1, &self->views[0], "var_max") < 0)
+        return -1;
+    self->nviews = 1;
+    if (sc_doubles(st, 2, 1, &self->views[1], "st") < 0) {
+        When_release(self);
+        return -1;
+    }
+    self->nviews = 2;
+    self->trace = trace;
+    self->max_interval_us = (int64_t)mi;
+    return 0;
+}
+
+static int wh_ready(WhenObject *self, const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (!self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "WhenCore: not bound");
+        return -1;
+    }
+    return sc_nargs(name, nargs, want);
+}
+
+/* set_bounds(sigma_max6) */
+static PyObject *When_set_bounds(WhenObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double sm[6];
+    if (wh_ready(self, "set_bounds", nargs, 1) < 0 || sc_copy_doubles(args[0], 6, sm, "sigma_max6") < 0)
+        return NULL;
+    ct_scp_policy_set_bounds((double *)self->views[0].buf, sm);
+    Py_RETURN_NONE;
+}
+
+/* worst(P6): the value into st[1] */
+static PyObject *When_worst(WhenObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    if (wh_ready(self, "worst", nargs, 1) < 0 || sc_doubles(args[0], 36, 0, &pv, "P6") < 0)
+        return NULL;
+    ((double *)self->views[1].buf)[1] = ct_scp_policy_worst((const double *)self->views[0].buf,
+                                                            (const double *)pv.buf, self->trace);
+    PyBuffer_Release(&pv);
+    Py_RETURN_NONE;
+}
+
+/* due(P6, now_us, last_update_us) -> bool; the reason into st[0] */
+static PyObject *When_due(WhenObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    int64_t now, last;
+    int reason = 0, due;
+    if (wh_ready(self, "due", nargs, 3) < 0)
+        return NULL;
+    if (!sc_i64(args[1], &now) || !sc_i64(args[2], &last)) {
+        PyErr_SetString(PyExc_TypeError, "due: now_us and last_update_us must be 64-bit integers");
+        return NULL;
+    }
+    if (sc_doubles(args[0], 36, 0, &pv, "P6") < 0)
+        return NULL;
+    due = ct_scp_policy_due((const double *)self->views[0].buf, (const double *)pv.buf, self->trace, now, last,
+                            self->max_interval_us, &reason);
+    PyBuffer_Release(&pv);
+    ((double *)self->views[1].buf)[0] = (double)reason;
+    return PyBool_FromLong(due);
+}
+
+static PyMethodDef When_methods[] = {
+    {"set_bounds", (PyCFunction)(void (*)(void))When_set_bounds, METH_FASTCALL,
+     "set_bounds(sigma_max6): ActuationPolicy.set_bounds (ct_scp_policy_set_bounds)"},
+    {"worst", (PyCFunction)(void (*)(void))When_worst, METH_FASTCALL,
+     "worst(P6): ActuationPolicy.worst into st[1] (ct_scp_policy_worst)"},
+    {"due", (PyCFunction)(void (*)(void))When_due, METH_FASTCALL,
+     "due(P6, now_us, last_update_us) -> bool: ActuationPolicy.due, the reason into st[0] (ct_scp_policy_due)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject WhenType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.WhenCore",
+    .tp_basicsize = sizeof(WhenObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "WhenCore(var_max, st, trace, max_interval_us): coil_choice.ActuationPolicy's bounds, due test and "
+              "worst ratio bound to its arrays (actuate.single_coil_policy.CompiledActuationPolicy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)When_init,
+    .tp_dealloc = (destructor)When_dealloc,
+    .tp_methods = When_methods,
+};
+
 static PyMethodDef sc_functions[] = {
     {"pulse_cmd_frame", (PyCFunction)(void (*)(void))sc_pulse_cmd_frame, METH_FASTCALL,
      "pulse_cmd_frame(seq, src, coil, pulse_id, current_ma, start_us, duration_us) -> bytes or None: one "
@@ -1376,8 +1498,13 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&NisType);
         return -1;
     }
-    if (PyType_Ready(&DutyType) < 0)
+    if (PyType_Ready(&DutyType) < 0 || PyType_Ready(&WhenType) < 0)
         return -1;
+    Py_INCREF(&WhenType);
+    if (PyModule_AddObject(m, "WhenCore", (PyObject *)&WhenType) < 0) {
+        Py_DECREF(&WhenType);
+        return -1;
+    }
     Py_INCREF(&DutyType);
     if (PyModule_AddObject(m, "DutyCore", (PyObject *)&DutyType) < 0) {
         Py_DECREF(&DutyType);

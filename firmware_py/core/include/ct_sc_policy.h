@@ -91,6 +91,14 @@ int ct_pulse_cmd_frame(uint8_t *out, int seq, int src, int64_t coil, int64_t pul
  * flat); bound = duty_margin * coil_max_duty * coil_duty_window_us as the reference computes it */
 int ct_scp_duty_ok(const int64_t *hist, int n_hist, int64_t start, int64_t length, int64_t window_us, double bound);
 
+/* coil_choice.ActuationPolicy (when a pulse is due, Schepers sec. 2.1): var_max (6) set from the
+ * bounds (set_bounds), the worst normalised std (worst) and the due test (due; *reason 0 none,
+ * 1 uncertainty, 2 interval); trace: the position and orientation blocks' traces bounded */
+void ct_scp_policy_set_bounds(double *var_max, const double *sigma_max6);
+double ct_scp_policy_worst(const double *var_max, const double *P6, int trace);
+int ct_scp_policy_due(const double *var_max, const double *P6, int trace, int64_t now_us, int64_t last_update_us,
+                      int64_t max_interval_us, int *reason);
+
 #ifdef __cplusplus
 }
 #endif

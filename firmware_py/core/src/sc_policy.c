@@ -403,3 +403,62 @@ int ct_scp_duty_ok(const int64_t *hist, int n_hist, int64_t start, int64_t lengt
     }
     return (double)on <= bound;
 }
+
+/* ActuationPolicy.set_bounds: var_max[k] = sigma_max6[k]^2 (1e-24 for a bound not above 0) */
+void ct_scp_policy_set_bounds(double *var_max, const double *sigma_max6)
+{
+    int k;
+    for (k = 0; k < 6; ++k) {
+        double v = sigma_max6[k];
+        var_max[k] = v > 0.0 ? v * v : 1e-24;
+    }
+}
+
+/* ActuationPolicy.worst: max_k sqrt(P_kk / var_max_k) as sqrt(max_k P_kk / var_max_k) (the traces'
+ * ratio with trace), the ratios' maximum started at 0 */
+double ct_scp_policy_worst(const double *var_max, const double *P6, int trace)
+{
+    double u = 0.0, x;
+    int g, k;
+    if (trace) {
+        for (g = 0; g < 6; g += 3) {
+            x = (P6[g * 7] + P6[(g + 1) * 7] + P6[(g + 2) * 7]) / (var_max[g] + var_max[g + 1] + var_max[g + 2]);
+            if (x > u)
+                u = x;
+        }
+        return sqrt(u);
+    }
+    for (k = 0; k < 6; ++k) {
+        x = P6[k * 7] / var_max[k];
+        if (x > u)
+            u = x;
+    }
+    return sqrt(u);
+}
+
+/* ActuationPolicy.due: a variance (a trace) not below its bound (NaN included), or the last update
+ * max_interval_us old */
+int ct_scp_policy_due(const double *var_max, const double *P6, int trace, int64_t now_us, int64_t last_update_us,
+                      int64_t max_interval_us, int *reason)
+{
+    int g, k;
+    if (trace) {
+        for (g = 0; g < 6; g += 3)
+            if (!(P6[g * 7] + P6[(g + 1) * 7] + P6[(g + 2) * 7] < var_max[g] + var_max[g + 1] + var_max[g + 2])) {
+                *reason = 1;
+                return 1;
+            }
+    } else {
+        for (k = 0; k < 6; ++k)
+            if (!(P6[k * 7] < var_max[k])) {
+                *reason = 1;
+                return 1;
+            }
+    }
+    if (now_us - last_update_us >= max_interval_us) {
+        *reason = 2;
+        return 1;
+    }
+    *reason = 0;
+    return 0;
+}

@@ -148,3 +148,45 @@ def test_duty_core_refuses_bad_binding():
     assert d.ok(2, 0, 570_000) and not d.ok(2, 0, 570_001)
     with pytest.raises(ValueError):
         d.ok(3, 0, 1)
+
+
+def test_when_to_pulse_compiled_is_the_reference_bit_for_bit():
+    """``CompiledActuationPolicy`` (``ct_scp_policy_*``) against ``coil_choice.ActuationPolicy`` on random
+    predicted covariances and bounds, per variable and on the traces: ``worst`` and ``var_max`` equal
+    with ``==``, ``due`` and ``reason`` the same, a NaN variance due, a bound not above 0 taken as
+    1e-24, the interval's edge (``now - last == max_interval``) due. Independent reference for
+    ``worst``: ``sqrt(max(diag(P6) / sigma_max^2))`` through numpy. Catches a square root taken per
+    ratio, a trace summed in another order, or ``<`` for ``>=`` at the interval."""
+    from coiltrack.firmware.actuate.coil_choice import ActuationPolicy
+    from coiltrack.firmware.actuate.single_coil_policy import CompiledActuationPolicy, actuation_policy
+
+    rng = np.random.default_rng(33)
+    assert type(actuation_policy(core.load("python"), [1.0] * 6, 10, False)) is ActuationPolicy
+    assert type(actuation_policy(COMPILED, [1.0] * 6, 10, False)) is CompiledActuationPolicy
+    reasons = set()
+    for trace in (False, True):
+        smax = [2e-3] * 3 + [0.02] * 3
+        ref, got = ActuationPolicy(smax, 400_000, trace), CompiledActuationPolicy(smax, 400_000, trace, EXT)
+        for trial in range(300):
+            b = np.exp(rng.uniform(np.log(1e-4), np.log(0.05), 6))
+            if trial % 17 == 0:
+                b[int(rng.integers(6))] = 0.0 if trial % 2 else -1.0
+            A = rng.normal(size=(6, 6)) * np.exp(rng.uniform(np.log(1e-4), np.log(3e-2)))
+            P6 = A @ A.T
+            if trial % 29 == 0:
+                P6[2, 2] = np.nan
+            now, last = int(rng.integers(0, 2_000_000)), int(rng.integers(0, 2_000_000))
+            if trial % 13 == 0:
+                last = now - 400_000
+            ref.set_bounds(b)
+            got.set_bounds(b)
+            assert np.array_equal(got.var_max, ref.var_max)
+            assert got.due(P6, now, last) == ref.due(P6, now, last)
+            assert got.reason == ref.reason
+            reasons.add(ref.reason)
+            w = ref.worst(P6)
+            assert got.worst(P6) == w or (np.isnan(w) and np.isnan(got.worst(P6)))
+            if not trace and not np.isnan(P6).any():
+                vm = np.where(b > 0.0, b * b, 1e-24)
+                assert got.worst(P6) == pytest.approx(float(np.sqrt(np.max(np.diag(P6) / vm))), rel=1e-15)
+    assert reasons == {0, 1, 2}
