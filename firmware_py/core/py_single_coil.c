@@ -7,6 +7,7 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <math.h>
 #include <string.h>
 
 #include "coiltrack_core.h"
@@ -432,17 +433,36 @@ enum { SU_H, SU_R, SU_Y, SU_UDX, SU_PHT, SU_S, SU_YP, SU_P0, SU_PPREV, SU_DX, SU
 static const char *su_names[SU_N] = {"H", "R", "y", "udx", "PHt", "S", "y_pred", "P0", "Pprev", "dx", "pi", "Ri",
                                      "Hdx", "dR", "st"};
 
+/* the most coils a bound run evaluates (_coremodule.c's Signal takes as many) */
+#define SU_MAX_COILS 64
+
+/* bind_run's buffers: the shared KalmanUpdate's (ct_kalman), the model's geometry, B, J, h, H and
+ * centres, and the run's outputs rs (SU_RS) */
+enum { SR_KH, SR_KR, SR_KY, SR_KDX, SR_KS, SR_KSI, SR_KK, SR_KPHT, SR_KT, SR_KTH, SR_KX, SR_KKR, SR_KW, SR_KL, SR_KM,
+       SR_GEOM, SR_B, SR_J, SR_H, SR_HH, SR_C, SR_RS, SR_N };
+/* rs[]: a run's outputs: updates applied, rejected, the first pass's NIS, the last pass's, the
+ * model's evaluations */
+enum { SU_RS_APPLIED, SU_RS_REJECTED, SU_RS_NIS, SU_RS_NIS_LAST, SU_RS_EVALS, SU_RS_N };
+
 typedef struct {
     PyObject_HEAD
     struct ct_scu u;
     Py_buffer views[SU_N];
     int nviews;
+    struct ct_kalman k;                /* the shared update's buffers (bind_run) */
+    const double *geom, *centres;
+    double *B, *J, *h, *H, *rs;
+    int ncoils, sym_every;
+    Py_buffer rviews[SR_N];
+    int nrviews;
 } SCUpdateObject;
 
 static void SCUpdate_release(SCUpdateObject *self)
 {
     while (self->nviews > 0)
         PyBuffer_Release(&self->views[--self->nviews]);
+    while (self->nrviews > 0)
+        PyBuffer_Release(&self->rviews[--self->nrviews]);
 }
 
 static void SCUpdate_dealloc(SCUpdateObject *self)
@@ -651,6 +671,198 @@ static PyObject *SCUpdate_after(SCUpdateObject *self, PyObject *const *args, Py_
     return PyBool_FromLong(more);
 }
 
+/* bind_run(kalman, model, rs, sym_every): kalman = the shared KalmanUpdate's (H, R, y, dx, S, Sinv, K, PHt,
+ * T, TH, X, KR, w, L, M), model = the SingleCoilModel's (geom, B, J, h, H, centres) */
+static PyObject *SCUpdate_bind_run(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double *ptr[SR_N];
+    Py_ssize_t nx, nc;
+    long every;
+    int i;
+    if (su_ready(self) < 0 || sc_nargs("bind_run", nargs, 4) < 0 ||
+        sc_int(args[3], 1, 1L << 20, &every, "sym_every") < 0)
+        return NULL;
+    if (self->nrviews) {
+        PyErr_SetString(PyExc_RuntimeError, "SingleCoilUpdateCore: run already bound");
+        return NULL;
+    }
+    if (!PyTuple_Check(args[0]) || PyTuple_GET_SIZE(args[0]) != SR_GEOM || !PyTuple_Check(args[1]) ||
+        PyTuple_GET_SIZE(args[1]) != SR_RS - SR_GEOM) {
+        PyErr_Format(PyExc_TypeError, "bind_run: %d kalman arrays and %d model arrays", (int)SR_GEOM,
+                     (int)(SR_RS - SR_GEOM));
+        return NULL;
+    }
+    nx = self->u.nx;
+    {
+        PyObject *g = PyTuple_GET_ITEM(args[1], 0);
+        Py_buffer gv;
+        if (sc_doubles(g, CT_COIL_STRIDE, 0, &gv, "geom") < 0)
+            return NULL;
+        nc = gv.len / (Py_ssize_t)(CT_COIL_STRIDE * sizeof(double));
+        PyBuffer_Release(&gv);
+        if (nc < 1 || nc > SU_MAX_COILS) {
+            PyErr_Format(PyExc_ValueError, "bind_run: 1..%d coils", SU_MAX_COILS);
+            return NULL;
+        }
+    }
+    for (i = 0; i < SR_N; ++i) {
+        static const char *names[SR_N] = {"H", "R", "y", "dx", "S", "Sinv", "K", "PHt", "T", "TH", "X", "KR", "w",
+                                          "L", "M", "geom", "B", "J", "h", "H", "centres", "rs"};
+        PyObject *o = i < SR_GEOM ? PyTuple_GET_ITEM(args[0], i)
+                      : i < SR_RS ? PyTuple_GET_ITEM(args[1], i - SR_GEOM) : args[2];
+        Py_ssize_t len;
+        switch (i) {
+        case SR_KH: case SR_KK: case SR_KPHT: case SR_KTH: case SR_KKR: len = 3 * nx; break;
+        case SR_KDX: len = nx; break;
+        case SR_KT: case SR_KX: len = nx * nx; break;
+        case SR_KY: case SR_KW: len = 3; break;
+        case SR_GEOM: len = CT_COIL_STRIDE * nc; break;
+        case SR_B: case SR_H: case SR_C: len = 3 * nc; break;
+        case SR_J: len = 9 * nc; break;
+        case SR_HH: len = 18 * nc; break;
+        case SR_RS: len = SU_RS_N; break;
+        default: len = 9;
+        }
+        if (sc_doubles(o, len, i != SR_KH && i != SR_KR && i != SR_KY && i != SR_GEOM && i != SR_C, &self->rviews[i],
+                       names[i]) < 0) {
+            while (self->nrviews > 0)
+                PyBuffer_Release(&self->rviews[--self->nrviews]);
+            return NULL;
+        }
+        self->nrviews = i + 1;
+        ptr[i] = (double *)self->rviews[i].buf;
+    }
+    if (ptr[SR_KH] != self->u.H || ptr[SR_KR] != self->u.R || ptr[SR_KY] != self->u.y || ptr[SR_KDX] != self->u.udx) {
+        while (self->nrviews > 0)
+            PyBuffer_Release(&self->rviews[--self->nrviews]);
+        PyErr_SetString(PyExc_ValueError, "bind_run: H, R, y, dx must be the ones this update was bound to");
+        return NULL;
+    }
+    self->k.n = (int)nx;
+    self->k.m = 3;
+    self->k.H = ptr[SR_KH];
+    self->k.R = ptr[SR_KR];
+    self->k.y = ptr[SR_KY];
+    self->k.dx = ptr[SR_KDX];
+    self->k.S = ptr[SR_KS];
+    self->k.Sinv = ptr[SR_KSI];
+    self->k.K = ptr[SR_KK];
+    self->k.PHt = ptr[SR_KPHT];
+    self->k.T = ptr[SR_KT];
+    self->k.TH = ptr[SR_KTH];
+    self->k.X = ptr[SR_KX];
+    self->k.KR = ptr[SR_KKR];
+    self->k.w = ptr[SR_KW];
+    self->k.L = ptr[SR_KL];
+    self->k.M = ptr[SR_KM];
+    self->geom = ptr[SR_GEOM];
+    self->B = ptr[SR_B];
+    self->J = ptr[SR_J];
+    self->h = ptr[SR_H];
+    self->H = ptr[SR_HH];
+    self->centres = ptr[SR_C];
+    self->rs = ptr[SR_RS];
+    self->ncoils = (int)nc;
+    self->sym_every = (int)every;
+    Py_RETURN_NONE;
+}
+
+/* SingleCoilModel.evaluate (SignalModel.measure at 1 A per coil, no distortion map) at (p, R) */
+static void su_evaluate(SCUpdateObject *self, const double *p, const double *R)
+{
+    double ones[SU_MAX_COILS];
+    int j;
+    for (j = 0; j < self->ncoils; ++j)
+        ones[j] = 1.0;
+    ct_signal_fields(self->geom, self->ncoils, p[0], p[1], p[2], ones, 1, self->B, self->J);
+    ct_signal_project_jac(self->ncoils, R, self->B, self->J, self->h, self->H);
+    self->rs[SU_RS_EVALS] += 1.0;
+}
+
+/* KalmanUpdate._update_compiled: the update with its bookkeeping (count, rejected), P symmetrised
+ * every sym_every-th applied update as ekf.symmetrize does ((P + P^T) * 0.5 through T) */
+static int su_kalman(SCUpdateObject *self, double *P, double gate, long long *count, double *nis)
+{
+    int flags = ct_kalman_update(&self->k, P, gate, nis), n = self->k.n, i, j;
+    double *T = self->k.T;
+    if (flags != CT_EKF_OK) {
+        self->rs[SU_RS_REJECTED] += 1.0;
+        return flags;
+    }
+    self->rs[SU_RS_APPLIED] += 1.0;
+    *count += 1;
+    if (*count % self->sym_every == 0) {
+        memcpy(T, P, (size_t)n * n * sizeof(double));
+        for (i = 0; i < n; ++i)
+            for (j = 0; j < n; ++j)
+                P[i * n + j] = (T[i * n + j] + T[j * n + i]) * 0.5;
+    }
+    return flags;
+}
+
+/* run(P, p, R, cp, co, coil, y, var, current, rel_model, r_scale, gate, iterations, count[, gain,
+ * gain_current]) -> flags: SingleCoilUpdate._run_compiled in one call (the model's evaluations, the
+ * passes, the shared update's); rs: the counts, the NISs, the evaluations */
+static PyObject *SCUpdate_run(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv;
+    double p[3], R[9], y[3], var[3], gate, nis;
+    long cp, co, coil, iters;
+    long long count;
+    struct ct_scm m;
+    int flags, f, it;
+    if (su_ready(self) < 0 || sc_nargs("run", nargs, nargs == 16 ? 16 : 14) < 0)
+        return NULL;
+    if (!self->nrviews) {
+        PyErr_SetString(PyExc_RuntimeError, "SingleCoilUpdateCore: run not bound");
+        return NULL;
+    }
+    if (su_rows(self, args[3], args[4], &cp, &co) < 0 || sc_int(args[5], 0, self->ncoils - 1, &coil, "coil") < 0 ||
+        sc_int(args[12], 1, 1L << 20, &iters, "iterations") < 0 || su_gain(self, args, nargs, 14, &m) < 0)
+        return NULL;
+    count = PyLong_AsLongLong(args[13]);
+    if (count == -1 && PyErr_Occurred())
+        return NULL;
+    if (sc_copy_doubles(args[1], 3, p, "p") < 0 || sc_copy_doubles(args[2], 9, R, "R") < 0 ||
+        sc_copy_doubles(args[6], 3, y, "y") < 0 || sc_copy_doubles(args[7], 3, var, "var") < 0 ||
+        sc_double(args[8], &m.current) < 0 || sc_double(args[9], &m.rel_model) < 0 ||
+        sc_double(args[10], &m.r_scale) < 0 || sc_double(args[11], &gate) < 0)
+        return NULL;
+    if (sc_doubles(args[0], (Py_ssize_t)self->u.nx * self->u.nx, 1, &pv, "P") < 0)
+        return NULL;
+    m.y = y;
+    m.var = var;
+    m.h = self->h + 3 * coil;
+    m.Hu = self->H + 18 * coil;
+    m.centre = self->centres + 3 * coil;
+    memset(self->rs, 0, SU_RS_N * sizeof(double));
+    su_evaluate(self, p, R);
+    ct_scu_begin(&self->u, (double *)pv.buf, p, R, (int)cp, (int)co, &m);
+    flags = su_kalman(self, (double *)pv.buf, gate, &count, &nis);
+    self->rs[SU_RS_NIS] = nis;
+    self->rs[SU_RS_NIS_LAST] = nis;
+    if (!(flags & (CT_EKF_GATED | CT_EKF_NOT_PD | CT_EKF_NONFINITE))) {
+        f = flags;
+        it = 0;
+        /* the later passes' model: no amplitude variances, no noise terms (SCUpdate_again) */
+        while (ct_scu_after(&self->u, it, f, (int)iters, (double *)pv.buf, p, R, (int)cp, (int)co, var)) {
+            struct ct_scm ma = m;
+            ++it;
+            su_evaluate(self, self->u.pi, self->u.Ri);
+            ma.var = NULL;
+            ma.rel_model = 0.0;
+            ma.r_scale = 1.0;
+            ma.centre = NULL;
+            ct_scu_predict(&self->u, &ma);
+            ct_scu_pass(&self->u, it, (double *)pv.buf, (int)cp, (int)co, &ma);
+            f = su_kalman(self, (double *)pv.buf, HUGE_VAL, &count, &nis);
+            self->rs[SU_RS_NIS_LAST] = nis;
+        }
+    }
+    PyBuffer_Release(&pv);
+    return PyLong_FromLong(flags);
+}
+
 #define SU_METH(name, doc) {#name, (PyCFunction)(void (*)(void))SCUpdate_##name, METH_FASTCALL, doc}
 static PyMethodDef SCUpdate_methods[] = {
     SU_METH(begin, "begin(P, p, R, cp, co, h, H, centres, coil, y, var, current, rel_model, r_scale[, gain, "
@@ -659,6 +871,9 @@ static PyMethodDef SCUpdate_methods[] = {
     SU_METH(again, "again(it, P, cp, co, h, H, coil, y, current[, gain, gain_current]): pass it up to its shared "
                    "update"),
     SU_METH(after, "after(it, flags, iterations, P, p, R, cp, co, var) -> bool: keep pass it, another pass?"),
+    SU_METH(bind_run, "bind_run(kalman, model, rs, sym_every): the shared update's and the model's buffers, for run"),
+    SU_METH(run, "run(P, p, R, cp, co, coil, y, var, current, rel_model, r_scale, gate, iterations, count[, gain, "
+                 "gain_current]) -> flags: SingleCoilUpdate.run in one call (its outputs in rs)"),
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject SCUpdateType = {
@@ -1519,7 +1734,8 @@ int ct_register_single_coil(PyObject *m)
         return -1;
     if (PyModule_AddIntConstant(m, "REF_NST", CT_REF_NST) < 0 || PyModule_AddIntConstant(m, "BND_N", CT_BND_N) < 0 ||
         PyModule_AddIntConstant(m, "SC_NST", CT_SCU_NST) < 0 ||
-        PyModule_AddIntConstant(m, "SC_NIS_NOMINAL", CT_SCU_NIS_NOMINAL) < 0)
+        PyModule_AddIntConstant(m, "SC_NIS_NOMINAL", CT_SCU_NIS_NOMINAL) < 0 ||
+        PyModule_AddIntConstant(m, "SC_RS_N", SU_RS_N) < 0)
         return -1;
     return 0;
 }

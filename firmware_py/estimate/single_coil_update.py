@@ -17,6 +17,10 @@ The compiled core (``coiltrack.firmware.core``, chosen once by the ``core`` argu
 products the Python hands to BLAS, ``P H^T``, ``H P H^T``, ``H dx`` and ``R dR``, summed in index
 order with ``H``'s zeros skipped: equal to rounding); the field model's evaluation and the shared
 ``KalmanUpdate.update`` (its own compiled kernel, count and symmetrisation) are called as they are.
+On the compiled core a whole run is one call (``SingleCoilUpdateCore.run``, :meth:`SingleCoilUpdate._run_fused`):
+the same kernels (the signal model's ``ct_signal_fields`` / ``ct_signal_project_jac``, the passes',
+``ct_kalman_update``) in the same order, bound once to the update's, the shared update's and the
+model's buffers.
 """
 from __future__ import annotations
 
@@ -25,7 +29,7 @@ import math
 import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, KalmanUpdate
+from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, SYMMETRIZE_EVERY, KalmanUpdate
 from coiltrack.firmware.linalg import exp_rotvec, inv3_sym, quad3_sym
 
 __all__ = ["CoilGains", "CoilMeasurement", "SingleCoilUpdate"]
@@ -33,6 +37,9 @@ __all__ = ["CoilGains", "CoilMeasurement", "SingleCoilUpdate"]
 #: margin on the linearisation error: the second-order term of an r^-3 field is 6 (d/r)^2
 #: h; the iterated update removes most of it, 2 (sigma/r)^2 |h| is kept as a margin
 _LIN_K = 2.0
+#: the fused run's outputs (``SingleCoilUpdateCore.run``'s ``rs``): updates applied, rejected, the first
+#: pass's NIS, the last pass's, the model's evaluations
+_RS_APPLIED, _RS_REJECTED, _RS_NIS, _RS_NIS_LAST, _RS_EVALS = range(5)
 
 
 class CoilMeasurement:
@@ -99,7 +106,10 @@ class SingleCoilUpdate:
             self._ck = ext.SingleCoilUpdateCore(nx, (u.H, u.R, u.y, u.dx, self._PHt, self._S, self.y_pred, self._P0,
                                                      self._Pprev, self.dx, self._pi, self._Ri, self._Hdx, self._dR,
                                                      self._st))
-            self.run = self._run_compiled
+            self.run = self._run_fused
+            self._run_model = None       # the model the fused run is bound to (the first one run)
+            self._rs = np.zeros(ext.SC_RS_N)
+            self._rsv = memoryview(self._rs)
             self.core = "compiled"
 
     def _noise(self, P, p, cp, m: CoilMeasurement, model) -> tuple[float, float]:
@@ -213,6 +223,38 @@ class SingleCoilUpdate:
                 np.matmul(R, self._dR, out=Ri)
                 if step < 1e-6:
                     break
+        return flags
+
+    def _bind_run(self, model) -> bool:
+        """Bind the fused run (``SingleCoilUpdateCore.run``) to the shared update's buffers and to
+        ``model``'s, once; False (the passes one call each, :meth:`_run_compiled`) for a model
+        whose evaluation is not the plain compiled signal model (a distortion map, the Python
+        kernels) or once another model is bound."""
+        sig = model.signal
+        if self._run_model is not None or getattr(sig, "core", "python") != "compiled" or sig.distortion is not None:
+            return False
+        u = self.upd
+        self._ck.bind_run((u.H, u.R, u.y, u.dx, u.S, u.Sinv, u.K, u._PHt, u._T, u._TH, u._X, u._KR, u._w, u._L, u._M),
+                          (sig._geom, sig.B, sig.J, model.h, model.H, model.cs.centers), self._rs, SYMMETRIZE_EVERY)
+        self._run_model = model
+        return True
+
+    def _run_fused(self, P, p, R, cp, co, m: CoilMeasurement, model, gain: int = -1, gain_current: float = 0.0) -> int:
+        """:meth:`run` in one compiled call (``SingleCoilUpdateCore.run``: the model's evaluations, the
+        passes of :meth:`_run_compiled` and the shared update's with its bookkeeping, the same kernels
+        in the same order: the same bits); its counts, NISs and evaluations read back from ``_rs``."""
+        if model is not self._run_model and not self._bind_run(model):
+            return self._run_compiled(P, p, R, cp, co, m, model, gain, gain_current)
+        upd = self.upd
+        flags = self._ck.run(P, p, R, cp.start, co.start, m.coil, m.y, m.var, m.current, m.rel_model, m.r_scale,
+                             upd.gate if m.gate else math.inf, self.iterations, upd.count, gain, gain_current)
+        rs = self._rsv
+        upd.count += int(rs[_RS_APPLIED])
+        upd.rejected += int(rs[_RS_REJECTED])
+        upd.nis = rs[_RS_NIS_LAST]
+        self.nis_nominal = self._stv[self._nis_at]
+        self.nis = rs[_RS_NIS]
+        model.signal.evals += model.n * int(rs[_RS_EVALS])
         return flags
 
     def _run_compiled(self, P, p, R, cp, co, m: CoilMeasurement, model, gain: int = -1,
