@@ -45,6 +45,7 @@ from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, P
                                                     coil_chooser, current_ladder, saturation_current_limit)
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 from coiltrack.firmware.estimate.layout import ORI, POS
+from coiltrack.firmware.estimate.single_coil import SchepersEKF
 from coiltrack.protocol.schema import CURRENT_LSB_A
 
 __all__ = ["FixedActuation", "AdaptiveActuation", "SensorOutlook", "CompiledActuationPolicy", "actuation_policy"]
@@ -100,6 +101,7 @@ class SensorOutlook:
         self.smax6 = np.zeros(POSE_DIM)            # the bounds of the latest decision (m, rad)
         self.smin6 = np.zeros(POSE_DIM)
         self.bounds_core = None                    # the compiled bounds bound to these arrays
+        self.view_core = None                      # ... and the one-call prediction (AdaptiveActuation._bind_views)
 
 
 class _SingleCoilActuation:
@@ -282,6 +284,7 @@ class AdaptiveActuation(_SingleCoilActuation):
             self._range_limits = self._range_limits_compiled
             if self._bind_bounds(core.ext):
                 self._bounds = self._bounds_compiled
+            self._bind_views(core.ext)
             self.kernels = "compiled"
         self._decided_stamp = -1
         self._decided_us = 0
@@ -359,11 +362,7 @@ class AdaptiveActuation(_SingleCoilActuation):
         due = False
         for v in self.views:
             s = v.sensor
-            ekf = s.ekf
-            np.copyto(v.Rd, ekf.R)
-            ekf.predict_pose(t_m - (ekf.t_us if ekf.t_us is not None else now_us), v.P6, v.pp)
-            self._bounds(v)
-            self.policy.set_bounds(v.smax6)
+            self._predict_view(v, t_m, now_us)
             for sl in self.book.slots:
                 if sl.active and not sl.acq:
                     self._model_at(v)
@@ -389,6 +388,36 @@ class AdaptiveActuation(_SingleCoilActuation):
         self._dec_ws = ws
         self._dec_start = start
         self._dec_phase = 1
+
+    def _predict_view(self, v: SensorOutlook, t_m: int, now_us: int) -> None:
+        """The filter's orientation (``v.Rd``), pose covariance and position predicted at ``t_m``
+        (``v.P6``, ``v.pp``), the bounds there (:meth:`_bounds`) and the policy's (``set_bounds``)."""
+        ekf = v.sensor.ekf
+        np.copyto(v.Rd, ekf.R)
+        ekf.predict_pose(t_m - (ekf.t_us if ekf.t_us is not None else now_us), v.P6, v.pp)
+        self._bounds(v)
+        self.policy.set_bounds(v.smax6)
+
+    def _predict_view_compiled(self, v: SensorOutlook, t_m: int, now_us: int) -> None:
+        """:meth:`_predict_view` in one call (``ViewCore.predict``: ``ct_sc_predict_pose``, ``ct_scp_bounds``,
+        ``ct_scp_policy_set_bounds``, the kernels the calls it replaces run), bit for bit."""
+        s = v.sensor
+        ekf = s.ekf
+        v.view_core.predict(t_m - (ekf.t_us if ekf.t_us is not None else now_us), s.ref is not None and s.ref.active,
+                            self._warming, s.monitor.excess)
+
+    def _bind_views(self, ext) -> None:
+        """Bind each view's one-call prediction (``ViewCore``) where its parts are all compiled: the
+        filter's own prediction (a subclass keeping ``SchepersEKF``'s), the bounds and the policy."""
+        if self._bounds != self._bounds_compiled or not isinstance(self.policy, CompiledActuationPolicy):
+            return
+        for v in self.views:
+            ekf = v.sensor.ekf
+            if ekf.kernels != "compiled" or type(ekf).predict_pose is not SchepersEKF.predict_pose:
+                return
+        for v in self.views:
+            v.view_core = ext.ViewCore(v.sensor.ekf._ck, v.bounds_core, self.policy._ck, v.P6, v.pp, v.Rd)
+        self._predict_view = self._predict_view_compiled
 
     def _decide_limits(self) -> None:
         """Current limits: the driver's, every sensor's magnetometer range, the coils' duty (in the

@@ -1668,6 +1668,119 @@ static PyTypeObject WhenType = {
     .tp_methods = When_methods,
 };
 
+/* ------------------------------------------------------------ ViewCore */
+/* one SensorOutlook's prediction in one call: its filter's SchepersCore, its BoundsCore and the
+ * policy's WhenCore (references held), its P6 (6 x 6), pp (3, the bounds' own) and Rd (3 x 3) */
+typedef struct {
+    PyObject_HEAD
+    PyObject *sc, *bd, *wh;
+    Py_buffer views[3];
+    int nviews;
+} ViewObject;
+
+static void View_release(ViewObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    Py_CLEAR(self->sc);
+    Py_CLEAR(self->bd);
+    Py_CLEAR(self->wh);
+}
+
+static void View_dealloc(ViewObject *self)
+{
+    View_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* ViewCore(ekf_core, bounds_core, when_core, P6, pp, Rd) */
+static int View_init(ViewObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"ekf_core", "bounds_core", "when_core", "P6", "pp", "Rd", NULL};
+    PyObject *sc, *bd, *wh, *P6, *pp, *Rd;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!O!OOO", kwlist, &SchepersCoreType, &sc, &BoundsType, &bd,
+                                     &WhenType, &wh, &P6, &pp, &Rd))
+        return -1;
+    if (self->nviews || self->sc != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ViewCore: already bound");
+        return -1;
+    }
+    if (!((SchepersCoreObject *)sc)->nviews || !((BoundsObject *)bd)->nviews || !((WhenObject *)wh)->nviews) {
+        PyErr_SetString(PyExc_ValueError, "ViewCore: the cores must be bound");
+        return -1;
+    }
+    if (sc_doubles(P6, 36, 1, &self->views[0], "P6") < 0)
+        return -1;
+    self->nviews = 1;
+    if (sc_doubles(pp, 3, 1, &self->views[1], "pp") < 0 || (self->nviews = 2,
+        sc_doubles(Rd, 9, 1, &self->views[2], "Rd") < 0)) {
+        View_release(self);
+        return -1;
+    }
+    self->nviews = 3;
+    if ((const double *)self->views[1].buf != ((BoundsObject *)bd)->b.pp) {
+        View_release(self);
+        PyErr_SetString(PyExc_ValueError, "ViewCore: pp must be the bounds core's");
+        return -1;
+    }
+    Py_INCREF(sc);
+    Py_INCREF(bd);
+    Py_INCREF(wh);
+    self->sc = sc;
+    self->bd = bd;
+    self->wh = wh;
+    return 0;
+}
+
+/* predict(horizon_us, ref_active, warming, excess): AdaptiveActuation._predict_view (the filter's
+ * orientation into Rd, SchepersEKF.predict_pose over max(horizon_us, 0) in 8 steps, _bounds,
+ * ActuationPolicy.set_bounds) */
+static PyObject *View_predict(ViewObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    SchepersCoreObject *sc;
+    int64_t h;
+    int active, warming;
+    double excess;
+    if (self->sc == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ViewCore: not bound");
+        return NULL;
+    }
+    if (sc_nargs("predict", nargs, 4) < 0)
+        return NULL;
+    if (!sc_i64(args[0], &h)) {
+        PyErr_SetString(PyExc_TypeError, "predict: horizon_us must be a 64-bit integer");
+        return NULL;
+    }
+    if ((active = PyObject_IsTrue(args[1])) < 0 || (warming = PyObject_IsTrue(args[2])) < 0 ||
+        sc_double(args[3], &excess) < 0)
+        return NULL;
+    sc = (SchepersCoreObject *)self->sc;
+    memcpy(self->views[2].buf, sc->s.R, 9 * sizeof(double));
+    ct_sc_predict_pose(&sc->s, (double)(h > 0 ? h : 0) * 1e-6, 8, (double *)self->views[0].buf,
+                       (double *)self->views[1].buf);
+    ct_scp_bounds(&((BoundsObject *)self->bd)->b, active, warming, excess);
+    ct_scp_policy_set_bounds((double *)((WhenObject *)self->wh)->views[0].buf, ((BoundsObject *)self->bd)->b.mx);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef View_methods[] = {
+    {"predict", (PyCFunction)(void (*)(void))View_predict, METH_FASTCALL,
+     "predict(horizon_us, ref_active, warming, excess): AdaptiveActuation._predict_view in one call"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject ViewType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ViewCore",
+    .tp_basicsize = sizeof(ViewObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "ViewCore(ekf_core, bounds_core, when_core, P6, pp, Rd): one sensor's predicted pose covariance, "
+              "bounds and the policy's bounds in one call (actuate.single_coil_policy)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)View_init,
+    .tp_dealloc = (destructor)View_dealloc,
+    .tp_methods = View_methods,
+};
+
 static PyMethodDef sc_functions[] = {
     {"pulse_cmd_frame", (PyCFunction)(void (*)(void))sc_pulse_cmd_frame, METH_FASTCALL,
      "pulse_cmd_frame(seq, src, coil, pulse_id, current_ma, start_us, duration_us) -> bytes or None: one "
@@ -1713,8 +1826,13 @@ int ct_register_single_coil(PyObject *m)
         Py_DECREF(&NisType);
         return -1;
     }
-    if (PyType_Ready(&DutyType) < 0 || PyType_Ready(&WhenType) < 0)
+    if (PyType_Ready(&DutyType) < 0 || PyType_Ready(&WhenType) < 0 || PyType_Ready(&ViewType) < 0)
         return -1;
+    Py_INCREF(&ViewType);
+    if (PyModule_AddObject(m, "ViewCore", (PyObject *)&ViewType) < 0) {
+        Py_DECREF(&ViewType);
+        return -1;
+    }
     Py_INCREF(&WhenType);
     if (PyModule_AddObject(m, "WhenCore", (PyObject *)&WhenType) < 0) {
         Py_DECREF(&WhenType);

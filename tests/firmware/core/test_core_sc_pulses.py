@@ -190,3 +190,44 @@ def test_when_to_pulse_compiled_is_the_reference_bit_for_bit():
                 vm = np.where(b > 0.0, b * b, 1e-24)
                 assert got.worst(P6) == pytest.approx(float(np.sqrt(np.max(np.diag(P6) / vm))), rel=1e-15)
     assert reasons == {0, 1, 2}
+
+
+def test_a_views_prediction_in_one_call_is_the_calls_it_replaces():
+    """``ViewCore.predict`` (``AdaptiveActuation._predict_view_compiled``) against the calls of
+    ``_predict_view`` on the compiled core one by one (the filter's orientation copied, ``predict_pose``
+    over the horizon in 8 steps, ``BoundsCore.bounds``, the policy's ``set_bounds``), on a propagated
+    filter, stated bounds scaled with the range and the NIS excess, horizons negative (none), zero and
+    up to 0.3 s: every output equal with ``==``. A ``pp`` that is not the bounds core's is refused."""
+    from coiltrack.firmware.actuate.single_coil_policy import CompiledActuationPolicy
+    from coiltrack.firmware.estimate.single_coil import SchepersEKF
+
+    cfg = FirmwareConfig()
+    rng = np.random.default_rng(34)
+    ekf = SchepersEKF.from_config(cfg, core=COMPILED)
+    ekf.initialize(np.array([0.2, -0.1, 0.15]), np.eye(3), np.diag([4e-6] * 3 + [1e-4] * 3), 0, 0.05, 0.02, 0.003)
+    for t in range(10_000, 200_000, 10_000):
+        ekf.propagate(t, np.array([0.2, -0.1, 9.8]) + rng.normal(0, 0.05, 3), rng.normal(0, 0.4, 3))
+    params = np.array([1.0, 0.5, 2.0, 1.0, 4.0, 0.5, 2.0, 2e-3, 1e-3, 1.0, 0.5, 0.3, 1.5, 1.0, 0.0, 0.0])
+    outs = []
+    for fused in (True, False):
+        P6, pp, Rd, mx, mn = np.zeros((6, 6)), np.zeros(3), np.zeros((3, 3)), np.zeros(6), np.zeros(6)
+        bd = EXT.BoundsCore((pp, mx, mn), None, None, params)
+        pol = CompiledActuationPolicy([1e-3] * 6, 10 ** 6, False, EXT)
+        vc = EXT.ViewCore(ekf._ck, bd, pol._ck, P6, pp, Rd)
+        got = []
+        for h, excess in ((-5_000, 1.0), (0, 2.5), (60_000, 1.0), (310_000, 7.0)):
+            if fused:
+                vc.predict(h, False, False, excess)
+            else:
+                np.copyto(Rd, ekf.R)
+                ekf.predict_pose(h, P6, pp)
+                bd.bounds(False, False, excess)
+                pol.set_bounds(mx)
+            got.append([a.copy() for a in (P6, pp, Rd, mx, mn, pol.var_max)])
+        outs.append(got)
+    for a, b in zip(*outs):
+        for x, y in zip(a, b):
+            assert np.array_equal(x, y)
+    assert not np.array_equal(outs[0][0][0], outs[0][3][0])            # the horizon counts
+    with pytest.raises(ValueError):
+        EXT.ViewCore(ekf._ck, bd, pol._ck, np.zeros((6, 6)), np.zeros(3), np.zeros((3, 3)))
