@@ -1019,3 +1019,12 @@ def virtual_link_pair(node_a: int, node_b: int, channel: str | None = None, **kw
     a, b = virtual_bus_pair(channel)
     return CanLink(a, node_a, **kwargs), CanLink(b, node_b, **kwargs)
 
+
+
+def inproc_link_pair(node_a: int, node_b: int, **kwargs):
+    """Two :class:`CanLink` on one in-process bus (:mod:`protocol.interfaces.inproc`: python-can's
+    ``BusABC`` and ``Message``, without ``virtual``'s deep copy and locked queue a frame)."""
+    from .interfaces.inproc import inproc_bus_pair
+
+    a, b = inproc_bus_pair()
+    return CanLink(a, node_a, **kwargs), CanLink(b, node_b, **kwargs)
