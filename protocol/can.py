@@ -114,6 +114,7 @@ from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolE
                      UnknownMessageError)
 from .framing import (_EXTRA, CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
                       build_frame, cobs_encode, crc16, parse_frame, parse_frame_fast)
+from .interfaces import message
 from .slcan import line_length as slcan_line_length
 from .schema import BY_ID, MAX_PAYLOAD, MESSAGES
 
@@ -321,9 +322,8 @@ class CanCodec:
     def _messages(self, arb: int, pdu: bytes, timestamp: float = 0.0, signed: bool = False) -> list[can.Message]:
         if signed:
             arb = ext_id(arb)
-        return [can.Message(arbitration_id=arb, is_extended_id=signed, data=d, is_fd=self.fd,
-                            bitrate_switch=self.fd and self.brs, timestamp=timestamp)
-                for d in segment(pdu, self.fd)]
+        fd, brs = self.fd, self.fd and self.brs
+        return [message(arb, signed, d, fd, brs, timestamp) for d in segment(pdu, fd)]
 
     def _direct(self, arb: int, msg_id: int, payload: bytes, timestamp: float) -> list[can.Message]:
         return [can.Message(arbitration_id=arb, is_extended_id=False, data=direct_data(msg_id, payload, self.fd),

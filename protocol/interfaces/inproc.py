@@ -7,7 +7,8 @@ receiver's locked queue (12.7 us a frame here, best of 5, CPU time) and passes e
 one through ``BusABC.recv``'s filter and log calls (2.2 us): the firmware's tick paid that for
 every frame, 1.1 ms in a tick that sends three POSEs and sixteen PULSE_WINDOWs' frames, which a
 board's CAN driver (a TX mailbox written, a RX FIFO read) does not cost. Here a frame sent is
-one ``can.Message`` built per receiver (its own ``data``; the sender's object is never shared)
+one ``can.Message`` built per receiver (:func:`protocol.interfaces.message`; its own ``data``, the
+sender's object never shared)
 appended to that receiver's deque, and ``recv(timeout=0)`` pops it (the filters applied when
 set). Blocking receives (``timeout`` > 0 or None, another thread sending) take ``BusABC``'s
 general path. Frames keep python-can's fields: ``timestamp`` (the wall clock at ``send``, as
@@ -20,6 +21,8 @@ import time
 from collections import deque
 
 import can
+
+from . import message
 
 __all__ = ["InprocBus", "InprocChannel", "inproc_bus_pair"]
 
@@ -57,11 +60,9 @@ class InprocBus(can.BusABC):
         for o in self.wire.ends:
             if o is self and not self.receive_own_messages:
                 continue
-            o._put(can.Message(timestamp=ts, arbitration_id=msg.arbitration_id, is_extended_id=msg.is_extended_id,
-                               is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame,
-                               channel=self.wire.name, dlc=msg.dlc, data=msg.data[:], is_fd=msg.is_fd,
-                               is_rx=o is not self, bitrate_switch=msg.bitrate_switch,
-                               error_state_indicator=msg.error_state_indicator))
+            o._put(message(msg.arbitration_id, msg.is_extended_id, msg.data, msg.is_fd, msg.bitrate_switch, ts,
+                           msg.is_remote_frame, msg.dlc, o is not self, self.wire.name, msg.is_error_frame,
+                           msg.error_state_indicator))
 
     def _put(self, m: can.Message) -> None:
         if self.rx_queue_size and len(self._rx) >= self.rx_queue_size:

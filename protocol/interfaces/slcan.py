@@ -30,6 +30,8 @@ from collections import deque
 
 import can
 
+from . import message
+
 __all__ = ["SlcanTtyBus", "encode_line", "parse_lines"]
 
 #: bit/s -> slcan bit-rate command (python-can's table)
@@ -94,9 +96,7 @@ def parse_lines(buf: bytearray, out: deque, counts: list, timestamp: float = 0.0
         except (ValueError, IndexError, UnicodeDecodeError):
             counts[1] += 1
             continue
-        out.append(can.Message(timestamp=timestamp, arbitration_id=arb, is_extended_id=nid == 8,
-                               is_remote_frame=remote, is_fd=fd, bitrate_switch=brs, dlc=n, data=data,
-                               is_rx=True))
+        out.append(message(arb, nid == 8, data, fd, brs, timestamp, remote, n))
     del buf[:end + 1]
 
 

@@ -138,3 +138,28 @@ def test_canlink_carries_the_same_bytes_as_over_virtual(name):
     assert outs[0] == outs[1]
     dec = FrameDecoder()
     assert len(dec.feed(outs[0][0])) == 3
+
+
+SLOTS = ("arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "dlc", "data", "is_fd",
+         "bitrate_switch", "error_state_indicator", "is_rx", "channel", "timestamp")
+
+
+@pytest.mark.parametrize("kw", [
+    dict(arbitration_id=0x123, is_extended_id=False, data=b"\x01\x02"),
+    dict(arbitration_id=0x1ABCDE0, is_extended_id=True, data=bytearray(range(8)), timestamp=12.5, channel="c"),
+    dict(arbitration_id=0x321, is_extended_id=False, is_remote_frame=True, dlc=4, data=b"\x01"),
+    dict(arbitration_id=0x456, is_extended_id=False, is_fd=True, bitrate_switch=True, data=bytes(64), is_rx=False),
+    dict(arbitration_id=0x7, is_extended_id=False, data=None, is_error_frame=True, error_state_indicator=True),
+])
+def test_message_builds_what_can_message_builds(kw):
+    """protocol.interfaces.message bypasses Message.__init__: every slot as the constructor sets it,
+    and the data a buffer of its own."""
+    from coiltrack.protocol.interfaces import FAST, message
+
+    ref = can.Message(**kw)
+    m = message(**kw)
+    assert FAST                                         # this python-can's Message has the slots it sets
+    assert type(m) is can.Message
+    assert [getattr(m, k) for k in SLOTS] == [getattr(ref, k) for k in SLOTS]
+    if isinstance(kw.get("data"), bytearray):
+        assert m.data is not kw["data"]
