@@ -78,3 +78,26 @@ def test_cpu_timing_replays_cpu_times():
     assert out["tick_cpu_us_max"] == 2300.0 and out["tick_cpu_us_median"] == 50.0
     assert set(out) == {"tick_cpu_us_median", "tick_cpu_us_p99", "tick_cpu_us_p999", "tick_cpu_us_max",
                         "cpu_deadline_misses"}
+
+
+def test_trace_summary_tells_the_pieces_apart():
+    """A tick over the period by its port's writes alone is a miss on CPU, none without the I/O;
+    one over it by the bus alone, none without the bus; the collector's time is its own piece."""
+    tr = TickTrace(10)
+    for k in range(10):
+        tr.begin(k)
+        tr.add(2, 20_000)                       # read 20 us
+        if k == 3:
+            tr.add(3, 1_100_000)                # a write of 1.1 ms ...
+            tr.add(4, 900_000)                  # ... 0.9 ms of it the bus's send
+            tr.add(6, 46)
+        if k == 6:
+            tr.add(8, 1_200_000)                # a 1.2 ms collection inside the tick
+        own = 30_000 + (1_200_000 if k == 6 else 0)
+        tr.end(k, 50_000 + own + (1_100_000 if k == 3 else 0), 20_000 + own + (1_100_000 if k == 3 else 0))
+    s = tr.summary(1000)
+    assert s["ticks"] == 10
+    assert s["misses"] == {"wall": 2, "cpu": 2, "cpu_without_gc": 1, "cpu_without_bus": 1, "cpu_without_io": 1}
+    assert [t["tick"] for t in s["ticks_over_period_cpu"]] == [3, 6]
+    assert s["ticks_over_period_cpu"][0]["frames_tx"] == 46 and s["ticks_over_period_cpu"][1]["gc_us"] == 1200
+    assert s["write"]["max"] == 1100.0 and s["frames_tx"]["max"] == 46
