@@ -114,6 +114,7 @@ from .errors import (CrcError, EncodeError, FramingError, LengthError, ProtocolE
                      UnknownMessageError)
 from .framing import (_EXTRA, CRC_LEN, FLAG_SIGNED, HEADER_LEN, SIG_LEN, DecodedFrame, FrameDecoder,
                       build_frame, cobs_encode, crc16, parse_frame, parse_frame_fast)
+from .interfaces import message
 from .slcan import line_length as slcan_line_length
 from .schema import BY_ID, MAX_PAYLOAD, MESSAGES
 
@@ -321,9 +322,8 @@ class CanCodec:
     def _messages(self, arb: int, pdu: bytes, timestamp: float = 0.0, signed: bool = False) -> list[can.Message]:
         if signed:
             arb = ext_id(arb)
-        return [can.Message(arbitration_id=arb, is_extended_id=signed, data=d, is_fd=self.fd,
-                            bitrate_switch=self.fd and self.brs, timestamp=timestamp)
-                for d in segment(pdu, self.fd)]
+        fd, brs = self.fd, self.fd and self.brs
+        return [message(arb, signed, d, fd, brs, timestamp) for d in segment(pdu, fd)]
 
     def _direct(self, arb: int, msg_id: int, payload: bytes, timestamp: float) -> list[can.Message]:
         return [can.Message(arbitration_id=arb, is_extended_id=False, data=direct_data(msg_id, payload, self.fd),
@@ -827,6 +827,13 @@ class CanLink:
         self.local_ids = {node_id}
         self._tx_decoder = FrameDecoder(on_frame=self._send_message)
         self._segmented = _RAW_SEGMENTED[bool(fd)]
+        # a bus of protocol.interfaces.slcan: the frames it holds at a read's start, in one read of
+        # its tty; its queued lines written at once by flush
+        self._held_frames = getattr(bus, "held_frames", None)
+        self._send_queued = getattr(bus, "send_queued", None)
+        tty_fd = getattr(bus, "fd", None) if self._held_frames is not None else None
+        #: the descriptor a loop can wait on for arriving frames (``emulator_loop``), or None
+        self.fd = tty_fd if isinstance(tty_fd, int) else None
         self.frames_tx = 0
         self.messages_tx = 0
         self.frames_rx = 0
@@ -856,12 +863,14 @@ class CanLink:
 
     def read(self) -> bytes:
         out = bytearray()
-        # an slcan adapter: only the bytes it held when the read began (see _adapter_held)
-        left = self._adapter_held()
+        # an slcan adapter: only the bytes (python-can's slcan) or the frames (protocol.interfaces.slcan)
+        # it held when the read began (see _adapter_held)
+        frames = self._held_frames() if self._held_frames is not None else None
+        left = self._adapter_held() if frames is None else None
         feed = self.reassembler.feed_serial
         recv = self.bus.recv
         local = self.local_ids
-        for _ in range(self.max_frames_per_read):
+        for _ in range(self.max_frames_per_read if frames is None else min(frames, self.max_frames_per_read)):
             if left is not None and left <= 0:
                 break
             try:
@@ -889,6 +898,15 @@ class CanLink:
                 continue
             feed(frame, out)
         return bytes(out)
+
+    def flush(self) -> None:
+        """Write the frames a coalescing bus queued (``protocol.interfaces.slcan``: one system call
+        for a tick's or a step's frames); nothing for another bus."""
+        if self._send_queued is not None:
+            try:
+                self._send_queued()
+            except (can.CanError, OSError):
+                self.tx_errors += 1
 
     def close(self) -> None:
         try:
@@ -981,6 +999,9 @@ def open_bus(interface: str, channel: str, bitrate: int = 500_000, fd: bool = Fa
 
     - ``virtual``: in-process bus (``channel`` is any name; buses with the
       same name in one process hear each other, not themselves);
+    - ``slcan-tty``: slcan on a tty (a pseudo-terminal of :class:`protocol.slcan.SlcanBridge`)
+      through :mod:`protocol.interfaces.slcan`: every frame held read in one system call, the
+      frames sent queued until :meth:`CanLink.flush` (``coalesce``, the default here);
     - ``slcan``: a serial slcan adapter, or a pseudo-terminal of
       :class:`protocol.slcan.SlcanBridge`; opened without python-can's
       2 s settling sleep and with a non-blocking serial read (``timeout=0``),
@@ -995,6 +1016,13 @@ def open_bus(interface: str, channel: str, bitrate: int = 500_000, fd: bool = Fa
     if interface == "virtual":
         kwargs.setdefault("receive_own_messages", False)
         return can.Bus(interface="virtual", channel=channel, **kwargs)
+    if interface == "slcan-tty":
+        if fd:
+            raise ValueError("interface 'slcan-tty' carries classic CAN frames only here; use slcan for CAN FD")
+        from .interfaces.slcan import SlcanTtyBus
+
+        kwargs.setdefault("coalesce", True)
+        return SlcanTtyBus(channel, bitrate, **kwargs)
     if interface == "slcan":
         kwargs.setdefault("sleep_after_open", 0)
         kwargs.setdefault("timeout", 0)
@@ -1019,3 +1047,12 @@ def virtual_link_pair(node_a: int, node_b: int, channel: str | None = None, **kw
     a, b = virtual_bus_pair(channel)
     return CanLink(a, node_a, **kwargs), CanLink(b, node_b, **kwargs)
 
+
+
+def inproc_link_pair(node_a: int, node_b: int, **kwargs):
+    """Two :class:`CanLink` on one in-process bus (:mod:`protocol.interfaces.inproc`: python-can's
+    ``BusABC`` and ``Message``, without ``virtual``'s deep copy and locked queue a frame)."""
+    from .interfaces.inproc import inproc_bus_pair
+
+    a, b = inproc_bus_pair()
+    return CanLink(a, node_a, **kwargs), CanLink(b, node_b, **kwargs)

@@ -173,6 +173,9 @@ class SlcanBridge:
 
     # relay -------------------------------------------------------------------
     def run(self) -> None:
+        """Relay until stopped: each end's readable bytes are read (one read each), their lines
+        relayed into the other ends' output, then every end's output written in one write (a
+        batch of frames costs a write per end, not one a frame)."""
         sel = selectors.DefaultSelector()
         for e in self.ends:
             sel.register(e.master, selectors.EVENT_READ, e)
@@ -251,8 +254,7 @@ class SlcanBridge:
                 if e.bitrate is not None and o.bitrate is not None and e.bitrate != o.bitrate:
                     self.frames_dropped += 1     # different bit rates: no frame gets through
                     continue
-                o.out += line + b"\r"
-                self._flush(o)
+                o.out += line + b"\r"         # written with the rest of this read's lines (run)
                 delivered = True
             if delivered:
                 self.frames_relayed += 1

@@ -383,7 +383,9 @@ def _two_process_link(transport: str):
         from coiltrack.protocol.slcan import SlcanBridge
 
         bridge = SlcanBridge(2).start()
-        link = CanLink(open_bus("slcan", bridge.paths[0]), NODE_COIL_DRIVER)
+        # slcan-tty (protocol.interfaces.slcan): a read takes every line the pty holds in one system
+        # call, a tick's (a step's) frames leave in one write at its flush
+        link = CanLink(open_bus("slcan-tty", bridge.paths[0]), NODE_COIL_DRIVER)
         thread = getattr(bridge, "_thread", None)
         # the bridge's relay thread moves every frame both ways: it runs at the emulator's priority
         threads = (thread.native_id,) if getattr(thread, "native_id", None) else ()
@@ -391,7 +393,7 @@ def _two_process_link(transport: str):
         def close():
             link.close()
             bridge.stop()
-        return ["--transport", "can", "--interface", "slcan", "--channel", bridge.paths[1]], link, close, threads
+        return ["--transport", "can", "--interface", "slcan-tty", "--channel", bridge.paths[1]], link, close, threads
     master, slave, slave_name = make_raw_pty()
 
     def close_pty():

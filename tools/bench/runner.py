@@ -5,6 +5,7 @@ only through protocol frames on a link.
 """
 from __future__ import annotations
 
+import gc
 import sys
 import time
 from typing import TYPE_CHECKING
@@ -21,7 +22,7 @@ from ..outputs import report as report_mod
 from ..stopping import Stopped, mark
 from .framelog import RecordingPort, config_to_dict, write_log
 from .links import inproc_pair
-from .timing import inproc_timing
+from .timing import inproc_cpu_timing, inproc_timing
 
 if TYPE_CHECKING:       # the scenarios use this engine (scenarios.imperfect): only the type here
     from ..scenarios.base import Scenario
@@ -123,10 +124,10 @@ def sim_link_pair(transport: str):
     if transport == "inproc":
         return inproc_pair()
     if transport == "can":
-        from coiltrack.protocol.can import virtual_link_pair
+        from coiltrack.protocol.can import inproc_link_pair
         from coiltrack.protocol.schema import NODE_COIL_DRIVER, NODE_FIRMWARE
 
-        return virtual_link_pair(NODE_FIRMWARE, NODE_COIL_DRIVER)
+        return inproc_link_pair(NODE_FIRMWARE, NODE_COIL_DRIVER)
     raise ValueError(f"transport '{transport}' does not run on the simulated clock")
 
 
@@ -137,9 +138,9 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     ``outputs``: a :class:`tools.outputs.sinks.Outputs` (OpenIGTLink, capture, pose table, plot).
 
     ``transport``: ``inproc`` joins them with an in-memory byte pipe; ``can``
-    with python-can's in-process ``virtual`` bus, every message segmented
-    into CAN frames and reassembled (``protocol.can.CanLink``). Both give the
-    same frames at the same simulated instants, so the same report.
+    with an in-process python-can bus (``protocol.interfaces.inproc``), every
+    message segmented into CAN frames and reassembled (``protocol.can.CanLink``).
+    Both give the same frames at the same simulated instants, so the same report.
 
     Stopped early (SIGINT, SIGTERM: :class:`tools.stopping.Stopped`), the
     report of what was done, marked ``interrupted``, is raised with the
@@ -156,7 +157,9 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     fw = Firmware(cfg, fw_end)
     prog = Progress(progress, duration_s, scenario.name)
     wall0 = time.perf_counter()
-    t, exec_ns, stopped = _tick_loop(bench, fw, rec_port, int(duration_s * 1e6), cfg.timing.tick_us, prog, outputs)
+    cpu_ns: list = []
+    t, exec_ns, stopped = _tick_loop(bench, fw, rec_port, int(duration_s * 1e6), cfg.timing.tick_us, prog, outputs,
+                                     cpu_ns)
     fw_end.close()
     emu_end.close()
     prog.done()
@@ -164,6 +167,7 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     done_s = duration_s if stopped is None else max(t, cfg.timing.tick_us) * 1e-6
     rep = report_mod.build(bench, fw.status(), done_s, transport=transport, cfg=cfg)
     rep.update(inproc_timing(exec_ns, cfg.timing.tick_us))
+    rep.update(inproc_cpu_timing(cpu_ns[0], cfg.timing.tick_us))
     rep["wall_s"] = round(wall, 2)
     rep["speedup"] = round(done_s / wall, 1) if wall > 0 else None
     if rec_port is not None:
@@ -177,13 +181,24 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     return rep
 
 
-def _tick_loop(bench, fw, rec_port, end_us: int, tick: int, prog, outputs=None):
+def _tick_loop(bench, fw, rec_port, end_us: int, tick: int, prog, outputs=None, cpu_out: list | None = None,
+               trace=None):
     """Emulator step and firmware tick on the simulated clock until ``end_us``. Tick
     execution times are measured as the wall time of each ``fw.tick`` (replayed on a
-    real-time schedule by ``tools.bench.realtime.inproc_timing``). Returns the last tick time,
-    the execution times (ns) and the :class:`Stopped` that ended the run early, if any."""
+    real-time schedule by ``tools.bench.realtime.inproc_timing``) and, when ``cpu_out`` is a
+    list, as the thread's CPU time (``time.thread_time_ns``: the time the machine spent on other
+    processes left out), appended to it as one array. ``trace``: a
+    :class:`tools.bench.ticktrace.TickTrace` told each tick's start and end (off: None). Returns
+    the last tick time, the execution times (ns) and the :class:`Stopped` that ended the run
+    early, if any."""
     exec_ns = np.zeros(end_us // tick + 2, dtype=np.int64)
-    clk = time.perf_counter_ns
+    cpu_ns = np.zeros(exec_ns.size, dtype=np.int64)
+    clk, cpu = time.perf_counter_ns, time.thread_time_ns
+    # the interpreter's cyclic collector is held off during each tick and runs (if due) at the next
+    # allocation after it: a collection scans the whole process's objects (the world's, the nodes',
+    # the recorder's, a 1.5 ms pause in multi16), which a board's firmware has none of, and which
+    # the firmware process of the wall-clock bench never runs (``realtime._realtime_setup``)
+    gc_on = gc.isenabled()
     k = 0
     t = 0
     try:
@@ -193,16 +208,34 @@ def _tick_loop(bench, fw, rec_port, end_us: int, tick: int, prog, outputs=None):
             bench.emulator.step(t)
             if rec_port is not None:
                 rec_port.now_us = t
+            if trace is not None:
+                trace.begin(k)
+            if gc_on:
+                gc.disable()
+            c = cpu()
             a = clk()
             fw.tick(t)
-            exec_ns[k] = clk() - a
+            b = clk()
+            cpu_ns[k] = cpu() - c
+            if gc_on:
+                gc.enable()
+            exec_ns[k] = b - a
+            if trace is not None:
+                trace.end(k, b - a, cpu_ns[k])
             k += 1
             if (t // tick) % 1000 == 0:
                 prog.update(t * 1e-6, fw.poses)
             t += tick
         bench.emulator.step(t)  # deliver the last frames to the recorder
     except Stopped as exc:
+        if cpu_out is not None:
+            cpu_out.append(cpu_ns[:k])
         return t, exec_ns[:k], exc
+    finally:
+        if gc_on:
+            gc.enable()
+    if cpu_out is not None:
+        cpu_out.append(cpu_ns[:k])
     return t, exec_ns[:k], None
 
 

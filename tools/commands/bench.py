@@ -35,7 +35,7 @@ def add_arguments(p) -> None:
                    help="TOML firmware configuration put over the scenario's (see examples/firmware.toml)")
     p.add_argument("--transport", choices=("inproc", "can", "pty", "slcan"), default="inproc",
                    help="inproc: one process, simulated clock, byte pipe (default); can: one process, "
-                        "simulated clock, python-can virtual bus; pty: firmware and emulator as two "
+                        "simulated clock, an in-process python-can bus; pty: firmware and emulator as two "
                         "processes over a pseudo-terminal serial link, wall clock; slcan: two processes "
                         "on a CAN bus through slcan adapters on pseudo-terminals, wall clock")
     p.add_argument("--faults", default="",

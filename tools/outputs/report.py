@@ -20,7 +20,7 @@ def is_wall_clock(key: str) -> bool:
     """A report key measured on the wall clock (tick execution, jitter, speed), which differs
     from run to run of the same seed; every other figure is a function of scenario, seed,
     duration and configuration."""
-    return key.startswith("tick_") or key in ("wall_s", "speedup", "deadline_misses")
+    return key.startswith("tick_") or key in ("wall_s", "speedup", "deadline_misses", "cpu_deadline_misses")
 
 
 def _rot_angle(Ra, Rb) -> float:
@@ -405,7 +405,7 @@ def _flag_rows(rep: dict) -> list:
     if rep.get("poses_distorted") or rep.get("poses_inconsistent"):
         rows.append(("poses flagged", f'{rep["poses_distorted"]} distorted, {rep["poses_inconsistent"]} inconsistent'))
     for k in ("tick_jitter_us_median", "tick_jitter_us_p99", "tick_jitter_us_max", "deadline_misses",
-              "latency_ms_p50", "latency_ms_p99", "pulse_window_min_margin_us"):
+              "cpu_deadline_misses", "latency_ms_p50", "latency_ms_p99", "pulse_window_min_margin_us"):
         if rep.get(k) is not None:
             rows.append((k, rep[k]))
     fl = rep.get("faults")
