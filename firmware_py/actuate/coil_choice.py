@@ -338,6 +338,10 @@ class CoilChooser:
         self.unreached_share = float(unreached_share)
         self._A = np.zeros((self.n, 3, POSE_DIM))
         self._M = np.zeros((self.n, 3, 3))
+        #: each coil's gain-error variance (``[adaptive] coil_gain_sigma``: the filter's ``P`` at the
+        #: coil's gain row, :meth:`set_gain_var`); 0: no gain term (:meth:`_gain_term`)
+        self.gain_var = np.zeros(self.n)
+        self._gvv = memoryview(self.gain_var)
         self._At = np.zeros((3, POSE_DIM))
         self._hn2 = np.zeros(self.n)
         self._var = np.zeros(POSE_DIM)
@@ -429,6 +433,8 @@ class CoilChooser:
             va = var_amp if scalar else float(var_amp[c])
             self._products(c, Hf, P6)
             hc = model.h[c]
+            if self._gvv[c] > 0.0:
+                self._gain_term(c, hc)
             self._hn2[c] = float(hc[0] * hc[0] + hc[1] * hc[1] + hc[2] * hc[2])
             k = self._ref_index(float(i_limit[c]))
             if k < 0:
@@ -475,6 +481,37 @@ class CoilChooser:
             M[i, 0] = a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4 + a5 * u5
             M[i, 1] = a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4 + a5 * v5
             M[i, 2] = a0 * w0 + a1 * w1 + a2 * w2 + a3 * w3 + a4 * w4 + a5 * w5
+
+    def set_gain_var(self, P, start: int) -> None:
+        """Each coil's gain-error variance from the filter's covariance ``P``: ``P[start + c,
+        start + c]`` (``CoilGainEKF``: the gains' rows from ``start``, constant states, so the
+        decision's prediction leaves them as they are). Into :attr:`gain_var`; nothing created."""
+        gv = self._gvv
+        for c in range(self.n):
+            v = float(P[start + c, start + c])
+            gv[c] = v if v > 0.0 else 0.0
+
+    def _gain_term(self, c: int, hc) -> None:
+        """Coil ``c``'s constant gain error in its eq-4 posterior: ``M += s_g^2 hu hu^T``.
+
+        With the gain error ``g_c`` (variance ``s_g^2 = gain_var[c]``) the pulse is
+        ``y = (1 + g_c) I R^T B_c(p)`` (Schepers & Veltink 2010, ``seeds/000_e46ec0e8bf7ea271.txt``,
+        eq 5 at the coil's true current), so its linearised error is ``I Hu dx + g_c I hu + v``;
+        the pose's posterior with ``g_c`` left out of the state is eq 4 with
+        ``R_v + s_g^2 (I hu)(I hu)^T``: a rank-one term along the field, the part of the error that
+        repeated pulses of the coil do not average (white noise falls as ``1/n``, ``g_c`` does
+        not). ``S = I^2 M + R_v`` becomes ``I^2 (M + s_g^2 hu hu^T) + R_v``, which is the term
+        folded into ``M``; exact where the filter's gain is uncorrelated with the pose, an upper
+        bound of the posterior otherwise (the cross-covariance, which the filter learns, is left
+        out). Each entry ``M[i, j] + (s_g^2 hu_i) hu_j``, the compiled ``ct_gain_term``'s order."""
+        M = self._Mv[c]
+        g = self._gvv[c]
+        h0, h1, h2 = float(hc[0]), float(hc[1]), float(hc[2])
+        for i, hi in ((0, h0), (1, h1), (2, h2)):
+            gh = g * hi
+            M[i, 0] = M[i, 0] + gh * h0
+            M[i, 1] = M[i, 1] + gh * h1
+            M[i, 2] = M[i, 2] + gh * h2
 
     def _pick_target(self, P6) -> None:
         """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
@@ -670,7 +707,8 @@ class CompiledCoilChooser(CoilChooser):
         super().__init__(n_coils, currents, sigma_max, sigma_min, rel_model, current_sigma, trace, step_a,
                          unreached_share)
         self._ck = ext.ChooserCore(self.n, (self.currents, self.sigma_max, self.sigma_min, self.weight, self._A, self._M, self._hn2,
-                                            self.reduction, self.i_ref, self._var, self.var_after, self._st),
+                                            self.reduction, self.i_ref, self._var, self.var_after, self._st,
+                                            self.gain_var),
                                    self.rel_model, self.current_sigma, self.step_a, self.unreached_share, self.trace)
 
     @property
