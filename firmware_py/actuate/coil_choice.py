@@ -71,6 +71,7 @@ __all__ = [
     "POSE_DIM",
     "SingleCoilModel",
     "posterior_pose_variances",
+    "add_gain_term",
     "PoseCovUpdate",
     "saturation_current_limit",
     "CoilChooser",
@@ -189,6 +190,25 @@ def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out,
              + a2 * (s02 * a0 + s12 * a1 + s22 * a2))
         out[k] = P6[k, k] - i2 * q
     return True
+
+
+def add_gain_term(M, g: float, h0: float, h1: float, h2: float) -> None:
+    """A coil's constant gain error in its eq-4 posterior: ``M += g hu hu^T`` (``g = s_g^2``).
+
+    With the gain error ``g_c`` (variance ``s_g^2``) the pulse is ``y = (1 + g_c) I R^T B_c(p)``
+    (Schepers & Veltink 2010, ``seeds/000_e46ec0e8bf7ea271.txt``, eq 5 at the coil's true current),
+    so its linearised error is ``I Hu dx + g_c I hu + v``; the pose's posterior with ``g_c`` left out
+    of the state is eq 4 with ``R_v + s_g^2 (I hu)(I hu)^T``: a rank-one term along the field, the
+    part of the error repeated pulses of the coil do not average (white noise falls as ``1/n``,
+    ``g_c`` does not). ``S = I^2 M + R_v`` becomes ``I^2 (M + s_g^2 hu hu^T) + R_v``: the term
+    folded into ``M`` (3, 3). Exact for a gain uncorrelated with the pose (the dense eq 4 of the
+    state augmented by ``g_c``, ``tests/firmware/core/test_core_sc_choose.py``); the filter's
+    cross-covariance is left out. Each entry ``M[i, j] + (g hu_i) hu_j``: ``ct_gain_term``'s order."""
+    for i, hi in ((0, h0), (1, h1), (2, h2)):
+        gh = g * hi
+        M[i, 0] = M[i, 0] + gh * h0
+        M[i, 1] = M[i, 1] + gh * h1
+        M[i, 2] = M[i, 2] + gh * h2
 
 
 class PoseCovUpdate:
@@ -338,9 +358,7 @@ class CoilChooser:
         self.unreached_share = float(unreached_share)
         self._A = np.zeros((self.n, 3, POSE_DIM))
         self._M = np.zeros((self.n, 3, 3))
-        #: each coil's gain-error variance (``[adaptive] coil_gain_sigma``: the filter's ``P`` at the
-        #: coil's gain row, :meth:`set_gain_var`); 0: no gain term (:meth:`_gain_term`)
-        self.gain_var = np.zeros(self.n)
+        self.gain_var = np.zeros(self.n)      # each coil's gain variance (0: no term, add_gain_term)
         self._gvv = memoryview(self.gain_var)
         self._At = np.zeros((3, POSE_DIM))
         self._hn2 = np.zeros(self.n)
@@ -483,35 +501,14 @@ class CoilChooser:
             M[i, 2] = a0 * w0 + a1 * w1 + a2 * w2 + a3 * w3 + a4 * w4 + a5 * w5
 
     def set_gain_var(self, P, start: int) -> None:
-        """Each coil's gain-error variance from the filter's covariance ``P``: ``P[start + c,
-        start + c]`` (``CoilGainEKF``: the gains' rows from ``start``, constant states, so the
-        decision's prediction leaves them as they are). Into :attr:`gain_var`; nothing created."""
-        gv = self._gvv
+        """:attr:`gain_var` from a ``CoilGainEKF``'s ``P`` (gain rows from ``start``: constant states)."""
         for c in range(self.n):
             v = float(P[start + c, start + c])
-            gv[c] = v if v > 0.0 else 0.0
+            self._gvv[c] = v if v > 0.0 else 0.0
 
     def _gain_term(self, c: int, hc) -> None:
-        """Coil ``c``'s constant gain error in its eq-4 posterior: ``M += s_g^2 hu hu^T``.
-
-        With the gain error ``g_c`` (variance ``s_g^2 = gain_var[c]``) the pulse is
-        ``y = (1 + g_c) I R^T B_c(p)`` (Schepers & Veltink 2010, ``seeds/000_e46ec0e8bf7ea271.txt``,
-        eq 5 at the coil's true current), so its linearised error is ``I Hu dx + g_c I hu + v``;
-        the pose's posterior with ``g_c`` left out of the state is eq 4 with
-        ``R_v + s_g^2 (I hu)(I hu)^T``: a rank-one term along the field, the part of the error that
-        repeated pulses of the coil do not average (white noise falls as ``1/n``, ``g_c`` does
-        not). ``S = I^2 M + R_v`` becomes ``I^2 (M + s_g^2 hu hu^T) + R_v``, which is the term
-        folded into ``M``; exact where the filter's gain is uncorrelated with the pose, an upper
-        bound of the posterior otherwise (the cross-covariance, which the filter learns, is left
-        out). Each entry ``M[i, j] + (s_g^2 hu_i) hu_j``, the compiled ``ct_gain_term``'s order."""
-        M = self._Mv[c]
-        g = self._gvv[c]
-        h0, h1, h2 = float(hc[0]), float(hc[1]), float(hc[2])
-        for i, hi in ((0, h0), (1, h1), (2, h2)):
-            gh = g * hi
-            M[i, 0] = M[i, 0] + gh * h0
-            M[i, 1] = M[i, 1] + gh * h1
-            M[i, 2] = M[i, 2] + gh * h2
+        """Coil ``c``'s gain variance in its ``M`` (:func:`add_gain_term`)."""
+        add_gain_term(self._Mv[c], self._gvv[c], float(hc[0]), float(hc[1]), float(hc[2]))
 
     def _pick_target(self, P6) -> None:
         """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
