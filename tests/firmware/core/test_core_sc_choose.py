@@ -329,6 +329,12 @@ def test_the_gain_term_is_the_reference_bit_for_bit_and_the_augmented_eq4(trace,
         assert got.choose_length(P6, model, VARS, LENGTHS, lim) == c2
         _same(ref, got, f"trial {trial}, lengths")
     assert moved > 20
+    counter = NumpyAllocationCounter()                       # the decision's path with the gains
+    with counter:
+        got.set_gain_var(Pbig, 5)
+        got.choose(P6, model, (3e-8) ** 2, lim)
+        got.choose_length(P6, model, VARS, LENGTHS, lim)
+    assert counter.count == 0
     ref.set_gain_var(np.zeros((8, 8)), 5)                   # back to none: the choice of before, bit for bit
     plain = CoilChooser(3, current_ladder(0.05, 0.91, 16), SMAX, SMIN, 3e-3, 1e-3, trace, step, share)
     p, R = _pose(rng)
