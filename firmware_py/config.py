@@ -354,11 +354,13 @@ class AdaptiveConfig:
     coil_gain_sigma: float = 0.0            # > 0: the single-coil filter estimates each coil's gain error (a
                                             #   constant, this prior std; y = (1 + g_c) I h_c), which repeated
                                             #   pulses of one coil do not average away; 0: none
+    gain_in_choice: bool = True             # with coil_gain_sigma: the chooser's eq 4 adds each gain's variance
+                                            #   to R along the field (coil_choice.CoilChooser._gain_term)
 
     def check(self, need) -> None:
         need("actuation", self.actuation in ("fixed", "adaptive"),
              f"must be 'fixed' or 'adaptive', got {self.actuation!r}")
-        _bools(self, need, ("single_coil_fusion",))
+        _bools(self, need, ("single_coil_fusion", "gain_in_choice"))
         _positive_numbers(self, need, ("sigma_max_pos_m", "sigma_min_pos_m", "sigma_max_ori_deg", "sigma_min_ori_deg",
                                        "adaptive_min_current_a", "adaptive_max_current_a", "acquire_sigma_m",
                                        "init_sigma_vel"))

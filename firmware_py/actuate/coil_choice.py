@@ -71,6 +71,7 @@ __all__ = [
     "POSE_DIM",
     "SingleCoilModel",
     "posterior_pose_variances",
+    "add_gain_term",
     "PoseCovUpdate",
     "saturation_current_limit",
     "CoilChooser",
@@ -189,6 +190,25 @@ def posterior_pose_variances(P6, A, M, hnorm2, current, var_amp, rel_model, out,
              + a2 * (s02 * a0 + s12 * a1 + s22 * a2))
         out[k] = P6[k, k] - i2 * q
     return True
+
+
+def add_gain_term(M, g: float, h0: float, h1: float, h2: float) -> None:
+    """A coil's constant gain error in its eq-4 posterior: ``M += g hu hu^T`` (``g = s_g^2``).
+
+    With the gain error ``g_c`` (variance ``s_g^2``) the pulse is ``y = (1 + g_c) I R^T B_c(p)``
+    (Schepers & Veltink 2010, ``seeds/000_e46ec0e8bf7ea271.txt``, eq 5 at the coil's true current),
+    so its linearised error is ``I Hu dx + g_c I hu + v``; the pose's posterior with ``g_c`` left out
+    of the state is eq 4 with ``R_v + s_g^2 (I hu)(I hu)^T``: a rank-one term along the field, the
+    part of the error repeated pulses of the coil do not average (white noise falls as ``1/n``,
+    ``g_c`` does not). ``S = I^2 M + R_v`` becomes ``I^2 (M + s_g^2 hu hu^T) + R_v``: the term
+    folded into ``M`` (3, 3). Exact for a gain uncorrelated with the pose (the dense eq 4 of the
+    state augmented by ``g_c``, ``tests/firmware/core/test_core_sc_choose.py``); the filter's
+    cross-covariance is left out. Each entry ``M[i, j] + (g hu_i) hu_j``: ``ct_gain_term``'s order."""
+    for i, hi in ((0, h0), (1, h1), (2, h2)):
+        gh = g * hi
+        M[i, 0] = M[i, 0] + gh * h0
+        M[i, 1] = M[i, 1] + gh * h1
+        M[i, 2] = M[i, 2] + gh * h2
 
 
 class PoseCovUpdate:
@@ -338,6 +358,8 @@ class CoilChooser:
         self.unreached_share = float(unreached_share)
         self._A = np.zeros((self.n, 3, POSE_DIM))
         self._M = np.zeros((self.n, 3, 3))
+        self.gain_var = np.zeros(self.n)      # each coil's gain variance (0: no term, add_gain_term)
+        self._gvv = memoryview(self.gain_var)
         self._At = np.zeros((3, POSE_DIM))
         self._hn2 = np.zeros(self.n)
         self._var = np.zeros(POSE_DIM)
@@ -429,6 +451,8 @@ class CoilChooser:
             va = var_amp if scalar else float(var_amp[c])
             self._products(c, Hf, P6)
             hc = model.h[c]
+            if self._gvv[c] > 0.0:
+                self._gain_term(c, hc)
             self._hn2[c] = float(hc[0] * hc[0] + hc[1] * hc[1] + hc[2] * hc[2])
             k = self._ref_index(float(i_limit[c]))
             if k < 0:
@@ -475,6 +499,16 @@ class CoilChooser:
             M[i, 0] = a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4 + a5 * u5
             M[i, 1] = a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4 + a5 * v5
             M[i, 2] = a0 * w0 + a1 * w1 + a2 * w2 + a3 * w3 + a4 * w4 + a5 * w5
+
+    def set_gain_var(self, P, start: int) -> None:
+        """:attr:`gain_var` from a ``CoilGainEKF``'s ``P`` (gain rows from ``start``: constant states)."""
+        for c in range(self.n):
+            v = float(P[start + c, start + c])
+            self._gvv[c] = v if v > 0.0 else 0.0
+
+    def _gain_term(self, c: int, hc) -> None:
+        """Coil ``c``'s gain variance in its ``M`` (:func:`add_gain_term`)."""
+        add_gain_term(self._Mv[c], self._gvv[c], float(hc[0]), float(hc[1]), float(hc[2]))
 
     def _pick_target(self, P6) -> None:
         """The pose variable (trace: the group, 0 or 3) furthest beyond its bound."""
@@ -670,7 +704,8 @@ class CompiledCoilChooser(CoilChooser):
         super().__init__(n_coils, currents, sigma_max, sigma_min, rel_model, current_sigma, trace, step_a,
                          unreached_share)
         self._ck = ext.ChooserCore(self.n, (self.currents, self.sigma_max, self.sigma_min, self.weight, self._A, self._M, self._hn2,
-                                            self.reduction, self.i_ref, self._var, self.var_after, self._st),
+                                            self.reduction, self.i_ref, self._var, self.var_after, self._st,
+                                            self.gain_var),
                                    self.rel_model, self.current_sigma, self.step_a, self.unreached_share, self.trace)
 
     @property

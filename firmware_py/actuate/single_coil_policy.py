@@ -481,6 +481,9 @@ class AdaptiveActuation(_SingleCoilActuation):
         self._dec_phase = 0
         ws = self._dec_ws
         L = self.lengths
+        gains = getattr(ws.sensor.ekf, "gains", None)
+        if gains is not None and self.cfg.adaptive.gain_in_choice:
+            self.chooser.set_gain_var(ws.sensor.ekf.P, gains.rows.start)
         if L.n == 1:
             coil = self.chooser.choose(ws.P6, self.pmodel, self._dec_var, self._lim)
         else:

@@ -16,9 +16,9 @@
 /* the most pulse lengths choose_length takes */
 #define CH_MAXLEN 64
 
-enum { CH_CUR, CH_SMAX, CH_SMIN, CH_W, CH_A, CH_M, CH_HN2, CH_RED, CH_IREF, CH_VAR, CH_VAFTER, CH_ST, CH_NVIEWS };
+enum { CH_CUR, CH_SMAX, CH_SMIN, CH_W, CH_A, CH_M, CH_HN2, CH_RED, CH_IREF, CH_VAR, CH_VAFTER, CH_ST, CH_GVAR, CH_NVIEWS };
 static const char *ch_names[CH_NVIEWS] = {"currents", "sigma_max", "sigma_min", "weight", "A", "M", "hn2", "reduction", "i_ref",
-                                          "var", "var_after", "st"};
+                                          "var", "var_after", "st", "gain_var"};
 
 typedef struct {
     PyObject_HEAD
@@ -53,7 +53,7 @@ static Py_ssize_t ch_len(int i, int n, int ncur)
 }
 
 /* ChooserCore(n, arrays, rel_model, current_sigma, step_a, unreached_share, trace): arrays the
- * tuple (currents, sigma_max, sigma_min, weight, A, M, hn2, reduction, i_ref, var, var_after, st) */
+ * tuple (currents, sigma_max, sigma_min, weight, A, M, hn2, reduction, i_ref, var, var_after, st, gain_var) */
 static int Chooser_init(ChooserObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "arrays", "rel_model", "current_sigma", "step_a", "unreached_share", "trace", NULL};
@@ -69,7 +69,7 @@ static int Chooser_init(ChooserObject *self, PyObject *args, PyObject *kw)
         return -1;
     }
     if (n < 1 || n > 64 || PyTuple_GET_SIZE(arrays) != CH_NVIEWS) {
-        PyErr_SetString(PyExc_ValueError, "ChooserCore: n in 1..64 and 12 arrays");
+        PyErr_SetString(PyExc_ValueError, "ChooserCore: n in 1..64 and 13 arrays");
         return -1;
     }
     ncur = 0;
@@ -106,6 +106,7 @@ static int Chooser_init(ChooserObject *self, PyObject *args, PyObject *kw)
     self->ch.var = ptr[CH_VAR];
     self->ch.var_after = ptr[CH_VAFTER];
     self->ch.st = ptr[CH_ST];
+    self->ch.gain_var = ptr[CH_GVAR];
     self->ch.rel_model = rel;
     self->ch.current_sigma = cs;
     self->ch.step_a = step;

@@ -34,12 +34,18 @@ class BenchSetup:
     ``faults``: a :class:`hil.faults.BenchFaults` (link, node and world fault
     switches) or a bare :class:`hil.faults.LinkFaults`. ``cfg``: the firmware
     configuration the nodes serve (its sensor ids; default the scenario's).
+    ``noise_draw``: 0 (the seed's own draws), or k > 0: the same world (trajectory, objects)
+    with every node's draws (driver, sensor, faults, clocks: white noise and static errors
+    alike) taken from ``SeedSequence([seed, k])`` instead, a run-to-run repeat on one trajectory.
     """
 
     def __init__(self, scenario: Scenario, seed: int, duration_s: float, link,
-                 faults: BenchFaults | LinkFaults | None = None, cfg=None):
+                 faults: BenchFaults | LinkFaults | None = None, cfg=None, noise_draw: int = 0):
         ss = np.random.SeedSequence(seed)
         s_world, s_driver, s_sensor, s_faults, s_clocks = (int(s.generate_state(1)[0]) for s in ss.spawn(5))
+        if noise_draw:
+            nodes = np.random.SeedSequence([seed, int(noise_draw)]).spawn(4)
+            s_driver, s_sensor, s_faults, s_clocks = (int(s.generate_state(1)[0]) for s in nodes)
         self.scenario = scenario
         self.seed = seed
         self.duration_s = duration_s
@@ -132,8 +138,10 @@ def sim_link_pair(transport: str):
 
 
 def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFaults | None = None,
-               progress: bool = False, cfg=None, transport: str = "inproc", log_path=None, outputs=None) -> dict:
+               progress: bool = False, cfg=None, transport: str = "inproc", log_path=None, outputs=None,
+               noise_draw: int = 0) -> dict:
     """Run firmware and emulator in one process on the simulated clock.
+    ``noise_draw``: the nodes' draws of :class:`BenchSetup` (0: the seed's own).
     ``log_path``: also write what the firmware received (``tools.bench.framelog``).
     ``outputs``: a :class:`tools.outputs.sinks.Outputs` (OpenIGTLink, capture, pose table, plot).
 
@@ -148,7 +156,7 @@ def run_inproc(scenario: Scenario, seed: int, duration_s: float, faults: LinkFau
     """
     cfg = cfg or scenario.firmware_config()
     fw_end, emu_end = sim_link_pair(transport)
-    bench = BenchSetup(scenario, seed, duration_s, emu_end, faults, cfg=cfg)
+    bench = BenchSetup(scenario, seed, duration_s, emu_end, faults, cfg=cfg, noise_draw=noise_draw)
     rec_port = None
     if outputs is not None:
         fw_end = outputs.wrap(fw_end)
@@ -246,16 +254,16 @@ FIXED_KEYS = ("position_rms_mm", "position_p95_mm", "orientation_rms_deg", "pose
 
 
 def add_fixed_comparison(rep: dict, scenario: Scenario, seed: int, duration_s: float, faults=None,
-                         transport: str = "inproc") -> dict:
+                         transport: str = "inproc", noise_draw: int = 0) -> dict:
     """For a scenario with a ``fixed_config`` (an actuation-policy scenario such as
     ``schepers-adaptive``): run that fixed X, Y, Z cycle on the same trajectory and
     seed (simulated clock) and add its figures to ``rep`` as ``fixed_*``, with the
     ratios ``position_rms_ratio``, ``orientation_rms_ratio`` and ``energy_ratio``
-    (this run over the fixed one)."""
+    (this run over the fixed one); ``noise_draw``: the run's, so both see the same bench."""
     if scenario.fixed_config is None:
         return rep
     ref = run_inproc(scenario, seed, duration_s, faults=faults, cfg=scenario.fixed_config(),
-                     transport=transport if transport in ("inproc", "can") else "inproc")
+                     transport=transport if transport in ("inproc", "can") else "inproc", noise_draw=noise_draw)
     for k in FIXED_KEYS:
         rep["fixed_" + k] = ref.get(k)
     ratio = lambda a, b: round(a / b, 3) if a is not None and b else None  # noqa: E731

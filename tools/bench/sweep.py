@@ -122,9 +122,32 @@ def grid(sets: list[tuple[str, list]]) -> list[tuple[tuple[str, object], ...]]:
 
 # ---------------------------------------------------------------- one run
 
+#: the one ``--set`` key that is not a firmware key: the bench's noise draw
+#: (``runner.BenchSetup`` ``noise_draw``; 0 the seed's own), a sweep axis over repeats of each trajectory
+NOISE_DRAW_KEY = "bench.noise_draw"
+
+
+def split_noise_draw(overrides) -> tuple[int, tuple]:
+    """(noise draw, the firmware overrides without it); a draw that is no integer >= 0 is a
+    :class:`ConfigError` naming the key."""
+    from coiltrack.firmware.config import ConfigError
+
+    draw, rest = 0, []
+    for key, value in overrides:
+        if key != NOISE_DRAW_KEY:
+            rest.append((key, value))
+        elif isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ConfigError(NOISE_DRAW_KEY, f"'{value}' is not an integer >= 0")
+        else:
+            draw = value
+    return draw, tuple(rest)
+
+
 def scenario_with(name: str, overrides=()):
     """The named scenario with its firmware configuration overridden (a :class:`ConfigError`
-    naming the key when an override is unknown or out of range)."""
+    naming the key when an override is unknown or out of range); ``bench.noise_draw`` is checked
+    and left out (:func:`split_noise_draw`)."""
+    overrides = split_noise_draw(overrides)[1]
     sc = scenarios.get(name)
     exp = experiment(name)
     if exp is not None:
@@ -169,8 +192,9 @@ def run_task(task: Task) -> dict:
             return {"seed": task.seed, "params": dict(task.overrides),
                     "figures": exp.run(task.scenario, task.seed, task.duration_s, task.overrides)}
         sc = scenario_with(task.scenario, task.overrides)
-        rep = run_inproc(sc, task.seed, task.duration_s)
-        add_fixed_comparison(rep, sc, task.seed, task.duration_s)
+        draw = split_noise_draw(task.overrides)[0]
+        rep = run_inproc(sc, task.seed, task.duration_s, noise_draw=draw)
+        add_fixed_comparison(rep, sc, task.seed, task.duration_s, noise_draw=draw)
     except Exception as exc:
         # sent back as a plain message: an exception whose constructor takes other arguments than
         # its message (ConfigError) cannot be unpickled, which would break the process pool

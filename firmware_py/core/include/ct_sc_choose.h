@@ -3,7 +3,7 @@
  * seeds/000_e46ec0e8bf7ea271.txt sec. 2.1, eq 4 with the single-coil model of eqs 5-11) in C99:
  * the compiled form of coiltrack.firmware.actuate.coil_choice (posterior_pose_variances,
  * CoilChooser.set_bounds, CoilChooser.choose with _pick_target, _ref_index, _strength, _goal, _prior, _group_after,
- * unreached_goal, _smallest_current, _target_after, _refine and _products, and choose_length).
+ * unreached_goal, _smallest_current, _target_after, _refine, _products and _gain_term, and choose_length).
  * The Python is the reference: the same names (ct_ prefix), the same scalar operations in the
  * same order, so the scores compared, the coil, the current and the length are bit for bit the
  * reference's (the products Hu P6 and A Hu^T summed in increasing index order in both; the
@@ -32,6 +32,7 @@ struct ct_chooser {
     double *reduction, *i_ref;         /* n, n */
     double *var, *var_after;           /* 6 (scratch), 6 */
     double *st;                        /* CT_CH_NST */
+    const double *gain_var;            /* n: each coil's gain-error variance (0: no term) */
     double rel_model, current_sigma, step_a, unreached_share;
 };
 
@@ -39,6 +40,7 @@ void ct_set_bounds(struct ct_chooser *ch, const double *sigma_max6, const double
 int ct_posterior_pose_variances(const double *P6, const double *A, const double *M, double hnorm2, double current,
                                 double var_amp, double rel_model, double *out, double current_sigma);
 void ct_products(struct ct_chooser *ch, int c, const double *Hu, const double *P6);
+void ct_gain_term(struct ct_chooser *ch, int c, const double *hc);
 int ct_ref_index(const struct ct_chooser *ch, double limit);
 int ct_choose(struct ct_chooser *ch, const double *P6, const double *h, const double *H, double var_amp,
               const double *i_limit);

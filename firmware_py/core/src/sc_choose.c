@@ -88,6 +88,20 @@ void ct_products(struct ct_chooser *ch, int c, const double *Hu, const double *P
     }
 }
 
+/* CoilChooser._gain_term: coil c's gain-error variance as a rank-one term of its eq-4 S,
+ * M += gain_var[c] h h^T (h: coil c's 3 per-ampere field components), M[i][j] + (g h_i) h_j */
+void ct_gain_term(struct ct_chooser *ch, int c, const double *hc)
+{
+    double *M = ch->M + 9 * c, g = ch->gain_var[c];
+    int i;
+    for (i = 0; i < 3; ++i) {
+        double gh = g * hc[i];
+        M[3 * i] = M[3 * i] + gh * hc[0];
+        M[3 * i + 1] = M[3 * i + 1] + gh * hc[1];
+        M[3 * i + 2] = M[3 * i + 2] + gh * hc[2];
+    }
+}
+
 /* CoilChooser._ref_index: the largest candidate current <= limit, or -1 */
 int ct_ref_index(const struct ct_chooser *ch, double limit)
 {
@@ -264,6 +278,8 @@ int ct_choose(struct ct_chooser *ch, const double *P6, const double *h, const do
         const double *hc = h + 3 * c;
         double i, j1, red;
         ct_products(ch, c, H + 18 * c, P6);
+        if (ch->gain_var[c] > 0.0)
+            ct_gain_term(ch, c, hc);
         ch->hn2[c] = hc[0] * hc[0] + hc[1] * hc[1] + hc[2] * hc[2];
         k = ct_ref_index(ch, i_limit[c]);
         if (k < 0) {

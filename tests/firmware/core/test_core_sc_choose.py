@@ -279,3 +279,66 @@ def test_more_pulse_lengths_than_the_kernel_takes_run_the_reference():
     P6, lim = _P6(rng), np.full(3, 0.91)
     assert ref.choose_length(P6, model, var, lengths, lim) == got.choose_length(P6, model, var, lengths, lim) >= 0
     _same(ref, got, "70 lengths")
+
+
+def _dense_eq4_with_gain(P6, Hu, hu, current, var_amp, rel, cs, gain_var):
+    """The pose's diag of eq 4 for the state (pose, g_c) with prior blockdiag(P6, gain_var) and
+    H = I [Hu, hu]: the measurement y = (1 + g_c) I h(pose), linearised (the closed form the
+    rank-one term stands for)."""
+    P = np.zeros((7, 7))
+    P[:6, :6] = P6
+    P[6, 6] = gain_var
+    H = current * np.column_stack([Hu, hu])
+    Rv = (var_amp + (rel * current) ** 2 * (hu @ hu) + cs ** 2 * (hu @ hu)) * np.eye(3)
+    S = H @ P @ H.T + Rv
+    return np.diag(P - P @ H.T @ np.linalg.inv(S) @ H @ P)[:6]
+
+
+@pytest.mark.parametrize("trace,step,share", [(True, 1e-3, 0.8), (False, 0.0, 0.0)])
+def test_the_gain_term_is_the_reference_bit_for_bit_and_the_augmented_eq4(trace, step, share):
+    """Each coil's gain variance (``gain_var``, some 0) folded into its eq-4 ``S`` as
+    ``s_g^2 (I hu)(I hu)^T``: the compiled choice equals the reference to the bit (choose and
+    choose_length), and the chosen posterior equals the dense eq 4 of the state augmented by the
+    gain (pose and gain uncorrelated) to 1e-9. Catches the term dropped on one side, added as
+    ``s_g^2 |hu|^2 I3`` (isotropic) or without the current's square, or read from another coil."""
+    rng = np.random.default_rng(21)
+    model = SingleCoilModel(SKEWED, "exact", core.PYTHON)
+    ref, got = _pair(trace, step, share)
+    moved = 0
+    for trial in range(80):
+        p, R = _pose(rng)
+        model.evaluate(p, R)
+        P6 = _P6(rng, 10.0 ** rng.uniform(-1.5, 1.0))
+        gv = (3e-3 * rng.uniform(0.2, 1.0, 3)) ** 2
+        if trial % 4 == 0:
+            gv[rng.integers(3)] = 0.0
+        Pbig = np.diag(np.r_[np.ones(5), gv, np.ones(2)])     # the gains' rows from 5, as a filter's P
+        ref.set_gain_var(Pbig, 5)
+        got.set_gain_var(Pbig, 5)
+        assert np.array_equal(got.gain_var, gv)
+        lim = np.full(3, 0.91)
+        var = (3e-8) ** 2 * rng.uniform(0.3, 30.0)
+        c = ref.choose(P6, model, var, lim)
+        assert got.choose(P6, model, var, lim) == c >= 0
+        _same(ref, got, f"trial {trial}")
+        want = _dense_eq4_with_gain(P6, model.H[c], model.h[c], got.current, var, 3e-3, 1e-3, gv[c])
+        np.testing.assert_allclose(got.var_after, want, rtol=1e-9, atol=1e-12 * float(np.abs(want).max()))
+        without = _dense_eq4(P6, model.H[c], model.h[c], got.current, var, 3e-3, 1e-3)
+        moved += gv[c] > 0.0 and not np.allclose(want, without, rtol=1e-6)
+        c2 = ref.choose_length(P6, model, VARS, LENGTHS, lim)
+        assert got.choose_length(P6, model, VARS, LENGTHS, lim) == c2
+        _same(ref, got, f"trial {trial}, lengths")
+    assert moved > 20
+    counter = NumpyAllocationCounter()                       # the decision's path with the gains
+    with counter:
+        got.set_gain_var(Pbig, 5)
+        got.choose(P6, model, (3e-8) ** 2, lim)
+        got.choose_length(P6, model, VARS, LENGTHS, lim)
+    assert counter.count == 0
+    ref.set_gain_var(np.zeros((8, 8)), 5)                   # back to none: the choice of before, bit for bit
+    plain = CoilChooser(3, current_ladder(0.05, 0.91, 16), SMAX, SMIN, 3e-3, 1e-3, trace, step, share)
+    p, R = _pose(rng)
+    model.evaluate(p, R)
+    P6 = _P6(rng)
+    assert ref.choose(P6, model, (3e-8) ** 2, np.full(3, 0.91)) == plain.choose(P6, model, (3e-8) ** 2, np.full(3, 0.91))
+    _same(plain, ref, "no gain term")
