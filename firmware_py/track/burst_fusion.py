@@ -165,9 +165,11 @@ class _Ori:
         # a compass sample's largest distance from the IMU sample it serves (default two intervals of each)
         self.max_age_us = int(2e6 / cfg.imu.imu_rate_hz) + int(2e6 / cfg.pulse.mag_rate_hz) if max_age_us is None \
             else int(max_age_us)
-        self.compass_used = 0
+        # the samples since the last update round (``n``) and the compass samples used
+        # (``compass_used``) in an int64 array the compiled one-call IMU sample updates in place
+        self.ns = np.zeros(2, dtype=np.int64)
+        self._nsv = memoryview(self.ns)
         self.every = cfg.orientation.ori_update_every
-        self.n = 0
         self.gap_us = cfg.imu.imu_timeout_us     # a longer break in the IMU stream: the orientation is lost
         self.lost = False
         # the compass sample's search (quiet_sample) on the compiled core: bound to the magnetometer
@@ -186,6 +188,15 @@ class _Ori:
             self.step = self._step_compiled
 
     compass_t = property(lambda self: self._ctv[0])     # the last compass sample's time (us)
+
+    def _set_n(self, v: int) -> None:
+        self._nsv[0] = v
+
+    def _set_used(self, v: int) -> None:
+        self._nsv[1] = v
+
+    n = property(lambda self: self._nsv[0], _set_n)
+    compass_used = property(lambda self: self._nsv[1], _set_used)
     kernel = property(lambda self: self._ext)            # the compiled core's module (None: Python)
     sample_kernel = property(lambda self: self._sk)      # ext.OriStep (bound by takes)
 
@@ -452,40 +463,62 @@ class _OneCall:
         self._b = ()
 
     def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
-        """:meth:`SensorInertial.process`'s loop; the samples processed. (What does not change after
-        :meth:`_bind` is read from one tuple made there.)"""
+        """:meth:`SensorInertial.process`'s loop; the samples processed. Without a source that may hold
+        a sample (a fixed source) the samples both filters take whole run in the compiled loop
+        (``ext.ImuSample.drain``: :meth:`one`'s tests and bookkeeping on the owners' state arrays, in
+        place), which hands back each other sample to :meth:`one`."""
         if self._ring is not mag:
             self._bind(mag)
-        peek, sample, begin, finish, f, pu, iu, cu, hold, phi, fr, cap, last = self._b
+        if self._hold is not None:
+            return self._run_held(mag, now_us, wait_us, max_steps)
+        drain = self._drain
+        n = 0
+        while n < max_steps:
+            r = drain(max_steps - n)
+            n += r >> 2
+            if not r & 3:
+                break
+            self.one(mag, self._b[0]())                # (the oldest sample: the path one by one, or
+            n += 1                                     # one that may orthonormalise the orientation)
+        return n
+
+    def _run_held(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
+        """:meth:`run` with a source whose samples a sensor sample may wait for (``hold``)."""
+        peek, hold = self._b[0], self._hold
         t = peek()                                     # (the oldest sample's time; -1: none)
-        if t < 0:
-            return 0
-        ori, fus = self.ori, self.fusion
         n = 0
         while max_steps > 0 and t >= 0:
             max_steps -= 1
-            if hold is not None and hold(t, now_us, wait_us):
+            if hold(t, now_us, wait_us):
                 break
-            if not (ori.settled(t) and fus.live_ready(t)):
-                self.slow(mag)
-            else:
-                h = last() + 1
-                if h == cap:
-                    h = 0
-                tp = f.t_us
-                if t > tp and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
-                    r = begin(tp, h, len(mag))
-                    if r >= 0:
-                        f.sample_done(t, r)
-                        r = fus.live_sample(finish, t, fr[0], fr[1], fr[2], phi, ori.n, pu.count, iu.count, cu.count)
-                else:
-                    r = fus.live_sample(sample, t, fr[0], fr[1], fr[2], phi, tp, ori.n, h, len(mag), pu.count,
-                                        iu.count, cu.count)
-                if not ori.sampled(t, r):
-                    self.slow(mag)
+            self.one(mag, t)
             n += 1
             t = peek()
         return n
+
+    def one(self, mag: SampleRing, t: int) -> None:
+        """The oldest sample (at ``t``): in one call when both filters take it whole, else
+        through ``slow`` (the steps one by one). (What does not change after :meth:`_bind` is read
+        from one tuple made there.)"""
+        peek, sample, begin, finish, f, pu, iu, cu, hold, phi, fr, cap, last = self._b
+        ori, fus = self.ori, self.fusion
+        if not (ori.settled(t) and fus.live_ready(t)):
+            self.slow(mag)
+            return
+        h = last() + 1
+        if h == cap:
+            h = 0
+        tp = f.t_us
+        if t > tp and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
+            r = begin(tp, h, len(mag))
+            if r >= 0:
+                f.sample_done(t, r)
+                r = fus.live_sample(finish, t, fr[0], fr[1], fr[2], phi, ori.n, pu.count, iu.count, cu.count)
+        else:
+            r = fus.live_sample(sample, t, fr[0], fr[1], fr[2], phi, tp, ori.n, h, len(mag), pu.count,
+                                iu.count, cu.count)
+        if not ori.sampled(t, r):
+            self.slow(mag)
 
     def _bind(self, mag: SampleRing):
         """``ext.ImuSample`` bound to the rings, the filters' kernels (the orientation filter's as bound
@@ -499,6 +532,10 @@ class _OneCall:
         # (the filters' update objects: their counts are the kernel's arguments)
         self._b = (ks.peek, ks.sample, ks.begin, ks.finish, f, f.pred, f.incl.upd, f.compass.upd, self._hold,
                    self._phiv, self._frv, mag.capacity, mag.last_pushed_slot)
+        ks.bind_state(f.state, f.compass.learn_state, self.ori.ns, f.pred.cst, f.incl.upd.kst, f.compass.upd.kst,
+                      fus.fs, fus.st.ts, fus.st.pred.cst, fus.prediction.ps, fus.snap.sq, fus.recovery.rs, mag.hc,
+                      self.source.fref, self.source.phi, self.ori.gap_us, fus.prm.max_gap_us)
+        self._drain = ks.drain
         self._ring = mag
         return ks
 

@@ -48,6 +48,21 @@ class _Port:
         self.frames.append(bytes(data))
 
 
+class _Drained:
+    """Counts the samples ``ext.ImuSample.drain`` ran (``n``) and those it handed back (``back``)."""
+
+    def __init__(self, one):
+        self.n = self.back = 0
+        self._drain = one._drain
+        one._drain = self
+
+    def __call__(self, max_steps: int) -> int:
+        r = self._drain(max_steps)
+        self.n += r >> 2
+        self.back += (r & 3) != 0
+        return r
+
+
 def _rel(a, b) -> float:
     a, b = np.asarray(a, float), np.asarray(b, float)
     return float(np.max(np.abs(a - b))) / max(float(np.max(np.abs(a))), 1e-300)
@@ -161,6 +176,7 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     fused_pose = gtx.fused_pose
     gtx.fused_pose = lambda *a: (sent.append(fused_pose(*a)), sent[-1])[1]
     calls = []
+    drained = None
     live = sens["got"][0].fusion.live_sample
     sens["got"][0].fusion.live_sample = lambda *a: (calls.append(a[0].__name__), live(*a))[1]
     tm = t0
@@ -194,6 +210,8 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
             continue                                  # two samples a tick
         for ins, tx in sens.values():
             ins.process(mag, t + 1000, 0, 4)
+            if ins is sens["got"][0] and drained is None and getattr(ins._one, "_drain", None) is not None:
+                drained = _Drained(ins._one)                # (bound at the first sample both filters take)
             if i % 50 < 40:                           # (the queue fills and drops at times)
                 ins.send_fused(tx, 16, 1.0, 200)
         where = i
@@ -207,8 +225,18 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     assert f.compass.upd.rejected > 0 or heading_only       # the disturbance gated
     assert got.ori.flip.si[2] >= 2                           # flips seen
     assert got.fusion.out_dropped > 0 and got.fusion.snap.valid
-    assert got._one.kernel is not None and sep._one.kernel is None and len(calls) > 400   # one call each
+    # one call each: most in the compiled loop (ext.ImuSample.drain), the rest handed back one by one
+    assert got._one.kernel is not None and sep._one.kernel is None and drained.n + len(calls) > 400
+    assert drained.n > 300 and drained.back > 10
     assert calls.count("finish") >= 3                        # (and two where R was orthonormalised)
+    # the per-sample state lives in the owners' arrays, read through the reference's names
+    for ins in (got, ref):
+        fo, fu = ins.ori.f, ins.fusion
+        assert list(fo.state) == [int(fo.initialized), fo.t_us, fo.steps, fo.last_acc_flags, fo.last_mag_flags]
+        assert list(fo.incl.upd.kst) == [fo.incl.upd.count, fo.incl.upd.rejected] and fo.pred.cst[0] == fo.pred.count
+        assert list(ins.ori.ns) == [ins.ori.n, ins.ori.compass_used] and fo.compass.learn_state[0] == 0
+        assert (fu.st.ts[0], fu.prediction.ps[0], fu.fs[1], fu.fs[2]) == (fu.st.t_us, fu.steps, fu.last_update_t,
+                                                                      fu.last_flags)
     # the POSE frames: the same bytes on the one-call path as through PoseReport and pose
     fa, fb, fr = sens["got"][1].port.frames, sens["sep"][1].port.frames, sens["ref"][1].port.frames
     assert len(fa) == len(fb) == len(fr) > 300
@@ -229,17 +257,21 @@ def test_one_call_path_is_taken_and_left():
     mag = SampleRing(64)
     _start_fusion(ins, 1_000_000)
     t = 1_000_000
+    drained = None
     for i in range(400):
         t += 8333
         mag.push(t - 2000, *(H + 1e-9 * i), False, 0)
         ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
         ins.process(mag, t, 0, 8)
+        if drained is None and getattr(ins._one, "_drain", None) is not None:
+            drained = _Drained(ins._one)
         ins.send_fused(sens["got"][1], 16, 1.0, 200)
     f = ins.ori.f
     assert not f.learning and f.steps == 399 and f.upd_mag.count > 50     # (the first sample initialises)
-    # all but the samples before the compass learned (2 x 12 compass samples); the steps 64, 128, ...
-    # 384 (each orthonormalises R) in two calls
-    assert 350 < len(calls) <= 400 - 24 and calls.count("finish") == 6
+    # all but the samples before the compass learned (2 x 12 compass samples): in the compiled loop
+    # (drain) but the steps 64, 128, ... 384 (each orthonormalises R), handed back and run in two calls
+    assert 350 < drained.n + len(calls) <= 400 - 24 and calls.count("finish") == 6
+    assert drained.back >= 6 and len(calls) - calls.count("finish") <= 2
 
 
 def test_kernel_ring_is_a_ring():
