@@ -331,3 +331,52 @@ def test_pose_frame_refuses_what_the_reference_sends_differently():
     po.out.d[k, 13] = 4.0
     assert kern.pose_frame(k, po.out.tv[k], 5, 1, 16, _FUSED_VALID, 200, 1.0) is None         # an OUT_* bit
     assert math.isfinite(r.p[0])
+
+
+def test_drain_hands_back_what_the_reference_tests_refuse():
+    """``ext.ImuSample.drain`` (``ct_sample_route``) runs a sample only where ``_Ori.settled`` and
+    ``FusionFilter.live_ready`` hold and the output queue has room: a recorder attached, a pending
+    snapshot inside the step, a gap longer than ``max_gap_us`` or a full queue each hand the sample
+    back (nothing run, the state unchanged); the sample then runs as the reference runs it."""
+    cfg, sens = _sensors(0.0, False)
+    ins, tx = sens["got"]
+    mag = SampleRing(64)
+    _start_fusion(ins, 1_000_000)
+    t = 1_000_000
+    for i in range(80):                               # the compass learns; the drain is bound
+        t += 8333
+        mag.push(t - 2000, *(H + 1e-9 * i), False, 0)
+        ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
+        ins.process(mag, t, 0, 8)
+        ins.send_fused(tx, 16, 1.0, 200)
+    one, fus = ins._one, ins.fusion
+    assert one._drain is not None and not ins.ori.f.learning
+    if ((ins.ori.f.steps + 1) & 63) == 0:             # (keep clear of an orthonormalising step)
+        t += 8333
+        ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
+        ins.process(mag, t, 0, 8)
+
+    def refused(arrange, undo) -> None:
+        nonlocal t
+        t += 8333
+        ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
+        arrange()
+        before = (ins.ori.f.state.copy(), fus.fs.copy(), fus.st.ts.copy(), fus.prediction.ps.copy(), len(ins.imu))
+        assert one._drain(8) == 1                     # none run, handed back as the steps one by one
+        after = (ins.ori.f.state, fus.fs, fus.st.ts, fus.prediction.ps, len(ins.imu))
+        assert all(np.array_equal(a, b) for a, b in zip(before, after))
+        undo()
+        assert one._drain(8) == 4                     # then run whole
+        assert fus.st.t_us == t and ins.ori.f.t_us == t
+        ins.send_fused(tx, 16, 1.0, 200)
+
+    saved = fus.fs.copy()
+    refused(lambda: fus.fs.__setitem__(3, 1), lambda: fus.fs.__setitem__(3, saved[3]))       # a recorder
+    refused(lambda: fus.snap.schedule(t - 10), lambda: fus.snap.__setattr__("pending", False))  # a snapshot in the step
+    refused(lambda: fus.fs.__setitem__(0, 0), lambda: fus.fs.__setitem__(0, 1))               # not initialised
+    refused(lambda: ins.ori.f.compass.__setattr__("learning", True),
+            lambda: ins.ori.f.compass.__setattr__("learning", False))                         # the compass learning
+    out = fus.output.out
+    for _ in range(out.capacity - len(out)):
+        out.push(0)
+    refused(lambda: None, lambda: [out.pop() for _ in range(len(out))])                       # a full output queue
