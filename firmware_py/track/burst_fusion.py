@@ -453,8 +453,11 @@ class _OneCall:
     fusion filter's forward step, ``w_last``; the same steps in the same order), bound at the first
     such sample; any other goes through ``slow`` (the steps one by one)."""
 
-    def __init__(self, imu, ori: _Ori, fusion, source, w_last, slow):
+    def __init__(self, imu, ori: _Ori, fusion, source, w_last, slow, count):
+        """``count``: the sensor's processed samples (a memoryview of one int64), which :meth:`run`
+        adds to."""
         self.imu, self.ori, self.fusion, self.source, self.w_last, self.slow = imu, ori, fusion, source, w_last, slow
+        self._count = count
         self._phiv = memoryview(source.phi)
         self._frv = memoryview(source.fref)
         self.kernel = None
@@ -470,16 +473,18 @@ class _OneCall:
         if self._ring is not mag:
             self._bind(mag)
         if self._hold is not None:
-            return self._run_held(mag, now_us, wait_us, max_steps)
-        drain = self._drain
-        n = 0
-        while n < max_steps:
-            r = drain(max_steps - n)
-            n += r >> 2
-            if not r & 3:
-                break
-            self.one(mag, self._b[0]())                # (the oldest sample: the path one by one, or
-            n += 1                                     # one that may orthonormalise the orientation)
+            n = self._run_held(mag, now_us, wait_us, max_steps)
+        else:
+            drain = self._drain
+            n = 0
+            while n < max_steps:
+                r = drain(max_steps - n)
+                n += r >> 2
+                if not r & 3:
+                    break
+                self.one(mag, self._b[0]())            # (the oldest sample: the path one by one, or
+                n += 1                                 # one that may orthonormalise the orientation)
+        self._count[0] += n
         return n
 
     def _run_held(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
@@ -544,6 +549,11 @@ class SensorInertial(CompiledBurst):
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
 
+    def _set_samples(self, v: int) -> None:
+        self._scv[0] = v
+
+    samples = property(lambda self: self._scv[0], _set_samples)     # IMU samples processed
+
     def __init__(self, node: int, cfg, gate: PulseGate, source, compass_max_age_us: int | None = None,
                  burst_rms_s: float | None = None, core=_DEFAULT_CORE):
         """``source``: :class:`SourceInertial` or :class:`FixedSource` (:func:`make_source`);
@@ -604,13 +614,15 @@ class SensorInertial(CompiledBurst):
             else float(burst_rms_s)
         self.w_last = np.zeros(3)          # latest rate, offset removed (rad/s)
         self._wlv = memoryview(self.w_last)
+        self.sc = np.zeros(1, dtype=np.int64)     # the samples processed (``samples``)
+        self._scv = memoryview(self.sc)
         if self.ori.one_call and self.fusion.st.ck is not None:
-            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python)
-            self.process = self._process_compiled
+            # process on the compiled core (:class:`_OneCall`; an empty ring returns at once there)
+            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python, self._scv)
+            self.process = self._one.run
         self.compensated = 0
         self.comp_rejected = 0
         self.fused = 0
-        self.samples = 0
         self.last_fuse_flags = 0
         # recovery bookkeeping (events on changes): 0 tracking, 1 dead reckoning, 2 lost
         self.dr_state = 0
@@ -650,10 +662,6 @@ class SensorInertial(CompiledBurst):
             push(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
             self.samples += 1
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
-
-    def _process_compiled(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
-        """:meth:`process` on the compiled core (:class:`_OneCall`; an empty ring returns at once there)."""
-        self.samples += self._one.run(mag, now_us, wait_us, max_steps)
 
     def _sample_python(self, mag: SampleRing) -> None:
         """The oldest sample through :meth:`process`'s steps one by one."""

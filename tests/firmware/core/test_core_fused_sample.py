@@ -30,7 +30,7 @@ from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.estimate.fusion_rings import KernelRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.ring import Ring
-from coiltrack.firmware.track.burst_fusion import _FUSED_VALID, FixedSource, PulseGate, SensorInertial
+from coiltrack.firmware.track.burst_fusion import _FUSED_VALID, FixedSource, PulseGate, SensorInertial, _OneCall
 from coiltrack.firmware.transmit import Transmitter
 from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
 
@@ -83,7 +83,7 @@ def _sensors(adapt: float, heading_only: bool):
         tx = Transmitter(_Port(), 1, 1_000_000, None, core=k)
         out[name] = (ins, tx)
     ins, tx = out["sep"]
-    assert ins.process.__func__ is SensorInertial._process_compiled
+    assert ins.process.__func__ is _OneCall.run
     ins.process = types.MethodType(SensorInertial.process, ins)     # the kernels one by one
     ins.ori.step = ins.ori.step_python
     own = tx.pose
