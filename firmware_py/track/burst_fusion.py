@@ -465,7 +465,7 @@ class _OneCall:
         self._hold = None if source.fixed else source.hold     # (a fixed source never holds)
         self._b = ()
 
-    def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
+    def run(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> int:
         """:meth:`SensorInertial.process`'s loop; the samples processed. Without a source that may hold
         a sample (a fixed source) the samples both filters take whole run in the compiled loop
         (``ext.ImuSample.drain``: :meth:`one`'s tests and bookkeeping on the owners' state arrays, in

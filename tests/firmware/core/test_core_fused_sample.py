@@ -347,8 +347,12 @@ def test_drain_hands_back_what_the_reference_tests_refuse():
         t += 8333
         mag.push(t - 2000, *(H + 1e-9 * i), False, 0)
         ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
-        ins.process(mag, t, 0, 8)
+        if i % 2:
+            ins.process(mag)                          # (track.ac's call: the defaults)
+        else:
+            ins.process(mag, t, 0, 8)
         ins.send_fused(tx, 16, 1.0, 200)
+    assert ins.samples == 80
     one, fus = ins._one, ins.fusion
     assert one._drain is not None and not ins.ori.f.learning
     if ((ins.ori.f.steps + 1) & 63) == 0:             # (keep clear of an orthonormalising step)
