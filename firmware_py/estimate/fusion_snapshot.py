@@ -95,7 +95,8 @@ class Snapshot:
 
     def due(self, t0: int, t1: int) -> bool:
         """A pending snapshot falls in the step ``(t0, t1]``."""
-        return self.pending and t0 < self.t <= t1
+        q = self._sqv                    # (t, pending)
+        return q[1] != 0 and t0 < q[0] <= t1
 
     def take_aux(self, d, k: int, full: bool) -> None:
         """Source orientation (IMU ring row ``k`` of ``d``) and Xi at t_ref (all that

@@ -401,11 +401,10 @@ class FusionFilter(FilterView):
     def live_ready(self, t_us: int) -> bool:
         """The sample at ``t_us`` meets :meth:`_push_imu_compiled`'s conditions for :meth:`live_sample` (but
         the output queue's room, which its kernel tests, and ``P``'s symmetrisation, which it runs)."""
-        st = self.st
-        t0 = st.t_us
-        snap = self.snap
-        return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
-            and not (snap.pending and t0 < snap.t <= t_us) and self.recorder is None
+        t0 = self.st.t_us
+        fs = self._fsv
+        return fs[FS_INIT] != 0 and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
+            and not self.snap.due(t0, t_us) and fs[FS_RECORDER] == 0
 
     def live_sample(self, step, t_us: int, rx, ry, rz, Phi, *ori) -> int:
         """The oldest sample of the sensor's IMU ring (at ``t_us``, :meth:`live_ready`), with the source's

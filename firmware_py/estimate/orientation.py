@@ -240,6 +240,7 @@ class OrientationFilter(_OriState):
         # array a compiled kernel bound once updates in place; read and written through the properties
         self.state = np.zeros(OF_N, dtype=np.int64)
         self._stv = memoryview(self.state)
+        self.state_view = self._stv      # (read-only use by the tracker's readiness tests)
         self.reacquired = 0              # orientations found again after a break (reacquire)
         self._Pv = memoryview(self.P)
         self._Tv = memoryview(self._T)
@@ -425,17 +426,20 @@ class OrientationFilter(_OriState):
 
     def sample_done(self, t_us: int, r: int) -> None:
         """The bookkeeping of a sample the compiled core ran (``ct_ori_sample``, or its halves; the ``OS_*``
-        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags."""
-        self.t_us = t_us
-        self.steps += r & OS_PREDICTED
-        if r & OS_PREDICTED and self.steps & 63 == 0:
-            self._orthonormalize()       # (after ct_ori_sample_begin: its caller finishes the sample)
+        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags. (The
+        state array is read and written directly here: ``t_us``, ``steps``, ``last_*_flags``.)"""
+        s = self._stv
+        s[OF_T] = t_us
+        if r & OS_PREDICTED:
+            s[OF_STEPS] += 1
+            if s[OF_STEPS] & 63 == 0:
+                self._orthonormalize()   # (after ct_ori_sample_begin: its caller finishes the sample)
         if r & OS_ROUND:
             if r & (OS_FREEFALL | OS_ACC):
-                self.last_acc_flags = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)
+                s[OF_ACCF] = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)
             self.pred.set_count(self.pred.count + (r >> 16))
             if r & OS_MAG:
-                self.last_mag_flags = self.compass.upd.counted((r >> 12) & 15)
+                s[OF_MAGF] = self.compass.upd.counted((r >> 12) & 15)
 
     def propagate(self) -> None:
         """Covariance over the steps since the last call (eq 2.28 and the

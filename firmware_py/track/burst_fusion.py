@@ -41,7 +41,8 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
-from coiltrack.firmware.estimate.orientation import N as ORI_N, OS_MAG, OS_ROUND, OrientationFilter, OrientationParams
+from coiltrack.firmware.estimate.orientation import N as ORI_N, OF_INIT, OF_STEPS, OF_T, OS_MAG, OS_ROUND, OrientationFilter, \
+    OrientationParams
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
@@ -227,13 +228,13 @@ class _Ori:
     def ready(self, t: int) -> bool:
         """The sample at ``t`` is one the compiled core takes whole in one call (:meth:`settled`, and no
         orthonormalisation due)."""
-        f = self.f
-        return self.settled(t) and (t <= f.t_us or (f.steps + 1) & 63 != 0)
+        s = self.f.state_view
+        return self.settled(t) and (t <= s[OF_T] or (s[OF_STEPS] + 1) & 63 != 0)
 
     def settled(self, t: int) -> bool:
         """An initialised filter, no break in the stream before ``t``, the compass learned."""
-        f = self.f
-        return f.initialized and t - f.t_us <= self.gap_us and not f.compass.learning
+        s = self.f.state_view                          # (OrientationFilter.state: initialised, time)
+        return s[OF_INIT] != 0 and t - s[OF_T] <= self.gap_us and not self.f.compass.learning
 
     def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         """:meth:`step` of a sample the compiled core takes whole (:meth:`takes`; ``ext.OriStep.sample``:
@@ -253,12 +254,13 @@ class _Ori:
         if r < 0:
             return False
         self.f.sample_done(t, r)
+        ns = self._nsv
         if r & OS_ROUND:
-            self.n = 0
+            ns[0] = 0
             if r & OS_MAG:
-                self.compass_used += 1
+                ns[1] += 1
         else:
-            self.n += 1
+            ns[0] += 1
         return True
 
     def _quiet(self, mag: SampleRing, t: int) -> int:
