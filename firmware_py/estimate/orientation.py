@@ -205,6 +205,7 @@ class _OriState:
     steps = _state_int(OF_STEPS)            # prediction steps (every 64th orthonormalises R)
     last_acc_flags = _state_int(OF_ACCF)
     last_mag_flags = _state_int(OF_MAGF)
+    state_view = property(lambda self: self._stv)     # ``state`` as a memoryview (the tracker's tests read it)
 
 
 class OrientationFilter(_OriState):
@@ -240,7 +241,6 @@ class OrientationFilter(_OriState):
         # array a compiled kernel bound once updates in place; read and written through the properties
         self.state = np.zeros(OF_N, dtype=np.int64)
         self._stv = memoryview(self.state)
-        self.state_view = self._stv      # (read-only use by the tracker's readiness tests)
         self.reacquired = 0              # orientations found again after a break (reacquire)
         self._Pv = memoryview(self.P)
         self._Tv = memoryview(self._T)
@@ -426,14 +426,12 @@ class OrientationFilter(_OriState):
 
     def sample_done(self, t_us: int, r: int) -> None:
         """The bookkeeping of a sample the compiled core ran (``ct_ori_sample``, or its halves; the ``OS_*``
-        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags. (The
-        state array is read and written directly here: ``t_us``, ``steps``, ``last_*_flags``.)"""
+        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags (in ``state``)."""
         s = self._stv
         s[OF_T] = t_us
-        if r & OS_PREDICTED:
-            s[OF_STEPS] += 1
-            if s[OF_STEPS] & 63 == 0:
-                self._orthonormalize()   # (after ct_ori_sample_begin: its caller finishes the sample)
+        s[OF_STEPS] += r & OS_PREDICTED
+        if r & OS_PREDICTED and s[OF_STEPS] & 63 == 0:
+            self._orthonormalize()       # (after ct_ori_sample_begin: its caller finishes the sample)
         if r & OS_ROUND:
             if r & (OS_FREEFALL | OS_ACC):
                 s[OF_ACCF] = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)
