@@ -41,8 +41,8 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
-from coiltrack.firmware.estimate.orientation import N as ORI_N, OF_INIT, OF_STEPS, OF_T, OS_MAG, OS_ROUND, OrientationFilter, \
-    OrientationParams
+from coiltrack.firmware.estimate.orientation import (N as ORI_N, OF_INIT, OF_STEPS, OF_T, OS_MAG, OS_ROUND,
+                                                    OrientationFilter, OrientationParams)
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
