@@ -1207,6 +1207,11 @@ typedef struct {
     double held[6], held_m[CT_OM_N];
     int holding;
     fus_views views;
+    /* bind_state's: the owners' per-sample state, the source's r* (3) and Phi (9) */
+    struct ct_sample_state ss;
+    const double *fref, *phi;
+    int stated;
+    fus_views sviews;
 } ImuSampleObject;
 
 static void ImuSample_dealloc(ImuSampleObject *self)
@@ -1214,6 +1219,7 @@ static void ImuSample_dealloc(ImuSampleObject *self)
     Py_XDECREF(self->ori);
     Py_XDECREF(self->live);
     fus_release(&self->views);
+    fus_release(&self->sviews);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -1296,39 +1302,15 @@ static int imu_fus_args(ImuSampleObject *self, PyObject *const *args, long long 
     return 0;
 }
 
-/* sample(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, t_prev, n, head, count, pcount, icount,
- *        mcount)
- * -> the orientation step's CT_OS_* bits: the oldest sample of the sensor's IMU ring (its time t)
- * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0;
- * fcount: the fusion state's prediction count (the step after which P is symmetrised, as
- * CovariancePredict.after_predict does it); -1 (nothing done) when the output queue is full
- * (PoseOutput.queue would drop the pose) */
-static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* sample's work on a queue with room and a ring not empty (v[6..8]: r*): the orientation step's bits */
+static int imu_sample_whole(ImuSampleObject *self, long long t0, long long age, int rec, int inc, long long fc,
+                            double *v, const double *phi, long long tp, long long n, long long head,
+                            long long count, long long pc, long long ic, long long mc)
 {
-    long long tp, n, head, count, pc, ic, mc, t0, age, fc;
-    double v[9], phi[9];
     const double *d, *b;
     int64_t k, t, kf, h, o;
-    int r, rec, inc, i;
-    if (self->ori == NULL) {
-        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
-        return NULL;
-    }
-    if (fus_nargs("sample", nargs, 16) < 0 || imu_fus_args(self, args, &t0, &age, &rec, &inc, &fc, v, phi) < 0 ||
-        fus_long(args[9], &tp) < 0 || fus_long(args[10], &n) < 0 || fus_long(args[11], &head) < 0 ||
-        fus_long(args[12], &count) < 0 || fus_long(args[13], &pc) < 0 || fus_long(args[14], &ic) < 0 ||
-        fus_long(args[15], &mc) < 0)
-        return NULL;
-    if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
-        PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
-        return NULL;
-    }
-    if (self->ou_hc[1] == self->ou_cap)                                  /* the output queue is full */
-        return PyLong_FromLong(-1);
-    if ((k = ct_ring_pop(self->in_hc, self->in_cap)) < 0) {
-        PyErr_SetString(PyExc_IndexError, "sample: the IMU ring is empty");
-        return NULL;
-    }
+    int r, i;
+    k = ct_ring_pop(self->in_hc, self->in_cap);
     t = self->in_t[k];
     d = self->in_d + 6 * k;
     for (i = 0; i < 6; ++i)
@@ -1344,7 +1326,41 @@ static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, 
     self->wl[0] = v[3] - b[0];
     self->wl[1] = v[4] - b[1];
     self->wl[2] = v[5] - b[2];
-    return PyLong_FromLong(r);
+    return r;
+}
+
+/* sample(t0, age, recovering, inconsistent, fcount, rx, ry, rz, Phi, t_prev, n, head, count, pcount, icount,
+ *        mcount)
+ * -> the orientation step's CT_OS_* bits: the oldest sample of the sensor's IMU ring (its time t)
+ * through _Ori.step (OriStep.sample's arguments) and FusionFilter.push_imu's forward step from t0;
+ * fcount: the fusion state's prediction count (the step after which P is symmetrised, as
+ * CovariancePredict.after_predict does it); -1 (nothing done) when the output queue is full
+ * (PoseOutput.queue would drop the pose) */
+static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long tp, n, head, count, pc, ic, mc, t0, age, fc;
+    double v[9], phi[9];
+    int rec, inc;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("sample", nargs, 16) < 0 || imu_fus_args(self, args, &t0, &age, &rec, &inc, &fc, v, phi) < 0 ||
+        fus_long(args[9], &tp) < 0 || fus_long(args[10], &n) < 0 || fus_long(args[11], &head) < 0 ||
+        fus_long(args[12], &count) < 0 || fus_long(args[13], &pc) < 0 || fus_long(args[14], &ic) < 0 ||
+        fus_long(args[15], &mc) < 0)
+        return NULL;
+    if (head < 0 || head >= self->ori->o.q.cap || count < 0 || count > self->ori->o.q.cap) {
+        PyErr_SetString(PyExc_IndexError, "sample: head or count outside the magnetometer ring");
+        return NULL;
+    }
+    if (self->ou_hc[1] == self->ou_cap)                                  /* the output queue is full */
+        return PyLong_FromLong(-1);
+    if (self->in_hc[1] <= 0) {
+        PyErr_SetString(PyExc_IndexError, "sample: the IMU ring is empty");
+        return NULL;
+    }
+    return PyLong_FromLong(imu_sample_whole(self, t0, age, rec, inc, fc, v, phi, tp, n, head, count, pc, ic, mc));
 }
 
 /* peek() -> the time of the oldest sample of the IMU ring, or -1 when it is empty */
@@ -1438,7 +1454,92 @@ static PyObject *ImuSample_finish(ImuSampleObject *self, PyObject *const *args, 
     return PyLong_FromLong(r);
 }
 
+/* bind_state(of, learn, ns, opc, ik, mk, ff, ts, fpc, ps, sq, rs, mhc, fref, phi, gap_us, max_gap_us): the
+ * owners' per-sample state arrays (ct_sample_state's, in its order; int64) and the source's r* (3) and
+ * Phi (3x3, float64), bound once for drain */
+static PyObject *ImuSample_bind_state(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const Py_ssize_t len[13] = {CT_OF_N, 1, 2, 1, 2, 2, CT_FF_N, 1, 1, 1, 2, 1, 2};
+    static const char *what[13] = {"of", "learn", "ns", "opc", "ik", "mk", "ff", "ts", "fpc", "ps", "sq", "rs",
+                                   "mhc"};
+    int64_t *p[13];
+    long long gap, max_gap;
+    int i;
+    if (self->ori == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: not bound");
+        return NULL;
+    }
+    if (fus_nargs("bind_state", nargs, 17) < 0 || fus_fresh(&self->sviews, "ImuSample.bind_state") < 0 ||
+        fus_long(args[15], &gap) < 0 || fus_long(args[16], &max_gap) < 0)
+        return NULL;
+    for (i = 0; i < 13; ++i)
+        if (!(p[i] = fus_bind(&self->sviews, args[i], len[i], 'q', 1, what[i]))) {
+            fus_release(&self->sviews);
+            return NULL;
+        }
+    if (!(self->fref = fus_bind(&self->sviews, args[13], 3, 'd', 0, "fref")) ||
+        !(self->phi = fus_bind(&self->sviews, args[14], 9, 'd', 0, "phi"))) {
+        fus_release(&self->sviews);
+        return NULL;
+    }
+    self->ss = (struct ct_sample_state){p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10], p[11],
+                                        p[12], (int64_t)gap, (int64_t)max_gap};
+    self->stated = 1;
+    Py_RETURN_NONE;
+}
+
+/* drain(max_steps) -> 4 n + why: track.burst_fusion._OneCall.run's loop over the samples both filters take
+ * whole (ct_sample_route), each through sample's work with its arguments read from the bound state and
+ * its bookkeeping done there (ct_sample_done); n samples run, then why: 0 the ring is empty or
+ * max_steps are run, CT_SR_SLOW / CT_SR_ORTHO the oldest sample is the caller's (not run; a full output
+ * queue is CT_SR_SLOW, as sample's -1) */
+static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    const struct ct_sample_state *s = &self->ss;
+    long long max;
+    double v[9], phi[9];
+    int64_t t, p, n = 0;
+    int why = 0, r, i;
+    if (!self->stated) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: drain before bind_state");
+        return NULL;
+    }
+    if (fus_nargs("drain", nargs, 1) < 0 || fus_long(args[0], &max) < 0)
+        return NULL;
+    for (i = 0; i < 9; ++i)
+        phi[i] = self->phi[i];
+    while (n < max && self->in_hc[1] > 0) {
+        p = self->in_hc[0] - self->in_hc[1];
+        if (p < 0)
+            p += self->in_cap;
+        t = self->in_t[p];
+        why = ct_sample_route(s, t);
+        if (why == CT_SR_WHOLE && self->ou_hc[1] == self->ou_cap)
+            why = CT_SR_SLOW;
+        if (why != CT_SR_WHOLE)
+            break;
+        if (s->mhc[0] < 0 || s->mhc[0] >= self->ori->o.q.cap || s->mhc[1] < 0 || s->mhc[1] > self->ori->o.q.cap) {
+            PyErr_SetString(PyExc_IndexError, "drain: head or count outside the magnetometer ring");
+            return NULL;
+        }
+        for (i = 0; i < 3; ++i)
+            v[6 + i] = self->fref[i];
+        r = imu_sample_whole(self, s->ts[0], t - s->ff[CT_FF_UPDATE_T], s->rs[0] != 0,
+                             (s->ff[CT_FF_FLAGS] & ~(int64_t)CT_FUS_FRESH_FLAGS) != 0, s->fpc[0], v, phi,
+                             s->of[CT_OF_T], s->ns[0], s->mhc[0], s->mhc[1], s->opc[0], s->ik[0], s->mk[0]);
+        ct_sample_done(s, t, r);
+        ++n;
+    }
+    return PyLong_FromLongLong((long long)(4 * n + why));
+}
+
 static PyMethodDef ImuSample_methods[] = {
+    {"bind_state", (PyCFunction)(void (*)(void))ImuSample_bind_state, METH_FASTCALL,
+     "bind_state(of, learn, ns, opc, ik, mk, ff, ts, fpc, ps, sq, rs, mhc, fref, phi, gap_us, max_gap_us): the "
+     "per-sample state drain reads and writes"},
+    {"drain", (PyCFunction)(void (*)(void))ImuSample_drain, METH_FASTCALL,
+     "drain(max_steps) -> 4 n + why: the samples both filters take whole, n of them run; why 0 (empty or "
+     "max_steps), 1 (the next is the steps one by one), 2 (the next may orthonormalise: the caller's)"},
     {"begin", (PyCFunction)(void (*)(void))ImuSample_begin, METH_FASTCALL,
      "begin(t_prev, head, count) -> bits or -1: sample's first half (up to the orientation's prediction)"},
     {"finish", (PyCFunction)(void (*)(void))ImuSample_finish, METH_FASTCALL,

@@ -106,9 +106,13 @@ class KalmanUpdate:
         self._yv = memoryview(self.y)
         self._wv = memoryview(self._w)
         self._dxv = memoryview(self.dx)
-        self.nis = 0.0
-        self.count = 0
-        self.rejected = 0
+        # the update's count and rejections (int64: count, rejected) and its NIS, in arrays a compiled
+        # kernel bound once updates in place (core/src/fusimu.c's one-call IMU sample); read and
+        # written through the properties below as the attributes they stand for
+        self.kst = np.zeros(2, dtype=np.int64)
+        self._kstv = memoryview(self.kst)
+        self._nis = np.zeros(1)
+        self._nisv = memoryview(self._nis)
         #: the numeric core of :meth:`update`, bound once here (``coiltrack.firmware.core``)
         self.core = "python"
         ext = core.ext
@@ -117,16 +121,26 @@ class KalmanUpdate:
             # (equal to the BLAS products below to rounding; S's inverse is the same code)
             self._L = np.zeros((m, m))
             self._M = np.zeros((m, m))
-            self._nis = np.zeros(1)
-            self._nisv = memoryview(self._nis)
             self._ck = ext.KUpdate(n, m, self.H, self.R, self.y, self.dx, self.S, self.Sinv, self.K, self._PHt,
                                    self._T, self._TH, self._X, self._KR, self._w, self._L, self._M, self._nis)
             self.update = self._update_compiled
             self.core = "compiled"
 
+    def _set_nis(self, v: float) -> None:
+        self._nisv[0] = v
+
+    def _set_count(self, v: int) -> None:
+        self._kstv[0] = v
+
+    def _set_rejected(self, v: int) -> None:
+        self._kstv[1] = v
+
+    nis = property(lambda self: self._nisv[0], _set_nis)                 # the last update's NIS
+    count = property(lambda self: self._kstv[0], _set_count)             # updates applied
+    rejected = property(lambda self: self._kstv[1], _set_rejected)       # updates rejected
+
     def _update_compiled(self, P: np.ndarray, gate: float | None = None) -> int:
         flags = self._ck.update(P, self.gate if gate is None else gate)
-        self.nis = self._nisv[0]
         if flags != EKF_OK:
             self.rejected += 1
             return flags
@@ -138,7 +152,6 @@ class KalmanUpdate:
     def counted(self, flags: int) -> int:
         """The bookkeeping of an update a compiled kernel ran with its symmetrisation (the count or the
         rejection, the NIS it wrote); returns ``flags``."""
-        self.nis = self._nisv[0]
         if flags != EKF_OK:
             self.rejected += 1
         else:
@@ -225,7 +238,8 @@ class CovariancePredict:
         self._T2t = self._T2.T
         self._half = np.full((), 0.5)
 
-        self.count = 0
+        self.cst = np.zeros(1, dtype=np.int64)     # the count (int64, in place for a compiled kernel)
+        self._cstv = memoryview(self.cst)
         #: the numeric core of :meth:`predict`, bound once here (``coiltrack.firmware.core``)
         self.core = "python"
         ext = core.ext
@@ -235,6 +249,11 @@ class CovariancePredict:
             self._ck = ext.CovPredict(n, self.A, self.Q, self._T)
             self.predict = self._predict_compiled
             self.core = "compiled"
+
+    def _set_count(self, v: int) -> None:
+        self._cstv[0] = v
+
+    count = property(lambda self: self._cstv[0], _set_count)             # predictions run
 
     def _predict_compiled(self, P: np.ndarray) -> None:
         self._ck.predict(P)

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import IMU_F, IMU_FIELDS, IMU_FSRC, IMU_W, InsState
 from coiltrack.firmware.estimate.layout import ACC, GYR, ORI, VEL
@@ -48,6 +50,11 @@ class InertialPrediction:
         scalars ``dt_last, ka, kg`` in the state's ``ws``, and its history rows).
     """
 
+    def _set_steps(self, v: int) -> None:
+        self._psv[0] = v
+
+    steps = property(lambda self: self._psv[0], _set_steps)     # forward steps run
+
     def __init__(self, params, n: int, frame, imu_capacity: int, compiled: bool, core=_DEFAULT_CORE,
                  states=()):
         prm = params
@@ -60,7 +67,8 @@ class InertialPrediction:
         self.sd = Strapdown(core)
         self.imu = KernelRing(imu_capacity, IMU_FIELDS)     # (its head and count shared: ext.ImuSample)
         self._itv, self._idv, self._icap = self.imu.tv, self.imu.dv, self.imu.capacity
-        self.steps = 0
+        self.ps = np.zeros(1, dtype=np.int64)    # the steps (``steps``), in place for the one-call IMU sample
+        self._psv = memoryview(self.ps)
         #: the numeric body of each IMU step, chosen once (coiltrack.firmware.core)
         self._ins_step = self.step_compiled if compiled else self.step_python
         self._kern = {}

@@ -29,7 +29,15 @@ class Recovery:
     (``RECOVER_*`` of the pending or last restart), ``kept`` / ``kept_t`` (offsets kept, when).
     """
 
+    def _set_recovering(self, v: bool) -> None:
+        self._rsv[0] = 1 if v else 0
+
+    # 0/1 in an int64 array (``rs``) the compiled one-call IMU sample reads
+    recovering = property(lambda self: self._rsv[0] != 0, _set_recovering)
+
     def __init__(self, params, measurement):
+        self.rs = np.zeros(1, dtype=np.int64)
+        self._rsv = memoryview(self.rs)
         self.prm = params
         self.meas = measurement
         #: the white states' blocks and their prior variances (the measurement model's)

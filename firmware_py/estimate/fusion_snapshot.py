@@ -29,7 +29,19 @@ class Snapshot:
     xi_filter : orientation.OrientationFilter or None
     """
 
+    def _set_t(self, v: int) -> None:
+        self._sqv[0] = v
+
+    def _set_pending(self, v: bool) -> None:
+        self._sqv[1] = 1 if v else 0
+
+    # the time and pending (0/1) in an int64 array (``sq``) the compiled one-call IMU sample reads
+    t = property(lambda self: self._sqv[0], _set_t)
+    pending = property(lambda self: self._sqv[1] != 0, _set_pending)
+
     def __init__(self, n: int, frame, xi_filter, core=_DEFAULT_CORE):
+        self.sq = np.zeros(2, dtype=np.int64)
+        self._sqv = memoryview(self.sq)
         self.st = InsState(n, None, core=core)
         self.frame = frame
         self.xi_filter = xi_filter
@@ -83,7 +95,8 @@ class Snapshot:
 
     def due(self, t0: int, t1: int) -> bool:
         """A pending snapshot falls in the step ``(t0, t1]``."""
-        return self.pending and t0 < self.t <= t1
+        q = self._sqv                    # (t, pending)
+        return q[1] != 0 and t0 < q[0] <= t1
 
     def take_aux(self, d, k: int, full: bool) -> None:
         """Source orientation (IMU ring row ``k`` of ``d``) and Xi at t_ref (all that

@@ -52,7 +52,8 @@ class InsState:
         self.ba = np.zeros(3)
         self.bg = np.zeros(3)
         self.P = np.zeros((n, n))
-        self.t_us = 0
+        self.ts = np.zeros(1, dtype=np.int64)    # the time (``t_us``) in place for the one-call IMU sample
+        self._tsv = memoryview(self.ts)
         self._pv = memoryview(self.p)
         self._vv = memoryview(self.v)
         self._Thv = memoryview(self.Th)
@@ -161,7 +162,9 @@ class InsState:
 
     def set_time(self, t_us: int) -> None:
         """The state now refers to ``t_us``."""
-        self.t_us = t_us
+        self._tsv[0] = t_us
+
+    t_us = property(lambda self: self._tsv[0], set_time)    # the time the state refers to (us)
 
     dt_last = property(lambda self: self._wsv[0])    # the step (s) the workspace is written for
     ka = property(lambda self: self._wsv[1])         # the offsets' decay factors over it

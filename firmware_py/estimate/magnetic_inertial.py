@@ -111,6 +111,8 @@ All buffers are created in ``__init__``; a step allocates no numpy array.
 """
 from __future__ import annotations
 
+import numpy as np
+
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import EKF_OK, SYMMETRIZE_EVERY, KalmanUpdate
 from coiltrack.firmware.estimate.fusion_measurement import make_measurement_model
@@ -142,6 +144,20 @@ RECOVER_STREAM = 3          # the IMU stream broke off (``max_gap_us``)
 
 #: strapdown + covariance steps one replayed IMU sample can cost (split at a snapshot)
 MAX_STEPS_PER_SAMPLE = 2
+
+#: ``FusionFilter.fs`` (int64): initialised (0/1), the last update's time (us) and flags, a recorder
+#: attached (0/1): the per-sample state the compiled one-call IMU sample reads in place
+#: (``core/include/ct_fusimu.h`` ``CT_FS_*``)
+FS_INIT, FS_UPDATE_T, FS_FLAGS, FS_RECORDER, FS_N = range(5)
+
+
+def _fs_int(i: int, as_bool: bool = False):
+    """A property over entry ``i`` of ``self._fsv`` (0/1 for a bool)."""
+    def fset(self, v) -> None:
+        self._fsv[i] = (1 if v else 0) if as_bool else v
+    if as_bool:
+        return property(lambda self: self._fsv[i] != 0, fset)
+    return property(lambda self: self._fsv[i], fset)
 
 
 def max_replay_steps_per_step(budget: int) -> int:
@@ -247,6 +263,9 @@ class FilterView:
     recoveries = property(lambda self: self.recovery.recoveries)
     biases_kept = property(lambda self: self.recovery.biases_kept)
     recovery_reason = property(lambda self: self.recovery.recovery_reason)
+    initialized = _fs_int(FS_INIT, True)
+    last_update_t = _fs_int(FS_UPDATE_T)      # the last accepted update's time (us)
+    last_flags = _fs_int(FS_FLAGS)            # the last update's FUS_* flags
 
     # ------------------------------------------------------------ queries
     def pose_at(self, t_us: int, out_p, out_R) -> bool:
@@ -291,6 +310,8 @@ class FusionFilter(FilterView):
     def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
                  history_capacity: int = 128, output_capacity: int = 16, fixed_source: bool = False,
                  core=_DEFAULT_CORE):
+        self.fs = np.zeros(FS_N, dtype=np.int64)
+        self._fsv = memoryview(self.fs)
         self.prm = params
         self.meas = make_measurement_model(params, xi_filter)
         self.layout = self.meas.layout
@@ -347,6 +368,7 @@ class FusionFilter(FilterView):
         """Attach an offline recorder (``estimate.smoother.FusionRecorder``; host only). Its
         per-step hook runs in the Python replay only: the compiled one is not used from now on."""
         self.recorder = recorder
+        self._fsv[FS_RECORDER] = 1
         self._replay_ck = self._live_ck = None
 
     # ------------------------------------------------------------ inputs
@@ -379,11 +401,10 @@ class FusionFilter(FilterView):
     def live_ready(self, t_us: int) -> bool:
         """The sample at ``t_us`` meets :meth:`_push_imu_compiled`'s conditions for :meth:`live_sample` (but
         the output queue's room, which its kernel tests, and ``P``'s symmetrisation, which it runs)."""
-        st = self.st
-        t0 = st.t_us
-        snap = self.snap
-        return self.initialized and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
-            and not (snap.pending and t0 < snap.t <= t_us) and self.recorder is None
+        t0 = self.st.t_us
+        fs = self._fsv
+        return fs[FS_INIT] != 0 and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
+            and not self.snap.due(t0, t_us) and fs[FS_RECORDER] == 0
 
     def live_sample(self, step, t_us: int, rx, ry, rz, Phi, *ori) -> int:
         """The oldest sample of the sensor's IMU ring (at ``t_us``, :meth:`live_ready`), with the source's

@@ -109,6 +109,25 @@ SUM_DT, SUM_DT2, SUM_CD, SUM_QD, SUM_CA, SUM_INCL_DT = range(6)
 #: fall; the compass's update (its flags at bit 12); the covariance propagations (their number at bit 16)
 OS_PREDICTED, OS_ROUND, OS_ACC, OS_FREEFALL, OS_MAG = 1, 2, 4, 8, 16
 
+#: ``OrientationFilter.state`` (int64): initialised (0/1), the time (us), the prediction steps, the
+#: last inclination and compass flags; the compiled one-call IMU sample updates them in place
+#: (``core/include/ct_fusimu.h`` ``CT_OF_*``)
+OF_INIT, OF_T, OF_STEPS, OF_ACCF, OF_MAGF, OF_N = range(6)
+
+
+def _state_int(i: int):
+    """A property reading and writing entry ``i`` of ``self._stv`` (an int64 state array's view)."""
+    def fset(self, v) -> None:
+        self._stv[i] = v
+    return property(lambda self: self._stv[i], fset)
+
+
+def _state_bool(i: int):
+    """A bool property kept as 0/1 in entry ``i`` of ``self._stv``."""
+    def fset(self, v) -> None:
+        self._stv[i] = 1 if v else 0
+    return property(lambda self: self._stv[i] != 0, fset)
+
 
 class OrientationParams:
     """Noise and model parameters of the ch. 2 filter (SI units, per sample
@@ -178,7 +197,18 @@ def _triad(ax, ay, az, mx, my, mz):
     return xx, xy, xz, yx, yy, yz, zx, zy, zz, mn
 
 
-class OrientationFilter:
+class _OriState:
+    """:class:`OrientationFilter`'s per-sample state as attributes, kept in its ``state`` array."""
+
+    initialized = _state_bool(OF_INIT)
+    t_us = _state_int(OF_T)                 # the time of the last sample (us)
+    steps = _state_int(OF_STEPS)            # prediction steps (every 64th orthonormalises R)
+    last_acc_flags = _state_int(OF_ACCF)
+    last_mag_flags = _state_int(OF_MAGF)
+    state_view = property(lambda self: self._stv)     # ``state`` as a memoryview (the tracker's tests read it)
+
+
+class OrientationFilter(_OriState):
     """Complementary orientation Kalman filter of thesis ch. 2 (see module); ``core``: the
     numeric core (``coiltrack.firmware.core.Core``), chosen at composition."""
 
@@ -207,12 +237,11 @@ class OrientationFilter:
         self._s[SUM_CD] = 1.0
         self._Av = memoryview(self.pred.A)
         self._Qv = memoryview(self.pred.Q)
-        self.initialized = False
-        self.t_us = 0
-        self.steps = 0
+        # the per-sample state (OF_*: initialised, time, steps, the last updates' flags) in one int64
+        # array a compiled kernel bound once updates in place; read and written through the properties
+        self.state = np.zeros(OF_N, dtype=np.int64)
+        self._stv = memoryview(self.state)
         self.reacquired = 0              # orientations found again after a break (reacquire)
-        self.last_acc_flags = 0
-        self.last_mag_flags = 0
         self._Pv = memoryview(self.P)
         self._Tv = memoryview(self._T)
         # the numeric core of propagate, bound once here (coiltrack.firmware.core:
@@ -397,17 +426,18 @@ class OrientationFilter:
 
     def sample_done(self, t_us: int, r: int) -> None:
         """The bookkeeping of a sample the compiled core ran (``ct_ori_sample``, or its halves; the ``OS_*``
-        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags."""
-        self.t_us = t_us
-        self.steps += r & OS_PREDICTED
-        if r & OS_PREDICTED and self.steps & 63 == 0:
+        bits ``r``): time, steps (the orthonormalisation of :meth:`predict`), counts, flags (in ``state``)."""
+        s = self._stv
+        s[OF_T] = t_us
+        s[OF_STEPS] += r & OS_PREDICTED
+        if r & OS_PREDICTED and s[OF_STEPS] & 63 == 0:
             self._orthonormalize()       # (after ct_ori_sample_begin: its caller finishes the sample)
         if r & OS_ROUND:
             if r & (OS_FREEFALL | OS_ACC):
-                self.last_acc_flags = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)
+                s[OF_ACCF] = ORI_FREEFALL if r & OS_FREEFALL else self.incl.upd.counted((r >> 8) & 15)
             self.pred.set_count(self.pred.count + (r >> 16))
             if r & OS_MAG:
-                self.last_mag_flags = self.compass.upd.counted((r >> 12) & 15)
+                s[OF_MAGF] = self.compass.upd.counted((r >> 12) & 15)
 
     def propagate(self) -> None:
         """Covariance over the steps since the last call (eq 2.28 and the

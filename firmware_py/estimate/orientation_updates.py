@@ -126,11 +126,18 @@ class Compass:
         self._s[CS_NORM] = 1.0
         self._s[CS_DIP] = 0.0
         self._learn = 0
-        self.learning = False            # still learning |m| and the dip (``_learn > 0``)
+        # still learning |m| and the dip (``_learn > 0``; ``learning``): 0/1 in an int64 array the
+        # compiled one-call IMU sample reads
+        self.learn_state = np.zeros(1, dtype=np.int64)
+        self._lsv = memoryview(self.learn_state)
         self._sum_h = 0.0
         self._sum_v = 0.0
         self._sum_n = 0.0
 
+    def _set_learning(self, v: bool) -> None:
+        self._lsv[0] = 1 if v else 0
+
+    learning = property(lambda self: self._lsv[0] != 0, _set_learning)
     m_ref = property(lambda self: self._s[CS_MREF])      # |earth field|, T
     qwd = property(lambda self: self._s[CS_QWD])          # the disturbance's driving noise (eq 2.12)
 

@@ -41,7 +41,8 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
-from coiltrack.firmware.estimate.orientation import N as ORI_N, OS_MAG, OS_ROUND, OrientationFilter, OrientationParams
+from coiltrack.firmware.estimate.orientation import (N as ORI_N, OF_INIT, OF_STEPS, OF_T, OS_MAG, OS_ROUND,
+                                                    OrientationFilter, OrientationParams)
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
@@ -165,9 +166,11 @@ class _Ori:
         # a compass sample's largest distance from the IMU sample it serves (default two intervals of each)
         self.max_age_us = int(2e6 / cfg.imu.imu_rate_hz) + int(2e6 / cfg.pulse.mag_rate_hz) if max_age_us is None \
             else int(max_age_us)
-        self.compass_used = 0
+        # the samples since the last update round (``n``) and the compass samples used
+        # (``compass_used``) in an int64 array the compiled one-call IMU sample updates in place
+        self.ns = np.zeros(2, dtype=np.int64)
+        self._nsv = memoryview(self.ns)
         self.every = cfg.orientation.ori_update_every
-        self.n = 0
         self.gap_us = cfg.imu.imu_timeout_us     # a longer break in the IMU stream: the orientation is lost
         self.lost = False
         # the compass sample's search (quiet_sample) on the compiled core: bound to the magnetometer
@@ -186,6 +189,15 @@ class _Ori:
             self.step = self._step_compiled
 
     compass_t = property(lambda self: self._ctv[0])     # the last compass sample's time (us)
+
+    def _set_n(self, v: int) -> None:
+        self._nsv[0] = v
+
+    def _set_used(self, v: int) -> None:
+        self._nsv[1] = v
+
+    n = property(lambda self: self._nsv[0], _set_n)
+    compass_used = property(lambda self: self._nsv[1], _set_used)
     kernel = property(lambda self: self._ext)            # the compiled core's module (None: Python)
     sample_kernel = property(lambda self: self._sk)      # ext.OriStep (bound by takes)
 
@@ -216,13 +228,13 @@ class _Ori:
     def ready(self, t: int) -> bool:
         """The sample at ``t`` is one the compiled core takes whole in one call (:meth:`settled`, and no
         orthonormalisation due)."""
-        f = self.f
-        return self.settled(t) and (t <= f.t_us or (f.steps + 1) & 63 != 0)
+        s = self.f.state_view
+        return self.settled(t) and (t <= s[OF_T] or (s[OF_STEPS] + 1) & 63 != 0)
 
     def settled(self, t: int) -> bool:
         """An initialised filter, no break in the stream before ``t``, the compass learned."""
-        f = self.f
-        return f.initialized and t - f.t_us <= self.gap_us and not f.compass.learning
+        s = self.f.state_view                          # (OrientationFilter.state: initialised, time)
+        return s[OF_INIT] != 0 and t - s[OF_T] <= self.gap_us and not self.f.compass.learning
 
     def _step_compiled(self, t, ax, ay, az, wx, wy, wz, mag: SampleRing) -> None:
         """:meth:`step` of a sample the compiled core takes whole (:meth:`takes`; ``ext.OriStep.sample``:
@@ -242,12 +254,13 @@ class _Ori:
         if r < 0:
             return False
         self.f.sample_done(t, r)
+        ns = self._nsv
         if r & OS_ROUND:
-            self.n = 0
+            ns[0] = 0
             if r & OS_MAG:
-                self.compass_used += 1
+                ns[1] += 1
         else:
-            self.n += 1
+            ns[0] += 1
         return True
 
     def _quiet(self, mag: SampleRing, t: int) -> int:
@@ -442,8 +455,11 @@ class _OneCall:
     fusion filter's forward step, ``w_last``; the same steps in the same order), bound at the first
     such sample; any other goes through ``slow`` (the steps one by one)."""
 
-    def __init__(self, imu, ori: _Ori, fusion, source, w_last, slow):
+    def __init__(self, imu, ori: _Ori, fusion, source, w_last, slow, count):
+        """``count``: the sensor's processed samples (a memoryview of one int64), which :meth:`run`
+        adds to."""
         self.imu, self.ori, self.fusion, self.source, self.w_last, self.slow = imu, ori, fusion, source, w_last, slow
+        self._count = count
         self._phiv = memoryview(source.phi)
         self._frv = memoryview(source.fref)
         self.kernel = None
@@ -451,41 +467,65 @@ class _OneCall:
         self._hold = None if source.fixed else source.hold     # (a fixed source never holds)
         self._b = ()
 
-    def run(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
-        """:meth:`SensorInertial.process`'s loop; the samples processed. (What does not change after
-        :meth:`_bind` is read from one tuple made there.)"""
+    def run(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> int:
+        """:meth:`SensorInertial.process`'s loop; the samples processed. Without a source that may hold
+        a sample (a fixed source) the samples both filters take whole run in the compiled loop
+        (``ext.ImuSample.drain``: :meth:`one`'s tests and bookkeeping on the owners' state arrays, in
+        place), which hands back each other sample to :meth:`one`."""
         if self._ring is not mag:
             self._bind(mag)
-        peek, sample, begin, finish, f, pu, iu, cu, hold, phi, fr, cap, last = self._b
+        if self._hold is not None:
+            n = self._run_held(mag, now_us, wait_us, max_steps)
+        else:
+            drain = self._drain
+            n = 0
+            while n < max_steps:
+                r = drain(max_steps - n)
+                n += r >> 2
+                if not r & 3:
+                    break
+                self.one(mag, self._b[0]())            # (the oldest sample: the path one by one, or
+                n += 1                                 # one that may orthonormalise the orientation)
+        self._count[0] += n
+        return n
+
+    def _run_held(self, mag: SampleRing, now_us: int, wait_us: int, max_steps: int) -> int:
+        """:meth:`run` with a source whose samples a sensor sample may wait for (``hold``)."""
+        peek, hold = self._b[0], self._hold
         t = peek()                                     # (the oldest sample's time; -1: none)
-        if t < 0:
-            return 0
-        ori, fus = self.ori, self.fusion
         n = 0
         while max_steps > 0 and t >= 0:
             max_steps -= 1
-            if hold is not None and hold(t, now_us, wait_us):
+            if hold(t, now_us, wait_us):
                 break
-            if not (ori.settled(t) and fus.live_ready(t)):
-                self.slow(mag)
-            else:
-                h = last() + 1
-                if h == cap:
-                    h = 0
-                tp = f.t_us
-                if t > tp and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
-                    r = begin(tp, h, len(mag))
-                    if r >= 0:
-                        f.sample_done(t, r)
-                        r = fus.live_sample(finish, t, fr[0], fr[1], fr[2], phi, ori.n, pu.count, iu.count, cu.count)
-                else:
-                    r = fus.live_sample(sample, t, fr[0], fr[1], fr[2], phi, tp, ori.n, h, len(mag), pu.count,
-                                        iu.count, cu.count)
-                if not ori.sampled(t, r):
-                    self.slow(mag)
+            self.one(mag, t)
             n += 1
             t = peek()
         return n
+
+    def one(self, mag: SampleRing, t: int) -> None:
+        """The oldest sample (at ``t``): in one call when both filters take it whole, else
+        through ``slow`` (the steps one by one). (What does not change after :meth:`_bind` is read
+        from one tuple made there.)"""
+        peek, sample, begin, finish, f, pu, iu, cu, hold, phi, fr, cap, last = self._b
+        ori, fus = self.ori, self.fusion
+        if not (ori.settled(t) and fus.live_ready(t)):
+            self.slow(mag)
+            return
+        h = last() + 1
+        if h == cap:
+            h = 0
+        tp = f.t_us
+        if t > tp and (f.steps + 1) & 63 == 0:         # (the prediction orthonormalises R)
+            r = begin(tp, h, len(mag))
+            if r >= 0:
+                f.sample_done(t, r)
+                r = fus.live_sample(finish, t, fr[0], fr[1], fr[2], phi, ori.n, pu.count, iu.count, cu.count)
+        else:
+            r = fus.live_sample(sample, t, fr[0], fr[1], fr[2], phi, tp, ori.n, h, len(mag), pu.count,
+                                iu.count, cu.count)
+        if not ori.sampled(t, r):
+            self.slow(mag)
 
     def _bind(self, mag: SampleRing):
         """``ext.ImuSample`` bound to the rings, the filters' kernels (the orientation filter's as bound
@@ -499,6 +539,10 @@ class _OneCall:
         # (the filters' update objects: their counts are the kernel's arguments)
         self._b = (ks.peek, ks.sample, ks.begin, ks.finish, f, f.pred, f.incl.upd, f.compass.upd, self._hold,
                    self._phiv, self._frv, mag.capacity, mag.last_pushed_slot)
+        ks.bind_state(f.state, f.compass.learn_state, self.ori.ns, f.pred.cst, f.incl.upd.kst, f.compass.upd.kst,
+                      fus.fs, fus.st.ts, fus.st.pred.cst, fus.prediction.ps, fus.snap.sq, fus.recovery.rs, mag.hc,
+                      self.source.fref, self.source.phi, self.ori.gap_us, fus.prm.max_gap_us)
+        self._drain = ks.drain
         self._ring = mag
         return ks
 
@@ -506,6 +550,11 @@ class _OneCall:
 class SensorInertial(CompiledBurst):
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
+
+    def _set_samples(self, v: int) -> None:
+        self._scv[0] = v
+
+    samples = property(lambda self: self._scv[0], _set_samples)     # IMU samples processed
 
     def __init__(self, node: int, cfg, gate: PulseGate, source, compass_max_age_us: int | None = None,
                  burst_rms_s: float | None = None, core=_DEFAULT_CORE):
@@ -567,13 +616,15 @@ class SensorInertial(CompiledBurst):
             else float(burst_rms_s)
         self.w_last = np.zeros(3)          # latest rate, offset removed (rad/s)
         self._wlv = memoryview(self.w_last)
+        self.sc = np.zeros(1, dtype=np.int64)     # the samples processed (``samples``)
+        self._scv = memoryview(self.sc)
         if self.ori.one_call and self.fusion.st.ck is not None:
-            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python)
-            self.process = self._process_compiled
+            # process on the compiled core (:class:`_OneCall`; an empty ring returns at once there)
+            self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python, self._scv)
+            self.process = self._one.run
         self.compensated = 0
         self.comp_rejected = 0
         self.fused = 0
-        self.samples = 0
         self.last_fuse_flags = 0
         # recovery bookkeeping (events on changes): 0 tracking, 1 dead reckoning, 2 lost
         self.dr_state = 0
@@ -613,10 +664,6 @@ class SensorInertial(CompiledBurst):
             push(t, ax, ay, az, wx, wy, wz, fr[0], fr[1], fr[2], phi)
             self.samples += 1
             wl[0], wl[1], wl[2] = wx - b[0], wy - b[1], wz - b[2]
-
-    def _process_compiled(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
-        """:meth:`process` on the compiled core (:class:`_OneCall`; an empty ring returns at once there)."""
-        self.samples += self._one.run(mag, now_us, wait_us, max_steps)
 
     def _sample_python(self, mag: SampleRing) -> None:
         """The oldest sample through :meth:`process`'s steps one by one."""

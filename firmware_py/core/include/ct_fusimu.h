@@ -166,4 +166,37 @@ enum { CT_IR_LAST_T = 0, CT_IR_DROPPED = 1, CT_IR_RECEIVED = 2, CT_IR_N = 3 };
 void ct_imu_ring_push(int64_t *hc, int64_t cap, int64_t *tv, double *d, int64_t *st, int64_t t, const double *s,
                       double acc_lsb, double gyr_lsb);
 
+/* The per-sample state of a fused tracker's sensor as its owners keep it in int64 arrays, read and
+ * written by the one-call IMU sample in place (track.burst_fusion._OneCall.run):
+ * OrientationFilter.state (CT_OF_*), FusionFilter.fs (CT_FF_*) and the counts beside them. */
+enum { CT_OF_INIT = 0, CT_OF_T = 1, CT_OF_STEPS = 2, CT_OF_ACCF = 3, CT_OF_MAGF = 4, CT_OF_N = 5 };
+enum { CT_FF_INIT = 0, CT_FF_UPDATE_T = 1, CT_FF_FLAGS = 2, CT_FF_RECORDER = 3, CT_FF_N = 4 };
+/* orientation.ORI_FREEFALL; magnetic_inertial.FUS_INITIALISED | FUS_GAP_REINIT */
+enum { CT_ORI_FREEFALL = 128, CT_FUS_FRESH_FLAGS = 512 | 16384 };
+struct ct_sample_state {
+    int64_t *of;                        /* OrientationFilter.state, CT_OF_N */
+    const int64_t *learn;               /* 1: Compass.learn_state (learning, 0/1) */
+    int64_t *ns;                        /* 2: _Ori.ns (n, compass_used) */
+    int64_t *opc;                       /* 1: the orientation filter's CovariancePredict count */
+    int64_t *ik, *mk;                   /* 2 each: the inclination's and the compass's KalmanUpdate (count, rejected) */
+    const int64_t *ff;                  /* FusionFilter.fs, CT_FF_N */
+    int64_t *ts;                        /* 1: the live InsState's time */
+    int64_t *fpc;                       /* 1: its CovariancePredict count */
+    int64_t *ps;                        /* 1: InertialPrediction's steps */
+    const int64_t *sq;                  /* 2: the Snapshot's time and pending (0/1) */
+    const int64_t *rs;                  /* 1: Recovery's recovering (0/1) */
+    const int64_t *mhc;                 /* 2: the magnetometer ring's head and count */
+    int64_t gap_us;                     /* _Ori.gap_us */
+    int64_t max_gap_us;                 /* FusionParams.max_gap_us */
+};
+/* where the sample at t goes (_OneCall.run's tests): CT_SR_WHOLE through ct_ori_sample and the fusion
+ * filter's live step in one call; CT_SR_SLOW not (_Ori.settled, FusionFilter.live_ready: the steps
+ * one by one); CT_SR_ORTHO both filters take it but its prediction may orthonormalise the
+ * orientation (OrientationFilter.sample_done's, Python): the caller runs it */
+enum { CT_SR_WHOLE = 0, CT_SR_SLOW = 1, CT_SR_ORTHO = 2 };
+int ct_sample_route(const struct ct_sample_state *s, int64_t t);
+/* the bookkeeping of a sample at t the one call ran (its CT_OS_* bits r): InertialPrediction.sampled,
+ * then _Ori.sampled with OrientationFilter.sample_done (KalmanUpdate.counted for the updates run) */
+void ct_sample_done(const struct ct_sample_state *s, int64_t t, int r);
+
 #endif /* CT_FUSIMU_H */

@@ -660,3 +660,53 @@ void ct_imu_ring_push(int64_t *hc, int64_t cap, int64_t *tv, double *d, int64_t 
     d[5] = s[5] * gyr_lsb;
     st[CT_IR_RECEIVED] += 1;
 }
+
+/* track.burst_fusion._Ori.settled and magnetic_inertial.FusionFilter.live_ready at t, then the
+ * orthonormalisation's test of _OneCall.run ((steps + 1) & 63: any sample whose prediction may be
+ * the 64th goes to the caller, which decides as the reference does) */
+int ct_sample_route(const struct ct_sample_state *s, int64_t t)
+{
+    const int64_t *of = s->of, *ff = s->ff;
+    int64_t t0;
+    if (!(of[CT_OF_INIT] && t - of[CT_OF_T] <= s->gap_us && !s->learn[0]))
+        return CT_SR_SLOW;
+    t0 = s->ts[0];
+    if (!(ff[CT_FF_INIT] && t0 < t && t - t0 <= s->max_gap_us && !(s->sq[1] && t0 < s->sq[0] && s->sq[0] <= t) &&
+          !ff[CT_FF_RECORDER]))
+        return CT_SR_SLOW;
+    if (((of[CT_OF_STEPS] + 1) & 63) == 0)
+        return CT_SR_ORTHO;
+    return CT_SR_WHOLE;
+}
+
+/* ekf.KalmanUpdate.counted: the count or the rejection; flags */
+static int64_t ct_counted(int64_t *k, int64_t flags)
+{
+    if (flags != CT_EKF_OK)
+        k[1] += 1;
+    else
+        k[0] += 1;
+    return flags;
+}
+
+void ct_sample_done(const struct ct_sample_state *s, int64_t t, int r)
+{
+    int64_t *of = s->of;
+    s->fpc[0] += 1;                                     /* InertialPrediction.sampled */
+    s->ps[0] += 1;
+    s->ts[0] = t;
+    of[CT_OF_T] = t;                                    /* OrientationFilter.sample_done */
+    of[CT_OF_STEPS] += r & CT_OS_PREDICTED;
+    if (r & CT_OS_ROUND) {
+        if (r & (CT_OS_FREEFALL | CT_OS_ACC))
+            of[CT_OF_ACCF] = (r & CT_OS_FREEFALL) ? CT_ORI_FREEFALL : ct_counted(s->ik, (r >> CT_OS_ACC_SHIFT) & 15);
+        s->opc[0] += r >> CT_OS_PROP_SHIFT;
+        if (r & CT_OS_MAG)
+            of[CT_OF_MAGF] = ct_counted(s->mk, (r >> CT_OS_MAG_SHIFT) & 15);
+        s->ns[0] = 0;                                   /* _Ori.sampled */
+        if (r & CT_OS_MAG)
+            s->ns[1] += 1;
+    } else {
+        s->ns[0] += 1;
+    }
+}

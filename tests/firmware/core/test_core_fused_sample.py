@@ -30,7 +30,7 @@ from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.estimate.fusion_rings import KernelRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.ring import Ring
-from coiltrack.firmware.track.burst_fusion import _FUSED_VALID, FixedSource, PulseGate, SensorInertial
+from coiltrack.firmware.track.burst_fusion import _FUSED_VALID, FixedSource, PulseGate, SensorInertial, _OneCall
 from coiltrack.firmware.transmit import Transmitter
 from coiltrack.protocol.schema import ACC_LSB, GYR_LSB
 
@@ -46,6 +46,21 @@ class _Port:
 
     def write(self, data: bytes) -> None:
         self.frames.append(bytes(data))
+
+
+class _Drained:
+    """Counts the samples ``ext.ImuSample.drain`` ran (``n``) and those it handed back (``back``)."""
+
+    def __init__(self, one):
+        self.n = self.back = 0
+        self._drain = one._drain
+        one._drain = self
+
+    def __call__(self, max_steps: int) -> int:
+        r = self._drain(max_steps)
+        self.n += r >> 2
+        self.back += (r & 3) != 0
+        return r
 
 
 def _rel(a, b) -> float:
@@ -68,7 +83,7 @@ def _sensors(adapt: float, heading_only: bool):
         tx = Transmitter(_Port(), 1, 1_000_000, None, core=k)
         out[name] = (ins, tx)
     ins, tx = out["sep"]
-    assert ins.process.__func__ is SensorInertial._process_compiled
+    assert ins.process.__func__ is _OneCall.run
     ins.process = types.MethodType(SensorInertial.process, ins)     # the kernels one by one
     ins.ori.step = ins.ori.step_python
     own = tx.pose
@@ -161,6 +176,7 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     fused_pose = gtx.fused_pose
     gtx.fused_pose = lambda *a: (sent.append(fused_pose(*a)), sent[-1])[1]
     calls = []
+    drained = None
     live = sens["got"][0].fusion.live_sample
     sens["got"][0].fusion.live_sample = lambda *a: (calls.append(a[0].__name__), live(*a))[1]
     tm = t0
@@ -194,6 +210,8 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
             continue                                  # two samples a tick
         for ins, tx in sens.values():
             ins.process(mag, t + 1000, 0, 4)
+            if ins is sens["got"][0] and drained is None and getattr(ins._one, "_drain", None) is not None:
+                drained = _Drained(ins._one)                # (bound at the first sample both filters take)
             if i % 50 < 40:                           # (the queue fills and drops at times)
                 ins.send_fused(tx, 16, 1.0, 200)
         where = i
@@ -207,8 +225,18 @@ def test_one_call_sensor_sample_matches_the_reference(adapt, heading_only):
     assert f.compass.upd.rejected > 0 or heading_only       # the disturbance gated
     assert got.ori.flip.si[2] >= 2                           # flips seen
     assert got.fusion.out_dropped > 0 and got.fusion.snap.valid
-    assert got._one.kernel is not None and sep._one.kernel is None and len(calls) > 400   # one call each
+    # one call each: most in the compiled loop (ext.ImuSample.drain), the rest handed back one by one
+    assert got._one.kernel is not None and sep._one.kernel is None and drained.n + len(calls) > 400
+    assert drained.n > 300 and drained.back > 10
     assert calls.count("finish") >= 3                        # (and two where R was orthonormalised)
+    # the per-sample state lives in the owners' arrays, read through the reference's names
+    for ins in (got, ref):
+        fo, fu = ins.ori.f, ins.fusion
+        assert list(fo.state) == [int(fo.initialized), fo.t_us, fo.steps, fo.last_acc_flags, fo.last_mag_flags]
+        assert list(fo.incl.upd.kst) == [fo.incl.upd.count, fo.incl.upd.rejected] and fo.pred.cst[0] == fo.pred.count
+        assert list(ins.ori.ns) == [ins.ori.n, ins.ori.compass_used] and fo.compass.learn_state[0] == 0
+        assert (fu.st.ts[0], fu.prediction.ps[0], fu.fs[1], fu.fs[2]) == (fu.st.t_us, fu.steps, fu.last_update_t,
+                                                                      fu.last_flags)
     # the POSE frames: the same bytes on the one-call path as through PoseReport and pose
     fa, fb, fr = sens["got"][1].port.frames, sens["sep"][1].port.frames, sens["ref"][1].port.frames
     assert len(fa) == len(fb) == len(fr) > 300
@@ -229,17 +257,21 @@ def test_one_call_path_is_taken_and_left():
     mag = SampleRing(64)
     _start_fusion(ins, 1_000_000)
     t = 1_000_000
+    drained = None
     for i in range(400):
         t += 8333
         mag.push(t - 2000, *(H + 1e-9 * i), False, 0)
         ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
         ins.process(mag, t, 0, 8)
+        if drained is None and getattr(ins._one, "_drain", None) is not None:
+            drained = _Drained(ins._one)
         ins.send_fused(sens["got"][1], 16, 1.0, 200)
     f = ins.ori.f
     assert not f.learning and f.steps == 399 and f.upd_mag.count > 50     # (the first sample initialises)
-    # all but the samples before the compass learned (2 x 12 compass samples); the steps 64, 128, ...
-    # 384 (each orthonormalises R) in two calls
-    assert 350 < len(calls) <= 400 - 24 and calls.count("finish") == 6
+    # all but the samples before the compass learned (2 x 12 compass samples): in the compiled loop
+    # (drain) but the steps 64, 128, ... 384 (each orthonormalises R), handed back and run in two calls
+    assert 350 < drained.n + len(calls) <= 400 - 24 and calls.count("finish") == 6
+    assert drained.back >= 6 and len(calls) - calls.count("finish") <= 2
 
 
 def test_kernel_ring_is_a_ring():
@@ -299,3 +331,56 @@ def test_pose_frame_refuses_what_the_reference_sends_differently():
     po.out.d[k, 13] = 4.0
     assert kern.pose_frame(k, po.out.tv[k], 5, 1, 16, _FUSED_VALID, 200, 1.0) is None         # an OUT_* bit
     assert math.isfinite(r.p[0])
+
+
+def test_drain_hands_back_what_the_reference_tests_refuse():
+    """``ext.ImuSample.drain`` (``ct_sample_route``) runs a sample only where ``_Ori.settled`` and
+    ``FusionFilter.live_ready`` hold and the output queue has room: a recorder attached, a pending
+    snapshot inside the step, a gap longer than ``max_gap_us`` or a full queue each hand the sample
+    back (nothing run, the state unchanged); the sample then runs as the reference runs it."""
+    cfg, sens = _sensors(0.0, False)
+    ins, tx = sens["got"]
+    mag = SampleRing(64)
+    _start_fusion(ins, 1_000_000)
+    t = 1_000_000
+    for i in range(80):                               # the compass learns; the drain is bound
+        t += 8333
+        mag.push(t - 2000, *(H + 1e-9 * i), False, 0)
+        ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
+        if i % 2:
+            ins.process(mag)                          # (track.ac's call: the defaults)
+        else:
+            ins.process(mag, t, 0, 8)
+        ins.send_fused(tx, 16, 1.0, 200)
+    assert ins.samples == 80
+    one, fus = ins._one, ins.fusion
+    assert one._drain is not None and not ins.ori.f.learning
+    if ((ins.ori.f.steps + 1) & 63) == 0:             # (keep clear of an orthonormalising step)
+        t += 8333
+        ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
+        ins.process(mag, t, 0, 8)
+
+    def refused(arrange, undo) -> None:
+        nonlocal t
+        t += 8333
+        ins.imu.push(_imu_msg(t, G, np.array([0.1, 0.0, 0.0])))
+        arrange()
+        before = (ins.ori.f.state.copy(), fus.fs.copy(), fus.st.ts.copy(), fus.prediction.ps.copy(), len(ins.imu))
+        assert one._drain(8) == 1                     # none run, handed back as the steps one by one
+        after = (ins.ori.f.state, fus.fs, fus.st.ts, fus.prediction.ps, len(ins.imu))
+        assert all(np.array_equal(a, b) for a, b in zip(before, after))
+        undo()
+        assert one._drain(8) == 4                     # then run whole
+        assert fus.st.t_us == t and ins.ori.f.t_us == t
+        ins.send_fused(tx, 16, 1.0, 200)
+
+    saved = fus.fs.copy()
+    refused(lambda: fus.fs.__setitem__(3, 1), lambda: fus.fs.__setitem__(3, saved[3]))       # a recorder
+    refused(lambda: fus.snap.schedule(t - 10), lambda: fus.snap.__setattr__("pending", False))  # a snapshot in the step
+    refused(lambda: fus.fs.__setitem__(0, 0), lambda: fus.fs.__setitem__(0, 1))               # not initialised
+    refused(lambda: ins.ori.f.compass.__setattr__("learning", True),
+            lambda: ins.ori.f.compass.__setattr__("learning", False))                         # the compass learning
+    out = fus.output.out
+    for _ in range(out.capacity - len(out)):
+        out.push(0)
+    refused(lambda: None, lambda: [out.pop() for _ in range(len(out))])                       # a full output queue
