@@ -665,3 +665,40 @@ def test_history_rewind_and_commit_match_the_reference():
             for name in ("t", "d"):
                 np.testing.assert_array_equal(getattr(ref.live, name), getattr(got.live, name))
             assert (ref.live._head, ref.live._count) == (got.live._head, got.live._count)
+
+
+@pytest.mark.parametrize("gap", [0, 8, 16, 504, 512, 520, 2048, 4080])
+def test_history_copy_is_exact_at_every_distance_modulo_4k(gap):
+    """ct_fusion_hist_copy copies backwards where the destination lies just above the source modulo
+    4 KiB (against 4K aliasing) and with memcpy elsewhere: both ways the shadow is the live ring's
+    copy, byte for byte, with the reference's head and count (``Ring.copy_from``,
+    ``drop_newer_than``); then ``commit`` the other way round. The arrays are carved out of one
+    buffer so that the shadow's lie ``gap`` bytes (modulo 4096) above the live ones."""
+    rng = np.random.default_rng(76)
+    cap, w = 64, 12
+    nt, nd = cap * 8, cap * w * 8
+    buf = np.zeros(8 * 4096 + nd, dtype=np.uint8)
+    base = (-buf.ctypes.data) % 4096            # live_t at a 4 KiB boundary
+
+    def carve(off, nbytes, dtype):
+        return buf[base + off:base + off + nbytes].view(dtype)
+    lt, ld = carve(0, nt, np.int64), carve(4096, nd, np.float64).reshape(cap, w)
+    st, sd = carve(3 * 4096 + gap, nt, np.int64), carve(5 * 4096 + gap, nd, np.float64).reshape(cap, w)
+    assert ((st.ctypes.data - lt.ctypes.data) % 4096, (sd.ctypes.data - ld.ctypes.data) % 4096) == (gap, gap)
+    lhc, shc = np.array([37, 50], dtype=np.int64), np.zeros(2, dtype=np.int64)
+    lt[:] = np.arange(cap) * 1000
+    lt[:] = np.roll(lt, 37 - 50 + cap)           # oldest at slot 37 - 50 (mod cap)
+    ld[:] = rng.normal(size=(cap, w))
+    hc = _core.HistCopy(lt, ld, lhc, st, sd, shc)
+    first = (37 - 50) % cap
+    t_ref = int(lt[(first + 20) % cap])
+    hc.rewind(t_ref)
+    np.testing.assert_array_equal(st, lt)
+    np.testing.assert_array_equal(sd, ld)
+    assert list(shc) == [(first + 21) % cap, 21]
+    sd[:] = rng.normal(size=(cap, w))
+    st[:] = rng.integers(0, 10**6, size=cap)
+    hc.commit()
+    np.testing.assert_array_equal(lt, st)
+    np.testing.assert_array_equal(ld, sd)
+    assert list(lhc) == list(shc)
