@@ -124,6 +124,13 @@ class KalmanUpdate:
             self.update = self._update_compiled
             self.core = "compiled"
 
+    def buffers(self) -> tuple:
+        """The compiled update's buffers in ``ext.KUpdate``'s order (``H``, ``R``, ``y``, ``dx``, ``S``,
+        ``Sinv``, ``K``, then its scratch and the NIS), for a kernel that runs this update inside a
+        larger call (``magnetic_inertial.FusionFilter``, ``ext.FusionUpdate``)."""
+        return (self.H, self.R, self.y, self.dx, self.S, self.Sinv, self.K, self._PHt, self._T, self._TH, self._X,
+                self._KR, self._w, self._L, self._M, self._nis)
+
     def _update_compiled(self, P: np.ndarray, gate: float | None = None) -> int:
         flags = self._ck.update(P, self.gate if gate is None else gate)
         self.nis = self._nisv[0]

@@ -321,6 +321,15 @@ class FusionFilter(FilterView):
         #: same kernel bound to the live state and history, one sample a call (None: Python)
         self._live_ck = (CompiledReplay(self.st, self.prediction, self.history.live, self.snap, self.frame,
                                         core.ext) if self.st.ck is not None else None)
+        #: the delayed update's restore and Kalman update in one call each (None: the Python methods)
+        self._upd_ck = None
+        if self.sh.cs is not None and self.upd.core == "compiled" and getattr(self.meas, "_ck", None) is not None:
+            live, shadow = self.history.live, self.history.shadow
+            self._upd_ck = core.ext.FusionUpdate(
+                self.meas._ck, self.sh.cs, self.snap.st.cs,
+                core.ext.HistCopy(live.t, live.d, live.hc, shadow.t, shadow.d, shadow.hc), n, self.m, *self.upd.buffers())
+            self._restore = self._restore_compiled
+            self._update_shadow = self._update_shadow_compiled
         self.snap.bind(self.imu.d, core)
         self._live_take = self._live_ck is not None and self._live_ck.bind_snapshot()
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
@@ -524,13 +533,37 @@ class FusionFilter(FilterView):
         gap = running and t_ref_us - self.last_update_t > self.prm.dead_reckon_limit_us
         if not running or gap:
             return self._start(t_ref_us, q, R_ms, C, gap)
-        sh = self.sh
-        sh.copy_from(snap.st)
-        self.history.rewind_shadow(t_ref_us)
-        self._evaluate(q, R_ms, C)
+        self._restore(t_ref_us, q, R_ms, C)
         self._pending = (t_ref_us, q, R_ms, C, final)
         self.prepared += 1
         return FUS_PREPARED
+
+    def _restore(self, t_ref_us: int, q, R_ms, C) -> None:
+        """The shadow state from the snapshot at ``t_ref``, its pose history rewound there, and the
+        measurement model evaluated on it (thesis sec 6.2.3: the update applied at ``t_ref``)."""
+        self.sh.copy_from(self.snap.st)
+        self.history.rewind_shadow(t_ref_us)
+        self._evaluate(q, R_ms, C)
+
+    def _restore_compiled(self, t_ref_us: int, q, R_ms, C) -> None:
+        """:meth:`_restore` in one call (``core/src/fusion.c`` ``ct_fusion_prepare``: the same three kernels)."""
+        self._upd_ck.prepare(t_ref_us, q, R_ms, C)
+        self.sh.set_time(self.snap.st.t_us)
+
+    def _update_shadow(self) -> int:
+        """The Kalman update of the shadow (``ekf.KalmanUpdate``, eqs 6.5-6.6) and, accepted, its
+        correction (``InsState.correct``); the flags."""
+        flags = self.upd.update(self.sh.P)
+        if flags == EKF_OK:
+            self.sh.correct(self.upd._dxv)
+        return flags
+
+    def _update_shadow_compiled(self) -> int:
+        """:meth:`_update_shadow` in one call (``ct_fusion_update``: ``ct_kalman_update``, the periodic
+        symmetrisation ``KalmanUpdate.update`` runs, ``ct_fusion_correct``); the update's count kept by
+        ``KalmanUpdate.counted``."""
+        upd = self.upd
+        return upd.counted(self._upd_ck.update(upd.gate, (upd.count + 1) % SYMMETRIZE_EVERY == 0))
 
     def _start(self, t_ref_us: int, q, R_ms, C, gap: bool) -> int:
         """(Re)start the shadow from the solution at ``t_ref`` (``gap``: the last update is too old to bridge) and
@@ -556,11 +589,10 @@ class FusionFilter(FilterView):
         sh = self.sh
         if self.recorder is not None:
             self.recorder.on_prior(self, sh)
-        flags = self.upd.update(sh.P)
+        flags = self._update_shadow()
         self.last_nis = self.upd.nis
         self.last_flags = flags
         if flags == EKF_OK:
-            sh.correct(self.upd._dxv)
             self.rejects_in_row = 0
             self.accepted_in_row += 1
             self.updates += 1

@@ -524,3 +524,28 @@ void ct_fusion_hist_copy(int64_t *dt, double *dd, int64_t *dhc, const int64_t *s
     dhc[0] = h < 0 ? h + cap : h;
     dhc[1] = lo;
 }
+
+/* FusionFilter._restore (prepare_magnetic_update): InsState.copy_from of the snapshot's state,
+ * PoseHistory.rewind_shadow, the measurement model's evaluate; the same three kernels in order */
+void ct_fusion_prepare(const struct ct_fusprep *f, int64_t t_ref, const double *q, const double *R_ms,
+                       const double *C)
+{
+    const struct ct_fusstate *sh = f->shadow;
+    ct_fusion_copy(sh, f->snap);
+    ct_fusion_hist_copy(f->shadow_t, f->shadow_d, f->shadow_hc, f->live_t, f->live_d, f->live_hc, f->hist_cap, 1,
+                        t_ref);
+    ct_fusion_evaluate(f->m, f->xi_model, f->Phi, f->Xi, f->XiP, q, R_ms, C, sh->p, sh->Th, sh->P, f->y, f->Psi);
+}
+
+/* FusionFilter._update_shadow: KalmanUpdate.update of the shadow's P (with its symmetrisation when
+ * sym), then InsState.correct, as the reference calls them */
+int ct_fusion_update(const struct ct_kalman *u, const struct ct_fusstate *s, double gate, int sym, double *nis)
+{
+    int flags = ct_kalman_update(u, s->P, gate, nis);
+    if (flags != CT_EKF_OK)
+        return flags;
+    if (sym)
+        symmetrize(s->P, s->n);
+    ct_fusion_correct(s, u->dx);
+    return flags;
+}
