@@ -702,3 +702,62 @@ def test_history_copy_is_exact_at_every_distance_modulo_4k(gap):
     np.testing.assert_array_equal(lt, st)
     np.testing.assert_array_equal(ld, sd)
     assert list(lhc) == list(shc)
+
+
+@pytest.mark.parametrize("model", [1, 2, 3])
+def test_one_call_update_is_the_three_calls_bit_for_bit(model):
+    """``ext.FusionUpdate`` (``fusion_replay.CompiledUpdate``: ``FusionFilter._restore`` and
+    ``_update_shadow`` in one call each) against the filter's own methods run as the reference
+    composes them (``InsState.copy_from``, ``PoseHistory.rewind_shadow``, the model's evaluate,
+    ``KalmanUpdate.update``, ``InsState.correct``) on a copy of the same filter: the shadow, its
+    history, ``y``, ``dx``, the NIS, the flags and the counts the same to the bit, over 40 updates
+    (the symmetrisation of every 16th accepted one included, a gated one among them)."""
+    from coiltrack.firmware.estimate.fusion_replay import CompiledUpdate
+    rng = np.random.default_rng(77 + model)
+    _, got = _pair(model)
+    assert CompiledUpdate.fits(got) and got._restore.__self__.__class__ is CompiledUpdate
+    ring = got.history.live
+    for i in range(ring.capacity + 5):                 # a full, wrapped live history
+        ring.d[ring.push(1000 * i)] = rng.normal(size=ring.width)
+    ref = FusionFilter(got.prm, OrientationFilter(OrientationParams.from_config(None), core.PYTHON),
+                       fixed_source=True, core=COMPILED)
+    arrays = [(ref.sh, got.sh, ("p", "v", "Th", "ba", "bg", "P")), (ref.snap.st, got.snap.st, ("p", "v", "Th", "ba", "bg", "P")),
+              (ref.snap, got.snap, ("Phi", "Xi", "XiP")), (ref.history.live, got.history.live, ("t", "d", "hc")),
+              (ref.history.shadow, got.history.shadow, ("t", "d", "hc")), (ref.upd, got.upd, ("H", "R"))]
+    for a, b, names in arrays:
+        for name in names:
+            np.copyto(getattr(a, name), getattr(b, name))
+    gated = 0
+    for k in range(40):
+        Th = _random_rotation(rng)
+        _fill(got, rng, Th, _random_rotation(rng, 0.01), _random_rotation(rng, 0.02) @ Th)
+        P = _spd(rng, got.n, 1e-3)
+        for w in [sl for name, sl in ((nm, getattr(got.layout, nm)) for nm in got.layout.names())
+                  if name in ("QM", "PSI", "XI")]:
+            keep = P[w, w].copy()
+            P[w, :] = 0.0                        # white states: no cross-covariance (A's zero rows)
+            P[:, w] = 0.0
+            P[w, w] = keep
+        got.snap.st.P[:] = P
+        got.snap.st.Th[:] = Th
+        got.snap.st.p[:] = rng.normal(size=3) * 0.2
+        got.snap.st.t_us = 5000 + 1000 * k
+        for a, b, names in arrays[:3]:
+            for name in names:
+                np.copyto(getattr(a, name), getattr(b, name))
+        ref.snap.st.t_us = got.snap.st.t_us
+        q = got.snap.Phi.T @ (got.snap.st.p + rng.normal(size=3) * (0.01 if k != 7 else 5.0))   # (k 7: gated)
+        R = got.snap.Phi.T @ _random_rotation(rng, 0.02) @ Th
+        C = _spd(rng, 6, 1e-6)
+        t_ref = int(got.history.live.t[got.history.live.slot(rng.integers(0, 100))])
+        FusionFilter._restore(ref, t_ref, q, R, C)
+        got._restore(t_ref, q, R, C)
+        fa = FusionFilter._update_shadow(ref)
+        fb = got._update_shadow()
+        gated += fa != EKF_OK
+        assert fa == fb and ref.upd.nis == got.upd.nis and ref.upd.count == got.upd.count, k
+        assert ref.upd.rejected == got.upd.rejected and ref.sh.t_us == got.sh.t_us == got.snap.st.t_us, k
+        for a, b, names in arrays[:2] + [(ref.upd, got.upd, ("y", "dx"))] + arrays[3:5]:
+            for name in names:
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{k} {name}")
+    assert got.upd.count >= 32 and gated >= 1
