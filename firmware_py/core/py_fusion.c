@@ -1085,6 +1085,172 @@ static PyTypeObject HistCopyType = {
     .tp_methods = HistCopy_methods,
 };
 
+/* ---------------------------------------------------------------- FusionUpdate */
+/* The delayed update's two halves in one call each (FusionFilter._restore and _update_shadow),
+ * bound once to the measurement model's FusionMeas, the shadow's and the snapshot's FusState, the
+ * pose histories' HistCopy (references kept) and the KalmanUpdate's buffers. */
+#define FUP_NBUF 16
+typedef struct {
+    FuBase b;
+    PyObject *refs[4];
+    struct ct_fusprep f;
+    struct ct_kalman u;
+    double *nis;
+} FusionUpdateObject;
+
+static void FusionUpdate_dealloc(PyObject *o)
+{
+    FusionUpdateObject *self = (FusionUpdateObject *)o;
+    int i;
+    for (i = 0; i < 4; ++i)
+        Py_CLEAR(self->refs[i]);
+    Fu_dealloc(o);
+}
+
+static int FusionUpdate_init(FusionUpdateObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"meas", "shadow", "snap", "hist", "n", "m", "H", "R", "y", "dx", "S", "Sinv", "K",
+                             "PHt", "T", "TH", "X", "KR", "w", "L", "M", "nis", NULL};
+    static const char *names[FUP_NBUF] = {"H", "R", "y", "dx", "S", "Sinv", "K", "PHt", "T", "TH", "X",
+                                          "KR", "w", "L", "M", "nis"};
+    /* H R y dx S Sinv K PHt T TH X KR w L M nis: 0 n n, 1 n m, 2 m m, 3 m, 4 n, 5 one */
+    static const int kind[FUP_NBUF] = {1, 2, 3, 4, 2, 2, 1, 1, 0, 1, 0, 1, 3, 2, 2, 5};
+    int wr[FUP_NBUF];
+    PyObject *o[FUP_NBUF], *meas, *sh, *sn, *hist;
+    Py_ssize_t len[FUP_NBUF];
+    void *ptr[FUP_NBUF];
+    FusionMeasObject *mo;
+    FusStateObject *so, *no;
+    HistCopyObject *ho;
+    int n, m, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOiiOOOOOOOOOOOOOOOO", kwlist, &meas, &sh, &sn, &hist, &n, &m,
+                                     &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10],
+                                     &o[11], &o[12], &o[13], &o[14], &o[15]))
+        return -1;
+    if (fu_check_unbound(&self->b, "FusionUpdate") < 0)
+        return -1;
+    if (!PyObject_TypeCheck(meas, &FusionMeasType) || !PyObject_TypeCheck(sh, &FusStateType) ||
+        !PyObject_TypeCheck(sn, &FusStateType) || !PyObject_TypeCheck(hist, &HistCopyType)) {
+        PyErr_SetString(PyExc_TypeError, "FusionUpdate: a FusionMeas, two FusState and a HistCopy");
+        return -1;
+    }
+    mo = (FusionMeasObject *)meas;
+    so = (FusStateObject *)sh;
+    no = (FusStateObject *)sn;
+    ho = (HistCopyObject *)hist;
+    if (fu_check_bound(&mo->b, "FusionMeas") < 0 || fu_check_bound(&so->b, "FusState") < 0 ||
+        fu_check_bound(&no->b, "FusState") < 0 || fu_check_bound(&ho->b, "HistCopy") < 0)
+        return -1;
+    if (so->s.n != n || no->s.n != n || mo->m.n != n || mo->P != so->s.P || mo->p != so->s.p ||
+        mo->Th != so->s.Th || m < 1 || m > 64) {
+        PyErr_SetString(PyExc_ValueError, "FusionUpdate: the measurement model bound to the shadow state, "
+                                          "states of n rows, m in 1..64");
+        return -1;
+    }
+    for (i = 0; i < FUP_NBUF; ++i) {
+        Py_ssize_t nn = (Py_ssize_t)n * n, nm = (Py_ssize_t)n * m, mm = (Py_ssize_t)m * m;
+        len[i] = kind[i] == 0 ? nn : kind[i] == 1 ? nm : kind[i] == 2 ? mm : kind[i] == 3 ? m : kind[i] == 4 ? n : 1;
+        wr[i] = i >= 3;
+    }
+    if (fu_bind(FUP_NBUF, o, len, wr, NULL, names, self->b.views, ptr) < 0)
+        return -1;
+    self->b.nviews = FUP_NBUF;
+    if (ptr[2] != (void *)mo->y) {
+        PyErr_SetString(PyExc_ValueError, "FusionUpdate: the measurement model writes another y");
+        return -1;                      /* (the bound views are released by the deallocation) */
+    }
+    self->u.n = n;
+    self->u.m = m;
+    self->u.H = ptr[0];
+    self->u.R = ptr[1];
+    self->u.y = ptr[2];
+    self->u.dx = ptr[3];
+    self->u.S = ptr[4];
+    self->u.Sinv = ptr[5];
+    self->u.K = ptr[6];
+    self->u.PHt = ptr[7];
+    self->u.T = ptr[8];
+    self->u.TH = ptr[9];
+    self->u.X = ptr[10];
+    self->u.KR = ptr[11];
+    self->u.w = ptr[12];
+    self->u.L = ptr[13];
+    self->u.M = ptr[14];
+    self->nis = ptr[15];
+    self->f.m = &mo->m;
+    self->f.xi_model = mo->xi_model;
+    self->f.Phi = mo->Phi;
+    self->f.Xi = mo->Xi;
+    self->f.XiP = mo->XiP;
+    self->f.y = mo->y;
+    self->f.Psi = mo->Psi;
+    self->f.shadow = &so->s;
+    self->f.snap = &no->s;
+    self->f.live_t = ho->lt;
+    self->f.live_d = ho->ld;
+    self->f.live_hc = ho->lhc;
+    self->f.shadow_t = ho->st;
+    self->f.shadow_d = ho->sd;
+    self->f.shadow_hc = ho->shc;
+    self->f.hist_cap = ho->cap;
+    self->refs[0] = meas;
+    self->refs[1] = sh;
+    self->refs[2] = sn;
+    self->refs[3] = hist;
+    for (i = 0; i < 4; ++i)
+        Py_INCREF(self->refs[i]);
+    return 0;
+}
+
+/* prepare(t_ref, q, R_ms, C): FusionFilter._restore */
+static PyObject *FusionUpdate_prepare(FusionUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double q[3], R[9], C[36];
+    int64_t t;
+    if (fu_check_bound(&self->b, "FusionUpdate") < 0 || ct_py_nargs("prepare", nargs, 4) < 0 ||
+        ct_py_int64(args[0], &t) < 0 || !hist_ok(self->f.live_hc, self->f.hist_cap))
+        return NULL;
+    if (fu_small(args[1], 3, q, "q") < 0 || fu_small(args[2], 9, R, "R_ms") < 0 || fu_small(args[3], 36, C, "C") < 0)
+        return NULL;
+    ct_fusion_prepare(&self->f, t, q, R, C);
+    Py_RETURN_NONE;
+}
+
+/* update(gate, sym) -> flags: FusionFilter._update_shadow (the NIS into the bound nis) */
+static PyObject *FusionUpdate_update(FusionUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double gate;
+    int sym;
+    if (fu_check_bound(&self->b, "FusionUpdate") < 0 || ct_py_nargs("update", nargs, 2) < 0 ||
+        ct_py_double(args[0], &gate) < 0)
+        return NULL;
+    sym = PyObject_IsTrue(args[1]);
+    if (sym < 0)
+        return NULL;
+    return PyLong_FromLong(ct_fusion_update(&self->u, self->f.shadow, gate, sym, self->nis));
+}
+
+static PyMethodDef FusionUpdate_methods[] = {
+    {"prepare", (PyCFunction)(void (*)(void))FusionUpdate_prepare, METH_FASTCALL,
+     "prepare(t_ref, q, R_ms, C): the shadow restored from the snapshot, its history rewound, the measurement "
+     "evaluated"},
+    {"update", (PyCFunction)(void (*)(void))FusionUpdate_update, METH_FASTCALL,
+     "update(gate, sym) -> flags: the Kalman update of the shadow, accepted: symmetrised when sym, corrected"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject FusionUpdateType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.FusionUpdate",
+    .tp_basicsize = sizeof(FusionUpdateObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "FusionUpdate(meas, shadow, snap, hist, n, m, H, R, y, dx, S, Sinv, K, PHt, T, TH, X, KR, w, L, M, "
+              "nis): the fusion filter's delayed update, its restore and its Kalman update in one call each",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)FusionUpdate_init,
+    .tp_dealloc = FusionUpdate_dealloc,
+    .tp_methods = FusionUpdate_methods,
+};
+
 /* ---------------------------------------------------------------- registration */
 static int fu_add_type(PyObject *m, PyTypeObject *t, const char *name)
 {
@@ -1115,7 +1281,8 @@ int ct_register_fusion(PyObject *m)
     if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
         fu_add_type(m, &ReplayType, "Replay") < 0 || fu_add_type(m, &SnapAuxType, "SnapAux") < 0 ||
         fu_add_type(m, &PoseAtType, "PoseAt") < 0 || fu_add_type(m, &MotionCovType, "MotionCov") < 0 ||
-        fu_add_type(m, &CompensateType, "Compensate") < 0 || fu_add_type(m, &HistCopyType, "HistCopy") < 0)
+        fu_add_type(m, &CompensateType, "Compensate") < 0 || fu_add_type(m, &HistCopyType, "HistCopy") < 0 ||
+        fu_add_type(m, &FusionUpdateType, "FusionUpdate") < 0)
         return -1;
     for (i = 0; i < sizeof consts / sizeof consts[0]; ++i)
         if (PyModule_AddIntConstant(m, consts[i].name, consts[i].v) < 0)

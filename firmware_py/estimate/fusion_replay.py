@@ -25,7 +25,7 @@ from coiltrack.firmware.estimate.ekf import SYMMETRIZE_EVERY
 from coiltrack.firmware.estimate.fusion_state import (HIST_FIELDS, HIST_P, HIST_R, IMU_F, IMU_FIELDS, IMU_FSRC,
                                                      IMU_PHI, IMU_W)
 
-__all__ = ["CompiledReplay"]
+__all__ = ["CompiledReplay", "CompiledUpdate"]
 
 
 class CompiledReplay:
@@ -122,3 +122,37 @@ class CompiledReplay:
         if pending and not io[SP]:
             snap.taken(xi)
         self.units = io[U]
+
+
+class CompiledUpdate:
+    """The delayed magnetic update's two halves on the compiled core, one call each
+    (``ext.FusionUpdate``, ``core/src/fusion.c``): :meth:`restore` is ``FusionFilter._restore``
+    (``ct_fusion_prepare``: the shadow from the snapshot, its pose history rewound to ``t_ref``, the
+    measurement model evaluated; thesis sec 6.2.3) and :meth:`update` is ``FusionFilter._update_shadow``
+    (``ct_fusion_update``: the Kalman update of ``ekf.KalmanUpdate``, eqs 6.5-6.6, with its periodic
+    symmetrisation, then ``InsState.correct``). Bound once to the filter's measurement kernel, its
+    shadow's and snapshot's ``FusState``, its pose histories and its update's buffers; a call allocates
+    nothing."""
+
+    @staticmethod
+    def fits(fus) -> bool:
+        """``fus`` runs on the compiled core throughout (state, update and measurement model)."""
+        return fus.sh.cs is not None and fus.upd.core == "compiled" and getattr(fus.meas, "_ck", None) is not None
+
+    def __init__(self, fus, ext):
+        live, shadow = fus.history.live, fus.history.shadow
+        self.sh, self.snap_st, self.upd = fus.sh, fus.snap.st, fus.upd
+        hist = ext.HistCopy(live.t, live.d, live.hc, shadow.t, shadow.d, shadow.hc)
+        self._ck = ext.FusionUpdate(fus.meas._ck, fus.sh.cs, fus.snap.st.cs, hist, fus.n, fus.m, *fus.upd.buffers())
+
+    def methods(self) -> tuple:
+        """(:meth:`restore`, :meth:`update`): the filter's ``_restore`` and ``_update_shadow``."""
+        return self.restore, self.update
+
+    def restore(self, t_ref_us: int, q, R_ms, C) -> None:
+        self._ck.prepare(t_ref_us, q, R_ms, C)
+        self.sh.set_time(self.snap_st.t_us)
+
+    def update(self) -> int:
+        upd = self.upd
+        return upd.counted(self._ck.update(upd.gate, (upd.count + 1) % SYMMETRIZE_EVERY == 0))

@@ -121,7 +121,7 @@ from coiltrack.firmware.estimate.fusion_output import (OUT_DEAD_RECKONING, OUT_F
                                                       OUT_STATUS, OUT_VAR_O, OUT_VAR_P, PoseHistory, PoseOutput)
 from coiltrack.firmware.estimate.fusion_prediction import InertialPrediction
 from coiltrack.firmware.estimate.fusion_recovery import Recovery
-from coiltrack.firmware.estimate.fusion_replay import CompiledReplay
+from coiltrack.firmware.estimate.fusion_replay import CompiledReplay, CompiledUpdate
 from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
 from coiltrack.firmware.estimate.fusion_state import (HIST_FIELDS, HIST_P, HIST_R, IMU_F, IMU_FIELDS,  # noqa: F401
                                                      IMU_FSRC, IMU_PHI, IMU_W, FixedSource, InsState,
@@ -342,6 +342,8 @@ class FusionFilter(FilterView):
         #: same kernel bound to the live state and history, one sample a call (None: Python)
         self._live_ck = (CompiledReplay(self.st, self.prediction, self.history.live, self.snap, self.frame,
                                         core.ext) if self.st.ck is not None else None)
+        if CompiledUpdate.fits(self):      # the delayed update's two halves, one compiled call each
+            self._restore, self._update_shadow = CompiledUpdate(self, core.ext).methods()
         self.snap.bind(self.imu.d, core)
         self._live_take = self._live_ck is not None and self._live_ck.bind_snapshot()
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
@@ -349,15 +351,9 @@ class FusionFilter(FilterView):
         self.replaying = False          # a replay runs on the shadow
         self._pending = None            # a prepared magnetic update: (t_ref, q, R_ms, C, final)
         self.last_step_units = 0        # strapdown steps of the last ``step`` call
-        self.rejects_in_row = 0
-        self.accepted_in_row = 0
-        self.last_update_t = 0
-        self.last_flags = 0
+        self.rejects_in_row = self.accepted_in_row = self.last_update_t = self.last_flags = 0
         self.last_nis = 0.0
-        self.updates = 0
-        self.rejected = 0
-        self.reinits = 0
-        self.replays_lost = 0
+        self.updates = self.rejected = self.reinits = self.replays_lost = 0     # counters
         self.recorder = None       # optional offline hook (smoother); None on the board
         if self.st.ck is not None:
             self.prediction.bind_live(self.st, self.history.live, self.output._ck)
@@ -545,13 +541,23 @@ class FusionFilter(FilterView):
         gap = running and t_ref_us - self.last_update_t > self.prm.dead_reckon_limit_us
         if not running or gap:
             return self._start(t_ref_us, q, R_ms, C, gap)
-        sh = self.sh
-        sh.copy_from(snap.st)
-        self.history.rewind_shadow(t_ref_us)
-        self._evaluate(q, R_ms, C)
+        self._restore(t_ref_us, q, R_ms, C)
         self._pending = (t_ref_us, q, R_ms, C, final)
         self.prepared += 1
         return FUS_PREPARED
+
+    def _restore(self, t_ref_us: int, q, R_ms, C) -> None:
+        """The shadow from the snapshot at ``t_ref``, its history rewound, the measurement evaluated (sec 6.2.3)."""
+        self.sh.copy_from(self.snap.st)
+        self.history.rewind_shadow(t_ref_us)
+        self._evaluate(q, R_ms, C)
+
+    def _update_shadow(self) -> int:
+        """The shadow's Kalman update (eqs 6.5-6.6) and, accepted, its correction; the flags."""
+        flags = self.upd.update(self.sh.P)
+        if flags == EKF_OK:
+            self.sh.correct(self.upd._dxv)
+        return flags
 
     def _start(self, t_ref_us: int, q, R_ms, C, gap: bool) -> int:
         """(Re)start the shadow from the solution at ``t_ref`` (``gap``: the last update is too old to bridge) and
@@ -577,11 +583,10 @@ class FusionFilter(FilterView):
         sh = self.sh
         if self.recorder is not None:
             self.recorder.on_prior(self, sh)
-        flags = self.upd.update(sh.P)
+        flags = self._update_shadow()
         self.last_nis = self.upd.nis
         self.last_flags = flags
         if flags == EKF_OK:
-            sh.correct(self.upd._dxv)
             self.rejects_in_row = 0
             self.accepted_in_row += 1
             self.updates += 1

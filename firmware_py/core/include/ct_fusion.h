@@ -132,4 +132,26 @@ void ct_fusion_comp_add(double *S_comp, const double *h_ref, const double *h_j, 
 void ct_fusion_hist_copy(int64_t *dt, double *dd, int64_t *dhc, const int64_t *st, const double *sd, const int64_t *shc,
                          int64_t cap, int drop, int64_t t_us);
 
+/* ------------------------------------------------------------ the update in one call each
+ * FusionFilter.prepare_magnetic_update's restore (_restore): the shadow = the snapshot's state
+ * (ct_fusion_copy), its pose history = the live one up to t_ref (ct_fusion_hist_copy with the
+ * drop: live_* the source, shadow_* the destination), the measurement model's evaluate
+ * (ct_fusion_evaluate, m bound to the shadow's p, Th, P and the snapshot's Phi, Xi, XiP). */
+struct ct_fusprep {
+    const struct ct_fusmeas *m;
+    int xi_model;
+    const double *Phi, *Xi, *XiP;
+    double *y, *Psi;
+    const struct ct_fusstate *shadow, *snap;
+    int64_t *live_t, *live_hc, *shadow_t, *shadow_hc;
+    double *live_d, *shadow_d;
+    int64_t hist_cap;
+};
+void ct_fusion_prepare(const struct ct_fusprep *f, int64_t t_ref, const double *q, const double *R_ms,
+                       const double *C);
+/* FusionFilter._update_shadow: the Kalman update of the shadow's P (ct_kalman_update, the one
+ * shape), accepted: InsState.correct with its dx and, when sym, ekf.symmetrize (what
+ * KalmanUpdate.update does every SYMMETRIZE_EVERY accepted updates).  Returns the flags. */
+int ct_fusion_update(const struct ct_kalman *u, const struct ct_fusstate *s, double gate, int sym, double *nis);
+
 #endif /* CT_FUSION_H */

@@ -665,3 +665,99 @@ def test_history_rewind_and_commit_match_the_reference():
             for name in ("t", "d"):
                 np.testing.assert_array_equal(getattr(ref.live, name), getattr(got.live, name))
             assert (ref.live._head, ref.live._count) == (got.live._head, got.live._count)
+
+
+@pytest.mark.parametrize("gap", [0, 8, 16, 504, 512, 520, 2048, 4080])
+def test_history_copy_is_exact_at_every_distance_modulo_4k(gap):
+    """ct_fusion_hist_copy copies backwards where the destination lies just above the source modulo
+    4 KiB (against 4K aliasing) and with memcpy elsewhere: both ways the shadow is the live ring's
+    copy, byte for byte, with the reference's head and count (``Ring.copy_from``,
+    ``drop_newer_than``); then ``commit`` the other way round. The arrays are carved out of one
+    buffer so that the shadow's lie ``gap`` bytes (modulo 4096) above the live ones."""
+    rng = np.random.default_rng(76)
+    cap, w = 64, 12
+    nt, nd = cap * 8, cap * w * 8
+    buf = np.zeros(8 * 4096 + nd, dtype=np.uint8)
+    base = (-buf.ctypes.data) % 4096            # live_t at a 4 KiB boundary
+
+    def carve(off, nbytes, dtype):
+        return buf[base + off:base + off + nbytes].view(dtype)
+    lt, ld = carve(0, nt, np.int64), carve(4096, nd, np.float64).reshape(cap, w)
+    st, sd = carve(3 * 4096 + gap, nt, np.int64), carve(5 * 4096 + gap, nd, np.float64).reshape(cap, w)
+    assert ((st.ctypes.data - lt.ctypes.data) % 4096, (sd.ctypes.data - ld.ctypes.data) % 4096) == (gap, gap)
+    lhc, shc = np.array([37, 50], dtype=np.int64), np.zeros(2, dtype=np.int64)
+    lt[:] = np.arange(cap) * 1000
+    lt[:] = np.roll(lt, 37 - 50 + cap)           # oldest at slot 37 - 50 (mod cap)
+    ld[:] = rng.normal(size=(cap, w))
+    hc = _core.HistCopy(lt, ld, lhc, st, sd, shc)
+    first = (37 - 50) % cap
+    t_ref = int(lt[(first + 20) % cap])
+    hc.rewind(t_ref)
+    np.testing.assert_array_equal(st, lt)
+    np.testing.assert_array_equal(sd, ld)
+    assert list(shc) == [(first + 21) % cap, 21]
+    sd[:] = rng.normal(size=(cap, w))
+    st[:] = rng.integers(0, 10**6, size=cap)
+    hc.commit()
+    np.testing.assert_array_equal(lt, st)
+    np.testing.assert_array_equal(ld, sd)
+    assert list(lhc) == list(shc)
+
+
+@pytest.mark.parametrize("model", [1, 2, 3])
+def test_one_call_update_is_the_three_calls_bit_for_bit(model):
+    """``ext.FusionUpdate`` (``fusion_replay.CompiledUpdate``: ``FusionFilter._restore`` and
+    ``_update_shadow`` in one call each) against the filter's own methods run as the reference
+    composes them (``InsState.copy_from``, ``PoseHistory.rewind_shadow``, the model's evaluate,
+    ``KalmanUpdate.update``, ``InsState.correct``) on a copy of the same filter: the shadow, its
+    history, ``y``, ``dx``, the NIS, the flags and the counts the same to the bit, over 40 updates
+    (the symmetrisation of every 16th accepted one included, a gated one among them)."""
+    from coiltrack.firmware.estimate.fusion_replay import CompiledUpdate
+    rng = np.random.default_rng(77 + model)
+    _, got = _pair(model)
+    assert CompiledUpdate.fits(got) and got._restore.__self__.__class__ is CompiledUpdate
+    ring = got.history.live
+    for i in range(ring.capacity + 5):                 # a full, wrapped live history
+        ring.d[ring.push(1000 * i)] = rng.normal(size=ring.width)
+    ref = FusionFilter(got.prm, OrientationFilter(OrientationParams.from_config(None), core.PYTHON),
+                       fixed_source=True, core=COMPILED)
+    arrays = [(ref.sh, got.sh, ("p", "v", "Th", "ba", "bg", "P")), (ref.snap.st, got.snap.st, ("p", "v", "Th", "ba", "bg", "P")),
+              (ref.snap, got.snap, ("Phi", "Xi", "XiP")), (ref.history.live, got.history.live, ("t", "d", "hc")),
+              (ref.history.shadow, got.history.shadow, ("t", "d", "hc")), (ref.upd, got.upd, ("H", "R"))]
+    for a, b, names in arrays:
+        for name in names:
+            np.copyto(getattr(a, name), getattr(b, name))
+    gated = 0
+    for k in range(40):
+        Th = _random_rotation(rng)
+        _fill(got, rng, Th, _random_rotation(rng, 0.01), _random_rotation(rng, 0.02) @ Th)
+        P = _spd(rng, got.n, 1e-3)
+        for w in [sl for name, sl in ((nm, getattr(got.layout, nm)) for nm in got.layout.names())
+                  if name in ("QM", "PSI", "XI")]:
+            keep = P[w, w].copy()
+            P[w, :] = 0.0                        # white states: no cross-covariance (A's zero rows)
+            P[:, w] = 0.0
+            P[w, w] = keep
+        got.snap.st.P[:] = P
+        got.snap.st.Th[:] = Th
+        got.snap.st.p[:] = rng.normal(size=3) * 0.2
+        got.snap.st.t_us = 5000 + 1000 * k
+        for a, b, names in arrays[:3]:
+            for name in names:
+                np.copyto(getattr(a, name), getattr(b, name))
+        ref.snap.st.t_us = got.snap.st.t_us
+        q = got.snap.Phi.T @ (got.snap.st.p + rng.normal(size=3) * (0.01 if k != 7 else 5.0))   # (k 7: gated)
+        R = got.snap.Phi.T @ _random_rotation(rng, 0.02) @ Th
+        C = _spd(rng, 6, 1e-6)
+        t_ref = int(got.history.live.t[got.history.live.slot(rng.integers(0, 100))])
+        FusionFilter._restore(ref, t_ref, q, R, C)
+        got._restore(t_ref, q, R, C)
+        fa = FusionFilter._update_shadow(ref)
+        fb = got._update_shadow()
+        gated += fa != EKF_OK
+        assert fa == fb and ref.upd.nis == got.upd.nis and ref.upd.count == got.upd.count, k
+        assert ref.upd.rejected == got.upd.rejected and ref.sh.t_us == got.sh.t_us == got.snap.st.t_us, k
+        for a, b, names in arrays[:2] + [(ref.upd, got.upd, ("y", "dx"))] + arrays[3:5]:
+            for name in names:
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{k} {name}")
+    assert got.upd.count >= 32 and gated >= 1
