@@ -401,7 +401,30 @@ static PyObject *WarmStart_warm(WarmStartObject *self, PyObject *const *args, Py
     Py_RETURN_FALSE;
 }
 
+/* warm_ac(t_ref, have_pose, initialized) -> True or False (ct_report_warm_start_ac: no range check) */
+static PyObject *WarmStart_warm_ac(WarmStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t_ref;
+    int have, init;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "WarmStart: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("WarmStart.warm_ac", nargs, 3) < 0 || ct_py_int64(args[0], &t_ref) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    init = PyObject_IsTrue(args[2]);
+    if (have < 0 || init < 0)
+        return NULL;
+    if (ct_report_warm_start_ac(&self->h, t_ref, have, init, self->tp, self->tR, self->wp, self->wR))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
 static PyMethodDef WarmStart_methods[] = {
+    {"warm_ac", (PyCFunction)(void (*)(void))WarmStart_warm_ac, METH_FASTCALL,
+     "warm_ac(t_ref, have_pose, initialized) -> whether a start was put into wp, wR "
+     "(ACFusionTracker.warm_start, no range check: ct_report_warm_start_ac)"},
     {"warm", (PyCFunction)(void (*)(void))WarmStart_warm, METH_FASTCALL,
      "warm(t_ref, have_pose, initialized, range_m) -> whether a start was put into wp, wR "
      "(BurstFusionTracker.warm_start: ct_report_warm_start)"},

@@ -71,6 +71,11 @@ struct ct_hist {
 int ct_report_warm_start(const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
                          const double *tp, const double *tR, double *wp, double *wR);
 
+/* track.ac.ACFusionTracker.warm_start over MagneticTracker.warm_start: ct_report_warm_start without the
+ * range check (the fusion filter's pose at the AC block's t_ref as it is) */
+int ct_report_warm_start_ac(const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, const double *tp,
+                            const double *tR, double *wp, double *wR);
+
 /* _Ahead.same: whether the n pairs of arrays (a[k], b[k], len[k] doubles each) are equal element by
  * element (C's ==, as a memoryview comparison of float64 items: NaN unequal, -0.0 equal to 0.0) */
 int ct_report_same(int n, const double *const *a, const double *const *b, const int64_t *len);

@@ -37,6 +37,18 @@ int ct_report_warm_start(const struct ct_hist *h, int64_t t_ref, int have_pose, 
     return 1;
 }
 
+int ct_report_warm_start_ac(const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, const double *tp,
+                            const double *tR, double *wp, double *wR)
+{
+    if (!have_pose)
+        return 0;
+    if (h != NULL && initialized && ct_fusion_pose_at(h->t, h->d, h->cap, h->hc[0], h->hc[1], t_ref, wp, wR))
+        return 1;
+    memcpy(wp, tp, 3 * sizeof(double));
+    memcpy(wR, tR, 9 * sizeof(double));
+    return 1;
+}
+
 int ct_report_same(int n, const double *const *a, const double *const *b, const int64_t *len)
 {
     int k;

@@ -224,14 +224,19 @@ def _history(rng, trk, node: int, count: int, head: int, t0: int, dup: bool):
     return times, rows
 
 
-def test_warm_start_is_the_python_to_the_bit():
+@pytest.mark.parametrize("name", ["roetenberg-fusion", "raab-ac"])
+def test_warm_start_is_the_python_to_the_bit(name):
     """300 random histories (empty, one entry, wrapped around the ring, two equal times), times
     before, at, inside and after them, the filter initialized or not, the tracked pose had or not,
     a range the interpolated pose leaves or not: the same start and answer as the reference
-    (``BurstFusionTracker.warm_start``); where the pose is interpolated, numpy's interp agrees."""
+    (``BurstFusionTracker.warm_start``; AC blocks: ``ACFusionTracker.warm_start``, the block's
+    ``t_ref`` and no range check); where the pose is interpolated, numpy's interp agrees."""
+    from coiltrack.firmware.measure.ac_blocks import _T_REF
+    from coiltrack.firmware.track.ac import ACFusionTracker
     rng = random.Random(3)
-    ref, got = _pair("roetenberg-fusion")
-    assert got.warm_start.__func__ is BurstFusionTracker._warm_start_compiled
+    ref, got = _pair(name)
+    ac = isinstance(got, ACFusionTracker)
+    assert got.warm_start.__func__ is (ACFusionTracker if ac else BurstFusionTracker)._warm_start_compiled
     ch = ref.channels[0]
     cap = ref.inertial[ch.node].fusion.history.live.capacity
     interp = 0
@@ -257,6 +262,8 @@ def test_warm_start_is_the_python_to_the_bit():
             else:
                 t_ref = t0
             ins.t_ref = t_ref
+            if ac:
+                trk.measure._stv[_T_REF] = t_ref      # the AC block's middle (ACBlockMeasurement.t_ref)
             ins.fusion.initialized = init
             tp = trk.poses[ch.node]
             tp.have_pose = have
