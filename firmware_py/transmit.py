@@ -187,6 +187,21 @@ class Transmitter:
         self._write_numbered(frame)
         self._count_pose(status)
 
+    def pose_built(self, build, node: int, t_us: int, status: int, quality: int) -> bool:
+        """A POSE whose frame ``build(seq, src, node, t_us, status, quality)`` makes on the compiled
+        core (a report's bound kernel: ``ext.ReportChain.frame``, the bytes :meth:`pose_cov6` sends),
+        numbered, written and counted as :meth:`pose_cov6`'s; False (nothing sent: the caller sends
+        through :meth:`pose_cov6`) on the Python core, a signed link, or while :meth:`pose` is not
+        this transmitter's own."""
+        return False
+
+    def _pose_built_compiled(self, build, node: int, t_us: int, status: int, quality: int) -> bool:
+        if self.pose is not self._pose_own:
+            return False
+        self._write_numbered(build(self._seq, self.node_id, node, t_us, status, quality))
+        self._count_pose(status)
+        return True
+
     def pose_unknown(self, node: int, t_us: int, p, q, status: int) -> None:
         """A POSE whose covariance is unknown (every variance at the f32 maximum, quality 0)."""
         r = self._own
@@ -222,6 +237,7 @@ class Transmitter:
         self.pose = self._pose_own = self._pose_compiled
         self.fused_pose = self._fused_pose_compiled
         self.pose_cov6 = self._pose_cov6_compiled    # the frame from the arguments, no record between
+        self.pose_built = self._pose_built_compiled
         self.core = "compiled"
 
     def _bind_window(self, core) -> None:

@@ -22,6 +22,11 @@ typedef struct {
     Py_buffer views[RC_NBUF];
     int held[RC_NBUF];
     int bound;
+    /* the quiet term's magnetometer ring (bind_quiet): head and count, samples, its constants */
+    Py_buffer qhc, qb;
+    int quiet;
+    int64_t qcap;
+    double earth, quiet_sigma;
 } ReportChainObject;
 
 static void rc_release(ReportChainObject *self)
@@ -32,6 +37,11 @@ static void rc_release(ReportChainObject *self)
             PyBuffer_Release(&self->views[i]);
             self->held[i] = 0;
         }
+    if (self->quiet) {
+        PyBuffer_Release(&self->qhc);
+        PyBuffer_Release(&self->qb);
+        self->quiet = 0;
+    }
 }
 
 static void ReportChain_dealloc(ReportChainObject *self)
@@ -44,7 +54,7 @@ static int ReportChain_init(ReportChainObject *self, PyObject *args, PyObject *k
 {
     static char *kwlist[] = {"n", "dof", "scale", "max_gap_us", "row", "centers", "prev", "H", "u", "g", "dx", "d",
                              "xd", "motion", "sp", "sR", "scov", "tp", "tR", "S", "sigma", "start", "end", "q", "wl",
-                             "v", "cov", "rms_s", NULL};
+                             "v", "cov", "rms_s", "motion_coils", NULL};
     static const char *names[RC_NBUF] = {"centers", "prev", "H", "u", "g", "dx", "d", "xd", "motion", "sp", "sR",
                                          "scov", "tp", "tR", "S", "sigma", "start", "end", "q", "wl", "v", "cov"};
     static const int writable[RC_NBUF] = {0, 1, 1, 1, 1, 1, 1, 1, 1, 0, 0, 0, 1, 1, 0, 0, 0, 0, 1, 0, 0, 1};
@@ -53,12 +63,16 @@ static int ReportChain_init(ReportChainObject *self, PyObject *args, PyObject *k
     void *ptr[RC_NBUF];
     double scale, gap, rms_s = 0.0;
     Py_ssize_t row;
-    int n, dof, i, motion;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiddnOOOOOOOOOOOOOOOOOOOOOO|d", kwlist, &n, &dof, &scale, &gap, &row,
+    int n, dof, i, motion, mcoils = -1;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "iiddnOOOOOOOOOOOOOOOOOOOOOO|di", kwlist, &n, &dof, &scale, &gap, &row,
                                      &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8], &o[9], &o[10],
                                      &o[11], &o[12], &o[13], &o[14], &o[15], &o[16], &o[17], &o[18], &o[19], &o[20],
-                                     &o[21], &rms_s))
+                                     &o[21], &rms_s, &mcoils))
         return -1;
+    if (mcoils != -1 && mcoils != 0 && mcoils != n) {
+        PyErr_Format(PyExc_ValueError, "ReportChain: motion_coils must be 0 (no motion term) or n, got %d", mcoils);
+        return -1;
+    }
     if (self->bound) {
         PyErr_SetString(PyExc_RuntimeError, "ReportChain: already bound");
         return -1;
@@ -107,7 +121,7 @@ static int ReportChain_init(ReportChainObject *self, PyObject *args, PyObject *k
         }
         ptr[i] = self->views[i].buf;
     }
-    self->qs.n = n;
+    self->qs.n = mcoils == 0 ? 0 : n;   /* 0: PoseQuality.grade_burst without the motion term (its _n 0) */
     self->qs.dof = dof;
     self->qs.scale = scale;
     self->qs.max_gap_us = gap;
@@ -160,7 +174,112 @@ static PyObject *ReportChain_solved(ReportChainObject *self, PyObject *const *ar
     return PyLong_FromLong(ct_report_solved(&self->r, t_us, cost, nis, quiet, range_m, init));
 }
 
+/* bind_quiet(hc, b, earth, quiet_sigma): the channel's magnetometer ring (hc int64 (>= 2,): head, count;
+ * b float64 (cap, 3)) whose newest sample report() reads for PoseQuality.quiet_term; once */
+static PyObject *ReportChain_bind_quiet(ReportChainObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double earth, qs;
+    if (!self->bound || self->quiet) {
+        PyErr_SetString(PyExc_RuntimeError, "ReportChain.bind_quiet: not bound, or a ring bound already");
+        return NULL;
+    }
+    if (ct_py_nargs("ReportChain.bind_quiet", nargs, 4) < 0 || ct_py_double(args[2], &earth) < 0 ||
+        ct_py_double(args[3], &qs) < 0)
+        return NULL;
+    if (ct_py_buffer(args[0], 2, 8, "ql", 0, &self->qhc, "hc") < 0)
+        return NULL;
+    if (ct_py_buffer(args[1], 3, 8, "d", 0, &self->qb, "b") < 0) {
+        PyBuffer_Release(&self->qhc);
+        return NULL;
+    }
+    if (self->qb.len % 24 != 0) {
+        PyBuffer_Release(&self->qhc);
+        PyBuffer_Release(&self->qb);
+        PyErr_SetString(PyExc_TypeError, "b: needs (capacity, 3) float64 items");
+        return NULL;
+    }
+    self->qcap = (int64_t)(self->qb.len / 24);
+    self->earth = earth;
+    self->quiet_sigma = qs;
+    self->quiet = 1;
+    Py_RETURN_NONE;
+}
+
+/* report(t_us, cost, nis, range_m, initialized) -> -1 or the quality: solved() with the quiet term read
+ * from the ring bind_quiet bound (ct_report_quiet; 0.0 without one: PoseQuality.quiet_term's 0) */
+static PyObject *ReportChain_report(ReportChainObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t_us;
+    double cost, nis, quiet = 0.0, range_m;
+    int init;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "ReportChain: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("ReportChain.report", nargs, 5) < 0)
+        return NULL;
+    if (ct_py_int64(args[0], &t_us) < 0 || ct_py_double(args[1], &cost) < 0 || ct_py_double(args[2], &nis) < 0 ||
+        ct_py_double(args[3], &range_m) < 0)
+        return NULL;
+    init = PyObject_IsTrue(args[4]);
+    if (init < 0)
+        return NULL;
+    if (self->quiet)
+        quiet = ct_report_quiet(self->qhc.buf, self->qb.buf, self->qcap, self->earth, self->quiet_sigma);
+    return PyLong_FromLong(ct_report_solved(&self->r, t_us, cost, nis, quiet, range_m, init));
+}
+
+/* frame(seq, src, node, t_us, status, quality) -> bytes or None: the POSE frame of the last report
+ * (Transmitter.pose_cov6 on the compiled core with the tracked position, the quaternion and the
+ * reported covariance: the motion's where bound, else the solver's), None where the wire format
+ * refuses a value (as core.pose_frame) */
+static PyObject *ReportChain_frame(ReportChainObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_POSE_FRAME_MAX];
+    long long ints[3];
+    unsigned long long t_us;
+    int k, seq, src;
+    static const int int_at[3] = {2, 4, 5};
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "ReportChain: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("ReportChain.frame", nargs, 6) < 0)
+        return NULL;
+    seq = (int)PyLong_AsLong(args[0]);
+    src = (int)PyLong_AsLong(args[1]);
+    if (PyErr_Occurred())
+        return NULL;
+    for (k = 0; k < 3; ++k) {
+        int overflow = 0;
+        ints[k] = PyLong_AsLongLongAndOverflow(args[int_at[k]], &overflow);
+        if ((ints[k] == -1 && PyErr_Occurred()) || overflow) {
+            PyErr_Clear();
+            Py_RETURN_NONE;
+        }
+    }
+    t_us = PyLong_AsUnsignedLongLong(args[3]);
+    if (t_us == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        Py_RETURN_NONE;
+    }
+    k = ct_report_frame(out, seq, src, ints[0], (uint64_t)t_us, self->r.tp, self->r.q,
+                        self->r.wl != NULL ? self->r.cov : self->r.scov, ints[1], ints[2]);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
 static PyMethodDef ReportChain_methods[] = {
+    {"bind_quiet", (PyCFunction)(void (*)(void))ReportChain_bind_quiet, METH_FASTCALL,
+     "bind_quiet(hc, b, earth, quiet_sigma): the magnetometer ring whose newest sample report() reads for the "
+     "quiet term (PoseQuality.quiet_term); once, at start-up"},
+    {"report", (PyCFunction)(void (*)(void))ReportChain_report, METH_FASTCALL,
+     "report(t_us, cost, nis, range_m, initialized) -> solved() with the quiet term of the bound ring "
+     "(ct_report_quiet; 0.0 without one)"},
+    {"frame", (PyCFunction)(void (*)(void))ReportChain_frame, METH_FASTCALL,
+     "frame(seq, src, node, t_us, status, quality) -> the POSE frame (bytes) of the last report's pose, "
+     "quaternion and reported covariance (ct_report_frame), or None where the wire format refuses a value"},
     {"solved", (PyCFunction)(void (*)(void))ReportChain_solved, METH_FASTCALL,
      "solved(t_us, cost, nis, quiet, range_m, initialized) -> -1 (the solution beyond range_m: nothing written) or "
      "the quality, with the tracked pose, the quaternion, the quality's row and motion and (motion bound) the "
@@ -173,9 +292,9 @@ static PyTypeObject ReportChainType = {
     .tp_basicsize = sizeof(ReportChainObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_doc = "ReportChain(n, dof, scale, max_gap_us, row, centers, prev, H, u, g, dx, d, xd, motion, sp, sR, scov, "
-              "tp, tR, S, sigma, start, end, q, wl, v, cov, rms_s=0.0): one channel's report of a solved burst "
+              "tp, tR, S, sigma, start, end, q, wl, v, cov, rms_s=0.0, motion_coils=n): one channel's report of a solved burst "
               "(MagneticTracker._report_pose) bound to its buffers (wl, v, cov None: the solver's covariance is "
-              "reported as is)",
+              "reported as is; motion_coils 0: graded without the motion term)",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)ReportChain_init,
     .tp_dealloc = (destructor)ReportChain_dealloc,
@@ -282,7 +401,30 @@ static PyObject *WarmStart_warm(WarmStartObject *self, PyObject *const *args, Py
     Py_RETURN_FALSE;
 }
 
+/* warm_ac(t_ref, have_pose, initialized) -> True or False (ct_report_warm_start_ac: no range check) */
+static PyObject *WarmStart_warm_ac(WarmStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t t_ref;
+    int have, init;
+    if (!self->bound) {
+        PyErr_SetString(PyExc_RuntimeError, "WarmStart: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("WarmStart.warm_ac", nargs, 3) < 0 || ct_py_int64(args[0], &t_ref) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    init = PyObject_IsTrue(args[2]);
+    if (have < 0 || init < 0)
+        return NULL;
+    if (ct_report_warm_start_ac(&self->h, t_ref, have, init, self->tp, self->tR, self->wp, self->wR))
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
 static PyMethodDef WarmStart_methods[] = {
+    {"warm_ac", (PyCFunction)(void (*)(void))WarmStart_warm_ac, METH_FASTCALL,
+     "warm_ac(t_ref, have_pose, initialized) -> whether a start was put into wp, wR "
+     "(ACFusionTracker.warm_start, no range check: ct_report_warm_start_ac)"},
     {"warm", (PyCFunction)(void (*)(void))WarmStart_warm, METH_FASTCALL,
      "warm(t_ref, have_pose, initialized, range_m) -> whether a start was put into wp, wR "
      "(BurstFusionTracker.warm_start: ct_report_warm_start)"},

@@ -140,6 +140,16 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
             return True
         return MagneticTracker.warm_start(self, ch, tp)
 
+    def _warm_reference(self):
+        return ACFusionTracker.warm_start
+
+    def _warm_start_compiled(self, ch, tp) -> bool:
+        """:meth:`warm_start` on the compiled core (``WarmStart.warm_ac``, ``core/src/report.c``
+        ``ct_report_warm_start_ac``: the filter's pose at the block's ``t_ref``, no range check, or
+        the tracked pose; the same operations, the same bits)."""
+        w, ins = self._warms[ch.node]
+        return w.warm_ac(self.measure.t_ref, tp.have_pose, ins.fusion.initialized)
+
     def on_solution(self, ch, solved: bool) -> None:
         ins = self.inertial[ch.node]
         if self._fuse_mid[ch.node] == self.measure.t_ref and not ins.pending:

@@ -1108,7 +1108,7 @@ class BurstFusionTracker(MagneticTracker):
         from coiltrack.firmware.estimate.fusion_state import HIST_P, HIST_R
         from coiltrack.firmware.estimate.magnetic_inertial import FilterView
         ext = core.ext
-        if ext is None or type(self).warm_start is not BurstFusionTracker.warm_start or (HIST_P, HIST_R) != (0, 3):
+        if ext is None or type(self).warm_start is not self._warm_reference() or (HIST_P, HIST_R) != (0, 3):
             return
         warms = {}
         for ch in self.channels:
@@ -1125,6 +1125,10 @@ class BurstFusionTracker(MagneticTracker):
                 return
         self._warms = warms
         self.warm_start = self._warm_start_compiled
+
+    def _warm_reference(self):
+        """The :meth:`warm_start` whose operations :meth:`_warm_start_compiled` repeats."""
+        return BurstFusionTracker.warm_start
 
     def _warm_start_compiled(self, ch, tp) -> bool:
         w, ins = self._warms[ch.node]

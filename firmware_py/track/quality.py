@@ -123,6 +123,8 @@ class PoseQuality:
         self._prev = {node: memoryview(self._prev_rows[k]) for node, k in self._row.items()}
         if self._n and core.ext is not None:
             self._bind_compiled(core.ext)
+        elif core.ext is not None and n_coils >= 2:
+            self._bind_chain_scratch(int(n_coils))
 
     def _bind_compiled(self, ext) -> None:
         """:meth:`grade_burst` on the compiled core (``ct_grade_burst`` through a
@@ -135,6 +137,21 @@ class PoseQuality:
                                     self._prev_rows, self._H, self._u, self._g, self._dx, self._d, self._xd,
                                     self._motion_out)
         self.grade_burst = self._grade_burst_compiled
+
+    def _bind_chain_scratch(self, n: int) -> None:
+        """Without the motion term (AC blocks, fewer than two coils' worth of source): the buffers a
+        compiled report (:meth:`report_chain`) binds, its motion term off (``ct_grade_burst`` with no
+        motion coils: :meth:`grade_burst`'s ``_n`` 0). :meth:`grade_burst` stays the Python."""
+        self._motion_out = np.zeros(2)
+        self._mov = memoryview(self._motion_out)
+        self._centers = np.zeros((n, 3))
+        self._H = memoryview(np.zeros(18 * n))
+        self._u = memoryview(np.zeros(3 * n))
+        self._g = memoryview(np.zeros(6))
+        self._dx = memoryview(np.zeros(6))
+        self._d = memoryview(np.zeros(n))
+        self._xd = memoryview(np.zeros(6))
+        self._chain_n = n
 
     def _grade_burst_compiled(self, node: int, t_us: int, cost: float, cov, p, R, S, sigma,
                               start, end, nis_per_dim: float = 0.0) -> int:
@@ -157,13 +174,22 @@ class PoseQuality:
         and this grader's row of ``node`` and scratch; ``motion``: ``(w_last, velocity, out,
         burst_rms_s)`` of the reported covariance's motion term, or None. None when the grading is
         not compiled or ``node`` has no row (the Python grades)."""
-        if getattr(self, "_bq", None) is None or node not in self._row:
+        if getattr(self, "_motion_out", None) is None or node not in self._row:
             return None
+        n = self._n if self._n else getattr(self, "_chain_n", 0)
+        if self._n == 0 and type(self).grade_burst is not PoseQuality.grade_burst:
+            return None                  # a grading the chain does not repeat
         wl, v, cov, rms = (None, None, None, 0.0) if motion is None else motion
-        return ext.ReportChain(self._n, self.dof, self.scale, float(self.max_gap_us), self._row[node], self._centers,
+        rv = None if self._quiet_off else self._rings.get(node)
+        if rv is not None and (type(self).quiet_term is not PoseQuality.quiet_term or not hasattr(rv[0], "hc")):
+            return None                  # a quiet term the chain does not repeat
+        chain = ext.ReportChain(n, self.dof, self.scale, float(self.max_gap_us), self._row[node], self._centers,
                                self._prev_rows, self._H, self._u, self._g, self._dx, self._d, self._xd,
                                self._motion_out, sp, sR, scov, tp, tR, S, sigma, start, end, q, wl, v, cov,
-                               float(rms))
+                               float(rms), self._n)
+        if rv is not None:               # the quiet term read by the chain (report: ct_report_quiet)
+            chain.bind_quiet(rv[0].hc, rv[0].b, self.earth, self.quiet_sigma)
+        return chain
 
     def grade_report(self, chain, node: int, t_us: int, cost: float, range_m: float, initialized: bool,
                      nis_per_dim: float = 0.0) -> int:
@@ -171,7 +197,7 @@ class PoseQuality:
         -1 when the solution lies beyond ``range_m`` (nothing graded), else its quality as
         :meth:`grade_burst` gives it (kept in ``last[node]``, the motion in ``motion_m2`` and
         ``chi2_motion``)."""
-        q = chain.solved(t_us, cost, nis_per_dim, self.quiet_term(node), range_m, initialized)
+        q = chain.report(t_us, cost, nis_per_dim, range_m, initialized)    # quiet_term(node) in the call
         if q >= 0:
             mv = self._mov
             self.motion_m2 = mv[0]

@@ -44,6 +44,17 @@ struct ct_report {
 int ct_report_solved(const struct ct_report *r, int64_t t_us, double cost, double nis, double quiet, double range_m,
                      int initialized);
 
+/* PoseQuality.quiet_term over a magnetometer ring (measure.pulse.SampleRing, a KernelRing): its head and
+ * count hc (hc[0], hc[1]), its samples b (cap x 3, T); ((|B| - earth) / quiet_sigma)^2 of the newest
+ * sample (Ring.peek(0)), 0 when the ring is empty */
+double ct_report_quiet(const int64_t *hc, const double *b, int64_t cap, double earth, double quiet_sigma);
+
+/* Transmitter.pose_cov6's frame of a solved burst's report: the tracked position tp (3), the
+ * quaternion q (4) and the diagonal of the covariance cov (36) as ct_pose_frame's values (frame.c);
+ * the encoded length, or -1 where the wire format refuses a value (as ct_pose_frame) */
+int ct_report_frame(uint8_t *out, int seq, int src, int64_t node, uint64_t t_us, const double *tp, const double *q,
+                    const double *cov, int64_t status, int64_t quality);
+
 /* a fusion filter's live pose history (estimate.fusion_output.PoseHistory.live, a KernelRing): its
  * times t (cap), rows d (cap x CT_HIST_WIDTH: the position at CT_HIST_P, the rotation's nine at
  * CT_HIST_R) and head and count hc (2), read by fusion.c's ct_fusion_pose_at */
@@ -59,6 +70,11 @@ struct ct_hist {
  * lies within range_m, else the tracked pose tp (3), tR (9); 0 (nothing written) before a pose */
 int ct_report_warm_start(const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
                          const double *tp, const double *tR, double *wp, double *wR);
+
+/* track.ac.ACFusionTracker.warm_start over MagneticTracker.warm_start: ct_report_warm_start without the
+ * range check (the fusion filter's pose at the AC block's t_ref as it is) */
+int ct_report_warm_start_ac(const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, const double *tp,
+                            const double *tR, double *wp, double *wR);
 
 /* _Ahead.same: whether the n pairs of arrays (a[k], b[k], len[k] doubles each) are equal element by
  * element (C's ==, as a memoryview comparison of float64 items: NaN unequal, -0.0 equal to 0.0) */

@@ -20,9 +20,10 @@ import random
 import numpy as np
 import pytest
 
-pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
+_core = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 
 from coiltrack.firmware.loop import Firmware  # noqa: E402
+from coiltrack.protocol.schema import POSE_VALID  # noqa: E402
 from coiltrack.firmware.track.burst_fusion import BurstFusionTracker  # noqa: E402
 from coiltrack.firmware.track.magnetic import MagneticTracker, _Ahead  # noqa: E402
 from coiltrack.tools import scenarios  # noqa: E402
@@ -46,11 +47,21 @@ def _pair(name: str):
         assert fw.core == impl
         trk = fw.tracker
         trk.sent = []
+        for ch in trk.channels:          # rings near their end: the tests' samples wrap them around
+            for i in range(ch.ring.capacity - 3):
+                ch.ring.push(1000 * (i + 1), 30e-6, -20e-6, 35e-6, False, 0)
 
         def rec(node, t_us, p, q, cov, status, quality, sent=trk.sent):
-            sent.append((node, t_us, tuple(float(v) for v in p), tuple(float(v) for v in q),
-                         np.array(cov, dtype=float).tobytes(), status, quality))
+            # the frame the compiled transmitter's pose_cov6 sends (seq 7, source 1)
+            sent.append(_core.pose_frame(7, 1, node, t_us, p[0], p[1], p[2], q[0], q[1], q[2], q[3], cov[0, 0],
+                                         cov[1, 1], cov[2, 2], cov[3, 3], cov[4, 4], cov[5, 5], status, quality))
         trk.tx.pose_cov6 = rec
+
+        def built(build, node, t_us, status, quality, sent=trk.sent):
+            sent.append(build(7, 1, node, t_us, status, quality))
+            return True
+        if impl == "compiled":
+            trk.tx.pose_built = built    # the report's frame from its chain (ReportChain.frame)
         out.append(trk)
     ref, got = out
     assert got._report_pose.__func__ is MagneticTracker._report_pose_compiled
@@ -92,8 +103,13 @@ def _state(rng, trk_pair, k: int, t_pose: int):
     v = np.array([rng.gauss(0, 0.5) for _ in range(3)])
     init = rng.random() < 0.6
     status = rng.choice([0, 1, 0x40])
+    # magnetometer samples of the quiet term (PoseQuality.quiet_term: the ring's newest), the ring wrapped
+    pushes = [(rng.gauss(0, 40e-6), rng.gauss(0, 40e-6), rng.gauss(0, 40e-6)) for _ in range(rng.choice([0, 1, 7]))]
     for trk in trk_pair:
         ch = trk.channels[k]
+        for b in pushes:
+            t = ch.ring.latest_t_us + 1000
+            ch.ring.push(t, b[0], b[1], b[2], False, 0)
         sv = trk.solver
         np.copyto(sv.position, p)
         np.copyto(sv.rotation, R)
@@ -125,11 +141,13 @@ def _rotation_small(rng):
     return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * K @ K
 
 
-@pytest.mark.parametrize("name", ["roetenberg-fusion", "multi16", "roetenberg-bench"])
+@pytest.mark.parametrize("name", ["roetenberg-fusion", "multi16", "roetenberg-bench", "raab-ac"])
 def test_report_pose_is_the_python_to_the_bit(name):
     """400 random solved bursts (15 % of them beyond the working volume), the fused tracker's
     filter initialized or not, earlier solutions within the motion term's gap or not: the same
-    return, tracked pose, quality, motion term, quality rows and POSE arguments as the reference."""
+    return, tracked pose, quality, motion term, quality rows and POSE frame bytes as the reference
+    (the compiled report's frame built by its chain, ``ReportChain.frame``, the reference's from
+    its ``pose_cov6`` arguments)."""
     rng = random.Random(5)
     ref, got = _pair(name)
     n_ch = len(ref.channels)
@@ -152,7 +170,8 @@ def test_report_pose_is_the_python_to_the_bit(name):
         seen_far += far
         seen_motion += res[0][0] and res[0][5] > 0.0
     assert ref.sent == got.sent and len(ref.sent) == 400 - seen_far
-    assert seen_far > 20 and seen_motion > 50
+    # AC blocks (raab-ac): graded without the motion term (PoseQuality._n 0), on the compiled core too
+    assert seen_far > 20 and (seen_motion > 50 if ref.quality._n else seen_motion == 0)
 
 
 def test_reported_covariance_adds_the_motion_within_the_burst():
@@ -171,7 +190,10 @@ def test_reported_covariance_adds_the_motion_within_the_burst():
             pass
         tp = got.poses[ch.node]
         assert got._report_pose(ch, tp, t_pose)
-        cov = np.frombuffer(got.sent[-1][4]).reshape(6, 6)
+        cov = got._rep_cov.copy()        # the covariance the POSE is sent with
+        p, q = got.poses[ch.node].position, got._q
+        assert got.sent[-1] == _core.pose_frame(7, 1, ch.node, t_pose, p[0], p[1], p[2], q[0], q[1], q[2], q[3],
+                                                *(cov[i, i] for i in range(6)), got._status | POSE_VALID, got.quality.last[ch.node])
         w2 = float(ins.w_last @ ins.w_last)
         v2 = float(ins.fusion.st.v @ ins.fusion.st.v) if ins.fusion.initialized else 0.0
         p2 = float(got.solver.position @ got.solver.position)
@@ -202,14 +224,19 @@ def _history(rng, trk, node: int, count: int, head: int, t0: int, dup: bool):
     return times, rows
 
 
-def test_warm_start_is_the_python_to_the_bit():
+@pytest.mark.parametrize("name", ["roetenberg-fusion", "raab-ac"])
+def test_warm_start_is_the_python_to_the_bit(name):
     """300 random histories (empty, one entry, wrapped around the ring, two equal times), times
     before, at, inside and after them, the filter initialized or not, the tracked pose had or not,
     a range the interpolated pose leaves or not: the same start and answer as the reference
-    (``BurstFusionTracker.warm_start``); where the pose is interpolated, numpy's interp agrees."""
+    (``BurstFusionTracker.warm_start``; AC blocks: ``ACFusionTracker.warm_start``, the block's
+    ``t_ref`` and no range check); where the pose is interpolated, numpy's interp agrees."""
+    from coiltrack.firmware.measure.ac_blocks import _T_REF
+    from coiltrack.firmware.track.ac import ACFusionTracker
     rng = random.Random(3)
-    ref, got = _pair("roetenberg-fusion")
-    assert got.warm_start.__func__ is BurstFusionTracker._warm_start_compiled
+    ref, got = _pair(name)
+    ac = isinstance(got, ACFusionTracker)
+    assert got.warm_start.__func__ is (ACFusionTracker if ac else BurstFusionTracker)._warm_start_compiled
     ch = ref.channels[0]
     cap = ref.inertial[ch.node].fusion.history.live.capacity
     interp = 0
@@ -235,6 +262,8 @@ def test_warm_start_is_the_python_to_the_bit():
             else:
                 t_ref = t0
             ins.t_ref = t_ref
+            if ac:
+                trk.measure._stv[_T_REF] = t_ref      # the AC block's middle (ACBlockMeasurement.t_ref)
             ins.fusion.initialized = init
             tp = trk.poses[ch.node]
             tp.have_pose = have
