@@ -549,6 +549,10 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
     rep.update(emu_timing.report())
     rep["firmware_exit_code"] = code
+    if emu_timing.stalls is not None:    # a traced run: each pose's completing sample and arrival
+        from coiltrack.hil.bench import pose_latency_times
+
+        rep["pose_latency_times"] = pose_latency_times(bench, cfg.pulse.fall_us, cfg.pulse.baseline_us)
     if outputs is not None:
         outputs.finish(bench, rep)
     if stopped is not None:
