@@ -609,12 +609,11 @@ def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=Non
     try:
         with held_signals():
             child = _start_pinned(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE, env=env)
+        _await_ready(child, bench.emulator, clock)
         emu_cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
         with KeepAwake(emu_cpus if keep_awake else ()), EmulatorRealtime(threads=threads) as ert:
             if timing is not None:
                 timing.sched = ert.info.get("emulator_sched")
-            # the epoch once the child is set up, and this loop too (its GC collected and frozen)
-            _await_ready(child, bench.emulator, clock)
             emulator_loop(bench.emulator, bench.link, clock, int(duration_s * 1e6) + 300_000, prog, timing=timing)
         wait_s = 30.0
     except Stopped as exc:
