@@ -49,11 +49,6 @@ class WallClock:
     def now(self) -> int:
         return (time.monotonic_ns() - self.epoch_ns) // 1000
 
-    def start_at(self, epoch_ns: int) -> None:
-        """Move the epoch (time 0) to ``epoch_ns`` (CLOCK_MONOTONIC): two processes agree on it
-        once both are ready (``coiltrack firmware --epoch-ns -``)."""
-        self.epoch_ns = int(epoch_ns)
-
     @staticmethod
     def sleep(seconds: float) -> None:
         time.sleep(seconds)

@@ -15,7 +15,6 @@ from __future__ import annotations
 import gc
 import os
 import select
-import sys
 
 import numpy as np
 import pytest
@@ -266,61 +265,3 @@ def test_a_link_whose_peer_does_not_read_drops_and_counts_instead_of_growing():
     finally:
         os.close(master)
         os.close(slave)
-
-
-class _ReadyChild:
-    """A firmware process that has said 'ready' (pipes for its stdout and stdin)."""
-
-    def __init__(self, says=b"ready\n"):
-        r, w = os.pipe()
-        os.write(w, says)
-        os.close(w)
-        self.stdout = os.fdopen(r, "rb")
-        self._in_r, w = os.pipe()
-        self.stdin = os.fdopen(w, "wb")
-
-    def poll(self):
-        return None
-
-    def sent(self) -> bytes:
-        with os.fdopen(self._in_r, "rb") as f:
-            return f.read()
-
-
-class _Prefetching:
-    def __init__(self, pieces):
-        self.calls = []
-        self.pieces = pieces
-
-    def prefetch(self, until, max_n, min_n=1):
-        self.calls.append((until, max_n))
-        return 64 if len(self.calls) < self.pieces else 0
-
-
-def test_the_shared_epoch_is_set_once_the_firmware_process_is_ready():
-    """The bench sets the shared epoch when the firmware process says it is set up, not at a fixed
-    time after starting it (a firmware that started late, under load, found its nodes unsynchronised
-    and its first commands refused): the child gets the epoch the bench's clock now has, and the
-    emulator computes its first horizon while it waits. The firmware side says 'ready' and takes
-    the epoch it reads (``coiltrack firmware --epoch-ns -``)."""
-    import io
-
-    from coiltrack.hil.clock import WallClock
-    from coiltrack.tools.bench.realtime import _await_ready
-    from coiltrack.tools.commands.firmware import _await_epoch
-
-    child, emu, clock = _ReadyChild(), _Prefetching(pieces=3), WallClock(0)
-    assert _await_ready(child, emu, clock, timeout_s=30.0)
-    assert child.sent() == b"%d\n" % clock.epoch_ns and clock.epoch_ns > 0
-    assert emu.calls == [(AHEAD_US, 64)]                        # a piece a look at the child
-    assert not _await_ready(_ReadyChild(b"oops\n"), _Prefetching(1), WallClock(0), timeout_s=30.0)
-
-    fw_clock = WallClock(0)
-    old_in, old_out = sys.stdin, sys.stdout
-    sys.stdin, sys.stdout = io.StringIO("123456789\n"), io.StringIO()
-    try:
-        _await_epoch(fw_clock)
-        said = sys.stdout.getvalue()
-    finally:
-        sys.stdin, sys.stdout = old_in, old_out
-    assert said == "ready\n" and fw_clock.epoch_ns == 123456789

@@ -47,13 +47,10 @@ from .. import args as A
 from ..outputs import report as report_mod
 
 
-#: the shared epoch is set once the firmware process says it is set up (``--epoch-ns -``), this far
-#: ahead: a firmware that starts late finds the nodes unsynchronised and its first commands refused
-#: (a fixed 3 s from the child's start was too short at a load of 20: its first tick came 0.5-5 s
-#: after the epoch, and 1-3 poses of every such run were invalid)
-CHILD_START_NS = 300_000_000
-#: the longest the firmware process may take to say it is set up (s)
-CHILD_READY_S = 120.0
+#: time the firmware process is given to start (imports, set-up, memory locked) before the shared
+#: epoch: one that starts late finds the nodes unsynchronised and its first commands refused
+#: (1.5 s was too short on a loaded 2-CPU machine: imports alone took 1.4 s there)
+CHILD_START_NS = 3_000_000_000
 #: SCHED_FIFO priorities of the two-process bench: the firmware above the emulator (on one CPU a
 #: firmware tick preempts an emulator step), both below the kernel's threaded interrupts (50)
 FIRMWARE_RT_PRIORITY = 30
@@ -521,15 +518,15 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
 
     cfg = cfg or scenario.firmware_config()
     link_args, link, close, threads = _two_process_link(transport)
-    # the shared epoch: set (clock.start_at) once the child says it is set up (_await_ready)
-    clock = WallClock(time.monotonic_ns() + CHILD_READY_S * 1e9)
+    epoch_ns = time.monotonic_ns() + CHILD_START_NS     # give the child time to start
     if outputs is not None:     # tools.outputs: the emulator's end of the link is tapped
-        link = outputs.wrap(link, side="emulator", clock_us=clock.now)
+        link = outputs.wrap(link, side="emulator", clock_us=WallClock(epoch_ns).now)
     try:
         bench = BenchSetup(scenario, seed, duration_s, link, faults, cfg=cfg)
+        clock = WallClock(epoch_ns)
         # the child's statistics come back on its standard output (a few kB, written at its end)
         cmd = [sys.executable, "-m", "coiltrack.tools.cli", "firmware", *link_args, "--scenario", scenario.name,
-               "--epoch-ns", "-", "--duration", str(duration_s + 0.5), "--realtime",
+               "--epoch-ns", str(epoch_ns), "--duration", str(duration_s + 0.5), "--realtime",
                *(["--config", str(config_path)] if config_path else []),
                *(["--calibration", cfg.calibration.calibration_file] if cfg.calibration.calibration_file else []),
                "--core", cfg.core.impl]
@@ -572,31 +569,6 @@ def elapsed_s(clock, duration_s: float) -> float:
 FIRMWARE_GRACE_S = 5.0
 
 
-def _await_ready(child, emulator, clock, timeout_s: float = CHILD_READY_S) -> bool:
-    """Wait for the firmware process's 'ready' (``--epoch-ns -``), computing the emulator's physics
-    ahead meanwhile, then set the shared epoch ``CHILD_START_NS`` from now on ``clock`` and send
-    it to the child. False when the child ended or said nothing in ``timeout_s`` (the epoch is
-    set all the same: the run goes on, and reports what the child did)."""
-    prefetch = getattr(emulator, "prefetch", None)
-    more = prefetch is not None
-    fd = child.stdout.fileno()
-    end = time.monotonic() + timeout_s
-    ready = False
-    while time.monotonic() < end and child.poll() is None:
-        if more:
-            more = prefetch(AHEAD_US, 64) > 0
-        if select.select([fd], [], [], 0 if more else 0.05)[0]:
-            ready = child.stdout.readline().strip() == b"ready"
-            break
-    clock.start_at(time.monotonic_ns() + CHILD_START_NS)
-    try:
-        child.stdin.write(b"%d\n" % clock.epoch_ns)
-        child.stdin.close()
-    except OSError:
-        pass
-    return ready
-
-
 def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=None, timing=None, threads=(),
                   keep_awake: bool = True):
     """Start the firmware process and run the emulator beside it (until 0.3 s after
@@ -608,8 +580,7 @@ def _beside_child(cmd: list[str], bench, clock, duration_s: float, prog, env=Non
     child, stopped, wait_s = None, None, 0.0      # stopped or failed: the child goes at once
     try:
         with held_signals():
-            child = _start_pinned(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE, env=env)
-        _await_ready(child, bench.emulator, clock)
+            child = _start_pinned(cmd, stdout=subprocess.PIPE, env=env)
         emu_cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set()
         with KeepAwake(emu_cpus if keep_awake else ()), EmulatorRealtime(threads=threads) as ert:
             if timing is not None:

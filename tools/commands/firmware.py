@@ -50,9 +50,7 @@ def add_arguments(p) -> None:
                    help="stop when nothing has arrived for S seconds (default 10; 0: keep waiting)")
     p.add_argument("--calibration", metavar="FILE",
                    help="calibration file (TOML, from `coiltrack calibrate`) applied at start-up")
-    p.add_argument("--epoch-ns", type=_epoch_arg, default=None,
-                   help="CLOCK_MONOTONIC epoch shared with the emulator; '-': once set up, print 'ready' and "
-                        "read it from standard input (the two-process bench)")
+    p.add_argument("--epoch-ns", type=A.integer(0), default=None, help="CLOCK_MONOTONIC epoch shared with the emulator")
     p.add_argument("--stats-json", type=A.output_path, metavar="PATH", help="write tick timing and counters here on exit")
     p.add_argument("--realtime", action="store_true",
                    help="best-effort real-time set-up: SCHED_FIFO if permitted, cyclic GC frozen and disabled")
@@ -68,20 +66,6 @@ def add_arguments(p) -> None:
     p.add_argument("--key", type=A.signing_key, metavar="KEY",
                    help="sign the coil commands and configuration writes with KEY (64 hex digits, a passphrase, "
                         "@FILE or @env for $COILTRACK_SIGNING_KEY); overrides signing.signing_key of --config")
-
-
-def _epoch_arg(text: str):
-    return text if text == "-" else A.integer(0)(text)
-
-
-def _await_epoch(clock) -> None:
-    """``--epoch-ns -``: say 'ready' on standard output, take the epoch from standard input (a
-    line with CLOCK_MONOTONIC ns; none or no number: now)."""
-    import time
-
-    print("ready", flush=True)
-    line = sys.stdin.readline().strip()
-    clock.start_at(int(line) if line.isdigit() else time.monotonic_ns())
 
 
 def _config(args):
@@ -128,7 +112,7 @@ def run(args) -> int:
         print(f"coiltrack firmware: {exc}", file=sys.stderr)
         return 2
     outputs = open_or_exit("firmware", args, can_link=args.transport == "can")
-    clock = WallClock(None if args.epoch_ns == "-" else args.epoch_ns)
+    clock = WallClock(args.epoch_ns)
     port = GuardedPort(outputs.wrap(link, clock_us=clock.now), clock, args.peer_timeout)
     fw = Firmware(cfg, port)
     rt = {}
@@ -143,8 +127,6 @@ def run(args) -> int:
         if args.realtime or args.cpu is not None:
             rt.update(_realtime_setup(args.cpu, **({"priority": args.rt_priority} if args.rt_priority else {})))
         rt["keep_awake"] = bool(awake.children)
-        if args.epoch_ns == "-":        # set up: the shared epoch now (the bench waits for this)
-            _await_epoch(clock)
         # a link that coalesces writes (a pty: FdLink) sends a tick's frames together after it
         timing = firmware_loop(fw, clock, duration_us, cfg.timing.tick_us, after_tick=getattr(link, "flush", None),
                                trace=trace)
