@@ -195,6 +195,11 @@ def pose_latencies(bench, fall_us: int, baseline_us: int) -> np.ndarray:
     The completing sample is the first one stamped after the last pulse's end (as the driver
     reported it) + ``fall_us`` + ``baseline_us``: before it the firmware cannot close the cycle.
     Poses without windows, or whose cycle closed on a time-out, are skipped."""
+    return np.asarray([rx - t for t, rx in pose_latency_times(bench, fall_us, baseline_us)], dtype=np.int64)
+
+
+def pose_latency_times(bench, fall_us: int, baseline_us: int) -> list:
+    """:func:`pose_latencies`' pairs: (true time of the completing sample, the pose's arrival), us."""
     sensors = {s.node_id: s for s in bench.sensors}
     idx = _executed_index(bench.driver)
     out = []
@@ -220,8 +225,8 @@ def pose_latencies(bench, fall_us: int, baseline_us: int) -> np.ndarray:
         t_sample = s.true_times[i]
         if t_sample > rp["rx_us"]:
             continue
-        out.append(rp["rx_us"] - t_sample)
-    return np.asarray(out, dtype=np.int64)
+        out.append((int(t_sample), int(rp["rx_us"])))
+    return out
 
 
 def _names(prefix: str) -> dict[int, str]:

@@ -22,7 +22,8 @@ import pytest
 from coiltrack.firmware.loop import Firmware
 from coiltrack.hil.clock import SimClock
 from coiltrack.tools.bench.links import FdLink, inproc_pair, is_pty_path, make_raw_pty, open_pty_slave
-from coiltrack.tools.bench.realtime import (AHEAD_US, PREFETCH_GUARD_US, PREFETCH_PIECE, EmulatorRealtime,
+from coiltrack.tools.bench.realtime import (AHEAD_US, PREFETCH_AFTER_SEND_US, PREFETCH_GUARD_US, PREFETCH_PIECE,
+                                      EmulatorRealtime,
                                       EmulatorTiming, emulator_loop, firmware_loop)
 from coiltrack.tools.bench.runner import BenchSetup
 from coiltrack.tools.scenarios import get
@@ -156,6 +157,40 @@ def test_emulator_loop_fills_its_horizon_first_and_computes_ahead_only_away_from
         assert nxt is None or nxt - at > PREFETCH_GUARD_US
     for d in due:
         assert d in emu.steps                                  # no sample delayed by a piece
+
+
+class _CountingLink:
+    """A link that counts what the emulator sent (as ``FdLink.bytes_tx``); the emulator's steps
+    at the instants ``writes_at`` write 10 bytes each."""
+
+    def __init__(self, emu, writes_at):
+        self.bytes_tx = 0
+        self.emu, self.writes_at = emu, set(writes_at)
+
+    def flush(self):
+        if self.emu.steps and self.emu.steps[-1] in self.writes_at:
+            self.writes_at.discard(self.emu.steps[-1])
+            self.bytes_tx += 10
+
+
+def test_emulator_loop_computes_no_piece_right_after_it_sent():
+    """A piece waits PREFETCH_AFTER_SEND_US after a step that wrote to the link: the firmware's
+    answer (a POSE) comes then, and a piece computed meanwhile stamps it late by the piece's cost
+    and, at the loop's SCHED_FIFO priority, keeps the tty's flush work from moving the bytes (a
+    loop without the rule computes its pieces right after each sample it sends). Pieces still
+    come between the samples, and no sample is delayed."""
+    clock = SimClock(-1_000)
+    due = [1_000, 12_000, 23_000]
+    emu = _DueEmu(clock, due, prefetch_cost_us=700)
+    link = _CountingLink(emu, due)
+    emulator_loop(emu, link, clock, 30_000, step_us=250, wait=clock.sleep, ahead_us=AHEAD_US)
+    running = [p[0] for p in emu.prefetches if p[0] >= 0]
+    assert running
+    for sent in due:
+        assert not [at for at in running if sent <= at < sent + PREFETCH_AFTER_SEND_US]
+    assert [at for at in running if 1_000 + PREFETCH_AFTER_SEND_US <= at < 12_000 - PREFETCH_GUARD_US]
+    for d in due:
+        assert d in emu.steps
 
 
 def test_coalescing_pty_link_sends_a_step_in_one_write_and_reads_never_wait():

@@ -231,3 +231,40 @@ def test_emulator_loop_steps_on_an_injected_clock():
     emu = Emu()
     emulator_loop(emu, object(), clock, 2_000, step_us=250, wait=clock.sleep)
     assert emu.t == list(range(0, 2_001, 250))
+
+
+def test_firmware_loop_trace_records_each_ticks_gap_sleeps_and_stages(tmp_path):
+    """With a LoopTrace the loop records, per tick, the previous tick's end, its start and end, the
+    sleeps between (count, time asked, the longest measured: a sleep the platform overran shows
+    there, not in the tick) and the stage times ``tick_timed`` wrote; the file keeps them by name.
+    Without one, ``fw.tick`` runs (not ``tick_timed``) and nothing is recorded."""
+    from coiltrack.tools.bench.timing import LoopTrace
+
+    class Timed(_ScriptedFirmware):
+        def tick_timed(self, now, out):
+            out[:] = np.arange(1, 7) * 100
+            self.tick(now)
+
+    clock = SimClock(0)
+    naps = []
+
+    def sleep(s):                      # the fourth gap's sleep overruns by 7 ms
+        naps.append(s)
+        clock.now_us += int(round(s * 1e6)) + (7_000 if len(naps) == 3 else 0)
+    fw = Timed(clock, [10] * 8)
+    trace = LoopTrace(cap=16, path=str(tmp_path / "t.npz"))
+    firmware_loop(fw, clock, 12_000, 1000, sleep=sleep, spin_us=0, trace=trace)
+    r = trace.rows[:trace.n]
+    col = {c: i for i, c in enumerate(LoopTrace.COLS)}
+    assert trace.n == len(fw.ticks) and list(r[:, col["start"]]) == fw.ticks
+    assert fw.ticks[:4] == [0, 1000, 2000, 10_000]
+    assert list(r[1:, col["prev_end"]]) == list(r[:-1, col["end"]])
+    assert r[3, col["sleeps"]] == 1 and r[3, col["sleep_asked"]] == 990 and r[3, col["sleep_max"]] == 7_990
+    assert r[3, col["start"]] - r[3, col["prev_end"]] == 7_990
+    assert list(r[2, col["st_receive"]:col["st_transmit"] + 1]) == [100, 200, 300, 400, 500, 600]
+    trace.save()
+    z = np.load(tmp_path / "t.npz")
+    assert list(z["cols"]) == list(LoopTrace.COLS) and z["rows"].shape == (trace.n, len(LoopTrace.COLS))
+    plain = _ScriptedFirmware(SimClock(0), [10] * 4)
+    firmware_loop(plain, plain.clock, 4_000, 1000, spin_us=0)
+    assert len(plain.ticks) == 4

@@ -55,6 +55,7 @@ class FdLink(Port):
         self.owns_fd = owns_fd
         self._pending = bytearray()
         self.bytes_tx = 0
+        self.bytes_rx = 0
         self.bytes_dropped = 0
         self.writes = 0
 
@@ -70,7 +71,9 @@ class FdLink(Port):
         if n <= 0:
             return b""
         try:
-            return os.read(self.fd, max(n, 1))
+            data = os.read(self.fd, max(n, 1))
+            self.bytes_rx += len(data)
+            return data
         except (BlockingIOError, InterruptedError):
             return b""
         except OSError:   # peer closed

@@ -179,7 +179,7 @@ class EmulatorRealtime:
 
 
 def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us: int = 200,
-                  max_records: int = 600_000, after_tick=None) -> dict:
+                  max_records: int = 600_000, after_tick=None, trace=None) -> dict:
     """Run ``fw.tick`` every ``tick_us`` of ``clock`` until ``duration_us``.
 
     Sleeps until ``spin_us`` before each slot, then polls the clock (the
@@ -192,6 +192,8 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     statistics of the ticks run so far go with the exception as ``partial``.
     ``after_tick()``, when given, runs after each tick, inside its measured
     execution time (a link's ``flush``: the tick's frames leave in one write).
+    ``trace``: a :class:`tools.bench.timing.LoopTrace` recording each tick's gap, sleeps and
+    stage times (None, the default: nothing recorded, nothing allocated).
     """
     if sleep is None:
         sleep = getattr(clock, "sleep", time.sleep)
@@ -214,12 +216,19 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
                 rem = next_tick - now
                 if rem > spin_us:
                     sleep((rem - spin_us) * 1e-6)
+                    if trace is not None:
+                        trace.slept(rem - spin_us, clock.now() - now)
                 continue
             t0 = now
-            fw.tick(t0)
+            if trace is None:
+                fw.tick(t0)
+            else:
+                fw.tick_timed(t0, trace.stages)
             if after_tick is not None:
                 after_tick()
             t1 = clock.now()
+            if trace is not None:
+                trace.tick(t0, t1)
             i = n % cap
             starts[i] = t0
             exec_us[i] = t1 - t0
@@ -265,6 +274,12 @@ AHEAD_US = 1_500_000
 PREFETCH_PIECE = 8
 #: a piece is computed only when the next sample is due at least this far away (us)
 PREFETCH_GUARD_US = 3_000
+#: ... and only this long after the last step that wrote to the link (us): the firmware's answer (a
+#: ``POSE`` to the sample that completed a burst) comes within this, and a piece computed meanwhile
+#: at the loop's SCHED_FIFO priority delays its stamp by the piece's cost and, on this CPU, keeps
+#: the tty layer's flush work (a kworker of ordinary priority, which moves the written bytes to
+#: the reader) from running: the firmware then read 22 % of the samples one to three ticks late
+PREFETCH_AFTER_SEND_US = 3_000
 
 
 class EmulatorTiming:
@@ -282,6 +297,32 @@ class EmulatorTiming:
         self.worst_late_us = -1
         self.sched = None                   # the emulator loop's scheduling policy (EmulatorRealtime)
         self.worst_late_at_us = None        # true time of the step that sent a sample latest
+        self.stalls = None                  # with a trace: (at_us, what, us, steal_cs) of each long gap
+        self.probe = None
+
+    def trace(self) -> None:
+        """Record each gap over 5 ms (a wait, a step, a sample's lateness) with the CPU's steal."""
+        from .timing import StealProbe
+
+        self.stalls, self.probe = [], StealProbe()
+        self._marked = 0
+        self.io = []                        # (t_us, bytes_rx, bytes_tx) after each step that moved bytes
+
+    def io_mark(self, t_us: int, link, t_flushed: int) -> None:
+        if self.stalls is None:
+            return
+        rx, tx = getattr(link, "bytes_rx", 0), getattr(link, "bytes_tx", 0)
+        if not self.io or self.io[-1][2] != rx or self.io[-1][3] != tx:
+            self.io.append((t_us, t_flushed, rx, tx))
+
+    def gap(self, now: int, what: str, us: int) -> None:
+        if self.stalls is None:
+            return
+        if us > 5000:
+            self.stalls.append((now, what, us, self.probe.delta()))
+        if now - self._marked > 200_000:
+            self.probe.mark()
+            self._marked = now
 
     def add_step(self, dt_us: int) -> None:
         self.step_us[self.steps % self.step_us.size] = dt_us
@@ -303,7 +344,7 @@ class EmulatorTiming:
                 "emulator_sample_late_max_at_s": (round(self.worst_late_at_us * 1e-6, 3)
                                                   if self.worst_late_at_us is not None else None),
                 "emulator_prefetched_instants": self.prefetched, "emulator_prefetch_pieces": self.pieces,
-                "emulator_sched": self.sched}
+                "emulator_sched": self.sched, **({"emulator_stalls": self.stalls, "emulator_io": self.io} if self.stalls is not None else {})}
 
 
 def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_us: int = 250, wait=None,
@@ -318,7 +359,9 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
     computed ahead of the sampling path (``emulator.prefetch``): the first
     ``ahead_us`` before the run starts (``clock.now() < 0``), then a piece of
     ``PREFETCH_PIECE`` instants between steps, while the next sample is more
-    than ``PREFETCH_GUARD_US`` away, keeping ``ahead_us`` in hand (0: none).
+    than ``PREFETCH_GUARD_US`` away and the last step that wrote to the link
+    (``link.bytes_tx``, where it counts) is ``PREFETCH_AFTER_SEND_US`` past,
+    keeping ``ahead_us`` in hand (0: none).
     ``wait(timeout_s)`` replaces the wait (tests pass a simulated one);
     ``timing`` (:class:`EmulatorTiming`) collects step durations and sample
     lateness.
@@ -331,6 +374,8 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
         else:
             wait = getattr(clock, "sleep", time.sleep)
     flush = getattr(link, "flush", None)
+    sent = -1 if hasattr(link, "bytes_tx") else None    # bytes written so far (None: not counted)
+    quiet_from = 0                                      # no piece before this time (PREFETCH_AFTER_SEND_US)
     next_due = getattr(emulator, "next_due_us", None)
     prefetch = getattr(emulator, "prefetch", None) if ahead_us > 0 else None
     if prefetch is not None:
@@ -350,6 +395,8 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
             emulator.step(now)
             if flush is not None:
                 flush()
+            if timing is not None:
+                timing.io_mark(now, link, clock.now())
             if progress is not None:
                 progress.update(now * 1e-6, len(emulator.recorder.poses))
             t1 = clock.now()
@@ -357,19 +404,29 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
                 timing.add_step(t1 - now)
                 if due is not None and due <= now:
                     timing.add_late(now - due, now)
+                    timing.gap(now, "late", now - due)
+                timing.gap(t1, "step", t1 - now)
+            if sent is not None and link.bytes_tx != sent:
+                sent, quiet_from = link.bytes_tx, t1 + PREFETCH_AFTER_SEND_US
             if t1 - now > step_us:
                 continue        # a long step: read the link again at once
             nxt = next_due() if next_due is not None else None
-            if prefetch is not None and (nxt is None or nxt - t1 > PREFETCH_GUARD_US):
+            if prefetch is not None and t1 >= quiet_from and (nxt is None or nxt - t1 > PREFETCH_GUARD_US):
                 n = prefetch(t1 + ahead_us, PREFETCH_PIECE, PREFETCH_PIECE)
                 if n and timing is not None:
                     timing.prefetched += n
                     timing.pieces += 1
+                    timing.gap(clock.now(), "piece", clock.now() - t1)
                 if n:
                     continue    # the piece took time: read the link again at once
             if nxt is not None:
                 timeout_us = min(step_us, max(0, nxt - clock.now()))
-        wait(timeout_us * 1e-6)
+        if timing is not None and timing.stalls is not None:
+            tw = clock.now()
+            wait(timeout_us * 1e-6)
+            timing.gap(clock.now(), "wait", clock.now() - tw - timeout_us)
+        else:
+            wait(timeout_us * 1e-6)
 
 
 def _two_process_link(transport: str):
@@ -482,6 +539,8 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
             env = {**os.environ, KEY_ENV: cfg.signing.signing_key}
             cmd += ["--key", "@env"]
         emu_timing = EmulatorTiming()
+        if os.environ.get("COILTRACK_LOOP_TRACE"):
+            emu_timing.trace()
         stopped, code, fw_stats = _beside_child(_pin_cpus(cmd), bench, clock, duration_s,
                                                 Progress(progress, duration_s, f"{scenario.name} ({transport})"),
                                                 env, emu_timing, threads)
@@ -492,6 +551,10 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
     rep.update(emu_timing.report())
     rep["firmware_exit_code"] = code
+    if emu_timing.stalls is not None:    # a traced run: each pose's completing sample and arrival
+        from coiltrack.hil.bench import pose_latency_times
+
+        rep["pose_latency_times"] = pose_latency_times(bench, cfg.pulse.fall_us, cfg.pulse.baseline_us)
     if outputs is not None:
         outputs.finish(bench, rep)
     if stopped is not None:
@@ -542,6 +605,9 @@ class _NullFirmware:
     def tick(self, now_us: int) -> None:
         pass
 
+    def tick_timed(self, now_us: int, out_ns) -> None:
+        pass
+
 
 def floor_main(argv=None) -> int:
     """``python -m coiltrack.tools.bench.realtime --cpu 1 --seconds 60``: the firmware loop with a tick
@@ -554,10 +620,16 @@ def floor_main(argv=None) -> int:
     p.add_argument("--seconds", type=A.real(0.001, 3600.0), default=60.0, help="how long (default 60)")
     p.add_argument("--rt-priority", type=A.integer(1, 99), default=FIRMWARE_RT_PRIORITY, metavar="P")
     p.add_argument("--no-keep-awake", action="store_true", help="let the CPU idle between ticks (see KeepAwake)")
+    p.add_argument("--trace", metavar="FILE", help="write the loop's per-tick trace (tools.bench.timing.LoopTrace, .npz)")
     a = p.parse_args(argv)
+    from .timing import LoopTrace
+
+    trace = LoopTrace(path=a.trace, cap=int(a.seconds * 1000) + 16) if a.trace else None
     with KeepAwake(() if a.no_keep_awake else (a.cpu,)):
         rt = _realtime_setup(a.cpu, a.rt_priority)
-        out = firmware_loop(_NullFirmware(), WallClock(), int(a.seconds * 1e6), 1000)
+        out = firmware_loop(_NullFirmware(), WallClock(), int(a.seconds * 1e6), 1000, trace=trace)
+    if trace is not None:
+        trace.save()
     out.update({"rt_" + k: v for k, v in rt.items()})
     print(json.dumps(out, indent=2))
     return 0

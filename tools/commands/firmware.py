@@ -14,12 +14,14 @@ stopped early.
 """
 from __future__ import annotations
 
+import os
 import sys
 
 from .. import args as A
 from .. import scenarios
 from ..bench.links import add_link_arguments, GuardedPort, open_link, warn_virtual_bus
 from ..bench.realtime import KeepAwake, _realtime_setup, firmware_loop, no_ticks
+from ..bench.timing import LoopTrace
 from ..inputs.infile import InputFileError
 from ..inputs.userconfig import load_over
 from ..outputs import jsonout
@@ -117,13 +119,17 @@ def run(args) -> int:
     awake = KeepAwake((args.cpu,) if args.realtime and args.cpu is not None and not args.no_keep_awake else ())
     duration_us = int(args.duration * 1e6) if args.duration > 0 else 2**62
     code, report = 0, {}
+    trace = LoopTrace(path=os.environ["COILTRACK_LOOP_TRACE"]) if os.environ.get("COILTRACK_LOOP_TRACE") else None
+    if trace is not None and hasattr(link, "bytes_rx"):
+        trace.link = link
     try:                                # a signal during the set-up is reported as one in the loop
         awake.__enter__()               # before SCHED_FIFO: the busy loop does not inherit it
         if args.realtime or args.cpu is not None:
             rt.update(_realtime_setup(args.cpu, **({"priority": args.rt_priority} if args.rt_priority else {})))
         rt["keep_awake"] = bool(awake.children)
         # a link that coalesces writes (a pty: FdLink) sends a tick's frames together after it
-        timing = firmware_loop(fw, clock, duration_us, cfg.timing.tick_us, after_tick=getattr(link, "flush", None))
+        timing = firmware_loop(fw, clock, duration_us, cfg.timing.tick_us, after_tick=getattr(link, "flush", None),
+                               trace=trace)
     except Stopped as exc:
         # a signal before the loop's first statement has no partial: zero ticks, still the keys
         timing, code = exc.partial or no_ticks(cfg.timing.tick_us), exc.exit_code
@@ -133,6 +139,8 @@ def run(args) -> int:
     finally:
         port.close()
         awake.__exit__(None, None, None)
+        if trace is not None:
+            trace.save()
     timing.update({"rt_" + k: v for k, v in rt.items()})
     timing["link_errors"] = port.errors
     outputs.finish(None, timing)
