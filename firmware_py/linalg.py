@@ -297,7 +297,18 @@ def lu_solve(K, n: int, perm, e, y) -> None:
         e[i] = acc / K[n * i + i]
 
 
-def jacobi_eigh(a, n: int, w, v, sweeps: int = 60) -> None:
+#: cyclic sweeps at most of :func:`jacobi_eigh`
+JACOBI_SWEEPS = 60
+
+
+def jacobi_eigh_of(n: int):
+    """The function ``eigh(a, w, v, sweeps)`` that :func:`jacobi_eigh` runs for size ``n``, made
+    now: a caller on the tick takes it at start-up, so the first tick that needs it does not
+    generate and compile its source (2-3 ms)."""
+    return _generated("jacobi_eigh", n, _jacobi_source)
+
+
+def jacobi_eigh(a, n: int, w, v, sweeps: int = JACOBI_SWEEPS) -> None:
     """Eigen-decomposition of a symmetric ``n x n`` matrix by cyclic Jacobi
     rotations (Golub & Van Loan, sec. 8.5). ``a`` is overwritten; eigenvalues
     go to ``w`` (ascending), unit eigenvectors to the columns of ``v``
@@ -467,6 +478,7 @@ class Rot3:
         self.k = flat(self._k)
         self.v = flat(self._v)
         self.w = flat(self._w)
+        self.eigh = jacobi_eigh_of(4)
 
 
 def nearest_rotation(m, out, work: Rot3) -> None:
@@ -503,7 +515,7 @@ def nearest_rotation(m, out, work: Rot3) -> None:
     k[10] = -m00 + m11 - m22
     k[11] = k[14] = m12 + m21
     k[15] = -m00 - m11 + m22
-    jacobi_eigh(k, 4, work.w, work.v)
+    work.eigh(k, work.w, work.v, JACOBI_SWEEPS)     # jacobi_eigh(k, 4, work.w, work.v)
     v = work.v
     qw, qx, qy, qz = v[3], v[7], v[11], v[15]
     nrm = _sqrt(qw * qw + qx * qx + qy * qy + qz * qz)

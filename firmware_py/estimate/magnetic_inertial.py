@@ -333,13 +333,11 @@ class FusionFilter(FilterView):
         self.recovery = Recovery(params, self.meas)
         self.history = PoseHistory(history_capacity, core)
         self.output = PoseOutput(params, output_capacity, self.frame, core, self.st, self.imu, self.history.live)
-        #: the measurement model's evaluation for the shadow and the snapshot, and the replay's
-        #: kernel (None: the Python loop of :meth:`step`), chosen once (``core``)
+        #: the measurement's evaluation (shadow, snapshot) and the replay's kernel (None: :meth:`step`'s loop)
         self._evaluate = self.meas.bind(self.sh, self.snap, self.upd.y, core)
         self._replay_ck = (CompiledReplay(self.sh, self.prediction, self.history.shadow, self.snap, self.frame,
                                           core.ext) if self.sh.ck is not None else None)
-        #: the live state's step split at a pending snapshot (``_advance``) on the compiled core: the
-        #: same kernel bound to the live state and history, one sample a call (None: Python)
+        #: the live step split at a pending snapshot (``_advance``): that kernel on the live state (None: Python)
         self._live_ck = (CompiledReplay(self.st, self.prediction, self.history.live, self.snap, self.frame,
                                         core.ext) if self.st.ck is not None else None)
         if CompiledUpdate.fits(self):      # the delayed update's two halves, one compiled call each

@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.linalg import Rot3, atb3, chol_inverse, flat, jacobi_eigh, nearest_rotation
+from coiltrack.firmware.linalg import JACOBI_SWEEPS, Rot3, atb3, chol_inverse, flat, jacobi_eigh_of, nearest_rotation
 from coiltrack.firmware.model.field import MU0
 from coiltrack.firmware.pose.lm import LM_RUNNING, LevenbergMarquardt
 from coiltrack.firmware.pose.staged import Staged
@@ -70,6 +70,7 @@ class _Kuipers:
         self._mp = memoryview(np.zeros(3 * n))     # M^+ (n, 3)
         self._S3 = memoryview(np.zeros(9))
         self._rot3 = Rot3()
+        self._eigh = jacobi_eigh_of(3)     # jacobi_eigh(., 3, ...), made at start-up
         self._u = (1.0, 0.0, 0.0)
         self._k = 1.0
 
@@ -92,7 +93,7 @@ class _Kuipers:
         W = self._W
         for a in range(9):
             W[a] = G[a]
-        jacobi_eigh(W, 3, self._w, self._V)          # smallest singular value of M
+        self._eigh(W, self._w, self._V, JACOBI_SWEEPS)          # smallest singular value of M
         w = self._w
         if not (w[0] > 0.0 and math.sqrt(w[0]) > 1e-9 * math.sqrt(max(w[2], 0.0))):
             return False
@@ -123,7 +124,7 @@ class _Kuipers:
         atb3(S3, S3, 3, W)
         tr = W[0] + W[4] + W[8]
         k = max(math.sqrt(max(tr / 6.0, 0.0)), 1e-300)
-        jacobi_eigh(W, 3, self._w, self._V)
+        self._eigh(W, self._w, self._V, JACOBI_SWEEPS)
         v = self._V
         ux, uy, uz = v[2], v[5], v[8]
         if ux * hx + uy * hy + uz * hz < 0.0:

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.linalg import inv3_sym, jacobi_eigh, spd_inverse
+from coiltrack.firmware.linalg import JACOBI_SWEEPS, inv3_sym, jacobi_eigh_of, spd_inverse
 
 __all__ = ["MAX_VARIANCE", "MARGIN_MAX_ORI_VAR", "RobustInverse6", "RotationMargin"]
 
@@ -42,6 +42,7 @@ class RobustInverse6:
         self._inv = spd_inverse(6)       # chol_inverse, straight-line (same bits)
         self._w = memoryview(np.zeros(6))
         self._V = memoryview(np.zeros(36))
+        self._eigh = jacobi_eigh_of(6)     # jacobi_eigh(., 6, ...), made at start-up
 
     def into(self, a, cov) -> None:
         """``a`` (36, row-major, symmetric) -> ``cov`` (36)."""
@@ -62,7 +63,7 @@ class RobustInverse6:
         m, w, V = self._m, self._w, self._V
         for i in range(36):
             m[i] = a[i]
-        jacobi_eigh(m, 6, w, V)
+        self._eigh(m, w, V, JACOBI_SWEEPS)
         top = w[5] if w[5] > 0.0 else 0.0
         floor = max(EIG_FLOOR * top, 1.0 / MAX_VARIANCE)
         for k in range(6):
