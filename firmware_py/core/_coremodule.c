@@ -414,23 +414,7 @@ static int KUpdate_init(KUpdateObject *self, PyObject *args, PyObject *kw)
         }
         ptr[i] = (double *)self->views[i].buf;
     }
-    self->u.n = n;
-    self->u.m = m;
-    self->u.H = ptr[0];
-    self->u.R = ptr[1];
-    self->u.y = ptr[2];
-    self->u.dx = ptr[3];
-    self->u.S = ptr[4];
-    self->u.Sinv = ptr[5];
-    self->u.K = ptr[6];
-    self->u.PHt = ptr[7];
-    self->u.T = ptr[8];
-    self->u.TH = ptr[9];
-    self->u.X = ptr[10];
-    self->u.KR = ptr[11];
-    self->u.w = ptr[12];
-    self->u.L = ptr[13];
-    self->u.M = ptr[14];
+    ct_kalman_bind(&self->u, n, m, ptr);
     self->nis = ptr[15];
     self->bound = 1;
     return 0;
@@ -736,19 +720,8 @@ static PyObject *core_pose_frame(PyObject *mod, PyObject *const *args, Py_ssize_
         return NULL;
     /* a field struct.pack would refuse (out of range, not an integer, not a float): None, as the
      * Python counts a tx error for any encoding error */
-    for (k = 0; k < 3; ++k) {
-        int overflow = 0;
-        ints[k] = PyLong_AsLongLongAndOverflow(args[int_at[k]], &overflow);
-        if ((ints[k] == -1 && PyErr_Occurred()) || overflow) {
-            PyErr_Clear();
-            Py_RETURN_NONE;
-        }
-    }
-    t_us = PyLong_AsUnsignedLongLong(args[3]);
-    if (t_us == (unsigned long long)-1 && PyErr_Occurred()) {
-        PyErr_Clear();
+    if (ct_py_pose_ints(args, int_at, ints, &t_us))
         Py_RETURN_NONE;
-    }
     for (k = 0; k < 13; ++k)
         if (get_double(args[4 + k], &v[k]) < 0) {
             PyErr_Clear();

@@ -1119,6 +1119,7 @@ static int FusionUpdate_init(FusionUpdateObject *self, PyObject *args, PyObject 
     PyObject *o[FUP_NBUF], *meas, *sh, *sn, *hist;
     Py_ssize_t len[FUP_NBUF];
     void *ptr[FUP_NBUF];
+    double *kb[15];
     FusionMeasObject *mo;
     FusStateObject *so, *no;
     HistCopyObject *ho;
@@ -1159,23 +1160,9 @@ static int FusionUpdate_init(FusionUpdateObject *self, PyObject *args, PyObject 
         PyErr_SetString(PyExc_ValueError, "FusionUpdate: the measurement model writes another y");
         return -1;                      /* (the bound views are released by the deallocation) */
     }
-    self->u.n = n;
-    self->u.m = m;
-    self->u.H = ptr[0];
-    self->u.R = ptr[1];
-    self->u.y = ptr[2];
-    self->u.dx = ptr[3];
-    self->u.S = ptr[4];
-    self->u.Sinv = ptr[5];
-    self->u.K = ptr[6];
-    self->u.PHt = ptr[7];
-    self->u.T = ptr[8];
-    self->u.TH = ptr[9];
-    self->u.X = ptr[10];
-    self->u.KR = ptr[11];
-    self->u.w = ptr[12];
-    self->u.L = ptr[13];
-    self->u.M = ptr[14];
+    for (i = 0; i < 15; ++i)
+        kb[i] = ptr[i];
+    ct_kalman_bind(&self->u, n, m, kb);
     self->nis = ptr[15];
     self->f.m = &mo->m;
     self->f.xi_model = mo->xi_model;

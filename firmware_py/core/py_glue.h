@@ -99,4 +99,26 @@ static inline int ct_py_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t wan
     return 0;
 }
 
+/* A POSE frame's integer fields from a call's arguments: args[at[0..2]] as int64 into ints, args[3]
+ * (the time, us) as uint64; 1 when one would not fit (the encoding error the Python counts: the
+ * caller returns None), 0 when all fit. */
+static inline int ct_py_pose_ints(PyObject *const *args, const int *at, long long *ints, unsigned long long *t_us)
+{
+    int k;
+    for (k = 0; k < 3; ++k) {
+        int overflow = 0;
+        ints[k] = PyLong_AsLongLongAndOverflow(args[at[k]], &overflow);
+        if ((ints[k] == -1 && PyErr_Occurred()) || overflow) {
+            PyErr_Clear();
+            return 1;
+        }
+    }
+    *t_us = PyLong_AsUnsignedLongLong(args[3]);
+    if (*t_us == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        return 1;
+    }
+    return 0;
+}
+
 #endif /* CT_PY_GLUE_H */

@@ -250,19 +250,8 @@ static PyObject *ReportChain_frame(ReportChainObject *self, PyObject *const *arg
     src = (int)PyLong_AsLong(args[1]);
     if (PyErr_Occurred())
         return NULL;
-    for (k = 0; k < 3; ++k) {
-        int overflow = 0;
-        ints[k] = PyLong_AsLongLongAndOverflow(args[int_at[k]], &overflow);
-        if ((ints[k] == -1 && PyErr_Occurred()) || overflow) {
-            PyErr_Clear();
-            Py_RETURN_NONE;
-        }
-    }
-    t_us = PyLong_AsUnsignedLongLong(args[3]);
-    if (t_us == (unsigned long long)-1 && PyErr_Occurred()) {
-        PyErr_Clear();
+    if (ct_py_pose_ints(args, int_at, ints, &t_us))
         Py_RETURN_NONE;
-    }
     k = ct_report_frame(out, seq, src, ints[0], (uint64_t)t_us, self->r.tp, self->r.q,
                         self->r.wl != NULL ? self->r.cov : self->r.scov, ints[1], ints[2]);
     if (k < 0)

@@ -106,12 +106,7 @@ class PoseQuality:
             n = len(coils)
             self._n = n
             self._c = [tuple(float(v) for v in c.center) for c in coils]
-            self._H = memoryview(np.zeros(18 * n))
-            self._u = memoryview(np.zeros(3 * n))
-            self._g = memoryview(np.zeros(6))
-            self._dx = memoryview(np.zeros(6))
-            self._d = memoryview(np.zeros(n))
-            self._xd = memoryview(np.zeros(6))
+            self._scratch(n)
         # the motion is taken from the previous solution no older than two cycles
         self.max_gap_us = 2 * int(getattr(getattr(cfg, "timing", None), "cycle_us", 0))
         # per node: [have, t_us, px, py, pz, r00, r01, r02, r10, r11, r12, r20, r21, r22], one row
@@ -145,13 +140,18 @@ class PoseQuality:
         self._motion_out = np.zeros(2)
         self._mov = memoryview(self._motion_out)
         self._centers = np.zeros((n, 3))
+        self._scratch(n)
+        self._chain_n = n
+
+    def _scratch(self, n: int) -> None:
+        """The motion term's scratch for ``n`` coils (``ct_grade_burst``'s ``H``, ``u``, ``g``, ``dx``,
+        ``d``, ``xd``)."""
         self._H = memoryview(np.zeros(18 * n))
         self._u = memoryview(np.zeros(3 * n))
         self._g = memoryview(np.zeros(6))
         self._dx = memoryview(np.zeros(6))
         self._d = memoryview(np.zeros(n))
         self._xd = memoryview(np.zeros(6))
-        self._chain_n = n
 
     def _grade_burst_compiled(self, node: int, t_us: int, cost: float, cov, p, R, S, sigma,
                               start, end, nis_per_dim: float = 0.0) -> int:

@@ -100,26 +100,33 @@ def parse_lines(buf: bytearray, out: deque, counts: list, timestamp: float = 0.0
     del buf[:end + 1]
 
 
+
+def open_raw_tty(path: str) -> int:
+    """A tty (a pseudo-terminal's slave side) opened read-write, non-blocking, not as the
+    controlling terminal, in raw mode: its descriptor (closed again if raw mode is refused)."""
+    import tty
+
+    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    try:
+        tty.setraw(fd)
+    except OSError:
+        os.close(fd)
+        raise
+    return fd
+
 class SlcanTtyBus(can.BusABC):
     """slcan on the tty ``channel`` (a pty path, ``/dev/ttyACM0``); see the module docstring."""
 
     def __init__(self, channel: str, bitrate: int = 500_000, coalesce: bool = False, listen_only: bool = False,
                  **kwargs):
         import time
-        import tty
 
         if bitrate not in BITRATE_CODES:
             raise ValueError(f"slcan: bit rate {bitrate} not one of {sorted(BITRATE_CODES)}")
         super().__init__(channel=channel, **kwargs)
         self.channel_info = f"slcan on {channel}"
         self._clock = time.time
-        fd = os.open(channel, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        try:
-            tty.setraw(fd)
-        except OSError:
-            os.close(fd)
-            raise
-        self.fd = fd
+        self.fd = open_raw_tty(channel)
         self.coalesce = coalesce
         self._in = bytearray()
         self._out = bytearray()

@@ -118,15 +118,9 @@ def open_pty_slave(path: str) -> FdLink:
     """The slave side of a pseudo-terminal opened raw and non-blocking, as a coalescing
     :class:`FdLink` (a pty has no baud rate: pyserial's per-read ``in_waiting`` and
     ``select`` calls buy nothing there)."""
-    import tty
+    from coiltrack.protocol.interfaces.slcan import open_raw_tty
 
-    fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-    try:
-        tty.setraw(fd)
-    except OSError:
-        os.close(fd)
-        raise
-    return FdLink(fd, coalesce=True, owns_fd=True)
+    return FdLink(open_raw_tty(path), coalesce=True, owns_fd=True)
 
 
 def make_raw_pty() -> tuple[int, int, str]:

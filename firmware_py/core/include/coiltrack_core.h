@@ -73,6 +73,8 @@ struct ct_kalman {
 int ct_inv3(const double *s, double *out);
 int ct_spd_inverse(int n, const double *a, double *out, double *L, double *M);
 int ct_kalman_update(const struct ct_kalman *u, double *P, double gate, double *nis_out);
+/* binds the update's 15 buffers in KalmanUpdate's order: H R y dx S Sinv K PHt T TH X KR w L M */
+void ct_kalman_bind(struct ct_kalman *u, int n, int m, double *const *buf);
 
 /* ------------------------------------------------------------- strapdown
  * coiltrack.firmware.estimate.strapdown, linalg.exp_rotvec and FusionFilter._propagate.

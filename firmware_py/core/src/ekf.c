@@ -318,3 +318,24 @@ int ct_kalman_update(const struct ct_kalman *u, double *P, double gate, double *
         joseph_rows(n, m, TH + i * m, KR + i * m, K, T + i * n, X + i * n, P + i * n);
     return CT_EKF_OK;
 }
+
+void ct_kalman_bind(struct ct_kalman *u, int n, int m, double *const *buf)
+{
+    u->n = n;
+    u->m = m;
+    u->H = buf[0];
+    u->R = buf[1];
+    u->y = buf[2];
+    u->dx = buf[3];
+    u->S = buf[4];
+    u->Sinv = buf[5];
+    u->K = buf[6];
+    u->PHt = buf[7];
+    u->T = buf[8];
+    u->TH = buf[9];
+    u->X = buf[10];
+    u->KR = buf[11];
+    u->w = buf[12];
+    u->L = buf[13];
+    u->M = buf[14];
+}
