@@ -42,6 +42,8 @@ ALLOWED: dict[tuple[str, str, str], str] = {
         "StagedSolve.save / load: the solver and its SolveResult record copied field by field",
     ("firmware_py/pose/staged.py", "run_units", "job"):
         "the units' runner of a Staged job, called by the job's own step (StagedSolve.step)",
+    ("protocol/interfaces/__init__.py", "message", "m"):
+        "a can.Message built field by field (its constructor's keyword handling skipped) and returned",
     ("protocol/codec.py", "<module>", "_cls"):
         "each message class made from the schema table at import: its ID, NAME, DEF and doc set once",
     ("protocol/capture.py", "decode_file", "res"):

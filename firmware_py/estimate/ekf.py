@@ -164,6 +164,13 @@ class KalmanUpdate:
             self.count += 1
         return flags
 
+    def add_counts(self, applied: int, rejected: int, nis: float) -> None:
+        """The bookkeeping of updates a compiled kernel ran in one call (``applied`` applied,
+        ``rejected`` rejected, the last one's NIS ``nis``)."""
+        self.count += applied
+        self.rejected += rejected
+        self.nis = nis
+
     def update(self, P: np.ndarray, gate: float | None = None) -> int:
         """One update of ``P`` with the current ``H``, ``R``, ``y``; returns the
         health flags (``EKF_OK`` when applied). ``dx`` is zeroed when rejected.

@@ -249,12 +249,10 @@ class SingleCoilUpdate:
         flags = self._ck.run(P, p, R, cp.start, co.start, m.coil, m.y, m.var, m.current, m.rel_model, m.r_scale,
                              upd.gate if m.gate else math.inf, self.iterations, upd.count, gain, gain_current)
         rs = self._rsv
-        upd.count += int(rs[_RS_APPLIED])
-        upd.rejected += int(rs[_RS_REJECTED])
-        upd.nis = rs[_RS_NIS_LAST]
+        upd.add_counts(int(rs[_RS_APPLIED]), int(rs[_RS_REJECTED]), rs[_RS_NIS_LAST])
         self.nis_nominal = self._stv[self._nis_at]
         self.nis = rs[_RS_NIS]
-        model.signal.evals += model.n * int(rs[_RS_EVALS])
+        model.signal.add_evals(model.n * int(rs[_RS_EVALS]))
         return flags
 
     def _run_compiled(self, P, p, R, cp, co, m: CoilMeasurement, model, gain: int = -1,

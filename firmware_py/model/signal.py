@@ -210,6 +210,10 @@ class SignalModel:
     def reset_evals(self) -> None:
         self.evals = 0
 
+    def add_evals(self, count: int) -> None:
+        """Count ``count`` coil-field evaluations a compiled kernel did with this model's geometry."""
+        self.evals += count
+
     def charge(self, k: int) -> None:
         """Count ``k`` evaluations of every coil done by a compiled kernel bound to this model's
         geometry (``pose.solver``'s Levenberg-Marquardt): ``k n`` evaluations."""
