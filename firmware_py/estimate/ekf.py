@@ -121,8 +121,7 @@ class KalmanUpdate:
             # (equal to the BLAS products below to rounding; S's inverse is the same code)
             self._L = np.zeros((m, m))
             self._M = np.zeros((m, m))
-            self._ck = ext.KUpdate(n, m, self.H, self.R, self.y, self.dx, self.S, self.Sinv, self.K, self._PHt,
-                                   self._T, self._TH, self._X, self._KR, self._w, self._L, self._M, self._nis)
+            self._ck = ext.KUpdate(n, m, *self.buffers())
             self.update = self._update_compiled
             self.core = "compiled"
 
@@ -138,6 +137,7 @@ class KalmanUpdate:
     nis = property(lambda self: self._nisv[0], _set_nis)                 # the last update's NIS
     count = property(lambda self: self._kstv[0], _set_count)             # updates applied
     rejected = property(lambda self: self._kstv[1], _set_rejected)       # updates rejected
+
     def buffers(self) -> tuple:
         """The compiled update's buffers in ``ext.KUpdate``'s order (``H``, ``R``, ``y``, ``dx``, ``S``,
         ``Sinv``, ``K``, then its scratch and the NIS), for a kernel that runs this update inside a
