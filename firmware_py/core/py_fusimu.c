@@ -1305,7 +1305,7 @@ static int imu_fus_args(ImuSampleObject *self, PyObject *const *args, long long 
 /* sample's work on a queue with room and a ring not empty (v[6..8]: r*): the orientation step's bits */
 static int imu_sample_whole(ImuSampleObject *self, long long t0, long long age, int rec, int inc, long long fc,
                             double *v, const double *phi, long long tp, long long n, long long head,
-                            long long count, long long pc, long long ic, long long mc)
+                            long long count, long long pc, long long ic, long long mc, long long steps)
 {
     const double *d, *b;
     int64_t k, t, kf, h, o;
@@ -1315,8 +1315,12 @@ static int imu_sample_whole(ImuSampleObject *self, long long t0, long long age, 
     d = self->in_d + 6 * k;
     for (i = 0; i < 6; ++i)
         v[i] = d[i];
-    r = ct_ori_sample(&self->ori->o, t, v[0], v[1], v[2], v[3], v[4], v[5], (int64_t)tp, (int)n, (int64_t)head,
-                      (int64_t)count, (int64_t)pc, (int64_t)ic, (int64_t)mc);
+    if (steps < 0)
+        r = ct_ori_sample(&self->ori->o, t, v[0], v[1], v[2], v[3], v[4], v[5], (int64_t)tp, (int)n, (int64_t)head,
+                          (int64_t)count, (int64_t)pc, (int64_t)ic, (int64_t)mc);
+    else                                        /* its prediction may orthonormalise R (OrientationFilter.predict) */
+        r = ct_ori_sample_ortho(&self->ori->o, t, v[0], v[1], v[2], v[3], v[4], v[5], (int64_t)tp, (int)n,
+                                (int64_t)head, (int64_t)count, (int64_t)pc, (int64_t)ic, (int64_t)mc, (int64_t)steps);
     o = ct_ring_push(self->ou_hc, self->ou_cap, self->ou_t, t);          /* PoseOutput's row */
     kf = ct_ring_push(self->pi_hc, self->pi_cap, self->pi_t, t);         /* InertialPrediction.sample */
     h = ct_ring_push(self->hi_hc, self->hi_cap, self->hi_t, t);
@@ -1360,7 +1364,7 @@ static PyObject *ImuSample_sample(ImuSampleObject *self, PyObject *const *args, 
         PyErr_SetString(PyExc_IndexError, "sample: the IMU ring is empty");
         return NULL;
     }
-    return PyLong_FromLong(imu_sample_whole(self, t0, age, rec, inc, fc, v, phi, tp, n, head, count, pc, ic, mc));
+    return PyLong_FromLong(imu_sample_whole(self, t0, age, rec, inc, fc, v, phi, tp, n, head, count, pc, ic, mc, -1));
 }
 
 /* peek() -> the time of the oldest sample of the IMU ring, or -1 when it is empty */
@@ -1490,9 +1494,10 @@ static PyObject *ImuSample_bind_state(ImuSampleObject *self, PyObject *const *ar
 
 /* drain(max_steps) -> 4 n + why: track.burst_fusion._OneCall.run's loop over the samples both filters take
  * whole (ct_sample_route), each through sample's work with its arguments read from the bound state and
- * its bookkeeping done there (ct_sample_done); n samples run, then why: 0 the ring is empty or
- * max_steps are run, CT_SR_SLOW / CT_SR_ORTHO the oldest sample is the caller's (not run; a full output
- * queue is CT_SR_SLOW, as sample's -1) */
+ * its bookkeeping done there (ct_sample_done), one whose prediction may orthonormalise the orientation
+ * (CT_SR_ORTHO) with it (ct_ori_sample_ortho); n samples run, then why: 0 the ring is empty or
+ * max_steps are run, CT_SR_SLOW the oldest sample is the caller's (not run; a full output queue is
+ * CT_SR_SLOW, as sample's -1) */
 static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     const struct ct_sample_state *s = &self->ss;
@@ -1514,9 +1519,9 @@ static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, P
             p += self->in_cap;
         t = self->in_t[p];
         why = ct_sample_route(s, t);
-        if (why == CT_SR_WHOLE && self->ou_hc[1] == self->ou_cap)
+        if (why != CT_SR_SLOW && self->ou_hc[1] == self->ou_cap)
             why = CT_SR_SLOW;
-        if (why != CT_SR_WHOLE)
+        if (why == CT_SR_SLOW)
             break;
         if (s->mhc[0] < 0 || s->mhc[0] >= self->ori->o.q.cap || s->mhc[1] < 0 || s->mhc[1] > self->ori->o.q.cap) {
             PyErr_SetString(PyExc_IndexError, "drain: head or count outside the magnetometer ring");
@@ -1526,8 +1531,10 @@ static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, P
             v[6 + i] = self->fref[i];
         r = imu_sample_whole(self, s->ts[0], t - s->ff[CT_FF_UPDATE_T], s->rs[0] != 0,
                              (s->ff[CT_FF_FLAGS] & ~(int64_t)CT_FUS_FRESH_FLAGS) != 0, s->fpc[0], v, phi,
-                             s->of[CT_OF_T], s->ns[0], s->mhc[0], s->mhc[1], s->opc[0], s->ik[0], s->mk[0]);
+                             s->of[CT_OF_T], s->ns[0], s->mhc[0], s->mhc[1], s->opc[0], s->ik[0], s->mk[0],
+                             why == CT_SR_ORTHO ? s->of[CT_OF_STEPS] : -1);
         ct_sample_done(s, t, r);
+        why = 0;
         ++n;
     }
     return PyLong_FromLongLong((long long)(4 * n + why));
@@ -1538,8 +1545,8 @@ static PyMethodDef ImuSample_methods[] = {
      "bind_state(of, learn, ns, opc, ik, mk, ff, ts, fpc, ps, sq, rs, mhc, fref, phi, gap_us, max_gap_us): the "
      "per-sample state drain reads and writes"},
     {"drain", (PyCFunction)(void (*)(void))ImuSample_drain, METH_FASTCALL,
-     "drain(max_steps) -> 4 n + why: the samples both filters take whole, n of them run; why 0 (empty or "
-     "max_steps), 1 (the next is the steps one by one), 2 (the next may orthonormalise: the caller's)"},
+     "drain(max_steps) -> 4 n + why: the samples both filters take whole (an orthonormalising one too), n of "
+     "them run; why 0 (empty or max_steps), 1 (the next is the steps one by one: the caller's)"},
     {"begin", (PyCFunction)(void (*)(void))ImuSample_begin, METH_FASTCALL,
      "begin(t_prev, head, count) -> bits or -1: sample's first half (up to the orientation's prediction)"},
     {"finish", (PyCFunction)(void (*)(void))ImuSample_finish, METH_FASTCALL,

@@ -471,7 +471,8 @@ class _OneCall:
         """:meth:`SensorInertial.process`'s loop; the samples processed. Without a source that may hold
         a sample (a fixed source) the samples both filters take whole run in the compiled loop
         (``ext.ImuSample.drain``: :meth:`one`'s tests and bookkeeping on the owners' state arrays, in
-        place), which hands back each other sample to :meth:`one`."""
+        place; a sample whose prediction orthonormalises the orientation with its
+        ``OrientationFilter._orthonormalize`` there too), which hands back each other sample to :meth:`one`."""
         if self._ring is not mag:
             self._bind(mag)
         if self._hold is not None:
@@ -484,8 +485,8 @@ class _OneCall:
                 n += r >> 2
                 if not r & 3:
                     break
-                self.one(mag, self._b[0]())            # (the oldest sample: the path one by one, or
-                n += 1                                 # one that may orthonormalise the orientation)
+                self.one(mag, self._b[0]())            # (the oldest sample: the path one by one)
+                n += 1
         self._count[0] += n
         return n
 

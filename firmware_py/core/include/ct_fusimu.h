@@ -149,6 +149,14 @@ int ct_ori_sample_end(const struct ct_ori_step *o, double ax, double ay, double 
 int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx, double wy,
                   double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount, int64_t icount,
                   int64_t mcount);
+/* orientation.OrientationFilter._orthonormalize (R row-major 3x3, in place), and ct_ori_sample with it after
+ * the prediction when that is the filter's step number a multiple of 64 (steps: the filter's steps before the
+ * sample; OrientationFilter.predict's `steps & 63 == 0`) */
+enum { CT_ORI_ORTHO_MASK = 63 };
+void ct_ori_orthonormalize(double *R);
+int ct_ori_sample_ortho(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx,
+                        double wy, double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount,
+                        int64_t icount, int64_t mcount, int64_t steps);
 void ct_flip_observe(double *fl, int64_t *fi, double gain, int64_t t_us, int state, double mx, double my,
                      double mz, double rx, double ry, double rz, int64_t max_dt_us);
 void ct_incl_observe(double *inc, const double *R, double gravity, double gain, double tau, double ax, double ay,
@@ -192,7 +200,7 @@ struct ct_sample_state {
 /* where the sample at t goes (_OneCall.run's tests): CT_SR_WHOLE through ct_ori_sample and the fusion
  * filter's live step in one call; CT_SR_SLOW not (_Ori.settled, FusionFilter.live_ready: the steps
  * one by one); CT_SR_ORTHO both filters take it but its prediction may orthonormalise the
- * orientation (OrientationFilter.sample_done's, Python): the caller runs it */
+ * orientation (OrientationFilter.sample_done's): ct_ori_sample_ortho in the same one call */
 enum { CT_SR_WHOLE = 0, CT_SR_SLOW = 1, CT_SR_ORTHO = 2 };
 int ct_sample_route(const struct ct_sample_state *s, int64_t t);
 /* the bookkeeping of a sample at t the one call ran (its CT_OS_* bits r): InertialPrediction.sampled,

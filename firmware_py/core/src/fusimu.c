@@ -614,6 +614,40 @@ int ct_ori_sample(const struct ct_ori_step *o, int64_t t, double ax, double ay, 
     return r | ct_ori_sample_end(o, ax, ay, az, n, m, pcount, icount, mcount);
 }
 
+/* orientation.OrientationFilter._orthonormalize: R <- R (3 I - R^T R) / 2, one Newton step of the polar
+ * factor.  T as the reference's loop computes it, (1.5 or 0.0) - 0.5 (R^T R)_ij; the product R T as the
+ * reference's np.matmul computes a 3x3 product here (its BLAS's dgemm kernel, OpenBLAS Haswell and later:
+ * each element an FMA chain over k = 0, 1, 2 from the first product, then added to the zeroed output,
+ * beta = 0), so R's bits are the reference's. */
+void ct_ori_orthonormalize(double *R)
+{
+    double T[9], O[9];
+    int i, j;
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j) {
+            double rtr = R[i] * R[j] + R[3 + i] * R[3 + j] + R[6 + i] * R[6 + j];
+            T[3 * i + j] = (i == j ? 1.5 : 0.0) - 0.5 * rtr;
+        }
+    for (i = 0; i < 3; ++i)
+        for (j = 0; j < 3; ++j)
+            O[3 * i + j] = 0.0 + fma(R[3 * i + 2], T[6 + j], fma(R[3 * i + 1], T[3 + j], R[3 * i] * T[j]));
+    memcpy(R, O, sizeof(O));
+}
+
+/* ct_ori_sample of a sample whose prediction may be the filter's 64th step (steps: OrientationFilter.steps
+ * before it): when it predicts and (steps + 1) & 63 is 0, R orthonormalised after the prediction, before
+ * the update round (OrientationFilter._predict_compiled's order; the decays between do not read R) */
+int ct_ori_sample_ortho(const struct ct_ori_step *o, int64_t t, double ax, double ay, double az, double wx,
+                        double wy, double wz, int64_t t_prev, int n, int64_t head, int64_t count, int64_t pcount,
+                        int64_t icount, int64_t mcount, int64_t steps)
+{
+    double m[CT_OM_N];
+    int r = ct_ori_sample_begin(o, t, wx, wy, wz, t_prev, head, count, m);
+    if ((r & CT_OS_PREDICTED) && ((steps + 1) & CT_ORI_ORTHO_MASK) == 0)
+        ct_ori_orthonormalize(o->pred.R);
+    return r | ct_ori_sample_end(o, ax, ay, az, n, m, pcount, icount, mcount);
+}
+
 /* ring.Ring.push: the next slot gets time t; a full ring overwrites its oldest entry */
 int64_t ct_ring_push(int64_t *hc, int64_t cap, int64_t *tv, int64_t t)
 {
@@ -674,7 +708,7 @@ int ct_sample_route(const struct ct_sample_state *s, int64_t t)
     if (!(ff[CT_FF_INIT] && t0 < t && t - t0 <= s->max_gap_us && !(s->sq[1] && t0 < s->sq[0] && s->sq[0] <= t) &&
           !ff[CT_FF_RECORDER]))
         return CT_SR_SLOW;
-    if (((of[CT_OF_STEPS] + 1) & 63) == 0)
+    if (((of[CT_OF_STEPS] + 1) & CT_ORI_ORTHO_MASK) == 0)
         return CT_SR_ORTHO;
     return CT_SR_WHOLE;
 }
