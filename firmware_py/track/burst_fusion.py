@@ -472,7 +472,9 @@ class _OneCall:
         a sample (a fixed source) the samples both filters take whole run in the compiled loop
         (``ext.ImuSample.drain``: :meth:`one`'s tests and bookkeeping on the owners' state arrays, in
         place; a sample whose prediction orthonormalises the orientation with its
-        ``OrientationFilter._orthonormalize`` there too), which hands back each other sample to :meth:`one`."""
+        ``OrientationFilter._orthonormalize`` there too), which hands back each other sample: one that
+        ``_Ori.settled`` or ``FusionFilter.live_ready`` refuse, or with no room in the output queue (where
+        :meth:`one` would call ``slow`` too), and ``slow`` runs it."""
         if self._ring is not mag:
             self._bind(mag)
         if self._hold is not None:
@@ -485,8 +487,8 @@ class _OneCall:
                 n += r >> 2
                 if not r & 3:
                     break
-                self.one(mag, self._b[0]())            # (the oldest sample: the path one by one)
-                n += 1
+                self.slow(mag)                         # (the oldest sample, which :meth:`one`'s tests
+                n += 1                                 # refuse too: the steps one by one)
         self._count[0] += n
         return n
 
