@@ -33,6 +33,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_fusion.h"
 
 #define FUS_MAXBUF 16
 
@@ -1212,14 +1213,21 @@ typedef struct {
     const double *fref, *phi;
     int stated;
     fus_views sviews;
+    /* bind_split's: the live state's Replay (its step split at a snapshot, the snapshot taken: py_fusion.h),
+     * or NULL (a sample with a snapshot inside its step is handed back); the snapshot's state's time */
+    PyObject *replay;
+    int64_t *snap_ts;
+    fus_views pviews;
 } ImuSampleObject;
 
 static void ImuSample_dealloc(ImuSampleObject *self)
 {
     Py_XDECREF(self->ori);
     Py_XDECREF(self->live);
+    Py_XDECREF(self->replay);
     fus_release(&self->views);
     fus_release(&self->sviews);
+    fus_release(&self->pviews);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -1463,7 +1471,7 @@ static PyObject *ImuSample_finish(ImuSampleObject *self, PyObject *const *args, 
  * Phi (3x3, float64), bound once for drain */
 static PyObject *ImuSample_bind_state(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    static const Py_ssize_t len[13] = {CT_OF_N, 1, 2, 1, 2, 2, CT_FF_N, 1, 1, 1, 2, 1, 2};
+    static const Py_ssize_t len[13] = {CT_OF_N, 1, 2, 1, 2, 2, CT_FF_N, 1, 1, 1, CT_SQ_N, 1, 2};
     static const char *what[13] = {"of", "learn", "ns", "opc", "ik", "mk", "ff", "ts", "fpc", "ps", "sq", "rs",
                                    "mhc"};
     int64_t *p[13];
@@ -1490,6 +1498,95 @@ static PyObject *ImuSample_bind_state(ImuSampleObject *self, PyObject *const *ar
                                         p[12], (int64_t)gap, (int64_t)max_gap};
     self->stated = 1;
     Py_RETURN_NONE;
+}
+
+/* bind_split(replay, snap_ts): the live state's ext.Replay with its snapshot bound (FusionFilter.live_split_kernel)
+ * and the snapshot's InsState.ts, for drain's samples with a snapshot inside their step */
+static PyObject *ImuSample_bind_split(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t *ts;
+    if (!self->stated) {
+        PyErr_SetString(PyExc_RuntimeError, "ImuSample: bind_split before bind_state");
+        return NULL;
+    }
+    if (fus_nargs("bind_split", nargs, 2) < 0 || fus_fresh(&self->pviews, "ImuSample.bind_split") < 0)
+        return NULL;
+    if (!ct_py_replay_takes(args[0])) {
+        PyErr_SetString(PyExc_TypeError, "bind_split: replay must be an ext.Replay bound to its rings with a snapshot");
+        return NULL;
+    }
+    if (!(ts = fus_bind(&self->pviews, args[1], 1, 'q', 1, "snap_ts")))
+        return NULL;
+    Py_INCREF(args[0]);
+    self->replay = args[0];
+    self->snap_ts = ts;
+    Py_RETURN_NONE;
+}
+
+/* the sample at t with a snapshot inside its step (CT_SR_SNAP), as SensorInertial._sample_python runs it on the
+ * compiled core: _Ori.step (ct_ori_sample, or ct_ori_sample_ortho where its prediction is the 64th) with its
+ * bookkeeping; FusionFilter.push_imu's InertialPrediction.push (the IMU ring's row), FusionFilter._advance's
+ * split_take (OrientationFilter.propagate, then Replay.replay_take through py_fusion.h, InsState.set_time,
+ * CovariancePredict.set_count, InertialPrediction.add_steps, Snapshot.taken) and _output (PoseOutput.queue);
+ * w_last.  0, or -1 with an exception set */
+static int imu_sample_snap(ImuSampleObject *self, const double *phi)
+{
+    const struct ct_sample_state *s = &self->ss;
+    FusLiveObject *lv = self->live;
+    FusPredObject *pr = lv->pred;
+    FusOutputObject *out = lv->out;
+    const double *d, *b;
+    double *row;
+    int64_t k, t, kf, h, o, io[4], steps = s->of[CT_OF_STEPS], pending = s->sq[CT_SQ_PENDING];
+    int r, i, xi;
+    k = ct_ring_pop(self->in_hc, self->in_cap);
+    t = self->in_t[k];
+    d = self->in_d + 6 * k;
+    if (((steps + 1) & CT_ORI_ORTHO_MASK) == 0)             /* _Ori.step (step_python's kernels) */
+        r = ct_ori_sample_ortho(&self->ori->o, t, d[0], d[1], d[2], d[3], d[4], d[5], s->of[CT_OF_T], (int)s->ns[0],
+                                s->mhc[0], s->mhc[1], s->opc[0], s->ik[0], s->mk[0], steps);
+    else
+        r = ct_ori_sample(&self->ori->o, t, d[0], d[1], d[2], d[3], d[4], d[5], s->of[CT_OF_T], (int)s->ns[0],
+                          s->mhc[0], s->mhc[1], s->opc[0], s->ik[0], s->mk[0]);
+    ct_sample_done_ori(s, t, r);
+    kf = ct_ring_push(self->pi_hc, self->pi_cap, self->pi_t, t);     /* InertialPrediction.push */
+    row = lv->row->idv + (long)kf * CT_IMU_WIDTH;
+    for (i = 0; i < 6; ++i)
+        row[CT_IMU_F + i] = d[i];
+    for (i = 0; i < 3; ++i)
+        row[CT_IMU_FSRC + i] = self->fref[i];
+    if (pr->moving)
+        for (i = 0; i < 9; ++i)
+            row[CT_IMU_PHI + i] = phi[i];
+    xi = s->of[CT_OF_INIT] != 0;                            /* CompiledReplay.split_take */
+    if (xi)
+        s->opc[0] += ct_ori_propagate_now(&self->ori->o, s->opc[0]);
+    if (ct_py_replay_split_take(self->replay, s->ts[0], pending, s->sq[CT_SQ_T], s->fpc[0], xi, io) < 0)
+        return -1;
+    s->ts[0] = io[0];
+    s->fpc[0] = io[1];
+    s->ps[0] += io[2];
+    if (pending && !io[3]) {                                /* Snapshot.taken */
+        self->snap_ts[0] = s->sq[CT_SQ_T];
+        s->sq[CT_SQ_XI] = xi;
+        s->sq[CT_SQ_PENDING] = 0;
+        s->sq[CT_SQ_VALID] = 1;
+        s->sq[CT_SQ_INIT] = 1;
+    }
+    b = self->ori->o.pred.bias;                             /* SensorInertial.w_last */
+    self->wl[0] = d[3] - b[0];
+    self->wl[1] = d[4] - b[1];
+    self->wl[2] = d[5] - b[2];
+    o = ct_ring_push(self->ou_hc, self->ou_cap, self->ou_t, t);      /* FusionFilter._output */
+    h = self->hi_hc[0] - 1;
+    if (h < 0)
+        h += self->hi_cap;
+    ct_fus_output(out->od + (long)o * CT_OUT_WIDTH, lv->hd + (long)h * CT_HIST_WIDTH, out->P, out->n, out->Th, row,
+                  out->moving,
+                  (double)ct_fus_status(t - s->ff[CT_FF_UPDATE_T], (int64_t)out->stale_us, (int64_t)out->dr_after_us,
+                                        (int64_t)out->dr_limit_us, s->rs[0] != 0,
+                                        (s->ff[CT_FF_FLAGS] & ~(int64_t)CT_FUS_FRESH_FLAGS) != 0));
+    return 0;
 }
 
 /* drain(max_steps) -> 4 n + why: track.burst_fusion._OneCall.run's loop over the samples both filters take
@@ -1521,11 +1618,20 @@ static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, P
         why = ct_sample_route(s, t);
         if (why != CT_SR_SLOW && self->ou_hc[1] == self->ou_cap)
             why = CT_SR_SLOW;
+        if (why == CT_SR_SNAP && (self->replay == NULL || self->pi_hc[1] < 1))
+            why = CT_SR_SLOW;           /* (FusionFilter._advance's split kernel wants the sample before it) */
         if (why == CT_SR_SLOW)
             break;
         if (s->mhc[0] < 0 || s->mhc[0] >= self->ori->o.q.cap || s->mhc[1] < 0 || s->mhc[1] > self->ori->o.q.cap) {
             PyErr_SetString(PyExc_IndexError, "drain: head or count outside the magnetometer ring");
             return NULL;
+        }
+        if (why == CT_SR_SNAP) {
+            if (imu_sample_snap(self, phi) < 0)
+                return NULL;
+            why = 0;
+            ++n;
+            continue;
         }
         for (i = 0; i < 3; ++i)
             v[6 + i] = self->fref[i];
@@ -1544,6 +1650,9 @@ static PyMethodDef ImuSample_methods[] = {
     {"bind_state", (PyCFunction)(void (*)(void))ImuSample_bind_state, METH_FASTCALL,
      "bind_state(of, learn, ns, opc, ik, mk, ff, ts, fpc, ps, sq, rs, mhc, fref, phi, gap_us, max_gap_us): the "
      "per-sample state drain reads and writes"},
+    {"bind_split", (PyCFunction)(void (*)(void))ImuSample_bind_split, METH_FASTCALL,
+     "bind_split(replay, snap_ts): the live state's ext.Replay with its snapshot, and the snapshot state's time, "
+     "for drain's samples with a snapshot inside their step"},
     {"drain", (PyCFunction)(void (*)(void))ImuSample_drain, METH_FASTCALL,
      "drain(max_steps) -> 4 n + why: the samples both filters take whole (an orthonormalising one too), n of "
      "them run; why 0 (empty or max_steps), 1 (the next is the steps one by one: the caller's)"},

@@ -12,6 +12,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_fusion.h"
 
 int ct_register_fusion(PyObject *m);
 
@@ -645,13 +646,34 @@ static PyObject *Replay_bind_snapshot(ReplayObject *self, PyObject *const *args,
     Py_RETURN_NONE;
 }
 
+/* replay_take's work once its arguments are read: the kernel's stop, or -1 with an exception set */
+static int replay_take_once(ReplayObject *self, int budget, int xi)
+{
+    int rc;
+    int64_t steps;
+    rc = replay_once(self, budget);
+    if (rc == CT_REPLAY_SNAPSHOT) {
+        const struct ct_ins *s = &self->r.ins;
+        const struct ct_fusstate src = {s->n, s->p, s->v, s->Th, s->ba, s->bg, s->P};
+        const SnapAuxObject *a = (const SnapAuxObject *)self->snap_aux;
+        const int64_t k = self->io[CT_RIO_SPLIT];
+        ct_fusion_copy(&((FusStateObject *)self->snap_state)->s, &src);
+        ct_fusion_snap_aux(a->fixed, a->imu_d + (Py_ssize_t)k * CT_IMU_WIDTH, xi, a->R, a->P, a->np, a->t0, a->bias,
+                           a->Phi, a->Xi, a->XiP, a->XiB);
+        self->io[CT_RIO_SNAP_PENDING] = 0;          /* taken: Snapshot.pending */
+        steps = self->io[CT_RIO_STEPS];
+        rc = replay_once(self, budget);
+        self->io[CT_RIO_STEPS] += steps;
+    }
+    return rc;
+}
+
 /* replay_take(budget, xi): FusionFilter._advance's snapshot in the replay (Snapshot.take: InsState.copy_from,
  * take_aux) between the two calls CompiledReplay.run makes around it; io's steps are the sum of both */
 static PyObject *Replay_replay_take(ReplayObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     long budget;
     int xi, rc;
-    int64_t steps;
     if (fu_check_bound(&self->b, "Replay") < 0 || ct_py_nargs("replay_take", nargs, 2) < 0)
         return NULL;
     if (self->snap_state == NULL) {
@@ -664,23 +686,37 @@ static PyObject *Replay_replay_take(ReplayObject *self, PyObject *const *args, P
     xi = PyObject_IsTrue(args[1]);
     if (xi < 0)
         return NULL;
-    rc = replay_once(self, (int)budget);
-    if (rc == CT_REPLAY_SNAPSHOT) {
-        const struct ct_ins *s = &self->r.ins;
-        const struct ct_fusstate src = {s->n, s->p, s->v, s->Th, s->ba, s->bg, s->P};
-        const SnapAuxObject *a = (const SnapAuxObject *)self->snap_aux;
-        const int64_t k = self->io[CT_RIO_SPLIT];
-        ct_fusion_copy(&((FusStateObject *)self->snap_state)->s, &src);
-        ct_fusion_snap_aux(a->fixed, a->imu_d + (Py_ssize_t)k * CT_IMU_WIDTH, xi, a->R, a->P, a->np, a->t0, a->bias,
-                           a->Phi, a->Xi, a->XiP, a->XiB);
-        self->io[CT_RIO_SNAP_PENDING] = 0;          /* taken: Snapshot.pending */
-        steps = self->io[CT_RIO_STEPS];
-        rc = replay_once(self, (int)budget);
-        self->io[CT_RIO_STEPS] += steps;
-    }
+    rc = replay_take_once(self, (int)budget, xi);
     if (rc < 0)
         return NULL;
     return PyLong_FromLong(rc);
+}
+
+int ct_py_replay_takes(PyObject *o)
+{
+    ReplayObject *self = (ReplayObject *)o;
+    return PyObject_TypeCheck(o, &ReplayType) && self->b.nviews > 0 && self->snap_state != NULL &&
+           self->imu_hc != NULL;
+}
+
+int ct_py_replay_split_take(PyObject *o, int64_t t0, int64_t pending, int64_t snap_t, int64_t pcount, int xi,
+                            int64_t *io_out)
+{
+    ReplayObject *self = (ReplayObject *)o;
+    int64_t *io = self->io;
+    int rc;
+    io[CT_RIO_UNITS] = 0;                       /* CompiledReplay.split_take's io */
+    io[CT_RIO_SPLIT] = -1;
+    io[CT_RIO_T] = t0;
+    io[CT_RIO_SNAP_PENDING] = pending;
+    io[CT_RIO_SNAP_T] = snap_t;
+    io[CT_RIO_PRED_COUNT] = pcount;
+    rc = replay_take_once(self, 1, xi);
+    io_out[0] = io[CT_RIO_T];
+    io_out[1] = io[CT_RIO_PRED_COUNT];
+    io_out[2] = io[CT_RIO_STEPS];
+    io_out[3] = io[CT_RIO_SNAP_PENDING];
+    return rc;
 }
 
 /* ---------------------------------------------------------------- PoseAt */

@@ -85,6 +85,8 @@ class CompiledReplay:
         self.units = io[U]
         return rc
 
+    kernel = property(lambda self: self._ck)      # the bound ext.Replay
+
     def bind_snapshot(self) -> bool:
         """Let :meth:`split_take` take the snapshot inside the kernel's call (``ext.Replay.replay_take``,
         bound to the snapshot's state and its compiled ``take_aux``); False where the snapshot has no

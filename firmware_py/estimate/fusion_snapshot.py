@@ -16,6 +16,17 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import InsState
 
 
+#: ``Snapshot.sq`` (int64): the time, pending, valid, initialized, xi
+SQ_T, SQ_PENDING, SQ_VALID, SQ_INIT, SQ_XI, SQ_N = range(6)
+
+
+def _sq_flag(i: int):
+    """A bool property over entry ``i`` of ``self._sqv`` (0/1)."""
+    def fset(self, v) -> None:
+        self._sqv[i] = 1 if v else 0
+    return property(lambda self: self._sqv[i] != 0, fset)
+
+
 class Snapshot:
     """The state, ``Phi`` and ``Xi`` at ``t`` (``pending``: scheduled, not taken yet; ``valid``:
     taken and not used; ``initialized``: the inertial state was running when taken; ``xi``:
@@ -30,17 +41,18 @@ class Snapshot:
     """
 
     def _set_t(self, v: int) -> None:
-        self._sqv[0] = v
+        self._sqv[SQ_T] = v
 
-    def _set_pending(self, v: bool) -> None:
-        self._sqv[1] = 1 if v else 0
-
-    # the time and pending (0/1) in an int64 array (``sq``) the compiled one-call IMU sample reads
-    t = property(lambda self: self._sqv[0], _set_t)
-    pending = property(lambda self: self._sqv[1] != 0, _set_pending)
+    # the time, pending, valid, initialized and xi (0/1 each) in an int64 array (``sq``) the compiled
+    # one-call IMU sample reads, and writes when it takes the snapshot (``core/include/ct_fusimu.h`` ``CT_SQ_*``)
+    t = property(lambda self: self._sqv[SQ_T], _set_t)
+    pending = _sq_flag(SQ_PENDING)
+    valid = _sq_flag(SQ_VALID)
+    initialized = _sq_flag(SQ_INIT)
+    xi = _sq_flag(SQ_XI)
 
     def __init__(self, n: int, frame, xi_filter, core=_DEFAULT_CORE):
-        self.sq = np.zeros(2, dtype=np.int64)
+        self.sq = np.zeros(SQ_N, dtype=np.int64)
         self._sqv = memoryview(self.sq)
         self.st = InsState(n, None, core=core)
         self.frame = frame

@@ -146,9 +146,9 @@ RECOVER_STREAM = 3          # the IMU stream broke off (``max_gap_us``)
 MAX_STEPS_PER_SAMPLE = 2
 
 #: ``FusionFilter.fs`` (int64): initialised (0/1), the last update's time (us) and flags, a recorder
-#: attached (0/1): the per-sample state the compiled one-call IMU sample reads in place
-#: (``core/include/ct_fusimu.h`` ``CT_FS_*``)
-FS_INIT, FS_UPDATE_T, FS_FLAGS, FS_RECORDER, FS_N = range(5)
+#: attached (0/1), a replay running on the shadow (0/1): the per-sample state the compiled one-call
+#: IMU sample reads in place (``core/include/ct_fusimu.h`` ``CT_FF_*``)
+FS_INIT, FS_UPDATE_T, FS_FLAGS, FS_RECORDER, FS_REPLAYING, FS_N = range(6)
 
 
 def _fs_int(i: int, as_bool: bool = False):
@@ -266,6 +266,7 @@ class FilterView:
     initialized = _fs_int(FS_INIT, True)
     last_update_t = _fs_int(FS_UPDATE_T)      # the last accepted update's time (us)
     last_flags = _fs_int(FS_FLAGS)            # the last update's FUS_* flags
+    replaying = _fs_int(FS_REPLAYING, True)   # a replay runs on the shadow (the live state takes no snapshot)
 
     # ------------------------------------------------------------ queries
     def pose_at(self, t_us: int, out_p, out_R) -> bool:
@@ -346,7 +347,7 @@ class FusionFilter(FilterView):
         self._live_take = self._live_ck is not None and self._live_ck.bind_snapshot()
         self.prepared = 0                # magnetic updates prepared (snapshot restored, measurement evaluated)
         self.initialized = False
-        self.replaying = False          # a replay runs on the shadow
+        self.replaying = False          # a replay runs on the shadow (``fs``)
         self._pending = None            # a prepared magnetic update: (t_ref, q, R_ms, C, final)
         self.last_step_units = 0        # strapdown steps of the last ``step`` call
         self.rejects_in_row = self.accepted_in_row = self.last_update_t = self.last_flags = 0
@@ -399,6 +400,12 @@ class FusionFilter(FilterView):
         fs = self._fsv
         return fs[FS_INIT] != 0 and t0 < t_us and t_us - t0 <= self.prm.max_gap_us \
             and not self.snap.due(t0, t_us) and fs[FS_RECORDER] == 0
+
+    def live_split_kernel(self):
+        """The compiled live step split at a pending snapshot that takes the snapshot in the same call
+        (``ext.Replay`` bound to the live state, :meth:`_advance`'s ``split_take``), or None (the Python
+        core, a recorder attached, or no compiled snapshot of the ch. 2 filter)."""
+        return self._live_ck.kernel if self._live_take and self._live_ck is not None else None
 
     def live_sample(self, step, t_us: int, rx, ry, rz, Phi, *ori) -> int:
         """The oldest sample of the sensor's IMU ring (at ``t_us``, :meth:`live_ready`), with the source's

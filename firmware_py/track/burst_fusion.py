@@ -545,6 +545,9 @@ class _OneCall:
         ks.bind_state(f.state, f.compass.learn_state, self.ori.ns, f.pred.cst, f.incl.upd.kst, f.compass.upd.kst,
                       fus.fs, fus.st.ts, fus.st.pred.cst, fus.prediction.ps, fus.snap.sq, fus.recovery.rs, mag.hc,
                       self.source.fref, self.source.phi, self.ori.gap_us, fus.prm.max_gap_us)
+        split = fus.live_split_kernel()
+        if split is not None:          # (a sample with a snapshot inside its step, in the loop too)
+            ks.bind_split(split, fus.snap.st.ts)
         self._drain = ks.drain
         self._ring = mag
         return ks

@@ -178,7 +178,9 @@ void ct_imu_ring_push(int64_t *hc, int64_t cap, int64_t *tv, double *d, int64_t 
  * written by the one-call IMU sample in place (track.burst_fusion._OneCall.run):
  * OrientationFilter.state (CT_OF_*), FusionFilter.fs (CT_FF_*) and the counts beside them. */
 enum { CT_OF_INIT = 0, CT_OF_T = 1, CT_OF_STEPS = 2, CT_OF_ACCF = 3, CT_OF_MAGF = 4, CT_OF_N = 5 };
-enum { CT_FF_INIT = 0, CT_FF_UPDATE_T = 1, CT_FF_FLAGS = 2, CT_FF_RECORDER = 3, CT_FF_N = 4 };
+enum { CT_FF_INIT = 0, CT_FF_UPDATE_T = 1, CT_FF_FLAGS = 2, CT_FF_RECORDER = 3, CT_FF_REPLAYING = 4, CT_FF_N = 5 };
+/* fusion_snapshot.Snapshot.sq: its time, pending, valid, initialized, xi */
+enum { CT_SQ_T = 0, CT_SQ_PENDING = 1, CT_SQ_VALID = 2, CT_SQ_INIT = 3, CT_SQ_XI = 4, CT_SQ_N = 5 };
 /* orientation.ORI_FREEFALL; magnetic_inertial.FUS_INITIALISED | FUS_GAP_REINIT */
 enum { CT_ORI_FREEFALL = 128, CT_FUS_FRESH_FLAGS = 512 | 16384 };
 struct ct_sample_state {
@@ -191,7 +193,7 @@ struct ct_sample_state {
     int64_t *ts;                        /* 1: the live InsState's time */
     int64_t *fpc;                       /* 1: its CovariancePredict count */
     int64_t *ps;                        /* 1: InertialPrediction's steps */
-    const int64_t *sq;                  /* 2: the Snapshot's time and pending (0/1) */
+    int64_t *sq;                        /* CT_SQ_N: the Snapshot's time and flags */
     const int64_t *rs;                  /* 1: Recovery's recovering (0/1) */
     const int64_t *mhc;                 /* 2: the magnetometer ring's head and count */
     int64_t gap_us;                     /* _Ori.gap_us */
@@ -201,10 +203,17 @@ struct ct_sample_state {
  * filter's live step in one call; CT_SR_SLOW not (_Ori.settled, FusionFilter.live_ready: the steps
  * one by one); CT_SR_ORTHO both filters take it but its prediction may orthonormalise the
  * orientation (OrientationFilter.sample_done's): ct_ori_sample_ortho in the same one call */
-enum { CT_SR_WHOLE = 0, CT_SR_SLOW = 1, CT_SR_ORTHO = 2 };
+/* CT_SR_SNAP: both filters take it but a pending snapshot falls inside its step (FusionFilter._advance's
+ * split step, the snapshot taken in it when no replay runs): the caller tests that it can take it so */
+enum { CT_SR_WHOLE = 0, CT_SR_SLOW = 1, CT_SR_ORTHO = 2, CT_SR_SNAP = 3 };
 int ct_sample_route(const struct ct_sample_state *s, int64_t t);
 /* the bookkeeping of a sample at t the one call ran (its CT_OS_* bits r): InertialPrediction.sampled,
  * then _Ori.sampled with OrientationFilter.sample_done (KalmanUpdate.counted for the updates run) */
 void ct_sample_done(const struct ct_sample_state *s, int64_t t, int r);
+/* ct_sample_done's second half alone (_Ori.sampled with OrientationFilter.sample_done) */
+void ct_sample_done_ori(const struct ct_sample_state *s, int64_t t, int r);
+/* OrientationFilter.propagate on the compiled core (the covariance over the steps since the last call,
+ * CovariancePredict.after_predict's symmetrisation after its count-th prediction, _restart_sums): 1 when it ran */
+int ct_ori_propagate_now(const struct ct_ori_step *o, int64_t count);
 
 #endif /* CT_FUSIMU_H */

@@ -530,6 +530,11 @@ static int ori_propagate(const struct ct_ori_step *o, int64_t count)
     return 1;
 }
 
+int ct_ori_propagate_now(const struct ct_ori_step *o, int64_t count)
+{
+    return ori_propagate(o, count);
+}
+
 /* KalmanUpdate.update (compiled) with its symmetrisation after the count-th accepted update */
 static int ori_kalman(const struct ct_ori_step *o, const struct ct_kalman *u, double gate, double *nis,
                       int64_t count)
@@ -695,9 +700,9 @@ void ct_imu_ring_push(int64_t *hc, int64_t cap, int64_t *tv, double *d, int64_t 
     st[CT_IR_RECEIVED] += 1;
 }
 
-/* track.burst_fusion._Ori.settled and magnetic_inertial.FusionFilter.live_ready at t, then the
- * orthonormalisation's test of _OneCall.run ((steps + 1) & 63: any sample whose prediction may be
- * the 64th goes to the caller, which decides as the reference does) */
+/* track.burst_fusion._Ori.settled and magnetic_inertial.FusionFilter.live_ready at t (a pending
+ * snapshot inside the step: CT_SR_SNAP where no replay runs, FusionFilter._advance's split_take), then
+ * the orthonormalisation's test ((steps + 1) & 63: a sample whose prediction may be the 64th) */
 int ct_sample_route(const struct ct_sample_state *s, int64_t t)
 {
     const int64_t *of = s->of, *ff = s->ff;
@@ -705,9 +710,10 @@ int ct_sample_route(const struct ct_sample_state *s, int64_t t)
     if (!(of[CT_OF_INIT] && t - of[CT_OF_T] <= s->gap_us && !s->learn[0]))
         return CT_SR_SLOW;
     t0 = s->ts[0];
-    if (!(ff[CT_FF_INIT] && t0 < t && t - t0 <= s->max_gap_us && !(s->sq[1] && t0 < s->sq[0] && s->sq[0] <= t) &&
-          !ff[CT_FF_RECORDER]))
+    if (!(ff[CT_FF_INIT] && t0 < t && t - t0 <= s->max_gap_us && !ff[CT_FF_RECORDER]))
         return CT_SR_SLOW;
+    if (s->sq[CT_SQ_PENDING] && t0 < s->sq[CT_SQ_T] && s->sq[CT_SQ_T] <= t)   /* Snapshot.due */
+        return ff[CT_FF_REPLAYING] ? CT_SR_SLOW : CT_SR_SNAP;
     if (((of[CT_OF_STEPS] + 1) & CT_ORI_ORTHO_MASK) == 0)
         return CT_SR_ORTHO;
     return CT_SR_WHOLE;
@@ -725,10 +731,15 @@ static int64_t ct_counted(int64_t *k, int64_t flags)
 
 void ct_sample_done(const struct ct_sample_state *s, int64_t t, int r)
 {
-    int64_t *of = s->of;
     s->fpc[0] += 1;                                     /* InertialPrediction.sampled */
     s->ps[0] += 1;
     s->ts[0] = t;
+    ct_sample_done_ori(s, t, r);
+}
+
+void ct_sample_done_ori(const struct ct_sample_state *s, int64_t t, int r)
+{
+    int64_t *of = s->of;
     of[CT_OF_T] = t;                                    /* OrientationFilter.sample_done */
     of[CT_OF_STEPS] += r & CT_OS_PREDICTED;
     if (r & CT_OS_ROUND) {

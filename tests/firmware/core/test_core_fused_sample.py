@@ -367,9 +367,10 @@ def test_pose_frame_refuses_what_the_reference_sends_differently():
 
 def test_drain_hands_back_what_the_reference_tests_refuse():
     """``ext.ImuSample.drain`` (``ct_sample_route``) runs a sample only where ``_Ori.settled`` and
-    ``FusionFilter.live_ready`` hold and the output queue has room: a recorder attached, a pending
-    snapshot inside the step, a gap longer than ``max_gap_us`` or a full queue each hand the sample
-    back (nothing run, the state unchanged); the sample then runs as the reference runs it."""
+    ``FusionFilter.live_ready`` hold (or only a pending snapshot falls inside the step, while no replay
+    runs) and the output queue has room: a recorder attached, a pending snapshot inside the step
+    during a replay, the fusion filter not initialised, the compass learning or a full queue each hand
+    the sample back (nothing run, the state unchanged); the sample then runs as the reference runs it."""
     cfg, sens = _sensors(0.0, False)
     ins, tx = sens["got"]
     mag = SampleRing(64)
@@ -408,7 +409,8 @@ def test_drain_hands_back_what_the_reference_tests_refuse():
 
     saved = fus.fs.copy()
     refused(lambda: fus.fs.__setitem__(3, 1), lambda: fus.fs.__setitem__(3, saved[3]))       # a recorder
-    refused(lambda: fus.snap.schedule(t - 10), lambda: fus.snap.__setattr__("pending", False))  # a snapshot in the step
+    refused(lambda: (fus.snap.schedule(t - 10), fus.fs.__setitem__(4, 1)),                    # a snapshot in the step
+            lambda: (fus.snap.__setattr__("pending", False), fus.fs.__setitem__(4, 0)))       # during a replay
     refused(lambda: fus.fs.__setitem__(0, 0), lambda: fus.fs.__setitem__(0, 1))               # not initialised
     refused(lambda: ins.ori.f.compass.__setattr__("learning", True),
             lambda: ins.ori.f.compass.__setattr__("learning", False))                         # the compass learning
@@ -416,3 +418,53 @@ def test_drain_hands_back_what_the_reference_tests_refuse():
     for _ in range(out.capacity - len(out)):
         out.push(0)
     refused(lambda: None, lambda: [out.pop() for _ in range(len(out))])                       # a full output queue
+
+
+@pytest.mark.parametrize("ortho", [False, True])
+def test_drain_takes_a_snapshot_inside_the_step_as_the_kernels_one_by_one(ortho):
+    """A sample whose step a pending snapshot splits runs in the compiled loop (``CT_SR_SNAP``:
+    ``_Ori.step``, ``InertialPrediction.push``, ``CompiledReplay.split_take`` with the ch. 2 filter's
+    propagation, ``Snapshot.taken``, ``PoseOutput.queue``), the same bits as the kernels one by one
+    (``sep``) and to 1e-9 as the Python reference, the snapshot taken at its instant with ``Phi`` and
+    ``Xi``; also when its prediction orthonormalises R (``ortho``)."""
+    cfg, sens = _sensors(0.0, False)
+    mag = SampleRing(64)
+    for ins, _ in sens.values():
+        _start_fusion(ins, 1_000_000)
+    got = sens["got"][0]
+    t = 1_000_000
+    taken = 0
+    for i in range(300):
+        t += 8333
+        mag.push(t - 2000, *(H + 1e-9 * i), False, 0)
+        w = np.array([0.1, 0.05 * math.sin(i / 9.0), -0.02])
+        msg = _imu_msg(t, G + 0.05 * np.array([math.cos(i / 7.0), 0.0, 0.0]), w)
+        for ins, _ in sens.values():
+            ins.imu.push(msg)
+        steps_next = (got.ori.f.steps + 1) & 63 == 0
+        if i > 60 and (steps_next if ortho else i % 23 == 0):
+            for ins, _ in sens.values():
+                ins.schedule(t - 3000)                 # the snapshot falls inside this sample's step
+        for ins, tx in sens.values():
+            pend = ins.fusion.snap.pending
+            ins.process(mag, t, 0, 8)
+            if ins is got and pend and not ins.fusion.snap.pending:
+                taken += 1
+            ins.send_fused(tx, 16, 1.0, 200)
+        if i == 60:
+            drained = _Drained(got._one)              # (the compass has learned: none handed back from here)
+        _compare_ori(sens["sep"][0], got, True, i)
+        _compare_fusion(sens["sep"][0], got, True, i)
+        _compare_ori(sens["ref"][0], got, False, i)
+        _compare_fusion(sens["ref"][0], got, False, i)
+        for name in ("p", "v", "Th", "ba", "bg", "P"):
+            x, y = getattr(sens["sep"][0].fusion.snap.st, name), getattr(got.fusion.snap.st, name)
+            np.testing.assert_array_equal(x, y) if _R_EXACT else np.testing.assert_allclose(x, y, rtol=1e-9)
+        sa, sg = sens["sep"][0].fusion.snap, got.fusion.snap
+        for name in ("Phi", "Xi", "XiP", "XiB"):
+            np.testing.assert_array_equal(getattr(sa, name), getattr(sg, name)) if _R_EXACT else \
+                np.testing.assert_allclose(getattr(sa, name), getattr(sg, name), rtol=1e-9, atol=1e-300)
+        assert (sa.t, sa.pending, sa.valid, sa.initialized, sa.xi, sa.st.t_us) == \
+            (sg.t, sg.pending, sg.valid, sg.initialized, sg.xi, sg.st.t_us), i
+    assert taken >= 3 and drained.back == 0 and drained.n == 300 - 61
+    assert got.fusion.snap.valid and got.fusion.snap.st.t_us == got.fusion.snap.t
