@@ -292,20 +292,19 @@ class FusionFilter(FilterView):
     ----------
     params : FusionParams
     xi_filter : orientation.OrientationFilter, optional
-        The sensor's ch. 2 filter (its ``R``, covariance and gyroscope
-        offset), needed by measurement models 2 and 3 and used to initialise.
+        The sensor's ch. 2 filter (its ``R``, covariance and gyroscope offset), needed by
+        measurement models 2 and 3 and used to initialise.
     imu_capacity, history_capacity, output_capacity : int
-        Ring sizes (IMU samples kept for replay, pose history for motion
-        compensation, poses waiting to be sent).
+        Ring sizes (IMU samples kept for replay, pose history for motion compensation, poses
+        waiting to be sent).
     fixed_source : bool
-        The source does not move (``Phi = I``): history and output skip the
-        frame change (``fusion_state.FixedSource``, chosen here once).
+        The source does not move (``Phi = I``): history and output skip the frame change
+        (``fusion_state.FixedSource``, chosen here once).
     core : coiltrack.firmware.core.Core
         The numeric core, chosen at composition.
 
-    The nominal state and covariance of the live state are ``p``, ``v``,
-    ``Th``, ``ba``, ``bg``, ``P`` (arrays, fixed for the filter's life),
-    ``t_us``; ``pred`` is its ``CovariancePredict``.
+    The nominal state and covariance of the live state are ``p``, ``v``, ``Th``, ``ba``, ``bg``,
+    ``P`` (arrays, fixed for the filter's life), ``t_us``; ``pred`` is its ``CovariancePredict``.
     """
 
     def __init__(self, params: FusionParams, xi_filter=None, imu_capacity: int = 128,
@@ -316,8 +315,7 @@ class FusionFilter(FilterView):
         self.prm = params
         self.meas = make_measurement_model(params, xi_filter)
         self.layout = self.meas.layout
-        n = self.layout.n
-        self.n = n
+        self.n = n = self.layout.n
         self.frame = FixedSource() if fixed_source else MovingSource()
         white, white_q = self.meas.white(params)
         self.st = InsState(n, white, white_q, core)        # live
@@ -402,9 +400,7 @@ class FusionFilter(FilterView):
             and not self.snap.due(t0, t_us) and fs[FS_RECORDER] == 0
 
     def live_split_kernel(self):
-        """The compiled live step split at a pending snapshot that takes the snapshot in the same call
-        (``ext.Replay`` bound to the live state, :meth:`_advance`'s ``split_take``), or None (the Python
-        core, a recorder attached, or no compiled snapshot of the ch. 2 filter)."""
+        """``_advance``'s split step taking the snapshot (``ext.Replay`` of the live state), or None."""
         return self._live_ck.kernel if self._live_take and self._live_ck is not None else None
 
     def live_sample(self, step, t_us: int, rx, ry, rz, Phi, *ori) -> int:
@@ -489,13 +485,11 @@ class FusionFilter(FilterView):
 
     def _output(self, t_us: int) -> None:
         """Queue the live state's fused pose (``PoseOutput.queue``)."""
-        self.output.queue(t_us, self.history.live, self.st, self.prediction._idv, self.imu.peek(0),
-                          self.last_update_t, self.recovery.recovering,
-                          bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)))
+        self.output.queue(t_us, self.history.live, self.st, self.prediction._idv, self.imu.peek(0), self.last_update_t,
+                          self.recovery.recovering, bool(self.last_flags & ~(FUS_INITIALISED | FUS_GAP_REINIT)))
 
     def pop_output(self) -> int:
-        """Slot of the oldest queued pose in ``out_t`` / ``out_d`` (rows
-        ``OUT_*``), or -1; call :meth:`release_output` when sent."""
+        """Slot of the oldest queued pose in ``out_t`` / ``out_d`` (rows ``OUT_*``), or -1; sent: :meth:`release_output`."""
         return self.output.pop()
 
     def release_output(self) -> None:
