@@ -35,12 +35,18 @@ class Snapshot:
     def _set_pending(self, v: bool) -> None:
         self._sqv[1] = 1 if v else 0
 
-    # the time and pending (0/1) in an int64 array (``sq``) the compiled one-call IMU sample reads
+    def _set_valid(self, v: bool) -> None:
+        self._sqv[2] = 1 if v else 0
+
+    # the time, pending and valid (0/1) in an int64 array (``sq``) the compiled one-call IMU sample
+    # reads (t, pending) and a burst's compiled opening writes (``core/src/burst_open.c``
+    # ``ct_schedule``: :meth:`schedule`'s writes)
     t = property(lambda self: self._sqv[0], _set_t)
     pending = property(lambda self: self._sqv[1] != 0, _set_pending)
+    valid = property(lambda self: self._sqv[2] != 0, _set_valid)
 
     def __init__(self, n: int, frame, xi_filter, core=_DEFAULT_CORE):
-        self.sq = np.zeros(2, dtype=np.int64)
+        self.sq = np.zeros(3, dtype=np.int64)
         self._sqv = memoryview(self.sq)
         self.st = InsState(n, None, core=core)
         self.frame = frame

@@ -208,6 +208,31 @@ class SensorChannel:
                 sig[i, j] = math.sqrt(v if v > floor else floor)
 
 
+class ChannelBursts:
+    """Every sensor channel's :meth:`SensorChannel.new_burst` as one step: the burst the actuation
+    opens serves them all (thesis ``002_cd7f1fdb7fc67471.txt`` sec 5.3). On the compiled core one
+    call (``core/src/burst_open.c`` ``ct_new_burst`` for each channel, ``ext.NewBursts`` bound here
+    to the channels' ``done``, ``flags`` and counters once): the burst's opening touches no Python
+    object of the sixteen channels of ``multi16``."""
+
+    def __init__(self, channels, core=_DEFAULT_CORE):
+        self.channels = tuple(channels)
+        self._k = None
+        ok = all(type(ch).new_burst is SensorChannel.new_burst and ch.done.dtype == np.bool_ for ch in self.channels)
+        if core.ext is not None and self.channels and ok:
+            n = self.channels[0].done.shape[0]
+            self._k = core.ext.NewBursts(n, tuple(ch.done for ch in self.channels),
+                                         tuple(ch.flags for ch in self.channels), tuple(ch.cnt for ch in self.channels))
+            self.new_burst = self._k.run
+
+    kernel = property(lambda self: self._k)    # ext.NewBursts, or None: the Python loop
+
+    def new_burst(self) -> None:
+        """Each channel's :meth:`SensorChannel.new_burst`, in the channels' order."""
+        for ch in self.channels:
+            ch.new_burst()
+
+
 class WindowCloser:
     """Closes a pulse's window on every channel and reports it."""
 
