@@ -21,7 +21,7 @@ import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
-from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
+from coiltrack.firmware.measure.pulse import _T_FAR, PulseExtractor, SampleRing
 
 
 def window_samples(cfg) -> int:
@@ -244,6 +244,23 @@ class WindowCloser:
         self.tx = tx
         self.flagged = 0
         self.closed = 0                    # windows closed (extracted)
+        self._bind_run()
+
+    def _bind_run(self) -> None:
+        """Where every channel closes its windows on the compiled core (``SensorChannel``'s
+        ``_close_window_compiled``, bound to its extractor's ``ext.WindowColumn``), :meth:`close_run`
+        closes a run of channels' windows in one call (``ext.WindowRun``, ``core/src/multi.c``
+        ``ct_window_run``: the same kernel per window, in the same order), bound here once."""
+        chs = self.channels
+        if not chs or not all(type(ch) is SensorChannel and getattr(ch.close_window, "__func__", None)
+                              is SensorChannel._close_window_compiled for ch in chs):
+            return
+        ext = chs[0].extractor._ext
+        self._run_flags = np.zeros(len(chs), dtype=np.int64)
+        self._rfv = memoryview(self._run_flags)
+        self._runk = ext.WindowRun(tuple(ch.extractor.column_kernel for ch in chs), tuple(ch.ring.hc for ch in chs),
+                                   tuple(ch.cnt for ch in chs), self._run_flags)
+        self.close_run = self._close_run_compiled
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
         """Every channel has the samples after the window, or it timed out."""
@@ -278,3 +295,30 @@ class WindowCloser:
         self.tx.pulse_window(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255,
                              n_base if n_base < 255 else 255, flags & 0xFF)
         return flags
+
+    def close_run(self, coil: int, pulse_id: int, start: int, end: int, c0: int, c1: int) -> None:
+        """:meth:`close_one` on channels ``c0 .. c1 - 1``, in their order (``measure.burst``: a
+        pulse's windows within the tick's budget). On the compiled core the windows are closed in
+        one call (:meth:`_bind_run`) and their PULSE_WINDOWs sent after it, in the same order."""
+        chs = self.channels
+        for i in range(c0, c1):
+            self.close_one(chs[i], coil, pulse_id, start, end)
+
+    def _close_run_compiled(self, coil: int, pulse_id: int, start: int, end: int, c0: int, c1: int) -> None:
+        """:meth:`close_run` in one call of ``ct_window_run``: every window extracted into its channel's
+        column and counted there as :meth:`SensorChannel.close_window` does, then each one's
+        PULSE_WINDOW as :meth:`close_one` sends it. A time the compiled extraction does not take
+        (not an int64 well inside its range) goes to the reference."""
+        if type(start) is not int or type(end) is not int or not (-_T_FAR < start < _T_FAR and -_T_FAR < end < _T_FAR):
+            WindowCloser.close_run(self, coil, pulse_id, start, end, c0, c1)
+            return
+        self.flagged += self._runk.close(coil, start, end, c0, c1)
+        self.closed += c1 - c0
+        chs, fl, pw = self.channels, self._rfv, self.tx.pulse_window
+        for i in range(c0, c1):
+            ch = chs[i]
+            ch.extractor.column_closed()
+            iv = ch.infov
+            n_used, n_base = iv[0], iv[1]
+            pw(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255, n_base if n_base < 255 else 255,
+               fl[i] & 0xFF)
