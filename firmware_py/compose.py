@@ -140,7 +140,7 @@ def _bursts(kind: type) -> Callable[[Parts], Pipeline]:
         burst = BurstMeasurement(p.channels, p.schedule, p.closer, cfg.budget.windows_budget)
         t = kind(cfg, p.coils, p.channels, p.schedule, burst, p.supervisor, p.tx,
                  solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
-        return Pipeline(BurstActuation(cfg, p.schedule, p.channels, t).step, burst.step, t.step, t)
+        return Pipeline(BurstActuation(cfg, p.schedule, p.channels, t, p.core).step, burst.step, t.step, t)
 
     return build
 

@@ -7,17 +7,22 @@ still in use, and one that can no longer be commanded in time is skipped.
 from __future__ import annotations
 
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
+from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
+from coiltrack.firmware.measure.windows import ChannelBursts
 
 
 class BurstActuation:
     """The fixed cycle's bursts (an :class:`coiltrack.firmware.actuate.Actuation`); tells
-    ``tracker`` (a :class:`coiltrack.firmware.track.BurstTracker`) of each burst it opens."""
+    ``tracker`` (a :class:`coiltrack.firmware.track.BurstTracker`) of each burst it opens. The
+    channels' new burst is one step (:class:`ChannelBursts`: one compiled call on ``core``), and so
+    is the tracker's :meth:`on_burst` where it has one compiled (sixteen sensors: ``multi16``)."""
 
-    def __init__(self, cfg, schedule, channels, tracker):
+    def __init__(self, cfg, schedule, channels, tracker, core=_DEFAULT_CORE):
         n = len(cfg.source.coils)
         self.cycle = FixedCycle(n, cfg.timing.first_cycle_us, cfg.timing.cycle_us, cfg.timing.spacing_us, cfg.timing.pulse_us, cfg.timing.lead_us)
         self.schedule = schedule
         self.channels = tuple(channels)
+        self._bursts = ChannelBursts(self.channels, core)
         self.tracker = tracker
         self.nominal = tuple(float(c.current) for c in cfg.source.coils)
         self._waited = False
@@ -47,7 +52,6 @@ class BurstActuation:
                 return False
         t0 = cyc.cycle_start
         sched.open_burst(t0, t0 + (cyc.n - 1) * cyc.spacing_us + cyc.pulse_us)
-        for ch in self.channels:
-            ch.new_burst()
+        self._bursts.new_burst()
         self.tracker.on_burst(cyc.t_ref())
         return True

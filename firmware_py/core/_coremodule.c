@@ -939,6 +939,7 @@ int ct_register_rxdecode(PyObject *m);
 int ct_register_single_coil(PyObject *m);
 int ct_register_finish(PyObject *m);
 int ct_register_multi(PyObject *m);
+int ct_register_burst_open(PyObject *m);
 int ct_register_solve(PyObject *m);
 int ct_register_supervise(PyObject *m);
 int ct_register_report(PyObject *m);
@@ -948,6 +949,7 @@ static int (*const AREAS[])(PyObject *) = {
     ct_register_single_coil,
     ct_register_finish,
     ct_register_multi,
+    ct_register_burst_open,
     ct_register_solve,
     ct_register_supervise,
     ct_register_report,

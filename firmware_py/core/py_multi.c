@@ -2,7 +2,8 @@
  * CPython glue of the many-sensor kernels (src/multi.c): window_frame (one PULSE_WINDOW frame, as
  * Transmitter.pulse_window sends it), flip_frame (one MAG_FLIP_CMD, as Transmitter.mag_flip), sigma_from (SensorChannel.sigma_from) and the type
  * WindowColumn (SensorChannel.close_window, bound once at start-up to the channel's and its
- * extractor's buffers) and SamplePush (SensorChannel.push, bound to the channel's sample ring).  METH_FASTCALL; they read their arguments in place and create no Python
+ * extractor's buffers), WindowRun (WindowCloser.close_run: a pulse's windows on a run of channels, bound
+ * to their WindowColumn objects) and SamplePush (SensorChannel.push, bound to the channel's sample ring).  METH_FASTCALL; they read their arguments in place and create no Python
  * object but the frames' bytes and the flags returned.
  */
 #define PY_SSIZE_T_CLEAN
@@ -449,6 +450,149 @@ static PyMethodDef multi_functions[] = {
      "sigma_from(var, sig, floor): sig = sqrt(max(var, floor)) item by item (SensorChannel.sigma_from)"},
     {NULL, NULL, 0, NULL}};
 
+/* ------------------------------------------------------------- WindowRun */
+typedef struct {
+    PyObject_HEAD
+    PyObject *cols;                 /* the channels' WindowColumn objects (tuple, held) */
+    Py_ssize_t n;
+    const struct ct_window_column **c;
+    const struct ct_pulse **x;
+    struct ct_sample_ring **r;
+    const int64_t **hc;
+    int64_t **cnt;
+    int64_t *flags;
+    Py_buffer *views;               /* hc and counts per channel, then flags */
+    Py_ssize_t nv;
+} WindowRunObject;
+
+static void WindowRun_dealloc(WindowRunObject *self)
+{
+    Py_ssize_t k;
+    for (k = 0; k < self->nv; ++k)
+        PyBuffer_Release(&self->views[k]);
+    PyMem_Free(self->views);
+    PyMem_Free((void *)self->c);
+    PyMem_Free((void *)self->x);
+    PyMem_Free(self->r);
+    PyMem_Free((void *)self->hc);
+    PyMem_Free(self->cnt);
+    Py_XDECREF(self->cols);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int WindowRun_init(WindowRunObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"columns", "states", "counts", "flags", NULL};
+    PyObject *cols, *hcs, *cnts, *fl;
+    Py_ssize_t n, k;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOO", kwlist, &cols, &hcs, &cnts, &fl))
+        return -1;
+    if (self->cols != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "WindowRun: already bound");
+        return -1;
+    }
+    if (!PyTuple_Check(cols) || !PyTuple_Check(hcs) || !PyTuple_Check(cnts)) {
+        PyErr_SetString(PyExc_TypeError, "WindowRun: columns, states and counts must be tuples");
+        return -1;
+    }
+    n = PyTuple_GET_SIZE(cols);
+    if (n < 1 || PyTuple_GET_SIZE(hcs) != n || PyTuple_GET_SIZE(cnts) != n) {
+        PyErr_SetString(PyExc_ValueError, "WindowRun: one column, state and counts per channel (at least one)");
+        return -1;
+    }
+    for (k = 0; k < n; ++k)
+        if (!PyObject_TypeCheck(PyTuple_GET_ITEM(cols, k), &WindowColumnType) ||
+            !((WindowColumnObject *)PyTuple_GET_ITEM(cols, k))->bound) {
+            PyErr_SetString(PyExc_TypeError, "WindowRun: columns must be bound WindowColumn objects");
+            return -1;
+        }
+    self->c = PyMem_Calloc((size_t)n, sizeof(*self->c));
+    self->x = PyMem_Calloc((size_t)n, sizeof(*self->x));
+    self->r = PyMem_Calloc((size_t)n, sizeof(*self->r));
+    self->hc = PyMem_Calloc((size_t)n, sizeof(*self->hc));
+    self->cnt = PyMem_Calloc((size_t)n, sizeof(*self->cnt));
+    self->views = PyMem_Calloc((size_t)(2 * n + 1), sizeof(Py_buffer));
+    if (!self->c || !self->x || !self->r || !self->hc || !self->cnt || !self->views) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    for (k = 0; k < n; ++k) {
+        WindowColumnObject *w = (WindowColumnObject *)PyTuple_GET_ITEM(cols, k);
+        if (ct_py_buffer(PyTuple_GET_ITEM(hcs, k), 2, 8, "qlL", 0, &self->views[self->nv], "WindowRun states") < 0)
+            return -1;
+        self->hc[k] = (const int64_t *)self->views[self->nv++].buf;
+        if (ct_py_buffer(PyTuple_GET_ITEM(cnts, k), 2, 8, "ql", 1, &self->views[self->nv], "WindowRun counts") < 0)
+            return -1;
+        self->cnt[k] = (int64_t *)self->views[self->nv++].buf;
+        self->c[k] = &w->c;
+        self->x[k] = &w->x;
+        self->r[k] = &w->r;
+    }
+    if (ct_py_buffer(fl, n, 8, "ql", 1, &self->views[self->nv], "WindowRun flags") < 0)
+        return -1;
+    self->flags = (int64_t *)self->views[self->nv++].buf;
+    Py_INCREF(cols);
+    self->cols = cols;
+    self->n = n;
+    return 0;
+}
+
+/* close(coil, start_us, end_us, c0, c1) -> flagged: the window closed on channels c0..c1-1
+ * (ct_window_run), each one's flags into the bound flags array */
+static PyObject *WindowRun_close(WindowRunObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t v[5];
+    Py_ssize_t i;
+    int k;
+    if (self->cols == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "WindowRun: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("close", nargs, 5) < 0)
+        return NULL;
+    for (k = 0; k < 5; ++k)
+        if (ct_py_int64(args[k], &v[k]) < 0)
+            return NULL;
+    if (v[3] < 0 || v[4] > self->n || v[3] > v[4]) {
+        PyErr_SetString(PyExc_ValueError, "close: channels outside the bound ones");
+        return NULL;
+    }
+    for (i = (Py_ssize_t)v[3]; i < (Py_ssize_t)v[4]; ++i) {
+        if (v[0] < 0 || v[0] >= self->c[i]->n) {
+            PyErr_SetString(PyExc_ValueError, "close: coil outside the burst");
+            return NULL;
+        }
+        if (self->hc[i][0] < 0 || self->hc[i][0] >= self->r[i]->cap || self->hc[i][1] < 0 ||
+            self->hc[i][1] > self->r[i]->cap) {
+            PyErr_SetString(PyExc_ValueError, "close: head or count outside the ring");
+            return NULL;
+        }
+    }
+    return PyLong_FromLongLong(ct_window_run(self->c, self->x, self->r, self->hc, self->cnt, self->flags, v[3], v[4],
+                                             v[1], v[2], v[0]));
+}
+
+static PyMethodDef WindowRun_methods[] = {
+    {"close", (PyCFunction)(void (*)(void))WindowRun_close, METH_FASTCALL,
+     "close(coil, start_us, end_us, c0, c1) -> flagged: WindowCloser.close_run's windows on channels c0..c1-1, each "
+     "as WindowColumn.close at its ring's present head and count, its channel's changes counted, its flags into "
+     "the bound flags array; the number flagged"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject WindowRunType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.WindowRun",
+    .tp_basicsize = sizeof(WindowRunObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "WindowRun(columns, states, counts, flags): the sensor channels' WindowColumn objects, their rings' "
+              "state arrays (SampleRing.hc), their counters (SensorChannel.cnt) and one int64 flags item per "
+              "channel, bound once: a pulse's windows closed on a run of channels in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)WindowRun_init,
+    .tp_dealloc = (destructor)WindowRun_dealloc,
+    .tp_methods = WindowRun_methods,
+};
+
 int ct_register_multi(PyObject *m)
 {
     if (PyModule_AddFunctions(m, multi_functions) < 0 || PyType_Ready(&WindowColumnType) < 0)
@@ -463,6 +607,13 @@ int ct_register_multi(PyObject *m)
     Py_INCREF(&SamplePushType);
     if (PyModule_AddObject(m, "SamplePush", (PyObject *)&SamplePushType) < 0) {
         Py_DECREF(&SamplePushType);
+        return -1;
+    }
+    if (PyType_Ready(&WindowRunType) < 0)
+        return -1;
+    Py_INCREF(&WindowRunType);
+    if (PyModule_AddObject(m, "WindowRun", (PyObject *)&WindowRunType) < 0) {
+        Py_DECREF(&WindowRunType);
         return -1;
     }
     if (PyModule_AddIntConstant(m, "WINDOW_ID", CT_WINDOW_ID) < 0 ||

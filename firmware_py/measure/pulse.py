@@ -292,10 +292,18 @@ class _WindowColumn:
         if not (-_T_FAR < start < _T_FAR and -_T_FAR < end < _T_FAR):
             return None
         flags = self._ring.close_with(self._colk, start, end, coil)
+        self.column_closed()
+        return flags
+
+    def column_closed(self) -> None:
+        """The bound column kernel closed a window (:meth:`extract_column`, or a run of channels'
+        windows in one call: ``measure.windows.WindowCloser.close_run``): its counts of used
+        samples, from the kernel's results, as :meth:`extract` keeps them."""
         ir = self._iresv
         self._n_used = ir[1]
         self._n_rec = ir[3]
-        return flags
+
+    column_kernel = property(lambda self: getattr(self, "_colk", None))   # ext.WindowColumn (bind_column) or None
 
 
 class PulseExtractor(_WindowColumn):

@@ -21,7 +21,7 @@ import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.gyro_baseline import GyroBaselineExtractor, GyroRing
-from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
+from coiltrack.firmware.measure.pulse import _T_FAR, PulseExtractor, SampleRing
 
 
 def window_samples(cfg) -> int:
@@ -208,6 +208,31 @@ class SensorChannel:
                 sig[i, j] = math.sqrt(v if v > floor else floor)
 
 
+class ChannelBursts:
+    """Every sensor channel's :meth:`SensorChannel.new_burst` as one step: the burst the actuation
+    opens serves them all (thesis ``002_cd7f1fdb7fc67471.txt`` sec 5.3). On the compiled core one
+    call (``core/src/burst_open.c`` ``ct_new_burst`` for each channel, ``ext.NewBursts`` bound here
+    to the channels' ``done``, ``flags`` and counters once): the burst's opening touches no Python
+    object of the sixteen channels of ``multi16``."""
+
+    def __init__(self, channels, core=_DEFAULT_CORE):
+        self.channels = tuple(channels)
+        self._k = None
+        ok = all(type(ch).new_burst is SensorChannel.new_burst and ch.done.dtype == np.bool_ for ch in self.channels)
+        if core.ext is not None and self.channels and ok:
+            n = self.channels[0].done.shape[0]
+            self._k = core.ext.NewBursts(n, tuple(ch.done for ch in self.channels),
+                                         tuple(ch.flags for ch in self.channels), tuple(ch.cnt for ch in self.channels))
+            self.new_burst = self._k.run
+
+    kernel = property(lambda self: self._k)    # ext.NewBursts, or None: the Python loop
+
+    def new_burst(self) -> None:
+        """Each channel's :meth:`SensorChannel.new_burst`, in the channels' order."""
+        for ch in self.channels:
+            ch.new_burst()
+
+
 class WindowCloser:
     """Closes a pulse's window on every channel and reports it."""
 
@@ -219,6 +244,23 @@ class WindowCloser:
         self.tx = tx
         self.flagged = 0
         self.closed = 0                    # windows closed (extracted)
+        self._bind_run()
+
+    def _bind_run(self) -> None:
+        """Where every channel closes its windows on the compiled core (``SensorChannel``'s
+        ``_close_window_compiled``, bound to its extractor's ``ext.WindowColumn``), :meth:`close_run`
+        closes a run of channels' windows in one call (``ext.WindowRun``, ``core/src/multi.c``
+        ``ct_window_run``: the same kernel per window, in the same order), bound here once."""
+        chs = self.channels
+        if not chs or not all(type(ch) is SensorChannel and getattr(ch.close_window, "__func__", None)
+                              is SensorChannel._close_window_compiled for ch in chs):
+            return
+        ext = chs[0].extractor._ext
+        self._run_flags = np.zeros(len(chs), dtype=np.int64)
+        self._rfv = memoryview(self._run_flags)
+        self._runk = ext.WindowRun(tuple(ch.extractor.column_kernel for ch in chs), tuple(ch.ring.hc for ch in chs),
+                                   tuple(ch.cnt for ch in chs), self._run_flags)
+        self.close_run = self._close_run_compiled
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
         """Every channel has the samples after the window, or it timed out."""
@@ -253,3 +295,30 @@ class WindowCloser:
         self.tx.pulse_window(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255,
                              n_base if n_base < 255 else 255, flags & 0xFF)
         return flags
+
+    def close_run(self, coil: int, pulse_id: int, start: int, end: int, c0: int, c1: int) -> None:
+        """:meth:`close_one` on channels ``c0 .. c1 - 1``, in their order (``measure.burst``: a
+        pulse's windows within the tick's budget). On the compiled core the windows are closed in
+        one call (:meth:`_bind_run`) and their PULSE_WINDOWs sent after it, in the same order."""
+        chs = self.channels
+        for i in range(c0, c1):
+            self.close_one(chs[i], coil, pulse_id, start, end)
+
+    def _close_run_compiled(self, coil: int, pulse_id: int, start: int, end: int, c0: int, c1: int) -> None:
+        """:meth:`close_run` in one call of ``ct_window_run``: every window extracted into its channel's
+        column and counted there as :meth:`SensorChannel.close_window` does, then each one's
+        PULSE_WINDOW as :meth:`close_one` sends it. A time the compiled extraction does not take
+        (not an int64 well inside its range) goes to the reference."""
+        if type(start) is not int or type(end) is not int or not (-_T_FAR < start < _T_FAR and -_T_FAR < end < _T_FAR):
+            WindowCloser.close_run(self, coil, pulse_id, start, end, c0, c1)
+            return
+        self.flagged += self._runk.close(coil, start, end, c0, c1)
+        self.closed += c1 - c0
+        chs, fl, pw = self.channels, self._rfv, self.tx.pulse_window
+        for i in range(c0, c1):
+            ch = chs[i]
+            ch.extractor.column_closed()
+            iv = ch.infov
+            n_used, n_base = iv[0], iv[1]
+            pw(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255, n_base if n_base < 255 else 255,
+               fl[i] & 0xFF)

@@ -89,6 +89,11 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         self._fuse_mid = {ch.node: -1 for ch in self.channels}
         self.blocks_fused = 0
 
+    def _ring_of(self, ch):
+        """The ring a sensor's inertial part is fed from: its earth-field ring (the blocks' DC
+        terms, ``_ac_pairs``)."""
+        return self.burst.earth[ch.node]
+
     def _sensor_inertial(self, node: int, cfg, gate) -> SensorInertial:
         """A sensor's inertial part for AC blocks: the compass always quiet (the earth-field ring
         holds only the blocks' DC terms), a compass sample up to a block and three hops old, and

@@ -40,6 +40,7 @@ from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
                                                           OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
+from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
 from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
 from coiltrack.firmware.estimate.orientation import (N as ORI_N, OF_INIT, OF_STEPS, OF_T, OS_MAG, OS_ROUND,
                                                     OrientationFilter, OrientationParams)
@@ -201,6 +202,20 @@ class _Ori:
     kernel = property(lambda self: self._ext)            # the compiled core's module (None: Python)
     sample_kernel = property(lambda self: self._sk)      # ext.OriStep (bound by takes)
 
+    def bind_ring(self, mag: SampleRing) -> None:
+        """Bind the compiled core's kernels to ``mag``, the magnetometer ring this filter is fed
+        from (it does not change), at start-up: the compass sample's search (``ext.QuietSample``)
+        and the one-call sample (``ext.OriStep``). Their first contact with the ring inside a
+        tick then finds them bound (``multi16``: sixteen sensors' bindings in its first tick took
+        2-4 ms); a ring given later still binds there. Nothing on the Python core."""
+        if self._ext is None:
+            return
+        if mag is not self._qring:
+            self._qk = self.gate.sample_kernel(self._ext, mag)
+            self._qring = mag
+        if self.one_call and mag is not self._sring:
+            self._bind_sample(mag)
+
     def bind(self, mag: SampleRing):
         """``ext.OriStep`` bound to ``mag`` (the one of the samples :meth:`ready` lets through)."""
         if mag is not self._sring:
@@ -338,6 +353,7 @@ class SourceInertial:
         g = [-v for v in cfg.imu.gravity_mps2]
         self._fv[0], self._fv[1], self._fv[2] = g[0], g[1], g[2]
         self.samples = 0
+        self.ori.bind_ring(self.mag)        # (its own ring: bound at start-up)
 
     fixed = False
 
@@ -530,6 +546,11 @@ class _OneCall:
         if not ori.sampled(t, r):
             self.slow(mag)
 
+    def bind(self, mag: SampleRing) -> None:
+        """Bind to ``mag`` at start-up (:meth:`_bind`), unless bound to it already."""
+        if self._ring is not mag:
+            self._bind(mag)
+
     def _bind(self, mag: SampleRing):
         """``ext.ImuSample`` bound to the rings, the filters' kernels (the orientation filter's as bound
         to ``mag``) and ``w_last``; with what :meth:`run` reads of it, the filters and ``mag``."""
@@ -562,6 +583,13 @@ class SensorInertial(CompiledBurst):
 
     samples = property(lambda self: self._scv[0], _set_samples)     # IMU samples processed
 
+    def _set_t_ref(self, v: int) -> None:
+        self._trv[0] = v
+
+    #: the burst's reference instant (us), in a start-up int64 array (``tr``) a burst's compiled
+    #: opening writes (``BurstFusionTracker.on_burst``, ``core/src/burst_open.c`` ``ct_schedule``)
+    t_ref = property(lambda self: self._trv[0], _set_t_ref)
+
     def __init__(self, node: int, cfg, gate: PulseGate, source, compass_max_age_us: int | None = None,
                  burst_rms_s: float | None = None, core=_DEFAULT_CORE):
         """``source``: :class:`SourceInertial` or :class:`FixedSource` (:func:`make_source`);
@@ -589,6 +617,8 @@ class SensorInertial(CompiledBurst):
         self._fref = source.fref
         self._frv = memoryview(self._fref)
         # one burst: reference instant, compensated signals
+        self.tr = np.zeros(1, dtype=np.int64)
+        self._trv = memoryview(self.tr)
         self.t_ref = 0
         self.pending = False
         self.S_comp = np.zeros((3, n))
@@ -640,6 +670,15 @@ class SensorInertial(CompiledBurst):
         self.poses_lost = 0
         self.poses_out_of_range = 0     # fused poses beyond the working volume (sent, not valid)
         self._bind_burst_kernels(core, _COMP_MAX_VEL_SIGMA)
+
+    def bind_ring(self, mag: SampleRing) -> None:
+        """Bind the compiled core's per-sample kernels (the orientation filter's and the one-call
+        sample's) to ``mag``, the magnetometer ring :meth:`process` is given (the tracker's, fixed
+        at composition), at start-up rather than at the first sample inside a tick."""
+        self.ori.bind_ring(mag)
+        one = getattr(self, "_one", None)
+        if one is not None:
+            one.bind(mag)
 
     # ------------------------------------------------------------ per sample
     def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
@@ -950,6 +989,8 @@ class BurstFusionTracker(MagneticTracker):
         self.source = make_source(cfg, gate, core)    # the source's IMU, or fixed: chosen once
         self.inertial = {ch.node: self._sensor_inertial(ch.node, cfg, gate) for ch in self.channels}
         self._pairs = tuple((ch, self.inertial[ch.node]) for ch in self.channels)
+        for ch, ins in self._pairs:         # each sensor's kernels bound to its ring at start-up
+            ins.bind_ring(self._ring_of(ch))
         # a sensor sample waits this long for the source's samples of its time (1.5 IMU_DELTA intervals)
         self.source_wait_us = int(1.5e6 / cfg.imu.imu_delta_rate_hz)
         self.imu_steps = cfg.budget.imu_steps_per_tick
@@ -967,6 +1008,11 @@ class BurstFusionTracker(MagneticTracker):
         self.comp_solver = solvers(1.0)
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
         self._bind_report_chain(core)
+        self._bind_burst_open(core)
+
+    def _ring_of(self, ch):
+        """The magnetometer ring sensor ``ch``'s inertial part is fed from (:meth:`_process`)."""
+        return ch.ring
 
     def _sensor_inertial(self, node: int, cfg, gate: PulseGate) -> SensorInertial:
         """The inertial part of sensor ``node`` (a pipeline of other bursts builds it with its own
@@ -987,8 +1033,22 @@ class BurstFusionTracker(MagneticTracker):
         self.source.on_mag(msg, lsb)
 
     def on_burst(self, t_ref: int) -> None:
+        """Each sensor's :meth:`SensorInertial.schedule`; on the compiled core one call
+        (:meth:`_bind_burst_open`)."""
         for ins in self.inertial.values():
             ins.schedule(t_ref)
+
+    def _bind_burst_open(self, core) -> None:
+        """On the compiled core :meth:`on_burst` is one call (``ext.Schedules``: ``ct_schedule`` for
+        each sensor, the writes of :meth:`SensorInertial.schedule` with its snapshot's, bound here to
+        the sensors' ``tr`` and their snapshots' ``sq``); a sensor of another kind keeps the loop."""
+        ins = tuple(self.inertial.values())
+        if core.ext is None or not ins or type(self).on_burst is not BurstFusionTracker.on_burst or any(type(i).schedule is not SensorInertial.schedule
+                                              or type(i.fusion).schedule_snapshot is not FusionFilter.schedule_snapshot
+                                              or type(i.fusion.snap).schedule is not Snapshot.schedule for i in ins):
+            return
+        self._sched_k = core.ext.Schedules(tuple(i.tr for i in ins), tuple(i.fusion.snap.sq for i in ins))
+        self.on_burst = self._sched_k.run
 
     # ------------------------------------------------------------ tick
     def step(self, now_us: int) -> None:

@@ -55,6 +55,16 @@ struct ct_window_column {
 int64_t ct_window_column(const struct ct_window_column *c, const struct ct_pulse *x, const struct ct_sample_ring *r,
                          int64_t start, int64_t end, int64_t coil);
 
+/* ------------------------------------------------------------ a run of windows
+ * measure.windows.WindowCloser.close_run: one pulse's window [start, end] closed on channels c0..c1-1
+ * in their order, each as SensorChannel.close_window does on the compiled core (its ring's head and
+ * count read from hc[i] = SampleRing.hc, then ct_window_column into column coil, then the channel's
+ * changes counted: cnt[i][1] += 1, SensorChannel.cnt); each window's flags into flags_out[i].  Returns
+ * how many windows were flagged (WindowCloser.flagged). */
+int64_t ct_window_run(const struct ct_window_column *const *c, const struct ct_pulse *const *x,
+                      struct ct_sample_ring *const *r, const int64_t *const *hc, int64_t *const *cnt, int64_t *flags_out,
+                      int64_t c0, int64_t c1, int64_t start, int64_t end, int64_t coil);
+
 /* ------------------------------------------------------------ sample push
  * measure.windows.SensorChannel.push with measure.pulse.SampleRing.push: one magnetometer sample
  * (its field already scaled to tesla, as the Python's msg.x * lsb) into the ring's t, b (cap x 3),

@@ -123,3 +123,20 @@ int ct_sample_push(int64_t *t, double *b, uint8_t *flags, int64_t cap, int64_t *
     st[2] = t_us;
     return 1;
 }
+
+int64_t ct_window_run(const struct ct_window_column *const *c, const struct ct_pulse *const *x,
+                      struct ct_sample_ring *const *r, const int64_t *const *hc, int64_t *const *cnt, int64_t *flags_out,
+                      int64_t c0, int64_t c1, int64_t start, int64_t end, int64_t coil)
+{
+    int64_t i, f, flagged = 0;
+    for (i = c0; i < c1; ++i) {
+        r[i]->head = hc[i][0];
+        r[i]->count = hc[i][1];
+        f = ct_window_column(c[i], x[i], r[i], start, end, coil);
+        cnt[i][1] += 1;
+        flags_out[i] = f;
+        if (f)
+            flagged += 1;
+    }
+    return flagged;
+}
