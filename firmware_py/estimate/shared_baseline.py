@@ -46,7 +46,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["span_overlap", "next_start", "pulse_gap_us", "SharedBaselines"]
+__all__ = ["span_overlap", "next_start", "pulse_gap_us", "SharedBaselines", "CompiledSharedBaselines",
+           "shared_baselines"]
 
 
 def pulse_gap_us(cfg) -> int:
@@ -228,6 +229,12 @@ class SharedBaselines:
         v[2] = float(amp_var[2]) + extra
         return v
 
+    def channel_variance(self, k: int, amp_var, info):
+        """:meth:`variance` of sensor channel ``k``'s last window (``amp_var``, ``info``: that
+        channel's, ``measure.windows.SensorChannel``); on the compiled core one call on the
+        channels bound once (:meth:`CompiledSharedBaselines.bind_channels`)."""
+        return self.variance(amp_var, info)
+
     def predicted(self, var_amp: float, start: int, prev_end: int) -> float:
         """The variance a pulse starting at ``start`` will be taken with (a decision's
         prediction, nominal ``n_b``, sides even): its before side as the previous pulse
@@ -245,3 +252,113 @@ class SharedBaselines:
         """The variance of a pulse in flight as a decision predicts it: both sides shared (none
         when pulses are kept apart)."""
         return var_amp + self.sigma2 / self.n_base if self.enabled and not self.apart else var_amp
+
+
+# the slots of the state arrays (core/include/ct_sc_window.h CT_SB_*)
+_FALL, _BASE, _GUARD, _ENABLED, _HAS_PREV, _PREV_END, _START, _END, _B0, _B1, _A0, _A1, _NI = range(13)
+_SIGMA2, _PERIOD, _SHARED, _FB, _FA, _NF = range(6)
+
+
+def _int_slot(k: int) -> property:
+    def get(self) -> int:
+        return self._iv[k]
+
+    def put(self, v) -> None:
+        self._iv[k] = v
+    return property(get, put)
+
+
+def _float_slot(k: int) -> property:
+    def get(self) -> float:
+        return self._fv[k]
+
+    def put(self, v) -> None:
+        self._fv[k] = v
+    return property(get, put)
+
+
+class CompiledSharedBaselines(SharedBaselines):
+    """:class:`SharedBaselines` whose :meth:`close` and :meth:`variance` run compiled
+    (``core/src/sc_window.c``: ``ct_sb_close``, ``ct_sb_variance`` with ``ct_sb_shared_variance``,
+    the same operations in the same order: the same bits). Its state lives in two arrays (integers,
+    floats) the kernels read and write, read and written through properties under the reference's
+    names; ``ext``: the compiled extension (``coiltrack.firmware.core.Core.ext``), the other
+    parameters :class:`SharedBaselines`'."""
+
+    fall_us = _int_slot(_FALL)
+    baseline_us = _int_slot(_BASE)
+    guard_us = _int_slot(_GUARD)
+    _start = _int_slot(_START)
+    _end = _int_slot(_END)
+    _b0 = _int_slot(_B0)
+    _b1 = _int_slot(_B1)
+    _a0 = _int_slot(_A0)
+    _a1 = _int_slot(_A1)
+    sigma2 = _float_slot(_SIGMA2)
+    period_us = _float_slot(_PERIOD)
+    shared = _float_slot(_SHARED)
+    fb = _float_slot(_FB)
+    fa = _float_slot(_FA)
+
+    @property
+    def enabled(self) -> bool:
+        return self._iv[_ENABLED] != 0
+
+    @enabled.setter
+    def enabled(self, v) -> None:
+        self._iv[_ENABLED] = 1 if v else 0
+
+    @property
+    def prev_end(self):
+        """The end of the pulse whose window was closed last (None before the first)."""
+        return self._iv[_PREV_END] if self._iv[_HAS_PREV] else None
+
+    @prev_end.setter
+    def prev_end(self, v) -> None:
+        self._iv[_HAS_PREV] = 0 if v is None else 1
+        self._iv[_PREV_END] = 0 if v is None else v
+
+    def __init__(self, ext, *args, **kw):
+        assert (ext.SB_NI, ext.SB_NF) == (_NI, _NF)
+        self._si = np.zeros(_NI, dtype=np.int64)
+        self._sf = np.zeros(_NF)
+        self._iv = memoryview(self._si)
+        self._fv = memoryview(self._sf)
+        super().__init__(*args, **kw)
+        self._ck = ext.SharedBaselinesCore(self._si, self._sf, self.var)
+        self._var_k = self._ck.variance
+        self._close_k = self._ck.close
+        self._bound = 0
+
+    def bind_channels(self, channels) -> None:
+        """Bind the sensor channels' last windows (``SensorChannel.amp_var``, ``info``), in the order
+        :meth:`channel_variance` numbers them, once."""
+        chs = tuple(channels)
+        self._ck.bind_channels(tuple(a for ch in chs for a in (ch.amp_var, ch.info)))
+        self._bound = len(chs)
+
+    def close(self, start: int, end: int, next_start: int, earliest_next_us: int) -> float:
+        """:meth:`SharedBaselines.close` in one call of ``ct_sb_close``."""
+        self._close_k(start, end, next_start, earliest_next_us)
+        return self._fv[_SHARED]
+
+    def variance(self, amp_var, info):
+        """:meth:`SharedBaselines.variance` in one call of ``ct_sb_variance``."""
+        self._ck.variance_of(amp_var, info)
+        return self.var
+
+    def channel_variance(self, k: int, amp_var, info):
+        """:meth:`SharedBaselines.channel_variance` on the channels bound (:meth:`bind_channels`):
+        one call of ``ct_sb_variance``."""
+        if k < self._bound:
+            self._var_k(k)
+            return self.var
+        return self.variance(amp_var, info)
+
+
+def shared_baselines(core, *args, **kw) -> SharedBaselines:
+    """The shared baselines of ``core`` (``coiltrack.firmware.core.Core``): the compiled twin where
+    the extension is loaded, else the reference; the arguments are :class:`SharedBaselines`'."""
+    if core.ext is not None and hasattr(core.ext, "SharedBaselinesCore"):
+        return CompiledSharedBaselines(core.ext, *args, **kw)
+    return SharedBaselines(*args, **kw)

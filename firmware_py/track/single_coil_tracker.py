@@ -55,7 +55,7 @@ from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, chi2_gate
 from coiltrack.firmware.measure.pulse import PULSE_TOO_FEW, PULSE_UNUSABLE as _UNUSABLE
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.estimate.shared_baseline import SharedBaselines, next_start, pulse_gap_us
+from coiltrack.firmware.estimate.shared_baseline import next_start, pulse_gap_us, shared_baselines
 from coiltrack.firmware.estimate.single_coil import CORE, POS, filter_class
 from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
@@ -123,9 +123,12 @@ class SingleCoilTracker:
         self.book = PulseBook(cfg, n, pulses, [s.ekf for s in self._sens], mid,
                               pulse_gap_us(cfg), cfg.timing.first_cycle_us - cfg.adaptive.adaptive_lead_us, core)
         # amplitudes sharing baseline samples with a neighbour's (estimate.shared_baseline)
-        self.sharing = SharedBaselines(cfg.pulse.fall_us, cfg.pulse.baseline_us, cfg.pulse.guard_us, cfg.pulse.mag_sigma_t,
-                                       1e6 / cfg.pulse.mag_rate_hz, cfg.adaptive.baseline_sharing != "ignore",
-                                       cfg.adaptive.baseline_sharing == "apart")
+        # (on the compiled core its twin, core/src/sc_window.c, bound to the channels' last windows)
+        self.sharing = shared_baselines(core, cfg.pulse.fall_us, cfg.pulse.baseline_us, cfg.pulse.guard_us,
+                                        cfg.pulse.mag_sigma_t, 1e6 / cfg.pulse.mag_rate_hz,
+                                        cfg.adaptive.baseline_sharing != "ignore", cfg.adaptive.baseline_sharing == "apart")
+        if hasattr(self.sharing, "bind_channels"):
+            self.sharing.bind_channels(s.track for s in self._sens)
         self._lead_us = cfg.adaptive.adaptive_lead_us if schedule == "adaptive" else -1
         self.acquisition = BurstAcquisition(cfg, coils, self._sens, self.book, self.model, supervisor, tx, self,
                                             distortion, core)
@@ -325,7 +328,7 @@ class SingleCoilTracker:
         rel = math.sqrt(self._rel2 + rc * rc)
         # once the monitor has judged the pulses inconsistent, the inflated covariance is the
         # protection: gating them as well would reject them all and leave the state to the IMU
-        m = s.meas.set(tr.amp, self.sharing.variance(tr.amp_var, tr.infov), sl.coil, current, rel, mon.r_scale,
+        m = s.meas.set(tr.amp, self.sharing.channel_variance(s.index, tr.amp_var, tr.infov), sl.coil, current, rel, mon.r_scale,
                        not mon.inconsistent)
         flags = ekf.update_pulse(sl.clone, m, self.model)
         if flags & (EKF_NOT_PD | EKF_NONFINITE):
