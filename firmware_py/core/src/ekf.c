@@ -51,6 +51,10 @@ void ct_congruence_sparse(int n, const double *A, double *P, double *T)
 void ct_covariance_predict(int n, const double *A, double *P, const double *Q, double *T)
 {
     int i;
+    if (n == CT_COV24_N && ct_cov24_disjoint(A, P, Q, T)) {   /* cov24.c: the same sums at the fixed size */
+        ct_covariance_predict_24(A, P, Q, T);
+        return;
+    }
     ct_congruence_sparse(n, A, P, T);
     for (i = 0; i < n * n; ++i)
         P[i] += Q[i];
