@@ -14,7 +14,8 @@
 """
 from __future__ import annotations
 
-import numpy as np
+import select
+
 
 from coiltrack.firmware.loop import Firmware
 from coiltrack.hil.clock import SimClock
@@ -205,3 +206,41 @@ def test_emulator_loop_prepares_each_sample_before_its_instant_outside_the_quiet
     for at, nxt in emu.prepares:
         assert nxt - at <= PREPARE_AHEAD_US
         assert not [d for d in due if d <= at < d + PREFETCH_AFTER_SEND_US]
+
+
+def test_an_urgent_frame_leaves_at_once_with_what_was_queued_before_it():
+    """The firmware's pty link (``open_pty_slave``) queues a tick's frames but sends a ``POSE`` as
+    it is written, with the frames queued before it, in order (a link that waits for the tick's
+    end delays every pose by the work after the report). The id is read at the COBS frame's
+    sixth byte whatever zeros the header holds (flags 0, sequence 0); a byte equal to the id
+    elsewhere in another message does not count."""
+    import os
+
+    from coiltrack.protocol import MSG, FrameEncoder
+    from coiltrack.protocol.framing import encode_frame
+    from coiltrack.tools.bench.links import FdLink, make_raw_pty
+
+    pose_id = MSG["POSE"].ID
+    master, slave, _ = make_raw_pty()
+    try:
+        link = FdLink(slave, coalesce=True, urgent=(pose_id,))
+        hb = FrameEncoder(1).encode(MSG["HEARTBEAT"](1, 2, pose_id, pose_id, pose_id, 0))
+        link.write(hb)
+        assert link.writes == 0 and hb[5] != pose_id and pose_id in hb
+        pose = encode_frame(MSG["POSE"](16, 0, 0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0, 0, 0, 0, 0, 0, 0, 1, 255), 0, 1)
+        link.write(pose)
+        assert link.writes == 1 and link.bytes_tx == len(hb) + len(pose)
+        link.write(hb)
+        assert link.writes == 1
+        link.flush()
+        assert link.writes == 2
+        got = b""
+        for _ in range(200):
+            select.select([master], [], [], 0.05)
+            got += os.read(master, 4096)
+            if len(got) >= 2 * len(hb) + len(pose):
+                break
+        assert got == hb + pose + hb
+    finally:
+        os.close(master)
+        os.close(slave)

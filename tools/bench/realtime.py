@@ -371,7 +371,9 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
     ``PREFETCH_PIECE`` instants between steps, while the next sample is more
     than ``PREFETCH_GUARD_US`` away and the last step that wrote to the link
     (``link.bytes_tx``, where it counts) is ``PREFETCH_AFTER_SEND_US`` past,
-    keeping ``ahead_us`` in hand (0: none).
+    keeping ``ahead_us`` in hand (0: none); before a piece, under the same
+    rule, the next sample of each sensor due within ``PREPARE_AHEAD_US``
+    (``emulator.prepare``), so the step at its instant only writes its bytes.
     ``wait(timeout_s)`` replaces the wait (tests pass a simulated one);
     ``timing`` (:class:`EmulatorTiming`) collects step durations and sample
     lateness.
@@ -421,20 +423,9 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
                 sent, quiet_from = link.bytes_tx, t1 + PREFETCH_AFTER_SEND_US
             if t1 - now > step_us:
                 continue        # a long step: read the link again at once
-            if prepare is not None and t1 >= quiet_from and prepare(t1 + PREPARE_AHEAD_US):
-                if timing is not None:
-                    timing.prepares += 1
-                    timing.gap(clock.now(), "prepare", clock.now() - t1)
-                continue        # it took time: read the link again at once
             nxt = next_due() if next_due is not None else None
-            if prefetch is not None and t1 >= quiet_from and (nxt is None or nxt - t1 > PREFETCH_GUARD_US):
-                n = prefetch(t1 + ahead_us, PREFETCH_PIECE, PREFETCH_PIECE)
-                if n and timing is not None:
-                    timing.prefetched += n
-                    timing.pieces += 1
-                    timing.gap(clock.now(), "piece", clock.now() - t1)
-                if n:
-                    continue    # the piece took time: read the link again at once
+            if t1 >= quiet_from and _work_ahead(prepare, prefetch, nxt, clock, t1, ahead_us, timing):
+                continue        # it took time: read the link again at once
             if nxt is not None:
                 timeout_us = min(step_us, max(0, nxt - clock.now()))
         if timing is not None and timing.stalls is not None:
@@ -443,6 +434,26 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
             timing.gap(clock.now(), "wait", clock.now() - tw - timeout_us)
         else:
             wait(timeout_us * 1e-6)
+
+
+def _work_ahead(prepare, prefetch, nxt, clock, t1: int, ahead_us: int, timing) -> bool:
+    """:func:`emulator_loop`'s work between steps, outside the quiet time after a write: the
+    samples due within ``PREPARE_AHEAD_US`` computed and encoded (``prepare``), else a piece of
+    physics (``prefetch``) while the next sample ``nxt`` is more than ``PREFETCH_GUARD_US`` away.
+    True when it did some (the loop then reads the link again at once)."""
+    if prepare is not None and prepare(t1 + PREPARE_AHEAD_US):
+        if timing is not None:
+            timing.prepares += 1
+            timing.gap(clock.now(), "prepare", clock.now() - t1)
+        return True
+    if prefetch is None or (nxt is not None and nxt - t1 <= PREFETCH_GUARD_US):
+        return False
+    n = prefetch(t1 + ahead_us, PREFETCH_PIECE, PREFETCH_PIECE)
+    if n and timing is not None:
+        timing.prefetched += n
+        timing.pieces += 1
+        timing.gap(clock.now(), "piece", clock.now() - t1)
+    return bool(n)
 
 
 def _two_process_link(transport: str):
