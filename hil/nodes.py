@@ -698,25 +698,25 @@ class _PreparedMag:
     def compute(self, node: "SensorNode") -> None:
         """``node``'s :meth:`SensorNode._mag_sample` for this sample, its flips applied to copies
         of the node's flip state (the node books them at the instant)."""
-        p, m, t, d = self, node.mag, self.t, node.mag.flip_delta_us
+        m, t, d = node.mag, self.t, node.mag.flip_delta_us
         state, err, t_max = node.flip_state, node.flip_err, t
         for tf, st in node.pending_flips:
             if tf > t:
                 break
-            p.n_pending += 1
+            self.n_pending += 1
             if st != state:
                 err, state = -0.5 * (node._sensed(tf + d) - node._sensed(tf - d)), st
-                p.flips.append((err, {"true_us": tf, "state": st, "commanded": True,
-                                      "artefact_t": float(np.linalg.norm(err))}))
+                self.flips.append((err, {"true_us": tf, "state": st, "commanded": True,
+                                         "artefact_t": float(np.linalg.norm(err))}))
                 t_max = max(t_max, tf + d)
-        if m.flip_every and p.k % m.flip_every == 0 and t >= node.cmd_until_us:
+        if m.flip_every and self.k % m.flip_every == 0 and t >= node.cmd_until_us:
             tf = t - 2 * d
             err, state = -0.5 * (node._sensed(tf + d) - node._sensed(tf - d)), -state
-            p.flips.append((err, {"true_us": tf, "state": state, "commanded": False,
-                                  "artefact_t": float(np.linalg.norm(err))}))
-        p.t_max = t_max
-        p.B = (node._sensed(t) + state * node.offset + err + p.noise)
-        p.msg, p.sat, p.stamp = node._mag_msg(t, p.B, state)
+            self.flips.append((err, {"true_us": tf, "state": state, "commanded": False,
+                                     "artefact_t": float(np.linalg.norm(err))}))
+        self.t_max = t_max
+        self.B = (node._sensed(t) + state * node.offset + err + self.noise)
+        self.msg, self.sat, self.stamp = node._mag_msg(t, self.B, state)
 
 
 class SensorNode(Node):
@@ -1010,7 +1010,9 @@ class SensorNode(Node):
         """Forget the prepared sample and undo its noise draw (the node's generator back where it
         was before it, so the draws stay in the order of the samples sent)."""
         if self._prep is not None:
-            self.rng.bit_generator.state = self._prep.rng_state
+            bits = np.random.PCG64()            # (the generator of np.random.default_rng, as made here)
+            bits.state = self._prep.rng_state
+            self.rng = np.random.Generator(bits)
             self._prep = None
 
     def _prep_valid(self, p: "_PreparedMag") -> bool:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import select
 
-
 from coiltrack.firmware.loop import Firmware
 from coiltrack.hil.clock import SimClock
 from coiltrack.hil.faults import BenchFaults
