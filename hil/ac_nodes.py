@@ -210,6 +210,8 @@ class FastSensorNode(SensorNode):
             return None
         return conductors.dipole_field_phasor(np.asarray(p, dtype=float).reshape(1, 3), pm[0], pm[1])[0]
 
+    prepares_samples = False        # its sample is its own (SensorNode.prepare_sample prepares the base's)
+
     def _mag_sample(self, t: int, k: int, send) -> None:
         m = self.mag
         p, R = self.world.pose(t)

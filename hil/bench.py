@@ -192,9 +192,13 @@ def window_truth(bench, tol: float = FLAT_TOL) -> list[dict]:
 def pose_latencies(bench, fall_us: int, baseline_us: int) -> np.ndarray:
     """Latency (us, true time) from the sample that completed each cycle to the pose frame.
 
-    The completing sample is the first one stamped after the last pulse's end (as the driver
-    reported it) + ``fall_us`` + ``baseline_us``: before it the firmware cannot close the cycle.
-    Poses without windows, or whose cycle closed on a time-out, are skipped."""
+    From the true instant of the completing sample (when the sensor sampled, not when the
+    emulator sent it), the first one stamped after the last pulse's end (as the driver reported
+    it) + ``fall_us`` + ``baseline_us``: before it the firmware cannot close the cycle. To the
+    pose's ``rx_us``: the start of the emulator step that read the ``POSE`` frame (on the wall
+    clock, when its loop woke for the bytes). Poses without windows, whose pulses the driver did
+    not report, or whose cycle closed on a time-out (the completing sample after the pose) are
+    skipped. docs/bench-realtime.md, *The latency, defined*."""
     return np.asarray([rx - t for t, rx in pose_latency_times(bench, fall_us, baseline_us)], dtype=np.int64)
 
 

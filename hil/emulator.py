@@ -12,6 +12,7 @@ never sees the firmware, only its frames.
 from __future__ import annotations
 
 from coiltrack.protocol import FrameDecoder, FrameEncoder
+from coiltrack.protocol.framing import encode_frame
 
 _ROUTE_ALL = ("TIME_SYNC",)
 _TO_DRIVER = ("COIL_PULSE_CMD", "AC_DRIVE_CMD")
@@ -32,6 +33,8 @@ class Emulator:
         self.encoders = {n.node_id: FrameEncoder(n.node_id) for n in self.nodes}
         self.frames_tx = 0
         self.frames_rx = 0
+        self._ready: dict = {}      # node id -> (prepared message, sequence number, its frame's bytes)
+        self.ready_sent = 0         # prepared frames sent as they were encoded ahead
 
     def counters(self) -> dict:
         """What the emulator's link carried: frames received (decoded), frames it could not
@@ -39,7 +42,14 @@ class Emulator:
         return {"frames_rx": self.frames_rx, "frames_bad": self.decoder.frames_bad, "frames_tx": self.frames_tx}
 
     def _send(self, node, msg) -> None:
-        self.link.write(self.encoders[node.node_id].encode(msg))
+        enc = self.encoders[node.node_id]
+        r = self._ready.get(node.node_id) if self._ready else None
+        if r is not None and r[0] is msg:
+            del self._ready[node.node_id]
+            self.ready_sent += r[1] == enc.seq
+            self.link.write(enc.encode_prepared(msg, r[1], r[2]))
+        else:
+            self.link.write(enc.encode(msg))
         self.frames_tx += 1
 
     def step(self, now_us: int) -> None:
@@ -82,3 +92,30 @@ class Emulator:
             if f is not None and node.online and n < max_n:
                 n += f(until_us, max_n - n, min(min_n, max_n - n))
         return n
+
+    def prepare(self, until_us: int) -> int:
+        """Let each sensor node that can (``SensorNode.prepare_sample``) compute its next sample
+        ahead if it is due by true time ``until_us``, and encode its frame now, at its node's
+        sequence number; at the sample's instant :meth:`_send` writes those bytes (encoded again
+        only if the node sent another frame meanwhile). A prepared sample that no longer holds
+        (a pulse committed or a flip commanded since) is computed again here. Returns how many
+        samples were computed or frames encoded (0: nothing to do). A wall-clock loop calls it
+        between steps, so that the step at a sample's instant only writes prepared bytes."""
+        n = 0
+        for s in self.sensors:
+            f = getattr(s, "prepare_sample", None)
+            if f is None or not s.online:
+                continue
+            n += f(until_us)
+            msg = s.prepared_msg
+            if msg is None:
+                continue
+            enc = self.encoders[s.node_id]
+            if not hasattr(enc, "encode_prepared"):
+                continue
+            r = self._ready.get(s.node_id)
+            if r is None or r[0] is not msg or r[1] != enc.seq:
+                self._ready[s.node_id] = (msg, enc.seq, encode_frame(msg, enc.seq, enc.src))
+                n += 1
+        return n
+

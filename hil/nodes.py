@@ -678,6 +678,47 @@ class ImuSpec:
         return self.gyro_noise_density * math.sqrt(self.rate_hz / 2.0)
 
 
+class _PreparedMag:
+    """A magnetometer sample computed ahead (:meth:`SensorNode.prepare_sample`): sample ``k`` at
+    true time ``t``, its noise and the generator's state before that draw, the world's edit mark
+    and the node's flip-command count it was computed at; then its flips (artefact, log entry),
+    how many pending commanded flips it consumed, the latest instant it read, the field ``B``,
+    and its message, saturation and stamp."""
+    __slots__ = ("k", "t", "noise", "rng_state", "mark", "flip_cmds", "flips", "n_pending", "t_max", "B",
+                 "msg", "sat", "stamp")
+
+    def __init__(self, k: int, t: int, noise, rng_state, mark: tuple, flip_cmds: int):
+        self.k, self.t, self.noise, self.rng_state, self.mark, self.flip_cmds = k, t, noise, rng_state, mark, flip_cmds
+        self.flips: list = []
+        self.n_pending = 0
+        self.t_max = t
+        self.B = self.msg = None
+        self.sat, self.stamp = False, 0
+
+    def compute(self, node: "SensorNode") -> None:
+        """``node``'s :meth:`SensorNode._mag_sample` for this sample, its flips applied to copies
+        of the node's flip state (the node books them at the instant)."""
+        m, t, d = node.mag, self.t, node.mag.flip_delta_us
+        state, err, t_max = node.flip_state, node.flip_err, t
+        for tf, st in node.pending_flips:
+            if tf > t:
+                break
+            self.n_pending += 1
+            if st != state:
+                err, state = -0.5 * (node._sensed(tf + d) - node._sensed(tf - d)), st
+                self.flips.append((err, {"true_us": tf, "state": st, "commanded": True,
+                                         "artefact_t": float(np.linalg.norm(err))}))
+                t_max = max(t_max, tf + d)
+        if m.flip_every and self.k % m.flip_every == 0 and t >= node.cmd_until_us:
+            tf = t - 2 * d
+            err, state = -0.5 * (node._sensed(tf + d) - node._sensed(tf - d)), -state
+            self.flips.append((err, {"true_us": tf, "state": state, "commanded": False,
+                                     "artefact_t": float(np.linalg.norm(err))}))
+        self.t_max = t_max
+        self.B = (node._sensed(t) + state * node.offset + err + self.noise)
+        self.msg, self.sat, self.stamp = node._mag_msg(t, self.B, state)
+
+
 class SensorNode(Node):
     """A 3-axis magnetometer (and optionally an IMU beside it) with its own clock.
 
@@ -725,6 +766,8 @@ class SensorNode(Node):
         self.imu_saturated = 0            # IMU samples with an axis clipped at its full scale
         #: the node's imperfections (``hil.imperfections.SensorImperfection``; None: a perfect sensor)
         self.imperfect = None
+        self._prep: _PreparedMag | None = None        # the next sample, computed ahead (prepare_sample)
+        self.prepared_used = self.prepared_redone = 0
         self._schedule_mag(0)
         self.delta = None
         self.imu_deltas = 0
@@ -775,6 +818,7 @@ class SensorNode(Node):
         return int(round(self._imu_base + k * self._imu_period))
 
     def on_power_on(self, now_us: int) -> None:
+        self._drop_prep()               # (its noise draw undone before the schedule's draw)
         self._schedule_mag(now_us)
         self.flip_err[:] = 0.0
         self.pending_flips.clear()
@@ -892,15 +936,101 @@ class SensorNode(Node):
         return len(ts)
 
     def _mag_sample(self, t: int, k: int, send) -> None:
+        p = self._take_prep(k, t)
+        if p is not None and self._prep_valid(p):
+            self._commit_prep(p, send)
+            return
         m = self.mag
         while self.pending_flips and self.pending_flips[0][0] <= t:
             tf, st = self.pending_flips.pop(0)
             self._flip(tf, st, True)
         if m.flip_every and k % m.flip_every == 0 and t >= self.cmd_until_us:
             self._flip(t - 2 * m.flip_delta_us, -self.flip_state, False)
-        B = (self._sensed(t) + self.flip_state * self.offset + self.flip_err
-             + self.rng.normal(0.0, m.noise_t, 3))
+        noise = self.rng.normal(0.0, m.noise_t, 3) if p is None else p.noise    # (drawn in sample order)
+        B = (self._sensed(t) + self.flip_state * self.offset + self.flip_err + noise)
+        self.prepared_redone += p is not None
         self._send_mag(t, B, send)
+
+    # --- the next sample computed ahead, off the sampling path (wall-clock loops)
+    #: False in a subclass whose sample is not :meth:`_mag_sample`'s (``hil.ac_nodes.FastSensorNode``)
+    prepares_samples = True
+
+    @property
+    def prepared_msg(self):
+        """The ``MAG_PACKED`` of the next sample as :meth:`prepare_sample` computed it (None: none)."""
+        return None if self._prep is None else self._prep.msg
+
+    def prepare_sample(self, until_us: int) -> int:
+        """Compute the next magnetometer sample ahead if it is due by true time ``until_us``: its
+        set/reset flips (commanded and autonomous, with their artefacts), the field through the
+        sensor's model, its noise (drawn now, in sample order), quantisation and ``MAG_PACKED``
+        message, so that at its instant :meth:`_mag_sample` only books and sends it. The result
+        holds while the world is not edited at or before the latest instant it read (a pulse
+        committed by the driver, :meth:`hil.world.World.edited_since`) and no ``MAG_FLIP_CMD``
+        arrives; otherwise it is computed again (here, or on the sampling path with the same
+        noise). The stamp is taken at the instant (a ``TIME_SYNC`` between moves it). The byte
+        stream is the one the sampling path alone gives. Returns 1 when it computed, else 0."""
+        if not (self.prepares_samples and self.online and self.sync.synced):
+            return 0
+        k = self._mag_k
+        while self._mag_t(k) < self.synced_since_us:
+            k += 1
+        t = self._mag_t(k)
+        if t > until_us:
+            return 0
+        p = self._prep
+        if p is not None and (p.k != k or p.t != t):
+            self._drop_prep()
+            p = None
+        if p is not None and self._prep_valid(p):
+            return 0
+        if k > self._mag_cached_to:                 # (as step() would before this sample)
+            self.world.precompute([self._mag_t(j) for j in range(k, k + self._CHUNK)])
+            self._mag_cached_to = k + self._CHUNK - 1
+        if p is None:
+            state = self.rng.bit_generator.state
+            noise = self.rng.normal(0.0, self.mag.noise_t, 3)
+        else:
+            state, noise = p.rng_state, p.noise
+        self._prep = _PreparedMag(k, t, noise, state, self.world.edit_mark(), self.flip_cmds)
+        self._prep.compute(self)
+        return 1
+
+    def _take_prep(self, k: int, t: int):
+        """The prepared sample if it is sample ``k`` at ``t`` (taken off the node); a prepared
+        sample of another instant (skipped: sync lost, power cycled) is dropped with its draw."""
+        p = self._prep
+        if p is not None and (p.k != k or p.t != t):
+            self._drop_prep()
+            return None
+        self._prep = None
+        return p
+
+    def _drop_prep(self) -> None:
+        """Forget the prepared sample and undo its noise draw (the node's generator back where it
+        was before it, so the draws stay in the order of the samples sent)."""
+        if self._prep is not None:
+            bits = np.random.PCG64()            # (the generator of np.random.default_rng, as made here)
+            bits.state = self._prep.rng_state
+            self.rng = np.random.Generator(bits)
+            self._prep = None
+
+    def _prep_valid(self, p: "_PreparedMag") -> bool:
+        return p.flip_cmds == self.flip_cmds and not self.world.edited_since(p.mark, p.t_max)
+
+    def _commit_prep(self, p: "_PreparedMag", send) -> None:
+        """Book and send the prepared sample ``p`` at its instant: its flips, then the sample (its
+        stamp taken now)."""
+        del self.pending_flips[:p.n_pending]
+        for err, log in p.flips:
+            self.flip_err, self.flip_state = err, log["state"]
+            self.flip_log.append(log)
+        msg, sat, stamp = p.msg, p.sat, self._stamp(p.t)
+        if stamp != p.stamp:
+            msg, sat, stamp = self._mag_msg(p.t, p.B, self.flip_state)
+        self.prepared_used += 1
+        self._book_mag(p.t, sat, stamp)
+        send(self, msg)
 
     def fit_imperfection(self, si) -> None:
         """Give this sensor its imperfections (``hil.imperfections.SensorImperfection``) before the
@@ -925,21 +1055,32 @@ class SensorNode(Node):
     def _send_mag(self, t: int, B, send) -> None:
         """Quantise the field ``B`` (3,) T measured at true time ``t``, stamp it on the master clock and
         send it as a MAG_PACKED (saturated beyond the range, flip state in the stamp bits)."""
+        msg, sat, stamp = self._mag_msg(t, B, self.flip_state)
+        self._book_mag(t, sat, stamp)
+        send(self, msg)
+
+    def _stamp(self, t: int) -> int:
+        # MAG_PACKED: the master time rounded to the stamp's 8 us; the receiver restores it
+        return max(0, self.master(t) + STAMP_LSB_US // 2) // STAMP_LSB_US * STAMP_LSB_US
+
+    def _mag_msg(self, t: int, B, flip_state: int):
+        """(the ``MAG_PACKED`` of ``B`` (3,) T at true time ``t`` in ``flip_state``, saturated?, its
+        stamp); books nothing."""
         m = self.mag
         sat = bool(np.any(np.abs(B) > m.range_t))
-        if sat:
-            self.saturations += 1
         lim = m.range_t / MAG_LSB_T
         counts = np.clip(np.round(B / MAG_LSB_T), -lim, lim)
-        # MAG_PACKED: the master time rounded to the stamp's 8 us; the receiver restores it
-        stamp = max(0, self.master(t) + STAMP_LSB_US // 2) // STAMP_LSB_US * STAMP_LSB_US
+        stamp = self._stamp(t)
+        return MagPacked(self.node_id, int(counts[0]), int(counts[1]), int(counts[2]),
+                         pack_stamp(stamp) | (STAMP_FLIP if flip_state > 0 else 0)
+                         | (STAMP_SATURATED if sat else 0)), sat, stamp
+
+    def _book_mag(self, t: int, sat: bool, stamp: int) -> None:
+        self.saturations += sat
         self.samples += 1
         self.stamps.append(stamp)
         self.true_times.append(t)
         self._by_stamp.setdefault(stamp, t)
-        send(self, MagPacked(self.node_id, int(counts[0]), int(counts[1]), int(counts[2]),
-                             pack_stamp(stamp) | (STAMP_FLIP if self.flip_state > 0 else 0)
-                             | (STAMP_SATURATED if sat else 0)))
 
     def _imu_sample(self, t: int, k: int, send) -> None:
         imu = self.imu

@@ -504,6 +504,7 @@ class CoilCurrent:
         self._hp_cache: dict[float, tuple[int, np.ndarray]] = {}
         self._pulse_taus: list[float | None] = []      # per pulse: its own L/R (None: tau_rise/tau_fall)
         self._ripple: tuple[list[int], list[tuple]] = ([], [])   # ripple spans: starts, (end, amp, omega, phase)
+        self._edits: list[int] = []     # per edit (a pulse, a ripple span): the first time it changes
         for p in pulses:
             self.add_pulse(*p)
 
@@ -536,6 +537,8 @@ class CoilCurrent:
         target_a = float(target_a)
         if self.max_current is not None:
             target_a = math.copysign(min(abs(target_a), self.max_current), target_a)
+        # before its start nothing changes: a pulse cuts an earlier one short at its own start
+        self._edits.append(start_us)
         taus = self._pulse_taus
         if not self._pulses or start_us >= self._pulses[-1][0] + self._pulses[-1][1]:
             self._append(start_us, duration_us, target_a, tau_s)
@@ -560,6 +563,7 @@ class CoilCurrent:
         and the flat-part ground truth see the smooth current, the field sees both
         (:meth:`hil.world.World.coil_currents`). Appended in time order."""
         rip = self._ripple
+        self._edits.append(int(start_us))
         rip[0].append(int(start_us))
         rip[1].append((int(end_us), float(amplitude_a), 2.0 * math.pi * float(freq_hz), float(phase_rad)))
 
@@ -579,6 +583,21 @@ class CoilCurrent:
 
     #: alias used by the coil-driver node
     schedule = add_pulse
+
+    @property
+    def edits(self) -> int:
+        """How many edits (pulses, ripple spans) the waveform has had: a mark for :meth:`edited_since`."""
+        return len(self._edits)
+
+    def edited_since(self, mark: int, t_us: int) -> bool:
+        """True when an edit made after the mark ``mark`` (:attr:`edits` then) changed the current
+        (or its ripple) at some time at or before ``t_us``: a value computed at the mark for a time up
+        to ``t_us`` may no longer hold. An edit changes nothing before its pulse's (span's) start."""
+        e = self._edits
+        for i in range(mark, len(e)):
+            if e[i] <= t_us:
+                return True
+        return False
 
     @property
     def tau_us(self) -> float:

@@ -261,6 +261,24 @@ class World:
         """Add an object (e.g. metal brought near by a fault at its ``t_on_us``)."""
         self.objects.append(obj)
 
+    def edit_mark(self) -> tuple:
+        """A mark of what the field depends on besides time and geometry: the objects and every
+        coil's current waveform (the driver edits them as it commits commanded pulses); see
+        :meth:`edited_since`."""
+        return (len(self.objects), *(c.edits for c in self.currents))
+
+    def edited_since(self, mark: tuple, t_us: int) -> bool:
+        """True when the field at some time at or before ``t_us`` may have changed since ``mark``
+        (:meth:`edit_mark`): an object added, or a coil current edited from a time ``<= t_us``
+        (``hil.physics.CoilCurrent.edited_since``). A field computed ahead at the mark still holds
+        otherwise: the trajectory, the earth field and the objects' own schedules are fixed."""
+        if mark[0] != len(self.objects):
+            return True
+        for c, m in zip(self.currents, mark[1:]):
+            if c.edited_since(m, t_us):
+                return True
+        return False
+
     def precompute(self, times) -> None:
         """Evaluate the pose and every coil's unit field at ``times`` (true us) in one vectorised
         call and keep them for :meth:`pose` and :meth:`field_source_frame` (a sensor node knows

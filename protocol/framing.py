@@ -203,6 +203,16 @@ class FrameEncoder:
         self.frames += 1
         return out
 
+    def encode_prepared(self, msg, seq: int, data: bytes) -> bytes:
+        """``data``, the frame of ``msg`` encoded ahead at sequence number ``seq``
+        (``encode_frame(msg, seq, src)``), counted and the number advanced as :meth:`encode` would,
+        if ``seq`` is still the next one; else ``msg`` encoded now."""
+        if seq != self.seq:
+            return self.encode(msg)
+        self.seq = (seq + 1) & 0xFF
+        self.frames += 1
+        return data
+
     def take_seq(self) -> int:
         """The sequence number of a frame built elsewhere (a signed one): returned, then advanced."""
         seq = self.seq

@@ -46,12 +46,16 @@ class FdLink(Port):
     step or a tick queued in one write (one wake-up of the reader instead of
     one a frame); the loop that owns the link calls it (``emulator_loop``
     after each step, ``firmware_loop`` after each tick). Without it every
-    write is sent at once. ``owns_fd``: :meth:`close` closes the descriptor."""
+    write is sent at once. ``urgent``: message ids whose frame, written alone, leaves at once
+    with what was queued before it (the firmware's ``POSE``: the tick's work after the report
+    does not delay it; the id is the COBS-encoded frame's sixth byte, the header's message id
+    moved by the code byte). ``owns_fd``: :meth:`close` closes the descriptor."""
 
-    def __init__(self, fd: int, coalesce: bool = False, owns_fd: bool = False):
+    def __init__(self, fd: int, coalesce: bool = False, owns_fd: bool = False, urgent=()):
         os.set_blocking(fd, False)
         self.fd = fd
         self.coalesce = coalesce
+        self.urgent = frozenset(int(i) for i in urgent)
         self.owns_fd = owns_fd
         self._pending = bytearray()
         self.bytes_tx = 0
@@ -87,7 +91,7 @@ class FdLink(Port):
             self.bytes_dropped += len(data)
             return
         self._pending += data
-        if not self.coalesce:
+        if not self.coalesce or (self.urgent and len(data) > 5 and data[5] in self.urgent):
             self.flush()
 
     def flush(self) -> None:
@@ -117,10 +121,11 @@ def is_pty_path(path) -> bool:
 def open_pty_slave(path: str) -> FdLink:
     """The slave side of a pseudo-terminal opened raw and non-blocking, as a coalescing
     :class:`FdLink` (a pty has no baud rate: pyserial's per-read ``in_waiting`` and
-    ``select`` calls buy nothing there)."""
+    ``select`` calls buy nothing there); a ``POSE`` leaves as it is written (``urgent``)."""
+    from coiltrack.protocol import MSG
     from coiltrack.protocol.interfaces.slcan import open_raw_tty
 
-    return FdLink(open_raw_tty(path), coalesce=True, owns_fd=True)
+    return FdLink(open_raw_tty(path), coalesce=True, owns_fd=True, urgent=(MSG["POSE"].ID,))
 
 
 def make_raw_pty() -> tuple[int, int, str]:

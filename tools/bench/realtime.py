@@ -280,6 +280,14 @@ PREFETCH_GUARD_US = 3_000
 #: the tty layer's flush work (a kworker of ordinary priority, which moves the written bytes to
 #: the reader) from running: the firmware then read 22 % of the samples one to three ticks late
 PREFETCH_AFTER_SEND_US = 3_000
+#: the next sample of each sensor is computed and encoded ahead (``Emulator.prepare``) once it is
+#: due within this (us), outside the PREFETCH_AFTER_SEND_US after a write like a piece, so that
+#: the step at its instant only writes its bytes (a sample step that computes its physics, noise
+#: and frame took 0.4 ms of the pose latency); computed again when a pulse committed or a flip
+#: commanded since changes it. The coil driver commits a pulse 2 ms before its start
+#: (``CoilDriverNode.commit_horizon_us``): a sample prepared earlier than that is computed
+#: twice when a pulse starts before it
+PREPARE_AHEAD_US = 6_000
 
 
 class EmulatorTiming:
@@ -294,6 +302,7 @@ class EmulatorTiming:
         self.samples = 0
         self.prefetched = 0
         self.pieces = 0
+        self.prepares = 0                   # Emulator.prepare calls that computed or encoded a sample
         self.worst_late_us = -1
         self.sched = None                   # the emulator loop's scheduling policy (EmulatorRealtime)
         self.worst_late_at_us = None        # true time of the step that sent a sample latest
@@ -344,6 +353,7 @@ class EmulatorTiming:
                 "emulator_sample_late_max_at_s": (round(self.worst_late_at_us * 1e-6, 3)
                                                   if self.worst_late_at_us is not None else None),
                 "emulator_prefetched_instants": self.prefetched, "emulator_prefetch_pieces": self.pieces,
+                "emulator_prepares": self.prepares,
                 "emulator_sched": self.sched, **({"emulator_stalls": self.stalls, "emulator_io": self.io} if self.stalls is not None else {})}
 
 
@@ -361,7 +371,9 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
     ``PREFETCH_PIECE`` instants between steps, while the next sample is more
     than ``PREFETCH_GUARD_US`` away and the last step that wrote to the link
     (``link.bytes_tx``, where it counts) is ``PREFETCH_AFTER_SEND_US`` past,
-    keeping ``ahead_us`` in hand (0: none).
+    keeping ``ahead_us`` in hand (0: none); before a piece, under the same
+    rule, the next sample of each sensor due within ``PREPARE_AHEAD_US``
+    (``emulator.prepare``), so the step at its instant only writes its bytes.
     ``wait(timeout_s)`` replaces the wait (tests pass a simulated one);
     ``timing`` (:class:`EmulatorTiming`) collects step durations and sample
     lateness.
@@ -378,6 +390,7 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
     quiet_from = 0                                      # no piece before this time (PREFETCH_AFTER_SEND_US)
     next_due = getattr(emulator, "next_due_us", None)
     prefetch = getattr(emulator, "prefetch", None) if ahead_us > 0 else None
+    prepare = getattr(emulator, "prepare", None) if ahead_us > 0 else None
     if prefetch is not None:
         # before the start: the first ahead_us of every node, in pieces (the clock runs meanwhile)
         n = 1
@@ -411,14 +424,8 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
             if t1 - now > step_us:
                 continue        # a long step: read the link again at once
             nxt = next_due() if next_due is not None else None
-            if prefetch is not None and t1 >= quiet_from and (nxt is None or nxt - t1 > PREFETCH_GUARD_US):
-                n = prefetch(t1 + ahead_us, PREFETCH_PIECE, PREFETCH_PIECE)
-                if n and timing is not None:
-                    timing.prefetched += n
-                    timing.pieces += 1
-                    timing.gap(clock.now(), "piece", clock.now() - t1)
-                if n:
-                    continue    # the piece took time: read the link again at once
+            if t1 >= quiet_from and _work_ahead(prepare, prefetch, nxt, clock, t1, ahead_us, timing):
+                continue        # it took time: read the link again at once
             if nxt is not None:
                 timeout_us = min(step_us, max(0, nxt - clock.now()))
         if timing is not None and timing.stalls is not None:
@@ -427,6 +434,26 @@ def emulator_loop(emulator, link, clock, duration_us: int, progress=None, step_u
             timing.gap(clock.now(), "wait", clock.now() - tw - timeout_us)
         else:
             wait(timeout_us * 1e-6)
+
+
+def _work_ahead(prepare, prefetch, nxt, clock, t1: int, ahead_us: int, timing) -> bool:
+    """:func:`emulator_loop`'s work between steps, outside the quiet time after a write: the
+    samples due within ``PREPARE_AHEAD_US`` computed and encoded (``prepare``), else a piece of
+    physics (``prefetch``) while the next sample ``nxt`` is more than ``PREFETCH_GUARD_US`` away.
+    True when it did some (the loop then reads the link again at once)."""
+    if prepare is not None and prepare(t1 + PREPARE_AHEAD_US):
+        if timing is not None:
+            timing.prepares += 1
+            timing.gap(clock.now(), "prepare", clock.now() - t1)
+        return True
+    if prefetch is None or (nxt is not None and nxt - t1 <= PREFETCH_GUARD_US):
+        return False
+    n = prefetch(t1 + ahead_us, PREFETCH_PIECE, PREFETCH_PIECE)
+    if n and timing is not None:
+        timing.prefetched += n
+        timing.pieces += 1
+        timing.gap(clock.now(), "piece", clock.now() - t1)
+    return bool(n)
 
 
 def _two_process_link(transport: str):
@@ -550,6 +577,9 @@ def run_pty(scenario, seed: int, duration_s: float, faults=None, progress: bool 
     rep = report_mod.build(bench, fw_stats.get("status", {}), done_s, transport=transport, cfg=cfg)
     rep.update({k: v for k, v in fw_stats.get("timing", {}).items()})
     rep.update(emu_timing.report())
+    # samples sent as the bytes prepared ahead, and those whose preparation no longer held at the instant
+    rep["emulator_samples_prepared"] = getattr(bench.emulator, "ready_sent", 0)
+    rep["emulator_samples_redone"] = sum(getattr(s, "prepared_redone", 0) for s in bench.sensors)
     rep["firmware_exit_code"] = code
     if emu_timing.stalls is not None:    # a traced run: each pose's completing sample and arrival
         from coiltrack.hil.bench import pose_latency_times
