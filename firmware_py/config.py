@@ -356,6 +356,9 @@ class AdaptiveConfig:
                                             #   pulses of one coil do not average away; 0: none
     gain_in_choice: bool = True             # with coil_gain_sigma: the chooser's eq 4 adds each gain's variance
                                             #   to R along the field (coil_choice.CoilChooser._gain_term)
+    saturation_knee: float = 0.0            # > 0: each coil's current at most where its field-model variance is this
+                                            #   many times the white one (actuate.saturation_knee: information per
+                                            #   joule 1 / (1 + knee) of the unsaturated); 0: no cap
 
     def check(self, need) -> None:
         need("actuation", self.actuation in ("fixed", "adaptive"),
@@ -372,6 +375,8 @@ class AdaptiveConfig:
              f"must be in [0, 1], got {self.unreached_share!r}")
         need("coil_gain_sigma", _fin(self.coil_gain_sigma) and 0.0 <= self.coil_gain_sigma <= 0.1,
              f"must be in [0, 0.1], got {self.coil_gain_sigma!r}")
+        need("saturation_knee", _fin(self.saturation_knee) and 0.0 <= self.saturation_knee <= 100.0,
+             f"must be in [0, 100], got {self.saturation_knee!r}")
         need("reference_settle_drop", _fin(self.reference_settle_drop) and 0.0 <= self.reference_settle_drop < 1.0,
              f"must be in [0, 1), got {self.reference_settle_drop!r}")
         need("sigma_min_pos_m", self.sigma_min_pos_m <= self.sigma_max_pos_m, "must not exceed sigma_max_pos_m")
