@@ -43,28 +43,30 @@ WARM, OWN, ACQ = "warmup", "policy", "acquisition"
 
 @contextlib.contextmanager
 def _pulse_probe(rec: list):
-    """Record every commanded pulse ``(start_us, coil, current, length_us, who, reached)``."""
+    """Record every commanded pulse ``(start_us, coil, current, length_us, who, reached, target)``
+    (``target``: the chooser's target variable, 0 position, 3 orientation; -1 for no decision)."""
     from coiltrack.firmware.actuate import single_coil_policy as scp
     from coiltrack.firmware.actuate.single_coil_pulses import PulseBook
 
-    who = [ACQ, False]
+    who = [ACQ, False, -1]
     orig_cmd, orig_fixed, orig_own = PulseBook.command, scp._SingleCoilActuation._decide_fixed, \
         scp.AdaptiveActuation._decide_command
 
     def command(self, coil, current, start, length, acq, mid_us=-1):
         out = orig_cmd(self, coil, current, start, length, acq, mid_us)
-        rec.append((int(start), int(coil), float(current), int(length), ACQ if acq else who[0], bool(who[1])))
+        rec.append((int(start), int(coil), float(current), int(length), ACQ if acq else who[0], bool(who[1]),
+                    int(who[2])))
         return out
 
     def decide_fixed(self, now_us):
-        who[0], who[1] = WARM, True
+        who[0], who[1], who[2] = WARM, True, -1
         try:
             return orig_fixed(self, now_us)
         finally:
             who[0] = ACQ
 
     def decide_command(self):
-        who[0], who[1] = OWN, bool(self.chooser.reached)
+        who[0], who[1], who[2] = OWN, bool(self.chooser.reached), int(self.chooser.target)
         try:
             return orig_own(self)
         finally:
@@ -80,13 +82,45 @@ def _pulse_probe(rec: list):
         scp.AdaptiveActuation._decide_command = orig_own
 
 
-def policy_pulses(seed: int, duration: float, keys: dict):
+@contextlib.contextmanager
+def _reference_probe(refs: list):
+    """Keep every actual-error reference made (``reference_error = "actual"``)."""
+    from coiltrack.firmware.actuate import accuracy_actual as aa
+
+    orig = aa._ActualError.__init__
+
+    def init(self, *a, **k):
+        orig(self, *a, **k)
+        refs.append(self)
+    aa._ActualError.__init__ = init
+    try:
+        yield
+    finally:
+        aa._ActualError.__init__ = orig
+
+
+def reference_state(refs: list) -> dict | None:
+    """The last actual-error reference's model-error estimate ``q`` (pulses, weight) and its means
+    against the belief's at the end of the run (position and orientation traces)."""
+    if not refs:
+        return None
+    r = refs[-1]
+    from coiltrack.firmware.estimate.layout import ORI, POS
+
+    def tr(M, b):
+        return float(M[b, b].trace())
+    return {"q": r.est.q(), "pulses": r.est.n, "weight": r.est.sxx,
+            "actual_over_belief_end": [tr(r.Pa, POS) / tr(r.P, POS), tr(r.Pa, ORI) / tr(r.P, ORI)]}
+
+
+def policy_pulses(seed: int, duration: float, keys: dict, refs: list | None = None):
     """Run the policy; its report and its pulses (a structured array)."""
     from coiltrack.tools.analyses.adaptive_consistency import run_probed
 
     rec: list = []
-    _, rep, _ = run_probed(seed, duration, False, keys, _pulse_probe(rec))
-    dt = [("t", "i8"), ("coil", "i4"), ("current", "f8"), ("length", "i8"), ("who", "U12"), ("reached", "?")]
+    refs = [] if refs is None else refs
+    _, rep, _ = run_probed(seed, duration, False, keys, _pulse_probe(rec), _reference_probe(refs))
+    dt = [("t", "i8"), ("coil", "i4"), ("current", "f8"), ("length", "i8"), ("who", "U12"), ("reached", "?"), ("target", "i4")]
     return rep, np.array(rec, dtype=dt)
 
 
@@ -161,6 +195,16 @@ def compare(model, kinds, out: dict, pulses, duration: float) -> dict:
                          "floor": float(eb_after.sum() / (after.sum() * K * unit))},
         "per_window": {"policy": ep_wk.tolist(), "floor": eb_wk.tolist(), "range_m": r.tolist()},
     }
+    # the policy's own pulses after the warm-up by target group, goal reached or not, near or far
+    near_p = near[w]
+    split = {}
+    for tname, tmask in (("position", pulses["target"] < 3), ("orientation", pulses["target"] >= 3)):
+        for rname, rmask in (("reached", pulses["reached"]), ("unreached", ~pulses["reached"])):
+            for dname, dmask in (("near", near_p), ("far", ~near_p)):
+                m = sel & tmask & rmask & dmask
+                split[f"{tname}/{rname}/{dname}"] = [int(m.sum()), float(e[m].sum() / norm),
+                                                     float(np.sqrt(np.mean(pulses["current"][m] ** 2))) if m.any() else 0.0]
+    res["policy_split"] = split
     # where the policy over-spends most: the windows after the warm-up, ranked by their gap
     gw = gap[after].sum(axis=1)
     res["gap_top_decile_share"] = float(np.sort(gw)[::-1][:max(1, len(gw) // 10)].sum() / max(gw.sum(), 1e-300))
@@ -177,6 +221,8 @@ def _print(seed: int, rep: dict, res: dict) -> None:
           f"[coils {', '.join(f'{x:.3f}' for x in g['coils_after'])}; near {g['near_after']:.3f}, far {g['far_after']:.3f}]")
     print(f"  after the warm-up, energy per window/coil-window: policy {res['energy_after']['policy']:.3f}, "
           f"floor {res['energy_after']['floor']:.3f}; policy pulses reached/unreached energy {g['reached']:.3f}/{g['unreached']:.3f}")
+    print("  policy's own pulses after the warm-up (target/goal/range: pulses, energy fraction, rms current A):")
+    print("    " + "; ".join(f"{k} {v[0]} {v[1]:.3f} {v[2]:.2f}" for k, v in res["policy_split"].items() if v[0]))
     for name, x in (("policy", pa), ("floor", fa)):
         print(f"  {name:6s}: {x['pulses_per_s']:.2f} pulses/s, rms current {x['current_rms_a']:.3f} A, length "
               f"{x['length_ms']:.1f} ms, energy by coil {', '.join(f'{c:.2f}' for c in x['coil_share'])}, pulses by coil "
@@ -224,14 +270,20 @@ def main(argv=None) -> int:
         except (OSError, ValueError, KeyError) as exc:
             print(f"adaptive_gap: --sweeps {a.sweeps}: {exc}", file=sys.stderr)
             return 2
-        rep, pulses = policy_pulses(s, a.duration, keys)
+        refs: list = []
+        rep, pulses = policy_pulses(s, a.duration, keys, refs)
         fx = fixed.get(s)
         if fx is not None and "energy_ratio" not in rep:
             rep = dict(rep, energy_ratio=rep["coil_energy_j"] / fx["fixed_coil_energy_j"],
                        position_rms_ratio=rep["position_rms_mm"] / fx["fixed_position_rms_mm"],
                        orientation_rms_ratio=rep["orientation_rms_deg"] / fx["fixed_orientation_rms_deg"])
         res = compare(model, kinds, out, pulses, a.duration)
+        res["reference"] = reference_state(refs)
         _print(s, rep, res)
+        if res["reference"]:
+            x = res["reference"]
+            print(f"  actual-error reference: q {x['q']:.3f} ({x['pulses']} pulses, weight {x['weight']:.1f}); actual/belief "
+                  f"at the end: position {x['actual_over_belief_end'][0]:.3f}, orientation {x['actual_over_belief_end'][1]:.3f}")
         res.update(seed=s, report={k: rep.get(k) for k in ("energy_ratio", "position_rms_ratio", "orientation_rms_ratio")})
         rows.append(res)
         sys.stdout.flush()
