@@ -356,6 +356,12 @@ class AdaptiveConfig:
                                             #   pulses of one coil do not average away; 0: none
     gain_in_choice: bool = True             # with coil_gain_sigma: the chooser's eq 4 adds each gain's variance
                                             #   to R along the field (coil_choice.CoilChooser._gain_term)
+    reference_error: str = "filter"         # "fixed": "filter": the fixed cycle's filter's covariance; "actual": its
+                                            #   errors' (a sensitivity covariance, the model error estimated from the
+                                            #   live filter's NIS: actuate.accuracy_actual)
+    saturation_knee: float = 0.0            # > 0: each coil's current at most where its field-model variance is this
+                                            #   many times the white one (actuate.saturation_knee: information per
+                                            #   joule 1 / (1 + knee) of the unsaturated); 0: no cap
 
     def check(self, need) -> None:
         need("actuation", self.actuation in ("fixed", "adaptive"),
@@ -372,6 +378,8 @@ class AdaptiveConfig:
              f"must be in [0, 1], got {self.unreached_share!r}")
         need("coil_gain_sigma", _fin(self.coil_gain_sigma) and 0.0 <= self.coil_gain_sigma <= 0.1,
              f"must be in [0, 0.1], got {self.coil_gain_sigma!r}")
+        need("saturation_knee", _fin(self.saturation_knee) and 0.0 <= self.saturation_knee <= 100.0,
+             f"must be in [0, 100], got {self.saturation_knee!r}")
         need("reference_settle_drop", _fin(self.reference_settle_drop) and 0.0 <= self.reference_settle_drop < 1.0,
              f"must be in [0, 1), got {self.reference_settle_drop!r}")
         need("sigma_min_pos_m", self.sigma_min_pos_m <= self.sigma_max_pos_m, "must not exceed sigma_max_pos_m")
@@ -391,6 +399,8 @@ class AdaptiveConfig:
              f"must be 'stated' or 'fixed', got {self.accuracy_target!r}")
         need("reference_hold", self.reference_hold in ("bound", "mean"),
              f"must be 'bound' or 'mean', got {self.reference_hold!r}")
+        need("reference_error", self.reference_error in ("filter", "actual"),
+             f"must be 'filter' or 'actual', got {self.reference_error!r}")
         need("bound_on", self.bound_on in ("axis", "trace"), f"must be 'axis' or 'trace', got {self.bound_on!r}")
         need("pulse_length", self.pulse_length in ("fixed", "chosen"),
              f"must be 'fixed' or 'chosen', got {self.pulse_length!r}")

@@ -203,6 +203,11 @@ class FixedCycleReference:
         compiled decision bound to them (``single_coil_policy``'s ``ct_scp_bounds``)."""
         return (self.avg, self.law, self.P), None
 
+    def note_pulse(self, nis_nominal: float, y, var) -> None:
+        """A pulse of the live filter (nominal NIS, amplitude, white variances): nothing here;
+        ``accuracy_actual`` estimates the actual model error from them."""
+        return
+
     def set_settle(self, drop: float) -> None:
         """The ``settle_drop`` of the next start (the policy's ``reference_settle_drop``)."""
         self.settle_drop = float(drop)

@@ -44,6 +44,7 @@ from coiltrack.firmware.actuate.accuracy_budget import HOLD_MAX, HOLD_MIN, MeanB
 from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, PoseCovUpdate, SingleCoilModel,
                                                     coil_chooser, current_ladder, saturation_current_limit)
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
+from coiltrack.firmware.actuate.saturation_knee import cap_at_knee
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.firmware.estimate.single_coil import SchepersEKF
 from coiltrack.protocol.schema import CURRENT_LSB_A
@@ -433,6 +434,10 @@ class AdaptiveActuation(_SingleCoilActuation):
                 lim[c] = 0.0
         ws = self._dec_ws
         self._model_at(ws)
+        # the knee of the worst-off sensor's information per joule (actuate.saturation_knee), for the
+        # shortest length's white noise (the length least energy mostly takes)
+        cap_at_knee(lim, self.pmodel.h, self._vars[0] if self.lengths.n > 1 else self._dec_var,
+                    cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a, cfg.adaptive.saturation_knee)
         self.policy.set_bounds(ws.smax6)
         self.chooser.set_bounds(ws.smax6, ws.smin6)
         self._dec_phase = 2

@@ -48,6 +48,7 @@ from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EV
 from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.actuate.accuracy import FixedCycleReference
 from coiltrack.firmware.actuate.accuracy_budget import MeanBudgetReference
+from coiltrack.firmware.actuate.accuracy_actual import actual_reference
 from coiltrack.firmware.actuate.coil_choice import SingleCoilModel
 from coiltrack.firmware.actuate.single_coil_policy import AdaptiveActuation, FixedActuation
 from coiltrack.firmware.actuate.pulse_length import PulseLengths, fixed_amplitude_variance
@@ -182,6 +183,8 @@ class SingleCoilTracker:
             # the fixed cycle of [timing], its pulses' amplitude variance and mid time
             # "mean": the same reference, holding the filter's running mean (actuate.accuracy_budget)
             kind = MeanBudgetReference if cfg.adaptive.reference_hold == "mean" else FixedCycleReference
+            if cfg.adaptive.reference_error == "actual":       # its actual error (actuate.accuracy_actual)
+                kind = actual_reference(cfg.adaptive.reference_hold)
             s.ref = kind(
                 np.array([c.current for c in cfg.source.coils]), cfg.timing.first_cycle_us, cfg.timing.cycle_us, cfg.timing.spacing_us,
                 measurement_mid_us(cfg, cfg.timing.pulse_us), fixed_amplitude_variance(cfg, cfg.timing.pulse_us),
@@ -339,6 +342,8 @@ class SingleCoilTracker:
             mon.add(ekf.nis_nominal)
             mon.add_used(ekf.nis)
             s.mon_t = now_us
+            if s.ref is not None:
+                s.ref.note_pulse(ekf.nis_nominal, m.y, m.var)
         if flags & EKF_GATED:
             s.gated += 1
             self.gated += 1
