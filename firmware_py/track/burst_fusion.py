@@ -487,10 +487,9 @@ class _OneCall:
         """:meth:`SensorInertial.process`'s loop; the samples processed. Without a source that may hold
         a sample (a fixed source) the samples both filters take whole run in the compiled loop
         (``ext.ImuSample.drain``: :meth:`one`'s tests and bookkeeping on the owners' state arrays, in
-        place; a sample whose prediction orthonormalises the orientation with its
-        ``OrientationFilter._orthonormalize`` there too), which hands back each other sample: one that
-        ``_Ori.settled`` or ``FusionFilter.live_ready`` refuse, or with no room in the output queue (where
-        :meth:`one` would call ``slow`` too), and ``slow`` runs it."""
+        place; a sample whose prediction orthonormalises the orientation, and one whose step a pending
+        snapshot splits while no replay runs, there too), which hands back each other sample (one that
+        :meth:`one`'s tests send to ``slow`` too), and ``slow`` runs it."""
         if self._ring is not mag:
             self._bind(mag)
         if self._hold is not None:
