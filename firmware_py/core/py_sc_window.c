@@ -180,8 +180,191 @@ static PyTypeObject SbType = {
     .tp_methods = Sb_methods,
 };
 
+/* ---------------------------------------------------------------- ScUpdateCore */
+/* one sensor's window update around the one-call update (SingleCoilTracker._update's window_prior
+ * and window_after): its filter's covariance, position and clones' positions, its NIS monitor's
+ * arrays and constants (track.single_coil_nis.CompiledNisMonitor), its magnetometer ring (bind_quiet),
+ * the linearisation flag w[0] (1.0: the last prior's NIS tests the linear model) */
+enum { SU_P, SU_POS, SU_CLONES, SU_BUF, SU_BOUND, SU_ST, SU_W, SU_HC, SU_B, SU_N };
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_nis mon;
+    const double *P, *p, *clone_p, *qb;
+    const int64_t *qhc;
+    double *w;
+    int64_t nP, pos, n_clones, qcap;
+    double lin2, rel2, tol_a, earth, quiet_sigma;
+    int quiet, linear;
+    Py_buffer views[SU_N];
+    int held[SU_N];
+} SuObject;
+
+static void Su_release(SuObject *self)
+{
+    int i;
+    for (i = 0; i < SU_N; ++i)
+        if (self->held[i]) {
+            PyBuffer_Release(&self->views[i]);
+            self->held[i] = 0;
+        }
+    self->quiet = 0;
+}
+
+static void Su_dealloc(SuObject *self)
+{
+    Su_release(self);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int Su_bind(SuObject *self, int i, PyObject *o, Py_ssize_t n, const char *formats, int writable,
+                   const char *what)
+{
+    if (ct_py_buffer(o, n, 8, formats, writable, &self->views[i], what) < 0)
+        return -1;
+    self->held[i] = 1;
+    return 0;
+}
+
+/* ScUpdateCore(P, nP, pos, p, clone_p, buf, bound, st, window, min_count, dof, min_mean, max_scale,
+ * excess_gate, alpha, lin2, rel2, tol_a, w) */
+static int Su_init(SuObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"P", "nP", "pos", "p", "clone_p", "buf", "bound", "st", "window", "min_count", "dof",
+                             "min_mean", "max_scale", "excess_gate", "alpha", "lin2", "rel2", "tol_a", "w", NULL};
+    PyObject *P, *p, *cp, *buf, *bound, *st, *w;
+    long long nP, pos;
+    struct ct_nis *m = &self->mon;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OLLOOOOOiiddddddddO", kwlist, &P, &nP, &pos, &p, &cp, &buf, &bound,
+                                     &st, &m->window, &m->min_count, &m->dof, &m->min_mean, &m->max_scale,
+                                     &m->excess_gate, &m->alpha, &self->lin2, &self->rel2, &self->tol_a, &w))
+        return -1;
+    if (self->held[SU_P]) {
+        PyErr_SetString(PyExc_RuntimeError, "ScUpdateCore: already bound");
+        return -1;
+    }
+    if (nP < 3 || pos < 0 || pos + 3 > nP || m->window < 1 || m->min_count < 1 || m->min_count > m->window ||
+        !(m->dof > 0.0)) {
+        PyErr_SetString(PyExc_ValueError, "ScUpdateCore: need 0 <= pos <= nP - 3, 1 <= min_count <= window, dof > 0");
+        return -1;
+    }
+    if (Su_bind(self, SU_P, P, (Py_ssize_t)(nP * nP), "d", 0, "P") < 0 || Su_bind(self, SU_POS, p, 3, "d", 0, "p") < 0 ||
+        Su_bind(self, SU_CLONES, cp, 0, "d", 0, "clone_p") < 0 ||
+        Su_bind(self, SU_BUF, buf, m->window, "d", 1, "buf") < 0 ||
+        Su_bind(self, SU_BOUND, bound, m->window + 1, "d", 0, "bound") < 0 ||
+        Su_bind(self, SU_ST, st, CT_NIS_NST, "d", 1, "st") < 0 || Su_bind(self, SU_W, w, 1, "d", 1, "w") < 0) {
+        Su_release(self);
+        return -1;
+    }
+    self->nP = nP;
+    self->pos = pos;
+    self->P = (const double *)self->views[SU_P].buf;
+    self->p = (const double *)self->views[SU_POS].buf;
+    self->clone_p = (const double *)self->views[SU_CLONES].buf;
+    self->n_clones = (int64_t)(self->views[SU_CLONES].len / 24);
+    m->buf = (double *)self->views[SU_BUF].buf;
+    m->bound = (const double *)self->views[SU_BOUND].buf;
+    m->st = (double *)self->views[SU_ST].buf;
+    self->w = (double *)self->views[SU_W].buf;
+    return 0;
+}
+
+static int Su_ready(SuObject *self, const char *name, Py_ssize_t nargs, Py_ssize_t want)
+{
+    if (!self->held[SU_P]) {
+        PyErr_SetString(PyExc_RuntimeError, "ScUpdateCore: not bound");
+        return -1;
+    }
+    return ct_py_nargs(name, nargs, want);
+}
+
+/* bind_quiet(hc, b, earth, quiet_sigma): the sensor's magnetometer ring (hc int64 (2,): head, count;
+ * b float64 (cap, 3)) whose newest sample gives the consistency's quiet term; once */
+static PyObject *Su_bind_quiet(SuObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (Su_ready(self, "bind_quiet", nargs, 4) < 0)
+        return NULL;
+    if (self->quiet) {
+        PyErr_SetString(PyExc_RuntimeError, "ScUpdateCore.bind_quiet: a ring bound already");
+        return NULL;
+    }
+    if (ct_py_double(args[2], &self->earth) < 0 || ct_py_double(args[3], &self->quiet_sigma) < 0)
+        return NULL;
+    if (Su_bind(self, SU_HC, args[0], 2, "ql", 0, "hc") < 0)
+        return NULL;
+    if (Su_bind(self, SU_B, args[1], 3, "d", 0, "b") < 0) {
+        PyBuffer_Release(&self->views[SU_HC]);
+        self->held[SU_HC] = 0;
+        return NULL;
+    }
+    self->qhc = (const int64_t *)self->views[SU_HC].buf;
+    self->qb = (const double *)self->views[SU_B].buf;
+    self->qcap = (int64_t)(self->views[SU_B].len / 24);
+    self->quiet = 1;
+    Py_RETURN_NONE;
+}
+
+/* prior(k, current): rel (a float), w[0] the linearisation flag; k the clone (-1: the state) */
+static PyObject *Su_prior(SuObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k;
+    double current, rel;
+    const double *p;
+    if (Su_ready(self, "prior", nargs, 2) < 0 || ct_py_int64(args[0], &k) < 0 || ct_py_double(args[1], &current) < 0)
+        return NULL;
+    if (k >= self->n_clones) {
+        PyErr_SetString(PyExc_IndexError, "prior: no such clone");
+        return NULL;
+    }
+    p = k >= 0 ? self->clone_p + 3 * k : self->p;
+    rel = ct_scw_prior(self->P, self->nP, self->pos, p, self->lin2, self->rel2, self->tol_a, current, &self->linear);
+    self->w[0] = self->linear ? 1.0 : 0.0;
+    return PyFloat_FromDouble(rel);
+}
+
+/* after(nis_nominal, nis): the consistency x (a float); the monitor's add and add_used when the last
+ * prior was linear */
+static PyObject *Su_after(SuObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double nn, nis;
+    if (Su_ready(self, "after", nargs, 2) < 0 || ct_py_double(args[0], &nn) < 0 || ct_py_double(args[1], &nis) < 0)
+        return NULL;
+    return PyFloat_FromDouble(ct_scw_after(&self->mon, self->qhc, self->qb, self->qcap, self->quiet, self->earth,
+                                           self->quiet_sigma, nn, nis, self->linear));
+}
+
+static PyMethodDef Su_methods[] = {
+    {"bind_quiet", (PyCFunction)(void (*)(void))Su_bind_quiet, METH_FASTCALL,
+     "bind_quiet(hc, b, earth, quiet_sigma): the sensor's magnetometer ring for the quiet term, once"},
+    {"prior", (PyCFunction)(void (*)(void))Su_prior, METH_FASTCALL,
+     "prior(k, current) -> rel: window_prior (ct_scw_prior), the linearisation flag into w[0]"},
+    {"after", (PyCFunction)(void (*)(void))Su_after, METH_FASTCALL,
+     "after(nis_nominal, nis) -> x: window_after (ct_scw_after)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SuType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.ScUpdateCore",
+    .tp_basicsize = sizeof(SuObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "ScUpdateCore(P, nP, pos, p, clone_p, buf, bound, st, window, min_count, dof, min_mean, max_scale, "
+              "excess_gate, alpha, lin2, rel2, tol_a, w): one sensor's single-coil window update around its "
+              "one-call update (track.single_coil_tracker window_prior, window_after)",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)Su_init,
+    .tp_dealloc = (destructor)Su_dealloc,
+    .tp_methods = Su_methods,
+};
+
 int ct_register_sc_window(PyObject *m)
 {
+    if (PyType_Ready(&SuType) < 0)
+        return -1;
+    Py_INCREF(&SuType);
+    if (PyModule_AddObject(m, "ScUpdateCore", (PyObject *)&SuType) < 0) {
+        Py_DECREF(&SuType);
+        return -1;
+    }
     if (PyType_Ready(&SbType) < 0)
         return -1;
     Py_INCREF(&SbType);

@@ -37,8 +37,6 @@ array (``tests/adaptive/test_bench_adaptive.py`` counts).
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from coiltrack.protocol.schema import (COIL_FAULT_CURRENT_SAG, CURRENT_LSB_A, EVT_DISTORTION,
@@ -62,6 +60,7 @@ from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
 from coiltrack.firmware.track.single_coil_nis import nis_monitor
 from coiltrack.firmware.track.single_coil_sensor import SensorTrack
+from coiltrack.firmware.track.single_coil_window import update_core, window_after, window_prior
 from coiltrack.firmware.track.status import COIL_FATAL as _FATAL, input_status
 #: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
 _EVT_NIS = 1 << 8
@@ -170,6 +169,10 @@ class SingleCoilTracker:
         # its position and its clones' (read as floats: the same products as on numpy's scalars)
         self._pv = {s.index: (memoryview(s.ekf.p), memoryview(s.ekf.clone_p)) for s in self._sens}
         self._forget_us = a.nis_forget_us
+        # the update's prior and after-steps, one compiled call each (track.single_coil_window;
+        # None: the reference's steps)
+        self._uc = {s.index: update_core(self.core.ext, s, self.quality, self._lin2, self._rel2, self._tol_a)
+                    for s in self._sens}
 
     def _sensor(self, k: int, tr, schedule: str) -> SensorTrack:
         """One sensor's filter, monitor and (``accuracy_target = "fixed"``) the fixed cycle's
@@ -312,35 +315,32 @@ class SingleCoilTracker:
         # unstable (once the state is biased, the consistent-looking coil is the disturbed one)
         mon = s.monitor
         tr = s.track
-        # the NIS tests the model only where the linearisation holds: the prior position
-        # std small against the range
-        P = self._Pf[s.index]
-        d = self._nP + 1
-        b = POS.start * d
-        sp2 = max(P[b], P[b + d], P[b + 2 * d])
+        # the NIS tests the model only where the linearisation holds (the prior position std
+        # small against the range); the relative errors of the predicted field: the model, and
+        # the current (single_coil_window.window_prior; compiled: one call)
+        uc = self._uc[s.index]
         k = sl.clone
-        p, cp = self._pv[s.index]
-        if k >= 0:
-            x, y, z = cp[k, 0], cp[k, 1], cp[k, 2]
+        if uc is None:
+            p, cp = self._pv[s.index]
+            linear, rel = window_prior(self._Pf[s.index], self._nP, p, cp, k, self._lin2, self._rel2, self._tol_a,
+                                       current)
         else:
-            x, y, z = p[0], p[1], p[2]
-        r2 = x * x + y * y + z * z
-        linear = sp2 < self._lin2 * r2
-        # relative errors of the predicted field: the model, and the current
-        rc = self._tol_a / max(abs(current), 1e-6)
-        rel = math.sqrt(self._rel2 + rc * rc)
+            rel = uc[0].prior(k, current)
         # once the monitor has judged the pulses inconsistent, the inflated covariance is the
         # protection: gating them as well would reject them all and leave the state to the IMU
         m = s.meas.set(tr.amp, self.sharing.channel_variance(s.index, tr.amp_var, tr.infov), sl.coil, current, rel, mon.r_scale,
                        not mon.inconsistent)
-        flags = ekf.update_pulse(sl.clone, m, self.model)
+        flags = ekf.update_pulse(k, m, self.model)
         if flags & (EKF_NOT_PD | EKF_NONFINITE):
             self.unusable += 1
             return
-        self.q_x[s.node] = self.quality.consistency(s.node, 0.0, ekf.nis / 3.0)
+        # the consistency term, and the monitor's record where linear (window_after)
+        if uc is None:
+            self.q_x[s.node] = window_after(self.quality, s.node, mon, ekf.nis_nominal, ekf.nis, linear)
+        else:
+            self.q_x[s.node] = uc[0].after(ekf.nis_nominal, ekf.nis)
+            linear = uc[1][0] != 0.0
         if linear:
-            mon.add(ekf.nis_nominal)
-            mon.add_used(ekf.nis)
             s.mon_t = now_us
             if s.ref is not None:
                 s.ref.note_pulse(ekf.nis_nominal, m.y, m.var)

@@ -36,6 +36,25 @@ double ct_sb_shared_variance(const int64_t *si, const double *sf, int64_t n_used
                              int64_t last_us);
 void ct_sb_variance(const int64_t *si, const double *sf, const double *amp_var, const int64_t *info, double *var);
 
+/* The single-coil window update's Python around the one-call update (track/single_coil_tracker.py,
+ * SingleCoilTracker._update and its reference helpers window_prior, window_after).
+ *
+ * ct_scw_prior: the prior's test of the NIS's linearisation and the measurement's relative error.
+ * P the filter's covariance (nP x nP, row-major), pos the first position row, p the position the
+ * update linearises at (the clone's or the state's, 3); sp2 = max of P's three position variances
+ * (Python's max: the first of equal values), linear = sp2 < lin2 |p|^2; returns
+ * rel = sqrt(rel2 + (tol_a / max(|current|, 1e-6))^2) and *linear. */
+double ct_scw_prior(const double *P, int64_t nP, int64_t pos, const double *p, double lin2, double rel2,
+                    double tol_a, double current, int *linear);
+
+/* ct_scw_after: PoseQuality.consistency(node, 0.0, nis / 3.0) with the quality's fit term 0 (no
+ * residual freedom: dof 0) and its quiet term of the sensor's magnetometer ring (ct_report_quiet;
+ * have_quiet 0: the term off, 0.0), returned; then, when linear, the NIS monitor's add(nis_nominal)
+ * and add_used(nis) (ct_nis_add, ct_nis_add_used), in the reference's order. */
+struct ct_nis;
+double ct_scw_after(struct ct_nis *mon, const int64_t *hc, const double *b, int64_t cap, int have_quiet,
+                    double earth, double quiet_sigma, double nis_nominal, double nis, int linear);
+
 #ifdef __cplusplus
 }
 #endif

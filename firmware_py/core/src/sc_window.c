@@ -3,7 +3,9 @@
  * span_overlap and SharedBaselines (before_after, close, shared_variance, variance), operation by
  * operation (include/ct_sc_window.h).
  */
-#include "ct_sc_window.h"
+#include <math.h>
+
+#include "coiltrack_core.h"
 
 /* span_overlap: the fraction of [a0, a1] covered by [b0, b1] (0 for an empty [a0, a1]) */
 double ct_span_overlap(int64_t a0, int64_t a1, int64_t b0, int64_t b1)
@@ -146,4 +148,38 @@ void ct_sb_variance(const int64_t *si, const double *sf, const double *amp_var, 
     var[0] = amp_var[0] + extra;
     var[1] = amp_var[1] + extra;
     var[2] = amp_var[2] + extra;
+}
+
+/* SingleCoilTracker._update's prior (window_prior): whether the NIS tests the linearised model (the
+ * largest prior position variance small against the squared range) and the predicted field's
+ * relative error (the model's and the current's) */
+double ct_scw_prior(const double *P, int64_t nP, int64_t pos, const double *p, double lin2, double rel2,
+                    double tol_a, double current, int *linear)
+{
+    int64_t d = nP + 1, b = pos * d;
+    double sp2 = P[b], x = p[0], y = p[1], z = p[2], r2, a, rc;
+    if (P[b + d] > sp2)
+        sp2 = P[b + d];
+    if (P[b + 2 * d] > sp2)
+        sp2 = P[b + 2 * d];
+    r2 = x * x + y * y + z * z;
+    *linear = sp2 < lin2 * r2;
+    a = fabs(current);
+    if (1e-6 > a)
+        a = 1e-6;
+    rc = tol_a / a;
+    return sqrt(rel2 + rc * rc);
+}
+
+/* the update's consistency term and the NIS monitor's record of it (window_after) */
+double ct_scw_after(struct ct_nis *mon, const int64_t *hc, const double *b, int64_t cap, int have_quiet,
+                    double earth, double quiet_sigma, double nis_nominal, double nis, int linear)
+{
+    double q = have_quiet ? ct_report_quiet(hc, b, cap, earth, quiet_sigma) : 0.0;
+    double x = 0.0 + nis / 3.0 + q;
+    if (linear) {
+        ct_nis_add(mon, nis_nominal);
+        ct_nis_add_used(mon, nis);
+    }
+    return x;
 }
