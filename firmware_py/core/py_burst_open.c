@@ -223,8 +223,8 @@ static PyTypeObject SchedulesType = {
     .tp_name = "coiltrack.firmware._core.Schedules",
     .tp_basicsize = sizeof(SchedulesObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "Schedules(tr, sq): each sensor's reference instant (int64, 1) and its fusion snapshot's sq (int64, 3: "
-              "t, pending, valid), one tuple item per sensor, bound once",
+    .tp_doc = "Schedules(tr, sq): each sensor's reference instant (int64, 1) and its fusion snapshot's sq (int64, at least 3: "
+              "t, pending, valid first), one tuple item per sensor, bound once",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)Schedules_init,
     .tp_dealloc = (destructor)Schedules_dealloc,
@@ -233,17 +233,5 @@ static PyTypeObject SchedulesType = {
 
 int ct_register_burst_open(PyObject *m)
 {
-    if (PyType_Ready(&NewBurstsType) < 0 || PyType_Ready(&SchedulesType) < 0)
-        return -1;
-    Py_INCREF(&NewBurstsType);
-    if (PyModule_AddObject(m, "NewBursts", (PyObject *)&NewBurstsType) < 0) {
-        Py_DECREF(&NewBurstsType);
-        return -1;
-    }
-    Py_INCREF(&SchedulesType);
-    if (PyModule_AddObject(m, "Schedules", (PyObject *)&SchedulesType) < 0) {
-        Py_DECREF(&SchedulesType);
-        return -1;
-    }
-    return 0;
+    return ct_py_add_type(m, &NewBurstsType, "NewBursts") < 0 || ct_py_add_type(m, &SchedulesType, "Schedules") < 0 ? -1 : 0;
 }

@@ -1779,26 +1779,14 @@ static PyMethodDef ImuPush_methods[] = {
 FUS_TYPE(ImuPush, "ImuPush", "ImuPush(t, d, hc, st, acc_lsb, gyr_lsb): measure.imu.ImuRing.push bound to a ring")
 
 /* --------------------------------------------------------------- register */
-static int fus_add(PyObject *m, PyTypeObject *t, const char *name)
-{
-    if (PyType_Ready(t) < 0)
-        return -1;
-    Py_INCREF(t);
-    if (PyModule_AddObject(m, name, (PyObject *)t) < 0) {
-        Py_DECREF(t);
-        return -1;
-    }
-    return 0;
-}
-
 int ct_register_fusimu(PyObject *m)
 {
-    if (fus_add(m, &FusPredType, "FusPred") < 0 || fus_add(m, &FusRowType, "FusRow") < 0 ||
-        fus_add(m, &FusOutputType, "FusOutput") < 0 || fus_add(m, &OriPredType, "OriPred") < 0 ||
-        fus_add(m, &OriUpdType, "OriUpd") < 0 ||
-        fus_add(m, &FusLiveType, "FusLive") < 0 || fus_add(m, &QuietSampleType, "QuietSample") < 0 ||
-        fus_add(m, &OriStepType, "OriStep") < 0 ||
-        fus_add(m, &ImuSampleType, "ImuSample") < 0 || fus_add(m, &ImuPushType, "ImuPush") < 0)
+    if (ct_py_add_type(m, &FusPredType, "FusPred") < 0 || ct_py_add_type(m, &FusRowType, "FusRow") < 0 ||
+        ct_py_add_type(m, &FusOutputType, "FusOutput") < 0 || ct_py_add_type(m, &OriPredType, "OriPred") < 0 ||
+        ct_py_add_type(m, &OriUpdType, "OriUpd") < 0 ||
+        ct_py_add_type(m, &FusLiveType, "FusLive") < 0 || ct_py_add_type(m, &QuietSampleType, "QuietSample") < 0 ||
+        ct_py_add_type(m, &OriStepType, "OriStep") < 0 ||
+        ct_py_add_type(m, &ImuSampleType, "ImuSample") < 0 || ct_py_add_type(m, &ImuPushType, "ImuPush") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||

@@ -17,6 +17,19 @@
 /* the struct-module character of a buffer's items, its byte-order prefix ('@', '=', '<': native
  * on the little-endian hosts the extension builds for) skipped; "B" where the exporter gives none
  * (PEP 3118: unsigned bytes) */
+/* Ready type t and add it to module m as `name`: 0, or -1 with the exception set (nothing held). */
+static inline int ct_py_add_type(PyObject *m, PyTypeObject *t, const char *name)
+{
+    if (PyType_Ready(t) < 0)
+        return -1;
+    Py_INCREF(t);
+    if (PyModule_AddObject(m, name, (PyObject *)t) < 0) {
+        Py_DECREF(t);
+        return -1;
+    }
+    return 0;
+}
+
 static inline const char *ct_py_format(const Py_buffer *v)
 {
     const char *f = v->format;

@@ -595,27 +595,9 @@ static PyTypeObject WindowRunType = {
 
 int ct_register_multi(PyObject *m)
 {
-    if (PyModule_AddFunctions(m, multi_functions) < 0 || PyType_Ready(&WindowColumnType) < 0)
+    if (PyModule_AddFunctions(m, multi_functions) < 0 || ct_py_add_type(m, &WindowColumnType, "WindowColumn") < 0 ||
+        ct_py_add_type(m, &SamplePushType, "SamplePush") < 0 || ct_py_add_type(m, &WindowRunType, "WindowRun") < 0)
         return -1;
-    Py_INCREF(&WindowColumnType);
-    if (PyModule_AddObject(m, "WindowColumn", (PyObject *)&WindowColumnType) < 0) {
-        Py_DECREF(&WindowColumnType);
-        return -1;
-    }
-    if (PyType_Ready(&SamplePushType) < 0)
-        return -1;
-    Py_INCREF(&SamplePushType);
-    if (PyModule_AddObject(m, "SamplePush", (PyObject *)&SamplePushType) < 0) {
-        Py_DECREF(&SamplePushType);
-        return -1;
-    }
-    if (PyType_Ready(&WindowRunType) < 0)
-        return -1;
-    Py_INCREF(&WindowRunType);
-    if (PyModule_AddObject(m, "WindowRun", (PyObject *)&WindowRunType) < 0) {
-        Py_DECREF(&WindowRunType);
-        return -1;
-    }
     if (PyModule_AddIntConstant(m, "WINDOW_ID", CT_WINDOW_ID) < 0 ||
         PyModule_AddIntConstant(m, "WINDOW_PAYLOAD", CT_WINDOW_PAYLOAD) < 0 ||
         PyModule_AddIntConstant(m, "WINDOW_CRC_EXTRA", CT_WINDOW_CRC_EXTRA) < 0 ||

@@ -358,20 +358,8 @@ static PyTypeObject SuType = {
 
 int ct_register_sc_window(PyObject *m)
 {
-    if (PyType_Ready(&SuType) < 0)
+    if (ct_py_add_type(m, &SuType, "ScUpdateCore") < 0 || ct_py_add_type(m, &SbType, "SharedBaselinesCore") < 0)
         return -1;
-    Py_INCREF(&SuType);
-    if (PyModule_AddObject(m, "ScUpdateCore", (PyObject *)&SuType) < 0) {
-        Py_DECREF(&SuType);
-        return -1;
-    }
-    if (PyType_Ready(&SbType) < 0)
-        return -1;
-    Py_INCREF(&SbType);
-    if (PyModule_AddObject(m, "SharedBaselinesCore", (PyObject *)&SbType) < 0) {
-        Py_DECREF(&SbType);
-        return -1;
-    }
     if (PyModule_AddIntConstant(m, "SB_NI", CT_SB_NI) < 0 || PyModule_AddIntConstant(m, "SB_NF", CT_SB_NF) < 0 ||
         PyModule_AddIntConstant(m, "SB_MAXCH", SB_MAXCH) < 0)
         return -1;
