@@ -16,6 +16,34 @@ from coiltrack.tools.bench.links import inproc_pair
 from coiltrack.tools.bench.runner import BenchSetup
 
 
+def flag_inside_step(node) -> list:
+    """Wrap ``node.step``; the returned one-item list is True while the node's step runs (what
+    a sampling-path probe counts)."""
+    inside = [False]
+    real_step = node.step
+
+    def step(now_us, send):
+        inside[0] = True
+        try:
+            real_step(now_us, send)
+        finally:
+            inside[0] = False
+    node.step = step
+    return inside
+
+
+def capture_writes(end) -> bytearray:
+    """Wrap ``end.write`` so every byte written is also kept in the returned bytearray."""
+    sent = bytearray()
+    real_write = end.write
+
+    def write(data):
+        sent.extend(data)
+        real_write(data)
+    end.write = write
+    return sent
+
+
 def run_bench(scenario="static", seed=1, duration_s=10.0, faults="", cfg=None, setup=None, scenario_obj=None):
     """Run firmware and emulator in one process; return bench, firmware, config and the report.
 

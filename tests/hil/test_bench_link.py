@@ -28,6 +28,8 @@ from coiltrack.tools.bench.realtime import (AHEAD_US, PREFETCH_AFTER_SEND_US, PR
 from coiltrack.tools.bench.runner import BenchSetup
 from coiltrack.tools.scenarios import get
 
+from .conftest import capture_writes, flag_inside_step
+
 
 def _run_inproc(prefetch: bool, duration_us: int = 2_500_000):
     """Firmware and emulator on the simulated clock (as ``tools.bench.runner``), returning every byte
@@ -39,8 +41,7 @@ def _run_inproc(prefetch: bool, duration_us: int = 2_500_000):
     fw = Firmware(cfg, fw_end)
     sensor, world, emu = bench.sensor, bench.sensor.world, bench.emulator
     on_path = {"precompute": 0, "pose": 0}
-    inside = [False]
-    real_pre, real_pose, real_step = world.precompute, world.trajectory.pose, sensor.step
+    real_pre, real_pose = world.precompute, world.trajectory.pose
 
     def precompute(times):
         on_path["precompute"] += inside[0]
@@ -49,21 +50,9 @@ def _run_inproc(prefetch: bool, duration_us: int = 2_500_000):
     def pose(t):
         on_path["pose"] += inside[0] and np.ndim(t) == 0      # the uncached field read
         return real_pose(t)
-
-    def step(now_us, send):
-        inside[0] = True
-        try:
-            real_step(now_us, send)
-        finally:
-            inside[0] = False
-    world.precompute, world.trajectory.pose, sensor.step = precompute, pose, step
-    sent = bytearray()
-    real_write = emu_end.write
-
-    def write(data):
-        sent.extend(data)
-        real_write(data)
-    emu_end.write = write
+    world.precompute, world.trajectory.pose = precompute, pose
+    inside = flag_inside_step(sensor)
+    sent = capture_writes(emu_end)
     if prefetch:
         while emu.prefetch(AHEAD_US, 256):
             pass

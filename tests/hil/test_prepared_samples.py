@@ -25,6 +25,8 @@ from coiltrack.tools.bench.realtime import PREFETCH_AFTER_SEND_US, PREPARE_AHEAD
 from coiltrack.tools.bench.runner import BenchSetup
 from coiltrack.tools.scenarios import get
 
+from .conftest import capture_writes, flag_inside_step
+
 
 def _run(mode: str | None, faults: str | None = None, duration_us: int = 2_000_000, seed: int = 3):
     """Firmware and emulator on the simulated clock; ``mode``: None (no preparation), ``"each"``
@@ -39,8 +41,7 @@ def _run(mode: str | None, faults: str | None = None, duration_us: int = 2_000_0
     fw = Firmware(cfg, fw_end)
     sensor, emu = bench.sensor, bench.emulator
     on_path = {"field": 0, "encode": 0}
-    inside = [False]
-    real_field, real_step = sensor.world.field_sensor_frame, sensor.step
+    real_field = sensor.world.field_sensor_frame
     enc = emu.encoders[sensor.node_id]
     real_encode = enc.encode
 
@@ -51,21 +52,9 @@ def _run(mode: str | None, faults: str | None = None, duration_us: int = 2_000_0
     def encode(msg):
         on_path["encode"] += inside[0] and msg.NAME == "MAG_PACKED"
         return real_encode(msg)
-
-    def step(now_us, send):
-        inside[0] = True
-        try:
-            real_step(now_us, send)
-        finally:
-            inside[0] = False
-    sensor.world.field_sensor_frame, sensor.step, enc.encode = field, step, encode
-    sent = bytearray()
-    real_write = emu_end.write
-
-    def write(data):
-        sent.extend(data)
-        real_write(data)
-    emu_end.write = write
+    sensor.world.field_sensor_frame, enc.encode = field, encode
+    inside = flag_inside_step(sensor)
+    sent = capture_writes(emu_end)
     t = 0
     while t <= duration_us:
         emu.step(t)
