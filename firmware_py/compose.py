@@ -140,7 +140,8 @@ def _bursts(kind: type) -> Callable[[Parts], Pipeline]:
         burst = BurstMeasurement(p.channels, p.schedule, p.closer, cfg.budget.windows_budget)
         t = kind(cfg, p.coils, p.channels, p.schedule, burst, p.supervisor, p.tx,
                  solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
-        return Pipeline(BurstActuation(cfg, p.schedule, p.channels, t, p.core).step, burst.step, t.step, t)
+        act = BurstActuation(cfg, p.schedule, p.channels, t, p.core, burst)
+        return Pipeline(act.step, act.measure, t.step, t)     # measure: a burst refused late is dropped first
 
     return build
 

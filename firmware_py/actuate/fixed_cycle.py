@@ -52,6 +52,14 @@ class FixedCycle:
             self.skip_late(now_us)
         self._retime()
 
+    def abandon(self, now_us: int) -> None:
+        """Give up the rest of the current cycle (its burst was dropped): the next command is the
+        next cycle's first, skipping any cycle whose first command time has passed."""
+        if self.coil:
+            self.coil = 0
+            self.cycle_start += self.cycle_us
+        self.skip_late(now_us)
+
     def skip_late(self, now_us: int) -> None:
         """Skip whole cycles whose first command time has passed."""
         if self.coil:

@@ -14,7 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from coiltrack.protocol.schema import BUS_START_LSB_US, CURRENT_LSB_A, EVT_COIL_FAULT, PULSE_ID_MASK
+from coiltrack.protocol.schema import (BUS_START_LSB_US, COIL_FAULT_LATE, COIL_FAULT_REFUSED, CURRENT_LSB_A,
+                                       EVT_COIL_FAULT, PULSE_ID_MASK)
+
+#: the driver's answer to a command that arrived after its start (``docs/protocol.md``, "Refusals")
+REFUSED_LATE = COIL_FAULT_REFUSED | COIL_FAULT_LATE
 
 
 class PulseSchedule:
@@ -42,6 +46,7 @@ class PulseSchedule:
         self.commanded = 0             # pulses commanded since the burst opened
         self.pulses = 0
         self.energy_j = 0.0            # sum of I^2 R t over the commanded pulses (J)
+        self.late_refusals = 0         # latest pulses the driver refused as late (REFUSED | LATE)
 
     def open_burst(self, start_us: int, end_us: int) -> None:
         self.burst_start = start_us
@@ -83,6 +88,8 @@ class PulseSchedule:
         self._fv[c] = msg.faults
         if msg.faults:
             self.tx.event(EVT_COIL_FAULT, (c << 8) | msg.faults)
+            if msg.faults & REFUSED_LATE == REFUSED_LATE:
+                self.late_refusals += 1
         if msg.end_us > msg.start_us:      # the driver reports the actual edges on the master clock
             self.start[c] = msg.start_us
             self.end[c] = msg.end_us
@@ -98,6 +105,11 @@ class PulseSchedule:
             self.start[j] = start_us
             self.end[j] = others_end_us if j < n - 1 else end_us
             self._mv[j] = currents[j]
+
+    def refused_late(self, coil: int) -> bool:
+        """Whether the driver refused ``coil``'s latest pulse as late (its command arrived after
+        the pulse's start less the driver's minimum lead)."""
+        return int(self.faults[coil]) & REFUSED_LATE == REFUSED_LATE
 
     def any_faults(self) -> int:
         f = 0
