@@ -55,13 +55,23 @@ def bench_pulse_rule(s: Session, d: int, sn: int) -> None:
                                               f"COIL_STATUS faults {st.msg.faults:#04x}"))
             continue
         t0, t1 = cmd.start_us, cmd.start_us + dur
-        t, B, flip = bench_samples(s, sn, t0 - 35_000, t1 + 38_000)
+        # quiet since the previous pulse's fall (earlier rules' pulses and this rule's)
+        quiet_from = max((r.msg.end_us for r in s.log[:mark] if r.msg.NAME == "COIL_STATUS"
+                          and r.msg.end_us < t0), default=t0 - 35_000) + o.fall_us
+        lo = min(t0 - 35_000, quiet_from)
+        t, B, flip = bench_samples(s, sn, lo, t1 + 38_000)
         pre = (t >= t0 - 35_000) & (t <= t0 - 2_000)
         post = t >= t1 + o.fall_us
-        # the set/reset offset changes sign with the flip bit: one quiet baseline per flip state
+        # the set/reset offset changes sign with the flip bit: one quiet baseline per flip state.
+        # A node that flips every few samples can hold one state over the whole window and the other
+        # over both quiet spans (a 60 ms window, a flip every 66.7 ms): that state's baseline is then
+        # taken from its quiet samples before the pulse, back to the previous pulse's fall
+        earlier = (t >= quiet_from) & (t <= t0 - 2_000)
         base = np.zeros_like(B)
         for f in (0, 1):
             q = (pre | post) & (flip == f)
+            if not q.any():
+                q = earlier & (flip == f)
             base[flip == f] = B[q].mean(axis=0) if q.any() else np.nan
         keep = ~np.isnan(base[:, 0])
         t, B, base, pre, post = t[keep], B[keep], base[keep], pre[keep], post[keep]

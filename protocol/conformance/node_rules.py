@@ -119,12 +119,41 @@ def signing_rules(s: Session, n: int) -> None:
              "; ".join(problems) if problems else "replayed frame and stale timestamp ignored", n)
 
 
+#: a node's first this many TIME_SYNC replies may step its clock (docs/protocol.md, "slew, do not
+#: step"; ``hil.clock.NodeSync.acquire``): its stamps are judged after them
+ACQUIRE_REPLIES = 4
+
+
+def acquire(s: Session, n: int) -> int | None:
+    """Broadcast ``TIME_SYNC`` until node ``n`` has answered ``ACQUIRE_REPLIES`` broadcasts (one at a
+    time, each waited for up to ``answer_timeout_s``); returns the log index just after its
+    ``ACQUIRE_REPLIES``-th reply, or None when it stops answering. While it acquires a node may step
+    its clock by as much as its first broadcast was late (a loaded link: 100 ms and more), and a
+    compact stamp that far behind the receiver's clock is restored a wrap too far
+    (``protocol.schema.unwrap_stamp``): its stamps are judged after acquisition."""
+    def replies():
+        return [i for i, rx in enumerate(s.log) if rx.src == n and rx.msg.NAME == "TIME_SYNC_REPLY"]
+
+    got = replies()
+    while len(got) < ACQUIRE_REPLIES:
+        mark = len(s.log)
+        seq = s.next_sync_seq()
+        s.send(MSG["TIME_SYNC"](s.master_us(), seq))
+        if s.wait_for(lambda rx: rx.src == n and rx.msg.NAME == "TIME_SYNC_REPLY" and rx.msg.sync_seq == seq,
+                      s.o.answer_timeout_s, mark) is None:
+            return None
+        got = replies()
+    return got[ACQUIRE_REPLIES - 1] + 1
+
+
 def sensor_rules(s: Session, n: int) -> None:
     o = s.o
-    # samples after the node synchronised (before, its stamps may be on its own clock)
-    synced_at = next((r.t for r in s.log if r.src == n and r.msg.NAME == "TIME_SYNC_REPLY"), None)
-    mags = [rx for rx in s.log if rx.src == n and rx.msg.NAME == "MAG_SAMPLE"
-            and (synced_at is None or rx.t > synced_at)]
+    # samples after the node acquired the master's time (before, its stamps may be on its own clock,
+    # or step: ``acquire``); observed for ``observe_s`` from then
+    after = acquire(s, n)
+    if after is not None:
+        s.run_for(o.observe_s)
+    mags = [rx for rx in s.log[after or 0:] if rx.src == n and rx.msg.NAME == "MAG_SAMPLE"]
     if len(mags) < 3:
         s.add("mag_stream", FAIL, f"{len(mags)} MAG_SAMPLE in {o.observe_s:g} s", n)
         s.add("mag_timestamps", SKIP, "too few samples", n)
