@@ -268,3 +268,31 @@ def test_firmware_loop_trace_records_each_ticks_gap_sleeps_and_stages(tmp_path):
     plain = _ScriptedFirmware(SimClock(0), [10] * 4)
     firmware_loop(plain, plain.clock, 4_000, 1000, spin_us=0)
     assert len(plain.ticks) == 4
+
+
+def test_firmware_loop_polls_only_the_last_spin_us_before_a_slot():
+    """The loop sleeps until ``SPIN_US`` (50 us) before each slot and polls the clock for the rest: a
+    SCHED_FIFO loop polling its CPU keeps the tty's flush work off it (with 200 us, 84-87 % of the
+    writes made in the last 200 us before a tick were read a tick late; docs/bench-realtime.md).
+    On a clock that moves 5 us a reading, each gap after a 10 us tick is one sleep of
+    1000 - 10 - 10 - 50 us asked, then 50 us of polls, and every tick starts on its slot;
+    catches a spin back at 200 us (780 us asked), or none."""
+    from coiltrack.tools.bench.realtime import SPIN_US
+
+    class Ticking(SimClock):
+        def now(self):
+            self.now_us += 5
+            return self.now_us
+
+    clock = Ticking(0)
+    naps = []
+
+    def sleep(s):
+        naps.append(int(round(s * 1e6)))
+        clock.now_us += naps[-1]
+    fw = _ScriptedFirmware(clock, [10] * 8)
+    out = firmware_loop(fw, clock, 6_000, 1000, sleep=sleep)
+    assert SPIN_US == 50
+    assert fw.ticks == [1000, 2000, 3000, 4000, 5000] and out["deadline_misses"] == 0
+    # after each 10 us tick and two readings (10 us), one sleep to 50 us before the next slot
+    assert naps[1:] == [1000 - 10 - 10 - SPIN_US] * (len(naps) - 1)

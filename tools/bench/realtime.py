@@ -56,6 +56,14 @@ CHILD_START_NS = 3_000_000_000
 FIRMWARE_RT_PRIORITY = 30
 EMULATOR_RT_PRIORITY = 20
 _MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
+#: the firmware loop sleeps until this long before each tick's slot and polls the clock for the rest.
+#: A SCHED_FIFO loop polling its CPU keeps the kernel's tty flush work (a kworker of ordinary
+#: priority, which moves the bytes written to a pty or a serial port to the reader) off that CPU
+#: until the tick has run: with 200 us, 84-87 % of the emulator's writes made in the last 200 us
+#: before a tick were read a tick late (2-7 % of the others); the loop's sleeps end 22 us late at
+#: the median, 35 us at p90, 64 us at p99 (traced, ``docs/bench-realtime.md``), so 50 us keeps
+#: nearly every tick on its slot and leaves the CPU to the flush work for all but ~50 us
+SPIN_US = 50
 
 
 def _lock_memory() -> bool:
@@ -178,11 +186,11 @@ class EmulatorRealtime:
             gc.enable()
 
 
-def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us: int = 200,
+def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us: int = SPIN_US,
                   max_records: int = 600_000, after_tick=None, trace=None) -> dict:
     """Run ``fw.tick`` every ``tick_us`` of ``clock`` until ``duration_us``.
 
-    Sleeps until ``spin_us`` before each slot, then polls the clock (the
+    Sleeps until ``spin_us`` (:data:`SPIN_US`) before each slot, then polls the clock (the
     sleep's wake-up latency does not become jitter); with a simulated clock,
     which only moves when slept, pass ``spin_us=0``. Measures period jitter,
     lateness, execution time and deadline misses (a tick that starts a whole
