@@ -28,7 +28,8 @@ sensor (role 2)
     ``mag_stream`` MAG_SAMPLE (or protocol v2's MAG_PACKED, its time restored
     on arrival) at the expected rate (from its time stamps and
     from arrival times, within ``rate_tolerance``); ``mag_timestamps``
-    strictly increasing ``t_us``; ``mag_grid`` every interval between
+    strictly increasing ``t_us``, both over ``observe_s`` of samples after the node's
+    acquisition (its first four TIME_SYNC replies; ``node_rules.acquire``); ``mag_grid`` every interval between
     consecutive stamps within ``grid_tolerance_us`` (400 us, the firmware's
     ``stamp_interval_tol_us``) of a whole number of periods while every other
     broadcast is written ``late_sync_us`` behind, as a frame that arrived

@@ -26,7 +26,7 @@ RULES = {
     "forged_rejected": "a pulse command signed with another key is not executed",
     "replay_rejected": "a replayed or not-newer signed command is not executed",
     "mag_stream": "MAG_SAMPLE streamed at the expected rate",
-    "mag_timestamps": "MAG_SAMPLE t_us strictly increasing",
+    "mag_timestamps": "MAG_SAMPLE t_us strictly increasing (after the node acquired the master time)",
     "survives_garbage": "node still answers after garbage and corrupted frames",
     "config_get": "CONFIG_GET answered with CONFIG_ACK (optional)",
     "discovered": "a node first heard after discovery (its rules were not run)",
