@@ -280,17 +280,18 @@ class SingleCoilTracker:
         if sag:
             current = sl.measured
         fatal = bool(sl.faults & _FATAL) or (sl.status and sl.measured == 0.0)
-        health = self.supervisor.health
-        t0 = sl.start - self._pre_us
-        t1 = sl.end + self._post_us
-        driver_suspect = health.suspect(self._driver, t0, t1)       # (the same for every sensor)
+        either = self.supervisor.health.suspect_either
+        start, end, driver = sl.start, sl.end, self._driver
+        t0 = start - self._pre_us
+        t1 = end + self._post_us
         lead = self._lead_us      # adaptive: a pulse not yet commanded may start this soon
-        self.sharing.close(sl.start, sl.end, next_start(self.book.slots, sl),
+        self.sharing.close(start, end, next_start(self.book.slots, sl),
                            max(self.book.next_free_us, now_us + lead) if lead >= 0 else -1)
+        close = self.closer.close_one
         for s in self._sens:
             tr = s.track
-            flags = self.closer.close_one(tr, sl.coil, sl.pid, sl.start, sl.end)
-            suspect = health.suspect(tr.node, t0, t1) or driver_suspect
+            flags = close(tr, sl.coil, sl.pid, start, end)
+            suspect = either(tr.node, driver, t0, t1)         # its clock or the driver's (Health.suspect)
             if sl.acq:
                 self.acquisition.record(s, sl.coil, tr.amp, tr.amp_var,
                                         flags | (PULSE_TOO_FEW if (fatal or suspect) else 0), current)
