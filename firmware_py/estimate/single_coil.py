@@ -176,6 +176,27 @@ class SchepersEKF:
         if core.ext is not None:
             self._bind_compiled(core.ext)
 
+    def _set_nis_nominal(self, v: float) -> None:
+        self._ustv[0] = v
+
+    def _set_nis(self, v: float) -> None:
+        self._ustv[1] = v
+
+    def _set_rejected(self, v: int) -> None:
+        self._ucntv[0] = v
+
+    def _set_updates(self, v: int) -> None:
+        self._ucntv[1] = v
+
+    #: the last update's first-pass NIS with ``r_scale = 1`` (for the monitor)
+    nis_nominal = property(lambda self: self._ustv[0], _set_nis_nominal)
+    #: the last update's NIS, the one gated
+    nis = property(lambda self: self._ustv[1], _set_nis)
+    #: updates rejected (gated or failed)
+    rejected = property(lambda self: self._ucntv[0], _set_rejected)
+    #: updates applied
+    updates = property(lambda self: self._ucntv[1], _set_updates)
+
     def _bind_compiled(self, ext) -> None:
         """Bind the compiled kernels (``core/src/single_coil.c``) in place of the reference
         methods of the same contract, once; the dynamics only where this class's are run."""
@@ -202,6 +223,13 @@ class SchepersEKF:
         self._P_diag = self.P.reshape(-1)[::nx + 1]   # writable strided view
         self.initialized = False
         self.t_us: int | None = None
+        # the last update's nominal and used NIS, and the updates rejected and applied: in arrays a
+        # compiled window update bound once writes in place (track.single_coil_window.window_update),
+        # read and written through the properties below under these names
+        self.ust = np.zeros(2)
+        self.ucnt = np.zeros(2, dtype=np.int64)
+        self._ustv = memoryview(self.ust)
+        self._ucntv = memoryview(self.ucnt)
         self.updates = 0
         self.rejected = 0
         # last inputs (offsets removed), for prediction ahead
