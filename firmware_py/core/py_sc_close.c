@@ -9,7 +9,9 @@
  *   (py_sc_close.h); run(k, coil, current) is SingleCoilTracker._update's window_prior, channel_variance,
  *   SchepersEKF.update_pulse (with SingleCoilUpdate._run_fused's bookkeeping) and window_after in one
  *   call, the same kernels in the same order.
- * Both METH_FASTCALL; they read their arguments in place (no Python object created but the result).
+ * - symmetrize(P, T) (src/fusimu.c ct_symmetrize: T a copy of P, P[i][j] = (T[i][j] + T[j][i]) * 0.5, numpy's
+ *   np.add(T, T.T, out=P), np.multiply(P, 0.5, out=P)): estimate.ekf.symmetrize.
+ * All METH_FASTCALL; they read their arguments in place (no Python object created but the result).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -301,9 +303,49 @@ static PyTypeObject WuType = {
     .tp_methods = Wu_methods,
 };
 
+/* ------------------------------------------------------------- symmetrize */
+/* symmetrize(P, T) -> bool: estimate.ekf.symmetrize on two C-contiguous n x n float64 arrays; False
+ * (nothing done) for arrays it cannot take, which the caller then gives to the reference */
+static PyObject *py_symmetrize(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer pv, tv;
+    const int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE;
+    int ok;
+    (void)mod;
+    if (ct_py_nargs("symmetrize", nargs, 2) < 0)
+        return NULL;
+    if (PyObject_GetBuffer(args[0], &pv, flags) < 0) {
+        PyErr_Clear();
+        Py_RETURN_FALSE;
+    }
+    if (PyObject_GetBuffer(args[1], &tv, flags) < 0) {
+        PyErr_Clear();
+        PyBuffer_Release(&pv);
+        Py_RETURN_FALSE;
+    }
+    ok = pv.ndim == 2 && tv.ndim == 2 && pv.itemsize == 8 && tv.itemsize == 8 && pv.format != NULL &&
+         tv.format != NULL && pv.format[0] == 'd' && pv.format[1] == 0 && tv.format[0] == 'd' && tv.format[1] == 0 &&
+         pv.shape[0] == pv.shape[1] && tv.shape[0] == pv.shape[0] && tv.shape[1] == pv.shape[0] && pv.buf != tv.buf &&
+         pv.shape[0] <= 4096;
+    if (ok)
+        ct_symmetrize((int)pv.shape[0], (double *)pv.buf, (double *)tv.buf);
+    PyBuffer_Release(&tv);
+    PyBuffer_Release(&pv);
+    if (ok)
+        Py_RETURN_TRUE;
+    Py_RETURN_FALSE;
+}
+
+static PyMethodDef sc_close_functions[] = {
+    {"symmetrize", (PyCFunction)(void (*)(void))py_symmetrize, METH_FASTCALL,
+     "symmetrize(P, T) -> bool: estimate.ekf.symmetrize (P = (P + P^T) / 2 through T); False for arrays it cannot "
+     "take (not both C-contiguous square float64 of one size, or the same memory)"},
+    {NULL, NULL, 0, NULL}};
+
 int ct_register_sc_close(PyObject *m)
 {
-    if (ct_py_add_type(m, &SuspectSpanType, "SuspectSpan") < 0 || ct_py_add_type(m, &WuType, "ScWindowUpdate") < 0)
+    if (ct_py_add_type(m, &SuspectSpanType, "SuspectSpan") < 0 || ct_py_add_type(m, &WuType, "ScWindowUpdate") < 0 ||
+        PyModule_AddFunctions(m, sc_close_functions) < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "WU_NOUT", WU_NOUT) < 0)
         return -1;

@@ -31,3 +31,4 @@ int ct_scc_suspect_either(const struct ct_sup *s, int64_t node, int64_t other, i
 {
     return ct_scc_suspect(s, node, t0, t1) || ct_scc_suspect(s, other, t0, t1);
 }
+

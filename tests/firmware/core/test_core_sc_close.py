@@ -353,3 +353,36 @@ def test_the_edge_cases_from_one_state(monkeypatch):
     assert (u2, c2[0], g2) == (u1, c1[0] + 1, g1 + 1) and b2 & POSE_INCONSISTENT   # far: gated
     assert (c3[1], g3, u3) == (c2[1] + 1, g2, u2)                          # inconsistent: not gated, applied
     assert c4[0] + c4[1] == c3[0] + c3[1] + 1 and u4 == u3                 # untaken: the reference's update
+
+
+# ------------------------------------------------------------------ the periodic symmetrisation
+def test_the_compiled_symmetrize_is_the_reference_and_refuses_what_it_cannot_take():
+    """``ext.symmetrize`` (``KalmanUpdate``'s every 16th update on the compiled core) against
+    ``estimate.ekf.symmetrize`` on seeded matrices of 1..30 rows with infinities and NaNs: P and the
+    scratch to the bit, and equal to numpy's ``(A + A.T) / 2`` (the independent reference). Arrays it
+    cannot take (not square, not of one size, not contiguous, not float64, one array twice) are
+    left alone and refused with False, so the caller runs the reference. Catches a transposed
+    index, the scratch not a copy, a row stride taken from the wrong array."""
+    from coiltrack.firmware.estimate.ekf import KalmanUpdate, symmetrize
+    sym = COMPILED.ext.symmetrize
+    rng = np.random.default_rng(35)
+    for n in list(range(1, 31)) + [24] * 5:
+        A = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-8, 8, size=(n, n))
+        if n > 3:
+            A[1, 2], A[2, 1], A[0, n - 1] = np.inf, np.nan, -np.inf
+        B, C = A.copy(), A.copy()
+        T, T2 = np.zeros((n, n)), np.zeros((n, n))
+        assert sym(B, T) is True
+        symmetrize(C, T2, T2.T, np.full((), 0.5))
+        np.testing.assert_array_equal(B, C)
+        np.testing.assert_array_equal(T, T2)
+        np.testing.assert_array_equal(B, (A + A.T) / 2)
+    P = np.arange(16.0).reshape(4, 4)
+    for args in ((P, np.zeros((4, 5))), (np.zeros((3, 4)), np.zeros((3, 4))), (np.zeros((8, 8))[::2, ::2], P),
+                 (P, P), (P.astype(np.float32), np.zeros((4, 4), np.float32)), (P, np.zeros(16))):
+        before = [a.copy() for a in args]
+        assert sym(*args) is False
+        for a, b in zip(args, before):
+            np.testing.assert_array_equal(a, b)
+    ku = KalmanUpdate(6, 3, 0.99, COMPILED)
+    assert ku._sym is sym
