@@ -148,6 +148,33 @@ def test_the_compiled_close_one_is_the_reference_on_every_kind_of_window():
     assert kinds == {0, 1, 2, 3, 4} and capped > 0 and flags_seen == 31, (kinds, capped, flags_seen)
 
 
+def test_the_compiled_readiness_is_the_reference():
+    """``WindowCloser.ready`` on the compiled core (``ext.WindowsReady``) against the reference on the
+    same channels and the Python core's, before any sample, as the channels' samples come in one by
+    one (each channel its own latest time), on the exact edge (a sample at ``end + fall + baseline``
+    is not after it) and past the timeout. Catches a channel skipped, the edge taken as ready, the
+    timeout's sum short of a term."""
+    cfg = FirmwareConfig().with_(link={"sensor_ids": (16, 17, 18)}).validate()
+    _, chs_c, cc = _closer(COMPILED, cfg)
+    _, chs_p, cp = _closer(core.PYTHON, cfg)
+    assert cc.ready.__func__ is WindowCloser._ready_compiled
+    after = cfg.pulse.fall_us + cfg.pulse.baseline_us
+    rng = np.random.default_rng(36)
+    seen = set()
+    for step in range(600):
+        end = int(rng.integers(0, 400_000))
+        for now in (end, end + after + 100_000, end + after + 100_001, end + int(rng.integers(0, 300_000))):
+            got = cc.ready(end - 30_000, end, now)
+            assert got == WindowCloser.ready(cc, end - 30_000, end, now) == cp.ready(end - 30_000, end, now)
+            seen.add(got)
+        k = int(rng.integers(0, 3))
+        t = max(int(chs_c[k].ring.latest_t_us) + 1, end + after + int(rng.integers(-2, 2)), 0)
+        for chs in (chs_c, chs_p):
+            chs[k].push(_Sample(t, 1, 2, 3, 0), 1e-8)
+    assert seen == {True, False}
+    assert cc.ready(0, 1 << 62, 0) == WindowCloser.ready(cc, 0, 1 << 62, 0)      # the reference's range
+
+
 # ------------------------------------------------------------------ the suspect span
 def _firmware(name: str = "schepers-adaptive"):
     sc = scenarios.get(name)
