@@ -301,6 +301,17 @@ class _WindowColumn:
 
     column_kernel = property(lambda self: getattr(self, "_colk", None))   # ext.WindowColumn (bind_column) or None
 
+    def _set_n_used(self, v: int) -> None:
+        self._iresv[1] = v
+
+    def _set_n_rec(self, v: int) -> None:
+        self._iresv[3] = v
+
+    #: used in-pulse samples of the last extract (in ``_ires``, where the compiled kernels leave them)
+    _n_used = property(lambda self: self._iresv[1], _set_n_used)
+    #: of which timestamps recorded (<= max_samples)
+    _n_rec = property(lambda self: self._iresv[3], _set_n_rec)
+
 
 class PulseExtractor(_WindowColumn):
     """Extract pulse amplitudes from a :class:`SampleRing` (see module docstring).
@@ -361,17 +372,6 @@ class PulseExtractor(_WindowColumn):
             self.core = "python"
             if core.ext is not None:
                 self._bind_compiled(core.ext)
-
-    def _set_n_used(self, v: int) -> None:
-        self._iresv[1] = v
-
-    def _set_n_rec(self, v: int) -> None:
-        self._iresv[3] = v
-
-    #: used in-pulse samples of the last extract
-    _n_used = property(lambda self: self._iresv[1], _set_n_used)
-    #: of which timestamps recorded (<= max_samples)
-    _n_rec = property(lambda self: self._iresv[3], _set_n_rec)
 
     def _bind_compiled(self, ext) -> None:
         """Run :meth:`extract` on ``ct_pulse_extract``: the kernel bound once to the ring's
