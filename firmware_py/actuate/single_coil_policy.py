@@ -224,7 +224,7 @@ class _SingleCoilActuation:
             nxt = self.cycle.start_us()
             if nxt - cfg.pulse.baseline_us - 2 * cfg.pulse.guard_us < t0 + fl.min_gap_us:
                 return
-        fl.plan(now_us, t0, t0 + fl.min_gap_us, self.tx.send)
+        fl.plan(now_us, t0, t0 + fl.min_gap_us, self.tx.send, self.tx.mag_flip)
         at = fl.last_at_us
         book.hold_until(at + cfg.pulse.baseline_us + cfg.pulse.guard_us + cfg.pulse.guard_us)
         book.note_flip(now_us)

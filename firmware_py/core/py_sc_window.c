@@ -11,6 +11,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_sc_close.h"
 
 /* the most sensor channels bind_channels takes */
 #define SB_MAXCH 64
@@ -364,4 +365,50 @@ int ct_register_sc_window(PyObject *m)
         PyModule_AddIntConstant(m, "SB_MAXCH", SB_MAXCH) < 0)
         return -1;
     return 0;
+}
+
+/* ------------------------------------------------- for py_sc_close.c (py_sc_close.h) */
+int ct_py_scw_ready(PyObject *o)
+{
+    return PyObject_TypeCheck(o, &SuType) && ((SuObject *)o)->held[SU_P];
+}
+
+int64_t ct_py_scw_clones(PyObject *o)
+{
+    return ((SuObject *)o)->n_clones;
+}
+
+double ct_py_scw_prior(PyObject *o, int64_t k, double current)
+{
+    SuObject *self = (SuObject *)o;
+    const double *p = k >= 0 ? self->clone_p + 3 * k : self->p;
+    double rel = ct_scw_prior(self->P, self->nP, self->pos, p, self->lin2, self->rel2, self->tol_a, current,
+                              &self->linear);
+    self->w[0] = self->linear ? 1.0 : 0.0;
+    return rel;
+}
+
+double ct_py_scw_after(PyObject *o, double nis_nominal, double nis, int *linear)
+{
+    SuObject *self = (SuObject *)o;
+    *linear = self->linear;
+    return ct_scw_after(&self->mon, self->qhc, self->qb, self->qcap, self->quiet, self->earth, self->quiet_sigma,
+                        nis_nominal, nis, self->linear);
+}
+
+const double *ct_py_scw_monitor_state(PyObject *o)
+{
+    return ((SuObject *)o)->mon.st;
+}
+
+int ct_py_sb_channels(PyObject *o)
+{
+    return PyObject_TypeCheck(o, &SbType) && ((SbObject *)o)->nviews >= 3 ? ((SbObject *)o)->nch : -1;
+}
+
+const double *ct_py_sb_variance(PyObject *o, int64_t k)
+{
+    SbObject *self = (SbObject *)o;
+    ct_sb_variance(self->si, self->sf, self->amp_var[k], self->info[k], self->var);
+    return self->var;
 }

@@ -12,6 +12,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_sc_close.h"
 
 /* ------------------------------------------------------------------ buffers */
 static int sc_is_format(const Py_buffer *v, char want, Py_ssize_t itemsize)
@@ -800,17 +801,62 @@ static int su_kalman(SCUpdateObject *self, double *P, double gate, long long *co
     return flags;
 }
 
+/* SCUpdate_run's work on its values: the model's evaluations, the passes, the shared update's (rs:
+ * the counts, the NISs, the evaluations); p, R the linearisation pose (copied: the passes may move
+ * the clone they are read from), y, var the amplitude and its variances; m's current, rel_model,
+ * r_scale, gain and gain_current set by the caller; the flags of the first pass */
+static int su_run(SCUpdateObject *self, double *P, const double *p0, const double *R0, long cp, long co, long coil,
+                  const double *y0, const double *var0, struct ct_scm *m, double gate, long iters, long long count)
+{
+    double p[3], R[9], y[3], var[3], nis;
+    int flags, f, it;
+    memcpy(p, p0, sizeof p);
+    memcpy(R, R0, sizeof R);
+    memcpy(y, y0, sizeof y);
+    memcpy(var, var0, sizeof var);
+    m->y = y;
+    m->var = var;
+    m->h = self->h + 3 * coil;
+    m->Hu = self->H + 18 * coil;
+    m->centre = self->centres + 3 * coil;
+    memset(self->rs, 0, SU_RS_N * sizeof(double));
+    su_evaluate(self, p, R);
+    ct_scu_begin(&self->u, P, p, R, (int)cp, (int)co, m);
+    flags = su_kalman(self, P, gate, &count, &nis);
+    self->rs[SU_RS_NIS] = nis;
+    self->rs[SU_RS_NIS_LAST] = nis;
+    if (!(flags & (CT_EKF_GATED | CT_EKF_NOT_PD | CT_EKF_NONFINITE))) {
+        f = flags;
+        it = 0;
+        /* the later passes' model: no amplitude variances, no noise terms (SCUpdate_again) */
+        while (ct_scu_after(&self->u, it, f, (int)iters, P, p, R, (int)cp, (int)co, var)) {
+            struct ct_scm ma = *m;
+            ++it;
+            su_evaluate(self, self->u.pi, self->u.Ri);
+            ma.var = NULL;
+            ma.rel_model = 0.0;
+            ma.r_scale = 1.0;
+            ma.centre = NULL;
+            ct_scu_predict(&self->u, &ma);
+            ct_scu_pass(&self->u, it, P, (int)cp, (int)co, &ma);
+            f = su_kalman(self, P, HUGE_VAL, &count, &nis);
+            self->rs[SU_RS_NIS_LAST] = nis;
+        }
+    }
+    return flags;
+}
+
 /* run(P, p, R, cp, co, coil, y, var, current, rel_model, r_scale, gate, iterations, count[, gain,
  * gain_current]) -> flags: SingleCoilUpdate._run_compiled in one call (the model's evaluations, the
  * passes, the shared update's); rs: the counts, the NISs, the evaluations */
 static PyObject *SCUpdate_run(SCUpdateObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer pv;
-    double p[3], R[9], y[3], var[3], gate, nis;
+    double p[3], R[9], y[3], var[3], gate;
     long cp, co, coil, iters;
     long long count;
     struct ct_scm m;
-    int flags, f, it;
+    int flags;
     if (su_ready(self) < 0 || sc_nargs("run", nargs, nargs == 16 ? 16 : 14) < 0)
         return NULL;
     if (!self->nrviews) {
@@ -830,35 +876,7 @@ static PyObject *SCUpdate_run(SCUpdateObject *self, PyObject *const *args, Py_ss
         return NULL;
     if (sc_doubles(args[0], (Py_ssize_t)self->u.nx * self->u.nx, 1, &pv, "P") < 0)
         return NULL;
-    m.y = y;
-    m.var = var;
-    m.h = self->h + 3 * coil;
-    m.Hu = self->H + 18 * coil;
-    m.centre = self->centres + 3 * coil;
-    memset(self->rs, 0, SU_RS_N * sizeof(double));
-    su_evaluate(self, p, R);
-    ct_scu_begin(&self->u, (double *)pv.buf, p, R, (int)cp, (int)co, &m);
-    flags = su_kalman(self, (double *)pv.buf, gate, &count, &nis);
-    self->rs[SU_RS_NIS] = nis;
-    self->rs[SU_RS_NIS_LAST] = nis;
-    if (!(flags & (CT_EKF_GATED | CT_EKF_NOT_PD | CT_EKF_NONFINITE))) {
-        f = flags;
-        it = 0;
-        /* the later passes' model: no amplitude variances, no noise terms (SCUpdate_again) */
-        while (ct_scu_after(&self->u, it, f, (int)iters, (double *)pv.buf, p, R, (int)cp, (int)co, var)) {
-            struct ct_scm ma = m;
-            ++it;
-            su_evaluate(self, self->u.pi, self->u.Ri);
-            ma.var = NULL;
-            ma.rel_model = 0.0;
-            ma.r_scale = 1.0;
-            ma.centre = NULL;
-            ct_scu_predict(&self->u, &ma);
-            ct_scu_pass(&self->u, it, (double *)pv.buf, (int)cp, (int)co, &ma);
-            f = su_kalman(self, (double *)pv.buf, HUGE_VAL, &count, &nis);
-            self->rs[SU_RS_NIS_LAST] = nis;
-        }
-    }
+    flags = su_run(self, (double *)pv.buf, p, R, cp, co, coil, y, var, &m, gate, iters, count);
     PyBuffer_Release(&pv);
     return PyLong_FromLong(flags);
 }
@@ -1856,4 +1874,46 @@ int ct_register_single_coil(PyObject *m)
         PyModule_AddIntConstant(m, "SC_RS_N", SU_RS_N) < 0)
         return -1;
     return 0;
+}
+
+/* ------------------------------------------------- for py_sc_close.c (py_sc_close.h) */
+struct ct_sc *ct_py_sc_state(PyObject *o)
+{
+    if (!PyObject_TypeCheck(o, &SchepersCoreType) || !((SchepersCoreObject *)o)->nviews)
+        return NULL;
+    return &((SchepersCoreObject *)o)->s;
+}
+
+int ct_py_scu_ready(PyObject *o, int nx)
+{
+    SCUpdateObject *u = (SCUpdateObject *)o;
+    return PyObject_TypeCheck(o, &SCUpdateType) && u->nviews && u->nrviews && u->u.nx == nx;
+}
+
+int ct_py_scu_run(PyObject *o, double *P, const double *p, const double *R, long cp, long co, long coil,
+                  const double *y, const double *var, double current, double rel_model, double r_scale, double gate,
+                  long iters, long long count, struct ct_py_scu_out *out)
+{
+    SCUpdateObject *u = (SCUpdateObject *)o;
+    struct ct_scm m;
+    int flags;
+    m.current = current;
+    m.rel_model = rel_model;
+    m.r_scale = r_scale;
+    m.gain = -1;
+    m.gain_current = 0.0;
+    flags = su_run(u, P, p, R, cp, co, coil, y, var, &m, gate, iters, count);
+    out->applied = (int64_t)u->rs[SU_RS_APPLIED];
+    out->rejected = (int64_t)u->rs[SU_RS_REJECTED];
+    out->nis = u->rs[SU_RS_NIS];
+    out->nis_last = u->rs[SU_RS_NIS_LAST];
+    out->evals = u->rs[SU_RS_EVALS];
+    out->nis_nominal = u->u.st[CT_SCU_NIS_NOMINAL];
+    out->dx = u->u.dx;
+    return flags;
+}
+
+int ct_py_scu_coils(PyObject *o)
+{
+    return ((SCUpdateObject *)o)->ncoils;
 }

@@ -122,6 +122,7 @@ class KalmanUpdate:
             self._L = np.zeros((m, m))
             self._M = np.zeros((m, m))
             self._ck = ext.KUpdate(n, m, *self.buffers())
+            self._sym = ext.symmetrize           # symmetrize's (core/src/sc_close.c): the same bits
             self.update = self._update_compiled
             self.core = "compiled"
 
@@ -151,7 +152,7 @@ class KalmanUpdate:
             self.rejected += 1
             return flags
         self.count += 1
-        if self.count % SYMMETRIZE_EVERY == 0:
+        if self.count % SYMMETRIZE_EVERY == 0 and not self._sym(P, self._T):
             symmetrize(P, self._T, self._Tt, self._half)
         return EKF_OK
 

@@ -106,7 +106,41 @@ _GRAVITY = (0.0, 0.0, -9.81)
 N_CORE = CORE.stop
 
 
-class SchepersEKF:
+class _UpdateCounts:
+    """The last update's nominal and used NIS and the updates rejected and applied of a
+    :class:`SchepersEKF`, in arrays (``ust``, ``ucnt``) a compiled window update bound once writes in
+    place (``track.single_coil_window.window_update``), read and written through properties under
+    the attributes' names."""
+
+    def _alloc_counts(self) -> None:
+        self.ust = np.zeros(2)
+        self.ucnt = np.zeros(2, dtype=np.int64)
+        self._ustv = memoryview(self.ust)
+        self._ucntv = memoryview(self.ucnt)
+
+    def _set_nis_nominal(self, v: float) -> None:
+        self._ustv[0] = v
+
+    def _set_nis(self, v: float) -> None:
+        self._ustv[1] = v
+
+    def _set_rejected(self, v: int) -> None:
+        self._ucntv[0] = v
+
+    def _set_updates(self, v: int) -> None:
+        self._ucntv[1] = v
+
+    #: the last update's first-pass NIS with ``r_scale = 1`` (for the monitor)
+    nis_nominal = property(lambda self: self._ustv[0], _set_nis_nominal)
+    #: the last update's NIS, the one gated
+    nis = property(lambda self: self._ustv[1], _set_nis)
+    #: updates rejected (gated or failed)
+    rejected = property(lambda self: self._ucntv[0], _set_rejected)
+    #: updates applied
+    updates = property(lambda self: self._ucntv[1], _set_updates)
+
+
+class SchepersEKF(_UpdateCounts):
     """Inertial error-state EKF taking one coil's pulse at a time.
 
     Parameters
@@ -202,8 +236,7 @@ class SchepersEKF:
         self._P_diag = self.P.reshape(-1)[::nx + 1]   # writable strided view
         self.initialized = False
         self.t_us: int | None = None
-        self.updates = 0
-        self.rejected = 0
+        self._alloc_counts()
         # last inputs (offsets removed), for prediction ahead
         self.f = np.zeros(3)
         self.w = np.zeros(3)

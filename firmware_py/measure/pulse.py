@@ -291,19 +291,26 @@ class _WindowColumn:
             return None
         if not (-_T_FAR < start < _T_FAR and -_T_FAR < end < _T_FAR):
             return None
-        flags = self._ring.close_with(self._colk, start, end, coil)
-        self.column_closed()
-        return flags
+        return self._ring.close_with(self._colk, start, end, coil)
 
     def column_closed(self) -> None:
         """The bound column kernel closed a window (:meth:`extract_column`, or a run of channels'
-        windows in one call: ``measure.windows.WindowCloser.close_run``): its counts of used
-        samples, from the kernel's results, as :meth:`extract` keeps them."""
-        ir = self._iresv
-        self._n_used = ir[1]
-        self._n_rec = ir[3]
+        windows in one call: ``measure.windows.WindowCloser.close_run``): nothing left to do, its
+        counts of used samples (``_n_used``, ``_n_rec``) are the kernel's results in ``_ires``."""
+        return
 
     column_kernel = property(lambda self: getattr(self, "_colk", None))   # ext.WindowColumn (bind_column) or None
+
+    def _set_n_used(self, v: int) -> None:
+        self._iresv[1] = v
+
+    def _set_n_rec(self, v: int) -> None:
+        self._iresv[3] = v
+
+    #: used in-pulse samples of the last extract (in ``_ires``, where the compiled kernels leave them)
+    _n_used = property(lambda self: self._iresv[1], _set_n_used)
+    #: of which timestamps recorded (<= max_samples)
+    _n_rec = property(lambda self: self._iresv[3], _set_n_rec)
 
 
 class PulseExtractor(_WindowColumn):
@@ -351,8 +358,11 @@ class PulseExtractor(_WindowColumn):
         self._used_tv = memoryview(self._used_t)
         self._emp_var = np.full(3, np.inf)
         self._emp_vv = memoryview(self._emp_var)
-        self._n_used = 0        # used in-pulse samples of the last extract
-        self._n_rec = 0         # of which timestamps recorded (<= max_samples)
+        # the last extract's flags, used in-pulse samples (``_n_used``), baseline samples and the
+        # used samples whose times were recorded (``_n_rec``, <= max_samples): int64, so a compiled
+        # kernel that closes the window (core/src/window.c, multi.c) leaves them where they are read
+        self._ires = np.zeros(4, dtype=np.int64)
+        self._iresv = memoryview(self._ires)
         self._sums = [0.0] * 5  # baseline regression sums of the window being extracted
         self._pm = [0.0] * 11   # in-pulse moments of the window being extracted
         self._pm_sat = False
@@ -371,8 +381,6 @@ class PulseExtractor(_WindowColumn):
         ring = self._ring
         self._res = np.zeros(6)
         self._resv = memoryview(self._res)
-        self._ires = np.zeros(4, dtype=np.int64)
-        self._iresv = memoryview(self._ires)
         self._ck = ext.PulseWindow(ring.t, ring.b, ring.flags, self._used_t, self._emp_var, self._res, self._ires,
                                    self._settle_us, self._fall_us, self._baseline_us, self._guard_us,
                                    self._min_pulse, self._min_base, self._max_gap_us, self.max_samples,
@@ -395,10 +403,7 @@ class PulseExtractor(_WindowColumn):
         r, ir = self._resv, self._iresv
         amp_out[0], amp_out[1], amp_out[2] = r[0], r[1], r[2]
         var_out[0], var_out[1], var_out[2] = r[3], r[4], r[5]
-        n_p = ir[1]
-        self._n_used = n_p
-        self._n_rec = ir[3]
-        return flags, n_p, ir[2]
+        return flags, ir[1], ir[2]
 
     # ------------------------------------------------------------------ timing
     def span(self, start_us: int, end_us: int) -> tuple[int, int]:

@@ -261,10 +261,25 @@ class WindowCloser:
         self._runk = ext.WindowRun(tuple(ch.extractor.column_kernel for ch in chs), tuple(ch.ring.hc for ch in chs),
                                    tuple(ch.cnt for ch in chs), self._run_flags)
         self.close_run = self._close_run_compiled
+        self._chi = {id(ch): i for i, ch in enumerate(chs)}      # a channel's place in the run
+        self.close_one = self._close_one_compiled
+        if len(chs) <= 64 and all(type(ch.extractor).ready is PulseExtractor.ready for ch in chs):
+            self._readyk = ext.WindowsReady(tuple(ch.ring.hc for ch in chs),
+                                            tuple(ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs),
+                                            self.fall_us + self.baseline_us + self.timeout_us).ready
+            self.ready = self._ready_compiled
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
         """Every channel has the samples after the window, or it timed out."""
         return self.ready_upto(start, end, now_us, 0) == len(self.channels)
+
+    def _ready_compiled(self, start: int, end: int, now_us: int) -> bool:
+        """:meth:`ready` in one call (``ext.WindowsReady``, bound in :meth:`_bind_run`: each ring's latest
+        time against the window's end and its extractor's fall and baseline, the same comparisons);
+        a time the kernel does not take (not an int well inside int64) goes to the reference."""
+        if type(end) is int and type(now_us) is int and -_T_FAR < end < _T_FAR and -_T_FAR < now_us < _T_FAR:
+            return self._readyk(end, now_us)
+        return WindowCloser.ready(self, start, end, now_us)
 
     def ready_upto(self, start: int, end: int, now_us: int, first: int) -> int:
         """How many channels, in order, have every sample the window reads (all of them once it
@@ -290,6 +305,24 @@ class WindowCloser:
         self.closed += 1
         if flags:
             self.flagged += 1
+        iv = ch.infov
+        n_used, n_base = iv[0], iv[1]
+        self.tx.pulse_window(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255,
+                             n_base if n_base < 255 else 255, flags & 0xFF)
+        return flags
+
+    def _close_one_compiled(self, ch: SensorChannel, coil: int, pulse_id: int, start: int, end: int) -> int:
+        """:meth:`close_one` with the window extracted in one call (``ct_window_run`` on the channel
+        alone: ``ct_window_column`` at its ring's state, counted in the channel's ``cnt`` as
+        :meth:`SensorChannel.close_window` counts it), then its PULSE_WINDOW. A channel not of this
+        closer or a time the compiled extraction does not take goes to the reference."""
+        i = self._chi.get(id(ch), -1)
+        if i < 0 or type(start) is not int or type(end) is not int or not (-_T_FAR < start < _T_FAR
+                                                                            and -_T_FAR < end < _T_FAR):
+            return WindowCloser.close_one(self, ch, coil, pulse_id, start, end)
+        self.flagged += self._runk.close(coil, start, end, i, i + 1)
+        self.closed += 1
+        flags = self._rfv[i]
         iv = ch.infov
         n_used, n_base = iv[0], iv[1]
         self.tx.pulse_window(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255,

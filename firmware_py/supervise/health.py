@@ -105,7 +105,33 @@ class HealthConfig:
     quiet_margin_us: int = 5_000
 
 
-class Health:
+class _SuspectSpans:
+    """:class:`Health`'s question of a window's span: a sensor's clock or the coil driver's suspect
+    anywhere in it (``Health.suspect`` of both), one compiled call on the compiled core."""
+
+    def suspect_either(self, node: int, other: int, t0: int, t1: int) -> bool:
+        """``suspect(node, t0, t1) or suspect(other, t0, t1)``: a sensor's window and the coil
+        driver's clock (``track.single_coil_tracker``). On the compiled core one call
+        (:meth:`bind_suspect`: ``core/src/sc_close.c`` ``ct_scc_suspect_either`` on the arrays of
+        :meth:`use_arrays`)."""
+        return self.suspect(node, t0, t1) or self.suspect(other, t0, t1)
+
+    def bind_suspect(self, kernel) -> None:
+        """After :meth:`use_arrays`: :meth:`suspect_either` on ``kernel`` (``ext.SuspectSpan`` bound to
+        the same arrays)."""
+        self._either = kernel.either
+        self.suspect_either = self._suspect_either_compiled
+
+    def _suspect_either_compiled(self, node: int, other: int, t0: int, t1: int) -> bool:
+        """:meth:`suspect_either` in one call; an argument the kernel does not take (not an int64)
+        goes to the reference."""
+        try:
+            return self._either(node, other, t0, t1)
+        except (OverflowError, TypeError):
+            return _SuspectSpans.suspect_either(self, node, other, t0, t1)
+
+
+class Health(_SuspectSpans):
     def __init__(self, sensor_ids, driver_id: int, mag_rate_hz: float, hcfg: HealthConfig | None = None,
                  boot_us: int = 0):
         self.hcfg = hcfg = hcfg or HealthConfig()

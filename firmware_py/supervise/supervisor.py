@@ -150,6 +150,7 @@ class Supervisor:
             self.flips.use_array(iv[at:at + len(self.sensor_ids)])
             self.timesync.use_arrays(iv[at_ts:])
             self._sup = ext.SupMag(si, sd, self.schedule.start, self.schedule.end, payloads)
+            h.bind_suspect(ext.SuspectSpan(si, sd))
             self._sup_payloads = payloads is not None
             self._pose_k = self._sup.pose_status
             self.pose_status = self._pose_status_compiled

@@ -122,7 +122,7 @@ class BurstAcquisition:
             s.ekf.schedule_clone(0, t_ref)
         last_end = start0 + (self.n - 1) * cfg.timing.spacing_us + cfg.timing.pulse_us
         self.supervisor.flips.plan(now_us, last_end + book.gap_us, last_end + book.gap_us + cfg.timing.cycle_us // 4,
-                                   self.tx.send)
+                                   self.tx.send, self.tx.mag_flip)
         book.note_flip(now_us)
         self.active = True
         self.acquisitions += 1

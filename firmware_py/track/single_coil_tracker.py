@@ -60,7 +60,7 @@ from coiltrack.firmware.track.quality import PoseQuality, quality_from
 from coiltrack.firmware.track.single_coil_acquire import BurstAcquisition
 from coiltrack.firmware.track.single_coil_nis import nis_monitor
 from coiltrack.firmware.track.single_coil_sensor import SensorTrack
-from coiltrack.firmware.track.single_coil_window import update_core, window_after, window_prior
+from coiltrack.firmware.track.single_coil_window import update_core, window_after, window_prior, window_update
 from coiltrack.firmware.track.status import COIL_FATAL as _FATAL, input_status
 #: EVT_DISTORTION detail: bit 8 marks the NIS monitor as the detector, bit 31 the all-clear
 _EVT_NIS = 1 << 8
@@ -173,6 +173,11 @@ class SingleCoilTracker:
         # None: the reference's steps)
         self._uc = {s.index: update_core(self.core.ext, s, self.quality, self._lin2, self._rel2, self._tol_a)
                     for s in self._sens}
+        # ... and the whole window update, one compiled call (single_coil_window.window_update; None: the
+        # steps above around SchepersEKF.update_pulse)
+        self._wu = {s.index: window_update(self.core.ext, s, self._uc[s.index], self.sharing, self.model)
+                    for s in self._sens}
+        self._n_model = self.model.n
 
     def _sensor(self, k: int, tr, schedule: str) -> SensorTrack:
         """One sensor's filter, monitor and (``accuracy_target = "fixed"``) the fixed cycle's
@@ -280,17 +285,18 @@ class SingleCoilTracker:
         if sag:
             current = sl.measured
         fatal = bool(sl.faults & _FATAL) or (sl.status and sl.measured == 0.0)
-        health = self.supervisor.health
-        t0 = sl.start - self._pre_us
-        t1 = sl.end + self._post_us
-        driver_suspect = health.suspect(self._driver, t0, t1)       # (the same for every sensor)
+        either = self.supervisor.health.suspect_either
+        start, end, driver = sl.start, sl.end, self._driver
+        t0 = start - self._pre_us
+        t1 = end + self._post_us
         lead = self._lead_us      # adaptive: a pulse not yet commanded may start this soon
-        self.sharing.close(sl.start, sl.end, next_start(self.book.slots, sl),
+        self.sharing.close(start, end, next_start(self.book.slots, sl),
                            max(self.book.next_free_us, now_us + lead) if lead >= 0 else -1)
+        close = self.closer.close_one
         for s in self._sens:
             tr = s.track
-            flags = self.closer.close_one(tr, sl.coil, sl.pid, sl.start, sl.end)
-            suspect = health.suspect(tr.node, t0, t1) or driver_suspect
+            flags = close(tr, sl.coil, sl.pid, start, end)
+            suspect = either(tr.node, driver, t0, t1)         # its clock or the driver's (Health.suspect)
             if sl.acq:
                 self.acquisition.record(s, sl.coil, tr.amp, tr.amp_var,
                                         flags | (PULSE_TOO_FEW if (fatal or suspect) else 0), current)
@@ -310,6 +316,24 @@ class SingleCoilTracker:
 
     def _update(self, s: SensorTrack, sl, current: float, bits: int, now_us: int) -> None:
         self.updated_us = now_us
+        wu = self._wu[s.index]
+        if wu is not None:
+            # the steps of _update_steps in one compiled call (single_coil_window.window_update)
+            flags = wu[0].run(sl.clone, sl.coil, current)
+            if flags >= 0:
+                out = wu[1]
+                self.model.signal.add_evals(self._n_model * int(out[2]))
+                if flags & (EKF_NOT_PD | EKF_NONFINITE):
+                    self.unusable += 1
+                    return
+                self.q_x[s.node] = out[0]
+                self._updated(s, flags, out[1] != 0.0, bits, now_us)
+                return
+        self._update_steps(s, sl, current, bits, now_us)
+
+    def _update_steps(self, s: SensorTrack, sl, current: float, bits: int, now_us: int) -> None:
+        """:meth:`_update`'s reference: the prior, the measurement, the filter's update, the
+        after-steps (each one call on the compiled core), then :meth:`_updated`."""
         ekf = s.ekf
         # one NIS monitor per sensor: inflating the pulses of single coils instead proved
         # unstable (once the state is biased, the consistent-looking coil is the disturbed one)
@@ -340,10 +364,17 @@ class SingleCoilTracker:
         else:
             self.q_x[s.node] = uc[0].after(ekf.nis_nominal, ekf.nis)
             linear = uc[1][0] != 0.0
+        self._updated(s, flags, linear, bits, now_us)
+
+    def _updated(self, s: SensorTrack, flags: int, linear: bool, bits: int, now_us: int) -> None:
+        """After an update of ``s`` (``flags``; ``linear``: its NIS tested the linear model): the
+        fixed-cycle reference's note, the gated counts and :meth:`_verdict`."""
+        ekf = s.ekf
+        mon = s.monitor
         if linear:
             s.mon_t = now_us
             if s.ref is not None:
-                s.ref.note_pulse(ekf.nis_nominal, m.y, m.var)
+                s.ref.note_pulse(ekf.nis_nominal, s.track.amp, self.sharing.var)
         if flags & EKF_GATED:
             s.gated += 1
             self.gated += 1

@@ -12,7 +12,11 @@ quiet field's) and, where the model is linear, the NIS monitor's record (``NisMo
 On the compiled core each sensor has an ``ext.ScUpdateCore`` (:func:`update_core`; ``ct_scw_prior``,
 ``ct_scw_after`` in ``core/src/sc_window.c``) bound once to its filter's covariance and positions,
 its monitor's arrays and its magnetometer ring: the same operations in the same order, so the
-same bits, in one call before and one after the update.
+same bits, in one call before and one after the update. Where the sensor's filter, its update and
+the tracker's shared baselines run compiled as well, :func:`window_update` binds the whole window
+update (the prior, the channel's variance, ``SchepersEKF.update_pulse`` with its bookkeeping, the
+after-steps) to one ``ext.ScWindowUpdate`` (``core/py_sc_close.c``): the same kernels in the same
+order.
 """
 from __future__ import annotations
 
@@ -20,11 +24,12 @@ import math
 
 import numpy as np
 
-from coiltrack.firmware.estimate.single_coil import POS
+from coiltrack.firmware.estimate.shared_baseline import CompiledSharedBaselines
+from coiltrack.firmware.estimate.single_coil import ORI, POS, SchepersEKF
 from coiltrack.firmware.track.quality import PoseQuality
 from coiltrack.firmware.track.single_coil_nis import CompiledNisMonitor
 
-__all__ = ["window_prior", "window_after", "update_core"]
+__all__ = ["window_prior", "window_after", "update_core", "window_update"]
 
 
 def window_prior(P, nP: int, p, cp, k: int, lin2: float, rel2: float, tol_a: float,
@@ -78,3 +83,30 @@ def update_core(ext, s, quality, lin2: float, rel2: float, tol_a: float):
     if quiet:
         uc.bind_quiet(s.track.ring.hc, s.track.ring.b, quality.earth, quality.quiet_sigma)
     return uc, memoryview(w)
+
+
+def window_update(ext, s, uc, sharing, model):
+    """``(ScWindowUpdate, out)`` for the sensor ``s``: its window update (``SingleCoilTracker._update``
+    from ``window_prior`` to ``window_after``) in one call, or None where that call would not repeat
+    the reference: no ``uc`` (:func:`update_core`), shared baselines without their compiled channel
+    variance (``CompiledSharedBaselines`` with ``s``'s channel bound), a filter that is not the plain
+    ``SchepersEKF`` on its compiled kernels (a coil-gain filter, the Python dynamics), an update
+    not on its one-call run or whose run ``model`` cannot be bound to. ``out``: a view of the float64
+    (``ext.WU_NOUT``,) the call writes the consistency term, the linear flag and the model's
+    evaluations to. ``run(k, coil, current)`` returns the update's flags, -1 (nothing done) for a
+    clone not taken yet (the reference's ``update_pulse`` takes it)."""
+    ekf = s.ekf
+    if uc is None or ext is None or type(ekf) is not SchepersEKF or getattr(ekf, "_ck", None) is None:
+        return None
+    u = ekf._coil_update
+    if getattr(u, "_run_fused", None) is None or u.run != u._run_fused or u._run_model is not model and not (
+            u._run_model is None and u._bind_run(model)):
+        return None
+    if not isinstance(sharing, CompiledSharedBaselines) or not s.index < sharing._bound:
+        return None
+    sb = sharing._ck
+    out = np.zeros(ext.WU_NOUT)
+    upd = u.upd
+    wk = ext.ScWindowUpdate(uc[0], sb, s.index, u._ck, ekf._ck, ekf.P, s.track.amp, POS.start, ORI.start, upd.gate,
+                            u.iterations, upd.kst, upd._nis, ekf.ust, ekf.ucnt, out)
+    return wk, memoryview(out)
