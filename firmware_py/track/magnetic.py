@@ -34,10 +34,12 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol.schema import POSE_VALID
+from coiltrack.protocol.schema import POSE_COIL_FAULT, POSE_DEGRADED, POSE_SATURATED, POSE_VALID
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
+from coiltrack.firmware.actuate.schedule import PulseSchedule
+from coiltrack.firmware.measure.pulse import PULSE_SATURATED, PULSE_UNUSABLE
+from coiltrack.firmware.measure.windows import SensorChannel
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.pose.staged import SolveResult
 from coiltrack.firmware.rotation import quat_tuple
@@ -132,6 +134,45 @@ class _CompiledReport:
         self._take_solution = self._take_solution_compiled
         self._quat = self._quat_compiled
 
+    def _bind_begin(self, core) -> None:
+        """:meth:`_begin`'s inputs and :meth:`_prepare_currents` on the compiled core: one
+        ``BurstInputs`` (``core/src/begin.c``: ``ct_begin_inputs``, ``ct_prepare_currents``, the same
+        operations) bound to the channels' window flags, the schedule's faults and measured currents,
+        the nominal and the tracker's currents; replaced on this instance. Left to the Python where a
+        class overrides them or an array is of another kind."""
+        ext = core.ext
+        if ext is None or type(self)._begin is not MagneticTracker._begin \
+                or type(self)._prepare_currents is not MagneticTracker._prepare_currents \
+                or any(type(ch).burst_flags is not SensorChannel.burst_flags for ch in self.channels) \
+                or type(self.schedule).any_faults is not PulseSchedule.any_faults:
+            return
+        try:
+            self._bk = ext.BurstInputs(tuple(ch.flags for ch in self.channels), self.schedule.faults,
+                                       self.schedule.measured, self.nominal, self.currents,
+                                       (PULSE_SATURATED, PULSE_UNUSABLE, COIL_FATAL, POSE_SATURATED, POSE_DEGRADED,
+                                        POSE_COIL_FAULT))
+        except (AttributeError, TypeError, ValueError):
+            return
+        self._bk_status = self._bk.status
+        self._begin = self._begin_compiled
+        self._prepare_currents = self._prepare_currents_compiled
+
+    def _begin_compiled(self, ch) -> None:
+        """:meth:`_begin` with the burst's flags, the faults and their bits in one compiled call."""
+        r = self._bk_status(self._next)
+        sup = self.supervisor
+        self._status = (r & 255) | sup.pose_status(ch.node, r >> 9)
+        if r & 256 or sup.veto:
+            self._report(ch, False)
+            return
+        self._start_solve(ch)
+
+    def _prepare_currents_compiled(self, cur) -> None:
+        if cur is self._curv:
+            self._bk.currents()
+        else:
+            MagneticTracker._prepare_currents(self, cur)
+
     def _take_solution_compiled(self, tp: TrackedPose) -> bool:
         r = self._rp.take(tp.position, tp.rotation, self.range_m)
         return MagneticTracker._take_solution(self, tp) if r is None else r
@@ -224,6 +265,7 @@ class MagneticTracker(_CompiledReport):
         self.cycles = 0
         self.quality = PoseQuality(cfg, len(coils), self.channels, coils, core)    # POSE.quality (track.quality)
         self._bind_report(core)
+        self._bind_begin(core)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
         self.ahead = cfg.budget.solve_ahead and cfg.ac.excitation == "pulsed" and self.solver.memoryless
         self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
@@ -446,7 +488,7 @@ class MagneticTracker(_CompiledReport):
 
     def _begin(self, ch) -> None:
         """Status of the burst on ``ch`` and, if usable, the start of its solve
-        (warm from the tracked pose once there is one)."""
+        (:meth:`_start_solve`)."""
         sched = self.schedule
         flags = ch.burst_flags()
         faults = sched.any_faults()
@@ -455,6 +497,11 @@ class MagneticTracker(_CompiledReport):
         if not usable:
             self._report(ch, False)
             return
+        self._start_solve(ch)
+
+    def _start_solve(self, ch) -> None:
+        """The start of the solve of the usable burst on ``ch`` (warm from the tracked pose once
+        there is one)."""
         ch.fill_sigma()
         tp = self.poses[ch.node]
         warm = self.warm_start(ch, tp)
