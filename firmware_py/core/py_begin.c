@@ -10,6 +10,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_solve.h"
 
 #define BI_MAXCH 64
 
@@ -153,7 +154,184 @@ static PyTypeObject BurstInputsType = {
     .tp_methods = BurstInputs_methods,
 };
 
+/* ---------------------------------------------------------------- SolveStart */
+/* per channel: var, sig, S (3n), the history's t (cap), d (cap x width), hc (2), the sensor's tr (1),
+ * its filter's fs, the tracked pose's position, rotation, warm_p, warm_R, hemisphere */
+#define SS_NB 13
+#define SS_MAXCH 16
+static const char *ss_names[SS_NB] = {"var", "sig", "S", "hist_t", "hist_d", "hc", "tr", "fs", "position",
+                                      "rotation", "warm_p", "warm_R", "hemisphere"};
+static const int ss_wr[SS_NB] = {0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0};
+static const int ss_i64[SS_NB] = {0, 0, 0, 1, 0, 1, 1, 1, 0, 0, 0, 0, 0};
+
+typedef struct {
+    const double *var, *S, *tp, *tR, *hemi;
+    double *sig, *wp, *wR;
+    struct ct_hist h;
+    const int64_t *tr, *fs;
+} ss_channel;
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *run;               /* the SolveRun whose solve this begins (held) */
+    const struct ct_solve *s;
+    int n, nch, fs_init;
+    double floor2, range_m;
+    const double *cur;
+    ss_channel ch[SS_MAXCH];
+    Py_buffer views[SS_MAXCH * SS_NB + 1];
+    int nviews;
+} SolveStartObject;
+
+static void SolveStart_dealloc(SolveStartObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    Py_XDECREF(self->run);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int ss_bind(SolveStartObject *self, PyObject *o, Py_ssize_t len, int k, void **ptr)
+{
+    Py_buffer *v = &self->views[self->nviews];
+    if (ct_py_buffer(o, len, 8, ss_i64[k] ? "ql" : "d", ss_wr[k], v, ss_names[k]) < 0)
+        return -1;
+    self->nviews++;
+    *ptr = v->buf;
+    return 0;
+}
+
+/* SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels): channels a sequence of SS_NB
+ * buffers per channel (ss_names) */
+static int SolveStart_init(SolveStartObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"run", "n", "floor2", "range_m", "fs_init", "fs_n", "currents", "channels", NULL};
+    PyObject *run, *cur, *chans, *seq = NULL, *one = NULL;
+    int n, fs_init, fs_n, k, i;
+    double floor2, range_m;
+    void *p;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OiddiiOO", kwlist, &run, &n, &floor2, &range_m, &fs_init, &fs_n, &cur,
+                                     &chans))
+        return -1;
+    if (self->run != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "SolveStart: already bound");
+        return -1;
+    }
+    self->s = ct_py_solve_of(run);
+    if (self->s == NULL)
+        return -1;
+    if (n != self->s->n || fs_init < 0 || fs_init >= fs_n) {
+        PyErr_SetString(PyExc_ValueError, "SolveStart: the coil count differs from the solve's, or a bad flag index");
+        return -1;
+    }
+    if (ss_bind(self, cur, n, 0, &p) < 0)          /* (the currents: read, float64) */
+        return -1;
+    self->cur = p;
+    seq = PySequence_Fast(chans, "SolveStart: channels must be a sequence");
+    if (seq == NULL)
+        goto fail;
+    self->nch = (int)PySequence_Fast_GET_SIZE(seq);
+    if (self->nch < 1 || self->nch > SS_MAXCH) {
+        PyErr_Format(PyExc_ValueError, "SolveStart: 1..%d channels", SS_MAXCH);
+        goto fail;
+    }
+    for (i = 0; i < self->nch; ++i) {
+        ss_channel *c = &self->ch[i];
+        void *ptr[SS_NB];
+        Py_ssize_t len[SS_NB] = {3 * n, 3 * n, 3 * n, 2, 0, 2, 1, fs_n, 3, 9, 3, 9, 3};
+        one = PySequence_Fast(PySequence_Fast_GET_ITEM(seq, i), "SolveStart: a channel must be a sequence");
+        if (one == NULL)
+            goto fail;
+        if (PySequence_Fast_GET_SIZE(one) != SS_NB) {
+            PyErr_Format(PyExc_ValueError, "SolveStart: a channel needs %d buffers", SS_NB);
+            goto fail;
+        }
+        for (k = 0; k < SS_NB; ++k) {
+            if (k == 4)
+                len[4] = (Py_ssize_t)c->h.cap * CT_HIST_WIDTH;
+            if (ss_bind(self, PySequence_Fast_GET_ITEM(one, k), len[k], k, &ptr[k]) < 0)
+                goto fail;
+            if (k == 3)
+                c->h.cap = (int64_t)(self->views[self->nviews - 1].len / 8);
+        }
+        Py_CLEAR(one);
+        c->var = ptr[0];
+        c->sig = ptr[1];
+        c->S = ptr[2];
+        c->h.t = ptr[3];
+        c->h.d = ptr[4];
+        c->h.hc = ptr[5];
+        c->tr = ptr[6];
+        c->fs = ptr[7];
+        c->tp = ptr[8];
+        c->tR = ptr[9];
+        c->wp = ptr[10];
+        c->wR = ptr[11];
+        c->hemi = ptr[12];
+    }
+    Py_DECREF(seq);
+    self->n = n;
+    self->floor2 = floor2;
+    self->range_m = range_m;
+    self->fs_init = fs_init;
+    Py_INCREF(run);
+    self->run = run;
+    return 0;
+fail:
+    Py_XDECREF(one);
+    Py_XDECREF(seq);
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    return -1;
+}
+
+/* start(k, have_pose) -> status | warm << 8 (ct_solve_start on channel k) */
+static PyObject *SolveStart_start(SolveStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k;
+    int have, warm = 0, st;
+    const ss_channel *c;
+    if (self->run == NULL || ct_py_nargs("start", nargs, 2) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    if (have < 0)
+        return NULL;
+    if (k < 0 || k >= self->nch) {
+        PyErr_SetString(PyExc_IndexError, "SolveStart.start: channel out of range");
+        return NULL;
+    }
+    c = &self->ch[k];
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
+        PyErr_SetString(PyExc_ValueError, "SolveStart.start: the history's head or count out of range");
+        return NULL;
+    }
+    st = ct_solve_start(self->s, self->n, c->var, c->sig, self->floor2, &c->h, c->tr[0], have,
+                        c->fs[self->fs_init] != 0, self->range_m, c->tp, c->tR, c->wp, c->wR, c->hemi, c->S,
+                        self->cur, &warm);
+    return PyLong_FromLong(st | (warm << 8));
+}
+
+static PyMethodDef SolveStart_methods[] = {
+    {"start", (PyCFunction)(void (*)(void))SolveStart_start, METH_FASTCALL,
+     "start(k, have_pose) -> status | warm << 8: channel k's sigma, warm start and solve's begin"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SolveStartType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SolveStart",
+    .tp_basicsize = sizeof(SolveStartObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels): the fused tracker's start "
+              "of a burst's solve (sigma, warm start, begin) bound to its channels' and filters' buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SolveStart_init,
+    .tp_dealloc = (destructor)SolveStart_dealloc,
+    .tp_methods = SolveStart_methods,
+};
+
 int ct_register_begin(PyObject *m)
 {
-    return ct_py_add_type(m, &BurstInputsType, "BurstInputs");
+    if (ct_py_add_type(m, &BurstInputsType, "BurstInputs") < 0)
+        return -1;
+    return ct_py_add_type(m, &SolveStartType, "SolveStart");
 }

@@ -1189,6 +1189,9 @@ class BurstFusionTracker(MagneticTracker):
                 return
         self._warms = warms
         self.warm_start = self._warm_start_compiled
+        if self._warm_reference() is BurstFusionTracker.warm_start:
+            self._bind_start(core, tuple((self.inertial[ch.node].fusion.history.live, self.inertial[ch.node].tr,
+                                          self.inertial[ch.node].fusion.fs) for ch in self.channels))
 
     def _warm_reference(self):
         """The :meth:`warm_start` whose operations :meth:`_warm_start_compiled` repeats."""

@@ -167,6 +167,56 @@ class _CompiledReport:
             return
         self._start_solve(ch)
 
+    def _bind_start(self, core, filters) -> None:
+        """:meth:`_start_solve` in one compiled call where no solve ahead is to be taken over
+        (``SolveStart``, ``core/src/begin.c`` ``ct_solve_start``: ``SensorChannel.fill_sigma``,
+        ``BurstFusionTracker.warm_start`` and ``PoseSolver.begin``, the same operations in the same
+        order), bound to each channel's variances, sigmas, signals and tracked pose and to
+        ``filters``: per channel its fusion filter's live history, the sensor's ``tr`` and the
+        filter's ``fs`` with its initialised flag's index and length. Left to the Python where a
+        part is of another kind (a distortion map, a solver or channel not on the compiled core)."""
+        from coiltrack.firmware.estimate.magnetic_inertial import FS_INIT, FS_N
+        ext, sv = core.ext, self.solver
+        chs = self.channels
+        if ext is None or getattr(sv, "_sv", None) is None or sv.signal.distortion is not None \
+                or type(self)._start_solve is not MagneticTracker._start_solve \
+                or getattr(sv.begin, "__func__", None) is not type(sv)._begin_compiled \
+                or any(type(ch).fill_sigma is not SensorChannel.fill_sigma
+                       or getattr(ch.sigma_from, "__func__", None) is not SensorChannel._sigma_from_compiled
+                       or ch._sigma_floor2 != chs[0]._sigma_floor2 for ch in chs):
+            return
+        try:
+            rows = []
+            for ch, (hist, tr, fs) in zip(chs, filters):
+                tp = self.poses[ch.node]
+                rows.append((ch.var, ch.sigma, ch.S, hist.t, hist.d, hist.hc, tr, fs, tp.position, tp.rotation,
+                             tp.warm_p, tp.warm_R, tp.hemisphere))
+            k = ext.SolveStart(sv._sv, sv.n, chs[0]._sigma_floor2, self.range_m, FS_INIT, FS_N, self.currents,
+                               tuple(rows))
+        except (AttributeError, TypeError, ValueError):
+            return
+        self._ss_start = k.start
+        self._ss_poses = tuple(self.poses[ch.node] for ch in chs)
+        self._start_solve = self._start_solve_compiled
+
+    def _start_solve_compiled(self, ch) -> None:
+        """:meth:`_start_solve` in one compiled call (:meth:`_bind_start`); where a solve ahead may
+        be taken over (``_use_ahead`` would look at the inputs), the reference."""
+        k = self._next
+        if self.ahead:
+            ah = self._ahead[k]
+            if ah.burst == self.schedule.burst_start and (ah.done or self._ahead_k == k):
+                MagneticTracker._start_solve(self, ch)
+                return
+        sv = self.solver
+        if sv.signal.distortion is not None:
+            MagneticTracker._start_solve(self, ch)
+            return
+        self._ahead_k = -1                   # (what _use_ahead and _start_solve leave)
+        r = self._ss_start(k, self._ss_poses[k].have_pose)
+        if not sv.begun(r & 255, r > 255) & SOLVE_RUNNING:
+            self._report(ch, False)
+
     def _prepare_currents_compiled(self, cur) -> None:
         if cur is self._curv:
             self._bk.currents()

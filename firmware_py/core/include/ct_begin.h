@@ -28,4 +28,17 @@ int64_t ct_begin_inputs(const struct ct_begin_bits *b, const int64_t *fl, int nf
 /* _prepare_currents: cur[j] = measured[j] where the driver reported one (non-zero), else nominal[j] */
 void ct_prepare_currents(const double *measured, const double *nominal, double *cur, int n);
 
+struct ct_solve;
+struct ct_hist;
+/* MagneticTracker._start_solve of BurstFusionTracker (no solve ahead to take over): the channel's
+ * sigma from its variances (SensorChannel.fill_sigma: ct_sigma_from over var, 3n, into sig with the
+ * floor floor2), the warm start (BurstFusionTracker.warm_start: ct_report_warm_start over the fusion
+ * filter's live history h at t_ref into wp, wR, from the tracked pose tp, tR) and the solve's begin
+ * (PoseSolver.begin: ct_solve_begin on S, sig, cur; warm: the hemisphere tp with the start wp, wR,
+ * else the hemisphere hemi).  Returns the begin's status, *warm whether a warm start was made. */
+int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *sig, double floor2,
+                   const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
+                   const double *tp, const double *tR, double *wp, double *wR, const double *hemi, const double *S,
+                   const double *cur, int *warm);
+
 #endif /* CT_BEGIN_H */
