@@ -946,6 +946,8 @@ int ct_register_report(PyObject *m);
 int ct_register_sc_choose(PyObject *m);
 int ct_register_sc_window(PyObject *m);
 int ct_register_sc_close(PyObject *m);
+int ct_register_fuse(PyObject *m);
+int ct_register_begin(PyObject *m);
 static int (*const AREAS[])(PyObject *) = {
     ct_register_window, ct_register_fusimu, ct_register_fusion, ct_register_ac, ct_register_rxdecode,
     ct_register_single_coil,
@@ -958,6 +960,8 @@ static int (*const AREAS[])(PyObject *) = {
     ct_register_sc_choose,
     ct_register_sc_window,
     ct_register_sc_close,
+    ct_register_fuse,
+    ct_register_begin,
 };
 
 PyMODINIT_FUNC PyInit__core(void)

@@ -10,6 +10,7 @@
 
 #include "coiltrack_core.h"
 #include "py_glue.h"
+#include "py_solve.h"
 
 /* the solver's caller-owned buffers: lengths in units of n (negative: a fixed count), writability */
 #define SR_NBUF 24
@@ -255,6 +256,15 @@ static PyTypeObject SolveRunType = {
     .tp_dealloc = (destructor)SolveRun_dealloc,
     .tp_methods = SolveRun_methods,
 };
+
+const struct ct_solve *ct_py_solve_of(PyObject *o)
+{
+    if (!PyObject_TypeCheck(o, &SolveRunType) || !((SolveRunObject *)o)->bound) {
+        PyErr_SetString(PyExc_TypeError, "needs a bound SolveRun");
+        return NULL;
+    }
+    return &((SolveRunObject *)o)->s;
+}
 
 int ct_register_solve(PyObject *m)
 {

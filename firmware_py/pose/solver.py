@@ -327,13 +327,19 @@ class _CompiledSolver:
             st = self._sv.begin(S, sigma, currents, hemisphere, x0_position, x0_rotation)
         if st is None:
             return PoseSolver.begin(self, S, currents, sigma, hemisphere, x0_position, x0_rotation)
+        return self.begun(st, x0_position is not None)
+
+    def begun(self, st: int, warm: bool) -> int:
+        """The solver's state after a compiled begin (``ct_solve_begin``, here or in a caller's
+        one compiled call: ``core/src/begin.c`` ``ct_solve_start``) that returned ``st``; ``warm``:
+        a warm start was given. Returns ``st``."""
         self.status = st
         if st != SOLVE_RUNNING:
             self._then(None)
             return st
         self._reacquired = False
         self.solve_evals = 0
-        if x0_position is not None:
+        if warm:
             self._warm = True
             self._lm = self._lm_c
             self._then(self._unit_c, self.n)

@@ -38,8 +38,9 @@ from coiltrack.protocol.schema import (ACC_LSB, EVT_DEAD_RECKONING, EVT_TRACK_RE
 from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, SYMMETRIZE_EVERY
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
-                                                          OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
+from coiltrack.firmware.estimate.magnetic_inertial import (FS_INIT, FS_N, FUS_PREPARED, OUT_DEAD_RECKONING,
+                                                          OUT_INCONSISTENT, OUT_LOST, OUT_RECOVERED, OUT_STALE,
+                                                          FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
 from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
 from coiltrack.firmware.estimate.orientation import (N as ORI_N, OF_INIT, OF_STEPS, OF_T, OS_MAG, OS_ROUND,
@@ -47,6 +48,7 @@ from coiltrack.firmware.estimate.orientation import (N as ORI_N, OF_INIT, OF_STE
 from coiltrack.firmware.measure.imu import ImuRing
 from coiltrack.firmware.measure.pulse import SampleRing
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
+from coiltrack.firmware.track.burst_compiled import FZ_N as _FZ_N
 from coiltrack.firmware.track.burst_compiled import CompiledBurst
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
 from coiltrack.firmware.track.source_unaccelerated import Unaccelerated
@@ -577,18 +579,6 @@ class SensorInertial(CompiledBurst):
     """IMU ring, ch. 2 filter ``Xi``, ch. 6 fusion filter and the motion
     compensation buffers of one sensor node."""
 
-    def _set_samples(self, v: int) -> None:
-        self._scv[0] = v
-
-    samples = property(lambda self: self._scv[0], _set_samples)     # IMU samples processed
-
-    def _set_t_ref(self, v: int) -> None:
-        self._trv[0] = v
-
-    #: the burst's reference instant (us), in a start-up int64 array (``tr``) a burst's compiled
-    #: opening writes (``BurstFusionTracker.on_burst``, ``core/src/burst_open.c`` ``ct_schedule``)
-    t_ref = property(lambda self: self._trv[0], _set_t_ref)
-
     def __init__(self, node: int, cfg, gate: PulseGate, source, compass_max_age_us: int | None = None,
                  burst_rms_s: float | None = None, core=_DEFAULT_CORE):
         """``source``: :class:`SourceInertial` or :class:`FixedSource` (:func:`make_source`);
@@ -618,6 +608,8 @@ class SensorInertial(CompiledBurst):
         # one burst: reference instant, compensated signals
         self.tr = np.zeros(1, dtype=np.int64)
         self._trv = memoryview(self.tr)
+        self.fz = np.zeros(_FZ_N, dtype=np.int64)
+        self._fzv = memoryview(self.fz)
         self.t_ref = 0
         self.pending = False
         self.S_comp = np.zeros((3, n))
@@ -640,10 +632,7 @@ class SensorInertial(CompiledBurst):
         self.comp_position = np.zeros(3)   # the motion-compensated solution of the burst
         self.comp_rotation = np.eye(3)
         self.comp_cov = np.zeros((6, 6))
-        self.comp_ok = False
         self.waiting = False               # the last fuse found no room for the re-solve
-        self._comp_j = 0                   # the next pulse to compensate
-        self.stage = _COMPENSATE
         self._Cf = np.zeros((6, 6))        # covariance handed to the fusion update
         self._Cfv = memoryview(self._Cf)
         # rms time of the pulses about the burst's middle (n equally spaced pulses)
@@ -657,7 +646,6 @@ class SensorInertial(CompiledBurst):
             # process on the compiled core (:class:`_OneCall`; an empty ring returns at once there)
             self._one = _OneCall(self.imu, self.ori, self.fusion, source, self.w_last, self._sample_python, self._scv)
             self.process = self._one.run
-        self.compensated = 0
         self.comp_rejected = 0
         self.fused = 0
         self.last_fuse_flags = 0
@@ -836,9 +824,12 @@ class SensorInertial(CompiledBurst):
         self.compensated += 1
         return 1
 
-    def fuse(self, solver, S, currents, sigma, pulse_t, budget: int, replay_budget: int, fresh: bool) -> bool:
+    def fuse(self, solver, S, currents, sigma, pulse_t, budget: int, replay_budget: int, fresh: bool,
+             e0: int | None = None) -> bool:
         """Fusing the burst whose magnetic-only solution is in ``mag_*``, as far
         as this tick allows; returns True when the burst is fused (or dropped).
+        (``e0``: the solver's evaluation count where this call began, when the compiled start of
+        this call ran before, :meth:`_fuse_compiled`; its evaluations count against ``budget``.)
 
         0. with motion compensation, bring the pulses to ``t_ref``
            (:meth:`compensate_begin`, :meth:`compensate_step`) and solve again
@@ -872,7 +863,8 @@ class SensorInertial(CompiledBurst):
         0.5 % with it. With compensation: the error of the inertial motion
         (velocity uncertainty times ``t_rms``)."""
         n = self.S_comp.shape[1]
-        e0 = solver.signal.evals
+        if e0 is None:
+            e0 = solver.signal.evals
         self.waiting = False
         while self.stage in (_COMPENSATE, _COMPENSATE_PULSES, _SOLVE):
             left = budget - (solver.signal.evals - e0)
@@ -896,11 +888,8 @@ class SensorInertial(CompiledBurst):
             done = self.compensate_step(solver, S, currents, pulse_t, budget)
             if done < 0:
                 self.stage = _UPDATE_MAG
-            elif done and solver.begin(self.S_comp, currents, sigma, self.mag_position, self.mag_position,
-                                       self.mag_rotation) & SOLVE_RUNNING:
-                self.stage = _SOLVE
             elif done:
-                self.stage = _UPDATE_MAG
+                self._begin_solve(solver, currents, sigma)
         else:
             st = solver.step(budget)
             if st & SOLVE_RUNNING:
@@ -911,6 +900,11 @@ class SensorInertial(CompiledBurst):
                 np.copyto(self.comp_cov, solver.covariance)
                 self.comp_ok = True
             self.stage = _UPDATE_COMP if self.comp_ok else _UPDATE_MAG
+
+    def _begin_solve(self, solver, currents, sigma) -> None:
+        """The compensated pulses solved again, started from the magnetic-only solution."""
+        st = solver.begin(self.S_comp, currents, sigma, self.mag_position, self.mag_position, self.mag_rotation)
+        self.stage = _SOLVE if st & SOLVE_RUNNING else _UPDATE_MAG
 
     def _filter_step(self, replay_budget: int) -> bool:
         """One tick of the fusion filter's part: prepare an update (restore the snapshot, evaluate the measurement),
@@ -1005,6 +999,11 @@ class BurstFusionTracker(MagneticTracker):
         # the compensated re-solve starts from the burst's own solution: no consistency gate
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = solvers(1.0)
+        stages = (SensorInertial.fuse, SensorInertial._measure_step, SensorInertial.on_solution,
+                  SensorInertial.compensate_begin, SensorInertial.compensate_step)
+        for ch, ins in self._pairs:         # the start of each sensor's fusion update: one call (compiled core)
+            ins.bind_fuse(core, self.comp_solver, self.solver, ch.S, ch.pulse_mid, self.currents, (FS_INIT, FS_N),
+                          stages)
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
         self._bind_report_chain(core)
         self._bind_burst_open(core)
@@ -1190,6 +1189,9 @@ class BurstFusionTracker(MagneticTracker):
                 return
         self._warms = warms
         self.warm_start = self._warm_start_compiled
+        if self._warm_reference() is BurstFusionTracker.warm_start:
+            self._bind_start(core, tuple((self.inertial[ch.node].fusion.history.live, self.inertial[ch.node].tr,
+                                          self.inertial[ch.node].fusion.fs) for ch in self.channels))
 
     def _warm_reference(self):
         """The :meth:`warm_start` whose operations :meth:`_warm_start_compiled` repeats."""

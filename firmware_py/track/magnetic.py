@@ -34,10 +34,12 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol.schema import POSE_VALID
+from coiltrack.protocol.schema import POSE_COIL_FAULT, POSE_DEGRADED, POSE_SATURATED, POSE_VALID
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
+from coiltrack.firmware.actuate.schedule import PulseSchedule
+from coiltrack.firmware.measure.pulse import PULSE_SATURATED, PULSE_UNUSABLE
+from coiltrack.firmware.measure.windows import SensorChannel
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.pose.staged import SolveResult
 from coiltrack.firmware.rotation import quat_tuple
@@ -132,6 +134,95 @@ class _CompiledReport:
         self._take_solution = self._take_solution_compiled
         self._quat = self._quat_compiled
 
+    def _bind_begin(self, core) -> None:
+        """:meth:`_begin`'s inputs and :meth:`_prepare_currents` on the compiled core: one
+        ``BurstInputs`` (``core/src/begin.c``: ``ct_begin_inputs``, ``ct_prepare_currents``, the same
+        operations) bound to the channels' window flags, the schedule's faults and measured currents,
+        the nominal and the tracker's currents; replaced on this instance. Left to the Python where a
+        class overrides them or an array is of another kind."""
+        ext = core.ext
+        if ext is None or type(self)._begin is not MagneticTracker._begin \
+                or type(self)._prepare_currents is not MagneticTracker._prepare_currents \
+                or any(type(ch).burst_flags is not SensorChannel.burst_flags for ch in self.channels) \
+                or type(self.schedule).any_faults is not PulseSchedule.any_faults:
+            return
+        try:
+            self._bk = ext.BurstInputs(tuple(ch.flags for ch in self.channels), self.schedule.faults,
+                                       self.schedule.measured, self.nominal, self.currents,
+                                       (PULSE_SATURATED, PULSE_UNUSABLE, COIL_FATAL, POSE_SATURATED, POSE_DEGRADED,
+                                        POSE_COIL_FAULT))
+        except (AttributeError, TypeError, ValueError):
+            return
+        self._bk_status = self._bk.status
+        self._begin = self._begin_compiled
+        self._prepare_currents = self._prepare_currents_compiled
+
+    def _begin_compiled(self, ch) -> None:
+        """:meth:`_begin` with the burst's flags, the faults and their bits in one compiled call."""
+        r = self._bk_status(self._next)
+        sup = self.supervisor
+        self._status = (r & 255) | sup.pose_status(ch.node, r >> 9)
+        if r & 256 or sup.veto:
+            self._report(ch, False)
+            return
+        self._start_solve(ch)
+
+    def _bind_start(self, core, filters) -> None:
+        """:meth:`_start_solve` in one compiled call where no solve ahead is to be taken over
+        (``SolveStart``, ``core/src/begin.c`` ``ct_solve_start``: ``SensorChannel.fill_sigma``,
+        ``BurstFusionTracker.warm_start`` and ``PoseSolver.begin``, the same operations in the same
+        order), bound to each channel's variances, sigmas, signals and tracked pose and to
+        ``filters``: per channel its fusion filter's live history, the sensor's ``tr`` and the
+        filter's ``fs`` with its initialised flag's index and length. Left to the Python where a
+        part is of another kind (a distortion map, a solver or channel not on the compiled core)."""
+        from coiltrack.firmware.estimate.magnetic_inertial import FS_INIT, FS_N
+        ext, sv = core.ext, self.solver
+        chs = self.channels
+        if ext is None or getattr(sv, "_sv", None) is None or sv.signal.distortion is not None \
+                or type(self)._start_solve is not MagneticTracker._start_solve \
+                or getattr(sv.begin, "__func__", None) is not type(sv)._begin_compiled \
+                or any(type(ch).fill_sigma is not SensorChannel.fill_sigma
+                       or getattr(ch.sigma_from, "__func__", None) is not SensorChannel._sigma_from_compiled
+                       or ch._sigma_floor2 != chs[0]._sigma_floor2 for ch in chs):
+            return
+        try:
+            rows = []
+            for ch, (hist, tr, fs) in zip(chs, filters):
+                tp = self.poses[ch.node]
+                rows.append((ch.var, ch.sigma, ch.S, hist.t, hist.d, hist.hc, tr, fs, tp.position, tp.rotation,
+                             tp.warm_p, tp.warm_R, tp.hemisphere))
+            k = ext.SolveStart(sv._sv, sv.n, chs[0]._sigma_floor2, self.range_m, FS_INIT, FS_N, self.currents,
+                               tuple(rows))
+        except (AttributeError, TypeError, ValueError):
+            return
+        self._ss_start = k.start
+        self._ss_poses = tuple(self.poses[ch.node] for ch in chs)
+        self._start_solve = self._start_solve_compiled
+
+    def _start_solve_compiled(self, ch) -> None:
+        """:meth:`_start_solve` in one compiled call (:meth:`_bind_start`); where a solve ahead may
+        be taken over (``_use_ahead`` would look at the inputs), the reference."""
+        k = self._next
+        if self.ahead:
+            ah = self._ahead[k]
+            if ah.burst == self.schedule.burst_start and (ah.done or self._ahead_k == k):
+                MagneticTracker._start_solve(self, ch)
+                return
+        sv = self.solver
+        if sv.signal.distortion is not None:
+            MagneticTracker._start_solve(self, ch)
+            return
+        self._ahead_k = -1                   # (what _use_ahead and _start_solve leave)
+        r = self._ss_start(k, self._ss_poses[k].have_pose)
+        if not sv.begun(r & 255, r > 255) & SOLVE_RUNNING:
+            self._report(ch, False)
+
+    def _prepare_currents_compiled(self, cur) -> None:
+        if cur is self._curv:
+            self._bk.currents()
+        else:
+            MagneticTracker._prepare_currents(self, cur)
+
     def _take_solution_compiled(self, tp: TrackedPose) -> bool:
         r = self._rp.take(tp.position, tp.rotation, self.range_m)
         return MagneticTracker._take_solution(self, tp) if r is None else r
@@ -224,6 +315,7 @@ class MagneticTracker(_CompiledReport):
         self.cycles = 0
         self.quality = PoseQuality(cfg, len(coils), self.channels, coils, core)    # POSE.quality (track.quality)
         self._bind_report(core)
+        self._bind_begin(core)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
         self.ahead = cfg.budget.solve_ahead and cfg.ac.excitation == "pulsed" and self.solver.memoryless
         self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
@@ -446,7 +538,7 @@ class MagneticTracker(_CompiledReport):
 
     def _begin(self, ch) -> None:
         """Status of the burst on ``ch`` and, if usable, the start of its solve
-        (warm from the tracked pose once there is one)."""
+        (:meth:`_start_solve`)."""
         sched = self.schedule
         flags = ch.burst_flags()
         faults = sched.any_faults()
@@ -455,6 +547,11 @@ class MagneticTracker(_CompiledReport):
         if not usable:
             self._report(ch, False)
             return
+        self._start_solve(ch)
+
+    def _start_solve(self, ch) -> None:
+        """The start of the solve of the usable burst on ``ch`` (warm from the tracked pose once
+        there is one)."""
         ch.fill_sigma()
         tp = self.poses[ch.node]
         warm = self.warm_start(ch, tp)

@@ -1,0 +1,44 @@
+/*
+ * A burst's solve inputs at its begin (compiled core): the or of a channel's window flags and of the
+ * coil driver's faults with the POSE bits they give, and the burst's currents.
+ *
+ * Reference (the Python is the specification, followed operation by operation, same names with the
+ * ct_ prefix): track/magnetic.py MagneticTracker._begin's first lines (measure/windows.py
+ * SensorChannel.burst_flags, actuate/schedule.py PulseSchedule.any_faults, track/status.py
+ * input_status, the usable test without the supervisor's veto) and MagneticTracker._prepare_currents.
+ */
+#ifndef CT_BEGIN_H
+#define CT_BEGIN_H
+
+#include <stdint.h>
+
+/* the masks and bits of the Python constants (given at binding): the window flag of a saturated
+ * window, the flags and faults that make a burst unusable, POSE_SATURATED, POSE_DEGRADED,
+ * POSE_COIL_FAULT */
+struct ct_begin_bits {
+    int64_t pulse_saturated, pulse_unusable, coil_fatal, pose_saturated, pose_degraded, pose_coil_fault;
+};
+
+/* input_status(window_flags, coil_faults) */
+int64_t ct_input_status(const struct ct_begin_bits *b, int64_t window_flags, int64_t coil_faults);
+/* _begin's inputs: flags = or of fl (nf), faults = or of fv (nc); returns input_status's bits, with
+ * *flags and *unusable (the flags' or the faults' part of the usable test) */
+int64_t ct_begin_inputs(const struct ct_begin_bits *b, const int64_t *fl, int nf, const int64_t *fv, int nc,
+                        int64_t *flags, int *unusable);
+/* _prepare_currents: cur[j] = measured[j] where the driver reported one (non-zero), else nominal[j] */
+void ct_prepare_currents(const double *measured, const double *nominal, double *cur, int n);
+
+struct ct_solve;
+struct ct_hist;
+/* MagneticTracker._start_solve of BurstFusionTracker (no solve ahead to take over): the channel's
+ * sigma from its variances (SensorChannel.fill_sigma: ct_sigma_from over var, 3n, into sig with the
+ * floor floor2), the warm start (BurstFusionTracker.warm_start: ct_report_warm_start over the fusion
+ * filter's live history h at t_ref into wp, wR, from the tracked pose tp, tR) and the solve's begin
+ * (PoseSolver.begin: ct_solve_begin on S, sig, cur; warm: the hemisphere tp with the start wp, wR,
+ * else the hemisphere hemi).  Returns the begin's status, *warm whether a warm start was made. */
+int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *sig, double floor2,
+                   const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
+                   const double *tp, const double *tR, double *wp, double *wR, const double *hemi, const double *S,
+                   const double *cur, int *warm);
+
+#endif /* CT_BEGIN_H */

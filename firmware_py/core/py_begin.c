@@ -1,0 +1,337 @@
+/*
+ * CPython glue of a burst's solve inputs at its begin (src/begin.c): the type BurstInputs, bound once
+ * (start-up) to a tracker's channels' window flags, the schedule's faults and measured currents, the
+ * nominal currents and the tracker's currents; its per-call methods (METH_FASTCALL) create no Python
+ * object beyond the int they return.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+#include "coiltrack_core.h"
+#include "py_glue.h"
+#include "py_solve.h"
+
+#define BI_MAXCH 64
+
+typedef struct {
+    PyObject_HEAD
+    struct ct_begin_bits b;
+    int nch, nf, nc;
+    const int64_t *fl[BI_MAXCH];
+    const int64_t *fv;
+    const double *measured, *nominal;
+    double *cur;
+    Py_buffer views[BI_MAXCH + 4];
+    int nviews;
+} BurstInputsObject;
+
+static void BurstInputs_dealloc(BurstInputsObject *self)
+{
+    int i;
+    for (i = 0; i < self->nviews; ++i)
+        PyBuffer_Release(&self->views[i]);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* BurstInputs(flags, faults, measured, nominal, currents, bits): flags a sequence of the channels'
+ * int64 window flags (n each), faults int64 (n), the float64 measured, nominal and currents (n); bits
+ * the six masks of struct ct_begin_bits */
+static int BurstInputs_init(BurstInputsObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"flags", "faults", "measured", "nominal", "currents", "bits", NULL};
+    PyObject *flags, *faults, *measured, *nominal, *currents, *seq;
+    long long m[6];
+    Py_ssize_t nch, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOO(LLLLLL)", kwlist, &flags, &faults, &measured, &nominal,
+                                     &currents, &m[0], &m[1], &m[2], &m[3], &m[4], &m[5]))
+        return -1;
+    if (self->nviews) {
+        PyErr_SetString(PyExc_RuntimeError, "BurstInputs: already bound");
+        return -1;
+    }
+    seq = PySequence_Fast(flags, "BurstInputs: flags must be a sequence");
+    if (seq == NULL)
+        return -1;
+    nch = PySequence_Fast_GET_SIZE(seq);
+    if (nch < 1 || nch > BI_MAXCH) {
+        Py_DECREF(seq);
+        PyErr_Format(PyExc_ValueError, "BurstInputs: 1..%d channels", BI_MAXCH);
+        return -1;
+    }
+    if (ct_py_buffer(faults, 1, 8, "ql", 0, &self->views[0], "faults") < 0)
+        goto fail;
+    self->nviews = 1;
+    self->nc = (int)(self->views[0].len / 8);
+    if (ct_py_buffer(measured, self->nc, 8, "d", 0, &self->views[1], "measured") < 0)
+        goto fail;
+    self->nviews = 2;
+    if (ct_py_buffer(nominal, self->nc, 8, "d", 0, &self->views[2], "nominal") < 0)
+        goto fail;
+    self->nviews = 3;
+    if (ct_py_buffer(currents, self->nc, 8, "d", 1, &self->views[3], "currents") < 0)
+        goto fail;
+    self->nviews = 4;
+    for (i = 0; i < nch; ++i) {
+        Py_buffer *v = &self->views[4 + i];
+        if (ct_py_buffer(PySequence_Fast_GET_ITEM(seq, i), 1, 8, "ql", 0, v, "flags") < 0)
+            goto fail;
+        self->nviews = 5 + (int)i;
+        if (i == 0)
+            self->nf = (int)(v->len / 8);
+        else if (v->len / 8 != self->nf) {
+            PyErr_SetString(PyExc_ValueError, "BurstInputs: the channels' flags differ in length");
+            goto fail;
+        }
+        self->fl[i] = v->buf;
+    }
+    Py_DECREF(seq);
+    self->nch = (int)nch;
+    self->fv = self->views[0].buf;
+    self->measured = self->views[1].buf;
+    self->nominal = self->views[2].buf;
+    self->cur = self->views[3].buf;
+    self->b.pulse_saturated = m[0];
+    self->b.pulse_unusable = m[1];
+    self->b.coil_fatal = m[2];
+    self->b.pose_saturated = m[3];
+    self->b.pose_degraded = m[4];
+    self->b.pose_coil_fault = m[5];
+    return 0;
+fail:
+    Py_DECREF(seq);
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    return -1;
+}
+
+/* status(k) -> bits | unusable << 8 | flags << 9 for channel k (ct_begin_inputs) */
+static PyObject *BurstInputs_status(BurstInputsObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k, flags;
+    int unusable;
+    int64_t bits;
+    if (!self->nch || ct_py_nargs("status", nargs, 1) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    if (k < 0 || k >= self->nch) {
+        PyErr_SetString(PyExc_IndexError, "BurstInputs.status: channel out of range");
+        return NULL;
+    }
+    bits = ct_begin_inputs(&self->b, self->fl[k], self->nf, self->fv, self->nc, &flags, &unusable);
+    if (bits < 0 || bits > 255 || flags < 0) {
+        PyErr_SetString(PyExc_ValueError, "BurstInputs.status: bits or flags out of range");
+        return NULL;
+    }
+    return PyLong_FromLongLong((long long)bits | ((long long)unusable << 8) | ((long long)flags << 9));
+}
+
+/* currents(): the tracker's currents from the driver's measured ones or the nominal (ct_prepare_currents) */
+static PyObject *BurstInputs_currents(BurstInputsObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (!self->nch || ct_py_nargs("currents", nargs, 0) < 0)
+        return NULL;
+    ct_prepare_currents(self->measured, self->nominal, self->cur, self->nc);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef BurstInputs_methods[] = {
+    {"status", (PyCFunction)(void (*)(void))BurstInputs_status, METH_FASTCALL,
+     "status(k) -> bits | unusable << 8 | flags << 9: channel k's burst flags, the faults, input_status"},
+    {"currents", (PyCFunction)(void (*)(void))BurstInputs_currents, METH_FASTCALL,
+     "currents(): MagneticTracker._prepare_currents into the bound currents"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject BurstInputsType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.BurstInputs",
+    .tp_basicsize = sizeof(BurstInputsObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "BurstInputs(flags, faults, measured, nominal, currents, bits): a tracker's burst inputs at a "
+              "solve's begin bound to its channels' flags and the schedule's arrays",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)BurstInputs_init,
+    .tp_dealloc = (destructor)BurstInputs_dealloc,
+    .tp_methods = BurstInputs_methods,
+};
+
+/* ---------------------------------------------------------------- SolveStart */
+/* per channel: var, sig, S (3n), the history's t (cap), d (cap x width), hc (2), the sensor's tr (1),
+ * its filter's fs, the tracked pose's position, rotation, warm_p, warm_R, hemisphere */
+#define SS_NB 13
+#define SS_MAXCH 16
+static const char *ss_names[SS_NB] = {"var", "sig", "S", "hist_t", "hist_d", "hc", "tr", "fs", "position",
+                                      "rotation", "warm_p", "warm_R", "hemisphere"};
+static const int ss_wr[SS_NB] = {0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0};
+static const int ss_i64[SS_NB] = {0, 0, 0, 1, 0, 1, 1, 1, 0, 0, 0, 0, 0};
+
+typedef struct {
+    const double *var, *S, *tp, *tR, *hemi;
+    double *sig, *wp, *wR;
+    struct ct_hist h;
+    const int64_t *tr, *fs;
+} ss_channel;
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *run;               /* the SolveRun whose solve this begins (held) */
+    const struct ct_solve *s;
+    int n, nch, fs_init;
+    double floor2, range_m;
+    const double *cur;
+    ss_channel ch[SS_MAXCH];
+    Py_buffer views[SS_MAXCH * SS_NB + 1];
+    int nviews;
+} SolveStartObject;
+
+static void SolveStart_dealloc(SolveStartObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    Py_XDECREF(self->run);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int ss_bind(SolveStartObject *self, PyObject *o, Py_ssize_t len, int k, void **ptr)
+{
+    Py_buffer *v = &self->views[self->nviews];
+    if (ct_py_buffer(o, len, 8, ss_i64[k] ? "ql" : "d", ss_wr[k], v, ss_names[k]) < 0)
+        return -1;
+    self->nviews++;
+    *ptr = v->buf;
+    return 0;
+}
+
+/* SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels): channels a sequence of SS_NB
+ * buffers per channel (ss_names) */
+static int SolveStart_init(SolveStartObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"run", "n", "floor2", "range_m", "fs_init", "fs_n", "currents", "channels", NULL};
+    PyObject *run, *cur, *chans, *seq = NULL, *one = NULL;
+    int n, fs_init, fs_n, k, i;
+    double floor2, range_m;
+    void *p;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OiddiiOO", kwlist, &run, &n, &floor2, &range_m, &fs_init, &fs_n, &cur,
+                                     &chans))
+        return -1;
+    if (self->run != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "SolveStart: already bound");
+        return -1;
+    }
+    self->s = ct_py_solve_of(run);
+    if (self->s == NULL)
+        return -1;
+    if (n != self->s->n || fs_init < 0 || fs_init >= fs_n) {
+        PyErr_SetString(PyExc_ValueError, "SolveStart: the coil count differs from the solve's, or a bad flag index");
+        return -1;
+    }
+    if (ss_bind(self, cur, n, 0, &p) < 0)          /* (the currents: read, float64) */
+        return -1;
+    self->cur = p;
+    seq = PySequence_Fast(chans, "SolveStart: channels must be a sequence");
+    if (seq == NULL)
+        goto fail;
+    self->nch = (int)PySequence_Fast_GET_SIZE(seq);
+    if (self->nch < 1 || self->nch > SS_MAXCH) {
+        PyErr_Format(PyExc_ValueError, "SolveStart: 1..%d channels", SS_MAXCH);
+        goto fail;
+    }
+    for (i = 0; i < self->nch; ++i) {
+        ss_channel *c = &self->ch[i];
+        void *ptr[SS_NB];
+        Py_ssize_t len[SS_NB] = {3 * n, 3 * n, 3 * n, 2, 0, 2, 1, fs_n, 3, 9, 3, 9, 3};
+        one = PySequence_Fast(PySequence_Fast_GET_ITEM(seq, i), "SolveStart: a channel must be a sequence");
+        if (one == NULL)
+            goto fail;
+        if (PySequence_Fast_GET_SIZE(one) != SS_NB) {
+            PyErr_Format(PyExc_ValueError, "SolveStart: a channel needs %d buffers", SS_NB);
+            goto fail;
+        }
+        for (k = 0; k < SS_NB; ++k) {
+            if (k == 4)
+                len[4] = (Py_ssize_t)c->h.cap * CT_HIST_WIDTH;
+            if (ss_bind(self, PySequence_Fast_GET_ITEM(one, k), len[k], k, &ptr[k]) < 0)
+                goto fail;
+            if (k == 3)
+                c->h.cap = (int64_t)(self->views[self->nviews - 1].len / 8);
+        }
+        Py_CLEAR(one);
+        c->var = ptr[0];
+        c->sig = ptr[1];
+        c->S = ptr[2];
+        c->h.t = ptr[3];
+        c->h.d = ptr[4];
+        c->h.hc = ptr[5];
+        c->tr = ptr[6];
+        c->fs = ptr[7];
+        c->tp = ptr[8];
+        c->tR = ptr[9];
+        c->wp = ptr[10];
+        c->wR = ptr[11];
+        c->hemi = ptr[12];
+    }
+    Py_DECREF(seq);
+    self->n = n;
+    self->floor2 = floor2;
+    self->range_m = range_m;
+    self->fs_init = fs_init;
+    Py_INCREF(run);
+    self->run = run;
+    return 0;
+fail:
+    Py_XDECREF(one);
+    Py_XDECREF(seq);
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    return -1;
+}
+
+/* start(k, have_pose) -> status | warm << 8 (ct_solve_start on channel k) */
+static PyObject *SolveStart_start(SolveStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k;
+    int have, warm = 0, st;
+    const ss_channel *c;
+    if (self->run == NULL || ct_py_nargs("start", nargs, 2) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    if (have < 0)
+        return NULL;
+    if (k < 0 || k >= self->nch) {
+        PyErr_SetString(PyExc_IndexError, "SolveStart.start: channel out of range");
+        return NULL;
+    }
+    c = &self->ch[k];
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
+        PyErr_SetString(PyExc_ValueError, "SolveStart.start: the history's head or count out of range");
+        return NULL;
+    }
+    st = ct_solve_start(self->s, self->n, c->var, c->sig, self->floor2, &c->h, c->tr[0], have,
+                        c->fs[self->fs_init] != 0, self->range_m, c->tp, c->tR, c->wp, c->wR, c->hemi, c->S,
+                        self->cur, &warm);
+    return PyLong_FromLong(st | (warm << 8));
+}
+
+static PyMethodDef SolveStart_methods[] = {
+    {"start", (PyCFunction)(void (*)(void))SolveStart_start, METH_FASTCALL,
+     "start(k, have_pose) -> status | warm << 8: channel k's sigma, warm start and solve's begin"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject SolveStartType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.SolveStart",
+    .tp_basicsize = sizeof(SolveStartObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels): the fused tracker's start "
+              "of a burst's solve (sigma, warm start, begin) bound to its channels' and filters' buffers",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)SolveStart_init,
+    .tp_dealloc = (destructor)SolveStart_dealloc,
+    .tp_methods = SolveStart_methods,
+};
+
+int ct_register_begin(PyObject *m)
+{
+    if (ct_py_add_type(m, &BurstInputsType, "BurstInputs") < 0)
+        return -1;
+    return ct_py_add_type(m, &SolveStartType, "SolveStart");
+}
