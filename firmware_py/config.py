@@ -359,9 +359,6 @@ class AdaptiveConfig:
     reference_error: str = "filter"         # "fixed": "filter": the fixed cycle's filter's covariance; "actual": its
                                             #   errors' (a sensitivity covariance, the model error estimated from the
                                             #   live filter's NIS: actuate.accuracy_actual)
-    warmup_range_m: float = 0.0             # > 0: in the warm-up's fixed cycle a sensor nearer than this gets the nominal
-                                            #   current times (r / warmup_range_m)^3, the orientation information it
-                                            #   would get at this range (actuate.warmup_current); 0: the nominal current
     saturation_knee: float = 0.0            # > 0: each coil's current at most where its field-model variance is this
                                             #   many times the white one (actuate.saturation_knee: information per
                                             #   joule 1 / (1 + knee) of the unsaturated); 0: no cap
@@ -381,8 +378,6 @@ class AdaptiveConfig:
              f"must be in [0, 1], got {self.unreached_share!r}")
         need("coil_gain_sigma", _fin(self.coil_gain_sigma) and 0.0 <= self.coil_gain_sigma <= 0.1,
              f"must be in [0, 0.1], got {self.coil_gain_sigma!r}")
-        need("warmup_range_m", _fin(self.warmup_range_m) and 0.0 <= self.warmup_range_m <= 10.0,
-             f"must be in [0, 10] m, got {self.warmup_range_m!r}")
         need("saturation_knee", _fin(self.saturation_knee) and 0.0 <= self.saturation_knee <= 100.0,
              f"must be in [0, 100], got {self.saturation_knee!r}")
         need("reference_settle_drop", _fin(self.reference_settle_drop) and 0.0 <= self.reference_settle_drop < 1.0,

@@ -45,7 +45,6 @@ from coiltrack.firmware.actuate.coil_choice import (POSE_DIM, ActuationPolicy, P
                                                     coil_chooser, current_ladder, saturation_current_limit)
 from coiltrack.firmware.actuate.fixed_cycle import FixedCycle
 from coiltrack.firmware.actuate.saturation_knee import cap_at_knee
-from coiltrack.firmware.actuate.warmup_current import warmup_current
 from coiltrack.firmware.estimate.layout import ORI, POS
 from coiltrack.firmware.estimate.single_coil import SchepersEKF
 from coiltrack.protocol.schema import CURRENT_LSB_A
@@ -203,12 +202,8 @@ class _SingleCoilActuation:
         start = cyc.start_us()
         if start >= now_us + self.cfg.timing.tick_us:
             j = cyc.coil
-            self.book.command(j, self._cycle_current(j), start, cyc.pulse_us, False)
+            self.book.command(j, float(self.nominal[j]), start, cyc.pulse_us, False)
         cyc.advance(now_us)      # a cycle that could not be scheduled in time is skipped
-
-    def _cycle_current(self, j: int) -> float:
-        """The current of the fixed cycle's pulse of coil ``j``: its nominal one."""
-        return float(self.nominal[j])
 
     def _flip(self, now_us: int) -> None:
         """Set/reset flips outside every pulse window (thesis sec 5.5, 7.2).
@@ -302,24 +297,6 @@ class AdaptiveActuation(_SingleCoilActuation):
 
     def _follows_cycle(self) -> bool:
         return self._warming
-
-    def _cycle_current(self, j: int) -> float:
-        """The warm-up's pulse of coil ``j``: the nominal current, or with ``warmup_range_m`` the
-        orientation information it gives at that range (``actuate.warmup_current``), for the
-        sensor farthest from the source (its estimated position)."""
-        a = self.cfg.adaptive
-        nom = float(self.nominal[j])
-        if not a.warmup_range_m > 0.0:
-            return nom
-        r = 0.0
-        for s in self._sens:
-            if not s.ekf.initialized:
-                return nom
-            p = s.ekf.p
-            d = math.sqrt(float(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]))
-            if d > r:
-                r = d
-        return warmup_current(nom, r, a.warmup_range_m, a.adaptive_min_current_a)
 
     def _resume(self) -> None:
         if self._dec_phase == 2:
