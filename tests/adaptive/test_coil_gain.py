@@ -225,7 +225,10 @@ def test_adaptive_ticks_with_coil_gains_allocate_no_numpy_array():
     sc = scenarios.get("schepers-adaptive")
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 3, 8.0, emu_end)
-    fw = Firmware(sc.firmware_config().with_keys(coil_gain_sigma=3e-3), fw_end)
+    # the scenario's filter with the policy keys at the configuration's defaults (pulses back to back)
+    fw = Firmware(sc.firmware_config().with_keys(coil_gain_sigma=3e-3, pulse_length="fixed", baseline_sharing="ignore",
+                                                 reference_settle_drop=0.0, unreached_share=0.0, reference_hold="bound",
+                                                 adaptive_current_step_a=0.0), fw_end)
     counter = NumpyAllocationCounter()
     allocating, t = 0, 0
     while t <= 8_000_000:
