@@ -150,7 +150,8 @@ def test_mean_hold_and_unreached_share_ticks_allocate_no_numpy_array():
     if not available():
         pytest.skip("numpy memory handler API not reachable")
     sc = get("schepers-adaptive")
-    cfg = sc.firmware_config().with_keys(reference_hold="mean", unreached_share=0.8, adaptive_current_step_a=0.001)
+    cfg = sc.firmware_config().with_keys(reference_hold="mean", unreached_share=0.8, adaptive_current_step_a=0.001,
+                                         baseline_sharing="ignore", reference_settle_drop=0.0, pulse_length="fixed")
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 3, 8.0, emu_end)
     fw = Firmware(cfg, fw_end)

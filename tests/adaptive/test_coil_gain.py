@@ -199,6 +199,15 @@ def test_policy_runs_take_the_fixed_figures_and_ratios_as_the_runner(tmp_path):
     assert apr._fixed_figures(str(p), [1], 20.0)[1]["fixed_coil_energy_j"] == 30.0
     with pytest.raises(ValueError, match=r"seeds \[2\]"):
         apr._fixed_figures(str(p), [1, 2], 20.0)
+    # a sweep over bench draws: each draw's own fixed cycle, never another draw's
+    d1 = dict(fixed, fixed_coil_energy_j=31.0)
+    p.write_text(json.dumps({"scenario": "schepers-adaptive", "duration_s": 20.0, "interrupted": False,
+                             "runs": [{"seed": 1, "params": {"bench.noise_draw": 1}, "figures": d1},
+                                      {"seed": 1, "params": {"bench.noise_draw": 0}, "figures": fixed}]}))
+    assert apr._fixed_figures(str(p), [1], 20.0)[1]["fixed_coil_energy_j"] == 30.0
+    assert apr._fixed_figures(str(p), [1], 20.0, draw=1)[1]["fixed_coil_energy_j"] == 31.0
+    with pytest.raises(ValueError, match="bench draw 2"):
+        apr._fixed_figures(str(p), [1], 20.0, draw=2)
 
 
 def test_adaptive_ticks_with_coil_gains_allocate_no_numpy_array():
@@ -216,7 +225,10 @@ def test_adaptive_ticks_with_coil_gains_allocate_no_numpy_array():
     sc = scenarios.get("schepers-adaptive")
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 3, 8.0, emu_end)
-    fw = Firmware(sc.firmware_config().with_keys(coil_gain_sigma=3e-3), fw_end)
+    # the scenario's filter with the policy keys at the configuration's defaults (pulses back to back)
+    fw = Firmware(sc.firmware_config().with_keys(coil_gain_sigma=3e-3, pulse_length="fixed", baseline_sharing="ignore",
+                                                 reference_settle_drop=0.0, unreached_share=0.0, reference_hold="bound",
+                                                 adaptive_current_step_a=0.0), fw_end)
     counter = NumpyAllocationCounter()
     allocating, t = 0, 0
     while t <= 8_000_000:

@@ -298,3 +298,18 @@ def test_fitted_exponent_without_saturation_is_the_energy_ratio_one():
 def test_bad_arguments_exit_2(argv, capsys):
     assert eb.main(argv) == 2
     assert "energy_bound:" in capsys.readouterr().err
+
+
+def test_the_bound_is_taken_on_the_trajectory_the_bench_runs():
+    """``SeedModel(seed)`` samples the world the bench builds for ``seed`` (``BenchSetup`` draws the
+    world's seed from ``SeedSequence(seed)``): the same positions at the same instants. Catches a bound
+    taken on ``build_world(seed)``, another trajectory than the runs it is compared with."""
+    from coiltrack.tools import scenarios
+    from coiltrack.tools.analyses import energy_bound as eb
+    from coiltrack.tools.bench.links import inproc_pair
+    from coiltrack.tools.bench.runner import BenchSetup
+
+    m = eb.SeedModel(2, 1, 60.0)
+    bench = BenchSetup(scenarios.get("schepers-adaptive"), 2, 60.0, inproc_pair()[1])
+    t = ((np.arange(m.p.shape[0]) + 0.5) * m.D * 1e6).astype(np.int64)
+    np.testing.assert_allclose(bench.world.sensor_kinematics(t).position, m.p, rtol=0, atol=1e-12)

@@ -228,8 +228,11 @@ def test_live_ticks_allocate_nothing_and_back_to_back_pulses_are_counted(mode):
 
     if not available():
         pytest.skip("numpy memory handler API not reachable")
+    from coiltrack.tools.scenarios.thesis import schepers_adaptive_config
+
     sc = get("schepers-adaptive")
-    cfg = sc.firmware_config().with_keys(baseline_sharing=mode, adaptive_current_step_a=0.001)
+    # the scenario's filter with 60 ms pulses (LENGTH) and the other policy keys at their defaults
+    cfg = schepers_adaptive_config(field_model_rel_sigma=3e-3, baseline_sharing=mode, adaptive_current_step_a=0.001)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 3, 8.0, emu_end)
     fw = Firmware(cfg, fw_end)

@@ -19,6 +19,12 @@ from coiltrack.tools.bench.runner import BenchSetup
 WARMUP_US = 2_000_000
 
 
+#: the policy keys at the configuration's defaults (one 60 ms pulse length: the start a decision
+#: commands is ``next_free_us - pulse_us - gap_us``), not the scenario's chosen lengths
+FIXED_LENGTH_POLICY = dict(pulse_length="fixed", baseline_sharing="ignore", reference_settle_drop=0.0, unreached_share=0.0,
+                           reference_hold="bound", adaptive_current_step_a=0.0)
+
+
 def _run(name: str, seed: int, run_us: int, on_tick, **overrides):
     sc = scenarios.get(name)
     fw_end, emu_end = inproc_pair()
@@ -148,7 +154,7 @@ def test_adaptive_decision_runs_in_three_ticks_for_the_start_of_its_first():
         setattr(AdaptiveActuation, "_decide_" + n, counted(n))
     SchepersEKF.update_pulse, SingleCoilModel.evaluate = update, evaluate
     try:
-        fw = _run("schepers-adaptive", 3, 6_000_000, on_tick)
+        fw = _run("schepers-adaptive", 3, 6_000_000, on_tick, **FIXED_LENGTH_POLICY)
     finally:
         for n, f in real.items():
             setattr(AdaptiveActuation, "_decide_" + n, f)

@@ -9,7 +9,8 @@ cycle it is compared with (``bench.runner.add_fixed_comparison``: the scenario's
 with the policy's settings: this command runs the policy alone, with the ``--set`` keys, and takes
 each seed's ``fixed_*`` figures from a sweep of the same scenario and duration that ran them
 (``--fixed-from``), forming the same ratios (``position_rms_ratio``, ``orientation_rms_ratio``,
-``energy_ratio``, rounded as the runner does). The output is a sweep file (one grid point) that
+``energy_ratio``, rounded as the runner does). ``--set bench.noise_draw=K`` runs bench draw ``K`` and takes
+the fixed figures of that draw. The output is a sweep file (one grid point) that
 ``tools.analyses.pareto`` reads. The fixed cycle's figures are the same only while its code and
 configuration are: check the branch against the sweep's with ``coiltrack results`` first.
 
@@ -31,15 +32,17 @@ SCENARIO = "schepers-adaptive"
 
 def _policy_run(seed: int, duration: float, keys: dict, fixed_cycle: bool = False) -> dict:
     """The policy's run as ``bench.sweep.run_task`` makes it, without the fixed-cycle comparison;
-    ``fixed_cycle``: the scenario's fixed cycle itself with ``keys`` (e.g. its filter changed)."""
+    ``fixed_cycle``: the scenario's fixed cycle itself with ``keys`` (e.g. its filter changed).
+    ``bench.noise_draw`` among ``keys``: the bench's draw (as in a sweep)."""
     from coiltrack.tools.bench.runner import run_inproc
-    from coiltrack.tools.bench.sweep import figures, scenario_with
+    from coiltrack.tools.bench.sweep import figures, scenario_with, split_noise_draw
     from coiltrack.tools.scenarios import get
 
+    draw, rest = split_noise_draw(tuple(keys.items()))
     if fixed_cycle:
         sc = get(SCENARIO)
-        return figures(run_inproc(sc, seed, duration, cfg=sc.fixed_config().with_keys(**keys)))
-    return figures(run_inproc(scenario_with(SCENARIO, tuple(keys.items())), seed, duration))
+        return figures(run_inproc(sc, seed, duration, cfg=sc.fixed_config().with_keys(**dict(rest)), noise_draw=draw))
+    return figures(run_inproc(scenario_with(SCENARIO, tuple(keys.items())), seed, duration, noise_draw=draw))
 
 
 def with_fixed(rep: dict, fixed: dict) -> dict:
@@ -59,7 +62,9 @@ def with_fixed(rep: dict, fixed: dict) -> dict:
     return out
 
 
-def _fixed_figures(path: str, seeds: list[int], duration: float) -> dict[int, dict]:
+def _fixed_figures(path: str, seeds: list[int], duration: float, draw: int = 0) -> dict[int, dict]:
+    """Each seed's fixed-cycle figures of bench draw ``draw`` in the sweep ``path``."""
+    from coiltrack.tools.bench.sweep import NOISE_DRAW_KEY
     from coiltrack.tools.inputs.sweepfile import read_json
 
     doc = read_json(path)
@@ -68,11 +73,11 @@ def _fixed_figures(path: str, seeds: list[int], duration: float) -> dict[int, di
                          f"got {doc['scenario']} for {doc.get('duration_s')} s")
     got = {}
     for r in doc["runs"]:
-        if r["figures"].get("fixed_coil_energy_j"):
+        if r["figures"].get("fixed_coil_energy_j") and int(r["params"].get(NOISE_DRAW_KEY, 0)) == draw:
             got.setdefault(int(r["seed"]), r["figures"])
     missing = [s for s in seeds if s not in got]
     if missing:
-        raise ValueError(f"--fixed-from {path}: no fixed-cycle figures for seeds {missing}")
+        raise ValueError(f"--fixed-from {path}: no fixed-cycle figures of bench draw {draw} for seeds {missing}")
     return got
 
 
@@ -94,7 +99,8 @@ def main(argv=None) -> int:
             raise ValueError("--duration must be in (0, 3600] s and --workers in 1..16")
         from coiltrack.tools.bench.sweep import scenario_with
         scenario_with(SCENARIO, tuple(keys.items())).firmware_config().validate()
-        fixed = _fixed_figures(a.fixed_from, seeds, a.duration)
+        from coiltrack.tools.bench.sweep import split_noise_draw
+        fixed = _fixed_figures(a.fixed_from, seeds, a.duration, split_noise_draw(tuple(keys.items()))[0])
     except (ValueError, TypeError, OSError) as exc:
         print(f"adaptive_policy_runs: {exc}", file=sys.stderr)
         return 2

@@ -277,6 +277,13 @@ def mode_kinds(mode: str, tm: Timing, fixed_pulse_s: float, baseline_s: float, l
     return (Kinds.grid if grid_lengths else Kinds.chosen)(grid, bs, tm, phase)
 
 
+def bench_world_seed(seed: int) -> int:
+    """The world seed the bench draws from a run's seed (``tools.bench.runner.BenchSetup``: the first of
+    five children of ``SeedSequence(seed)``), so the bound is taken on the trajectory the bench runs for
+    that seed, not on the one ``build_world(seed)`` would give."""
+    return int(np.random.SeedSequence(seed).spawn(5)[0].generate_state(1)[0])
+
+
 class SeedModel:
     """The windows of one seed's ``schepers-adaptive`` trajectory: per-ampere information, fields,
     current limits and the fixed cycle's information weights, from the scenario's world and its
@@ -287,7 +294,7 @@ class SeedModel:
         from coiltrack.tools import scenarios
 
         sc = scenarios.get(scenario)
-        world = sc.build_world(seed, duration_s)
+        world = sc.build_world(bench_world_seed(seed), duration_s)
         cfg = sc.fixed_config() if sc.fixed_config is not None else sc.firmware_config()
         self.cfg, self.window, self.phase = cfg, window, phase
         self.D = window * CYCLE_S

@@ -223,9 +223,15 @@ def test_a_replayed_adaptive_run_decides_the_same_on_either_core():
     current, start, length)."""
     from coiltrack.firmware.loop import Firmware
     from coiltrack.tools.bench.framelog import replay
-    from coiltrack.tools.commands.perf import _record
+    from coiltrack.tools.bench.runner import record_log
+    from coiltrack.tools.commands.perf import _with_core
+    from coiltrack.tools.scenarios import get
 
-    header, reads = _record("schepers-adaptive", 1, 8.0, "python")
+    sc = get("schepers-adaptive")
+    # the scenario's policy (pulse lengths chosen) with the 2 s warm-up: its reference's settle would
+    # hold the fixed cycle for about 10 s, past the recording
+    cfg = _with_core(sc.firmware_config().with_keys(reference_settle_drop=0.0), "python")
+    header, reads = record_log(sc, 1, 8.0, cfg)
     pulses, checked = {}, []
     for impl in ("python", "compiled"):
         cmds = pulses[impl] = []
@@ -257,7 +263,16 @@ def test_a_replayed_adaptive_run_decides_the_same_on_either_core():
                     _same(twin, ch, f"decision {len(checked)}")
                     checked.append((c, ch.current))
                     return c
-                ch.set_bounds, ch.choose = bounds, chosen
+                choose_length = ch.choose_length
+                def chosen_length(P6, model, var_amps, lengths_us, lim):
+                    twin.target = ch.target
+                    c = twin.choose_length(P6.copy(), model, list(var_amps), tuple(lengths_us), lim.copy())
+                    assert choose_length(P6, model, var_amps, lengths_us, lim) == c
+                    _same(twin, ch, f"decision {len(checked)}")
+                    checked.append((c, ch.current))
+                    return c
+                # the scenario chooses the pulse length (choose_length); a policy of one length, choose
+                ch.set_bounds, ch.choose, ch.choose_length = bounds, chosen, chosen_length
             return fw
         replay(factory, header, reads)
     assert len(checked) >= 10 and len({c for c, _ in checked}) >= 2
