@@ -1008,6 +1008,7 @@ class BurstFusionTracker(MagneticTracker):
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
         self._bind_report_chain(core)
         self._bind_burst_open(core)
+        self._bind_fused_tick(core)
 
     def _ring_of(self, ch):
         """The magnetometer ring sensor ``ch``'s inertial part is fed from (:meth:`_process`)."""
@@ -1123,6 +1124,75 @@ class BurstFusionTracker(MagneticTracker):
                 left = True
         self._idle = not left
         return n
+
+    def _bind_fused_tick(self, core) -> None:
+        """The fused tick on the compiled core with a fixed source, where every sensor drains through
+        :class:`_OneCall` and sends through the reference's :meth:`SensorInertial.send_fused`:
+        :meth:`_step` is :meth:`_step_fused`, :meth:`_process` one call for all the sensors
+        (``ext.FusedTick.process``: each sensor's ``ImuSample.drain`` and its count, ``core/py_fusimu.c``)
+        and :meth:`_send_fused` each sensor's plain poses in one transmitter call
+        (:meth:`_send_fused_plain`). Bound once; anything else keeps the reference methods."""
+        ins = tuple(i for _, i in self._pairs)
+        if core.ext is None or not ins or not self.source.fixed or getattr(self.tx, "core", None) != "compiled" or any(
+                getattr(type(self), m) is not getattr(BurstFusionTracker, m) for m in ("_step", "_process", "_send_fused")) or any(
+                getattr(i, "_one", None) is None or i.process != i._one.run or i._one.kernel is None
+                or type(i).send_fused is not SensorInertial.send_fused
+                or getattr(i._send_plain, "__func__", None) is not type(i.fusion.output)._send_plain_compiled
+                for i in ins):
+            return
+        self._ft_done = np.zeros(2, dtype=np.int64)
+        self._ft_donev = memoryview(self._ft_done)
+        self._ft_process = core.ext.FusedTick(tuple(i._one.kernel for i in ins), tuple(i.sc for i in ins),
+                                              self._ft_done).process
+        self._ft_send = tuple((ch.node, i, i.fusion.output._ck, i._recovery) for ch, i in self._pairs)
+        self._step = self._step_fused
+        self._process = self._process_fused
+        self._send_fused = self._send_fused_plain
+
+    def _step_fused(self, now_us: int) -> None:
+        """:meth:`_step` (bound by :meth:`_bind_fused_tick`) of a tick with IMU samples queued, no
+        sensor fusing, no burst to solve or solve ahead: the samples drained and their fused poses
+        sent; any other tick through the reference."""
+        if self._idle or self._n_pending or self.busy() or (self.ahead and self._ahead_pending()):
+            BurstFusionTracker._step(self, now_us)
+            return
+        n = self._process(now_us)
+        self._imu_last = n
+        self._deferring = False
+        self._waited = False
+        if n:
+            self._send_fused()
+
+    def _process_fused(self, now_us: int) -> int:
+        """:meth:`_process` in one compiled call (:meth:`_bind_fused_tick`); from a sensor whose drain
+        handed a sample back on, the reference's loop."""
+        r = self._ft_process(self.imu_steps)
+        if not r & 1:
+            self._idle = not r & 2
+            return r >> 2
+        n = r >> 2
+        k, done = self._ft_donev[0], self._ft_donev[1]
+        wait, steps = self.source_wait_us, self.imu_steps
+        left = False
+        for j, (ch, ins) in enumerate(self._pairs):
+            if j >= k:
+                n += ins.process(ch.ring, now_us, wait, steps - done if j == k else steps)
+            if len(ins.imu):
+                left = True
+        self._idle = not left
+        return n
+
+    def _send_fused_plain(self) -> None:
+        """:meth:`_send_fused` (bound by :meth:`_bind_fused_tick`): each sensor's queued plain poses
+        in one transmitter call (``Transmitter.fused_pose``, as ``PoseOutput.send_plain`` calls it),
+        the sensor's :meth:`SensorInertial.send_fused` for what is left (a pose with an ``OUT_*``
+        bit or out of range) and while a recovery or dead reckoning is to be reported."""
+        tx, last, rm = self.tx, self.quality.last, self.range_m
+        fused_pose = tx.fused_pose
+        for node, ins, kernel, rec in self._ft_send:
+            if ins.dr_state or rec.recoveries != ins.recoveries_seen or fused_pose(kernel, node, _FUSED_VALID,
+                                                                                    last[node], rm):
+                ins.send_fused(tx, node, rm, last[node])
 
     def _tick_charges(self) -> int:
         """The windows closed and ``imu_sample_evals`` per IMU sample processed in this tick."""
