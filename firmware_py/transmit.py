@@ -143,30 +143,23 @@ class Transmitter:
         return -1
 
     def _fused_pose_compiled(self, kernel, node: int, status: int, quality: int, range_m: float) -> int:
-        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.pose_next``, ``ct_pose_frame``, one
-        call a pose); while :meth:`pose` is not this transmitter's own (a recorder wraps it) every
-        pose goes through it."""
+        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.send``: each queued pose's frame,
+        ``ct_pose_frame``, numbered from this transmitter's sequence and written through the port in
+        one call, which counts the writes that failed); the sequence and the counts as
+        :meth:`_write_numbered` and :meth:`_count_pose` keep them. While :meth:`pose` is not this
+        transmitter's own (a recorder wraps it) every pose goes through it."""
         if self.pose is not self._pose_own:
             return -1
-        nxt = kernel.pose_next
-        nid = self.node_id
-        write = self.port.write
-        valid = status & POSE_VALID
-        while True:
-            frame = nxt(self._seq, nid, node, status, quality, range_m)
-            if frame is None:
-                return -1
-            if frame == 0:
-                return 0
-            self._seq = (self._seq + 1) & 0xFF         # (_write_numbered and _count_pose, inline)
-            try:
-                write(frame)
-            except Exception:  # a full or broken link must not stop the loop
-                self.tx_errors += 1
-            if valid:
-                self.poses += 1
+        r = kernel.send(self._seq, self.node_id, node, status, quality, range_m, self.port.write)
+        sent = r >> 32
+        if sent:
+            self._seq = (self._seq + sent) & 0xFF
+            self.tx_errors += (r >> 1) & 0x7FFFFFFF
+            if status & POSE_VALID:
+                self.poses += sent
                 if status & POSE_FUSED:
-                    self.fused_poses += 1
+                    self.fused_poses += sent
+        return -(r & 1)
 
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the

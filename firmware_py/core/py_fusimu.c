@@ -513,7 +513,59 @@ static PyObject *FusOutput_pose_next(FusOutputObject *self, PyObject *const *arg
     return fr;
 }
 
+/* send(seq, src, node, status, quality, range_m, write) -> (sent << 32) + (errors << 1) + ref: pose_next's
+ * frames, oldest first, each written through write(frame) (the port's: an exception it raises is
+ * cleared and counted in errors, the row off the queue all the same, as Transmitter._fused_pose_compiled
+ * counts a tx error), numbered seq, seq + 1, ... (mod 256); it stops when none is queued (ref 0) or at a
+ * row that needs the reference path (ref 1, left queued) */
+static PyObject *FusOutput_send(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long seq, src, node, status, quality, sent = 0, errors = 0;
+    double range;
+    PyObject *fr, *write, *res;
+    int64_t p;
+    if (self->ohc == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: no output ring bound (ot, ohc)");
+        return NULL;
+    }
+    if (fus_nargs("send", nargs, 7) < 0 || fus_long(args[0], &seq) < 0 || fus_long(args[1], &src) < 0 ||
+        fus_long(args[2], &node) < 0 || fus_long(args[3], &status) < 0 || fus_long(args[4], &quality) < 0 ||
+        fus_double(args[5], &range) < 0)
+        return NULL;
+    write = args[6];
+    while (self->ohc[1] > 0) {
+        p = self->ohc[0] - self->ohc[1];
+        if (p < 0)
+            p += self->ocap;
+        fr = fus_row_frame(self, (int)p, (long long)self->ot[p], (seq + sent) & 0xFF, src, node, status, quality,
+                           range);
+        if (fr == NULL)
+            return NULL;
+        if (fr == Py_None) {
+            Py_DECREF(fr);
+            return PyLong_FromLongLong((sent << 32) + (errors << 1) + 1);
+        }
+        ct_ring_pop(self->ohc, self->ocap);
+        ++sent;
+        res = PyObject_CallOneArg(write, fr);
+        Py_DECREF(fr);
+        if (res == NULL) {
+            if (!PyErr_ExceptionMatches(PyExc_Exception))
+                return NULL;            /* (KeyboardInterrupt, SystemExit: not a link's failure) */
+            PyErr_Clear();
+            ++errors;
+        } else {
+            Py_DECREF(res);
+        }
+    }
+    return PyLong_FromLongLong((sent << 32) + (errors << 1));
+}
+
 static PyMethodDef FusOutput_methods[] = {
+    {"send", (PyCFunction)(void (*)(void))FusOutput_send, METH_FASTCALL,
+     "send(seq, src, node, status, quality, range_m, write) -> (sent << 32) + (errors << 1) + ref: pose_next's "
+     "frames written through write, numbered from seq, until none is queued or a row needs the reference path "
+     "(ref)"},
     {"pose_next", (PyCFunction)(void (*)(void))FusOutput_pose_next, METH_FASTCALL,
      "pose_next(seq, src, node, status, quality, range_m) -> bytes (sent: off the queue), None (the reference "
      "path's) or 0 (none queued): pose_frame of the oldest queued row"},
