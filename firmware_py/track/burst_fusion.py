@@ -1126,37 +1126,47 @@ class BurstFusionTracker(MagneticTracker):
         return n
 
     def _bind_fused_tick(self, core) -> None:
-        """The fused tick on the compiled core with a fixed source, where every sensor drains through
-        :class:`_OneCall` and sends through the reference's :meth:`SensorInertial.send_fused`:
-        :meth:`_step` is :meth:`_step_fused`, :meth:`_process` one call for all the sensors
-        (``ext.FusedTick.process``: each sensor's ``ImuSample.drain`` and its count, ``core/py_fusimu.c``)
-        and :meth:`_send_fused` each sensor's plain poses in one transmitter call
-        (:meth:`_send_fused_plain`). Bound once; anything else keeps the reference methods."""
+        """The fused tick in few calls on the compiled core with a fixed source, where every sensor
+        drains through :class:`_OneCall` and sends through the reference's
+        :meth:`SensorInertial.send_fused`: :meth:`_send_fused` is :meth:`_send_fused_plain` (each
+        sensor's plain poses in one transmitter call) and, unless a subclass has its own step,
+        :meth:`_process` is :meth:`_process_fused` (the sensors' samples in one call,
+        ``ext.FusedTick.process``: each sensor's ``ImuSample.drain`` and its count,
+        ``core/py_fusimu.c``) and :meth:`step` :meth:`_step_fast`. Bound once; anything else keeps
+        the reference methods."""
         ins = tuple(i for _, i in self._pairs)
-        if core.ext is None or not ins or not self.source.fixed or getattr(self.tx, "core", None) != "compiled" or any(
-                getattr(type(self), m) is not getattr(BurstFusionTracker, m) for m in ("_step", "_process", "_send_fused")) or any(
+        if core.ext is None or not ins or not self.source.fixed or getattr(self.tx, "core", None) != "compiled" or \
+                getattr(type(self), "_send_fused") is not BurstFusionTracker._send_fused or any(
                 getattr(i, "_one", None) is None or i.process != i._one.run or i._one.kernel is None
                 or type(i).send_fused is not SensorInertial.send_fused
                 or getattr(i._send_plain, "__func__", None) is not type(i.fusion.output)._send_plain_compiled
                 for i in ins):
             return
+        self._ft_send = tuple((ch.node, i, i.fusion.output._ck, i._recovery) for ch, i in self._pairs)
+        self._send_fused = self._send_fused_plain
+        if any(getattr(type(self), m) is not getattr(BurstFusionTracker, m) for m in ("step", "_step", "_process")):
+            return
         self._ft_done = np.zeros(2, dtype=np.int64)
         self._ft_donev = memoryview(self._ft_done)
         self._ft_process = core.ext.FusedTick(tuple(i._one.kernel for i in ins), tuple(i.sc for i in ins),
                                               self._ft_done).process
-        self._ft_send = tuple((ch.node, i, i.fusion.output._ck, i._recovery) for ch, i in self._pairs)
-        self._step = self._step_fused
         self._process = self._process_fused
-        self._send_fused = self._send_fused_plain
+        self.step = self._step_fast
 
-    def _step_fused(self, now_us: int) -> None:
-        """:meth:`_step` (bound by :meth:`_bind_fused_tick`) of a tick with IMU samples queued, no
-        sensor fusing, no burst to solve or solve ahead: the samples drained and their fused poses
-        sent; any other tick through the reference."""
+    def _step_fast(self, now_us: int) -> None:
+        """:meth:`step` (bound by :meth:`_bind_fused_tick`): a tick with IMU samples queued, no sensor
+        fusing and no burst to solve or solve ahead is :meth:`_step`'s part for it, the samples drained
+        (:meth:`_process` in one compiled call) and their fused poses sent; any other tick the
+        reference's."""
         if self._idle or self._n_pending or self.busy() or (self.ahead and self._ahead_pending()):
-            BurstFusionTracker._step(self, now_us)
+            BurstFusionTracker.step(self, now_us)
             return
-        n = self._process(now_us)
+        r = self._ft_process(self.imu_steps)
+        if r & 1:
+            n = self._process_back(now_us, r >> 2)
+        else:
+            self._idle = not r & 2
+            n = r >> 2
         self._imu_last = n
         self._deferring = False
         self._waited = False
@@ -1164,13 +1174,18 @@ class BurstFusionTracker(MagneticTracker):
             self._send_fused()
 
     def _process_fused(self, now_us: int) -> int:
-        """:meth:`_process` in one compiled call (:meth:`_bind_fused_tick`); from a sensor whose drain
-        handed a sample back on, the reference's loop."""
+        """:meth:`_process` in one compiled call (bound by :meth:`_bind_fused_tick`: the ticks
+        :meth:`_step_fast` leaves to the reference, a solve's or a fusion's, drain their samples
+        through it too)."""
         r = self._ft_process(self.imu_steps)
-        if not r & 1:
-            self._idle = not r & 2
-            return r >> 2
-        n = r >> 2
+        if r & 1:
+            return self._process_back(now_us, r >> 2)
+        self._idle = not r & 2
+        return r >> 2
+
+    def _process_back(self, now_us: int, n: int) -> int:
+        """The rest of :meth:`_process` after ``FusedTick.process`` ran ``n`` samples and stopped at a
+        sensor whose drain handed one back: the reference's loop from that sensor on."""
         k, done = self._ft_donev[0], self._ft_donev[1]
         wait, steps = self.source_wait_us, self.imu_steps
         left = False
