@@ -29,6 +29,7 @@ _FAULT = MSG["FAULT_EVENT"]
 _WINDOW = MSG["PULSE_WINDOW"]
 _FLIP = MSG["MAG_FLIP_CMD"]
 _PULSE_CMD = MSG["COIL_PULSE_CMD"]
+_SYNC = MSG["TIME_SYNC"]
 #: the largest finite f32 (POSE covariance fields): larger variances are sent as this
 F32_MAX = 3.0e38
 
@@ -100,6 +101,11 @@ class Transmitter:
     def event(self, code: int, detail: int) -> None:
         self.send(_FAULT(self.node_id, self.now_us, code, detail & 0xFFFFFFFF))
 
+    def time_sync(self, master_time_us: int, seq: int) -> None:
+        """Send one ``TIME_SYNC`` (``supervise.timesync.TimeSyncMaster.step``: the master time at
+        transmission, the broadcast's sequence number)."""
+        self.send(_SYNC(master_time_us, seq))
+
     def pulse_window(self, node: int, coil: int, pulse_id: int, first_us: int, last_us: int, n_used: int,
                      n_base: int, flags: int) -> None:
         """Send one ``PULSE_WINDOW`` (which samples a window's amplitude used: ``measure.windows``)."""
@@ -137,30 +143,23 @@ class Transmitter:
         return -1
 
     def _fused_pose_compiled(self, kernel, node: int, status: int, quality: int, range_m: float) -> int:
-        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.pose_next``, ``ct_pose_frame``, one
-        call a pose); while :meth:`pose` is not this transmitter's own (a recorder wraps it) every
-        pose goes through it."""
+        """:meth:`fused_pose` on the compiled core (``ext.FusOutput.send``: each queued pose's frame,
+        ``ct_pose_frame``, numbered from this transmitter's sequence and written through the port in
+        one call, which counts the writes that failed); the sequence and the counts as
+        :meth:`_write_numbered` and :meth:`_count_pose` keep them. While :meth:`pose` is not this
+        transmitter's own (a recorder wraps it) every pose goes through it."""
         if self.pose is not self._pose_own:
             return -1
-        nxt = kernel.pose_next
-        nid = self.node_id
-        write = self.port.write
-        valid = status & POSE_VALID
-        while True:
-            frame = nxt(self._seq, nid, node, status, quality, range_m)
-            if frame is None:
-                return -1
-            if frame == 0:
-                return 0
-            self._seq = (self._seq + 1) & 0xFF         # (_write_numbered and _count_pose, inline)
-            try:
-                write(frame)
-            except Exception:  # a full or broken link must not stop the loop
-                self.tx_errors += 1
-            if valid:
-                self.poses += 1
+        r = kernel.send(self._seq, self.node_id, node, status, quality, range_m, self.port.write)
+        sent = r >> 32
+        if sent:
+            self._seq = (self._seq + sent) & 0xFF
+            self.tx_errors += (r >> 1) & 0x7FFFFFFF
+            if status & POSE_VALID:
+                self.poses += sent
                 if status & POSE_FUSED:
-                    self.fused_poses += 1
+                    self.fused_poses += sent
+        return -(r & 1)
 
     def pose_cov6(self, node: int, t_us: int, p, q, cov, status: int, quality: int = 255) -> None:
         """:meth:`pose` from a position 3-vector, a quaternion 4-tuple and the
@@ -257,6 +256,40 @@ class Transmitter:
         assert (ext.PCMD_ID, ext.PCMD_PAYLOAD, ext.PCMD_CRC_EXTRA) == (_PULSE_CMD.ID, 17, _CRC_EXTRA[_PULSE_CMD.ID][0])
         self._pulse_cmd_frame = ext.pulse_cmd_frame
         self.coil_pulse = self._coil_pulse_compiled
+        self._bind_periodic(ext)
+
+    def _bind_periodic(self, ext) -> None:
+        """The periodic frames on the compiled core (``core/src/periodic.c``: the same bytes as
+        ``encode_frame``): :meth:`time_sync`, the heartbeat of :meth:`step` and :meth:`event`, each
+        one call numbered with this transmitter's sequence. (A cold ``encode_frame`` took 20-50 us
+        of CPU in a tick: the supervisor's TIME_SYNC, four a burst and the periodic ones, set a class
+        of idle ticks at roetenberg-fusion's p99.9.)"""
+        for name, m, size in (("SYNC", _SYNC, 10), ("HEARTBEAT", _HEARTBEAT, 10), ("EVENT", _FAULT, 15)):
+            assert (getattr(ext, name + "_ID"), getattr(ext, name + "_PAYLOAD"), getattr(ext, name + "_CRC_EXTRA")) == (
+                m.ID, size, _CRC_EXTRA[m.ID][0])
+        self._sync_frame = ext.sync_frame
+        self._heartbeat_frame = ext.heartbeat_frame
+        self._event_frame = ext.event_frame
+        self.time_sync = self._time_sync_compiled
+        self.event = self._event_compiled
+        self.step = self._step_compiled
+
+    def _time_sync_compiled(self, master_time_us: int, seq: int) -> None:
+        """:meth:`time_sync` on the compiled core (``ct_sync_frame``)."""
+        self._write_numbered(self._sync_frame(self._seq, self.node_id, master_time_us, seq))
+
+    def _event_compiled(self, code: int, detail: int) -> None:
+        """:meth:`event` on the compiled core (``ct_event_frame``)."""
+        self._write_numbered(self._event_frame(self._seq, self.node_id, self.node_id, self.now_us, code,
+                                               detail & 0xFFFFFFFF))
+
+    def _step_compiled(self, now_us: int) -> None:
+        """:meth:`step` on the compiled core (``ct_heartbeat_frame``)."""
+        if now_us >= self.next_heartbeat_us:
+            self._write_numbered(self._heartbeat_frame(self._seq, self.node_id, self.node_id, ROLE_FIRMWARE,
+                                                       STATE_RUNNING, PROTOCOL_VERSION, SCHEMA_HASH,
+                                                       min(self.decoder.frames_bad, 0xFFFF)))
+            self.next_heartbeat_us = now_us + self.heartbeat_us
 
     def _coil_pulse_compiled(self, coil: int, pulse_id: int, current_ma: int, start_us: int, length_us: int) -> None:
         """:meth:`coil_pulse` on the compiled core (``ct_pulse_cmd_frame``, ``core/src/sc_policy.c``: the same

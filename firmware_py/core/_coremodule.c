@@ -948,6 +948,7 @@ int ct_register_sc_window(PyObject *m);
 int ct_register_sc_close(PyObject *m);
 int ct_register_fuse(PyObject *m);
 int ct_register_begin(PyObject *m);
+int ct_register_periodic(PyObject *m);
 static int (*const AREAS[])(PyObject *) = {
     ct_register_window, ct_register_fusimu, ct_register_fusion, ct_register_ac, ct_register_rxdecode,
     ct_register_single_coil,
@@ -962,6 +963,7 @@ static int (*const AREAS[])(PyObject *) = {
     ct_register_sc_close,
     ct_register_fuse,
     ct_register_begin,
+    ct_register_periodic,
 };
 
 PyMODINIT_FUNC PyInit__core(void)

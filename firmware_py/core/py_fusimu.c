@@ -513,7 +513,59 @@ static PyObject *FusOutput_pose_next(FusOutputObject *self, PyObject *const *arg
     return fr;
 }
 
+/* send(seq, src, node, status, quality, range_m, write) -> (sent << 32) + (errors << 1) + ref: pose_next's
+ * frames, oldest first, each written through write(frame) (the port's: an exception it raises is
+ * cleared and counted in errors, the row off the queue all the same, as Transmitter._fused_pose_compiled
+ * counts a tx error), numbered seq, seq + 1, ... (mod 256); it stops when none is queued (ref 0) or at a
+ * row that needs the reference path (ref 1, left queued) */
+static PyObject *FusOutput_send(FusOutputObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long seq, src, node, status, quality, sent = 0, errors = 0;
+    double range;
+    PyObject *fr, *write, *res;
+    int64_t p;
+    if (self->ohc == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusOutput: no output ring bound (ot, ohc)");
+        return NULL;
+    }
+    if (fus_nargs("send", nargs, 7) < 0 || fus_long(args[0], &seq) < 0 || fus_long(args[1], &src) < 0 ||
+        fus_long(args[2], &node) < 0 || fus_long(args[3], &status) < 0 || fus_long(args[4], &quality) < 0 ||
+        fus_double(args[5], &range) < 0)
+        return NULL;
+    write = args[6];
+    while (self->ohc[1] > 0) {
+        p = self->ohc[0] - self->ohc[1];
+        if (p < 0)
+            p += self->ocap;
+        fr = fus_row_frame(self, (int)p, (long long)self->ot[p], (seq + sent) & 0xFF, src, node, status, quality,
+                           range);
+        if (fr == NULL)
+            return NULL;
+        if (fr == Py_None) {
+            Py_DECREF(fr);
+            return PyLong_FromLongLong((sent << 32) + (errors << 1) + 1);
+        }
+        ct_ring_pop(self->ohc, self->ocap);
+        ++sent;
+        res = PyObject_CallOneArg(write, fr);
+        Py_DECREF(fr);
+        if (res == NULL) {
+            if (!PyErr_ExceptionMatches(PyExc_Exception))
+                return NULL;            /* (KeyboardInterrupt, SystemExit: not a link's failure) */
+            PyErr_Clear();
+            ++errors;
+        } else {
+            Py_DECREF(res);
+        }
+    }
+    return PyLong_FromLongLong((sent << 32) + (errors << 1));
+}
+
 static PyMethodDef FusOutput_methods[] = {
+    {"send", (PyCFunction)(void (*)(void))FusOutput_send, METH_FASTCALL,
+     "send(seq, src, node, status, quality, range_m, write) -> (sent << 32) + (errors << 1) + ref: pose_next's "
+     "frames written through write, numbered from seq, until none is queued or a row needs the reference path "
+     "(ref)"},
     {"pose_next", (PyCFunction)(void (*)(void))FusOutput_pose_next, METH_FASTCALL,
      "pose_next(seq, src, node, status, quality, range_m) -> bytes (sent: off the queue), None (the reference "
      "path's) or 0 (none queued): pose_frame of the oldest queued row"},
@@ -1595,19 +1647,16 @@ static int imu_sample_snap(ImuSampleObject *self, const double *phi)
  * (CT_SR_ORTHO) with it (ct_ori_sample_ortho); n samples run, then why: 0 the ring is empty or
  * max_steps are run, CT_SR_SLOW the oldest sample is the caller's (not run; a full output queue is
  * CT_SR_SLOW, as sample's -1) */
-static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+static long long imu_sample_drain(ImuSampleObject *self, long long max)
 {
     const struct ct_sample_state *s = &self->ss;
-    long long max;
     double v[9], phi[9];
     int64_t t, p, n = 0;
     int why = 0, r, i;
     if (!self->stated) {
         PyErr_SetString(PyExc_RuntimeError, "ImuSample: drain before bind_state");
-        return NULL;
+        return -1;
     }
-    if (fus_nargs("drain", nargs, 1) < 0 || fus_long(args[0], &max) < 0)
-        return NULL;
     for (i = 0; i < 9; ++i)
         phi[i] = self->phi[i];
     while (n < max && self->in_hc[1] > 0) {
@@ -1624,11 +1673,11 @@ static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, P
             break;
         if (s->mhc[0] < 0 || s->mhc[0] >= self->ori->o.q.cap || s->mhc[1] < 0 || s->mhc[1] > self->ori->o.q.cap) {
             PyErr_SetString(PyExc_IndexError, "drain: head or count outside the magnetometer ring");
-            return NULL;
+            return -1;
         }
         if (why == CT_SR_SNAP) {
             if (imu_sample_snap(self, phi) < 0)
-                return NULL;
+                return -1;
             why = 0;
             ++n;
             continue;
@@ -1643,7 +1692,16 @@ static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, P
         why = 0;
         ++n;
     }
-    return PyLong_FromLongLong((long long)(4 * n + why));
+    return (long long)(4 * n + why);
+}
+
+static PyObject *ImuSample_drain(ImuSampleObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long max, r;
+    if (fus_nargs("drain", nargs, 1) < 0 || fus_long(args[0], &max) < 0)
+        return NULL;
+    r = imu_sample_drain(self, max);
+    return r < 0 ? NULL : PyLong_FromLongLong(r);
 }
 
 static PyMethodDef ImuSample_methods[] = {
@@ -1681,6 +1739,131 @@ static PyTypeObject ImuSampleType = {
     .tp_init = (initproc)ImuSample_init,
     .tp_dealloc = (destructor)ImuSample_dealloc,
     .tp_methods = ImuSample_methods,
+};
+
+/* --------------------------------------------------------------- FusedTick */
+/* track.burst_fusion.BurstFusionTracker._process on the compiled core with a fixed source: each
+ * sensor's samples drained in one call (ImuSample.drain, in the sensors' order) with its sample
+ * count (SensorInertial.sc) added to, as _OneCall.run adds it; it stops at the first sensor whose
+ * drain hands a sample back (the caller runs the rest through the reference loop, from that sensor
+ * on: its index and the samples it ran are written into done[0], done[1]). */
+typedef struct {
+    PyObject_HEAD
+    Py_ssize_t n;
+    PyObject *held;                 /* the ImuSample objects (tuple) */
+    ImuSampleObject **s;
+    int64_t **sc;
+    int64_t *done;
+    Py_buffer *views;               /* the counts, then done */
+    Py_ssize_t nv;
+} FusedTickObject;
+
+static void FusedTick_dealloc(FusedTickObject *self)
+{
+    Py_ssize_t k;
+    for (k = 0; k < self->nv; ++k)
+        PyBuffer_Release(&self->views[k]);
+    PyMem_Free(self->views);
+    PyMem_Free(self->s);
+    PyMem_Free(self->sc);
+    Py_XDECREF(self->held);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int FusedTick_init(FusedTickObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"samples", "counts", "done", NULL};
+    PyObject *samples, *counts, *done;
+    Py_ssize_t n, k;
+    if (self->held != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusedTick: already bound");
+        return -1;
+    }
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!O", kwlist, &PyTuple_Type, &samples, &PyTuple_Type, &counts,
+                                     &done))
+        return -1;
+    n = PyTuple_GET_SIZE(samples);
+    if (n < 1 || PyTuple_GET_SIZE(counts) != n) {
+        PyErr_SetString(PyExc_ValueError, "FusedTick: one count per sample kernel, at least one");
+        return -1;
+    }
+    for (k = 0; k < n; ++k)
+        if (!PyObject_TypeCheck(PyTuple_GET_ITEM(samples, k), &ImuSampleType) ||
+            !((ImuSampleObject *)PyTuple_GET_ITEM(samples, k))->stated) {
+            PyErr_SetString(PyExc_TypeError, "FusedTick: samples must be ImuSample objects with their state bound");
+            return -1;
+        }
+    self->s = PyMem_Calloc((size_t)n, sizeof *self->s);
+    self->sc = PyMem_Calloc((size_t)n, sizeof *self->sc);
+    self->views = PyMem_Calloc((size_t)n + 1, sizeof *self->views);
+    if (self->s == NULL || self->sc == NULL || self->views == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    for (k = 0; k < n; ++k) {
+        if (ct_py_buffer(PyTuple_GET_ITEM(counts, k), 1, 8, "ql", 1, &self->views[self->nv], "FusedTick counts") < 0)
+            return -1;
+        self->sc[k] = self->views[self->nv++].buf;
+        self->s[k] = (ImuSampleObject *)PyTuple_GET_ITEM(samples, k);
+    }
+    if (ct_py_buffer(done, 2, 8, "ql", 1, &self->views[self->nv], "FusedTick done") < 0)
+        return -1;
+    self->done = self->views[self->nv++].buf;
+    Py_INCREF(samples);
+    self->held = samples;
+    self->n = n;
+    return 0;
+}
+
+/* process(max_steps) -> 4 n + 2 left + back: n samples run over the sensors, left: a sensor's IMU ring
+ * still holds samples (it ran max_steps), back: a sensor's drain handed a sample back (done[0] its
+ * index, done[1] the samples it ran; the sensors after it not visited, left then not set) */
+static PyObject *FusedTick_process(FusedTickObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    long long max, r, total = 0;
+    Py_ssize_t k;
+    int left = 0;
+    if (self->held == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "FusedTick: not bound");
+        return NULL;
+    }
+    if (fus_nargs("process", nargs, 1) < 0 || fus_long(args[0], &max) < 0)
+        return NULL;
+    for (k = 0; k < self->n; ++k) {
+        r = imu_sample_drain(self->s[k], max);
+        if (r < 0)
+            return NULL;
+        self->sc[k][0] += r >> 2;
+        total += r >> 2;
+        if (r & 3) {
+            self->done[0] = (int64_t)k;
+            self->done[1] = (int64_t)(r >> 2);
+            return PyLong_FromLongLong(4 * total + 1);
+        }
+        if (self->s[k]->in_hc[1] > 0)
+            left = 1;
+    }
+    return PyLong_FromLongLong(4 * total + 2 * left);
+}
+
+static PyMethodDef FusedTick_methods[] = {
+    {"process", (PyCFunction)(void (*)(void))FusedTick_process, METH_FASTCALL,
+     "process(max_steps) -> 4 n + 2 left + back: every sensor's ImuSample.drain(max_steps) in order, its count "
+     "added to; back: the first sensor that handed a sample back stopped it (done[0] its index, done[1] its "
+     "samples run)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject FusedTickType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.FusedTick",
+    .tp_basicsize = sizeof(FusedTickObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "FusedTick(samples, counts, done): a fused tracker's sensors' ImuSample kernels (state bound) and "
+              "their sample counts (int64, one each), drained in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)FusedTick_init,
+    .tp_dealloc = (destructor)FusedTick_dealloc,
+    .tp_methods = FusedTick_methods,
 };
 
 /* --------------------------------------------------------------- ImuPush */
@@ -1786,7 +1969,8 @@ int ct_register_fusimu(PyObject *m)
         ct_py_add_type(m, &OriUpdType, "OriUpd") < 0 ||
         ct_py_add_type(m, &FusLiveType, "FusLive") < 0 || ct_py_add_type(m, &QuietSampleType, "QuietSample") < 0 ||
         ct_py_add_type(m, &OriStepType, "OriStep") < 0 ||
-        ct_py_add_type(m, &ImuSampleType, "ImuSample") < 0 || ct_py_add_type(m, &ImuPushType, "ImuPush") < 0)
+        ct_py_add_type(m, &ImuSampleType, "ImuSample") < 0 || ct_py_add_type(m, &ImuPushType, "ImuPush") < 0 ||
+        ct_py_add_type(m, &FusedTickType, "FusedTick") < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "FUS_IMU_WIDTH", CT_IMU_WIDTH) < 0 ||
         PyModule_AddIntConstant(m, "FUS_HIST_WIDTH", CT_HIST_WIDTH) < 0 ||

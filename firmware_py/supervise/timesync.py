@@ -23,10 +23,6 @@ Fixed-size state, allocated in ``__init__``; no numpy in the per-tick path.
 """
 from __future__ import annotations
 
-from coiltrack.protocol import MSG
-
-TimeSyncMsg = MSG["TIME_SYNC"]
-
 _HISTORY = 16        # broadcasts remembered for round-trip times
 _REQUESTS = 6        # pending requested broadcast times
 _REPLIES = 5         # reply arrival times remembered per node
@@ -127,9 +123,10 @@ class TimeSyncMaster:
         if at_us < r[j]:
             r[j] = at_us
 
-    def step(self, now_us: int, send) -> bool:
-        """Send a broadcast when one is due; return True when it did. Nothing is due before
-        ``_due_us`` (the periodic time and the requests, kept as they are set)."""
+    def step(self, now_us: int, sync) -> bool:
+        """Send a broadcast when one is due (``sync(master_time_us, seq)``: one ``TIME_SYNC``,
+        ``Transmitter.time_sync``); return True when it did. Nothing is due before ``_due_us`` (the
+        periodic time and the requests, kept as they are set)."""
         if now_us < self.due_us:
             return False
         due = now_us >= self.next_us
@@ -148,7 +145,7 @@ class TimeSyncMaster:
         k = seq % _HISTORY
         self._sent_seq[k] = seq
         self._sent_t[k] = now_us
-        send(TimeSyncMsg(now_us + self.latency_us, seq))
+        sync(now_us + self.latency_us, seq)
         self.seq = (seq + 1) & 0xFFFF
         self.sent += 1
         self.next_us = now_us + self.period_us

@@ -1007,6 +1007,7 @@ class BurstFusionTracker(MagneticTracker):
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
         self._bind_report_chain(core)
         self._bind_burst_open(core)
+        self._bind_fused_tick(core)
 
     def _ring_of(self, ch):
         """The magnetometer ring sensor ``ch``'s inertial part is fed from (:meth:`_process`)."""
@@ -1122,6 +1123,90 @@ class BurstFusionTracker(MagneticTracker):
                 left = True
         self._idle = not left
         return n
+
+    def _bind_fused_tick(self, core) -> None:
+        """The fused tick in few calls on the compiled core with a fixed source, where every sensor
+        drains through :class:`_OneCall` and sends through the reference's
+        :meth:`SensorInertial.send_fused`: :meth:`_send_fused` is :meth:`_send_fused_plain` (each
+        sensor's plain poses in one transmitter call) and, unless a subclass has its own step,
+        :meth:`_process` is :meth:`_process_fused` (the sensors' samples in one call,
+        ``ext.FusedTick.process``: each sensor's ``ImuSample.drain`` and its count,
+        ``core/py_fusimu.c``) and :meth:`step` :meth:`_step_fast`. Bound once; anything else keeps
+        the reference methods."""
+        ins = tuple(i for _, i in self._pairs)
+        if core.ext is None or not ins or not self.source.fixed or getattr(self.tx, "core", None) != "compiled" or \
+                getattr(type(self), "_send_fused") is not BurstFusionTracker._send_fused or any(
+                getattr(i, "_one", None) is None or i.process != i._one.run or i._one.kernel is None
+                or type(i).send_fused is not SensorInertial.send_fused
+                or getattr(i._send_plain, "__func__", None) is not type(i.fusion.output)._send_plain_compiled
+                for i in ins):
+            return
+        self._ft_send = tuple((ch.node, i, i.fusion.output._ck, i._recovery) for ch, i in self._pairs)
+        self._send_fused = self._send_fused_plain
+        if any(getattr(type(self), m) is not getattr(BurstFusionTracker, m) for m in ("step", "_step", "_process")):
+            return
+        self._ft_done = np.zeros(2, dtype=np.int64)
+        self._ft_donev = memoryview(self._ft_done)
+        self._ft_process = core.ext.FusedTick(tuple(i._one.kernel for i in ins), tuple(i.sc for i in ins),
+                                              self._ft_done).process
+        self._process = self._process_fused
+        self.step = self._step_fast
+
+    def _step_fast(self, now_us: int) -> None:
+        """:meth:`step` (bound by :meth:`_bind_fused_tick`): a tick with IMU samples queued, no sensor
+        fusing and no burst to solve or solve ahead is :meth:`_step`'s part for it, the samples drained
+        (:meth:`_process` in one compiled call) and their fused poses sent; any other tick the
+        reference's."""
+        if self._idle or self._n_pending or self.busy() or (self.ahead and self._ahead_pending()):
+            BurstFusionTracker.step(self, now_us)
+            return
+        r = self._ft_process(self.imu_steps)
+        if r & 1:
+            n = self._process_back(now_us, r >> 2)
+        else:
+            self._idle = not r & 2
+            n = r >> 2
+        self._imu_last = n
+        self._deferring = False
+        self._waited = False
+        if n:
+            self._send_fused()
+
+    def _process_fused(self, now_us: int) -> int:
+        """:meth:`_process` in one compiled call (bound by :meth:`_bind_fused_tick`: the ticks
+        :meth:`_step_fast` leaves to the reference, a solve's or a fusion's, drain their samples
+        through it too)."""
+        r = self._ft_process(self.imu_steps)
+        if r & 1:
+            return self._process_back(now_us, r >> 2)
+        self._idle = not r & 2
+        return r >> 2
+
+    def _process_back(self, now_us: int, n: int) -> int:
+        """The rest of :meth:`_process` after ``FusedTick.process`` ran ``n`` samples and stopped at a
+        sensor whose drain handed one back: the reference's loop from that sensor on."""
+        k, done = self._ft_donev[0], self._ft_donev[1]
+        wait, steps = self.source_wait_us, self.imu_steps
+        left = False
+        for j, (ch, ins) in enumerate(self._pairs):
+            if j >= k:
+                n += ins.process(ch.ring, now_us, wait, steps - done if j == k else steps)
+            if len(ins.imu):
+                left = True
+        self._idle = not left
+        return n
+
+    def _send_fused_plain(self) -> None:
+        """:meth:`_send_fused` (bound by :meth:`_bind_fused_tick`): each sensor's queued plain poses
+        in one transmitter call (``Transmitter.fused_pose``, as ``PoseOutput.send_plain`` calls it),
+        the sensor's :meth:`SensorInertial.send_fused` for what is left (a pose with an ``OUT_*``
+        bit or out of range) and while a recovery or dead reckoning is to be reported."""
+        tx, last, rm = self.tx, self.quality.last, self.range_m
+        fused_pose = tx.fused_pose
+        for node, ins, kernel, rec in self._ft_send:
+            if ins.dr_state or rec.recoveries != ins.recoveries_seen or fused_pose(kernel, node, _FUSED_VALID,
+                                                                                    last[node], rm):
+                ins.send_fused(tx, node, rm, last[node])
 
     def _tick_charges(self) -> int:
         """The windows closed and ``imu_sample_evals`` per IMU sample processed in this tick."""

@@ -73,7 +73,7 @@ def test_time_sync_broadcasts_in_the_ticks_a_full_scan_chooses():
         elif u < 0.022:
             ts.kick()
             ref.kick()
-        ts.step(now, lambda msg: sent.append(now))
+        ts.step(now, lambda master_time_us, seq: sent.append(now))
         if ref.step(now):
             sent_ref.append(now)
         assert len(sent) == len(sent_ref), now

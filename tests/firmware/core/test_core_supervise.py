@@ -58,6 +58,9 @@ class _Tx:
     def send(self, msg):
         self.sent.append(msg)
 
+    def time_sync(self, master_time_us, seq):
+        self.sent.append(MSG["TIME_SYNC"](master_time_us, seq))
+
     def event(self, code, detail):
         self.events.append((code, detail))
 
@@ -125,7 +128,7 @@ def test_mag_kernel_follows_on_message_through_every_case():
         if rng.random() < 0.01:                         # a broadcast (the replies' round trips)
             for s in (ref, fast):
                 s.timesync.kick()
-                s.timesync.step(now, s.tx.send)
+                s.timesync.step(now, s.tx.time_sync)
         if r > 0.95:                                    # a sync reply (a few show a step)
             seq = (ref.timesync.seq - rng.randrange(1, 20)) & 0xFFFF
             off = offset.setdefault(node, rng.randrange(-3000, 3000))
