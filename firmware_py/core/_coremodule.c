@@ -945,6 +945,7 @@ int ct_register_supervise(PyObject *m);
 int ct_register_report(PyObject *m);
 int ct_register_sc_choose(PyObject *m);
 int ct_register_sc_window(PyObject *m);
+int ct_register_ahead(PyObject *m);
 static int (*const AREAS[])(PyObject *) = {
     ct_register_window, ct_register_fusimu, ct_register_fusion, ct_register_ac, ct_register_rxdecode,
     ct_register_single_coil,
@@ -956,6 +957,7 @@ static int (*const AREAS[])(PyObject *) = {
     ct_register_report,
     ct_register_sc_choose,
     ct_register_sc_window,
+    ct_register_ahead,
 };
 
 PyMODINIT_FUNC PyInit__core(void)

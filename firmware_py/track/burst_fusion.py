@@ -39,7 +39,7 @@ from coiltrack.firmware.transmit import PoseReport
 from coiltrack.firmware.estimate.ekf import EKF_GATED, EKF_NONFINITE, EKF_NOT_PD, SYMMETRIZE_EVERY
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.magnetic_inertial import (FUS_PREPARED, OUT_DEAD_RECKONING, OUT_INCONSISTENT, OUT_LOST,
-                                                          OUT_RECOVERED, OUT_STALE, FusionFilter, FusionParams)
+                                                          OUT_RECOVERED, OUT_STALE, FS_INIT, FusionFilter, FusionParams)
 from coiltrack.firmware.estimate.fusion_snapshot import Snapshot
 from coiltrack.firmware.estimate.layout import BIAS, DIST, THETA
 from coiltrack.firmware.estimate.orientation import (N as ORI_N, OF_INIT, OF_STEPS, OF_T, OS_MAG, OS_ROUND,
@@ -1008,6 +1008,7 @@ class BurstFusionTracker(MagneticTracker):
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
         self._bind_report_chain(core)
         self._bind_burst_open(core)
+        self._bind_scan(core)
 
     def _ring_of(self, ch):
         """The magnetometer ring sensor ``ch``'s inertial part is fed from (:meth:`_process`)."""
@@ -1131,6 +1132,19 @@ class BurstFusionTracker(MagneticTracker):
     def _ahead_wanted(self, ch) -> bool:
         """A sensor whose fusion filter runs starts from the filter's pose, not from a burst solved ahead."""
         return not self.inertial[ch.node].fusion.initialized
+
+    def _ahead_wanted_flags(self):
+        """:meth:`_ahead_wanted` as arrays for the compiled scan: each sensor's fusion filter's
+        ``initialized`` entry (``FusionFilter.fs[FS_INIT]``); None before the sensors are made or
+        where a filter keeps it otherwise."""
+        ins = getattr(self, "inertial", None)
+        if ins is None or type(self)._ahead_wanted is not BurstFusionTracker._ahead_wanted:
+            return None
+        fus = [ins[ch.node].fusion for ch in self.channels]
+        if any(type(f).initialized is not FusionFilter.initialized or not isinstance(getattr(f, "fs", None), np.ndarray)
+               for f in fus):
+            return None
+        return tuple((f.fs, FS_INIT) for f in fus)
 
     def warm_start(self, ch, tp) -> bool:
         """The fusion filter's pose at the burst's middle when it has one (it
