@@ -1,7 +1,8 @@
 /*
- * Solving ahead for many sensors (track.magnetic.MagneticTracker._ahead_scan): the scan over the
- * sensors for the first one whose open burst may be solved ahead, on the state the tracker keeps
- * in arrays.  Same names (ct_ prefix), same tests in the same order as the Python reference.
+ * The per-tick scans over many sensors: which sensor's open burst may be solved ahead
+ * (track.magnetic.MagneticTracker._ahead_scan, on the state the tracker keeps in arrays) and how
+ * many channels have a window's samples in (measure.windows.WindowCloser.ready_upto).  Same names
+ * (ct_ prefix), same tests in the same order as the Python reference.
  */
 #ifndef CT_AHEAD_H
 #define CT_AHEAD_H
@@ -38,5 +39,14 @@ struct ct_ahead_scan {
     int64_t *st, *idle;
 };
 int64_t ct_ahead_scan(const struct ct_ahead_scan *s, int64_t burst, int64_t j, int64_t start, int64_t end);
+
+/* ------------------------------------------------------------ ready_upto
+ * measure.windows.WindowCloser.ready_upto: nch channels whose rings' states are hc[i] (latest at
+ * hc[i][2]) and whose extractors read extra[i] = fall + baseline after a window's end
+ * (PulseExtractor.ready); fall, baseline, timeout the closer's.  All nch once now > end + fall +
+ * baseline + timeout; else, from channel first on, the first i not ready (nch when all are).
+ * CT_AHEAD_ASK where a time lies outside +-2^61 (the reference answers). */
+int64_t ct_ready_upto(const int64_t *const *hc, const int64_t *extra, int64_t nch, int64_t start, int64_t end,
+                      int64_t now, int64_t first, int64_t fall, int64_t baseline, int64_t timeout);
 
 #endif

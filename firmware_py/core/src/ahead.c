@@ -1,6 +1,7 @@
 /*
- * Solving ahead for many sensors (include/ct_ahead.h): which sensor's open burst may be solved
- * ahead, the tests of track.magnetic.MagneticTracker._ahead_scan in their order.
+ * The per-tick scans over many sensors (include/ct_ahead.h): which sensor's open burst may be solved
+ * ahead (the tests of track.magnetic.MagneticTracker._ahead_scan in their order) and how many
+ * channels have a window's samples in (measure.windows.WindowCloser.ready_upto).
  */
 #include <stdint.h>
 
@@ -73,4 +74,23 @@ int64_t ct_ahead_scan(const struct ct_ahead_scan *s, int64_t burst, int64_t j, i
         return k;
     }
     return seen ? CT_AHEAD_SEEN : CT_AHEAD_NONE;
+}
+
+int64_t ct_ready_upto(const int64_t *const *hc, const int64_t *extra, int64_t nch, int64_t start, int64_t end,
+                      int64_t now, int64_t first, int64_t fall, int64_t baseline, int64_t timeout)
+{
+    int64_t i;
+    (void)start;
+    if (first < 0 || ct_ahead_far(end) || ct_ahead_far(now) || ct_ahead_far(fall) || ct_ahead_far(baseline) ||
+        ct_ahead_far(timeout) || ct_ahead_far(fall + baseline + timeout))
+        return CT_AHEAD_ASK;
+    if (now > end + fall + baseline + timeout)
+        return nch;
+    for (i = first; i < nch; ++i) {
+        if (ct_ahead_far(extra[i]))
+            return CT_AHEAD_ASK;
+        if (!(hc[i][2] > end + extra[i]))          /* PulseExtractor.ready: a sample after the window */
+            return i;
+    }
+    return nch;
 }
