@@ -28,6 +28,7 @@ _POSE = MSG["POSE"]
 _FAULT = MSG["FAULT_EVENT"]
 _WINDOW = MSG["PULSE_WINDOW"]
 _FLIP = MSG["MAG_FLIP_CMD"]
+_SYNC = MSG["TIME_SYNC"]
 _PULSE_CMD = MSG["COIL_PULSE_CMD"]
 #: the largest finite f32 (POSE covariance fields): larger variances are sent as this
 F32_MAX = 3.0e38
@@ -123,6 +124,19 @@ class Transmitter:
         self._seq = r & 0xFF
         self.tx_errors += r >> 8
         return True
+
+    def time_sync(self, master_time_us: int, sync_seq: int) -> None:
+        """Send one ``TIME_SYNC`` broadcast (``supervise.timesync.TimeSync.step``)."""
+        self.send(_SYNC(master_time_us, sync_seq))
+
+    def _time_sync_compiled(self, master_time_us: int, sync_seq: int) -> None:
+        """:meth:`time_sync` on the compiled core (``ct_sync_frame``, ``core/src/ahead.c``: the same bytes
+        as ``encode_frame``), numbered with this transmitter's sequence; while :meth:`send` is not
+        the one bound at start-up (a recorder wraps it) the broadcast goes through it."""
+        if self.send is not self._send_own:
+            Transmitter.time_sync(self, master_time_us, sync_seq)
+            return
+        self._write_numbered(self._sync_frame(self._seq, self.node_id, master_time_us, sync_seq))
 
     def mag_flip(self, node: int, at_us: int, state: int) -> None:
         """Send one ``MAG_FLIP_CMD`` (``supervise.flips``: ``node`` to set/reset ``state`` at ``at_us``)."""
@@ -271,6 +285,10 @@ class Transmitter:
         self._window_frame = ext.window_frame
         self.pulse_window = self._pw_own = self._pulse_window_compiled
         self.pulse_window_run = self._pulse_window_run_compiled
+        assert (ext.SYNC_ID, ext.SYNC_PAYLOAD, ext.SYNC_CRC_EXTRA) == (_SYNC.ID, 10, _CRC_EXTRA[_SYNC.ID][0])
+        self._sync_frame = ext.sync_frame
+        self._send_own = self.send
+        self.time_sync = self._time_sync_compiled
         assert (ext.FLIP_ID, ext.FLIP_PAYLOAD, ext.FLIP_CRC_EXTRA) == (_FLIP.ID, 10, _CRC_EXTRA[_FLIP.ID][0])
         self._flip_frame = ext.flip_frame
         self.mag_flip = self._mag_flip_compiled

@@ -438,8 +438,47 @@ static PyTypeObject WindowFramesType = {
     .tp_methods = WindowFrames_methods,
 };
 
+/* ------------------------------------------------------------- sync_frame */
+/* sync_frame(seq, src, master_time_us, sync_seq) -> bytes or None: one TIME_SYNC frame as encode_frame
+ * makes it (None: a value the wire format refuses) */
+static PyObject *ah_sync_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_SYNC_FRAME_MAX];
+    int64_t seq, src, sseq;
+    unsigned long long t;
+    int k;
+    (void)mod;
+    if (ct_py_nargs("sync_frame", nargs, 4) < 0)
+        return NULL;
+    if (!ah_int(args[0], &seq) || !ah_int(args[1], &src)) {
+        PyErr_SetString(PyExc_TypeError, "sync_frame: seq and src must be integers");
+        return NULL;
+    }
+    if (!PyLong_Check(args[2]) || !ah_int(args[3], &sseq))
+        Py_RETURN_NONE;
+    t = PyLong_AsUnsignedLongLong(args[2]);
+    if (t == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        Py_RETURN_NONE;
+    }
+    k = ct_sync_frame(out, (int)(seq & 0xFF), (int)(src & 0xFF), (uint64_t)t, sseq);
+    if (k < 0)
+        Py_RETURN_NONE;
+    return PyBytes_FromStringAndSize((const char *)out, k);
+}
+
+static PyMethodDef ah_functions[] = {
+    {"sync_frame", (PyCFunction)(void (*)(void))ah_sync_frame, METH_FASTCALL,
+     "sync_frame(seq, src, master_time_us, sync_seq) -> bytes or None: one TIME_SYNC frame (encode_frame's bytes)"},
+    {NULL, NULL, 0, NULL},
+};
+
 int ct_register_ahead(PyObject *m)
 {
+    if (PyModule_AddFunctions(m, ah_functions) < 0 || PyModule_AddIntConstant(m, "SYNC_ID", CT_SYNC_ID) < 0 ||
+        PyModule_AddIntConstant(m, "SYNC_PAYLOAD", CT_SYNC_PAYLOAD) < 0 ||
+        PyModule_AddIntConstant(m, "SYNC_CRC_EXTRA", CT_SYNC_CRC_EXTRA) < 0)
+        return -1;
     if (ct_py_add_type(m, &ReadyUptoType, "ReadyUpto") < 0 || ct_py_add_type(m, &WindowFramesType, "WindowFrames") < 0)
         return -1;
     return ct_py_add_type(m, &AheadScanType, "AheadScan");

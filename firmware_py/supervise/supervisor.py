@@ -192,7 +192,7 @@ class Supervisor:
                 self.timesync.forget(node)          # it re-acquires: its first replies are no step
         ts = self.timesync
         if now_us >= ts.due_us:                     # (before it, nothing to broadcast)
-            ts.step(now_us, self.tx.send)
+            ts.step(now_us, self.tx.send, self.tx.time_sync)
         if now_us > h.check_us:                     # (until then no node can be lost)
             h.step(now_us)
         if h.events_queued:

@@ -127,9 +127,11 @@ class TimeSyncMaster:
         if at_us < r[j]:
             r[j] = at_us
 
-    def step(self, now_us: int, send) -> bool:
-        """Send a broadcast when one is due; return True when it did. Nothing is due before
-        ``_due_us`` (the periodic time and the requests, kept as they are set)."""
+    def step(self, now_us: int, send, sync=None) -> bool:
+        """Send a broadcast when one is due (through ``send(msg)``, or ``sync(master_time_us,
+        sync_seq)`` when given: ``Transmitter.time_sync``, the same frame, built on the compiled core
+        without the message); return True when it did. Nothing is due before ``_due_us`` (the
+        periodic time and the requests, kept as they are set)."""
         if now_us < self.due_us:
             return False
         due = now_us >= self.next_us
@@ -148,7 +150,10 @@ class TimeSyncMaster:
         k = seq % _HISTORY
         self._sent_seq[k] = seq
         self._sent_t[k] = now_us
-        send(TimeSyncMsg(now_us + self.latency_us, seq))
+        if sync is None:
+            send(TimeSyncMsg(now_us + self.latency_us, seq))
+        else:
+            sync(now_us + self.latency_us, seq)
         self.seq = (seq + 1) & 0xFFFF
         self.sent += 1
         self.next_us = now_us + self.period_us

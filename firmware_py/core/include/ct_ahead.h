@@ -49,4 +49,12 @@ int64_t ct_ahead_scan(const struct ct_ahead_scan *s, int64_t burst, int64_t j, i
 int64_t ct_ready_upto(const int64_t *const *hc, const int64_t *extra, int64_t nch, int64_t start, int64_t end,
                       int64_t now, int64_t first, int64_t fall, int64_t baseline, int64_t timeout);
 
+/* ------------------------------------------------------------ TIME_SYNC
+ * transmit.Transmitter.time_sync with protocol.framing.encode_frame: one TIME_SYNC frame (payload
+ * "<QH": master_time_us, sync_seq) as ct_window_frame makes a PULSE_WINDOW (include/ct_multi.h) into
+ * out (at least CT_SYNC_FRAME_MAX bytes); its length, or -1 for a sync_seq out of its range. */
+enum { CT_SYNC_ID = 0x02, CT_SYNC_PAYLOAD = 10, CT_SYNC_CRC_EXTRA = 0x25,
+       CT_SYNC_FRAME_RAW = 5 + 10 + 2, CT_SYNC_FRAME_MAX = 5 + 10 + 2 + 2 + 1 };
+int ct_sync_frame(uint8_t *out, int seq, int src, uint64_t master_time_us, int64_t sync_seq);
+
 #endif

@@ -1,7 +1,8 @@
 /*
  * The per-tick scans over many sensors (include/ct_ahead.h): which sensor's open burst may be solved
  * ahead (the tests of track.magnetic.MagneticTracker._ahead_scan in their order) and how many
- * channels have a window's samples in (measure.windows.WindowCloser.ready_upto).
+ * channels have a window's samples in (measure.windows.WindowCloser.ready_upto); the TIME_SYNC frame
+ * of the supervisor's broadcasts (framed as src/multi.c frames a PULSE_WINDOW).
  */
 #include <stdint.h>
 
@@ -93,4 +94,18 @@ int64_t ct_ready_upto(const int64_t *const *hc, const int64_t *extra, int64_t nc
             return i;
     }
     return nch;
+}
+
+int ct_sync_frame(uint8_t *out, int seq, int src, uint64_t master_time_us, int64_t sync_seq)
+{
+    uint8_t raw[CT_SYNC_FRAME_RAW];
+    uint8_t *pl = raw + 5;
+    int i;
+    if (sync_seq < 0 || sync_seq > 0xFFFF)
+        return -1;
+    for (i = 0; i < 8; ++i)
+        pl[i] = (uint8_t)(master_time_us >> (8 * i));
+    pl[8] = (uint8_t)sync_seq;
+    pl[9] = (uint8_t)(sync_seq >> 8);
+    return ct_frame_seal(raw, CT_SYNC_PAYLOAD, seq, src, CT_SYNC_ID, CT_SYNC_CRC_EXTRA, out);
 }

@@ -151,3 +151,40 @@ def test_pulse_window_frames_decode_to_the_fields_sent():
         assert (m.n_used, m.n_base, m.flags) == (min(10 * i, 255), 255, (0x1F0 + i) & 0xFF)
     py = Transmitter(_Port(), 1, 1_000_000, _Decoder(), core=core.PYTHON)
     assert not py.pulse_window_run(closer._framesk, 2, 777, 3, 7) and py.port.frames == []
+
+
+@pytest.mark.parametrize("fail_every", [0, 4])
+def test_time_sync_frames_are_the_python_bytes(fail_every):
+    """500 broadcasts at random master times (up to 2^64 - 1, and now and then a negative time or a
+    sync_seq beyond 16 bits: refused, a tx error) interleaved with other messages: the compiled
+    ``time_sync`` writes the bytes ``encode_frame`` writes on the Python core, with one sequence,
+    and counts the same errors; decoded, each carries its time and number. Catches a byte order
+    swapped, the sequence taken for a refused frame, the CRC extra of another message."""
+    rng = np.random.default_rng(3033)
+    ref = Transmitter(_Port(fail_every), 1, 1_000_000, _Decoder(), core=core.PYTHON)
+    got = Transmitter(_Port(fail_every), 1, 1_000_000, _Decoder(), core=COMPILED)
+    assert got.time_sync.__func__ is Transmitter._time_sync_compiled
+    sent = []
+    for _ in range(500):
+        t = int(rng.integers(0, 1 << 62)) * int(rng.integers(1, 4))
+        seq = int(rng.integers(0, 1 << 16))
+        r = rng.random()
+        if r < 0.03:
+            t = -1
+        elif r < 0.06:
+            seq = 1 << 16
+        elif r < 0.1:
+            t = (1 << 64) - 1
+        for tx in (ref, got):
+            tx.time_sync(t, seq)
+            if r > 0.8:
+                tx.mag_flip(17, t & 0xFFFFFFFF, 1)
+        if 0 <= t < (1 << 64) and seq < (1 << 16):
+            sent.append((t, seq))
+    assert got.port.frames == ref.port.frames
+    assert got.tx_errors == ref.tx_errors > 20
+    dec = FrameDecoder()
+    syncs = [(m.master_time_us, m.sync_seq) for f in got.port.frames for m in dec.feed(f) if type(m).__name__ ==
+             "TIME_SYNC" or getattr(m, "ID", None) == 2]
+    if not fail_every:
+        assert syncs == sent
