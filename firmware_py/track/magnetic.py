@@ -207,7 +207,94 @@ class _CompiledReport:
         self._chains = chains
         self._report_pose = self._report_pose_compiled
 
-class MagneticTracker(_CompiledReport):
+class _ScanAhead:
+    """:class:`MagneticTracker`'s scan over the sensors for a burst to solve ahead
+    (:meth:`MagneticTracker._solve_ahead`), with its compiled form bound at construction."""
+
+    def _ahead_scan(self, burst: int, j: int, start: int, end: int) -> int:
+        """The sensors' turns to be solved ahead for ``burst`` (its last window, coil ``j``, is
+        ``[start, end]``), in their order: a sensor whose final solve would not start from it
+        (:meth:`_ahead_wanted`) has had its turn; one not ready (a window before the last open,
+        the last closed already, or its samples not expected in: ``expect_complete``) is marked
+        with its channel's changes (:meth:`_idle_for`) and asked again only once they move. The
+        first one ready is given its turn (``burst`` set, not done) and returned; else
+        :data:`AHEAD_SEEN` when every sensor has had its turn, :data:`AHEAD_NONE` otherwise. On the
+        compiled core one call (``ext.AheadScan``, ``core/src/ahead.c`` ``ct_ahead_scan``: the same
+        tests in the same order on the same arrays), bound at construction (:meth:`_bind_scan`)."""
+        idle = self._ahead_unchanged
+        seen = True
+        for k, ch in enumerate(self.channels):
+            ah = self._ahead[k]
+            if ah.burst == burst:
+                continue
+            if not self._ahead_wanted(ch):
+                ah.burst, ah.done = burst, False
+                continue
+            seen = False
+            c = ch.changes
+            if idle[k] == c:
+                continue                 # not ready when last asked, and nothing it reads changed since
+            if ch.done[j] or not _closed_before(ch.done, j) or not ch.extractor.expect_complete(start, end):
+                idle[k] = c
+                continue
+            ah.burst = burst
+            ah.done = False
+            return k
+        return AHEAD_SEEN if seen else AHEAD_NONE
+
+    def _ahead_scan_compiled(self, burst: int, j: int, start: int, end: int) -> int:
+        """:meth:`_ahead_scan` in one call; a time the kernel does not take (not an int64 well
+        inside its range) goes to the reference."""
+        k = self._scan_k(burst, j, start, end)
+        return _ScanAhead._ahead_scan(self, burst, j, start, end) if k == AHEAD_ASK else k
+
+    def _bind_scan(self, core) -> None:
+        """:meth:`_ahead_scan` on the compiled core (``ext.AheadScan`` bound to every channel's
+        closed flags, counters and sample ring, the turns' array and the marks): where every
+        channel's extractor is a plain ``PulseExtractor`` over a ``SampleRing`` and the sensors'
+        wish (:meth:`_ahead_wanted_flags`) is an array entry; replaced on this instance."""
+        from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
+        ext = core.ext
+        if ext is None or not self.ahead or not self.channels:
+            return
+        wanted = self._ahead_wanted_flags()
+        chs = self.channels
+        if wanted is None or any(type(ch.extractor).expect_complete is not PulseExtractor.expect_complete
+                                 or not isinstance(ch.extractor._ring, SampleRing) for ch in chs):
+            return
+        extra = np.array([ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs], dtype=np.int64)
+        self._scan_extra = extra
+        self._scan_k = ext.AheadScan(tuple(ch.done for ch in chs), tuple(ch.cnt for ch in chs),
+                                     tuple(ch.extractor._ring.t for ch in chs),
+                                     tuple(ch.extractor._ring.hc for ch in chs), extra,
+                                     tuple(w[0] for w in wanted), tuple(w[1] for w in wanted),
+                                     self._ahead_st, self._ahead_idle).scan
+        self._ahead_scan = self._ahead_scan_compiled
+
+    def _ahead_wanted_flags(self):
+        """Hook: :meth:`_ahead_wanted` as arrays, for the compiled scan: per channel ``(a, i)``,
+        the sensor wanted when ``a[i] == 0`` (int64 ``a``); None where the hook reads anything
+        else (the scan stays the Python's)."""
+        if type(self)._ahead_wanted is not MagneticTracker._ahead_wanted:
+            return None
+        zero = np.zeros(1, dtype=np.int64)
+        return tuple((zero, 0) for _ in self.channels)
+
+    def _idle_for(self, start: int, end: int):
+        """The channels' :attr:`_ahead_unchanged` marks for the last window ``[start, end]``, forgotten when
+        the window is another. A channel's readiness to be solved ahead reads only its windows'
+        closed flags and its samples (``PulseExtractor.expect_complete``), each change of which
+        counts in its ``changes``: so the idle ticks ask only the channels that changed, and a
+        tick's work scales with the samples that came in, not with the sensors."""
+        if self._ahead_unchanged_window != (start, end):
+            self._ahead_unchanged_window = (start, end)
+            idle = self._ahead_unchanged
+            for k in range(len(idle)):
+                idle[k] = -1
+        return self._ahead_unchanged
+
+
+class MagneticTracker(_CompiledReport, _ScanAhead):
     """Solves each burst for every sensor and reports the magnetic poses (a
     :class:`coiltrack.firmware.track.BurstTracker`).
 
@@ -380,88 +467,6 @@ class MagneticTracker(_CompiledReport):
             if self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
                 self._units += self.solver.n         # the start, charged as a hand-over
                 self._solve_ahead()
-
-    def _ahead_scan(self, burst: int, j: int, start: int, end: int) -> int:
-        """The sensors' turns to be solved ahead for ``burst`` (its last window, coil ``j``, is
-        ``[start, end]``), in their order: a sensor whose final solve would not start from it
-        (:meth:`_ahead_wanted`) has had its turn; one not ready (a window before the last open,
-        the last closed already, or its samples not expected in: ``expect_complete``) is marked
-        with its channel's changes (:meth:`_idle_for`) and asked again only once they move. The
-        first one ready is given its turn (``burst`` set, not done) and returned; else
-        :data:`AHEAD_SEEN` when every sensor has had its turn, :data:`AHEAD_NONE` otherwise. On the
-        compiled core one call (``ext.AheadScan``, ``core/src/ahead.c`` ``ct_ahead_scan``: the same
-        tests in the same order on the same arrays), bound at construction (:meth:`_bind_scan`)."""
-        idle = self._ahead_unchanged
-        seen = True
-        for k, ch in enumerate(self.channels):
-            ah = self._ahead[k]
-            if ah.burst == burst:
-                continue
-            if not self._ahead_wanted(ch):
-                ah.burst, ah.done = burst, False
-                continue
-            seen = False
-            c = ch.changes
-            if idle[k] == c:
-                continue                 # not ready when last asked, and nothing it reads changed since
-            if ch.done[j] or not _closed_before(ch.done, j) or not ch.extractor.expect_complete(start, end):
-                idle[k] = c
-                continue
-            ah.burst = burst
-            ah.done = False
-            return k
-        return AHEAD_SEEN if seen else AHEAD_NONE
-
-    def _ahead_scan_compiled(self, burst: int, j: int, start: int, end: int) -> int:
-        """:meth:`_ahead_scan` in one call; a time the kernel does not take (not an int64 well
-        inside its range) goes to the reference."""
-        k = self._scan_k(burst, j, start, end)
-        return MagneticTracker._ahead_scan(self, burst, j, start, end) if k == AHEAD_ASK else k
-
-    def _bind_scan(self, core) -> None:
-        """:meth:`_ahead_scan` on the compiled core (``ext.AheadScan`` bound to every channel's
-        closed flags, counters and sample ring, the turns' array and the marks): where every
-        channel's extractor is a plain ``PulseExtractor`` over a ``SampleRing`` and the sensors'
-        wish (:meth:`_ahead_wanted_flags`) is an array entry; replaced on this instance."""
-        from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
-        ext = core.ext
-        if ext is None or not self.ahead or not self.channels:
-            return
-        wanted = self._ahead_wanted_flags()
-        chs = self.channels
-        if wanted is None or any(type(ch.extractor).expect_complete is not PulseExtractor.expect_complete
-                                 or not isinstance(ch.extractor._ring, SampleRing) for ch in chs):
-            return
-        extra = np.array([ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs], dtype=np.int64)
-        self._scan_extra = extra
-        self._scan_k = ext.AheadScan(tuple(ch.done for ch in chs), tuple(ch.cnt for ch in chs),
-                                     tuple(ch.extractor._ring.t for ch in chs),
-                                     tuple(ch.extractor._ring.hc for ch in chs), extra,
-                                     tuple(w[0] for w in wanted), tuple(w[1] for w in wanted),
-                                     self._ahead_st, self._ahead_idle).scan
-        self._ahead_scan = self._ahead_scan_compiled
-
-    def _ahead_wanted_flags(self):
-        """Hook: :meth:`_ahead_wanted` as arrays, for the compiled scan: per channel ``(a, i)``,
-        the sensor wanted when ``a[i] == 0`` (int64 ``a``); None where the hook reads anything
-        else (the scan stays the Python's)."""
-        if type(self)._ahead_wanted is not MagneticTracker._ahead_wanted:
-            return None
-        zero = np.zeros(1, dtype=np.int64)
-        return tuple((zero, 0) for _ in self.channels)
-
-    def _idle_for(self, start: int, end: int):
-        """The channels' :attr:`_ahead_unchanged` marks for the last window ``[start, end]``, forgotten when
-        the window is another. A channel's readiness to be solved ahead reads only its windows'
-        closed flags and its samples (``PulseExtractor.expect_complete``), each change of which
-        counts in its ``changes``: so the idle ticks ask only the channels that changed, and a
-        tick's work scales with the samples that came in, not with the sensors."""
-        if self._ahead_unchanged_window != (start, end):
-            self._ahead_unchanged_window = (start, end)
-            idle = self._ahead_unchanged
-            for k in range(len(idle)):
-                idle[k] = -1
-        return self._ahead_unchanged
 
     def _ahead_pending(self) -> bool:
         """A solve ahead runs, or sensors of the open burst have not had their turn yet."""
