@@ -438,6 +438,124 @@ static PyTypeObject WindowFramesType = {
     .tp_methods = WindowFrames_methods,
 };
 
+/* ------------------------------------------------------------- BurstStatus */
+typedef struct {
+    PyObject_HEAD
+    Py_buffer *views;
+    Py_ssize_t nv, n;
+    int64_t ncoils;
+    const int64_t **flags;
+    const int64_t *faults, *bits;
+    int64_t *out;
+} BurstStatusObject;
+
+static void BurstStatus_release(BurstStatusObject *self)
+{
+    Py_ssize_t k;
+    for (k = 0; k < self->nv; ++k)
+        PyBuffer_Release(&self->views[k]);
+    PyMem_Free(self->views);
+    self->views = NULL;
+    self->nv = 0;
+}
+
+static void BurstStatus_dealloc(BurstStatusObject *self)
+{
+    BurstStatus_release(self);
+    PyMem_Free((void *)self->flags);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int BurstStatus_init(BurstStatusObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"flags", "faults", "bits", "out", NULL};
+    PyObject *tf, *ofa, *ob, *oo;
+    Py_ssize_t n, k, len;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOO", kwlist, &tf, &ofa, &ob, &oo))
+        return -1;
+    if (self->views != NULL || self->flags != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "BurstStatus: already bound");
+        return -1;
+    }
+    if (!PyTuple_Check(tf) || (n = PyTuple_GET_SIZE(tf)) < 1) {
+        PyErr_SetString(PyExc_TypeError, "BurstStatus: flags needs a tuple of at least one channel's flags");
+        return -1;
+    }
+    self->views = PyMem_Calloc((size_t)(n + 3), sizeof(Py_buffer));
+    self->flags = PyMem_Calloc((size_t)n, sizeof(int64_t *));
+    if (!self->views || !self->flags) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    if (ct_py_buffer(ofa, 1, 8, "ql", 0, &self->views[self->nv], "BurstStatus faults") < 0)
+        goto fail;
+    len = self->views[self->nv].len / 8;
+    self->faults = self->views[self->nv++].buf;
+    for (k = 0; k < n; ++k) {
+        if (ct_py_buffer(PyTuple_GET_ITEM(tf, k), len, 8, "ql", 0, &self->views[self->nv], "BurstStatus flags") < 0)
+            goto fail;
+        if (self->views[self->nv].len / 8 != len) {
+            self->nv++;
+            PyErr_SetString(PyExc_ValueError, "BurstStatus: every channel's flags one per coil, as the faults");
+            goto fail;
+        }
+        self->flags[k] = self->views[self->nv++].buf;
+    }
+    if (ct_py_buffer(ob, 4, 8, "ql", 0, &self->views[self->nv], "BurstStatus bits") < 0)
+        goto fail;
+    self->bits = self->views[self->nv++].buf;
+    if (ct_py_buffer(oo, 3, 8, "ql", 1, &self->views[self->nv], "BurstStatus out") < 0)
+        goto fail;
+    self->out = self->views[self->nv++].buf;
+    self->n = n;
+    self->ncoils = (int64_t)len;
+    return 0;
+fail:
+    BurstStatus_release(self);
+    return -1;
+}
+
+/* status(k): channel k's burst status into out (ct_burst_status); IndexError for a channel not bound */
+static PyObject *BurstStatus_status(BurstStatusObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_ssize_t k;
+    if (ct_py_nargs("status", nargs, 1) < 0)
+        return NULL;
+    if (self->views == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "BurstStatus: not bound");
+        return NULL;
+    }
+    k = PyLong_AsSsize_t(args[0]);
+    if (k == -1 && PyErr_Occurred())
+        return NULL;
+    if (k < 0 || k >= self->n) {
+        PyErr_SetString(PyExc_IndexError, "BurstStatus: no such channel");
+        return NULL;
+    }
+    ct_burst_status(self->ncoils, self->flags[k], self->faults, self->bits, self->out);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef BurstStatus_methods[] = {
+    {"status", (PyCFunction)(void (*)(void))BurstStatus_status, METH_FASTCALL,
+     "status(k): channel k's window flags, the driver's faults and their input status into out"},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject BurstStatusType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.BurstStatus",
+    .tp_basicsize = sizeof(BurstStatusObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "BurstStatus(flags, faults, bits, out): the channels' window flags (int64 per coil), the driver's "
+              "faults (int64 per coil), the status bits (int64, 4: PULSE_SATURATED, POSE_SATURATED, POSE_DEGRADED, "
+              "POSE_COIL_FAULT) and the output (int64, 3), bound once",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)BurstStatus_init,
+    .tp_dealloc = (destructor)BurstStatus_dealloc,
+    .tp_methods = BurstStatus_methods,
+};
+
 /* ------------------------------------------------------------- sync_frame */
 /* sync_frame(seq, src, master_time_us, sync_seq) -> bytes or None: one TIME_SYNC frame as encode_frame
  * makes it (None: a value the wire format refuses) */
@@ -479,7 +597,8 @@ int ct_register_ahead(PyObject *m)
         PyModule_AddIntConstant(m, "SYNC_PAYLOAD", CT_SYNC_PAYLOAD) < 0 ||
         PyModule_AddIntConstant(m, "SYNC_CRC_EXTRA", CT_SYNC_CRC_EXTRA) < 0)
         return -1;
-    if (ct_py_add_type(m, &ReadyUptoType, "ReadyUpto") < 0 || ct_py_add_type(m, &WindowFramesType, "WindowFrames") < 0)
+    if (ct_py_add_type(m, &ReadyUptoType, "ReadyUpto") < 0 || ct_py_add_type(m, &WindowFramesType, "WindowFrames") < 0 ||
+        ct_py_add_type(m, &BurstStatusType, "BurstStatus") < 0)
         return -1;
     return ct_py_add_type(m, &AheadScanType, "AheadScan");
 }

@@ -34,10 +34,10 @@ import math
 
 import numpy as np
 
-from coiltrack.protocol.schema import POSE_VALID
+from coiltrack.protocol.schema import POSE_COIL_FAULT, POSE_DEGRADED, POSE_SATURATED, POSE_VALID
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
-from coiltrack.firmware.measure.pulse import PULSE_UNUSABLE
+from coiltrack.firmware.measure.pulse import PULSE_SATURATED, PULSE_UNUSABLE
 from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLVE_NONFINITE, SOLVE_RUNNING
 from coiltrack.firmware.pose.staged import SolveResult
 from coiltrack.firmware.rotation import quat_tuple
@@ -162,6 +162,23 @@ class _CompiledReport:
 
     def _quat_compiled(self, R):
         return self._qv if self._rp.quat(R) else quat_tuple(R)
+
+    def _bind_status(self, core) -> None:
+        """:meth:`_burst_status` on the compiled core (``ext.BurstStatus`` bound to the channels' window
+        flags and the schedule's faults), where both are the plain int64 arrays of one flag per coil
+        the Python ORs; replaced on this instance."""
+        from coiltrack.firmware.actuate.schedule import PulseSchedule
+        from coiltrack.firmware.measure.windows import SensorChannel
+        sched, chs = self.schedule, self.channels
+        if core.ext is None or not chs or type(sched).any_faults is not PulseSchedule.any_faults or any(
+                type(ch).burst_flags is not SensorChannel.burst_flags or ch.flags.dtype != np.int64 for ch in chs):
+            return
+        self._bs_bits = np.array([PULSE_SATURATED, POSE_SATURATED, POSE_DEGRADED, POSE_COIL_FAULT], dtype=np.int64)
+        self._bs_k = core.ext.BurstStatus(tuple(ch.flags for ch in chs), sched.faults, self._bs_bits, self._bs).status
+        self._burst_status = self._burst_status_compiled
+
+    def _burst_status_compiled(self, k: int, ch) -> None:
+        self._bs_k(k)
 
     def _report_pose_compiled(self, ch, tp: TrackedPose, t_pose: int) -> bool:
         """:meth:`_report_pose` with its numbers in one compiled call per channel (``ReportChain``,
@@ -334,7 +351,10 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         self.solve_evals_max = 0         # the most field evaluations of one solve
         self.cycles = 0
         self.quality = PoseQuality(cfg, len(coils), self.channels, coils, core)    # POSE.quality (track.quality)
+        self._bs = np.zeros(3, dtype=np.int64)      # the burst's status (_burst_status): flags, faults, bits
+        self._bsv = memoryview(self._bs)
         self._bind_report(core)
+        self._bind_status(core)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
         self.ahead = cfg.budget.solve_ahead and cfg.ac.excitation == "pulsed" and self.solver.memoryless
         self._ahead_st = np.zeros((len(self.channels), 2), dtype=np.int64)    # per channel: burst, done
@@ -534,10 +554,10 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
     def _begin(self, ch) -> None:
         """Status of the burst on ``ch`` and, if usable, the start of its solve
         (warm from the tracked pose once there is one)."""
-        sched = self.schedule
-        flags = ch.burst_flags()
-        faults = sched.any_faults()
-        self._status = input_status(flags, faults) | self.supervisor.pose_status(ch.node, flags)
+        self._burst_status(self._next, ch)
+        o = self._bsv
+        flags, faults = o[0], o[1]
+        self._status = o[2] | self.supervisor.pose_status(ch.node, flags)
         usable = not (flags & PULSE_UNUSABLE) and not (faults & COIL_FATAL) and not self.supervisor.veto
         if not usable:
             self._report(ch, False)
@@ -554,6 +574,15 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
             st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.hemisphere)
         if not st & SOLVE_RUNNING:
             self._report(ch, False)
+
+    def _burst_status(self, k: int, ch) -> None:
+        """Into ``_bsv``: the window flags of channel ``k`` (``ch``) or-ed, the driver's faults or-ed and
+        their :func:`input_status`. On the compiled core one call (``ext.BurstStatus``,
+        ``core/src/ahead.c`` ``ct_burst_status``), bound at construction (:meth:`_bind_status`)."""
+        flags = ch.burst_flags()
+        faults = self.schedule.any_faults()
+        o = self._bsv
+        o[0], o[1], o[2] = flags, faults, input_status(flags, faults)
 
     def _report(self, ch, solved: bool) -> None:
         """Send the burst's magnetic POSE of ``ch`` (without ``POSE_FUSED``),

@@ -49,6 +49,13 @@ int64_t ct_ahead_scan(const struct ct_ahead_scan *s, int64_t burst, int64_t j, i
 int64_t ct_ready_upto(const int64_t *const *hc, const int64_t *extra, int64_t nch, int64_t start, int64_t end,
                       int64_t now, int64_t first, int64_t fall, int64_t baseline, int64_t timeout);
 
+/* ------------------------------------------------------------ a burst's status
+ * track.magnetic.MagneticTracker._burst_status: a channel's window flags or-ed
+ * (SensorChannel.burst_flags: n items of flags), the driver's faults or-ed (schedule.any_faults: n of
+ * faults), and track.status.input_status of the two with bits = PULSE_SATURATED, POSE_SATURATED,
+ * POSE_DEGRADED, POSE_COIL_FAULT; out = flags, faults, status. */
+void ct_burst_status(int64_t n, const int64_t *flags, const int64_t *faults, const int64_t *bits, int64_t *out);
+
 /* ------------------------------------------------------------ TIME_SYNC
  * transmit.Transmitter.time_sync with protocol.framing.encode_frame: one TIME_SYNC frame (payload
  * "<QH": master_time_us, sync_seq) as ct_window_frame makes a PULSE_WINDOW (include/ct_multi.h) into

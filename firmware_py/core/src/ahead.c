@@ -109,3 +109,21 @@ int ct_sync_frame(uint8_t *out, int seq, int src, uint64_t master_time_us, int64
     pl[9] = (uint8_t)(sync_seq >> 8);
     return ct_frame_seal(raw, CT_SYNC_PAYLOAD, seq, src, CT_SYNC_ID, CT_SYNC_CRC_EXTRA, out);
 }
+
+void ct_burst_status(int64_t n, const int64_t *flags, const int64_t *faults, const int64_t *bits, int64_t *out)
+{
+    int64_t j, f = 0, fa = 0, st = 0;
+    for (j = 0; j < n; ++j)
+        f |= flags[j];
+    for (j = 0; j < n; ++j)
+        fa |= faults[j];
+    if (f & bits[0])
+        st |= bits[1];
+    if (f)
+        st |= bits[2];
+    if (fa)
+        st |= bits[3];
+    out[0] = f;
+    out[1] = fa;
+    out[2] = st;
+}

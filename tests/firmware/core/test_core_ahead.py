@@ -168,3 +168,33 @@ def test_a_time_beyond_the_kernels_range_is_answered_by_the_reference(tracker):
     for a, b in zip(_arrays(tr), before):
         a[...] = b
     assert tr._ahead_scan(burst, j, big, big + 1000) == ref
+
+
+def test_the_burst_status_equals_the_reference(tracker):
+    """300 random bursts (window flags of sixteen channels, the driver's faults, each often 0): the
+    compiled ``_burst_status`` writes what the reference writes, and both equal the closed form
+    (flags or-ed, faults or-ed; POSE_SATURATED for a saturated window, POSE_DEGRADED for any flag,
+    POSE_COIL_FAULT for any fault). Catches a coil left out of an OR, another channel's flags, a
+    bit of the status swapped."""
+    from coiltrack.firmware.measure.pulse import PULSE_SATURATED
+    from coiltrack.protocol.schema import POSE_COIL_FAULT, POSE_DEGRADED, POSE_SATURATED
+
+    tr = tracker
+    assert tr._burst_status.__func__ is MagneticTracker._burst_status_compiled
+    rng = np.random.default_rng(3034)
+    faults = tr.schedule.faults
+    for _ in range(300):
+        for ch in tr.channels:
+            ch.flags[:] = rng.integers(0, 64, ch.flags.shape[0]) * (rng.random(ch.flags.shape[0]) < 0.3)
+        faults[:] = rng.integers(0, 256, faults.shape[0]) * (rng.random(faults.shape[0]) < 0.2)
+        k = int(rng.integers(0, 16))
+        ch = tr.channels[k]
+        MagneticTracker._burst_status(tr, k, ch)
+        ref = list(tr._bs)
+        tr._bs[:] = -7
+        tr._burst_status(k, ch)
+        assert list(tr._bs) == ref
+        f, fa = int(np.bitwise_or.reduce(ch.flags)), int(np.bitwise_or.reduce(faults))
+        st = (POSE_SATURATED if f & PULSE_SATURATED else 0) | (POSE_DEGRADED if f else 0) | (POSE_COIL_FAULT if fa else 0)
+        assert ref == [f, fa, st]
+    faults[:] = 0
