@@ -28,6 +28,7 @@ _POSE = MSG["POSE"]
 _FAULT = MSG["FAULT_EVENT"]
 _WINDOW = MSG["PULSE_WINDOW"]
 _FLIP = MSG["MAG_FLIP_CMD"]
+_SYNC = MSG["TIME_SYNC"]
 _PULSE_CMD = MSG["COIL_PULSE_CMD"]
 _SYNC = MSG["TIME_SYNC"]
 #: the largest finite f32 (POSE covariance fields): larger variances are sent as this
@@ -110,6 +111,25 @@ class Transmitter:
                      n_base: int, flags: int) -> None:
         """Send one ``PULSE_WINDOW`` (which samples a window's amplitude used: ``measure.windows``)."""
         self.send(_WINDOW(node, coil, pulse_id, first_us, last_us, n_used, n_base, flags))
+
+    def pulse_window_run(self, send, coil: int, pulse_id: int, c0: int, c1: int) -> bool:
+        """A run of channels' PULSE_WINDOWs (channels ``c0 .. c1 - 1`` of a closer's run:
+        ``measure.windows.WindowCloser.close_run``) built and written by ``send`` (``ext.WindowFrames``'s,
+        bound to the channels: the frames :meth:`pulse_window` sends, in order), numbered with this
+        transmitter's sequence and their errors counted as :meth:`_write_numbered` does; False (nothing
+        sent: the caller sends each through :meth:`pulse_window`) on the Python core, a signed link,
+        or while :meth:`pulse_window` is not this transmitter's own."""
+        return False
+
+    def _pulse_window_run_compiled(self, send, coil: int, pulse_id: int, c0: int, c1: int) -> bool:
+        if self.pulse_window is not self._pw_own:
+            return False
+        r = send(self.port.write, self._seq, self.node_id, coil, pulse_id, c0, c1)
+        if r is None:
+            return False
+        self._seq = r & 0xFF
+        self.tx_errors += r >> 8
+        return True
 
     def mag_flip(self, node: int, at_us: int, state: int) -> None:
         """Send one ``MAG_FLIP_CMD`` (``supervise.flips``: ``node`` to set/reset ``state`` at ``at_us``)."""
@@ -249,7 +269,8 @@ class Transmitter:
         ext = core.ext
         assert (ext.WINDOW_ID, ext.WINDOW_PAYLOAD, ext.WINDOW_CRC_EXTRA) == (_WINDOW.ID, 23, _CRC_EXTRA[_WINDOW.ID][0])
         self._window_frame = ext.window_frame
-        self.pulse_window = self._pulse_window_compiled
+        self.pulse_window = self._pw_own = self._pulse_window_compiled
+        self.pulse_window_run = self._pulse_window_run_compiled
         assert (ext.FLIP_ID, ext.FLIP_PAYLOAD, ext.FLIP_CRC_EXTRA) == (_FLIP.ID, 10, _CRC_EXTRA[_FLIP.ID][0])
         self._flip_frame = ext.flip_frame
         self.mag_flip = self._mag_flip_compiled

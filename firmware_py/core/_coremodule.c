@@ -949,6 +949,7 @@ int ct_register_sc_close(PyObject *m);
 int ct_register_fuse(PyObject *m);
 int ct_register_begin(PyObject *m);
 int ct_register_periodic(PyObject *m);
+int ct_register_ahead(PyObject *m);
 static int (*const AREAS[])(PyObject *) = {
     ct_register_window, ct_register_fusimu, ct_register_fusion, ct_register_ac, ct_register_rxdecode,
     ct_register_single_coil,
@@ -964,6 +965,7 @@ static int (*const AREAS[])(PyObject *) = {
     ct_register_fuse,
     ct_register_begin,
     ct_register_periodic,
+    ct_register_ahead,
 };
 
 PyMODINIT_FUNC PyInit__core(void)

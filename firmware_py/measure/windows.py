@@ -245,6 +245,7 @@ class WindowCloser:
         self.flagged = 0
         self.closed = 0                    # windows closed (extracted)
         self._bind_run()
+        self._bind_ready()
 
     def _bind_run(self) -> None:
         """Where every channel closes its windows on the compiled core (``SensorChannel``'s
@@ -260,6 +261,8 @@ class WindowCloser:
         self._rfv = memoryview(self._run_flags)
         self._runk = ext.WindowRun(tuple(ch.extractor.column_kernel for ch in chs), tuple(ch.ring.hc for ch in chs),
                                    tuple(ch.cnt for ch in chs), self._run_flags)
+        self._nodes = np.array([ch.node for ch in chs], dtype=np.int64)
+        self._framesk = ext.WindowFrames(tuple(ch.info for ch in chs), self._nodes, self._run_flags).send
         self.close_run = self._close_run_compiled
         self._chi = {id(ch): i for i, ch in enumerate(chs)}      # a channel's place in the run
         self.close_one = self._close_one_compiled
@@ -268,6 +271,26 @@ class WindowCloser:
                                             tuple(ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs),
                                             self.fall_us + self.baseline_us + self.timeout_us).ready
             self.ready = self._ready_compiled
+
+    def _bind_ready(self) -> None:
+        """:meth:`ready_upto` on the compiled core (``ext.ReadyUpto``, ``core/src/ahead.c``
+        ``ct_ready_upto``: the same comparisons in the same order), bound here once to the channels'
+        ring states, where every channel's extractor is a plain ``PulseExtractor`` on the compiled core
+        over a ``SampleRing``; replaced on this instance."""
+        chs = self.channels
+        ext = getattr(chs[0].extractor, "_ext", None) if chs else None
+        if ext is None or not all(type(ch.extractor).ready is PulseExtractor.ready and isinstance(ch.extractor._ring, SampleRing)
+                                  for ch in chs):
+            return
+        self._ready_extra = np.array([ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs], dtype=np.int64)
+        self._readyk = ext.ReadyUpto(tuple(ch.extractor._ring.hc for ch in chs), self._ready_extra,
+                                     self.fall_us, self.baseline_us, self.timeout_us).upto
+        self.ready_upto = self._ready_upto_compiled
+
+    def _ready_upto_compiled(self, start: int, end: int, now_us: int, first: int) -> int:
+        """:meth:`ready_upto` in one call; a time the kernel does not take goes to the reference."""
+        r = self._readyk(start, end, now_us, first)
+        return WindowCloser.ready_upto(self, start, end, now_us, first) if r < 0 else r
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
         """Every channel has the samples after the window, or it timed out."""
@@ -340,7 +363,8 @@ class WindowCloser:
     def _close_run_compiled(self, coil: int, pulse_id: int, start: int, end: int, c0: int, c1: int) -> None:
         """:meth:`close_run` in one call of ``ct_window_run``: every window extracted into its channel's
         column and counted there as :meth:`SensorChannel.close_window` does, then each one's
-        PULSE_WINDOW as :meth:`close_one` sends it. A time the compiled extraction does not take
+        PULSE_WINDOW as :meth:`close_one` sends it (on a transmitter that takes them, in one call of
+        ``ext.WindowFrames``: ``Transmitter.pulse_window_run``). A time the compiled extraction does not take
         (not an int64 well inside its range) goes to the reference."""
         if type(start) is not int or type(end) is not int or not (-_T_FAR < start < _T_FAR and -_T_FAR < end < _T_FAR):
             WindowCloser.close_run(self, coil, pulse_id, start, end, c0, c1)
@@ -349,8 +373,11 @@ class WindowCloser:
         self.closed += c1 - c0
         chs, fl, pw = self.channels, self._rfv, self.tx.pulse_window
         for i in range(c0, c1):
+            chs[i].extractor.column_closed()
+        if self.tx.pulse_window_run(self._framesk, coil, pulse_id, c0, c1):
+            return                       # the frames built and written in one call (ext.WindowFrames)
+        for i in range(c0, c1):
             ch = chs[i]
-            ch.extractor.column_closed()
             iv = ch.infov
             n_used, n_base = iv[0], iv[1]
             pw(ch.node, coil, pulse_id, iv[2], iv[3], n_used if n_used < 255 else 255, n_base if n_base < 255 else 255,

@@ -1008,6 +1008,7 @@ class BurstFusionTracker(MagneticTracker):
         self._bind_report_chain(core)
         self._bind_burst_open(core)
         self._bind_fused_tick(core)
+        self._bind_scan(core)
 
     def _ring_of(self, ch):
         """The magnetometer ring sensor ``ch``'s inertial part is fed from (:meth:`_process`)."""
@@ -1215,6 +1216,19 @@ class BurstFusionTracker(MagneticTracker):
     def _ahead_wanted(self, ch) -> bool:
         """A sensor whose fusion filter runs starts from the filter's pose, not from a burst solved ahead."""
         return not self.inertial[ch.node].fusion.initialized
+
+    def _ahead_wanted_flags(self):
+        """:meth:`_ahead_wanted` as arrays for the compiled scan: each sensor's fusion filter's
+        ``initialized`` entry (``FusionFilter.fs[FS_INIT]``); None before the sensors are made or
+        where a filter keeps it otherwise."""
+        ins = getattr(self, "inertial", None)
+        if ins is None or type(self)._ahead_wanted is not BurstFusionTracker._ahead_wanted:
+            return None
+        fus = [ins[ch.node].fusion for ch in self.channels]
+        if any(type(f).initialized is not FusionFilter.initialized or not isinstance(getattr(f, "fs", None), np.ndarray)
+               for f in fus):
+            return None
+        return tuple((f.fs, FS_INIT) for f in fus)
 
     def warm_start(self, ch, tp) -> bool:
         """The fusion filter's pose at the burst's middle when it has one (it

@@ -47,6 +47,9 @@ from coiltrack.firmware.track.status import COIL_FATAL, input_status
 from coiltrack.firmware.track.quality import PoseQuality
 
 SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
+#: :meth:`MagneticTracker._ahead_scan`'s answers besides a channel: none ready, every sensor has had
+#: its turn, and (the compiled scan only) a time it does not take: ask the reference
+AHEAD_NONE, AHEAD_SEEN, AHEAD_ASK = -1, -2, -3
 
 
 def in_range3(x: float, y: float, z: float, range_m: float) -> bool:
@@ -72,12 +75,18 @@ class TrackedPose:
         self.warm_R = np.eye(3)
 
 
+#: ``_Ahead``'s burst when it has none (a time no burst starts at)
+NO_BURST = -(1 << 63)
+
+
 class _Ahead:
     """One sensor's burst solved ahead (``[budget] solve_ahead``): the inputs its solve began
     with (signal matrix, sigmas, currents, hemisphere and warm start, copied) for the burst
-    that started at ``burst``, and, once finished (``done``), its results."""
+    that started at ``burst``, and, once finished (``done``), its results. ``burst`` and ``done``
+    live in ``st`` (int64 (2,): the burst or :data:`NO_BURST`, done 0/1; a row of the tracker's
+    array, so the compiled scan over the sensors reads and writes them in place)."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, st=None):
         self.S = np.zeros((3, n))
         self.sigma = np.zeros((3, n))
         self.currents = np.zeros(n)
@@ -87,12 +96,27 @@ class _Ahead:
         self.amp = np.zeros(3)
         self.var = np.zeros(3)
         self.result = SolveResult()
-        self.burst = None
-        self.done = False
+        self.st = np.array([NO_BURST, 0], dtype=np.int64) if st is None else st
+        self._stv = memoryview(self.st)
         self.sigv = memoryview(self.sigma)
         self.curv = memoryview(self.currents)
         self._views = tuple(memoryview(a) for a in (self.S, self.sigma, self.currents, self.hemisphere,
                                                      self.warm_p, self.warm_R))
+
+    def _get_burst(self):
+        b = self._stv[0]
+        return None if b == NO_BURST else b
+
+    def _set_burst(self, b) -> None:
+        self._stv[0] = NO_BURST if b is None else b
+
+    def _set_done(self, v) -> None:
+        self._stv[1] = 1 if v else 0
+
+    #: the burst whose solve this is (None: none)
+    burst = property(_get_burst, _set_burst)
+    #: the solve has finished (its results in ``result``)
+    done = property(lambda self: self._stv[1] != 0, _set_done)
 
     def same(self, views) -> bool:
         """Whether the burst's inputs ``views`` (memoryviews of S, sigma, currents, hemisphere,
@@ -274,7 +298,94 @@ class _CompiledReport:
         self._chains = chains
         self._report_pose = self._report_pose_compiled
 
-class MagneticTracker(_CompiledReport):
+class _ScanAhead:
+    """:class:`MagneticTracker`'s scan over the sensors for a burst to solve ahead
+    (:meth:`MagneticTracker._solve_ahead`), with its compiled form bound at construction."""
+
+    def _ahead_scan(self, burst: int, j: int, start: int, end: int) -> int:
+        """The sensors' turns to be solved ahead for ``burst`` (its last window, coil ``j``, is
+        ``[start, end]``), in their order: a sensor whose final solve would not start from it
+        (:meth:`_ahead_wanted`) has had its turn; one not ready (a window before the last open,
+        the last closed already, or its samples not expected in: ``expect_complete``) is marked
+        with its channel's changes (:meth:`_idle_for`) and asked again only once they move. The
+        first one ready is given its turn (``burst`` set, not done) and returned; else
+        :data:`AHEAD_SEEN` when every sensor has had its turn, :data:`AHEAD_NONE` otherwise. On the
+        compiled core one call (``ext.AheadScan``, ``core/src/ahead.c`` ``ct_ahead_scan``: the same
+        tests in the same order on the same arrays), bound at construction (:meth:`_bind_scan`)."""
+        idle = self._ahead_unchanged
+        seen = True
+        for k, ch in enumerate(self.channels):
+            ah = self._ahead[k]
+            if ah.burst == burst:
+                continue
+            if not self._ahead_wanted(ch):
+                ah.burst, ah.done = burst, False
+                continue
+            seen = False
+            c = ch.changes
+            if idle[k] == c:
+                continue                 # not ready when last asked, and nothing it reads changed since
+            if ch.done[j] or not _closed_before(ch.done, j) or not ch.extractor.expect_complete(start, end):
+                idle[k] = c
+                continue
+            ah.burst = burst
+            ah.done = False
+            return k
+        return AHEAD_SEEN if seen else AHEAD_NONE
+
+    def _ahead_scan_compiled(self, burst: int, j: int, start: int, end: int) -> int:
+        """:meth:`_ahead_scan` in one call; a time the kernel does not take (not an int64 well
+        inside its range) goes to the reference."""
+        k = self._scan_k(burst, j, start, end)
+        return _ScanAhead._ahead_scan(self, burst, j, start, end) if k == AHEAD_ASK else k
+
+    def _bind_scan(self, core) -> None:
+        """:meth:`_ahead_scan` on the compiled core (``ext.AheadScan`` bound to every channel's
+        closed flags, counters and sample ring, the turns' array and the marks): where every
+        channel's extractor is a plain ``PulseExtractor`` over a ``SampleRing`` and the sensors'
+        wish (:meth:`_ahead_wanted_flags`) is an array entry; replaced on this instance."""
+        from coiltrack.firmware.measure.pulse import PulseExtractor, SampleRing
+        ext = core.ext
+        if ext is None or not self.ahead or not self.channels:
+            return
+        wanted = self._ahead_wanted_flags()
+        chs = self.channels
+        if wanted is None or any(type(ch.extractor).expect_complete is not PulseExtractor.expect_complete
+                                 or not isinstance(ch.extractor._ring, SampleRing) for ch in chs):
+            return
+        extra = np.array([ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs], dtype=np.int64)
+        self._scan_extra = extra
+        self._scan_k = ext.AheadScan(tuple(ch.done for ch in chs), tuple(ch.cnt for ch in chs),
+                                     tuple(ch.extractor._ring.t for ch in chs),
+                                     tuple(ch.extractor._ring.hc for ch in chs), extra,
+                                     tuple(w[0] for w in wanted), tuple(w[1] for w in wanted),
+                                     self._ahead_st, self._ahead_idle).scan
+        self._ahead_scan = self._ahead_scan_compiled
+
+    def _ahead_wanted_flags(self):
+        """Hook: :meth:`_ahead_wanted` as arrays, for the compiled scan: per channel ``(a, i)``,
+        the sensor wanted when ``a[i] == 0`` (int64 ``a``); None where the hook reads anything
+        else (the scan stays the Python's)."""
+        if type(self)._ahead_wanted is not MagneticTracker._ahead_wanted:
+            return None
+        zero = np.zeros(1, dtype=np.int64)
+        return tuple((zero, 0) for _ in self.channels)
+
+    def _idle_for(self, start: int, end: int):
+        """The channels' :attr:`_ahead_unchanged` marks for the last window ``[start, end]``, forgotten when
+        the window is another. A channel's readiness to be solved ahead reads only its windows'
+        closed flags and its samples (``PulseExtractor.expect_complete``), each change of which
+        counts in its ``changes``: so the idle ticks ask only the channels that changed, and a
+        tick's work scales with the samples that came in, not with the sensors."""
+        if self._ahead_unchanged_window != (start, end):
+            self._ahead_unchanged_window = (start, end)
+            idle = self._ahead_unchanged
+            for k in range(len(idle)):
+                idle[k] = -1
+        return self._ahead_unchanged
+
+
+class MagneticTracker(_CompiledReport, _ScanAhead):
     """Solves each burst for every sensor and reports the magnetic poses (a
     :class:`coiltrack.firmware.track.BurstTracker`).
 
@@ -318,7 +429,9 @@ class MagneticTracker(_CompiledReport):
         self._bind_begin(core)
         # solving ahead (see _solve_ahead): one sensor at a time, in ticks with no burst to solve
         self.ahead = cfg.budget.solve_ahead and cfg.ac.excitation == "pulsed" and self.solver.memoryless
-        self._ahead = tuple(_Ahead(len(coils)) for _ in self.channels)
+        self._ahead_st = np.zeros((len(self.channels), 2), dtype=np.int64)    # per channel: burst, done
+        self._ahead_st[:, 0] = NO_BURST
+        self._ahead = tuple(_Ahead(len(coils), self._ahead_st[k]) for k in range(len(self.channels)))
         self._inputs = tuple(tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.position,
                                                            tp.warm_p, tp.warm_R))
                              for ch, tp in ((ch, self.poses[ch.node]) for ch in self.channels))
@@ -331,12 +444,14 @@ class MagneticTracker(_CompiledReport):
         self._ahead_seen = None          # the burst every channel has had its turn to be solved ahead for
         # per channel, the SensorChannel.changes at which its burst was last found not ready to be
         # solved ahead (for the window _ahead_unchanged_window): nothing that test reads has changed while it holds
-        self._ahead_unchanged = [-1] * len(self.channels)
+        self._ahead_idle = np.full(len(self.channels), -1, dtype=np.int64)
+        self._ahead_unchanged = memoryview(self._ahead_idle)
         self._ahead_unchanged_window = (None, None)
         self.ahead_solves = 0            # bursts solved ahead
         self.ahead_used = 0              # of which the burst's solve (the same inputs)
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
         self._bind_report_chain(core)
+        self._bind_scan(core)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -434,44 +549,16 @@ class MagneticTracker(_CompiledReport):
             return                       # no room to begin beside the tick's other work
         j = sched.n - 1
         start, end = int(sched.start[j]), int(sched.end[j])
-        idle = self._idle_for(start, end)
-        seen = True
-        for k, ch in enumerate(self.channels):
-            ah = self._ahead[k]
-            if ah.burst == burst:
-                continue
-            if not self._ahead_wanted(ch):
-                ah.burst, ah.done = burst, False
-                continue
-            seen = False
-            c = ch.changes
-            if idle[k] == c:
-                continue                 # not ready when last asked, and nothing it reads changed since
-            if ch.done[j] or not _closed_before(ch.done, j) or not ch.extractor.expect_complete(start, end):
-                idle[k] = c
-                continue
-            ah.burst = burst
-            ah.done = False
+        self._idle_for(start, end)
+        k = self._ahead_scan(burst, j, start, end)
+        if k == AHEAD_SEEN:
+            self._ahead_seen = burst
+        elif k >= 0:
+            ch = self.channels[k]
             tp = self.poses[ch.node]
             if self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
                 self._units += self.solver.n         # the start, charged as a hand-over
                 self._solve_ahead()
-            return
-        if seen:
-            self._ahead_seen = burst
-
-    def _idle_for(self, start: int, end: int) -> list:
-        """The channels' :attr:`_ahead_unchanged` marks for the last window ``[start, end]``, forgotten when
-        the window is another. A channel's readiness to be solved ahead reads only its windows'
-        closed flags and its samples (``PulseExtractor.expect_complete``), each change of which
-        counts in its ``changes``: so the idle ticks ask only the channels that changed, and a
-        tick's work scales with the samples that came in, not with the sensors."""
-        if self._ahead_unchanged_window != (start, end):
-            self._ahead_unchanged_window = (start, end)
-            idle = self._ahead_unchanged
-            for k in range(len(idle)):
-                idle[k] = -1
-        return self._ahead_unchanged
 
     def _ahead_pending(self) -> bool:
         """A solve ahead runs, or sensors of the open burst have not had their turn yet."""

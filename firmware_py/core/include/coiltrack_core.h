@@ -192,6 +192,7 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
 #include "ct_finish.h"
 #include "ct_multi.h"
 #include "ct_burst_open.h"
+#include "ct_ahead.h"
 #include "ct_solve.h"
 #include "ct_sc_policy.h"
 #include "ct_sc_choose.h"
