@@ -283,13 +283,13 @@ class WindowCloser:
                                   for ch in chs):
             return
         self._ready_extra = np.array([ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs], dtype=np.int64)
-        self._readyk = ext.ReadyUpto(tuple(ch.extractor._ring.hc for ch in chs), self._ready_extra,
+        self._uptok = ext.ReadyUpto(tuple(ch.extractor._ring.hc for ch in chs), self._ready_extra,
                                      self.fall_us, self.baseline_us, self.timeout_us).upto
         self.ready_upto = self._ready_upto_compiled
 
     def _ready_upto_compiled(self, start: int, end: int, now_us: int, first: int) -> int:
         """:meth:`ready_upto` in one call; a time the kernel does not take goes to the reference."""
-        r = self._readyk(start, end, now_us, first)
+        r = self._uptok(start, end, now_us, first)
         return WindowCloser.ready_upto(self, start, end, now_us, first) if r < 0 else r
 
     def ready(self, start: int, end: int, now_us: int) -> bool:
