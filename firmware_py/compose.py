@@ -141,7 +141,7 @@ def _bursts(kind: type) -> Callable[[Parts], Pipeline]:
         t = kind(cfg, p.coils, p.channels, p.schedule, burst, p.supervisor, p.tx,
                  solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
         act = BurstActuation(cfg, p.schedule, p.channels, t, p.core, burst)
-        return Pipeline(act.step, act.measure, t.step, t)     # measure: a burst refused late is dropped first
+        return Pipeline(act.step, burst.step, t.step, t)      # burst.step drops a burst refused late first
 
     return build
 

@@ -35,8 +35,9 @@ class BurstActuation:
     is the tracker's :meth:`on_burst` where it has one compiled (sixteen sensors: ``multi16``)."""
 
     def __init__(self, cfg, schedule, channels, tracker, core=_DEFAULT_CORE, measurement=None):
-        """``measurement``: the bursts' ``BurstMeasurement`` (default the tracker's ``burst``); the
-        pipeline's measurement stage is then :meth:`measure`."""
+        """``measurement``: the bursts' ``BurstMeasurement`` (default the tracker's ``burst``); when
+        given, it runs :meth:`check_refused` at the start of each of its steps
+        (``BurstMeasurement.run_first``)."""
         n = len(cfg.source.coils)
         self.cycle = FixedCycle(n, cfg.timing.first_cycle_us, cfg.timing.cycle_us, cfg.timing.spacing_us, cfg.timing.pulse_us, cfg.timing.lead_us)
         self.schedule = schedule
@@ -47,18 +48,18 @@ class BurstActuation:
         self._waited = False
         # the burst's measurement (``BurstMeasurement``): released when a late refusal drops the burst
         self.measurement = measurement if measurement is not None else getattr(tracker, "burst", None)
-        self._measure = self.measurement.step if self.measurement is not None else (lambda now_us: None)
         self._late_seen = 0             # the schedule's late refusals already looked at
         self.dropped = 0                # bursts dropped for a pulse refused as late
+        if measurement is not None:
+            measurement.run_first(self.check_refused)
 
-    def measure(self, now_us: int) -> None:
-        """The measurement stage (``BurstMeasurement.step``), after dropping the burst if the tick's
-        receive brought a late refusal of one of its pulses: so no window of the burst closes,
-        and it does not complete, on a refused pulse's edges."""
+    def check_refused(self, now_us: int) -> None:
+        """Drop the burst if the tick's receive brought a late refusal of one of its pulses; run by
+        the measurement stage before its step (``BurstMeasurement.run_first``), so no window of the
+        burst closes, and it does not complete, on a refused pulse's edges."""
         if self.schedule.late_refusals != self._late_seen:
             self._late_seen = self.schedule.late_refusals
             self._drop_refused(now_us)
-        self._measure(now_us)
 
     def step(self, now_us: int) -> None:
         cyc = self.cycle

@@ -35,8 +35,17 @@ class BurstMeasurement:
         cc = tuple(getattr(closer, "channels", ()))
         self._same_channels = hasattr(closer, "close_run") and len(cc) == len(self.channels) and all(
             a is b for a, b in zip(cc, self.channels))
+        self._first = None               # run at the start of each step (run_first)
+
+    def run_first(self, check) -> None:
+        """``check(now_us)`` runs at the start of every :meth:`step`, before any window closes (the
+        fixed cycle's drop of a burst whose pulse the driver refused as late:
+        ``actuate.burst.BurstActuation.check_refused``)."""
+        self._first = check
 
     def step(self, now_us: int) -> None:
+        if self._first is not None:
+            self._first(now_us)
         self.closed_last = 0
         sched = self.schedule
         if sched.burst_start is None or self.complete or sched.commanded < self.n:
