@@ -199,6 +199,7 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
 #include "ct_supervise.h"
 #include "ct_report.h"
 #include "ct_cov24.h"
+#include "ct_hist_sync.h"
 
 #ifdef __cplusplus
 }
