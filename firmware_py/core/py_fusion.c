@@ -1031,20 +1031,23 @@ typedef struct {
     int64_t cap;
     int64_t *lt, *lhc, *st, *shc;
     double *ld, *sd;
+    int64_t *mark;                      /* PoseHistory.mark (ct_hist_sync), or NULL: whole copies */
 } HistCopyObject;
 
 static int HistCopy_init(HistCopyObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc", NULL};
-    static const char *names[6] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc"};
-    static const int wr[6] = {1, 1, 1, 1, 1, 1};
-    static const int i64[6] = {1, 0, 1, 1, 0, 1};
-    PyObject *o[6];
-    Py_ssize_t len[6];
-    void *ptr[6];
+    static char *kwlist[] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc", "mark", NULL};
+    static const char *names[7] = {"live_t", "live_d", "live_hc", "shadow_t", "shadow_d", "shadow_hc", "mark"};
+    static const int wr[7] = {1, 1, 1, 1, 1, 1, 1};
+    static const int i64[7] = {1, 0, 1, 1, 0, 1, 1};
+    PyObject *o[7] = {NULL, NULL, NULL, NULL, NULL, NULL, NULL};
+    Py_ssize_t len[7];
+    void *ptr[7];
     Py_buffer v;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOO", kwlist, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5]))
+    int nb;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOO|O", kwlist, &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6]))
         return -1;
+    nb = o[6] != NULL && o[6] != Py_None ? 7 : 6;
     if (fu_check_unbound(&self->b, "HistCopy") < 0)
         return -1;
     if (fu_get(o[0], 2, 1, 1, &v, "live_t") < 0)
@@ -1054,9 +1057,10 @@ static int HistCopy_init(HistCopyObject *self, PyObject *args, PyObject *kw)
     len[0] = len[3] = (Py_ssize_t)self->cap;
     len[1] = len[4] = (Py_ssize_t)self->cap * CT_HIST_WIDTH;
     len[2] = len[5] = 2;
-    if (fu_bind(6, o, len, wr, i64, names, self->b.views, ptr) < 0)
+    len[6] = CT_HMK_N;
+    if (fu_bind(nb, o, len, wr, i64, names, self->b.views, ptr) < 0)
         return -1;
-    self->b.nviews = 6;
+    self->b.nviews = nb;
     if (self->b.views[3].len != self->cap * 8 || self->b.views[1].len != len[1] * 8 ||
         self->b.views[4].len != len[1] * 8) {
         PyErr_SetString(PyExc_ValueError, "HistCopy: two histories of one capacity and 12 columns");
@@ -1068,6 +1072,7 @@ static int HistCopy_init(HistCopyObject *self, PyObject *args, PyObject *kw)
     self->st = ptr[3];
     self->sd = ptr[4];
     self->shc = ptr[5];
+    self->mark = nb == 7 ? ptr[6] : NULL;
     return 0;
 }
 
@@ -1080,14 +1085,28 @@ static int hist_ok(const int64_t *hc, int64_t cap)
     return 1;
 }
 
+static int mark_ok(const int64_t *mark, int64_t cap)
+{
+    if (mark != NULL && mark[CT_HMK_VALID] && (mark[CT_HMK_LIVE_SLOT] < 0 || mark[CT_HMK_LIVE_SLOT] >= cap ||
+                                               mark[CT_HMK_SHADOW_SLOT] < 0 || mark[CT_HMK_SHADOW_SLOT] >= cap)) {
+        PyErr_SetString(PyExc_ValueError, "HistCopy: the mark's slots out of range");
+        return 0;
+    }
+    return 1;
+}
+
 /* rewind(t_ref): PoseHistory.rewind_shadow */
 static PyObject *HistCopy_rewind(HistCopyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     int64_t t;
     if (fu_check_bound(&self->b, "HistCopy") < 0 || ct_py_nargs("rewind", nargs, 1) < 0 ||
-        ct_py_int64(args[0], &t) < 0 || !hist_ok(self->lhc, self->cap))
+        ct_py_int64(args[0], &t) < 0 || !hist_ok(self->lhc, self->cap) ||
+        !hist_ok(self->shc, self->cap) || !mark_ok(self->mark, self->cap))
         return NULL;
-    ct_fusion_hist_copy(self->st, self->sd, self->shc, self->lt, self->ld, self->lhc, self->cap, 1, t);
+    if (self->mark != NULL)
+        ct_hist_sync(self->lt, self->ld, self->lhc, self->st, self->sd, self->shc, self->cap, self->mark, 1, t);
+    else
+        ct_fusion_hist_copy(self->st, self->sd, self->shc, self->lt, self->ld, self->lhc, self->cap, 1, t);
     Py_RETURN_NONE;
 }
 
@@ -1096,9 +1115,12 @@ static PyObject *HistCopy_commit(HistCopyObject *self, PyObject *const *args, Py
 {
     (void)args;
     if (fu_check_bound(&self->b, "HistCopy") < 0 || ct_py_nargs("commit", nargs, 0) < 0 ||
-        !hist_ok(self->shc, self->cap))
+        !hist_ok(self->shc, self->cap) || !hist_ok(self->lhc, self->cap) || !mark_ok(self->mark, self->cap))
         return NULL;
-    ct_fusion_hist_copy(self->lt, self->ld, self->lhc, self->st, self->sd, self->shc, self->cap, 0, 0);
+    if (self->mark != NULL)
+        ct_hist_sync(self->lt, self->ld, self->lhc, self->st, self->sd, self->shc, self->cap, self->mark, 0, 0);
+    else
+        ct_fusion_hist_copy(self->lt, self->ld, self->lhc, self->st, self->sd, self->shc, self->cap, 0, 0);
     Py_RETURN_NONE;
 }
 
@@ -1113,8 +1135,8 @@ static PyTypeObject HistCopyType = {
     .tp_name = "coiltrack.firmware._core.HistCopy",
     .tp_basicsize = sizeof(HistCopyObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "HistCopy(live_t, live_d, live_hc, shadow_t, shadow_d, shadow_hc): the pose histories' rewind and "
-              "commit bound to both rings",
+    .tp_doc = "HistCopy(live_t, live_d, live_hc, shadow_t, shadow_d, shadow_hc, mark=None): the pose histories' "
+              "rewind and commit bound to both rings (with PoseHistory.mark: in part, ct_hist_sync)",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)HistCopy_init,
     .tp_dealloc = Fu_dealloc,
@@ -1216,6 +1238,7 @@ static int FusionUpdate_init(FusionUpdateObject *self, PyObject *args, PyObject 
     self->f.shadow_d = ho->sd;
     self->f.shadow_hc = ho->shc;
     self->f.hist_cap = ho->cap;
+    self->f.hist_mark = ho->mark;
     self->refs[0] = meas;
     self->refs[1] = sh;
     self->refs[2] = sn;
@@ -1231,7 +1254,8 @@ static PyObject *FusionUpdate_prepare(FusionUpdateObject *self, PyObject *const 
     double q[3], R[9], C[36];
     int64_t t;
     if (fu_check_bound(&self->b, "FusionUpdate") < 0 || ct_py_nargs("prepare", nargs, 4) < 0 ||
-        ct_py_int64(args[0], &t) < 0 || !hist_ok(self->f.live_hc, self->f.hist_cap))
+        ct_py_int64(args[0], &t) < 0 || !hist_ok(self->f.live_hc, self->f.hist_cap) ||
+        !hist_ok(self->f.shadow_hc, self->f.hist_cap) || !mark_ok(self->f.hist_mark, self->f.hist_cap))
         return NULL;
     if (fu_small(args[1], 3, q, "q") < 0 || fu_small(args[2], 9, R, "R_ms") < 0 || fu_small(args[3], 36, C, "C") < 0)
         return NULL;
@@ -1299,7 +1323,9 @@ int ct_register_fusion(PyObject *m)
         {"REPLAY_CAUGHT_UP", CT_REPLAY_CAUGHT_UP}, {"REPLAY_BUDGET", CT_REPLAY_BUDGET},
         {"REPLAY_LOST", CT_REPLAY_LOST}, {"REPLAY_SNAPSHOT", CT_REPLAY_SNAPSHOT},
         {"IMU_WIDTH", CT_IMU_WIDTH}, {"IMU_F", CT_IMU_F}, {"IMU_W", CT_IMU_W}, {"IMU_FSRC", CT_IMU_FSRC},
-        {"IMU_PHI", CT_IMU_PHI}, {"HIST_WIDTH", CT_HIST_WIDTH}, {"HIST_P", CT_HIST_P}, {"HIST_R", CT_HIST_R}};
+        {"IMU_PHI", CT_IMU_PHI}, {"HIST_WIDTH", CT_HIST_WIDTH}, {"HIST_P", CT_HIST_P}, {"HIST_R", CT_HIST_R},
+        {"HMK_VALID", CT_HMK_VALID}, {"HMK_LIVE_SLOT", CT_HMK_LIVE_SLOT}, {"HMK_LIVE_T", CT_HMK_LIVE_T},
+        {"HMK_SHADOW_SLOT", CT_HMK_SHADOW_SLOT}, {"HMK_SHADOW_T", CT_HMK_SHADOW_T}, {"HMK_N", CT_HMK_N}};
     size_t i;
     if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
         fu_add_type(m, &ReplayType, "Replay") < 0 || fu_add_type(m, &SnapAuxType, "SnapAux") < 0 ||

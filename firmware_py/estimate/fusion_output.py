@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.fusion_state import HIST_FIELDS, HIST_P, HIST_R, InsState
 from coiltrack.firmware.estimate.layout import ORI, POS
@@ -36,35 +38,90 @@ OUT_LOST = 8                # ... for ``dead_reckon_limit_us``: not a valid pose
 OUT_RECOVERED = 16          # restarted from a magnetic solution, no update accepted since
 
 
+#: ``PoseHistory.mark`` (int64): whether the live and the shadow history agree, array for array, outside the
+#: slots each pushed since they were last made equal (1; 0: the next copy takes them whole), and each one's
+#: newest slot and its time at that moment (:meth:`PoseHistory.rewind_shadow`, :meth:`PoseHistory.commit`)
+MK_VALID, MK_LIVE_SLOT, MK_LIVE_T, MK_SHADOW_SLOT, MK_SHADOW_T, MK_N = range(6)
+
+
 class PoseHistory:
-    """The live pose history (``live``) and the one a replay writes (``shadow``), source frame."""
+    """The live pose history (``live``) and the one a replay writes (``shadow``), source frame.
+
+    A rewind makes the shadow the live history and a commit the live history the shadow
+    (``Ring.copy_from``: both arrays, head and count). Only the slots pushed since the two were last
+    made equal can differ, so only those are copied (:meth:`_sync`): a ring is written only by its
+    pushes (one slot at its head, with a time newer than any it holds; the live one by the fused
+    sample's path, the shadow by the replay), so the slots a ring pushed since are the run after its
+    newest slot then (``mark``) up to its newest now, unless that slot no longer holds its time then
+    (a whole capacity pushed since: the copy is whole). A cleared shadow (a restart) makes the next
+    copy whole too. The arrays after a copy are the same bytes as the whole copy's (the compiled core:
+    ``core/src/hist_sync.c`` ``ct_hist_sync``)."""
 
     def __init__(self, capacity: int, core=_DEFAULT_CORE):
         self.live = KernelRing(capacity, HIST_FIELDS)    # (its head and count shared: ext.ImuSample)
         self.shadow = KernelRing(capacity, HIST_FIELDS)   # (its head and count shared: ext.Replay)
+        self.mark = np.zeros(MK_N, dtype=np.int64)
+        self._mkv = memoryview(self.mark)
         ext = core.ext
         if ext is not None:
             # pose_at on the compiled core (core/src/fusion.c ct_fusion_pose_at), bound to the live ring
             assert (HIST_P, HIST_R, self.live.width) == (ext.HIST_P, ext.HIST_R, ext.HIST_WIDTH)
+            assert (MK_VALID, MK_LIVE_SLOT, MK_LIVE_T, MK_SHADOW_SLOT, MK_SHADOW_T, MK_N) == (
+                ext.HMK_VALID, ext.HMK_LIVE_SLOT, ext.HMK_LIVE_T, ext.HMK_SHADOW_SLOT, ext.HMK_SHADOW_T, ext.HMK_N)
             # (the kernel's method itself: out_p, out_R C-contiguous float64 buffers)
             self.pose_at = ext.PoseAt(self.live.t, self.live.d, self.live.hc).at
-            # rewind_shadow and commit (ct_fusion_hist_copy: the same copies and drop)
-            hc = ext.HistCopy(self.live.t, self.live.d, self.live.hc, self.shadow.t, self.shadow.d, self.shadow.hc)
+            # rewind_shadow and commit (core/src/hist_sync.c ct_hist_sync: the same copies and drop)
+            hc = ext.HistCopy(self.live.t, self.live.d, self.live.hc, self.shadow.t, self.shadow.d, self.shadow.hc,
+                              self.mark)
             self.rewind_shadow = hc.rewind
             self.commit = hc.commit
 
     def rewind_shadow(self, t_ref_us: int) -> None:
         """The shadow starts as the live history up to ``t_ref_us``."""
-        self.shadow.copy_from(self.live)
+        self._sync(self.shadow, self.live)
         self.shadow.drop_newer_than(t_ref_us)
+        self._marked()
 
     def restart_shadow(self) -> None:
         """The shadow starts empty (the filter restarted)."""
         self.shadow.clear()
+        self._mkv[MK_VALID] = 0
 
     def commit(self) -> None:
         """The replay caught up: its history becomes the live one."""
-        self.live.copy_from(self.shadow)
+        self._sync(self.live, self.shadow)
+        self._marked()
+
+    def _sync(self, dst: KernelRing, src: KernelRing) -> None:
+        """``dst.copy_from(src)``: the slots either ring pushed since the last copy (:func:`_pushed`), or all."""
+        mk = self._mkv
+        cap = src.capacity
+        if mk[MK_VALID]:
+            sl, ss = mk[MK_LIVE_SLOT], mk[MK_SHADOW_SLOT]
+            nl = _pushed(self.live, sl, mk[MK_LIVE_T])
+            ns = _pushed(self.shadow, ss, mk[MK_SHADOW_T])
+            if nl + ns < cap:
+                dst.copy_slots_from(src, sl + 1, nl)
+                dst.copy_slots_from(src, ss + 1, ns)
+                dst.take_position(src)
+                return
+        dst.copy_from(src)
+
+    def _marked(self) -> None:
+        """The two histories are equal (arrays; head and count but for a rewind's drop): each one's newest slot
+        and its time (neither empty; else the next copy is whole)."""
+        live, sh = self.live, self.shadow
+        mk = self._mkv
+        if not len(live) or not len(sh):
+            mk[MK_VALID] = 0
+            return
+        mk[MK_VALID] = 1
+        k = live.peek(0)
+        mk[MK_LIVE_SLOT] = k
+        mk[MK_LIVE_T] = live.tv[k]
+        k = sh.peek(0)
+        mk[MK_SHADOW_SLOT] = k
+        mk[MK_SHADOW_T] = sh.tv[k]
 
     def pose_at(self, t_us: int, out_p, out_R) -> bool:
         """Inertial pose in the source frame at ``t_us`` (linear
@@ -251,3 +308,14 @@ def _quat_into(hd, h, od, slot) -> None:
                                     hd[h, r + 5], hd[h, r + 6], hd[h, r + 7], hd[h, r + 8])
     o = OUT_Q
     od[slot, o], od[slot, o + 1], od[slot, o + 2], od[slot, o + 3] = w, x, y, z
+
+
+def _pushed(ring: KernelRing, k: int, t: int) -> int:
+    """Slots ``ring`` pushed since its newest slot was ``k``, at time ``t``: the run from ``k + 1`` to its
+    newest slot now; the capacity when it may have pushed that many (slot ``k`` holds a newer time) or
+    holds nothing."""
+    cap = ring.capacity
+    if ring.tv[k] != t or not len(ring):
+        return cap
+    n = ring.peek(0) - k
+    return n + cap if n < 0 else n

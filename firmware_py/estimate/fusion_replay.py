@@ -129,7 +129,8 @@ class CompiledReplay:
 class CompiledUpdate:
     """The delayed magnetic update's two halves on the compiled core, one call each
     (``ext.FusionUpdate``, ``core/src/fusion.c``): :meth:`restore` is ``FusionFilter._restore``
-    (``ct_fusion_prepare``: the shadow from the snapshot, its pose history rewound to ``t_ref``, the
+    (``ct_fusion_prepare``: the shadow from the snapshot, its pose history rewound to ``t_ref`` in part as
+    ``PoseHistory.rewind_shadow`` does (``ct_hist_sync``), the
     measurement model evaluated; thesis sec 6.2.3) and :meth:`update` is ``FusionFilter._update_shadow``
     (``ct_fusion_update``: the Kalman update of ``ekf.KalmanUpdate``, eqs 6.5-6.6, with its periodic
     symmetrisation, then ``InsState.correct``). Bound once to the filter's measurement kernel, its
@@ -144,7 +145,7 @@ class CompiledUpdate:
     def __init__(self, fus, ext):
         live, shadow = fus.history.live, fus.history.shadow
         self.sh, self.snap_st, self.upd = fus.sh, fus.snap.st, fus.upd
-        hist = ext.HistCopy(live.t, live.d, live.hc, shadow.t, shadow.d, shadow.hc)
+        hist = ext.HistCopy(live.t, live.d, live.hc, shadow.t, shadow.d, shadow.hc, fus.history.mark)
         self._ck = ext.FusionUpdate(fus.meas._ck, fus.sh.cs, fus.snap.st.cs, hist, fus.n, fus.m, *fus.upd.buffers())
 
     def methods(self) -> tuple:

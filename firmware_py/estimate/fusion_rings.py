@@ -23,6 +23,32 @@ class KernelRing(Ring):
         self.hc = np.zeros(state, dtype=np.int64)
         self._hcv = memoryview(self.hc)
         super().__init__(capacity, fields)
+        self._df = memoryview(self.d.reshape(-1))      # the rows, flat: a run of slots is one slice
+
+    def copy_slots_from(self, other: "KernelRing", h: int, n: int) -> None:
+        """Slots ``h, h + 1, ...`` (``n`` of them, modulo the capacity) of ``other`` (same capacity and width)
+        into this ring, times and rows; head and count unchanged (:meth:`take_position`)."""
+        cap = self.capacity
+        if h >= cap:
+            h -= cap
+        e = h + n
+        if e <= cap:
+            self._copy_range(other, h, e)
+        else:
+            self._copy_range(other, h, cap)
+            self._copy_range(other, 0, e - cap)
+
+    def _copy_range(self, other: "KernelRing", a: int, b: int) -> None:
+        w = self.width
+        self.tv[a:b] = other.tv[a:b]
+        self._df[a * w:b * w] = other._df[a * w:b * w]
+
+    def take_position(self, other: "KernelRing") -> None:
+        """``other``'s head and count (the end of :meth:`Ring.copy_from` after :meth:`copy_slots_from`)."""
+        hc = self._hcv
+        ohc = other._hcv
+        hc[0] = ohc[0]
+        hc[1] = ohc[1]
 
     def _set_head(self, v: int) -> None:
         self._hcv[0] = v

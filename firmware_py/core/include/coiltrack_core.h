@@ -204,6 +204,7 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
 #include "ct_fuse.h"
 #include "ct_begin.h"
 #include "ct_periodic.h"
+#include "ct_hist_sync.h"
 
 #ifdef __cplusplus
 }

@@ -146,6 +146,7 @@ struct ct_fusprep {
     int64_t *live_t, *live_hc, *shadow_t, *shadow_hc;
     double *live_d, *shadow_d;
     int64_t hist_cap;
+    int64_t *hist_mark;             /* PoseHistory.mark: the rewind copies in part (ct_hist_sync); NULL: whole */
 };
 void ct_fusion_prepare(const struct ct_fusprep *f, int64_t t_ref, const double *q, const double *R_ms,
                        const double *C);

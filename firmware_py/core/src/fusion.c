@@ -532,8 +532,12 @@ void ct_fusion_prepare(const struct ct_fusprep *f, int64_t t_ref, const double *
 {
     const struct ct_fusstate *sh = f->shadow;
     ct_fusion_copy(sh, f->snap);
-    ct_fusion_hist_copy(f->shadow_t, f->shadow_d, f->shadow_hc, f->live_t, f->live_d, f->live_hc, f->hist_cap, 1,
-                        t_ref);
+    if (f->hist_mark)
+        ct_hist_sync(f->live_t, f->live_d, f->live_hc, f->shadow_t, f->shadow_d, f->shadow_hc, f->hist_cap,
+                     f->hist_mark, 1, t_ref);
+    else
+        ct_fusion_hist_copy(f->shadow_t, f->shadow_d, f->shadow_hc, f->live_t, f->live_d, f->live_hc, f->hist_cap,
+                            1, t_ref);
     ct_fusion_evaluate(f->m, f->xi_model, f->Phi, f->Xi, f->XiP, q, R_ms, C, sh->p, sh->Th, sh->P, f->y, f->Psi);
 }
 

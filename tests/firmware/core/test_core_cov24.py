@@ -108,3 +108,36 @@ def test_other_sizes_keep_the_generic_kernel():
         P = P0.copy()
         _compiled(n, A, Q)._ck.predict(P)
         assert P.tobytes() == _sparse_order(A, P0, Q).tobytes()
+
+
+@pytest.mark.parametrize("nr, nc", [(15, 15), (16, 16), (16, 17), (17, 16), (24, 24), (10, 20), (1, 1), (24, 3)])
+def test_trailing_zero_rows_and_columns_bit_for_bit(nr, nc):
+    """A whose non-zero entries lie in rows < nr and columns < nc (the fusion transition: 15 and 15,
+    the white states last), trimmed by the kernel: the same bits as the full generic order,
+    including P's signed zeros, over P with negative, NaN and infinite entries in the rows and
+    columns the trim skips; A with an infinite or NaN entry keeps the dense loops (0 * inf is
+    NaN, not the trim's 0): again the generic order's bits (NaN where it has NaN)."""
+    rng = np.random.default_rng(nr * 100 + nc)
+    n = 24
+    A = np.zeros((n, n))
+    A[:nr, :nc] = rng.normal(size=(nr, nc)) * (rng.random((nr, nc)) < 0.4)
+    A[nr - 1, nc - 1] = -1.5                    # (the corner non-zero: nr, nc exactly)
+    Q = np.diag(rng.uniform(1e-6, 1e-3, n))
+    Q[3, 5] = Q[5, 3] = -0.0
+    P0 = _spd(rng, n)
+    P0[n - 1, :] = -P0[n - 1, :]
+    for bad in (0.0, np.nan, np.inf):
+        Pb = P0.copy()
+        if bad:
+            Pb[n - 1, n - 2] = bad               # in a row and column the trim never reads when nc < 24
+        P = Pb.copy()
+        _compiled(n, A, Q)._ck.predict(P)
+        ref = _sparse_order(A, Pb, Q)
+        assert P.tobytes() == ref.tobytes(), bad
+    for bad in (np.inf, np.nan):
+        A2 = A.copy()
+        A2[0, 0] = bad
+        P = P0.copy()
+        _compiled(n, A2, Q)._ck.predict(P)
+        ref = _sparse_order(A2, P0, Q)
+        assert P.tobytes() == ref.tobytes(), bad
