@@ -148,22 +148,6 @@ fail:
     return -1;
 }
 
-/* an int argument into *x: 1, or 0 (error cleared) when it is not an int64 */
-static int ah_int(PyObject *o, int64_t *x)
-{
-    int overflow = 0;
-    long long v;
-    if (!PyLong_Check(o))
-        return 0;
-    v = PyLong_AsLongLongAndOverflow(o, &overflow);
-    if ((v == -1 && PyErr_Occurred()) || overflow) {
-        PyErr_Clear();
-        return 0;
-    }
-    *x = (int64_t)v;
-    return 1;
-}
-
 /* scan(burst, j, start, end) -> int: MagneticTracker._ahead_scan (-3: ask the reference) */
 static PyObject *AheadScan_scan(AheadScanObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
@@ -174,7 +158,7 @@ static PyObject *AheadScan_scan(AheadScanObject *self, PyObject *const *args, Py
         PyErr_SetString(PyExc_RuntimeError, "AheadScan: not bound");
         return NULL;
     }
-    if (!ah_int(args[0], &b) || !ah_int(args[1], &j) || !ah_int(args[2], &start) || !ah_int(args[3], &end))
+    if (!ct_py_int_only(args[0], &b) || !ct_py_int_only(args[1], &j) || !ct_py_int_only(args[2], &start) || !ct_py_int_only(args[3], &end))
         return PyLong_FromLong(CT_AHEAD_ASK);
     return PyLong_FromLongLong((long long)ct_ahead_scan(&self->s, b, j, start, end));
 }
@@ -277,7 +261,7 @@ static PyObject *ReadyUpto_upto(ReadyUptoObject *self, PyObject *const *args, Py
         PyErr_SetString(PyExc_RuntimeError, "ReadyUpto: not bound");
         return NULL;
     }
-    if (!ah_int(args[0], &start) || !ah_int(args[1], &end) || !ah_int(args[2], &now) || !ah_int(args[3], &first))
+    if (!ct_py_int_only(args[0], &start) || !ct_py_int_only(args[1], &end) || !ct_py_int_only(args[2], &now) || !ct_py_int_only(args[3], &first))
         return PyLong_FromLong(CT_AHEAD_ASK);
     return PyLong_FromLongLong((long long)ct_ready_upto(self->hc, self->extra, (int64_t)self->n, start, end, now, first,
                                                         self->fall, self->baseline, self->timeout));
@@ -385,8 +369,8 @@ static PyObject *WindowFrames_send(WindowFramesObject *self, PyObject *const *ar
         PyErr_SetString(PyExc_RuntimeError, "WindowFrames: not bound");
         return NULL;
     }
-    if (!ah_int(args[1], &seq) || !ah_int(args[2], &src) || !ah_int(args[3], &coil) || !ah_int(args[4], &pid) ||
-        !ah_int(args[5], &c0) || !ah_int(args[6], &c1) || c0 < 0 || c1 > (int64_t)self->n || c0 > c1)
+    if (!ct_py_int_only(args[1], &seq) || !ct_py_int_only(args[2], &src) || !ct_py_int_only(args[3], &coil) || !ct_py_int_only(args[4], &pid) ||
+        !ct_py_int_only(args[5], &c0) || !ct_py_int_only(args[6], &c1) || c0 < 0 || c1 > (int64_t)self->n || c0 > c1)
         Py_RETURN_NONE;
     for (i = c0; i < c1; ++i) {
         const int64_t *iv = self->info[i];

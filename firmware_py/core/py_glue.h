@@ -102,6 +102,64 @@ static inline int ct_py_int64(PyObject *o, int64_t *x)
     return 0;
 }
 
+/* an argument that must be a Python int into *x: 1, or 0 (the error cleared) when it is no int or
+ * out of int64's range (the caller then hands the call back to its Python reference) */
+static inline int ct_py_int_only(PyObject *o, int64_t *x)
+{
+    int overflow = 0;
+    long long v;
+    if (!PyLong_Check(o))
+        return 0;
+    v = PyLong_AsLongLongAndOverflow(o, &overflow);
+    if ((v == -1 && PyErr_Occurred()) || overflow) {
+        PyErr_Clear();
+        return 0;
+    }
+    *x = (int64_t)v;
+    return 1;
+}
+
+/* a signed 64-bit field's argument ('q') into *x: 1, or 0 (the error cleared) for anything
+ * struct.pack would refuse */
+static inline int ct_py_pack_q(PyObject *o, int64_t *x)
+{
+    int overflow = 0;
+    long long v;
+    PyObject *i = PyLong_Check(o) ? (Py_INCREF(o), o) : PyNumber_Index(o);
+    if (i == NULL) {
+        PyErr_Clear();
+        return 0;
+    }
+    v = PyLong_AsLongLongAndOverflow(i, &overflow);
+    Py_DECREF(i);
+    if ((v == -1 && PyErr_Occurred()) || overflow) {
+        PyErr_Clear();
+        return 0;
+    }
+    *x = (int64_t)v;
+    return 1;
+}
+
+/* an unsigned 64-bit field's argument ('Q') into *x: 1, or 0 (the error cleared) for anything
+ * struct.pack would refuse */
+static inline int ct_py_pack_Q(PyObject *o, uint64_t *x)
+{
+    unsigned long long v;
+    PyObject *i = PyLong_Check(o) ? (Py_INCREF(o), o) : PyNumber_Index(o);
+    if (i == NULL) {
+        PyErr_Clear();
+        return 0;
+    }
+    v = PyLong_AsUnsignedLongLong(i);
+    Py_DECREF(i);
+    if (v == (unsigned long long)-1 && PyErr_Occurred()) {
+        PyErr_Clear();
+        return 0;
+    }
+    *x = (uint64_t)v;
+    return 1;
+}
+
 /* a METH_FASTCALL method's argument count */
 static inline int ct_py_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want)
 {

@@ -14,38 +14,6 @@
 #include "py_glue.h"
 #include "py_pulse.h"
 
-/* an integer argument into *x; 0 (the error cleared) for anything struct.pack would refuse */
-static int mul_int64(PyObject *o, int64_t *x)
-{
-    int overflow = 0;
-    long long v = PyLong_AsLongLongAndOverflow(o, &overflow);
-    if ((v == -1 && PyErr_Occurred()) || overflow) {
-        PyErr_Clear();
-        return 0;
-    }
-    *x = (int64_t)v;
-    return 1;
-}
-
-/* an unsigned 64-bit argument ('Q') into *x; 0 (the error cleared) when struct.pack would refuse it */
-static int mul_uint64(PyObject *o, uint64_t *x)
-{
-    unsigned long long v;
-    PyObject *i = PyLong_Check(o) ? (Py_INCREF(o), o) : PyNumber_Index(o);
-    if (i == NULL) {
-        PyErr_Clear();
-        return 0;
-    }
-    v = PyLong_AsUnsignedLongLong(i);
-    Py_DECREF(i);
-    if (v == (unsigned long long)-1 && PyErr_Occurred()) {
-        PyErr_Clear();
-        return 0;
-    }
-    *x = (uint64_t)v;
-    return 1;
-}
-
 /* window_frame(seq, src, node, coil, pulse_id, first_us, last_us, n_used, n_base, flags) -> bytes or
  * None: one PULSE_WINDOW frame as encode_frame makes it (None: a value the wire format refuses) */
 static PyObject *mul_window_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
@@ -60,14 +28,14 @@ static PyObject *mul_window_frame(PyObject *mod, PyObject *const *args, Py_ssize
         PyErr_Format(PyExc_TypeError, "window_frame() takes 10 arguments (%zd given)", nargs);
         return NULL;
     }
-    if (!mul_int64(args[0], &seq) || !mul_int64(args[1], &src)) {
+    if (!ct_py_pack_q(args[0], &seq) || !ct_py_pack_q(args[1], &src)) {
         PyErr_SetString(PyExc_TypeError, "window_frame: seq and src must be integers");
         return NULL;
     }
     for (k = 0; k < 6; ++k)
-        if (!mul_int64(args[at[k]], &f[k]))
+        if (!ct_py_pack_q(args[at[k]], &f[k]))
             Py_RETURN_NONE;
-    if (!mul_uint64(args[5], &first) || !mul_uint64(args[6], &last))
+    if (!ct_py_pack_Q(args[5], &first) || !ct_py_pack_Q(args[6], &last))
         Py_RETURN_NONE;
     k = ct_window_frame(out, (int)(seq & 0xFF), (int)(src & 0xFF), f[0], f[1], f[2], first, last, f[3], f[4], f[5]);
     if (k < 0)
@@ -88,11 +56,11 @@ static PyObject *mul_flip_frame(PyObject *mod, PyObject *const *args, Py_ssize_t
         PyErr_Format(PyExc_TypeError, "flip_frame() takes 5 arguments (%zd given)", nargs);
         return NULL;
     }
-    if (!mul_int64(args[0], &seq) || !mul_int64(args[1], &src)) {
+    if (!ct_py_pack_q(args[0], &seq) || !ct_py_pack_q(args[1], &src)) {
         PyErr_SetString(PyExc_TypeError, "flip_frame: seq and src must be integers");
         return NULL;
     }
-    if (!mul_int64(args[2], &node) || !mul_uint64(args[3], &at) || !mul_int64(args[4], &state))
+    if (!ct_py_pack_q(args[2], &node) || !ct_py_pack_Q(args[3], &at) || !ct_py_pack_q(args[4], &state))
         Py_RETURN_NONE;
     k = ct_flip_frame(out, (int)(seq & 0xFF), (int)(src & 0xFF), node, at, state);
     if (k < 0)

@@ -12,50 +12,11 @@
 #include "coiltrack_core.h"
 #include "py_glue.h"
 
-/* a signed integer argument into *x; 0 (the error cleared) for anything struct.pack would refuse */
-static int per_int64(PyObject *o, int64_t *x)
-{
-    int overflow = 0;
-    long long v;
-    PyObject *i = PyLong_Check(o) ? (Py_INCREF(o), o) : PyNumber_Index(o);
-    if (i == NULL) {
-        PyErr_Clear();
-        return 0;
-    }
-    v = PyLong_AsLongLongAndOverflow(i, &overflow);
-    Py_DECREF(i);
-    if ((v == -1 && PyErr_Occurred()) || overflow) {
-        PyErr_Clear();
-        return 0;
-    }
-    *x = (int64_t)v;
-    return 1;
-}
-
-/* an unsigned 64-bit argument ('Q') into *x; 0 (the error cleared) when struct.pack would refuse it */
-static int per_uint64(PyObject *o, uint64_t *x)
-{
-    unsigned long long v;
-    PyObject *i = PyLong_Check(o) ? (Py_INCREF(o), o) : PyNumber_Index(o);
-    if (i == NULL) {
-        PyErr_Clear();
-        return 0;
-    }
-    v = PyLong_AsUnsignedLongLong(i);
-    Py_DECREF(i);
-    if (v == (unsigned long long)-1 && PyErr_Occurred()) {
-        PyErr_Clear();
-        return 0;
-    }
-    *x = (uint64_t)v;
-    return 1;
-}
-
 /* the frame's sequence number and source (integers, masked to a byte as encode_frame does) */
 static int per_header(PyObject *const *args, const char *name, int *seq, int *src)
 {
     int64_t a, b;
-    if (!per_int64(args[0], &a) || !per_int64(args[1], &b)) {
+    if (!ct_py_pack_q(args[0], &a) || !ct_py_pack_q(args[1], &b)) {
         PyErr_Format(PyExc_TypeError, "%s: seq and src must be integers", name);
         return -1;
     }
@@ -78,7 +39,7 @@ static PyObject *per_sync_frame(PyObject *mod, PyObject *const *args, Py_ssize_t
     }
     if (per_header(args, "sync_frame", &seq, &src) < 0)
         return NULL;
-    if (!per_uint64(args[2], &t) || !per_int64(args[3], &s))
+    if (!ct_py_pack_Q(args[2], &t) || !ct_py_pack_q(args[3], &s))
         Py_RETURN_NONE;
     k = ct_sync_frame(out, seq, src, t, s);
     if (k < 0)
@@ -100,7 +61,7 @@ static PyObject *per_heartbeat_frame(PyObject *mod, PyObject *const *args, Py_ss
     if (per_header(args, "heartbeat_frame", &seq, &src) < 0)
         return NULL;
     for (i = 0; i < 6; ++i)
-        if (!per_int64(args[2 + i], &f[i]))
+        if (!ct_py_pack_q(args[2 + i], &f[i]))
             Py_RETURN_NONE;
     k = ct_heartbeat_frame(out, seq, src, f[0], f[1], f[2], f[3], f[4], f[5]);
     if (k < 0)
@@ -122,8 +83,8 @@ static PyObject *per_event_frame(PyObject *mod, PyObject *const *args, Py_ssize_
     }
     if (per_header(args, "event_frame", &seq, &src) < 0)
         return NULL;
-    if (!per_int64(args[2], &node) || !per_uint64(args[3], &t) || !per_int64(args[4], &code) ||
-        !per_int64(args[5], &detail))
+    if (!ct_py_pack_q(args[2], &node) || !ct_py_pack_Q(args[3], &t) || !ct_py_pack_q(args[4], &code) ||
+        !ct_py_pack_q(args[5], &detail))
         Py_RETURN_NONE;
     k = ct_event_frame(out, seq, src, node, t, code, detail);
     if (k < 0)

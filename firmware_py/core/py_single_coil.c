@@ -1426,37 +1426,6 @@ static PyTypeObject NisType = {
 };
 
 /* ------------------------------------------------------------ the pulses' command and duty */
-/* a signed 64-bit argument into *x; 0 (the error cleared) when it is no integer or out of range */
-static int sc_i64(PyObject *o, int64_t *x)
-{
-    int overflow = 0;
-    long long v;
-    if (!PyLong_Check(o))
-        return 0;
-    v = PyLong_AsLongLongAndOverflow(o, &overflow);
-    if ((v == -1 && PyErr_Occurred()) || overflow) {
-        PyErr_Clear();
-        return 0;
-    }
-    *x = (int64_t)v;
-    return 1;
-}
-
-/* an unsigned 64-bit argument ('Q') into *x; 0 (the error cleared) when struct.pack would refuse it */
-static int sc_u64(PyObject *o, uint64_t *x)
-{
-    unsigned long long v;
-    if (!PyLong_Check(o))
-        return 0;
-    v = PyLong_AsUnsignedLongLong(o);
-    if (v == (unsigned long long)-1 && PyErr_Occurred()) {
-        PyErr_Clear();
-        return 0;
-    }
-    *x = (uint64_t)v;
-    return 1;
-}
-
 /* pulse_cmd_frame(seq, src, coil, pulse_id, current_ma, start_us, duration_us) -> bytes or None: one
  * COIL_PULSE_CMD frame as encode_frame makes it (None: a value the wire format refuses) */
 static PyObject *sc_pulse_cmd_frame(PyObject *mod, PyObject *const *args, Py_ssize_t nargs)
@@ -1468,14 +1437,14 @@ static PyObject *sc_pulse_cmd_frame(PyObject *mod, PyObject *const *args, Py_ssi
     (void)mod;
     if (sc_nargs("pulse_cmd_frame", nargs, 7) < 0)
         return NULL;
-    if (!sc_i64(args[0], &f[0]) || !sc_i64(args[1], &f[1])) {
+    if (!ct_py_int_only(args[0], &f[0]) || !ct_py_int_only(args[1], &f[1])) {
         PyErr_SetString(PyExc_TypeError, "pulse_cmd_frame: seq and src must be integers");
         return NULL;
     }
     for (k = 2; k < 7; ++k)
-        if (k != 5 && !sc_i64(args[k], &f[k]))
+        if (k != 5 && !ct_py_int_only(args[k], &f[k]))
             Py_RETURN_NONE;
-    if (!sc_u64(args[5], &start))                  /* start_us: 'Q' */
+    if (!ct_py_pack_Q(args[5], &start))                  /* start_us: 'Q' */
         Py_RETURN_NONE;
     k = ct_pulse_cmd_frame(out, (int)(f[0] & 0xFF), (int)(f[1] & 0xFF), f[2], f[3], f[4], start, f[6]);
     if (k < 0)
@@ -1538,7 +1507,7 @@ static PyObject *Duty_ok(DutyObject *self, PyObject *const *args, Py_ssize_t nar
     }
     if (sc_nargs("ok", nargs, 3) < 0 || sc_int(args[0], 0, self->n_coils - 1, &c, "coil") < 0)
         return NULL;
-    if (!sc_i64(args[1], &start) || !sc_i64(args[2], &length)) {
+    if (!ct_py_int_only(args[1], &start) || !ct_py_int_only(args[2], &length)) {
         PyErr_SetString(PyExc_TypeError, "ok: start and length must be 64-bit integers");
         return NULL;
     }
@@ -1651,7 +1620,7 @@ static PyObject *When_due(WhenObject *self, PyObject *const *args, Py_ssize_t na
     int reason = 0, due;
     if (wh_ready(self, "due", nargs, 3) < 0)
         return NULL;
-    if (!sc_i64(args[1], &now) || !sc_i64(args[2], &last)) {
+    if (!ct_py_int_only(args[1], &now) || !ct_py_int_only(args[2], &last)) {
         PyErr_SetString(PyExc_TypeError, "due: now_us and last_update_us must be 64-bit integers");
         return NULL;
     }
@@ -1765,7 +1734,7 @@ static PyObject *View_predict(ViewObject *self, PyObject *const *args, Py_ssize_
     }
     if (sc_nargs("predict", nargs, 4) < 0)
         return NULL;
-    if (!sc_i64(args[0], &h)) {
+    if (!ct_py_int_only(args[0], &h)) {
         PyErr_SetString(PyExc_TypeError, "predict: horizon_us must be a 64-bit integer");
         return NULL;
     }

@@ -107,16 +107,22 @@ class _Ahead:
         b = self._stv[0]
         return None if b == NO_BURST else b
 
-    def _set_burst(self, b) -> None:
-        self._stv[0] = NO_BURST if b is None else b
-
-    def _set_done(self, v) -> None:
-        self._stv[1] = 1 if v else 0
-
     #: the burst whose solve this is (None: none)
-    burst = property(_get_burst, _set_burst)
+    burst = property(_get_burst)
     #: the solve has finished (its results in ``result``)
-    done = property(lambda self: self._stv[1] != 0, _set_done)
+    done = property(lambda self: self._stv[1] != 0)
+
+    def take(self, burst: int) -> None:
+        """This sensor's solve ahead is now that of the burst that started at ``burst``, not done."""
+        self._stv[0], self._stv[1] = burst, 0
+
+    def finish(self) -> None:
+        """The solve ahead has finished (its results in ``result``)."""
+        self._stv[1] = 1
+
+    def release(self) -> None:
+        """No burst is solved ahead for this sensor any more (its result was taken or refused)."""
+        self._stv[0] = NO_BURST
 
     def same(self, views) -> bool:
         """Whether the burst's inputs ``views`` (memoryviews of S, sigma, currents, hemisphere,
@@ -319,7 +325,7 @@ class _ScanAhead:
             if ah.burst == burst:
                 continue
             if not self._ahead_wanted(ch):
-                ah.burst, ah.done = burst, False
+                ah.take(burst)
                 continue
             seen = False
             c = ch.changes
@@ -328,8 +334,7 @@ class _ScanAhead:
             if ch.done[j] or not _closed_before(ch.done, j) or not ch.extractor.expect_complete(start, end):
                 idle[k] = c
                 continue
-            ah.burst = burst
-            ah.done = False
+            ah.take(burst)
             return k
         return AHEAD_SEEN if seen else AHEAD_NONE
 
@@ -539,7 +544,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
             if not st & SOLVE_RUNNING:
                 ah = self._ahead[self._ahead_k]
                 self.solver.save(ah.result)
-                ah.done = True
+                ah.finish()
                 self._ahead_k = -1
             return
         burst = sched.burst_start
@@ -599,7 +604,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         self._ahead_k = -1
         if ah.burst != self.schedule.burst_start or not (ah.done or running == k):
             return False
-        ah.burst = None
+        ah.release()
         if not self._same[k]():
             self.ahead_missed += 1
             return False

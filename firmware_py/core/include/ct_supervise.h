@@ -71,6 +71,9 @@ int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, in
  * then nothing was changed. */
 int ct_sup_reply(const struct ct_sup *s, const uint8_t *pay, int64_t now_us);
 
+/* Health.suspect: node slot i (-1: none) has a clock suspect anywhere in [t0, t1] */
+int ct_sup_suspect(const struct ct_sup *s, int64_t i, int64_t t0, int64_t t1);
+
 /* Supervisor.pose_status(node, window_flags): the extra POSE_* bits of node's pose from the current
  * burst, and (bit 32) whether the firmware vetoes it. */
 int64_t ct_sup_pose_status(const struct ct_sup *s, int64_t node, int64_t window_flags);

@@ -155,7 +155,7 @@ int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, in
 }
 
 /* Health.suspect: node slot i's clock suspect anywhere in [t0, t1] */
-static int ct_sup_suspect(const struct ct_sup *s, int64_t i, int64_t t0, int64_t t1)
+int ct_sup_suspect(const struct ct_sup *s, int64_t i, int64_t t0, int64_t t1)
 {
     const int64_t *a, *b;
     int k;
