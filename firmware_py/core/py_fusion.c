@@ -1299,18 +1299,6 @@ static PyTypeObject FusionUpdateType = {
 };
 
 /* ---------------------------------------------------------------- registration */
-static int fu_add_type(PyObject *m, PyTypeObject *t, const char *name)
-{
-    if (PyType_Ready(t) < 0)
-        return -1;
-    Py_INCREF(t);
-    if (PyModule_AddObject(m, name, (PyObject *)t) < 0) {
-        Py_DECREF(t);
-        return -1;
-    }
-    return 0;
-}
-
 int ct_register_fusion(PyObject *m)
 {
     static const struct { const char *name; long v; } consts[] = {
@@ -1327,11 +1315,11 @@ int ct_register_fusion(PyObject *m)
         {"HMK_VALID", CT_HMK_VALID}, {"HMK_LIVE_SLOT", CT_HMK_LIVE_SLOT}, {"HMK_LIVE_T", CT_HMK_LIVE_T},
         {"HMK_SHADOW_SLOT", CT_HMK_SHADOW_SLOT}, {"HMK_SHADOW_T", CT_HMK_SHADOW_T}, {"HMK_N", CT_HMK_N}};
     size_t i;
-    if (fu_add_type(m, &FusionMeasType, "FusionMeas") < 0 || fu_add_type(m, &FusStateType, "FusState") < 0 ||
-        fu_add_type(m, &ReplayType, "Replay") < 0 || fu_add_type(m, &SnapAuxType, "SnapAux") < 0 ||
-        fu_add_type(m, &PoseAtType, "PoseAt") < 0 || fu_add_type(m, &MotionCovType, "MotionCov") < 0 ||
-        fu_add_type(m, &CompensateType, "Compensate") < 0 || fu_add_type(m, &HistCopyType, "HistCopy") < 0 ||
-        fu_add_type(m, &FusionUpdateType, "FusionUpdate") < 0)
+    if (ct_py_add_type(m, &FusionMeasType, "FusionMeas") < 0 || ct_py_add_type(m, &FusStateType, "FusState") < 0 ||
+        ct_py_add_type(m, &ReplayType, "Replay") < 0 || ct_py_add_type(m, &SnapAuxType, "SnapAux") < 0 ||
+        ct_py_add_type(m, &PoseAtType, "PoseAt") < 0 || ct_py_add_type(m, &MotionCovType, "MotionCov") < 0 ||
+        ct_py_add_type(m, &CompensateType, "Compensate") < 0 || ct_py_add_type(m, &HistCopyType, "HistCopy") < 0 ||
+        ct_py_add_type(m, &FusionUpdateType, "FusionUpdate") < 0)
         return -1;
     for (i = 0; i < sizeof consts / sizeof consts[0]; ++i)
         if (PyModule_AddIntConstant(m, consts[i].name, consts[i].v) < 0)

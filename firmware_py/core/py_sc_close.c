@@ -9,7 +9,6 @@
  *   (py_sc_close.h); run(k, coil, current) is SingleCoilTracker._update's window_prior, channel_variance,
  *   SchepersEKF.update_pulse (with SingleCoilUpdate._run_fused's bookkeeping) and window_after in one
  *   call, the same kernels in the same order.
- * - WindowsReady binds the sensor channels' ring states once: ready(end, now) is WindowCloser.ready;
  * - symmetrize(P, T) (src/fusimu.c ct_symmetrize: T a copy of P, P[i][j] = (T[i][j] + T[j][i]) * 0.5, numpy's
  *   np.add(T, T.T, out=P), np.multiply(P, 0.5, out=P)): estimate.ekf.symmetrize.
  * All METH_FASTCALL; they read their arguments in place (no Python object created but the result).
@@ -304,102 +303,6 @@ static PyTypeObject WuType = {
     .tp_methods = Wu_methods,
 };
 
-/* ------------------------------------------------------------- WindowsReady */
-#define WR_MAXCH 64
-
-typedef struct {
-    PyObject_HEAD
-    const int64_t *hc[WR_MAXCH];           /* each channel's ring state (SampleRing.hc: [2] the latest time) */
-    int64_t after[WR_MAXCH];               /* its extractor's fall_us + baseline_us */
-    int64_t timeout;                       /* the closer's fall_us + baseline_us + timeout_us */
-    Py_buffer views[WR_MAXCH];
-    int n;
-} WrObject;
-
-static void Wr_release(WrObject *self)
-{
-    while (self->n > 0)
-        PyBuffer_Release(&self->views[--self->n]);
-}
-
-static void Wr_dealloc(WrObject *self)
-{
-    Wr_release(self);
-    Py_TYPE(self)->tp_free((PyObject *)self);
-}
-
-/* WindowsReady(states, after, timeout) */
-static int Wr_init(WrObject *self, PyObject *args, PyObject *kw)
-{
-    static char *kwlist[] = {"states", "after", "timeout", NULL};
-    PyObject *st, *af;
-    long long timeout;
-    Py_ssize_t m, k;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!L", kwlist, &PyTuple_Type, &st, &PyTuple_Type, &af, &timeout))
-        return -1;
-    if (self->n) {
-        PyErr_SetString(PyExc_RuntimeError, "WindowsReady: already bound");
-        return -1;
-    }
-    m = PyTuple_GET_SIZE(st);
-    if (m < 1 || m > WR_MAXCH || PyTuple_GET_SIZE(af) != m) {
-        PyErr_Format(PyExc_ValueError, "WindowsReady: 1..%d channels, one state and one time each", WR_MAXCH);
-        return -1;
-    }
-    for (k = 0; k < m; ++k) {
-        if (ct_py_int64(PyTuple_GET_ITEM(af, k), &self->after[k]) < 0) {
-            Wr_release(self);
-            return -1;
-        }
-        if (ct_py_buffer(PyTuple_GET_ITEM(st, k), 3, 8, "ql", 0, &self->views[k], "states") < 0) {
-            Wr_release(self);
-            return -1;
-        }
-        self->hc[k] = (const int64_t *)self->views[k].buf;
-        self->n = (int)k + 1;
-    }
-    self->timeout = timeout;
-    return 0;
-}
-
-/* ready(end, now) -> bool: WindowCloser.ready (every channel's latest sample after end + its fall and
- * baseline, or the window timed out at now) */
-static PyObject *Wr_ready(WrObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    int64_t end, now;
-    int k;
-    if (!self->n) {
-        PyErr_SetString(PyExc_RuntimeError, "WindowsReady: not bound");
-        return NULL;
-    }
-    if (ct_py_nargs("ready", nargs, 2) < 0 || ct_py_int64(args[0], &end) < 0 || ct_py_int64(args[1], &now) < 0)
-        return NULL;
-    if (now > end + self->timeout)
-        Py_RETURN_TRUE;
-    for (k = 0; k < self->n; ++k)
-        if (!(self->hc[k][2] > end + self->after[k]))
-            Py_RETURN_FALSE;
-    Py_RETURN_TRUE;
-}
-
-static PyMethodDef Wr_methods[] = {
-    {"ready", (PyCFunction)(void (*)(void))Wr_ready, METH_FASTCALL,
-     "ready(end, now) -> bool: WindowCloser.ready of a window ending at end (its start is not read)"},
-    {NULL, NULL, 0, NULL}};
-
-static PyTypeObject WrType = {
-    PyVarObject_HEAD_INIT(NULL, 0)
-    .tp_name = "coiltrack.firmware._core.WindowsReady",
-    .tp_basicsize = sizeof(WrObject),
-    .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "WindowsReady(states, after, timeout): the channels' ring states (SampleRing.hc), each extractor's "
-              "fall + baseline and the closer's fall + baseline + timeout, bound once: WindowCloser.ready in one call",
-    .tp_new = PyType_GenericNew,
-    .tp_init = (initproc)Wr_init,
-    .tp_dealloc = (destructor)Wr_dealloc,
-    .tp_methods = Wr_methods,
-};
-
 /* ------------------------------------------------------------- symmetrize */
 /* symmetrize(P, T) -> bool: estimate.ekf.symmetrize on two C-contiguous n x n float64 arrays; False
  * (nothing done) for arrays it cannot take, which the caller then gives to the reference */
@@ -442,7 +345,6 @@ static PyMethodDef sc_close_functions[] = {
 int ct_register_sc_close(PyObject *m)
 {
     if (ct_py_add_type(m, &SuspectSpanType, "SuspectSpan") < 0 || ct_py_add_type(m, &WuType, "ScWindowUpdate") < 0 ||
-        ct_py_add_type(m, &WrType, "WindowsReady") < 0 ||
         PyModule_AddFunctions(m, sc_close_functions) < 0)
         return -1;
     if (PyModule_AddIntConstant(m, "WU_NOUT", WU_NOUT) < 0)

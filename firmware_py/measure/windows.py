@@ -266,11 +266,6 @@ class WindowCloser:
         self.close_run = self._close_run_compiled
         self._chi = {id(ch): i for i, ch in enumerate(chs)}      # a channel's place in the run
         self.close_one = self._close_one_compiled
-        if len(chs) <= 64 and all(type(ch.extractor).ready is PulseExtractor.ready for ch in chs):
-            self._readyk = ext.WindowsReady(tuple(ch.ring.hc for ch in chs),
-                                            tuple(ch.extractor._fall_us + ch.extractor._baseline_us for ch in chs),
-                                            self.fall_us + self.baseline_us + self.timeout_us).ready
-            self.ready = self._ready_compiled
 
     def _bind_ready(self) -> None:
         """:meth:`ready_upto` on the compiled core (``ext.ReadyUpto``, ``core/src/ahead.c``
@@ -286,6 +281,7 @@ class WindowCloser:
         self._uptok = ext.ReadyUpto(tuple(ch.extractor._ring.hc for ch in chs), self._ready_extra,
                                      self.fall_us, self.baseline_us, self.timeout_us).upto
         self.ready_upto = self._ready_upto_compiled
+        self.ready = self._ready_compiled
 
     def _ready_upto_compiled(self, start: int, end: int, now_us: int, first: int) -> int:
         """:meth:`ready_upto` in one call; a time the kernel does not take goes to the reference."""
@@ -297,12 +293,10 @@ class WindowCloser:
         return self.ready_upto(start, end, now_us, 0) == len(self.channels)
 
     def _ready_compiled(self, start: int, end: int, now_us: int) -> bool:
-        """:meth:`ready` in one call (``ext.WindowsReady``, bound in :meth:`_bind_run`: each ring's latest
-        time against the window's end and its extractor's fall and baseline, the same comparisons);
-        a time the kernel does not take (not an int well inside int64) goes to the reference."""
-        if type(end) is int and type(now_us) is int and -_T_FAR < end < _T_FAR and -_T_FAR < now_us < _T_FAR:
-            return self._readyk(end, now_us)
-        return WindowCloser.ready(self, start, end, now_us)
+        """:meth:`ready` in one call (``ext.ReadyUpto`` from the first channel, bound in
+        :meth:`_bind_ready`); a time the kernel does not take goes to the reference."""
+        r = self._uptok(start, end, now_us, 0)
+        return WindowCloser.ready(self, start, end, now_us) if r < 0 else r == len(self.channels)
 
     def ready_upto(self, start: int, end: int, now_us: int, first: int) -> int:
         """How many channels, in order, have every sample the window reads (all of them once it

@@ -149,7 +149,7 @@ def test_the_compiled_close_one_is_the_reference_on_every_kind_of_window():
 
 
 def test_the_compiled_readiness_is_the_reference():
-    """``WindowCloser.ready`` on the compiled core (``ext.WindowsReady``) against the reference on the
+    """``WindowCloser.ready`` on the compiled core (``ext.ReadyUpto``) against the reference on the
     same channels and the Python core's, before any sample, as the channels' samples come in one by
     one (each channel its own latest time), on the exact edge (a sample at ``end + fall + baseline``
     is not after it) and past the timeout. Catches a channel skipped, the edge taken as ready, the
