@@ -212,7 +212,7 @@ def _damped_solve_c_source(n: int) -> str:
 
 
 #: the sizes of the straight-line C the compiled core carries (``core/src/linalg_gen.c``)
-C_GENERATED = (("damped_spd_solve", 6),)
+C_GENERATED = (("damped_spd_solve", 6), ("damped_spd_solve", 3))
 
 
 def generated_c() -> str:

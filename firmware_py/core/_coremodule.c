@@ -950,6 +950,7 @@ int ct_register_fuse(PyObject *m);
 int ct_register_begin(PyObject *m);
 int ct_register_periodic(PyObject *m);
 int ct_register_ahead(PyObject *m);
+int ct_register_acquire(PyObject *m);
 static int (*const AREAS[])(PyObject *) = {
     ct_register_window, ct_register_fusimu, ct_register_fusion, ct_register_ac, ct_register_rxdecode,
     ct_register_single_coil,
@@ -966,6 +967,7 @@ static int (*const AREAS[])(PyObject *) = {
     ct_register_begin,
     ct_register_periodic,
     ct_register_ahead,
+    ct_register_acquire,
 };
 
 PyMODINIT_FUNC PyInit__core(void)

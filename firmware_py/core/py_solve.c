@@ -27,6 +27,7 @@ typedef struct {
     struct ct_lm lm;
     struct ct_solve s;
     Py_buffer views[SR_NBUF];
+    PyObject *acq;               /* the attached AcquireRun (s.acq its acquisition), or NULL */
     int bound;
 } SolveRunObject;
 
@@ -36,6 +37,7 @@ static void SolveRun_dealloc(SolveRunObject *self)
     if (self->bound)
         for (i = 0; i < SR_NBUF; ++i)
             PyBuffer_Release(&self->views[i]);
+    Py_XDECREF(self->acq);
     Py_TYPE(self)->tp_free((PyObject *)self);
 }
 
@@ -191,9 +193,11 @@ static PyObject *SolveRun_run(SolveRunObject *self, PyObject *const *args, Py_ss
     if (ct_py_int64(args[0], &spent) < 0 || ct_py_int64(args[1], &budget) < 0)
         return NULL;
     lst[CT_LM_EVALS] = 0.0;
+    if (self->s.acq != NULL)
+        self->s.acq->st[CT_AQ_EVALS] = 0.0;
     phase = ct_solve_run(&self->s, &spent, budget);
     st[CT_SV_SPENT] = (double)spent;
-    st[CT_SV_EVALS] = lst[CT_LM_EVALS];
+    st[CT_SV_EVALS] = lst[CT_LM_EVALS] + (self->s.acq != NULL ? self->s.acq->st[CT_AQ_EVALS] : 0.0);
     return PyLong_FromLong(phase);
 }
 
@@ -234,7 +238,32 @@ static PyObject *SolveRun_predict(SolveRunObject *self, PyObject *const *args, P
     Py_RETURN_TRUE;
 }
 
+/* attach(acq): the AcquireRun bound to this solver's buffers runs the acquisition inside run and
+ * begin (ct_solve's acq; kept referenced); once, at start-up */
+static PyObject *SolveRun_attach(SolveRunObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    const struct ct_acquire *a;
+    if (!self->bound || nargs != 1 || self->acq != NULL) {
+        PyErr_SetString(PyExc_TypeError, "SolveRun.attach(acq): bound, one argument, once");
+        return NULL;
+    }
+    a = ct_py_acquire_of(args[0]);
+    if (a == NULL)
+        return NULL;
+    if (a->n != self->s.n || a->S != self->f.S || a->cur != self->f.cur || a->geom != self->f.geom ||
+        a->B != self->f.B || a->J != self->f.J) {
+        PyErr_SetString(PyExc_ValueError, "SolveRun.attach: the acquisition is bound to other buffers");
+        return NULL;
+    }
+    Py_INCREF(args[0]);
+    self->acq = args[0];
+    self->s.acq = a;
+    Py_RETURN_NONE;
+}
+
 static PyMethodDef SolveRun_methods[] = {
+    {"attach", (PyCFunction)(void (*)(void))SolveRun_attach, METH_FASTCALL,
+     "attach(acq): run the acquisition (an AcquireRun on the same buffers) inside begin and run"},
     {"predict", (PyCFunction)(void (*)(void))SolveRun_predict, METH_FASTCALL,
      "predict(p, R, currents, out) -> True or None (StagedSolve.predict_signals; None: an array of another kind)"},
     {"begin", (PyCFunction)(void (*)(void))SolveRun_begin, METH_FASTCALL,

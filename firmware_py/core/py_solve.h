@@ -10,5 +10,7 @@
 
 /* o's bound solve (its fit, LM and results), or NULL with a TypeError when o is no bound SolveRun */
 const struct ct_solve *ct_py_solve_of(PyObject *o);
+/* o's bound acquisition (py_acquire.c), or NULL with a TypeError when o is no bound AcquireRun */
+const struct ct_acquire *ct_py_acquire_of(PyObject *o);
 
 #endif /* CT_PY_SOLVE_H */

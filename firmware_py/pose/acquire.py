@@ -38,7 +38,8 @@ from coiltrack.firmware.pose.staged import Staged
 
 __all__ = ["Acquisition", "fibonacci_directions", "NEAR_FIELD", "GRID_DIRECTIONS", "GRID_CANDIDATES"]
 
-_MU0_4PI = MU0 / (4.0 * math.pi)
+#: mu0 / 4 pi, T m / A (the compiled acquisition's too)
+MU0_4PI = MU0 / (4.0 * math.pi)
 #: below this many coil radii (plus the centre spread) the exact model
 #: replaces the Kuipers start by the search on the invariants
 NEAR_FIELD = 4.0
@@ -129,7 +130,7 @@ class _Kuipers:
         ux, uy, uz = v[2], v[5], v[8]
         if ux * hx + uy * hy + uz * hz < 0.0:
             ux, uy, uz = -ux, -uy, -uz
-        r = (_MU0_4PI / k) ** (1.0 / 3.0)
+        r = (MU0_4PI / k) ** (1.0 / 3.0)
         self._u = (ux, uy, uz)
         self._k = k
         cx, cy, cz = self.cbar
@@ -163,7 +164,7 @@ class Acquisition(Staged):
         self.cbar, self.reach = cbar, reach
         #: the range within which the start is refined on the invariants: the exact model's near field
         #: (``NEAR_FIELD`` x ``reach``), none for the dipole model (Kuipers' start is exact there)
-        self._near = NEAR_FIELD * reach if signal.model == "exact" else 0.0
+        self.near = NEAR_FIELD * reach if signal.model == "exact" else 0.0
         self.p = np.zeros(3)
         self.R = np.zeros((3, 3))
         self._pv = memoryview(self.p)
@@ -173,7 +174,8 @@ class Acquisition(Staged):
         self._ip = memoryview(np.zeros(3))        # point being refined
         self._tp = memoryview(np.zeros(3))        # its trial
         self._best = memoryview(np.zeros(3))
-        self._grid = flat(fibonacci_directions(GRID_DIRECTIONS))
+        #: the search's directions (:func:`fibonacci_directions`), flat (3 per direction)
+        self.grid = flat(fibonacci_directions(GRID_DIRECTIONS))
         self._cand_p = memoryview(np.zeros(3 * GRID_CANDIDATES))
         self._cand_m = memoryview(np.zeros(GRID_CANDIDATES))
         self._M = memoryview(np.zeros(9))
@@ -218,7 +220,7 @@ class Acquisition(Staged):
         p = self._pv
         cx, cy, cz = self.cbar
         r0 = math.sqrt((p[0] - cx) ** 2 + (p[1] - cy) ** 2 + (p[2] - cz) ** 2)
-        if not r0 < self._near:
+        if not r0 < self.near:
             self._then(None)
             return
         self._r0 = r0
@@ -275,7 +277,7 @@ class Acquisition(Staged):
         """Advance ``_k`` to the next grid direction in the hemisphere."""
         hx, hy, hz = self._h
         use_h = hx != 0.0 or hy != 0.0 or hz != 0.0
-        g = self._grid
+        g = self.grid
         k = self._k
         while k < GRID_DIRECTIONS and use_h and g[3 * k] * hx + g[3 * k + 1] * hy + g[3 * k + 2] * hz < 0.0:
             k += 1
@@ -290,7 +292,7 @@ class Acquisition(Staged):
 
     def _unit_radius(self) -> None:
         """One power-law step of the radius of direction ``_k`` (``n`` evaluations)."""
-        g, k = self._grid, self._k
+        g, k = self.grid, self._k
         cx, cy, cz = self.cbar
         rad = self._rad
         f = (self._trace_at(cx + g[3 * k] * rad, cy + g[3 * k + 1] * rad, cz + g[3 * k + 2] * rad)
@@ -303,7 +305,7 @@ class Acquisition(Staged):
 
     def _unit_misfit(self) -> None:
         """Score direction ``_k`` at its radius (``n`` evaluations), go on."""
-        g, k = self._grid, self._k
+        g, k = self.grid, self._k
         cx, cy, cz = self.cbar
         rad = self._rad
         px, py, pz = cx + g[3 * k] * rad, cy + g[3 * k + 1] * rad, cz + g[3 * k + 2] * rad

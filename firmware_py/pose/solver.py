@@ -49,7 +49,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.linalg import ORTHONORMAL_TOL, Rot3, exp_rotvec, flat, float_view, nearest_rotation
 from coiltrack.firmware.model.signal import SignalModel
-from coiltrack.firmware.pose.acquire import Acquisition
+from coiltrack.firmware.pose.acquire import MU0_4PI, Acquisition
 from coiltrack.firmware.pose.covariance import RobustInverse6, RotationMargin
 from coiltrack.firmware.pose.lm import LM_CONVERGED, LM_RUNNING, LevenbergMarquardt
 from coiltrack.firmware.pose.staged import SOLVE_RUNNING as _RUNNING
@@ -83,7 +83,7 @@ _HEMI_MARGIN = 0.1
 _SV_PHASE, _SV_STATUS, _SV_ITERATIONS, _SV_COST, _SV_CONVERGED = 0, 1, 2, 3, 4
 _SV_WARM, _SV_REACQUIRED, _SV_SIGMA_RMS, _SV_CHECK_HEMI, _SV_HEMI = 5, 6, 7, 8, 9
 _SV_SPENT, _SV_EVALS, _SV_NST = 12, 13, 14
-_PH_NONE, _PH_LM_START, _PH_ACQUIRE = 0, 1, 4
+_PH_NONE, _PH_LM_START, _PH_ACQUIRE, _PH_ACQ_UNITS = 0, 1, 4, 5
 
 
 def _gate(n: int, probability: float) -> float:
@@ -304,11 +304,30 @@ class _CompiledSolver:
                                 (sig._geom, sig.B, sig.J, fit.S, fit.w, fit.cur, fit._h, fit._H, fit.p, fit.p_t, fit.R,
                                  fit.R_t, lm._A[0], lm._g[0], lm._A[1], lm._g[1], lm.d, lm._st, self.covariance,
                                  self.rotation, self.position, self._m9, self._fwork, self._svst))
+        self._bind_acquire(ext)
         self._unit_c = self._unit_run                 # the compiled units' marker, one bound method (identity)
         self.begin = self._begin_compiled
         self.step = self._step_compiled
         self._unit_lm_start = self._unit_lm_start_compiled
         self.predict_signals = self._predict_signals_compiled
+
+    def _bind_acquire(self, ext) -> None:
+        """The acquisition's units in the same compiled run (``core/src/acquire.c``, an
+        ``AcquireRun`` attached to the ``SolveRun``): :class:`Acquisition`'s units, charges and
+        evaluations, its start written into the fit as :meth:`_unit_acquire` does; the Python's
+        :class:`Acquisition` stays the reference and runs where the begin or the LM's start is the
+        Python's (a distortion map, inputs of another kind)."""
+        fit, sig, acq = self._fit, self.signal, self._acq
+        cx, cy, cz = self._cbar
+        n = self.n
+        self._aqp = np.zeros(3)
+        self._aqR = np.zeros(9)
+        self._aqwork = np.zeros(ext.ACQUIRE_WORK_FIXED + n * n + 3 * n)
+        self._aqst = np.zeros(ext.ACQUIRE_NST)
+        self._aqrun = ext.AcquireRun(n, cx, cy, cz, acq.near, MU0_4PI, ORTHONORMAL_TOL,
+                                     (sig._geom, sig.B, sig.J, fit.S, fit.cur, acq.grid, self._aqp, self._aqR,
+                                      self._aqwork, self._aqst))
+        self._sv.attach(self._aqrun)
 
     def _predict_signals_compiled(self, p, R, currents, out) -> None:
         """:meth:`predict_signals` in one compiled call (the model's fields and projection,
@@ -346,7 +365,11 @@ class _CompiledSolver:
         else:
             self._warm = False
             self._sync_from_run()
-            self._start_acquisition()
+            if self._svv[_SV_PHASE] == _PH_ACQ_UNITS:      # the compiled acquisition, begun
+                self._lm = self._lm_c
+                self._then(self._unit_c, self.n)
+            else:
+                self._start_acquisition()
         return SOLVE_RUNNING
 
     def _sync_from_run(self) -> None:
@@ -365,6 +388,7 @@ class _CompiledSolver:
             PoseSolver._unit_lm_start(self)
             return
         sv = self._svv
+        sv[_SV_SIGMA_RMS] = self._sigma_rms           # (a warm start that fails acquires in the run)
         sv[_SV_WARM] = 1.0 if self._warm else 0.0
         sv[_SV_REACQUIRED] = 1.0 if self._reacquired else 0.0
         sv[_SV_CHECK_HEMI] = 1.0 if self._check_hemi else 0.0
@@ -385,10 +409,11 @@ class _CompiledSolver:
         sv = self._svv
         self.signal.charge(int(sv[_SV_EVALS]))
         if phase == _PH_NONE:
-            self.iterations = int(sv[_SV_ITERATIONS])
-            self.cost = sv[_SV_COST]
-            self.converged = sv[_SV_CONVERGED] != 0.0
             self.status = int(sv[_SV_STATUS])
+            if not self.status & SOLVE_NO_START:          # (no start: _unit_acquire sets the status only)
+                self.iterations = int(sv[_SV_ITERATIONS])
+                self.cost = sv[_SV_COST]
+                self.converged = sv[_SV_CONVERGED] != 0.0
             self._then(None)
         elif phase == _PH_ACQUIRE:
             self._reacquired = True

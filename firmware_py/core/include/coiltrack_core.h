@@ -132,11 +132,25 @@ enum { CT_LM_RUNNING = 0, CT_LM_CONVERGED = 1, CT_LM_STOPPED = 2 };
 struct ct_lm {
     double lam0, lam_max, cost_tol, step_sigma2;
     int iters;
-    double *A[2], *g[2];            /* 36, 6: the accepted point's and the trial's normal equations */
-    double *d;                      /* 6: the step */
+    double *A[2], *g[2];            /* k x k, k: the accepted point's and the trial's normal equations */
+    double *d;                      /* k: the step */
     double *st;                     /* CT_LM_NST */
 };
+/* a least-squares problem of pose.lm (evaluate, trial, accept, small; ctx its state), k parameters
+ * (A k x k, g and d k) and linalg.damped_spd_solve(k)'s generated form */
+struct ct_lm_problem {
+    int k;
+    void *ctx;
+    double (*evaluate)(void *ctx, double *a, double *g);
+    double (*trial)(void *ctx, const double *d, double *a, double *g);
+    void (*accept)(void *ctx);
+    int (*small)(void *ctx, const double *d);
+    int (*solve)(const double *a, const double *b, double *x, double lam);
+};
+void ct_lm_start(const struct ct_lm *lm, const struct ct_lm_problem *pr);
+int ct_lm_iterate(const struct ct_lm *lm, const struct ct_lm_problem *pr);
 int ct_damped_spd_solve_6(const double *a, const double *b, double *x, double lam);   /* linalg_gen.c */
+int ct_damped_spd_solve_3(const double *a, const double *b, double *x, double lam);   /* linalg_gen.c */
 double ct_pose_cost(const struct ct_posefit *f, const double *p, const double *R, double *a, double *g);
 int ct_pose_small(const struct ct_posefit *f, const double *d);
 void ct_lm_pose_start(const struct ct_lm *lm, const struct ct_posefit *f);
@@ -194,6 +208,7 @@ int ct_imu_delta(int64_t *st, int64_t x, int64_t y, int64_t z, int64_t s, int64_
 #include "ct_burst_open.h"
 #include "ct_ahead.h"
 #include "ct_solve.h"
+#include "ct_acquire.h"
 #include "ct_sc_policy.h"
 #include "ct_sc_choose.h"
 #include "ct_sc_window.h"

@@ -8,8 +8,10 @@
  * _unit_lm_start, _unit_lm_step, _unit_finish, _publish_pose) and pose.staged.run_units (the
  * charges); the kernels it strings together are lm.c's (ct_lm_pose_start, ct_lm_pose_iterate),
  * window.c's (ct_solve_load, ct_is_rotation) and finish.c's (ct_solve_finish,
- * ct_nearest_rotation).  The acquisition (pose.acquire) stays in the Python: the run stops
- * where it is needed (CT_PH_ACQUIRE) and is resumed at the LM's start once it is done.
+ * ct_nearest_rotation).  The acquisition (pose.acquire, PoseSolver._start_acquisition and
+ * _unit_acquire) runs in the same run through acquire.c's units where one is attached (acq);
+ * without, the run stops where it is needed (CT_PH_ACQUIRE) and the Python's acquisition runs,
+ * resumed at the LM's start once it is done.
  */
 #ifndef CT_SOLVE_H
 #define CT_SOLVE_H
@@ -17,7 +19,9 @@
 #include <stdint.h>
 
 /* the solve's phase: the unit that runs next (CT_PH_NONE: finished; CT_PH_ACQUIRE: the Python's) */
-enum { CT_PH_NONE = 0, CT_PH_LM_START = 1, CT_PH_LM_STEPS = 2, CT_PH_FINISH = 3, CT_PH_ACQUIRE = 4 };
+/* CT_PH_ACQ_UNITS: the compiled acquisition's units (acquire.c), where one is attached to the solve */
+enum { CT_PH_NONE = 0, CT_PH_LM_START = 1, CT_PH_LM_STEPS = 2, CT_PH_FINISH = 3, CT_PH_ACQUIRE = 4,
+       CT_PH_ACQ_UNITS = 5 };
 
 /* the solve's state and results, a caller-owned array st[CT_SV_NST] (the Python attributes of the
  * same names): the phase, the results (status flags of pose.solver, iterations, cost, converged),
@@ -33,6 +37,7 @@ enum { CT_SOLVE_OK = 0, CT_SOLVE_BAD_INPUT = 1, CT_SOLVE_NO_START = 2, CT_SOLVE_
 
 struct ct_posefit;
 struct ct_lm;
+struct ct_acquire;
 /* one solver's parts, all in caller-owned buffers: its fit and LM (lm.c), the warm-start checks'
  * constants (n, gate, cbar; finish.c), the results' covariance (36), rotation (9) and position
  * (3), the scratch m9 (9) and work (CT_ROBUST6_WORK, at least CT_NEAREST_WORK), the state st */
@@ -44,18 +49,21 @@ struct ct_solve {
     double cbar[3];
     double tol;                  /* linalg.ORTHONORMAL_TOL */
     double *cov, *rot, *pos, *m9, *work, *st;
+    const struct ct_acquire *acq;  /* the compiled acquisition (its S, cur: f's), or NULL: the Python's */
 };
 
 /* PoseSolver.begin: S, sigma (3 x n, element (i, j) at i * rs + j * cs), cur (n, stride cstride),
  * the hemisphere (3, or NULL), the warm start x0p (3) and x0R (9, row-major; both NULL: cold).
  * Returns CT_SOLVE_BAD_INPUT (phase CT_PH_NONE) or CT_SOLVE_RUNNING with the phase CT_PH_LM_START
- * (warm) or CT_PH_ACQUIRE (cold: the caller begins the acquisition). */
+ * (warm), CT_PH_ACQ_UNITS (cold, the acquisition begun) or, without acq, CT_PH_ACQUIRE (cold: the
+ * caller begins the acquisition). */
 int ct_solve_begin(const struct ct_solve *s, const double *S, const double *sigma, int64_t rs, int64_t cs,
                    const double *cur, int64_t cstride, const double *hemi, const double *x0p, const double *x0R);
 /* staged.run_units over the compiled units from *spent (units charged so far in this step) within
- * budget, each charged n: runs while the phase is the LM's start, its steps or the finish and the
- * next unit fits (the first of a step always runs); *spent grows by the charges.  Returns the phase
- * it stopped at (one of the LM's: the budget is spent). */
+ * budget, each charged n: runs while the phase is the acquisition's units, the LM's start, its steps
+ * or the finish and the next unit fits (the first of a step always runs); *spent grows by the
+ * charges.  Returns the phase it stopped at (the budget is spent; CT_PH_NONE: finished, with
+ * CT_SOLVE_NO_START in the status where the acquisition found no start). */
 int ct_solve_run(const struct ct_solve *s, int64_t *spent, int64_t budget);
 
 #endif /* CT_SOLVE_H */

@@ -104,3 +104,46 @@ int ct_damped_spd_solve_6(const double *a, const double *b, double *x, double la
     x[0] = x0;
     return 1;
 }
+
+int ct_damped_spd_solve_3(const double *a, const double *b, double *x, double lam)
+{
+    double s;
+    double a0_0, a1_0, a1_1, a2_0, a2_1, a2_2, l0_0, l1_0, l1_1, l2_0, l2_1, l2_2;
+    double r0, r1, y0, y1, y2, x0, x1, x2;
+    a0_0 = a[0];
+    a0_0 += lam * (a0_0 <= 0.0 ? 1.0 : a0_0);
+    a1_0 = a[3];
+    a1_1 = a[4];
+    a1_1 += lam * (a1_1 <= 0.0 ? 1.0 : a1_1);
+    a2_0 = a[6];
+    a2_1 = a[7];
+    a2_2 = a[8];
+    a2_2 += lam * (a2_2 <= 0.0 ? 1.0 : a2_2);
+    s = a0_0;
+    if (!(s > 0.0) || s == INFINITY)
+        return 0;
+    l0_0 = sqrt(s);
+    r0 = 1.0 / l0_0;
+    l1_0 = (a1_0) * r0;
+    l2_0 = (a2_0) * r0;
+    s = a1_1 - l1_0 * l1_0;
+    if (!(s > 0.0) || s == INFINITY)
+        return 0;
+    l1_1 = sqrt(s);
+    r1 = 1.0 / l1_1;
+    l2_1 = (a2_1 - l2_0 * l1_0) * r1;
+    s = a2_2 - l2_0 * l2_0 - l2_1 * l2_1;
+    if (!(s > 0.0) || s == INFINITY)
+        return 0;
+    l2_2 = sqrt(s);
+    y0 = (b[0]) / l0_0;
+    y1 = (b[1] - l1_0 * y0) / l1_1;
+    y2 = (b[2] - l2_0 * y0 - l2_1 * y1) / l2_2;
+    x2 = (y2) / l2_2;
+    x[2] = x2;
+    x1 = (y1 - l2_1 * x2) / l1_1;
+    x[1] = x1;
+    x0 = (y0 - l1_0 * x1 - l2_0 * x2) / l0_0;
+    x[0] = x0;
+    return 1;
+}

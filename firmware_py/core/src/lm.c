@@ -1,8 +1,9 @@
 /*
  * The pose solver's Levenberg-Marquardt step with its cost: the compiled form of
  * coiltrack.firmware.pose.lm.LevenbergMarquardt (start, iterate, _step, _metric2,
- * _raise_damping) for the problem coiltrack.firmware.pose.solver._PoseFit (evaluate, trial,
- * accept, small, _cost).
+ * _raise_damping) over a problem's callbacks (ct_lm_problem: evaluate, trial, accept, small and
+ * its size's damped solve), for the problem coiltrack.firmware.pose.solver._PoseFit (evaluate,
+ * trial, accept, small, _cost) and the acquisition's invariant fit (acquire.c).
  *
  * The cost is sum ((S - h(p, R)) w)^2 with h and its Jacobian H from the signal model (Schepers &
  * Veltink seeds/000_e46ec0e8bf7ea271.txt eqs 5-11) and the normal equations a = H^T W H,
@@ -110,12 +111,47 @@ int ct_pose_small(const struct ct_posefit *f, const double *d)
            sqrt(d[3] * d[3] + d[4] * d[4] + d[5] * d[5]) <= tol;
 }
 
-/* LevenbergMarquardt.start on the pose fit: one evaluation */
-void ct_lm_pose_start(const struct ct_lm *lm, const struct ct_posefit *f)
+/* _PoseFit's evaluate, trial, accept and small as the LM's problem (ct_lm_problem) */
+static double pose_evaluate(void *ctx, double *a, double *g)
+{
+    const struct ct_posefit *f = (const struct ct_posefit *)ctx;
+    return ct_pose_cost(f, f->p, f->R, a, g);
+}
+
+static double pose_trial(void *ctx, const double *d, double *a, double *g)
+{
+    return ct_pose_trial((const struct ct_posefit *)ctx, d, a, g);
+}
+
+static void pose_accept(void *ctx)
+{
+    const struct ct_posefit *f = (const struct ct_posefit *)ctx;
+    memcpy(f->p, f->p_t, 3 * sizeof(double));
+    memcpy(f->R, f->R_t, 9 * sizeof(double));
+}
+
+static int pose_small(void *ctx, const double *d)
+{
+    return ct_pose_small((const struct ct_posefit *)ctx, d);
+}
+
+static void pose_problem(struct ct_lm_problem *pr, const struct ct_posefit *f)
+{
+    pr->k = 6;
+    pr->ctx = (void *)f;
+    pr->evaluate = pose_evaluate;
+    pr->trial = pose_trial;
+    pr->accept = pose_accept;
+    pr->small = pose_small;
+    pr->solve = ct_damped_spd_solve_6;
+}
+
+/* LevenbergMarquardt.start: one evaluation of the problem at its current parameters */
+void ct_lm_start(const struct ct_lm *lm, const struct ct_lm_problem *pr)
 {
     double *st = lm->st;
     st[CT_LM_CUR] = 0.0;
-    st[CT_LM_COST] = ct_pose_cost(f, f->p, f->R, lm->A[0], lm->g[0]);
+    st[CT_LM_COST] = pr->evaluate(pr->ctx, lm->A[0], lm->g[0]);
     st[CT_LM_LAM] = lm->lam0;
     st[CT_LM_IT] = 0.0;
     st[CT_LM_STATE] = lm->iters > 0 ? CT_LM_RUNNING : CT_LM_STOPPED;
@@ -131,14 +167,14 @@ static void ct_lm_raise_damping(double *st, double lam_max)
 }
 
 /* LevenbergMarquardt._metric2: d^T A d of the step just solved, as d^T g - lam d^T D d */
-static double ct_lm_metric2(const struct ct_lm *lm, int c)
+static double ct_lm_metric2(const struct ct_lm *lm, int k, int c)
 {
     const double *d = lm->d, *g = lm->g[c], *a = lm->A[c];
     double dg = 0.0, dd = 0.0, lam = lm->st[CT_LM_LAM];
     int i;
-    for (i = 0; i < 6; ++i) {
+    for (i = 0; i < k; ++i) {
         double di = d[i];
-        double da = a[i * 7];
+        double da = a[i * (k + 1)];
         dg += di * g[i];
         dd += (da > 0.0 ? da : 1.0) * di * di;
     }
@@ -146,25 +182,24 @@ static double ct_lm_metric2(const struct ct_lm *lm, int c)
 }
 
 /* LevenbergMarquardt._step */
-static void ct_lm_step(const struct ct_lm *lm, const struct ct_posefit *f, int c)
+static void ct_lm_step(const struct ct_lm *lm, const struct ct_lm_problem *pr, int c)
 {
     double *st = lm->st, cost = st[CT_LM_COST], cost_t, den;
     const double *d = lm->d;
     int i, small;
-    for (i = 0; i < 6; ++i) {
+    for (i = 0; i < pr->k; ++i) {
         if (!isfinite(d[i])) {
             st[CT_LM_STATE] = CT_LM_STOPPED;
             return;
         }
     }
-    cost_t = ct_pose_trial(f, d, lm->A[1 - c], lm->g[1 - c]);
+    cost_t = pr->trial(pr->ctx, d, lm->A[1 - c], lm->g[1 - c]);
     st[CT_LM_EVALS] += 1.0;
-    small = ct_pose_small(f, d) || (lm->step_sigma2 > 0.0 && ct_lm_metric2(lm, c) < lm->step_sigma2);
+    small = pr->small(pr->ctx, d) || (lm->step_sigma2 > 0.0 && ct_lm_metric2(lm, pr->k, c) < lm->step_sigma2);
     den = 1e-300 > cost ? 1e-300 : cost;         /* max(cost, 1e-300) */
     if (isfinite(cost_t) && cost_t <= cost) {
         double rel = (cost - cost_t) / den, lam = st[CT_LM_LAM] * 0.1;
-        memcpy(f->p, f->p_t, 3 * sizeof(double));      /* _PoseFit.accept */
-        memcpy(f->R, f->R_t, 9 * sizeof(double));
+        pr->accept(pr->ctx);
         st[CT_LM_CUR] = (double)(1 - c);
         st[CT_LM_COST] = cost_t;
         st[CT_LM_LAM] = 1e-12 > lam ? 1e-12 : lam;  /* max(lam * 0.1, _LAM_MIN) */
@@ -177,17 +212,33 @@ static void ct_lm_step(const struct ct_lm *lm, const struct ct_posefit *f, int c
     }
 }
 
-/* LevenbergMarquardt.iterate on the pose fit: one damped step, at most one evaluation */
-int ct_lm_pose_iterate(const struct ct_lm *lm, const struct ct_posefit *f)
+/* LevenbergMarquardt.iterate: one damped step, at most one evaluation */
+int ct_lm_iterate(const struct ct_lm *lm, const struct ct_lm_problem *pr)
 {
     double *st = lm->st;
     int c = (int)st[CT_LM_CUR];
     st[CT_LM_IT] += 1.0;
-    if (ct_damped_spd_solve_6(lm->A[c], lm->g[c], lm->d, st[CT_LM_LAM]))
-        ct_lm_step(lm, f, c);
+    if (pr->solve(lm->A[c], lm->g[c], lm->d, st[CT_LM_LAM]))
+        ct_lm_step(lm, pr, c);
     else
         ct_lm_raise_damping(st, lm->lam_max);
     if (st[CT_LM_STATE] == CT_LM_RUNNING && st[CT_LM_IT] >= lm->iters)
         st[CT_LM_STATE] = CT_LM_STOPPED;
     return (int)st[CT_LM_STATE];
+}
+
+/* LevenbergMarquardt.start on the pose fit */
+void ct_lm_pose_start(const struct ct_lm *lm, const struct ct_posefit *f)
+{
+    struct ct_lm_problem pr;
+    pose_problem(&pr, f);
+    ct_lm_start(lm, &pr);
+}
+
+/* LevenbergMarquardt.iterate on the pose fit */
+int ct_lm_pose_iterate(const struct ct_lm *lm, const struct ct_posefit *f)
+{
+    struct ct_lm_problem pr;
+    pose_problem(&pr, f);
+    return ct_lm_iterate(lm, &pr);
 }

@@ -1,12 +1,42 @@
 /*
- * A pulsed-DC pose solve's warm path in two compiled calls: see include/ct_solve.h.  Each function
- * follows the Python named beside it operation by operation (-ffp-contract=off), so the results,
- * the charges and the decisions are the reference's to the bit (tests/firmware/core/test_core_solve.py).
+ * A pulsed-DC pose solve in two compiled calls (its acquisition's units through acquire.c): see
+ * include/ct_solve.h.  Each function follows the Python named beside it operation by operation
+ * (-ffp-contract=off), so the results, the charges and the decisions are the reference's to the
+ * bit (tests/firmware/core/test_core_solve.py, test_core_acquire.py).
  */
 #include <math.h>
 #include <string.h>
 
 #include "coiltrack_core.h"
+
+/* PoseSolver._start_acquisition: the compiled acquisition begun on the hemisphere and sigma's rms of
+ * the solve's begin (CT_PH_ACQ_UNITS), or the Python's (CT_PH_ACQUIRE) */
+static int solve_start_acquisition(const struct ct_solve *s)
+{
+    const double *st = s->st;
+    if (s->acq == NULL)
+        return CT_PH_ACQUIRE;
+    ct_acquire_begin(s->acq, st[CT_SV_HEMI], st[CT_SV_HEMI + 1], st[CT_SV_HEMI + 2], st[CT_SV_SIGMA_RMS]);
+    return CT_PH_ACQ_UNITS;
+}
+
+/* PoseSolver._unit_acquire: one unit of the acquisition; finished, its start into the fit and the
+ * LM's start next, or no start (the status) */
+static int solve_unit_acquire(const struct ct_solve *s)
+{
+    const struct ct_acquire *a = s->acq;
+    const struct ct_posefit *f = s->f;
+    double *st = s->st;
+    if (ct_acquire_unit(a) != CT_AQ_NONE)
+        return CT_PH_ACQ_UNITS;
+    if (a->st[CT_AQ_OK] != 0.0) {
+        memcpy(f->p, a->p, 3 * sizeof(double));          /* _PoseFit.set */
+        memcpy(f->R, a->R, 9 * sizeof(double));
+        return CT_PH_LM_START;
+    }
+    st[CT_SV_STATUS] = CT_SOLVE_NO_START | (st[CT_SV_REACQUIRED] != 0.0 ? CT_SOLVE_REACQUIRED : 0);
+    return CT_PH_NONE;
+}
 
 /* PoseSolver.begin with _load (ct_solve_load), _load_hemisphere and _load_x0 */
 int ct_solve_begin(const struct ct_solve *s, const double *S, const double *sigma, int64_t rs, int64_t cs,
@@ -50,7 +80,7 @@ int ct_solve_begin(const struct ct_solve *s, const double *S, const double *sigm
     }
     st[CT_SV_REACQUIRED] = 0.0;
     st[CT_SV_STATUS] = CT_SOLVE_RUNNING;
-    st[CT_SV_PHASE] = x0p != NULL ? CT_PH_LM_START : CT_PH_ACQUIRE;
+    st[CT_SV_PHASE] = x0p != NULL ? CT_PH_LM_START : solve_start_acquisition(s);
     return CT_SOLVE_RUNNING;
 }
 
@@ -81,7 +111,7 @@ static int solve_unit_finish(const struct ct_solve *s)
                         lm->A[(int)lst[CT_LM_CUR]], s->cov, s->work);
     if (r < 0) {
         st[CT_SV_REACQUIRED] = 1.0;
-        return CT_PH_ACQUIRE;
+        return solve_start_acquisition(s);
     }
     solve_publish_pose(s);
     st[CT_SV_ITERATIONS] = lst[CT_LM_IT];
@@ -96,17 +126,19 @@ static int solve_unit_finish(const struct ct_solve *s)
     return CT_PH_NONE;
 }
 
-/* staged.run_units over PoseSolver's units _unit_lm_start, _unit_lm_step and _unit_finish */
+/* staged.run_units over PoseSolver's units _unit_acquire, _unit_lm_start, _unit_lm_step and _unit_finish */
 int ct_solve_run(const struct ct_solve *s, int64_t *spent, int64_t budget)
 {
     const struct ct_lm *lm = s->lm;
     double *st = s->st;
     const int64_t cost = s->n;
     int phase = (int)st[CT_SV_PHASE];
-    while (phase == CT_PH_LM_START || phase == CT_PH_LM_STEPS || phase == CT_PH_FINISH) {
+    while (phase == CT_PH_LM_START || phase == CT_PH_LM_STEPS || phase == CT_PH_FINISH || phase == CT_PH_ACQ_UNITS) {
         if (*spent > 0 && *spent + cost > budget)
             break;
-        if (phase == CT_PH_LM_START) {
+        if (phase == CT_PH_ACQ_UNITS) {
+            phase = solve_unit_acquire(s);
+        } else if (phase == CT_PH_LM_START) {
             ct_lm_pose_start(lm, s->f);
             phase = (int)lm->st[CT_LM_STATE] == CT_LM_RUNNING ? CT_PH_LM_STEPS : CT_PH_FINISH;
         } else if (phase == CT_PH_LM_STEPS) {
