@@ -289,9 +289,10 @@ class _CompiledSolver:
         """The warm path in two compiled calls (``core/src/solve.c``): :meth:`begin`'s checks and
         copies (``ct_solve_begin``) and a budget's run of the LM's start, its steps and the finish
         (``ct_solve_run``, :meth:`_unit_run`) through a ``SolveRun`` bound to the fit's, the
-        compiled LM's and the results' buffers and its state ``_svst``. The acquisition stays in
-        the Python (its units, then the LM's start :meth:`_unit_lm_start_compiled`); a model with
-        a distortion map, or inputs the kernel does not take, go the units' way as before."""
+        compiled LM's and the results' buffers and its state ``_svst``; the acquisition's units
+        run in the same calls (:meth:`_bind_acquire`). A model with a distortion map, or inputs
+        the kernel does not take, go the units' way as before (the Python's acquisition, then the
+        LM's start :meth:`_unit_lm_start_compiled`)."""
         if ext.SOLVE_NST != _SV_NST or ext.SOLVE_SPENT != _SV_SPENT or ext.SOLVE_EVALS != _SV_EVALS:
             raise RuntimeError("the compiled core's solve state does not match pose.solver's")
         self._svst = np.zeros(_SV_NST)
@@ -536,9 +537,9 @@ class PoseSolver(_CompiledSolver, StagedSolve):
         (a key of ``estimate.ekf.CHI2_QUANTILES``; 1.0 disables the cost test).
     core : coiltrack.firmware.core.Core
         The numeric core, chosen at composition: on the compiled one the signal model, the LM
-        step with its cost (on ``_CompiledLM``'s buffers), the begin's checks, a budget's run of the LM's
-        units with the finish and the predicted signals (``_CompiledSolver``) run in C,
-        bit-identical to the Python.
+        step with its cost (on ``_CompiledLM``'s buffers), the begin's checks, a budget's run of the
+        acquisition's and the LM's units with the finish and the predicted signals
+        (``_CompiledSolver``) run in C, bit-identical to the Python.
 
     After a solve: ``position`` (3,), ``rotation`` (3, 3), ``covariance``
     (6, 6), ``iterations``, ``cost``, ``converged``, ``status``. Work

@@ -6,7 +6,7 @@ pose/staged.py StagedSolve.predict_signals).
 The C does the same floating-point operations in the same order (-ffp-contract=off), so every
 comparison with the reference is bit for bit: status, position, rotation, covariance,
 iterations, cost and the evaluations and charges of every budgeted step, through cold starts
-(the acquisition in Python, then the compiled LM), warm starts that fail their checks and fall
+(the acquisition's units in the compiled run too, test_core_acquire.py), warm starts that fail their checks and fall
 back to it, refused inputs and a model with a distortion map (the Python's way). The predicted
 signals are also checked against pose.reference.measurement_model (numpy, 1e-12 relative).
 Seeded; skips without the extension."""
