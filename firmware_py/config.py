@@ -227,12 +227,13 @@ class LimitsConfig:
 @dataclass(frozen=True)
 class BudgetConfig:
     """``[budget]``: the work per tick (a slower board lowers it)."""
-    track_budget_evals: int = 9            # coil field evaluations (field + Jacobian at one point) per tick;
+    track_budget_evals: int = 27           # coil field evaluations (field + Jacobian at one point) per tick;
                                            # a warm 3-coil solve charges 3 (k + 3) of them with its hand-over
-                                           # (k LM steps, ~3-5): 9 spreads it over 3-4 ticks, 18 over 2, 27
-                                           # fits it in one on the compiled core (docs/compiled-core.md,
-                                           # budgets); a board 4x slower keeps 9 (coiltrack perf:
-                                           # max_field_evals_per_tick)
+                                           # (k LM steps, ~3-5): 27 fits it in the tick its burst completes
+                                           # on the compiled core (docs/tick-budget.md, "The budgets'
+                                           # defaults"); a board 4x slower than the machine the figures were
+                                           # measured on sets 9 (3-4 ticks; coiltrack perf:
+                                           # max_field_evals_per_tick, field_eval_us)
     replay_budget_steps: int = 8           # inertial steps of a delayed fusion update's replay per tick
     solve_gate_probability: float = 1.0    # a warm-started solve whose cost fails this chi-square
                                            # probability is solved again from acquisition (1.0: never;

@@ -22,7 +22,9 @@ from coiltrack.tools.bench.runner import BenchSetup
 
 def _run(name: str, seconds: float, **keys):
     """Per tick ``(windows closed, IMU samples processed, field evaluations)``, and the
-    magnetic solutions reported ``(tick, ticks since the burst completed, position, rotation)``."""
+    magnetic solutions reported ``(tick, ticks since the burst completed, position, rotation)``.
+    The budget is 9 field evaluations unless ``keys`` set it (the charges below are sized to it)."""
+    keys.setdefault("track_budget_evals", 9)
     sc = scenarios.get(name)
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 1, seconds + 1.0, emu_end)
