@@ -225,9 +225,10 @@ class _CompiledReport:
                                tuple(rows))
         except (AttributeError, TypeError, ValueError):
             return
-        self._ss_start = k.start
+        self._ss, self._ss_start = k, k.start
         self._ss_poses = tuple(self.poses[ch.node] for ch in chs)
         self._start_solve = self._start_solve_compiled
+        self._bind_ahead_start(ext)
 
     def _start_solve_compiled(self, ch) -> None:
         """:meth:`_start_solve` in one compiled call (:meth:`_bind_start`); where a solve ahead may
@@ -246,6 +247,42 @@ class _CompiledReport:
         r = self._ss_start(k, self._ss_poses[k].have_pose)
         if not sv.begun(r & 255, r > 255) & SOLVE_RUNNING:
             self._report(ch, False)
+
+    def _bind_ahead_start(self, ext) -> None:
+        """:meth:`_ahead_start` in one compiled call (``AheadStart``, ``core/src/begin.c``
+        ``ct_ahead_start``: ``BurstFusionTracker.warm_start``, then :meth:`_begin_ahead`'s extraction
+        (``PulseExtractor.extract`` on the channel's ``PulseWindow``), copies, ``sigma_from``,
+        :meth:`_prepare_currents` and ``PoseSolver.begin``, the same operations in the same order),
+        bound with :meth:`_start_solve_compiled`'s ``SolveStart``; left to the Python where a part is
+        of another kind."""
+        from coiltrack.firmware.measure.pulse import PulseExtractor
+        chs = self.channels
+        if not self.ahead or type(self)._ahead_start is not MagneticTracker._ahead_start \
+                or type(self)._begin_ahead is not MagneticTracker._begin_ahead \
+                or getattr(self._prepare_currents, "__func__", None) is not _CompiledReport._prepare_currents_compiled \
+                or any(getattr(ch.extractor.extract, "__func__", None) is not PulseExtractor._extract_compiled
+                       for ch in chs):
+            return
+        try:
+            rows = tuple((ch.extractor._ck, ch.extractor._ring.hc, ah.S, ah.sigma, ah.currents, ah.hemisphere,
+                          ah.warm_p, ah.warm_R, ah.amp, ah.var) for ch, ah in zip(chs, self._ahead))
+            self._as_start = ext.AheadStart(self._ss, self.schedule.measured, self.nominal, rows).start
+        except (AttributeError, TypeError, ValueError):
+            return
+        self._ahead_start = self._ahead_start_compiled
+
+    def _ahead_start_compiled(self, k: int, start: int, end: int) -> bool:
+        """:meth:`_ahead_start` in one compiled call (:meth:`_bind_ahead_start`); a model with a
+        distortion map, or a time the extraction does not take, the reference."""
+        sv = self.solver
+        r = AHEAD_ASK if sv.signal.distortion is not None else self._as_start(k, self._ss_poses[k].have_pose, start, end)
+        if r < 0:
+            return r == AHEAD_ASK and MagneticTracker._ahead_start(self, k, start, end)
+        if not sv.begun(r, True) & SOLVE_RUNNING:
+            return False
+        self._ahead_k = k
+        self.ahead_solves += 1
+        return True
 
     def _prepare_currents_compiled(self, cur) -> None:
         if cur is self._curv:
@@ -558,12 +595,17 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         k = self._ahead_scan(burst, j, start, end)
         if k == AHEAD_SEEN:
             self._ahead_seen = burst
-        elif k >= 0:
-            ch = self.channels[k]
-            tp = self.poses[ch.node]
-            if self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
-                self._units += self.solver.n         # the start, charged as a hand-over
-                self._solve_ahead()
+        elif k >= 0 and self._ahead_start(k, start, end):
+            self._units += self.solver.n             # the start, charged as a hand-over
+            self._solve_ahead()
+
+    def _ahead_start(self, k: int, start: int, end: int) -> bool:
+        """The begin of channel ``k``'s solve ahead on its last window ``[start, end]`` from its warm
+        start (:meth:`warm_start`, :meth:`_begin_ahead`); False if none was begun. On the compiled
+        core of the fused tracker one call (:meth:`_bind_ahead_start`)."""
+        ch = self.channels[k]
+        tp = self.poses[ch.node]
+        return self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end)
 
     def _ahead_pending(self) -> bool:
         """A solve ahead runs, or sensors of the open burst have not had their turn yet."""

@@ -54,3 +54,43 @@ int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *s
         return ct_solve_begin(s, S, sig, n, 1, cur, 1, tp, wp, wR);
     return ct_solve_begin(s, S, sig, n, 1, cur, 1, hemi, NULL, NULL);
 }
+
+/* MagneticTracker._begin_ahead (its extract: PulseExtractor._extract_compiled over ct_pulse_extract) */
+int ct_begin_ahead(const struct ct_solve *s, int n, const struct ct_pulse *x, const struct ct_sample_ring *r,
+                   int64_t start, int64_t end, double *res, int64_t *ires, const double *S, const double *var,
+                   double floor2, const double *measured, const double *nominal, const double *tp, const double *wp,
+                   const double *wR, const struct ct_ahead_buf *ah)
+{
+    int i, j = n - 1;
+    ct_pulse_extract(x, r, start, end, res, res + 3, ires);
+    for (i = 0; i < 3; ++i) {
+        ah->amp[i] = res[i];
+        ah->var[i] = res[3 + i];
+    }
+    if (ires[1] == 0 || ires[2] == 0)
+        return CT_AHEAD_NO_WINDOW;
+    memcpy(ah->S, S, sizeof(double) * 3 * (size_t)n);
+    memcpy(ah->sigma, var, sizeof(double) * 3 * (size_t)n);
+    for (i = 0; i < 3; ++i) {
+        ah->S[i * n + j] = ah->amp[i];
+        ah->sigma[i * n + j] = ah->var[i];
+    }
+    ct_sigma_from(3 * (int64_t)n, ah->sigma, ah->sigma, floor2);
+    ct_prepare_currents(measured, nominal, ah->cur, n);
+    memcpy(ah->hemi, tp, sizeof(double) * 3);
+    memcpy(ah->wp, wp, sizeof(double) * 3);
+    memcpy(ah->wR, wR, sizeof(double) * 9);
+    return ct_solve_begin(s, ah->S, ah->sigma, n, 1, ah->cur, 1, ah->hemi, ah->wp, ah->wR);
+}
+
+/* MagneticTracker._ahead_start (BurstFusionTracker.warm_start, then _begin_ahead) */
+int ct_ahead_start(const struct ct_solve *s, int n, const struct ct_hist *h, int64_t t_ref, int have_pose,
+                   int initialized, double range_m, const double *tp, const double *tR, double *wp, double *wR,
+                   const struct ct_pulse *x, const struct ct_sample_ring *r, int64_t start, int64_t end, double *res,
+                   int64_t *ires, const double *S, const double *var, double floor2, const double *measured,
+                   const double *nominal, const struct ct_ahead_buf *ah)
+{
+    if (!ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR))
+        return CT_AHEAD_COLD;
+    return ct_begin_ahead(s, n, x, r, start, end, res, ires, S, var, floor2, measured, nominal, tp, wp, wR, ah);
+}
