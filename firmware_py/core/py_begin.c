@@ -497,7 +497,36 @@ static PyObject *AheadStart_start(AheadStartObject *self, PyObject *const *args,
                                           s->floor2, self->measured, self->nominal, &a->ah));
 }
 
+/* inputs(k, have_pose) -> warm | same << 1 (ct_ahead_inputs on channel k against its solve ahead) */
+static PyObject *AheadStart_inputs(AheadStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k;
+    int have;
+    const SolveStartObject *s = self->ss;
+    const ss_channel *c;
+    if (s == NULL || ct_py_nargs("inputs", nargs, 2) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    if (have < 0)
+        return NULL;
+    if (k < 0 || k >= s->nch) {
+        PyErr_SetString(PyExc_IndexError, "AheadStart.inputs: channel out of range");
+        return NULL;
+    }
+    c = &s->ch[k];
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
+        PyErr_SetString(PyExc_ValueError, "AheadStart.inputs: the history's head or count out of range");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have,
+                                           c->fs[s->fs_init] != 0, s->range_m, c->tp, c->tR, c->wp, c->wR, c->S,
+                                           s->cur, &self->ch[k].ah));
+}
+
 static PyMethodDef AheadStart_methods[] = {
+    {"inputs", (PyCFunction)(void (*)(void))AheadStart_inputs, METH_FASTCALL,
+     "inputs(k, have_pose) -> warm | same << 1: channel k's sigma and warm start, and whether its burst's inputs "
+     "are those its solve ahead began with"},
     {"start", (PyCFunction)(void (*)(void))AheadStart_start, METH_FASTCALL,
      "start(k, have_pose, start_us, end_us) -> status, -1 (no warm start), -2 (no window) or -3 (a time for the "
      "reference): channel k's warm start and the begin of its solve ahead on its last window"},

@@ -226,6 +226,7 @@ class _CompiledReport:
         except (AttributeError, TypeError, ValueError):
             return
         self._ss, self._ss_start = k, k.start
+        self._as_inputs = None               # (bound with the solve ahead's begin)
         self._ss_poses = tuple(self.poses[ch.node] for ch in chs)
         self._start_solve = self._start_solve_compiled
         self._bind_ahead_start(ext)
@@ -237,7 +238,7 @@ class _CompiledReport:
         if self.ahead:
             ah = self._ahead[k]
             if ah.burst == self.schedule.burst_start and (ah.done or self._ahead_k == k):
-                MagneticTracker._start_solve(self, ch)
+                self._take_ahead(ch, k)
                 return
         sv = self.solver
         if sv.signal.distortion is not None:
@@ -266,10 +267,25 @@ class _CompiledReport:
         try:
             rows = tuple((ch.extractor._ck, ch.extractor._ring.hc, ah.S, ah.sigma, ah.currents, ah.hemisphere,
                           ah.warm_p, ah.warm_R, ah.amp, ah.var) for ch, ah in zip(chs, self._ahead))
-            self._as_start = ext.AheadStart(self._ss, self.schedule.measured, self.nominal, rows).start
+            k = ext.AheadStart(self._ss, self.schedule.measured, self.nominal, rows)
         except (AttributeError, TypeError, ValueError):
             return
+        self._as_start, self._as_inputs = k.start, k.inputs
         self._ahead_start = self._ahead_start_compiled
+
+    def _take_ahead(self, ch, k: int) -> None:
+        """:meth:`_start_solve` where a solve ahead may be taken over: on the compiled core the
+        sigma, the warm start and :meth:`_Ahead.same` in one call (``AheadStart.inputs``,
+        ``ct_ahead_inputs``), then :meth:`_use_ahead` on its answer; else (a distortion map, no
+        ``AheadStart`` bound) the reference."""
+        if self._as_inputs is None or self.solver.signal.distortion is not None:
+            MagneticTracker._start_solve(self, ch)
+            return
+        tp = self._ss_poses[k]
+        r = self._as_inputs(k, tp.have_pose)
+        if r & 1 and self._use_ahead(ch, r > 1):
+            return
+        self._solve_from(ch, tp, r & 1)
 
     def _ahead_start_compiled(self, k: int, start: int, end: int) -> bool:
         """:meth:`_ahead_start` in one compiled call (:meth:`_bind_ahead_start`); a model with a
@@ -635,11 +651,12 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         self.ahead_solves += 1
         return True
 
-    def _use_ahead(self, ch) -> bool:
+    def _use_ahead(self, ch, same=None) -> bool:
         """In the burst's own turn (:meth:`_begin`, sigmas and warm start in place): whether
         its solve is the one begun ahead on the same inputs, still running (it goes on as this
         burst's) or finished (its pose is reported now). Otherwise a solve ahead still running
-        gives way (False: solve as usual)."""
+        gives way (False: solve as usual). ``same``: whether the inputs are the same, where the
+        caller compared them already (the compiled start), else compared here (:meth:`_Ahead.same`)."""
         k = self._next
         ah = self._ahead[k]
         running = self._ahead_k
@@ -647,7 +664,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         if ah.burst != self.schedule.burst_start or not (ah.done or running == k):
             return False
         ah.release()
-        if not self._same[k]():
+        if not (self._same[k]() if same is None else same):
             self.ahead_missed += 1
             return False
         self.ahead_used += 1
@@ -691,6 +708,11 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         warm = self.warm_start(ch, tp)
         if warm and self.ahead and self._use_ahead(ch):
             return
+        self._solve_from(ch, tp, warm)
+
+    def _solve_from(self, ch, tp: TrackedPose, warm: bool) -> None:
+        """:meth:`_start_solve`'s begin of the solve of ``ch`` (its sigma and, ``warm``, its start
+        in place), no solve ahead taken over."""
         self._ahead_k = -1                   # a solve ahead still running gives way
         if warm:
             st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.position, tp.warm_p, tp.warm_R)

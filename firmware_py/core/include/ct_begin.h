@@ -66,5 +66,13 @@ int ct_ahead_start(const struct ct_solve *s, int n, const struct ct_hist *h, int
                    int64_t *ires, const double *S, const double *var, double floor2, const double *measured,
                    const double *nominal, const struct ct_ahead_buf *ah);
 enum { CT_AHEAD_COLD = -1, CT_AHEAD_NO_WINDOW = -2 };
+/* MagneticTracker._start_solve of BurstFusionTracker where a solve ahead may be taken over, up to
+ * _use_ahead's comparison: the sigma (ct_sigma_from over var into sig, as in ct_solve_start), the warm
+ * start (ct_report_warm_start into wp, wR) and, where it made one, _Ahead.same of the burst's inputs
+ * (S, sig, cur, the hemisphere tp, wp, wR) against the solve ahead's in ah (ct_report_same).  Returns
+ * warm | same << 1. */
+int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const struct ct_hist *h, int64_t t_ref,
+                    int have_pose, int initialized, double range_m, const double *tp, const double *tR, double *wp,
+                    double *wR, const double *S, const double *cur, const struct ct_ahead_buf *ah);
 
 #endif /* CT_BEGIN_H */

@@ -94,3 +94,19 @@ int ct_ahead_start(const struct ct_solve *s, int n, const struct ct_hist *h, int
         return CT_AHEAD_COLD;
     return ct_begin_ahead(s, n, x, r, start, end, res, ires, S, var, floor2, measured, nominal, tp, wp, wR, ah);
 }
+
+/* MagneticTracker._start_solve up to _use_ahead's _Ahead.same (fill_sigma, BurstFusionTracker.warm_start) */
+int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const struct ct_hist *h, int64_t t_ref,
+                    int have_pose, int initialized, double range_m, const double *tp, const double *tR, double *wp,
+                    double *wR, const double *S, const double *cur, const struct ct_ahead_buf *ah)
+{
+    const double *a[6], *b[6];
+    int64_t len[6];
+    ct_sigma_from(3 * (int64_t)n, var, sig, floor2);
+    if (!ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR))
+        return 0;
+    a[0] = ah->S, a[1] = ah->sigma, a[2] = ah->cur, a[3] = ah->hemi, a[4] = ah->wp, a[5] = ah->wR;
+    b[0] = S, b[1] = sig, b[2] = cur, b[3] = tp, b[4] = wp, b[5] = wR;
+    len[0] = len[1] = 3 * (int64_t)n, len[2] = n, len[3] = len[4] = 3, len[5] = 9;
+    return 1 | ct_report_same(6, a, b, len) << 1;
+}
