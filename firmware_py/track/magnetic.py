@@ -228,6 +228,7 @@ class _CompiledReport:
         self._ss, self._ss_start = k, k.start
         self._as_inputs = None               # (bound with the solve ahead's begin)
         self._ss_poses = tuple(self.poses[ch.node] for ch in chs)
+        self._ahead_stv = memoryview(self._ahead_st)
         self._start_solve = self._start_solve_compiled
         self._bind_ahead_start(ext)
 
@@ -236,8 +237,8 @@ class _CompiledReport:
         be taken over (``_use_ahead`` would look at the inputs), the reference."""
         k = self._next
         if self.ahead:
-            ah = self._ahead[k]
-            if ah.burst == self.schedule.burst_start and (ah.done or self._ahead_k == k):
+            bs, st = self.schedule.burst_start, self._ahead_stv      # (_Ahead.burst, .done of row k)
+            if st[k, 0] == (NO_BURST if bs is None else bs) and (st[k, 1] or self._ahead_k == k):
                 self._take_ahead(ch, k)
                 return
         sv = self.solver
@@ -274,18 +275,36 @@ class _CompiledReport:
         self._ahead_start = self._ahead_start_compiled
 
     def _take_ahead(self, ch, k: int) -> None:
-        """:meth:`_start_solve` where a solve ahead may be taken over: on the compiled core the
+        """:meth:`_start_solve` where channel ``k``'s solve ahead is of this burst and finished or
+        running (:meth:`_use_ahead`'s first test, passed in the caller): on the compiled core the
         sigma, the warm start and :meth:`_Ahead.same` in one call (``AheadStart.inputs``,
-        ``ct_ahead_inputs``), then :meth:`_use_ahead` on its answer; else (a distortion map, no
-        ``AheadStart`` bound) the reference."""
-        if self._as_inputs is None or self.solver.signal.distortion is not None:
+        ``ct_ahead_inputs``), then the rest of :meth:`_use_ahead` on its answer (the same operations
+        in the same order); else (a distortion map, no ``AheadStart`` bound) the reference."""
+        sv = self.solver
+        if self._as_inputs is None or sv.signal.distortion is not None:
             MagneticTracker._start_solve(self, ch)
             return
         tp = self._ss_poses[k]
         r = self._as_inputs(k, tp.have_pose)
-        if r & 1 and self._use_ahead(ch, r > 1):
+        if not r & 1:
+            self._solve_from(ch, tp, False)
             return
-        self._solve_from(ch, tp, r & 1)
+        running = self._ahead_k
+        self._ahead_k = -1
+        ah = self._ahead[k]
+        ah.release()
+        if r < 2:
+            self.ahead_missed += 1
+            self._solve_from(ch, tp, True)
+            return
+        self.ahead_used += 1
+        if running == k:
+            return
+        res = ah.result
+        sv.load(res)
+        if res.solve_evals > self.solve_evals_max:
+            self.solve_evals_max = res.solve_evals
+        self._report(ch, not (res.status & SOLVE_FAILED))
 
     def _ahead_start_compiled(self, k: int, start: int, end: int) -> bool:
         """:meth:`_ahead_start` in one compiled call (:meth:`_bind_ahead_start`); a model with a
@@ -651,12 +670,11 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         self.ahead_solves += 1
         return True
 
-    def _use_ahead(self, ch, same=None) -> bool:
+    def _use_ahead(self, ch) -> bool:
         """In the burst's own turn (:meth:`_begin`, sigmas and warm start in place): whether
         its solve is the one begun ahead on the same inputs, still running (it goes on as this
         burst's) or finished (its pose is reported now). Otherwise a solve ahead still running
-        gives way (False: solve as usual). ``same``: whether the inputs are the same, where the
-        caller compared them already (the compiled start), else compared here (:meth:`_Ahead.same`)."""
+        gives way (False: solve as usual)."""
         k = self._next
         ah = self._ahead[k]
         running = self._ahead_k
@@ -664,7 +682,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         if ah.burst != self.schedule.burst_start or not (ah.done or running == k):
             return False
         ah.release()
-        if not (self._same[k]() if same is None else same):
+        if not self._same[k]():
             self.ahead_missed += 1
             return False
         self.ahead_used += 1
