@@ -545,11 +545,152 @@ static PyTypeObject AheadStartType = {
     .tp_methods = AheadStart_methods,
 };
 
+/* ------------------------------------------------------------- HandOver */
+typedef struct {
+    PyObject_HEAD
+    AheadStartObject *as;        /* the solves ahead's inputs (and through it the SolveStart), held */
+    BurstInputsObject *bi;       /* the channels' window flags and the faults, held */
+    PyObject *supo;              /* the supervisor's SupMag, held */
+    const struct ct_sup *sup;
+    int64_t node[SS_MAXCH];
+    int64_t *st;                 /* the tracker's _ahead_st (nch x 2) */
+    Py_buffer stv;
+    int bound;
+} HandOverObject;
+
+static void HandOver_dealloc(HandOverObject *self)
+{
+    if (self->bound)
+        PyBuffer_Release(&self->stv);
+    Py_XDECREF(self->as);
+    Py_XDECREF(self->bi);
+    Py_XDECREF(self->supo);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* HandOver(ahead, inputs, sup, nodes, ahead_st): the tracker's AheadStart and BurstInputs, the
+ * supervisor's SupMag, the channels' nodes and the tracker's _ahead_st (int64, nch x 2) */
+static int HandOver_init(HandOverObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"ahead", "inputs", "sup", "nodes", "ahead_st", NULL};
+    PyObject *as, *bi, *supo, *nodes, *st, *seq;
+    const struct ct_sup *sup;
+    int nch, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!OOO", kwlist, &AheadStartType, &as, &BurstInputsType, &bi, &supo,
+                                     &nodes, &st))
+        return -1;
+    if (self->bound || ((AheadStartObject *)as)->ss == NULL || !((BurstInputsObject *)bi)->nch) {
+        PyErr_SetString(PyExc_RuntimeError, "HandOver: already bound, or a part is not");
+        return -1;
+    }
+    nch = ((AheadStartObject *)as)->ss->nch;
+    if (((BurstInputsObject *)bi)->nch != nch) {
+        PyErr_SetString(PyExc_ValueError, "HandOver: the parts' channels differ");
+        return -1;
+    }
+    sup = ct_py_sup_of(supo);
+    if (sup == NULL)
+        return -1;
+    seq = PySequence_Fast(nodes, "HandOver: nodes must be a sequence");
+    if (seq == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(seq) != nch) {
+        Py_DECREF(seq);
+        PyErr_SetString(PyExc_ValueError, "HandOver: one node per channel");
+        return -1;
+    }
+    for (i = 0; i < nch; ++i)
+        if (ct_py_int64(PySequence_Fast_GET_ITEM(seq, i), &self->node[i]) < 0) {
+            Py_DECREF(seq);
+            return -1;
+        }
+    Py_DECREF(seq);
+    if (ct_py_buffer(st, 2 * nch, 8, "ql", 1, &self->stv, "ahead_st") < 0)
+        return -1;
+    self->st = self->stv.buf;
+    self->sup = sup;
+    Py_INCREF(as);
+    Py_INCREF(bi);
+    Py_INCREF(supo);
+    self->as = (AheadStartObject *)as;
+    self->bi = (BurstInputsObject *)bi;
+    self->supo = supo;
+    self->bound = 1;
+    return 0;
+}
+
+#define HO_NO_BURST ((int64_t)(-9223372036854775807LL - 1))    /* track/magnetic.py NO_BURST */
+
+/* begin(k, have_pose, burst, running) -> bits | veto << 32 | unusable << 33 | code << 34: channel k's
+ * ct_handover_status; where usable and not vetoed (code > 0) the test for its solve ahead of burst
+ * (ct_handover_ahead; code 1: none to take over), and where it passes AheadStart.inputs (ct_ahead_inputs;
+ * code 2: no warm start) and, warm, _Ahead.release (code 3: other inputs, 4: the same) */
+static PyObject *HandOver_begin(HandOverObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k, burst, running, r;
+    int have, w;
+    const BurstInputsObject *bi = self->bi;
+    const SolveStartObject *s;
+    const ss_channel *c;
+    if (!self->bound || ct_py_nargs("begin", nargs, 4) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    if (have < 0 || ct_py_int64(args[2], &burst) < 0 || ct_py_int64(args[3], &running) < 0)
+        return NULL;
+    s = self->as->ss;
+    if (k < 0 || k >= s->nch) {
+        PyErr_SetString(PyExc_IndexError, "HandOver.begin: channel out of range");
+        return NULL;
+    }
+    r = ct_handover_status(&bi->b, bi->fl[k], bi->nf, bi->fv, bi->nc, self->sup, self->node[k]);
+    if (r < 0) {
+        PyErr_SetString(PyExc_ValueError, "HandOver.begin: bits or flags out of range");
+        return NULL;
+    }
+    if (r >> 32)
+        return PyLong_FromLongLong(r);
+    if (!ct_handover_ahead(&self->st[2 * k], burst, running, k))
+        return PyLong_FromLongLong(r | (int64_t)1 << 34);
+    c = &s->ch[k];
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
+        PyErr_SetString(PyExc_ValueError, "HandOver.begin: the history's head or count out of range");
+        return NULL;
+    }
+    w = ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have, c->fs[s->fs_init] != 0, s->range_m,
+                        c->tp, c->tR, c->wp, c->wR, c->S, s->cur, &self->as->ch[k].ah);
+    if (!(w & 1))
+        return PyLong_FromLongLong(r | (int64_t)2 << 34);
+    self->st[2 * k] = HO_NO_BURST;
+    return PyLong_FromLongLong(r | (int64_t)(w & 2 ? 4 : 3) << 34);
+}
+
+static PyMethodDef HandOver_methods[] = {
+    {"begin", (PyCFunction)(void (*)(void))HandOver_begin, METH_FASTCALL,
+     "begin(k, have_pose, burst, running) -> bits | veto << 32 | unusable << 33 | code << 34: MagneticTracker."
+     "_begin_handover's compiled steps (code 0: unusable or vetoed, 1: no solve ahead to take over, 2: no warm "
+     "start, 3: a solve ahead on other inputs, released, 4: on the same inputs, released)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject HandOverType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.HandOver",
+    .tp_basicsize = sizeof(HandOverObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "HandOver(ahead, inputs, sup, nodes, ahead_st): a burst's begin in the fused tracker's hand-over "
+              "(its status, the supervisor's pose status, the take-over of its solve ahead) in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)HandOver_init,
+    .tp_dealloc = (destructor)HandOver_dealloc,
+    .tp_methods = HandOver_methods,
+};
+
 int ct_register_begin(PyObject *m)
 {
     if (ct_py_add_type(m, &BurstInputsType, "BurstInputs") < 0)
         return -1;
     if (ct_py_add_type(m, &SolveStartType, "SolveStart") < 0)
         return -1;
-    return ct_py_add_type(m, &AheadStartType, "AheadStart");
+    if (ct_py_add_type(m, &AheadStartType, "AheadStart") < 0)
+        return -1;
+    return ct_py_add_type(m, &HandOverType, "HandOver");
 }

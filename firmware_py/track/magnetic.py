@@ -47,6 +47,7 @@ from coiltrack.firmware.track.status import COIL_FATAL, input_status
 from coiltrack.firmware.track.quality import PoseQuality
 
 SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
+HO_VETO = 1 << 32          # HandOver.begin's veto bit
 #: :meth:`MagneticTracker._ahead_scan`'s answers besides a channel: none ready, every sensor has had
 #: its turn, and (the compiled scan only) a time it does not take: ask the reference
 AHEAD_NONE, AHEAD_SEEN, AHEAD_ASK = -1, -2, -3
@@ -376,6 +377,130 @@ class _CompiledReport:
         self._chains = chains
         self._report_pose = self._report_pose_compiled
 
+class _HandOver:
+    """:class:`MagneticTracker`'s hand-overs on the compiled core: :meth:`_begin` and :meth:`_report`
+    with the compiled steps between them called straight, bound at construction
+    (:meth:`_bind_handover`). A burst whose solve ahead finished on the same inputs is handed over
+    in :meth:`_begin_handover` (``BurstInputs.status``, the supervisor's pose status,
+    ``AheadStart.inputs`` through :meth:`_take_ahead`) and reported in :meth:`_report_handover`
+    (``ReportChain`` grading and frame, :meth:`on_solution`), the same calls in the same order as
+    :meth:`_begin_compiled`, :meth:`_start_solve_compiled`, :meth:`_report` and
+    :meth:`_report_pose_compiled` make, with fewer Python frames between them."""
+
+    def _bind_handover(self, core) -> None:
+        """:meth:`_begin` replaced on this instance by :meth:`_begin_first` where every step it and
+        :meth:`_report` call is the compiled one (:meth:`_bind_begin`, :meth:`_bind_start`,
+        :meth:`_bind_ahead_start`, :meth:`_bind_report_chain`) and no class overrides them; else left
+        as they are."""
+        mt = MagneticTracker
+        if not self.ahead or core.ext is None or not hasattr(self.supervisor, "pose_kernel") \
+                or type(self)._begin is not mt._begin or type(self)._report is not mt._report \
+                or type(self)._take_ahead is not mt._take_ahead or type(self)._solve_from is not mt._solve_from \
+                or getattr(self._begin, "__func__", None) is not _CompiledReport._begin_compiled \
+                or getattr(self._start_solve, "__func__", None) is not _CompiledReport._start_solve_compiled \
+                or getattr(self._report_pose, "__func__", None) is not _CompiledReport._report_pose_compiled \
+                or self._as_inputs is None:
+            return
+        self._ho_ext = core.ext
+        self._begin = self._begin_first
+
+    def _begin_first(self, ch) -> None:
+        """:meth:`_begin_compiled` at the first burst's begin, :meth:`_begin_handover` and
+        :meth:`_report_handover` bound before it where the supervisor's pose status is compiled (its
+        ``pose_kernel``: the receive stage binds it after the tracker is built): one ``HandOver``
+        (``core/py_begin.c``; ``core/src/begin.c`` ``ct_handover_status``, ``ct_handover_ahead``, then
+        ``ct_ahead_inputs``) bound to the tracker's ``AheadStart`` and ``BurstInputs``, the
+        supervisor's ``SupMag``, the channels' nodes and ``_ahead_st``."""
+        self._begin = self._begin_compiled
+        sk = self.supervisor.pose_kernel()
+        if sk is not None:
+            try:
+                ho = self._ho_ext.HandOver(self._as_inputs.__self__, self._bk, sk,
+                                           tuple(c.node for c in self.channels), self._ahead_st)
+            except (AttributeError, TypeError, ValueError):
+                ho = None
+            if ho is not None:
+                self._ho_begin = ho.begin
+                self._begin = self._begin_handover
+                self._report = self._report_handover
+        self._begin(ch)
+
+    def _begin_handover(self, ch) -> None:
+        """:meth:`_begin_compiled` with :meth:`_start_solve_compiled`'s test for a solve ahead to take
+        over and :meth:`_take_ahead`'s compiled part in one call (``HandOver.begin``: the burst's
+        status, the supervisor's pose status, the test, ``AheadStart.inputs`` and ``_Ahead.release``,
+        the same operations in the same order), then the rest of them on its answer; a model with a
+        distortion map, :meth:`_begin_compiled`."""
+        sv = self.solver
+        if sv.signal.distortion is not None:
+            self._begin_compiled(ch)
+            return
+        k = self._next
+        tp = self._ss_poses[k]
+        bs = self.schedule.burst_start
+        r = self._ho_begin(k, tp.have_pose, NO_BURST if bs is None else bs, self._ahead_k)
+        sup = self.supervisor
+        self._status = r & 0xFFFFFFFF
+        if r & HO_VETO or sup.veto:
+            sup.vetoed((r >> 32) & 1)
+        code = r >> 34
+        if code < 3:
+            if code == 0:
+                self._report(ch, False)
+            elif code == 1:
+                self._start_solve_compiled(ch)
+            else:
+                self._solve_from(ch, tp, False)
+            return
+        running = self._ahead_k
+        self._ahead_k = -1
+        if code == 3:
+            self.ahead_missed += 1
+            self._solve_from(ch, tp, True)
+            return
+        self.ahead_used += 1
+        if running == k:
+            return
+        res = self._ahead[k].result
+        sv.load(res)
+        if res.solve_evals > self.solve_evals_max:
+            self.solve_evals_max = res.solve_evals
+        self._report(ch, not (res.status & SOLVE_FAILED))
+
+    def _report_handover(self, ch, solved: bool) -> None:
+        """:meth:`_report` with :meth:`_report_pose_compiled`'s steps in it."""
+        tp = self.poses[ch.node]
+        t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
+        if solved:
+            chain, cov, fus, frame = self._chains[ch.node]
+            q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
+                                          fus is not None and fus.initialized)
+            if q < 0:
+                solved = False
+                tp.have_pose = False
+                self.out_of_range += 1
+            else:
+                tp.have_pose = True
+                st = self._status | POSE_VALID
+                if not self.tx.pose_built(frame, ch.node, t_pose, st, q):
+                    self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, st, q)
+        if not solved:
+            self.tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
+        self.on_solution(ch, solved)
+        self._next += 1
+        if self._next == len(self.channels):
+            self._next = -1
+            self.cycles += 1
+            if self._burst_ticks > self.solve_ticks_max:
+                self.solve_ticks_max = self._burst_ticks
+            self.burst.release()
+        elif self._units + self.solver.n > self.budget:
+            self._handover = True            # no room left in this tick's budget
+        else:
+            self._units += self.solver.n
+            self._begin_handover(self.channels[self._next])
+
+
 class _ScanAhead:
     """:class:`MagneticTracker`'s scan over the sensors for a burst to solve ahead
     (:meth:`MagneticTracker._solve_ahead`), with its compiled form bound at construction."""
@@ -462,7 +587,7 @@ class _ScanAhead:
         return self._ahead_unchanged
 
 
-class MagneticTracker(_CompiledReport, _ScanAhead):
+class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
     """Solves each burst for every sensor and reports the magnetic poses (a
     :class:`coiltrack.firmware.track.BurstTracker`).
 
@@ -529,6 +654,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
         self._bind_report_chain(core)
         self._bind_scan(core)
+        self._bind_handover(core)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:

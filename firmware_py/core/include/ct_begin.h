@@ -75,4 +75,16 @@ int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const 
                     int have_pose, int initialized, double range_m, const double *tp, const double *tR, double *wp,
                     double *wR, const double *S, const double *cur, const struct ct_ahead_buf *ah);
 
+struct ct_sup;
+/* MagneticTracker._begin_handover's first steps (_begin on the compiled core): ct_begin_inputs of the
+ * channel's window flags fl (nf) and the faults fv (nc), then Supervisor.pose_status of node with those
+ * flags (ct_sup_pose_status on sup).  Returns the burst's POSE bits (input_status's | pose_status's, 32
+ * bits) | veto << 32 | unusable << 33, or -1 where input_status's bits or the flags are out of range
+ * (nothing written: nothing is). */
+int64_t ct_handover_status(const struct ct_begin_bits *b, const int64_t *fl, int nf, const int64_t *fv, int nc,
+                           const struct ct_sup *sup, int64_t node);
+/* MagneticTracker._start_solve_compiled's test for a solve ahead to take over: its record st (burst,
+ * done) is of burst and done, or it is the solve running (running == k) */
+int ct_handover_ahead(const int64_t *st, int64_t burst, int64_t running, int64_t k);
+
 #endif /* CT_BEGIN_H */

@@ -110,3 +110,23 @@ int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const 
     len[0] = len[1] = 3 * (int64_t)n, len[2] = n, len[3] = len[4] = 3, len[5] = 9;
     return 1 | ct_report_same(6, a, b, len) << 1;
 }
+
+/* MagneticTracker._begin_handover: _begin_compiled's BurstInputs.status, then the supervisor's
+ * pose_status (Supervisor._pose_status_compiled) */
+int64_t ct_handover_status(const struct ct_begin_bits *b, const int64_t *fl, int nf, const int64_t *fv, int nc,
+                           const struct ct_sup *sup, int64_t node)
+{
+    int64_t flags, bits, ps;
+    int unusable;
+    bits = ct_begin_inputs(b, fl, nf, fv, nc, &flags, &unusable);
+    if (bits < 0 || bits > 255 || flags < 0)
+        return -1;
+    ps = ct_sup_pose_status(sup, node, flags);
+    return (bits | (ps & 0xFFFFFFFF)) | (((ps >> 32) & 1) << 32) | ((int64_t)(unusable != 0) << 33);
+}
+
+/* MagneticTracker._start_solve_compiled: st[0] == burst and (st[1] or running == k) */
+int ct_handover_ahead(const int64_t *st, int64_t burst, int64_t running, int64_t k)
+{
+    return st[0] == burst && (st[1] != 0 || running == k);
+}
