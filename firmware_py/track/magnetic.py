@@ -377,37 +377,32 @@ class _CompiledReport:
         self._chains = chains
         self._report_pose = self._report_pose_compiled
 
+
 class _HandOver:
-    """:class:`MagneticTracker`'s hand-overs on the compiled core: :meth:`_begin` and :meth:`_report`
-    with the compiled steps between them called straight, bound at construction
-    (:meth:`_bind_handover`). A burst whose solve ahead finished on the same inputs is handed over
-    in :meth:`_begin_handover` (``BurstInputs.status``, the supervisor's pose status,
-    ``AheadStart.inputs`` through :meth:`_take_ahead`) and reported in :meth:`_report_handover`
-    (``ReportChain`` grading and frame, :meth:`on_solution`), the same calls in the same order as
-    :meth:`_begin_compiled`, :meth:`_start_solve_compiled`, :meth:`_report` and
-    :meth:`_report_pose_compiled` make, with fewer Python frames between them."""
+    """:class:`MagneticTracker`'s hand-over on the compiled core: a burst's begin with the take-over
+    of its solve ahead in one compiled call (:meth:`_begin_handover`), bound at the first begin
+    (:meth:`_bind_handover`, :meth:`_begin_first`). The Python methods it stands for stay the
+    reference: :meth:`_begin_compiled`, :meth:`_start_solve_compiled` and :meth:`_take_ahead`."""
 
     def _bind_handover(self, core) -> None:
-        """:meth:`_begin` replaced on this instance by :meth:`_begin_first` where every step it and
-        :meth:`_report` call is the compiled one (:meth:`_bind_begin`, :meth:`_bind_start`,
-        :meth:`_bind_ahead_start`, :meth:`_bind_report_chain`) and no class overrides them; else left
-        as they are."""
+        """:meth:`_begin` replaced on this instance by :meth:`_begin_first` where the steps
+        :meth:`_begin_handover` stands for are the compiled ones (:meth:`_bind_begin`,
+        :meth:`_bind_start`, :meth:`_bind_ahead_start`) and no class overrides them; else left as it is."""
         mt = MagneticTracker
         if not self.ahead or core.ext is None or not hasattr(self.supervisor, "pose_kernel") \
-                or type(self)._begin is not mt._begin or type(self)._report is not mt._report \
-                or type(self)._take_ahead is not mt._take_ahead or type(self)._solve_from is not mt._solve_from \
+                or type(self)._begin is not mt._begin or type(self)._take_ahead is not mt._take_ahead \
+                or type(self)._solve_from is not mt._solve_from \
                 or getattr(self._begin, "__func__", None) is not _CompiledReport._begin_compiled \
                 or getattr(self._start_solve, "__func__", None) is not _CompiledReport._start_solve_compiled \
-                or getattr(self._report_pose, "__func__", None) is not _CompiledReport._report_pose_compiled \
                 or self._as_inputs is None:
             return
         self._ho_ext = core.ext
         self._begin = self._begin_first
 
     def _begin_first(self, ch) -> None:
-        """:meth:`_begin_compiled` at the first burst's begin, :meth:`_begin_handover` and
-        :meth:`_report_handover` bound before it where the supervisor's pose status is compiled (its
-        ``pose_kernel``: the receive stage binds it after the tracker is built): one ``HandOver``
+        """:meth:`_begin_compiled` at the first burst's begin, :meth:`_begin_handover` bound before it
+        where the supervisor's pose status is compiled (its ``pose_kernel``: the receive stage binds it
+        after the tracker is built): one ``HandOver``
         (``core/py_begin.c``; ``core/src/begin.c`` ``ct_handover_status``, ``ct_handover_ahead``, then
         ``ct_ahead_inputs``) bound to the tracker's ``AheadStart`` and ``BurstInputs``, the
         supervisor's ``SupMag``, the channels' nodes and ``_ahead_st``."""
@@ -422,7 +417,6 @@ class _HandOver:
             if ho is not None:
                 self._ho_begin = ho.begin
                 self._begin = self._begin_handover
-                self._report = self._report_handover
         self._begin(ch)
 
     def _begin_handover(self, ch) -> None:
@@ -466,39 +460,6 @@ class _HandOver:
         if res.solve_evals > self.solve_evals_max:
             self.solve_evals_max = res.solve_evals
         self._report(ch, not (res.status & SOLVE_FAILED))
-
-    def _report_handover(self, ch, solved: bool) -> None:
-        """:meth:`_report` with :meth:`_report_pose_compiled`'s steps in it."""
-        tp = self.poses[ch.node]
-        t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
-        if solved:
-            chain, cov, fus, frame = self._chains[ch.node]
-            q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
-                                          fus is not None and fus.initialized)
-            if q < 0:
-                solved = False
-                tp.have_pose = False
-                self.out_of_range += 1
-            else:
-                tp.have_pose = True
-                st = self._status | POSE_VALID
-                if not self.tx.pose_built(frame, ch.node, t_pose, st, q):
-                    self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, st, q)
-        if not solved:
-            self.tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
-        self.on_solution(ch, solved)
-        self._next += 1
-        if self._next == len(self.channels):
-            self._next = -1
-            self.cycles += 1
-            if self._burst_ticks > self.solve_ticks_max:
-                self.solve_ticks_max = self._burst_ticks
-            self.burst.release()
-        elif self._units + self.solver.n > self.budget:
-            self._handover = True            # no room left in this tick's budget
-        else:
-            self._units += self.solver.n
-            self._begin_handover(self.channels[self._next])
 
 
 class _ScanAhead:
