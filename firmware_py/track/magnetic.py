@@ -400,24 +400,28 @@ class _HandOver:
         self._begin = self._begin_first
 
     def _begin_first(self, ch) -> None:
-        """:meth:`_begin_compiled` at the first burst's begin, :meth:`_begin_handover` bound before it
-        where the supervisor's pose status is compiled (its ``pose_kernel``: the receive stage binds it
-        after the tracker is built): one ``HandOver``
+        """:meth:`_begin_compiled` at the first burst's begin, :meth:`_bind_handover_now` before it."""
+        self._begin = self._begin_compiled
+        self._bind_handover_now()
+        self._begin(ch)
+
+    def _bind_handover_now(self) -> bool:
+        """:meth:`_begin_handover` bound where the supervisor's pose status is compiled (its
+        ``pose_kernel``: the receive stage binds it after the tracker is built): one ``HandOver``
         (``core/py_begin.c``; ``core/src/begin.c`` ``ct_handover_status``, ``ct_handover_ahead``, then
         ``ct_ahead_inputs``) bound to the tracker's ``AheadStart`` and ``BurstInputs``, the
-        supervisor's ``SupMag``, the channels' nodes and ``_ahead_st``."""
-        self._begin = self._begin_compiled
+        supervisor's ``SupMag``, the channels' nodes and ``_ahead_st``; whether it was."""
         sk = self.supervisor.pose_kernel()
-        if sk is not None:
-            try:
-                ho = self._ho_ext.HandOver(self._as_inputs.__self__, self._bk, sk,
-                                           tuple(c.node for c in self.channels), self._ahead_st)
-            except (AttributeError, TypeError, ValueError):
-                ho = None
-            if ho is not None:
-                self._ho_begin = ho.begin
-                self._begin = self._begin_handover
-        self._begin(ch)
+        if sk is None:
+            return False
+        try:
+            ho = self._ho_ext.HandOver(self._as_inputs.__self__, self._bk, sk, tuple(c.node for c in self.channels),
+                                       self._ahead_st)
+        except (AttributeError, TypeError, ValueError):
+            return False
+        self._ho_begin = ho.begin
+        self._begin = self._begin_handover
+        return True
 
     def _begin_handover(self, ch) -> None:
         """:meth:`_begin_compiled` with :meth:`_start_solve_compiled`'s test for a solve ahead to take
