@@ -69,7 +69,12 @@ def _setup(fw, seed: int) -> None:
             ch.flags[int(rng.integers(0, ch.flags.size))] = PULSE_TOO_FEW
         elif f < 0.2:
             ch.flags[int(rng.integers(0, ch.flags.size))] = PULSE_BASELINE_DRIFT
-    seen = fw.supervisor.health.status_seen          # the coils' status heard (else every pose vetoed)
+    h = fw.supervisor.health
+    for node in (ch.node for ch in tr.channels):    # some sensors' fields distorted, clocks suspect
+        i = h._slot[node]
+        h.distorted[i] = int(rng.random() < 0.1)
+        h.suspect_open[i] = int(rng.random() < 0.05)
+    seen = h.status_seen                             # the coils' status heard (else every pose vetoed)
     for j in range(tr.schedule.n):
         seen[j] = 1
     if rng.random() < 0.08:
