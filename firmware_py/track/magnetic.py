@@ -242,6 +242,11 @@ class _CompiledReport:
             if st[k, 0] == (NO_BURST if bs is None else bs) and (st[k, 1] or self._ahead_k == k):
                 self._take_ahead(ch, k)
                 return
+        self._start_fresh(ch, k)
+
+    def _start_fresh(self, ch, k: int) -> None:
+        """:meth:`_start_solve_compiled` where no solve ahead is to be taken over (a model with a
+        distortion map: the reference)."""
         sv = self.solver
         if sv.signal.distortion is not None:
             MagneticTracker._start_solve(self, ch)
@@ -446,7 +451,7 @@ class _HandOver:
             if code == 0:
                 self._report(ch, False)
             elif code == 1:
-                self._start_solve_compiled(ch)
+                self._start_fresh(ch, k)
             else:
                 self._solve_from(ch, tp, False)
             return
