@@ -48,6 +48,7 @@ from coiltrack.firmware.track.quality import PoseQuality
 
 SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
 HO_VETO = 1 << 32          # HandOver.begin's veto bit
+HO_REFERENCE = -1          # no HandOver bound: _begin_compiled
 #: :meth:`MagneticTracker._ahead_scan`'s answers besides a channel: none ready, every sensor has had
 #: its turn, and (the compiled scan only) a time it does not take: ask the reference
 AHEAD_NONE, AHEAD_SEEN, AHEAD_ASK = -1, -2, -3
@@ -383,16 +384,22 @@ class _CompiledReport:
         self._report_pose = self._report_pose_compiled
 
 
+def _ho_reference(k: int, have_pose: bool, burst: int, running: int) -> int:
+    """:meth:`MagneticTracker._begin_handover`'s kernel where none could be bound."""
+    return HO_REFERENCE
+
+
 class _HandOver:
     """:class:`MagneticTracker`'s hand-over on the compiled core: a burst's begin with the take-over
-    of its solve ahead in one compiled call (:meth:`_begin_handover`), bound at the first begin
-    (:meth:`_bind_handover`, :meth:`_begin_first`). The Python methods it stands for stay the
+    of its solve ahead in one compiled call (:meth:`_begin_handover`; :meth:`_bind_handover`, its
+    kernel bound at the first begin: :meth:`_ho_first`). The Python methods it stands for stay the
     reference: :meth:`_begin_compiled`, :meth:`_start_solve_compiled` and :meth:`_take_ahead`."""
 
     def _bind_handover(self, core) -> None:
-        """:meth:`_begin` replaced on this instance by :meth:`_begin_first` where the steps
-        :meth:`_begin_handover` stands for are the compiled ones (:meth:`_bind_begin`,
-        :meth:`_bind_start`, :meth:`_bind_ahead_start`) and no class overrides them; else left as it is."""
+        """:meth:`_begin` replaced on this instance by :meth:`_begin_handover` where the steps it
+        stands for are the compiled ones (:meth:`_bind_begin`, :meth:`_bind_start`,
+        :meth:`_bind_ahead_start`) and no class overrides them; else left as it is. Its kernel is
+        bound at its first call (:meth:`_ho_first`)."""
         mt = MagneticTracker
         if not self.ahead or core.ext is None or not hasattr(self.supervisor, "pose_kernel") \
                 or type(self)._begin is not mt._begin or type(self)._take_ahead is not mt._take_ahead \
@@ -402,16 +409,19 @@ class _HandOver:
                 or self._as_inputs is None:
             return
         self._ho_ext = core.ext
-        self._begin = self._begin_first
+        self._ho_begin = self._ho_first
+        self._begin = self._begin_handover
 
-    def _begin_first(self, ch) -> None:
-        """:meth:`_begin_compiled` at the first burst's begin, :meth:`_bind_handover_now` before it."""
-        self._begin = self._begin_compiled
-        self._bind_handover_now()
-        self._begin(ch)
+    def _ho_first(self, k: int, have_pose: bool, burst: int, running: int) -> int:
+        """``HandOver.begin`` at the first burst's begin, bound then (:meth:`_bind_handover_now`), or
+        where it cannot be, :data:`HO_REFERENCE` from then on (:meth:`_begin_handover` runs
+        :meth:`_begin_compiled`)."""
+        if not self._bind_handover_now():
+            self._ho_begin = _ho_reference
+        return self._ho_begin(k, have_pose, burst, running)
 
     def _bind_handover_now(self) -> bool:
-        """:meth:`_begin_handover` bound where the supervisor's pose status is compiled (its
+        """``HandOver.begin`` bound where the supervisor's pose status is compiled (its
         ``pose_kernel``: the receive stage binds it after the tracker is built): one ``HandOver``
         (``core/py_begin.c``; ``core/src/begin.c`` ``ct_handover_status``, ``ct_handover_ahead``, then
         ``ct_ahead_inputs``) bound to the tracker's ``AheadStart`` and ``BurstInputs``, the
@@ -425,7 +435,6 @@ class _HandOver:
         except (AttributeError, TypeError, ValueError):
             return False
         self._ho_begin = ho.begin
-        self._begin = self._begin_handover
         return True
 
     def _begin_handover(self, ch) -> None:
@@ -442,6 +451,9 @@ class _HandOver:
         tp = self._ss_poses[k]
         bs = self.schedule.burst_start
         r = self._ho_begin(k, tp.have_pose, NO_BURST if bs is None else bs, self._ahead_k)
+        if r < 0:
+            self._begin_compiled(ch)
+            return
         sup = self.supervisor
         self._status = r & 0xFFFFFFFF
         if r & HO_VETO or sup.veto:

@@ -131,3 +131,21 @@ def test_a_model_with_a_distortion_map_takes_the_reference(monkeypatch):
     monkeypatch.setattr(tr, "_begin_compiled", lambda ch: calls.append(ch))
     tr._begin(tr.channels[0])
     assert calls == [tr.channels[0]]
+
+
+def test_without_the_supervisors_kernel_the_hand_over_is_the_reference(monkeypatch):
+    """A supervisor whose pose status is not compiled (no ``pose_kernel``) at the first begin: the
+    kernel is not bound and every begin is ``_begin_compiled``'s, the same bits and frames."""
+    from coiltrack.firmware.track import magnetic
+    cfg = scenarios.get("multi16").firmware_config().with_(core={"impl": "compiled"}).validate()
+    got, ref = Firmware(cfg, _Port()), Firmware(cfg, _Port())
+    assert got.tracker._ho_begin.__func__ is MagneticTracker._ho_first
+    monkeypatch.setattr(got.supervisor, "pose_kernel", lambda: None)
+    ref.tracker._begin = ref.tracker._begin_compiled
+    for seed in range(12):
+        for fw in (got, ref):
+            _setup(fw, 7000 + seed)
+        got.tracker._begin(got.tracker.channels[0])
+        ref.tracker._begin(ref.tracker.channels[0])
+        _same(got, ref)
+    assert got.tracker._ho_begin is magnetic._ho_reference
