@@ -279,6 +279,7 @@ class _CompiledReport:
         except (AttributeError, TypeError, ValueError):
             return
         self._as_start, self._as_inputs = k.start, k.inputs
+        self._as_prep = self._prepare_currents          # what ct_ahead_start repeats (see below)
         self._ahead_start = self._ahead_start_compiled
 
     def _take_ahead(self, ch, k: int) -> None:
@@ -315,9 +316,11 @@ class _CompiledReport:
 
     def _ahead_start_compiled(self, k: int, start: int, end: int) -> bool:
         """:meth:`_ahead_start` in one compiled call (:meth:`_bind_ahead_start`); a model with a
-        distortion map, or a time the extraction does not take, the reference."""
+        distortion map, a time the extraction does not take, or a :meth:`_prepare_currents` replaced
+        since the binding (the kernel repeats the compiled one), the reference."""
         sv = self.solver
-        r = AHEAD_ASK if sv.signal.distortion is not None else self._as_start(k, self._ss_poses[k].have_pose, start, end)
+        r = AHEAD_ASK if sv.signal.distortion is not None or self._prepare_currents is not self._as_prep \
+            else self._as_start(k, self._ss_poses[k].have_pose, start, end)
         if r < 0:
             return r == AHEAD_ASK and MagneticTracker._ahead_start(self, k, start, end)
         if not sv.begun(r, True) & SOLVE_RUNNING:
@@ -406,7 +409,7 @@ class _HandOver:
                 or type(self)._solve_from is not mt._solve_from \
                 or getattr(self._begin, "__func__", None) is not _CompiledReport._begin_compiled \
                 or getattr(self._start_solve, "__func__", None) is not _CompiledReport._start_solve_compiled \
-                or self._as_inputs is None:
+                or getattr(self, "_as_inputs", None) is None:
             return
         self._ho_ext = core.ext
         self._ho_begin = self._ho_first
