@@ -48,7 +48,7 @@ from coiltrack.firmware.track.quality import PoseQuality
 
 SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
 HO_VETO = 1 << 32          # HandOver.begin's veto bit
-HO_REFERENCE = -1          # no HandOver bound: _begin_compiled
+HO_REFERENCE = -1          # no HandOver bound (yet): _begin_compiled
 #: :meth:`MagneticTracker._ahead_scan`'s answers besides a channel: none ready, every sensor has had
 #: its turn, and (the compiled scan only) a time it does not take: ask the reference
 AHEAD_NONE, AHEAD_SEEN, AHEAD_ASK = -1, -2, -3
@@ -395,14 +395,15 @@ def _ho_reference(k: int, have_pose: bool, burst: int, running: int) -> int:
 class _HandOver:
     """:class:`MagneticTracker`'s hand-over on the compiled core: a burst's begin with the take-over
     of its solve ahead in one compiled call (:meth:`_begin_handover`; :meth:`_bind_handover`, its
-    kernel bound at the first begin: :meth:`_ho_first`). The Python methods it stands for stay the
+    kernel bound once the firmware is composed: :meth:`bind_composed`). The Python methods it stands for stay the
     reference: :meth:`_begin_compiled`, :meth:`_start_solve_compiled` and :meth:`_take_ahead`."""
 
     def _bind_handover(self, core) -> None:
         """:meth:`_begin` replaced on this instance by :meth:`_begin_handover` where the steps it
         stands for are the compiled ones (:meth:`_bind_begin`, :meth:`_bind_start`,
         :meth:`_bind_ahead_start`) and no class overrides them; else left as it is. Its kernel is
-        bound at its first call (:meth:`_ho_first`)."""
+        bound once the firmware is composed (:meth:`bind_composed`); till then, or where it cannot
+        be, :meth:`_begin_handover` runs :meth:`_begin_compiled`."""
         mt = MagneticTracker
         if not self.ahead or core.ext is None or not hasattr(self.supervisor, "pose_kernel") \
                 or type(self)._begin is not mt._begin or type(self)._take_ahead is not mt._take_ahead \
@@ -412,16 +413,14 @@ class _HandOver:
                 or getattr(self, "_as_inputs", None) is None:
             return
         self._ho_ext = core.ext
-        self._ho_begin = self._ho_first
+        self._ho_begin = _ho_reference
         self._begin = self._begin_handover
 
-    def _ho_first(self, k: int, have_pose: bool, burst: int, running: int) -> int:
-        """``HandOver.begin`` at the first burst's begin, bound then (:meth:`_bind_handover_now`), or
-        where it cannot be, :data:`HO_REFERENCE` from then on (:meth:`_begin_handover` runs
-        :meth:`_begin_compiled`)."""
-        if not self._bind_handover_now():
-            self._ho_begin = _ho_reference
-        return self._ho_begin(k, have_pose, burst, running)
+    def bind_composed(self) -> None:
+        """Called once the firmware's stages are all built (``loop.Firmware``): the hand-over's kernel
+        (:meth:`_bind_handover_now`), which reads the supervisor's kernel the receive stage binds."""
+        if getattr(self, "_ho_ext", None) is not None:
+            self._bind_handover_now()
 
     def _bind_handover_now(self) -> bool:
         """``HandOver.begin`` bound where the supervisor's pose status is compiled (its

@@ -40,8 +40,8 @@ BURST = 123_456
 def _pair():
     cfg = scenarios.get("multi16").firmware_config().with_(core={"impl": "compiled"}).validate()
     got, ref = Firmware(cfg, _Port()), Firmware(cfg, _Port())
-    assert got.tracker._bind_handover_now()
     assert got.tracker._begin.__func__ is MagneticTracker._begin_handover
+    assert got.tracker._ho_begin.__self__.__class__.__name__ == "HandOver"      # bound when composed
     del ref.tracker._begin                    # the references: _begin, the supervisor's pose_status,
     del ref.supervisor.pose_status            # _start_solve (through _take_ahead without AheadStart)
     ref.tracker._as_inputs = None
@@ -134,13 +134,16 @@ def test_a_model_with_a_distortion_map_takes_the_reference(monkeypatch):
 
 
 def test_without_the_supervisors_kernel_the_hand_over_is_the_reference(monkeypatch):
-    """A supervisor whose pose status is not compiled (no ``pose_kernel``) at the first begin: the
-    kernel is not bound and every begin is ``_begin_compiled``'s, the same bits and frames."""
+    """A supervisor whose pose status is not compiled (no ``pose_kernel``) when the firmware is
+    composed: no kernel is bound and every begin is ``_begin_compiled``'s, the same bits and frames."""
+    from coiltrack.firmware.supervise.supervisor import Supervisor
     from coiltrack.firmware.track import magnetic
     cfg = scenarios.get("multi16").firmware_config().with_(core={"impl": "compiled"}).validate()
-    got, ref = Firmware(cfg, _Port()), Firmware(cfg, _Port())
-    assert got.tracker._ho_begin.__func__ is MagneticTracker._ho_first
-    monkeypatch.setattr(got.supervisor, "pose_kernel", lambda: None)
+    ref = Firmware(cfg, _Port())
+    monkeypatch.setattr(Supervisor, "pose_kernel", lambda self: None)
+    got = Firmware(cfg, _Port())
+    assert got.tracker._begin.__func__ is MagneticTracker._begin_handover
+    assert got.tracker._ho_begin is magnetic._ho_reference
     ref.tracker._begin = ref.tracker._begin_compiled
     for seed in range(12):
         for fw in (got, ref):
@@ -148,4 +151,4 @@ def test_without_the_supervisors_kernel_the_hand_over_is_the_reference(monkeypat
         got.tracker._begin(got.tracker.channels[0])
         ref.tracker._begin(ref.tracker.channels[0])
         _same(got, ref)
-    assert got.tracker._ho_begin is magnetic._ho_reference
+    assert got.tracker.ahead_used > 5
