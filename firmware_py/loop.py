@@ -104,6 +104,11 @@ class Firmware:
                                  imu_interval_us=1e6 / cfg.imu.imu_delta_rate_hz, imu_step_us=1e6 / cfg.imu.imu_rate_hz,
                                  frames_per_tick=cfg.receive.rx_frames_per_tick, queue_bytes=cfg.receive.rx_queue_bytes,
                                  core=kernels)
+        # what binds across stages once every one is built (the tracker's hand-over reads the
+        # supervisor's kernel, made with the receive stage)
+        bind = getattr(self.tracker, "bind_composed", None)
+        if bind is not None:
+            bind()
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
         self.boot_us: int | None = None

@@ -11,6 +11,7 @@
 #include "coiltrack_core.h"
 #include "py_glue.h"
 #include "py_solve.h"
+#include "py_pulse.h"
 
 #define BI_MAXCH 64
 
@@ -329,9 +330,367 @@ static PyTypeObject SolveStartType = {
     .tp_methods = SolveStart_methods,
 };
 
+/* ---------------------------------------------------------------- AheadStart */
+/* per channel: its PulseWindow, its ring's hc (head, count, ...), then its _Ahead's S, sigma (3n),
+ * currents (n), hemisphere (3), warm_p (3), warm_R (9), amp (3), var (3) */
+#define AS_NB 9
+static const char *as_names[AS_NB] = {"hc", "S", "sigma", "currents", "hemisphere", "warm_p", "warm_R", "amp",
+                                      "var"};
+#define AS_FAR ((int64_t)1 << 61)     /* measure/pulse.py _T_FAR: a time beyond goes to the reference */
+#define AS_ASK (-3)
+
+typedef struct {
+    const struct ct_pulse *x;
+    const struct ct_sample_ring *r;
+    double *res;
+    int64_t *ires;
+    const int64_t *hc;
+    struct ct_ahead_buf ah;
+} as_channel;
+
+typedef struct {
+    PyObject_HEAD
+    SolveStartObject *ss;        /* the channels' inputs, filters and tracked poses, and the solve (held) */
+    PyObject *windows;           /* the channels' PulseWindows (a tuple, held) */
+    const double *measured, *nominal;
+    as_channel ch[SS_MAXCH];
+    Py_buffer views[SS_MAXCH * AS_NB + 2];
+    int nviews;
+} AheadStartObject;
+
+static void AheadStart_dealloc(AheadStartObject *self)
+{
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    Py_XDECREF(self->ss);
+    Py_XDECREF(self->windows);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int as_bind(AheadStartObject *self, PyObject *o, Py_ssize_t len, const char *fmt, int wr, const char *name,
+                   void **ptr)
+{
+    Py_buffer *v = &self->views[self->nviews];
+    if (ct_py_buffer(o, len, 8, fmt, wr, v, name) < 0)
+        return -1;
+    self->nviews++;
+    *ptr = v->buf;
+    return 0;
+}
+
+static int as_channel_bind(AheadStartObject *self, as_channel *c, PyObject *one, int n)
+{
+    void *ptr[AS_NB];
+    const Py_ssize_t len[AS_NB] = {2, 3 * n, 3 * n, n, 3, 3, 9, 3, 3};
+    int k;
+    if (PySequence_Fast_GET_SIZE(one) != AS_NB + 1) {
+        PyErr_Format(PyExc_ValueError, "AheadStart: a channel needs a PulseWindow and %d buffers", AS_NB);
+        return -1;
+    }
+    if (ct_py_pulse_window_of(PySequence_Fast_GET_ITEM(one, 0), &c->x, &c->r, &c->res, &c->ires) < 0)
+        return -1;
+    for (k = 0; k < AS_NB; ++k)
+        if (as_bind(self, PySequence_Fast_GET_ITEM(one, k + 1), len[k], k ? "d" : "ql", k > 0, as_names[k],
+                    &ptr[k]) < 0)
+            return -1;
+    c->hc = ptr[0];
+    c->ah.S = ptr[1];
+    c->ah.sigma = ptr[2];
+    c->ah.cur = ptr[3];
+    c->ah.hemi = ptr[4];
+    c->ah.wp = ptr[5];
+    c->ah.wR = ptr[6];
+    c->ah.amp = ptr[7];
+    c->ah.var = ptr[8];
+    return 0;
+}
+
+/* AheadStart(start, measured, nominal, channels): start the tracker's bound SolveStart, measured and
+ * nominal the schedule's currents (float64, n), channels per channel of start's (PulseWindow, hc, S,
+ * sigma, currents, hemisphere, warm_p, warm_R, amp, var) */
+static int AheadStart_init(AheadStartObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"start", "measured", "nominal", "channels", NULL};
+    PyObject *ss, *measured, *nominal, *chans, *seq = NULL, *one = NULL, *wins = NULL;
+    SolveStartObject *s;
+    void *p;
+    int i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!OOO", kwlist, &SolveStartType, &ss, &measured, &nominal, &chans))
+        return -1;
+    s = (SolveStartObject *)ss;
+    if (self->ss != NULL || s->run == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "AheadStart: already bound, or the SolveStart is not");
+        return -1;
+    }
+    if (as_bind(self, measured, s->n, "d", 0, "measured", &p) < 0)
+        return -1;
+    self->measured = p;
+    if (as_bind(self, nominal, s->n, "d", 0, "nominal", &p) < 0)
+        goto fail;
+    self->nominal = p;
+    seq = PySequence_Fast(chans, "AheadStart: channels must be a sequence");
+    if (seq == NULL)
+        goto fail;
+    if (PySequence_Fast_GET_SIZE(seq) != s->nch) {
+        PyErr_SetString(PyExc_ValueError, "AheadStart: one entry per channel of the SolveStart");
+        goto fail;
+    }
+    wins = PyTuple_New(s->nch);
+    if (wins == NULL)
+        goto fail;
+    for (i = 0; i < s->nch; ++i) {
+        one = PySequence_Fast(PySequence_Fast_GET_ITEM(seq, i), "AheadStart: a channel must be a sequence");
+        if (one == NULL || as_channel_bind(self, &self->ch[i], one, s->n) < 0)
+            goto fail;
+        Py_INCREF(PySequence_Fast_GET_ITEM(one, 0));
+        PyTuple_SET_ITEM(wins, i, PySequence_Fast_GET_ITEM(one, 0));
+        Py_CLEAR(one);
+    }
+    Py_DECREF(seq);
+    Py_INCREF(ss);
+    self->ss = s;
+    self->windows = wins;
+    return 0;
+fail:
+    Py_XDECREF(one);
+    Py_XDECREF(seq);
+    Py_XDECREF(wins);
+    while (self->nviews > 0)
+        PyBuffer_Release(&self->views[--self->nviews]);
+    return -1;
+}
+
+/* start(k, have_pose, start_us, end_us) -> status, CT_AHEAD_COLD, CT_AHEAD_NO_WINDOW, or AS_ASK for a
+ * time the extraction does not take (ct_ahead_start on channel k, its last window [start_us, end_us]) */
+static PyObject *AheadStart_start(AheadStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k, t0, t1;
+    int have;
+    const SolveStartObject *s = self->ss;
+    const ss_channel *c;
+    const as_channel *a;
+    struct ct_sample_ring r;
+    if (s == NULL || ct_py_nargs("start", nargs, 4) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    if (have < 0)
+        return NULL;
+    if (k < 0 || k >= s->nch) {
+        PyErr_SetString(PyExc_IndexError, "AheadStart.start: channel out of range");
+        return NULL;
+    }
+    if (!ct_py_int_only(args[2], &t0) || !ct_py_int_only(args[3], &t1) ||
+        !(-AS_FAR < t0 && t0 < AS_FAR && -AS_FAR < t1 && t1 < AS_FAR))
+        return PyLong_FromLong(AS_ASK);
+    c = &s->ch[k];
+    a = &self->ch[k];
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap ||
+        a->hc[0] < 0 || a->hc[0] >= a->r->cap || a->hc[1] < 0 || a->hc[1] > a->r->cap) {
+        PyErr_SetString(PyExc_ValueError, "AheadStart.start: a ring's head or count out of range");
+        return NULL;
+    }
+    r = *a->r;
+    r.head = a->hc[0];
+    r.count = a->hc[1];
+    return PyLong_FromLong(ct_ahead_start(s->s, s->n, &c->h, c->tr[0], have, c->fs[s->fs_init] != 0, s->range_m,
+                                          c->tp, c->tR, c->wp, c->wR, a->x, &r, t0, t1, a->res, a->ires, c->S, c->var,
+                                          s->floor2, self->measured, self->nominal, &a->ah));
+}
+
+/* inputs(k, have_pose) -> warm | same << 1 (ct_ahead_inputs on channel k against its solve ahead) */
+static PyObject *AheadStart_inputs(AheadStartObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k;
+    int have;
+    const SolveStartObject *s = self->ss;
+    const ss_channel *c;
+    if (s == NULL || ct_py_nargs("inputs", nargs, 2) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    if (have < 0)
+        return NULL;
+    if (k < 0 || k >= s->nch) {
+        PyErr_SetString(PyExc_IndexError, "AheadStart.inputs: channel out of range");
+        return NULL;
+    }
+    c = &s->ch[k];
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
+        PyErr_SetString(PyExc_ValueError, "AheadStart.inputs: the history's head or count out of range");
+        return NULL;
+    }
+    return PyLong_FromLong(ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have,
+                                           c->fs[s->fs_init] != 0, s->range_m, c->tp, c->tR, c->wp, c->wR, c->S,
+                                           s->cur, &self->ch[k].ah));
+}
+
+static PyMethodDef AheadStart_methods[] = {
+    {"inputs", (PyCFunction)(void (*)(void))AheadStart_inputs, METH_FASTCALL,
+     "inputs(k, have_pose) -> warm | same << 1: channel k's sigma and warm start, and whether its burst's inputs "
+     "are those its solve ahead began with"},
+    {"start", (PyCFunction)(void (*)(void))AheadStart_start, METH_FASTCALL,
+     "start(k, have_pose, start_us, end_us) -> status, -1 (no warm start), -2 (no window) or -3 (a time for the "
+     "reference): channel k's warm start and the begin of its solve ahead on its last window"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject AheadStartType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.AheadStart",
+    .tp_basicsize = sizeof(AheadStartObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "AheadStart(start, measured, nominal, channels): the fused tracker's begin of a solve ahead (warm "
+              "start, the last window's extraction, the copies, begin) bound to a SolveStart and the _Aheads",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)AheadStart_init,
+    .tp_dealloc = (destructor)AheadStart_dealloc,
+    .tp_methods = AheadStart_methods,
+};
+
+/* ------------------------------------------------------------- HandOver */
+typedef struct {
+    PyObject_HEAD
+    AheadStartObject *as;        /* the solves ahead's inputs (and through it the SolveStart), held */
+    BurstInputsObject *bi;       /* the channels' window flags and the faults, held */
+    PyObject *supo;              /* the supervisor's SupMag, held */
+    const struct ct_sup *sup;
+    int64_t node[SS_MAXCH];
+    int64_t *st;                 /* the tracker's _ahead_st (nch x 2) */
+    Py_buffer stv;
+    int bound;
+} HandOverObject;
+
+static void HandOver_dealloc(HandOverObject *self)
+{
+    if (self->bound)
+        PyBuffer_Release(&self->stv);
+    Py_XDECREF(self->as);
+    Py_XDECREF(self->bi);
+    Py_XDECREF(self->supo);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+/* HandOver(ahead, inputs, sup, nodes, ahead_st): the tracker's AheadStart and BurstInputs, the
+ * supervisor's SupMag, the channels' nodes and the tracker's _ahead_st (int64, nch x 2) */
+static int HandOver_init(HandOverObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"ahead", "inputs", "sup", "nodes", "ahead_st", NULL};
+    PyObject *as, *bi, *supo, *nodes, *st, *seq;
+    const struct ct_sup *sup;
+    int nch, i;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "O!O!OOO", kwlist, &AheadStartType, &as, &BurstInputsType, &bi, &supo,
+                                     &nodes, &st))
+        return -1;
+    if (self->bound || ((AheadStartObject *)as)->ss == NULL || !((BurstInputsObject *)bi)->nch) {
+        PyErr_SetString(PyExc_RuntimeError, "HandOver: already bound, or a part is not");
+        return -1;
+    }
+    nch = ((AheadStartObject *)as)->ss->nch;
+    if (((BurstInputsObject *)bi)->nch != nch) {
+        PyErr_SetString(PyExc_ValueError, "HandOver: the parts' channels differ");
+        return -1;
+    }
+    sup = ct_py_sup_of(supo);
+    if (sup == NULL)
+        return -1;
+    seq = PySequence_Fast(nodes, "HandOver: nodes must be a sequence");
+    if (seq == NULL)
+        return -1;
+    if (PySequence_Fast_GET_SIZE(seq) != nch) {
+        Py_DECREF(seq);
+        PyErr_SetString(PyExc_ValueError, "HandOver: one node per channel");
+        return -1;
+    }
+    for (i = 0; i < nch; ++i)
+        if (ct_py_int64(PySequence_Fast_GET_ITEM(seq, i), &self->node[i]) < 0) {
+            Py_DECREF(seq);
+            return -1;
+        }
+    Py_DECREF(seq);
+    if (ct_py_buffer(st, 2 * nch, 8, "ql", 1, &self->stv, "ahead_st") < 0)
+        return -1;
+    self->st = self->stv.buf;
+    self->sup = sup;
+    Py_INCREF(as);
+    Py_INCREF(bi);
+    Py_INCREF(supo);
+    self->as = (AheadStartObject *)as;
+    self->bi = (BurstInputsObject *)bi;
+    self->supo = supo;
+    self->bound = 1;
+    return 0;
+}
+
+#define HO_NO_BURST ((int64_t)(-9223372036854775807LL - 1))    /* track/magnetic.py NO_BURST */
+
+/* begin(k, have_pose, burst, running) -> bits | veto << 32 | unusable << 33 | code << 34: channel k's
+ * ct_handover_status; where usable and not vetoed (code > 0) the test for its solve ahead of burst
+ * (ct_handover_ahead; code 1: none to take over), and where it passes AheadStart.inputs (ct_ahead_inputs;
+ * code 2: no warm start) and, warm, _Ahead.release (code 3: other inputs, 4: the same) */
+static PyObject *HandOver_begin(HandOverObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    int64_t k, burst, running, r;
+    int have, w;
+    const BurstInputsObject *bi = self->bi;
+    const SolveStartObject *s;
+    const ss_channel *c;
+    if (!self->bound || ct_py_nargs("begin", nargs, 4) < 0 || ct_py_int64(args[0], &k) < 0)
+        return NULL;
+    have = PyObject_IsTrue(args[1]);
+    if (have < 0 || ct_py_int64(args[2], &burst) < 0 || ct_py_int64(args[3], &running) < 0)
+        return NULL;
+    s = self->as->ss;
+    if (k < 0 || k >= s->nch) {
+        PyErr_SetString(PyExc_IndexError, "HandOver.begin: channel out of range");
+        return NULL;
+    }
+    r = ct_handover_status(&bi->b, bi->fl[k], bi->nf, bi->fv, bi->nc, self->sup, self->node[k]);
+    if (r < 0) {
+        PyErr_SetString(PyExc_ValueError, "HandOver.begin: bits or flags out of range");
+        return NULL;
+    }
+    if (r >> 32)
+        return PyLong_FromLongLong(r);
+    if (!ct_handover_ahead(&self->st[2 * k], burst, running, k))
+        return PyLong_FromLongLong(r | (int64_t)1 << 34);
+    c = &s->ch[k];
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
+        PyErr_SetString(PyExc_ValueError, "HandOver.begin: the history's head or count out of range");
+        return NULL;
+    }
+    w = ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have, c->fs[s->fs_init] != 0, s->range_m,
+                        c->tp, c->tR, c->wp, c->wR, c->S, s->cur, &self->as->ch[k].ah);
+    if (!(w & 1))
+        return PyLong_FromLongLong(r | (int64_t)2 << 34);
+    self->st[2 * k] = HO_NO_BURST;
+    return PyLong_FromLongLong(r | (int64_t)(w & 2 ? 4 : 3) << 34);
+}
+
+static PyMethodDef HandOver_methods[] = {
+    {"begin", (PyCFunction)(void (*)(void))HandOver_begin, METH_FASTCALL,
+     "begin(k, have_pose, burst, running) -> bits | veto << 32 | unusable << 33 | code << 34: MagneticTracker."
+     "_begin_handover's compiled steps (code 0: unusable or vetoed, 1: no solve ahead to take over, 2: no warm "
+     "start, 3: a solve ahead on other inputs, released, 4: on the same inputs, released)"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject HandOverType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.HandOver",
+    .tp_basicsize = sizeof(HandOverObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "HandOver(ahead, inputs, sup, nodes, ahead_st): a burst's begin in the fused tracker's hand-over "
+              "(its status, the supervisor's pose status, the take-over of its solve ahead) in one call",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)HandOver_init,
+    .tp_dealloc = (destructor)HandOver_dealloc,
+    .tp_methods = HandOver_methods,
+};
+
 int ct_register_begin(PyObject *m)
 {
     if (ct_py_add_type(m, &BurstInputsType, "BurstInputs") < 0)
         return -1;
-    return ct_py_add_type(m, &SolveStartType, "SolveStart");
+    if (ct_py_add_type(m, &SolveStartType, "SolveStart") < 0)
+        return -1;
+    if (ct_py_add_type(m, &AheadStartType, "AheadStart") < 0)
+        return -1;
+    return ct_py_add_type(m, &HandOverType, "HandOver");
 }

@@ -192,4 +192,9 @@ static inline int ct_py_pose_ints(PyObject *const *args, const int *at, long lon
     return 0;
 }
 
+struct ct_sup;
+/* o's supervisor state (py_supervise.c: a bound SupMag), for a kernel that chains its pose status; NULL
+ * with a TypeError when o is none */
+const struct ct_sup *ct_py_sup_of(PyObject *o);
+
 #endif /* CT_PY_GLUE_H */

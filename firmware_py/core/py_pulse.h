@@ -36,4 +36,9 @@ static inline void ct_py_pulse_bind(struct ct_sample_ring *r, struct ct_pulse *x
     x->drift_nsigma = fl[2];
 }
 
+/* o's extractor, ring (its head and count as of o's last call), result buffers res (6) and ires (4)
+ * (py_window.c), or -1 with a TypeError when o is no bound PulseWindow */
+int ct_py_pulse_window_of(PyObject *o, const struct ct_pulse **x, const struct ct_sample_ring **r, double **res,
+                          int64_t **ires);
+
 #endif /* CT_PY_PULSE_H */

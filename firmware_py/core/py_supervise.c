@@ -91,6 +91,17 @@ static PyObject *SupMag_mag(SupMagObject *self, PyObject *const *args, Py_ssize_
     return PyLong_FromLong(ct_sup_mag(&self->s, v[0], v[1], v[2], v[3], v[4], v[5], v[6]));
 }
 
+static PyTypeObject SupMagType;
+
+const struct ct_sup *ct_py_sup_of(PyObject *o)
+{
+    if (!PyObject_TypeCheck(o, &SupMagType) || !((SupMagObject *)o)->bound) {
+        PyErr_SetString(PyExc_TypeError, "a bound SupMag is needed");
+        return NULL;
+    }
+    return &((SupMagObject *)o)->s;
+}
+
 static PyObject *SupMag_pose_status(SupMagObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     int64_t node, flags;

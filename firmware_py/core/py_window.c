@@ -304,6 +304,21 @@ static PyTypeObject SolveIOType = {
     .tp_methods = SolveIO_methods,
 };
 
+int ct_py_pulse_window_of(PyObject *o, const struct ct_pulse **x, const struct ct_sample_ring **r, double **res,
+                          int64_t **ires)
+{
+    PulseWindowObject *w = (PulseWindowObject *)o;
+    if (!PyObject_TypeCheck(o, &PulseWindowType) || !w->bound) {
+        PyErr_SetString(PyExc_TypeError, "needs a bound PulseWindow");
+        return -1;
+    }
+    *x = &w->x;
+    *r = &w->r;
+    *res = w->res;
+    *ires = w->ires;
+    return 0;
+}
+
 int ct_register_window(PyObject *m)
 {
     if (PyType_Ready(&PulseWindowType) < 0 || PyType_Ready(&SolveIOType) < 0)

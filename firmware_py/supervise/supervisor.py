@@ -269,11 +269,20 @@ class Supervisor:
         """:meth:`pose_status` on the compiled core (``ct_sup_pose_status``: the same operations on
         the same state; bit 32 of its result the veto)."""
         r = self._pose_k(node, window_flags)
-        veto = r >> 32
+        self.vetoed(r >> 32)
+        return r & 0xFFFFFFFF
+
+    def vetoed(self, veto: int) -> None:
+        """:meth:`pose_status`'s veto from its compiled kernel (``ct_sup_pose_status``'s bit 32, or a
+        kernel's that chains it: :meth:`pose_kernel`): ``veto`` set, a veto counted."""
         self.veto = veto == 1
         if veto:
             self.poses_vetoed += 1
-        return r & 0xFFFFFFFF
+
+    def pose_kernel(self):
+        """The ``SupMag`` whose ``pose_status`` :meth:`pose_status` calls on the compiled core (for a
+        kernel that chains it; its veto then taken with :meth:`vetoed`), or None."""
+        return self._sup if self.pose_status == self._pose_status_compiled else None
 
     # ------------------------------------------------------------ status
     def counters(self) -> dict:

@@ -1009,6 +1009,7 @@ class BurstFusionTracker(MagneticTracker):
         self._bind_burst_open(core)
         self._bind_fused_tick(core)
         self._bind_scan(core)
+        self._bind_handover(core)
 
     def _ring_of(self, ch):
         """The magnetometer ring sensor ``ch``'s inertial part is fed from (:meth:`_process`)."""

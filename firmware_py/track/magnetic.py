@@ -47,6 +47,8 @@ from coiltrack.firmware.track.status import COIL_FATAL, input_status
 from coiltrack.firmware.track.quality import PoseQuality
 
 SOLVE_FAILED = SOLVE_BAD_INPUT | SOLVE_NO_START | SOLVE_NONFINITE
+HO_VETO = 1 << 32          # HandOver.begin's veto bit
+HO_REFERENCE = -1          # no HandOver bound (yet): _begin_compiled
 #: :meth:`MagneticTracker._ahead_scan`'s answers besides a channel: none ready, every sensor has had
 #: its turn, and (the compiled scan only) a time it does not take: ask the reference
 AHEAD_NONE, AHEAD_SEEN, AHEAD_ASK = -1, -2, -3
@@ -225,19 +227,27 @@ class _CompiledReport:
                                tuple(rows))
         except (AttributeError, TypeError, ValueError):
             return
-        self._ss_start = k.start
+        self._ss, self._ss_start = k, k.start
+        self._as_inputs = None               # (bound with the solve ahead's begin)
         self._ss_poses = tuple(self.poses[ch.node] for ch in chs)
+        self._ahead_stv = memoryview(self._ahead_st)
         self._start_solve = self._start_solve_compiled
+        self._bind_ahead_start(ext)
 
     def _start_solve_compiled(self, ch) -> None:
         """:meth:`_start_solve` in one compiled call (:meth:`_bind_start`); where a solve ahead may
         be taken over (``_use_ahead`` would look at the inputs), the reference."""
         k = self._next
         if self.ahead:
-            ah = self._ahead[k]
-            if ah.burst == self.schedule.burst_start and (ah.done or self._ahead_k == k):
-                MagneticTracker._start_solve(self, ch)
+            bs, st = self.schedule.burst_start, self._ahead_stv      # (_Ahead.burst, .done of row k)
+            if st[k, 0] == (NO_BURST if bs is None else bs) and (st[k, 1] or self._ahead_k == k):
+                self._take_ahead(ch, k)
                 return
+        self._start_fresh(ch, k)
+
+    def _start_fresh(self, ch, k: int) -> None:
+        """:meth:`_start_solve_compiled` where no solve ahead is to be taken over (a model with a
+        distortion map: the reference)."""
         sv = self.solver
         if sv.signal.distortion is not None:
             MagneticTracker._start_solve(self, ch)
@@ -246,6 +256,78 @@ class _CompiledReport:
         r = self._ss_start(k, self._ss_poses[k].have_pose)
         if not sv.begun(r & 255, r > 255) & SOLVE_RUNNING:
             self._report(ch, False)
+
+    def _bind_ahead_start(self, ext) -> None:
+        """:meth:`_ahead_start` in one compiled call (``AheadStart``, ``core/src/begin.c``
+        ``ct_ahead_start``: ``BurstFusionTracker.warm_start``, then :meth:`_begin_ahead`'s extraction
+        (``PulseExtractor.extract`` on the channel's ``PulseWindow``), copies, ``sigma_from``,
+        :meth:`_prepare_currents` and ``PoseSolver.begin``, the same operations in the same order),
+        bound with :meth:`_start_solve_compiled`'s ``SolveStart``; left to the Python where a part is
+        of another kind."""
+        from coiltrack.firmware.measure.pulse import PulseExtractor
+        chs = self.channels
+        if not self.ahead or type(self)._ahead_start is not MagneticTracker._ahead_start \
+                or type(self)._begin_ahead is not MagneticTracker._begin_ahead \
+                or getattr(self._prepare_currents, "__func__", None) is not _CompiledReport._prepare_currents_compiled \
+                or any(getattr(ch.extractor.extract, "__func__", None) is not PulseExtractor._extract_compiled
+                       for ch in chs):
+            return
+        try:
+            rows = tuple((ch.extractor._ck, ch.extractor._ring.hc, ah.S, ah.sigma, ah.currents, ah.hemisphere,
+                          ah.warm_p, ah.warm_R, ah.amp, ah.var) for ch, ah in zip(chs, self._ahead))
+            k = ext.AheadStart(self._ss, self.schedule.measured, self.nominal, rows)
+        except (AttributeError, TypeError, ValueError):
+            return
+        self._as_start, self._as_inputs = k.start, k.inputs
+        self._as_prep = self._prepare_currents          # what ct_ahead_start repeats (see below)
+        self._ahead_start = self._ahead_start_compiled
+
+    def _take_ahead(self, ch, k: int) -> None:
+        """:meth:`_start_solve` where channel ``k``'s solve ahead is of this burst and finished or
+        running (:meth:`_use_ahead`'s first test, passed in the caller): on the compiled core the
+        sigma, the warm start and :meth:`_Ahead.same` in one call (``AheadStart.inputs``,
+        ``ct_ahead_inputs``), then the rest of :meth:`_use_ahead` on its answer (the same operations
+        in the same order); else (a distortion map, no ``AheadStart`` bound) the reference."""
+        sv = self.solver
+        if self._as_inputs is None or sv.signal.distortion is not None:
+            MagneticTracker._start_solve(self, ch)
+            return
+        tp = self._ss_poses[k]
+        r = self._as_inputs(k, tp.have_pose)
+        if not r & 1:
+            self._solve_from(ch, tp, False)
+            return
+        running = self._ahead_k
+        self._ahead_k = -1
+        ah = self._ahead[k]
+        ah.release()
+        if r < 2:
+            self.ahead_missed += 1
+            self._solve_from(ch, tp, True)
+            return
+        self.ahead_used += 1
+        if running == k:
+            return
+        res = ah.result
+        sv.load(res)
+        if res.solve_evals > self.solve_evals_max:
+            self.solve_evals_max = res.solve_evals
+        self._report(ch, not (res.status & SOLVE_FAILED))
+
+    def _ahead_start_compiled(self, k: int, start: int, end: int) -> bool:
+        """:meth:`_ahead_start` in one compiled call (:meth:`_bind_ahead_start`); a model with a
+        distortion map, a time the extraction does not take, or a :meth:`_prepare_currents` replaced
+        since the binding (the kernel repeats the compiled one), the reference."""
+        sv = self.solver
+        r = AHEAD_ASK if sv.signal.distortion is not None or self._prepare_currents is not self._as_prep \
+            else self._as_start(k, self._ss_poses[k].have_pose, start, end)
+        if r < 0:
+            return r == AHEAD_ASK and MagneticTracker._ahead_start(self, k, start, end)
+        if not sv.begun(r, True) & SOLVE_RUNNING:
+            return False
+        self._ahead_k = k
+        self.ahead_solves += 1
+        return True
 
     def _prepare_currents_compiled(self, cur) -> None:
         if cur is self._curv:
@@ -303,6 +385,105 @@ class _CompiledReport:
                 (chain, m[2], m[4], chain.frame)
         self._chains = chains
         self._report_pose = self._report_pose_compiled
+
+
+def _ho_reference(k: int, have_pose: bool, burst: int, running: int) -> int:
+    """:meth:`MagneticTracker._begin_handover`'s kernel where none could be bound."""
+    return HO_REFERENCE
+
+
+class _HandOver:
+    """:class:`MagneticTracker`'s hand-over on the compiled core: a burst's begin with the take-over
+    of its solve ahead in one compiled call (:meth:`_begin_handover`; :meth:`_bind_handover`, its
+    kernel bound once the firmware is composed: :meth:`bind_composed`). The Python methods it stands for stay the
+    reference: :meth:`_begin_compiled`, :meth:`_start_solve_compiled` and :meth:`_take_ahead`."""
+
+    def _bind_handover(self, core) -> None:
+        """:meth:`_begin` replaced on this instance by :meth:`_begin_handover` where the steps it
+        stands for are the compiled ones (:meth:`_bind_begin`, :meth:`_bind_start`,
+        :meth:`_bind_ahead_start`) and no class overrides them; else left as it is. Its kernel is
+        bound once the firmware is composed (:meth:`bind_composed`); till then, or where it cannot
+        be, :meth:`_begin_handover` runs :meth:`_begin_compiled`."""
+        mt = MagneticTracker
+        if not self.ahead or core.ext is None or not hasattr(self.supervisor, "pose_kernel") \
+                or type(self)._begin is not mt._begin or type(self)._take_ahead is not mt._take_ahead \
+                or type(self)._solve_from is not mt._solve_from \
+                or getattr(self._begin, "__func__", None) is not _CompiledReport._begin_compiled \
+                or getattr(self._start_solve, "__func__", None) is not _CompiledReport._start_solve_compiled \
+                or getattr(self, "_as_inputs", None) is None:
+            return
+        self._ho_ext = core.ext
+        self._ho_begin = _ho_reference
+        self._begin = self._begin_handover
+
+    def bind_composed(self) -> None:
+        """Called once the firmware's stages are all built (``loop.Firmware``): the hand-over's kernel
+        (:meth:`_bind_handover_now`), which reads the supervisor's kernel the receive stage binds."""
+        if getattr(self, "_ho_ext", None) is not None:
+            self._bind_handover_now()
+
+    def _bind_handover_now(self) -> bool:
+        """``HandOver.begin`` bound where the supervisor's pose status is compiled (its
+        ``pose_kernel``: the receive stage binds it after the tracker is built): one ``HandOver``
+        (``core/py_begin.c``; ``core/src/begin.c`` ``ct_handover_status``, ``ct_handover_ahead``, then
+        ``ct_ahead_inputs``) bound to the tracker's ``AheadStart`` and ``BurstInputs``, the
+        supervisor's ``SupMag``, the channels' nodes and ``_ahead_st``; whether it was."""
+        sk = self.supervisor.pose_kernel()
+        if sk is None:
+            return False
+        try:
+            ho = self._ho_ext.HandOver(self._as_inputs.__self__, self._bk, sk, tuple(c.node for c in self.channels),
+                                       self._ahead_st)
+        except (AttributeError, TypeError, ValueError):
+            return False
+        self._ho_begin = ho.begin
+        return True
+
+    def _begin_handover(self, ch) -> None:
+        """:meth:`_begin_compiled` with :meth:`_start_solve_compiled`'s test for a solve ahead to take
+        over and :meth:`_take_ahead`'s compiled part in one call (``HandOver.begin``: the burst's
+        status, the supervisor's pose status, the test, ``AheadStart.inputs`` and ``_Ahead.release``,
+        the same operations in the same order), then the rest of them on its answer; a model with a
+        distortion map, :meth:`_begin_compiled`."""
+        sv = self.solver
+        if sv.signal.distortion is not None:
+            self._begin_compiled(ch)
+            return
+        k = self._next
+        tp = self._ss_poses[k]
+        bs = self.schedule.burst_start
+        r = self._ho_begin(k, tp.have_pose, NO_BURST if bs is None else bs, self._ahead_k)
+        if r < 0:
+            self._begin_compiled(ch)
+            return
+        sup = self.supervisor
+        self._status = r & 0xFFFFFFFF
+        if r & HO_VETO or sup.veto:
+            sup.vetoed((r >> 32) & 1)
+        code = r >> 34
+        if code < 3:
+            if code == 0:
+                self._report(ch, False)
+            elif code == 1:
+                self._start_fresh(ch, k)
+            else:
+                self._solve_from(ch, tp, False)
+            return
+        running = self._ahead_k
+        self._ahead_k = -1
+        if code == 3:
+            self.ahead_missed += 1
+            self._solve_from(ch, tp, True)
+            return
+        self.ahead_used += 1
+        if running == k:
+            return
+        res = self._ahead[k].result
+        sv.load(res)
+        if res.solve_evals > self.solve_evals_max:
+            self.solve_evals_max = res.solve_evals
+        self._report(ch, not (res.status & SOLVE_FAILED))
+
 
 class _ScanAhead:
     """:class:`MagneticTracker`'s scan over the sensors for a burst to solve ahead
@@ -390,7 +571,7 @@ class _ScanAhead:
         return self._ahead_unchanged
 
 
-class MagneticTracker(_CompiledReport, _ScanAhead):
+class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
     """Solves each burst for every sensor and reports the magnetic poses (a
     :class:`coiltrack.firmware.track.BurstTracker`).
 
@@ -457,6 +638,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         self.ahead_missed = 0            # of which not (a sample or a current came in late)
         self._bind_report_chain(core)
         self._bind_scan(core)
+        self._bind_handover(core)
 
     # ------------------------------------------------------------ inputs
     def on_imu(self, msg, now_us: int) -> None:
@@ -558,12 +740,17 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         k = self._ahead_scan(burst, j, start, end)
         if k == AHEAD_SEEN:
             self._ahead_seen = burst
-        elif k >= 0:
-            ch = self.channels[k]
-            tp = self.poses[ch.node]
-            if self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end):
-                self._units += self.solver.n         # the start, charged as a hand-over
-                self._solve_ahead()
+        elif k >= 0 and self._ahead_start(k, start, end):
+            self._units += self.solver.n             # the start, charged as a hand-over
+            self._solve_ahead()
+
+    def _ahead_start(self, k: int, start: int, end: int) -> bool:
+        """The begin of channel ``k``'s solve ahead on its last window ``[start, end]`` from its warm
+        start (:meth:`warm_start`, :meth:`_begin_ahead`); False if none was begun. On the compiled
+        core of the fused tracker one call (:meth:`_bind_ahead_start`)."""
+        ch = self.channels[k]
+        tp = self.poses[ch.node]
+        return self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end)
 
     def _ahead_pending(self) -> bool:
         """A solve ahead runs, or sensors of the open burst have not had their turn yet."""
@@ -649,6 +836,11 @@ class MagneticTracker(_CompiledReport, _ScanAhead):
         warm = self.warm_start(ch, tp)
         if warm and self.ahead and self._use_ahead(ch):
             return
+        self._solve_from(ch, tp, warm)
+
+    def _solve_from(self, ch, tp: TrackedPose, warm: bool) -> None:
+        """:meth:`_start_solve`'s begin of the solve of ``ch`` (its sigma and, ``warm``, its start
+        in place), no solve ahead taken over."""
         self._ahead_k = -1                   # a solve ahead still running gives way
         if warm:
             st = self.solver.begin(ch.S, self.currents, ch.sigma, tp.position, tp.warm_p, tp.warm_R)

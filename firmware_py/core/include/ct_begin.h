@@ -41,4 +41,50 @@ int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *s
                    const double *tp, const double *tR, double *wp, double *wR, const double *hemi, const double *S,
                    const double *cur, int *warm);
 
+struct ct_pulse;
+struct ct_sample_ring;
+/* one sensor's _Ahead (track/magnetic.py): its copies of a burst's inputs, S, sigma (3 x n, row-major),
+ * currents (n), hemisphere (3), warm_p (3), warm_R (9), and its last window's amp, var (3 each) */
+struct ct_ahead_buf {
+    double *S, *sigma, *cur, *hemi, *wp, *wR, *amp, *var;
+};
+/* MagneticTracker._begin_ahead: the last window (coil n - 1, [start, end]) extracted on the channel's
+ * ring r (PulseExtractor.extract: ct_pulse_extract into res (6) and ires (4), then amp and var), and,
+ * where it has pulse and baseline samples, the channel's S and var (3 x n) copied with that column
+ * replaced, the sigma from them in place (floor2), the currents prepared (measured, nominal), the
+ * hemisphere tp and the start wp, wR copied and the solve begun on the copies (warm).  Returns the
+ * begin's status, or CT_AHEAD_NO_WINDOW. */
+int ct_begin_ahead(const struct ct_solve *s, int n, const struct ct_pulse *x, const struct ct_sample_ring *r,
+                   int64_t start, int64_t end, double *res, int64_t *ires, const double *S, const double *var,
+                   double floor2, const double *measured, const double *nominal, const double *tp, const double *wp,
+                   const double *wR, const struct ct_ahead_buf *ah);
+/* MagneticTracker._ahead_start of BurstFusionTracker: its warm start (ct_report_warm_start, as in
+ * ct_solve_start) and, where it made one, ct_begin_ahead from it; CT_AHEAD_COLD where it made none */
+int ct_ahead_start(const struct ct_solve *s, int n, const struct ct_hist *h, int64_t t_ref, int have_pose,
+                   int initialized, double range_m, const double *tp, const double *tR, double *wp, double *wR,
+                   const struct ct_pulse *x, const struct ct_sample_ring *r, int64_t start, int64_t end, double *res,
+                   int64_t *ires, const double *S, const double *var, double floor2, const double *measured,
+                   const double *nominal, const struct ct_ahead_buf *ah);
+enum { CT_AHEAD_COLD = -1, CT_AHEAD_NO_WINDOW = -2 };
+/* MagneticTracker._start_solve of BurstFusionTracker where a solve ahead may be taken over, up to
+ * _use_ahead's comparison: the sigma (ct_sigma_from over var into sig, as in ct_solve_start), the warm
+ * start (ct_report_warm_start into wp, wR) and, where it made one, _Ahead.same of the burst's inputs
+ * (S, sig, cur, the hemisphere tp, wp, wR) against the solve ahead's in ah (ct_report_same).  Returns
+ * warm | same << 1. */
+int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const struct ct_hist *h, int64_t t_ref,
+                    int have_pose, int initialized, double range_m, const double *tp, const double *tR, double *wp,
+                    double *wR, const double *S, const double *cur, const struct ct_ahead_buf *ah);
+
+struct ct_sup;
+/* MagneticTracker._begin_handover's first steps (_begin on the compiled core): ct_begin_inputs of the
+ * channel's window flags fl (nf) and the faults fv (nc), then Supervisor.pose_status of node with those
+ * flags (ct_sup_pose_status on sup).  Returns the burst's POSE bits (input_status's | pose_status's, 32
+ * bits) | veto << 32 | unusable << 33, or -1 where input_status's bits or the flags are out of range
+ * (nothing written: nothing is). */
+int64_t ct_handover_status(const struct ct_begin_bits *b, const int64_t *fl, int nf, const int64_t *fv, int nc,
+                           const struct ct_sup *sup, int64_t node);
+/* MagneticTracker._start_solve_compiled's test for a solve ahead to take over: its record st (burst,
+ * done) is of burst and done, or it is the solve running (running == k) */
+int ct_handover_ahead(const int64_t *st, int64_t burst, int64_t running, int64_t k);
+
 #endif /* CT_BEGIN_H */

@@ -54,3 +54,79 @@ int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *s
         return ct_solve_begin(s, S, sig, n, 1, cur, 1, tp, wp, wR);
     return ct_solve_begin(s, S, sig, n, 1, cur, 1, hemi, NULL, NULL);
 }
+
+/* MagneticTracker._begin_ahead (its extract: PulseExtractor._extract_compiled over ct_pulse_extract) */
+int ct_begin_ahead(const struct ct_solve *s, int n, const struct ct_pulse *x, const struct ct_sample_ring *r,
+                   int64_t start, int64_t end, double *res, int64_t *ires, const double *S, const double *var,
+                   double floor2, const double *measured, const double *nominal, const double *tp, const double *wp,
+                   const double *wR, const struct ct_ahead_buf *ah)
+{
+    int i, j = n - 1;
+    ct_pulse_extract(x, r, start, end, res, res + 3, ires);
+    for (i = 0; i < 3; ++i) {
+        ah->amp[i] = res[i];
+        ah->var[i] = res[3 + i];
+    }
+    if (ires[1] == 0 || ires[2] == 0)
+        return CT_AHEAD_NO_WINDOW;
+    memcpy(ah->S, S, sizeof(double) * 3 * (size_t)n);
+    memcpy(ah->sigma, var, sizeof(double) * 3 * (size_t)n);
+    for (i = 0; i < 3; ++i) {
+        ah->S[i * n + j] = ah->amp[i];
+        ah->sigma[i * n + j] = ah->var[i];
+    }
+    ct_sigma_from(3 * (int64_t)n, ah->sigma, ah->sigma, floor2);
+    ct_prepare_currents(measured, nominal, ah->cur, n);
+    memcpy(ah->hemi, tp, sizeof(double) * 3);
+    memcpy(ah->wp, wp, sizeof(double) * 3);
+    memcpy(ah->wR, wR, sizeof(double) * 9);
+    return ct_solve_begin(s, ah->S, ah->sigma, n, 1, ah->cur, 1, ah->hemi, ah->wp, ah->wR);
+}
+
+/* MagneticTracker._ahead_start (BurstFusionTracker.warm_start, then _begin_ahead) */
+int ct_ahead_start(const struct ct_solve *s, int n, const struct ct_hist *h, int64_t t_ref, int have_pose,
+                   int initialized, double range_m, const double *tp, const double *tR, double *wp, double *wR,
+                   const struct ct_pulse *x, const struct ct_sample_ring *r, int64_t start, int64_t end, double *res,
+                   int64_t *ires, const double *S, const double *var, double floor2, const double *measured,
+                   const double *nominal, const struct ct_ahead_buf *ah)
+{
+    if (!ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR))
+        return CT_AHEAD_COLD;
+    return ct_begin_ahead(s, n, x, r, start, end, res, ires, S, var, floor2, measured, nominal, tp, wp, wR, ah);
+}
+
+/* MagneticTracker._start_solve up to _use_ahead's _Ahead.same (fill_sigma, BurstFusionTracker.warm_start) */
+int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const struct ct_hist *h, int64_t t_ref,
+                    int have_pose, int initialized, double range_m, const double *tp, const double *tR, double *wp,
+                    double *wR, const double *S, const double *cur, const struct ct_ahead_buf *ah)
+{
+    const double *a[6], *b[6];
+    int64_t len[6];
+    ct_sigma_from(3 * (int64_t)n, var, sig, floor2);
+    if (!ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR))
+        return 0;
+    a[0] = ah->S, a[1] = ah->sigma, a[2] = ah->cur, a[3] = ah->hemi, a[4] = ah->wp, a[5] = ah->wR;
+    b[0] = S, b[1] = sig, b[2] = cur, b[3] = tp, b[4] = wp, b[5] = wR;
+    len[0] = len[1] = 3 * (int64_t)n, len[2] = n, len[3] = len[4] = 3, len[5] = 9;
+    return 1 | ct_report_same(6, a, b, len) << 1;
+}
+
+/* MagneticTracker._begin_handover: _begin_compiled's BurstInputs.status, then the supervisor's
+ * pose_status (Supervisor._pose_status_compiled) */
+int64_t ct_handover_status(const struct ct_begin_bits *b, const int64_t *fl, int nf, const int64_t *fv, int nc,
+                           const struct ct_sup *sup, int64_t node)
+{
+    int64_t flags, bits, ps;
+    int unusable;
+    bits = ct_begin_inputs(b, fl, nf, fv, nc, &flags, &unusable);
+    if (bits < 0 || bits > 255 || flags < 0)
+        return -1;
+    ps = ct_sup_pose_status(sup, node, flags);
+    return (bits | (ps & 0xFFFFFFFF)) | (((ps >> 32) & 1) << 32) | ((int64_t)(unusable != 0) << 33);
+}
+
+/* MagneticTracker._start_solve_compiled: st[0] == burst and (st[1] or running == k) */
+int ct_handover_ahead(const int64_t *st, int64_t burst, int64_t running, int64_t k)
+{
+    return st[0] == burst && (st[1] != 0 || running == k);
+}
