@@ -241,6 +241,11 @@ class BudgetConfig:
                                            # acquisition then finds the same minimum at twice the work)
     windows_budget: int = 4                # pulse windows closed per tick: with many sensors a pulse's
                                            # windows are all ready in the same tick (16 sensors: 1.2 ms)
+    handovers_per_tick: int = 4            # sensors' solves begun (handed over) per tick: with many
+                                           # sensors solved ahead a burst's hand-overs (each a POSE
+                                           # sent and the next sensor's begin, ~10 us of the compiled
+                                           # core's glue here, charged only n evaluations) would
+                                           # otherwise fill the tick (27 / 3 = 9 at once)
     solve_ahead: bool = True               # idle ticks solve a burst once its last window's samples are
                                            # expected in; the burst uses that solution when its inputs are
                                            # the same bit for bit, else solves as before (pulsed excitation;
@@ -258,7 +263,7 @@ class BudgetConfig:
     imu_steps_per_tick: int = 2
 
     def check(self, need) -> None:
-        for name in ("track_budget_evals", "replay_budget_steps", "windows_budget"):
+        for name in ("track_budget_evals", "replay_budget_steps", "windows_budget", "handovers_per_tick"):
             v = getattr(self, name)
             need(name, _int(v) and v >= 1, f"must be a positive integer, got {v!r}")
         for name in ("window_evals", "imu_sample_evals"):

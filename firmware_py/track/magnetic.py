@@ -13,7 +13,9 @@ to the next (the finished sensor's POSE, the next one's burst status, warm start
 closed-form units, against the same budget: a tick whose solve steps leave less than
 that puts the next sensor's start off to the following tick, so with sixteen sensors a
 tick never carries a full budget of solve steps and a hand-over (or sixteen hand-overs
-of unusable bursts) on top. The first sensor's start, in the tick the burst completes,
+of unusable bursts) on top; and at most ``[budget] handovers_per_tick`` sensors' solves begin
+in one tick (sixteen sensors solved ahead hand over in four ticks, not two at 27 / 3 = 9 a tick:
+on the compiled core a hand-over's glue costs far more than its charge of ``n`` evaluations). The first sensor's start, in the tick the burst completes,
 is charged the same and the solve steps on in that tick with what is left (before, that
 tick did the start alone and the solve's heaviest tick came one tick later, where an
 IMU sample, at the same phase of every burst cycle, usually arrives too);
@@ -604,6 +606,8 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
         self.window_evals = cfg.budget.window_evals
         self._status = 0                 # POSE_* bits of that channel's burst
         self.budget = cfg.budget.track_budget_evals
+        self.handovers_max = cfg.budget.handovers_per_tick
+        self._handovers = 0              # sensors' solves begun in this tick
         self._burst_ticks = 0            # ticks since the burst's last window closed
         self.range_m = cfg.pose.working_range_m
         self.out_of_range = 0            # solutions beyond the working volume, not sent as poses
@@ -659,6 +663,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
         the current sensor's solve, or the start of the next sensor's."""
         self._units = self._charged = self._charges()
         self._waited = False
+        self._handovers = 0
         if self._next < 0:
             if not self.burst.complete:
                 if self.ahead:
@@ -676,6 +681,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
                 return                   # no room beside the tick's other work
             self._handover = False
             self._units += self.solver.n
+            self._handovers += 1
             self._begin(self.channels[self._next])
             if self._next < 0 or self._handover or self._units >= self.budget:
                 return
@@ -869,10 +875,11 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
             if self._burst_ticks > self.solve_ticks_max:
                 self.solve_ticks_max = self._burst_ticks
             self.burst.release()
-        elif self._units + self.solver.n > self.budget:
-            self._handover = True            # no room left in this tick's budget
+        elif self._units + self.solver.n > self.budget or self._handovers >= self.handovers_max:
+            self._handover = True            # no room left in this tick's budget or hand-overs
         else:
             self._units += self.solver.n
+            self._handovers += 1
             self._begin(self.channels[self._next])
 
     def _report_pose(self, ch, tp: TrackedPose, t_pose: int) -> bool:
