@@ -299,19 +299,25 @@ class _CompiledReport:
         if not r & 1:
             self._solve_from(ch, tp, False)
             return
+        self._ahead[k].release()
+        self._ahead_taken(ch, tp, k, r >= 2)
+
+    def _ahead_taken(self, ch, tp: TrackedPose, k: int, same: bool) -> None:
+        """The end of :meth:`_take_ahead` and :meth:`_begin_handover` once channel ``k``'s solve
+        ahead is released: solved again from its warm start if its inputs were not the same
+        (``same`` False), else its result loaded and reported (or, still running, left to finish
+        as the burst's own solve)."""
         running = self._ahead_k
         self._ahead_k = -1
-        ah = self._ahead[k]
-        ah.release()
-        if r < 2:
+        if not same:
             self.ahead_missed += 1
             self._solve_from(ch, tp, True)
             return
         self.ahead_used += 1
         if running == k:
             return
-        res = ah.result
-        sv.load(res)
+        res = self._ahead[k].result
+        self.solver.load(res)
         if res.solve_evals > self.solve_evals_max:
             self.solve_evals_max = res.solve_evals
         self._report(ch, not (res.status & SOLVE_FAILED))
@@ -471,20 +477,7 @@ class _HandOver:
             else:
                 self._solve_from(ch, tp, False)
             return
-        running = self._ahead_k
-        self._ahead_k = -1
-        if code == 3:
-            self.ahead_missed += 1
-            self._solve_from(ch, tp, True)
-            return
-        self.ahead_used += 1
-        if running == k:
-            return
-        res = self._ahead[k].result
-        sv.load(res)
-        if res.solve_evals > self.solve_evals_max:
-            self.solve_evals_max = res.solve_evals
-        self._report(ch, not (res.status & SOLVE_FAILED))
+        self._ahead_taken(ch, tp, k, code != 3)
 
 
 class _ScanAhead:

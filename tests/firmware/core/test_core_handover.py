@@ -38,7 +38,8 @@ BURST = 123_456
 
 
 def _pair():
-    cfg = scenarios.get("multi16").firmware_config().with_(core={"impl": "compiled"}).validate()
+    cfg = scenarios.get("multi16").firmware_config().with_(core={"impl": "compiled"},
+                                                         budget={"handovers_per_tick": 16}).validate()
     got, ref = Firmware(cfg, _Port()), Firmware(cfg, _Port())
     assert got.tracker._begin.__func__ is MagneticTracker._begin_handover
     assert got.tracker._ho_begin.__self__.__class__.__name__ == "HandOver"      # bound when composed
@@ -82,7 +83,7 @@ def _setup(fw, seed: int) -> None:
     tr.schedule.faults[:] = 0
     if rng.random() < 0.1:
         tr.schedule.faults[int(rng.integers(0, tr.schedule.n))] = 1 << int(rng.integers(0, 4))
-    tr._next, tr._units, tr._handover = 0, 0, False
+    tr._next, tr._units, tr._handover, tr._handovers = 0, 0, False, 0
     fw.port.out.clear()
 
 
