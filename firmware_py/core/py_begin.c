@@ -184,6 +184,23 @@ typedef struct {
     int nviews;
 } SolveStartObject;
 
+/* channel k's history head and count in range; else ValueError "<who>: the history's ..." and -1 */
+static int ss_hist_ok(const ss_channel *c, const char *who)
+{
+    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
+        PyErr_Format(PyExc_ValueError, "%s: the history's head or count out of range", who);
+        return -1;
+    }
+    return 0;
+}
+
+/* ct_ahead_inputs on channel c of s against the solve ahead ah (AheadStart.inputs, HandOver.begin) */
+static int ss_ahead_inputs(const SolveStartObject *s, const ss_channel *c, int have, const struct ct_ahead_buf *ah)
+{
+    return ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have, c->fs[s->fs_init] != 0,
+                           s->range_m, c->tp, c->tR, c->wp, c->wR, c->S, s->cur, ah);
+}
+
 static void SolveStart_dealloc(SolveStartObject *self)
 {
     while (self->nviews > 0)
@@ -302,10 +319,8 @@ static PyObject *SolveStart_start(SolveStartObject *self, PyObject *const *args,
         return NULL;
     }
     c = &self->ch[k];
-    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
-        PyErr_SetString(PyExc_ValueError, "SolveStart.start: the history's head or count out of range");
+    if (ss_hist_ok(c, "SolveStart.start") < 0)
         return NULL;
-    }
     st = ct_solve_start(self->s, self->n, c->var, c->sig, self->floor2, &c->h, c->tr[0], have,
                         c->fs[self->fs_init] != 0, self->range_m, c->tp, c->tR, c->wp, c->wR, c->hemi, c->S,
                         self->cur, &warm);
@@ -514,13 +529,9 @@ static PyObject *AheadStart_inputs(AheadStartObject *self, PyObject *const *args
         return NULL;
     }
     c = &s->ch[k];
-    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
-        PyErr_SetString(PyExc_ValueError, "AheadStart.inputs: the history's head or count out of range");
+    if (ss_hist_ok(c, "AheadStart.inputs") < 0)
         return NULL;
-    }
-    return PyLong_FromLong(ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have,
-                                           c->fs[s->fs_init] != 0, s->range_m, c->tp, c->tR, c->wp, c->wR, c->S,
-                                           s->cur, &self->ch[k].ah));
+    return PyLong_FromLong(ss_ahead_inputs(s, c, have, &self->ch[k].ah));
 }
 
 static PyMethodDef AheadStart_methods[] = {
@@ -652,12 +663,9 @@ static PyObject *HandOver_begin(HandOverObject *self, PyObject *const *args, Py_
     if (!ct_handover_ahead(&self->st[2 * k], burst, running, k))
         return PyLong_FromLongLong(r | (int64_t)1 << 34);
     c = &s->ch[k];
-    if (c->h.hc[0] < 0 || c->h.hc[0] >= c->h.cap || c->h.hc[1] < 0 || c->h.hc[1] > c->h.cap) {
-        PyErr_SetString(PyExc_ValueError, "HandOver.begin: the history's head or count out of range");
+    if (ss_hist_ok(c, "HandOver.begin") < 0)
         return NULL;
-    }
-    w = ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have, c->fs[s->fs_init] != 0, s->range_m,
-                        c->tp, c->tR, c->wp, c->wR, c->S, s->cur, &self->as->ch[k].ah);
+    w = ss_ahead_inputs(s, c, have, &self->as->ch[k].ah);
     if (!(w & 1))
         return PyLong_FromLongLong(r | (int64_t)2 << 34);
     self->st[2 * k] = HO_NO_BURST;
