@@ -198,7 +198,7 @@ static int ss_hist_ok(const ss_channel *c, const char *who)
 static int ss_ahead_inputs(const SolveStartObject *s, const ss_channel *c, int have, const struct ct_ahead_buf *ah)
 {
     return ct_ahead_inputs(s->n, c->var, c->sig, s->floor2, &c->h, c->tr[0], have, c->fs[s->fs_init] != 0,
-                           s->range_m, c->tp, c->tR, c->wp, c->wR, c->S, s->cur, ah);
+                           s->range_m, c->tp, c->tR, c->wp, c->wR, c->hemi, c->S, s->cur, ah);
 }
 
 static void SolveStart_dealloc(SolveStartObject *self)
@@ -347,10 +347,10 @@ static PyTypeObject SolveStartType = {
 
 /* ---------------------------------------------------------------- AheadStart */
 /* per channel: its PulseWindow, its ring's hc (head, count, ...), then its _Ahead's S, sigma (3n),
- * currents (n), hemisphere (3), warm_p (3), warm_R (9), amp (3), var (3) */
-#define AS_NB 9
+ * currents (n), hemisphere (3), warm_p (3), warm_R (9), amp (3), var (3) and wst (int64, 1) */
+#define AS_NB 10
 static const char *as_names[AS_NB] = {"hc", "S", "sigma", "currents", "hemisphere", "warm_p", "warm_R", "amp",
-                                      "var"};
+                                      "var", "wst"};
 #define AS_FAR ((int64_t)1 << 61)     /* measure/pulse.py _T_FAR: a time beyond goes to the reference */
 #define AS_ASK (-3)
 
@@ -396,7 +396,7 @@ static int as_bind(AheadStartObject *self, PyObject *o, Py_ssize_t len, const ch
 static int as_channel_bind(AheadStartObject *self, as_channel *c, PyObject *one, int n)
 {
     void *ptr[AS_NB];
-    const Py_ssize_t len[AS_NB] = {2, 3 * n, 3 * n, n, 3, 3, 9, 3, 3};
+    const Py_ssize_t len[AS_NB] = {2, 3 * n, 3 * n, n, 3, 3, 9, 3, 3, 1};
     int k;
     if (PySequence_Fast_GET_SIZE(one) != AS_NB + 1) {
         PyErr_Format(PyExc_ValueError, "AheadStart: a channel needs a PulseWindow and %d buffers", AS_NB);
@@ -405,8 +405,8 @@ static int as_channel_bind(AheadStartObject *self, as_channel *c, PyObject *one,
     if (ct_py_pulse_window_of(PySequence_Fast_GET_ITEM(one, 0), &c->x, &c->r, &c->res, &c->ires) < 0)
         return -1;
     for (k = 0; k < AS_NB; ++k)
-        if (as_bind(self, PySequence_Fast_GET_ITEM(one, k + 1), len[k], k ? "d" : "ql", k > 0, as_names[k],
-                    &ptr[k]) < 0)
+        if (as_bind(self, PySequence_Fast_GET_ITEM(one, k + 1), len[k], k && k < AS_NB - 1 ? "d" : "ql", k > 0,
+                    as_names[k], &ptr[k]) < 0)
             return -1;
     c->hc = ptr[0];
     c->ah.S = ptr[1];
@@ -417,12 +417,13 @@ static int as_channel_bind(AheadStartObject *self, as_channel *c, PyObject *one,
     c->ah.wR = ptr[6];
     c->ah.amp = ptr[7];
     c->ah.var = ptr[8];
+    c->ah.warm = ptr[9];
     return 0;
 }
 
 /* AheadStart(start, measured, nominal, channels): start the tracker's bound SolveStart, measured and
  * nominal the schedule's currents (float64, n), channels per channel of start's (PulseWindow, hc, S,
- * sigma, currents, hemisphere, warm_p, warm_R, amp, var) */
+ * sigma, currents, hemisphere, warm_p, warm_R, amp, var, wst) */
 static int AheadStart_init(AheadStartObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"start", "measured", "nominal", "channels", NULL};
@@ -475,8 +476,8 @@ fail:
     return -1;
 }
 
-/* start(k, have_pose, start_us, end_us) -> status, CT_AHEAD_COLD, CT_AHEAD_NO_WINDOW, or AS_ASK for a
- * time the extraction does not take (ct_ahead_start on channel k, its last window [start_us, end_us]) */
+/* start(k, have_pose, start_us, end_us) -> status | warm << 8, CT_AHEAD_NO_WINDOW, or AS_ASK for a time
+ * the extraction does not take (ct_ahead_start on channel k, its last window [start_us, end_us]) */
 static PyObject *AheadStart_start(AheadStartObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     int64_t k, t0, t1;
@@ -508,8 +509,8 @@ static PyObject *AheadStart_start(AheadStartObject *self, PyObject *const *args,
     r.head = a->hc[0];
     r.count = a->hc[1];
     return PyLong_FromLong(ct_ahead_start(s->s, s->n, &c->h, c->tr[0], have, c->fs[s->fs_init] != 0, s->range_m,
-                                          c->tp, c->tR, c->wp, c->wR, a->x, &r, t0, t1, a->res, a->ires, c->S, c->var,
-                                          s->floor2, self->measured, self->nominal, &a->ah));
+                                          c->tp, c->tR, c->wp, c->wR, c->hemi, a->x, &r, t0, t1, a->res, a->ires,
+                                          c->S, c->var, s->floor2, self->measured, self->nominal, &a->ah));
 }
 
 /* inputs(k, have_pose) -> warm | same << 1 (ct_ahead_inputs on channel k against its solve ahead) */
@@ -539,8 +540,8 @@ static PyMethodDef AheadStart_methods[] = {
      "inputs(k, have_pose) -> warm | same << 1: channel k's sigma and warm start, and whether its burst's inputs "
      "are those its solve ahead began with"},
     {"start", (PyCFunction)(void (*)(void))AheadStart_start, METH_FASTCALL,
-     "start(k, have_pose, start_us, end_us) -> status, -1 (no warm start), -2 (no window) or -3 (a time for the "
-     "reference): channel k's warm start and the begin of its solve ahead on its last window"},
+     "start(k, have_pose, start_us, end_us) -> status | warm << 8, -2 (no window) or -3 (a time for the "
+     "reference): channel k's warm start and the begin of its solve ahead on its last window, warm or acquiring"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject AheadStartType = {
@@ -549,7 +550,8 @@ static PyTypeObject AheadStartType = {
     .tp_basicsize = sizeof(AheadStartObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
     .tp_doc = "AheadStart(start, measured, nominal, channels): the fused tracker's begin of a solve ahead (warm "
-              "start, the last window's extraction, the copies, begin) bound to a SolveStart and the _Aheads",
+              "start, the last window's extraction, the copies, begin, warm or acquiring) bound to a SolveStart and "
+              "the _Aheads",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)AheadStart_init,
     .tp_dealloc = (destructor)AheadStart_dealloc,
@@ -634,8 +636,9 @@ static int HandOver_init(HandOverObject *self, PyObject *args, PyObject *kw)
 
 /* begin(k, have_pose, burst, running) -> bits | veto << 32 | unusable << 33 | code << 34: channel k's
  * ct_handover_status; where usable and not vetoed (code > 0) the test for its solve ahead of burst
- * (ct_handover_ahead; code 1: none to take over), and where it passes AheadStart.inputs (ct_ahead_inputs;
- * code 2: no warm start) and, warm, _Ahead.release (code 3: other inputs, 4: the same) */
+ * (ct_handover_ahead; code 1: none to take over), and where it passes AheadStart.inputs (ct_ahead_inputs)
+ * and _Ahead.release (code 2: another start or other inputs, the turn acquiring; 3: the same, the turn
+ * warm; 4: the same start and inputs) */
 static PyObject *HandOver_begin(HandOverObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     int64_t k, burst, running, r;
@@ -666,17 +669,16 @@ static PyObject *HandOver_begin(HandOverObject *self, PyObject *const *args, Py_
     if (ss_hist_ok(c, "HandOver.begin") < 0)
         return NULL;
     w = ss_ahead_inputs(s, c, have, &self->as->ch[k].ah);
-    if (!(w & 1))
-        return PyLong_FromLongLong(r | (int64_t)2 << 34);
     self->st[2 * k] = HO_NO_BURST;
-    return PyLong_FromLongLong(r | (int64_t)(w & 2 ? 4 : 3) << 34);
+    return PyLong_FromLongLong(r | (int64_t)(w & 2 ? 4 : 2 + (w & 1)) << 34);
 }
 
 static PyMethodDef HandOver_methods[] = {
     {"begin", (PyCFunction)(void (*)(void))HandOver_begin, METH_FASTCALL,
      "begin(k, have_pose, burst, running) -> bits | veto << 32 | unusable << 33 | code << 34: MagneticTracker."
-     "_begin_handover's compiled steps (code 0: unusable or vetoed, 1: no solve ahead to take over, 2: no warm "
-     "start, 3: a solve ahead on other inputs, released, 4: on the same inputs, released)"},
+     "_begin_handover's compiled steps (code 0: unusable or vetoed, 1: no solve ahead to take over, 2: a solve "
+     "ahead from another start or on other inputs, released, the turn acquiring, 3: the same, the turn warm, 4: "
+     "from the same start on the same inputs, released)"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject HandOverType = {

@@ -85,10 +85,12 @@ NO_BURST = -(1 << 63)
 
 class _Ahead:
     """One sensor's burst solved ahead (``[budget] solve_ahead``): the inputs its solve began
-    with (signal matrix, sigmas, currents, hemisphere and warm start, copied) for the burst
-    that started at ``burst``, and, once finished (``done``), its results. ``burst`` and ``done``
-    live in ``st`` (int64 (2,): the burst or :data:`NO_BURST`, done 0/1; a row of the tracker's
-    array, so the compiled scan over the sensors reads and writes them in place)."""
+    with (signal matrix, sigmas, currents, hemisphere and, begun warm, the warm start, copied;
+    ``warm``: whether it began from a warm start or acquired, from the sensor's hemisphere) for
+    the burst that started at ``burst``, and, once finished (``done``), its results. ``burst`` and
+    ``done`` live in ``st`` (int64 (2,): the burst or :data:`NO_BURST`, done 0/1; a row of the
+    tracker's array, so the compiled scan over the sensors reads and writes them in place),
+    ``warm`` in ``wst`` (int64 (1,), 0/1, read and written by the compiled begin and comparison)."""
 
     def __init__(self, n: int, st=None):
         self.S = np.zeros((3, n))
@@ -101,6 +103,8 @@ class _Ahead:
         self.var = np.zeros(3)
         self.result = SolveResult()
         self.st = np.array([NO_BURST, 0], dtype=np.int64) if st is None else st
+        self.wst = np.zeros(1, dtype=np.int64)
+        self._wv = memoryview(self.wst)
         self._stv = memoryview(self.st)
         self.sigv = memoryview(self.sigma)
         self.curv = memoryview(self.currents)
@@ -115,6 +119,12 @@ class _Ahead:
     burst = property(_get_burst)
     #: the solve has finished (its results in ``result``)
     done = property(lambda self: self._stv[1] != 0)
+    #: the solve began from a warm start (else it acquired, from the hemisphere)
+    warm = property(lambda self: self._wv[0] != 0)
+
+    def began(self, warm: bool) -> None:
+        """The solve begins from a warm start (``warm``) or acquires."""
+        self._wv[0] = 1 if warm else 0
 
     def take(self, burst: int) -> None:
         """This sensor's solve ahead is now that of the burst that started at ``burst``, not done."""
@@ -129,8 +139,8 @@ class _Ahead:
         self._stv[0] = NO_BURST
 
     def same(self, views) -> bool:
-        """Whether the burst's inputs ``views`` (memoryviews of S, sigma, currents, hemisphere,
-        warm_p, warm_R) equal those this solve began with, element by element."""
+        """Whether the burst's inputs ``views`` (memoryviews of S, sigma, currents, hemisphere and,
+        for a warm solve, warm_p, warm_R) equal those this solve began with, element by element."""
         for a, b in zip(self._views, views):
             if a != b:
                 return False
@@ -263,7 +273,8 @@ class _CompiledReport:
         """:meth:`_ahead_start` in one compiled call (``AheadStart``, ``core/src/begin.c``
         ``ct_ahead_start``: ``BurstFusionTracker.warm_start``, then :meth:`_begin_ahead`'s extraction
         (``PulseExtractor.extract`` on the channel's ``PulseWindow``), copies, ``sigma_from``,
-        :meth:`_prepare_currents` and ``PoseSolver.begin``, the same operations in the same order),
+        :meth:`_prepare_currents`, the record of the start's kind and ``PoseSolver.begin``, warm
+        or acquiring, the same operations in the same order),
         bound with :meth:`_start_solve_compiled`'s ``SolveStart``; left to the Python where a part is
         of another kind."""
         from coiltrack.firmware.measure.pulse import PulseExtractor
@@ -276,7 +287,7 @@ class _CompiledReport:
             return
         try:
             rows = tuple((ch.extractor._ck, ch.extractor._ring.hc, ah.S, ah.sigma, ah.currents, ah.hemisphere,
-                          ah.warm_p, ah.warm_R, ah.amp, ah.var) for ch, ah in zip(chs, self._ahead))
+                          ah.warm_p, ah.warm_R, ah.amp, ah.var, ah.wst) for ch, ah in zip(chs, self._ahead))
             k = ext.AheadStart(self._ss, self.schedule.measured, self.nominal, rows)
         except (AttributeError, TypeError, ValueError):
             return
@@ -287,31 +298,29 @@ class _CompiledReport:
     def _take_ahead(self, ch, k: int) -> None:
         """:meth:`_start_solve` where channel ``k``'s solve ahead is of this burst and finished or
         running (:meth:`_use_ahead`'s first test, passed in the caller): on the compiled core the
-        sigma, the warm start and :meth:`_Ahead.same` in one call (``AheadStart.inputs``,
-        ``ct_ahead_inputs``), then the rest of :meth:`_use_ahead` on its answer (the same operations
-        in the same order); else (a distortion map, no ``AheadStart`` bound) the reference."""
+        sigma, the warm start and the comparison of the start's kind and of :meth:`_Ahead.same` in
+        one call (``AheadStart.inputs``, ``ct_ahead_inputs``), then the rest of :meth:`_use_ahead`
+        on its answer (the same operations in the same order); else (a distortion map, no
+        ``AheadStart`` bound) the reference."""
         sv = self.solver
         if self._as_inputs is None or sv.signal.distortion is not None:
             MagneticTracker._start_solve(self, ch)
             return
         tp = self._ss_poses[k]
         r = self._as_inputs(k, tp.have_pose)
-        if not r & 1:
-            self._solve_from(ch, tp, False)
-            return
         self._ahead[k].release()
-        self._ahead_taken(ch, tp, k, r >= 2)
+        self._ahead_taken(ch, tp, k, r >= 2, r & 1 != 0)
 
-    def _ahead_taken(self, ch, tp: TrackedPose, k: int, same: bool) -> None:
+    def _ahead_taken(self, ch, tp: TrackedPose, k: int, same: bool, warm: bool) -> None:
         """The end of :meth:`_take_ahead` and :meth:`_begin_handover` once channel ``k``'s solve
-        ahead is released: solved again from its warm start if its inputs were not the same
-        (``same`` False), else its result loaded and reported (or, still running, left to finish
-        as the burst's own solve)."""
+        ahead is released: solved again from its warm start (``warm``) or acquiring if its start
+        or inputs were not the same (``same`` False), else its result loaded and reported (or,
+        still running, left to finish as the burst's own solve)."""
         running = self._ahead_k
         self._ahead_k = -1
         if not same:
             self.ahead_missed += 1
-            self._solve_from(ch, tp, True)
+            self._solve_from(ch, tp, warm)
             return
         self.ahead_used += 1
         if running == k:
@@ -331,7 +340,7 @@ class _CompiledReport:
             else self._as_start(k, self._ss_poses[k].have_pose, start, end)
         if r < 0:
             return r == AHEAD_ASK and MagneticTracker._ahead_start(self, k, start, end)
-        if not sv.begun(r, True) & SOLVE_RUNNING:
+        if not sv.begun(r & 255, r > 255) & SOLVE_RUNNING:
             return False
         self._ahead_k = k
         self.ahead_solves += 1
@@ -469,15 +478,12 @@ class _HandOver:
         if r & HO_VETO or sup.veto:
             sup.vetoed((r >> 32) & 1)
         code = r >> 34
-        if code < 3:
-            if code == 0:
-                self._report(ch, False)
-            elif code == 1:
-                self._start_fresh(ch, k)
-            else:
-                self._solve_from(ch, tp, False)
-            return
-        self._ahead_taken(ch, tp, k, code != 3)
+        if code == 0:
+            self._report(ch, False)
+        elif code == 1:
+            self._start_fresh(ch, k)
+        else:
+            self._ahead_taken(ch, tp, k, code == 4, code == 3)
 
 
 class _ScanAhead:
@@ -615,14 +621,18 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
         self._ahead_st = np.zeros((len(self.channels), 2), dtype=np.int64)    # per channel: burst, done
         self._ahead_st[:, 0] = NO_BURST
         self._ahead = tuple(_Ahead(len(coils), self._ahead_st[k]) for k in range(len(self.channels)))
-        self._inputs = tuple(tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.position,
-                                                           tp.warm_p, tp.warm_R))
+        # per channel, the inputs of its burst's solve, acquiring (cold) and from a warm start
+        self._inputs = tuple((tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.hemisphere)),
+                              tuple(memoryview(a) for a in (ch.S, ch.sigma, self.currents, tp.position,
+                                                            tp.warm_p, tp.warm_R)))
                              for ch, tp in ((ch, self.poses[ch.node]) for ch in self.channels))
-        # per channel, whether its burst's inputs are those its solve ahead began with (_Ahead.same; on
-        # the compiled core one ``AheadSame`` call, ``core/src/report.c`` ``ct_report_same``)
-        self._same = tuple(functools.partial(ah.same, inp) for ah, inp in zip(self._ahead, self._inputs))
+        # per channel, cold and warm, whether its burst's inputs are those its solve ahead began with
+        # (_Ahead.same; on the compiled core one ``AheadSame`` call, ``core/src/report.c`` ``ct_report_same``)
+        self._same = tuple(tuple(functools.partial(ah.same, inp) for inp in io)
+                           for ah, io in zip(self._ahead, self._inputs))
         if core.ext is not None:
-            self._same = tuple(core.ext.AheadSame(ah._views, inp).same for ah, inp in zip(self._ahead, self._inputs))
+            self._same = tuple(tuple(core.ext.AheadSame(ah._views[:len(inp)], inp).same for inp in io)
+                               for ah, io in zip(self._ahead, self._inputs))
         self._ahead_k = -1               # the channel whose burst the solver is solving ahead; -1: none
         self._ahead_seen = None          # the burst every channel has had its turn to be solved ahead for
         # per channel, the SensorChannel.changes at which its burst was last found not ready to be
@@ -744,20 +754,22 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
             self._solve_ahead()
 
     def _ahead_start(self, k: int, start: int, end: int) -> bool:
-        """The begin of channel ``k``'s solve ahead on its last window ``[start, end]`` from its warm
-        start (:meth:`warm_start`, :meth:`_begin_ahead`); False if none was begun. On the compiled
-        core of the fused tracker one call (:meth:`_bind_ahead_start`)."""
+        """The begin of channel ``k``'s solve ahead on its last window ``[start, end]`` from the
+        start its own solve will take: its warm start (:meth:`warm_start`) or, without one, the
+        acquisition from the sensor's hemisphere (:meth:`_begin_ahead`); False if none was begun.
+        On the compiled core of the fused tracker one call (:meth:`_bind_ahead_start`)."""
         ch = self.channels[k]
         tp = self.poses[ch.node]
-        return self.warm_start(ch, tp) and self._begin_ahead(k, ch, tp, start, end)
+        return self._begin_ahead(k, ch, tp, start, end, self.warm_start(ch, tp))
 
     def _ahead_pending(self) -> bool:
         """A solve ahead runs, or sensors of the open burst have not had their turn yet."""
         b = self.schedule.burst_start
         return self._ahead_k >= 0 or (b is not None and b != self._ahead_seen)
 
-    def _begin_ahead(self, k: int, ch, tp: TrackedPose, start: int, end: int) -> bool:
-        """Begin the solve of ``ch``'s burst on its last window extracted now; False if none."""
+    def _begin_ahead(self, k: int, ch, tp: TrackedPose, start: int, end: int, warm: bool) -> bool:
+        """Begin the solve of ``ch``'s burst on its last window extracted now, from the warm start in
+        ``tp`` (``warm``) or acquiring from its hemisphere, as :meth:`_solve_from`; False if none."""
         ah = self._ahead[k]
         j = ah.S.shape[1] - 1
         _, n_used, n_base = ch.extractor.extract(start, end, ah.amp, ah.var)
@@ -770,20 +782,26 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
             ah.sigma[i, j] = ah.var[i]
         ch.sigma_from(ah.sigv, ah.sigv)
         self._prepare_currents(ah.curv)
-        np.copyto(ah.hemisphere, tp.position)
-        np.copyto(ah.warm_p, tp.warm_p)
-        np.copyto(ah.warm_R, tp.warm_R)
-        if not self.solver.begin(ah.S, ah.currents, ah.sigma, ah.hemisphere, ah.warm_p, ah.warm_R) & SOLVE_RUNNING:
+        ah.began(warm)
+        if warm:
+            np.copyto(ah.hemisphere, tp.position)
+            np.copyto(ah.warm_p, tp.warm_p)
+            np.copyto(ah.warm_R, tp.warm_R)
+            st = self.solver.begin(ah.S, ah.currents, ah.sigma, ah.hemisphere, ah.warm_p, ah.warm_R)
+        else:
+            np.copyto(ah.hemisphere, tp.hemisphere)
+            st = self.solver.begin(ah.S, ah.currents, ah.sigma, ah.hemisphere)
+        if not st & SOLVE_RUNNING:
             return False
         self._ahead_k = k
         self.ahead_solves += 1
         return True
 
-    def _use_ahead(self, ch) -> bool:
-        """In the burst's own turn (:meth:`_begin`, sigmas and warm start in place): whether
-        its solve is the one begun ahead on the same inputs, still running (it goes on as this
-        burst's) or finished (its pose is reported now). Otherwise a solve ahead still running
-        gives way (False: solve as usual)."""
+    def _use_ahead(self, ch, warm: bool) -> bool:
+        """In the burst's own turn (:meth:`_begin`, sigmas and, ``warm``, warm start in place):
+        whether its solve is the one begun ahead from the same kind of start (warm or acquiring)
+        on the same inputs, still running (it goes on as this burst's) or finished (its pose is
+        reported now). Otherwise a solve ahead still running gives way (False: solve as usual)."""
         k = self._next
         ah = self._ahead[k]
         running = self._ahead_k
@@ -791,7 +809,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
         if ah.burst != self.schedule.burst_start or not (ah.done or running == k):
             return False
         ah.release()
-        if not self._same[k]():
+        if ah.warm != warm or not self._same[k][warm]():
             self.ahead_missed += 1
             return False
         self.ahead_used += 1
@@ -829,11 +847,11 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
 
     def _start_solve(self, ch) -> None:
         """The start of the solve of the usable burst on ``ch`` (warm from the tracked pose once
-        there is one)."""
+        there is one), or the take-over of its solve ahead (:meth:`_use_ahead`)."""
         ch.fill_sigma()
         tp = self.poses[ch.node]
         warm = self.warm_start(ch, tp)
-        if warm and self.ahead and self._use_ahead(ch):
+        if self.ahead and self._use_ahead(ch, warm):
             return
         self._solve_from(ch, tp, warm)
 

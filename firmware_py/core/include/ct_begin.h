@@ -44,36 +44,42 @@ int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *s
 struct ct_pulse;
 struct ct_sample_ring;
 /* one sensor's _Ahead (track/magnetic.py): its copies of a burst's inputs, S, sigma (3 x n, row-major),
- * currents (n), hemisphere (3), warm_p (3), warm_R (9), and its last window's amp, var (3 each) */
+ * currents (n), hemisphere (3), warm_p (3), warm_R (9), its last window's amp, var (3 each), and warm
+ * (1: _Ahead.wst, whether its solve began warm, 1, or acquiring, 0) */
 struct ct_ahead_buf {
     double *S, *sigma, *cur, *hemi, *wp, *wR, *amp, *var;
+    int64_t *warm;
 };
 /* MagneticTracker._begin_ahead: the last window (coil n - 1, [start, end]) extracted on the channel's
  * ring r (PulseExtractor.extract: ct_pulse_extract into res (6) and ires (4), then amp and var), and,
  * where it has pulse and baseline samples, the channel's S and var (3 x n) copied with that column
  * replaced, the sigma from them in place (floor2), the currents prepared (measured, nominal), the
- * hemisphere tp and the start wp, wR copied and the solve begun on the copies (warm).  Returns the
- * begin's status, or CT_AHEAD_NO_WINDOW. */
+ * start's kind recorded (ah->warm: wp given), the hemisphere hemi and, warm, the start wp, wR copied and
+ * the solve begun on the copies (warm, or acquiring where wp is NULL).  Returns the begin's status, or
+ * CT_AHEAD_NO_WINDOW. */
 int ct_begin_ahead(const struct ct_solve *s, int n, const struct ct_pulse *x, const struct ct_sample_ring *r,
                    int64_t start, int64_t end, double *res, int64_t *ires, const double *S, const double *var,
-                   double floor2, const double *measured, const double *nominal, const double *tp, const double *wp,
+                   double floor2, const double *measured, const double *nominal, const double *hemi, const double *wp,
                    const double *wR, const struct ct_ahead_buf *ah);
 /* MagneticTracker._ahead_start of BurstFusionTracker: its warm start (ct_report_warm_start, as in
- * ct_solve_start) and, where it made one, ct_begin_ahead from it; CT_AHEAD_COLD where it made none */
+ * ct_solve_start), then ct_begin_ahead from it (the hemisphere tp) or, where it made none, acquiring
+ * from the sensor's hemisphere hemi.  Returns the begin's status | warm << 8, or CT_AHEAD_NO_WINDOW. */
 int ct_ahead_start(const struct ct_solve *s, int n, const struct ct_hist *h, int64_t t_ref, int have_pose,
                    int initialized, double range_m, const double *tp, const double *tR, double *wp, double *wR,
-                   const struct ct_pulse *x, const struct ct_sample_ring *r, int64_t start, int64_t end, double *res,
-                   int64_t *ires, const double *S, const double *var, double floor2, const double *measured,
-                   const double *nominal, const struct ct_ahead_buf *ah);
-enum { CT_AHEAD_COLD = -1, CT_AHEAD_NO_WINDOW = -2 };
+                   const double *hemi, const struct ct_pulse *x, const struct ct_sample_ring *r, int64_t start,
+                   int64_t end, double *res, int64_t *ires, const double *S, const double *var, double floor2,
+                   const double *measured, const double *nominal, const struct ct_ahead_buf *ah);
+enum { CT_AHEAD_NO_WINDOW = -2 };
 /* MagneticTracker._start_solve of BurstFusionTracker where a solve ahead may be taken over, up to
  * _use_ahead's comparison: the sigma (ct_sigma_from over var into sig, as in ct_solve_start), the warm
- * start (ct_report_warm_start into wp, wR) and, where it made one, _Ahead.same of the burst's inputs
- * (S, sig, cur, the hemisphere tp, wp, wR) against the solve ahead's in ah (ct_report_same).  Returns
- * warm | same << 1. */
+ * start (ct_report_warm_start into wp, wR), then whether the solve ahead began from the same kind of
+ * start (ah->warm) and, where it did, _Ahead.same of the burst's inputs against its copies in ah
+ * (ct_report_same; warm: S, sig, cur, the hemisphere tp, wp, wR; acquiring: S, sig, cur and the
+ * sensor's hemisphere hemi).  Returns warm | same << 1. */
 int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const struct ct_hist *h, int64_t t_ref,
                     int have_pose, int initialized, double range_m, const double *tp, const double *tR, double *wp,
-                    double *wR, const double *S, const double *cur, const struct ct_ahead_buf *ah);
+                    double *wR, const double *hemi, const double *S, const double *cur,
+                    const struct ct_ahead_buf *ah);
 
 struct ct_sup;
 /* MagneticTracker._begin_handover's first steps (_begin on the compiled core): ct_begin_inputs of the

@@ -58,7 +58,7 @@ int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *s
 /* MagneticTracker._begin_ahead (its extract: PulseExtractor._extract_compiled over ct_pulse_extract) */
 int ct_begin_ahead(const struct ct_solve *s, int n, const struct ct_pulse *x, const struct ct_sample_ring *r,
                    int64_t start, int64_t end, double *res, int64_t *ires, const double *S, const double *var,
-                   double floor2, const double *measured, const double *nominal, const double *tp, const double *wp,
+                   double floor2, const double *measured, const double *nominal, const double *hemi, const double *wp,
                    const double *wR, const struct ct_ahead_buf *ah)
 {
     int i, j = n - 1;
@@ -77,38 +77,46 @@ int ct_begin_ahead(const struct ct_solve *s, int n, const struct ct_pulse *x, co
     }
     ct_sigma_from(3 * (int64_t)n, ah->sigma, ah->sigma, floor2);
     ct_prepare_currents(measured, nominal, ah->cur, n);
-    memcpy(ah->hemi, tp, sizeof(double) * 3);
+    ah->warm[0] = wp != NULL;
+    memcpy(ah->hemi, hemi, sizeof(double) * 3);
+    if (wp == NULL)
+        return ct_solve_begin(s, ah->S, ah->sigma, n, 1, ah->cur, 1, ah->hemi, NULL, NULL);
     memcpy(ah->wp, wp, sizeof(double) * 3);
     memcpy(ah->wR, wR, sizeof(double) * 9);
     return ct_solve_begin(s, ah->S, ah->sigma, n, 1, ah->cur, 1, ah->hemi, ah->wp, ah->wR);
 }
 
-/* MagneticTracker._ahead_start (BurstFusionTracker.warm_start, then _begin_ahead) */
+/* MagneticTracker._ahead_start (BurstFusionTracker.warm_start, then _begin_ahead, warm or acquiring) */
 int ct_ahead_start(const struct ct_solve *s, int n, const struct ct_hist *h, int64_t t_ref, int have_pose,
                    int initialized, double range_m, const double *tp, const double *tR, double *wp, double *wR,
-                   const struct ct_pulse *x, const struct ct_sample_ring *r, int64_t start, int64_t end, double *res,
-                   int64_t *ires, const double *S, const double *var, double floor2, const double *measured,
-                   const double *nominal, const struct ct_ahead_buf *ah)
+                   const double *hemi, const struct ct_pulse *x, const struct ct_sample_ring *r, int64_t start,
+                   int64_t end, double *res, int64_t *ires, const double *S, const double *var, double floor2,
+                   const double *measured, const double *nominal, const struct ct_ahead_buf *ah)
 {
-    if (!ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR))
-        return CT_AHEAD_COLD;
-    return ct_begin_ahead(s, n, x, r, start, end, res, ires, S, var, floor2, measured, nominal, tp, wp, wR, ah);
+    int warm = ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR) != 0;
+    int st = ct_begin_ahead(s, n, x, r, start, end, res, ires, S, var, floor2, measured, nominal, warm ? tp : hemi,
+                            warm ? wp : NULL, wR, ah);
+    return st < 0 ? st : st | warm << 8;
 }
 
-/* MagneticTracker._start_solve up to _use_ahead's _Ahead.same (fill_sigma, BurstFusionTracker.warm_start) */
+/* MagneticTracker._start_solve up to _use_ahead's comparison (fill_sigma, BurstFusionTracker.warm_start,
+ * _Ahead.warm, _Ahead.same) */
 int ct_ahead_inputs(int n, const double *var, double *sig, double floor2, const struct ct_hist *h, int64_t t_ref,
                     int have_pose, int initialized, double range_m, const double *tp, const double *tR, double *wp,
-                    double *wR, const double *S, const double *cur, const struct ct_ahead_buf *ah)
+                    double *wR, const double *hemi, const double *S, const double *cur,
+                    const struct ct_ahead_buf *ah)
 {
     const double *a[6], *b[6];
     int64_t len[6];
+    int warm;
     ct_sigma_from(3 * (int64_t)n, var, sig, floor2);
-    if (!ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR))
-        return 0;
+    warm = ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR) != 0;
+    if (warm != (ah->warm[0] != 0))
+        return warm;
     a[0] = ah->S, a[1] = ah->sigma, a[2] = ah->cur, a[3] = ah->hemi, a[4] = ah->wp, a[5] = ah->wR;
-    b[0] = S, b[1] = sig, b[2] = cur, b[3] = tp, b[4] = wp, b[5] = wR;
+    b[0] = S, b[1] = sig, b[2] = cur, b[3] = warm ? tp : hemi, b[4] = wp, b[5] = wR;
     len[0] = len[1] = 3 * (int64_t)n, len[2] = n, len[3] = len[4] = 3, len[5] = 9;
-    return 1 | ct_report_same(6, a, b, len) << 1;
+    return warm | ct_report_same(warm ? 6 : 4, a, b, len) << 1;
 }
 
 /* MagneticTracker._begin_handover: _begin_compiled's BurstInputs.status, then the supervisor's

@@ -10,8 +10,9 @@ nominal; one runs the compiled call, the other the reference. Everything either 
 bit for bit: the solves ahead's copies and extractions, the warm starts, the sigmas, the solver's
 loaded inputs and state, the answer, the counters and, for the take-over, the POSE frames sent. A
 wrong column replaced, a sigma not floored, a current not taken from the driver, a hemisphere or a
-start taken from the wrong array, a comparison that misses an input, or a cold start taken for a
-warm one changes a figure or a decision here. Seeded; skipped without the extension."""
+start taken from the wrong array, a comparison that misses an input, a cold start taken for a
+warm one or the reverse, or an acquisition begun ahead from the tracked position instead of the
+sensor's hemisphere changes a figure or a decision here. Seeded; skipped without the extension."""
 import numpy as np
 import pytest
 
@@ -129,8 +130,8 @@ def _same(got, ref) -> None:
 
 def test_the_begin_of_a_solve_ahead_equals_the_reference(pair):
     """300 random states: ``_ahead_start`` on the compiled core and the reference give the same
-    answer and write the same bits (cold starts, windows with no pulse or no baseline samples,
-    begins refused by the solver's checks and warm begins among them)."""
+    answer and write the same bits (cold starts, acquiring ahead, windows with no pulse or no
+    baseline samples, begins refused by the solver's checks and warm begins among them)."""
     got, ref = pair
     answers = set()
     for seed in range(300):
@@ -142,7 +143,8 @@ def test_the_begin_of_a_solve_ahead_equals_the_reference(pair):
         assert r == ref.tracker._ahead_start(k, START, END)
         answers.add((r, got.tracker.channels[k].extractor._ires[1] == 0, got.tracker.poses[k + 16].have_pose))
         _same(got, ref)
-    assert (True, False, True) in answers and (False, True, True) in answers and (False, False, False) in answers
+    assert (True, False, True) in answers and (False, True, True) in answers and (True, False, False) in answers
+    assert (False, True, False) in answers
 
 
 def test_a_time_beyond_the_kernels_range_goes_to_the_reference(pair):
@@ -160,7 +162,8 @@ def test_a_time_beyond_the_kernels_range_goes_to_the_reference(pair):
 def _ahead_of(fw, k: int, burst: int, change: int, running: bool) -> None:
     """Channel ``k``'s solve ahead for ``burst``, finished (or ``running``: begun, its steps to
     come), on the inputs its own solve will have (:meth:`MagneticTracker._start_solve`'s sigma and
-    warm start), one input changed where ``change`` >= 0 (its index in the six)."""
+    warm start, or acquiring from the hemisphere without one), one input changed where ``change``
+    is 0..5 (its index in the six), its start's kind recorded as the other one where it is 6."""
     tr = fw.tracker
     ch = tr.channels[k]
     tp = tr.poses[ch.node]
@@ -168,12 +171,14 @@ def _ahead_of(fw, k: int, burst: int, change: int, running: bool) -> None:
     ch.fill_sigma()
     warm = tr.warm_start(ch, tp)
     for dst, src in zip((ah.S, ah.sigma, ah.currents, ah.hemisphere, ah.warm_p, ah.warm_R),
-                        (ch.S, ch.sigma, tr.currents, tp.position, tp.warm_p, tp.warm_R)):
+                        (ch.S, ch.sigma, tr.currents, tp.position if warm else tp.hemisphere, tp.warm_p, tp.warm_R)):
         np.copyto(dst, src)
-    if change >= 0:
+    if 0 <= change < 6:
         a = (ah.S, ah.sigma, ah.currents, ah.hemisphere, ah.warm_p, ah.warm_R)[change]
         a.reshape(-1)[-1] = np.nextafter(a.reshape(-1)[-1], np.inf)
-    begun = warm and tr.solver.begin(ah.S, ah.currents, ah.sigma, ah.hemisphere, ah.warm_p, ah.warm_R) & 16
+    ah.began(warm != (change == 6))
+    start = (ah.warm_p, ah.warm_R) if warm else ()
+    begun = tr.solver.begin(ah.S, ah.currents, ah.sigma, ah.hemisphere, *start) & 16
     ah.take(burst)
     if running and begun:
         tr._ahead_k = k
@@ -186,15 +191,16 @@ def _ahead_of(fw, k: int, burst: int, change: int, running: bool) -> None:
 
 
 def test_taking_over_a_finished_solve_ahead_equals_the_reference():
-    """160 random states: a burst's start where its solve ahead finished on the same inputs (the
-    pose reported from it), is still running on them (it goes on), or was begun on inputs one
-    element apart in each of the six arrays in turn (solved again), or without a warm start
-    (acquired): ``_start_solve`` on the compiled core and the reference send the same frames and
-    write the same bits, the solve's steps after it too."""
+    """180 random states, warm and acquiring: a burst's start where its solve ahead finished on
+    the same inputs (the pose reported from it), is still running on them (it goes on), or was
+    begun on inputs one element apart in each of the six arrays in turn (solved again; for an
+    acquisition the warm start's two are not its inputs: taken over), or recorded as of the
+    other kind of start (solved again): ``_start_solve`` on the compiled core and the reference
+    send the same frames and write the same bits, the solve's steps after it too."""
     got, ref = _pair()
-    for seed in range(160):
+    for seed in range(180):
         k = seed % 15
-        change = (seed // 15) % 8 - 2         # -2, -1: the same inputs; 0..5: one changed
+        change = (seed // 15) % 9 - 2         # -2, -1: the same inputs; 0..5: one changed; 6: the other kind
         for fw in (got, ref):
             _state(fw, 1000 + seed)
             tr = fw.tracker
