@@ -89,18 +89,18 @@ class BurstMeasurement:
         self.complete = all_done
 
     def completing_sample_us(self) -> int:
-        """When the sample that completes the open burst is expected (us, master clock): that of
-        the first channel whose last window is still open (``WindowExtractor.completing_sample_us``),
-        once its next sample is expected to make the window ready; ``NO_TIME_US`` before, after,
-        and between bursts. The wall-clock loop starts a tick just after it (``[timing]
-        align_us``, ``tools.bench.realtime.firmware_loop``); it reads, and changes nothing."""
+        """When the sample that completes the open burst on the first channel is expected (us,
+        master clock), once its next sample is expected to make the last window ready
+        (``WindowExtractor.completing_sample_us``); ``NO_TIME_US`` before, after, and between
+        bursts. The wall-clock loop starts a tick just after it (``[timing] align_us``,
+        ``tools.bench.realtime.firmware_loop``); it reads, and changes nothing. One channel: the
+        sensors of a multi-sensor bench sample at phases of their own, and the loop's grid can
+        sit after one of them (moving it after each would only add jitter)."""
         sched = self.schedule
         j = self.n - 1
-        if sched.burst_start is None or self.complete or sched.commanded < self.n or \
-                self.closed_upto[j] == len(self.channels):
+        if sched.burst_start is None or self.complete or sched.commanded < self.n or self.closed_upto[j]:
             return NO_TIME_US
-        ch = self.channels[self.closed_upto[j]]
-        return ch.extractor.completing_sample_us(int(sched.start[j]), int(sched.end[j]))
+        return self.channels[0].extractor.completing_sample_us(int(sched.start[j]), int(sched.end[j]))
 
     def release(self) -> None:
         """The tracker is done with the burst: the next one may open."""
