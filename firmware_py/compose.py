@@ -48,6 +48,9 @@ class Pipeline:
     track: Callable[[int], None]
     tracker: Tracker
     on_message: Callable | None = None     # messages the receiver does not route (AC_DRIVE_STATUS)
+    #: when the sample that completes the open burst is expected (``Measurement.completing_sample_us``;
+    #: None: the pipeline gives no such hint, its bursts are not aligned to)
+    completing_sample_us: Callable[[], int] | None = None
 
 
 @dataclass(frozen=True)
@@ -141,7 +144,8 @@ def _bursts(kind: type) -> Callable[[Parts], Pipeline]:
         t = kind(cfg, p.coils, p.channels, p.schedule, burst, p.supervisor, p.tx,
                  solver_factory(cfg, p.coils, p.distortion, p.core), core=p.core)
         act = BurstActuation(cfg, p.schedule, p.channels, t, p.core, burst)
-        return Pipeline(act.step, burst.step, t.step, t)      # burst.step drops a burst refused late first
+        # burst.step drops a burst refused late first
+        return Pipeline(act.step, burst.step, t.step, t, completing_sample_us=burst.completing_sample_us)
 
     return build
 

@@ -156,9 +156,17 @@ class TimingConfig:
     spacing_us: int = 100_000              # pulse j starts at cycle start + j * spacing
     lead_us: int = 50_000                  # commands leave this long before the cycle
     first_cycle_us: int = 200_000          # start of the first cycle after boot
+    align_us: int = 450                    # wall-clock loop: a tick starts this long after the sample expected to complete a burst (0: the grid is not moved)
+    align_slew_us: int = 100               # wall-clock loop: the most one tick's period moves while the grid is aligned
 
     def check(self, need) -> None:
         _positive_ints(self, need, ("tick_us", "pulse_us", "cycle_us", "spacing_us", "lead_us"))
+        need("align_us", _int(self.align_us) and 0 <= self.align_us and (
+            not _int(self.cycle_us) or self.align_us < self.cycle_us),
+             f"must be an integer from 0 to below cycle_us, got {self.align_us!r}")
+        need("align_slew_us", _int(self.align_slew_us) and 0 < self.align_slew_us and (
+            not _int(self.tick_us) or 4 * self.align_slew_us <= self.tick_us),
+             f"must be a positive integer of at most a quarter of tick_us, got {self.align_slew_us!r}")
         need("first_cycle_us", isinstance(self.first_cycle_us, int) and self.first_cycle_us >= 0,
              f"must be a non-negative integer, got {self.first_cycle_us!r}")
         need("lead_us", self.lead_us < self.cycle_us, "must be shorter than cycle_us")

@@ -46,6 +46,7 @@ from coiltrack.firmware.actuate.schedule import PulseSchedule
 from coiltrack.firmware.compose import Parts, Pipeline, compose
 from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.core import load as load_core
+from coiltrack.firmware.measure.pulse import NO_TIME_US
 from coiltrack.firmware.measure.windows import SensorChannel, WindowCloser
 from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.port import Port
@@ -111,11 +112,20 @@ class Firmware:
             bind()
         self.stages = (self.receiver.step, self.pipeline.measure, self.pipeline.track,
                        self.pipeline.actuate, self.supervisor.step, self.tx.step)
+        self._completing = self.pipeline.completing_sample_us
         self.boot_us: int | None = None
         self.ticks = 0
         self.last_tick_us: int | None = None
         self._begin_tick = self.tx.begin_tick
         self._out = self._outv = None           # tick_timed's output and its view
+
+    def completing_sample_us(self) -> int:
+        """When the sample that completes the open burst is expected (us, master clock), once it
+        is the next one; ``NO_TIME_US`` otherwise, and always where the pipeline gives no such
+        hint (AC blocks, single-coil pulses). The wall-clock loop reads it after each tick and
+        moves its grid so that a tick starts ``[timing] align_us`` after it
+        (``tools.bench.realtime.firmware_loop``); it changes nothing here."""
+        return NO_TIME_US if self._completing is None else self._completing()
 
     def tick(self, now_us: int) -> None:
         # the tick's start (here and in tick_timed, inline): the boot time, the count, the

@@ -17,6 +17,10 @@ def test_default_is_valid_and_thesis_timing():
     ({"source": {"field_model": "magic"}}, "source.field_model"),
     ({"pulse": {"mag_sigma_t": 0.0}}, "pulse.mag_sigma_t"),
     ({"timing": {"bogus_key": 1}}, "timing.bogus_key"),
+    ({"timing": {"align_us": -1}}, "timing.align_us"),
+    ({"timing": {"align_us": 600_000}}, "timing.align_us"),          # not below cycle_us
+    ({"timing": {"align_slew_us": 0}}, "timing.align_slew_us"),
+    ({"timing": {"align_slew_us": 251}}, "timing.align_slew_us"),     # over a quarter of the 1 ms tick
     ({"source": {"coils": [{"radius": -1.0}]}}, "source.coils[0].radius"),
     ({"source": {"coils": [{"turns": 0}]}}, "source.coils[0].turns"),
     ({"source": {"coils": [{"axis": [0, 0, 0]}]}}, "source.coils[0].axis"),

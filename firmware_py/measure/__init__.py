@@ -44,6 +44,10 @@ class Measurement(Protocol):
     def release(self) -> None:
         """The tracker is done with the burst: the next one may fill."""
 
+    def completing_sample_us(self) -> int:
+        """When the sample that completes the open burst is expected (us, master clock), once
+        it is the next one; ``NO_TIME_US`` otherwise (a hint for the wall-clock loop only)."""
+
 
 @runtime_checkable
 class WindowExtractor(Protocol):
@@ -64,6 +68,10 @@ class WindowExtractor(Protocol):
 
     def expect_complete(self, start_us: int, end_us: int) -> bool:
         """The window's last sample is in and the next one is expected after the window."""
+
+    def completing_sample_us(self, start_us: int, end_us: int) -> int:
+        """When the sample that makes the window ready is expected, once it is the next one;
+        ``NO_TIME_US`` otherwise."""
 
     def extract(self, start_us: int, end_us: int, amp_out, var_out) -> tuple[int, int, int]:
         """The window's amplitude into ``amp_out``, its variance into ``var_out``."""

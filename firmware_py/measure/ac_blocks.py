@@ -40,7 +40,7 @@ import numpy as np
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
 from coiltrack.firmware.measure.demod import STEP_DISTORTED, STEP_NO_SIGNAL, STEP_SOLVED, Demodulator
-from coiltrack.firmware.measure.pulse import SampleRing
+from coiltrack.firmware.measure.pulse import NO_TIME_US, SampleRing
 
 # the integer state, an int64 array (``ACBlockMeasurement._st``; ``core/include/ct_ac.h``: CT_ACB_*)
 _BLOCK_K, _COMPLETE, _T_REF, _BLOCKS, _SKIPPED, _BAD, _DISTORTED, _NO_SIGNAL, _MAX_SAMPLES = range(9)
@@ -249,6 +249,11 @@ class ACBlockMeasurement:
     def release(self) -> None:
         """The tracker is done with the block."""
         self._stv[_COMPLETE] = 0
+
+    def completing_sample_us(self) -> int:
+        """No hint: a block completes with the demodulation's own sample count, not at a sample
+        the wall-clock loop could start a tick after (``Measurement.completing_sample_us``)."""
+        return NO_TIME_US
 
     def counters(self) -> dict:
         nb = max(self.blocks * len(self.channels), 1)

@@ -7,6 +7,8 @@ used it and calls :meth:`BurstMeasurement.release`.
 """
 from __future__ import annotations
 
+from coiltrack.firmware.measure.pulse import NO_TIME_US
+
 
 class BurstMeasurement:
     """``budget``: windows closed per tick at most (``[budget] windows_budget``); the rest of a
@@ -85,6 +87,20 @@ class BurstMeasurement:
                 return
             upto[j] = c
         self.complete = all_done
+
+    def completing_sample_us(self) -> int:
+        """When the sample that completes the open burst on the first channel is expected (us,
+        master clock), once its next sample is expected to make the last window ready
+        (``WindowExtractor.completing_sample_us``); ``NO_TIME_US`` before, after, and between
+        bursts. The wall-clock loop starts a tick just after it (``[timing] align_us``,
+        ``tools.bench.realtime.firmware_loop``); it reads, and changes nothing. One channel: the
+        sensors of a multi-sensor bench sample at phases of their own, and the loop's grid can
+        sit after one of them (moving it after each would only add jitter)."""
+        sched = self.schedule
+        j = self.n - 1
+        if sched.burst_start is None or self.complete or sched.commanded < self.n or self.closed_upto[j]:
+            return NO_TIME_US
+        return self.channels[0].extractor.completing_sample_us(int(sched.start[j]), int(sched.end[j]))
 
     def release(self) -> None:
         """The tracker is done with the burst: the next one may open."""

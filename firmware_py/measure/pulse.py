@@ -421,12 +421,28 @@ class PulseExtractor(_WindowColumn):
         A prediction for a caller that works ahead (``track.magnetic`` solving ahead): a late
         or skipped sample can prove it wrong, so what was computed from it must be checked
         against the window's amplitude once :meth:`ready`."""
+        return self._next_expected_us() > end_us + self._fall_us + self._baseline_us
+
+    def completing_sample_us(self, start_us: int, end_us: int) -> int:
+        """The time the sample that will make the window :meth:`ready` is expected at: the next
+        sample (:meth:`expect_complete`'s, one interval after the newest) where the window is not
+        ready yet and that sample falls after it; :data:`NO_TIME_US` otherwise. A hint for the wall-clock loop,
+        which starts a tick just after it (``[timing] align_us``); nothing is computed from it."""
+        ready_after = end_us + self._fall_us + self._baseline_us
+        if self._ring.latest_t_us > ready_after:
+            return NO_TIME_US
+        t = self._next_expected_us()
+        return t if t > ready_after else NO_TIME_US
+
+    def _next_expected_us(self) -> int:
+        """The next sample's expected time: one interval (the newest between two samples) after
+        the newest; :data:`NO_TIME_US` with fewer than two samples in."""
         ring = self._ring
         slot = ring.peek(1)
         if slot < 0:
-            return False
+            return NO_TIME_US
         t = ring.latest_t_us
-        return 2 * t - ring.tv[slot] > end_us + self._fall_us + self._baseline_us
+        return 2 * t - ring.tv[slot]
 
     # --------------------------------------------------------- introspection
     def last_used_times(self, out) -> int:

@@ -38,6 +38,7 @@ import time
 
 import numpy as np
 
+from coiltrack.firmware.measure.pulse import NO_TIME_US
 from coiltrack.hil.clock import WallClock
 
 from .links import FdLink, make_raw_pty
@@ -186,8 +187,54 @@ class EmulatorRealtime:
             gc.enable()
 
 
+def grid_shift(slot_us: int, want_us: int, tick_us: int) -> int:
+    """How far to move a grid of ticks ``tick_us`` apart, one of them at ``slot_us``, so that one
+    lies at ``want_us``: the shorter way round (negative: earlier), at most half a tick."""
+    d = (slot_us - want_us) % tick_us         # the grid's ticks lie at want_us + d + k * tick_us
+    return -d if 2 * d <= tick_us else tick_us - d
+
+
+class GridAlign:
+    """The wall-clock loop's grid moved onto the burst's completing sample (``[timing] align_us``):
+    after each tick it reads when the firmware expects the sample that completes the open burst
+    (``Firmware.completing_sample_us``, a prediction one sample interval ahead) and moves the
+    following slots, by at most ``slew_us`` a tick (:func:`grid_shift`: the shorter way), so
+    that a tick starts ``align_us`` after it and reads it as soon as it is in: the wait for the
+    next tick (up to a whole tick) leaves the pose latency. Each tick's period stays within
+    ``tick_us`` +/- ``slew_us``; the firmware is not told (it runs on the times it is given)."""
+
+    def __init__(self, due, align_us: int, slew_us: int, tick_us: int):
+        self.due = due
+        self.align_us = int(align_us)
+        self.slew_us = int(slew_us)
+        self.tick_us = int(tick_us)
+        self.left_us = 0                      # what the grid still has to move
+        self.seen = None                      # the expected sample last aligned to
+        self.moved_ticks = 0                  # ticks whose period was moved
+        self.moved_us = 0                     # sum of |moves|
+
+    def step(self, next_tick: int) -> int:
+        """The slot after ``next_tick`` (the next one on the grid) moved by this tick's part."""
+        t = self.due()
+        if t != NO_TIME_US and t != self.seen:
+            self.seen = t
+            self.left_us = grid_shift(next_tick, t + self.align_us, self.tick_us)
+        if not self.left_us:
+            return next_tick
+        m = max(-self.slew_us, min(self.slew_us, self.left_us))
+        self.left_us -= m
+        self.moved_ticks += 1
+        self.moved_us += abs(m)
+        return next_tick + m
+
+    def report(self) -> dict:
+        return {"tick_align_us": self.align_us, "tick_align_moves": self.moved_ticks,
+                "tick_align_moved_us": self.moved_us}
+
+
 def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us: int = SPIN_US,
-                  max_records: int = 600_000, after_tick=None, trace=None) -> dict:
+                  max_records: int = 600_000, after_tick=None, trace=None, align_us: int = 0,
+                  slew_us: int = 0) -> dict:
     """Run ``fw.tick`` every ``tick_us`` of ``clock`` until ``duration_us``.
 
     Sleeps until ``spin_us`` (:data:`SPIN_US`) before each slot, then polls the clock (the
@@ -201,7 +248,10 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     ``after_tick()``, when given, runs after each tick, inside its measured
     execution time (a link's ``flush``: the tick's frames leave in one write).
     ``trace``: a :class:`tools.bench.timing.LoopTrace` recording each tick's gap, sleeps and
-    stage times (None, the default: nothing recorded, nothing allocated).
+    stage times (None, the default: nothing recorded, nothing allocated). ``align_us`` > 0
+    (``[timing] align_us``) with a firmware that hints when a burst completes
+    (``completing_sample_us``): the grid is moved by at most ``slew_us`` a tick so that a tick
+    starts ``align_us`` after that sample (:class:`GridAlign`).
     """
     if sleep is None:
         sleep = getattr(clock, "sleep", time.sleep)
@@ -213,6 +263,8 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     n = 0
     misses = 0
     stopped = None
+    due = getattr(fw, "completing_sample_us", None) if align_us > 0 and slew_us > 0 else None
+    align = GridAlign(due, align_us, slew_us, tick_us) if due is not None else None
     try:
         next_tick = max(0, clock.now())
         next_tick += (-next_tick) % tick_us
@@ -245,6 +297,8 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
             if t0 - next_tick >= tick_us or t1 - t0 >= tick_us:
                 misses += 1
             next_tick += tick_us
+            if align is not None:
+                next_tick = align.step(next_tick)
             if next_tick <= t1 - tick_us:          # fell behind: skip missed slots, count them
                 skipped = (t1 - next_tick) // tick_us
                 misses += int(skipped)
@@ -258,6 +312,8 @@ def firmware_loop(fw, clock, duration_us: int, tick_us: int, sleep=None, spin_us
     out = _stats(starts[:m], exec_us[:m], late[:m], tick_us, misses)
     out["ticks"] = n
     out["timing_source"] = "wall clock: tick start times and execution times"
+    if align is not None:
+        out.update(align.report())
     if stopped is not None:
         stopped.partial = out
         raise stopped

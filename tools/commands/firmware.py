@@ -129,7 +129,7 @@ def run(args) -> int:
         rt["keep_awake"] = bool(awake.children)
         # a link that coalesces writes (a pty: FdLink) sends a tick's frames together after it
         timing = firmware_loop(fw, clock, duration_us, cfg.timing.tick_us, after_tick=getattr(link, "flush", None),
-                               trace=trace)
+                               trace=trace, align_us=cfg.timing.align_us, slew_us=cfg.timing.align_slew_us)
     except Stopped as exc:
         # a signal before the loop's first statement has no partial: zero ticks, still the keys
         timing, code = exc.partial or no_ticks(cfg.timing.tick_us), exc.exit_code
