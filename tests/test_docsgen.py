@@ -196,18 +196,21 @@ def test_results_command_refuses_bad_overrides(capsys, monkeypatch, tmp_path):
 
 
 def test_results_override_reaches_the_run_and_its_command():
-    """``coiltrack results --set track_budget_evals=3`` (``docsgen.results.run_one`` with
-    overrides): the run is made with the override (a third of the default's field evaluations
-    per tick: the pose is later, so the latency's p99 grows; the accuracy is the same, the
-    solves being the same), the run records it, and its command is the ``coiltrack sweep`` that
-    gives the same figures, the core as ``--set core.impl``. Catches the override dropped on
-    the way to the firmware (the same latency) and a command that cannot reproduce the run."""
+    """``coiltrack results --set solve_ahead=false --set track_budget_evals=3``
+    (``docsgen.results.run_one`` with overrides): the run is made with the overrides (the
+    acquisition solved in its turn, not ahead: 1 ms later than solved ahead; at a ninth of the
+    default's field evaluations per tick, 8 ms later still; the accuracy is the same, the solves
+    being the same), the run records them, and its command is the ``coiltrack sweep`` that gives
+    the same figures, the core as ``--set core.impl``. Catches an override dropped on the way to
+    the firmware (the same latency) and a command that cannot reproduce the run."""
     base = R.run_one(("static", 1, 1.0, None))
-    low = R.run_one(("static", 1, 1.0, None, (("track_budget_evals", 3),)))
-    assert low["overrides"] == {"track_budget_evals": 3} and "overrides" not in base
-    assert low["report"]["latency_ms_p99"] > base["report"]["latency_ms_p99"]
-    assert low["report"]["position_rms_mm"] == base["report"]["position_rms_mm"]
-    assert low["command"] == "coiltrack sweep --scenario static --seeds 1 --duration 1 --set track_budget_evals=3"
+    turn = R.run_one(("static", 1, 1.0, None, (("solve_ahead", False),)))
+    low = R.run_one(("static", 1, 1.0, None, (("solve_ahead", False), ("track_budget_evals", 3))))
+    assert low["overrides"] == {"solve_ahead": False, "track_budget_evals": 3} and "overrides" not in base
+    assert low["report"]["latency_ms_p99"] > turn["report"]["latency_ms_p99"] > base["report"]["latency_ms_p99"]
+    assert low["report"]["position_rms_mm"] == turn["report"]["position_rms_mm"] == base["report"]["position_rms_mm"]
+    assert low["command"] == ("coiltrack sweep --scenario static --seeds 1 --duration 1 --set solve_ahead=false "
+                              "--set track_budget_evals=3")
     assert R.command("static", 1, 1.0, 2.0, core="python", overrides=(("pose.raab_refresh", True),)) == \
         "coiltrack sweep --scenario static --seeds 1 --duration 1 --set pose.raab_refresh=true --set core.impl=python"
     assert R.command("static", 1, 2.0, 2.0, core="python") == "coiltrack bench --scenario static --seed 1 --core python"

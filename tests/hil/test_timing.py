@@ -162,12 +162,13 @@ def test_latency_from_last_sample_to_pose_is_bounded(thesis_run, fast_run):
     """On the simulated clock the latency is the pipeline's quantisation (the emulator step
     after the sample, the firmware tick after that, the emulator step that receives the pose:
     3 ticks) plus the ticks the bounded solve takes after the last window closed, which the
-    firmware reports (``solve_ticks_max``): a pose leaves in the tick its solve completes."""
+    firmware reports (``solve_ticks_max``; 0 where every burst was solved ahead, the acquisition
+    included): a pose leaves in the tick its solve completes."""
     for run in (thesis_run, fast_run):
         rep = run.rep
         st = run.fw.status()
         assert rep["latency_ms_max"] is not None
-        assert 1 <= st["solve_ticks_max"] <= -(-st["solve_evals_max"] // run.cfg.budget.track_budget_evals) + 2
+        assert 0 <= st["solve_ticks_max"] <= -(-st["solve_evals_max"] // run.cfg.budget.track_budget_evals) + 2
         assert rep["latency_ms_max"] * 1000 <= (3 + st["solve_ticks_max"]) * run.cfg.timing.tick_us
         assert rep["latency_ms_p50"] * 1000 >= run.cfg.timing.tick_us - 1
 
