@@ -22,17 +22,24 @@ from coiltrack.tools.bench.links import inproc_pair
 from coiltrack.tools.bench.runner import BenchSetup
 
 
-def _run(ahead: bool, seconds: float = 10.0, counter=None, patch=None):
-    """The bench on the virtual clock; per burst: the tick it was reported in, the ticks since
-    it completed, whether solved, the evaluations of its solve, position, rotation and
-    covariance. With ``counter`` instead, the allocations of the ticks after the first 3 s.
-    ``patch(tracker)`` may wrap the tracker's methods before the run. The budget is 9 field
-    evaluations a tick, where a warm solve takes 3-4 ticks and solving ahead gains them (at the
-    default 27 it fits in the completing tick with or without solving ahead)."""
+def run_recorded(ahead: bool, seconds: float = 10.0, *, budget=9, impl=None, counter=None, patch=None,
+                 hook=None):
+    """``roetenberg-bench`` seed 1 on the virtual clock with ``solve_ahead`` = ``ahead``: the
+    firmware and, per burst reported, the tick, the ticks since it completed, whether solved,
+    whether its solve began warm, the evaluations of its solve, position, rotation and
+    covariance. ``budget``: ``track_budget_evals`` (None: the default); ``impl``: the core (None:
+    the default). With ``counter`` instead, the allocations of the ticks after the first 3 s.
+    ``patch(tracker)`` may wrap the tracker's methods before the run; ``hook(tracker, t)`` runs
+    before every tick. Here the budget is 9 field evaluations a tick, where a warm solve takes
+    3-4 ticks and solving ahead gains them (at the default 27 it fits in the completing tick
+    with or without solving ahead)."""
     sc = scenarios.get("roetenberg-bench")
     fw_end, emu_end = inproc_pair()
     bench = BenchSetup(sc, 1, seconds + 1.0, emu_end)
-    cfg = sc.firmware_config().with_(budget={"solve_ahead": ahead, "track_budget_evals": 9}).validate()
+    over = {"budget": {"solve_ahead": ahead, **({"track_budget_evals": budget} if budget else {})}}
+    if impl is not None:
+        over["core"] = {"impl": impl}
+    cfg = sc.firmware_config().with_(**over).validate()
     fw = Firmware(cfg, fw_end)
     tr = fw.tracker
     rows = []
@@ -41,8 +48,8 @@ def _run(ahead: bool, seconds: float = 10.0, counter=None, patch=None):
 
     def report(ch, solved):
         sv = tr.solver
-        rows.append((now[0], tr._burst_ticks, solved, sv.solve_evals, sv.position.copy(), sv.rotation.copy(),
-                     sv.covariance.copy()))
+        rows.append((now[0], tr._burst_ticks, solved, bool(sv._warm), sv.solve_evals, sv.position.copy(),
+                     sv.rotation.copy(), sv.covariance.copy()))
         real(ch, solved)
 
     if counter is None:
@@ -53,6 +60,8 @@ def _run(ahead: bool, seconds: float = 10.0, counter=None, patch=None):
     while t < seconds * 1e6:
         bench.emulator.step(t)
         now[0] = t
+        if hook is not None:
+            hook(tr, t)
         if counter is not None and t >= 3_000_000:
             with counter:
                 fw.tick(t)
@@ -62,14 +71,27 @@ def _run(ahead: bool, seconds: float = 10.0, counter=None, patch=None):
     return fw, rows
 
 
-def _same_solves(a, b) -> bool:
+def same_solves(a, b) -> bool:
+    """Every burst reported the same way (solved, warm, evaluations) and with the same bits."""
     return len(a) == len(b) and all(
-        ra[2:4] == rb[2:4] and all(np.array_equal(x, y) for x, y in zip(ra[4:], rb[4:])) for ra, rb in zip(a, b))
+        ra[2:5] == rb[2:5] and all(np.array_equal(x, y) for x, y in zip(ra[5:], rb[5:])) for ra, rb in zip(a, b))
+
+
+def late_currents(tr) -> None:
+    """A ``patch``: the currents of every solve ahead off by 1 ppm (a driver's report come in late
+    between the solve ahead and the burst's turn)."""
+    real = tr._prepare_currents
+
+    def prepare(cur):
+        real(cur)
+        if cur is not tr._curv:
+            cur[0] *= 1.000001
+    tr._prepare_currents = prepare
 
 
 @pytest.fixture(scope="module")
 def without():
-    return _run(False)[1]
+    return run_recorded(False)[1]
 
 
 def test_bursts_solved_ahead_are_their_own_solves_and_leave_in_the_completing_tick(without):
@@ -78,8 +100,8 @@ def test_bursts_solved_ahead_are_their_own_solves_and_leave_in_the_completing_ti
     Measured: 15 of the 16 bursts
     solved ahead (the first one acquires), each reported in the tick its burst completed
     (``_burst_ticks`` 0) and 2-4 ticks sooner than without."""
-    fw, rows = _run(True)
-    assert _same_solves(rows, without)
+    fw, rows = run_recorded(True)
+    assert same_solves(rows, without)
     assert len(rows) >= 15 and all(r[2] for r in rows)
     c = fw.tracker.counters()
     assert c["ahead_used"] == c["ahead_solves"] >= len(rows) - 1 and c["ahead_missed"] == 0
@@ -93,20 +115,11 @@ def test_a_solve_ahead_on_other_inputs_is_not_used(without):
     used and every burst is solved as without. Catches a result taken without comparing the
     burst's inputs with the solve ahead's."""
 
-    def patch(tr):
-        real = tr._prepare_currents
-
-        def prepare(cur):
-            real(cur)
-            if cur is not tr._curv:
-                cur[0] *= 1.000001
-        tr._prepare_currents = prepare
-
-    fw, rows = _run(True, patch=patch)
+    fw, rows = run_recorded(True, patch=late_currents)
     c = fw.tracker.counters()
     assert c["ahead_solves"] >= len(rows) - 1 and c["ahead_used"] == 0
     assert c["ahead_missed"] == c["ahead_solves"]
-    assert _same_solves(rows, without)
+    assert same_solves(rows, without)
 
 
 @pytest.mark.skipif(not available(), reason="numpy memory handler API not reachable")
@@ -114,7 +127,7 @@ def test_solving_ahead_allocates_no_numpy_array():
     """7 s of ticks with bursts solved ahead under the counting allocator: none allocates.
     Catches a slice, a temporary or a reduction in the path of a solve ahead or its use."""
     counter = NumpyAllocationCounter()
-    fw, _ = _run(True, seconds=10.0, counter=counter)
+    fw, _ = run_recorded(True, seconds=10.0, counter=counter)
     assert fw.tracker.ahead_used >= 8
     assert counter.count == 0
 

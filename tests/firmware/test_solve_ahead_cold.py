@@ -12,51 +12,14 @@ after a lost track is the same on both cores.
 import numpy as np
 import pytest
 
-from coiltrack.firmware.loop import Firmware
 from coiltrack.firmware.track.magnetic import MagneticTracker
-from coiltrack.tools import scenarios
-from coiltrack.tools.bench.links import inproc_pair
-from coiltrack.tools.bench.runner import BenchSetup
+
+from .test_solve_ahead import late_currents, run_recorded, same_solves
 
 
 def _run(ahead: bool, seconds: float, impl: str = "compiled", hook=None, patch=None):
-    """The bench on the virtual clock at the default budget; per burst reported: the tick, the
-    ticks since it completed, whether solved, whether its solve was warm, the evaluations of its
-    solve, position, rotation and covariance. ``hook(tracker, t)`` runs before every tick,
-    ``patch(tracker)`` once before the run."""
-    sc = scenarios.get("roetenberg-bench")
-    fw_end, emu_end = inproc_pair()
-    bench = BenchSetup(sc, 1, seconds + 1.0, emu_end)
-    cfg = sc.firmware_config().with_(budget={"solve_ahead": ahead}, core={"impl": impl}).validate()
-    fw = Firmware(cfg, fw_end)
-    tr = fw.tracker
-    rows = []
-    real = tr._report
-    now = [0]
-
-    def report(ch, solved):
-        sv = tr.solver
-        rows.append((now[0], tr._burst_ticks, solved, bool(sv._warm), sv.solve_evals, sv.position.copy(),
-                     sv.rotation.copy(), sv.covariance.copy()))
-        real(ch, solved)
-
-    tr._report = report
-    if patch is not None:
-        patch(tr)
-    t = 0
-    while t < seconds * 1e6:
-        bench.emulator.step(t)
-        now[0] = t
-        if hook is not None:
-            hook(tr, t)
-        fw.tick(t)
-        t += cfg.timing.tick_us
-    return fw, rows
-
-
-def _same_solves(a, b) -> bool:
-    return len(a) == len(b) and all(
-        ra[2:5] == rb[2:5] and all(np.array_equal(x, y) for x, y in zip(ra[5:], rb[5:])) for ra, rb in zip(a, b))
+    """:func:`run_recorded` at the default budget on the core ``impl``."""
+    return run_recorded(ahead, seconds, budget=None, impl=impl, hook=hook, patch=patch)
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +36,7 @@ def test_the_first_burst_is_acquired_ahead_and_leaves_in_the_completing_tick(wit
     ``solve_ahead`` off)."""
     fw, rows = _run(True, 3.0, impl=impl)
     assert not without[0][3] and without[0][1] >= 1          # without: acquired in turn, a tick or more late
-    assert _same_solves(rows, without)
+    assert same_solves(rows, without)
     assert rows[0][1] == 0 and rows[0][0] < without[0][0]
     assert all(r[1] == 0 for r in rows)
     c = fw.tracker.counters()
@@ -86,19 +49,10 @@ def test_an_acquisition_ahead_on_other_inputs_is_not_used(without, impl):
     acquisition ahead is begun but not used, and the first burst is acquired in turn as without.
     Catches a cold result taken without comparing the burst's inputs (the warm comparison only)."""
 
-    def patch(tr):
-        real = tr._prepare_currents
-
-        def prepare(cur):
-            real(cur)
-            if cur is not tr._curv:
-                cur[0] *= 1.000001
-        tr._prepare_currents = prepare
-
-    fw, rows = _run(True, 3.0, impl=impl, patch=patch)
+    fw, rows = _run(True, 3.0, impl=impl, patch=late_currents)
     c = fw.tracker.counters()
     assert c["ahead_solves"] == len(rows) and c["ahead_used"] == 0 and c["ahead_missed"] == c["ahead_solves"]
-    assert _same_solves(rows, without)
+    assert same_solves(rows, without)
     assert rows[0][1] >= 1
 
 
@@ -136,7 +90,7 @@ def test_a_solve_ahead_of_the_other_kind_of_start_is_not_used():
         hook, _ = _flip_before_completion(burst_no, have, pose if have else None, at=state["at"])
         plain = _run(False, 3.0, hook=hook)[1]
         assert rows[burst_no][3] is warm
-        assert _same_solves(rows, plain)
+        assert same_solves(rows, plain)
         c = fw.tracker.counters()
         assert c["ahead_missed"] == 1 and c["ahead_used"] == c["ahead_solves"] - 1
 
@@ -193,6 +147,6 @@ def test_a_reacquisition_ahead_is_the_same_on_both_cores():
     if tc._ahead_start.__func__ is not MagneticTracker._ahead_start_compiled:
         pytest.skip("the compiled core is not built here")
     assert tc._begin.__func__ is MagneticTracker._begin_handover and tc._ho_begin.__name__ == "begin"
-    assert _same_solves(rc, rp)
+    assert same_solves(rc, rp)
     assert not rc[burst_no][3] and rc[burst_no][1] == 0
     assert tc.counters() == tp_.counters() and tc.counters()["ahead_missed"] == 0
