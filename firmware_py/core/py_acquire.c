@@ -39,10 +39,11 @@ static void AcquireRun_dealloc(AcquireRunObject *self)
 static int AcquireRun_init(AcquireRunObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "cx", "cy", "cz", "near", "mu0_4pi", "tol", "buffers", NULL};
-    PyObject *bufs, *seq;
+    PyObject *bufs;
     double *ptr[AQ_NBUF];
+    Py_ssize_t len[AQ_NBUF];
     double cx, cy, cz, near, mu0_4pi, tol;
-    int n, i;
+    int n;
     if (!PyArg_ParseTupleAndKeywords(args, kw, "iddddddO", kwlist, &n, &cx, &cy, &cz, &near, &mu0_4pi, &tol, &bufs))
         return -1;
     if (self->bound) {
@@ -53,27 +54,10 @@ static int AcquireRun_init(AcquireRunObject *self, PyObject *args, PyObject *kw)
         PyErr_Format(PyExc_ValueError, "AcquireRun: n must be in 1..64, got %d", n);
         return -1;
     }
-    seq = PySequence_Fast(bufs, "AcquireRun: buffers must be a sequence");
-    if (seq == NULL)
+    ct_py_lengths_per_n(aq_per_n, AQ_NBUF, n, len);
+    len[8] = CT_AQ_WORK_FIXED + (Py_ssize_t)n * n + 3 * (Py_ssize_t)n;
+    if (ct_py_float_buffers(bufs, AQ_NBUF, len, aq_ro, aq_names, self->views, ptr, "AcquireRun") < 0)
         return -1;
-    if (PySequence_Fast_GET_SIZE(seq) != AQ_NBUF) {
-        Py_DECREF(seq);
-        PyErr_Format(PyExc_ValueError, "AcquireRun: needs %d buffers", AQ_NBUF);
-        return -1;
-    }
-    for (i = 0; i < AQ_NBUF; ++i) {
-        Py_ssize_t len = aq_per_n[i] > 0 ? (Py_ssize_t)aq_per_n[i] * n : -(Py_ssize_t)aq_per_n[i];
-        if (i == 8)
-            len = CT_AQ_WORK_FIXED + (Py_ssize_t)n * n + 3 * (Py_ssize_t)n;
-        if (ct_py_buffer(PySequence_Fast_GET_ITEM(seq, i), len, 8, "d", !aq_ro[i], &self->views[i], aq_names[i]) < 0) {
-            while (--i >= 0)
-                PyBuffer_Release(&self->views[i]);
-            Py_DECREF(seq);
-            return -1;
-        }
-        ptr[i] = (double *)self->views[i].buf;
-    }
-    Py_DECREF(seq);
     self->a.n = n;
     self->a.geom = ptr[0];
     self->a.B = ptr[1];

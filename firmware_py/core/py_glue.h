@@ -62,6 +62,48 @@ static inline int ct_py_buffer(PyObject *obj, Py_ssize_t n, Py_ssize_t itemsize,
     return 0;
 }
 
+/* Bind the sequence `bufs` of exactly `count` float64 arrays, item i as ct_py_buffer does with at
+ * least len[i] items, writable unless ro[i], named names[i]; its data pointer into ptr[i]: 0, or -1
+ * with the error set (a ValueError naming `what` for a sequence of another length) and nothing held. */
+static inline int ct_py_float_buffers(PyObject *bufs, int count, const Py_ssize_t *len, const int *ro,
+                                      const char *const *names, Py_buffer *views, double **ptr, const char *what)
+{
+    PyObject *seq = PySequence_Check(bufs) ? PySequence_Fast(bufs, "") : NULL;
+    int i;
+    if (seq == NULL) {
+        if (!PyErr_Occurred() || PyErr_ExceptionMatches(PyExc_TypeError)) {
+            PyErr_Clear();
+            PyErr_Format(PyExc_TypeError, "%s: buffers must be a sequence", what);
+        }
+        return -1;
+    }
+    if (PySequence_Fast_GET_SIZE(seq) != count) {
+        Py_DECREF(seq);
+        PyErr_Format(PyExc_ValueError, "%s: needs %d buffers", what, count);
+        return -1;
+    }
+    for (i = 0; i < count; ++i) {
+        if (ct_py_buffer(PySequence_Fast_GET_ITEM(seq, i), len[i], 8, "d", !ro[i], &views[i], names[i]) < 0) {
+            while (--i >= 0)
+                PyBuffer_Release(&views[i]);
+            Py_DECREF(seq);
+            return -1;
+        }
+        ptr[i] = (double *)views[i].buf;
+    }
+    Py_DECREF(seq);
+    return 0;
+}
+
+/* The lengths of `count` buffers given per n (per_n[i] > 0: per_n[i] * n items; otherwise the fixed
+ * count -per_n[i]) into len. */
+static inline void ct_py_lengths_per_n(const int *per_n, int count, int n, Py_ssize_t *len)
+{
+    int i;
+    for (i = 0; i < count; ++i)
+        len[i] = per_n[i] > 0 ? (Py_ssize_t)per_n[i] * n : -(Py_ssize_t)per_n[i];
+}
+
 /* Take obj, when it is a float64 array of shape (rows, cols) (cols 0: 1-D of rows items) with any
  * strides in whole items, as a read-only view: 1 (v held, the caller releases it), or 0 with no error
  * set and nothing held (another kind of input: the caller's Python reference takes it) */

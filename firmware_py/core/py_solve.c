@@ -45,10 +45,11 @@ static int SolveRun_init(SolveRunObject *self, PyObject *args, PyObject *kw)
 {
     static char *kwlist[] = {"n", "gate", "cx", "cy", "cz", "tol", "lam0", "lam_max", "iters", "cost_tol",
                              "step_sigma", "step_tol", "buffers", NULL};
-    PyObject *bufs, *seq;
+    PyObject *bufs;
     double *ptr[SR_NBUF];
+    Py_ssize_t len[SR_NBUF];
     double gate, cx, cy, cz, tol, lam0, lam_max, cost_tol, step_sigma, step_tol;
-    int n, iters, i;
+    int n, iters;
     if (!PyArg_ParseTupleAndKeywords(args, kw, "idddddddidddO", kwlist, &n, &gate, &cx, &cy, &cz, &tol, &lam0,
                                      &lam_max, &iters, &cost_tol, &step_sigma, &step_tol, &bufs))
         return -1;
@@ -60,25 +61,9 @@ static int SolveRun_init(SolveRunObject *self, PyObject *args, PyObject *kw)
         PyErr_Format(PyExc_ValueError, "SolveRun: n must be in 1..64, got %d", n);
         return -1;
     }
-    seq = PySequence_Fast(bufs, "SolveRun: buffers must be a sequence");
-    if (seq == NULL)
+    ct_py_lengths_per_n(sr_per_n, SR_NBUF, n, len);
+    if (ct_py_float_buffers(bufs, SR_NBUF, len, sr_ro, sr_names, self->views, ptr, "SolveRun") < 0)
         return -1;
-    if (PySequence_Fast_GET_SIZE(seq) != SR_NBUF) {
-        Py_DECREF(seq);
-        PyErr_Format(PyExc_ValueError, "SolveRun: needs %d buffers", SR_NBUF);
-        return -1;
-    }
-    for (i = 0; i < SR_NBUF; ++i) {
-        Py_ssize_t len = sr_per_n[i] > 0 ? (Py_ssize_t)sr_per_n[i] * n : -(Py_ssize_t)sr_per_n[i];
-        if (ct_py_buffer(PySequence_Fast_GET_ITEM(seq, i), len, 8, "d", !sr_ro[i], &self->views[i], sr_names[i]) < 0) {
-            while (--i >= 0)
-                PyBuffer_Release(&self->views[i]);
-            Py_DECREF(seq);
-            return -1;
-        }
-        ptr[i] = (double *)self->views[i].buf;
-    }
-    Py_DECREF(seq);
     self->f.n = n;
     self->f.geom = ptr[0];
     self->f.B = ptr[1];
