@@ -15,16 +15,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from coiltrack.firmware import core
-from coiltrack.firmware.model.field import Coil, orthogonal_source
+from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.pose.solver import SOLVE_NO_START, SOLVE_REACQUIRED, SOLVE_RUNNING, PoseSolver
 
 pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 
+from .test_core_solve import ORTHO, SKEWED, _signals  # noqa: E402  (the solve's tests' sources and signals)
+
 COMPILED = core.load("compiled")
 EXT = COMPILED.ext
-ORTHO = orthogonal_source(0.055, 50)
-SKEWED = [Coil([0.01, 0, 0], [1, 0.2, 0], 0.05, 40), Coil([0, 0.012, 0], [0, 1, 0.3], 0.06, 50),
-          Coil([0, 0, 0.01], [0.1, 0, 1], 0.055, 45), Coil([-0.01, 0, 0], [1, 1, 1], 0.04, 30)]
 #: three coils whose axes lie in one plane: M M^T is singular, no start
 FLAT = [Coil([0, 0, 0], [1, 0, 0], 0.05, 40), Coil([0, 0, 0], [0, 1, 0], 0.05, 40),
         Coil([0, 0, 0], [1, 1, 0], 0.05, 40)]
@@ -35,13 +34,6 @@ UNITS = {None: 0, "_unit_moments": 1, "_unit_kuipers_position": 2, "_unit_kuiper
 
 def _pair(coils, model="exact"):
     return PoseSolver(coils, model, core=core.PYTHON), PoseSolver(coils, model, core=COMPILED)
-
-
-def _signals(coils, p, R, cur, rng, noise, model="exact"):
-    gen = PoseSolver(coils, model, core=core.PYTHON)
-    h = memoryview(np.zeros(3 * len(coils)))
-    gen.signal.predict(p[0], p[1], p[2], R, cur, h)
-    return np.array(h).reshape(len(coils), 3).T + rng.normal(0.0, noise, (3, len(coils)))
 
 
 def _units(ref, got, S, cur, sigma, h):

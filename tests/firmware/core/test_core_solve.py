@@ -39,8 +39,10 @@ def _pair(coils, **kw):
     return ref, got
 
 
-def _signals(coils, p, R, cur, rng, noise):
-    gen = PoseSolver(coils, "exact", core=core.PYTHON)
+def _signals(coils, p, R, cur, rng, noise, model="exact"):
+    """The (3, n) signals of ``coils`` at pose ``(p, R)`` with currents ``cur`` (the reference's
+    signal model ``model``), plus Gaussian noise of std ``noise``."""
+    gen = PoseSolver(coils, model, core=core.PYTHON)
     h = memoryview(np.zeros(3 * len(coils)))
     gen.signal.predict(p[0], p[1], p[2], R, cur, h)
     return np.array(h).reshape(len(coils), 3).T + rng.normal(0.0, noise, (3, len(coils)))
