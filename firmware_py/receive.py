@@ -77,6 +77,7 @@ from coiltrack.protocol.schema import (ACC_LSB, DANG_LSB_RAD, DVEL_LSB_MPS, EVT_
                                        STAMP_MASK, STAMP_SATURATED, unwrap_stamp)
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
+from coiltrack.firmware.measure.windows import SensorChannel
 from coiltrack.firmware.rxdecode import RXK_IMU as _RXK_IMU, RXK_MAG as _RXK_MAG, RXK_MAG_PACKED as _RXK_MAG_PACKED
 from coiltrack.firmware.rxdecode import RXR_CLIP as _RXR_CLIP, RXR_KIND as _RXR_KIND, CompiledFrameDecoder
 
@@ -93,6 +94,9 @@ _INV_GYR = 1.0 / GYR_LSB
 # the receiver's IMU counters and the interval start, int64 slots of one array that the compiled
 # decode writes too (core/src/imu.c CT_DIO_*)
 _T0, _UNPAIRED, _ANCHORS, _SATURATED, _SAT_PAIRS, _DELTAS, _NIO = range(7)
+# the compiled route's int64 state (core/include/ct_rxdecode.h CT_RXS_*): its rows, the next row, and
+# the MAG_PACKED count (:attr:`Receiver.packed_mag`, counted there on either core)
+_RS_PACKED, _RS_N = 2, 3
 
 
 class MagRecord:
@@ -144,6 +148,12 @@ def _io_counter(k: int, doc: str):
     return property(lambda self: int(self._io[k]), doc=doc)
 
 
+def _pushes_here(ch) -> bool:
+    """Whether the compiled route may push ``ch``'s samples itself: a plain
+    :class:`coiltrack.firmware.measure.windows.SensorChannel` (its ``push`` is ``SampleRing.push_kernel``'s)."""
+    return type(ch) is SensorChannel
+
+
 class Receiver:
     """The receive stage (module docstring); ``core``: the numeric core of the IMU decode
     (``coiltrack.firmware.core.Core``, chosen at composition)."""
@@ -153,6 +163,7 @@ class Receiver:
     imu_delta_anchors = _io_counter(_ANCHORS, "IMU_DELTA pairs that only anchor the sums")
     imu_saturated = _io_counter(_SATURATED, "IMU samples not used: an axis clipped (steps of a pair included)")
     imu_saturated_pairs = _io_counter(_SAT_PAIRS, "IMU_DELTA pairs with the saturated bit")
+    packed_mag = property(lambda self: int(self._rsv[_RS_PACKED]), doc="MAG_PACKED samples restored")
 
     def __init__(self, port, decoder, channels, schedule, tracker, supervisor, tx, other=None,
                  imu_interval_us: float = 1e5, imu_step_us: float = 1e4, calibration=None,
@@ -181,7 +192,8 @@ class Receiver:
         self._imus = ImuRecord()                # a received IMU_SAMPLE (compiled frame decode)
         self._deltas: dict[int, _DeltaState] = {}
         self._step = 0.0
-        self.packed_mag = 0
+        self._rs = np.zeros(_RS_N, dtype=np.int64)     # the compiled route's state, the packed count
+        self._rsv = memoryview(self._rs)
         self._io = np.zeros(_NIO, dtype=np.int64)      # counters and the interval start (properties)
         self._iov = memoryview(self._io)
         self.frames_per_tick = int(frames_per_tick)
@@ -199,13 +211,32 @@ class Receiver:
             # and a time-sync reply, for a pipeline that takes no other message
             if self._sup_mag is not None and other is None:
                 self._sup_reply = supervisor.reply_kernel()
-            # what _step_rows reads, fixed from here: the decoder, its rows, the supervisor's entry and
+            self._rx_step = self._bind_route(decoder)
+            # what _rows_from reads, fixed from here: the decoder, its rows, the supervisor's entry and
             # kernels; a magnetometer sample goes straight to its channel (:meth:`_mag_in` without the
             # call) when no node's magnetometer is calibrated (``chans``), an IMU sample likewise
-            # (:meth:`_on_imu`'s steps) when no node's IMU is (``ichans``)
-            self._rows_b = (decoder, decoder.decode, decoder.rows, decoder.width, decoder.capacity,
-                            supervisor.on_message, self._sup_mag, self._sup_reply,
-                            None if self.mag_cal else self.channels, None if self.imu_cal else self.channels)
+            # (:meth:`_on_imu`'s steps) when no node's IMU is (``ichans``: the channels that keep
+            # its rates, the others' ``push_imu`` does nothing)
+            ichans = {n: ch for n, ch in self.channels.items() if not (_pushes_here(ch) and ch.gyro is None)}
+            self._rows_b = (decoder, decoder.rows, decoder.width, supervisor.on_message, self._sup_mag,
+                            self._sup_reply, None if self.mag_cal else self.channels, None if self.imu_cal else ichans)
+
+    def _bind_route(self, decoder):
+        """The compiled decode and routing of a tick's data (:meth:`CompiledFrameDecoder.route_kernel`,
+        ``ct_rx_step``): the magnetometer rows of the nodes whose channel it pushes into
+        (:func:`_pushes_here`) routed in C as :meth:`_rows_from` routes them (the supervisor's
+        ``mag_kernel``, the packed count, the channel's push), when the supervisor has that kernel
+        and no node's magnetometer is calibrated; every other row handed to :meth:`_rows_from`, in
+        order. Its ``step`` bound once."""
+        nodes = np.full(256, -1, dtype=np.int64)
+        pushes = []
+        sup = getattr(self._sup_mag, "__self__", None)
+        if sup is not None and not self.mag_cal:
+            for node, ch in self.channels.items():
+                if 0 <= node < 256 and _pushes_here(ch):
+                    nodes[node] = len(pushes)
+                    pushes.append(ch.ring.push_kernel(decoder.ext, ch.cnt))
+        return decoder.route_kernel(sup, nodes, tuple(pushes), self._rs, MAG_LSB_T).step
 
     def _bind(self, core) -> None:
         """The IMU decode on the compiled core (``core/src/imu.c``: ``ct_imu_clipped``,
@@ -283,50 +314,57 @@ class Receiver:
 
     def _step_rows(self, now_us: int) -> None:
         """:meth:`step` on the compiled frame decode (:class:`coiltrack.firmware.rxdecode.CompiledFrameDecoder`,
-        bound at construction): the same messages routed in the same order, the sample messages
-        (MAG_PACKED already restored, MAG_SAMPLE, IMU_SAMPLE with its clipped-axis check) read from
-        its rows into the stage's records, the others unpacked by protocol.codec."""
+        bound at construction): the same messages routed in the same order; the magnetometer rows
+        the compiled route takes (:meth:`_bind_route`) in its one call, the others by :meth:`_rows_from`."""
         data = self.port.read()
         if self._queue or (data and self.frames_per_tick and data.count(b"\x00") >= self.frames_per_tick):
             data = self._take(data)              # a backlog, or a tick's worth of frames or more
         if not data:
             return
-        dec, decode, q, w, cap, seen, smag, sreply, chans, ichans = self._rows_b
-        pos, end = 0, len(data)
+        k = self._rx_step(data, 0, now_us)
+        if k >= 0:
+            self._rows_from(k, data, now_us)
+
+    def _rows_from(self, k: int, data, now_us: int) -> None:
+        """Row ``k`` of the decoder's rows and each next one the compiled route hands back (until
+        -1): the sample messages (MAG_PACKED already restored, MAG_SAMPLE, IMU_SAMPLE with its
+        clipped-axis check) read from the rows into the stage's records, the others unpacked by
+        protocol.codec."""
+        route = self._rx_step
+        dec, q, w, seen, smag, sreply, chans, ichans = self._rows_b
         r = self._mag
-        while pos < end:
-            n = decode(data, pos, now_us)
-            pos = end if n < cap else dec.pos        # (fewer rows than the table holds: all taken)
-            for b in range(0, n * w, w):
-                kind = q[b + _RXR_KIND]
-                if kind == _RXK_MAG_PACKED or kind == _RXK_MAG:
-                    r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
-                    if kind == _RXK_MAG_PACKED:
-                        self.packed_mag += 1
-                    if smag is None or smag(r.node, r.t_us, r.x, r.y, r.z, r.flip, now_us):
-                        seen(r, now_us)
-                    ch = None if chans is None else chans.get(r.node)
+        while k >= 0:
+            b = k * w
+            kind = q[b + _RXR_KIND]
+            if kind == _RXK_MAG_PACKED or kind == _RXK_MAG:
+                r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
+                if kind == _RXK_MAG_PACKED:
+                    self._rsv[_RS_PACKED] += 1
+                if smag is None or smag(r.node, r.t_us, r.x, r.y, r.z, r.flip, now_us):
+                    seen(r, now_us)
+                ch = None if chans is None else chans.get(r.node)
+                if ch is not None:
+                    ch.push(r, MAG_LSB_T)
+                else:
+                    self._mag_in(r)
+            elif kind == _RXK_IMU:
+                ri = self._imus
+                ri.node, ri.t_us, ri.ax, ri.ay, ri.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
+                ri.gx, ri.gy, ri.gz = q[b + 6], q[b + 7], q[b + 8]
+                seen(ri, now_us)
+                if q[b + _RXR_CLIP]:
+                    self._imu_in(ri, True, now_us)
+                elif ichans is None:
+                    self._on_imu(ri, now_us)
+                else:
+                    self.imu_received += 1
+                    ch = ichans.get(ri.node)
                     if ch is not None:
-                        ch.push(r, MAG_LSB_T)
-                    else:
-                        self._mag_in(r)
-                elif kind == _RXK_IMU:
-                    ri = self._imus
-                    ri.node, ri.t_us, ri.ax, ri.ay, ri.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
-                    ri.gx, ri.gy, ri.gz = q[b + 6], q[b + 7], q[b + 8]
-                    seen(ri, now_us)
-                    if q[b + _RXR_CLIP]:
-                        self._imu_in(ri, True, now_us)
-                    elif ichans is None:
-                        self._on_imu(ri, now_us)
-                    else:
-                        self.imu_received += 1
-                        ch = ichans.get(ri.node)
-                        if ch is not None:
-                            ch.push_imu(ri)
-                        self.tracker.on_imu(ri, now_us)
-                elif sreply is None or q[b] != _SYNC_REPLY or sreply(q[b + 1], now_us):
-                    self._route(dec.raw_message(b // w), now_us)
+                        ch.push_imu(ri)
+                    self.tracker.on_imu(ri, now_us)
+            elif sreply is None or q[b] != _SYNC_REPLY or sreply(q[b + 1], now_us):
+                self._route(dec.raw_message(k), now_us)
+            k = route(data, 1, now_us)
 
     def _route(self, msg, now_us: int) -> None:
         """One decoded message to its stage (module docstring), the supervisor first."""
@@ -379,7 +417,7 @@ class Receiver:
         r.node, r.x, r.y, r.z = msg.node, msg.x, msg.y, msg.z
         r.t_us = unwrap_stamp(s & STAMP_MASK, now_us)
         r.flip = (1 if s & STAMP_FLIP else 0) | (2 if s & STAMP_SATURATED else 0)
-        self.packed_mag += 1
+        self._rsv[_RS_PACKED] += 1
         return r
 
     def _push_steps(self, n: int, now_us: int) -> None:

@@ -89,11 +89,24 @@ class CompiledFrameDecoder:
         self._rx = ext.RxDecode(sizes, extras, self._st, self._seq, self._rows, self._pay, self._buf, self._raw,
                                 MAX_ENCODED, MAX_PAYLOAD)
         self.decode = self._rx.decode
+        #: the compiled core's extension this decoder runs on
+        self.ext = ext
         self._pos = ext.RX_POS
         self.width = ext.RXR_W
         #: rows one :meth:`decode` writes at most (fewer: it took all its data, :attr:`pos` is its end)
         self.capacity = rows
         self.verifier = self.on_frame = None
+
+    def route_kernel(self, sup, nodes, pushes, st, lsb: float):
+        """The receive stage's decode and routing of its magnetometer rows on this decoder
+        (``ext.RxRoute``, ``core/src/rxdecode.c`` ``ct_rx_step``, ``ct_rx_route``): ``sup`` the
+        supervisor's ``SupMag`` (None: every row to the caller), ``nodes`` node -> index into
+        ``pushes`` (int64, 256, -1 the caller's), ``pushes`` the channels' ``SamplePush``, ``st``
+        its state (int64, ``RXS_N``: rows, next row, MAG_PACKED count), ``lsb`` MAG_LSB_T.
+        ``step(data, resume, now_us)`` decodes ``data`` into :attr:`rows` and routes them up to the
+        next row the caller routes (its index), -1 when all are; with ``resume`` it goes on after
+        that row (see :meth:`coiltrack.firmware.receive.Receiver._step_rows`)."""
+        return self.ext.RxRoute(self._rx, sup, nodes, pushes, st, lsb)
 
     @property
     def pos(self) -> int:

@@ -239,4 +239,9 @@ struct ct_sup;
  * with a TypeError when o is none */
 const struct ct_sup *ct_py_sup_of(PyObject *o);
 
+/* o's ring and counters (py_multi.c: a bound SamplePush), for a kernel that pushes a channel's samples
+ * itself (ct_sample_push's arguments): 0, or -1 with a TypeError when o is none */
+int ct_py_sample_push_of(PyObject *o, int64_t **t, double **b, uint8_t **flags, int64_t *cap, int64_t **st,
+                         int64_t **cnt);
+
 #endif /* CT_PY_GLUE_H */

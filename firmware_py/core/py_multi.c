@@ -418,6 +418,23 @@ static PyMethodDef multi_functions[] = {
      "sigma_from(var, sig, floor): sig = sqrt(max(var, floor)) item by item (SensorChannel.sigma_from)"},
     {NULL, NULL, 0, NULL}};
 
+int ct_py_sample_push_of(PyObject *o, int64_t **t, double **b, uint8_t **flags, int64_t *cap, int64_t **st,
+                         int64_t **cnt)
+{
+    SamplePushObject *p = (SamplePushObject *)o;
+    if (!PyObject_TypeCheck(o, &SamplePushType) || !p->bound) {
+        PyErr_SetString(PyExc_TypeError, "a bound SamplePush is needed");
+        return -1;
+    }
+    *t = p->t;
+    *b = p->b;
+    *flags = p->flags;
+    *cap = p->cap;
+    *st = p->st;
+    *cnt = p->cnt;
+    return 0;
+}
+
 /* ------------------------------------------------------------- WindowRun */
 typedef struct {
     PyObject_HEAD

@@ -159,13 +159,153 @@ static PyTypeObject RxDecodeType = {
     .tp_methods = RxDecode_methods,
 };
 
+/* ------------------------------------------------------------- RxRoute */
+enum { RT_NODES, RT_ST, RT_NVIEWS };
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *held;                 /* (decoder, sup, pushes): what the pointers below point into */
+    Py_buffer views[RT_NVIEWS];
+    int nbound;
+    struct ct_rx_chan ch[256];
+    struct ct_rx_route r;
+} RxRouteObject;
+
+static void RxRoute_dealloc(RxRouteObject *self)
+{
+    int k;
+    for (k = 0; k < self->nbound; ++k)
+        PyBuffer_Release(&self->views[k]);
+    Py_XDECREF(self->held);
+    Py_TYPE(self)->tp_free((PyObject *)self);
+}
+
+static int RxRoute_fail(RxRouteObject *self, PyObject *exc, const char *msg)
+{
+    int k;
+    for (k = 0; k < self->nbound; ++k)
+        PyBuffer_Release(&self->views[k]);
+    self->nbound = 0;
+    if (exc != NULL)
+        PyErr_SetString(exc, msg);
+    return -1;
+}
+
+static int RxRoute_init(RxRouteObject *self, PyObject *args, PyObject *kw)
+{
+    static char *kwlist[] = {"decoder", "sup", "nodes", "pushes", "st", "lsb", NULL};
+    PyObject *dec, *sup, *nodes, *pushes, *st;
+    const int64_t *chan;
+    double lsb;
+    Py_ssize_t n, k;
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOd", kwlist, &dec, &sup, &nodes, &pushes, &st, &lsb))
+        return -1;
+    if (self->held != NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "RxRoute: already bound");
+        return -1;
+    }
+    if (!PyObject_TypeCheck(dec, &RxDecodeType) || !((RxDecodeObject *)dec)->nbound) {
+        PyErr_SetString(PyExc_TypeError, "RxRoute: decoder must be a bound RxDecode");
+        return -1;
+    }
+    if (!PyTuple_Check(pushes) || (n = PyTuple_GET_SIZE(pushes)) > 256) {
+        PyErr_SetString(PyExc_TypeError, "RxRoute: pushes must be a tuple of at most 256 SamplePush");
+        return -1;
+    }
+    self->r.sup = NULL;
+    if (sup != Py_None && (self->r.sup = ct_py_sup_of(sup)) == NULL)
+        return -1;
+    for (k = 0; k < n; ++k) {
+        struct ct_rx_chan *c = &self->ch[k];
+        if (ct_py_sample_push_of(PyTuple_GET_ITEM(pushes, k), &c->t, &c->b, &c->flags, &c->cap, &c->st, &c->cnt) < 0)
+            return -1;
+    }
+    if (ct_py_buffer(nodes, 256, 8, "ql", 0, &self->views[RT_NODES], "RxRoute nodes") < 0)
+        return -1;
+    self->nbound = 1;
+    if (ct_py_buffer(st, CT_RXS_N, 8, "ql", 1, &self->views[RT_ST], "RxRoute st") < 0)
+        return RxRoute_fail(self, NULL, NULL);
+    self->nbound = 2;
+    chan = (const int64_t *)self->views[RT_NODES].buf;
+    for (k = 0; k < 256; ++k)
+        if (chan[k] < -1 || chan[k] >= n)
+            return RxRoute_fail(self, PyExc_ValueError, "RxRoute: a node's channel outside -1..len(pushes)-1");
+    self->held = PyTuple_Pack(3, dec, sup, pushes);
+    if (self->held == NULL)
+        return RxRoute_fail(self, NULL, NULL);
+    self->r.d = &((RxDecodeObject *)dec)->d;
+    self->r.chan = chan;
+    self->r.ch = self->ch;
+    self->r.st = (int64_t *)self->views[RT_ST].buf;
+    self->r.lsb = lsb;
+    return 0;
+}
+
+/* step(data, resume, now_us) -> row or -1: ct_rx_step (the data read in place, as decode reads it) */
+static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    const uint8_t *p;
+    Py_ssize_t n;
+    int64_t resume, now, row;
+    const int64_t *s;
+    Py_buffer v;
+    int view = 0;
+    if (self->held == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "RxRoute: not bound");
+        return NULL;
+    }
+    if (ct_py_nargs("step", nargs, 3) < 0 || ct_py_int64(args[1], &resume) < 0 || ct_py_int64(args[2], &now) < 0)
+        return NULL;
+    s = self->r.st;
+    if (resume && !(0 <= s[CT_RXS_NEXT] && s[CT_RXS_NEXT] <= s[CT_RXS_ROWS] && s[CT_RXS_ROWS] <= self->r.d->cap)) {
+        PyErr_SetString(PyExc_ValueError, "step: the route's rows outside the table");
+        return NULL;
+    }
+    if (PyBytes_Check(args[0])) {
+        p = (const uint8_t *)PyBytes_AS_STRING(args[0]);
+        n = PyBytes_GET_SIZE(args[0]);
+    } else {
+        if (PyObject_GetBuffer(args[0], &v, PyBUF_SIMPLE) < 0)
+            return NULL;
+        p = (const uint8_t *)v.buf;
+        n = v.len;
+        view = 1;
+    }
+    row = ct_rx_step(&self->r, p, (int64_t)n, resume != 0, now);
+    if (view)
+        PyBuffer_Release(&v);
+    return PyLong_FromLongLong(row);
+}
+
+static PyMethodDef RxRoute_methods[] = {
+    {"step", (PyCFunction)(void (*)(void))RxRoute_step, METH_FASTCALL,
+     "step(data, resume, now_us) -> row or -1: Receiver._step_rows's decode and routing of data's magnetometer "
+     "rows (into the supervisor and the bound channels) up to the next row the caller routes (its index in the "
+     "decoder's rows), -1 when all are routed; resume 1 goes on after that row"},
+    {NULL, NULL, 0, NULL}};
+
+static PyTypeObject RxRouteType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "coiltrack.firmware._core.RxRoute",
+    .tp_basicsize = sizeof(RxRouteObject),
+    .tp_flags = Py_TPFLAGS_DEFAULT,
+    .tp_doc = "RxRoute(decoder, sup, nodes, pushes, st, lsb): the receive stage's frame decoder (RxDecode), the "
+              "supervisor's SupMag (or None), node -> channel index (int64, 256, -1: none), the channels' SamplePush "
+              "(tuple), its state (int64, RXS_N) and MAG_LSB_T, bound once",
+    .tp_new = PyType_GenericNew,
+    .tp_init = (initproc)RxRoute_init,
+    .tp_dealloc = (destructor)RxRoute_dealloc,
+    .tp_methods = RxRoute_methods,
+};
+
 int ct_register_rxdecode(PyObject *m)
 {
     static const struct { const char *name; long value; } ints[] = {
         {"RX_NST", CT_RX_NST}, {"RX_POS", CT_RX_POS}, {"RX_BUFLEN", CT_RX_BUFLEN}, {"RX_DROPPING", CT_RX_DROPPING},
         {"RXR_W", CT_RXR_W}, {"RXR_KIND", CT_RXR_KIND}, {"RXR_CLIP", CT_RXR_CLIP}, {"RXR_STAMP", CT_RXR_STAMP},
         {"RXK_RAW", CT_RXK_RAW}, {"RXK_MAG_PACKED", CT_RXK_MAG_PACKED}, {"RXK_MAG", CT_RXK_MAG},
-        {"RXK_IMU", CT_RXK_IMU}, {"STAMP_FLIP", CT_STAMP_FLIP}};
+        {"RXK_IMU", CT_RXK_IMU}, {"STAMP_FLIP", CT_STAMP_FLIP}, {"RXS_N", CT_RXS_N},
+        {"RXS_PACKED", CT_RXS_PACKED}};
     size_t k;
     if (PyType_Ready(&RxDecodeType) < 0)
         return -1;
@@ -174,6 +314,8 @@ int ct_register_rxdecode(PyObject *m)
         Py_DECREF(&RxDecodeType);
         return -1;
     }
+    if (ct_py_add_type(m, &RxRouteType, "RxRoute") < 0)
+        return -1;
     for (k = 0; k < sizeof ints / sizeof ints[0]; ++k)
         if (PyModule_AddIntConstant(m, ints[k].name, ints[k].value) < 0)
             return -1;

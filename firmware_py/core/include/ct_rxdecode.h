@@ -47,8 +47,33 @@ struct ct_rx {
     int cap, max_encoded, max_payload;
 };
 
+/* The receive stage's routing of the magnetometer rows (receive.Receiver._step_rows on the compiled
+ * core, its MAG_PACKED and MAG_SAMPLE branch: Supervisor.on_message through ct_sup_mag, the packed
+ * count, SensorChannel.push through ct_sample_push), for the nodes whose channel is bound here.  A
+ * row it does not route whole (another kind, a node without a bound channel, a ring state out of
+ * range, a sample ct_sup_mag hands back) goes to the caller, in order, and nothing of it is done. */
+struct ct_sup;
+enum { CT_RXS_ROWS = 0, CT_RXS_NEXT, CT_RXS_PACKED, CT_RXS_N };   /* the route's int64 state */
+struct ct_rx_chan {           /* a sensor channel's ring (SampleRing t, b, flags, hc) and counters */
+    int64_t *t;
+    double *b;
+    uint8_t *flags;
+    int64_t cap;
+    int64_t *st, *cnt;
+};
+struct ct_rx_route {
+    const struct ct_rx *d;        /* the frame decode whose rows are routed */
+    const struct ct_sup *sup;     /* the supervisor's state (NULL: every row goes to the caller) */
+    const int64_t *chan;          /* 256: node -> index into ch, -1: the caller routes the node */
+    const struct ct_rx_chan *ch;
+    int64_t *st;                  /* CT_RXS_N: rows in the table, the next row to route, packed count */
+    double lsb;                   /* MAG_LSB_T */
+};
+
 uint16_t ct_crc16(uint16_t crc, const uint8_t *p, int n);
 int ct_rx_cobs_decode(const uint8_t *in, int n, uint8_t *out);
 int ct_rx_feed(const struct ct_rx *d, const uint8_t *data, int64_t n, int64_t pos, int64_t now_us);
+int64_t ct_rx_route(const struct ct_rx_route *r, int64_t i, int64_t n, int64_t now_us);
+int64_t ct_rx_step(const struct ct_rx_route *r, const uint8_t *data, int64_t n, int resume, int64_t now_us);
 
 #endif

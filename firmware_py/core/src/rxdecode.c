@@ -244,3 +244,60 @@ int ct_rx_feed(const struct ct_rx *d, const uint8_t *data, int64_t n, int64_t po
     st[CT_RX_POS] = start;
     return rows;
 }
+
+/* Receiver._step_rows's MAG_PACKED / MAG_SAMPLE branch for rows i..n-1 of the table, in order, as far
+ * as it goes: the first row it does not route whole (include/ct_rxdecode.h), or n.  Per row the
+ * Python's steps: the supervisor's (ct_sup_mag; a rare case handed back leaves everything as it was),
+ * the packed count, then the channel's push of the counts times lsb (saturated: flip bit 1, set/reset:
+ * bit 0). */
+int64_t ct_rx_route(const struct ct_rx_route *r, int64_t i, int64_t n, int64_t now_us)
+{
+    for (; i < n; ++i) {
+        const int64_t *q = r->d->rows + i * CT_RXR_W;
+        int64_t kind = q[CT_RXR_KIND], node = q[CT_RXR_F0], flip = q[CT_RXR_F0 + 5], c;
+        const struct ct_rx_chan *ch;
+        if ((kind != CT_RXK_MAG_PACKED && kind != CT_RXK_MAG) || r->sup == NULL || node < 0 || node > 255)
+            return i;
+        c = r->chan[node];
+        if (c < 0)
+            return i;
+        ch = &r->ch[c];
+        if (ch->st[0] < 0 || ch->st[0] >= ch->cap || ch->st[1] < 0 || ch->st[1] > ch->cap)
+            return i;
+        if (ct_sup_mag(r->sup, node, q[CT_RXR_F0 + 1], q[CT_RXR_F0 + 2], q[CT_RXR_F0 + 3], q[CT_RXR_F0 + 4], flip,
+                       now_us))
+            return i;
+        if (kind == CT_RXK_MAG_PACKED)
+            r->st[CT_RXS_PACKED] += 1;
+        ct_sample_push(ch->t, ch->b, ch->flags, ch->cap, ch->st, ch->cnt, q[CT_RXR_F0 + 1],
+                       (double)q[CT_RXR_F0 + 2] * r->lsb, (double)q[CT_RXR_F0 + 3] * r->lsb,
+                       (double)q[CT_RXR_F0 + 4] * r->lsb, (flip & 2) != 0, (int)(flip & 1));
+    }
+    return n;
+}
+
+/* Receiver._step_rows's loop over one tick's data (n bytes): decoded a table of rows at a time
+ * (ct_rx_feed: a full table resumes at the decoder's CT_RX_POS) and routed (ct_rx_route).  Returns
+ * the index of the next row the caller must route, or -1 when every row of data is routed; the
+ * caller routes that row and calls again with resume set (the same data), which goes on after it.
+ * Without resume the data is new (decoded from its start). */
+int64_t ct_rx_step(const struct ct_rx_route *r, const uint8_t *data, int64_t n, int resume, int64_t now_us)
+{
+    int64_t *s = r->st, i;
+    if (!resume) {
+        s[CT_RXS_ROWS] = ct_rx_feed(r->d, data, n, 0, now_us);
+        s[CT_RXS_NEXT] = 0;
+    }
+    for (;;) {
+        i = ct_rx_route(r, s[CT_RXS_NEXT], s[CT_RXS_ROWS], now_us);
+        if (i < s[CT_RXS_ROWS]) {
+            s[CT_RXS_NEXT] = i + 1;
+            return i;
+        }
+        s[CT_RXS_NEXT] = i;
+        if (s[CT_RXS_ROWS] < r->d->cap || r->d->st[CT_RX_POS] >= n)
+            return -1;
+        s[CT_RXS_ROWS] = ct_rx_feed(r->d, data, n, r->d->st[CT_RX_POS], now_us);
+        s[CT_RXS_NEXT] = 0;
+    }
+}
