@@ -80,6 +80,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.windows import SensorChannel
 from coiltrack.firmware.rxdecode import RXK_IMU as _RXK_IMU, RXK_MAG as _RXK_MAG, RXK_MAG_PACKED as _RXK_MAG_PACKED
 from coiltrack.firmware.rxdecode import RXR_CLIP as _RXR_CLIP, RXR_KIND as _RXR_KIND, CompiledFrameDecoder
+from coiltrack.firmware.rxdecode import RX_OVER_LIMIT as _OVER, RX_RESUME as _RESUME, RX_TAKEN as _TAKEN
 
 _MAG = MSG["MAG_SAMPLE"].ID
 _IMU = MSG["IMU_SAMPLE"].ID
@@ -236,7 +237,7 @@ class Receiver:
                 if 0 <= node < 256 and _pushes_here(ch):
                     nodes[node] = len(pushes)
                     pushes.append(ch.ring.push_kernel(decoder.ext, ch.cnt))
-        return decoder.route_kernel(sup, nodes, tuple(pushes), self._rs, MAG_LSB_T).step
+        return decoder.route_kernel(sup, nodes, tuple(pushes), self._rs, MAG_LSB_T, self.frames_per_tick).step
 
     def _bind(self, core) -> None:
         """The IMU decode on the compiled core (``core/src/imu.c``: ``ct_imu_clipped``,
@@ -315,13 +316,22 @@ class Receiver:
     def _step_rows(self, now_us: int) -> None:
         """:meth:`step` on the compiled frame decode (:class:`coiltrack.firmware.rxdecode.CompiledFrameDecoder`,
         bound at construction): the same messages routed in the same order; the magnetometer rows
-        the compiled route takes (:meth:`_bind_route`) in its one call, the others by :meth:`_rows_from`."""
+        the compiled route takes (:meth:`_bind_route`) in its one call, the others by :meth:`_rows_from`;
+        a tick's worth of frames or more (the route's answer ``RX_OVER_LIMIT``) or a backlog through
+        :meth:`_take`."""
         data = self.port.read()
-        if self._queue or (data and self.frames_per_tick and data.count(b"\x00") >= self.frames_per_tick):
-            data = self._take(data)              # a backlog, or a tick's worth of frames or more
-        if not data:
+        if self._queue:
+            data = self._take(data)              # a backlog
+            if not data:
+                return
+            k = self._rx_step(data, _TAKEN, now_us)
+        elif not data:
             return
-        k = self._rx_step(data, 0, now_us)
+        else:
+            k = self._rx_step(data, 0, now_us)
+            if k == _OVER:                       # a tick's worth of frames or more
+                data = self._take(data)
+                k = self._rx_step(data, _TAKEN, now_us)
         if k >= 0:
             self._rows_from(k, data, now_us)
 
@@ -364,7 +374,7 @@ class Receiver:
                     self.tracker.on_imu(ri, now_us)
             elif sreply is None or q[b] != _SYNC_REPLY or sreply(q[b + 1], now_us):
                 self._route(dec.raw_message(k), now_us)
-            k = route(data, 1, now_us)
+            k = route(data, _RESUME, now_us)
 
     def _route(self, msg, now_us: int) -> None:
         """One decoded message to its stage (module docstring), the supervisor first."""

@@ -41,6 +41,8 @@ ROWS = 64
 #: the row columns and kinds (``ct_rxdecode.h``; checked against the extension at construction)
 RXR_W, RXR_KIND, RXR_CLIP, RXR_STAMP = 11, 10, 9, 7
 RXK_RAW, RXK_MAG_PACKED, RXK_MAG, RXK_IMU = 0, 1, 2, 3
+#: the route's modes and its answer to new data of the frame limit or more (``ct_rxdecode.h`` CT_RX_*)
+RX_NEW, RX_RESUME, RX_TAKEN, RX_OVER_LIMIT = 0, 1, 2, -2
 
 
 def _counter(k: int, doc: str):
@@ -71,7 +73,8 @@ class CompiledFrameDecoder:
                                      f"{BY_ID[mid].fmt}")
         assert ext.STAMP_FLIP == 1 << 15 and (ext.RXR_W, ext.RXR_KIND, ext.RXR_CLIP, ext.RXR_STAMP) == (
             RXR_W, RXR_KIND, RXR_CLIP, RXR_STAMP) and (ext.RXK_RAW, ext.RXK_MAG_PACKED, ext.RXK_MAG, ext.RXK_IMU) == (
-            RXK_RAW, RXK_MAG_PACKED, RXK_MAG, RXK_IMU)
+            RXK_RAW, RXK_MAG_PACKED, RXK_MAG, RXK_IMU) and (ext.RX_NEW, ext.RX_RESUME, ext.RX_TAKEN, ext.RX_OVER_LIMIT) == (
+            RX_NEW, RX_RESUME, RX_TAKEN, RX_OVER_LIMIT)
         sizes = np.full(256, -1, dtype=np.int64)
         extras = np.zeros(256, dtype=np.int64)
         for mid, d in BY_ID.items():
@@ -97,16 +100,18 @@ class CompiledFrameDecoder:
         self.capacity = rows
         self.verifier = self.on_frame = None
 
-    def route_kernel(self, sup, nodes, pushes, st, lsb: float):
+    def route_kernel(self, sup, nodes, pushes, st, lsb: float, limit: int = 0):
         """The receive stage's decode and routing of its magnetometer rows on this decoder
         (``ext.RxRoute``, ``core/src/rxdecode.c`` ``ct_rx_step``, ``ct_rx_route``): ``sup`` the
         supervisor's ``SupMag`` (None: every row to the caller), ``nodes`` node -> index into
         ``pushes`` (int64, 256, -1 the caller's), ``pushes`` the channels' ``SamplePush``, ``st``
-        its state (int64, ``RXS_N``: rows, next row, MAG_PACKED count), ``lsb`` MAG_LSB_T.
-        ``step(data, resume, now_us)`` decodes ``data`` into :attr:`rows` and routes them up to the
-        next row the caller routes (its index), -1 when all are; with ``resume`` it goes on after
-        that row (see :meth:`coiltrack.firmware.receive.Receiver._step_rows`)."""
-        return self.ext.RxRoute(self._rx, sup, nodes, pushes, st, lsb)
+        its state (int64, ``RXS_N``: rows, next row, MAG_PACKED count), ``lsb`` MAG_LSB_T, ``limit``
+        the frames a tick routes at most (0: all). ``step(data, mode, now_us)`` decodes ``data`` into
+        :attr:`rows` and routes them up to the next row the caller routes (its index), -1 when all
+        are; mode ``RX_NEW`` new data (``RX_OVER_LIMIT``: it holds ``limit`` frames or more, nothing
+        done), ``RX_RESUME`` on after the row handed back, ``RX_TAKEN`` new data cut to the limit
+        (see :meth:`coiltrack.firmware.receive.Receiver._step_rows`)."""
+        return self.ext.RxRoute(self._rx, sup, nodes, pushes, st, lsb, limit)
 
     @property
     def pos(self) -> int:

@@ -193,12 +193,13 @@ static int RxRoute_fail(RxRouteObject *self, PyObject *exc, const char *msg)
 
 static int RxRoute_init(RxRouteObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"decoder", "sup", "nodes", "pushes", "st", "lsb", NULL};
+    static char *kwlist[] = {"decoder", "sup", "nodes", "pushes", "st", "lsb", "limit", NULL};
     PyObject *dec, *sup, *nodes, *pushes, *st;
     const int64_t *chan;
     double lsb;
+    long long limit;
     Py_ssize_t n, k;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOd", kwlist, &dec, &sup, &nodes, &pushes, &st, &lsb))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OOOOOdL", kwlist, &dec, &sup, &nodes, &pushes, &st, &lsb, &limit))
         return -1;
     if (self->held != NULL) {
         PyErr_SetString(PyExc_RuntimeError, "RxRoute: already bound");
@@ -238,15 +239,16 @@ static int RxRoute_init(RxRouteObject *self, PyObject *args, PyObject *kw)
     self->r.ch = self->ch;
     self->r.st = (int64_t *)self->views[RT_ST].buf;
     self->r.lsb = lsb;
+    self->r.limit = (int64_t)limit;
     return 0;
 }
 
-/* step(data, resume, now_us) -> row or -1: ct_rx_step (the data read in place, as decode reads it) */
+/* step(data, mode, now_us) -> row, -1 or -2: ct_rx_step (the data read in place, as decode reads it) */
 static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     const uint8_t *p;
     Py_ssize_t n;
-    int64_t resume, now, row;
+    int64_t mode, now, row;
     const int64_t *s;
     Py_buffer v;
     int view = 0;
@@ -254,10 +256,14 @@ static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssi
         PyErr_SetString(PyExc_RuntimeError, "RxRoute: not bound");
         return NULL;
     }
-    if (ct_py_nargs("step", nargs, 3) < 0 || ct_py_int64(args[1], &resume) < 0 || ct_py_int64(args[2], &now) < 0)
+    if (ct_py_nargs("step", nargs, 3) < 0 || ct_py_int64(args[1], &mode) < 0 || ct_py_int64(args[2], &now) < 0)
         return NULL;
     s = self->r.st;
-    if (resume && !(0 <= s[CT_RXS_NEXT] && s[CT_RXS_NEXT] <= s[CT_RXS_ROWS] && s[CT_RXS_ROWS] <= self->r.d->cap)) {
+    if (mode < CT_RX_NEW || mode > CT_RX_TAKEN) {
+        PyErr_SetString(PyExc_ValueError, "step: mode is 0 (new data), 1 (resume) or 2 (data taken)");
+        return NULL;
+    }
+    if (mode == CT_RX_RESUME && !(0 <= s[CT_RXS_NEXT] && s[CT_RXS_NEXT] <= s[CT_RXS_ROWS] && s[CT_RXS_ROWS] <= self->r.d->cap)) {
         PyErr_SetString(PyExc_ValueError, "step: the route's rows outside the table");
         return NULL;
     }
@@ -271,7 +277,7 @@ static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssi
         n = v.len;
         view = 1;
     }
-    row = ct_rx_step(&self->r, p, (int64_t)n, resume != 0, now);
+    row = ct_rx_step(&self->r, p, (int64_t)n, (int)mode, now);
     if (view)
         PyBuffer_Release(&v);
     return PyLong_FromLongLong(row);
@@ -279,9 +285,10 @@ static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssi
 
 static PyMethodDef RxRoute_methods[] = {
     {"step", (PyCFunction)(void (*)(void))RxRoute_step, METH_FASTCALL,
-     "step(data, resume, now_us) -> row or -1: Receiver._step_rows's decode and routing of data's magnetometer "
+     "step(data, mode, now_us) -> row, -1 or -2: Receiver._step_rows's decode and routing of data's magnetometer "
      "rows (into the supervisor and the bound channels) up to the next row the caller routes (its index in the "
-     "decoder's rows), -1 when all are routed; resume 1 goes on after that row"},
+     "decoder's rows), -1 when all are routed; mode 0 new data (-2: it holds the frame limit or more, nothing "
+     "done), 1 go on after the row handed back, 2 new data already cut to the limit"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject RxRouteType = {
@@ -289,9 +296,9 @@ static PyTypeObject RxRouteType = {
     .tp_name = "coiltrack.firmware._core.RxRoute",
     .tp_basicsize = sizeof(RxRouteObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "RxRoute(decoder, sup, nodes, pushes, st, lsb): the receive stage's frame decoder (RxDecode), the "
+    .tp_doc = "RxRoute(decoder, sup, nodes, pushes, st, lsb, limit): the receive stage's frame decoder (RxDecode), the "
               "supervisor's SupMag (or None), node -> channel index (int64, 256, -1: none), the channels' SamplePush "
-              "(tuple), its state (int64, RXS_N) and MAG_LSB_T, bound once",
+              "(tuple), its state (int64, RXS_N), MAG_LSB_T and the frames a tick routes at most (0: all), bound once",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)RxRoute_init,
     .tp_dealloc = (destructor)RxRoute_dealloc,
@@ -305,7 +312,8 @@ int ct_register_rxdecode(PyObject *m)
         {"RXR_W", CT_RXR_W}, {"RXR_KIND", CT_RXR_KIND}, {"RXR_CLIP", CT_RXR_CLIP}, {"RXR_STAMP", CT_RXR_STAMP},
         {"RXK_RAW", CT_RXK_RAW}, {"RXK_MAG_PACKED", CT_RXK_MAG_PACKED}, {"RXK_MAG", CT_RXK_MAG},
         {"RXK_IMU", CT_RXK_IMU}, {"STAMP_FLIP", CT_STAMP_FLIP}, {"RXS_N", CT_RXS_N},
-        {"RXS_PACKED", CT_RXS_PACKED}};
+        {"RXS_PACKED", CT_RXS_PACKED}, {"RX_NEW", CT_RX_NEW}, {"RX_RESUME", CT_RX_RESUME}, {"RX_TAKEN", CT_RX_TAKEN},
+        {"RX_OVER_LIMIT", CT_RX_OVER_LIMIT}};
     size_t k;
     if (PyType_Ready(&RxDecodeType) < 0)
         return -1;

@@ -68,12 +68,17 @@ struct ct_rx_route {
     const struct ct_rx_chan *ch;
     int64_t *st;                  /* CT_RXS_N: rows in the table, the next row to route, packed count */
     double lsb;                   /* MAG_LSB_T */
+    int64_t limit;                /* frames a tick routes at most (Receiver.frames_per_tick; 0: no limit) */
 };
+/* ct_rx_step's modes: new data (its frames counted against the limit first), the route resumed after
+ * the row handed back, new data already cut to the limit (Receiver._take) */
+enum { CT_RX_NEW = 0, CT_RX_RESUME = 1, CT_RX_TAKEN = 2 };
+#define CT_RX_OVER_LIMIT (-2)
 
 uint16_t ct_crc16(uint16_t crc, const uint8_t *p, int n);
 int ct_rx_cobs_decode(const uint8_t *in, int n, uint8_t *out);
 int ct_rx_feed(const struct ct_rx *d, const uint8_t *data, int64_t n, int64_t pos, int64_t now_us);
 int64_t ct_rx_route(const struct ct_rx_route *r, int64_t i, int64_t n, int64_t now_us);
-int64_t ct_rx_step(const struct ct_rx_route *r, const uint8_t *data, int64_t n, int resume, int64_t now_us);
+int64_t ct_rx_step(const struct ct_rx_route *r, const uint8_t *data, int64_t n, int mode, int64_t now_us);
 
 #endif

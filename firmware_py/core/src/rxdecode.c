@@ -276,15 +276,34 @@ int64_t ct_rx_route(const struct ct_rx_route *r, int64_t i, int64_t n, int64_t n
     return n;
 }
 
+/* Receiver._step_rows's test of new data against the frame limit: whether it holds limit frames or
+ * more (its 0x00 delimiters, data.count(b"\x00") >= frames_per_tick) */
+static int ct_rx_over_limit(const struct ct_rx_route *r, const uint8_t *data, int64_t n)
+{
+    int64_t frames = 0, at = 0;
+    const uint8_t *z;
+    if (r->limit <= 0)
+        return 0;
+    while (at < n && (z = memchr(data + at, 0, (size_t)(n - at))) != NULL) {
+        if (++frames >= r->limit)
+            return 1;
+        at = (z - data) + 1;
+    }
+    return 0;
+}
+
 /* Receiver._step_rows's loop over one tick's data (n bytes): decoded a table of rows at a time
  * (ct_rx_feed: a full table resumes at the decoder's CT_RX_POS) and routed (ct_rx_route).  Returns
  * the index of the next row the caller must route, or -1 when every row of data is routed; the
- * caller routes that row and calls again with resume set (the same data), which goes on after it.
- * Without resume the data is new (decoded from its start). */
-int64_t ct_rx_step(const struct ct_rx_route *r, const uint8_t *data, int64_t n, int resume, int64_t now_us)
+ * caller routes that row and calls again in mode CT_RX_RESUME (the same data), which goes on after
+ * it.  New data (CT_RX_NEW) of the frame limit or more is not decoded: CT_RX_OVER_LIMIT, the caller
+ * cuts it to the limit (Receiver._take) and calls with what it took (CT_RX_TAKEN). */
+int64_t ct_rx_step(const struct ct_rx_route *r, const uint8_t *data, int64_t n, int mode, int64_t now_us)
 {
     int64_t *s = r->st, i;
-    if (!resume) {
+    if (mode != CT_RX_RESUME) {
+        if (mode == CT_RX_NEW && ct_rx_over_limit(r, data, n))
+            return CT_RX_OVER_LIMIT;
         s[CT_RXS_ROWS] = ct_rx_feed(r->d, data, n, 0, now_us);
         s[CT_RXS_NEXT] = 0;
     }
