@@ -523,17 +523,19 @@ class _HandOver:
                 or type(self)._hand_over is not _HandOver._hand_over:
             return
         self._on_solution = None if type(self).on_solution is mt.on_solution else self.on_solution
-        self._report = self._report_loop
+        self._report = self._loop_report = self._report_loop
+        self._loop_begin = self._begin
 
     def _report_loop(self, ch, solved: bool) -> None:
         """:meth:`MagneticTracker._report` with the next sensors' begins (:meth:`_begin_handover`)
         in a loop instead of a recursion: each sensor's POSE, the hook, the move to the next
         sensor and, with room left, its begin (:meth:`_hand_over`), whose report, where it leaves
         one (a solve ahead's result taken over, an unusable burst), is the loop's next turn; the
-        same operations in the same order."""
+        same operations in the same order. Where :meth:`_begin` or :meth:`_report` was replaced on
+        the instance since the binding (a recorder wraps it), the next begin goes through them."""
         poses, chans, tx = self.poses, self.channels, self.tx
         n = len(chans)
-        hook = self._on_solution
+        hook = self.__dict__.get("on_solution", self._on_solution)       # (one set on the instance: it)
         while True:
             tp = poses[ch.node]
             t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
@@ -558,6 +560,9 @@ class _HandOver:
             self._units += sn
             self._handovers += 1
             ch = chans[self._next]
+            if self._begin is not self._loop_begin or self._report is not self._loop_report:
+                self._begin(ch)              # (replaced since the binding: through them, as the reference)
+                return
             solved = self._hand_over(ch)
             if solved is None:
                 return
