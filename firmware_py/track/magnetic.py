@@ -370,14 +370,14 @@ class _CompiledReport:
         """:meth:`_report_pose` with its numbers in one compiled call per channel (``ReportChain``,
         ``core/src/report.c`` ``ct_report_solved``: the range check and copies, the grading,
         the quaternion and the reported covariance, the same operations in the same order)."""
-        chain, cov, fus, frame, init = self._chains[ch.node]
+        chain, cov, fus, send, init = self._chains[ch.node]
         q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
                                       fus is not None and (fus.initialized if init is None else init[0] != 0))
         if q < 0:
             return False
         tp.have_pose = True
         st = self._status | POSE_VALID
-        if not self.tx.pose_built(frame, ch.node, t_pose, st, q):      # the frame from the chain's buffers
+        if not self.tx.pose_built(send, ch.node, t_pose, st, q):       # the frame from the chain's buffers
             self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, st, q)
         return True
 
@@ -405,8 +405,8 @@ class _CompiledReport:
                 chain = None
             if chain is None:
                 return
-            chains[ch.node] = (chain, sv.covariance, None, chain.frame, None) if m is None else \
-                (chain, m[2], m[4], chain.frame, _initialized_flag(m[4]))
+            chains[ch.node] = (chain, sv.covariance, None, chain.send, None) if m is None else \
+                (chain, m[2], m[4], chain.send, _initialized_flag(m[4]))
         self._chains = chains
         self._report_pose = self._report_pose_compiled
 

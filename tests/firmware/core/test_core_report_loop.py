@@ -70,3 +70,28 @@ def test_the_reports_initialised_flag_is_the_fusion_filters():
             fus.initialized = v
             assert (init[0] != 0) is v
             assert np.count_nonzero(fus.fs) == int(v)
+
+
+def test_the_reports_frame_is_numbered_and_counted_as_write_numbered():
+    """``ReportChain.send`` (``Transmitter._pose_built_compiled``'s one call) against
+    ``Transmitter._write_numbered``: the sequence wraps at 256, a write that raises an Exception is
+    one error with the sequence counted on, a value the wire format refuses (a quality of 256) is
+    one error with nothing written and the sequence kept, and a KeyboardInterrupt is not swallowed.
+    Catches a sequence not masked, counted on for a refused frame or not for a failed write, and a
+    link's failure that stops the loop."""
+    got, _ = _ho._pair()
+    tr = got.tracker
+    _ho._setup(got, 9000)
+    tr._begin(tr.channels[0])                  # reports: the chains hold a pose
+    send = tr._chains[tr.channels[0].node][3]
+    out = []
+    assert send(out.append, 255, 1, 16, 10_000, 1, 200) == 0 and len(out) == 1
+    assert send(out.append, 7, 1, 16, 10_000, 1, 256) == (1 << 8) | 7 and len(out) == 1
+
+    def fail(frame, exc=ValueError):
+        out.append(frame)
+        raise exc("link full")
+    assert send(fail, 9, 1, 16, 10_000, 1, 200) == (1 << 8) | 10 and len(out) == 2
+    assert out[1][:1] == out[0][:1] and out[1] != out[0]       # (numbered 9, not 255)
+    with pytest.raises(KeyboardInterrupt):
+        send(lambda f: fail(f, KeyboardInterrupt), 9, 1, 16, 10_000, 1, 200)
