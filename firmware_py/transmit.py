@@ -206,18 +206,21 @@ class Transmitter:
         self._write_numbered(frame)
         self._count_pose(status)
 
-    def pose_built(self, build, node: int, t_us: int, status: int, quality: int) -> bool:
-        """A POSE whose frame ``build(seq, src, node, t_us, status, quality)`` makes on the compiled
-        core (a report's bound kernel: ``ext.ReportChain.frame``, the bytes :meth:`pose_cov6` sends),
-        numbered, written and counted as :meth:`pose_cov6`'s; False (nothing sent: the caller sends
-        through :meth:`pose_cov6`) on the Python core, a signed link, or while :meth:`pose` is not
-        this transmitter's own."""
+    def pose_built(self, send, node: int, t_us: int, status: int, quality: int) -> bool:
+        """A POSE whose frame ``send(write, seq, src, node, t_us, status, quality)`` makes and writes on
+        the compiled core (a report's bound kernel: ``ext.ReportChain.send``, the bytes :meth:`pose_cov6`
+        sends, numbered from ``seq`` and written through ``write`` as :meth:`_write_numbered` does:
+        ``errors << 8 | the next seq``), counted as :meth:`pose_cov6`'s; False (nothing sent: the
+        caller sends through :meth:`pose_cov6`) on the Python core, a signed link, or while
+        :meth:`pose` is not this transmitter's own."""
         return False
 
-    def _pose_built_compiled(self, build, node: int, t_us: int, status: int, quality: int) -> bool:
+    def _pose_built_compiled(self, send, node: int, t_us: int, status: int, quality: int) -> bool:
         if self.pose is not self._pose_own:
             return False
-        self._write_numbered(build(self._seq, self.node_id, node, t_us, status, quality))
+        r = send(self.port.write, self._seq, self.node_id, node, t_us, status, quality)
+        self._seq = r & 0xFF
+        self.tx_errors += r >> 8
         self._count_pose(status)
         return True
 

@@ -376,28 +376,11 @@ static PyObject *WindowFrames_send(WindowFramesObject *self, PyObject *const *ar
         const int64_t *iv = self->info[i];
         int64_t n_used = iv[0] < 255 ? iv[0] : 255, n_base = iv[1] < 255 ? iv[1] : 255;
         int k = -1;
-        PyObject *frame, *r;
         if (iv[2] >= 0 && iv[3] >= 0)       /* first, last: 'Q' (a negative one refused, as struct.pack) */
             k = ct_window_frame(out, (int)(seq & 0xFF), (int)(src & 0xFF), self->nodes[i], coil, pid, (uint64_t)iv[2],
                                 (uint64_t)iv[3], n_used, n_base, self->flags[i] & 0xFF);
-        if (k < 0) {
-            errors++;
-            continue;
-        }
-        frame = PyBytes_FromStringAndSize((const char *)out, k);
-        if (frame == NULL)
+        if (ct_py_write_numbered(args[0], out, k, &seq, &errors) < 0)
             return NULL;
-        seq = (seq + 1) & 0xFF;
-        r = PyObject_CallOneArg(args[0], frame);
-        Py_DECREF(frame);
-        if (r == NULL) {
-            if (!PyErr_ExceptionMatches(PyExc_Exception))
-                return NULL;                /* (not what a full link raises: as the Python, not caught) */
-            PyErr_Clear();
-            errors++;
-        } else {
-            Py_DECREF(r);
-        }
     }
     return PyLong_FromLongLong((long long)((errors << 8) | (seq & 0xFF)));
 }

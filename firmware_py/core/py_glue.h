@@ -234,6 +234,35 @@ static inline int ct_py_pose_ints(PyObject *const *args, const int *at, long lon
     return 0;
 }
 
+/* The frame out[0 .. k - 1] (k < 0: one the wire format refused, not sent) numbered as
+ * transmit.Transmitter._write_numbered numbers it: *seq counted on (mod 256) and the frame handed to
+ * write; a refused frame or an Exception write raises counted in *errors (the exception cleared, as
+ * there). -1 with the exception set where making the bytes failed or write raised what is not an
+ * Exception (KeyboardInterrupt, SystemExit: not a link's failure), else 0. */
+static inline int ct_py_write_numbered(PyObject *write, const uint8_t *out, int k, int64_t *seq, int64_t *errors)
+{
+    PyObject *frame, *r;
+    if (k < 0) {
+        ++*errors;
+        return 0;
+    }
+    frame = PyBytes_FromStringAndSize((const char *)out, k);
+    if (frame == NULL)
+        return -1;
+    *seq = (*seq + 1) & 0xFF;
+    r = PyObject_CallOneArg(write, frame);
+    Py_DECREF(frame);
+    if (r == NULL) {
+        if (!PyErr_ExceptionMatches(PyExc_Exception))
+            return -1;
+        PyErr_Clear();
+        ++*errors;
+        return 0;
+    }
+    Py_DECREF(r);
+    return 0;
+}
+
 struct ct_sup;
 /* o's supervisor state (py_supervise.c: a bound SupMag), for a kernel that chains its pose status; NULL
  * with a TypeError when o is none */

@@ -229,34 +229,46 @@ static PyObject *ReportChain_report(ReportChainObject *self, PyObject *const *ar
     return PyLong_FromLong(ct_report_solved(&self->r, t_us, cost, nis, quiet, range_m, init));
 }
 
-/* frame(seq, src, node, t_us, status, quality) -> bytes or None: the POSE frame of the last report
- * (Transmitter.pose_cov6 on the compiled core with the tracked position, the quaternion and the
- * reported covariance: the motion's where bound, else the solver's), None where the wire format
- * refuses a value (as core.pose_frame) */
-static PyObject *ReportChain_frame(ReportChainObject *self, PyObject *const *args, Py_ssize_t nargs)
+/* The POSE frame of the last report into out (send()'s; args: seq, src, node, t_us, status, quality):
+ * Transmitter.pose_cov6 on the compiled core with the tracked position, the quaternion and the reported
+ * covariance (the motion's where bound, else the solver's); its length, -1 where the wire format refuses
+ * a value (as core.pose_frame), -2 with an exception set */
+static int rc_frame(ReportChainObject *self, PyObject *const *args, uint8_t *out)
 {
-    uint8_t out[CT_POSE_FRAME_MAX];
     long long ints[3];
     unsigned long long t_us;
-    int k, seq, src;
+    int seq, src;
     static const int int_at[3] = {2, 4, 5};
     if (!self->bound) {
         PyErr_SetString(PyExc_RuntimeError, "ReportChain: not bound");
-        return NULL;
+        return -2;
     }
-    if (ct_py_nargs("ReportChain.frame", nargs, 6) < 0)
-        return NULL;
     seq = (int)PyLong_AsLong(args[0]);
     src = (int)PyLong_AsLong(args[1]);
     if (PyErr_Occurred())
-        return NULL;
+        return -2;
     if (ct_py_pose_ints(args, int_at, ints, &t_us))
-        Py_RETURN_NONE;
-    k = ct_report_frame(out, seq, src, ints[0], (uint64_t)t_us, self->r.tp, self->r.q,
-                        self->r.wl != NULL ? self->r.cov : self->r.scov, ints[1], ints[2]);
-    if (k < 0)
-        Py_RETURN_NONE;
-    return PyBytes_FromStringAndSize((const char *)out, k);
+        return -1;
+    return ct_report_frame(out, seq, src, ints[0], (uint64_t)t_us, self->r.tp, self->r.q,
+                           self->r.wl != NULL ? self->r.cov : self->r.scov, ints[1], ints[2]);
+}
+
+/* send(write, seq, src, node, t_us, status, quality) -> errors << 8 | the next seq: rc_frame's POSE frame
+ * numbered seq and handed to write (the port's) as transmit.Transmitter._write_numbered writes it (a frame
+ * the wire format refuses: not sent, seq kept, one error; an Exception write raises: one error) */
+static PyObject *ReportChain_send(ReportChainObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    uint8_t out[CT_POSE_FRAME_MAX];
+    int64_t seq, errors = 0;
+    int k;
+    if (ct_py_nargs("ReportChain.send", nargs, 7) < 0)
+        return NULL;
+    k = rc_frame(self, args + 1, out);
+    if (k == -2 || ct_py_int64(args[1], &seq) < 0)
+        return NULL;
+    if (ct_py_write_numbered(args[0], out, k, &seq, &errors) < 0)
+        return NULL;
+    return PyLong_FromLongLong((long long)((errors << 8) | (seq & 0xFF)));
 }
 
 static PyMethodDef ReportChain_methods[] = {
@@ -266,9 +278,10 @@ static PyMethodDef ReportChain_methods[] = {
     {"report", (PyCFunction)(void (*)(void))ReportChain_report, METH_FASTCALL,
      "report(t_us, cost, nis, range_m, initialized) -> solved() with the quiet term of the bound ring "
      "(ct_report_quiet; 0.0 without one)"},
-    {"frame", (PyCFunction)(void (*)(void))ReportChain_frame, METH_FASTCALL,
-     "frame(seq, src, node, t_us, status, quality) -> the POSE frame (bytes) of the last report's pose, "
-     "quaternion and reported covariance (ct_report_frame), or None where the wire format refuses a value"},
+    {"send", (PyCFunction)(void (*)(void))ReportChain_send, METH_FASTCALL,
+     "send(write, seq, src, node, t_us, status, quality) -> errors << 8 | the next seq: the POSE frame of the "
+     "last report (ct_report_frame) numbered seq and written through write (Transmitter._write_numbered's "
+     "sequence and errors)"},
     {"solved", (PyCFunction)(void (*)(void))ReportChain_solved, METH_FASTCALL,
      "solved(t_us, cost, nis, quiet, range_m, initialized) -> -1 (the solution beyond range_m: nothing written) or "
      "the quality, with the tracked pose, the quaternion, the quality's row and motion and (motion bound) the "

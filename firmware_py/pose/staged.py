@@ -138,7 +138,8 @@ class StagedSolve(Staged):
 
     def load(self, res: SolveResult) -> None:
         """Make ``res`` (a :meth:`save` of a finished solve) the solver's results."""
-        self._then(None)
+        self.next_unit = None            # (self._then(None))
+        self.next_cost = 0
         _copy_result(res, self)
 
     def reset_step_stats(self) -> None:

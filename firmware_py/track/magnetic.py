@@ -312,24 +312,31 @@ class _CompiledReport:
         self._ahead_taken(ch, tp, k, r >= 2, r & 1 != 0)
 
     def _ahead_taken(self, ch, tp: TrackedPose, k: int, same: bool, warm: bool) -> None:
-        """The end of :meth:`_take_ahead` and :meth:`_begin_handover` once channel ``k``'s solve
-        ahead is released: solved again from its warm start (``warm``) or acquiring if its start
-        or inputs were not the same (``same`` False), else its result loaded and reported (or,
-        still running, left to finish as the burst's own solve)."""
+        """The end of :meth:`_take_ahead` once channel ``k``'s solve ahead is released
+        (:meth:`_ahead_result`), its result reported if it was loaded."""
+        solved = self._ahead_result(ch, tp, k, same, warm)
+        if solved is not None:
+            self._report(ch, solved)
+
+    def _ahead_result(self, ch, tp: TrackedPose, k: int, same: bool, warm: bool):
+        """Channel ``k``'s solve ahead released: solved again from its warm start (``warm``) or
+        acquiring if its start or inputs were not the same (``same`` False), else its result
+        loaded (or, still running, left to finish as the burst's own solve). Whether the loaded
+        result is a solution (to be reported by the caller); None when none was loaded."""
         running = self._ahead_k
         self._ahead_k = -1
         if not same:
             self.ahead_missed += 1
             self._solve_from(ch, tp, warm)
-            return
+            return None
         self.ahead_used += 1
         if running == k:
-            return
+            return None
         res = self._ahead[k].result
         self.solver.load(res)
         if res.solve_evals > self.solve_evals_max:
             self.solve_evals_max = res.solve_evals
-        self._report(ch, not (res.status & SOLVE_FAILED))
+        return not (res.status & SOLVE_FAILED)
 
     def _ahead_start_compiled(self, k: int, start: int, end: int) -> bool:
         """:meth:`_ahead_start` in one compiled call (:meth:`_bind_ahead_start`); a model with a
@@ -363,14 +370,14 @@ class _CompiledReport:
         """:meth:`_report_pose` with its numbers in one compiled call per channel (``ReportChain``,
         ``core/src/report.c`` ``ct_report_solved``: the range check and copies, the grading,
         the quaternion and the reported covariance, the same operations in the same order)."""
-        chain, cov, fus, frame = self._chains[ch.node]
+        chain, cov, fus, send, init = self._chains[ch.node]
         q = self.quality.grade_report(chain, ch.node, t_pose, self.solver.cost, self.range_m,
-                                      fus is not None and fus.initialized)
+                                      fus is not None and (fus.initialized if init is None else init[0] != 0))
         if q < 0:
             return False
         tp.have_pose = True
         st = self._status | POSE_VALID
-        if not self.tx.pose_built(frame, ch.node, t_pose, st, q):      # the frame from the chain's buffers
+        if not self.tx.pose_built(send, ch.node, t_pose, st, q):       # the frame from the chain's buffers
             self.tx.pose_cov6(ch.node, t_pose, tp.position, self._qv, cov, st, q)
         return True
 
@@ -398,10 +405,22 @@ class _CompiledReport:
                 chain = None
             if chain is None:
                 return
-            chains[ch.node] = (chain, sv.covariance, None, chain.frame) if m is None else \
-                (chain, m[2], m[4], chain.frame)
+            chains[ch.node] = (chain, sv.covariance, None, chain.send, None) if m is None else \
+                (chain, m[2], m[4], chain.send, _initialized_flag(m[4]))
         self._chains = chains
         self._report_pose = self._report_pose_compiled
+
+
+def _initialized_flag(fus):
+    """A view of the fusion filter ``fus``'s initialised flag (its ``fs[FS_INIT]``, what its
+    ``initialized`` reads), for :meth:`_CompiledReport._report_pose_compiled`; None where the
+    filter is of another kind (its ``initialized`` is read)."""
+    from coiltrack.firmware.estimate.magnetic_inertial import FS_INIT, FusionFilter
+    fs = getattr(fus, "fs", None)
+    if type(fus).initialized is not FusionFilter.initialized or not isinstance(fs, np.ndarray) \
+            or fs.dtype != np.int64 or fus._fsv.obj is not fs:
+        return None
+    return memoryview(fs)[FS_INIT:FS_INIT + 1]
 
 
 def _ho_reference(k: int, have_pose: bool, burst: int, running: int) -> int:
@@ -432,6 +451,7 @@ class _HandOver:
         self._ho_ext = core.ext
         self._ho_begin = _ho_reference
         self._begin = self._begin_handover
+        self._bind_report_loop()
 
     def bind_composed(self) -> None:
         """Called once the firmware's stages are all built (``loop.Firmware``): the hand-over's kernel
@@ -458,32 +478,94 @@ class _HandOver:
 
     def _begin_handover(self, ch) -> None:
         """:meth:`_begin_compiled` with :meth:`_start_solve_compiled`'s test for a solve ahead to take
-        over and :meth:`_take_ahead`'s compiled part in one call (``HandOver.begin``: the burst's
-        status, the supervisor's pose status, the test, ``AheadStart.inputs`` and ``_Ahead.release``,
-        the same operations in the same order), then the rest of them on its answer; a model with a
-        distortion map, :meth:`_begin_compiled`."""
+        over and :meth:`_take_ahead`'s compiled part in one call (:meth:`_hand_over`), then the
+        report it leaves to its caller."""
+        solved = self._hand_over(ch)
+        if solved is not None:
+            self._report(ch, solved)
+
+    def _hand_over(self, ch):
+        """:meth:`_begin_handover` but its report: ``HandOver.begin`` (the burst's status, the
+        supervisor's pose status, the test for a solve ahead to take over, ``AheadStart.inputs``
+        and ``_Ahead.release``, the same operations in the same order), then the rest of the steps
+        it stands for on its answer; a model with a distortion map, :meth:`_begin_compiled`.
+        Whether the burst of ``ch`` is to be reported now as solved (a solve ahead's result
+        loaded) or not (unusable or vetoed); None when nothing is to be reported yet."""
         sv = self.solver
         if sv.signal.distortion is not None:
             self._begin_compiled(ch)
-            return
+            return None
         k = self._next
         tp = self._ss_poses[k]
         bs = self.schedule.burst_start
         r = self._ho_begin(k, tp.have_pose, NO_BURST if bs is None else bs, self._ahead_k)
         if r < 0:
             self._begin_compiled(ch)
-            return
+            return None
         sup = self.supervisor
         self._status = r & 0xFFFFFFFF
         if r & HO_VETO or sup.veto:
             sup.vetoed((r >> 32) & 1)
         code = r >> 34
         if code == 0:
-            self._report(ch, False)
-        elif code == 1:
+            return False
+        if code == 1:
             self._start_fresh(ch, k)
-        else:
-            self._ahead_taken(ch, tp, k, code == 4, code == 3)
+            return None
+        return self._ahead_result(ch, tp, k, code == 4, code == 3)
+
+    def _bind_report_loop(self) -> None:
+        """:meth:`_report` replaced on this instance by :meth:`_report_loop` where the next sensor's
+        begin is :meth:`_begin_handover` and no class overrides :meth:`_report`; the hook
+        :meth:`on_solution` called only where a class overrides it (``_on_solution``)."""
+        mt = MagneticTracker
+        if type(self)._report is not mt._report or getattr(self._begin, "__func__", None) is not _HandOver._begin_handover \
+                or type(self)._hand_over is not _HandOver._hand_over:
+            return
+        self._on_solution = None if type(self).on_solution is mt.on_solution else self.on_solution
+        self._report = self._loop_report = self._report_loop
+        self._loop_begin = self._begin
+
+    def _report_loop(self, ch, solved: bool) -> None:
+        """:meth:`MagneticTracker._report` with the next sensors' begins (:meth:`_begin_handover`)
+        in a loop instead of a recursion: each sensor's POSE, the hook, the move to the next
+        sensor and, with room left, its begin (:meth:`_hand_over`), whose report, where it leaves
+        one (a solve ahead's result taken over, an unusable burst), is the loop's next turn; the
+        same operations in the same order. Where :meth:`_begin` or :meth:`_report` was replaced on
+        the instance since the binding (a recorder wraps it), the next begin goes through them."""
+        poses, chans, tx = self.poses, self.channels, self.tx
+        n = len(chans)
+        hook = self.__dict__.get("on_solution", self._on_solution)       # (one set on the instance: it)
+        while True:
+            tp = poses[ch.node]
+            t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
+            if solved and not self._report_pose(ch, tp, t_pose):
+                solved = self._out_of_range(tp)
+            if not solved:
+                tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
+            if hook is not None:
+                hook(ch, solved)
+            self._next += 1
+            if self._next == n:
+                self._next = -1
+                self.cycles += 1
+                if self._burst_ticks > self.solve_ticks_max:
+                    self.solve_ticks_max = self._burst_ticks
+                self.burst.release()
+                return
+            sn = self.solver.n
+            if self._units + sn > self.budget or self._handovers >= self.handovers_max:
+                self._handover = True            # no room left in this tick's budget or hand-overs
+                return
+            self._units += sn
+            self._handovers += 1
+            ch = chans[self._next]
+            if self._begin is not self._loop_begin or self._report is not self._loop_report:
+                self._begin(ch)              # (replaced since the binding: through them, as the reference)
+                return
+            solved = self._hand_over(ch)
+            if solved is None:
+                return
 
 
 class _ScanAhead:
@@ -872,10 +954,7 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
         tp = self.poses[ch.node]
         t_pose = (self._startv[0] + self._endv[-1]) // 2      # the middle of the burst
         if solved and not self._report_pose(ch, tp, t_pose):
-            # a diverged start led the solve out of the working volume: no pose; acquire again
-            solved = False
-            tp.have_pose = False
-            self.out_of_range += 1
+            solved = self._out_of_range(tp)
         if not solved:
             self.tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
         self.on_solution(ch, solved)
@@ -892,6 +971,13 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
             self._units += self.solver.n
             self._handovers += 1
             self._begin(self.channels[self._next])
+
+    def _out_of_range(self, tp: TrackedPose) -> bool:
+        """A diverged start led the solve out of the working volume: no pose; acquire again
+        (False: the burst is reported as not solved)."""
+        tp.have_pose = False
+        self.out_of_range += 1
+        return False
 
     def _report_pose(self, ch, tp: TrackedPose, t_pose: int) -> bool:
         """The solved burst's magnetic POSE of ``ch`` whose middle is ``t_pose``: the solution

@@ -57,11 +57,11 @@ def _pair(name: str):
                                          cov[1, 1], cov[2, 2], cov[3, 3], cov[4, 4], cov[5, 5], status, quality))
         trk.tx.pose_cov6 = rec
 
-        def built(build, node, t_us, status, quality, sent=trk.sent):
-            sent.append(build(7, 1, node, t_us, status, quality))
+        def built(send, node, t_us, status, quality, sent=trk.sent):
+            assert send(sent.append, 7, 1, node, t_us, status, quality) == 8        # sent, numbered 7
             return True
         if impl == "compiled":
-            trk.tx.pose_built = built    # the report's frame from its chain (ReportChain.frame)
+            trk.tx.pose_built = built    # the report's frame from its chain (ReportChain.send)
         out.append(trk)
     ref, got = out
     assert got._report_pose.__func__ is MagneticTracker._report_pose_compiled
@@ -146,7 +146,7 @@ def test_report_pose_is_the_python_to_the_bit(name):
     """400 random solved bursts (15 % of them beyond the working volume), the fused tracker's
     filter initialized or not, earlier solutions within the motion term's gap or not: the same
     return, tracked pose, quality, motion term, quality rows and POSE frame bytes as the reference
-    (the compiled report's frame built by its chain, ``ReportChain.frame``, the reference's from
+    (the compiled report's frame built by its chain, ``ReportChain.send``, the reference's from
     its ``pose_cov6`` arguments)."""
     rng = random.Random(5)
     ref, got = _pair(name)
