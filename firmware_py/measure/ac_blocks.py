@@ -84,6 +84,10 @@ class ACBlockMeasurement:
         self._fsv = fs = memoryview(self._fs)
         st[_BLOCK_K] = -1
         st[_MAX_SAMPLES] = max_samples or max(4, int(math.ceil(4 * per_tick)))
+        #: :attr:`t_ref` and :attr:`complete` as int64 views (1,) of the state, read in place by a
+        #: tracker's compiled solve start and its tick (``track.ac.ACFusionTracker._bind_ac_tick``)
+        self.t_ref_view = st[_T_REF:_T_REF + 1]
+        self.complete_view = st[_COMPLETE:_COMPLETE + 1]
         self.signal_gate = fs[_SIGNAL_GATE] = chi2_gate(3 * self.n, 0.9999)
         self.q_gate = fs[_Q_GATE] = chi2_gate(3 * self.n, cfg.ac.ac_distortion_probability)
         fs[_RATIO_MAX] = float(cfg.ac.ac_distortion_ratio)
