@@ -141,7 +141,7 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         d = m.demods[0]
         for ch, ins in self._pairs:
             fm = self._fuse_mid[ch.node]
-            if ins.pending or (fm >= 0 and fm >= m.t_ref):
+            if ins.pending or (fm >= 0 and fm >= m.t_ref_view[0]):      # (t_ref, read in place)
                 continue
             k = (now_us + 1000 - d.t0) // d.hop_us + 1
             if k < 0:
