@@ -38,6 +38,7 @@ from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
 from coiltrack.firmware.track.burst_fusion import BurstFusionTracker, PulseGate, SensorInertial
 from coiltrack.firmware.track.magnetic import MagneticTracker
+from coiltrack.firmware.track.solve_tick import SolveTick
 
 
 #: ``SensorInertial.process``'s default ``max_steps``: every queued sample
@@ -111,7 +112,7 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         cls = type(self)
         if not self.source.fixed or getattr(self, "_ft_send", None) is None or cls.step is not ACFusionTracker.step \
                 or cls.busy is not MagneticTracker.busy or cls._fuse_step is not BurstFusionTracker._fuse_step \
-                or self.burst is not self.measure:
+                or self.burst is not self.measure or getattr(self._charges, "__func__", None) is not SolveTick._charges_imu:
             return
         self._ac_done = np.zeros(2, dtype=np.int64)
         self._ac_donev = memoryview(self._ac_done)
@@ -173,9 +174,9 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         """:meth:`step` on the compiled core (:meth:`_bind_ac_tick`): the same steps in the same order,
         the fixed source's process (nothing) left out, the sensors' samples in one call
         (``ext.FusedTick.process``: each sensor's ``ImuSample.drain`` and its count; from a sensor
-        that handed a sample back on, :meth:`_process_back_ac`), ``busy`` read in place, the charges
-        in one call given to ``MagneticTracker.step``, ``_fuse_step`` only with a sensor pending
-        (else its first line)."""
+        that handed a sample back on, :meth:`_process_back_ac`), ``busy`` and the charges
+        (``SolveTick._charges_imu``) in place, the charges given to ``MagneticTracker.step``,
+        ``_fuse_step`` in place (``SolveTick._fuse_pending``)."""
         self._plan_snapshots(now_us)
         r = self._ac_process(_ALL_STEPS)
         n = self._process_back_ac(r >> 2) if r & 1 else r >> 2
@@ -184,14 +185,13 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         e0 = signal.evals
         complete = self._ac_complete
         fresh = self._next < 0 and not complete[0]
-        charges = self._charges()
+        charges = 0 if self._waited else 0 + self.imu_sample_evals * n        # (SolveTick._charges_imu)
         if not fresh:
             MagneticTracker.step(self, now_us, charges)
         if self._next < 0 and not complete[0]:
+            self._waited = False
             if self._n_pending:
-                self._fuse_step(self.budget - charges - (signal.evals - e0), fresh, charges)
-            else:
-                self._waited = False
+                self._fuse_pending(self.budget - charges - (signal.evals - e0), fresh, charges)
         self._send_fused()
 
     def _process_back_ac(self, n: int) -> int:

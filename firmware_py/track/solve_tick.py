@@ -26,7 +26,8 @@ class SolveTick:
         cls = type(self)
         self._bind_charges(ref)
         self._step_solving = self._step
-        if cls._step is not ref._step or cls.busy is not MagneticTracker.busy or cls._fuse_step is not ref._fuse_step:
+        if cls._step is not ref._step or cls.busy is not MagneticTracker.busy or cls._fuse_step is not ref._fuse_step \
+                or getattr(self._charges, "__func__", None) is not SolveTick._charges_fused:
             return
         self._st_rows = {ins: row for row in self._ft_send for ins in row[1:2]}
         self._st_valid = fused_valid
@@ -56,9 +57,9 @@ class SolveTick:
 
     def _step_solve_compiled(self, now_us: int) -> None:
         """``BurstFusionTracker._step`` (the ticks ``_step_fast`` does not take: a solve's, a
-        fusion's): the same steps in the same order, ``busy`` read in place, the charges in one call
-        given to ``MagneticTracker.step``, ``_fuse_step`` only with a sensor pending (else its first
-        line), the fused sensor's poses through :meth:`send_fused_one`."""
+        fusion's): the same steps in the same order, ``busy`` read in place, the charges
+        (:meth:`_charges_fused`) in place and given to ``MagneticTracker.step``, ``_fuse_step`` in
+        place (:meth:`_fuse_pending`), the fused sensor's poses through :meth:`send_fused_one`."""
         n = 0 if self._idle else self._process(now_us)
         self._imu_last = n
         fusing = self._n_pending > 0
@@ -78,19 +79,29 @@ class SolveTick:
             return
         signal = self.solver.signal
         e0 = signal.evals
-        charges = self._charges()
+        charges = 0 if self._waited else self.window_evals * burst.closed_last + self.imu_sample_evals * n
         if solve:
             MagneticTracker.step(self, now_us, charges)
         fused = None
         if self._next < 0 and not burst.complete:
+            self._waited = False
             if self._n_pending:
-                fused = self._fuse_step(self.budget - charges - (signal.evals - e0), fresh, charges)
-            else:
-                self._waited = False
+                fused = self._fuse_pending(self.budget - charges - (signal.evals - e0), fresh, charges)
         if n:
             self._send_fused()
         elif fused is not None:
             self.send_fused_one(fused)
+
+    def _fuse_pending(self, budget: int, fresh: bool, charges: int):
+        """``BurstFusionTracker._fuse_step`` after its first line, with a sensor pending."""
+        for ch, ins in self._pairs:
+            if ins.pending:
+                ins.fuse(self.comp_solver, ch.S, self.currents, ch.sigma, ch.pmv, budget, self.replay_budget, fresh)
+                self._waited = bool(charges) and ins.waiting
+                if not ins.pending:
+                    self._n_pending -= 1
+                return ins
+        return None
 
     def send_fused_one(self, ins) -> None:
         """``ins.send_fused`` of the one sensor a tick fused (its plain poses in one transmitter call,
