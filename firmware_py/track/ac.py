@@ -223,7 +223,7 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
 
     def on_solution(self, ch, solved: bool) -> None:
         ins = self.inertial[ch.node]
-        if self._fuse_mid[ch.node] == self.measure.t_ref and not ins.pending:
+        if self._fuse_mid[ch.node] == self.measure.t_ref_view[0] and not ins.pending:     # (t_ref, in place)
             self._fuse_mid[ch.node] = -1
             if solved:
                 self.blocks_fused += 1
