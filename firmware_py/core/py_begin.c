@@ -176,7 +176,7 @@ typedef struct {
     PyObject_HEAD
     PyObject *run;               /* the SolveRun whose solve this begins (held) */
     const struct ct_solve *s;
-    int n, nch, fs_init;
+    int n, nch, fs_init, range_check;
     double floor2, range_m;
     const double *cur;
     ss_channel ch[SS_MAXCH];
@@ -219,17 +219,18 @@ static int ss_bind(SolveStartObject *self, PyObject *o, Py_ssize_t len, int k, v
     return 0;
 }
 
-/* SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels): channels a sequence of SS_NB
- * buffers per channel (ss_names) */
+/* SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels, warm_ac=False): channels a sequence of
+ * SS_NB buffers per channel (ss_names); warm_ac: the warm start without the range check (ACFusionTracker's) */
 static int SolveStart_init(SolveStartObject *self, PyObject *args, PyObject *kw)
 {
-    static char *kwlist[] = {"run", "n", "floor2", "range_m", "fs_init", "fs_n", "currents", "channels", NULL};
+    static char *kwlist[] = {"run", "n", "floor2", "range_m", "fs_init", "fs_n", "currents", "channels", "warm_ac",
+                             NULL};
     PyObject *run, *cur, *chans, *seq = NULL, *one = NULL;
-    int n, fs_init, fs_n, k, i;
+    int n, fs_init, fs_n, k, i, warm_ac = 0;
     double floor2, range_m;
     void *p;
-    if (!PyArg_ParseTupleAndKeywords(args, kw, "OiddiiOO", kwlist, &run, &n, &floor2, &range_m, &fs_init, &fs_n, &cur,
-                                     &chans))
+    if (!PyArg_ParseTupleAndKeywords(args, kw, "OiddiiOO|p", kwlist, &run, &n, &floor2, &range_m, &fs_init, &fs_n,
+                                     &cur, &chans, &warm_ac))
         return -1;
     if (self->run != NULL) {
         PyErr_SetString(PyExc_RuntimeError, "SolveStart: already bound");
@@ -291,6 +292,7 @@ static int SolveStart_init(SolveStartObject *self, PyObject *args, PyObject *kw)
     self->n = n;
     self->floor2 = floor2;
     self->range_m = range_m;
+    self->range_check = !warm_ac;
     self->fs_init = fs_init;
     Py_INCREF(run);
     self->run = run;
@@ -323,7 +325,7 @@ static PyObject *SolveStart_start(SolveStartObject *self, PyObject *const *args,
         return NULL;
     st = ct_solve_start(self->s, self->n, c->var, c->sig, self->floor2, &c->h, c->tr[0], have,
                         c->fs[self->fs_init] != 0, self->range_m, c->tp, c->tR, c->wp, c->wR, c->hemi, c->S,
-                        self->cur, &warm);
+                        self->cur, self->range_check, &warm);
     return PyLong_FromLong(st | (warm << 8));
 }
 
@@ -337,8 +339,9 @@ static PyTypeObject SolveStartType = {
     .tp_name = "coiltrack.firmware._core.SolveStart",
     .tp_basicsize = sizeof(SolveStartObject),
     .tp_flags = Py_TPFLAGS_DEFAULT,
-    .tp_doc = "SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels): the fused tracker's start "
-              "of a burst's solve (sigma, warm start, begin) bound to its channels' and filters' buffers",
+    .tp_doc = "SolveStart(run, n, floor2, range_m, fs_init, fs_n, currents, channels, warm_ac=False): the fused "
+              "tracker's start of a burst's solve (sigma, warm start, begin) bound to its channels' and filters' "
+              "buffers; warm_ac: the AC tracker's warm start (no range check)",
     .tp_new = PyType_GenericNew,
     .tp_init = (initproc)SolveStart_init,
     .tp_dealloc = (destructor)SolveStart_dealloc,

@@ -39,8 +39,10 @@ import numpy as np
 
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.estimate.ekf import chi2_gate
+from coiltrack.firmware.estimate.fusion_rings import KernelRing
 from coiltrack.firmware.measure.demod import STEP_DISTORTED, STEP_NO_SIGNAL, STEP_SOLVED, Demodulator
 from coiltrack.firmware.measure.pulse import NO_TIME_US, SampleRing
+from coiltrack.firmware.ring import Ring
 
 # the integer state, an int64 array (``ACBlockMeasurement._st``; ``core/include/ct_ac.h``: CT_ACB_*)
 _BLOCK_K, _COMPLETE, _T_REF, _BLOCKS, _SKIPPED, _BAD, _DISTORTED, _NO_SIGNAL, _MAX_SAMPLES = range(9)
@@ -84,6 +86,10 @@ class ACBlockMeasurement:
         self._fsv = fs = memoryview(self._fs)
         st[_BLOCK_K] = -1
         st[_MAX_SAMPLES] = max_samples or max(4, int(math.ceil(4 * per_tick)))
+        #: :attr:`t_ref` and :attr:`complete` as int64 views (1,) of the state, read in place by a
+        #: tracker's compiled solve start and its tick (``track.ac.ACFusionTracker._bind_ac_tick``)
+        self.t_ref_view = st[_T_REF:_T_REF + 1]
+        self.complete_view = st[_COMPLETE:_COMPLETE + 1]
         self.signal_gate = fs[_SIGNAL_GATE] = chi2_gate(3 * self.n, 0.9999)
         self.q_gate = fs[_Q_GATE] = chi2_gate(3 * self.n, cfg.ac.ac_distortion_probability)
         fs[_RATIO_MAX] = float(cfg.ac.ac_distortion_ratio)
@@ -103,6 +109,11 @@ class ACBlockMeasurement:
         self._rings = tuple(ch.ring for ch in self.channels)
         self._rs = np.zeros(2 * len(self.channels), dtype=np.int64)       # each ring's count and last slot
         self._rsv = memoryview(self._rs)
+        # each ring's head and count read in place (``KernelRing.hc``) where its ``len`` and
+        # ``last_pushed_slot`` are the reference's: (its hc, its capacity), else None
+        self._ring_hc = tuple((memoryview(r.hc), r.capacity) for r in self._rings) if all(
+            type(r).__len__ is KernelRing.__len__ and type(r).last_pushed_slot is Ring.last_pushed_slot
+            for r in self._rings) else None
         self._ck = ext.ACBlocks(self.n, chans, act.phase_rad, act.amplitude_a, sched.start, sched.end,
                                 sched.measured, self.solved_k, self._dist, self._qr, self._st, self._fs, self._rs)
         self._tick = self._tick_compiled
@@ -170,11 +181,18 @@ class ACBlockMeasurement:
     def _tick_compiled(self) -> int:
         """:meth:`_tick` in one call (the channels' bursts loaded by ``SensorChannel.load_block``'s
         copies in C; each channel then counts the change itself: ``block_loaded``)."""
-        rs, rings = self._rsv, self._rings
-        for i in range(len(rings)):
-            ring = rings[i]
-            rs[2 * i] = len(ring)
-            rs[2 * i + 1] = ring.last_pushed_slot()
+        rs, rings, hcs = self._rsv, self._rings, self._ring_hc
+        if hcs is not None:                  # (len and last_pushed_slot on the rings' hc, in place)
+            for i in range(len(hcs)):
+                hc, cap = hcs[i]
+                h = hc[0]
+                rs[2 * i] = hc[1]
+                rs[2 * i + 1] = h - 1 if h > 0 else cap - 1
+        else:
+            for i in range(len(rings)):
+                ring = rings[i]
+                rs[2 * i] = len(ring)
+                rs[2 * i + 1] = ring.last_pushed_slot()
         r = self._ck.step()
         if r & 1:
             for ch in self.channels:

@@ -38,6 +38,11 @@ from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
 from coiltrack.firmware.track.burst_fusion import BurstFusionTracker, PulseGate, SensorInertial
 from coiltrack.firmware.track.magnetic import MagneticTracker
+from coiltrack.firmware.track.solve_tick import SolveTick
+
+
+#: ``SensorInertial.process``'s default ``max_steps``: every queued sample
+_ALL_STEPS = 1 << 30
 
 
 class _AlwaysQuiet(PulseGate):
@@ -88,6 +93,33 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         self._ac_pairs = tuple((ch, ins, measure.earth[ch.node]) for ch, ins in self._pairs)
         self._fuse_mid = {ch.node: -1 for ch in self.channels}
         self.blocks_fused = 0
+        self._bind_ac_tick(core)
+
+    def _bind_ac_tick(self, core) -> None:
+        """On the compiled core: :meth:`_charges` in one frame (``SolveTick._charges_imu``), the
+        solve's start in one call (``MagneticTracker._bind_start`` with this tracker's warm start:
+        the filter's pose at the block's ``t_ref``, no range check) and, with a fixed source and
+        every sensor's samples through the compiled loop, :meth:`step` as :meth:`_step_compiled`;
+        each only where the class runs the reference's methods."""
+        self._bind_charges(BurstFusionTracker, _ACMixin._window_charges)
+        ext = core.ext
+        if ext is None:
+            return
+        if getattr(self, "_warms", None) is not None and type(self).warm_start is ACFusionTracker.warm_start:
+            tref = self.measure.t_ref_view
+            self._bind_start(core, tuple((ins.fusion.history.live, tref, ins.fusion.fs) for _, ins in self._pairs),
+                             warm_ac=True)
+        cls = type(self)
+        if not self.source.fixed or getattr(self, "_ft_send", None) is None or cls.step is not ACFusionTracker.step \
+                or cls.busy is not MagneticTracker.busy or cls._fuse_step is not BurstFusionTracker._fuse_step \
+                or self.burst is not self.measure or getattr(self._charges, "__func__", None) is not SolveTick._charges_imu:
+            return
+        self._ac_done = np.zeros(2, dtype=np.int64)
+        self._ac_donev = memoryview(self._ac_done)
+        self._ac_process = ext.FusedTick(tuple(i._one.kernel for _, i, _ in self._ac_pairs),
+                                         tuple(i.sc for _, i, _ in self._ac_pairs), self._ac_done).process
+        self._ac_complete = self.measure.complete_view
+        self.step = self._step_compiled
 
     def _ring_of(self, ch):
         """The ring a sensor's inertial part is fed from: its earth-field ring (the blocks' DC
@@ -110,7 +142,7 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         d = m.demods[0]
         for ch, ins in self._pairs:
             fm = self._fuse_mid[ch.node]
-            if ins.pending or (fm >= 0 and fm >= m.t_ref):
+            if ins.pending or (fm >= 0 and fm >= m.t_ref_view[0]):      # (t_ref, read in place)
                 continue
             k = (now_us + 1000 - d.t0) // d.hop_us + 1
             if k < 0:
@@ -133,10 +165,44 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         fresh = not self.busy()
         charges = self._charges()
         if not fresh:
-            MagneticTracker.step(self, now_us)
+            MagneticTracker.step(self, now_us, charges)
         if not self.busy():
             self._fuse_step(self.budget - charges - (self.solver.signal.evals - e0), fresh, charges)
         self._send_fused()
+
+    def _step_compiled(self, now_us: int) -> None:
+        """:meth:`step` on the compiled core (:meth:`_bind_ac_tick`): the same steps in the same order,
+        the fixed source's process (nothing) left out, the sensors' samples in one call
+        (``ext.FusedTick.process``: each sensor's ``ImuSample.drain`` and its count; from a sensor
+        that handed a sample back on, :meth:`_process_back_ac`), ``busy`` and the charges
+        (``SolveTick._charges_imu``) in place, the charges given to ``MagneticTracker.step``,
+        ``_fuse_step`` in place (``SolveTick._fuse_pending``)."""
+        self._plan_snapshots(now_us)
+        r = self._ac_process(_ALL_STEPS)
+        n = self._process_back_ac(r >> 2) if r & 1 else r >> 2
+        self._imu_last = n
+        signal = self.solver.signal
+        e0 = signal.evals
+        complete = self._ac_complete
+        fresh = self._next < 0 and not complete[0]
+        charges = 0 if self._waited else 0 + self.imu_sample_evals * n        # (SolveTick._charges_imu)
+        if not fresh:
+            MagneticTracker.step(self, now_us, charges)
+        if self._next < 0 and not complete[0]:
+            self._waited = False
+            if self._n_pending:
+                self._fuse_pending(self.budget - charges - (signal.evals - e0), fresh, charges)
+        self._send_fused()
+
+    def _process_back_ac(self, n: int) -> int:
+        """The rest of :meth:`step`'s samples after ``FusedTick.process`` ran ``n`` and stopped at a
+        sensor whose drain handed one back: each sensor's ``process`` from that one on."""
+        k, done = self._ac_donev[0], self._ac_donev[1]
+        pairs = self._ac_pairs
+        for j in range(k, len(pairs)):
+            _, ins, earth = pairs[j]
+            n += ins.process(earth, 0, 0, _ALL_STEPS - done if j == k else _ALL_STEPS)
+        return n
 
     def warm_start(self, ch, tp) -> bool:
         ins = self.inertial[ch.node]
@@ -157,7 +223,7 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
 
     def on_solution(self, ch, solved: bool) -> None:
         ins = self.inertial[ch.node]
-        if self._fuse_mid[ch.node] == self.measure.t_ref and not ins.pending:
+        if self._fuse_mid[ch.node] == self.measure.t_ref_view[0] and not ins.pending:     # (t_ref, in place)
             self._fuse_mid[ch.node] = -1
             if solved:
                 self.blocks_fused += 1

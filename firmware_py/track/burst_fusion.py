@@ -51,6 +51,7 @@ from coiltrack.firmware.pose.solver import SOLVE_BAD_INPUT, SOLVE_NO_START, SOLV
 from coiltrack.firmware.track.burst_compiled import FZ_N as _FZ_N
 from coiltrack.firmware.track.burst_compiled import CompiledBurst
 from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_range3
+from coiltrack.firmware.track.solve_tick import SolveTick
 from coiltrack.firmware.track.source_unaccelerated import Unaccelerated
 
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
@@ -968,7 +969,7 @@ class SensorInertial(CompiledBurst):
             out[3 + i, 3 + i] += ao
 
 
-class BurstFusionTracker(MagneticTracker):
+class BurstFusionTracker(SolveTick, MagneticTracker):
     """Magnetic-only poses of each burst, fused with the inertial data
     (thesis ch. 6): the IMU samples drive each sensor's fusion filter and
     leave as fused POSEs at the IMU rate; after a burst's magnetic solve, the
@@ -1095,7 +1096,7 @@ class BurstFusionTracker(MagneticTracker):
         e0 = self.solver.signal.evals
         charges = self._charges()
         if solve:
-            super().step(now_us)         # (a tick with nothing to fuse may solve ahead)
+            super().step(now_us, charges)     # (a tick with nothing to fuse may solve ahead)
         fused = None
         if not self.busy():          # what the magnetic solves left of the budget goes to fusing
             fused = self._fuse_step(self.budget - charges - (self.solver.signal.evals - e0), fresh, charges)
@@ -1145,7 +1146,8 @@ class BurstFusionTracker(MagneticTracker):
             return
         self._ft_send = tuple((ch.node, i, i.fusion.output._ck, i._recovery) for ch, i in self._pairs)
         self._send_fused = self._send_fused_plain
-        if any(getattr(type(self), m) is not getattr(BurstFusionTracker, m) for m in ("step", "_step", "_process")):
+        self._bind_solve_tick(BurstFusionTracker, _FUSED_VALID)
+        if any(getattr(type(self), m) is not getattr(BurstFusionTracker, m) for m in ("step", "_step", "_process", "busy")):
             return
         self._ft_done = np.zeros(2, dtype=np.int64)
         self._ft_donev = memoryview(self._ft_done)
@@ -1158,9 +1160,15 @@ class BurstFusionTracker(MagneticTracker):
         """:meth:`step` (bound by :meth:`_bind_fused_tick`): a tick with IMU samples queued, no sensor
         fusing and no burst to solve or solve ahead is :meth:`_step`'s part for it, the samples drained
         (:meth:`_process` in one compiled call) and their fused poses sent; any other tick the
-        reference's."""
-        if self._idle or self._n_pending or self.busy() or (self.ahead and self._ahead_pending()):
-            BurstFusionTracker.step(self, now_us)
+        reference's (:meth:`_step`, through its compiled form ``_step_solving``, or :meth:`step`'s quiet
+        tick: the same tests, ``busy`` read in place)."""
+        if self._n_pending or self._next >= 0 or self.burst.complete or (self.ahead and self._ahead_pending()):
+            self._step_solving(now_us)
+            return
+        if self._idle:                   # (step's quiet tick)
+            self._imu_last = 0
+            self._waited = False
+            self._deferring = False
             return
         r = self._ft_process(self.imu_steps)
         if r & 1:

@@ -211,14 +211,16 @@ class _CompiledReport:
             return
         self._start_solve(ch)
 
-    def _bind_start(self, core, filters) -> None:
+    def _bind_start(self, core, filters, warm_ac: bool = False) -> None:
         """:meth:`_start_solve` in one compiled call where no solve ahead is to be taken over
         (``SolveStart``, ``core/src/begin.c`` ``ct_solve_start``: ``SensorChannel.fill_sigma``,
         ``BurstFusionTracker.warm_start`` and ``PoseSolver.begin``, the same operations in the same
         order), bound to each channel's variances, sigmas, signals and tracked pose and to
-        ``filters``: per channel its fusion filter's live history, the sensor's ``tr`` and the
-        filter's ``fs`` with its initialised flag's index and length. Left to the Python where a
-        part is of another kind (a distortion map, a solver or channel not on the compiled core)."""
+        ``filters``: per channel its fusion filter's live history, the sensor's ``tr`` (the instant
+        of the warm start's pose) and the filter's ``fs`` with its initialised flag's index and
+        length; ``warm_ac``: ``ACFusionTracker.warm_start``'s instead (no range check). Left to the
+        Python where a part is of another kind (a distortion map, a solver or channel not on the
+        compiled core)."""
         from coiltrack.firmware.estimate.magnetic_inertial import FS_INIT, FS_N
         ext, sv = core.ext, self.solver
         chs = self.channels
@@ -236,7 +238,7 @@ class _CompiledReport:
                 rows.append((ch.var, ch.sigma, ch.S, hist.t, hist.d, hist.hc, tr, fs, tp.position, tp.rotation,
                              tp.warm_p, tp.warm_R, tp.hemisphere))
             k = ext.SolveStart(sv._sv, sv.n, chs[0]._sigma_floor2, self.range_m, FS_INIT, FS_N, self.currents,
-                               tuple(rows))
+                               tuple(rows), warm_ac)
         except (AttributeError, TypeError, ValueError):
             return
         self._ss, self._ss_start = k, k.start
@@ -743,10 +745,11 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
         """A burst was commanded; its pose will refer to ``t_ref``."""
 
     # ------------------------------------------------------------ tick
-    def step(self, now_us: int) -> None:
+    def step(self, now_us: int, charges: int | None = None) -> None:
         """Within ``track_budget_evals`` field evaluations: the next piece of
-        the current sensor's solve, or the start of the next sensor's."""
-        self._units = self._charged = self._charges()
+        the current sensor's solve, or the start of the next sensor's (``charges``: the tick's
+        :meth:`_charges` where the caller has them, a fusing tracker's tick)."""
+        self._units = self._charged = self._charges() if charges is None else charges
         self._waited = False
         self._handovers = 0
         if self._next < 0:

@@ -35,11 +35,12 @@ struct ct_hist;
  * floor floor2), the warm start (BurstFusionTracker.warm_start: ct_report_warm_start over the fusion
  * filter's live history h at t_ref into wp, wR, from the tracked pose tp, tR) and the solve's begin
  * (PoseSolver.begin: ct_solve_begin on S, sig, cur; warm: the hemisphere tp with the start wp, wR,
- * else the hemisphere hemi).  Returns the begin's status, *warm whether a warm start was made. */
+ * else the hemisphere hemi).  range_check 0: ACFusionTracker.warm_start's (ct_report_warm_start_ac: no
+ * range check, range_m unused).  Returns the begin's status, *warm whether a warm start was made. */
 int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *sig, double floor2,
                    const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
                    const double *tp, const double *tR, double *wp, double *wR, const double *hemi, const double *S,
-                   const double *cur, int *warm);
+                   const double *cur, int range_check, int *warm);
 
 struct ct_pulse;
 struct ct_sample_ring;

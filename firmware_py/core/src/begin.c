@@ -42,14 +42,16 @@ void ct_prepare_currents(const double *measured, const double *nominal, double *
         cur[j] = measured[j] != 0.0 ? measured[j] : nominal[j];
 }
 
-/* MagneticTracker._start_solve (BurstFusionTracker's warm start, no solve ahead taken over) */
+/* MagneticTracker._start_solve (BurstFusionTracker's warm start or, range_check 0, ACFusionTracker's; no solve
+ * ahead taken over) */
 int ct_solve_start(const struct ct_solve *s, int n, const double *var, double *sig, double floor2,
                    const struct ct_hist *h, int64_t t_ref, int have_pose, int initialized, double range_m,
                    const double *tp, const double *tR, double *wp, double *wR, const double *hemi, const double *S,
-                   const double *cur, int *warm)
+                   const double *cur, int range_check, int *warm)
 {
     ct_sigma_from(3 * (int64_t)n, var, sig, floor2);
-    *warm = ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR);
+    *warm = range_check ? ct_report_warm_start(h, t_ref, have_pose, initialized, range_m, tp, tR, wp, wR)
+                        : ct_report_warm_start_ac(h, t_ref, have_pose, initialized, tp, tR, wp, wR);
     if (*warm)
         return ct_solve_begin(s, S, sig, n, 1, cur, 1, tp, wp, wR);
     return ct_solve_begin(s, S, sig, n, 1, cur, 1, hemi, NULL, NULL);
