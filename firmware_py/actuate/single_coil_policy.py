@@ -382,10 +382,16 @@ class AdaptiveActuation(_SingleCoilActuation):
         # the expected amplitude variance, inflated while the pulses prove inconsistent
         self.host.forget(ws.sensor, now_us)
         # ... and the share of a baseline the previous pulse's window also used (estimate.shared_baseline)
+        # (the longest length's is the decision's: asked once)
         sh, prev = self.host.sharing, self.book.last_pulse_end
-        self._dec_var = sh.predicted(self.var_amp, start, prev) * ws.sensor.monitor.r_scale
-        for k in range(self.lengths.n):
-            self._vars[k] = sh.predicted(self.lengths.var_amp[k], start, prev) * ws.sensor.monitor.r_scale
+        r_scale = ws.sensor.monitor.r_scale
+        L = self.lengths
+        if L.n > 1:
+            for k in range(L.n):
+                self._vars[k] = sh.predicted(L.var_amp[k], start, prev) * r_scale
+            self._dec_var = self._vars[-1]
+        else:
+            self._dec_var = sh.predicted(self.var_amp, start, prev) * r_scale
         self._dec_ws = ws
         self._dec_start = start
         self._dec_phase = 1

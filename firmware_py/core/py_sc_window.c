@@ -3,7 +3,8 @@
  * SharedBaselinesCore binds a SharedBaselines' state (its integers and floats, two arrays) and
  * its variance buffer once at construction, and with bind_channels the sensor channels' last
  * window (amp_var (3,) float64, info (4,) int64 each); close and variance are METH_FASTCALL, read
- * their integers in place and return None (no Python object created).
+ * their integers in place and return None (no Python object created); predicted and chained (a
+ * decision's variances) return their float.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -157,6 +158,26 @@ static PyObject *Sb_variance_of(SbObject *self, PyObject *const *args, Py_ssize_
     Py_RETURN_NONE;
 }
 
+/* predicted(var_amp, start, prev_end) (SharedBaselines.predicted): a float */
+static PyObject *Sb_predicted(SbObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v;
+    int64_t start, prev;
+    if (Sb_ready(self, "predicted", nargs, 3) < 0 || ct_py_double(args[0], &v) < 0 || ct_py_int64(args[1], &start) < 0
+        || ct_py_int64(args[2], &prev) < 0)
+        return NULL;
+    return PyFloat_FromDouble(ct_sb_predicted(self->si, self->sf, v, start, prev));
+}
+
+/* chained(var_amp) (SharedBaselines.chained): a float */
+static PyObject *Sb_chained(SbObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v;
+    if (Sb_ready(self, "chained", nargs, 1) < 0 || ct_py_double(args[0], &v) < 0)
+        return NULL;
+    return PyFloat_FromDouble(ct_sb_chained(self->si, self->sf, v));
+}
+
 static PyMethodDef Sb_methods[] = {
     {"bind_channels", (PyCFunction)(void (*)(void))Sb_bind_channels, METH_FASTCALL,
      "bind_channels((amp_var_0, info_0, ...)): the channels' last windows, bound once"},
@@ -166,6 +187,10 @@ static PyMethodDef Sb_methods[] = {
      "variance(k): SharedBaselines.variance of bound channel k into var"},
     {"variance_of", (PyCFunction)(void (*)(void))Sb_variance_of, METH_FASTCALL,
      "variance_of(amp_var, info): SharedBaselines.variance into var"},
+    {"predicted", (PyCFunction)(void (*)(void))Sb_predicted, METH_FASTCALL,
+     "predicted(var_amp, start, prev_end): SharedBaselines.predicted"},
+    {"chained", (PyCFunction)(void (*)(void))Sb_chained, METH_FASTCALL,
+     "chained(var_amp): SharedBaselines.chained"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject SbType = {
