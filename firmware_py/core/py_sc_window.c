@@ -2,9 +2,9 @@
  * CPython glue of the single-coil window close's shared baselines (src/sc_window.c): the type
  * SharedBaselinesCore binds a SharedBaselines' state (its integers and floats, two arrays) and
  * its variance buffer once at construction, and with bind_channels the sensor channels' last
- * window (amp_var (3,) float64, info (4,) int64 each); close and variance are METH_FASTCALL, read
- * their integers in place and return None (no Python object created); predicted and chained (a
- * decision's variances) return their float.
+ * window (amp_var (3,) float64, info (4,) int64 each); its methods are METH_FASTCALL and read
+ * their integers in place; variance returns None (no Python object created); close (the shared
+ * fractions), predicted and chained (a decision's variances) return their float.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -112,7 +112,7 @@ fail:
     return NULL;
 }
 
-/* close(start, end, next_start, earliest_next_us) (SharedBaselines.close; shared into sf) */
+/* close(start, end, next_start, earliest_next_us) (SharedBaselines.close; shared into sf, and returned) */
 static PyObject *Sb_close(SbObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     int64_t v[4];
@@ -122,8 +122,7 @@ static PyObject *Sb_close(SbObject *self, PyObject *const *args, Py_ssize_t narg
     for (k = 0; k < 4; ++k)
         if (ct_py_int64(args[k], &v[k]) < 0)
             return NULL;
-    ct_sb_close(self->si, self->sf, v[0], v[1], v[2], v[3]);
-    Py_RETURN_NONE;
+    return PyFloat_FromDouble(ct_sb_close(self->si, self->sf, v[0], v[1], v[2], v[3]));
 }
 
 /* variance(k): channel k's bound amp_var and info (SharedBaselines.variance) into var */
@@ -182,7 +181,7 @@ static PyMethodDef Sb_methods[] = {
     {"bind_channels", (PyCFunction)(void (*)(void))Sb_bind_channels, METH_FASTCALL,
      "bind_channels((amp_var_0, info_0, ...)): the channels' last windows, bound once"},
     {"close", (PyCFunction)(void (*)(void))Sb_close, METH_FASTCALL,
-     "close(start, end, next_start, earliest_next_us): SharedBaselines.close"},
+     "close(start, end, next_start, earliest_next_us) -> shared: SharedBaselines.close"},
     {"variance", (PyCFunction)(void (*)(void))Sb_variance, METH_FASTCALL,
      "variance(k): SharedBaselines.variance of bound channel k into var"},
     {"variance_of", (PyCFunction)(void (*)(void))Sb_variance_of, METH_FASTCALL,

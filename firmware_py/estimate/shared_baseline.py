@@ -337,8 +337,9 @@ class CompiledSharedBaselines(SharedBaselines):
         super().__init__(*args, **kw)
         self._ck = ext.SharedBaselinesCore(self._si, self._sf, self.var)
         self._var_k = self._ck.variance
-        self._close_k = self._ck.close
-        # a decision's variances: one call each (``ct_sb_predicted``, ``ct_sb_chained``), no property read
+        # the window's close and a decision's variances: one call each (``ct_sb_close``,
+        # ``ct_sb_predicted``, ``ct_sb_chained``), no Python layer, no property read
+        self.close = self._ck.close
         self.predicted = self._ck.predicted
         self.chained = self._ck.chained
         self._bound = 0
@@ -349,11 +350,6 @@ class CompiledSharedBaselines(SharedBaselines):
         chs = tuple(channels)
         self._ck.bind_channels(tuple(a for ch in chs for a in (ch.amp_var, ch.info)))
         self._bound = len(chs)
-
-    def close(self, start: int, end: int, next_start: int, earliest_next_us: int) -> float:
-        """:meth:`SharedBaselines.close` in one call of ``ct_sb_close``."""
-        self._close_k(start, end, next_start, earliest_next_us)
-        return self._fv[_SHARED]
 
     def variance(self, amp_var, info):
         """:meth:`SharedBaselines.variance` in one call of ``ct_sb_variance``."""
