@@ -282,6 +282,10 @@ class AdaptiveActuation(_SingleCoilActuation):
         self.kernels = "python"
         if core.ext is not None:
             self._pk = core.ext.PolicyCore(n, self.pmodel.h, self.pmodel.H, self._lim)
+            # the configuration the compiled steps pass, bound once
+            self._rel_model, self._tol_a = cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a
+            self._range_cfg = (cfg.adaptive.saturation_sigmas, cfg.pulse.mag_range_t, cfg.pulse.saturation_margin,
+                               cfg.pulse.earth_field_max_t)
             self._in_flight = self._in_flight_compiled
             self._range_limits = self._range_limits_compiled
             if self._bind_bounds(core.ext):
@@ -367,7 +371,8 @@ class AdaptiveActuation(_SingleCoilActuation):
             self._predict_view(v, t_m, now_us)
             for sl in slots:
                 if sl.active and not sl.acq:
-                    self._model_at(v)
+                    if self._pm_for is not v:
+                        self._model_at(v)
                     var = self.host.sharing.chained(L.var_amp[L.index_of(sl.end - sl.start)])
                     self._in_flight(v, sl, var * s.monitor.r_scale)
             if policy.due(v.P6, now_us, s.last_update_us):
@@ -434,13 +439,15 @@ class AdaptiveActuation(_SingleCoilActuation):
         lim = self._lim
         lim.fill(cfg.adaptive.adaptive_max_current_a)
         for v in self.views:
-            self._model_at(v)
+            if self._pm_for is not v:
+                self._model_at(v)
             self._range_limits(v)
         for c in range(self.n):
             if not self.book.duty_ok(c, self._dec_start, self.pulse_us):
                 lim[c] = 0.0
         ws = self._dec_ws
-        self._model_at(ws)
+        if self._pm_for is not ws:          # (a call that would find it evaluated skipped)
+            self._model_at(ws)
         # the knee of the worst-off sensor's information per joule (actuate.saturation_knee), for the
         # shortest length's white noise (the length least energy mostly takes)
         cap_at_knee(lim, self.pmodel.h, self._vars[0] if self.lengths.n > 1 else self._dec_var,
@@ -471,9 +478,8 @@ class AdaptiveActuation(_SingleCoilActuation):
 
     def _range_limits_compiled(self, v: SensorOutlook) -> None:
         """:meth:`_range_limits` in one call (``ct_scp_range_limits``), bit for bit."""
-        p = self.cfg.pulse
-        self._pk.range_limits(v.pp, v.P6, v.quiet, v.have_quiet, self.cfg.adaptive.saturation_sigmas, p.mag_range_t,
-                              p.saturation_margin, p.earth_field_max_t)
+        sigmas, mag_range, margin, earth = self._range_cfg
+        self._pk.range_limits(v.pp, v.P6, v.quiet, v.have_quiet, sigmas, mag_range, margin, earth)
 
     def _in_flight(self, v: SensorOutlook, sl, var: float) -> None:
         """The eq-4 covariance update of pulse ``sl`` in flight (amplitude variance ``var``) on
@@ -484,9 +490,7 @@ class AdaptiveActuation(_SingleCoilActuation):
 
     def _in_flight_compiled(self, v: SensorOutlook, sl, var: float) -> None:
         """:meth:`_in_flight` through ``ct_scp_pose_cov_update`` (the products to rounding)."""
-        cfg = self.cfg
-        self._pk.pose_cov_update(v.P6, sl.coil, sl.current, var, cfg.adaptive.field_model_rel_sigma,
-                                 cfg.limits.current_tolerance_a)
+        self._pk.pose_cov_update(v.P6, sl.coil, sl.current, var, self._rel_model, self._tol_a)
 
     def _decide_choose(self) -> None:
         """The coil and current of the pulse (``actuate.coil_choice``); its command in the next tick."""
