@@ -278,6 +278,7 @@ class AdaptiveActuation(_SingleCoilActuation):
                 s.ref.set_settle(cfg.adaptive.reference_settle_drop)
         self._lim = np.zeros(n)
         self._zero3 = np.zeros(3)
+        self._knee_on = cfg.adaptive.saturation_knee > 0.0
         #: where the decision's numeric parts run (the chooser runs its own)
         self.kernels = "python"
         if core.ext is not None:
@@ -449,9 +450,11 @@ class AdaptiveActuation(_SingleCoilActuation):
         if self._pm_for is not ws:          # (a call that would find it evaluated skipped)
             self._model_at(ws)
         # the knee of the worst-off sensor's information per joule (actuate.saturation_knee), for the
-        # shortest length's white noise (the length least energy mostly takes)
-        cap_at_knee(lim, self.pmodel.h, self._vars[0] if self.lengths.n > 1 else self._dec_var,
-                    cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a, cfg.adaptive.saturation_knee)
+        # shortest length's white noise (the length least energy mostly takes); no call where it is
+        # off (saturation_knee <= 0: cap_at_knee leaves the limits)
+        if self._knee_on:
+            cap_at_knee(lim, self.pmodel.h, self._vars[0] if self.lengths.n > 1 else self._dec_var,
+                        cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a, cfg.adaptive.saturation_knee)
         self.policy.set_bounds(ws.smax6)
         self.chooser.set_bounds(ws.smax6, ws.smin6)
         self._dec_phase = 2
