@@ -707,6 +707,7 @@ class CompiledCoilChooser(CoilChooser):
                                             self.reduction, self.i_ref, self._var, self.var_after, self._st,
                                             self.gain_var),
                                    self.rel_model, self.current_sigma, self.step_a, self.unreached_share, self.trace)
+        self.set_bounds = self._ck.set_bounds        # one call, no Python layer
 
     @property
     def coil(self) -> int:
@@ -747,9 +748,6 @@ class CompiledCoilChooser(CoilChooser):
     @reached.setter
     def reached(self, v) -> None:
         self._stv[4] = 1.0 if v else 0.0
-
-    def set_bounds(self, sigma_max6, sigma_min6) -> None:
-        self._ck.set_bounds(sigma_max6, sigma_min6)
 
     def choose(self, P6, model: SingleCoilModel, var_amp: float, i_limit) -> int:
         if not isinstance(var_amp, float):

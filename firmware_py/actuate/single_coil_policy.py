@@ -55,8 +55,8 @@ __all__ = ["FixedActuation", "AdaptiveActuation", "SensorOutlook", "CompiledActu
 class CompiledActuationPolicy(ActuationPolicy):
     """``coil_choice.ActuationPolicy`` on the compiled core: :meth:`set_bounds`, :meth:`due` and
     :meth:`worst` are one call each (``sc_policy.c`` ``ct_scp_policy_set_bounds``, ``_due``,
-    ``_worst``), bound once to ``var_max`` and to the outputs ``_st`` (the reason, the worst
-    ratio); the same operations in the same order as the reference's: bit for bit (the decision
+    ``_worst``: the kernel's methods themselves, no Python layer), bound once to ``var_max`` and to
+    the outputs ``_st`` (the reason, the worst ratio; ``worst`` also returns it); the same operations in the same order as the reference's: bit for bit (the decision
     of when to pulse sees the same numbers on both cores). ``reason`` is read from ``_st``."""
 
     def __init__(self, sigma_max, max_interval_us: int, trace: bool, ext):
@@ -66,7 +66,7 @@ class CompiledActuationPolicy(ActuationPolicy):
         self._ck = ext.WhenCore(self.var_max, self._st, self.trace, self.max_interval_us)
         self.set_bounds = self._ck.set_bounds
         self.due = self._ck.due
-        self._worst = self._ck.worst
+        self.worst = self._ck.worst
 
     @property
     def reason(self) -> int:
@@ -75,10 +75,6 @@ class CompiledActuationPolicy(ActuationPolicy):
     @reason.setter
     def reason(self, value: int) -> None:
         self._stv[0] = value
-
-    def worst(self, P6) -> float:
-        self._worst(P6)
-        return self._stv[1]
 
 
 def actuation_policy(core, sigma_max, max_interval_us: int, trace: bool) -> ActuationPolicy:
@@ -132,6 +128,16 @@ class _SingleCoilActuation:
         self._held_start = -1            # the start a decision put off to the next tick keeps
         self._dec_phase = 0              # the decision's next part (0: none in progress)
         self.no_current = 0              # decisions no coil could carry
+        # what every tick's _decide asks of the configuration, bound once: a lost track's position
+        # variance and silence, the warm-up; each sensor's covariance as a flat view (its position diagonal)
+        a = cfg.adaptive
+        self._lost_var = a.acquire_sigma_m * a.acquire_sigma_m
+        self._lost_us = 4 * a.adaptive_max_interval_us
+        self._warmup_us = a.reference_warmup_us
+        self._settle = a.reference_settle_drop > 0.0
+        nx = len(self._sens[0].ekf.P) if self._sens else 0
+        self._lost_at = tuple((s, memoryview(s.ekf.P.reshape(-1))) for s in self._sens)
+        self._pos_diag = tuple(i * (nx + 1) for i in range(POS.start, POS.start + 3))
 
     # ------------------------------------------------------------ the stage
     def step(self, now_us: int) -> None:
@@ -143,26 +149,21 @@ class _SingleCoilActuation:
         if self._dec_phase:
             self._resume()
             return
-        cfg = self.cfg
         held = self._held_start
         self._held_start = -1
         if self.acq.active:
             return
-        need_acq = False
         for s in self._sens:
             if not s.ekf.initialized:
-                need_acq = True
-        if need_acq:
-            if self.book.n_active() == 0:
-                self.acq.try_start(now_us)
-            return
+                if self.book.n_active() == 0:
+                    self.acq.try_start(now_us)
+                return
         # lost: an uncertainty beyond any use, or no usable pulse for a long time
-        big = cfg.adaptive.acquire_sigma_m * cfg.adaptive.acquire_sigma_m
-        for s in self._sens:
-            P = s.ekf.P
-            b = POS.start
-            if (P[b, b] > big or P[b + 1, b + 1] > big or P[b + 2, b + 2] > big
-                    or now_us - s.last_update_us > 4 * cfg.adaptive.adaptive_max_interval_us):
+        big = self._lost_var
+        i0, i1, i2 = self._pos_diag
+        for s, P in self._lost_at:
+            if (P[i0] > big or P[i1] > big or P[i2] > big
+                    or now_us - s.last_update_us > self._lost_us):
                 self.host.reacquire(s)
                 return
         if self.book.n_active() >= 2:
@@ -175,9 +176,9 @@ class _SingleCoilActuation:
         # 0.9 for the fixed cycle at the same time), so a policy holding that covariance to the
         # cycle's then converges more slowly and keeps a heading offset
         self._warming = False
-        settle = cfg.adaptive.reference_settle_drop > 0.0
+        settle = self._settle
         for s in self._sens:
-            if s.ref is not None and s.ref.active and (now_us - s.ref_start_us < cfg.adaptive.reference_warmup_us
+            if s.ref is not None and s.ref.active and (now_us - s.ref_start_us < self._warmup_us
                                                        or (settle and not s.ref.settled)):
                 self._warming = True
         self._decide_own(now_us, held)
@@ -277,10 +278,15 @@ class AdaptiveActuation(_SingleCoilActuation):
                 s.ref.set_settle(cfg.adaptive.reference_settle_drop)
         self._lim = np.zeros(n)
         self._zero3 = np.zeros(3)
+        self._knee_on = cfg.adaptive.saturation_knee > 0.0
         #: where the decision's numeric parts run (the chooser runs its own)
         self.kernels = "python"
         if core.ext is not None:
             self._pk = core.ext.PolicyCore(n, self.pmodel.h, self.pmodel.H, self._lim)
+            # the configuration the compiled steps pass, bound once
+            self._rel_model, self._tol_a = cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a
+            self._range_cfg = (cfg.adaptive.saturation_sigmas, cfg.pulse.mag_range_t, cfg.pulse.saturation_margin,
+                               cfg.pulse.earth_field_max_t)
             self._in_flight = self._in_flight_compiled
             self._range_limits = self._range_limits_compiled
             if self._bind_bounds(core.ext):
@@ -355,23 +361,24 @@ class AdaptiveActuation(_SingleCoilActuation):
     def _decide_predict(self, start: int, now_us: int) -> None:
         """Predicted covariance at the measurement time, with the pulses in flight; which sensor
         is worst off, and whether a pulse is due."""
-        cfg = self.cfg
         t_m = start + self.mid_us
         self._pm_for = None
         worst = -1.0
         ws = None
         due = False
+        policy, slots, L = self.policy, self.book.slots, self.lengths
         for v in self.views:
             s = v.sensor
             self._predict_view(v, t_m, now_us)
-            for sl in self.book.slots:
+            for sl in slots:
                 if sl.active and not sl.acq:
-                    self._model_at(v)
-                    var = self.host.sharing.chained(self.lengths.var_amp[self.lengths.index_of(sl.end - sl.start)])
+                    if self._pm_for is not v:
+                        self._model_at(v)
+                    var = self.host.sharing.chained(L.var_amp[L.index_of(sl.end - sl.start)])
                     self._in_flight(v, sl, var * s.monitor.r_scale)
-            if self.policy.due(v.P6, now_us, s.last_update_us):
+            if policy.due(v.P6, now_us, s.last_update_us):
                 due = True
-            u = self.policy.worst(v.P6)
+            u = policy.worst(v.P6)
             if u > worst:
                 worst = u
                 ws = v
@@ -382,10 +389,16 @@ class AdaptiveActuation(_SingleCoilActuation):
         # the expected amplitude variance, inflated while the pulses prove inconsistent
         self.host.forget(ws.sensor, now_us)
         # ... and the share of a baseline the previous pulse's window also used (estimate.shared_baseline)
+        # (the longest length's is the decision's: asked once)
         sh, prev = self.host.sharing, self.book.last_pulse_end
-        self._dec_var = sh.predicted(self.var_amp, start, prev) * ws.sensor.monitor.r_scale
-        for k in range(self.lengths.n):
-            self._vars[k] = sh.predicted(self.lengths.var_amp[k], start, prev) * ws.sensor.monitor.r_scale
+        r_scale = ws.sensor.monitor.r_scale
+        L = self.lengths
+        if L.n > 1:
+            for k in range(L.n):
+                self._vars[k] = sh.predicted(L.var_amp[k], start, prev) * r_scale
+            self._dec_var = self._vars[-1]
+        else:
+            self._dec_var = sh.predicted(self.var_amp, start, prev) * r_scale
         self._dec_ws = ws
         self._dec_start = start
         self._dec_phase = 1
@@ -427,17 +440,21 @@ class AdaptiveActuation(_SingleCoilActuation):
         lim = self._lim
         lim.fill(cfg.adaptive.adaptive_max_current_a)
         for v in self.views:
-            self._model_at(v)
+            if self._pm_for is not v:
+                self._model_at(v)
             self._range_limits(v)
         for c in range(self.n):
             if not self.book.duty_ok(c, self._dec_start, self.pulse_us):
                 lim[c] = 0.0
         ws = self._dec_ws
-        self._model_at(ws)
+        if self._pm_for is not ws:          # (a call that would find it evaluated skipped)
+            self._model_at(ws)
         # the knee of the worst-off sensor's information per joule (actuate.saturation_knee), for the
-        # shortest length's white noise (the length least energy mostly takes)
-        cap_at_knee(lim, self.pmodel.h, self._vars[0] if self.lengths.n > 1 else self._dec_var,
-                    cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a, cfg.adaptive.saturation_knee)
+        # shortest length's white noise (the length least energy mostly takes); no call where it is
+        # off (saturation_knee <= 0: cap_at_knee leaves the limits)
+        if self._knee_on:
+            cap_at_knee(lim, self.pmodel.h, self._vars[0] if self.lengths.n > 1 else self._dec_var,
+                        cfg.adaptive.field_model_rel_sigma, cfg.limits.current_tolerance_a, cfg.adaptive.saturation_knee)
         self.policy.set_bounds(ws.smax6)
         self.chooser.set_bounds(ws.smax6, ws.smin6)
         self._dec_phase = 2
@@ -464,9 +481,8 @@ class AdaptiveActuation(_SingleCoilActuation):
 
     def _range_limits_compiled(self, v: SensorOutlook) -> None:
         """:meth:`_range_limits` in one call (``ct_scp_range_limits``), bit for bit."""
-        p = self.cfg.pulse
-        self._pk.range_limits(v.pp, v.P6, v.quiet, v.have_quiet, self.cfg.adaptive.saturation_sigmas, p.mag_range_t,
-                              p.saturation_margin, p.earth_field_max_t)
+        sigmas, mag_range, margin, earth = self._range_cfg
+        self._pk.range_limits(v.pp, v.P6, v.quiet, v.have_quiet, sigmas, mag_range, margin, earth)
 
     def _in_flight(self, v: SensorOutlook, sl, var: float) -> None:
         """The eq-4 covariance update of pulse ``sl`` in flight (amplitude variance ``var``) on
@@ -477,9 +493,7 @@ class AdaptiveActuation(_SingleCoilActuation):
 
     def _in_flight_compiled(self, v: SensorOutlook, sl, var: float) -> None:
         """:meth:`_in_flight` through ``ct_scp_pose_cov_update`` (the products to rounding)."""
-        cfg = self.cfg
-        self._pk.pose_cov_update(v.P6, sl.coil, sl.current, var, cfg.adaptive.field_model_rel_sigma,
-                                 cfg.limits.current_tolerance_a)
+        self._pk.pose_cov_update(v.P6, sl.coil, sl.current, var, self._rel_model, self._tol_a)
 
     def _decide_choose(self) -> None:
         """The coil and current of the pulse (``actuate.coil_choice``); its command in the next tick."""

@@ -2,8 +2,9 @@
  * CPython glue of the single-coil window close's shared baselines (src/sc_window.c): the type
  * SharedBaselinesCore binds a SharedBaselines' state (its integers and floats, two arrays) and
  * its variance buffer once at construction, and with bind_channels the sensor channels' last
- * window (amp_var (3,) float64, info (4,) int64 each); close and variance are METH_FASTCALL, read
- * their integers in place and return None (no Python object created).
+ * window (amp_var (3,) float64, info (4,) int64 each); its methods are METH_FASTCALL and read
+ * their integers in place; variance returns None (no Python object created); close (the shared
+ * fractions), predicted and chained (a decision's variances) return their float.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -111,7 +112,7 @@ fail:
     return NULL;
 }
 
-/* close(start, end, next_start, earliest_next_us) (SharedBaselines.close; shared into sf) */
+/* close(start, end, next_start, earliest_next_us) (SharedBaselines.close; shared into sf, and returned) */
 static PyObject *Sb_close(SbObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     int64_t v[4];
@@ -121,8 +122,7 @@ static PyObject *Sb_close(SbObject *self, PyObject *const *args, Py_ssize_t narg
     for (k = 0; k < 4; ++k)
         if (ct_py_int64(args[k], &v[k]) < 0)
             return NULL;
-    ct_sb_close(self->si, self->sf, v[0], v[1], v[2], v[3]);
-    Py_RETURN_NONE;
+    return PyFloat_FromDouble(ct_sb_close(self->si, self->sf, v[0], v[1], v[2], v[3]));
 }
 
 /* variance(k): channel k's bound amp_var and info (SharedBaselines.variance) into var */
@@ -157,15 +157,39 @@ static PyObject *Sb_variance_of(SbObject *self, PyObject *const *args, Py_ssize_
     Py_RETURN_NONE;
 }
 
+/* predicted(var_amp, start, prev_end) (SharedBaselines.predicted): a float */
+static PyObject *Sb_predicted(SbObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v;
+    int64_t start, prev;
+    if (Sb_ready(self, "predicted", nargs, 3) < 0 || ct_py_double(args[0], &v) < 0 || ct_py_int64(args[1], &start) < 0
+        || ct_py_int64(args[2], &prev) < 0)
+        return NULL;
+    return PyFloat_FromDouble(ct_sb_predicted(self->si, self->sf, v, start, prev));
+}
+
+/* chained(var_amp) (SharedBaselines.chained): a float */
+static PyObject *Sb_chained(SbObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    double v;
+    if (Sb_ready(self, "chained", nargs, 1) < 0 || ct_py_double(args[0], &v) < 0)
+        return NULL;
+    return PyFloat_FromDouble(ct_sb_chained(self->si, self->sf, v));
+}
+
 static PyMethodDef Sb_methods[] = {
     {"bind_channels", (PyCFunction)(void (*)(void))Sb_bind_channels, METH_FASTCALL,
      "bind_channels((amp_var_0, info_0, ...)): the channels' last windows, bound once"},
     {"close", (PyCFunction)(void (*)(void))Sb_close, METH_FASTCALL,
-     "close(start, end, next_start, earliest_next_us): SharedBaselines.close"},
+     "close(start, end, next_start, earliest_next_us) -> shared: SharedBaselines.close"},
     {"variance", (PyCFunction)(void (*)(void))Sb_variance, METH_FASTCALL,
      "variance(k): SharedBaselines.variance of bound channel k into var"},
     {"variance_of", (PyCFunction)(void (*)(void))Sb_variance_of, METH_FASTCALL,
      "variance_of(amp_var, info): SharedBaselines.variance into var"},
+    {"predicted", (PyCFunction)(void (*)(void))Sb_predicted, METH_FASTCALL,
+     "predicted(var_amp, start, prev_end): SharedBaselines.predicted"},
+    {"chained", (PyCFunction)(void (*)(void))Sb_chained, METH_FASTCALL,
+     "chained(var_amp): SharedBaselines.chained"},
     {NULL, NULL, 0, NULL}};
 
 static PyTypeObject SbType = {

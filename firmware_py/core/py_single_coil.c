@@ -1600,16 +1600,17 @@ static PyObject *When_set_bounds(WhenObject *self, PyObject *const *args, Py_ssi
     Py_RETURN_NONE;
 }
 
-/* worst(P6): the value into st[1] */
+/* worst(P6): the value into st[1], and returned (a float) */
 static PyObject *When_worst(WhenObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
     Py_buffer pv;
+    double w;
     if (wh_ready(self, "worst", nargs, 1) < 0 || sc_doubles(args[0], 36, 0, &pv, "P6") < 0)
         return NULL;
-    ((double *)self->views[1].buf)[1] = ct_scp_policy_worst((const double *)self->views[0].buf,
-                                                            (const double *)pv.buf, self->trace);
+    w = ct_scp_policy_worst((const double *)self->views[0].buf, (const double *)pv.buf, self->trace);
+    ((double *)self->views[1].buf)[1] = w;
     PyBuffer_Release(&pv);
-    Py_RETURN_NONE;
+    return PyFloat_FromDouble(w);
 }
 
 /* due(P6, now_us, last_update_us) -> bool; the reason into st[0] */
@@ -1637,7 +1638,7 @@ static PyMethodDef When_methods[] = {
     {"set_bounds", (PyCFunction)(void (*)(void))When_set_bounds, METH_FASTCALL,
      "set_bounds(sigma_max6): ActuationPolicy.set_bounds (ct_scp_policy_set_bounds)"},
     {"worst", (PyCFunction)(void (*)(void))When_worst, METH_FASTCALL,
-     "worst(P6): ActuationPolicy.worst into st[1] (ct_scp_policy_worst)"},
+     "worst(P6) -> float: ActuationPolicy.worst, also into st[1] (ct_scp_policy_worst)"},
     {"due", (PyCFunction)(void (*)(void))When_due, METH_FASTCALL,
      "due(P6, now_us, last_update_us) -> bool: ActuationPolicy.due, the reason into st[0] (ct_scp_policy_due)"},
     {NULL, NULL, 0, NULL}};

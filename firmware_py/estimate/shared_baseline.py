@@ -255,7 +255,7 @@ class SharedBaselines:
 
 
 # the slots of the state arrays (core/include/ct_sc_window.h CT_SB_*)
-_FALL, _BASE, _GUARD, _ENABLED, _HAS_PREV, _PREV_END, _START, _END, _B0, _B1, _A0, _A1, _NI = range(13)
+_FALL, _BASE, _GUARD, _ENABLED, _HAS_PREV, _PREV_END, _START, _END, _B0, _B1, _A0, _A1, _NBASE, _APART, _NI = range(15)
 _SIGMA2, _PERIOD, _SHARED, _FB, _FA, _NF = range(6)
 
 
@@ -278,8 +278,9 @@ def _float_slot(k: int) -> property:
 
 
 class CompiledSharedBaselines(SharedBaselines):
-    """:class:`SharedBaselines` whose :meth:`close` and :meth:`variance` run compiled
-    (``core/src/sc_window.c``: ``ct_sb_close``, ``ct_sb_variance`` with ``ct_sb_shared_variance``,
+    """:class:`SharedBaselines` whose :meth:`close`, :meth:`variance`, :meth:`predicted` and
+    :meth:`chained` run compiled (``core/src/sc_window.c``: ``ct_sb_close``, ``ct_sb_variance`` with
+    ``ct_sb_shared_variance``, ``ct_sb_predicted``, ``ct_sb_chained``,
     the same operations in the same order: the same bits). Its state lives in two arrays (integers,
     floats) the kernels read and write, read and written through properties under the reference's
     names; ``ext``: the compiled extension (``coiltrack.firmware.core.Core.ext``), the other
@@ -294,6 +295,7 @@ class CompiledSharedBaselines(SharedBaselines):
     _b1 = _int_slot(_B1)
     _a0 = _int_slot(_A0)
     _a1 = _int_slot(_A1)
+    n_base = _int_slot(_NBASE)
     sigma2 = _float_slot(_SIGMA2)
     period_us = _float_slot(_PERIOD)
     shared = _float_slot(_SHARED)
@@ -307,6 +309,14 @@ class CompiledSharedBaselines(SharedBaselines):
     @enabled.setter
     def enabled(self, v) -> None:
         self._iv[_ENABLED] = 1 if v else 0
+
+    @property
+    def apart(self) -> bool:
+        return self._iv[_APART] != 0
+
+    @apart.setter
+    def apart(self, v) -> None:
+        self._iv[_APART] = 1 if v else 0
 
     @property
     def prev_end(self):
@@ -327,7 +337,11 @@ class CompiledSharedBaselines(SharedBaselines):
         super().__init__(*args, **kw)
         self._ck = ext.SharedBaselinesCore(self._si, self._sf, self.var)
         self._var_k = self._ck.variance
-        self._close_k = self._ck.close
+        # the window's close and a decision's variances: one call each (``ct_sb_close``,
+        # ``ct_sb_predicted``, ``ct_sb_chained``), no Python layer, no property read
+        self.close = self._ck.close
+        self.predicted = self._ck.predicted
+        self.chained = self._ck.chained
         self._bound = 0
 
     def bind_channels(self, channels) -> None:
@@ -336,11 +350,6 @@ class CompiledSharedBaselines(SharedBaselines):
         chs = tuple(channels)
         self._ck.bind_channels(tuple(a for ch in chs for a in (ch.amp_var, ch.info)))
         self._bound = len(chs)
-
-    def close(self, start: int, end: int, next_start: int, earliest_next_us: int) -> float:
-        """:meth:`SharedBaselines.close` in one call of ``ct_sb_close``."""
-        self._close_k(start, end, next_start, earliest_next_us)
-        return self._fv[_SHARED]
 
     def variance(self, amp_var, info):
         """:meth:`SharedBaselines.variance` in one call of ``ct_sb_variance``."""

@@ -316,3 +316,49 @@ def test_duty_check_is_the_overlap_of_the_remembered_pulses():
             assert book.duty_ok(c, start, length) == (on <= lim)
             seen.add(on <= lim)
     assert seen == {True, False}
+
+
+@pytest.mark.parametrize("impl", ["python", "compiled"])
+def test_a_lost_track_is_judged_on_each_position_variance_and_the_silence(impl):
+    """The decision's first test, every tick (``_decide``, its constants and covariance views bound
+    at composition): a sensor whose position variance on any axis is above ``acquire_sigma_m^2``,
+    or with no update for more than four ``adaptive_max_interval_us``, is reacquired; an orientation
+    variance or an off-diagonal term that large, the variance at the bound or the silence at four
+    intervals, is not. Catches a diagonal read with the wrong stride or block, an axis dropped,
+    ``>`` for ``>=``, the silence's factor or bound lost."""
+    if impl == "compiled":
+        pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
+    fw_end, _ = inproc_pair()
+    cfg = scenarios.schepers_adaptive_config().with_(core={"impl": impl})
+    fw = Firmware(cfg, fw_end)
+    act = fw.tracker.actuation
+    calls = []
+    fw.tracker.reacquire = lambda s: calls.append("lost")
+    act._decide_own = lambda now_us, held: calls.append("decide")
+    now = 50_000_000
+    quiet = 4 * cfg.adaptive.adaptive_max_interval_us
+    big = cfg.adaptive.acquire_sigma_m * cfg.adaptive.acquire_sigma_m
+    for s in act._sens:
+        s.ekf.initialized = True
+        s.last_update_us = now
+    s = act._sens[-1]
+    P = s.ekf.P
+
+    def judged(i=None, j=None, x=0.0, last=now):
+        P.fill(0.0)
+        if i is not None:
+            P[i, j] = x
+        s.last_update_us = last
+        calls.clear()
+        act._decide(now)
+        return calls[0]
+
+    assert judged() == "decide"
+    for k in range(3):
+        assert judged(POS.start + k, POS.start + k, big * 1.0001) == "lost", k
+        assert judged(POS.start + k, POS.start + k, big) == "decide", k
+        assert judged(ORI.start + k, ORI.start + k, 10.0 * big) == "decide", k
+    assert judged(POS.start, POS.start + 1, 10.0 * big) == "decide"
+    assert judged(POS.start + 2, POS.start + 1, 10.0 * big) == "decide"
+    assert judged(last=now - quiet - 1) == "lost"
+    assert judged(last=now - quiet) == "decide"

@@ -19,9 +19,10 @@ extern "C" {
 #endif
 
 /* si[]: the integers (SharedBaselines' fall_us, baseline_us, guard_us, enabled, whether a
- * window was closed before (prev_end not None), prev_end, _start, _end, _b0, _b1, _a0, _a1) */
+ * window was closed before (prev_end not None), prev_end, _start, _end, _b0, _b1, _a0, _a1,
+ * n_base, apart) */
 enum { CT_SB_FALL, CT_SB_BASE, CT_SB_GUARD, CT_SB_ENABLED, CT_SB_HAS_PREV, CT_SB_PREV_END,
-       CT_SB_START, CT_SB_END, CT_SB_B0, CT_SB_B1, CT_SB_A0, CT_SB_A1, CT_SB_NI };
+       CT_SB_START, CT_SB_END, CT_SB_B0, CT_SB_B1, CT_SB_A0, CT_SB_A1, CT_SB_NBASE, CT_SB_APART, CT_SB_NI };
 /* sf[]: the floats (sigma2, period_us, shared, fb, fa) */
 enum { CT_SB_SIGMA2, CT_SB_PERIOD, CT_SB_SHARED, CT_SB_FB, CT_SB_FA, CT_SB_NF };
 
@@ -35,6 +36,10 @@ double ct_sb_close(int64_t *si, double *sf, int64_t start, int64_t end, int64_t 
 double ct_sb_shared_variance(const int64_t *si, const double *sf, int64_t n_used, int64_t n_base, int64_t first_us,
                              int64_t last_us);
 void ct_sb_variance(const int64_t *si, const double *sf, const double *amp_var, const int64_t *info, double *var);
+/* SharedBaselines.predicted (a decision's variance of a pulse starting at start, the previous one
+ * ending at prev_end, 0 or less: none) and chained (a pulse in flight's) */
+double ct_sb_predicted(const int64_t *si, const double *sf, double var_amp, int64_t start, int64_t prev_end);
+double ct_sb_chained(const int64_t *si, const double *sf, double var_amp);
 
 /* The single-coil window update's Python around the one-call update (track/single_coil_tracker.py,
  * SingleCoilTracker._update and its reference helpers window_prior, window_after).

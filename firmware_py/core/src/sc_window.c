@@ -150,6 +150,27 @@ void ct_sb_variance(const int64_t *si, const double *sf, const double *amp_var, 
     var[2] = amp_var[2] + extra;
 }
 
+/* SharedBaselines.predicted: the variance a pulse starting at start will be taken with (nominal
+ * n_base, sides even): its before side as the previous pulse (ending at prev_end; 0 or less: none)
+ * leaves it, its after side shared (not when pulses are kept apart) */
+double ct_sb_predicted(const int64_t *si, const double *sf, double var_amp, int64_t start, int64_t prev_end)
+{
+    const int64_t fall = si[CT_SB_FALL], base = si[CT_SB_BASE], guard = si[CT_SB_GUARD];
+    double fb = 0.0;
+    if (!si[CT_SB_ENABLED])
+        return var_amp;
+    if (prev_end > 0)
+        fb = ct_span_overlap(start - base, start - guard, prev_end + fall, prev_end + fall + base);
+    return var_amp + (fb + (si[CT_SB_APART] ? 0.0 : 1.0)) * sf[CT_SB_SIGMA2] / (2.0 * (double)si[CT_SB_NBASE]);
+}
+
+/* SharedBaselines.chained: a pulse in flight's variance as a decision predicts it, both sides
+ * shared (none when pulses are kept apart) */
+double ct_sb_chained(const int64_t *si, const double *sf, double var_amp)
+{
+    return si[CT_SB_ENABLED] && !si[CT_SB_APART] ? var_amp + sf[CT_SB_SIGMA2] / (double)si[CT_SB_NBASE] : var_amp;
+}
+
 /* SingleCoilTracker._update's prior (window_prior): whether the NIS tests the linearised model (the
  * largest prior position variance small against the squared range) and the predicted field's
  * relative error (the model's and the current's) */

@@ -193,3 +193,28 @@ def test_bound_channels_and_no_allocation():
     assert counter.count == 0
     with pytest.raises(TypeError):
         COMPILED.ext.SharedBaselinesCore(np.zeros(3), np.zeros(COMPILED.ext.SB_NF), np.zeros(3))
+
+
+@pytest.mark.parametrize("mode", ["bound", "ignore", "apart"])
+def test_a_decisions_predicted_and_chained_variances_give_the_reference_bits(mode):
+    """``predicted`` (a decision's variance of the next pulse) and ``chained`` (a pulse in flight's),
+    one compiled call each, give the reference's bits: the previous pulse back to back, at random
+    gaps, overlapping, far, none (``prev_end`` 0 or less); the bound on, off and kept apart; on a
+    period whose nominal ``n_b`` is odd. Catches a dropped ``apart`` term, a before span taken from
+    the wrong edge, the ``prev_end`` test inverted, ``n_base`` not carried to the kernel."""
+    rng = np.random.default_rng(11)
+    for per in (float(PER), 1e6 / 98.0):
+        ref, got = _pair(mode != "ignore", mode == "apart", per)
+        assert (got.n_base, got.apart) == (ref.n_base, ref.apart)
+        for i in range(300):
+            start = 200_000 + int(rng.integers(0, 10 ** 6))
+            prev = int(rng.choice([start - GAP, start - GAP - BASE - GUARD, start - int(rng.integers(0, 3 * GAP)),
+                                   start + 5_000, 0, -7, start - 10 ** 6]))
+            v = float(rng.random() * 1e-15)
+            a, b = ref.predicted(v, start, prev), got.predicted(v, start, prev)
+            assert a == b and type(b) is float, (i, start, prev)
+            assert ref.chained(v) == got.chained(v)
+        # independent: back to back, the sides even: sigma^2 / n_b more than the amplitude's (both
+        # sides shared), half that kept apart (the before side only), nothing with the bound off
+        want = {"bound": SIGMA ** 2 / ref.n_base, "apart": SIGMA ** 2 / (2 * ref.n_base), "ignore": 0.0}[mode]
+        assert got.predicted(1e-16, 300_000, 300_000 - GAP) - 1e-16 == pytest.approx(want, rel=1e-9, abs=1e-30)
