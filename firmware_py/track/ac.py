@@ -101,10 +101,10 @@ class ACFusionTracker(_ACMixin, BurstFusionTracker):
         the filter's pose at the block's ``t_ref``, no range check) and, with a fixed source and
         every sensor's samples through the compiled loop, :meth:`step` as :meth:`_step_compiled`;
         each only where the class runs the reference's methods."""
-        self._bind_charges(BurstFusionTracker, _ACMixin._window_charges)
         ext = core.ext
         if ext is None:
             return
+        self._bind_charges(BurstFusionTracker, _ACMixin._window_charges)
         if getattr(self, "_warms", None) is not None and type(self).warm_start is ACFusionTracker.warm_start:
             tref = self.measure.t_ref_view
             self._bind_start(core, tuple((ins.fusion.history.live, tref, ins.fusion.fs) for _, ins in self._pairs),

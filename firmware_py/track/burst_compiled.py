@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from coiltrack.firmware.pose.staged import SOLVE_RUNNING
+
 #: ``SensorInertial.fz`` (int64): the stage of ``fuse``, the next pulse to compensate, the compensated
 #: re-solve's success, the bursts compensated (``core/include/ct_fuse.h`` ``CT_FZ_*``)
 FZ_STAGE, FZ_COMP_J, FZ_COMP_OK, FZ_COMPENSATED, FZ_N = range(5)
@@ -100,8 +102,13 @@ class CompiledBurst:
                               self.mag_position, self.mag_rotation, self.mag_cov))
         except (AttributeError, TypeError, ValueError):
             return
+        from coiltrack.firmware.track import burst_fusion     # (loaded: its tracker calls this at construction)
         self._fz_run = k.run
         self._fz_solution = k.solution
+        self._fz_solve, self._fz_n = burst_fusion._SOLVE, self.S_comp.shape[1]
+        #: the re-solve's begin in place where this class's is the reference's (``_begin_solve``)
+        self._fz_begin = (burst_fusion._SOLVE, burst_fusion._UPDATE_MAG) \
+            if type(self)._begin_solve is burst_fusion.SensorInertial._begin_solve else None
         self._fz_solvers = (comp_solver, solver)
         self._fuse_reference = stages[0]
         self._on_solution_reference = stages[2]
@@ -112,7 +119,9 @@ class CompiledBurst:
                        e0: int | None = None) -> bool:
         """:meth:`fuse` on the compiled core: its compensation stages in one call (``FuseComp.run``,
         ``ct_fuse_compensate``), the evaluations charged to ``solver``'s model; the re-solve's begin
-        where the pulses are all compensated and what follows in the reference (from ``e0``)."""
+        where the pulses are all compensated, then :meth:`fuse`'s first test in place (no room left for
+        a step of the re-solve: the usual case in the tick a burst is solved) and what follows in the
+        reference (from ``e0``)."""
         signal = solver.signal
         if solver is not self._fz_solvers[0] or signal.distortion is not None or e0 is not None:
             return self._fuse_reference(self, solver, S, currents, sigma, pulse_t, budget, replay_budget, fresh, e0)
@@ -125,7 +134,15 @@ class CompiledBurst:
             self.waiting = (r & 4) != 0
             return False
         if code == 1:                  # every pulse compensated: the re-solve begins
-            self._begin_solve(solver, currents, sigma)
+            if self._fz_begin is None:
+                self._begin_solve(solver, currents, sigma)
+            else:                      # (_begin_solve's lines, the stage written in place)
+                st = solver.begin(self.S_comp, currents, sigma, self.mag_position, self.mag_position,
+                                  self.mag_rotation)
+                self._fzv[FZ_STAGE] = self._fz_begin[0] if st & SOLVE_RUNNING else self._fz_begin[1]
+            if self._fzv[FZ_STAGE] == self._fz_solve and budget - (signal.evals - e0) < self._fz_n:
+                self.waiting = signal.evals == e0
+                return False
         return self._fuse_reference(self, solver, S, currents, sigma, pulse_t, budget, replay_budget, fresh, e0)
 
     def _on_solution_compiled(self, solver, solved: bool) -> None:

@@ -1147,7 +1147,8 @@ class BurstFusionTracker(SolveTick, MagneticTracker):
         self._ft_send = tuple((ch.node, i, i.fusion.output._ck, i._recovery) for ch, i in self._pairs)
         self._send_fused = self._send_fused_plain
         self._bind_solve_tick(BurstFusionTracker, _FUSED_VALID)
-        if any(getattr(type(self), m) is not getattr(BurstFusionTracker, m) for m in ("step", "_step", "_process", "busy")):
+        if any(getattr(type(self), m) is not getattr(BurstFusionTracker, m)
+               for m in ("step", "_step", "_process", "busy")):
             return
         self._ft_done = np.zeros(2, dtype=np.int64)
         self._ft_donev = memoryview(self._ft_done)
