@@ -101,8 +101,8 @@ def _frames(rng, cfg, now, t, seq, silent, back):
 @pytest.mark.parametrize("limit", [0, 6])
 def test_the_compiled_route_keeps_the_whole_receive_stage_of_the_reference(limit):
     """With and without a frame limit per tick (``rx_frames_per_tick``: the route counts a read's
-    frames against it, the reference's ``_take`` cuts it). Catches a sample's field pushed as another (x for y, the time for the stamp), the saturated
-    and set/reset bits swapped, the supervisor's kernel skipped or a handed-back sample pushed twice,
+    frames against it, the reference's ``_take`` cuts it). Catches a sample's field pushed as another
+    (x for y, the time for the stamp), the saturated and set/reset bits swapped, the supervisor's kernel skipped or a handed-back sample pushed twice,
     the packed count missed, an IMU sample's supervisor part done twice or not at all (a lost node's
     return), a row routed out of order with the ones handed back, the rows past a
     full table of ROWS lost (the decode not resumed), a node that is no channel pushed anyway."""
