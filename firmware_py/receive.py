@@ -95,9 +95,10 @@ _INV_GYR = 1.0 / GYR_LSB
 # the receiver's IMU counters and the interval start, int64 slots of one array that the compiled
 # decode writes too (core/src/imu.c CT_DIO_*)
 _T0, _UNPAIRED, _ANCHORS, _SATURATED, _SAT_PAIRS, _DELTAS, _NIO = range(7)
-# the compiled route's int64 state (core/include/ct_rxdecode.h CT_RXS_*): its rows, the next row, and
-# the MAG_PACKED count (:attr:`Receiver.packed_mag`, counted there on either core)
-_RS_PACKED, _RS_N = 2, 3
+# the compiled route's int64 state (core/include/ct_rxdecode.h CT_RXS_*): its rows, the next row, the
+# MAG_PACKED count (:attr:`Receiver.packed_mag`, counted there on either core) and whether the
+# supervisor has seen the IMU_SAMPLE handed back
+_RS_PACKED, _RS_SEEN, _RS_N = 2, 3, 4
 
 
 class MagRecord:
@@ -228,7 +229,8 @@ class Receiver:
         (:func:`_pushes_here`) routed in C as :meth:`_rows_from` routes them (the supervisor's
         ``mag_kernel``, the packed count, the channel's push), when the supervisor has that kernel
         and no node's magnetometer is calibrated; every other row handed to :meth:`_rows_from`, in
-        order. Its ``step`` bound once."""
+        order, an IMU_SAMPLE with the supervisor's part done where the kernel could (``ct_sup_imu``).
+        Its ``step`` bound once."""
         nodes = np.full(256, -1, dtype=np.int64)
         pushes = []
         sup = getattr(self._sup_mag, "__self__", None)
@@ -341,6 +343,7 @@ class Receiver:
         clipped-axis check) read from the rows into the stage's records, the others unpacked by
         protocol.codec."""
         route = self._rx_step
+        rs = self._rsv
         dec, q, w, seen, smag, sreply, chans, ichans = self._rows_b
         r = self._mag
         while k >= 0:
@@ -349,7 +352,7 @@ class Receiver:
             if kind == _RXK_MAG_PACKED or kind == _RXK_MAG:
                 r.node, r.t_us, r.x, r.y, r.z, r.flip = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5], q[b + 6]
                 if kind == _RXK_MAG_PACKED:
-                    self._rsv[_RS_PACKED] += 1
+                    rs[_RS_PACKED] += 1
                 if smag is None or smag(r.node, r.t_us, r.x, r.y, r.z, r.flip, now_us):
                     seen(r, now_us)
                 ch = None if chans is None else chans.get(r.node)
@@ -361,7 +364,8 @@ class Receiver:
                 ri = self._imus
                 ri.node, ri.t_us, ri.ax, ri.ay, ri.az = q[b + 1], q[b + 2], q[b + 3], q[b + 4], q[b + 5]
                 ri.gx, ri.gy, ri.gz = q[b + 6], q[b + 7], q[b + 8]
-                seen(ri, now_us)
+                if not rs[_RS_SEEN]:
+                    seen(ri, now_us)
                 if q[b + _RXR_CLIP]:
                     self._imu_in(ri, True, now_us)
                 elif ichans is None:

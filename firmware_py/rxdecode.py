@@ -73,8 +73,8 @@ class CompiledFrameDecoder:
                                      f"{BY_ID[mid].fmt}")
         assert ext.STAMP_FLIP == 1 << 15 and (ext.RXR_W, ext.RXR_KIND, ext.RXR_CLIP, ext.RXR_STAMP) == (
             RXR_W, RXR_KIND, RXR_CLIP, RXR_STAMP) and (ext.RXK_RAW, ext.RXK_MAG_PACKED, ext.RXK_MAG, ext.RXK_IMU) == (
-            RXK_RAW, RXK_MAG_PACKED, RXK_MAG, RXK_IMU) and (ext.RX_NEW, ext.RX_RESUME, ext.RX_TAKEN, ext.RX_OVER_LIMIT) == (
-            RX_NEW, RX_RESUME, RX_TAKEN, RX_OVER_LIMIT)
+            RXK_RAW, RXK_MAG_PACKED, RXK_MAG, RXK_IMU) and (
+            ext.RX_NEW, ext.RX_RESUME, ext.RX_TAKEN, ext.RX_OVER_LIMIT) == (RX_NEW, RX_RESUME, RX_TAKEN, RX_OVER_LIMIT)
         sizes = np.full(256, -1, dtype=np.int64)
         extras = np.zeros(256, dtype=np.int64)
         for mid, d in BY_ID.items():

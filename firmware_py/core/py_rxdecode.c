@@ -263,7 +263,8 @@ static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssi
         PyErr_SetString(PyExc_ValueError, "step: mode is 0 (new data), 1 (resume) or 2 (data taken)");
         return NULL;
     }
-    if (mode == CT_RX_RESUME && !(0 <= s[CT_RXS_NEXT] && s[CT_RXS_NEXT] <= s[CT_RXS_ROWS] && s[CT_RXS_ROWS] <= self->r.d->cap)) {
+    if (mode == CT_RX_RESUME &&
+        !(0 <= s[CT_RXS_NEXT] && s[CT_RXS_NEXT] <= s[CT_RXS_ROWS] && s[CT_RXS_ROWS] <= self->r.d->cap)) {
         PyErr_SetString(PyExc_ValueError, "step: the route's rows outside the table");
         return NULL;
     }

@@ -51,9 +51,11 @@ struct ct_rx {
  * core, its MAG_PACKED and MAG_SAMPLE branch: Supervisor.on_message through ct_sup_mag, the packed
  * count, SensorChannel.push through ct_sample_push), for the nodes whose channel is bound here.  A
  * row it does not route whole (another kind, a node without a bound channel, a ring state out of
- * range, a sample ct_sup_mag hands back) goes to the caller, in order, and nothing of it is done. */
+ * range, a sample ct_sup_mag hands back) goes to the caller, in order, and nothing of it is done;
+ * but an IMU_SAMPLE row goes to the caller with the supervisor's part done where ct_sup_imu did it
+ * (CT_RXS_SEEN 1). */
 struct ct_sup;
-enum { CT_RXS_ROWS = 0, CT_RXS_NEXT, CT_RXS_PACKED, CT_RXS_N };   /* the route's int64 state */
+enum { CT_RXS_ROWS = 0, CT_RXS_NEXT, CT_RXS_PACKED, CT_RXS_SEEN, CT_RXS_N };   /* the route's int64 state */
 struct ct_rx_chan {           /* a sensor channel's ring (SampleRing t, b, flags, hc) and counters */
     int64_t *t;
     double *b;

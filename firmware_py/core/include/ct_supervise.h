@@ -63,6 +63,11 @@ void ct_sup_bind(struct ct_sup *s, int64_t *si, double *sd, const int64_t *ps, c
 int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, int64_t y, int64_t z, int64_t flip,
                int64_t now_us);
 
+/* Supervisor.on_message for an IMU_SAMPLE of node received at now_us (Health.heard).  Returns 0 when it
+ * did all of it, 1 when the node was lost (its return is the Python reference's): then nothing was
+ * changed. */
+int ct_sup_imu(const struct ct_sup *s, int64_t node, int64_t now_us);
+
 /* Supervisor.on_message for a TIME_SYNC_REPLY whose payload (protocol.schema "<BHQii": node, sync_seq,
  * node_time_us, offset_us, drift_ppb) is at pay (Health.heard, TimeSyncMaster.acquiring,
  * first_suspect_us, on_reply, Health.on_sync_reply, restart_stamps).  Returns 0 when it did all of

@@ -249,13 +249,18 @@ int ct_rx_feed(const struct ct_rx *d, const uint8_t *data, int64_t n, int64_t po
  * as it goes: the first row it does not route whole (include/ct_rxdecode.h), or n.  Per row the
  * Python's steps: the supervisor's (ct_sup_mag; a rare case handed back leaves everything as it was),
  * the packed count, then the channel's push of the counts times lsb (saturated: flip bit 1, set/reset:
- * bit 0). */
+ * bit 0).  An IMU_SAMPLE row stops it too, its first step (the supervisor's, ct_sup_imu) done where
+ * it can be: CT_RXS_SEEN says whether. */
 int64_t ct_rx_route(const struct ct_rx_route *r, int64_t i, int64_t n, int64_t now_us)
 {
     for (; i < n; ++i) {
         const int64_t *q = r->d->rows + i * CT_RXR_W;
         int64_t kind = q[CT_RXR_KIND], node = q[CT_RXR_F0], flip = q[CT_RXR_F0 + 5], c;
         const struct ct_rx_chan *ch;
+        if (kind == CT_RXK_IMU) {
+            r->st[CT_RXS_SEEN] = r->sup != NULL && ct_sup_imu(r->sup, node, now_us) == 0;
+            return i;
+        }
         if ((kind != CT_RXK_MAG_PACKED && kind != CT_RXK_MAG) || r->sup == NULL || node < 0 || node > 255)
             return i;
         c = r->chan[node];

@@ -56,6 +56,29 @@ void ct_sup_bind(struct ct_sup *s, int64_t *si, double *sd, const int64_t *ps, c
     s->pe = pe;
 }
 
+/* Health.heard of node slot i (not lost): its last time heard, the next check no later than its timeout */
+static void ct_sup_heard(const struct ct_sup *s, int64_t i, int64_t now_us)
+{
+    int64_t due = now_us + s->timeout_us[i];
+    s->last_heard[i] = now_us;
+    if (due < s->si[CT_SUP_CHECK_US])
+        s->si[CT_SUP_CHECK_US] = due;
+}
+
+int ct_sup_imu(const struct ct_sup *s, int64_t node, int64_t now_us)
+{
+    int64_t i;
+    if (node < 0 || node >= CT_SUP_SLOTS)
+        return 1;
+    i = s->slot[node];
+    if (i < 0)
+        return 0;                                   /* not a node: heard does nothing */
+    if (s->lost[i])
+        return 1;                                   /* back: the event, the sync kick are the Python's */
+    ct_sup_heard(s, i, now_us);
+    return 0;
+}
+
 /* Supervisor._quiet: no pulse (with its fall and the margin) around t_us */
 static int ct_sup_quiet(const struct ct_sup *s, int64_t t_us)
 {
@@ -71,7 +94,7 @@ int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, in
 {
     int64_t *si = s->si;
     const double *sd = s->sd;
-    int64_t i, prev, due, st, learn;
+    int64_t i, prev, st, learn;
     int quiet, write_avg = 0, ds_new = 0;
     double a = 0.0, m;
     if (node < 0 || node >= CT_SUP_SLOTS)
@@ -124,11 +147,7 @@ int ct_sup_mag(const struct ct_sup *s, int64_t node, int64_t t_us, int64_t x, in
             write_avg = 1;
         }
     }
-    /* Health.heard */
-    s->last_heard[i] = now_us;
-    due = now_us + s->timeout_us[i];
-    if (due < si[CT_SUP_CHECK_US])
-        si[CT_SUP_CHECK_US] = due;
+    ct_sup_heard(s, i, now_us);
     /* FlipScheduler.observe (the sensors' slots are the health's) */
     s->flip_state[i] = flip & 1;
     if (prev != CT_SUP_NONE && t_us - prev <= 0)
@@ -229,7 +248,7 @@ int ct_sup_reply(const struct ct_sup *s, const uint8_t *pay, int64_t now_us)
     int64_t *si = s->si;
     int64_t node = pay[0], seq = ct_sup_le(pay + 1, 2);
     int64_t offset = (int32_t)(uint32_t)ct_sup_le(pay + 11, 4), drift = (int32_t)(uint32_t)ct_sup_le(pay + 15, 4);
-    int64_t i, k, due, *hist;
+    int64_t i, k, *hist;
     int acquiring;
     if (si[CT_SUP_BACK])
         return 1;                                   /* the time sync forgets the nodes back first */
@@ -247,11 +266,7 @@ int ct_sup_reply(const struct ct_sup *s, const uint8_t *pay, int64_t now_us)
         if ((d < 0 ? -d : d) > si[CT_SUP_STEP_THRESHOLD])
             return 1;                               /* a clock step */
     }
-    /* Health.heard */
-    s->last_heard[i] = now_us;
-    due = now_us + s->timeout_us[i];
-    if (due < si[CT_SUP_CHECK_US])
-        si[CT_SUP_CHECK_US] = due;
+    ct_sup_heard(s, i, now_us);
     acquiring = s->acquired[i] < CT_SUP_ACQUIRE;
     hist = s->hist + CT_SUP_REPLIES * i;          /* (first_suspect_us matters for a step only) */
     /* TimeSyncMaster.on_reply */

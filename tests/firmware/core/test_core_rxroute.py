@@ -7,7 +7,8 @@ magnetometer rows in C and hands every other row back in order.
 A seeded stream of every message: MAG_PACKED and MAG_SAMPLE of the sensors (stamps on the sample
 grid, jittered past the supervisor's tolerance, duplicated, from the future, saturated, set/reset
 flips), of a node that is no channel (the tracker's) and of the coil driver, IMU samples (some
-clipped), coil status, heartbeats, sync replies and corrupt bytes; reads cut at random, some longer
+clipped, some of a node the supervisor has lost: the supervisor's part of the others done by the
+route), coil status, heartbeats, sync replies and corrupt bytes; reads cut at random, some longer
 than the decoder's table of rows (the route resumes the decode). After every tick both stages' whole
 state must be equal: every channel's ring bit for bit (times, fields, flags, head, count, latest,
 refusals, counters), the supervisor's state (its floats bit for bit), what the tracker and the
@@ -53,12 +54,22 @@ def _stage(c, cfg, limit):
     return r, sink, sched, chans, sup
 
 
-def _frames(rng, cfg, now, t, seq):
+def _imu(rng, node, now):
+    v = [int(x) for x in rng.integers(-30000, 30000, 6)]
+    if rng.random() < 0.2:
+        v[int(rng.integers(6))] = IMU_CLIP_COUNTS
+    return encode_frame(MSG["IMU_SAMPLE"](node, now - 500, *v), 0, 1)
+
+
+def _frames(rng, cfg, now, t, seq, silent, back):
     """One tick's frames (the sensors' samples due by ``now`` and the rarer messages), ``t`` the
-    nodes' next sample times (advanced here)."""
+    nodes' next sample times (advanced here); node ``silent`` sends nothing, node ``back`` an IMU
+    sample first."""
     P = 1e6 / cfg.pulse.mag_rate_hz
-    out = b""
+    out = b"" if back is None else _imu(rng, back, now)
     for node in SENSORS + (OTHER, cfg.link.coil_driver_id):
+        while node == silent and t[node] <= now:
+            t[node] += int(P)
         while t[node] <= now:
             s = t[node] + int(rng.choice([0, 0, 0, 0, 0, 0, 0, 0, 400, -2 * int(P), 30_000]))
             x, y, z = (int(v) for v in rng.integers(-8000, 8000, 3) + np.array([6000, 0, 8000]))
@@ -73,17 +84,14 @@ def _frames(rng, cfg, now, t, seq):
             t[node] += int(P) if rng.random() > 0.02 else 3 * int(P)
     r = rng.random()
     if r < 0.3:
-        v = [int(x) for x in rng.integers(-30000, 30000, 6)]
-        if rng.random() < 0.2:
-            v[int(rng.integers(6))] = IMU_CLIP_COUNTS
-        out += encode_frame(MSG["IMU_SAMPLE"](int(rng.choice(SENSORS)), now - 500, *v), 0, 1)
+        out += _imu(rng, int(rng.choice([n for n in SENSORS + (OTHER,) if n != silent])), now)
     elif r < 0.33:
         out += encode_frame(MSG["COIL_STATUS"](int(rng.integers(3)), 0, 1000, now - 3000, now - 1000,
                                                int(rng.choice([0, 0, 4]))), 0, 2)
     elif r < 0.35:
-        out += encode_frame(MSG["HEARTBEAT"](int(rng.choice(SENSORS)), 1, 0, 1, 0, 0), 0, 3)
+        out += encode_frame(MSG["HEARTBEAT"](SENSORS[0], 1, 0, 1, 0, 0), 0, 3)
     elif r < 0.38:
-        out += encode_frame(MSG["TIME_SYNC_REPLY"](int(rng.choice(SENSORS)), 7, now + 300, 300, 10), 0, 4)
+        out += encode_frame(MSG["TIME_SYNC_REPLY"](SENSORS[1], 7, now + 300, 300, 10), 0, 4)
     elif r < 0.40 and out:
         i = int(rng.integers(len(out)))
         out = out[:i] + bytes([out[i] ^ 0x40]) + out[i + 1:]     # a corrupt frame (CRC or COBS)
@@ -93,9 +101,10 @@ def _frames(rng, cfg, now, t, seq):
 @pytest.mark.parametrize("limit", [0, 6])
 def test_the_compiled_route_keeps_the_whole_receive_stage_of_the_reference(limit):
     """With and without a frame limit per tick (``rx_frames_per_tick``: the route counts a read's
-    frames against it, the reference's ``_take`` cuts it). Catches a sample's field pushed as another (x for y, the time for the stamp), the saturated
-    and set/reset bits swapped, the supervisor's kernel skipped or a handed-back sample pushed twice,
-    the packed count missed, a row routed out of order with the ones handed back, the rows past a
+    frames against it, the reference's ``_take`` cuts it). Catches a sample's field pushed as another
+    (x for y, the time for the stamp), the saturated and set/reset bits swapped, the supervisor's kernel skipped or a handed-back sample pushed twice,
+    the packed count missed, an IMU sample's supervisor part done twice or not at all (a lost node's
+    return), a row routed out of order with the ones handed back, the rows past a
     full table of ROWS lost (the decode not resumed), a node that is no channel pushed anyway."""
     cfg = FirmwareConfig().with_(link={"sensor_ids": SENSORS}).validate()
     ref, rs, rsched, rch, rsup = _stage(core.PYTHON, cfg, limit)
@@ -118,7 +127,9 @@ def test_the_compiled_route_keeps_the_whole_receive_stage_of_the_reference(limit
             for sched in (rsched, gsched):
                 sched.start[:] = now + 4000 * np.arange(len(sched.start)) - 10_000
                 sched.end[:] = sched.start + 2000
-        held += _frames(rng, cfg, now, t, seq)
+        quiet = 300 <= k % 500 <= 450                    # the last sensor silent (lost), then back: an
+        held += _frames(rng, cfg, now, t, seq, SENSORS[-1] if quiet else None,     # IMU sample its only frame
+                        SENSORS[-1] if k % 500 == 450 else None)
         if rng.random() < 0.03:
             continue                                       # a read late: the next one is long
         cut = len(held) if rng.random() < 0.8 else int(rng.integers(len(held) + 1))
@@ -127,6 +138,8 @@ def test_the_compiled_route_keeps_the_whole_receive_stage_of_the_reference(limit
         ref.port.data = got.port.data = data
         ref.step(now)
         got.step(now)
+        rsup.health.step(now)
+        gsup.health.step(now)
         assert gs.log == rs.log, k
         for a, b in zip(rch, gch):
             _same(a, b, k)
@@ -138,7 +151,7 @@ def test_the_compiled_route_keeps_the_whole_receive_stage_of_the_reference(limit
     assert c["rx_mag_packed"] > 2500 and c["rx_crc_errors"] + c["rx_framing_errors"] > 5
     assert longest > ROWS if not limit else c["rx_deferred"] > 1000
     assert {e[0] for e in rs.log} >= {"mag", "imu", "status", "coil", "other"}
-    assert rsup.health.saturation_events and rsup.health.clock_steps
+    assert rsup.health.saturation_events and rsup.health.clock_steps and rsup.health.back_events >= 3
     # most magnetometer rows routed in C; the rare ones and every other message handed back
     assert 250 < handed[0] < c["rx_frames_ok"] / 4
 
