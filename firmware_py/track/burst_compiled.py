@@ -73,7 +73,8 @@ class CompiledBurst:
         self.compensate_begin = self._compensate_begin_compiled
         self.compensate_step = self._compensate_step_compiled
 
-    def bind_fuse(self, core, comp_solver, solver, S, pulse_t, currents, fs_at: tuple, stages) -> None:
+    def bind_fuse(self, core, comp_solver, solver, S, pulse_t, currents, fs_at: tuple, stages,
+                  codes: tuple) -> None:
         """On the compiled core, the start of a burst's fusion update (:meth:`fuse`'s compensation
         stages) in one call, and :meth:`on_solution`'s copies in one more (``ext.FuseComp``,
         ``core/src/fuse.c``: the same operations in the same order, the same bits), bound once to this
@@ -81,8 +82,10 @@ class CompiledBurst:
         the tracker's ``currents``, ``comp_solver``'s model (the re-solve's: its predictions) and
         ``solver``'s results (the burst's magnetic-only solution); ``fs_at``: the fusion filter's
         initialised flag's index and the length of its ``fs``; ``stages``: the reference's methods
-        (``fuse``, ``_measure_step``, ``compensate_begin``, ``compensate_step``, ``on_solution``),
-        the compiled forms replace them only where this instance runs those. Left to the Python
+        (``fuse``, ``_measure_step``, ``on_solution``, ``compensate_begin``, ``compensate_step``,
+        ``_begin_solve``), the compiled forms replace them only where this instance runs those;
+        ``codes``: the update's stage codes of the re-solve and of the magnetic update (``_SOLVE``,
+        ``_UPDATE_MAG``), which the re-solve's begin in place sets as ``_begin_solve`` does. Left to the Python
         where any part is of another kind (no compiled solver or filter, a distortion map)."""
         st = self.fusion.st
         ext = core.ext
@@ -102,13 +105,11 @@ class CompiledBurst:
                               self.mag_position, self.mag_rotation, self.mag_cov))
         except (AttributeError, TypeError, ValueError):
             return
-        from coiltrack.firmware.track import burst_fusion     # (loaded: its tracker calls this at construction)
         self._fz_run = k.run
         self._fz_solution = k.solution
-        self._fz_solve, self._fz_n = burst_fusion._SOLVE, self.S_comp.shape[1]
+        self._fz_solve, self._fz_n = codes[0], self.S_comp.shape[1]
         #: the re-solve's begin in place where this class's is the reference's (``_begin_solve``)
-        self._fz_begin = (burst_fusion._SOLVE, burst_fusion._UPDATE_MAG) \
-            if type(self)._begin_solve is burst_fusion.SensorInertial._begin_solve else None
+        self._fz_begin = codes if type(self)._begin_solve is stages[5] else None
         self._fz_solvers = (comp_solver, solver)
         self._fuse_reference = stages[0]
         self._on_solution_reference = stages[2]

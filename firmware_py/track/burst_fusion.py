@@ -1001,10 +1001,10 @@ class BurstFusionTracker(SolveTick, MagneticTracker):
         # (its sigma leaves out the compensation's error) and no fall-back to acquisition
         self.comp_solver = solvers(1.0)
         stages = (SensorInertial.fuse, SensorInertial._measure_step, SensorInertial.on_solution,
-                  SensorInertial.compensate_begin, SensorInertial.compensate_step)
+                  SensorInertial.compensate_begin, SensorInertial.compensate_step, SensorInertial._begin_solve)
         for ch, ins in self._pairs:         # the start of each sensor's fusion update: one call (compiled core)
             ins.bind_fuse(core, self.comp_solver, self.solver, ch.S, ch.pulse_mid, self.currents, (FS_INIT, FS_N),
-                          stages)
+                          stages, (_SOLVE, _UPDATE_MAG))
         self._rep_cov = np.zeros((6, 6))     # the covariance a magnetic-only POSE is sent with
         self._bind_report_chain(core)
         self._bind_burst_open(core)

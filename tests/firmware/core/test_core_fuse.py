@@ -17,12 +17,12 @@ from coiltrack.firmware.config import FirmwareConfig
 from coiltrack.firmware.estimate.magnetic_inertial import FS_INIT, FS_N
 from coiltrack.firmware.model.field import Coil
 from coiltrack.firmware.pose.solver import PoseSolver
-from coiltrack.firmware.track.burst_fusion import FixedSource, PulseGate, SensorInertial
+from coiltrack.firmware.track.burst_fusion import _SOLVE, _UPDATE_MAG, FixedSource, PulseGate, SensorInertial
 
 _core = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 COMPILED = core.load("compiled")
 STAGES = (SensorInertial.fuse, SensorInertial._measure_step, SensorInertial.on_solution,
-          SensorInertial.compensate_begin, SensorInertial.compensate_step)
+          SensorInertial.compensate_begin, SensorInertial.compensate_step, SensorInertial._begin_solve)
 
 
 def _spd(rng, n, scale):
@@ -47,7 +47,8 @@ class _Side:
         self.sigma = np.zeros((3, n))
         self.pulse_t = np.zeros(n, dtype=np.int64)
         self.currents = np.zeros(n)
-        self.ins.bind_fuse(c, self.comp, self.solver, self.S, self.pulse_t, self.currents, (FS_INIT, FS_N), STAGES)
+        self.ins.bind_fuse(c, self.comp, self.solver, self.S, self.pulse_t, self.currents, (FS_INIT, FS_N), STAGES,
+                           (_SOLVE, _UPDATE_MAG))
         self.filter_steps = 0
 
         def filter_step(replay_budget):        # (the update's own tests are test_core_fusion_update.py's)
