@@ -25,11 +25,12 @@ from coiltrack.firmware.supervise.supervisor import Supervisor
 from coiltrack.protocol import MSG, FrameDecoder, encode_frame
 from coiltrack.protocol.schema import IMU_CLIP_COUNTS, MAG_LSB_T, STAMP_FLIP, STAMP_SATURATED, pack_stamp
 
-from .test_core_rxdecode import _Port, _Sink
+ext = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
+
+from .test_core_rxdecode import _Port, _Sink  # noqa: E402  (after the skip: that module skips too)
 from .test_core_sample_push import _same
 from .test_core_supervise import _Schedule, _Tx, _floats_bitwise, _state
 
-ext = pytest.importorskip("coiltrack.firmware._core", reason="the compiled core is not built here")
 COMPILED = core.load("compiled")
 SENSORS = (16, 17, 18, 40)
 OTHER = 99                   # a magnetometer that is no sensor channel: the tracker's
