@@ -27,6 +27,22 @@ typedef struct {
     struct ct_rx d;
 } RxDecodeObject;
 
+/* A tick's data, read in place: a bytes object's own bytes, else its buffer (v, to be released:
+ * returns 1); 0 for bytes, -1 with the exception set where obj has no buffer */
+static int rx_data(PyObject *obj, const uint8_t **p, Py_ssize_t *n, Py_buffer *v)
+{
+    if (PyBytes_Check(obj)) {
+        *p = (const uint8_t *)PyBytes_AS_STRING(obj);
+        *n = PyBytes_GET_SIZE(obj);
+        return 0;
+    }
+    if (PyObject_GetBuffer(obj, v, PyBUF_SIMPLE) < 0)
+        return -1;
+    *p = (const uint8_t *)v->buf;
+    *n = v->len;
+    return 1;
+}
+
 static void RxDecode_dealloc(RxDecodeObject *self)
 {
     int k;
@@ -103,7 +119,7 @@ static PyObject *RxDecode_decode(RxDecodeObject *self, PyObject *const *args, Py
     Py_ssize_t n;
     long long pos, now;
     Py_buffer v;
-    int rows, view = 0;
+    int rows, view;
     if (!self->nbound) {
         PyErr_SetString(PyExc_RuntimeError, "RxDecode: not bound");
         return NULL;
@@ -112,16 +128,8 @@ static PyObject *RxDecode_decode(RxDecodeObject *self, PyObject *const *args, Py
         PyErr_Format(PyExc_TypeError, "decode() takes 3 arguments (%zd given)", nargs);
         return NULL;
     }
-    if (PyBytes_Check(args[0])) {
-        p = (const uint8_t *)PyBytes_AS_STRING(args[0]);
-        n = PyBytes_GET_SIZE(args[0]);
-    } else {
-        if (PyObject_GetBuffer(args[0], &v, PyBUF_SIMPLE) < 0)
-            return NULL;
-        p = (const uint8_t *)v.buf;
-        n = v.len;
-        view = 1;
-    }
+    if ((view = rx_data(args[0], &p, &n, &v)) < 0)
+        return NULL;
     pos = PyLong_AsLongLong(args[1]);
     now = (pos == -1 && PyErr_Occurred()) ? -1 : PyLong_AsLongLong(args[2]);
     if ((pos == -1 || now == -1) && PyErr_Occurred()) {
@@ -251,7 +259,7 @@ static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssi
     int64_t mode, now, row;
     const int64_t *s;
     Py_buffer v;
-    int view = 0;
+    int view;
     if (self->held == NULL) {
         PyErr_SetString(PyExc_RuntimeError, "RxRoute: not bound");
         return NULL;
@@ -268,16 +276,8 @@ static PyObject *RxRoute_step(RxRouteObject *self, PyObject *const *args, Py_ssi
         PyErr_SetString(PyExc_ValueError, "step: the route's rows outside the table");
         return NULL;
     }
-    if (PyBytes_Check(args[0])) {
-        p = (const uint8_t *)PyBytes_AS_STRING(args[0]);
-        n = PyBytes_GET_SIZE(args[0]);
-    } else {
-        if (PyObject_GetBuffer(args[0], &v, PyBUF_SIMPLE) < 0)
-            return NULL;
-        p = (const uint8_t *)v.buf;
-        n = v.len;
-        view = 1;
-    }
+    if ((view = rx_data(args[0], &p, &n, &v)) < 0)
+        return NULL;
     row = ct_rx_step(&self->r, p, (int64_t)n, (int)mode, now);
     if (view)
         PyBuffer_Release(&v);
