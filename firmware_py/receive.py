@@ -80,7 +80,7 @@ from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.measure.windows import SensorChannel
 from coiltrack.firmware.rxdecode import RXK_IMU as _RXK_IMU, RXK_MAG as _RXK_MAG, RXK_MAG_PACKED as _RXK_MAG_PACKED
 from coiltrack.firmware.rxdecode import RXR_CLIP as _RXR_CLIP, RXR_KIND as _RXR_KIND, CompiledFrameDecoder
-from coiltrack.firmware.rxdecode import RX_OVER_LIMIT as _OVER, RX_RESUME as _RESUME, RX_TAKEN as _TAKEN
+from coiltrack.firmware.rxdecode import RX_NEW as _NEW, RX_OVER_LIMIT as _OVER, RX_RESUME as _RESUME, RX_TAKEN as _TAKEN
 
 _MAG = MSG["MAG_SAMPLE"].ID
 _IMU = MSG["IMU_SAMPLE"].ID
@@ -330,7 +330,7 @@ class Receiver:
         elif not data:
             return
         else:
-            k = self._rx_step(data, 0, now_us)
+            k = self._rx_step(data, _NEW, now_us)
             if k == _OVER:                       # a tick's worth of frames or more
                 data = self._take(data)
                 k = self._rx_step(data, _TAKEN, now_us)

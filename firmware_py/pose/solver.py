@@ -476,29 +476,18 @@ class _CompiledSolver:
 
     def _step_compiled(self, budget_evals: int) -> int:
         """:meth:`StagedSolve.step` in one frame where the next unit is the compiled one (a warm
-        solve's LM or finish): the run (``ct_solve_run``), :meth:`_after_run` (in place where the
-        solve finished), the Python's units after it where the warm start failed its checks
-        (:meth:`_run_from`), the charges and the step's counters, in the reference's order; other
-        units: the reference's step."""
+        solve's LM or finish): the run (``ct_solve_run``), the Python's units after it where the
+        warm start failed its checks (:meth:`_run_from`), the charges and the step's counters, in
+        the reference's order; other units: the reference's step."""
         if self.next_unit is not self._unit_c:
             return StagedSolve.step(self, budget_evals)
         signal = self.signal
         start = signal.evals
         phase = self._sv.run(0, budget_evals)
-        sv = self._svv
-        spent = int(sv[_SV_SPENT])
-        if phase == _PH_NONE:                         # (_after_run's lines for a finished solve, in place)
-            signal.charge(int(sv[_SV_EVALS]))
-            self.status = st = int(sv[_SV_STATUS])
-            if not st & SOLVE_NO_START:
-                self.iterations = int(sv[_SV_ITERATIONS])
-                self.cost = sv[_SV_COST]
-                self.converged = sv[_SV_CONVERGED] != 0.0
-            self.next_unit, self.next_cost = None, 0
-        else:
-            self._after_run(phase)
-            if phase == _PH_ACQUIRE:
-                spent = self._run_from(spent, budget_evals)
+        spent = int(self._svv[_SV_SPENT])
+        self._after_run(phase)
+        if phase == _PH_ACQUIRE:
+            spent = self._run_from(spent, budget_evals)
         self.units_last = spent
         used = signal.evals - start
         self.evals_last_step = used

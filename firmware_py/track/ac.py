@@ -36,13 +36,10 @@ from coiltrack.protocol.schema import AC_FAULT_REFUSED, COIL_FAULT_REFUSED, POSE
 from coiltrack.firmware.core import DEFAULT as _DEFAULT_CORE
 from coiltrack.firmware.actuate.ac import AC_STATUS_ID, ACActuation
 from coiltrack.firmware.measure.ac_blocks import ACBlockMeasurement
+from coiltrack.firmware.track.burst_fusion import ALL_STEPS as _ALL_STEPS
 from coiltrack.firmware.track.burst_fusion import BurstFusionTracker, PulseGate, SensorInertial
 from coiltrack.firmware.track.magnetic import MagneticTracker
 from coiltrack.firmware.track.solve_tick import SolveTick
-
-
-#: ``SensorInertial.process``'s default ``max_steps``: every queued sample
-_ALL_STEPS = 1 << 30
 
 
 class _AlwaysQuiet(PulseGate):

@@ -54,6 +54,8 @@ from coiltrack.firmware.track.magnetic import MagneticTracker, in_range, in_rang
 from coiltrack.firmware.track.solve_tick import SolveTick
 from coiltrack.firmware.track.source_unaccelerated import Unaccelerated
 
+#: ``SensorInertial.process``'s default ``max_steps``: every queued sample
+ALL_STEPS = 1 << 30
 #: motion compensation needs the inertial velocity to better than this (m/s, rms per axis)
 _COMP_MAX_VEL_SIGMA = 0.05
 #: the steps of fusing one burst (``SensorInertial.fuse``)
@@ -486,7 +488,7 @@ class _OneCall:
         self._hold = None if source.fixed else source.hold     # (a fixed source never holds)
         self._b = ()
 
-    def run(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> int:
+    def run(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = ALL_STEPS) -> int:
         """:meth:`SensorInertial.process`'s loop; the samples processed. Without a source that may hold
         a sample (a fixed source) the samples both filters take whole run in the compiled loop
         (``ext.ImuSample.drain``: :meth:`one`'s tests and bookkeeping on the owners' state arrays, in
@@ -669,7 +671,8 @@ class SensorInertial(CompiledBurst):
             one.bind(mag)
 
     # ------------------------------------------------------------ per sample
-    def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = 1 << 30) -> None:
+    def process(self, mag: SampleRing, now_us: int = 0, wait_us: int = 0, max_steps: int = ALL_STEPS) \
+            -> None:
         """Drain the IMU ring through Xi and the fusion filter, at most ``max_steps`` samples
         (the rest wait for the next tick: IMU steps given back from an IMU_DELTA pair arrive
         twelve at once). With the source's IMU (eq 6.8) a sample waits (at most ``wait_us``)

@@ -536,7 +536,6 @@ class _HandOver:
         same operations in the same order. Where :meth:`_begin` or :meth:`_report` was replaced on
         the instance since the binding (a recorder wraps it), the next begin goes through them."""
         poses, chans, tx = self.poses, self.channels, self.tx
-        n = len(chans)
         hook = self.__dict__.get("on_solution", self._on_solution)       # (one set on the instance: it)
         while True:
             tp = poses[ch.node]
@@ -547,20 +546,8 @@ class _HandOver:
                 tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
             if hook is not None:
                 hook(ch, solved)
-            self._next += 1
-            if self._next == n:
-                self._next = -1
-                self.cycles += 1
-                if self._burst_ticks > self.solve_ticks_max:
-                    self.solve_ticks_max = self._burst_ticks
-                self.burst.release()
+            if not self._next_sensor():
                 return
-            sn = self.solver.n
-            if self._units + sn > self.budget or self._handovers >= self.handovers_max:
-                self._handover = True            # no room left in this tick's budget or hand-overs
-                return
-            self._units += sn
-            self._handovers += 1
             ch = chans[self._next]
             if self._begin is not self._loop_begin or self._report is not self._loop_report:
                 self._begin(ch)              # (replaced since the binding: through them, as the reference)
@@ -961,6 +948,13 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
         if not solved:
             self.tx.pose_unknown(ch.node, t_pose, tp.position, self._quat(tp.rotation), self._status)
         self.on_solution(ch, solved)
+        if self._next_sensor():
+            self._begin(self.channels[self._next])
+
+    def _next_sensor(self) -> bool:
+        """After a sensor's report, the move to the next one: True when its begin is due in this
+        tick (charged: ``solver.n`` units, one hand-over); False at the cycle's end (the burst
+        released) or with no room left in this tick's budget or hand-overs (``_handover``)."""
         self._next += 1
         if self._next == len(self.channels):
             self._next = -1
@@ -968,12 +962,13 @@ class MagneticTracker(_CompiledReport, _ScanAhead, _HandOver):
             if self._burst_ticks > self.solve_ticks_max:
                 self.solve_ticks_max = self._burst_ticks
             self.burst.release()
-        elif self._units + self.solver.n > self.budget or self._handovers >= self.handovers_max:
+            return False
+        if self._units + self.solver.n > self.budget or self._handovers >= self.handovers_max:
             self._handover = True            # no room left in this tick's budget or hand-overs
-        else:
-            self._units += self.solver.n
-            self._handovers += 1
-            self._begin(self.channels[self._next])
+            return False
+        self._units += self.solver.n
+        self._handovers += 1
+        return True
 
     def _out_of_range(self, tp: TrackedPose) -> bool:
         """A diverged start led the solve out of the working volume: no pose; acquire again
