@@ -56,8 +56,9 @@ class CompiledActuationPolicy(ActuationPolicy):
     """``coil_choice.ActuationPolicy`` on the compiled core: :meth:`set_bounds`, :meth:`due` and
     :meth:`worst` are one call each (``sc_policy.c`` ``ct_scp_policy_set_bounds``, ``_due``,
     ``_worst``: the kernel's methods themselves, no Python layer), bound once to ``var_max`` and to
-    the outputs ``_st`` (the reason, the worst ratio; ``worst`` also returns it); the same operations in the same order as the reference's: bit for bit (the decision
-    of when to pulse sees the same numbers on both cores). ``reason`` is read from ``_st``."""
+    the outputs ``_st`` (the reason, the worst ratio; ``worst`` also returns it); the same
+    operations in the same order as the reference's: bit for bit (the decision of when to pulse
+    sees the same numbers on both cores). ``reason`` is read from ``_st``."""
 
     def __init__(self, sigma_max, max_interval_us: int, trace: bool, ext):
         self._st = np.zeros(2)
